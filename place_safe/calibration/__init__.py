@@ -1,0 +1,83 @@
+"""Calibration files: one JSON file with a section per method family.
+
+Layout::
+
+    {"format": "place_safe.calibration/1",
+     "peak":        {...PeakParams...},          # calibrated histogram-peak method
+     "proprietary": {...PeakParams...},          # calibrated on-sensor distances
+     "forward":     {...ForwardParams...},       # forward model for differentiable rendering
+     "reports":     {"peak": {...}, ...}}        # fit-quality summaries (informational)
+
+``place-safe calibrate --method M -o FILE`` fits one family and writes its section; if FILE already
+is a calibration file, its other sections are kept, so one file can carry all methods.
+Fitting lives in :mod:`place_safe.calibration.points` (peak and on-sensor distances) and
+:mod:`place_safe.calibration.forward_fit` (forward model).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from ..exceptions import CalibrationError
+from ..forward import ForwardParams
+
+FORMAT = "place_safe.calibration/1"
+SECTIONS = ("peak", "proprietary", "forward")
+
+
+@dataclass
+class Calibration:
+    """Sections of a calibration file as plain dicts; typed views via :meth:`peak` etc."""
+
+    sections: dict[str, dict] = field(default_factory=dict)
+    reports: dict[str, Any] = field(default_factory=dict)
+
+    def peak(self):
+        from .points import PeakParams
+        return PeakParams.from_dict(self.sections["peak"]) if "peak" in self.sections else PeakParams.default_peak()
+
+    def proprietary(self):
+        from .points import PeakParams
+        return (PeakParams.from_dict(self.sections["proprietary"]) if "proprietary" in self.sections
+                else PeakParams.default_proprietary())
+
+    def forward(self) -> ForwardParams:
+        return ForwardParams.from_dict(self.sections["forward"]) if "forward" in self.sections else ForwardParams()
+
+    def to_dict(self) -> dict:
+        out: dict[str, Any] = {"format": FORMAT}
+        out.update(self.sections)
+        if self.reports:
+            out["reports"] = self.reports
+        return out
+
+    @classmethod
+    def from_dict(cls, d: Any) -> "Calibration":
+        if not isinstance(d, dict) or d.get("format") != FORMAT:
+            raise CalibrationError(f"not a place_safe calibration (expected \"format\": \"{FORMAT}\")")
+        cal = cls({k: d[k] for k in SECTIONS if k in d}, dict(d.get("reports", {})))
+        # build every typed view once so a bad file fails here, not mid-run
+        for name in cal.sections:
+            getattr(cal, name)()
+        return cal
+
+    @classmethod
+    def load(cls, path: str | Path) -> "Calibration":
+        try:
+            text = Path(path).read_text()
+        except OSError as exc:
+            raise CalibrationError(f"cannot read calibration {path}: {exc.strerror}") from None
+        try:
+            d = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise CalibrationError(f"calibration {path} is not JSON: {exc.msg} at line {exc.lineno}") from None
+        try:
+            return cls.from_dict(d)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise CalibrationError(f"calibration {path} is malformed: {exc}") from None
+
+    def save(self, path: str | Path) -> None:
+        Path(path).write_text(json.dumps(self.to_dict(), indent=2) + "\n")

@@ -1,0 +1,29 @@
+"""Errors raised by place_safe. Each message says what was wrong and what was expected."""
+
+
+class PlaceSafeError(Exception):
+    """Base class of every error place_safe raises on purpose."""
+
+
+class FrameError(PlaceSafeError, ValueError):
+    """A sensor frame is malformed: wrong shape, NaN or negative counts, missing reference."""
+
+
+class FrameFileError(PlaceSafeError, ValueError):
+    """A frame file cannot be read or does not follow docs/interfaces.md."""
+
+
+class CalibrationError(PlaceSafeError, ValueError):
+    """A calibration file or calibration data set is unusable."""
+
+
+class NoPlaneError(PlaceSafeError):
+    """No plane can be recovered from a frame (no return, saturated, not planar, bad data)."""
+
+
+class SensorTimeout(PlaceSafeError, TimeoutError):
+    """The sensor stopped answering within the allowed time."""
+
+
+class RobotFault(PlaceSafeError, RuntimeError):
+    """The robot reported a fault (protective stop, lost connection, limit violation)."""

@@ -1,0 +1,312 @@
+"""The differentiable forward imaging model of the TMF8820 (Sifferman et al., RA-L 2023), in torch.
+
+For each zone, rays leave the sensor through the zone's rectangle on ``z = 1``. A ray that meets a
+surface at range ``r`` (m) with cosine of incidence ``c`` returns, with a co-located light
+(Phong shading),
+
+    I = albedo * (c + w_s * max(2 c^2 - 1, 0) ** alpha)        (``2c^2 - 1 = cos 2theta = R . V``)
+
+photons that a SPAD pixel of zone gain ``g`` counts, soft-saturating with the inverse square law,
+
+    p = s * (1 - exp(-g * I / (s * r^2)))
+
+at the bin position ``u = r / bin_size + bin_offset + zone_offset`` (bins of one-way range). Each
+ray is soft-binned with a Gaussian of ``soft_bin_sigma`` bins; a zone's transient is the
+solid-angle weighted mean over its rays times ``rays_per_zone`` (so quadratures of any size share
+one scale). The transient is convolved with the laser pulse (the reference histogram, floor
+removed, normalised to peak 1, stretched in time by ``ref_time_scale``), zones leak
+``crosstalk`` of every other zone's histogram, and a constant ``floor`` is added.
+
+Shapes: ``B`` frames, 9 zones, ``R`` rays per zone, 128 bins. Everything is batched over frames
+and differentiable in the plane, reflectance and every camera parameter.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .exceptions import CalibrationError
+from .sensor import N_BINS, N_ZONES, ZONE_KIND, ZONE_RECTS
+
+_SQRT_2PI = math.sqrt(2.0 * math.pi)
+
+
+@dataclass
+class ForwardParams:
+    """Camera parameters of the forward model. Defaults are the values published with the paper.
+
+    Units: ``bin_offset``, ``soft_bin_sigma`` and ``zone_offsets`` in bins; ``bin_size`` in metres
+    of one-way range per bin; ``ref_floor`` and ``floor`` in counts; the rest dimensionless.
+    """
+
+    albedo: float = 3.4410
+    edge_gain: float = 0.5996
+    corner_gain: float = 0.4070
+    bin_offset: float = 9.5235
+    bin_size: float = 0.014131
+    crosstalk: float = 0.0097662
+    specular_weight: float = 0.14681
+    specular_exponent: float = 1.8378
+    soft_bin_sigma: float = 0.5
+    ref_time_scale: float = 0.27887
+    ref_floor: float = 135.14
+    saturation: float = 315.85
+    rays_per_zone: int = 2304
+    floor: float = 0.0
+    zone_offsets: list[float] = field(default_factory=lambda: [0.0] * N_ZONES)
+    zone_gains: list[float] = field(default_factory=lambda: [1.0] * N_ZONES)
+
+    def __post_init__(self) -> None:
+        if len(self.zone_offsets) != N_ZONES or len(self.zone_gains) != N_ZONES:
+            raise CalibrationError(f"zone_offsets and zone_gains need {N_ZONES} values each")
+        bad = [f.name for f in fields(self) if f.name not in ("zone_offsets", "zone_gains")
+               and not math.isfinite(float(getattr(self, f.name)))]
+        if bad:
+            raise CalibrationError(f"forward parameters are not finite: {', '.join(bad)}")
+        if self.bin_size <= 0 or self.saturation <= 0 or self.ref_time_scale <= 0 or self.soft_bin_sigma <= 0:
+            raise CalibrationError("bin_size, saturation, ref_time_scale and soft_bin_sigma must be > 0")
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["zone_offsets"] = [float(v) for v in self.zone_offsets]
+        d["zone_gains"] = [float(v) for v in self.zone_gains]
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "ForwardParams":
+        names = {f.name for f in fields(cls)}
+        unknown = set(d) - names
+        if unknown:
+            raise CalibrationError(f"unknown forward parameters: {', '.join(sorted(unknown))}")
+        return cls(**d)
+
+    def save(self, path: str | Path) -> None:
+        Path(path).write_text(json.dumps(self.to_dict(), indent=2))
+
+    @classmethod
+    def load(cls, path: str | Path) -> "ForwardParams":
+        try:
+            return cls.from_dict(json.loads(Path(path).read_text()))
+        except (OSError, json.JSONDecodeError, TypeError) as exc:
+            raise CalibrationError(f"cannot read forward parameters from {path}: {exc}") from None
+
+    def kind_gains(self) -> np.ndarray:
+        """Gain of each zone (9,): centre 1, edge/corner gains, times the per-zone gains."""
+        base = np.array([1.0, self.edge_gain, self.corner_gain])[ZONE_KIND]
+        return base * np.asarray(self.zone_gains, dtype=float)
+
+
+#: Parameters that are tensors inside the model (everything but the ray count).
+TENSOR_PARAMS = tuple(f.name for f in fields(ForwardParams) if f.name != "rays_per_zone")
+
+
+def params_to_tensors(p: ForwardParams, dtype: torch.dtype = torch.float64) -> dict[str, torch.Tensor]:
+    """The parameters as a dict of tensors (scalars, or (9,) for the per-zone ones)."""
+    return {k: torch.as_tensor(np.asarray(getattr(p, k), dtype=float), dtype=dtype) for k in TENSOR_PARAMS}
+
+
+def tensors_to_params(t: dict[str, torch.Tensor], rays_per_zone: int) -> ForwardParams:
+    vals = {}
+    for k, v in t.items():
+        a = v.detach().cpu().numpy()
+        vals[k] = [float(x) for x in a] if a.ndim else float(a)
+    return ForwardParams(rays_per_zone=rays_per_zone, **vals)
+
+
+# ---------------------------------------------------------------------------------------------
+# Rays
+# ---------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ZoneRays:
+    """Ray directions (9, R, 3) (unit) and quadrature weights (9, R) summing to 1 per zone."""
+
+    directions: torch.Tensor
+    weights: torch.Tensor
+
+    @property
+    def count(self) -> int:
+        return int(self.directions.shape[1])
+
+    @classmethod
+    def stratified(cls, n: int = 8, dtype: torch.dtype = torch.float64) -> "ZoneRays":
+        """Deterministic n x n midpoint grid on each zone rectangle, weighted by solid angle.
+
+        The weight of a grid cell is ``dx dy / (1 + x^2 + y^2)^(3/2)``, the solid angle it subtends,
+        so the weighted mean equals the mean over rays uniform in solid angle.
+        """
+        if n < 1:
+            raise ValueError("stratified rays need n >= 1")
+        t = (np.arange(n) + 0.5) / n
+        dirs, wts = [], []
+        for x0, x1, y0, y1 in ZONE_RECTS:
+            gx, gy = np.meshgrid(x0 + (x1 - x0) * t, y0 + (y1 - y0) * t, indexing="ij")
+            v = np.stack([gx.ravel(), gy.ravel(), np.ones(n * n)], axis=1)
+            norm2 = (v * v).sum(axis=1)
+            w = norm2 ** -1.5
+            dirs.append(v / np.sqrt(norm2)[:, None])
+            wts.append(w / w.sum())
+        return cls(torch.as_tensor(np.array(dirs), dtype=dtype), torch.as_tensor(np.array(wts), dtype=dtype))
+
+    @classmethod
+    def random(cls, n: int = 2304, generator: np.random.Generator | None = None,
+               dtype: torch.dtype = torch.float64) -> "ZoneRays":
+        """``n`` rays per zone drawn uniformly in solid angle (rejection sampling), equal weights.
+
+        This is the paper's sampling; it is what the ``paper`` mode of differentiable rendering uses.
+        """
+        rng = generator if generator is not None else np.random.default_rng()
+        dirs = []
+        for x0, x1, y0, y1 in ZONE_RECTS:
+            # density on z=1 of uniform solid angle is proportional to (1+x^2+y^2)^-1.5
+            cmax = (1 + min(x0 ** 2, x1 ** 2) * (x0 * x1 > 0) + min(y0 ** 2, y1 ** 2) * (y0 * y1 > 0)) ** -1.5
+            got: list[np.ndarray] = []
+            count = 0
+            while count < n:
+                m = 2 * (n - count) + 16
+                x = rng.uniform(x0, x1, m)
+                y = rng.uniform(y0, y1, m)
+                keep = rng.uniform(0, cmax, m) < (1 + x * x + y * y) ** -1.5
+                v = np.stack([x[keep], y[keep], np.ones(keep.sum())], axis=1)
+                got.append(v)
+                count += len(v)
+            v = np.concatenate(got)[:n]
+            dirs.append(v / np.linalg.norm(v, axis=1, keepdims=True))
+        d = torch.as_tensor(np.array(dirs), dtype=dtype)
+        return cls(d, torch.full(d.shape[:2], 1.0 / n, dtype=dtype))
+
+
+# ---------------------------------------------------------------------------------------------
+# Model
+# ---------------------------------------------------------------------------------------------
+def pulse_kernel(reference: torch.Tensor, time_scale: torch.Tensor, ref_floor: torch.Tensor) -> torch.Tensor:
+    """Laser pulse in zone bins from reference histograms (..., 128) -> (..., K).
+
+    The floor is removed, the pulse normalised to peak 1 and sampled at zone-bin lags
+    ``k = 0..K-1``, i.e. at reference bins ``k / time_scale`` (linear interpolation).
+    """
+    ref = torch.clamp(reference - ref_floor, min=0.0)
+    peak = ref.amax(dim=-1, keepdim=True)
+    ref = ref / torch.clamp(peak, min=1e-12)
+    k_len = int(math.floor((N_BINS - 1) * float(time_scale))) + 1
+    lags = torch.arange(k_len, dtype=ref.dtype)
+    pos = lags / time_scale  # reference-bin coordinate of each lag
+    lo = torch.clamp(torch.floor(pos), 0, N_BINS - 2)
+    frac = pos - lo
+    lo_i = lo.long()
+    a = ref[..., lo_i]
+    b = ref[..., lo_i + 1]
+    return a * (1 - frac) + b * frac
+
+
+def convolve_pulse(transient: torch.Tensor, kernel: torch.Tensor) -> torch.Tensor:
+    """Causal convolution of transients (B, Z, N) with per-frame kernels (B, K) -> (B, Z, N)."""
+    k_len = kernel.shape[-1]
+    padded = torch.nn.functional.pad(transient, (k_len - 1, 0))
+    windows = padded.unfold(-1, k_len, 1)  # (B, Z, N, K): window j covers t = j-K+1 .. j
+    return torch.einsum("bznk,bk->bzn", windows, kernel.flip(-1))
+
+
+class ForwardModel:
+    """Renders 9x128 zone histograms from per-ray returns or from a plane.
+
+    ``params`` are held as tensors (``self.t``) so calibration can optimise them; ``rays`` is the
+    quadrature. Use :meth:`render_plane` for planes and :meth:`render_returns` for anything a ray
+    caster gives (the MuJoCo sensor).
+    """
+
+    def __init__(self, params: ForwardParams | None = None, rays: ZoneRays | None = None,
+                 dtype: torch.dtype = torch.float64) -> None:
+        self.params = params if params is not None else ForwardParams()
+        self.dtype = dtype
+        self.rays = rays if rays is not None else ZoneRays.stratified(8, dtype=dtype)
+        self.t = params_to_tensors(self.params, dtype)
+        self.bins = torch.arange(N_BINS, dtype=dtype)
+        self._kind = torch.as_tensor(ZONE_KIND)
+
+    # -- pieces ------------------------------------------------------------------------------
+    def zone_gains(self) -> torch.Tensor:
+        t = self.t
+        one = torch.ones((), dtype=self.dtype)
+        base = torch.stack([one, t["edge_gain"], t["corner_gain"]])[self._kind]
+        return base * t["zone_gains"]
+
+    def pulse(self, reference: torch.Tensor) -> torch.Tensor:
+        return pulse_kernel(torch.as_tensor(reference, dtype=self.dtype), self.t["ref_time_scale"], self.t["ref_floor"])
+
+    def render_returns(self, ranges: torch.Tensor, cos_inc: torch.Tensor, albedo: torch.Tensor,
+                       reference: torch.Tensor, weights: torch.Tensor | None = None,
+                       specular_weight: torch.Tensor | None = None,
+                       specular_exponent: torch.Tensor | None = None,
+                       hit: torch.Tensor | None = None, kernel: torch.Tensor | None = None) -> torch.Tensor:
+        """Histograms (B, 9, 128) from per-ray returns.
+
+        ranges, cos_inc: (B, 9, R) range along the ray (m) and cosine of incidence (>= 0).
+        albedo: (B,) or (B, 9, R) reflectance; specular_weight / specular_exponent likewise
+        (default: the model's parameters). weights: (9, R) or (B, 9, R) quadrature weights summing
+        to 1 per zone (default: this model's rays). hit: (B, 9, R) bool, False for rays that miss.
+        reference: (B, 128) reference histograms, or pass a precomputed pulse ``kernel`` (B, K).
+        """
+        t = self.t
+        r = torch.as_tensor(ranges, dtype=self.dtype)
+        c = torch.clamp(torch.as_tensor(cos_inc, dtype=self.dtype), min=0.0)
+        b = r.shape[0]
+        ks = t["specular_weight"] if specular_weight is None else _per_ray(specular_weight, r)
+        alpha = t["specular_exponent"] if specular_exponent is None else _per_ray(specular_exponent, r)
+        rho = _per_ray(albedo, r)
+        spec = torch.clamp(2.0 * c * c - 1.0, min=0.0)
+        # pow with a zero base has an infinite derivative in the exponent at 0; keep it finite
+        spec = torch.where(spec > 0, torch.pow(torch.clamp(spec, min=1e-30), alpha), torch.zeros_like(spec))
+        intensity = rho * (c + ks * spec)
+        s = t["saturation"]
+        g = self.zone_gains().view(1, N_ZONES, 1)
+        r_safe = torch.clamp(r, min=1e-4)
+        photons = s * -torch.expm1(-g * intensity / (s * r_safe * r_safe))
+        w = self.rays.weights if weights is None else torch.as_tensor(weights, dtype=self.dtype)
+        w = w.expand_as(photons) if w.dim() == 2 else w
+        amp = photons * w * float(self.params.rays_per_zone)
+        if hit is not None:
+            amp = amp * torch.as_tensor(hit, dtype=self.dtype)
+        u = r / t["bin_size"] + t["bin_offset"] + t["zone_offsets"].view(1, N_ZONES, 1)
+        sigma = t["soft_bin_sigma"]
+        z = (self.bins.view(1, 1, 1, N_BINS) - u.unsqueeze(-1)) / sigma
+        transient = torch.einsum("bzr,bzrn->bzn", amp, torch.exp(-0.5 * z * z)) / (sigma * _SQRT_2PI)
+        if kernel is None:
+            kernel = self.pulse(torch.as_tensor(reference, dtype=self.dtype).expand(b, N_BINS))
+        hist = convolve_pulse(transient, kernel)
+        total = hist.sum(dim=1, keepdim=True)
+        hist = hist + t["crosstalk"] * (total - hist)
+        return hist + t["floor"]
+
+    def plane_returns(self, normal: torch.Tensor, offset: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Ranges, cosines of incidence and hit mask (B, 9, R) of this model's rays on planes.
+
+        normal: (B, 3) unit normals (n_z > 0), offset: (B,) distances (m).
+        """
+        n = torch.as_tensor(normal, dtype=self.dtype)
+        d = torch.as_tensor(offset, dtype=self.dtype)
+        cos = torch.einsum("zrk,bk->bzr", self.rays.directions, n)
+        hit = cos > 1e-6
+        ranges = d.view(-1, 1, 1) / torch.where(hit, cos, torch.ones_like(cos))
+        return ranges, cos, hit
+
+    def render_plane(self, normal: torch.Tensor, offset: torch.Tensor, albedo: torch.Tensor,
+                     reference: torch.Tensor, specular_weight: torch.Tensor | None = None,
+                     specular_exponent: torch.Tensor | None = None,
+                     kernel: torch.Tensor | None = None) -> torch.Tensor:
+        """Histograms (B, 9, 128) of planes ``n . x = d`` with albedo (B,)."""
+        ranges, cos, hit = self.plane_returns(normal, offset)
+        return self.render_returns(ranges, cos, albedo, reference, specular_weight=specular_weight,
+                                   specular_exponent=specular_exponent, hit=hit, kernel=kernel)
+
+
+def _per_ray(value, like: torch.Tensor) -> torch.Tensor:
+    v = torch.as_tensor(value, dtype=like.dtype)
+    if v.dim() == 1:
+        return v.view(-1, 1, 1)
+    return v

@@ -1,0 +1,139 @@
+"""Planes, rays and rigid transforms in the sensor frame.
+
+Conventions
+-----------
+* Sensor frame: origin at the sensor, optical axis +z, x/y as in the TMF8820 zone table.
+* A plane is ``n . x = d`` with unit normal ``n`` pointing away from the sensor (``n_z > 0``) and
+  ``d > 0`` the perpendicular distance in metres.
+* The paper's parametrisation: angle of incidence ``theta`` (between ``n`` and +z), azimuth ``phi``
+  of ``n`` about +z, and ``z0``, where the plane crosses the optical axis: ``d = z0 cos(theta)``.
+* The solver's parametrisation: slopes ``(a, b)`` and ``z0`` with ``n ~ (a, b, 1)``; smooth at
+  ``theta = 0`` where ``(theta, phi)`` is singular.
+All angles are radians.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .exceptions import NoPlaneError
+
+
+@dataclass(frozen=True)
+class Plane:
+    """A plane ``n . x = d`` in the sensor frame (unit ``n`` with ``n_z > 0``, ``d`` in metres)."""
+
+    normal: np.ndarray
+    offset: float
+
+    def __post_init__(self) -> None:
+        n = np.asarray(self.normal, dtype=float).reshape(3)
+        d = float(self.offset)
+        if not (np.all(np.isfinite(n)) and np.isfinite(d)):
+            raise NoPlaneError(f"plane is not finite: normal={n}, offset={d}")
+        norm = np.linalg.norm(n)
+        if norm < 1e-12:
+            raise NoPlaneError("plane normal has zero length")
+        n = n / norm
+        if n[2] < 0:
+            n, d = -n, -d
+        if n[2] <= 1e-9:
+            raise NoPlaneError("plane contains the optical axis direction (n_z = 0); it is never hit along +z")
+        object.__setattr__(self, "normal", n)
+        object.__setattr__(self, "offset", d)
+
+    # -- conversions ---------------------------------------------------------------------------
+    @property
+    def theta(self) -> float:
+        """Angle of incidence: angle between the normal and the optical axis (rad)."""
+        return float(np.arccos(np.clip(self.normal[2], -1.0, 1.0)))
+
+    @property
+    def phi(self) -> float:
+        """Azimuth of the normal about +z (rad, in (-pi, pi])."""
+        return float(np.arctan2(self.normal[1], self.normal[0]))
+
+    @property
+    def z0(self) -> float:
+        """Where the plane crosses the optical axis (m)."""
+        return self.offset / float(self.normal[2])
+
+    @classmethod
+    def from_angles(cls, theta: float, phi: float, z0: float) -> "Plane":
+        """Plane from angle of incidence, azimuth (rad) and axis crossing ``z0`` (m)."""
+        n = np.array([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)])
+        return cls(n, z0 * np.cos(theta))
+
+    @classmethod
+    def from_slopes(cls, a: float, b: float, z0: float) -> "Plane":
+        """Plane ``z = z0 - a x - b y``, i.e. normal proportional to ``(a, b, 1)``."""
+        s = float(np.sqrt(1.0 + a * a + b * b))
+        return cls(np.array([a, b, 1.0]) / s, z0 / s)
+
+    @property
+    def slopes(self) -> tuple[float, float, float]:
+        """``(a, b, z0)`` with ``n ~ (a, b, 1)``."""
+        n = self.normal
+        return float(n[0] / n[2]), float(n[1] / n[2]), self.z0
+
+    def intersect(self, directions: np.ndarray) -> np.ndarray:
+        """Points where rays from the origin along ``directions`` (..., 3) meet the plane (..., 3).
+
+        Rays parallel to or pointing away from the plane give NaN.
+        """
+        dirs = np.asarray(directions, dtype=float)
+        denom = dirs @ self.normal
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = np.where(denom > 1e-12, self.offset / denom, np.nan)
+        return dirs * t[..., None]
+
+    def to_dict(self) -> dict:
+        return {"normal": [float(v) for v in self.normal], "offset": float(self.offset)}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Plane":
+        return cls(np.asarray(d["normal"], dtype=float), float(d["offset"]))
+
+
+def fit_plane(points: np.ndarray, weights: np.ndarray | None = None) -> tuple[Plane, float]:
+    """Least-squares plane through ``points`` (N, 3) by SVD of the centred, weighted points.
+
+    Returns the plane and the weighted RMS perpendicular residual (m). Needs 3 or more
+    non-collinear finite points.
+    """
+    pts = np.asarray(points, dtype=float).reshape(-1, 3)
+    w = np.ones(len(pts)) if weights is None else np.asarray(weights, dtype=float).reshape(-1)
+    ok = np.all(np.isfinite(pts), axis=1) & np.isfinite(w) & (w > 0)
+    pts, w = pts[ok], w[ok]
+    if len(pts) < 3:
+        raise NoPlaneError(f"a plane needs 3 or more valid points, got {len(pts)}")
+    w = w / w.sum()
+    centroid = w @ pts
+    centred = (pts - centroid) * np.sqrt(w)[:, None]
+    _, s, vt = np.linalg.svd(centred, full_matrices=False)
+    if s[1] < 1e-9 * max(s[0], 1e-30):
+        raise NoPlaneError("points are collinear; the plane is not determined")
+    n = vt[-1]
+    plane = Plane(n, float(n @ centroid))
+    rms = float(s[-1])
+    return plane, rms
+
+
+def rotation_angle_between(n1: np.ndarray, n2: np.ndarray) -> float:
+    """Angle between two unit vectors (rad), numerically safe near 0."""
+    a = np.asarray(n1, dtype=float)
+    b = np.asarray(n2, dtype=float)
+    return float(np.arctan2(np.linalg.norm(np.cross(a, b)), np.dot(a, b)))
+
+
+def plane_from_pose(pose: np.ndarray, dist_to_plane: float) -> Plane:
+    """Ground-truth plane in the sensor frame from a sensor (or flange) pose in the base frame.
+
+    The plane is horizontal in the base frame (normal +z there) at ``dist_to_plane`` from the
+    sensor origin, as in the shared sweep: its normal in the sensor frame is ``R^T e_z`` up to sign.
+    """
+    T = np.asarray(pose, dtype=float).reshape(4, 4)
+    n = T[:3, :3].T @ np.array([0.0, 0.0, 1.0])
+    return Plane(n if n[2] > 0 else -n, float(dist_to_plane))
