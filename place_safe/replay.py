@@ -74,7 +74,7 @@ class FileReplaySource(FrameSource):
             self._it = None
         self._slot = 0            # index of the next slot (frame position in the replay)
         self._shift = 0.0         # accumulated injected silence (s)
-        self._start: float | None = None
+        self._start: float | None = None  # clock time of the first read (slot 0 is due then)
         self.delivered = 0        # frames handed out by read()
 
     def _open(self) -> Iterator[Frame | FrameError]:
@@ -94,6 +94,11 @@ class FileReplaySource(FrameSource):
         if item is None:
             self._it = None
         return item
+
+    @property
+    def started_at(self) -> float | None:
+        """Clock time (s) of the first ``read``: frame ``k`` is due ``k / rate_hz`` s later (plus gaps)."""
+        return self._start
 
     def _due(self, slot: int) -> float:
         assert self._start is not None
