@@ -43,7 +43,10 @@ def check_joints(q: Any, n: int = N_JOINTS) -> tuple[np.ndarray, bool]:
 
     Raises ValueError for a wrong shape and RobotFault for non-finite angles (a sensor or driver fault).
     """
-    arr = np.asarray(q, dtype=np.float64)
+    try:
+        arr = np.asarray(q, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"joint angles must be numbers of shape ({n},) or (B, {n}); got {q!r}") from exc
     single = arr.ndim == 1
     if single:
         arr = arr[None, :]
