@@ -1,0 +1,409 @@
+"""The MuJoCo scene: a table (level or tilted), a floor, optional clutter, and either the UR5 or a bare sensor rig.
+
+Conventions
+-----------
+* World frame: z up, the floor is the plane ``z = 0``; lengths in metres, angles in radians.
+* The table is a box slab. ``table.height`` is the world height of its top surface at its centre,
+  ``table.center`` the (x, y) of that centre and ``table.size`` its (length along x, width along y,
+  thickness). So its near edge (towards the robot at the origin) is at ``x = center[0] - size[0] / 2``.
+  ``tilt`` rotates the slab about its centre so the top normal leans by ``tilt`` towards the world
+  azimuth ``tilt_direction`` (0 = +x).
+* A :class:`Material` describes how a surface looks to the time-of-flight sensor: ``albedo`` is
+  relative to the sensor's calibrated ``albedo`` (1.0 = the table of the real sweep), the specular
+  lobe as in :mod:`place_safe.forward`. ``pattern = "checker"`` alternates ``albedo`` and ``albedo2``
+  in squares of ``square`` metres on the geom's local x-y plane.
+* Surfaces the sensor sees are in geom group :data:`SENSED_GROUP`; the robot's own geoms are moved
+  out of it (group 0 -> 1) and the rig's marker is in group 2, so the ray caster never sees them.
+* ``with_robot`` attaches ``robots/ur5/ur5.xml`` (which carries the ``tof_sensor`` site) at the robot
+  base pose; otherwise a mocap body ``sensor_rig`` carries the ``tof_sensor`` site (+z = optical axis).
+
+Built with :class:`mujoco.MjSpec`; :func:`build_scene` returns the compiled model, the spec and the
+per-geom material table the simulated sensor reads.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass, field, fields, is_dataclass
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from place_safe.exceptions import PlaceSafeError
+
+#: Geom group holding every surface the simulated sensor can see.
+SENSED_GROUP = 0
+#: Group the robot's geoms are moved to (from group 0) so they are invisible to the sensor.
+ROBOT_GROUP = 1
+#: Group of decorative geoms (the rig marker).
+MARKER_GROUP = 2
+SENSOR_SITE = "tof_sensor"
+RIG_BODY = "sensor_rig"
+TABLE_GEOM = "table"
+FLOOR_GEOM = "floor"
+
+
+class SceneError(PlaceSafeError, ValueError):
+    """A scene description is malformed or cannot be built."""
+
+
+# ---------------------------------------------------------------------------------------------
+# Configuration
+# ---------------------------------------------------------------------------------------------
+@dataclass
+class Material:
+    """Reflectance of a surface for the ToF sensor (see module docstring)."""
+
+    albedo: float = 1.0
+    specular_weight: float = 0.15
+    specular_exponent: float = 1.8
+    pattern: str = "uniform"  # "uniform" or "checker"
+    square: float = 0.05  # m, checker square size
+    albedo2: float = 0.3  # second checker albedo (relative)
+
+    def __post_init__(self) -> None:
+        if self.pattern not in ("uniform", "checker"):
+            raise SceneError(f"material pattern {self.pattern!r} unknown; expected 'uniform' or 'checker'")
+        vals = (self.albedo, self.albedo2, self.specular_weight, self.specular_exponent, self.square)
+        if not all(math.isfinite(float(v)) for v in vals) or min(self.albedo, self.albedo2, self.specular_weight) < 0:
+            raise SceneError("material albedo, albedo2 and specular_weight must be finite and >= 0")
+        if self.square <= 0 or self.specular_exponent <= 0:
+            raise SceneError("material square (m) and specular_exponent must be > 0")
+
+    def rgba(self) -> list[float]:
+        """A grey for the renderer that brightens with albedo (visual only)."""
+        g = float(np.clip(0.25 + 0.5 * self.albedo, 0.05, 0.95))
+        return [g, g * 0.95, g * 0.9, 1.0]
+
+
+@dataclass
+class TableConfig:
+    height: float = 0.75  # m, top surface at the centre
+    center: tuple[float, float] = (0.55, 0.0)  # m, world x, y of the top's centre
+    size: tuple[float, float, float] = (0.6, 0.9, 0.04)  # m, x length, y width, thickness
+    tilt: float = 0.0  # rad
+    tilt_direction: float = 0.0  # rad, world azimuth the top normal leans towards
+    material: Material = field(default_factory=Material)
+
+
+@dataclass
+class ClutterItem:
+    """A box (size = half extents x, y, z) or cylinder (size = radius, half height) resting anywhere."""
+
+    shape: str = "box"
+    pos: tuple[float, float, float] = (0.5, 0.2, 0.8)
+    euler: tuple[float, float, float] = (0.0, 0.0, 0.0)  # rad, xyz extrinsic
+    size: tuple[float, ...] = (0.03, 0.03, 0.05)
+    material: Material = field(default_factory=lambda: Material(albedo=0.6))
+
+    def __post_init__(self) -> None:
+        need = {"box": 3, "cylinder": 2}
+        if self.shape not in need:
+            raise SceneError(f"clutter shape {self.shape!r} unknown; expected 'box' or 'cylinder'")
+        if len(self.size) != need[self.shape] or min(self.size) <= 0:
+            raise SceneError(f"clutter {self.shape} needs {need[self.shape]} positive sizes, got {list(self.size)}")
+
+
+@dataclass
+class SceneConfig:
+    """Everything needed to build a scene; loads from and saves to JSON."""
+
+    table: TableConfig = field(default_factory=TableConfig)
+    floor: Material = field(default_factory=lambda: Material(albedo=0.5))
+    clutter: list[ClutterItem] = field(default_factory=list)
+    with_robot: bool = False
+    robot_xml: str | None = None  # default: the packaged robots/ur5/ur5.xml
+    robot_base_pos: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    robot_base_yaw: float = 0.0  # rad
+    rig_pos: tuple[float, float, float] = (0.55, 0.0, 0.95)  # sensor rig: initial sensor position (m)
+    rig_euler: tuple[float, float, float] = (math.pi, 0.0, 0.0)  # rad; default looks straight down
+    robot_material: Material = field(default_factory=lambda: Material(albedo=0.4))
+    timestep: float | None = None  # s; default: the robot model's (0.002 for the rig)
+
+    # -- file form -----------------------------------------------------------------------------
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "SceneConfig":
+        return _from_dict(cls, d, "scene")
+
+    def save(self, path: str | Path) -> None:
+        Path(path).write_text(json.dumps(self.to_dict(), indent=2))
+
+    @classmethod
+    def load(cls, path: str | Path) -> "SceneConfig":
+        try:
+            d = json.loads(Path(path).read_text())
+        except (OSError, json.JSONDecodeError) as exc:
+            raise SceneError(f"cannot read scene file {path}: {exc}") from None
+        if isinstance(d, dict) and "scene" in d:  # a scenario file holding a scene
+            d = d["scene"]
+        return cls.from_dict(d)
+
+
+_NESTED = {"table": TableConfig, "floor": Material, "material": Material, "robot_material": Material}
+
+
+def _from_dict(cls: type, d: Any, where: str) -> Any:
+    if not isinstance(d, dict):
+        raise SceneError(f"{where} must be a JSON object, got {type(d).__name__}")
+    names = {f.name for f in fields(cls)}
+    unknown = set(d) - names
+    if unknown:
+        raise SceneError(f"{where}: unknown keys {sorted(unknown)}; expected some of {sorted(names)}")
+    kw: dict[str, Any] = {}
+    for k, v in d.items():
+        if k in _NESTED and isinstance(v, dict):
+            kw[k] = _from_dict(_NESTED[k], v, f"{where}.{k}")
+        elif k == "clutter":
+            if not isinstance(v, list):
+                raise SceneError(f"{where}.clutter must be a list")
+            kw[k] = [_from_dict(ClutterItem, c, f"{where}.clutter[{i}]") for i, c in enumerate(v)]
+        elif isinstance(v, list) and k not in ("clutter",):
+            kw[k] = tuple(v)
+        else:
+            kw[k] = v
+    try:
+        return cls(**kw)
+    except TypeError as exc:
+        raise SceneError(f"{where}: {exc}") from None
+
+
+# ---------------------------------------------------------------------------------------------
+# Rotations (MuJoCo quaternions are w, x, y, z)
+# ---------------------------------------------------------------------------------------------
+def euler_to_quat(euler: tuple[float, float, float]) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_euler("xyz", euler).as_quat(scalar_first=True)
+
+
+def matrix_to_quat(R: np.ndarray) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_matrix(np.asarray(R, dtype=float)).as_quat(scalar_first=True)
+
+
+def tilt_quat(tilt: float, direction: float) -> np.ndarray:
+    """Rotation leaning +z by ``tilt`` towards world azimuth ``direction``."""
+    axis = np.array([-math.sin(direction), math.cos(direction), 0.0])
+    return np.concatenate([[math.cos(tilt / 2)], math.sin(tilt / 2) * axis])
+
+
+# ---------------------------------------------------------------------------------------------
+# Material table
+# ---------------------------------------------------------------------------------------------
+@dataclass
+class MaterialTable:
+    """Per-geom reflectance arrays (index = geom id), as the simulated sensor needs them."""
+
+    albedo: np.ndarray
+    albedo2: np.ndarray
+    specular_weight: np.ndarray
+    specular_exponent: np.ndarray
+    square: np.ndarray  # m; 0 for uniform materials
+
+    @classmethod
+    def uniform(cls, ngeom: int, m: Material) -> "MaterialTable":
+        def full(v: float) -> np.ndarray:
+            return np.full(ngeom, float(v))
+
+        return cls(full(m.albedo), full(m.albedo2), full(m.specular_weight), full(m.specular_exponent), full(0.0))
+
+    def set(self, gid: int, m: Material) -> None:
+        self.albedo[gid] = m.albedo
+        self.albedo2[gid] = m.albedo2
+        self.specular_weight[gid] = m.specular_weight
+        self.specular_exponent[gid] = m.specular_exponent
+        self.square[gid] = m.square if m.pattern == "checker" else 0.0
+
+    def lookup(self, geom_ids: np.ndarray, local_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Albedo, specular weight and exponent at hits on ``geom_ids`` (N,), local points ``local_xy`` (N, 2).
+
+        Checker squares alternate on ``floor(x / square) + floor(y / square)`` being even/odd.
+        Ids < 0 (misses) get zeros.
+        """
+        g = np.asarray(geom_ids)
+        ok = g >= 0
+        gi = np.where(ok, g, 0)
+        sq = self.square[gi]
+        checker = sq > 0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            cell = np.floor(local_xy / np.where(checker, sq, 1.0)[:, None]).sum(axis=1)
+        odd = checker & (np.mod(cell, 2.0) == 1.0)
+        albedo = np.where(odd, self.albedo2[gi], self.albedo[gi])
+        return (np.where(ok, albedo, 0.0), np.where(ok, self.specular_weight[gi], 0.0),
+                np.where(ok, self.specular_exponent[gi], 1.0))
+
+
+# ---------------------------------------------------------------------------------------------
+# Builder
+# ---------------------------------------------------------------------------------------------
+@dataclass
+class Scene:
+    """A compiled scene: the model, its spec, materials and the ids the sensor needs."""
+
+    config: SceneConfig
+    spec: Any  # mujoco.MjSpec
+    model: Any  # mujoco.MjModel
+    materials: MaterialTable
+    sensor_site: int
+    table_geom: int
+    floor_geom: int
+    rig_mocap: int  # mocap index of the sensor rig, -1 with the robot
+    robot_geoms: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
+
+    @property
+    def sensed_groups(self) -> np.ndarray:
+        g = np.zeros(6, dtype=np.uint8)
+        g[SENSED_GROUP] = 1
+        return g
+
+    def make_data(self):
+        import mujoco
+
+        data = mujoco.MjData(self.model)
+        mujoco.mj_forward(self.model, data)
+        return data
+
+    def set_sensor_pose(self, data, pos: np.ndarray, R: np.ndarray) -> None:
+        """Place the rig so the sensor site is at ``pos`` with rotation ``R`` (world <- sensor); rig scenes only."""
+        import mujoco
+
+        if self.rig_mocap < 0:
+            raise SceneError("set_sensor_pose needs a sensor-rig scene (with_robot=False)")
+        data.mocap_pos[self.rig_mocap] = np.asarray(pos, dtype=float)
+        data.mocap_quat[self.rig_mocap] = matrix_to_quat(R)
+        mujoco.mj_kinematics(self.model, data)
+
+    def table_plane_world(self, data) -> tuple[np.ndarray, np.ndarray]:
+        """Unit normal (up) and a point of the table's top surface, in the world frame."""
+        R = data.geom_xmat[self.table_geom].reshape(3, 3)
+        half = self.model.geom_size[self.table_geom]
+        n = R[:, 2]
+        return n, data.geom_xpos[self.table_geom] + half[2] * n
+
+
+def default_robot_xml() -> Path:
+    """Path of the packaged UR5 model (robots/ur5/ur5.xml)."""
+    return Path(str(resources.files("place_safe.robots").joinpath("ur5/ur5.xml")))
+
+
+def build_scene(config: SceneConfig | None = None) -> Scene:
+    """Compile the scene described by ``config`` (default: level table and a sensor rig)."""
+    import mujoco
+
+    cfg = config if config is not None else SceneConfig()
+    materials: dict[str, Material] = {}
+    spec = mujoco.MjSpec()
+    spec.modelname = "place_safe_scene"
+    if cfg.with_robot:
+        _attach_robot(spec, cfg)
+    else:
+        rig = spec.worldbody.add_body(name=RIG_BODY, mocap=True, pos=list(cfg.rig_pos),
+                                      quat=list(euler_to_quat(cfg.rig_euler)))
+        rig.add_site(name=SENSOR_SITE, size=[0.004, 0.004, 0.004], rgba=[1, 0.2, 0.2, 1])
+        rig.add_geom(name="rig_marker", type=mujoco.mjtGeom.mjGEOM_BOX, size=[0.01, 0.01, 0.004],
+                     pos=[0, 0, -0.006], rgba=[0.1, 0.1, 0.1, 1], group=MARKER_GROUP, contype=0, conaffinity=0)
+        spec.option.timestep = cfg.timestep if cfg.timestep else 0.002
+    wb = spec.worldbody
+    spec.add_texture(name="skygrad", type=mujoco.mjtTexture.mjTEXTURE_SKYBOX,
+                     builtin=mujoco.mjtBuiltin.mjBUILTIN_GRADIENT, rgb1=[0.6, 0.7, 0.8], rgb2=[0.1, 0.1, 0.15],
+                     width=64, height=64)
+    wb.add_light(name="scene_light", pos=[0.3, 0.0, 2.5], dir=[0, 0, -1], diffuse=[0.8, 0.8, 0.8])
+    # floor
+    wb.add_geom(name=FLOOR_GEOM, type=mujoco.mjtGeom.mjGEOM_PLANE, size=[3, 3, 0.05], rgba=cfg.floor.rgba(),
+                group=SENSED_GROUP)
+    materials[FLOOR_GEOM] = cfg.floor
+    # table
+    t = cfg.table
+    if t.height <= 0 or min(t.size) <= 0 or not (0 <= t.tilt < math.pi / 2):
+        raise SceneError("table needs height > 0, positive size and 0 <= tilt < 90 deg")
+    q = tilt_quat(t.tilt, t.tilt_direction)
+    R = _quat_matrix(q)
+    top = np.array([t.center[0], t.center[1], t.height])
+    centre = top - R[:, 2] * t.size[2] / 2
+    wb.add_geom(name=TABLE_GEOM, type=mujoco.mjtGeom.mjGEOM_BOX, size=[s / 2 for s in t.size], pos=list(centre),
+                quat=list(q), rgba=t.material.rgba(), group=SENSED_GROUP)
+    materials[TABLE_GEOM] = t.material
+    # clutter
+    for i, c in enumerate(cfg.clutter):
+        name = f"clutter{i}"
+        gtype = mujoco.mjtGeom.mjGEOM_BOX if c.shape == "box" else mujoco.mjtGeom.mjGEOM_CYLINDER
+        size = list(c.size) + [0.0] * (3 - len(c.size))
+        wb.add_geom(name=name, type=gtype, size=size, pos=list(c.pos), quat=list(euler_to_quat(c.euler)),
+                    rgba=c.material.rgba(), group=SENSED_GROUP)
+        materials[name] = c.material
+    try:
+        model = spec.compile()
+    except Exception as exc:
+        raise SceneError(f"scene does not compile: {exc}") from None
+    site = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, SENSOR_SITE)
+    if site < 0:
+        raise SceneError(f"the model has no site {SENSOR_SITE!r}; the robot model must carry the sensor site")
+    table = MaterialTable.uniform(model.ngeom, cfg.robot_material)
+    for name, m in materials.items():
+        table.set(mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, name), m)
+    rig_mocap = -1
+    if not cfg.with_robot:
+        rig_mocap = int(model.body_mocapid[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, RIG_BODY)])
+    robot_geoms = np.array([g for g in range(model.ngeom) if model.geom_bodyid[g] != 0
+                            and model.geom_group[g] != MARKER_GROUP], dtype=int)
+    return Scene(cfg, spec, model, table, int(site),
+                 mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, TABLE_GEOM),
+                 mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, FLOOR_GEOM), rig_mocap, robot_geoms)
+
+
+def _attach_robot(spec, cfg: SceneConfig) -> None:
+    """Attach the UR5 model at the base pose, its geoms moved out of the sensed group."""
+    import warnings
+
+    import mujoco
+
+    xml = Path(cfg.robot_xml) if cfg.robot_xml else default_robot_xml()
+    if not xml.is_file():
+        raise SceneError(f"robot model {xml} not found; expected the UR5 MJCF (robots/ur5/ur5.xml)")
+    try:
+        robot = mujoco.MjSpec.from_file(str(xml))
+    except Exception as exc:  # mujoco raises plain ValueError with its parser message
+        raise SceneError(f"cannot load robot model {xml}: {exc}") from None
+    for geom in robot.geoms:
+        if geom.group == SENSED_GROUP:
+            geom.group = ROBOT_GROUP
+    # the robot's simulation options win (its controllers are tuned for them)
+    spec.option.timestep = cfg.timestep if cfg.timestep else robot.option.timestep
+    spec.option.integrator = robot.option.integrator
+    spec.option.gravity = robot.option.gravity
+    spec.compiler.degree = robot.compiler.degree
+    yaw = cfg.robot_base_yaw
+    frame = spec.worldbody.add_frame(pos=list(cfg.robot_base_pos), quat=[math.cos(yaw / 2), 0, 0, math.sin(yaw / 2)])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # empty-prefix and option-conflict notices
+        spec.attach(robot, frame=frame, prefix="")
+
+
+def _normalised(q: np.ndarray) -> np.ndarray:
+    n = np.linalg.norm(q)
+    return q / n if n > 0 else np.array([1.0, 0, 0, 0])
+
+
+def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    w1, x1, y1, z1 = a
+    w2, x2, y2, z2 = b
+    return np.array([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+                     w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2])
+
+
+def _quat_matrix(q: np.ndarray) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_quat(np.asarray(q, dtype=float), scalar_first=True).as_matrix()
+
+
+def as_plain(obj: Any) -> Any:
+    """Dataclasses to plain dicts (for JSON)."""
+    return asdict(obj) if is_dataclass(obj) else obj

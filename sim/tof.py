@@ -1,0 +1,386 @@
+"""The simulated TMF8820: rays cast in a MuJoCo scene, histograms from the forward model, sensor timing and faults.
+
+Conventions
+-----------
+* The sensor sits at the ``tof_sensor`` site; its +z is the optical axis, x/y as in the zone table.
+* Per zone ``R = rays**2`` stratified rays (:meth:`place_safe.forward.ZoneRays.stratified`), bent by the
+  true sensor's field-of-view scales, are cast with ``mujoco.mj_multiRay`` against geom group
+  :data:`~place_safe.sim.scene.SENSED_GROUP` only (the robot, the held cup and the rig are not seen).
+* Each hit carries its range (m), cosine of incidence, and the reflectance of the geom's material at
+  the hit point (checkerboards evaluated in the geom's local x-y). Histograms are
+  ``ForwardModel(true_params).render_returns`` of those returns, so several surfaces in a zone mix.
+  Material albedo is relative: the ray's albedo is ``material.albedo * true_params.albedo``.
+* Noise: Poisson shot noise on the histogram plus a per-zone ambient floor drawn once per sensor
+  in ``ambient_range`` counts; the reference histogram is the shipped real one with Poisson noise.
+* Timing: measurement ``k`` is taken when the sim clock passes ``k / rate_hz`` and stamped with the
+  sim time at which it was taken (``Frame.timestamp``, s). It becomes readable ``latency`` s later,
+  the time to move ``transfer_bytes`` over the bus (``transfer_bytes * bits_per_byte / bus_hz``;
+  4182 bytes at 400 kHz with 9 bits per byte is 94 ms). Transfers are pipelined, so the frame rate
+  stays ``rate_hz``.
+* Faults on demand: a frame is dropped with ``drop_prob`` (never delivered) or corrupted with
+  ``corrupt_prob`` (NaN counts or a truncated histogram); corrupted frames are still delivered
+  and fail :meth:`place_safe.sensor.Frame.validate` downstream.
+* On-sensor distances: per zone, the first peak above the noise is located (sub-bin, parabolic) and
+  mapped to millimetres by the per-zone linear map fitted to the real sensor's reported distances
+  (``sim/sensors/tmf8820_real_distance.json``); no return gives distance 0 with confidence 0.
+* Ground truth: when every ray hits the table top, ``Frame.truth`` is the table plane in the
+  sensor frame.
+"""
+
+from __future__ import annotations
+
+import json
+
+import time
+from collections import deque
+from dataclasses import asdict, dataclass, field, fields
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from place_safe.exceptions import CalibrationError, NoPlaneError, SensorTimeout
+from place_safe.forward import ForwardModel, ForwardParams, ZoneRays
+from place_safe.geometry import Plane
+from place_safe.sensor import N_BINS, N_ZONES, Frame
+from place_safe.sources import FrameSource
+from place_safe.synthetic import default_reference
+
+from .scene import Scene
+
+#: Largest count a 24-bit histogram bin holds.
+MAX_COUNT = 2 ** 24 - 1
+#: Bins used to estimate the floor of a histogram (far beyond any return in the scenes used).
+FLOOR_BINS = slice(100, N_BINS)
+
+
+def sensor_file(name: str) -> Path:
+    """Path of a packaged sensor parameter file in ``sim/sensors``."""
+    return Path(str(resources.files("place_safe.sim").joinpath("sensors", name)))
+
+
+def true_params() -> ForwardParams:
+    """The simulated sensor's own forward parameters (fitted to the real sweep; not the estimators' defaults)."""
+    return ForwardParams.load(sensor_file("tmf8820_real.json"))
+
+
+@dataclass
+class DistanceMap:
+    """On-sensor distance emulation: ``mm = slope[z] * peak_bin + intercept[z]`` per zone."""
+
+    slope: list[float] = field(default_factory=lambda: [1000 * 0.014131] * N_ZONES)
+    intercept: list[float] = field(default_factory=lambda: [-1000 * 0.014131 * 13.2] * N_ZONES)
+    noise_mm: float = 1.0  # std of the reported distance (mm)
+
+    @classmethod
+    def load(cls, path: str | Path | None = None) -> "DistanceMap":
+        p = Path(path) if path is not None else sensor_file("tmf8820_real_distance.json")
+        try:
+            d = json.loads(p.read_text())
+            return cls(**{k: v for k, v in d.items() if k in {f.name for f in fields(cls)}})
+        except (OSError, json.JSONDecodeError, TypeError) as exc:
+            raise CalibrationError(f"cannot read on-sensor distance map {p}: {exc}") from None
+
+
+@dataclass
+class ToFConfig:
+    """Settings of the simulated sensor (units in the names or comments)."""
+
+    rays: int = 8  # stratified rays per axis and zone (R = rays**2)
+    rate_hz: float = 30.0
+    transfer_bytes: int = 4182  # 30 x 135 histogram packets + 132 result bytes
+    bus_hz: float = 400e3  # I2C clock
+    bits_per_byte: int = 9  # 8 data bits + ACK
+    noise: bool = True
+    ambient_range: tuple[float, float] = (60.0, 180.0)  # counts, per zone
+    drop_prob: float = 0.0
+    corrupt_prob: float = 0.0
+    seed: int = 0
+    max_range: float = 5.0  # m; farther surfaces are not seen
+    params_file: str | None = None  # ForwardParams JSON; default sim/sensors/tmf8820_real.json
+    distance_file: str | None = None  # DistanceMap JSON; default sim/sensors/tmf8820_real_distance.json
+
+    @property
+    def latency(self) -> float:
+        """Seconds from the end of a measurement until its data has crossed the bus."""
+        return self.transfer_bytes * self.bits_per_byte / self.bus_hz
+
+    def __post_init__(self) -> None:
+        if self.rays < 1 or self.rate_hz <= 0 or self.bus_hz <= 0:
+            raise CalibrationError("ToFConfig needs rays >= 1, rate_hz > 0 and bus_hz > 0")
+        if not (0 <= self.drop_prob <= 1 and 0 <= self.corrupt_prob <= 1):
+            raise CalibrationError("drop_prob and corrupt_prob are probabilities in [0, 1]")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass
+class RayReturns:
+    """What the rays of one measurement saw, each (9, R): in metres, cosines, relative reflectance."""
+
+    ranges: np.ndarray
+    cos_inc: np.ndarray
+    albedo: np.ndarray  # absolute (times the sensor's albedo)
+    specular_weight: np.ndarray
+    specular_exponent: np.ndarray
+    hit: np.ndarray
+    geom: np.ndarray
+    points: np.ndarray  # (9, R, 3) world hit points (NaN on misses)
+    normals: np.ndarray  # (9, R, 3) world surface normals (NaN on misses)
+
+
+class SimToF(FrameSource):
+    """A TMF8820 in a MuJoCo :class:`~place_safe.sim.scene.Scene` (see module docstring)."""
+
+    def __init__(self, scene: Scene, data: Any = None, config: ToFConfig | None = None,
+                 params: ForwardParams | None = None, distance_map: DistanceMap | None = None) -> None:
+        import mujoco
+
+        self._mj = mujoco
+        self.scene = scene
+        self.model = scene.model
+        self.data = data if data is not None else scene.make_data()
+        self.config = config if config is not None else ToFConfig()
+        cfg = self.config
+        self.params = params if params is not None else (
+            ForwardParams.load(cfg.params_file) if cfg.params_file else true_params())
+        self.distance_map = distance_map if distance_map is not None else DistanceMap.load(cfg.distance_file)
+        self.rate_hz = cfg.rate_hz
+        self.forward = ForwardModel(self.params, ZoneRays.stratified(cfg.rays))
+        with torch.no_grad():
+            dirs, w = self.forward.ray_geometry()
+        self._dirs = dirs.numpy().reshape(-1, 3)  # (9R, 3) sensor frame
+        self._weights = w
+        self._kernel_ref = default_reference()
+        self._rng = np.random.default_rng(cfg.seed)
+        lo, hi = cfg.ambient_range
+        self.ambient = self._rng.uniform(lo, hi, N_ZONES)  # counts, per zone
+        self._nray = self._dirs.shape[0]
+        self._geomid = np.zeros(self._nray, dtype=np.int32)
+        self._dist = np.zeros(self._nray)
+        self._normal = np.zeros(3 * self._nray)
+        self._pending: deque[tuple[float, Frame]] = deque()
+        self._next_index = 0
+        self._t0: float | None = None
+        self._lockstep = False
+        self.dropped = 0
+        self.corrupted = 0
+        self.overruns = 0
+
+    # -- ray casting ---------------------------------------------------------------------------
+    def sensor_pose(self, data: Any = None) -> tuple[np.ndarray, np.ndarray]:
+        """Position (3,) and rotation (3, 3) world <- sensor of the ``tof_sensor`` site."""
+        d = self.data if data is None else data
+        s = self.scene.sensor_site
+        return d.site_xpos[s].copy(), d.site_xmat[s].reshape(3, 3).copy()
+
+    def cast(self, model: Any = None, data: Any = None) -> RayReturns:
+        """Cast every ray from the current sensor pose; vectorised over rays."""
+        m = self.model if model is None else model
+        d = self.data if data is None else data
+        pos, R = self.sensor_pose(d)
+        vec = self._dirs @ R.T  # (N, 3) world directions (unit)
+        self._mj.mj_multiRay(m, d, pos, vec.reshape(-1), self.scene.sensed_groups, 1, -1, self._geomid,
+                             self._dist, self._normal, self._nray, self.config.max_range)
+        gid = self._geomid.copy()
+        hit = (gid >= 0) & (self._dist >= 0)
+        dist = np.where(hit, self._dist, np.nan)
+        normals = np.where(hit[:, None], self._normal.reshape(-1, 3), np.nan)
+        pts = pos + vec * dist[:, None]
+        gi = np.where(hit, gid, 0)
+        Rg = d.geom_xmat[gi].reshape(-1, 3, 3)
+        local = np.einsum("nji,nj->ni", Rg, pts - d.geom_xpos[gi])
+        rel, ks, alpha = self.scene.materials.lookup(np.where(hit, gid, -1), np.nan_to_num(local[:, :2]))
+        cos = np.where(hit, np.abs(np.einsum("nk,nk->n", vec, np.nan_to_num(normals))), 0.0)
+        shape = (N_ZONES, -1)
+        return RayReturns(np.where(hit, dist, 1.0).reshape(shape), cos.reshape(shape),
+                          (rel * self.params.albedo).reshape(shape), ks.reshape(shape), alpha.reshape(shape),
+                          hit.reshape(shape), gid.reshape(shape), pts.reshape(N_ZONES, -1, 3),
+                          normals.reshape(N_ZONES, -1, 3))
+
+    # -- measurement ---------------------------------------------------------------------------
+    def render(self, returns: RayReturns, reference: np.ndarray) -> np.ndarray:
+        """Noise-free histograms (9, 128) of ``returns`` (floor not included)."""
+        with torch.no_grad():
+            h = self.forward.render_returns(
+                torch.as_tensor(returns.ranges[None]), torch.as_tensor(returns.cos_inc[None]),
+                torch.as_tensor(returns.albedo[None]), torch.as_tensor(reference[None]),
+                weights=self._weights, specular_weight=torch.as_tensor(returns.specular_weight[None]),
+                specular_exponent=torch.as_tensor(returns.specular_exponent[None]),
+                hit=torch.as_tensor(returns.hit[None]))
+        return h[0].numpy() - self.params.floor
+
+    def measure(self, model: Any = None, data: Any = None, noise: bool | None = None,
+                reference: np.ndarray | None = None) -> Frame:
+        """One frame at the current state (no timing, no faults). ``noise`` overrides the config."""
+        d = self.data if data is None else data
+        noisy = self.config.noise if noise is None else noise
+        ref_clean = self._kernel_ref if reference is None else np.asarray(reference, dtype=float)
+        returns = self.cast(model, d)
+        h = self.render(returns, ref_clean) + self.ambient[:, None]
+        if noisy:
+            h = self._rng.poisson(np.clip(h, 0, None)).astype(float)
+            ref = self._rng.poisson(np.clip(ref_clean, 0, None)).astype(float)
+        else:
+            ref = ref_clean.copy()
+        h = np.minimum(h, MAX_COUNT)
+        dist, conf = self.on_sensor_distances(h, noisy)
+        truth = self.truth(returns, d)
+        meta = {"hit_fraction": float(returns.hit.mean()),
+                "table_fraction": float((returns.geom == self.scene.table_geom).mean())}
+        return Frame(h, ref, distances=dist, confidences=conf, timestamp=float(d.time), truth=truth,
+                     extra={"sim": meta})
+
+    def truth(self, returns: RayReturns, data: Any = None) -> Plane | None:
+        """The table plane in the sensor frame if every ray hit the table top, else None."""
+        d = self.data if data is None else data
+        if not np.all(returns.geom == self.scene.table_geom):
+            return None
+        n_w, p_w = self.scene.table_plane_world(d)
+        if not np.allclose(returns.normals.reshape(-1, 3) @ n_w, 1.0, atol=1e-6):
+            return None  # some ray hit a side of the slab
+        pos, R = self.sensor_pose(d)
+        n_s = R.T @ n_w
+        try:
+            return Plane(n_s, float(n_s @ (R.T @ (p_w - pos))))
+        except NoPlaneError:
+            return None
+
+    def on_sensor_distances(self, hists: np.ndarray, noisy: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        """First-object distance (m) and confidence (0..255) per zone, as the sensor reports them."""
+        peak, found, snr = first_peak(hists)
+        dm = self.distance_map
+        mm = np.asarray(dm.slope) * peak + np.asarray(dm.intercept)
+        if noisy and dm.noise_mm > 0:
+            mm = mm + self._rng.normal(0.0, dm.noise_mm, N_ZONES)
+        # confidence saturates at 255 for a peak 60 floor sigmas high (the real sensor reports 255 for the table)
+        conf = np.clip(np.round(255.0 * np.clip(snr / 60.0, 0.0, 1.0)), 0, 255)
+        ok = found & (mm > 0)
+        return np.where(ok, np.round(mm) / 1000.0, 0.0), np.where(ok, conf, 0.0)
+
+    # -- streaming -----------------------------------------------------------------------------
+    def attach(self, robot: Any) -> "SimToF":
+        """Run in lockstep with a SimRobot: measure from its step callback on its model/data."""
+        self._lockstep = True
+        robot.add_step_callback(self.on_step)
+        return self
+
+    def on_step(self, *_: Any) -> None:
+        """Step callback: take every measurement whose time has come (call after each mj_step)."""
+        t = float(self.data.time)
+        if self._t0 is None:
+            self._t0 = t
+        period = 1.0 / self.config.rate_hz
+        while t + 1e-12 >= self._t0 + self._next_index * period:
+            self._take(t)
+
+    def _take(self, t: float) -> None:
+        k = self._next_index
+        self._next_index += 1
+        cfg = self.config
+        if cfg.drop_prob > 0 and self._rng.random() < cfg.drop_prob:
+            self.dropped += 1
+            return
+        frame = self.measure()
+        frame.timestamp = t
+        frame.extra["sim"]["index"] = k
+        if cfg.corrupt_prob > 0 and self._rng.random() < cfg.corrupt_prob:
+            self._corrupt(frame)
+        self._pending.append((t + cfg.latency, frame))
+
+    def _corrupt(self, frame: Frame) -> None:
+        self.corrupted += 1
+        kind = int(self._rng.integers(3))
+        if kind == 0:  # bins lost in transfer
+            z = int(self._rng.integers(N_ZONES))
+            frame.hists[z, self._rng.integers(N_BINS, size=8)] = np.nan
+            frame.extra["sim"]["corrupted"] = "nan"
+        elif kind == 1:  # transfer cut short: last packets missing
+            frame.hists = frame.hists[:, : int(self._rng.integers(16, N_BINS))]
+            frame.extra["sim"]["corrupted"] = "truncated_hists"
+        else:
+            frame.reference = frame.reference[: int(self._rng.integers(16, N_BINS))]
+            frame.extra["sim"]["corrupted"] = "truncated_reference"
+
+    def _pop_ready(self) -> Frame | None:
+        now = float(self.data.time)
+        ready = None
+        while self._pending and self._pending[0][0] <= now + 1e-12:
+            if ready is not None:
+                self.overruns += 1
+            ready = self._pending.popleft()[1]
+        return ready
+
+    def read(self, timeout: float = 1.0) -> Frame:
+        """The next frame.
+
+        In lockstep (after :meth:`attach`) the robot advances the clock: the newest frame whose
+        transfer has finished is returned (older unread ones are counted in ``overruns``), waiting
+        up to ``timeout`` wall-clock seconds for one. Free-running, the scene is stepped with
+        ``mj_step`` until the next frame is readable; ``timeout`` is then in sim seconds.
+        """
+        if self._lockstep:
+            deadline = time.monotonic() + max(timeout, 0.0)
+            while True:
+                f = self._pop_ready()
+                if f is not None:
+                    return f
+                if time.monotonic() >= deadline:
+                    raise SensorTimeout(f"no simulated ToF frame ready at sim time {self.data.time:.4f} s "
+                                        f"within {timeout} s; is the robot stepping?")
+                time.sleep(0.0005)
+        t_end = float(self.data.time) + timeout
+        if self._t0 is None:
+            self.on_step()
+        while True:
+            f = self._pop_ready()
+            if f is not None:
+                return f
+            if self.data.time >= t_end:
+                raise SensorTimeout(f"no simulated ToF frame within {timeout} s of sim time "
+                                    f"(drop_prob={self.config.drop_prob})")
+            self._mj.mj_step(self.model, self.data)
+            self.on_step()
+
+    def close(self) -> None:
+        self._pending.clear()
+
+
+def first_peak(hists: np.ndarray, threshold: float = 6.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Sub-bin position of the first return per zone, whether one was found, and its peak SNR.
+
+    The floor is the median of :data:`FLOOR_BINS`; a return starts at the first bin more than
+    ``threshold`` Poisson sigmas of the floor above it; its peak is the largest bin in the 6 bins
+    from there (a return is about 4 bins wide), refined by a parabola through it and its neighbours.
+    hists: (Z, 128); returns three (Z,) arrays (bins, bool, peak height in floor sigmas).
+    """
+    h = np.asarray(hists, dtype=float)
+    z = h.shape[0]
+    floor = np.median(h[:, FLOOR_BINS], axis=1, keepdims=True)
+    sig = h - floor
+    noise = np.sqrt(np.maximum(floor, 1.0))
+    above = sig > threshold * noise
+    found = above.any(axis=1)
+    first = np.argmax(above, axis=1)
+    idx = np.clip(first[:, None] + np.arange(6)[None], 0, N_BINS - 1)
+    win = np.take_along_axis(sig, idx, axis=1)
+    k = np.clip(first + np.argmax(win, axis=1), 1, N_BINS - 2)
+    rows = np.arange(z)
+    y0, y1, y2 = sig[rows, k - 1], sig[rows, k], sig[rows, k + 1]
+    den = y0 - 2 * y1 + y2
+    frac = np.where(np.abs(den) > 1e-12, 0.5 * (y0 - y2) / np.where(den == 0, 1, den), 0.0)
+    return k + np.clip(frac, -0.5, 0.5), found, y1 / noise[:, 0]
+
+
+def zone_rays_world(tof: SimToF, data: Any = None) -> tuple[np.ndarray, np.ndarray]:
+    """Origin (3,) and unit directions (9, R, 3) of the sensor's rays in the world (for drawing)."""
+    pos, R = tof.sensor_pose(data)
+    return pos, (tof._dirs @ R.T).reshape(N_ZONES, -1, 3)
+
+
+__all__ = ["SimToF", "ToFConfig", "DistanceMap", "RayReturns", "true_params", "sensor_file", "zone_rays_world",
+           "MAX_COUNT"]
+
