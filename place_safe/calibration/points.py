@@ -7,26 +7,28 @@ put the point at that range along the zone's direction; a plane is fitted to the
 The reading is the sub-bin histogram peak (bins) for ``peak`` and the on-sensor distance
 (millimetres) for ``proprietary``. :class:`PeakParams` holds the mapping:
 
-* range (m) of zone ``z``::
+* range (m) of zone ``z``, from the reading ``x``::
 
-      r0 = (reading - b - zone_offsets[z]) / m
-      r  = (reading - b - zone_offsets[z] - c(r0)) / m
+      x' = x - s(x) - b - zone_offsets[z]
+      r  solves  m g_z r + c(r) = x'       (fixed-point iteration; r = x' / (m g_z) without c)
 
-  ``m`` in reading units per metre (bins/m or mm/m), ``b`` and ``zone_offsets`` in reading units.
-  ``c`` is an optional smooth residual correction (reading units) shared by all zones: a Chebyshev
-  series in ``r0`` over ``residual_domain`` (m), evaluated at ``r0`` clipped to the domain, so it
-  is constant outside the calibrated range and never extrapolates a polynomial. It absorbs the
-  slow drift of the peak's position with distance (pulse-shape change with signal strength:
-  on the shared real sweep a bow of +-3 mm over 5-40 cm after the linear fit). Empty
-  ``residual_coeffs`` means no correction (the paper's model).
+  ``m`` in reading units per metre (bins/m or mm/m), ``g_z`` = ``zone_gains`` (dimensionless,
+  mean 1), ``b`` and ``zone_offsets`` in reading units. ``s(x)`` (``phase_coeffs``, sine/cosine
+  pairs of 2 pi k x) corrects the sub-bin bias of the spline peak, which pulls peaks towards
+  whole bins (+-0.09 bin on the real sweep). ``c`` (``residual_coeffs``) is a smooth residual
+  correction shared by all zones: a Chebyshev series in ``r`` over ``residual_domain`` (m),
+  evaluated at ``r`` clipped to the domain, so it is constant outside the calibrated range; it
+  absorbs the slow drift of the peak with distance (pulse shape changing with signal strength:
+  a bow of +-3 mm over 5-40 cm on the real sweep). Per-zone gains take up what differs between
+  zones with range (effective zone directions, signal level). Empty coefficient lists and unit
+  gains are the paper's model.
 * direction of zone ``z``: the zone-centre direction (:data:`place_safe.sensor.ZONE_DIRECTIONS`)
   with its angle from the optical axis multiplied by ``edge_scale`` (s_e, zones 2, 4, 6, 8) or
   ``corner_scale`` (s_c, zones 1, 3, 7, 9); azimuth kept, the centre zone stays on the axis.
 
 Calibration (:func:`fit_peak`, :func:`fit_proprietary`) minimises the paper's point error over
-frames with ground truth: Nelder-Mead over ``(m, b, s_e, s_c)`` as in the paper, alternated with a
-linear least-squares fit of the per-zone timing offsets and the residual correction (in reading
-units, at the true ranges along the current directions). The paper did not calibrate per-zone
+frames with ground truth: Nelder-Mead over ``(m, b, s_e, s_c)`` as in the paper (``paper=True``),
+then the full model by linear least squares (see :func:`fit_points`). The paper did not calibrate per-zone
 offsets; on the real sweep zones differ by up to one bin (about 12 mm) at the same distance.
 """
 
