@@ -590,14 +590,23 @@ class SimRobot(Robot):
             nd = max(np.linalg.norm(diff[:3]), np.linalg.norm(diff[3:]))
             vref = mo["target"].copy() if nd <= step else self._ref_twist + diff * (step / nd)
         self._ref_twist = vref
+        # actual TCP vs reference: only for fault detection and the end-of-move check
         T = self.tcp_pose()
-        e = np.concatenate([ref[:3, 3] - T[:3, 3], _log_rot(ref[:3, :3] @ T[:3, :3].T)])
-        ep, er = float(np.linalg.norm(e[:3])), float(np.linalg.norm(e[3:]))
+        ep = float(np.linalg.norm(ref[:3, 3] - T[:3, 3]))
+        er = float(np.linalg.norm(_log_rot(ref[:3, :3] @ T[:3, :3].T)))
         if ep > self.limits.max_tracking_error:
             self._raise_fault(f"TCP cannot follow the commanded path: {1000 * ep:.1f} mm off "
                               f"(limit {1000 * self.limits.max_tracking_error:.0f} mm; singularity, workspace "
                               "edge or blocked arm)")
-        J = self._jac_base(self.data)
+        # closed-loop IK on the commanded joints (the servos track q_cmd; closing the Cartesian loop on
+        # the measured pose would integrate the servo lag and overshoot the speed limit)
+        sd = self._scratch
+        sd.qpos[self._qadr] = self._q_cmd
+        mujoco.mj_kinematics(self.model, sd)
+        mujoco.mj_comPos(self.model, sd)
+        Tc = self._base_T_site(self._tcp, sd)
+        e = np.concatenate([ref[:3, 3] - Tc[:3, 3], _log_rot(ref[:3, :3] @ Tc[:3, :3].T)])
+        J = self._jac_base(sd)
         w = vref + _CART_GAIN_PER_S * e
         qd = J.T @ np.linalg.solve(J @ J.T + _DLS_EYE, w)
         scale = np.max(np.abs(qd) / np.asarray(self.limits.max_joint_speed))
