@@ -257,3 +257,14 @@ def test_runs_faster_than_five_times_real_time(robot: SimRobot) -> None:
     robot.move_linear(goal, speed=0.1, accel=0.5)
     factor = (robot.time() - sim0) / (time.perf_counter() - wall0)
     assert factor > 5.0, f"simulation runs only {factor:.1f}x real time during a move"
+
+
+def test_speed_linear_past_the_workspace_edge_faults_and_holds(robot: SimRobot) -> None:
+    with pytest.raises(RobotFault, match="cannot follow"):
+        robot.speed_linear([-0.2, 0, 0, 0, 0, 0], accel=1.0, duration=4.0)  # outward, beyond the reach
+    assert robot.is_faulted() and robot.holding() and not robot.gripper_is_open()
+    p = robot.tcp_pose()[:3, 3]
+    robot.step(0.3)
+    assert np.linalg.norm(robot.tcp_pose()[:3, 3] - p) < 2e-3
+    with pytest.raises(RobotFault):
+        robot.speed_linear([0.05, 0, 0, 0, 0, 0])
