@@ -79,6 +79,24 @@ def load_robot_model() -> tuple[mujoco.MjModel, mujoco.MjData]:
     return model, mujoco.MjData(model)
 
 
+def robot_spec(base_pos: Any = (0.0, 0.0, 0.0), base_quat: Any = (1.0, 0.0, 0.0, 0.0)) -> mujoco.MjSpec:
+    """An editable MjSpec of the packaged robot with its base at ``base_pos`` (m) / ``base_quat`` (w, x, y,
+    z) in the world. Scene builders add their geoms to ``spec.worldbody`` and call ``spec.compile()``;
+    :class:`SimRobot` re-places the cup in the gripper wherever the base ends up."""
+    from place_safe.robots import ur5_mjcf_path
+
+    pos, quat = np.asarray(base_pos, dtype=float), np.asarray(base_quat, dtype=float)
+    if pos.shape != (3,) or quat.shape != (4,) or not (np.all(np.isfinite(pos)) and np.all(np.isfinite(quat))):
+        raise ValueError(f"base_pos must be 3 and base_quat 4 finite numbers; got {base_pos!r}, {base_quat!r}")
+    if not np.linalg.norm(quat) > 0:
+        raise ValueError("base_quat must be a non-zero quaternion (w, x, y, z)")
+    spec = mujoco.MjSpec.from_file(str(ur5_mjcf_path()))
+    base = spec.body("base")
+    base.pos = pos
+    base.quat = quat / np.linalg.norm(quat)
+    return spec
+
+
 class SimRobot(Robot):
     """UR5 in MuJoCo behind the :class:`Robot` interface.
 
@@ -683,4 +701,4 @@ class SimRobot(Robot):
             self._advance(h)
 
 
-__all__ = ["SimRobot", "load_robot_model", "ARM_JOINTS", "FINGERS", "StepCallback"]
+__all__ = ["SimRobot", "load_robot_model", "robot_spec", "ARM_JOINTS", "FINGERS", "StepCallback"]

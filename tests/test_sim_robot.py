@@ -268,3 +268,24 @@ def test_speed_linear_past_the_workspace_edge_faults_and_holds(robot: SimRobot) 
     assert np.linalg.norm(robot.tcp_pose()[:3, 3] - p) < 2e-3
     with pytest.raises(RobotFault):
         robot.speed_linear([0.05, 0, 0, 0, 0, 0])
+
+
+def test_moved_base_poses_stay_in_the_base_frame() -> None:
+    from place_safe.kinematics import Kinematics
+    from place_safe.sim.robot import robot_spec
+
+    spec = robot_spec(base_pos=[0.3, -0.2, 0.5], base_quat=[np.cos(np.pi / 4), 0, 0, np.sin(np.pi / 4)])
+    spec.worldbody.add_geom(name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[2, 2, 0.1])
+    model = spec.compile()
+    r = SimRobot(model, mujoco.MjData(model))
+    kin = Kinematics()
+    q = r.joint_positions()
+    np.testing.assert_allclose(r.tcp_pose(), kin.base_T_tcp(q), atol=1e-6)
+    np.testing.assert_allclose(r.sensor_pose(), kin.base_T_sensor(q), atol=1e-6)
+    np.testing.assert_allclose(r.world_T_base()[:3, 3], [0.3, -0.2, 0.5], atol=1e-9)
+    assert r.holding()
+    np.testing.assert_allclose(r.cup_pose(), kin.base_T_cup(q), atol=1e-3)
+    goal = r.tcp_pose()
+    goal[:3, 3] += [0.05, 0.05, 0.05]
+    r.move_linear(goal, speed=0.1)
+    assert np.linalg.norm(r.tcp_pose()[:3, 3] - goal[:3, 3]) < 1e-3
