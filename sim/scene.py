@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from dataclasses import asdict, dataclass, field, fields, is_dataclass
 from importlib import resources
 from pathlib import Path
@@ -33,6 +34,9 @@ from typing import Any
 import numpy as np
 
 from place_safe.exceptions import PlaceSafeError
+
+if "MUJOCO_GL" not in os.environ and not os.environ.get("DISPLAY"):
+    os.environ["MUJOCO_GL"] = "egl"  # offscreen rendering without a display (read when mujoco is imported)
 
 #: Geom group holding every surface the simulated sensor can see.
 SENSED_GROUP = 0
@@ -82,7 +86,7 @@ class Material:
 @dataclass
 class TableConfig:
     height: float = 0.75  # m, top surface at the centre
-    center: tuple[float, float] = (0.55, 0.0)  # m, world x, y of the top's centre
+    center: tuple[float, float] = (-0.5, -0.1)  # m, world x, y of the top's centre (under the UR5's home TCP)
     size: tuple[float, float, float] = (0.6, 0.9, 0.04)  # m, x length, y width, thickness
     tilt: float = 0.0  # rad
     tilt_direction: float = 0.0  # rad, world azimuth the top normal leans towards
@@ -116,9 +120,9 @@ class SceneConfig:
     clutter: list[ClutterItem] = field(default_factory=list)
     with_robot: bool = False
     robot_xml: str | None = None  # default: the packaged robots/ur5/ur5.xml
-    robot_base_pos: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    robot_base_pos: tuple[float, float, float] = (0.0, 0.0, 0.8)  # m; a pedestal fills the gap to the floor
     robot_base_yaw: float = 0.0  # rad
-    rig_pos: tuple[float, float, float] = (0.55, 0.0, 0.95)  # sensor rig: initial sensor position (m)
+    rig_pos: tuple[float, float, float] = (-0.5, -0.1, 0.95)  # sensor rig: initial sensor position (m)
     rig_euler: tuple[float, float, float] = (math.pi, 0.0, 0.0)  # rad; default looks straight down
     robot_material: Material = field(default_factory=lambda: Material(albedo=0.4))
     timestep: float | None = None  # s; default: the robot model's (0.002 for the rig)
@@ -315,6 +319,12 @@ def build_scene(config: SceneConfig | None = None) -> Scene:
                      builtin=mujoco.mjtBuiltin.mjBUILTIN_GRADIENT, rgb1=[0.6, 0.7, 0.8], rgb2=[0.1, 0.1, 0.15],
                      width=64, height=64)
     wb.add_light(name="scene_light", pos=[0.3, 0.0, 2.5], dir=[0, 0, -1], diffuse=[0.8, 0.8, 0.8])
+    if cfg.with_robot and cfg.robot_base_pos[2] > 0:
+        h = cfg.robot_base_pos[2]
+        wb.add_geom(name="pedestal", type=mujoco.mjtGeom.mjGEOM_CYLINDER, size=[0.09, h / 2, 0],
+                    pos=[cfg.robot_base_pos[0], cfg.robot_base_pos[1], h / 2], rgba=[0.3, 0.3, 0.32, 1],
+                    group=SENSED_GROUP)
+        materials["pedestal"] = cfg.robot_material
     # floor
     wb.add_geom(name=FLOOR_GEOM, type=mujoco.mjtGeom.mjGEOM_PLANE, size=[3, 3, 0.05], rgba=cfg.floor.rgba(),
                 group=SENSED_GROUP)
@@ -339,7 +349,11 @@ def build_scene(config: SceneConfig | None = None) -> Scene:
                     rgba=c.material.rgba(), group=SENSED_GROUP)
         materials[name] = c.material
     try:
-        model = spec.compile()
+        import warnings
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # the empty-prefix notice of the attached robot
+            model = spec.compile()
     except Exception as exc:
         raise SceneError(f"scene does not compile: {exc}") from None
     site = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, SENSOR_SITE)

@@ -203,7 +203,19 @@ class SimToF(FrameSource):
 
     # -- measurement ---------------------------------------------------------------------------
     def render(self, returns: RayReturns, reference: np.ndarray) -> np.ndarray:
-        """Noise-free histograms (9, 128) of ``returns`` (floor not included)."""
+        """Noise-free histograms (9, 128) of ``returns`` (floor not included).
+
+        Runs torch single-threaded: these tensors are small, and on a busy machine thread hand-offs
+        cost 20x the arithmetic (measured: 89 ms vs 3.7 ms per frame at load 9 on 2 cores).
+        """
+        threads = torch.get_num_threads()
+        torch.set_num_threads(1)
+        try:
+            return self._render(returns, reference)
+        finally:
+            torch.set_num_threads(threads)
+
+    def _render(self, returns: RayReturns, reference: np.ndarray) -> np.ndarray:
         with torch.no_grad():
             h = self.forward.render_returns(
                 torch.as_tensor(returns.ranges[None]), torch.as_tensor(returns.cos_inc[None]),
@@ -349,11 +361,11 @@ class SimToF(FrameSource):
         self._pending.clear()
 
 
-def first_peak(hists: np.ndarray, threshold: float = 6.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def first_peak(hists: np.ndarray, threshold: float = 8.0, relative: float = 0.05) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Sub-bin position of the first return per zone, whether one was found, and its peak SNR.
 
     The floor is the median of :data:`FLOOR_BINS`; a return starts at the first bin more than
-    ``threshold`` Poisson sigmas of the floor above it; its peak is the largest bin in the 6 bins
+    ``threshold`` Poisson sigmas of the floor and ``relative`` of the zone's largest return above it; its peak is the largest bin in the 6 bins
     from there (a return is about 4 bins wide), refined by a parabola through it and its neighbours.
     hists: (Z, 128); returns three (Z,) arrays (bins, bool, peak height in floor sigmas).
     """
@@ -362,7 +374,7 @@ def first_peak(hists: np.ndarray, threshold: float = 6.0) -> tuple[np.ndarray, n
     floor = np.median(h[:, FLOOR_BINS], axis=1, keepdims=True)
     sig = h - floor
     noise = np.sqrt(np.maximum(floor, 1.0))
-    above = sig > threshold * noise
+    above = sig > np.maximum(threshold * noise, relative * sig.max(axis=1, keepdims=True))
     found = above.any(axis=1)
     first = np.argmax(above, axis=1)
     idx = np.clip(first[:, None] + np.arange(6)[None], 0, N_BINS - 1)

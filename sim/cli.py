@@ -1,0 +1,184 @@
+"""The ``place-safe sim ...`` commands: validate the simulated sensor, render scenes, benchmark speed.
+
+``add_sim_commands(subparsers)`` registers a ``sim`` command with its own sub-commands on an
+argparse sub-parser collection; each sets ``func(args) -> int`` (exit status: 0 success, 1 a
+``--strict`` target missed, 2 bad input). ``python -m place_safe.sim.cli ...`` runs them alone.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+
+
+from place_safe.exceptions import PlaceSafeError
+
+
+def add_sim_commands(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """Register ``sim validate``, ``sim render`` and ``sim bench``; returns the ``sim`` parser."""
+    sim = subparsers.add_parser("sim", help="MuJoCo simulation: validate the simulated TMF8820, render, benchmark",
+                                description="MuJoCo simulation of the UR5 and the TMF8820 (needs the [sim] extra).")
+    sub = sim.add_subparsers(dest="sim_command", metavar="{validate,render,bench}")
+    sim.set_defaults(func=lambda a: (sim.print_help(sys.stderr), 2)[1])
+
+    v = sub.add_parser("validate", help="compare simulated histograms with a real sweep, zone by zone",
+                       description="For each real frame with ground truth, place the simulated sensor at the same "
+                                   "distance and angle over a level table, simulate without noise and report per zone "
+                                   "the sub-bin peak difference and the correlation of the histogram shapes. "
+                                   "Targets: mean |peak diff| <= 0.5 bin and mean correlation >= 0.95 in every zone.")
+    v.add_argument("frames", help="frame file with ground truth (e.g. tests/data/tmf8820_ur5_sweep.json)")
+    v.add_argument("--params", help="ForwardParams JSON of the simulated sensor (default sim/sensors/tmf8820_real.json)")
+    v.add_argument("--rays", type=int, default=8, help="stratified rays per axis and zone (default 8)")
+    v.add_argument("--min-distance", type=float, default=5.0, help="use frames at z0 >= this many cm (default 5)")
+    v.add_argument("--json", action="store_true", help="print the per-zone figures as JSON instead of a table")
+    v.add_argument("--strict", action="store_true", help="exit 1 if a target is missed")
+    v.set_defaults(func=cmd_validate)
+
+    r = sub.add_parser("render", help="write a PNG (and optionally a GIF) of a scene with the sensor's rays",
+                       description="Offscreen rendering with mujoco.Renderer (EGL when there is no display).")
+    r.add_argument("--scene", help="scene JSON (SceneConfig, or a scenario file with a 'scene' key); "
+                                   "default: level table and a sensor rig")
+    r.add_argument("--robot", action="store_true", help="with the UR5 (overrides the scene's with_robot)")
+    r.add_argument("-o", "--output", default="scene.png", help="PNG path (default scene.png)")
+    r.add_argument("--gif", help="also write a GIF of the rig descending 20 cm (rig scenes)")
+    r.add_argument("--no-rays", action="store_true", help="do not draw the sensor's rays")
+    r.add_argument("--width", type=int, default=640)
+    r.add_argument("--height", type=int, default=480)
+    r.add_argument("--azimuth", type=float, default=135.0, help="camera azimuth (deg)")
+    r.add_argument("--elevation", type=float, default=-25.0, help="camera elevation (deg)")
+    r.add_argument("--distance", type=float, default=None, help="camera distance (m)")
+    r.add_argument("--view", action="store_true", help="open the interactive viewer instead (needs a display)")
+    r.set_defaults(func=cmd_render)
+
+    b = sub.add_parser("bench", help="real-time factor of physics + simulated sensor in lockstep",
+                       description="Steps the scene for --seconds of sim time with the sensor measuring at --rate Hz "
+                                   "in lockstep and reports the real-time factor (sim time / wall time). Target >= 5.")
+    b.add_argument("--scene", help="scene JSON (default: level table)")
+    b.add_argument("--rig", action="store_true", help="sensor rig only (no robot); default: the UR5 holding the cup")
+    b.add_argument("--seconds", type=float, default=5.0, help="sim seconds to run (default 5)")
+    b.add_argument("--rate", type=float, default=30.0, help="sensor frame rate (Hz, default 30)")
+    b.add_argument("--rays", type=int, default=8, help="stratified rays per axis and zone (default 8)")
+    b.set_defaults(func=cmd_bench)
+    return sim
+
+
+def _scene_config(path: str | None, robot: bool | None):
+    from .scene import SceneConfig
+
+    cfg = SceneConfig.load(path) if path else SceneConfig()
+    if robot is not None:
+        cfg.with_robot = robot
+    return cfg
+
+
+def cmd_validate(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from place_safe.forward import ForwardParams
+    from place_safe.frames import load_frames
+
+    from .validate import validate
+
+    frames = load_frames(args.frames)
+    params = ForwardParams.load(args.params) if args.params else None
+    t = time.perf_counter()
+    rep = validate(frames, params, rays=args.rays, min_distance=args.min_distance / 100.0)
+    if len(rep.distances) == 0:
+        print(f"error: no frame of {args.frames} has ground truth at >= {args.min_distance} cm", file=sys.stderr)
+        return 2
+    if args.json:
+        table = {k: [float(x) for x in np.round(v, 4)] for k, v in rep.zone_table().items()}
+        print(json.dumps({"frames": int(len(rep.distances)), "passed": rep.passed, "zones": table}))
+    else:
+        print(rep.format())
+        print(f"({time.perf_counter() - t:.1f} s)", file=sys.stderr)
+    return 1 if (args.strict and not rep.passed) else 0
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    from . import render
+    from .scene import build_scene
+    from .tof import SimToF
+
+    scene = build_scene(_scene_config(args.scene, True if args.robot else None))
+    data = scene.make_data()
+    if scene.config.with_robot:
+        from .robot import SimRobot
+
+        data = SimRobot(scene.model, data).data  # arm at home holding the cup
+    if args.view:
+        render.view(scene, data)
+        return 0
+    tof = None if args.no_rays else SimToF(scene, data)
+    kw = dict(width=args.width, height=args.height, azimuth=args.azimuth, elevation=args.elevation,
+              distance=args.distance)
+    img = render.render_image(scene, data, tof, **kw)
+    out = render.save_png(img, args.output)
+    print(f"wrote {out} ({img.shape[1]}x{img.shape[0]})", file=sys.stderr)
+    if args.gif:
+        if scene.rig_mocap < 0:
+            print("error: --gif animates the sensor rig; use a scene without the robot", file=sys.stderr)
+            return 2
+        rig_tof = tof if tof is not None else SimToF(scene, data)
+        frames = render.sweep_frames(scene, rig_tof, **kw)
+        print(f"wrote {render.save_gif(frames, args.gif)} ({len(frames)} frames)", file=sys.stderr)
+    return 0
+
+
+def bench(scene_path: str | None = None, rig: bool = False, seconds: float = 5.0, rate: float = 30.0,
+          rays: int = 8) -> dict:
+    """Run the scene ``seconds`` of sim time with the sensor in lockstep; returns timing figures."""
+    from .scene import build_scene
+    from .tof import SimToF, ToFConfig
+
+    scene = build_scene(_scene_config(scene_path, not rig))
+    cfg = ToFConfig(rays=rays, rate_hz=rate)
+    if scene.config.with_robot:
+        from .robot import SimRobot
+
+        robot = SimRobot(scene.model)
+        tof = SimToF(scene, robot.data, cfg).attach(robot)
+        t0 = time.perf_counter()
+        robot.step(seconds)
+        wall = time.perf_counter() - t0
+        sim_t = seconds
+    else:
+        tof = SimToF(scene, None, cfg)
+        t0 = time.perf_counter()
+        while tof.data.time < seconds:
+            tof.read(1.0)
+        wall = time.perf_counter() - t0
+        sim_t = float(tof.data.time)
+    frames = tof._next_index
+    return {"sim_seconds": sim_t, "wall_seconds": wall, "real_time_factor": sim_t / wall, "frames": frames,
+            "physics_steps": int(round(sim_t / scene.model.opt.timestep)), "with_robot": scene.config.with_robot}
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    res = bench(args.scene, args.rig, args.seconds, args.rate, args.rays)
+    print(f"{res['sim_seconds']:.2f} s sim in {res['wall_seconds']:.2f} s wall: real-time factor "
+          f"{res['real_time_factor']:.1f}x ({res['frames']} sensor frames at {args.rate:g} Hz, "
+          f"{res['physics_steps']} physics steps, {'UR5' if res['with_robot'] else 'rig'})")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="place-safe")
+    add_sim_commands(parser.add_subparsers(dest="command"))
+    args = parser.parse_args(argv)
+    if not hasattr(args, "func"):
+        parser.print_help(sys.stderr)
+        return 2
+    try:
+        return int(args.func(args))
+    except (PlaceSafeError, OSError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
+__all__ = ["add_sim_commands", "bench", "main"]
+
