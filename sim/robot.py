@@ -142,8 +142,11 @@ class SimRobot(Robot):
         self._qadr = np.array([m.jnt_qposadr[j] for j in jids])
         self._vadr = np.array([m.jnt_dofadr[j] for j in jids])
         self._act = np.array([_id(mujoco.mjtObj.mjOBJ_ACTUATOR, j) for j in ARM_JOINTS])
-        self._kv_over_kp = np.array([m.actuator_gainprm[a, 0] and -m.actuator_biasprm[a, 2] / m.actuator_gainprm[a, 0]
-                                     for a in self._act])
+        # position actuators: gain kp, bias (0, -kp, -kv)
+        kp = m.actuator_gainprm[self._act, 0]
+        if np.any(kp <= 0) or np.any(m.actuator_biasprm[self._act, 1] >= 0):
+            raise ValueError("arm actuators must be MuJoCo position servos (kp > 0)")
+        self._kv_over_kp = -m.actuator_biasprm[self._act, 2] / kp
         self._finger_act = np.array([_id(mujoco.mjtObj.mjOBJ_ACTUATOR, f) for f in FINGERS])
         self._finger_range = m.actuator_ctrlrange[self._finger_act].copy()
         self._tcp = _id(mujoco.mjtObj.mjOBJ_SITE, "tcp")
@@ -225,8 +228,8 @@ class SimRobot(Robot):
         mujoco.mj_forward(m, d)
         if hold_cup and self._flange_T_cup is not None:
             self.regrasp_cup()
-        else:
-            self.gripper(open=not hold_cup) if self._weld >= 0 else None
+        elif not hold_cup:
+            self.gripper(open=True)
 
     def regrasp_cup(self) -> None:
         """Put the cup (and its liquid) into the closed gripper at the nominal grasp and weld it."""
@@ -701,4 +704,28 @@ class SimRobot(Robot):
             self._advance(h)
 
 
-__all__ = ["SimRobot", "load_robot_model", "robot_spec", "ARM_JOINTS", "FINGERS", "StepCallback"]
+def benchmark(seconds: float = 2.0) -> dict[str, float]:
+    """Measure simulation speed of the bare robot: physics steps per second and the real-time factor,
+    idle (holding) and during a 0.1 m/s linear move."""
+    import time as _time
+
+    robot = SimRobot.load()
+    h = robot.model.opt.timestep
+    w0, t0 = _time.perf_counter(), robot.time()
+    robot.step(seconds)
+    idle = (robot.time() - t0) / (_time.perf_counter() - w0)
+    goal = robot.tcp_pose()
+    goal[:3, 3] += [0.1, 0.1, -0.1]
+    w0, t0 = _time.perf_counter(), robot.time()
+    robot.move_linear(goal, speed=0.1, accel=0.5)
+    moving = (robot.time() - t0) / (_time.perf_counter() - w0)
+    return {"idle_steps_per_s": idle / h, "idle_realtime_factor": idle,
+            "moving_steps_per_s": moving / h, "moving_realtime_factor": moving}
+
+
+if __name__ == "__main__":
+    for k, v in benchmark().items():
+        print(f"{k}: {v:.1f}")
+
+
+__all__ = ["SimRobot", "benchmark", "load_robot_model", "robot_spec", "ARM_JOINTS", "FINGERS", "StepCallback"]

@@ -12,8 +12,9 @@ Conventions
 * Fixed frames hung from the flange: ``tcp`` (between the fingertips), ``tof_sensor`` (+z optical axis,
   x/y as in the TMF8820 zone table) and ``cup`` (the held cup's frame: origin at the centre of its
   bottom face, +z up through the opening, i.e. against the tool direction).
-* MJCF geom groups: 0 environment (scene builders), 2 robot, 3 held cup and liquid. The simulated sensor
-  casts rays against groups 0 and 3 only.
+* MJCF geom groups: 0 environment (scene builders), 2 robot, 3 held cup and liquid; the simulated
+  sensor sees group 0 only. Contact bits (config ``contact``): robot geoms touch the environment but
+  not each other or the cup; the cup is held by the ``cup_grasp`` weld (flange -> cup), not by friction.
 
 Run ``python -m place_safe.robots.ur5.generate`` (or ``python robots/ur5/generate.py``) to rewrite
 both files; ``--check`` only reports whether the committed files are up to date (exit status 1 if not).
