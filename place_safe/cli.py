@@ -136,6 +136,7 @@ def _summarise(report: Any, indent: str = "  ") -> list[str]:
             else:
                 lines.append(f"{indent}{key}: {v}")
 
+    rep = {k: v for k, v in rep.items() if k != "params"}  # the parameters themselves are in the file
     walk(rep, "")
     return lines
 
@@ -146,26 +147,28 @@ def _summarise(report: Any, indent: str = "  ") -> list[str]:
 def cmd_calibrate(args: argparse.Namespace) -> int:
     from .calibration import Calibration
 
-    frames, skipped = _load_truth_frames(args.files)
-    _log(f"calibrate {args.method}: {len(frames)} frames with ground truth"
-         + (f" ({skipped} skipped: no ground truth or unreadable)" if skipped else ""))
     out = Path(args.output)
-    cal = Calibration()
-    if out.exists():
+    cal, note = Calibration(), None
+    if out.exists():  # checked before any work so a bad output path fails fast, with one line
         try:
             cal = Calibration.load(out)
-            kept = ", ".join(cal.sections) or "none"
-            _log(f"{out} is a calibration file; keeping its other sections (present: {kept})")
+            note = f"{out} is a calibration file; keeping its other sections (present: {', '.join(cal.sections) or 'none'})"
         except CalibrationError as exc:
             if not args.force:
                 raise CalibrationError(f"{exc}; refusing to overwrite it (use --force to replace the file)") from None
-            _log(f"replacing {out}: {exc}")
+            note = f"replacing {out}: {exc}"
+    frames, skipped = _load_truth_frames(args.files)
+    if not args.quiet:
+        _log(f"calibrate {args.method}: {len(frames)} frames with ground truth"
+             + (f" ({skipped} skipped: no ground truth or unreadable)" if skipped else ""))
+        if note:
+            _log(note)
     progress = not args.quiet
     fitted: list[str] = []
     if args.method in ("peak", "diff") and (args.method == "peak" or "peak" not in cal.sections):
         from .calibration.points import fit_peak
 
-        if args.method == "diff":
+        if args.method == "diff" and not args.quiet:
             _log("the diff method starts from the calibrated peak method: fitting the 'peak' section first")
         params, report = fit_peak(frames, progress=progress)
         cal.sections["peak"] = params.to_dict()
@@ -282,7 +285,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     cal = _load_calibration(args.calibration)
     frames, skipped = _load_truth_frames([args.file], args.min_distance, args.max_distance)
     _log(f"evaluate on {len(frames)} frames" + (f" ({skipped} skipped)" if skipped else ""))
-    report = evaluate(frames, cal, list(args.methods), args.out, not args.quiet)
+    options = {"diff": {"mode": args.diff_mode}} if args.diff_mode else None
+    report = evaluate(frames, cal, list(args.methods), None if args.no_plots else args.out, not args.quiet,
+                      estimator_options=options)
     print(report.table(), flush=True)
     if args.json:
         data = report.to_dict() if hasattr(report, "to_dict") else report
@@ -381,8 +386,14 @@ def cmd_demo(args: argparse.Namespace) -> int:
 # ------------------------------------------------------------------------------------------------
 # sim (optional extra)
 # ------------------------------------------------------------------------------------------------
-def _add_sim(sub) -> None:
+def _add_sim(sub, load: bool) -> None:
+    """The ``sim`` commands; imported only when asked for (MuJoCo is slow to import and optional)."""
     reason = None
+    if not load:
+        p = sub.add_parser("sim", help="simulated placement in MuJoCo (needs the [sim] extra; "
+                                       "see 'place-safe sim --help')", add_help=False)
+        p.add_argument("rest", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
+        return
     if importlib.util.find_spec("mujoco") is None:
         reason = ("the simulation needs MuJoCo, which is not installed: install the [sim] extra, "
                   "e.g. pip install -e \".[sim]\"")
@@ -390,7 +401,10 @@ def _add_sim(sub) -> None:
         try:
             from .sim.cli import add_sim_commands
         except ImportError as exc:
-            reason = f"the simulation commands are not available ({exc}); install the [sim] extra"
+            if (getattr(exc, "name", "") or "").startswith("place_safe"):
+                reason = f"the simulation commands are not available in this build ({exc})"
+            else:
+                reason = f"the simulation needs {exc.name or 'a package'} ({exc}): install the [sim] extra"
         except Exception as exc:  # a broken optional module must not take the whole CLI down
             reason = f"the simulation commands failed to load: {type(exc).__name__}: {exc}"
         else:
@@ -427,7 +441,8 @@ examples:
 """
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(load_sim: bool = True) -> argparse.ArgumentParser:
+    """The argument parser; with ``load_sim`` False the ``sim`` commands are a placeholder (fast start)."""
     p = _Parser(prog=PROG, formatter_class=_FMT, epilog=MAIN_EPILOG,
                 description="Recover the plane under a robot gripper from TMF8820 transient histograms, "
                             "calibrate the methods, evaluate and benchmark them, and replay recordings live.")
@@ -493,6 +508,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="skip frames whose true plane is closer than M metres (perpendicular distance d)")
     e.add_argument("--max-distance", type=float, default=None, metavar="M",
                    help="skip frames whose true plane is farther than M metres (perpendicular distance d)")
+    e.add_argument("--no-plots", action="store_true", help="do not write plots")
+    e.add_argument("--diff-mode", choices=("fast", "paper"), default=None, help="diff solver (default fast)")
     e.add_argument("--json", metavar="FILE", help="also write the report as JSON")
     e.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     e.set_defaults(func=cmd_evaluate)
@@ -555,7 +572,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     d.set_defaults(func=cmd_demo)
 
-    _add_sim(sub)
+    _add_sim(sub, load_sim)
     return p
 
 
@@ -569,7 +586,9 @@ def _commands(parser: argparse.ArgumentParser) -> list[str]:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``place-safe`` console script; returns the exit status."""
     try:
-        parser = build_parser()
+        argv = list(sys.argv[1:] if argv is None else argv)
+        command = next((a for a in argv if not a.startswith("-")), None)
+        parser = build_parser(load_sim=command == "sim")
         args = parser.parse_args(argv)
         if not getattr(args, "command", None):
             raise UsageError("a command is required: " + ", ".join(sorted(_commands(parser)))
