@@ -208,6 +208,11 @@ class Robot(ABC):
         RobotFault if the pose is unreachable (before moving) or a fault occurs on the way.
         """
 
+    def move_joint(self, q: Any, speed: float = 1.05, accel: float = 1.4, asynchronous: bool = False) -> None:
+        """Joint-space move to ``q`` (6 rad) with a synchronised trapezoidal profile (moveJ; rad/s,
+        rad/s^2). Optional for implementations: the default raises NotImplementedError."""
+        raise NotImplementedError(f"{type(self).__name__} does not implement move_joint")
+
     @abstractmethod
     def speed_linear(self, twist: Any, accel: float = 0.5, duration: float | None = None) -> None:
         """Move the TCP at ``twist`` (base frame), ramping with ``accel`` (speedL).

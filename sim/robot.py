@@ -48,6 +48,8 @@ _PLAN_STEP_RAD = 0.05
 _SETTLE_TOL_M = 2e-4  # end of move: position error
 _SETTLE_TOL_RAD = 2e-3
 _SETTLE_MAX_S = 1.0
+_SETTLE_TOL_JOINT_RAD = 2e-4
+_JOINT_TRACKING_FAULT_RAD = 0.1
 
 
 def _log_rot(R: np.ndarray) -> np.ndarray:
@@ -187,6 +189,11 @@ class SimRobot(Robot):
         self._ticks_per_control = max(1, int(round(control_period / m.opt.timestep)))
         self._tick_left = 0
         self._scratch = mujoco.MjData(m)
+        from place_safe.robots import ur5_config
+
+        cup_cfg = ur5_config()["cup"]
+        self._cup_inner_radius = cup_cfg["radius"] - cup_cfg["wall_thickness"]
+        self._cup_height = cup_cfg["height"]
         self._callbacks: list[StepCallback] = []
         self._fault: str | None = None
         self._force_grace = 0.0
@@ -334,6 +341,16 @@ class SimRobot(Robot):
     def time(self) -> float:
         return float(self.data.time)
 
+    def liquid_spilled(self) -> int:
+        """Number of liquid spheres no longer inside the cup (centre outside the cup's inner cylinder)."""
+        if self._cup < 0 or not self._liquid:
+            return 0
+        cTw = np.linalg.inv(self._world_T_body(self._cup))
+        p = (cTw[:3, :3] @ self.data.xpos[self._liquid].T).T + cTw[:3, 3]
+        inner = self._cup_inner_radius
+        inside = (np.hypot(p[:, 0], p[:, 1]) < inner) & (p[:, 2] > 0.0) & (p[:, 2] < self._cup_height)
+        return int(np.count_nonzero(~inside))
+
     def holding(self) -> bool:
         """True while the cup weld is active."""
         return self._weld >= 0 and bool(self.data.eq_active[self._weld])
@@ -472,6 +489,8 @@ class SimRobot(Robot):
         lim = self.limits
         speed = min(float(speed), lim.max_linear_speed)
         accel = min(float(accel), lim.max_linear_accel)
+        if self._mode == "joint":
+            self.stop(decel=accel)
         start = self._reference_pose()
         self._plan_line(start, goal)
         dp = goal[:3, 3] - start[:3, 3]
@@ -491,6 +510,33 @@ class SimRobot(Robot):
         if not asynchronous:
             self._run_until_idle(prof.duration + _SETTLE_MAX_S + 1.0)
 
+    def move_joint(self, q: Any, speed: float = 1.05, accel: float = 1.4, asynchronous: bool = False) -> None:
+        try:
+            goal = np.asarray(q, dtype=np.float64)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"move_joint target must be 6 joint angles (rad); got {q!r}") from exc
+        if goal.shape != (6,) or not np.all(np.isfinite(goal)):
+            raise ValueError(f"move_joint target must be 6 finite joint angles (rad); got {goal.tolist()}")
+        self._check_speed(speed, accel)
+        self._require_ok()
+        self._check_joint_limits(goal, "move_joint target")
+        if self._mode is not None:
+            self.stop(decel=max(float(accel), 1.0))
+        start = self._q_cmd.copy()
+        dq = goal - start
+        vmax = np.minimum(float(speed), np.asarray(self.limits.max_joint_speed))
+        span = np.abs(dq)
+        moving = span > 0
+        v_s = float(np.min(vmax[moving] / span[moving])) if moving.any() else math.inf
+        a_s = float(np.min(float(accel) / span[moving])) if moving.any() else math.inf
+        prof = TrapezoidProfile(1.0, v_s, a_s) if math.isfinite(v_s) else TrapezoidProfile(0.0, 1.0, 1.0)
+        self._mode = "joint"
+        self._motion = {"start": start, "dq": dq, "goal": goal, "profile": prof, "t0": self.time(),
+                        "settle": 0.0}
+        self._tick_left = 0
+        if not asynchronous:
+            self._run_until_idle(prof.duration + _SETTLE_MAX_S + 1.0)
+
     def speed_linear(self, twist: Any, accel: float = 0.5, duration: float | None = None) -> None:
         v = check_twist(twist)
         self._check_speed(1.0, accel)
@@ -503,6 +549,8 @@ class SimRobot(Robot):
             v[:3] *= lim.max_linear_speed / nv
         if nw > lim.max_angular_speed:
             v[3:] *= lim.max_angular_speed / nw
+        if self._mode == "joint":
+            self.stop(decel=accel)
         ref = self._reference_pose()
         self._mode = "speed"
         self._motion = {"target": v, "accel": min(float(accel), lim.max_linear_accel), "ref": ref,
@@ -516,6 +564,13 @@ class SimRobot(Robot):
         self._check_speed(1.0, decel)
         if self._mode is None:
             return
+        if self._mode == "joint":  # continue from the current joint velocity, decelerating in Cartesian space
+            sd = self._scratch
+            sd.qpos[self._qadr] = self._q_cmd
+            mujoco.mj_kinematics(self.model, sd)
+            mujoco.mj_comPos(self.model, sd)
+            self._ref_twist = self._jac_base(sd) @ self._qd_cmd
+            self._mode, self._motion = "speed", {"ref": self._base_T_site(self._tcp, sd), "t_last": self.time()}
         ref = self._reference_pose()
         self._mode = "speed"
         self._motion = {"target": np.zeros(6), "accel": float(decel), "ref": ref, "stopping": True,
@@ -567,6 +622,8 @@ class SimRobot(Robot):
             return self._linear_ref(self.time())[0]
         if self._mode == "speed":
             return self._speed_ref(self.time())
+        if self._mode == "joint":
+            raise RobotFault("a joint move is in progress; stop() it before a Cartesian command")
         return self.tcp_pose()
 
     def _speed_ref(self, t: float) -> np.ndarray:
@@ -598,6 +655,9 @@ class SimRobot(Robot):
             return
         t = self.time()
         mo = self._motion
+        if self._mode == "joint":
+            self._control_joint(t, h, dt)
+            return
         if self._mode == "linear":
             ref, vref = self._linear_ref(t)
             if t - mo["t0"] >= mo["profile"].duration:
@@ -643,6 +703,21 @@ class SimRobot(Robot):
                 self._finish()
         elif mo.get("stopping") and not np.any(self._ref_twist):
             self._finish()
+
+    def _control_joint(self, t: float, h: float, dt: float) -> None:
+        mo = self._motion
+        s, sd = mo["profile"].at(t - mo["t0"])
+        q_ref = mo["start"] + s * mo["dq"]
+        err = float(np.abs(q_ref - self.joint_positions()).max())
+        if err > _JOINT_TRACKING_FAULT_RAD:
+            self._raise_fault(f"joints cannot follow the commanded motion: {err:.3f} rad off "
+                              f"(limit {_JOINT_TRACKING_FAULT_RAD} rad; blocked arm)")
+        self._q_cmd, self._qd_cmd = q_ref, sd * mo["dq"]
+        self._apply_ctrl()
+        if t - mo["t0"] >= mo["profile"].duration:
+            mo["settle"] += dt
+            if err < _SETTLE_TOL_JOINT_RAD or mo["settle"] > _SETTLE_MAX_S:
+                self._finish()
 
     def _finish(self) -> None:
         self._mode, self._motion = None, {}

@@ -289,3 +289,40 @@ def test_moved_base_poses_stay_in_the_base_frame() -> None:
     goal[:3, 3] += [0.05, 0.05, 0.05]
     r.move_linear(goal, speed=0.1)
     assert np.linalg.norm(r.tcp_pose()[:3, 3] - goal[:3, 3]) < 1e-3
+
+
+def test_move_joint_reaches_target(robot: SimRobot) -> None:
+    q0 = robot.joint_positions()
+    goal = q0 + np.array([0.6, 0.2, -0.2, 0.1, 0.0, 0.5])
+    t0 = robot.time()
+    robot.move_joint(goal, speed=1.0, accel=1.4)
+    assert np.abs(robot.joint_positions() - goal).max() < 1e-3
+    assert robot.time() - t0 < 2.5
+    with pytest.raises(ValueError, match="finite"):
+        robot.move_joint([0, 0, np.nan, 0, 0, 0])
+    with pytest.raises(RobotFault, match="elbow_joint"):
+        robot.move_joint([0, -1.5, 4.0, -1.5, -1.5, 0])  # elbow limit is +-pi
+    assert not robot.is_faulted()
+
+
+def test_cup_stays_in_the_gripper_and_liquid_in_the_cup_at_placement_speeds(robot: SimRobot) -> None:
+    offsets: list[float] = []
+    grasp = np.array([0.0, 0.0, 0.18])
+    robot.add_step_callback(lambda m, d, t: offsets.append(
+        float(np.linalg.norm((np.linalg.inv(robot.flange_pose()) @ robot.cup_pose())[:3, 3] - grasp))))
+    T0 = robot.tcp_pose()
+    goal = T0.copy()
+    goal[:3, 3] += [0.2, 0.15, -0.1]
+    robot.move_linear(goal, speed=0.25, accel=1.2)  # the RobotLimits maxima
+    robot.move_linear(T0, speed=0.25, accel=1.2)
+    assert max(offsets) < 1e-3
+    assert robot.liquid_spilled() == 0
+
+
+def test_tilting_the_cup_spills_the_liquid(robot: SimRobot) -> None:
+    q = robot.joint_positions()
+    q[4] += 2.2  # tilt the tool by about 126 deg
+    robot.move_joint(q, speed=1.0)
+    robot.step(1.0)
+    assert robot.holding()
+    assert robot.liquid_spilled() >= 6
