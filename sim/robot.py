@@ -31,6 +31,7 @@ from scipy.spatial.transform import Rotation
 
 from place_safe.exceptions import RobotFault
 from place_safe.robot import Robot, RobotLimits, TrapezoidProfile, check_pose, check_twist
+from place_safe.robots import ur5_config
 
 ARM_JOINTS = ("shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint",
               "wrist_2_joint", "wrist_3_joint")
@@ -177,10 +178,12 @@ class SimRobot(Robot):
             self._flange_T_cup[:3, 3] = rp[3:6]
             qw, qx, qy, qz = rp[6:10]
             self._flange_T_cup[:3, :3] = Rotation.from_quat([qx, qy, qz, qw]).as_matrix()
-            # liquid positions in the cup frame as laid out by the model
-            mujoco.mj_kinematics(m, data)
-            wTc = self._world_T_body(self._cup)
-            self._liquid_in_cup = [np.linalg.inv(wTc) @ np.append(data.xpos[b], 1.0) for b in self._liquid]
+            # liquid positions in the cup frame as laid out by the model (at qpos0, not the current state)
+            ref = mujoco.MjData(m)
+            mujoco.mj_kinematics(m, ref)
+            cTw = np.linalg.inv(self._world_T_body(self._cup, ref))
+            self._liquid_in_cup = [cTw @ np.append(ref.xpos[b], 1.0) for b in self._liquid]
+            self._weld_relpose0 = m.eq_data[self._weld, 3:10].copy()
         else:
             self._flange_T_cup = None
             self._liquid_in_cup = []
@@ -189,8 +192,6 @@ class SimRobot(Robot):
         self._ticks_per_control = max(1, int(round(control_period / m.opt.timestep)))
         self._tick_left = 0
         self._scratch = mujoco.MjData(m)
-        from place_safe.robots import ur5_config
-
         cup_cfg = ur5_config()["cup"]
         self._cup_inner_radius = cup_cfg["radius"] - cup_cfg["wall_thickness"]
         self._cup_height = cup_cfg["height"]
@@ -205,8 +206,6 @@ class SimRobot(Robot):
         self._last_force = 0.0
         self._gripper_open = False
         if q_init is None:
-            from place_safe.robots import ur5_config
-
             q_init = ur5_config()["arm"]["home"]
         self.set_joint_positions(q_init, hold_cup=hold_cup)
 
@@ -238,11 +237,19 @@ class SimRobot(Robot):
         elif not hold_cup:
             self.gripper(open=True)
 
+    def reset(self, q: Any = None, hold_cup: bool = True) -> None:
+        """Reset the whole simulation (mj_resetData), clear any fault and start at rest at ``q``
+        (default: home) holding the cup."""
+        mujoco.mj_resetData(self.model, self.data)
+        self._fault, self._force_grace = None, 0.0
+        self.set_joint_positions(ur5_config()["arm"]["home"] if q is None else q, hold_cup=hold_cup)
+
     def regrasp_cup(self) -> None:
         """Put the cup (and its liquid) into the closed gripper at the nominal grasp and weld it."""
         if self._flange_T_cup is None:
             raise RobotFault("this model has no cup with a 'cup_grasp' weld to grasp")
         m, d = self.model, self.data
+        m.eq_data[self._weld, 3:10] = self._weld_relpose0  # undo a re-grasp at another relative pose
         wTc = self._world_T_body(self._flange) @ self._flange_T_cup
         self._set_free_body(self._cup, wTc)
         for b, pc in zip(self._liquid, self._liquid_in_cup):

@@ -326,3 +326,19 @@ def test_tilting_the_cup_spills_the_liquid(robot: SimRobot) -> None:
     robot.step(1.0)
     assert robot.holding()
     assert robot.liquid_spilled() >= 6
+
+
+def test_reset_restores_home_holding_the_cup(robot: SimRobot) -> None:
+    home_tcp = robot.tcp_pose()
+    robot.gripper(open=True)
+    goal = robot.tcp_pose()
+    goal[2, 3] += 0.05
+    robot.move_linear(goal)
+    assert not robot.holding()
+    robot.reset()
+    assert robot.time() == 0.0 and robot.holding() and not robot.is_faulted()
+    np.testing.assert_allclose(robot.tcp_pose(), home_tcp, atol=1e-9)
+    robot.step(0.3)
+    fTc = np.linalg.inv(robot.flange_pose()) @ robot.cup_pose()
+    np.testing.assert_allclose(fTc[:3, 3], [0, 0, 0.18], atol=5e-4)
+    assert robot.liquid_spilled() == 0
