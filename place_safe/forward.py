@@ -41,7 +41,19 @@ _SQRT_2PI = math.sqrt(2.0 * math.pi)
 class ForwardParams:
     """Camera parameters of the forward model. Defaults are the values published with the paper.
 
-    Units: ``bin_offset``, ``soft_bin_sigma`` and ``zone_offsets`` in bins; ``bin_size`` in metres
+    ``tail_weight`` and ``tail_decay`` (bins) extend the paper's model: the zone histograms of a real
+    TMF8820 decay more slowly after the peak than the rescaled reference pulse, so the pulse is
+    convolved with ``delta + tail_weight * exp(-k / tail_decay)`` (k >= 1 bins); and the zones'
+    fields of view may be narrower than the nominal rectangles (the paper's calibrated peak method
+    found edge and corner directions at 0.94 and 0.89 of their nominal angles), so ``edge_fov_scale``
+    and ``corner_fov_scale`` scale those zones' rectangles on ``z = 1`` towards the axis. The
+    defaults (``tail_weight = 0``, scales 1) are the paper's model exactly. ``pileup`` (1/counts)
+    adds the timing distortion of SPAD pile-up (Coates): a detector that records at most one photon
+    per laser cycle sees bin ``b`` with probability ``(1 - exp(-k h_b)) exp(-k sum_{j<b} h_j)``, so
+    at high flux the histogram shifts and skews earlier, which the paper's amplitude-only saturation
+    cannot express. ``pileup = 0`` turns it off.
+
+    Units: ``bin_offset``, ``soft_bin_sigma``, ``tail_decay`` and ``zone_offsets`` in bins; ``bin_size`` in metres
     of one-way range per bin; ``ref_floor`` and ``floor`` in counts; the rest dimensionless.
     """
 
@@ -59,6 +71,11 @@ class ForwardParams:
     saturation: float = 315.85
     rays_per_zone: int = 2304
     floor: float = 0.0
+    tail_weight: float = 0.0
+    tail_decay: float = 2.0
+    edge_fov_scale: float = 1.0
+    corner_fov_scale: float = 1.0
+    pileup: float = 0.0
     zone_offsets: list[float] = field(default_factory=lambda: [0.0] * N_ZONES)
     zone_gains: list[float] = field(default_factory=lambda: [1.0] * N_ZONES)
 
@@ -69,8 +86,11 @@ class ForwardParams:
                and not math.isfinite(float(getattr(self, f.name)))]
         if bad:
             raise CalibrationError(f"forward parameters are not finite: {', '.join(bad)}")
-        if self.bin_size <= 0 or self.saturation <= 0 or self.ref_time_scale <= 0 or self.soft_bin_sigma <= 0:
-            raise CalibrationError("bin_size, saturation, ref_time_scale and soft_bin_sigma must be > 0")
+        if (self.bin_size <= 0 or self.saturation <= 0 or self.ref_time_scale <= 0 or self.soft_bin_sigma <= 0
+                or self.tail_decay <= 0 or self.tail_weight < 0 or self.edge_fov_scale <= 0
+                or self.corner_fov_scale <= 0 or self.pileup < 0):
+            raise CalibrationError("bin_size, saturation, ref_time_scale, soft_bin_sigma and tail_decay must be > 0 "
+                                   "and tail_weight >= 0")
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -184,16 +204,18 @@ class ZoneRays:
 # ---------------------------------------------------------------------------------------------
 # Model
 # ---------------------------------------------------------------------------------------------
-def pulse_kernel(reference: torch.Tensor, time_scale: torch.Tensor, ref_floor: torch.Tensor) -> torch.Tensor:
+def pulse_kernel(reference: torch.Tensor, time_scale: torch.Tensor, ref_floor: torch.Tensor,
+                 tail_weight: torch.Tensor | None = None, tail_decay: torch.Tensor | None = None) -> torch.Tensor:
     """Laser pulse in zone bins from reference histograms (..., 128) -> (..., K).
 
     The floor is removed, the pulse normalised to peak 1 and sampled at zone-bin lags
-    ``k = 0..K-1``, i.e. at reference bins ``k / time_scale`` (linear interpolation).
+    ``k = 0..K-1``, i.e. at reference bins ``k / time_scale`` (linear interpolation). With a
+    ``tail_weight`` the pulse is then convolved with ``delta + w exp(-k / tail_decay)``, k >= 1.
     """
     ref = torch.clamp(reference - ref_floor, min=0.0)
     peak = ref.amax(dim=-1, keepdim=True)
     ref = ref / torch.clamp(peak, min=1e-12)
-    k_len = int(math.floor((N_BINS - 1) * float(time_scale))) + 1
+    k_len = int(math.floor((N_BINS - 1) * float(torch.as_tensor(time_scale).detach()))) + 1
     lags = torch.arange(k_len, dtype=ref.dtype)
     pos = lags / time_scale  # reference-bin coordinate of each lag
     lo = torch.clamp(torch.floor(pos), 0, N_BINS - 2)
@@ -201,7 +223,27 @@ def pulse_kernel(reference: torch.Tensor, time_scale: torch.Tensor, ref_floor: t
     lo_i = lo.long()
     a = ref[..., lo_i]
     b = ref[..., lo_i + 1]
-    return a * (1 - frac) + b * frac
+    kernel = a * (1 - frac) + b * frac
+    if tail_weight is None or (not torch.is_grad_enabled() and float(tail_weight) == 0.0):
+        return kernel
+    k = torch.arange(1, k_len, dtype=ref.dtype)
+    tail = tail_weight * torch.exp(-k / tail_decay)
+    # causal convolution truncated to the kernel's length: kernel[j] += sum_k tail[k-1] kernel[j-k]
+    idx = torch.arange(k_len).view(-1, 1) - k.long().view(1, -1)  # (K, K-1)
+    gathered = kernel[..., torch.clamp(idx, min=0)] * (idx >= 0)
+    return kernel + (gathered * tail).sum(-1)
+
+
+def apply_pileup(hist: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
+    """Coates pile-up of expected counts (..., N) with ``k`` = 1 / (laser cycles x detectors).
+
+    ``k = 0`` returns ``hist`` unchanged (the limit of the formula).
+    """
+    if not torch.is_grad_enabled() and float(k) == 0.0:
+        return hist
+    before = torch.cumsum(hist, dim=-1) - hist  # counts in earlier bins
+    kk = torch.clamp(k, min=1e-30)
+    return -torch.expm1(-kk * hist) / kk * torch.exp(-kk * before)
 
 
 def convolve_pulse(transient: torch.Tensor, kernel: torch.Tensor) -> torch.Tensor:
@@ -228,6 +270,24 @@ class ForwardModel:
         self.t = params_to_tensors(self.params, dtype)
         self.bins = torch.arange(N_BINS, dtype=dtype)
         self._kind = torch.as_tensor(ZONE_KIND)
+        d = self.rays.directions.to(dtype)
+        self._tangent = d[..., :2] / d[..., 2:]  # (9, R, 2) ray coordinates on z = 1
+
+    def ray_geometry(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Directions (9, R, 3) and weights (9, R) after the field-of-view scales.
+
+        Scaling a zone's rectangle by ``s`` moves each ray to ``(s x, s y, 1)``; weights are
+        re-weighted by the ratio of solid-angle densities so the quadrature stays uniform in solid angle.
+        """
+        t = self.t
+        one = torch.ones((), dtype=self.dtype)
+        scale = torch.stack([one, t["edge_fov_scale"], t["corner_fov_scale"]])[self._kind].view(N_ZONES, 1, 1)
+        xy = self._tangent * scale
+        n2_old = 1.0 + (self._tangent ** 2).sum(-1)
+        n2_new = 1.0 + (xy ** 2).sum(-1)
+        dirs = torch.cat([xy, torch.ones_like(xy[..., :1])], dim=-1) / torch.sqrt(n2_new).unsqueeze(-1)
+        w = self.rays.weights.to(self.dtype) * (n2_new / n2_old) ** -1.5
+        return dirs, w / w.sum(dim=1, keepdim=True)
 
     # -- pieces ------------------------------------------------------------------------------
     def zone_gains(self) -> torch.Tensor:
@@ -237,7 +297,9 @@ class ForwardModel:
         return base * t["zone_gains"]
 
     def pulse(self, reference: torch.Tensor) -> torch.Tensor:
-        return pulse_kernel(torch.as_tensor(reference, dtype=self.dtype), self.t["ref_time_scale"], self.t["ref_floor"])
+        t = self.t
+        return pulse_kernel(torch.as_tensor(reference, dtype=self.dtype), t["ref_time_scale"], t["ref_floor"],
+                            t["tail_weight"], t["tail_decay"])
 
     def render_returns(self, ranges: torch.Tensor, cos_inc: torch.Tensor, albedo: torch.Tensor,
                        reference: torch.Tensor, weights: torch.Tensor | None = None,
@@ -267,7 +329,7 @@ class ForwardModel:
         g = self.zone_gains().view(1, N_ZONES, 1)
         r_safe = torch.clamp(r, min=1e-4)
         photons = s * -torch.expm1(-g * intensity / (s * r_safe * r_safe))
-        w = self.rays.weights if weights is None else torch.as_tensor(weights, dtype=self.dtype)
+        w = self.ray_geometry()[1] if weights is None else torch.as_tensor(weights, dtype=self.dtype)
         w = w.expand_as(photons) if w.dim() == 2 else w
         amp = photons * w * float(self.params.rays_per_zone)
         if hit is not None:
@@ -281,7 +343,7 @@ class ForwardModel:
         hist = convolve_pulse(transient, kernel)
         total = hist.sum(dim=1, keepdim=True)
         hist = hist + t["crosstalk"] * (total - hist)
-        return hist + t["floor"]
+        return apply_pileup(hist, t["pileup"]) + t["floor"]
 
     def plane_returns(self, normal: torch.Tensor, offset: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Ranges, cosines of incidence and hit mask (B, 9, R) of this model's rays on planes.
@@ -290,7 +352,7 @@ class ForwardModel:
         """
         n = torch.as_tensor(normal, dtype=self.dtype)
         d = torch.as_tensor(offset, dtype=self.dtype)
-        cos = torch.einsum("zrk,bk->bzr", self.rays.directions, n)
+        cos = torch.einsum("zrk,bk->bzr", self.ray_geometry()[0], n)
         hit = cos > 1e-6
         ranges = d.view(-1, 1, 1) / torch.where(hit, cos, torch.ones_like(cos))
         return ranges, cos, hit
@@ -310,3 +372,15 @@ def _per_ray(value, like: torch.Tensor) -> torch.Tensor:
     if v.dim() == 1:
         return v.view(-1, 1, 1)
     return v
+
+
+#: Relative model error assumed when weighting residuals (2 % of the counts in a bin): the forward
+#: model does not describe a real sensor to the Poisson noise level of a 1e5-count bin, and without
+#: this term the brightest bins of the closest frames would dominate every fit.
+MODEL_ERROR = 0.02
+
+
+def residual_weights(hists: np.ndarray, model_error: float = MODEL_ERROR) -> np.ndarray:
+    """Inverse standard deviation of each histogram bin: Poisson noise plus relative model error."""
+    h = np.clip(np.asarray(hists, dtype=float), 0.0, None)
+    return 1.0 / np.sqrt(h + 1.0 + (model_error * h) ** 2)
