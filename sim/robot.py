@@ -750,7 +750,6 @@ class SimRobot(Robot):
                 self._force_grace = 0.0
             else:
                 thr = max(thr, self._force_grace)
-                self._force_grace = max(self._force_grace, 0.0)
         if f > thr or worst > thr:
             self._raise_fault(f"protective stop: contact force {max(f, worst):.1f} N exceeds {thr:.1f} N "
                               "(collision or pressing too hard); holding position and object")
