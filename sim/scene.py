@@ -11,11 +11,12 @@ Conventions
 * A :class:`Material` describes how a surface looks to the time-of-flight sensor: ``albedo`` is
   relative to the sensor's calibrated ``albedo`` (1.0 = the table of the real sweep), the specular
   lobe as in :mod:`place_safe.forward`. ``pattern = "checker"`` alternates ``albedo`` and ``albedo2``
-  in squares of ``square`` metres on the geom's local x-y plane.
+  in squares of ``square`` metres on the geom's local x-y plane. A specular weight/exponent of
+  ``None`` means the sensor's calibrated values, i.e. a surface like the real sweep's table.
 * Surfaces the sensor sees are in geom group :data:`SENSED_GROUP`; the robot's own geoms are moved
   out of it (group 0 -> 1) and the rig's marker is in group 2, so the ray caster never sees them.
-* ``with_robot`` attaches ``robots/ur5/ur5.xml`` (which carries the ``tof_sensor`` site) at the robot
-  base pose; otherwise a mocap body ``sensor_rig`` carries the ``tof_sensor`` site (+z = optical axis).
+* ``with_robot`` starts from ``robots/ur5/ur5.xml`` (which carries the ``tof_sensor`` site) with its
+  ``base`` body moved to the robot base pose (the cup, a free body, is re-placed by SimRobot); otherwise a mocap body ``sensor_rig`` carries the ``tof_sensor`` site (+z = optical axis).
 
 Built with :class:`mujoco.MjSpec`; :func:`build_scene` returns the compiled model, the spec and the
 per-geom material table the simulated sensor reads.
@@ -62,8 +63,8 @@ class Material:
     """Reflectance of a surface for the ToF sensor (see module docstring)."""
 
     albedo: float = 1.0
-    specular_weight: float = 0.15
-    specular_exponent: float = 1.8
+    specular_weight: float | None = None  # None: the sensor's calibrated lobe (as the real sweep's table)
+    specular_exponent: float | None = None
     pattern: str = "uniform"  # "uniform" or "checker"
     square: float = 0.05  # m, checker square size
     albedo2: float = 0.3  # second checker albedo (relative)
@@ -71,10 +72,12 @@ class Material:
     def __post_init__(self) -> None:
         if self.pattern not in ("uniform", "checker"):
             raise SceneError(f"material pattern {self.pattern!r} unknown; expected 'uniform' or 'checker'")
-        vals = (self.albedo, self.albedo2, self.specular_weight, self.specular_exponent, self.square)
-        if not all(math.isfinite(float(v)) for v in vals) or min(self.albedo, self.albedo2, self.specular_weight) < 0:
+        ks = 0.0 if self.specular_weight is None else self.specular_weight
+        alpha = 1.0 if self.specular_exponent is None else self.specular_exponent
+        vals = (self.albedo, self.albedo2, ks, alpha, self.square)
+        if not all(math.isfinite(float(v)) for v in vals) or min(self.albedo, self.albedo2, ks) < 0:
             raise SceneError("material albedo, albedo2 and specular_weight must be finite and >= 0")
-        if self.square <= 0 or self.specular_exponent <= 0:
+        if self.square <= 0 or alpha <= 0:
             raise SceneError("material square (m) and specular_exponent must be > 0")
 
     def rgba(self) -> list[float]:
@@ -149,6 +152,20 @@ class SceneConfig:
         return cls.from_dict(d)
 
 
+def load_scenario(path: str | Path) -> tuple[SceneConfig, dict, str]:
+    """A scenario file (``scenarios/*.json``): its scene, its sensor settings (ToFConfig keywords) and description."""
+    try:
+        d = json.loads(Path(path).read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise SceneError(f"cannot read scenario file {path}: {exc}") from None
+    if not isinstance(d, dict) or "scene" not in d:
+        raise SceneError(f"{path}: a scenario is a JSON object with 'scene' (and optional 'sensor', 'description')")
+    sensor = d.get("sensor") or {}
+    if not isinstance(sensor, dict):
+        raise SceneError(f"{path}: 'sensor' must be an object of ToFConfig settings")
+    return SceneConfig.from_dict(d["scene"]), sensor, str(d.get("description", ""))
+
+
 _NESTED = {"table": TableConfig, "floor": Material, "material": Material, "robot_material": Material}
 
 
@@ -207,8 +224,8 @@ class MaterialTable:
 
     albedo: np.ndarray
     albedo2: np.ndarray
-    specular_weight: np.ndarray
-    specular_exponent: np.ndarray
+    specular_weight: np.ndarray  # NaN: the sensor's own value
+    specular_exponent: np.ndarray  # NaN: the sensor's own value
     square: np.ndarray  # m; 0 for uniform materials
 
     @classmethod
@@ -216,20 +233,21 @@ class MaterialTable:
         def full(v: float) -> np.ndarray:
             return np.full(ngeom, float(v))
 
-        return cls(full(m.albedo), full(m.albedo2), full(m.specular_weight), full(m.specular_exponent), full(0.0))
+        return cls(full(m.albedo), full(m.albedo2), full(_nan(m.specular_weight)), full(_nan(m.specular_exponent)),
+                   full(0.0))
 
     def set(self, gid: int, m: Material) -> None:
         self.albedo[gid] = m.albedo
         self.albedo2[gid] = m.albedo2
-        self.specular_weight[gid] = m.specular_weight
-        self.specular_exponent[gid] = m.specular_exponent
+        self.specular_weight[gid] = _nan(m.specular_weight)
+        self.specular_exponent[gid] = _nan(m.specular_exponent)
         self.square[gid] = m.square if m.pattern == "checker" else 0.0
 
     def lookup(self, geom_ids: np.ndarray, local_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Albedo, specular weight and exponent at hits on ``geom_ids`` (N,), local points ``local_xy`` (N, 2).
 
         Checker squares alternate on ``floor(x / square) + floor(y / square)`` being even/odd.
-        Ids < 0 (misses) get zeros.
+        Ids < 0 (misses) get zeros; NaN specular entries mean "the sensor's own value".
         """
         g = np.asarray(geom_ids)
         ok = g >= 0
@@ -242,6 +260,10 @@ class MaterialTable:
         albedo = np.where(odd, self.albedo2[gi], self.albedo[gi])
         return (np.where(ok, albedo, 0.0), np.where(ok, self.specular_weight[gi], 0.0),
                 np.where(ok, self.specular_exponent[gi], 1.0))
+
+
+def _nan(v: float | None) -> float:
+    return float("nan") if v is None else float(v)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -303,11 +325,11 @@ def build_scene(config: SceneConfig | None = None) -> Scene:
 
     cfg = config if config is not None else SceneConfig()
     materials: dict[str, Material] = {}
-    spec = mujoco.MjSpec()
-    spec.modelname = "place_safe_scene"
     if cfg.with_robot:
-        _attach_robot(spec, cfg)
+        spec = _robot_spec(cfg)
     else:
+        spec = mujoco.MjSpec()
+        spec.modelname = "place_safe_rig_scene"
         rig = spec.worldbody.add_body(name=RIG_BODY, mocap=True, pos=list(cfg.rig_pos),
                                       quat=list(euler_to_quat(cfg.rig_euler)))
         rig.add_site(name=SENSOR_SITE, size=[0.004, 0.004, 0.004], rgba=[1, 0.2, 0.2, 1])
@@ -349,11 +371,7 @@ def build_scene(config: SceneConfig | None = None) -> Scene:
                     rgba=c.material.rgba(), group=SENSED_GROUP)
         materials[name] = c.material
     try:
-        import warnings
-
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # the empty-prefix notice of the attached robot
-            model = spec.compile()
+        model = spec.compile()
     except Exception as exc:
         raise SceneError(f"scene does not compile: {exc}") from None
     site = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, SENSOR_SITE)
@@ -365,39 +383,38 @@ def build_scene(config: SceneConfig | None = None) -> Scene:
     rig_mocap = -1
     if not cfg.with_robot:
         rig_mocap = int(model.body_mocapid[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, RIG_BODY)])
-    robot_geoms = np.array([g for g in range(model.ngeom) if model.geom_bodyid[g] != 0
-                            and model.geom_group[g] != MARKER_GROUP], dtype=int)
+    robot_geoms = (np.flatnonzero(model.geom_bodyid != 0) if cfg.with_robot else np.zeros(0, dtype=int))
     return Scene(cfg, spec, model, table, int(site),
                  mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, TABLE_GEOM),
                  mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, FLOOR_GEOM), rig_mocap, robot_geoms)
 
 
-def _attach_robot(spec, cfg: SceneConfig) -> None:
-    """Attach the UR5 model at the base pose, its geoms moved out of the sensed group."""
-    import warnings
+def _robot_spec(cfg: SceneConfig):
+    """The UR5 model as the scene's starting spec, base at the configured pose, geoms out of the sensed group.
 
+    The robot's file supplies the simulation options (its servos are tuned for its timestep).
+    """
     import mujoco
 
     xml = Path(cfg.robot_xml) if cfg.robot_xml else default_robot_xml()
     if not xml.is_file():
         raise SceneError(f"robot model {xml} not found; expected the UR5 MJCF (robots/ur5/ur5.xml)")
     try:
-        robot = mujoco.MjSpec.from_file(str(xml))
+        spec = mujoco.MjSpec.from_file(str(xml))
     except Exception as exc:  # mujoco raises plain ValueError with its parser message
         raise SceneError(f"cannot load robot model {xml}: {exc}") from None
-    for geom in robot.geoms:
+    base = spec.body("base")
+    if base is None:
+        raise SceneError(f"robot model {xml} has no body 'base'")
+    yaw = cfg.robot_base_yaw
+    base.pos = list(cfg.robot_base_pos)
+    base.quat = [math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)]
+    for geom in spec.geoms:
         if geom.group == SENSED_GROUP:
             geom.group = ROBOT_GROUP
-    # the robot's simulation options win (its controllers are tuned for them)
-    spec.option.timestep = cfg.timestep if cfg.timestep else robot.option.timestep
-    spec.option.integrator = robot.option.integrator
-    spec.option.gravity = robot.option.gravity
-    spec.compiler.degree = robot.compiler.degree
-    yaw = cfg.robot_base_yaw
-    frame = spec.worldbody.add_frame(pos=list(cfg.robot_base_pos), quat=[math.cos(yaw / 2), 0, 0, math.sin(yaw / 2)])
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # empty-prefix and option-conflict notices
-        spec.attach(robot, frame=frame, prefix="")
+    if cfg.timestep:
+        spec.option.timestep = cfg.timestep
+    return spec
 
 
 def _normalised(q: np.ndarray) -> np.ndarray:

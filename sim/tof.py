@@ -9,7 +9,8 @@ Conventions
 * Each hit carries its range (m), cosine of incidence, and the reflectance of the geom's material at
   the hit point (checkerboards evaluated in the geom's local x-y). Histograms are
   ``ForwardModel(true_params).render_returns`` of those returns, so several surfaces in a zone mix.
-  Material albedo is relative: the ray's albedo is ``material.albedo * true_params.albedo``.
+  Material albedo is relative: the ray's albedo is ``material.albedo * true_params.albedo``; a
+  material without its own specular lobe uses the true sensor's (as the real sweep's table).
 * Noise: Poisson shot noise on the histogram plus a per-zone ambient floor drawn once per sensor
   in ``ambient_range`` counts; the reference histogram is the shipped real one with Poisson noise.
 * Timing: measurement ``k`` is taken when the sim clock passes ``k / rate_hz`` and stamped with the
@@ -171,6 +172,11 @@ class SimToF(FrameSource):
         self.overruns = 0
 
     # -- ray casting ---------------------------------------------------------------------------
+    @property
+    def directions(self) -> np.ndarray:
+        """Unit ray directions (9, R, 3) in the sensor frame (after the true sensor's field-of-view scales)."""
+        return self._dirs.reshape(N_ZONES, -1, 3).copy()
+
     def sensor_pose(self, data: Any = None) -> tuple[np.ndarray, np.ndarray]:
         """Position (3,) and rotation (3, 3) world <- sensor of the ``tof_sensor`` site."""
         d = self.data if data is None else data
@@ -194,6 +200,8 @@ class SimToF(FrameSource):
         Rg = d.geom_xmat[gi].reshape(-1, 3, 3)
         local = np.einsum("nji,nj->ni", Rg, pts - d.geom_xpos[gi])
         rel, ks, alpha = self.scene.materials.lookup(np.where(hit, gid, -1), np.nan_to_num(local[:, :2]))
+        ks = np.where(np.isnan(ks), self.params.specular_weight, ks)
+        alpha = np.where(np.isnan(alpha), self.params.specular_exponent, alpha)
         cos = np.where(hit, np.abs(np.einsum("nk,nk->n", vec, np.nan_to_num(normals))), 0.0)
         shape = (N_ZONES, -1)
         return RayReturns(np.where(hit, dist, 1.0).reshape(shape), cos.reshape(shape),

@@ -1,7 +1,7 @@
 """Validation of the simulated sensor against a real sweep: same geometry, compare histograms zone by zone.
 
 For every real frame with ground truth at ``z0 >= min_distance``, a sensor rig is placed over a
-level table (relative albedo 1, the true sensor's specular lobe) so that the table is at the frame's
+level table (relative albedo 1 and the true sensor's specular lobe: the real sweep's table) so that the table is at the frame's
 ground-truth plane in the sensor frame, the frame is simulated without noise (with the real frame's
 reference histogram and floor), and per zone two figures are taken:
 
@@ -101,7 +101,6 @@ def validate(frames: list[Frame], params: ForwardParams | None = None, rays: int
 
     use = [f for f in frames if f.truth is not None and f.truth.z0 >= min_distance]
     tof = _rig_sensor(params, rays)
-    p = tof.params
     sims, diffs, corrs, dist = [], [], [], []
     for f in use:
         n = f.truth.normal
@@ -116,7 +115,6 @@ def validate(frames: list[Frame], params: ForwardParams | None = None, rays: int
         diffs.append(subbin_peak(sim) - subbin_peak(f.hists))
         corrs.append(shape_correlation(sim, f.hists, before, after))
         dist.append(f.truth.z0)
-    _ = p
     return ValidationReport(np.array(dist), np.array(diffs).reshape(-1, N_ZONES),
                             np.array(corrs).reshape(-1, N_ZONES), np.array(sims))
 
@@ -126,7 +124,6 @@ def _rig_sensor(params: ForwardParams | None, rays: int) -> SimToF:
 
     p = params if params is not None else true_params()
     table = TableConfig(height=TABLE_HEIGHT, center=(0.0, 0.0), size=(2.0, 2.0, 0.04),
-                        material=Material(albedo=1.0, specular_weight=p.specular_weight,
-                                          specular_exponent=p.specular_exponent))
+                        material=Material(albedo=1.0))
     scene = build_scene(SceneConfig(table=table, rig_pos=(0.0, 0.0, TABLE_HEIGHT + 0.2)))
     return SimToF(scene, config=ToFConfig(rays=rays, noise=False), params=p)
