@@ -78,7 +78,7 @@ def test_sensor_field_of_view_misses_cup_liquid_and_fingers(model: mujoco.MjMode
     xs = np.linspace(rects[:, 0].min(), rects[:, 1].max(), 15)
     ys = np.linspace(rects[:, 2].min(), rects[:, 3].max(), 15)
     assert xs[-1] == pytest.approx(0.294) and ys[-1] == pytest.approx(0.291)
-    group = np.array([1, 1, 1, 1, 0, 0], dtype=np.uint8)  # environment, robot, held cup + liquid
+    group = np.array([1, 1, 1, 1, 1, 1], dtype=np.uint8)  # every group: environment, cup + liquid, robot
     flange = model.body("flange").id
     for opening in (0.0, 0.03):
         data.qpos[qadr] = home

@@ -12,8 +12,8 @@ Conventions
 * Fixed frames hung from the flange: ``tcp`` (between the fingertips), ``tof_sensor`` (+z optical axis,
   x/y as in the TMF8820 zone table) and ``cup`` (the held cup's frame: origin at the centre of its
   bottom face, +z up through the opening, i.e. against the tool direction).
-* MJCF geom groups: 0 environment (scene builders), 2 robot, 3 held cup and liquid; the simulated
-  sensor sees group 0 only. Contact bits (config ``contact``): robot geoms touch the environment but
+* MJCF geom groups: 0 environment (scene builders), 1 held cup and liquid, 2 robot (all three drawn
+  by default viewers); the simulated sensor sees group 0 only. Contact bits (config ``contact``): robot geoms touch the environment but
   not each other or the cup; the cup is held by the ``cup_grasp`` weld (flange -> cup), not by friction.
 
 Run ``python -m place_safe.robots.ur5.generate`` (or ``python robots/ur5/generate.py``) to rewrite
@@ -39,7 +39,7 @@ MJCF_PATH = HERE / "ur5.xml"
 URDF_PATH = HERE / "ur5.urdf"
 
 ROBOT_GROUP = 2
-HELD_GROUP = 3
+HELD_GROUP = 1
 
 
 def _f(x: float) -> str:
