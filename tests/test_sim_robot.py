@@ -342,3 +342,12 @@ def test_reset_restores_home_holding_the_cup(robot: SimRobot) -> None:
     fTc = np.linalg.inv(robot.flange_pose()) @ robot.cup_pose()
     np.testing.assert_allclose(fTc[:3, 3], [0, 0, 0.18], atol=5e-4)
     assert robot.liquid_spilled() == 0
+
+
+def test_joint_limit_during_speed_linear_faults_and_holds() -> None:
+    upper = [6.2832, 6.2832, 3.1416, 6.2832, 6.2832, 0.5]  # wrist_3 limited to 0.5 rad
+    robot = SimRobot.load(limits=RobotLimits(joint_upper=upper))
+    with pytest.raises(RobotFault, match="wrist_3_joint"):
+        robot.speed_linear([0, 0, 0, 0, 0, -0.8], accel=2.0, duration=2.0)  # tool points down: -wz turns wrist_3 up
+    assert robot.is_faulted() and robot.holding()
+    assert robot.joint_positions()[5] < 0.5 + 0.02
