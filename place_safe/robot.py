@@ -204,8 +204,9 @@ class Robot(ABC):
         """Straight-line TCP move to ``pose`` (base_T_tcp) with a trapezoidal speed profile (moveL).
 
         Blocking unless ``asynchronous``; then the motion proceeds as time passes (``step``) and
-        ``is_moving()`` tells when it is done. Raises ValueError for a malformed pose or limits and
-        RobotFault if the pose is unreachable (before moving) or a fault occurs on the way.
+        ``is_moving()`` tells when it is done. ``speed``/``accel`` above ``limits`` are clamped to them.
+        Raises ValueError for a malformed pose, speed or acceleration and RobotFault if the pose is
+        unreachable (checked before moving; nothing moves) or a fault occurs on the way.
         """
 
     def move_joint(self, q: Any, speed: float = 1.05, accel: float = 1.4, asynchronous: bool = False) -> None:
