@@ -407,6 +407,7 @@ class SimRobot(Robot):
     def _raise_fault(self, msg: str) -> None:
         """Latch a fault: halt (hold the current position), keep the gripper as it is, raise."""
         self._fault = msg
+        self.data.qfrc_applied[self._vadr] = 0.0
         self._mode, self._motion = None, {}
         self._ref_twist[:] = 0.0
         self._q_cmd = self.data.qpos[self._qadr].copy()
@@ -650,6 +651,17 @@ class SimRobot(Robot):
         T[:3, :3] = _exp_rot(s * mo["rv"]) @ mo["start"][:3, :3]
         return T, np.concatenate([sd * mo["dp"], sd * mo["rv"]])
 
+    def _set_feedforward(self, qd_new: np.ndarray, dt: float) -> None:
+        """Inertial feed-forward torque M(q) qdd for the change of joint velocity over one control tick
+        (what the UR controller adds to its servo loop); without it the servos lag on accelerating and
+        overshoot the commanded speed."""
+        qdd = (qd_new - self._qd_cmd) / dt
+        vec = np.zeros(self.model.nv)
+        vec[self._vadr] = qdd
+        res = np.zeros(self.model.nv)
+        mujoco.mj_mulM(self.model, self.data, res, vec)
+        self.data.qfrc_applied[self._vadr] = res[self._vadr]
+
     def _apply_ctrl(self) -> None:
         # PD with velocity feed-forward through the position actuator:
         # kp (q_cmd + kv/kp qd_cmd - q) - kv qd = kp (q_cmd - q) + kv (qd_cmd - qd)
@@ -666,7 +678,9 @@ class SimRobot(Robot):
             self._control_joint(t, h, dt)
             return
         if self._mode == "linear":
-            ref, vref = self._linear_ref(t)
+            # pose at the tick, velocity averaged over the coming period (the joint command integrates it)
+            ref = self._linear_ref(t)[0]
+            vref = self._linear_ref(t + dt / 2)[1]
             if t - mo["t0"] >= mo["profile"].duration:
                 mo["settle"] += dt
         else:
@@ -702,6 +716,7 @@ class SimRobot(Robot):
             qd /= scale
         q_new = self._q_cmd + qd * h
         self._check_limits_running(q_new)
+        self._set_feedforward(qd, dt)
         self._q_cmd, self._qd_cmd = q_new, qd
         self._apply_ctrl()
         # end of motion
@@ -727,6 +742,7 @@ class SimRobot(Robot):
                 self._finish()
 
     def _finish(self) -> None:
+        self.data.qfrc_applied[self._vadr] = 0.0
         self._mode, self._motion = None, {}
         self._ref_twist[:] = 0.0
         self._qd_cmd[:] = 0.0
