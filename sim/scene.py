@@ -359,16 +359,18 @@ def build_scene(config: SceneConfig | None = None) -> Scene:
     R = _quat_matrix(q)
     top = np.array([t.center[0], t.center[1], t.height])
     centre = top - R[:, 2] * t.size[2] / 2
-    wb.add_geom(name=TABLE_GEOM, type=mujoco.mjtGeom.mjGEOM_BOX, size=[s / 2 for s in t.size], pos=list(centre),
-                quat=list(q), rgba=t.material.rgba(), group=SENSED_GROUP)
+    table_geom = wb.add_geom(name=TABLE_GEOM, type=mujoco.mjtGeom.mjGEOM_BOX, size=[s / 2 for s in t.size],
+                             pos=list(centre), quat=list(q), rgba=t.material.rgba(), group=SENSED_GROUP)
+    _visual_material(spec, table_geom, TABLE_GEOM, t.material)
     materials[TABLE_GEOM] = t.material
     # clutter
     for i, c in enumerate(cfg.clutter):
         name = f"clutter{i}"
         gtype = mujoco.mjtGeom.mjGEOM_BOX if c.shape == "box" else mujoco.mjtGeom.mjGEOM_CYLINDER
         size = list(c.size) + [0.0] * (3 - len(c.size))
-        wb.add_geom(name=name, type=gtype, size=size, pos=list(c.pos), quat=list(euler_to_quat(c.euler)),
-                    rgba=c.material.rgba(), group=SENSED_GROUP)
+        g = wb.add_geom(name=name, type=gtype, size=size, pos=list(c.pos), quat=list(euler_to_quat(c.euler)),
+                        rgba=c.material.rgba(), group=SENSED_GROUP)
+        _visual_material(spec, g, name, c.material)
         materials[name] = c.material
     try:
         model = spec.compile()
@@ -387,6 +389,23 @@ def build_scene(config: SceneConfig | None = None) -> Scene:
     return Scene(cfg, spec, model, table, int(site),
                  mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, TABLE_GEOM),
                  mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, FLOOR_GEOM), rig_mocap, robot_geoms)
+
+
+def _visual_material(spec, geom, name: str, m: Material) -> None:
+    """Show a checker material as a checker texture in renderings (visual only; the sensor uses the table)."""
+    import mujoco
+
+    if m.pattern != "checker":
+        return
+    a, b = Material(albedo=m.albedo).rgba(), Material(albedo=m.albedo2).rgba()
+    spec.add_texture(name=f"{name}_checker", type=mujoco.mjtTexture.mjTEXTURE_2D,
+                     builtin=mujoco.mjtBuiltin.mjBUILTIN_CHECKER, rgb1=a[:3], rgb2=b[:3], width=64, height=64)
+    mat = spec.add_material(name=f"{name}_checker")
+    mat.textures[mujoco.mjtTextureRole.mjTEXROLE_RGB] = f"{name}_checker"
+    mat.texuniform = True
+    mat.texrepeat = [1.0 / (2 * m.square), 1.0 / (2 * m.square)]  # one texture = 2 x 2 squares
+    geom.material = f"{name}_checker"
+    geom.rgba = [1.0, 1.0, 1.0, 1.0]
 
 
 def _robot_spec(cfg: SceneConfig):
