@@ -80,7 +80,7 @@ def test_table_edge_gives_two_peaks():
 
 
 def test_checkerboard_albedo_follows_position():
-    sq = 0.02
+    sq = 0.05  # a zone at 20 cm is about 4 cm wide: it sees one to four squares
     mat = Material(albedo=1.0, albedo2=0.2, pattern="checker", square=sq)
     table = TableConfig(height=H, center=(0.0, 0.0), size=(1.0, 1.0, 0.04), material=mat)
     tof = rig(table, noise=False)
@@ -94,7 +94,7 @@ def test_checkerboard_albedo_follows_position():
     before = tof.measure().hists.sum(1)
     tof.scene.set_sensor_pose(tof.data, [sq / 2, 0.0, H + 0.2], tof.sensor_pose()[1])
     after = tof.measure().hists.sum(1)
-    assert np.max(np.abs(after - before) / before) > 0.02
+    assert np.max(np.abs(after - before) / before) > 0.1
 
 
 def test_streaming_at_30_hz_with_latency():
