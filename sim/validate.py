@@ -8,7 +8,9 @@ reference histogram and floor), and per zone two figures are taken:
 * ``peak_diff``: simulated minus real peak position in bins, both sub-bin (parabola through the
   largest bin of the floor-subtracted histogram and its neighbours);
 * ``corr``: Pearson correlation of the peak-normalised histograms over the window
-  ``[peak - before, peak + after]`` bins around the real peak.
+  ``[peak - before, peak + after]`` bins around the real peak;
+* ``amp_ratio``: simulated over real peak height above the floor (informative, no target: the
+  per-frame albedo of the real table is not known, the simulation uses the fitted median).
 
 Targets (per zone): mean ``|peak_diff|`` <= 0.5 bin and mean ``corr`` >= 0.95; the worst frame of
 each zone is reported too.
@@ -66,12 +68,14 @@ class ValidationReport:
     distances: np.ndarray  # (F,) ground-truth z0 (m)
     peak_diff: np.ndarray  # (F, 9) bins, sim - real
     corr: np.ndarray  # (F, 9)
+    amp_ratio: np.ndarray  # (F, 9)
     sim_hists: np.ndarray = field(repr=False, default_factory=lambda: np.zeros((0, N_ZONES, N_BINS)))
 
     def zone_table(self) -> dict[str, np.ndarray]:
         a = np.abs(self.peak_diff)
         return {"peak_mean": a.mean(0), "peak_worst": a.max(0), "peak_bias": self.peak_diff.mean(0),
-                "corr_mean": self.corr.mean(0), "corr_worst": self.corr.min(0)}
+                "corr_mean": self.corr.mean(0), "corr_worst": self.corr.min(0),
+                "amp_ratio_median": np.median(self.amp_ratio, 0)}
 
     @property
     def passed(self) -> bool:
@@ -82,13 +86,15 @@ class ValidationReport:
         t = self.zone_table()
         lines = [f"{len(self.distances)} frames, z0 {self.distances.min() * 100:.1f}..{self.distances.max() * 100:.1f} cm"
                  if len(self.distances) else "0 frames",
-                 "zone  |peak diff| mean  worst   bias (bins)   corr mean  worst",
+                 "zone  |peak diff| mean  worst   bias (bins)   corr mean  worst   amplitude sim/real (median)",
                  ]
         for z in range(N_ZONES):
             lines.append(f"{z + 1:>4}  {t['peak_mean'][z]:>15.3f} {t['peak_worst'][z]:>6.3f} {t['peak_bias'][z]:>+7.3f}"
-                         f"        {t['corr_mean'][z]:>9.4f} {t['corr_worst'][z]:>6.4f}")
+                         f"        {t['corr_mean'][z]:>9.4f} {t['corr_worst'][z]:>6.4f}"
+                         f"   {t['amp_ratio_median'][z]:>6.2f}")
         lines.append(f"all   {np.abs(self.peak_diff).mean():>15.3f} {np.abs(self.peak_diff).max():>6.3f} "
-                     f"{self.peak_diff.mean():>+7.3f}        {self.corr.mean():>9.4f} {self.corr.min():>6.4f}")
+                     f"{self.peak_diff.mean():>+7.3f}        {self.corr.mean():>9.4f} {self.corr.min():>6.4f}"
+                     f"   {np.median(self.amp_ratio):>6.2f}")
         lines.append(f"targets: mean |peak diff| <= {PEAK_TARGET} bin and mean corr >= {CORR_TARGET} in every zone: "
                      + ("PASS" if self.passed else "FAIL"))
         return "\n".join(lines)
@@ -101,7 +107,7 @@ def validate(frames: list[Frame], params: ForwardParams | None = None, rays: int
 
     use = [f for f in frames if f.truth is not None and f.truth.z0 >= min_distance]
     tof = _rig_sensor(params, rays)
-    sims, diffs, corrs, dist = [], [], [], []
+    sims, diffs, corrs, amps, dist = [], [], [], [], []
     for f in use:
         n = f.truth.normal
         # any rotation taking the plane normal (sensor frame) to straight down works on a level uniform table
@@ -114,9 +120,14 @@ def validate(frames: list[Frame], params: ForwardParams | None = None, rays: int
         sims.append(sim)
         diffs.append(subbin_peak(sim) - subbin_peak(f.hists))
         corrs.append(shape_correlation(sim, f.hists, before, after))
+        amps.append(_height(sim) / np.maximum(_height(f.hists), 1e-9))
         dist.append(f.truth.z0)
     return ValidationReport(np.array(dist), np.array(diffs).reshape(-1, N_ZONES),
-                            np.array(corrs).reshape(-1, N_ZONES), np.array(sims))
+                            np.array(corrs).reshape(-1, N_ZONES), np.array(amps).reshape(-1, N_ZONES), np.array(sims))
+
+
+def _height(h: np.ndarray) -> np.ndarray:
+    return (h - np.median(h[:, FLOOR_BINS], axis=1, keepdims=True)).max(axis=1)
 
 
 def _rig_sensor(params: ForwardParams | None, rays: int) -> SimToF:

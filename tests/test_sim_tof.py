@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -13,6 +14,7 @@ pytest.importorskip("mujoco")
 from place_safe.exceptions import FrameError, SensorTimeout  # noqa: E402
 from place_safe.frames import load_frames  # noqa: E402
 from place_safe.geometry import Plane  # noqa: E402
+from place_safe.sensor import Frame  # noqa: E402
 from place_safe.sim.scene import Material, SceneConfig, TableConfig, build_scene  # noqa: E402
 from place_safe.sim.tof import SimToF, ToFConfig, first_peak  # noqa: E402
 
@@ -109,6 +111,9 @@ def test_streaming_at_30_hz_with_latency():
         f.validate()
         assert f.truth is not None and f.truth.offset == pytest.approx(0.2, abs=1e-9)
         assert f.reference is not None and np.all(f.hists >= 0) and np.all(f.hists == np.round(f.hists))
+    back = Frame.from_dict(json.loads(json.dumps(frames[0].to_dict())))  # frames can be recorded as files
+    np.testing.assert_array_equal(back.hists, frames[0].hists)
+    assert back.timestamp == frames[0].timestamp and back.truth.offset == pytest.approx(0.2)
 
 
 def test_drops_and_corruption_on_demand():
