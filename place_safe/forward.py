@@ -53,6 +53,11 @@ class ForwardParams:
     at high flux the histogram shifts and skews earlier, which the paper's amplitude-only saturation
     cannot express. ``pileup = 0`` turns it off.
 
+    ``mount_tilt`` (rad, rotation vector ``(rx, ry, 0)``) is the rotation from the sensor's optical
+    frame, in which the model renders, to the frame planes are reported in (the nominal sensor frame
+    of the mount, in which ground truth is given): a sensor soldered a degree off its nominal
+    orientation is calibrated, not mistaken for a tilted table. See :func:`mount_rotation`.
+
     Units: ``bin_offset``, ``soft_bin_sigma``, ``tail_decay`` and ``zone_offsets`` in bins; ``bin_size`` in metres
     of one-way range per bin; ``ref_floor`` and ``floor`` in counts; the rest dimensionless.
     """
@@ -76,13 +81,16 @@ class ForwardParams:
     edge_fov_scale: float = 1.0
     corner_fov_scale: float = 1.0
     pileup: float = 0.0
+    mount_tilt: list[float] = field(default_factory=lambda: [0.0, 0.0])
     zone_offsets: list[float] = field(default_factory=lambda: [0.0] * N_ZONES)
     zone_gains: list[float] = field(default_factory=lambda: [1.0] * N_ZONES)
 
     def __post_init__(self) -> None:
         if len(self.zone_offsets) != N_ZONES or len(self.zone_gains) != N_ZONES:
             raise CalibrationError(f"zone_offsets and zone_gains need {N_ZONES} values each")
-        bad = [f.name for f in fields(self) if f.name not in ("zone_offsets", "zone_gains")
+        if len(self.mount_tilt) != 2 or not all(math.isfinite(float(v)) for v in self.mount_tilt):
+            raise CalibrationError("mount_tilt needs 2 finite angles (rad)")
+        bad = [f.name for f in fields(self) if f.name not in ("zone_offsets", "zone_gains", "mount_tilt")
                and not math.isfinite(float(getattr(self, f.name)))]
         if bad:
             raise CalibrationError(f"forward parameters are not finite: {', '.join(bad)}")
@@ -96,6 +104,7 @@ class ForwardParams:
         d = asdict(self)
         d["zone_offsets"] = [float(v) for v in self.zone_offsets]
         d["zone_gains"] = [float(v) for v in self.zone_gains]
+        d["mount_tilt"] = [float(v) for v in self.mount_tilt]
         return d
 
     @classmethod
@@ -124,6 +133,23 @@ class ForwardParams:
 
 #: Parameters that are tensors inside the model (everything but the ray count).
 TENSOR_PARAMS = tuple(f.name for f in fields(ForwardParams) if f.name != "rays_per_zone")
+
+
+def mount_rotation(tilt) -> torch.Tensor:
+    """Rotation matrix (3, 3) from the optical frame to the reported sensor frame (Rodrigues).
+
+    ``tilt`` is ``(rx, ry)`` in radians, the x and y components of a rotation vector (a tensor, so
+    calibration can differentiate through it).
+    """
+    t = tilt if torch.is_tensor(tilt) else torch.as_tensor(np.asarray(tilt, dtype=float))
+    zero = torch.zeros((), dtype=t.dtype)
+    k = torch.stack([torch.stack([zero, zero, t[1]]), torch.stack([zero, zero, -t[0]]),
+                     torch.stack([-t[1], t[0], zero])])
+    angle2 = t[0] * t[0] + t[1] * t[1]
+    angle = torch.sqrt(angle2 + 1e-30)
+    a = torch.where(angle2 > 1e-16, torch.sin(angle) / angle, 1.0 - angle2 / 6.0)
+    b = torch.where(angle2 > 1e-16, (1.0 - torch.cos(angle)) / (angle2 + 1e-30), 0.5 - angle2 / 24.0)
+    return torch.eye(3, dtype=t.dtype) + a * k + b * (k @ k)
 
 
 def params_to_tensors(p: ForwardParams, dtype: torch.dtype = torch.float64) -> dict[str, torch.Tensor]:

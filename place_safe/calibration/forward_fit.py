@@ -23,7 +23,7 @@ import torch
 from tqdm import tqdm
 
 from ..exceptions import CalibrationError
-from ..forward import ForwardModel, ForwardParams, ZoneRays, residual_weights
+from ..forward import ForwardModel, ForwardParams, ZoneRays, mount_rotation, residual_weights
 from ..sensor import N_BINS, N_ZONES, Frame
 
 #: Camera parameters fitted by default, with how they are parametrised ("log": positive).
@@ -41,10 +41,12 @@ FITTED: dict[str, str] = {
     "edge_fov_scale": "log",
     "corner_fov_scale": "log",
     "pileup": "log",
+    "mount_tilt": "lin",
     "zone_offsets": "lin",
     "zone_gains": "log",
 }
 CENTRE = 4  # zone 5: gauge for zone gains and offsets
+ZONE_GAUGED = ("zone_gains", "zone_offsets")
 FLOOR_BINS = slice(100, N_BINS)
 
 
@@ -110,9 +112,12 @@ def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, prog
         v = np.asarray(getattr(init, name), dtype=float)
         if kind == "log":
             v = np.log(np.maximum(v, 1e-9))
-        if v.ndim:
+        if name in ZONE_GAUGED:
             layout.append((name, kind, len(free)))
             start.extend(v[free])
+        elif v.ndim:
+            layout.append((name, kind, -v.size))  # a free vector: negative length marks it
+            start.extend(v)
         else:
             layout.append((name, kind, 1))
             start.append(float(v))
@@ -122,7 +127,10 @@ def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, prog
     def unpack(cam: torch.Tensor) -> None:
         i = 0
         for name, kind, n in layout:
-            if n == 1:
+            if n < 0:
+                n = -n
+                v = cam[i:i + n]
+            elif n == 1 and name not in ZONE_GAUGED:
                 v = cam[i]
             else:
                 centre = torch.full((1,), fixed_centre.get(name, 0.0), dtype=dtype)
@@ -132,7 +140,9 @@ def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, prog
 
     def residual(cam: torch.Tensor, log_albedo: torch.Tensor) -> torch.Tensor:
         unpack(cam)
-        h = model.render_plane(normals, offsets, torch.exp(log_albedo), refs)
+        # ground truth is in the reported (mount) frame; the model renders in the optical frame
+        n_optical = normals @ mount_rotation(model.t["mount_tilt"])
+        h = model.render_plane(n_optical, offsets, torch.exp(log_albedo), refs)
         return ((h[..., :width] - model.t["floor"] - obs) * inv_sigma).reshape(nf, -1)
 
     cam0 = torch.as_tensor(np.array(start), dtype=dtype)
@@ -140,7 +150,8 @@ def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, prog
     with torch.no_grad():  # start each albedo at its least-squares value
         for _ in range(2):
             unpack(cam0)
-            h = model.render_plane(normals, offsets, torch.exp(log_albedo0), refs)[..., :width]
+            n_optical = normals @ mount_rotation(model.t["mount_tilt"])
+            h = model.render_plane(n_optical, offsets, torch.exp(log_albedo0), refs)[..., :width]
             scale = (h * obs).sum(dim=(1, 2)) / torch.clamp((h * h).sum(dim=(1, 2)), min=1e-12)
             log_albedo0 += torch.log(torch.clamp(scale, 1e-3, 1e3))
 

@@ -32,7 +32,7 @@ import torch
 
 from ..calibration.points import PeakParams
 from ..exceptions import NoPlaneError
-from ..forward import ForwardModel, ForwardParams, ZoneRays, residual_weights
+from ..forward import ForwardModel, ForwardParams, ZoneRays, mount_rotation, residual_weights
 from ..geometry import Plane
 from ..plane_renderer import PlaneRenderer, convolution_matrices
 from ..sensor import N_BINS, N_ZONES, Frame
@@ -94,6 +94,8 @@ class DifferentiableEstimator(Estimator):
         self._prior_std = torch.tensor([self.opt.prior_specular_weight, self.opt.prior_log_exponent],
                                        dtype=self.dtype)
         self._renderer = PlaneRenderer(self.params, self.model.rays)
+        # optical frame -> reported sensor frame (the calibrated mount tilt; identity by default)
+        self._mount = mount_rotation(self.params.mount_tilt).numpy()
 
     # ------------------------------------------------------------------------------------------
     def _estimate(self, frame: Frame) -> PlaneEstimate:
@@ -140,7 +142,7 @@ class DifferentiableEstimator(Estimator):
             if not init.ok:
                 results[i] = PlaneEstimate(None, reason=init.reason)
                 continue
-            inits.append(init.plane)
+            inits.append(Plane(self._mount.T @ init.plane.normal, init.plane.offset))  # to the optical frame
             rows.append(i)
         if rows:
             sub = [frames[i] for i in rows]
@@ -281,7 +283,8 @@ class DifferentiableEstimator(Estimator):
         if z0 <= 0:
             return PlaneEstimate(None, reason="solver found no plane in front of the sensor")
         try:
-            plane = Plane.from_slopes(a, b, z0)
+            optical = Plane.from_slopes(a, b, z0)
+            plane = Plane(self._mount @ optical.normal, optical.offset)
         except NoPlaneError as exc:
             return PlaneEstimate(None, reason=str(exc))
         return PlaneEstimate(plane, albedo=math.exp(lr), residual=math.sqrt(max(cost, 0.0) / n_res))
@@ -323,7 +326,8 @@ class DifferentiableEstimator(Estimator):
                     z0.clamp_(min=1e-3)
             with torch.no_grad():
                 try:
-                    plane = Plane.from_angles(float(theta), float(phi), float(z0))
+                    optical = Plane.from_angles(float(theta), float(phi), float(z0))
+                    plane = Plane(self._mount @ optical.normal, optical.offset)
                 except NoPlaneError as exc:
                     out.append(PlaneEstimate(None, reason=str(exc)))
                     continue
