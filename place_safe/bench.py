@@ -113,16 +113,16 @@ class BenchReport:
         def f(v: float | None, fmt: str) -> str:
             return "-" if v is None else format(v, fmt)
 
-        head = (f"{'method':<12} {'frames':>6} {'no plane':>8} {'median ms':>10} {'p95 ms':>9} {'frames/s':>9} "
+        head = (f"{'method':<18} {'frames':>6} {'no plane':>8} {'median ms':>10} {'p95 ms':>9} {'frames/s':>9} "
                 f"{'angular deg':>11} {'linear mm':>9} {'point mm':>9}")
         lines = [f"benchmark on {self.frames} frames from {self.source} (warm-up excluded)", head,
                  "-" * len(head)]
         for r in self.results:
             if r.error:
-                lines.append(f"{r.label:<12} not run: {r.error}")
+                lines.append(f"{r.label:<18} not run: {r.error}")
                 continue
             lines.append(
-                f"{r.label:<12} {r.frames:>6d} {r.failures:>8d} "
+                f"{r.label:<18} {r.frames:>6d} {r.failures:>8d} "
                 f"{f(None if r.latency_median is None else r.latency_median * 1e3, '10.2f'):>10} "
                 f"{f(None if r.latency_p95 is None else r.latency_p95 * 1e3, '9.2f'):>9} {f(r.fps, '9.1f'):>9} "
                 f"{f(r._mean(r.angular_deg), '11.3f'):>11} {f(r._mean(r.linear_mm), '9.2f'):>9} "
@@ -163,7 +163,7 @@ def bench_method(label: str, estimator, frames: Sequence[Frame], warmup: bool = 
     it = frames
     if progress:
         from tqdm import tqdm
-        it = tqdm(frames, desc=label, unit="frame", file=sys.stderr, leave=False)
+        it = tqdm(frames, desc=label, unit="frame", file=sys.stderr, leave=False, disable=None)  # None: TTY only
     for frame in it:
         t0 = time.perf_counter()
         est = estimator.estimate(frame)
