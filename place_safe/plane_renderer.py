@@ -46,7 +46,7 @@ def convolution_matrices(kernels: np.ndarray, width: int) -> np.ndarray:
 class PlaneRenderer:
     """Histograms of planes and their Jacobian in the six unknowns, batched over frames."""
 
-    def __init__(self, params: ForwardParams, rays: ZoneRays) -> None:
+    def __init__(self, params: ForwardParams, rays: ZoneRays, zone_albedo: bool = False) -> None:
         from .forward import ForwardModel
 
         self.p = params
@@ -57,6 +57,10 @@ class PlaneRenderer:
         self.amp_weight = w * float(params.rays_per_zone)  # (9, R)
         self.offsets = np.asarray(params.zone_offsets, dtype=float)[:, None]  # (9, 1)
         self.inv_sigma2 = 1.0 / params.soft_bin_sigma ** 2
+        #: with ``zone_albedo`` the unknowns are (a, b, z0, log albedo of zones 1..9, ks, log alpha):
+        #: each zone's brightness is free, so only timing and shape inform the plane
+        self.zone_albedo = zone_albedo
+        self.n_unknowns = N_UNKNOWNS + (N_ZONES - 1 if zone_albedo else 0)
         self.gnorm = 1.0 / (params.soft_bin_sigma * math.sqrt(2.0 * math.pi))
 
     def render(self, x: np.ndarray, conv: np.ndarray, jacobian: bool = False):
@@ -67,9 +71,12 @@ class PlaneRenderer:
         """
         p = self.p
         a, b, z0 = x[:, 0, None, None], x[:, 1, None, None], x[:, 2, None, None]
-        rho = np.exp(x[:, 3])[:, None, None]
-        ks = x[:, 4, None, None]
-        alpha = np.exp(x[:, 5])[:, None, None]
+        if self.zone_albedo:
+            rho = np.exp(x[:, 3:3 + N_ZONES])[:, :, None]
+        else:
+            rho = np.exp(x[:, 3])[:, None, None]
+        ks = x[:, -2, None, None]
+        alpha = np.exp(x[:, -1])[:, None, None]
         vx, vy, vz = self.dirs[None, ..., 0], self.dirs[None, ..., 1], self.dirs[None, ..., 2]
         s = np.sqrt(1.0 + a * a + b * b)
         q = a * vx + b * vy + vz                       # (B, 9, R)
@@ -109,13 +116,19 @@ class PlaneRenderer:
         dc = [vx / s - qs * a / s ** 3, vy / s - qs * b / s ** 3, 0.0 * vx]      # d c / d (a, b, z0)
         logS = np.where(pos, np.log(Ssafe), 0.0)
         dI = [None, None, None, I, rho * Sa, rho * ks * Sa * logS * alpha]        # d I / d x3..x5
-        A = np.empty(amp.shape + (N_UNKNOWNS,))   # d amp / d x
-        B = np.zeros(amp.shape + (N_UNKNOWNS,))   # amp * d u / d x
+        nu = self.n_unknowns
+        A = np.zeros(amp.shape + (nu,))   # d amp / d x
+        B = np.zeros(amp.shape + (nu,))   # amp * d u / d x
         for k in range(3):
             A[..., k] = dp_dr * dr[k] + dp_dI * dI_dc * dc[k]
             B[..., k] = amp * dr[k] / p.bin_size
-        for k in range(3, N_UNKNOWNS):
-            A[..., k] = dp_dI * dI[k]
+        if self.zone_albedo:
+            zones = np.arange(N_ZONES)
+            A[:, zones, :, 3 + zones] = (dp_dI * dI[3]).transpose(1, 0, 2)
+        else:
+            A[..., 3] = dp_dI * dI[3]
+        A[..., nu - 2] = dp_dI * dI[4]
+        A[..., nu - 1] = dp_dI * dI[5]
         Gt = G * t * self.inv_sigma2
         dT = np.einsum("bzrk,bzrw->bzwk", A, G) + np.einsum("bzrk,bzrw->bzwk", B, Gt)
         dF = self._mix(np.einsum("bzwk,bvw->bzvk", dT, conv), axis_zone=1)

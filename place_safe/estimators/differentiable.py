@@ -55,6 +55,7 @@ class SolverOptions:
     prior_specular_weight: float = 0.05   # std of the specular-weight prior
     prior_log_exponent: float = 0.25      # std of the log specular-exponent prior
     window_after_peak: int = 24   # bins kept after the latest zone peak
+    zone_albedo: bool = True      # a free albedo per zone: the plane from timing and shape only
     # paper mode
     paper_iterations: int = 100
     paper_rays: int = 2304
@@ -93,7 +94,7 @@ class DifferentiableEstimator(Estimator):
                                    dtype=self.dtype)
         self._prior_std = torch.tensor([self.opt.prior_specular_weight, self.opt.prior_log_exponent],
                                        dtype=self.dtype)
-        self._renderer = PlaneRenderer(self.params, self.model.rays)
+        self._renderer = PlaneRenderer(self.params, self.model.rays, zone_albedo=self.opt.zone_albedo)
         # optical frame -> reported sensor frame (the calibrated mount tilt; identity by default)
         self._mount = mount_rotation(self.params.mount_tilt).numpy()
 
@@ -205,30 +206,37 @@ class DifferentiableEstimator(Estimator):
         kernels = self._kernels(frames)
         conv = convolution_matrices(kernels, width)
         nb = len(frames)
-        x = np.zeros((nb, 6))
+        rd = self._renderer
+        nu = rd.n_unknowns
+        n_alb = nu - 5  # 1, or 9 with per-zone albedo
+        lower = np.concatenate([_LOWER[:3], np.full(n_alb, _LOWER[3]), _LOWER[4:]])
+        upper = np.concatenate([_UPPER[:3], np.full(n_alb, _UPPER[3]), _UPPER[4:]])
+        x = np.zeros((nb, nu))
         for i, p in enumerate(inits):
             x[i, :3] = p.slopes
-        x[:, 3] = math.log(self.params.albedo)
-        x[:, 4] = self.params.specular_weight
-        x[:, 5] = math.log(self.params.specular_exponent)
-        x = np.clip(x, _LOWER, _UPPER)
+        x[:, 3:3 + n_alb] = math.log(self.params.albedo)
+        x[:, -2] = self.params.specular_weight
+        x[:, -1] = math.log(self.params.specular_exponent)
+        x = np.clip(x, lower, upper)
         for _ in range(2):  # albedo by linear least squares on the rendered shape (saturation: twice)
-            h = self._renderer.render(x, conv)
-            scale = (h * obs).sum(axis=(1, 2)) / np.maximum((h * h).sum(axis=(1, 2)), 1e-12)
-            x[:, 3] = np.clip(x[:, 3] + np.log(np.clip(scale, 1e-3, 1e3)), _LOWER[3], _UPPER[3])
+            h = rd.render(x, conv)
+            axes = (2,) if n_alb > 1 else (1, 2)
+            scale = (h * obs).sum(axis=axes) / np.maximum((h * h).sum(axis=axes), 1e-12)
+            x[:, 3:3 + n_alb] = np.clip(x[:, 3:3 + n_alb] + np.log(np.clip(scale, 1e-3, 1e3)).reshape(nb, -1),
+                                        lower[3], upper[3])
         prior_mu = np.array([self.params.specular_weight, math.log(self.params.specular_exponent)])
         prior_w = 1.0 / np.array([self.opt.prior_specular_weight, self.opt.prior_log_exponent])
 
         def residual(xs, rows, jac=False):
-            out = self._renderer.render(xs, conv[rows], jacobian=jac)
+            out = rd.render(xs, conv[rows], jacobian=jac)
             h, dh = (out if jac else (out, None))
             res = np.concatenate([((h - obs[rows]) * inv_sigma[rows]).reshape(len(rows), -1),
-                                  (xs[:, 4:6] - prior_mu) * prior_w], axis=1)
+                                  (xs[:, -2:] - prior_mu) * prior_w], axis=1)
             if not jac:
                 return res
-            J = (dh * inv_sigma[rows][..., None]).reshape(len(rows), -1, 6)
-            Jp = np.zeros((len(rows), 2, 6))
-            Jp[:, 0, 4], Jp[:, 1, 5] = prior_w
+            J = (dh * inv_sigma[rows][..., None]).reshape(len(rows), -1, nu)
+            Jp = np.zeros((len(rows), 2, nu))
+            Jp[:, 0, -2], Jp[:, 1, -1] = prior_w
             return res, np.concatenate([J, Jp], axis=1)
 
         all_rows = np.arange(nb)
@@ -250,12 +258,12 @@ class DifferentiableEstimator(Estimator):
                 if sel.size == 0:
                     break
                 rr = rows[sel]
-                A = JtJ[sel] + lam[rr, None, None] * np.einsum("bi,ij->bij", diag[sel], np.eye(6))
+                A = JtJ[sel] + lam[rr, None, None] * np.einsum("bi,ij->bij", diag[sel], np.eye(nu))
                 try:
                     step = -np.linalg.solve(A, g[sel][..., None])[..., 0]
                 except np.linalg.LinAlgError:
                     step = -np.stack([np.linalg.lstsq(Ai, gi, rcond=None)[0] for Ai, gi in zip(A, g[sel])])
-                xn = np.clip(x[rr] + step, _LOWER, _UPPER)
+                xn = np.clip(x[rr] + step, lower, upper)
                 cn = (residual(xn, rr) ** 2).sum(axis=1)
                 better = np.isfinite(cn) & (cn < cost[rr])
                 acc = rr[better]
@@ -269,7 +277,9 @@ class DifferentiableEstimator(Estimator):
                 pending[sel[better]] = False
                 pending[sel[~better][lam[worse] > 1e8]] = False
         n_res = N_ZONES * width
-        return [self._finish(torch.as_tensor(x[i]), float(cost[i]), n_res) for i in range(nb)]
+        # report one albedo: the mean log albedo over zones when each zone has its own
+        xr = np.concatenate([x[:, :3], x[:, 3:3 + n_alb].mean(axis=1, keepdims=True)], axis=1)
+        return [self._finish(torch.as_tensor(xr[i]), float(cost[i]), n_res) for i in range(nb)]
 
     def _kernels(self, frames: list[Frame]) -> np.ndarray:
         ref = torch.as_tensor(np.array([f.reference for f in frames]), dtype=self.dtype)
