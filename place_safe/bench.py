@@ -124,7 +124,7 @@ class BenchReport:
             lines.append(
                 f"{r.label:<18} {r.frames:>6d} {r.failures:>8d} "
                 f"{f(None if r.latency_median is None else r.latency_median * 1e3, '10.2f'):>10} "
-                f"{f(None if r.latency_p95 is None else r.latency_p95 * 1e3, '9.2f'):>9} {f(r.fps, '9.1f'):>9} "
+                f"{f(None if r.latency_p95 is None else r.latency_p95 * 1e3, '9.2f'):>9} {f(r.fps, '9.2f'):>9} "
                 f"{f(r._mean(r.angular_deg), '11.3f'):>11} {f(r._mean(r.linear_mm), '9.2f'):>9} "
                 f"{f(r._mean(r.point_mm), '9.2f'):>9}")
         if self.speed_ratio is not None:
