@@ -233,3 +233,32 @@ def test_evaluate_prints_a_table_and_writes_json(tmp_path, sweep_path, capsys):
 def test_evaluate_with_no_frames_in_range_exits_2(sweep_path, capsys):
     assert main(["evaluate", str(sweep_path), "--min-distance", "5", "--no-plots", "-q"]) == 2
     assert "no frames with ground truth" in one_line_error(capsys.readouterr().err)
+
+
+def test_calibrate_diff_fits_forward_and_peak_only_when_missing(tmp_path, capsys):
+    from place_safe.calibration import Calibration
+    from place_safe.frames import write_frames
+    from place_safe.synthetic import make_frames
+
+    data = tmp_path / "syn.json"
+    write_frames(data, make_frames(6, seed=2))
+    fresh = tmp_path / "fresh.json"
+    assert main(["calibrate", str(data), "--method", "diff", "-o", str(fresh), "-q"]) == 0
+    assert set(Calibration.load(fresh).sections) == {"peak", "forward"}  # diff starts from calibrated peak
+    err = capsys.readouterr().err
+    assert "section 'peak'" in err and "section 'forward'" in err
+
+    merged = tmp_path / "merged.json"
+    assert main(["calibrate", str(data), "--method", "proprietary", "-o", str(merged), "-q"]) == 0
+    assert main(["calibrate", str(data), "--method", "peak", "-o", str(merged), "-q"]) == 0
+    peak = json.loads(merged.read_text())["peak"]
+    capsys.readouterr()
+    assert main(["calibrate", str(data), "--method", "diff", "-o", str(merged), "-q"]) == 0
+    assert "section 'peak'" not in capsys.readouterr().err            # present: not refitted
+    d = json.loads(merged.read_text())
+    assert set(Calibration.load(merged).sections) == {"peak", "proprietary", "forward"}
+    assert d["peak"] == peak
+    # the written calibration drives the diff estimator
+    assert main(["recover", str(data), "--method", "diff", "--calibration", str(merged), "--jsonl", "-q"]) == 0
+    lines = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
+    assert len(lines) == 6 and all(x["normal"] is not None for x in lines)
