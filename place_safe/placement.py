@@ -233,7 +233,8 @@ class PlacementMachine:
         return Command(CommandKind.STOP, accel=self.config.accel)
 
     def _speed(self, v: np.ndarray) -> Command:
-        tw = tuple(float(x) for x in v)
+        """speedL at linear velocity ``v`` (3,) m/s, no rotation."""
+        tw = tuple(float(x) for x in v) + (0.0, 0.0, 0.0)
         if tw == self._last_twist:
             return Command.hold()
         self._last_twist = tw
@@ -336,13 +337,15 @@ class PlacementMachine:
 
         if self.phase == Phase.CHECK:
             m = self._mark
-            if "count0" not in m:
-                m["count0"] = plane.count if plane is not None else 0
             why = self._plane_problem(plane, now, note) or self._sensor_problem(state)
             if why is not None:
                 return self._refuse(now, why)
-            fresh = plane.count - m["count0"]
-            if fresh < cfg.check_frames or plane.stamp < self._t_phase:
+            # count planes measured after the stop command (frames arrive in measurement order)
+            if plane.stamp >= self._t_phase:
+                m["fresh"] = m.get("fresh", 0) + max(0, plane.count - m.get("seen", plane.count - 1))
+            m["seen"] = plane.count
+            fresh = m.get("fresh", 0)
+            if fresh < cfg.check_frames:
                 if now - self._t_phase > cfg.check_timeout:
                     return self._refuse(now, f"only {fresh} of {cfg.check_frames} surface planes within "
                                              f"{cfg.check_timeout:.1f} s of stopping" + (f" ({note})" if note else ""))
