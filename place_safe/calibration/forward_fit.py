@@ -67,13 +67,15 @@ def _usable(frames: Sequence[Frame], min_distance: float, max_distance: float) -
 def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, progress: bool = True,
                 rays: int = 4, iterations: int = 60, min_distance: float = 0.04,
                 max_distance: float = 1.0, fitted: dict[str, str] | None = None,
-                window_after_peak: int = 24) -> tuple[ForwardParams, dict]:
+                window_after_peak: int = 24, max_frames: int = 80) -> tuple[ForwardParams, dict]:
     """Fit camera parameters to frames with ground truth; returns (params, report).
 
     frames: frames with ``truth`` planes; those outside ``[min_distance, max_distance]`` (z0, m)
     or invalid are left out. init: starting parameters (default: the published values, with a
     small pulse tail and pile-up so their gradients are not zero). rays: stratified rays per axis and zone.
-    iterations: Gauss-Newton (trust-region) iterations at most.
+    iterations: Gauss-Newton (trust-region) iterations at most. max_frames: at most this many
+    frames are fitted, taken evenly over distance (a few dozen frames pin down the ~30 camera
+    parameters; more only cost time).
 
     The solver is SciPy's ``least_squares`` (trust region reflective) on the Poisson-scaled
     residuals (with the model-error term of :func:`~place_safe.forward.residual_weights`); its Jacobian is built from forward-mode derivatives (``torch.func.jvp``): one
@@ -87,6 +89,11 @@ def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, prog
     if len(data) < 3:
         raise CalibrationError(f"forward calibration needs >= 3 valid frames with ground truth in "
                                f"[{min_distance}, {max_distance}] m, got {len(data)}")
+    available = len(data)
+    if len(data) > max_frames:
+        order = np.argsort([f.truth.z0 for f in data], kind="stable")
+        pick = order[np.round(np.linspace(0, len(data) - 1, max_frames)).astype(int)]
+        data = [data[i] for i in sorted(set(pick.tolist()))]
     fitted = dict(FITTED if fitted is None else fitted)
     if init is None:
         init = ForwardParams(tail_weight=0.05, tail_decay=3.0, pileup=1e-7)
@@ -212,6 +219,7 @@ def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, prog
     n_res = sol.fun.size
     report = {
         "frames": nf,
+        "frames_available": available,
         "rms_scaled_residual_before": math.sqrt(2 * cost0 / n_res),
         "rms_scaled_residual_after": math.sqrt(2 * float(sol.cost) / n_res),
         "rms_scaled_residual_per_frame": {"median": float(np.median(per_frame)), "max": float(per_frame.max())},
