@@ -164,6 +164,7 @@ def run_placement(scenario: Any = "place_level", method: str = "diff", calibrati
     from place_safe.calibration import Calibration
     from place_safe.estimators import make_estimator
     from place_safe.kinematics import Kinematics
+    from place_safe.robots import ur5_config
 
     from .robot import SimRobot
     from .scene import SceneConfig, build_scene, load_scenario
@@ -272,7 +273,7 @@ def run_placement(scenario: Any = "place_level", method: str = "diff", calibrati
     return PlacementResult(
         outcome=outcome, reason=reason, scenario=name, method=method, calibration=cal_note,
         final_phase=machine.phase.value, cup_tilt=tilt, cup_height=height, cup_held=robot.holding(),
-        liquid_spilled=robot.liquid_spilled(), liquid_total=len(robot._liquid),
+        liquid_spilled=robot.liquid_spilled(), liquid_total=int(ur5_config()["cup"]["liquid_count"]),
         contact_force_peak=force_peak, sim_seconds=robot.time(), wall_seconds=_time.perf_counter() - wall0,
         frames=n_frames, planes=filt.count, transitions=[t.to_dict() for t in machine.log], frame_log=frame_log)
 
