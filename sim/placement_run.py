@@ -44,7 +44,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from place_safe.exceptions import PlaceSafeError, RobotFault, SensorTimeout
 from place_safe.fusion import PlaneFilter
-from place_safe.placement import CommandKind, Phase, PlacementConfig, PlacementMachine, RobotState
+from place_safe.placement import CommandKind, PlacementConfig, PlacementMachine, RobotState
 
 #: s, control loop period (125 Hz like the UR CB3 controller).
 CONTROL_PERIOD = 0.008
