@@ -17,11 +17,15 @@ from place_safe.exceptions import PlaceSafeError
 
 
 def add_sim_commands(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    """Register ``sim validate``, ``sim render`` and ``sim bench``; returns the ``sim`` parser."""
+    """Register ``sim place``, ``sim validate``, ``sim render`` and ``sim bench``; returns the ``sim`` parser."""
     sim = subparsers.add_parser("sim", help="MuJoCo simulation: validate the simulated TMF8820, render, benchmark",
                                 description="MuJoCo simulation of the UR5 and the TMF8820 (needs the [sim] extra).")
-    sub = sim.add_subparsers(dest="sim_command", metavar="{validate,render,bench}")
+    sub = sim.add_subparsers(dest="sim_command", metavar="{place,validate,render,bench}")
     sim.set_defaults(func=lambda a: (sim.print_help(sys.stderr), 2)[1])
+
+    from .placement_run import add_placement_command
+
+    add_placement_command(sub)
 
     v = sub.add_parser("validate", help="compare simulated histograms with a real sweep, zone by zone",
                        description="For each real frame with ground truth, place the simulated sensor at the same "
