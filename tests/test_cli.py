@@ -257,3 +257,23 @@ def test_calibrate_diff_adds_forward_and_the_missing_peak_section(tmp_path, caps
     assert main(["recover", str(data), "--method", "diff", "--calibration", str(out), "--jsonl", "-q"]) == 0
     lines = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
     assert len(lines) == 6 and all(x["normal"] is not None for x in lines)
+
+
+# -- demo (the main job) --------------------------------------------------------------------------------
+def test_demo_places_on_the_level_table_and_refuses_the_tilted_one(capsys):
+    assert main(["demo", "-q"]) == 0
+    out = capsys.readouterr().out
+    assert "place_level: released (as expected)" in out
+    assert "place_tilted: refused (as expected)" in out
+
+
+def test_demo_without_mujoco_falls_back_to_synthetic_recovery(monkeypatch, capsys):
+    import importlib.util
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "mujoco" else real(name, *a))
+    assert main(["demo", "--frames", "2"]) == 0
+    cap = capsys.readouterr()
+    assert "MuJoCo is not installed" in cap.err
+    for label in ("diff-fast", "peak", "proprietary"):
+        assert label in cap.out
