@@ -130,7 +130,9 @@ class BenchReport:
         if self.speed_ratio is not None:
             lines.append(f"speed ratio diff paper / fast (median latency): {self.speed_ratio:.1f}x")
         lines.append(f"peak RSS of this process: {self.peak_rss_bytes / 2**20:.0f} MB")
-        if self.file_rss:
+        if self.file_rss and "error" in self.file_rss:
+            lines.append(f"peak RSS of recover over a file: not measured ({self.file_rss['error']})")
+        elif self.file_rss:
             fr = self.file_rss
             lines.append(f"peak RSS of `place-safe recover --method {fr['method']}` over a {fr['frames']}-frame file "
                          f"({fr['file_mb']:.1f} MB): {fr['peak_rss_mb']:.0f} MB "
@@ -209,7 +211,8 @@ def _child_rss(cmd: list[str], stdout_path: Path) -> tuple[int, float, int]:
         proc.returncode = os.waitstatus_to_exitcode(status)
     rss = usage.ru_maxrss if sys.platform == "darwin" else usage.ru_maxrss * 1024
     if proc.returncode != 0:
-        raise RuntimeError(f"{' '.join(cmd)} exited with {proc.returncode}: {err.strip().splitlines()[-1:]}")
+        last = (err.strip().splitlines() or ["(no message)"])[-1]
+        raise RuntimeError(f"`{' '.join(cmd[2:])}` exited with {proc.returncode}: {last}")
     return proc.returncode, time.perf_counter() - t0, int(rss)
 
 

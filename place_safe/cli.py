@@ -354,15 +354,23 @@ def cmd_bench(args: argparse.Namespace) -> int:
     runs = [r for r in DEFAULT_RUNS if r[0] in args.methods]
     report = run_bench(frames, cal, paper_frames=args.paper_frames, runs=runs, source=source,
                        progress=not args.quiet)
+    status = 0
     if args.memory_file:
         if not args.quiet:
             _log(f"measuring peak RSS of recover over a {args.memory_file}-frame file ...")
-        report.file_rss = measure_file_rss(args.memory_file, method=args.memory_method, calibration=args.calibration)
+        try:
+            report.file_rss = measure_file_rss(args.memory_file, method=args.memory_method,
+                                               calibration=args.calibration)
+        except RuntimeError as exc:  # the timings above stay valid; say what failed and exit 1
+            report.file_rss = {"error": str(exc)}
+            status = 1
     print(report.table(), flush=True)
     if args.json:
         report_json(report, args.json)
         _log(f"wrote {args.json}")
-    return 0
+    if status:
+        _log(f"{PROG}: memory measurement failed: {report.file_rss['error']}")
+    return status
 
 
 # ------------------------------------------------------------------------------------------------

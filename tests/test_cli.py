@@ -251,7 +251,7 @@ def test_calibrate_diff_adds_forward_and_the_missing_peak_section(tmp_path, caps
     assert main(["calibrate", str(data), "--method", "diff", "-o", str(out), "-q"]) == 0
     err = capsys.readouterr().err
     assert "section 'peak'" in err and "section 'forward'" in err
-    assert set(Calibration.load(out).sections) == {"peak", "proprietary", "forward"}
+    assert {"peak", "proprietary", "forward"} <= set(Calibration.load(out).sections)
     assert json.loads(out.read_text())["proprietary"] == proprietary
     # the written calibration drives the diff estimator
     assert main(["recover", str(data), "--method", "diff", "--calibration", str(out), "--jsonl", "-q"]) == 0
