@@ -188,6 +188,12 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         cal.sections["forward"] = params.to_dict()
         cal.reports["forward"] = _jsonable(report)
         fitted.append("forward")
+        from .calibration.forward_fit import fit_range_correction
+
+        section, report = fit_range_correction(frames, params, cal.peak(), progress=progress)
+        cal.sections["diff"] = section
+        cal.reports["diff"] = _jsonable(report)
+        fitted.append("diff")
     out.parent.mkdir(parents=True, exist_ok=True)
     cal.save(out)
     for name in fitted:

@@ -36,7 +36,7 @@ class Plane:
         norm = np.linalg.norm(n)
         if norm < 1e-12:
             raise NoPlaneError("plane normal has zero length")
-        n = n / norm
+        n, d = n / norm, d / norm  # n . x = d scaled so that |n| = 1
         if n[2] < 0:
             n, d = -n, -d
         if n[2] <= 1e-9:

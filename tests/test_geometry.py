@@ -11,9 +11,12 @@ from place_safe.geometry import Plane, fit_plane, plane_from_pose, rotation_angl
 
 
 def test_plane_normalises_and_orients_towards_plus_z():
-    p = Plane(np.array([0.0, 0.0, -2.0]), -0.1)
+    p = Plane(np.array([0.0, 0.0, -2.0]), -0.1)  # -2 z = -0.1, i.e. the plane z = 0.05
     np.testing.assert_allclose(p.normal, [0, 0, 1])
-    assert p.offset == pytest.approx(0.1)
+    assert p.offset == pytest.approx(0.05)
+    q = Plane(np.array([3.0, 0.0, 4.0]), 1.0)  # |n| = 5: the same plane as n/5 . x = 0.2
+    assert q.offset == pytest.approx(0.2)
+    np.testing.assert_allclose(q.intersect(np.array([0.0, 0.0, 1.0])), [0, 0, 0.25])
 
 
 @pytest.mark.parametrize("normal,offset", [([np.nan, 0, 1], 0.1), ([0, 0, 1], np.inf), ([0, 0, 0], 0.1),

@@ -6,6 +6,7 @@ Layout::
      "peak":        {...PeakParams...},          # calibrated histogram-peak method
      "proprietary": {...PeakParams...},          # calibrated on-sensor distances
      "forward":     {...ForwardParams...},       # forward model for differentiable rendering
+     "diff":        {"range_correction": {...}}, # what diff's solver leaves over (optional)
      "reports":     {"peak": {...}, ...}}        # fit-quality summaries (informational)
 
 ``place-safe calibrate --method M -o FILE`` fits one family and writes its section; if FILE already
@@ -25,7 +26,7 @@ from ..exceptions import CalibrationError
 from ..forward import ForwardParams
 
 FORMAT = "place_safe.calibration/1"
-SECTIONS = ("peak", "proprietary", "forward")
+SECTIONS = ("peak", "proprietary", "forward", "diff")
 
 
 @dataclass
@@ -43,6 +44,13 @@ class Calibration:
         from .points import PeakParams
         return (PeakParams.from_dict(self.sections["proprietary"]) if "proprietary" in self.sections
                 else PeakParams.default_proprietary())
+
+    def diff(self):
+        """The ``diff`` section's range correction (none when the section is absent)."""
+        from ..estimators.differentiable import RangeCorrection
+
+        d = self.sections.get("diff", {})
+        return RangeCorrection.from_dict(d.get("range_correction", {}))
 
     def forward(self) -> ForwardParams:
         return ForwardParams.from_dict(self.sections["forward"]) if "forward" in self.sections else ForwardParams()

@@ -47,7 +47,7 @@ def make_estimator(method: str, calibration: "Calibration | None" = None, **opti
         return ProprietaryEstimator.naive(**options)
     if method == "diff":
         from .differentiable import DifferentiableEstimator
-        return DifferentiableEstimator(cal.forward(), cal.peak(), **options)
+        return DifferentiableEstimator(cal.forward(), cal.peak(), correction=cal.diff(), **options)
     raise ValueError(f"unknown method {method!r}; expected one of {', '.join(METHODS)}")
 
 

@@ -25,7 +25,7 @@ when the model explains the histograms to the noise level).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -43,6 +43,55 @@ from .peak import PeakEstimator
 FLOOR_BINS = slice(100, N_BINS)
 #: Histogram counts at which the SPAD array is taken as hard-saturated (24-bit counters).
 COUNTER_MAX = 2 ** 24 - 1
+
+
+@dataclass
+class RangeCorrection:
+    """A calibrated correction of the recovered plane as a function of its axis crossing ``z0``.
+
+    ``z0 += c(z0)`` and, in the optical frame, the slopes ``a += ca(z0)``, ``b += cb(z0)`` (plane
+    ``a x + b y + z = z0``). Each is a Chebyshev series (coefficients in metres, or dimensionless for
+    the slopes) on ``domain`` (m); outside the domain the value at its nearer end is used. Fitted by
+    :func:`place_safe.calibration.forward_fit.fit_range_correction` to what the forward model leaves
+    over on data with ground truth; empty coefficients mean no correction.
+    """
+
+    coeffs: list[float] = field(default_factory=list)
+    domain: list[float] = field(default_factory=lambda: [0.0, 1.0])
+    slope_a: list[float] = field(default_factory=list)
+    slope_b: list[float] = field(default_factory=list)
+
+    def _series(self, coeffs: list[float], z0: float) -> float:
+        if not coeffs:
+            return 0.0
+        from numpy.polynomial import chebyshev
+
+        lo, hi = self.domain
+        t = 2.0 * (min(max(z0, lo), hi) - lo) / max(hi - lo, 1e-9) - 1.0
+        return float(chebyshev.chebval(t, coeffs))
+
+    def __call__(self, z0: float) -> float:
+        """The correction of z0 (m) at z0."""
+        return self._series(self.coeffs, z0)
+
+    def slopes(self, z0: float) -> tuple[float, float]:
+        """The corrections of the slopes (a, b) at z0."""
+        return self._series(self.slope_a, z0), self._series(self.slope_b, z0)
+
+    def to_dict(self) -> dict:
+        return {"coeffs": [float(c) for c in self.coeffs], "domain": [float(v) for v in self.domain],
+                "slope_a": [float(c) for c in self.slope_a], "slope_b": [float(c) for c in self.slope_b]}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "RangeCorrection":
+        def floats(key):
+            return [float(v) for v in d.get(key, [])]
+
+        c = cls(floats("coeffs"), [float(v) for v in d.get("domain", [0.0, 1.0])], floats("slope_a"), floats("slope_b"))
+        values = c.coeffs + c.slope_a + c.slope_b
+        if len(c.domain) != 2 or not c.domain[1] > c.domain[0] or not all(math.isfinite(v) for v in values):
+            raise ValueError("range correction needs finite coefficients and a domain [lo, hi] with hi > lo")
+        return c
 
 
 @dataclass
@@ -81,12 +130,14 @@ class DifferentiableEstimator(Estimator):
     name = "diff"
 
     def __init__(self, forward: ForwardParams | None = None, peak: PeakParams | None = None,
-                 mode: str = "fast", options: SolverOptions | None = None) -> None:
+                 mode: str = "fast", options: SolverOptions | None = None,
+                 correction: RangeCorrection | None = None) -> None:
         if mode not in ("fast", "paper"):
             raise ValueError(f"mode must be 'fast' or 'paper', got {mode!r}")
         self.params = forward if forward is not None else ForwardParams()
         self.mode = mode
         self.opt = options or SolverOptions()
+        self.correction = correction if correction is not None else RangeCorrection()
         self.init = PeakEstimator(peak if peak is not None else PeakParams.default_peak())
         self.dtype = torch.float64
         self.model = ForwardModel(self.params, ZoneRays.stratified(self.opt.rays, dtype=self.dtype), dtype=self.dtype)
@@ -293,6 +344,8 @@ class DifferentiableEstimator(Estimator):
         if z0 <= 0:
             return PlaneEstimate(None, reason="solver found no plane in front of the sensor")
         try:
+            da, db = self.correction.slopes(z0)
+            a, b, z0 = a + da, b + db, z0 + self.correction(z0)
             optical = Plane.from_slopes(a, b, z0)
             plane = Plane(self._mount @ optical.normal, optical.offset)
         except NoPlaneError as exc:
@@ -336,7 +389,8 @@ class DifferentiableEstimator(Estimator):
                     z0.clamp_(min=1e-3)
             with torch.no_grad():
                 try:
-                    optical = Plane.from_angles(float(theta), float(phi), float(z0))
+                    z_corr = float(z0) + self.correction(float(z0))
+                    optical = Plane.from_angles(float(theta), float(phi), z_corr)
                     plane = Plane(self._mount @ optical.normal, optical.offset)
                 except NoPlaneError as exc:
                     out.append(PlaneEstimate(None, reason=str(exc)))
