@@ -234,11 +234,13 @@ def pulse_kernel(reference: torch.Tensor, time_scale: torch.Tensor, ref_floor: t
                  tail_weight: torch.Tensor | None = None, tail_decay: torch.Tensor | None = None) -> torch.Tensor:
     """Laser pulse in zone bins from reference histograms (..., 128) -> (..., K).
 
-    The floor is removed, the pulse normalised to peak 1 and sampled at zone-bin lags
+    The floor is removed, the tail after the peak smoothed (:data:`TAIL_SMOOTHING`), the pulse
+    normalised to peak 1 and sampled at zone-bin lags
     ``k = 0..K-1``, i.e. at reference bins ``k / time_scale`` (linear interpolation). With a
     ``tail_weight`` the pulse is then convolved with ``delta + w exp(-k / tail_decay)``, k >= 1.
     """
     ref = torch.clamp(reference - ref_floor, min=0.0)
+    ref = _smooth_tail(ref)
     peak = ref.amax(dim=-1, keepdim=True)
     ref = ref / torch.clamp(peak, min=1e-12)
     k_len = int(math.floor((N_BINS - 1) * float(torch.as_tensor(time_scale).detach()))) + 1
@@ -258,6 +260,28 @@ def pulse_kernel(reference: torch.Tensor, time_scale: torch.Tensor, ref_floor: t
     idx = torch.arange(k_len).view(-1, 1) - k.long().view(1, -1)  # (K, K-1)
     gathered = kernel[..., torch.clamp(idx, min=0)] * (idx >= 0)
     return kernel + (gathered * tail).sum(-1)
+
+
+#: Width (reference bins) of the Gaussian that smooths the reference pulse after its peak. The
+#: tail holds a few hundred counts per bin, so its Poisson noise (a few per cent) would reach every
+#: model histogram multiplied by the whole transient (~1e6 counts); the physical tail is smooth.
+TAIL_SMOOTHING = 2.0
+
+
+def _smooth_tail(ref: torch.Tensor) -> torch.Tensor:
+    """The reference (..., 128) with its tail (from 3 bins after the peak on) Gaussian-smoothed."""
+    half = int(math.ceil(3 * TAIL_SMOOTHING))
+    taps = torch.exp(-0.5 * (torch.arange(-half, half + 1, dtype=ref.dtype) / TAIL_SMOOTHING) ** 2)
+    taps = taps / taps.sum()
+    bins = torch.arange(ref.shape[-1])
+    start = torch.clamp(ref.argmax(dim=-1, keepdim=True) + 3, max=ref.shape[-1] - 1)
+    in_tail = bins >= start
+    # the tail alone: bins before it hold the tail's first value, so the peak does not leak in
+    tail = torch.where(in_tail, ref, torch.gather(ref, -1, start).expand_as(ref))
+    flat = tail.reshape(-1, 1, ref.shape[-1])
+    padded = torch.nn.functional.pad(flat, (half, half), mode="replicate")
+    smooth = torch.nn.functional.conv1d(padded, taps.view(1, 1, -1)).reshape(ref.shape)
+    return torch.where(in_tail, smooth, ref)
 
 
 def apply_pileup(hist: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
@@ -331,8 +355,9 @@ class ForwardModel:
                        reference: torch.Tensor, weights: torch.Tensor | None = None,
                        specular_weight: torch.Tensor | None = None,
                        specular_exponent: torch.Tensor | None = None,
-                       hit: torch.Tensor | None = None, kernel: torch.Tensor | None = None) -> torch.Tensor:
-        """Histograms (B, 9, 128) from per-ray returns.
+                       hit: torch.Tensor | None = None, kernel: torch.Tensor | None = None,
+                       n_bins: int = N_BINS) -> torch.Tensor:
+        """Histograms (B, 9, n_bins) from per-ray returns (the first ``n_bins`` bins; default all 128).
 
         ranges, cos_inc: (B, 9, R) range along the ray (m) and cosine of incidence (>= 0).
         albedo: (B,) or (B, 9, R) reflectance; specular_weight / specular_exponent likewise
@@ -362,7 +387,7 @@ class ForwardModel:
             amp = amp * torch.as_tensor(hit, dtype=self.dtype)
         u = r / t["bin_size"] + t["bin_offset"] + t["zone_offsets"].view(1, N_ZONES, 1)
         sigma = t["soft_bin_sigma"]
-        z = (self.bins.view(1, 1, 1, N_BINS) - u.unsqueeze(-1)) / sigma
+        z = (self.bins[:n_bins].view(1, 1, 1, n_bins) - u.unsqueeze(-1)) / sigma
         transient = torch.einsum("bzr,bzrn->bzn", amp, torch.exp(-0.5 * z * z)) / (sigma * _SQRT_2PI)
         if kernel is None:
             kernel = self.pulse(torch.as_tensor(reference, dtype=self.dtype).expand(b, N_BINS))
@@ -386,11 +411,11 @@ class ForwardModel:
     def render_plane(self, normal: torch.Tensor, offset: torch.Tensor, albedo: torch.Tensor,
                      reference: torch.Tensor, specular_weight: torch.Tensor | None = None,
                      specular_exponent: torch.Tensor | None = None,
-                     kernel: torch.Tensor | None = None) -> torch.Tensor:
-        """Histograms (B, 9, 128) of planes ``n . x = d`` with albedo (B,)."""
+                     kernel: torch.Tensor | None = None, n_bins: int = N_BINS) -> torch.Tensor:
+        """Histograms (B, 9, n_bins) of planes ``n . x = d`` with albedo (B,)."""
         ranges, cos, hit = self.plane_returns(normal, offset)
         return self.render_returns(ranges, cos, albedo, reference, specular_weight=specular_weight,
-                                   specular_exponent=specular_exponent, hit=hit, kernel=kernel)
+                                   specular_exponent=specular_exponent, hit=hit, kernel=kernel, n_bins=n_bins)
 
 
 def _per_ray(value, like: torch.Tensor) -> torch.Tensor:

@@ -381,8 +381,9 @@ class DifferentiableEstimator(Estimator):
                 h = paper_model.render_plane(n.unsqueeze(0), (z0 * torch.cos(theta)).reshape(1),
                                              torch.exp(log_rho).reshape(1), None,
                                              specular_weight=ks.reshape(1),
-                                             specular_exponent=torch.exp(log_alpha).reshape(1), kernel=k32)[0]
-                loss = (((h[:, :width] - paper_model.t["floor"]) - obs32) / scale).pow(2).mean()
+                                             specular_exponent=torch.exp(log_alpha).reshape(1), kernel=k32,
+                                             n_bins=width)[0]
+                loss = (((h - paper_model.t["floor"]) - obs32) / scale).pow(2).mean()
                 loss.backward()
                 adam.step()
                 with torch.no_grad():
