@@ -104,7 +104,8 @@ class SolverOptions:
     prior_specular_weight: float = 0.05   # std of the specular-weight prior
     prior_log_exponent: float = 0.25      # std of the log specular-exponent prior
     window_after_peak: int = 24   # bins kept after the latest zone peak
-    zone_albedo: bool = True      # a free albedo per zone: the plane from timing and shape only
+    zone_albedo: bool = True      # an albedo per zone, so the plane rests mostly on timing and shape
+    zone_albedo_spread: float = 0.1  # std of log zone albedo about the zones' mean (inf: untied)
     # paper mode
     paper_iterations: int = 100
     paper_rays: int = 2304
@@ -278,16 +279,26 @@ class DifferentiableEstimator(Estimator):
         prior_mu = np.array([self.params.specular_weight, math.log(self.params.specular_exponent)])
         prior_w = 1.0 / np.array([self.opt.prior_specular_weight, self.opt.prior_log_exponent])
 
+        # per-zone albedos (if any) are tied to their mean: (log rho_z - mean) / spread
+        spread = self.opt.zone_albedo_spread
+        tie = n_alb > 1 and spread is not None and math.isfinite(spread)
+        centre = (np.eye(n_alb) - 1.0 / n_alb) / (spread if tie else 1.0)
+
         def residual(xs, rows, jac=False):
             out = rd.render(xs, conv[rows], jacobian=jac)
             h, dh = (out if jac else (out, None))
-            res = np.concatenate([((h - obs[rows]) * inv_sigma[rows]).reshape(len(rows), -1),
-                                  (xs[:, -2:] - prior_mu) * prior_w], axis=1)
+            parts = [((h - obs[rows]) * inv_sigma[rows]).reshape(len(rows), -1),
+                     (xs[:, -2:] - prior_mu) * prior_w]
+            if tie:
+                parts.append(xs[:, 3:3 + n_alb] @ centre.T)
+            res = np.concatenate(parts, axis=1)
             if not jac:
                 return res
             J = (dh * inv_sigma[rows][..., None]).reshape(len(rows), -1, nu)
-            Jp = np.zeros((len(rows), 2, nu))
+            Jp = np.zeros((len(rows), 2 + (n_alb if tie else 0), nu))
             Jp[:, 0, -2], Jp[:, 1, -1] = prior_w
+            if tie:
+                Jp[:, 2:, 3:3 + n_alb] = centre
             return res, np.concatenate([J, Jp], axis=1)
 
         all_rows = np.arange(nb)
