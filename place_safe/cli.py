@@ -185,10 +185,12 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         from .calibration.forward_fit import fit_forward
 
         params, report = fit_forward(frames, init=None, progress=progress)
+        from .calibration.forward_fit import fit_range_correction, select_model_error
+
+        params.model_error, report["model_error"] = select_model_error(frames, params, cal.peak(), progress=progress)
         cal.sections["forward"] = params.to_dict()
         cal.reports["forward"] = _jsonable(report)
         fitted.append("forward")
-        from .calibration.forward_fit import fit_range_correction
 
         section, report = fit_range_correction(frames, params, cal.peak(), progress=progress)
         cal.sections["diff"] = section

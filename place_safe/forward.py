@@ -58,6 +58,11 @@ class ForwardParams:
     of the mount, in which ground truth is given): a sensor soldered a degree off its nominal
     orientation is calibrated, not mistaken for a tilted table. See :func:`mount_rotation`.
 
+    ``model_error`` is how well the model describes the sensor, as a fraction of the counts in a bin
+    (:func:`residual_weights`): 2 % by default, for the published values on a sensor they were not
+    fitted to; calibration measures it from the fit's residuals (0 when the model explains the data
+    to the shot noise).
+
     Units: ``bin_offset``, ``soft_bin_sigma``, ``tail_decay`` and ``zone_offsets`` in bins; ``bin_size`` in metres
     of one-way range per bin; ``ref_floor`` and ``floor`` in counts; the rest dimensionless.
     """
@@ -82,6 +87,7 @@ class ForwardParams:
     corner_fov_scale: float = 1.0
     pileup: float = 0.0
     mount_tilt: list[float] = field(default_factory=lambda: [0.0, 0.0])
+    model_error: float = 0.02
     zone_offsets: list[float] = field(default_factory=lambda: [0.0] * N_ZONES)
     zone_gains: list[float] = field(default_factory=lambda: [1.0] * N_ZONES)
 
@@ -96,7 +102,7 @@ class ForwardParams:
             raise CalibrationError(f"forward parameters are not finite: {', '.join(bad)}")
         if (self.bin_size <= 0 or self.saturation <= 0 or self.ref_time_scale <= 0 or self.soft_bin_sigma <= 0
                 or self.tail_decay <= 0 or self.tail_weight < 0 or self.edge_fov_scale <= 0
-                or self.corner_fov_scale <= 0 or self.pileup < 0):
+                or self.corner_fov_scale <= 0 or self.pileup < 0 or self.model_error < 0):
             raise CalibrationError("bin_size, saturation, ref_time_scale, soft_bin_sigma and tail_decay must be > 0 "
                                    "and tail_weight >= 0")
 
@@ -425,9 +431,10 @@ def _per_ray(value, like: torch.Tensor) -> torch.Tensor:
     return v
 
 
-#: Relative model error assumed when weighting residuals (2 % of the counts in a bin): the forward
+#: Default relative model error when weighting residuals (2 % of the counts in a bin): the forward
 #: model does not describe a real sensor to the Poisson noise level of a 1e5-count bin, and without
-#: this term the brightest bins of the closest frames would dominate every fit.
+#: this term the brightest bins of the closest frames would dominate every fit. Calibration replaces
+#: it with the measured value (``ForwardParams.model_error``).
 MODEL_ERROR = 0.02
 
 

@@ -105,7 +105,7 @@ def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, prog
     obs_np = np.clip(hists - floor[..., None], 0.0, None)
     width = int(min(N_BINS, obs_np.argmax(axis=-1).max() + window_after_peak))
     obs = torch.as_tensor(obs_np[..., :width], dtype=dtype)
-    inv_sigma = torch.as_tensor(residual_weights(hists[..., :width]), dtype=dtype)
+    inv_sigma = torch.as_tensor(residual_weights(hists[..., :width], init.model_error), dtype=dtype)
     normals = torch.as_tensor(np.array([f.truth.normal for f in data]), dtype=dtype)
     offsets = torch.as_tensor(np.array([f.truth.offset for f in data]), dtype=dtype)
     refs = torch.as_tensor(np.array([f.reference for f in data]), dtype=dtype)
@@ -213,6 +213,14 @@ def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, prog
     from ..forward import tensors_to_params
 
     fitted_params = tensors_to_params({k: v.detach() for k, v in model.t.items()}, init.rays_per_zone)
+    # the model error the estimator will meet: rendered with its own quadrature
+    from ..estimators.differentiable import SolverOptions
+
+    check = ForwardModel(fitted_params, ZoneRays.stratified(SolverOptions().rays, dtype=dtype), dtype=dtype)
+    with torch.no_grad():
+        n_optical = normals @ mount_rotation(check.t["mount_tilt"])
+        model_h = check.render_plane(n_optical, offsets, torch.exp(la), refs)[..., :width] - check.t["floor"]
+    chi2_error = measure_model_error((model_h - obs).numpy(), hists[..., :width])
     albedos = np.exp(la.numpy())
     fitted_params.albedo = float(np.median(albedos))
     fitted_params.floor = 0.0
@@ -224,10 +232,66 @@ def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, prog
         "rms_scaled_residual_after": math.sqrt(2 * float(sol.cost) / n_res),
         "rms_scaled_residual_per_frame": {"median": float(np.median(per_frame)), "max": float(per_frame.max())},
         "albedo_per_frame": {"min": float(albedos.min()), "max": float(albedos.max())},
+        "model_error_chi2": chi2_error,
         "solver": {"status": int(sol.status), "message": str(sol.message), "evaluations": evals["n"]},
         "params": fitted_params.to_dict(),
     }
     return fitted_params, report
+
+
+def measure_model_error(residuals: np.ndarray, counts: np.ndarray) -> float:
+    """Relative model error ``e`` that makes the residuals' reduced chi-square 1.
+
+    ``residuals`` (model - observed) and ``counts`` (observed, floor included) are arrays of the
+    same shape; bins are weighted as in :func:`~place_safe.forward.residual_weights`. Returns 0 when
+    shot noise alone explains the residuals.
+    """
+    from scipy.optimize import brentq
+
+    c = np.clip(np.asarray(counts, dtype=float), 0.0, None).ravel()
+    r2 = np.asarray(residuals, dtype=float).ravel() ** 2
+
+    def excess(e: float) -> float:
+        return float(np.mean(r2 / (c + 1.0 + (e * c) ** 2))) - 1.0
+
+    if excess(0.0) <= 0.0:
+        return 0.0
+    if excess(1.0) > 0.0:
+        return 1.0
+    return float(brentq(excess, 0.0, 1.0, xtol=1e-5))
+
+
+#: Relative model errors tried by :func:`select_model_error`.
+MODEL_ERROR_GRID = (0.0, 0.005, 0.01, 0.02, 0.04)
+
+
+def select_model_error(frames: Sequence[Frame], forward: ForwardParams, peak=None,
+                       grid: Sequence[float] = MODEL_ERROR_GRID, min_distance: float = 0.04,
+                       max_distance: float = 1.0, progress: bool = True) -> tuple[float, dict]:
+    """The residual weighting (relative model error) that recovers these frames' planes best.
+
+    The model error sets how much the brightest bins count against the rest
+    (:func:`~place_safe.forward.residual_weights`). Shot noise alone (0) is right when the model
+    is exact; a real sensor's model mismatch is structured, and the chi-square value
+    (:func:`measure_model_error`) then over-weights it. So each value of ``grid`` is tried with
+    the fast differentiable estimator and the one with the lowest mean point error on the frames
+    with ground truth is returned, with a report of every value's error.
+    """
+    from dataclasses import replace
+
+    from ..estimators.differentiable import DifferentiableEstimator
+    from ..metrics import point_error
+
+    data = _usable(frames, min_distance, max_distance)
+    if not data:
+        return forward.model_error, {"why": "no usable frames"}
+    scores = {}
+    for e in tqdm(grid, desc="model error", unit="value", disable=not progress, file=sys.stderr):
+        est = DifferentiableEstimator(replace(forward, model_error=float(e)), peak)
+        errs = [point_error(x.plane, f.truth) if x.ok else np.inf for x, f in zip(est.estimate_many(data), data)]
+        scores[float(e)] = float(np.mean(errs))
+    best = min(scores, key=scores.get)
+    return best, {"chosen": best, "mean_point_error_mm": {str(k): v * 1e3 for k, v in scores.items()}}
 
 
 def fit_range_correction(frames: Sequence[Frame], forward: ForwardParams, peak=None, degree: int = 3,

@@ -8,8 +8,8 @@ calibrated peak method):
     ``(a, b, z0)`` (normal ~ ``(a, b, 1)``, smooth at normal incidence), ``log albedo``, specular
     weight and ``log`` specular exponent, the last two held near the calibrated values by a weak
     prior (a fronto-parallel plane cannot tell them from albedo). Residuals are Poisson-scaled:
-    ``(model - observed) / sqrt(observed + 1 + (0.02 observed)^2)`` (Poisson noise and a 2 % model
-    error, :func:`~place_safe.forward.residual_weights`) over the bins that hold the returns. Jacobians come
+    ``(model - observed) / sqrt(observed + 1 + (e observed)^2)`` (Poisson noise and the calibrated
+    relative model error ``e``, :func:`~place_safe.forward.residual_weights`) over the bins that hold the returns. Jacobians come
     from ``torch.func.jacfwd``; rays are a deterministic stratified quadrature; the laser pulse is
     prepared once per frame. Frames are solved as a batch.
 
@@ -215,7 +215,7 @@ class DifferentiableEstimator(Estimator):
         with torch.no_grad():
             kernel = self.model.pulse(ref)
         obs_t = torch.as_tensor(obs[..., :width], dtype=self.dtype)
-        sigma = 1.0 / torch.as_tensor(residual_weights(hists[..., :width]), dtype=self.dtype)
+        sigma = 1.0 / torch.as_tensor(residual_weights(hists[..., :width], self.params.model_error), dtype=self.dtype)
         return obs_t, sigma, kernel, width
 
     def _render(self, x: torch.Tensor, kernel: torch.Tensor, width: int) -> torch.Tensor:
@@ -254,7 +254,7 @@ class DifferentiableEstimator(Estimator):
         obs_full = np.clip(hists - floor[..., None], 0.0, None)
         width = int(min(N_BINS, obs_full.argmax(axis=-1).max() + self.opt.window_after_peak))
         obs = obs_full[..., :width]
-        inv_sigma = residual_weights(hists[..., :width])
+        inv_sigma = residual_weights(hists[..., :width], self.params.model_error)
         kernels = self._kernels(frames)
         conv = convolution_matrices(kernels, width)
         nb = len(frames)
