@@ -7,8 +7,8 @@ allocations and caches; the slow paper mode is the exception, see :data:`DEFAULT
 timed (``time.perf_counter``). Reported per method: per-frame latency (median, p95; ms), throughput
 (frames per second of recovery time), and against ground truth the mean angular error (degrees), mean
 linear error (mm) and mean point error (mm) from :mod:`place_safe.metrics`, plus how many frames gave
-no plane. The slow ``paper`` mode of the differentiable method runs on the first ``paper_frames``
-frames only, and the fast mode is scored again on exactly those frames (``diff-fast (same)``) so the
+no plane. The slow ``paper`` mode of the differentiable method runs on ``paper_frames`` frames spread
+evenly over the set only, and the fast mode is scored again on exactly those frames (``diff-fast (same)``) so the
 accuracy comparison is on the same frames; the ratio of the paper mode's median latency to the
 ``fast`` mode's is the speed ratio.
 
@@ -183,15 +183,22 @@ def bench_method(label: str, estimator, frames: Sequence[Frame], warmup: bool = 
     return res
 
 
+def _spread(frames: Sequence[Frame], n: int) -> list[Frame]:
+    """``n`` frames spread evenly over the sequence (all of them if it is shorter)."""
+    if n >= len(frames):
+        return list(frames)
+    return [frames[i] for i in np.round(np.linspace(0, len(frames) - 1, n)).astype(int)] if n > 0 else []
+
+
 def run_bench(frames: Sequence[Frame], calibration=None, paper_frames: int = 5,
               runs: Sequence[tuple[str, str, dict]] = DEFAULT_RUNS, source: str = "frames",
               progress: bool = False) -> BenchReport:
-    """Benchmark each run (label, method, options) on ``frames`` (``diff-paper``: the first ``paper_frames``)."""
+    """Benchmark each run (label, method, options) on ``frames`` (``diff-paper``: ``paper_frames`` spread evenly)."""
     from .estimators import make_estimator
 
     results = []
     for label, method, options in runs:
-        subset = list(frames[:paper_frames]) if options.get("mode") == "paper" else list(frames)
+        subset = _spread(frames, paper_frames) if options.get("mode") == "paper" else list(frames)
         if not subset:
             continue
         try:
@@ -204,7 +211,7 @@ def run_bench(frames: Sequence[Frame], calibration=None, paper_frames: int = 5,
     labels = [r.label for r in results]
     if "diff-paper" in labels and "diff-fast" in labels and 0 < paper_frames < len(frames):
         est = make_estimator("diff", calibration, mode="fast")
-        same = bench_method("diff-fast (same)", est, list(frames[:paper_frames]), progress=progress)
+        same = bench_method("diff-fast (same)", est, _spread(frames, paper_frames), progress=progress)
         results.insert(labels.index("diff-paper") + 1, same)
     return BenchReport(results, len(frames), source, peak_rss_bytes())
 
