@@ -58,10 +58,10 @@ class ForwardParams:
     of the mount, in which ground truth is given): a sensor soldered a degree off its nominal
     orientation is calibrated, not mistaken for a tilted table. See :func:`mount_rotation`.
 
-    ``model_error`` is how well the model describes the sensor, as a fraction of the counts in a bin
-    (:func:`residual_weights`): 2 % by default, for the published values on a sensor they were not
-    fitted to; calibration measures it from the fit's residuals (0 when the model explains the data
-    to the shot noise).
+    ``model_error`` is the relative error (a fraction of the counts in a bin) the estimator allows
+    the model when weighting residuals (:func:`residual_weights`): 0.5 % by default, which is what
+    calibration chooses for data the model describes exactly; ``calibrate --method diff`` chooses it
+    for each sensor (1-2 % on the real sweep).
 
     Units: ``bin_offset``, ``soft_bin_sigma``, ``tail_decay`` and ``zone_offsets`` in bins; ``bin_size`` in metres
     of one-way range per bin; ``ref_floor`` and ``floor`` in counts; the rest dimensionless.
@@ -87,7 +87,7 @@ class ForwardParams:
     corner_fov_scale: float = 1.0
     pileup: float = 0.0
     mount_tilt: list[float] = field(default_factory=lambda: [0.0, 0.0])
-    model_error: float = 0.02
+    model_error: float = 0.005
     zone_offsets: list[float] = field(default_factory=lambda: [0.0] * N_ZONES)
     zone_gains: list[float] = field(default_factory=lambda: [1.0] * N_ZONES)
 
@@ -431,10 +431,10 @@ def _per_ray(value, like: torch.Tensor) -> torch.Tensor:
     return v
 
 
-#: Default relative model error when weighting residuals (2 % of the counts in a bin): the forward
-#: model does not describe a real sensor to the Poisson noise level of a 1e5-count bin, and without
-#: this term the brightest bins of the closest frames would dominate every fit. Calibration replaces
-#: it with the measured value (``ForwardParams.model_error``).
+#: Relative model error used when fitting the forward model to a sensor (2 % of the counts in a
+#: bin): the model does not describe a real sensor to the Poisson noise level of a 1e5-count bin,
+#: and without this term the brightest bins of the closest frames would dominate the fit. The
+#: estimator's own weighting is ``ForwardParams.model_error``.
 MODEL_ERROR = 0.02
 
 

@@ -43,7 +43,7 @@ import numpy as np
 import torch
 
 from place_safe.exceptions import CalibrationError, NoPlaneError, SensorTimeout
-from place_safe.forward import ForwardModel, ForwardParams, ZoneRays
+from place_safe.forward import ForwardModel, ForwardParams, ZoneRays, mount_rotation
 from place_safe.geometry import Plane
 from place_safe.sensor import N_BINS, N_ZONES, Frame
 from place_safe.sources import FrameSource
@@ -153,7 +153,10 @@ class SimToF(FrameSource):
         self.forward = ForwardModel(self.params, ZoneRays.stratified(cfg.rays))
         with torch.no_grad():
             dirs, w = self.forward.ray_geometry()
-        self._dirs = dirs.numpy().reshape(-1, 3)  # (9R, 3) sensor frame
+            # a sensor mounted off its nominal orientation: its optical frame is the site (mount)
+            # frame rotated by the true mount tilt (identity for a perfect mount)
+            dirs = dirs @ mount_rotation(self.params.mount_tilt).T
+        self._dirs = dirs.numpy().reshape(-1, 3)  # (9R, 3) sensor (mount) frame
         self._weights = w
         self._kernel_ref = default_reference()
         self._kernel: torch.Tensor | None = None

@@ -23,7 +23,7 @@ import torch
 from tqdm import tqdm
 
 from ..exceptions import CalibrationError
-from ..forward import ForwardModel, ForwardParams, ZoneRays, mount_rotation, residual_weights
+from ..forward import MODEL_ERROR, ForwardModel, ForwardParams, ZoneRays, mount_rotation, residual_weights
 from ..sensor import N_BINS, N_ZONES, Frame
 
 #: Camera parameters fitted by default, with how they are parametrised ("log": positive). The
@@ -105,7 +105,7 @@ def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, prog
     obs_np = np.clip(hists - floor[..., None], 0.0, None)
     width = int(min(N_BINS, obs_np.argmax(axis=-1).max() + window_after_peak))
     obs = torch.as_tensor(obs_np[..., :width], dtype=dtype)
-    inv_sigma = torch.as_tensor(residual_weights(hists[..., :width], init.model_error), dtype=dtype)
+    inv_sigma = torch.as_tensor(residual_weights(hists[..., :width], MODEL_ERROR), dtype=dtype)
     normals = torch.as_tensor(np.array([f.truth.normal for f in data]), dtype=dtype)
     offsets = torch.as_tensor(np.array([f.truth.offset for f in data]), dtype=dtype)
     refs = torch.as_tensor(np.array([f.reference for f in data]), dtype=dtype)
