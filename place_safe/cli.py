@@ -230,10 +230,14 @@ def _recover_stream(path: str, estimator, batch: int) -> Iterator[tuple[int, Any
             yield i, (PlaneEstimate(None, reason=f"frame {i}: {f}") if isinstance(f, FrameError) else next(ests))
         pending.clear()
 
-    for i, f in enumerate(iter_frames(path)):
-        pending.append((i, f))
-        if len(pending) >= batch:
-            yield from flush()
+    try:
+        for i, f in enumerate(iter_frames(path)):
+            pending.append((i, f))
+            if len(pending) >= batch:
+                yield from flush()
+    except FrameFileError:
+        yield from flush()  # the frames read before the file broke still get their lines
+        raise
     yield from flush()
 
 

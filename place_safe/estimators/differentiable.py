@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from ..calibration.points import PeakParams
-from ..exceptions import NoPlaneError
+from ..exceptions import FrameError, NoPlaneError
 from ..forward import ForwardModel, ForwardParams, ZoneRays, mount_rotation, residual_weights
 from ..geometry import Plane
 from ..plane_renderer import PlaneRenderer, convolution_matrices
@@ -163,22 +163,25 @@ class DifferentiableEstimator(Estimator):
         return out
 
     def _timed_batch(self, frames: list[Frame]) -> list[PlaneEstimate]:
+        """Validate each frame (timed alone), solve the valid ones together and share that time."""
         import time
 
-        t0 = time.perf_counter()
-        good, ests = [], [None] * len(frames)
+        ests: list[PlaneEstimate | None] = [None] * len(frames)
+        good = []
         for i, f in enumerate(frames):
+            t0 = time.perf_counter()
             try:
                 f.validate()
                 good.append(i)
-            except Exception as exc:  # FrameError
-                ests[i] = PlaneEstimate(None, reason=str(exc))
+            except FrameError as exc:
+                ests[i] = PlaneEstimate(None, reason=str(exc), seconds=time.perf_counter() - t0)
         if good:
-            for i, e in zip(good, self.estimate_batch([frames[i] for i in good])):
+            t0 = time.perf_counter()
+            solved = self.estimate_batch([frames[i] for i in good])
+            share = (time.perf_counter() - t0) / len(good)
+            for i, e in zip(good, solved):
+                e.seconds = share
                 ests[i] = e
-        dt = (time.perf_counter() - t0) / max(len(frames), 1)
-        for e in ests:
-            e.seconds = dt
         return ests  # type: ignore[return-value]
 
     # ------------------------------------------------------------------------------------------
