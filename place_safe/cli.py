@@ -512,8 +512,10 @@ def build_parser(load_sim: bool = True) -> argparse.ArgumentParser:
                        epilog="methods and the sections they write:\n"
                               "  peak         -> 'peak' (histogram-peak distance and zone-angle scales)\n"
                               "  proprietary  -> 'proprietary' (on-sensor distances)\n"
-                              "  diff         -> 'forward' (forward-model camera parameters), and 'peak' too when\n"
-                              "                  the file has none (the diff method starts from calibrated peak)\n\n"
+                              "  diff         -> 'forward' (forward-model camera parameters and the residual weighting\n"
+                              "                  that recovers the planes best), 'diff' (a z0 correction, kept only if\n"
+                              "                  leave-one-out cross-validation says it helps), and 'peak' too when the\n"
+                              "                  file has none (the diff method starts from calibrated peak)\n\n"
                               "example:\n"
                               "  place-safe calibrate sweep.json --method peak -o calib.json\n"
                               "  place-safe calibrate sweep.json --method diff -o calib.json   # adds 'forward'")
