@@ -23,7 +23,6 @@ and differentiable in the plane, reflectance and every camera parameter.
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
@@ -31,6 +30,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from .config import check_keys, read_json, write_json
 from .exceptions import CalibrationError
 from .sensor import N_BINS, N_ZONES, ZONE_KIND, ZONE_RECTS
 
@@ -115,21 +115,17 @@ class ForwardParams:
 
     @classmethod
     def from_dict(cls, d: dict) -> "ForwardParams":
-        names = {f.name for f in fields(cls)}
-        unknown = set(d) - names
-        if unknown:
-            raise CalibrationError(f"unknown forward parameters: {', '.join(sorted(unknown))}")
-        return cls(**d)
+        try:
+            return cls(**check_keys(cls, d, "forward parameter", CalibrationError))
+        except TypeError as exc:
+            raise CalibrationError(f"forward parameters are malformed: {exc}") from None
 
     def save(self, path: str | Path) -> None:
-        Path(path).write_text(json.dumps(self.to_dict(), indent=2))
+        write_json(path, self.to_dict())
 
     @classmethod
     def load(cls, path: str | Path) -> "ForwardParams":
-        try:
-            return cls.from_dict(json.loads(Path(path).read_text()))
-        except (OSError, json.JSONDecodeError, TypeError) as exc:
-            raise CalibrationError(f"cannot read forward parameters from {path}: {exc}") from None
+        return cls.from_dict(read_json(path, "forward parameters", CalibrationError))
 
     def kind_gains(self) -> np.ndarray:
         """Gain of each zone (9,): centre 1, edge/corner gains, times the per-zone gains."""

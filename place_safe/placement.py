@@ -27,7 +27,6 @@ the cup, so the cup moves "down" along its -z (the tool axis). Twists are (vx, v
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 from dataclasses import asdict, dataclass, field, fields
@@ -37,6 +36,7 @@ from typing import Any
 
 import numpy as np
 
+from .config import check_keys, read_json, write_json
 from .fusion import FusedPlane
 
 log = logging.getLogger("place_safe.placement")
@@ -112,24 +112,14 @@ class PlacementConfig:
 
     @classmethod
     def from_dict(cls, d: Any) -> "PlacementConfig":
-        if not isinstance(d, dict):
-            raise ValueError(f"placement config must be a JSON object; got {type(d).__name__}")
-        known = {f.name for f in fields(cls)}
-        unknown = set(d) - known
-        if unknown:
-            raise ValueError(f"unknown placement config keys {sorted(unknown)}; expected some of {sorted(known)}")
-        return cls(**d)
+        return cls(**check_keys(cls, d, "placement config"))
 
     def save(self, path: str | Path) -> None:
-        Path(path).write_text(json.dumps(self.to_dict(), indent=2) + "\n", encoding="utf-8")
+        write_json(path, self.to_dict())
 
     @classmethod
     def load(cls, path: str | Path) -> "PlacementConfig":
-        try:
-            d = json.loads(Path(path).read_text(encoding="utf-8"))
-        except (OSError, json.JSONDecodeError) as exc:
-            raise ValueError(f"cannot read placement config {path}: {exc}") from None
-        return cls.from_dict(d)
+        return cls.from_dict(read_json(path, "placement config"))
 
 
 @dataclass

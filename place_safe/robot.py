@@ -24,15 +24,15 @@ Conventions
 
 from __future__ import annotations
 
-import json
 import math
 from abc import ABC, abstractmethod
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from place_safe.config import check_keys, read_json, write_json
 from place_safe.exceptions import RobotFault
 
 _TWO_PI = 2.0 * math.pi
@@ -80,24 +80,14 @@ class RobotLimits:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "RobotLimits":
-        known = {f.name for f in fields(cls)}
-        unknown = set(d) - known
-        if unknown:
-            raise ValueError(f"unknown RobotLimits keys {sorted(unknown)}; expected some of {sorted(known)}")
-        return cls(**d)
+        return cls(**check_keys(cls, d, "RobotLimits"))
 
     def save(self, path: str | Path) -> None:
-        Path(path).write_text(json.dumps(self.to_dict(), indent=2) + "\n", encoding="utf-8")
+        write_json(path, self.to_dict())
 
     @classmethod
     def load(cls, path: str | Path) -> "RobotLimits":
-        try:
-            d = json.loads(Path(path).read_text(encoding="utf-8"))
-        except (OSError, json.JSONDecodeError) as exc:
-            raise ValueError(f"cannot read robot limits from {path}: {exc}") from exc
-        if not isinstance(d, dict):
-            raise ValueError(f"robot limits file {path} must hold a JSON object")
-        return cls.from_dict(d)
+        return cls.from_dict(read_json(path, "robot limits"))
 
 
 def check_pose(pose: Any, what: str = "pose") -> np.ndarray:
