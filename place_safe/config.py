@@ -24,7 +24,7 @@ def check_keys(cls: type, d: Any, what: str, error: type[Exception] = ValueError
     known = {f.name for f in fields(cls)}
     unknown = set(d) - known
     if unknown:
-        raise error(f"unknown {what} keys {sorted(unknown)}; expected some of {sorted(known)}")
+        raise error(f"{what}: unknown keys {sorted(unknown)}; expected some of {sorted(known)}")
     return d
 
 

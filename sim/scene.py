@@ -27,13 +27,14 @@ from __future__ import annotations
 import json
 import math
 import os
-from dataclasses import asdict, dataclass, field, fields, is_dataclass
+from dataclasses import asdict, dataclass, field, is_dataclass
 from importlib import resources
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from place_safe.config import check_keys
 from place_safe.exceptions import PlaceSafeError
 
 if "MUJOCO_GL" not in os.environ and not os.environ.get("DISPLAY"):
@@ -170,12 +171,7 @@ _NESTED = {"table": TableConfig, "floor": Material, "material": Material, "robot
 
 
 def _from_dict(cls: type, d: Any, where: str) -> Any:
-    if not isinstance(d, dict):
-        raise SceneError(f"{where} must be a JSON object, got {type(d).__name__}")
-    names = {f.name for f in fields(cls)}
-    unknown = set(d) - names
-    if unknown:
-        raise SceneError(f"{where}: unknown keys {sorted(unknown)}; expected some of {sorted(names)}")
+    check_keys(cls, d, where, SceneError)
     kw: dict[str, Any] = {}
     for k, v in d.items():
         if k in _NESTED and isinstance(v, dict):

@@ -21,7 +21,7 @@ def test_round_trip(tmp_path):
 
 
 def test_unknown_keys_name_the_expected_ones():
-    with pytest.raises(ValueError, match=r"unknown sample keys \['sped'\]; expected some of \['count', 'speed'\]"):
+    with pytest.raises(ValueError, match=r"sample: unknown keys \['sped'\]; expected some of \['count', 'speed'\]"):
         check_keys(Sample, {"sped": 1}, "sample")
 
 

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from ..exceptions import CalibrationError
+from ..exceptions import CalibrationError, FrameError
 from ..forward import MODEL_ERROR, ForwardModel, ForwardParams, ZoneRays, mount_rotation, residual_weights
 from ..sensor import N_BINS, N_ZONES, Frame
 
@@ -57,7 +57,7 @@ def _usable(frames: Sequence[Frame], min_distance: float, max_distance: float) -
             continue
         try:
             f.validate()
-        except Exception:
+        except FrameError:
             continue
         if min_distance <= f.truth.z0 <= max_distance:
             out.append(f)

@@ -36,13 +36,14 @@ from __future__ import annotations
 
 import math
 import sys
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field
 from typing import Any, Sequence
 
 import numpy as np
 from numpy.polynomial import chebyshev as cheb
 from scipy.optimize import minimize
 
+from ..config import check_keys
 from ..exceptions import CalibrationError, NoPlaneError
 from ..geometry import Plane
 from ..sensor import CORNER, EDGE, N_ZONES, ZONE_DIRECTIONS, ZONE_KIND, Frame
@@ -117,12 +118,7 @@ class PeakParams:
 
     @classmethod
     def from_dict(cls, d: Any) -> "PeakParams":
-        if not isinstance(d, dict):
-            raise CalibrationError(f"peak parameters must be a JSON object, got {type(d).__name__}")
-        names = {f.name for f in fields(cls)}
-        unknown = set(d) - names
-        if unknown:
-            raise CalibrationError(f"unknown peak parameters: {', '.join(sorted(unknown))}")
+        check_keys(cls, d, "peak parameters", CalibrationError)
         missing = {"m", "b"} - set(d)
         if missing:
             raise CalibrationError(f"peak parameters lack {', '.join(sorted(missing))}")
@@ -483,15 +479,24 @@ def fit_peak(frames: Sequence[Frame], init: PeakParams | None = None, progress: 
     use = _calibration_frames(frames, min_range)
     hists = np.array([np.asarray(f.hists, dtype=float) for f in use])
     readings, valid, _ = find_peaks(hists)
+    return _fit_readings("peak", "returns", use, readings, valid, init, PeakParams.default_peak(), progress,
+                         residual_degree, harmonics, fit_offsets, paper, min_range)
+
+
+def _fit_readings(method: str, what: str, use: list[Frame], readings: np.ndarray, valid: np.ndarray,
+                  init: PeakParams | None, default: PeakParams, progress: bool, residual_degree: int,
+                  harmonics: int, fit_offsets: bool, paper: bool, min_range: float) -> tuple[PeakParams, dict]:
+    """Fit readings (F, 9) of frames ``use`` for ``method``: frames with 3 or more valid zones, a
+    straight-line start unless ``init`` is given, then :func:`fit_points`."""
     keep = valid.sum(1) >= 3
     if keep.sum() < 3:
-        raise CalibrationError("fewer than 3 calibration frames have returns in 3 or more zones")
+        raise CalibrationError(f"fewer than 3 calibration frames have {what} in 3 or more zones")
     use = [f for f, k in zip(use, keep) if k]
     readings, valid = readings[keep], valid[keep]
-    start = init if init is not None else _initial_linear(readings, valid, use, PeakParams.default_peak())
+    start = init if init is not None else _initial_linear(readings, valid, use, default)
     params, report = fit_points(readings, valid, use, start, progress, residual_degree, harmonics, fit_offsets,
-                                fit_offsets, paper, label="calibrate peak")
-    report["method"] = "peak"
+                                fit_offsets, paper, label=f"calibrate {method}")
+    report["method"] = method
     report["min_range_m"] = min_range
     return params, report
 
@@ -513,16 +518,9 @@ def fit_proprietary(frames: Sequence[Frame], init: PeakParams | None = None, pro
     correction: the readings are whole millimetres, not sub-bin peaks)."""
     use = _calibration_frames(frames, min_range)
     readings, valid = proprietary_readings(use)
-    keep = valid.sum(1) >= 3
-    if keep.sum() < 3:
-        raise CalibrationError("fewer than 3 calibration frames have on-sensor distances in 3 or more zones")
-    use = [f for f, k in zip(use, keep) if k]
-    readings, valid = readings[keep], valid[keep]
-    start = init if init is not None else _initial_linear(readings, valid, use, PeakParams.default_proprietary())
-    params, report = fit_points(readings, valid, use, start, progress, residual_degree, 0, fit_offsets,
-                                fit_offsets, paper, label="calibrate proprietary")
-    report["method"] = "proprietary"
-    report["min_range_m"] = min_range
+    params, report = _fit_readings("proprietary", "on-sensor distances", use, readings, valid, init,
+                                   PeakParams.default_proprietary(), progress, residual_degree, 0, fit_offsets,
+                                   paper, min_range)
     return params, report
 
 
