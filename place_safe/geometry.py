@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .exceptions import NoPlaneError
+from place_safe.exceptions import NoPlaneError
 
 
 @dataclass(frozen=True)

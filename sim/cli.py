@@ -23,7 +23,7 @@ def add_sim_commands(subparsers: argparse._SubParsersAction) -> argparse.Argumen
     sub = sim.add_subparsers(dest="sim_command", metavar="{place,validate,render,bench}")
     sim.set_defaults(func=lambda a: (sim.print_help(sys.stderr), 2)[1])
 
-    from .placement_run import add_placement_command
+    from place_safe.sim.placement_run import add_placement_command
 
     add_placement_command(sub)
 
@@ -69,7 +69,7 @@ def add_sim_commands(subparsers: argparse._SubParsersAction) -> argparse.Argumen
 
 
 def _scene_config(path: str | None, robot: bool | None):
-    from .scene import SceneConfig
+    from place_safe.sim.scene import SceneConfig
 
     cfg = SceneConfig.load(path) if path else SceneConfig()
     if robot is not None:
@@ -80,10 +80,10 @@ def _scene_config(path: str | None, robot: bool | None):
 def cmd_validate(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from place_safe.forward import ForwardParams
-    from place_safe.frames import load_frames
+    from place_safe.recovery.forward import ForwardParams
+    from place_safe.io.frame_file import load_frames
 
-    from .validate import validate
+    from place_safe.sim.validate import validate
 
     frames = load_frames(args.frames)
     params = ForwardParams.load(args.params) if args.params else None
@@ -102,14 +102,14 @@ def cmd_validate(args: argparse.Namespace) -> int:
 
 
 def cmd_render(args: argparse.Namespace) -> int:
-    from . import render
-    from .scene import build_scene
-    from .tof import SimToF
+    from place_safe.sim import render
+    from place_safe.sim.scene import build_scene
+    from place_safe.sim.tof import SimToF
 
     scene = build_scene(_scene_config(args.scene, True if args.robot else None))
     data = scene.make_data()
     if scene.config.with_robot:
-        from .robot import SimRobot
+        from place_safe.sim.robot import SimRobot
 
         data = SimRobot(scene.model, data).data  # arm at home holding the cup
     if args.view:
@@ -134,13 +134,13 @@ def cmd_render(args: argparse.Namespace) -> int:
 def bench(scene_path: str | None = None, rig: bool = False, seconds: float = 5.0, rate: float = 30.0,
           rays: int = 8) -> dict:
     """Run the scene ``seconds`` of sim time with the sensor in lockstep; returns timing figures."""
-    from .scene import build_scene
-    from .tof import SimToF, ToFConfig
+    from place_safe.sim.scene import build_scene
+    from place_safe.sim.tof import SimToF, ToFConfig
 
     scene = build_scene(_scene_config(scene_path, not rig))
     cfg = ToFConfig(rays=rays, rate_hz=rate)
     if scene.config.with_robot:
-        from .robot import SimRobot
+        from place_safe.sim.robot import SimRobot
 
         robot = SimRobot(scene.model)
         tof = SimToF(scene, robot.data, cfg).attach(robot)

@@ -1,8 +1,8 @@
 """A whole placement in simulation: UR5 holding the cup, simulated TMF8820, estimator, fusion, state machine.
 
 Concept: :func:`run_placement` wires the pieces the real application uses (an estimator from
-:func:`place_safe.estimators.make_estimator`, :class:`place_safe.fusion.PlaneFilter`,
-:class:`place_safe.placement.PlacementMachine`) to the MuJoCo scene of a scenario file: a
+:func:`place_safe.recovery.make_estimator`, :class:`place_safe.fusion.plane_filter.PlaneFilter`,
+:class:`place_safe.placement.machine.PlacementMachine`) to the MuJoCo scene of a scenario file: a
 :class:`~place_safe.sim.robot.SimRobot` starting at home holding the cup and a
 :class:`~place_safe.sim.tof.SimToF` stepping in lockstep with it. It returns a
 :class:`PlacementResult` (outcome, reason, what happened to the cup and the liquid, per-frame log).
@@ -15,7 +15,7 @@ Conventions
 * Each frame is fused with ``base_T_sensor`` at the frame's *measurement* time (``Frame.timestamp``),
   interpolated from the poses recorded every control tick: a frame is read ~94 ms after it was
   measured, 7.5 mm of travel at the approach speed.
-* The cup bottom pose is the TCP pose times the fixed ``tcp_T_cup`` from :class:`place_safe.kinematics.Kinematics`
+* The cup bottom pose is the TCP pose times the fixed ``tcp_T_cup`` from :class:`place_safe.robot.kinematics.Kinematics`
   (what a real UR5 would use), not the simulator's cup body.
 * ``method="diff"`` without a calibration uses a :class:`place_safe.calibration.Calibration` whose
   ``forward`` section is the simulated sensor's true parameters (``sim/sensors/tmf8820_real.json``):
@@ -43,8 +43,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from place_safe.exceptions import PlaceSafeError, RobotFault, SensorTimeout
-from place_safe.fusion import PlaneFilter
-from place_safe.placement import CommandKind, PlacementConfig, PlacementMachine, RobotState
+from place_safe.fusion.plane_filter import PlaneFilter
+from place_safe.placement.machine import CommandKind, PlacementConfig, PlacementMachine, RobotState
 
 #: s, control loop period (125 Hz like the UR CB3 controller).
 CONTROL_PERIOD = 0.008
@@ -143,7 +143,7 @@ def scenario_path(name: str | Path) -> Path:
 def _simulated_sensor_calibration():
     from place_safe.calibration import Calibration
 
-    from .tof import sensor_file
+    from place_safe.sim.tof import sensor_file
 
     return Calibration({"forward": json.loads(sensor_file("tmf8820_real.json").read_text())})
 
@@ -162,13 +162,13 @@ def run_placement(scenario: Any = "place_level", method: str = "diff", calibrati
     import mujoco
 
     from place_safe.calibration import Calibration
-    from place_safe.estimators import make_estimator
-    from place_safe.kinematics import Kinematics
+    from place_safe.recovery import make_estimator
+    from place_safe.robot.kinematics import Kinematics
     from place_safe.robots import ur5_config
 
-    from .robot import SimRobot
-    from .scene import SceneConfig, build_scene, load_scenario
-    from .tof import SimToF, ToFConfig
+    from place_safe.sim.robot import SimRobot
+    from place_safe.sim.scene import SceneConfig, build_scene, load_scenario
+    from place_safe.sim.tof import SimToF, ToFConfig
 
     wall0 = _time.perf_counter()
     if isinstance(scenario, SceneConfig):
@@ -267,7 +267,7 @@ def run_placement(scenario: Any = "place_level", method: str = "diff", calibrati
     n_w, p_w = scene.table_plane_world(robot.data)
     height = float(n_w @ (cup_w[:3, 3] - p_w))
     if render is not None:
-        from . import render as _render
+        from place_safe.sim import render as _render
 
         _render.save_png(_render.render_image(scene, robot.data, tof), render)
     return PlacementResult(

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from .scene import Scene
+from place_safe.sim.scene import Scene
 
 #: Colour (RGBA) of the rays of each zone 1..9.
 ZONE_COLOURS = np.array([[1, 0.2, 0.2, 1], [1, 0.6, 0.1, 1], [1, 1, 0.2, 1], [0.4, 1, 0.2, 1], [0.2, 1, 1, 1],
@@ -63,7 +63,7 @@ def _camera(scene: Scene, data: Any, distance: float | None, azimuth: float, ele
 def _draw_rays(renderer: Any, tof: Any, data: Any, stride: int, miss_length: float) -> None:
     import mujoco
 
-    from .tof import zone_rays_world
+    from place_safe.sim.tof import zone_rays_world
 
     ret = tof.cast(data=data)
     origin, dirs = zone_rays_world(tof, data)

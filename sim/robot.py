@@ -1,4 +1,4 @@
-"""The simulated UR5: :class:`place_safe.robot.Robot` on MuJoCo physics.
+"""The simulated UR5: :class:`place_safe.robot.interface.Robot` on MuJoCo physics.
 
 Concept: :class:`SimRobot` drives the arm of a MuJoCo model (the packaged ``robots/ur5/ur5.xml`` or a
 scene that contains it) like the UR controller does: joint position servos (gravity-compensated arm,
@@ -22,7 +22,6 @@ Conventions
 from __future__ import annotations
 
 import math
-from pathlib import Path
 from typing import Any, Callable
 
 import mujoco
@@ -30,7 +29,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from place_safe.exceptions import RobotFault
-from place_safe.robot import Robot, RobotLimits, TrapezoidProfile, check_pose, check_twist
+from place_safe.robot.interface import Robot, RobotLimits, TrapezoidProfile, check_pose, check_twist
 from place_safe.robots import ur5_config
 
 ARM_JOINTS = ("shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint",

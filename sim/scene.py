@@ -10,7 +10,7 @@ Conventions
   azimuth ``tilt_direction`` (0 = +x).
 * A :class:`Material` describes how a surface looks to the time-of-flight sensor: ``albedo`` is
   relative to the sensor's calibrated ``albedo`` (1.0 = the table of the real sweep), the specular
-  lobe as in :mod:`place_safe.forward`. ``pattern = "checker"`` alternates ``albedo`` and ``albedo2``
+  lobe as in :mod:`place_safe.recovery.forward`. ``pattern = "checker"`` alternates ``albedo`` and ``albedo2``
   in squares of ``square`` metres on the geom's local x-y plane. A specular weight/exponent of
   ``None`` means the sensor's calibrated values, i.e. a surface like the real sweep's table.
 * Surfaces the sensor sees are in geom group :data:`SENSED_GROUP`; the robot's own geoms are moved

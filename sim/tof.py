@@ -3,7 +3,7 @@
 Conventions
 -----------
 * The sensor sits at the ``tof_sensor`` site; its +z is the optical axis, x/y as in the zone table.
-* Per zone ``R = rays**2`` stratified rays (:meth:`place_safe.forward.ZoneRays.stratified`), bent by the
+* Per zone ``R = rays**2`` stratified rays (:meth:`place_safe.recovery.forward.ZoneRays.stratified`), bent by the
   true sensor's field-of-view scales, are cast with ``mujoco.mj_multiRay`` against geom group
   :data:`~place_safe.sim.scene.SENSED_GROUP` only (the robot, the held cup and the rig are not seen).
 * Each hit carries its range (m), cosine of incidence, and the reflectance of the geom's material at
@@ -20,7 +20,7 @@ Conventions
   stays ``rate_hz``.
 * Faults on demand: a frame is dropped with ``drop_prob`` (never delivered) or corrupted with
   ``corrupt_prob`` (NaN counts or a truncated histogram); corrupted frames are still delivered
-  and fail :meth:`place_safe.sensor.Frame.validate` downstream.
+  and fail :meth:`place_safe.sensor.frame.Frame.validate` downstream.
 * On-sensor distances: per zone, the first peak above the noise is located (sub-bin, parabolic) and
   mapped to millimetres by the per-zone linear map fitted to the real sensor's reported distances
   (``sim/sensors/tmf8820_real_distance.json``); no return gives distance 0 with confidence 0.
@@ -43,18 +43,15 @@ import numpy as np
 import torch
 
 from place_safe.exceptions import CalibrationError, NoPlaneError, SensorTimeout
-from place_safe.forward import ForwardModel, ForwardParams, ZoneRays, mount_rotation
+from place_safe.recovery.forward import ForwardModel, ForwardParams, ZoneRays, mount_rotation
 from place_safe.geometry import Plane
-from place_safe.sensor import N_BINS, N_ZONES, Frame
-from place_safe.sources import FrameSource
-from place_safe.synthetic import default_reference
+from place_safe.sensor.frame import N_BINS, N_ZONES, Frame
+from place_safe.sensor.histogram import COUNT_MAX, first_return
+from place_safe.io.source import FrameSource
+from place_safe.evaluation.synthetic import default_reference
 
-from .scene import Scene
+from place_safe.sim.scene import Scene
 
-#: Largest count a 24-bit histogram bin holds.
-MAX_COUNT = 2 ** 24 - 1
-#: Bins used to estimate the floor of a histogram (far beyond any return in the scenes used).
-FLOOR_BINS = slice(100, N_BINS)
 
 
 def sensor_file(name: str) -> Path:
@@ -255,7 +252,7 @@ class SimToF(FrameSource):
             ref = self._rng.poisson(np.clip(ref_clean, 0, None)).astype(float)
         else:
             ref = ref_clean.copy()
-        h = np.minimum(h, MAX_COUNT)
+        h = np.minimum(h, COUNT_MAX)
         dist, conf = self.on_sensor_distances(h, noisy)
         truth = self.truth(returns, d)
         meta = {"hit_fraction": float(returns.hit.mean()),
@@ -280,7 +277,7 @@ class SimToF(FrameSource):
 
     def on_sensor_distances(self, hists: np.ndarray, noisy: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """First-object distance (m) and confidence (0..255) per zone, as the sensor reports them."""
-        peak, found, snr = first_peak(hists)
+        peak, found, snr = first_return(hists)
         dm = self.distance_map
         mm = np.asarray(dm.slope) * peak + np.asarray(dm.intercept)
         if noisy and dm.noise_mm > 0:
@@ -378,32 +375,6 @@ class SimToF(FrameSource):
         self._pending.clear()
 
 
-def first_peak(hists: np.ndarray, threshold: float = 8.0, relative: float = 0.05) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Sub-bin position of the first return per zone, whether one was found, and its peak SNR.
-
-    The floor is the median of :data:`FLOOR_BINS`; a return starts at the first bin more than
-    ``threshold`` Poisson sigmas of the floor and ``relative`` of the zone's largest return above it; its peak is the largest bin in the 6 bins
-    from there (a return is about 4 bins wide), refined by a parabola through it and its neighbours.
-    hists: (Z, 128); returns three (Z,) arrays (bins, bool, peak height in floor sigmas).
-    """
-    h = np.asarray(hists, dtype=float)
-    z = h.shape[0]
-    floor = np.median(h[:, FLOOR_BINS], axis=1, keepdims=True)
-    sig = h - floor
-    noise = np.sqrt(np.maximum(floor, 1.0))
-    above = sig > np.maximum(threshold * noise, relative * sig.max(axis=1, keepdims=True))
-    found = above.any(axis=1)
-    first = np.argmax(above, axis=1)
-    idx = np.clip(first[:, None] + np.arange(6)[None], 0, N_BINS - 1)
-    win = np.take_along_axis(sig, idx, axis=1)
-    k = np.clip(first + np.argmax(win, axis=1), 1, N_BINS - 2)
-    rows = np.arange(z)
-    y0, y1, y2 = sig[rows, k - 1], sig[rows, k], sig[rows, k + 1]
-    den = y0 - 2 * y1 + y2
-    frac = np.where(np.abs(den) > 1e-12, 0.5 * (y0 - y2) / np.where(den == 0, 1, den), 0.0)
-    return k + np.clip(frac, -0.5, 0.5), found, y1 / noise[:, 0]
-
-
 def zone_rays_world(tof: SimToF, data: Any = None) -> tuple[np.ndarray, np.ndarray]:
     """Origin (3,) and unit directions (9, R, 3) of the sensor's rays in the world (for drawing)."""
     pos, R = tof.sensor_pose(data)
@@ -411,5 +382,5 @@ def zone_rays_world(tof: SimToF, data: Any = None) -> tuple[np.ndarray, np.ndarr
 
 
 __all__ = ["SimToF", "ToFConfig", "DistanceMap", "RayReturns", "true_params", "sensor_file", "zone_rays_world",
-           "MAX_COUNT"]
+           "COUNT_MAX"]
 

@@ -22,11 +22,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from place_safe.forward import ForwardParams
-from place_safe.sensor import N_BINS, N_ZONES, Frame
+from place_safe.recovery.forward import ForwardParams
+from place_safe.sensor.frame import N_BINS, N_ZONES, Frame
 
-from .scene import Material, SceneConfig, TableConfig, build_scene
-from .tof import FLOOR_BINS, SimToF, ToFConfig
+from place_safe.sim.scene import Material, SceneConfig, TableConfig, build_scene
+from place_safe.sensor.histogram import FLOOR_BINS
+from place_safe.sim.tof import SimToF, ToFConfig
 
 PEAK_TARGET = 0.5  # bins
 CORR_TARGET = 0.95
@@ -131,7 +132,7 @@ def _height(h: np.ndarray) -> np.ndarray:
 
 
 def _rig_sensor(params: ForwardParams | None, rays: int) -> SimToF:
-    from .tof import true_params
+    from place_safe.sim.tof import true_params
 
     p = params if params is not None else true_params()
     table = TableConfig(height=TABLE_HEIGHT, center=(0.0, 0.0), size=(2.0, 2.0, 0.04),

@@ -1,10 +1,36 @@
-"""Shared fixtures: the real sweep shipped in tests/data and small synthetic frame sets."""
+"""Shared fixtures (the real sweep shipped in tests/data, small synthetic frame sets) and test tiers.
+
+Tiers (markers, registered in pyproject.toml): every test is ``fast`` unless it is marked ``sim``
+(needs MuJoCo; every test under ``tests/sim`` is) or ``slow`` (more than a few seconds).
+``python -m pytest -q`` runs all tiers; ``-m fast`` or ``-m "not slow"`` pick a quick subset.
+Torch's intra-op threads are pinned (``PLACE_SAFE_TEST_THREADS``, default 1) so results and run
+time do not depend on how busy the machine is. No test asserts a speed: speeds belong to
+``place-safe bench`` / ``place-safe sim bench``.
+"""
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+
+def pytest_configure(config) -> None:
+    import torch
+
+    torch.set_num_threads(int(os.environ.get("PLACE_SAFE_TEST_THREADS", "1")))
+
+
+def pytest_collection_modifyitems(config, items) -> None:
+    for item in items:
+        path = Path(str(item.fspath))
+        if "sim" in path.parts[-2:-1] and not item.get_closest_marker("sim"):
+            item.add_marker(pytest.mark.sim)
+        if not (item.get_closest_marker("sim") or item.get_closest_marker("slow")):
+            item.add_marker(pytest.mark.fast)
 
 DATA = Path(__file__).parent / "data"
 SWEEP = DATA / "tmf8820_ur5_sweep.json"
@@ -20,7 +46,7 @@ def sweep_path() -> Path:
 @pytest.fixture(scope="session")
 def synthetic_frames():
     """Eight noisy synthetic frames with ground truth (forward model, published parameters)."""
-    from place_safe.synthetic import make_frames
+    from place_safe.evaluation.synthetic import make_frames
 
     return make_frames(8, seed=1)
 
@@ -28,7 +54,7 @@ def synthetic_frames():
 @pytest.fixture()
 def synthetic_file(tmp_path, synthetic_frames) -> Path:
     """The synthetic frames written as a JSON-list frame file."""
-    from place_safe.frames import write_frames
+    from place_safe.io.frame_file import write_frames
 
     path = tmp_path / "synthetic.json"
     write_frames(path, synthetic_frames)

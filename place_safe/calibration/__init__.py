@@ -22,8 +22,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from ..exceptions import CalibrationError
-from ..forward import ForwardParams
+from place_safe.exceptions import CalibrationError
+from place_safe.recovery.forward import ForwardParams
 
 FORMAT = "place_safe.calibration/1"
 SECTIONS = ("peak", "proprietary", "forward", "diff")
@@ -37,17 +37,17 @@ class Calibration:
     reports: dict[str, Any] = field(default_factory=dict)
 
     def peak(self):
-        from .points import PeakParams
+        from place_safe.recovery.points import PeakParams
         return PeakParams.from_dict(self.sections["peak"]) if "peak" in self.sections else PeakParams.default_peak()
 
     def proprietary(self):
-        from .points import PeakParams
+        from place_safe.recovery.points import PeakParams
         return (PeakParams.from_dict(self.sections["proprietary"]) if "proprietary" in self.sections
                 else PeakParams.default_proprietary())
 
     def diff(self):
         """The ``diff`` section's range correction (none when the section is absent)."""
-        from ..estimators.differentiable import RangeCorrection
+        from place_safe.recovery.differentiable import RangeCorrection
 
         d = self.sections.get("diff", {})
         return RangeCorrection.from_dict(d.get("range_correction", {}))

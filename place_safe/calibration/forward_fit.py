@@ -2,14 +2,14 @@
 
 The paper's C*: the camera parameters that minimise the histogram loss over a data set, with the
 reflectance free per frame. Here the loss is the one the differentiable estimator minimises (Poisson
-scaled residuals of floor-subtracted histograms, see :mod:`place_safe.estimators.differentiable`),
+scaled residuals of floor-subtracted histograms, see :mod:`place_safe.recovery.differentiable`),
 so calibration and recovery agree on what a good fit is. Per frame the albedo is free; the camera
 parameters fitted are listed in :data:`FITTED`. Two gauge freedoms are fixed: the centre zone's gain
 (1, the overall scale lives in the albedo) and timing offset (0, the common delay lives in
 ``bin_offset``).
 
 Optimiser: L-BFGS (torch) on well-scaled unknowns (logs of positive quantities), gradients by
-autograd through :class:`~place_safe.forward.ForwardModel`.
+autograd through :class:`~place_safe.recovery.forward.ForwardModel`.
 """
 
 from __future__ import annotations
@@ -22,9 +22,10 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from ..exceptions import CalibrationError, FrameError
-from ..forward import MODEL_ERROR, ForwardModel, ForwardParams, ZoneRays, mount_rotation, residual_weights
-from ..sensor import N_BINS, N_ZONES, Frame
+from place_safe.exceptions import CalibrationError, FrameError
+from place_safe.recovery.forward import MODEL_ERROR, ForwardModel, ForwardParams, ZoneRays, mount_rotation, residual_weights
+from place_safe.sensor.frame import N_BINS, N_ZONES, Frame
+from place_safe.sensor.histogram import measure_floor
 
 #: Camera parameters fitted by default, with how they are parametrised ("log": positive). The
 #: specular lobe is left at its published value: it is a property of the surface, fitted per frame
@@ -47,7 +48,6 @@ FITTED: dict[str, str] = {
 }
 CENTRE = 4  # zone 5: gauge for zone gains and offsets
 ZONE_GAUGED = ("zone_gains", "zone_offsets")
-FLOOR_BINS = slice(100, N_BINS)
 
 
 def _usable(frames: Sequence[Frame], min_distance: float, max_distance: float) -> list[Frame]:
@@ -78,7 +78,7 @@ def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, prog
     parameters; more only cost time).
 
     The solver is SciPy's ``least_squares`` (trust region reflective) on the Poisson-scaled
-    residuals (with the model-error term of :func:`~place_safe.forward.residual_weights`); its Jacobian is built from forward-mode derivatives (``torch.func.jvp``): one
+    residuals (with the model-error term of :func:`~place_safe.recovery.forward.residual_weights`); its Jacobian is built from forward-mode derivatives (``torch.func.jvp``): one
     tangent per camera parameter and one shared by all per-frame albedos (each frame depends on
     its own albedo only, so that tangent fills the block-diagonal albedo columns at once).
     """
@@ -101,7 +101,7 @@ def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, prog
     model = ForwardModel(init, ZoneRays.stratified(rays, dtype=dtype), dtype=dtype)
 
     hists = np.array([f.hists for f in data], dtype=float)
-    floor = np.median(hists[..., FLOOR_BINS], axis=-1)
+    floor = measure_floor(hists)
     obs_np = np.clip(hists - floor[..., None], 0.0, None)
     width = int(min(N_BINS, obs_np.argmax(axis=-1).max() + window_after_peak))
     obs = torch.as_tensor(obs_np[..., :width], dtype=dtype)
@@ -210,11 +210,11 @@ def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, prog
     cam, la = split(sol.x)
     with torch.no_grad():
         per_frame = residual(cam, la).pow(2).mean(dim=1).sqrt().numpy()
-    from ..forward import tensors_to_params
+    from place_safe.recovery.forward import tensors_to_params
 
     fitted_params = tensors_to_params({k: v.detach() for k, v in model.t.items()}, init.rays_per_zone)
     # the model error the estimator will meet: rendered with its own quadrature
-    from ..estimators.differentiable import SolverOptions
+    from place_safe.recovery.differentiable import SolverOptions
 
     check = ForwardModel(fitted_params, ZoneRays.stratified(SolverOptions().rays, dtype=dtype), dtype=dtype)
     with torch.no_grad():
@@ -243,7 +243,7 @@ def measure_model_error(residuals: np.ndarray, counts: np.ndarray) -> float:
     """Relative model error ``e`` that makes the residuals' reduced chi-square 1.
 
     ``residuals`` (model - observed) and ``counts`` (observed, floor included) are arrays of the
-    same shape; bins are weighted as in :func:`~place_safe.forward.residual_weights`. Returns 0 when
+    same shape; bins are weighted as in :func:`~place_safe.recovery.forward.residual_weights`. Returns 0 when
     shot noise alone explains the residuals.
     """
     from scipy.optimize import brentq
@@ -271,7 +271,7 @@ def select_model_error(frames: Sequence[Frame], forward: ForwardParams, peak=Non
     """The residual weighting (relative model error) that recovers these frames' planes best.
 
     The model error sets how much the brightest bins count against the rest
-    (:func:`~place_safe.forward.residual_weights`). Shot noise alone (0) is right when the model
+    (:func:`~place_safe.recovery.forward.residual_weights`). Shot noise alone (0) is right when the model
     is exact; a real sensor's model mismatch is structured, and the chi-square value
     (:func:`measure_model_error`) then over-weights it. So each value of ``grid`` is tried with
     the fast differentiable estimator and the one with the lowest mean point error on the frames
@@ -279,8 +279,8 @@ def select_model_error(frames: Sequence[Frame], forward: ForwardParams, peak=Non
     """
     from dataclasses import replace
 
-    from ..estimators.differentiable import DifferentiableEstimator
-    from ..metrics import point_error
+    from place_safe.recovery.differentiable import DifferentiableEstimator
+    from place_safe.evaluation.metrics import point_error
 
     data = _usable(frames, min_distance, max_distance)
     if not data:
@@ -307,9 +307,9 @@ def fit_range_correction(frames: Sequence[Frame], forward: ForwardParams, peak=N
     """
     from numpy.polynomial import chebyshev
 
-    from ..estimators.differentiable import DifferentiableEstimator, RangeCorrection
-    from ..forward import mount_rotation
-    from ..geometry import Plane
+    from place_safe.recovery.differentiable import DifferentiableEstimator, RangeCorrection
+    from place_safe.recovery.forward import mount_rotation
+    from place_safe.geometry import Plane
 
     data = _usable(frames, min_distance, max_distance)
     est = DifferentiableEstimator(forward, peak)

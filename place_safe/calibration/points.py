@@ -1,238 +1,29 @@
-"""Zone readings to 3-D points and planes, and the calibration of that mapping.
+"""Calibration of the reading-to-point mapping (:class:`place_safe.recovery.points.PeakParams`).
 
-Concept
--------
-The ``peak`` and ``proprietary`` methods both turn one scalar *reading* per zone into a range and
-put the point at that range along the zone's direction; a plane is fitted to the points by SVD.
-The reading is the sub-bin histogram peak (bins) for ``peak`` and the on-sensor distance
-(millimetres) for ``proprietary``. :class:`PeakParams` holds the mapping:
-
-* range (m) of zone ``z``, from the reading ``x``::
-
-      x' = x - s(x) - b - zone_offsets[z]
-      r  solves  m g_z r + c(r) = x'       (fixed-point iteration; r = x' / (m g_z) without c)
-
-  ``m`` in reading units per metre (bins/m or mm/m), ``g_z`` = ``zone_gains`` (dimensionless,
-  mean 1), ``b`` and ``zone_offsets`` in reading units. ``s(x)`` (``phase_coeffs``, sine/cosine
-  pairs of 2 pi k x) corrects the sub-bin bias of the spline peak, which pulls peaks towards
-  whole bins (+-0.09 bin on the real sweep). ``c`` (``residual_coeffs``) is a smooth residual
-  correction shared by all zones: a Chebyshev series in ``r`` over ``residual_domain`` (m),
-  evaluated at ``r`` clipped to the domain, so it is constant outside the calibrated range; it
-  absorbs the slow drift of the peak with distance (pulse shape changing with signal strength:
-  a bow of +-3 mm over 5-40 cm on the real sweep). Per-zone gains take up what differs between
-  zones with range (effective zone directions, signal level). Empty coefficient lists and unit
-  gains are the paper's model.
-* direction of zone ``z``: the zone-centre direction (:data:`place_safe.sensor.ZONE_DIRECTIONS`)
-  with its angle from the optical axis multiplied by ``edge_scale`` (s_e, zones 2, 4, 6, 8) or
-  ``corner_scale`` (s_c, zones 1, 3, 7, 9); azimuth kept, the centre zone stays on the axis.
-
-Calibration (:func:`fit_peak`, :func:`fit_proprietary`) minimises the paper's point error over
-frames with ground truth: Nelder-Mead over ``(m, b, s_e, s_c)`` as in the paper (``paper=True``),
-then the full model by linear least squares (see :func:`fit_points`). The paper did not calibrate per-zone
-offsets; on the real sweep zones differ by up to one bin (about 12 mm) at the same distance.
+:func:`fit_peak` and :func:`fit_proprietary` minimise the paper's point error over frames with ground
+truth: Nelder-Mead over ``(m, b, s_e, s_c)`` as in the paper (``paper=True``), then the full model by
+linear least squares (see :func:`fit_points`). The paper did not calibrate per-zone offsets; on the
+real sweep zones differ by up to one bin (about 12 mm) at the same distance.
 """
-
 from __future__ import annotations
 
 import math
 import sys
-from dataclasses import asdict, dataclass, field
 from typing import Any, Sequence
 
 import numpy as np
 from numpy.polynomial import chebyshev as cheb
 from scipy.optimize import minimize
 
-from ..config import check_keys
-from ..exceptions import CalibrationError, NoPlaneError
-from ..geometry import Plane
-from ..sensor import CORNER, EDGE, N_ZONES, ZONE_DIRECTIONS, ZONE_KIND, Frame
+from place_safe.exceptions import CalibrationError
+from place_safe.recovery.points import MM_PER_M, PeakParams, fit_planes
+from place_safe.sensor.frame import N_ZONES, Frame
 
-#: The paper's calibrated peak method (their code): distance = (peak_bin - 13.155) / 72.073 m.
-PAPER_PEAK_M = 72.073  # bins per metre
-PAPER_PEAK_B = 13.155  # bins
-PAPER_EDGE_SCALE = 0.9405
-PAPER_CORNER_SCALE = 0.8916
-#: Physical bin size of short-range high-accuracy mode (published forward model), m per bin.
-BIN_SIZE = 0.014131
-#: Bin offset of the published forward model: a target at range r gives a transient at bin
-#: ``r / BIN_SIZE + FORWARD_BIN_OFFSET`` (before the laser pulse delays the peak).
-FORWARD_BIN_OFFSET = 9.5235
-#: Reference-pulse time scale of the published model: a reference bin is this many zone bins.
-REF_TIME_SCALE = 0.27887
-#: Millimetres per metre: the reading scale of on-sensor distances.
-MM_PER_M = 1000.0
-#: Fixed-point iterations inverting ``m r + c(r) = x`` (c changes by far less than m per metre).
-RANGE_ITERATIONS = 3
 #: Spread of ground-truth tilts (rad) from which the edge/corner scales are identifiable and fitted.
 MIN_TILT_SPREAD = math.radians(5.0)
 #: Frames whose true axis distance is below this are left out of calibration: the peak stops
 #: moving with range there (pulse and target overlap), see the shared sweep below 25 mm.
 MIN_CALIBRATION_RANGE = 0.03  # m
-
-
-@dataclass
-class PeakParams:
-    """Reading-to-point mapping of the peak and on-sensor-distance methods (see module doc).
-
-    ``m``: reading units per metre; ``b``, ``zone_offsets`` (9), ``residual_coeffs``: reading units;
-    ``edge_scale``, ``corner_scale``: dimensionless; ``residual_domain``: (lo, hi) metres.
-    """
-
-    m: float
-    b: float
-    edge_scale: float = 1.0
-    corner_scale: float = 1.0
-    zone_offsets: list[float] = field(default_factory=lambda: [0.0] * N_ZONES)
-    residual_coeffs: list[float] = field(default_factory=list)
-    residual_domain: list[float] = field(default_factory=lambda: [0.0, 1.0])
-    phase_coeffs: list[float] = field(default_factory=list)
-    zone_gains: list[float] = field(default_factory=lambda: [1.0] * N_ZONES)
-
-    def __post_init__(self) -> None:
-        self.zone_offsets = [float(v) for v in self.zone_offsets]
-        self.zone_gains = [float(v) for v in self.zone_gains]
-        if len(self.zone_gains) != N_ZONES or min(self.zone_gains) <= 0:
-            raise CalibrationError(f"zone_gains needs {N_ZONES} positive values")
-        self.phase_coeffs = [float(v) for v in self.phase_coeffs]
-        if len(self.phase_coeffs) % 2:
-            raise CalibrationError("phase_coeffs needs (sin, cos) pairs, got an odd count")
-        self.residual_coeffs = [float(v) for v in self.residual_coeffs]
-        self.residual_domain = [float(v) for v in self.residual_domain]
-        if len(self.zone_offsets) != N_ZONES:
-            raise CalibrationError(f"zone_offsets needs {N_ZONES} values, got {len(self.zone_offsets)}")
-        if len(self.residual_domain) != 2 or not self.residual_domain[0] < self.residual_domain[1]:
-            raise CalibrationError(f"residual_domain must be [lo, hi] with lo < hi, got {self.residual_domain}")
-        vals = [self.m, self.b, self.edge_scale, self.corner_scale, *self.zone_offsets, *self.residual_coeffs,
-                *self.residual_domain, *self.phase_coeffs, *self.zone_gains]
-        if not all(math.isfinite(float(v)) for v in vals):
-            raise CalibrationError("peak parameters must all be finite")
-        if self.m <= 0:
-            raise CalibrationError(f"m (reading units per metre) must be > 0, got {self.m}")
-        if not (0 < self.edge_scale < 3 and 0 < self.corner_scale < 3):
-            raise CalibrationError("edge_scale and corner_scale must be in (0, 3)")
-
-    # -- file form ---------------------------------------------------------------------------------
-    def to_dict(self) -> dict:
-        return asdict(self)
-
-    @classmethod
-    def from_dict(cls, d: Any) -> "PeakParams":
-        check_keys(cls, d, "peak parameters", CalibrationError)
-        missing = {"m", "b"} - set(d)
-        if missing:
-            raise CalibrationError(f"peak parameters lack {', '.join(sorted(missing))}")
-        try:
-            return cls(**d)
-        except (TypeError, ValueError) as exc:
-            raise CalibrationError(f"peak parameters are malformed: {exc}") from None
-
-    # -- built-in sets -----------------------------------------------------------------------------
-    @classmethod
-    def default_peak(cls) -> "PeakParams":
-        """The paper's published calibrated peak constants (their sensor)."""
-        return cls(PAPER_PEAK_M, PAPER_PEAK_B, PAPER_EDGE_SCALE, PAPER_CORNER_SCALE)
-
-    @classmethod
-    def default_proprietary(cls) -> "PeakParams":
-        """On-sensor distances as reported: mm to m, nominal zone directions."""
-        return cls(MM_PER_M, 0.0)
-
-    @classmethod
-    def naive_peak(cls, reference_peak_bin: float | None = None) -> "PeakParams":
-        """Physical constants: the published bin size and, for ``b``, the bin where a target at
-        range 0 would peak: the forward model's bin offset plus the reference pulse's peak delay
-        (reference-peak bin times the reference time scale). Without a reference, the typical
-        reference peak of bin 14 is used (the TMF8820's reference pulse peaks near bin 14). Scales 1,
-        no zone offsets.
-        """
-        ref_peak = 14.0 if reference_peak_bin is None else float(reference_peak_bin)
-        return cls(1.0 / BIN_SIZE, FORWARD_BIN_OFFSET + ref_peak * REF_TIME_SCALE)
-
-    # -- mapping -----------------------------------------------------------------------------------
-    def directions(self) -> np.ndarray:
-        """Unit direction (9, 3) of each zone with the edge/corner angle scales applied."""
-        v = ZONE_DIRECTIONS
-        theta = np.arccos(np.clip(v[:, 2], -1.0, 1.0))
-        phi = np.arctan2(v[:, 1], v[:, 0])
-        scale = np.ones(N_ZONES)
-        scale[ZONE_KIND == EDGE] = self.edge_scale
-        scale[ZONE_KIND == CORNER] = self.corner_scale
-        t = theta * scale
-        return np.stack([np.sin(t) * np.cos(phi), np.sin(t) * np.sin(phi), np.cos(t)], axis=1)
-
-    def correction(self, r0: np.ndarray) -> np.ndarray:
-        """Residual correction c(r0) in reading units (0 without coefficients)."""
-        r0 = np.asarray(r0, dtype=float)
-        if not self.residual_coeffs:
-            return np.zeros_like(r0)
-        lo, hi = self.residual_domain
-        u = (2.0 * np.clip(r0, lo, hi) - (lo + hi)) / (hi - lo)
-        return cheb.chebval(u, self.residual_coeffs)
-
-    def phase_correction(self, readings: np.ndarray) -> np.ndarray:
-        """Sub-bin phase correction s(x) in reading units (0 without coefficients)."""
-        x = np.asarray(readings, dtype=float)
-        out = np.zeros_like(x)
-        for k in range(len(self.phase_coeffs) // 2):
-            w = 2.0 * np.pi * (k + 1) * x
-            out = out + self.phase_coeffs[2 * k] * np.sin(w) + self.phase_coeffs[2 * k + 1] * np.cos(w)
-        return out
-
-    def ranges(self, readings: np.ndarray) -> np.ndarray:
-        """Ranges (m) for readings (..., 9)."""
-        x = np.asarray(readings, dtype=float)
-        x = x - self.phase_correction(x) - self.b - np.asarray(self.zone_offsets)
-        mz = self.m * np.asarray(self.zone_gains)
-        r = x / mz
-        if self.residual_coeffs:
-            for _ in range(RANGE_ITERATIONS):  # solve m g r + c(r) = x by fixed-point iteration
-                r = (x - self.correction(r)) / mz
-        return r
-
-    def points(self, readings: np.ndarray) -> np.ndarray:
-        """Points (..., 9, 3) in the sensor frame for readings (..., 9)."""
-        return self.ranges(readings)[..., None] * self.directions()
-
-    def expected_readings(self, planes_n: np.ndarray, planes_d: np.ndarray) -> np.ndarray:
-        """Ideal readings (F, 9) of planes (normals (F, 3), offsets (F,)) along the current directions,
-        *without* the residual correction (used to fit offsets and correction linearly)."""
-        dirs = self.directions()
-        denom = planes_n @ dirs.T  # (F, 9)
-        r = planes_d[:, None] / denom
-        return self.m * np.asarray(self.zone_gains) * r + self.b + np.asarray(self.zone_offsets)
-
-
-# ---------------------------------------------------------------------------------------------
-# Batched plane fit
-# ---------------------------------------------------------------------------------------------
-def fit_planes(points: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Least-squares planes through point sets, batched: points (F, N, 3), valid (F, N) bool.
-
-    Returns normals (F, 3) with n_z > 0, offsets (F,), RMS perpendicular residuals (F,) in metres
-    and ``ok`` (F,) bool: at least 3 valid, non-collinear points and a plane not containing the
-    optical axis. Entries with ``ok`` False are NaN. Same maths as :func:`place_safe.geometry.fit_plane`
-    (SVD of the centred points), for many frames at once.
-    """
-    pts = np.asarray(points, dtype=float)
-    w = (np.asarray(valid, dtype=bool) & np.all(np.isfinite(pts), axis=-1)).astype(float)
-    count = w.sum(-1)
-    safe_pts = np.where(w[..., None] > 0, pts, 0.0)
-    cnt = np.maximum(count, 1.0)
-    centroid = (w[..., None] * safe_pts).sum(-2) / cnt[..., None]
-    centred = (safe_pts - centroid[..., None, :]) * w[..., None]
-    _, s, vt = np.linalg.svd(centred, full_matrices=False)
-    n = vt[..., -1, :]
-    sign = np.where(n[..., 2] < 0, -1.0, 1.0)
-    n = n * sign[..., None]
-    d = (n * centroid).sum(-1)
-    rms = s[..., -1] / np.sqrt(cnt)
-    ok = (count >= 3) & (s[..., 1] > 1e-9 * np.maximum(s[..., 0], 1e-30)) & (n[..., 2] > 1e-6) & (d > 0)
-    n = np.where(ok[..., None], n, np.nan)
-    d = np.where(ok, d, np.nan)
-    rms = np.where(ok, rms, np.nan)
-    return n, d, rms, ok
-
 
 # ---------------------------------------------------------------------------------------------
 # Calibration
@@ -244,7 +35,7 @@ def _truth_arrays(frames: Sequence[Frame]) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _errors(params: PeakParams, readings: np.ndarray, valid: np.ndarray, tn: np.ndarray, td: np.ndarray) -> dict:
-    from ..metrics import angular_errors, linear_errors, point_errors
+    from place_safe.evaluation.metrics import angular_errors, linear_errors, point_errors
 
     n, d, _, ok = fit_planes(params.points(readings), valid)
     out = {"failures": int((~ok).sum())}
@@ -335,7 +126,7 @@ def fit_linear(edge_scale: float, corner_scale: float, readings: np.ndarray, val
 
 def _mean_point_error(p: PeakParams, readings: np.ndarray, valid: np.ndarray, tn: np.ndarray,
                       td: np.ndarray) -> float:
-    from ..metrics import point_errors
+    from place_safe.evaluation.metrics import point_errors
 
     n, d, _, ok = fit_planes(p.points(readings), valid)
     e = np.full(len(td), 1.0)  # a failed fit costs 1 m
@@ -474,7 +265,7 @@ def fit_peak(frames: Sequence[Frame], init: PeakParams | None = None, progress: 
     Frames closer than ``min_range`` (m) and frames without a usable return are left out. With
     With ``paper=True`` this is the paper's calibration (Nelder-Mead over m, b, s_e, s_c only).
     """
-    from ..estimators.peak import find_peaks
+    from place_safe.recovery.peak import find_peaks
 
     use = _calibration_frames(frames, min_range)
     hists = np.array([np.asarray(f.hists, dtype=float) for f in use])
@@ -524,15 +315,4 @@ def fit_proprietary(frames: Sequence[Frame], init: PeakParams | None = None, pro
     return params, report
 
 
-def plane_from_points(params: PeakParams, readings: np.ndarray, valid: np.ndarray) -> tuple[Plane, float]:
-    """The plane of one frame's readings (9,) and mask (9,), and its RMS residual (m); raises NoPlaneError."""
-    if valid.sum() < 3:
-        raise NoPlaneError(f"only {int(valid.sum())} zones have a return; a plane needs 3 or more")
-    n, d, rms, ok = fit_planes(params.points(readings)[None], valid[None])
-    if not ok[0]:
-        raise NoPlaneError("the zone points do not determine a plane in front of the sensor")
-    return Plane(n[0], float(d[0])), float(rms[0])
-
-
-__all__ = ["PeakParams", "fit_planes", "fit_points", "fit_peak", "fit_proprietary", "proprietary_readings",
-           "plane_from_points", "MIN_CALIBRATION_RANGE"]
+__all__ = ["fit_points", "fit_peak", "fit_proprietary", "proprietary_readings", "MIN_CALIBRATION_RANGE"]

@@ -2,7 +2,7 @@
 
 Writes, next to this script (or to ``--out-dir``):
 
-* ``tmf8820_real.json``: :class:`place_safe.forward.ForwardParams` fitted to the real TMF8820 sweep
+* ``tmf8820_real.json``: :class:`place_safe.recovery.forward.ForwardParams` fitted to the real TMF8820 sweep
   (frames with ground truth at >= 4 cm). Method ``forward_fit`` uses the project's calibration
   (:func:`place_safe.calibration.forward_fit.fit_forward`) with the specular lobe and the field-of-view
   scales held at the published values (:data:`HELD`): the sweep is a level-table distance sweep, whose
@@ -14,7 +14,7 @@ Writes, next to this script (or to ``--out-dir``):
   ``auto`` takes ``forward_fit`` when it is importable.
 * ``tmf8820_real_distance.json``: the on-sensor distance emulation, per zone
   ``mm = slope * first_peak_bin + intercept`` fitted (least squares) to the distances the real sensor
-  reported, with the same peak finder the simulator uses (:func:`place_safe.sim.tof.first_peak`).
+  reported, with the same peak finder the simulator uses (:func:`place_safe.sensor.histogram.first_return`).
 
 Run: ``python -m place_safe.sim.sensors.make_real --sweep /work/shared/data/tmf8820_ur5_sweep.json``
 (or ``python sim/sensors/make_real.py``).
@@ -30,9 +30,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from place_safe.forward import ForwardModel, ForwardParams, ZoneRays
-from place_safe.frames import load_frames
-from place_safe.sensor import N_ZONES, Frame
+from place_safe.recovery.forward import ForwardModel, ForwardParams, ZoneRays
+from place_safe.io.frame_file import load_frames
+from place_safe.sensor.frame import N_ZONES, Frame
 
 HERE = Path(__file__).resolve().parent
 #: Parameters not fitted by default (kept at the published values), see the module docstring.
@@ -78,7 +78,7 @@ def fit_scipy(frames: list[Frame], rays: int = 5) -> tuple[ForwardParams, dict]:
 
 def fit_distance_map(frames: list[Frame], min_distance: float = 0.03) -> dict:
     """Per-zone linear map from the simulator's first-peak bin to the real on-sensor distance (mm)."""
-    from place_safe.sim.tof import first_peak
+    from place_safe.sensor.histogram import first_return as first_peak
 
     rows = [f for f in frames if f.distances is not None and f.truth is not None and f.truth.z0 >= min_distance]
     peaks = np.array([first_peak(f.hists)[0] for f in rows])  # (F, 9)
@@ -92,7 +92,7 @@ def fit_distance_map(frames: list[Frame], min_distance: float = 0.03) -> dict:
         intercept.append(float(coef[1]))
         rms.append(float(np.sqrt(np.mean((A @ coef - mm[ok[:, z], z]) ** 2))))
     return {"slope": slope, "intercept": intercept, "noise_mm": float(np.median(rms)),
-            "source": "per-zone least squares of the real sweep's depths_1 against sim.tof.first_peak bins",
+            "source": "per-zone least squares of the real sweep's depths_1 against sensor.histogram.first_return bins",
             "fit_rms_mm": rms}
 
 

@@ -1,0 +1,679 @@
+"""The ``place-safe`` command line (docs/interfaces.md): calibrate, recover, evaluate, stream, bench, demo, sim.
+
+Conventions at this edge: distances on the command line are metres unless an option says otherwise,
+angles are printed in degrees, planes in files and JSON lines use the sensor-frame convention
+(``n . x = d``, unit ``n`` with ``n_z > 0``, ``d`` in metres). Standard output carries only the
+command's result (for ``recover --jsonl`` and ``stream --jsonl``: only JSON lines); progress bars,
+logs and summaries go to standard error.
+
+Exit status: 0 on success, 2 for a usage or input error (one line on standard error, no traceback),
+1 for an unexpected internal failure, 130 when interrupted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import math
+import sys
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+from typing import Any, TextIO
+
+from place_safe.exceptions import CalibrationError, FrameError, FrameFileError, PlaceSafeError
+
+PROG = "place-safe"
+METHODS = ("diff", "peak", "peak-naive", "proprietary", "proprietary-naive")
+CALIBRATE_METHODS = ("diff", "peak", "proprietary")
+
+
+class UsageError(PlaceSafeError):
+    """Bad command-line usage (exit status 2)."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors (no usage dump) so scripts see exactly one line on stderr."""
+
+    def error(self, message: str):  # type: ignore[override]
+        where = self.prog[len(PROG):].strip() if self.prog.startswith(PROG) else self.prog
+        raise UsageError(f"{where + ': ' if where else ''}{message} (see '{self.prog} --help')")
+
+
+def _log(msg: str = "") -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def _progress(enabled: bool):
+    """tqdm keyword arguments: bars on stderr, shown only when enabled and stderr is a terminal."""
+    return {"file": sys.stderr, "disable": None if enabled else True, "leave": False}
+
+
+# ------------------------------------------------------------------------------------------------
+# shared helpers
+# ------------------------------------------------------------------------------------------------
+def _load_calibration(path: str | None):
+    from place_safe.calibration import Calibration
+
+    if path is None:
+        return None
+    if not Path(path).is_file():
+        raise CalibrationError(f"calibration file {path} does not exist")
+    return Calibration.load(path)
+
+
+def _load_truth_frames(paths: Sequence[str], min_distance: float | None = None,
+                       max_distance: float | None = None) -> tuple[list, int]:
+    """All frames with ground truth from ``paths`` (within the distance limits); and how many were skipped."""
+    from place_safe.io.frame_file import iter_frames
+
+    frames, skipped = [], 0
+    for p in paths:
+        if not Path(p).is_file():
+            raise FrameFileError(f"frame file {p} does not exist")
+        for f in iter_frames(p):
+            if isinstance(f, FrameError) or f.truth is None:
+                skipped += 1
+                continue
+            d = f.truth.offset
+            if (min_distance is not None and d < min_distance) or (max_distance is not None and d > max_distance):
+                skipped += 1
+                continue
+            frames.append(f)
+    if not frames:
+        limits = ""
+        if min_distance is not None or max_distance is not None:
+            limits = f" between {min_distance or 0:g} m and {max_distance if max_distance is not None else math.inf:g} m"
+        raise FrameFileError(f"no frames with ground truth{limits} in {', '.join(paths)} "
+                             "(expected 'plane' or 'pose' + 'dist_to_plane' per frame)")
+    return frames, skipped
+
+
+def _jsonable(obj: Any) -> Any:
+    """Fit reports may hold numpy scalars/arrays or dataclasses; make them plain JSON."""
+    import dataclasses
+
+    import numpy as np
+
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _jsonable(obj.tolist())
+    if isinstance(obj, np.generic):
+        return _jsonable(obj.item())
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return _jsonable(dataclasses.asdict(obj))
+    if hasattr(obj, "to_dict"):
+        return _jsonable(obj.to_dict())
+    if obj is None or isinstance(obj, (str, int, bool)):
+        return obj
+    return str(obj)
+
+
+def _summarise(report: Any, indent: str = "  ") -> list[str]:
+    """Scalar entries of a fit report, one per line (nested dicts flattened with dots)."""
+    rep = _jsonable(report)
+    if not isinstance(rep, dict):
+        return [f"{indent}{rep}"]
+    lines: list[str] = []
+
+    def walk(d: dict, prefix: str) -> None:
+        for k, v in d.items():
+            key = f"{prefix}{k}"
+            if isinstance(v, dict):
+                walk(v, key + ".")
+            elif isinstance(v, list):
+                if len(v) <= 9 and all(isinstance(x, (int, float)) or x is None for x in v):
+                    lines.append(f"{indent}{key}: [{', '.join('-' if x is None else f'{x:.4g}' for x in v)}]")
+                else:
+                    lines.append(f"{indent}{key}: list of {len(v)}")
+            elif isinstance(v, float):
+                lines.append(f"{indent}{key}: {v:.6g}")
+            else:
+                lines.append(f"{indent}{key}: {v}")
+
+    rep = {k: v for k, v in rep.items() if k != "params"}  # the parameters themselves are in the file
+    walk(rep, "")
+    return lines
+
+
+# ------------------------------------------------------------------------------------------------
+# calibrate
+# ------------------------------------------------------------------------------------------------
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    from place_safe.calibration import Calibration
+
+    out = Path(args.output)
+    cal, note = Calibration(), None
+    if out.exists():  # checked before any work so a bad output path fails fast, with one line
+        try:
+            cal = Calibration.load(out)
+            note = f"{out} is a calibration file; keeping its other sections (present: {', '.join(cal.sections) or 'none'})"
+        except CalibrationError as exc:
+            if not args.force:
+                raise CalibrationError(f"{exc}; refusing to overwrite it (use --force to replace the file)") from None
+            note = f"replacing {out}: {exc}"
+    frames, skipped = _load_truth_frames(args.files)
+    if not args.quiet:
+        _log(f"calibrate {args.method}: {len(frames)} frames with ground truth"
+             + (f" ({skipped} skipped: no ground truth or unreadable)" if skipped else ""))
+        if note:
+            _log(note)
+    progress = not args.quiet
+    fitted: list[str] = []
+    if args.method in ("peak", "diff") and (args.method == "peak" or "peak" not in cal.sections):
+        from place_safe.calibration.points import fit_peak
+
+        if args.method == "diff" and not args.quiet:
+            _log("the diff method starts from the calibrated peak method: fitting the 'peak' section first")
+        params, report = fit_peak(frames, progress=progress)
+        cal.sections["peak"] = params.to_dict()
+        cal.reports["peak"] = _jsonable(report)
+        fitted.append("peak")
+    if args.method == "proprietary":
+        from place_safe.calibration.points import fit_proprietary
+
+        params, report = fit_proprietary(frames, progress=progress)
+        cal.sections["proprietary"] = params.to_dict()
+        cal.reports["proprietary"] = _jsonable(report)
+        fitted.append("proprietary")
+    if args.method == "diff":
+        from place_safe.calibration.forward_fit import fit_forward
+
+        params, report = fit_forward(frames, init=None, progress=progress)
+        from place_safe.calibration.forward_fit import fit_range_correction, select_model_error
+
+        params.model_error, report["model_error"] = select_model_error(frames, params, cal.peak(), progress=progress)
+        cal.sections["forward"] = params.to_dict()
+        cal.reports["forward"] = _jsonable(report)
+        fitted.append("forward")
+
+        section, report = fit_range_correction(frames, params, cal.peak(), progress=progress)
+        cal.sections["diff"] = section
+        cal.reports["diff"] = _jsonable(report)
+        fitted.append("diff")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    cal.save(out)
+    for name in fitted:
+        _log(f"fit quality, section '{name}':")
+        for line in _summarise(cal.reports.get(name, {})):
+            _log(line)
+    _log(f"wrote {out} (sections: {', '.join(cal.sections)})")
+    return 0
+
+
+# ------------------------------------------------------------------------------------------------
+# recover
+# ------------------------------------------------------------------------------------------------
+def _estimator(method: str, calibration, mode: str | None = None):
+    from place_safe.recovery import make_estimator
+
+    options = {"mode": mode} if (method == "diff" and mode) else {}
+    return make_estimator(method, calibration, **options)
+
+
+def _recover_stream(path: str, estimator, batch: int) -> Iterator[tuple[int, Any]]:
+    """(index, PlaneEstimate) for every entry of the file, in order, recovering ``batch`` frames at a time."""
+    from place_safe.recovery.estimator import PlaneEstimate
+    from place_safe.io.frame_file import iter_frames
+
+    pending: list[tuple[int, Any]] = []
+
+    def flush() -> Iterator[tuple[int, Any]]:
+        frames = [f for _, f in pending if not isinstance(f, FrameError)]
+        ests = iter(estimator.estimate_many(frames) if len(frames) > 1 else [estimator.estimate(f) for f in frames])
+        for i, f in pending:
+            yield i, (PlaneEstimate(None, reason=f"frame {i}: {f}") if isinstance(f, FrameError) else next(ests))
+        pending.clear()
+
+    try:
+        for i, f in enumerate(iter_frames(path)):
+            pending.append((i, f))
+            if len(pending) >= batch:
+                yield from flush()
+    except FrameFileError:
+        yield from flush()  # the frames read before the file broke still get their lines
+        raise
+    yield from flush()
+
+
+def _fmt_row(i: int, est) -> str:
+    import numpy as np
+
+    if est.plane is None:
+        return f"{i:>5}  {'-':>9} {'-':>9} {'-':>9}  {'-':>7} {est.seconds * 1e3:>8.2f}  {est.reason}"
+    p = est.plane
+    alb = "-" if est.albedo is None or not np.isfinite(est.albedo) else f"{est.albedo:.3f}"
+    return (f"{i:>5}  {math.degrees(p.theta):>9.3f} {math.degrees(p.phi):>9.2f} {p.offset * 1e3:>9.2f}  "
+            f"{alb:>7} {est.seconds * 1e3:>8.2f}")
+
+
+def _write_line(out: TextIO, obj: dict) -> None:
+    out.write(json.dumps(obj) + "\n")
+    out.flush()
+
+
+def cmd_recover(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    if not Path(args.file).is_file():
+        raise FrameFileError(f"frame file {args.file} does not exist")
+    cal = _load_calibration(args.calibration)
+    est = _estimator(args.method, cal, args.mode)
+    batch = args.batch or (16 if args.method == "diff" and args.mode != "paper" else 1)
+    out = sys.stdout
+    if not args.jsonl:
+        out.write(f"{'frame':>5}  {'theta deg':>9} {'phi deg':>9} {'d mm':>9}  {'albedo':>7} {'ms':>8}  reason\n")
+    n = bad = 0
+    bar = tqdm(desc=f"recover {args.method}", unit="frame", **_progress(not args.quiet))
+    for i, e in _recover_stream(args.file, est, max(1, batch)):
+        if args.jsonl:
+            line = e.to_json(i)
+            if e.plane is None and not line.get("reason"):
+                line["reason"] = "no plane"
+            _write_line(out, line)
+        else:
+            out.write(_fmt_row(i, e) + "\n")
+        n += 1
+        bad += 0 if e.ok else 1
+        bar.update(1)
+    bar.close()
+    out.flush()
+    if not args.quiet:
+        _log(f"recovered {n - bad} of {n} frames with {args.method}" + (f" ({bad} without a plane)" if bad else ""))
+    return 0
+
+
+# ------------------------------------------------------------------------------------------------
+# evaluate
+# ------------------------------------------------------------------------------------------------
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    from place_safe.evaluation.evaluate import evaluate
+
+    cal = _load_calibration(args.calibration)
+    frames, skipped = _load_truth_frames([args.file], args.min_distance, args.max_distance)
+    _log(f"evaluate on {len(frames)} frames" + (f" ({skipped} skipped)" if skipped else ""))
+    options = {"diff": {"mode": args.diff_mode}} if args.diff_mode else None
+    report = evaluate(frames, cal, list(args.methods), None if args.no_plots else args.out, not args.quiet,
+                      estimator_options=options)
+    print(report.table(), flush=True)
+    if args.json:
+        data = report.to_dict() if hasattr(report, "to_dict") else report
+        Path(args.json).write_text(json.dumps(_jsonable(data), indent=2) + "\n")
+        _log(f"wrote {args.json}")
+    return 0
+
+
+# ------------------------------------------------------------------------------------------------
+# stream (live replay)
+# ------------------------------------------------------------------------------------------------
+def _warm_up(estimator, path: str) -> None:
+    """Recover the file's first usable frame once, so first-call costs do not count as live latency."""
+    from place_safe.io.frame_file import iter_frames
+
+    for f in iter_frames(path):
+        if not isinstance(f, FrameError):
+            estimator.estimate(f)
+            return
+
+
+def cmd_stream(args: argparse.Namespace) -> int:
+    from place_safe.io.replay import FileReplaySource
+    from place_safe.io.live import run_live
+
+    if args.rate <= 0:
+        raise UsageError(f"stream: --rate must be > 0 frames per second, got {args.rate:g}")
+    cal = _load_calibration(args.calibration)
+    est = _estimator(args.method, cal, args.mode)
+
+    def on_estimate(index, frame, e, latency) -> None:
+        if args.jsonl:
+            line = e.to_json(index)
+            line["latency_ms"] = round(latency * 1e3, 3)
+            _write_line(sys.stdout, line)
+
+    _warm_up(est, args.file)
+    with FileReplaySource(args.file, rate_hz=args.rate, loop=args.loop) as src:
+        stats = run_live(src, est, on_estimate, max_frames=args.max_frames, queue_size=args.queue)
+    summary = stats.summary()
+    (_log if args.jsonl else print)(summary)
+    if args.json:
+        Path(args.json).write_text(json.dumps(stats.to_dict(), indent=2) + "\n")
+    return 0
+
+
+# ------------------------------------------------------------------------------------------------
+# bench
+# ------------------------------------------------------------------------------------------------
+def cmd_bench(args: argparse.Namespace) -> int:
+    from place_safe.evaluation.bench import DEFAULT_RUNS, measure_file_rss, report_json, run_bench
+
+    cal = _load_calibration(args.calibration)
+    if args.file:
+        frames, _ = _load_truth_frames([args.file])
+        frames = frames[: args.frames] if args.frames else frames
+        source = args.file
+    else:
+        from place_safe.evaluation.synthetic import make_frames
+
+        n = args.frames or 20
+        frames = make_frames(n, seed=args.seed)
+        source = f"synthetic (make_frames, seed {args.seed})"
+    runs = [r for r in DEFAULT_RUNS if r[0] in args.methods]
+    report = run_bench(frames, cal, paper_frames=args.paper_frames, runs=runs, source=source,
+                       progress=not args.quiet)
+    status = 0
+    if args.memory_file:
+        if not args.quiet:
+            _log(f"measuring peak RSS of recover over a {args.memory_file}-frame file ...")
+        try:
+            report.file_rss = measure_file_rss(args.memory_file, method=args.memory_method,
+                                               calibration=args.calibration)
+        except RuntimeError as exc:  # the timings above stay valid; say what failed and exit 1
+            report.file_rss = {"error": str(exc)}
+            status = 1
+    print(report.table(), flush=True)
+    if args.json:
+        report_json(report, args.json)
+        _log(f"wrote {args.json}")
+    if status:
+        _log(f"{PROG}: memory measurement failed: {report.file_rss['error']}")
+    return status
+
+
+# ------------------------------------------------------------------------------------------------
+# demo (the main job)
+# ------------------------------------------------------------------------------------------------
+#: Demo placements: (scenario, the outcome a safe placement must have).
+DEMO_SCENARIOS = (("place_level", "released"), ("place_tilted", "refused"))
+
+
+def _placement_available() -> str | None:
+    """None when the simulated placement can run, else why not."""
+    if importlib.util.find_spec("mujoco") is None:
+        return "MuJoCo is not installed (install the [sim] extra)"
+    try:
+        from place_safe.sim import placement_run  # noqa: F401
+    except ImportError as exc:
+        return f"the simulation is not available ({exc})"
+    return None
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    """The main job: simulated placements (level table: release; tilted table: refuse). Without the
+    simulation (or with --synthetic): recover synthetic frames with every method and score them."""
+    why_not = None if args.synthetic else _placement_available()
+    if not args.synthetic and why_not is None:
+        from place_safe.sim.placement_run import run_placement
+
+        ok = True
+        for scenario, expected in DEMO_SCENARIOS:
+            if not args.quiet:
+                _log(f"demo: simulated UR5 placing a cup, scenario {scenario} (expected: {expected}) ...")
+            res = run_placement(scenario, method=args.method, seed=args.seed)
+            print(res.summary(), flush=True)
+            good = res.outcome == expected
+            ok &= good
+            print(f"-> {scenario}: {res.outcome} ({'as expected' if good else 'EXPECTED ' + expected})\n", flush=True)
+        return 0 if ok else 1
+    from place_safe.evaluation.bench import run_bench
+    from place_safe.evaluation.synthetic import make_frames
+
+    if why_not and not args.quiet:
+        _log(f"demo: no simulated placement: {why_not}; showing plane recovery on synthetic frames instead")
+    if not args.quiet:
+        _log(f"demo: {args.frames} synthetic frames (forward model with shot noise, planes 2-30 cm, "
+             "up to 30 deg incidence); recovering them with each method ...")
+    frames = make_frames(args.frames, seed=args.seed)
+    runs = [("diff-fast", "diff", {"mode": "fast"}), ("peak", "peak", {}), ("peak-naive", "peak-naive", {}),
+            ("proprietary", "proprietary", {}), ("proprietary-naive", "proprietary-naive", {})]
+    report = run_bench(frames, None, runs=runs, source="synthetic frames", progress=not args.quiet)
+    print(report.table(), flush=True)
+    return 0
+
+
+# ------------------------------------------------------------------------------------------------
+# sim (optional extra)
+# ------------------------------------------------------------------------------------------------
+def _add_sim(sub, load: bool) -> None:
+    """The ``sim`` commands; imported only when asked for (MuJoCo is slow to import and optional)."""
+    reason = None
+    if not load:
+        p = sub.add_parser("sim", help="simulated placement in MuJoCo (needs the [sim] extra; "
+                                       "see 'place-safe sim --help')", add_help=False)
+        p.add_argument("rest", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
+        return
+    if importlib.util.find_spec("mujoco") is None:
+        reason = ("the simulation needs MuJoCo, which is not installed: install the [sim] extra, "
+                  "e.g. pip install -e \".[sim]\"")
+    else:
+        try:
+            from place_safe.sim.cli import add_sim_commands
+        except ImportError as exc:
+            if (getattr(exc, "name", "") or "").startswith("place_safe"):
+                reason = f"the simulation commands are not available in this build ({exc})"
+            else:
+                reason = f"the simulation needs {exc.name or 'a package'} ({exc}): install the [sim] extra"
+        except Exception as exc:  # a broken optional module must not take the whole CLI down
+            reason = f"the simulation commands failed to load: {type(exc).__name__}: {exc}"
+        else:
+            add_sim_commands(sub)
+            return
+    p = sub.add_parser("sim", help="simulated placement in MuJoCo (needs the [sim] extra)",
+                       description=reason, add_help=True)
+    p.add_argument("rest", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
+
+    def unavailable(_args) -> int:
+        raise UsageError(f"sim: {reason}")
+
+    p.set_defaults(func=unavailable)
+
+
+# ------------------------------------------------------------------------------------------------
+# parser
+# ------------------------------------------------------------------------------------------------
+_FMT = argparse.RawDescriptionHelpFormatter
+
+MAIN_EPILOG = """\
+conventions: distances in metres (mm where a column says so), angles printed in degrees; planes are
+n . x = d in the sensor frame (unit normal n with n_z > 0, d > 0 the perpendicular distance).
+Frame files: a JSON list of frames or JSON Lines (see docs/interfaces.md).
+
+examples:
+  place-safe demo
+  place-safe calibrate tests/data/tmf8820_ur5_sweep.json --method peak -o calib.json
+  place-safe calibrate tests/data/tmf8820_ur5_sweep.json --method diff -o calib.json
+  place-safe recover frames.json --method diff --calibration calib.json --jsonl > planes.jsonl
+  place-safe evaluate tests/data/tmf8820_ur5_sweep.json --calibration calib.json
+  place-safe stream frames.json --method diff --rate 30
+  place-safe bench --frames 20 --paper-frames 3
+"""
+
+
+def build_parser(load_sim: bool = True) -> argparse.ArgumentParser:
+    """The argument parser; with ``load_sim`` False the ``sim`` commands are a placeholder (fast start)."""
+    p = _Parser(prog=PROG, formatter_class=_FMT, epilog=MAIN_EPILOG,
+                description="Recover the plane under a robot gripper from TMF8820 transient histograms, "
+                            "calibrate the methods, evaluate and benchmark them, and replay recordings live.")
+    from place_safe import __version__
+
+    p.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+
+    # calibrate
+    c = sub.add_parser("calibrate", formatter_class=_FMT, help="fit a method's parameters to frames with ground truth",
+                       description="Fit one method family to frames with ground-truth planes and write its section "
+                                   "of a calibration file. If the output already is a calibration file, its other "
+                                   "sections are kept, so one file can carry all methods.",
+                       epilog="methods and the sections they write:\n"
+                              "  peak         -> 'peak' (histogram-peak distance and zone-angle scales)\n"
+                              "  proprietary  -> 'proprietary' (on-sensor distances)\n"
+                              "  diff         -> 'forward' (forward-model camera parameters and the residual weighting\n"
+                              "                  that recovers the planes best), 'diff' (a z0 correction, kept only if\n"
+                              "                  leave-one-out cross-validation says it helps), and 'peak' too when the\n"
+                              "                  file has none (the diff method starts from calibrated peak)\n\n"
+                              "example:\n"
+                              "  place-safe calibrate sweep.json --method peak -o calib.json\n"
+                              "  place-safe calibrate sweep.json --method diff -o calib.json   # adds 'forward'")
+    c.add_argument("files", nargs="+", metavar="FILE", help="frame files with ground truth ('plane' or 'pose' + "
+                                                             "'dist_to_plane')")
+    c.add_argument("--method", required=True, choices=CALIBRATE_METHODS, help="method family to fit")
+    c.add_argument("-o", "--output", required=True, metavar="CALIB.json", help="calibration file to write or update")
+    c.add_argument("--force", action="store_true", help="replace an output file that is not a valid calibration")
+    c.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    c.set_defaults(func=cmd_calibrate)
+
+    # recover
+    r = sub.add_parser("recover", formatter_class=_FMT, help="recover the plane of every frame of a file",
+                       description="Recover one plane per frame, streaming the file (it is never loaded whole). "
+                                   "With --jsonl, standard output carries exactly one JSON object per input frame, "
+                                   "in input order, and nothing else:\n"
+                                   '  {"index": 0, "normal": [nx, ny, nz], "offset": d_m, "albedo": a, "ms": t}\n'
+                                   "Frames without a recoverable plane get normal/offset null and a \"reason\".",
+                       epilog="the human table shows theta (angle of incidence, deg), phi (azimuth, deg) and d (mm).\n\n"
+                              "example:\n"
+                              "  place-safe recover frames.json --method diff --calibration calib.json --jsonl")
+    r.add_argument("file", metavar="FILE", help="frame file (JSON list or JSON Lines)")
+    r.add_argument("--method", required=True, choices=METHODS, help="recovery method")
+    r.add_argument("--calibration", metavar="CALIB.json", help="calibration file (default: built-in parameters)")
+    r.add_argument("--jsonl", action="store_true", help="one JSON line per frame on stdout (machine-readable)")
+    r.add_argument("--mode", choices=("fast", "paper"), default=None,
+                   help="diff solver: fast (default) or the paper's Adam, 100 iterations, 2304 rays (~s per frame)")
+    r.add_argument("--batch", type=int, default=None, metavar="N",
+                   help="frames recovered together (default 16 for diff fast, else 1); memory stays O(N)")
+    r.add_argument("-q", "--quiet", action="store_true", help="no progress bar or summary on stderr")
+    r.set_defaults(func=cmd_recover)
+
+    # evaluate
+    e = sub.add_parser("evaluate", formatter_class=_FMT, help="score methods against ground truth",
+                       description="Recover every frame with ground truth with each method and print angular (deg), "
+                                   "linear (mm) and point (mm) errors as a table; plots go to --out.",
+                       epilog="example:\n  place-safe evaluate sweep.json --calibration calib.json "
+                              "--methods diff peak --max-distance 0.3")
+    e.add_argument("file", metavar="FILE", help="frame file with ground truth")
+    e.add_argument("--calibration", metavar="CALIB.json", help="calibration file (default: built-in parameters)")
+    e.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS), metavar="METHOD",
+                   help=f"methods to evaluate (default: all of {', '.join(METHODS)})")
+    e.add_argument("--out", default="out/evaluate", metavar="DIR", help="directory for plots (default out/evaluate)")
+    e.add_argument("--min-distance", type=float, default=None, metavar="M",
+                   help="skip frames whose true plane is closer than M metres (perpendicular distance d)")
+    e.add_argument("--max-distance", type=float, default=None, metavar="M",
+                   help="skip frames whose true plane is farther than M metres (perpendicular distance d)")
+    e.add_argument("--no-plots", action="store_true", help="do not write plots")
+    e.add_argument("--diff-mode", choices=("fast", "paper"), default=None, help="diff solver (default fast)")
+    e.add_argument("--json", metavar="FILE", help="also write the report as JSON")
+    e.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    e.set_defaults(func=cmd_evaluate)
+
+    # stream
+    s = sub.add_parser("stream", formatter_class=_FMT, help="replay a file as a live sensor and recover frames as they arrive",
+                       description="Replay a frame file at --rate frames per second on the wall clock and recover "
+                                   "planes live (a reader thread and the estimator, with a bounded buffer; frames that "
+                                   "arrive while the estimator is busy replace older waiting ones and count as "
+                                   "dropped). Prints a summary: frames dropped, latency from arrival to estimate "
+                                   "(median, p95, max) and throughput.",
+                       epilog="example:\n  place-safe stream frames.json --method diff --rate 30 --jsonl > live.jsonl")
+    s.add_argument("file", metavar="FILE", help="frame file to replay")
+    s.add_argument("--method", default="diff", choices=METHODS, help="recovery method (default diff)")
+    s.add_argument("--calibration", metavar="CALIB.json", help="calibration file (default: built-in parameters)")
+    s.add_argument("--mode", choices=("fast", "paper"), default=None, help="diff solver (default fast)")
+    s.add_argument("--rate", type=float, default=30.0, metavar="HZ", help="replay rate, frames per second (default 30)")
+    s.add_argument("--loop", action="store_true", help="start again at the end of the file (stop with --max-frames)")
+    s.add_argument("--max-frames", type=int, default=None, metavar="N", help="stop after N frames arrived")
+    s.add_argument("--queue", type=int, default=1, metavar="N",
+                   help="frames that may wait for the estimator (default 1: always the newest)")
+    s.add_argument("--jsonl", action="store_true",
+                   help="one JSON line per estimated frame on stdout (with latency_ms); summary goes to stderr")
+    s.add_argument("--json", metavar="FILE", help="write the summary as JSON")
+    s.set_defaults(func=cmd_stream)
+
+    # bench
+    b = sub.add_parser("bench", formatter_class=_FMT, help="speed and accuracy of diff (paper, fast) and peak",
+                       description="Run diff in paper mode, diff in fast mode and peak on the same frames in one "
+                                   "process; print per-frame latency (median, p95; ms), throughput (frames/s), mean "
+                                   "angular (deg), linear (mm) and point (mm) errors, the paper/fast speed ratio and "
+                                   "peak RSS. Warm-up is excluded.",
+                       epilog="examples:\n  place-safe bench --frames 20 --paper-frames 3\n"
+                              "  place-safe bench tests/data/tmf8820_ur5_sweep.json --calibration calib.json\n"
+                              "  place-safe bench --frames 5 --paper-frames 0 --memory-file 1000")
+    b.add_argument("file", nargs="?", metavar="FILE", help="frame file with ground truth (default: synthetic frames)")
+    b.add_argument("--calibration", metavar="CALIB.json", help="calibration file (default: built-in parameters)")
+    b.add_argument("--frames", type=int, default=None, metavar="N",
+                   help="frames to use (default: 20 synthetic, or all of FILE)")
+    b.add_argument("--paper-frames", type=int, default=5, metavar="N",
+                   help="frames for diff paper mode, about 10 s each (default 5; 0 skips it)")
+    b.add_argument("--methods", nargs="+", choices=("diff-paper", "diff-fast", "peak"),
+                   default=["diff-paper", "diff-fast", "peak"], metavar="RUN",
+                   help="runs to include: diff-paper diff-fast peak (default all)")
+    b.add_argument("--memory-file", type=int, default=None, metavar="N",
+                   help="also report the peak RSS of `recover` over an N-frame synthetic file in a fresh process")
+    b.add_argument("--memory-method", default="diff", choices=METHODS, help="method for --memory-file (default diff)")
+    b.add_argument("--seed", type=int, default=0, help="seed of the synthetic frames")
+    b.add_argument("--json", metavar="FILE", help="write the results as JSON")
+    b.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    b.set_defaults(func=cmd_bench)
+
+    # demo
+    d = sub.add_parser("demo", formatter_class=_FMT, help="run the main job (no data or hardware needed)",
+                       description="The main job on a fresh machine: a simulated UR5 puts a cup down on a level "
+                                   "table (it must release) and over a tilted one (it must refuse), sensing the "
+                                   "table with the simulated TMF8820. Exit status 1 if either outcome is wrong. "
+                                   "Without the [sim] extra, or with --synthetic: recover synthetic frames with "
+                                   "every method and print their errors and speed side by side.",
+                       epilog="examples:\n  place-safe demo\n  place-safe demo --method peak\n"
+                              "  place-safe demo --synthetic --frames 10")
+    d.add_argument("--method", default="diff", choices=METHODS, help="plane recovery in the placement (default diff)")
+    d.add_argument("--synthetic", action="store_true", help="show recovery on synthetic frames, no simulation")
+    d.add_argument("--frames", type=int, default=20, metavar="N", help="synthetic frames (default 20)")
+    d.add_argument("--seed", type=int, default=0, help="seed of the synthetic frames")
+    d.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    d.set_defaults(func=cmd_demo)
+
+    _add_sim(sub, load_sim)
+    return p
+
+
+def _commands(parser: argparse.ArgumentParser) -> list[str]:
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            return list(action.choices)
+    return []
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``place-safe`` console script; returns the exit status."""
+    try:
+        argv = list(sys.argv[1:] if argv is None else argv)
+        command = next((a for a in argv if not a.startswith("-")), None)
+        parser = build_parser(load_sim=command == "sim")
+        args = parser.parse_args(argv)
+        if not getattr(args, "command", None):
+            raise UsageError("a command is required: " + ", ".join(sorted(_commands(parser)))
+                             + f" (see '{PROG} --help')")
+        if getattr(args, "batch", None) is not None and args.batch < 1:
+            raise UsageError(f"recover: --batch must be >= 1, got {args.batch}")
+        return int(args.func(args) or 0)
+    except PlaceSafeError as exc:
+        _log(f"{PROG}: error: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}")
+        return 2
+    except BrokenPipeError:
+        # stdout closed early (e.g. piped into head): not an error of ours
+        try:
+            sys.stdout = open("/dev/null", "w")  # noqa: SIM115 - silence the interpreter's flush at exit
+        except OSError:
+            pass
+        return 0
+    except KeyboardInterrupt:
+        _log(f"{PROG}: interrupted")
+        return 130
+    except OSError as exc:  # e.g. an output directory that cannot be written
+        _log(f"{PROG}: error: {exc.strerror or exc}: {exc.filename or ''}".rstrip(": "))
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,265 @@
+"""Plane fusion: per-frame sensor-frame plane estimates -> one robust plane in the robot base frame.
+
+Concept: a :class:`PlaneFilter` takes each frame's :class:`~place_safe.recovery.estimator.PlaneEstimate`
+(sensor frame) together with ``base_T_sensor`` at the frame's measurement time, moves the plane into
+the base frame and keeps a short window of accepted planes. Its output, :class:`FusedPlane`, is a
+robust centre of that window with its spread, so a placement decision rests on several consistent
+frames, not on one.
+
+Conventions
+-----------
+* Base-frame plane ``n . x = offset`` with unit ``n`` pointing to the side the sensor was on (for a
+  table under a downward-looking sensor: up). ``height_at(p) = n . p - offset`` is the signed distance
+  of ``p`` above the surface (m).
+* ``tilt_rad`` is the angle between ``n`` and the base +z axis (the base frame of a floor-mounted UR5
+  is level; see :mod:`place_safe.robot.kinematics`).
+* Each accepted plane is kept as its normal and its *anchor*: where the sensor's optical axis meets it,
+  in base coordinates. Fusing anchors instead of offsets keeps the estimate local: a 1 deg normal
+  error changes the offset about the base origin (~0.5 m away) by ~9 mm but moves nothing at the anchor.
+* Centre: component-wise median of the window's normals and anchors, refined by one Huber-weighted
+  mean (Huber constant :data:`HUBER_K` robust sigmas). Spread: weighted RMS angle of the normals from
+  the fused normal (``std_angle``, rad) and RMS distance of the anchors from the fused plane
+  (``std_offset``, m).
+* Gates: once the window holds ``min_frames`` planes, a new plane more than ``angle_gate`` (rad) from
+  the fused normal or whose anchor is more than ``offset_gate`` (m) off the fused plane is rejected as
+  an outlier. ``max_consecutive_rejects`` rejections in a row mean the surface itself changed (or the
+  old window was wrong): the window is cleared and the new plane starts it.
+* Rejected without touching the window: no plane (``estimate.plane is None``), non-finite values,
+  a malformed pose. Times are seconds on the robot clock; planes older than ``max_age`` are dropped.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from place_safe.exceptions import NoPlaneError
+from place_safe.geometry import Plane
+
+#: Huber constant in robust sigmas (95 % efficiency for Gaussian noise).
+HUBER_K = 1.345
+#: Median absolute deviation -> Gaussian sigma.
+MAD_TO_SIGMA = 1.4826
+#: Floor of the robust residual scales (rad, m) so a noise-free window does not give zero weights.
+MIN_SCALE_RAD = 1e-4
+MIN_SCALE_M = 1e-5
+_Z = np.array([0.0, 0.0, 1.0])
+
+
+@dataclass(frozen=True)
+class FusedPlane:
+    """The fused surface in the base frame (see module docstring for the conventions)."""
+
+    normal_base: np.ndarray  # (3,) unit, towards the sensor's side
+    offset_base: float  # m, n . x = offset
+    tilt_rad: float  # angle of the normal from base +z
+    std_angle: float  # rad, spread of the window's normals
+    std_offset: float  # m, spread of the window's anchors about the plane
+    n: int  # planes in the window
+    stamp: float = math.nan  # s, measurement time of the newest accepted plane
+    count: int = 0  # planes accepted since the last reset
+    anchor: np.ndarray | None = None  # (3,) fused anchor point on the plane (base frame)
+
+    def height_at(self, point: Any) -> float:
+        """Signed distance (m) of ``point`` (base frame) above the plane (negative: below / behind it)."""
+        p = np.asarray(point, dtype=float).reshape(3)
+        return float(self.normal_base @ p - self.offset_base)
+
+    def age(self, now: float) -> float:
+        """Seconds since the newest accepted plane was measured."""
+        return float(now - self.stamp)
+
+    def distance_along(self, point: Any, direction: Any, radius: float = 0.0, axis: Any = None) -> float:
+        """Distance (m) to travel from ``point`` along ``direction`` until touching the plane.
+
+        With ``radius > 0`` the moving object is a disc of that radius centred on ``point`` with unit
+        normal ``axis`` (e.g. a cup bottom): the distance is the one at which its lowest rim point
+        touches. Negative when already through the plane; ``inf`` when ``direction`` does not approach it.
+        """
+        return clearance_along(self.normal_base, self.offset_base, point, direction, radius, axis)
+
+    def to_dict(self) -> dict:
+        return {"normal_base": [float(v) for v in self.normal_base], "offset_base": float(self.offset_base),
+                "tilt_deg": math.degrees(self.tilt_rad), "std_angle_deg": math.degrees(self.std_angle),
+                "std_offset_m": float(self.std_offset), "n": int(self.n), "stamp": float(self.stamp),
+                "count": int(self.count)}
+
+
+def clearance_along(normal: Any, offset: float, point: Any, direction: Any, radius: float = 0.0,
+                    axis: Any = None) -> float:
+    """Travel (m) from ``point`` along ``direction`` to the plane ``normal . x = offset`` (see
+    :meth:`FusedPlane.distance_along`); the rim term needs ``axis`` when ``radius > 0``."""
+    n = np.asarray(normal, dtype=float).reshape(3)
+    p = np.asarray(point, dtype=float).reshape(3)
+    u = np.asarray(direction, dtype=float).reshape(3)
+    nu = np.linalg.norm(u)
+    if not (np.all(np.isfinite(n)) and np.all(np.isfinite(p)) and np.all(np.isfinite(u)) and nu > 0
+            and math.isfinite(offset)):
+        raise ValueError("clearance_along needs finite normal, offset, point and a non-zero direction")
+    u = u / nu
+    height = float(n @ p - offset)
+    if radius > 0:
+        if axis is None:
+            raise ValueError("clearance_along: a disc radius needs the disc axis")
+        a = np.asarray(axis, dtype=float).reshape(3)
+        a = a / np.linalg.norm(a)
+        height -= radius * float(np.linalg.norm(n - (n @ a) * a))  # lowest rim point
+    approach = -float(n @ u)  # rate at which height falls per metre travelled
+    if approach <= 1e-9:
+        return math.inf if height > 0 else -math.inf
+    return height / approach
+
+
+def plane_to_base(plane: Plane, base_T_sensor: Any) -> tuple[np.ndarray, float, np.ndarray]:
+    """Sensor-frame plane -> (unit normal towards the sensor, offset, anchor) in the base frame.
+
+    The anchor is where the optical axis meets the plane. Raises ValueError for a non-finite or
+    non-rigid pose.
+    """
+    T = np.asarray(base_T_sensor, dtype=float)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise ValueError(f"base_T_sensor must be a finite 4x4 transform; got shape {T.shape}")
+    R, t = T[:3, :3], T[:3, 3]
+    if np.abs(R.T @ R - np.eye(3)).max() > 1e-6:
+        raise ValueError("base_T_sensor rotation is not orthonormal")
+    n = -(R @ plane.normal)  # the sensor-frame normal points away from the sensor; flip towards it
+    anchor = t + R @ np.array([0.0, 0.0, plane.z0])
+    return n, float(n @ anchor), anchor
+
+
+class PlaneFilter:
+    """Robust running estimate of a surface from per-frame plane estimates (see module docstring).
+
+    Parameters
+    ----------
+    window: planes kept (the newest ``window`` accepted ones).
+    angle_gate: rad, outlier gate on the normal (default 5 deg).
+    offset_gate: m, outlier gate on the anchor's distance from the fused plane (default 10 mm).
+    min_frames: planes needed before :meth:`fused` answers and before the gates apply.
+    max_consecutive_rejects: gate rejections in a row after which the window restarts.
+    max_age: s; planes measured longer ago than this (relative to the newest time seen) are dropped.
+    """
+
+    def __init__(self, window: int = 7, angle_gate: float = math.radians(5.0), offset_gate: float = 0.01,
+                 min_frames: int = 3, max_consecutive_rejects: int = 5, max_age: float = 1.0) -> None:
+        if window < 1 or not (1 <= min_frames <= window) or max_consecutive_rejects < 1:
+            raise ValueError("PlaneFilter needs window >= 1, 1 <= min_frames <= window, max_consecutive_rejects >= 1")
+        for name, v in (("angle_gate", angle_gate), ("offset_gate", offset_gate), ("max_age", max_age)):
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"PlaneFilter.{name} must be a positive finite number; got {v!r}")
+        self.window, self.angle_gate, self.offset_gate = int(window), float(angle_gate), float(offset_gate)
+        self.min_frames, self.max_consecutive_rejects = int(min_frames), int(max_consecutive_rejects)
+        self.max_age = float(max_age)
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget every plane and counter."""
+        self._items: deque[tuple[float, np.ndarray, np.ndarray]] = deque(maxlen=self.window)
+        self._cache: FusedPlane | None = None
+        self._dirty = True
+        self.count = 0  # accepted since reset
+        self.rejected = 0  # rejected since reset
+        self.consecutive_rejects = 0
+        self.last_reject_reason: str | None = None
+        self.last_time = -math.inf
+
+    # -- input ---------------------------------------------------------------------------------
+    def update(self, estimate: Any, base_T_sensor: Any, stamp: float) -> bool:
+        """Offer one frame's estimate (a PlaneEstimate, a Plane or None) measured at ``stamp`` with the
+        sensor at ``base_T_sensor``. Returns whether it was accepted; the reason for a rejection is
+        in :attr:`last_reject_reason`."""
+        plane = getattr(estimate, "plane", estimate)
+        if plane is None:
+            why = getattr(estimate, "reason", None) or "no plane"
+            return self._reject(f"no plane: {why}")
+        if not isinstance(plane, Plane):
+            return self._reject(f"not a Plane: {type(plane).__name__}")
+        try:
+            stamp = float(stamp)
+            if not math.isfinite(stamp):
+                raise ValueError("timestamp is not finite")
+            n, _, anchor = plane_to_base(plane, base_T_sensor)
+        except (TypeError, ValueError, NoPlaneError) as exc:
+            return self._reject(f"bad input: {exc}")
+        if not (np.all(np.isfinite(n)) and np.all(np.isfinite(anchor))):
+            return self._reject("non-finite plane in the base frame")
+        self.last_time = max(self.last_time, stamp)
+        self._expire(self.last_time)
+        if len(self._items) >= self.min_frames:
+            f = self._fuse()
+            ang = _angle(n, f.normal_base)
+            off = abs(f.height_at(anchor))
+            if ang > self.angle_gate or off > self.offset_gate:
+                self._reject(f"outlier: {math.degrees(ang):.2f} deg / {off * 1e3:.1f} mm from the fused plane "
+                             f"(gates {math.degrees(self.angle_gate):.1f} deg / {self.offset_gate * 1e3:.1f} mm)")
+                if self.consecutive_rejects < self.max_consecutive_rejects:
+                    return False
+                self._items.clear()  # the surface changed: start again from this plane
+        self._items.append((stamp, n, anchor))
+        self._dirty = True
+        self.count += 1
+        self.consecutive_rejects = 0
+        return True
+
+    def _reject(self, reason: str) -> bool:
+        self.rejected += 1
+        self.consecutive_rejects += 1
+        self.last_reject_reason = reason
+        return False
+
+    def _expire(self, now: float) -> None:
+        while self._items and self._items[0][0] < now - self.max_age:
+            self._items.popleft()
+            self._dirty = True
+
+    # -- output --------------------------------------------------------------------------------
+    def fused(self, now: float | None = None) -> FusedPlane | None:
+        """The fused plane, or None with fewer than ``min_frames`` planes (after dropping those older
+        than ``max_age`` before ``now``, if given)."""
+        if now is not None and math.isfinite(now):
+            self._expire(now)
+        if len(self._items) < self.min_frames:
+            return None
+        return self._fuse()
+
+    def _fuse(self) -> FusedPlane:
+        if not self._dirty and self._cache is not None:
+            return self._cache
+        stamps = np.array([it[0] for it in self._items])
+        N = np.array([it[1] for it in self._items])
+        A = np.array([it[2] for it in self._items])
+        n0 = _unit(np.median(N, axis=0))
+        a0 = np.median(A, axis=0)
+        # one Huber reweighting on the angular and along-normal residuals, each in robust sigmas
+        ang = np.arccos(np.clip(N @ n0, -1.0, 1.0))
+        off = (A - a0) @ n0
+        s_ang = max(MAD_TO_SIGMA * np.median(ang), MIN_SCALE_RAD)
+        s_off = max(MAD_TO_SIGMA * np.median(np.abs(off - np.median(off))), MIN_SCALE_M)
+        r = np.maximum(ang / s_ang, np.abs(off - np.median(off)) / s_off)
+        w = np.minimum(1.0, HUBER_K / np.maximum(r, 1e-12))
+        w = w / w.sum()
+        n = _unit(w @ N)
+        anchor = w @ A
+        d = float(n @ anchor)
+        ang_f = np.arccos(np.clip(N @ n, -1.0, 1.0))
+        res = A @ n - d
+        self._cache = FusedPlane(n, d, _angle(n, _Z), float(np.sqrt(w @ ang_f**2)), float(np.sqrt(w @ res**2)),
+                                 len(self._items), float(stamps.max()), self.count, anchor)
+        self._dirty = False
+        return self._cache
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v)
+
+
+def _angle(a: np.ndarray, b: np.ndarray) -> float:
+    """Angle (rad) between unit vectors, accurate near 0."""
+    return float(2.0 * math.atan2(np.linalg.norm(a - b), np.linalg.norm(a + b)))
+
+
+__all__ = ["FusedPlane", "PlaneFilter", "plane_to_base", "clearance_along"]

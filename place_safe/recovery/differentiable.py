@@ -1,0 +1,409 @@
+"""Plane recovery by differentiable rendering of the forward model (the paper's method 1).
+
+Two solvers share one forward model (:mod:`place_safe.recovery.forward`) and one initialisation (the
+calibrated peak method):
+
+``fast`` (default)
+    Levenberg-Marquardt on six unknowns per frame: the plane as slopes and axis crossing
+    ``(a, b, z0)`` (normal ~ ``(a, b, 1)``, smooth at normal incidence), ``log albedo``, specular
+    weight and ``log`` specular exponent, the last two held near the calibrated values by a weak
+    prior (a fronto-parallel plane cannot tell them from albedo). Residuals are Poisson-scaled:
+    ``(model - observed) / sqrt(observed + 1 + (e observed)^2)`` (Poisson noise and the calibrated
+    relative model error ``e``, :func:`~place_safe.recovery.forward.residual_weights`) over the bins that hold the returns. Jacobians come
+    from ``torch.func.jacfwd``; rays are a deterministic stratified quadrature; the laser pulse is
+    prepared once per frame. Frames are solved as a batch.
+
+``paper``
+    The paper's procedure: Adam, 100 iterations, 2304 random rays per zone, optimising angle of
+    incidence, azimuth, ``z0``, albedo and the specular parameters from the same initialisation.
+    Kept so the comparison with the fast solver stays honest.
+
+``residual`` of an estimate is the RMS Poisson-scaled histogram residual at the solution (about 1
+when the model explains the histograms to the noise level).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from place_safe.recovery.points import PeakParams
+from place_safe.exceptions import FrameError, NoPlaneError
+from place_safe.recovery.forward import ForwardModel, ForwardParams, ZoneRays, mount_rotation, residual_weights
+from place_safe.geometry import Plane
+from place_safe.recovery.plane_renderer import PlaneRenderer, convolution_matrices
+from place_safe.sensor.frame import N_BINS, N_ZONES, Frame
+from place_safe.recovery.estimator import Estimator, PlaneEstimate
+from place_safe.recovery.peak import PeakEstimator
+from place_safe.sensor.histogram import COUNT_MAX, measure_floor
+
+
+
+@dataclass
+class RangeCorrection:
+    """A calibrated correction of the recovered plane as a function of its axis crossing ``z0``.
+
+    ``z0 += c(z0)`` and, in the optical frame, the slopes ``a += ca(z0)``, ``b += cb(z0)`` (plane
+    ``a x + b y + z = z0``). Each is a Chebyshev series (coefficients in metres, or dimensionless for
+    the slopes) on ``domain`` (m); outside the domain the value at its nearer end is used. Fitted by
+    :func:`place_safe.calibration.forward_fit.fit_range_correction` to what the forward model leaves
+    over on data with ground truth; empty coefficients mean no correction.
+    """
+
+    coeffs: list[float] = field(default_factory=list)
+    domain: list[float] = field(default_factory=lambda: [0.0, 1.0])
+    slope_a: list[float] = field(default_factory=list)
+    slope_b: list[float] = field(default_factory=list)
+
+    def _series(self, coeffs: list[float], z0: float) -> float:
+        if not coeffs:
+            return 0.0
+        from numpy.polynomial import chebyshev
+
+        lo, hi = self.domain
+        t = 2.0 * (min(max(z0, lo), hi) - lo) / max(hi - lo, 1e-9) - 1.0
+        return float(chebyshev.chebval(t, coeffs))
+
+    def __call__(self, z0: float) -> float:
+        """The correction of z0 (m) at z0."""
+        return self._series(self.coeffs, z0)
+
+    def slopes(self, z0: float) -> tuple[float, float]:
+        """The corrections of the slopes (a, b) at z0."""
+        return self._series(self.slope_a, z0), self._series(self.slope_b, z0)
+
+    def to_dict(self) -> dict:
+        return {"coeffs": [float(c) for c in self.coeffs], "domain": [float(v) for v in self.domain],
+                "slope_a": [float(c) for c in self.slope_a], "slope_b": [float(c) for c in self.slope_b]}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "RangeCorrection":
+        def floats(key):
+            return [float(v) for v in d.get(key, [])]
+
+        c = cls(floats("coeffs"), [float(v) for v in d.get("domain", [0.0, 1.0])], floats("slope_a"), floats("slope_b"))
+        values = c.coeffs + c.slope_a + c.slope_b
+        if len(c.domain) != 2 or not c.domain[1] > c.domain[0] or not all(math.isfinite(v) for v in values):
+            raise ValueError("range correction needs finite coefficients and a domain [lo, hi] with hi > lo")
+        return c
+
+
+@dataclass
+class SolverOptions:
+    """Tuning of the fast solver (defaults chosen on synthetic and real data; see the README)."""
+
+    rays: int = 6                 # stratified rays per axis and zone (rays x rays per zone)
+    max_iterations: int = 20
+    tolerance: float = 1e-7       # relative cost decrease that ends the iterations
+    prior_specular_weight: float = 0.05   # std of the specular-weight prior
+    prior_log_exponent: float = 0.25      # std of the log specular-exponent prior
+    window_after_peak: int = 24   # bins kept after the latest zone peak
+    zone_albedo: bool = True      # an albedo per zone, so the plane rests mostly on timing and shape
+    zone_albedo_spread: float = 0.1  # std of log zone albedo about the zones' mean (inf: untied)
+    # paper mode
+    paper_iterations: int = 100
+    paper_rays: int = 2304
+    paper_lr: float = 0.01
+    seed: int = 0
+
+
+#: Bounds of the unknowns (a, b, z0 [m], log albedo, specular weight, log specular exponent):
+#: slopes up to 80 deg of incidence, planes 1 mm to 5 m away, albedo within 1e-4..1e4 of the model's.
+_LOWER = np.array([-5.67, -5.67, 1e-3, math.log(1e-4), 0.0, math.log(0.5)])
+_UPPER = np.array([5.67, 5.67, 5.0, math.log(1e4), 1.0, math.log(50.0)])
+
+
+class DifferentiableEstimator(Estimator):
+    """Differentiable-rendering recovery; ``mode`` is ``"fast"`` or ``"paper"``."""
+
+    name = "diff"
+
+    def __init__(self, forward: ForwardParams | None = None, peak: PeakParams | None = None,
+                 mode: str = "fast", options: SolverOptions | None = None,
+                 correction: RangeCorrection | None = None) -> None:
+        if mode not in ("fast", "paper"):
+            raise ValueError(f"mode must be 'fast' or 'paper', got {mode!r}")
+        self.params = forward if forward is not None else ForwardParams()
+        self.mode = mode
+        self.opt = options or SolverOptions()
+        self.correction = correction if correction is not None else RangeCorrection()
+        self.init = PeakEstimator(peak if peak is not None else PeakParams.default_peak())
+        self.dtype = torch.float64
+        self.model = ForwardModel(self.params, ZoneRays.stratified(self.opt.rays, dtype=self.dtype), dtype=self.dtype)
+        self._prior = torch.tensor([self.params.specular_weight, math.log(self.params.specular_exponent)],
+                                   dtype=self.dtype)
+        self._prior_std = torch.tensor([self.opt.prior_specular_weight, self.opt.prior_log_exponent],
+                                       dtype=self.dtype)
+        self._renderer = PlaneRenderer(self.params, self.model.rays, zone_albedo=self.opt.zone_albedo)
+        # optical frame -> reported sensor frame (the calibrated mount tilt; identity by default)
+        self._mount = mount_rotation(self.params.mount_tilt).numpy()
+
+    # ------------------------------------------------------------------------------------------
+    def _estimate(self, frame: Frame) -> PlaneEstimate:
+        return self.estimate_batch([frame])[0]
+
+    def estimate_many(self, frames: list[Frame]) -> list[PlaneEstimate]:
+        out = []
+        for i in range(0, len(frames), 16):
+            chunk = frames[i:i + 16]
+            ests = super().estimate_many(chunk) if self.mode == "paper" else self._timed_batch(chunk)
+            out.extend(ests)
+        return out
+
+    def _timed_batch(self, frames: list[Frame]) -> list[PlaneEstimate]:
+        """Validate each frame (timed alone), solve the valid ones together and share that time."""
+        import time
+
+        ests: list[PlaneEstimate | None] = [None] * len(frames)
+        good = []
+        for i, f in enumerate(frames):
+            t0 = time.perf_counter()
+            try:
+                f.validate()
+                good.append(i)
+            except FrameError as exc:
+                ests[i] = PlaneEstimate(None, reason=str(exc), seconds=time.perf_counter() - t0)
+        if good:
+            t0 = time.perf_counter()
+            solved = self.estimate_batch([frames[i] for i in good])
+            share = (time.perf_counter() - t0) / len(good)
+            for i, e in zip(good, solved):
+                e.seconds = share
+                ests[i] = e
+        return ests  # type: ignore[return-value]
+
+    # ------------------------------------------------------------------------------------------
+    def estimate_batch(self, frames: list[Frame]) -> list[PlaneEstimate]:
+        """Recover validated frames together. Frames without a usable return get a reason."""
+        results: list[PlaneEstimate | None] = [None] * len(frames)
+        inits, rows = [], []
+        for i, f in enumerate(frames):
+            h = np.asarray(f.hists, dtype=float)
+            if np.any(h >= COUNT_MAX):
+                results[i] = PlaneEstimate(None, reason="histograms saturated (24-bit counters at their maximum)")
+                continue
+            init = self.init.estimate(f)
+            if not init.ok:
+                results[i] = PlaneEstimate(None, reason=init.reason)
+                continue
+            inits.append(Plane(self._mount.T @ init.plane.normal, init.plane.offset))  # to the optical frame
+            rows.append(i)
+        if rows:
+            sub = [frames[i] for i in rows]
+            solve = self._solve_fast if self.mode == "fast" else self._solve_paper
+            for i, est in zip(rows, solve(sub, inits)):
+                results[i] = est
+        return results  # type: ignore[return-value]
+
+    # -- data preparation ----------------------------------------------------------------------
+    def _prepare(self, frames: list[Frame], inits: list[Plane]):
+        hists = np.array([f.hists for f in frames], dtype=float)
+        floor = measure_floor(hists)
+        obs = np.clip(hists - floor[..., None], 0.0, None)
+        last_peak = int(obs.argmax(axis=-1).max())
+        width = int(min(N_BINS, last_peak + self.opt.window_after_peak))
+        ref = torch.as_tensor(np.array([f.reference for f in frames]), dtype=self.dtype)
+        with torch.no_grad():
+            kernel = self.model.pulse(ref)
+        obs_t = torch.as_tensor(obs[..., :width], dtype=self.dtype)
+        sigma = 1.0 / torch.as_tensor(residual_weights(hists[..., :width], self.params.model_error), dtype=self.dtype)
+        return obs_t, sigma, kernel, width
+
+    def _render(self, x: torch.Tensor, kernel: torch.Tensor, width: int) -> torch.Tensor:
+        """Histograms (9, width) of one frame's unknowns x = (a, b, z0, log rho, ks, log alpha)."""
+        a, b, z0 = x[0], x[1], x[2]
+        s = torch.sqrt(1.0 + a * a + b * b)
+        n = torch.stack([a, b, torch.ones_like(a)]) / s
+        d = z0 / s
+        h = self.model.render_plane(n.unsqueeze(0), d.reshape(1), torch.exp(x[3]).reshape(1), None,
+                                    specular_weight=x[4].reshape(1), specular_exponent=torch.exp(x[5]).reshape(1),
+                                    kernel=kernel.unsqueeze(0))[0]
+        return h[:, :width] - self.model.t["floor"]
+
+    def _initial_x(self, frames: list[Frame], inits: list[Plane], obs, kernel, width) -> torch.Tensor:
+        x = torch.zeros(len(frames), 6, dtype=self.dtype)
+        for i, p in enumerate(inits):
+            a, b, z0 = p.slopes
+            x[i, 0], x[i, 1], x[i, 2] = a, b, z0
+        x[:, 3] = math.log(self.params.albedo)
+        x[:, 4] = self.params.specular_weight
+        x[:, 5] = math.log(self.params.specular_exponent)
+        # albedo by least squares on the rendered shape (exact when saturation is mild); twice,
+        # because saturation makes the model sub-linear in albedo
+        with torch.no_grad():
+            for _ in range(2):
+                h = torch.stack([self._render(x[i], kernel[i], width) for i in range(len(frames))])
+                scale = (h * obs).sum(dim=(1, 2)) / torch.clamp((h * h).sum(dim=(1, 2)), min=1e-12)
+                x[:, 3] += torch.log(torch.clamp(scale, 1e-3, 1e3))
+        return x
+
+    # -- fast solver ---------------------------------------------------------------------------
+    def _solve_fast(self, frames: list[Frame], inits: list[Plane]) -> list[PlaneEstimate]:
+        """Batched Levenberg-Marquardt with the analytic Jacobian of :class:`PlaneRenderer`."""
+        hists = np.array([f.hists for f in frames], dtype=float)
+        floor = measure_floor(hists)
+        obs_full = np.clip(hists - floor[..., None], 0.0, None)
+        width = int(min(N_BINS, obs_full.argmax(axis=-1).max() + self.opt.window_after_peak))
+        obs = obs_full[..., :width]
+        inv_sigma = residual_weights(hists[..., :width], self.params.model_error)
+        kernels = self._kernels(frames)
+        conv = convolution_matrices(kernels, width)
+        nb = len(frames)
+        rd = self._renderer
+        nu = rd.n_unknowns
+        n_alb = nu - 5  # 1, or 9 with per-zone albedo
+        lower = np.concatenate([_LOWER[:3], np.full(n_alb, _LOWER[3]), _LOWER[4:]])
+        upper = np.concatenate([_UPPER[:3], np.full(n_alb, _UPPER[3]), _UPPER[4:]])
+        x = np.zeros((nb, nu))
+        for i, p in enumerate(inits):
+            x[i, :3] = p.slopes
+        x[:, 3:3 + n_alb] = math.log(self.params.albedo)
+        x[:, -2] = self.params.specular_weight
+        x[:, -1] = math.log(self.params.specular_exponent)
+        x = np.clip(x, lower, upper)
+        for _ in range(2):  # albedo by linear least squares on the rendered shape (saturation: twice)
+            h = rd.render(x, conv)
+            axes = (2,) if n_alb > 1 else (1, 2)
+            scale = (h * obs).sum(axis=axes) / np.maximum((h * h).sum(axis=axes), 1e-12)
+            x[:, 3:3 + n_alb] = np.clip(x[:, 3:3 + n_alb] + np.log(np.clip(scale, 1e-3, 1e3)).reshape(nb, -1),
+                                        lower[3], upper[3])
+        prior_mu = np.array([self.params.specular_weight, math.log(self.params.specular_exponent)])
+        prior_w = 1.0 / np.array([self.opt.prior_specular_weight, self.opt.prior_log_exponent])
+
+        # per-zone albedos (if any) are tied to their mean: (log rho_z - mean) / spread
+        spread = self.opt.zone_albedo_spread
+        tie = n_alb > 1 and spread is not None and math.isfinite(spread)
+        centre = (np.eye(n_alb) - 1.0 / n_alb) / (spread if tie else 1.0)
+
+        def residual(xs, rows, jac=False):
+            out = rd.render(xs, conv[rows], jacobian=jac)
+            h, dh = (out if jac else (out, None))
+            parts = [((h - obs[rows]) * inv_sigma[rows]).reshape(len(rows), -1),
+                     (xs[:, -2:] - prior_mu) * prior_w]
+            if tie:
+                parts.append(xs[:, 3:3 + n_alb] @ centre.T)
+            res = np.concatenate(parts, axis=1)
+            if not jac:
+                return res
+            J = (dh * inv_sigma[rows][..., None]).reshape(len(rows), -1, nu)
+            Jp = np.zeros((len(rows), 2 + (n_alb if tie else 0), nu))
+            Jp[:, 0, -2], Jp[:, 1, -1] = prior_w
+            if tie:
+                Jp[:, 2:, 3:3 + n_alb] = centre
+            return res, np.concatenate([J, Jp], axis=1)
+
+        all_rows = np.arange(nb)
+        res = residual(x, all_rows)
+        cost = (res * res).sum(axis=1)
+        lam = np.full(nb, 1e-3)
+        active = np.ones(nb, dtype=bool)
+        for _ in range(self.opt.max_iterations):
+            rows = np.flatnonzero(active)
+            if rows.size == 0:
+                break
+            r, J = residual(x[rows], rows, jac=True)
+            JtJ = np.einsum("bmi,bmj->bij", J, J)
+            g = np.einsum("bmi,bm->bi", J, r)
+            diag = np.einsum("bii->bi", JtJ) + 1e-12
+            pending = np.ones(rows.size, dtype=bool)
+            for _inner in range(8):
+                sel = np.flatnonzero(pending)
+                if sel.size == 0:
+                    break
+                rr = rows[sel]
+                A = JtJ[sel] + lam[rr, None, None] * np.einsum("bi,ij->bij", diag[sel], np.eye(nu))
+                try:
+                    step = -np.linalg.solve(A, g[sel][..., None])[..., 0]
+                except np.linalg.LinAlgError:
+                    step = -np.stack([np.linalg.lstsq(Ai, gi, rcond=None)[0] for Ai, gi in zip(A, g[sel])])
+                xn = np.clip(x[rr] + step, lower, upper)
+                cn = (residual(xn, rr) ** 2).sum(axis=1)
+                better = np.isfinite(cn) & (cn < cost[rr])
+                acc = rr[better]
+                rel = (cost[acc] - cn[better]) / np.maximum(cost[acc], 1e-300)
+                x[acc], cost[acc] = xn[better], cn[better]
+                lam[acc] = np.maximum(lam[acc] * 0.3, 1e-9)
+                active[acc[rel < self.opt.tolerance]] = False
+                worse = rr[~better]
+                lam[worse] *= 10.0
+                active[worse[lam[worse] > 1e8]] = False
+                pending[sel[better]] = False
+                pending[sel[~better][lam[worse] > 1e8]] = False
+        n_res = N_ZONES * width
+        # report one albedo: the mean log albedo over zones when each zone has its own
+        xr = np.concatenate([x[:, :3], x[:, 3:3 + n_alb].mean(axis=1, keepdims=True)], axis=1)
+        return [self._finish(torch.as_tensor(xr[i]), float(cost[i]), n_res) for i in range(nb)]
+
+    def _kernels(self, frames: list[Frame]) -> np.ndarray:
+        ref = torch.as_tensor(np.array([f.reference for f in frames]), dtype=self.dtype)
+        with torch.no_grad():
+            return self.model.pulse(ref).numpy()
+
+    def _finish(self, x: torch.Tensor, cost: float, n_res: int) -> PlaneEstimate:
+        a, b, z0, lr = (float(v) for v in x[:4])
+        if not all(math.isfinite(v) for v in (a, b, z0, lr)):
+            return PlaneEstimate(None, reason="solver diverged (non-finite plane)")
+        if z0 <= 0:
+            return PlaneEstimate(None, reason="solver found no plane in front of the sensor")
+        try:
+            da, db = self.correction.slopes(z0)
+            a, b, z0 = a + da, b + db, z0 + self.correction(z0)
+            optical = Plane.from_slopes(a, b, z0)
+            plane = Plane(self._mount @ optical.normal, optical.offset)
+        except NoPlaneError as exc:
+            return PlaneEstimate(None, reason=str(exc))
+        return PlaneEstimate(plane, albedo=math.exp(lr), residual=math.sqrt(max(cost, 0.0) / n_res))
+
+    # -- the paper's procedure -----------------------------------------------------------------
+    def _solve_paper(self, frames: list[Frame], inits: list[Plane]) -> list[PlaneEstimate]:
+        """Adam over (theta, phi, z0, albedo, specular weight, exponent), random rays, per frame."""
+        out = []
+        rng = np.random.default_rng(self.opt.seed)
+        paper_model = ForwardModel(self.params, ZoneRays.random(self.opt.paper_rays, rng, dtype=torch.float32),
+                                   dtype=torch.float32)
+        for f, p in zip(frames, inits):
+            obs, sigma, kernel, width = self._prepare([f], [p])
+            obs32 = obs[0].float()
+            scale = torch.clamp(obs32.max(), min=1.0)
+            x0 = self._initial_x([f], [p], obs, kernel, width)[0]
+            theta = torch.tensor(p.theta, dtype=torch.float32, requires_grad=True)
+            phi = torch.tensor(p.phi, dtype=torch.float32, requires_grad=True)
+            z0 = torch.tensor(p.z0, dtype=torch.float32, requires_grad=True)
+            log_rho = torch.tensor(float(x0[3]), dtype=torch.float32, requires_grad=True)
+            ks = torch.tensor(self.params.specular_weight, dtype=torch.float32, requires_grad=True)
+            log_alpha = torch.tensor(math.log(self.params.specular_exponent), dtype=torch.float32, requires_grad=True)
+            variables = [theta, phi, z0, log_rho, ks, log_alpha]
+            # per-parameter step sizes: radians for angles, metres for z0 (a tenth of the lr), log units
+            adam = torch.optim.Adam([{"params": [theta, phi, log_rho, ks, log_alpha], "lr": self.opt.paper_lr},
+                                     {"params": [z0], "lr": self.opt.paper_lr * 0.1}])
+            k32 = kernel.float()
+            for _ in range(self.opt.paper_iterations):
+                adam.zero_grad()
+                n = torch.stack([torch.sin(theta) * torch.cos(phi), torch.sin(theta) * torch.sin(phi), torch.cos(theta)])
+                h = paper_model.render_plane(n.unsqueeze(0), (z0 * torch.cos(theta)).reshape(1),
+                                             torch.exp(log_rho).reshape(1), None,
+                                             specular_weight=ks.reshape(1),
+                                             specular_exponent=torch.exp(log_alpha).reshape(1), kernel=k32,
+                                             n_bins=width)[0]
+                loss = (((h - paper_model.t["floor"]) - obs32) / scale).pow(2).mean()
+                loss.backward()
+                adam.step()
+                with torch.no_grad():
+                    z0.clamp_(min=1e-3)
+            with torch.no_grad():
+                try:
+                    z_corr = float(z0) + self.correction(float(z0))
+                    optical = Plane.from_angles(float(theta), float(phi), z_corr)
+                    plane = Plane(self._mount @ optical.normal, optical.offset)
+                except NoPlaneError as exc:
+                    out.append(PlaneEstimate(None, reason=str(exc)))
+                    continue
+                res = torch.sqrt(loss).item()
+            if not math.isfinite(res):
+                out.append(PlaneEstimate(None, reason="solver diverged (non-finite loss)"))
+            else:
+                out.append(PlaneEstimate(plane, albedo=math.exp(float(log_rho.detach())), residual=res))
+        return out

@@ -1,0 +1,440 @@
+"""The differentiable forward imaging model of the TMF8820 (Sifferman et al., RA-L 2023), in torch.
+
+For each zone, rays leave the sensor through the zone's rectangle on ``z = 1``. A ray that meets a
+surface at range ``r`` (m) with cosine of incidence ``c`` returns, with a co-located light
+(Phong shading),
+
+    I = albedo * (c + w_s * max(2 c^2 - 1, 0) ** alpha)        (``2c^2 - 1 = cos 2theta = R . V``)
+
+photons that a SPAD pixel of zone gain ``g`` counts, soft-saturating with the inverse square law,
+
+    p = s * (1 - exp(-g * I / (s * r^2)))
+
+at the bin position ``u = r / bin_size + bin_offset + zone_offset`` (bins of one-way range). Each
+ray is soft-binned with a Gaussian of ``soft_bin_sigma`` bins; a zone's transient is the
+solid-angle weighted mean over its rays times ``rays_per_zone`` (so quadratures of any size share
+one scale). The transient is convolved with the laser pulse (the reference histogram, floor
+removed, normalised to peak 1, stretched in time by ``ref_time_scale``), zones leak
+``crosstalk`` of every other zone's histogram, and a constant ``floor`` is added.
+
+Shapes: ``B`` frames, 9 zones, ``R`` rays per zone, 128 bins. Everything is batched over frames
+and differentiable in the plane, reflectance and every camera parameter.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from place_safe.config import check_keys, read_json, write_json
+from place_safe.exceptions import CalibrationError
+from place_safe.sensor.frame import N_BINS, N_ZONES, ZONE_KIND, ZONE_RECTS
+
+_SQRT_2PI = math.sqrt(2.0 * math.pi)
+
+
+@dataclass
+class ForwardParams:
+    """Camera parameters of the forward model. Defaults are the values published with the paper.
+
+    ``tail_weight`` and ``tail_decay`` (bins) extend the paper's model: the zone histograms of a real
+    TMF8820 decay more slowly after the peak than the rescaled reference pulse, so the pulse is
+    convolved with ``delta + tail_weight * exp(-k / tail_decay)`` (k >= 1 bins); and the zones'
+    fields of view may be narrower than the nominal rectangles (the paper's calibrated peak method
+    found edge and corner directions at 0.94 and 0.89 of their nominal angles), so ``edge_fov_scale``
+    and ``corner_fov_scale`` scale those zones' rectangles on ``z = 1`` towards the axis. The
+    defaults (``tail_weight = 0``, scales 1) are the paper's model exactly. ``pileup`` (1/counts)
+    adds the timing distortion of SPAD pile-up (Coates): a detector that records at most one photon
+    per laser cycle sees bin ``b`` with probability ``(1 - exp(-k h_b)) exp(-k sum_{j<b} h_j)``, so
+    at high flux the histogram shifts and skews earlier, which the paper's amplitude-only saturation
+    cannot express. ``pileup = 0`` turns it off.
+
+    ``mount_tilt`` (rad, rotation vector ``(rx, ry, 0)``) is the rotation from the sensor's optical
+    frame, in which the model renders, to the frame planes are reported in (the nominal sensor frame
+    of the mount, in which ground truth is given): a sensor soldered a degree off its nominal
+    orientation is calibrated, not mistaken for a tilted table. See :func:`mount_rotation`.
+
+    ``model_error`` is the relative error (a fraction of the counts in a bin) the estimator allows
+    the model when weighting residuals (:func:`residual_weights`): 0.5 % by default, which is what
+    calibration chooses for data the model describes exactly; ``calibrate --method diff`` chooses it
+    for each sensor (1-2 % on the real sweep).
+
+    Units: ``bin_offset``, ``soft_bin_sigma``, ``tail_decay`` and ``zone_offsets`` in bins; ``bin_size`` in metres
+    of one-way range per bin; ``ref_floor`` and ``floor`` in counts; the rest dimensionless.
+    """
+
+    albedo: float = 3.4410
+    edge_gain: float = 0.5996
+    corner_gain: float = 0.4070
+    bin_offset: float = 9.5235
+    bin_size: float = 0.014131
+    crosstalk: float = 0.0097662
+    specular_weight: float = 0.14681
+    specular_exponent: float = 1.8378
+    soft_bin_sigma: float = 0.5
+    ref_time_scale: float = 0.27887
+    ref_floor: float = 135.14
+    saturation: float = 315.85
+    rays_per_zone: int = 2304
+    floor: float = 0.0
+    tail_weight: float = 0.0
+    tail_decay: float = 2.0
+    edge_fov_scale: float = 1.0
+    corner_fov_scale: float = 1.0
+    pileup: float = 0.0
+    mount_tilt: list[float] = field(default_factory=lambda: [0.0, 0.0])
+    model_error: float = 0.005
+    zone_offsets: list[float] = field(default_factory=lambda: [0.0] * N_ZONES)
+    zone_gains: list[float] = field(default_factory=lambda: [1.0] * N_ZONES)
+
+    def __post_init__(self) -> None:
+        if len(self.zone_offsets) != N_ZONES or len(self.zone_gains) != N_ZONES:
+            raise CalibrationError(f"zone_offsets and zone_gains need {N_ZONES} values each")
+        if len(self.mount_tilt) != 2 or not all(math.isfinite(float(v)) for v in self.mount_tilt):
+            raise CalibrationError("mount_tilt needs 2 finite angles (rad)")
+        bad = [f.name for f in fields(self) if f.name not in ("zone_offsets", "zone_gains", "mount_tilt")
+               and not math.isfinite(float(getattr(self, f.name)))]
+        if bad:
+            raise CalibrationError(f"forward parameters are not finite: {', '.join(bad)}")
+        if (self.bin_size <= 0 or self.saturation <= 0 or self.ref_time_scale <= 0 or self.soft_bin_sigma <= 0
+                or self.tail_decay <= 0 or self.tail_weight < 0 or self.edge_fov_scale <= 0
+                or self.corner_fov_scale <= 0 or self.pileup < 0 or self.model_error < 0):
+            raise CalibrationError("bin_size, saturation, ref_time_scale, soft_bin_sigma and tail_decay must be > 0 "
+                                   "and tail_weight >= 0")
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["zone_offsets"] = [float(v) for v in self.zone_offsets]
+        d["zone_gains"] = [float(v) for v in self.zone_gains]
+        d["mount_tilt"] = [float(v) for v in self.mount_tilt]
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "ForwardParams":
+        try:
+            return cls(**check_keys(cls, d, "forward parameter", CalibrationError))
+        except TypeError as exc:
+            raise CalibrationError(f"forward parameters are malformed: {exc}") from None
+
+    def save(self, path: str | Path) -> None:
+        write_json(path, self.to_dict())
+
+    @classmethod
+    def load(cls, path: str | Path) -> "ForwardParams":
+        return cls.from_dict(read_json(path, "forward parameters", CalibrationError))
+
+    def kind_gains(self) -> np.ndarray:
+        """Gain of each zone (9,): centre 1, edge/corner gains, times the per-zone gains."""
+        base = np.array([1.0, self.edge_gain, self.corner_gain])[ZONE_KIND]
+        return base * np.asarray(self.zone_gains, dtype=float)
+
+
+#: Parameters that are tensors inside the model (everything but the ray count).
+TENSOR_PARAMS = tuple(f.name for f in fields(ForwardParams) if f.name != "rays_per_zone")
+
+
+def mount_rotation(tilt) -> torch.Tensor:
+    """Rotation matrix (3, 3) from the optical frame to the reported sensor frame (Rodrigues).
+
+    ``tilt`` is ``(rx, ry)`` in radians, the x and y components of a rotation vector (a tensor, so
+    calibration can differentiate through it).
+    """
+    t = tilt if torch.is_tensor(tilt) else torch.as_tensor(np.asarray(tilt, dtype=float))
+    zero = torch.zeros((), dtype=t.dtype)
+    k = torch.stack([torch.stack([zero, zero, t[1]]), torch.stack([zero, zero, -t[0]]),
+                     torch.stack([-t[1], t[0], zero])])
+    angle2 = t[0] * t[0] + t[1] * t[1]
+    angle = torch.sqrt(angle2 + 1e-30)
+    a = torch.where(angle2 > 1e-16, torch.sin(angle) / angle, 1.0 - angle2 / 6.0)
+    b = torch.where(angle2 > 1e-16, (1.0 - torch.cos(angle)) / (angle2 + 1e-30), 0.5 - angle2 / 24.0)
+    return torch.eye(3, dtype=t.dtype) + a * k + b * (k @ k)
+
+
+def params_to_tensors(p: ForwardParams, dtype: torch.dtype = torch.float64) -> dict[str, torch.Tensor]:
+    """The parameters as a dict of tensors (scalars, or (9,) for the per-zone ones)."""
+    return {k: torch.as_tensor(np.asarray(getattr(p, k), dtype=float), dtype=dtype) for k in TENSOR_PARAMS}
+
+
+def tensors_to_params(t: dict[str, torch.Tensor], rays_per_zone: int) -> ForwardParams:
+    vals = {}
+    for k, v in t.items():
+        a = v.detach().cpu().numpy()
+        vals[k] = [float(x) for x in a] if a.ndim else float(a)
+    return ForwardParams(rays_per_zone=rays_per_zone, **vals)
+
+
+# ---------------------------------------------------------------------------------------------
+# Rays
+# ---------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ZoneRays:
+    """Ray directions (9, R, 3) (unit) and quadrature weights (9, R) summing to 1 per zone."""
+
+    directions: torch.Tensor
+    weights: torch.Tensor
+
+    @property
+    def count(self) -> int:
+        return int(self.directions.shape[1])
+
+    @classmethod
+    def stratified(cls, n: int = 8, dtype: torch.dtype = torch.float64) -> "ZoneRays":
+        """Deterministic n x n midpoint grid on each zone rectangle, weighted by solid angle.
+
+        The weight of a grid cell is ``dx dy / (1 + x^2 + y^2)^(3/2)``, the solid angle it subtends,
+        so the weighted mean equals the mean over rays uniform in solid angle.
+        """
+        if n < 1:
+            raise ValueError("stratified rays need n >= 1")
+        t = (np.arange(n) + 0.5) / n
+        dirs, wts = [], []
+        for x0, x1, y0, y1 in ZONE_RECTS:
+            gx, gy = np.meshgrid(x0 + (x1 - x0) * t, y0 + (y1 - y0) * t, indexing="ij")
+            v = np.stack([gx.ravel(), gy.ravel(), np.ones(n * n)], axis=1)
+            norm2 = (v * v).sum(axis=1)
+            w = norm2 ** -1.5
+            dirs.append(v / np.sqrt(norm2)[:, None])
+            wts.append(w / w.sum())
+        return cls(torch.as_tensor(np.array(dirs), dtype=dtype), torch.as_tensor(np.array(wts), dtype=dtype))
+
+    @classmethod
+    def random(cls, n: int = 2304, generator: np.random.Generator | None = None,
+               dtype: torch.dtype = torch.float64) -> "ZoneRays":
+        """``n`` rays per zone drawn uniformly in solid angle (rejection sampling), equal weights.
+
+        This is the paper's sampling; it is what the ``paper`` mode of differentiable rendering uses.
+        """
+        rng = generator if generator is not None else np.random.default_rng()
+        dirs = []
+        for x0, x1, y0, y1 in ZONE_RECTS:
+            # density on z=1 of uniform solid angle is proportional to (1+x^2+y^2)^-1.5
+            cmax = (1 + min(x0 ** 2, x1 ** 2) * (x0 * x1 > 0) + min(y0 ** 2, y1 ** 2) * (y0 * y1 > 0)) ** -1.5
+            got: list[np.ndarray] = []
+            count = 0
+            while count < n:
+                m = 2 * (n - count) + 16
+                x = rng.uniform(x0, x1, m)
+                y = rng.uniform(y0, y1, m)
+                keep = rng.uniform(0, cmax, m) < (1 + x * x + y * y) ** -1.5
+                v = np.stack([x[keep], y[keep], np.ones(keep.sum())], axis=1)
+                got.append(v)
+                count += len(v)
+            v = np.concatenate(got)[:n]
+            dirs.append(v / np.linalg.norm(v, axis=1, keepdims=True))
+        d = torch.as_tensor(np.array(dirs), dtype=dtype)
+        return cls(d, torch.full(d.shape[:2], 1.0 / n, dtype=dtype))
+
+
+# ---------------------------------------------------------------------------------------------
+# Model
+# ---------------------------------------------------------------------------------------------
+def pulse_kernel(reference: torch.Tensor, time_scale: torch.Tensor, ref_floor: torch.Tensor,
+                 tail_weight: torch.Tensor | None = None, tail_decay: torch.Tensor | None = None) -> torch.Tensor:
+    """Laser pulse in zone bins from reference histograms (..., 128) -> (..., K).
+
+    The floor is removed, the tail after the peak smoothed (:data:`TAIL_SMOOTHING`), the pulse
+    normalised to peak 1 and sampled at zone-bin lags
+    ``k = 0..K-1``, i.e. at reference bins ``k / time_scale`` (linear interpolation). With a
+    ``tail_weight`` the pulse is then convolved with ``delta + w exp(-k / tail_decay)``, k >= 1.
+    """
+    ref = torch.clamp(reference - ref_floor, min=0.0)
+    ref = _smooth_tail(ref)
+    peak = ref.amax(dim=-1, keepdim=True)
+    ref = ref / torch.clamp(peak, min=1e-12)
+    k_len = int(math.floor((N_BINS - 1) * float(torch.as_tensor(time_scale).detach()))) + 1
+    lags = torch.arange(k_len, dtype=ref.dtype)
+    pos = lags / time_scale  # reference-bin coordinate of each lag
+    lo = torch.clamp(torch.floor(pos), 0, N_BINS - 2)
+    frac = pos - lo
+    lo_i = lo.long()
+    a = ref[..., lo_i]
+    b = ref[..., lo_i + 1]
+    kernel = a * (1 - frac) + b * frac
+    if tail_weight is None or (not torch.is_grad_enabled() and float(tail_weight) == 0.0):
+        return kernel
+    k = torch.arange(1, k_len, dtype=ref.dtype)
+    tail = tail_weight * torch.exp(-k / tail_decay)
+    # causal convolution truncated to the kernel's length: kernel[j] += sum_k tail[k-1] kernel[j-k]
+    idx = torch.arange(k_len).view(-1, 1) - k.long().view(1, -1)  # (K, K-1)
+    gathered = kernel[..., torch.clamp(idx, min=0)] * (idx >= 0)
+    return kernel + (gathered * tail).sum(-1)
+
+
+#: Width (reference bins) of the Gaussian that smooths the reference pulse after its peak. The
+#: tail holds a few hundred counts per bin, so its Poisson noise (a few per cent) would reach every
+#: model histogram multiplied by the whole transient (~1e6 counts); the physical tail is smooth.
+TAIL_SMOOTHING = 2.0
+
+
+def _smooth_tail(ref: torch.Tensor) -> torch.Tensor:
+    """The reference (..., 128) with its tail (from 3 bins after the peak on) Gaussian-smoothed."""
+    half = int(math.ceil(3 * TAIL_SMOOTHING))
+    taps = torch.exp(-0.5 * (torch.arange(-half, half + 1, dtype=ref.dtype) / TAIL_SMOOTHING) ** 2)
+    taps = taps / taps.sum()
+    bins = torch.arange(ref.shape[-1])
+    start = torch.clamp(ref.argmax(dim=-1, keepdim=True) + 3, max=ref.shape[-1] - 1)
+    in_tail = bins >= start
+    # the tail alone: bins before it hold the tail's first value, so the peak does not leak in
+    tail = torch.where(in_tail, ref, torch.gather(ref, -1, start).expand_as(ref))
+    flat = tail.reshape(-1, 1, ref.shape[-1])
+    padded = torch.nn.functional.pad(flat, (half, half), mode="replicate")
+    smooth = torch.nn.functional.conv1d(padded, taps.view(1, 1, -1)).reshape(ref.shape)
+    return torch.where(in_tail, smooth, ref)
+
+
+def apply_pileup(hist: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
+    """Coates pile-up of expected counts (..., N) with ``k`` = 1 / (laser cycles x detectors).
+
+    ``k = 0`` returns ``hist`` unchanged (the limit of the formula).
+    """
+    if not torch.is_grad_enabled() and float(k) == 0.0:
+        return hist
+    before = torch.cumsum(hist, dim=-1) - hist  # counts in earlier bins
+    kk = torch.clamp(k, min=1e-30)
+    return -torch.expm1(-kk * hist) / kk * torch.exp(-kk * before)
+
+
+def convolve_pulse(transient: torch.Tensor, kernel: torch.Tensor) -> torch.Tensor:
+    """Causal convolution of transients (B, Z, N) with per-frame kernels (B, K) -> (B, Z, N)."""
+    k_len = kernel.shape[-1]
+    padded = torch.nn.functional.pad(transient, (k_len - 1, 0))
+    windows = padded.unfold(-1, k_len, 1)  # (B, Z, N, K): window j covers t = j-K+1 .. j
+    return torch.einsum("bznk,bk->bzn", windows, kernel.flip(-1))
+
+
+class ForwardModel:
+    """Renders 9x128 zone histograms from per-ray returns or from a plane.
+
+    ``params`` are held as tensors (``self.t``) so calibration can optimise them; ``rays`` is the
+    quadrature. Use :meth:`render_plane` for planes and :meth:`render_returns` for anything a ray
+    caster gives (the MuJoCo sensor).
+    """
+
+    def __init__(self, params: ForwardParams | None = None, rays: ZoneRays | None = None,
+                 dtype: torch.dtype = torch.float64) -> None:
+        self.params = params if params is not None else ForwardParams()
+        self.dtype = dtype
+        self.rays = rays if rays is not None else ZoneRays.stratified(8, dtype=dtype)
+        self.t = params_to_tensors(self.params, dtype)
+        self.bins = torch.arange(N_BINS, dtype=dtype)
+        self._kind = torch.as_tensor(ZONE_KIND)
+        d = self.rays.directions.to(dtype)
+        self._tangent = d[..., :2] / d[..., 2:]  # (9, R, 2) ray coordinates on z = 1
+
+    def ray_geometry(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Directions (9, R, 3) and weights (9, R) after the field-of-view scales.
+
+        Scaling a zone's rectangle by ``s`` moves each ray to ``(s x, s y, 1)``; weights are
+        re-weighted by the ratio of solid-angle densities so the quadrature stays uniform in solid angle.
+        """
+        t = self.t
+        one = torch.ones((), dtype=self.dtype)
+        scale = torch.stack([one, t["edge_fov_scale"], t["corner_fov_scale"]])[self._kind].view(N_ZONES, 1, 1)
+        xy = self._tangent * scale
+        n2_old = 1.0 + (self._tangent ** 2).sum(-1)
+        n2_new = 1.0 + (xy ** 2).sum(-1)
+        dirs = torch.cat([xy, torch.ones_like(xy[..., :1])], dim=-1) / torch.sqrt(n2_new).unsqueeze(-1)
+        w = self.rays.weights.to(self.dtype) * (n2_new / n2_old) ** -1.5
+        return dirs, w / w.sum(dim=1, keepdim=True)
+
+    # -- pieces ------------------------------------------------------------------------------
+    def zone_gains(self) -> torch.Tensor:
+        t = self.t
+        one = torch.ones((), dtype=self.dtype)
+        base = torch.stack([one, t["edge_gain"], t["corner_gain"]])[self._kind]
+        return base * t["zone_gains"]
+
+    def pulse(self, reference: torch.Tensor) -> torch.Tensor:
+        t = self.t
+        return pulse_kernel(torch.as_tensor(reference, dtype=self.dtype), t["ref_time_scale"], t["ref_floor"],
+                            t["tail_weight"], t["tail_decay"])
+
+    def render_returns(self, ranges: torch.Tensor, cos_inc: torch.Tensor, albedo: torch.Tensor,
+                       reference: torch.Tensor, weights: torch.Tensor | None = None,
+                       specular_weight: torch.Tensor | None = None,
+                       specular_exponent: torch.Tensor | None = None,
+                       hit: torch.Tensor | None = None, kernel: torch.Tensor | None = None,
+                       n_bins: int = N_BINS) -> torch.Tensor:
+        """Histograms (B, 9, n_bins) from per-ray returns (the first ``n_bins`` bins; default all 128).
+
+        ranges, cos_inc: (B, 9, R) range along the ray (m) and cosine of incidence (>= 0).
+        albedo: (B,) or (B, 9, R) reflectance; specular_weight / specular_exponent likewise
+        (default: the model's parameters). weights: (9, R) or (B, 9, R) quadrature weights summing
+        to 1 per zone (default: this model's rays). hit: (B, 9, R) bool, False for rays that miss.
+        reference: (B, 128) reference histograms, or pass a precomputed pulse ``kernel`` (B, K).
+        """
+        t = self.t
+        r = torch.as_tensor(ranges, dtype=self.dtype)
+        c = torch.clamp(torch.as_tensor(cos_inc, dtype=self.dtype), min=0.0)
+        b = r.shape[0]
+        ks = t["specular_weight"] if specular_weight is None else _per_ray(specular_weight, r)
+        alpha = t["specular_exponent"] if specular_exponent is None else _per_ray(specular_exponent, r)
+        rho = _per_ray(albedo, r)
+        spec = torch.clamp(2.0 * c * c - 1.0, min=0.0)
+        # pow with a zero base has an infinite derivative in the exponent at 0; keep it finite
+        spec = torch.where(spec > 0, torch.pow(torch.clamp(spec, min=1e-30), alpha), torch.zeros_like(spec))
+        intensity = rho * (c + ks * spec)
+        s = t["saturation"]
+        g = self.zone_gains().view(1, N_ZONES, 1)
+        r_safe = torch.clamp(r, min=1e-4)
+        photons = s * -torch.expm1(-g * intensity / (s * r_safe * r_safe))
+        w = self.ray_geometry()[1] if weights is None else torch.as_tensor(weights, dtype=self.dtype)
+        w = w.expand_as(photons) if w.dim() == 2 else w
+        amp = photons * w * float(self.params.rays_per_zone)
+        if hit is not None:
+            amp = amp * torch.as_tensor(hit, dtype=self.dtype)
+        u = r / t["bin_size"] + t["bin_offset"] + t["zone_offsets"].view(1, N_ZONES, 1)
+        sigma = t["soft_bin_sigma"]
+        z = (self.bins[:n_bins].view(1, 1, 1, n_bins) - u.unsqueeze(-1)) / sigma
+        transient = torch.einsum("bzr,bzrn->bzn", amp, torch.exp(-0.5 * z * z)) / (sigma * _SQRT_2PI)
+        if kernel is None:
+            kernel = self.pulse(torch.as_tensor(reference, dtype=self.dtype).expand(b, N_BINS))
+        hist = convolve_pulse(transient, kernel)
+        total = hist.sum(dim=1, keepdim=True)
+        hist = hist + t["crosstalk"] * (total - hist)
+        return apply_pileup(hist, t["pileup"]) + t["floor"]
+
+    def plane_returns(self, normal: torch.Tensor, offset: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Ranges, cosines of incidence and hit mask (B, 9, R) of this model's rays on planes.
+
+        normal: (B, 3) unit normals (n_z > 0), offset: (B,) distances (m).
+        """
+        n = torch.as_tensor(normal, dtype=self.dtype)
+        d = torch.as_tensor(offset, dtype=self.dtype)
+        cos = torch.einsum("zrk,bk->bzr", self.ray_geometry()[0], n)
+        hit = cos > 1e-6
+        ranges = d.view(-1, 1, 1) / torch.where(hit, cos, torch.ones_like(cos))
+        return ranges, cos, hit
+
+    def render_plane(self, normal: torch.Tensor, offset: torch.Tensor, albedo: torch.Tensor,
+                     reference: torch.Tensor, specular_weight: torch.Tensor | None = None,
+                     specular_exponent: torch.Tensor | None = None,
+                     kernel: torch.Tensor | None = None, n_bins: int = N_BINS) -> torch.Tensor:
+        """Histograms (B, 9, n_bins) of planes ``n . x = d`` with albedo (B,)."""
+        ranges, cos, hit = self.plane_returns(normal, offset)
+        return self.render_returns(ranges, cos, albedo, reference, specular_weight=specular_weight,
+                                   specular_exponent=specular_exponent, hit=hit, kernel=kernel, n_bins=n_bins)
+
+
+def _per_ray(value, like: torch.Tensor) -> torch.Tensor:
+    v = torch.as_tensor(value, dtype=like.dtype)
+    if v.dim() == 1:
+        return v.view(-1, 1, 1)
+    return v
+
+
+#: Relative model error used when fitting the forward model to a sensor (2 % of the counts in a
+#: bin): the model does not describe a real sensor to the Poisson noise level of a 1e5-count bin,
+#: and without this term the brightest bins of the closest frames would dominate the fit. The
+#: estimator's own weighting is ``ForwardParams.model_error``.
+MODEL_ERROR = 0.02
+
+
+def residual_weights(hists: np.ndarray, model_error: float = MODEL_ERROR) -> np.ndarray:
+    """Inverse standard deviation of each histogram bin: Poisson noise plus relative model error."""
+    h = np.clip(np.asarray(hists, dtype=float), 0.0, None)
+    return 1.0 / np.sqrt(h + 1.0 + (model_error * h) ** 2)

@@ -1,0 +1,254 @@
+"""The narrow robot interface the placement code drives (the real UR5 over ur-rtde, or MuJoCo).
+
+Concept: a :class:`Robot` is what ur_rtde's ``RTDEControlInterface`` + ``RTDEReceiveInterface`` offer,
+reduced to what placing a held object needs: read joints and poses, straight-line moves (moveL),
+Cartesian velocity (speedL), stop, gripper, contact force, faults and a clock.
+
+Conventions
+-----------
+* All poses are 4x4 homogeneous matrices in the robot base frame (DH frame 0, see
+  :mod:`place_safe.robot.kinematics`): ``tcp_pose()`` is base_T_tcp, ``sensor_pose()`` is base_T_sensor
+  (TMF8820 frame, +z optical axis).
+* Twists are ``(vx, vy, vz, wx, wy, wz)`` of the TCP in the base frame, m/s and rad/s.
+* Speeds in m/s, accelerations in m/s^2; the same numbers are used for rad/s and rad/s^2 of the
+  orientation part (as URScript's movel/speedl do).
+* Faults (protective stop on excessive contact force, joint limit, unreachable pose, lost connection)
+  raise :class:`place_safe.exceptions.RobotFault`. A runtime fault is latched: the robot stops and keeps
+  holding the object (the gripper is never opened on a fault), ``is_faulted()`` is True and further
+  motion commands raise until ``clear_fault()``. A target rejected before any motion (unreachable,
+  NaN) raises without latching and without moving.
+* Time: ``time()`` is the robot clock in seconds; ``step(dt)`` lets ``dt`` seconds pass (the simulator
+  advances physics, a real robot sleeps / services its connection). Blocking commands advance time
+  themselves.
+"""
+
+from __future__ import annotations
+
+import math
+from abc import ABC, abstractmethod
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from place_safe.config import check_keys, read_json, write_json
+from place_safe.exceptions import RobotFault
+
+_TWO_PI = 2.0 * math.pi
+
+
+@dataclass
+class RobotLimits:
+    """Motion and safety limits (SI units). Loadable from / saveable to JSON.
+
+    Defaults: the UR5's joint ranges (+-2 pi, elbow +-pi) and joint speeds (about 180 deg/s) from the
+    published UR5 data; Cartesian limits chosen for placing a cup (well under the UR5's 1 m/s tool speed).
+    """
+
+    max_linear_speed: float = 0.25  # m/s, TCP
+    max_linear_accel: float = 1.2  # m/s^2
+    max_angular_speed: float = 1.0  # rad/s, TCP orientation
+    max_angular_accel: float = 3.0  # rad/s^2
+    max_joint_speed: list[float] = field(default_factory=lambda: [3.15, 3.15, 3.15, 3.2, 3.2, 3.2])  # rad/s
+    joint_lower: list[float] = field(default_factory=lambda: [-_TWO_PI, -_TWO_PI, -math.pi, -_TWO_PI, -_TWO_PI, -_TWO_PI])
+    joint_upper: list[float] = field(default_factory=lambda: [_TWO_PI, _TWO_PI, math.pi, _TWO_PI, _TWO_PI, _TWO_PI])
+    max_contact_force: float = 60.0  # N, protective stop threshold on the gripper/held object
+    max_tracking_error: float = 0.02  # m, path deviation that counts as a fault (singularity, blocked)
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        for name in ("max_linear_speed", "max_linear_accel", "max_angular_speed", "max_angular_accel",
+                     "max_contact_force", "max_tracking_error"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"RobotLimits.{name} must be a positive finite number; got {v!r}")
+        for name in ("max_joint_speed", "joint_lower", "joint_upper"):
+            v = np.asarray(getattr(self, name), dtype=float)
+            if v.shape != (6,) or not np.all(np.isfinite(v)):
+                raise ValueError(f"RobotLimits.{name} must be 6 finite numbers; got {getattr(self, name)!r}")
+        if np.any(np.asarray(self.max_joint_speed) <= 0):
+            raise ValueError("RobotLimits.max_joint_speed must be positive")
+        if np.any(np.asarray(self.joint_lower) >= np.asarray(self.joint_upper)):
+            raise ValueError("RobotLimits.joint_lower must be below joint_upper for every joint")
+
+    def to_dict(self) -> dict[str, Any]:
+        return {k: (list(map(float, v)) if isinstance(v, (list, tuple, np.ndarray)) else float(v))
+                for k, v in asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "RobotLimits":
+        return cls(**check_keys(cls, d, "RobotLimits"))
+
+    def save(self, path: str | Path) -> None:
+        write_json(path, self.to_dict())
+
+    @classmethod
+    def load(cls, path: str | Path) -> "RobotLimits":
+        return cls.from_dict(read_json(path, "robot limits"))
+
+
+def check_pose(pose: Any, what: str = "pose") -> np.ndarray:
+    """Validate a 4x4 homogeneous transform; return it as float64. Raises ValueError otherwise."""
+    T = np.asarray(pose, dtype=np.float64)
+    if T.shape != (4, 4):
+        raise ValueError(f"{what} must be a 4x4 homogeneous matrix; got shape {T.shape}")
+    if not np.all(np.isfinite(T)):
+        raise ValueError(f"{what} contains NaN or inf; expected a finite 4x4 transform")
+    R = T[:3, :3]
+    if np.abs(R.T @ R - np.eye(3)).max() > 1e-6 or np.linalg.det(R) < 0:
+        raise ValueError(f"{what} rotation part is not a proper rotation (R^T R != I or det < 0)")
+    if np.abs(T[3] - np.array([0.0, 0.0, 0.0, 1.0])).max() > 1e-9:
+        raise ValueError(f"{what} last row must be [0, 0, 0, 1]; got {T[3].tolist()}")
+    return T
+
+
+def check_twist(twist: Any) -> np.ndarray:
+    """Validate a 6-vector twist (m/s, rad/s). Raises ValueError otherwise."""
+    v = np.asarray(twist, dtype=np.float64)
+    if v.shape != (6,):
+        raise ValueError(f"twist must have shape (6,) = (vx, vy, vz, wx, wy, wz); got {v.shape}")
+    if not np.all(np.isfinite(v)):
+        raise ValueError("twist contains NaN or inf; expected finite m/s and rad/s")
+    return v
+
+
+@dataclass(frozen=True)
+class TrapezoidProfile:
+    """Time-optimal trapezoidal (or triangular) speed profile over a distance, from rest to rest."""
+
+    distance: float
+    v_max: float
+    a_max: float
+
+    def __post_init__(self) -> None:
+        if not (self.distance >= 0 and self.v_max > 0 and self.a_max > 0):
+            raise ValueError(f"profile needs distance >= 0 and positive v_max, a_max; got {self}")
+
+    @property
+    def v_peak(self) -> float:
+        return min(self.v_max, math.sqrt(self.distance * self.a_max))
+
+    @property
+    def t_accel(self) -> float:
+        return self.v_peak / self.a_max
+
+    @property
+    def duration(self) -> float:
+        if self.distance == 0:
+            return 0.0
+        vp, ta = self.v_peak, self.t_accel
+        return 2 * ta + (self.distance - vp * ta) / vp
+
+    def at(self, t: float) -> tuple[float, float]:
+        """(position, speed) at time t (clamped to [0, duration])."""
+        T, ta, vp, a = self.duration, self.t_accel, self.v_peak, self.a_max
+        if t <= 0 or T == 0:
+            return 0.0, 0.0
+        if t >= T:
+            return self.distance, 0.0
+        if t < ta:
+            return 0.5 * a * t * t, a * t
+        if t <= T - ta:
+            return 0.5 * a * ta * ta + vp * (t - ta), vp
+        r = T - t
+        return self.distance - 0.5 * a * r * r, a * r
+
+
+class Robot(ABC):
+    """A 6-axis arm with a parallel gripper and a wrist TMF8820 (see the module docstring)."""
+
+    limits: RobotLimits
+
+    # --- state --------------------------------------------------------------------------------
+    @abstractmethod
+    def joint_positions(self) -> np.ndarray:
+        """Actual joint angles, shape (6,), radians."""
+
+    @abstractmethod
+    def tcp_pose(self) -> np.ndarray:
+        """Actual base_T_tcp (4x4)."""
+
+    @abstractmethod
+    def sensor_pose(self) -> np.ndarray:
+        """Actual base_T_sensor (4x4), TMF8820 frame with +z the optical axis."""
+
+    @abstractmethod
+    def tcp_twist(self) -> np.ndarray:
+        """Actual TCP twist (6,) in the base frame (m/s, rad/s)."""
+
+    @abstractmethod
+    def contact_force(self) -> float:
+        """Magnitude (N) of the net force the environment exerts on the held object and the gripper."""
+
+    @abstractmethod
+    def time(self) -> float:
+        """Robot clock (s)."""
+
+    # --- motion -------------------------------------------------------------------------------
+    @abstractmethod
+    def move_linear(self, pose: Any, speed: float = 0.05, accel: float = 0.2,
+                    asynchronous: bool = False) -> None:
+        """Straight-line TCP move to ``pose`` (base_T_tcp) with a trapezoidal speed profile (moveL).
+
+        Blocking unless ``asynchronous``; then the motion proceeds as time passes (``step``) and
+        ``is_moving()`` tells when it is done. ``speed``/``accel`` above ``limits`` are clamped to them.
+        Raises ValueError for a malformed pose, speed or acceleration and RobotFault if the pose is
+        unreachable (checked before moving; nothing moves) or a fault occurs on the way.
+        """
+
+    def move_joint(self, q: Any, speed: float = 1.05, accel: float = 1.4, asynchronous: bool = False) -> None:
+        """Joint-space move to ``q`` (6 rad) with a synchronised trapezoidal profile (moveJ; rad/s,
+        rad/s^2). Optional for implementations: the default raises NotImplementedError."""
+        raise NotImplementedError(f"{type(self).__name__} does not implement move_joint")
+
+    @abstractmethod
+    def speed_linear(self, twist: Any, accel: float = 0.5, duration: float | None = None) -> None:
+        """Move the TCP at ``twist`` (base frame), ramping with ``accel`` (speedL).
+
+        ``duration=None``: non-blocking, the velocity holds until another command or ``stop``.
+        ``duration=T``: blocking, holds the velocity for T seconds and then decelerates to rest.
+        Speeds above the limits are scaled down to them.
+        """
+
+    @abstractmethod
+    def stop(self, decel: float = 1.0, asynchronous: bool = False) -> None:
+        """Decelerate the TCP to rest at ``decel`` (stopL); blocking unless ``asynchronous``."""
+
+    @abstractmethod
+    def is_moving(self) -> bool:
+        """True while a commanded motion is in progress."""
+
+    @abstractmethod
+    def step(self, dt: float) -> None:
+        """Let ``dt`` seconds pass (servicing motion, safety checks and, in simulation, physics)."""
+
+    # --- gripper and faults --------------------------------------------------------------------
+    @abstractmethod
+    def gripper(self, open: bool) -> None:
+        """Open (release the held object) or close the gripper. Never called by the robot on a fault."""
+
+    @abstractmethod
+    def fault(self) -> str | None:
+        """The latched fault message, or None."""
+
+    def is_faulted(self) -> bool:
+        return self.fault() is not None
+
+    @abstractmethod
+    def clear_fault(self) -> None:
+        """Acknowledge a latched fault (like unlocking a protective stop)."""
+
+    def close(self) -> None:
+        """Release resources (connections). Default: nothing."""
+
+    def __enter__(self) -> "Robot":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+
+__all__ = ["Robot", "RobotLimits", "TrapezoidProfile", "check_pose", "check_twist", "RobotFault"]

@@ -1,0 +1,94 @@
+"""Histogram helpers shared by every estimator, calibration and the simulated sensor: one definition each.
+
+* :data:`COUNT_MAX`: the TMF8820's histogram bins are 24-bit counters; a bin at this value is clipped.
+* :data:`FLOOR_BINS` / :func:`measure_floor`: the late bins where no return of a surface within the
+  sensor's range lands (beyond ~1.3 m); their median is the per-zone floor (ambient and dark counts).
+* :func:`find_peaks`: the calibrated ``peak`` method's sub-bin peak of each zone (cubic spline).
+* :func:`first_return`: the first return above the noise, as the sensor's own firmware reports a
+  distance (used to emulate on-sensor distances).
+
+Histograms are arrays ``(..., 9, 128)`` of counts (zones 1..9 in reporting order), bins are 0-based.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.interpolate import CubicSpline
+
+from place_safe.sensor.zones import N_BINS
+
+#: Largest count of the sensor's 24-bit histogram bins; a bin at this value is clipped.
+COUNT_MAX = 2 ** 24 - 1
+#: Bins at the end of every histogram used to measure the per-zone floor.
+FLOOR_BINS = slice(100, N_BINS)
+
+
+def measure_floor(hists: np.ndarray) -> np.ndarray:
+    """Per-zone floor (..., 9) in counts: median of :data:`FLOOR_BINS`."""
+    return np.median(np.asarray(hists)[..., FLOOR_BINS], axis=-1)
+
+
+EARLY_BINS = 10
+LATE_BINS = 32
+SEARCH_START = 8
+NOISE_SIGMAS = 5.0
+MIN_NET_COUNTS = 10.0
+HALF_WINDOW = 3
+SUBBIN_STEPS = 100
+
+_KNOTS = np.arange(-HALF_WINDOW, HALF_WINDOW + 1, dtype=float)
+_FINE = np.linspace(-1.0, 1.0, 2 * SUBBIN_STEPS + 1)
+#: (fine points, window) matrix: spline values at _FINE from the window's counts.
+_SPLINE = CubicSpline(_KNOTS, np.eye(len(_KNOTS)), axis=0)(_FINE)
+
+
+def find_peaks(hists: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Sub-bin peak positions (..., 9) in bins, return mask (..., 9) and saturation mask (..., 9).
+
+    ``hists`` is (..., 9, 128) counts (any leading shape). Zones without a return, or clipped, or
+    with non-finite counts, are False in the mask and NaN in the positions.
+    """
+    h = np.asarray(hists, dtype=float)
+    finite = np.all(np.isfinite(h), axis=-1)
+    h = np.where(np.isfinite(h), h, 0.0)
+    saturated = np.any(h >= COUNT_MAX, axis=-1)
+    floor = np.minimum(np.median(h[..., :EARLY_BINS], axis=-1), np.median(h[..., -LATE_BINS:], axis=-1))
+    x = h - floor[..., None]
+    k = np.argmax(x[..., SEARCH_START:], axis=-1) + SEARCH_START
+    top = np.take_along_axis(x, k[..., None], axis=-1)[..., 0]
+    has_return = top > np.maximum(NOISE_SIGMAS * np.sqrt(np.maximum(floor, 0.0) + 1.0), MIN_NET_COUNTS)
+    kc = np.clip(k, HALF_WINDOW, N_BINS - 1 - HALF_WINDOW)
+    window = np.take_along_axis(x, kc[..., None] + _KNOTS.astype(int), axis=-1)  # (..., 9, W)
+    fine = window @ _SPLINE.T  # (..., 9, F)
+    pos = kc + _FINE[np.argmax(fine, axis=-1)]  # kc == k except for a top in the last bins
+    valid = finite & has_return & ~saturated
+    return np.where(valid, pos, np.nan), valid, saturated & finite
+
+
+def first_return(hists: np.ndarray, threshold: float = 8.0, relative: float = 0.05) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Sub-bin position of the first return per zone, whether one was found, and its peak SNR.
+
+    The floor is the median of :data:`FLOOR_BINS`; a return starts at the first bin more than
+    ``threshold`` Poisson sigmas of the floor and ``relative`` of the zone's largest return above it; its peak is the largest bin in the 6 bins
+    from there (a return is about 4 bins wide), refined by a parabola through it and its neighbours.
+    hists: (Z, 128); returns three (Z,) arrays (bins, bool, peak height in floor sigmas).
+    """
+    h = np.asarray(hists, dtype=float)
+    z = h.shape[0]
+    floor = np.median(h[:, FLOOR_BINS], axis=1, keepdims=True)
+    sig = h - floor
+    noise = np.sqrt(np.maximum(floor, 1.0))
+    above = sig > np.maximum(threshold * noise, relative * sig.max(axis=1, keepdims=True))
+    found = above.any(axis=1)
+    first = np.argmax(above, axis=1)
+    idx = np.clip(first[:, None] + np.arange(6)[None], 0, N_BINS - 1)
+    win = np.take_along_axis(sig, idx, axis=1)
+    k = np.clip(first + np.argmax(win, axis=1), 1, N_BINS - 2)
+    rows = np.arange(z)
+    y0, y1, y2 = sig[rows, k - 1], sig[rows, k], sig[rows, k + 1]
+    den = y0 - 2 * y1 + y2
+    frac = np.where(np.abs(den) > 1e-12, 0.5 * (y0 - y2) / np.where(den == 0, 1, den), 0.0)
+    return k + np.clip(frac, -0.5, 0.5), found, y1 / noise[:, 0]
+
+
+__all__ = ["COUNT_MAX", "FLOOR_BINS", "measure_floor", "find_peaks", "first_return"]

@@ -1,0 +1,71 @@
+"""Point calibration: parameter file round trip, recovery of known zone offsets, synthetic generalisation."""
+
+import numpy as np
+import pytest
+
+from place_safe.calibration import Calibration
+from place_safe.calibration.points import fit_peak
+from place_safe.recovery.points import PeakParams, fit_planes
+from place_safe.recovery.peak import PeakEstimator
+from place_safe.exceptions import CalibrationError
+from place_safe.recovery.forward import ForwardParams
+from place_safe.evaluation.metrics import point_error
+from place_safe.evaluation.synthetic import make_frames
+
+
+def test_dict_round_trip_and_validation():
+    p = PeakParams(70.0, 12.0, 0.9, 0.8, [0.1] * 9, [0.0, 0.0, 0.2], [0.05, 0.4], [0.01, -0.02], [1.01] * 9)
+    assert PeakParams.from_dict(p.to_dict()) == p
+    cal = Calibration.from_dict(Calibration({"peak": p.to_dict()}).to_dict())
+    assert cal.peak() == p
+    with pytest.raises(CalibrationError):
+        PeakParams.from_dict({"m": 70.0})
+    with pytest.raises(CalibrationError):
+        PeakParams.from_dict({"m": -1.0, "b": 0.0})
+    with pytest.raises(CalibrationError):
+        PeakParams.from_dict({"m": 70.0, "b": float("nan")})
+    with pytest.raises(CalibrationError):
+        PeakParams.from_dict({"m": 70.0, "b": 1.0, "zone_offsets": [0.0] * 8})
+
+
+def test_paper_constants():
+    p = PeakParams.default_peak()
+    # distance = (peak_bin - 13.155) / 72.073 m along the centre zone
+    assert p.ranges(np.full(9, 13.155 + 72.073 * 0.2))[4] == pytest.approx(0.2)
+    assert (p.edge_scale, p.corner_scale) == (0.9405, 0.8916)
+    assert PeakParams.default_proprietary().ranges(np.full(9, 150.0))[0] == pytest.approx(0.15)
+
+
+def test_batched_plane_fit_flags_degenerate_sets():
+    pts = np.zeros((2, 9, 3))
+    pts[0] = np.c_[np.random.default_rng(0).normal(size=(9, 2)), np.full(9, 0.2)]
+    valid = np.ones((2, 9), bool)
+    valid[1, 2:] = False
+    n, d, rms, ok = fit_planes(pts, valid)
+    assert ok.tolist() == [True, False]
+    assert np.allclose(n[0], [0, 0, 1]) and d[0] == pytest.approx(0.2) and rms[0] == pytest.approx(0, abs=1e-12)
+    assert np.all(np.isnan(n[1]))
+
+
+def test_recovers_known_zone_offsets():
+    offsets = np.array([0.4, -0.3, 0.0, 0.2, 0.0, -0.5, 0.3, -0.1, 0.0])
+    frames = make_frames(60, ForwardParams(zone_offsets=list(offsets)), seed=5)
+    params, report = fit_peak(frames, progress=False)
+    assert np.allclose(params.zone_offsets, offsets - offsets.mean(), atol=0.06)
+    assert report["after"]["point_mean_mm"] < 1.0
+
+
+def test_calibrated_beats_authors_constants_on_synthetic():
+    train = make_frames(60, seed=21)
+    test = make_frames(30, seed=22)
+    params, _ = fit_peak(train, progress=False)
+    cal, paper = PeakEstimator(params), PeakEstimator(PeakParams.default_peak())
+    e_cal = np.mean([point_error(cal.estimate(f).plane, f.truth) for f in test])
+    e_paper = np.mean([point_error(paper.estimate(f).plane, f.truth) for f in test])
+    assert e_cal < 0.5 * e_paper
+    assert e_cal < 1.5e-3
+
+
+def test_too_few_frames():
+    with pytest.raises(CalibrationError):
+        fit_peak(make_frames(2, seed=1), progress=False)

@@ -1,0 +1,283 @@
+"""Tests of the place-safe command line (place_safe.cli.app) against docs/interfaces.md."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from place_safe.cli.app import main
+
+KEYS = {"index", "normal", "offset", "albedo", "ms"}
+
+
+def run_cli(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
+    """The CLI in a fresh interpreter, as scripts use it (stdout and stderr kept apart)."""
+    return subprocess.run([sys.executable, "-m", "place_safe", *args], capture_output=True, text=True,
+                          timeout=timeout)
+
+
+def one_line_error(err: str) -> str:
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1, f"expected one line on stderr, got: {err!r}"
+    assert "Traceback" not in err
+    return lines[0]
+
+
+@pytest.fixture()
+def mixed_file(tmp_path, synthetic_frames) -> Path:
+    """Six frames with an unparseable entry at index 2 and NaN counts at index 4."""
+    entries = [f.to_dict() for f in synthetic_frames[:6]]
+    entries[2] = {"hists": [[1, 2, 3]], "reference_hist": [0] * 128}
+    entries[4]["hists"][3][7] = float("nan")
+    path = tmp_path / "mixed.json"
+    path.write_text(json.dumps(entries).replace("NaN", "NaN"))
+    return path
+
+
+# -- recover --------------------------------------------------------------------------------------
+@pytest.mark.slow
+def test_recover_jsonl_one_line_per_frame_in_order_and_only_json(mixed_file):
+    res = run_cli("recover", str(mixed_file), "--method", "peak", "--jsonl")
+    assert res.returncode == 0, res.stderr
+    lines = res.stdout.splitlines()
+    assert len(lines) == 6
+    objs = [json.loads(line) for line in lines]  # every stdout line is JSON
+    assert [o["index"] for o in objs] == list(range(6))
+    for o in objs:
+        assert KEYS <= set(o)
+        if o["normal"] is None:
+            assert o["offset"] is None and isinstance(o["reason"], str) and o["reason"]
+        else:
+            assert len(o["normal"]) == 3 and o["normal"][2] > 0 and o["offset"] > 0
+            assert o["ms"] >= 0
+    assert objs[2]["normal"] is None and "shape" in objs[2]["reason"]
+    assert objs[4]["normal"] is None and "NaN" in objs[4]["reason"]
+    assert sum(o["normal"] is not None for o in objs) >= 3
+
+
+def test_recover_diff_batched_matches_input_order(synthetic_file, capsys):
+    rc = main(["recover", str(synthetic_file), "--method", "diff", "--jsonl", "--batch", "3", "-q"])
+    out = capsys.readouterr().out.splitlines()
+    assert rc == 0
+    objs = [json.loads(line) for line in out]
+    assert [o["index"] for o in objs] == list(range(8))
+    ok = [o for o in objs if o["normal"] is not None]
+    assert len(ok) >= 6
+    assert all(o["albedo"] is not None and o["albedo"] > 0 for o in ok)  # diff recovers albedo
+
+
+def test_recover_human_table(synthetic_file, capsys):
+    rc = main(["recover", str(synthetic_file), "--method", "peak"])
+    out = capsys.readouterr().out
+    assert rc == 0
+    assert "theta deg" in out and "d mm" in out
+    assert len(out.splitlines()) == 1 + 8
+
+
+def test_recover_jsonl_on_jsonl_input(tmp_path, synthetic_frames, capsys):
+    from place_safe.io.frame_file import write_frames
+
+    path = tmp_path / "f.jsonl"
+    write_frames(path, synthetic_frames[:3], jsonl=True)
+    assert main(["recover", str(path), "--method", "proprietary", "--jsonl", "-q"]) == 0
+    assert [json.loads(x)["index"] for x in capsys.readouterr().out.splitlines()] == [0, 1, 2]
+
+
+# -- input and usage errors -------------------------------------------------------------------------
+@pytest.mark.parametrize("content,needle", [
+    (None, "does not exist"),
+    ("{not json", "invalid JSON"),
+    ("42", "not a frame file"),
+    ("", "empty"),
+    ("[7]", "expected an object"),
+])
+def test_bad_frame_files_exit_2_with_one_line(tmp_path, content, needle, capsys):
+    path = tmp_path / "in.json"
+    if content is not None:
+        path.write_text(content)
+    assert main(["recover", str(path), "--method", "peak", "--jsonl", "-q"]) == 2
+    cap = capsys.readouterr()
+    assert needle in one_line_error(cap.err)
+    assert cap.out == ""
+
+
+def test_broken_file_keeps_the_lines_already_written(tmp_path, synthetic_frames, capsys):
+    text = json.dumps([f.to_dict() for f in synthetic_frames[:3]])
+    path = tmp_path / "cut.json"
+    path.write_text(text[:-300])  # the third frame and the closing bracket are cut off
+    assert main(["recover", str(path), "--method", "peak", "--jsonl", "-q"]) == 2
+    cap = capsys.readouterr()
+    assert [json.loads(x)["index"] for x in cap.out.splitlines()] == [0, 1]
+    assert "invalid JSON" in one_line_error(cap.err)
+
+
+@pytest.mark.slow
+def test_bad_file_in_a_fresh_process(tmp_path):
+    path = tmp_path / "in.json"
+    path.write_text("[1, 2")
+    res = run_cli("recover", str(path), "--method", "peak", "--jsonl")
+    assert res.returncode == 2 and res.stdout == ""
+    assert one_line_error(res.stderr).startswith("place-safe: error:")
+
+
+def test_bad_calibration_exits_2(tmp_path, synthetic_file, capsys):
+    for text in ("not json", '{"format": "something else"}', '{"format": "place_safe.calibration/1", "peak": 5}'):
+        cal = tmp_path / "cal.json"
+        cal.write_text(text)
+        assert main(["recover", str(synthetic_file), "--method", "peak", "--calibration", str(cal), "--jsonl"]) == 2
+        cap = capsys.readouterr()
+        assert "calibration" in one_line_error(cap.err)
+        assert cap.out == ""
+    assert main(["recover", str(synthetic_file), "--method", "peak", "--calibration", str(tmp_path / "no.json")]) == 2
+    assert "does not exist" in one_line_error(capsys.readouterr().err)
+
+
+@pytest.mark.parametrize("argv", [
+    ["recover"],
+    ["recover", "x.json", "--method", "nope"],
+    ["calibrate", "x.json", "-o", "c.json"],
+    ["frobnicate"],
+    [],
+])
+def test_usage_errors_exit_2_with_one_line(argv, capsys):
+    assert main(argv) == 2
+    cap = capsys.readouterr()
+    assert cap.out == ""
+    assert one_line_error(cap.err).startswith("place-safe: error:")
+
+
+def test_help_teaches_with_examples(capsys):
+    for argv in (["--help"], ["recover", "--help"], ["calibrate", "--help"], ["bench", "--help"]):
+        with pytest.raises(SystemExit) as exc:
+            main(argv)
+        assert exc.value.code == 0
+        out = capsys.readouterr().out
+        assert "example" in out
+    with pytest.raises(SystemExit):
+        main(["evaluate", "--help"])
+    assert "metres" in capsys.readouterr().out
+
+
+def test_sim_without_mujoco_says_how_to_install(monkeypatch, capsys):
+    import importlib.util
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "mujoco" else real(name, *a))
+    assert main(["sim"]) == 2
+    line = one_line_error(capsys.readouterr().err)
+    assert "[sim]" in line and "MuJoCo" in line
+
+
+# -- calibrate ----------------------------------------------------------------------------------------
+def test_calibrate_writes_and_merges_sections(tmp_path, sweep_path, capsys):
+    from place_safe.calibration import Calibration
+
+    out = tmp_path / "cal.json"
+    assert main(["calibrate", str(sweep_path), "--method", "peak", "-o", str(out), "-q"]) == 0
+    err = capsys.readouterr().err
+    assert "fit quality" in err
+    assert set(Calibration.load(out).sections) == {"peak"}
+    peak_before = json.loads(out.read_text())["peak"]
+    assert main(["calibrate", str(sweep_path), "--method", "proprietary", "-o", str(out), "-q"]) == 0
+    cal = Calibration.load(out)
+    assert set(cal.sections) == {"peak", "proprietary"}
+    assert json.loads(out.read_text())["peak"] == peak_before  # kept as it was
+    assert {"peak", "proprietary"} <= set(cal.reports)
+
+
+def test_calibrate_refuses_to_clobber_a_foreign_file(tmp_path, sweep_path, capsys):
+    out = tmp_path / "notes.json"
+    out.write_text('{"mine": true}')
+    assert main(["calibrate", str(sweep_path), "--method", "peak", "-o", str(out), "-q"]) == 2
+    assert "--force" in one_line_error(capsys.readouterr().err)
+    assert json.loads(out.read_text()) == {"mine": True}
+
+
+def test_calibrate_needs_ground_truth(tmp_path, synthetic_frames, capsys):
+    entries = [f.to_dict() for f in synthetic_frames[:2]]
+    for e in entries:
+        e.pop("plane")
+    path = tmp_path / "nt.json"
+    path.write_text(json.dumps(entries))
+    assert main(["calibrate", str(path), "--method", "peak", "-o", str(tmp_path / "c.json")]) == 2
+    assert "no frames with ground truth" in one_line_error(capsys.readouterr().err)
+    assert not (tmp_path / "c.json").exists()
+
+
+def test_calibrated_file_is_used_by_recover(tmp_path, sweep_path, capsys):
+    out = tmp_path / "cal.json"
+    assert main(["calibrate", str(sweep_path), "--method", "peak", "-o", str(out), "-q"]) == 0
+    capsys.readouterr()
+    assert main(["recover", str(sweep_path), "--method", "peak", "--calibration", str(out), "--jsonl", "-q"]) == 0
+    calibrated = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
+    assert main(["recover", str(sweep_path), "--method", "peak", "--jsonl", "-q"]) == 0
+    default = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
+    assert len(calibrated) == len(default) == 53
+    assert any(a["offset"] != b["offset"] for a, b in zip(calibrated, default))
+
+
+# -- evaluate -------------------------------------------------------------------------------------
+def test_evaluate_prints_a_table_and_writes_json(tmp_path, sweep_path, capsys):
+    rep = tmp_path / "report.json"
+    rc = main(["evaluate", str(sweep_path), "--methods", "peak", "proprietary", "--out", str(tmp_path / "plots"),
+               "--json", str(rep), "--max-distance", "0.2", "-q"])
+    cap = capsys.readouterr()
+    assert rc == 0, cap.err
+    assert "peak" in cap.out and "proprietary" in cap.out and "angular" in cap.out
+    assert json.loads(rep.read_text())
+    assert any((tmp_path / "plots").glob("*.png"))
+
+
+def test_evaluate_with_no_frames_in_range_exits_2(sweep_path, capsys):
+    assert main(["evaluate", str(sweep_path), "--min-distance", "5", "--no-plots", "-q"]) == 2
+    assert "no frames with ground truth" in one_line_error(capsys.readouterr().err)
+
+
+@pytest.mark.slow
+def test_calibrate_diff_adds_forward_and_the_missing_peak_section(tmp_path, capsys):
+    """One (slow) forward fit: the file had only 'proprietary'; diff adds 'forward' and, as the file has no
+    'peak' section, fits that too (the diff method starts from calibrated peak), keeping 'proprietary'."""
+    from place_safe.calibration import Calibration
+    from place_safe.io.frame_file import write_frames
+    from place_safe.evaluation.synthetic import make_frames
+
+    data = tmp_path / "syn.json"
+    write_frames(data, make_frames(6, seed=2))
+    out = tmp_path / "cal.json"
+    assert main(["calibrate", str(data), "--method", "proprietary", "-o", str(out), "-q"]) == 0
+    proprietary = json.loads(out.read_text())["proprietary"]
+    capsys.readouterr()
+    assert main(["calibrate", str(data), "--method", "diff", "-o", str(out), "-q"]) == 0
+    err = capsys.readouterr().err
+    assert "section 'peak'" in err and "section 'forward'" in err
+    assert {"peak", "proprietary", "forward"} <= set(Calibration.load(out).sections)
+    assert json.loads(out.read_text())["proprietary"] == proprietary
+    # the written calibration drives the diff estimator
+    assert main(["recover", str(data), "--method", "diff", "--calibration", str(out), "--jsonl", "-q"]) == 0
+    lines = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
+    assert len(lines) == 6 and all(x["normal"] is not None for x in lines)
+
+
+# -- demo (the main job) --------------------------------------------------------------------------------
+@pytest.mark.slow
+def test_demo_places_on_the_level_table_and_refuses_the_tilted_one(capsys):
+    assert main(["demo", "-q"]) == 0
+    out = capsys.readouterr().out
+    assert "place_level: released (as expected)" in out
+    assert "place_tilted: refused (as expected)" in out
+
+
+def test_demo_without_mujoco_falls_back_to_synthetic_recovery(monkeypatch, capsys):
+    import importlib.util
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "mujoco" else real(name, *a))
+    assert main(["demo", "--frames", "2"]) == 0
+    cap = capsys.readouterr()
+    assert "MuJoCo is not installed" in cap.err
+    for label in ("diff-fast", "peak", "proprietary"):
+        assert label in cap.out

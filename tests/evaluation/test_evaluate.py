@@ -1,0 +1,42 @@
+"""Evaluation report: table, dict, plots, unavailable methods."""
+
+from pathlib import Path
+
+import numpy as np
+
+from place_safe.calibration import Calibration
+from place_safe.calibration.points import fit_peak
+from place_safe.evaluation.evaluate import evaluate
+from place_safe.io.frame_file import load_frames
+
+SWEEP = Path(__file__).resolve().parents[1] / "data" / "tmf8820_ur5_sweep.json"
+
+
+def test_evaluate_real_sweep(tmp_path):
+    sweep = load_frames(SWEEP)
+    params, _ = fit_peak(sweep[0::2], progress=False)
+    cal = Calibration({"peak": params.to_dict()})
+    test = [f for f in sweep[1::2] if f.truth.z0 >= 0.05][:8]
+    rep = evaluate(test, cal, ["peak", "peak-naive", "proprietary-naive", "no-such-method"], out_dir=tmp_path,
+                   progress=False)
+    table = rep.table()
+    for name in ("peak", "peak-naive", "proprietary-naive", "no-such-method"):
+        assert name in table
+    assert "unavailable" in table
+    d = rep.to_dict()
+    assert d["frames"] == 8 and set(d["methods"]) == {"peak", "peak-naive", "proprietary-naive"}
+    assert d["methods"]["peak"]["linear_mm"]["mean"] < 1.0
+    assert d["methods"]["peak"]["linear_mm"]["mean"] < d["methods"]["peak-naive"]["linear_mm"]["mean"]
+    assert d["methods"]["peak"]["failures"] == 0
+    assert "no-such-method" in d["unavailable"]
+    for p in rep.plots:
+        assert Path(p).is_file() and Path(p).stat().st_size > 1000
+    assert len(rep.plots) >= 2
+
+
+def test_frames_without_truth_are_skipped():
+    sweep = load_frames(SWEEP)[:3]
+    sweep[0].truth = None
+    rep = evaluate(sweep, None, ["peak"], progress=False)
+    assert rep.skipped == 1 and len(rep.results["peak"].point) == 2
+    assert np.all(np.isfinite(rep.results["peak"].seconds))

@@ -1,0 +1,154 @@
+"""PlaneFilter: sensor-frame planes -> robust base-frame surface (place_safe.fusion.plane_filter)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from place_safe.recovery.estimator import PlaneEstimate
+from place_safe.fusion.plane_filter import FusedPlane, PlaneFilter, clearance_along, plane_to_base
+from place_safe.geometry import Plane
+
+
+def pose(pos, R) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = pos
+    return T
+
+
+def looking_down(pos, extra=None) -> np.ndarray:
+    """A sensor at ``pos`` with +z pointing down (optionally turned by ``extra`` in the sensor frame)."""
+    R = Rotation.from_euler("x", math.pi).as_matrix()
+    if extra is not None:
+        R = R @ extra
+    return pose(pos, R)
+
+
+def sensor_plane(n_base, d_base, T) -> Plane:
+    """The base-frame plane n . x = d as the sensor at T sees it."""
+    R, t = T[:3, :3], T[:3, 3]
+    n_s = R.T @ np.asarray(n_base, float)
+    return Plane(n_s, d_base - np.asarray(n_base, float) @ t)
+
+
+def test_level_table_under_a_downward_sensor():
+    T = looking_down([0.4, -0.1, 0.3])
+    plane = Plane(np.array([0.0, 0.0, 1.0]), 0.35)  # table 35 cm along the optical axis
+    n, d, anchor = plane_to_base(plane, T)
+    assert np.allclose(n, [0, 0, 1], atol=1e-12)  # towards the sensor: up
+    assert d == pytest.approx(-0.05)
+    assert np.allclose(anchor, [0.4, -0.1, -0.05])
+
+
+def test_known_tilted_plane_is_recovered_in_the_base_frame_from_any_pose():
+    rng = np.random.default_rng(1)
+    n_true = np.array([math.sin(math.radians(12)), 0.0, math.cos(math.radians(12))])
+    d_true = -0.05
+    filt = PlaneFilter()
+    for k in range(6):
+        extra = Rotation.from_rotvec(rng.normal(0, 0.2, 3)).as_matrix()
+        T = looking_down(rng.uniform([-0.6, -0.3, 0.2], [-0.3, 0.1, 0.4]), extra)
+        assert filt.update(PlaneEstimate(sensor_plane(n_true, d_true, T)), T, 0.1 * k)
+    f = filt.fused(0.5)
+    assert isinstance(f, FusedPlane)
+    assert np.allclose(f.normal_base, n_true, atol=1e-9)
+    assert f.offset_base == pytest.approx(d_true, abs=1e-9)
+    assert f.tilt_rad == pytest.approx(math.radians(12), abs=1e-9)
+    assert f.std_angle < 1e-6 and f.std_offset < 1e-9
+    assert f.n == 6 and f.count == 6 and f.stamp == pytest.approx(0.5)
+    assert f.height_at([0.0, 0.0, 0.1]) == pytest.approx(n_true @ [0, 0, 0.1] - d_true)
+
+
+def test_noisy_planes_fuse_to_better_than_one_frame():
+    rng = np.random.default_rng(2)
+    T = looking_down([-0.5, -0.1, 0.32])
+    filt = PlaneFilter(window=7)
+    for k in range(7):
+        n = np.array([0, 0, 1.0]) + np.r_[rng.normal(0, 0.01, 2), 0.0]
+        filt.update(Plane(n, 0.37 + rng.normal(0, 0.001)), T, k / 30)
+    f = filt.fused()
+    assert f.tilt_rad < math.radians(1.0)
+    # the surface under the sensor is where it should be (the offset about the base origin also
+    # carries the normal's error times the 0.5 m lever arm)
+    assert f.height_at([-0.5, -0.1, -0.05]) == pytest.approx(0.0, abs=0.001)
+    assert 0 < f.std_angle < math.radians(2.0) and 0 < f.std_offset < 0.003
+
+
+def test_outliers_are_rejected_and_do_not_move_the_plane():
+    T = looking_down([-0.5, -0.1, 0.32])
+    filt = PlaneFilter(angle_gate=math.radians(5), offset_gate=0.01)
+    for k in range(5):
+        assert filt.update(Plane(np.array([0, 0, 1.0]), 0.37), T, k / 30)
+    before = filt.fused()
+    assert not filt.update(Plane.from_angles(math.radians(20), 0.3, 0.37), T, 0.2)  # 20 deg off
+    assert "outlier" in filt.last_reject_reason
+    assert not filt.update(Plane(np.array([0, 0, 1.0]), 0.40), T, 0.23)  # 30 mm off
+    after = filt.fused()
+    assert np.allclose(after.normal_base, before.normal_base) and after.offset_base == before.offset_base
+    assert after.n == 5 and filt.rejected == 2
+
+
+def test_persistent_change_restarts_the_window():
+    T = looking_down([-0.5, -0.1, 0.32])
+    filt = PlaneFilter(max_consecutive_rejects=3, min_frames=3)
+    for k in range(5):
+        filt.update(Plane(np.array([0, 0, 1.0]), 0.37), T, k / 30)
+    new = Plane(np.array([0, 0, 1.0]), 0.30)  # the surface really moved 7 cm
+    results = [filt.update(new, T, 0.2 + k / 30) for k in range(5)]
+    assert results[:2] == [False, False] and all(results[2:])
+    assert filt.fused().offset_base == pytest.approx(0.32 - 0.30)
+
+
+@pytest.mark.parametrize("bad", ["none", "nan_pose", "nan_stamp", "shape", "not_rigid"])
+def test_no_plane_and_nan_inputs_are_rejected(bad):
+    T = looking_down([-0.5, -0.1, 0.32])
+    p = PlaneEstimate(Plane(np.array([0, 0, 1.0]), 0.37))
+    filt = PlaneFilter(min_frames=1)
+    if bad == "none":
+        ok = filt.update(PlaneEstimate(None, reason="too few zones with a return"), T, 0.0)
+        assert "too few zones" in filt.last_reject_reason
+    elif bad == "nan_pose":
+        T2 = T.copy()
+        T2[0, 3] = np.nan
+        ok = filt.update(p, T2, 0.0)
+    elif bad == "nan_stamp":
+        ok = filt.update(p, T, float("nan"))
+    elif bad == "shape":
+        ok = filt.update(p, np.eye(3), 0.0)
+    else:
+        ok = filt.update(p, 2 * T, 0.0)
+    assert not ok
+    assert filt.fused() is None and filt.rejected == 1 and filt.count == 0
+    assert filt.update(None, T, 0.0) is False
+
+
+def test_old_planes_expire_and_reset_forgets():
+    T = looking_down([-0.5, -0.1, 0.32])
+    filt = PlaneFilter(max_age=0.5, min_frames=2)
+    for k in range(3):
+        filt.update(Plane(np.array([0, 0, 1.0]), 0.37), T, 0.1 * k)
+    assert filt.fused(0.3) is not None
+    assert filt.fused(1.2) is None  # all older than 0.5 s
+    filt.update(Plane(np.array([0, 0, 1.0]), 0.37), T, 1.3)
+    filt.reset()
+    assert filt.fused() is None and filt.count == 0 and filt.rejected == 0
+
+
+def test_clearance_along_the_tool_axis_with_the_cup_rim():
+    n = np.array([0, 0, 1.0])
+    assert clearance_along(n, 0.0, [0, 0, 0.1], [0, 0, -1]) == pytest.approx(0.1)
+    assert clearance_along(n, 0.0, [0, 0, -0.01], [0, 0, -1]) == pytest.approx(-0.01)
+    assert clearance_along(n, 0.0, [0, 0, 0.1], [0, 0, 1]) == math.inf  # moving away
+    # tilted 10 deg: the lowest rim point of a 35 mm disc is r sin(10 deg) lower than its centre
+    t = math.radians(10)
+    nt = np.array([math.sin(t), 0, math.cos(t)])
+    c0 = clearance_along(nt, 0.0, [0, 0, 0.1], [0, 0, -1])
+    c1 = clearance_along(nt, 0.0, [0, 0, 0.1], [0, 0, -1], radius=0.035, axis=[0, 0, 1])
+    assert c0 == pytest.approx(0.1)
+    assert c0 - c1 == pytest.approx(0.035 * math.sin(t) / math.cos(t))
+    with pytest.raises(ValueError):
+        clearance_along(n, 0.0, [0, 0, np.nan], [0, 0, -1])

@@ -1,0 +1,148 @@
+"""Tests of place_safe.io.frame_file: the streamed reader (JSON list and JSON Lines) and writer."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+import place_safe.io.frame_file as frames_mod
+from place_safe.exceptions import FrameError, FrameFileError
+from place_safe.io.frame_file import iter_frame_dicts, iter_frames, load_frames, write_frames
+
+
+def _entries(n: int) -> list[dict]:
+    rng = np.random.default_rng(3)
+    out = []
+    for i in range(n):
+        out.append({"hists": rng.integers(0, 10**6, (9, 128)).tolist(),
+                    "reference_hist": rng.integers(0, 1000, 128).tolist(),
+                    "plane": {"normal": (np.array([0.0, 0.1, 1.0]) / np.sqrt(1.01)).tolist(), "offset": 0.05 + 0.01 * i},
+                    "meta": {"i": i, "text": "a, b ] } [ { \" tricky"}})
+    return out
+
+
+@pytest.fixture()
+def entries():
+    return _entries(5)
+
+
+def _write(path, entries, layout):
+    if layout == "list":
+        path.write_text(json.dumps(entries, indent=1))
+    elif layout == "list-compact":
+        path.write_text(json.dumps(entries, separators=(",", ":")))
+    else:
+        path.write_text("\n".join(json.dumps(e) for e in entries) + "\n")
+
+
+LAYOUTS = ["list", "list-compact", "jsonl"]
+
+
+@pytest.mark.parametrize("chunk", [1, 2, 5, 13])
+@pytest.mark.parametrize("layout", LAYOUTS)
+def test_reader_handles_every_chunk_boundary(tmp_path, monkeypatch, chunk, layout):
+    """Tiny chunks put a boundary at every position of small objects (strings, nesting, numbers)."""
+    monkeypatch.setattr(frames_mod, "_CHUNK", chunk)
+    small = [{"id": i, "v": [1.5e-3, -2, [3, {"k": "a, b ] } [ { \" x"}]], "t": True, "n": None} for i in range(4)]
+    path = tmp_path / "s.json"
+    _write(path, small, layout)
+    assert list(iter_frame_dicts(path)) == small
+
+
+@pytest.mark.parametrize("chunk", [100, 4096, 1 << 16])
+@pytest.mark.parametrize("layout", LAYOUTS)
+def test_reader_reads_frames_across_chunks(tmp_path, monkeypatch, entries, chunk, layout):
+    monkeypatch.setattr(frames_mod, "_CHUNK", chunk)
+    path = tmp_path / "f.json"
+    _write(path, entries, layout)
+    assert list(iter_frame_dicts(path)) == entries
+    fr = load_frames(path)
+    assert [f.extra["meta"]["i"] for f in fr] == list(range(5))
+    assert fr[2].truth.offset == pytest.approx(0.07)
+    np.testing.assert_allclose(fr[2].truth.normal, np.array([0, 0.1, 1.0]) / np.linalg.norm([0, 0.1, 1.0]))
+
+
+def test_numbers_split_across_chunks_are_not_cut(tmp_path, monkeypatch):
+    monkeypatch.setattr(frames_mod, "_CHUNK", 3)
+    path = tmp_path / "n.jsonl"
+    path.write_text('{"a": 123456789}\n{"a": 0.000123}')
+    assert [d["a"] for d in iter_frame_dicts(path)] == [123456789, 0.000123]
+
+
+def test_empty_list_gives_no_frames(tmp_path):
+    path = tmp_path / "e.json"
+    path.write_text("  [ ]\n")
+    assert list(iter_frames(path)) == []
+
+
+@pytest.mark.parametrize("text,message", [
+    ("", "empty"),
+    ("   \n", "empty"),
+    ("42", "not a frame file"),
+    ('"frames"', "not a frame file"),
+    ("[1, 2]", "expected an object"),
+    ('[{"hists": 1}, [3]]', "expected an object"),
+    ('[{"hists": [1, 2,', "invalid JSON|truncated"),
+    ('[{"hists": 1}', "truncated"),
+    ('[{"hists": 1}, {"x": }]', "invalid JSON"),
+    ('{"hists": 1}\n{"hists": 2', "invalid JSON"),
+])
+def test_malformed_files_raise_frame_file_error(tmp_path, text, message):
+    path = tmp_path / "bad.json"
+    path.write_text(text)
+    with pytest.raises(FrameFileError, match=message):
+        list(iter_frames(path))
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(FrameFileError, match="cannot open"):
+        list(iter_frames(tmp_path / "nope.json"))
+
+
+def test_frames_before_a_truncation_are_yielded_first(tmp_path, monkeypatch, entries):
+    """Streaming: good frames come out before the reader reaches the broken end of the file."""
+    monkeypatch.setattr(frames_mod, "_CHUNK", 256)
+    text = json.dumps(entries)
+    path = tmp_path / "t.json"
+    path.write_text(text[: len(text) - 200])
+    it = iter_frames(path)
+    first = next(it)
+    assert not isinstance(first, FrameError)
+    with pytest.raises(FrameFileError):
+        list(it)
+
+
+def test_bad_entries_are_yielded_in_place(tmp_path, entries):
+    bad = dict(entries[1])
+    bad["hists"] = [[1, 2, 3]]
+    path = tmp_path / "m.json"
+    path.write_text(json.dumps([entries[0], bad, entries[2]]))
+    got = list(iter_frames(path))
+    assert isinstance(got[1], FrameError) and "shape" in str(got[1])
+    assert not isinstance(got[0], FrameError) and not isinstance(got[2], FrameError)
+    assert len(load_frames(path, strict=False)) == 2
+    with pytest.raises(FrameFileError, match="frame 1"):
+        load_frames(path)
+
+
+@pytest.mark.parametrize("jsonl", [False, True])
+def test_write_then_read_round_trip(tmp_path, synthetic_frames, jsonl):
+    path = tmp_path / ("w.jsonl" if jsonl else "w.json")
+    assert write_frames(path, synthetic_frames, jsonl=jsonl) == len(synthetic_frames)
+    back = load_frames(path)
+    assert len(back) == len(synthetic_frames)
+    for a, b in zip(synthetic_frames, back):
+        np.testing.assert_allclose(a.hists, b.hists)
+        np.testing.assert_allclose(a.reference, b.reference)
+        np.testing.assert_allclose(a.truth.normal, b.truth.normal)
+        assert a.truth.offset == pytest.approx(b.truth.offset)
+
+
+def test_real_sweep_loads(sweep_path):
+    fr = load_frames(sweep_path)
+    assert len(fr) == 53
+    assert all(f.truth is not None for f in fr)
+    for f in fr:
+        f.validate()

@@ -1,0 +1,264 @@
+"""Placement state machine without a simulator: a kinematic fake robot and fake fused planes."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from place_safe.fusion.plane_filter import FusedPlane
+from place_safe.placement.machine import (CommandKind, Phase, PlacementConfig, PlacementMachine, RobotState)
+
+DT = 0.008  # s, control tick
+LATENCY = 0.1  # s, age of the newest plane in a healthy stream
+
+
+class FakeWorld:
+    """A cup moving at the commanded velocity over a surface ``n . x = 0`` through the origin."""
+
+    def __init__(self, tilt_deg=0.0, height=0.25, plane_tilt_deg=None, plane_bias=0.0, std_angle=math.radians(0.2),
+                 std_offset=0.0005, contact_height=None):
+        t = math.radians(tilt_deg)
+        self.n = np.array([math.sin(t), 0.0, math.cos(t)])  # true surface
+        pt = math.radians(tilt_deg if plane_tilt_deg is None else plane_tilt_deg)
+        self.n_est = np.array([math.sin(pt), 0.0, math.cos(pt)])
+        self.bias = plane_bias  # the estimate puts the surface this much higher (m)
+        self.std = (std_angle, std_offset)
+        self.pos = np.array([0.0, 0.0, height])  # cup bottom centre
+        self.vel = np.zeros(3)
+        self.t = 0.0
+        self.count = 0
+        self.fault = None
+        self.opened_at = None
+        self.contact_height = 0.0 if contact_height is None else contact_height
+        self.commands = []
+
+    def state(self) -> RobotState:
+        T = np.eye(4)
+        T[:3, 3] = self.pos
+        tcp = T.copy()
+        tcp[2, 3] += 0.04
+        force = 20.0 if self.pos[2] <= self.contact_height else 0.0
+        return RobotState(self.t, tcp, T, force, self.fault, self.t - 0.01)
+
+    def plane(self, stamp=None) -> FusedPlane:
+        self.count += 1
+        n = self.n_est
+        return FusedPlane(n, self.bias, math.acos(n[2]), *self.std, 7,
+                          self.t - LATENCY if stamp is None else stamp, self.count)
+
+    def apply(self, cmd):
+        self.commands.append(cmd)
+        if cmd.kind == CommandKind.SPEED:
+            self.vel = np.asarray(cmd.twist[:3])
+        elif cmd.kind == CommandKind.STOP:
+            self.vel = np.zeros(3)
+        elif cmd.kind == CommandKind.OPEN_GRIPPER:
+            self.opened_at = self.pos.copy()
+        self.pos = self.pos + self.vel * DT
+        if self.pos[2] < self.contact_height and self.vel[2] < 0:  # the surface stops the cup
+            self.pos[2] = self.contact_height
+        self.t += DT
+
+
+def run(world: FakeWorld, machine: PlacementMachine | None = None, plane_fn=None, seconds=20.0):
+    m = machine or PlacementMachine()
+    while not m.finished and world.t < seconds:
+        plane = plane_fn(world, m) if plane_fn is not None else world.plane()
+        world.apply(m.step(world.state(), plane))
+    return m
+
+
+def opened(world: FakeWorld) -> bool:
+    return any(c.kind == CommandKind.OPEN_GRIPPER for c in world.commands)
+
+
+def test_level_and_close_releases_then_retreats():
+    w = FakeWorld()
+    m = run(w)
+    assert m.phase == Phase.DONE and m.outcome == "released"
+    phases = [t.target for t in m.log]
+    assert phases == [Phase.APPROACH, Phase.DESCEND, Phase.CHECK, Phase.RELEASE, Phase.DONE]
+    assert opened(w) and 0.0 <= w.opened_at[2] <= m.config.release_clearance
+    assert w.pos[2] >= w.opened_at[2] + m.config.retreat_distance - 1e-3
+    assert all(t.reason for t in m.log)
+
+
+def test_slightly_tilted_surface_within_limit_is_released():
+    w = FakeWorld(tilt_deg=3.0)
+    m = run(w)
+    assert m.outcome == "released"
+    # the rim touches first on a tilted surface; the centre stops higher by r tan(tilt)
+    assert w.opened_at[2] == pytest.approx(m.config.cup_radius * math.tan(math.radians(3.0)), abs=0.004)
+
+
+@pytest.mark.parametrize("tilt", [7.0, 15.0])
+def test_tilted_surface_is_refused_and_the_gripper_never_opens(tilt):
+    w = FakeWorld(tilt_deg=tilt, height=0.25)
+    m = run(w)
+    assert m.phase == Phase.ABORTED and m.outcome == "refused"
+    assert "tilted" in m.decision
+    assert not opened(w) and not m.gripper_opened
+    assert Phase.REFUSE in [t.target for t in m.log]
+    if tilt > math.degrees(m.config.early_refuse_tilt):
+        assert Phase.CHECK not in [t.target for t in m.log]  # refused before descending
+
+
+def test_not_planar_is_refused():
+    w = FakeWorld(std_angle=math.radians(4.0))
+    m = run(w)
+    assert m.outcome == "refused" and "not planar" in m.decision and not opened(w)
+
+
+@pytest.mark.parametrize("lose_at", [0.05, 0.20, 0.003])  # m of clearance: approach, descend, check
+def test_plane_lost_is_refused_without_release(lose_at):
+    def plane_fn(world, m):
+        return None if world.pos[2] <= lose_at + 1e-4 and m.phase != Phase.IDLE else world.plane()
+
+    w = FakeWorld()
+    m = run(w, plane_fn=plane_fn)
+    assert m.outcome == "refused" and "no surface plane" in m.decision and not opened(w)
+
+
+def test_stale_plane_is_refused_without_release():
+    frozen = {}
+
+    def plane_fn(world, m):
+        p = world.plane()
+        if world.pos[2] < 0.1:  # the sensor stream stops updating: the same old plane comes back
+            frozen.setdefault("p", p)
+            return frozen["p"]
+        return p
+
+    w = FakeWorld()
+    m = run(w, plane_fn=plane_fn)
+    assert m.outcome == "refused" and "stale" in m.decision and not opened(w)
+
+
+def test_no_plane_at_all_is_refused_after_the_acquire_timeout():
+    w = FakeWorld()
+    m = run(w, plane_fn=lambda world, m: None)
+    assert m.outcome == "refused" and "no surface plane" in m.decision
+    assert m.log[0].time >= m.config.acquire_timeout and not opened(w)
+
+
+def test_sensor_timeout_is_refused():
+    class Silent(FakeWorld):
+        def state(self):
+            s = super().state()
+            s.last_frame_time = 0.0 if self.pos[2] < 0.15 else s.last_frame_time
+            return s
+
+    w = Silent()
+    m = run(w)
+    assert m.outcome == "refused" and "sensor timeout" in m.decision and not opened(w)
+
+
+@pytest.mark.parametrize("fault_at", [0.2, 0.02, 0.003])
+def test_robot_fault_aborts_holding_the_cup(fault_at):
+    class Faulty(FakeWorld):
+        def state(self):
+            if self.pos[2] <= fault_at:
+                self.fault = "protective stop: contact force 70 N exceeds 60 N"
+            return super().state()
+
+    w = Faulty()
+    m = run(w)
+    assert m.phase == Phase.ABORTED and "robot fault" in m.decision and not opened(w)
+    assert m.log[-1].source != Phase.REFUSE  # no retreat attempt while faulted
+    cmds_after = w.commands[-1]
+    assert cmds_after.kind == CommandKind.HOLD
+
+
+def test_nan_robot_state_aborts():
+    class Broken(FakeWorld):
+        def state(self):
+            s = super().state()
+            if self.pos[2] < 0.1:
+                s.base_T_cup = np.full((4, 4), np.nan)
+            return s
+
+    w = Broken()
+    m = run(w)
+    assert m.phase == Phase.ABORTED and not opened(w) and "not a finite" in m.decision
+
+
+def test_nan_plane_is_never_used():
+    def plane_fn(world, m):
+        p = world.plane()
+        if world.pos[2] < 0.03:
+            return FusedPlane(np.array([np.nan, 0, 1.0]), np.nan, np.nan, 0.0, 0.0, 7, p.stamp, p.count)
+        return p
+
+    w = FakeWorld()
+    m = run(w, plane_fn=plane_fn)
+    assert m.outcome == "refused" and not opened(w)
+
+
+def test_contact_before_the_estimated_surface_releases_on_contact():
+    # the estimate puts the surface 8 mm too low: the cup touches (force) before the clearance is reached
+    w = FakeWorld(plane_bias=-0.008)
+    m = run(w)
+    assert m.outcome == "released" and "contact" in m.log[2].reason
+    assert w.opened_at[2] == pytest.approx(0.0, abs=1e-9)
+
+
+def test_surface_estimate_jumping_above_the_cup_without_contact_is_refused():
+    # near the surface the estimate suddenly puts it 3 cm higher: the cup would be inside it, yet
+    # nothing is touched, so the estimate cannot be trusted
+    def plane_fn(world, m):
+        p = world.plane()
+        if world.pos[2] < 0.01:
+            return FusedPlane(p.normal_base, 0.03, p.tilt_rad, p.std_angle, p.std_offset, 7, p.stamp, p.count)
+        return p
+
+    w = FakeWorld()
+    m = run(w, plane_fn=plane_fn)
+    assert m.outcome == "refused" and "estimate is wrong" in m.decision and not opened(w)
+
+
+def test_estimate_too_high_makes_check_descend_again_then_refuses():
+    # the estimate is right while far, but after stopping it claims the cup is 2 cm higher than thought
+    def plane_fn(world, m):
+        p = world.plane()
+        if m.phase == Phase.CHECK:
+            return FusedPlane(p.normal_base, -0.02, p.tilt_rad, p.std_angle, p.std_offset, 7, p.stamp, p.count)
+        return p
+
+    w = FakeWorld()
+    m = run(w, plane_fn=plane_fn)
+    targets = [t.target for t in m.log]
+    assert targets.count(Phase.CHECK) == m.config.max_checks
+    assert m.outcome == "refused" and not opened(w)
+
+
+def test_check_needs_fresh_frames():
+    # planes stop being counted after the stop (same count): CHECK times out instead of deciding
+    def plane_fn(world, m):
+        p = world.plane()
+        if m.phase == Phase.CHECK:
+            return FusedPlane(p.normal_base, p.offset_base, p.tilt_rad, p.std_angle, p.std_offset, 7,
+                              world.t - LATENCY, 100)
+        return p
+
+    w = FakeWorld()
+    m = run(w, plane_fn=plane_fn)
+    assert m.outcome == "refused" and "of 5 surface planes" in m.decision and not opened(w)
+
+
+def test_config_json_round_trip_and_validation(tmp_path):
+    cfg = PlacementConfig(max_tilt=math.radians(4.0), check_frames=7)
+    p = tmp_path / "placement.json"
+    cfg.save(p)
+    assert PlacementConfig.load(p) == cfg
+    with pytest.raises(ValueError, match="unknown"):
+        PlacementConfig.from_dict({"max_tilt_deg": 5})
+    with pytest.raises(ValueError, match="finite"):
+        PlacementConfig(approach_speed=float("nan"))
+    with pytest.raises(ValueError, match="positive"):
+        PlacementConfig(descend_speed=-0.01)
+    with pytest.raises(ValueError, match="stop_clearance"):
+        PlacementConfig(stop_clearance=0.01, release_clearance=0.005)
+    with pytest.raises(ValueError, match="cannot read"):
+        PlacementConfig.load(tmp_path / "missing.json")

@@ -1,0 +1,101 @@
+"""Differentiable-rendering recovery: round trips, the paper's mode, batching and bad input."""
+
+import math
+
+import numpy as np
+import pytest
+
+from place_safe.recovery import make_estimator
+from place_safe.recovery.differentiable import DifferentiableEstimator, SolverOptions
+from place_safe.evaluation.metrics import angular_error, linear_error, point_error
+from place_safe.sensor.frame import Frame
+from place_safe.evaluation.synthetic import SyntheticSpec, make_frames
+
+
+@pytest.fixture(scope="module")
+def frames():
+    return make_frames(12, seed=11)
+
+
+def _errors(ests, frames):
+    ang = [math.degrees(angular_error(e.plane, f.truth)) for e, f in zip(ests, frames)]
+    lin = [linear_error(e.plane, f.truth) * 1e3 for e, f in zip(ests, frames)]
+    pt = [point_error(e.plane, f.truth) * 1e3 for e, f in zip(ests, frames)]
+    return np.array(ang), np.array(lin), np.array(pt)
+
+
+def test_round_trip_fast(frames):
+    est = DifferentiableEstimator()
+    ests = [est.estimate(f) for f in frames]
+    assert all(e.ok for e in ests)
+    ang, lin, pt = _errors(ests, frames)
+    assert ang.mean() < 0.3 and lin.mean() < 0.2 and pt.mean() < 0.3
+    # the model explains the histograms to the noise level: residual near 1
+    assert np.median([e.residual for e in ests]) < 3.0
+    # albedo recovered
+    true_albedo = np.array([f.extra["meta"]["albedo"] for f in frames])
+    got = np.array([e.albedo for e in ests])
+    assert np.median(np.abs(got / true_albedo - 1)) < 0.1
+
+
+def test_better_than_peak_initialisation(frames):
+    diff = _errors(DifferentiableEstimator().estimate_many(frames), frames)[2].mean()
+    peak = _errors(make_estimator("peak").estimate_many(frames), frames)[2].mean()
+    assert diff < peak
+
+
+def test_batch_equals_single(frames):
+    est = DifferentiableEstimator()
+    batch = est.estimate_batch(frames[:4])
+    for f, b in zip(frames[:4], batch):
+        s = est.estimate(f)
+        np.testing.assert_allclose(s.plane.normal, b.plane.normal, atol=1e-6)
+        assert s.plane.offset == pytest.approx(b.plane.offset, abs=1e-7)
+
+
+@pytest.mark.slow
+def test_paper_mode_agrees_with_fast():
+    frames = make_frames(3, seed=5, spec=SyntheticSpec(z_range=(0.05, 0.25), theta_range=(0.0, 0.3)))
+    fast = DifferentiableEstimator().estimate_many(frames)
+    paper = DifferentiableEstimator(mode="paper", options=SolverOptions(paper_rays=512)).estimate_many(frames)
+    assert all(e.ok for e in paper)
+    for a, b, f in zip(fast, paper, frames):
+        assert math.degrees(angular_error(a.plane, b.plane)) < 3.0
+        assert abs(a.plane.z0 - b.plane.z0) < 3e-3
+    ang_f, lin_f, _ = _errors(fast, frames)
+    ang_p, lin_p, _ = _errors(paper, frames)
+    assert ang_f.mean() <= ang_p.mean() + 0.05 and lin_f.mean() <= lin_p.mean() + 0.05
+
+
+def test_mode_is_checked():
+    with pytest.raises(ValueError):
+        DifferentiableEstimator(mode="magic")
+
+
+def _bad_frames(good: Frame):
+    nan = good.hists.copy()
+    nan[3, 20] = np.nan
+    neg = good.hists.copy()
+    neg[0, 0] = -5
+    floor_only = np.full((9, 128), 100.0)
+    saturated = good.hists.copy()
+    saturated[:, 15:25] = 2 ** 24 - 1
+    return {
+        "nan": Frame(nan, good.reference),
+        "negative": Frame(neg, good.reference),
+        "floor only": Frame(floor_only, good.reference),
+        "saturated": Frame(saturated, good.reference),
+        "no reference": Frame(good.hists.copy(), None),
+        "wrong shape": Frame(good.hists[:5].copy(), good.reference),
+    }
+
+
+@pytest.mark.parametrize("mode", ["fast", "paper"])
+def test_bad_input_gives_reason(frames, mode):
+    est = DifferentiableEstimator(mode=mode, options=SolverOptions(paper_rays=64, paper_iterations=5))
+    for name, frame in _bad_frames(frames[0]).items():
+        e = est.estimate(frame)
+        assert e.plane is None, name
+        assert e.reason, name
+    many = est.estimate_many(list(_bad_frames(frames[0]).values()) + [frames[0]])
+    assert [e.ok for e in many] == [False] * 6 + [True]

@@ -1,0 +1,161 @@
+"""Forward imaging model: gradients, analytic cases, parameters I/O, batching."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from place_safe.exceptions import CalibrationError
+from place_safe.recovery.forward import (ForwardModel, ForwardParams, ZoneRays, apply_pileup, params_to_tensors,
+                                pulse_kernel)
+from place_safe.geometry import Plane
+from place_safe.sensor.frame import N_BINS, ZONE_DIRECTIONS
+from place_safe.evaluation.synthetic import default_reference
+
+
+def delta_reference(floor: float = 135.14) -> torch.Tensor:
+    """A reference whose pulse is a delta at lag 0 (after the floor is removed)."""
+    ref = torch.full((1, N_BINS), floor, dtype=torch.float64)
+    ref[0, 0] += 1000.0
+    return ref
+
+
+def test_fronto_parallel_peaks_where_geometry_says():
+    d = 0.15
+    n = torch.tensor([[0.0, 0.0, 1.0]])
+    for sigma in (0.5, 1.5):
+        params = ForwardParams(crosstalk=0.0, soft_bin_sigma=sigma)
+        model = ForwardModel(params, ZoneRays.stratified(1))  # one ray per zone, through its centre
+        h = model.render_plane(n, torch.tensor([d]), torch.tensor([1.0]), delta_reference())[0].numpy()
+        ranges = d / ZONE_DIRECTIONS[:, 2]
+        expected = ranges / params.bin_size + params.bin_offset
+        np.testing.assert_array_equal(h.argmax(1), np.round(expected).astype(int))
+        if sigma > 1:  # a wide Gaussian sampled at whole bins keeps its centroid exactly
+            centroid = (h * np.arange(N_BINS)).sum(1) / h.sum(1)
+            np.testing.assert_allclose(centroid, expected, atol=1e-9)
+
+
+def test_pulse_delays_peak_by_its_own_peak_lag():
+    params = ForwardParams(crosstalk=0.0)
+    model = ForwardModel(params, ZoneRays.stratified(1))
+    ref = torch.as_tensor(default_reference())[None]
+    kernel = model.pulse(ref)[0].numpy()
+    h0 = model.render_plane(torch.tensor([[0.0, 0.0, 1.0]]), torch.tensor([0.2]), torch.tensor([1.0]), delta_reference())[0]
+    h1 = model.render_plane(torch.tensor([[0.0, 0.0, 1.0]]), torch.tensor([0.2]), torch.tensor([1.0]), ref)[0]
+    assert int(h1[4].argmax() - h0[4].argmax()) == int(np.argmax(kernel))
+    # the reference peaks near bin 14 and is rescaled by ~0.279: a lag of about 4 zone bins
+    assert 3 <= int(np.argmax(kernel)) <= 5
+
+
+def test_inverse_square_falloff_without_saturation():
+    params = ForwardParams(saturation=1e12, crosstalk=0.0, soft_bin_sigma=1.5)
+    model = ForwardModel(params, ZoneRays.stratified(4))
+    n = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
+    h = model.render_plane(n, torch.tensor([0.1, 0.2]), torch.tensor([1.0, 1.0]), delta_reference().expand(2, -1))
+    ratio = h[0].sum() / h[1].sum()
+    assert ratio.item() == pytest.approx(4.0, rel=1e-6)
+
+
+def test_saturation_limits_counts():
+    params = ForwardParams(crosstalk=0.0)
+    model = ForwardModel(params, ZoneRays.stratified(4))
+    n = torch.tensor([[0.0, 0.0, 1.0]])
+    h = model.render_plane(n, torch.tensor([0.001]), torch.tensor([1e6]), delta_reference())
+    # every ray saturates at s photons; the zone total is at most s * rays_per_zone
+    assert h[0].sum(1).max().item() <= params.saturation * params.rays_per_zone * 1.0001
+
+
+def test_crosstalk_mixes_zones():
+    params = ForwardParams(crosstalk=0.01)
+    model = ForwardModel(params, ZoneRays.stratified(2))
+    ranges = torch.full((1, 9, 4), 0.1, dtype=torch.float64)
+    cos = torch.ones_like(ranges)
+    hit = torch.zeros_like(ranges, dtype=torch.bool)
+    hit[0, 4] = True  # only the centre zone sees anything
+    h = model.render_returns(ranges, cos, torch.tensor([1.0]), delta_reference(), hit=hit)[0]
+    assert torch.allclose(h[0], 0.01 * h[4])
+    assert torch.allclose(h[1], h[0])
+
+
+def test_pileup_shifts_histograms_earlier():
+    flux = torch.exp(-0.5 * ((torch.arange(40.0, dtype=torch.float64) - 20) / 1.5) ** 2) * 1e6
+    piled = apply_pileup(flux, torch.tensor(1e-6, dtype=torch.float64))
+    mean = lambda h: float((h * torch.arange(40.0)).sum() / h.sum())
+    assert mean(piled) < mean(flux) - 0.1
+    assert torch.allclose(apply_pileup(flux, torch.tensor(0.0)), flux)
+    weak = apply_pileup(flux, torch.tensor(1e-15, dtype=torch.float64))
+    assert torch.allclose(weak, flux, rtol=1e-6)
+
+
+def test_gradcheck_float64():
+    params = ForwardParams(pileup=1e-7, tail_weight=0.1, edge_fov_scale=0.95)
+    model = ForwardModel(params, ZoneRays.stratified(2))
+    ref = torch.as_tensor(default_reference())[None]
+
+    def f(normal_xy, offset, albedo, bin_offset, saturation, pileup, fov):
+        # pile-up in units of 1e-7 so the finite-difference step suits its scale
+        model.t["bin_offset"], model.t["saturation"], model.t["pileup"] = bin_offset, saturation, pileup * 1e-7
+        model.t["corner_fov_scale"] = fov
+        n = torch.cat([normal_xy, torch.ones(1, 1, dtype=torch.float64)], dim=1)
+        n = n / n.norm(dim=1, keepdim=True)
+        return model.render_plane(n, offset, albedo, ref)[..., 10:30]
+
+    inputs = (torch.tensor([[0.1, -0.2]], dtype=torch.float64, requires_grad=True),
+              torch.tensor([0.08], dtype=torch.float64, requires_grad=True),
+              torch.tensor([2.0], dtype=torch.float64, requires_grad=True),
+              torch.tensor(9.5, dtype=torch.float64, requires_grad=True),
+              torch.tensor(300.0, dtype=torch.float64, requires_grad=True),
+              torch.tensor(1.0, dtype=torch.float64, requires_grad=True),
+              torch.tensor(0.9, dtype=torch.float64, requires_grad=True))
+    assert torch.autograd.gradcheck(f, inputs, eps=1e-6, atol=1e-4, rtol=1e-4)
+
+
+def test_batched_equals_single():
+    model = ForwardModel(ForwardParams(), ZoneRays.stratified(3))
+    ref = torch.as_tensor(default_reference())
+    planes = [Plane.from_angles(0.2, 0.5, 0.1), Plane.from_angles(0.4, -2.0, 0.25)]
+    n = torch.as_tensor(np.array([p.normal for p in planes]))
+    d = torch.as_tensor(np.array([p.offset for p in planes]))
+    both = model.render_plane(n, d, torch.tensor([1.0, 2.0]), ref.expand(2, -1))
+    one = model.render_plane(n[1:], d[1:], torch.tensor([2.0]), ref[None])
+    assert torch.allclose(both[1:], one)
+
+
+def test_random_rays_are_uniform_in_solid_angle():
+    rng = np.random.default_rng(3)
+    rays = ZoneRays.random(20000, rng)
+    strat = ZoneRays.stratified(64)
+    # mean direction per zone agrees between the two quadratures
+    mean_r = (rays.directions * rays.weights[..., None]).sum(1)
+    mean_s = (strat.directions * strat.weights[..., None]).sum(1)
+    assert torch.allclose(mean_r, mean_s, atol=2e-3)
+
+
+def test_params_round_trip(tmp_path):
+    p = ForwardParams(albedo=2.0, zone_offsets=[0.1] * 9, pileup=1e-7)
+    p.save(tmp_path / "p.json")
+    assert ForwardParams.load(tmp_path / "p.json") == p
+    assert set(params_to_tensors(p)) >= {"albedo", "zone_offsets", "pileup"}
+
+
+def test_params_reject_bad_values(tmp_path):
+    with pytest.raises(CalibrationError):
+        ForwardParams(bin_size=-1.0)
+    with pytest.raises(CalibrationError):
+        ForwardParams(zone_offsets=[0.0] * 3)
+    with pytest.raises(CalibrationError):
+        ForwardParams.from_dict({"albedo": 1.0, "nonsense": 2})
+    with pytest.raises(CalibrationError):
+        ForwardParams(albedo=math.nan)
+    (tmp_path / "bad.json").write_text("{not json")
+    with pytest.raises(CalibrationError):
+        ForwardParams.load(tmp_path / "bad.json")
+
+
+def test_pulse_kernel_is_normalised():
+    ref = torch.as_tensor(default_reference())[None]
+    k = pulse_kernel(ref, torch.tensor(0.27887, dtype=torch.float64), torch.tensor(135.14, dtype=torch.float64))
+    # normalised to peak 1 in reference bins; resampled at zone-bin lags the maximum lands near it
+    assert 0.5 < k.max().item() <= 1.0
+    assert (k >= 0).all()

@@ -1,0 +1,53 @@
+"""The fast numpy plane renderer agrees with the torch forward model, Jacobian included."""
+
+import math
+
+import numpy as np
+import torch
+from torch.func import jacfwd
+
+from place_safe.recovery.forward import ForwardModel, ForwardParams, ZoneRays
+from place_safe.recovery.plane_renderer import PlaneRenderer, convolution_matrices
+from place_safe.evaluation.synthetic import default_reference
+
+
+def _check(params: ForwardParams, x: np.ndarray, width: int = 70) -> None:
+    rays = ZoneRays.stratified(4)
+    model = ForwardModel(params, rays)
+    renderer = PlaneRenderer(params, rays)
+    kernel = model.pulse(torch.as_tensor(default_reference())[None])
+    conv = convolution_matrices(kernel.numpy(), width)
+
+    def f(xt):
+        a, b, z0 = xt[0], xt[1], xt[2]
+        s = torch.sqrt(1 + a * a + b * b)
+        n = torch.stack([a, b, torch.ones_like(a)]) / s
+        return model.render_plane(n[None], (z0 / s).reshape(1), torch.exp(xt[3]).reshape(1), None,
+                                  specular_weight=xt[4].reshape(1), specular_exponent=torch.exp(xt[5]).reshape(1),
+                                  kernel=kernel)[0, :, :width] - model.t["floor"]
+
+    xt = torch.tensor(x)
+    h_ref = f(xt).numpy()
+    j_ref = jacfwd(f)(xt).numpy()
+    h, j = renderer.render(x[None], conv, jacobian=True)
+    np.testing.assert_allclose(h[0], h_ref, rtol=1e-9, atol=1e-9 * h_ref.max())
+    for k in range(6):
+        scale = np.abs(j_ref[..., k]).max()
+        np.testing.assert_allclose(j[0, ..., k], j_ref[..., k], atol=1e-9 * scale)
+
+
+def test_matches_torch_model_published_params():
+    _check(ForwardParams(), np.array([0.1, -0.2, 0.12, math.log(3.0), 0.15, math.log(1.8)]))
+
+
+def test_matches_torch_model_with_extensions():
+    p = ForwardParams(pileup=2e-7, tail_weight=0.2, tail_decay=3.0, edge_fov_scale=0.93, corner_fov_scale=0.9,
+                      zone_offsets=list(np.linspace(-0.5, 0.5, 9)), zone_gains=list(np.linspace(0.8, 1.2, 9)))
+    _check(p, np.array([-0.3, 0.25, 0.07, math.log(5.0), 0.3, math.log(2.5)]))
+
+
+def test_convolution_matrix_is_causal_convolution():
+    k = np.array([[1.0, 0.5, 0.25]])
+    m = convolution_matrices(k, 6)[0]
+    t = np.array([0, 1.0, 0, 0, 2.0, 0])
+    np.testing.assert_allclose(m @ t, np.convolve(t, k[0])[:6])

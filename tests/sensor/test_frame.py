@@ -1,0 +1,99 @@
+"""Tests of place_safe.sensor.frame: the zone table of docs/tmf8820.md and the Frame type."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from place_safe.exceptions import FrameError
+from place_safe.geometry import Plane
+from place_safe.sensor.frame import CORNER, EDGE, CENTRE, N_BINS, N_ZONES, ZONE_DIRECTIONS, ZONE_KIND, ZONE_RECTS, Frame
+
+#: Centre directions from the table in the shared docs/tmf8820.md (zones 1..9).
+DOC_DIRECTIONS = np.array([
+    [+0.1824, +0.1873, 0.9652],
+    [+0.1857, +0.0000, 0.9826],
+    [+0.1824, -0.1873, 0.9652],
+    [+0.0000, +0.1904, 0.9817],
+    [+0.0000, +0.0000, 1.0000],
+    [+0.0000, -0.1904, 0.9817],
+    [-0.1824, +0.1873, 0.9652],
+    [-0.1857, +0.0000, 0.9826],
+    [-0.1824, -0.1873, 0.9652],
+])
+
+
+def test_zone_directions_match_the_documented_table():
+    assert ZONE_DIRECTIONS.shape == (N_ZONES, 3)
+    np.testing.assert_allclose(ZONE_DIRECTIONS, DOC_DIRECTIONS, atol=1e-4)
+    np.testing.assert_allclose(np.linalg.norm(ZONE_DIRECTIONS, axis=1), 1.0)
+
+
+def test_zone_kinds_and_field_of_view():
+    assert [i + 1 for i in np.flatnonzero(ZONE_KIND == CORNER)] == [1, 3, 7, 9]
+    assert [i + 1 for i in np.flatnonzero(ZONE_KIND == EDGE)] == [2, 4, 6, 8]
+    assert [i + 1 for i in np.flatnonzero(ZONE_KIND == CENTRE)] == [5]
+    fov_x = np.degrees(np.arctan(ZONE_RECTS[:, 1].max()) - np.arctan(ZONE_RECTS[:, 0].min()))
+    fov_y = np.degrees(np.arctan(ZONE_RECTS[:, 3].max()) - np.arctan(ZONE_RECTS[:, 2].min()))
+    assert fov_x == pytest.approx(33, abs=1) and fov_y == pytest.approx(33, abs=1)
+
+
+def _good() -> Frame:
+    return Frame(np.full((N_ZONES, N_BINS), 100.0), np.full(N_BINS, 50.0))
+
+
+def test_valid_frame_passes():
+    _good().validate()
+
+
+@pytest.mark.parametrize("change,message", [
+    (lambda f: setattr(f, "hists", np.zeros((9, 127))), "shape"),
+    (lambda f: f.hists.__setitem__((0, 0), np.nan), "NaN"),
+    (lambda f: f.hists.__setitem__((3, 5), -1.0), "negative"),
+    (lambda f: setattr(f, "reference", None), "reference"),
+    (lambda f: setattr(f, "reference", np.zeros(64)), "shape"),
+    (lambda f: f.reference.__setitem__(0, np.inf), "reference_hist"),
+])
+def test_validate_says_what_is_wrong(change, message):
+    f = _good()
+    change(f)
+    with pytest.raises(FrameError, match=message):
+        f.validate()
+
+
+@pytest.mark.parametrize("entry,message", [
+    ([], "JSON object"),
+    ({}, "hists"),
+    ({"hists": [[1, 2]]}, "shape"),
+    ({"hists": "abc"}, "hists"),
+    ({"hists": np.zeros((9, 128)).tolist(), "distances": [{"confs_1": [0] * 9}]}, "depths_1"),
+    ({"hists": np.zeros((9, 128)).tolist(), "plane": {"offset": 0.1}}, "ground truth"),
+])
+def test_from_dict_rejects_malformed_entries(entry, message):
+    with pytest.raises(FrameError, match=message):
+        Frame.from_dict(entry)
+
+
+def test_dict_round_trip_keeps_units_truth_and_extras():
+    f = Frame(np.arange(N_ZONES * N_BINS, dtype=float).reshape(N_ZONES, N_BINS), np.ones(N_BINS),
+              distances=np.linspace(0.05, 0.09, 9), confidences=np.full(9, 200.0), timestamp=12.5,
+              truth=Plane.from_angles(0.2, 0.5, 0.1), extra={"joint_angles": [0.0] * 6})
+    d = f.to_dict()
+    assert d["distances"][0]["depths_1"][0] == pytest.approx(50.0)  # millimetres in the file
+    g = Frame.from_dict(d)
+    np.testing.assert_allclose(g.hists, f.hists)
+    np.testing.assert_allclose(g.distances, f.distances)
+    np.testing.assert_allclose(g.truth.normal, f.truth.normal)
+    assert g.timestamp == 12.5
+    assert g.extra["joint_angles"] == [0.0] * 6
+
+
+def test_pose_ground_truth_from_the_sweep_format(sweep_path):
+    import json
+
+    first = json.loads(sweep_path.read_text())[0]
+    f = Frame.from_dict(first)
+    f.validate()
+    assert f.truth is not None
+    assert f.truth.offset == pytest.approx(first["dist_to_plane"])
+    assert f.distances is not None and np.all(f.distances < 1.0)  # mm in the file -> m
