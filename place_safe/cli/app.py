@@ -24,6 +24,10 @@ from typing import Any, TextIO
 from place_safe.exceptions import CalibrationError, FrameError, FrameFileError, PlaceSafeError
 
 PROG = "place-safe"
+#: Command groups that live in their own module: each exposes ``register(subparsers) -> None``, which adds
+#: its sub-parser(s) (``parser_class=_Parser`` is inherited) with ``set_defaults(func=...)``. Modules must
+#: import heavy packages (torch, MuJoCo, ur-rtde, smbus2) inside their command functions, not at import time.
+COMMAND_MODULES: tuple[str, ...] = ()
 METHODS = ("diff", "peak", "peak-naive", "proprietary", "proprietary-naive")
 CALIBRATE_METHODS = ("diff", "peak", "proprietary")
 
@@ -633,6 +637,10 @@ def build_parser(load_sim: bool = True) -> argparse.ArgumentParser:
     d.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     d.set_defaults(func=cmd_demo)
 
+    import importlib
+
+    for name in COMMAND_MODULES:
+        importlib.import_module(name).register(sub)
     _add_sim(sub, load_sim)
     return p
 
