@@ -27,3 +27,11 @@ class SensorTimeout(PlaceSafeError, TimeoutError):
 
 class RobotFault(PlaceSafeError, RuntimeError):
     """The robot reported a fault (protective stop, lost connection, limit violation)."""
+
+
+class ConfigError(PlaceSafeError, ValueError):
+    """A configuration file or value (robot, sensor, scenario, placement) is unusable."""
+
+
+class SensorError(PlaceSafeError, RuntimeError):
+    """The sensor failed in a way retries cannot fix (dead bus, wrong device, lost firmware)."""
