@@ -1,0 +1,208 @@
+"""Hand-eye calibration of the sensor mount: ``flange_T_sensor`` (6 DoF) and the plane, from a capture.
+
+Concept: a capture (:mod:`place_safe.calibration.capture`, or the shared real sweep) gives, per frame,
+the flange pose ``base_T_flange_i`` (forward kinematics of the recorded joint angles, or the recorded
+pose) and the plane the sensor saw, estimated from the histograms in the sensor frame ``(n_i, d_i)``.
+One unknown plane ``n_b . x = d_b`` in the base frame and one unknown mount ``M = flange_T_sensor``
+explain all frames: ``n_i = -(R_i R_M)^T n_b`` and ``d_i = -(d_b - n_b . (p_i + R_i t_M))``.
+:func:`fit_mount` solves for ``M`` and the plane by nonlinear least squares (``scipy.optimize.least_squares``,
+soft-L1 loss against outlier frames), after Sifferman et al., RA-L 2022.
+
+Uncertainty: the Gauss-Newton covariance ``(J^T J)^-1`` scaled by the reduced chi-square. A weak prior
+(``prior_translation``, ``prior_rotation`` around the starting mount) keeps directions the sweep does not
+observe -- e.g. the mount's x/y offset when the sensor only moves straight down over a level table --
+at their starting value; :class:`MountFit` flags them (posterior sigma close to the prior's).
+
+Conventions: SI units inside (m, rad), mm and degrees in :meth:`MountFit.summary`. Rotations of the
+mount are rotation vectors applied on the left of the starting rotation; ``rpy`` is fixed-axis x-y-z.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Sequence
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from place_safe.exceptions import CalibrationError
+from place_safe.geometry import Plane
+
+#: Fraction of the prior sigma above which a direction counts as not observed by the sweep.
+UNOBSERVED = 0.5
+
+
+@dataclass
+class MountFit:
+    """Result of :func:`fit_mount` (SI units)."""
+
+    flange_T_sensor: np.ndarray  # 4x4
+    plane_normal: np.ndarray  # base frame, up
+    plane_offset: float  # m
+    sigma_xyz: np.ndarray  # m, 1-sigma of the mount translation
+    sigma_rot: np.ndarray  # rad, 1-sigma of the mount rotation (rotation-vector components)
+    rms_angle: float  # rad, RMS of the normal residuals
+    rms_distance: float  # m, RMS of the offset residuals
+    residuals_angle: np.ndarray  # rad per frame
+    residuals_distance: np.ndarray  # m per frame
+    frames: int
+    unobserved: list[str] = field(default_factory=list)  # mount components the sweep did not determine
+    start: np.ndarray | None = None  # the starting mount
+
+    @property
+    def xyz(self) -> np.ndarray:
+        return self.flange_T_sensor[:3, 3].copy()
+
+    @property
+    def rpy(self) -> np.ndarray:
+        return Rotation.from_matrix(self.flange_T_sensor[:3, :3]).as_euler("xyz")
+
+    def change(self) -> tuple[float, float]:
+        """(m, rad) between the starting and the fitted mount."""
+        if self.start is None:
+            return math.nan, math.nan
+        E = np.linalg.inv(self.start) @ self.flange_T_sensor
+        return float(np.linalg.norm(self.flange_T_sensor[:3, 3] - self.start[:3, 3])), \
+            float(np.linalg.norm(Rotation.from_matrix(E[:3, :3]).as_rotvec()))
+
+    def error_to(self, truth: np.ndarray) -> tuple[float, float]:
+        """(m, rad) from the fitted mount to ``truth``."""
+        E = np.linalg.inv(truth) @ self.flange_T_sensor
+        return float(np.linalg.norm(self.flange_T_sensor[:3, 3] - truth[:3, 3])), \
+            float(np.linalg.norm(Rotation.from_matrix(E[:3, :3]).as_rotvec()))
+
+    def to_dict(self) -> dict[str, Any]:
+        dt, dr = self.change()
+        return {"flange_T_sensor": self.flange_T_sensor.tolist(), "xyz": self.xyz.tolist(), "rpy": self.rpy.tolist(),
+                "sigma_xyz": self.sigma_xyz.tolist(), "sigma_rot": self.sigma_rot.tolist(),
+                "plane_normal": self.plane_normal.tolist(), "plane_offset": self.plane_offset,
+                "rms_angle": self.rms_angle, "rms_distance": self.rms_distance, "frames": self.frames,
+                "unobserved": list(self.unobserved), "change_translation": dt, "change_rotation": dr,
+                "residuals_angle": self.residuals_angle.tolist(),
+                "residuals_distance": self.residuals_distance.tolist()}
+
+    def summary(self) -> str:
+        mm, deg = 1000.0, math.degrees(1.0)
+        dt, dr = self.change()
+        lines = [f"mount fit on {self.frames} frames: residual RMS {self.rms_angle * deg:.2f} deg (normal), "
+                 f"{self.rms_distance * mm:.2f} mm (distance)",
+                 "  flange_T_sensor xyz [mm]: " + ", ".join(f"{v * mm:8.2f} +- {s * mm:.2f}"
+                                                             for v, s in zip(self.xyz, self.sigma_xyz)),
+                 "  flange_T_sensor rpy [deg]: " + ", ".join(f"{v * deg:7.2f}" for v in self.rpy)
+                 + "  (rotation 1-sigma " + ", ".join(f"{s * deg:.2f}" for s in self.sigma_rot) + " deg)",
+                 f"  plane in base: normal {np.round(self.plane_normal, 4).tolist()}, offset {self.plane_offset * mm:.2f} mm",
+                 f"  change from the starting mount: {dt * mm:.2f} mm, {dr * deg:.2f} deg"]
+        if self.unobserved:
+            lines.append("  not determined by this sweep (kept at the start value by the prior): "
+                         + ", ".join(self.unobserved))
+        return "\n".join(lines)
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v)
+
+
+def _plane_basis(n0: np.ndarray) -> np.ndarray:
+    """Rotation whose third column is ``n0`` (parametrises plane normals as tilts around n0)."""
+    a = np.array([1.0, 0.0, 0.0]) if abs(n0[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    e1 = _unit(np.cross(a, n0))
+    return np.column_stack([e1, np.cross(n0, e1), n0])
+
+
+def fit_mount(base_T_flange: Sequence[np.ndarray], planes: Sequence[Plane | None], start: np.ndarray, *,
+              sigma_angle: float = math.radians(1.0), sigma_distance: float = 0.002,
+              prior_translation: float = 0.05, prior_rotation: float = math.radians(10.0),
+              loss: str = "soft_l1") -> MountFit:
+    """Fit ``flange_T_sensor`` and the plane (see module docstring).
+
+    ``base_T_flange``: (N, 4, 4) flange poses. ``planes``: the estimated sensor-frame plane per frame
+    (None for frames without one: skipped). ``start``: the starting mount (nominal or current).
+    ``sigma_angle`` (rad) / ``sigma_distance`` (m): per-frame noise of the plane estimates, which weigh the
+    two kinds of residual (the reported uncertainty is rescaled by the fit's own chi-square).
+    """
+    F = np.asarray(base_T_flange, dtype=float)
+    if F.ndim != 3 or F.shape[1:] != (4, 4) or len(F) != len(planes):
+        raise CalibrationError(f"need one 4x4 flange pose per plane; got poses {F.shape} and {len(planes)} planes")
+    keep = [i for i, p in enumerate(planes) if p is not None and np.all(np.isfinite(F[i]))]
+    if len(keep) < 6:
+        raise CalibrationError(f"a mount fit needs at least 6 frames with a plane; got {len(keep)}")
+    F = F[keep]
+    ns = np.array([planes[i].normal for i in keep])
+    ds = np.array([planes[i].offset for i in keep])
+    start = np.asarray(start, dtype=float)
+    R0, t0 = start[:3, :3], start[:3, 3]
+    # starting plane: every frame's plane moved to the base frame with the starting mount, averaged
+    RS = F[:, :3, :3] @ R0
+    pS = F[:, :3, 3] + F[:, :3, :3] @ t0
+    nb = -np.einsum("nij,nj->ni", RS, ns)  # sensor-frame normal points away from the sensor: base "up" is -R n
+    n0 = _unit(nb.mean(axis=0))
+    d0 = float(np.mean(np.einsum("i,ni->n", n0, pS) - ds))
+    B = _plane_basis(n0)
+
+    def unpack(x: np.ndarray):
+        Rm = Rotation.from_rotvec(x[:3]).as_matrix() @ R0
+        tm = t0 + x[3:6]
+        n = B @ _unit(np.array([x[6], x[7], 1.0]))
+        return Rm, tm, n, x[8]
+
+    def residuals(x: np.ndarray) -> np.ndarray:
+        Rm, tm, n, d = unpack(x)
+        R = F[:, :3, :3] @ Rm
+        p = F[:, :3, 3] + F[:, :3, :3] @ tm
+        n_pred = -np.einsum("nji,j->ni", R, n)  # -(R^T n)
+        d_pred = -(d - p @ n)
+        r = np.concatenate([((n_pred - ns) / sigma_angle).ravel(), (d_pred - ds) / sigma_distance,
+                            x[:3] / prior_rotation, x[3:6] / prior_translation])
+        return r
+
+    x0 = np.zeros(9)
+    x0[8] = d0
+    sol = least_squares(residuals, x0, loss=loss, f_scale=3.0, x_scale="jac", max_nfev=500)
+    if not sol.success and sol.status <= 0:
+        raise CalibrationError(f"mount fit did not converge: {sol.message}")
+    Rm, tm, n, d = unpack(sol.x)
+    nf = len(keep)
+    r = residuals(sol.x)
+    rn = r[:3 * nf].reshape(nf, 3) * sigma_angle
+    rd = r[3 * nf:4 * nf] * sigma_distance
+    ang = np.linalg.norm(rn, axis=1)  # small-angle: |n_pred - n| ~ angle
+    J = sol.jac
+    dof = max(4 * nf - 9 + 6, 1)
+    chi2 = float(np.sum(r[:4 * nf] ** 2)) / max(4 * nf - 9, 1)
+    try:
+        cov = np.linalg.pinv(J.T @ J) * max(chi2, 1e-12)
+    except np.linalg.LinAlgError as exc:
+        raise CalibrationError(f"mount fit: singular normal matrix ({exc})") from None
+    del dof
+    sig = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    names_rot, names_xyz = ("rotation about x", "rotation about y", "rotation about z"), ("x", "y", "z")
+    unobserved = [names_rot[k] for k in range(3) if sig[k] > UNOBSERVED * prior_rotation] + \
+        [f"translation {names_xyz[k]}" for k in range(3) if sig[3 + k] > UNOBSERVED * prior_translation]
+    M = np.eye(4)
+    M[:3, :3], M[:3, 3] = Rm, tm
+    return MountFit(M, n, float(d), sig[3:6], sig[:3], float(np.sqrt(np.mean(ang ** 2))),
+                    float(np.sqrt(np.mean(rd ** 2))), ang, rd, nf, unobserved, start.copy())
+
+
+def flange_poses(frames: Sequence[Any], use_kinematics: bool = True, kinematics: Any = None) -> np.ndarray:
+    """base_T_flange per frame: forward kinematics of ``joint_angles`` (default) or the recorded ``pose``."""
+    out = []
+    kin = kinematics
+    for i, f in enumerate(frames):
+        extra = f.extra if hasattr(f, "extra") else f
+        if use_kinematics and extra.get("joint_angles") is not None:
+            if kin is None:
+                from place_safe.robot.kinematics import Kinematics
+
+                kin = Kinematics()
+            out.append(kin.base_T_flange(np.asarray(extra["joint_angles"], dtype=float)))
+        elif extra.get("pose") is not None:
+            out.append(np.asarray(extra["pose"], dtype=float).reshape(4, 4))
+        else:
+            raise CalibrationError(f"frame {i} has neither joint_angles nor pose; the capture cannot fit a mount")
+    return np.array(out)
+
+
+__all__ = ["MountFit", "fit_mount", "flange_poses"]
