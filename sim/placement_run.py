@@ -98,7 +98,9 @@ def scenario_path(name: str | Path) -> Path:
     raise FileNotFoundError(f"scenario {name} not found (neither a file nor a packaged scenario in scenarios/)")
 
 
-def _simulated_sensor_calibration():
+def oracle_calibration():
+    """A calibration whose ``forward`` section is the simulated sensor's TRUE parameters: an oracle no
+    user could have, for debugging and until the simulation ships a user-style calibration."""
     from place_safe.calibration import Calibration
 
     from place_safe.sim.tof import sensor_file
@@ -141,7 +143,7 @@ def run_placement(scenario: Any = "place_level", method: str = "diff", calibrati
         cal_note = str(calibration)
         calibration = Calibration.load(calibration)
     elif calibration is None and method == "diff":
-        calibration, cal_note = _simulated_sensor_calibration(), "simulated sensor's true forward parameters"
+        calibration, cal_note = oracle_calibration(), "ORACLE: the simulated sensor's true forward parameters"
     else:
         cal_note = "given" if calibration is not None else "built-in defaults"
     estimator = make_estimator(method, calibration, **(estimator_options or {}))
@@ -228,5 +230,5 @@ if __name__ == "__main__":
     raise SystemExit(main())
 
 
-__all__ = ["PlacementResult", "run_placement", "scenario_path", "add_placement_command", "cmd_place", "main",
+__all__ = ["PlacementResult", "run_placement", "oracle_calibration", "scenario_path", "add_placement_command", "cmd_place", "main",
            "CONTROL_PERIOD", "SETTLE_SECONDS"]
