@@ -67,8 +67,8 @@ class FakeUR:
         self.payload: tuple[float, list[float]] | None = None
         self.force_noise, self.force_offset = float(force_noise), np.asarray(force_offset, dtype=float)
         self._rng = np.random.default_rng(seed)
-        self.time = 0.0
-        self.stamp = 0.0  # what getTimestamp reports (lags when slow)
+        self.time = float(arm.time())  # the controller clock is the arm's (simulation time for SimRobot)
+        self.stamp = self.time  # what getTimestamp reports (lags when slow)
         self.connected = True
         self.reconnectable = True
         self.program_running = True
@@ -137,7 +137,7 @@ class FakeUR:
             self.arm.step(self.period)
         except RobotFault:
             pass
-        self.time += self.period
+        self.time = float(self.arm.time())
         if self.time >= self._slow_until:
             self.stamp = self.time
         if self.arm.fault() is not None and self.safety_mode == SAFETY_NORMAL:

@@ -184,8 +184,8 @@ class URRobot(Robot):
                     pass
         self._connected = False
 
-    def close(self) -> None:
-        self.disconnect()
+    def is_connected(self) -> bool:
+        return self._connected and not self._lost
 
     def __enter__(self) -> "URRobot":
         return self.connect()
