@@ -8,7 +8,9 @@ explain all frames: ``n_i = -(R_i R_M)^T n_b`` and ``d_i = -(d_b - n_b . (p_i + 
 :func:`fit_mount` solves for ``M`` and the plane by nonlinear least squares (``scipy.optimize.least_squares``,
 soft-L1 loss against outlier frames), after Sifferman et al., RA-L 2022.
 
-Uncertainty: the Gauss-Newton covariance ``(J^T J)^-1`` scaled by the reduced chi-square. A weak prior
+Frames whose residual lies beyond :data:`OUTLIER_K` robust standard deviations (a wrong plane estimate)
+are left out and the fit repeated. Uncertainty: the Gauss-Newton covariance ``(J^T J)^-1`` scaled by the
+reduced chi-square. A weak prior
 (``prior_translation``, ``prior_rotation`` around the starting mount) keeps directions the sweep does not
 observe -- e.g. the mount's x/y offset when the sensor only moves straight down over a level table --
 at their starting value; :class:`MountFit` flags them (posterior sigma close to the prior's).
@@ -32,6 +34,8 @@ from place_safe.geometry import Plane
 
 #: Fraction of the prior sigma above which a direction counts as not observed by the sweep.
 UNOBSERVED = 0.5
+#: Frames whose residual exceeds this many robust standard deviations are left out of the final fit.
+OUTLIER_K = 4.0
 
 
 @dataclass
@@ -50,6 +54,7 @@ class MountFit:
     frames: int
     unobserved: list[str] = field(default_factory=list)  # mount components the sweep did not determine
     start: np.ndarray | None = None  # the starting mount
+    outliers: int = 0  # frames left out (residual beyond OUTLIER_K robust sigmas); residual arrays hold all
 
     @property
     def xyz(self) -> np.ndarray:
@@ -79,14 +84,14 @@ class MountFit:
                 "sigma_xyz": self.sigma_xyz.tolist(), "sigma_rot": self.sigma_rot.tolist(),
                 "plane_normal": self.plane_normal.tolist(), "plane_offset": self.plane_offset,
                 "rms_angle": self.rms_angle, "rms_distance": self.rms_distance, "frames": self.frames,
-                "unobserved": list(self.unobserved), "change_translation": dt, "change_rotation": dr,
+                "unobserved": list(self.unobserved), "outliers": self.outliers, "change_translation": dt, "change_rotation": dr,
                 "residuals_angle": self.residuals_angle.tolist(),
                 "residuals_distance": self.residuals_distance.tolist()}
 
     def summary(self) -> str:
         mm, deg = 1000.0, math.degrees(1.0)
         dt, dr = self.change()
-        lines = [f"mount fit on {self.frames} frames: residual RMS {self.rms_angle * deg:.2f} deg (normal), "
+        lines = [f"mount fit on {self.frames} frames ({self.outliers} outliers left out): residual RMS {self.rms_angle * deg:.2f} deg (normal), "
                  f"{self.rms_distance * mm:.2f} mm (distance)",
                  "  flange_T_sensor xyz [mm]: " + ", ".join(f"{v * mm:8.2f} +- {s * mm:.2f}"
                                                              for v, s in zip(self.xyz, self.sigma_xyz)),
@@ -147,43 +152,61 @@ def fit_mount(base_T_flange: Sequence[np.ndarray], planes: Sequence[Plane | None
         n = B @ _unit(np.array([x[6], x[7], 1.0]))
         return Rm, tm, n, x[8]
 
-    def residuals(x: np.ndarray) -> np.ndarray:
+    def frame_residuals(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(normal residuals (N, 3), offset residuals (N,)) of every frame, SI units."""
         Rm, tm, n, d = unpack(x)
         R = F[:, :3, :3] @ Rm
         p = F[:, :3, 3] + F[:, :3, :3] @ tm
         n_pred = -np.einsum("nji,j->ni", R, n)  # -(R^T n)
         d_pred = -(d - p @ n)
-        r = np.concatenate([((n_pred - ns) / sigma_angle).ravel(), (d_pred - ds) / sigma_distance,
-                            x[:3] / prior_rotation, x[3:6] / prior_translation])
-        return r
+        return n_pred - ns, d_pred - ds
+
+    def residuals(x: np.ndarray, use: np.ndarray) -> np.ndarray:
+        rn, rd = frame_residuals(x)
+        return np.concatenate([(rn[use] / sigma_angle).ravel(), rd[use] / sigma_distance,
+                               x[:3] / prior_rotation, x[3:6] / prior_translation])
 
     x0 = np.zeros(9)
     x0[8] = d0
-    sol = least_squares(residuals, x0, loss=loss, f_scale=3.0, x_scale="jac", max_nfev=500)
-    if not sol.success and sol.status <= 0:
-        raise CalibrationError(f"mount fit did not converge: {sol.message}")
-    Rm, tm, n, d = unpack(sol.x)
     nf = len(keep)
-    r = residuals(sol.x)
-    rn = r[:3 * nf].reshape(nf, 3) * sigma_angle
-    rd = r[3 * nf:4 * nf] * sigma_distance
-    ang = np.linalg.norm(rn, axis=1)  # small-angle: |n_pred - n| ~ angle
+    use = np.ones(nf, dtype=bool)
+    for _ in range(2):  # fit, drop frames far off the robust spread of the residuals, refit
+        sol = least_squares(lambda x: residuals(x, use), x0, loss=loss, f_scale=3.0, x_scale="jac", max_nfev=500)
+        if not sol.success and sol.status <= 0:
+            raise CalibrationError(f"mount fit did not converge: {sol.message}")
+        rn_all, rd_all = frame_residuals(sol.x)
+        ang_all = np.linalg.norm(rn_all, axis=1)
+        ok = (ang_all <= max(OUTLIER_K * _robust_scale(ang_all[use]), sigma_angle)) & \
+            (np.abs(rd_all) <= max(OUTLIER_K * _robust_scale(rd_all[use]), sigma_distance))
+        if np.array_equal(ok, use) or ok.sum() < 6:
+            break
+        use, x0 = ok, sol.x
+    Rm, tm, n, d = unpack(sol.x)
+    rn_all, rd_all = frame_residuals(sol.x)
+    ang_all = np.linalg.norm(rn_all, axis=1)  # small-angle: |n_pred - n| ~ angle
+    m = int(use.sum())
+    r = residuals(sol.x, use)
     J = sol.jac
-    dof = max(4 * nf - 9 + 6, 1)
-    chi2 = float(np.sum(r[:4 * nf] ** 2)) / max(4 * nf - 9, 1)
+    chi2 = float(np.sum(r[:4 * m] ** 2)) / max(4 * m - 9, 1)
     try:
-        cov = np.linalg.pinv(J.T @ J) * max(chi2, 1e-12)
+        info = np.linalg.pinv(J.T @ J)  # in units of the assumed sigmas (prior rows included)
     except np.linalg.LinAlgError as exc:
         raise CalibrationError(f"mount fit: singular normal matrix ({exc})") from None
-    del dof
-    sig = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    sig_info = np.sqrt(np.clip(np.diag(info), 0.0, None))
+    sig = sig_info * math.sqrt(max(chi2, 1e-12))
     names_rot, names_xyz = ("rotation about x", "rotation about y", "rotation about z"), ("x", "y", "z")
-    unobserved = [names_rot[k] for k in range(3) if sig[k] > UNOBSERVED * prior_rotation] + \
-        [f"translation {names_xyz[k]}" for k in range(3) if sig[3 + k] > UNOBSERVED * prior_translation]
+    unobserved = [names_rot[k] for k in range(3) if sig_info[k] > UNOBSERVED * prior_rotation] + \
+        [f"translation {names_xyz[k]}" for k in range(3) if sig_info[3 + k] > UNOBSERVED * prior_translation]
     M = np.eye(4)
     M[:3, :3], M[:3, 3] = Rm, tm
-    return MountFit(M, n, float(d), sig[3:6], sig[:3], float(np.sqrt(np.mean(ang ** 2))),
-                    float(np.sqrt(np.mean(rd ** 2))), ang, rd, nf, unobserved, start.copy())
+    return MountFit(M, n, float(d), sig[3:6], sig[:3], float(np.sqrt(np.mean(ang_all[use] ** 2))),
+                    float(np.sqrt(np.mean(rd_all[use] ** 2))), ang_all, rd_all, m, unobserved, start.copy(),
+                    outliers=int(nf - m))
+
+
+def _robust_scale(v: np.ndarray) -> float:
+    """1.4826 x the median absolute deviation from zero (residuals are centred on zero)."""
+    return 1.4826 * float(np.median(np.abs(v))) if len(v) else 0.0
 
 
 def flange_poses(frames: Sequence[Any], use_kinematics: bool = True, kinematics: Any = None) -> np.ndarray:
