@@ -283,6 +283,8 @@ def capture_sweep(robot: Robot, source: Any, plan: SweepPlan, out_path: str | Pa
                 d["meta"] = {"pose_index": i, "frame": j, "distance": dist, "incidence": inc, "azimuth": az,
                              "time": robot.time(), "base_T_tcp": tcp.tolist(), "base_plane":
                              {"normal": pl[0].tolist(), "offset": pl[1]}}
+                if f.truth is not None:  # a simulated source knows the true plane: kept apart, for checks only
+                    d["meta"]["source_truth"] = f.truth.to_dict()
                 fh.write(json.dumps(d) + "\n")
                 frames_written += 1
             fh.flush()
