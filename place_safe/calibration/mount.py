@@ -10,10 +10,12 @@ soft-L1 loss against outlier frames), after Sifferman et al., RA-L 2022.
 
 Frames whose residual lies beyond :data:`OUTLIER_K` robust standard deviations (a wrong plane estimate)
 are left out and the fit repeated. Uncertainty: the Gauss-Newton covariance ``(J^T J)^-1`` scaled by the
-reduced chi-square. A weak prior
-(``prior_translation``, ``prior_rotation`` around the starting mount) keeps directions the sweep does not
-observe -- e.g. the mount's x/y offset when the sensor only moves straight down over a level table --
-at their starting value; :class:`MountFit` flags them (posterior sigma close to the prior's).
+reduced chi-square. A first fit with a
+moderate prior around the starting mount (5 cm, 0.2 rad) finds the directions the sweep does not observe
+(parameter sigma above half the prior's); the final fit holds those at the start with that prior and
+leaves every other direction to the data (``prior_translation`` 1 m, ``prior_rotation`` 1 rad: a stronger
+prior would pull weakly observed directions). Held directions -- e.g. the mount's x/y offset when the
+sensor only moves straight down over a level table -- are listed in :attr:`MountFit.unobserved`.
 
 Conventions: SI units inside (m, rad), mm and degrees in :meth:`MountFit.summary`. Rotations of the
 mount are rotation vectors applied on the left of the starting rotation; ``rpy`` is fixed-axis x-y-z.
@@ -34,6 +36,15 @@ from place_safe.geometry import Plane
 
 #: Fraction of the prior sigma above which a direction counts as not observed by the sweep.
 UNOBSERVED = 0.5
+#: Typical size of each parameter's change (rad, m, plane tilt, m): fixed, so that a direction the data does
+#: not constrain is not stretched by a near-zero Jacobian column.
+_X_SCALE = np.array([0.02, 0.02, 0.02, 0.005, 0.005, 0.005, 0.02, 0.02, 0.005])
+#: Stage-1 prior (rad, m) around the starting mount, used to find unobserved directions and to hold them.
+_STAGE1_ROT, _STAGE1_TRANS = 0.2, 0.05
+#: Floors of the noise weights taken from the residuals' robust scatter (rad, m): exact data stays finite.
+_MIN_SIGMA_ANGLE, _MIN_SIGMA_DISTANCE = 1e-5, 1e-6
+#: Sigma (rad or m) of the rows that hold a known plane tilt or offset.
+_KNOWN = 1e-7
 #: Frames whose residual exceeds this many robust standard deviations are left out of the final fit.
 OUTLIER_K = 4.0
 
@@ -118,14 +129,18 @@ def _plane_basis(n0: np.ndarray) -> np.ndarray:
 
 def fit_mount(base_T_flange: Sequence[np.ndarray], planes: Sequence[Plane | None], start: np.ndarray, *,
               sigma_angle: float = math.radians(1.0), sigma_distance: float = 0.002,
-              prior_translation: float = 0.05, prior_rotation: float = math.radians(10.0),
-              loss: str = "soft_l1") -> MountFit:
+              prior_translation: float = 1.0, prior_rotation: float = 1.0,
+              loss: str = "soft_l1", level: bool = False, plane_offset: float | None = None) -> MountFit:
     """Fit ``flange_T_sensor`` and the plane (see module docstring).
 
     ``base_T_flange``: (N, 4, 4) flange poses. ``planes``: the estimated sensor-frame plane per frame
     (None for frames without one: skipped). ``start``: the starting mount (nominal or current).
-    ``sigma_angle`` (rad) / ``sigma_distance`` (m): per-frame noise of the plane estimates, which weigh the
-    two kinds of residual (the reported uncertainty is rescaled by the fit's own chi-square).
+    ``sigma_angle`` (rad) / ``sigma_distance`` (m): starting guesses of the per-frame noise of the plane
+    estimates; after a first fit both kinds of residual are weighed by their robust scatter, and the
+    reported uncertainty is rescaled by the fit's own chi-square. ``level``: the plane's normal is the
+    base z axis (a level table); ``plane_offset``: its offset is known (m, e.g. a measured table height).
+    A straight-down sweep needs both to observe the mount's tilt and height at all: without them a mount
+    tilt looks like a plane tilt and a mount height like a plane height.
     """
     F = np.asarray(base_T_flange, dtype=float)
     if F.ndim != 3 or F.shape[1:] != (4, 4) or len(F) != len(planes):
@@ -142,8 +157,8 @@ def fit_mount(base_T_flange: Sequence[np.ndarray], planes: Sequence[Plane | None
     RS = F[:, :3, :3] @ R0
     pS = F[:, :3, 3] + F[:, :3, :3] @ t0
     nb = -np.einsum("nij,nj->ni", RS, ns)  # sensor-frame normal points away from the sensor: base "up" is -R n
-    n0 = _unit(nb.mean(axis=0))
-    d0 = float(np.mean(np.einsum("i,ni->n", n0, pS) - ds))
+    n0 = np.array([0.0, 0.0, 1.0]) if level else _unit(nb.mean(axis=0))
+    d0 = float(np.mean(np.einsum("i,ni->n", n0, pS) - ds)) if plane_offset is None else float(plane_offset)
     B = _plane_basis(n0)
 
     def unpack(x: np.ndarray):
@@ -161,42 +176,63 @@ def fit_mount(base_T_flange: Sequence[np.ndarray], planes: Sequence[Plane | None
         d_pred = -(d - p @ n)
         return n_pred - ns, d_pred - ds
 
-    def residuals(x: np.ndarray, use: np.ndarray) -> np.ndarray:
+    def residuals(x: np.ndarray, use: np.ndarray, prior: np.ndarray) -> np.ndarray:
         rn, rd = frame_residuals(x)
-        return np.concatenate([(rn[use] / sigma_angle).ravel(), rd[use] / sigma_distance,
-                               x[:3] / prior_rotation, x[3:6] / prior_translation])
+        known = []
+        if level:
+            known += [x[6] / _KNOWN, x[7] / _KNOWN]
+        if plane_offset is not None:
+            known.append((x[8] - plane_offset) / _KNOWN)
+        return np.concatenate([(rn[use] / sigma_angle).ravel(), rd[use] / sigma_distance, x[:6] / prior, known])
+
+    def solve(x0: np.ndarray, use: np.ndarray, prior: np.ndarray):
+        for _ in range(3):  # fit, drop frames far off the robust spread of the residuals, refit
+            sol = least_squares(lambda x: residuals(x, use, prior), x0, loss=loss, f_scale=3.0, x_scale=_X_SCALE,
+                                max_nfev=1000)
+            if sol.status <= 0:
+                raise CalibrationError(f"mount fit did not converge: {sol.message}")
+            rn_all, rd_all = frame_residuals(sol.x)
+            ang_all = np.linalg.norm(rn_all, axis=1)
+            ok = (ang_all <= max(OUTLIER_K * _robust_scale(ang_all[use]), sigma_angle)) & \
+                (np.abs(rd_all) <= max(OUTLIER_K * _robust_scale(rd_all[use]), sigma_distance))
+            if np.array_equal(ok, use) or ok.sum() < 6:
+                break
+            use, x0 = ok, sol.x
+        return sol, use
+
+    def info_sigma(x: np.ndarray, use: np.ndarray, prior: np.ndarray) -> np.ndarray:
+        """1-sigma of each parameter from the plain (not loss-weighted) Jacobian, in units of the noise
+        weights (prior rows included, so a direction no frame constrains gets the prior's sigma)."""
+        h = 1e-6
+        J = np.column_stack([(residuals(x + h * e, use, prior) - residuals(x - h * e, use, prior)) / (2 * h)
+                             for e in np.eye(len(x))])
+        return np.sqrt(np.clip(np.diag(np.linalg.pinv(J.T @ J)), 0.0, None))
 
     x0 = np.zeros(9)
     x0[8] = d0
     nf = len(keep)
-    use = np.ones(nf, dtype=bool)
-    for _ in range(2):  # fit, drop frames far off the robust spread of the residuals, refit
-        sol = least_squares(lambda x: residuals(x, use), x0, loss=loss, f_scale=3.0, x_scale="jac", max_nfev=500)
-        if not sol.success and sol.status <= 0:
-            raise CalibrationError(f"mount fit did not converge: {sol.message}")
-        rn_all, rd_all = frame_residuals(sol.x)
-        ang_all = np.linalg.norm(rn_all, axis=1)
-        ok = (ang_all <= max(OUTLIER_K * _robust_scale(ang_all[use]), sigma_angle)) & \
-            (np.abs(rd_all) <= max(OUTLIER_K * _robust_scale(rd_all[use]), sigma_distance))
-        if np.array_equal(ok, use) or ok.sum() < 6:
-            break
-        use, x0 = ok, sol.x
+    # stage 1: a moderate prior finds the directions the sweep does not observe; stage 2 lets the data
+    # alone decide every other direction (a prior would pull weakly observed ones) and holds those
+    prior1 = np.array([_STAGE1_ROT] * 3 + [_STAGE1_TRANS] * 3)
+    sol, use = solve(x0, np.ones(nf, dtype=bool), prior1)
+    # weigh the residuals by the data's own robust scatter (the given sigmas only start the fit)
+    rn1, rd1 = frame_residuals(sol.x)
+    sigma_angle = max(_robust_scale(rn1[use].ravel()), _MIN_SIGMA_ANGLE)
+    sigma_distance = max(_robust_scale(rd1[use]), _MIN_SIGMA_DISTANCE)
+    sol, use = solve(sol.x, use, prior1)
+    null = info_sigma(sol.x, use, prior1)[:6] > UNOBSERVED * prior1
+    prior2 = np.where(null, prior1, np.array([prior_rotation] * 3 + [prior_translation] * 3))
+    sol, use = solve(sol.x, use, prior2)
     Rm, tm, n, d = unpack(sol.x)
     rn_all, rd_all = frame_residuals(sol.x)
     ang_all = np.linalg.norm(rn_all, axis=1)  # small-angle: |n_pred - n| ~ angle
     m = int(use.sum())
-    r = residuals(sol.x, use)
-    J = sol.jac
+    r = residuals(sol.x, use, prior2)
     chi2 = float(np.sum(r[:4 * m] ** 2)) / max(4 * m - 9, 1)
-    try:
-        info = np.linalg.pinv(J.T @ J)  # in units of the assumed sigmas (prior rows included)
-    except np.linalg.LinAlgError as exc:
-        raise CalibrationError(f"mount fit: singular normal matrix ({exc})") from None
-    sig_info = np.sqrt(np.clip(np.diag(info), 0.0, None))
-    sig = sig_info * math.sqrt(max(chi2, 1e-12))
+    sig = info_sigma(sol.x, use, prior2) * math.sqrt(max(chi2, 1e-12))
     names_rot, names_xyz = ("rotation about x", "rotation about y", "rotation about z"), ("x", "y", "z")
-    unobserved = [names_rot[k] for k in range(3) if sig_info[k] > UNOBSERVED * prior_rotation] + \
-        [f"translation {names_xyz[k]}" for k in range(3) if sig_info[3 + k] > UNOBSERVED * prior_translation]
+    unobserved = [names_rot[k] for k in range(3) if null[k]] + \
+        [f"translation {names_xyz[k]}" for k in range(3) if null[3 + k]]
     M = np.eye(4)
     M[:3, :3], M[:3, 3] = Rm, tm
     return MountFit(M, n, float(d), sig[3:6], sig[:3], float(np.sqrt(np.mean(ang_all[use] ** 2))),

@@ -215,7 +215,8 @@ def cmd_calibrate_mount(args: argparse.Namespace) -> int:
                                                         disable=None if not args.quiet else True)]
     F = flange_poses(frames, use_kinematics=args.poses == "joints")
     start = robot_cfg.tool.sensor.matrix()
-    fit = fit_mount(F, planes, start, sigma_angle=math.radians(args.sigma_angle), sigma_distance=args.sigma_mm / 1000)
+    fit = fit_mount(F, planes, start, sigma_angle=math.radians(args.sigma_angle), sigma_distance=args.sigma_mm / 1000,
+                    level=args.level, plane_offset=args.table_height)
     print(f"{args.capture}: {sum(p is not None for p in planes)}/{len(frames)} frames with a plane "
           f"({args.method}, calibration: {cal_note}); flange poses from {args.poses}")
     print(fit.summary())
@@ -323,7 +324,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "--write saves a robot file with the fitted mount.",
         epilog="examples:\n"
                "  place-safe calibrate-mount sim_capture.jsonl --robot robots/ur5/sim.toml --write robot_fitted.toml\n"
-               "  place-safe calibrate-mount tests/data/tmf8820_ur5_sweep.json --method proprietary --json fit.json")
+               "  place-safe calibrate-mount tests/data/tmf8820_ur5_sweep.json --method peak --calibration cal.json --level")
     m.add_argument("capture", help="capture or sweep file (frames with joint_angles or pose)")
     m.add_argument("--robot", metavar="ROBOT.toml", help="robot file with the starting mount (default sim.toml)")
     m.add_argument("--method", default="diff", choices=("diff", "peak", "proprietary"), help="per-frame planes")
@@ -332,6 +333,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="flange poses from forward kinematics of the joint angles (default) or the recorded pose")
     m.add_argument("--sigma-angle", type=positive_float, default=1.0, help="per-frame normal noise, deg (weighting)")
     m.add_argument("--sigma-mm", type=positive_float, default=2.0, help="per-frame distance noise, mm (weighting)")
+    m.add_argument("--level", action="store_true", help="the plane is level (normal = base z): needed to see the "
+                                                        "mount's tilt from a straight-down sweep")
+    m.add_argument("--table-height", type=float, metavar="Z", help="the plane's known base-frame z (m): needed to "
+                                                                    "see the mount's height from a straight-down sweep")
     m.add_argument("--truth", help="JSON with the true flange_T_sensor (simulation): report the error to it")
     m.add_argument("--json", help="write the fit (with per-frame residuals) here")
     m.add_argument("--write", metavar="ROBOT.toml", help="write the robot file with the fitted mount here")
