@@ -41,6 +41,8 @@ UNOBSERVED = 0.5
 _X_SCALE = np.array([0.02, 0.02, 0.02, 0.005, 0.005, 0.005, 0.02, 0.02, 0.005])
 #: Stage-1 prior (rad, m) around the starting mount, used to find unobserved directions and to hold them.
 _STAGE1_ROT, _STAGE1_TRANS = 0.2, 0.05
+#: Sigma (rad, m) that holds an unobserved direction at its starting value in the final fit.
+_HOLD_ROT, _HOLD_TRANS = 1e-3, 1e-4
 #: Floors of the noise weights taken from the residuals' robust scatter (rad, m): exact data stays finite.
 _MIN_SIGMA_ANGLE, _MIN_SIGMA_DISTANCE = 1e-5, 1e-6
 #: Sigma (rad or m) of the rows that hold a known plane tilt or offset.
@@ -56,8 +58,8 @@ class MountFit:
     flange_T_sensor: np.ndarray  # 4x4
     plane_normal: np.ndarray  # base frame, up
     plane_offset: float  # m
-    sigma_xyz: np.ndarray  # m, 1-sigma of the mount translation
-    sigma_rot: np.ndarray  # rad, 1-sigma of the mount rotation (rotation-vector components)
+    sigma_xyz: np.ndarray  # m, 1-sigma of the mount translation (NaN: held, see unobserved)
+    sigma_rot: np.ndarray  # rad, 1-sigma of the mount rotation (rotation-vector components; NaN: held)
     rms_angle: float  # rad, RMS of the normal residuals
     rms_distance: float  # m, RMS of the offset residuals
     residuals_angle: np.ndarray  # rad per frame
@@ -92,7 +94,8 @@ class MountFit:
     def to_dict(self) -> dict[str, Any]:
         dt, dr = self.change()
         return {"flange_T_sensor": self.flange_T_sensor.tolist(), "xyz": self.xyz.tolist(), "rpy": self.rpy.tolist(),
-                "sigma_xyz": self.sigma_xyz.tolist(), "sigma_rot": self.sigma_rot.tolist(),
+                "sigma_xyz": [None if v != v else float(v) for v in self.sigma_xyz],
+                "sigma_rot": [None if v != v else float(v) for v in self.sigma_rot],
                 "plane_normal": self.plane_normal.tolist(), "plane_offset": self.plane_offset,
                 "rms_angle": self.rms_angle, "rms_distance": self.rms_distance, "frames": self.frames,
                 "unobserved": list(self.unobserved), "outliers": self.outliers, "change_translation": dt, "change_rotation": dr,
@@ -104,10 +107,11 @@ class MountFit:
         dt, dr = self.change()
         lines = [f"mount fit on {self.frames} frames ({self.outliers} outliers left out): residual RMS {self.rms_angle * deg:.2f} deg (normal), "
                  f"{self.rms_distance * mm:.2f} mm (distance)",
-                 "  flange_T_sensor xyz [mm]: " + ", ".join(f"{v * mm:8.2f} +- {s * mm:.2f}"
+                 "  flange_T_sensor xyz [mm]: " + ", ".join(f"{v * mm:8.2f} " + (f"+- {s * mm:.2f}" if s == s else "(held)")
                                                              for v, s in zip(self.xyz, self.sigma_xyz)),
                  "  flange_T_sensor rpy [deg]: " + ", ".join(f"{v * deg:7.2f}" for v in self.rpy)
-                 + "  (rotation 1-sigma " + ", ".join(f"{s * deg:.2f}" for s in self.sigma_rot) + " deg)",
+                 + "  (rotation 1-sigma " + ", ".join(f"{s * deg:.2f}" if s == s else "held" for s in self.sigma_rot)
+                 + " deg)",
                  f"  plane in base: normal {np.round(self.plane_normal, 4).tolist()}, offset {self.plane_offset * mm:.2f} mm",
                  f"  change from the starting mount: {dt * mm:.2f} mm, {dr * deg:.2f} deg"]
         if self.unobserved:
@@ -221,7 +225,8 @@ def fit_mount(base_T_flange: Sequence[np.ndarray], planes: Sequence[Plane | None
     sigma_distance = max(_robust_scale(rd1[use]), _MIN_SIGMA_DISTANCE)
     sol, use = solve(sol.x, use, prior1)
     null = info_sigma(sol.x, use, prior1)[:6] > UNOBSERVED * prior1
-    prior2 = np.where(null, prior1, np.array([prior_rotation] * 3 + [prior_translation] * 3))
+    prior2 = np.where(null, np.array([_HOLD_ROT] * 3 + [_HOLD_TRANS] * 3),
+                      np.array([prior_rotation] * 3 + [prior_translation] * 3))
     sol, use = solve(sol.x, use, prior2)
     Rm, tm, n, d = unpack(sol.x)
     rn_all, rd_all = frame_residuals(sol.x)
@@ -230,6 +235,7 @@ def fit_mount(base_T_flange: Sequence[np.ndarray], planes: Sequence[Plane | None
     r = residuals(sol.x, use, prior2)
     chi2 = float(np.sum(r[:4 * m] ** 2)) / max(4 * m - 9, 1)
     sig = info_sigma(sol.x, use, prior2) * math.sqrt(max(chi2, 1e-12))
+    sig[:6][null] = math.nan  # held at the start: no uncertainty from this sweep
     names_rot, names_xyz = ("rotation about x", "rotation about y", "rotation about z"), ("x", "y", "z")
     unobserved = [names_rot[k] for k in range(3) if null[k]] + \
         [f"translation {names_xyz[k]}" for k in range(3) if null[3 + k]]

@@ -234,9 +234,9 @@ def cmd_calibrate_mount(args: argparse.Namespace) -> int:
         robot_cfg.tool.mount_fit = {"capture": str(args.capture), "method": args.method,
                                     "frames": fit.frames, "rms_angle_deg": math.degrees(fit.rms_angle),
                                     "rms_distance_mm": fit.rms_distance * 1000,
-                                    "sigma_xyz_mm": [float(v) * 1000 for v in fit.sigma_xyz],
-                                    "sigma_rot_deg": [math.degrees(v) for v in fit.sigma_rot],
-                                    "unobserved": list(fit.unobserved)}
+                                    "sigma_xyz_mm": [float(v) * 1000 if v == v else -1.0 for v in fit.sigma_xyz],
+                                    "sigma_rot_deg": [math.degrees(v) if v == v else -1.0 for v in fit.sigma_rot],
+                                    "unobserved": list(fit.unobserved)}  # sigma -1: held (unobserved)
         Path(args.write).write_text(robot_cfg.to_toml(), encoding="utf-8")
         _log(f"wrote the fitted mount into {args.write}")
     return 0
