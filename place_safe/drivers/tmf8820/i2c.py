@@ -20,7 +20,7 @@ interrupt line (``int_line``, e.g. :class:`GpiodIntLine`) or by polling ENABLE a
 Time: ``Frame.timestamp`` is the measurement's completion on the host ``clock`` (default
 ``time.monotonic``; the simulation's clock when given, then ``clock_domain`` is ``"robot"``). It is
 the sensor's system ticks (0.2 us) mapped to the host clock by the smallest offset "host time when the
-first packet was seen minus tick time" over the last :data:`OFFSET_WINDOW` measurements: a measurement
+first packet was seen minus tick time" over the last measurements (:mod:`.ticks`): a measurement
 seen right when it finished fixes the offset, and the ticks carry it to the others.
 ``extra["tmf8820"]`` keeps the ticks, result number, temperature and the host detection time.
 
@@ -36,7 +36,6 @@ from __future__ import annotations
 import errno
 import json
 import time
-from collections import deque
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -44,14 +43,12 @@ from typing import Any
 from place_safe.drivers.tmf8820 import packets as P
 from place_safe.drivers.tmf8820 import registers as R
 from place_safe.drivers.tmf8820.hexfile import RamPatch, load_patch
+from place_safe.drivers.tmf8820.ticks import TickClock
 from place_safe.exceptions import ConfigError, SensorError, SensorTimeout
 from place_safe.io.source import FrameSource
 from place_safe.sensor.frame import Frame
 
-#: Measurements over which the tick -> host clock offset is the minimum (see module docstring).
-OFFSET_WINDOW = 64
 _RETRY_ERRNOS = {R.ERRNO_NAK: "nak", R.ERRNO_EIO: "eio", R.ERRNO_TIMEOUT: "timeout", errno.EAGAIN: "timeout"}
-_TICK_WRAP = 1 << 32
 
 
 class _ProtocolError(Exception):
@@ -97,30 +94,6 @@ class GpiodIntLine:
 
     def close(self) -> None:
         self._req.release()
-
-
-class TickClock:
-    """Maps the sensor's 32-bit system ticks to host time (see the module docstring)."""
-
-    def __init__(self, window: int = OFFSET_WINDOW) -> None:
-        self._offsets: deque[float] = deque(maxlen=window)
-        self._last: int | None = None
-        self._wraps = 0
-
-    def reset(self) -> None:
-        self._offsets.clear()
-        self._last, self._wraps = None, 0
-
-    def stamp(self, ticks: int, seen_at: float) -> float:
-        if self._last is not None and ticks < self._last:
-            if self._last - ticks > _TICK_WRAP // 2:
-                self._wraps += 1
-            else:  # ticks went back: the device restarted its clock
-                self.reset()
-        self._last = ticks
-        seconds = (ticks + self._wraps * _TICK_WRAP) * R.TICK_SECONDS
-        self._offsets.append(seen_at - seconds)
-        return seconds + min(self._offsets)
 
 
 class TMF8820Source(FrameSource):
@@ -587,4 +560,4 @@ class TMF8820Source(FrameSource):
                 self.bus.close()
 
 
-__all__ = ["TMF8820Source", "GpiodIntLine", "TickClock", "OFFSET_WINDOW"]
+__all__ = ["TMF8820Source", "GpiodIntLine"]
