@@ -200,6 +200,11 @@ class MeasurementAssembler:
     def started(self) -> bool:
         return bool(self._order) or bool(self._short)
 
+    @property
+    def packets(self) -> int:
+        """Histogram packets received for the current measurement."""
+        return len(self._order)
+
     def discard(self) -> None:
         self._blocks, self._order, self._short = {}, [], False
 

@@ -205,7 +205,11 @@ class BridgeSource(FrameSource):
             rec = parse_line(line)
         except LineError as exc:
             self.stats[exc.kind] += 1
-            self._asm.mark(exc.kind)  # whatever measurement it belonged to is dropped at its #Obj line
+            if self._asm.packets >= R.HIST_PACKETS:  # it was the #Obj line closing a measurement
+                self._asm.discard()
+                self.stats["dropped_frames"] += 1
+            else:  # the measurement it belonged to is dropped at its #Obj line
+                self._asm.mark(exc.kind)
             return None
         if rec is None:
             self.stats["other_lines"] += 1
