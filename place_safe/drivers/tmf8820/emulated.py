@@ -62,8 +62,8 @@ class EmulatedTMF8820(FrameSource):
         self.clock_domain = domain
         self._held: Frame | None = None
         self._held_until = 0.0
-        self.driver = TMF8820Source(emu, clock=host_clock, sleep=sleep, clock_domain=domain, start=start,
-                                    **{"patch": patch, **(driver or {})})
+        self.driver = TMF8820Source(emu, clock=host_clock, sleep=sleep, clock_domain=domain,
+                                    **{"start": start, "patch": patch, **(driver or {})})
         self.rate_hz = self.driver.rate_hz
 
     def _idle(self, seconds: float) -> None:
