@@ -364,6 +364,10 @@ class TMF8820Emulator:
 
     # -- registers -----------------------------------------------------------------------------------
     def _read(self, n: int) -> bytes:
+        start = self._ptr
+        if self.awake and self.appid == R.APP_MEASUREMENT and start >= R.PAGE and start + n <= R.ENABLE:
+            self._ptr = (start + n) & 0xFF  # plain memory: no register with side effects in range
+            return bytes(self.regs[start:start + n])
         out = bytearray()
         for i in range(n):
             reg = (self._ptr + i) & 0xFF
