@@ -11,9 +11,13 @@ time do not depend on how busy the machine is. No test asserts a speed: speeds b
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 
 import pytest
+
+#: Test doubles shared by several test folders (``from placement_fakes import ...``).
+sys.path.insert(0, str(Path(__file__).resolve().parent / "support"))
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 

@@ -21,8 +21,9 @@ class FrameSource(ABC):
 
     #: Nominal frame rate (Hz) of the source.
     rate_hz: float = 30.0
-    #: Clock of ``Frame.timestamp``: ``"monotonic"`` = ``time.monotonic()`` seconds on this host;
-    #: ``"robot"`` = the simulation's (robot's) clock; a source may name another (e.g. ``"emulator"``).
+    #: Clock of ``Frame.timestamp``: ``"monotonic"`` = the host's ``time.monotonic()`` seconds (hardware,
+    #: replay); ``"robot"`` = the robot's clock (sources advanced by the simulation in lockstep). Sources
+    #: on the robot's clock are polled by the placement loop; the others are read by a thread.
     clock_domain: str = "monotonic"
     #: Counters of what happened (frames, faults by kind, retries); sources that count assign a dict.
     stats: Mapping[str, float] = MappingProxyType({})
