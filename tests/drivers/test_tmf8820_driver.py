@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import example, given, settings
+from hypothesis import strategies as st
 
 from place_safe.drivers.tmf8820 import registers as R
 from place_safe.drivers.tmf8820.bench import random_frames
@@ -204,3 +206,34 @@ def test_1000_frames_with_one_percent_faults_of_every_class(patch_file):
     for k in FAULT_KINDS:
         assert st[k] == st["injected"][k], k
     assert st["measurements"] - 1000 <= sum(st["injected"].values())
+
+
+def test_a_sensor_that_keeps_resetting_ends_in_a_sensor_error():
+    src = EmulatedTMF8820(FRAMES, faults=FaultPlan([(400 + 150 * i, "reset") for i in range(40)]))
+    with pytest.raises(SensorError, match="keeps resetting"):
+        for _ in range(30):
+            src.read(1.0)
+
+
+@pytest.mark.slow
+@settings(max_examples=12, deadline=None)
+@given(st.lists(st.tuples(st.integers(150, 2500), st.sampled_from(FAULT_KINDS)), max_size=8), st.integers(0, 99))
+@example(events=[(150, "out_of_order"), (150, "missing_packet")], seed=0)
+def test_whatever_the_faults_frames_are_exact_or_the_source_says_why(events, seed):
+    """Property: under any schedule of faults the driver hands out only whole, exact frames, or ends in a
+    one-line SensorError / SensorTimeout; injected faults are all counted."""
+    src = EmulatedTMF8820(random_frames(30, seed=seed), record=True, faults=FaultPlan(events, seed=seed))
+    got, ended = [], None
+    try:
+        for _ in range(20):
+            got.append(src.read(2.0))
+    except (SensorError, SensorTimeout) as exc:
+        assert "\n" not in str(exc)
+        ended = exc
+    _assert_exact(src, got)
+    st_ = src.stats
+    for kind in FAULT_KINDS:
+        if ended is None:
+            assert st_[kind] == st_["injected"][kind], kind
+        else:
+            assert st_[kind] <= st_["injected"][kind], kind

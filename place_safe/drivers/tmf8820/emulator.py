@@ -140,10 +140,13 @@ def _feed_iter(feed: Any) -> Callable[[float], Frame | None]:
 
     if isinstance(feed, FrameSource):
         def from_source(_t: float) -> Frame | None:
-            try:
-                return feed.read(10.0)
-            except StopIteration:
-                return None
+            while True:  # entries a file could not parse cannot come from a sensor: skip them
+                try:
+                    frame = feed.read(10.0)
+                except StopIteration:
+                    return None
+                if not (isinstance(frame.extra, dict) and frame.extra.get("parse_error")):
+                    return frame
         return from_source
     if callable(feed) and not isinstance(feed, (list, tuple)):
         return feed
@@ -558,11 +561,13 @@ class TMF8820Emulator:
             self.presented.append((ticks, channels, res))
         blocks = P.split_channels(channels)
         order = list(range(R.HIST_PACKETS))
+        swapped: tuple[int, ...] = ()
         if self._inject("out_of_order"):
             k = self.faults.rng.randrange(R.HIST_PACKETS - 1)
             order[k], order[k + 1] = order[k + 1], order[k]
-        if self._inject("missing_packet"):
-            order.pop(self.faults.rng.randrange(len(order)))
+            swapped = (k, k + 1)
+        if self._inject("missing_packet"):  # never one of a swapped pair: both faults stay visible
+            order.pop(self.faults.rng.choice([i for i in range(len(order)) if i not in swapped]))
         queue = []
         for k in order:
             queue.append(P.encode_histogram_packet(k, blocks[k], self._tid, R.CMD_LOAD_CONFIG_COMMON))

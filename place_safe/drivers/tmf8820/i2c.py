@@ -48,6 +48,8 @@ from place_safe.exceptions import ConfigError, SensorError, SensorTimeout
 from place_safe.io.source import FrameSource
 from place_safe.sensor.frame import Frame
 
+#: Re-initialisations after device resets without a whole measurement in between before giving up.
+MAX_RECOVERIES = 5
 _RETRY_ERRNOS = {R.ERRNO_NAK: "nak", R.ERRNO_EIO: "eio", R.ERRNO_TIMEOUT: "timeout", errno.EAGAIN: "timeout"}
 
 
@@ -157,6 +159,7 @@ class TMF8820Source(FrameSource):
         self._expect_next = False
         self._last_tid: int | None = None
         self._first_seen: float | None = None
+        self._recoveries = 0
         self._last_activity = self._clock()
         if start:
             self.start()
@@ -466,10 +469,15 @@ class TMF8820Source(FrameSource):
         while True:
             try:
                 frame = self._next_packet(deadline)
-            except _ProtocolError:
+            except _ProtocolError as exc:
+                self._recoveries += 1
+                if self._recoveries > MAX_RECOVERIES:
+                    raise SensorError(f"TMF8820 at 0x{self.address:02x} keeps resetting: {self._recoveries - 1} "
+                                      f"re-initialisations without a whole measurement ({exc})") from None
                 self._recover()
                 continue
             if frame is not None:
+                self._recoveries = 0
                 return frame
 
     def _next_packet(self, deadline: float) -> Frame | None:
@@ -530,8 +538,9 @@ class TMF8820Source(FrameSource):
             frame = self._asm.add_result(res, host_seen=seen)
             self.stats["decode_seconds"] += time.perf_counter() - t0
             if frame is None:
-                if self._asm.last_drop in ("missing_packet", "out_of_order"):
-                    self.stats[self._asm.last_drop] += 1
+                for reason in self._asm.drops:
+                    if reason in ("missing_packet", "out_of_order"):
+                        self.stats[reason] += 1
                 self.stats["dropped_frames"] += 1
                 return None
             frame.timestamp = self._ticks.stamp(res.sys_ticks, seen) if res.ticks_valid else seen

@@ -184,9 +184,10 @@ class MeasurementAssembler:
     """Collects histogram packets until a result frame closes the measurement.
 
     ``add_histogram`` / ``add_result`` return nothing / a Frame or None. When a measurement is
-    dropped, ``last_drop`` says why: the reason given to :meth:`mark` (e.g. ``"short_read"``: a packet
-    or the result arrived cut short), else ``"missing_packet"`` if packets were missing, ``"out_of_order"`` if
-    all 30 arrived but not in order (or some twice). ``discard()`` forgets the current measurement
+    dropped, ``drops`` says why: the reason given to :meth:`mark` (e.g. ``"short_read"``: a packet or
+    the result arrived cut short), else ``"missing_packet"`` if packets were missing and/or
+    ``"out_of_order"`` if the packets that arrived did not come in increasing order (or some came
+    twice); ``last_drop`` is the first of them. ``discard()`` forgets the current measurement
     without counting it (after a device reset).
     """
 
@@ -195,6 +196,7 @@ class MeasurementAssembler:
         self._order: list[int] = []
         self._short: str | bool = False
         self.last_drop: str | None = None
+        self.drops: list[str] = []
 
     @property
     def started(self) -> bool:
@@ -221,14 +223,16 @@ class MeasurementAssembler:
         """Close the measurement: the Frame if it is whole, else None with ``last_drop`` set."""
         order, blocks, short = self._order, self._blocks, self._short
         self.discard()
-        self.last_drop = None
+        self.drops = []
         if short:
-            self.last_drop = str(short)
-        elif len(blocks) < R.HIST_PACKETS:
-            self.last_drop = "missing_packet"
-        elif order != list(range(R.HIST_PACKETS)):
-            self.last_drop = "out_of_order"
-        if self.last_drop is not None:
+            self.drops.append(str(short))
+        else:
+            if len(blocks) < R.HIST_PACKETS:
+                self.drops.append("missing_packet")
+            if len(order) != len(blocks) or any(b <= a for a, b in zip(order, order[1:])):
+                self.drops.append("out_of_order")
+        self.last_drop = self.drops[0] if self.drops else None
+        if self.drops:
             return None
         return build_frame(join_channels([blocks[k] for k in range(R.HIST_PACKETS)]), res, timestamp, **extra)
 

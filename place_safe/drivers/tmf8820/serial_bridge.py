@@ -228,8 +228,9 @@ class BridgeSource(FrameSource):
         self._first_seen = None
         frame = self._asm.add_result(rec.result)
         if frame is None:
-            if self._asm.last_drop in ("missing_packet", "out_of_order"):
-                self.stats[self._asm.last_drop] += 1
+            for reason in self._asm.drops:
+                if reason in ("missing_packet", "out_of_order"):
+                    self.stats[reason] += 1
             self.stats["dropped_frames"] += 1
             return None
         frame.timestamp = self._ticks.stamp(rec.result.sys_ticks, seen) if rec.result.ticks_valid else seen
