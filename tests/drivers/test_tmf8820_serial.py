@@ -12,6 +12,7 @@ from place_safe.drivers.tmf8820.bench import random_frames
 from place_safe.drivers.tmf8820.emulated import EmulatedTMF8820
 from place_safe.drivers.tmf8820.serial_bridge import (BridgeSource, LineError, ObjLine, RawLine, format_measurement,
                                                       format_obj, format_raw, parse_line)
+from place_safe.exceptions import SensorTimeout
 from place_safe.io.uri import open_source
 
 FRAMES = random_frames(6, seed=11)
@@ -119,3 +120,26 @@ def test_a_cut_raw_line_is_never_accepted(number, data, cut):
         return
     # a cut that happens to end on a field boundary of a still-valid line is impossible: 131 fields needed
     assert rec is None or (isinstance(rec, RawLine) and len(rec.data) == 128 and line[:cut] == line)
+
+
+def test_reads_a_serial_port_through_pyserial():
+    """A pseudo-terminal stands in for the Arduino's USB serial port."""
+    import os
+    import threading
+
+    master, slave = os.openpty()
+    try:
+        src = open_source(f"serial:{os.ttyname(slave)}@115200")
+        data = ("\r\n".join(_lines(FRAMES[:2])) + "\r\n").encode()
+        writer = threading.Thread(target=lambda: [os.write(master, data[i:i + 512]) for i in range(0, len(data), 512)])
+        writer.start()
+        got = [src.read(5.0), src.read(5.0)]
+        writer.join()
+        for g, fed in zip(got, FRAMES[:2]):
+            _same(g, fed)
+        with pytest.raises(SensorTimeout):
+            src.read(0.2)
+        src.close()
+    finally:
+        os.close(master)
+        os.close(slave)

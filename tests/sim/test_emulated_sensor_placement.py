@@ -62,3 +62,14 @@ def test_tilted_table_is_refused_through_the_emulated_bus_at_400_khz():
     lag = np.array([e["t"] - e["stamp"] for e in res.frame_log])
     assert len(lag) >= 5 and np.all(lag >= 0) and np.median(lag) > 0.09
     assert source.stats["frames"] / res.robot_seconds < 10.7  # no faster than the bus allows
+
+
+@pytest.mark.slow
+def test_a_dead_bus_during_the_approach_is_refused_with_the_cup_held():
+    robot, source = _setup("place_level", bus_hz=1e6, faults=FaultPlan(dead_after=3000))  # ~3 s of frames
+    estimator = make_estimator("diff", oracle_calibration())
+    with robot:
+        res = PlacementLoop(robot, source, estimator, config=PlacementConfig()).run(timeout=20.0)
+    assert res.outcome == "refused" and robot.holding(), res.reason
+    assert "does not answer" in res.reason  # refused because the sensor died, and it says so
+    assert source.stats["frames"] >= 5
