@@ -57,7 +57,7 @@ from place_safe.drivers.tmf8820.hexfile import RamPatch
 from place_safe.sensor.frame import Frame
 
 #: Fault kinds the emulator injects and the driver counts under the same names.
-FAULT_KINDS = ("nak", "eio", "timeout", "short_read", "reset", "checksum", "out_of_order", "missing_packet")
+FAULT_KINDS = R.FAULT_KINDS
 _ERRNO = {"nak": R.ERRNO_NAK, "eio": R.ERRNO_EIO, "timeout": R.ERRNO_TIMEOUT}
 _BL_BAD_CHECKSUM = 0x02   # bootloader status for a command with a wrong checksum or length (emulator's code)
 _BL_BAD_COMMAND = 0x03    # unknown command, bad address, or no valid RAM image to start

@@ -28,7 +28,8 @@ Faults: NAK / EIO / adapter timeouts (errno 121, 5, 110) are retried with a boun
 a short read, a missing or out-of-order packet drops that measurement (never a half frame) and the next
 result frame resynchronises; a device reset (ENABLE's wake-up bit cleared) re-initialises and resumes
 the stream; a bus that keeps failing raises :class:`~place_safe.exceptions.SensorError`. ``stats`` counts
-each under the emulator's fault names (:data:`~.emulator.FAULT_KINDS`) plus frames and drops.
+each under its name in :data:`~.registers.FAULT_KINDS` (the emulator injects the same kinds) plus
+frames, dropped measurements, retries and re-initialisations.
 """
 
 from __future__ import annotations
@@ -148,8 +149,7 @@ class TMF8820Source(FrameSource):
         self.retries, self.backoff_s, self.poll_s = max(1, retries), backoff_s, poll_s
         self.stats: dict[str, float] = {"frames": 0, "dropped_frames": 0, "retries": 0, "bad_packet": 0,
                                         "stale_reads": 0, "device_errors": 0, "reinit": 0, "decode_seconds": 0.0,
-                                        **{k: 0 for k in ("nak", "eio", "timeout", "short_read", "reset",
-                                                          "checksum", "out_of_order", "missing_packet")}}
+                                        **{k: 0 for k in R.FAULT_KINDS}}
         self.identity: dict[str, Any] = {}
         self._asm = P.MeasurementAssembler()
         self._ticks = TickClock()
@@ -162,7 +162,12 @@ class TMF8820Source(FrameSource):
         self._recoveries = 0
         self._last_activity = self._clock()
         if start:
-            self.start()
+            try:
+                self.start()
+            except BaseException:
+                if self._owns_bus:
+                    self.bus.close()
+                raise
 
     # -- bus primitives ------------------------------------------------------------------------------
     def _xfer(self, *msgs: Any) -> None:
@@ -250,7 +255,7 @@ class TMF8820Source(FrameSource):
 
     def _download(self, patch: RamPatch) -> None:
         for addr, chunk in patch.chunks(R.BL_MAX_CHUNK):
-            for attempt in range(self.retries):
+            for _ in range(self.retries):
                 try:
                     self._bl(R.BL_SET_ADDRESS, addr.to_bytes(2, "little"))
                     self._bl(R.BL_WRITE_RAM, chunk)

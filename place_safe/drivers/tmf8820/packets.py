@@ -176,10 +176,6 @@ def build_frame(channels: np.ndarray, res: Result, timestamp: float | None = Non
     return Frame(ch[1:].copy(), ch[0].copy(), dist, conf, timestamp, extra={"tmf8820": info})
 
 
-#: Why a measurement was dropped (statistics keys; see :class:`MeasurementAssembler`).
-DROP_REASONS = ("missing_packet", "out_of_order", "short_read")
-
-
 class MeasurementAssembler:
     """Collects histogram packets until a result frame closes the measurement.
 
@@ -239,4 +235,4 @@ class MeasurementAssembler:
 
 __all__ = ["PacketError", "Header", "Result", "decode_header", "encode_result", "decode_result",
            "encode_histogram_packet", "decode_histogram_packet", "split_channels", "join_channels",
-           "result_from_frame", "frame_channels", "build_frame", "MeasurementAssembler", "DROP_REASONS"]
+           "result_from_frame", "frame_channels", "build_frame", "MeasurementAssembler"]

@@ -111,3 +111,9 @@ CLOCKS_PER_BYTE = 9           #: 8 data bits + acknowledge
 ERRNO_NAK = 121               #: Linux EREMOTEIO: no acknowledge
 ERRNO_EIO = 5
 ERRNO_TIMEOUT = 110           #: ETIMEDOUT: the adapter gave up (clock stretched / stalled bus)
+
+# -- fault classes: what the driver counts in its statistics and the emulator injects -------------
+#: nak / eio / timeout: a transfer failed (errno 121 / 5 / 110), retried; short_read: fewer bytes than
+#: asked; reset: the device lost its state; checksum: a bootloader reply with a wrong checksum;
+#: out_of_order / missing_packet: a measurement's histogram packets out of order / incomplete.
+FAULT_KINDS = ("nak", "eio", "timeout", "short_read", "reset", "checksum", "out_of_order", "missing_packet")
