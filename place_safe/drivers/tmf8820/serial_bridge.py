@@ -158,12 +158,17 @@ class BridgeSource(FrameSource):
         except (serial.SerialException, OSError, ValueError) as exc:
             raise SensorError(f"cannot open serial port {port}: {str(exc).splitlines()[0]}") from None
 
+        pending = bytearray()
+
         def readline(timeout: float) -> str | None:
             port_.timeout = max(timeout, 0.001)
             raw = port_.readline()
-            if not raw:
+            pending.extend(raw)
+            if not pending.endswith(b"\n"):  # nothing, or a line still arriving: keep it for the next call
                 return None
-            return raw.decode("ascii", errors="replace")
+            line = pending.decode("ascii", errors="replace")
+            pending.clear()
+            return line
 
         return cls(readline, address, name=f"serial {port}", closer=port_.close, **kw)
 
