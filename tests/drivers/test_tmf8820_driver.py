@@ -237,3 +237,22 @@ def test_whatever_the_faults_frames_are_exact_or_the_source_says_why(events, see
             assert st_[kind] == st_["injected"][kind], kind
         else:
             assert st_[kind] <= st_["injected"][kind], kind
+
+
+def test_the_emulator_answers_smbus_byte_and_block_calls():
+    emu = TMF8820Emulator(FRAMES)
+    emu.write_byte_data(R.DEFAULT_ADDRESS, R.ENABLE, R.ENABLE_WAKEUP)
+    emu.clock.sleep(0.01)
+    assert emu.read_byte_data(R.DEFAULT_ADDRESS, R.ENABLE) == R.ENABLE_WAKEUP  # the first read is stale
+    assert emu.read_byte_data(R.DEFAULT_ADDRESS, R.ENABLE) & R.ENABLE_CPU_READY
+    assert emu.read_i2c_block_data(R.DEFAULT_ADDRESS, R.APPID, 1) == [R.APP_BOOTLOADER]
+    body = [R.BL_SET_ADDRESS, 2, 0x00, 0x01]
+    emu.write_i2c_block_data(R.DEFAULT_ADDRESS, R.CMD_STAT, body + [R.bl_checksum(body)])
+    emu.clock.sleep(0.001)
+    status, n, csum = emu.read_i2c_block_data(R.DEFAULT_ADDRESS, R.CMD_STAT, 3)
+    assert (status, n) == (R.BL_STATUS_OK, 0) and csum == R.bl_checksum([status, n])
+    with pytest.raises(ValueError):
+        emu.read_i2c_block_data(R.DEFAULT_ADDRESS, R.PAGE, 33)  # SMBus blocks stop at 32 bytes
+    with pytest.raises(OSError) as info:
+        emu.read_byte_data(0x29, R.ENABLE)
+    assert info.value.errno == R.ERRNO_NAK
