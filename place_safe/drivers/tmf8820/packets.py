@@ -222,11 +222,11 @@ class MeasurementAssembler:
         self.drops = []
         if short:
             self.drops.append(str(short))
-        else:
-            if len(blocks) < R.HIST_PACKETS:
-                self.drops.append("missing_packet")
-            if len(order) != len(blocks) or any(b <= a for a, b in zip(order, order[1:])):
-                self.drops.append("out_of_order")
+        # every fault of the measurement is reported, also when an earlier one already condemned it
+        if len(blocks) < R.HIST_PACKETS:
+            self.drops.append("missing_packet")
+        if len(order) != len(blocks) or any(b <= a for a, b in zip(order, order[1:])):
+            self.drops.append("out_of_order")
         self.last_drop = self.drops[0] if self.drops else None
         if self.drops:
             return None
