@@ -24,6 +24,13 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 def pytest_configure(config) -> None:
     import torch
+    from hypothesis import settings
+
+    # CI (CI=true) searches the same examples on every run, so a red build is reproducible; a developer's
+    # run explores new ones (and keeps failures in .hypothesis/).
+    settings.register_profile("ci", derandomize=True, print_blob=True)
+    if os.environ.get("CI", "").lower() in ("1", "true", "yes"):
+        settings.load_profile("ci")
 
     torch.set_num_threads(int(os.environ.get("PLACE_SAFE_TEST_THREADS", "1")))
 

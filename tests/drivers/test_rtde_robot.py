@@ -15,7 +15,35 @@ from hypothesis import strategies as st
 from place_safe.drivers.ur5 import URRobot
 from place_safe.drivers.ur5 import fake_rtde
 from place_safe.drivers.ur5.pose import pose_to_vector, vector_to_pose
+from place_safe.drivers.ur5 import URConfig, packaged_config
 from place_safe.exceptions import RobotFault
+
+
+@pytest.fixture()
+def config() -> URConfig:
+    return URConfig.load(packaged_config("sim"))
+
+
+@pytest.fixture(scope="module")
+def kinematics():
+    from place_safe.robot.kinematics import Kinematics
+
+    return Kinematics()
+
+
+@pytest.fixture()
+def fake(kinematics) -> fake_rtde.FakeUR:
+    from place_safe.drivers.ur5.kinematic_arm import KinematicArm
+
+    return fake_rtde.FakeUR(KinematicArm(kinematics=kinematics))
+
+
+@pytest.fixture()
+def robot(fake, config):
+    r = URRobot(config, modules=fake_rtde.modules(), out=lambda s: None).connect()
+    yield r
+    r.disconnect()
+
 
 
 def _down(robot, dz):
