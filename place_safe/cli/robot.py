@@ -17,7 +17,6 @@ from pathlib import Path
 from typing import Any
 
 from place_safe.cli.options import nonnegative_int, positive_float, positive_int
-from place_safe.exceptions import ConfigError
 
 _FMT = argparse.RawDescriptionHelpFormatter
 
@@ -47,19 +46,11 @@ def _xy_points(text: str) -> list[float]:
 
 
 def open_sensor(uri: str) -> Any:
-    """A frame source for ``uri`` via :func:`place_safe.io.uri.open_source`; until that lands, ``file:PATH``
-    (a frame file replayed in real time) is understood here."""
-    try:
-        from place_safe.io.uri import open_source  # type: ignore[import-not-found]
-    except ImportError:
-        open_source = None
-    if open_source is not None:
-        return open_source(uri)
-    if uri.startswith("file:"):
-        from place_safe.io.replay import FileReplaySource
+    """The frame source a sensor URI names (:func:`place_safe.io.uri.open_source`: ``i2c:``, ``serial:``,
+    ``file:``, ``emu:``)."""
+    from place_safe.io.uri import open_source
 
-        return FileReplaySource(uri[len("file:"):])
-    raise ConfigError(f"sensor URI {uri!r}: this build only opens file:PATH (place_safe.io.uri is missing)")
+    return open_source(uri)
 
 
 def _robot_config(path: str | None):
