@@ -150,6 +150,18 @@ def test_protective_stop_during_a_move_is_latched_and_the_gripper_stays_shut(fak
     assert robot.fault() is None
 
 
+def test_asynchronous_stop_ends_in_rest(fake, robot):
+    robot.speed_linear([0, 0, -0.02, 0, 0, 0], accel=0.5)
+    robot.step(0.1)
+    assert robot.is_moving()
+    robot.stop(decel=1.0, asynchronous=True)
+    for _ in range(100):
+        robot.step(0.008)
+        if not robot.is_moving():
+            break
+    assert not robot.is_moving() and not fake.arm.is_moving()
+
+
 def test_watchdog_stops_a_speedl_when_the_host_stalls(fake, robot):
     robot.speed_linear([0, 0, -0.02, 0, 0, 0], accel=0.5)
     robot.step(0.1)

@@ -347,6 +347,8 @@ class URRobot(Robot):
             return False
         if self._mode == "move" and self._control.getAsyncOperationProgress() < 0 and self._control.isSteady():
             self._mode = None
+        elif self._mode == "stopping" and self._control.isSteady():
+            self._mode = None
         return self._mode is not None
 
     # ------------------------------------------------------------------------------------------
