@@ -14,7 +14,8 @@ where ``moveUntilContact`` does not) or from a known table height (:func:`level_
 sensor frame uses the tool frames the caller believes (``ToolFrames``: nominal or calibrated mount), never
 the simulator's truth; ``calibrate-mount`` then fits the mount from the same file.
 
-A capture is resumable: poses whose index is already in the output file are skipped. Poses the robot
+On a robot in dry-run mode (``robot.dry_run``) every pose is checked and its planned move printed by the
+robot, and nothing is read or written. A capture is resumable: poses whose index is already in the output file are skipped. Poses the robot
 refuses (outside its limits, unreachable) are skipped and counted; a latched fault ends the capture
 (rerun to resume after clearing it).
 
@@ -156,9 +157,14 @@ def touch_plane(robot: Robot, points_xy: Any, start_height: float, *, speed: flo
         base = robot.contact_force() if zero is None else 0.0
         robot.speed_linear([0.0, 0.0, -abs(speed), 0.0, 0.0, 0.0], accel=accel)
         z_start = robot.tcp_pose()[2, 3]
+        t_end = robot.time() + max_depth / abs(speed) * 1.5 + 2.0
         recent: list[float] = []
         while True:
             robot.step(STEP_S)
+            if robot.time() > t_end:
+                robot.stop(decel=2.0)
+                raise RobotFault(f"guarded descent at ({x:.3f}, {y:.3f}) m did not reach contact or "
+                                 f"{max_depth * 1000:.0f} mm of travel in time (arm not moving?)")
             recent = (recent + [robot.contact_force() - base])[-TOUCH_SAMPLES:]
             if len(recent) == TOUCH_SAMPLES and float(np.mean(recent)) > force_threshold:
                 robot.stop(decel=2.0)
@@ -266,6 +272,9 @@ def capture_sweep(robot: Robot, source: Any, plan: SweepPlan, out_path: str | Pa
                 refused.append({"pose_index": i, "distance": dist, "incidence": inc, "azimuth": az,
                                 "reason": str(exc)})
                 log(f"pose {i} refused: {exc}")
+                continue
+            if getattr(robot, "dry_run", False):  # the plan is printed by the robot; nothing moved, nothing to record
+                captured += 1
                 continue
             robot.step(plan.settle_s)
             t_ready = robot.time()

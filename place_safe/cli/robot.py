@@ -156,6 +156,8 @@ def cmd_capture(args: argparse.Namespace) -> int:
             raise UsageError("capture: --sensor URI is required with --robot")
         if args.table_height is None and not args.touch:
             raise UsageError("capture: give the plane: --table-height Z or --touch X,Y --touch X,Y --touch X,Y")
+        if args.dry_run and args.touch:
+            raise UsageError("capture: --touch moves the arm; with --dry-run give --table-height instead")
         from place_safe.drivers.ur5 import URRobot
 
         robot = URRobot(robot_cfg, dry_run=args.dry_run)

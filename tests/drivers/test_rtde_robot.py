@@ -253,3 +253,16 @@ def test_context_manager_connects_and_disconnects(fake, config):
         robot.step(0.05)
     assert not fake.arm.is_moving() or fake.mode is None
     assert [c[1] for c in fake.commands][-1] == "speedStop"
+
+
+def test_dry_run_capture_checks_and_prints_every_pose_and_writes_nothing(fake, config, tmp_path):
+    from place_safe.calibration.capture import SweepPlan, capture_sweep, level_plane
+
+    lines = []
+    robot = URRobot(config, modules=fake_rtde.modules(), dry_run=True, out=lines.append).connect()
+    plan = SweepPlan(distances=[0.1, 0.2], incidences=[0.0])
+    res = capture_sweep(robot, None, plan, tmp_path / "c.jsonl", plane=level_plane(0.0), tool=robot.tool,
+                        progress=False)
+    assert res.captured == 2 and res.frames == 0 and fake.commands == []
+    assert len(lines) == 2 and all(x.startswith("[dry run] moveL") for x in lines)
+    assert (tmp_path / "c.jsonl").read_text() == ""
