@@ -1,0 +1,310 @@
+"""Robot-driven capture: a sweep of sensor poses above a plane, with the plane as ground truth.
+
+Concept: :func:`capture_sweep` drives any :class:`~place_safe.robot.interface.Robot` (the UR5 over ur_rtde,
+MuJoCo's SimRobot, the fake stand-in) through a :class:`SweepPlan` -- distances x incidence x azimuth,
+the design of Sifferman et al.'s data set -- reads frames from a
+:class:`~place_safe.io.source.FrameSource` at each pose and appends them to a JSON-Lines frame file in
+the shared format (docs/interfaces.md): histograms, on-sensor distances, ground-truth ``plane`` in the
+sensor frame, ``pose`` (base_T_flange), ``joint_angles`` and a ``meta`` record. ``place-safe calibrate``,
+``evaluate`` and ``calibrate-mount`` read it.
+
+The ground-truth plane comes from :func:`touch_plane` (the TCP touches the surface at three or more points
+with a slow guarded descent: speedL plus a threshold on the zeroed contact force, which works on a CB3
+where ``moveUntilContact`` does not) or from a known table height (:func:`level_plane`). The plane in the
+sensor frame uses the tool frames the caller believes (``ToolFrames``: nominal or calibrated mount), never
+the simulator's truth; ``calibrate-mount`` then fits the mount from the same file.
+
+On a robot in dry-run mode (``robot.dry_run``) every pose is checked and its planned move printed by the
+robot, and nothing is read or written. A capture is resumable: poses whose index is already in the output file are skipped. Poses the robot
+refuses (outside its limits, unreachable) are skipped and counted; a latched fault ends the capture
+(rerun to resume after clearing it).
+
+Conventions: base frame, SI units; a plane is ``(n, d)`` with ``n . x = d``, n pointing up, away from the
+surface (towards the sensor). Incidence is the angle between the optical axis and the surface normal,
+azimuth the direction (in the base x-y plane) the optical axis tilts towards.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+import time as _time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from place_safe.exceptions import RobotFault, SensorTimeout
+from place_safe.geometry import Plane, fit_plane
+from place_safe.robot.interface import Robot
+
+#: s between control steps while waiting for frames (the UR CB3's cycle).
+STEP_S = 0.008
+#: Cycles of contact force averaged before comparing with the threshold: the CB3's estimate from motor
+#: currents has several newtons of noise per sample; 5 cycles (40 ms, 0.2 mm at 5 mm/s) keep single
+#: noisy samples from reading as contact.
+TOUCH_SAMPLES = 5
+
+
+@dataclass
+class SweepPlan:
+    """Sensor poses above a plane (SI units, angles in rad); see the module docstring."""
+
+    distances: list[float] = field(default_factory=lambda: [0.08, 0.12, 0.17, 0.22, 0.27])
+    incidences: list[float] = field(default_factory=lambda: [0.0, math.radians(12), math.radians(24)])
+    azimuths: list[float] = field(default_factory=lambda: [math.radians(a) for a in range(0, 360, 60)])
+    centre: tuple[float, float] | None = None  # base x, y the optical axis aims at; None: below the start pose
+    frames_per_pose: int = 1
+    settle_s: float = 0.25  # s at rest before the frames count
+    speed: float = 0.1  # m/s moveL
+    accel: float = 0.5  # m/s^2
+    max_poses: int | None = None  # subsample the grid evenly to this many poses
+    frame_timeout_s: float = 2.0  # s of robot time to wait for the frames of one pose
+
+    def __post_init__(self) -> None:
+        if not self.distances or min(self.distances) <= 0:
+            raise ValueError("SweepPlan.distances must be positive metres")
+        if not self.incidences or min(self.incidences) < 0 or max(self.incidences) >= math.pi / 2:
+            raise ValueError("SweepPlan.incidences must lie in [0, pi/2) rad")
+        if self.frames_per_pose < 1 or self.speed <= 0 or self.accel <= 0 or self.settle_s < 0:
+            raise ValueError("SweepPlan: frames_per_pose >= 1, speed and accel > 0, settle_s >= 0")
+
+    def grid(self) -> list[tuple[float, float, float]]:
+        """(distance, incidence, azimuth) of every pose; incidence 0 once per distance."""
+        out = []
+        for d in self.distances:
+            for inc in self.incidences:
+                for az in ([0.0] if inc == 0 else self.azimuths):
+                    out.append((float(d), float(inc), float(az)))
+        if self.max_poses is not None and self.max_poses < len(out):
+            keep = np.unique(np.round(np.linspace(0, len(out) - 1, self.max_poses)).astype(int))
+            out = [out[i] for i in keep]
+        return out
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def level_plane(height: float) -> tuple[np.ndarray, float]:
+    """A level table whose top is at base-frame z = ``height`` (m)."""
+    return np.array([0.0, 0.0, 1.0]), float(height)
+
+
+def sensor_target(plane: tuple[np.ndarray, float], centre: np.ndarray, distance: float, incidence: float,
+                  azimuth: float, x_hint: np.ndarray) -> np.ndarray:
+    """base_T_sensor looking at ``centre`` (a point of the plane) from perpendicular ``distance``, its optical
+    axis ``incidence`` from the normal, tilted towards ``azimuth``; sensor x as close to ``x_hint`` as allowed."""
+    from scipy.spatial.transform import Rotation
+
+    n = np.asarray(plane[0], dtype=float)
+    n = n / np.linalg.norm(n)
+    e1 = np.cross(n, [0.0, 1.0, 0.0]) if abs(n[1]) < 0.9 else np.cross(n, [1.0, 0.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(n, e1)
+    # e1/e2 span the plane; use base x/y directions projected where possible
+    bx = np.array([1.0, 0.0, 0.0]) - n[0] * n
+    if np.linalg.norm(bx) > 1e-6:
+        e1 = bx / np.linalg.norm(bx)
+        e2 = np.cross(n, e1)
+    tilt_dir = math.cos(azimuth) * e1 + math.sin(azimuth) * e2
+    z = -n * math.cos(incidence) + tilt_dir * math.sin(incidence)  # optical axis, towards the plane
+    z /= np.linalg.norm(z)
+    x = np.asarray(x_hint, dtype=float) - float(np.dot(x_hint, z)) * z
+    if np.linalg.norm(x) < 1e-6:
+        x = e1 - float(np.dot(e1, z)) * z
+    x /= np.linalg.norm(x)
+    T = np.eye(4)
+    T[:3, :3] = np.column_stack([x, np.cross(z, x), z])
+    T[:3, 3] = np.asarray(centre, dtype=float) - z * (distance / math.cos(incidence))
+    assert abs(np.linalg.det(T[:3, :3]) - 1) < 1e-9 and Rotation.from_matrix(T[:3, :3]) is not None
+    return T
+
+
+def plane_in_sensor(plane: tuple[np.ndarray, float], base_T_sensor: np.ndarray) -> Plane:
+    """A base-frame plane ``(n, d)`` in the sensor frame (normal away from the sensor, offset > 0)."""
+    n, d = np.asarray(plane[0], dtype=float), float(plane[1])
+    R, p = base_T_sensor[:3, :3], base_T_sensor[:3, 3]
+    ns = R.T @ n
+    ds = d - float(n @ p)
+    # the sensor is on the +n side (ds < 0): flip to the sensor convention (n_z > 0, d > 0)
+    return Plane(-ns, -ds) if ds < 0 else Plane(ns, ds)
+
+
+def touch_plane(robot: Robot, points_xy: Any, start_height: float, *, speed: float = 0.005,
+                force_threshold: float = 12.0, max_depth: float = 0.15, retract: float = 0.03,
+                accel: float = 0.2) -> tuple[np.ndarray, float, np.ndarray]:
+    """Touch the surface with the TCP at each ``points_xy`` (base frame, >= 3) by a guarded descent and fit
+    the plane through the contact points. Returns ``(n, d, points)`` (n up).
+
+    Each descent: moveL to (x, y, ``start_height``) with the current orientation, zero the force reading
+    (robots that have ``zero_force``), speedL down at ``speed`` until ``contact_force()`` exceeds
+    ``force_threshold`` N averaged over :data:`TOUCH_SAMPLES` cycles (CB3: the controller's force estimate
+    has several N of noise; stay well above it and well below the protective stop), stop at once, record the TCP position, retract by
+    ``retract`` m. No contact within ``max_depth`` m is an error (RobotFault)."""
+    pts = np.asarray(points_xy, dtype=float)
+    if pts.ndim != 2 or pts.shape[1] != 2 or len(pts) < 3:
+        raise ValueError("touch_plane needs at least 3 points (x, y) in the base frame")
+    contacts = []
+    for x, y in pts:
+        T = robot.tcp_pose()
+        T[:3, 3] = [x, y, start_height]
+        robot.move_linear(T, speed=0.05, accel=accel)
+        zero = getattr(robot, "zero_force", None)
+        if zero is not None:
+            zero()
+        base = robot.contact_force() if zero is None else 0.0
+        robot.speed_linear([0.0, 0.0, -abs(speed), 0.0, 0.0, 0.0], accel=accel)
+        z_start = robot.tcp_pose()[2, 3]
+        t_end = robot.time() + max_depth / abs(speed) * 1.5 + 2.0
+        recent: list[float] = []
+        while True:
+            robot.step(STEP_S)
+            if robot.time() > t_end:
+                robot.stop(decel=2.0)
+                raise RobotFault(f"guarded descent at ({x:.3f}, {y:.3f}) m did not reach contact or "
+                                 f"{max_depth * 1000:.0f} mm of travel in time (arm not moving?)")
+            recent = (recent + [robot.contact_force() - base])[-TOUCH_SAMPLES:]
+            if len(recent) == TOUCH_SAMPLES and float(np.mean(recent)) > force_threshold:
+                robot.stop(decel=2.0)
+                break
+            if z_start - robot.tcp_pose()[2, 3] > max_depth:
+                robot.stop(decel=2.0)
+                raise RobotFault(f"no contact within {max_depth * 1000:.0f} mm below ({x:.3f}, {y:.3f}) m")
+        contacts.append(robot.tcp_pose()[:3, 3].copy())
+        up = robot.tcp_pose()
+        up[2, 3] += retract
+        robot.move_linear(up, speed=0.02, accel=accel)
+    P = np.array(contacts)
+    plane, _ = fit_plane(P)
+    n = plane.normal if plane.normal[2] > 0 else -plane.normal
+    return n, float(n @ P.mean(axis=0)), P
+
+
+def _done_indices(path: Path) -> set[int]:
+    done: set[int] = set()
+    if not path.is_file():
+        return done
+    with open(path, encoding="utf-8") as fh:
+        for line in fh:
+            line = line.strip()
+            if not line:
+                continue
+            try:
+                done.add(int(json.loads(line)["meta"]["pose_index"]))
+            except (ValueError, KeyError, TypeError):
+                continue  # a half-written last line from an interrupted run: redone
+    return done
+
+
+@dataclass
+class CaptureResult:
+    path: str
+    poses: int  # planned
+    captured: int  # poses captured in this run
+    skipped_done: int  # already in the file (resume)
+    refused: list[dict]  # poses the robot refused, with the reason
+    frames: int  # frames written in this run
+    seconds: float  # robot time spent
+
+    def summary(self) -> str:
+        return (f"capture {self.path}: {self.captured} poses captured now, {self.skipped_done} already there, "
+                f"{len(self.refused)} refused; {self.frames} frames in {self.seconds:.1f} s robot time")
+
+
+def _read_frames(robot: Robot, source: Any, n: int, t_ready: float, timeout: float) -> list:
+    got = []
+    deadline = robot.time() + timeout
+    while len(got) < n:
+        robot.step(STEP_S)
+        try:
+            f = source.read(0.0)
+        except SensorTimeout:
+            f = None
+        if f is not None and (f.timestamp is None or f.timestamp >= t_ready):
+            got.append(f)
+        if robot.time() > deadline:
+            raise SensorTimeout(f"no frame within {timeout:g} s at this pose")
+    return got
+
+
+def capture_sweep(robot: Robot, source: Any, plan: SweepPlan, out_path: str | Path, *,
+                  plane: tuple[np.ndarray, float], tool: Any, progress: bool = True,
+                  log: Callable[[str], None] | None = None) -> CaptureResult:
+    """Run the sweep (see module docstring) and append frames to ``out_path`` (JSON Lines).
+
+    ``plane``: the surface in the base frame (from :func:`touch_plane` or :func:`level_plane`). ``tool``:
+    the :class:`~place_safe.robot.tool.ToolFrames` believed for the robot (flange_T_tcp, flange_T_sensor).
+    """
+    from tqdm import tqdm
+
+    log = log or (lambda s: print(s, file=sys.stderr, flush=True))
+    out = Path(out_path)
+    done = _done_indices(out)
+    n = np.asarray(plane[0], dtype=float)
+    n = n / np.linalg.norm(n)
+    pl = (n, float(plane[1]) / float(np.linalg.norm(plane[0])))
+    tcp_T_sensor = np.linalg.inv(tool.flange_T_tcp) @ tool.flange_T_sensor
+    start_sensor = robot.tcp_pose() @ tcp_T_sensor
+    if plan.centre is not None:
+        c = np.array([plan.centre[0], plan.centre[1], 0.0])
+    else:
+        c = start_sensor[:3, 3].copy()
+    c = c - (float(n @ c) - pl[1]) * n if plan.centre is None else \
+        np.array([c[0], c[1], (pl[1] - n[0] * c[0] - n[1] * c[1]) / n[2]])
+    grid = plan.grid()
+    refused: list[dict] = []
+    frames_written = captured = 0
+    t0 = robot.time()
+    wall0 = _time.perf_counter()
+    todo = [(i, g) for i, g in enumerate(grid) if i not in done]
+    bar = tqdm(todo, desc="capture", unit="pose", file=sys.stderr, disable=None if progress else True)
+    with open(out, "a", encoding="utf-8") as fh:
+        for k, (i, (dist, inc, az)) in enumerate(bar):
+            base_T_sensor = sensor_target(pl, c, dist, inc, az, start_sensor[:3, 0])
+            base_T_tcp = base_T_sensor @ np.linalg.inv(tcp_T_sensor)
+            try:
+                robot.move_linear(base_T_tcp, speed=plan.speed, accel=plan.accel)
+            except RobotFault as exc:
+                if robot.is_faulted():
+                    raise RobotFault(f"capture stopped at pose {i} (rerun to resume after clearing): {exc}") from exc
+                refused.append({"pose_index": i, "distance": dist, "incidence": inc, "azimuth": az,
+                                "reason": str(exc)})
+                log(f"pose {i} refused: {exc}")
+                continue
+            if getattr(robot, "dry_run", False):  # the plan is printed by the robot; nothing moved, nothing to record
+                captured += 1
+                continue
+            robot.step(plan.settle_s)
+            t_ready = robot.time()
+            frames = _read_frames(robot, source, plan.frames_per_pose, t_ready, plan.frame_timeout_s)
+            q = robot.joint_positions()
+            tcp = robot.tcp_pose()
+            flange = tcp @ np.linalg.inv(tool.flange_T_tcp)
+            sensor = tcp @ tcp_T_sensor
+            truth = plane_in_sensor(pl, sensor)
+            for j, f in enumerate(frames):
+                d = f.to_dict()
+                d["plane"] = truth.to_dict()
+                d["pose"] = flange.tolist()
+                d["joint_angles"] = [float(v) for v in q]
+                d["meta"] = {"pose_index": i, "frame": j, "distance": dist, "incidence": inc, "azimuth": az,
+                             "time": robot.time(), "base_T_tcp": tcp.tolist(), "base_plane":
+                             {"normal": pl[0].tolist(), "offset": pl[1]}}
+                if f.truth is not None:  # a simulated source knows the true plane: kept apart, for checks only
+                    d["meta"]["source_truth"] = f.truth.to_dict()
+                fh.write(json.dumps(d) + "\n")
+                frames_written += 1
+            fh.flush()
+            captured += 1
+            if not progress or bar.disable:
+                el = _time.perf_counter() - wall0
+                eta = el / (k + 1) * (len(todo) - k - 1)
+                if (k + 1) % 10 == 0 or k + 1 == len(todo):
+                    log(f"capture: {k + 1}/{len(todo)} poses, ETA {eta:.0f} s")
+    return CaptureResult(str(out), len(grid), captured, len(done), refused, frames_written, robot.time() - t0)
+
+
+__all__ = ["SweepPlan", "CaptureResult", "capture_sweep", "touch_plane", "level_plane", "sensor_target",
+           "plane_in_sensor"]

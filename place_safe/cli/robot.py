@@ -1,0 +1,347 @@
+"""Task commands that run the same on the UR5 and in MuJoCo: ``place``, ``capture``, ``calibrate-mount``.
+
+Each chooses a robot and a sensor -- ``--robot ROBOT.toml --sensor URI`` for the arm (ur_rtde, the sensor
+opened by URI), ``--sim SCENARIO`` for MuJoCo (SimRobot + simulated TMF8820) -- and then runs one library
+function: :class:`~place_safe.placement.loop.PlacementLoop`, :func:`~place_safe.calibration.capture.capture_sweep`
+or :func:`~place_safe.calibration.mount.fit_mount`. Parsing and printing only; heavy imports inside the
+command functions. Units on the command line: mm and degrees where the option says so, else SI.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+from typing import Any
+
+from place_safe.cli.options import nonnegative_int, positive_float, positive_int
+
+_FMT = argparse.RawDescriptionHelpFormatter
+
+
+def _log(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def _floats(text: str, n: int | None = None, what: str = "numbers") -> list[float]:
+    try:
+        vals = [float(v) for v in text.replace(" ", "").split(",") if v != ""]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated {what}, got {text!r}") from None
+    if not vals or not all(math.isfinite(v) for v in vals) or (n is not None and len(vals) != n):
+        raise argparse.ArgumentTypeError(f"expected {n or 'some'} comma-separated finite {what}, got {text!r}")
+    return vals
+
+
+def _mount_error(text: str) -> list[float]:
+    """``dx,dy,dz,rx,ry,rz`` in mm and degrees -> m and rad."""
+    v = _floats(text, 6, "numbers (mm, mm, mm, deg, deg, deg)")
+    return [x / 1000.0 for x in v[:3]] + [math.radians(x) for x in v[3:]]
+
+
+def _xy_points(text: str) -> list[float]:
+    return _floats(text, 2, "x,y metres")
+
+
+def open_sensor(uri: str) -> Any:
+    """The frame source a sensor URI names (:func:`place_safe.io.uri.open_source`: ``i2c:``, ``serial:``,
+    ``file:``, ``emu:``)."""
+    from place_safe.io.uri import open_source
+
+    return open_source(uri)
+
+
+def _robot_config(path: str | None):
+    from place_safe.drivers.ur5 import URConfig, packaged_config
+
+    return URConfig.load(path if path else packaged_config("sim"))
+
+
+def _estimator(method: str, calibration: str | None, sim: bool):
+    """(estimator, note saying where its calibration came from)."""
+    from place_safe.calibration import Calibration
+    from place_safe.recovery import make_estimator
+
+    if calibration:
+        return make_estimator(method, Calibration.load(calibration)), calibration
+    if sim and method == "diff":
+        from place_safe.sim.placement_run import oracle_calibration
+
+        return make_estimator(method, oracle_calibration()), "ORACLE: the simulated sensor's true forward parameters"
+    return make_estimator(method, None), "built-in defaults"
+
+
+def _write_json(path: str, value: Any) -> None:
+    Path(path).write_text(json.dumps(value, indent=1) + "\n", encoding="utf-8")
+
+
+# ------------------------------------------------------------------------------------------------
+# place
+# ------------------------------------------------------------------------------------------------
+def cmd_place(args: argparse.Namespace) -> int:
+    from place_safe.placement.loop import PlacementLoop
+    from place_safe.placement.machine import PlacementConfig
+
+    from place_safe.cli.app import UsageError
+
+    cfg = PlacementConfig.load(args.config) if args.config else PlacementConfig()
+    estimator, cal_note = _estimator(args.method, args.calibration, sim=bool(args.sim))
+    robot_cfg = _robot_config(args.robot) if (args.robot or args.sim) else None
+    extra: dict[str, Any] = {}
+    if args.sim:
+        from place_safe.sim.world import sim_world
+
+        world = sim_world(args.sim, seed=args.seed, mount_error=args.sim_mount_error)
+        robot, source = world.robot, world.tof
+        robot.tool = robot_cfg.tool.frames()  # the mount the robot file believes (nominal or calibrated)
+        where = f"simulation {world.name}"
+    else:
+        if not args.sensor:
+            raise UsageError("place: --sensor URI is required with --robot (e.g. --sensor i2c:/dev/i2c-1)")
+        from place_safe.drivers.ur5 import URRobot
+
+        robot = URRobot(robot_cfg, dry_run=args.dry_run)
+        source = open_sensor(args.sensor)
+        where = f"UR5 at {robot_cfg.connection.host}" + (" (dry run)" if args.dry_run else "")
+    with robot:
+        loop = PlacementLoop(robot, source, estimator, tool=robot.tool, config=cfg)
+        try:
+            res = loop.run(timeout=args.timeout)
+        finally:
+            source.close()
+        if args.sim:
+            robot.step(0.8)  # let a released cup settle before measuring it
+            extra = {"cup_held": bool(robot.holding()), "liquid_spilled": int(robot.liquid_spilled()),
+                     "mount_error": [float(v) for v in (args.sim_mount_error or [0.0] * 6)]}
+    out = {"where": where, "method": args.method, "calibration": cal_note,
+           "robot_config": args.robot or ("packaged sim.toml" if args.sim else None), **res.to_dict(), **extra}
+    if not args.frame_log:
+        out.pop("frame_log", None)
+    with open(args.log, "w", encoding="utf-8") as fh:
+        for tr in res.transitions:
+            fh.write(json.dumps(tr) + "\n")
+    _write_json(args.json, out)
+    print(f"{where}: {res.outcome.upper()} ({res.reason})")
+    for tr in res.transitions:
+        print(f"  t={tr['time']:7.3f} s  {tr['from']:>8} -> {tr['to']:<8} {tr['reason']}")
+    if extra:
+        print(f"  cup {'held' if extra['cup_held'] else 'released'}, liquid spilled {extra['liquid_spilled']}")
+    _log(f"wrote {args.json} and {args.log}")
+    return 0 if res.outcome == "released" else 1
+
+
+# ------------------------------------------------------------------------------------------------
+# capture
+# ------------------------------------------------------------------------------------------------
+def cmd_capture(args: argparse.Namespace) -> int:
+    from place_safe.calibration.capture import SweepPlan, capture_sweep, level_plane, touch_plane
+
+    from place_safe.cli.app import UsageError
+
+    plan = SweepPlan(distances=[d / 1000.0 for d in args.distances],
+                     incidences=[math.radians(a) for a in args.incidences],
+                     azimuths=[math.radians(a) for a in args.azimuths], frames_per_pose=args.frames_per_pose,
+                     max_poses=args.poses, speed=args.speed, settle_s=args.settle)
+    robot_cfg = _robot_config(args.robot)
+    if args.sim:
+        from place_safe.sim.world import sim_world
+
+        world = sim_world(args.sim, seed=args.seed, mount_error=args.sim_mount_error, hold_cup=False)
+        robot, source = world.robot, world.tof
+        robot.tool = robot_cfg.tool.frames()
+    else:
+        if not args.sensor:
+            raise UsageError("capture: --sensor URI is required with --robot")
+        if args.table_height is None and not args.touch:
+            raise UsageError("capture: give the plane: --table-height Z or --touch X,Y --touch X,Y --touch X,Y")
+        if args.dry_run and args.touch:
+            raise UsageError("capture: --touch moves the arm; with --dry-run give --table-height instead")
+        from place_safe.drivers.ur5 import URRobot
+
+        robot = URRobot(robot_cfg, dry_run=args.dry_run)
+        source = open_sensor(args.sensor)
+    tool = robot_cfg.tool.frames()
+    with robot:
+        if args.touch:
+            if len(args.touch) < 3:
+                raise UsageError("capture: --touch needs at least 3 points")
+            z0 = args.touch_height if args.touch_height is not None else robot.tcp_pose()[2, 3]
+            n, d, pts = touch_plane(robot, args.touch, z0, force_threshold=args.touch_force)
+            _log(f"touched the plane at {len(pts)} points: normal {n.round(4).tolist()}, offset {d * 1000:.1f} mm")
+            plane = (n, d)
+        elif args.table_height is not None:
+            plane = level_plane(args.table_height)
+        else:
+            plane = world.table_plane_base()
+            _log(f"table from the scenario: z = {plane[1] * 1000:.1f} mm in the base frame")
+        try:
+            res = capture_sweep(robot, source, plan, args.output, plane=plane, tool=tool, progress=not args.quiet)
+        finally:
+            source.close()
+    print(res.summary())
+    for r in res.refused:
+        print(f"  refused pose {r['pose_index']}: {r['reason']}")
+    return 0
+
+
+# ------------------------------------------------------------------------------------------------
+# calibrate-mount
+# ------------------------------------------------------------------------------------------------
+def cmd_calibrate_mount(args: argparse.Namespace) -> int:
+    import numpy as np
+    from tqdm import tqdm
+
+    from place_safe.calibration.mount import fit_mount, flange_poses
+    from place_safe.drivers.ur5.config import FrameConfig
+    from place_safe.io.frame_file import load_frames
+
+    from place_safe.cli.app import UsageError
+
+    robot_cfg = _robot_config(args.robot)
+    frames = load_frames(args.capture)
+    if not frames:
+        raise UsageError(f"calibrate-mount: {args.capture} has no frames")
+    estimator, cal_note = _estimator(args.method, args.calibration, sim=False)
+    planes = [estimator.estimate(f).plane for f in tqdm(frames, desc="planes", unit="frame", file=sys.stderr,
+                                                        disable=None if not args.quiet else True)]
+    F = flange_poses(frames, use_kinematics=args.poses == "joints")
+    start = robot_cfg.tool.sensor.matrix()
+    fit = fit_mount(F, planes, start, sigma_angle=math.radians(args.sigma_angle), sigma_distance=args.sigma_mm / 1000,
+                    level=args.level, plane_offset=args.table_height)
+    print(f"{args.capture}: {sum(p is not None for p in planes)}/{len(frames)} frames with a plane "
+          f"({args.method}, calibration: {cal_note}); flange poses from {args.poses}")
+    print(fit.summary())
+    result = {"capture": args.capture, "method": args.method, "calibration": cal_note, "poses": args.poses,
+              **fit.to_dict()}
+    if args.truth:
+        truth = np.asarray(json.loads(Path(args.truth).read_text())["flange_T_sensor"], dtype=float)
+        et, er = fit.error_to(truth)
+        result["error_to_truth"] = {"translation": et, "rotation": er}
+        print(f"  error to the true mount: {et * 1000:.2f} mm, {math.degrees(er):.3f} deg")
+    if args.json:
+        _write_json(args.json, result)
+    if args.write:
+        robot_cfg.tool.sensor = FrameConfig.from_matrix(fit.flange_T_sensor)
+        robot_cfg.tool.mount_fit = {"capture": str(args.capture), "method": args.method,
+                                    "frames": fit.frames, "rms_angle_deg": math.degrees(fit.rms_angle),
+                                    "rms_distance_mm": fit.rms_distance * 1000,
+                                    "sigma_xyz_mm": [float(v) * 1000 if v == v else -1.0 for v in fit.sigma_xyz],
+                                    "sigma_rot_deg": [math.degrees(v) if v == v else -1.0 for v in fit.sigma_rot],
+                                    "unobserved": list(fit.unobserved)}  # sigma -1: held (unobserved)
+        Path(args.write).write_text(robot_cfg.to_toml(), encoding="utf-8")
+        _log(f"wrote the fitted mount into {args.write}")
+    return 0
+
+
+# ------------------------------------------------------------------------------------------------
+# registration
+# ------------------------------------------------------------------------------------------------
+def _robot_or_sim(p: argparse.ArgumentParser, robot_help: str) -> None:
+    g = p.add_mutually_exclusive_group(required=True)
+    g.add_argument("--sim", metavar="SCENARIO", help="run in MuJoCo on a scenario (file or packaged name)")
+    g.add_argument("--robot", metavar="ROBOT.toml", help=robot_help)
+    p.add_argument("--sensor", metavar="URI", help="sensor URI on the arm (i2c:/dev/i2c-1, serial:/dev/ttyACM0, "
+                                                   "file:frames.json)")
+    p.add_argument("--dry-run", action="store_true", help="on the arm: receive-only, print the planned motion, "
+                                                          "command nothing")
+    p.add_argument("--sim-mount-error", type=_mount_error, metavar="DX,DY,DZ,RX,RY,RZ",
+                   help="simulation: the true sensor mount differs from the robot file's by this (mm and deg)")
+    p.add_argument("--seed", type=nonnegative_int, default=0, help="simulated sensor noise seed")
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "place", formatter_class=_FMT, help="put the held cup down (or refuse) on the UR5 or in MuJoCo",
+        description="Run one placement with the PlacementLoop: approach, descend, check the surface with the "
+                    "TMF8820, release or refuse. The same loop drives the UR5 (--robot, over ur_rtde) and the "
+                    "simulated arm (--sim). Writes the transition log and a result JSON either way; exit status 0 "
+                    "released, 1 refused or timed out, 2 bad input.",
+        epilog="examples:\n"
+               "  place-safe place --sim place_level --calibration cal.json\n"
+               "  place-safe place --sim place_level --robot-file robots/ur5/sim.toml --method peak\n"
+               "  place-safe place --robot robots/ur5/real.toml --sensor i2c:/dev/i2c-1 --calibration cal.json --dry-run\n"
+               "  place-safe place --robot robots/ur5/real.toml --sensor i2c:/dev/i2c-1 --calibration cal.json")
+    _robot_or_sim(p, "robot file of the real UR5 (e.g. robots/ur5/real.toml)")
+    p.add_argument("--robot-file", dest="robot_file", metavar="ROBOT.toml",
+                   help="with --sim: the robot file whose tool frames the loop uses (default the packaged sim.toml)")
+    p.add_argument("--calibration", metavar="CAL.json", help="sensor calibration (default: built-in; in simulation "
+                                                             "diff falls back to the labelled ORACLE)")
+    p.add_argument("--method", default="diff", choices=("diff", "peak", "proprietary"), help="plane recovery")
+    p.add_argument("--config", metavar="PLACEMENT.json", help="placement thresholds (SI units)")
+    p.add_argument("--timeout", type=positive_float, default=30.0, help="s of robot time (default 30)")
+    p.add_argument("--json", default="place-result.json", help="result file (default place-result.json)")
+    p.add_argument("--log", default="place-transitions.jsonl", help="transition log (default place-transitions.jsonl)")
+    p.add_argument("--frame-log", action="store_true", help="include the per-frame log in the result file")
+    p.set_defaults(func=lambda a: cmd_place(_resolve(a)))
+
+    c = subparsers.add_parser(
+        "capture", formatter_class=_FMT, help="robot-driven sweep of sensor poses above a plane (for calibration)",
+        description="Drive the arm through distances x incidence x azimuth above a plane and write every frame with "
+                    "its ground-truth plane, flange pose and joint angles (JSON Lines, the shared frame format). "
+                    "The plane: --touch (the TCP touches it at 3+ points, slow guarded descent: speedL + force "
+                    "threshold, CB3-compatible), --table-height, or in simulation the scenario's table. Resumable: "
+                    "rerun with the same output to continue. Poses the robot's limits refuse are skipped and listed.",
+        epilog="examples:\n"
+               "  place-safe capture --sim level_table --poses 60 -o sim_capture.jsonl\n"
+               "  place-safe capture --sim level_table --sim-mount-error 5,0,0,0,2,0 -o perturbed.jsonl\n"
+               "  place-safe capture --robot robots/ur5/real.toml --sensor i2c:/dev/i2c-1 \\\n"
+               "      --touch -0.45,-0.05 --touch -0.55,-0.05 --touch -0.5,-0.15 --touch-height 0.05 -o lab.jsonl")
+    _robot_or_sim(c, "robot file of the real UR5")
+    c.add_argument("-o", "--output", required=True, help="capture file (JSON Lines; appended to when resuming)")
+    c.add_argument("--robot-file", dest="robot_file", metavar="ROBOT.toml",
+                   help="with --sim: the robot file whose tool frames define the ground truth (default sim.toml)")
+    c.add_argument("--distances", type=lambda s: _floats(s, None, "mm"), default=[80, 120, 170, 220, 270],
+                   help="sensor-to-plane distances in mm (default 80,120,170,220,270)")
+    c.add_argument("--incidences", type=lambda s: _floats(s, None, "degrees"), default=[0, 12, 24],
+                   help="optical-axis tilts from the normal in degrees (default 0,12,24)")
+    c.add_argument("--azimuths", type=lambda s: _floats(s, None, "degrees"), default=[0, 60, 120, 180, 240, 300],
+                   help="tilt directions in degrees (default every 60)")
+    c.add_argument("--poses", type=positive_int, help="subsample the grid evenly to this many poses")
+    c.add_argument("--frames-per-pose", type=positive_int, default=1, help="frames per pose (default 1)")
+    c.add_argument("--speed", type=positive_float, default=0.1, help="moveL speed m/s (default 0.1)")
+    c.add_argument("--settle", type=positive_float, default=0.25, help="s at rest before frames count (default 0.25)")
+    c.add_argument("--table-height", type=float, help="known table top z in the base frame (m)")
+    c.add_argument("--touch", type=_xy_points, action="append", metavar="X,Y", help="touch the plane here (m, base)")
+    c.add_argument("--touch-height", type=float, help="z (m) to start each guarded descent from")
+    c.add_argument("--touch-force", type=positive_float, default=12.0, help="contact threshold N (default 12)")
+    c.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    c.set_defaults(func=lambda a: cmd_capture(_resolve(a)))
+
+    m = subparsers.add_parser(
+        "calibrate-mount", formatter_class=_FMT, help="fit the sensor mount (flange_T_sensor) from a capture",
+        description="Estimate every frame's plane, then fit flange_T_sensor (6 DoF) and the plane in the base frame "
+                    "to all frames at once by nonlinear least squares on forward kinematics. Prints the fit, its "
+                    "residuals and 1-sigma uncertainty, flags directions the sweep does not observe, and with "
+                    "--write saves a robot file with the fitted mount.",
+        epilog="examples:\n"
+               "  place-safe calibrate-mount sim_capture.jsonl --robot robots/ur5/sim.toml --write robot_fitted.toml\n"
+               "  place-safe calibrate-mount tests/data/tmf8820_ur5_sweep.json --method peak --calibration cal.json --level")
+    m.add_argument("capture", help="capture or sweep file (frames with joint_angles or pose)")
+    m.add_argument("--robot", metavar="ROBOT.toml", help="robot file with the starting mount (default sim.toml)")
+    m.add_argument("--method", default="diff", choices=("diff", "peak", "proprietary"), help="per-frame planes")
+    m.add_argument("--calibration", metavar="CAL.json", help="sensor calibration for the method")
+    m.add_argument("--poses", choices=("joints", "recorded"), default="joints",
+                   help="flange poses from forward kinematics of the joint angles (default) or the recorded pose")
+    m.add_argument("--sigma-angle", type=positive_float, default=1.0, help="per-frame normal noise, deg (weighting)")
+    m.add_argument("--sigma-mm", type=positive_float, default=2.0, help="per-frame distance noise, mm (weighting)")
+    m.add_argument("--level", action="store_true", help="the plane is level (normal = base z): needed to see the "
+                                                        "mount's tilt from a straight-down sweep")
+    m.add_argument("--table-height", type=float, metavar="Z", help="the plane's known base-frame z (m): needed to "
+                                                                    "see the mount's height from a straight-down sweep")
+    m.add_argument("--truth", help="JSON with the true flange_T_sensor (simulation): report the error to it")
+    m.add_argument("--json", help="write the fit (with per-frame residuals) here")
+    m.add_argument("--write", metavar="ROBOT.toml", help="write the robot file with the fitted mount here")
+    m.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    m.set_defaults(func=cmd_calibrate_mount)
+
+
+def _resolve(args: argparse.Namespace) -> argparse.Namespace:
+    """--robot is the arm's file; in simulation --robot-file names the file whose tool frames are used."""
+    if args.sim:
+        args.robot = getattr(args, "robot_file", None)
+    return args
+
+
+__all__ = ["register", "open_sensor", "cmd_place", "cmd_capture", "cmd_calibrate_mount"]

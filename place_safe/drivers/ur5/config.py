@@ -1,0 +1,194 @@
+"""The configuration of one real (or stand-in) UR5: a TOML file validated with pydantic.
+
+Concept: :class:`URConfig` is everything :class:`~place_safe.drivers.ur5.rtde_robot.URRobot` needs that is
+not code: where the controller is (host, CB3 or e-Series), how to connect (timeouts, retries), our own
+motion limits (checked on the host before every command, tighter than the controller's), the workspace
+box the TCP must stay in, the deepest point a descent may reach, the keep-out margin above a sensed
+surface, the watchdog rate, the gripper (digital output or Robotiq URCap socket) and the tool frames
+(TCP, TMF8820 mount, held cup) on the flange. Files: ``robots/ur5/real.toml`` and ``robots/ur5/sim.toml``
+(packaged), or a user's copy after ``place-safe calibrate-mount``.
+
+Conventions: SI units (m, m/s, m/s^2, rad, s, N); rotations as fixed-axis roll-pitch-yaw (x, y, z) in rad;
+positions in the robot base frame (the UR controller's base frame).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from pydantic import Field, model_validator
+
+from place_safe.config import ConfigModel, load_config
+
+#: Controller cycle rates (Hz): CB3 125 Hz, e-Series 500 Hz (UR documentation).
+CONTROLLER_HZ = {"cb3": 125.0, "e-series": 500.0}
+
+Vec3 = tuple[float, float, float]
+
+
+class DigitalGripperConfig(ConfigModel):
+    """A gripper switched by one digital output (pneumatic or simple electric)."""
+
+    kind: Literal["digital"] = "digital"
+    output: int = Field(0, ge=0, le=7, description="output number (standard 0..7, tool 0..1)")
+    tool_output: bool = Field(False, description="use a tool digital output instead of a standard one")
+    open_level: bool = Field(True, description="output level that opens the gripper")
+    settle_s: float = Field(0.3, ge=0, le=5, description="s to wait after switching")
+
+
+class RobotiqGripperConfig(ConfigModel):
+    """A Robotiq 2F gripper through the Robotiq URCap's ASCII socket on the controller."""
+
+    kind: Literal["robotiq"] = "robotiq"
+    port: int = Field(63352, ge=1, le=65535, description="URCap socket port")
+    host: str | None = Field(None, description="default: the robot's host")
+    open_position: int = Field(0, ge=0, le=255, description="POS value for open (0 = fully open on a 2F-85)")
+    closed_position: int = Field(255, ge=0, le=255, description="POS value for closed on the cup")
+    speed: int = Field(128, ge=0, le=255)
+    force: int = Field(64, ge=0, le=255)
+    timeout_s: float = Field(2.0, gt=0, le=30, description="s for a reply / for the fingers to stop")
+
+
+class NoGripperConfig(ConfigModel):
+    """No gripper (capture sweeps)."""
+
+    kind: Literal["none"] = "none"
+
+
+class ConnectionConfig(ConfigModel):
+    host: str = Field(..., min_length=1, description="controller IP address or host name")
+    controller: Literal["cb3", "e-series"] = Field("cb3", description="CB3 (125 Hz) or e-Series (500 Hz)")
+    connect_timeout_s: float = Field(5.0, gt=0, le=120, description="s to wait for each interface to connect")
+    reconnect_attempts: int = Field(3, ge=0, le=20, description="tries after a dropped connection")
+    reconnect_backoff_s: float = Field(0.5, ge=0, le=10, description="s between reconnect tries")
+    stale_cycles: int = Field(25, ge=2, le=1000,
+                              description="controller cycles without a new receive timestamp that count as lost")
+
+    @property
+    def frequency(self) -> float:
+        return CONTROLLER_HZ[self.controller]
+
+
+class LimitsConfig(ConfigModel):
+    """Our own limits, checked on the host before every command (tighter than the controller's)."""
+
+    max_linear_speed: float = Field(0.25, gt=0, le=1.0, description="m/s, TCP")
+    max_linear_accel: float = Field(1.2, gt=0, le=5.0, description="m/s^2, TCP")
+    max_angular_speed: float = Field(1.0, gt=0, le=3.2, description="rad/s, TCP orientation")
+    max_angular_accel: float = Field(3.0, gt=0, le=20.0, description="rad/s^2")
+    max_joint_speed: float = Field(1.05, gt=0, le=3.15, description="rad/s, leading joint of moveJ")
+    max_joint_accel: float = Field(1.4, gt=0, le=40.0, description="rad/s^2, leading joint of moveJ")
+    max_contact_force: float = Field(60.0, gt=0, le=500, description="N: our protective stop on the TCP force")
+    workspace_min: Vec3 = Field((-0.9, -0.9, -0.2), description="m: lower corner of the TCP box (base frame)")
+    workspace_max: Vec3 = Field((0.9, 0.9, 0.9), description="m: upper corner of the TCP box (base frame)")
+    min_descent_z: float = Field(-0.2, description="m: deepest base-frame z a descent may bring the TCP to")
+    surface_keepout: float = Field(0.01, ge=0.0, le=0.05,
+                                   description="m: how far below the sensed surface the held object's bottom "
+                                               "may be commanded (contact needs a few mm; the rest is keep-out)")
+
+    @model_validator(mode="after")
+    def _box(self) -> "LimitsConfig":
+        if not all(lo < hi for lo, hi in zip(self.workspace_min, self.workspace_max)):
+            raise ValueError("workspace_min must be below workspace_max on every axis")
+        if not self.workspace_min[2] <= self.min_descent_z < self.workspace_max[2]:
+            raise ValueError("min_descent_z must lie inside the workspace box's z range")
+        return self
+
+
+class FrameConfig(ConfigModel):
+    xyz: Vec3 = Field((0.0, 0.0, 0.0), description="m, translation in the flange frame")
+    rpy: Vec3 = Field((0.0, 0.0, 0.0), description="rad, fixed-axis roll-pitch-yaw")
+
+    def matrix(self) -> np.ndarray:
+        from scipy.spatial.transform import Rotation
+
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_euler("xyz", self.rpy).as_matrix()
+        T[:3, 3] = self.xyz
+        return T
+
+    @classmethod
+    def from_matrix(cls, T: np.ndarray) -> "FrameConfig":
+        from scipy.spatial.transform import Rotation
+
+        T = np.asarray(T, dtype=float)
+        return cls(xyz=tuple(float(v) for v in T[:3, 3]),
+                   rpy=tuple(float(v) for v in Rotation.from_matrix(T[:3, :3]).as_euler("xyz")))
+
+
+class ToolConfig(ConfigModel):
+    """Frames on the flange: TCP, TMF8820 (+z optical axis), held cup (origin at its bottom, +z up out of it)."""
+
+    tcp: FrameConfig = FrameConfig(xyz=(0.0, 0.0, 0.14))
+    sensor: FrameConfig = FrameConfig(xyz=(0.07, 0.0, 0.11))
+    cup: FrameConfig = FrameConfig(xyz=(0.0, 0.0, 0.18), rpy=(math.pi, 0.0, 0.0))
+    payload_kg: float = Field(1.1, ge=0, le=5.0, description="kg: gripper + sensor + cup (UR5 payload 5 kg)")
+    payload_cog: Vec3 = Field((0.0, 0.0, 0.08), description="m, centre of gravity in the flange frame")
+    mount_fit: dict | None = Field(None, description="written by calibrate-mount: residuals and uncertainty")
+
+    def frames(self):
+        """The :class:`place_safe.robot.tool.ToolFrames` of this tool."""
+        from place_safe.robot.tool import ToolFrames
+
+        return ToolFrames(self.tcp.matrix(), self.sensor.matrix(), self.cup.matrix())
+
+
+class URConfig(ConfigModel):
+    """One UR5: connection, limits, watchdog, gripper, tool (see the module docstring)."""
+
+    name: str = "ur5"
+    connection: ConnectionConfig
+    limits: LimitsConfig = LimitsConfig()
+    watchdog_hz: float = Field(10.0, ge=1, le=500,
+                               description="Hz: minimum rate of host updates before the controller stops the arm")
+    gripper: DigitalGripperConfig | RobotiqGripperConfig | NoGripperConfig = Field(
+        DigitalGripperConfig(), discriminator="kind")
+    tool: ToolConfig = ToolConfig()
+
+    @classmethod
+    def load(cls, path: str | Path) -> "URConfig":
+        """Read and validate a robot TOML/JSON file; one-line ConfigError otherwise."""
+        return load_config(cls, path, "robot config")
+
+    def to_toml(self) -> str:
+        """The configuration as TOML text (for writing back a fitted mount)."""
+        return _toml(self.model_dump(mode="json", exclude_none=True))
+
+
+def packaged_config(name: str = "sim") -> Path:
+    """Path of a packaged robot file: ``real`` or ``sim`` (``robots/ur5/<name>.toml``)."""
+    from place_safe.robots import ur5_dir
+
+    return ur5_dir() / f"{name}.toml"
+
+
+def _toml_value(v) -> str:
+    import json
+
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, float)):
+        return repr(float(v)) if isinstance(v, float) else str(v)
+    if isinstance(v, str):
+        return json.dumps(v)
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    raise TypeError(f"cannot write {type(v).__name__} as a TOML value")
+
+
+def _toml(d: dict, prefix: str = "") -> str:
+    """A minimal TOML writer for nested dicts of scalars and lists (tomllib reads, nothing writes)."""
+    lines = [f"{k} = {_toml_value(v)}" for k, v in d.items() if not isinstance(v, dict)]
+    for k, v in d.items():
+        if isinstance(v, dict):
+            name = f"{prefix}{k}"
+            body = _toml(v, name + ".")
+            lines.append(f"\n[{name}]\n{body}" if body.strip() else f"\n[{name}]")
+    return "\n".join(lines).strip("\n") + "\n" if not prefix else "\n".join(lines)
+
+
+__all__ = ["URConfig", "ConnectionConfig", "LimitsConfig", "ToolConfig", "FrameConfig", "DigitalGripperConfig",
+           "RobotiqGripperConfig", "NoGripperConfig", "CONTROLLER_HZ", "packaged_config"]

@@ -1,0 +1,80 @@
+"""A simulated UR5 work cell for task scripts: scenario scene + SimRobot + SimToF, optionally with a sensor
+mount that differs from the robot file's (the error ``calibrate-mount`` has to find).
+
+Concept: :func:`sim_world` builds what ``place-safe capture --sim`` and ``place-safe place --sim`` drive,
+so both run the same code as on the real arm (the task only sees a Robot and a FrameSource).
+``mount_error`` moves the MuJoCo ``tof_sensor`` site -- where the simulated TMF8820 really looks from
+-- by ``E`` in the sensor frame (true flange_T_sensor = nominal @ E); the robot's configured tool frames
+stay nominal, as a user's would before calibration.
+
+Conventions: SI units; ``mount_error`` is ``(dx, dy, dz, rx, ry, rz)`` in m and a rotation vector in rad.
+The table plane is returned in the robot base frame as ``(n, d)`` with ``n . x = d``, n up.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+
+@dataclass
+class SimWorld:
+    scene: Any
+    robot: Any  # SimRobot
+    tof: Any  # SimToF
+    name: str
+    mount_error: np.ndarray  # 4x4, nominal_T_true sensor frame
+
+    def table_plane_base(self) -> tuple[np.ndarray, float]:
+        """The table top in the robot base frame (what a measured table height gives)."""
+        n_w, p_w = self.scene.table_plane_world(self.robot.data)
+        wb = self.robot.world_T_base()
+        n = wb[:3, :3].T @ n_w
+        p = (np.linalg.inv(wb) @ np.append(p_w, 1.0))[:3]
+        return n, float(n @ p)
+
+    def true_flange_T_sensor(self) -> np.ndarray:
+        return self.robot.tool.flange_T_sensor @ self.mount_error
+
+
+def error_transform(mount_error: Any) -> np.ndarray:
+    e = np.asarray(mount_error if mount_error is not None else np.zeros(6), dtype=float)
+    if e.shape != (6,) or not np.all(np.isfinite(e)):
+        raise ValueError(f"mount_error must be 6 finite numbers (m, m, m, rad, rad, rad); got {mount_error!r}")
+    E = np.eye(4)
+    E[:3, :3] = Rotation.from_rotvec(e[3:]).as_matrix()
+    E[:3, 3] = e[:3]
+    return E
+
+
+def sim_world(scenario: Any = "level_table", *, seed: int = 0, mount_error: Any = None,
+              hold_cup: bool = True) -> SimWorld:
+    """Build the scenario's scene with the robot, the simulated sensor attached to it, and the mount error."""
+    import mujoco
+
+    from place_safe.sim.placement_run import scenario_path
+    from place_safe.sim.robot import SimRobot
+    from place_safe.sim.scene import build_scene, load_scenario
+    from place_safe.sim.tof import SimToF, ToFConfig
+
+    path = scenario_path(scenario)
+    scene_cfg, sensor_kw, _ = load_scenario(path)
+    scene_cfg.with_robot = True
+    scene = build_scene(scene_cfg)
+    E = error_transform(mount_error)
+    m = scene.model
+    s = scene.sensor_site
+    R_site = Rotation.from_quat(m.site_quat[s][[1, 2, 3, 0]]).as_matrix()
+    m.site_pos[s] = m.site_pos[s] + R_site @ E[:3, 3]
+    x, y, z, w = Rotation.from_matrix(R_site @ E[:3, :3]).as_quat()
+    m.site_quat[s] = [w, x, y, z]
+    m.site_sameframe[s] = 0  # the compiler marked the nominal site as aligned with its body: not any more
+    robot = SimRobot(m, mujoco.MjData(m), hold_cup=hold_cup)
+    tof = SimToF(scene, robot.data, ToFConfig(**{**sensor_kw, "seed": seed})).attach(robot)
+    return SimWorld(scene, robot, tof, path.stem, E)
+
+
+__all__ = ["SimWorld", "sim_world", "error_transform"]

@@ -1,0 +1,127 @@
+"""Capture on the Robot interface: the UR5 driver over the fake ur_rtde (kinematic arm) sweeps above a plane
+touched by guarded descents; frames carry the ground truth, flange pose and joints; resumable; poses outside
+the robot's limits are refused and listed."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from place_safe.calibration.capture import (SweepPlan, capture_sweep, level_plane, plane_in_sensor, sensor_target,
+                                            touch_plane)
+from place_safe.drivers.ur5 import URConfig, URRobot, packaged_config
+from place_safe.drivers.ur5 import fake_rtde
+from place_safe.drivers.ur5.kinematic_arm import KinematicArm
+from place_safe.exceptions import RobotFault, SensorTimeout
+from place_safe.io.frame_file import load_frames
+from place_safe.sensor.frame import Frame
+
+TABLE_Z = 0.05  # m, the table top in the base frame (the kinematic arm's TCP starts at 0.29 m)
+
+
+class ClockSource:
+    """A sensor that delivers one blank frame per call, stamped on the robot's clock."""
+
+    def __init__(self, robot):
+        self.robot = robot
+
+    def read(self, timeout=1.0):
+        return Frame(np.full((9, 128), 100.0), np.full(128, 100.0), timestamp=self.robot.time())
+
+    def close(self):
+        pass
+
+
+@pytest.fixture(scope="module")
+def kin():
+    from place_safe.robot.kinematics import Kinematics
+
+    return Kinematics()
+
+
+def _robot(kin, tilt_deg=0.0, **limits):
+    n = np.array([math.sin(math.radians(tilt_deg)), 0.0, math.cos(math.radians(tilt_deg))])
+    arm = KinematicArm(kinematics=kin, contact_plane=(n, TABLE_Z * n[2] + -0.49 * n[0]))
+    fake = fake_rtde.FakeUR(arm, force_noise=3.6, force_offset=(0.0, 0.0, 4.0))  # CB3-like force estimate
+    cfg = URConfig.load(packaged_config("sim"))
+    for k, v in limits.items():
+        setattr(cfg.limits, k, v)
+    return URRobot(cfg, modules=fake_rtde.modules(), out=lambda s: None).connect(), fake
+
+
+@pytest.mark.slow
+def test_guarded_descent_touches_a_tilted_plane_at_three_points(kin):
+    robot, fake = _robot(kin, tilt_deg=3.0)
+    pts = [(-0.46, -0.08), (-0.52, -0.08), (-0.49, -0.14)]
+    n, d, P = touch_plane(robot, pts, start_height=0.08, speed=0.005, force_threshold=15.0)
+    assert math.degrees(math.acos(n[2])) == pytest.approx(3.0, abs=0.3)
+    true_d = TABLE_Z * math.cos(math.radians(3)) - 0.49 * math.sin(math.radians(3))
+    assert d == pytest.approx(true_d, abs=0.0015)  # within the spring's give at the threshold
+    assert robot.fault() is None and fake.safety_mode == fake_rtde.SAFETY_NORMAL
+    names = [c[1] for c in fake.commands]
+    assert names.count("speedL") == 3 and names.count("speedStop") >= 3
+
+
+def test_touch_without_contact_is_an_error(kin):
+    robot, _ = _robot(kin)
+    with pytest.raises(RobotFault, match="no contact"):
+        touch_plane(robot, [(-0.49, -0.1)] * 3, start_height=0.2, speed=0.02, max_depth=0.02)
+
+
+def test_sensor_target_geometry():
+    plane = level_plane(0.0)
+    for inc, az in [(0.0, 0.0), (math.radians(20), math.radians(135))]:
+        T = sensor_target(plane, np.array([0.1, 0.2, 0.0]), 0.15, inc, az, np.array([1.0, 0.0, 0.0]))
+        p = plane_in_sensor(plane, T)
+        assert p.offset == pytest.approx(0.15) and math.acos(p.normal[2]) == pytest.approx(inc, abs=1e-9)
+        # the optical axis hits the centre
+        hit = T[:3, 3] + T[:3, 2] * (p.offset / p.normal[2])
+        np.testing.assert_allclose(hit, [0.1, 0.2, 0.0], atol=1e-9)
+
+
+@pytest.mark.slow
+def test_capture_writes_truth_poses_joints_resumes_and_refuses(kin, tmp_path):
+    robot, fake = _robot(kin, min_descent_z=0.06, workspace_min=(-0.9, -0.9, 0.06))  # the TCP may not go below 6 cm
+    plan = SweepPlan(distances=[0.10, 0.03], incidences=[0.0, math.radians(15)], azimuths=[0.0, math.pi],
+                     settle_s=0.05, speed=0.2)
+    out = tmp_path / "cap.jsonl"
+    first = SweepPlan(**{**plan.to_dict(), "max_poses": 2})
+    res = capture_sweep(robot, ClockSource(robot), first, out, plane=level_plane(TABLE_Z), tool=robot.tool,
+                        progress=False, log=lambda s: None)
+    assert res.captured == 1 and len(res.refused) == 1  # the subsample is poses 0 and 5; 5 is too low
+    res = capture_sweep(robot, ClockSource(robot), plan, out, plane=level_plane(TABLE_Z), tool=robot.tool,
+                        progress=False, log=lambda s: None)
+    assert res.skipped_done == 1 and res.poses == 6  # pose 0 was in the file (pose 5 of the subsample was not)
+    assert len(res.refused) == 3 and all("workspace box" in r["reason"] for r in res.refused)
+    assert {r["distance"] for r in res.refused} == {0.03}
+    frames = load_frames(out)
+    assert len(frames) == 3
+    for f in frames:
+        flange = np.asarray(f.extra["pose"])
+        np.testing.assert_allclose(kin.base_T_flange(f.extra["joint_angles"]), flange, atol=1e-6)
+        sensor = flange @ robot.tool.flange_T_sensor
+        truth = plane_in_sensor(level_plane(TABLE_Z), sensor)
+        assert f.truth.offset == pytest.approx(truth.offset) and f.truth.offset == pytest.approx(
+            f.extra["meta"]["distance"], abs=0.002)
+    lines = [json.loads(x) for x in out.read_text().splitlines()]
+    assert sorted(d["meta"]["pose_index"] for d in lines) == [0, 1, 2]
+
+
+def test_capture_stops_on_a_latched_fault_and_a_dead_sensor(kin, tmp_path):
+    robot, fake = _robot(kin)
+
+    class Dead(ClockSource):
+        def read(self, timeout=1.0):
+            raise SensorTimeout("no frame")
+
+    plan = SweepPlan(distances=[0.12], incidences=[0.0], settle_s=0.0, frame_timeout_s=0.1)
+    with pytest.raises(SensorTimeout):
+        capture_sweep(robot, Dead(robot), plan, tmp_path / "a.jsonl", plane=level_plane(TABLE_Z), tool=robot.tool,
+                      progress=False)
+    fake.inject_protective_stop(fake.time + 0.1)
+    with pytest.raises(RobotFault, match="rerun to resume"):
+        capture_sweep(robot, ClockSource(robot), SweepPlan(distances=[0.2], incidences=[0.0]), tmp_path / "b.jsonl",
+                      plane=level_plane(TABLE_Z), tool=robot.tool, progress=False)

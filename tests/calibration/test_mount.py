@@ -1,0 +1,112 @@
+"""Sensor-mount fit: convention checks on planes generated from a known mount (the fit inverts its own
+model), observability flags, bad input; and the fit on the real sweep in tests/data."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from place_safe.calibration.capture import plane_in_sensor
+from place_safe.calibration.mount import fit_mount, flange_poses
+from place_safe.exceptions import CalibrationError
+
+NOMINAL = np.eye(4)
+NOMINAL[:3, 3] = [0.07, 0.0, 0.11]
+TABLE = (np.array([0.0, 0.0, 1.0]), -0.05)
+
+
+def _true_mount(dt_mm=(3.0, -3.0, 2.65), dr_deg=(1.2, -1.2, 1.0)):
+    E = np.eye(4)
+    E[:3, :3] = Rotation.from_rotvec(np.radians(dr_deg)).as_matrix()
+    E[:3, 3] = np.asarray(dt_mm) / 1000
+    return NOMINAL @ E
+
+
+def _sweep(n=60, tilt=0.3, seed=0):
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(n):
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_euler("xyz", [math.pi + rng.normal(0, tilt), rng.normal(0, tilt),
+                                                rng.uniform(-3, 3)]).as_matrix()
+        T[:3, 3] = [-0.5, -0.1, 0.1 + rng.uniform(0, 0.2)]
+        out.append(T)
+    return out
+
+
+def test_convention_check_recovers_a_perturbed_mount_from_exact_planes():
+    """Convention check: planes made by the fit's own model; the 5 mm / 2 deg perturbation is undone."""
+    truth = _true_mount()
+    F = _sweep()
+    fit = fit_mount(F, [plane_in_sensor(TABLE, T @ truth) for T in F], NOMINAL)
+    et, er = fit.error_to(truth)
+    assert et < 1e-4 and math.degrees(er) < 0.01
+    assert fit.plane_offset == pytest.approx(-0.05, abs=1e-4) and fit.unobserved == []
+    dt, dr = fit.change()
+    assert dt == pytest.approx(np.linalg.norm(truth[:3, 3] - NOMINAL[:3, 3]), abs=1e-4)
+
+
+def test_noisy_planes_give_an_uncertainty_that_covers_the_error():
+    truth = _true_mount()
+    F = _sweep(seed=1)
+    rng = np.random.default_rng(2)
+    planes = []
+    for T in F:
+        p = plane_in_sensor(TABLE, T @ truth)
+        w = rng.normal(0, math.radians(0.5), 3)
+        w -= (w @ p.normal) * p.normal  # tilt the normal; keep |n| = 1 so the offset noise stays 1 mm
+        n = p.normal + w
+        planes.append(type(p)(n, (p.offset + rng.normal(0, 0.001)) * np.linalg.norm(n)))
+    fit = fit_mount(F, planes, NOMINAL)
+    err = np.abs(fit.xyz - truth[:3, 3])
+    assert np.all(err < 4 * fit.sigma_xyz + 1e-4), (err, fit.sigma_xyz)
+    assert fit.rms_distance == pytest.approx(0.001, rel=0.4)
+    assert "mount fit on 60 frames" in fit.summary() and fit.outliers == 0
+
+
+def test_a_vertical_sweep_does_not_observe_the_sideways_offset():
+    F = []
+    for z in np.linspace(0.0, 0.3, 30):
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_euler("x", math.pi).as_matrix()
+        T[:3, 3] = [-0.5, -0.1, z]
+        F.append(T)
+    truth = _true_mount()
+    fit = fit_mount(F, [plane_in_sensor(TABLE, T @ truth) for T in F], NOMINAL)
+    assert "translation x" in fit.unobserved and "translation y" in fit.unobserved
+    assert "rotation about z" in fit.unobserved
+
+
+def test_bad_input_is_a_calibration_error():
+    F = _sweep(5)
+    with pytest.raises(CalibrationError, match="at least 6"):
+        fit_mount(F, [plane_in_sensor(TABLE, T @ NOMINAL) for T in F], NOMINAL)
+    with pytest.raises(CalibrationError, match="one 4x4 flange pose per plane"):
+        fit_mount(F, [None], NOMINAL)
+    with pytest.raises(CalibrationError, match="neither joint_angles nor pose"):
+        flange_poses([{"hists": []}])
+
+
+@pytest.mark.slow
+def test_real_sweep_mount_fit_is_consistent(sweep_path):
+    """The shared real sweep (level table, straight down, on-sensor distances): the distances are explained to a
+    few mm; the sweep does not observe the sideways offset or the yaw, and the fit says so. (The normals of
+    an uncalibrated estimator carry its own tilt bias, which a straight-down sweep cannot tell from a mount
+    tilt: the fitted rotation is reported, not asserted.)"""
+    from place_safe.io.frame_file import load_frames
+    from place_safe.recovery import make_estimator
+
+    frames = load_frames(sweep_path)
+    est = make_estimator("proprietary")
+    planes = [est.estimate(f).plane for f in frames]
+    F = flange_poses(frames)
+    rec = flange_poses(frames, use_kinematics=False)
+    assert np.abs(F[:, :3, 3] - rec[:, :3, 3]).max() < 0.003  # FK of the joints ~ the recorded poses
+    fit = fit_mount(F, planes, NOMINAL)
+    assert fit.frames >= 40
+    assert fit.rms_distance < 0.005
+    assert "translation x" in fit.unobserved and "translation y" in fit.unobserved
+    assert "rotation about z" in fit.unobserved

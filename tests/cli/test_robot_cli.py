@@ -1,0 +1,51 @@
+"""place / capture / calibrate-mount on the command line: one-line usage errors (exit 2) and the mount fit
+written back into a robot file."""
+
+from __future__ import annotations
+
+import pytest
+
+from place_safe.cli.app import main
+from place_safe.drivers.ur5 import URConfig, packaged_config
+
+
+@pytest.mark.parametrize("argv, match", [
+    (["place", "--sim", "place_level", "--robot", "x.toml"], "not allowed with"),
+    (["place"], "one of the arguments --sim --robot is required"),
+    (["place", "--robot", "robots/ur5/real.toml"], "--sensor URI is required"),
+    (["capture", "--sim", "level_table", "-o", "x", "--sim-mount-error", "1,2"], "expected 6"),
+    (["capture", "--robot", "robots/ur5/real.toml", "--sensor", "file:x", "-o", "x"], "give the plane"),
+    (["calibrate-mount", "missing.jsonl"], "missing.jsonl"),
+    (["place", "--robot", "nope.toml", "--sensor", "file:x"], "nope.toml"),
+])
+def test_usage_errors_are_one_line(argv, match, capsys, monkeypatch, tmp_path):
+    monkeypatch.chdir(tmp_path)
+    if "robots/ur5/real.toml" in argv:
+        (tmp_path / "robots" / "ur5").mkdir(parents=True)
+        (tmp_path / "robots" / "ur5" / "real.toml").write_text(packaged_config("real").read_text())
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and match in err[0], err
+
+
+def test_place_on_an_unreachable_arm_is_a_one_line_error(capsys, sweep_path, tmp_path):
+    cfg = URConfig.load(packaged_config("sim"))
+    cfg.connection.connect_timeout_s = 1.0
+    robot = tmp_path / "r.toml"
+    robot.write_text(cfg.to_toml())
+    assert main(["place", "--robot", str(robot), "--sensor", f"file:{sweep_path}", "--dry-run",
+                 "--json", str(tmp_path / "r.json"), "--log", str(tmp_path / "t.jsonl")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "RTDE receive at 127.0.0.1" in err[0], err
+
+
+@pytest.mark.slow
+def test_calibrate_mount_on_the_real_sweep_writes_a_robot_file(sweep_path, tmp_path, capsys):
+    out = tmp_path / "fitted.toml"
+    assert main(["calibrate-mount", str(sweep_path), "--method", "proprietary", "--write", str(out), "-q",
+                 "--json", str(tmp_path / "fit.json")]) == 0
+    text = capsys.readouterr().out
+    assert "mount fit on" in text and "not determined by this sweep" in text
+    cfg = URConfig.load(out)
+    assert cfg.tool.mount_fit["frames"] >= 40 and "translation x" in cfg.tool.mount_fit["unobserved"]
+    assert cfg.tool.sensor.xyz != URConfig.load(packaged_config("sim")).tool.sensor.xyz
