@@ -231,7 +231,7 @@ def _recover_stream(path: str, estimator, batch: int) -> Iterator[tuple[int, Any
         frames = [f for _, f in pending if not isinstance(f, FrameError)]
         ests = iter(estimator.estimate_many(frames) if len(frames) > 1 else [estimator.estimate(f) for f in frames])
         for i, f in pending:
-            yield i, (PlaneEstimate(None, reason=f"frame {i}: {f}") if isinstance(f, FrameError) else next(ests))
+            yield i, (PlaneEstimate(None, reason=str(f)) if isinstance(f, FrameError) else next(ests))
         pending.clear()
 
     try:
