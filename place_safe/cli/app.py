@@ -175,6 +175,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         try:
             cal = Calibration.load(out)
             note = f"{out} is a calibration file; keeping its other sections (present: {', '.join(cal.sections) or 'none'})"
+            if cal.errors:
+                note += f"; invalid there: {', '.join(sorted(cal.errors))} (refit them)"
         except CalibrationError as exc:
             if not args.force:
                 raise CalibrationError(f"{exc}; refusing to overwrite it (use --force to replace the file)") from None
@@ -192,6 +194,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         if args.method == "diff" and not args.quiet:
             _log("the diff method starts from the calibrated peak method: fitting the 'peak' section first")
         params, report = fit_peak(frames, progress=progress)
+        cal.errors.pop("peak", None)
         cal.sections["peak"] = params.to_dict()
         cal.reports["peak"] = _jsonable(report)
         fitted.append("peak")
@@ -199,6 +202,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         from place_safe.calibration.points import fit_proprietary
 
         params, report = fit_proprietary(frames, progress=progress)
+        cal.errors.pop("proprietary", None)
         cal.sections["proprietary"] = params.to_dict()
         cal.reports["proprietary"] = _jsonable(report)
         fitted.append("proprietary")
@@ -209,11 +213,13 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         from place_safe.calibration.forward_fit import fit_range_correction, select_model_error
 
         params.model_error, report["model_error"] = select_model_error(frames, params, cal.peak(), progress=progress)
+        cal.errors.pop("forward", None)
         cal.sections["forward"] = params.to_dict()
         cal.reports["forward"] = _jsonable(report)
         fitted.append("forward")
 
         section, report = fit_range_correction(frames, params, cal.peak(), progress=progress)
+        cal.errors.pop("diff", None)
         cal.sections["diff"] = section
         cal.reports["diff"] = _jsonable(report)
         fitted.append("diff")

@@ -30,6 +30,17 @@ def _array(value: Any, name: str, shape: tuple[int, ...]) -> np.ndarray:
     return arr
 
 
+def _counts(value: Any, name: str) -> np.ndarray:
+    """``value`` as an array of real counts; FrameError for strings, objects, complex or ragged data."""
+    try:
+        arr = np.asarray(value)
+    except (TypeError, ValueError, OverflowError):
+        raise FrameError(f"{name} is not an array of numbers (ragged or unreadable)") from None
+    if arr.dtype.kind not in "biuf":
+        raise FrameError(f"{name} must hold real numbers, got {arr.dtype.name} values")
+    return arr
+
+
 def _first_line(exc: BaseException) -> str:
     text = str(exc)
     return text.splitlines()[0] if text else type(exc).__name__
@@ -102,8 +113,11 @@ class Frame:
     truth_error: str | None = None
 
     def validate(self) -> None:
-        """Raise :class:`FrameError` unless the histograms can be used for recovery."""
-        h = np.asarray(self.hists)
+        """Raise :class:`FrameError` unless the histograms can be used for recovery.
+
+        Counts must be real numbers (not strings, objects, complex or ragged lists), finite and >= 0.
+        """
+        h = _counts(self.hists, "hists")
         if h.shape != (N_ZONES, N_BINS):
             raise FrameError(f"hists has shape {h.shape}, expected ({N_ZONES}, {N_BINS})")
         if not np.all(np.isfinite(h)):
@@ -112,7 +126,7 @@ class Frame:
             raise FrameError("hists contains negative counts")
         if self.reference is None:
             raise FrameError("reference histogram is missing")
-        r = np.asarray(self.reference)
+        r = _counts(self.reference, "reference_hist")
         if r.shape != (N_BINS,):
             raise FrameError(f"reference_hist has shape {r.shape}, expected ({N_BINS},)")
         if not np.all(np.isfinite(r)) or np.any(r < 0):
