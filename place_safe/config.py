@@ -170,7 +170,13 @@ class Bound:
 
 
 def _field_spec(f, bound: Bound | None):
-    """(annotation, FieldInfo) of a pydantic field for dataclass field ``f`` with its bound."""
+    """(annotation, FieldInfo) of a pydantic field for dataclass field ``f`` with its bound.
+
+    The kind comes from the annotation (``float``, ``int``, ``bool``, ``str``, lists and tuples of
+    numbers, each optionally ``| None``); other annotations (nested configs) are not checked here.
+    """
+    from typing import Any as _Any, Optional
+
     if f.default is not MISSING:
         default = f.default
     elif f.default_factory is not MISSING:  # type: ignore[misc]
@@ -179,20 +185,25 @@ def _field_spec(f, bound: Bound | None):
         default = ...
     b = bound or Bound()
     desc = b.describe()
-    kind = f.type if isinstance(f.type, str) else getattr(f.type, "__name__", str(f.type))
-    is_list = isinstance(default, (list, tuple)) or kind.startswith(("list", "tuple"))
-    is_int = (isinstance(default, int) and not isinstance(default, bool)) or kind == "int"
-    is_bool = isinstance(default, bool) or kind == "bool"
-    if is_bool:
-        return Annotated[bool, Field(strict=True)], Field(default=default, description=desc)
-    if is_list:
-        item = Annotated[float, Field(**b.constraints())]
+    kind = (f.type if isinstance(f.type, str) else getattr(f.type, "__name__", str(f.type))).replace(" ", "")
+    optional = "None" in kind or default is None
+    base = kind.replace("|None", "").replace("None|", "").replace("Optional[", "").rstrip("]") if optional else kind
+    if isinstance(default, (list, tuple)) or base.startswith(("list", "tuple")):
+        ann: _Any = list[Annotated[float, Field(**b.constraints())]]
         extra = {"min_length": b.length, "max_length": b.length} if b.length is not None else {}
-        dflt = list(default) if default is not ... else ...
-        return list[item], Field(default=dflt, description=desc, **extra)
-    if is_int:
-        return Annotated[int, Field(**b.constraints())], Field(default=default, description=desc)
-    return Annotated[float, Field(**b.constraints())], Field(default=default, description=desc)
+        dflt = list(default) if isinstance(default, (list, tuple)) else default
+        return (Optional[ann] if optional else ann), Field(default=dflt, description=desc, **extra)
+    if base == "bool":
+        ann = Annotated[bool, Field(strict=True)]
+    elif base == "int":
+        ann = Annotated[int, Field(**b.constraints())]
+    elif base == "float":
+        ann = Annotated[float, Field(**b.constraints())]
+    elif base == "str":
+        ann = Annotated[str, Field(strict=True)]
+    else:
+        ann = _Any
+    return (Optional[ann] if optional else ann), Field(default=default, description=desc)
 
 
 @lru_cache(maxsize=None)
@@ -201,6 +212,7 @@ def _model_for(cls: type, bounds_items: tuple) -> type[ConfigModel]:
 
     bounds = dict(bounds_items)
     specs = {f.name: _field_spec(f, bounds.get(f.name)) for f in dc_fields(cls) if f.init}
+    # nested configs (annotations that are other dataclasses) are validated by their own classes
     return create_model(f"{cls.__name__}Model", __base__=ConfigModel, **specs)  # type: ignore[call-overload]
 
 
