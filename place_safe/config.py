@@ -188,7 +188,8 @@ def _field_spec(f, bound: Bound | None):
     kind = (f.type if isinstance(f.type, str) else getattr(f.type, "__name__", str(f.type))).replace(" ", "")
     optional = "None" in kind or default is None
     base = kind.replace("|None", "").replace("None|", "").replace("Optional[", "").rstrip("]") if optional else kind
-    if isinstance(default, (list, tuple)) or base.startswith(("list", "tuple")):
+    numeric_list = base.startswith(("list[float", "list[int", "tuple[float", "tuple[int"))
+    if numeric_list:
         ann: _Any = list[Annotated[float, Field(**b.constraints())]]
         extra = {"min_length": b.length, "max_length": b.length} if b.length is not None else {}
         dflt = list(default) if isinstance(default, (list, tuple)) else default

@@ -169,10 +169,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m place_safe.sim.cli ...``: the same as ``place-safe sim ...`` (one entry point, one error policy)."""
+    """``python -m place_safe.sim.cli sim ...``: the same as ``place-safe sim ...`` (one entry point, one error policy)."""
     from place_safe.cli.app import main as app_main
 
-    return app_main(["sim", *(sys.argv[1:] if argv is None else argv)])
+    return app_main(sys.argv[1:] if argv is None else argv)
 
 
 if __name__ == "__main__":
