@@ -48,10 +48,10 @@ class _Splitter:
     constant number of times.
     """
 
-    def __init__(self, is_list: bool, max_bytes: int = MAX_FRAME_BYTES, max_depth: int = MAX_DEPTH) -> None:
+    def __init__(self, is_list: bool, max_bytes: int | None = None, max_depth: int | None = None) -> None:
         self.is_list = is_list
-        self.max_bytes = max_bytes
-        self.max_depth = max_depth
+        self.max_bytes = MAX_FRAME_BYTES if max_bytes is None else max_bytes
+        self.max_depth = MAX_DEPTH if max_depth is None else max_depth
         self.closed = False        # saw the list's closing ']'
         self.need_sep = False      # a value was completed; a ',' (list) must come before the next
         self.trailing: bytes = b""  # non-whitespace after the end of the list
