@@ -30,8 +30,8 @@ def _array(value: Any, name: str, shape: tuple[int, ...]) -> np.ndarray:
     return arr
 
 
-def _counts(value: Any, name: str) -> np.ndarray:
-    """``value`` as an array of real counts; FrameError for strings, objects, complex or ragged data."""
+def real_array(value: Any, name: str) -> np.ndarray:
+    """``value`` as an array of real numbers; FrameError for strings, objects, complex or ragged data."""
     try:
         arr = np.asarray(value)
     except (TypeError, ValueError, OverflowError):
@@ -117,7 +117,7 @@ class Frame:
 
         Counts must be real numbers (not strings, objects, complex or ragged lists), finite and >= 0.
         """
-        h = _counts(self.hists, "hists")
+        h = real_array(self.hists, "hists")
         if h.shape != (N_ZONES, N_BINS):
             raise FrameError(f"hists has shape {h.shape}, expected ({N_ZONES}, {N_BINS})")
         if not np.all(np.isfinite(h)):
@@ -126,7 +126,7 @@ class Frame:
             raise FrameError("hists contains negative counts")
         if self.reference is None:
             raise FrameError("reference histogram is missing")
-        r = _counts(self.reference, "reference_hist")
+        r = real_array(self.reference, "reference_hist")
         if r.shape != (N_BINS,):
             raise FrameError(f"reference_hist has shape {r.shape}, expected ({N_BINS},)")
         if not np.all(np.isfinite(r)) or np.any(r < 0):
