@@ -83,10 +83,15 @@ def describe_validation_error(exc: ValidationError, what: str) -> str:
     if not errors:
         return f"{what}: invalid"
     first = errors[0]
-    loc = ".".join(str(p) for p in first.get("loc", ())) or "(top level)"
-    msg = first.get("msg", "invalid").replace("\n", " ")
+    loc = ".".join(_printable(str(p)) for p in first.get("loc", ())) or "(top level)"
+    msg = _printable(first.get("msg", "invalid"))
     more = f" (and {len(errors) - 1} more problem{'s' if len(errors) > 2 else ''})" if len(errors) > 1 else ""
     return f"{what}: {loc}: {msg}{more}"
+
+
+def _printable(text: str) -> str:
+    """``text`` on one line: control characters (newlines in a key, say) shown as escapes."""
+    return text if text.isprintable() else text.encode("unicode_escape").decode("ascii")
 
 
 def parse_config(cls: type, data: Any, what: str):
