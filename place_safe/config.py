@@ -190,7 +190,9 @@ def _field_spec(f, bound: Bound | None):
         default = ...
     b = bound or Bound()
     desc = b.describe()
-    kind = (f.type if isinstance(f.type, str) else getattr(f.type, "__name__", str(f.type))).replace(" ", "")
+    t = f.type
+    kind = (t if isinstance(t, str) else t.__name__ if isinstance(t, type) else str(t)).replace(" ", "")
+    kind = kind.replace("typing.", "")
     optional = "None" in kind or default is None
     base = kind.replace("|None", "").replace("None|", "").replace("Optional[", "").rstrip("]") if optional else kind
     numeric_list = base.startswith(("list[float", "list[int", "tuple[float", "tuple[int"))

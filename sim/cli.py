@@ -14,6 +14,8 @@ import time
 
 
 from place_safe.cli import options
+from place_safe.cli.app import UsageError
+from place_safe.exceptions import FrameFileError
 
 
 def add_sim_commands(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -90,8 +92,7 @@ def cmd_validate(args: argparse.Namespace) -> int:
     t = time.perf_counter()
     rep = validate(frames, params, rays=args.rays, min_distance=args.min_distance / 100.0)
     if len(rep.distances) == 0:
-        print(f"error: no frame of {args.frames} has ground truth at >= {args.min_distance} cm", file=sys.stderr)
-        return 2
+        raise FrameFileError(f"no frame of {args.frames} has ground truth at >= {args.min_distance} cm")
     if args.json:
         table = {k: [float(x) for x in np.round(v, 4)] for k, v in rep.zone_table().items()}
         print(json.dumps({"frames": int(len(rep.distances)), "passed": rep.passed, "zones": table}))
@@ -123,8 +124,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     print(f"wrote {out} ({img.shape[1]}x{img.shape[0]})", file=sys.stderr)
     if args.gif:
         if scene.rig_mocap < 0:
-            print("error: --gif animates the sensor rig; use a scene without the robot", file=sys.stderr)
-            return 2
+            raise UsageError("sim render: --gif animates the sensor rig; use a scene without the robot")
         rig_tof = tof if tof is not None else SimToF(scene, data)
         frames = render.sweep_frames(scene, rig_tof, **kw)
         print(f"wrote {render.save_gif(frames, args.gif)} ({len(frames)} frames)", file=sys.stderr)
