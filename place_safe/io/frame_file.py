@@ -55,6 +55,7 @@ class _Splitter:
         self.closed = False        # saw the list's closing ']'
         self.need_sep = False      # a value was completed; a ',' (list) must come before the next
         self.trailing: bytes = b""  # non-whitespace after the end of the list
+        self.broken: str | None = None  # what broke the file's structure (no more values after it)
         self._reset()
 
     def _reset(self) -> None:
@@ -100,12 +101,14 @@ class _Splitter:
                     continue
                 if self.is_list and c == b",":
                     if not self.need_sep:
-                        raise _Structure("a ',' with no frame before it")
+                        self.broken = "a ',' with no frame before it"
+                        return out
                     self.need_sep = False
                     pos += 1
                     continue
                 if self.need_sep:
-                    raise _Structure(f"expected ',' or ']' between frames, found {c.decode('latin-1')!r}")
+                    self.broken = f"expected ',' or ']' between frames, found {c.decode('latin-1')!r}"
+                    return out
                 if c in (b"{", b"["):
                     self.kind, self.depth = "container", 0
                 elif c == b'"':
@@ -113,8 +116,11 @@ class _Splitter:
                     self._keep(c)
                     pos += 1
                     continue
-                else:
-                    self.kind = "scalar"
+                else:  # a number, a literal or a stray byte: its first byte is always taken, so a stray
+                    self.kind = "scalar"  # '}' or ']' cannot stop the scan where it stands
+                    self._keep(c)
+                    pos += 1
+                    continue
             if self.kind == "scalar":
                 m = _SCALAR_END.search(chunk, pos)
                 end = m.start() if m else n
@@ -178,10 +184,6 @@ class _Splitter:
     @property
     def inside_value(self) -> bool:
         return self.kind is not None
-
-
-class _Structure(Exception):
-    """The file's structure (not one frame) is broken."""
 
 
 def _decode(raw: bytes) -> object:
@@ -260,16 +262,15 @@ def _iter_stream(fh: IO[bytes], p: Path) -> Iterator[dict | FrameError]:
                     error = f"is a {_json_type(obj)}, expected an object"
             yield FrameError(f"{where}: {error}")
 
-    try:
-        while True:
-            if buf:
-                yield from entries(splitter.feed(buf))
-            buf = _read(fh, p)
-            if not buf:
-                break
-        yield from entries(splitter.end())
-    except _Structure as exc:
-        raise FrameFileError(f"{p}: after frame {index - 1}: {exc}") from None
+    while True:
+        if buf:
+            yield from entries(splitter.feed(buf))  # values completed before a break still come out
+            if splitter.broken:
+                raise FrameFileError(f"{p}: {splitter.broken} (after {index} frame{'s' if index != 1 else ''})")
+        buf = _read(fh, p)
+        if not buf:
+            break
+    yield from entries(splitter.end())
     if splitter.inside_value:
         raise FrameFileError(f"{p}: truncated in frame {index} (the file ends inside it)")
     if splitter.is_list and not splitter.closed:

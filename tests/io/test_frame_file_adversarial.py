@@ -20,6 +20,10 @@ from place_safe.exceptions import FrameError, FrameFileError
 from place_safe.io.frame_file import iter_frames, load_frames
 from place_safe.sensor.frame import Frame
 
+#: The originals, captured once: hypothesis runs many examples inside one monkeypatch scope.
+_DECODE = ff._decode
+_KEEP = ff._Splitter._keep
+
 SETTINGS = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 
 
@@ -121,8 +125,7 @@ def test_every_byte_is_decoded_at_most_once(tmp_path, monkeypatch, entries, chun
     path = tmp_path / "lin.json"
     path.write_text(json.dumps(entries))
     decoded = []
-    real = ff._decode
-    monkeypatch.setattr(ff, "_decode", lambda raw: (decoded.append(len(raw)), real(raw))[1])
+    monkeypatch.setattr(ff, "_decode", lambda raw: (decoded.append(len(raw)), _DECODE(raw))[1])
     monkeypatch.setattr(ff, "_CHUNK", chunk)
     _read(path)
     assert sum(decoded) <= path.stat().st_size
@@ -170,3 +173,25 @@ def test_truncated_files_raise_after_the_complete_frames(tmp_path, text):
     path.write_text(text)
     with pytest.raises(FrameFileError, match="truncated"):
         list(iter_frames(path))
+
+
+@settings(max_examples=400, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(text=st.text(alphabet='{}[]",:\\ \n1ae-', max_size=60), first=st.sampled_from(["[", "{", " [", "\ufeff{"]),
+       chunk=st.integers(1, 8))
+def test_structural_noise_never_hangs(tmp_path, monkeypatch, text, first, chunk):
+    """Stray brackets, quotes and escapes: the scanner makes progress on every step (a step budget
+    proportional to the input turns a hang into a failure instead of a timing assert)."""
+    data = (first + text).encode()
+    path = tmp_path / "noise.json"
+    path.write_bytes(data)
+    budget = {"steps": 4 * len(data) + 16}
+
+    def counted(self, part):
+        budget["steps"] -= 1
+        assert budget["steps"] >= 0, "the scanner stopped making progress"
+        _KEEP(self, part)
+
+    monkeypatch.setattr(ff._Splitter, "_keep", counted)
+    monkeypatch.setattr(ff, "_CHUNK", chunk)
+    items, _ = _read(path)
+    assert all(isinstance(x, (Frame, FrameError)) for x in items)
