@@ -93,7 +93,7 @@ def test_recover_jsonl_on_jsonl_input(tmp_path, synthetic_frames, capsys):
     ("{not json", "truncated"),
     ("42", "not a frame file"),
     ("", "empty"),
-    ('[{"hists": 1} 7]', "expected ','"),
+    ('[, {"hists": 1}]', "no frame before it"),
 ])
 def test_bad_frame_files_exit_2_with_one_line(tmp_path, content, needle, capsys):
     path = tmp_path / "in.json"
