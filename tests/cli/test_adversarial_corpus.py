@@ -293,3 +293,36 @@ if __name__ == "__main__":  # write the corpus and list its runs
     target = Path(sys.argv[1] if len(sys.argv) > 1 else "adversarial-corpus")
     for name, argv, _ in build_corpus(target):
         print(json.dumps({"name": name, "argv": argv}))
+
+
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+_json = st.recursive(st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=4),
+                     lambda inner: st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=4), inner,
+                                                                                  max_size=3), max_leaves=12)
+
+
+@settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(field=st.sampled_from(["hists", "reference_hist", "distances", "plane", "pose", "dist_to_plane",
+                              "timestamp", "meta"]),
+       value=_json, index=st.integers(0, 2), method=st.sampled_from(["peak", "proprietary", "peak-naive"]))
+def test_any_field_of_any_frame_through_recover(tmp_path, capsys, field, value, index, method):
+    """One field of one frame replaced by any JSON value: every frame keeps its line, the others keep their planes."""
+    frames = _frames()
+    path = tmp_path / "f.json"
+    path.write_text(json.dumps(frames))
+    assert main(["recover", str(path), "--method", method, "--jsonl", "-q"]) == 0
+    good = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
+    frames[index][field] = value
+    path.write_text(json.dumps(frames))
+    argv = ["recover", str(path), "--method", method, "--jsonl", "-q"]
+    status = main(argv)
+    cap = capsys.readouterr()
+    check_run(argv, status, cap.out, cap.err)
+    assert status == 0
+    main_lines = [json.loads(x) for x in cap.out.splitlines()]
+    assert [x["index"] for x in main_lines] == [0, 1, 2]
+    for i in range(3):
+        if i != index:
+            assert main_lines[i]["normal"] == good[i]["normal"]
