@@ -28,7 +28,7 @@ PROG = "place-safe"
 #: Command groups that live in their own module: each exposes ``register(subparsers) -> None``, which adds
 #: its sub-parser(s) (``parser_class=_Parser`` is inherited) with ``set_defaults(func=...)``. Modules must
 #: import heavy packages (torch, MuJoCo, ur-rtde, smbus2) inside their command functions, not at import time.
-COMMAND_MODULES: tuple[str, ...] = ()
+COMMAND_MODULES: tuple[str, ...] = ("place_safe.cli.sensor",)
 METHODS = ("diff", "peak", "peak-naive", "proprietary", "proprietary-naive")
 CALIBRATE_METHODS = ("diff", "peak", "proprietary")
 
@@ -440,6 +440,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
         from place_safe.sim.placement_run import run_placement
 
         ok = True
+        if args.method == "diff":
+            _log("demo: NOTE: diff is handed the simulated sensor's TRUE forward parameters (an oracle "
+                 "calibration, not one a user could have); see 'place-safe sim place --help'")
         for scenario, expected in DEMO_SCENARIOS:
             if not args.quiet:
                 _log(f"demo: simulated UR5 placing a cup, scenario {scenario} (expected: {expected}) ...")
