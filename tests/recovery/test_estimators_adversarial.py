@@ -15,6 +15,8 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from place_safe.recovery import METHODS, make_estimator
+from place_safe.recovery.forward import FORWARD_BOUNDS
+from place_safe.recovery.points import PEAK_BOUNDS
 from place_safe.sensor.frame import N_BINS, N_ZONES, Frame
 from place_safe.sensor.histogram import COUNT_MAX
 
@@ -125,3 +127,57 @@ def test_complex_counts_never_give_a_plane(base):
                   np.asarray(base.distances) + 0j, base.confidences)
         e = est.estimate(f)
         assert e.plane is None, method
+
+
+# -- any accepted parameter set: the ranges of FORWARD_BOUNDS / PEAK_BOUNDS keep every estimator safe --------
+def _in(b, integer=False):
+    lo = b.lo if b.lo is not None else -1e6
+    hi = b.hi if b.hi is not None else 1e6
+    if integer:
+        return st.integers(int(lo) + (1 if b.lo_open else 0), min(int(hi), 4096))
+    return st.floats(lo, hi, exclude_min=b.lo_open, exclude_max=b.hi_open, allow_nan=False)
+
+
+def _params_strategy(bounds, required=()):
+    fields = {}
+    for name, b in bounds.items():
+        if b.length is not None:
+            fields[name] = st.lists(_in(b), min_size=b.length, max_size=b.length)
+        elif name in ("residual_coeffs", "phase_coeffs", "coeffs", "slope_a", "slope_b"):
+            fields[name] = st.lists(_in(b), max_size=6).map(lambda v: v[: len(v) // 2 * 2])
+        else:
+            fields[name] = _in(b, integer=name == "rays_per_zone")
+    req = {k: fields.pop(k) for k in required}
+    return st.fixed_dictionaries(req, optional=fields)
+
+
+@settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(d=_params_strategy(FORWARD_BOUNDS))
+def test_diff_is_safe_for_any_accepted_forward_parameters(synthetic_frames, d):
+    from place_safe.exceptions import CalibrationError
+    from place_safe.recovery.differentiable import DifferentiableEstimator
+    from place_safe.recovery.forward import ForwardParams
+
+    try:
+        params = ForwardParams.from_dict(d)
+    except CalibrationError:
+        return  # e.g. a cross-field rule; the ranges themselves are what is exercised
+    for e in DifferentiableEstimator(params).estimate_many(synthetic_frames[:2]):
+        assert_safe(e)
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(d=_params_strategy(PEAK_BOUNDS, required=("m", "b")))
+def test_point_methods_are_safe_for_any_accepted_parameters(synthetic_frames, d):
+    from place_safe.exceptions import CalibrationError
+    from place_safe.recovery.peak import PeakEstimator
+    from place_safe.recovery.points import PeakParams
+    from place_safe.recovery.proprietary import ProprietaryEstimator
+
+    try:
+        params = PeakParams.from_dict(d)
+    except CalibrationError:
+        return  # residual_domain with lo >= hi
+    for est in (PeakEstimator(params), ProprietaryEstimator(params)):
+        for f in synthetic_frames[:3]:
+            assert_safe(est.estimate(f))
