@@ -29,13 +29,27 @@ def check_keys(cls: type, d: Any, what: str, error: type[Exception] = ValueError
 
 
 def read_json(path: str | Path, what: str, error: type[Exception] = ValueError) -> Any:
-    """The JSON value in ``path``; raises ``error`` saying why it cannot be read."""
+    """The JSON value in ``path`` (UTF-8, a byte-order mark allowed); raises ``error`` saying why it cannot be read.
+
+    Every way a file can be unreadable (missing, not UTF-8, not JSON, nested too deeply, an integer too
+    long) is one line naming the file.
+    """
     try:
-        return json.loads(Path(path).read_text(encoding="utf-8"))
+        raw = Path(path).read_bytes()
     except OSError as exc:
-        raise error(f"cannot read {what} from {path}: {exc.strerror}") from None
+        raise error(f"cannot read {what} from {path}: {exc.strerror or exc}") from None
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise error(f"cannot read {what} from {path}: not UTF-8 text (byte {exc.start})") from None
+    try:
+        return json.loads(text)
     except json.JSONDecodeError as exc:
         raise error(f"cannot read {what} from {path}: not JSON ({exc.msg} at line {exc.lineno})") from None
+    except RecursionError:
+        raise error(f"cannot read {what} from {path}: not JSON (nested too deeply)") from None
+    except ValueError as exc:  # an integer longer than Python's digit limit
+        raise error(f"cannot read {what} from {path}: not JSON ({str(exc).splitlines()[0]})") from None
 
 
 def write_json(path: str | Path, value: Any) -> None:
@@ -69,10 +83,15 @@ def describe_validation_error(exc: ValidationError, what: str) -> str:
     if not errors:
         return f"{what}: invalid"
     first = errors[0]
-    loc = ".".join(str(p) for p in first.get("loc", ())) or "(top level)"
-    msg = first.get("msg", "invalid").replace("\n", " ")
+    loc = ".".join(_printable(str(p)) for p in first.get("loc", ())) or "(top level)"
+    msg = _printable(first.get("msg", "invalid"))
     more = f" (and {len(errors) - 1} more problem{'s' if len(errors) > 2 else ''})" if len(errors) > 1 else ""
     return f"{what}: {loc}: {msg}{more}"
+
+
+def _printable(text: str) -> str:
+    """``text`` on one line: control characters (newlines in a key, say) shown as escapes."""
+    return text if text.isprintable() else text.encode("unicode_escape").decode("ascii")
 
 
 def parse_config(cls: type, data: Any, what: str):
@@ -114,3 +133,155 @@ def load_config(cls: type, path: str | Path, what: str | None = None):
     """Read ``path`` (JSON or TOML) and validate it as ``cls`` (a :class:`ConfigModel`); one-line errors."""
     what = what or cls.__name__
     return parse_config(cls, read_config_file(path, what), f"{what} {path}")
+
+
+# ---------------------------------------------------------------------------------------------------
+# Physical ranges for the parameter dataclasses (forward model, peak mapping, placement, robot, scene)
+# ---------------------------------------------------------------------------------------------------
+from dataclasses import MISSING, dataclass  # noqa: E402
+from functools import lru_cache  # noqa: E402
+from typing import Annotated, Mapping  # noqa: E402
+
+from pydantic import Field, create_model  # noqa: E402
+
+
+@dataclass(frozen=True)
+class Bound:
+    """The physical range of one parameter: ``lo <= v <= hi`` (strict where ``lo_open``/``hi_open``).
+
+    ``unit`` documents it (shown in messages); ``length`` fixes the number of values of a list
+    parameter, whose every value must then be in the range. ``None`` for ``lo``/``hi`` is unbounded.
+    """
+
+    lo: float | None = None
+    hi: float | None = None
+    unit: str = ""
+    lo_open: bool = False
+    hi_open: bool = False
+    length: int | None = None
+
+    def describe(self) -> str:
+        lo = "" if self.lo is None else f"{self.lo:g} {'<' if self.lo_open else '<='} "
+        hi = "" if self.hi is None else f" {'<' if self.hi_open else '<='} {self.hi:g}"
+        return f"{lo}value{hi}{' ' + self.unit if self.unit else ''}"
+
+    def constraints(self) -> dict:
+        c: dict = {"strict": True}
+        if self.lo is not None:
+            c["gt" if self.lo_open else "ge"] = self.lo
+        if self.hi is not None:
+            c["lt" if self.hi_open else "le"] = self.hi
+        return c
+
+
+def _field_spec(f, bound: Bound | None):
+    """(annotation, FieldInfo) of a pydantic field for dataclass field ``f`` with its bound.
+
+    The kind comes from the annotation (``float``, ``int``, ``bool``, ``str``, lists and tuples of
+    numbers, each optionally ``| None``); other annotations (nested configs) are not checked here.
+    """
+    from typing import Any as _Any, Optional
+
+    if f.default is not MISSING:
+        default = f.default
+    elif f.default_factory is not MISSING:  # type: ignore[misc]
+        default = f.default_factory()  # type: ignore[misc]
+    else:
+        default = ...
+    b = bound or Bound()
+    desc = b.describe()
+    t = f.type
+    kind = (t if isinstance(t, str) else t.__name__ if isinstance(t, type) else str(t)).replace(" ", "")
+    kind = kind.replace("typing.", "")
+    optional = "None" in kind or default is None
+    base = kind.replace("|None", "").replace("None|", "").replace("Optional[", "").rstrip("]") if optional else kind
+    numeric_list = base.startswith(("list[float", "list[int", "tuple[float", "tuple[int"))
+    if numeric_list:
+        ann: _Any = list[Annotated[float, Field(**b.constraints())]]
+        extra = {"min_length": b.length, "max_length": b.length} if b.length is not None else {}
+        dflt = list(default) if isinstance(default, (list, tuple)) else default
+        return (Optional[ann] if optional else ann), Field(default=dflt, description=desc, **extra)
+    if base == "bool":
+        ann = Annotated[bool, Field(strict=True)]
+    elif base == "int":
+        ann = Annotated[int, Field(**b.constraints())]
+    elif base == "float":
+        ann = Annotated[float, Field(**b.constraints())]
+    elif base == "str":
+        ann = Annotated[str, Field(strict=True)]
+    else:
+        ann = _Any
+    return (Optional[ann] if optional else ann), Field(default=default, description=desc)
+
+
+@lru_cache(maxsize=None)
+def _model_for(cls: type, bounds_items: tuple) -> type[ConfigModel]:
+    from dataclasses import fields as dc_fields
+
+    bounds = dict(bounds_items)
+    specs = {f.name: _field_spec(f, bounds.get(f.name)) for f in dc_fields(cls) if f.init}
+    # nested configs (annotations that are other dataclasses) are validated by their own classes
+    return create_model(f"{cls.__name__}Model", __base__=ConfigModel, **specs)  # type: ignore[call-overload]
+
+
+def dataclass_model(cls: type, bounds: Mapping[str, Bound]) -> type[ConfigModel]:
+    """The pydantic model that validates dataclass ``cls``: its fields, with ``bounds`` as constraints.
+
+    Fields without a bound must still be finite numbers (or lists of them); new fields of ``cls``
+    are picked up automatically, so adding a parameter means adding one line to its bounds table.
+    """
+    return _model_for(cls, tuple(sorted(bounds.items())))
+
+
+def check_dataclass(obj: Any, bounds: Mapping[str, Bound], what: str, error: type[Exception] = ConfigError) -> None:
+    """Raise ``error`` (one line naming ``what`` and the field) unless every field of ``obj`` is in range."""
+    model = dataclass_model(type(obj), bounds)
+    try:
+        model.model_validate({f: _plain(getattr(obj, f)) for f in model.model_fields})
+    except ValidationError as exc:
+        raise error(_with_bounds(describe_validation_error(exc, what), exc, bounds)) from None
+
+
+def dataclass_from_dict(cls: type, d: Any, bounds: Mapping[str, Bound], what: str,
+                        error: type[Exception] = ConfigError):
+    """An instance of dataclass ``cls`` from a JSON object, validated (unknown keys, types, ranges).
+
+    Raises ``error`` with one line: ``what: field: problem (range)``.
+    """
+    if not isinstance(d, dict):
+        raise error(f"{what} must be a JSON object, got {_json_name(d)}")
+    model = dataclass_model(cls, bounds)
+    try:
+        values = model.model_validate(d)
+    except ValidationError as exc:
+        raise error(_with_bounds(describe_validation_error(exc, what), exc, bounds)) from None
+    return cls(**{k: getattr(values, k) for k in d})
+
+
+def _plain(value: Any) -> Any:
+    """NumPy scalars and arrays (set in code, not read from files) as plain Python numbers and lists."""
+    if hasattr(value, "tolist") and not isinstance(value, (list, tuple)):
+        return value.tolist()
+    if isinstance(value, (list, tuple)):
+        return [v.item() if hasattr(v, "item") and not isinstance(v, (list, tuple)) else v for v in value]
+    return value
+
+
+def _with_bounds(message: str, exc: ValidationError, bounds: Mapping[str, Bound]) -> str:
+    errors = exc.errors()
+    loc = errors[0].get("loc", ()) if errors else ()
+    name = loc[0] if loc else None
+    if name in bounds and errors[0].get("type") != "extra_forbidden":
+        return f"{message} (expected {bounds[name].describe()})"
+    if errors and errors[0].get("type") == "extra_forbidden":
+        return message.replace("Extra inputs are not permitted", "unknown key")
+    return message
+
+
+def _json_name(value: Any) -> str:
+    return {dict: "an object", list: "a list", str: "a string", bool: "a boolean", type(None): "null",
+            int: "a number", float: "a number"}.get(type(value), type(value).__name__)
+
+
+__all__ = ["ConfigModel", "Bound", "check_keys", "read_json", "write_json", "parse_config", "read_config_file",
+           "load_config", "describe_validation_error", "dataclass_model", "check_dataclass", "dataclass_from_dict"]

@@ -13,7 +13,9 @@ import sys
 import time
 
 
-from place_safe.exceptions import PlaceSafeError
+from place_safe.cli import options
+from place_safe.cli.app import UsageError
+from place_safe.exceptions import FrameFileError
 
 
 def add_sim_commands(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -34,8 +36,8 @@ def add_sim_commands(subparsers: argparse._SubParsersAction) -> argparse.Argumen
                                    "Targets: mean |peak diff| <= 0.5 bin and mean correlation >= 0.95 in every zone.")
     v.add_argument("frames", help="frame file with ground truth (e.g. tests/data/tmf8820_ur5_sweep.json)")
     v.add_argument("--params", help="ForwardParams JSON of the simulated sensor (default sim/sensors/tmf8820_real.json)")
-    v.add_argument("--rays", type=int, default=8, help="stratified rays per axis and zone (default 8)")
-    v.add_argument("--min-distance", type=float, default=5.0, help="use frames at z0 >= this many cm (default 5)")
+    v.add_argument("--rays", type=options.int_range(1, 64), default=8, help="stratified rays per axis and zone (default 8)")
+    v.add_argument("--min-distance", type=options.nonnegative_float, default=5.0, help="use frames at z0 >= this many cm (default 5)")
     v.add_argument("--json", action="store_true", help="print the per-zone figures as JSON instead of a table")
     v.add_argument("--strict", action="store_true", help="exit 1 if a target is missed")
     v.set_defaults(func=cmd_validate)
@@ -48,11 +50,11 @@ def add_sim_commands(subparsers: argparse._SubParsersAction) -> argparse.Argumen
     r.add_argument("-o", "--output", default="scene.png", help="PNG path (default scene.png)")
     r.add_argument("--gif", help="also write a GIF of the rig descending 20 cm (rig scenes)")
     r.add_argument("--no-rays", action="store_true", help="do not draw the sensor's rays")
-    r.add_argument("--width", type=int, default=640)
-    r.add_argument("--height", type=int, default=480)
-    r.add_argument("--azimuth", type=float, default=135.0, help="camera azimuth (deg)")
-    r.add_argument("--elevation", type=float, default=-25.0, help="camera elevation (deg)")
-    r.add_argument("--distance", type=float, default=None, help="camera distance (m)")
+    r.add_argument("--width", type=options.int_range(16, 4096), default=640, help="image width (pixels, default 640)")
+    r.add_argument("--height", type=options.int_range(16, 4096), default=480, help="image height (pixels, default 480)")
+    r.add_argument("--azimuth", type=options.finite_float, default=135.0, help="camera azimuth (deg)")
+    r.add_argument("--elevation", type=options.float_range(-90.0, 90.0), default=-25.0, help="camera elevation (deg)")
+    r.add_argument("--distance", type=options.positive_float, default=None, help="camera distance (m)")
     r.add_argument("--view", action="store_true", help="open the interactive viewer instead (needs a display)")
     r.set_defaults(func=cmd_render)
 
@@ -61,9 +63,9 @@ def add_sim_commands(subparsers: argparse._SubParsersAction) -> argparse.Argumen
                                    "in lockstep and reports the real-time factor (sim time / wall time). Target >= 5.")
     b.add_argument("--scene", help="scene JSON (default: level table)")
     b.add_argument("--rig", action="store_true", help="sensor rig only (no robot); default: the UR5 holding the cup")
-    b.add_argument("--seconds", type=float, default=5.0, help="sim seconds to run (default 5)")
-    b.add_argument("--rate", type=float, default=30.0, help="sensor frame rate (Hz, default 30)")
-    b.add_argument("--rays", type=int, default=8, help="stratified rays per axis and zone (default 8)")
+    b.add_argument("--seconds", type=options.float_range(0.0, 3600.0, lo_open=True), default=5.0, help="sim seconds to run (default 5)")
+    b.add_argument("--rate", type=options.float_range(0.0, 1000.0, lo_open=True), default=30.0, help="sensor frame rate (Hz, default 30)")
+    b.add_argument("--rays", type=options.int_range(1, 64), default=8, help="stratified rays per axis and zone (default 8)")
     b.set_defaults(func=cmd_bench)
     return sim
 
@@ -90,8 +92,7 @@ def cmd_validate(args: argparse.Namespace) -> int:
     t = time.perf_counter()
     rep = validate(frames, params, rays=args.rays, min_distance=args.min_distance / 100.0)
     if len(rep.distances) == 0:
-        print(f"error: no frame of {args.frames} has ground truth at >= {args.min_distance} cm", file=sys.stderr)
-        return 2
+        raise FrameFileError(f"no frame of {args.frames} has ground truth at >= {args.min_distance} cm")
     if args.json:
         table = {k: [float(x) for x in np.round(v, 4)] for k, v in rep.zone_table().items()}
         print(json.dumps({"frames": int(len(rep.distances)), "passed": rep.passed, "zones": table}))
@@ -123,8 +124,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     print(f"wrote {out} ({img.shape[1]}x{img.shape[0]})", file=sys.stderr)
     if args.gif:
         if scene.rig_mocap < 0:
-            print("error: --gif animates the sensor rig; use a scene without the robot", file=sys.stderr)
-            return 2
+            raise UsageError("sim render: --gif animates the sensor rig; use a scene without the robot")
         rig_tof = tof if tof is not None else SimToF(scene, data)
         frames = render.sweep_frames(scene, rig_tof, **kw)
         print(f"wrote {render.save_gif(frames, args.gif)} ({len(frames)} frames)", file=sys.stderr)
@@ -169,17 +169,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="place-safe")
-    add_sim_commands(parser.add_subparsers(dest="command"))
-    args = parser.parse_args(argv)
-    if not hasattr(args, "func"):
-        parser.print_help(sys.stderr)
-        return 2
-    try:
-        return int(args.func(args))
-    except (PlaceSafeError, OSError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+    """``python -m place_safe.sim.cli sim ...``: the same as ``place-safe sim ...`` (one entry point, one error policy)."""
+    from place_safe.cli.app import main as app_main
+
+    return app_main(sys.argv[1:] if argv is None else argv)
 
 
 if __name__ == "__main__":

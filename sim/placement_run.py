@@ -39,9 +39,11 @@ from typing import Any
 
 import numpy as np
 
-from place_safe.exceptions import PlaceSafeError, RobotFault
+from place_safe.cli import options
+from place_safe.exceptions import RobotFault
 from place_safe.placement.loop import CONTROL_PERIOD, PlacementLoop
 from place_safe.placement.machine import PlacementConfig
+from place_safe.recovery import METHODS
 
 #: s of simulation after the machine finished, for the cup and liquid to settle.
 SETTLE_SECONDS = 0.8
@@ -191,11 +193,11 @@ def add_placement_command(subparsers: argparse._SubParsersAction) -> argparse.Ar
                                           "levelness and clearance with the TMF8820, then release or refuse.")
     p.add_argument("--scenario", default="place_level",
                    help="scenario file or packaged name (default place_level; place_tilted must be refused)")
-    p.add_argument("--method", default="diff", help="plane-recovery method (diff, peak, ...; default diff)")
+    p.add_argument("--method", default="diff", choices=METHODS, help="plane-recovery method (default diff)")
     p.add_argument("--calibration", help="calibration JSON (default for diff: the simulated sensor's parameters)")
     p.add_argument("--config", help="PlacementConfig JSON (speeds m/s, distances m, angles rad)")
-    p.add_argument("--seconds", type=float, default=20.0, help="sim-time limit (default 20)")
-    p.add_argument("--seed", type=int, default=0, help="sensor noise seed")
+    p.add_argument("--seconds", type=options.float_range(0.0, 3600.0, lo_open=True), default=20.0, help="sim-time limit (default 20)")
+    p.add_argument("--seed", type=options.nonnegative_int, default=0, help="sensor noise seed")
     p.add_argument("--render", help="write a PNG of the final scene")
     p.add_argument("--json", help="write the full result (with the per-frame log) to this JSON file")
     p.set_defaults(func=cmd_place)
@@ -215,15 +217,10 @@ def cmd_place(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="place-safe sim place")
-    sub = parser.add_subparsers(dest="command")
-    add_placement_command(sub)
-    args = parser.parse_args(["place", *(argv if argv is not None else sys.argv[1:])])
-    try:
-        return int(args.func(args))
-    except (PlaceSafeError, OSError, ValueError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+    """``python -m place_safe.sim.placement_run ...``: the same as ``place-safe sim place ...``."""
+    from place_safe.cli.app import main as app_main
+
+    return app_main(["sim", "place", *(sys.argv[1:] if argv is None else argv)])
 
 
 if __name__ == "__main__":

@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from place_safe.config import check_keys
+from place_safe.config import Bound, check_dataclass, check_keys, read_json
 from place_safe.exceptions import PlaceSafeError
 
 if "MUJOCO_GL" not in os.environ and not os.environ.get("DISPLAY"):
@@ -80,6 +80,7 @@ class Material:
             raise SceneError("material albedo, albedo2 and specular_weight must be finite and >= 0")
         if self.square <= 0 or alpha <= 0:
             raise SceneError("material square (m) and specular_exponent must be > 0")
+        check_dataclass(self, MATERIAL_BOUNDS, "material", SceneError)
 
     def rgba(self) -> list[float]:
         """A grey for the renderer that brightens with albedo (visual only)."""
@@ -96,6 +97,9 @@ class TableConfig:
     tilt_direction: float = 0.0  # rad, world azimuth the top normal leans towards
     material: Material = field(default_factory=Material)
 
+    def __post_init__(self) -> None:
+        check_dataclass(self, TABLE_BOUNDS, "table", SceneError)
+
 
 @dataclass
 class ClutterItem:
@@ -111,8 +115,9 @@ class ClutterItem:
         need = {"box": 3, "cylinder": 2}
         if self.shape not in need:
             raise SceneError(f"clutter shape {self.shape!r} unknown; expected 'box' or 'cylinder'")
-        if len(self.size) != need[self.shape] or min(self.size) <= 0:
-            raise SceneError(f"clutter {self.shape} needs {need[self.shape]} positive sizes, got {list(self.size)}")
+        if not isinstance(self.size, (list, tuple)) or len(self.size) != need[self.shape] or min(self.size) <= 0:
+            raise SceneError(f"clutter {self.shape} needs {need[self.shape]} positive sizes, got {self.size!r}")
+        check_dataclass(self, CLUTTER_BOUNDS, "clutter item", SceneError)
 
 
 @dataclass
@@ -131,6 +136,9 @@ class SceneConfig:
     robot_material: Material = field(default_factory=lambda: Material(albedo=0.4))
     timestep: float | None = None  # s; default: the robot model's (0.002 for the rig)
 
+    def __post_init__(self) -> None:
+        check_dataclass(self, SCENE_BOUNDS, "scene", SceneError)
+
     # -- file form -----------------------------------------------------------------------------
     def to_dict(self) -> dict:
         return asdict(self)
@@ -144,10 +152,7 @@ class SceneConfig:
 
     @classmethod
     def load(cls, path: str | Path) -> "SceneConfig":
-        try:
-            d = json.loads(Path(path).read_text())
-        except (OSError, json.JSONDecodeError) as exc:
-            raise SceneError(f"cannot read scene file {path}: {exc}") from None
+        d = read_json(path, "scene file", SceneError)
         if isinstance(d, dict) and "scene" in d:  # a scenario file holding a scene
             d = d["scene"]
         return cls.from_dict(d)
@@ -155,16 +160,20 @@ class SceneConfig:
 
 def load_scenario(path: str | Path) -> tuple[SceneConfig, dict, str]:
     """A scenario file (``scenarios/*.json``): its scene, its sensor settings (ToFConfig keywords) and description."""
-    try:
-        d = json.loads(Path(path).read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise SceneError(f"cannot read scenario file {path}: {exc}") from None
+    d = read_json(path, "scenario file", SceneError)
     if not isinstance(d, dict) or "scene" not in d:
         raise SceneError(f"{path}: a scenario is a JSON object with 'scene' (and optional 'sensor', 'description')")
     sensor = d.get("sensor") or {}
     if not isinstance(sensor, dict):
         raise SceneError(f"{path}: 'sensor' must be an object of ToFConfig settings")
-    return SceneConfig.from_dict(d["scene"]), sensor, str(d.get("description", ""))
+    from place_safe.sim.tof import ToFConfig
+
+    try:  # the sensor settings are checked here, so a bad key or value is the file's error, not a crash later
+        ToFConfig.from_dict(sensor)
+        scene = SceneConfig.from_dict(d["scene"])
+    except SceneError as exc:
+        raise SceneError(f"scenario {path}: {exc}") from None
+    return scene, sensor, str(d.get("description", ""))
 
 
 _NESTED = {"table": TableConfig, "floor": Material, "material": Material, "robot_material": Material}
@@ -174,7 +183,9 @@ def _from_dict(cls: type, d: Any, where: str) -> Any:
     check_keys(cls, d, where, SceneError)
     kw: dict[str, Any] = {}
     for k, v in d.items():
-        if k in _NESTED and isinstance(v, dict):
+        if k in _NESTED:
+            if not isinstance(v, dict):
+                raise SceneError(f"{where}.{k} must be a JSON object, got {type(v).__name__}")
             kw[k] = _from_dict(_NESTED[k], v, f"{where}.{k}")
         elif k == "clutter":
             if not isinstance(v, list):
@@ -186,8 +197,44 @@ def _from_dict(cls: type, d: Any, where: str) -> Any:
             kw[k] = v
     try:
         return cls(**kw)
-    except TypeError as exc:
-        raise SceneError(f"{where}: {exc}") from None
+    except SceneError as exc:  # "table: height: ..." -> "scene.table: height: ..."
+        msg = str(exc)
+        for what in ("material: ", "table: ", "clutter item: ", "scene: "):
+            if msg.startswith(what):
+                msg = msg[len(what):]
+                break
+        raise SceneError(f"{where}: {msg}") from None
+    except (TypeError, ValueError) as exc:
+        raise SceneError(f"{where}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}") from None
+
+
+# Ranges of the scene settings (m, rad), checked on construction. Wide: anything a lab bench could hold.
+MATERIAL_BOUNDS: dict[str, Bound] = {
+    "albedo": Bound(0.0, 100.0, "(relative to the sensor's calibrated albedo)"),
+    "specular_weight": Bound(0.0, 100.0, "(relative to the diffuse term)"),
+    "specular_exponent": Bound(0.0, 1000.0, "(Phong exponent)", lo_open=True),
+    "square": Bound(0.0, 10.0, "m", lo_open=True),
+    "albedo2": Bound(0.0, 100.0, "(relative)"),
+}
+TABLE_BOUNDS: dict[str, Bound] = {
+    "height": Bound(0.0, 3.0, "m"),
+    "center": Bound(-10.0, 10.0, "m", length=2),
+    "size": Bound(0.0, 10.0, "m", lo_open=True, length=3),
+    "tilt": Bound(-math.pi / 2, math.pi / 2, "rad", hi_open=True, lo_open=True),
+    "tilt_direction": Bound(-2 * math.pi, 2 * math.pi, "rad"),
+}
+CLUTTER_BOUNDS: dict[str, Bound] = {
+    "pos": Bound(-10.0, 10.0, "m", length=3),
+    "euler": Bound(-2 * math.pi, 2 * math.pi, "rad", length=3),
+    "size": Bound(0.0, 5.0, "m", lo_open=True),
+}
+SCENE_BOUNDS: dict[str, Bound] = {
+    "robot_base_pos": Bound(-10.0, 10.0, "m", length=3),
+    "robot_base_yaw": Bound(-2 * math.pi, 2 * math.pi, "rad"),
+    "rig_pos": Bound(-10.0, 10.0, "m", length=3),
+    "rig_euler": Bound(-2 * math.pi, 2 * math.pi, "rad", length=3),
+    "timestep": Bound(0.0, 0.1, "s", lo_open=True),
+}
 
 
 # ---------------------------------------------------------------------------------------------

@@ -42,6 +42,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from place_safe.config import Bound, check_dataclass, dataclass_from_dict
 from place_safe.exceptions import CalibrationError, NoPlaneError, SensorTimeout
 from place_safe.recovery.forward import ForwardModel, ForwardParams, ZoneRays, mount_rotation
 from place_safe.geometry import Plane
@@ -50,7 +51,7 @@ from place_safe.sensor.histogram import COUNT_MAX, first_return
 from place_safe.io.source import FrameSource
 from place_safe.evaluation.synthetic import default_reference
 
-from place_safe.sim.scene import Scene
+from place_safe.sim.scene import Scene, SceneError
 
 
 
@@ -82,6 +83,21 @@ class DistanceMap:
             raise CalibrationError(f"cannot read on-sensor distance map {p}: {exc}") from None
 
 
+#: Range of every simulated-sensor setting (units in the ToFConfig comments).
+TOF_BOUNDS: dict[str, Bound] = {
+    "rays": Bound(1, 64, "rays per axis and zone"),
+    "rate_hz": Bound(0.0, 1000.0, "Hz", lo_open=True),
+    "transfer_bytes": Bound(1, 1 << 20, "bytes"),
+    "bus_hz": Bound(0.0, 1e8, "Hz", lo_open=True),
+    "bits_per_byte": Bound(1, 64, "bits"),
+    "ambient_range": Bound(0.0, 1e7, "counts", length=2),
+    "drop_prob": Bound(0.0, 1.0, "(probability)"),
+    "corrupt_prob": Bound(0.0, 1.0, "(probability)"),
+    "seed": Bound(0, 2 ** 63 - 1, "(seed)"),
+    "max_range": Bound(0.0, 100.0, "m", lo_open=True),
+}
+
+
 @dataclass
 class ToFConfig:
     """Settings of the simulated sensor (units in the names or comments)."""
@@ -106,10 +122,13 @@ class ToFConfig:
         return self.transfer_bytes * self.bits_per_byte / self.bus_hz
 
     def __post_init__(self) -> None:
-        if self.rays < 1 or self.rate_hz <= 0 or self.bus_hz <= 0:
-            raise CalibrationError("ToFConfig needs rays >= 1, rate_hz > 0 and bus_hz > 0")
-        if not (0 <= self.drop_prob <= 1 and 0 <= self.corrupt_prob <= 1):
-            raise CalibrationError("drop_prob and corrupt_prob are probabilities in [0, 1]")
+        check_dataclass(self, TOF_BOUNDS, "sensor settings", SceneError)
+
+    @classmethod
+    def from_dict(cls, d: Any) -> "ToFConfig":
+        """Settings from a scenario's ``sensor`` object: unknown keys, wrong types and values outside
+        :data:`TOF_BOUNDS` are one-line :class:`~place_safe.sim.scene.SceneError` messages naming the field."""
+        return dataclass_from_dict(cls, d, TOF_BOUNDS, "sensor settings", SceneError)
 
     def to_dict(self) -> dict:
         return asdict(self)

@@ -17,11 +17,11 @@ Fitting lives in :mod:`place_safe.calibration.points` (peak and on-sensor distan
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from place_safe.config import read_json, write_json
 from place_safe.exceptions import CalibrationError
 from place_safe.recovery.forward import ForwardParams
 
@@ -29,31 +29,57 @@ FORMAT = "place_safe.calibration/1"
 SECTIONS = ("peak", "proprietary", "forward", "diff")
 
 
+#: Keys a calibration file may have besides its sections.
+OTHER_KEYS = ("format", "reports")
+
+
 @dataclass
 class Calibration:
-    """Sections of a calibration file as plain dicts; typed views via :meth:`peak` etc."""
+    """Sections of a calibration file as plain dicts; typed views via :meth:`peak` etc.
+
+    Each section is validated on its own when the file is read (:meth:`from_dict`): a bad section is
+    remembered in ``errors`` and raises a one-line :class:`CalibrationError` (naming the file, the
+    section and the field) only when a method that needs it asks for it, so a broken ``diff``
+    section does not stop the ``peak`` method. The file itself must carry the format tag and no
+    unknown top-level keys.
+    """
 
     sections: dict[str, dict] = field(default_factory=dict)
     reports: dict[str, Any] = field(default_factory=dict)
+    errors: dict[str, str] = field(default_factory=dict)
+    source: str = "calibration"
+
+    def _section(self, name: str):
+        if name in self.errors:
+            raise CalibrationError(f"{self.source}: section '{name}': {self.errors[name]}")
+        return self.sections.get(name)
 
     def peak(self):
         from place_safe.recovery.points import PeakParams
-        return PeakParams.from_dict(self.sections["peak"]) if "peak" in self.sections else PeakParams.default_peak()
+
+        d = self._section("peak")
+        return PeakParams.from_dict(d) if d is not None else PeakParams.default_peak()
 
     def proprietary(self):
         from place_safe.recovery.points import PeakParams
-        return (PeakParams.from_dict(self.sections["proprietary"]) if "proprietary" in self.sections
-                else PeakParams.default_proprietary())
+
+        d = self._section("proprietary")
+        return PeakParams.from_dict(d) if d is not None else PeakParams.default_proprietary()
 
     def diff(self):
         """The ``diff`` section's range correction (none when the section is absent)."""
         from place_safe.recovery.differentiable import RangeCorrection
 
-        d = self.sections.get("diff", {})
+        d = self._section("diff")
+        if d is None:
+            return RangeCorrection()
+        if not isinstance(d, dict) or set(d) - {"range_correction"}:
+            raise CalibrationError("diff section must be an object with only 'range_correction'")
         return RangeCorrection.from_dict(d.get("range_correction", {}))
 
     def forward(self) -> ForwardParams:
-        return ForwardParams.from_dict(self.sections["forward"]) if "forward" in self.sections else ForwardParams()
+        d = self._section("forward")
+        return ForwardParams.from_dict(d) if d is not None else ForwardParams()
 
     def to_dict(self) -> dict:
         out: dict[str, Any] = {"format": FORMAT}
@@ -63,29 +89,27 @@ class Calibration:
         return out
 
     @classmethod
-    def from_dict(cls, d: Any) -> "Calibration":
+    def from_dict(cls, d: Any, source: str = "calibration") -> "Calibration":
         if not isinstance(d, dict) or d.get("format") != FORMAT:
-            raise CalibrationError(f"not a place_safe calibration (expected \"format\": \"{FORMAT}\")")
-        cal = cls({k: d[k] for k in SECTIONS if k in d}, dict(d.get("reports", {})))
-        # build every typed view once so a bad file fails here, not mid-run
-        for name in cal.sections:
-            getattr(cal, name)()
+            raise CalibrationError(f"{source}: not a place_safe calibration (expected \"format\": \"{FORMAT}\")")
+        unknown = sorted(set(d) - set(SECTIONS) - set(OTHER_KEYS))
+        if unknown:
+            raise CalibrationError(f"{source}: unknown keys {unknown}; expected some of "
+                                   f"{sorted(SECTIONS + OTHER_KEYS)}")
+        reports = d.get("reports", {})
+        cal = cls({k: d[k] for k in SECTIONS if k in d}, dict(reports) if isinstance(reports, dict) else {},
+                  source=source)
+        # validate every section once, on its own, so a bad one fails clearly and only for its methods
+        for name in list(cal.sections):
+            try:
+                getattr(cal, name)()
+            except CalibrationError as exc:
+                cal.errors[name] = str(exc)
         return cal
 
     @classmethod
     def load(cls, path: str | Path) -> "Calibration":
-        try:
-            text = Path(path).read_text()
-        except OSError as exc:
-            raise CalibrationError(f"cannot read calibration {path}: {exc.strerror}") from None
-        try:
-            d = json.loads(text)
-        except json.JSONDecodeError as exc:
-            raise CalibrationError(f"calibration {path} is not JSON: {exc.msg} at line {exc.lineno}") from None
-        try:
-            return cls.from_dict(d)
-        except (KeyError, TypeError, ValueError) as exc:
-            raise CalibrationError(f"calibration {path} is malformed: {exc}") from None
+        return cls.from_dict(read_json(path, "calibration", CalibrationError), f"calibration {path}")
 
     def save(self, path: str | Path) -> None:
-        Path(path).write_text(json.dumps(self.to_dict(), indent=2) + "\n")
+        write_json(path, self.to_dict())

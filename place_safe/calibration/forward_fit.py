@@ -25,7 +25,7 @@ from tqdm import tqdm
 from place_safe.exceptions import CalibrationError, FrameError
 from place_safe.recovery.forward import MODEL_ERROR, ForwardModel, ForwardParams, ZoneRays, mount_rotation, residual_weights
 from place_safe.sensor.frame import N_BINS, N_ZONES, Frame
-from place_safe.sensor.histogram import measure_floor
+from place_safe.sensor.histogram import COUNT_MAX, measure_floor, reference_problem
 
 #: Camera parameters fitted by default, with how they are parametrised ("log": positive). The
 #: specular lobe is left at its published value: it is a property of the surface, fitted per frame
@@ -50,17 +50,35 @@ CENTRE = 4  # zone 5: gauge for zone gains and offsets
 ZONE_GAUGED = ("zone_gains", "zone_offsets")
 
 
-def _usable(frames: Sequence[Frame], min_distance: float, max_distance: float) -> list[Frame]:
+def _usable(frames: Sequence[Frame], min_distance: float, max_distance: float,
+            skipped: dict | None = None) -> list[Frame]:
+    """The frames a forward fit may use: ground truth in range, valid histograms, none saturated and a
+    reference histogram that is a laser pulse. Each left-out frame is counted in ``skipped`` by reason."""
     out = []
+    counts = skipped if skipped is not None else {}
+
+    def skip(why: str) -> None:
+        counts[why] = counts.get(why, 0) + 1
+
     for f in frames:
         if f.truth is None:
+            skip("no ground truth")
             continue
         try:
             f.validate()
         except FrameError:
+            skip("invalid histograms")
+            continue
+        if np.any(np.asarray(f.hists) >= COUNT_MAX):
+            skip("saturated")
+            continue
+        if reference_problem(f.reference):
+            skip("invalid reference histogram")
             continue
         if min_distance <= f.truth.z0 <= max_distance:
             out.append(f)
+        else:
+            skip("outside the distance range")
     return out
 
 
@@ -85,7 +103,8 @@ def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, prog
     from scipy.optimize import least_squares
     from torch.func import jvp, vmap
 
-    data = _usable(frames, min_distance, max_distance)
+    skipped: dict[str, int] = {}
+    data = _usable(frames, min_distance, max_distance, skipped)
     if len(data) < 3:
         raise CalibrationError(f"forward calibration needs >= 3 valid frames with ground truth in "
                                f"[{min_distance}, {max_distance}] m, got {len(data)}")
@@ -228,6 +247,7 @@ def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, prog
     report = {
         "frames": nf,
         "frames_available": available,
+        "frames_skipped": skipped,
         "rms_scaled_residual_before": math.sqrt(2 * cost0 / n_res),
         "rms_scaled_residual_after": math.sqrt(2 * float(sol.cost) / n_res),
         "rms_scaled_residual_per_frame": {"median": float(np.median(per_frame)), "max": float(per_frame.max())},
@@ -282,16 +302,29 @@ def select_model_error(frames: Sequence[Frame], forward: ForwardParams, peak=Non
     from place_safe.recovery.differentiable import DifferentiableEstimator
     from place_safe.evaluation.metrics import point_error
 
-    data = _usable(frames, min_distance, max_distance)
+    skipped: dict[str, int] = {}
+    data = _usable(frames, min_distance, max_distance, skipped)
     if not data:
-        return forward.model_error, {"why": "no usable frames"}
-    scores = {}
+        return forward.model_error, {"why": "no usable frames", "frames_skipped": skipped}
+    scores, failures = {}, {}
     for e in tqdm(grid, desc="model error", unit="value", disable=not progress, file=sys.stderr):
         est = DifferentiableEstimator(replace(forward, model_error=float(e)), peak)
-        errs = [point_error(x.plane, f.truth) if x.ok else np.inf for x, f in zip(est.estimate_many(data), data)]
-        scores[float(e)] = float(np.mean(errs))
-    best = min(scores, key=scores.get)
-    return best, {"chosen": best, "mean_point_error_mm": {str(k): v * 1e3 for k, v in scores.items()}}
+        ests = est.estimate_many(data)
+        errs = [point_error(x.plane, f.truth) for x, f in zip(ests, data) if x.ok]
+        failures[float(e)] = len(data) - len(errs)
+        errs = [v for v in errs if np.isfinite(v)]
+        scores[float(e)] = float(np.mean(errs)) if errs else math.inf
+    finite = [e for e in scores if math.isfinite(scores[e])]
+    report = {"frames": len(data), "frames_skipped": skipped,
+              "mean_point_error_mm": {str(k): (v * 1e3 if math.isfinite(v) else None) for k, v in scores.items()},
+              "frames_without_plane": {str(k): v for k, v in failures.items()}}
+    if not finite:  # no value recovers any frame: keep what the parameters had rather than pick blindly
+        report.update(chosen=forward.model_error, why="no value of the grid recovered a plane")
+        return forward.model_error, report
+    # fewest frames without a plane first, then the lowest mean point error over the recovered ones
+    best = min(finite, key=lambda e: (failures[e], scores[e]))
+    report["chosen"] = best
+    return best, report
 
 
 def fit_range_correction(frames: Sequence[Frame], forward: ForwardParams, peak=None, degree: int = 3,
@@ -311,7 +344,8 @@ def fit_range_correction(frames: Sequence[Frame], forward: ForwardParams, peak=N
     from place_safe.recovery.forward import mount_rotation
     from place_safe.geometry import Plane
 
-    data = _usable(frames, min_distance, max_distance)
+    skipped: dict[str, int] = {}
+    data = _usable(frames, min_distance, max_distance, skipped)
     est = DifferentiableEstimator(forward, peak)
     to_optical = mount_rotation(forward.mount_tilt).numpy().T
     rows = []  # (z0_est, dz0, da, db)
@@ -327,14 +361,14 @@ def fit_range_correction(frames: Sequence[Frame], forward: ForwardParams, peak=N
     bar.close()
     if len(rows) < 8:
         return ({"range_correction": RangeCorrection().to_dict()},
-                {"frames": len(rows), "kept": [], "why": "fewer than 8 recovered frames"})
+                {"frames": len(rows), "frames_skipped": skipped, "kept": [], "why": "fewer than 8 recovered frames"})
     table = np.array(rows)
     z = table[:, 0]
     deg = int(min(degree, max(0, len(z) // 8 - 1)))
     lo, hi = float(z.min()), float(z.max())
     t = 2.0 * (z - lo) / max(hi - lo, 1e-9) - 1.0
     n = len(z)
-    series, report = {}, {"frames": n, "degree": deg, "kept": []}
+    series, report = {}, {"frames": n, "frames_skipped": skipped, "degree": deg, "kept": []}
     for col, name, unit in ((1, "coeffs", 1e3), (2, "slope_a", 1.0), (3, "slope_b", 1.0)):
         err = table[:, col]
         loo = []
@@ -348,5 +382,10 @@ def fit_range_correction(frames: Sequence[Frame], forward: ForwardParams, peak=N
         if after < 0.9 * before:  # kept only for a clear (10 %) out-of-sample gain
             series[name] = list(chebyshev.chebfit(t, err, deg))
             report["kept"].append(name)
-    corr = RangeCorrection(series.get("coeffs", []), [lo, hi], series.get("slope_a", []), series.get("slope_b", []))
+    try:
+        corr = RangeCorrection(series.get("coeffs", []), [lo, hi], series.get("slope_a", []),
+                               series.get("slope_b", []))
+    except CalibrationError as exc:  # a "correction" outside its physical range is not one: keep none
+        corr = RangeCorrection()
+        report.update(kept=[], why=f"fitted correction rejected: {exc}")
     return {"range_correction": corr.to_dict()}, report

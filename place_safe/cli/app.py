@@ -21,6 +21,7 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any, TextIO
 
+from place_safe.cli import options
 from place_safe.exceptions import CalibrationError, FrameError, FrameFileError, PlaceSafeError
 
 PROG = "place-safe"
@@ -67,30 +68,47 @@ def _load_calibration(path: str | None):
 
 
 def _load_truth_frames(paths: Sequence[str], min_distance: float | None = None,
-                       max_distance: float | None = None) -> tuple[list, int]:
-    """All frames with ground truth from ``paths`` (within the distance limits); and how many were skipped."""
+                       max_distance: float | None = None) -> tuple[list, str]:
+    """All frames with ground truth from ``paths`` (within the distance limits), and a note on the skipped ones.
+
+    Unreadable frames, frames without ground truth or whose ground truth is not a plane, and frames
+    outside the limits are skipped and counted; the note is empty when none was.
+    """
+    from collections import Counter
+
     from place_safe.io.frame_file import iter_frames
 
-    frames, skipped = [], 0
+    frames: list = []
+    skipped: Counter = Counter()
     for p in paths:
         if not Path(p).is_file():
             raise FrameFileError(f"frame file {p} does not exist")
         for f in iter_frames(p):
-            if isinstance(f, FrameError) or f.truth is None:
-                skipped += 1
-                continue
-            d = f.truth.offset
-            if (min_distance is not None and d < min_distance) or (max_distance is not None and d > max_distance):
-                skipped += 1
-                continue
-            frames.append(f)
+            if isinstance(f, FrameError):
+                skipped["unreadable"] += 1
+            elif f.truth is None:
+                skipped["ground truth not a plane" if f.truth_error else "no ground truth"] += 1
+            elif ((min_distance is not None and f.truth.offset < min_distance)
+                  or (max_distance is not None and f.truth.offset > max_distance)):
+                skipped["outside the distance limits"] += 1
+            else:
+                frames.append(f)
     if not frames:
         limits = ""
         if min_distance is not None or max_distance is not None:
             limits = f" between {min_distance or 0:g} m and {max_distance if max_distance is not None else math.inf:g} m"
         raise FrameFileError(f"no frames with ground truth{limits} in {', '.join(paths)} "
-                             "(expected 'plane' or 'pose' + 'dist_to_plane' per frame)")
-    return frames, skipped
+                             "(expected 'plane' or 'pose' + 'dist_to_plane' per frame)"
+                             + (f"; {_count_note(skipped)}" if skipped else ""))
+    return frames, _count_note(skipped)
+
+
+def _count_note(counts) -> str:
+    """``"3 skipped: 2 unreadable, 1 no ground truth"`` for a Counter of reasons ('' when empty)."""
+    total = sum(counts.values())
+    if not total:
+        return ""
+    return f"{total} skipped: " + ", ".join(f"{n} {why}" for why, n in counts.most_common())
 
 
 def _jsonable(obj: Any) -> Any:
@@ -157,14 +175,15 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         try:
             cal = Calibration.load(out)
             note = f"{out} is a calibration file; keeping its other sections (present: {', '.join(cal.sections) or 'none'})"
+            if cal.errors:
+                note += f"; invalid there: {', '.join(sorted(cal.errors))} (refit them)"
         except CalibrationError as exc:
             if not args.force:
                 raise CalibrationError(f"{exc}; refusing to overwrite it (use --force to replace the file)") from None
             note = f"replacing {out}: {exc}"
     frames, skipped = _load_truth_frames(args.files)
     if not args.quiet:
-        _log(f"calibrate {args.method}: {len(frames)} frames with ground truth"
-             + (f" ({skipped} skipped: no ground truth or unreadable)" if skipped else ""))
+        _log(f"calibrate {args.method}: {len(frames)} frames with ground truth" + (f" ({skipped})" if skipped else ""))
         if note:
             _log(note)
     progress = not args.quiet
@@ -175,6 +194,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         if args.method == "diff" and not args.quiet:
             _log("the diff method starts from the calibrated peak method: fitting the 'peak' section first")
         params, report = fit_peak(frames, progress=progress)
+        cal.errors.pop("peak", None)
         cal.sections["peak"] = params.to_dict()
         cal.reports["peak"] = _jsonable(report)
         fitted.append("peak")
@@ -182,6 +202,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         from place_safe.calibration.points import fit_proprietary
 
         params, report = fit_proprietary(frames, progress=progress)
+        cal.errors.pop("proprietary", None)
         cal.sections["proprietary"] = params.to_dict()
         cal.reports["proprietary"] = _jsonable(report)
         fitted.append("proprietary")
@@ -192,11 +213,13 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         from place_safe.calibration.forward_fit import fit_range_correction, select_model_error
 
         params.model_error, report["model_error"] = select_model_error(frames, params, cal.peak(), progress=progress)
+        cal.errors.pop("forward", None)
         cal.sections["forward"] = params.to_dict()
         cal.reports["forward"] = _jsonable(report)
         fitted.append("forward")
 
         section, report = fit_range_correction(frames, params, cal.peak(), progress=progress)
+        cal.errors.pop("diff", None)
         cal.sections["diff"] = section
         cal.reports["diff"] = _jsonable(report)
         fitted.append("diff")
@@ -231,7 +254,7 @@ def _recover_stream(path: str, estimator, batch: int) -> Iterator[tuple[int, Any
         frames = [f for _, f in pending if not isinstance(f, FrameError)]
         ests = iter(estimator.estimate_many(frames) if len(frames) > 1 else [estimator.estimate(f) for f in frames])
         for i, f in pending:
-            yield i, (PlaneEstimate(None, reason=f"frame {i}: {f}") if isinstance(f, FrameError) else next(ests))
+            yield i, (PlaneEstimate(None, reason=str(f)) if isinstance(f, FrameError) else next(ests))
         pending.clear()
 
     try:
@@ -299,8 +322,12 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from place_safe.evaluation.evaluate import evaluate
 
     cal = _load_calibration(args.calibration)
+    if args.min_distance is not None and args.max_distance is not None and args.min_distance > args.max_distance:
+        raise UsageError(f"evaluate: --min-distance {args.min_distance:g} m exceeds --max-distance "
+                         f"{args.max_distance:g} m")
     frames, skipped = _load_truth_frames([args.file], args.min_distance, args.max_distance)
-    _log(f"evaluate on {len(frames)} frames" + (f" ({skipped} skipped)" if skipped else ""))
+    if not args.quiet:
+        _log(f"evaluate on {len(frames)} frames" + (f" ({skipped})" if skipped else ""))
     options = {"diff": {"mode": args.diff_mode}} if args.diff_mode else None
     report = evaluate(frames, cal, list(args.methods), None if args.no_plots else args.out, not args.quiet,
                       estimator_options=options)
@@ -329,8 +356,6 @@ def cmd_stream(args: argparse.Namespace) -> int:
     from place_safe.io.replay import FileReplaySource
     from place_safe.io.live import run_live
 
-    if args.rate <= 0:
-        raise UsageError(f"stream: --rate must be > 0 frames per second, got {args.rate:g}")
     cal = _load_calibration(args.calibration)
     est = _estimator(args.method, cal, args.mode)
 
@@ -550,7 +575,7 @@ def build_parser(load_sim: bool = True) -> argparse.ArgumentParser:
     r.add_argument("--jsonl", action="store_true", help="one JSON line per frame on stdout (machine-readable)")
     r.add_argument("--mode", choices=("fast", "paper"), default=None,
                    help="diff solver: fast (default) or the paper's Adam, 100 iterations, 2304 rays (~s per frame)")
-    r.add_argument("--batch", type=int, default=None, metavar="N",
+    r.add_argument("--batch", type=options.int_range(1, 4096), default=None, metavar="N",
                    help="frames recovered together (default 16 for diff fast, else 1); memory stays O(N)")
     r.add_argument("-q", "--quiet", action="store_true", help="no progress bar or summary on stderr")
     r.set_defaults(func=cmd_recover)
@@ -566,9 +591,9 @@ def build_parser(load_sim: bool = True) -> argparse.ArgumentParser:
     e.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS), metavar="METHOD",
                    help=f"methods to evaluate (default: all of {', '.join(METHODS)})")
     e.add_argument("--out", default="out/evaluate", metavar="DIR", help="directory for plots (default out/evaluate)")
-    e.add_argument("--min-distance", type=float, default=None, metavar="M",
+    e.add_argument("--min-distance", type=options.nonnegative_float, default=None, metavar="M",
                    help="skip frames whose true plane is closer than M metres (perpendicular distance d)")
-    e.add_argument("--max-distance", type=float, default=None, metavar="M",
+    e.add_argument("--max-distance", type=options.positive_float, default=None, metavar="M",
                    help="skip frames whose true plane is farther than M metres (perpendicular distance d)")
     e.add_argument("--no-plots", action="store_true", help="do not write plots")
     e.add_argument("--diff-mode", choices=("fast", "paper"), default=None, help="diff solver (default fast)")
@@ -588,10 +613,10 @@ def build_parser(load_sim: bool = True) -> argparse.ArgumentParser:
     s.add_argument("--method", default="diff", choices=METHODS, help="recovery method (default diff)")
     s.add_argument("--calibration", metavar="CALIB.json", help="calibration file (default: built-in parameters)")
     s.add_argument("--mode", choices=("fast", "paper"), default=None, help="diff solver (default fast)")
-    s.add_argument("--rate", type=float, default=30.0, metavar="HZ", help="replay rate, frames per second (default 30)")
+    s.add_argument("--rate", type=options.float_range(0.0, 10000.0, lo_open=True), default=30.0, metavar="HZ", help="replay rate, frames per second (default 30)")
     s.add_argument("--loop", action="store_true", help="start again at the end of the file (stop with --max-frames)")
-    s.add_argument("--max-frames", type=int, default=None, metavar="N", help="stop after N frames arrived")
-    s.add_argument("--queue", type=int, default=1, metavar="N",
+    s.add_argument("--max-frames", type=options.positive_int, default=None, metavar="N", help="stop after N frames arrived")
+    s.add_argument("--queue", type=options.int_range(1, 10000), default=1, metavar="N",
                    help="frames that may wait for the estimator (default 1: always the newest)")
     s.add_argument("--jsonl", action="store_true",
                    help="one JSON line per estimated frame on stdout (with latency_ms); summary goes to stderr")
@@ -609,17 +634,17 @@ def build_parser(load_sim: bool = True) -> argparse.ArgumentParser:
                               "  place-safe bench --frames 5 --paper-frames 0 --memory-file 1000")
     b.add_argument("file", nargs="?", metavar="FILE", help="frame file with ground truth (default: synthetic frames)")
     b.add_argument("--calibration", metavar="CALIB.json", help="calibration file (default: built-in parameters)")
-    b.add_argument("--frames", type=int, default=None, metavar="N",
+    b.add_argument("--frames", type=options.int_range(1, 100000), default=None, metavar="N",
                    help="frames to use (default: 20 synthetic, or all of FILE)")
-    b.add_argument("--paper-frames", type=int, default=5, metavar="N",
+    b.add_argument("--paper-frames", type=options.int_range(0, 10000), default=5, metavar="N",
                    help="frames for diff paper mode, about 10 s each (default 5; 0 skips it)")
     b.add_argument("--methods", nargs="+", choices=("diff-paper", "diff-fast", "peak"),
                    default=["diff-paper", "diff-fast", "peak"], metavar="RUN",
                    help="runs to include: diff-paper diff-fast peak (default all)")
-    b.add_argument("--memory-file", type=int, default=None, metavar="N",
+    b.add_argument("--memory-file", type=options.int_range(1, 1000000), default=None, metavar="N",
                    help="also report the peak RSS of `recover` over an N-frame synthetic file in a fresh process")
     b.add_argument("--memory-method", default="diff", choices=METHODS, help="method for --memory-file (default diff)")
-    b.add_argument("--seed", type=int, default=0, help="seed of the synthetic frames")
+    b.add_argument("--seed", type=options.nonnegative_int, default=0, help="seed of the synthetic frames")
     b.add_argument("--json", metavar="FILE", help="write the results as JSON")
     b.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     b.set_defaults(func=cmd_bench)
@@ -635,8 +660,8 @@ def build_parser(load_sim: bool = True) -> argparse.ArgumentParser:
                               "  place-safe demo --synthetic --frames 10")
     d.add_argument("--method", default="diff", choices=METHODS, help="plane recovery in the placement (default diff)")
     d.add_argument("--synthetic", action="store_true", help="show recovery on synthetic frames, no simulation")
-    d.add_argument("--frames", type=int, default=20, metavar="N", help="synthetic frames (default 20)")
-    d.add_argument("--seed", type=int, default=0, help="seed of the synthetic frames")
+    d.add_argument("--frames", type=options.int_range(1, 100000), default=20, metavar="N", help="synthetic frames (default 20)")
+    d.add_argument("--seed", type=options.nonnegative_int, default=0, help="seed of the synthetic frames")
     d.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     d.set_defaults(func=cmd_demo)
 
@@ -655,8 +680,29 @@ def _commands(parser: argparse.ArgumentParser) -> list[str]:
     return []
 
 
+def _one_line(exc: BaseException) -> str:
+    """The first line of an exception's message (its type name when empty), at most 400 characters."""
+    text = str(exc).strip()
+    line = text.splitlines()[0] if text else type(exc).__name__
+    return line if len(line) <= 400 else line[:397] + "..."
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the ``place-safe`` console script; returns the exit status."""
+    """Entry point of the ``place-safe`` console script; returns the exit status.
+
+    Every input problem ends here as exit status 2 and exactly one line on standard error: the
+    library's own errors, and also what bad input can make Python raise (OSError, ValueError with
+    UnicodeDecodeError and overflow, RecursionError). Warnings (e.g. NumPy's on odd data) are
+    silenced at this edge so they never add lines.
+    """
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return _main(argv)
+
+
+def _main(argv: Sequence[str] | None) -> int:
     try:
         argv = list(sys.argv[1:] if argv is None else argv)
         command = next((a for a in argv if not a.startswith("-")), None)
@@ -665,11 +711,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         if not getattr(args, "command", None):
             raise UsageError("a command is required: " + ", ".join(sorted(_commands(parser)))
                              + f" (see '{PROG} --help')")
-        if getattr(args, "batch", None) is not None and args.batch < 1:
-            raise UsageError(f"recover: --batch must be >= 1, got {args.batch}")
         return int(args.func(args) or 0)
     except PlaceSafeError as exc:
-        _log(f"{PROG}: error: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}")
+        _log(f"{PROG}: error: {_one_line(exc)}")
         return 2
     except BrokenPipeError:
         # stdout closed early (e.g. piped into head): not an error of ours
@@ -682,8 +726,19 @@ def main(argv: Sequence[str] | None = None) -> int:
         _log(f"{PROG}: interrupted")
         return 130
     except OSError as exc:  # e.g. an output directory that cannot be written
-        _log(f"{PROG}: error: {exc.strerror or exc}: {exc.filename or ''}".rstrip(": "))
+        _log(f"{PROG}: error: {exc.strerror or _one_line(exc)}: {exc.filename or ''}".rstrip(": "))
         return 2
+    except (ValueError, RecursionError, OverflowError, MemoryError) as exc:  # bad input Python noticed first
+        _log(f"{PROG}: error: invalid input: {_one_line(exc)}")
+        return 2
+    except Exception as exc:  # noqa: BLE001 - an internal failure: one line, exit 1 (traceback on request)
+        import os
+
+        if os.environ.get("PLACE_SAFE_DEBUG"):
+            raise
+        _log(f"{PROG}: internal error: {type(exc).__name__}: {_one_line(exc)} (set PLACE_SAFE_DEBUG=1 "
+             "for the traceback)")
+        return 1
 
 
 if __name__ == "__main__":

@@ -12,8 +12,8 @@ import math
 
 def _number(text: str, kind: type = float):
     try:
-        value = kind(text)
-    except (TypeError, ValueError):
+        value = kind(text.strip())
+    except (TypeError, ValueError, OverflowError, AttributeError):
         raise argparse.ArgumentTypeError(f"expected a {'whole number' if kind is int else 'number'}, "
                                          f"got {text!r}") from None
     if kind is float and not math.isfinite(value):
@@ -66,4 +66,27 @@ def fraction(text: str) -> float:
     return v
 
 
-__all__ = ["finite_float", "positive_float", "nonnegative_float", "positive_int", "nonnegative_int", "fraction"]
+def int_range(lo: int, hi: int):
+    """A validator for whole numbers in ``[lo, hi]`` (counts with a sane upper bound, image sizes)."""
+    def check(text: str) -> int:
+        v = _number(text, int)
+        if not lo <= v <= hi:
+            raise argparse.ArgumentTypeError(f"expected a whole number from {lo} to {hi}, got {text!r}")
+        return v
+    check.__name__ = f"whole number in [{lo}, {hi}]"
+    return check
+
+
+def float_range(lo: float, hi: float, lo_open: bool = False):
+    """A validator for finite numbers in ``[lo, hi]`` (``(lo, hi]`` with ``lo_open``)."""
+    def check(text: str) -> float:
+        v = _number(text)
+        if not ((lo < v if lo_open else lo <= v) and v <= hi):
+            raise argparse.ArgumentTypeError(f"expected a number {'>' if lo_open else '>='} {lo:g} and <= {hi:g}, "
+                                             f"got {text!r}")
+        return v
+    check.__name__ = f"number in {'(' if lo_open else '['}{lo:g}, {hi:g}]"
+    return check
+
+
+__all__ = ["int_range", "float_range", "finite_float", "positive_float", "nonnegative_float", "positive_int", "nonnegative_int", "fraction"]

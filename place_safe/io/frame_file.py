@@ -1,12 +1,22 @@
 """Reading and writing frame files (docs/interfaces.md), streamed so large files never sit whole in memory.
 
 Two layouts are read: a JSON list of frames (the shared format) and JSON Lines (one frame object
-per line, the project's capture format). Both are parsed incrementally.
+per line, the project's capture format). Files are UTF-8; a byte-order mark is accepted.
+
+The reader is linear in the file size: a small scanner (:class:`_Splitter`) finds where each frame
+ends by following brackets and string quotes over the raw bytes (regular-expression jumps, so the
+numbers in between cost nothing in Python), and each frame is decoded once, when it is complete.
+One frame may be at most :data:`MAX_FRAME_BYTES` long and :data:`MAX_DEPTH` levels deep. Problems
+inside one frame (bytes that are not UTF-8, invalid JSON, nesting too deep, a frame too large, an
+integer too long, a value that is not an object) are yielded as a :class:`FrameError` for that
+frame, naming the file and the frame index; only problems with the file's structure (not a list,
+truncated, unreadable) raise :class:`FrameFileError`, after every complete frame before them.
 """
 
 from __future__ import annotations
 
 import json
+import re
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import IO
@@ -15,107 +25,302 @@ from place_safe.exceptions import FrameError, FrameFileError
 from place_safe.sensor.frame import Frame
 
 _CHUNK = 1 << 16
+#: Largest frame accepted (bytes of JSON): a TMF8820 frame is about 10 kB; larger ones are skipped
+#: with a per-frame error, without being held in memory.
+MAX_FRAME_BYTES = 32 << 20
+#: Deepest nesting accepted inside one frame (a frame needs 4 levels).
+MAX_DEPTH = 64
+
+_BOM = b"\xef\xbb\xbf"
+_WS = b" \t\r\n"
+_OUTSIDE = re.compile(rb'[\[\]{}"]')  # what matters outside strings
+_INSIDE = re.compile(rb'["\\]')       # what matters inside a string
+_SCALAR_END = re.compile(rb'[\s,\]\[{}"]')
+
+
+class _Splitter:
+    """Incremental splitter of a byte stream into top-level JSON values (objects, lists, strings, scalars).
+
+    :meth:`feed` takes the next chunk and returns the values completed in it as
+    ``(bytes or None, error or None)``: ``None`` bytes with an error for a value that was too large
+    or too deep (its bytes were dropped as they came). Between values, ``sep`` bytes (``,`` for a
+    JSON list) and whitespace are skipped; ``]`` ends a list. Each input byte is looked at a
+    constant number of times.
+    """
+
+    def __init__(self, is_list: bool, max_bytes: int | None = None, max_depth: int | None = None) -> None:
+        self.is_list = is_list
+        self.max_bytes = MAX_FRAME_BYTES if max_bytes is None else max_bytes
+        self.max_depth = MAX_DEPTH if max_depth is None else max_depth
+        self.closed = False        # saw the list's closing ']'
+        self.need_sep = False      # a value was completed; a ',' (list) must come before the next
+        self.trailing: bytes = b""  # non-whitespace after the end of the list
+        self.broken: str | None = None  # what broke the file's structure (no more values after it)
+        self._reset()
+
+    def _reset(self) -> None:
+        self.parts: list[bytes] = []
+        self.size = 0
+        self.depth = 0
+        self.in_string = False
+        self.escape = False
+        self.kind: str | None = None   # None between values; "container", "string" or "scalar"
+        self.error: str | None = None
+
+    def _keep(self, data: bytes) -> None:
+        if self.error is None:
+            self.size += len(data)
+            if self.size > self.max_bytes:
+                self.error = f"frame is larger than {self.max_bytes} bytes"
+                self.parts = []
+            else:
+                self.parts.append(data)
+
+    def _finish(self, out: list) -> None:
+        out.append((None if self.error else b"".join(self.parts), self.error))
+        self._reset()
+        self.need_sep = self.is_list
+
+    def feed(self, chunk: bytes) -> list[tuple[bytes | None, str | None]]:
+        out: list[tuple[bytes | None, str | None]] = []
+        pos, n = 0, len(chunk)
+        while pos < n:
+            if self.closed:
+                rest = chunk[pos:].strip(_WS)
+                if rest and not self.trailing:
+                    self.trailing = rest[:20]
+                return out
+            if self.kind is None:  # between values
+                c = chunk[pos:pos + 1]
+                if c in (b" ", b"\t", b"\r", b"\n"):
+                    pos += 1
+                    continue
+                if self.is_list and c == b"]":
+                    self.closed = True
+                    pos += 1
+                    continue
+                if self.is_list and c == b",":
+                    if not self.need_sep:
+                        self.broken = "a ',' with no frame before it"
+                        return out
+                    self.need_sep = False
+                    pos += 1
+                    continue
+                if self.need_sep:
+                    self.broken = f"expected ',' or ']' between frames, found {c.decode('latin-1')!r}"
+                    return out
+                if c in (b"{", b"["):
+                    self.kind, self.depth = "container", 0
+                elif c == b'"':
+                    self.kind, self.in_string = "string", True
+                    self._keep(c)
+                    pos += 1
+                    continue
+                else:  # a number, a literal or a stray byte: its first byte is always taken, so a stray
+                    self.kind = "scalar"  # '}' or ']' cannot stop the scan where it stands
+                    self._keep(c)
+                    pos += 1
+                    continue
+            if self.kind == "scalar":
+                m = _SCALAR_END.search(chunk, pos)
+                end = m.start() if m else n
+                self._keep(chunk[pos:end])
+                pos = end
+                if m:
+                    self._finish(out)
+                continue
+            # container or string: walk the interesting bytes
+            start = pos
+            done = False
+            while pos < n:
+                if self.in_string:
+                    if self.escape:
+                        self.escape = False
+                        pos += 1
+                        continue
+                    m = _INSIDE.search(chunk, pos)
+                    if m is None:
+                        pos = n
+                        break
+                    pos = m.end()
+                    if m.group() == b"\\":
+                        self.escape = True
+                    else:
+                        self.in_string = False
+                        if self.kind == "string":
+                            done = True
+                            break
+                    continue
+                m = _OUTSIDE.search(chunk, pos)
+                if m is None:
+                    pos = n
+                    break
+                pos = m.end()
+                ch = m.group()
+                if ch == b'"':
+                    self.in_string = True
+                elif ch in (b"{", b"["):
+                    self.depth += 1
+                    if self.depth > self.max_depth and self.error is None:
+                        self.error = f"frame is nested deeper than {self.max_depth} levels"
+                        self.parts = []
+                else:
+                    self.depth -= 1
+                    if self.depth == 0:
+                        done = True
+                        break
+            self._keep(chunk[start:pos])
+            if done:
+                self._finish(out)
+        return out
+
+    def end(self) -> list[tuple[bytes | None, str | None]]:
+        """Values completed by the end of the stream (a trailing number in JSON Lines)."""
+        out: list[tuple[bytes | None, str | None]] = []
+        if self.kind == "scalar":
+            self._finish(out)
+        return out
+
+    @property
+    def inside_value(self) -> bool:
+        return self.kind is not None
+
+
+def _decode(raw: bytes) -> object:
+    """One frame's bytes as a JSON value; raises ValueError with a short reason."""
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"not UTF-8 text (byte {exc.start} of the frame)") from None
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"invalid JSON ({exc.msg} at character {exc.pos} of the frame)") from None
+    except RecursionError:
+        raise ValueError("invalid JSON (nested too deeply)") from None
+    except ValueError as exc:  # e.g. an integer longer than Python's 4300-digit limit
+        raise ValueError(f"invalid JSON ({str(exc).splitlines()[0]})") from None
+
+
+def _iter_entries(path: str | Path) -> Iterator[dict | FrameError]:
+    """Each entry of a frame file as a dict, or a :class:`FrameError` naming the file and frame index."""
+    p = Path(path)
+    try:
+        fh = open(p, "rb")
+    except OSError as exc:
+        raise FrameFileError(f"cannot open frame file {p}: {exc.strerror or exc}") from None
+    with fh:
+        yield from _iter_stream(fh, p)
+
+
+def _read(fh: IO[bytes], p: Path) -> bytes:
+    try:
+        return fh.read(_CHUNK)
+    except OSError as exc:
+        raise FrameFileError(f"cannot read frame file {p}: {exc.strerror or exc}") from None
+
+
+def _iter_stream(fh: IO[bytes], p: Path) -> Iterator[dict | FrameError]:
+    buf = b""
+    while True:  # the first non-blank byte decides the layout
+        more = _read(fh, p)
+        buf += more
+        if buf.startswith(_BOM):
+            buf = buf[len(_BOM):]
+        elif len(buf) < len(_BOM) and _BOM.startswith(buf) and more:
+            continue
+        stripped = buf.lstrip(_WS)
+        if stripped:
+            buf = stripped
+            break
+        buf = b""
+        if not more:
+            raise FrameFileError(f"{p}: file is empty; expected a JSON list of frames")
+    first = buf[:1]
+    if first == b"[":
+        splitter, buf = _Splitter(is_list=True), buf[1:]
+    elif first == b"{":
+        splitter = _Splitter(is_list=False)
+    else:
+        raise FrameFileError(f"{p}: not a frame file; expected a JSON list of frame objects or JSON Lines")
+    index = 0
+
+    def entries(values) -> Iterator[dict | FrameError]:
+        nonlocal index
+        for raw, error in values:
+            where = f"{p.name}: frame {index}"
+            index += 1
+            if error is None:
+                try:
+                    obj = _decode(raw)
+                except ValueError as exc:
+                    error = str(exc)
+                else:
+                    if isinstance(obj, dict):
+                        yield obj
+                        continue
+                    error = f"is a {_json_type(obj)}, expected an object"
+            yield FrameError(f"{where}: {error}")
+
+    while True:
+        if buf:
+            yield from entries(splitter.feed(buf))  # values completed before a break still come out
+            if splitter.broken:
+                raise FrameFileError(f"{p}: {splitter.broken} (after {index} frame{'s' if index != 1 else ''})")
+        buf = _read(fh, p)
+        if not buf:
+            break
+    yield from entries(splitter.end())
+    if splitter.inside_value:
+        raise FrameFileError(f"{p}: truncated in frame {index} (the file ends inside it)")
+    if splitter.is_list and not splitter.closed:
+        raise FrameFileError(f"{p}: truncated JSON list (missing ']')")
+    if splitter.trailing:
+        raise FrameFileError(f"{p}: unexpected data after the closing ']': {splitter.trailing.decode('latin-1')!r}")
+
+
+def _json_type(obj: object) -> str:
+    return {list: "list", str: "string", bool: "boolean", type(None): "null"}.get(type(obj), "number")
 
 
 def iter_frame_dicts(path: str | Path) -> Iterator[dict]:
     """Yield the raw frame objects of a JSON-list or JSON-Lines file one at a time.
 
-    Raises :class:`FrameFileError` if the file is missing, not JSON, or not a list of objects.
+    Raises :class:`FrameFileError` if the file is missing, not JSON, or not a list of objects
+    (strict: use :func:`iter_frames` to get per-frame errors in place).
     """
-    p = Path(path)
-    try:
-        fh = open(p, "r", encoding="utf-8")
-    except OSError as exc:
-        raise FrameFileError(f"cannot open frame file {p}: {exc.strerror}") from None
-    with fh:
-        yield from _iter_stream(fh, p)
-
-
-def _iter_stream(fh: IO[str], p: Path) -> Iterator[dict]:
-    dec = json.JSONDecoder()
-    buf = fh.read(_CHUNK)
-    pos = _skip_ws(buf, 0)
-    while pos >= len(buf):
-        more = fh.read(_CHUNK)
-        if not more:
-            raise FrameFileError(f"{p}: file is empty; expected a JSON list of frames")
-        buf += more
-        pos = _skip_ws(buf, pos)
-    is_list = buf[pos] == "["
-    if is_list:
-        pos += 1
-    elif buf[pos] != "{":
-        raise FrameFileError(f"{p}: not a frame file; expected a JSON list of frame objects or JSON Lines")
-    index = 0
-    eof = False
-    while True:
-        pos = _skip_ws(buf, pos)
-        if is_list and pos < len(buf) and buf[pos] == ",":
-            pos = _skip_ws(buf, pos + 1)
-        if pos < len(buf) and is_list and buf[pos] == "]":
-            return
-        if pos >= len(buf):
-            if eof:
-                if is_list:
-                    raise FrameFileError(f"{p}: truncated JSON list (missing ']')")
-                return
-            more = fh.read(_CHUNK)
-            buf = buf[pos:] + more
-            pos = 0
-            eof = not more
-            continue
-        try:
-            obj, end = dec.raw_decode(buf, pos)
-        except json.JSONDecodeError as exc:
-            if not eof:
-                more = fh.read(_CHUNK)
-                buf = buf[pos:] + more
-                pos = 0
-                eof = not more
-                continue
-            raise FrameFileError(f"{p}: invalid JSON in frame {index}: {exc.msg}") from None
-        if end == len(buf) and not eof:
-            # A number or literal may continue in the next chunk; make sure the object is complete.
-            more = fh.read(_CHUNK)
-            if more:
-                buf = buf[pos:] + more
-                pos = 0
-                continue
-            eof = True
-        if not isinstance(obj, dict):
-            raise FrameFileError(f"{p}: frame {index} is a {type(obj).__name__}, expected an object")
-        yield obj
-        index += 1
-        buf, pos = buf[end:], 0
-
-
-def _skip_ws(buf: str, pos: int) -> int:
-    n = len(buf)
-    while pos < n and buf[pos] in " \t\r\n":
-        pos += 1
-    return pos
+    for entry in _iter_entries(path):
+        if isinstance(entry, FrameError):
+            raise FrameFileError(str(entry))
+        yield entry
 
 
 def iter_frames(path: str | Path) -> Iterator[Frame | FrameError]:
     """Yield a :class:`Frame` per entry, or the :class:`FrameError` that made an entry unusable.
 
-    File-level problems raise :class:`FrameFileError`; per-frame problems are yielded so a
-    caller can report them in place and go on.
+    File-level problems raise :class:`FrameFileError`; per-frame problems are yielded, with a
+    message naming the file, the frame index and the field, so a caller can report them in place
+    and go on. Ground truth that is not a plane only clears that frame's ``truth`` (its reason is in
+    ``truth_error``): recovery does not need it.
     """
-    for d in iter_frame_dicts(path):
+    name = Path(path).name
+    for i, d in enumerate(_iter_entries(path)):
+        if isinstance(d, FrameError):
+            yield d
+            continue
         try:
             yield Frame.from_dict(d)
         except FrameError as exc:
-            yield exc
+            yield FrameError(f"{name}: frame {i}: {exc}")
 
 
 def load_frames(path: str | Path, strict: bool = True) -> list[Frame]:
     """All frames of a file as a list. With ``strict`` a bad frame raises :class:`FrameFileError`."""
     out: list[Frame] = []
-    for i, f in enumerate(iter_frames(path)):
+    for f in iter_frames(path):
         if isinstance(f, FrameError):
             if strict:
-                raise FrameFileError(f"{path}: frame {i}: {f}")
+                raise FrameFileError(str(f))
             continue
         out.append(f)
     return out

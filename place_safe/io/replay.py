@@ -127,7 +127,7 @@ class FileReplaySource(FrameSource):
             if slot in self.drop:
                 continue
             if isinstance(item, FrameError):
-                frame = _bad_frame(f"frame {slot}: {item}")
+                frame = _bad_frame(str(item))  # names the file and the frame's index in it
             elif slot in self.corrupt:
                 frame = Frame(np.full((N_ZONES, N_BINS), np.nan), item.reference, item.distances,
                               item.confidences, truth=item.truth, extra=dict(item.extra, injected="corrupt"))

@@ -42,14 +42,15 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 from enum import Enum
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from place_safe.config import check_keys, read_json, write_json
+from place_safe.config import Bound, check_dataclass, dataclass_from_dict, read_json, write_json
+from place_safe.exceptions import ConfigError
 from place_safe.fusion.plane_filter import FusedPlane
 
 log = logging.getLogger("place_safe.placement.machine")
@@ -106,39 +107,65 @@ class PlacementConfig:
         self.validate()
 
     def validate(self) -> None:
-        for f in fields(self):
-            v = getattr(self, f.name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-                raise ValueError(f"PlacementConfig.{f.name} must be a finite number; got {v!r}")
-            if v < 0 or (v == 0 and f.name not in ("stop_clearance", "release_settle", "cup_radius",
-                                                    "max_penetration", "check_settle")):
-                raise ValueError(f"PlacementConfig.{f.name} must be positive; got {v!r}")
+        """Raise :class:`~place_safe.exceptions.ConfigError` (one line naming the field) unless every value is in
+        its range (:data:`PLACEMENT_BOUNDS`) and the thresholds are consistent with each other."""
+        check_dataclass(self, PLACEMENT_BOUNDS, "placement config")
         if self.stop_clearance > self.release_clearance:
-            raise ValueError("PlacementConfig.stop_clearance must not exceed release_clearance "
-                             f"({self.stop_clearance} > {self.release_clearance} m)")
+            raise ConfigError("placement config: stop_clearance must not exceed release_clearance "
+                              f"({self.stop_clearance} > {self.release_clearance} m)")
         if self.slow_clearance <= self.release_clearance:
-            raise ValueError("PlacementConfig.slow_clearance must exceed release_clearance")
+            raise ConfigError("placement config: slow_clearance must exceed release_clearance")
         if self.contact_clearance < self.release_clearance:
-            raise ValueError("PlacementConfig.contact_clearance must be >= release_clearance")
+            raise ConfigError("placement config: contact_clearance must be >= release_clearance")
         if self.early_refuse_tilt < self.max_tilt:
-            raise ValueError("PlacementConfig.early_refuse_tilt must be >= max_tilt")
-        for name in ("check_frames", "max_checks"):
-            if int(getattr(self, name)) != getattr(self, name) or getattr(self, name) < 1:
-                raise ValueError(f"PlacementConfig.{name} must be a whole number >= 1")
+            raise ConfigError("placement config: early_refuse_tilt must be >= max_tilt")
 
     def to_dict(self) -> dict[str, float]:
         return {k: (int(v) if k in ("check_frames", "max_checks") else float(v)) for k, v in asdict(self).items()}
 
     @classmethod
     def from_dict(cls, d: Any) -> "PlacementConfig":
-        return cls(**check_keys(cls, d, "placement config"))
+        return dataclass_from_dict(cls, d, PLACEMENT_BOUNDS, "placement config")
 
     def save(self, path: str | Path) -> None:
         write_json(path, self.to_dict())
 
     @classmethod
     def load(cls, path: str | Path) -> "PlacementConfig":
-        return cls.from_dict(read_json(path, "placement config"))
+        return dataclass_from_dict(cls, read_json(path, "placement config", ConfigError), PLACEMENT_BOUNDS,
+                                   f"placement config {path}")
+
+
+#: Range of every placement setting (SI units), checked on construction and when read from a file.
+PLACEMENT_BOUNDS: dict[str, Bound] = {
+    "approach_speed": Bound(0.0, 1.0, "m/s", lo_open=True),
+    "descend_speed": Bound(0.0, 0.5, "m/s", lo_open=True),
+    "accel": Bound(0.0, 10.0, "m/s^2", lo_open=True),
+    "slow_clearance": Bound(0.0, 1.0, "m", lo_open=True),
+    "stop_clearance": Bound(0.0, 0.1, "m"),
+    "release_clearance": Bound(0.0, 0.1, "m", lo_open=True),
+    "max_tilt": Bound(0.0, math.pi / 4, "rad", lo_open=True),
+    "early_refuse_tilt": Bound(0.0, math.pi / 2, "rad", lo_open=True),
+    "max_std_angle": Bound(0.0, math.pi / 4, "rad", lo_open=True),
+    "max_std_offset": Bound(0.0, 0.1, "m", lo_open=True),
+    "check_frames": Bound(1, 1000, "frames"),
+    "check_timeout": Bound(0.0, 60.0, "s", lo_open=True),
+    "max_checks": Bound(1, 100, "retries"),
+    "plane_timeout": Bound(0.0, 10.0, "s", lo_open=True),
+    "sensor_timeout": Bound(0.0, 10.0, "s", lo_open=True),
+    "acquire_timeout": Bound(0.0, 60.0, "s", lo_open=True),
+    "contact_force": Bound(0.0, 200.0, "N", lo_open=True),
+    "max_penetration": Bound(0.0, 0.1, "m"),
+    "max_travel": Bound(0.0, 2.0, "m", lo_open=True),
+    "retreat_distance": Bound(0.0, 1.0, "m", lo_open=True),
+    "retreat_speed": Bound(0.0, 1.0, "m/s", lo_open=True),
+    "release_settle": Bound(0.0, 10.0, "s"),
+    "cup_radius": Bound(0.0, 0.5, "m"),
+    "contact_clearance": Bound(0.0, 0.1, "m", lo_open=True),
+    "check_settle": Bound(0.0, 10.0, "s"),
+    "descent_timeout": Bound(0.0, 600.0, "s", lo_open=True),
+    "retreat_timeout": Bound(0.0, 600.0, "s", lo_open=True),
+}
 
 
 @dataclass

@@ -31,14 +31,15 @@ import numpy as np
 import torch
 
 from place_safe.recovery.points import PeakParams
-from place_safe.exceptions import FrameError, NoPlaneError
+from place_safe.config import Bound, check_dataclass, dataclass_from_dict
+from place_safe.exceptions import CalibrationError, FrameError, NoPlaneError
 from place_safe.recovery.forward import ForwardModel, ForwardParams, ZoneRays, mount_rotation, residual_weights
 from place_safe.geometry import Plane
 from place_safe.recovery.plane_renderer import PlaneRenderer, convolution_matrices
 from place_safe.sensor.frame import N_BINS, N_ZONES, Frame
-from place_safe.recovery.estimator import Estimator, PlaneEstimate
+from place_safe.recovery.estimator import Estimator, PlaneEstimate, checked
 from place_safe.recovery.peak import PeakEstimator
-from place_safe.sensor.histogram import COUNT_MAX, measure_floor
+from place_safe.sensor.histogram import COUNT_MAX, measure_floor, reference_problem
 
 
 
@@ -79,16 +80,26 @@ class RangeCorrection:
         return {"coeffs": [float(c) for c in self.coeffs], "domain": [float(v) for v in self.domain],
                 "slope_a": [float(c) for c in self.slope_a], "slope_b": [float(c) for c in self.slope_b]}
 
+    def __post_init__(self) -> None:
+        check_dataclass(self, RANGE_CORRECTION_BOUNDS, "range correction", CalibrationError)
+        if not self.domain[1] > self.domain[0]:
+            raise CalibrationError(f"range correction: domain must be [lo, hi] with hi > lo, got {list(self.domain)}")
+
     @classmethod
     def from_dict(cls, d: dict) -> "RangeCorrection":
-        def floats(key):
-            return [float(v) for v in d.get(key, [])]
+        """A correction from its JSON form; wrong types, unknown keys and values outside
+        :data:`RANGE_CORRECTION_BOUNDS` are one-line :class:`CalibrationError` messages."""
+        return dataclass_from_dict(cls, d, RANGE_CORRECTION_BOUNDS, "range correction", CalibrationError)
 
-        c = cls(floats("coeffs"), [float(v) for v in d.get("domain", [0.0, 1.0])], floats("slope_a"), floats("slope_b"))
-        values = c.coeffs + c.slope_a + c.slope_b
-        if len(c.domain) != 2 or not c.domain[1] > c.domain[0] or not all(math.isfinite(v) for v in values):
-            raise ValueError("range correction needs finite coefficients and a domain [lo, hi] with hi > lo")
-        return c
+
+#: Physical range of the diff correction: what the forward model leaves over is millimetres and a
+#: fraction of a degree, so a coefficient of more than 5 cm (or a slope of 0.5) is not a correction.
+RANGE_CORRECTION_BOUNDS: dict[str, Bound] = {
+    "coeffs": Bound(-0.05, 0.05, "m"),
+    "domain": Bound(0.0, 10.0, "m", length=2),
+    "slope_a": Bound(-0.5, 0.5, "(slope)"),
+    "slope_b": Bound(-0.5, 0.5, "(slope)"),
+}
 
 
 @dataclass
@@ -162,13 +173,18 @@ class DifferentiableEstimator(Estimator):
         for i, f in enumerate(frames):
             t0 = time.perf_counter()
             try:
+                if not isinstance(f, Frame):
+                    raise FrameError(f"expected a Frame, got {type(f).__name__}")
                 f.validate()
                 good.append(i)
             except FrameError as exc:
                 ests[i] = PlaneEstimate(None, reason=str(exc), seconds=time.perf_counter() - t0)
         if good:
             t0 = time.perf_counter()
-            solved = self.estimate_batch([frames[i] for i in good])
+            try:
+                solved = self.estimate_batch([frames[i] for i in good])
+            except (ArithmeticError, ValueError, TypeError, IndexError, RuntimeError, np.linalg.LinAlgError):
+                solved = [self.estimate(frames[i]) for i in good]  # one by one: each failure gets its reason
             share = (time.perf_counter() - t0) / len(good)
             for i, e in zip(good, solved):
                 e.seconds = share
@@ -185,6 +201,10 @@ class DifferentiableEstimator(Estimator):
             if np.any(h >= COUNT_MAX):
                 results[i] = PlaneEstimate(None, reason="histograms saturated (24-bit counters at their maximum)")
                 continue
+            bad_ref = reference_problem(f.reference)
+            if bad_ref:
+                results[i] = PlaneEstimate(None, reason=bad_ref)
+                continue
             init = self.init.estimate(f)
             if not init.ok:
                 results[i] = PlaneEstimate(None, reason=init.reason)
@@ -195,7 +215,7 @@ class DifferentiableEstimator(Estimator):
             sub = [frames[i] for i in rows]
             solve = self._solve_fast if self.mode == "fast" else self._solve_paper
             for i, est in zip(rows, solve(sub, inits)):
-                results[i] = est
+                results[i] = checked(est)
         return results  # type: ignore[return-value]
 
     # -- data preparation ----------------------------------------------------------------------

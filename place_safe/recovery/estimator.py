@@ -50,6 +50,17 @@ class PlaneEstimate:
         return out
 
 
+def checked(est: PlaneEstimate) -> PlaneEstimate:
+    """``est`` unless its plane is not finite or lies behind the sensor (then no plane, with the reason)."""
+    p = est.plane
+    if p is not None and not (np.all(np.isfinite(p.normal)) and np.isfinite(p.offset) and p.offset > 0):
+        return PlaneEstimate(None, reason=f"recovered plane is not in front of the sensor (offset {p.offset:.4g} m)",
+                             seconds=est.seconds)
+    if est.albedo is not None and not np.isfinite(est.albedo):
+        est.albedo = None
+    return est
+
+
 class Estimator(ABC):
     """Base class: subclasses implement :meth:`_estimate`; :meth:`estimate` adds checks and timing."""
 
@@ -59,16 +70,21 @@ class Estimator(ABC):
     needs_histograms: bool = True
 
     def estimate(self, frame: Frame) -> PlaneEstimate:
-        """Recover the plane of one frame; never raises for bad data, never returns a NaN plane."""
+        """Recover the plane of one frame; never raises for bad data, never returns a NaN plane or a
+        plane behind the sensor (``offset <= 0``): such frames get ``plane=None`` and a reason."""
         t0 = time.perf_counter()
         try:
+            if not isinstance(frame, Frame):
+                raise FrameError(f"expected a Frame, got {type(frame).__name__}")
             if self.needs_histograms:
                 frame.validate()
-            est = self._estimate(frame)
+            est = checked(self._estimate(frame))
         except (FrameError, NoPlaneError) as exc:
             est = PlaneEstimate(None, reason=str(exc))
-        except (FloatingPointError, np.linalg.LinAlgError) as exc:
+        except (ArithmeticError, np.linalg.LinAlgError) as exc:
             est = PlaneEstimate(None, reason=f"numerical failure: {exc}")
+        except (ValueError, TypeError, IndexError, RuntimeError) as exc:  # data no check above foresaw
+            est = PlaneEstimate(None, reason=f"unusable data: {type(exc).__name__}: {str(exc)[:200]}")
         est.seconds = time.perf_counter() - t0
         return est
 

@@ -30,11 +30,43 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from place_safe.config import check_keys, read_json, write_json
+from place_safe.config import Bound, check_dataclass, dataclass_from_dict, read_json, write_json
 from place_safe.exceptions import CalibrationError
 from place_safe.sensor.frame import N_BINS, N_ZONES, ZONE_KIND, ZONE_RECTS
+from place_safe.sensor.histogram import COUNT_MAX
 
 _SQRT_2PI = math.sqrt(2.0 * math.pi)
+
+#: Physical range of every forward-model parameter (checked on construction and when read from a
+#: file; a parameter without an entry must still be finite). The ranges are wide (a TMF8820 fitted on
+#: the shared sweep sits well inside) but exclude what breaks the model: a zero or negative albedo,
+#: gain or specular exponent (undefined Phong term), a pulse stretched so far that its kernel would not
+#: fit in memory, a mount tilt beyond any soldering error.
+FORWARD_BOUNDS: dict[str, Bound] = {
+    "albedo": Bound(0.0, 1e4, "(dimensionless reflectance scale)", lo_open=True),
+    "edge_gain": Bound(0.0, 10.0, "(relative to the centre zone)", lo_open=True),
+    "corner_gain": Bound(0.0, 10.0, "(relative to the centre zone)", lo_open=True),
+    "bin_offset": Bound(-64.0, 128.0, "bins"),
+    "bin_size": Bound(0.001, 0.1, "m of one-way range per bin"),
+    "crosstalk": Bound(0.0, 0.5, "(fraction of every other zone)"),
+    "specular_weight": Bound(0.0, 100.0, "(relative to the diffuse term)"),
+    "specular_exponent": Bound(0.0, 1000.0, "(Phong exponent)", lo_open=True),
+    "soft_bin_sigma": Bound(0.01, 32.0, "bins"),
+    "ref_time_scale": Bound(0.01, 4.0, "zone bins per reference bin"),
+    "ref_floor": Bound(0.0, COUNT_MAX, "counts"),
+    "saturation": Bound(0.0, None, "counts (very large: no saturation)", lo_open=True),
+    "rays_per_zone": Bound(1, 1 << 16, "rays"),
+    "floor": Bound(-COUNT_MAX, COUNT_MAX, "counts"),
+    "tail_weight": Bound(0.0, 10.0, "(relative to the pulse)"),
+    "tail_decay": Bound(0.0, 64.0, "bins", lo_open=True),
+    "edge_fov_scale": Bound(0.0, 3.0, "(of the nominal zone rectangle)", lo_open=True),
+    "corner_fov_scale": Bound(0.0, 3.0, "(of the nominal zone rectangle)", lo_open=True),
+    "pileup": Bound(0.0, 1.0, "1/counts"),
+    "mount_tilt": Bound(-0.5, 0.5, "rad (x, y of a rotation vector)", length=2),
+    "model_error": Bound(0.0, 1.0, "(fraction of the counts in a bin)"),
+    "zone_offsets": Bound(-32.0, 32.0, "bins", length=N_ZONES),
+    "zone_gains": Bound(0.0, 100.0, "(relative, centre zone 1)", lo_open=True, length=N_ZONES),
+}
 
 
 @dataclass
@@ -92,19 +124,7 @@ class ForwardParams:
     zone_gains: list[float] = field(default_factory=lambda: [1.0] * N_ZONES)
 
     def __post_init__(self) -> None:
-        if len(self.zone_offsets) != N_ZONES or len(self.zone_gains) != N_ZONES:
-            raise CalibrationError(f"zone_offsets and zone_gains need {N_ZONES} values each")
-        if len(self.mount_tilt) != 2 or not all(math.isfinite(float(v)) for v in self.mount_tilt):
-            raise CalibrationError("mount_tilt needs 2 finite angles (rad)")
-        bad = [f.name for f in fields(self) if f.name not in ("zone_offsets", "zone_gains", "mount_tilt")
-               and not math.isfinite(float(getattr(self, f.name)))]
-        if bad:
-            raise CalibrationError(f"forward parameters are not finite: {', '.join(bad)}")
-        if (self.bin_size <= 0 or self.saturation <= 0 or self.ref_time_scale <= 0 or self.soft_bin_sigma <= 0
-                or self.tail_decay <= 0 or self.tail_weight < 0 or self.edge_fov_scale <= 0
-                or self.corner_fov_scale <= 0 or self.pileup < 0 or self.model_error < 0):
-            raise CalibrationError("bin_size, saturation, ref_time_scale, soft_bin_sigma and tail_decay must be > 0 "
-                                   "and tail_weight >= 0")
+        check_dataclass(self, FORWARD_BOUNDS, "forward parameters", CalibrationError)
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -115,10 +135,9 @@ class ForwardParams:
 
     @classmethod
     def from_dict(cls, d: dict) -> "ForwardParams":
-        try:
-            return cls(**check_keys(cls, d, "forward parameter", CalibrationError))
-        except TypeError as exc:
-            raise CalibrationError(f"forward parameters are malformed: {exc}") from None
+        """Parameters from their JSON form: unknown keys, wrong types and values outside
+        :data:`FORWARD_BOUNDS` are one-line :class:`CalibrationError` messages naming the field."""
+        return dataclass_from_dict(cls, d, FORWARD_BOUNDS, "forward parameters", CalibrationError)
 
     def save(self, path: str | Path) -> None:
         write_json(path, self.to_dict())

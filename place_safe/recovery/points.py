@@ -23,14 +23,13 @@ The parameters are fitted from data by :mod:`place_safe.calibration.points`.
 
 from __future__ import annotations
 
-import math
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
 from numpy.polynomial import chebyshev as cheb
 
-from place_safe.config import check_keys
+from place_safe.config import Bound, check_dataclass, dataclass_from_dict
 from place_safe.exceptions import CalibrationError, NoPlaneError
 from place_safe.geometry import Plane
 from place_safe.sensor.zones import CORNER, EDGE, N_ZONES, ZONE_DIRECTIONS, ZONE_KIND
@@ -49,6 +48,20 @@ FORWARD_BIN_OFFSET = 9.5235
 REF_TIME_SCALE = 0.27887
 #: Millimetres per metre: the reading scale of on-sensor distances.
 MM_PER_M = 1000.0
+#: Physical range of every mapping parameter (reading units: bins for ``peak``, mm for ``proprietary``).
+#: Wide enough for either reading, narrow enough that no accepted value can put a point behind the
+#: sensor or overflow: the calibrated sweep sits far inside.
+PEAK_BOUNDS: dict[str, Bound] = {
+    "m": Bound(1.0, 1e5, "reading units per metre", lo_open=False),
+    "b": Bound(-1e4, 1e4, "reading units"),
+    "edge_scale": Bound(0.0, 3.0, "(of the nominal zone angle)", lo_open=True, hi_open=True),
+    "corner_scale": Bound(0.0, 3.0, "(of the nominal zone angle)", lo_open=True, hi_open=True),
+    "zone_offsets": Bound(-1e3, 1e3, "reading units", length=N_ZONES),
+    "residual_coeffs": Bound(-1e3, 1e3, "reading units"),
+    "residual_domain": Bound(0.0, 10.0, "m", length=2),
+    "phase_coeffs": Bound(-10.0, 10.0, "reading units"),
+    "zone_gains": Bound(0.0, 10.0, "(relative, mean 1)", lo_open=True, length=N_ZONES),
+}
 #: Fixed-point iterations inverting ``m r + c(r) = x`` (c changes by far less than m per metre).
 RANGE_ITERATIONS = 3
 
@@ -72,27 +85,17 @@ class PeakParams:
     zone_gains: list[float] = field(default_factory=lambda: [1.0] * N_ZONES)
 
     def __post_init__(self) -> None:
+        check_dataclass(self, PEAK_BOUNDS, "peak parameters", CalibrationError)
         self.zone_offsets = [float(v) for v in self.zone_offsets]
         self.zone_gains = [float(v) for v in self.zone_gains]
-        if len(self.zone_gains) != N_ZONES or min(self.zone_gains) <= 0:
-            raise CalibrationError(f"zone_gains needs {N_ZONES} positive values")
         self.phase_coeffs = [float(v) for v in self.phase_coeffs]
-        if len(self.phase_coeffs) % 2:
-            raise CalibrationError("phase_coeffs needs (sin, cos) pairs, got an odd count")
         self.residual_coeffs = [float(v) for v in self.residual_coeffs]
         self.residual_domain = [float(v) for v in self.residual_domain]
-        if len(self.zone_offsets) != N_ZONES:
-            raise CalibrationError(f"zone_offsets needs {N_ZONES} values, got {len(self.zone_offsets)}")
-        if len(self.residual_domain) != 2 or not self.residual_domain[0] < self.residual_domain[1]:
-            raise CalibrationError(f"residual_domain must be [lo, hi] with lo < hi, got {self.residual_domain}")
-        vals = [self.m, self.b, self.edge_scale, self.corner_scale, *self.zone_offsets, *self.residual_coeffs,
-                *self.residual_domain, *self.phase_coeffs, *self.zone_gains]
-        if not all(math.isfinite(float(v)) for v in vals):
-            raise CalibrationError("peak parameters must all be finite")
-        if self.m <= 0:
-            raise CalibrationError(f"m (reading units per metre) must be > 0, got {self.m}")
-        if not (0 < self.edge_scale < 3 and 0 < self.corner_scale < 3):
-            raise CalibrationError("edge_scale and corner_scale must be in (0, 3)")
+        if len(self.phase_coeffs) % 2:
+            raise CalibrationError("peak parameters: phase_coeffs needs (sin, cos) pairs, got an odd count")
+        if not self.residual_domain[0] < self.residual_domain[1]:
+            raise CalibrationError(f"peak parameters: residual_domain must be [lo, hi] with lo < hi, "
+                                   f"got {self.residual_domain}")
 
     # -- file form ---------------------------------------------------------------------------------
     def to_dict(self) -> dict:
@@ -100,14 +103,9 @@ class PeakParams:
 
     @classmethod
     def from_dict(cls, d: Any) -> "PeakParams":
-        check_keys(cls, d, "peak parameters", CalibrationError)
-        missing = {"m", "b"} - set(d)
-        if missing:
-            raise CalibrationError(f"peak parameters lack {', '.join(sorted(missing))}")
-        try:
-            return cls(**d)
-        except (TypeError, ValueError) as exc:
-            raise CalibrationError(f"peak parameters are malformed: {exc}") from None
+        """Parameters from their JSON form; unknown keys, wrong types and values outside
+        :data:`PEAK_BOUNDS` are one-line :class:`CalibrationError` messages naming the field."""
+        return dataclass_from_dict(cls, d, PEAK_BOUNDS, "peak parameters", CalibrationError)
 
     # -- built-in sets -----------------------------------------------------------------------------
     @classmethod

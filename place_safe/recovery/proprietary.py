@@ -15,7 +15,7 @@ import numpy as np
 
 from place_safe.recovery.points import MM_PER_M, PeakParams, plane_from_points
 from place_safe.exceptions import FrameError, NoPlaneError
-from place_safe.sensor.frame import N_ZONES, Frame
+from place_safe.sensor.frame import N_ZONES, Frame, real_array
 from place_safe.recovery.estimator import Estimator, PlaneEstimate
 
 
@@ -37,7 +37,7 @@ class ProprietaryEstimator(Estimator):
     def _estimate(self, frame: Frame) -> PlaneEstimate:
         if frame.distances is None:
             raise FrameError("frame has no on-sensor distances; the proprietary method needs 'distances'")
-        dist = np.asarray(frame.distances, dtype=float)
+        dist = real_array(frame.distances, "distances").astype(float)
         if dist.shape != (N_ZONES,):
             raise FrameError(f"distances has shape {dist.shape}, expected ({N_ZONES},)")
         if np.any(np.isnan(dist)) or np.any(np.isinf(dist)):
@@ -46,7 +46,7 @@ class ProprietaryEstimator(Estimator):
             raise FrameError("distances contains negative values; expected metres >= 0 (0 = no object)")
         valid = dist > 0
         if frame.confidences is not None:
-            conf = np.asarray(frame.confidences, dtype=float)
+            conf = real_array(frame.confidences, "confs_1").astype(float)
             if conf.shape == (N_ZONES,):
                 valid &= np.nan_to_num(conf, nan=0.0) > 0
         if valid.sum() < 3:

@@ -38,8 +38,8 @@ from typing import Any
 
 import numpy as np
 
-from place_safe.config import check_keys, read_json, write_json
-from place_safe.exceptions import RobotFault
+from place_safe.config import Bound, check_dataclass, dataclass_from_dict, read_json, write_json
+from place_safe.exceptions import ConfigError, RobotFault
 from place_safe.robot.tool import ToolFrames
 
 _TWO_PI = 2.0 * math.pi
@@ -67,19 +67,11 @@ class RobotLimits:
         self.validate()
 
     def validate(self) -> None:
-        for name in ("max_linear_speed", "max_linear_accel", "max_angular_speed", "max_angular_accel",
-                     "max_contact_force", "max_tracking_error"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ValueError(f"RobotLimits.{name} must be a positive finite number; got {v!r}")
-        for name in ("max_joint_speed", "joint_lower", "joint_upper"):
-            v = np.asarray(getattr(self, name), dtype=float)
-            if v.shape != (6,) or not np.all(np.isfinite(v)):
-                raise ValueError(f"RobotLimits.{name} must be 6 finite numbers; got {getattr(self, name)!r}")
-        if np.any(np.asarray(self.max_joint_speed) <= 0):
-            raise ValueError("RobotLimits.max_joint_speed must be positive")
+        """Raise :class:`~place_safe.exceptions.ConfigError` (one line naming the field) unless every limit is in
+        its range (:data:`ROBOT_LIMIT_BOUNDS`) and each joint's lower limit is below its upper one."""
+        check_dataclass(self, ROBOT_LIMIT_BOUNDS, "robot limits")
         if np.any(np.asarray(self.joint_lower) >= np.asarray(self.joint_upper)):
-            raise ValueError("RobotLimits.joint_lower must be below joint_upper for every joint")
+            raise ConfigError("robot limits: joint_lower must be below joint_upper for every joint")
 
     def to_dict(self) -> dict[str, Any]:
         return {k: (list(map(float, v)) if isinstance(v, (list, tuple, np.ndarray)) else float(v))
@@ -87,14 +79,29 @@ class RobotLimits:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "RobotLimits":
-        return cls(**check_keys(cls, d, "RobotLimits"))
+        return dataclass_from_dict(cls, d, ROBOT_LIMIT_BOUNDS, "robot limits")
 
     def save(self, path: str | Path) -> None:
         write_json(path, self.to_dict())
 
     @classmethod
     def load(cls, path: str | Path) -> "RobotLimits":
-        return cls.from_dict(read_json(path, "robot limits"))
+        return dataclass_from_dict(cls, read_json(path, "robot limits", ConfigError), ROBOT_LIMIT_BOUNDS,
+                                   f"robot limits {path}")
+
+
+#: Range of every robot limit (SI units): positive and within what a UR5-class arm can do at all.
+ROBOT_LIMIT_BOUNDS: dict[str, Bound] = {
+    "max_linear_speed": Bound(0.0, 3.0, "m/s", lo_open=True),
+    "max_linear_accel": Bound(0.0, 50.0, "m/s^2", lo_open=True),
+    "max_angular_speed": Bound(0.0, 10.0, "rad/s", lo_open=True),
+    "max_angular_accel": Bound(0.0, 100.0, "rad/s^2", lo_open=True),
+    "max_joint_speed": Bound(0.0, 10.0, "rad/s", lo_open=True, length=6),
+    "joint_lower": Bound(-4 * math.pi, 4 * math.pi, "rad", length=6),
+    "joint_upper": Bound(-4 * math.pi, 4 * math.pi, "rad", length=6),
+    "max_contact_force": Bound(0.0, 1000.0, "N", lo_open=True),
+    "max_tracking_error": Bound(0.0, 1.0, "m", lo_open=True),
+}
 
 
 def check_pose(pose: Any, what: str = "pose") -> np.ndarray:

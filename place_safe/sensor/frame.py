@@ -9,12 +9,13 @@ files and metres in :class:`Frame`; ``timestamp`` is seconds on the clock of the
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from place_safe.exceptions import FrameError
+from place_safe.exceptions import FrameError, NoPlaneError
 from place_safe.geometry import Plane, plane_from_pose
 from place_safe.sensor.zones import CENTRE, CORNER, EDGE, N_BINS, N_ZONES, ZONE_DIRECTIONS, ZONE_KIND, ZONE_RECTS  # noqa: F401
 
@@ -22,11 +23,67 @@ from place_safe.sensor.zones import CENTRE, CORNER, EDGE, N_BINS, N_ZONES, ZONE_
 def _array(value: Any, name: str, shape: tuple[int, ...]) -> np.ndarray:
     try:
         arr = np.asarray(value, dtype=float)
-    except (TypeError, ValueError) as exc:
-        raise FrameError(f"{name} is not numeric: {exc}") from None
+    except (TypeError, ValueError, OverflowError) as exc:
+        raise FrameError(f"{name} is not numeric: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}") from None
     if arr.shape != shape:
         raise FrameError(f"{name} has shape {arr.shape}, expected {shape}")
     return arr
+
+
+def real_array(value: Any, name: str) -> np.ndarray:
+    """``value`` as an array of real numbers; FrameError for strings, objects, complex or ragged data."""
+    try:
+        arr = np.asarray(value)
+    except (TypeError, ValueError, OverflowError):
+        raise FrameError(f"{name} is not an array of numbers (ragged or unreadable)") from None
+    if arr.dtype.kind not in "biuf":
+        raise FrameError(f"{name} must hold real numbers, got {arr.dtype.name} values")
+    return arr
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc)
+    return text.splitlines()[0] if text else type(exc).__name__
+
+
+def _number(value: Any, name: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ValueError(f"{name} must be a number, got {type(value).__name__}")
+    v = float(value)
+    if not math.isfinite(v):
+        raise ValueError(f"{name} must be finite, got {v}")
+    return v
+
+
+#: How far a ground-truth pose's rotation may be from orthonormal (|R^T R - I|, max entry).
+POSE_ORTHONORMAL_TOL = 1e-3
+
+
+def _truth(d: dict) -> Plane | None:
+    """The ground-truth plane of a frame dict (None without one); raises ValueError/NoPlaneError if it is not
+    a plane in front of the sensor (``n_z > 0``, ``d > 0``, finite; a pose must be a rigid transform)."""
+    if d.get("plane") is not None:
+        pl = d["plane"]
+        if not isinstance(pl, dict):
+            raise ValueError(f"'plane' must be an object with 'normal' and 'offset', got {type(pl).__name__}")
+        normal = np.asarray(pl["normal"], dtype=float)
+        if normal.shape != (3,):
+            raise ValueError(f"plane.normal has shape {normal.shape}, expected (3,)")
+        offset = _number(pl["offset"], "plane.offset")
+        truth = Plane(normal, offset)  # normalises, and flips a normal written with n_z < 0
+    elif "pose" in d and "dist_to_plane" in d:
+        pose = np.asarray(d["pose"], dtype=float)
+        if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
+            raise ValueError("pose must be a finite 4x4 matrix")
+        r = pose[:3, :3]
+        if (np.max(np.abs(r.T @ r - np.eye(3))) > POSE_ORTHONORMAL_TOL or np.linalg.det(r) <= 0):
+            raise ValueError("pose is not a rigid transform (its 3x3 block is not a rotation)")
+        truth = plane_from_pose(pose, _number(d["dist_to_plane"], "dist_to_plane"))
+    else:
+        return None
+    if not truth.offset > 0:
+        raise ValueError(f"plane offset must be > 0 (plane in front of the sensor), got {truth.offset:.6g} m")
+    return truth
 
 
 @dataclass
@@ -42,6 +99,8 @@ class Frame:
     timestamp: seconds (source-defined epoch) or None.
     truth: ground-truth plane in the sensor frame, if known.
     extra: everything else from the file (joint angles, pose, meta), carried through.
+    truth_error: why the file's ground truth could not be used (then ``truth`` is None); it affects
+        only evaluation and calibration, which skip such frames, never recovery.
     """
 
     hists: np.ndarray
@@ -51,10 +110,14 @@ class Frame:
     timestamp: float | None = None
     truth: Plane | None = None
     extra: dict = field(default_factory=dict)
+    truth_error: str | None = None
 
     def validate(self) -> None:
-        """Raise :class:`FrameError` unless the histograms can be used for recovery."""
-        h = np.asarray(self.hists)
+        """Raise :class:`FrameError` unless the histograms can be used for recovery.
+
+        Counts must be real numbers (not strings, objects, complex or ragged lists), finite and >= 0.
+        """
+        h = real_array(self.hists, "hists")
         if h.shape != (N_ZONES, N_BINS):
             raise FrameError(f"hists has shape {h.shape}, expected ({N_ZONES}, {N_BINS})")
         if not np.all(np.isfinite(h)):
@@ -63,7 +126,7 @@ class Frame:
             raise FrameError("hists contains negative counts")
         if self.reference is None:
             raise FrameError("reference histogram is missing")
-        r = np.asarray(self.reference)
+        r = real_array(self.reference, "reference_hist")
         if r.shape != (N_BINS,):
             raise FrameError(f"reference_hist has shape {r.shape}, expected ({N_BINS},)")
         if not np.all(np.isfinite(r)) or np.any(r < 0):
@@ -89,18 +152,24 @@ class Frame:
             distances = _array(entry["depths_1"], "depths_1", (N_ZONES,)) / 1000.0
             if "confs_1" in entry:
                 confidences = _array(entry["confs_1"], "confs_1", (N_ZONES,))
-        truth = None
+        truth, truth_error = None, None
         try:
-            if "plane" in d and d["plane"] is not None:
-                truth = Plane.from_dict(d["plane"])
-            elif "pose" in d and "dist_to_plane" in d:
-                truth = plane_from_pose(np.asarray(d["pose"], dtype=float), float(d["dist_to_plane"]))
-        except (KeyError, TypeError, ValueError) as exc:
-            raise FrameError(f"ground truth is malformed: {exc}") from None
+            truth = _truth(d)
+        except (KeyError, TypeError, ValueError, OverflowError, NoPlaneError) as exc:
+            truth_error = f"ground truth is not a plane in front of the sensor: {_first_line(exc)}"
         known = {"hists", "reference_hist", "distances", "plane"}
         extra = {k: v for k, v in d.items() if k not in known}
         ts = d.get("timestamp")
-        return cls(hists, reference, distances, confidences, None if ts is None else float(ts), truth, extra)
+        if ts is not None:
+            if isinstance(ts, bool) or not isinstance(ts, (int, float)):
+                raise FrameError(f"timestamp must be a number of seconds, got {type(ts).__name__}")
+            try:
+                ts = float(ts)
+            except OverflowError:
+                ts = math.inf
+            if not math.isfinite(ts):
+                raise FrameError("timestamp must be a finite number of seconds")
+        return cls(hists, reference, distances, confidences, ts, truth, extra, truth_error)
 
     def to_dict(self) -> dict:
         """The JSON form of docs/interfaces.md (ground truth as ``plane``; extras carried)."""

@@ -91,4 +91,36 @@ def first_return(hists: np.ndarray, threshold: float = 8.0, relative: float = 0.
     return k + np.clip(frac, -0.5, 0.5), found, y1 / noise[:, 0]
 
 
-__all__ = ["COUNT_MAX", "FLOOR_BINS", "measure_floor", "find_peaks", "first_return"]
+#: Bins at either end of the reference histogram where its peak may not be: a pulse there is cut off
+#: (or is not the laser pulse at all), and a forward model built on it renders every return misplaced.
+REFERENCE_EDGE_BINS = 3
+
+
+def reference_problem(reference) -> str | None:
+    """Why a reference histogram (128 counts) cannot serve as the laser pulse, or None if it can.
+
+    It must be finite real counts, not clipped at :data:`COUNT_MAX`, with a peak that stands out of
+    its floor (median of :data:`FLOOR_BINS`) by the same noise margin a zone return needs
+    (``NOISE_SIGMAS`` Poisson sigmas and ``MIN_NET_COUNTS``), and that peak not within
+    :data:`REFERENCE_EDGE_BINS` of either end.
+    """
+    try:
+        r = np.asarray(reference, dtype=float)
+    except (TypeError, ValueError, OverflowError):
+        return "reference histogram is not numeric"
+    if r.shape != (N_BINS,) or not np.all(np.isfinite(r)):
+        return "reference histogram is not 128 finite counts"
+    if not np.any(r > 0):
+        return "reference histogram is empty (all zeros): no laser pulse to model returns with"
+    if np.any(r >= COUNT_MAX):
+        return "reference histogram is saturated (24-bit counters at their maximum)"
+    floor = float(np.median(r[FLOOR_BINS]))
+    k = int(np.argmax(r))
+    if r[k] - floor <= max(NOISE_SIGMAS * np.sqrt(max(floor, 0.0) + 1.0), MIN_NET_COUNTS):
+        return "reference histogram has no pulse above its floor"
+    if k < REFERENCE_EDGE_BINS or k >= N_BINS - REFERENCE_EDGE_BINS:
+        return f"reference histogram peaks at bin {k}, at the edge of the histogram (not a laser pulse)"
+    return None
+
+
+__all__ = ["COUNT_MAX", "FLOOR_BINS", "measure_floor", "find_peaks", "first_return", "reference_problem"]

@@ -90,10 +90,10 @@ def test_recover_jsonl_on_jsonl_input(tmp_path, synthetic_frames, capsys):
 # -- input and usage errors -------------------------------------------------------------------------
 @pytest.mark.parametrize("content,needle", [
     (None, "does not exist"),
-    ("{not json", "invalid JSON"),
+    ("{not json", "truncated"),
     ("42", "not a frame file"),
     ("", "empty"),
-    ("[7]", "expected an object"),
+    ('[, {"hists": 1}]', "no frame before it"),
 ])
 def test_bad_frame_files_exit_2_with_one_line(tmp_path, content, needle, capsys):
     path = tmp_path / "in.json"
@@ -112,13 +112,26 @@ def test_broken_file_keeps_the_lines_already_written(tmp_path, synthetic_frames,
     assert main(["recover", str(path), "--method", "peak", "--jsonl", "-q"]) == 2
     cap = capsys.readouterr()
     assert [json.loads(x)["index"] for x in cap.out.splitlines()] == [0, 1]
-    assert "invalid JSON" in one_line_error(cap.err)
+    assert "truncated" in one_line_error(cap.err)
+
+
+def test_entries_that_are_not_frames_get_their_lines(tmp_path, synthetic_frames, capsys):
+    """A list entry that is not a frame object (a number, invalid JSON inside braces) is that frame's problem."""
+    good = json.dumps(synthetic_frames[0].to_dict())
+    path = tmp_path / "mixed.json"
+    path.write_text(f'[{good}, 7, {{"x": }}, {good}]')
+    assert main(["recover", str(path), "--method", "peak", "--jsonl", "-q"]) == 0
+    lines = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
+    assert [x["index"] for x in lines] == [0, 1, 2, 3]
+    assert lines[0]["normal"] is not None and lines[3]["normal"] is not None
+    assert "frame 1" in lines[1]["reason"] and "expected an object" in lines[1]["reason"]
+    assert "frame 2" in lines[2]["reason"] and "invalid JSON" in lines[2]["reason"]
 
 
 @pytest.mark.slow
 def test_bad_file_in_a_fresh_process(tmp_path):
     path = tmp_path / "in.json"
-    path.write_text("[1, 2")
+    path.write_text('[{"hists": [1, 2')
     res = run_cli("recover", str(path), "--method", "peak", "--jsonl")
     assert res.returncode == 2 and res.stdout == ""
     assert one_line_error(res.stderr).startswith("place-safe: error:")

@@ -82,12 +82,11 @@ def test_empty_list_gives_no_frames(tmp_path):
     ("   \n", "empty"),
     ("42", "not a frame file"),
     ('"frames"', "not a frame file"),
-    ("[1, 2]", "expected an object"),
-    ('[{"hists": 1}, [3]]', "expected an object"),
-    ('[{"hists": [1, 2,', "invalid JSON|truncated"),
+    ('[{"hists": [1, 2,', "truncated"),
     ('[{"hists": 1}', "truncated"),
-    ('[{"hists": 1}, {"x": }]', "invalid JSON"),
-    ('{"hists": 1}\n{"hists": 2', "invalid JSON"),
+    ('{"hists": 1}\n{"hists": 2', "truncated"),
+    ('[{"hists": 1} {"hists": 1}]', "expected ','"),
+    ('[{"hists": 1}] x', "after the closing"),
 ])
 def test_malformed_files_raise_frame_file_error(tmp_path, text, message):
     path = tmp_path / "bad.json"

@@ -259,7 +259,7 @@ def test_config_json_round_trip_and_validation(tmp_path):
         PlacementConfig.from_dict({"max_tilt_deg": 5})
     with pytest.raises(ValueError, match="finite"):
         PlacementConfig(approach_speed=float("nan"))
-    with pytest.raises(ValueError, match="positive"):
+    with pytest.raises(ValueError, match="descend_speed.*greater than 0"):
         PlacementConfig(descend_speed=-0.01)
     with pytest.raises(ValueError, match="stop_clearance"):
         PlacementConfig(stop_clearance=0.01, release_clearance=0.005)

@@ -67,11 +67,40 @@ def test_validate_says_what_is_wrong(change, message):
     ({"hists": [[1, 2]]}, "shape"),
     ({"hists": "abc"}, "hists"),
     ({"hists": np.zeros((9, 128)).tolist(), "distances": [{"confs_1": [0] * 9}]}, "depths_1"),
-    ({"hists": np.zeros((9, 128)).tolist(), "plane": {"offset": 0.1}}, "ground truth"),
+    ({"hists": np.zeros((9, 128)).tolist(), "timestamp": "12:00"}, "timestamp"),
+    ({"hists": np.zeros((9, 128)).tolist(), "timestamp": [1.0]}, "timestamp"),
+    ({"hists": np.zeros((9, 128)).tolist(), "timestamp": float("nan")}, "timestamp"),
+    ({"hists": [[10 ** 400] * 128] * 9}, "hists"),
 ])
 def test_from_dict_rejects_malformed_entries(entry, message):
     with pytest.raises(FrameError, match=message):
         Frame.from_dict(entry)
+
+
+_POSE = np.eye(4).tolist()
+
+
+@pytest.mark.parametrize("truth", [
+    {"plane": {"offset": 0.1}},
+    {"plane": {"normal": [0, 0, 0], "offset": 0.1}},
+    {"plane": {"normal": [float("nan"), 0, 1], "offset": 0.1}},
+    {"plane": {"normal": [1, 0, 0], "offset": 0.1}},
+    {"plane": {"normal": [0, 0, 1], "offset": -0.1}},
+    {"plane": {"normal": [0, 0, 1], "offset": "far"}},
+    {"plane": [0, 0, 1]},
+    {"pose": _POSE, "dist_to_plane": float("nan")},
+    {"pose": _POSE, "dist_to_plane": -0.1},
+    {"pose": np.zeros((4, 4)).tolist(), "dist_to_plane": 0.1},
+    {"pose": (2 * np.eye(4)).tolist(), "dist_to_plane": 0.1},
+    {"pose": [[1, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1]], "dist_to_plane": 0.1},  # horizontal
+    {"pose": "up", "dist_to_plane": 0.1},
+])
+def test_bad_ground_truth_only_clears_the_truth(truth):
+    """Recovery never needs ground truth: a frame whose truth is not a plane keeps its histograms."""
+    f = Frame.from_dict({"hists": np.zeros((9, 128)).tolist(), "reference_hist": [1.0] * 128, **truth})
+    assert f.truth is None
+    assert f.truth_error and "ground truth" in f.truth_error
+    f.validate()
 
 
 def test_dict_round_trip_keeps_units_truth_and_extras():

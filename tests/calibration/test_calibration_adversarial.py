@@ -1,0 +1,198 @@
+"""Adversarial and property-based tests of calibration loading and the calibration data selection.
+
+Properties: any JSON in a calibration file is either loaded or refused with one CalibrationError
+line; a bad section breaks only the methods that use it; every accepted parameter is inside its
+documented physical range (so no accepted file can give a NaN plane or a plane behind the sensor).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from place_safe.calibration import FORMAT, Calibration
+from place_safe.calibration.forward_fit import _usable, select_model_error
+from place_safe.config import Bound
+from place_safe.exceptions import CalibrationError
+from place_safe.recovery import make_estimator
+from place_safe.recovery.differentiable import RANGE_CORRECTION_BOUNDS
+from place_safe.recovery.forward import FORWARD_BOUNDS, ForwardParams
+from place_safe.recovery.points import PEAK_BOUNDS, PeakParams
+from place_safe.sensor.frame import N_BINS, Frame
+from place_safe.sensor.histogram import COUNT_MAX
+
+json_scalars = (st.none() | st.booleans() | st.integers(-10**30, 10**30)
+                | st.floats(allow_nan=True, allow_infinity=True) | st.text(max_size=5))
+json_values = st.recursive(json_scalars, lambda inner: st.lists(inner, max_size=10)
+                           | st.dictionaries(st.text(max_size=6), inner, max_size=3), max_leaves=15)
+
+
+def _in_bound(value, b: Bound) -> bool:
+    values = value if isinstance(value, list) else [value]
+    if b.length is not None and len(values) != b.length:
+        return False
+    for v in values:
+        if not math.isfinite(v):
+            return False
+        if b.lo is not None and (v <= b.lo if b.lo_open else v < b.lo):
+            return False
+        if b.hi is not None and (v >= b.hi if b.hi_open else v > b.hi):
+            return False
+    return True
+
+
+def _section_dicts(fields: dict, required: dict):
+    """Dicts mixing good defaults, random JSON values and boundary numbers for the given fields."""
+    numbers = st.floats(allow_nan=True, allow_infinity=True) | st.sampled_from([0, -1, 1e300, -1e300, 1e-300])
+    value = json_values | numbers | st.lists(numbers, min_size=0, max_size=10)
+    return st.fixed_dictionaries(required, optional={k: value for k in fields if k not in required}) | st.dictionaries(
+        st.text(max_size=8), value, max_size=3)
+
+
+@settings(max_examples=300, deadline=None)
+@given(d=_section_dicts(FORWARD_BOUNDS, {}))
+def test_forward_parameters_are_in_range_or_refused(d):
+    try:
+        p = ForwardParams.from_dict(d)
+    except CalibrationError as exc:
+        assert "\n" not in str(exc) and str(exc).startswith("forward parameters")
+        return
+    for name, b in FORWARD_BOUNDS.items():
+        assert _in_bound(getattr(p, name), b), name
+
+
+@settings(max_examples=300, deadline=None)
+@given(d=_section_dicts(PEAK_BOUNDS, {"m": st.floats(1, 1e5) | json_values, "b": st.floats(-50, 50)}))
+def test_peak_parameters_are_in_range_or_refused(d):
+    try:
+        p = PeakParams.from_dict(d)
+    except CalibrationError as exc:
+        assert "\n" not in str(exc) and str(exc).startswith("peak parameters")
+        return
+    for name, b in PEAK_BOUNDS.items():
+        assert _in_bound(getattr(p, name), b), name
+
+
+@settings(max_examples=200, deadline=None)
+@given(doc=st.fixed_dictionaries({"format": st.just(FORMAT)},
+                                 optional={"peak": json_values, "proprietary": json_values,
+                                           "forward": json_values, "diff": json_values, "reports": json_values}),
+       extra=st.dictionaries(st.sampled_from(["fromat", "peek", "x"]), json_values, max_size=1))
+def test_any_calibration_document_loads_per_section_or_fails_in_one_line(doc, extra):
+    doc = {**doc, **extra}
+    try:
+        cal = Calibration.from_dict(doc)
+    except CalibrationError as exc:
+        assert extra and "unknown keys" in str(exc)
+        return
+    assert not extra
+    for view in ("peak", "proprietary", "forward", "diff"):
+        try:
+            getattr(cal, view)()
+        except CalibrationError as exc:
+            assert view in cal.errors and f"section '{view}'" in str(exc) and "\n" not in str(exc)
+        else:
+            assert view not in cal.errors
+
+
+# -- the cases of the issue -----------------------------------------------------------------------------
+BAD_SECTIONS = [
+    ("diff", [1, 2]),
+    ("diff", "correction"),
+    ("diff", {"range_correction": [0.1]}),
+    ("diff", {"range_correction": "x"}),
+    ("diff", {"range_correction": {"coeffs": [-10.0]}}),
+    ("diff", {"range_correction": {"coeffs": [1e300]}}),
+    ("diff", {"range_correction": {"coeffs": [0.001], "domain": [0.3, 0.1]}}),
+    ("peak", {"m": True, "b": 13.0}),
+    ("peak", {"m": 72.0, "b": 13.0, "zone_gains": [-1.0] * 9}),
+    ("peak", {"m": 72.0, "b": 13.0, "residual_coeffs": [1e300]}),
+    ("peak", {"m": 72.0, "b": 13.0, "zone_offsets": [float("nan")] * 9}),
+    ("proprietary", {"m": 1000.0, "b": "0"}),
+    ("forward", {"rays_per_zone": 0}),
+    ("forward", {"rays_per_zone": -4}),
+    ("forward", {"albedo": 0.0}),
+    ("forward", {"albedo": -1.0}),
+    ("forward", {"specular_exponent": 0.0}),
+    ("forward", {"specular_exponent": -2.0}),
+    ("forward", {"ref_time_scale": 1e6}),
+    ("forward", {"mount_tilt": [100.0, 0.0]}),
+    ("forward", {"crosstalk": 1e300}),
+    ("forward", {"zone_offsets": [float("nan")] * 9}),
+    ("forward", {"edge_gain": -0.5}),
+    ("forward", {"bogus": 1.0}),
+]
+USES = {"peak": {"peak", "diff"}, "proprietary": {"proprietary"}, "forward": {"diff"}, "diff": {"diff"}}
+
+
+@pytest.mark.parametrize("section, content", BAD_SECTIONS)
+def test_bad_section_breaks_only_its_methods(tmp_path, section, content):
+    path = tmp_path / "cal.json"
+    path.write_text(json.dumps({"format": FORMAT, section: content}))
+    cal = Calibration.load(path)
+    assert section in cal.errors
+    for method in ("diff", "peak", "peak-naive", "proprietary", "proprietary-naive"):
+        if method in USES[section]:
+            with pytest.raises(CalibrationError, match=f"section '{section}'") as info:
+                make_estimator(method, cal)
+            assert str(path) in str(info.value) and "\n" not in str(info.value)
+        else:
+            make_estimator(method, cal)
+
+
+@pytest.mark.parametrize("raw", [b"\xff\xfe{}", b"[" * 100_000, b'{"format": ' + b"9" * 5000 + b"}",
+                                 b'{"format": "place_safe.calibration/1", "extra": 1}', b"", b"null"])
+def test_unreadable_calibration_files_are_one_line(tmp_path, raw):
+    path = tmp_path / "cal.json"
+    path.write_bytes(raw)
+    with pytest.raises(CalibrationError) as info:
+        Calibration.load(path)
+    assert "\n" not in str(info.value) and str(path) in str(info.value)
+
+
+def test_byte_order_mark_is_accepted(tmp_path):
+    path = tmp_path / "cal.json"
+    path.write_bytes(b"\xef\xbb\xbf" + json.dumps({"format": FORMAT}).encode())
+    assert Calibration.load(path).sections == {}
+
+
+def test_range_correction_bounds_are_physical():
+    assert RANGE_CORRECTION_BOUNDS["coeffs"].hi <= 0.1  # metres: a correction, not a relocation
+
+
+# -- data selection for the forward fit and the model-error choice ------------------------------------------
+def _with(frame: Frame, hists=None, reference=None) -> Frame:
+    return Frame(frame.hists if hists is None else hists, frame.reference if reference is None else reference,
+                 frame.distances, frame.confidences, truth=frame.truth)
+
+
+def test_saturated_frames_and_invalid_references_are_left_out_with_a_count(synthetic_frames):
+    f = synthetic_frames[0]
+    saturated = np.array(f.hists, dtype=float)
+    saturated[4, 20] = COUNT_MAX
+    frames = [f, _with(f, hists=saturated), _with(f, reference=np.zeros(N_BINS)),
+              _with(f, reference=np.r_[np.full(N_BINS - 1, 30.0), 9000.0]), Frame(f.hists, f.reference)]
+    skipped: dict = {}
+    assert _usable(frames, 0.0, 10.0, skipped) == [f]
+    assert skipped == {"saturated": 1, "invalid reference histogram": 2, "no ground truth": 1}
+
+
+def test_model_error_is_not_chosen_from_infinite_scores(synthetic_frames):
+    """Frames no value can recover (no return in any zone) must not make the first grid value win."""
+    f = synthetic_frames[0]
+    blank = [_with(g, hists=np.full_like(np.asarray(g.hists, dtype=float), 40.0)) for g in synthetic_frames[:3]]
+    params = ForwardParams(model_error=0.02)
+    chosen, report = select_model_error(blank, params, grid=(0.0, 0.01), progress=False)
+    assert chosen == 0.02 and "no value" in report["why"]
+    # a saturated frame among good ones is left out, so it cannot make every score infinite
+    sat = np.array(f.hists, dtype=float)
+    sat[4, 20] = COUNT_MAX
+    chosen, report = select_model_error([*synthetic_frames[:3], _with(f, hists=sat)], params,
+                                        grid=(0.0, 0.01), progress=False)
+    assert report["frames_skipped"] == {"saturated": 1}
+    assert all(v is not None and math.isfinite(v) for v in report["mean_point_error_mm"].values())

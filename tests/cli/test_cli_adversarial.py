@@ -1,0 +1,117 @@
+"""Property-based tests of the command line's argument checks (place_safe.cli.app, place_safe.cli.options).
+
+Every numeric option of every command, given any text: either the parser accepts a value inside the
+option's documented range, or ``main`` exits with status 2 and exactly one line on standard error
+(no traceback, nothing on standard output) before any work starts.
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from place_safe.cli.app import UsageError, build_parser, main
+
+#: (command words, option, kind, lo, hi, lo_open): the documented range of each numeric option.
+OPTIONS = [
+    (["recover", "f.json", "--method", "peak"], "--batch", int, 1, 4096, False),
+    (["evaluate", "f.json"], "--min-distance", float, 0.0, math.inf, False),
+    (["evaluate", "f.json"], "--max-distance", float, 0.0, math.inf, True),
+    (["stream", "f.json"], "--rate", float, 0.0, 10000.0, True),
+    (["stream", "f.json"], "--max-frames", int, 1, math.inf, False),
+    (["stream", "f.json"], "--queue", int, 1, 10000, False),
+    (["bench"], "--frames", int, 1, 100000, False),
+    (["bench"], "--paper-frames", int, 0, 10000, False),
+    (["bench"], "--memory-file", int, 1, 1000000, False),
+    (["bench"], "--seed", int, 0, math.inf, False),
+    (["demo"], "--frames", int, 1, 100000, False),
+    (["demo"], "--seed", int, 0, math.inf, False),
+]
+SIM_OPTIONS = [
+    (["sim", "place"], "--seconds", float, 0.0, 3600.0, True),
+    (["sim", "place"], "--seed", int, 0, math.inf, False),
+    (["sim", "render"], "--width", int, 16, 4096, False),
+    (["sim", "render"], "--height", int, 16, 4096, False),
+    (["sim", "render"], "--elevation", float, -90.0, 90.0, False),
+    (["sim", "render"], "--distance", float, 0.0, math.inf, True),
+    (["sim", "bench"], "--seconds", float, 0.0, 3600.0, True),
+    (["sim", "bench"], "--rate", float, 0.0, 1000.0, True),
+    (["sim", "bench"], "--rays", int, 1, 64, False),
+    (["sim", "validate", "f.json"], "--rays", int, 1, 64, False),
+    (["sim", "validate", "f.json"], "--min-distance", float, 0.0, math.inf, False),
+]
+
+values = st.one_of(
+    st.text(max_size=12),
+    st.integers(-10**6, 10**6).map(str),
+    st.floats(allow_nan=True, allow_infinity=True).map(repr),
+    st.sampled_from(["nan", "NaN", "inf", "-inf", "1e309", "0", "-0", "0.0", "1e-320", "9" * 5000, " 5 ", "5.",
+                     "0x10", "1_000", "½", "٣", "\x00", "5\n6", ""]),
+)
+
+
+def _parser(sim: bool):
+    return build_parser(load_sim=sim)
+
+
+def _check(words, option, kind, lo, hi, lo_open, text, sim):
+    parser = _parser(sim)
+    argv = [*words, f"{option}={text}"]
+    try:
+        args = parser.parse_args(argv)
+    except UsageError as exc:
+        assert "\n" not in str(exc).strip()
+        return
+    value = getattr(args, option.lstrip("-").replace("-", "_"))
+    assert isinstance(value, kind) and not isinstance(value, bool)
+    assert math.isfinite(value)
+    assert (value > lo if lo_open else value >= lo) and value <= hi
+
+
+@settings(max_examples=400, deadline=None)
+@given(spec=st.sampled_from(OPTIONS), text=values)
+def test_numeric_options_accept_only_their_range(spec, text):
+    _check(*spec, text, sim=False)
+
+
+@pytest.mark.sim
+@settings(max_examples=200, deadline=None)
+@given(spec=st.sampled_from(SIM_OPTIONS), text=values)
+def test_sim_numeric_options_accept_only_their_range(spec, text):
+    _check(*spec, text, sim=True)
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(spec=st.sampled_from(OPTIONS), text=st.sampled_from(["nan", "inf", "-1", "0", "abc", "1e309", "9" * 5000]))
+def test_bad_values_exit_2_with_one_line(capsys, spec, text):
+    words, option, kind, lo, hi, lo_open = spec
+    try:
+        kind(text)
+        value = kind(text)
+        ok = math.isfinite(value) and (value > lo if lo_open else value >= lo) and value <= hi
+    except (ValueError, OverflowError):
+        ok = False
+    if ok:
+        return
+    assert main([*words, f"{option}={text}"]) == 2
+    cap = capsys.readouterr()
+    lines = [x for x in cap.err.splitlines() if x.strip()]
+    assert len(lines) == 1 and lines[0].startswith("place-safe: error:") and option in lines[0]
+    assert cap.out == "" and "Traceback" not in cap.err
+
+
+@pytest.mark.parametrize("argv", [
+    ["stream", "f.json", "--method", "bogus"],
+    ["evaluate", "f.json", "--min-distance", "0.3", "--max-distance", "0.1"],
+    ["recover", "f.json"],
+    ["nosuchcommand"],
+    [],
+    ["--frobnicate"],
+])
+def test_usage_errors_are_one_line(capsys, argv):
+    assert main(argv) == 2
+    cap = capsys.readouterr()
+    assert len([x for x in cap.err.splitlines() if x.strip()]) == 1 and cap.out == ""

@@ -1,0 +1,197 @@
+"""Adversarial and property-based tests of the frame-file reader (place_safe.io.frame_file).
+
+Properties: whatever the bytes, reading yields a Frame or a FrameError per entry, or raises a
+FrameFileError for the file's structure, never anything else; a bad entry affects only itself; the
+result does not depend on where the chunks end; and every byte is decoded at most once (the reader
+is linear in the file size, which bounds its time by the input's size without a timing assert).
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+import place_safe.io.frame_file as ff
+from place_safe.exceptions import FrameError, FrameFileError
+from place_safe.io.frame_file import iter_frames, load_frames
+from place_safe.sensor.frame import Frame
+
+#: The originals, captured once: hypothesis runs many examples inside one monkeypatch scope.
+_DECODE = ff._decode
+_KEEP = ff._Splitter._keep
+
+SETTINGS = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+
+
+def _good() -> dict:
+    rng = np.random.default_rng(0)
+    ref = np.full(128, 30.0)
+    ref[12:17] = [500, 3000, 9000, 3000, 500]
+    return {"hists": rng.integers(20, 60, (9, 128)).tolist(), "reference_hist": ref.tolist(),
+            "plane": {"normal": [0.0, 0.0, 1.0], "offset": 0.1}}
+
+
+def _read(path) -> tuple[list, BaseException | None]:
+    out: list = []
+    try:
+        for item in iter_frames(path):
+            out.append(item)
+    except FrameFileError as exc:
+        return out, exc
+    return out, None
+
+
+def _kinds(items: list) -> list[str]:
+    return ["frame" if isinstance(x, Frame) else "error" for x in items]
+
+
+# -- any bytes -----------------------------------------------------------------------------------------
+json_values = st.recursive(
+    st.none() | st.booleans() | st.integers() | st.floats(allow_nan=True) | st.text(max_size=8),
+    lambda inner: st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=5), inner, max_size=4),
+    max_leaves=20)
+
+
+@SETTINGS
+@given(data=st.binary(max_size=400))
+def test_arbitrary_bytes_never_escape_as_other_errors(tmp_path, data):
+    path = tmp_path / "any.json"
+    path.write_bytes(data)
+    items, _ = _read(path)
+    assert all(isinstance(x, (Frame, FrameError)) for x in items)
+
+
+@SETTINGS
+@given(entries=st.lists(json_values, max_size=6), jsonl=st.booleans(), chunk=st.integers(1, 64))
+def test_any_json_entries_give_one_item_each_at_any_chunk_size(tmp_path, monkeypatch, entries, jsonl, chunk):
+    path = tmp_path / "e.json"
+    if jsonl:
+        entries = [e for e in entries if isinstance(e, dict)]  # JSON Lines holds objects
+        path.write_text("\n".join(json.dumps(e) for e in entries) + "\n")
+    else:
+        path.write_text(json.dumps(entries))
+    monkeypatch.setattr(ff, "_CHUNK", chunk)
+    items, err = _read(path)
+    if jsonl and not entries:
+        assert isinstance(err, FrameFileError)  # an empty file
+        return
+    assert err is None
+    assert len(items) == len(entries)
+    for item, entry in zip(items, entries):
+        if not isinstance(entry, dict):
+            assert isinstance(item, FrameError) and "expected an object" in str(item)
+
+
+@SETTINGS
+@given(pieces=st.lists(st.sampled_from(["good", "bad-json", "not-object", "deep", "huge-int", "latin1",
+                                         "ts-string", "ts-list", "bad-truth", "ragged"]), min_size=1, max_size=8),
+       chunk=st.sampled_from([1, 7, 64, 1 << 16]))
+def test_a_bad_entry_affects_only_itself(tmp_path, monkeypatch, pieces, chunk):
+    good = json.dumps(_good()).encode()
+    raw = {
+        "good": good,
+        "bad-json": b'{"hists": [1, 2,, 3]}',
+        "not-object": b"[1, 2, 3]",
+        "deep": b'{"a": ' + b"[" * 5000 + b"]" * 5000 + b"}",
+        "huge-int": b'{"hists": ' + b"9" * 5000 + b"}",
+        "latin1": b'{"hists": "\xe9t\xe9"}',
+        "ts-string": good[:-1] + b', "timestamp": "noon"}',
+        "ts-list": good[:-1] + b', "timestamp": [1, 2]}',
+        "bad-truth": good.replace(b'"offset": 0.1', b'"offset": -0.1'),
+        "ragged": b'{"hists": [[1, 2], [3]], "reference_hist": [0]}',
+    }
+    path = tmp_path / "mixed.json"
+    path.write_bytes(b"\xef\xbb\xbf[" + b",\n".join(raw[p] for p in pieces) + b"]")
+    monkeypatch.setattr(ff, "_CHUNK", chunk)
+    items, err = _read(path)
+    assert err is None and len(items) == len(pieces)
+    for i, (kind, item) in enumerate(zip(pieces, items)):
+        if kind in ("good", "bad-truth"):
+            assert isinstance(item, Frame)
+            assert (item.truth is None) == (kind == "bad-truth")
+        else:
+            assert isinstance(item, FrameError)
+            assert f"frame {i}" in str(item) and "mixed.json" in str(item)  # names the file and the index
+
+
+@SETTINGS
+@given(entries=st.lists(json_values, max_size=5), chunk=st.integers(1, 50))
+def test_every_byte_is_decoded_at_most_once(tmp_path, monkeypatch, entries, chunk):
+    """Linear time: the reader never decodes (or re-decodes) more bytes than the file has."""
+    path = tmp_path / "lin.json"
+    path.write_text(json.dumps(entries))
+    decoded = []
+    monkeypatch.setattr(ff, "_decode", lambda raw: (decoded.append(len(raw)), _DECODE(raw))[1])
+    monkeypatch.setattr(ff, "_CHUNK", chunk)
+    _read(path)
+    assert sum(decoded) <= path.stat().st_size
+
+
+# -- the cases of the issue ------------------------------------------------------------------------------
+def test_huge_frame_is_skipped_without_being_held(tmp_path, monkeypatch):
+    monkeypatch.setattr(ff, "MAX_FRAME_BYTES", 10_000)
+    big = dict(_good(), junk="x" * 50_000)
+    path = tmp_path / "big.json"
+    path.write_text(json.dumps([_good(), big, _good()]))
+    decoded = []
+    real = ff._decode
+    monkeypatch.setattr(ff, "_decode", lambda raw: (decoded.append(len(raw)), real(raw))[1])
+    items = list(iter_frames(path))
+    assert _kinds(items) == ["frame", "error", "frame"]
+    assert "larger than 10000 bytes" in str(items[1])
+    assert max(decoded) < 10_000  # the huge frame was never assembled
+
+
+def test_deeply_nested_frame_is_a_frame_error(tmp_path):
+    path = tmp_path / "deep.json"
+    path.write_text("[" + "[" * 100_000 + "]" * 100_000 + "]")
+    (item,) = list(iter_frames(path))
+    assert isinstance(item, FrameError) and "nested deeper" in str(item)
+
+
+def test_byte_order_mark_is_accepted(tmp_path):
+    path = tmp_path / "bom.json"
+    path.write_bytes(b"\xef\xbb\xbf" + json.dumps([_good()]).encode())
+    assert len(load_frames(path)) == 1
+
+
+def test_non_utf8_bytes_name_the_frame(tmp_path):
+    path = tmp_path / "latin.json"
+    path.write_bytes(b'[' + json.dumps(_good()).encode() + b', {"meta": "caf\xe9"}]')
+    items = list(iter_frames(path))
+    assert isinstance(items[0], Frame)
+    assert isinstance(items[1], FrameError) and "not UTF-8" in str(items[1]) and "frame 1" in str(items[1])
+
+
+@pytest.mark.parametrize("text", ["[", "[{", '[{"a": "unterminated', "[{}", "[{},", '{"a": 1}\n{"b"'])
+def test_truncated_files_raise_after_the_complete_frames(tmp_path, text):
+    path = tmp_path / "cut.json"
+    path.write_text(text)
+    with pytest.raises(FrameFileError, match="truncated"):
+        list(iter_frames(path))
+
+
+@settings(max_examples=400, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(text=st.text(alphabet='{}[]",:\\ \n1ae-', max_size=60), first=st.sampled_from(["[", "{", " [", "\ufeff{"]),
+       chunk=st.integers(1, 8))
+def test_structural_noise_never_hangs(tmp_path, monkeypatch, text, first, chunk):
+    """Stray brackets, quotes and escapes: the scanner makes progress on every step (a step budget
+    proportional to the input turns a hang into a failure instead of a timing assert)."""
+    data = (first + text).encode()
+    path = tmp_path / "noise.json"
+    path.write_bytes(data)
+    budget = {"steps": 4 * len(data) + 16}
+
+    def counted(self, part):
+        budget["steps"] -= 1
+        assert budget["steps"] >= 0, "the scanner stopped making progress"
+        _KEEP(self, part)
+
+    monkeypatch.setattr(ff._Splitter, "_keep", counted)
+    monkeypatch.setattr(ff, "_CHUNK", chunk)
+    items, _ = _read(path)
+    assert all(isinstance(x, (Frame, FrameError)) for x in items)
