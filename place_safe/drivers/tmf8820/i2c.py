@@ -458,8 +458,10 @@ class TMF8820Source(FrameSource):
             self._sleep(self.poll_s if self.int_line is None else 0.0)
 
     def _recover(self) -> None:
-        """After a reset: forget the measurement in progress, initialise again, measure again."""
-        self._asm.discard()
+        """After a reset: forget the measurement in progress (counting what it already showed), initialise
+        again, measure again."""
+        for reason in self._asm.abandon():
+            self.stats[reason] += 1
         self._woken = False
         self.stats["reinit"] += 1
         self.start()

@@ -206,6 +206,14 @@ class MeasurementAssembler:
     def discard(self) -> None:
         self._blocks, self._order, self._short = {}, [], False
 
+    def abandon(self) -> list[str]:
+        """Forget the measurement in progress (a device reset ended it) and return the faults it already
+        showed: ``"out_of_order"`` if its packets so far were not strictly increasing. Faults it had not
+        shown yet (a packet still to come, a gap) are lost with it."""
+        order = self._order
+        self.discard()
+        return ["out_of_order"] if any(b <= a for a, b in zip(order, order[1:])) else []
+
     def mark(self, reason: str) -> None:
         """Something of this measurement arrived broken (e.g. ``"short_read"``): it will be dropped."""
         if not self._short:
