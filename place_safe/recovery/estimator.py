@@ -3,13 +3,23 @@
 Every estimator returns a :class:`PlaneEstimate`; none raises on bad frames. A frame from which
 no plane can be recovered gives ``plane=None`` and a one-line ``reason``. ``residual`` is the
 method's own fit-quality measure (documented per method; smaller is better).
+
+Uncertainty: ``covariance`` is the 3 x 3 covariance of the estimate's *tilt components and offset*
+``(n_x, n_y, d)``: the x and y components of the unit normal in the sensor frame (for a plane tilted
+by a small angle these are the tilt angles about -y and x, in radians) and the offset ``d`` in metres
+(units rad^2, rad m, m^2). Each method linearises its own fit at the solution (``diff``: the
+Jacobian of the histogram residuals; ``peak``: of the zone points' distances from the plane) and
+scales it by the fit's residual, then adds the calibrated model-error floor of :class:`Uncertainty`
+(independent of the frame). ``method_used`` names what produced the plane (``diff`` may fall back to
+``peak`` when its residual fails the chi-square test, see :class:`Uncertainty`).
 """
 
 from __future__ import annotations
 
+import math
 import time
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 
 import numpy as np
 
@@ -18,15 +28,78 @@ from place_safe.geometry import Plane
 from place_safe.sensor.frame import Frame
 
 
+#: Order of the covariance entries: the normal's x and y components (rad) and the offset (m).
+COVARIANCE_ORDER = ("n_x", "n_y", "d")
+
+
+@dataclass
+class Uncertainty:
+    """Calibrated trust in one method (a calibration file's ``uncertainty`` section, one per method).
+
+    ``tilt_std`` (rad, >= 0, physically below ~0.05) and ``offset_std`` (m, >= 0, below ~0.01): a
+    model-error floor added (as variances) to each estimate's covariance: what the method gets wrong
+    beyond its fit's own noise, chosen at calibration so the normalised estimation error squared on the
+    calibration frames is 1. ``chi2_limit`` (reduced chi-square, > 0; ``inf`` = never): ``diff``
+    falls back to the peak estimate of a frame whose residual chi-square per bin (Poisson and
+    calibrated model error, :func:`~place_safe.recovery.forward.residual_weights`) is above it. The
+    defaults (no floor, no fallback) are the behaviour of a missing section.
+    """
+
+    tilt_std: float = 0.0
+    offset_std: float = 0.0
+    chi2_limit: float = math.inf
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.tilt_std) and math.isfinite(self.offset_std)) or self.tilt_std < 0 \
+                or self.offset_std < 0 or not self.chi2_limit > 0:
+            raise ValueError("uncertainty needs finite tilt_std, offset_std >= 0 and chi2_limit > 0")
+
+    def floor(self) -> np.ndarray:
+        """The model-error covariance (3, 3) added to every estimate."""
+        return np.diag([self.tilt_std ** 2, self.tilt_std ** 2, self.offset_std ** 2])
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["chi2_limit"] = None if math.isinf(self.chi2_limit) else float(self.chi2_limit)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Uncertainty":
+        d = dict(d)
+        unknown = set(d) - {"tilt_std", "offset_std", "chi2_limit"}
+        if unknown:
+            raise ValueError(f"unknown keys {', '.join(sorted(unknown))}")
+        if d.get("chi2_limit", None) is None:
+            d["chi2_limit"] = math.inf
+        return cls(**{k: float(v) for k, v in d.items()})
+
+
+def tilt_offset(plane: Plane) -> np.ndarray:
+    """The state ``(n_x, n_y, d)`` of a plane, in the order of :data:`COVARIANCE_ORDER`."""
+    return np.array([plane.normal[0], plane.normal[1], plane.offset])
+
+
 @dataclass
 class PlaneEstimate:
-    """Result of one recovery. ``plane`` is None exactly when ``reason`` says why."""
+    """Result of one recovery. ``plane`` is None exactly when ``reason`` says why.
+
+    ``covariance``: (3, 3) of ``(n_x, n_y, d)`` (see the module doc) or None when the method gives
+    none; ``method_used``: the method that produced ``plane`` (None: the estimator's own).
+    """
 
     plane: Plane | None
     albedo: float | None = None
     residual: float | None = None
     reason: str | None = None
     seconds: float = 0.0
+    covariance: np.ndarray | None = None
+    method_used: str | None = None
+
+    def tilt_std(self) -> float | None:
+        """Standard deviation (rad) of the tilt along its worst direction (largest eigenvalue)."""
+        if self.covariance is None:
+            return None
+        return float(math.sqrt(max(np.linalg.eigvalsh(self.covariance[:2, :2]).max(), 0.0)))
 
     @property
     def ok(self) -> bool:
@@ -47,6 +120,10 @@ class PlaneEstimate:
             out["residual"] = float(self.residual)
         if self.reason is not None:
             out["reason"] = self.reason
+        if self.method_used is not None:
+            out["method_used"] = self.method_used
+        if self.covariance is not None and np.all(np.isfinite(self.covariance)):
+            out["covariance"] = [[float(f"{v:.6g}") for v in row] for row in self.covariance]
         return out
 
 
