@@ -200,6 +200,11 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         cal.sections["diff"] = section
         cal.reports["diff"] = _jsonable(report)
         fitted.append("diff")
+    if args.method in ("peak", "diff"):
+        from place_safe.calibration.uncertainty import update_calibration
+
+        cal.reports["uncertainty"] = _jsonable(update_calibration(cal, frames, args.method))
+        fitted.append("uncertainty")
     out.parent.mkdir(parents=True, exist_ok=True)
     cal.save(out)
     for name in fitted:

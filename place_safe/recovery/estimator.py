@@ -36,27 +36,34 @@ COVARIANCE_ORDER = ("n_x", "n_y", "d")
 class Uncertainty:
     """Calibrated trust in one method (a calibration file's ``uncertainty`` section, one per method).
 
-    ``tilt_std`` (rad, >= 0, physically below ~0.05) and ``offset_std`` (m, >= 0, below ~0.01): a
-    model-error floor added (as variances) to each estimate's covariance: what the method gets wrong
-    beyond its fit's own noise, chosen at calibration so the normalised estimation error squared on the
-    calibration frames is 1. ``chi2_limit`` (reduced chi-square, > 0; ``inf`` = never): ``diff``
-    falls back to the peak estimate of a frame whose residual chi-square per bin (Poisson and
-    calibrated model error, :func:`~place_safe.recovery.forward.residual_weights`) is above it. The
-    defaults (no floor, no fallback) are the behaviour of a missing section.
+    A model-error floor, added to each estimate's covariance as variances: what the method gets wrong
+    beyond its fit's own noise, chosen at calibration by maximum likelihood of the calibration frames'
+    errors. On each tilt component the variance ``tilt_std^2 + (tilt_range_std / d)^2`` (a range
+    error of ``tilt_range_std`` between zones tilts a plane at distance ``d`` by about that over
+    ``d``), on the offset ``offset_std^2 + (offset_rel d)^2``. Units and physical ranges:
+    ``tilt_std`` rad (0 .. 0.1), ``tilt_range_std`` m (0 .. 0.01), ``offset_std`` m (0 .. 0.01),
+    ``offset_rel`` dimensionless (0 .. 0.05). ``chi2_limit`` (reduced chi-square, > 0; ``inf`` =
+    never): ``diff`` falls back to the peak estimate of a frame whose residual chi-square per bin
+    (Poisson and calibrated model error, :func:`~place_safe.recovery.forward.residual_weights`) is
+    above it. The defaults (no floor, no fallback) are the behaviour of a missing section.
     """
 
     tilt_std: float = 0.0
     offset_std: float = 0.0
     chi2_limit: float = math.inf
+    tilt_range_std: float = 0.0
+    offset_rel: float = 0.0
 
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.tilt_std) and math.isfinite(self.offset_std)) or self.tilt_std < 0 \
-                or self.offset_std < 0 or not self.chi2_limit > 0:
-            raise ValueError("uncertainty needs finite tilt_std, offset_std >= 0 and chi2_limit > 0")
+        vals = (self.tilt_std, self.offset_std, self.tilt_range_std, self.offset_rel)
+        if not all(math.isfinite(v) and v >= 0 for v in vals) or not self.chi2_limit > 0:
+            raise ValueError("uncertainty needs finite floors >= 0 and chi2_limit > 0")
 
-    def floor(self) -> np.ndarray:
-        """The model-error covariance (3, 3) added to every estimate."""
-        return np.diag([self.tilt_std ** 2, self.tilt_std ** 2, self.offset_std ** 2])
+    def floor(self, offset: float) -> np.ndarray:
+        """The model-error covariance (3, 3) added to an estimate at distance ``offset`` (m)."""
+        d = max(float(offset), 1e-3)
+        tilt = self.tilt_std ** 2 + (self.tilt_range_std / d) ** 2
+        return np.diag([tilt, tilt, self.offset_std ** 2 + (self.offset_rel * d) ** 2])
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -66,7 +73,7 @@ class Uncertainty:
     @classmethod
     def from_dict(cls, d: dict) -> "Uncertainty":
         d = dict(d)
-        unknown = set(d) - {"tilt_std", "offset_std", "chi2_limit"}
+        unknown = set(d) - {"tilt_std", "offset_std", "chi2_limit", "tilt_range_std", "offset_rel"}
         if unknown:
             raise ValueError(f"unknown keys {', '.join(sorted(unknown))}")
         if d.get("chi2_limit", None) is None:
