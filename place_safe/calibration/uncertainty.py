@@ -7,8 +7,9 @@ A method's own covariance (its fit linearised at the solution, scaled by the res
 it is measured here on frames with ground truth and added as a floor
 (:class:`~place_safe.recovery.estimator.Uncertainty`: a constant and a distance-dependent variance for
 the tilt components and for the offset), chosen by maximum likelihood of the frames' errors under the
-Gaussian with the estimate's covariance plus the floor. The normalised estimation error squared
-(NEES, per degree of freedom; about 1 when the covariances are honest) is reported before and after.
+Gaussian with the estimate's covariance plus the floor; then one ``scale`` of the whole covariance
+makes the mean normalised estimation error squared (NEES, per degree of freedom; about 1 when the
+covariances are honest) 1 on these frames. NEES is reported before and after.
 
 For ``diff``, the chi-square limit above which a frame falls back to the peak estimate is the one
 (among the frames' own residuals and infinity) that gives the lowest mean point error over the frames;
@@ -88,8 +89,11 @@ def fit_floor(estimates: Sequence[PlaneEstimate], truths: Sequence, base: Uncert
     unc = replace(base, tilt_std=math.sqrt(t0), tilt_range_std=math.sqrt(t1), offset_std=math.sqrt(o0),
                   offset_rel=math.sqrt(o1))
     before = float(np.mean([e @ np.linalg.solve(c, e) for e, c in zip(err, cov)]) / 3.0)
-    after = float(np.mean([e @ np.linalg.solve(c + unc.floor(dd), e) for e, c, dd in zip(err, cov, d)]) / 3.0)
-    return unc, {"frames": len(rows), "tilt_std_deg": math.degrees(unc.tilt_std),
+    ml = float(np.mean([e @ np.linalg.solve(c + unc.floor(dd), e) for e, c, dd in zip(err, cov, d)]) / 3.0)
+    unc = replace(unc, scale=float(np.clip(ml, 0.1, 10.0)))  # mean NEES per dof 1 on these frames
+    after = float(np.mean([e @ np.linalg.solve(unc.apply(c, dd), e) for e, c, dd in zip(err, cov, d)]) / 3.0)
+    return unc, {"frames": len(rows), "tilt_std_deg": math.degrees(unc.tilt_std), "scale": unc.scale,
+                 "nees_per_dof_maximum_likelihood": ml,
                  "tilt_range_std_mm": unc.tilt_range_std * 1e3, "offset_std_mm": unc.offset_std * 1e3,
                  "offset_rel": unc.offset_rel, "nees_per_dof_before": before, "nees_per_dof_after": after}
 

@@ -396,7 +396,7 @@ class DifferentiableEstimator(Estimator):
             plane = self._reported(a, b, z0)
             cov = None
             if cov_abz is not None and np.all(np.isfinite(cov_abz)):
-                cov = self._state_covariance(a, b, z0, cov_abz) + self.uncertainty.floor(plane.offset)
+                cov = self.uncertainty.apply(self._state_covariance(a, b, z0, cov_abz), plane.offset)
         except NoPlaneError as exc:
             return PlaneEstimate(None, reason=str(exc))
         return PlaneEstimate(plane, albedo=math.exp(lr), residual=math.sqrt(max(cost, 0.0) / n_res),

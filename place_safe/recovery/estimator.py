@@ -45,7 +45,9 @@ class Uncertainty:
     ``offset_rel`` dimensionless (0 .. 0.05). ``chi2_limit`` (reduced chi-square, > 0; ``inf`` =
     never): ``diff`` falls back to the peak estimate of a frame whose residual chi-square per bin
     (Poisson and calibrated model error, :func:`~place_safe.recovery.forward.residual_weights`) is
-    above it. The defaults (no floor, no fallback) are the behaviour of a missing section.
+    above it. ``scale`` (dimensionless, 0.1 .. 10) multiplies the whole covariance (the fit's and the
+    floor) so the calibration frames' mean NEES per degree of freedom is 1. The defaults (no floor,
+    no fallback, scale 1) are the behaviour of a missing section.
     """
 
     tilt_std: float = 0.0
@@ -53,11 +55,17 @@ class Uncertainty:
     chi2_limit: float = math.inf
     tilt_range_std: float = 0.0
     offset_rel: float = 0.0
+    scale: float = 1.0
 
     def __post_init__(self) -> None:
         vals = (self.tilt_std, self.offset_std, self.tilt_range_std, self.offset_rel)
-        if not all(math.isfinite(v) and v >= 0 for v in vals) or not self.chi2_limit > 0:
-            raise ValueError("uncertainty needs finite floors >= 0 and chi2_limit > 0")
+        if not all(math.isfinite(v) and v >= 0 for v in vals) or not self.chi2_limit > 0 \
+                or not (math.isfinite(self.scale) and self.scale > 0):
+            raise ValueError("uncertainty needs finite floors >= 0, chi2_limit > 0 and a finite scale > 0")
+
+    def apply(self, covariance: np.ndarray, offset: float) -> np.ndarray:
+        """The reported covariance of an estimate at ``offset`` (m) whose fit gave ``covariance``."""
+        return self.scale * (np.asarray(covariance, dtype=float) + self.floor(offset))
 
     def floor(self, offset: float) -> np.ndarray:
         """The model-error covariance (3, 3) added to an estimate at distance ``offset`` (m)."""
@@ -73,7 +81,7 @@ class Uncertainty:
     @classmethod
     def from_dict(cls, d: dict) -> "Uncertainty":
         d = dict(d)
-        unknown = set(d) - {"tilt_std", "offset_std", "chi2_limit", "tilt_range_std", "offset_rel"}
+        unknown = set(d) - {"tilt_std", "offset_std", "chi2_limit", "tilt_range_std", "offset_rel", "scale"}
         if unknown:
             raise ValueError(f"unknown keys {', '.join(sorted(unknown))}")
         if d.get("chi2_limit", None) is None:

@@ -70,7 +70,7 @@ class PeakEstimator(Estimator):
             raise NoPlaneError(f"only {int(valid.sum())} zone(s) show a return above the noise floor; "
                                "a plane needs 3 or more")
         plane, rms = plane_from_points(self.params, pos, valid)
-        cov = plane_covariance(self.params.points(pos), valid, plane) + self.uncertainty.floor(plane.offset)
+        cov = self.uncertainty.apply(plane_covariance(self.params.points(pos), valid, plane), plane.offset)
         return PlaneEstimate(plane, residual=rms, covariance=cov, method_used=self.name)
 
 
