@@ -102,6 +102,9 @@ class SolverOptions:
     rays: int = 6                 # stratified rays per axis and zone (rays x rays per zone)
     max_iterations: int = 20
     tolerance: float = 1e-7       # relative cost decrease that ends the iterations
+    # cost decrease (chi-square units, times the reduced chi-square when above 1) that ends them too: a step
+    # that gains less moves the plane by a small fraction of its standard deviation
+    chi2_tolerance: float = 0.01
     prior_specular_weight: float = 0.05   # std of the specular-weight prior
     prior_log_exponent: float = 0.25      # std of the log specular-exponent prior
     window_after_peak: int = 24   # bins kept after the latest zone peak
@@ -345,10 +348,12 @@ class DifferentiableEstimator(Estimator):
                 cn = (residual(xn, rr) ** 2).sum(axis=1)
                 better = np.isfinite(cn) & (cn < cost[rr])
                 acc = rr[better]
-                rel = (cost[acc] - cn[better]) / np.maximum(cost[acc], 1e-300)
+                dec = cost[acc] - cn[better]
+                rel = dec / np.maximum(cost[acc], 1e-300)
+                small = dec < self.opt.chi2_tolerance * np.maximum(cn[better] / (N_ZONES * width), 1.0)
                 x[acc], cost[acc] = xn[better], cn[better]
                 lam[acc] = np.maximum(lam[acc] * 0.3, 1e-9)
-                active[acc[rel < self.opt.tolerance]] = False
+                active[acc[(rel < self.opt.tolerance) | small]] = False
                 worse = rr[~better]
                 lam[worse] *= 10.0
                 active[worse[lam[worse] > 1e8]] = False
