@@ -290,5 +290,6 @@ def test_synth_writes_frames_with_truth_and_rejects_bad_ranges(tmp_path, capsys)
     assert main(["synth", "--frames", "3", "--seed", "1", "--max-distance", "0.1", "-o", str(out)]) == 0
     frames = list(iter_frames(out))
     assert len(frames) == 3 and all(f.truth is not None and f.truth.z0 <= 0.1 for f in frames)
+    assert "wrote 3" in capsys.readouterr().err
     assert main(["synth", "--frames", "3", "--min-distance", "0.2", "--max-distance", "0.1", "-o", str(out)]) == 2
     assert one_line_error(capsys.readouterr().err)
