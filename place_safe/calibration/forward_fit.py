@@ -85,6 +85,13 @@ def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, prog
     frames are fitted, taken evenly over distance (a few dozen frames pin down the ~30 camera
     parameters; more only cost time).
 
+    The structural choices (:data:`STRUCTURAL`: pulse soft binning, saturation before shading,
+    crosstalk including the zone) are fitted as blends in [0, 1] from the middle, so the data choose
+    them; the report lists them under ``structural_choices``. After the first fit, frames whose RMS
+    scaled residual is above :data:`BAD_FRAME_FACTOR` times the median are excluded (counted in
+    ``frames_excluded_as_bad``) and the fit repeated from its solution; ``converged`` says whether
+    both fits stopped on a tolerance rather than on ``iterations``.
+
     The solver is SciPy's ``least_squares`` (trust region reflective) on the Poisson-scaled
     residuals (with the model-error term of :func:`~place_safe.recovery.forward.residual_weights`); its Jacobian is built from forward-mode derivatives (``torch.func.jvp``): one
     tangent per camera parameter and one shared by all per-frame albedos (each frame depends on
