@@ -12,8 +12,10 @@ makes the mean normalised estimation error squared (NEES, per degree of freedom;
 covariances are honest) 1 on these frames. NEES is reported before and after.
 
 For ``diff``, the chi-square limit above which a frame falls back to the peak estimate is the one
-(among the frames' own residuals and infinity) that gives the lowest mean point error over the frames;
-ties go to the larger limit (use diff as often as it does not hurt). Units: rad, m.
+(among the frames' own residuals and infinity) whose selection has the lowest worse-of-two score: the
+means of the angular and of the point error, each per frame in units of peak's median error and
+capped at 10 (so frames on which both methods fail do not decide). Ties go to the larger limit (use
+diff as often as it does not hurt). Units: rad, m.
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from place_safe.evaluation.metrics import point_errors
+from place_safe.evaluation.metrics import angular_errors, point_errors
 from place_safe.recovery.estimator import PlaneEstimate, Uncertainty, tilt_offset
 from place_safe.sensor.frame import Frame
 
@@ -118,27 +120,38 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
     diff = est.estimate_many(use)
     peak = [est.init.estimate(f) for f in use]
 
-    def perr(e: PlaneEstimate, t) -> float:
+    def errs(e: PlaneEstimate, t) -> tuple[float, float]:
         if not e.ok:
-            return math.inf
-        return float(point_errors(e.plane.normal, e.plane.offset, t.normal, t.offset)[0])
+            return math.inf, math.inf
+        return (float(angular_errors(e.plane.normal, t.normal)[0]),
+                float(point_errors(e.plane.normal, e.plane.offset, t.normal, t.offset)[0]))
 
-    e_diff = np.array([perr(e, t) for e, t in zip(diff, truths)])
-    e_peak = np.array([perr(e, t) for e, t in zip(peak, truths)])
+    e_diff = np.array([errs(e, t) for e, t in zip(diff, truths)])  # (F, 2): angular, point
+    e_peak = np.array([errs(e, t) for e, t in zip(peak, truths)])
+    # each error in units of peak's median error, capped at 10, so a few hopeless frames (both methods
+    # far off) do not decide; the score is the worse of the two metrics' means
+    unit = np.maximum(np.median(np.where(np.isfinite(e_peak), e_peak, np.nan), axis=0), 1e-12)
+    n_diff, n_peak = np.minimum(e_diff / unit, 10.0), np.minimum(e_peak / unit, 10.0)
     chi2 = np.array([e.residual ** 2 if e.ok and e.residual is not None else math.inf for e in diff])
     candidates = sorted({float(c) for c in chi2[np.isfinite(chi2)]}) + [math.inf]
     scores = []
     for lim in candidates:
-        use_diff = chi2 <= lim
-        scores.append(float(np.mean(np.where(use_diff, e_diff, e_peak))))
+        use_diff = (chi2 <= lim)[:, None]
+        scores.append(float(np.max(np.mean(np.where(use_diff, n_diff, n_peak), axis=0))))
     best = min(scores)
     limit = max(c for c, sc in zip(candidates, scores) if sc <= best * (1 + 1e-9))
     by_diff = [e for e, c in zip(diff, chi2) if c <= limit]
     unc, rep = fit_floor(by_diff, [t for t, c in zip(truths, chi2) if c <= limit], Uncertainty(chi2_limit=limit))
-    finite = e_diff[np.isfinite(e_diff)]
+    sel = np.where((chi2 <= limit)[:, None], e_diff, e_peak)
+
+    def mean_finite(a: np.ndarray, scale: float) -> float:
+        return float(np.mean(a[np.isfinite(a)])) * scale
+
     rep.update({"chi2_limit": None if math.isinf(limit) else limit, "frames_using_diff": int(np.sum(chi2 <= limit)),
-                "frames_using_peak": int(np.sum(chi2 > limit)), "point_mm_diff": float(np.mean(finite)) * 1e3,
-                "point_mm_peak": float(np.mean(e_peak[np.isfinite(e_peak)])) * 1e3, "point_mm_selected": best * 1e3})
+                "frames_using_peak": int(np.sum(chi2 > limit)),
+                "angular_deg": {k: mean_finite(v[:, 0], 180 / math.pi) for k, v in
+                                (("diff", e_diff), ("peak", e_peak), ("selected", sel))},
+                "point_mm": {k: mean_finite(v[:, 1], 1e3) for k, v in (("diff", e_diff), ("peak", e_peak), ("selected", sel))}})
     return unc, rep
 
 
