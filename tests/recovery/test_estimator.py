@@ -41,8 +41,9 @@ def test_uncertainty_round_trip_and_defaults():
 def test_calibration_without_uncertainty_section_loads_with_defaults():
     cal = Calibration.from_dict({"format": "place_safe.calibration/1"})
     assert cal.uncertainty("diff") == Uncertainty()
-    with pytest.raises(CalibrationError, match="uncertainty"):
-        Calibration.from_dict({"format": "place_safe.calibration/1", "uncertainty": {"peak": {"tilt_std": -1}}})
+    bad = Calibration.from_dict({"format": "place_safe.calibration/1", "uncertainty": {"peak": {"tilt_std": -1}}})
+    with pytest.raises(CalibrationError, match="uncertainty"):  # a bad section fails when it is used
+        bad.uncertainty("peak")
 
 
 @settings(max_examples=15, deadline=None)
