@@ -7,6 +7,7 @@ Layout::
      "proprietary": {...PeakParams...},          # calibrated on-sensor distances
      "forward":     {...ForwardParams...},       # forward model for differentiable rendering
      "diff":        {"range_correction": {...}}, # what diff's solver leaves over (optional)
+     "uncertainty": {"peak": {...}, "diff": {...}},  # model-error floors and diff's chi-square limit
      "reports":     {"peak": {...}, ...}}        # fit-quality summaries (informational)
 
 ``place-safe calibrate --method M -o FILE`` fits one family and writes its section; if FILE already
@@ -26,7 +27,7 @@ from place_safe.exceptions import CalibrationError
 from place_safe.recovery.forward import ForwardParams
 
 FORMAT = "place_safe.calibration/1"
-SECTIONS = ("peak", "proprietary", "forward", "diff")
+SECTIONS = ("peak", "proprietary", "forward", "diff", "uncertainty")
 
 
 #: Keys a calibration file may have besides its sections.
@@ -76,6 +77,19 @@ class Calibration:
         if not isinstance(d, dict) or set(d) - {"range_correction"}:
             raise CalibrationError("diff section must be an object with only 'range_correction'")
         return RangeCorrection.from_dict(d.get("range_correction", {}))
+
+    def uncertainty(self, method: str | None = None):
+        """The :class:`~place_safe.recovery.estimator.Uncertainty` of ``method`` (defaults when absent);
+        without a method, all entries of the section as a dict."""
+        from place_safe.recovery.estimator import Uncertainty
+
+        sec = self.sections.get("uncertainty", {})
+        try:
+            if method is None:
+                return {k: Uncertainty.from_dict(v) for k, v in sec.items()}
+            return Uncertainty.from_dict(sec[method]) if method in sec else Uncertainty()
+        except (TypeError, ValueError, AttributeError) as exc:
+            raise CalibrationError(f"uncertainty section is malformed: {exc}") from None
 
     def forward(self) -> ForwardParams:
         d = self._section("forward")

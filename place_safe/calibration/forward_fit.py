@@ -45,7 +45,15 @@ FITTED: dict[str, str] = {
     "mount_tilt": "lin",
     "zone_offsets": "lin",
     "zone_gains": "log",
+    "pulse_soft_bin": "unit",
+    "saturate_shading": "unit",
+    "crosstalk_self": "unit",
 }
+#: A frame whose RMS scaled residual after the first fit is above this many times the median (and
+#: above 1) is excluded as bad and the fit repeated without it.
+BAD_FRAME_FACTOR = 3.0
+#: The structural choices (blends in [0, 1], ``"unit"`` above) start in the middle so the data choose.
+STRUCTURAL = ("pulse_soft_bin", "saturate_shading", "crosstalk_self")
 CENTRE = 4  # zone 5: gauge for zone gains and offsets
 ZONE_GAUGED = ("zone_gains", "zone_offsets")
 
@@ -85,7 +93,7 @@ def _usable(frames: Sequence[Frame], min_distance: float, max_distance: float,
 def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, progress: bool = True,
                 rays: int = 4, iterations: int = 60, min_distance: float = 0.04,
                 max_distance: float = 1.0, fitted: dict[str, str] | None = None,
-                window_after_peak: int = 24, max_frames: int = 80) -> tuple[ForwardParams, dict]:
+                window_after_peak: int = 24, max_frames: int = 40) -> tuple[ForwardParams, dict]:
     """Fit camera parameters to frames with ground truth; returns (params, report).
 
     frames: frames with ``truth`` planes; those outside ``[min_distance, max_distance]`` (z0, m)
@@ -94,6 +102,13 @@ def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, prog
     iterations: Gauss-Newton (trust-region) iterations at most. max_frames: at most this many
     frames are fitted, taken evenly over distance (a few dozen frames pin down the ~30 camera
     parameters; more only cost time).
+
+    The structural choices (:data:`STRUCTURAL`: pulse soft binning, saturation before shading,
+    crosstalk including the zone) are fitted as blends in [0, 1] from the middle, so the data choose
+    them; the report lists them under ``structural_choices``. After the first fit, frames whose RMS
+    scaled residual is above :data:`BAD_FRAME_FACTOR` times the median are excluded (counted in
+    ``frames_excluded_as_bad``) and the fit repeated from its solution; ``converged`` says whether
+    both fits stopped on a tolerance rather than on ``iterations``.
 
     The solver is SciPy's ``least_squares`` (trust region reflective) on the Poisson-scaled
     residuals (with the model-error term of :func:`~place_safe.recovery.forward.residual_weights`); its Jacobian is built from forward-mode derivatives (``torch.func.jvp``): one
@@ -115,7 +130,8 @@ def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, prog
         data = [data[i] for i in sorted(set(pick.tolist()))]
     fitted = dict(FITTED if fitted is None else fitted)
     if init is None:
-        init = ForwardParams(tail_weight=0.05, tail_decay=3.0, pileup=1e-7)
+        init = ForwardParams(tail_weight=0.05, tail_decay=3.0, pileup=1e-7,
+                             **{k: 0.5 for k in STRUCTURAL if k in fitted})
     dtype = torch.float64
     model = ForwardModel(init, ZoneRays.stratified(rays, dtype=dtype), dtype=dtype)
 
@@ -129,6 +145,7 @@ def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, prog
     offsets = torch.as_tensor(np.array([f.truth.offset for f in data]), dtype=dtype)
     refs = torch.as_tensor(np.array([f.reference for f in data]), dtype=dtype)
     nf = len(data)
+    keep = torch.ones(nf, dtype=dtype)  # 0 for frames excluded as bad after the first fit
 
     # layout of the camera vector: scalars, then the 8 free entries of each per-zone vector
     layout: list[tuple[str, str, int]] = []
@@ -169,7 +186,7 @@ def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, prog
         # ground truth is in the reported (mount) frame; the model renders in the optical frame
         n_optical = normals @ mount_rotation(model.t["mount_tilt"])
         h = model.render_plane(n_optical, offsets, torch.exp(log_albedo), refs)
-        return ((h[..., :width] - model.t["floor"] - obs) * inv_sigma).reshape(nf, -1)
+        return ((h[..., :width] - model.t["floor"] - obs) * inv_sigma * keep.view(-1, 1, 1)).reshape(nf, -1)
 
     cam0 = torch.as_tensor(np.array(start), dtype=dtype)
     log_albedo0 = torch.full((nf,), math.log(init.albedo), dtype=dtype)
@@ -219,15 +236,34 @@ def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, prog
     cost0 = 0.5 * float((fun(z0) ** 2).sum())
     lower = np.full(z0.size, -np.inf)
     upper = np.full(z0.size, np.inf)
+    i = 0
+    for _name, kind, n in layout:
+        if kind == "unit":
+            lower[i:i + abs(n)], upper[i:i + abs(n)] = 0.0, 1.0
+        i += abs(n)
     lower[n_cam:], upper[n_cam:] = math.log(init.albedo) - 8.0, math.log(init.albedo) + 8.0
     z0 = np.clip(z0, lower + 1e-6, upper - 1e-6)
     sol = least_squares(fun, z0, jac=jac, method="trf", x_scale="jac", max_nfev=iterations, bounds=(lower, upper),
                         xtol=1e-10, ftol=1e-10, gtol=1e-10)
-    bar.close()
     if not np.all(np.isfinite(sol.x)):
         raise CalibrationError("forward calibration diverged (non-finite parameters)")
-    cam, la = split(sol.x)
+    # bad frames (the model cannot explain them: a wrong ground truth, a glint, a clipped return) are
+    # excluded and the fit repeated from where it stopped
     with torch.no_grad():
+        per_frame = residual(*split(sol.x)).pow(2).mean(dim=1).sqrt().numpy()
+    bad = per_frame > max(BAD_FRAME_FACTOR * float(np.median(per_frame)), 1.0)
+    first = sol
+    if bad.any() and (~bad).sum() >= 3:
+        keep[torch.as_tensor(bad)] = 0.0
+        sol = least_squares(fun, sol.x, jac=jac, method="trf", x_scale="jac", max_nfev=max(iterations // 2, 5),
+                            bounds=(lower, upper), xtol=1e-10, ftol=1e-10, gtol=1e-10)
+        if not np.all(np.isfinite(sol.x)):
+            raise CalibrationError("forward calibration diverged (non-finite parameters)")
+    bar.close()
+    cam, la = split(sol.x)
+    good = ~bad if (~bad).sum() >= 3 else np.ones(nf, dtype=bool)
+    with torch.no_grad():
+        keep[:] = 1.0
         per_frame = residual(cam, la).pow(2).mean(dim=1).sqrt().numpy()
     from place_safe.recovery.forward import tensors_to_params
 
@@ -244,16 +280,21 @@ def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, prog
     fitted_params.albedo = float(np.median(albedos))
     fitted_params.floor = 0.0
     n_res = sol.fun.size
+    n_good = int(good.sum()) * (n_res // nf)
     report = {
         "frames": nf,
         "frames_available": available,
         "frames_skipped": skipped,
+        "frames_excluded_as_bad": int(nf - good.sum()),
         "rms_scaled_residual_before": math.sqrt(2 * cost0 / n_res),
-        "rms_scaled_residual_after": math.sqrt(2 * float(sol.cost) / n_res),
+        "rms_scaled_residual_after": math.sqrt(2 * float(sol.cost) / max(n_good, 1)),
         "rms_scaled_residual_per_frame": {"median": float(np.median(per_frame)), "max": float(per_frame.max())},
+        "converged": bool(sol.status > 0 and first.status > 0),
+        "structural_choices": {k: float(getattr(fitted_params, k)) for k in STRUCTURAL},
         "albedo_per_frame": {"min": float(albedos.min()), "max": float(albedos.max())},
         "model_error_chi2": chi2_error,
-        "solver": {"status": int(sol.status), "message": str(sol.message), "evaluations": evals["n"]},
+        "solver": {"status": int(sol.status), "message": str(sol.message), "evaluations": evals["n"],
+                   "first_fit_message": str(first.message)},
         "params": fitted_params.to_dict(),
     }
     return fitted_params, report

@@ -28,7 +28,8 @@ PROG = "place-safe"
 #: Command groups that live in their own module: each exposes ``register(subparsers) -> None``, which adds
 #: its sub-parser(s) (``parser_class=_Parser`` is inherited) with ``set_defaults(func=...)``. Modules must
 #: import heavy packages (torch, MuJoCo, ur-rtde, smbus2) inside their command functions, not at import time.
-COMMAND_MODULES: tuple[str, ...] = ("place_safe.cli.sensor", "place_safe.cli.robot")
+COMMAND_MODULES: tuple[str, ...] = ("place_safe.cli.sensor", "place_safe.cli.robot", "place_safe.cli.synth",
+                                   "place_safe.cli.latency")
 METHODS = ("diff", "peak", "peak-naive", "proprietary", "proprietary-naive")
 CALIBRATE_METHODS = ("diff", "peak", "proprietary")
 
@@ -223,6 +224,11 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         cal.sections["diff"] = section
         cal.reports["diff"] = _jsonable(report)
         fitted.append("diff")
+    if args.method in ("peak", "diff"):
+        from place_safe.calibration.uncertainty import update_calibration
+
+        cal.reports["uncertainty"] = _jsonable(update_calibration(cal, frames, args.method))
+        fitted.append("uncertainty")
     out.parent.mkdir(parents=True, exist_ok=True)
     cal.save(out)
     for name in fitted:

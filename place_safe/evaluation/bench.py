@@ -275,4 +275,38 @@ def report_json(report: BenchReport, path: str | Path) -> None:
 
 
 __all__ = ["BenchReport", "MethodResult", "DEFAULT_RUNS", "bench_method", "run_bench", "peak_rss_bytes",
-           "measure_file_rss", "write_synthetic_file", "report_json"]
+           "measure_file_rss", "measure_recover_latency", "write_synthetic_file", "report_json"]
+
+
+def measure_recover_latency(path: str | Path, method: str = "diff", calibration: str | Path | None = None,
+                            batch: int = 1) -> dict:
+    """Per-frame wall time of ``place-safe recover --jsonl`` over a frame file, measured from outside.
+
+    Runs ``recover`` in a fresh process and timestamps each JSON line as it arrives on the pipe; the
+    gap between consecutive lines is a frame's wall time as a caller sees it (reading and parsing the
+    frame, recovery, writing its line). The first line's gap (interpreter start, imports, warm-up) is
+    reported separately. With ``batch`` > 1 lines arrive in bursts, so per-frame figures are only
+    meaningful with ``batch = 1`` (the default here); the mean is total / frames either way.
+    """
+    cmd = [sys.executable, "-m", "place_safe.cli.app", "recover", str(path), "--method", method, "--jsonl",
+           "--quiet", "--batch", str(batch)]
+    if calibration is not None:
+        cmd += ["--calibration", str(calibration)]
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    stamps, used = [], {}
+    assert proc.stdout is not None
+    for line in proc.stdout:
+        stamps.append(time.perf_counter())
+        m = json.loads(line).get("method_used")
+        used[m] = used.get(m, 0) + 1
+    err = proc.stderr.read().decode(errors="replace") if proc.stderr else ""
+    if proc.wait() != 0:
+        last = (err.strip().splitlines() or ["(no message)"])[-1]
+        raise RuntimeError(f"recover exited with {proc.returncode}: {last}")
+    if len(stamps) < 2:
+        raise RuntimeError("recover wrote fewer than 2 lines; need 2 or more frames")
+    gaps = np.diff(np.array(stamps)) * 1e3
+    return {"method": method, "frames": len(stamps), "first_line_ms": round((stamps[0] - t0) * 1e3, 1),
+            "median_ms": round(float(np.median(gaps)), 2), "p95_ms": round(float(np.percentile(gaps, 95)), 2),
+            "mean_ms": round(float(gaps.mean()), 2), "method_used": {str(k): v for k, v in used.items()}}

@@ -33,6 +33,8 @@ class MethodResult:
     albedo: np.ndarray
     seconds: np.ndarray
     reasons: list[str | None]
+    nees: np.ndarray = field(default_factory=lambda: np.zeros(0))  # per frame, per degree of freedom (NaN: none)
+    used: list[str | None] = field(default_factory=list)  # method_used per frame
 
     @property
     def failures(self) -> int:
@@ -43,6 +45,9 @@ class MethodResult:
                 "linear_mm": {k: (v * 1e3 if k != "count" else v) for k, v in summarise(self.linear).items()},
                 "point_mm": {k: (v * 1e3 if k != "count" else v) for k, v in summarise(self.point).items()},
                 "failures": self.failures, "frames": len(self.point),
+                "nees_per_dof": ({"mean": float(np.nanmean(self.nees)), "median": float(np.nanmedian(self.nees)),
+                                  "count": int(np.isfinite(self.nees).sum())} if np.isfinite(self.nees).any() else None),
+                "method_used": {k: self.used.count(k) for k in sorted({u for u in self.used if u is not None})},
                 "ms_per_frame": float(np.mean(self.seconds) * 1e3) if len(self.seconds) else float("nan")}
 
 
@@ -69,6 +74,15 @@ class EvaluationReport:
             for key in ("angular_deg", "linear_mm", "point_mm"):
                 cells += [f"{s[key][k]:7.2f}" for k in ("mean", "median", "p95")]
             lines.append(f"{name:<18} " + " ".join(cells) + f" {s['failures']:>5d} {s['ms_per_frame']:8.3f}")
+        for name, res in self.results.items():
+            s = res.summary()
+            notes = []
+            if s["nees_per_dof"]:
+                notes.append(f"NEES per dof mean {s['nees_per_dof']['mean']:.2f} (median {s['nees_per_dof']['median']:.2f})")
+            if s["method_used"] and set(s["method_used"]) != {name}:
+                notes.append("used " + ", ".join(f"{k} {v}" for k, v in s["method_used"].items()))
+            if notes:
+                lines.append(f"{name:<18} " + "; ".join(notes))
         for name, why in self.unavailable.items():
             lines.append(f"{name:<18} unavailable: {why}")
         lines.append(f"({len(self.z0)} frames with ground truth"
@@ -91,6 +105,7 @@ def evaluate(frames: Sequence[Frame], calibration: Any = None, methods: Sequence
     """
     from tqdm import tqdm
 
+    from place_safe.calibration.uncertainty import nees
     from place_safe.recovery import make_estimator
 
     use = [f for f in frames if f.truth is not None]
@@ -111,9 +126,11 @@ def evaluate(frames: Sequence[Frame], calibration: Any = None, methods: Sequence
         albedo = np.full(len(use), np.nan)
         secs = np.zeros(len(use))
         reasons: list[str | None] = []
+        ests = []
         for i, f in enumerate(tqdm(use, desc=method, unit="frame", disable=not progress, leave=False,
                                    file=sys.stderr)):
             e = est.estimate(f)
+            ests.append(e)
             secs[i] = e.seconds
             reasons.append(e.reason)
             if e.plane is not None:
@@ -128,7 +145,8 @@ def evaluate(frames: Sequence[Frame], calibration: Any = None, methods: Sequence
             ang[ok] = angular_errors(n[ok], tn[ok])
             lin[ok] = linear_errors(n[ok], d[ok], tn[ok], td[ok])
             pt[ok] = point_errors(n[ok], d[ok], tn[ok], td[ok])
-        report.results[method] = MethodResult(method, ang, lin, pt, albedo, secs, reasons)
+        report.results[method] = MethodResult(method, ang, lin, pt, albedo, secs, reasons,
+                                              nees(ests, [f.truth for f in use]), [e.method_used for e in ests])
     if out_dir is not None and report.results:
         report.plots = plot_report(report, out_dir)
     return report

@@ -35,7 +35,7 @@ def make_estimator(method: str, calibration: "Calibration | None" = None, **opti
     cal = calibration if calibration is not None else Calibration()
     if method == "peak":
         from place_safe.recovery.peak import PeakEstimator
-        return PeakEstimator(cal.peak(), **options)
+        return PeakEstimator(cal.peak(), uncertainty=cal.uncertainty("peak"), **options)
     if method == "peak-naive":
         from place_safe.recovery.peak import PeakEstimator
         return PeakEstimator.naive(**options)
@@ -47,7 +47,9 @@ def make_estimator(method: str, calibration: "Calibration | None" = None, **opti
         return ProprietaryEstimator.naive(**options)
     if method == "diff":
         from place_safe.recovery.differentiable import DifferentiableEstimator
-        return DifferentiableEstimator(cal.forward(), cal.peak(), correction=cal.diff(), **options)
+        return DifferentiableEstimator(cal.forward(), cal.peak(), correction=cal.diff(),
+                                       uncertainty=cal.uncertainty("diff"), peak_uncertainty=cal.uncertainty("peak"),
+                                       **options)
     raise ValueError(f"unknown method {method!r}; expected one of {', '.join(METHODS)}")
 
 

@@ -19,7 +19,11 @@ calibrated peak method):
     Kept so the comparison with the fast solver stays honest.
 
 ``residual`` of an estimate is the RMS Poisson-scaled histogram residual at the solution (about 1
-when the model explains the histograms to the noise level).
+when the model explains the histograms to the noise level). Its square is a chi-square per bin
+against the calibrated noise: above the calibrated ``chi2_limit`` (:class:`~place_safe.recovery.estimator.Uncertainty`)
+the fast solver returns the peak estimate instead, with ``method_used = "peak"``. The fast solver's
+``covariance`` of ``(n_x, n_y, d)`` is the Gauss-Newton inverse at the solution scaled by that
+chi-square (plus the calibrated floor).
 """
 
 from __future__ import annotations
@@ -37,7 +41,7 @@ from place_safe.recovery.forward import ForwardModel, ForwardParams, ZoneRays, m
 from place_safe.geometry import Plane
 from place_safe.recovery.plane_renderer import PlaneRenderer, convolution_matrices
 from place_safe.sensor.frame import N_BINS, N_ZONES, Frame
-from place_safe.recovery.estimator import Estimator, PlaneEstimate, checked
+from place_safe.recovery.estimator import Estimator, PlaneEstimate, Uncertainty, checked, tilt_offset
 from place_safe.recovery.peak import PeakEstimator
 from place_safe.sensor.histogram import COUNT_MAX, measure_floor, reference_problem
 
@@ -109,6 +113,9 @@ class SolverOptions:
     rays: int = 6                 # stratified rays per axis and zone (rays x rays per zone)
     max_iterations: int = 20
     tolerance: float = 1e-7       # relative cost decrease that ends the iterations
+    # cost decrease (chi-square units, times the reduced chi-square when above 1) that ends them too: a step
+    # that gains less moves the plane by a small fraction of its standard deviation
+    chi2_tolerance: float = 0.01
     prior_specular_weight: float = 0.05   # std of the specular-weight prior
     prior_log_exponent: float = 0.25      # std of the log specular-exponent prior
     window_after_peak: int = 24   # bins kept after the latest zone peak
@@ -134,14 +141,16 @@ class DifferentiableEstimator(Estimator):
 
     def __init__(self, forward: ForwardParams | None = None, peak: PeakParams | None = None,
                  mode: str = "fast", options: SolverOptions | None = None,
-                 correction: RangeCorrection | None = None) -> None:
+                 correction: RangeCorrection | None = None, uncertainty: Uncertainty | None = None,
+                 peak_uncertainty: Uncertainty | None = None) -> None:
         if mode not in ("fast", "paper"):
             raise ValueError(f"mode must be 'fast' or 'paper', got {mode!r}")
         self.params = forward if forward is not None else ForwardParams()
         self.mode = mode
         self.opt = options or SolverOptions()
         self.correction = correction if correction is not None else RangeCorrection()
-        self.init = PeakEstimator(peak if peak is not None else PeakParams.default_peak())
+        self.uncertainty = uncertainty if uncertainty is not None else Uncertainty()
+        self.init = PeakEstimator(peak if peak is not None else PeakParams.default_peak(), peak_uncertainty)
         self.dtype = torch.float64
         self.model = ForwardModel(self.params, ZoneRays.stratified(self.opt.rays, dtype=self.dtype), dtype=self.dtype)
         self._prior = torch.tensor([self.params.specular_weight, math.log(self.params.specular_exponent)],
@@ -195,7 +204,7 @@ class DifferentiableEstimator(Estimator):
     def estimate_batch(self, frames: list[Frame]) -> list[PlaneEstimate]:
         """Recover validated frames together. Frames without a usable return get a reason."""
         results: list[PlaneEstimate | None] = [None] * len(frames)
-        inits, rows = [], []
+        inits, rows, peaks = [], [], []
         for i, f in enumerate(frames):
             h = np.asarray(f.hists, dtype=float)
             if np.any(h >= COUNT_MAX):
@@ -210,13 +219,29 @@ class DifferentiableEstimator(Estimator):
                 results[i] = PlaneEstimate(None, reason=init.reason)
                 continue
             inits.append(Plane(self._mount.T @ init.plane.normal, init.plane.offset))  # to the optical frame
+            peaks.append(init)
             rows.append(i)
         if rows:
             sub = [frames[i] for i in rows]
             solve = self._solve_fast if self.mode == "fast" else self._solve_paper
-            for i, est in zip(rows, solve(sub, inits)):
-                results[i] = checked(est)
+            for i, est, peak in zip(rows, solve(sub, inits), peaks):
+                results[i] = checked(self._checked(est, peak) if self.mode == "fast" else est)
         return results  # type: ignore[return-value]
+
+    def _checked(self, est: PlaneEstimate, peak: PlaneEstimate) -> PlaneEstimate:
+        """The diff estimate, or the peak estimate when diff's residual fails the chi-square test.
+
+        ``residual`` is the RMS Poisson-scaled residual, so its square is the chi-square per bin
+        against the calibrated noise; above ``uncertainty.chi2_limit`` the model does not explain the
+        frame and the peak estimate (``method_used = "peak"``) is returned, with diff's residual.
+        """
+        failed = not est.ok or est.residual is None or not est.residual ** 2 <= self.uncertainty.chi2_limit
+        if not failed:
+            return est
+        if not est.ok and math.isinf(self.uncertainty.chi2_limit):
+            return est  # no fallback calibrated: report diff's own failure
+        return PlaneEstimate(peak.plane, albedo=est.albedo, residual=est.residual, covariance=peak.covariance,
+                             method_used="peak")
 
     # -- data preparation ----------------------------------------------------------------------
     def _prepare(self, frames: list[Frame], inits: list[Plane]):
@@ -343,39 +368,64 @@ class DifferentiableEstimator(Estimator):
                 cn = (residual(xn, rr) ** 2).sum(axis=1)
                 better = np.isfinite(cn) & (cn < cost[rr])
                 acc = rr[better]
-                rel = (cost[acc] - cn[better]) / np.maximum(cost[acc], 1e-300)
+                dec = cost[acc] - cn[better]
+                rel = dec / np.maximum(cost[acc], 1e-300)
+                small = dec < self.opt.chi2_tolerance * np.maximum(cn[better] / (N_ZONES * width), 1.0)
                 x[acc], cost[acc] = xn[better], cn[better]
                 lam[acc] = np.maximum(lam[acc] * 0.3, 1e-9)
-                active[acc[rel < self.opt.tolerance]] = False
+                active[acc[(rel < self.opt.tolerance) | small]] = False
                 worse = rr[~better]
                 lam[worse] *= 10.0
                 active[worse[lam[worse] > 1e8]] = False
                 pending[sel[better]] = False
                 pending[sel[~better][lam[worse] > 1e8]] = False
         n_res = N_ZONES * width
+        # covariance of the unknowns at the solution: the Gauss-Newton inverse (priors included),
+        # scaled by the histogram residual's chi-square per degree of freedom
+        res, J = residual(x, all_rows, jac=True)
+        chi2_red = (res[:, :n_res] ** 2).sum(axis=1) / max(n_res - nu, 1)
+        cov = np.linalg.pinv(np.einsum("bmi,bmj->bij", J, J))[:, :3, :3] * chi2_red[:, None, None]
         # report one albedo: the mean log albedo over zones when each zone has its own
         xr = np.concatenate([x[:, :3], x[:, 3:3 + n_alb].mean(axis=1, keepdims=True)], axis=1)
-        return [self._finish(torch.as_tensor(xr[i]), float(cost[i]), n_res) for i in range(nb)]
+        return [self._finish(torch.as_tensor(xr[i]), float(cost[i]), n_res, cov[i]) for i in range(nb)]
 
     def _kernels(self, frames: list[Frame]) -> np.ndarray:
         ref = torch.as_tensor(np.array([f.reference for f in frames]), dtype=self.dtype)
         with torch.no_grad():
             return self.model.pulse(ref).numpy()
 
-    def _finish(self, x: torch.Tensor, cost: float, n_res: int) -> PlaneEstimate:
+    def _reported(self, a: float, b: float, z0: float) -> Plane:
+        """The plane of optical-frame unknowns, range-corrected, in the reported sensor frame."""
+        da, db = self.correction.slopes(z0)
+        optical = Plane.from_slopes(a + da, b + db, z0 + self.correction(z0))
+        return Plane(self._mount @ optical.normal, optical.offset)
+
+    def _state_covariance(self, a: float, b: float, z0: float, cov_abz: np.ndarray) -> np.ndarray:
+        """Covariance of (a, b, z0) mapped to (n_x, n_y, d) of the reported plane (numerical Jacobian)."""
+        x0 = np.array([a, b, z0])
+        f0 = tilt_offset(self._reported(*x0))
+        jac = np.zeros((3, 3))
+        for k, h in enumerate((1e-6, 1e-6, 1e-7)):
+            xk = x0.copy()
+            xk[k] += h
+            jac[:, k] = (tilt_offset(self._reported(*xk)) - f0) / h
+        return jac @ cov_abz @ jac.T
+
+    def _finish(self, x: torch.Tensor, cost: float, n_res: int, cov_abz: np.ndarray | None = None) -> PlaneEstimate:
         a, b, z0, lr = (float(v) for v in x[:4])
         if not all(math.isfinite(v) for v in (a, b, z0, lr)):
             return PlaneEstimate(None, reason="solver diverged (non-finite plane)")
         if z0 <= 0:
             return PlaneEstimate(None, reason="solver found no plane in front of the sensor")
         try:
-            da, db = self.correction.slopes(z0)
-            a, b, z0 = a + da, b + db, z0 + self.correction(z0)
-            optical = Plane.from_slopes(a, b, z0)
-            plane = Plane(self._mount @ optical.normal, optical.offset)
+            plane = self._reported(a, b, z0)
+            cov = None
+            if cov_abz is not None and np.all(np.isfinite(cov_abz)):
+                cov = self.uncertainty.apply(self._state_covariance(a, b, z0, cov_abz), plane.offset)
         except NoPlaneError as exc:
             return PlaneEstimate(None, reason=str(exc))
-        return PlaneEstimate(plane, albedo=math.exp(lr), residual=math.sqrt(max(cost, 0.0) / n_res))
+        return PlaneEstimate(plane, albedo=math.exp(lr), residual=math.sqrt(max(cost, 0.0) / n_res),
+                             covariance=cov, method_used=self.name)
 
     # -- the paper's procedure -----------------------------------------------------------------
     def _solve_paper(self, frames: list[Frame], inits: list[Plane]) -> list[PlaneEstimate]:
@@ -395,7 +445,6 @@ class DifferentiableEstimator(Estimator):
             log_rho = torch.tensor(float(x0[3]), dtype=torch.float32, requires_grad=True)
             ks = torch.tensor(self.params.specular_weight, dtype=torch.float32, requires_grad=True)
             log_alpha = torch.tensor(math.log(self.params.specular_exponent), dtype=torch.float32, requires_grad=True)
-            variables = [theta, phi, z0, log_rho, ks, log_alpha]
             # per-parameter step sizes: radians for angles, metres for z0 (a tenth of the lr), log units
             adam = torch.optim.Adam([{"params": [theta, phi, log_rho, ks, log_alpha], "lr": self.opt.paper_lr},
                                      {"params": [z0], "lr": self.opt.paper_lr * 0.1}])

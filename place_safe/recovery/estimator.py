@@ -3,13 +3,23 @@
 Every estimator returns a :class:`PlaneEstimate`; none raises on bad frames. A frame from which
 no plane can be recovered gives ``plane=None`` and a one-line ``reason``. ``residual`` is the
 method's own fit-quality measure (documented per method; smaller is better).
+
+Uncertainty: ``covariance`` is the 3 x 3 covariance of the estimate's *tilt components and offset*
+``(n_x, n_y, d)``: the x and y components of the unit normal in the sensor frame (for a plane tilted
+by a small angle these are the tilt angles about -y and x, in radians) and the offset ``d`` in metres
+(units rad^2, rad m, m^2). Each method linearises its own fit at the solution (``diff``: the
+Jacobian of the histogram residuals; ``peak``: of the zone points' distances from the plane) and
+scales it by the fit's residual, then adds the calibrated model-error floor of :class:`Uncertainty`
+(independent of the frame). ``method_used`` names what produced the plane (``diff`` may fall back to
+``peak`` when its residual fails the chi-square test, see :class:`Uncertainty`).
 """
 
 from __future__ import annotations
 
+import math
 import time
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 
 import numpy as np
 
@@ -18,15 +28,93 @@ from place_safe.geometry import Plane
 from place_safe.sensor.frame import Frame
 
 
+#: Order of the covariance entries: the normal's x and y components (rad) and the offset (m).
+COVARIANCE_ORDER = ("n_x", "n_y", "d")
+
+
+@dataclass
+class Uncertainty:
+    """Calibrated trust in one method (a calibration file's ``uncertainty`` section, one per method).
+
+    A model-error floor, added to each estimate's covariance as variances: what the method gets wrong
+    beyond its fit's own noise, chosen at calibration by maximum likelihood of the calibration frames'
+    errors. On each tilt component the variance ``tilt_std^2 + (tilt_range_std / d)^2`` (a range
+    error of ``tilt_range_std`` between zones tilts a plane at distance ``d`` by about that over
+    ``d``), on the offset ``offset_std^2 + (offset_rel d)^2``. Units and physical ranges:
+    ``tilt_std`` rad (0 .. 0.1), ``tilt_range_std`` m (0 .. 0.01), ``offset_std`` m (0 .. 0.01),
+    ``offset_rel`` dimensionless (0 .. 0.05). ``chi2_limit`` (reduced chi-square, > 0; ``inf`` =
+    never): ``diff`` falls back to the peak estimate of a frame whose residual chi-square per bin
+    (Poisson and calibrated model error, :func:`~place_safe.recovery.forward.residual_weights`) is
+    above it. ``scale`` (dimensionless, 0.1 .. 10) multiplies the whole covariance (the fit's and the
+    floor) so the calibration frames' mean NEES per degree of freedom is 1. The defaults (no floor,
+    no fallback, scale 1) are the behaviour of a missing section.
+    """
+
+    tilt_std: float = 0.0
+    offset_std: float = 0.0
+    chi2_limit: float = math.inf
+    tilt_range_std: float = 0.0
+    offset_rel: float = 0.0
+    scale: float = 1.0
+
+    def __post_init__(self) -> None:
+        vals = (self.tilt_std, self.offset_std, self.tilt_range_std, self.offset_rel)
+        if not all(math.isfinite(v) and v >= 0 for v in vals) or not self.chi2_limit > 0 \
+                or not (math.isfinite(self.scale) and self.scale > 0):
+            raise ValueError("uncertainty needs finite floors >= 0, chi2_limit > 0 and a finite scale > 0")
+
+    def apply(self, covariance: np.ndarray, offset: float) -> np.ndarray:
+        """The reported covariance of an estimate at ``offset`` (m) whose fit gave ``covariance``."""
+        return self.scale * (np.asarray(covariance, dtype=float) + self.floor(offset))
+
+    def floor(self, offset: float) -> np.ndarray:
+        """The model-error covariance (3, 3) added to an estimate at distance ``offset`` (m)."""
+        d = max(float(offset), 1e-3)
+        tilt = self.tilt_std ** 2 + (self.tilt_range_std / d) ** 2
+        return np.diag([tilt, tilt, self.offset_std ** 2 + (self.offset_rel * d) ** 2])
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["chi2_limit"] = None if math.isinf(self.chi2_limit) else float(self.chi2_limit)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Uncertainty":
+        d = dict(d)
+        unknown = set(d) - {"tilt_std", "offset_std", "chi2_limit", "tilt_range_std", "offset_rel", "scale"}
+        if unknown:
+            raise ValueError(f"unknown keys {', '.join(sorted(unknown))}")
+        if d.get("chi2_limit", None) is None:
+            d["chi2_limit"] = math.inf
+        return cls(**{k: float(v) for k, v in d.items()})
+
+
+def tilt_offset(plane: Plane) -> np.ndarray:
+    """The state ``(n_x, n_y, d)`` of a plane, in the order of :data:`COVARIANCE_ORDER`."""
+    return np.array([plane.normal[0], plane.normal[1], plane.offset])
+
+
 @dataclass
 class PlaneEstimate:
-    """Result of one recovery. ``plane`` is None exactly when ``reason`` says why."""
+    """Result of one recovery. ``plane`` is None exactly when ``reason`` says why.
+
+    ``covariance``: (3, 3) of ``(n_x, n_y, d)`` (see the module doc) or None when the method gives
+    none; ``method_used``: the method that produced ``plane`` (None: the estimator's own).
+    """
 
     plane: Plane | None
     albedo: float | None = None
     residual: float | None = None
     reason: str | None = None
     seconds: float = 0.0
+    covariance: np.ndarray | None = None
+    method_used: str | None = None
+
+    def tilt_std(self) -> float | None:
+        """Standard deviation (rad) of the tilt along its worst direction (largest eigenvalue)."""
+        if self.covariance is None:
+            return None
+        return float(math.sqrt(max(np.linalg.eigvalsh(self.covariance[:2, :2]).max(), 0.0)))
 
     @property
     def ok(self) -> bool:
@@ -47,6 +135,10 @@ class PlaneEstimate:
             out["residual"] = float(self.residual)
         if self.reason is not None:
             out["reason"] = self.reason
+        if self.method_used is not None:
+            out["method_used"] = self.method_used
+        if self.covariance is not None and np.all(np.isfinite(self.covariance)):
+            out["covariance"] = [[float(f"{v:.6g}") for v in row] for row in self.covariance]
         return out
 
 

@@ -66,6 +66,9 @@ FORWARD_BOUNDS: dict[str, Bound] = {
     "model_error": Bound(0.0, 1.0, "(fraction of the counts in a bin)"),
     "zone_offsets": Bound(-32.0, 32.0, "bins", length=N_ZONES),
     "zone_gains": Bound(0.0, 100.0, "(relative, centre zone 1)", lo_open=True, length=N_ZONES),
+    "pulse_soft_bin": Bound(0.0, 1.0, "(blend: 0 linear interpolation, 1 Gaussian soft binning)"),
+    "saturate_shading": Bound(0.0, 1.0, "(blend: 1 saturate the shaded intensity, 0 the unshaded term)"),
+    "crosstalk_self": Bound(0.0, 1.0, "(blend: 1 crosstalk includes the zone itself)"),
 }
 
 
@@ -95,6 +98,15 @@ class ForwardParams:
     calibration chooses for data the model describes exactly; ``calibrate --method diff`` chooses it
     for each sensor (1-2 % on the real sweep).
 
+    Structural choices (the paper and its published code differ; real code uses either): the zone
+    pulse is ``(1 - pulse_soft_bin)`` times the reference rescaled by linear interpolation plus
+    ``pulse_soft_bin`` times the reference rescaled by the paper's Gaussian soft binning (sigma
+    ``soft_bin_sigma``, each normalised to peak 1); saturation acts on ``shade^saturate_shading``
+    and the remaining ``shade^(1 - saturate_shading)`` multiplies afterwards
+    (``p = s (1 - exp(-g rho shade^w / (s r^2))) shade^(1-w)``: 1 is the paper's equation, 0 the
+    published code); crosstalk adds ``crosstalk * (total - (1 - crosstalk_self) h)``. The defaults
+    (0, 1, 0) are the model as it was.
+
     Units: ``bin_offset``, ``soft_bin_sigma``, ``tail_decay`` and ``zone_offsets`` in bins; ``bin_size`` in metres
     of one-way range per bin; ``ref_floor`` and ``floor`` in counts; the rest dimensionless.
     """
@@ -122,6 +134,11 @@ class ForwardParams:
     model_error: float = 0.005
     zone_offsets: list[float] = field(default_factory=lambda: [0.0] * N_ZONES)
     zone_gains: list[float] = field(default_factory=lambda: [1.0] * N_ZONES)
+    # Structural choices of implementations of the paper's model, as continuous blends so calibration can
+    # choose them by the data (see the class doc). All dimensionless, physical range [0, 1].
+    pulse_soft_bin: float = 0.0     # 0: reference rescaled by linear interpolation; 1: Gaussian soft binning
+    saturate_shading: float = 1.0   # 1: SPAD saturation of the shaded intensity; 0: of the unshaded term
+    crosstalk_self: float = 0.0     # 0: a zone leaks into the others; 1: into all zones, itself included
 
     def __post_init__(self) -> None:
         check_dataclass(self, FORWARD_BOUNDS, "forward parameters", CalibrationError)
@@ -252,13 +269,17 @@ class ZoneRays:
 # Model
 # ---------------------------------------------------------------------------------------------
 def pulse_kernel(reference: torch.Tensor, time_scale: torch.Tensor, ref_floor: torch.Tensor,
-                 tail_weight: torch.Tensor | None = None, tail_decay: torch.Tensor | None = None) -> torch.Tensor:
+                 tail_weight: torch.Tensor | None = None, tail_decay: torch.Tensor | None = None,
+                 soft_bin: torch.Tensor | None = None, sigma: torch.Tensor | None = None) -> torch.Tensor:
     """Laser pulse in zone bins from reference histograms (..., 128) -> (..., K).
 
     The floor is removed, the tail after the peak smoothed (:data:`TAIL_SMOOTHING`), the pulse
     normalised to peak 1 and sampled at zone-bin lags
     ``k = 0..K-1``, i.e. at reference bins ``k / time_scale`` (linear interpolation). With a
     ``tail_weight`` the pulse is then convolved with ``delta + w exp(-k / tail_decay)``, k >= 1.
+    With ``soft_bin`` > 0 that fraction of the pulse is instead the paper's rescaling: every reference
+    bin ``i`` soft-binned at zone lag ``i * time_scale`` with a Gaussian of ``sigma`` (zone bins),
+    normalised to peak 1.
     """
     ref = torch.clamp(reference - ref_floor, min=0.0)
     ref = _smooth_tail(ref)
@@ -273,6 +294,12 @@ def pulse_kernel(reference: torch.Tensor, time_scale: torch.Tensor, ref_floor: t
     a = ref[..., lo_i]
     b = ref[..., lo_i + 1]
     kernel = a * (1 - frac) + b * frac
+    if soft_bin is not None and (torch.is_grad_enabled() or float(soft_bin) > 0.0):
+        centres = torch.arange(N_BINS, dtype=ref.dtype) * time_scale
+        zz = (lags.view(-1, 1) - centres.view(1, -1)) / sigma
+        soft = ref @ torch.exp(-0.5 * zz * zz).T  # (..., K)
+        soft = soft / torch.clamp(soft.amax(dim=-1, keepdim=True), min=1e-12)
+        kernel = (1.0 - soft_bin) * kernel + soft_bin * soft
     if tail_weight is None or (not torch.is_grad_enabled() and float(tail_weight) == 0.0):
         return kernel
     k = torch.arange(1, k_len, dtype=ref.dtype)
@@ -370,7 +397,7 @@ class ForwardModel:
     def pulse(self, reference: torch.Tensor) -> torch.Tensor:
         t = self.t
         return pulse_kernel(torch.as_tensor(reference, dtype=self.dtype), t["ref_time_scale"], t["ref_floor"],
-                            t["tail_weight"], t["tail_decay"])
+                            t["tail_weight"], t["tail_decay"], t["pulse_soft_bin"], t["soft_bin_sigma"])
 
     def render_returns(self, ranges: torch.Tensor, cos_inc: torch.Tensor, albedo: torch.Tensor,
                        reference: torch.Tensor, weights: torch.Tensor | None = None,
@@ -396,11 +423,12 @@ class ForwardModel:
         spec = torch.clamp(2.0 * c * c - 1.0, min=0.0)
         # pow with a zero base has an infinite derivative in the exponent at 0; keep it finite
         spec = torch.where(spec > 0, torch.pow(torch.clamp(spec, min=1e-30), alpha), torch.zeros_like(spec))
-        intensity = rho * (c + ks * spec)
+        shade = torch.clamp(c + ks * spec, min=1e-12)
         s = t["saturation"]
+        w_sat = t["saturate_shading"]
         g = self.zone_gains().view(1, N_ZONES, 1)
         r_safe = torch.clamp(r, min=1e-4)
-        photons = s * -torch.expm1(-g * intensity / (s * r_safe * r_safe))
+        photons = s * -torch.expm1(-g * rho * shade ** w_sat / (s * r_safe * r_safe)) * shade ** (1.0 - w_sat)
         w = self.ray_geometry()[1] if weights is None else torch.as_tensor(weights, dtype=self.dtype)
         w = w.expand_as(photons) if w.dim() == 2 else w
         amp = photons * w * float(self.params.rays_per_zone)
@@ -414,7 +442,7 @@ class ForwardModel:
             kernel = self.pulse(torch.as_tensor(reference, dtype=self.dtype).expand(b, N_BINS))
         hist = convolve_pulse(transient, kernel)
         total = hist.sum(dim=1, keepdim=True)
-        hist = hist + t["crosstalk"] * (total - hist)
+        hist = hist + t["crosstalk"] * (total - (1.0 - t["crosstalk_self"]) * hist)
         return apply_pileup(hist, t["pileup"]) + t["floor"]
 
     def plane_returns(self, normal: torch.Tensor, offset: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

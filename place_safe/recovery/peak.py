@@ -15,7 +15,9 @@ Per zone, vectorised over zones (and over frames in :func:`place_safe.sensor.his
 4. range, direction and point from :class:`place_safe.recovery.points.PeakParams`; the plane is
    the SVD least-squares fit of the zones with a return (3 or more needed).
 
-``residual`` of the estimate: RMS perpendicular distance (m) of the zone points from the plane.
+``residual`` of the estimate: RMS perpendicular distance (m) of the zone points from the plane;
+``covariance``: the SVD fit's (:func:`~place_safe.recovery.points.plane_covariance`) plus the
+calibrated floor (:class:`~place_safe.recovery.estimator.Uncertainty`).
 Histograms clipped at the 24-bit maximum, or frames flagged ``saturated`` in ``extra`` /
 ``extra["meta"]``, give no plane: a clipped peak has no usable position.
 """
@@ -26,8 +28,8 @@ import numpy as np
 
 from place_safe.exceptions import FrameError, NoPlaneError
 from place_safe.sensor.frame import N_BINS, N_ZONES, Frame
-from place_safe.recovery.estimator import Estimator, PlaneEstimate
-from place_safe.recovery.points import PeakParams, plane_from_points
+from place_safe.recovery.estimator import Estimator, PlaneEstimate, Uncertainty
+from place_safe.recovery.points import PeakParams, plane_covariance, plane_from_points
 from place_safe.sensor.histogram import COUNT_MAX, find_peaks
 
 def _flagged_saturated(frame: Frame) -> bool:
@@ -42,8 +44,9 @@ class PeakEstimator(Estimator):
     name = "peak"
     needs_histograms = True
 
-    def __init__(self, params: PeakParams | None = None) -> None:
+    def __init__(self, params: PeakParams | None = None, uncertainty: Uncertainty | None = None) -> None:
         self.params = params if params is not None else PeakParams.default_peak()
+        self.uncertainty = uncertainty if uncertainty is not None else Uncertainty()
 
     @classmethod
     def naive(cls) -> "PeakEstimator":
@@ -67,7 +70,8 @@ class PeakEstimator(Estimator):
             raise NoPlaneError(f"only {int(valid.sum())} zone(s) show a return above the noise floor; "
                                "a plane needs 3 or more")
         plane, rms = plane_from_points(self.params, pos, valid)
-        return PlaneEstimate(plane, residual=rms)
+        cov = self.uncertainty.apply(plane_covariance(self.params.points(pos), valid, plane), plane.offset)
+        return PlaneEstimate(plane, residual=rms, covariance=cov, method_used=self.name)
 
 
 __all__ = ["PeakEstimator", "find_peaks", "COUNT_MAX"]

@@ -14,10 +14,11 @@ instead of the tens of milliseconds of operator-by-operator autodiff.
 Chain of the derivatives, per ray with direction ``v``::
 
     q = a v_x + b v_y + v_z,   r = z0 / q,   c = q / s,   s = sqrt(1 + a^2 + b^2)
-    I = rho (c + k S^alpha),   S = max(2 c^2 - 1, 0)
-    p = sat (1 - exp(-g I / (sat r^2))),   u = r / bin_size + bin_offset + zone_offset
+    h = c + k S^alpha,   S = max(2 c^2 - 1, 0)              (shading)
+    p = sat (1 - exp(-g rho h^w / (sat r^2))) h^(1-w),       w = saturate_shading
+    u = r / bin_size + bin_offset + zone_offset
     T(bin) = sum_rays w p G(bin - u),      G = Gaussian of soft_bin_sigma
-    F = crosstalk-mix(T * pulse),   H = pile-up(F)   (Coates; identity when ``pileup = 0``)
+    F = crosstalk-mix(T * pulse),   H = pile-up(F)   (mix: h + c (total - (1 - crosstalk_self) h))   (Coates; identity when ``pileup = 0``)
 """
 
 from __future__ import annotations
@@ -88,11 +89,16 @@ class PlaneRenderer:
         pos = S > 0
         Ssafe = np.where(pos, S, 1.0)
         Sa = np.where(pos, Ssafe ** alpha, 0.0)
-        I = rho * (c + ks * Sa)
+        sh = np.maximum(c + ks * Sa, 1e-12)            # shading
+        wsat = p.saturate_shading
         sat = p.saturation
         r2 = r * r
-        e = np.exp(-self.gain * I / (sat * r2))
-        amp = self.amp_weight * sat * (1.0 - e) * hit   # (B, 9, R)
+        shw = sh if wsat == 1.0 else sh ** wsat
+        rest = 1.0 if wsat == 1.0 else sh ** (1.0 - wsat)
+        E = self.gain * rho * shw / (sat * r2)
+        e = np.exp(-E)
+        pp = sat * (1.0 - e)                            # saturated part
+        amp = self.amp_weight * pp * rest * hit          # (B, 9, R)
         u = r / p.bin_size + p.bin_offset + self.offsets
         width = conv.shape[-1]
         t = np.arange(width)[None, None, None, :] - u[..., None]          # (B, 9, R, W)
@@ -108,27 +114,29 @@ class PlaneRenderer:
             H = F
         if not jacobian:
             return H
-        # per-ray partial derivatives
-        dp_dI = self.amp_weight * self.gain / r2 * e * hit            # d amp / d I
-        dp_dr = -2.0 * self.amp_weight * self.gain * I / (r2 * r) * e * hit
-        dI_dc = rho * (1.0 + np.where(pos, ks * alpha * Sa / Ssafe * 4.0 * c, 0.0))
+        # per-ray partial derivatives of amp
+        aw = self.amp_weight * hit
+        dp_dr = aw * sat * e * (-2.0 * E / r) * rest
+        dp_dlogrho = aw * sat * e * E * rest
+        dp_dsh = aw * (sat * e * E * wsat / sh * rest + (0.0 if wsat == 1.0 else pp * (1.0 - wsat) * sh ** -wsat))
+        dsh_dc = 1.0 + np.where(pos, ks * alpha * Sa / Ssafe * 4.0 * c, 0.0)
         dr = [-z0 * vx / (qs * qs), -z0 * vy / (qs * qs), 1.0 / qs + 0 * vx]       # d r / d (a, b, z0)
         dc = [vx / s - qs * a / s ** 3, vy / s - qs * b / s ** 3, 0.0 * vx]      # d c / d (a, b, z0)
         logS = np.where(pos, np.log(Ssafe), 0.0)
-        dI = [None, None, None, I, rho * Sa, rho * ks * Sa * logS * alpha]        # d I / d x3..x5
+        dsh = [None, None, None, None, Sa, ks * Sa * logS * alpha]                # d sh / d x4, x5
         nu = self.n_unknowns
         A = np.zeros(amp.shape + (nu,))   # d amp / d x
         B = np.zeros(amp.shape + (nu,))   # amp * d u / d x
         for k in range(3):
-            A[..., k] = dp_dr * dr[k] + dp_dI * dI_dc * dc[k]
+            A[..., k] = dp_dr * dr[k] + dp_dsh * dsh_dc * dc[k]
             B[..., k] = amp * dr[k] / p.bin_size
         if self.zone_albedo:
             zones = np.arange(N_ZONES)
-            A[:, zones, :, 3 + zones] = (dp_dI * dI[3]).transpose(1, 0, 2)
+            A[:, zones, :, 3 + zones] = dp_dlogrho.transpose(1, 0, 2)
         else:
-            A[..., 3] = dp_dI * dI[3]
-        A[..., nu - 2] = dp_dI * dI[4]
-        A[..., nu - 1] = dp_dI * dI[5]
+            A[..., 3] = dp_dlogrho
+        A[..., nu - 2] = dp_dsh * dsh[4]
+        A[..., nu - 1] = dp_dsh * dsh[5]
         Gt = G * t * self.inv_sigma2
         dT = np.einsum("bzrk,bzrw->bzwk", A, G) + np.einsum("bzrk,bzrw->bzwk", B, Gt)
         dF = self._mix(np.einsum("bzwk,bvw->bzvk", dT, conv), axis_zone=1)
@@ -141,7 +149,7 @@ class PlaneRenderer:
 
     def _mix(self, h: np.ndarray, axis_zone: int = 1) -> np.ndarray:
         c = self.p.crosstalk
-        return (1.0 - c) * h + c * h.sum(axis=axis_zone, keepdims=True)
+        return (1.0 - c * (1.0 - self.p.crosstalk_self)) * h + c * h.sum(axis=axis_zone, keepdims=True)
 
 
 __all__ = ["PlaneRenderer", "convolution_matrices", "N_UNKNOWNS", "N_ZONES"]

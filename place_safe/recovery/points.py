@@ -215,6 +215,22 @@ def fit_planes(points: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.nd
 
 
 
+def plane_covariance(points: np.ndarray, valid: np.ndarray, plane: Plane) -> np.ndarray:
+    """Covariance (3, 3) of ``(n_x, n_y, d)`` of a least-squares plane through points (N, 3) with mask (N,).
+
+    The perpendicular residuals ``n . p - d`` are linearised in the normal's x and y components (``n_z``
+    follows from unit length) and the offset; their variance is estimated from the fit itself
+    (sum of squares over ``N - 3``; zero with exactly 3 points, which fit any plane).
+    """
+    p = np.asarray(points, dtype=float)[np.asarray(valid, dtype=bool)]
+    n = plane.normal
+    jac = np.stack([p[:, 0] - p[:, 2] * n[0] / n[2], p[:, 1] - p[:, 2] * n[1] / n[2], -np.ones(len(p))], axis=1)
+    res = p @ n - plane.offset
+    dof = len(p) - 3
+    sigma2 = float(res @ res) / dof if dof > 0 else 0.0
+    return sigma2 * np.linalg.pinv(jac.T @ jac)
+
+
 def plane_from_points(params: PeakParams, readings: np.ndarray, valid: np.ndarray) -> tuple[Plane, float]:
     """The plane of one frame's readings (9,) and mask (9,), and its RMS residual (m); raises NoPlaneError."""
     if valid.sum() < 3:
@@ -225,4 +241,4 @@ def plane_from_points(params: PeakParams, readings: np.ndarray, valid: np.ndarra
     return Plane(n[0], float(d[0])), float(rms[0])
 
 
-__all__ = ["PeakParams", "fit_planes", "plane_from_points", "PAPER_PEAK_M", "PAPER_PEAK_B", "BIN_SIZE", "MM_PER_M"]
+__all__ = ["PeakParams", "fit_planes", "plane_from_points", "plane_covariance", "PAPER_PEAK_M", "PAPER_PEAK_B", "BIN_SIZE", "MM_PER_M"]

@@ -193,11 +193,11 @@ def test_calibrate_writes_and_merges_sections(tmp_path, sweep_path, capsys):
     assert main(["calibrate", str(sweep_path), "--method", "peak", "-o", str(out), "-q"]) == 0
     err = capsys.readouterr().err
     assert "fit quality" in err
-    assert set(Calibration.load(out).sections) == {"peak"}
+    assert set(Calibration.load(out).sections) == {"peak", "uncertainty"}  # peak's covariance floor
     peak_before = json.loads(out.read_text())["peak"]
     assert main(["calibrate", str(sweep_path), "--method", "proprietary", "-o", str(out), "-q"]) == 0
     cal = Calibration.load(out)
-    assert set(cal.sections) == {"peak", "proprietary"}
+    assert set(cal.sections) == {"peak", "proprietary", "uncertainty"}
     assert json.loads(out.read_text())["peak"] == peak_before  # kept as it was
     assert {"peak", "proprietary"} <= set(cal.reports)
 
@@ -313,3 +313,15 @@ def test_demo_without_mujoco_falls_back_to_synthetic_recovery(monkeypatch, capsy
     assert "MuJoCo is not installed" in cap.err
     for label in ("diff-fast", "peak", "proprietary"):
         assert label in cap.out
+
+
+def test_synth_writes_frames_with_truth_and_rejects_bad_ranges(tmp_path, capsys):
+    from place_safe.io.frame_file import iter_frames
+
+    out = tmp_path / "s.json"
+    assert main(["synth", "--frames", "3", "--seed", "1", "--max-distance", "0.1", "-o", str(out)]) == 0
+    frames = list(iter_frames(out))
+    assert len(frames) == 3 and all(f.truth is not None and f.truth.z0 <= 0.1 for f in frames)
+    assert "wrote 3" in capsys.readouterr().err
+    assert main(["synth", "--frames", "3", "--min-distance", "0.2", "--max-distance", "0.1", "-o", str(out)]) == 2
+    assert one_line_error(capsys.readouterr().err)

@@ -3,7 +3,6 @@ the gripper, watchdog, reconnect, dry run."""
 
 from __future__ import annotations
 
-import threading
 import time
 from types import SimpleNamespace
 

@@ -99,3 +99,34 @@ def test_bad_input_gives_reason(frames, mode):
         assert e.reason, name
     many = est.estimate_many(list(_bad_frames(frames[0]).values()) + [frames[0]])
     assert [e.ok for e in many] == [False] * 6 + [True]
+
+
+def test_chi_square_fallback_returns_the_peak_estimate(frames):
+    """Convention check (frames rendered by the forward model): a chi-square limit no frame meets makes
+    diff return its peak initialisation, marked as such; without a limit diff reports itself."""
+    from place_safe.recovery.estimator import Uncertainty
+    from place_safe.recovery.peak import PeakEstimator
+
+    strict = DifferentiableEstimator(uncertainty=Uncertainty(chi2_limit=1e-9))
+    lenient = DifferentiableEstimator()
+    peak = PeakEstimator()
+    for f in frames[:3]:
+        s, l, p = strict.estimate(f), lenient.estimate(f), peak.estimate(f)
+        assert s.method_used == "peak" and np.allclose(s.plane.normal, p.plane.normal)
+        assert s.plane.offset == pytest.approx(p.plane.offset)
+        assert l.method_used == "diff"
+        assert s.residual == pytest.approx(l.residual)  # diff's residual is what failed the test
+
+
+def test_covariance_is_symmetric_positive_and_shrinks_with_signal():
+    """Convention check: the fit covariance of (n_x, n_y, d) is a valid covariance, and a brighter surface
+    (more photons, less shot noise) gives a smaller one."""
+    from place_safe.recovery.forward import ForwardParams
+
+    est = DifferentiableEstimator(ForwardParams(model_error=0.0))
+    dim = make_frames(1, seed=5, spec=SyntheticSpec(z_range=(0.25, 0.25), albedo_range=(0.3, 0.3)))[0]
+    bright = make_frames(1, seed=5, spec=SyntheticSpec(z_range=(0.25, 0.25), albedo_range=(1.5, 1.5)))[0]
+    covs = [est.estimate(f).covariance for f in (dim, bright)]
+    for c in covs:
+        assert c.shape == (3, 3) and np.allclose(c, c.T) and np.all(np.linalg.eigvalsh(c) > 0)
+    assert np.trace(covs[1][:2, :2]) < np.trace(covs[0][:2, :2])

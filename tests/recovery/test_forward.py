@@ -159,3 +159,54 @@ def test_pulse_kernel_is_normalised():
     # normalised to peak 1 in reference bins; resampled at zone-bin lags the maximum lands near it
     assert 0.5 < k.max().item() <= 1.0
     assert (k >= 0).all()
+
+
+def test_structural_choices_default_to_the_model_as_it_was():
+    """Old parameter files (without the structural fields) load and render as before."""
+    d = ForwardParams().to_dict()
+    for k in ("pulse_soft_bin", "saturate_shading", "crosstalk_self"):
+        d.pop(k)
+    p = ForwardParams.from_dict(d)
+    assert (p.pulse_soft_bin, p.saturate_shading, p.crosstalk_self) == (0.0, 1.0, 0.0)
+    with pytest.raises(CalibrationError):
+        ForwardParams(saturate_shading=1.5)
+
+
+def test_crosstalk_self_adds_the_zone_itself():
+    ref = torch.as_tensor(default_reference())[None]
+    plane = Plane.from_angles(0.2, 0.5, 0.1)
+    n, d = torch.as_tensor(plane.normal)[None], torch.tensor([plane.offset])
+    h = {}
+    for cs in (0.0, 1.0):
+        model = ForwardModel(ForwardParams(crosstalk=0.01, crosstalk_self=cs), ZoneRays.stratified(3))
+        h[cs] = model.render_plane(n, d, torch.tensor([1.0]), ref)[0]
+    direct = ForwardModel(ForwardParams(crosstalk=0.0), ZoneRays.stratified(3)).render_plane(n, d, torch.tensor([1.0]), ref)[0]
+    assert torch.allclose(h[1.0] - h[0.0], 0.01 * direct, rtol=1e-9, atol=1e-6)
+
+
+def test_unshaded_saturation_scales_with_shading_after_saturating():
+    """With saturate_shading = 0 a fully saturated return still scales with the cosine of incidence."""
+    ref = torch.as_tensor(default_reference())[None]
+    tot = {}
+    for w in (0.0, 1.0):
+        model = ForwardModel(ForwardParams(saturate_shading=w, crosstalk=0.0, specular_weight=0.0),
+                             ZoneRays.stratified(3))
+        vals = []
+        for theta in (0.0, 0.5):
+            plane = Plane.from_angles(theta, 0.0, 0.01)
+            vals.append(float(model.render_plane(torch.as_tensor(plane.normal)[None], torch.tensor([plane.offset]),
+                                                 torch.tensor([50.0]), ref)[0, 4].sum()))
+        tot[w] = vals[1] / vals[0]
+    assert tot[1.0] > 0.97          # saturated: the shading hardly matters
+    assert tot[0.0] < 0.93          # shading multiplies after saturation
+
+
+def test_soft_binned_pulse_is_smoother_than_interpolated():
+    ref = torch.as_tensor(default_reference())[None]
+    ts, fl = torch.tensor(0.27887, dtype=torch.float64), torch.tensor(135.14, dtype=torch.float64)
+    lin = pulse_kernel(ref, ts, fl)
+    soft = pulse_kernel(ref, ts, fl, soft_bin=torch.tensor(1.0, dtype=torch.float64),
+                        sigma=torch.tensor(0.5, dtype=torch.float64))
+    assert abs(int(lin.argmax()) - int(soft.argmax())) <= 1
+    assert soft.max().item() == pytest.approx(1.0)
+    assert (soft > 0.05).sum() >= (lin > 0.05).sum()

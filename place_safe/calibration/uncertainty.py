@@ -1,0 +1,173 @@
+"""Calibrating how far to trust a method: its model-error floor and, for ``diff``, when to fall back to peak.
+
+Concept
+-------
+A method's own covariance (its fit linearised at the solution, scaled by the residual; see
+:mod:`place_safe.recovery.estimator`) describes noise. What the method's model gets wrong is not noise:
+it is measured here on frames with ground truth and added as a floor
+(:class:`~place_safe.recovery.estimator.Uncertainty`: a constant and a distance-dependent variance for
+the tilt components and for the offset), chosen by maximum likelihood of the frames' errors under the
+Gaussian with the estimate's covariance plus the floor; then one ``scale`` of the whole covariance
+makes the mean normalised estimation error squared (NEES, per degree of freedom; about 1 when the
+covariances are honest) 1 on these frames. NEES is reported before and after.
+
+For ``diff``, the chi-square limit above which a frame falls back to the peak estimate is the one
+(among the frames' own residuals and infinity) whose selection has the lowest worse-of-two score: the
+means of the angular and of the point error, each per frame in units of peak's median error and
+capped at 10 (so frames on which both methods fail do not decide). Ties go to the larger limit (use
+diff as often as it does not hurt). Units: rad, m.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import replace
+
+import numpy as np
+
+from place_safe.evaluation.metrics import angular_errors, point_errors
+from place_safe.recovery.estimator import PlaneEstimate, Uncertainty, tilt_offset
+from place_safe.sensor.frame import Frame
+
+
+def nees(estimates: Sequence[PlaneEstimate], truths: Sequence) -> np.ndarray:
+    """Normalised estimation error squared per frame, divided by its 3 degrees of freedom (NaN without a
+    plane or covariance). Its mean is about 1 when the covariances are honest."""
+    out = np.full(len(estimates), np.nan)
+    for i, (e, t) in enumerate(zip(estimates, truths)):
+        if e.ok and e.covariance is not None and t is not None:
+            err = tilt_offset(e.plane) - tilt_offset(t)
+            out[i] = float(err @ np.linalg.solve(e.covariance, err)) / 3.0
+    return out
+
+
+def _nll(errors: np.ndarray, covs: np.ndarray, extra: np.ndarray) -> float:
+    """Mean negative log-likelihood of errors (F, k) under covariances covs (F, k, k) + extra (F, k, k)."""
+    c = covs + extra
+    sign, logdet = np.linalg.slogdet(c)
+    if np.any(sign <= 0):
+        return math.inf
+    quad = np.einsum("fi,fi->f", errors, np.linalg.solve(c, errors[..., None])[..., 0])
+    return float(np.mean(0.5 * (quad + logdet)))
+
+
+def _fit_two(errors: np.ndarray, covs: np.ndarray, basis: tuple[np.ndarray, np.ndarray]) -> tuple[float, float]:
+    """Maximum-likelihood variances (v0, v1) >= 0 of ``v0 * basis[0] + v1 * basis[1]`` (each (F,) scaling I)."""
+    from scipy.optimize import minimize
+
+    k = errors.shape[1]
+    eye = np.eye(k)
+    scale = np.array([max(float(np.mean(errors ** 2) / np.mean(b)), 1e-20) for b in basis])
+
+    def f(logv: np.ndarray) -> float:
+        v = np.exp(logv) * scale
+        extra = (v[0] * basis[0] + v[1] * basis[1])[:, None, None] * eye
+        return _nll(errors, covs, extra)
+
+    best = None
+    for start in ((0.0, -6.0), (-6.0, 0.0), (-1.0, -1.0)):
+        res = minimize(f, np.array(start), method="Nelder-Mead", options={"xatol": 1e-3, "fatol": 1e-6, "maxiter": 400})
+        if best is None or res.fun < best.fun:
+            best = res
+    v = np.exp(best.x) * scale
+    v[v < 1e-6 * scale] = 0.0  # a term the data do not want
+    return float(v[0]), float(v[1])
+
+
+def fit_floor(estimates: Sequence[PlaneEstimate], truths: Sequence, base: Uncertainty | None = None) -> tuple[Uncertainty, dict]:
+    """The floors of :class:`Uncertainty` for estimates whose covariances hold no floor yet (maximum likelihood)."""
+    base = base or Uncertainty()
+    rows = [(tilt_offset(e.plane) - tilt_offset(t), e.covariance, e.plane.offset) for e, t in zip(estimates, truths)
+            if e.ok and e.covariance is not None and t is not None]
+    if len(rows) < 3:
+        return base, {"frames": len(rows), "why": "fewer than 3 estimates with a covariance"}
+    err = np.array([r[0] for r in rows])
+    cov = np.array([r[1] for r in rows])
+    d = np.maximum(np.array([r[2] for r in rows]), 1e-3)
+    one = np.ones(len(d))
+    t0, t1 = _fit_two(err[:, :2], cov[:, :2, :2], (one, 1.0 / d ** 2))
+    o0, o1 = _fit_two(err[:, 2:], cov[:, 2:, 2:], (one, d ** 2))
+    unc = replace(base, tilt_std=math.sqrt(t0), tilt_range_std=math.sqrt(t1), offset_std=math.sqrt(o0),
+                  offset_rel=math.sqrt(o1))
+    before = float(np.mean([e @ np.linalg.solve(c, e) for e, c in zip(err, cov)]) / 3.0)
+    ml = float(np.mean([e @ np.linalg.solve(c + unc.floor(dd), e) for e, c, dd in zip(err, cov, d)]) / 3.0)
+    unc = replace(unc, scale=float(np.clip(ml, 0.1, 10.0)))  # mean NEES per dof 1 on these frames
+    after = float(np.mean([e @ np.linalg.solve(unc.apply(c, dd), e) for e, c, dd in zip(err, cov, d)]) / 3.0)
+    return unc, {"frames": len(rows), "tilt_std_deg": math.degrees(unc.tilt_std), "scale": unc.scale,
+                 "nees_per_dof_maximum_likelihood": ml,
+                 "tilt_range_std_mm": unc.tilt_range_std * 1e3, "offset_std_mm": unc.offset_std * 1e3,
+                 "offset_rel": unc.offset_rel, "nees_per_dof_before": before, "nees_per_dof_after": after}
+
+
+def fit_peak_uncertainty(frames: Sequence[Frame], peak_params) -> tuple[Uncertainty, dict]:
+    """The peak method's floor from frames with ground truth."""
+    from place_safe.recovery.peak import PeakEstimator
+
+    use = [f for f in frames if f.truth is not None]
+    ests = [PeakEstimator(peak_params).estimate(f) for f in use]
+    return fit_floor(ests, [f.truth for f in use])
+
+
+def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correction=None,
+                         peak_uncertainty: Uncertainty | None = None) -> tuple[Uncertainty, dict]:
+    """The diff method's chi-square limit (fallback to peak) and floor from frames with ground truth."""
+    from place_safe.recovery.differentiable import DifferentiableEstimator
+
+    use = [f for f in frames if f.truth is not None]
+    truths = [f.truth for f in use]
+    est = DifferentiableEstimator(forward, peak_params, correction=correction, peak_uncertainty=peak_uncertainty)
+    diff = est.estimate_many(use)
+    peak = [est.init.estimate(f) for f in use]
+
+    def errs(e: PlaneEstimate, t) -> tuple[float, float]:
+        if not e.ok:
+            return math.inf, math.inf
+        return (float(angular_errors(e.plane.normal, t.normal)[0]),
+                float(point_errors(e.plane.normal, e.plane.offset, t.normal, t.offset)[0]))
+
+    e_diff = np.array([errs(e, t) for e, t in zip(diff, truths)])  # (F, 2): angular, point
+    e_peak = np.array([errs(e, t) for e, t in zip(peak, truths)])
+    # each error in units of peak's median error, capped at 10, so a few hopeless frames (both methods
+    # far off) do not decide; the score is the worse of the two metrics' means
+    unit = np.maximum(np.median(np.where(np.isfinite(e_peak), e_peak, np.nan), axis=0), 1e-12)
+    n_diff, n_peak = np.minimum(e_diff / unit, 10.0), np.minimum(e_peak / unit, 10.0)
+    chi2 = np.array([e.residual ** 2 if e.ok and e.residual is not None else math.inf for e in diff])
+    candidates = sorted({float(c) for c in chi2[np.isfinite(chi2)]}) + [math.inf]
+    scores = []
+    for lim in candidates:
+        use_diff = (chi2 <= lim)[:, None]
+        scores.append(float(np.max(np.mean(np.where(use_diff, n_diff, n_peak), axis=0))))
+    best = min(scores)
+    limit = max(c for c, sc in zip(candidates, scores) if sc <= best * (1 + 1e-9))
+    by_diff = [e for e, c in zip(diff, chi2) if c <= limit]
+    unc, rep = fit_floor(by_diff, [t for t, c in zip(truths, chi2) if c <= limit], Uncertainty(chi2_limit=limit))
+    sel = np.where((chi2 <= limit)[:, None], e_diff, e_peak)
+
+    def mean_finite(a: np.ndarray, scale: float) -> float:
+        return float(np.mean(a[np.isfinite(a)])) * scale
+
+    rep.update({"chi2_limit": None if math.isinf(limit) else limit, "frames_using_diff": int(np.sum(chi2 <= limit)),
+                "frames_using_peak": int(np.sum(chi2 > limit)),
+                "angular_deg": {k: mean_finite(v[:, 0], 180 / math.pi) for k, v in
+                                (("diff", e_diff), ("peak", e_peak), ("selected", sel))},
+                "point_mm": {k: mean_finite(v[:, 1], 1e3) for k, v in (("diff", e_diff), ("peak", e_peak), ("selected", sel))}})
+    return unc, rep
+
+
+def update_calibration(cal, frames: Sequence[Frame], method: str) -> dict:
+    """Fit the ``uncertainty`` entries a method needs (``peak``; ``diff``: peak's too) into ``cal``; returns the report."""
+    section = dict(cal.sections.get("uncertainty", {}))
+    report = {}
+    if method in ("peak", "diff"):
+        unc, report["peak"] = fit_peak_uncertainty(frames, cal.peak())
+        section["peak"] = unc.to_dict()
+    if method == "diff":
+        unc, report["diff"] = fit_diff_uncertainty(frames, cal.forward(), cal.peak(), cal.diff(),
+                                                   Uncertainty.from_dict(section["peak"]))
+        section["diff"] = unc.to_dict()
+    cal.sections["uncertainty"] = section
+    return report
+
+
+__all__ = ["update_calibration", "nees", "fit_floor", "fit_peak_uncertainty", "fit_diff_uncertainty"]

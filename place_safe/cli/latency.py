@@ -1,0 +1,56 @@
+"""``place-safe latency``: per-frame wall time of ``recover`` measured from outside (a benchmark, not a test).
+
+The figure the speed targets are stated in: a fresh ``place-safe recover --jsonl --batch 1`` process
+over a frame file, each output line timestamped as it arrives; milliseconds per frame (median, p95).
+"""
+
+from __future__ import annotations
+
+import argparse
+
+EPILOG = """examples:
+  place-safe synth --frames 100 --seed 7 -o out/speed.json
+  place-safe latency out/speed.json --method diff --calibration calib.json
+  place-safe latency out/speed.json --method peak --json out/latency_peak.json"""
+
+
+def register(subparsers) -> None:
+    from place_safe.cli.app import METHODS
+    from place_safe.cli.options import positive_int
+
+    s = subparsers.add_parser(
+        "latency", formatter_class=argparse.RawDescriptionHelpFormatter, epilog=EPILOG,
+        help="per-frame wall time of `recover` measured from outside (median, p95)",
+        description="Run `place-safe recover --jsonl` in a fresh process over FILE and time each output line as "
+                    "it arrives: the gaps are per-frame wall times as a caller sees them (parsing, recovery, "
+                    "output). The first line (start-up, imports) is reported apart.")
+    s.add_argument("file", metavar="FILE", help="frame file (2 frames or more)")
+    s.add_argument("--method", default="diff", choices=METHODS, help="recovery method (default diff)")
+    s.add_argument("--calibration", metavar="CALIB.json", help="calibration file (default: built-in parameters)")
+    s.add_argument("--batch", type=positive_int, default=1, metavar="N",
+                   help="frames per recovery call (default 1; larger batches make per-frame gaps bursty)")
+    s.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
+    s.set_defaults(func=cmd_latency)
+
+
+def cmd_latency(args: argparse.Namespace) -> int:
+    import json
+    from pathlib import Path
+
+    from place_safe.cli.app import _load_calibration
+    from place_safe.evaluation.bench import measure_recover_latency
+    from place_safe.exceptions import FrameFileError, PlaceSafeError
+
+    if not Path(args.file).is_file():
+        raise FrameFileError(f"frame file {args.file} does not exist")
+    _load_calibration(args.calibration)  # a bad calibration fails here with one line
+    try:
+        res = measure_recover_latency(args.file, args.method, args.calibration, args.batch)
+    except RuntimeError as exc:
+        raise PlaceSafeError(f"latency: {exc}") from None
+    print(f"recover --method {res['method']}: {res['frames']} frames, per frame median {res['median_ms']:.2f} ms, "
+          f"p95 {res['p95_ms']:.2f} ms, mean {res['mean_ms']:.2f} ms (first line after {res['first_line_ms']:.0f} ms); "
+          f"method used: {res['method_used']}")
+    if args.json:
+        Path(args.json).write_text(json.dumps(res, indent=2) + "\n")
+    return 0

@@ -1,0 +1,46 @@
+"""Calibrating the uncertainty floors: maximum likelihood recovers a known floor; NEES is 1 after."""
+
+import math
+
+import numpy as np
+import pytest
+
+from place_safe.calibration.uncertainty import fit_floor, nees
+from place_safe.geometry import Plane
+from place_safe.recovery.estimator import PlaneEstimate
+
+
+def _estimates(n, tilt_floor, range_floor, offset_floor, own=1e-8, seed=0):
+    rng = np.random.default_rng(seed)
+    ests, truths = [], []
+    for _ in range(n):
+        d = rng.uniform(0.03, 0.3)
+        truth = Plane(np.array([0, 0, 1.0]), d)
+        var_t = tilt_floor ** 2 + (range_floor / d) ** 2 + own
+        var_d = offset_floor ** 2 + own
+        nx, ny = rng.normal(0, math.sqrt(var_t), 2)
+        dd = d + rng.normal(0, math.sqrt(var_d))
+        est = Plane(np.array([nx, ny, math.sqrt(1 - nx * nx - ny * ny)]), dd)
+        ests.append(PlaneEstimate(est, covariance=np.eye(3) * own))
+        truths.append(truth)
+    return ests, truths
+
+
+def test_floor_recovers_known_model_error_and_makes_nees_one():
+    ests, truths = _estimates(400, 0.002, 1e-4, 2e-4)
+    unc, rep = fit_floor(ests, truths)
+    assert unc.tilt_std == pytest.approx(0.002, rel=0.3)
+    assert unc.tilt_range_std == pytest.approx(1e-4, rel=0.3)
+    assert unc.offset_std == pytest.approx(2e-4, rel=0.2)
+    assert rep["nees_per_dof_after"] == pytest.approx(1.0, abs=1e-6)
+    # fresh frames from the same error model: calibrated on others, NEES near 1
+    test, ttruth = _estimates(400, 0.002, 1e-4, 2e-4, seed=1)
+    calibrated = [PlaneEstimate(e.plane, covariance=unc.apply(e.covariance, e.plane.offset)) for e in test]
+    assert np.nanmean(nees(calibrated, ttruth)) == pytest.approx(1.0, abs=0.2)
+
+
+def test_no_floor_when_the_own_covariance_explains_the_errors():
+    ests, truths = _estimates(300, 0.0, 0.0, 0.0, own=1e-6)
+    unc, _ = fit_floor(ests, truths)
+    assert unc.tilt_std < 3e-4 and unc.tilt_range_std < 3e-5 and unc.offset_std < 3e-4
+    assert unc.scale == pytest.approx(1.0, abs=0.15)

@@ -1,0 +1,68 @@
+"""PlaneEstimate's file form and the Uncertainty settings (covariance floor, chi-square limit)."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from place_safe.calibration import Calibration
+from place_safe.exceptions import CalibrationError
+from place_safe.geometry import Plane
+from place_safe.recovery.estimator import PlaneEstimate, Uncertainty
+from place_safe.recovery.points import plane_covariance
+
+
+def test_jsonl_line_keeps_the_interface_keys_and_adds_extras():
+    cov = np.diag([1e-6, 2e-6, 3e-8])
+    e = PlaneEstimate(Plane(np.array([0, 0, 1.0]), 0.1), albedo=1.0, seconds=0.002, covariance=cov,
+                      method_used="peak")
+    line = e.to_json(3)
+    assert list(line)[:5] == ["index", "normal", "offset", "albedo", "ms"]
+    assert line["method_used"] == "peak"
+    assert np.allclose(line["covariance"], cov)
+    json.dumps(line)
+    assert "covariance" not in PlaneEstimate(None, reason="no return").to_json(0)
+
+
+def test_uncertainty_round_trip_and_defaults():
+    u = Uncertainty(tilt_std=0.001, offset_std=1e-4, chi2_limit=4.0, tilt_range_std=1e-4, offset_rel=0.001, scale=1.2)
+    assert Uncertainty.from_dict(json.loads(json.dumps(u.to_dict()))) == u
+    assert Uncertainty.from_dict({"chi2_limit": None}).chi2_limit == math.inf
+    assert np.all(Uncertainty().apply(np.eye(3), 0.1) == np.eye(3))  # defaults add nothing
+    with pytest.raises(ValueError):
+        Uncertainty(tilt_std=-1.0)
+    with pytest.raises(ValueError):
+        Uncertainty.from_dict({"tilt": 1.0})
+
+
+def test_calibration_without_uncertainty_section_loads_with_defaults():
+    cal = Calibration.from_dict({"format": "place_safe.calibration/1"})
+    assert cal.uncertainty("diff") == Uncertainty()
+    bad = Calibration.from_dict({"format": "place_safe.calibration/1", "uncertainty": {"peak": {"tilt_std": -1}}})
+    with pytest.raises(CalibrationError, match="uncertainty"):  # a bad section fails when it is used
+        bad.uncertainty("peak")
+
+
+@settings(max_examples=15, deadline=None)
+@given(st.floats(0.0, 0.4), st.floats(-3.0, 3.0), st.floats(0.03, 0.4), st.floats(1e-4, 2e-3))
+def test_plane_covariance_matches_the_scatter_of_fitted_planes(theta, phi, z0, sigma):
+    """The SVD fit's covariance predicts the spread of planes fitted to noisy points (Monte Carlo)."""
+    from place_safe.geometry import fit_plane
+    from place_safe.sensor.zones import ZONE_DIRECTIONS
+
+    rng = np.random.default_rng(0)
+    truth = Plane.from_angles(theta, phi, z0)
+    pts = truth.intersect(ZONE_DIRECTIONS)
+    states, covs = [], []
+    for _ in range(300):
+        noisy = pts + rng.normal(0.0, sigma, pts.shape[0])[:, None] * truth.normal
+        plane, _ = fit_plane(noisy)
+        states.append([plane.normal[0], plane.normal[1], plane.offset])
+        covs.append(plane_covariance(noisy, np.ones(9, dtype=bool), plane))
+    emp = np.cov(np.array(states).T)
+    pred = np.mean(covs, axis=0)
+    assert np.trace(emp[:2, :2]) == pytest.approx(np.trace(pred[:2, :2]), rel=0.25)
+    assert emp[2, 2] == pytest.approx(pred[2, 2], rel=0.25)
