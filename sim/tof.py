@@ -95,6 +95,8 @@ class ToFConfig:
     ambient_range: tuple[float, float] = (60.0, 180.0)  # counts, per zone
     drop_prob: float = 0.0
     corrupt_prob: float = 0.0
+    spike_prob: float = 0.0  # probability that a frame's transfer stalls (latency spike)
+    spike_seconds: float = 0.25  # s, extra latency of a stalled transfer (later frames queue behind it)
     seed: int = 0
     max_range: float = 5.0  # m; farther surfaces are not seen
     params_file: str | None = None  # ForwardParams JSON; default sim/sensors/tmf8820_real.json
@@ -110,6 +112,8 @@ class ToFConfig:
             raise CalibrationError("ToFConfig needs rays >= 1, rate_hz > 0 and bus_hz > 0")
         if not (0 <= self.drop_prob <= 1 and 0 <= self.corrupt_prob <= 1):
             raise CalibrationError("drop_prob and corrupt_prob are probabilities in [0, 1]")
+        if not (0 <= self.spike_prob <= 1 and self.spike_seconds >= 0):
+            raise CalibrationError("spike_prob is a probability in [0, 1] and spike_seconds >= 0")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -315,7 +319,13 @@ class SimToF(FrameSource):
         frame.extra["sim"]["index"] = k
         if cfg.corrupt_prob > 0 and self._rng.random() < cfg.corrupt_prob:
             self._corrupt(frame)
-        self._pending.append((t + cfg.latency, frame))
+        ready = t + cfg.latency
+        if cfg.spike_prob > 0 and self._rng.random() < cfg.spike_prob:
+            ready += cfg.spike_seconds
+            frame.extra["sim"]["latency_spike"] = cfg.spike_seconds
+        if self._pending:  # the bus is serial: a stalled transfer delays the ones behind it
+            ready = max(ready, self._pending[-1][0])
+        self._pending.append((ready, frame))
 
     def _corrupt(self, frame: Frame) -> None:
         self.corrupted += 1
