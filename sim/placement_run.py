@@ -12,11 +12,10 @@ Conventions
 * The control loop runs every :data:`CONTROL_PERIOD` s of sim time (the UR CB3's 125 Hz): step the
   robot, read the newest sensor frame if one has arrived, estimate, fuse, tick the state machine,
   apply its command (speedL / stopL / open gripper).
-* Each frame is fused with ``base_T_sensor`` at the frame's *measurement* time (``Frame.timestamp``),
-  interpolated from the poses recorded every control tick: a frame is read ~94 ms after it was
-  measured, 7.5 mm of travel at the approach speed.
-* The cup bottom pose is the TCP pose times the fixed ``tcp_T_cup`` from :class:`place_safe.robot.kinematics.Kinematics`
-  (what a real UR5 would use), not the simulator's cup body.
+* The placement itself is :class:`place_safe.placement.loop.PlacementLoop`, the same class a real-arm
+  task script runs: the simulation only provides the robot (``SimRobot``), the frame source (``SimToF``,
+  stamped on the simulation clock), and measures the outcome. Sensor and cup poses come from the TCP
+  pose and the configured tool frames (``robots/ur5/config.json``), not from the simulator's bodies.
 * ``method="diff"`` without a calibration uses a :class:`place_safe.calibration.Calibration` whose
   ``forward`` section is the simulated sensor's true parameters (``sim/sensors/tmf8820_real.json``):
   the estimator is calibrated to the sensor it looks through, as it would be after
@@ -33,25 +32,19 @@ import json
 import math
 import sys
 import time as _time
-from collections import deque
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
 
-from place_safe.exceptions import PlaceSafeError, RobotFault, SensorTimeout
-from place_safe.fusion.plane_filter import PlaneFilter
-from place_safe.placement.machine import CommandKind, PlacementConfig, PlacementMachine, RobotState
+from place_safe.exceptions import PlaceSafeError, RobotFault
+from place_safe.placement.loop import CONTROL_PERIOD, PlacementLoop
+from place_safe.placement.machine import PlacementConfig
 
-#: s, control loop period (125 Hz like the UR CB3 controller).
-CONTROL_PERIOD = 0.008
 #: s of simulation after the machine finished, for the cup and liquid to settle.
 SETTLE_SECONDS = 0.8
-#: Control ticks of pose history kept for timestamp lookup (2 s at 125 Hz; frames are ~0.1 s old).
-POSE_HISTORY = 250
 
 
 @dataclass
@@ -93,41 +86,6 @@ class PlacementResult:
         return "\n".join(lines)
 
 
-class _PoseHistory:
-    """Poses recorded at increasing times; :meth:`at` interpolates (linear position, slerp rotation)."""
-
-    def __init__(self, maxlen: int = POSE_HISTORY) -> None:
-        self._t: deque[float] = deque(maxlen=maxlen)
-        self._T: deque[np.ndarray] = deque(maxlen=maxlen)
-
-    def add(self, t: float, T: np.ndarray) -> None:
-        if self._t and t <= self._t[-1]:
-            self._t.pop()
-            self._T.pop()
-        self._t.append(float(t))
-        self._T.append(np.array(T, dtype=float))
-
-    def at(self, t: float) -> np.ndarray | None:
-        """Pose at ``t``; None if ``t`` is outside the recorded span (by more than half a tick)."""
-        if not self._t:
-            return None
-        ts = np.fromiter(self._t, float)
-        if t < ts[0] - CONTROL_PERIOD / 2 or t > ts[-1] + CONTROL_PERIOD / 2:
-            return None
-        i = int(np.searchsorted(ts, t))
-        if i <= 0:
-            return self._T[0].copy()
-        if i >= len(ts):
-            return self._T[-1].copy()
-        t0, t1 = ts[i - 1], ts[i]
-        A, B = self._T[i - 1], self._T[i]
-        s = (t - t0) / (t1 - t0)
-        T = np.eye(4)
-        T[:3, 3] = (1 - s) * A[:3, 3] + s * B[:3, 3]
-        T[:3, :3] = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([A[:3, :3], B[:3, :3]])))([s]).as_matrix()[0]
-        return T
-
-
 def scenario_path(name: str | Path) -> Path:
     """A scenario file: a path, or the name of a packaged one (``level_table`` or ``level_table.json``)."""
     p = Path(name)
@@ -163,7 +121,6 @@ def run_placement(scenario: Any = "place_level", method: str = "diff", calibrati
 
     from place_safe.calibration import Calibration
     from place_safe.recovery import make_estimator
-    from place_safe.robot.kinematics import Kinematics
     from place_safe.robots import ur5_config
 
     from place_safe.sim.robot import SimRobot
@@ -193,66 +150,9 @@ def run_placement(scenario: Any = "place_level", method: str = "diff", calibrati
     scene = build_scene(scene_cfg)
     robot = SimRobot(scene.model, mujoco.MjData(scene.model))
     tof = SimToF(scene, robot.data, ToFConfig(**{**sensor_kw, "seed": seed})).attach(robot)
-    kin = Kinematics()
-    q0 = robot.joint_positions()
-    tcp_T_cup = np.linalg.inv(kin.base_T_tcp(q0)) @ kin.base_T_cup(q0)
-
-    filt = PlaneFilter()
-    machine = PlacementMachine(cfg)
-    history = _PoseHistory()
-    frame_log: list[dict] = []
-    n_frames = 0
-    last_frame_time: float | None = None
-    note: str | None = None
-    force_peak = 0.0
-    cmd_error: str | None = None
-    t_end = robot.time() + seconds
-    history.add(robot.time(), robot.sensor_pose())
-
-    while not machine.finished and robot.time() < t_end:
-        try:
-            robot.step(CONTROL_PERIOD)
-        except RobotFault:
-            pass  # latched; the machine sees robot.fault() below
-        now = robot.time()
-        history.add(now, robot.sensor_pose())
-        force_peak = max(force_peak, robot.contact_force())
-        try:
-            frame = tof.read(0.0)
-        except SensorTimeout:
-            frame = None
-        if frame is not None:
-            n_frames += 1
-            last_frame_time = now
-            est = estimator.estimate(frame)
-            pose = history.at(frame.timestamp)
-            accepted = filt.update(est, pose if pose is not None else np.full((4, 4), np.nan), frame.timestamp)
-            note = None if accepted else filt.last_reject_reason
-            if log_frames:
-                entry = {"t": now, "stamp": frame.timestamp, "accepted": accepted, "ms": est.seconds * 1e3,
-                         "plane": est.plane.to_dict() if est.plane is not None else None,
-                         "truth": frame.truth.to_dict() if frame.truth is not None else None}
-                if not accepted:
-                    entry["reason"] = note
-                frame_log.append(entry)
-        state = RobotState(now, robot.tcp_pose(), robot.tcp_pose() @ tcp_T_cup, robot.contact_force(),
-                           robot.fault() or cmd_error, last_frame_time)
-        cmd = machine.step(state, filt.fused(now), note)
-        try:
-            if cmd.kind == CommandKind.SPEED:
-                robot.speed_linear(np.asarray(cmd.twist), accel=cmd.accel)
-            elif cmd.kind == CommandKind.STOP:
-                robot.stop(decel=cmd.accel, asynchronous=True)
-            elif cmd.kind == CommandKind.OPEN_GRIPPER:
-                robot.gripper(open=True)
-        except (RobotFault, ValueError) as exc:
-            cmd_error = f"command {cmd.kind.value} failed: {exc}"
-
-    if machine.finished:
-        outcome, reason = machine.outcome or "refused", machine.decision or machine.reason
-    else:
-        outcome = "timeout"
-        reason = f"not finished within {seconds:.1f} s of sim time (phase {machine.phase.value})"
+    loop = PlacementLoop(robot, tof, estimator, tool=robot.tool, config=cfg, period=CONTROL_PERIOD,
+                         log_frames=log_frames)
+    res = loop.run(timeout=seconds)
     if robot.fault() is None:
         try:
             robot.stop(decel=cfg.accel)
@@ -271,11 +171,11 @@ def run_placement(scenario: Any = "place_level", method: str = "diff", calibrati
 
         _render.save_png(_render.render_image(scene, robot.data, tof), render)
     return PlacementResult(
-        outcome=outcome, reason=reason, scenario=name, method=method, calibration=cal_note,
-        final_phase=machine.phase.value, cup_tilt=tilt, cup_height=height, cup_held=robot.holding(),
+        outcome=res.outcome, reason=res.reason, scenario=name, method=method, calibration=cal_note,
+        final_phase=res.final_phase, cup_tilt=tilt, cup_height=height, cup_held=robot.holding(),
         liquid_spilled=robot.liquid_spilled(), liquid_total=int(ur5_config()["cup"]["liquid_count"]),
-        contact_force_peak=force_peak, sim_seconds=robot.time(), wall_seconds=_time.perf_counter() - wall0,
-        frames=n_frames, planes=filt.count, transitions=[t.to_dict() for t in machine.log], frame_log=frame_log)
+        contact_force_peak=res.contact_force_peak, sim_seconds=robot.time(), wall_seconds=_time.perf_counter() - wall0,
+        frames=res.frames, planes=res.planes, transitions=res.transitions, frame_log=res.frame_log)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -135,6 +135,7 @@ class RayReturns:
 
 
 class SimToF(FrameSource):
+    clock_domain = "robot"  # frames are stamped with the simulation's time (the SimRobot's clock)
     """A TMF8820 in a MuJoCo :class:`~place_safe.sim.scene.Scene` (see module docstring)."""
 
     def __init__(self, scene: Scene, data: Any = None, config: ToFConfig | None = None,

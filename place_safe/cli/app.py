@@ -415,6 +415,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
         from place_safe.sim.placement_run import run_placement
 
         ok = True
+        if args.method == "diff":
+            _log("demo: NOTE: diff is handed the simulated sensor's TRUE forward parameters (an oracle "
+                 "calibration, not one a user could have); see 'place-safe sim place --help'")
         for scenario, expected in DEMO_SCENARIOS:
             if not args.quiet:
                 _log(f"demo: simulated UR5 placing a cup, scenario {scenario} (expected: {expected}) ...")

@@ -25,7 +25,10 @@ Conventions
   an outlier. ``max_consecutive_rejects`` rejections in a row mean the surface itself changed (or the
   old window was wrong): the window is cleared and the new plane starts it.
 * Rejected without touching the window: no plane (``estimate.plane is None``), non-finite values,
-  a malformed pose. Times are seconds on the robot clock; planes older than ``max_age`` are dropped.
+  a malformed pose, and a measurement time not later than the newest accepted one (the same frame fed
+  twice, or frames out of order, never count as new evidence). Times are seconds on the robot clock;
+  planes older than ``max_age`` are dropped. ``FusedPlane.stamps`` lists the measurement times the
+  fused plane rests on (distinct by construction).
 """
 
 from __future__ import annotations
@@ -63,6 +66,7 @@ class FusedPlane:
     stamp: float = math.nan  # s, measurement time of the newest accepted plane
     count: int = 0  # planes accepted since the last reset
     anchor: np.ndarray | None = None  # (3,) fused anchor point on the plane (base frame)
+    stamps: tuple[float, ...] = ()  # s, measurement times of the planes in the window (increasing)
 
     def height_at(self, point: Any) -> float:
         """Signed distance (m) of ``point`` (base frame) above the plane (negative: below / behind it)."""
@@ -166,6 +170,7 @@ class PlaneFilter:
         self.consecutive_rejects = 0
         self.last_reject_reason: str | None = None
         self.last_time = -math.inf
+        self.newest_accepted = -math.inf
 
     # -- input ---------------------------------------------------------------------------------
     def update(self, estimate: Any, base_T_sensor: Any, stamp: float) -> bool:
@@ -187,6 +192,9 @@ class PlaneFilter:
             return self._reject(f"bad input: {exc}")
         if not (np.all(np.isfinite(n)) and np.all(np.isfinite(anchor))):
             return self._reject("non-finite plane in the base frame")
+        if stamp <= self.newest_accepted:
+            return self._reject(f"measured at {stamp:.4f} s, not after the newest accepted plane "
+                                f"({self.newest_accepted:.4f} s): duplicate or out of order")
         self.last_time = max(self.last_time, stamp)
         self._expire(self.last_time)
         if len(self._items) >= self.min_frames:
@@ -200,6 +208,7 @@ class PlaneFilter:
                     return False
                 self._items.clear()  # the surface changed: start again from this plane
         self._items.append((stamp, n, anchor))
+        self.newest_accepted = stamp
         self._dirty = True
         self.count += 1
         self.consecutive_rejects = 0
@@ -248,7 +257,8 @@ class PlaneFilter:
         ang_f = np.arccos(np.clip(N @ n, -1.0, 1.0))
         res = A @ n - d
         self._cache = FusedPlane(n, d, _angle(n, _Z), float(np.sqrt(w @ ang_f**2)), float(np.sqrt(w @ res**2)),
-                                 len(self._items), float(stamps.max()), self.count, anchor)
+                                 len(self._items), float(stamps.max()), self.count, anchor,
+                                 tuple(float(s) for s in stamps))
         self._dirty = False
         return self._cache
 

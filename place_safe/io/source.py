@@ -20,6 +20,10 @@ class FrameSource(ABC):
 
     #: Nominal frame rate (Hz) of the source.
     rate_hz: float = 30.0
+    #: Clock of ``Frame.timestamp``: ``"monotonic"`` = the host's ``time.monotonic()`` seconds (hardware,
+    #: replay); ``"robot"`` = the robot's clock (sources advanced by the simulation in lockstep). Sources
+    #: on the robot's clock are polled by the placement loop; the others are read by a thread.
+    clock_domain: str = "monotonic"
 
     @abstractmethod
     def read(self, timeout: float = 1.0) -> Frame:

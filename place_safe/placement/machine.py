@@ -1,35 +1,48 @@
 """Placement logic: the state machine that lowers a held cup onto a surface and lets go only when it is safe.
 
 Concept: :class:`PlacementMachine` is pure decision logic (no simulator, no driver). Each control tick it
-gets the fused surface (:class:`place_safe.fusion.plane_filter.FusedPlane` or None) and a :class:`RobotState`, and
-returns one :class:`Command` for the robot. The caller applies the command (speedL / stopL / open
-gripper) and feeds the next state.
+gets the fused surface (:class:`place_safe.fusion.FusedPlane` or None) and a :class:`RobotState`, and
+returns one :class:`Command` for the robot; :class:`place_safe.placement.loop.PlacementLoop` applies it.
+A diagram of the machine is in ``docs/placement.md``.
 
 Phases::
 
-    IDLE --plane--> APPROACH --near--> DESCEND --at release height or contact--> CHECK
-    CHECK --level, planar, close--> RELEASE (open gripper, wait, retreat up) --> DONE
+    IDLE --plane--> APPROACH --near--> DESCEND --at stop clearance, or contact at the surface--> CHECK
+    CHECK --level, planar, close, enough fresh planes--> RELEASE (open gripper, wait, retreat up) --> DONE
     CHECK --still too high--> DESCEND (at most ``max_checks`` times)
-    any active phase --tilted / not planar / no plane / stale plane / sensor timeout / inconsistent
-                       / travel limit--> REFUSE (retreat up keeping the cup) --> ABORTED
-    any phase before the release --robot fault--> ABORTED (no motion: the robot is stopped, holding)
+    any active phase --tilted / not planar / no plane / stale plane / sensor timeout / obstacle (contact
+                       above the surface) / travel limit / deadline--> REFUSE (retreat up keeping the cup)
+                       --> ABORTED
+    any phase before the release --robot fault, invalid robot state, robot clock frozen or running
+                       backwards, internal error--> ABORTED (the robot holds the cup where it stopped)
 
-Safety rule: the gripper opens only from CHECK, on the tick of a decision made from at least
-``check_frames`` planes measured after the arm stopped, with a fresh plane, no fault, finite robot
-state, tilt within ``max_tilt`` and the cup bottom within ``release_clearance`` of the surface (or in
-contact). Every transition is logged with its reason (:attr:`PlacementMachine.log` and the
-``place_safe.placement.machine`` logger).
+The release rule (the only path to :attr:`CommandKind.OPEN_GRIPPER`), checked on the tick it fires:
+
+* the robot reports no fault and a finite, rigid pose, a finite non-negative contact force and a clock
+  that advances;
+* the fused plane is finite, fresh (``plane_timeout``), its tilt lies in ``[0, max_tilt]`` and its spread
+  within ``max_std_angle`` / ``max_std_offset`` (every comparison fails closed on NaN);
+* it rests on at least ``check_frames`` distinct measurement times, each after the stop command plus
+  ``check_settle`` and none in the future (the same frame fed twice counts once);
+* the cup bottom's clearance above the plane lies in ``[-max_penetration, release_clearance]``, or the
+  cup is in contact (``contact_force``) with a clearance of at most ``contact_clearance``: contact
+  higher above the sensed surface is an obstacle and refuses.
+
+Every phase has a deadline counted both on the robot clock and in control ticks (``period`` seconds
+each), so a frozen or jumping robot clock still ends the machine. :meth:`PlacementMachine.step` never
+raises: bad robot state, bad planes and internal errors end in ABORTED or REFUSE with the reason.
+Every transition is logged with its reason (:attr:`PlacementMachine.log`).
 
 Conventions: SI units (m, m/s, m/s^2, rad, s, N). Poses are base-frame 4x4 matrices (see
-:mod:`place_safe.robot.interface`); the cup frame has its origin at the centre of the cup bottom and +z up out of
-the cup, so the cup moves "down" along its -z (the tool axis). Twists are (vx, vy, vz, wx, wy, wz).
+:mod:`place_safe.robot.interface`); the cup frame has its origin at the centre of the cup bottom and +z up
+out of the cup, so the cup moves "down" along its -z (the tool axis). Twists are (vx, vy, vz, wx, wy, wz).
 """
 
 from __future__ import annotations
 
 import logging
 import math
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, fields
 from enum import Enum
 from pathlib import Path
 from typing import Any
@@ -84,6 +97,10 @@ class PlacementConfig:
     retreat_speed: float = 0.05  # m/s
     release_settle: float = 0.3  # s between opening the gripper and retreating
     cup_radius: float = 0.035  # m, radius of the cup bottom (rim touches first on a tilted surface)
+    contact_clearance: float = 0.008  # m: contact counts as arrival only this close to the sensed surface
+    check_settle: float = 0.04  # s after the stop command before planes count for CHECK (arm at rest)
+    descent_timeout: float = 30.0  # s: deadline of APPROACH + DESCEND together
+    retreat_timeout: float = 6.0  # s: deadline of the retreat after a release or refusal
 
     def __post_init__(self) -> None:
         self.validate()
@@ -94,13 +111,15 @@ class PlacementConfig:
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
                 raise ValueError(f"PlacementConfig.{f.name} must be a finite number; got {v!r}")
             if v < 0 or (v == 0 and f.name not in ("stop_clearance", "release_settle", "cup_radius",
-                                                    "max_penetration")):
+                                                    "max_penetration", "check_settle")):
                 raise ValueError(f"PlacementConfig.{f.name} must be positive; got {v!r}")
         if self.stop_clearance > self.release_clearance:
             raise ValueError("PlacementConfig.stop_clearance must not exceed release_clearance "
                              f"({self.stop_clearance} > {self.release_clearance} m)")
         if self.slow_clearance <= self.release_clearance:
             raise ValueError("PlacementConfig.slow_clearance must exceed release_clearance")
+        if self.contact_clearance < self.release_clearance:
+            raise ValueError("PlacementConfig.contact_clearance must be >= release_clearance")
         if self.early_refuse_tilt < self.max_tilt:
             raise ValueError("PlacementConfig.early_refuse_tilt must be >= max_tilt")
         for name in ("check_frames", "max_checks"):
@@ -134,16 +153,35 @@ class RobotState:
     last_frame_time: float | None = None  # s, when the newest sensor frame (accepted or not) arrived
 
     def problem(self) -> str | None:
-        """Why this state cannot be trusted (fault, non-finite values), or None."""
+        """Why this state cannot be trusted (fault, malformed or non-finite values), or None."""
         if self.fault:
-            return f"robot fault: {self.fault}"
+            return f"robot fault: {str(self.fault).splitlines()[0]}"
         for name in ("base_T_tcp", "base_T_cup"):
-            T = np.asarray(getattr(self, name), dtype=float)
+            try:
+                T = np.asarray(getattr(self, name), dtype=float)
+            except (TypeError, ValueError):
+                return f"robot state {name} is not a 4x4 pose of numbers"
             if T.shape != (4, 4) or not np.all(np.isfinite(T)):
                 return f"robot state {name} is not a finite 4x4 pose"
-        if not (math.isfinite(self.time) and math.isfinite(self.contact_force)):
-            return "robot time or contact force is not finite"
+            R = T[:3, :3]
+            if np.abs(R.T @ R - np.eye(3)).max() > 1e-6 or np.linalg.det(R) <= 0:
+                return f"robot state {name} has no proper rotation"
+        if _number(self.time) is None:
+            return "robot time is not a finite number"
+        f = _number(self.contact_force)
+        if f is None or f < 0:
+            return "robot contact force is not a finite non-negative number"
+        if self.last_frame_time is not None and _number(self.last_frame_time) is None:
+            return "time of the last sensor frame is not a finite number"
         return None
+
+
+def _number(v: Any) -> float | None:
+    """``v`` as a finite float, or None (bools, strings, NaN, inf and arrays are not numbers here)."""
+    if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
+        return None
+    v = float(v)
+    return v if math.isfinite(v) else None
 
 
 class CommandKind(str, Enum):
@@ -175,13 +213,37 @@ class Transition:
         return {"time": self.time, "from": self.source.value, "to": self.target.value, "reason": self.reason}
 
 
+#: Control ticks in a row without the robot clock advancing after which the clock counts as frozen.
+CLOCK_STALL_TICKS = 25
+#: s the robot clock may step back (rounding) before it counts as running backwards.
+CLOCK_BACK_TOLERANCE = 1e-6
+
+
 @dataclass
+class _Check:
+    """CHECK phase state: when the stop was commanded."""
+
+    t_stop: float
+
+
+@dataclass
+class _Retreat:
+    """RELEASE / REFUSE phase state: TCP height when the retreat started (None until it starts)."""
+
+    z0: float | None = None
+
+
 class PlacementMachine:
-    """The placement state machine (see module docstring). Feed :meth:`step` once per control tick."""
+    """The placement state machine (see module docstring). Feed :meth:`step` once per control tick.
 
-    config: PlacementConfig = field(default_factory=PlacementConfig)
+    ``period``: the control period in seconds (deadlines are also counted in ticks of this length).
+    """
 
-    def __post_init__(self) -> None:
+    def __init__(self, config: PlacementConfig | None = None, period: float = 0.008) -> None:
+        self.config = config if config is not None else PlacementConfig()
+        if not (isinstance(period, (int, float)) and math.isfinite(period) and period > 0):
+            raise ValueError(f"control period must be a positive number of seconds, got {period!r}")
+        self.period = float(period)
         self.reset()
 
     def reset(self) -> None:
@@ -192,24 +254,30 @@ class PlacementMachine:
         self.log: list[Transition] = []
         self.gripper_opened = False
         self.last_clearance = math.nan
+        self.ticks = 0
         self._t_phase = math.nan
+        self._phase_ticks = 0
         self._t_start = math.nan
+        self._last_now: float | None = None
+        self._stall = 0
         self._start_pos: np.ndarray | None = None
-        self._mark: dict[str, Any] = {}
+        self._check: _Check | None = None
+        self._retreat = _Retreat()
         self._checks = 0
+        self._descent_t0 = math.nan
+        self._descent_ticks = 0
         self._last_twist: tuple[float, ...] | None = None
 
     @property
     def finished(self) -> bool:
         return self.phase in FINAL
 
-    # -- helpers -------------------------------------------------------------------------------
+    # -- transitions -----------------------------------------------------------------------------
     def _go(self, target: Phase, t: float, reason: str) -> None:
         tr = Transition(float(t), self.phase, target, reason)
         self.log.append(tr)
         log.info("t=%.3f s %s -> %s: %s", t, self.phase.value, target.value, reason)
-        self.phase, self.reason, self._t_phase = target, reason, float(t)
-        self._mark = {}
+        self.phase, self.reason, self._t_phase, self._phase_ticks = target, reason, float(t), 0
         self._last_twist = None
         if target in (Phase.RELEASE, Phase.REFUSE) or (target == Phase.ABORTED and not self.decision):
             self.decision = reason
@@ -217,10 +285,21 @@ class PlacementMachine:
             self.outcome = "released"
         elif target == Phase.ABORTED:
             self.outcome = "refused"
+        if target in (Phase.RELEASE, Phase.REFUSE):
+            self._retreat = _Retreat()
 
     def _refuse(self, t: float, reason: str) -> Command:
         self._go(Phase.REFUSE, t, reason)
         return Command(CommandKind.STOP, accel=self.config.accel)
+
+    def _abort(self, t: float, why: str, faulted: bool = False) -> Command:
+        """End now holding the cup (or, once it is released, end as released). A faulted robot has
+        stopped by itself and gets no further command (HOLD); otherwise the machine commands a stop."""
+        if self.gripper_opened:
+            self._go(Phase.DONE, t, f"cup released; retreat stopped: {why}")
+        else:
+            self._go(Phase.ABORTED, t, f"{why}; the robot holds the cup where it stopped")
+        return Command.hold() if faulted else Command(CommandKind.STOP, accel=self.config.accel)
 
     def _speed(self, v: np.ndarray) -> Command:
         """speedL at linear velocity ``v`` (3,) m/s, no rotation."""
@@ -230,153 +309,249 @@ class PlacementMachine:
         self._last_twist = tw
         return Command(CommandKind.SPEED, tw, self.config.accel)
 
+    def _elapsed(self, now: float, t0: float, ticks: int) -> float:
+        """Time since ``t0``: the larger of the robot-clock and the tick count (a frozen clock still ends)."""
+        return max(now - t0 if math.isfinite(t0) else 0.0, ticks * self.period)
+
+    # -- checks (each fails closed) --------------------------------------------------------------
     def _plane_problem(self, plane: FusedPlane | None, now: float, note: str | None) -> str | None:
         cfg = self.config
         if plane is None:
             return "no surface plane" + (f" ({note})" if note else "")
-        if not (np.all(np.isfinite(plane.normal_base)) and math.isfinite(plane.offset_base)
-                and math.isfinite(plane.tilt_rad)):
+        try:
+            n = np.asarray(plane.normal_base, dtype=float)
+            vals = (float(plane.offset_base), float(plane.tilt_rad), float(plane.std_angle), float(plane.std_offset),
+                    float(plane.stamp))
+        except (TypeError, ValueError, AttributeError):
+            return "fused plane is malformed"
+        if n.shape != (3,) or not np.all(np.isfinite(n)) or not all(math.isfinite(v) for v in vals):
             return "fused plane is not finite"
-        age = plane.age(now)
+        if abs(float(np.linalg.norm(n)) - 1.0) > 1e-6:
+            return "fused plane normal is not a unit vector"
+        if not (0.0 <= plane.tilt_rad <= math.pi):
+            return f"fused plane tilt {plane.tilt_rad!r} rad is out of range [0, pi]"
+        if not (plane.std_angle >= 0.0 and plane.std_offset >= 0.0):
+            return "fused plane spread is negative"
+        age = now - plane.stamp
+        if age < -self.period:
+            return f"surface plane is stamped {-age:.3f} s in the future"
         if not (age <= cfg.plane_timeout):
             return (f"surface plane is stale ({age:.2f} s old > {cfg.plane_timeout:.2f} s)"
                     + (f"; last frame: {note}" if note else ""))
         return None
 
-    def _sensor_problem(self, state: RobotState) -> str | None:
+    def _sensor_problem(self, state: RobotState, now: float, note: str | None) -> str | None:
         t_last = state.last_frame_time
-        ref = self._t_start if t_last is None else t_last
-        if state.time - ref > self.config.sensor_timeout:
-            return f"sensor timeout: no frame for {state.time - ref:.2f} s (> {self.config.sensor_timeout:.2f} s)"
+        ref = self._t_start if t_last is None else float(t_last)
+        if not (now - ref <= self.config.sensor_timeout):
+            return (f"sensor timeout: no frame for {now - ref:.2f} s (> {self.config.sensor_timeout:.2f} s)"
+                    + (f"; {note}" if note else ""))
         return None
 
     def _clearance(self, plane: FusedPlane, state: RobotState) -> float:
         cup = np.asarray(state.base_T_cup, dtype=float)
         axis = cup[:3, 2]
-        return plane.distance_along(cup[:3, 3], -axis, self.config.cup_radius, axis)
+        try:
+            return float(plane.distance_along(cup[:3, 3], -axis, self.config.cup_radius, axis))
+        except ValueError:
+            return math.nan
 
     def _planar_problem(self, plane: FusedPlane) -> str | None:
         cfg = self.config
-        if plane.std_angle > cfg.max_std_angle or plane.std_offset > cfg.max_std_offset:
+        if not (plane.std_angle <= cfg.max_std_angle and plane.std_offset <= cfg.max_std_offset):
             return (f"surface not planar or estimates inconsistent: spread {math.degrees(plane.std_angle):.2f} deg / "
                     f"{plane.std_offset * 1e3:.1f} mm (limits {math.degrees(cfg.max_std_angle):.1f} deg / "
                     f"{cfg.max_std_offset * 1e3:.1f} mm)")
         return None
 
-    # -- the tick ------------------------------------------------------------------------------
+    def _tilt_problem(self, plane: FusedPlane, limit: float) -> str | None:
+        if not (plane.tilt_rad <= limit):
+            return (f"surface tilted {math.degrees(plane.tilt_rad):.1f} deg "
+                    f"(> {math.degrees(self.config.max_tilt):.1f} deg allowed)")
+        return None
+
+    def post_stop_stamps(self, plane: FusedPlane, now: float) -> list[float]:
+        """Distinct measurement times in the fused plane taken after the stop (+ ``check_settle``) and not
+        after ``now`` (empty outside CHECK)."""
+        if self._check is None:
+            return []
+        lo = self._check.t_stop + self.config.check_settle
+        stamps = getattr(plane, "stamps", None) or ()
+        out = set()
+        for s in stamps:
+            v = _number(s)
+            if v is not None and lo <= v <= now + 1e-9:
+                out.add(v)
+        return sorted(out)
+
+    # -- the tick --------------------------------------------------------------------------------
     def step(self, state: RobotState, plane: FusedPlane | None, note: str | None = None) -> Command:
         """One control tick: the command for the robot. ``note`` says why the last frame gave no plane
-        (it is quoted in refusal reasons)."""
-        cfg = self.config
-        now = float(state.time) if isinstance(state.time, (int, float)) else math.nan
+        (it is quoted in refusal reasons). Never raises."""
         if self.finished:
             return Command.hold()
+        try:
+            return self._step(state, plane, note)
+        except Exception as exc:  # never raise into the control loop: stop, hold the cup, say why
+            now = self._last_now if self._last_now is not None else math.nan
+            return self._abort(now, f"internal error: {type(exc).__name__}: {exc}".splitlines()[0])
+
+    def _step(self, state: RobotState, plane: FusedPlane | None, note: str | None) -> Command:
+        self.ticks += 1
+        self._phase_ticks += 1
+        now = _number(getattr(state, "time", None))
+        if now is None:
+            return self._abort(self._last_now if self._last_now is not None else math.nan,
+                               "robot time is not a finite number")
+        if self._last_now is not None:
+            if now < self._last_now - CLOCK_BACK_TOLERANCE:
+                return self._abort(now, f"robot clock ran backwards by {self._last_now - now:.3f} s")
+            self._stall = self._stall + 1 if now <= self._last_now else 0
+            if self._stall >= CLOCK_STALL_TICKS:
+                return self._abort(now, f"robot clock frozen for {self._stall} control ticks")
+        self._last_now = now
         if math.isnan(self._t_start):
             self._t_start, self._t_phase = now, now
-        bad = state.problem()
+        bad = state.problem() if isinstance(state, RobotState) else "robot state is not a RobotState"
         if bad is not None:
-            if self.phase == Phase.RELEASE and self.gripper_opened:
-                self._go(Phase.DONE, now, f"cup released; retreat stopped: {bad}")
-            else:
-                self._go(Phase.ABORTED, now, f"{bad}; the robot holds the cup where it stopped")
-            return Command.hold()
-        tcp = np.asarray(state.base_T_tcp, dtype=float)[:3, 3]
-        cup = np.asarray(state.base_T_cup, dtype=float)
-        down = -cup[:3, 2]
-        up = np.array([0.0, 0.0, 1.0])
+            return self._abort(now, bad, faulted=bool(getattr(state, "fault", None)))
+        return _HANDLERS[self.phase](self, state, plane, note, now)
 
-        if self.phase == Phase.IDLE:
-            self._start_pos = tcp.copy()
-            if self._plane_problem(plane, now, note) is None:
-                self._go(Phase.APPROACH, now, f"surface seen: tilt {math.degrees(plane.tilt_rad):.1f} deg, "
-                                              f"{plane.n} planes")
-            elif now - self._t_start > cfg.acquire_timeout:
-                return self._refuse(now, f"no surface plane within {cfg.acquire_timeout:.1f} s"
-                                    + (f" ({note})" if note else ""))
-            elif (why := self._sensor_problem(state)) is not None:
-                return self._refuse(now, why)
-            else:
-                return Command.hold()
-
-        if self.phase in (Phase.APPROACH, Phase.DESCEND):
-            why = self._plane_problem(plane, now, note) or self._sensor_problem(state)
-            if why is not None:
-                return self._refuse(now, why)
-            if plane.tilt_rad > cfg.early_refuse_tilt:
-                return self._refuse(now, f"surface tilted {math.degrees(plane.tilt_rad):.1f} deg "
-                                         f"(> {math.degrees(cfg.max_tilt):.1f} deg allowed)")
-            travelled = float(np.linalg.norm(tcp - self._start_pos))
-            if travelled > cfg.max_travel:
-                return self._refuse(now, f"no surface reached within {cfg.max_travel:.2f} m of descent")
-            c = self.last_clearance = self._clearance(plane, state)
-            if state.contact_force >= cfg.contact_force:
-                self._go(Phase.CHECK, now, f"contact {state.contact_force:.1f} N at estimated clearance "
-                                           f"{c * 1e3:.1f} mm")
-                return Command(CommandKind.STOP, accel=cfg.accel)
-            if c < -cfg.max_penetration:
-                return self._refuse(now, f"cup {-c * 1e3:.1f} mm below the estimated surface without contact: "
-                                         "the surface estimate is wrong")
-            if self.phase == Phase.APPROACH:
-                if c > cfg.slow_clearance:
-                    return self._speed(cfg.approach_speed * down)
-                self._go(Phase.DESCEND, now, f"clearance {c * 1e3:.1f} mm < {cfg.slow_clearance * 1e3:.0f} mm: slow down")
-            if c > cfg.stop_clearance:
-                return self._speed(cfg.descend_speed * down)
-            self._go(Phase.CHECK, now, f"clearance {c * 1e3:.1f} mm: stop and check")
-            return Command(CommandKind.STOP, accel=cfg.accel)
-
-        if self.phase == Phase.CHECK:
-            m = self._mark
-            why = self._plane_problem(plane, now, note) or self._sensor_problem(state)
-            if why is not None:
-                return self._refuse(now, why)
-            # count planes measured after the stop command (frames arrive in measurement order)
-            if plane.stamp >= self._t_phase:
-                m["fresh"] = m.get("fresh", 0) + max(0, plane.count - m.get("seen", plane.count - 1))
-            m["seen"] = plane.count
-            fresh = m.get("fresh", 0)
-            if fresh < cfg.check_frames:
-                if now - self._t_phase > cfg.check_timeout:
-                    return self._refuse(now, f"only {fresh} of {cfg.check_frames} surface planes within "
-                                             f"{cfg.check_timeout:.1f} s of stopping" + (f" ({note})" if note else ""))
-                return Command.hold()
-            c = self.last_clearance = self._clearance(plane, state)
-            if plane.tilt_rad > cfg.max_tilt:
-                return self._refuse(now, f"surface tilted {math.degrees(plane.tilt_rad):.1f} deg "
-                                         f"(> {math.degrees(cfg.max_tilt):.1f} deg allowed)")
-            if (why := self._planar_problem(plane)) is not None:
-                return self._refuse(now, why)
-            contact = state.contact_force >= cfg.contact_force
-            if c < -cfg.max_penetration and not contact:
-                return self._refuse(now, f"cup {-c * 1e3:.1f} mm below the estimated surface without contact: "
-                                         "the surface estimate is wrong")
-            if contact or c <= cfg.release_clearance:
-                self._go(Phase.RELEASE, now, f"level ({math.degrees(plane.tilt_rad):.2f} deg, spread "
-                                             f"{math.degrees(plane.std_angle):.2f} deg / {plane.std_offset * 1e3:.1f} mm), "
-                                             f"clearance {c * 1e3:.1f} mm, contact {state.contact_force:.1f} N "
-                                             f"from {plane.n} planes: release")
-                self.gripper_opened = True
-                return Command(CommandKind.OPEN_GRIPPER)
-            self._checks += 1
-            if self._checks >= cfg.max_checks:
-                return self._refuse(now, f"still {c * 1e3:.1f} mm above the surface after {self._checks} checks")
-            self._go(Phase.DESCEND, now, f"clearance {c * 1e3:.1f} mm > {cfg.release_clearance * 1e3:.1f} mm: descend again")
-            return self._speed(cfg.descend_speed * down)
-
-        if self.phase in (Phase.RELEASE, Phase.REFUSE):
-            m = self._mark
-            if now - self._t_phase < (cfg.release_settle if self.phase == Phase.RELEASE else 0.0):
-                return Command.hold()
-            if "z0" not in m:
-                m["z0"] = float(tcp[2])
-            if tcp[2] - m["z0"] >= cfg.retreat_distance:
-                final = Phase.DONE if self.phase == Phase.RELEASE else Phase.ABORTED
-                what = "released" if final == Phase.DONE else f"refused ({self.reason})"
-                self._go(final, now, f"cup {what}; retreated {cfg.retreat_distance * 1e3:.0f} mm")
-                return Command(CommandKind.STOP, accel=cfg.accel)
-            return self._speed(cfg.retreat_speed * up)
-
+    # -- phase handlers ------------------------------------------------------------------------------
+    def _on_idle(self, state: RobotState, plane: FusedPlane | None, note: str | None, now: float) -> Command:
+        cfg = self.config
+        self._start_pos = np.asarray(state.base_T_tcp, dtype=float)[:3, 3].copy()
+        if self._plane_problem(plane, now, note) is None:
+            self._descent_t0, self._descent_ticks = now, 0
+            self._go(Phase.APPROACH, now, f"surface seen: tilt {math.degrees(plane.tilt_rad):.1f} deg, "
+                                          f"{plane.n} planes")
+            return self._on_descent(state, plane, note, now)
+        if self._elapsed(now, self._t_start, self.ticks - 1) > cfg.acquire_timeout:
+            return self._refuse(now, f"no surface plane within {cfg.acquire_timeout:.1f} s" + (f" ({note})" if note else ""))
+        if (why := self._sensor_problem(state, now, note)) is not None:
+            return self._refuse(now, why)
         return Command.hold()
+
+    def _contact_rule(self, state: RobotState, c: float, now: float) -> Command | None:
+        """Contact: arrival when the sensed surface is within ``contact_clearance``, else an obstacle."""
+        cfg = self.config
+        force = float(state.contact_force)
+        if force < cfg.contact_force:
+            return None
+        if c <= cfg.contact_clearance:
+            self._check = _Check(now)
+            self._go(Phase.CHECK, now, f"contact {force:.1f} N at estimated clearance {c * 1e3:.1f} mm")
+            return Command(CommandKind.STOP, accel=cfg.accel)
+        return self._refuse(now, f"obstacle: contact {force:.1f} N with the cup bottom {c * 1e3:.1f} mm above the "
+                                 f"sensed surface (> {cfg.contact_clearance * 1e3:.0f} mm)")
+
+    def _on_descent(self, state: RobotState, plane: FusedPlane | None, note: str | None, now: float) -> Command:
+        """APPROACH and DESCEND: move down towards the surface, fast while it is far, slow near it."""
+        cfg = self.config
+        self._descent_ticks += 1
+        why = self._plane_problem(plane, now, note) or self._sensor_problem(state, now, note)
+        if why is not None:
+            return self._refuse(now, why)
+        if (why := self._tilt_problem(plane, cfg.early_refuse_tilt)) is not None:
+            return self._refuse(now, why)
+        if self._elapsed(now, self._descent_t0, self._descent_ticks) > cfg.descent_timeout:
+            return self._refuse(now, f"surface not reached within {cfg.descent_timeout:.1f} s")
+        tcp = np.asarray(state.base_T_tcp, dtype=float)[:3, 3]
+        travelled = float(np.linalg.norm(tcp - self._start_pos))
+        if not (travelled <= cfg.max_travel):
+            return self._refuse(now, f"no surface reached within {cfg.max_travel:.2f} m of descent")
+        c = self.last_clearance = self._clearance(plane, state)
+        if not math.isfinite(c):
+            return self._refuse(now, "cup clearance above the surface cannot be computed (surface parallel to the "
+                                     "tool axis or cup pose invalid)")
+        if (cmd := self._contact_rule(state, c, now)) is not None:
+            return cmd
+        if c < -cfg.max_penetration:
+            return self._refuse(now, f"cup {-c * 1e3:.1f} mm below the estimated surface without contact: "
+                                     "the surface estimate is wrong")
+        down = -np.asarray(state.base_T_cup, dtype=float)[:3, 2]
+        if self.phase == Phase.APPROACH:
+            if c > cfg.slow_clearance:
+                return self._speed(cfg.approach_speed * down)
+            self._go(Phase.DESCEND, now, f"clearance {c * 1e3:.1f} mm < {cfg.slow_clearance * 1e3:.0f} mm: slow down")
+        if c > cfg.stop_clearance:
+            return self._speed(cfg.descend_speed * down)
+        self._check = _Check(now)
+        self._go(Phase.CHECK, now, f"clearance {c * 1e3:.1f} mm: stop and check")
+        return Command(CommandKind.STOP, accel=cfg.accel)
+
+    def _on_check(self, state: RobotState, plane: FusedPlane | None, note: str | None, now: float) -> Command:
+        """Stopped: gather fresh planes, then release, descend again or refuse."""
+        cfg = self.config
+        why = self._plane_problem(plane, now, note) or self._sensor_problem(state, now, note)
+        if why is not None:
+            return self._refuse(now, why)
+        fresh = len(self.post_stop_stamps(plane, now))
+        if fresh < cfg.check_frames:
+            if self._elapsed(now, self._t_phase, self._phase_ticks) > cfg.check_timeout:
+                return self._refuse(now, f"only {fresh} of {cfg.check_frames} surface planes measured within "
+                                         f"{cfg.check_timeout:.1f} s of stopping" + (f" ({note})" if note else ""))
+            return Command.hold()
+        c = self.last_clearance = self._clearance(plane, state)
+        if not math.isfinite(c):
+            return self._refuse(now, "cup clearance above the surface cannot be computed")
+        if (why := self._tilt_problem(plane, cfg.max_tilt)) is not None:
+            return self._refuse(now, why)
+        if (why := self._planar_problem(plane)) is not None:
+            return self._refuse(now, why)
+        force = float(state.contact_force)
+        contact = force >= cfg.contact_force
+        if contact and c > cfg.contact_clearance:
+            return self._refuse(now, f"obstacle: contact {force:.1f} N with the cup bottom {c * 1e3:.1f} mm above "
+                                     f"the sensed surface (> {cfg.contact_clearance * 1e3:.0f} mm)")
+        if c < -cfg.max_penetration:
+            return self._refuse(now, f"cup {-c * 1e3:.1f} mm below the estimated surface: the surface estimate "
+                                     "is wrong")
+        if contact or c <= cfg.release_clearance:
+            self._go(Phase.RELEASE, now, f"level ({math.degrees(plane.tilt_rad):.2f} deg, spread "
+                                         f"{math.degrees(plane.std_angle):.2f} deg / {plane.std_offset * 1e3:.1f} mm), "
+                                         f"clearance {c * 1e3:.1f} mm, contact {force:.1f} N "
+                                         f"from {fresh} planes measured at rest: release")
+            self.gripper_opened = True
+            return Command(CommandKind.OPEN_GRIPPER)
+        self._checks += 1
+        if self._checks >= cfg.max_checks:
+            return self._refuse(now, f"still {c * 1e3:.1f} mm above the surface after {self._checks} checks")
+        self._check = None
+        self._go(Phase.DESCEND, now, f"clearance {c * 1e3:.1f} mm > {cfg.release_clearance * 1e3:.1f} mm: descend again")
+        self._descent_t0, self._descent_ticks = now, 0
+        return self._speed(cfg.descend_speed * -np.asarray(state.base_T_cup, dtype=float)[:3, 2])
+
+    def _on_retreat(self, state: RobotState, plane: FusedPlane | None, note: str | None, now: float) -> Command:
+        """RELEASE (after the gripper opened) and REFUSE: wait, then move straight up, then finish."""
+        cfg = self.config
+        released = self.phase == Phase.RELEASE
+        final = Phase.DONE if released else Phase.ABORTED
+        elapsed = self._elapsed(now, self._t_phase, self._phase_ticks)
+        if elapsed > cfg.retreat_timeout + (cfg.release_settle if released else 0.0):
+            what = "released" if released else f"refused ({self.reason})"
+            self._go(final, now, f"cup {what}; retreat not finished within {cfg.retreat_timeout:.1f} s, stopped")
+            return Command(CommandKind.STOP, accel=cfg.accel)
+        if released and elapsed < cfg.release_settle:
+            return Command.hold()
+        z = float(np.asarray(state.base_T_tcp, dtype=float)[2, 3])
+        if self._retreat.z0 is None:
+            self._retreat.z0 = z
+        if z - self._retreat.z0 >= cfg.retreat_distance:
+            what = "released" if released else f"refused ({self.reason})"
+            self._go(final, now, f"cup {what}; retreated {cfg.retreat_distance * 1e3:.0f} mm")
+            return Command(CommandKind.STOP, accel=cfg.accel)
+        return self._speed(cfg.retreat_speed * np.array([0.0, 0.0, 1.0]))
+
+
+_HANDLERS = {
+    Phase.IDLE: PlacementMachine._on_idle,
+    Phase.APPROACH: PlacementMachine._on_descent,
+    Phase.DESCEND: PlacementMachine._on_descent,
+    Phase.CHECK: PlacementMachine._on_check,
+    Phase.RELEASE: PlacementMachine._on_retreat,
+    Phase.REFUSE: PlacementMachine._on_retreat,
+}
 
 
 __all__ = ["Phase", "FINAL", "PlacementConfig", "PlacementMachine", "RobotState", "Command", "CommandKind",

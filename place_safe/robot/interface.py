@@ -18,8 +18,14 @@ Conventions
   motion commands raise until ``clear_fault()``. A target rejected before any motion (unreachable,
   NaN) raises without latching and without moving.
 * Time: ``time()`` is the robot clock in seconds; ``step(dt)`` lets ``dt`` seconds pass (the simulator
-  advances physics, a real robot sleeps / services its connection). Blocking commands advance time
-  themselves.
+  advances physics, a real robot waits for the end of its control period). Blocking commands advance
+  time themselves.
+* Lifecycle: ``connect()`` opens the robot's connections (idempotent), ``disconnect()`` stops any
+  motion and closes them (idempotent; it never opens the gripper). ``with robot:`` does both.
+* Tool frames: ``tool`` (:class:`place_safe.robot.tool.ToolFrames`) holds ``flange_T_tcp``,
+  ``flange_T_sensor`` and ``flange_T_cup`` from the robot's configuration. The placement pipeline
+  computes the sensor and cup poses from ``tcp_pose()`` and ``tool``, never from a simulator's
+  ground truth.
 """
 
 from __future__ import annotations
@@ -34,6 +40,7 @@ import numpy as np
 
 from place_safe.config import check_keys, read_json, write_json
 from place_safe.exceptions import RobotFault
+from place_safe.robot.tool import ToolFrames
 
 _TWO_PI = 2.0 * math.pi
 
@@ -161,6 +168,43 @@ class Robot(ABC):
     """A 6-axis arm with a parallel gripper and a wrist TMF8820 (see the module docstring)."""
 
     limits: RobotLimits
+    _tool: ToolFrames | None = None
+
+    # --- lifecycle ----------------------------------------------------------------------------
+    def connect(self) -> None:
+        """Open the robot's connections (idempotent). In-process robots are always connected."""
+
+    def disconnect(self) -> None:
+        """Stop any motion and close the connections (idempotent). Never opens the gripper."""
+
+    def is_connected(self) -> bool:
+        """Whether commands can reach the robot."""
+        return True
+
+    def close(self) -> None:
+        """Same as :meth:`disconnect`."""
+        self.disconnect()
+
+    def __enter__(self) -> "Robot":
+        self.connect()
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.disconnect()
+
+    # --- tool frames --------------------------------------------------------------------------
+    @property
+    def tool(self) -> ToolFrames:
+        """The tool frames from configuration (default: the packaged UR5 gripper, sensor mount and cup)."""
+        if self._tool is None:
+            self._tool = ToolFrames.ur5_default()
+        return self._tool
+
+    @tool.setter
+    def tool(self, value: ToolFrames) -> None:
+        if not isinstance(value, ToolFrames):
+            raise TypeError(f"tool must be a ToolFrames, got {type(value).__name__}")
+        self._tool = value
 
     # --- state --------------------------------------------------------------------------------
     @abstractmethod
@@ -171,9 +215,10 @@ class Robot(ABC):
     def tcp_pose(self) -> np.ndarray:
         """Actual base_T_tcp (4x4)."""
 
-    @abstractmethod
     def sensor_pose(self) -> np.ndarray:
-        """Actual base_T_sensor (4x4), TMF8820 frame with +z the optical axis."""
+        """base_T_sensor (4x4, TMF8820 frame with +z the optical axis) from the TCP pose and the
+        configured tool frames."""
+        return self.tcp_pose() @ self.tool.tcp_T_sensor
 
     @abstractmethod
     def tcp_twist(self) -> np.ndarray:
@@ -241,14 +286,6 @@ class Robot(ABC):
     def clear_fault(self) -> None:
         """Acknowledge a latched fault (like unlocking a protective stop)."""
 
-    def close(self) -> None:
-        """Release resources (connections). Default: nothing."""
-
-    def __enter__(self) -> "Robot":
-        return self
-
-    def __exit__(self, *exc: Any) -> None:
-        self.close()
 
 
-__all__ = ["Robot", "RobotLimits", "TrapezoidProfile", "check_pose", "check_twist", "RobotFault"]
+__all__ = ["Robot", "ToolFrames", "RobotLimits", "TrapezoidProfile", "check_pose", "check_twist", "RobotFault"]

@@ -33,6 +33,7 @@ class FakeWorld:
         self.opened_at = None
         self.contact_height = 0.0 if contact_height is None else contact_height
         self.commands = []
+        self.stamps: tuple[float, ...] = ()
 
     def state(self) -> RobotState:
         T = np.eye(4)
@@ -45,8 +46,10 @@ class FakeWorld:
     def plane(self, stamp=None) -> FusedPlane:
         self.count += 1
         n = self.n_est
-        return FusedPlane(n, self.bias, math.acos(n[2]), *self.std, 7,
-                          self.t - LATENCY if stamp is None else stamp, self.count)
+        s = self.t - LATENCY if stamp is None else stamp
+        if not self.stamps or s > self.stamps[-1]:
+            self.stamps = (self.stamps + (s,))[-7:]
+        return FusedPlane(n, self.bias, math.acos(n[2]), *self.std, 7, s, self.count, stamps=self.stamps)
 
     def apply(self, cmd):
         self.commands.append(cmd)
@@ -210,7 +213,7 @@ def test_surface_estimate_jumping_above_the_cup_without_contact_is_refused():
     def plane_fn(world, m):
         p = world.plane()
         if world.pos[2] < 0.01:
-            return FusedPlane(p.normal_base, 0.03, p.tilt_rad, p.std_angle, p.std_offset, 7, p.stamp, p.count)
+            return FusedPlane(p.normal_base, 0.03, p.tilt_rad, p.std_angle, p.std_offset, 7, p.stamp, p.count, stamps=p.stamps)
         return p
 
     w = FakeWorld()
@@ -223,7 +226,7 @@ def test_estimate_too_high_makes_check_descend_again_then_refuses():
     def plane_fn(world, m):
         p = world.plane()
         if m.phase == Phase.CHECK:
-            return FusedPlane(p.normal_base, -0.02, p.tilt_rad, p.std_angle, p.std_offset, 7, p.stamp, p.count)
+            return FusedPlane(p.normal_base, -0.02, p.tilt_rad, p.std_angle, p.std_offset, 7, p.stamp, p.count, stamps=p.stamps)
         return p
 
     w = FakeWorld()

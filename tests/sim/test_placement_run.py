@@ -29,7 +29,6 @@ def test_level_table_is_released_upright_without_spilling():
     # the per-frame planes agree with the simulator's ground truth while the whole field sees the table
     errs = [abs(f["plane"]["offset"] - f["truth"]["offset"]) for f in res.frame_log if f["plane"] and f["truth"]]
     assert errs and max(errs) < 0.005
-    assert res.wall_seconds < 60
 
 
 def test_tilted_table_is_refused_and_the_cup_kept(tmp_path):

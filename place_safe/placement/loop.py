@@ -1,0 +1,464 @@
+"""The placement loop: frame source -> estimator -> fusion -> decision -> robot, once per control tick.
+
+Concept: :class:`PlacementLoop` is the one road from the sensor to the gripper, the same object on the
+real UR5 (ur-rtde robot, TMF8820 over I2C), in MuJoCo (``SimRobot`` + ``SimToF``) and in scenario runs.
+The caller chooses the robot, the frame source, the estimator and the tool frames; the loop owns:
+
+* the **newest-estimate buffer** (:class:`EstimatePipeline`): for a real source a reader thread
+  reads frames and estimates their planes off the control thread, keeping only the newest result, so a
+  125 Hz tick never blocks on I/O or on the solver; a source driven by the robot's clock (the
+  simulated sensor, ``clock_domain == "robot"``) is polled and estimated inline instead;
+* the **clock map** (:class:`ClockMap`): frame stamps are on the source's clock (host
+  ``time.monotonic`` for hardware); the loop converts them to the robot's clock before anything
+  compares them with robot time;
+* the **pose at the measurement time** (:class:`PoseHistory`): the TCP pose recorded every tick,
+  interpolated at the frame's stamp, times the configured ``tcp_T_sensor`` (a frame is read ~0.1 s
+  after it was measured: 8 mm of travel at approach speed);
+* **frame gating**: frames whose stamp is not finite, lies in the future, is older than
+  ``max_frame_age`` or is not later than the newest one already used (duplicates, out-of-order) are
+  dropped with a reason, so a frozen or replaying sensor cannot count as fresh evidence;
+* **command dispatch** (speedL / stopL / open gripper) and a failed command becoming a fault;
+* the **transition and frame logs** and the :class:`LoopResult`.
+
+Timing: ``tick()`` lets one control period pass (``robot.step(period)``: physics in simulation, the
+controller's ``waitPeriod`` on the real arm), then reads the newest estimate, updates the fusion, runs
+one :meth:`~place_safe.placement.machine.PlacementMachine.step` and dispatches its command.
+Conventions: SI units, base-frame 4x4 poses (see :mod:`place_safe.robot.interface`).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+
+from place_safe.exceptions import PlaceSafeError, RobotFault, SensorTimeout
+from place_safe.fusion.plane_filter import PlaneFilter
+from place_safe.placement.machine import CommandKind, PlacementConfig, PlacementMachine, RobotState
+from place_safe.robot.tool import ToolFrames
+
+log = logging.getLogger("place_safe.placement.loop")
+
+#: s, control period (125 Hz, the UR CB3 controller's rate).
+CONTROL_PERIOD = 0.008
+#: Control ticks of pose history kept for stamp lookup (2 s at 125 Hz; frames are ~0.1 s old).
+POSE_HISTORY = 250
+#: Clock-offset samples kept by :class:`ClockMap`.
+CLOCK_SAMPLES = 64
+
+
+# ---------------------------------------------------------------------------------------------
+# clocks and poses
+# ---------------------------------------------------------------------------------------------
+class ClockMap:
+    """Maps stamps on a source's clock to the robot's clock.
+
+    ``domain == "robot"``: the source stamps on the robot's clock already (simulation): identity.
+    ``domain == "monotonic"``: the source stamps with the host's ``time.monotonic()``. Each tick the
+    loop observes ``(robot.time(), host_now)``; the robot's time is the stamp of its newest state
+    packet, so ``robot - host`` is low by up to one packet period and the offset is the largest of the
+    recent samples. Until the first observation the map is undefined and returns NaN.
+    """
+
+    def __init__(self, domain: str = "monotonic", samples: int = CLOCK_SAMPLES) -> None:
+        if domain not in ("robot", "monotonic"):
+            raise ValueError(f"clock domain must be 'robot' or 'monotonic', got {domain!r}")
+        self.domain = domain
+        self._offsets: deque[float] = deque(maxlen=samples)
+
+    def observe(self, robot_time: float, host_time: float) -> None:
+        off = float(robot_time) - float(host_time)
+        if math.isfinite(off):
+            self._offsets.append(off)
+
+    @property
+    def offset(self) -> float:
+        if self.domain == "robot":
+            return 0.0
+        return max(self._offsets) if self._offsets else math.nan
+
+    def to_robot(self, stamp: Any) -> float:
+        """The robot-clock time of a source stamp (NaN if it cannot be converted)."""
+        try:
+            s = float(stamp)
+        except (TypeError, ValueError):
+            return math.nan
+        return s + self.offset
+
+
+class PoseHistory:
+    """Poses recorded at increasing times; :meth:`at` interpolates (linear position, slerp rotation).
+
+    A sample at a time not later than the newest one replaces it (a frozen clock keeps one entry).
+    """
+
+    def __init__(self, maxlen: int = POSE_HISTORY, tolerance: float = CONTROL_PERIOD / 2) -> None:
+        self._t: deque[float] = deque(maxlen=maxlen)
+        self._T: deque[np.ndarray] = deque(maxlen=maxlen)
+        self.tolerance = tolerance
+
+    def add(self, t: float, T: Any) -> None:
+        T = np.asarray(T, dtype=float)
+        if not (math.isfinite(t) and T.shape == (4, 4) and np.all(np.isfinite(T))):
+            return
+        while self._t and t <= self._t[-1]:
+            self._t.pop()
+            self._T.pop()
+        self._t.append(float(t))
+        self._T.append(T.copy())
+
+    def at(self, t: float) -> np.ndarray | None:
+        """Pose at ``t``; None if ``t`` is not finite or outside the recorded span (by more than
+        ``tolerance``)."""
+        if not self._t or not math.isfinite(t):
+            return None
+        ts = np.fromiter(self._t, float)
+        if t < ts[0] - self.tolerance or t > ts[-1] + self.tolerance:
+            return None
+        i = int(np.searchsorted(ts, t))
+        if i <= 0:
+            return self._T[0].copy()
+        if i >= len(ts):
+            return self._T[-1].copy()
+        from scipy.spatial.transform import Rotation, Slerp
+
+        t0, t1 = ts[i - 1], ts[i]
+        A, B = self._T[i - 1], self._T[i]
+        s = (t - t0) / (t1 - t0)
+        T = np.eye(4)
+        T[:3, 3] = (1 - s) * A[:3, 3] + s * B[:3, 3]
+        T[:3, :3] = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([A[:3, :3], B[:3, :3]])))([s]).as_matrix()[0]
+        return T
+
+
+# ---------------------------------------------------------------------------------------------
+# newest-estimate buffer
+# ---------------------------------------------------------------------------------------------
+@dataclass
+class Measurement:
+    """One frame and its plane estimate, with when it arrived (host monotonic seconds)."""
+
+    frame: Any
+    estimate: Any
+    arrived: float
+
+
+class EstimatePipeline:
+    """Reads frames from a source and estimates their planes; :meth:`take` returns the newest result.
+
+    ``threaded=True`` (default for sources whose ``clock_domain`` is not ``"robot"``): a daemon
+    thread loops ``source.read(timeout)`` + ``estimator.estimate``; results that were never taken are
+    counted in ``overwritten``. ``threaded=False``: :meth:`take` polls ``source.read(0)`` and estimates
+    inline (sources that advance with the robot's clock). Source errors other than a timeout are kept
+    in ``error`` (the loop refuses on a dead sensor); the thread keeps trying with a back-off.
+    """
+
+    def __init__(self, source: Any, estimator: Any, threaded: bool | None = None, read_timeout: float = 0.1,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.source, self.estimator = source, estimator
+        self.threaded = (getattr(source, "clock_domain", "monotonic") != "robot") if threaded is None else threaded
+        self.read_timeout = read_timeout
+        self.clock = clock
+        self.frames = 0
+        self.overwritten = 0
+        self.timeouts = 0
+        self.errors = 0
+        self.error: str | None = None
+        self._latest: Measurement | None = None
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._ended = False
+
+    # -- lifecycle -----------------------------------------------------------------------------
+    def start(self) -> "EstimatePipeline":
+        if self.threaded and self._thread is None:
+            self._thread = threading.Thread(target=self._run, name="place-safe-sensor", daemon=True)
+            self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+            self._thread = None
+
+    # -- work ----------------------------------------------------------------------------------
+    def _read_one(self, timeout: float) -> Measurement | None:
+        try:
+            frame = self.source.read(timeout)
+        except SensorTimeout:
+            self.timeouts += 1
+            return None
+        except StopIteration:
+            self._ended = True
+            return None
+        except Exception as exc:  # a dead bus, a driver bug: the loop must refuse, not crash
+            self.errors += 1
+            self.error = f"{type(exc).__name__}: {exc}".splitlines()[0]
+            return None
+        self.frames += 1
+        try:
+            est = self.estimator.estimate(frame)
+        except Exception as exc:  # estimators never raise for bad data; a bug must not stop the loop
+            from place_safe.recovery.estimator import PlaneEstimate
+
+            est = PlaneEstimate(None, reason=f"estimator failed: {type(exc).__name__}: {exc}".splitlines()[0])
+        self.error = None
+        return Measurement(frame, est, self.clock())
+
+    def _run(self) -> None:
+        backoff = 0.01
+        while not self._stop.is_set() and not self._ended:
+            m = self._read_one(self.read_timeout)
+            if m is None:
+                if self.error is not None:
+                    self._stop.wait(backoff)
+                    backoff = min(backoff * 2, 0.5)
+                continue
+            backoff = 0.01
+            with self._lock:
+                if self._latest is not None:
+                    self.overwritten += 1
+                self._latest = m
+
+    def take(self) -> Measurement | None:
+        """The newest measurement not taken before, or None (never blocks)."""
+        if not self.threaded:
+            return None if self._ended else self._read_one(0.0)
+        with self._lock:
+            m, self._latest = self._latest, None
+        return m
+
+
+# ---------------------------------------------------------------------------------------------
+# the loop
+# ---------------------------------------------------------------------------------------------
+@dataclass
+class LoopResult:
+    """What one placement did, from the loop's point of view (SI units)."""
+
+    outcome: str  # "released", "refused" or "timeout"
+    reason: str  # the deciding transition's reason (or why it timed out)
+    final_phase: str
+    robot_seconds: float  # robot-clock time from start to finish
+    ticks: int
+    frames: int  # measurements taken from the pipeline
+    frames_used: int  # measurements that passed the gating and reached the fusion
+    planes: int  # planes the fusion accepted
+    dropped: dict[str, int] = field(default_factory=dict)  # frames not used, by reason
+    contact_force_peak: float = 0.0
+    transitions: list[dict] = field(default_factory=list)
+    frame_log: list[dict] = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+class PlacementLoop:
+    """One placement: ``PlacementLoop(robot, source, estimator, tool, config).run()`` (see module doc).
+
+    Parameters
+    ----------
+    robot: a :class:`~place_safe.robot.interface.Robot` (connected by the caller or by ``run``).
+    source: a :class:`~place_safe.io.source.FrameSource`; its ``clock_domain`` says how stamps are read.
+    estimator: a plane estimator (``estimate(frame) -> PlaneEstimate``).
+    tool: tool frames (default: ``robot.tool``, i.e. the robot's configuration).
+    config: placement thresholds and speeds.
+    period: control period in seconds (default 8 ms).
+    max_frame_age: s; frames measured longer ago than this (robot clock) are dropped as stale.
+    log_frames: keep a per-frame log in the result.
+    """
+
+    def __init__(self, robot: Any, source: Any, estimator: Any, tool: ToolFrames | None = None,
+                 config: PlacementConfig | None = None, *, period: float = CONTROL_PERIOD,
+                 max_frame_age: float = 0.5, log_frames: bool = True, plane_filter: PlaneFilter | None = None,
+                 pipeline: EstimatePipeline | None = None, host_clock: Callable[[], float] = time.monotonic) -> None:
+        if not (math.isfinite(period) and period > 0):
+            raise ValueError(f"control period must be a positive number of seconds, got {period!r}")
+        self.robot, self.source, self.estimator = robot, source, estimator
+        self.tool = tool if tool is not None else robot.tool
+        self.config = config if config is not None else PlacementConfig()
+        self.period = float(period)
+        self.max_frame_age = float(max_frame_age)
+        self.log_frames = log_frames
+        self.host_clock = host_clock
+        self.filter = plane_filter if plane_filter is not None else PlaneFilter()
+        self.machine = PlacementMachine(self.config, period=self.period)
+        self.pipeline = pipeline if pipeline is not None else EstimatePipeline(source, estimator, clock=host_clock)
+        self.clock = ClockMap(getattr(source, "clock_domain", "monotonic"))
+        self.history = PoseHistory(tolerance=self.period / 2)
+        self._tcp_T_sensor = self.tool.tcp_T_sensor
+        self._tcp_T_cup = self.tool.tcp_T_cup
+        self.frame_log: list[dict] = []
+        self.dropped: dict[str, int] = {}
+        self.frames = 0
+        self.frames_used = 0
+        self.ticks = 0
+        self.force_peak = 0.0
+        self._last_stamp = -math.inf
+        self._last_arrival: float | None = None  # robot time of the newest measurement's arrival
+        self._note: str | None = None
+        self._cmd_error: str | None = None
+        self._t_start: float | None = None
+        self._started = False
+
+    # -- helpers -------------------------------------------------------------------------------
+    def _drop(self, reason: str) -> None:
+        key = reason.split(":")[0]
+        self.dropped[key] = self.dropped.get(key, 0) + 1
+        self._note = reason
+
+    def _robot_now(self) -> float:
+        try:
+            t = float(self.robot.time())
+        except Exception:  # a robot that cannot tell its time is faulted: the machine aborts on NaN
+            return math.nan
+        return t
+
+    def _safe(self, fn: Callable[[], Any], default: Any) -> Any:
+        try:
+            return fn()
+        except Exception:
+            return default
+
+    def _use(self, m: Measurement, now: float) -> None:
+        """Gate one measurement and offer it to the fusion."""
+        frame, est = m.frame, m.estimate
+        self.frames += 1
+        self._last_arrival = now
+        stamp = self.clock.to_robot(getattr(frame, "timestamp", None))
+        accepted = False
+        if not math.isfinite(stamp):
+            self._drop("unstamped: frame has no usable timestamp")
+        elif stamp > now + self.period:
+            self._drop(f"future: frame stamped {stamp - now:.3f} s after the robot's clock")
+        elif now - stamp > self.max_frame_age:
+            self._drop(f"stale: frame measured {now - stamp:.3f} s ago (> {self.max_frame_age:.2f} s)")
+        elif stamp <= self._last_stamp:
+            self._drop("repeated: frame not newer than the last one used (duplicate or out of order)")
+        else:
+            pose = self.history.at(stamp)
+            if pose is None:
+                self._drop("no pose: no robot pose recorded at the frame's measurement time")
+            else:
+                self._last_stamp = stamp
+                self.frames_used += 1
+                accepted = self.filter.update(est, pose @ self._tcp_T_sensor, stamp)
+                self._note = None if accepted else self.filter.last_reject_reason
+        if self.log_frames:
+            plane = getattr(est, "plane", None)
+            entry = {"t": now, "stamp": stamp, "accepted": accepted,
+                     "ms": float(getattr(est, "seconds", math.nan)) * 1e3,
+                     "plane": plane.to_dict() if plane is not None else None,
+                     "truth": frame.truth.to_dict() if getattr(frame, "truth", None) is not None else None}
+            if not accepted:
+                entry["reason"] = self._note
+            self.frame_log.append(entry)
+
+    def _dispatch(self, cmd: Any) -> None:
+        try:
+            if cmd.kind == CommandKind.SPEED:
+                self.robot.speed_linear(np.asarray(cmd.twist), accel=cmd.accel)
+            elif cmd.kind == CommandKind.STOP:
+                self.robot.stop(decel=cmd.accel, asynchronous=True)
+            elif cmd.kind == CommandKind.OPEN_GRIPPER:
+                self.robot.gripper(open=True)
+        except (PlaceSafeError, ValueError, RuntimeError, OSError) as exc:
+            self._cmd_error = f"command {cmd.kind.value} failed: {str(exc).splitlines()[0] if str(exc) else exc}"
+            try:
+                self.robot.stop(decel=self.config.accel, asynchronous=True)
+            except Exception:
+                pass
+
+    # -- the tick ------------------------------------------------------------------------------
+    def start(self) -> None:
+        """Start the sensor pipeline and record the first pose (``run`` calls it)."""
+        if self._started:
+            return
+        self._started = True
+        self.pipeline.start()
+        now = self._robot_now()
+        self._t_start = now
+        self.history.add(now, self._safe(self.robot.tcp_pose, np.full((4, 4), np.nan)))
+        self.clock.observe(now, self.host_clock())
+
+    def tick(self) -> Any:
+        """One control period: advance, sense, fuse, decide, command. Returns the machine's command."""
+        if not self._started:
+            self.start()
+        self.ticks += 1
+        try:
+            self.robot.step(self.period)
+        except RobotFault:
+            pass  # latched; the machine sees robot.fault() below
+        except Exception as exc:
+            self._cmd_error = f"robot step failed: {type(exc).__name__}: {exc}".splitlines()[0]
+        now = self._robot_now()
+        tcp = self._safe(self.robot.tcp_pose, np.full((4, 4), np.nan))
+        self.history.add(now, tcp)
+        self.clock.observe(now, self.host_clock())
+        force = self._safe(self.robot.contact_force, math.nan)
+        if isinstance(force, (int, float)) and math.isfinite(force):
+            self.force_peak = max(self.force_peak, float(force))
+        m = self.pipeline.take()
+        if m is not None:
+            self._use(m, now)
+        note = self._note
+        if self.pipeline.error is not None:
+            note = f"sensor error: {self.pipeline.error}"
+        fault = self._safe(self.robot.fault, "robot does not answer") or self._cmd_error
+        try:
+            cup = np.asarray(tcp, dtype=float) @ self._tcp_T_cup
+        except Exception:
+            cup = np.full((4, 4), np.nan)
+        state = RobotState(now, tcp, cup, force, fault, self._last_arrival)
+        cmd = self.machine.step(state, self.filter.fused(now) if math.isfinite(now) else None, note)
+        self._dispatch(cmd)
+        return cmd
+
+    @property
+    def finished(self) -> bool:
+        return self.machine.finished
+
+    def run(self, timeout: float = 60.0) -> LoopResult:
+        """Tick until the machine finishes or ``timeout`` seconds of robot time pass (then the robot is
+        stopped holding the cup and the outcome is "timeout"). Stops the sensor pipeline at the end."""
+        if not (math.isfinite(timeout) and timeout > 0):
+            raise ValueError(f"timeout must be a positive number of seconds, got {timeout!r}")
+        max_ticks = int(math.ceil(timeout / self.period)) + 1
+        try:
+            self.start()
+            while not self.machine.finished and self.ticks < max_ticks:
+                self.tick()
+        finally:
+            self.pipeline.stop()
+        return self.result(timeout)
+
+    def result(self, timeout: float | None = None) -> LoopResult:
+        mach = self.machine
+        if mach.finished:
+            outcome, reason = mach.outcome or "refused", mach.decision or mach.reason
+        else:
+            outcome = "timeout"
+            reason = (f"not finished within {timeout:.1f} s (phase {mach.phase.value})" if timeout
+                      else f"not finished (phase {mach.phase.value})")
+            if not self._safe(self.robot.is_faulted, True):
+                self._safe(lambda: self.robot.stop(decel=self.config.accel), None)
+        now = self._robot_now()
+        t0 = self._t_start if self._t_start is not None else now
+        return LoopResult(outcome=outcome, reason=reason, final_phase=mach.phase.value,
+                          robot_seconds=float(now - t0) if math.isfinite(now - t0) else math.nan,
+                          ticks=self.ticks, frames=self.frames, frames_used=self.frames_used,
+                          planes=self.filter.count, dropped=dict(self.dropped), contact_force_peak=self.force_peak,
+                          transitions=[t.to_dict() for t in mach.log], frame_log=list(self.frame_log))
+
+
+__all__ = ["PlacementLoop", "LoopResult", "EstimatePipeline", "Measurement", "ClockMap", "PoseHistory",
+           "CONTROL_PERIOD"]
