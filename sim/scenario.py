@@ -120,6 +120,7 @@ class Scenario(ConfigModel):
     method: str = Field("diff", description="plane-recovery method")
     placement: dict = Field(default_factory=dict, description="PlacementConfig overrides (SI units)")
     expect: Expectation | None = None
+    labels: dict | None = Field(None, description="generator's truth labels (random scenes): support, clearly_safe")
     base_dir: str = Field("", description="directory of the file (set when loaded)")
 
     @model_validator(mode="before")

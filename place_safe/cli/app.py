@@ -27,7 +27,7 @@ PROG = "place-safe"
 #: Command groups that live in their own module: each exposes ``register(subparsers) -> None``, which adds
 #: its sub-parser(s) (``parser_class=_Parser`` is inherited) with ``set_defaults(func=...)``. Modules must
 #: import heavy packages (torch, MuJoCo, ur-rtde, smbus2) inside their command functions, not at import time.
-COMMAND_MODULES: tuple[str, ...] = ()
+COMMAND_MODULES: tuple[str, ...] = ("place_safe.cli.scenarios",)
 METHODS = ("diff", "peak", "peak-naive", "proprietary", "proprietary-naive")
 CALIBRATE_METHODS = ("diff", "peak", "proprietary")
 
