@@ -143,6 +143,9 @@ class Scenario(ConfigModel):
                     table[rad] = math.radians(v)
             scene["table"] = table
         d["scene"] = scene
+        bad = _non_finite(scene, "scene")
+        if bad:
+            raise ValueError(f"{bad} must be a finite number")
         return d
 
     @model_validator(mode="after")
@@ -199,6 +202,23 @@ class Scenario(ConfigModel):
         if not p.is_absolute() and self.base_dir:
             p = Path(self.base_dir) / p
         return Calibration.load(p), str(p)
+
+
+def _non_finite(v: Any, where: str) -> str | None:
+    """Path of the first NaN/inf number inside nested dicts/lists, or None."""
+    if isinstance(v, float) and not math.isfinite(v):
+        return where
+    if isinstance(v, dict):
+        items = v.items()
+    elif isinstance(v, (list, tuple)):
+        items = ((str(i), x) for i, x in enumerate(v))
+    else:
+        return None
+    for k, x in items:
+        found = _non_finite(x, f"{where}.{k}")
+        if found:
+            return found
+    return None
 
 
 ORACLE_NOTE = "ORACLE: the simulated sensor's true forward parameters (debugging only)"
