@@ -105,6 +105,14 @@ def scenario_path(name: str | Path) -> Path:
     return _path(name)
 
 
+def oracle_calibration():
+    """A calibration holding the simulated sensor's TRUE parameters: an oracle no user could have, for
+    debugging only (see :func:`place_safe.sim.scenario.oracle_calibration`)."""
+    from place_safe.sim.scenario import oracle_calibration as _oracle
+
+    return _oracle()
+
+
 def _as_scenario(scenario: Any):
     from place_safe.sim.scenario import Scenario, load_scenario
     from place_safe.sim.scene import SceneConfig
@@ -271,5 +279,5 @@ if __name__ == "__main__":
     raise SystemExit(main())
 
 
-__all__ = ["PlacementResult", "run_placement", "scenario_path", "add_placement_command", "cmd_place", "main",
+__all__ = ["PlacementResult", "run_placement", "oracle_calibration", "scenario_path", "add_placement_command", "cmd_place", "main",
            "CONTROL_PERIOD", "SETTLE_SECONDS"]

@@ -11,15 +11,26 @@ time do not depend on how busy the machine is. No test asserts a speed: speeds b
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 
 import pytest
+
+#: Test doubles shared by several test folders (``from placement_fakes import ...``).
+sys.path.insert(0, str(Path(__file__).resolve().parent / "support"))
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 
 def pytest_configure(config) -> None:
     import torch
+    from hypothesis import settings
+
+    # CI (CI=true) searches the same examples on every run, so a red build is reproducible; a developer's
+    # run explores new ones (and keeps failures in .hypothesis/).
+    settings.register_profile("ci", derandomize=True, print_blob=True)
+    if os.environ.get("CI", "").lower() in ("1", "true", "yes"):
+        settings.load_profile("ci")
 
     torch.set_num_threads(int(os.environ.get("PLACE_SAFE_TEST_THREADS", "1")))
 

@@ -2,14 +2,15 @@
 
 A source is the only thing the sensing pipeline knows about hardware or simulation. ``read`` blocks
 for at most ``timeout`` seconds and returns the next :class:`~place_safe.sensor.frame.Frame` (with its
-``timestamp`` set, seconds on the source's clock) or raises :class:`~place_safe.exceptions.SensorTimeout`.
+``timestamp`` set, seconds on the source's clock, see ``clock_domain``) or raises :class:`~place_safe.exceptions.SensorTimeout`.
 A frame that arrived corrupted is still returned; validation happens downstream.
 """
 
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
+from types import MappingProxyType
 
 from place_safe.exceptions import SensorTimeout
 from place_safe.sensor.frame import Frame
@@ -24,6 +25,8 @@ class FrameSource(ABC):
     #: replay); ``"robot"`` = the robot's clock (sources advanced by the simulation in lockstep). Sources
     #: on the robot's clock are polled by the placement loop; the others are read by a thread.
     clock_domain: str = "monotonic"
+    #: Counters of what happened (frames, faults by kind, retries); sources that count assign a dict.
+    stats: Mapping[str, float] = MappingProxyType({})
 
     @abstractmethod
     def read(self, timeout: float = 1.0) -> Frame:

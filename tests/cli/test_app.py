@@ -263,12 +263,31 @@ def test_calibrate_diff_adds_forward_and_the_missing_peak_section(tmp_path, caps
 
 
 # -- demo (the main job) --------------------------------------------------------------------------------
-@pytest.mark.slow
-def test_demo_places_on_the_level_table_and_refuses_the_tilted_one(capsys):
+def test_demo_runs_both_placements_and_checks_their_outcomes(monkeypatch, capsys):
+    # the placements themselves are tested in tests/sim/test_placement_run.py; here: the demo's wiring
+    import place_safe.sim.placement_run as pr
+
+    calls = []
+
+    class Result:
+        def __init__(self, outcome):
+            self.outcome = outcome
+
+        def summary(self):
+            return f"summary {self.outcome}"
+
+    def fake_run(scenario, method, seed):
+        calls.append((scenario, method))
+        return Result({"place_level": "released", "place_tilted": "refused"}[scenario])
+
+    monkeypatch.setattr(pr, "run_placement", fake_run)
     assert main(["demo", "-q"]) == 0
-    out = capsys.readouterr().out
-    assert "place_level: released (as expected)" in out
-    assert "place_tilted: refused (as expected)" in out
+    cap = capsys.readouterr()
+    assert calls == [("place_level", "diff"), ("place_tilted", "diff")]
+    assert "place_level: released (as expected)" in cap.out and "place_tilted: refused (as expected)" in cap.out
+    assert "simulated USER calibration" in cap.err  # which calibration the estimator had is named on screen
+    monkeypatch.setattr(pr, "run_placement", lambda scenario, method, seed: Result("released"))
+    assert main(["demo", "-q"]) == 1  # a wrong outcome fails the demo
 
 
 def test_demo_without_mujoco_falls_back_to_synthetic_recovery(monkeypatch, capsys):

@@ -1,0 +1,295 @@
+"""``place-safe sensor``: read a TMF8820 (I2C, Arduino bridge, emulator, file): info, record, stream, bench.
+
+Sources are URIs (:func:`place_safe.io.uri.open_source`): ``i2c:/dev/i2c-1@0x41``, ``serial:/dev/ttyACM0``,
+``serial:capture.log``, ``file:frames.json``, ``emu:file:frames.json``, ``emu:synthetic:50``,
+``emu:place_level``. Frame rates are frames per second, distances millimetres and angles degrees at
+this edge; standard output carries the command's result, progress and summaries go to standard error.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from place_safe.cli.options import nonnegative_int, positive_float, positive_int, fraction
+
+_FMT = argparse.RawDescriptionHelpFormatter
+_URI_HELP = ("source URI: i2c:BUS[@ADDR], serial:PORT[@BAUD] or serial:LOG, file:FRAMES.json, "
+             "emu:file:FRAMES.json, emu:synthetic[:N], emu:SCENARIO")
+
+
+def _log(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def _add_source_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("uri", metavar="URI", help=_URI_HELP)
+    g = p.add_argument_group("sensor options (i2c: and emu: sources)")
+    g.add_argument("--patch", metavar="FILE.hex", help="Intel HEX RAM patch to download (default: ROM application)")
+    g.add_argument("--period-ms", type=nonnegative_int, metavar="MS", help="measurement period (default 33)")
+    g.add_argument("--kilo-iterations", type=positive_int, metavar="K", help="laser pulses in thousands (default 4000)")
+    g.add_argument("--calibration-dir", metavar="DIR", help="factory calibration files (loaded by sensor serial)")
+    g.add_argument("--int-line", metavar="CHIP:OFFSET", help="INT pin as a GPIO line, e.g. /dev/gpiochip0:17 "
+                                                              "(default: poll INT_STATUS)")
+    g.add_argument("--bus-hz", type=positive_float, metavar="HZ", help="emu: emulated bus clock (default 400000)")
+
+
+def _open(args: argparse.Namespace, **extra: Any):
+    from place_safe.cli.app import UsageError
+    from place_safe.io.uri import open_source
+
+    scheme = args.uri.split(":", 1)[0]
+    opts: dict[str, Any] = {}
+    names = {"patch": "patch", "period_ms": "period_ms", "kilo_iterations": "kilo_iterations",
+             "calibration_dir": "calibration_dir", "int_line": "int_line", "bus_hz": "bus_hz"}
+    for attr, key in names.items():
+        value = getattr(args, attr, None)
+        if value is None:
+            continue
+        if scheme not in ("i2c", "emu") or (key == "bus_hz" and scheme != "emu") or (key == "int_line" and scheme != "i2c"):
+            raise UsageError(f"sensor: --{attr.replace('_', '-')} does not apply to {scheme}: sources")
+        opts[key] = value
+    if scheme == "emu":
+        opts.setdefault("realtime", True)
+    opts.update({k: v for k, v in extra.items() if v is not None and (scheme in ("i2c", "emu") or k != "start")})
+    return open_source(args.uri, **opts)
+
+
+# ------------------------------------------------------------------------------------------------
+def cmd_info(args: argparse.Namespace) -> int:
+    src = _open(args, start=False)
+    with src:
+        info = src.info() if hasattr(src, "info") else {"source": type(src).__name__}
+        info.setdefault("clock_domain", src.clock_domain)
+        if args.factory_calibrate:
+            from place_safe.exceptions import ConfigError
+
+            driver = getattr(src, "driver", src)
+            if not hasattr(driver, "factory_calibrate"):
+                raise ConfigError(f"{args.uri}: factory calibration needs an i2c: or emu: source")
+            info["calibration_file"] = str(driver.factory_calibrate())
+    if args.json:
+        print(json.dumps(info, indent=1, default=str))
+    else:
+        for k, v in info.items():
+            print(f"{k:>16}: {v}")
+    return 0
+
+
+def cmd_record(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from place_safe.exceptions import SensorTimeout
+    from place_safe.io.frame_file import write_frames
+
+    out = Path(args.output)
+    if out.exists() and not args.force:
+        from place_safe.exceptions import ConfigError
+
+        raise ConfigError(f"{out} exists; use --force to overwrite it")
+    src = _open(args)
+    bar = tqdm(total=args.frames, desc="record", unit="frame", file=sys.stderr, disable=args.quiet or None,
+               leave=False)
+    deadline = time.monotonic() + args.seconds if args.seconds else math.inf
+    ended = "frames"
+
+    def frames():
+        nonlocal ended
+        n = 0
+        while n < args.frames:
+            if time.monotonic() > deadline:
+                ended = "seconds"
+                return
+            try:
+                f = src.read(args.timeout)
+            except StopIteration:
+                ended = "source ended"
+                return
+            except SensorTimeout:
+                ended = f"no frame within {args.timeout:g} s"
+                return
+            n += 1
+            bar.update(1)
+            yield f
+
+    with src:
+        n = write_frames(out, frames(), jsonl=out.suffix == ".jsonl")
+        stats = dict(getattr(src, "stats", {}))
+    bar.close()
+    _log(f"wrote {n} frames to {out} (stopped: {ended})")
+    faults = {k: v for k, v in stats.items() if isinstance(v, (int, float)) and v and k not in ("frames",)}
+    if faults and not args.quiet:
+        _log("source statistics: " + ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}"
+                                               for k, v in faults.items()))
+    return 0
+
+
+def cmd_stream(args: argparse.Namespace) -> int:
+    from place_safe.cli.app import _estimator, _load_calibration
+    from place_safe.io.live import run_live
+
+    cal = _load_calibration(args.calibration)
+    est = _estimator(args.method, cal)
+    view = None
+    if args.save or args.view:
+        from place_safe.cli.live_view import RerunView
+
+        params = cal.forward() if cal is not None and hasattr(cal, "forward") and "forward" in cal.sections else None
+        if params is None and args.method == "diff":
+            from place_safe.recovery.forward import ForwardParams
+
+            params = ForwardParams()
+        view = RerunView(save=args.save, params=params)
+    src = _open(args)
+    wall = src.clock_domain == "monotonic"
+
+    def on_estimate(index, frame, e, latency) -> None:
+        age = time.monotonic() - frame.timestamp if wall and frame.timestamp is not None else None
+        if view is not None:
+            view.log(index, frame, e, latency)
+        if args.jsonl:
+            line = e.to_json(index)
+            line["latency_ms"] = round(latency * 1e3, 3)
+            if age is not None:
+                line["age_ms"] = round(age * 1e3, 3)
+            print(json.dumps(line), flush=True)
+        elif e.plane is not None:
+            p = e.plane
+            print(f"{index:>5}  tilt {math.degrees(p.theta):6.2f} deg  azimuth {math.degrees(p.phi):7.1f} deg  "
+                  f"distance {p.offset * 1e3:7.1f} mm  latency {latency * 1e3:6.1f} ms"
+                  + (f"  age {age * 1e3:6.1f} ms" if age is not None else ""), flush=True)
+        else:
+            print(f"{index:>5}  no plane: {e.reason}", flush=True)
+
+    try:
+        with src:
+            stats = run_live(src, est, on_estimate, max_frames=args.max_frames, read_timeout=args.timeout)
+            source_stats = dict(getattr(src, "stats", {}))
+    finally:
+        if view is not None:
+            view.close()
+    _log(stats.summary())
+    counted = {k: v for k, v in source_stats.items() if isinstance(v, int) and v}
+    if counted:
+        _log("source: " + ", ".join(f"{k} {v}" for k, v in counted.items()))
+    if args.save:
+        _log(f"wrote {args.save}")
+    return 0
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from place_safe.drivers.tmf8820 import bench
+
+    rows = []
+    for hz in args.bus_hz:
+        bar = tqdm(total=args.frames, desc=f"bus {hz / 1e3:g} kHz", unit="frame", file=sys.stderr,
+                   disable=args.quiet or None, leave=False)
+        rows.append(bench.run(hz, frames=args.frames, fault_rate=args.fault_rate, seed=args.seed,
+                              period_ms=args.period_ms, kilo_iterations=args.kilo_iterations, progress=bar.update))
+        bar.close()
+    print(f"{'bus kHz':>8} {'frames/s':>9} {'bus-only':>9} {'sensor':>8} {'limit':>7} {'bytes/frame':>12} "
+          f"{'vs 4182':>8} {'vs 4368':>8} {'decode ms':>10}")
+    for r in rows:
+        print(f"{r['bus_hz'] / 1e3:>8g} {r['fps']:>9.2f} {r['bus_fps']:>9.2f} {r['device_fps']:>8.2f} "
+              f"{r['fps_limit']:>7.2f} {r['bytes_per_frame']:>12.1f} {r['over_payload_min'] * 100:>+7.2f}% "
+              f"{r['over_transfer_min'] * 100:>+7.2f}% {r['decode_ms']:>10.3f}")
+        if r["faults"]:
+            print(f"{'':>8} faults injected: {r['faults']}; measurements dropped: {r['dropped_frames']}")
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=1) + "\n")
+        _log(f"wrote {args.json}")
+    return 0
+
+
+# ------------------------------------------------------------------------------------------------
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add ``place-safe sensor info|record|stream|bench``."""
+    s = subparsers.add_parser(
+        "sensor", formatter_class=_FMT, help="read a TMF8820: info, record, stream, bench",
+        description="Talk to a TMF8820 through the I2C driver (i2c:), the Arduino bridge (serial:), the "
+                    "register-level emulator (emu:) or a frame file (file:).",
+        epilog="examples:\n  place-safe sensor info i2c:/dev/i2c-1@0x41\n"
+               "  place-safe sensor record i2c:1 -o frames.json --frames 100\n"
+               "  place-safe sensor stream emu:synthetic:50 --method peak --save run.rrd\n"
+               "  place-safe sensor bench --frames 200")
+    sub = s.add_subparsers(dest="sensor_command", metavar="{info,record,stream,bench}")
+    sub.required = True
+
+    i = sub.add_parser("info", formatter_class=_FMT, help="identity, versions, mode and configuration",
+                       description="Bring the sensor up and print its identity (serial number), application "
+                                   "version, mode, range and configuration without measuring.",
+                       epilog="examples:\n  place-safe sensor info i2c:/dev/i2c-1@0x41\n"
+                              "  place-safe sensor info emu:synthetic --json\n"
+                              "  place-safe sensor info i2c:1 --calibration-dir cal --factory-calibrate")
+    _add_source_options(i)
+    i.add_argument("--json", action="store_true", help="print JSON")
+    i.add_argument("--factory-calibrate", action="store_true",
+                   help="run the sensor's factory calibration (nothing within 40 cm, dark) and save it in "
+                        "--calibration-dir, keyed by serial number; it is loaded at every start")
+    i.set_defaults(func=cmd_info)
+
+    r = sub.add_parser("record", formatter_class=_FMT, help="record frames to a frame file",
+                       description="Read frames from a source and write them to a frame file (JSON list, or "
+                                   "JSON Lines for a .jsonl name), with a progress bar.",
+                       epilog="examples:\n  place-safe sensor record i2c:1 -o sweep.json --frames 200\n"
+                              "  place-safe sensor record serial:/dev/ttyACM0 -o bridge.jsonl --seconds 30\n"
+                              "  place-safe sensor record serial:capture.log -o frames.json")
+    _add_source_options(r)
+    r.add_argument("-o", "--output", required=True, metavar="FILE", help="frame file to write")
+    r.add_argument("--frames", type=positive_int, default=100, metavar="N", help="frames to record (default 100)")
+    r.add_argument("--seconds", type=positive_float, metavar="S", help="stop after S seconds")
+    r.add_argument("--timeout", type=positive_float, default=2.0, metavar="S",
+                   help="stop when no frame arrives for S seconds (default 2)")
+    r.add_argument("--force", action="store_true", help="overwrite the output file")
+    r.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    r.set_defaults(func=cmd_record)
+
+    st = sub.add_parser("stream", formatter_class=_FMT, help="live plane readout (and rerun view)",
+                        description="Recover the plane from every frame as it arrives and print tilt, "
+                                    "distance and latency (age: from the measurement to the estimate, on "
+                                    "monotonic-clock sources). --save writes a rerun recording (histograms, "
+                                    "model fit, plane in 3D, latency, frame rate); --view opens a viewer.",
+                        epilog="examples:\n  place-safe sensor stream i2c:/dev/i2c-1 --method peak\n"
+                               "  place-safe sensor stream emu:place_level --max-frames 30 --save run.rrd\n"
+                               "  place-safe sensor stream serial:/dev/ttyACM0 --jsonl > planes.jsonl")
+    _add_source_options(st)
+    st.add_argument("--method", default="peak", choices=("diff", "peak", "peak-naive", "proprietary",
+                                                         "proprietary-naive"),
+                    help="plane recovery (default peak)")
+    st.add_argument("--calibration", metavar="CALIB.json", help="calibration file")
+    st.add_argument("--max-frames", type=positive_int, metavar="N", help="stop after N frames")
+    st.add_argument("--timeout", type=positive_float, default=2.0, metavar="S", help="read timeout (default 2 s)")
+    st.add_argument("--jsonl", action="store_true", help="one JSON line per frame on stdout")
+    st.add_argument("--save", metavar="RUN.rrd", help="write a rerun recording (headless)")
+    st.add_argument("--view", action="store_true", help="open a rerun viewer (needs a display)")
+    st.set_defaults(func=cmd_stream)
+
+    b = sub.add_parser("bench", formatter_class=_FMT, help="bus frame rate, bytes per frame, decode CPU (emulator)",
+                       description="Stream frames through the I2C driver over the register-level emulator with "
+                                   "its bus timing and print, per bus clock: frames/s (and bus-only and sensor "
+                                   "rates), the payload-only limit, bytes moved per frame against the protocol's "
+                                   "payload (4182) and transfer (4368) minimums, and host CPU to decode a frame.",
+                       epilog="examples:\n  place-safe sensor bench\n  place-safe sensor bench --bus-hz 400000 "
+                              "1000000 --frames 500\n  place-safe sensor bench --fault-rate 0.001 --json bench.json")
+    b.add_argument("--bus-hz", type=positive_float, nargs="+", default=[400e3, 1e6], metavar="HZ",
+                   help="bus clocks (default 400000 1000000)")
+    b.add_argument("--frames", type=positive_int, default=200, metavar="N", help="frames per clock (default 200)")
+    b.add_argument("--period-ms", type=nonnegative_int, default=33, metavar="MS", help="period (default 33)")
+    b.add_argument("--kilo-iterations", type=positive_int, default=4000, metavar="K",
+                   help="pulses in thousands (default 4000)")
+    b.add_argument("--fault-rate", type=fraction, default=0.0, metavar="P",
+                   help="probability per bus transfer of an injected fault (default 0)")
+    b.add_argument("--seed", type=nonnegative_int, default=0, help="seed of frames and faults")
+    b.add_argument("--json", metavar="FILE", help="write the figures as JSON")
+    b.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    b.set_defaults(func=cmd_bench)
+
+
+__all__ = ["register"]

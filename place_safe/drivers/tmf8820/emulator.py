@@ -1,0 +1,629 @@
+"""A register-level TMF8820 on an emulated I2C bus: the same subset of ``smbus2.SMBus`` the driver uses.
+
+Concept
+-------
+:class:`TMF8820Emulator` answers ``i2c_rdwr`` (with ``smbus2.i2c_msg`` messages) and the byte / block
+calls as a TMF8820 at one address would (``docs/tmf8820-protocol.md``): power-up through ENABLE, the
+bootloader with checksums (set address, write / read RAM, start the RAM patch or the ROM application),
+the application registers, command / status, the config and factory-calibration pages, short / long
+range, and measurements whose 30 raw-histogram packets and result frame carry frames taken from a feed
+(any :class:`~place_safe.io.source.FrameSource`, a list of frames, or a callable ``t -> Frame`` such as
+the simulated sensor). The driver in :mod:`.i2c` runs on it unchanged: it is how CI and the simulated
+placement go through the real code path (``emu:`` sources, :mod:`place_safe.io.uri`).
+
+Time
+----
+Three clocks are supported. *Virtual* (the default, :class:`VirtualClock`): time only moves when the bus
+carries bytes or the host sleeps, so a benchmark of minutes runs in seconds and its frame rate is the
+one a real bus would give. *Real time* (``realtime=True``): the host's ``time.monotonic``; transfers
+sleep for their bus time. *External* (``clock=`` a callable, e.g. the simulation's time): the device
+follows that clock; transfers run ahead of it on a bus cursor (:attr:`bus_time`), which the caller uses
+to hold data until its transfer would have finished.
+
+Bus timing model: a transfer of ``m`` messages moving ``b`` bytes (each message: its address byte plus
+its data bytes) takes ``(9 b + m + 1) / clock_hz`` s (9 clocks a byte, one per START / repeated START,
+one for the STOP) plus :attr:`BusTiming.host_overhead_s`. Device timing model (assumptions where the
+protocol notes give no figure, all attributes): a measurement integrates ``kilo_iterations * 1000 /
+pulse_rate_hz`` s plus ``processing_s`` and repeats every ``max(period, that)``; the device measures
+while the host reads the previous one out and presents the newest finished measurement when its output
+is free (measurements finished meanwhile are counted in ``stats["skipped"]``; feed frames are only
+taken for presented measurements, so a fed frame list comes out in order). The next packet appears
+``packet_prep_s`` after the host cleared the previous packet's interrupt.
+
+Faults on demand (:class:`FaultPlan`): each kind in :data:`FAULT_KINDS` is armed at a transfer index or
+at random with a per-transfer probability, and fires at its next applicable moment: ``nak`` / ``eio`` /
+``timeout`` (an ``OSError`` with errno 121 / 5 / 110; a timeout first stalls the bus for ``stall_s``),
+``short_read`` (a read of 2 or more bytes returns fewer), ``reset`` (the device drops to standby with
+everything lost), ``checksum`` (a bootloader response with a wrong checksum), ``out_of_order`` (two
+neighbouring histogram packets swapped), ``missing_packet`` (one histogram packet never sent);
+``dead_after`` makes every later transfer fail (a dead bus). ``stats["injected"]`` counts what fired.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import math
+import random
+import time
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from place_safe.drivers.tmf8820 import packets as P
+from place_safe.drivers.tmf8820 import registers as R
+from place_safe.drivers.tmf8820.hexfile import RamPatch
+from place_safe.sensor.frame import Frame
+
+#: Fault kinds the emulator injects and the driver counts under the same names.
+FAULT_KINDS = R.FAULT_KINDS
+_ERRNO = {"nak": R.ERRNO_NAK, "eio": R.ERRNO_EIO, "timeout": R.ERRNO_TIMEOUT}
+_BL_BAD_CHECKSUM = 0x02   # bootloader status for a command with a wrong checksum or length (emulator's code)
+_BL_BAD_COMMAND = 0x03    # unknown command, bad address, or no valid RAM image to start
+_APP_BAD_COMMAND = 0x03
+_CONFIG_DEFAULTS = {R.CFG_PERIOD_MS: (33, 2), R.CFG_KILO_ITERATIONS: (537, 2), R.CFG_CONFIDENCE_THRESHOLD: (6, 1),
+                    R.CFG_SPAD_MAP_ID: (R.SPAD_MAP_3X3, 1), R.CFG_ALG_SETTING: (R.ALG_REPORT_DISTANCES, 1),
+                    R.CFG_HISTOGRAM_DUMP: (0, 1)}
+
+
+class VirtualClock:
+    """Seconds that pass only when something advances them (the emulator's bus, the host's sleep)."""
+
+    def __init__(self, start: float = 0.0) -> None:
+        self.t = float(start)
+
+    def __call__(self) -> float:
+        return self.t
+
+    def sleep(self, seconds: float) -> None:
+        if seconds > 0:
+            self.t += seconds
+
+    def advance_to(self, t: float) -> None:
+        if t > self.t:
+            self.t = t
+
+
+@dataclass
+class BusTiming:
+    """I2C timing: ``clock_hz`` bus clock, 9 clocks a byte, one clock per START and for the STOP."""
+
+    clock_hz: float = 400e3
+    host_overhead_s: float = 0.0  # per i2c_rdwr call (driver and kernel), not counted by default
+
+    def duration(self, nbytes: int, nmessages: int) -> float:
+        return (R.CLOCKS_PER_BYTE * nbytes + nmessages + 1) / self.clock_hz + self.host_overhead_s
+
+
+class FaultPlan:
+    """Which faults to inject and when (see module docstring).
+
+    events: (transfer index, kind) pairs; the fault is armed at that transfer and fires at the first
+        applicable moment from then on.
+    rate: probability per transfer of arming a random kind among ``kinds`` that can apply now.
+    dead_after: transfer index from which every transfer fails with a NAK.
+    """
+
+    def __init__(self, events: Iterable[tuple[int, str]] = (), rate: float = 0.0,
+                 kinds: Iterable[str] = FAULT_KINDS, seed: int = 0, dead_after: int | None = None) -> None:
+        self.events = sorted((int(i), str(k)) for i, k in events)
+        for _, k in self.events:
+            if k not in FAULT_KINDS:
+                raise ValueError(f"unknown fault kind {k!r}; expected one of {', '.join(FAULT_KINDS)}")
+        self.kinds = tuple(kinds)
+        if not 0.0 <= rate <= 1.0:
+            raise ValueError(f"fault rate must be in [0, 1], got {rate}")
+        self.rate = float(rate)
+        self.rng = random.Random(seed)
+        self.dead_after = dead_after
+        self.armed: list[str] = []
+
+    def tick(self, index: int, applicable: Callable[[str], bool]) -> None:
+        while self.events and self.events[0][0] <= index:
+            self.armed.append(self.events.pop(0)[1])
+        if self.rate and self.rng.random() < self.rate:
+            options = [k for k in self.kinds if applicable(k)]
+            if options:
+                self.armed.append(self.rng.choice(options))
+
+    def take(self, kind: str) -> bool:
+        if kind in self.armed:
+            self.armed.remove(kind)
+            return True
+        return False
+
+
+def _feed_iter(feed: Any) -> Callable[[float], Frame | None]:
+    """Normalise a feed to ``next(t) -> Frame | None`` (None: the feed has ended)."""
+    from place_safe.io.source import FrameSource
+
+    if isinstance(feed, FrameSource):
+        def from_source(_t: float) -> Frame | None:
+            while True:  # entries a file could not parse cannot come from a sensor: skip them
+                try:
+                    frame = feed.read(10.0)
+                except StopIteration:
+                    return None
+                if not (isinstance(frame.extra, dict) and frame.extra.get("parse_error")):
+                    return frame
+        return from_source
+    if callable(feed) and not isinstance(feed, (list, tuple)):
+        return feed
+    it: Iterator[Frame] = iter(feed)
+    return lambda _t: next(it, None)
+
+
+class TMF8820Emulator:
+    """A TMF8820 on an emulated I2C bus (see module docstring).
+
+    feed: where measurements come from (FrameSource, iterable of Frames, or ``callable(t) -> Frame``).
+    address: the device's 7-bit address; transfers to any other address are not acknowledged (errno 121).
+    bus_hz: bus clock (Hz). clock: external time source (s); default a :class:`VirtualClock`.
+    realtime: follow ``time.monotonic`` and make transfers take real time.
+    patch: the RAM patch the device accepts; starting RAM (0x11) fails unless exactly it was downloaded.
+    serial: the 16-bit serial number; rom_version / patch_version: the 4 version bytes of each application.
+    faults: a :class:`FaultPlan`. record: keep every presented measurement in :attr:`presented`.
+    """
+
+    def __init__(self, feed: Any = (), *, address: int = R.DEFAULT_ADDRESS, bus_hz: float = 400e3,
+                 clock: Callable[[], float] | None = None, realtime: bool = False, patch: RamPatch | None = None,
+                 serial: int = 0x2A17, rom_version: tuple[int, int, int, int] = (3, 4, 12, 0),
+                 patch_version: tuple[int, int, int, int] = (3, 4, 27, 1), faults: FaultPlan | None = None,
+                 record: bool = False, pulse_rate_hz: float = 100e6, processing_s: float = 1e-3,
+                 packet_prep_s: float = 10e-6, command_s: float = 100e-6, calibration_s: float = 0.3,
+                 wake_s: float = 1e-3, boot_s: float = 3e-3, stall_s: float = 0.025,
+                 host_overhead_s: float = 0.0, tick_origin: int = 0x1234567) -> None:
+        if not (bus_hz > 0 and math.isfinite(bus_hz)):
+            raise ValueError(f"bus_hz must be a positive clock rate, got {bus_hz}")
+        self.address = address
+        self.timing = BusTiming(bus_hz, host_overhead_s)
+        self.realtime = realtime
+        if clock is not None:
+            self.clock, self._advance = clock, None
+        elif realtime:
+            self.clock, self._advance = time.monotonic, self._sleep_until
+        else:
+            vc = VirtualClock()
+            self.clock, self._advance = vc, vc.advance_to
+        self.virtual = self.clock if isinstance(self.clock, VirtualClock) else None
+        self._bus_t = self.clock()
+        self._next = _feed_iter(feed)
+        self.feed_ended = False
+        self.expected_patch = patch
+        self.serial = serial & 0xFFFF
+        self.rom_version, self.patch_version = tuple(rom_version), tuple(patch_version)
+        self.faults = faults or FaultPlan()
+        self.record = record
+        self.presented: list[tuple[int, np.ndarray, P.Result]] = []
+        self.pulse_rate_hz, self.processing_s, self.packet_prep_s = pulse_rate_hz, processing_s, packet_prep_s
+        self.command_s, self.calibration_s, self.wake_s, self.boot_s = command_s, calibration_s, wake_s, boot_s
+        self.stall_s = stall_s
+        self.tick_origin = tick_origin
+        self.transfers = 0
+        self.stats: dict[str, Any] = {"transfers": 0, "bytes": 0, "bus_seconds": 0.0, "measurements": 0,
+                                      "skipped": 0, "injected": {k: 0 for k in FAULT_KINDS}}
+        self.int_line = EmulatedIntLine(self)
+        self._ptr = 0
+        self._power_off()
+
+    # -- state ---------------------------------------------------------------------------------------
+    def _power_off(self) -> None:
+        self.regs = bytearray(256)
+        self.awake = False
+        self._ready_at: float | None = None
+        self._enable_stale = 0
+        self._boot_at: float | None = None
+        self._boot_version: tuple[int, ...] = ()
+        self.appid = 0
+        self.ram = bytearray(0x10000)
+        self._bl_addr = 0
+        self._bl_cmd = 0
+        self._bl_done_at = 0.0
+        self._bl_response = b""
+        self._cmd_done_at: float | None = None
+        self._cmd_status = R.STAT_OK
+        self.config = bytearray(R.PAGE_END - R.PAGE - R.HEADER_SIZE)
+        for reg, (value, n) in _CONFIG_DEFAULTS.items():
+            self.config[reg - R.PAGE - R.HEADER_SIZE:reg - R.PAGE - R.HEADER_SIZE + n] = value.to_bytes(n, "little")
+        self.calibration = bytearray(len(self.config))
+        self.active_range = R.CMD_LONG_RANGE
+        self.measuring = False
+        self._meas_t0 = 0.0
+        self._cycle = 1.0
+        self._last_done = 0
+        self._queue: list[bytes] = []
+        self._current: bytes | None = None
+        self._current_bit = 0
+        self._next_at: float | None = None
+        self._tid = 0
+        self._result_number = 0
+
+    @property
+    def bus_time(self) -> float:
+        """Time at which the last transfer ended on the emulated bus (s, on :attr:`clock`)."""
+        return self._bus_t
+
+    def now(self) -> float:
+        return max(self.clock(), self._bus_t)
+
+    def _sleep_until(self, t: float) -> None:
+        debt = t - time.monotonic()
+        if debt > 0.002:
+            time.sleep(debt)
+
+    @property
+    def cycle_seconds(self) -> float:
+        """Measurement repetition time (s) of the current config (see the device timing model)."""
+        period = int.from_bytes(self._cfg(R.CFG_PERIOD_MS, 2), "little") / 1000.0
+        kilo = int.from_bytes(self._cfg(R.CFG_KILO_ITERATIONS, 2), "little")
+        return max(period, kilo * 1000.0 / self.pulse_rate_hz + self.processing_s)
+
+    def _cfg(self, reg: int, n: int) -> bytes:
+        o = reg - R.PAGE - R.HEADER_SIZE
+        return bytes(self.config[o:o + n])
+
+    def _applicable(self, kind: str) -> bool:
+        if kind == "reset":
+            return self.awake
+        if kind == "checksum":
+            return self.awake and self.appid == R.APP_BOOTLOADER
+        if kind in ("out_of_order", "missing_packet"):
+            return self.measuring
+        return True
+
+    def _inject(self, kind: str) -> bool:
+        if self.faults.take(kind):
+            self.stats["injected"][kind] += 1
+            return True
+        return False
+
+    def reset(self) -> None:
+        """A spontaneous device reset: back to standby, RAM, patch and configuration lost."""
+        self._power_off()
+
+    # -- smbus2 subset -------------------------------------------------------------------------------
+    def i2c_rdwr(self, *msgs: Any) -> None:
+        """Perform the messages as one combined transaction (writes set the register pointer)."""
+        index = self.transfers
+        self.transfers += 1
+        start = self.now()
+        self.faults.tick(index, self._applicable)
+        nbytes = sum(1 + m.len for m in msgs)
+        end = start + self.timing.duration(nbytes, len(msgs))
+        dead = self.faults.dead_after is not None and index >= self.faults.dead_after
+        if dead or any(m.addr != self.address for m in msgs):
+            self._finish(start + self.timing.duration(1, 1), 1)
+            raise OSError(R.ERRNO_NAK, "Remote I/O error")
+        for kind in ("nak", "eio", "timeout"):
+            if self._inject(kind):
+                stall = self.stall_s if kind == "timeout" else 0.0
+                self._finish(start + self.timing.duration(1, 1) + stall, 1)
+                raise OSError(_ERRNO[kind], {"nak": "Remote I/O error", "eio": "Input/output error",
+                                             "timeout": "Connection timed out"}[kind])
+        if self.awake and self._inject("reset"):
+            self.reset()
+        self._update(start)
+        for m in msgs:
+            if m.flags & 1:  # I2C_M_RD
+                data = self._read(m.len)
+                n = m.len
+                if n >= 2 and self._inject("short_read"):
+                    n = self.faults.rng.randint(1, n - 1)
+                ctypes.memmove(m.buf, bytes(data[:n]), n)
+                m.len = n
+            else:
+                buf = bytes(m)
+                if buf:
+                    self._ptr = buf[0]
+                    if len(buf) > 1:
+                        self._write(self._ptr, buf[1:])
+        self._finish(end, nbytes)
+
+    def _finish(self, end: float, nbytes: int) -> None:
+        self.stats["transfers"] += 1
+        self.stats["bytes"] += nbytes
+        self.stats["bus_seconds"] += end - max(self.clock(), self._bus_t)
+        self._bus_t = end
+        if self._advance is not None:
+            self._advance(end)
+
+    def read_byte_data(self, addr: int, reg: int) -> int:
+        from smbus2 import i2c_msg
+
+        r = i2c_msg.read(addr, 1)
+        self.i2c_rdwr(i2c_msg.write(addr, [reg]), r)
+        return list(r)[0]
+
+    def write_byte_data(self, addr: int, reg: int, value: int) -> None:
+        from smbus2 import i2c_msg
+
+        self.i2c_rdwr(i2c_msg.write(addr, [reg, value & 0xFF]))
+
+    def read_i2c_block_data(self, addr: int, reg: int, length: int) -> list[int]:
+        from smbus2 import i2c_msg
+
+        if not 0 < length <= 32:
+            raise ValueError("SMBus block transfers carry 1..32 bytes")
+        r = i2c_msg.read(addr, length)
+        self.i2c_rdwr(i2c_msg.write(addr, [reg]), r)
+        return list(r)
+
+    def write_i2c_block_data(self, addr: int, reg: int, data: list[int]) -> None:
+        from smbus2 import i2c_msg
+
+        if not 0 < len(data) <= 32:
+            raise ValueError("SMBus block transfers carry 1..32 bytes")
+        self.i2c_rdwr(i2c_msg.write(addr, [reg, *data]))
+
+    def close(self) -> None:
+        """Nothing to release (an SMBus has ``close``)."""
+
+    def __enter__(self) -> "TMF8820Emulator":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    # -- registers -----------------------------------------------------------------------------------
+    def _read(self, n: int) -> bytes:
+        start = self._ptr
+        if self.awake and self.appid == R.APP_MEASUREMENT and start >= R.PAGE and start + n <= R.ENABLE:
+            self._ptr = (start + n) & 0xFF  # plain memory: no register with side effects in range
+            return bytes(self.regs[start:start + n])
+        out = bytearray()
+        for i in range(n):
+            reg = (self._ptr + i) & 0xFF
+            out.append(self._reg_value(reg))
+        self._ptr = (self._ptr + n) & 0xFF
+        return bytes(out)
+
+    def _reg_value(self, reg: int) -> int:
+        if reg == R.ENABLE:
+            if self.awake and self._enable_stale > 0:
+                self._enable_stale -= 1
+                return R.ENABLE_WAKEUP
+            return self.regs[R.ENABLE]
+        if not self.awake:
+            return 0
+        if self.appid == R.APP_BOOTLOADER and R.CMD_STAT <= reg < R.CMD_STAT + 3 + R.BL_MAX_CHUNK:
+            return self._bl_status_byte(reg - R.CMD_STAT)
+        return self.regs[reg]
+
+    def _write(self, reg: int, data: bytes) -> None:
+        if reg == R.ENABLE:
+            self._write_enable(data[0])
+            return
+        if not self.awake:
+            return
+        if reg == R.INT_STATUS:
+            self._clear_int(data[0])
+        elif reg == R.INT_ENAB:
+            self.regs[R.INT_ENAB] = data[0]
+        elif reg == R.CMD_STAT and self.appid == R.APP_BOOTLOADER:
+            self._bl_command(data)
+        elif reg == R.CMD_STAT and self.appid == R.APP_MEASUREMENT:
+            self._app_command(data[0])
+            if len(data) > 1:
+                self._store(reg + 1, data[1:])
+        elif self.appid == R.APP_MEASUREMENT and R.PAGE <= reg < R.PAGE_END:
+            self._store(reg, data)
+
+    def _store(self, reg: int, data: bytes) -> None:
+        end = min(R.PAGE_END, reg + len(data))
+        if reg < end:
+            self.regs[reg:end] = data[:end - reg]
+
+    def _write_enable(self, value: int) -> None:
+        if value & R.ENABLE_WAKEUP and not self.awake:
+            self.awake = True
+            self._ready_at = self.now() + self.wake_s
+            self.regs[R.ENABLE] = R.ENABLE_WAKEUP
+        elif not value & R.ENABLE_WAKEUP and self.awake:
+            self._power_off()
+
+    def _clear_int(self, bits: int) -> None:
+        self.regs[R.INT_STATUS] &= ~bits & 0xFF
+        if self._current is not None and bits & self._current_bit:
+            self._current = None
+            self._next_at = self.now() + self.packet_prep_s if self._queue else None
+
+    # -- bootloader ----------------------------------------------------------------------------------
+    def _bl_status_byte(self, offset: int) -> int:
+        if self.now() < self._bl_done_at or not self._bl_response:
+            return self._bl_cmd if offset == 0 else 0
+        resp = self._bl_response
+        if offset == len(resp) - 1 and self._bl_cmd in (R.BL_SET_ADDRESS, R.BL_WRITE_RAM, R.BL_READ_RAM) \
+                and self._inject("checksum"):
+            return resp[offset] ^ 0x5A
+        return resp[offset] if offset < len(resp) else 0
+
+    def _bl_respond(self, status: int, payload: bytes = b"") -> None:
+        body = bytes([status, len(payload)]) + payload
+        self._bl_response = body + bytes([R.bl_checksum(body)])
+        self._bl_done_at = self.now() + self.command_s
+
+    def _bl_command(self, data: bytes) -> None:
+        self._bl_cmd = data[0]
+        if len(data) < 3 or len(data) != 3 + data[1] or R.bl_checksum(data[:-1]) != data[-1]:
+            self._bl_respond(_BL_BAD_CHECKSUM)
+            return
+        cmd, payload = data[0], data[2:-1]
+        if cmd == R.BL_SET_ADDRESS and len(payload) == 2:
+            self._bl_addr = int.from_bytes(payload, "little")
+            self._bl_respond(R.BL_STATUS_OK)
+        elif cmd == R.BL_WRITE_RAM and 0 < len(payload) <= R.BL_MAX_CHUNK and self._bl_addr + len(payload) <= 0x10000:
+            self.ram[self._bl_addr:self._bl_addr + len(payload)] = payload
+            self._bl_addr += len(payload)
+            self._bl_respond(R.BL_STATUS_OK)
+        elif cmd == R.BL_READ_RAM and len(payload) == 1 and 0 < payload[0] <= R.BL_MAX_CHUNK:
+            n = payload[0]
+            self._bl_respond(R.BL_STATUS_OK, bytes(self.ram[self._bl_addr:self._bl_addr + n]))
+            self._bl_addr += n
+        elif cmd == R.BL_START_ROM_APP and not payload:
+            self._boot(self.rom_version)
+        elif cmd == R.BL_START_RAM_APP and not payload:
+            p = self.expected_patch
+            if p is not None and bytes(self.ram[p.address:p.address + len(p.data)]) == p.data:
+                self._boot(self.patch_version)
+            else:
+                self._bl_respond(_BL_BAD_COMMAND)
+        else:
+            self._bl_respond(_BL_BAD_COMMAND)
+
+    def _boot(self, version: tuple[int, ...]) -> None:
+        self._bl_response = b""
+        self._boot_at = self.now() + self.boot_s
+        self._boot_version = version
+
+    # -- application ---------------------------------------------------------------------------------
+    def _app_command(self, cmd: int) -> None:
+        t = self.now()
+        status, delay = R.STAT_OK, self.command_s
+        if cmd == R.CMD_MEASURE:
+            self.measuring = True
+            self._meas_t0 = t
+            self._cycle = self.cycle_seconds
+            self._last_done = 0
+            status = R.STAT_ACCEPTED
+        elif cmd == R.CMD_STOP:
+            self.measuring = False
+            self._queue, self._current, self._next_at = [], None, None
+            self.regs[R.INT_STATUS] &= ~R.INT_MEASUREMENT & 0xFF
+        elif cmd in (R.CMD_LOAD_CONFIG_COMMON, R.CMD_LOAD_FACTORY_CALIBRATION, R.CMD_LOAD_SPAD_1, R.CMD_LOAD_SPAD_2):
+            body = {R.CMD_LOAD_CONFIG_COMMON: self.config,
+                    R.CMD_LOAD_FACTORY_CALIBRATION: self.calibration}.get(cmd, bytearray(len(self.config)))
+            self.regs[R.PAGE:R.PAGE_END] = bytes([cmd, 0]) + len(body).to_bytes(2, "little") + bytes(body)
+        elif cmd == R.CMD_WRITE_CONFIG:
+            kind = self.regs[R.PAGE]
+            body = self.regs[R.PAGE + R.HEADER_SIZE:R.PAGE_END]
+            if kind == R.CMD_LOAD_CONFIG_COMMON:
+                self.config[:] = body
+            elif kind == R.CMD_LOAD_FACTORY_CALIBRATION:
+                self.calibration[:] = body
+            elif kind not in (R.CMD_LOAD_SPAD_1, R.CMD_LOAD_SPAD_2):
+                status = _APP_BAD_COMMAND
+        elif cmd == R.CMD_FACTORY_CALIBRATION:
+            rng = np.random.default_rng(self.serial)
+            self.calibration[:] = rng.integers(0, 256, len(self.calibration), dtype=np.uint8).tobytes()
+            delay = self.calibration_s
+        elif cmd in (R.CMD_SHORT_RANGE, R.CMD_LONG_RANGE):
+            self.active_range = cmd
+            self.regs[R.ACTIVE_RANGE] = cmd
+        else:
+            status = _APP_BAD_COMMAND
+        self.regs[R.CMD_STAT] = cmd
+        self._cmd_status = status
+        self._cmd_done_at = t + delay
+
+    def _update(self, t: float) -> None:
+        """Advance the device to time ``t``: wake-up, boot, commands, measurements, next packet."""
+        if self._ready_at is not None and t >= self._ready_at:
+            self._ready_at = None
+            self.regs[R.ENABLE] = R.ENABLE_WAKEUP | R.ENABLE_CPU_READY
+            self._enable_stale = 1
+            self.appid = R.APP_BOOTLOADER
+            self.regs[R.APPID] = R.APP_BOOTLOADER
+        if self._boot_at is not None and t >= self._boot_at:
+            self._boot_at = None
+            self.appid = R.APP_MEASUREMENT
+            self.regs[R.VERSION:R.VERSION + 4] = bytes(self._boot_version)
+            self.regs[R.CMD_STAT] = R.STAT_OK
+            self.regs[R.MODE] = 0x00
+            self.regs[R.ACTIVE_RANGE] = self.active_range
+            self.regs[R.SERIAL_NUMBER:R.SERIAL_NUMBER + 2] = self.serial.to_bytes(2, "little")
+        if self._cmd_done_at is not None and t >= self._cmd_done_at:
+            self._cmd_done_at = None
+            self.regs[R.CMD_STAT] = self._cmd_status
+        if not self.measuring:
+            return
+        if self._current is None and not self._queue:
+            done = int((t - self._meas_t0) / self._cycle)
+            if done > self._last_done and not self.feed_ended:
+                self.stats["skipped"] += done - self._last_done - 1
+                self._last_done = done
+                self._present(self._meas_t0 + done * self._cycle)
+        if self._current is None and self._queue and self._next_at is not None and t >= self._next_at:
+            self._place(self._queue.pop(0))
+
+    def _present(self, t_done: float) -> None:
+        frame = self._next(t_done)
+        if frame is None:
+            self.feed_ended = True
+            return
+        ticks = (self.tick_origin + int(round(t_done / R.TICK_SECONDS))) & 0xFFFFFFFF | 1
+        channels = np.clip(np.rint(P.frame_channels(frame)), 0, P.COUNT_MAX).astype(np.int64)
+        res = P.result_from_frame(frame, self._result_number, ticks,
+                                  int(frame.extra.get("temperature", 25)) if isinstance(frame.extra, dict) else 25)
+        self._result_number = (self._result_number + 1) & 0xFF
+        self.stats["measurements"] += 1
+        if self.record:
+            self.presented.append((ticks, channels, res))
+        blocks = P.split_channels(channels)
+        order = list(range(R.HIST_PACKETS))
+        swapped: tuple[int, ...] = ()
+        if self._inject("out_of_order"):
+            k = self.faults.rng.randrange(R.HIST_PACKETS - 1)
+            order[k], order[k + 1] = order[k + 1], order[k]
+            swapped = (k, k + 1)
+        if self._inject("missing_packet"):  # never one of a swapped pair: both faults stay visible
+            order.pop(self.faults.rng.choice([i for i in range(len(order)) if i not in swapped]))
+        queue = []
+        for k in order:
+            queue.append(P.encode_histogram_packet(k, blocks[k], self._tid, R.CMD_LOAD_CONFIG_COMMON))
+            self._tid = (self._tid + 1) & 0xFF
+        queue.append(P.encode_result(res, self._tid))
+        self._tid = (self._tid + 1) & 0xFF
+        self._queue = queue
+        self._place(self._queue.pop(0))
+
+    def _place(self, packet: bytes) -> None:
+        self.regs[R.PAGE:R.PAGE + len(packet)] = packet
+        self._current = packet
+        self._current_bit = R.INT_RESULT if packet[0] == R.CID_RESULT else R.INT_RAW_HISTOGRAM
+        self._next_at = None
+        self.regs[R.INT_STATUS] |= self._current_bit
+
+    def next_event(self) -> float | None:
+        """When the device will next change by itself (s), or None."""
+        times = [t for t in (self._ready_at, self._boot_at, self._cmd_done_at, self._next_at) if t is not None]
+        if self.measuring and self._current is None and not self._queue and not self.feed_ended:
+            times.append(self._meas_t0 + (self._last_done + 1) * self._cycle)
+        return min(times) if times else None
+
+    @property
+    def interrupt(self) -> bool:
+        """The INT line is asserted (low): an enabled interrupt is pending."""
+        return bool(self.regs[R.INT_STATUS] & self.regs[R.INT_ENAB])
+
+
+class EmulatedIntLine:
+    """The emulator's INT pin with the driver's interrupt-line interface: ``wait(timeout) -> bool``."""
+
+    def __init__(self, emu: TMF8820Emulator) -> None:
+        self.emu = emu
+
+    def wait(self, timeout: float) -> bool:
+        emu = self.emu
+        deadline = emu.now() + max(timeout, 0.0)
+        while True:
+            t = emu.now()
+            emu._update(t)
+            if emu.interrupt:
+                return True
+            if t >= deadline:
+                return False
+            nxt = emu.next_event()
+            target = deadline if nxt is None else min(max(nxt, t), deadline)
+            if emu.virtual is not None:
+                emu.virtual.advance_to(target)
+            elif emu.realtime:
+                time.sleep(max(0.0, min(target - t, 0.002)) or 0.0002)
+            else:
+                return False  # external clock: the caller advances time
+
+    def close(self) -> None:
+        pass
+
+
+__all__ = ["TMF8820Emulator", "FaultPlan", "BusTiming", "VirtualClock", "EmulatedIntLine", "FAULT_KINDS"]

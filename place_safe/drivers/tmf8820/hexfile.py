@@ -1,0 +1,60 @@
+"""The RAM patch: a user-supplied Intel HEX file of one contiguous segment, parsed with ``intelhex``.
+
+ams distributes the TMF8820 application patch as an Intel HEX file; place_safe never ships it. The
+driver downloads ``RamPatch.data`` to ``RamPatch.address`` through the bootloader (128 bytes per
+command) and starts it. :func:`write_patch` writes a HEX file (for synthetic test patches).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from place_safe.exceptions import ConfigError
+
+
+@dataclass(frozen=True)
+class RamPatch:
+    """``data`` to be written to RAM starting at ``address`` (16-bit bootloader address space)."""
+
+    address: int
+    data: bytes
+
+    def chunks(self, size: int) -> list[tuple[int, bytes]]:
+        """(address, bytes) pieces of at most ``size`` bytes, in order."""
+        return [(self.address + i, self.data[i:i + size]) for i in range(0, len(self.data), size)]
+
+
+def load_patch(path: str | Path) -> RamPatch:
+    """Parse an Intel HEX RAM patch; :class:`ConfigError` (one line) if it is missing or unusable."""
+    from intelhex import IntelHex, IntelHexError
+
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(f"RAM patch {p} does not exist (the TMF8820 patch is an Intel HEX file from ams)")
+    try:
+        ih = IntelHex(str(p))
+    except (IntelHexError, ValueError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"RAM patch {p} is not a valid Intel HEX file: {str(exc).splitlines()[0]}") from None
+    segments = ih.segments()
+    if not segments:
+        raise ConfigError(f"RAM patch {p} holds no data")
+    if len(segments) != 1:
+        raise ConfigError(f"RAM patch {p} has {len(segments)} segments; expected one contiguous segment")
+    start, stop = segments[0]
+    if stop > 0x10000:
+        raise ConfigError(f"RAM patch {p} ends at 0x{stop:x}, beyond the bootloader's 16-bit addresses")
+    return RamPatch(start, ih.tobinstr(start=start, end=stop - 1))
+
+
+def write_patch(path: str | Path, patch: RamPatch) -> Path:
+    """Write ``patch`` as an Intel HEX file (16 data bytes per record)."""
+    from intelhex import IntelHex
+
+    ih = IntelHex()
+    ih.puts(patch.address, patch.data)
+    ih.write_hex_file(str(path))
+    return Path(path)
+
+
+__all__ = ["RamPatch", "load_patch", "write_patch"]

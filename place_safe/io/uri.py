@@ -1,0 +1,182 @@
+"""Frame sources by name: ``open_source(uri, **options)`` turns a source URI into a FrameSource.
+
+URIs
+----
+``file:PATH``
+    Replay a frame file (:class:`~place_safe.io.replay.FileReplaySource`; options ``rate_hz``, ``loop``,
+    ``realtime``, ``clock``).
+``i2c:BUS[@ADDRESS]``
+    A TMF8820 on Linux I2C, e.g. ``i2c:/dev/i2c-1@0x41`` or ``i2c:1`` (address default 0x41;
+    :class:`~place_safe.drivers.tmf8820.i2c.TMF8820Source`; options ``patch`` (Intel HEX path),
+    ``period_ms``, ``kilo_iterations``, ``short_range``, ``calibration_dir``, ``int_line``
+    (``"CHIP:OFFSET"``, e.g. ``"/dev/gpiochip0:17"``, or an object with ``wait``), ``clock``, ``start``).
+``serial:PORT[@BAUD]``
+    The Arduino bridge on a serial port (baud default 115200), or a recorded bridge log when PORT is a
+    regular file (:class:`~place_safe.drivers.tmf8820.serial_bridge.BridgeSource`; option ``address``).
+``emu:SOURCE``
+    The I2C driver over the register-level emulator
+    (:class:`~place_safe.drivers.tmf8820.emulated.EmulatedTMF8820`) fed by SOURCE: ``file:PATH`` (a
+    frame file), ``synthetic[:N]`` (N synthetic frames, default 100), ``scenario:NAME`` or ``NAME`` (the
+    simulated sensor over a packaged scenario's table, needs the [sim] extra) or ``sim`` (the simulated
+    sensor passed as option ``tof``, clocked by its simulation: ``clock_domain`` "robot"). Options
+    ``bus_hz`` (default 400 kHz), ``realtime`` (default True: frames at the pace of the emulated bus on
+    the host clock; False: virtual time), ``loop``, ``faults``, ``patch``, ``record``, ``clock``, and
+    the driver's options (``period_ms``, ``kilo_iterations``, ...).
+
+A malformed URI or an option the source does not take raises a one-line
+:class:`~place_safe.exceptions.ConfigError`; a device that cannot be opened raises
+:class:`~place_safe.exceptions.SensorError`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from place_safe.exceptions import ConfigError
+from place_safe.io.source import FrameSource
+
+SCHEMES = ("file", "i2c", "serial", "emu")
+_DRIVER_OPTIONS = {"patch", "period_ms", "kilo_iterations", "short_range", "calibration_dir", "int_line", "clock",
+                   "start", "retries", "poll_s"}
+
+
+def _check(uri: str, options: dict, allowed: set[str]) -> None:
+    unknown = sorted(set(options) - allowed)
+    if unknown:
+        raise ConfigError(f"source {uri!r} does not take option(s) {', '.join(unknown)}; "
+                          f"it takes {', '.join(sorted(allowed)) or 'none'}")
+
+
+def _split_at(rest: str, uri: str, what: str) -> tuple[str, str | None]:
+    if "@" in rest:
+        left, right = rest.rsplit("@", 1)
+        if not left or not right:
+            raise ConfigError(f"source {uri!r}: expected {what}")
+        return left, right
+    return rest, None
+
+
+def _int(text: str, uri: str, what: str) -> int:
+    try:
+        return int(text, 0)
+    except ValueError:
+        raise ConfigError(f"source {uri!r}: {what} {text!r} is not a number") from None
+
+
+def _int_line(spec: Any) -> Any:
+    from place_safe.drivers.tmf8820.i2c import GpiodIntLine
+
+    if spec is None or hasattr(spec, "wait"):
+        return spec
+    chip, _, offset = str(spec).rpartition(":")
+    if not chip or not offset.isdigit():
+        raise ConfigError(f"int_line {spec!r}: expected CHIP:OFFSET, e.g. /dev/gpiochip0:17")
+    return GpiodIntLine(chip, int(offset))
+
+
+def open_source(uri: str, **options: Any) -> FrameSource:
+    """The frame source named by ``uri`` (see module docstring), opened and ready to ``read``."""
+    if not isinstance(uri, str) or ":" not in uri:
+        raise ConfigError(f"source {uri!r} is not a source URI; expected one of "
+                          + ", ".join(f"{s}:..." for s in SCHEMES))
+    scheme, rest = uri.split(":", 1)
+    if scheme not in SCHEMES:
+        raise ConfigError(f"source {uri!r}: unknown scheme {scheme!r}; expected one of "
+                          + ", ".join(f"{s}:" for s in SCHEMES))
+    if not rest:
+        raise ConfigError(f"source {uri!r}: nothing after '{scheme}:'")
+    if scheme == "file":
+        from place_safe.io.replay import FileReplaySource
+
+        _check(uri, options, {"rate_hz", "loop", "realtime", "clock"})
+        return FileReplaySource(rest, **options)
+    if scheme == "i2c":
+        from place_safe.drivers.tmf8820.i2c import TMF8820Source
+        from place_safe.drivers.tmf8820.registers import DEFAULT_ADDRESS
+
+        _check(uri, options, _DRIVER_OPTIONS)
+        bus, addr = _split_at(rest, uri, "i2c:BUS@ADDRESS, e.g. i2c:/dev/i2c-1@0x41")
+        address = DEFAULT_ADDRESS if addr is None else _int(addr, uri, "address")
+        if not 0 < address < 0x78:
+            raise ConfigError(f"source {uri!r}: 0x{address:x} is not a 7-bit device address")
+        bus_arg: int | str = int(bus) if bus.isdigit() else bus
+        opts = dict(options)
+        opts["int_line"] = _int_line(opts.get("int_line"))
+        return TMF8820Source(bus_arg, address, **opts)
+    if scheme == "serial":
+        from place_safe.drivers.tmf8820.serial_bridge import BridgeSource
+
+        _check(uri, options, {"address", "clock"})
+        if Path(rest).is_file():
+            return BridgeSource.open_log(rest, **options)
+        port, baud = _split_at(rest, uri, "serial:PORT@BAUD, e.g. serial:/dev/ttyACM0@115200")
+        return BridgeSource.open_serial(port, 115200 if baud is None else _int(baud, uri, "baud rate"), **options)
+    return _open_emulated(uri, rest, options)
+
+
+def _open_emulated(uri: str, inner: str, options: dict) -> FrameSource:
+    from place_safe.drivers.tmf8820.emulated import EmulatedTMF8820
+
+    _check(uri, options, _DRIVER_OPTIONS | {"bus_hz", "realtime", "loop", "faults", "record", "tof", "emulator"})
+    opts = dict(options)
+    emu_kw = {k: opts.pop(k) for k in ("bus_hz", "faults", "record", "clock") if k in opts}
+    realtime = bool(opts.pop("realtime", True))
+    loop = bool(opts.pop("loop", False))
+    tof = opts.pop("tof", None)
+    emulator_kw = opts.pop("emulator", None)
+    patch = opts.pop("patch", None)
+    if isinstance(patch, (str, Path)):
+        from place_safe.drivers.tmf8820.hexfile import load_patch
+
+        patch = load_patch(patch)
+    kind, _, arg = inner.partition(":")
+    if kind == "file":
+        from place_safe.io.replay import FileReplaySource
+
+        if not arg:
+            raise ConfigError(f"source {uri!r}: expected emu:file:PATH")
+        feed: Any = FileReplaySource(arg, realtime=False, loop=loop)
+    elif kind == "synthetic":
+        from place_safe.evaluation.synthetic import make_frames
+
+        n = _int(arg, uri, "frame count") if arg else 100
+        if n < 1:
+            raise ConfigError(f"source {uri!r}: the frame count must be >= 1")
+        frames = make_frames(n)
+        feed = _cycle(frames) if loop else frames
+    elif kind == "sim":
+        if tof is None:
+            raise ConfigError(f"source {uri!r}: emu:sim needs the simulated sensor as option tof=SimToF")
+        emu_kw.setdefault("clock", lambda: float(tof.data.time))
+        feed = lambda _t: tof.measure()  # noqa: E731 - the simulated sensor at the current sim state
+    else:
+        feed = _scenario_feed(uri, arg if kind == "scenario" else inner)
+    if tof is not None and kind != "sim":
+        raise ConfigError(f"source {uri!r}: option tof is only for emu:sim")
+    return EmulatedTMF8820(feed, realtime=realtime, patch=patch, driver=opts, emulator=emulator_kw, **emu_kw)
+
+
+def _cycle(frames: list):
+    while True:
+        yield from frames
+
+
+def _scenario_feed(uri: str, name: str):
+    try:
+        from place_safe.sim.placement_run import scenario_path
+        from place_safe.sim.scene import build_scene, load_scenario
+        from place_safe.sim.tof import SimToF, ToFConfig
+    except ImportError as exc:
+        raise ConfigError(f"source {uri!r}: a scenario needs the simulation ([sim] extra): {exc}") from None
+    try:
+        path = scenario_path(name)
+    except FileNotFoundError as exc:
+        raise ConfigError(f"source {uri!r}: {exc}") from None
+    scene_cfg, sensor_kw, _ = load_scenario(path)
+    scene_cfg.with_robot = False
+    tof = SimToF(build_scene(scene_cfg), config=ToFConfig(**sensor_kw))
+    return lambda _t: tof.measure()
+
+
+__all__ = ["open_source", "SCHEMES"]

@@ -1,0 +1,58 @@
+"""``place-safe sensor``: info, record, stream (with a rerun recording) and bench, over the emulator."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from place_safe.cli.app import main
+from place_safe.drivers.tmf8820.bench import random_frames
+from place_safe.io.frame_file import load_frames, write_frames
+
+
+def test_info_json(capsys):
+    assert main(["sensor", "info", "emu:synthetic:1", "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["mode"] == "3x3" and info["active_range"].startswith("short") and info["app_version"]
+
+
+def test_record_writes_a_frame_file(tmp_path, capsys):
+    src = tmp_path / "in.json"
+    write_frames(src, random_frames(3, seed=4))
+    out = tmp_path / "out.jsonl"
+    assert main(["sensor", "record", f"emu:file:{src}", "-o", str(out), "--frames", "3", "--bus-hz", "1e6", "-q"]) == 0
+    got = load_frames(out)
+    assert len(got) == 3 and all(f.timestamp is not None for f in got)
+    assert main(["sensor", "record", f"emu:file:{src}", "-o", str(out)]) == 2  # exists, no --force
+    assert "use --force" in capsys.readouterr().err
+
+
+def test_stream_saves_a_rerun_recording(tmp_path, capsys):
+    src = tmp_path / "in.json"
+    write_frames(src, load_frames("tests/data/tmf8820_ur5_sweep.json")[20:23])
+    rrd = tmp_path / "run.rrd"
+    assert main(["sensor", "stream", f"file:{src}", "--max-frames", "3", "--save", str(rrd)]) == 0
+    out = capsys.readouterr().out
+    assert "tilt" in out and "distance" in out
+    assert rrd.is_file() and rrd.stat().st_size > 1000
+
+
+def test_bench_prints_and_writes_figures(tmp_path, capsys):
+    js = tmp_path / "bench.json"
+    assert main(["sensor", "bench", "--frames", "10", "--bus-hz", "400000", "--json", str(js), "-q"]) == 0
+    rows = json.loads(js.read_text())
+    assert rows[0]["frames"] == 10 and rows[0]["bytes_per_frame"] >= rows[0]["transfer_min"]
+    assert "frames/s" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("argv, match", [
+    (["sensor", "bench", "--frames", "0"], "expected a whole number >= 1"),
+    (["sensor", "info", "file:x.json", "--patch", "p.hex"], "does not apply"),
+    (["sensor", "info", "nope"], "not a source URI"),
+    (["sensor", "info", "emu:synthetic:1", "--patch", "missing.hex"], "does not exist"),
+])
+def test_bad_usage_is_one_line_exit_2(argv, match, capsys):
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert match in err and len(err.splitlines()) == 1

@@ -1,0 +1,169 @@
+"""PlacementLoop plumbing with a kinematic robot and a sensor that reports the true plane.
+
+The adversarial cases of the house issue: a sensor that freezes after the stop, duplicate and
+out-of-order frames, contact above the sensed surface, a dead sensor, a failing command, host-clock
+stamps through the reader thread.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import pytest
+
+from place_safe.exceptions import SensorTimeout
+from place_safe.placement.loop import ClockMap, EstimatePipeline, PlacementLoop, PoseHistory
+from place_safe.placement.machine import PlacementConfig
+
+from placement_fakes import KinematicRobot, TruthEstimator, TruthSource
+
+pytestmark = pytest.mark.filterwarnings("ignore::RuntimeWarning")
+
+
+def run(robot, source, config=None, timeout=20.0):
+    loop = PlacementLoop(robot, source, TruthEstimator(), config=config)
+    return loop, loop.run(timeout=timeout)
+
+
+def test_level_table_is_released_near_the_surface():
+    robot = KinematicRobot(height=0.12)
+    loop, res = run(robot, TruthSource(robot))
+    assert res.outcome == "released", res.reason
+    assert robot.opened and 0.0 <= robot.opened_at <= PlacementConfig().release_clearance + 1e-6
+    assert res.frames_used > 5 and res.planes == res.frames_used
+    assert [t["to"] for t in res.transitions][-1] == "done"
+
+
+def test_sensor_frozen_after_the_stop_never_releases():
+    # the frozen sensor repeats one frame (same stamp): one post-stop measurement, not check_frames
+    robot = KinematicRobot(height=0.08)
+    src = TruthSource(robot)
+    loop = PlacementLoop(robot, src, TruthEstimator())
+    loop.start()
+    while not loop.finished and loop.machine.phase.value != "check":
+        loop.tick()
+    src.freeze_after = robot.t + 0.05  # a little after the stop command: at most one measurement at rest
+    res = loop.run(timeout=10.0)
+    assert res.outcome == "refused" and not robot.opened
+    assert "surface planes" in res.reason or "stale" in res.reason or "sensor" in res.reason
+    assert res.dropped.get("repeated", 0) > 0
+
+
+def test_duplicate_and_out_of_order_frames_are_dropped_not_counted():
+    robot = KinematicRobot(height=0.1)
+
+    class Replaying(TruthSource):
+        """Every frame is delivered twice, and every fifth an old one is re-sent."""
+
+        def __init__(self, *a, **k):
+            super().__init__(*a, **k)
+            self.history = []
+            self.n = 0
+
+        def read(self, timeout=1.0):
+            self.n += 1
+            if self.history and self.n % 2 == 0:
+                return self.history[-1]
+            if len(self.history) > 3 and self.n % 5 == 0:
+                return self.history[-3]
+            f = super().read(timeout)
+            self.history.append(f)
+            return f
+
+    loop, res = run(robot, Replaying(robot))
+    assert res.dropped.get("repeated", 0) > 10
+    # released from genuinely new measurements only
+    assert res.outcome == "released"
+    stamps = [e["stamp"] for e in res.frame_log if e["accepted"]]
+    assert stamps == sorted(stamps) and len(set(stamps)) == len(stamps)
+
+
+def test_contact_above_the_sensed_surface_is_an_obstacle():
+    # the sensor sees the table at z=0 but the cup lands on something 30 mm high: no release
+    robot = KinematicRobot(height=0.12, obstacle_z=0.03)
+    loop, res = run(robot, TruthSource(robot))
+    assert res.outcome == "refused" and not robot.opened
+    assert "obstacle" in res.reason
+
+
+def test_dead_sensor_refuses_and_says_why():
+    robot = KinematicRobot(height=0.12)
+    loop, res = run(robot, TruthSource(robot, error_after=0.5))
+    assert res.outcome == "refused" and not robot.opened
+    assert "sensor" in res.reason and "Remote I/O" in res.reason
+
+
+def test_failing_speed_command_aborts_holding_the_cup():
+    robot = KinematicRobot(height=0.12)
+    robot.fail_speed = True
+    loop, res = run(robot, TruthSource(robot))
+    assert res.outcome == "refused" and not robot.opened
+    assert "command speed failed" in res.reason
+
+
+def test_threaded_pipeline_with_host_clock_stamps():
+    # frames stamped on a host clock 1000 s away from the robot clock: the clock map brings them over
+    robot = KinematicRobot(height=0.1)
+    host = lambda: robot.t + 1000.0  # noqa: E731 - the host clock runs 1000 s ahead
+    src = TruthSource(robot, clock=host)
+    loop = PlacementLoop(robot, src, TruthEstimator(), host_clock=host)
+    assert loop.pipeline.threaded
+    # the kinematic robot has no real time: tick with a short wall sleep so the reader thread keeps up
+    loop.start()
+    t_end = time.monotonic() + 60.0
+    while not loop.finished and time.monotonic() < t_end:
+        loop.tick()
+        time.sleep(0.0005)
+    loop.pipeline.stop()
+    res = loop.result()
+    assert res.outcome == "released", res.reason
+    used = [e for e in res.frame_log if e["accepted"]]
+    assert used and all(abs(e["stamp"] - e["t"]) < 1.0 for e in used)  # on the robot clock, not host
+
+
+def test_clock_map_and_pose_history():
+    c = ClockMap("monotonic")
+    assert math.isnan(c.to_robot(5.0))
+    c.observe(10.0, 4.0)
+    c.observe(10.1, 4.09)  # a fresher robot packet: larger offset
+    assert c.offset == pytest.approx(6.01)
+    assert math.isnan(c.to_robot("x")) and ClockMap("robot").to_robot(3.0) == 3.0
+    h = PoseHistory(tolerance=0.004)
+    A, B = np.eye(4), np.eye(4)
+    B[:3, 3] = (0.0, 0.0, 1.0)
+    h.add(0.0, A)
+    h.add(1.0, B)
+    h.add(1.0, B)  # same time: replaces
+    h.add(float("nan"), A)  # ignored
+    assert h.at(0.5)[2, 3] == pytest.approx(0.5)
+    assert h.at(2.0) is None and h.at(float("nan")) is None
+
+
+def test_pipeline_survives_an_estimator_that_raises():
+    class Boom:
+        def estimate(self, frame):
+            raise RuntimeError("solver bug")
+
+    class One:
+        clock_domain = "robot"
+
+        def read(self, timeout=1.0):
+            from place_safe.sensor.frame import Frame
+
+            return Frame(np.zeros((9, 128)), np.ones(128), timestamp=0.0)
+
+    m = EstimatePipeline(One(), Boom()).take()
+    assert m is not None and m.estimate.plane is None and "solver bug" in m.estimate.reason
+
+
+def test_pipeline_counts_timeouts():
+    class Never:
+        clock_domain = "robot"
+
+        def read(self, timeout=1.0):
+            raise SensorTimeout("nothing")
+
+    p = EstimatePipeline(Never(), None)
+    assert p.take() is None and p.timeouts == 1 and p.error is None
