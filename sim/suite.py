@@ -49,7 +49,7 @@ def random_scenario(rng: np.random.Generator, index: int = 0, calibration: str =
     radius = pc.cup_radius
     tilt = math.radians(rng.uniform(0.0, 15.0))
     direction = rng.uniform(-math.pi, math.pi)
-    start = rng.uniform(0.10, 0.40)
+    start = 0.40 if rng.random() < 0.3 else rng.uniform(0.10, 0.40)  # enough starts at 40 cm for the time figure
     mat: dict[str, Any] = {"albedo": float(rng.choice([0.15, 0.4, 1.0, 1.0, 1.6]))}
     kind = rng.choice(["uniform", "uniform", "glossy", "checker"])
     if kind == "glossy":
