@@ -59,6 +59,11 @@ def cmd_scenarios(args: argparse.Namespace) -> int:
 
     if args.jobs > 1 and args.ray:
         raise UsageError("scenarios: give --jobs or --ray, not both")
+    if args.ray:
+        try:
+            import ray  # noqa: F401
+        except ImportError:
+            raise UsageError("scenarios: --ray needs Ray (pip install 'place-safe[ray]')") from None
     paths = args.paths if args.paths else ([] if args.random else [str(p) for p in packaged_scenarios()])
     items = []
     for p in expand_paths(paths):
