@@ -6,20 +6,14 @@ The robot, the sensor and the calibration are the simulation's; everything else 
 
 import sys
 
-import mujoco
+from place_safe import Calibration, PlacementConfig, PlacementLoop, make_estimator
+from place_safe.sim.calibration_capture import calibration_file
+from place_safe.sim.world import sim_world
 
-from place_safe import PlacementConfig, PlacementLoop, make_estimator
-from place_safe.sim.placement_run import oracle_calibration, scenario_path
-from place_safe.sim.robot import SimRobot
-from place_safe.sim.scene import build_scene, load_scenario
-from place_safe.sim.tof import SimToF, ToFConfig
-
-scene_config, sensor_config, _ = load_scenario(scenario_path(sys.argv[1] if len(sys.argv) > 1 else "place_level"))
-scene_config.with_robot = True
-scene = build_scene(scene_config)
-robot = SimRobot(scene.model, mujoco.MjData(scene.model))
-sensor = SimToF(scene, robot.data, ToFConfig(**sensor_config)).attach(robot)
-estimator = make_estimator("diff", oracle_calibration())  # the simulated sensor's true parameters
+world = sim_world(sys.argv[1] if len(sys.argv) > 1 else "place_level")  # scene, SimRobot, simulated TMF8820
+robot, sensor = world.robot, world.tof
+calibration = Calibration.load(calibration_file("nominal"))  # a user's: capture -> place-safe calibrate
+estimator = make_estimator("diff", calibration)
 with robot:
     result = PlacementLoop(robot, sensor, estimator, robot.tool, PlacementConfig()).run(timeout=20.0)
 print(f"{result.outcome}: {result.reason}")

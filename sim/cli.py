@@ -22,12 +22,25 @@ def add_sim_commands(subparsers: argparse._SubParsersAction) -> argparse.Argumen
     """Register ``sim place``, ``sim validate``, ``sim render`` and ``sim bench``; returns the ``sim`` parser."""
     sim = subparsers.add_parser("sim", help="MuJoCo simulation: validate the simulated TMF8820, render, benchmark",
                                 description="MuJoCo simulation of the UR5 and the TMF8820 (needs the [sim] extra).")
-    sub = sim.add_subparsers(dest="sim_command", metavar="{place,validate,render,bench}")
+    sub = sim.add_subparsers(dest="sim_command", metavar="{place,calibrate,validate,render,bench}")
     sim.set_defaults(func=lambda a: (sim.print_help(sys.stderr), 2)[1])
 
     from place_safe.sim.placement_run import add_placement_command
 
     add_placement_command(sub)
+
+    c = sub.add_parser("calibrate", help="regenerate the simulated user calibration (level sweep -> place-safe calibrate)",
+                       description="Capture a level-table sweep with the simulated sensor (noisy frames with ground "
+                                   "truth) and fit it with 'place-safe calibrate' (--method diff, then proprietary). "
+                                   "Without -o, rewrites the packaged sim/sensors/calibration_<sensor>.json that "
+                                   "placements use by default. Example: place-safe sim calibrate --sensor mismatch")
+    c.add_argument("--sensor", choices=("nominal", "mismatch", "all"), default="all",
+                   help="which simulated sensor (default all)")
+    c.add_argument("-o", "--output", help="calibration file to write (one sensor only; default: the packaged file)")
+    c.add_argument("--frames", type=int, default=48, help="frames in the sweep (default 48)")
+    c.add_argument("--seed", type=int, default=0, help="sweep and noise seed (default 0)")
+    c.add_argument("--save-frames", help="also keep the sweep's frame file here (one sensor only)")
+    c.set_defaults(func=cmd_calibrate)
 
     v = sub.add_parser("validate", help="compare simulated histograms with a real sweep, zone by zone",
                        description="For each real frame with ground truth, place the simulated sensor at the same "
@@ -77,6 +90,22 @@ def _scene_config(path: str | None, robot: bool | None):
     if robot is not None:
         cfg.with_robot = robot
     return cfg
+
+
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    from place_safe.sim.calibration_capture import calibrate_sim
+
+    sensors = ("nominal", "mismatch") if args.sensor == "all" else (args.sensor,)
+    if len(sensors) > 1 and (args.output or args.save_frames):
+        print("error: sim calibrate: -o and --save-frames need one --sensor", file=sys.stderr)
+        return 2
+    if args.frames < 8:
+        print("error: sim calibrate: --frames must be at least 8", file=sys.stderr)
+        return 2
+    for s in sensors:
+        out = calibrate_sim(s, args.output, n=args.frames, seed=args.seed, frames_out=args.save_frames)
+        print(f"wrote {out} ({s} simulated sensor, {args.frames} sweep frames)", file=sys.stderr)
+    return 0
 
 
 def cmd_validate(args: argparse.Namespace) -> int:

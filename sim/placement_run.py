@@ -16,11 +16,14 @@ Conventions
   task script runs: the simulation only provides the robot (``SimRobot``), the frame source (``SimToF``,
   stamped on the simulation clock), and measures the outcome. Sensor and cup poses come from the TCP
   pose and the configured tool frames (``robots/ur5/config.json``), not from the simulator's bodies.
-* ``method="diff"`` without a calibration uses a :class:`place_safe.calibration.Calibration` whose
-  ``forward`` section is the simulated sensor's true parameters (``sim/sensors/tmf8820_real.json``):
-  the estimator is calibrated to the sensor it looks through, as it would be after
-  ``place-safe calibrate`` on the real one (``PlacementResult.calibration`` says which was used).
-  Other methods use their built-in defaults unless a calibration is given.
+* Calibration is honest: by default the estimator gets the scenario's calibration, normally the
+  packaged simulated *user* calibration of the scenario's simulated sensor (a level-table sweep fitted
+  with ``place-safe calibrate``, :mod:`place_safe.sim.calibration_capture`), never the simulator's own
+  parameters; only ``oracle=True`` (``--oracle``) hands those over, and ``PlacementResult.calibration``
+  then starts with ``ORACLE``. A method without its calibration refuses before anything moves and
+  says how to calibrate (:func:`place_safe.calibration.uncalibrated_reason`).
+* Simulation truth for judging the run (true tilt, release height, time from 40 cm, ...) is recorded
+  by :class:`place_safe.sim.scenario.TruthRecorder` from the robot's step callbacks.
 * After the machine finishes, the simulation runs :data:`SETTLE_SECONDS` more so the released cup and
   liquid come to rest before the cup tilt and the spill are measured.
 """
@@ -33,7 +36,6 @@ import math
 import sys
 import time as _time
 from dataclasses import dataclass, field
-from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -71,6 +73,16 @@ class PlacementResult:
     planes: int  # frames that gave a plane accepted by the filter
     transitions: list[dict] = field(default_factory=list)
     frame_log: list[dict] = field(default_factory=list)
+    # simulation truth (never shown to the estimator or the machine); see place_safe.sim.scenario
+    sensor: str = "nominal"  # which simulated sensor ("nominal" renders with the forward model, "mismatch" not)
+    true_tilt: float = math.nan  # rad, the table top's true tilt at the start
+    surface_height: float = math.nan  # m, world z of the table top's centre at the start
+    start_height: float = math.nan  # m, cup bottom above the surface at the start
+    release_height: float = math.nan  # m, cup bottom above the surface when the gripper opened (NaN: never)
+    decision_time: float | None = None  # s from the cup bottom passing 40 cm above the surface to the decision
+    surface_moved: float = 0.0  # m the table moved during the run
+    fault_injected: str | None = None
+    robot_fault: str | None = None
 
     def to_dict(self) -> dict:
         return dict(self.__dict__)
@@ -82,78 +94,108 @@ class PlacementResult:
                  f"bottom {self.cup_height * 1e3:.1f} mm above the table; liquid spilled "
                  f"{self.liquid_spilled}/{self.liquid_total}; peak contact force {self.contact_force_peak:.1f} N",
                  f"  {self.sim_seconds:.2f} s sim in {self.wall_seconds:.2f} s wall; {self.frames} frames, "
-                 f"{self.planes} planes accepted; calibration: {self.calibration}"]
+                 f"{self.planes} planes accepted; sensor {self.sensor}; calibration: {self.calibration}"]
         for tr in self.transitions:
             lines.append(f"  t={tr['time']:6.3f} s  {tr['from']:>8} -> {tr['to']:<8} {tr['reason']}")
         return "\n".join(lines)
 
 
 def scenario_path(name: str | Path) -> Path:
-    """A scenario file: a path, or the name of a packaged one (``level_table`` or ``level_table.json``)."""
-    p = Path(name)
-    if p.is_file():
-        return p
-    stem = p.name if p.suffix == ".json" else p.name + ".json"
-    packaged = Path(str(resources.files("place_safe.scenarios").joinpath(stem)))
-    if packaged.is_file():
-        return packaged
-    raise FileNotFoundError(f"scenario {name} not found (neither a file nor a packaged scenario in scenarios/)")
+    """A scenario file: a path, or the name of a packaged one (see :func:`place_safe.sim.scenario.scenario_path`)."""
+    from place_safe.sim.scenario import scenario_path as _path
+
+    return _path(name)
 
 
 def oracle_calibration():
-    """A calibration whose ``forward`` section is the simulated sensor's TRUE parameters: an oracle no
-    user could have, for debugging and until the simulation ships a user-style calibration."""
+    """A calibration holding the simulated sensor's TRUE parameters: an oracle no user could have, for
+    debugging only (see :func:`place_safe.sim.scenario.oracle_calibration`)."""
+    from place_safe.sim.scenario import oracle_calibration as _oracle
+
+    return _oracle()
+
+
+def _as_scenario(scenario: Any):
+    from place_safe.sim.scenario import Scenario, load_scenario
+    from place_safe.sim.scene import SceneConfig
+
+    if isinstance(scenario, Scenario):
+        return scenario
+    if isinstance(scenario, SceneConfig):
+        return Scenario(scene=scenario.to_dict(), name="scene")
+    return load_scenario(scenario)
+
+
+def _calibration(sc: Any, calibration: Any, oracle: bool) -> tuple[Any, str]:
     from place_safe.calibration import Calibration
 
-    from place_safe.sim.tof import sensor_file
+    from place_safe.sim.scenario import ORACLE_NOTE, oracle_calibration
 
-    return Calibration({"forward": json.loads(sensor_file("tmf8820_real.json").read_text())})
+    if oracle:
+        return oracle_calibration(), ORACLE_NOTE
+    if calibration is None:
+        return sc.resolve_calibration()
+    if isinstance(calibration, Calibration):
+        return calibration, "given"
+    if str(calibration) in ("sim", "oracle", "none"):
+        return sc.model_copy(update={"calibration": str(calibration)}).resolve_calibration()
+    return Calibration.load(calibration), str(calibration)
 
 
-def run_placement(scenario: Any = "place_level", method: str = "diff", calibration: Any = None,
+def run_placement(scenario: Any = "place_level", method: str | None = None, calibration: Any = None,
                   seconds: float = 20.0, render: str | Path | None = None, seed: int = 0,
                   config: PlacementConfig | None = None, estimator_options: dict | None = None,
-                  log_frames: bool = True) -> PlacementResult:
+                  log_frames: bool = True, oracle: bool = False) -> PlacementResult:
     """Simulate one placement (see module docstring).
 
-    ``scenario``: a scenario file path or packaged name, or a :class:`~place_safe.sim.scene.SceneConfig`
-    (the robot is always added). ``calibration``: a :class:`~place_safe.calibration.Calibration`, a path
-    to one, or None (see module docstring). ``seconds``: sim-time limit. ``render``: PNG path of the
-    scene at the end. ``seed``: the simulated sensor's noise seed. ``config``: the placement thresholds.
+    ``scenario``: a scenario file path or packaged name, a :class:`~place_safe.sim.scenario.Scenario`
+    or a :class:`~place_safe.sim.scene.SceneConfig` (the robot is always added). ``method``: default
+    the scenario's. ``calibration``: a :class:`~place_safe.calibration.Calibration`, a path, ``"sim"``,
+    ``"none"``, or None for the scenario's (default the packaged simulated user calibration);
+    ``oracle=True`` hands the estimator the simulator's true parameters (debugging; named in the result).
+    ``seconds``: sim-time limit. ``render``: PNG path of the scene at the end. ``seed``: the simulated
+    sensor's noise seed unless the scenario sets its own. ``config``: the placement thresholds
+    (default: the scenario's).
     """
     import mujoco
 
-    from place_safe.calibration import Calibration
+    from place_safe.calibration import uncalibrated_reason
     from place_safe.recovery import make_estimator
     from place_safe.robots import ur5_config
 
     from place_safe.sim.robot import SimRobot
-    from place_safe.sim.scene import SceneConfig, build_scene, load_scenario
-    from place_safe.sim.tof import SimToF, ToFConfig
+    from place_safe.sim.scenario import TruthRecorder, surface_truth
+    from place_safe.sim.scene import build_scene
+    from place_safe.sim.tof_mismatch import make_sensor
 
     wall0 = _time.perf_counter()
-    if isinstance(scenario, SceneConfig):
-        scene_cfg, sensor_kw, name = scenario, {}, "scene"
-    else:
-        path = scenario_path(scenario)
-        scene_cfg, sensor_kw, _ = load_scenario(path)
-        name = path.stem
-    scene_cfg.with_robot = True
+    sc = _as_scenario(scenario)
+    name = sc.name or "scenario"
+    method = method or sc.method
     if not (math.isfinite(seconds) and seconds > 0):
         raise ValueError(f"seconds must be a positive number of sim seconds; got {seconds!r}")
-    if isinstance(calibration, (str, Path)):
-        cal_note = str(calibration)
-        calibration = Calibration.load(calibration)
-    elif calibration is None and method == "diff":
-        calibration, cal_note = oracle_calibration(), "ORACLE: the simulated sensor's true forward parameters"
-    else:
-        cal_note = "given" if calibration is not None else "built-in defaults"
-    estimator = make_estimator(method, calibration, **(estimator_options or {}))
-    cfg = config if config is not None else PlacementConfig()
-
-    scene = build_scene(scene_cfg)
+    calibration, cal_note = _calibration(sc, calibration, oracle)
+    cfg = config if config is not None else sc.placement_config()
+    scene = build_scene(sc.scene_config())
     robot = SimRobot(scene.model, mujoco.MjData(scene.model))
-    tof = SimToF(scene, robot.data, ToFConfig(**{**sensor_kw, "seed": seed})).attach(robot)
+    if sc.robot.start_q is not None:
+        robot.set_joint_positions(sc.robot.start_q)
+    tilt_true, surface_z = surface_truth(scene, robot.data)
+    liquid_total = int(ur5_config()["cup"]["liquid_count"])
+    truth = TruthRecorder(sc, scene, robot)
+    truth()
+    common = dict(scenario=name, method=method, calibration=cal_note, sensor=sc.sensor.model,
+                  true_tilt=tilt_true, surface_height=surface_z, start_height=truth.start_height)
+    why = uncalibrated_reason(method, calibration)
+    if why is not None:  # calibration is required: refuse before anything moves
+        return PlacementResult(outcome="refused", reason=why, final_phase="idle", cup_tilt=0.0,
+                               cup_height=truth.start_height, cup_held=robot.holding(), liquid_spilled=0,
+                               liquid_total=liquid_total, contact_force_peak=0.0, sim_seconds=robot.time(),
+                               wall_seconds=_time.perf_counter() - wall0, frames=0, planes=0, **common)
+    estimator = make_estimator(method, calibration, **(estimator_options or {}))
+    robot.add_step_callback(truth)
+    tof = make_sensor(sc.sensor.model, scene, robot.data, sc.sensor.tof_config(seed), sc.sensor.mismatch)
+    tof.attach(robot)
     loop = PlacementLoop(robot, tof, estimator, tool=robot.tool, config=cfg, period=CONTROL_PERIOD,
                          log_frames=log_frames)
     res = loop.run(timeout=seconds)
@@ -168,18 +210,22 @@ def run_placement(scenario: Any = "place_level", method: str = "diff", calibrati
     wb = robot.world_T_base()
     cup_w = wb @ cup
     tilt = float(np.arccos(np.clip(cup_w[2, 2], -1.0, 1.0)))
-    n_w, p_w = scene.table_plane_world(robot.data)
-    height = float(n_w @ (cup_w[:3, 3] - p_w))
+    height = truth.cup_height()
     if render is not None:
         from place_safe.sim import render as _render
 
         _render.save_png(_render.render_image(scene, robot.data, tof), render)
+    decided = next((t for t in res.transitions if t["to"] in ("release", "refuse", "aborted")), None)
+    t_dec = decided["time"] if decided is not None else None
+    t_ref = truth.t_reference
     return PlacementResult(
-        outcome=res.outcome, reason=res.reason, scenario=name, method=method, calibration=cal_note,
-        final_phase=res.final_phase, cup_tilt=tilt, cup_height=height, cup_held=robot.holding(),
-        liquid_spilled=robot.liquid_spilled(), liquid_total=int(ur5_config()["cup"]["liquid_count"]),
+        outcome=res.outcome, reason=res.reason, final_phase=res.final_phase, cup_tilt=tilt, cup_height=height,
+        cup_held=robot.holding(), liquid_spilled=robot.liquid_spilled(), liquid_total=liquid_total,
         contact_force_peak=res.contact_force_peak, sim_seconds=robot.time(), wall_seconds=_time.perf_counter() - wall0,
-        frames=res.frames, planes=res.planes, transitions=res.transitions, frame_log=res.frame_log)
+        frames=res.frames, planes=res.planes, transitions=res.transitions, frame_log=res.frame_log,
+        release_height=truth.release_height, decision_time=(t_dec - t_ref) if (t_dec is not None and t_ref is not None)
+        else None, surface_moved=truth.surface_moved, fault_injected=truth.stop_injected,
+        robot_fault=robot.fault(), **common)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -193,8 +239,11 @@ def add_placement_command(subparsers: argparse._SubParsersAction) -> argparse.Ar
                                           "levelness and clearance with the TMF8820, then release or refuse.")
     p.add_argument("--scenario", default="place_level",
                    help="scenario file or packaged name (default place_level; place_tilted must be refused)")
-    p.add_argument("--method", default="diff", choices=METHODS, help="plane-recovery method (default diff)")
-    p.add_argument("--calibration", help="calibration JSON (default for diff: the simulated sensor's parameters)")
+    p.add_argument("--method", choices=METHODS, help="plane-recovery method (default: the scenario's, diff)")
+    p.add_argument("--calibration", help="calibration JSON, 'sim' or 'none' (default: the scenario's, normally the "
+                                         "packaged simulated user calibration)")
+    p.add_argument("--oracle", action="store_true", help="DEBUGGING: give the estimator the simulator's true "
+                                                         "parameters (named ORACLE in the result)")
     p.add_argument("--config", help="PlacementConfig JSON (speeds m/s, distances m, angles rad)")
     p.add_argument("--seconds", type=options.float_range(0.0, 3600.0, lo_open=True), default=20.0, help="sim-time limit (default 20)")
     p.add_argument("--seed", type=options.nonnegative_int, default=0, help="sensor noise seed")
@@ -207,7 +256,7 @@ def add_placement_command(subparsers: argparse._SubParsersAction) -> argparse.Ar
 def cmd_place(args: argparse.Namespace) -> int:
     cfg = PlacementConfig.load(args.config) if args.config else None
     res = run_placement(args.scenario, method=args.method, calibration=args.calibration, seconds=args.seconds,
-                        render=args.render, seed=args.seed, config=cfg)
+                        render=args.render, seed=args.seed, config=cfg, oracle=args.oracle)
     print(res.summary())
     if args.json:
         Path(args.json).write_text(json.dumps(res.to_dict(), indent=1) + "\n")

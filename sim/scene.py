@@ -158,24 +158,6 @@ class SceneConfig:
         return cls.from_dict(d)
 
 
-def load_scenario(path: str | Path) -> tuple[SceneConfig, dict, str]:
-    """A scenario file (``scenarios/*.json``): its scene, its sensor settings (ToFConfig keywords) and description."""
-    d = read_json(path, "scenario file", SceneError)
-    if not isinstance(d, dict) or "scene" not in d:
-        raise SceneError(f"{path}: a scenario is a JSON object with 'scene' (and optional 'sensor', 'description')")
-    sensor = d.get("sensor") or {}
-    if not isinstance(sensor, dict):
-        raise SceneError(f"{path}: 'sensor' must be an object of ToFConfig settings")
-    from place_safe.sim.tof import ToFConfig
-
-    try:  # the sensor settings are checked here, so a bad key or value is the file's error, not a crash later
-        ToFConfig.from_dict(sensor)
-        scene = SceneConfig.from_dict(d["scene"])
-    except SceneError as exc:
-        raise SceneError(f"scenario {path}: {exc}") from None
-    return scene, sensor, str(d.get("description", ""))
-
-
 _NESTED = {"table": TableConfig, "floor": Material, "material": Material, "robot_material": Material}
 
 

@@ -95,6 +95,8 @@ TOF_BOUNDS: dict[str, Bound] = {
     "corrupt_prob": Bound(0.0, 1.0, "(probability)"),
     "seed": Bound(0, 2 ** 63 - 1, "(seed)"),
     "max_range": Bound(0.0, 100.0, "m", lo_open=True),
+    "spike_prob": Bound(0.0, 1.0, "(probability)"),
+    "spike_seconds": Bound(0.0, 10.0, "s"),
 }
 
 
@@ -111,6 +113,8 @@ class ToFConfig:
     ambient_range: tuple[float, float] = (60.0, 180.0)  # counts, per zone
     drop_prob: float = 0.0
     corrupt_prob: float = 0.0
+    spike_prob: float = 0.0  # probability that a frame's transfer stalls (latency spike)
+    spike_seconds: float = 0.25  # s, extra latency of a stalled transfer (later frames queue behind it)
     seed: int = 0
     max_range: float = 5.0  # m; farther surfaces are not seen
     params_file: str | None = None  # ForwardParams JSON; default sim/sensors/tmf8820_real.json
@@ -335,7 +339,13 @@ class SimToF(FrameSource):
         frame.extra["sim"]["index"] = k
         if cfg.corrupt_prob > 0 and self._rng.random() < cfg.corrupt_prob:
             self._corrupt(frame)
-        self._pending.append((t + cfg.latency, frame))
+        ready = t + cfg.latency
+        if cfg.spike_prob > 0 and self._rng.random() < cfg.spike_prob:
+            ready += cfg.spike_seconds
+            frame.extra["sim"]["latency_spike"] = cfg.spike_seconds
+        if self._pending:  # the bus is serial: a stalled transfer delays the ones behind it
+            ready = max(ready, self._pending[-1][0])
+        self._pending.append((ready, frame))
 
     def _corrupt(self, frame: Frame) -> None:
         self.corrupted += 1

@@ -51,19 +51,21 @@ def error_transform(mount_error: Any) -> np.ndarray:
 
 
 def sim_world(scenario: Any = "level_table", *, seed: int = 0, mount_error: Any = None,
-              hold_cup: bool = True) -> SimWorld:
-    """Build the scenario's scene with the robot, the simulated sensor attached to it, and the mount error."""
+              hold_cup: bool = True, attach: bool = True) -> SimWorld:
+    """Build the scenario's scene with the robot (at the scenario's start pose), the scenario's simulated
+    sensor (nominal or mismatched) attached to it unless ``attach`` is False, and the mount error.
+
+    ``scenario``: a packaged scenario name, a file (TOML or JSON), or a :class:`~place_safe.sim.scenario.Scenario`.
+    """
     import mujoco
 
-    from place_safe.sim.placement_run import scenario_path
     from place_safe.sim.robot import SimRobot
-    from place_safe.sim.scene import build_scene, load_scenario
-    from place_safe.sim.tof import SimToF, ToFConfig
+    from place_safe.sim.scenario import Scenario, load_scenario
+    from place_safe.sim.scene import build_scene
+    from place_safe.sim.tof_mismatch import make_sensor
 
-    path = scenario_path(scenario)
-    scene_cfg, sensor_kw, _ = load_scenario(path)
-    scene_cfg.with_robot = True
-    scene = build_scene(scene_cfg)
+    sc = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
+    scene = build_scene(sc.scene_config())
     E = error_transform(mount_error)
     m = scene.model
     s = scene.sensor_site
@@ -73,8 +75,12 @@ def sim_world(scenario: Any = "level_table", *, seed: int = 0, mount_error: Any 
     m.site_quat[s] = [w, x, y, z]
     m.site_sameframe[s] = 0  # the compiler marked the nominal site as aligned with its body: not any more
     robot = SimRobot(m, mujoco.MjData(m), hold_cup=hold_cup)
-    tof = SimToF(scene, robot.data, ToFConfig(**{**sensor_kw, "seed": seed})).attach(robot)
-    return SimWorld(scene, robot, tof, path.stem, E)
+    if sc.robot.start_q is not None:
+        robot.set_joint_positions(sc.robot.start_q, hold_cup=hold_cup)
+    tof = make_sensor(sc.sensor.model, scene, robot.data, sc.sensor.tof_config(seed), sc.sensor.mismatch)
+    if attach:
+        tof.attach(robot)
+    return SimWorld(scene, robot, tof, sc.name or "scenario", E)
 
 
 __all__ = ["SimWorld", "sim_world", "error_transform"]

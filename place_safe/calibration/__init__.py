@@ -127,3 +127,25 @@ class Calibration:
 
     def save(self, path: str | Path) -> None:
         write_json(path, self.to_dict())
+
+
+#: Sections a method needs before it may drive a placement (naive methods are uncalibrated by definition).
+REQUIRED_SECTIONS = {"diff": ("forward",), "peak": ("peak",), "proprietary": ("proprietary",)}
+
+
+def uncalibrated_reason(method: str, calibration: "Calibration | None") -> str | None:
+    """Why ``method`` with ``calibration`` is not a calibrated sensor (and how to calibrate), or None.
+
+    Placement refuses at once on a reason: built-in constants read a level table as tilted by degrees.
+    """
+    need = REQUIRED_SECTIONS.get(method)
+    fit = method if method in REQUIRED_SECTIONS else method.removesuffix("-naive")
+    how = (f"calibrate it first: place-safe calibrate FRAMES.json --method {fit} -o cal.json (frames of a level "
+           "table with ground truth), then pass the calibration file")
+    if need is None:
+        return f"sensor not calibrated: method {method} uses built-in constants; {how}"
+    have = calibration.sections if calibration is not None else {}
+    missing = [s for s in need if s not in have]
+    if missing:
+        return f"sensor not calibrated for {method} (no '{missing[0]}' section); {how}"
+    return None

@@ -29,7 +29,7 @@ PROG = "place-safe"
 #: its sub-parser(s) (``parser_class=_Parser`` is inherited) with ``set_defaults(func=...)``. Modules must
 #: import heavy packages (torch, MuJoCo, ur-rtde, smbus2) inside their command functions, not at import time.
 COMMAND_MODULES: tuple[str, ...] = ("place_safe.cli.sensor", "place_safe.cli.robot", "place_safe.cli.synth",
-                                   "place_safe.cli.latency")
+                                   "place_safe.cli.latency", "place_safe.cli.scenarios")
 METHODS = ("diff", "peak", "peak-naive", "proprietary", "proprietary-naive")
 CALIBRATE_METHODS = ("diff", "peak", "proprietary")
 
@@ -447,8 +447,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
         ok = True
         if args.method == "diff":
-            _log("demo: NOTE: diff is handed the simulated sensor's TRUE forward parameters (an oracle "
-                 "calibration, not one a user could have); see 'place-safe sim place --help'")
+            _log("demo: NOTE: diff uses the simulated USER calibration (a simulated level-table sweep fitted "
+                 "with 'place-safe calibrate'), not the simulator's true parameters; see 'place-safe sim place --help'")
         for scenario, expected in DEMO_SCENARIOS:
             if not args.quiet:
                 _log(f"demo: simulated UR5 placing a cup, scenario {scenario} (expected: {expected}) ...")

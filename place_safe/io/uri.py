@@ -164,18 +164,18 @@ def _cycle(frames: list):
 
 def _scenario_feed(uri: str, name: str):
     try:
-        from place_safe.sim.placement_run import scenario_path
-        from place_safe.sim.scene import build_scene, load_scenario
-        from place_safe.sim.tof import SimToF, ToFConfig
+        from place_safe.sim.scenario import load_scenario
+        from place_safe.sim.scene import build_scene
+        from place_safe.sim.tof_mismatch import make_sensor
     except ImportError as exc:
         raise ConfigError(f"source {uri!r}: a scenario needs the simulation ([sim] extra): {exc}") from None
     try:
-        path = scenario_path(name)
-    except FileNotFoundError as exc:
-        raise ConfigError(f"source {uri!r}: {exc}") from None
-    scene_cfg, sensor_kw, _ = load_scenario(path)
-    scene_cfg.with_robot = False
-    tof = SimToF(build_scene(scene_cfg), config=ToFConfig(**sensor_kw))
+        sc = load_scenario(name)
+    except (FileNotFoundError, ValueError) as exc:
+        raise ConfigError(f"source {uri!r}: {str(exc).splitlines()[0]}") from None
+    scene_cfg = sc.scene_config()
+    scene_cfg.with_robot = False  # the sensor rig alone over the scenario's scene
+    tof = make_sensor(sc.sensor.model, build_scene(scene_cfg), None, sc.sensor.tof_config(0), sc.sensor.mismatch)
     return lambda _t: tof.measure()
 
 

@@ -52,6 +52,7 @@ import numpy as np
 from place_safe.config import Bound, check_dataclass, dataclass_from_dict, read_json, write_json
 from place_safe.exceptions import ConfigError
 from place_safe.fusion.plane_filter import FusedPlane
+from place_safe.placement.speed import approach_speed
 
 log = logging.getLogger("place_safe.placement.machine")
 
@@ -75,10 +76,10 @@ FINAL = (Phase.DONE, Phase.ABORTED)
 class PlacementConfig:
     """Thresholds and speeds of a placement (SI units; the JSON file holds the same numbers)."""
 
-    approach_speed: float = 0.08  # m/s while the surface is far
+    approach_speed: float = 0.25  # m/s at most while the surface is far (slower near it: placement/speed.py)
     descend_speed: float = 0.015  # m/s near the surface
     accel: float = 0.5  # m/s^2 for speed changes and stops
-    slow_clearance: float = 0.04  # m: APPROACH -> DESCEND below this cup clearance
+    slow_clearance: float = 0.015  # m: APPROACH -> DESCEND below this cup clearance
     stop_clearance: float = 0.003  # m: DESCEND -> CHECK at or below this clearance
     release_clearance: float = 0.005  # m: release only at or below this clearance (or in contact)
     max_tilt: float = math.radians(5.0)  # rad: steepest surface a cup may be put on
@@ -102,6 +103,7 @@ class PlacementConfig:
     check_settle: float = 0.04  # s after the stop command before planes count for CHECK (arm at rest)
     descent_timeout: float = 30.0  # s: deadline of APPROACH + DESCEND together
     retreat_timeout: float = 6.0  # s: deadline of the retreat after a release or refusal
+    sensor_latency: float = 0.15  # s from a measurement to the machine acting on it (transfer + frame + estimate)
 
     def __post_init__(self) -> None:
         self.validate()
@@ -499,7 +501,9 @@ class PlacementMachine:
         down = -np.asarray(state.base_T_cup, dtype=float)[:3, 2]
         if self.phase == Phase.APPROACH:
             if c > cfg.slow_clearance:
-                return self._speed(cfg.approach_speed * down)
+                v = approach_speed(c, cfg.slow_clearance, cfg.sensor_latency, cfg.accel, cfg.approach_speed,
+                                   cfg.descend_speed)
+                return self._speed(round(v, 3) * down)
             self._go(Phase.DESCEND, now, f"clearance {c * 1e3:.1f} mm < {cfg.slow_clearance * 1e3:.0f} mm: slow down")
         if c > cfg.stop_clearance:
             return self._speed(cfg.descend_speed * down)

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import math
 
-import mujoco
 import numpy as np
 import pytest
 
@@ -15,27 +14,27 @@ from place_safe import PlacementConfig, PlacementLoop
 from place_safe.drivers.tmf8820.emulator import FaultPlan
 from place_safe.io.uri import open_source
 from place_safe.recovery import make_estimator
-from place_safe.sim.placement_run import oracle_calibration, scenario_path
-from place_safe.sim.robot import SimRobot
-from place_safe.sim.scene import build_scene, load_scenario
-from place_safe.sim.tof import SimToF, ToFConfig
+from place_safe.calibration import Calibration
+from place_safe.sim.calibration_capture import calibration_file
+from place_safe.sim.world import sim_world
+
+
+def user_calibration():
+    """The packaged simulated user calibration (capture of a level table -> place-safe calibrate)."""
+    return Calibration.load(calibration_file("nominal"))
 
 
 def _setup(scenario: str, **source_options):
-    scene_cfg, sensor_cfg, _ = load_scenario(scenario_path(scenario))
-    scene_cfg.with_robot = True
-    scene = build_scene(scene_cfg)
-    robot = SimRobot(scene.model, mujoco.MjData(scene.model))
-    tof = SimToF(scene, robot.data, ToFConfig(**sensor_cfg))  # not attached: the emulator takes its measurements
-    source = open_source("emu:sim", tof=tof, **source_options)
-    return robot, source
+    world = sim_world(scenario, attach=False)  # not attached: the emulator takes the sensor's measurements
+    source = open_source("emu:sim", tof=world.tof, **source_options)
+    return world.robot, source
 
 
 @pytest.mark.slow
 def test_level_table_is_released_through_the_emulated_bus_with_faults():
     robot, source = _setup("place_level", bus_hz=1e6, faults=FaultPlan(rate=0.001, seed=4))
     assert source.clock_domain == "robot"
-    estimator = make_estimator("diff", oracle_calibration())
+    estimator = make_estimator("diff", user_calibration())
     with robot:
         loop = PlacementLoop(robot, source, estimator, config=PlacementConfig())
         res = loop.run(timeout=20.0)
@@ -52,7 +51,7 @@ def test_level_table_is_released_through_the_emulated_bus_with_faults():
 @pytest.mark.slow
 def test_tilted_table_is_refused_through_the_emulated_bus_at_400_khz():
     robot, source = _setup("place_tilted", bus_hz=400e3)
-    estimator = make_estimator("diff", oracle_calibration())
+    estimator = make_estimator("diff", user_calibration())
     with robot:
         res = PlacementLoop(robot, source, estimator, config=PlacementConfig()).run(timeout=20.0)
     assert res.outcome == "refused" and robot.holding(), res.reason
@@ -67,7 +66,7 @@ def test_tilted_table_is_refused_through_the_emulated_bus_at_400_khz():
 @pytest.mark.slow
 def test_a_dead_bus_during_the_approach_is_refused_with_the_cup_held():
     robot, source = _setup("place_level", bus_hz=1e6, faults=FaultPlan(dead_after=3000))  # ~3 s of frames
-    estimator = make_estimator("diff", oracle_calibration())
+    estimator = make_estimator("diff", user_calibration())
     with robot:
         res = PlacementLoop(robot, source, estimator, config=PlacementConfig()).run(timeout=20.0)
     assert res.outcome == "refused" and robot.holding(), res.reason

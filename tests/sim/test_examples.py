@@ -25,23 +25,18 @@ def test_simulated_placement_example_refuses_the_tilted_table(monkeypatch, capsy
 def test_real_arm_example_runs_on_the_ur_rtde_stand_in():
     # the real-arm script's placement function, with URRobot on the fake ur_rtde moving the MuJoCo arm
     # and the simulated sensor behind the TMF8820 driver over the register-level emulator
-    import mujoco
-
+    from place_safe import Calibration, make_estimator
     from place_safe.drivers.ur5 import URConfig, URRobot, fake_rtde, packaged_config
     from place_safe.io.uri import open_source
-    from place_safe.sim.placement_run import oracle_calibration, scenario_path
-    from place_safe.sim.robot import SimRobot
-    from place_safe.sim.scene import build_scene, load_scenario
-    from place_safe.sim.tof import SimToF, ToFConfig
-    from place_safe import make_estimator
+    from place_safe.sim.calibration_capture import calibration_file
+    from place_safe.sim.world import sim_world
 
     example = runpy.run_path(str(EXAMPLES / "real_placement.py"), run_name="example")
-    scene_cfg, sensor_cfg, _ = load_scenario(scenario_path("place_tilted"))
-    scene_cfg.with_robot = True
-    scene = build_scene(scene_cfg)
-    arm = SimRobot(scene.model, mujoco.MjData(scene.model))
-    sensor = open_source("emu:sim", tof=SimToF(scene, arm.data, ToFConfig(**sensor_cfg)))
+    world = sim_world("place_tilted", attach=False)  # the emulator over the simulated sensor takes the frames
+    arm = world.robot
+    sensor = open_source("emu:sim", tof=world.tof)
     fake_rtde.FakeUR(arm)
     robot = URRobot(URConfig.load(packaged_config("sim")), modules=fake_rtde.modules(), out=lambda s: None)
-    result = example["place"](robot, sensor, make_estimator("peak", oracle_calibration()), timeout=10.0)
+    calibration = Calibration.load(calibration_file("nominal"))  # the simulated user calibration
+    result = example["place"](robot, sensor, make_estimator("peak", calibration), timeout=10.0)
     assert result.outcome == "refused" and "tilted" in result.reason and arm.holding()

@@ -3,15 +3,11 @@ the estimate (the loop, clocks, poses and decision are under test here, not plan
 
 from __future__ import annotations
 
-import mujoco
 import pytest
 
 from place_safe import PlacementConfig, PlacementLoop
 from place_safe.recovery.estimator import PlaneEstimate
-from place_safe.sim.placement_run import scenario_path
-from place_safe.sim.robot import SimRobot
-from place_safe.sim.scene import build_scene, load_scenario
-from place_safe.sim.tof import SimToF, ToFConfig
+from place_safe.sim.world import sim_world
 
 
 class TruthEstimator:
@@ -35,11 +31,8 @@ class FreezesAtCheck:
 
 
 def setup(scenario="place_level"):
-    scene_cfg, sensor_cfg, _ = load_scenario(scenario_path(scenario))
-    scene_cfg.with_robot = True
-    scene = build_scene(scene_cfg)
-    robot = SimRobot(scene.model, mujoco.MjData(scene.model))
-    return robot, SimToF(scene, robot.data, ToFConfig(**sensor_cfg)).attach(robot)
+    world = sim_world(scenario)
+    return world.robot, world.tof
 
 
 @pytest.mark.slow

@@ -24,7 +24,7 @@ def test_level_table_is_released_upright_without_spilling():
     assert math.degrees(res.cup_tilt) < 2.0
     assert abs(res.cup_height) < 0.003  # standing on the table
     assert res.contact_force_peak < 20.0
-    assert "simulated sensor" in res.calibration
+    assert "simulated user calibration" in res.calibration and "ORACLE" not in res.calibration
     assert res.planes >= 0.9 * res.frames > 0
     # the per-frame planes agree with the simulator's ground truth while the whole field sees the table
     errs = [abs(f["plane"]["offset"] - f["truth"]["offset"]) for f in res.frame_log if f["plane"] and f["truth"]]

@@ -82,14 +82,13 @@ def test_missing_robot_model_is_a_clear_error(tmp_path):
 def test_scenario_files_build():
     files = sorted(SCENARIOS.glob("*.json"))
     assert len(files) >= 3
-    from place_safe.sim.scene import load_scenario
-    from place_safe.sim.tof import ToFConfig
+    from place_safe.sim.scenario import load_scenario
 
     for f in files:
-        cfg, sensor, description = load_scenario(f)
-        scene = build_scene(cfg)
-        assert scene.model.ngeom > 2 and description
-        ToFConfig(**sensor)
+        sc = load_scenario(f)
+        scene = build_scene(sc.scene_config())
+        assert scene.model.ngeom > 2 and sc.description
+        sc.sensor.tof_config(0)
 
 
 def test_render_writes_png(tmp_path):

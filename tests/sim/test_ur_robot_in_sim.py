@@ -5,17 +5,13 @@ not plane recovery), as in tests/sim/test_loop_in_sim.py."""
 
 from __future__ import annotations
 
-import mujoco
 import pytest
 
 from place_safe import PlacementConfig, PlacementLoop
 from place_safe.drivers.ur5 import URConfig, URRobot, packaged_config
 from place_safe.drivers.ur5 import fake_rtde
 from place_safe.recovery.estimator import PlaneEstimate
-from place_safe.sim.placement_run import scenario_path
-from place_safe.sim.robot import SimRobot
-from place_safe.sim.scene import build_scene, load_scenario
-from place_safe.sim.tof import SimToF, ToFConfig
+from place_safe.sim.world import sim_world
 
 
 class TruthEstimator:
@@ -24,11 +20,8 @@ class TruthEstimator:
 
 
 def setup(scenario="place_level"):
-    scene_cfg, sensor_cfg, _ = load_scenario(scenario_path(scenario))
-    scene_cfg.with_robot = True
-    scene = build_scene(scene_cfg)
-    arm = SimRobot(scene.model, mujoco.MjData(scene.model))
-    tof = SimToF(scene, arm.data, ToFConfig(**sensor_cfg)).attach(arm)
+    world = sim_world(scenario)
+    arm, tof = world.robot, world.tof
     fake = fake_rtde.FakeUR(arm)
     robot = URRobot(URConfig.load(packaged_config("sim")), modules=fake_rtde.modules(), out=lambda s: None)
     return arm, tof, fake, robot

@@ -1,0 +1,358 @@
+"""Scenario files: one simulated placement situation and the outcome it must have (validated schema).
+
+Concept: a :class:`Scenario` says what the world is (``scene``), how the simulated sensor behaves
+(``sensor``), where the robot starts and what goes wrong with it (``robot``), which calibration
+the estimator gets (``calibration``), which method and placement settings are used, and what the
+run must come to (``expect``, with tolerances). Files are TOML (hand-written) or JSON (the older
+files and generated ones) and are validated on load by pydantic (:class:`place_safe.config.ConfigModel`):
+unknown keys, wrong types and NaN are one-line :class:`~place_safe.exceptions.ConfigError`\\ s naming the
+file and the field. ``scenarios/README.md`` documents every field.
+
+Conventions: SI units (m, s, rad) as everywhere in place_safe, except the few fields whose names say
+``_deg`` (hand-written tilts read better in degrees; ``tilt`` and ``tilt_deg`` cannot both be given).
+World frame z up; the scene part is :class:`place_safe.sim.scene.SceneConfig` (validated by it).
+
+Simulation truth used to judge a run (:class:`RunTruth`, recorded by :class:`TruthRecorder` from the
+robot's step callbacks, never shown to the estimator or the machine): the true surface tilt and
+height, the cup-bottom height above the surface when the gripper opened, the time the cup bottom
+passed 40 cm above the surface, and whether the cup ended upright, on the table, without spilling.
+"""
+
+from __future__ import annotations
+
+import math
+from importlib import resources
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import Field, field_validator, model_validator
+
+from place_safe.config import ConfigModel, parse_config
+from place_safe.exceptions import ConfigError
+
+from place_safe.sim.tof_mismatch import MismatchConfig
+
+#: m, the "time from 40 cm" reference height of the cup bottom above the surface (issue 12).
+REFERENCE_HEIGHT = 0.40
+#: rad, a released cup tilted more than this at the end has tipped.
+TIPPED_TILT = math.radians(10.0)
+#: m, a released cup whose bottom ends farther than this from the table top is not standing on it.
+ON_TABLE_TOL = 0.005
+#: Calibration names that are not files.
+CALIBRATION_KINDS = ("sim", "oracle", "none")
+SUFFIXES = (".toml", ".json")
+
+
+class SurfaceMotion(ConfigModel):
+    """The table moving along world z during the descent (a lift table, a tray being handed over)."""
+
+    start: float = Field(1.0, ge=0, description="sim time the motion starts (s)")
+    velocity: float = Field(0.02, description="vertical speed (m/s, + rises)")
+    duration: float = Field(1.0, ge=0, description="how long it moves (s)")
+
+
+class SensorSection(ConfigModel):
+    """The simulated sensor (``place_safe.sim.tof.ToFConfig`` settings and which simulator)."""
+
+    model: Literal["nominal", "mismatch"] = Field("nominal", description="nominal: renders with the forward "
+                                                  "model; mismatch: MismatchedToF, a sensor that is not the model")
+    noise: bool = True
+    rays: int = Field(8, ge=1, le=32)
+    rate_hz: float = Field(30.0, gt=0)
+    ambient_range: tuple[float, float] = Field((60.0, 180.0), description="per-zone ambient floor range (counts)")
+    drop_prob: float = Field(0.0, ge=0, le=1)
+    corrupt_prob: float = Field(0.0, ge=0, le=1)
+    spike_prob: float = Field(0.0, ge=0, le=1, description="probability of a latency spike per frame")
+    spike_seconds: float = Field(0.25, ge=0, le=5, description="extra latency of a spike (s)")
+    seed: int | None = Field(None, description="noise seed; default: the run's seed")
+    mismatch: MismatchConfig | None = Field(None, description="differences of the mismatched sensor")
+
+    @field_validator("ambient_range")
+    @classmethod
+    def _range(cls, v: tuple[float, float]) -> tuple[float, float]:
+        if not (0 <= v[0] <= v[1]):
+            raise ValueError("ambient_range must be [low, high] counts with 0 <= low <= high")
+        return v
+
+    def tof_config(self, seed: int):
+        from place_safe.sim.tof import ToFConfig
+
+        return ToFConfig(rays=self.rays, rate_hz=self.rate_hz, noise=self.noise, ambient_range=self.ambient_range,
+                         drop_prob=self.drop_prob, corrupt_prob=self.corrupt_prob, spike_prob=self.spike_prob,
+                         spike_seconds=self.spike_seconds, seed=seed if self.seed is None else self.seed)
+
+
+class RobotSection(ConfigModel):
+    """Where the robot starts and what goes wrong with it."""
+
+    start_q: tuple[float, float, float, float, float, float] | None = Field(
+        None, description="start joint angles (rad); default: home")
+    protective_stop_at: float | None = Field(None, ge=0, description="latch a protective stop at this sim time (s)")
+    protective_stop_below: float | None = Field(
+        None, gt=0, description="latch a protective stop when the cup bottom is this close to the surface (m)")
+
+
+class Expectation(ConfigModel):
+    """What the run must come to, with tolerances (simulation truth)."""
+
+    outcome: Literal["released", "refused", "any"] = "released"
+    reason: list[str] = Field(default_factory=list, description="for refusals: the reason must contain one of "
+                              "these words (case-insensitive); empty: any reason")
+    max_release_height: float = Field(0.010, gt=0, description="cup bottom above the surface at release (m)")
+    max_spilled: int = Field(0, ge=0, description="liquid spheres allowed outside the cup")
+    max_decision_time: float | None = Field(None, gt=0, description="s from 40 cm above the surface to the decision")
+
+
+class Scenario(ConfigModel):
+    """One scenario file (see module docstring and scenarios/README.md)."""
+
+    description: str = ""
+    name: str = Field("", description="set from the file name when loaded")
+    scene: dict = Field(default_factory=dict, description="place_safe.sim.scene.SceneConfig (validated by it); "
+                        "table.tilt_deg / tilt_direction_deg accepted; start_height (m) sets the table under the cup")
+    surface_motion: SurfaceMotion | None = None
+    sensor: SensorSection = Field(default_factory=SensorSection)
+    robot: RobotSection = Field(default_factory=RobotSection)
+    calibration: str = Field("sim", description="sim: the packaged simulated user calibration of this sensor; "
+                             "oracle: the simulator's true parameters (debugging only); none: uncalibrated; "
+                             "or a calibration file (relative to the scenario file)")
+    method: str = Field("diff", description="plane-recovery method")
+    placement: dict = Field(default_factory=dict, description="PlacementConfig overrides (SI units)")
+    expect: Expectation | None = None
+    labels: dict | None = Field(None, description="generator's truth labels (random scenes): support, clearly_safe")
+    base_dir: str = Field("", description="directory of the file (set when loaded)")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _conveniences(cls, d: Any) -> Any:
+        if not isinstance(d, dict):
+            return d
+        d = dict(d)
+        scene = dict(d.get("scene") or {})
+        table = scene.get("table")
+        if isinstance(table, dict):
+            table = dict(table)
+            for deg, rad in (("tilt_deg", "tilt"), ("tilt_direction_deg", "tilt_direction")):
+                if deg in table:
+                    if rad in table:
+                        raise ValueError(f"scene.table: give {rad} (rad) or {deg} (deg), not both")
+                    v = table.pop(deg)
+                    if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v):
+                        raise ValueError(f"scene.table.{deg} must be a finite number of degrees")
+                    table[rad] = math.radians(v)
+            scene["table"] = table
+        d["scene"] = scene
+        bad = _non_finite(scene, "scene")
+        if bad:
+            raise ValueError(f"{bad} must be a finite number")
+        return d
+
+    @model_validator(mode="after")
+    def _check_parts(self) -> "Scenario":
+        from place_safe.recovery import METHODS
+
+        self.scene_config()  # raises with the scene's own message
+        if self.method not in METHODS:
+            raise ValueError(f"method {self.method!r} unknown; expected one of {', '.join(METHODS)}")
+        self.placement_config()
+        return self
+
+    # -- the parts as the simulation needs them --------------------------------------------------
+    def scene_config(self):
+        """The :class:`~place_safe.sim.scene.SceneConfig` (always with the robot)."""
+        from place_safe.sim.scene import SceneConfig, SceneError
+
+        d = dict(self.scene)
+        start_height = d.pop("start_height", None)
+        try:
+            cfg = SceneConfig.from_dict(d)
+        except SceneError as exc:
+            raise ValueError(str(exc)) from None
+        cfg.with_robot = True
+        if start_height is not None:
+            if not isinstance(start_height, (int, float)) or not (0.02 <= start_height <= 0.8):
+                raise ValueError("scene.start_height must be 0.02..0.8 m (cup bottom above the table at the start)")
+            cfg.table.height = float(home_cup_position(cfg)[2] - start_height)
+        return cfg
+
+    def placement_config(self):
+        from place_safe.placement.machine import PlacementConfig
+
+        try:
+            return PlacementConfig.from_dict({**PlacementConfig().to_dict(), **self.placement})
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"placement: {exc}") from None
+
+    def resolve_calibration(self, method: str | None = None) -> tuple[Any, str]:
+        """(Calibration or None, note naming where it came from). ``none`` gives (None, 'uncalibrated')."""
+        from place_safe.calibration import Calibration
+
+        kind = self.calibration
+        if kind == "none":
+            return None, "uncalibrated"
+        if kind == "oracle":
+            return oracle_calibration(), ORACLE_NOTE
+        if kind == "sim":
+            from place_safe.sim.calibration_capture import calibration_file
+
+            p = calibration_file(self.sensor.model)
+            return Calibration.load(p), f"simulated user calibration ({p.name}: level sweep -> place-safe calibrate)"
+        p = Path(kind)
+        if not p.is_absolute() and self.base_dir:
+            p = Path(self.base_dir) / p
+        return Calibration.load(p), str(p)
+
+
+def _non_finite(v: Any, where: str) -> str | None:
+    """Path of the first NaN/inf number inside nested dicts/lists, or None."""
+    if isinstance(v, float) and not math.isfinite(v):
+        return where
+    if isinstance(v, dict):
+        items = v.items()
+    elif isinstance(v, (list, tuple)):
+        items = ((str(i), x) for i, x in enumerate(v))
+    else:
+        return None
+    for k, x in items:
+        found = _non_finite(x, f"{where}.{k}")
+        if found:
+            return found
+    return None
+
+
+ORACLE_NOTE = "ORACLE: the simulated sensor's true forward parameters (debugging only)"
+
+
+def oracle_calibration():
+    """The simulator's own parameters as a calibration: only for ``--oracle`` debugging runs."""
+    import json
+
+    from place_safe.calibration import Calibration
+    from place_safe.sim.tof import sensor_file
+
+    return Calibration({"forward": json.loads(sensor_file("tmf8820_real.json").read_text())})
+
+
+def home_cup_position(scene_cfg) -> np.ndarray:
+    """World position of the cup bottom with the UR5 at home (from the kinematic model, not the simulator)."""
+    from scipy.spatial.transform import Rotation
+
+    from place_safe.robot.kinematics import Kinematics
+    from place_safe.robots import ur5_config
+
+    global _HOME_CUP
+    if _HOME_CUP is None:
+        _HOME_CUP = Kinematics().base_T_cup(np.asarray(ur5_config()["arm"]["home"], dtype=float))[:3, 3]
+    R = Rotation.from_euler("z", scene_cfg.robot_base_yaw).as_matrix()
+    return np.asarray(scene_cfg.robot_base_pos, dtype=float) + R @ _HOME_CUP
+
+
+_HOME_CUP: np.ndarray | None = None
+
+
+# ---------------------------------------------------------------------------------------------
+# files
+# ---------------------------------------------------------------------------------------------
+def scenario_path(name: str | Path) -> Path:
+    """A scenario file: a path, or the name of a packaged one (``place_level``, ``level_30cm.toml``)."""
+    p = Path(name)
+    if p.is_file():
+        return p
+    root = Path(str(resources.files("place_safe.scenarios")))
+    cands = [root / p.name] if p.suffix in SUFFIXES else [root / (p.name + s) for s in SUFFIXES]
+    cands += [root / "set" / c.name for c in cands]
+    for c in cands:
+        if c.is_file():
+            return c
+    raise ConfigError(f"scenario {name} not found (neither a file nor a packaged scenario in scenarios/)")
+
+
+def load_scenario(name: str | Path) -> Scenario:
+    """Read and validate a scenario file (TOML or JSON); one-line ConfigError on any problem."""
+    p = scenario_path(name)
+    from place_safe.config import read_config_file
+
+    data = read_config_file(p, "scenario")
+    if isinstance(data, dict):
+        data = {**data, "name": data.get("name") or p.stem, "base_dir": str(p.parent)}
+    return parse_config(Scenario, data, f"scenario {p}")
+
+
+def packaged_scenarios(subdir: str = "set") -> list[Path]:
+    """The hand-written set (``scenarios/set/*.toml``) or, with ``subdir=''``, the top-level files."""
+    root = Path(str(resources.files("place_safe.scenarios")))
+    d = root / subdir if subdir else root
+    return sorted(p for p in d.iterdir() if p.suffix in SUFFIXES)
+
+
+def expand_paths(paths: list[str]) -> list[Path]:
+    """Files and directories (every *.toml / *.json inside, sorted) as scenario files."""
+    out: list[Path] = []
+    for s in paths:
+        p = Path(s)
+        if p.is_dir():
+            out += sorted(q for q in p.iterdir() if q.suffix in SUFFIXES)
+        else:
+            out.append(scenario_path(s))
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# what happens in the world: moving table, injected faults, truth recording
+# ---------------------------------------------------------------------------------------------
+class TruthRecorder:
+    """Robot step callback: moves the table, injects faults and records simulation truth (SI units)."""
+
+    def __init__(self, scenario: Scenario, scene: Any, robot: Any) -> None:
+        self.sc, self.scene, self.robot = scenario, scene, robot
+        self.model = scene.model
+        self._table_pos0 = self.model.geom_pos[scene.table_geom].copy()
+        self.start_height = math.nan
+        self.t_reference: float | None = None  # cup bottom first within REFERENCE_HEIGHT of the surface
+        self.release_height = math.nan
+        self.release_time: float | None = None
+        self.stop_injected: str | None = None
+        self.min_height = math.inf
+        self.surface_moved = 0.0
+        self._first = True
+
+    def cup_height(self) -> float:
+        """Cup bottom centre above the table top along its normal (m), simulation truth."""
+        n_w, p_w = self.scene.table_plane_world(self.robot.data)
+        c = self.robot.world_T_base() @ self.robot.cup_pose()
+        return float(n_w @ (c[:3, 3] - p_w))
+
+    def __call__(self, *_: Any) -> None:
+        d = self.robot.data
+        t = float(d.time)
+        m = self.sc.surface_motion
+        if m is not None and t >= m.start:
+            dz = m.velocity * min(t - m.start, m.duration)
+            self.model.geom_pos[self.scene.table_geom] = self._table_pos0 + np.array([0.0, 0.0, dz])
+            self.surface_moved = dz
+        h = self.cup_height()
+        if self._first:
+            self.start_height, self._first = h, False
+        self.min_height = min(self.min_height, h)
+        if self.t_reference is None and h <= REFERENCE_HEIGHT:
+            self.t_reference = t
+        if self.release_time is None and self.robot.gripper_is_open():
+            self.release_time, self.release_height = t, h
+        rb = self.sc.robot
+        if self.stop_injected is None and self.robot.fault() is None and (
+                (rb.protective_stop_at is not None and t >= rb.protective_stop_at)
+                or (rb.protective_stop_below is not None and h <= rb.protective_stop_below)):
+            self.stop_injected = f"injected protective stop at t={t:.3f} s, cup {h * 1e3:.0f} mm above the surface"
+            self.robot._raise_fault(f"protective stop ({self.stop_injected})")  # what the controller latches
+
+
+def surface_truth(scene: Any, data: Any) -> tuple[float, float]:
+    """True table tilt (rad) and top height at its centre (world z, m)."""
+    n_w, p_w = scene.table_plane_world(data)
+    return float(math.acos(min(1.0, abs(n_w[2])))), float(p_w[2])
+
+
+__all__ = ["Scenario", "SensorSection", "RobotSection", "Expectation", "SurfaceMotion", "TruthRecorder",
+           "load_scenario", "scenario_path", "packaged_scenarios", "expand_paths", "oracle_calibration",
+           "home_cup_position", "surface_truth", "REFERENCE_HEIGHT", "TIPPED_TILT", "ON_TABLE_TOL", "ORACLE_NOTE"]

@@ -1,0 +1,307 @@
+"""Scenario regression runs: random scenes, judging each run by simulation truth, summary figures.
+
+Concept: a *run* is one :class:`~place_safe.sim.scenario.Scenario` through
+:func:`place_safe.sim.placement_run.run_placement` (the same :class:`~place_safe.placement.loop.PlacementLoop`
+a task script uses). :func:`judge` turns its result into one flat row (the per-run fields of issue 12)
+and says whether the run met the scenario's expectation and whether it was an *unsafe release* or a
+*false refusal*. :func:`random_scenario` draws scenes like a tester would (tilt, start height,
+material, table edge or clutter near or under the cup, sensor faults, both simulated sensors) and
+labels each with what a correct placement must do from the scene's geometry. :func:`run_many`
+runs rows serially, in local processes (``jobs``) or on a Ray cluster (``ray_address``).
+
+Definitions (SI units in rows; degrees / millimetres only in :func:`format_table`):
+
+* **unsafe release**: released and any of: true tilt above the limit (``max_tilt``), cup bottom more
+  than ``max_release_height`` (10 mm) above the surface when the gripper opened, the cup ended tipped
+  (> 10 deg) or not standing on the table (bottom > 5 mm off the top), liquid spilled, or the scene
+  was labelled *unsupported* (edge or clutter under the cup's footprint).
+* **clearly safe** scene: true tilt <= limit - 1 deg, nothing within the footprint plus 30 mm, no
+  injected fault, start height >= 8 cm; a refusal there is a **false refusal**.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from place_safe.sim.scenario import (ON_TABLE_TOL, REFERENCE_HEIGHT, TIPPED_TILT, Expectation, Scenario,
+                                     home_cup_position)
+
+#: m beyond the cup's footprint that must be clear for a scene to count as clearly safe.
+CLEAR_MARGIN = 0.03
+#: rad below the tilt limit for a scene to count as clearly safe.
+TILT_MARGIN = math.radians(1.0)
+
+
+# ---------------------------------------------------------------------------------------------
+# random scenes
+# ---------------------------------------------------------------------------------------------
+def random_scenario(rng: np.random.Generator, index: int = 0, calibration: str = "sim") -> Scenario:
+    """One random scene (see module docstring); ``expect`` and ``labels`` come from its geometry."""
+    from place_safe.placement.machine import PlacementConfig
+    from place_safe.sim.scene import SceneConfig
+
+    pc = PlacementConfig()
+    base = SceneConfig()
+    cup = home_cup_position(base)
+    radius = pc.cup_radius
+    tilt = math.radians(rng.uniform(0.0, 15.0))
+    direction = rng.uniform(-math.pi, math.pi)
+    start = 0.40 if rng.random() < 0.3 else rng.uniform(0.10, 0.40)  # enough starts at 40 cm for the time figure
+    mat: dict[str, Any] = {"albedo": float(rng.choice([0.15, 0.4, 1.0, 1.0, 1.6]))}
+    kind = rng.choice(["uniform", "uniform", "glossy", "checker"])
+    if kind == "glossy":
+        mat.update(specular_weight=float(rng.uniform(0.5, 1.5)), specular_exponent=float(rng.uniform(10, 40)))
+    elif kind == "checker":
+        mat.update(pattern="checker", square=float(rng.uniform(0.02, 0.06)), albedo2=float(rng.uniform(0.1, 0.5)))
+    table: dict[str, Any] = {"tilt": tilt, "tilt_direction": direction, "material": mat,
+                             "center": [float(base.table.center[0]), float(base.table.center[1])]}
+    scene: dict[str, Any] = {"table": table, "start_height": start}
+    support = "full"
+    clearance_to_hazard = math.inf  # m from the footprint's rim to the nearest edge/clutter
+    hazard = rng.choice(["none", "none", "edge", "clutter"])
+    if hazard == "edge":
+        e = float(rng.uniform(-0.06, 0.12))  # cup centre this far inside the edge (negative: beyond it)
+        side = int(rng.integers(4))
+        half = (base.table.size[0] / 2, base.table.size[1] / 2)
+        c = list(table["center"])
+        if side == 0:
+            c[0] = float(cup[0] - e + half[0])
+        elif side == 1:
+            c[0] = float(cup[0] + e - half[0])
+        elif side == 2:
+            c[1] = float(cup[1] - e + half[1])
+        else:
+            c[1] = float(cup[1] + e - half[1])
+        table["center"] = c
+        clearance_to_hazard = e - radius
+        support = "edge" if e < radius else "full"
+    elif hazard == "clutter":
+        table["tilt"] = 0.0
+        tilt = 0.0
+        hz = float(rng.uniform(0.005, 0.02))  # half height
+        hx, hy = float(rng.uniform(0.015, 0.04)), float(rng.uniform(0.015, 0.04))
+        r = float(rng.uniform(0.0, 0.12))
+        a = float(rng.uniform(-math.pi, math.pi))
+        px, py = float(cup[0] + r * math.cos(a)), float(cup[1] + r * math.sin(a))
+        top = float(cup[2] - start)
+        scene["clutter"] = [{"shape": "box", "pos": [px, py, top + hz], "size": [hx, hy, hz],
+                             "material": {"albedo": float(rng.uniform(0.3, 1.2))}}]
+        dx, dy = max(abs(px - cup[0]) - hx, 0.0), max(abs(py - cup[1]) - hy, 0.0)
+        clearance_to_hazard = math.hypot(dx, dy) - radius
+        support = "clutter" if clearance_to_hazard < 0 else "full"
+    sensor: dict[str, Any] = {"model": str(rng.choice(["nominal", "mismatch"])), "seed": int(rng.integers(1 << 30))}
+    if rng.random() < 0.3:
+        sensor.update(drop_prob=float(rng.uniform(0, 0.15)), corrupt_prob=float(rng.uniform(0, 0.05)))
+    if rng.random() < 0.2:
+        sensor["spike_prob"] = float(rng.uniform(0, 0.05))
+    if rng.random() < 0.2:
+        sensor["ambient_range"] = [400.0, 1500.0]  # strong ambient light
+    unsafe = tilt > pc.max_tilt or support != "full"
+    clearly_safe = (tilt <= pc.max_tilt - TILT_MARGIN and clearance_to_hazard >= CLEAR_MARGIN and start >= 0.08)
+    outcome = "refused" if unsafe else ("released" if clearly_safe else "any")
+    desc = (f"random #{index}: tilt {math.degrees(tilt):.1f} deg towards {math.degrees(direction):.0f} deg, "
+            f"start {start * 100:.0f} cm, {kind} albedo {mat['albedo']}, hazard {hazard}"
+            + (f" ({clearance_to_hazard * 1e3:.0f} mm from the footprint)" if hazard != "none" else "")
+            + f", sensor {sensor['model']}")
+    return Scenario(name=f"random_{index:04d}", description=desc, scene=scene, sensor=sensor,
+                    calibration=calibration, expect=Expectation(outcome=outcome),
+                    labels={"support": support, "clearly_safe": bool(clearly_safe), "hazard": str(hazard),
+                            "hazard_clearance": None if math.isinf(clearance_to_hazard) else clearance_to_hazard})
+
+
+# ---------------------------------------------------------------------------------------------
+# judging
+# ---------------------------------------------------------------------------------------------
+def judge(sc: Scenario, res: Any, max_tilt: float | None = None) -> dict:
+    """One flat row for a run: the issue's per-run fields, safety verdicts and whether it met ``sc.expect``."""
+    if max_tilt is None:
+        max_tilt = sc.placement_config().max_tilt
+    exp = sc.expect or Expectation(outcome="any")
+    labels = sc.labels or {}
+    released = res.outcome == "released"
+    upright = bool(res.cup_tilt <= TIPPED_TILT)
+    on_table = bool(abs(res.cup_height) <= ON_TABLE_TOL)
+    rh = res.release_height
+    problems = []
+    if released:
+        if res.true_tilt > max_tilt:
+            problems.append(f"surface tilted {math.degrees(res.true_tilt):.1f} deg")
+        if not (rh <= exp.max_release_height):
+            problems.append(f"released {rh * 1e3:.1f} mm above the surface")
+        if not upright:
+            problems.append(f"cup tipped ({math.degrees(res.cup_tilt):.0f} deg)")
+        if not on_table:
+            problems.append(f"cup not on the table ({res.cup_height * 1e3:.0f} mm off)")
+        if res.liquid_spilled > exp.max_spilled:
+            problems.append(f"{res.liquid_spilled} liquid spheres spilled")
+        if labels.get("support", "full") != "full":
+            problems.append(f"released over {labels['support']}")
+    unsafe = bool(released and problems)
+    misses = list(problems)
+    if exp.outcome != "any" and res.outcome != exp.outcome:
+        misses.insert(0, f"expected {exp.outcome}, got {res.outcome}")
+    if exp.outcome == "refused" and res.outcome == "refused" and exp.reason:
+        if not any(w.lower() in res.reason.lower() for w in exp.reason):
+            misses.append(f"reason does not mention {' / '.join(exp.reason)}")
+    if exp.max_decision_time is not None and not (res.decision_time is not None
+                                                  and res.decision_time <= exp.max_decision_time):
+        misses.append(f"decision time {res.decision_time} s > {exp.max_decision_time} s")
+    clearly_safe = bool(labels.get("clearly_safe", exp.outcome == "released"))
+    return {
+        "name": res.scenario, "description": sc.description, "sensor": res.sensor, "method": res.method,
+        "calibration": res.calibration, "true_tilt_deg": math.degrees(res.true_tilt),
+        "surface_height": res.surface_height, "start_height": res.start_height, "decision": res.outcome,
+        "release_height": None if math.isnan(rh) else rh, "cup_upright": upright, "on_table": on_table,
+        "liquid_spilled": int(res.liquid_spilled), "decision_time": res.decision_time,
+        "time_from": REFERENCE_HEIGHT if res.start_height >= REFERENCE_HEIGHT - 1e-3 else res.start_height,
+        "reason": res.reason, "contact_force_peak": res.contact_force_peak, "robot_fault": res.robot_fault,
+        "expected": exp.outcome, "met": not misses, "misses": misses, "unsafe": unsafe,
+        "clearly_safe": clearly_safe, "false_refusal": bool(clearly_safe and not released),
+        "hazard": labels.get("hazard"), "wall_seconds": res.wall_seconds,
+    }
+
+
+def run_one(item: dict) -> dict:
+    """Run one scenario (``{"scenario": dict or path, "seed", "seconds", "calibration", "oracle"}``) -> row.
+
+    Top-level and plain-data in/out so process pools and Ray can ship it.
+    """
+    import os
+
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    from place_safe.exceptions import PlaceSafeError
+    from place_safe.sim.placement_run import run_placement
+    from place_safe.sim.scenario import load_scenario
+
+    src = item["scenario"]
+    sc = Scenario.model_validate(src) if isinstance(src, dict) else load_scenario(src)
+    try:
+        res = run_placement(sc, seed=item.get("seed", 0), seconds=item.get("seconds", 30.0),
+                            calibration=item.get("calibration"), oracle=item.get("oracle", False),
+                            log_frames=False)
+    except (PlaceSafeError, ValueError, OSError) as exc:
+        return {"name": sc.name, "description": sc.description, "decision": "error", "reason": str(exc),
+                "met": False, "misses": [f"error: {exc}"], "unsafe": False, "clearly_safe": False,
+                "false_refusal": False, "expected": sc.expect.outcome if sc.expect else "any"}
+    return judge(sc, res)
+
+
+def run_many(items: list[dict], jobs: int = 1, ray_address: str | None = None, progress: bool = True) -> list[dict]:
+    """Rows for ``items`` in order: serially, in ``jobs`` local processes, or on a Ray cluster."""
+    from tqdm import tqdm
+
+    bar = dict(total=len(items), disable=not progress, leave=False, desc="scenarios")
+    if ray_address is not None:
+        import ray
+
+        ray.init(address=None if ray_address == "local" else ray_address, ignore_reinit_error=True,
+                 log_to_driver=False, include_dashboard=False)
+        remote = ray.remote(num_cpus=1)(run_one)
+        refs = [remote.remote(it) for it in items]
+        out = []
+        for r in tqdm(refs, **bar):
+            out.append(ray.get(r))
+        return out
+    if jobs <= 1:
+        return [run_one(it) for it in tqdm(items, **bar)]
+    import multiprocessing as mp
+
+    with mp.get_context("spawn").Pool(jobs) as pool:
+        return list(tqdm(pool.imap(run_one, items), **bar))
+
+
+# ---------------------------------------------------------------------------------------------
+# figures
+# ---------------------------------------------------------------------------------------------
+def summarize(rows: list[dict]) -> dict:
+    """The issue's figures over ``rows``."""
+    rel = [r for r in rows if r.get("decision") == "released"]
+    safe = [r for r in rows if r.get("clearly_safe")]
+    heights = [r["release_height"] for r in rel if r.get("release_height") is not None]
+    times = [r["decision_time"] for r in rel if r.get("decision_time") is not None
+             and r.get("time_from", 0) >= REFERENCE_HEIGHT - 1e-3]
+    return {
+        "runs": len(rows), "released": len(rel),
+        "refused": sum(r.get("decision") == "refused" for r in rows),
+        "timeout": sum(r.get("decision") == "timeout" for r in rows),
+        "errors": sum(r.get("decision") == "error" for r in rows),
+        "unsafe_releases": sum(bool(r.get("unsafe")) for r in rows),
+        "clearly_safe": len(safe), "false_refusals": sum(bool(r.get("false_refusal")) for r in rows),
+        "false_refusal_rate": (sum(bool(r.get("false_refusal")) for r in rows) / len(safe)) if safe else None,
+        "median_release_height": float(np.median(heights)) if heights else None,
+        "median_time_from_40cm": float(np.median(times)) if times else None,
+        "releases_from_40cm": len(times),
+        "missed_expectation": sum(not r.get("met") for r in rows),
+        "collisions": sum(bool(r.get("robot_fault")) for r in rows),
+    }
+
+
+def format_table(rows: list[dict], summary: dict) -> str:
+    """A console table (degrees, millimetres) and the summary lines."""
+    head = f"{'name':<28} {'sensor':<8} {'tilt':>5} {'decision':<9} {'rel mm':>6} {'up':>3} {'spill':>5} " \
+           f"{'t40 s':>6} {'ok':>3}  reason"
+    lines = [head, "-" * len(head)]
+    for r in rows:
+        rh = r.get("release_height")
+        dt = r.get("decision_time")
+        lines.append(f"{r['name'][:28]:<28} {str(r.get('sensor', ''))[:8]:<8} {r.get('true_tilt_deg', math.nan):5.1f} "
+                     f"{r.get('decision', ''):<9} {'' if rh is None else f'{rh * 1e3:6.1f}':>6} "
+                     f"{'y' if r.get('cup_upright', True) else 'N':>3} {r.get('liquid_spilled', 0):>5} "
+                     f"{'' if dt is None else f'{dt:6.2f}':>6} {'ok' if r.get('met') else 'MISS':>4}  "
+                     f"{(r.get('reason') or '')[:90]}"
+                     + (f"  [{'; '.join(r['misses'])}]" if r.get("misses") else ""))
+    s = summary
+    mh = s["median_release_height"]
+    mt = s["median_time_from_40cm"]
+    fr = s["false_refusal_rate"]
+    lines += ["", f"{s['runs']} runs: {s['released']} released, {s['refused']} refused, {s['timeout']} timed out, "
+                  f"{s['errors']} errors; {s['missed_expectation']} missed their expectation",
+              f"unsafe releases: {s['unsafe_releases']}; false refusals: {s['false_refusals']} of {s['clearly_safe']} "
+              f"clearly safe scenes ({'-' if fr is None else f'{fr * 100:.1f} %'}); protective stops/faults: "
+              f"{s['collisions']}",
+              f"median release height: {'-' if mh is None else f'{mh * 1e3:.1f} mm'}; median time from 40 cm to "
+              f"release: {'-' if mt is None else f'{mt:.2f} s'} ({s['releases_from_40cm']} releases from >= 40 cm)"]
+    return "\n".join(lines)
+
+
+def plot(rows: list[dict], path: str) -> str:
+    """PNG: outcome over true tilt and start height, and the release-height histogram."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4.2))
+    style = {"released": ("tab:green", "o"), "refused": ("tab:blue", "s"), "timeout": ("tab:orange", "^"),
+             "error": ("tab:gray", "x")}
+    for dec, (col, mk) in style.items():
+        rs = [r for r in rows if r.get("decision") == dec and r.get("true_tilt_deg") is not None]
+        if rs:
+            a.scatter([r["true_tilt_deg"] for r in rs], [r["start_height"] * 100 for r in rs], c=col, marker=mk,
+                      label=dec, s=22)
+    bad = [r for r in rows if r.get("unsafe") or r.get("false_refusal")]
+    if bad:
+        a.scatter([r["true_tilt_deg"] for r in bad], [r["start_height"] * 100 for r in bad], facecolors="none",
+                  edgecolors="red", s=80, label="unsafe / false refusal")
+    a.axvline(5.0, color="k", ls="--", lw=0.8)
+    a.set_xlabel("true surface tilt (deg)")
+    a.set_ylabel("start height of the cup bottom (cm)")
+    a.set_title("outcome")
+    a.legend(fontsize=8)
+    hs = [r["release_height"] * 1e3 for r in rows if r.get("release_height") is not None]
+    b.hist(hs, bins=20, color="tab:green")
+    b.axvline(10.0, color="r", ls="--", lw=0.8)
+    b.set_xlabel("cup bottom above the surface at release (mm)")
+    b.set_ylabel("runs")
+    b.set_title("release height")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+__all__ = ["random_scenario", "judge", "run_one", "run_many", "summarize", "format_table", "plot",
+           "CLEAR_MARGIN", "TILT_MARGIN"]

@@ -1,0 +1,145 @@
+"""A simulated TMF8820 that is *not* the forward model: structural differences a real sensor has.
+
+Concept: :class:`MismatchedToF` is a :class:`~place_safe.sim.tof.SimToF` whose histograms differ
+from what :class:`~place_safe.recovery.forward.ForwardModel` can express with any parameters, so
+an estimator calibrated on it (``place-safe scenarios calibrate``) is measured on a sensor that its
+model did not generate. The differences (all configurable in :class:`MismatchConfig`, seeded):
+
+* **Per-zone pulse shape**: each zone's pulse gets its own extra exponential tail (weight and decay
+  drawn per zone); the model has one tail for all zones.
+* **Temperature drift**: the die warms from ``temp_start`` by ``temp_rate`` degC/s (up to
+  ``temp_max``); the timing shifts by ``drift_bins_per_degc`` bins per degree and the extra tails
+  lengthen by ``tail_per_degc`` per degree. A calibration taken cold cannot know the warm sensor.
+* **Per-zone timing skew** beyond the model's constant zone offsets: a per-zone sub-bin skew that
+  also scales with temperature (``skew_bins`` at 10 degC above the start).
+* **Emitter-receiver baseline**: light leaves from an emitter ``baseline`` metres from the
+  receiver along sensor +x, so a return's time of flight is ``|e - p| + |p - r|``, not ``2 |p - r|``
+  (matters at close range).
+* **Varying ambient floor**: the ambient level drifts from frame to frame (``ambient_drift``
+  relative, a slow sinusoid plus a random walk) and slopes across the histogram bins
+  (``ambient_slope`` relative change from first to last bin); the model assumes a flat floor.
+
+Units: metres, seconds, degrees Celsius, histogram bins. Everything else is the nominal
+:class:`~place_safe.sim.tof.SimToF` (rays, materials, timing, faults, ground truth).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+from pydantic import Field
+
+from place_safe.config import ConfigModel
+from place_safe.sensor.frame import N_BINS, N_ZONES, Frame
+
+from place_safe.sim.tof import RayReturns, SimToF, ToFConfig
+
+
+class MismatchConfig(ConfigModel):
+    """How the mismatched sensor differs from the forward model (see module docstring)."""
+
+    seed: int = Field(7, description="seed of the per-zone differences (not the noise)")
+    tail_weight: tuple[float, float] = Field((0.02, 0.08), description="range of per-zone extra tail weights")
+    tail_decay: tuple[float, float] = Field((1.5, 5.0), description="range of per-zone extra tail decays (bins)")
+    skew_bins: float = Field(0.15, ge=0, description="per-zone timing skew std (bins) at 10 degC of warming")
+    temp_start: float = Field(25.0, description="die temperature at the start (degC)")
+    temp_rate: float = Field(0.5, ge=0, description="warming rate (degC/s)")
+    temp_max: float = Field(45.0, description="die temperature limit (degC)")
+    drift_bins_per_degc: float = Field(0.01, description="common timing drift (bins per degC of warming)")
+    tail_per_degc: float = Field(0.01, ge=0, description="relative lengthening of the extra tails per degC")
+    baseline: float = Field(0.006, ge=0, le=0.05, description="emitter offset from the receiver along +x (m)")
+    ambient_drift: float = Field(0.25, ge=0, le=1, description="relative frame-to-frame ambient variation")
+    ambient_slope: float = Field(0.15, ge=-0.9, le=0.9, description="relative ambient change from first to last bin")
+
+
+class MismatchedToF(SimToF):
+    """The simulated sensor with the structural differences of :class:`MismatchConfig`."""
+
+    def __init__(self, scene: Any, data: Any = None, config: ToFConfig | None = None,
+                 mismatch: MismatchConfig | None = None, **kw: Any) -> None:
+        super().__init__(scene, data, config, **kw)
+        self.mismatch = mismatch if mismatch is not None else MismatchConfig()
+        mc = self.mismatch
+        rng = np.random.default_rng(mc.seed)
+        self._tail_w = rng.uniform(*mc.tail_weight, N_ZONES)
+        self._tail_k = rng.uniform(*mc.tail_decay, N_ZONES)
+        self._skew = rng.normal(0.0, mc.skew_bins, N_ZONES)
+        self._amb_phase = rng.uniform(0, 2 * math.pi, N_ZONES)
+        self._amb_base = self.ambient.copy()
+        self._amb_walk = np.zeros(N_ZONES)
+        self._time = 0.0
+
+    # -- what differs --------------------------------------------------------------------------
+    def temperature(self, t: float) -> float:
+        mc = self.mismatch
+        return min(mc.temp_start + mc.temp_rate * max(t, 0.0), mc.temp_max)
+
+    def cast(self, model: Any = None, data: Any = None) -> RayReturns:
+        r = super().cast(model, data)
+        b = self.mismatch.baseline
+        if b > 0:
+            d = self.data if data is None else data
+            pos, R = self.sensor_pose(d)
+            emitter = pos + R[:, 0] * b
+            back = np.linalg.norm(r.points - pos, axis=-1)
+            out = np.linalg.norm(r.points - emitter, axis=-1)
+            r.ranges = np.where(r.hit, 0.5 * (back + out), r.ranges)
+        return r
+
+    def _render(self, returns: RayReturns, reference: np.ndarray) -> np.ndarray:
+        h = super()._render(returns, reference)
+        mc = self.mismatch
+        warm = self.temperature(self._time) - mc.temp_start
+        k = np.arange(1, 24, dtype=float)
+        out = np.empty_like(h)
+        for z in range(N_ZONES):
+            decay = self._tail_k[z] * (1.0 + mc.tail_per_degc * warm)
+            kern = np.exp(-k / decay)
+            kern *= self._tail_w[z] / kern.sum()
+            tail = np.convolve(h[z], np.concatenate([[0.0], kern]))[:N_BINS]
+            hz = (h[z] + tail) / (1.0 + self._tail_w[z])
+            shift = mc.drift_bins_per_degc * warm + self._skew[z] * (warm / 10.0)
+            out[z] = _shift(hz, shift)
+        # an ambient floor that slopes across the bins (the model's floor is flat); measure() adds the mean
+        prof = mc.ambient_slope * (np.linspace(0.0, 1.0, N_BINS) - 0.5)
+        return out + self.ambient[:, None] * prof[None, :]
+
+    def measure(self, model: Any = None, data: Any = None, noise: bool | None = None,
+                reference: np.ndarray | None = None) -> Frame:
+        d = self.data if data is None else data
+        self._time = float(d.time)
+        mc = self.mismatch
+        if mc.ambient_drift > 0:
+            self._amb_walk = 0.9 * self._amb_walk + self._rng.normal(0.0, 0.3 * mc.ambient_drift, N_ZONES)
+            wave = np.sin(2 * math.pi * self._time / 3.0 + self._amb_phase)
+            self.ambient = self._amb_base * np.clip(1.0 + mc.ambient_drift * (0.7 * wave + self._amb_walk), 0.2, 3.0)
+        f = super().measure(model, data, noise, reference)
+        f.extra["sim"]["sensor"] = "mismatch"
+        f.extra["sim"]["temperature"] = self.temperature(self._time)
+        return f
+
+
+def _shift(h: np.ndarray, s: float) -> np.ndarray:
+    """``h`` delayed by ``s`` bins (linear interpolation; edge values held)."""
+    if s == 0:
+        return h
+    x = np.arange(h.size, dtype=float) - s
+    return np.interp(x, np.arange(h.size, dtype=float), h)
+
+
+SENSOR_MODELS = ("nominal", "mismatch")
+
+
+def make_sensor(model: str, scene: Any, data: Any = None, config: ToFConfig | None = None,
+                mismatch: MismatchConfig | None = None) -> SimToF:
+    """The simulated sensor called ``model`` (``nominal``: the forward model; ``mismatch``: not it)."""
+    if model == "nominal":
+        return SimToF(scene, data, config)
+    if model == "mismatch":
+        return MismatchedToF(scene, data, config, mismatch)
+    raise ValueError(f"unknown simulated sensor {model!r}; expected one of {', '.join(SENSOR_MODELS)}")
+
+
+__all__ = ["MismatchConfig", "MismatchedToF", "SENSOR_MODELS", "make_sensor"]

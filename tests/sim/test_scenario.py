@@ -1,0 +1,108 @@
+"""Scenario files: schema validation, the hand-written set, calibration required, the mismatched sensor."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+
+pytest.importorskip("mujoco")
+
+from place_safe.calibration import Calibration, uncalibrated_reason  # noqa: E402
+from place_safe.config import parse_config  # noqa: E402
+from place_safe.exceptions import ConfigError  # noqa: E402
+from place_safe.sim.scenario import (Scenario, home_cup_position, load_scenario,  # noqa: E402
+                                     packaged_scenarios)
+
+
+def test_every_packaged_scenario_validates_and_the_set_covers_the_issue():
+    names = {p.stem for p in packaged_scenarios()}
+    assert len(names) >= 30
+    for must in ("level_10cm", "level_40cm", "tilt_4p9_west", "tilt_5p1_south", "tilt_15_south", "dark_table",
+                 "checker_table", "glossy_table", "edge_under_cup", "clutter_under_cup", "dropouts",
+                 "latency_spikes", "table_rises", "table_drops", "protective_stop", "level_mismatch_40cm"):
+        assert must in names
+    for p in packaged_scenarios() + packaged_scenarios(""):
+        sc = load_scenario(p)
+        sc.scene_config()
+    assert load_scenario("place_level").expect.outcome == "released"
+    assert load_scenario("place_tilted").expect.outcome == "refused"
+
+
+def test_degrees_start_height_and_sensor_sections_become_si(tmp_path):
+    f = tmp_path / "s.toml"
+    f.write_text('[scene]\nstart_height = 0.2\ntable.tilt_deg = 4.9\ntable.tilt_direction_deg = 90\n'
+                 '[sensor]\nmodel = "mismatch"\nseed = 5\ndrop_prob = 0.1\n[expect]\noutcome = "any"\n')
+    sc = load_scenario(f)
+    cfg = sc.scene_config()
+    assert cfg.table.tilt == pytest.approx(math.radians(4.9))
+    assert cfg.table.tilt_direction == pytest.approx(math.pi / 2)
+    assert home_cup_position(cfg)[2] - cfg.table.height == pytest.approx(0.2)
+    tof = sc.sensor.tof_config(seed=99)
+    assert tof.seed == 5 and tof.drop_prob == 0.1  # the scenario's own seed is kept
+    assert sc.name == "s"
+
+
+@pytest.mark.parametrize("data, words", [
+    ({"scene": {"table": {"tilt": 0.1, "tilt_deg": 5}}}, "not both"),
+    ({"scene": {"tabel": {}}}, "unknown keys"),
+    ({"sensor": {"drop_prob": 1.5}}, "sensor.drop_prob"),
+    ({"sensor": {"model": "perfect"}}, "sensor.model"),
+    ({"expect": {"outcome": "maybe"}}, "expect.outcome"),
+    ({"placement": {"max_tilt": -1}}, "max_tilt"),
+    ({"method": "magic"}, "method"),
+    ({"scene": {"start_height": 5.0}}, "start_height"),
+    ({"surprise": 1}, "surprise"),
+])
+def test_bad_scenarios_give_one_line_errors(data, words):
+    with pytest.raises(ConfigError) as e:
+        parse_config(Scenario, data, "scenario x")
+    msg = str(e.value)
+    assert "\n" not in msg and words in msg
+
+
+def test_bad_files_give_one_line_errors(tmp_path):
+    f = tmp_path / "bad.toml"
+    f.write_text("[scene\n")
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        load_scenario(f)
+    j = tmp_path / "nan.json"
+    j.write_text(json.dumps({"scene": {"table": {"height": float("nan")}}}))
+    with pytest.raises(ConfigError):
+        load_scenario(j)
+    with pytest.raises(ConfigError, match="not found"):
+        load_scenario(tmp_path / "missing.toml")
+
+
+def test_calibration_is_required_and_says_how():
+    assert "place-safe calibrate" in uncalibrated_reason("diff", None)
+    assert "built-in constants" in uncalibrated_reason("peak-naive", Calibration())
+    assert uncalibrated_reason("peak", Calibration({"forward": {}})) is not None
+    cal = Calibration.load(load_scenario("level_20cm").resolve_calibration()[0] and
+                           __import__("place_safe.sim.calibration_capture", fromlist=["x"]).calibration_file())
+    for m in ("diff", "peak", "proprietary"):
+        assert uncalibrated_reason(m, cal) is None
+
+
+def test_uncalibrated_placement_refuses_before_moving():
+    from place_safe.sim.placement_run import run_placement
+
+    res = run_placement(load_scenario("uncalibrated"))
+    assert res.outcome == "refused" and res.frames == 0 and res.cup_held
+    assert "place-safe calibrate" in res.reason
+    assert res.calibration == "uncalibrated"
+
+
+def test_default_calibration_is_the_user_calibration_not_the_oracle():
+    from place_safe.sim.tof import true_params
+
+    for model in ("nominal", "mismatch"):
+        sc = Scenario(sensor={"model": model})
+        cal, note = sc.resolve_calibration()
+        assert "ORACLE" not in note and f"calibration_{model}" in note
+        assert set(cal.sections) >= {"peak", "forward", "diff", "proprietary"}
+        fw, tp = cal.forward(), true_params()
+        assert fw.to_dict() != tp.to_dict()  # fitted, not copied from the simulator
+    cal, note = Scenario(calibration="oracle").resolve_calibration()
+    assert note.startswith("ORACLE")

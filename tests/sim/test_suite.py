@@ -1,0 +1,115 @@
+"""The scenario runner: judging by simulation truth, random scenes, the command (CI subset), Ray."""
+
+from __future__ import annotations
+
+import json
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+pytest.importorskip("mujoco")
+
+from place_safe.sim import suite  # noqa: E402
+from place_safe.sim.scenario import Expectation, Scenario, packaged_scenarios  # noqa: E402
+
+
+def _res(**kw):
+    base = dict(scenario="s", sensor="nominal", method="diff", calibration="sim", true_tilt=0.0,
+                surface_height=0.75, start_height=0.4, outcome="released", release_height=0.003,
+                cup_tilt=0.0, cup_height=0.0, liquid_spilled=0, decision_time=3.0, reason="ok",
+                contact_force_peak=0.0, robot_fault=None, wall_seconds=1.0)
+    base.update(kw)
+    return SimpleNamespace(**base)
+
+
+def test_judge_flags_every_kind_of_unsafe_release():
+    sc = Scenario(expect=Expectation(outcome="any"))
+    assert not suite.judge(sc, _res())["unsafe"]
+    for bad in (dict(true_tilt=math.radians(5.5)), dict(release_height=0.012), dict(cup_tilt=math.radians(30)),
+                dict(cup_height=-0.7), dict(liquid_spilled=3)):
+        row = suite.judge(sc, _res(**bad))
+        assert row["unsafe"] and not row["met"], bad
+    over_edge = Scenario(expect=Expectation(outcome="any"), labels={"support": "edge"})
+    assert suite.judge(over_edge, _res())["unsafe"]
+    # a refusal is never unsafe; on a clearly safe scene it is a false refusal and misses "released"
+    safe = Scenario(expect=Expectation(outcome="released"), labels={"clearly_safe": True})
+    row = suite.judge(safe, _res(outcome="refused", release_height=math.nan))
+    assert not row["unsafe"] and row["false_refusal"] and not row["met"]
+
+
+def test_judge_checks_refusal_reasons_and_decision_time():
+    sc = Scenario(expect=Expectation(outcome="refused", reason=["edge", "step"]))
+    assert suite.judge(sc, _res(outcome="refused", reason="table edge under the cup"))["met"]
+    assert not suite.judge(sc, _res(outcome="refused", reason="surface tilted 60 deg"))["met"]
+    timed = Scenario(expect=Expectation(outcome="released", max_decision_time=4.0))
+    assert suite.judge(timed, _res(decision_time=3.9))["met"]
+    assert not suite.judge(timed, _res(decision_time=4.1))["met"]
+
+
+def test_random_scenes_are_valid_and_labelled_from_their_geometry():
+    rng = np.random.default_rng(3)
+    seen = set()
+    for i in range(60):
+        sc = suite.random_scenario(rng, i)
+        Scenario.model_validate(sc.model_dump())  # ships through processes / Ray as plain data
+        tilt = sc.scene_config().table.tilt
+        lab = sc.labels
+        seen.add(lab["hazard"])
+        seen.add(sc.sensor.model)
+        if tilt > math.radians(5.0) or lab["support"] != "full":
+            assert sc.expect.outcome == "refused"
+        if lab["clearly_safe"]:
+            assert sc.expect.outcome == "released" and tilt <= math.radians(4.0) + 1e-9
+    assert {"edge", "clutter", "none", "nominal", "mismatch"} <= seen
+
+
+def test_summary_and_table():
+    rows = [suite.judge(Scenario(name="a", labels={"clearly_safe": True}), _res(release_height=0.002)),
+            suite.judge(Scenario(name="b", labels={"clearly_safe": True}), _res(outcome="refused"))]
+    s = suite.summarize(rows)
+    assert s["false_refusals"] == 1 and s["unsafe_releases"] == 0
+    assert s["median_release_height"] == pytest.approx(0.002)
+    assert "false refusals: 1 of 2" in suite.format_table(rows, s)
+
+
+def test_scenarios_command_ci_subset(tmp_path):
+    """CI subset: an uncalibrated sensor (refused at once) and the 15 deg table (refused early)."""
+    from place_safe.cli.app import main
+
+    out = tmp_path / "r.json"
+    rc = main(["scenarios", "uncalibrated", "tilt_15_south", "--json", str(out), "--quiet"])
+    d = json.loads(out.read_text())
+    assert rc == 0, d["rows"]
+    assert [r["decision"] for r in d["rows"]] == ["refused", "refused"]
+    assert d["summary"]["unsafe_releases"] == 0
+    assert (tmp_path / "r.png").stat().st_size > 1000
+    # a scenario that misses its expectation makes the command exit 1
+    miss = tmp_path / "miss.toml"
+    miss.write_text('calibration = "none"\n[expect]\noutcome = "released"\n')
+    assert main(["scenarios", str(miss), "--quiet"]) == 1
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[sensor]\nmodel = "perfect"\n')
+    assert main(["scenarios", str(bad)]) == 2
+
+
+@pytest.mark.slow
+def test_ray_runs_the_same_rows_on_a_local_instance():
+    pytest.importorskip("ray")
+    import ray
+
+    items = [{"scenario": "uncalibrated", "seed": i} for i in range(2)]
+    try:
+        rows = suite.run_many(items, ray_address="local", progress=False)
+    finally:
+        ray.shutdown()
+    assert [r["decision"] for r in rows] == ["refused", "refused"]
+    assert all(r["met"] for r in rows)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("path", packaged_scenarios(), ids=lambda p: p.stem)
+def test_hand_written_set(path):
+    row = suite.run_one({"scenario": str(path), "seed": 0})
+    assert row["met"], f"{row['name']}: {row['decision']} ({row['reason']}); misses: {row['misses']}"

@@ -1,0 +1,77 @@
+"""The mismatched simulated sensor differs structurally from the forward model (and from SimToF)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+pytest.importorskip("mujoco")
+
+from place_safe.config import parse_config  # noqa: E402
+from place_safe.exceptions import ConfigError  # noqa: E402
+from place_safe.sim.scene import SceneConfig, build_scene  # noqa: E402
+from place_safe.sim.tof import ToFConfig  # noqa: E402
+from place_safe.sim.tof_mismatch import MismatchConfig, MismatchedToF, make_sensor  # noqa: E402
+
+
+def _pair(height=0.2):
+    scene = build_scene(SceneConfig())
+    data = scene.make_data()
+    R = np.diag([1.0, -1.0, -1.0])  # looking straight down
+    scene.set_sensor_pose(data, np.array([-0.5, -0.1, 0.75 + height]), R)
+    cfg = ToFConfig(noise=False)
+    return scene, data, make_sensor("nominal", scene, data, cfg), make_sensor("mismatch", scene, data, cfg)
+
+
+def test_mismatch_differs_from_the_model_beyond_its_parameters():
+    scene, data, nom, mis = _pair()
+    a, b = nom.measure(), mis.measure()
+    assert isinstance(mis, MismatchedToF)
+    assert a.truth is not None and b.truth is not None
+    assert np.allclose(a.truth.normal, b.truth.normal)  # same world, same truth
+    rel = np.abs(a.hists - b.hists).sum(axis=1) / a.hists.sum(axis=1)
+    assert np.all(rel > 0.01)  # every zone differs by more than a percent of its counts
+    # warming shifts the timing: the same pose later gives shifted peaks (ambient kept constant here)
+    warm = MismatchedToF(scene, data, ToFConfig(noise=False), MismatchConfig(ambient_drift=0.0, ambient_slope=0.0))
+    data.time = 0.0
+    cold_h = warm.measure().hists
+    data.time = 40.0
+    c = warm.measure()
+    assert c.extra["sim"]["temperature"] == 45.0
+    pk = lambda h: ((h - h.min(1, keepdims=True)) * np.arange(h.shape[1])).sum(1) / (h - h.min(1, keepdims=True)).sum(1)  # noqa: E731
+    assert np.mean(np.abs(pk(c.hists) - pk(cold_h))) > 0.05  # common drift plus per-zone skew
+
+
+def test_baseline_changes_ranges_and_is_deterministic():
+    scene, data, nom, mis = _pair(0.08)
+    r0, r1 = nom.cast(), mis.cast()
+    d = r1.ranges[r1.hit] - r0.ranges[r0.hit]
+    b = MismatchConfig().baseline
+    assert np.abs(d).max() > 0.05 * b and np.all(np.abs(d) <= b / 2 + 1e-9)  # triangle inequality
+    _, _, _, mis2 = _pair(0.08)
+    assert np.allclose(mis2.measure().hists, _pair(0.08)[3].measure().hists)
+
+
+def test_unknown_sensor_and_bad_mismatch_settings_are_rejected():
+    scene = build_scene(SceneConfig())
+    with pytest.raises(ValueError, match="unknown simulated sensor"):
+        make_sensor("ideal", scene)
+    with pytest.raises(ConfigError, match="baseline"):
+        parse_config(MismatchConfig, {"baseline": 1.0}, "mismatch")
+    with pytest.raises(ConfigError):
+        parse_config(MismatchConfig, {"skew_bins": math.nan}, "mismatch")
+
+
+def test_latency_spikes_delay_frames_in_order():
+    from place_safe.sim.scene import SceneError
+    from place_safe.sim.tof import SimToF
+
+    with pytest.raises(SceneError, match="spike_prob"):
+        ToFConfig(spike_prob=2.0)
+    scene = build_scene(SceneConfig())
+    tof = SimToF(scene, None, ToFConfig(spike_prob=1.0, spike_seconds=0.2, noise=False))
+    f = tof.read(2.0)
+    assert f.extra["sim"]["latency_spike"] == 0.2
+    assert tof.data.time - f.timestamp >= tof.config.latency + 0.2 - 1e-9
