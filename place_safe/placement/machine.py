@@ -24,9 +24,10 @@ The release rule (the only path to :attr:`CommandKind.OPEN_GRIPPER`), checked on
   within ``max_std_angle`` / ``max_std_offset`` (every comparison fails closed on NaN);
 * it rests on at least ``check_frames`` distinct measurement times, each after the stop command plus
   ``check_settle`` and none in the future (the same frame fed twice counts once);
-* the cup bottom's clearance above the plane lies in ``[-max_penetration, release_clearance]``, or the
-  cup is in contact (``contact_force``) with a clearance of at most ``contact_clearance``: contact
-  higher above the sensed surface is an obstacle and refuses.
+* the cup bottom's clearance above the plane lies in ``[-release_clearance, release_clearance]``, or the
+  cup is in contact (``contact_force``) with a clearance in ``[-max_penetration, contact_clearance]``:
+  contact higher above the sensed surface is an obstacle, and a cup below the sensed surface without
+  contact means the estimate is wrong or the surface moved; both refuse.
 
 Every phase has a deadline counted both on the robot clock and in control ticks (``period`` seconds
 each), so a frozen or jumping robot clock still ends the machine. :meth:`PlacementMachine.step` never
@@ -89,7 +90,7 @@ class PlacementConfig:
     check_frames: int = 5  # planes measured after stopping that CHECK needs
     check_timeout: float = 1.5  # s to gather them
     max_checks: int = 3  # CHECK -> DESCEND retries
-    plane_timeout: float = 0.3  # s: a fused plane whose newest frame is older is stale
+    plane_timeout: float = 0.5  # s: a fused plane whose newest frame is older is stale (4 frames at 10 Hz)
     sensor_timeout: float = 0.5  # s without any frame
     acquire_timeout: float = 1.5  # s in IDLE to get a first plane
     contact_force: float = 5.0  # N: contact with the surface (well under the robot's protective stop)
@@ -535,9 +536,10 @@ class PlacementMachine:
         if contact and c > cfg.contact_clearance:
             return self._refuse(now, f"obstacle: contact {force:.1f} N with the cup bottom {c * 1e3:.1f} mm above "
                                      f"the sensed surface (> {cfg.contact_clearance * 1e3:.0f} mm)")
-        if c < -cfg.max_penetration:
-            return self._refuse(now, f"cup {-c * 1e3:.1f} mm below the estimated surface: the surface estimate "
-                                     "is wrong")
+        if c < -cfg.max_penetration or (not contact and c < -cfg.release_clearance):
+            return self._refuse(now, f"cup {-c * 1e3:.1f} mm below the estimated surface"
+                                     + ("" if contact else " without contact")
+                                     + ": the surface estimate is wrong or the surface moved")
         if contact or c <= cfg.release_clearance:
             self._go(Phase.RELEASE, now, f"level ({math.degrees(plane.tilt_rad):.2f} deg, spread "
                                          f"{math.degrees(plane.std_angle):.2f} deg / {plane.std_offset * 1e3:.1f} mm), "

@@ -182,7 +182,8 @@ def rule_holds(state: RobotState, plane: FusedPlane | None, prev_time, t_stop: f
     cup = np.asarray(state.base_T_cup, dtype=float)
     c = clearance_along(plane.normal_base, plane.offset_base, cup[:3, 3], -cup[:3, 2], cfg.cup_radius, cup[:3, 2])
     contact = f >= cfg.contact_force
-    if not (c >= -cfg.max_penetration and (c <= cfg.release_clearance or (contact and c <= cfg.contact_clearance))):
+    if not ((-cfg.release_clearance <= c <= cfg.release_clearance)
+            or (contact and -cfg.max_penetration <= c <= cfg.contact_clearance)):
         return f"released at clearance {c}"
     return None
 
