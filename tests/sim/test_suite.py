@@ -96,8 +96,7 @@ def test_scenarios_command_ci_subset(tmp_path):
 
 @pytest.mark.slow
 def test_ray_runs_the_same_rows_on_a_local_instance():
-    pytest.importorskip("ray")
-    import ray
+    import ray  # the [ray] extra, part of [all]
 
     items = [{"scenario": "uncalibrated", "seed": i} for i in range(2)]
     try:
