@@ -1,0 +1,163 @@
+"""What every place-safe command shares: the program name, the method names, one-line usage errors,
+logging and progress on standard error, and loading calibrations and frame files for a command.
+
+Conventions at this edge: distances on the command line are metres unless an option says otherwise,
+angles are printed in degrees; standard output carries only a command's result.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from place_safe.exceptions import CalibrationError, FrameError, FrameFileError, PlaceSafeError
+
+PROG = "place-safe"
+METHODS = ("diff", "peak", "peak-naive", "proprietary", "proprietary-naive")
+CALIBRATE_METHODS = ("diff", "peak", "proprietary")
+
+
+class UsageError(PlaceSafeError):
+    """Bad command-line usage (exit status 2)."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors (no usage dump) so scripts see exactly one line on stderr."""
+
+    def error(self, message: str):  # type: ignore[override]
+        where = self.prog[len(PROG):].strip() if self.prog.startswith(PROG) else self.prog
+        raise UsageError(f"{where + ': ' if where else ''}{message} (see '{self.prog} --help')")
+
+
+def _log(msg: str = "") -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def _progress(enabled: bool):
+    """tqdm keyword arguments: bars on stderr, shown only when enabled and stderr is a terminal."""
+    return {"file": sys.stderr, "disable": None if enabled else True, "leave": False}
+
+
+# ------------------------------------------------------------------------------------------------
+# shared helpers
+# ------------------------------------------------------------------------------------------------
+def _load_calibration(path: str | None):
+    from place_safe.calibration import Calibration
+
+    if path is None:
+        return None
+    if not Path(path).is_file():
+        raise CalibrationError(f"calibration file {path} does not exist")
+    return Calibration.load(path)
+
+
+def _load_truth_frames(paths: Sequence[str], min_distance: float | None = None,
+                       max_distance: float | None = None) -> tuple[list, str]:
+    """All frames with ground truth from ``paths`` (within the distance limits), and a note on the skipped ones.
+
+    Unreadable frames, frames without ground truth or whose ground truth is not a plane, and frames
+    outside the limits are skipped and counted; the note is empty when none was.
+    """
+    from collections import Counter
+
+    from place_safe.io.frame_file import iter_frames
+
+    frames: list = []
+    skipped: Counter = Counter()
+    for p in paths:
+        if not Path(p).is_file():
+            raise FrameFileError(f"frame file {p} does not exist")
+        for f in iter_frames(p):
+            if isinstance(f, FrameError):
+                skipped["unreadable"] += 1
+            elif f.truth is None:
+                skipped["ground truth not a plane" if f.truth_error else "no ground truth"] += 1
+            elif ((min_distance is not None and f.truth.offset < min_distance)
+                  or (max_distance is not None and f.truth.offset > max_distance)):
+                skipped["outside the distance limits"] += 1
+            else:
+                frames.append(f)
+    if not frames:
+        limits = ""
+        if min_distance is not None or max_distance is not None:
+            limits = f" between {min_distance or 0:g} m and {max_distance if max_distance is not None else math.inf:g} m"
+        raise FrameFileError(f"no frames with ground truth{limits} in {', '.join(paths)} "
+                             "(expected 'plane' or 'pose' + 'dist_to_plane' per frame)"
+                             + (f"; {_count_note(skipped)}" if skipped else ""))
+    return frames, _count_note(skipped)
+
+
+def _count_note(counts) -> str:
+    """``"3 skipped: 2 unreadable, 1 no ground truth"`` for a Counter of reasons ('' when empty)."""
+    total = sum(counts.values())
+    if not total:
+        return ""
+    return f"{total} skipped: " + ", ".join(f"{n} {why}" for why, n in counts.most_common())
+
+
+def _jsonable(obj: Any) -> Any:
+    """Fit reports may hold numpy scalars/arrays or dataclasses; make them plain JSON."""
+    import dataclasses
+
+    import numpy as np
+
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _jsonable(obj.tolist())
+    if isinstance(obj, np.generic):
+        return _jsonable(obj.item())
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return _jsonable(dataclasses.asdict(obj))
+    if hasattr(obj, "to_dict"):
+        return _jsonable(obj.to_dict())
+    if obj is None or isinstance(obj, (str, int, bool)):
+        return obj
+    return str(obj)
+
+
+def _summarise(report: Any, indent: str = "  ") -> list[str]:
+    """Scalar entries of a fit report, one per line (nested dicts flattened with dots)."""
+    rep = _jsonable(report)
+    if not isinstance(rep, dict):
+        return [f"{indent}{rep}"]
+    lines: list[str] = []
+
+    def walk(d: dict, prefix: str) -> None:
+        for k, v in d.items():
+            key = f"{prefix}{k}"
+            if isinstance(v, dict):
+                walk(v, key + ".")
+            elif isinstance(v, list):
+                if len(v) <= 9 and all(isinstance(x, (int, float)) or x is None for x in v):
+                    lines.append(f"{indent}{key}: [{', '.join('-' if x is None else f'{x:.4g}' for x in v)}]")
+                else:
+                    lines.append(f"{indent}{key}: list of {len(v)}")
+            elif isinstance(v, float):
+                lines.append(f"{indent}{key}: {v:.6g}")
+            else:
+                lines.append(f"{indent}{key}: {v}")
+
+    rep = {k: v for k, v in rep.items() if k != "params"}  # the parameters themselves are in the file
+    walk(rep, "")
+    return lines
+
+
+def _estimator(method: str, calibration, mode: str | None = None):
+    from place_safe.recovery import make_estimator
+
+    options = {"mode": mode} if (method == "diff" and mode) else {}
+    return make_estimator(method, calibration, **options)
+
+
+#: Help formatter of every command (keeps the line breaks of descriptions and epilogs).
+FMT = argparse.RawDescriptionHelpFormatter
+_FMT = FMT

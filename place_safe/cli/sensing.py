@@ -1,0 +1,381 @@
+"""The commands on recorded frames: ``calibrate``, ``recover``, ``evaluate``, ``stream`` and ``bench``
+(docs/interfaces.md keeps their faces stable)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any, TextIO
+
+from place_safe.cli import options
+from place_safe.exceptions import CalibrationError, FrameError, FrameFileError
+from place_safe.cli.common import (CALIBRATE_METHODS, METHODS, PROG, UsageError, _estimator, _FMT,
+                                   _jsonable, _load_calibration, _load_truth_frames, _log, _progress, _summarise)
+
+# ------------------------------------------------------------------------------------------------
+# calibrate
+# ------------------------------------------------------------------------------------------------
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    from place_safe.calibration import Calibration
+
+    out = Path(args.output)
+    cal, note = Calibration(), None
+    if out.exists():  # checked before any work so a bad output path fails fast, with one line
+        try:
+            cal = Calibration.load(out)
+            note = f"{out} is a calibration file; keeping its other sections (present: {', '.join(cal.sections) or 'none'})"
+            if cal.errors:
+                note += f"; invalid there: {', '.join(sorted(cal.errors))} (refit them)"
+        except CalibrationError as exc:
+            if not args.force:
+                raise CalibrationError(f"{exc}; refusing to overwrite it (use --force to replace the file)") from None
+            note = f"replacing {out}: {exc}"
+    frames, skipped = _load_truth_frames(args.files)
+    if not args.quiet:
+        _log(f"calibrate {args.method}: {len(frames)} frames with ground truth" + (f" ({skipped})" if skipped else ""))
+        if note:
+            _log(note)
+    progress = not args.quiet
+    fitted: list[str] = []
+    if args.method in ("peak", "diff") and (args.method == "peak" or "peak" not in cal.sections):
+        from place_safe.calibration.points import fit_peak
+
+        if args.method == "diff" and not args.quiet:
+            _log("the diff method starts from the calibrated peak method: fitting the 'peak' section first")
+        params, report = fit_peak(frames, progress=progress)
+        cal.errors.pop("peak", None)
+        cal.sections["peak"] = params.to_dict()
+        cal.reports["peak"] = _jsonable(report)
+        fitted.append("peak")
+    if args.method == "proprietary":
+        from place_safe.calibration.points import fit_proprietary
+
+        params, report = fit_proprietary(frames, progress=progress)
+        cal.errors.pop("proprietary", None)
+        cal.sections["proprietary"] = params.to_dict()
+        cal.reports["proprietary"] = _jsonable(report)
+        fitted.append("proprietary")
+    if args.method == "diff":
+        from place_safe.calibration.forward_fit import fit_forward
+
+        params, report = fit_forward(frames, init=None, progress=progress)
+        from place_safe.calibration.forward_fit import fit_range_correction, select_model_error
+
+        params.model_error, report["model_error"] = select_model_error(frames, params, cal.peak(), progress=progress)
+        cal.errors.pop("forward", None)
+        cal.sections["forward"] = params.to_dict()
+        cal.reports["forward"] = _jsonable(report)
+        fitted.append("forward")
+
+        section, report = fit_range_correction(frames, params, cal.peak(), progress=progress)
+        cal.errors.pop("diff", None)
+        cal.sections["diff"] = section
+        cal.reports["diff"] = _jsonable(report)
+        fitted.append("diff")
+    if args.method in ("peak", "diff"):
+        from place_safe.calibration.uncertainty import update_calibration
+
+        cal.reports["uncertainty"] = _jsonable(update_calibration(cal, frames, args.method))
+        fitted.append("uncertainty")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    cal.save(out)
+    for name in fitted:
+        _log(f"fit quality, section '{name}':")
+        for line in _summarise(cal.reports.get(name, {})):
+            _log(line)
+    _log(f"wrote {out} (sections: {', '.join(cal.sections)})")
+    return 0
+
+
+# ------------------------------------------------------------------------------------------------
+# recover
+# ------------------------------------------------------------------------------------------------
+def _recover_stream(path: str, estimator, batch: int) -> Iterator[tuple[int, Any]]:
+    """(index, PlaneEstimate) for every entry of the file, in order, recovering ``batch`` frames at a time."""
+    from place_safe.recovery.estimator import PlaneEstimate
+    from place_safe.io.frame_file import iter_frames
+
+    pending: list[tuple[int, Any]] = []
+
+    def flush() -> Iterator[tuple[int, Any]]:
+        frames = [f for _, f in pending if not isinstance(f, FrameError)]
+        ests = iter(estimator.estimate_many(frames) if len(frames) > 1 else [estimator.estimate(f) for f in frames])
+        for i, f in pending:
+            yield i, (PlaneEstimate(None, reason=str(f)) if isinstance(f, FrameError) else next(ests))
+        pending.clear()
+
+    try:
+        for i, f in enumerate(iter_frames(path)):
+            pending.append((i, f))
+            if len(pending) >= batch:
+                yield from flush()
+    except FrameFileError:
+        yield from flush()  # the frames read before the file broke still get their lines
+        raise
+    yield from flush()
+
+
+def _fmt_row(i: int, est) -> str:
+    import numpy as np
+
+    if est.plane is None:
+        return f"{i:>5}  {'-':>9} {'-':>9} {'-':>9}  {'-':>7} {est.seconds * 1e3:>8.2f}  {est.reason}"
+    p = est.plane
+    alb = "-" if est.albedo is None or not np.isfinite(est.albedo) else f"{est.albedo:.3f}"
+    return (f"{i:>5}  {math.degrees(p.theta):>9.3f} {math.degrees(p.phi):>9.2f} {p.offset * 1e3:>9.2f}  "
+            f"{alb:>7} {est.seconds * 1e3:>8.2f}")
+
+
+def _write_line(out: TextIO, obj: dict) -> None:
+    out.write(json.dumps(obj) + "\n")
+    out.flush()
+
+
+def cmd_recover(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    if not Path(args.file).is_file():
+        raise FrameFileError(f"frame file {args.file} does not exist")
+    cal = _load_calibration(args.calibration)
+    est = _estimator(args.method, cal, args.mode)
+    batch = args.batch or (16 if args.method == "diff" and args.mode != "paper" else 1)
+    out = sys.stdout
+    if not args.jsonl:
+        out.write(f"{'frame':>5}  {'theta deg':>9} {'phi deg':>9} {'d mm':>9}  {'albedo':>7} {'ms':>8}  reason\n")
+    n = bad = 0
+    bar = tqdm(desc=f"recover {args.method}", unit="frame", **_progress(not args.quiet))
+    for i, e in _recover_stream(args.file, est, max(1, batch)):
+        if args.jsonl:
+            line = e.to_json(i)
+            if e.plane is None and not line.get("reason"):
+                line["reason"] = "no plane"
+            _write_line(out, line)
+        else:
+            out.write(_fmt_row(i, e) + "\n")
+        n += 1
+        bad += 0 if e.ok else 1
+        bar.update(1)
+    bar.close()
+    out.flush()
+    if not args.quiet:
+        _log(f"recovered {n - bad} of {n} frames with {args.method}" + (f" ({bad} without a plane)" if bad else ""))
+    return 0
+
+
+# ------------------------------------------------------------------------------------------------
+# evaluate
+# ------------------------------------------------------------------------------------------------
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    from place_safe.evaluation.evaluate import evaluate
+
+    cal = _load_calibration(args.calibration)
+    if args.min_distance is not None and args.max_distance is not None and args.min_distance > args.max_distance:
+        raise UsageError(f"evaluate: --min-distance {args.min_distance:g} m exceeds --max-distance "
+                         f"{args.max_distance:g} m")
+    frames, skipped = _load_truth_frames([args.file], args.min_distance, args.max_distance)
+    if not args.quiet:
+        _log(f"evaluate on {len(frames)} frames" + (f" ({skipped})" if skipped else ""))
+    options = {"diff": {"mode": args.diff_mode}} if args.diff_mode else None
+    report = evaluate(frames, cal, list(args.methods), None if args.no_plots else args.out, not args.quiet,
+                      estimator_options=options)
+    print(report.table(), flush=True)
+    if args.json:
+        data = report.to_dict() if hasattr(report, "to_dict") else report
+        Path(args.json).write_text(json.dumps(_jsonable(data), indent=2) + "\n")
+        _log(f"wrote {args.json}")
+    return 0
+
+
+# ------------------------------------------------------------------------------------------------
+# stream (live replay)
+# ------------------------------------------------------------------------------------------------
+def _warm_up(estimator, path: str) -> None:
+    """Recover the file's first usable frame once, so first-call costs do not count as live latency."""
+    from place_safe.io.frame_file import iter_frames
+
+    for f in iter_frames(path):
+        if not isinstance(f, FrameError):
+            estimator.estimate(f)
+            return
+
+
+def cmd_stream(args: argparse.Namespace) -> int:
+    from place_safe.io.replay import FileReplaySource
+    from place_safe.io.live import run_live
+
+    cal = _load_calibration(args.calibration)
+    est = _estimator(args.method, cal, args.mode)
+
+    def on_estimate(index, frame, e, latency) -> None:
+        if args.jsonl:
+            line = e.to_json(index)
+            line["latency_ms"] = round(latency * 1e3, 3)
+            _write_line(sys.stdout, line)
+
+    _warm_up(est, args.file)
+    with FileReplaySource(args.file, rate_hz=args.rate, loop=args.loop) as src:
+        stats = run_live(src, est, on_estimate, max_frames=args.max_frames, queue_size=args.queue)
+    summary = stats.summary()
+    (_log if args.jsonl else print)(summary)
+    if args.json:
+        Path(args.json).write_text(json.dumps(stats.to_dict(), indent=2) + "\n")
+    return 0
+
+
+# ------------------------------------------------------------------------------------------------
+# bench
+# ------------------------------------------------------------------------------------------------
+def cmd_bench(args: argparse.Namespace) -> int:
+    from place_safe.evaluation.bench import DEFAULT_RUNS, measure_file_rss, report_json, run_bench
+
+    cal = _load_calibration(args.calibration)
+    if args.file:
+        frames, _ = _load_truth_frames([args.file])
+        frames = frames[: args.frames] if args.frames else frames
+        source = args.file
+    else:
+        from place_safe.evaluation.synthetic import make_frames
+
+        n = args.frames or 20
+        frames = make_frames(n, seed=args.seed)
+        source = f"synthetic (make_frames, seed {args.seed})"
+    runs = [r for r in DEFAULT_RUNS if r[0] in args.methods]
+    report = run_bench(frames, cal, paper_frames=args.paper_frames, runs=runs, source=source,
+                       progress=not args.quiet)
+    status = 0
+    if args.memory_file:
+        if not args.quiet:
+            _log(f"measuring peak RSS of recover over a {args.memory_file}-frame file ...")
+        try:
+            report.file_rss = measure_file_rss(args.memory_file, method=args.memory_method,
+                                               calibration=args.calibration)
+        except RuntimeError as exc:  # the timings above stay valid; say what failed and exit 1
+            report.file_rss = {"error": str(exc)}
+            status = 1
+    print(report.table(), flush=True)
+    if args.json:
+        report_json(report, args.json)
+        _log(f"wrote {args.json}")
+    if status:
+        _log(f"{PROG}: memory measurement failed: {report.file_rss['error']}")
+    return status
+
+
+def register(sub) -> None:
+    """Add calibrate, recover, evaluate, stream and bench to the ``place-safe`` sub-parsers."""
+    # calibrate
+    c = sub.add_parser("calibrate", formatter_class=_FMT, help="fit a method's parameters to frames with ground truth",
+                       description="Fit one method family to frames with ground-truth planes and write its section "
+                                   "of a calibration file. If the output already is a calibration file, its other "
+                                   "sections are kept, so one file can carry all methods.",
+                       epilog="methods and the sections they write:\n"
+                              "  peak         -> 'peak' (histogram-peak distance and zone-angle scales)\n"
+                              "  proprietary  -> 'proprietary' (on-sensor distances)\n"
+                              "  diff         -> 'forward' (forward-model camera parameters and the residual weighting\n"
+                              "                  that recovers the planes best), 'diff' (a z0 correction, kept only if\n"
+                              "                  leave-one-out cross-validation says it helps), and 'peak' too when the\n"
+                              "                  file has none (the diff method starts from calibrated peak)\n\n"
+                              "example:\n"
+                              "  place-safe calibrate sweep.json --method peak -o calib.json\n"
+                              "  place-safe calibrate sweep.json --method diff -o calib.json   # adds 'forward'")
+    c.add_argument("files", nargs="+", metavar="FILE", help="frame files with ground truth ('plane' or 'pose' + "
+                                                             "'dist_to_plane')")
+    c.add_argument("--method", required=True, choices=CALIBRATE_METHODS, help="method family to fit")
+    c.add_argument("-o", "--output", required=True, metavar="CALIB.json", help="calibration file to write or update")
+    c.add_argument("--force", action="store_true", help="replace an output file that is not a valid calibration")
+    c.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    c.set_defaults(func=cmd_calibrate)
+
+    # recover
+    r = sub.add_parser("recover", formatter_class=_FMT, help="recover the plane of every frame of a file",
+                       description="Recover one plane per frame, streaming the file (it is never loaded whole). "
+                                   "With --jsonl, standard output carries exactly one JSON object per input frame, "
+                                   "in input order, and nothing else:\n"
+                                   '  {"index": 0, "normal": [nx, ny, nz], "offset": d_m, "albedo": a, "ms": t}\n'
+                                   "Frames without a recoverable plane get normal/offset null and a \"reason\".",
+                       epilog="the human table shows theta (angle of incidence, deg), phi (azimuth, deg) and d (mm).\n\n"
+                              "example:\n"
+                              "  place-safe recover frames.json --method diff --calibration calib.json --jsonl")
+    r.add_argument("file", metavar="FILE", help="frame file (JSON list or JSON Lines)")
+    r.add_argument("--method", required=True, choices=METHODS, help="recovery method")
+    r.add_argument("--calibration", metavar="CALIB.json", help="calibration file (default: built-in parameters)")
+    r.add_argument("--jsonl", action="store_true", help="one JSON line per frame on stdout (machine-readable)")
+    r.add_argument("--mode", choices=("fast", "paper"), default=None,
+                   help="diff solver: fast (default) or the paper's Adam, 100 iterations, 2304 rays (~s per frame)")
+    r.add_argument("--batch", type=options.int_range(1, 4096), default=None, metavar="N",
+                   help="frames recovered together (default 16 for diff fast, else 1); memory stays O(N)")
+    r.add_argument("-q", "--quiet", action="store_true", help="no progress bar or summary on stderr")
+    r.set_defaults(func=cmd_recover)
+
+    # evaluate
+    e = sub.add_parser("evaluate", formatter_class=_FMT, help="score methods against ground truth",
+                       description="Recover every frame with ground truth with each method and print angular (deg), "
+                                   "linear (mm) and point (mm) errors as a table; plots go to --out.",
+                       epilog="example:\n  place-safe evaluate sweep.json --calibration calib.json "
+                              "--methods diff peak --max-distance 0.3")
+    e.add_argument("file", metavar="FILE", help="frame file with ground truth")
+    e.add_argument("--calibration", metavar="CALIB.json", help="calibration file (default: built-in parameters)")
+    e.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS), metavar="METHOD",
+                   help=f"methods to evaluate (default: all of {', '.join(METHODS)})")
+    e.add_argument("--out", default="out/evaluate", metavar="DIR", help="directory for plots (default out/evaluate)")
+    e.add_argument("--min-distance", type=options.nonnegative_float, default=None, metavar="M",
+                   help="skip frames whose true plane is closer than M metres (perpendicular distance d)")
+    e.add_argument("--max-distance", type=options.positive_float, default=None, metavar="M",
+                   help="skip frames whose true plane is farther than M metres (perpendicular distance d)")
+    e.add_argument("--no-plots", action="store_true", help="do not write plots")
+    e.add_argument("--diff-mode", choices=("fast", "paper"), default=None, help="diff solver (default fast)")
+    e.add_argument("--json", metavar="FILE", help="also write the report as JSON")
+    e.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    e.set_defaults(func=cmd_evaluate)
+
+    # stream
+    s = sub.add_parser("stream", formatter_class=_FMT, help="replay a file as a live sensor and recover frames as they arrive",
+                       description="Replay a frame file at --rate frames per second on the wall clock and recover "
+                                   "planes live (a reader thread and the estimator, with a bounded buffer; frames that "
+                                   "arrive while the estimator is busy replace older waiting ones and count as "
+                                   "dropped). Prints a summary: frames dropped, latency from arrival to estimate "
+                                   "(median, p95, max) and throughput.",
+                       epilog="example:\n  place-safe stream frames.json --method diff --rate 30 --jsonl > live.jsonl")
+    s.add_argument("file", metavar="FILE", help="frame file to replay")
+    s.add_argument("--method", default="diff", choices=METHODS, help="recovery method (default diff)")
+    s.add_argument("--calibration", metavar="CALIB.json", help="calibration file (default: built-in parameters)")
+    s.add_argument("--mode", choices=("fast", "paper"), default=None, help="diff solver (default fast)")
+    s.add_argument("--rate", type=options.float_range(0.0, 10000.0, lo_open=True), default=30.0, metavar="HZ", help="replay rate, frames per second (default 30)")
+    s.add_argument("--loop", action="store_true", help="start again at the end of the file (stop with --max-frames)")
+    s.add_argument("--max-frames", type=options.positive_int, default=None, metavar="N", help="stop after N frames arrived")
+    s.add_argument("--queue", type=options.int_range(1, 10000), default=1, metavar="N",
+                   help="frames that may wait for the estimator (default 1: always the newest)")
+    s.add_argument("--jsonl", action="store_true",
+                   help="one JSON line per estimated frame on stdout (with latency_ms); summary goes to stderr")
+    s.add_argument("--json", metavar="FILE", help="write the summary as JSON")
+    s.set_defaults(func=cmd_stream)
+
+    # bench
+    b = sub.add_parser("bench", formatter_class=_FMT, help="speed and accuracy of diff (paper, fast) and peak",
+                       description="Run diff in paper mode, diff in fast mode and peak on the same frames in one "
+                                   "process; print per-frame latency (median, p95; ms), throughput (frames/s), mean "
+                                   "angular (deg), linear (mm) and point (mm) errors, the paper/fast speed ratio and "
+                                   "peak RSS. Warm-up is excluded.",
+                       epilog="examples:\n  place-safe bench --frames 20 --paper-frames 3\n"
+                              "  place-safe bench tests/data/tmf8820_ur5_sweep.json --calibration calib.json\n"
+                              "  place-safe bench --frames 5 --paper-frames 0 --memory-file 1000")
+    b.add_argument("file", nargs="?", metavar="FILE", help="frame file with ground truth (default: synthetic frames)")
+    b.add_argument("--calibration", metavar="CALIB.json", help="calibration file (default: built-in parameters)")
+    b.add_argument("--frames", type=options.int_range(1, 100000), default=None, metavar="N",
+                   help="frames to use (default: 20 synthetic, or all of FILE)")
+    b.add_argument("--paper-frames", type=options.int_range(0, 10000), default=5, metavar="N",
+                   help="frames for diff paper mode, about 10 s each (default 5; 0 skips it)")
+    b.add_argument("--methods", nargs="+", choices=("diff-paper", "diff-fast", "peak"),
+                   default=["diff-paper", "diff-fast", "peak"], metavar="RUN",
+                   help="runs to include: diff-paper diff-fast peak (default all)")
+    b.add_argument("--memory-file", type=options.int_range(1, 1000000), default=None, metavar="N",
+                   help="also report the peak RSS of `recover` over an N-frame synthetic file in a fresh process")
+    b.add_argument("--memory-method", default="diff", choices=METHODS, help="method for --memory-file (default diff)")
+    b.add_argument("--seed", type=options.nonnegative_int, default=0, help="seed of the synthetic frames")
+    b.add_argument("--json", metavar="FILE", help="write the results as JSON")
+    b.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    b.set_defaults(func=cmd_bench)
