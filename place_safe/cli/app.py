@@ -84,14 +84,19 @@ examples:
   place-safe evaluate tests/data/tmf8820_ur5_sweep.json --calibration calib.json
   place-safe stream frames.json --method diff --rate 30
   place-safe bench --frames 20 --paper-frames 3
+  place-safe sensor stream emu:synthetic --method peak --frames 30
+  place-safe place --sim place_level
+  place-safe place --robot robots/ur5/real.toml --sensor i2c:/dev/i2c-1@0x41 --calibration cal.json --dry-run
+  place-safe scenarios --jobs 2 --json set.json
 """
 
 
 def build_parser(load_sim: bool = True) -> argparse.ArgumentParser:
     """The argument parser; with ``load_sim`` False the ``sim`` commands are a placeholder (fast start)."""
     p = _Parser(prog=PROG, formatter_class=_FMT, epilog=MAIN_EPILOG,
-                description="Recover the plane under a robot gripper from TMF8820 transient histograms, "
-                            "calibrate the methods, evaluate and benchmark them, and replay recordings live.")
+                description="Put a held cup down safely with a UR5 and the TMF8820 on its gripper: recover the "
+                            "plane below from transient histograms, calibrate and evaluate the methods, read the "
+                            "sensor, drive the arm or its MuJoCo twin, and run scenario suites.")
     from place_safe import __version__
 
     p.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
