@@ -84,7 +84,7 @@ examples:
   place-safe evaluate tests/data/tmf8820_ur5_sweep.json --calibration calib.json
   place-safe stream frames.json --method diff --rate 30
   place-safe bench --frames 20 --paper-frames 3
-  place-safe sensor stream emu:synthetic --method peak --frames 30
+  place-safe sensor stream emu:synthetic --method peak --max-frames 30
   place-safe place --sim place_level
   place-safe place --robot robots/ur5/real.toml --sensor i2c:/dev/i2c-1@0x41 --calibration cal.json --dry-run
   place-safe scenarios --jobs 2 --json set.json
