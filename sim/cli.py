@@ -83,15 +83,6 @@ def add_sim_commands(subparsers: argparse._SubParsersAction) -> argparse.Argumen
     return sim
 
 
-def _scene_config(path: str | None, robot: bool | None):
-    from place_safe.sim.scene import SceneConfig
-
-    cfg = SceneConfig.load(path) if path else SceneConfig()
-    if robot is not None:
-        cfg.with_robot = robot
-    return cfg
-
-
 def cmd_calibrate(args: argparse.Namespace) -> int:
     from place_safe.sim.calibration_capture import calibrate_sim
 
@@ -133,10 +124,10 @@ def cmd_validate(args: argparse.Namespace) -> int:
 
 def cmd_render(args: argparse.Namespace) -> int:
     from place_safe.sim import render
-    from place_safe.sim.scene import build_scene
+    from place_safe.sim.scene import build_scene, scene_config
     from place_safe.sim.tof import SimToF
 
-    scene = build_scene(_scene_config(args.scene, True if args.robot else None))
+    scene = build_scene(scene_config(args.scene, True if args.robot else None))
     data = scene.make_data()
     if scene.config.with_robot:
         from place_safe.sim.robot import SimRobot
@@ -160,36 +151,9 @@ def cmd_render(args: argparse.Namespace) -> int:
     return 0
 
 
-def bench(scene_path: str | None = None, rig: bool = False, seconds: float = 5.0, rate: float = 30.0,
-          rays: int = 8) -> dict:
-    """Run the scene ``seconds`` of sim time with the sensor in lockstep; returns timing figures."""
-    from place_safe.sim.scene import build_scene
-    from place_safe.sim.tof import SimToF, ToFConfig
-
-    scene = build_scene(_scene_config(scene_path, not rig))
-    cfg = ToFConfig(rays=rays, rate_hz=rate)
-    if scene.config.with_robot:
-        from place_safe.sim.robot import SimRobot
-
-        robot = SimRobot(scene.model)
-        tof = SimToF(scene, robot.data, cfg).attach(robot)
-        t0 = time.perf_counter()
-        robot.step(seconds)
-        wall = time.perf_counter() - t0
-        sim_t = seconds
-    else:
-        tof = SimToF(scene, None, cfg)
-        t0 = time.perf_counter()
-        while tof.data.time < seconds:
-            tof.read(1.0)
-        wall = time.perf_counter() - t0
-        sim_t = float(tof.data.time)
-    frames = tof._next_index
-    return {"sim_seconds": sim_t, "wall_seconds": wall, "real_time_factor": sim_t / wall, "frames": frames,
-            "physics_steps": int(round(sim_t / scene.model.opt.timestep)), "with_robot": scene.config.with_robot}
-
-
 def cmd_bench(args: argparse.Namespace) -> int:
+    from place_safe.sim.bench import bench
+
     res = bench(args.scene, args.rig, args.seconds, args.rate, args.rays)
     print(f"{res['sim_seconds']:.2f} s sim in {res['wall_seconds']:.2f} s wall: real-time factor "
           f"{res['real_time_factor']:.1f}x ({res['frames']} sensor frames at {args.rate:g} Hz, "
@@ -206,5 +170,5 @@ def main(argv: list[str] | None = None) -> int:
 
 if __name__ == "__main__":
     raise SystemExit(main())
-__all__ = ["add_sim_commands", "bench", "main"]
+__all__ = ["add_sim_commands", "main"]
 

@@ -32,9 +32,8 @@ from place_safe.exceptions import RobotFault
 from place_safe.robot.interface import Robot, RobotLimits, TrapezoidProfile, check_pose, check_twist
 from place_safe.robots import ur5_config
 
-ARM_JOINTS = ("shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint",
-              "wrist_2_joint", "wrist_3_joint")
-FINGERS = ("finger_left", "finger_right")
+from place_safe.sim.robot_model import ARM_JOINTS, FINGERS, load_robot_model, robot_spec  # noqa: F401
+
 StepCallback = Callable[[mujoco.MjModel, mujoco.MjData, float], None]
 
 # Control constants (units in the names).
@@ -71,32 +70,6 @@ def _exp_rot(w: np.ndarray) -> np.ndarray:
     R = np.empty(9)
     mujoco.mju_quat2Mat(R, q)
     return R.reshape(3, 3)
-
-
-def load_robot_model() -> tuple[mujoco.MjModel, mujoco.MjData]:
-    """The bare packaged robot (UR5 + gripper + TMF8820 site + held cup with liquid), no scene."""
-    from place_safe.robots import ur5_mjcf_path
-
-    model = mujoco.MjModel.from_xml_path(str(ur5_mjcf_path()))
-    return model, mujoco.MjData(model)
-
-
-def robot_spec(base_pos: Any = (0.0, 0.0, 0.0), base_quat: Any = (1.0, 0.0, 0.0, 0.0)) -> mujoco.MjSpec:
-    """An editable MjSpec of the packaged robot with its base at ``base_pos`` (m) / ``base_quat`` (w, x, y,
-    z) in the world. Scene builders add their geoms to ``spec.worldbody`` and call ``spec.compile()``;
-    :class:`SimRobot` re-places the cup in the gripper wherever the base ends up."""
-    from place_safe.robots import ur5_mjcf_path
-
-    pos, quat = np.asarray(base_pos, dtype=float), np.asarray(base_quat, dtype=float)
-    if pos.shape != (3,) or quat.shape != (4,) or not (np.all(np.isfinite(pos)) and np.all(np.isfinite(quat))):
-        raise ValueError(f"base_pos must be 3 and base_quat 4 finite numbers; got {base_pos!r}, {base_quat!r}")
-    if not np.linalg.norm(quat) > 0:
-        raise ValueError("base_quat must be a non-zero quaternion (w, x, y, z)")
-    spec = mujoco.MjSpec.from_file(str(ur5_mjcf_path()))
-    base = spec.body("base")
-    base.pos = pos
-    base.quat = quat / np.linalg.norm(quat)
-    return spec
 
 
 class SimRobot(Robot):
@@ -800,28 +773,4 @@ class SimRobot(Robot):
             self._advance(h)
 
 
-def benchmark(seconds: float = 2.0) -> dict[str, float]:
-    """Measure simulation speed of the bare robot: physics steps per second and the real-time factor,
-    idle (holding) and during a 0.1 m/s linear move."""
-    import time as _time
-
-    robot = SimRobot.load()
-    h = robot.model.opt.timestep
-    w0, t0 = _time.perf_counter(), robot.time()
-    robot.step(seconds)
-    idle = (robot.time() - t0) / (_time.perf_counter() - w0)
-    goal = robot.tcp_pose()
-    goal[:3, 3] += [0.1, 0.1, -0.1]
-    w0, t0 = _time.perf_counter(), robot.time()
-    robot.move_linear(goal, speed=0.1, accel=0.5)
-    moving = (robot.time() - t0) / (_time.perf_counter() - w0)
-    return {"idle_steps_per_s": idle / h, "idle_realtime_factor": idle,
-            "moving_steps_per_s": moving / h, "moving_realtime_factor": moving}
-
-
-if __name__ == "__main__":
-    for k, v in benchmark().items():
-        print(f"{k}: {v:.1f}")
-
-
-__all__ = ["SimRobot", "benchmark", "load_robot_model", "robot_spec", "ARM_JOINTS", "FINGERS", "StepCallback"]
+__all__ = ["SimRobot", "load_robot_model", "robot_spec", "ARM_JOINTS", "FINGERS", "StepCallback"]

@@ -158,6 +158,14 @@ class SceneConfig:
         return cls.from_dict(d)
 
 
+def scene_config(path: str | Path | None = None, with_robot: bool | None = None) -> SceneConfig:
+    """A scene file's SceneConfig (the default scene without a path); ``with_robot`` overrides the file's."""
+    cfg = SceneConfig.load(path) if path else SceneConfig()
+    if with_robot is not None:
+        cfg.with_robot = with_robot
+    return cfg
+
+
 _NESTED = {"table": TableConfig, "floor": Material, "material": Material, "robot_material": Material}
 
 
