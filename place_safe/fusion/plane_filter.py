@@ -19,7 +19,7 @@ Conventions
 * Centre: component-wise median of the window's normals and anchors, refined by one Huber-weighted
   mean (Huber constant :data:`HUBER_K` robust sigmas). Spread: weighted RMS angle of the normals from
   the fused normal (``std_angle``, rad) and RMS distance of the anchors from the fused plane
-  (``std_offset``, m).
+  (``std_offset``, m), both unweighted: every plane in the window counts in the spread.
 * Gates: once the window holds ``min_frames`` planes, a new plane more than ``angle_gate`` (rad) from
   the fused normal or whose anchor is more than ``offset_gate`` (m) off the fused plane is rejected as
   an outlier. ``max_consecutive_rejects`` rejections in a row mean the surface itself changed (or the
@@ -29,6 +29,13 @@ Conventions
   twice, or frames out of order, never count as new evidence). Times are seconds on the robot clock;
   planes older than ``max_age`` are dropped. ``FusedPlane.stamps`` lists the measurement times the
   fused plane rests on (distinct by construction).
+* Uncertainty: an estimate's ``covariance`` ((n_x, n_y, d) in the sensor frame, see
+  :mod:`place_safe.recovery.estimator`) gives the variance of its normal's direction, the largest
+  eigenvalue of the (n_x, n_y) block (rad^2; rotating the plane into the base frame does not change it).
+  When every plane in the window has one, the Huber weights are multiplied by the inverse variances.
+  ``FusedPlane.tilt_std`` (rad) is the standard error of the fused normal's direction: the larger of
+  ``sqrt(1 / sum(1 / var_i))`` (NaN without covariances) and the window's own spread over ``sqrt(n)``,
+  so model disagreement the covariances do not know about still counts.
 """
 
 from __future__ import annotations
@@ -67,6 +74,7 @@ class FusedPlane:
     count: int = 0  # planes accepted since the last reset
     anchor: np.ndarray | None = None  # (3,) fused anchor point on the plane (base frame)
     stamps: tuple[float, ...] = ()  # s, measurement times of the planes in the window (increasing)
+    tilt_std: float = math.nan  # rad, standard error of the fused normal's direction (see module doc)
 
     def height_at(self, point: Any) -> float:
         """Signed distance (m) of ``point`` (base frame) above the plane (negative: below / behind it)."""
@@ -162,7 +170,7 @@ class PlaneFilter:
 
     def reset(self) -> None:
         """Forget every plane and counter."""
-        self._items: deque[tuple[float, np.ndarray, np.ndarray]] = deque(maxlen=self.window)
+        self._items: deque[tuple[float, np.ndarray, np.ndarray, float]] = deque(maxlen=self.window)
         self._cache: FusedPlane | None = None
         self._dirty = True
         self.count = 0  # accepted since reset
@@ -207,7 +215,7 @@ class PlaneFilter:
                 if self.consecutive_rejects < self.max_consecutive_rejects:
                     return False
                 self._items.clear()  # the surface changed: start again from this plane
-        self._items.append((stamp, n, anchor))
+        self._items.append((stamp, n, anchor, _direction_variance(getattr(estimate, "covariance", None))))
         self.newest_accepted = stamp
         self._dirty = True
         self.count += 1
@@ -250,17 +258,43 @@ class PlaneFilter:
         s_off = max(MAD_TO_SIGMA * np.median(np.abs(off - np.median(off))), MIN_SCALE_M)
         r = np.maximum(ang / s_ang, np.abs(off - np.median(off)) / s_off)
         w = np.minimum(1.0, HUBER_K / np.maximum(r, 1e-12))
+        var = np.array([it[3] for it in self._items])
+        weighted = bool(np.all(np.isfinite(var)))
+        if weighted:  # inverse-variance weights, scaled to mean 1 so the Huber weights keep their meaning
+            inv = 1.0 / var
+            w = w * inv / inv.mean()
         w = w / w.sum()
         n = _unit(w @ N)
         anchor = w @ A
         d = float(n @ anchor)
         ang_f = np.arccos(np.clip(N @ n, -1.0, 1.0))
         res = A @ n - d
-        self._cache = FusedPlane(n, d, _angle(n, _Z), float(np.sqrt(w @ ang_f**2)), float(np.sqrt(w @ res**2)),
+        # the spread is the plain RMS over every plane in the window: the robust weights pick the centre,
+        # but a consistent minority of planes that disagree must show in the planarity check
+        spread = float(np.sqrt(np.mean(ang_f**2)))
+        tilt_std = spread / math.sqrt(len(self._items))
+        if weighted:
+            tilt_std = max(tilt_std, float(math.sqrt(1.0 / np.sum(1.0 / var))))
+        self._cache = FusedPlane(n, d, _angle(n, _Z), spread, float(np.sqrt(np.mean(res**2))),
                                  len(self._items), float(stamps.max()), self.count, anchor,
-                                 tuple(float(s) for s in stamps))
+                                 tuple(float(s) for s in stamps), tilt_std)
         self._dirty = False
         return self._cache
+
+
+def _direction_variance(covariance: Any) -> float:
+    """Variance (rad^2) of a plane normal's direction along its worst axis, from an estimate's (n_x, n_y, d)
+    covariance; NaN when there is none or it is not a finite positive semi-definite 3x3 matrix."""
+    if covariance is None:
+        return math.nan
+    try:
+        C = np.asarray(covariance, dtype=float)
+    except (TypeError, ValueError):
+        return math.nan
+    if C.shape != (3, 3) or not np.all(np.isfinite(C)):
+        return math.nan
+    v = float(np.linalg.eigvalsh(0.5 * (C[:2, :2] + C[:2, :2].T)).max())
+    return max(v, MIN_SCALE_RAD ** 2) if v >= 0 else math.nan
 
 
 def _unit(v: np.ndarray) -> np.ndarray:

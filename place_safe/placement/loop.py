@@ -38,7 +38,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from place_safe.exceptions import PlaceSafeError, RobotFault, SensorTimeout
+from place_safe.exceptions import RobotFault, SensorTimeout
 from place_safe.fusion.plane_filter import PlaneFilter
 from place_safe.placement.machine import CommandKind, PlacementConfig, PlacementMachine, RobotState
 from place_safe.robot.tool import ToolFrames
@@ -104,7 +104,11 @@ class PoseHistory:
         self.tolerance = tolerance
 
     def add(self, t: float, T: Any) -> None:
-        T = np.asarray(T, dtype=float)
+        try:
+            T = np.asarray(T, dtype=float)
+            t = float(t)
+        except (TypeError, ValueError):
+            return
         if not (math.isfinite(t) and T.shape == (4, 4) and np.all(np.isfinite(T))):
             return
         while self._t and t <= self._t[-1]:
@@ -289,7 +293,11 @@ class PlacementLoop:
         self.max_frame_age = float(max_frame_age)
         self.log_frames = log_frames
         self.host_clock = host_clock
-        self.filter = plane_filter if plane_filter is not None else PlaneFilter()
+        self.filter = plane_filter if plane_filter is not None else PlaneFilter(
+            window=max(7, int(self.config.check_frames) + 2))
+        if self.filter.window < self.config.check_frames:
+            raise ValueError(f"the plane filter's window ({self.filter.window}) cannot hold check_frames "
+                             f"({self.config.check_frames}) planes: nothing could ever be released")
         self.machine = PlacementMachine(self.config, period=self.period)
         self.pipeline = pipeline if pipeline is not None else EstimatePipeline(source, estimator, clock=host_clock)
         self.clock = ClockMap(getattr(source, "clock_domain", "monotonic"))
@@ -370,12 +378,18 @@ class PlacementLoop:
                 self.robot.stop(decel=cmd.accel, asynchronous=True)
             elif cmd.kind == CommandKind.OPEN_GRIPPER:
                 self.robot.gripper(open=True)
-        except (PlaceSafeError, ValueError, RuntimeError, OSError) as exc:
-            self._cmd_error = f"command {cmd.kind.value} failed: {str(exc).splitlines()[0] if str(exc) else exc}"
-            try:
-                self.robot.stop(decel=self.config.accel, asynchronous=True)
-            except Exception:
-                pass
+        except Exception as exc:  # any failure of a command is a fault: stop, hold the cup, say why
+            self._cmd_error = (f"command {cmd.kind.value} failed: "
+                               f"{str(exc).splitlines()[0] if str(exc) else type(exc).__name__}")
+            if cmd.kind == CommandKind.OPEN_GRIPPER:
+                self.machine.gripper_failed(self._robot_now(), self._cmd_error)
+            self._stop_robot()
+
+    def _stop_robot(self) -> None:
+        try:
+            self.robot.stop(decel=self.config.accel, asynchronous=True)
+        except Exception:
+            pass
 
     # -- the tick ------------------------------------------------------------------------------
     def start(self) -> None:
@@ -390,7 +404,18 @@ class PlacementLoop:
         self.clock.observe(now, self.host_clock())
 
     def tick(self) -> Any:
-        """One control period: advance, sense, fuse, decide, command. Returns the machine's command."""
+        """One control period: advance, sense, fuse, decide, command. Returns the machine's command.
+
+        Never raises: anything unexpected (a robot or estimator returning garbage, a bug) stops the robot
+        and ends the placement holding the cup, with the reason."""
+        try:
+            return self._tick()
+        except Exception as exc:
+            why = f"internal error: {type(exc).__name__}: {exc}".splitlines()[0]
+            self._stop_robot()
+            return self.machine.abort(self._robot_now(), why)
+
+    def _tick(self) -> Any:
         if not self._started:
             self.start()
         self.ticks += 1
@@ -439,6 +464,8 @@ class PlacementLoop:
                 self.tick()
         finally:
             self.pipeline.stop()
+            if not self.machine.finished:
+                self._stop_robot()
         return self.result(timeout)
 
     def result(self, timeout: float | None = None) -> LoopResult:

@@ -20,10 +20,13 @@ The release rule (the only path to :attr:`CommandKind.OPEN_GRIPPER`), checked on
 
 * the robot reports no fault and a finite, rigid pose, a finite non-negative contact force and a clock
   that advances;
-* the fused plane is finite, fresh (``plane_timeout``), its tilt lies in ``[0, max_tilt]`` and its spread
-  within ``max_std_angle`` / ``max_std_offset`` (every comparison fails closed on NaN);
+* the fused plane is finite, fresh (``plane_timeout``), its tilt lies in ``[0, max_tilt]`` with
+  ``level_confidence`` (``tilt + z * sigma <= max_tilt``, ``sigma`` from :meth:`PlacementMachine.tilt_sigma`)
+  and its spread within ``max_std_angle`` / ``max_std_offset`` (every comparison fails closed on NaN);
 * it rests on at least ``check_frames`` distinct measurement times, each after the stop command plus
-  ``check_settle`` and none in the future (the same frame fed twice counts once);
+  ``check_settle`` and none in the future (the same frame fed twice counts once), and the TCP has not
+  moved more than ``rest_tolerance`` since then (the arm really stopped);
+* the cup's axis is within ``max_tilt`` of the surface normal (it lands on its base, not its rim);
 * the cup bottom's clearance above the plane lies in ``[-release_clearance, release_clearance]``, or the
   cup is in contact (``contact_force``) with a clearance in ``[-max_penetration, contact_clearance]``:
   contact higher above the sensed surface is an obstacle, and a cup below the sensed surface without
@@ -43,6 +46,7 @@ from __future__ import annotations
 
 import logging
 import math
+from statistics import NormalDist
 from dataclasses import asdict, dataclass
 from enum import Enum
 from pathlib import Path
@@ -104,6 +108,8 @@ class PlacementConfig:
     check_settle: float = 0.04  # s after the stop command before planes count for CHECK (arm at rest)
     descent_timeout: float = 30.0  # s: deadline of APPROACH + DESCEND together
     retreat_timeout: float = 6.0  # s: deadline of the retreat after a release or refusal
+    rest_tolerance: float = 0.001  # m the TCP may move in CHECK once stopped (more: the arm did not stop)
+    level_confidence: float = 0.99  # the surface must be flatter than max_tilt with this confidence
     sensor_latency: float = 0.15  # s from a measurement to the machine acting on it (transfer + frame + estimate)
 
     def __post_init__(self) -> None:
@@ -168,6 +174,9 @@ PLACEMENT_BOUNDS: dict[str, Bound] = {
     "check_settle": Bound(0.0, 10.0, "s"),
     "descent_timeout": Bound(0.0, 600.0, "s", lo_open=True),
     "retreat_timeout": Bound(0.0, 600.0, "s", lo_open=True),
+    "level_confidence": Bound(0.5, 0.999999, "(probability)"),
+    "rest_tolerance": Bound(0.0, 0.05, "m", lo_open=True),
+    "sensor_latency": Bound(0.0, 5.0, "s"),
 }
 
 
@@ -251,9 +260,10 @@ CLOCK_BACK_TOLERANCE = 1e-6
 
 @dataclass
 class _Check:
-    """CHECK phase state: when the stop was commanded."""
+    """CHECK phase state: when the stop was commanded; where the TCP was once enough planes were in."""
 
     t_stop: float
+    at_rest: np.ndarray | None = None
 
 
 @dataclass
@@ -331,6 +341,19 @@ class PlacementMachine:
             self._go(Phase.ABORTED, t, f"{why}; the robot holds the cup where it stopped")
         return Command.hold() if faulted else Command(CommandKind.STOP, accel=self.config.accel)
 
+    def abort(self, t: float, why: str) -> Command:
+        """End the placement now (a fault outside the machine's view, e.g. the loop's); never raises."""
+        if self.finished:
+            return Command.hold()
+        return self._abort(t if isinstance(t, (int, float)) else math.nan, why)
+
+    def gripper_failed(self, t: float, why: str) -> None:
+        """The open-gripper command failed: the cup is taken as still held and the placement refused."""
+        self.gripper_opened = False
+        if not self.finished:
+            self.decision = f"{why}; the gripper may still hold the cup"
+            self._go(Phase.ABORTED, t if isinstance(t, (int, float)) else math.nan, self.decision)
+
     def _speed(self, v: np.ndarray) -> Command:
         """speedL at linear velocity ``v`` (3,) m/s, no rotation."""
         tw = tuple(float(x) for x in v) + (0.0, 0.0, 0.0)
@@ -360,6 +383,8 @@ class PlacementMachine:
             return "fused plane normal is not a unit vector"
         if not (0.0 <= plane.tilt_rad <= math.pi):
             return f"fused plane tilt {plane.tilt_rad!r} rad is out of range [0, pi]"
+        if abs(math.acos(max(-1.0, min(1.0, float(n[2] / np.linalg.norm(n))))) - plane.tilt_rad) > 1e-6:
+            return "fused plane is inconsistent: its tilt does not match its normal"
         if not (plane.std_angle >= 0.0 and plane.std_offset >= 0.0):
             return "fused plane spread is negative"
         age = now - plane.stamp
@@ -398,6 +423,25 @@ class PlacementMachine:
         if not (plane.tilt_rad <= limit):
             return (f"surface tilted {math.degrees(plane.tilt_rad):.1f} deg "
                     f"(> {math.degrees(self.config.max_tilt):.1f} deg allowed)")
+        return None
+
+    def tilt_sigma(self, plane: FusedPlane) -> float:
+        """Standard error (rad) of the fused plane's tilt: ``plane.tilt_std`` from the estimates'
+        covariances, or, without them, the window's spread over sqrt(n)."""
+        s = getattr(plane, "tilt_std", math.nan)
+        spread = float(plane.std_angle) / math.sqrt(max(int(getattr(plane, "n", 1) or 1), 1))
+        return float(s) if isinstance(s, (int, float)) and math.isfinite(s) and s >= 0 else spread
+
+    def _level_problem(self, plane: FusedPlane) -> str | None:
+        """Tilt below ``max_tilt`` with ``level_confidence`` (one-sided normal bound on the tilt)."""
+        cfg = self.config
+        if (why := self._tilt_problem(plane, cfg.max_tilt)) is not None:
+            return why
+        sigma = self.tilt_sigma(plane)
+        bound = plane.tilt_rad + NormalDist().inv_cdf(cfg.level_confidence) * sigma
+        if not (bound <= cfg.max_tilt):
+            return (f"surface tilt {math.degrees(plane.tilt_rad):.2f} +- {math.degrees(sigma):.2f} deg is not below "
+                    f"{math.degrees(cfg.max_tilt):.1f} deg with {cfg.level_confidence:.0%} confidence")
         return None
 
     def post_stop_stamps(self, plane: FusedPlane, now: float) -> list[float]:
@@ -451,13 +495,16 @@ class PlacementMachine:
     def _on_idle(self, state: RobotState, plane: FusedPlane | None, note: str | None, now: float) -> Command:
         cfg = self.config
         self._start_pos = np.asarray(state.base_T_tcp, dtype=float)[:3, 3].copy()
-        if self._plane_problem(plane, now, note) is None:
+        problem = self._plane_problem(plane, now, note)
+        if problem is None:
             self._descent_t0, self._descent_ticks = now, 0
             self._go(Phase.APPROACH, now, f"surface seen: tilt {math.degrees(plane.tilt_rad):.1f} deg, "
                                           f"{plane.n} planes")
             return self._on_descent(state, plane, note, now)
         if self._elapsed(now, self._t_start, self.ticks - 1) > cfg.acquire_timeout:
-            return self._refuse(now, f"no surface plane within {cfg.acquire_timeout:.1f} s" + (f" ({note})" if note else ""))
+            detail = problem if plane is not None else note
+            return self._refuse(now, f"no surface plane within {cfg.acquire_timeout:.1f} s"
+                                + (f" ({detail})" if detail else ""))
         if (why := self._sensor_problem(state, now, note)) is not None:
             return self._refuse(now, why)
         return Command.hold()
@@ -519,6 +566,8 @@ class PlacementMachine:
         if why is not None:
             return self._refuse(now, why)
         fresh = len(self.post_stop_stamps(plane, now))
+        if self._check.at_rest is None and now - self._check.t_stop >= cfg.check_settle:
+            self._check.at_rest = np.asarray(state.base_T_tcp, dtype=float)[:3, 3].copy()
         if fresh < cfg.check_frames:
             if self._elapsed(now, self._t_phase, self._phase_ticks) > cfg.check_timeout:
                 return self._refuse(now, f"only {fresh} of {cfg.check_frames} surface planes measured within "
@@ -527,10 +576,22 @@ class PlacementMachine:
         c = self.last_clearance = self._clearance(plane, state)
         if not math.isfinite(c):
             return self._refuse(now, "cup clearance above the surface cannot be computed")
-        if (why := self._tilt_problem(plane, cfg.max_tilt)) is not None:
+        if (why := self._level_problem(plane)) is not None:
             return self._refuse(now, why)
         if (why := self._planar_problem(plane)) is not None:
             return self._refuse(now, why)
+        cup = np.asarray(state.base_T_cup, dtype=float)
+        cup_to_surface = math.acos(max(-1.0, min(1.0, float(cup[:3, 2] @ np.asarray(plane.normal_base, float)))))
+        if not (cup_to_surface <= cfg.max_tilt):
+            return self._refuse(now, f"cup axis {math.degrees(cup_to_surface):.1f} deg from the surface normal "
+                                     f"(> {math.degrees(cfg.max_tilt):.1f} deg): it would land on its rim")
+        tcp = np.asarray(state.base_T_tcp, dtype=float)[:3, 3]
+        if self._check.at_rest is None:
+            self._check.at_rest = tcp.copy()
+        moved = float(np.linalg.norm(tcp - self._check.at_rest))
+        if not (moved <= cfg.rest_tolerance):
+            return self._refuse(now, f"the arm did not stop: the TCP moved {moved * 1e3:.1f} mm after the stop "
+                                     f"(> {cfg.rest_tolerance * 1e3:.1f} mm)")
         force = float(state.contact_force)
         contact = force >= cfg.contact_force
         if contact and c > cfg.contact_clearance:

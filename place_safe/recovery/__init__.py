@@ -27,11 +27,16 @@ METHODS = ("diff", "peak", "peak-naive", "proprietary", "proprietary-naive")
 def make_estimator(method: str, calibration: "Calibration | None" = None, **options) -> Estimator:
     """The estimator for a CLI method name, using ``calibration`` where the method has one.
 
-    Without a calibration (or without a section for the method) each method uses its built-in
+    ``calibration``: a :class:`~place_safe.calibration.Calibration`, the path of a calibration file, or
+    None. Without a calibration (or without a section for the method) each method uses its built-in
     defaults. ``options`` go to the estimator (e.g. ``mode="paper"`` for ``diff``).
     """
+    from pathlib import Path
+
     from place_safe.calibration import Calibration
 
+    if isinstance(calibration, (str, Path)):
+        calibration = Calibration.load(calibration)
     cal = calibration if calibration is not None else Calibration()
     if method == "peak":
         from place_safe.recovery.peak import PeakEstimator

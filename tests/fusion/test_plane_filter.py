@@ -152,3 +152,34 @@ def test_clearance_along_the_tool_axis_with_the_cup_rim():
     assert c0 - c1 == pytest.approx(0.035 * math.sin(t) / math.cos(t))
     with pytest.raises(ValueError):
         clearance_along(n, 0.0, [0, 0, np.nan], [0, 0, -1])
+
+
+def test_planes_are_weighted_by_their_covariance_and_the_fused_tilt_has_a_standard_error():
+    T = looking_down([0.4, 0.0, 0.5])
+    f = PlaneFilter(window=8, angle_gate=math.radians(10.0), offset_gate=0.1)
+    precise, vague = np.diag([1e-8, 1e-8, 1e-8]), np.diag([1e-2, 1e-2, 1e-6])  # (n_x, n_y, d) variances
+    for i in range(8):  # alternate a level plane known well with a 2 deg plane known badly
+        deg = 0.0 if i % 2 == 0 else 2.0
+        n = np.array([math.sin(math.radians(deg)), 0.0, math.cos(math.radians(deg))])
+        est = PlaneEstimate(sensor_plane(n, 0.0, T), covariance=precise if deg == 0.0 else vague)
+        assert f.update(est, T, 0.05 * i)
+    fused = f.fused()
+    assert math.degrees(fused.tilt_rad) < 0.05  # the well-known planes win
+    assert fused.tilt_std >= fused.std_angle / math.sqrt(fused.n) - 1e-12  # never below the window's spread
+    # without covariances the standard error is the window's spread over sqrt(n)
+    g = PlaneFilter()
+    for i in range(5):
+        g.update(PlaneEstimate(sensor_plane([0.0, 0.0, 1.0], 0.0, T)), T, 0.05 * i)
+    assert g.fused().tilt_std == pytest.approx(g.fused().std_angle / math.sqrt(5))
+
+
+def test_a_consistent_minority_of_disagreeing_planes_shows_in_the_spread():
+    # every other plane 4 deg / 8 mm off: inside the outlier gates, but the surface is not one plane
+    T = looking_down([0.4, 0.0, 0.5])
+    f = PlaneFilter(window=7)
+    for i in range(7):
+        deg, dz = (4.0, 0.008) if i % 2 else (0.0, 0.0)
+        n = np.array([math.sin(math.radians(deg)), 0.0, math.cos(math.radians(deg))])
+        f.update(PlaneEstimate(sensor_plane(n, n @ np.array([0.4, 0.0, dz]), T)), T, 0.05 * i)
+    fused = f.fused()
+    assert math.degrees(fused.std_angle) > 1.5 or fused.std_offset > 0.003

@@ -167,3 +167,66 @@ def test_pipeline_counts_timeouts():
 
     p = EstimatePipeline(Never(), None)
     assert p.take() is None and p.timeouts == 1 and p.error is None
+
+
+# --- found by an adversarial review of the merged tree -------------------------------------------------
+def test_any_exception_from_a_robot_command_stops_the_arm_and_never_escapes():
+    robot = KinematicRobot(height=0.12)
+    calls = {"n": 0}
+    real = robot.speed_linear
+
+    def flaky(twist, accel=0.5, duration=None):
+        calls["n"] += 1
+        if calls["n"] >= 2:
+            raise TypeError("twist must be list")
+        return real(twist, accel, duration)
+
+    robot.speed_linear = flaky
+    loop, res = run(robot, TruthSource(robot))
+    assert res.outcome == "refused" and "command speed failed" in res.reason and not robot.opened
+    assert robot.commands[-1] == "stop" and not robot.is_moving()
+
+
+def test_a_malformed_robot_pose_ends_the_placement_instead_of_raising():
+    robot = KinematicRobot(height=0.12)
+    calls = {"n": 0}
+    real = robot.tcp_pose
+
+    def bad_pose():
+        calls["n"] += 1
+        return {"x": 1} if calls["n"] > 50 else real()
+
+    robot.tcp_pose = bad_pose
+    loop, res = run(robot, TruthSource(robot))
+    assert res.outcome == "refused" and not robot.opened
+
+
+def test_an_arm_that_does_not_stop_is_not_released_on():
+    robot = KinematicRobot(height=0.1)
+    real_stop = robot.stop
+    robot.stop = lambda decel=1.0, asynchronous=False: None  # the controller ignores stopL
+    loop, res = run(robot, TruthSource(robot))
+    robot.stop = real_stop
+    assert res.outcome == "refused" and not robot.opened
+    assert "did not stop" in res.reason or "below the estimated surface" in res.reason
+
+
+def test_a_cup_held_askew_is_not_put_down_on_its_rim():
+    from placement_fakes import tilted
+
+    robot = KinematicRobot(height=0.12)
+    tilted(robot, 30.0)  # the cup hangs 30 deg off vertical in the gripper; the table is level
+    loop, res = run(robot, TruthSource(robot))
+    assert res.outcome == "refused" and not robot.opened
+    assert "rim" in res.reason
+
+
+def test_a_gripper_that_fails_to_open_is_not_reported_as_released():
+    robot = KinematicRobot(height=0.1)
+
+    def broken(open):
+        raise RuntimeError("gripper I/O error")
+
+    robot.gripper = broken
+    loop, res = run(robot, TruthSource(robot))
+    assert res.outcome == "refused" and "gripper" in res.reason

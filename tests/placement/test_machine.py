@@ -265,3 +265,28 @@ def test_config_json_round_trip_and_validation(tmp_path):
         PlacementConfig(stop_clearance=0.01, release_clearance=0.005)
     with pytest.raises(ValueError, match="cannot read"):
         PlacementConfig.load(tmp_path / "missing.json")
+
+
+def test_levelness_is_decided_with_confidence():
+    # a 4.9 deg table whose fused tilt is uncertain by 0.076 deg (0.2 deg spread over 7 planes) is not below
+    # 5 deg with 99 % confidence; a 4 deg one is
+    w = FakeWorld(tilt_deg=4.9)
+    m = run(w)
+    assert m.outcome == "refused" and "confidence" in m.decision and not opened(w)
+    w = FakeWorld(tilt_deg=4.0)
+    m = run(w)
+    assert m.outcome == "released", m.decision
+    w = FakeWorld(tilt_deg=4.9)
+    m = run(w, PlacementMachine(PlacementConfig(level_confidence=0.5)))  # a coin flip: the bare tilt decides
+    assert m.outcome == "released", m.decision
+
+
+def test_a_plane_whose_tilt_does_not_match_its_normal_is_refused():
+    def plane_fn(world, m):
+        p = world.plane()
+        n = np.array([math.sin(math.radians(60)), 0.0, math.cos(math.radians(60))])
+        return FusedPlane(n, p.offset_base, 0.0, p.std_angle, p.std_offset, 7, p.stamp, p.count, stamps=p.stamps)
+
+    w = FakeWorld()
+    m = run(w, plane_fn=plane_fn)
+    assert m.outcome == "refused" and "inconsistent" in m.decision and not opened(w)

@@ -10,6 +10,7 @@ machine's own bookkeeping (except the time of the stop, read from the transition
 from __future__ import annotations
 
 import math
+from statistics import NormalDist
 
 import numpy as np
 from hypothesis import HealthCheck, given, settings
@@ -172,6 +173,9 @@ def rule_holds(state: RobotState, plane: FusedPlane | None, prev_time, t_stop: f
         return "released on a non-unit normal"
     if not (0 <= plane.tilt_rad <= cfg.max_tilt):
         return f"released on tilt {plane.tilt_rad}"
+    sigma = plane.tilt_std if math.isfinite(plane.tilt_std) else plane.std_angle / math.sqrt(plane.n)
+    if not (plane.tilt_rad + NormalDist().inv_cdf(cfg.level_confidence) * sigma <= cfg.max_tilt):
+        return f"released on tilt {plane.tilt_rad} +- {sigma} at {cfg.level_confidence} confidence"
     if not (0 <= plane.std_angle <= cfg.max_std_angle and 0 <= plane.std_offset <= cfg.max_std_offset):
         return "released on a spread plane"
     if not (-DT <= now - plane.stamp <= cfg.plane_timeout):
@@ -180,6 +184,8 @@ def rule_holds(state: RobotState, plane: FusedPlane | None, prev_time, t_stop: f
     if len(fresh) < cfg.check_frames:
         return f"released on {len(fresh)} fresh measurements"
     cup = np.asarray(state.base_T_cup, dtype=float)
+    if not (math.acos(min(1.0, float(cup[:3, 2] @ plane.normal_base))) <= cfg.max_tilt):
+        return "released with the cup axis far from the surface normal"
     c = clearance_along(plane.normal_base, plane.offset_base, cup[:3, 3], -cup[:3, 2], cfg.cup_radius, cup[:3, 2])
     contact = f >= cfg.contact_force
     if not ((-cfg.release_clearance <= c <= cfg.release_clearance)

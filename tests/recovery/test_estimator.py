@@ -66,3 +66,13 @@ def test_plane_covariance_matches_the_scatter_of_fitted_planes(theta, phi, z0, s
     pred = np.mean(covs, axis=0)
     assert np.trace(emp[:2, :2]) == pytest.approx(np.trace(pred[:2, :2]), rel=0.25)
     assert emp[2, 2] == pytest.approx(pred[2, 2], rel=0.25)
+
+
+def test_make_estimator_takes_a_calibration_file_path(tmp_path):
+    from place_safe.recovery import make_estimator
+    from place_safe.recovery.points import PeakParams
+
+    path = tmp_path / "cal.json"
+    Calibration({"peak": PeakParams(70.0, 12.0).to_dict()}).save(path)
+    assert make_estimator("peak", str(path)).params.m == 70.0
+    assert make_estimator("peak", path).params.m == 70.0
