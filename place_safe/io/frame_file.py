@@ -35,6 +35,10 @@ _BOM = b"\xef\xbb\xbf"
 _WS = b" \t\r\n"
 _OUTSIDE = re.compile(rb'[\[\]{}"]')  # what matters outside strings
 _INSIDE = re.compile(rb'["\\]')       # what matters inside a string
+#: In JSON Lines every frame is one line: a line end inside a frame ends that frame as broken.
+_OUTSIDE_LINES = re.compile(rb'[\[\]{}"\n]')
+_INSIDE_LINES = re.compile(rb'["\\\n]')
+_LINE_BROKEN = "the line ends inside the frame (JSON Lines: one frame per line)"
 _SCALAR_END = re.compile(rb'[\s,\]\[{}"]')
 
 
@@ -75,6 +79,14 @@ class _Splitter:
                 self.parts = []
             else:
                 self.parts.append(data)
+
+    def _broken_line(self) -> None:
+        """JSON Lines: the current frame's line ended before the frame did; it becomes a per-frame error."""
+        self.in_string = False
+        self.escape = False
+        if self.error is None:
+            self.error = _LINE_BROKEN
+            self.parts = []
 
     def _finish(self, out: list) -> None:
         out.append((None if self.error else b"".join(self.parts), self.error))
@@ -138,11 +150,15 @@ class _Splitter:
                         self.escape = False
                         pos += 1
                         continue
-                    m = _INSIDE.search(chunk, pos)
+                    m = (_INSIDE if self.is_list else _INSIDE_LINES).search(chunk, pos)
                     if m is None:
                         pos = n
                         break
                     pos = m.end()
+                    if m.group() == b"\n":  # JSON Lines: the frame's line ended inside a string
+                        self._broken_line()
+                        done = True
+                        break
                     if m.group() == b"\\":
                         self.escape = True
                     else:
@@ -151,12 +167,16 @@ class _Splitter:
                             done = True
                             break
                     continue
-                m = _OUTSIDE.search(chunk, pos)
+                m = (_OUTSIDE if self.is_list else _OUTSIDE_LINES).search(chunk, pos)
                 if m is None:
                     pos = n
                     break
                 pos = m.end()
                 ch = m.group()
+                if ch == b"\n":  # JSON Lines: the frame's line ended with brackets still open
+                    self._broken_line()
+                    done = True
+                    break
                 if ch == b'"':
                     self.in_string = True
                 elif ch in (b"{", b"["):

@@ -195,3 +195,13 @@ def test_structural_noise_never_hangs(tmp_path, monkeypatch, text, first, chunk)
     monkeypatch.setattr(ff, "_CHUNK", chunk)
     items, _ = _read(path)
     assert all(isinstance(x, (Frame, FrameError)) for x in items)
+
+
+def test_json_lines_a_broken_line_is_one_bad_frame_and_the_lines_after_it_are_read(tmp_path, synthetic_frames):
+    # a recorder that crashed mid-line: the frames on the following lines must still be read
+    line = json.dumps(synthetic_frames[0].to_dict())
+    path = tmp_path / "crashed.jsonl"
+    path.write_text(f'{line}\n{{"hists": [1, 2\n{line}\n{{"meta": "unterminated\n{line}\n')
+    items = list(iter_frames(path))
+    assert [type(x).__name__ for x in items] == ["Frame", "FrameError", "Frame", "FrameError", "Frame"]
+    assert "frame 1" in str(items[1]) and "line ends inside the frame" in str(items[1])
