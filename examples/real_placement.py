@@ -20,7 +20,7 @@ def place(robot, sensor, estimator, config=PlacementConfig(), timeout=30.0):
 
 if __name__ == "__main__":
     from place_safe.drivers.ur5 import URConfig, URRobot
-    from place_safe.io.uri import open_source
+    from place_safe.sources import open_source
 
     robot_file, sensor_uri, calibration_file = sys.argv[1:4]
     robot = URRobot(URConfig.load(robot_file), dry_run="--dry-run" in sys.argv)

@@ -26,20 +26,9 @@ from dataclasses import replace
 
 import numpy as np
 
-from place_safe.evaluation.metrics import angular_errors, point_errors
+from place_safe.evaluation.metrics import angular_errors, nees, point_errors  # noqa: F401 (nees: re-exported)
 from place_safe.recovery.estimator import PlaneEstimate, Uncertainty, tilt_offset
 from place_safe.sensor.frame import Frame
-
-
-def nees(estimates: Sequence[PlaneEstimate], truths: Sequence) -> np.ndarray:
-    """Normalised estimation error squared per frame, divided by its 3 degrees of freedom (NaN without a
-    plane or covariance). Its mean is about 1 when the covariances are honest."""
-    out = np.full(len(estimates), np.nan)
-    for i, (e, t) in enumerate(zip(estimates, truths)):
-        if e.ok and e.covariance is not None and t is not None:
-            err = tilt_offset(e.plane) - tilt_offset(t)
-            out[i] = float(err @ np.linalg.solve(e.covariance, err)) / 3.0
-    return out
 
 
 def _nll(errors: np.ndarray, covs: np.ndarray, extra: np.ndarray) -> float:

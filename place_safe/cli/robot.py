@@ -46,9 +46,9 @@ def _xy_points(text: str) -> list[float]:
 
 
 def open_sensor(uri: str) -> Any:
-    """The frame source a sensor URI names (:func:`place_safe.io.uri.open_source`: ``i2c:``, ``serial:``,
+    """The frame source a sensor URI names (:func:`place_safe.sources.open_source`: ``i2c:``, ``serial:``,
     ``file:``, ``emu:``)."""
-    from place_safe.io.uri import open_source
+    from place_safe.sources import open_source
 
     return open_source(uri)
 

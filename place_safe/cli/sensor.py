@@ -1,6 +1,6 @@
 """``place-safe sensor``: read a TMF8820 (I2C, Arduino bridge, emulator, file): info, record, stream, bench.
 
-Sources are URIs (:func:`place_safe.io.uri.open_source`): ``i2c:/dev/i2c-1@0x41``, ``serial:/dev/ttyACM0``,
+Sources are URIs (:func:`place_safe.sources.open_source`): ``i2c:/dev/i2c-1@0x41``, ``serial:/dev/ttyACM0``,
 ``serial:capture.log``, ``file:frames.json``, ``emu:file:frames.json``, ``emu:synthetic:50``,
 ``emu:place_level``. Frame rates are frames per second, distances millimetres and angles degrees at
 this edge; standard output carries the command's result, progress and summaries go to standard error.
@@ -41,7 +41,7 @@ def _add_source_options(p: argparse.ArgumentParser) -> None:
 
 def _open(args: argparse.Namespace, **extra: Any):
     from place_safe.cli.app import UsageError
-    from place_safe.io.uri import open_source
+    from place_safe.sources import open_source
 
     scheme = args.uri.split(":", 1)[0]
     opts: dict[str, Any] = {}

@@ -105,7 +105,7 @@ def evaluate(frames: Sequence[Frame], calibration: Any = None, methods: Sequence
     """
     from tqdm import tqdm
 
-    from place_safe.calibration.uncertainty import nees
+    from place_safe.evaluation.metrics import nees
     from place_safe.recovery import make_estimator
 
     use = [f for f in frames if f.truth is not None]

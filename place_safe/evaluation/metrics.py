@@ -12,9 +12,12 @@ normals (F, 3) and offsets (F,) and return (F,) arrays. Everything is in SI unit
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 from place_safe.geometry import Plane
+from place_safe.recovery.estimator import tilt_offset
 from place_safe.sensor.frame import ZONE_RECTS
 
 #: Rays per side of the point-error grid (the paper's 8 x 8).
@@ -94,5 +97,16 @@ def summarise(errors: np.ndarray) -> dict[str, float]:
             "count": int(e.size)}
 
 
-__all__ = ["GRID_SIZE", "grid_directions", "angular_error", "linear_error", "point_error", "angular_errors",
+def nees(estimates: Sequence, truths: Sequence) -> np.ndarray:
+    """Normalised estimation error squared per frame, divided by its 3 degrees of freedom (NaN without a
+    plane or covariance). Its mean is about 1 when the covariances are honest."""
+    out = np.full(len(estimates), np.nan)
+    for i, (e, t) in enumerate(zip(estimates, truths)):
+        if e.ok and e.covariance is not None and t is not None:
+            err = tilt_offset(e.plane) - tilt_offset(t)  # (n_x, n_y, d), the covariance's order
+            out[i] = float(err @ np.linalg.solve(e.covariance, err)) / 3.0
+    return out
+
+
+__all__ = ["nees", "GRID_SIZE", "grid_directions", "angular_error", "linear_error", "point_error", "angular_errors",
            "linear_errors", "point_errors", "summarise"]

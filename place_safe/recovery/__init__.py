@@ -14,30 +14,54 @@ method                what it uses
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import Any
 
 from place_safe.recovery.estimator import Estimator, PlaneEstimate
-
-if TYPE_CHECKING:
-    from place_safe.calibration import Calibration
 
 METHODS = ("diff", "peak", "peak-naive", "proprietary", "proprietary-naive")
 
 
-def make_estimator(method: str, calibration: "Calibration | None" = None, **options) -> Estimator:
+class BuiltInParameters:
+    """The parameters every method uses without a calibration: the same section methods as
+    :class:`place_safe.calibration.Calibration` (which the estimators are built from), answered with
+    the built-in defaults. Recovery never imports the calibration package: calibration depends on
+    recovery, not the other way round."""
+
+    def peak(self):
+        from place_safe.recovery.points import PeakParams
+
+        return PeakParams.default_peak()
+
+    def proprietary(self):
+        from place_safe.recovery.points import PeakParams
+
+        return PeakParams.default_proprietary()
+
+    def forward(self):
+        from place_safe.recovery.forward import ForwardParams
+
+        return ForwardParams()
+
+    def diff(self):
+        from place_safe.recovery.differentiable import RangeCorrection
+
+        return RangeCorrection()
+
+    def uncertainty(self, method: str | None = None):
+        from place_safe.recovery.estimator import Uncertainty
+
+        return Uncertainty() if method is not None else {}
+
+
+def make_estimator(method: str, calibration: Any = None, **options) -> Estimator:
     """The estimator for a CLI method name, using ``calibration`` where the method has one.
 
-    ``calibration``: a :class:`~place_safe.calibration.Calibration`, the path of a calibration file, or
-    None. Without a calibration (or without a section for the method) each method uses its built-in
-    defaults. ``options`` go to the estimator (e.g. ``mode="paper"`` for ``diff``).
+    ``calibration``: a :class:`~place_safe.calibration.Calibration` (``Calibration.load(path)`` reads a
+    file) or None. Without a calibration (or without a section for the method) each method uses its
+    built-in defaults (:class:`BuiltInParameters`). ``options`` go to the estimator (e.g.
+    ``mode="paper"`` for ``diff``).
     """
-    from pathlib import Path
-
-    from place_safe.calibration import Calibration
-
-    if isinstance(calibration, (str, Path)):
-        calibration = Calibration.load(calibration)
-    cal = calibration if calibration is not None else Calibration()
+    cal = calibration if calibration is not None else BuiltInParameters()
     if method == "peak":
         from place_safe.recovery.peak import PeakEstimator
         return PeakEstimator(cal.peak(), uncertainty=cal.uncertainty("peak"), **options)
@@ -58,4 +82,4 @@ def make_estimator(method: str, calibration: "Calibration | None" = None, **opti
     raise ValueError(f"unknown method {method!r}; expected one of {', '.join(METHODS)}")
 
 
-__all__ = ["Estimator", "PlaneEstimate", "METHODS", "make_estimator"]
+__all__ = ["Estimator", "PlaneEstimate", "METHODS", "make_estimator", "BuiltInParameters"]

@@ -13,7 +13,7 @@ from place_safe.drivers.tmf8820.emulated import EmulatedTMF8820
 from place_safe.drivers.tmf8820.serial_bridge import (BridgeSource, LineError, ObjLine, RawLine, format_measurement,
                                                       format_obj, format_raw, parse_line)
 from place_safe.exceptions import SensorTimeout
-from place_safe.io.uri import open_source
+from place_safe.sources import open_source
 
 FRAMES = random_frames(6, seed=11)
 

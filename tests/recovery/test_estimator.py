@@ -68,11 +68,12 @@ def test_plane_covariance_matches_the_scatter_of_fitted_planes(theta, phi, z0, s
     assert emp[2, 2] == pytest.approx(pred[2, 2], rel=0.25)
 
 
-def test_make_estimator_takes_a_calibration_file_path(tmp_path):
-    from place_safe.recovery import make_estimator
-    from place_safe.recovery.points import PeakParams
+def test_recovery_never_imports_the_calibration_package():
+    # calibration depends on recovery (it fits its parameters), never the reverse: no import cycle
+    import subprocess
+    import sys
 
-    path = tmp_path / "cal.json"
-    Calibration({"peak": PeakParams(70.0, 12.0).to_dict()}).save(path)
-    assert make_estimator("peak", str(path)).params.m == 70.0
-    assert make_estimator("peak", path).params.m == 70.0
+    code = ("import sys; from place_safe.recovery import make_estimator; make_estimator('peak'); "
+            "make_estimator('proprietary'); print('place_safe.calibration' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "False"

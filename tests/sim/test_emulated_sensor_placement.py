@@ -12,7 +12,7 @@ import pytest
 
 from place_safe import PlacementConfig, PlacementLoop
 from place_safe.drivers.tmf8820.emulator import FaultPlan
-from place_safe.io.uri import open_source
+from place_safe.sources import open_source
 from place_safe.recovery import make_estimator
 from place_safe.calibration import Calibration
 from place_safe.sim.calibration_capture import calibration_file

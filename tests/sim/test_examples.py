@@ -27,7 +27,7 @@ def test_real_arm_example_runs_on_the_ur_rtde_stand_in():
     # and the simulated sensor behind the TMF8820 driver over the register-level emulator
     from place_safe import Calibration, make_estimator
     from place_safe.drivers.ur5 import URConfig, URRobot, fake_rtde, packaged_config
-    from place_safe.io.uri import open_source
+    from place_safe.sources import open_source
     from place_safe.sim.calibration_capture import calibration_file
     from place_safe.sim.world import sim_world
 

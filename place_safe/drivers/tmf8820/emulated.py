@@ -5,7 +5,7 @@ Concept
 :class:`EmulatedTMF8820` wires a :class:`~.i2c.TMF8820Source` to a :class:`~.emulator.TMF8820Emulator`
 fed by frames (a frame file, a list, any source, or a callable such as the simulated sensor), so every
 frame goes through the protocol, the bus and the decoder exactly as on hardware. It is what ``emu:``
-URIs open (:mod:`place_safe.io.uri`).
+URIs open (:mod:`place_safe.sources`).
 
 Clocks (``clock_domain``):
 

@@ -9,7 +9,7 @@ the application registers, command / status, the config and factory-calibration 
 range, and measurements whose 30 raw-histogram packets and result frame carry frames taken from a feed
 (any :class:`~place_safe.io.source.FrameSource`, a list of frames, or a callable ``t -> Frame`` such as
 the simulated sensor). The driver in :mod:`.i2c` runs on it unchanged: it is how CI and the simulated
-placement go through the real code path (``emu:`` sources, :mod:`place_safe.io.uri`).
+placement go through the real code path (``emu:`` sources, :mod:`place_safe.sources`).
 
 Time
 ----

@@ -11,7 +11,7 @@ from place_safe.drivers.tmf8820.serial_bridge import BridgeSource
 from place_safe.exceptions import ConfigError, FrameFileError, SensorError
 from place_safe.io.frame_file import write_frames
 from place_safe.io.replay import FileReplaySource
-from place_safe.io.uri import open_source
+from place_safe.sources import open_source
 
 
 @pytest.fixture
