@@ -45,13 +45,25 @@ def _progress(enabled: bool):
 # ------------------------------------------------------------------------------------------------
 # shared helpers
 # ------------------------------------------------------------------------------------------------
+def not_a_file(path: str | Path) -> str | None:
+    """Why ``path`` cannot be read as an input file ("does not exist", "is a directory", ...), or None."""
+    p = Path(path)
+    if not p.exists():
+        return "does not exist"
+    if p.is_dir():
+        return "is a directory, not a file"
+    if not p.is_file():
+        return "is not a regular file"
+    return None
+
+
 def _load_calibration(path: str | None):
     from place_safe.calibration import Calibration
 
     if path is None:
         return None
-    if not Path(path).is_file():
-        raise CalibrationError(f"calibration file {path} does not exist")
+    if (why := not_a_file(path)) is not None:
+        raise CalibrationError(f"calibration file {path} {why}")
     return Calibration.load(path)
 
 
@@ -69,8 +81,8 @@ def _load_truth_frames(paths: Sequence[str], min_distance: float | None = None,
     frames: list = []
     skipped: Counter = Counter()
     for p in paths:
-        if not Path(p).is_file():
-            raise FrameFileError(f"frame file {p} does not exist")
+        if (why := not_a_file(p)) is not None:
+            raise FrameFileError(f"frame file {p} {why}")
         for f in iter_frames(p):
             if isinstance(f, FrameError):
                 skipped["unreadable"] += 1

@@ -14,7 +14,8 @@ from typing import Any, TextIO
 from place_safe.cli import options
 from place_safe.exceptions import CalibrationError, FrameError, FrameFileError
 from place_safe.cli.common import (CALIBRATE_METHODS, METHODS, PROG, UsageError, _estimator, _FMT,
-                                   _jsonable, _load_calibration, _load_truth_frames, _log, _progress, _summarise)
+                                   _jsonable, _load_calibration, _load_truth_frames, _log, _progress, _summarise,
+                                   not_a_file)
 
 # ------------------------------------------------------------------------------------------------
 # calibrate
@@ -138,8 +139,8 @@ def _write_line(out: TextIO, obj: dict) -> None:
 def cmd_recover(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    if not Path(args.file).is_file():
-        raise FrameFileError(f"frame file {args.file} does not exist")
+    if (why := not_a_file(args.file)) is not None:
+        raise FrameFileError(f"frame file {args.file} {why}")
     cal = _load_calibration(args.calibration)
     est = _estimator(args.method, cal, args.mode)
     batch = args.batch or (16 if args.method == "diff" and args.mode != "paper" else 1)
