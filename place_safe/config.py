@@ -28,20 +28,25 @@ def check_keys(cls: type, d: Any, what: str, error: type[Exception] = ValueError
     return d
 
 
+def _read_text(path: str | Path, what: str, error: type[Exception]) -> str:
+    """The UTF-8 text of ``path`` (a byte-order mark allowed); ``error`` with one line when it cannot be read."""
+    try:
+        raw = Path(path).read_bytes()
+    except OSError as exc:
+        raise error(f"cannot read {what} from {path}: {exc.strerror or exc}") from None
+    try:
+        return raw.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise error(f"cannot read {what} from {path}: not UTF-8 text (byte {exc.start})") from None
+
+
 def read_json(path: str | Path, what: str, error: type[Exception] = ValueError) -> Any:
     """The JSON value in ``path`` (UTF-8, a byte-order mark allowed); raises ``error`` saying why it cannot be read.
 
     Every way a file can be unreadable (missing, not UTF-8, not JSON, nested too deeply, an integer too
     long) is one line naming the file.
     """
-    try:
-        raw = Path(path).read_bytes()
-    except OSError as exc:
-        raise error(f"cannot read {what} from {path}: {exc.strerror or exc}") from None
-    try:
-        text = raw.decode("utf-8-sig")
-    except UnicodeDecodeError as exc:
-        raise error(f"cannot read {what} from {path}: not UTF-8 text (byte {exc.start})") from None
+    text = _read_text(path, what, error)
     try:
         return json.loads(text)
     except json.JSONDecodeError as exc:
@@ -107,25 +112,17 @@ def read_config_file(path: str | Path, what: str) -> Any:
 
     Raises ConfigError with one line for an unreadable file, bytes that are not UTF-8 or bad syntax.
     """
-    p = Path(path)
+    if Path(path).suffix.lower() != ".toml":
+        return read_json(path, what, ConfigError)
+    text = _read_text(path, what, ConfigError)
     try:
-        raw = p.read_bytes()
-    except OSError as exc:
-        raise ConfigError(f"cannot read {what} {p}: {exc.strerror or exc}") from None
-    try:
-        text = raw.decode("utf-8-sig")
-    except UnicodeDecodeError as exc:
-        raise ConfigError(f"{what} {p}: not UTF-8 text (byte {exc.start})") from None
-    try:
-        if p.suffix.lower() == ".toml":
-            try:
-                import tomllib
-            except ModuleNotFoundError:  # Python 3.10
-                import tomli as tomllib  # type: ignore[no-redef]
-            return tomllib.loads(text)
-        return json.loads(text)
+        try:
+            import tomllib
+        except ModuleNotFoundError:  # Python 3.10
+            import tomli as tomllib  # type: ignore[no-redef]
+        return tomllib.loads(text)
     except (ValueError, RecursionError) as exc:
-        raise ConfigError(f"{what} {p}: not valid {'TOML' if p.suffix.lower() == '.toml' else 'JSON'} "
+        raise ConfigError(f"{what} {path}: not valid TOML "
                           f"({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from None
 
 

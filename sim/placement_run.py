@@ -45,6 +45,7 @@ from place_safe.cli import options
 from place_safe.exceptions import RobotFault
 from place_safe.placement.loop import CONTROL_PERIOD, PlacementLoop
 from place_safe.placement.machine import PlacementConfig
+from place_safe.sim.scenario import oracle_calibration, scenario_path  # noqa: F401 - part of this module's API
 from place_safe.recovery import METHODS
 
 #: s of simulation after the machine finished, for the cup and liquid to settle.
@@ -100,21 +101,6 @@ class PlacementResult:
         return "\n".join(lines)
 
 
-def scenario_path(name: str | Path) -> Path:
-    """A scenario file: a path, or the name of a packaged one (see :func:`place_safe.sim.scenario.scenario_path`)."""
-    from place_safe.sim.scenario import scenario_path as _path
-
-    return _path(name)
-
-
-def oracle_calibration():
-    """A calibration holding the simulated sensor's TRUE parameters: an oracle no user could have, for
-    debugging only (see :func:`place_safe.sim.scenario.oracle_calibration`)."""
-    from place_safe.sim.scenario import oracle_calibration as _oracle
-
-    return _oracle()
-
-
 def _as_scenario(scenario: Any):
     from place_safe.sim.scenario import Scenario, load_scenario
     from place_safe.sim.scene import SceneConfig
@@ -157,16 +143,11 @@ def run_placement(scenario: Any = "place_level", method: str | None = None, cali
     sensor's noise seed unless the scenario sets its own. ``config``: the placement thresholds
     (default: the scenario's).
     """
-    import mujoco
-
     from place_safe.calibration import uncalibrated_reason
     from place_safe.recovery import make_estimator
     from place_safe.robots import ur5_config
-
-    from place_safe.sim.robot import SimRobot
     from place_safe.sim.scenario import TruthRecorder, surface_truth
-    from place_safe.sim.scene import build_scene
-    from place_safe.sim.tof_mismatch import make_sensor
+    from place_safe.sim.world import sim_world
 
     wall0 = _time.perf_counter()
     sc = _as_scenario(scenario)
@@ -176,10 +157,8 @@ def run_placement(scenario: Any = "place_level", method: str | None = None, cali
         raise ValueError(f"seconds must be a positive number of sim seconds; got {seconds!r}")
     calibration, cal_note = _calibration(sc, calibration, oracle)
     cfg = config if config is not None else sc.placement_config()
-    scene = build_scene(sc.scene_config())
-    robot = SimRobot(scene.model, mujoco.MjData(scene.model))
-    if sc.robot.start_q is not None:
-        robot.set_joint_positions(sc.robot.start_q)
+    world = sim_world(sc, seed=seed, attach=False)  # the sensor starts with the truth recorder in place
+    scene, robot, tof = world.scene, world.robot, world.tof
     tilt_true, surface_z = surface_truth(scene, robot.data)
     liquid_total = int(ur5_config()["cup"]["liquid_count"])
     truth = TruthRecorder(sc, scene, robot)
@@ -194,7 +173,6 @@ def run_placement(scenario: Any = "place_level", method: str | None = None, cali
                                wall_seconds=_time.perf_counter() - wall0, frames=0, planes=0, **common)
     estimator = make_estimator(method, calibration, **(estimator_options or {}))
     robot.add_step_callback(truth)
-    tof = make_sensor(sc.sensor.model, scene, robot.data, sc.sensor.tof_config(seed), sc.sensor.mismatch)
     tof.attach(robot)
     loop = PlacementLoop(robot, tof, estimator, tool=robot.tool, config=cfg, period=CONTROL_PERIOD,
                          log_frames=log_frames)

@@ -68,12 +68,13 @@ def sim_world(scenario: Any = "level_table", *, seed: int = 0, mount_error: Any 
     scene = build_scene(sc.scene_config())
     E = error_transform(mount_error)
     m = scene.model
-    s = scene.sensor_site
-    R_site = Rotation.from_quat(m.site_quat[s][[1, 2, 3, 0]]).as_matrix()
-    m.site_pos[s] = m.site_pos[s] + R_site @ E[:3, 3]
-    x, y, z, w = Rotation.from_matrix(R_site @ E[:3, :3]).as_quat()
-    m.site_quat[s] = [w, x, y, z]
-    m.site_sameframe[s] = 0  # the compiler marked the nominal site as aligned with its body: not any more
+    if not np.array_equal(E, np.eye(4)):  # move the sensor site only when the mount is really off
+        s = scene.sensor_site
+        R_site = Rotation.from_quat(m.site_quat[s][[1, 2, 3, 0]]).as_matrix()
+        m.site_pos[s] = m.site_pos[s] + R_site @ E[:3, 3]
+        x, y, z, w = Rotation.from_matrix(R_site @ E[:3, :3]).as_quat()
+        m.site_quat[s] = [w, x, y, z]
+        m.site_sameframe[s] = 0  # the compiler marked the nominal site as aligned with its body: not any more
     robot = SimRobot(m, mujoco.MjData(m), hold_cup=hold_cup)
     if sc.robot.start_q is not None:
         robot.set_joint_positions(sc.robot.start_q, hold_cup=hold_cup)

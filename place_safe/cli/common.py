@@ -15,9 +15,9 @@ from pathlib import Path
 from typing import Any
 
 from place_safe.exceptions import CalibrationError, FrameError, FrameFileError, PlaceSafeError
+from place_safe.recovery import METHODS  # noqa: F401 - the one list of method names, for the commands
 
 PROG = "place-safe"
-METHODS = ("diff", "peak", "peak-naive", "proprietary", "proprietary-naive")
 CALIBRATE_METHODS = ("diff", "peak", "proprietary")
 
 

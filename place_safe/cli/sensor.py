@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from place_safe.cli.options import nonnegative_int, positive_float, positive_int, fraction
+from place_safe.recovery import METHODS
 
 _FMT = argparse.RawDescriptionHelpFormatter
 _URI_HELP = ("source URI: i2c:BUS[@ADDR], serial:PORT[@BAUD] or serial:LOG, file:FRAMES.json, "
@@ -260,8 +261,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                "  place-safe sensor stream emu:place_level --max-frames 30 --save run.rrd\n"
                                "  place-safe sensor stream serial:/dev/ttyACM0 --jsonl > planes.jsonl")
     _add_source_options(st)
-    st.add_argument("--method", default="peak", choices=("diff", "peak", "peak-naive", "proprietary",
-                                                         "proprietary-naive"),
+    st.add_argument("--method", default="peak", choices=METHODS,
                     help="plane recovery (default peak)")
     st.add_argument("--calibration", metavar="CALIB.json", help="calibration file")
     st.add_argument("--max-frames", type=positive_int, metavar="N", help="stop after N frames")

@@ -215,7 +215,7 @@ class PlaneFilter:
                 if self.consecutive_rejects < self.max_consecutive_rejects:
                     return False
                 self._items.clear()  # the surface changed: start again from this plane
-        self._items.append((stamp, n, anchor, _direction_variance(getattr(estimate, "covariance", None))))
+        self._items.append((stamp, n, anchor, _direction_variance(estimate)))
         self.newest_accepted = stamp
         self._dirty = True
         self.count += 1
@@ -282,19 +282,13 @@ class PlaneFilter:
         return self._cache
 
 
-def _direction_variance(covariance: Any) -> float:
-    """Variance (rad^2) of a plane normal's direction along its worst axis, from an estimate's (n_x, n_y, d)
-    covariance; NaN when there is none or it is not a finite positive semi-definite 3x3 matrix."""
-    if covariance is None:
-        return math.nan
-    try:
-        C = np.asarray(covariance, dtype=float)
-    except (TypeError, ValueError):
-        return math.nan
-    if C.shape != (3, 3) or not np.all(np.isfinite(C)):
-        return math.nan
-    v = float(np.linalg.eigvalsh(0.5 * (C[:2, :2] + C[:2, :2].T)).max())
-    return max(v, MIN_SCALE_RAD ** 2) if v >= 0 else math.nan
+def _direction_variance(estimate: Any) -> float:
+    """Variance (rad^2) of an estimate's normal direction along its worst axis (from its covariance, see
+    :meth:`~place_safe.recovery.estimator.PlaneEstimate.tilt_std`), floored at :data:`MIN_SCALE_RAD`;
+    NaN when it has none."""
+    tilt_std = getattr(estimate, "tilt_std", None)
+    s = tilt_std() if callable(tilt_std) else None
+    return max(s, MIN_SCALE_RAD) ** 2 if s is not None else math.nan
 
 
 def _unit(v: np.ndarray) -> np.ndarray:

@@ -111,10 +111,19 @@ class PlaneEstimate:
     method_used: str | None = None
 
     def tilt_std(self) -> float | None:
-        """Standard deviation (rad) of the tilt along its worst direction (largest eigenvalue)."""
+        """Standard deviation (rad) of the tilt along its worst direction (largest eigenvalue of the
+        (n_x, n_y) block); None without a covariance or with one that is not a finite, symmetric-part
+        positive semi-definite 3 x 3 matrix."""
         if self.covariance is None:
             return None
-        return float(math.sqrt(max(np.linalg.eigvalsh(self.covariance[:2, :2]).max(), 0.0)))
+        try:
+            C = np.asarray(self.covariance, dtype=float)
+        except (TypeError, ValueError):
+            return None
+        if C.shape != (3, 3) or not np.all(np.isfinite(C)):
+            return None
+        v = float(np.linalg.eigvalsh(0.5 * (C[:2, :2] + C[:2, :2].T)).max())
+        return math.sqrt(v) if v >= 0 else None
 
     @property
     def ok(self) -> bool:
