@@ -40,6 +40,7 @@ import numpy as np
 
 from place_safe.exceptions import RobotFault, SensorTimeout
 from place_safe.fusion.plane_filter import PlaneFilter
+from place_safe.fusion.surface_map import MIN_INLIERS, SurfaceMap
 from place_safe.placement.machine import CommandKind, PlacementConfig, PlacementMachine, RobotState
 from place_safe.robot.tool import ToolFrames
 
@@ -283,7 +284,8 @@ class PlacementLoop:
     def __init__(self, robot: Any, source: Any, estimator: Any, tool: ToolFrames | None = None,
                  config: PlacementConfig | None = None, *, period: float = CONTROL_PERIOD,
                  max_frame_age: float = 0.5, log_frames: bool = True, plane_filter: PlaneFilter | None = None,
-                 pipeline: EstimatePipeline | None = None, host_clock: Callable[[], float] = time.monotonic) -> None:
+                 pipeline: EstimatePipeline | None = None, host_clock: Callable[[], float] = time.monotonic,
+                 surface_map: SurfaceMap | None = None) -> None:
         if not (math.isfinite(period) and period > 0):
             raise ValueError(f"control period must be a positive number of seconds, got {period!r}")
         self.robot, self.source, self.estimator = robot, source, estimator
@@ -299,6 +301,13 @@ class PlacementLoop:
             raise ValueError(f"the plane filter's window ({self.filter.window}) cannot hold check_frames "
                              f"({self.config.check_frames}) planes: nothing could ever be released")
         self.machine = PlacementMachine(self.config, period=self.period)
+        self.surface = surface_map if surface_map is not None else SurfaceMap(
+            peak_params_of(estimator), cup_radius=self.config.cup_radius, margin=self.config.footprint_margin,
+            tolerance=self.config.footprint_tolerance, min_frames=max(int(self.config.footprint_frames), 1))
+        self._landing_T_cup: np.ndarray | None = None
+        self._footprint_key: tuple | None = None
+        self._footprint = None
+        self.multi_surface = 0  # frames that saw more than one surface
         self.pipeline = pipeline if pipeline is not None else EstimatePipeline(source, estimator, clock=host_clock)
         self.clock = ClockMap(getattr(source, "clock_domain", "monotonic"))
         self.history = PoseHistory(tolerance=self.period / 2)
@@ -358,8 +367,13 @@ class PlacementLoop:
             else:
                 self._last_stamp = stamp
                 self.frames_used += 1
-                accepted = self.filter.update(est, pose @ self._tcp_T_sensor, stamp)
-                self._note = None if accepted else self.filter.last_reject_reason
+                base_T_sensor = pose @ self._tcp_T_sensor
+                est, why = self._surfaces(frame, est, base_T_sensor, stamp)
+                if est is None:
+                    self._drop(why)
+                else:
+                    accepted = self.filter.update(est, base_T_sensor, stamp)
+                    self._note = (why if accepted else self.filter.last_reject_reason)
         if self.log_frames:
             plane = getattr(est, "plane", None)
             entry = {"t": now, "stamp": stamp, "accepted": accepted,
@@ -369,6 +383,49 @@ class PlacementLoop:
             if not accepted:
                 entry["reason"] = self._note
             self.frame_log.append(entry)
+
+    def _surfaces(self, frame: Any, est: Any, base_T_sensor: np.ndarray, stamp: float) -> tuple[Any, str | None]:
+        """Record the frame in the surface map; a frame that saw more than one surface gets the plane of the
+        zones that agree (a majority), or is dropped. Returns (estimate or None, note)."""
+        try:
+            fs = self.surface.add(frame, base_T_sensor, stamp)
+        except Exception as exc:  # the map is evidence, not control: a bug there must not stop the loop
+            return est, f"surface map failed: {type(exc).__name__}: {exc}".splitlines()[0]
+        if fs is None or not fs.multi_surface:
+            return est, None
+        self.multi_surface += 1
+        off = fs.valid & ~fs.inliers
+        if not off.any():
+            return est, f"more than one surface in view: {fs.describe()}"
+        if int(fs.inliers.sum()) < MIN_INLIERS:
+            return None, (f"multi-surface: more than one surface in view and no {MIN_INLIERS} zones agree "
+                          f"(edge, step or clutter): {fs.describe()}")
+        from place_safe.geometry import Plane
+        from place_safe.recovery.estimator import PlaneEstimate
+        from place_safe.recovery.points import plane_covariance
+
+        plane = Plane(fs.plane_sensor[:3], float(fs.plane_sensor[3]))
+        T = np.asarray(base_T_sensor, dtype=float)
+        pts = (fs.points_base - T[:3, 3]) @ T[:3, :3]
+        cov = plane_covariance(np.nan_to_num(pts), fs.inliers, plane)
+        sub = PlaneEstimate(plane, residual=fs.rms, covariance=cov, method_used="peak-consensus")
+        return sub, f"more than one surface in view, plane from the {int(fs.inliers.sum())} zones that agree: {fs.describe()}"
+
+    def _footprint_verdict(self, fused: Any, tcp: Any) -> Any:
+        """The surface map's verdict on the landing footprint (None without a fused plane)."""
+        if fused is None or self._landing_T_cup is None:
+            return None
+        try:
+            key = (fused.stamp, fused.count, len(self.surface.frames))
+            if key != self._footprint_key:
+                self._footprint = self.surface.footprint(fused.normal_base, fused.offset_base, self._landing_T_cup)
+                self._footprint_key = key
+            return self.surface.sight(self._footprint, fused.normal_base, fused.offset_base, self._landing_T_cup,
+                                      np.asarray(tcp, dtype=float) @ self._tcp_T_sensor)
+        except Exception as exc:
+            from place_safe.fusion.surface_map import FootprintVerdict
+
+            return FootprintVerdict(problem=f"surface map failed: {type(exc).__name__}: {exc}".splitlines()[0])
 
     def _dispatch(self, cmd: Any) -> None:
         try:
@@ -400,7 +457,13 @@ class PlacementLoop:
         self.pipeline.start()
         now = self._robot_now()
         self._t_start = now
-        self.history.add(now, self._safe(self.robot.tcp_pose, np.full((4, 4), np.nan)))
+        tcp = self._safe(self.robot.tcp_pose, np.full((4, 4), np.nan))
+        self.history.add(now, tcp)
+        try:
+            landing = np.asarray(tcp, dtype=float) @ self._tcp_T_cup
+            self._landing_T_cup = landing if np.all(np.isfinite(landing)) else None
+        except Exception:
+            self._landing_T_cup = None
         self.clock.observe(now, self.host_clock())
 
     def tick(self) -> Any:
@@ -444,7 +507,8 @@ class PlacementLoop:
         except Exception:
             cup = np.full((4, 4), np.nan)
         state = RobotState(now, tcp, cup, force, fault, self._last_arrival)
-        cmd = self.machine.step(state, self.filter.fused(now) if math.isfinite(now) else None, note)
+        fused = self.filter.fused(now) if math.isfinite(now) else None
+        cmd = self.machine.step(state, fused, note, self._footprint_verdict(fused, tcp))
         self._dispatch(cmd)
         return cmd
 
@@ -487,5 +551,19 @@ class PlacementLoop:
                           transitions=[t.to_dict() for t in mach.log], frame_log=list(self.frame_log))
 
 
-__all__ = ["PlacementLoop", "LoopResult", "EstimatePipeline", "Measurement", "ClockMap", "PoseHistory",
+def peak_params_of(estimator: Any) -> Any:
+    """The calibrated peak mapping an estimator carries (``peak``: its params; ``diff``: its initialiser's),
+    else the built-in one; the surface map reads zone returns with it."""
+    from place_safe.recovery.points import PeakParams
+
+    candidates = [getattr(getattr(estimator, "init", None), "params", None)]
+    if getattr(estimator, "needs_histograms", False):  # proprietary maps millimetres, not bins
+        candidates.insert(0, getattr(estimator, "params", None))
+    for p in candidates:
+        if isinstance(p, PeakParams):
+            return p
+    return PeakParams.default_peak()
+
+
+__all__ = ["PlacementLoop", "peak_params_of", "LoopResult", "EstimatePipeline", "Measurement", "ClockMap", "PoseHistory",
            "CONTROL_PERIOD"]

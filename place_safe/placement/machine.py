@@ -111,6 +111,12 @@ class PlacementConfig:
     rest_tolerance: float = 0.001  # m the TCP may move in CHECK once stopped (more: the arm did not stop)
     level_confidence: float = 0.99  # the surface must be flatter than max_tilt with this confidence
     sensor_latency: float = 0.15  # s from a measurement to the machine acting on it (transfer + frame + estimate)
+    footprint_frames: int = 3  # frames that saw the landing footprint on one surface (0: no footprint rule*)
+    footprint_margin: float = 0.01  # m around the cup bottom that must be seen supported
+    footprint_tolerance: float = 0.008  # m a zone over the footprint may lie off the fused surface
+    survey_speed: float = 0.1  # m/s sideways while bringing the footprint into view and back
+    # * footprint_frames = 0 is for sources without histograms (test doubles); it extrapolates the
+    #   surface beside the cup to where it lands, which edges and clutter defeat
 
     def __post_init__(self) -> None:
         self.validate()
@@ -130,7 +136,8 @@ class PlacementConfig:
             raise ConfigError("placement config: early_refuse_tilt must be >= max_tilt")
 
     def to_dict(self) -> dict[str, float]:
-        return {k: (int(v) if k in ("check_frames", "max_checks") else float(v)) for k, v in asdict(self).items()}
+        ints = ("check_frames", "max_checks", "footprint_frames")
+        return {k: (int(v) if k in ints else float(v)) for k, v in asdict(self).items()}
 
     @classmethod
     def from_dict(cls, d: Any) -> "PlacementConfig":
@@ -177,6 +184,10 @@ PLACEMENT_BOUNDS: dict[str, Bound] = {
     "level_confidence": Bound(0.5, 0.999999, "(probability)"),
     "rest_tolerance": Bound(0.0, 0.05, "m", lo_open=True),
     "sensor_latency": Bound(0.0, 5.0, "s"),
+    "footprint_frames": Bound(0, 1000, "frames"),
+    "footprint_margin": Bound(0.0, 0.2, "m"),
+    "footprint_tolerance": Bound(0.0, 0.1, "m", lo_open=True),
+    "survey_speed": Bound(0.0, 1.0, "m/s", lo_open=True),
 }
 
 
@@ -254,6 +265,10 @@ class Transition:
 
 #: Control ticks in a row without the robot clock advancing after which the clock counts as frozen.
 CLOCK_STALL_TICKS = 25
+#: m: a survey move (out to see the footprint, or back over the landing spot) is done this close.
+SURVEY_DONE = 0.001
+#: m of view margin kept when descending before the footprint was seen.
+SURVEY_VIEW_SLACK = 0.005
 #: s the robot clock may step back (rounding) before it counts as running backwards.
 CLOCK_BACK_TOLERANCE = 1e-6
 
@@ -307,6 +322,8 @@ class PlacementMachine:
         self._descent_t0 = math.nan
         self._descent_ticks = 0
         self._last_twist: tuple[float, ...] | None = None
+        self._footprint: Any = None
+        self._surveyed = False
 
     @property
     def finished(self) -> bool:
@@ -444,6 +461,62 @@ class PlacementMachine:
                     f"{math.degrees(cfg.max_tilt):.1f} deg with {cfg.level_confidence:.0%} confidence")
         return None
 
+    def _footprint_problem(self) -> str | None:
+        """Why the landing footprint cannot take the cup, from the surface map (None: no problem seen)."""
+        fp = self._footprint
+        if self.config.footprint_frames == 0 or fp is None:
+            return None
+        problem = getattr(fp, "problem", None)
+        return f"no safe support under the cup: {problem}" if problem else None
+
+    def _footprint_seen(self) -> int:
+        """Frames that saw the landing footprint supported by the fused surface."""
+        s = _number(getattr(self._footprint, "supported", None))
+        return int(s) if s is not None else 0
+
+    def _lateral(self, move: np.ndarray, limit: float) -> np.ndarray:
+        """Velocity (3,) along ``move`` (m) at most ``limit`` m/s, slowing so it stops at its end."""
+        dist = float(np.linalg.norm(move))
+        if not (dist > SURVEY_DONE):
+            return np.zeros(3)
+        speed = min(limit, 0.8 * math.sqrt(2.0 * self.config.accel * dist))
+        return np.round(move / dist * speed, 3)
+
+    def _survey(self, state: RobotState, c: float, now: float) -> Command | None:
+        """Before the landing footprint leaves the field of view, see it on one surface; then come back
+        over the landing spot. Returns the command, or None to let the descent go on."""
+        cfg = self.config
+        if cfg.footprint_frames == 0:
+            return None
+        fp = self._footprint
+        tcp = np.asarray(state.base_T_tcp, dtype=float)[:3, 3]
+        if self._surveyed or self._footprint_seen() >= cfg.footprint_frames:
+            self._surveyed = True  # latched: no second survey; CHECK still needs the footprint supported
+            back = self._start_pos - tcp
+            back[2] = 0.0
+            if float(np.linalg.norm(back)) > SURVEY_DONE:
+                return self._speed(self._lateral(back, cfg.survey_speed))
+            return None
+        if fp is None:
+            if self._elapsed(now, self._descent_t0, self._descent_ticks) > cfg.acquire_timeout:
+                return self._refuse(now, "no support evidence: no surface map of the cup's landing footprint")
+            return self._speed(np.zeros(3))
+        if bool(getattr(fp, "in_view", False)):
+            v = approach_speed(c, cfg.slow_clearance, cfg.sensor_latency, cfg.accel, cfg.approach_speed,
+                               cfg.descend_speed)
+            stopping = v * cfg.sensor_latency + v * v / (2.0 * cfg.accel)
+            margin = _number(getattr(fp, "view_margin", None))
+            if margin is not None and margin - stopping > SURVEY_VIEW_SLACK:
+                return None  # keep descending: the footprint stays in view
+            return self._speed(np.zeros(3))  # wait here for frames that see it
+        try:
+            move = np.asarray(getattr(fp, "look_shift"), dtype=float).reshape(3)
+        except (TypeError, ValueError, AttributeError):
+            return self._refuse(now, "surface map gave no way to bring the cup's footprint into view")
+        if not np.all(np.isfinite(move)):
+            return self._refuse(now, "surface map gave no way to bring the cup's footprint into view")
+        return self._speed(self._lateral(move, cfg.survey_speed))
+
     def post_stop_stamps(self, plane: FusedPlane, now: float) -> list[float]:
         """Distinct measurement times in the fused plane taken after the stop (+ ``check_settle``) and not
         after ``now`` (empty outside CHECK)."""
@@ -459,11 +532,15 @@ class PlacementMachine:
         return sorted(out)
 
     # -- the tick --------------------------------------------------------------------------------
-    def step(self, state: RobotState, plane: FusedPlane | None, note: str | None = None) -> Command:
+    def step(self, state: RobotState, plane: FusedPlane | None, note: str | None = None,
+             footprint: Any = None) -> Command:
         """One control tick: the command for the robot. ``note`` says why the last frame gave no plane
-        (it is quoted in refusal reasons). Never raises."""
+        (it is quoted in refusal reasons); ``footprint`` is the surface map's
+        :class:`~place_safe.fusion.surface_map.FootprintVerdict` for the landing footprint (None: nothing
+        known about it). Never raises."""
         if self.finished:
             return Command.hold()
+        self._footprint = footprint
         try:
             return self._step(state, plane, note)
         except Exception as exc:  # never raise into the control loop: stop, hold the cup, say why
@@ -546,6 +623,10 @@ class PlacementMachine:
         if c < -cfg.max_penetration:
             return self._refuse(now, f"cup {-c * 1e3:.1f} mm below the estimated surface without contact: "
                                      "the surface estimate is wrong")
+        if (why := self._footprint_problem()) is not None:
+            return self._refuse(now, why)
+        if self.phase == Phase.APPROACH and (cmd := self._survey(state, c, now)) is not None:
+            return cmd
         down = -np.asarray(state.base_T_cup, dtype=float)[:3, 2]
         if self.phase == Phase.APPROACH:
             if c > cfg.slow_clearance:
@@ -580,6 +661,11 @@ class PlacementMachine:
             return self._refuse(now, why)
         if (why := self._planar_problem(plane)) is not None:
             return self._refuse(now, why)
+        if (why := self._footprint_problem()) is not None:
+            return self._refuse(now, why)
+        if cfg.footprint_frames and self._footprint_seen() < cfg.footprint_frames:
+            return self._refuse(now, f"no support evidence: the surface under the cup's footprint was seen on one "
+                                     f"plane in {self._footprint_seen()} frames (< {cfg.footprint_frames})")
         cup = np.asarray(state.base_T_cup, dtype=float)
         cup_to_surface = math.acos(max(-1.0, min(1.0, float(cup[:3, 2] @ np.asarray(plane.normal_base, float)))))
         if not (cup_to_surface <= cfg.max_tilt):

@@ -230,3 +230,19 @@ def test_a_gripper_that_fails_to_open_is_not_reported_as_released():
     robot.gripper = broken
     loop, res = run(robot, TruthSource(robot))
     assert res.outcome == "refused" and "gripper" in res.reason
+
+
+def test_table_edge_under_the_cup_is_refused_as_an_edge_after_a_survey():
+    robot = KinematicRobot(height=0.12)
+    loop, res = run(robot, TruthSource(robot, hole=lambda x, y: x > 0.41))  # table ends 1 cm past the cup centre
+    assert res.outcome == "refused" and not robot.opened
+    assert "no safe support under the cup" in res.reason and "edge" in res.reason
+
+
+def test_level_table_release_happens_over_the_landing_spot_after_the_survey():
+    robot = KinematicRobot(height=0.12)
+    start = robot.tcp_pose()[:2, 3].copy()
+    loop, res = run(robot, TruthSource(robot))
+    assert res.outcome == "released", res.reason
+    assert np.linalg.norm(robot.tcp_pose()[:2, 3] - start) <= 0.002
+    assert any("observ" in t["reason"] or t["to"] == "check" for t in res.transitions)

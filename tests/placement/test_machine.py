@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from place_safe.fusion.plane_filter import FusedPlane
+from place_safe.fusion.surface_map import FootprintVerdict
 from place_safe.placement.machine import (CommandKind, Phase, PlacementConfig, PlacementMachine, RobotState)
 
 DT = 0.008  # s, control tick
@@ -34,6 +35,8 @@ class FakeWorld:
         self.contact_height = 0.0 if contact_height is None else contact_height
         self.commands = []
         self.stamps: tuple[float, ...] = ()
+        # the surface map's verdict: the landing footprint already seen supported and in view
+        self.footprint = FootprintVerdict(observed=5, supported=5, in_view=True, view_margin=1.0)
 
     def state(self) -> RobotState:
         T = np.eye(4)
@@ -69,7 +72,7 @@ def run(world: FakeWorld, machine: PlacementMachine | None = None, plane_fn=None
     m = machine or PlacementMachine()
     while not m.finished and world.t < seconds:
         plane = plane_fn(world, m) if plane_fn is not None else world.plane()
-        world.apply(m.step(world.state(), plane))
+        world.apply(m.step(world.state(), plane, None, world.footprint))
     return m
 
 
@@ -290,3 +293,55 @@ def test_a_plane_whose_tilt_does_not_match_its_normal_is_refused():
     w = FakeWorld()
     m = run(w, plane_fn=plane_fn)
     assert m.outcome == "refused" and "inconsistent" in m.decision and not opened(w)
+
+
+# -- the landing footprint (surface map verdicts) ------------------------------------------------------
+def _surveying_plane_fn(view_x: float = -0.05):
+    """Planes as usual; the footprint is in view once the cup has moved to x <= view_x, and each tick in
+    view adds a frame that saw it supported."""
+    def fn(world, m):
+        seen = world.footprint.supported + (1 if world.pos[0] <= view_x else 0)
+        inside = world.pos[0] <= view_x
+        world.footprint = FootprintVerdict(observed=seen, supported=seen, in_view=inside,
+                                           look_shift=np.array([min(view_x - 0.002 - world.pos[0], 0.0), 0.0, 0.0]),
+                                           view_margin=0.05 if inside else -0.1)
+        return world.plane()
+    return fn
+
+
+def test_survey_moves_sideways_to_see_the_footprint_then_back_before_descending():
+    w = FakeWorld(height=0.2)
+    w.footprint = FootprintVerdict(observed=0, supported=0, in_view=False, look_shift=np.array([-0.06, 0.0, 0.0]))
+    m = run(w, plane_fn=_surveying_plane_fn())
+    assert m.outcome == "released", m.decision
+    vx = [c.twist[0] for c in w.commands if c.kind == CommandKind.SPEED]
+    assert min(vx) < -0.01 and max(vx) > 0.01  # out to see it, and back
+    assert abs(w.opened_at[0]) <= 0.002  # released over the landing spot, not where it looked from
+
+
+def test_footprint_problem_refuses_with_its_reason():
+    w = FakeWorld(height=0.2)
+    w.footprint = FootprintVerdict(observed=4, supported=1, problem="zone 4 over the cup's footprint sees a second "
+                                                                   "surface 800 mm farther (edge or step)")
+    m = run(w)
+    assert m.outcome == "refused" and not opened(w)
+    assert "no safe support under the cup" in m.decision and "edge" in m.decision
+
+
+def test_footprint_never_seen_supported_is_refused_at_check():
+    w = FakeWorld(height=0.05)
+    w.footprint = FootprintVerdict(observed=0, supported=0, in_view=True, view_margin=1.0)  # in view, no frames
+    m = run(w)
+    assert m.outcome == "refused" and not opened(w)
+    assert "no support evidence" in m.decision
+
+
+def test_without_a_surface_map_nothing_is_released_unless_the_footprint_rule_is_off():
+    w = FakeWorld(height=0.05)
+    w.footprint = None
+    m = run(w)
+    assert m.outcome == "refused" and not opened(w)
+    w = FakeWorld(height=0.05)
+    w.footprint = None
+    m = run(w, PlacementMachine(PlacementConfig(footprint_frames=0)))
+    assert m.outcome == "released", m.decision

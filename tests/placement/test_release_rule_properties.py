@@ -17,6 +17,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from place_safe.fusion.plane_filter import FusedPlane, clearance_along
+from place_safe.fusion.surface_map import FootprintVerdict
 from place_safe.placement.machine import CommandKind, Phase, PlacementConfig, PlacementMachine, RobotState
 
 DT = 0.008
@@ -27,7 +28,8 @@ MAX_TICKS = int((CFG.acquire_timeout + CFG.max_checks * (CFG.descent_timeout + C
 
 EVENTS = ("dup", "old", "future", "nan_tilt", "neg_tilt", "nan_std", "big_std", "tilted", "no_plane", "fault",
           "freeze", "back", "jump", "nan_time", "str_time", "nan_force", "neg_force", "contact", "bad_rot",
-          "nan_pose", "bias_up", "bias_down", "bad_normal", "stale")
+          "nan_pose", "bias_up", "bias_down", "bad_normal", "stale", "fp_problem", "fp_unseen", "fp_none",
+          "fp_nan")
 
 
 class World:
@@ -138,21 +140,36 @@ def run_with_events(height: float, events: dict[int, tuple[str, int, float]]):
         if "fault" in x:
             w.fault = "protective stop"
         state = RobotState(t_report, tcp, cup, force, w.fault, w.t - 0.01)
-        cmd = m.step(state, plane)  # must never raise
+        # --- the surface map's footprint verdict (a clean run: seen supported, in view) ---------------
+        fp = FootprintVerdict(observed=5, supported=5, in_view=True, view_margin=1.0)
+        if "fp_problem" in x:
+            fp = FootprintVerdict(observed=5, supported=1, problem="edge: no return over the footprint")
+        if "fp_unseen" in x:
+            fp = FootprintVerdict(observed=0, supported=0, in_view=False, look_shift=np.array([0.05, 0.0, 0.0]))
+        if "fp_none" in x:
+            fp = None
+        if "fp_nan" in x:
+            fp = FootprintVerdict(observed=5, supported=math.nan, look_shift=np.full(3, math.nan))
+        cmd = m.step(state, plane, None, fp)  # must never raise
         if cmd.kind == CommandKind.OPEN_GRIPPER:
             t_stop = max(tr.time for tr in m.log if tr.target == Phase.CHECK)
-            releases.append((state, plane, prev_time, t_stop, m.log[-1]))
+            releases.append((state, plane, prev_time, t_stop, m.log[-1], fp))
         if isinstance(t_report, (int, float)) and math.isfinite(t_report):
             prev_time = t_report if prev_time is None else max(prev_time, t_report)
         w.tick(cmd)
     return m, releases
 
 
-def rule_holds(state: RobotState, plane: FusedPlane | None, prev_time, t_stop: float, transition) -> str | None:
+def rule_holds(state: RobotState, plane: FusedPlane | None, prev_time, t_stop: float, transition,
+               footprint=None) -> str | None:
     """None if the release rule holds on this tick, else what is violated."""
     cfg = CFG
     if transition.source != Phase.CHECK or transition.target != Phase.RELEASE:
         return "released from outside CHECK"
+    if footprint is None or footprint.problem is not None:
+        return "released without a surface map verdict on the footprint, or over a problem"
+    if not (isinstance(footprint.supported, (int, float)) and footprint.supported >= cfg.footprint_frames):
+        return f"released with the footprint seen supported in {footprint.supported} frames"
     if state.fault:
         return "released with a robot fault"
     now = state.time
@@ -228,6 +245,10 @@ def test_each_adversarial_case_of_the_issue_refuses():
         "back": "backwards",
         "bad_rot": "no proper rotation",
         "str_time": "not a finite number",
+        "fp_problem": "no safe support under the cup",
+        "fp_unseen": "no support evidence",
+        "fp_none": "no support evidence",
+        "fp_nan": "no support evidence",
     }
     clean, _ = run_with_events(0.06, {})
     check_tick = round(next(tr.time for tr in clean.log if tr.target == Phase.CHECK) / DT)

@@ -5,7 +5,10 @@ plane (the loop's plumbing is under test here, not the estimators).
 speedL velocity (no dynamics), the surface is the plane ``z = surface_z`` of the base frame, and the cup
 stops on it with ``contact`` newtons. ``TruthSource`` measures the plane below the sensor from the robot's
 pose at the measurement time and delivers the frame ``latency`` seconds later, stamped on the robot clock
-(or on a host clock for the threaded path). ``TruthEstimator`` returns the frame's ``truth``.
+(or on a host clock for the threaded path). Its histograms hold one pulse per zone at the bin the built-in
+peak mapping gives for the zone's range to the table (what the surface map reads), or none where the zone's
+centre ray lands in ``hole`` (a base-frame region without table: an edge). ``TruthEstimator`` returns the
+frame's ``truth``.
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ from place_safe.exceptions import RobotFault, SensorTimeout
 from place_safe.geometry import Plane
 from place_safe.io.source import FrameSource
 from place_safe.recovery.estimator import PlaneEstimate
+from place_safe.recovery.points import PeakParams
 from place_safe.robot.interface import Robot, RobotLimits
 from place_safe.robot.tool import ToolFrames
 from place_safe.sensor.frame import Frame
@@ -125,7 +129,9 @@ class TruthSource(FrameSource):
     """
 
     def __init__(self, robot: KinematicRobot, rate_hz: float = 30.0, latency: float = 0.05,
-                 freeze_after: float | None = None, clock=None, error_after: float | None = None) -> None:
+                 freeze_after: float | None = None, clock=None, error_after: float | None = None,
+                 hole=None) -> None:
+        self.hole = hole  # callable (x, y) base frame -> True where there is no table
         self.robot = robot
         self.rate_hz = rate_hz
         self.latency = latency
@@ -145,7 +151,21 @@ class TruthSource(FrameSource):
         n = -(R.T @ n_base)  # sensor-frame normal pointing away from the sensor
         d = -(d_base - n_base @ p)  # n . x = d in the sensor frame
         stamp = t if self.clock is None else self.clock() - (self.robot.t - t)
-        return Frame(np.zeros((9, 128)), np.ones(128), timestamp=stamp, truth=Plane(n, d))
+        return Frame(self._hists(n, d, base_T_sensor), np.ones(128), timestamp=stamp, truth=Plane(n, d))
+
+    def _hists(self, n: np.ndarray, d: float, base_T_sensor: np.ndarray) -> np.ndarray:
+        params = PeakParams.default_peak()
+        dirs = params.directions()
+        ranges = d / (dirs @ n)
+        reading = params.expected_readings(n[None], np.array([d]))[0]
+        bins = np.arange(128, dtype=float)
+        h = np.full((9, 128), 20.0)
+        for z in range(9):
+            hit = base_T_sensor[:3, :3] @ (ranges[z] * dirs[z]) + base_T_sensor[:3, 3]
+            if self.hole is not None and self.hole(hit[0], hit[1]):
+                continue
+            h[z] += 5000.0 * np.exp(-0.5 * ((bins - reading[z]) / 1.5) ** 2)
+        return h
 
     def read(self, timeout: float = 1.0) -> Frame:
         t = self.robot.t

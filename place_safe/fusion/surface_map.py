@@ -1,0 +1,353 @@
+"""Surface map: what each zone saw, in the base frame, and whether the cup's landing footprint was observed.
+
+Concept: the plane filter extrapolates the patch of surface the sensor sees -- 70 mm beside the cup by
+the mount's design -- to where the cup lands. A :class:`SurfaceMap` keeps the per-zone evidence
+instead: for every frame, each zone's first return as a base-frame point (the calibrated peak
+mapping, :class:`~place_safe.recovery.points.PeakParams`) and whether the zone shows a second, later
+surface. From it come
+
+* per-frame multi-surface evidence (:meth:`SurfaceMap.add` -> :class:`FrameSurfaces`): the largest set
+  of zones that lie on one plane (:func:`consensus`); the other zones and second returns mean the
+  frame saw more than one surface (an edge, a step, clutter). The loop replaces such a frame's plane by
+  the consensus plane of its inlier zones, or drops the frame when no majority agrees;
+* the footprint verdict (:meth:`SurfaceMap.verdict` -> :class:`FootprintVerdict`): the cup's landing
+  footprint -- a disc of ``cup_radius + margin`` on the fused surface, centred on the cup's axis -- is
+  *observed* by a frame whose field of view held the whole disc; it is *supported* when every zone
+  that saw part of the disc returned a single surface within ``tolerance`` of the fused plane. A
+  missing return or a surface below means an edge or a step down, a surface above means clutter or
+  a step up. The verdict also says how far the TCP must move sideways (``look_shift``) to bring the
+  disc into view, so the placement can survey it before descending.
+
+Conventions: SI units; base-frame points and planes (``n . x = d``, ``n`` up); sensor frame +z the
+optical axis. Zone ``z`` covers the directions nearest to its calibrated centre direction
+(``PeakParams.directions()``); the field of view is the square ``|x/z|, |y/z| <= tan(fov_half_angle)``.
+Bins of a second return are counted after the first return's peak.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections import Counter, deque
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from place_safe.sensor.histogram import find_peaks, measure_floor
+from place_safe.sensor.zones import N_BINS, N_ZONES
+
+#: rad, half the TMF8820's 33 x 33 deg field of view, less a margin for the mount's calibration error.
+FOV_HALF_ANGLE = math.radians(15.5)
+#: bins after the first return's peak before a second return may start (the pulse's own tail is shorter).
+SECOND_GAP_BINS = 8
+#: A second return must rise this many Poisson sigmas of the floor above the tail before it ...
+SECOND_SIGMAS = 10.0
+#: ... and by this fraction of the first return's height.
+SECOND_RELATIVE = 0.004
+#: Last bin searched for a second return (the floor window starts at bin 100).
+SECOND_LAST_BIN = 100
+#: Zones that must agree on one plane for a frame's consensus plane (a majority of the 9).
+MIN_INLIERS = 5
+#: m the sensor climbs above the lowest height that can hold the footprint when it must climb.
+CLIMB_MARGIN = 0.01
+#: m inside the edge of the view the survey aims for.
+VIEW_SLACK = 0.008
+#: rad inside the edge of the view the footprint must be, at the current pose, to count as in view.
+SIGHT_SLACK_RAD = math.radians(1.0)
+#: Observations kept.
+MAX_OBSERVATIONS = 400
+#: Footprint disc sample points: centre, and rings at these fractions of the radius.
+_RINGS = (0.5, 1.0)
+_RING_POINTS = 12
+
+
+def second_returns(hists: np.ndarray, first: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per zone (9,): whether a second, later return follows the first, and its peak bin (NaN if none).
+
+    A second return is a bin at least :data:`SECOND_GAP_BINS` after the first peak that rises above the
+    lowest count between them by ``SECOND_SIGMAS`` floor sigmas and ``SECOND_RELATIVE`` of the first
+    return: the first return's own tail only decays, a farther surface rises again.
+    """
+    h = np.asarray(hists, dtype=float)
+    floor = measure_floor(h)
+    sigma = np.sqrt(np.maximum(floor, 0.0) + 1.0)
+    has = np.zeros(N_ZONES, dtype=bool)
+    where = np.full(N_ZONES, np.nan)
+    for z in range(N_ZONES):
+        if not valid[z] or not np.isfinite(first[z]):
+            continue
+        x = h[z] - floor[z]
+        k0 = int(round(first[z]))
+        top = x[min(max(k0, 0), N_BINS - 1)]
+        start = k0 + SECOND_GAP_BINS
+        if start >= SECOND_LAST_BIN - 2:
+            continue
+        seg = x[start:SECOND_LAST_BIN]
+        low = np.minimum.accumulate(seg)
+        rise = seg - low
+        need = max(SECOND_SIGMAS * sigma[z], SECOND_RELATIVE * top)
+        hit = np.flatnonzero(rise > need)
+        if hit.size:
+            k = hit[0]
+            k_peak = k + int(np.argmax(seg[k:min(k + 6, seg.size)]))
+            has[z], where[z] = True, float(start + k_peak)
+    return has, where
+
+
+def consensus(points: np.ndarray, valid: np.ndarray, tolerance: float) -> tuple[np.ndarray, np.ndarray, float]:
+    """The largest set of zone points (9, 3) lying on one plane within ``tolerance`` (m).
+
+    Every plane through three valid points is tried (at most 84); the one with the most inliers (ties:
+    smallest RMS) is refitted by least squares on its inliers. Returns the inlier mask (9,), the plane
+    ``(nx, ny, nz, d)`` (sensor frame, ``n_z > 0``) and its RMS residual; all-False / NaN when fewer
+    than 3 points are valid or they are collinear.
+    """
+    from place_safe.recovery.points import fit_planes
+
+    P = np.asarray(points, dtype=float)
+    ok = np.asarray(valid, dtype=bool) & np.all(np.isfinite(P), axis=1)
+    idx = np.flatnonzero(ok)
+    none = (np.zeros(N_ZONES, dtype=bool), np.full(4, np.nan), math.nan)
+    if idx.size < 3:
+        return none
+    combos = np.array(list(itertools.combinations(idx, 3)))
+    a, b, c = P[combos[:, 0]], P[combos[:, 1]], P[combos[:, 2]]
+    n = np.cross(b - a, c - a)
+    norm = np.linalg.norm(n, axis=1)
+    good = norm > 1e-12
+    if not good.any():
+        return none
+    n, a = n[good] / norm[good, None], a[good]
+    d = np.sum(n * a, axis=1)
+    res = np.abs(P[idx] @ n.T - d)  # (k, combos)
+    inl = res <= tolerance
+    count = inl.sum(0)
+    rms = np.sqrt(np.where(inl, res ** 2, 0.0).sum(0) / np.maximum(count, 1))
+    best = np.lexsort((rms, -count))[0]
+    mask = np.zeros(N_ZONES, dtype=bool)
+    mask[idx[inl[:, best]]] = True
+    nf, df, rf, okf = fit_planes(P[None], mask[None])
+    if not okf[0]:
+        return none
+    # keep the refit honest: zones it moved beyond the tolerance leave the set
+    r = np.abs(P @ nf[0] - df[0])
+    mask &= r <= tolerance
+    return mask, np.append(nf[0], df[0]), float(rf[0])
+
+
+@dataclass
+class FrameSurfaces:
+    """Per-zone evidence of one frame (see module docstring). Arrays are (9,) or (9, 3)."""
+
+    stamp: float
+    base_T_sensor: np.ndarray
+    points_base: np.ndarray  # first return of each zone, base frame (NaN without a return)
+    valid: np.ndarray  # zone has a first return
+    second: np.ndarray  # zone shows a second, later surface
+    second_depth: np.ndarray  # m, how much farther the second return is (range), NaN if none
+    inliers: np.ndarray  # zones on the frame's consensus plane
+    plane_sensor: np.ndarray  # (4,) consensus plane (n, d) in the sensor frame, NaN if none
+    rms: float = math.nan
+
+    @property
+    def multi_surface(self) -> bool:
+        """More than one surface in view: a valid zone off the consensus plane, or a second return."""
+        return bool(np.any(self.valid & ~self.inliers) or np.any(self.second))
+
+    def describe(self) -> str:
+        out = []
+        off = np.flatnonzero(self.valid & ~self.inliers)
+        if off.size:
+            out.append("zone(s) " + ", ".join(str(z + 1) for z in off) + " off the plane of the others")
+        two = np.flatnonzero(self.second)
+        if two.size:
+            out.append("zone(s) " + ", ".join(str(z + 1) for z in two) + " see a second surface "
+                       f"{np.nanmax(self.second_depth[two]) * 1e3:.0f} mm farther")
+        none = np.flatnonzero(~self.valid)
+        if none.size:
+            out.append("no return in zone(s) " + ", ".join(str(z + 1) for z in none))
+        return "; ".join(out)
+
+
+@dataclass
+class FootprintVerdict:
+    """What the map says about the cup's landing footprint (see module docstring)."""
+
+    observed: int = 0  # frames that held the whole footprint in view
+    supported: int = 0  # of those, frames whose footprint zones saw one surface on the fused plane
+    problem: str | None = None  # why the footprint cannot take the cup (edge, step, clutter, no support)
+    in_view: bool = False  # the footprint is in the field of view at the current pose
+    look_shift: np.ndarray = field(default_factory=lambda: np.zeros(3))  # m, base frame: TCP move to see it
+    view_margin: float = math.nan  # m the sensor may descend before the footprint leaves the view
+
+
+class SurfaceMap:
+    """Per-zone surface evidence in the base frame and the landing-footprint verdict (see module doc).
+
+    ``peak_params``: the calibrated reading -> point mapping (bins); ``cup_radius``, ``margin``,
+    ``tolerance`` in m; ``min_frames``: observing frames the footprint needs.
+    """
+
+    def __init__(self, peak_params: Any, cup_radius: float = 0.035, margin: float = 0.01,
+                 tolerance: float = 0.008, min_frames: int = 3, fov_half_angle: float = FOV_HALF_ANGLE) -> None:
+        self.params = peak_params
+        self.radius = float(cup_radius) + float(margin)
+        self.tolerance = float(tolerance)
+        self.min_frames = int(min_frames)
+        self.tan_fov = math.tan(fov_half_angle)
+        self._dirs = np.asarray(peak_params.directions(), dtype=float)
+        self._bins_per_m = float(peak_params.m)
+        self.frames: deque[FrameSurfaces] = deque(maxlen=MAX_OBSERVATIONS)
+
+    # -- per frame -------------------------------------------------------------------------------
+    def add(self, frame: Any, base_T_sensor: Any, stamp: float) -> FrameSurfaces | None:
+        """Record one frame measured at ``base_T_sensor``; None when it has no usable histograms."""
+        try:
+            h = np.asarray(frame.hists, dtype=float)
+            T = np.asarray(base_T_sensor, dtype=float)
+        except (TypeError, ValueError, AttributeError):
+            return None
+        if h.shape != (N_ZONES, N_BINS) or T.shape != (4, 4) or not np.all(np.isfinite(T)):
+            return None
+        pos, valid, _ = find_peaks(h)
+        valid = valid & np.isfinite(pos)
+        with np.errstate(invalid="ignore"):
+            pts = self.params.points(np.where(valid, pos, 0.0))
+        valid &= np.all(np.isfinite(pts), axis=1) & (pts[:, 2] > 0)
+        second, where = second_returns(h, pos, valid)
+        depth = (where - pos) / self._bins_per_m
+        inliers, plane, rms = consensus(pts, valid, self.tolerance)
+        pb = pts @ T[:3, :3].T + T[:3, 3]
+        pb[~valid] = np.nan
+        fs = FrameSurfaces(float(stamp), T.copy(), pb, valid, second, np.where(second, depth, np.nan), inliers,
+                           plane, rms)
+        self.frames.append(fs)
+        return fs
+
+    # -- footprint ---------------------------------------------------------------------------------
+    def disc(self, normal: np.ndarray, offset: float, base_T_cup: np.ndarray) -> np.ndarray | None:
+        """Sample points (K, 3) of the landing footprint on the plane ``normal . x = offset`` (base frame)."""
+        n = np.asarray(normal, dtype=float)
+        C = np.asarray(base_T_cup, dtype=float)
+        p, axis = C[:3, 3], -C[:3, 2]
+        den = float(n @ axis)
+        if not (abs(den) > 1e-6):
+            return None
+        centre = p + axis * (offset - float(n @ p)) / den
+        u = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+        u /= np.linalg.norm(u)
+        v = np.cross(n, u)
+        ang = np.linspace(0.0, 2 * math.pi, _RING_POINTS, endpoint=False)
+        ring = [centre[None]]
+        for f in _RINGS:
+            ring.append(centre + f * self.radius * (np.cos(ang)[:, None] * u + np.sin(ang)[:, None] * v))
+        return np.concatenate(ring)
+
+    def _view(self, disc: np.ndarray, base_T_sensor: np.ndarray, tan_fov: float | None = None
+              ) -> tuple[np.ndarray, np.ndarray]:
+        """Sensor-frame directions of the disc points: (in view mask (K,), zone index (K,))."""
+        T = np.asarray(base_T_sensor, dtype=float)
+        t = self.tan_fov if tan_fov is None else tan_fov
+        q = (disc - T[:3, 3]) @ T[:3, :3]
+        z = q[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            inside = (z > 0) & (np.abs(q[:, 0] / z) <= t) & (np.abs(q[:, 1] / z) <= t)
+            u = q / np.linalg.norm(q, axis=1, keepdims=True)
+        zone = np.argmax(np.nan_to_num(u) @ self._dirs.T, axis=1)
+        return inside, zone
+
+    def _judge(self, fs: FrameSurfaces, zones: np.ndarray, n: np.ndarray, d: float) -> tuple[str, str] | None:
+        """(kind, detail) of what is wrong under the footprint in this frame, or None."""
+        zs = sorted(set(int(z) for z in zones))
+        for z in zs:
+            if not fs.valid[z]:
+                return "edge", f"no return from zone {z + 1} over the cup's footprint (edge, no support)"
+        for z in zs:
+            if fs.second[z]:
+                return "edge", (f"zone {z + 1} over the cup's footprint sees a second surface "
+                                f"{fs.second_depth[z] * 1e3:.0f} mm farther (edge or step)")
+        for z in zs:
+            s = float(fs.points_base[z] @ n - d)
+            if s > self.tolerance:
+                return "clutter", (f"something {s * 1e3:.0f} mm above the surface in zone {z + 1} over the cup's "
+                                   "footprint (clutter or step)")
+            if s < -self.tolerance:
+                return "edge", (f"the surface in zone {z + 1} over the cup's footprint is {-s * 1e3:.0f} mm "
+                                "below the fused surface (edge or step, no support)")
+        return None
+
+    def footprint(self, normal: Any, offset: float, landing_T_cup: Any) -> FootprintVerdict:
+        """Observed / supported frames and the problem, judged against the fused plane ``normal . x =
+        offset`` for the cup's landing pose (its axis fixes the footprint's centre)."""
+        n = np.asarray(normal, dtype=float)
+        disc = self.disc(n, float(offset), np.asarray(landing_T_cup, dtype=float))
+        if disc is None:
+            return FootprintVerdict(problem="the cup's axis is parallel to the surface: no landing footprint")
+        observed = supported = 0
+        kinds: Counter = Counter()
+        details: dict[str, str] = {}
+        for fs in self.frames:
+            inside, zone = self._view(disc, fs.base_T_sensor)
+            if not inside.all():
+                continue
+            observed += 1
+            bad = self._judge(fs, zone, n, float(offset))
+            if bad is None:
+                supported += 1
+            else:
+                kinds[bad[0]] += 1
+                details[bad[0]] = bad[1]
+        problem = None
+        if observed and kinds:
+            kind, count = kinds.most_common(1)[0]
+            if count >= 2 and count * 2 >= observed:
+                problem = f"{details[kind]}; {count} of {observed} frames that saw it"
+        return FootprintVerdict(observed, supported, problem)
+
+    def sight(self, verdict: FootprintVerdict, normal: Any, offset: float, landing_T_cup: Any,
+              base_T_sensor: Any) -> FootprintVerdict:
+        """``verdict`` with ``in_view``, ``look_shift`` and ``view_margin`` for the sensor pose now."""
+        n = np.asarray(normal, dtype=float)
+        disc = self.disc(n, float(offset), np.asarray(landing_T_cup, dtype=float))
+        T = np.asarray(base_T_sensor, dtype=float)
+        if disc is None or T.shape != (4, 4) or not np.all(np.isfinite(T)):
+            return replace(verdict, in_view=False, look_shift=np.zeros(3), view_margin=-math.inf)
+        # in view *now* only with room to spare, so frames taken here still hold the disc when the fused
+        # plane moves a little
+        inside, _ = self._view(disc, T, math.tan(math.atan(self.tan_fov) - SIGHT_SLACK_RAD))
+        shift, margin = self._look(disc, T, n)
+        return replace(verdict, in_view=bool(inside.all()), look_shift=shift, view_margin=margin)
+
+    def verdict(self, normal: Any, offset: float, landing_T_cup: Any, base_T_sensor: Any) -> FootprintVerdict:
+        """:meth:`footprint` and :meth:`sight` together."""
+        return self.sight(self.footprint(normal, offset, landing_T_cup), normal, offset, landing_T_cup,
+                          base_T_sensor)
+
+    def _look(self, disc: np.ndarray, base_T_sensor: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, float]:
+        """TCP move (base frame) that brings the disc into view -- sideways, perpendicular to ``n``, and
+        up when the sensor is too close to the surface to hold the disc at all -- and the height (m) the
+        sensor may still lose before the disc leaves the view."""
+        centre = disc[0]
+        S = base_T_sensor[:3, 3]
+        axis = base_T_sensor[:3, 2]
+        height = float((S - centre) @ n)
+        den = float(-(axis @ n))
+        if height <= 0 or den <= 1e-6:
+            return np.zeros(3), -math.inf
+        hit = S + axis * height / den  # where the optical axis meets the plane
+        off = centre - hit
+        off -= n * float(off @ n)
+        dist = float(np.linalg.norm(off))
+        margin = height - (dist + self.radius) / self.tan_fov
+        if margin >= 0:
+            return np.zeros(3), margin
+        tan_aim = math.tan(math.atan(self.tan_fov) - 2 * SIGHT_SLACK_RAD)  # aim inside the edge of the view
+        room = height * tan_aim - self.radius - VIEW_SLACK
+        move = off * (1.0 - max(room, 0.0) / dist) if dist > 0 else np.zeros(3)
+        if room < 0:  # too close to hold the whole disc from anywhere: go up too
+            move = move + n * ((self.radius + VIEW_SLACK) / tan_aim + CLIMB_MARGIN - height)
+        return move, margin
+
+
+__all__ = ["SurfaceMap", "FrameSurfaces", "FootprintVerdict", "consensus", "second_returns", "FOV_HALF_ANGLE"]

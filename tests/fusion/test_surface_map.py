@@ -1,0 +1,145 @@
+"""Surface map: consensus of zone points, second returns, and the landing-footprint verdict.
+
+The frames here are drawn by hand (one pulse per zone at the bin the built-in peak mapping gives for the
+zone's range, a decaying tail, a floor), not by the forward model the estimators invert.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from place_safe.fusion.surface_map import SurfaceMap, consensus, second_returns
+from place_safe.recovery.points import PeakParams
+from place_safe.sensor.frame import Frame
+
+PARAMS = PeakParams.default_peak()
+BINS = np.arange(128, dtype=float)
+
+
+def pulse(at: float, height: float = 5000.0) -> np.ndarray:
+    """A return: a Gaussian peak with an exponential tail (the pulse's own tail only decays)."""
+    g = np.exp(-0.5 * ((BINS - at) / 1.3) ** 2)
+    tail = np.where(BINS > at, 0.05 * np.exp(-(BINS - at) / 4.0), 0.0)
+    return height * (g + tail)
+
+
+def sensor_pose(xy=(0.0, 0.0), height=0.3) -> np.ndarray:
+    """base_T_sensor looking straight down (+z optical axis = base -z) from ``height`` above z = 0."""
+    T = np.eye(4)
+    T[:3, :3] = np.diag([1.0, -1.0, -1.0])
+    T[:3, 3] = (xy[0], xy[1], height)
+    return T
+
+
+def frame_over(T: np.ndarray, surface) -> Frame:
+    """A frame seen from ``T``: ``surface(x, y)`` gives the height of what is under the zone centre ray
+    (None: nothing within range); a zone whose ray lands past ``edge`` sees the floor 0.8 m lower too."""
+    dirs = PARAMS.directions()
+    h = np.full((9, 128), 30.0)
+    for z in range(9):
+        dbase = T[:3, :3] @ dirs[z]
+        hit0 = T[:3, 3] + dbase * (T[2, 3] / -dbase[2])
+        top = surface(hit0[0], hit0[1])
+        if top is None:
+            continue
+        r = (T[2, 3] - top) / -dbase[2]
+        n = -(T[:3, :3].T @ np.array([0.0, 0.0, 1.0]))
+        d = float(r * (dirs[z] @ n))
+        reading = PARAMS.expected_readings(n[None], np.array([d]))[0][z]
+        h[z] += pulse(reading)
+    return Frame(h, np.ones(128), timestamp=0.0)
+
+
+def cup_at(xy, height=0.1) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = np.diag([1.0, -1.0, -1.0]) @ np.diag([1.0, -1.0, -1.0])  # cup +z up
+    T[:3, 3] = (xy[0], xy[1], height)
+    return T
+
+
+UP = np.array([0.0, 0.0, 1.0])
+
+
+def test_consensus_keeps_the_majority_plane_and_names_the_odd_zones():
+    rng = np.random.default_rng(0)
+    pts = PARAMS.directions() * 0.3 / PARAMS.directions()[:, 2:3]
+    pts += rng.normal(0, 3e-4, pts.shape)
+    pts[[2, 5]] += PARAMS.directions()[[2, 5]] * 0.05  # two zones see something 5 cm farther
+    mask, plane, rms = consensus(pts, np.ones(9, bool), 0.008)
+    assert mask.sum() == 7 and not mask[2] and not mask[5]
+    assert abs(plane[3] - 0.3) < 0.002 and rms < 0.001
+
+
+def test_consensus_needs_three_points():
+    mask, plane, rms = consensus(np.zeros((9, 3)), np.zeros(9, bool), 0.008)
+    assert not mask.any() and np.isnan(plane).all()
+
+
+def test_a_pulse_tail_is_not_a_second_return_but_a_farther_surface_is():
+    h = np.full((9, 128), 30.0) + pulse(40.0)
+    has, _ = second_returns(h, np.full(9, 40.0), np.ones(9, bool))
+    assert not has.any()
+    h[4] += pulse(95.0, 300.0)
+    has, where = second_returns(h, np.full(9, 40.0), np.ones(9, bool))
+    assert has.tolist() == [z == 4 for z in range(9)] and abs(where[4] - 95.0) <= 1
+
+
+def test_level_table_footprint_observed_and_supported():
+    sm = SurfaceMap(PARAMS)
+    T = sensor_pose((0.0, 0.0), 0.3)
+    for _ in range(3):
+        fs = sm.add(frame_over(T, lambda x, y: 0.0), T, 0.0)
+        assert not fs.multi_surface
+    v = sm.verdict(UP, 0.0, cup_at((0.02, 0.0)), T)
+    assert v.observed == 3 and v.supported == 3 and v.problem is None and v.in_view
+
+
+def test_edge_under_the_footprint_is_an_edge():
+    sm = SurfaceMap(PARAMS)
+    T = sensor_pose((0.0, 0.0), 0.3)
+    table = lambda x, y: 0.0 if x < 0.01 else None  # noqa: E731 - the table ends at x = 1 cm
+    for _ in range(3):
+        fs = sm.add(frame_over(T, table), T, 0.0)
+    assert fs.multi_surface is False or fs.multi_surface  # evidence recorded either way
+    v = sm.verdict(UP, 0.0, cup_at((0.0, 0.0)), T)
+    assert v.problem is not None and "edge" in v.problem
+
+
+def test_clutter_under_the_footprint_is_clutter():
+    sm = SurfaceMap(PARAMS)
+    T = sensor_pose((0.0, 0.0), 0.3)
+    box = lambda x, y: 0.02 if abs(x) < 0.03 and abs(y) < 0.03 else 0.0  # noqa: E731 - a 2 cm box
+    for _ in range(3):
+        fs = sm.add(frame_over(T, box), T, 0.0)
+    assert fs.multi_surface
+    v = sm.verdict(UP, 0.0, cup_at((0.0, 0.0)), T)
+    assert v.problem is not None and "clutter" in v.problem
+
+
+def test_footprint_out_of_view_gives_a_move_that_brings_it_in():
+    sm = SurfaceMap(PARAMS)
+    T = sensor_pose((0.07, 0.0), 0.26)  # 7 cm beside the cup, too low to see its footprint from there
+    cup = cup_at((0.0, 0.0))
+    v = sm.verdict(UP, 0.0, cup, T)
+    assert not v.in_view and v.look_shift[0] < -0.01 and abs(v.look_shift[2]) < 1e-9
+    T2 = T.copy()
+    T2[:3, 3] += v.look_shift
+    v2 = sm.verdict(UP, 0.0, cup, T2)
+    assert v2.in_view and v2.view_margin >= 0
+
+
+def test_too_low_to_hold_the_footprint_anywhere_climbs():
+    sm = SurfaceMap(PARAMS)
+    T = sensor_pose((0.0, 0.0), 0.1)
+    v = sm.verdict(UP, 0.0, cup_at((0.0, 0.0)), T)
+    assert not v.in_view and v.look_shift[2] > 0.01
+    assert math.isfinite(v.view_margin) and v.view_margin < 0
+
+
+def test_bad_frames_are_ignored():
+    sm = SurfaceMap(PARAMS)
+    assert sm.add(Frame(np.full((9, 128), 30.0), np.ones(128), timestamp=0.0), np.full((4, 4), np.nan), 0.0) is None
+    fs = sm.add(Frame(np.full((9, 128), 30.0), np.ones(128), timestamp=0.0), sensor_pose(), 0.0)
+    assert fs is not None and not fs.valid.any() and not fs.multi_surface
