@@ -1,13 +1,16 @@
-"""The simulated user's calibration: a level-table capture sweep, then ``place-safe calibrate`` on it.
+"""The simulated user's calibration: touch the table, capture a sweep with the arm, ``place-safe calibrate``.
 
 Concept: the estimators in simulation must be calibrated the way a user calibrates a real sensor,
-never handed the simulator's true parameters. :func:`capture_level_sweep` is a minimal stand-in
-for a robot-driven capture: the simulated sensor (nominal or mismatched, see
-:mod:`place_safe.sim.tof_mismatch`) on a free rig is placed over a level table at heights and
-tilts a user would sweep, and one noisy frame with ground truth is taken at each pose (the rig
-puts the sensor where the capture asks; there is no arm in this sweep). :func:`calibrate_sim`
-writes the frames to a frame file and runs the ordinary ``place-safe calibrate`` command on it
+never handed the simulator's true parameters. :func:`capture_arm_sweep` runs the same chain a user
+runs on the UR5 (``place-safe capture``): the simulated UR5 (``SimRobot``) without the cup touches the
+table at three points with the guarded descent of :func:`place_safe.calibration.capture.touch_plane`
+(the ground-truth plane is what the arm measured, not the simulator's table), then
+:func:`place_safe.calibration.capture.capture_sweep` drives it through distances x incidence x
+azimuth above that plane and writes every frame of the simulated sensor (nominal or mismatched, see
+:mod:`place_safe.sim.tof_mismatch`) with the plane in the sensor frame from the *configured* tool
+frames. :func:`calibrate_sim` runs the ordinary ``place-safe calibrate`` command on that capture file
 (``--method diff``, which fits the ``peak`` section first, then ``--method proprietary``).
+:func:`capture_level_sweep` (a free sensor rig, no arm) remains for quick tests.
 
 The packaged results, ``sim/sensors/calibration_<sensor>.json``, are what placements use by
 default; ``place-safe scenarios calibrate`` regenerates them (deterministic for a seed).
@@ -78,17 +81,51 @@ def capture_level_sweep(sensor: str = "nominal", n: int = SWEEP_FRAMES, seed: in
     return frames
 
 
+#: m, sensor-to-plane distances of the arm sweep (placements start with the sensor up to 47 cm high).
+ARM_DISTANCES = (0.05, 0.08, 0.12, 0.17, 0.23, 0.30, 0.38, 0.46)
+#: rad, incidences of the arm sweep.
+ARM_INCIDENCES = (0.0, math.radians(6.0), math.radians(12.0))
+#: m above the table where the guarded descents start.
+TOUCH_START = 0.03
+#: m, (x, y) offsets from the start TCP of the three touch points.
+TOUCH_OFFSETS = ((0.0, 0.0), (0.08, 0.0), (0.0, 0.08))
+
+
+def capture_arm_sweep(path: str | Path, sensor: str = "nominal", poses: int = SWEEP_FRAMES, seed: int = 0,
+                      progress: bool = False) -> Path:
+    """Touch the level table with the simulated arm, then capture ``poses`` poses into ``path`` (JSON Lines)."""
+    from place_safe.calibration.capture import SweepPlan, capture_sweep, touch_plane
+    from place_safe.sim.scenario import Scenario
+    from place_safe.sim.world import sim_world
+
+    out = Path(path)
+    if out.exists():
+        out.unlink()  # a fresh capture, not a resumed one
+    world = sim_world(Scenario(name=f"calibration_{sensor}", sensor={"model": sensor, "seed": seed}),
+                      seed=seed, hold_cup=False)
+    robot, source = world.robot, world.tof
+    tool = robot.tool
+    start = robot.tcp_pose()[:3, 3]
+    pts = [(start[0] + dx, start[1] + dy) for dx, dy in TOUCH_OFFSETS]
+    # like a user who jogs the TCP to a few centimetres above the table before touching it
+    near = world.table_plane_base()[1] + TOUCH_START
+    n, d, _ = touch_plane(robot, pts, float(near))
+    plan = SweepPlan(distances=list(ARM_DISTANCES), incidences=list(ARM_INCIDENCES), max_poses=poses,
+                     centre=(float(start[0]), float(start[1])))
+    capture_sweep(robot, source, plan, out, plane=(n, d), tool=tool, progress=progress, log=lambda s: None)
+    return out
+
+
 def calibrate_sim(sensor: str = "nominal", output: str | Path | None = None, n: int = SWEEP_FRAMES,
                   seed: int = 0, frames_out: str | Path | None = None, quiet: bool = True) -> Path:
-    """Capture a sweep and run ``place-safe calibrate`` (diff, then proprietary) on it; returns the file."""
+    """Touch, capture an arm sweep of ``n`` poses and run ``place-safe calibrate`` (diff, then proprietary) on
+    it; returns the calibration file."""
     from place_safe.cli.app import main as cli_main
-    from place_safe.io.frame_file import write_frames
 
     out = Path(output) if output is not None else calibration_file(sensor)
-    frames = capture_level_sweep(sensor, n, seed)
     with tempfile.TemporaryDirectory() as tmp:
-        ff = Path(frames_out) if frames_out is not None else Path(tmp) / f"sweep_{sensor}.json"
-        write_frames(ff, frames)
+        ff = Path(frames_out) if frames_out is not None else Path(tmp) / f"capture_{sensor}.jsonl"
+        capture_arm_sweep(ff, sensor, n, seed, progress=not quiet)
         if out.exists():
             out.unlink()  # a fresh calibration, not an update of the old one
         q = ["--quiet"] if quiet else []
@@ -96,7 +133,26 @@ def calibrate_sim(sensor: str = "nominal", output: str | Path | None = None, n: 
             rc = cli_main(["calibrate", str(ff), "--method", method, "-o", str(out), *q])
             if rc != 0:
                 raise RuntimeError(f"place-safe calibrate --method {method} failed on the simulated sweep ({rc})")
+        record_provenance(out, sensor, ff, seed)
     return out
 
 
-__all__ = ["capture_level_sweep", "calibrate_sim", "calibration_file", "SWEEP_FRAMES"]
+#: What ``reports.capture`` of a packaged simulated calibration says about how it was made.
+CHAIN = "touch_plane -> capture_sweep (simulated UR5) -> place-safe calibrate --method diff, proprietary"
+
+
+def record_provenance(calibration: Path, sensor: str, capture: Path, seed: int) -> None:
+    """Write how the calibration was made into its ``reports.capture`` (chain, sensor, seed, poses, touched plane)."""
+    import json
+
+    rows = [json.loads(line) for line in Path(capture).read_text(encoding="utf-8").splitlines() if line.strip()]
+    base = rows[0]["meta"]["base_plane"] if rows else None
+    d = json.loads(Path(calibration).read_text(encoding="utf-8"))
+    d.setdefault("reports", {})["capture"] = {"chain": CHAIN, "sensor": sensor, "seed": seed, "frames": len(rows),
+                                              "distances_m": list(ARM_DISTANCES),
+                                              "incidences_deg": [round(math.degrees(a), 3) for a in ARM_INCIDENCES],
+                                              "touched_plane": base}
+    Path(calibration).write_text(json.dumps(d, indent=2), encoding="utf-8")
+
+
+__all__ = ["capture_level_sweep", "capture_arm_sweep", "calibrate_sim", "calibration_file", "SWEEP_FRAMES", "CHAIN"]

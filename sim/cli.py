@@ -29,17 +29,19 @@ def add_sim_commands(subparsers: argparse._SubParsersAction) -> argparse.Argumen
 
     add_placement_command(sub)
 
-    c = sub.add_parser("calibrate", help="regenerate the simulated user calibration (level sweep -> place-safe calibrate)",
-                       description="Capture a level-table sweep with the simulated sensor (noisy frames with ground "
-                                   "truth) and fit it with 'place-safe calibrate' (--method diff, then proprietary). "
+    c = sub.add_parser("calibrate", help="regenerate the simulated user calibration (touch, capture, calibrate)",
+                       description="The chain a user runs on the UR5, in MuJoCo: the simulated arm touches the level "
+                                   "table at three points (the plane it measures is the ground truth), captures a "
+                                   "sweep of poses above it with the simulated sensor (as 'place-safe capture'), and "
+                                   "fits the capture with 'place-safe calibrate' (--method diff, then proprietary). "
                                    "Without -o, rewrites the packaged sim/sensors/calibration_<sensor>.json that "
                                    "placements use by default. Example: place-safe sim calibrate --sensor mismatch")
     c.add_argument("--sensor", choices=("nominal", "mismatch", "all"), default="all",
                    help="which simulated sensor (default all)")
     c.add_argument("-o", "--output", help="calibration file to write (one sensor only; default: the packaged file)")
-    c.add_argument("--frames", type=int, default=48, help="frames in the sweep (default 48)")
+    c.add_argument("--frames", type=int, default=48, help="poses (one frame each) in the sweep (default 48)")
     c.add_argument("--seed", type=int, default=0, help="sweep and noise seed (default 0)")
-    c.add_argument("--save-frames", help="also keep the sweep's frame file here (one sensor only)")
+    c.add_argument("--save-frames", help="also keep the capture file (JSON Lines) here (one sensor only)")
     c.set_defaults(func=cmd_calibrate)
 
     v = sub.add_parser("validate", help="compare simulated histograms with a real sweep, zone by zone",

@@ -173,7 +173,14 @@ class Scenario(ConfigModel):
         if start_height is not None:
             if not isinstance(start_height, (int, float)) or not (0.02 <= start_height <= 0.8):
                 raise ValueError("scene.start_height must be 0.02..0.8 m (cup bottom above the table at the start)")
-            cfg.table.height = float(home_cup_position(cfg)[2] - start_height)
+            # the table's centre height that puts the (tilted) top start_height below the cup's bottom
+            # centre, measured along the vertical under the cup (not at the table's centre)
+            cup = home_cup_position(cfg)
+            t = cfg.table
+            n = np.array([math.sin(t.tilt) * math.cos(t.tilt_direction), math.sin(t.tilt) * math.sin(t.tilt_direction),
+                          math.cos(t.tilt)])
+            rise = (n[0] * (cup[0] - t.center[0]) + n[1] * (cup[1] - t.center[1])) / n[2]
+            cfg.table.height = float(cup[2] - start_height + rise)
         return cfg
 
     def placement_config(self):

@@ -67,8 +67,9 @@ def random_scenario(rng: np.random.Generator, index: int = 0, calibration: str =
         side = int(rng.integers(4))
         half = (base.table.size[0] / 2, base.table.size[1] / 2)
         c = list(table["center"])
-        if side == 0:
-            c[0] = float(cup[0] - e + half[0])
+        if side == 0:  # the edge between the cup and the robot: a table half as deep, so it stays clear of the arm
+            table["size"] = [base.table.size[0] / 2, base.table.size[1], base.table.size[2]]
+            c[0] = float(cup[0] - e + half[0] / 2)
         elif side == 1:
             c[0] = float(cup[0] + e - half[0])
         elif side == 2:

@@ -57,9 +57,11 @@ VIEW_SLACK = 0.008
 SIGHT_SLACK_RAD = math.radians(1.0)
 #: Observations kept.
 MAX_OBSERVATIONS = 400
-#: Footprint disc sample points: centre, and rings at these fractions of the radius.
-_RINGS = (0.5, 1.0)
-_RING_POINTS = 12
+#: m between footprint sample points (and points on its rim).
+DISC_SPACING = 0.01
+_RIM_POINTS = 24
+#: m above the survey height up to which a frame's zones are small enough to blame the footprint.
+CLOSE_SLACK = 0.04
 
 
 def second_returns(hists: np.ndarray, first: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -227,7 +229,8 @@ class SurfaceMap:
 
     # -- footprint ---------------------------------------------------------------------------------
     def disc(self, normal: np.ndarray, offset: float, base_T_cup: np.ndarray) -> np.ndarray | None:
-        """Sample points (K, 3) of the landing footprint on the plane ``normal . x = offset`` (base frame)."""
+        """Sample points (K, 3) of the landing footprint on the plane ``normal . x = offset`` (base frame):
+        its centre first, then a grid of :data:`DISC_SPACING` inside it and a ring on its rim."""
         n = np.asarray(normal, dtype=float)
         C = np.asarray(base_T_cup, dtype=float)
         p, axis = C[:3, 3], -C[:3, 2]
@@ -238,11 +241,13 @@ class SurfaceMap:
         u = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
         u /= np.linalg.norm(u)
         v = np.cross(n, u)
-        ang = np.linspace(0.0, 2 * math.pi, _RING_POINTS, endpoint=False)
-        ring = [centre[None]]
-        for f in _RINGS:
-            ring.append(centre + f * self.radius * (np.cos(ang)[:, None] * u + np.sin(ang)[:, None] * v))
-        return np.concatenate(ring)
+        k = np.arange(-self.radius, self.radius + 1e-9, DISC_SPACING)
+        a, b = np.meshgrid(k, k)
+        keep = (a ** 2 + b ** 2 <= self.radius ** 2) & ((a != 0) | (b != 0))
+        ang = np.linspace(0.0, 2 * math.pi, _RIM_POINTS, endpoint=False)
+        ca = np.concatenate([[0.0], a[keep], self.radius * np.cos(ang)])
+        cb = np.concatenate([[0.0], b[keep], self.radius * np.sin(ang)])
+        return centre + ca[:, None] * u + cb[:, None] * v
 
     def _view(self, disc: np.ndarray, base_T_sensor: np.ndarray, tan_fov: float | None = None
               ) -> tuple[np.ndarray, np.ndarray]:
@@ -257,52 +262,78 @@ class SurfaceMap:
         zone = np.argmax(np.nan_to_num(u) @ self._dirs.T, axis=1)
         return inside, zone
 
-    def _judge(self, fs: FrameSurfaces, zones: np.ndarray, n: np.ndarray, d: float) -> tuple[str, str] | None:
-        """(kind, detail) of what is wrong under the footprint in this frame, or None."""
-        zs = sorted(set(int(z) for z in zones))
-        for z in zs:
-            if not fs.valid[z]:
-                return "edge", f"no return from zone {z + 1} over the cup's footprint (edge, no support)"
-        for z in zs:
-            if fs.second[z]:
-                return "edge", (f"zone {z + 1} over the cup's footprint sees a second surface "
-                                f"{fs.second_depth[z] * 1e3:.0f} mm farther (edge or step)")
-        for z in zs:
-            s = float(fs.points_base[z] @ n - d)
-            if s > self.tolerance:
-                return "clutter", (f"something {s * 1e3:.0f} mm above the surface in zone {z + 1} over the cup's "
-                                   "footprint (clutter or step)")
-            if s < -self.tolerance:
-                return "edge", (f"the surface in zone {z + 1} over the cup's footprint is {-s * 1e3:.0f} mm "
-                                "below the fused surface (edge or step, no support)")
+    def _zone_issue(self, fs: FrameSurfaces, z: int, n: np.ndarray, d: float) -> tuple[str, str] | None:
+        """(kind, detail) of what zone ``z`` of the frame shows besides one surface on the plane, or None."""
+        if not fs.valid[z]:
+            return "edge", f"no return from zone {z + 1} over the cup's footprint (edge, no support)"
+        if fs.second[z]:
+            return "edge", (f"zone {z + 1} over the cup's footprint sees a second surface "
+                            f"{fs.second_depth[z] * 1e3:.0f} mm farther (edge or step)")
+        s = float(fs.points_base[z] @ n - d)
+        if s > self.tolerance:
+            return "clutter", (f"something {s * 1e3:.0f} mm above the surface in zone {z + 1} over the cup's "
+                               "footprint (clutter or step)")
+        if s < -self.tolerance:
+            return "edge", (f"the surface in zone {z + 1} over the cup's footprint is {-s * 1e3:.0f} mm "
+                            "below the fused surface (edge or step, no support)")
         return None
 
+    def survey_height(self) -> float:
+        """m above the surface from which the sensor, centred over the footprint, just holds it in view
+        (its zones are then no larger than they must be)."""
+        return (self.radius + VIEW_SLACK) / self._tan_aim + CLIMB_MARGIN
+
+    @property
+    def _tan_aim(self) -> float:
+        return math.tan(math.atan(self.tan_fov) - 2 * SIGHT_SLACK_RAD)
+
     def footprint(self, normal: Any, offset: float, landing_T_cup: Any) -> FootprintVerdict:
-        """Observed / supported frames and the problem, judged against the fused plane ``normal . x =
-        offset`` for the cup's landing pose (its axis fixes the footprint's centre)."""
+        """Judge the landing footprint against the fused plane ``normal . x = offset`` for the cup's landing
+        pose (its axis fixes the footprint's centre).
+
+        A sample point of the footprint is *certified* by a frame in which it lies in a zone that saw one
+        surface on the plane (a zone that saw more is no proof either way: the other surface may lie outside
+        the footprint). ``supported`` is the smallest number of frames that certified a point (0 while any
+        point is uncertified). A ``problem`` is reported when a point that is not certified was seen with an
+        issue (no return, a second return, a surface off the plane) in ``min_frames`` frames taken from no
+        higher than :meth:`survey_height` + :data:`CLOSE_SLACK` -- where zones are small enough for the
+        issue to lie in the footprint.
+        """
         n = np.asarray(normal, dtype=float)
-        disc = self.disc(n, float(offset), np.asarray(landing_T_cup, dtype=float))
+        d = float(offset)
+        disc = self.disc(n, d, np.asarray(landing_T_cup, dtype=float))
         if disc is None:
             return FootprintVerdict(problem="the cup's axis is parallel to the surface: no landing footprint")
-        observed = supported = 0
-        kinds: Counter = Counter()
+        close = self.survey_height() + CLOSE_SLACK
+        certified = np.zeros(len(disc), dtype=int)
+        flagged = np.zeros(len(disc), dtype=int)
         details: dict[str, str] = {}
+        kinds: Counter = Counter()
+        observed = 0
         for fs in self.frames:
             inside, zone = self._view(disc, fs.base_T_sensor)
-            if not inside.all():
+            if not inside.any():
                 continue
-            observed += 1
-            bad = self._judge(fs, zone, n, float(offset))
-            if bad is None:
-                supported += 1
-            else:
-                kinds[bad[0]] += 1
-                details[bad[0]] = bad[1]
+            observed += int(inside.all())
+            issue = {z: self._zone_issue(fs, z, n, d) for z in set(zone[inside].tolist())}
+            clean = inside & np.array([issue.get(int(z)) is None for z in zone])
+            certified += clean
+            height = float(fs.base_T_sensor[:3, 3] @ n - d)
+            if height <= close:
+                bad = inside & ~clean
+                flagged += bad
+                for z in set(zone[bad].tolist()):
+                    kind, detail = issue[z]
+                    kinds[kind] += 1
+                    details[kind] = detail
+        supported = int(certified.min()) if len(certified) else 0
         problem = None
-        if observed and kinds:
-            kind, count = kinds.most_common(1)[0]
-            if count >= 2 and count * 2 >= observed:
-                problem = f"{details[kind]}; {count} of {observed} frames that saw it"
+        open_points = (certified < self.min_frames) & (flagged >= self.min_frames)
+        if open_points.any() and kinds:
+            kind = kinds.most_common(1)[0][0]
+            share = 100.0 * float(np.mean(certified == 0))
+            problem = (f"{details[kind]}; {share:.0f} % of the footprint never seen on the surface in "
+                       f"{int(flagged.max())} close frames")
         return FootprintVerdict(observed, supported, problem)
 
     def sight(self, verdict: FootprintVerdict, normal: Any, offset: float, landing_T_cup: Any,
@@ -325,9 +356,9 @@ class SurfaceMap:
                           base_T_sensor)
 
     def _look(self, disc: np.ndarray, base_T_sensor: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, float]:
-        """TCP move (base frame) that brings the disc into view -- sideways, perpendicular to ``n``, and
-        up when the sensor is too close to the surface to hold the disc at all -- and the height (m) the
-        sensor may still lose before the disc leaves the view."""
+        """The TCP move (base frame) to the survey pose -- the optical axis through the footprint's centre,
+        the sensor :meth:`survey_height` above the surface -- and the height (m) the sensor may still lose
+        before the footprint leaves the view from where it is now (negative: out of view already)."""
         centre = disc[0]
         S = base_T_sensor[:3, 3]
         axis = base_T_sensor[:3, 2]
@@ -340,14 +371,7 @@ class SurfaceMap:
         off -= n * float(off @ n)
         dist = float(np.linalg.norm(off))
         margin = height - (dist + self.radius) / self.tan_fov
-        if margin >= 0:
-            return np.zeros(3), margin
-        tan_aim = math.tan(math.atan(self.tan_fov) - 2 * SIGHT_SLACK_RAD)  # aim inside the edge of the view
-        room = height * tan_aim - self.radius - VIEW_SLACK
-        move = off * (1.0 - max(room, 0.0) / dist) if dist > 0 else np.zeros(3)
-        if room < 0:  # too close to hold the whole disc from anywhere: go up too
-            move = move + n * ((self.radius + VIEW_SLACK) / tan_aim + CLIMB_MARGIN - height)
-        return move, margin
+        return off + n * (self.survey_height() - height), margin
 
 
 __all__ = ["SurfaceMap", "FrameSurfaces", "FootprintVerdict", "consensus", "second_returns", "FOV_HALF_ANGLE"]

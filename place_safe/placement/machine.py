@@ -8,9 +8,13 @@ A diagram of the machine is in ``docs/placement.md``.
 Phases::
 
     IDLE --plane--> APPROACH --near--> DESCEND --at stop clearance, or contact at the surface--> CHECK
+    (in APPROACH, before descending below where the landing footprint is still in view: survey --
+     move sideways (and up if too low) until the surface map has seen the footprint supported in
+     ``footprint_frames`` frames, then back over the landing spot)
     CHECK --level, planar, close, enough fresh planes--> RELEASE (open gripper, wait, retreat up) --> DONE
     CHECK --still too high--> DESCEND (at most ``max_checks`` times)
-    any active phase --tilted / not planar / no plane / stale plane / sensor timeout / obstacle (contact
+    any active phase --tilted / not planar / no plane / stale plane / sensor timeout / no support under
+                       the footprint (edge, step, clutter) / obstacle (contact
                        above the surface) / travel limit / deadline--> REFUSE (retreat up keeping the cup)
                        --> ABORTED
     any phase before the release --robot fault, invalid robot state, robot clock frozen or running
@@ -27,6 +31,10 @@ The release rule (the only path to :attr:`CommandKind.OPEN_GRIPPER`), checked on
   ``check_settle`` and none in the future (the same frame fed twice counts once), and the TCP has not
   moved more than ``rest_tolerance`` since then (the arm really stopped);
 * the cup's axis is within ``max_tilt`` of the surface normal (it lands on its base, not its rim);
+* the surface map (:mod:`place_safe.fusion.surface_map`) saw the landing footprint (the cup bottom plus
+  ``footprint_margin``) in at least ``footprint_frames`` frames with every zone over it on the fused
+  surface (within ``footprint_tolerance``) and reports no edge, step or clutter there -- observed, not
+  extrapolated from the patch beside the cup the sensor sees at the end;
 * the cup bottom's clearance above the plane lies in ``[-release_clearance, release_clearance]``, or the
   cup is in contact (``contact_force``) with a clearance in ``[-max_penetration, contact_clearance]``:
   contact higher above the sensed surface is an obstacle, and a cup below the sensed surface without
@@ -85,7 +93,7 @@ class PlacementConfig:
     descend_speed: float = 0.015  # m/s near the surface
     accel: float = 0.5  # m/s^2 for speed changes and stops
     slow_clearance: float = 0.015  # m: APPROACH -> DESCEND below this cup clearance
-    stop_clearance: float = 0.003  # m: DESCEND -> CHECK at or below this clearance
+    stop_clearance: float = 0.002  # m: DESCEND -> CHECK at or below this clearance
     release_clearance: float = 0.005  # m: release only at or below this clearance (or in contact)
     max_tilt: float = math.radians(5.0)  # rad: steepest surface a cup may be put on
     early_refuse_tilt: float = math.radians(10.0)  # rad: refuse already while approaching above this
@@ -508,7 +516,7 @@ class PlacementMachine:
             margin = _number(getattr(fp, "view_margin", None))
             if margin is not None and margin - stopping > SURVEY_VIEW_SLACK:
                 return None  # keep descending: the footprint stays in view
-            return self._speed(np.zeros(3))  # wait here for frames that see it
+        # to the survey pose (the sensor over the footprint, just high enough to hold it), then wait there
         try:
             move = np.asarray(getattr(fp, "look_shift"), dtype=float).reshape(3)
         except (TypeError, ValueError, AttributeError):
@@ -516,6 +524,18 @@ class PlacementMachine:
         if not np.all(np.isfinite(move)):
             return self._refuse(now, "surface map gave no way to bring the cup's footprint into view")
         return self._speed(self._lateral(move, cfg.survey_speed))
+
+    def _confidently_tilted(self, plane: FusedPlane) -> str | None:
+        """Refuse early (before descending onto it) a surface steeper than ``max_tilt`` with
+        ``level_confidence``, once the window holds ``check_frames`` planes."""
+        cfg = self.config
+        if int(getattr(plane, "n", 0) or 0) < cfg.check_frames:
+            return None
+        low = plane.tilt_rad - NormalDist().inv_cdf(cfg.level_confidence) * self.tilt_sigma(plane)
+        if low > cfg.max_tilt:
+            return (f"surface tilted {math.degrees(plane.tilt_rad):.1f} deg (> {math.degrees(cfg.max_tilt):.1f} deg "
+                    f"allowed, with {cfg.level_confidence:.0%} confidence)")
+        return None
 
     def post_stop_stamps(self, plane: FusedPlane, now: float) -> list[float]:
         """Distinct measurement times in the fused plane taken after the stop (+ ``check_settle``) and not
@@ -607,6 +627,8 @@ class PlacementMachine:
         if why is not None:
             return self._refuse(now, why)
         if (why := self._tilt_problem(plane, cfg.early_refuse_tilt)) is not None:
+            return self._refuse(now, why)
+        if (why := self._confidently_tilted(plane)) is not None:
             return self._refuse(now, why)
         if self._elapsed(now, self._descent_t0, self._descent_ticks) > cfg.descent_timeout:
             return self._refuse(now, f"surface not reached within {cfg.descent_timeout:.1f} s")

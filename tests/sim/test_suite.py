@@ -110,16 +110,8 @@ def test_ray_runs_the_same_rows_on_a_local_instance():
 #: Hand-written scenarios the system still gets WRONG, recorded as strict expected failures so CI shows them on
 #: every run and fails as soon as one is fixed (then delete its entry). Both are issue 12 item 5: nothing yet
 #: observes the surface under the cup's landing footprint (the sensor sees the table 70 mm beside the cup).
-KNOWN_GAPS = {
-    "beyond_edge": "UNSAFE: the cup is released over the table edge and falls (footprint not observed)",
-    "edge_under_cup": "refused, but for the wrong reason ('tilted 74 deg' instead of an edge)",
-}
-
-
 @pytest.mark.slow
-@pytest.mark.parametrize("path", [pytest.param(p, marks=pytest.mark.xfail(strict=True, reason=KNOWN_GAPS[p.stem]))
-                                  if p.stem in KNOWN_GAPS else p for p in packaged_scenarios()],
-                         ids=lambda p: p.stem)
+@pytest.mark.parametrize("path", packaged_scenarios(), ids=lambda p: p.stem)
 def test_hand_written_set(path):
     row = suite.run_one({"scenario": str(path), "seed": 0})
     assert row["met"], f"{row['name']}: {row['decision']} ({row['reason']}); misses: {row['misses']}"
