@@ -94,6 +94,8 @@ def random_scenario(rng: np.random.Generator, index: int = 0, calibration: str =
         clearance_to_hazard = math.hypot(dx, dy) - radius
         support = "clutter" if clearance_to_hazard < 0 else "full"
     sensor: dict[str, Any] = {"model": str(rng.choice(["nominal", "mismatch"])), "seed": int(rng.integers(1 << 30))}
+    if sensor["model"] == "mismatch":  # on for a while (calibrated warm, at 45 degC), still warming a little
+        sensor["mismatch"] = {"temp_start": float(rng.uniform(40.0, 45.0))}
     if rng.random() < 0.3:
         sensor.update(drop_prob=float(rng.uniform(0, 0.15)), corrupt_prob=float(rng.uniform(0, 0.05)))
     if rng.random() < 0.2:
