@@ -23,7 +23,8 @@ import torch
 from tqdm import tqdm
 
 from place_safe.exceptions import CalibrationError, FrameError
-from place_safe.recovery.forward import MODEL_ERROR, ForwardModel, ForwardParams, ZoneRays, mount_rotation, residual_weights
+from place_safe.recovery.forward import (MODEL_ERROR, ForwardModel, ForwardParams, ZoneRays, mount_rotation,
+                                         residual_weights, single_thread)
 from place_safe.sensor.frame import N_BINS, N_ZONES, Frame
 from place_safe.sensor.histogram import COUNT_MAX, measure_floor, reference_problem
 
@@ -117,6 +118,14 @@ def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, prog
     tangent per camera parameter and one shared by all per-frame albedos (each frame depends on
     its own albedo only, so that tangent fills the block-diagonal albedo columns at once).
     """
+    with single_thread():  # a few thousand-element tensors: torch's thread pool only waits (3x slower when busy)
+        return _fit_forward(frames, init, progress, rays, iterations, min_distance, max_distance, fitted,
+                            window_after_peak, max_frames)
+
+
+def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_distance, fitted, window_after_peak,
+                 max_frames) -> tuple[ForwardParams, dict]:
+    """:func:`fit_forward` on the calling thread."""
     from scipy.optimize import least_squares
     from torch.func import jvp, vmap
 
