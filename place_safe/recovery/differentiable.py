@@ -234,10 +234,11 @@ class DifferentiableEstimator(Estimator):
 
         ``residual`` is the RMS Poisson-scaled residual, so its square is the chi-square per bin
         against the calibrated noise; above ``uncertainty.chi2_limit`` the model does not explain the
-        frame and the peak estimate (``method_used = "peak"``) is returned, with diff's residual.
+        frame and the peak estimate (``method_used = "peak"``) is returned, with diff's residual. So it is
+        when the two estimates contradict each other beyond ``uncertainty.consistency_limit``.
         """
         failed = not est.ok or est.residual is None or not est.residual ** 2 <= self.uncertainty.chi2_limit
-        if not failed:
+        if not failed and self.uncertainty.consistent(est, peak):
             return est
         if not est.ok and math.isinf(self.uncertainty.chi2_limit):
             return est  # no fallback calibrated: report diff's own failure
