@@ -23,7 +23,8 @@ import torch
 from tqdm import tqdm
 
 from place_safe.exceptions import CalibrationError, FrameError
-from place_safe.recovery.forward import MODEL_ERROR, ForwardModel, ForwardParams, ZoneRays, mount_rotation, residual_weights
+from place_safe.recovery.forward import (MODEL_ERROR, ForwardModel, ForwardParams, ZoneRays, mount_rotation,
+                                         residual_weights, single_thread)
 from place_safe.sensor.frame import N_BINS, N_ZONES, Frame
 from place_safe.sensor.histogram import COUNT_MAX, measure_floor, reference_problem
 
@@ -48,6 +49,8 @@ FITTED: dict[str, str] = {
     "pulse_soft_bin": "unit",
     "saturate_shading": "unit",
     "crosstalk_self": "unit",
+    "baseline": "lin",
+    "beam_power": "log",
 }
 #: A frame whose RMS scaled residual after the first fit is above this many times the median (and
 #: above 1) is excluded as bad and the fit repeated without it.
@@ -98,7 +101,7 @@ def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, prog
 
     frames: frames with ``truth`` planes; those outside ``[min_distance, max_distance]`` (z0, m)
     or invalid are left out. init: starting parameters (default: the published values, with a
-    small pulse tail and pile-up so their gradients are not zero). rays: stratified rays per axis and zone.
+    small pulse tail, pile-up and beam profile so their gradients are not zero). rays: stratified rays per axis and zone.
     iterations: Gauss-Newton (trust-region) iterations at most. max_frames: at most this many
     frames are fitted, taken evenly over distance (a few dozen frames pin down the ~30 camera
     parameters; more only cost time).
@@ -115,6 +118,14 @@ def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, prog
     tangent per camera parameter and one shared by all per-frame albedos (each frame depends on
     its own albedo only, so that tangent fills the block-diagonal albedo columns at once).
     """
+    with single_thread():  # a few thousand-element tensors: torch's thread pool only waits (3x slower when busy)
+        return _fit_forward(frames, init, progress, rays, iterations, min_distance, max_distance, fitted,
+                            window_after_peak, max_frames)
+
+
+def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_distance, fitted, window_after_peak,
+                 max_frames) -> tuple[ForwardParams, dict]:
+    """:func:`fit_forward` on the calling thread."""
     from scipy.optimize import least_squares
     from torch.func import jvp, vmap
 
@@ -130,7 +141,7 @@ def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, prog
         data = [data[i] for i in sorted(set(pick.tolist()))]
     fitted = dict(FITTED if fitted is None else fitted)
     if init is None:
-        init = ForwardParams(tail_weight=0.05, tail_decay=3.0, pileup=1e-7,
+        init = ForwardParams(tail_weight=0.05, tail_decay=3.0, pileup=1e-7, beam_power=1.0,
                              **{k: 0.5 for k in STRUCTURAL if k in fitted})
     dtype = torch.float64
     model = ForwardModel(init, ZoneRays.stratified(rays, dtype=dtype), dtype=dtype)
@@ -237,9 +248,12 @@ def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, prog
     lower = np.full(z0.size, -np.inf)
     upper = np.full(z0.size, np.inf)
     i = 0
-    for _name, kind, n in layout:
+    for name, kind, n in layout:
         if kind == "unit":
             lower[i:i + abs(n)], upper[i:i + abs(n)] = 0.0, 1.0
+        else:  # the physical range (FORWARD_BOUNDS), so a fit never writes parameters a file may not hold
+            lo, hi = _fit_range(name, kind)
+            lower[i:i + abs(n)], upper[i:i + abs(n)] = lo, hi
         i += abs(n)
     lower[n_cam:], upper[n_cam:] = math.log(init.albedo) - 8.0, math.log(init.albedo) + 8.0
     z0 = np.clip(z0, lower + 1e-6, upper - 1e-6)
@@ -298,6 +312,20 @@ def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, prog
         "params": fitted_params.to_dict(),
     }
     return fitted_params, report
+
+
+def _fit_range(name: str, kind: str) -> tuple[float, float]:
+    """Bounds of a fitted parameter in its fit coordinate (``log`` or ``lin``), just inside its physical range."""
+    from place_safe.recovery.forward import FORWARD_BOUNDS
+
+    b = FORWARD_BOUNDS.get(name)
+    lo = -math.inf if b is None or b.lo is None else b.lo
+    hi = math.inf if b is None or b.hi is None else b.hi
+    margin = 1e-9 * max(abs(lo) if math.isfinite(lo) else 0.0, abs(hi) if math.isfinite(hi) else 0.0, 1.0)
+    lo, hi = lo + margin, hi - margin
+    if kind == "log":
+        return (math.log(lo) if lo > 0 else -math.inf), (math.log(hi) if math.isfinite(hi) else math.inf)
+    return lo, hi
 
 
 def measure_model_error(residuals: np.ndarray, counts: np.ndarray) -> float:

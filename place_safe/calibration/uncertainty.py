@@ -11,7 +11,8 @@ Gaussian with the estimate's covariance plus the floor; then one ``scale`` of th
 makes the mean normalised estimation error squared (NEES, per degree of freedom; about 1 when the
 covariances are honest) 1 on these frames. NEES is reported before and after.
 
-For ``diff``, the chi-square limit above which a frame falls back to the peak estimate is the one
+For ``diff``, a frame whose diff and peak estimates contradict each other (:data:`CONSISTENCY_LIMIT`)
+falls back to the peak estimate; so does a frame whose residual is above the chi-square limit, the one
 (among the frames' own residuals and infinity) whose selection has the lowest worse-of-two score: the
 means of the angular and of the point error, each per frame in units of peak's median error and
 capped at 10 (so frames on which both methods fail do not decide). Ties go to the larger limit (use
@@ -89,6 +90,11 @@ def fit_floor(estimates: Sequence[PlaneEstimate], truths: Sequence, base: Uncert
                  "offset_rel": unc.offset_rel, "nees_per_dof_before": before, "nees_per_dof_after": after}
 
 
+#: Squared Mahalanobis distance between the diff and peak estimates of (n_x, n_y, d) above which diff falls
+#: back to peak: the 99.9 % point of chi-square with 3 degrees of freedom (honest covariances: 1 frame in 1000).
+CONSISTENCY_LIMIT = 16.27
+
+
 def fit_peak_uncertainty(frames: Sequence[Frame], peak_params) -> tuple[Uncertainty, dict]:
     """The peak method's floor from frames with ground truth."""
     from place_safe.recovery.peak import PeakEstimator
@@ -130,14 +136,20 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
     best = min(scores)
     limit = max(c for c, sc in zip(candidates, scores) if sc <= best * (1 + 1e-9))
     by_diff = [e for e, c in zip(diff, chi2) if c <= limit]
-    unc, rep = fit_floor(by_diff, [t for t, c in zip(truths, chi2) if c <= limit], Uncertainty(chi2_limit=limit))
-    sel = np.where((chi2 <= limit)[:, None], e_diff, e_peak)
+    unc, rep = fit_floor(by_diff, [t for t, c in zip(truths, chi2) if c <= limit],
+                         Uncertainty(chi2_limit=limit, consistency_limit=CONSISTENCY_LIMIT))
+    # with the fitted floors: the frames whose diff estimate the peak estimate contradicts (they fall back too)
+    final = [replace(e, covariance=unc.apply(e.covariance, e.plane.offset)) if e.ok and e.covariance is not None
+             else e for e in diff]
+    inconsistent = np.array([not unc.consistent(e, p) for e, p in zip(final, peak)])
+    sel = np.where(((chi2 <= limit) & ~inconsistent)[:, None], e_diff, e_peak)
 
     def mean_finite(a: np.ndarray, scale: float) -> float:
         return float(np.mean(a[np.isfinite(a)])) * scale
 
-    rep.update({"chi2_limit": None if math.isinf(limit) else limit, "frames_using_diff": int(np.sum(chi2 <= limit)),
-                "frames_using_peak": int(np.sum(chi2 > limit)),
+    use_diff = (chi2 <= limit) & ~inconsistent
+    rep.update({"chi2_limit": None if math.isinf(limit) else limit, "frames_using_diff": int(np.sum(use_diff)),
+                "frames_using_peak": int(np.sum(~use_diff)), "frames_inconsistent_with_peak": int(inconsistent.sum()),
                 "angular_deg": {k: mean_finite(v[:, 0], 180 / math.pi) for k, v in
                                 (("diff", e_diff), ("peak", e_peak), ("selected", sel))},
                 "point_mm": {k: mean_finite(v[:, 1], 1e3) for k, v in (("diff", e_diff), ("peak", e_peak), ("selected", sel))}})

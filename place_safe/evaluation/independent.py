@@ -51,9 +51,6 @@ import math
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
-from scipy.signal import fftconvolve
-from scipy.special import erf
-
 from place_safe.geometry import Plane
 from place_safe.sensor.frame import Frame
 from place_safe.sensor.histogram import COUNT_MAX
@@ -212,6 +209,8 @@ def _pulse_cdf(t: np.ndarray, spec: SensorSpec) -> np.ndarray:
     The pulse is a sum of exponentially modified Gaussians (rise std ``pulse_rise``, decays from
     ``pulse_tails``) starting at :data:`REF_PULSE_START`.
     """
+    from scipy.special import erf
+
     s = spec.pulse_rise
     x = np.asarray(t, dtype=float) - REF_PULSE_START
     out = np.zeros_like(x)
@@ -259,6 +258,8 @@ class IndependentGenerator:
     """Frames of one simulated sensor (:class:`SensorSpec`); see the module doc."""
 
     def __init__(self, sensor: SensorSpec | None = None) -> None:
+        from scipy.signal import fftconvolve  # here, not at import: the CLI imports this module's constants
+
         self.sensor = sensor if sensor is not None else SensorSpec.draw(0)
         s = self.sensor
         self._samples = _samples(s)
@@ -284,6 +285,8 @@ class IndependentGenerator:
     def expected(self, plane: Plane, albedo: float, specular_weight: float, specular_exponent: float,
                  floor: np.ndarray | float = 0.0) -> np.ndarray:
         """Expected counts (9, 128) of a plane (before Poisson noise and clipping)."""
+        from scipy.signal import fftconvolve
+
         s, smp = self.sensor, self._samples
         n, d = plane.normal, plane.offset
         v = smp.direction

@@ -37,7 +37,8 @@ import torch
 from place_safe.recovery.points import PeakParams
 from place_safe.config import Bound, check_dataclass, dataclass_from_dict
 from place_safe.exceptions import CalibrationError, FrameError, NoPlaneError
-from place_safe.recovery.forward import ForwardModel, ForwardParams, ZoneRays, mount_rotation, residual_weights
+from place_safe.recovery.forward import (ForwardModel, ForwardParams, ZoneRays, mount_rotation, residual_weights,
+                                         single_thread)
 from place_safe.geometry import Plane
 from place_safe.recovery.plane_renderer import PlaneRenderer, convolution_matrices
 from place_safe.sensor.frame import N_BINS, N_ZONES, Frame
@@ -233,10 +234,11 @@ class DifferentiableEstimator(Estimator):
 
         ``residual`` is the RMS Poisson-scaled residual, so its square is the chi-square per bin
         against the calibrated noise; above ``uncertainty.chi2_limit`` the model does not explain the
-        frame and the peak estimate (``method_used = "peak"``) is returned, with diff's residual.
+        frame and the peak estimate (``method_used = "peak"``) is returned, with diff's residual. So it is
+        when the two estimates contradict each other beyond ``uncertainty.consistency_limit``.
         """
         failed = not est.ok or est.residual is None or not est.residual ** 2 <= self.uncertainty.chi2_limit
-        if not failed:
+        if not failed and self.uncertainty.consistent(est, peak):
             return est
         if not est.ok and math.isinf(self.uncertainty.chi2_limit):
             return est  # no fallback calibrated: report diff's own failure
@@ -391,7 +393,7 @@ class DifferentiableEstimator(Estimator):
 
     def _kernels(self, frames: list[Frame]) -> np.ndarray:
         ref = torch.as_tensor(np.array([f.reference for f in frames]), dtype=self.dtype)
-        with torch.no_grad():
+        with torch.no_grad(), single_thread():
             return self.model.pulse(ref).numpy()
 
     def _reported(self, a: float, b: float, z0: float) -> Plane:

@@ -46,8 +46,11 @@ class Uncertainty:
     never): ``diff`` falls back to the peak estimate of a frame whose residual chi-square per bin
     (Poisson and calibrated model error, :func:`~place_safe.recovery.forward.residual_weights`) is
     above it. ``scale`` (dimensionless, 0.1 .. 10) multiplies the whole covariance (the fit's and the
-    floor) so the calibration frames' mean NEES per degree of freedom is 1. The defaults (no floor,
-    no fallback, scale 1) are the behaviour of a missing section.
+    floor) so the calibration frames' mean NEES per degree of freedom is 1. ``consistency_limit``
+    (squared Mahalanobis distance, > 0; ``inf`` = never): ``diff`` also falls back to the peak estimate
+    when the two estimates of ``(n_x, n_y, d)`` differ by more than that under their summed covariances
+    (a solution the chi-square passed but the independent peak estimate contradicts). The defaults (no
+    floor, no fallback, scale 1) are the behaviour of a missing section.
     """
 
     tilt_std: float = 0.0
@@ -56,12 +59,27 @@ class Uncertainty:
     tilt_range_std: float = 0.0
     offset_rel: float = 0.0
     scale: float = 1.0
+    consistency_limit: float = math.inf
 
     def __post_init__(self) -> None:
         vals = (self.tilt_std, self.offset_std, self.tilt_range_std, self.offset_rel)
         if not all(math.isfinite(v) and v >= 0 for v in vals) or not self.chi2_limit > 0 \
-                or not (math.isfinite(self.scale) and self.scale > 0):
-            raise ValueError("uncertainty needs finite floors >= 0, chi2_limit > 0 and a finite scale > 0")
+                or not (math.isfinite(self.scale) and self.scale > 0) or not self.consistency_limit > 0:
+            raise ValueError("uncertainty needs finite floors >= 0, chi2_limit > 0, consistency_limit > 0 and a "
+                             "finite scale > 0")
+
+    def consistent(self, est: "PlaneEstimate", other: "PlaneEstimate") -> bool:
+        """Whether ``est`` agrees with ``other`` within ``consistency_limit`` (True without both covariances)."""
+        if math.isinf(self.consistency_limit) or not (est.ok and other.ok):
+            return True
+        if est.covariance is None or other.covariance is None:
+            return True
+        dx = tilt_offset(est.plane) - tilt_offset(other.plane)
+        try:
+            m2 = float(dx @ np.linalg.solve(np.asarray(est.covariance) + np.asarray(other.covariance), dx))
+        except np.linalg.LinAlgError:
+            return True
+        return not (m2 > self.consistency_limit)
 
     def apply(self, covariance: np.ndarray, offset: float) -> np.ndarray:
         """The reported covariance of an estimate at ``offset`` (m) whose fit gave ``covariance``."""
@@ -76,16 +94,19 @@ class Uncertainty:
     def to_dict(self) -> dict:
         d = asdict(self)
         d["chi2_limit"] = None if math.isinf(self.chi2_limit) else float(self.chi2_limit)
+        d["consistency_limit"] = None if math.isinf(self.consistency_limit) else float(self.consistency_limit)
         return d
 
     @classmethod
     def from_dict(cls, d: dict) -> "Uncertainty":
         d = dict(d)
-        unknown = set(d) - {"tilt_std", "offset_std", "chi2_limit", "tilt_range_std", "offset_rel", "scale"}
+        unknown = set(d) - {"tilt_std", "offset_std", "chi2_limit", "tilt_range_std", "offset_rel", "scale",
+                            "consistency_limit"}
         if unknown:
             raise ValueError(f"unknown keys {', '.join(sorted(unknown))}")
-        if d.get("chi2_limit", None) is None:
-            d["chi2_limit"] = math.inf
+        for key in ("chi2_limit", "consistency_limit"):
+            if d.get(key, None) is None:
+                d[key] = math.inf
         return cls(**{k: float(v) for k, v in d.items()})
 
 

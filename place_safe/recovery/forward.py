@@ -24,6 +24,7 @@ and differentiable in the plane, reflectance and every camera parameter.
 from __future__ import annotations
 
 import math
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
@@ -69,6 +70,8 @@ FORWARD_BOUNDS: dict[str, Bound] = {
     "pulse_soft_bin": Bound(0.0, 1.0, "(blend: 0 linear interpolation, 1 Gaussian soft binning)"),
     "saturate_shading": Bound(0.0, 1.0, "(blend: 1 saturate the shaded intensity, 0 the unshaded term)"),
     "crosstalk_self": Bound(0.0, 1.0, "(blend: 1 crosstalk includes the zone itself)"),
+    "baseline": Bound(-0.02, 0.02, "m (emitter x, y in the optical frame)", length=2),
+    "beam_power": Bound(0.0, 20.0, "(emitter profile cos^beam_power)"),
 }
 
 
@@ -107,6 +110,13 @@ class ForwardParams:
     published code); crosstalk adds ``crosstalk * (total - (1 - crosstalk_self) h)``. The defaults
     (0, 1, 0) are the model as it was.
 
+    Emitter-receiver baseline: the receiver is at the origin, the emitter at ``(bx, by, 0)`` =
+    ``baseline`` (m). A ray's return then travels ``r_e + r`` (``r_e`` = |P - E|, the bin position uses
+    half of it), its irradiance falls with ``r_e^2`` instead of ``r^2``, the Lambert cosine is the light's
+    ``(d - n . E) / r_e`` and the emitter's profile ``(P_z / r_e)^beam_power`` weights it. Close up
+    this tilts the illumination of the zones' footprints; far away it is the co-located model times a
+    per-direction beam weight. ``baseline = (0, 0)``, ``beam_power = 0`` is the paper's model exactly.
+
     Units: ``bin_offset``, ``soft_bin_sigma``, ``tail_decay`` and ``zone_offsets`` in bins; ``bin_size`` in metres
     of one-way range per bin; ``ref_floor`` and ``floor`` in counts; the rest dimensionless.
     """
@@ -139,6 +149,10 @@ class ForwardParams:
     pulse_soft_bin: float = 0.0     # 0: reference rescaled by linear interpolation; 1: Gaussian soft binning
     saturate_shading: float = 1.0   # 1: SPAD saturation of the shaded intensity; 0: of the unshaded term
     crosstalk_self: float = 0.0     # 0: a zone leaks into the others; 1: into all zones, itself included
+    # The emitter beside the receiver (what dominates close up): its position (m) in the optical frame and its
+    # angular profile. Defaults (co-located, uniform) are the paper's model.
+    baseline: list[float] = field(default_factory=lambda: [0.0, 0.0])
+    beam_power: float = 0.0
 
     def __post_init__(self) -> None:
         check_dataclass(self, FORWARD_BOUNDS, "forward parameters", CalibrationError)
@@ -148,6 +162,7 @@ class ForwardParams:
         d["zone_offsets"] = [float(v) for v in self.zone_offsets]
         d["zone_gains"] = [float(v) for v in self.zone_gains]
         d["mount_tilt"] = [float(v) for v in self.mount_tilt]
+        d["baseline"] = [float(v) for v in self.baseline]
         return d
 
     @classmethod
@@ -404,7 +419,7 @@ class ForwardModel:
                        specular_weight: torch.Tensor | None = None,
                        specular_exponent: torch.Tensor | None = None,
                        hit: torch.Tensor | None = None, kernel: torch.Tensor | None = None,
-                       n_bins: int = N_BINS) -> torch.Tensor:
+                       n_bins: int = N_BINS, light: tuple | None = None) -> torch.Tensor:
         """Histograms (B, 9, n_bins) from per-ray returns (the first ``n_bins`` bins; default all 128).
 
         ranges, cos_inc: (B, 9, R) range along the ray (m) and cosine of incidence (>= 0).
@@ -412,6 +427,9 @@ class ForwardModel:
         (default: the model's parameters). weights: (9, R) or (B, 9, R) quadrature weights summing
         to 1 per zone (default: this model's rays). hit: (B, 9, R) bool, False for rays that miss.
         reference: (B, 128) reference histograms, or pass a precomputed pulse ``kernel`` (B, K).
+        light: optional ``(emitter_ranges, light_cos, beam)`` (B, 9, R) of a separate emitter
+        (:meth:`plane_light`); without it the emitter sits at the receiver (the ray's own range and cosine,
+        a uniform beam).
         """
         t = self.t
         r = torch.as_tensor(ranges, dtype=self.dtype)
@@ -420,6 +438,10 @@ class ForwardModel:
         ks = t["specular_weight"] if specular_weight is None else _per_ray(specular_weight, r)
         alpha = t["specular_exponent"] if specular_exponent is None else _per_ray(specular_exponent, r)
         rho = _per_ray(albedo, r)
+        r_light, beam = r, None
+        if light is not None:
+            r_light, c, beam = light
+            c = torch.clamp(c, min=0.0)
         spec = torch.clamp(2.0 * c * c - 1.0, min=0.0)
         # pow with a zero base has an infinite derivative in the exponent at 0; keep it finite
         spec = torch.where(spec > 0, torch.pow(torch.clamp(spec, min=1e-30), alpha), torch.zeros_like(spec))
@@ -427,14 +449,18 @@ class ForwardModel:
         s = t["saturation"]
         w_sat = t["saturate_shading"]
         g = self.zone_gains().view(1, N_ZONES, 1)
-        r_safe = torch.clamp(r, min=1e-4)
-        photons = s * -torch.expm1(-g * rho * shade ** w_sat / (s * r_safe * r_safe)) * shade ** (1.0 - w_sat)
+        r_safe = torch.clamp(r_light, min=1e-4)
+        flux = g * rho * shade ** w_sat / (s * r_safe * r_safe)
+        if beam is not None:
+            flux = flux * beam
+        photons = s * -torch.expm1(-flux) * shade ** (1.0 - w_sat)
         w = self.ray_geometry()[1] if weights is None else torch.as_tensor(weights, dtype=self.dtype)
         w = w.expand_as(photons) if w.dim() == 2 else w
         amp = photons * w * float(self.params.rays_per_zone)
         if hit is not None:
             amp = amp * torch.as_tensor(hit, dtype=self.dtype)
-        u = r / t["bin_size"] + t["bin_offset"] + t["zone_offsets"].view(1, N_ZONES, 1)
+        path = r if light is None else 0.5 * (r + r_light)  # one-way range: half the light's path
+        u = path / t["bin_size"] + t["bin_offset"] + t["zone_offsets"].view(1, N_ZONES, 1)
         sigma = t["soft_bin_sigma"]
         z = (self.bins[:n_bins].view(1, 1, 1, n_bins) - u.unsqueeze(-1)) / sigma
         transient = torch.einsum("bzr,bzrn->bzn", amp, torch.exp(-0.5 * z * z)) / (sigma * _SQRT_2PI)
@@ -457,6 +483,29 @@ class ForwardModel:
         ranges = d.view(-1, 1, 1) / torch.where(hit, cos, torch.ones_like(cos))
         return ranges, cos, hit
 
+    def plane_light(self, normal: torch.Tensor, offset: torch.Tensor, ranges: torch.Tensor,
+                    hit: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
+        """Emitter range, light cosine and beam weight (B, 9, R) of this model's rays on planes, or None
+        when the emitter sits at the receiver with a uniform beam (the paper's model; nothing to add).
+
+        The ray meets the plane at ``P = r v``; the emitter is at ``E = (bx, by, 0)``:
+        ``r_e = |P - E|``, ``cos = (d - n . E) / r_e``, ``beam = (P_z / r_e)^beam_power``.
+        """
+        t = self.t
+        if not torch.is_grad_enabled() and not bool(torch.any(t["baseline"] != 0)) and float(t["beam_power"]) == 0.0:
+            return None
+        n = torch.as_tensor(normal, dtype=self.dtype)
+        d = torch.as_tensor(offset, dtype=self.dtype)
+        v = self.ray_geometry()[0]  # (9, R, 3)
+        bx, by = t["baseline"][0], t["baseline"][1]
+        r = torch.where(hit, ranges, torch.ones_like(ranges))
+        w_e = v[..., 0] * bx + v[..., 1] * by  # (9, R)
+        r_e = torch.sqrt(torch.clamp(r * r - 2.0 * r * w_e + bx * bx + by * by, min=1e-12))
+        n_e = n[:, 0] * bx + n[:, 1] * by  # (B,)
+        cos = (d - n_e).view(-1, 1, 1) / r_e
+        beam = torch.pow(torch.clamp(r * v[..., 2] / r_e, min=1e-12), t["beam_power"])
+        return r_e, cos, beam
+
     def render_plane(self, normal: torch.Tensor, offset: torch.Tensor, albedo: torch.Tensor,
                      reference: torch.Tensor, specular_weight: torch.Tensor | None = None,
                      specular_exponent: torch.Tensor | None = None,
@@ -464,7 +513,26 @@ class ForwardModel:
         """Histograms (B, 9, n_bins) of planes ``n . x = d`` with albedo (B,)."""
         ranges, cos, hit = self.plane_returns(normal, offset)
         return self.render_returns(ranges, cos, albedo, reference, specular_weight=specular_weight,
-                                   specular_exponent=specular_exponent, hit=hit, kernel=kernel, n_bins=n_bins)
+                                   specular_exponent=specular_exponent, hit=hit, kernel=kernel, n_bins=n_bins,
+                                   light=self.plane_light(normal, offset, ranges, hit))
+
+
+@contextmanager
+def single_thread():
+    """Run small torch computations on one thread (restored afterwards).
+
+    Tensors of a frame's pulse are tiny; torch's intra-op thread pool only adds hand-over waits, and on a
+    busy machine (two cores shared with other work) those waits cost 20 ms a call instead of 0.3 ms.
+    """
+    n = torch.get_num_threads()
+    if n == 1:
+        yield
+        return
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(n)
 
 
 def _per_ray(value, like: torch.Tensor) -> torch.Tensor:

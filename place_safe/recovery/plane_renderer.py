@@ -19,6 +19,10 @@ Chain of the derivatives, per ray with direction ``v``::
     u = r / bin_size + bin_offset + zone_offset
     T(bin) = sum_rays w p G(bin - u),      G = Gaussian of soft_bin_sigma
     F = crosstalk-mix(T * pulse),   H = pile-up(F)   (mix: h + c (total - (1 - crosstalk_self) h))   (Coates; identity when ``pileup = 0``)
+
+With the emitter at ``E = (bx, by, 0)`` (``baseline``) the light's range ``r_e = |r v - E|`` replaces ``r`` in
+the inverse square, ``c = (z0 - a bx - b by) / (s r_e)`` is the light's cosine, the flux is weighted by the
+beam ``(r v_z / r_e)^beam_power`` and ``u`` uses the one-way range ``(r + r_e) / 2``.
 """
 
 from __future__ import annotations
@@ -63,6 +67,10 @@ class PlaneRenderer:
         self.zone_albedo = zone_albedo
         self.n_unknowns = N_UNKNOWNS + (N_ZONES - 1 if zone_albedo else 0)
         self.gnorm = 1.0 / (params.soft_bin_sigma * math.sqrt(2.0 * math.pi))
+        # the emitter beside the receiver (ForwardModel.plane_light); None: co-located, uniform beam
+        bx, by = (float(v) for v in params.baseline)
+        self.light = None if (bx == 0.0 and by == 0.0 and params.beam_power == 0.0) else (
+            bx, by, self.dirs[..., 0] * bx + self.dirs[..., 1] * by, float(params.beam_power))
 
     def render(self, x: np.ndarray, conv: np.ndarray, jacobian: bool = False):
         """Histograms (B, 9, W) for unknowns x (B, 6) and convolution matrices (B, W, W).
@@ -84,7 +92,16 @@ class PlaneRenderer:
         hit = q > 1e-6
         qs = np.where(hit, q, 1.0)
         r = np.maximum(z0 / qs, 1e-4)
-        c = np.clip(qs / s, 0.0, 1.0)
+        if self.light is None:
+            c = np.clip(qs / s, 0.0, 1.0)
+            r_e, beam = r, 1.0
+        else:  # light from the emitter E = (bx, by, 0): range r_e = |r v - E|, cosine (z0 - a bx - b by) / (s r_e)
+            bx, by, w_e, bp = self.light
+            r_e = np.sqrt(np.maximum(r * r - 2.0 * r * w_e + bx * bx + by * by, 1e-12))
+            num = z0 - a * bx - b * by
+            c_raw = num / (s * r_e)
+            c = np.maximum(c_raw, 0.0)
+            beam = np.maximum(r * vz / r_e, 1e-12) ** bp
         S = np.maximum(2.0 * c * c - 1.0, 0.0)
         pos = S > 0
         Ssafe = np.where(pos, S, 1.0)
@@ -92,14 +109,14 @@ class PlaneRenderer:
         sh = np.maximum(c + ks * Sa, 1e-12)            # shading
         wsat = p.saturate_shading
         sat = p.saturation
-        r2 = r * r
+        r2 = r_e * r_e
         shw = sh if wsat == 1.0 else sh ** wsat
         rest = 1.0 if wsat == 1.0 else sh ** (1.0 - wsat)
-        E = self.gain * rho * shw / (sat * r2)
+        E = self.gain * rho * shw * beam / (sat * r2)
         e = np.exp(-E)
         pp = sat * (1.0 - e)                            # saturated part
         amp = self.amp_weight * pp * rest * hit          # (B, 9, R)
-        u = r / p.bin_size + p.bin_offset + self.offsets
+        u = (r if self.light is None else 0.5 * (r + r_e)) / p.bin_size + p.bin_offset + self.offsets
         width = conv.shape[-1]
         t = np.arange(width)[None, None, None, :] - u[..., None]          # (B, 9, R, W)
         G = np.exp(-0.5 * self.inv_sigma2 * t * t) * self.gnorm
@@ -116,20 +133,35 @@ class PlaneRenderer:
             return H
         # per-ray partial derivatives of amp
         aw = self.amp_weight * hit
-        dp_dr = aw * sat * e * (-2.0 * E / r) * rest
         dp_dlogrho = aw * sat * e * E * rest
         dp_dsh = aw * (sat * e * E * wsat / sh * rest + (0.0 if wsat == 1.0 else pp * (1.0 - wsat) * sh ** -wsat))
         dsh_dc = 1.0 + np.where(pos, ks * alpha * Sa / Ssafe * 4.0 * c, 0.0)
         dr = [-z0 * vx / (qs * qs), -z0 * vy / (qs * qs), 1.0 / qs + 0 * vx]       # d r / d (a, b, z0)
-        dc = [vx / s - qs * a / s ** 3, vy / s - qs * b / s ** 3, 0.0 * vx]      # d c / d (a, b, z0)
+        if self.light is None:
+            dp_dr = aw * sat * e * (-2.0 * E / r) * rest
+            dc = [vx / s - qs * a / s ** 3, vy / s - qs * b / s ** 3, 0.0 * vx]      # d c / d (a, b, z0)
+            du = [dr[k] / p.bin_size for k in range(3)]
+        else:
+            inside = c_raw > 0.0  # the clamp's derivative
+            dre_dr = (r - w_e) / r_e
+            dre = [dre_dr * dr[k] for k in range(3)]
+            # d log(flux) / d x: inverse square in r_e and the beam (P_z / r_e)^bp
+            dlog = [-2.0 * dre[k] / r_e + bp * (dr[k] / r - dre[k] / r_e) for k in range(3)]
+            dnum = [-bx + 0 * vx, -by + 0 * vx, 1.0 + 0 * vx]
+            ds = [a / s, b / s, 0.0]
+            dc = [np.where(inside, dnum[k] / (s * r_e) - c_raw * (ds[k] / s + dre[k] / r_e), 0.0) for k in range(3)]
+            du = [0.5 * (dr[k] + dre[k]) / p.bin_size for k in range(3)]
+            dp_dr = None
+        dp_dlogflux = aw * sat * e * E * rest
         logS = np.where(pos, np.log(Ssafe), 0.0)
         dsh = [None, None, None, None, Sa, ks * Sa * logS * alpha]                # d sh / d x4, x5
         nu = self.n_unknowns
         A = np.zeros(amp.shape + (nu,))   # d amp / d x
         B = np.zeros(amp.shape + (nu,))   # amp * d u / d x
         for k in range(3):
-            A[..., k] = dp_dr * dr[k] + dp_dsh * dsh_dc * dc[k]
-            B[..., k] = amp * dr[k] / p.bin_size
+            dp_geo = dp_dr * dr[k] if dp_dr is not None else dp_dlogflux * dlog[k]
+            A[..., k] = dp_geo + dp_dsh * dsh_dc * dc[k]
+            B[..., k] = amp * du[k]
         if self.zone_albedo:
             zones = np.arange(N_ZONES)
             A[:, zones, :, 3 + zones] = dp_dlogrho.transpose(1, 0, 2)

@@ -118,6 +118,19 @@ def test_chi_square_fallback_returns_the_peak_estimate(frames):
         assert s.residual == pytest.approx(l.residual)  # diff's residual is what failed the test
 
 
+def test_consistency_fallback_when_peak_contradicts_diff(frames):
+    """Convention check: diff falls back to peak when the two estimates differ by more than the consistency
+    limit allows under their covariances; a limit no honest pair exceeds keeps diff."""
+    from place_safe.recovery.estimator import Uncertainty
+
+    tiny = DifferentiableEstimator(uncertainty=Uncertainty(consistency_limit=1e-12))
+    wide = DifferentiableEstimator(uncertainty=Uncertainty(consistency_limit=1e12))
+    for f in frames[:3]:
+        t, w = tiny.estimate(f), wide.estimate(f)
+        assert t.method_used == "peak" and t.plane is not None
+        assert w.method_used == "diff"
+
+
 def test_covariance_is_symmetric_positive_and_shrinks_with_signal():
     """Convention check: the fit covariance of (n_x, n_y, d) is a valid covariance, and a brighter surface
     (more photons, less shot noise) gives a smaller one."""

@@ -31,6 +31,11 @@ def test_uncertainty_round_trip_and_defaults():
     u = Uncertainty(tilt_std=0.001, offset_std=1e-4, chi2_limit=4.0, tilt_range_std=1e-4, offset_rel=0.001, scale=1.2)
     assert Uncertainty.from_dict(json.loads(json.dumps(u.to_dict()))) == u
     assert Uncertainty.from_dict({"chi2_limit": None}).chi2_limit == math.inf
+    c = Uncertainty(consistency_limit=16.27)
+    assert Uncertainty.from_dict(json.loads(json.dumps(c.to_dict()))) == c
+    assert Uncertainty.from_dict({"consistency_limit": None}).consistency_limit == math.inf
+    with pytest.raises(ValueError):
+        Uncertainty(consistency_limit=0.0)
     assert np.all(Uncertainty().apply(np.eye(3), 0.1) == np.eye(3))  # defaults add nothing
     with pytest.raises(ValueError):
         Uncertainty(tilt_std=-1.0)

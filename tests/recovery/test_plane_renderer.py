@@ -60,3 +60,12 @@ def test_matches_torch_model_with_structural_choices():
         p = ForwardParams(saturate_shading=w_sat, crosstalk_self=xt_self, pulse_soft_bin=soft, crosstalk=0.02,
                           pileup=1e-7)
         _check(p, np.array([0.2, 0.1, 0.05, math.log(4.0), 0.2, math.log(2.0)]))
+
+
+def test_matches_torch_model_with_emitter_baseline():
+    """The emitter beside the receiver (its range, cosine and beam profile) is rendered and differentiated
+    exactly as in the torch model, close up (where it matters) and with the other extensions on."""
+    p = ForwardParams(baseline=[0.003, -0.0015], beam_power=1.7, pileup=1e-7, saturate_shading=0.4,
+                      edge_fov_scale=0.95, crosstalk=0.01)
+    _check(p, np.array([0.2, -0.1, 0.03, math.log(2.0), 0.1, math.log(2.0)]))
+    _check(p, np.array([-0.35, 0.3, 0.15, math.log(4.0), 0.2, math.log(1.5)]))
