@@ -38,7 +38,11 @@ def test_degrees_start_height_and_sensor_sections_become_si(tmp_path):
     cfg = sc.scene_config()
     assert cfg.table.tilt == pytest.approx(math.radians(4.9))
     assert cfg.table.tilt_direction == pytest.approx(math.pi / 2)
-    assert home_cup_position(cfg)[2] - cfg.table.height == pytest.approx(0.2)
+    # start_height is measured along the vertical under the cup, on the tilted top
+    cup, t = home_cup_position(cfg), cfg.table
+    n = (math.sin(t.tilt) * math.cos(t.tilt_direction), math.sin(t.tilt) * math.sin(t.tilt_direction), math.cos(t.tilt))
+    under = t.height - (n[0] * (cup[0] - t.center[0]) + n[1] * (cup[1] - t.center[1])) / n[2]
+    assert cup[2] - under == pytest.approx(0.2)
     tof = sc.sensor.tof_config(seed=99)
     assert tof.seed == 5 and tof.drop_prob == 0.1  # the scenario's own seed is kept
     assert sc.name == "s"
