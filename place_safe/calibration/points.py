@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import sys
+from dataclasses import replace
 from typing import Any, Sequence
 
 import numpy as np
@@ -257,21 +258,114 @@ def _initial_linear(readings: np.ndarray, valid: np.ndarray, frames: Sequence[Fr
     return PeakParams(float(m), float(b), like.edge_scale, like.corner_scale)
 
 
+#: 1/counts: SPAD pile-up values tried by :func:`fit_pileup` (0, then a log grid around the TMF8820's ~3e-7).
+PILEUP_GRID = (0.0, 3e-8, 1e-7, 2e-7, 3e-7, 5e-7, 1e-6, 2e-6)
+
+
+def fit_pileup(hists: np.ndarray, frames: Sequence[Frame], like: PeakParams, grid: Sequence[float] = PILEUP_GRID,
+               residual_degree: int = 3, harmonics: int = 2) -> tuple[float, dict[str, float]]:
+    """The SPAD pile-up (1/counts) that calibrates the peak method best on ``frames`` (histograms (F, 9, 128)).
+
+    For each candidate the peaks are found after :func:`~place_safe.sensor.histogram.undo_pileup`, the
+    linear part of the mapping is fitted (:func:`fit_linear`, ``like``'s direction scales) and the mean
+    point error taken; the best grid value is refined by a bounded search between its neighbours (in
+    log pile-up). Returns the value and the point error (mm) of every candidate tried. Pile-up moves
+    bright zones' peaks earlier than dark ones', so it is identified by brightness differing at the same
+    range (tilt, albedo, zone gains), not by range alone: the range correction absorbs a common shift.
+    """
+    from scipy.optimize import minimize_scalar
+
+    from place_safe.sensor.histogram import find_peaks
+
+    tn, td = _truth_arrays(frames)
+    tried: dict[float, float] = {}
+
+    def cost(k: float) -> float:
+        if k not in tried:
+            readings, valid, _ = find_peaks(hists, k)
+            keep = valid.sum(1) >= 3
+            p = None
+            if keep.sum() >= 3:
+                p = fit_linear(like.edge_scale, like.corner_scale, readings[keep], valid[keep], tn[keep], td[keep],
+                               residual_degree, harmonics)
+            tried[k] = math.inf if p is None else _mean_point_error(p, readings[keep], valid[keep], tn[keep], td[keep])
+        return tried[k]
+
+    values = sorted(float(k) for k in grid)
+    errs = [cost(k) for k in values]
+    i = int(np.argmin(errs))
+    best = values[i]
+    if best > 0.0 and math.isfinite(errs[i]):
+        lo = values[i - 1] if i > 0 and values[i - 1] > 0 else best / 3.0
+        hi = values[i + 1] if i + 1 < len(values) else best * 3.0
+        res = minimize_scalar(lambda u: cost(float(math.exp(u))), bounds=(math.log(lo), math.log(hi)),
+                              method="bounded", options={"xatol": 0.05})
+        k = float(math.exp(res.x))
+        if cost(k) < cost(best):
+            best = k
+    if not math.isfinite(cost(best)):
+        best = 0.0
+    return best, {f"{k:.3g}": v * 1e3 for k, v in sorted(tried.items())}
+
+
 def fit_peak(frames: Sequence[Frame], init: PeakParams | None = None, progress: bool = True,
              min_range: float = MIN_CALIBRATION_RANGE, residual_degree: int = 3, harmonics: int = 2,
-             fit_offsets: bool = True, paper: bool = False) -> tuple[PeakParams, dict]:
+             fit_offsets: bool = True, paper: bool = False, pileup: float | None = None) -> tuple[PeakParams, dict]:
     """Calibrate the peak method on frames with ground truth; returns the parameters and a report.
 
     Frames closer than ``min_range`` (m) and frames without a usable return are left out. With
-    With ``paper=True`` this is the paper's calibration (Nelder-Mead over m, b, s_e, s_c only).
+    ``paper=True`` this is the paper's calibration (Nelder-Mead over m, b, s_e, s_c only, no pile-up).
+    ``pileup`` (1/counts): the SPAD pile-up to undo before finding peaks; None fits it
+    (:func:`fit_pileup`), 0 turns the correction off.
     """
     from place_safe.recovery.peak import find_peaks
 
     use = _calibration_frames(frames, min_range)
     hists = np.array([np.asarray(f.hists, dtype=float) for f in use])
-    readings, valid, _ = find_peaks(hists)
-    return _fit_readings("peak", "returns", use, readings, valid, init, PeakParams.default_peak(), progress,
-                         residual_degree, harmonics, fit_offsets, paper, min_range)
+    search: dict[str, float] = {}
+    if paper:
+        k = 0.0
+    elif pileup is None:
+        like = init if init is not None else PeakParams.default_peak()
+        k, search = fit_pileup(hists, use, like, residual_degree=residual_degree, harmonics=harmonics)
+    else:
+        k = float(pileup)
+    readings, valid, _ = find_peaks(hists, k)
+    params, report = _fit_readings("peak", "returns", use, readings, valid, init, PeakParams.default_peak(), progress,
+                                   residual_degree, harmonics, fit_offsets, paper, min_range)
+    params = replace(params, pileup=k)
+    report["params"] = params.to_dict()
+    report["pileup"] = {"value": k, "fitted": pileup is None and not paper,
+                        "linear_fit_point_error_mm": search}
+    return params, report
+
+
+#: A pile-up from the forward fit replaces the peak method's own choice unless it makes the peak
+#: calibration's mean point error worse than this factor (a level sweep of one material does not
+#: identify pile-up from point errors alone; the histogram shapes the forward fit sees do).
+PILEUP_ADOPT_TOLERANCE = 1.1
+
+
+def adopt_pileup(frames: Sequence[Frame], params: PeakParams, report: dict, pileup: float,
+                 progress: bool = False) -> tuple[PeakParams, dict, bool]:
+    """Refit the peak method with the pile-up ``pileup`` (1/counts) that the forward model's fit found.
+
+    Pile-up makes bright zones read near (see :func:`~place_safe.sensor.histogram.undo_pileup`). Point
+    errors identify it only when brightness varies at the same range; the forward fit identifies it from
+    the histograms' shapes. The refit is kept unless its mean point error on ``frames`` exceeds
+    ``params``' by more than :data:`PILEUP_ADOPT_TOLERANCE`. Returns (parameters, report, adopted)."""
+    k = float(pileup)
+    if not (math.isfinite(k) and k > 0.0) or abs(k - params.pileup) <= 1e-3 * k:
+        return params, report, False
+    new, new_report = fit_peak(frames, progress=progress, pileup=k)
+    before = report.get("after", {}).get("point_mean_mm", math.inf)
+    after = new_report.get("after", {}).get("point_mean_mm", math.inf)
+    adopted = bool(after <= PILEUP_ADOPT_TOLERANCE * before)
+    chosen, chosen_report = (new, new_report) if adopted else (params, report)
+    chosen_report = dict(chosen_report)
+    chosen_report["pileup_from_forward"] = {"value": k, "adopted": adopted, "point_mean_mm_own": before,
+                                            "point_mean_mm_with_forward_pileup": after}
+    return chosen, chosen_report, adopted
 
 
 def _fit_readings(method: str, what: str, use: list[Frame], readings: np.ndarray, valid: np.ndarray,

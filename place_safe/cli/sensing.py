@@ -66,6 +66,16 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         params, report = fit_forward(frames, init=None, progress=progress)
         from place_safe.calibration.forward_fit import fit_range_correction, select_model_error
 
+        if "peak" in fitted:  # the forward fit sees pile-up in the histograms' shapes: the peak method undoes it
+            from place_safe.calibration.points import adopt_pileup
+
+            peak, peak_report, adopted = adopt_pileup(frames, cal.peak(), cal.reports["peak"], params.pileup)
+            cal.reports["peak"] = _jsonable(peak_report)
+            if adopted:
+                cal.sections["peak"] = peak.to_dict()
+                if not args.quiet:
+                    _log(f"peak: undoing the forward fit's SPAD pile-up ({params.pileup:.3g} per count)")
+
         params.model_error, report["model_error"] = select_model_error(frames, params, cal.peak(), progress=progress)
         cal.errors.pop("forward", None)
         cal.sections["forward"] = params.to_dict()

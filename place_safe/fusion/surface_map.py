@@ -212,7 +212,7 @@ class SurfaceMap:
             return None
         if h.shape != (N_ZONES, N_BINS) or T.shape != (4, 4) or not np.all(np.isfinite(T)):
             return None
-        pos, valid, _ = find_peaks(h)
+        pos, valid, _ = find_peaks(h, self.params.pileup)
         valid = valid & np.isfinite(pos)
         with np.errstate(invalid="ignore"):
             pts = self.params.points(np.where(valid, pos, 0.0))

@@ -61,6 +61,7 @@ PEAK_BOUNDS: dict[str, Bound] = {
     "residual_domain": Bound(0.0, 10.0, "m", length=2),
     "phase_coeffs": Bound(-10.0, 10.0, "reading units"),
     "zone_gains": Bound(0.0, 10.0, "(relative, mean 1)", lo_open=True, length=N_ZONES),
+    "pileup": Bound(0.0, 1e-3, "1/counts"),
 }
 #: Fixed-point iterations inverting ``m r + c(r) = x`` (c changes by far less than m per metre).
 RANGE_ITERATIONS = 3
@@ -71,7 +72,9 @@ class PeakParams:
     """Reading-to-point mapping of the peak and on-sensor-distance methods (see module doc).
 
     ``m``: reading units per metre; ``b``, ``zone_offsets`` (9), ``residual_coeffs``: reading units;
-    ``edge_scale``, ``corner_scale``: dimensionless; ``residual_domain``: (lo, hi) metres.
+    ``edge_scale``, ``corner_scale``: dimensionless; ``residual_domain``: (lo, hi) metres;
+    ``pileup``: 1/counts, the SPAD pile-up undone before the peak is found
+    (:func:`place_safe.sensor.histogram.undo_pileup`; 0: none, and always 0 for on-sensor distances).
     """
 
     m: float
@@ -83,6 +86,7 @@ class PeakParams:
     residual_domain: list[float] = field(default_factory=lambda: [0.0, 1.0])
     phase_coeffs: list[float] = field(default_factory=list)
     zone_gains: list[float] = field(default_factory=lambda: [1.0] * N_ZONES)
+    pileup: float = 0.0
 
     def __post_init__(self) -> None:
         check_dataclass(self, PEAK_BOUNDS, "peak parameters", CalibrationError)

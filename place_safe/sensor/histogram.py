@@ -3,7 +3,9 @@
 * :data:`COUNT_MAX`: the TMF8820's histogram bins are 24-bit counters; a bin at this value is clipped.
 * :data:`FLOOR_BINS` / :func:`measure_floor`: the late bins where no return of a surface within the
   sensor's range lands (beyond ~1.3 m); their median is the per-zone floor (ambient and dark counts).
-* :func:`find_peaks`: the calibrated ``peak`` method's sub-bin peak of each zone (cubic spline).
+* :func:`find_peaks`: the calibrated ``peak`` method's sub-bin peak of each zone (cubic spline),
+  optionally after :func:`undo_pileup`.
+* :func:`undo_pileup`: the Coates correction of SPAD pile-up (a bright return arrives early).
 * :func:`first_return`: the first return above the noise, as the sensor's own firmware reports a
   distance (used to emulate on-sensor distances).
 
@@ -11,6 +13,8 @@ Histograms are arrays ``(..., 9, 128)`` of counts (zones 1..9 in reporting order
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 from scipy.interpolate import CubicSpline
@@ -42,18 +46,51 @@ _FINE = np.linspace(-1.0, 1.0, 2 * SUBBIN_STEPS + 1)
 _SPLINE = CubicSpline(_KNOTS, np.eye(len(_KNOTS)), axis=0)(_FINE)
 
 
-def find_peaks(hists: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+#: Largest fraction of the laser cycles x detectors that :func:`undo_pileup` lets the counts before a
+#: bin use up (the correction diverges at 1: no detector left to record anything).
+PILEUP_MAX_FRACTION = 0.95
+
+
+def undo_pileup(net: np.ndarray, pileup: float) -> np.ndarray:
+    """Floor-subtracted counts (..., 128) with SPAD pile-up undone (Coates' correction).
+
+    A SPAD records at most one photon per laser cycle, so a photon arriving in bin ``i`` is counted
+    only when none arrived earlier in that cycle: expected recorded counts are
+    ``m_i = (1 - exp(-k h_i)) / k * exp(-k H_i)`` for true counts ``h`` with ``H_i`` the true counts
+    before bin ``i`` and ``k = pileup`` (1/counts: one over laser cycles x detectors; the forward
+    model's :func:`~place_safe.recovery.forward.apply_pileup`). Summing telescopes to
+    ``M_i = (1 - exp(-k H_i)) / k`` for the recorded counts before bin ``i``, hence
+    ``H_i = -log(1 - k M_i) / k`` and ``h_i = H_{i+1} - H_i``. Pile-up moves a bright return's peak
+    earlier (up to a bin and more at a few centimetres on white), by an amount that differs between
+    zones that see different brightness: a tilt the surface does not have. Negative net counts count
+    as 0; ``k M`` is capped at :data:`PILEUP_MAX_FRACTION`. ``pileup = 0`` returns ``net`` unchanged.
+    """
+    x = np.asarray(net, dtype=float)
+    k = float(pileup)
+    if not (math.isfinite(k) and k >= 0.0):
+        raise ValueError(f"pileup must be a finite number >= 0 (1/counts), got {pileup!r}")
+    if k == 0.0:
+        return x
+    recorded = np.cumsum(np.maximum(x, 0.0), axis=-1)
+    before = np.concatenate([np.zeros(x.shape[:-1] + (1,)), recorded], axis=-1)
+    true_before = -np.log1p(-np.minimum(k * before, PILEUP_MAX_FRACTION)) / k
+    return np.diff(true_before, axis=-1) + np.minimum(x, 0.0)
+
+
+def find_peaks(hists: np.ndarray, pileup: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Sub-bin peak positions (..., 9) in bins, return mask (..., 9) and saturation mask (..., 9).
 
     ``hists`` is (..., 9, 128) counts (any leading shape). Zones without a return, or clipped, or
-    with non-finite counts, are False in the mask and NaN in the positions.
+    with non-finite counts, are False in the mask and NaN in the positions. ``pileup`` (1/counts,
+    calibrated: :attr:`place_safe.recovery.points.PeakParams.pileup`): undo SPAD pile-up of the
+    floor-subtracted counts first (:func:`undo_pileup`); 0 leaves them as recorded.
     """
     h = np.asarray(hists, dtype=float)
     finite = np.all(np.isfinite(h), axis=-1)
     h = np.where(np.isfinite(h), h, 0.0)
     saturated = np.any(h >= COUNT_MAX, axis=-1)
     floor = np.minimum(np.median(h[..., :EARLY_BINS], axis=-1), np.median(h[..., -LATE_BINS:], axis=-1))
-    x = h - floor[..., None]
+    x = undo_pileup(h - floor[..., None], pileup)
     k = np.argmax(x[..., SEARCH_START:], axis=-1) + SEARCH_START
     top = np.take_along_axis(x, k[..., None], axis=-1)[..., 0]
     has_return = top > np.maximum(NOISE_SIGMAS * np.sqrt(np.maximum(floor, 0.0) + 1.0), MIN_NET_COUNTS)
