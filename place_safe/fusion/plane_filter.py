@@ -36,6 +36,17 @@ Conventions
   ``FusedPlane.tilt_std`` (rad) is the standard error of the fused normal's direction: the larger of
   ``sqrt(1 / sum(1 / var_i))`` (NaN without covariances) and the window's own spread over ``sqrt(n)``,
   so model disagreement the covariances do not know about still counts.
+* Memory of the normal: every plane accepted since the window last started (``reset``, or cleared after
+  ``max_consecutive_rejects``) is remembered (at most ``memory`` planes, for ``memory_age`` seconds).
+  A surface does not change its slope while the window follows it, and the frames from farther up
+  measure the slope better than those at a few centimetres (zones farther apart, less pile-up and
+  parallax), so once ``memory_frames`` planes are remembered and their inverse-variance weighted
+  normal lies within ``memory_gate`` of the window's own, that normal is the fused one (through the
+  window's anchor: the offset stays local and recent), and ``tilt_std`` is its standard error with the
+  memory counted as at most :data:`MEMORY_INDEPENDENT` independent planes (their errors are
+  correlated). ``FusedPlane.source`` says which: ``"memory"`` or ``"window"``. ``std_angle`` is
+  always the window's own spread about its own normal (the planarity check), ``std_offset`` the RMS
+  distance of its anchors from the fused plane.
 """
 
 from __future__ import annotations
@@ -58,6 +69,8 @@ MAD_TO_SIGMA = 1.4826
 MIN_SCALE_RAD = 1e-4
 MIN_SCALE_M = 1e-5
 _Z = np.array([0.0, 0.0, 1.0])
+#: The memory of the normal counts as at most this many independent planes in its standard error.
+MEMORY_INDEPENDENT = 10
 
 
 @dataclass(frozen=True)
@@ -75,6 +88,8 @@ class FusedPlane:
     anchor: np.ndarray | None = None  # (3,) fused anchor point on the plane (base frame)
     stamps: tuple[float, ...] = ()  # s, measurement times of the planes in the window (increasing)
     tilt_std: float = math.nan  # rad, standard error of the fused normal's direction (see module doc)
+    source: str = "window"  # where the normal comes from: "window" or "memory" (see module doc)
+    memory_n: int = 0  # planes remembered since the window last started
 
     def height_at(self, point: Any) -> float:
         """Signed distance (m) of ``point`` (base frame) above the plane (negative: below / behind it)."""
@@ -154,23 +169,35 @@ class PlaneFilter:
     min_frames: planes needed before :meth:`fused` answers and before the gates apply.
     max_consecutive_rejects: gate rejections in a row after which the window restarts.
     max_age: s; planes measured longer ago than this (relative to the newest time seen) are dropped.
+    memory: planes remembered for the normal (0: no memory, the window alone).
+    memory_frames: remembered planes needed before the memory's normal is used.
+    memory_gate: rad; the memory's normal is used only within this angle of the window's.
+    memory_age: s; remembered planes older than this (relative to the newest time seen) are forgotten.
     """
 
     def __init__(self, window: int = 7, angle_gate: float = math.radians(5.0), offset_gate: float = 0.01,
-                 min_frames: int = 3, max_consecutive_rejects: int = 5, max_age: float = 1.0) -> None:
+                 min_frames: int = 3, max_consecutive_rejects: int = 5, max_age: float = 1.0,
+                 memory: int = 300, memory_frames: int = 15, memory_gate: float = math.radians(1.5),
+                 memory_age: float = 30.0) -> None:
         if window < 1 or not (1 <= min_frames <= window) or max_consecutive_rejects < 1:
             raise ValueError("PlaneFilter needs window >= 1, 1 <= min_frames <= window, max_consecutive_rejects >= 1")
-        for name, v in (("angle_gate", angle_gate), ("offset_gate", offset_gate), ("max_age", max_age)):
+        if memory < 0 or memory_frames < 1:
+            raise ValueError("PlaneFilter needs memory >= 0 and memory_frames >= 1")
+        for name, v in (("angle_gate", angle_gate), ("offset_gate", offset_gate), ("max_age", max_age),
+                        ("memory_gate", memory_gate), ("memory_age", memory_age)):
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"PlaneFilter.{name} must be a positive finite number; got {v!r}")
         self.window, self.angle_gate, self.offset_gate = int(window), float(angle_gate), float(offset_gate)
         self.min_frames, self.max_consecutive_rejects = int(min_frames), int(max_consecutive_rejects)
         self.max_age = float(max_age)
+        self.memory, self.memory_frames = int(memory), int(memory_frames)
+        self.memory_gate, self.memory_age = float(memory_gate), float(memory_age)
         self.reset()
 
     def reset(self) -> None:
         """Forget every plane and counter."""
         self._items: deque[tuple[float, np.ndarray, np.ndarray, float]] = deque(maxlen=self.window)
+        self._memory: deque[tuple[float, np.ndarray, float]] = deque(maxlen=max(self.memory, 1))
         self._cache: FusedPlane | None = None
         self._dirty = True
         self.count = 0  # accepted since reset
@@ -215,7 +242,11 @@ class PlaneFilter:
                 if self.consecutive_rejects < self.max_consecutive_rejects:
                     return False
                 self._items.clear()  # the surface changed: start again from this plane
-        self._items.append((stamp, n, anchor, _direction_variance(estimate)))
+                self._memory.clear()
+        var = _direction_variance(estimate)
+        self._items.append((stamp, n, anchor, var))
+        if self.memory > 0:
+            self._memory.append((stamp, n, var))
         self.newest_accepted = stamp
         self._dirty = True
         self.count += 1
@@ -231,6 +262,9 @@ class PlaneFilter:
     def _expire(self, now: float) -> None:
         while self._items and self._items[0][0] < now - self.max_age:
             self._items.popleft()
+            self._dirty = True
+        while self._memory and self._memory[0][0] < now - self.memory_age:
+            self._memory.popleft()
             self._dirty = True
 
     # -- output --------------------------------------------------------------------------------
@@ -266,20 +300,50 @@ class PlaneFilter:
         w = w / w.sum()
         n = _unit(w @ N)
         anchor = w @ A
-        d = float(n @ anchor)
         ang_f = np.arccos(np.clip(N @ n, -1.0, 1.0))
-        res = A @ n - d
         # the spread is the plain RMS over every plane in the window: the robust weights pick the centre,
         # but a consistent minority of planes that disagree must show in the planarity check
         spread = float(np.sqrt(np.mean(ang_f**2)))
         tilt_std = spread / math.sqrt(len(self._items))
         if weighted:
             tilt_std = max(tilt_std, float(math.sqrt(1.0 / np.sum(1.0 / var))))
+        source = "window"
+        remembered = self._remembered()
+        if remembered is not None and _angle(remembered[0], n) <= self.memory_gate:
+            n, tilt_std = remembered
+            source = "memory"
+        d = float(n @ anchor)
+        res = A @ n - d
         self._cache = FusedPlane(n, d, _angle(n, _Z), spread, float(np.sqrt(np.mean(res**2))),
                                  len(self._items), float(stamps.max()), self.count, anchor,
-                                 tuple(float(s) for s in stamps), tilt_std)
+                                 tuple(float(s) for s in stamps), tilt_std, source, len(self._memory))
         self._dirty = False
         return self._cache
+
+
+    def _remembered(self) -> tuple[np.ndarray, float] | None:
+        """The memory's normal and its standard error (rad), or None with too few planes or variances.
+
+        Inverse-variance weighted mean of the remembered normals, refined by one Huber reweighting on
+        their angles from it; the standard error counts at most :data:`MEMORY_INDEPENDENT` planes and is
+        at least their weighted spread over the square root of that."""
+        if self.memory <= 0 or len(self._memory) < self.memory_frames:
+            return None
+        N = np.array([m[1] for m in self._memory])
+        var = np.array([m[2] for m in self._memory])
+        if not np.all(np.isfinite(var)):
+            return None
+        inv = 1.0 / var
+        n = _unit(inv @ N)
+        ang = np.arccos(np.clip(N @ n, -1.0, 1.0))
+        scale = max(MAD_TO_SIGMA * float(np.median(ang)), MIN_SCALE_RAD)
+        w = inv * np.minimum(1.0, HUBER_K * scale / np.maximum(ang, 1e-12))
+        n = _unit(w @ N)
+        ang = np.arccos(np.clip(N @ n, -1.0, 1.0))
+        k = min(len(N), MEMORY_INDEPENDENT)
+        spread = float(np.sqrt(np.sum(w * ang**2) / np.sum(w)))
+        formal = float(math.sqrt(len(N) / (k * np.sum(inv))))  # sqrt(1 / sum(1/var)) with n counted as k
+        return n, max(formal, spread / math.sqrt(k))
 
 
 def _direction_variance(estimate: Any) -> float:

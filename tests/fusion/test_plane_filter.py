@@ -183,3 +183,96 @@ def test_a_consistent_minority_of_disagreeing_planes_shows_in_the_spread():
         f.update(PlaneEstimate(sensor_plane(n, n @ np.array([0.4, 0.0, dz]), T)), T, 0.05 * i)
     fused = f.fused()
     assert math.degrees(fused.std_angle) > 1.5 or fused.std_offset > 0.003
+
+
+# -- memory of the normal ------------------------------------------------------------------------------
+def _tilted(deg: float, azimuth: float = 0.3) -> np.ndarray:
+    t = math.radians(deg)
+    return np.array([math.sin(t) * math.cos(azimuth), math.sin(t) * math.sin(azimuth), math.cos(t)])
+
+
+def _feed(filt, n_base, heights, t0=0.0, std_deg=0.1, with_cov=True, rng=None):
+    """Planes of the surface n . x = -0.05 seen from a descending sensor, each with tilt std ``std_deg``."""
+    rng = rng if rng is not None else np.random.default_rng(0)
+    t = t0
+    for h in heights:
+        T = looking_down([0.4, -0.1, -0.05 + h])
+        noisy = _unit_vec(n_base + rng.normal(0.0, math.radians(std_deg) / math.sqrt(2), 3) * [1, 1, 0])
+        cov = np.diag([math.radians(std_deg) ** 2] * 2 + [1e-8]) if with_cov else None
+        t += 1.0 / 30.0
+        filt.update(PlaneEstimate(sensor_plane(noisy, -0.05, T), covariance=cov), T, t)
+    return t
+
+
+def _unit_vec(v):
+    return np.asarray(v, float) / np.linalg.norm(v)
+
+
+def _deg_between(a, b):
+    return math.degrees(math.acos(min(1.0, abs(float(np.dot(a, b))))))
+
+
+def test_memory_keeps_the_slope_seen_from_farther_up():
+    """Far planes measure 4.0 deg well; the last planes, close up, read 0.9 deg too steep (a close-range
+    bias): the fused normal is the memory's, near 4.0 deg, and says so."""
+    filt = PlaneFilter()
+    t = _feed(filt, _tilted(4.0), np.linspace(0.30, 0.10, 60), std_deg=0.1)
+    _feed(filt, _tilted(4.9), [0.07] * 7, t0=t, std_deg=0.3)
+    f = filt.fused()
+    assert f.source == "memory" and f.memory_n == 67
+    assert abs(math.degrees(f.tilt_rad) - 4.0) < 0.15
+    assert math.degrees(f.std_angle) < 0.3  # the window's own spread, about its own normal
+    window_only = PlaneFilter(memory=0)
+    t = _feed(window_only, _tilted(4.0), np.linspace(0.30, 0.10, 60), std_deg=0.1)
+    _feed(window_only, _tilted(4.9), [0.07] * 7, t0=t, std_deg=0.3)
+    g = window_only.fused()
+    assert g.source == "window" and abs(math.degrees(g.tilt_rad) - 4.9) < 0.25
+
+
+def test_memory_is_not_used_when_the_window_disagrees_beyond_its_gate():
+    filt = PlaneFilter(memory_gate=math.radians(1.5))
+    t = _feed(filt, _tilted(2.0), np.linspace(0.30, 0.10, 40), std_deg=0.05)
+    _feed(filt, _tilted(4.5), [0.07] * 7, t0=t, std_deg=0.05)  # 2.5 deg off: within the 5 deg outlier gate
+    f = filt.fused()
+    assert f.source == "window" and abs(math.degrees(f.tilt_rad) - 4.5) < 0.1
+
+
+def test_memory_standard_error_counts_correlated_planes_as_few():
+    filt = PlaneFilter()
+    _feed(filt, _tilted(3.0), np.linspace(0.30, 0.08, 200), std_deg=0.2)
+    f = filt.fused()
+    assert f.source == "memory"
+    # 200 planes of 0.2 deg would formally give 0.014 deg; counted as at most 10: about 0.06 deg
+    assert math.degrees(f.tilt_std) >= 0.2 / math.sqrt(10) * 0.95
+
+
+def test_memory_restarts_with_the_window_and_needs_covariances():
+    filt = PlaneFilter(max_consecutive_rejects=3)
+    t = _feed(filt, _tilted(1.0), np.linspace(0.3, 0.1, 30))
+    assert filt.fused().source == "memory"
+    t = _feed(filt, _tilted(12.0), [0.1] * 3, t0=t)  # a different surface: 3 rejections restart the window
+    f = filt.fused()
+    assert f is None or f.memory_n <= 3
+    t = _feed(filt, _tilted(12.0), [0.1] * 6, t0=t)
+    f = filt.fused()
+    assert f.source == "window" and abs(math.degrees(f.tilt_rad) - 12.0) < 0.3
+    bare = PlaneFilter()
+    _feed(bare, _tilted(1.0), np.linspace(0.3, 0.1, 30), with_cov=False)
+    assert bare.fused().source == "window"  # without variances there is nothing to weight the memory by
+
+
+def test_memory_forgets_old_planes():
+    filt = PlaneFilter(memory_age=2.0, memory_frames=15)
+    t = _feed(filt, _tilted(2.0), np.linspace(0.3, 0.1, 30))
+    T = looking_down([0.4, -0.1, 0.05])
+    for k in range(5):  # four seconds later, a few new planes
+        filt.update(PlaneEstimate(sensor_plane(_tilted(2.0), -0.05, T), covariance=np.diag([1e-6, 1e-6, 1e-8])),
+                    T, t + 4.0 + k / 30.0)
+    f = filt.fused()
+    assert f.memory_n == 5 and f.source == "window"
+
+
+def test_memory_options_are_validated():
+    for kw in ({"memory": -1}, {"memory_frames": 0}, {"memory_gate": 0.0}, {"memory_age": math.nan}):
+        with pytest.raises(ValueError):
+            PlaneFilter(**kw)
