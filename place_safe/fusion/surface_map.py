@@ -49,6 +49,10 @@ SECOND_RELATIVE = 0.004
 SECOND_LAST_BIN = 100
 #: Zones that must agree on one plane for a frame's consensus plane (a majority of the 9).
 MIN_INLIERS = 5
+#: Zones of a frame lie on one plane within this fraction of their median range (see
+#: :meth:`SurfaceMap.consensus_tolerance`), at least :data:`CONSENSUS_MIN` m.
+CONSENSUS_RELATIVE = 0.02
+CONSENSUS_MIN = 0.002
 #: m the sensor climbs above the lowest height that can hold the footprint when it must climb.
 CLIMB_MARGIN = 0.01
 #: m inside the edge of the view the survey aims for.
@@ -219,13 +223,23 @@ class SurfaceMap:
         valid &= np.all(np.isfinite(pts), axis=1) & (pts[:, 2] > 0)
         second, where = second_returns(h, pos, valid)
         depth = (where - pos) / self._bins_per_m
-        inliers, plane, rms = consensus(pts, valid, self.tolerance)
+        inliers, plane, rms = consensus(pts, valid, self.consensus_tolerance(pts, valid))
         pb = pts @ T[:3, :3].T + T[:3, 3]
         pb[~valid] = np.nan
         fs = FrameSurfaces(float(stamp), T.copy(), pb, valid, second, np.where(second, depth, np.nan), inliers,
                            plane, rms)
         self.frames.append(fs)
         return fs
+
+    def consensus_tolerance(self, points: np.ndarray, valid: np.ndarray) -> float:
+        """m: how far a zone's point may lie off its frame's plane and still count as the same surface:
+        :data:`CONSENSUS_RELATIVE` of the median zone range, between :data:`CONSENSUS_MIN` and
+        ``tolerance``. Close up the zones are a centimetre or two apart, and a step of ``tolerance``
+        between them would pass for a steep plane; far away the zones are wide and mixed."""
+        r = np.linalg.norm(np.asarray(points, dtype=float)[np.asarray(valid, dtype=bool)], axis=1)
+        if r.size == 0 or not np.all(np.isfinite(r)):
+            return self.tolerance
+        return float(np.clip(CONSENSUS_RELATIVE * np.median(r), min(CONSENSUS_MIN, self.tolerance), self.tolerance))
 
     # -- footprint ---------------------------------------------------------------------------------
     def disc(self, normal: np.ndarray, offset: float, base_T_cup: np.ndarray) -> np.ndarray | None:

@@ -161,3 +161,18 @@ def test_bad_frames_are_ignored():
     assert sm.add(Frame(np.full((9, 128), 30.0), np.ones(128), timestamp=0.0), np.full((4, 4), np.nan), 0.0) is None
     fs = sm.add(Frame(np.full((9, 128), 30.0), np.ones(128), timestamp=0.0), sensor_pose(), 0.0)
     assert fs is not None and not fs.valid.any() and not fs.multi_surface
+
+
+def test_a_small_step_close_up_is_two_surfaces_not_a_steep_plane():
+    """8 cm above a table with a 6 mm step under one row of zones: within the far-range tolerance (8 mm)
+    the nine points fit one steep plane; close up the zones are 1-2 cm apart and the step is two surfaces."""
+    sm = SurfaceMap(PARAMS)
+    T = sensor_pose((0.0, 0.0), 0.08)
+    step = lambda x, y: 0.006 if x > 0.01 else 0.0  # noqa: E731 - a 6 mm box top under the +x row
+    fs = sm.add(frame_over(T, step), T, 0.0)
+    assert fs.multi_surface and fs.inliers.sum() == 6
+    assert sm.consensus_tolerance(np.array([[0.0, 0.0, 0.08]] * 9), np.ones(9, bool)) == 0.002
+    far = sm.consensus_tolerance(np.array([[0.0, 0.0, 0.6]] * 9), np.ones(9, bool))
+    assert far == sm.tolerance  # far away the zones are wide: the full tolerance
+    T = sensor_pose((0.0, 0.0), 0.3)
+    assert not sm.add(frame_over(T, lambda x, y: 0.0), T, 1.0).multi_surface  # a plain table is one surface
