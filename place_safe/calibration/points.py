@@ -344,6 +344,10 @@ def fit_peak(frames: Sequence[Frame], init: PeakParams | None = None, progress: 
 #: calibration's mean point error worse than this factor (a level sweep of one material does not
 #: identify pile-up from point errors alone; the histogram shapes the forward fit sees do).
 PILEUP_ADOPT_TOLERANCE = 1.1
+#: ... and unless the peak method's own search identified pile-up: its best value lowered the linear
+#: fit's point error by this fraction or more from none (the real sweep: 19 %; a level sweep of one
+#: material: 0-2 %). The forward fit's value absorbs other misfit where its model is not the sensor.
+PILEUP_IDENTIFIED = 0.05
 
 
 def adopt_pileup(frames: Sequence[Frame], params: PeakParams, report: dict, pileup: float,
@@ -352,11 +356,19 @@ def adopt_pileup(frames: Sequence[Frame], params: PeakParams, report: dict, pile
 
     Pile-up makes bright zones read near (see :func:`~place_safe.sensor.histogram.undo_pileup`). Point
     errors identify it only when brightness varies at the same range; the forward fit identifies it from
-    the histograms' shapes. The refit is kept unless its mean point error on ``frames`` exceeds
-    ``params``' by more than :data:`PILEUP_ADOPT_TOLERANCE`. Returns (parameters, report, adopted)."""
+    the histograms' shapes. Nothing changes when ``report`` shows that the peak calibration identified
+    pile-up itself (:data:`PILEUP_IDENTIFIED`); otherwise the refit is kept unless its mean point error
+    on ``frames`` exceeds ``params``' by more than :data:`PILEUP_ADOPT_TOLERANCE`. Returns (parameters,
+    report, adopted)."""
     k = float(pileup)
     if not (math.isfinite(k) and k > 0.0) or abs(k - params.pileup) <= 1e-3 * k:
         return params, report, False
+    search = report.get("pileup", {}).get("linear_fit_point_error_mm") or {}
+    if "0" in search and min(search.values()) <= (1.0 - PILEUP_IDENTIFIED) * search["0"]:
+        kept = dict(report)
+        kept["pileup_from_forward"] = {"value": k, "adopted": False,
+                                       "why": "the peak calibration identified its own pile-up"}
+        return params, kept, False
     new, new_report = fit_peak(frames, progress=progress, pileup=k)
     before = report.get("after", {}).get("point_mean_mm", math.inf)
     after = new_report.get("after", {}).get("point_mean_mm", math.inf)

@@ -116,7 +116,10 @@ def test_adopt_pileup_keeps_a_fit_only_when_it_does_not_hurt(sweep_path):
     from place_safe.calibration.points import adopt_pileup
 
     even, _ = _real_halves(sweep_path)
-    own, report = fit_peak(even, progress=False, pileup=0.0)
+    fitted, fitted_report = fit_peak(even, progress=False)  # the real sweep identifies its own pile-up
+    same, rep, adopted = adopt_pileup(even, fitted, fitted_report, 2.0e-7)
+    assert not adopted and same is fitted and rep["pileup_from_forward"]["adopted"] is False
+    own, report = fit_peak(even, progress=False, pileup=0.0)  # no search: the forward fit's value is tried
     same, _, adopted = adopt_pileup(even, own, report, 0.0)
     assert not adopted and same is own
     good, rep, adopted = adopt_pileup(even, own, report, 3e-7)
