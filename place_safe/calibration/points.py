@@ -269,7 +269,7 @@ def fit_pileup(hists: np.ndarray, frames: Sequence[Frame], like: PeakParams, gri
     For each candidate the peaks are found after :func:`~place_safe.sensor.histogram.undo_pileup`, the
     linear part of the mapping is fitted (:func:`fit_linear`, ``like``'s direction scales) and the mean
     point error taken; the best grid value is refined by a bounded search between its neighbours (in
-    log pile-up). Returns the value and the point error (mm) of every candidate tried. Pile-up moves
+    log pile-up). Returns the value and ``{"tried_per_count", "point_error_mm"}`` lists. Pile-up moves
     bright zones' peaks earlier than dark ones', so it is identified by brightness differing at the same
     range (tilt, albedo, zone gains), not by range alone: the range correction absorbs a common shift.
     """
@@ -305,7 +305,8 @@ def fit_pileup(hists: np.ndarray, frames: Sequence[Frame], like: PeakParams, gri
             best = k
     if not math.isfinite(cost(best)):
         best = 0.0
-    return best, {f"{k:.3g}": v * 1e3 for k, v in sorted(tried.items())}
+    ks = sorted(tried)
+    return best, {"tried_per_count": ks, "point_error_mm": [tried[k] * 1e3 for k in ks]}
 
 
 def fit_peak(frames: Sequence[Frame], init: PeakParams | None = None, progress: bool = True,
@@ -322,7 +323,7 @@ def fit_peak(frames: Sequence[Frame], init: PeakParams | None = None, progress: 
 
     use = _calibration_frames(frames, min_range)
     hists = np.array([np.asarray(f.hists, dtype=float) for f in use])
-    search: dict[str, float] = {}
+    search: dict[str, list[float]] = {}
     if paper:
         k = 0.0
     elif pileup is None:
@@ -364,7 +365,8 @@ def adopt_pileup(frames: Sequence[Frame], params: PeakParams, report: dict, pile
     if not (math.isfinite(k) and k > 0.0) or abs(k - params.pileup) <= 1e-3 * k:
         return params, report, False
     search = report.get("pileup", {}).get("linear_fit_point_error_mm") or {}
-    if "0" in search and min(search.values()) <= (1.0 - PILEUP_IDENTIFIED) * search["0"]:
+    tried, errs = list(search.get("tried_per_count", [])), list(search.get("point_error_mm", []))
+    if 0.0 in tried and len(errs) == len(tried) and min(errs) <= (1.0 - PILEUP_IDENTIFIED) * errs[tried.index(0.0)]:
         kept = dict(report)
         kept["pileup_from_forward"] = {"value": k, "adopted": False,
                                        "why": "the peak calibration identified its own pile-up"}
