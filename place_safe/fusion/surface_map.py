@@ -192,14 +192,19 @@ class SurfaceMap:
     """Per-zone surface evidence in the base frame and the landing-footprint verdict (see module doc).
 
     ``peak_params``: the calibrated reading -> point mapping (bins); ``cup_radius``, ``margin``,
-    ``tolerance`` in m; ``min_frames``: observing frames the footprint needs.
+    ``tolerance`` in m; ``min_frames``: observing frames the footprint needs; ``relative``: the
+    fraction of the zones' range within which a frame's zones agree on one plane
+    (:meth:`consensus_tolerance`; 0: ``tolerance`` at every range, for an uncalibrated mapping whose
+    points are good to a centimetre only).
     """
 
     def __init__(self, peak_params: Any, cup_radius: float = 0.035, margin: float = 0.01,
-                 tolerance: float = 0.008, min_frames: int = 3, fov_half_angle: float = FOV_HALF_ANGLE) -> None:
+                 tolerance: float = 0.008, min_frames: int = 3, fov_half_angle: float = FOV_HALF_ANGLE,
+                 relative: float = CONSENSUS_RELATIVE) -> None:
         self.params = peak_params
         self.radius = float(cup_radius) + float(margin)
         self.tolerance = float(tolerance)
+        self.relative = float(relative)
         self.min_frames = int(min_frames)
         self.tan_fov = math.tan(fov_half_angle)
         self._dirs = np.asarray(peak_params.directions(), dtype=float)
@@ -233,13 +238,14 @@ class SurfaceMap:
 
     def consensus_tolerance(self, points: np.ndarray, valid: np.ndarray) -> float:
         """m: how far a zone's point may lie off its frame's plane and still count as the same surface:
-        :data:`CONSENSUS_RELATIVE` of the median zone range, between :data:`CONSENSUS_MIN` and
-        ``tolerance``. Close up the zones are a centimetre or two apart, and a step of ``tolerance``
-        between them would pass for a steep plane; far away the zones are wide and mixed."""
+        ``relative`` (default :data:`CONSENSUS_RELATIVE`) of the median zone range, between
+        :data:`CONSENSUS_MIN` and ``tolerance``. Close up the zones are a centimetre or two apart, and a
+        step of ``tolerance`` between them would pass for a steep plane; far away the zones are wide and
+        mixed."""
         r = np.linalg.norm(np.asarray(points, dtype=float)[np.asarray(valid, dtype=bool)], axis=1)
-        if r.size == 0 or not np.all(np.isfinite(r)):
+        if not self.relative > 0 or r.size == 0 or not np.all(np.isfinite(r)):
             return self.tolerance
-        return float(np.clip(CONSENSUS_RELATIVE * np.median(r), min(CONSENSUS_MIN, self.tolerance), self.tolerance))
+        return float(np.clip(self.relative * np.median(r), min(CONSENSUS_MIN, self.tolerance), self.tolerance))
 
     # -- footprint ---------------------------------------------------------------------------------
     def disc(self, normal: np.ndarray, offset: float, base_T_cup: np.ndarray) -> np.ndarray | None:

@@ -301,9 +301,18 @@ class PlacementLoop:
             raise ValueError(f"the plane filter's window ({self.filter.window}) cannot hold check_frames "
                              f"({self.config.check_frames}) planes: nothing could ever be released")
         self.machine = PlacementMachine(self.config, period=self.period)
-        self.surface = surface_map if surface_map is not None else SurfaceMap(
-            peak_params_of(estimator), cup_radius=self.config.cup_radius, margin=self.config.footprint_margin,
-            tolerance=self.config.footprint_tolerance, min_frames=max(int(self.config.footprint_frames), 1))
+        if surface_map is None:
+            from place_safe.fusion.surface_map import CONSENSUS_RELATIVE
+            from place_safe.recovery.points import PeakParams
+
+            params = peak_params_of(estimator)
+            # built-in constants put zone points a centimetre off: only calibrated ones get the tight tolerance
+            calibrated = params != PeakParams.default_peak()
+            surface_map = SurfaceMap(params, cup_radius=self.config.cup_radius, margin=self.config.footprint_margin,
+                                     tolerance=self.config.footprint_tolerance,
+                                     min_frames=max(int(self.config.footprint_frames), 1),
+                                     relative=CONSENSUS_RELATIVE if calibrated else 0.0)
+        self.surface = surface_map
         self._landing_T_cup: np.ndarray | None = None
         self._footprint_key: tuple | None = None
         self._footprint = None

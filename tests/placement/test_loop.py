@@ -246,3 +246,21 @@ def test_level_table_release_happens_over_the_landing_spot_after_the_survey():
     assert res.outcome == "released", res.reason
     assert np.linalg.norm(robot.tcp_pose()[:2, 3] - start) <= 0.002
     assert any("observ" in t["reason"] or t["to"] == "check" for t in res.transitions)
+
+
+def test_surface_map_tolerance_is_tight_only_for_a_calibrated_peak_mapping():
+    """Calibrated zone points agree within 2 % of their range; the built-in constants put them a centimetre
+    off, so an estimator without a calibrated peak mapping keeps the fixed tolerance at every range."""
+    from place_safe.fusion.surface_map import CONSENSUS_RELATIVE
+    from place_safe.recovery.peak import PeakEstimator
+    from place_safe.recovery.points import PeakParams
+
+    robot = KinematicRobot(height=0.12)
+    bare = PlacementLoop(robot, TruthSource(robot), TruthEstimator())
+    assert bare.surface.relative == 0.0
+    near = np.array([[0.0, 0.0, 0.07]] * 9)
+    assert bare.surface.consensus_tolerance(near, np.ones(9, bool)) == bare.surface.tolerance
+    calibrated = PeakParams(70.0, 12.0, 0.95, 0.9, pileup=3e-7)
+    loop = PlacementLoop(robot, TruthSource(robot), PeakEstimator(calibrated))
+    assert loop.surface.params is calibrated and loop.surface.relative == CONSENSUS_RELATIVE
+    assert loop.surface.consensus_tolerance(near, np.ones(9, bool)) < bare.surface.tolerance
