@@ -15,7 +15,8 @@ Phases::
     CHECK --still too high--> DESCEND (at most ``max_checks`` times)
     any active phase --tilted / not planar / no plane / stale plane / sensor timeout / no support under
                        the footprint (edge, step, clutter) / obstacle (contact
-                       above the surface) / travel limit / deadline--> REFUSE (retreat up keeping the cup)
+                       above the surface) / travel limit, or a surface farther than it (a floor
+                       past an edge) / deadline--> REFUSE (retreat up keeping the cup)
                        --> ABORTED
     any phase before the release --robot fault, invalid robot state, robot clock frozen or running
                        backwards, internal error--> ABORTED (the robot holds the cup where it stopped)
@@ -640,6 +641,10 @@ class PlacementMachine:
         if not math.isfinite(c):
             return self._refuse(now, "cup clearance above the surface cannot be computed (surface parallel to the "
                                      "tool axis or cup pose invalid)")
+        if travelled + c > cfg.max_travel:  # do not start a long fall towards a floor past an edge
+            return self._refuse(now, f"no support within reach: the surface seen is {c * 1e3:.0f} mm below the cup, "
+                                     f"beyond the {cfg.max_travel:.2f} m descent limit (past an edge, or nothing "
+                                     "under the cup)")
         if (cmd := self._contact_rule(state, c, now)) is not None:
             return cmd
         if c < -cfg.max_penetration:

@@ -345,3 +345,20 @@ def test_without_a_surface_map_nothing_is_released_unless_the_footprint_rule_is_
     w.footprint = None
     m = run(w, PlacementMachine(PlacementConfig(footprint_frames=0)))
     assert m.outcome == "released", m.decision
+
+
+@pytest.mark.parametrize("height", [0.65, 1.05])
+def test_a_surface_beyond_the_descent_limit_is_refused_before_moving(height):
+    """Past a table edge the sensor may see only the floor, a metre down: refuse at once rather than start
+    a fast descent towards it that the gripper ends on the table's edge."""
+    w = FakeWorld(height=height)
+    m = run(w)
+    assert m.outcome == "refused" and not opened(w)
+    refusal = next(t for t in m.log if t.target == Phase.REFUSE)
+    assert "no support within reach" in refusal.reason and "edge" in refusal.reason
+    assert not any(c.kind == CommandKind.SPEED and c.twist[2] < 0 for c in w.commands)  # never moved down
+
+
+def test_a_surface_within_the_descent_limit_is_approached():
+    w = FakeWorld(height=0.55)
+    assert run(w).outcome == "released"
