@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings, strategies as st
 from scipy.spatial.transform import Rotation
 
 from place_safe.recovery.estimator import PlaneEstimate
@@ -276,3 +277,39 @@ def test_memory_options_are_validated():
     for kw in ({"memory": -1}, {"memory_frames": 0}, {"memory_gate": 0.0}, {"memory_age": math.nan}):
         with pytest.raises(ValueError):
             PlaneFilter(**kw)
+
+
+# -- property: the memory never makes the fused plane invalid ----------------------------------------
+
+@st.composite
+def _plane_stream(draw):
+    events = []
+    for _ in range(draw(st.integers(1, 60))):
+        tilt = draw(st.floats(0.0, 40.0))
+        az = draw(st.floats(-math.pi, math.pi))
+        std = draw(st.one_of(st.none(), st.just(math.nan), st.floats(1e-6, 0.5)))
+        stamp = draw(st.one_of(st.floats(-1.0, 60.0), st.just(math.nan), st.just(math.inf)))
+        offset = draw(st.floats(-0.2, 0.2))
+        events.append((tilt, az, std, stamp, offset))
+    return events
+
+
+@settings(max_examples=150, deadline=None)
+@given(_plane_stream(), st.integers(0, 40), st.floats(0.01, 0.2))
+def test_fused_plane_stays_valid_with_any_stream(events, memory, gate):
+    """Duplicate, out-of-order and non-finite stamps, missing or NaN covariances, outliers: the fused plane is
+    None or finite with a unit normal, and its source is one of the two; the memory holds at most ``memory``."""
+    filt = PlaneFilter(memory=memory, memory_frames=5, memory_gate=gate)
+    T = looking_down([0.4, -0.1, 0.3])
+    for tilt, az, std, stamp, offset in events:
+        cov = None if std is None else np.diag([std ** 2, std ** 2, 1e-8])
+        filt.update(PlaneEstimate(sensor_plane(_tilted(tilt, az), offset, T), covariance=cov), T, stamp)
+        f = filt.fused()
+        if f is None:
+            continue
+        assert np.all(np.isfinite(f.normal_base)) and abs(np.linalg.norm(f.normal_base) - 1.0) < 1e-9
+        assert math.isfinite(f.offset_base) and 0.0 <= f.tilt_rad <= math.pi
+        assert f.source in ("window", "memory") and f.memory_n <= max(memory, 1)
+        assert f.source == "window" or (memory > 0 and f.memory_n >= 5 and math.isfinite(f.tilt_std))
+        assert math.isnan(f.tilt_std) or f.tilt_std >= 0.0
+        assert list(f.stamps) == sorted(set(f.stamps))
