@@ -458,13 +458,17 @@ class PlacementMachine:
         spread = float(plane.std_angle) / math.sqrt(max(int(getattr(plane, "n", 1) or 1), 1))
         return float(s) if isinstance(s, (int, float)) and math.isfinite(s) and s >= 0 else spread
 
+    def _confidence_margin(self, sigma: float) -> float:
+        """rad between the fused tilt and its one-sided ``level_confidence`` bound, for tilt std ``sigma``."""
+        return NormalDist().inv_cdf(self.config.level_confidence) * sigma
+
     def _level_problem(self, plane: FusedPlane) -> str | None:
         """Tilt below ``max_tilt`` with ``level_confidence`` (one-sided normal bound on the tilt)."""
         cfg = self.config
         if (why := self._tilt_problem(plane, cfg.max_tilt)) is not None:
             return why
         sigma = self.tilt_sigma(plane)
-        bound = plane.tilt_rad + NormalDist().inv_cdf(cfg.level_confidence) * sigma
+        bound = plane.tilt_rad + self._confidence_margin(sigma)
         if not (bound <= cfg.max_tilt):
             return (f"surface tilt {math.degrees(plane.tilt_rad):.2f} +- {math.degrees(sigma):.2f} deg is not below "
                     f"{math.degrees(cfg.max_tilt):.1f} deg with {cfg.level_confidence:.0%} confidence")
@@ -532,7 +536,7 @@ class PlacementMachine:
         cfg = self.config
         if int(getattr(plane, "n", 0) or 0) < cfg.check_frames:
             return None
-        low = plane.tilt_rad - NormalDist().inv_cdf(cfg.level_confidence) * self.tilt_sigma(plane)
+        low = plane.tilt_rad - self._confidence_margin(self.tilt_sigma(plane))
         if low > cfg.max_tilt:
             return (f"surface tilted {math.degrees(plane.tilt_rad):.1f} deg (> {math.degrees(cfg.max_tilt):.1f} deg "
                     f"allowed, with {cfg.level_confidence:.0%} confidence)")
