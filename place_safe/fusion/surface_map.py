@@ -64,7 +64,7 @@ MAX_OBSERVATIONS = 400
 #: m between footprint sample points (and points on its rim).
 DISC_SPACING = 0.01
 _RIM_POINTS = 24
-#: m above the survey height up to which a frame's zones are small enough to blame the footprint.
+#: m above the survey height up to which a frame's zones are small enough to certify or blame the footprint.
 CLOSE_SLACK = 0.04
 
 
@@ -186,6 +186,7 @@ class FootprintVerdict:
     in_view: bool = False  # the footprint is in the field of view at the current pose
     look_shift: np.ndarray = field(default_factory=lambda: np.zeros(3))  # m, base frame: TCP move to see it
     view_margin: float = math.nan  # m the sensor may descend before the footprint leaves the view
+    certify_margin: float = math.nan  # m the sensor must still descend before its frames can certify it
 
 
 class SurfaceMap:
@@ -303,6 +304,11 @@ class SurfaceMap:
         (its zones are then no larger than they must be)."""
         return (self.radius + VIEW_SLACK) / self._tan_aim + CLIMB_MARGIN
 
+    def close_height(self) -> float:
+        """m above the surface up to which a frame's zones are small enough to certify the footprint or to
+        blame it: :meth:`survey_height` + :data:`CLOSE_SLACK`."""
+        return self.survey_height() + CLOSE_SLACK
+
     @property
     def _tan_aim(self) -> float:
         return math.tan(math.atan(self.tan_fov) - 2 * SIGHT_SLACK_RAD)
@@ -311,20 +317,23 @@ class SurfaceMap:
         """Judge the landing footprint against the fused plane ``normal . x = offset`` for the cup's landing
         pose (its axis fixes the footprint's centre).
 
-        A sample point of the footprint is *certified* by a frame in which it lies in a zone that saw one
-        surface on the plane (a zone that saw more is no proof either way: the other surface may lie outside
-        the footprint). ``supported`` is the smallest number of frames that certified a point (0 while any
-        point is uncertified). A ``problem`` is reported when a point that is not certified was seen with an
-        issue (no return, a second return, a surface off the plane) in ``min_frames`` frames taken from no
-        higher than :meth:`survey_height` + :data:`CLOSE_SLACK` -- where zones are small enough for the
-        issue to lie in the footprint.
+        Only frames taken from no higher than :meth:`close_height` count: there a zone is at most about
+        5 cm wide, so clutter a few centimetres across shows in it. From higher up a box covering part of
+        a 9 cm zone moves the zone's point by a millimetre or two and the zone reads as clean table.
+
+        A sample point of the footprint is *certified* by a close frame in which it lies in a zone that saw
+        one surface on the plane (a zone that saw more is no proof either way: the other surface may lie
+        outside the footprint). ``supported`` is the smallest number of frames that certified a point (0
+        while any point is uncertified). A ``problem`` is reported when a point that is not certified was
+        seen with an issue (no return, a second return, a surface off the plane) in ``min_frames`` close
+        frames.
         """
         n = np.asarray(normal, dtype=float)
         d = float(offset)
         disc = self.disc(n, d, np.asarray(landing_T_cup, dtype=float))
         if disc is None:
             return FootprintVerdict(problem="the cup's axis is parallel to the surface: no landing footprint")
-        close = self.survey_height() + CLOSE_SLACK
+        close = self.close_height()
         certified = np.zeros(len(disc), dtype=int)
         flagged = np.zeros(len(disc), dtype=int)
         details: dict[str, str] = {}
@@ -335,12 +344,14 @@ class SurfaceMap:
             if not inside.any():
                 continue
             observed += int(inside.all())
+            height = float(fs.base_T_sensor[:3, 3] @ n - d)
+            if height > close:
+                continue
             issue = {z: self._zone_issue(fs, z, n, d) for z in set(zone[inside].tolist())}
             clean = inside & np.array([issue.get(int(z)) is None for z in zone])
             certified += clean
-            height = float(fs.base_T_sensor[:3, 3] @ n - d)
-            if height <= close:
-                bad = inside & ~clean
+            bad = inside & ~clean
+            if bad.any():
                 flagged += bad
                 for z in set(zone[bad].tolist()):
                     kind, detail = issue[z]
@@ -368,7 +379,9 @@ class SurfaceMap:
         # plane moves a little
         inside, _ = self._view(disc, T, math.tan(math.atan(self.tan_fov) - SIGHT_SLACK_RAD))
         shift, margin = self._look(disc, T, n)
-        return replace(verdict, in_view=bool(inside.all()), look_shift=shift, view_margin=margin)
+        above = float(T[:3, 3] @ n - float(offset)) - self.close_height()
+        return replace(verdict, in_view=bool(inside.all()), look_shift=shift, view_margin=margin,
+                       certify_margin=above)
 
     def verdict(self, normal: Any, offset: float, landing_T_cup: Any, base_T_sensor: Any) -> FootprintVerdict:
         """:meth:`footprint` and :meth:`sight` together."""

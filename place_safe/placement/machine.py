@@ -91,9 +91,10 @@ class PlacementConfig:
     """Thresholds and speeds of a placement (SI units; the JSON file holds the same numbers)."""
 
     approach_speed: float = 0.25  # m/s at most while the surface is far (slower near it: placement/speed.py)
-    descend_speed: float = 0.015  # m/s near the surface
+    descend_speed: float = 0.02  # m/s near the surface
     accel: float = 0.5  # m/s^2 for speed changes and stops
-    slow_clearance: float = 0.015  # m: APPROACH -> DESCEND below this cup clearance
+    obstacle_decel: float = 4.0  # m/s^2: the hard stop when the cup touches something above the surface
+    slow_clearance: float = 0.010  # m: APPROACH -> DESCEND below this cup clearance
     stop_clearance: float = 0.002  # m: DESCEND -> CHECK at or below this clearance
     release_clearance: float = 0.005  # m: release only at or below this clearance (or in contact)
     max_tilt: float = math.radians(5.0)  # rad: steepest surface a cup may be put on
@@ -123,7 +124,7 @@ class PlacementConfig:
     footprint_frames: int = 3  # frames that saw the landing footprint on one surface (0: no footprint rule*)
     footprint_margin: float = 0.01  # m around the cup bottom that must be seen supported
     footprint_tolerance: float = 0.008  # m a zone over the footprint may lie off the fused surface
-    survey_speed: float = 0.1  # m/s sideways while bringing the footprint into view and back
+    survey_speed: float = 0.15  # m/s sideways while bringing the footprint into view and back
     # * footprint_frames = 0 is for sources without histograms (test doubles); it extrapolates the
     #   surface beside the cup to where it lands, which edges and clutter defeat
 
@@ -166,6 +167,7 @@ PLACEMENT_BOUNDS: dict[str, Bound] = {
     "approach_speed": Bound(0.0, 1.0, "m/s", lo_open=True),
     "descend_speed": Bound(0.0, 0.5, "m/s", lo_open=True),
     "accel": Bound(0.0, 10.0, "m/s^2", lo_open=True),
+    "obstacle_decel": Bound(0.0, 50.0, "m/s^2", lo_open=True),
     "slow_clearance": Bound(0.0, 1.0, "m", lo_open=True),
     "stop_clearance": Bound(0.0, 0.1, "m"),
     "release_clearance": Bound(0.0, 0.1, "m", lo_open=True),
@@ -354,9 +356,9 @@ class PlacementMachine:
         if target in (Phase.RELEASE, Phase.REFUSE):
             self._retreat = _Retreat()
 
-    def _refuse(self, t: float, reason: str) -> Command:
+    def _refuse(self, t: float, reason: str, decel: float | None = None) -> Command:
         self._go(Phase.REFUSE, t, reason)
-        return Command(CommandKind.STOP, accel=self.config.accel)
+        return Command(CommandKind.STOP, accel=self.config.accel if decel is None else decel)
 
     def _abort(self, t: float, why: str, faulted: bool = False) -> Command:
         """End now holding the cup (or, once it is released, end as released). A faulted robot has
@@ -495,21 +497,34 @@ class PlacementMachine:
         speed = min(limit, 0.8 * math.sqrt(2.0 * self.config.accel * dist))
         return np.round(move / dist * speed, 3)
 
-    def _survey(self, state: RobotState, c: float, now: float) -> Command | None:
-        """Before the landing footprint leaves the field of view, see it on one surface; then come back
-        over the landing spot. Returns the command, or None to let the descent go on."""
+    def _axial(self, dist: float) -> float:
+        """Speed (m/s) along the tool axis for a move of ``dist`` m: at most ``approach_speed``, slowing so
+        it stops at its end (0 when done)."""
+        if not (abs(dist) > SURVEY_DONE):
+            return 0.0
+        return math.copysign(min(self.config.approach_speed, 0.8 * math.sqrt(2.0 * self.config.accel * abs(dist))),
+                             dist)
+
+    def _survey(self, state: RobotState, c: float, now: float) -> Command | np.ndarray | None:
+        """See the landing footprint from close enough on one surface, then come back over the landing spot.
+
+        Returns a command (the survey move, or a refusal), a sideways velocity (3,) to add to the descent
+        (the way back over the landing spot, taken while descending), or None to let the descent go on.
+        The footprint must be seen from no higher than the surface map's close height, where zones are
+        small enough to show clutter in it. While the straight descent would bring it there with the
+        footprint still in view, the cup simply descends; otherwise the sensor moves over the footprint,
+        sideways and down (or up) at once, to the survey pose, and waits there for the frames."""
         cfg = self.config
         if cfg.footprint_frames == 0:
             return None
         fp = self._footprint
         tcp = np.asarray(state.base_T_tcp, dtype=float)[:3, 3]
+        down = -np.asarray(state.base_T_cup, dtype=float)[:3, 2]
         if self._surveyed or self._footprint_seen() >= cfg.footprint_frames:
             self._surveyed = True  # latched: no second survey; CHECK still needs the footprint supported
             back = self._start_pos - tcp
-            back[2] = 0.0
-            if float(np.linalg.norm(back)) > SURVEY_DONE:
-                return self._speed(self._lateral(back, cfg.survey_speed))
-            return None
+            back -= down * float(back @ down)
+            return self._lateral(back, cfg.survey_speed) if float(np.linalg.norm(back)) > SURVEY_DONE else None
         if fp is None:
             if self._elapsed(now, self._descent_t0, self._descent_ticks) > cfg.acquire_timeout:
                 return self._refuse(now, "no support evidence: no surface map of the cup's landing footprint")
@@ -519,8 +534,10 @@ class PlacementMachine:
                                cfg.descend_speed)
             stopping = v * cfg.sensor_latency + v * v / (2.0 * cfg.accel)
             margin = _number(getattr(fp, "view_margin", None))
-            if margin is not None and margin - stopping > SURVEY_VIEW_SLACK:
-                return None  # keep descending: the footprint stays in view
+            need = _number(getattr(fp, "certify_margin", None))
+            need = max(need, 0.0) if need is not None else 0.0
+            if margin is not None and margin - stopping > SURVEY_VIEW_SLACK and margin - need > SURVEY_VIEW_SLACK:
+                return None  # keep descending: the footprint stays in view down to where frames certify it
         # to the survey pose (the sensor over the footprint, just high enough to hold it), then wait there
         try:
             move = np.asarray(getattr(fp, "look_shift"), dtype=float).reshape(3)
@@ -528,7 +545,11 @@ class PlacementMachine:
             return self._refuse(now, "surface map gave no way to bring the cup's footprint into view")
         if not np.all(np.isfinite(move)):
             return self._refuse(now, "surface map gave no way to bring the cup's footprint into view")
-        return self._speed(self._lateral(move, cfg.survey_speed))
+        along = float(move @ down)  # > 0: down towards the surface
+        if along > 0:  # never faster than the cup could stop before the slow band
+            along = min(along, max(c - cfg.slow_clearance, 0.0))
+        side = self._lateral(move - down * float(move @ down), cfg.survey_speed)
+        return self._speed(np.round(side + self._axial(along) * down, 3))
 
     def _confidently_tilted(self, plane: FusedPlane) -> str | None:
         """Refuse early (before descending onto it) a surface steeper than ``max_tilt`` with
@@ -621,8 +642,9 @@ class PlacementMachine:
             self._check = _Check(now)
             self._go(Phase.CHECK, now, f"contact {force:.1f} N at estimated clearance {c * 1e3:.1f} mm")
             return Command(CommandKind.STOP, accel=cfg.accel)
+        # an obstacle: stop hard (every millimetre pressed on into it adds force), then retreat
         return self._refuse(now, f"obstacle: contact {force:.1f} N with the cup bottom {c * 1e3:.1f} mm above the "
-                                 f"sensed surface (> {cfg.contact_clearance * 1e3:.0f} mm)")
+                                 f"sensed surface (> {cfg.contact_clearance * 1e3:.0f} mm)", decel=cfg.obstacle_decel)
 
     def _on_descent(self, state: RobotState, plane: FusedPlane | None, note: str | None, now: float) -> Command:
         """APPROACH and DESCEND: move down towards the surface, fast while it is far, slow near it."""
@@ -656,14 +678,21 @@ class PlacementMachine:
                                      "the surface estimate is wrong")
         if (why := self._footprint_problem()) is not None:
             return self._refuse(now, why)
-        if self.phase == Phase.APPROACH and (cmd := self._survey(state, c, now)) is not None:
-            return cmd
+        side = np.zeros(3)
+        if self.phase == Phase.APPROACH:
+            cmd = self._survey(state, c, now)
+            if isinstance(cmd, Command):
+                return cmd
+            if cmd is not None:
+                side = cmd
         down = -np.asarray(state.base_T_cup, dtype=float)[:3, 2]
         if self.phase == Phase.APPROACH:
             if c > cfg.slow_clearance:
                 v = approach_speed(c, cfg.slow_clearance, cfg.sensor_latency, cfg.accel, cfg.approach_speed,
                                    cfg.descend_speed)
-                return self._speed(round(v, 3) * down)
+                return self._speed(np.round(side + round(v, 3) * down, 3))
+            if np.any(side):  # back over the landing spot before the slow, final part of the descent
+                return self._speed(side)
             self._go(Phase.DESCEND, now, f"clearance {c * 1e3:.1f} mm < {cfg.slow_clearance * 1e3:.0f} mm: slow down")
         if c > cfg.stop_clearance:
             return self._speed(cfg.descend_speed * down)

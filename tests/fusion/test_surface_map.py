@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
 from place_safe.fusion.surface_map import SurfaceMap, consensus, second_returns
 from place_safe.recovery.points import PeakParams
@@ -88,12 +89,32 @@ def test_a_pulse_tail_is_not_a_second_return_but_a_farther_surface_is():
 
 def test_level_table_footprint_observed_and_supported():
     sm = SurfaceMap(PARAMS)
-    T = sensor_pose((0.0, 0.0), 0.3)
+    T = sensor_pose((0.0, 0.0), 0.26)
     for _ in range(3):
         fs = sm.add(frame_over(T, lambda x, y: 0.0), T, 0.0)
         assert not fs.multi_surface
     v = sm.verdict(UP, 0.0, cup_at((0.02, 0.0)), T)
     assert v.observed == 3 and v.supported == 3 and v.problem is None and v.in_view
+    assert v.certify_margin <= 0  # frames from here count
+
+
+def test_frames_from_high_up_do_not_certify_the_footprint():
+    # from 38 cm a zone is about 9 cm wide: a box covering part of one moves its point by a millimetre
+    # or two, so such frames read clean on a real sensor; only frames from the close height certify or
+    # blame the footprint
+    sm = SurfaceMap(PARAMS)
+    box = lambda x, y: 0.02 if abs(x) < 0.03 and abs(y) < 0.03 else 0.0  # noqa: E731 - a 2 cm box
+    high = sensor_pose((0.0, 0.0), 0.38)
+    for _ in range(5):
+        sm.add(frame_over(high, box), high, 0.0)
+    v = sm.verdict(UP, 0.0, cup_at((0.0, 0.0)), high)
+    assert v.observed == 5 and v.supported == 0 and v.problem is None
+    assert v.in_view and v.certify_margin == pytest.approx(0.38 - sm.close_height())
+    close = sensor_pose((0.0, 0.0), sm.survey_height())
+    for _ in range(3):
+        sm.add(frame_over(close, box), close, 0.0)
+    v = sm.verdict(UP, 0.0, cup_at((0.0, 0.0)), close)
+    assert v.supported < 3 and v.problem is not None and "clutter" in v.problem
 
 
 def test_edge_under_the_footprint_is_an_edge():

@@ -319,6 +319,30 @@ def test_survey_moves_sideways_to_see_the_footprint_then_back_before_descending(
     assert abs(w.opened_at[0]) <= 0.002  # released over the landing spot, not where it looked from
 
 
+def test_high_start_moves_over_the_footprint_while_descending():
+    # from 40 cm the footprint is in view but only frames from below 22 cm certify it, and from straight
+    # above the landing spot it leaves the view at 30 cm: the cup goes sideways and down at once, then
+    # back over the landing spot on the way down
+    w = FakeWorld(height=0.4)
+    w.footprint = FootprintVerdict()
+
+    def fn(world, m):
+        over, close = world.pos[0] <= -0.05, world.pos[2] <= 0.22
+        seen = world.footprint.supported + (1 if over and close else 0)
+        world.footprint = FootprintVerdict(
+            observed=seen, supported=seen, in_view=True,
+            look_shift=np.array([min(-0.052 - world.pos[0], 0.0), 0.0, min(0.2 - world.pos[2], 0.0)]),
+            view_margin=world.pos[2] - (0.1 if over else 0.3), certify_margin=world.pos[2] - 0.22)
+        return world.plane()
+
+    m = run(w, plane_fn=fn)
+    assert m.outcome == "released", m.decision
+    speeds = [np.asarray(c.twist[:3]) for c in w.commands if c.kind == CommandKind.SPEED]
+    assert speeds[0][0] < -0.01 and speeds[0][2] < -0.01  # out and down together
+    assert any(v[0] > 0.01 and v[2] < -0.01 for v in speeds)  # back and down together
+    assert abs(w.opened_at[0]) <= 0.002
+
+
 def test_footprint_problem_refuses_with_its_reason():
     w = FakeWorld(height=0.2)
     w.footprint = FootprintVerdict(observed=4, supported=1, problem="zone 4 over the cup's footprint sees a second "
@@ -362,3 +386,13 @@ def test_a_surface_beyond_the_descent_limit_is_refused_before_moving(height):
 def test_a_surface_within_the_descent_limit_is_approached():
     w = FakeWorld(height=0.55)
     assert run(w).outcome == "released"
+
+
+def test_contact_high_above_the_sensed_surface_stops_hard_and_refuses():
+    # something 3 cm tall under the cup that the sensor did not see: an obstacle, not arrival
+    w = FakeWorld(height=0.2, contact_height=0.03)
+    cfg = PlacementConfig()
+    m = run(w, PlacementMachine(cfg))
+    assert m.outcome == "refused" and "obstacle" in m.decision and not opened(w)
+    stops = [c for c in w.commands if c.kind == CommandKind.STOP]
+    assert stops and stops[0].accel == cfg.obstacle_decel > cfg.accel
