@@ -7,8 +7,9 @@ mapping, :class:`~place_safe.recovery.points.PeakParams`) and whether the zone s
 surface. From it come
 
 * per-frame multi-surface evidence (:meth:`SurfaceMap.add` -> :class:`FrameSurfaces`): the largest set
-  of zones that lie on one plane (:func:`consensus`); the other zones and second returns mean the
-  frame saw more than one surface (an edge, a step, clutter). The loop replaces such a frame's plane by
+  of zones that lie on one plane (:func:`consensus`); the other zones, second (farther) returns and
+  nearer surfaces mixed into a zone's return (:func:`early_returns`) mean the frame saw more than one
+  surface (an edge, a step, clutter). The loop replaces such a frame's plane by
   the consensus plane of its inlier zones, or drops the frame when no majority agrees;
 * the footprint verdict (:meth:`SurfaceMap.verdict` -> :class:`FootprintVerdict`): the cup's landing
   footprint -- a disc of ``cup_radius + margin`` on the fused surface, centred on the cup's axis -- is
@@ -47,6 +48,14 @@ SECOND_SIGMAS = 10.0
 SECOND_RELATIVE = 0.004
 #: Last bin searched for a second return (the floor window starts at bin 100).
 SECOND_LAST_BIN = 100
+#: Bins before the first return's peak where a nearer surface mixed into the zone shows (one bin is about
+#: 14 mm of range; the pulse's own leading edge has fallen to about 1 % of its peak there on clean
+#: tables, sim and real, at 0.5-40 cm).
+EARLY_BINS = 3.0
+#: A nearer surface must lift that bin by this fraction of the peak's height above the floor ...
+EARLY_RELATIVE = 0.06
+#: ... and by this many Poisson sigmas of the floor.
+EARLY_SIGMAS = 6.0
 #: Zones that must agree on one plane for a frame's consensus plane (a majority of the 9).
 MIN_INLIERS = 5
 #: Zones of a frame lie on one plane within this fraction of their median range (see
@@ -101,6 +110,30 @@ def second_returns(hists: np.ndarray, first: np.ndarray, valid: np.ndarray) -> t
     return has, where
 
 
+def early_returns(hists: np.ndarray, first: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Per zone (9,): whether a nearer surface is mixed into the first return (clutter a few centimetres
+    above the surface, covering part of the zone).
+
+    Such a surface lies too close to the main one for a peak of its own; it shows as a shoulder on the
+    return's leading edge. A zone has one when the counts :data:`EARLY_BINS` before its peak (linear
+    interpolation at the sub-bin position) rise above the floor by :data:`EARLY_RELATIVE` of the peak's
+    height and by :data:`EARLY_SIGMAS` floor sigmas.
+    """
+    h = np.asarray(hists, dtype=float)
+    floor = measure_floor(h)
+    sigma = np.sqrt(np.maximum(floor, 0.0) + 1.0)
+    has = np.zeros(N_ZONES, dtype=bool)
+    x = np.arange(N_BINS, dtype=float)
+    for z in range(N_ZONES):
+        p = float(first[z])
+        if not valid[z] or not math.isfinite(p) or p - EARLY_BINS < 0:
+            continue
+        top = max(float(np.interp(p, x, h[z])), float(h[z].max())) - floor[z]
+        rise = float(np.interp(p - EARLY_BINS, x, h[z])) - floor[z]
+        has[z] = top > 0 and rise > max(EARLY_RELATIVE * top, EARLY_SIGMAS * sigma[z])
+    return has
+
+
 def consensus(points: np.ndarray, valid: np.ndarray, tolerance: float) -> tuple[np.ndarray, np.ndarray, float]:
     """The largest set of zone points (9, 3) lying on one plane within ``tolerance`` (m).
 
@@ -152,6 +185,7 @@ class FrameSurfaces:
     valid: np.ndarray  # zone has a first return
     second: np.ndarray  # zone shows a second, later surface
     second_depth: np.ndarray  # m, how much farther the second return is (range), NaN if none
+    early: np.ndarray  # zone shows a nearer surface mixed into its first return (clutter, a step up)
     inliers: np.ndarray  # zones on the frame's consensus plane
     plane_sensor: np.ndarray  # (4,) consensus plane (n, d) in the sensor frame, NaN if none
     rms: float = math.nan
@@ -159,7 +193,7 @@ class FrameSurfaces:
     @property
     def multi_surface(self) -> bool:
         """More than one surface in view: a valid zone off the consensus plane, or a second return."""
-        return bool(np.any(self.valid & ~self.inliers) or np.any(self.second))
+        return bool(np.any(self.valid & ~self.inliers) or np.any(self.second) or np.any(self.early))
 
     def describe(self) -> str:
         out = []
@@ -170,6 +204,9 @@ class FrameSurfaces:
         if two.size:
             out.append("zone(s) " + ", ".join(str(z + 1) for z in two) + " see a second surface "
                        f"{np.nanmax(self.second_depth[two]) * 1e3:.0f} mm farther")
+        near = np.flatnonzero(self.early)
+        if near.size:
+            out.append("zone(s) " + ", ".join(str(z + 1) for z in near) + " see a nearer surface mixed into the return")
         none = np.flatnonzero(~self.valid)
         if none.size:
             out.append("no return in zone(s) " + ", ".join(str(z + 1) for z in none))
@@ -228,12 +265,13 @@ class SurfaceMap:
             pts = self.params.points(np.where(valid, pos, 0.0))
         valid &= np.all(np.isfinite(pts), axis=1) & (pts[:, 2] > 0)
         second, where = second_returns(h, pos, valid)
+        early = early_returns(h, pos, valid)
         depth = (where - pos) / self._bins_per_m
         inliers, plane, rms = consensus(pts, valid, self.consensus_tolerance(pts, valid))
         pb = pts @ T[:3, :3].T + T[:3, 3]
         pb[~valid] = np.nan
-        fs = FrameSurfaces(float(stamp), T.copy(), pb, valid, second, np.where(second, depth, np.nan), inliers,
-                           plane, rms)
+        fs = FrameSurfaces(float(stamp), T.copy(), pb, valid, second, np.where(second, depth, np.nan), early,
+                           inliers, plane, rms)
         self.frames.append(fs)
         return fs
 
@@ -291,6 +329,9 @@ class SurfaceMap:
             return "edge", (f"zone {z + 1} over the cup's footprint sees a second surface "
                             f"{fs.second_depth[z] * 1e3:.0f} mm farther (edge or step)")
         s = float(fs.points_base[z] @ n - d)
+        if fs.early[z]:
+            return "clutter", (f"zone {z + 1} over the cup's footprint sees a nearer surface mixed into the "
+                               "table's return (clutter or step)")
         if s > self.tolerance:
             return "clutter", (f"something {s * 1e3:.0f} mm above the surface in zone {z + 1} over the cup's "
                                "footprint (clutter or step)")
@@ -407,4 +448,5 @@ class SurfaceMap:
         return off + n * (self.survey_height() - height), margin
 
 
-__all__ = ["SurfaceMap", "FrameSurfaces", "FootprintVerdict", "consensus", "second_returns", "FOV_HALF_ANGLE"]
+__all__ = ["SurfaceMap", "FrameSurfaces", "FootprintVerdict", "consensus", "second_returns", "early_returns",
+           "FOV_HALF_ANGLE"]

@@ -11,7 +11,9 @@ import math
 import numpy as np
 import pytest
 
-from place_safe.fusion.surface_map import SurfaceMap, consensus, second_returns
+from place_safe.fusion.surface_map import SurfaceMap, consensus, early_returns, second_returns
+from place_safe.io.frame_file import load_frames
+from place_safe.sensor.histogram import find_peaks
 from place_safe.recovery.points import PeakParams
 from place_safe.sensor.frame import Frame
 
@@ -20,8 +22,9 @@ BINS = np.arange(128, dtype=float)
 
 
 def pulse(at: float, height: float = 5000.0) -> np.ndarray:
-    """A return: a Gaussian peak with an exponential tail (the pulse's own tail only decays)."""
-    g = np.exp(-0.5 * ((BINS - at) / 1.3) ** 2)
+    """A return: a Gaussian peak about 2 bins wide at half height, like the real sensor's (its leading
+    edge is down to about 1 % three bins before the peak), with an exponential tail that only decays."""
+    g = np.exp(-0.5 * ((BINS - at) / 0.9) ** 2)
     tail = np.where(BINS > at, 0.05 * np.exp(-(BINS - at) / 4.0), 0.0)
     return height * (g + tail)
 
@@ -85,6 +88,40 @@ def test_a_pulse_tail_is_not_a_second_return_but_a_farther_surface_is():
     h[4] += pulse(95.0, 300.0)
     has, where = second_returns(h, np.full(9, 40.0), np.ones(9, bool))
     assert has.tolist() == [z == 4 for z in range(9)] and abs(where[4] - 95.0) <= 1
+
+
+def test_a_nearer_surface_mixed_into_a_return_is_an_early_return():
+    # a box 2.5 cm above the table covering part of zone 5: its return (1.8 bins nearer) merges with the
+    # table's into one peak with a shoulder on the leading edge
+    h = np.full((9, 128), 30.0)
+    for z in range(9):
+        h[z] += pulse(40.0)
+    h[4] += pulse(40.0 - 0.025 * PARAMS.m, height=1500.0)
+    pos, valid, _ = find_peaks(h)
+    has = early_returns(h, pos, valid)
+    assert has.tolist() == [z == 4 for z in range(9)]
+
+
+def test_real_level_table_frames_show_no_early_return(sweep_path):
+    # every frame of the real sweep (0.5-40 cm, one level table): the real pulse's own leading edge is no
+    # shoulder
+    for f in load_frames(sweep_path):
+        pos, valid, _ = find_peaks(f.hists)
+        assert not early_returns(f.hists, pos, valid).any()
+
+
+def test_clutter_covering_part_of_a_zone_is_not_certified_and_is_blamed():
+    # close up, a box under part of a footprint zone: the zone's point stays on the table (the table's
+    # return is the stronger) but the shoulder gives the box away
+    sm = SurfaceMap(PARAMS)
+    T = sensor_pose((0.0, 0.0), sm.survey_height())
+    for _ in range(3):
+        f = frame_over(T, lambda x, y: 0.0)
+        f.hists[4] += pulse(float(find_peaks(f.hists)[0][4]) - 0.025 * PARAMS.m, height=1500.0)
+        fs = sm.add(f, T, 0.0)
+    assert fs.early[4] and fs.multi_surface and "nearer surface" in fs.describe()
+    v = sm.verdict(UP, 0.0, cup_at((0.0, 0.0)), T)
+    assert v.supported < 3 and v.problem is not None and "clutter" in v.problem
 
 
 def test_level_table_footprint_observed_and_supported():
