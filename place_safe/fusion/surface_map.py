@@ -52,7 +52,8 @@ SECOND_LAST_BIN = 100
 #: 14 mm of range; the pulse's own leading edge has fallen to about 1 % of its peak there on clean
 #: tables, sim and real, at 0.5-40 cm).
 EARLY_BINS = 3.0
-#: A nearer surface must lift that bin by this fraction of the peak's height above the floor ...
+#: A nearer surface must lift that bin by this fraction of the peak's height above the floor (over the
+#: frame's median edge there) ...
 EARLY_RELATIVE = 0.06
 #: ... and by this many Poisson sigmas of the floor.
 EARLY_SIGMAS = 6.0
@@ -115,23 +116,30 @@ def early_returns(hists: np.ndarray, first: np.ndarray, valid: np.ndarray) -> np
     above the surface, covering part of the zone).
 
     Such a surface lies too close to the main one for a peak of its own; it shows as a shoulder on the
-    return's leading edge. A zone has one when the counts :data:`EARLY_BINS` before its peak (linear
-    interpolation at the sub-bin position) rise above the floor by :data:`EARLY_RELATIVE` of the peak's
-    height and by :data:`EARLY_SIGMAS` floor sigmas.
+    return's leading edge. The leading edge is read :data:`EARLY_BINS` before each zone's peak (linear
+    interpolation at the sub-bin position) as a fraction of the peak's height above the floor; the
+    pulse's own edge is what the frame's zones show there in the median (the zones share the pulse, and
+    clutter rarely covers most of them). A zone has a nearer surface when its edge stands
+    :data:`EARLY_RELATIVE` above that median and :data:`EARLY_SIGMAS` floor sigmas above the floor.
     """
     h = np.asarray(hists, dtype=float)
     floor = measure_floor(h)
     sigma = np.sqrt(np.maximum(floor, 0.0) + 1.0)
-    has = np.zeros(N_ZONES, dtype=bool)
     x = np.arange(N_BINS, dtype=float)
+    top = np.full(N_ZONES, np.nan)
+    rise = np.full(N_ZONES, np.nan)
     for z in range(N_ZONES):
         p = float(first[z])
         if not valid[z] or not math.isfinite(p) or p - EARLY_BINS < 0:
             continue
-        top = max(float(np.interp(p, x, h[z])), float(h[z].max())) - floor[z]
-        rise = float(np.interp(p - EARLY_BINS, x, h[z])) - floor[z]
-        has[z] = top > 0 and rise > max(EARLY_RELATIVE * top, EARLY_SIGMAS * sigma[z])
-    return has
+        top[z] = max(float(np.interp(p, x, h[z])), float(h[z].max())) - floor[z]
+        rise[z] = float(np.interp(p - EARLY_BINS, x, h[z])) - floor[z]
+    ok = np.isfinite(top) & (top > 0)
+    if not ok.any():
+        return np.zeros(N_ZONES, dtype=bool)
+    edge = float(np.median(rise[ok] / top[ok]))
+    with np.errstate(invalid="ignore"):
+        return ok & (rise > (max(edge, 0.0) + EARLY_RELATIVE) * top) & (rise > EARLY_SIGMAS * sigma)
 
 
 def consensus(points: np.ndarray, valid: np.ndarray, tolerance: float) -> tuple[np.ndarray, np.ndarray, float]:
@@ -285,6 +293,22 @@ class SurfaceMap:
         if not self.relative > 0 or r.size == 0 or not np.all(np.isfinite(r)):
             return self.tolerance
         return float(np.clip(self.relative * np.median(r), min(CONSENSUS_MIN, self.tolerance), self.tolerance))
+
+    def on_plane(self, fs: FrameSurfaces, normal: Any, offset: float) -> np.ndarray:
+        """Zones (9,) of a recorded frame whose single return lies on the base-frame plane
+        ``normal . x = offset`` within the frame's consensus tolerance (:meth:`consensus_tolerance`):
+        valid, no nearer surface mixed in. With the fused surface as the plane these are the zones that
+        still see the known surface when clutter or a step comes into view beside it."""
+        n = np.asarray(normal, dtype=float)
+        T = fs.base_T_sensor
+        ok = fs.valid & ~fs.early & np.all(np.isfinite(fs.points_base), axis=1)
+        if not ok.any() or n.shape != (3,) or not np.all(np.isfinite(n)) or not math.isfinite(float(offset)):
+            return np.zeros(N_ZONES, dtype=bool)
+        pts = (np.where(ok[:, None], fs.points_base, 0.0) - T[:3, 3]) @ T[:3, :3]
+        tol = self.consensus_tolerance(pts, ok)
+        with np.errstate(invalid="ignore"):
+            s = np.where(ok[:, None], fs.points_base, 0.0) @ n - float(offset)
+        return ok & (np.abs(s) <= tol)
 
     # -- footprint ---------------------------------------------------------------------------------
     def disc(self, normal: np.ndarray, offset: float, base_T_cup: np.ndarray) -> np.ndarray | None:

@@ -52,6 +52,13 @@ CONTROL_PERIOD = 0.008
 POSE_HISTORY = 250
 #: Clock-offset samples kept by :class:`ClockMap`.
 CLOCK_SAMPLES = 64
+#: Zones still on the known surface from which a frame gives the surface's height (with the remembered
+#: slope) when clutter or a step covers the others.
+MIN_ON_KNOWN = 3
+#: rad: the slope uncertainty of such a height-only estimate (it measures no slope).
+KNOWN_SLOPE_STD = math.radians(5.0)
+#: m: the least height uncertainty per zone of such an estimate.
+KNOWN_HEIGHT_STD = 0.0005
 
 
 # ---------------------------------------------------------------------------------------------
@@ -400,7 +407,30 @@ class PlacementLoop:
             fs = self.surface.add(frame, base_T_sensor, stamp)
         except Exception as exc:  # the map is evidence, not control: a bug there must not stop the loop
             return est, f"surface map failed: {type(exc).__name__}: {exc}".splitlines()[0]
-        if fs is None or not fs.multi_surface:
+        if fs is None:
+            return est, None
+        # zones off the known surface while most still lie on it: clutter or a step coming into view
+        # beside the footprint. A frame's own consensus can miss it -- a tilted plane through every zone
+        # absorbs a box on one side -- so the zones are held against the fused surface too.
+        known = self.filter.fused()
+        if known is not None:
+            try:
+                on = self.surface.on_plane(fs, known.normal_base, known.offset_base)
+            except Exception:  # evidence, not control (see above): without it the frame goes on as it is
+                on = np.zeros(len(fs.valid), dtype=bool)
+            off = fs.valid & ~on
+            n_on = int(on.sum())
+            what = (f"zone(s) {', '.join(str(z + 1) for z in np.flatnonzero(off))} off the known surface"
+                    + (f" ({fs.describe()})" if fs.multi_surface else ""))
+            if off.any() and n_on >= MIN_INLIERS:
+                self.multi_surface += 1
+                return self._zone_plane(fs, on, base_T_sensor), f"{what}: plane from the {n_on} zones still on it"
+            if off.any() and n_on >= MIN_ON_KNOWN and known.source == "memory":
+                # too few zones for a slope of their own: the remembered slope, their height
+                self.multi_surface += 1
+                return self._known_plane(fs, on, known, base_T_sensor), (
+                    f"{what}: the known surface's slope, its height from the {n_on} zones still on it")
+        if not fs.multi_surface:
             return est, None
         self.multi_surface += 1
         off = fs.valid & ~fs.inliers
@@ -409,16 +439,46 @@ class PlacementLoop:
         if int(fs.inliers.sum()) < MIN_INLIERS:
             return None, (f"multi-surface: more than one surface in view and no {MIN_INLIERS} zones agree "
                           f"(edge, step or clutter): {fs.describe()}")
+        return (self._zone_plane(fs, fs.inliers, base_T_sensor),
+                f"more than one surface in view, plane from the {int(fs.inliers.sum())} zones that agree: {fs.describe()}")
+
+    @staticmethod
+    def _known_plane(fs: Any, zones: np.ndarray, known: Any, base_T_sensor: np.ndarray) -> Any:
+        """An estimate (sensor frame) with the known surface's normal and the height the calibrated peak
+        points of ``zones`` give it (their median). It measures no slope: its normal carries
+        :data:`KNOWN_SLOPE_STD` so the fusion's slope stays with the frames that measured one."""
         from place_safe.geometry import Plane
         from place_safe.recovery.estimator import PlaneEstimate
-        from place_safe.recovery.points import plane_covariance
 
-        plane = Plane(fs.plane_sensor[:3], float(fs.plane_sensor[3]))
         T = np.asarray(base_T_sensor, dtype=float)
-        pts = (fs.points_base - T[:3, 3]) @ T[:3, :3]
-        cov = plane_covariance(np.nan_to_num(pts), fs.inliers, plane)
-        sub = PlaneEstimate(plane, residual=fs.rms, covariance=cov, method_used="peak-consensus")
-        return sub, f"more than one surface in view, plane from the {int(fs.inliers.sum())} zones that agree: {fs.describe()}"
+        n_b = np.asarray(known.normal_base, dtype=float)
+        heights = fs.points_base[np.asarray(zones, dtype=bool)] @ n_b
+        d_b = float(np.median(heights))
+        n_s = -(T[:3, :3].T @ n_b)  # towards the surface, as the sensor frame's planes are (n_z > 0)
+        d_s = float(n_b @ T[:3, 3]) - d_b
+        if not (n_s[2] > 0 and d_s > 0):
+            return PlaneEstimate(None, reason="the known surface is not in front of the sensor")
+        spread = float(np.std(heights)) if heights.size > 1 else 0.0
+        var_d = max(spread, KNOWN_HEIGHT_STD) ** 2 / heights.size
+        cov = np.diag([KNOWN_SLOPE_STD ** 2, KNOWN_SLOPE_STD ** 2, var_d])
+        return PlaneEstimate(Plane(n_s, d_s), residual=spread, covariance=cov, method_used="peak-known-slope")
+
+    @staticmethod
+    def _zone_plane(fs: Any, zones: np.ndarray, base_T_sensor: np.ndarray) -> Any:
+        """The plane (sensor frame) fitted to the calibrated peak points of ``zones`` of a recorded frame,
+        as an estimate with its covariance ("peak-consensus"); None-plane estimate when the fit fails."""
+        from place_safe.geometry import Plane
+        from place_safe.recovery.estimator import PlaneEstimate
+        from place_safe.recovery.points import fit_planes, plane_covariance
+
+        T = np.asarray(base_T_sensor, dtype=float)
+        pts = np.nan_to_num((fs.points_base - T[:3, 3]) @ T[:3, :3])
+        n, d, rms, ok = fit_planes(pts[None], np.asarray(zones, dtype=bool)[None])
+        if not ok[0]:
+            return PlaneEstimate(None, reason="no plane through the zones that agree")
+        plane = Plane(n[0], float(d[0]))
+        cov = plane_covariance(pts, zones, plane)
+        return PlaneEstimate(plane, residual=float(rms[0]), covariance=cov, method_used="peak-consensus")
 
     def _footprint_verdict(self, fused: Any, tcp: Any) -> Any:
         """The surface map's verdict on the landing footprint (None without a fused plane)."""

@@ -102,6 +102,20 @@ def test_a_nearer_surface_mixed_into_a_return_is_an_early_return():
     assert has.tolist() == [z == 4 for z in range(9)]
 
 
+def test_a_wider_pulse_in_every_zone_is_the_pulse_not_clutter():
+    # a sensor whose pulse is wider (another configuration, temperature): every zone's leading edge is
+    # up, which is the pulse, not a nearer surface; a box under one zone still shows over it
+    wide = lambda at, height=5000.0: height * np.exp(-0.5 * ((BINS - at) / 1.5) ** 2)  # noqa: E731
+    h = np.full((9, 128), 30.0)
+    for z in range(9):
+        h[z] += wide(40.0)
+    pos, valid, _ = find_peaks(h)
+    assert not early_returns(h, pos, valid).any()
+    h[4] += wide(40.0 - 0.03 * PARAMS.m, 2000.0)
+    pos, valid, _ = find_peaks(h)
+    assert early_returns(h, pos, valid).tolist() == [z == 4 for z in range(9)]
+
+
 def test_real_level_table_frames_show_no_early_return(sweep_path):
     # every frame of the real sweep (0.5-40 cm, one level table): the real pulse's own leading edge is no
     # shoulder

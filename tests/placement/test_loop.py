@@ -239,6 +239,38 @@ def test_table_edge_under_the_cup_is_refused_as_an_edge_after_a_survey():
     assert "no safe support under the cup" in res.reason and "edge" in res.reason
 
 
+def test_a_box_beside_the_footprint_under_the_sensor_does_not_hide_the_table():
+    # a 2 cm high, 2.5 cm wide box 2 cm past the footprint's rim, under the sensor (which sits 70 mm beside
+    # the cup): from 30 cm it covers one of the three zone columns, at the end two; the zones still on the
+    # known surface give its height, the remembered slope its tilt, and the cup is released where it was
+    # meant to land
+    for width, path in ((0.025, "peak-consensus"), (0.04, "peak-known-slope")):
+        robot = KinematicRobot(height=0.30)
+        source = TruthSource(robot, raised=lambda x, y: 0.02 if 0.465 < x < 0.465 + width else 0.0)
+        loop = PlacementLoop(robot, source, TruthEstimator(sigma=(math.radians(0.3), 0.0005)))
+        used = []
+        surfaces = loop._surfaces
+
+        def spy(*a):
+            est, why = surfaces(*a)
+            used.append(getattr(est, "method_used", None))
+            return est, why
+
+        loop._surfaces = spy
+        res = loop.run(timeout=20.0)
+        assert res.outcome == "released", res.reason
+        assert 0.0 <= robot.opened_at <= PlacementConfig().release_clearance + 1e-6
+        assert loop.multi_surface > 0 and path in used
+
+
+def test_a_box_under_the_footprint_is_refused_as_clutter():
+    robot = KinematicRobot(height=0.12)
+    box = lambda x, y: 0.02 if abs(x - 0.42) < 0.02 and abs(y - 0.1) < 0.03 else 0.0  # noqa: E731
+    loop, res = run(robot, TruthSource(robot, raised=box))
+    assert res.outcome == "refused" and not robot.opened
+    assert "clutter" in res.reason or "obstacle" in res.reason
+
+
 def test_level_table_release_happens_over_the_landing_spot_after_the_survey():
     robot = KinematicRobot(height=0.12)
     start = robot.tcp_pose()[:2, 3].copy()

@@ -7,7 +7,8 @@ stops on it with ``contact`` newtons. ``TruthSource`` measures the plane below t
 pose at the measurement time and delivers the frame ``latency`` seconds later, stamped on the robot clock
 (or on a host clock for the threaded path). Its histograms hold one pulse per zone at the bin the built-in
 peak mapping gives for the zone's range to the table (what the surface map reads), or none where the zone's
-centre ray lands in ``hole`` (a base-frame region without table: an edge). ``TruthEstimator`` returns the
+centre ray lands in ``hole`` (a base-frame region without table: an edge), nearer where it lands on something
+``raised`` above the table. ``TruthEstimator`` returns the
 frame's ``truth``.
 """
 
@@ -130,8 +131,9 @@ class TruthSource(FrameSource):
 
     def __init__(self, robot: KinematicRobot, rate_hz: float = 30.0, latency: float = 0.05,
                  freeze_after: float | None = None, clock=None, error_after: float | None = None,
-                 hole=None) -> None:
+                 hole=None, raised=None) -> None:
         self.hole = hole  # callable (x, y) base frame -> True where there is no table
+        self.raised = raised  # callable (x, y) base frame -> height (m) of something on the table there
         self.robot = robot
         self.rate_hz = rate_hz
         self.latency = latency
@@ -164,7 +166,11 @@ class TruthSource(FrameSource):
             hit = base_T_sensor[:3, :3] @ (ranges[z] * dirs[z]) + base_T_sensor[:3, 3]
             if self.hole is not None and self.hole(hit[0], hit[1]):
                 continue
-            h[z] += 5000.0 * np.exp(-0.5 * ((bins - reading[z]) / 1.5) ** 2)
+            at = reading[z]
+            top = float(self.raised(hit[0], hit[1])) if self.raised is not None else 0.0
+            if top > 0:  # the zone's centre ray meets a box standing on the table: a nearer surface
+                at = params.expected_readings(n[None], np.array([d - top]))[0][z]
+            h[z] += 5000.0 * np.exp(-0.5 * ((bins - at) / 1.5) ** 2)
         return h
 
     def read(self, timeout: float = 1.0) -> Frame:
@@ -186,8 +192,15 @@ class TruthSource(FrameSource):
 
 
 class TruthEstimator:
+    """The frame's true plane; with ``sigma`` (rad, m) it also states a covariance of ``(n_x, n_y, d)``
+    (then the fusion weights it and remembers the slope)."""
+
+    def __init__(self, sigma: tuple[float, float] | None = None) -> None:
+        self.sigma = sigma
+
     def estimate(self, frame: Frame) -> PlaneEstimate:
-        return PlaneEstimate(frame.truth, reason=None if frame.truth is not None else "no truth")
+        cov = None if self.sigma is None else np.diag([self.sigma[0] ** 2, self.sigma[0] ** 2, self.sigma[1] ** 2])
+        return PlaneEstimate(frame.truth, reason=None if frame.truth is not None else "no truth", covariance=cov)
 
 
 def tilted(robot: KinematicRobot, deg: float) -> None:
