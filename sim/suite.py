@@ -29,6 +29,9 @@ import numpy as np
 from place_safe.sim.scenario import (ON_TABLE_TOL, REFERENCE_HEIGHT, TIPPED_TILT, Expectation, Scenario,
                                      home_cup_position)
 
+#: N: a contact at least this hard counts as a collision in the summary (half the robot's 60 N protective stop;
+#: arrival on the surface stays under about 15 N).
+HARD_CONTACT = 30.0
 #: m beyond the cup's footprint that must be clear for a scene to count as clearly safe.
 CLEAR_MARGIN = 0.03
 #: rad below the tilt limit for a scene to count as clearly safe.
@@ -239,6 +242,8 @@ def summarize(rows: list[dict]) -> dict:
         "releases_from_40cm": len(times),
         "missed_expectation": sum(not r.get("met") for r in rows),
         "collisions": sum(bool(r.get("robot_fault")) for r in rows),
+        "hard_contacts": sum((r.get("contact_force_peak") or 0.0) >= HARD_CONTACT for r in rows),
+        "max_contact_force": max([float(r.get("contact_force_peak") or 0.0) for r in rows], default=0.0),
     }
 
 
@@ -264,7 +269,8 @@ def format_table(rows: list[dict], summary: dict) -> str:
                   f"{s['errors']} errors; {s['missed_expectation']} missed their expectation",
               f"unsafe releases: {s['unsafe_releases']}; false refusals: {s['false_refusals']} of {s['clearly_safe']} "
               f"clearly safe scenes ({'-' if fr is None else f'{fr * 100:.1f} %'}); protective stops/faults: "
-              f"{s['collisions']}",
+              f"{s['collisions']}; contacts >= {HARD_CONTACT:.0f} N: {s['hard_contacts']} "
+              f"(largest {s['max_contact_force']:.1f} N)",
               f"median release height: {'-' if mh is None else f'{mh * 1e3:.1f} mm'}; median time from 40 cm to "
               f"release: {'-' if mt is None else f'{mt:.2f} s'} ({s['releases_from_40cm']} releases from >= 40 cm)"]
     return "\n".join(lines)

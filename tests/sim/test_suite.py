@@ -72,6 +72,11 @@ def test_summary_and_table():
     assert s["false_refusals"] == 1 and s["unsafe_releases"] == 0
     assert s["median_release_height"] == pytest.approx(0.002)
     assert "false refusals: 1 of 2" in suite.format_table(rows, s)
+    hard = suite.judge(Scenario(name="c", labels={"clearly_safe": False}), _res(outcome="refused"))
+    hard["contact_force_peak"] = 45.0
+    s = suite.summarize(rows + [hard])
+    assert s["hard_contacts"] == 1 and s["max_contact_force"] == 45.0
+    assert "contacts >= 30 N: 1 (largest 45.0 N)" in suite.format_table(rows + [hard], s)
 
 
 def test_scenarios_command_ci_subset(tmp_path):
