@@ -232,6 +232,9 @@ class FootprintVerdict:
     look_shift: np.ndarray = field(default_factory=lambda: np.zeros(3))  # m, base frame: TCP move to see it
     view_margin: float = math.nan  # m the sensor may descend before the footprint leaves the view
     certify_margin: float = math.nan  # m the sensor must still descend before its frames can certify it
+    close_frames: int = 0  # frames from the close height that saw part of the footprint
+    recheck_point: np.ndarray | None = None  # base frame: centre of the footprint points behind ``problem``
+    recheck_shift: np.ndarray | None = None  # m, base frame: TCP move that centres the view on it
 
 
 class SurfaceMap:
@@ -403,7 +406,7 @@ class SurfaceMap:
         flagged = np.zeros(len(disc), dtype=int)
         details: dict[str, str] = {}
         kinds: Counter = Counter()
-        observed = 0
+        observed = close_frames = 0
         for fs in self.frames:
             inside, zone = self._view(disc, fs.base_T_sensor)
             if not inside.any():
@@ -412,6 +415,7 @@ class SurfaceMap:
             height = float(fs.base_T_sensor[:3, 3] @ n - d)
             if height > close:
                 continue
+            close_frames += 1
             issue = {z: self._zone_issue(fs, z, n, d) for z in set(zone[inside].tolist())}
             clean = inside & np.array([issue.get(int(z)) is None for z in zone])
             certified += clean
@@ -424,13 +428,15 @@ class SurfaceMap:
                     details[kind] = detail
         supported = int(certified.min()) if len(certified) else 0
         problem = None
+        recheck = None
         open_points = (certified < self.min_frames) & (flagged >= self.min_frames)
         if open_points.any() and kinds:
             kind = kinds.most_common(1)[0][0]
             share = 100.0 * float(np.mean(certified == 0))
             problem = (f"{details[kind]}; {share:.0f} % of the footprint never seen on the surface in "
                        f"{int(flagged.max())} close frames")
-        return FootprintVerdict(observed, supported, problem)
+            recheck = disc[open_points].mean(axis=0)
+        return FootprintVerdict(observed, supported, problem, close_frames=close_frames, recheck_point=recheck)
 
     def sight(self, verdict: FootprintVerdict, normal: Any, offset: float, landing_T_cup: Any,
               base_T_sensor: Any) -> FootprintVerdict:
@@ -445,8 +451,11 @@ class SurfaceMap:
         inside, _ = self._view(disc, T, math.tan(math.atan(self.tan_fov) - SIGHT_SLACK_RAD))
         shift, margin = self._look(disc, T, n)
         above = float(T[:3, 3] @ n - float(offset)) - self.close_height()
+        recheck = None
+        if verdict.recheck_point is not None:
+            recheck, _ = self._look(np.asarray(verdict.recheck_point, dtype=float).reshape(1, 3), T, n)
         return replace(verdict, in_view=bool(inside.all()), look_shift=shift, view_margin=margin,
-                       certify_margin=above)
+                       certify_margin=above, recheck_shift=recheck)
 
     def verdict(self, normal: Any, offset: float, landing_T_cup: Any, base_T_sensor: Any) -> FootprintVerdict:
         """:meth:`footprint` and :meth:`sight` together."""

@@ -125,6 +125,7 @@ class PlacementConfig:
     footprint_margin: float = 0.01  # m around the cup bottom that must be seen supported
     footprint_tolerance: float = 0.008  # m a zone over the footprint may lie off the fused surface
     survey_speed: float = 0.15  # m/s sideways while bringing the footprint into view and back
+    recheck_timeout: float = 2.0  # s for a second look at footprint points only mixed zones saw (0: none)
     # * footprint_frames = 0 is for sources without histograms (test doubles); it extrapolates the
     #   surface beside the cup to where it lands, which edges and clutter defeat
 
@@ -199,6 +200,7 @@ PLACEMENT_BOUNDS: dict[str, Bound] = {
     "footprint_margin": Bound(0.0, 0.2, "m"),
     "footprint_tolerance": Bound(0.0, 0.1, "m", lo_open=True),
     "survey_speed": Bound(0.0, 1.0, "m/s", lo_open=True),
+    "recheck_timeout": Bound(0.0, 30.0, "s"),
 }
 
 
@@ -278,6 +280,8 @@ class Transition:
 CLOCK_STALL_TICKS = 25
 #: m: a survey move (out to see the footprint, or back over the landing spot) is done this close.
 SURVEY_DONE = 0.001
+#: m: the second look at doubtful footprint points has arrived this close to its pose.
+RECHECK_ARRIVED = 0.003
 #: m of view margin kept when descending before the footprint was seen.
 SURVEY_VIEW_SLACK = 0.005
 #: s the robot clock may step back (rounding) before it counts as running backwards.
@@ -335,6 +339,8 @@ class PlacementMachine:
         self._last_twist: tuple[float, ...] | None = None
         self._footprint: Any = None
         self._surveyed = False
+        self._recheck: dict | None = None  # the second look: {"t0", "ticks", "arrived" (close frames then)}
+        self._rechecked = False
 
     @property
     def finished(self) -> bool:
@@ -551,6 +557,44 @@ class PlacementMachine:
         side = self._lateral(move - down * float(move @ down), cfg.survey_speed)
         return self._speed(np.round(side + self._axial(along) * down, 3))
 
+    def _second_look(self, state: RobotState, c: float, now: float) -> Command | None:
+        """Before refusing for footprint points that only zones seeing more than one surface covered, look
+        once more from over those points (the view centred on them, at the survey height): a corner zone
+        reaches 4 cm past the footprint, so an edge or a box beside it puts a second surface into a zone
+        that also covers part of the footprint. Returns the move or the wait, or None once the look is
+        done (``footprint_frames`` close frames from there), timed out or not possible: then refuse."""
+        cfg = self.config
+        if self._rechecked or not cfg.recheck_timeout > 0 or cfg.footprint_frames == 0:
+            return None
+        fp = self._footprint
+        frames = _number(getattr(fp, "close_frames", None))
+        try:
+            move = np.asarray(getattr(fp, "recheck_shift"), dtype=float).reshape(3)
+        except (TypeError, ValueError, AttributeError):
+            move = None
+        if frames is None or move is None or not np.all(np.isfinite(move)):
+            return None
+        r = self._recheck
+        if r is None:
+            r = self._recheck = {"t0": now, "ticks": 0, "arrived": None}
+        r["ticks"] += 1
+        if self._elapsed(now, r["t0"], r["ticks"]) > cfg.recheck_timeout:
+            self._rechecked = True
+            return None
+        down = -np.asarray(state.base_T_cup, dtype=float)[:3, 2]
+        if float(np.linalg.norm(move)) > RECHECK_ARRIVED:
+            along = float(move @ down)
+            if along > 0:
+                along = min(along, max(c - cfg.slow_clearance, 0.0))
+            side = self._lateral(move - down * float(move @ down), cfg.survey_speed)
+            return self._speed(np.round(side + self._axial(along) * down, 3))
+        if r["arrived"] is None:
+            r["arrived"] = frames
+        if frames >= r["arrived"] + cfg.footprint_frames:
+            self._rechecked = True
+            return None
+        return self._speed(np.zeros(3))
+
     def _confidently_tilted(self, plane: FusedPlane) -> str | None:
         """Refuse early (before descending onto it) a surface steeper than ``max_tilt`` with
         ``level_confidence``, once the window holds ``check_frames`` planes."""
@@ -677,7 +721,10 @@ class PlacementMachine:
             return self._refuse(now, f"cup {-c * 1e3:.1f} mm below the estimated surface without contact: "
                                      "the surface estimate is wrong")
         if (why := self._footprint_problem()) is not None:
-            return self._refuse(now, why)
+            look = self._second_look(state, c, now) if self.phase == Phase.APPROACH else None
+            if look is not None:
+                return look
+            return self._refuse(now, why + (" (also from over those points)" if self._recheck else ""))
         side = np.zeros(3)
         if self.phase == Phase.APPROACH:
             cmd = self._survey(state, c, now)

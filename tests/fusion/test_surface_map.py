@@ -190,6 +190,23 @@ def test_clutter_under_the_footprint_is_clutter():
     assert v.problem is not None and "clutter" in v.problem
 
 
+def test_a_problem_names_where_to_look_again():
+    # an edge flagged over part of the footprint: the verdict points at the doubtful points' centre and
+    # gives the move that centres the view on it at the survey height
+    sm = SurfaceMap(PARAMS)
+    T = sensor_pose((0.0, 0.0), sm.survey_height())
+    table = lambda x, y: 0.0 if x < 0.01 else None  # noqa: E731 - the table ends at x = 1 cm
+    for _ in range(3):
+        sm.add(frame_over(T, table), T, 0.0)
+    v = sm.verdict(UP, 0.0, cup_at((0.0, 0.0)), T)
+    assert v.problem is not None and v.close_frames == 3
+    assert v.recheck_point[0] > 0.0 and abs(v.recheck_point[2]) < 1e-9  # on the edge's side, on the table
+    T2 = T.copy()
+    T2[:3, 3] += v.recheck_shift
+    assert np.allclose(T2[:2, 3], v.recheck_point[:2], atol=1e-9)
+    assert T2[2, 3] == pytest.approx(sm.survey_height())
+
+
 def test_footprint_out_of_view_gives_the_move_to_the_survey_pose():
     sm = SurfaceMap(PARAMS)
     T = sensor_pose((0.07, 0.0), 0.26)  # 7 cm beside the cup, too low to see its footprint from there

@@ -352,6 +352,40 @@ def test_footprint_problem_refuses_with_its_reason():
     assert "no safe support under the cup" in m.decision and "edge" in m.decision
 
 
+def _doubtful_footprint_fn(clears: bool):
+    """A problem over footprint points near x = -0.03 that only mixed zones saw; the second look centres
+    the view on them (the cup moves to x <= -0.026), and each tick there adds a close frame. With
+    ``clears`` the frames from there certify the points and the problem goes."""
+    def fn(world, m):
+        fp = world.footprint
+        there = world.pos[0] <= -0.026
+        frames = fp.close_frames + (1 if there else 0)
+        gone = clears and frames >= 6
+        world.footprint = FootprintVerdict(
+            observed=5, supported=5 if gone else 0, in_view=True, view_margin=1.0, close_frames=frames,
+            problem=None if gone else "zone 3 over the cup's footprint sees a second surface 800 mm farther "
+                                      "(edge or step); 10 % of the footprint never seen on the surface",
+            recheck_point=np.array([-0.03, 0.0, 0.0]),
+            recheck_shift=np.array([min(-0.03 - world.pos[0], 0.0), 0.0, 0.0]))
+        return world.plane()
+    return fn
+
+
+@pytest.mark.parametrize("clears", [True, False])
+def test_a_doubtful_footprint_gets_a_second_look_before_refusing(clears):
+    w = FakeWorld(height=0.2)
+    w.footprint = FootprintVerdict(close_frames=3)
+    m = run(w, plane_fn=_doubtful_footprint_fn(clears))
+    vx = [c.twist[0] for c in w.commands if c.kind == CommandKind.SPEED]
+    assert min(vx) < -0.01  # went to look from over the doubtful points
+    if clears:
+        assert m.outcome == "released", m.decision
+        assert abs(w.opened_at[0]) <= 0.002  # and came back over the landing spot
+    else:
+        assert m.outcome == "refused" and not opened(w)
+        assert "edge" in m.decision and "also from over those points" in m.decision
+
+
 def test_footprint_never_seen_supported_is_refused_at_check():
     w = FakeWorld(height=0.05)
     w.footprint = FootprintVerdict(observed=0, supported=0, in_view=True, view_margin=1.0)  # in view, no frames
