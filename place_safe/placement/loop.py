@@ -412,8 +412,8 @@ class PlacementLoop:
         # zones off the known surface while most still lie on it: clutter or a step coming into view
         # beside the footprint. A frame's own consensus can miss it -- a tilted plane through every zone
         # absorbs a box on one side -- so the zones are held against the fused surface too.
-        known = self.filter.fused()
-        if known is not None:
+        known = self.filter.fused() if self.surface.relative > 0 else None  # zone points good to ~1 mm only
+        if known is not None:  # when the peak mapping is calibrated (see SurfaceMap.consensus_tolerance)
             try:
                 on = self.surface.on_plane(fs, known.normal_base, known.offset_base)
             except Exception:  # evidence, not control (see above): without it the frame goes on as it is

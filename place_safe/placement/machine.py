@@ -92,7 +92,7 @@ class PlacementConfig:
 
     approach_speed: float = 0.25  # m/s at most while the surface is far (slower near it: placement/speed.py)
     descend_speed: float = 0.02  # m/s near the surface
-    accel: float = 0.5  # m/s^2 for speed changes and stops
+    accel: float = 0.8  # m/s^2 for speed changes and stops
     obstacle_decel: float = 4.0  # m/s^2: the hard stop when the cup touches something above the surface
     slow_clearance: float = 0.010  # m: APPROACH -> DESCEND below this cup clearance
     stop_clearance: float = 0.002  # m: DESCEND -> CHECK at or below this clearance
@@ -124,8 +124,9 @@ class PlacementConfig:
     footprint_frames: int = 3  # frames that saw the landing footprint on one surface (0: no footprint rule*)
     footprint_margin: float = 0.01  # m around the cup bottom that must be seen supported
     footprint_tolerance: float = 0.008  # m a zone over the footprint may lie off the fused surface
-    survey_speed: float = 0.15  # m/s sideways while bringing the footprint into view and back
+    survey_speed: float = 0.25  # m/s sideways while bringing the footprint into view and back
     recheck_timeout: float = 2.0  # s for a second look at footprint points only mixed zones saw (0: none)
+    traverse_clearance: float = 0.06  # m the cup stays above the surface while it moves back sideways
     # * footprint_frames = 0 is for sources without histograms (test doubles); it extrapolates the
     #   surface beside the cup to where it lands, which edges and clutter defeat
 
@@ -201,6 +202,7 @@ PLACEMENT_BOUNDS: dict[str, Bound] = {
     "footprint_tolerance": Bound(0.0, 0.1, "m", lo_open=True),
     "survey_speed": Bound(0.0, 1.0, "m/s", lo_open=True),
     "recheck_timeout": Bound(0.0, 30.0, "s"),
+    "traverse_clearance": Bound(0.0, 1.0, "m"),
 }
 
 
@@ -737,6 +739,8 @@ class PlacementMachine:
             if c > cfg.slow_clearance:
                 v = approach_speed(c, cfg.slow_clearance, cfg.sensor_latency, cfg.accel, cfg.approach_speed,
                                    cfg.descend_speed)
+                if np.any(side):  # moving back over the landing spot: the ground under the way is unseen
+                    v = min(v, max(self._axial(c - cfg.traverse_clearance), 0.0))
                 return self._speed(np.round(side + round(v, 3) * down, 3))
             if np.any(side):  # back over the landing spot before the slow, final part of the descent
                 return self._speed(side)
