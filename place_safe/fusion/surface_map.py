@@ -307,11 +307,9 @@ class SurfaceMap:
         ok = fs.valid & ~fs.early & np.all(np.isfinite(fs.points_base), axis=1)
         if not ok.any() or n.shape != (3,) or not np.all(np.isfinite(n)) or not math.isfinite(float(offset)):
             return np.zeros(N_ZONES, dtype=bool)
-        pts = (np.where(ok[:, None], fs.points_base, 0.0) - T[:3, 3]) @ T[:3, :3]
-        tol = self.consensus_tolerance(pts, ok)
-        with np.errstate(invalid="ignore"):
-            s = np.where(ok[:, None], fs.points_base, 0.0) @ n - float(offset)
-        return ok & (np.abs(s) <= tol)
+        pb = np.where(ok[:, None], fs.points_base, 0.0)
+        tol = self.consensus_tolerance((pb - T[:3, 3]) @ T[:3, :3], ok)
+        return ok & (np.abs(pb @ n - float(offset)) <= tol)
 
     # -- footprint ---------------------------------------------------------------------------------
     def disc(self, normal: np.ndarray, offset: float, base_T_cup: np.ndarray) -> np.ndarray | None:

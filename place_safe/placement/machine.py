@@ -299,6 +299,17 @@ class _Check:
 
 
 @dataclass
+class _Recheck:
+    """The second look at doubtful footprint points: when it began, its ticks, the close frames the surface
+    map had counted when it arrived over them (None: still moving), and whether it is over."""
+
+    t0: float
+    ticks: int = 0
+    arrived: float | None = None
+    done: bool = False
+
+
+@dataclass
 class _Retreat:
     """RELEASE / REFUSE phase state: TCP height when the retreat started (None until it starts)."""
 
@@ -341,8 +352,7 @@ class PlacementMachine:
         self._last_twist: tuple[float, ...] | None = None
         self._footprint: Any = None
         self._surveyed = False
-        self._recheck: dict | None = None  # the second look: {"t0", "ticks", "arrived" (close frames then)}
-        self._rechecked = False
+        self._recheck: _Recheck | None = None
 
     @property
     def finished(self) -> bool:
@@ -553,10 +563,17 @@ class PlacementMachine:
             return self._refuse(now, "surface map gave no way to bring the cup's footprint into view")
         if not np.all(np.isfinite(move)):
             return self._refuse(now, "surface map gave no way to bring the cup's footprint into view")
+        return self._toward(move, down, c)
+
+    def _toward(self, move: np.ndarray, down: np.ndarray, c: float) -> Command:
+        """speedL towards a pose ``move`` (m, base frame) away: sideways at up to ``survey_speed``, along the
+        tool axis (``down``) at up to ``approach_speed`` and never past the slow band, both slowing to stop
+        at the pose."""
+        cfg = self.config
         along = float(move @ down)  # > 0: down towards the surface
+        side = self._lateral(move - down * along, cfg.survey_speed)
         if along > 0:  # never faster than the cup could stop before the slow band
             along = min(along, max(c - cfg.slow_clearance, 0.0))
-        side = self._lateral(move - down * float(move @ down), cfg.survey_speed)
         return self._speed(np.round(side + self._axial(along) * down, 3))
 
     def _second_look(self, state: RobotState, c: float, now: float) -> Command | None:
@@ -566,7 +583,8 @@ class PlacementMachine:
         that also covers part of the footprint. Returns the move or the wait, or None once the look is
         done (``footprint_frames`` close frames from there), timed out or not possible: then refuse."""
         cfg = self.config
-        if self._rechecked or not cfg.recheck_timeout > 0 or cfg.footprint_frames == 0:
+        r = self._recheck
+        if (r is not None and r.done) or not cfg.recheck_timeout > 0 or cfg.footprint_frames == 0:
             return None
         fp = self._footprint
         frames = _number(getattr(fp, "close_frames", None))
@@ -576,24 +594,18 @@ class PlacementMachine:
             move = None
         if frames is None or move is None or not np.all(np.isfinite(move)):
             return None
-        r = self._recheck
         if r is None:
-            r = self._recheck = {"t0": now, "ticks": 0, "arrived": None}
-        r["ticks"] += 1
-        if self._elapsed(now, r["t0"], r["ticks"]) > cfg.recheck_timeout:
-            self._rechecked = True
+            r = self._recheck = _Recheck(now)
+        r.ticks += 1
+        if self._elapsed(now, r.t0, r.ticks) > cfg.recheck_timeout:
+            r.done = True
             return None
-        down = -np.asarray(state.base_T_cup, dtype=float)[:3, 2]
         if float(np.linalg.norm(move)) > RECHECK_ARRIVED:
-            along = float(move @ down)
-            if along > 0:
-                along = min(along, max(c - cfg.slow_clearance, 0.0))
-            side = self._lateral(move - down * float(move @ down), cfg.survey_speed)
-            return self._speed(np.round(side + self._axial(along) * down, 3))
-        if r["arrived"] is None:
-            r["arrived"] = frames
-        if frames >= r["arrived"] + cfg.footprint_frames:
-            self._rechecked = True
+            return self._toward(move, -np.asarray(state.base_T_cup, dtype=float)[:3, 2], c)
+        if r.arrived is None:
+            r.arrived = frames
+        if frames >= r.arrived + cfg.footprint_frames:
+            r.done = True
             return None
         return self._speed(np.zeros(3))
 
