@@ -24,6 +24,11 @@ from typing import IO
 from place_safe.exceptions import FrameError, FrameFileError
 from place_safe.sensor.frame import Frame
 
+try:  # a C parser, 5-8x faster on a frame; the standard library's when it is missing or declines
+    import orjson as _orjson
+except ImportError:  # pragma: no cover - a declared dependency
+    _orjson = None
+
 _CHUNK = 1 << 16
 #: Largest frame accepted (bytes of JSON): a TMF8820 frame is about 10 kB; larger ones are skipped
 #: with a per-frame error, without being held in memory.
@@ -40,6 +45,12 @@ _OUTSIDE_LINES = re.compile(rb'[\[\]{}"\n]')
 _INSIDE_LINES = re.compile(rb'["\\\n]')
 _LINE_BROKEN = "the line ends inside the frame (JSON Lines: one frame per line)"
 _SCALAR_END = re.compile(rb'[\s,\]\[{}"]')
+#: Fast paths of the walk (one regular-expression match instead of a step per bracket or quote): a list
+#: of numbers or of lists of numbers (a histogram, a pose), and a string without escapes. Line ends are
+#: left to the step-by-step walk in JSON Lines, where they end a frame.
+_BLOCK = re.compile(rb'\[(?:[^\[\]{}"]++|\[[^\[\]{}"]*+\])*+\]')
+_BLOCK_LINES = re.compile(rb'\[(?:[^\[\]{}"\n]++|\[[^\[\]{}"\n]*+\])*+\]')
+_PLAIN_STRING = re.compile(rb'"[^"\\\n]*+"')
 
 
 class _Splitter:
@@ -171,8 +182,15 @@ class _Splitter:
                 if m is None:
                     pos = n
                     break
-                pos = m.end()
                 ch = m.group()
+                if ch == b'"' and (fast := _PLAIN_STRING.match(chunk, m.start())):
+                    pos = fast.end()  # a whole string (a key, a short value) at once
+                    continue
+                if ch == b"[" and self.depth > 0 and self.depth + 2 <= self.max_depth \
+                        and (fast := (_BLOCK if self.is_list else _BLOCK_LINES).match(chunk, m.start())):
+                    pos = fast.end()  # a whole list of numbers (or of lists of numbers) at once
+                    continue
+                pos = m.end()
                 if ch == b"\n":  # JSON Lines: the frame's line ended with brackets still open
                     self._broken_line()
                     done = True
@@ -212,6 +230,11 @@ def _decode(raw: bytes) -> object:
         text = raw.decode("utf-8")
     except UnicodeDecodeError as exc:
         raise ValueError(f"not UTF-8 text (byte {exc.start} of the frame)") from None
+    if _orjson is not None:
+        try:
+            return _orjson.loads(raw)
+        except _orjson.JSONDecodeError:
+            pass  # the standard library's parser gives the message (and accepts NaN, long integers)
     try:
         return json.loads(text)
     except json.JSONDecodeError as exc:

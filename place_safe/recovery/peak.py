@@ -29,7 +29,7 @@ import numpy as np
 from place_safe.exceptions import FrameError, NoPlaneError
 from place_safe.sensor.frame import N_BINS, N_ZONES, Frame
 from place_safe.recovery.estimator import Estimator, PlaneEstimate, Uncertainty
-from place_safe.recovery.points import PeakParams, plane_covariance, plane_from_points
+from place_safe.recovery.points import PeakParams, plane_covariance, plane_through
 from place_safe.sensor.histogram import COUNT_MAX, find_peaks
 
 def _flagged_saturated(frame: Frame) -> bool:
@@ -69,8 +69,9 @@ class PeakEstimator(Estimator):
         if valid.sum() < 3:
             raise NoPlaneError(f"only {int(valid.sum())} zone(s) show a return above the noise floor; "
                                "a plane needs 3 or more")
-        plane, rms = plane_from_points(self.params, pos, valid)
-        cov = self.uncertainty.apply(plane_covariance(self.params.points(pos), valid, plane), plane.offset)
+        points = self.params.points(pos)
+        plane, rms = plane_through(points, valid)
+        cov = self.uncertainty.apply(plane_covariance(points, valid, plane), plane.offset)
         return PlaneEstimate(plane, residual=rms, covariance=cov, method_used=self.name)
 
 

@@ -135,7 +135,18 @@ class PeakParams:
 
     # -- mapping -----------------------------------------------------------------------------------
     def directions(self) -> np.ndarray:
-        """Unit direction (9, 3) of each zone with the edge/corner angle scales applied."""
+        """Unit direction (9, 3) of each zone with the edge/corner angle scales applied (read-only; kept
+        for the scales it was computed with)."""
+        key = (self.edge_scale, self.corner_scale)
+        cached = self.__dict__.get("_directions")
+        if cached is not None and cached[0] == key:
+            return cached[1]
+        out = self._scaled_directions()
+        out.setflags(write=False)
+        self.__dict__["_directions"] = (key, out)
+        return out
+
+    def _scaled_directions(self) -> np.ndarray:
         v = ZONE_DIRECTIONS
         theta = np.arccos(np.clip(v[:, 2], -1.0, 1.0))
         phi = np.arctan2(v[:, 1], v[:, 0])
@@ -232,17 +243,28 @@ def plane_covariance(points: np.ndarray, valid: np.ndarray, plane: Plane) -> np.
     res = p @ n - plane.offset
     dof = len(p) - 3
     sigma2 = float(res @ res) / dof if dof > 0 else 0.0
-    return sigma2 * np.linalg.pinv(jac.T @ jac)
+    jtj = jac.T @ jac
+    try:
+        inverse = np.linalg.inv(jtj)
+    except np.linalg.LinAlgError:
+        inverse = np.linalg.pinv(jtj)
+    return sigma2 * inverse
 
 
 def plane_from_points(params: PeakParams, readings: np.ndarray, valid: np.ndarray) -> tuple[Plane, float]:
     """The plane of one frame's readings (9,) and mask (9,), and its RMS residual (m); raises NoPlaneError."""
+    return plane_through(params.points(readings), valid)
+
+
+def plane_through(points: np.ndarray, valid: np.ndarray) -> tuple[Plane, float]:
+    """The least-squares plane of one frame's zone points (9, 3) with mask (9,), and its RMS residual (m);
+    raises NoPlaneError."""
     if valid.sum() < 3:
         raise NoPlaneError(f"only {int(valid.sum())} zones have a return; a plane needs 3 or more")
-    n, d, rms, ok = fit_planes(params.points(readings)[None], valid[None])
+    n, d, rms, ok = fit_planes(points[None], valid[None])
     if not ok[0]:
         raise NoPlaneError("the zone points do not determine a plane in front of the sensor")
     return Plane(n[0], float(d[0])), float(rms[0])
 
 
-__all__ = ["PeakParams", "fit_planes", "plane_from_points", "plane_covariance", "PAPER_PEAK_M", "PAPER_PEAK_B", "BIN_SIZE", "MM_PER_M"]
+__all__ = ["PeakParams", "fit_planes", "plane_from_points", "plane_through", "plane_covariance", "PAPER_PEAK_M", "PAPER_PEAK_B", "BIN_SIZE", "MM_PER_M"]

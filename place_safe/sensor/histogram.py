@@ -77,6 +77,13 @@ def undo_pileup(net: np.ndarray, pileup: float) -> np.ndarray:
     return np.diff(true_before, axis=-1) + np.minimum(x, 0.0)
 
 
+def _median(x: np.ndarray) -> np.ndarray:
+    """Median over the last axis (as :func:`numpy.median`, without its overhead on small arrays)."""
+    s = np.sort(x, axis=-1)
+    k = s.shape[-1]
+    return s[..., k // 2] if k % 2 else 0.5 * (s[..., k // 2 - 1] + s[..., k // 2])
+
+
 def find_peaks(hists: np.ndarray, pileup: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Sub-bin peak positions (..., 9) in bins, return mask (..., 9) and saturation mask (..., 9).
 
@@ -86,10 +93,12 @@ def find_peaks(hists: np.ndarray, pileup: float = 0.0) -> tuple[np.ndarray, np.n
     floor-subtracted counts first (:func:`undo_pileup`); 0 leaves them as recorded.
     """
     h = np.asarray(hists, dtype=float)
-    finite = np.all(np.isfinite(h), axis=-1)
-    h = np.where(np.isfinite(h), h, 0.0)
-    saturated = np.any(h >= COUNT_MAX, axis=-1)
-    floor = np.minimum(np.median(h[..., :EARLY_BINS], axis=-1), np.median(h[..., -LATE_BINS:], axis=-1))
+    finite_bins = np.isfinite(h)
+    finite = finite_bins.all(axis=-1)
+    if not finite.all():
+        h = np.where(finite_bins, h, 0.0)
+    saturated = (h >= COUNT_MAX).any(axis=-1)
+    floor = np.minimum(_median(h[..., :EARLY_BINS]), _median(h[..., -LATE_BINS:]))
     x = undo_pileup(h - floor[..., None], pileup)
     k = np.argmax(x[..., SEARCH_START:], axis=-1) + SEARCH_START
     top = np.take_along_axis(x, k[..., None], axis=-1)[..., 0]

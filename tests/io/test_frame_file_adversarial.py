@@ -86,6 +86,36 @@ def test_any_json_entries_give_one_item_each_at_any_chunk_size(tmp_path, monkeyp
             assert isinstance(item, FrameError) and "expected an object" in str(item)
 
 
+#: Values whose strings hold brackets, quotes, escapes and line ends, and lists of lists of numbers:
+#: what the walk's fast paths (a whole string, a whole list of numbers) must skip exactly or decline.
+tricky_values = st.recursive(
+    st.integers() | st.floats(allow_nan=False) | st.text(alphabet='[]{}"\\\n ab,', max_size=6)
+    | st.lists(st.lists(st.floats(allow_nan=False, allow_infinity=False), max_size=4), max_size=3),
+    lambda inner: st.lists(inner, max_size=4) | st.dictionaries(st.text(alphabet='[]{}"\\ k', max_size=4), inner,
+                                                                max_size=4),
+    max_leaves=16)
+
+
+@SETTINGS
+@given(entries=st.lists(st.dictionaries(st.text(max_size=4), tricky_values, max_size=4), max_size=5),
+       indent=st.sampled_from([None, 1]), chunk=st.sampled_from([1, 7, 64, 1 << 16]))
+def test_entries_read_equal_the_standard_parser(tmp_path, monkeypatch, entries, indent, chunk):
+    """The reader's split (with its fast paths) gives exactly the entries json.loads reads from the file."""
+    path = tmp_path / "e.json"
+    path.write_text(json.dumps(entries, indent=indent))
+    monkeypatch.setattr(ff, "_CHUNK", chunk)
+    assert list(ff.iter_frame_dicts(path)) == json.loads(path.read_text())
+
+
+def test_json_lines_a_line_end_inside_a_list_of_numbers_breaks_that_frame(tmp_path):
+    good = json.dumps(_good())
+    path = tmp_path / "e.jsonl"
+    path.write_text(good + "\n" + good.replace("[[", "[\n[", 1) + "\n" + good + "\n")
+    items, err = _read(path)
+    assert err is None and isinstance(items[0], Frame) and isinstance(items[-1], Frame)
+    assert isinstance(items[1], FrameError) and "line ends inside the frame" in str(items[1])
+
+
 @SETTINGS
 @given(pieces=st.lists(st.sampled_from(["good", "bad-json", "not-object", "deep", "huge-int", "latin1",
                                          "ts-string", "ts-list", "bad-truth", "ragged"]), min_size=1, max_size=8),

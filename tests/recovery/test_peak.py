@@ -1,6 +1,5 @@
 """Peak estimator: synthetic round trip, real-sweep accuracy, and bad input gives a reason, not a crash."""
 
-import time
 from pathlib import Path
 
 import numpy as np
@@ -71,16 +70,6 @@ def test_shipped_constants_are_off_on_this_sensor(sweep):
     assert np.mean(lin) > 5e-3
 
 
-def test_speed_under_half_a_millisecond(sweep):
-    est = make_estimator("peak")
-    est.estimate(sweep[10])
-    t0 = time.perf_counter()
-    for f in sweep:
-        est.estimate(f)
-    per_frame = (time.perf_counter() - t0) / len(sweep)
-    assert per_frame < 2e-3  # target 0.5 ms; loose bound for loaded CI machines
-
-
 def test_find_peaks_sub_bin():
     bins = np.arange(128.0)
     centre = 40.37
@@ -135,3 +124,16 @@ def test_naive_uses_physical_constants():
     assert est.name == "peak-naive"
     assert est.params.m == pytest.approx(1 / 0.014131)
     assert est.params.edge_scale == 1 and est.params.corner_scale == 1
+
+
+def test_directions_follow_the_scales_they_were_computed_with():
+    from dataclasses import replace
+
+    p = PeakParams(72.0, 13.0, 0.95, 0.9)
+    first = p.directions()
+    assert not first.flags.writeable  # shared: callers cannot change the cache
+    p.edge_scale = 1.1
+    changed = p.directions()
+    assert not np.allclose(changed, first)
+    assert np.allclose(changed, replace(p).directions())
+    assert np.allclose(np.linalg.norm(changed, axis=1), 1.0)

@@ -4,6 +4,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from place_safe.sensor.histogram import PILEUP_MAX_FRACTION, find_peaks, undo_pileup
 
@@ -77,3 +79,13 @@ def test_negative_net_counts_pass_through():
     x = _pulse(40.0, 1e5) - 50.0  # noise below the floor in the empty bins
     y = undo_pileup(x, K)
     assert np.all(y[x < 0] == x[x < 0])
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.lists(st.lists(st.floats(-1e7, 1e7), min_size=1, max_size=40), min_size=1, max_size=9).filter(
+    lambda rows: len({len(r) for r in rows}) == 1))
+def test_small_median_equals_numpys(rows):
+    from place_safe.sensor.histogram import _median
+
+    x = np.array(rows)
+    assert np.array_equal(_median(x), np.median(x, axis=-1))
