@@ -162,8 +162,20 @@ class PeakParams:
         if not self.residual_coeffs:
             return np.zeros_like(r0)
         lo, hi = self.residual_domain
-        u = (2.0 * np.clip(r0, lo, hi) - (lo + hi)) / (hi - lo)
-        return cheb.chebval(u, self.residual_coeffs)
+        u = (2.0 * np.minimum(np.maximum(r0, lo), hi) - (lo + hi)) / (hi - lo)
+        out = np.zeros_like(u)
+        for c in self._power_coeffs():  # Horner on the series' power form (highest power first)
+            out = out * u + c
+        return out
+
+    def _power_coeffs(self) -> tuple[float, ...]:
+        """``residual_coeffs`` (Chebyshev) as power-series coefficients in ``u``, highest first (cached)."""
+        key = tuple(self.residual_coeffs)
+        cached = self.__dict__.get("_power")
+        if cached is None or cached[0] != key:
+            cached = (key, tuple(float(v) for v in cheb.cheb2poly(self.residual_coeffs)[::-1]))
+            self.__dict__["_power"] = cached
+        return cached[1]
 
     def phase_correction(self, readings: np.ndarray) -> np.ndarray:
         """Sub-bin phase correction s(x) in reading units (0 without coefficients)."""
@@ -259,12 +271,19 @@ def plane_from_points(params: PeakParams, readings: np.ndarray, valid: np.ndarra
 def plane_through(points: np.ndarray, valid: np.ndarray) -> tuple[Plane, float]:
     """The least-squares plane of one frame's zone points (9, 3) with mask (9,), and its RMS residual (m);
     raises NoPlaneError."""
-    if valid.sum() < 3:
-        raise NoPlaneError(f"only {int(valid.sum())} zones have a return; a plane needs 3 or more")
-    n, d, rms, ok = fit_planes(points[None], valid[None])
-    if not ok[0]:
+    mask = np.asarray(valid, dtype=bool) & np.isfinite(points).all(axis=-1)
+    count = int(mask.sum())
+    if count < 3:
+        raise NoPlaneError(f"only {count} zones have a return; a plane needs 3 or more")
+    # the maths of fit_planes for one frame, without the batch's padding
+    p = points[mask]
+    centroid = p.mean(axis=0)
+    _, s, vt = np.linalg.svd(p - centroid, full_matrices=False)
+    n = vt[-1] if vt[-1, 2] >= 0 else -vt[-1]
+    d = float(n @ centroid)
+    if not (s[1] > 1e-9 * max(s[0], 1e-30) and n[2] > 1e-6 and d > 0):
         raise NoPlaneError("the zone points do not determine a plane in front of the sensor")
-    return Plane(n[0], float(d[0])), float(rms[0])
+    return Plane(n, d), float(s[-1] / np.sqrt(count))
 
 
 __all__ = ["PeakParams", "fit_planes", "plane_from_points", "plane_through", "plane_covariance", "PAPER_PEAK_M", "PAPER_PEAK_B", "BIN_SIZE", "MM_PER_M"]

@@ -41,6 +41,7 @@ HALF_WINDOW = 3
 SUBBIN_STEPS = 100
 
 _KNOTS = np.arange(-HALF_WINDOW, HALF_WINDOW + 1, dtype=float)
+_KNOT_OFFSETS = _KNOTS.astype(int)
 _FINE = np.linspace(-1.0, 1.0, 2 * SUBBIN_STEPS + 1)
 #: (fine points, window) matrix: spline values at _FINE from the window's counts.
 _SPLINE = CubicSpline(_KNOTS, np.eye(len(_KNOTS)), axis=0)(_FINE)
@@ -101,10 +102,12 @@ def find_peaks(hists: np.ndarray, pileup: float = 0.0) -> tuple[np.ndarray, np.n
     floor = np.minimum(_median(h[..., :EARLY_BINS]), _median(h[..., -LATE_BINS:]))
     x = undo_pileup(h - floor[..., None], pileup)
     k = np.argmax(x[..., SEARCH_START:], axis=-1) + SEARCH_START
-    top = np.take_along_axis(x, k[..., None], axis=-1)[..., 0]
+    rows = x.reshape(-1, x.shape[-1])  # one row per zone (of every frame)
+    at = np.arange(rows.shape[0])
+    top = rows[at, k.reshape(-1)].reshape(k.shape)
     has_return = top > np.maximum(NOISE_SIGMAS * np.sqrt(np.maximum(floor, 0.0) + 1.0), MIN_NET_COUNTS)
-    kc = np.clip(k, HALF_WINDOW, N_BINS - 1 - HALF_WINDOW)
-    window = np.take_along_axis(x, kc[..., None] + _KNOTS.astype(int), axis=-1)  # (..., 9, W)
+    kc = np.minimum(np.maximum(k, HALF_WINDOW), N_BINS - 1 - HALF_WINDOW)
+    window = rows[at[:, None], kc.reshape(-1, 1) + _KNOT_OFFSETS].reshape(kc.shape + (len(_KNOTS),))  # (..., 9, W)
     fine = window @ _SPLINE.T  # (..., 9, F)
     pos = kc + _FINE[np.argmax(fine, axis=-1)]  # kc == k except for a top in the last bins
     valid = finite & has_return & ~saturated
