@@ -70,6 +70,7 @@ FORWARD_BOUNDS: dict[str, Bound] = {
     "pulse_soft_bin": Bound(0.0, 1.0, "(blend: 0 linear interpolation, 1 Gaussian soft binning)"),
     "saturate_shading": Bound(0.0, 1.0, "(blend: 1 saturate the shaded intensity, 0 the unshaded term)"),
     "crosstalk_self": Bound(0.0, 1.0, "(blend: 1 crosstalk includes the zone itself)"),
+    "saturate_gain": Bound(0.0, 1.0, "(blend: 1 the zone gains saturate with the flux, 0 they multiply afterwards)"),
     "baseline": Bound(-0.02, 0.02, "m (emitter x, y in the optical frame)", length=2),
     "beam_power": Bound(0.0, 20.0, "(emitter profile cos^beam_power)"),
 }
@@ -107,8 +108,12 @@ class ForwardParams:
     ``soft_bin_sigma``, each normalised to peak 1); saturation acts on ``shade^saturate_shading``
     and the remaining ``shade^(1 - saturate_shading)`` multiplies afterwards
     (``p = s (1 - exp(-g rho shade^w / (s r^2))) shade^(1-w)``: 1 is the paper's equation, 0 the
-    published code); crosstalk adds ``crosstalk * (total - (1 - crosstalk_self) h)``. The defaults
-    (0, 1, 0) are the model as it was.
+    published code); crosstalk adds ``crosstalk * (total - (1 - crosstalk_self) h)``; the zone gain
+    ``g`` enters the saturation as ``g^saturate_gain`` and multiplies the saturated counts by
+    ``g^(1 - saturate_gain)`` (1: a zone's gain is optical, in front of the SPADs, and saturates with
+    the flux; 0: it is the zone's share of SPAD pixels, each saturating on its own, so the gain scales
+    saturated counts and zone brightness ratios do not change with range). The defaults (0, 1, 0, 1)
+    are the model as it was.
 
     Emitter-receiver baseline: the receiver is at the origin, the emitter at ``(bx, by, 0)`` =
     ``baseline`` (m). A ray's return then travels ``r_e + r`` (``r_e`` = |P - E|, the bin position uses
@@ -149,6 +154,7 @@ class ForwardParams:
     pulse_soft_bin: float = 0.0     # 0: reference rescaled by linear interpolation; 1: Gaussian soft binning
     saturate_shading: float = 1.0   # 1: SPAD saturation of the shaded intensity; 0: of the unshaded term
     crosstalk_self: float = 0.0     # 0: a zone leaks into the others; 1: into all zones, itself included
+    saturate_gain: float = 1.0      # 1: zone gains inside the SPAD saturation; 0: outside (per-pixel saturation)
     # The emitter beside the receiver (what dominates close up): its position (m) in the optical frame and its
     # angular profile. Defaults (co-located, uniform) are the paper's model.
     baseline: list[float] = field(default_factory=lambda: [0.0, 0.0])
@@ -449,11 +455,12 @@ class ForwardModel:
         s = t["saturation"]
         w_sat = t["saturate_shading"]
         g = self.zone_gains().view(1, N_ZONES, 1)
+        w_g = t["saturate_gain"]
         r_safe = torch.clamp(r_light, min=1e-4)
-        flux = g * rho * shade ** w_sat / (s * r_safe * r_safe)
+        flux = g ** w_g * rho * shade ** w_sat / (s * r_safe * r_safe)
         if beam is not None:
             flux = flux * beam
-        photons = s * -torch.expm1(-flux) * shade ** (1.0 - w_sat)
+        photons = s * -torch.expm1(-flux) * shade ** (1.0 - w_sat) * g ** (1.0 - w_g)
         w = self.ray_geometry()[1] if weights is None else torch.as_tensor(weights, dtype=self.dtype)
         w = w.expand_as(photons) if w.dim() == 2 else w
         amp = photons * w * float(self.params.rays_per_zone)

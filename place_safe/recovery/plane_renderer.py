@@ -15,7 +15,7 @@ Chain of the derivatives, per ray with direction ``v``::
 
     q = a v_x + b v_y + v_z,   r = z0 / q,   c = q / s,   s = sqrt(1 + a^2 + b^2)
     h = c + k S^alpha,   S = max(2 c^2 - 1, 0)              (shading)
-    p = sat (1 - exp(-g rho h^w / (sat r^2))) h^(1-w),       w = saturate_shading
+    p = sat (1 - exp(-g^v rho h^w / (sat r^2))) h^(1-w) g^(1-v),   w = saturate_shading, v = saturate_gain
     u = r / bin_size + bin_offset + zone_offset
     T(bin) = sum_rays w p G(bin - u),      G = Gaussian of soft_bin_sigma
     F = crosstalk-mix(T * pulse),   H = pile-up(F)   (mix: h + c (total - (1 - crosstalk_self) h))   (Coates; identity when ``pileup = 0``)
@@ -58,8 +58,10 @@ class PlaneRenderer:
         dirs, w = ForwardModel(params, rays).ray_geometry()  # field-of-view scales applied
         self.dirs = dirs.detach().cpu().numpy().astype(float)  # (9, R, 3)
         w = w.detach().cpu().numpy().astype(float)
-        self.gain = params.kind_gains()[:, None]  # (9, 1)
-        self.amp_weight = w * float(params.rays_per_zone)  # (9, R)
+        gain = params.kind_gains()[:, None]  # (9, 1)
+        w_g = params.saturate_gain
+        self.gain = gain ** w_g  # the part of the zone gain inside the saturation
+        self.amp_weight = w * float(params.rays_per_zone) * gain ** (1.0 - w_g)  # (9, R), the rest after it
         self.offsets = np.asarray(params.zone_offsets, dtype=float)[:, None]  # (9, 1)
         self.inv_sigma2 = 1.0 / params.soft_bin_sigma ** 2
         #: with ``zone_albedo`` the unknowns are (a, b, z0, log albedo of zones 1..9, ks, log alpha):

@@ -164,10 +164,10 @@ def test_pulse_kernel_is_normalised():
 def test_structural_choices_default_to_the_model_as_it_was():
     """Old parameter files (without the structural fields) load and render as before."""
     d = ForwardParams().to_dict()
-    for k in ("pulse_soft_bin", "saturate_shading", "crosstalk_self"):
+    for k in ("pulse_soft_bin", "saturate_shading", "crosstalk_self", "saturate_gain"):
         d.pop(k)
     p = ForwardParams.from_dict(d)
-    assert (p.pulse_soft_bin, p.saturate_shading, p.crosstalk_self) == (0.0, 1.0, 0.0)
+    assert (p.pulse_soft_bin, p.saturate_shading, p.crosstalk_self, p.saturate_gain) == (0.0, 1.0, 0.0, 1.0)
     with pytest.raises(CalibrationError):
         ForwardParams(saturate_shading=1.5)
 
@@ -199,6 +199,23 @@ def test_unshaded_saturation_scales_with_shading_after_saturating():
         tot[w] = vals[1] / vals[0]
     assert tot[1.0] > 0.97          # saturated: the shading hardly matters
     assert tot[0.0] < 0.93          # shading multiplies after saturation
+
+
+def test_gains_outside_the_saturation_keep_zone_ratios_at_every_range():
+    """With saturate_gain = 0 a zone's gain scales its saturated counts, so the ratio of two zones' counts is
+    the same close up (saturated) and far away; inside the saturation (1) it shrinks towards 1 close up."""
+    ref = torch.as_tensor(default_reference())[None]
+    gains = [1.0] * 9
+    gains[0] = 2.0
+    ratio = {}
+    for w in (0.0, 1.0):
+        model = ForwardModel(ForwardParams(saturate_gain=w, zone_gains=gains, crosstalk=0.0), ZoneRays.stratified(3))
+        ratio[w] = []
+        for d in (0.01, 0.3):
+            h = model.render_plane(torch.tensor([[0.0, 0.0, 1.0]]), torch.tensor([d]), torch.tensor([50.0]), ref)[0]
+            ratio[w].append(float(h[0].sum() / h[2].sum()))  # zone 1 (gain 2) over zone 3 (a corner, gain 1)
+    assert ratio[0.0][0] == pytest.approx(ratio[0.0][1], rel=1e-3)
+    assert ratio[1.0][0] < 0.8 * ratio[1.0][1]
 
 
 def test_soft_binned_pulse_is_smoother_than_interpolated():

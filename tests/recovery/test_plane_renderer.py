@@ -55,10 +55,10 @@ def test_convolution_matrix_is_causal_convolution():
 
 def test_matches_torch_model_with_structural_choices():
     """The renderer follows the structural blends (pulse soft binning, saturation before shading, crosstalk
-    including the zone) exactly, derivatives included."""
-    for w_sat, xt_self, soft in ((0.0, 1.0, 1.0), (0.4, 0.3, 0.5)):
+    including the zone, zone gains inside or outside the saturation) exactly, derivatives included."""
+    for w_sat, xt_self, soft, w_gain in ((0.0, 1.0, 1.0, 1.0), (0.4, 0.3, 0.5, 0.0), (1.0, 0.0, 0.0, 0.3)):
         p = ForwardParams(saturate_shading=w_sat, crosstalk_self=xt_self, pulse_soft_bin=soft, crosstalk=0.02,
-                          pileup=1e-7)
+                          pileup=1e-7, saturate_gain=w_gain, zone_gains=list(np.linspace(0.7, 1.3, 9)))
         _check(p, np.array([0.2, 0.1, 0.05, math.log(4.0), 0.2, math.log(2.0)]))
 
 
