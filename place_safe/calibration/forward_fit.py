@@ -8,8 +8,9 @@ parameters fitted are listed in :data:`FITTED`. Two gauge freedoms are fixed: th
 (1, the overall scale lives in the albedo) and timing offset (0, the common delay lives in
 ``bin_offset``).
 
-Optimiser: L-BFGS (torch) on well-scaled unknowns (logs of positive quantities), gradients by
-autograd through :class:`~place_safe.recovery.forward.ForwardModel`.
+Optimiser: SciPy's trust-region least squares on well-scaled unknowns (logs of positive quantities),
+with the Jacobian from forward-mode derivatives through :class:`~place_safe.recovery.forward.ForwardModel`
+(see :func:`fit_forward`).
 """
 
 from __future__ import annotations
@@ -59,6 +60,22 @@ BAD_FRAME_FACTOR = 3.0
 STRUCTURAL = ("pulse_soft_bin", "saturate_shading", "crosstalk_self")
 CENTRE = 4  # zone 5: gauge for zone gains and offsets
 ZONE_GAUGED = ("zone_gains", "zone_offsets")
+#: How far (in log) a frame's albedo may rise above its least-squares start. From the published
+#: parameters the first Gauss-Newton steps can push a close frame's albedo deep into saturation, where
+#: its histogram no longer depends on it (zero gradient); the fit then leaves it there, a spurious
+#: minimum that the rounding of the start decides (on an independent data set, starts 1e-12 apart
+#: gave 0.16-0.20 deg mean angular error after calibration). Albedos may fall freely.
+ALBEDO_RISE = 2.0
+#: Tolerances of ``least_squares``: relative cost decrease (1e-5 of a cost of ~6e4 is about 1 in
+#: chi-square), relative step and gradient norm. The loss is not smooth everywhere (the pulse is
+#: resampled by linear interpolation, so it has kinks in ``ref_time_scale``); on a kink the trust region
+#: only shrinks, and tighter tolerances buy Jacobian evaluations, not fit.
+FTOL = 1e-5
+XTOL = 1e-8
+GTOL = 1e-8
+#: Forward-mode tangents evaluated together (``vmap`` over ``jvp``): fewer passes over the model, but
+#: larger tensors; 9 is fastest for 40 frames on one thread.
+JVP_CHUNK = 9
 
 
 def _usable(frames: Sequence[Frame], min_distance: float, max_distance: float,
@@ -113,10 +130,14 @@ def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, prog
     ``frames_excluded_as_bad``) and the fit repeated from its solution; ``converged`` says whether
     both fits stopped on a tolerance rather than on ``iterations``.
 
-    The solver is SciPy's ``least_squares`` (trust region reflective) on the Poisson-scaled
-    residuals (with the model-error term of :func:`~place_safe.recovery.forward.residual_weights`); its Jacobian is built from forward-mode derivatives (``torch.func.jvp``): one
-    tangent per camera parameter and one shared by all per-frame albedos (each frame depends on
-    its own albedo only, so that tangent fills the block-diagonal albedo columns at once).
+    The solver is SciPy's ``least_squares`` (trust region reflective, ``x_scale="jac"``, tolerances
+    :data:`FTOL`, :data:`XTOL`, :data:`GTOL`) on the Poisson-scaled residuals (with the model-error term
+    of :func:`~place_safe.recovery.forward.residual_weights`) of the bins up to ``window_after_peak``
+    past the latest peak, the only bins rendered. Its Jacobian is built from forward-mode derivatives
+    (``torch.func.jvp``, batched :data:`JVP_CHUNK` tangents at a time with ``torch.func.vmap``): one
+    tangent per camera parameter and one shared by all per-frame albedos (each frame depends on its own
+    albedo only, so that tangent fills the block-diagonal albedo columns at once). Each albedo starts
+    at its least-squares value and may rise at most :data:`ALBEDO_RISE` (log) above it.
     """
     with single_thread():  # a few thousand-element tensors: torch's thread pool only waits (3x slower when busy)
         return _fit_forward(frames, init, progress, rays, iterations, min_distance, max_distance, fitted,
@@ -156,6 +177,7 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
     offsets = torch.as_tensor(np.array([f.truth.offset for f in data]), dtype=dtype)
     refs = torch.as_tensor(np.array([f.reference for f in data]), dtype=dtype)
     nf = len(data)
+    nf_res = N_ZONES * width  # residuals per frame
     keep = torch.ones(nf, dtype=dtype)  # 0 for frames excluded as bad after the first fit
 
     # layout of the camera vector: scalars, then the 8 free entries of each per-zone vector
@@ -192,20 +214,24 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
             model.t[name] = torch.exp(v) if kind == "log" else v
             i += n
 
-    def residual(cam: torch.Tensor, log_albedo: torch.Tensor) -> torch.Tensor:
-        unpack(cam)
+    def render(log_albedo: torch.Tensor) -> torch.Tensor:
+        """Histograms (nf, 9, width) of the frames' planes with the camera parameters last unpacked."""
         # ground truth is in the reported (mount) frame; the model renders in the optical frame
         n_optical = normals @ mount_rotation(model.t["mount_tilt"])
-        h = model.render_plane(n_optical, offsets, torch.exp(log_albedo), refs)
-        return ((h[..., :width] - model.t["floor"] - obs) * inv_sigma * keep.view(-1, 1, 1)).reshape(nf, -1)
+        # only the fitted bins: pulse convolution and pile-up are causal, so they do not depend on later ones
+        return model.render_plane(n_optical, offsets, torch.exp(log_albedo), refs, n_bins=width)
+
+    def residual(cam: torch.Tensor, log_albedo: torch.Tensor) -> torch.Tensor:
+        unpack(cam)
+        h = render(log_albedo)
+        return ((h - model.t["floor"] - obs) * inv_sigma * keep.view(-1, 1, 1)).reshape(nf, -1)
 
     cam0 = torch.as_tensor(np.array(start), dtype=dtype)
     log_albedo0 = torch.full((nf,), math.log(init.albedo), dtype=dtype)
     with torch.no_grad():  # start each albedo at its least-squares value
+        unpack(cam0)
         for _ in range(2):
-            unpack(cam0)
-            n_optical = normals @ mount_rotation(model.t["mount_tilt"])
-            h = model.render_plane(n_optical, offsets, torch.exp(log_albedo0), refs)[..., :width]
+            h = render(log_albedo0)
             scale = (h * obs).sum(dim=(1, 2)) / torch.clamp((h * h).sum(dim=(1, 2)), min=1e-12)
             log_albedo0 += torch.log(torch.clamp(scale, 1e-3, 1e3))
 
@@ -222,24 +248,23 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
         evals["n"] += 1
         return r
 
+    # forward-mode tangents: one per camera parameter, and one shared by all albedos (each frame
+    # depends on its own albedo only, so that tangent fills the block-diagonal albedo columns at once)
+    tangents = torch.zeros((n_cam + 1, n_cam + nf), dtype=dtype)
+    tangents[torch.arange(n_cam), torch.arange(n_cam)] = 1.0
+    tangents[n_cam, n_cam:] = 1.0
+    rows = np.arange(nf * nf_res)
+
     def jac(z: np.ndarray) -> np.ndarray:
         cam, la = split(z)
-        tangents = torch.zeros((n_cam + 1, n_cam + nf), dtype=dtype)
-        tangents[torch.arange(n_cam), torch.arange(n_cam)] = 1.0
-        tangents[n_cam, n_cam:] = 1.0
 
         def one(t: torch.Tensor) -> torch.Tensor:
             return jvp(residual, (cam, la), (t[:n_cam], t[n_cam:]))[1]
 
-        cols = []
-        for chunk in torch.split(tangents, 4):
-            cols.append(vmap(one)(chunk))
-        d = torch.cat(cols).detach().numpy()  # (n_cam + 1, nf, M)
-        m = d.shape[-1]
-        J = np.zeros((nf * m, n_cam + nf))
+        d = torch.cat([vmap(one)(chunk) for chunk in torch.split(tangents, JVP_CHUNK)]).numpy()  # (n_cam + 1, nf, M)
+        J = np.zeros((nf * nf_res, n_cam + nf))
         J[:, :n_cam] = d[:n_cam].reshape(n_cam, -1).T
-        rows = np.arange(nf * m)
-        J[rows, n_cam + rows // m] = d[n_cam].reshape(-1)
+        J[rows, n_cam + rows // nf_res] = d[n_cam].reshape(-1)
         bar.update(1)
         return J
 
@@ -255,10 +280,12 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
             lo, hi = _fit_range(name, kind)
             lower[i:i + abs(n)], upper[i:i + abs(n)] = lo, hi
         i += abs(n)
-    lower[n_cam:], upper[n_cam:] = math.log(init.albedo) - 8.0, math.log(init.albedo) + 8.0
+    lower[n_cam:] = math.log(init.albedo) - 8.0
+    upper[n_cam:] = np.minimum(math.log(init.albedo) + 8.0, np.maximum(z0[n_cam:], lower[n_cam:]) + ALBEDO_RISE)
     z0 = np.clip(z0, lower + 1e-6, upper - 1e-6)
-    sol = least_squares(fun, z0, jac=jac, method="trf", x_scale="jac", max_nfev=iterations, bounds=(lower, upper),
-                        xtol=1e-10, ftol=1e-10, gtol=1e-10)
+
+    opts = dict(jac=jac, method="trf", x_scale="jac", bounds=(lower, upper), ftol=FTOL, xtol=XTOL, gtol=GTOL)
+    sol = least_squares(fun, z0, max_nfev=iterations, **opts)
     if not np.all(np.isfinite(sol.x)):
         raise CalibrationError("forward calibration diverged (non-finite parameters)")
     # bad frames (the model cannot explain them: a wrong ground truth, a glint, a clipped return) are
@@ -269,8 +296,7 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
     first = sol
     if bad.any() and (~bad).sum() >= 3:
         keep[torch.as_tensor(bad)] = 0.0
-        sol = least_squares(fun, sol.x, jac=jac, method="trf", x_scale="jac", max_nfev=max(iterations // 2, 5),
-                            bounds=(lower, upper), xtol=1e-10, ftol=1e-10, gtol=1e-10)
+        sol = least_squares(fun, sol.x, max_nfev=max(iterations // 2, 5), **opts)
         if not np.all(np.isfinite(sol.x)):
             raise CalibrationError("forward calibration diverged (non-finite parameters)")
     bar.close()
