@@ -50,6 +50,7 @@ FITTED: dict[str, str] = {
     "pulse_soft_bin": "unit",
     "saturate_shading": "unit",
     "crosstalk_self": "unit",
+    "saturate_gain": "unit",
     "baseline": "lin",
     "beam_power": "log",
 }
@@ -57,7 +58,7 @@ FITTED: dict[str, str] = {
 #: above 1) is excluded as bad and the fit repeated without it.
 BAD_FRAME_FACTOR = 3.0
 #: The structural choices (blends in [0, 1], ``"unit"`` above) start in the middle so the data choose.
-STRUCTURAL = ("pulse_soft_bin", "saturate_shading", "crosstalk_self")
+STRUCTURAL = ("pulse_soft_bin", "saturate_shading", "crosstalk_self", "saturate_gain")
 CENTRE = 4  # zone 5: gauge for zone gains and offsets
 ZONE_GAUGED = ("zone_gains", "zone_offsets")
 #: How far (in log) a frame's albedo may rise above its least-squares start. From the published
@@ -124,7 +125,7 @@ def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, prog
     parameters; more only cost time).
 
     The structural choices (:data:`STRUCTURAL`: pulse soft binning, saturation before shading,
-    crosstalk including the zone) are fitted as blends in [0, 1] from the middle, so the data choose
+    crosstalk including the zone, zone gains inside the saturation) are fitted as blends in [0, 1] from the middle, so the data choose
     them; the report lists them under ``structural_choices``. After the first fit, frames whose RMS
     scaled residual is above :data:`BAD_FRAME_FACTOR` times the median are excluded (counted in
     ``frames_excluded_as_bad``) and the fit repeated from its solution; ``converged`` says whether
