@@ -46,11 +46,26 @@ _INSIDE_LINES = re.compile(rb'["\\\n]')
 _LINE_BROKEN = "the line ends inside the frame (JSON Lines: one frame per line)"
 _SCALAR_END = re.compile(rb'[\s,\]\[{}"]')
 #: Fast paths of the walk (one regular-expression match instead of a step per bracket or quote): a list
-#: of numbers or of lists of numbers (a histogram, a pose), and a string without escapes. Line ends are
+#: of numbers or of lists of numbers (a histogram, a pose), a string without escapes, and a run of object
+#: members with such values. Line ends are
 #: left to the step-by-step walk in JSON Lines, where they end a frame.
 _BLOCK = re.compile(rb'\[(?:[^\[\]{}"]++|\[[^\[\]{}"]*+\])*+\]')
 _BLOCK_LINES = re.compile(rb'\[(?:[^\[\]{}"\n]++|\[[^\[\]{}"\n]*+\])*+\]')
 _PLAIN_STRING = re.compile(rb'"[^"\\\n]*+"')
+
+
+def _pairs(space: bytes, other: bytes) -> re.Pattern:
+    """A run of object members ``"key": value,`` whose values are plain strings, lists of numbers (or of
+    lists of numbers) or scalars: nothing in them opens or closes anything the walk tracks."""
+    string = rb'"[^"\\\n]*+"'
+    block = rb'\[(?:[^\[\]{}"' + other + rb']++|\[[^\[\]{}"' + other + rb']*+\])*+\]'
+    scalar = rb'[^\[\]{}",\s]++'
+    return re.compile(rb'(?:' + string + space + rb':' + space + rb'(?:' + string + rb'|' + block + rb'|' + scalar
+                      + rb')' + space + rb',?' + space + rb')++')
+
+
+_PAIRS = _pairs(rb'\s*+', b"")
+_PAIRS_LINES = _pairs(rb'[ \t\r]*+', rb'\n')
 
 
 class _Splitter:
@@ -183,6 +198,10 @@ class _Splitter:
                     pos = n
                     break
                 ch = m.group()
+                if ch == b'"' and self.depth > 0 and self.depth + 2 <= self.max_depth \
+                        and (fast := (_PAIRS if self.is_list else _PAIRS_LINES).match(chunk, m.start())):
+                    pos = fast.end()  # object members with simple values (a frame's fields) at once
+                    continue
                 if ch == b'"' and (fast := _PLAIN_STRING.match(chunk, m.start())):
                     pos = fast.end()  # a whole string (a key, a short value) at once
                     continue
