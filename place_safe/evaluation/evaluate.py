@@ -152,6 +152,22 @@ def evaluate(frames: Sequence[Frame], calibration: Any = None, methods: Sequence
     return report
 
 
+#: Plots: errors below this are drawn at it (a log axis has no zero); medians over this many bins of x.
+PLOT_FLOOR = 1e-3
+PLOT_BINS = 8
+
+
+def _binned_medians(x: np.ndarray, y: np.ndarray, edges: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Median of the finite ``y`` in each bin of ``x`` between ``edges`` (bins without data left out)."""
+    centres, medians = [], []
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        m = (x >= lo) & ((x <= hi) if hi == edges[-1] else (x < hi)) & np.isfinite(y)
+        if m.any():
+            centres.append(0.5 * (lo + hi))
+            medians.append(float(np.median(y[m])))
+    return np.array(centres), np.array(medians)
+
+
 def plot_report(report: EvaluationReport, out_dir: str | Path) -> list[str]:
     """Write the error and albedo plots as PNG files into ``out_dir``; returns their paths."""
     import matplotlib
@@ -167,14 +183,19 @@ def plot_report(report: EvaluationReport, out_dir: str | Path) -> list[str]:
     for xname, x, xlabel in (("angle", np.degrees(report.theta), "angle of incidence (deg)"),
                              ("distance", report.z0 * 1e3, "distance z0 (mm)")):
         fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
+        edges = np.unique(np.quantile(x[np.isfinite(x)], np.linspace(0.0, 1.0, PLOT_BINS + 1))) if np.isfinite(x).any() \
+            else np.zeros(0)
         for ax, (key, scale, label) in zip(axes, errors):
             for name, res in report.results.items():
                 y = getattr(res, key) * scale
-                ax.scatter(x, y, s=10, label=name, alpha=0.7)
+                dots = ax.scatter(x, np.maximum(y, PLOT_FLOOR), s=8, alpha=0.45)
+                centres, medians = _binned_medians(x, y, edges)
+                ax.plot(centres, np.maximum(medians, PLOT_FLOOR), "-o", ms=4, color=dots.get_facecolor()[0][:3],
+                        label=f"{name} (median per bin)")
             ax.set_xlabel(xlabel)
             ax.set_ylabel(label)
-            ax.set_yscale("symlog", linthresh=1.0)
-            ax.grid(True, alpha=0.3)
+            ax.set_yscale("log")
+            ax.grid(True, which="both", alpha=0.3)
         axes[0].legend(fontsize=8)
         fig.tight_layout()
         path = out / f"error_vs_{xname}.png"
