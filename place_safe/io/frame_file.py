@@ -52,6 +52,8 @@ _SCALAR_END = re.compile(rb'[\s,\]\[{}"]')
 _BLOCK = re.compile(rb'\[(?:[^\[\]{}"]++|\[[^\[\]{}"]*+\])*+\]')
 _BLOCK_LINES = re.compile(rb'\[(?:[^\[\]{}"\n]++|\[[^\[\]{}"\n]*+\])*+\]')
 _PLAIN_STRING = re.compile(rb'"[^"\\\n]*+"')
+#: 20 digits in a row: possibly an integer beyond 64 bits, which only the standard parser keeps exact.
+_LONG_DIGITS = re.compile(rb'\d{20}')
 
 
 def _pairs(space: bytes, other: bytes) -> re.Pattern:
@@ -249,11 +251,11 @@ def _decode(raw: bytes) -> object:
         text = raw.decode("utf-8")
     except UnicodeDecodeError as exc:
         raise ValueError(f"not UTF-8 text (byte {exc.start} of the frame)") from None
-    if _orjson is not None:
+    if _orjson is not None and not _LONG_DIGITS.search(raw):  # orjson reads integers beyond 64 bits as floats
         try:
             return _orjson.loads(raw)
         except _orjson.JSONDecodeError:
-            pass  # the standard library's parser gives the message (and accepts NaN, long integers)
+            pass  # the standard library's parser gives the message (and accepts NaN, Infinity)
     try:
         return json.loads(text)
     except json.JSONDecodeError as exc:

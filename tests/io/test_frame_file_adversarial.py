@@ -107,6 +107,16 @@ def test_entries_read_equal_the_standard_parser(tmp_path, monkeypatch, entries, 
     assert list(ff.iter_frame_dicts(path)) == json.loads(path.read_text())
 
 
+@pytest.mark.parametrize("chunk", [1, 7, 1 << 16])
+def test_integers_beyond_64_bits_stay_exact(tmp_path, monkeypatch, chunk):
+    text = '[{"seq": 18446744073709551616, "a": -9223372036854775809, "b": 999999999999999999999999999999}]'
+    path = tmp_path / "e.json"
+    path.write_text(text)
+    monkeypatch.setattr(ff, "_CHUNK", chunk)
+    got = list(ff.iter_frame_dicts(path))
+    assert got == json.loads(text) and all(isinstance(v, int) for v in got[0].values())
+
+
 def test_json_lines_a_line_end_inside_a_list_of_numbers_breaks_that_frame(tmp_path):
     good = json.dumps(_good())
     path = tmp_path / "e.jsonl"
