@@ -220,6 +220,7 @@ def test_a_sensor_that_keeps_resetting_ends_in_a_sensor_error():
 @given(st.lists(st.tuples(st.integers(150, 2500), st.sampled_from(FAULT_KINDS)), max_size=8), st.integers(0, 99))
 @example(events=[(150, "out_of_order"), (150, "missing_packet")], seed=0)
 @example(events=[(289, "out_of_order"), (352, "reset")], seed=0)
+@example(events=[(150, "out_of_order"), (150, "out_of_order"), (474, "short_read")], seed=52)  # cut a result's padding
 def test_whatever_the_faults_frames_are_exact_or_the_source_says_why(events, seed):
     """Property: under any schedule of faults the driver hands out only whole, exact frames, or ends in a
     one-line SensorError / SensorTimeout; injected faults are all counted."""

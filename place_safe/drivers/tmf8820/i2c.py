@@ -516,6 +516,8 @@ class TMF8820Source(FrameSource):
             self.stats["short_read"] += 1
             self._asm.mark("short_read")
             return None  # the interrupt stays pending: the packet is read again, whole, next time
+        if len(buf) < R.HIST_PACKET_SIZE:  # fewer bytes than asked for, yet the whole packet (a result is shorter)
+            self.stats["short_read"] += 1
         if cid == R.CID_RAW_HISTOGRAM:
             t0 = time.perf_counter()
             try:
