@@ -6,7 +6,8 @@ Layout::
      "peak":        {...PeakParams...},          # calibrated histogram-peak method
      "proprietary": {...PeakParams...},          # calibrated on-sensor distances
      "forward":     {...ForwardParams...},       # forward model for differentiable rendering
-     "diff":        {"range_correction": {...}}, # what diff's solver leaves over (optional)
+     "diff":        {"range_correction": {...},  # what diff's solver leaves over (optional)
+                     "window_after_peak": 60},   # the solver's window it was calibrated with (bins)
      "uncertainty": {"peak": {...}, "diff": {...}},  # model-error floors and diff's chi-square limit
      "reports":     {"peak": {...}, ...}}        # fit-quality summaries (informational)
 
@@ -74,9 +75,27 @@ class Calibration:
         d = self._section("diff")
         if d is None:
             return RangeCorrection()
-        if not isinstance(d, dict) or set(d) - {"range_correction"}:
-            raise CalibrationError("diff section must be an object with only 'range_correction'")
+        if not isinstance(d, dict) or set(d) - {"range_correction", "window_after_peak"}:
+            raise CalibrationError("diff section must be an object with only 'range_correction' and "
+                                   "'window_after_peak'")
+        self.diff_options()  # validated with the section
         return RangeCorrection.from_dict(d.get("range_correction", {}))
+
+    def diff_options(self):
+        """The diff solver's options this calibration was made with: its window after the peak (bins), the
+        one its chi-square limit and covariance scale hold for. A file without it predates the key and
+        was calibrated with :data:`~place_safe.recovery.differentiable.LEGACY_WINDOW_AFTER_PEAK`; without a
+        ``diff`` section the solver's default is used."""
+        from place_safe.recovery.differentiable import LEGACY_WINDOW_AFTER_PEAK, SolverOptions
+
+        d = self._section("diff")
+        if d is None:
+            return SolverOptions()
+        w = d.get("window_after_peak", LEGACY_WINDOW_AFTER_PEAK) if isinstance(d, dict) else None
+        if isinstance(w, bool) or not isinstance(w, int) or not 1 <= w <= 128:
+            raise CalibrationError(f"diff section: window_after_peak must be a whole number of bins in 1..128, "
+                                   f"got {w!r}")
+        return SolverOptions(window_after_peak=w)
 
     def uncertainty(self, method: str | None = None):
         """The :class:`~place_safe.recovery.estimator.Uncertainty` of ``method`` (defaults when absent);

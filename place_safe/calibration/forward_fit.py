@@ -423,6 +423,17 @@ def select_model_error(frames: Sequence[Frame], forward: ForwardParams, peak=Non
     return best, report
 
 
+def _leave_one_out(design: np.ndarray, y: np.ndarray) -> float:
+    """Mean absolute leave-one-out error of the least-squares fit ``design @ c = y`` (rows are frames)."""
+    n = len(y)
+    errs = []
+    for k in range(n):
+        keep = np.arange(n) != k
+        c = np.linalg.lstsq(design[keep], y[keep], rcond=None)[0]
+        errs.append(abs(y[k] - design[k] @ c))
+    return float(np.mean(errs))
+
+
 def fit_range_correction(frames: Sequence[Frame], forward: ForwardParams, peak=None, degree: int = 3,
                          min_distance: float = 0.04, max_distance: float = 1.0,
                          progress: bool = True) -> tuple[dict, dict]:
@@ -431,12 +442,15 @@ def fit_range_correction(frames: Sequence[Frame], forward: ForwardParams, peak=N
     Runs the fast differentiable estimator with ``forward`` on the frames with ground truth and fits
     Chebyshev series of degree ``degree`` (fewer with few frames) against the estimated ``z0`` to
     what it leaves over: ``z0_true - z0_est`` and, in the optical frame, the slope errors
-    ``a_true - a_est`` and ``b_true - b_est``. Each series is kept only if leave-one-out
-    cross-validation says it lowers the mean absolute error by at least 10 %.
+    ``a_true - a_est`` and ``b_true - b_est``, for the slopes also with a gain (a series times the
+    estimated slope, so a tilt read a fixed fraction too large is corrected; tilted calibration frames
+    identify it, a level sweep does not). Each series is kept only if leave-one-out cross-validation says
+    it lowers the mean absolute error by at least 10 % (the gain: 10 % below the offset alone).
     """
     from numpy.polynomial import chebyshev
 
-    from place_safe.recovery.differentiable import DifferentiableEstimator, RangeCorrection
+    from place_safe.calibration.points import MIN_TILT_SPREAD
+    from place_safe.recovery.differentiable import RANGE_CORRECTION_BOUNDS, DifferentiableEstimator, RangeCorrection
     from place_safe.recovery.forward import mount_rotation
     from place_safe.geometry import Plane
 
@@ -444,7 +458,7 @@ def fit_range_correction(frames: Sequence[Frame], forward: ForwardParams, peak=N
     data = _usable(frames, min_distance, max_distance, skipped)
     est = DifferentiableEstimator(forward, peak)
     to_optical = mount_rotation(forward.mount_tilt).numpy().T
-    rows = []  # (z0_est, dz0, da, db)
+    rows = []  # (z0_est, dz0, da, db, a_est, b_est)
     bar = tqdm(total=len(data), desc="plane correction", unit="frame", disable=not progress, file=sys.stderr)
     for i in range(0, len(data), 16):
         chunk = data[i:i + 16]
@@ -452,7 +466,7 @@ def fit_range_correction(frames: Sequence[Frame], forward: ForwardParams, peak=N
             if e.ok:
                 a_e, b_e, z_e = Plane(to_optical @ e.plane.normal, e.plane.offset).slopes
                 a_t, b_t, z_t = Plane(to_optical @ f.truth.normal, f.truth.offset).slopes
-                rows.append((z_e, z_t - z_e, a_t - a_e, b_t - b_e))
+                rows.append((z_e, z_t - z_e, a_t - a_e, b_t - b_e, a_e, b_e))
         bar.update(len(chunk))
     bar.close()
     if len(rows) < 8:
@@ -465,22 +479,41 @@ def fit_range_correction(frames: Sequence[Frame], forward: ForwardParams, peak=N
     t = 2.0 * (z - lo) / max(hi - lo, 1e-9) - 1.0
     n = len(z)
     series, report = {}, {"frames": n, "frames_skipped": skipped, "degree": deg, "kept": []}
-    for col, name, unit in ((1, "coeffs", 1e3), (2, "slope_a", 1.0), (3, "slope_b", 1.0)):
+    basis = chebyshev.chebvander(t, deg)  # (n, deg + 1)
+    for col, name, gain, unit in ((1, "coeffs", None, 1e3), (2, "slope_a", "gain_a", 1.0),
+                                  (3, "slope_b", "gain_b", 1.0)):
         err = table[:, col]
-        loo = []
-        for k in range(n):
-            keep = np.arange(n) != k
-            c = chebyshev.chebfit(t[keep], err[keep], deg)
-            loo.append(abs(err[k] - chebyshev.chebval(t[k], c)))
-        before, after = float(np.mean(np.abs(err))), float(np.mean(loo))
-        report[f"{name}_mean_abs_before"] = before * unit
-        report[f"{name}_mean_abs_leave_one_out"] = after * unit
-        if after < 0.9 * before:  # kept only for a clear (10 %) out-of-sample gain
-            series[name] = list(chebyshev.chebfit(t, err, deg))
-            report["kept"].append(name)
+        best = float(np.mean(np.abs(err)))
+        report[f"{name}_mean_abs_before"] = best * unit
+        # an offset in z0, then for the slopes also a gain (the error proportional to the slope itself). The
+        # gain needs true slopes that differ between frames: over a level sweep the error is minus the
+        # estimated slope itself, and a gain of -1 would "correct" every plane to the sweep's slope
+        candidates = [((name,), basis)]
+        if gain is not None:
+            slope = table[:, 4] if col == 2 else table[:, 5]
+            true_slope = slope + err
+            if np.ptp(np.arctan(true_slope)) >= MIN_TILT_SPREAD:
+                candidates.append(((name, gain), np.hstack([basis, basis * slope[:, None]])))
+            else:
+                report[f"{gain}_why_not"] = "true slopes differ by less than the tilt spread a gain needs"
+        for names, design in candidates:
+            after = _leave_one_out(design, err)
+            report[f"{'+'.join(names)}_mean_abs_leave_one_out"] = after * unit
+            if after < 0.9 * best:  # kept only for a clear (10 %) out-of-sample gain over the simpler model
+                coef = np.linalg.lstsq(design, err, rcond=None)[0]
+                parts = {key: [float(c) for c in coef[i * (deg + 1):(i + 1) * (deg + 1)]]
+                         for i, key in enumerate(names)}
+                bad = [k for k, v in parts.items()
+                       if not all(RANGE_CORRECTION_BOUNDS[k].lo <= c <= RANGE_CORRECTION_BOUNDS[k].hi for c in v)]
+                if bad:  # outside its physical range: not a correction
+                    report[f"{'+'.join(names)}_rejected"] = f"{bad[0]} outside its physical range"
+                    continue
+                best = after
+                series.update(parts)
+    report["kept"] = sorted(series)
     try:
         corr = RangeCorrection(series.get("coeffs", []), [lo, hi], series.get("slope_a", []),
-                               series.get("slope_b", []))
+                               series.get("slope_b", []), series.get("gain_a", []), series.get("gain_b", []))
     except CalibrationError as exc:  # a "correction" outside its physical range is not one: keep none
         corr = RangeCorrection()
         report.update(kept=[], why=f"fitted correction rejected: {exc}")

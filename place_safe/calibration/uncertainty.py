@@ -105,13 +105,16 @@ def fit_peak_uncertainty(frames: Sequence[Frame], peak_params) -> tuple[Uncertai
 
 
 def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correction=None,
-                         peak_uncertainty: Uncertainty | None = None) -> tuple[Uncertainty, dict]:
-    """The diff method's chi-square limit (fallback to peak) and floor from frames with ground truth."""
+                         peak_uncertainty: Uncertainty | None = None, options=None) -> tuple[Uncertainty, dict]:
+    """The diff method's chi-square limit (fallback to peak) and floor from frames with ground truth, for
+    the solver ``options`` (:class:`~place_safe.recovery.differentiable.SolverOptions`; default: the
+    solver's defaults): both depend on the bins the solver fits."""
     from place_safe.recovery.differentiable import DifferentiableEstimator
 
     use = [f for f in frames if f.truth is not None]
     truths = [f.truth for f in use]
-    est = DifferentiableEstimator(forward, peak_params, correction=correction, peak_uncertainty=peak_uncertainty)
+    est = DifferentiableEstimator(forward, peak_params, correction=correction, peak_uncertainty=peak_uncertainty,
+                                  options=options)
     diff = est.estimate_many(use)
     peak = [est.init.estimate(f) for f in use]
 
@@ -165,7 +168,7 @@ def update_calibration(cal, frames: Sequence[Frame], method: str) -> dict:
         section["peak"] = unc.to_dict()
     if method == "diff":
         unc, report["diff"] = fit_diff_uncertainty(frames, cal.forward(), cal.peak(), cal.diff(),
-                                                   Uncertainty.from_dict(section["peak"]))
+                                                   Uncertainty.from_dict(section["peak"]), cal.diff_options())
         section["diff"] = unc.to_dict()
     cal.sections["uncertainty"] = section
     return report

@@ -65,6 +65,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
         params, report = fit_forward(frames, init=None, progress=progress)
         from place_safe.calibration.forward_fit import fit_range_correction, select_model_error
+        from place_safe.recovery.differentiable import SolverOptions
 
         if "peak" in fitted:  # the forward fit sees pile-up in the histograms' shapes: the peak method undoes it
             from place_safe.calibration.points import adopt_pileup
@@ -84,7 +85,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
         section, report = fit_range_correction(frames, params, cal.peak(), progress=progress)
         cal.errors.pop("diff", None)
-        cal.sections["diff"] = section
+        cal.sections["diff"] = {**section, "window_after_peak": SolverOptions().window_after_peak}
         cal.reports["diff"] = _jsonable(report)
         fitted.append("diff")
     if args.method in ("peak", "diff"):

@@ -47,6 +47,11 @@ class BuiltInParameters:
 
         return RangeCorrection()
 
+    def diff_options(self):
+        from place_safe.recovery.differentiable import SolverOptions
+
+        return SolverOptions()
+
     def uncertainty(self, method: str | None = None):
         from place_safe.recovery.estimator import Uncertainty
 
@@ -76,6 +81,7 @@ def make_estimator(method: str, calibration: Any = None, **options) -> Estimator
         return ProprietaryEstimator.naive(**options)
     if method == "diff":
         from place_safe.recovery.differentiable import DifferentiableEstimator
+        options.setdefault("options", cal.diff_options())  # the solver window the calibration holds for
         return DifferentiableEstimator(cal.forward(), cal.peak(), correction=cal.diff(),
                                        uncertainty=cal.uncertainty("diff"), peak_uncertainty=cal.uncertainty("peak"),
                                        **options)

@@ -18,8 +18,10 @@ calibrated peak method):
     incidence, azimuth, ``z0``, albedo and the specular parameters from the same initialisation.
     Kept so the comparison with the fast solver stays honest.
 
-``residual`` of an estimate is the RMS Poisson-scaled histogram residual at the solution (about 1
-when the model explains the histograms to the noise level). Its square is a chi-square per bin
+``residual`` of an estimate is the RMS Poisson-scaled histogram residual at the solution over the bins
+up to ``test_window`` after the frame's latest peak (about 1 when the model explains the returns to the
+noise level; the solver fits a longer window, ``window_after_peak``, whose faint tail bins would dilute
+the test). Its square is a chi-square per bin
 against the calibrated noise: above the calibrated ``chi2_limit`` (:class:`~place_safe.recovery.estimator.Uncertainty`)
 the fast solver returns the peak estimate instead, with ``method_used = "peak"``. The fast solver's
 ``covariance`` of ``(n_x, n_y, d)`` is the Gauss-Newton inverse at the solution scaled by that
@@ -52,9 +54,11 @@ from place_safe.sensor.histogram import COUNT_MAX, measure_floor, reference_prob
 class RangeCorrection:
     """A calibrated correction of the recovered plane as a function of its axis crossing ``z0``.
 
-    ``z0 += c(z0)`` and, in the optical frame, the slopes ``a += ca(z0)``, ``b += cb(z0)`` (plane
-    ``a x + b y + z = z0``). Each is a Chebyshev series (coefficients in metres, or dimensionless for
-    the slopes) on ``domain`` (m); outside the domain the value at its nearer end is used. Fitted by
+    ``z0 += c(z0)`` and, in the optical frame, the slopes ``a += ca(z0) + ga(z0) a``,
+    ``b += cb(z0) + gb(z0) b`` (plane ``a x + b y + z = z0``; ``ga``, ``gb``: a tilt read a fraction too
+    large or too small, e.g. 1 % along y on the independent generator's frames). Each is a Chebyshev
+    series (coefficients in metres, or dimensionless for the slopes and gains) on ``domain`` (m); outside
+    the domain the value at its nearer end is used. Fitted by
     :func:`place_safe.calibration.forward_fit.fit_range_correction` to what the forward model leaves
     over on data with ground truth; empty coefficients mean no correction.
     """
@@ -63,6 +67,8 @@ class RangeCorrection:
     domain: list[float] = field(default_factory=lambda: [0.0, 1.0])
     slope_a: list[float] = field(default_factory=list)
     slope_b: list[float] = field(default_factory=list)
+    gain_a: list[float] = field(default_factory=list)
+    gain_b: list[float] = field(default_factory=list)
 
     def _series(self, coeffs: list[float], z0: float) -> float:
         if not coeffs:
@@ -77,13 +83,15 @@ class RangeCorrection:
         """The correction of z0 (m) at z0."""
         return self._series(self.coeffs, z0)
 
-    def slopes(self, z0: float) -> tuple[float, float]:
-        """The corrections of the slopes (a, b) at z0."""
-        return self._series(self.slope_a, z0), self._series(self.slope_b, z0)
+    def slopes(self, z0: float, a: float = 0.0, b: float = 0.0) -> tuple[float, float]:
+        """The corrections of the slopes (a, b) of a plane at z0."""
+        return (self._series(self.slope_a, z0) + self._series(self.gain_a, z0) * a,
+                self._series(self.slope_b, z0) + self._series(self.gain_b, z0) * b)
 
     def to_dict(self) -> dict:
         return {"coeffs": [float(c) for c in self.coeffs], "domain": [float(v) for v in self.domain],
-                "slope_a": [float(c) for c in self.slope_a], "slope_b": [float(c) for c in self.slope_b]}
+                "slope_a": [float(c) for c in self.slope_a], "slope_b": [float(c) for c in self.slope_b],
+                "gain_a": [float(c) for c in self.gain_a], "gain_b": [float(c) for c in self.gain_b]}
 
     def __post_init__(self) -> None:
         check_dataclass(self, RANGE_CORRECTION_BOUNDS, "range correction", CalibrationError)
@@ -104,7 +112,14 @@ RANGE_CORRECTION_BOUNDS: dict[str, Bound] = {
     "domain": Bound(0.0, 10.0, "m", length=2),
     "slope_a": Bound(-0.5, 0.5, "(slope)"),
     "slope_b": Bound(-0.5, 0.5, "(slope)"),
+    "gain_a": Bound(-0.2, 0.2, "(of the slope)"),
+    "gain_b": Bound(-0.2, 0.2, "(of the slope)"),
 }
+
+
+#: The solver's window after the latest peak before calibration files recorded it (bins): a file without
+#: ``diff.window_after_peak`` was calibrated (chi-square limit, covariance scale) with this window.
+LEGACY_WINDOW_AFTER_PEAK = 24
 
 
 @dataclass
@@ -119,7 +134,8 @@ class SolverOptions:
     chi2_tolerance: float = 0.01
     prior_specular_weight: float = 0.05   # std of the specular-weight prior
     prior_log_exponent: float = 0.25      # std of the log specular-exponent prior
-    window_after_peak: int = 24   # bins kept after the latest zone peak
+    window_after_peak: int = 60   # bins fitted after the frame's latest zone peak (its tail: see the README)
+    test_window: int = 24         # bins after that peak in the residual (the chi-square test of the fit)
     zone_albedo: bool = True      # an albedo per zone, so the plane rests mostly on timing and shape
     zone_albedo_spread: float = 0.1  # std of log zone albedo about the zones' mean (inf: untied)
     # paper mode
@@ -293,9 +309,15 @@ class DifferentiableEstimator(Estimator):
         hists = np.array([f.hists for f in frames], dtype=float)
         floor = measure_floor(hists)
         obs_full = np.clip(hists - floor[..., None], 0.0, None)
-        width = int(min(N_BINS, obs_full.argmax(axis=-1).max() + self.opt.window_after_peak))
+        # each frame's own window (bins up to its latest zone peak plus window_after_peak): the batch renders
+        # up to the widest, and the bins past a frame's window weigh 0, so no frame depends on its batch
+        last_peak = obs_full.argmax(axis=-1).max(axis=-1)
+        own = np.minimum(N_BINS, last_peak + self.opt.window_after_peak)
+        width = int(own.max())
         obs = obs_full[..., :width]
         inv_sigma = residual_weights(hists[..., :width], self.params.model_error)
+        inv_sigma = inv_sigma * (np.arange(width) < own[:, None])[:, None, :]
+        n_res_own = N_ZONES * own  # residuals per frame
         kernels = self._kernels(frames)
         conv = convolution_matrices(kernels, width)
         nb = len(frames)
@@ -372,7 +394,7 @@ class DifferentiableEstimator(Estimator):
                 acc = rr[better]
                 dec = cost[acc] - cn[better]
                 rel = dec / np.maximum(cost[acc], 1e-300)
-                small = dec < self.opt.chi2_tolerance * np.maximum(cn[better] / (N_ZONES * width), 1.0)
+                small = dec < self.opt.chi2_tolerance * np.maximum(cn[better] / n_res_own[acc], 1.0)
                 x[acc], cost[acc] = xn[better], cn[better]
                 lam[acc] = np.maximum(lam[acc] * 0.3, 1e-9)
                 active[acc[(rel < self.opt.tolerance) | small]] = False
@@ -385,11 +407,17 @@ class DifferentiableEstimator(Estimator):
         # covariance of the unknowns at the solution: the Gauss-Newton inverse (priors included),
         # scaled by the histogram residual's chi-square per degree of freedom
         res, J = residual(x, all_rows, jac=True)
-        chi2_red = (res[:, :n_res] ** 2).sum(axis=1) / max(n_res - nu, 1)
+        chi2_red = (res[:, :n_res] ** 2).sum(axis=1) / np.maximum(n_res_own - nu, 1)
+        # the residual reported (and tested against chi2_limit): the bins near the returns
+        core = np.arange(width) < np.minimum(N_BINS, last_peak + min(self.opt.test_window,
+                                                                     self.opt.window_after_peak))[:, None]
+        core_cost = (((res[:, :n_res].reshape(nb, N_ZONES, width) ** 2) * core[:, None, :]).sum(axis=(1, 2))
+                     + (res[:, n_res:] ** 2).sum(axis=1))  # and the priors, as in the solver's cost
+        n_core = N_ZONES * core.sum(axis=1)
         cov = np.linalg.pinv(np.einsum("bmi,bmj->bij", J, J))[:, :3, :3] * chi2_red[:, None, None]
         # report one albedo: the mean log albedo over zones when each zone has its own
         xr = np.concatenate([x[:, :3], x[:, 3:3 + n_alb].mean(axis=1, keepdims=True)], axis=1)
-        return [self._finish(torch.as_tensor(xr[i]), float(cost[i]), n_res, cov[i]) for i in range(nb)]
+        return [self._finish(torch.as_tensor(xr[i]), float(core_cost[i]), int(n_core[i]), cov[i]) for i in range(nb)]
 
     def _kernels(self, frames: list[Frame]) -> np.ndarray:
         ref = torch.as_tensor(np.array([f.reference for f in frames]), dtype=self.dtype)
@@ -398,7 +426,7 @@ class DifferentiableEstimator(Estimator):
 
     def _reported(self, a: float, b: float, z0: float) -> Plane:
         """The plane of optical-frame unknowns, range-corrected, in the reported sensor frame."""
-        da, db = self.correction.slopes(z0)
+        da, db = self.correction.slopes(z0, a, b)
         optical = Plane.from_slopes(a + da, b + db, z0 + self.correction(z0))
         return Plane(self._mount @ optical.normal, optical.offset)
 

@@ -165,6 +165,36 @@ def test_range_correction_bounds_are_physical():
     assert RANGE_CORRECTION_BOUNDS["coeffs"].hi <= 0.1  # metres: a correction, not a relocation
 
 
+def test_the_diff_solver_window_comes_from_the_calibration():
+    """A file records the window its chi-square limit and covariance scale were calibrated with; a file from
+    before the key keeps the old window; no diff section: the solver's default."""
+    from place_safe.recovery.differentiable import LEGACY_WINDOW_AFTER_PEAK, SolverOptions
+
+    base = {"format": FORMAT, "forward": ForwardParams().to_dict()}
+    new = Calibration.from_dict({**base, "diff": {"range_correction": {}, "window_after_peak": 48}})
+    old = Calibration.from_dict({**base, "diff": {"range_correction": {}}})
+    none = Calibration.from_dict(base)
+    assert make_estimator("diff", new).opt.window_after_peak == 48
+    assert make_estimator("diff", old).opt.window_after_peak == LEGACY_WINDOW_AFTER_PEAK
+    assert make_estimator("diff", none).opt.window_after_peak == SolverOptions().window_after_peak
+    for bad in (0, 500, 2.5, True, "60"):
+        cal = Calibration.from_dict({**base, "diff": {"window_after_peak": bad}})
+        with pytest.raises(CalibrationError, match="window_after_peak"):
+            make_estimator("diff", cal)
+        assert make_estimator("peak", cal).name == "peak"  # a bad diff section stops only diff
+
+
+def test_range_correction_gains_scale_the_slopes():
+    from place_safe.recovery.differentiable import RangeCorrection
+
+    c = RangeCorrection(domain=[0.0, 1.0], slope_a=[0.001], gain_b=[-0.01])
+    assert c.slopes(0.2, 0.3, 0.4) == pytest.approx((0.001, -0.004))
+    assert RangeCorrection.from_dict(c.to_dict()) == c
+    assert RangeCorrection.from_dict({"coeffs": [], "domain": [0.0, 1.0], "slope_a": [], "slope_b": []}).gain_a == []
+    with pytest.raises(CalibrationError, match="gain_b"):
+        RangeCorrection.from_dict({**c.to_dict(), "gain_b": [0.9]})
+
+
 # -- data selection for the forward fit and the model-error choice ------------------------------------------
 def _with(frame: Frame, hists=None, reference=None) -> Frame:
     return Frame(frame.hists if hists is None else hists, frame.reference if reference is None else reference,

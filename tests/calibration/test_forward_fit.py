@@ -86,3 +86,18 @@ def test_chooses_where_the_zone_gains_act_convention_check():
                                   fitted=fitted, min_distance=0.01)
         assert got.saturate_gain == pytest.approx(truth_w, abs=0.1)
         assert report["structural_choices"]["saturate_gain"] == pytest.approx(got.saturate_gain)
+
+
+@pytest.mark.slow
+def test_a_level_sweep_never_fits_a_tilt_gain():
+    """Over a level table the slope error is minus the estimated slope: a 'gain' of -1 would fit it exactly
+    and then read every plane as the sweep's level. The gain needs true slopes that differ; the offset
+    correction is still fitted."""
+    from place_safe.calibration.forward_fit import fit_range_correction
+
+    frames = load_frames(SWEEP)
+    forward = ForwardParams.load(Path(__file__).resolve().parents[2] / "sim" / "sensors" / "tmf8820_real.json")
+    section, report = fit_range_correction(frames, forward, progress=False)
+    corr = section["range_correction"]
+    assert corr["gain_a"] == [] and corr["gain_b"] == []
+    assert "gain_a_why_not" in report and "gain_b_why_not" in report

@@ -53,6 +53,32 @@ def test_batch_equals_single(frames):
         assert s.plane.offset == pytest.approx(b.plane.offset, abs=1e-7)
 
 
+def test_a_frame_does_not_depend_on_its_batch():
+    """A frame 3 cm away solved alone and together with one 30 cm away (whose later peak widens the batch's
+    window) gives the same plane: each frame's residual covers its own window only."""
+    from place_safe.evaluation.independent import SceneSpec, make_frames as independent_frames
+
+    near = independent_frames(1, seed=3, scene=SceneSpec((0.03, 0.031), (0.2, 0.25)))
+    far = independent_frames(1, seed=4, scene=SceneSpec((0.29, 0.30), (0.0, 0.1)))
+    est = DifferentiableEstimator()
+    alone = est.estimate(near[0])
+    together = est.estimate_many(near + far)[0]
+    assert alone.ok and together.ok
+    np.testing.assert_allclose(together.plane.normal, alone.plane.normal, atol=1e-9)
+    assert together.plane.offset == pytest.approx(alone.plane.offset, abs=1e-10)
+    assert together.residual == pytest.approx(alone.residual, rel=1e-9)
+
+
+def test_residual_is_tested_on_the_bins_near_the_returns(frames):
+    """The fit covers window_after_peak bins; the residual (the chi-square test) only test_window of them, so
+    a longer fitted tail of faint bins does not dilute the test."""
+    short = DifferentiableEstimator(options=SolverOptions(window_after_peak=24, test_window=24)).estimate(frames[0])
+    long = DifferentiableEstimator(options=SolverOptions(window_after_peak=90, test_window=24)).estimate(frames[0])
+    diluted = DifferentiableEstimator(options=SolverOptions(window_after_peak=90, test_window=90)).estimate(frames[0])
+    assert long.residual == pytest.approx(short.residual, rel=0.3)
+    assert diluted.residual < long.residual
+
+
 @pytest.mark.slow
 def test_paper_mode_agrees_with_fast():
     frames = make_frames(3, seed=5, spec=SyntheticSpec(z_range=(0.05, 0.25), theta_range=(0.0, 0.3)))
