@@ -117,6 +117,18 @@ RANGE_CORRECTION_BOUNDS: dict[str, Bound] = {
 }
 
 
+def _positive_definite(cov) -> bool:
+    """Whether ``cov`` (3 x 3, or None: no claim made) is finite with eigenvalues above 1e-12 of its
+    largest (a covariance of a plane the fit pinned down)."""
+    if cov is None:
+        return True
+    c = np.asarray(cov, dtype=float)
+    if c.shape != (3, 3) or not np.all(np.isfinite(c)):
+        return False
+    w = np.linalg.eigvalsh(0.5 * (c + c.T))
+    return bool(w[0] > 1e-12 * max(w[-1], 0.0) and w[-1] > 0.0)
+
+
 #: The solver's window after the latest peak before calibration files recorded it (bins): a file without
 #: ``diff.window_after_peak`` was calibrated (chi-square limit, covariance scale) with this window.
 LEGACY_WINDOW_AFTER_PEAK = 24
@@ -251,9 +263,12 @@ class DifferentiableEstimator(Estimator):
         ``residual`` is the RMS Poisson-scaled residual, so its square is the chi-square per bin
         against the calibrated noise; above ``uncertainty.chi2_limit`` the model does not explain the
         frame and the peak estimate (``method_used = "peak"``) is returned, with diff's residual. So it is
-        when the two estimates contradict each other beyond ``uncertainty.consistency_limit``.
+        when the two estimates contradict each other beyond ``uncertainty.consistency_limit``, and when
+        diff's covariance is not positive definite (a degenerate Jacobian: the fit did not pin the plane
+        down, and a zero covariance would claim it did).
         """
-        failed = not est.ok or est.residual is None or not est.residual ** 2 <= self.uncertainty.chi2_limit
+        failed = not est.ok or est.residual is None or not est.residual ** 2 <= self.uncertainty.chi2_limit \
+            or not _positive_definite(est.covariance)
         if not failed and self.uncertainty.consistent(est, peak):
             return est
         if not est.ok and math.isinf(self.uncertainty.chi2_limit):

@@ -127,6 +127,23 @@ def test_bad_input_gives_reason(frames, mode):
     assert [e.ok for e in many] == [False] * 6 + [True]
 
 
+def test_a_degenerate_covariance_falls_back_to_peak(frames):
+    """A diff plane whose covariance is zero or indefinite (a degenerate Jacobian) is not trusted: the peak
+    estimate is returned, marked as such."""
+    from place_safe.recovery.estimator import PlaneEstimate, Uncertainty
+
+    est = DifferentiableEstimator(uncertainty=Uncertainty(chi2_limit=1e9))
+    peak = est.init.estimate(frames[0])
+    good = est.estimate(frames[0])
+    assert good.method_used == "diff"
+    for cov in (np.zeros((3, 3)), np.diag([1e-6, -1e-9, 1e-8]), np.full((3, 3), np.nan)):
+        fake = PlaneEstimate(good.plane, albedo=good.albedo, residual=good.residual, covariance=cov,
+                             method_used="diff")
+        out = est._checked(fake, peak)
+        assert out.method_used == "peak" and out.plane == peak.plane
+    assert est._checked(good, peak) is good
+
+
 def test_chi_square_fallback_returns_the_peak_estimate(frames):
     """Convention check (frames rendered by the forward model): a chi-square limit no frame meets makes
     diff return its peak initialisation, marked as such; without a limit diff reports itself."""
