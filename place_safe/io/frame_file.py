@@ -47,27 +47,37 @@ _LINE_BROKEN = "the line ends inside the frame (JSON Lines: one frame per line)"
 _SCALAR_END = re.compile(rb'[\s,\]\[{}"]')
 #: Fast paths of the walk (one regular-expression match instead of a step per bracket or quote): a list
 #: of numbers or of lists of numbers (a histogram, a pose), a string without escapes, and a run of object
-#: members with such values. Line ends are
-#: left to the step-by-step walk in JSON Lines, where they end a frame.
-_BLOCK = re.compile(rb'\[(?:[^\[\]{}"]++|\[[^\[\]{}"]*+\])*+\]')
-_BLOCK_LINES = re.compile(rb'\[(?:[^\[\]{}"\n]++|\[[^\[\]{}"\n]*+\])*+\]')
-_PLAIN_STRING = re.compile(rb'"[^"\\\n]*+"')
-#: 20 digits in a row: possibly an integer beyond 64 bits, which only the standard parser keeps exact.
-_LONG_DIGITS = re.compile(rb'\d{20}')
+#: members with such values. Line ends are left to the step-by-step walk in JSON Lines, where they end a
+#: frame.
+_STRING_SOURCE = rb'"[^"\\\n]*+"'
+
+
+def _block_source(other: bytes) -> bytes:
+    """A list of numbers or of lists of numbers, none of whose bytes is ``other``."""
+    return rb'\[(?:[^\[\]{}"' + other + rb']++|\[[^\[\]{}"' + other + rb']*+\])*+\]'
 
 
 def _pairs(space: bytes, other: bytes) -> re.Pattern:
     """A run of object members ``"key": value,`` whose values are plain strings, lists of numbers (or of
     lists of numbers) or scalars: nothing in them opens or closes anything the walk tracks."""
-    string = rb'"[^"\\\n]*+"'
-    block = rb'\[(?:[^\[\]{}"' + other + rb']++|\[[^\[\]{}"' + other + rb']*+\])*+\]'
     scalar = rb'[^\[\]{}",\s]++'
-    return re.compile(rb'(?:' + string + space + rb':' + space + rb'(?:' + string + rb'|' + block + rb'|' + scalar
-                      + rb')' + space + rb',?' + space + rb')++')
+    value = rb'(?:' + _STRING_SOURCE + rb'|' + _block_source(other) + rb'|' + scalar + rb')'
+    return re.compile(rb'(?:' + _STRING_SOURCE + space + rb':' + space + value + space + rb',?' + space + rb')++')
 
 
+_BLOCK = re.compile(_block_source(b""))
+_BLOCK_LINES = re.compile(_block_source(rb"\n"))
+_PLAIN_STRING = re.compile(_STRING_SOURCE)
 _PAIRS = _pairs(rb'\s*+', b"")
 _PAIRS_LINES = _pairs(rb'[ \t\r]*+', rb'\n')
+#: An integer literal of 19 digits or more may lie beyond 64 bits, which orjson reads as a float and only
+#: the standard parser keeps exact. Found at C speed (a regular expression over a frame's digits costs 3x
+#: the parse): every digit maps to "0", the characters of a decimal fraction or exponent to "f", anything
+#: else to " ", so such an integer shows as " " and 19 "0" (the digits of a float like 0.000123... do not,
+#: and they are common in frames).
+_LONG_INTEGER = b" " + b"0" * 19
+_NUMBER_SHAPE = bytes(ord("0") if chr(c).isdigit() and c < 128 else ord("f") if chr(c) in ".eE" else ord(" ")
+                      for c in range(256))
 
 
 class _Splitter:
@@ -247,15 +257,15 @@ class _Splitter:
 
 def _decode(raw: bytes) -> object:
     """One frame's bytes as a JSON value; raises ValueError with a short reason."""
-    try:
-        text = raw.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        raise ValueError(f"not UTF-8 text (byte {exc.start} of the frame)") from None
-    if _orjson is not None and not _LONG_DIGITS.search(raw):  # orjson reads integers beyond 64 bits as floats
+    if _orjson is not None and _LONG_INTEGER not in raw.translate(_NUMBER_SHAPE):  # orjson: big integers -> floats
         try:
             return _orjson.loads(raw)
         except _orjson.JSONDecodeError:
             pass  # the standard library's parser gives the message (and accepts NaN, Infinity)
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"not UTF-8 text (byte {exc.start} of the frame)") from None
     try:
         return json.loads(text)
     except json.JSONDecodeError as exc:
