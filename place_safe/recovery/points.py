@@ -271,19 +271,12 @@ def plane_from_points(params: PeakParams, readings: np.ndarray, valid: np.ndarra
 def plane_through(points: np.ndarray, valid: np.ndarray) -> tuple[Plane, float]:
     """The least-squares plane of one frame's zone points (9, 3) with mask (9,), and its RMS residual (m);
     raises NoPlaneError."""
-    mask = np.asarray(valid, dtype=bool) & np.isfinite(points).all(axis=-1)
-    count = int(mask.sum())
-    if count < 3:
-        raise NoPlaneError(f"only {count} zones have a return; a plane needs 3 or more")
-    # the maths of fit_planes for one frame, without the batch's padding
-    p = points[mask]
-    centroid = p.mean(axis=0)
-    _, s, vt = np.linalg.svd(p - centroid, full_matrices=False)
-    n = vt[-1] if vt[-1, 2] >= 0 else -vt[-1]
-    d = float(n @ centroid)
-    if not (s[1] > 1e-9 * max(s[0], 1e-30) and n[2] > 1e-6 and d > 0):
+    if valid.sum() < 3:
+        raise NoPlaneError(f"only {int(valid.sum())} zones have a return; a plane needs 3 or more")
+    n, d, rms, ok = fit_planes(points[None], valid[None])
+    if not ok[0]:
         raise NoPlaneError("the zone points do not determine a plane in front of the sensor")
-    return Plane(n, d), float(s[-1] / np.sqrt(count))
+    return Plane(n[0], float(d[0])), float(rms[0])
 
 
 __all__ = ["PeakParams", "fit_planes", "plane_from_points", "plane_through", "plane_covariance", "PAPER_PEAK_M", "PAPER_PEAK_B", "BIN_SIZE", "MM_PER_M"]
