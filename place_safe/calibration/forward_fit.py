@@ -27,7 +27,7 @@ from place_safe.exceptions import CalibrationError, FrameError
 from place_safe.recovery.forward import (MODEL_ERROR, ForwardModel, ForwardParams, ZoneRays, mount_rotation,
                                          residual_weights, single_thread)
 from place_safe.sensor.frame import N_BINS, N_ZONES, Frame
-from place_safe.sensor.histogram import COUNT_MAX, measure_floor, reference_problem
+from place_safe.sensor.histogram import COUNT_MAX, measure_floor, reference_floor, reference_problem
 
 #: Camera parameters fitted by default, with how they are parametrised ("log": positive). The
 #: specular lobe is left at its published value: it is a property of the surface, fitted per frame
@@ -39,8 +39,8 @@ FITTED: dict[str, str] = {
     "soft_bin_sigma": "log",
     "ref_time_scale": "log",
     "saturation": "log",
-    "tail_weight": "log",
-    "tail_decay": "log",
+    "zone_tail_weights": "log",
+    "zone_tail_decays": "log",
     "edge_fov_scale": "log",
     "corner_fov_scale": "log",
     "pileup": "log",
@@ -118,8 +118,11 @@ def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, prog
     """Fit camera parameters to frames with ground truth; returns (params, report).
 
     frames: frames with ``truth`` planes; those outside ``[min_distance, max_distance]`` (z0, m)
-    or invalid are left out. init: starting parameters (default: the published values, with a
-    small pulse tail, pile-up and beam profile so their gradients are not zero). rays: stratified rays per axis and zone.
+    or invalid are left out. init: starting parameters (default: the published values, with small
+    per-zone tails, pile-up and beam profile so their gradients are not zero, and ``ref_floor``
+    measured: the median over the frames of :func:`~place_safe.sensor.histogram.reference_floor`; the
+    published 135 counts would cut the pulse's tail where it falls below 0.2 % of its peak and lower
+    the rest, a misfit of up to 20 sigma a bin on bright returns). rays: stratified rays per axis and zone.
     iterations: Gauss-Newton (trust-region) iterations at most. max_frames: at most this many
     frames are fitted, taken evenly over distance (a few dozen frames pin down the ~30 camera
     parameters; more only cost time).
@@ -163,8 +166,9 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
         data = [data[i] for i in sorted(set(pick.tolist()))]
     fitted = dict(FITTED if fitted is None else fitted)
     if init is None:
-        init = ForwardParams(tail_weight=0.05, tail_decay=3.0, pileup=1e-7, beam_power=1.0,
-                             **{k: 0.5 for k in STRUCTURAL if k in fitted})
+        init = ForwardParams(pileup=1e-7, beam_power=1.0, zone_tail_weights=[0.03] * N_ZONES,
+                             zone_tail_decays=[3.0] * N_ZONES, **{k: 0.5 for k in STRUCTURAL if k in fitted})
+        init.ref_floor = float(np.median([reference_floor(f.reference) for f in data]))
     dtype = torch.float64
     model = ForwardModel(init, ZoneRays.stratified(rays, dtype=dtype), dtype=dtype)
 

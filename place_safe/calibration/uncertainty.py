@@ -95,6 +95,35 @@ def fit_floor(estimates: Sequence[PlaneEstimate], truths: Sequence, base: Uncert
 CONSISTENCY_LIMIT = 16.27
 
 
+#: Diff is used only when the best chi-square limit lets at least this many calibration frames use it;
+#: otherwise the limit is 0 and diff always falls back to peak. A limit chosen because one frame in 27 was
+#: better by chance (the real sweep's halves: score 0.03 % better) admits held-out frames near it just as
+#: much by chance (there: one frame at 0.69 deg against peak's 0.27).
+MIN_DIFF_FRAMES = 3
+
+
+def select_chi2_limit(chi2: np.ndarray, diff_errors: np.ndarray, peak_errors: np.ndarray) -> float:
+    """The chi-square limit above which diff falls back to peak, from calibration frames.
+
+    chi2: (F,) each frame's diff residual chi-square per bin (``inf``: diff failed). diff_errors,
+    peak_errors: (F, M) each method's errors on M metrics, in comparable units. Every limit between the
+    frames' chi-squares is scored by the worse metric's mean error when frames under it use diff and the
+    rest peak; the largest limit with the best score wins. Fewer than :data:`MIN_DIFF_FRAMES` frames
+    under it: 0, diff always falls back.
+    """
+    chi2 = np.asarray(chi2, dtype=float)
+    candidates = [0.0] + sorted({float(c) for c in chi2[np.isfinite(chi2)] if c > 0}) + [math.inf]
+    scores = []
+    for lim in candidates:
+        use_diff = (chi2 <= lim)[:, None]
+        scores.append(float(np.max(np.mean(np.where(use_diff, diff_errors, peak_errors), axis=0))))
+    best = min(scores)
+    limit = max(c for c, sc in zip(candidates, scores) if sc <= best * (1 + 1e-9))
+    if np.sum(chi2 <= limit) < MIN_DIFF_FRAMES:
+        return 0.0  # too few frames to tell a better model from luck
+    return limit
+
+
 def fit_peak_uncertainty(frames: Sequence[Frame], peak_params) -> tuple[Uncertainty, dict]:
     """The peak method's floor from frames with ground truth."""
     from place_safe.recovery.peak import PeakEstimator
@@ -131,13 +160,7 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
     unit = np.maximum(np.median(np.where(np.isfinite(e_peak), e_peak, np.nan), axis=0), 1e-12)
     n_diff, n_peak = np.minimum(e_diff / unit, 10.0), np.minimum(e_peak / unit, 10.0)
     chi2 = np.array([e.residual ** 2 if e.ok and e.residual is not None else math.inf for e in diff])
-    candidates = sorted({float(c) for c in chi2[np.isfinite(chi2)]}) + [math.inf]
-    scores = []
-    for lim in candidates:
-        use_diff = (chi2 <= lim)[:, None]
-        scores.append(float(np.max(np.mean(np.where(use_diff, n_diff, n_peak), axis=0))))
-    best = min(scores)
-    limit = max(c for c, sc in zip(candidates, scores) if sc <= best * (1 + 1e-9))
+    limit = select_chi2_limit(chi2, n_diff, n_peak)
     by_diff = [e for e, c in zip(diff, chi2) if c <= limit]
     unc, rep = fit_floor(by_diff, [t for t, c in zip(truths, chi2) if c <= limit],
                          Uncertainty(chi2_limit=limit, consistency_limit=CONSISTENCY_LIMIT))

@@ -42,10 +42,10 @@ class Uncertainty:
     error of ``tilt_range_std`` between zones tilts a plane at distance ``d`` by about that over
     ``d``), on the offset ``offset_std^2 + (offset_rel d)^2``. Units and physical ranges:
     ``tilt_std`` rad (0 .. 0.1), ``tilt_range_std`` m (0 .. 0.01), ``offset_std`` m (0 .. 0.01),
-    ``offset_rel`` dimensionless (0 .. 0.05). ``chi2_limit`` (reduced chi-square, > 0; ``inf`` =
+    ``offset_rel`` dimensionless (0 .. 0.05). ``chi2_limit`` (reduced chi-square, >= 0; ``inf`` =
     never): ``diff`` falls back to the peak estimate of a frame whose residual chi-square per bin
     (Poisson and calibrated model error, :func:`~place_safe.recovery.forward.residual_weights`) is
-    above it. ``scale`` (dimensionless, 0.1 .. 10) multiplies the whole covariance (the fit's and the
+    above it; 0: always (calibration found the model no better than peak on this sensor). ``scale`` (dimensionless, 0.1 .. 10) multiplies the whole covariance (the fit's and the
     floor) so the calibration frames' mean NEES per degree of freedom is 1. ``consistency_limit``
     (squared Mahalanobis distance, > 0; ``inf`` = never): ``diff`` also falls back to the peak estimate
     when the two estimates of ``(n_x, n_y, d)`` differ by more than that under their summed covariances
@@ -63,9 +63,9 @@ class Uncertainty:
 
     def __post_init__(self) -> None:
         vals = (self.tilt_std, self.offset_std, self.tilt_range_std, self.offset_rel)
-        if not all(math.isfinite(v) and v >= 0 for v in vals) or not self.chi2_limit > 0 \
+        if not all(math.isfinite(v) and v >= 0 for v in vals) or not self.chi2_limit >= 0 \
                 or not (math.isfinite(self.scale) and self.scale > 0) or not self.consistency_limit > 0:
-            raise ValueError("uncertainty needs finite floors >= 0, chi2_limit > 0, consistency_limit > 0 and a "
+            raise ValueError("uncertainty needs finite floors >= 0, chi2_limit >= 0, consistency_limit > 0 and a "
                              "finite scale > 0")
 
     def consistent(self, est: "PlaneEstimate", other: "PlaneEstimate") -> bool:

@@ -60,6 +60,8 @@ FORWARD_BOUNDS: dict[str, Bound] = {
     "floor": Bound(-COUNT_MAX, COUNT_MAX, "counts"),
     "tail_weight": Bound(0.0, 10.0, "(relative to the pulse)"),
     "tail_decay": Bound(0.0, 64.0, "bins", lo_open=True),
+    "zone_tail_weights": Bound(0.0, 10.0, "(relative to the zone's histogram)", length=N_ZONES),
+    "zone_tail_decays": Bound(0.0, 64.0, "bins", lo_open=True, length=N_ZONES),
     "edge_fov_scale": Bound(0.0, 3.0, "(of the nominal zone rectangle)", lo_open=True),
     "corner_fov_scale": Bound(0.0, 3.0, "(of the nominal zone rectangle)", lo_open=True),
     "pileup": Bound(0.0, 1.0, "1/counts"),
@@ -86,7 +88,10 @@ class ForwardParams:
     fields of view may be narrower than the nominal rectangles (the paper's calibrated peak method
     found edge and corner directions at 0.94 and 0.89 of their nominal angles), so ``edge_fov_scale``
     and ``corner_fov_scale`` scale those zones' rectangles on ``z = 1`` towards the axis. The
-    defaults (``tail_weight = 0``, scales 1) are the paper's model exactly. ``pileup`` (1/counts)
+    defaults (``tail_weight = 0``, scales 1) are the paper's model exactly. Each zone may add its own tail
+    (``zone_tail_weights``, ``zone_tail_decays``, (9,) each): zone ``z``'s histogram, after the pulse, is
+    convolved with ``delta + zone_tail_weights[z] * exp(-k / zone_tail_decays[z])`` (k >= 1 bins, up to
+    :data:`ZONE_TAIL_BINS`), before crosstalk and pile-up; zero weights (the default) add nothing. ``pileup`` (1/counts)
     adds the timing distortion of SPAD pile-up (Coates): a detector that records at most one photon
     per laser cycle sees bin ``b`` with probability ``(1 - exp(-k h_b)) exp(-k sum_{j<b} h_j)``, so
     at high flux the histogram shifts and skews earlier, which the paper's amplitude-only saturation
@@ -142,6 +147,8 @@ class ForwardParams:
     floor: float = 0.0
     tail_weight: float = 0.0
     tail_decay: float = 2.0
+    zone_tail_weights: list[float] = field(default_factory=lambda: [0.0] * N_ZONES)
+    zone_tail_decays: list[float] = field(default_factory=lambda: [2.0] * N_ZONES)
     edge_fov_scale: float = 1.0
     corner_fov_scale: float = 1.0
     pileup: float = 0.0
@@ -169,6 +176,8 @@ class ForwardParams:
         d["zone_gains"] = [float(v) for v in self.zone_gains]
         d["mount_tilt"] = [float(v) for v in self.mount_tilt]
         d["baseline"] = [float(v) for v in self.baseline]
+        d["zone_tail_weights"] = [float(v) for v in self.zone_tail_weights]
+        d["zone_tail_decays"] = [float(v) for v in self.zone_tail_decays]
         return d
 
     @classmethod
@@ -365,6 +374,27 @@ def apply_pileup(hist: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
     return -torch.expm1(-kk * hist) / kk * torch.exp(-kk * before)
 
 
+#: Length (bins) of each zone's own tail (:class:`ForwardParams` ``zone_tail_*``); at the longest decays
+#: calibration finds (3-7 bins) the tail has fallen below 1e-3 of its start by then.
+ZONE_TAIL_BINS = 48
+
+
+def zone_tail_taps(weights, decays, dtype: torch.dtype = torch.float64) -> torch.Tensor:
+    """Each zone's tail (9, :data:`ZONE_TAIL_BINS`): ``w_z exp(-k / tau_z)`` at lags ``k = 1..``."""
+    k = torch.arange(1, ZONE_TAIL_BINS + 1, dtype=dtype)
+    w = torch.as_tensor(weights, dtype=dtype).view(-1, 1)
+    tau = torch.as_tensor(decays, dtype=dtype).view(-1, 1)
+    return w * torch.exp(-k / tau)
+
+
+def add_zone_tails(hist: torch.Tensor, taps: torch.Tensor) -> torch.Tensor:
+    """Histograms (B, 9, N) plus each zone's tail: ``h_z[j] + sum_k taps[z, k-1] h_z[j - k]`` (causal)."""
+    n_taps = taps.shape[-1]
+    padded = torch.nn.functional.pad(hist, (n_taps, 0))
+    windows = padded.unfold(-1, n_taps, 1)[..., :-1, :]  # (B, Z, N, L): window j covers j-L .. j-1
+    return hist + torch.einsum("bznl,zl->bzn", windows, taps.flip(-1))
+
+
 def convolve_pulse(transient: torch.Tensor, kernel: torch.Tensor) -> torch.Tensor:
     """Causal convolution of transients (B, Z, N) with per-frame kernels (B, K) -> (B, Z, N)."""
     k_len = kernel.shape[-1]
@@ -474,6 +504,8 @@ class ForwardModel:
         if kernel is None:
             kernel = self.pulse(torch.as_tensor(reference, dtype=self.dtype).expand(b, N_BINS))
         hist = convolve_pulse(transient, kernel)
+        if torch.is_grad_enabled() or bool(torch.any(t["zone_tail_weights"] != 0)):
+            hist = add_zone_tails(hist, zone_tail_taps(t["zone_tail_weights"], t["zone_tail_decays"], self.dtype))
         total = hist.sum(dim=1, keepdim=True)
         hist = hist + t["crosstalk"] * (total - (1.0 - t["crosstalk_self"]) * hist)
         return apply_pileup(hist, t["pileup"]) + t["floor"]

@@ -18,7 +18,7 @@ Chain of the derivatives, per ray with direction ``v``::
     p = sat (1 - exp(-g^v rho h^w / (sat r^2))) h^(1-w) g^(1-v),   w = saturate_shading, v = saturate_gain
     u = r / bin_size + bin_offset + zone_offset
     T(bin) = sum_rays w p G(bin - u),      G = Gaussian of soft_bin_sigma
-    F = crosstalk-mix(T * pulse),   H = pile-up(F)   (mix: h + c (total - (1 - crosstalk_self) h))   (Coates; identity when ``pileup = 0``)
+    F = crosstalk-mix(zone-tail(T * pulse)),   H = pile-up(F)   (mix: h + c (total - (1 - crosstalk_self) h))   (Coates; identity when ``pileup = 0``)
 
 With the emitter at ``E = (bx, by, 0)`` (``baseline``) the light's range ``r_e = |r v - E|`` replaces ``r`` in
 the inverse square, ``c = (z0 - a bx - b by) / (s r_e)`` is the light's cosine, the flux is weighted by the
@@ -31,7 +31,7 @@ import math
 
 import numpy as np
 
-from place_safe.recovery.forward import ForwardParams, ZoneRays
+from place_safe.recovery.forward import ForwardParams, ZoneRays, zone_tail_taps
 from place_safe.sensor.frame import N_ZONES
 
 N_UNKNOWNS = 6
@@ -73,6 +73,11 @@ class PlaneRenderer:
         bx, by = (float(v) for v in params.baseline)
         self.light = None if (bx == 0.0 and by == 0.0 and params.beam_power == 0.0) else (
             bx, by, self.dirs[..., 0] * bx + self.dirs[..., 1] * by, float(params.beam_power))
+        # each zone's own tail (ForwardModel: add_zone_tails), as (9, W, W) matrices per width; None: no tails
+        self.tail_taps = None
+        if np.any(np.asarray(params.zone_tail_weights) != 0.0):
+            self.tail_taps = zone_tail_taps(params.zone_tail_weights, params.zone_tail_decays).numpy()
+        self._tail_mats: dict[int, np.ndarray] = {}
 
     def render(self, x: np.ndarray, conv: np.ndarray, jacobian: bool = False):
         """Histograms (B, 9, W) for unknowns x (B, 6) and convolution matrices (B, W, W).
@@ -123,7 +128,7 @@ class PlaneRenderer:
         t = np.arange(width)[None, None, None, :] - u[..., None]          # (B, 9, R, W)
         G = np.exp(-0.5 * self.inv_sigma2 * t * t) * self.gnorm
         T = np.einsum("bzr,bzrw->bzw", amp, G)
-        F = self._mix(np.einsum("bzw,bvw->bzv", T, conv))  # expected photon counts
+        F = self._mix(self._tail(np.einsum("bzw,bvw->bzv", T, conv)))  # expected photon counts
         kp = p.pileup
         if kp > 0:
             before = np.cumsum(F, axis=-1) - F
@@ -173,13 +178,30 @@ class PlaneRenderer:
         A[..., nu - 1] = dp_dsh * dsh[5]
         Gt = G * t * self.inv_sigma2
         dT = np.einsum("bzrk,bzrw->bzwk", A, G) + np.einsum("bzrk,bzrw->bzwk", B, Gt)
-        dF = self._mix(np.einsum("bzwk,bvw->bzvk", dT, conv), axis_zone=1)
+        dF = self._mix(self._tail(np.einsum("bzwk,bvw->bzvk", dT, conv)), axis_zone=1)
         if kp > 0:
             d_before = np.cumsum(dF, axis=2) - dF
             dH = (e_b * e_c)[..., None] * dF - kp * H[..., None] * d_before
         else:
             dH = dF
         return H, dH
+
+    def _tail(self, h: np.ndarray) -> np.ndarray:
+        """Each zone's own tail added to histograms (B, 9, W) or their derivatives (B, 9, W, k)."""
+        if self.tail_taps is None:
+            return h
+        width = h.shape[2]
+        mats = self._tail_mats.get(width)
+        if mats is None:
+            lag = np.arange(width)[:, None] - np.arange(width)[None, :]  # v - w
+            inside = (lag >= 1) & (lag <= self.tail_taps.shape[1])
+            mats = np.zeros((N_ZONES, width, width))
+            mats[:, inside] = self.tail_taps[:, lag[inside] - 1]
+            mats += np.eye(width)
+            self._tail_mats[width] = mats
+        if h.ndim == 3:
+            return np.einsum("bzw,zvw->bzv", h, mats)
+        return np.einsum("bzwk,zvw->bzvk", h, mats)
 
     def _mix(self, h: np.ndarray, axis_zone: int = 1) -> np.ndarray:
         c = self.p.crosstalk

@@ -145,6 +145,21 @@ def first_return(hists: np.ndarray, threshold: float = 8.0, relative: float = 0.
 REFERENCE_EDGE_BINS = 3
 
 
+def reference_floor(reference) -> float:
+    """Floor (counts) of a reference histogram (128,): the median of the bins before its pulse, at most
+    :data:`EARLY_BINS` of them and ending :data:`REFERENCE_EDGE_BINS` before the peak. Not the late bins:
+    the pulse's tail runs to the last bin (a real TMF8820's reference still holds about 20 counts there,
+    on a floor of 4). With fewer than 3 bins before the pulse, the smaller of their median and the late
+    bins' (:data:`FLOOR_BINS`)."""
+    r = np.asarray(reference, dtype=float)
+    end = int(np.argmax(r)) - REFERENCE_EDGE_BINS
+    early = r[max(end - EARLY_BINS, 0):max(end, 0)]
+    late = float(np.median(r[FLOOR_BINS]))
+    if early.size < 3:
+        return min(float(np.median(early)), late) if early.size else late
+    return float(np.median(early))
+
+
 def reference_problem(reference) -> str | None:
     """Why a reference histogram (128 counts) cannot serve as the laser pulse, or None if it can.
 
@@ -172,4 +187,5 @@ def reference_problem(reference) -> str | None:
     return None
 
 
-__all__ = ["COUNT_MAX", "FLOOR_BINS", "measure_floor", "find_peaks", "first_return", "reference_problem"]
+__all__ = ["COUNT_MAX", "FLOOR_BINS", "measure_floor", "find_peaks", "first_return", "reference_floor",
+           "reference_problem"]

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from place_safe.calibration.uncertainty import fit_floor, nees
+from place_safe.calibration.uncertainty import MIN_DIFF_FRAMES, fit_floor, nees, select_chi2_limit
 from place_safe.geometry import Plane
 from place_safe.recovery.estimator import PlaneEstimate
 
@@ -44,3 +44,23 @@ def test_no_floor_when_the_own_covariance_explains_the_errors():
     unc, _ = fit_floor(ests, truths)
     assert unc.tilt_std < 3e-4 and unc.tilt_range_std < 3e-5 and unc.offset_std < 3e-4
     assert unc.scale == pytest.approx(1.0, abs=0.15)
+
+
+def test_chi2_limit_admits_the_frames_diff_explains_and_helps():
+    """Diff is better on the well-explained frames (low chi-square) and worse beyond: the limit lands between."""
+    chi2 = np.array([0.9, 1.0, 1.1, 1.2, 1.3, 5.0, 6.0, 7.0, np.inf])
+    diff = np.array([[0.1, 0.1]] * 5 + [[3.0, 3.0]] * 3 + [[10.0, 10.0]])
+    peak = np.ones((9, 2))
+    assert select_chi2_limit(chi2, diff, peak) == pytest.approx(1.3)
+    assert select_chi2_limit(chi2, diff * 0.1, peak) == math.inf  # diff better everywhere: never fall back
+
+
+def test_chi2_limit_is_zero_when_too_few_frames_would_use_diff():
+    """One frame in many better by chance is not evidence: diff always falls back (limit 0)."""
+    chi2 = np.array([1.0] + [5.0] * 20)
+    diff = np.array([[0.5, 0.5]] + [[2.0, 2.0]] * 20)
+    peak = np.ones((21, 2))
+    assert MIN_DIFF_FRAMES > 1
+    assert select_chi2_limit(chi2, diff, peak) == 0.0
+    diff_worse = np.full((21, 2), 2.0)
+    assert select_chi2_limit(chi2, diff_worse, peak) == 0.0  # never better: 0 too

@@ -151,12 +151,14 @@ def test_chi_square_fallback_returns_the_peak_estimate(frames):
     from place_safe.recovery.peak import PeakEstimator
 
     strict = DifferentiableEstimator(uncertainty=Uncertainty(chi2_limit=1e-9))
+    never = DifferentiableEstimator(uncertainty=Uncertainty(chi2_limit=0.0))  # calibration: diff no better
     lenient = DifferentiableEstimator()
     peak = PeakEstimator()
     for f in frames[:3]:
         s, l, p = strict.estimate(f), lenient.estimate(f), peak.estimate(f)
         assert s.method_used == "peak" and np.allclose(s.plane.normal, p.plane.normal)
         assert s.plane.offset == pytest.approx(p.plane.offset)
+        assert never.estimate(f).method_used == "peak"
         assert l.method_used == "diff"
         assert s.residual == pytest.approx(l.residual)  # diff's residual is what failed the test
 

@@ -36,6 +36,11 @@ def test_uncertainty_round_trip_and_defaults():
     assert Uncertainty.from_dict({"consistency_limit": None}).consistency_limit == math.inf
     with pytest.raises(ValueError):
         Uncertainty(consistency_limit=0.0)
+    assert Uncertainty.from_dict({"chi2_limit": 0.0}).chi2_limit == 0.0  # diff always falls back
+    with pytest.raises(ValueError):
+        Uncertainty(chi2_limit=-1.0)
+    with pytest.raises(ValueError):
+        Uncertainty(chi2_limit=math.nan)
     assert np.all(Uncertainty().apply(np.eye(3), 0.1) == np.eye(3))  # defaults add nothing
     with pytest.raises(ValueError):
         Uncertainty(tilt_std=-1.0)

@@ -69,3 +69,12 @@ def test_matches_torch_model_with_emitter_baseline():
                       edge_fov_scale=0.95, crosstalk=0.01)
     _check(p, np.array([0.2, -0.1, 0.03, math.log(2.0), 0.1, math.log(2.0)]))
     _check(p, np.array([-0.35, 0.3, 0.15, math.log(4.0), 0.2, math.log(1.5)]))
+
+
+def test_matches_torch_model_with_zone_tails():
+    """Each zone's own tail (weights and decays per zone) is rendered and differentiated exactly as in the
+    torch model, with pile-up and crosstalk acting after it."""
+    p = ForwardParams(zone_tail_weights=list(np.linspace(0.0, 0.08, 9)), zone_tail_decays=list(np.linspace(1.5, 4.0, 9)),
+                      pileup=1e-7, crosstalk=0.02, crosstalk_self=0.5, tail_weight=0.02, tail_decay=5.0)
+    _check(p, np.array([0.15, -0.05, 0.06, math.log(3.0), 0.1, math.log(2.0)]))
+    _check(p, np.array([-0.3, 0.2, 0.2, math.log(1.0), 0.2, math.log(1.5)]))

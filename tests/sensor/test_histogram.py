@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from place_safe.sensor.histogram import PILEUP_MAX_FRACTION, find_peaks, undo_pileup
+from place_safe.sensor.histogram import PILEUP_MAX_FRACTION, find_peaks, reference_floor, undo_pileup
 
 K = 3e-7  # 1/counts, about the real TMF8820's (the forward fit of the shared sweep)
 BINS = np.arange(128, dtype=float)
@@ -89,3 +89,16 @@ def test_small_median_equals_numpys(rows):
 
     x = np.array(rows)
     assert np.array_equal(_median(x), np.median(x, axis=-1))
+
+
+def test_reference_floor_is_the_bins_before_the_pulse_not_its_tail():
+    """A reference on a floor of 4 counts whose tail still holds 20 counts at the last bin (as a real
+    TMF8820's does): the floor is 4, not the late bins' level. A pulse at the very start falls back to the
+    smaller of its few early bins and the late bins."""
+    bins = np.arange(128)
+    pulse = np.where(bins >= 13, 6e4 * np.exp(-(bins - 13) / 25.0), 0.0)
+    ref = 4.0 + pulse
+    assert reference_floor(ref) == pytest.approx(4.0)
+    assert np.median(ref[100:]) > 20.0
+    early = 4.0 + np.where(bins >= 4, 6e4 * np.exp(-(bins - 4) / 8.0), 0.0)
+    assert reference_floor(early) == pytest.approx(4.0)
