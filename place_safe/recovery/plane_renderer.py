@@ -128,7 +128,7 @@ class PlaneRenderer:
         t = np.arange(width)[None, None, None, :] - u[..., None]          # (B, 9, R, W)
         G = np.exp(-0.5 * self.inv_sigma2 * t * t) * self.gnorm
         T = np.einsum("bzr,bzrw->bzw", amp, G)
-        F = self._mix(self._tail(np.einsum("bzw,bvw->bzv", T, conv)))  # expected photon counts
+        F = self._mix(self._tail(np.matmul(conv[:, None], T[..., None])[..., 0]))  # expected photon counts
         kp = p.pileup
         if kp > 0:
             before = np.cumsum(F, axis=-1) - F
@@ -178,7 +178,7 @@ class PlaneRenderer:
         A[..., nu - 1] = dp_dsh * dsh[5]
         Gt = G * t * self.inv_sigma2
         dT = np.einsum("bzrk,bzrw->bzwk", A, G) + np.einsum("bzrk,bzrw->bzwk", B, Gt)
-        dF = self._mix(self._tail(np.einsum("bzwk,bvw->bzvk", dT, conv)), axis_zone=1)
+        dF = self._mix(self._tail(np.matmul(conv[:, None], dT)), axis_zone=1)
         if kp > 0:
             d_before = np.cumsum(dF, axis=2) - dF
             dH = (e_b * e_c)[..., None] * dF - kp * H[..., None] * d_before
@@ -200,8 +200,8 @@ class PlaneRenderer:
             mats += np.eye(width)
             self._tail_mats[width] = mats
         if h.ndim == 3:
-            return np.einsum("bzw,zvw->bzv", h, mats)
-        return np.einsum("bzwk,zvw->bzvk", h, mats)
+            return np.matmul(mats, h[..., None])[..., 0]
+        return np.matmul(mats, h)  # (9, W, W) @ (B, 9, W, k): one small matrix product per frame and zone
 
     def _mix(self, h: np.ndarray, axis_zone: int = 1) -> np.ndarray:
         c = self.p.crosstalk
