@@ -101,3 +101,19 @@ def test_a_level_sweep_never_fits_a_tilt_gain():
     corr = section["range_correction"]
     assert corr["gain_a"] == [] and corr["gain_b"] == []
     assert "gain_a_why_not" in report and "gain_b_why_not" in report
+
+
+def test_reference_floor_is_the_one_the_frames_start_better_with():
+    """The pulse model's reference floor is not fitted: calibration starts from the floor measured in the
+    references or the published 135 counts, whichever explains the frames better at the start. Frames of
+    the independent generator (references on a floor of 3 counts) take the measured one; frames rendered by
+    the forward model itself (which subtracts 135) take 135 (a convention check)."""
+    from place_safe.evaluation import independent
+
+    indep = independent.make_frames(12, seed=4)
+    _, report = fit_forward(indep, progress=False, iterations=1)
+    assert report["ref_floor"]["chosen"] == pytest.approx(3.0, abs=1.0)
+    own = make_frames(12, seed=4)
+    _, report = fit_forward(own, progress=False, iterations=1)
+    assert report["ref_floor"]["chosen"] == pytest.approx(ForwardParams().ref_floor)
+    assert set(report["ref_floor"]["rms_scaled_residual_at_start"]) >= {"135.14"}
