@@ -6,7 +6,8 @@ an estimator calibrated on it (``place-safe scenarios calibrate``) is measured o
 model did not generate. The differences (all configurable in :class:`MismatchConfig`, seeded):
 
 * **Per-zone pulse shape**: each zone's pulse gets its own extra exponential tail (weight and decay
-  drawn per zone); the model has one tail for all zones.
+  drawn per zone). The model has per-zone tails too (``ForwardParams.zone_tail_*``), but these lengthen
+  as the die warms (below), which no constant parameter follows.
 * **Temperature drift**: the die warms from ``temp_start`` by ``temp_rate`` degC/s (up to
   ``temp_max``); the timing shifts by ``drift_bins_per_degc`` bins per degree and the extra tails
   lengthen by ``tail_per_degc`` per degree. A calibration taken cold cannot know the warm sensor.

@@ -128,9 +128,9 @@ def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, prog
     (135 would cut the pulse's tail below 0.2 % of its peak and lower the rest: up to 20 sigma a bin on
     bright returns, and an RMS scaled residual of 2.2 instead of 1.2 on the independent generator's
     frames); frames rendered by a model that subtracts 135 need the second. The report gives both
-    starting residuals under ``ref_floor``.
+    starting residuals under ``ref_floor`` (``measured``, ``published``, ``chosen``).
     iterations: Gauss-Newton (trust-region) iterations at most. max_frames: at most this many
-    frames are fitted, taken evenly over distance (a few dozen frames pin down the ~30 camera
+    frames are fitted, taken evenly over distance (a few dozen frames pin down the ~50 camera
     parameters; more only cost time).
 
     The structural choices (:data:`STRUCTURAL`: pulse soft binning, saturation before shading,
@@ -175,7 +175,9 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
     if init is None:
         init = ForwardParams(pileup=1e-7, beam_power=1.0, zone_tail_weights=[0.03] * N_ZONES,
                              zone_tail_decays=[3.0] * N_ZONES, **{k: 0.5 for k in STRUCTURAL if k in fitted})
-        ref_floors = (float(np.median([reference_floor(f.reference) for f in data])), init.ref_floor)
+        if "ref_floor" not in fitted:  # (a fitted floor starts from the published value)
+            ref_floors = {"measured": float(np.median([reference_floor(f.reference) for f in data])),
+                          "published": init.ref_floor}
     dtype = torch.float64
     model = ForwardModel(init, ZoneRays.stratified(rays, dtype=dtype), dtype=dtype)
 
@@ -254,14 +256,15 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
     floor_choice = {}
     if ref_floors is not None:  # the measured reference floor or the published one, whichever starts better
         starts = []
-        for value in ref_floors:
+        for name, value in ref_floors.items():
             model.t["ref_floor"] = torch.as_tensor(value, dtype=dtype)
             la = start_albedos()
             with torch.no_grad():
                 rms = float(residual(cam0, la).pow(2).mean().sqrt())
-            starts.append((rms, value, la))
-            floor_choice[f"{value:g}"] = rms
-        rms, value, log_albedo0 = min(starts, key=lambda s: s[0])
+            starts.append((rms, name, value, la))
+            floor_choice[name] = {"counts": value, "rms_scaled_residual_at_start": rms}
+        rms, name, value, log_albedo0 = min(starts, key=lambda s: s[0])
+        floor_choice["chosen"] = name
         model.t["ref_floor"] = torch.as_tensor(value, dtype=dtype)
     else:
         log_albedo0 = start_albedos()
@@ -362,7 +365,7 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
         "rms_scaled_residual_per_frame": {"median": float(np.median(per_frame)), "max": float(per_frame.max())},
         "converged": bool(sol.status > 0 and first.status > 0),
         "structural_choices": {k: float(getattr(fitted_params, k)) for k in STRUCTURAL},
-        "ref_floor": {"chosen": float(fitted_params.ref_floor), "rms_scaled_residual_at_start": floor_choice},
+        "ref_floor": {"counts": float(fitted_params.ref_floor), **floor_choice},
         "albedo_per_frame": {"min": float(albedos.min()), "max": float(albedos.max())},
         "model_error_chi2": chi2_error,
         "solver": {"status": int(sol.status), "message": str(sol.message), "evaluations": evals["n"],

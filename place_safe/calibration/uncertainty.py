@@ -12,10 +12,11 @@ makes the mean normalised estimation error squared (NEES, per degree of freedom;
 covariances are honest) 1 on these frames. NEES is reported before and after.
 
 For ``diff``, a frame whose diff and peak estimates contradict each other (:data:`CONSISTENCY_LIMIT`)
-falls back to the peak estimate; so does a frame whose residual is above the chi-square limit, the one
-(among the frames' own residuals and infinity) whose selection has the lowest worse-of-two score: the
-means of the angular and of the point error, each per frame in units of peak's median error and
-capped at 10 (so frames on which both methods fail do not decide). Ties go to the larger limit (use
+falls back to the peak estimate; so does a frame whose residual is above the chi-square limit
+(:func:`select_chi2_limit`): among 0 (always fall back), infinity and the frames' own residuals that
+admit at least :data:`MIN_DIFF_FRAMES` frames, the one whose selection has the lowest worse-of-two
+score: the means of the angular and of the point error, each per frame in units of peak's median error
+and capped at 10 (so frames on which both methods fail do not decide). Ties go to the larger limit (use
 diff as often as it does not hurt). Units: rad, m.
 """
 
@@ -95,8 +96,8 @@ def fit_floor(estimates: Sequence[PlaneEstimate], truths: Sequence, base: Uncert
 CONSISTENCY_LIMIT = 16.27
 
 
-#: Diff is used only when the best chi-square limit lets at least this many calibration frames use it;
-#: otherwise the limit is 0 and diff always falls back to peak. A limit chosen because one frame in 27 was
+#: Diff is used only under a chi-square limit that at least this many calibration frames pass; when no such
+#: limit beats peak alone, the limit is 0 and diff always falls back to peak. A limit chosen because one frame in 27 was
 #: better by chance (the real sweep's halves: score 0.03 % better) admits held-out frames near it just as
 #: much by chance (there: one frame at 0.69 deg against peak's 0.27).
 MIN_DIFF_FRAMES = 3
@@ -106,22 +107,24 @@ def select_chi2_limit(chi2: np.ndarray, diff_errors: np.ndarray, peak_errors: np
     """The chi-square limit above which diff falls back to peak, from calibration frames.
 
     chi2: (F,) each frame's diff residual chi-square per bin (``inf``: diff failed). diff_errors,
-    peak_errors: (F, M) each method's errors on M metrics, in comparable units. Every limit between the
-    frames' chi-squares is scored by the worse metric's mean error when frames under it use diff and the
-    rest peak; the largest limit with the best score wins. Fewer than :data:`MIN_DIFF_FRAMES` frames
-    under it: 0, diff always falls back.
+    peak_errors: (F, M) each method's errors on M metrics, in comparable units. Each candidate limit is
+    scored by the worse metric's mean error when frames under it use diff and the rest peak; the largest
+    limit with the best score wins. Candidates: 0 (diff always falls back), infinity, and the frames'
+    chi-squares under which at least :data:`MIN_DIFF_FRAMES` frames lie (fewer cannot tell a better model
+    from luck). No frames: 0.
     """
     chi2 = np.asarray(chi2, dtype=float)
-    candidates = [0.0] + sorted({float(c) for c in chi2[np.isfinite(chi2)] if c > 0}) + [math.inf]
+    if chi2.size == 0:
+        return 0.0
+    admitted = [float(c) for c in np.unique(chi2[np.isfinite(chi2) & (chi2 > 0)])
+                if np.sum(chi2 <= c) >= MIN_DIFF_FRAMES]
+    candidates = [0.0] + admitted + ([math.inf] if chi2.size >= MIN_DIFF_FRAMES else [])
     scores = []
     for lim in candidates:
         use_diff = (chi2 <= lim)[:, None]
         scores.append(float(np.max(np.mean(np.where(use_diff, diff_errors, peak_errors), axis=0))))
     best = min(scores)
-    limit = max(c for c, sc in zip(candidates, scores) if sc <= best * (1 + 1e-9))
-    if np.sum(chi2 <= limit) < MIN_DIFF_FRAMES:
-        return 0.0  # too few frames to tell a better model from luck
-    return limit
+    return max(c for c, sc in zip(candidates, scores) if sc <= best * (1 + 1e-9))
 
 
 def fit_peak_uncertainty(frames: Sequence[Frame], peak_params) -> tuple[Uncertainty, dict]:
@@ -197,4 +200,5 @@ def update_calibration(cal, frames: Sequence[Frame], method: str) -> dict:
     return report
 
 
-__all__ = ["update_calibration", "nees", "fit_floor", "fit_peak_uncertainty", "fit_diff_uncertainty"]
+__all__ = ["update_calibration", "nees", "fit_floor", "fit_peak_uncertainty", "fit_diff_uncertainty", "select_chi2_limit",
+           "MIN_DIFF_FRAMES", "CONSISTENCY_LIMIT"]

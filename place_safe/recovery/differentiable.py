@@ -250,6 +250,11 @@ class DifferentiableEstimator(Estimator):
             inits.append(Plane(self._mount.T @ init.plane.normal, init.plane.offset))  # to the optical frame
             peaks.append(init)
             rows.append(i)
+        if rows and self.mode == "fast" and self.uncertainty.chi2_limit == 0.0:
+            # calibration found the model no better than peak on this sensor: no frame can pass, skip the solve
+            for i, peak in zip(rows, peaks):
+                results[i] = checked(PlaneEstimate(peak.plane, covariance=peak.covariance, method_used="peak"))
+            rows = []
         if rows:
             sub = [frames[i] for i in rows]
             solve = self._solve_fast if self.mode == "fast" else self._solve_paper
@@ -267,7 +272,8 @@ class DifferentiableEstimator(Estimator):
         diff's covariance is not positive definite (a degenerate Jacobian: the fit did not pin the plane
         down, and a zero covariance would claim it did).
         """
-        failed = not est.ok or est.residual is None or not est.residual ** 2 <= self.uncertainty.chi2_limit \
+        limit = self.uncertainty.chi2_limit
+        failed = not est.ok or est.residual is None or not (limit > 0.0 and est.residual ** 2 <= limit) \
             or not _positive_definite(est.covariance)
         if not failed and self.uncertainty.consistent(est, peak):
             return est

@@ -45,7 +45,8 @@ class Uncertainty:
     ``offset_rel`` dimensionless (0 .. 0.05). ``chi2_limit`` (reduced chi-square, >= 0; ``inf`` =
     never): ``diff`` falls back to the peak estimate of a frame whose residual chi-square per bin
     (Poisson and calibrated model error, :func:`~place_safe.recovery.forward.residual_weights`) is
-    above it; 0: always (calibration found the model no better than peak on this sensor). ``scale`` (dimensionless, 0.1 .. 10) multiplies the whole covariance (the fit's and the
+    above it; 0: always, without solving (calibration found the model no better than peak on this sensor).
+    The fallbacks act in the ``fast`` solver; ``paper`` mode reports its own fit. ``scale`` (dimensionless, 0.1 .. 10) multiplies the whole covariance (the fit's and the
     floor) so the calibration frames' mean NEES per degree of freedom is 1. ``consistency_limit``
     (squared Mahalanobis distance, > 0; ``inf`` = never): ``diff`` also falls back to the peak estimate
     when the two estimates of ``(n_x, n_y, d)`` differ by more than that under their summed covariances

@@ -61,7 +61,7 @@ FORWARD_BOUNDS: dict[str, Bound] = {
     "tail_weight": Bound(0.0, 10.0, "(relative to the pulse)"),
     "tail_decay": Bound(0.0, 64.0, "bins", lo_open=True),
     "zone_tail_weights": Bound(0.0, 10.0, "(relative to the zone's histogram)", length=N_ZONES),
-    "zone_tail_decays": Bound(0.0, 64.0, "bins", lo_open=True, length=N_ZONES),
+    "zone_tail_decays": Bound(0.0, 8.0, "bins", lo_open=True, length=N_ZONES),
     "edge_fov_scale": Bound(0.0, 3.0, "(of the nominal zone rectangle)", lo_open=True),
     "corner_fov_scale": Bound(0.0, 3.0, "(of the nominal zone rectangle)", lo_open=True),
     "pileup": Bound(0.0, 1.0, "1/counts"),
@@ -127,7 +127,7 @@ class ForwardParams:
     this tilts the illumination of the zones' footprints; far away it is the co-located model times a
     per-direction beam weight. ``baseline = (0, 0)``, ``beam_power = 0`` is the paper's model exactly.
 
-    Units: ``bin_offset``, ``soft_bin_sigma``, ``tail_decay`` and ``zone_offsets`` in bins; ``bin_size`` in metres
+    Units: ``bin_offset``, ``soft_bin_sigma``, ``tail_decay``, ``zone_tail_decays`` and ``zone_offsets`` in bins; ``bin_size`` in metres
     of one-way range per bin; ``ref_floor`` and ``floor`` in counts; the rest dimensionless.
     """
 
@@ -374,8 +374,8 @@ def apply_pileup(hist: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
     return -torch.expm1(-kk * hist) / kk * torch.exp(-kk * before)
 
 
-#: Length (bins) of each zone's own tail (:class:`ForwardParams` ``zone_tail_*``); at the longest decays
-#: calibration finds (3-7 bins) the tail has fallen below 1e-3 of its start by then.
+#: Length (bins) of each zone's own tail (:class:`ForwardParams` ``zone_tail_*``). At the longest decay
+#: allowed (8 bins; calibration finds 2-5) the tail has fallen to 0.25 % of its start by then.
 ZONE_TAIL_BINS = 48
 
 

@@ -32,7 +32,7 @@ import math
 import numpy as np
 
 from place_safe.recovery.forward import ForwardParams, ZoneRays, zone_tail_taps
-from place_safe.sensor.frame import N_ZONES
+from place_safe.sensor.frame import N_BINS, N_ZONES
 
 N_UNKNOWNS = 6
 
@@ -73,11 +73,16 @@ class PlaneRenderer:
         bx, by = (float(v) for v in params.baseline)
         self.light = None if (bx == 0.0 and by == 0.0 and params.beam_power == 0.0) else (
             bx, by, self.dirs[..., 0] * bx + self.dirs[..., 1] * by, float(params.beam_power))
-        # each zone's own tail (ForwardModel: add_zone_tails), as (9, W, W) matrices per width; None: no tails
-        self.tail_taps = None
+        # each zone's own tail (ForwardModel: add_zone_tails) as (9, 128, 128) causal matrices; a narrower
+        # histogram uses their top-left corner (causal: the first W bins depend on the first W only). None: no tails
+        self.tail_mats = None
         if np.any(np.asarray(params.zone_tail_weights) != 0.0):
-            self.tail_taps = zone_tail_taps(params.zone_tail_weights, params.zone_tail_decays).numpy()
-        self._tail_mats: dict[int, np.ndarray] = {}
+            taps = zone_tail_taps(params.zone_tail_weights, params.zone_tail_decays).numpy()
+            lag = np.arange(N_BINS)[:, None] - np.arange(N_BINS)[None, :]  # v - w
+            inside = (lag >= 1) & (lag <= taps.shape[1])
+            mats = np.zeros((N_ZONES, N_BINS, N_BINS))
+            mats[:, inside] = taps[:, lag[inside] - 1]
+            self.tail_mats = mats + np.eye(N_BINS)
 
     def render(self, x: np.ndarray, conv: np.ndarray, jacobian: bool = False):
         """Histograms (B, 9, W) for unknowns x (B, 6) and convolution matrices (B, W, W).
@@ -188,17 +193,10 @@ class PlaneRenderer:
 
     def _tail(self, h: np.ndarray) -> np.ndarray:
         """Each zone's own tail added to histograms (B, 9, W) or their derivatives (B, 9, W, k)."""
-        if self.tail_taps is None:
+        if self.tail_mats is None:
             return h
         width = h.shape[2]
-        mats = self._tail_mats.get(width)
-        if mats is None:
-            lag = np.arange(width)[:, None] - np.arange(width)[None, :]  # v - w
-            inside = (lag >= 1) & (lag <= self.tail_taps.shape[1])
-            mats = np.zeros((N_ZONES, width, width))
-            mats[:, inside] = self.tail_taps[:, lag[inside] - 1]
-            mats += np.eye(width)
-            self._tail_mats[width] = mats
+        mats = self.tail_mats[:, :width, :width]
         if h.ndim == 3:
             return np.matmul(mats, h[..., None])[..., 0]
         return np.matmul(mats, h)  # (9, W, W) @ (B, 9, W, k): one small matrix product per frame and zone

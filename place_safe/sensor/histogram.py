@@ -150,7 +150,7 @@ def reference_floor(reference) -> float:
     :data:`EARLY_BINS` of them and ending :data:`REFERENCE_EDGE_BINS` before the peak. Not the late bins:
     the pulse's tail runs to the last bin (a real TMF8820's reference still holds about 20 counts there,
     on a floor of 4). With fewer than 3 bins before the pulse, the smaller of their median and the late
-    bins' (:data:`FLOOR_BINS`)."""
+    bins' (:data:`FLOOR_BINS`). The reference must be one :func:`reference_problem` accepts."""
     r = np.asarray(reference, dtype=float)
     end = int(np.argmax(r)) - REFERENCE_EDGE_BINS
     early = r[max(end - EARLY_BINS, 0):max(end, 0)]

@@ -64,3 +64,13 @@ def test_chi2_limit_is_zero_when_too_few_frames_would_use_diff():
     assert select_chi2_limit(chi2, diff, peak) == 0.0
     diff_worse = np.full((21, 2), 2.0)
     assert select_chi2_limit(chi2, diff_worse, peak) == 0.0  # never better: 0 too
+
+
+def test_chi2_limit_only_counts_limits_enough_frames_pass():
+    """A limit that only 2 frames pass cannot win, however well diff did on them; the best limit that 3 or
+    more frames pass, and that still beats peak alone, does (here the one the third frame just passes)."""
+    chi2 = np.array([0.5, 0.6] + [1.0 + 0.01 * i for i in range(8)] + [5.0] * 20)
+    diff = np.array([[0.1, 0.1]] * 2 + [[1.05, 0.95]] * 8 + [[3.0, 3.0]] * 20)
+    peak = np.ones((30, 2))
+    assert select_chi2_limit(chi2, diff, peak) == pytest.approx(1.0)
+    assert select_chi2_limit(np.array([]), np.zeros((0, 2)), np.zeros((0, 2))) == 0.0

@@ -59,9 +59,17 @@ def test_calibration_without_uncertainty_section_loads_with_defaults():
 @settings(max_examples=15, deadline=None)
 @given(st.floats(0.0, 0.4), st.floats(-3.0, 3.0), st.floats(0.03, 0.4), st.floats(1e-4, 2e-3))
 def test_plane_covariance_matches_the_scatter_of_fitted_planes(theta, phi, z0, sigma):
-    """The SVD fit's covariance predicts the spread of planes fitted to noisy points (Monte Carlo)."""
+    """The SVD fit's covariance predicts the spread of planes fitted to noisy points (Monte Carlo).
+
+    The covariance is first order, so the property holds where errors are small: point noise up to 3 % of
+    the distance (tilt std up to about 0.1 rad). Beyond, e.g. 2 mm of noise on points 3 cm away (tilt std
+    0.18 rad), normalising the normal makes the spread about 28 % larger than first order predicts."""
+    from hypothesis import assume
+
     from place_safe.geometry import fit_plane
     from place_safe.sensor.zones import ZONE_DIRECTIONS
+
+    assume(sigma <= 0.03 * z0)
 
     rng = np.random.default_rng(0)
     truth = Plane.from_angles(theta, phi, z0)
