@@ -129,6 +129,14 @@ def _positive_definite(cov) -> bool:
     return bool(w[0] > 1e-12 * max(w[-1], 0.0) and w[-1] > 0.0)
 
 
+def _fallback(peak: PlaneEstimate, diff: PlaneEstimate | None = None) -> PlaneEstimate:
+    """The peak estimate returned in diff's place (``method_used = "peak"``), with diff's albedo and residual
+    when it was solved."""
+    return PlaneEstimate(peak.plane, albedo=None if diff is None else diff.albedo,
+                         residual=None if diff is None else diff.residual, covariance=peak.covariance,
+                         method_used="peak")
+
+
 #: The solver's window after the latest peak before calibration files recorded it (bins): a file without
 #: ``diff.window_after_peak`` was calibrated (chi-square limit, covariance scale) with this window.
 LEGACY_WINDOW_AFTER_PEAK = 24
@@ -253,7 +261,7 @@ class DifferentiableEstimator(Estimator):
         if rows and self.mode == "fast" and self.uncertainty.chi2_limit == 0.0:
             # calibration found the model no better than peak on this sensor: no frame can pass, skip the solve
             for i, peak in zip(rows, peaks):
-                results[i] = checked(PlaneEstimate(peak.plane, covariance=peak.covariance, method_used="peak"))
+                results[i] = checked(_fallback(peak))
             rows = []
         if rows:
             sub = [frames[i] for i in rows]
@@ -272,15 +280,13 @@ class DifferentiableEstimator(Estimator):
         diff's covariance is not positive definite (a degenerate Jacobian: the fit did not pin the plane
         down, and a zero covariance would claim it did).
         """
-        limit = self.uncertainty.chi2_limit
-        failed = not est.ok or est.residual is None or not (limit > 0.0 and est.residual ** 2 <= limit) \
+        failed = not est.ok or est.residual is None or not est.residual ** 2 <= self.uncertainty.chi2_limit \
             or not _positive_definite(est.covariance)
         if not failed and self.uncertainty.consistent(est, peak):
             return est
         if not est.ok and math.isinf(self.uncertainty.chi2_limit):
             return est  # no fallback calibrated: report diff's own failure
-        return PlaneEstimate(peak.plane, albedo=est.albedo, residual=est.residual, covariance=peak.covariance,
-                             method_used="peak")
+        return _fallback(peak, est)
 
     # -- data preparation ----------------------------------------------------------------------
     def _prepare(self, frames: list[Frame], inits: list[Plane]):

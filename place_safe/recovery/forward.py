@@ -387,20 +387,20 @@ def zone_tail_taps(weights, decays, dtype: torch.dtype = torch.float64) -> torch
     return w * torch.exp(-k / tau)
 
 
+def _causal_windows(x: torch.Tensor, k_len: int) -> torch.Tensor:
+    """Windows (B, Z, N, K) of histograms (B, Z, N): window ``j`` holds bins ``j-K+1 .. j`` (zeros before 0)."""
+    return torch.nn.functional.pad(x, (k_len - 1, 0)).unfold(-1, k_len, 1)
+
+
 def add_zone_tails(hist: torch.Tensor, taps: torch.Tensor) -> torch.Tensor:
     """Histograms (B, 9, N) plus each zone's tail: ``h_z[j] + sum_k taps[z, k-1] h_z[j - k]`` (causal)."""
-    n_taps = taps.shape[-1]
-    padded = torch.nn.functional.pad(hist, (n_taps, 0))
-    windows = padded.unfold(-1, n_taps, 1)[..., :-1, :]  # (B, Z, N, L): window j covers j-L .. j-1
-    return hist + torch.einsum("bznl,zl->bzn", windows, taps.flip(-1))
+    kernel = torch.cat([torch.ones_like(taps[:, :1]), taps], dim=-1)  # (9, 1 + L): the histogram, then its tail
+    return torch.einsum("bznk,zk->bzn", _causal_windows(hist, kernel.shape[-1]), kernel.flip(-1))
 
 
 def convolve_pulse(transient: torch.Tensor, kernel: torch.Tensor) -> torch.Tensor:
     """Causal convolution of transients (B, Z, N) with per-frame kernels (B, K) -> (B, Z, N)."""
-    k_len = kernel.shape[-1]
-    padded = torch.nn.functional.pad(transient, (k_len - 1, 0))
-    windows = padded.unfold(-1, k_len, 1)  # (B, Z, N, K): window j covers t = j-K+1 .. j
-    return torch.einsum("bznk,bk->bzn", windows, kernel.flip(-1))
+    return torch.einsum("bznk,bk->bzn", _causal_windows(transient, kernel.shape[-1]), kernel.flip(-1))
 
 
 class ForwardModel:

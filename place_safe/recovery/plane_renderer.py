@@ -78,11 +78,7 @@ class PlaneRenderer:
         self.tail_mats = None
         if np.any(np.asarray(params.zone_tail_weights) != 0.0):
             taps = zone_tail_taps(params.zone_tail_weights, params.zone_tail_decays).numpy()
-            lag = np.arange(N_BINS)[:, None] - np.arange(N_BINS)[None, :]  # v - w
-            inside = (lag >= 1) & (lag <= taps.shape[1])
-            mats = np.zeros((N_ZONES, N_BINS, N_BINS))
-            mats[:, inside] = taps[:, lag[inside] - 1]
-            self.tail_mats = mats + np.eye(N_BINS)
+            self.tail_mats = convolution_matrices(np.hstack([np.ones((N_ZONES, 1)), taps]), N_BINS)
 
     def render(self, x: np.ndarray, conv: np.ndarray, jacobian: bool = False):
         """Histograms (B, 9, W) for unknowns x (B, 6) and convolution matrices (B, W, W).

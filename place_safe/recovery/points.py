@@ -137,16 +137,18 @@ class PeakParams:
     def directions(self) -> np.ndarray:
         """Unit direction (9, 3) of each zone with the edge/corner angle scales applied (read-only; kept
         for the scales it was computed with)."""
-        key = (self.edge_scale, self.corner_scale)
-        cached = self.__dict__.get("_directions")
-        if cached is not None and cached[0] == key:
-            return cached[1]
-        out = self._scaled_directions()
-        out.setflags(write=False)
-        self.__dict__["_directions"] = (key, out)
-        return out
+        return self._memo("_directions", (self.edge_scale, self.corner_scale), self._scaled_directions)
+
+    def _memo(self, name: str, key: tuple, compute):
+        """``compute()``, kept under ``name`` for as long as the fields it depends on (``key``) do not change."""
+        cached = self.__dict__.get(name)
+        if cached is None or cached[0] != key:
+            cached = (key, compute())
+            self.__dict__[name] = cached
+        return cached[1]
 
     def _scaled_directions(self) -> np.ndarray:
+        """The directions, computed (read-only: they are shared through :meth:`directions`)."""
         v = ZONE_DIRECTIONS
         theta = np.arccos(np.clip(v[:, 2], -1.0, 1.0))
         phi = np.arctan2(v[:, 1], v[:, 0])
@@ -154,7 +156,9 @@ class PeakParams:
         scale[ZONE_KIND == EDGE] = self.edge_scale
         scale[ZONE_KIND == CORNER] = self.corner_scale
         t = theta * scale
-        return np.stack([np.sin(t) * np.cos(phi), np.sin(t) * np.sin(phi), np.cos(t)], axis=1)
+        out = np.stack([np.sin(t) * np.cos(phi), np.sin(t) * np.sin(phi), np.cos(t)], axis=1)
+        out.setflags(write=False)
+        return out
 
     def correction(self, r0: np.ndarray) -> np.ndarray:
         """Residual correction c(r0) in reading units (0 without coefficients)."""
@@ -170,12 +174,8 @@ class PeakParams:
 
     def _power_coeffs(self) -> tuple[float, ...]:
         """``residual_coeffs`` (Chebyshev) as power-series coefficients in ``u``, highest first (cached)."""
-        key = tuple(self.residual_coeffs)
-        cached = self.__dict__.get("_power")
-        if cached is None or cached[0] != key:
-            cached = (key, tuple(float(v) for v in cheb.cheb2poly(self.residual_coeffs)[::-1]))
-            self.__dict__["_power"] = cached
-        return cached[1]
+        return self._memo("_power", tuple(self.residual_coeffs),
+                          lambda: tuple(float(v) for v in cheb.cheb2poly(self.residual_coeffs)[::-1]))
 
     def phase_correction(self, readings: np.ndarray) -> np.ndarray:
         """Sub-bin phase correction s(x) in reading units (0 without coefficients)."""

@@ -154,10 +154,10 @@ def reference_floor(reference) -> float:
     r = np.asarray(reference, dtype=float)
     end = int(np.argmax(r)) - REFERENCE_EDGE_BINS
     early = r[max(end - EARLY_BINS, 0):max(end, 0)]
-    late = float(np.median(r[FLOOR_BINS]))
-    if early.size < 3:
-        return min(float(np.median(early)), late) if early.size else late
-    return float(np.median(early))
+    if early.size >= 3:
+        return float(np.median(early))
+    late = float(measure_floor(r))
+    return min(float(np.median(early)), late) if early.size else late
 
 
 def reference_problem(reference) -> str | None:
@@ -178,7 +178,7 @@ def reference_problem(reference) -> str | None:
         return "reference histogram is empty (all zeros): no laser pulse to model returns with"
     if np.any(r >= COUNT_MAX):
         return "reference histogram is saturated (24-bit counters at their maximum)"
-    floor = float(np.median(r[FLOOR_BINS]))
+    floor = float(measure_floor(r))
     k = int(np.argmax(r))
     if r[k] - floor <= max(NOISE_SIGMAS * np.sqrt(max(floor, 0.0) + 1.0), MIN_NET_COUNTS):
         return "reference histogram has no pulse above its floor"
