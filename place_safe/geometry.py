@@ -14,6 +14,7 @@ All angles are radians.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -31,9 +32,9 @@ class Plane:
     def __post_init__(self) -> None:
         n = np.asarray(self.normal, dtype=float).reshape(3)
         d = float(self.offset)
-        if not (np.all(np.isfinite(n)) and np.isfinite(d)):
+        if not (np.isfinite(n).all() and math.isfinite(d)):
             raise NoPlaneError(f"plane is not finite: normal={n}, offset={d}")
-        norm = np.linalg.norm(n)
+        norm = math.sqrt(float(n @ n))
         if norm < 1e-12:
             raise NoPlaneError("plane normal has zero length")
         n, d = n / norm, d / norm  # n . x = d scaled so that |n| = 1

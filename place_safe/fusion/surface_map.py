@@ -270,7 +270,7 @@ class SurfaceMap:
             return None
         if h.shape != (N_ZONES, N_BINS) or T.shape != (4, 4) or not np.all(np.isfinite(T)):
             return None
-        pos, valid, _ = find_peaks(h, self.params.pileup)
+        pos, valid, _ = self.params.peaks(h)
         valid = valid & np.isfinite(pos)
         with np.errstate(invalid="ignore"):
             pts = self.params.points(np.where(valid, pos, 0.0))

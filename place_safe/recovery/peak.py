@@ -62,7 +62,7 @@ class PeakEstimator(Estimator):
         h = np.asarray(frame.hists, dtype=float)
         if h.shape != (N_ZONES, N_BINS):
             raise FrameError(f"hists has shape {h.shape}, expected ({N_ZONES}, {N_BINS})")
-        pos, valid, saturated = find_peaks(h, self.params.pileup)
+        pos, valid, saturated = self.params.peaks(h)
         if saturated.any():
             zones = ", ".join(str(z + 1) for z in np.flatnonzero(saturated))
             raise NoPlaneError(f"histogram saturated (counts at the 24-bit maximum) in zone(s) {zones}")
