@@ -275,9 +275,12 @@ class SurfaceMap:
         with np.errstate(invalid="ignore"):
             pts = self.params.points(np.where(valid, pos, 0.0))
         valid &= np.all(np.isfinite(pts), axis=1) & (pts[:, 2] > 0)
-        second, where = second_returns(h, pos, valid)
-        early = early_returns(h, pos, valid)
-        depth = (where - pos) / self._bins_per_m
+        # the shape tests look relative to the return's maximum, not the calibrated reading: a centroid moves
+        # towards a nearer surface mixed into the return, the very shoulder the early test looks for
+        top = pos if self.params.subbin == "spline" else find_peaks(h, self.params.pileup, "spline")[0]
+        second, where = second_returns(h, top, valid)
+        early = early_returns(h, top, valid)
+        depth = (where - top) / self._bins_per_m
         inliers, plane, rms = consensus(pts, valid, self.consensus_tolerance(pts, valid))
         pb = pts @ T[:3, :3].T + T[:3, 3]
         pb[~valid] = np.nan

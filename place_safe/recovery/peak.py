@@ -8,10 +8,14 @@ Per zone, vectorised over zones (and over frames in :func:`place_safe.sensor.his
    return of anything within about 1.3 m); subtracted.
 2. the highest bin from :data:`SEARCH_START` on; a zone has a return when that bin is more than
    :data:`NOISE_SIGMAS` Poisson standard deviations of the floor (and :data:`MIN_NET_COUNTS`) above it.
-3. sub-bin peak: a not-a-knot cubic spline (:class:`scipy.interpolate.CubicSpline`) through the
-   :data:`HALF_WINDOW` bins on either side, maximised on a grid of :data:`SUBBIN_STEPS` points per bin
-   within one bin of the highest bin. The spline is linear in the counts, so it is applied as one
-   precomputed matrix. (PCHIP flattens the peak and was 3x worse on the real sweep.)
+3. sub-bin position, by :attr:`PeakParams.subbin <place_safe.recovery.points.PeakParams>`:
+   ``"spline"``, the maximum of a not-a-knot cubic spline (:class:`scipy.interpolate.CubicSpline`)
+   through the :data:`HALF_WINDOW` bins on either side, on a grid of :data:`SUBBIN_STEPS` points per
+   bin within one bin of the highest bin (one precomputed matrix: the spline is linear in the counts;
+   PCHIP flattens the peak and was 3x worse on the real sweep); or ``"centroid"`` (what calibration
+   writes), the centre of the return under a cos^2 window of 3 bins half-width that sits on it
+   (:func:`~place_safe.sensor.histogram.windowed_centroid`), which does not depend on where the return
+   falls between bins as the spline's maximum does.
 4. range, direction and point from :class:`place_safe.recovery.points.PeakParams`; the plane is
    the SVD least-squares fit of the zones with a return (3 or more needed).
 

@@ -10,7 +10,8 @@ The reading is the sub-bin histogram peak (bins) for ``peak`` and the on-sensor 
 
   ``m`` in reading units per metre (bins/m or mm/m), ``g_z`` = ``zone_gains`` (dimensionless,
   mean 1), ``b`` and ``zone_offsets`` in reading units. ``s(x)`` (``phase_coeffs``, sine/cosine
-  pairs of 2 pi k x) corrects the sub-bin bias of the spline peak. ``c`` (``residual_coeffs``) is a
+  pairs of 2 pi k x) corrects what is left of the sub-bin estimator's bias with a period of one bin
+  (:attr:`PeakParams.subbin`: large for the spline's maximum, small for the centroid). ``c`` (``residual_coeffs``) is a
   smooth residual correction shared by all zones: a Chebyshev series in ``r`` over
   ``residual_domain`` (m), evaluated at ``r`` clipped to the domain. Empty coefficient lists and unit
   gains are the paper's model.
