@@ -154,6 +154,8 @@ def _write_line(out: TextIO, obj: dict) -> None:
         text = _orjson.dumps(obj).decode() if _orjson is not None else json.dumps(obj)
     except TypeError:  # a value orjson does not encode
         text = json.dumps(obj)
+    if not text.isascii():  # the standard encoder's \u escapes: any stdout encoding can carry the line
+        text = json.dumps(obj)
     out.write(text + "\n")
     out.flush()
 

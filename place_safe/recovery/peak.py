@@ -13,9 +13,10 @@ Per zone, vectorised over zones (and over frames in :func:`place_safe.sensor.his
    through the :data:`HALF_WINDOW` bins on either side, on a grid of :data:`SUBBIN_STEPS` points per
    bin within one bin of the highest bin (one precomputed matrix: the spline is linear in the counts;
    PCHIP flattens the peak and was 3x worse on the real sweep); or ``"centroid"`` (what calibration
-   writes), the centre of the return under a cos^2 window of 3 bins half-width that sits on it
-   (:func:`~place_safe.sensor.histogram.windowed_centroid`), which does not depend on where the return
-   falls between bins as the spline's maximum does.
+   writes), the centre of the return under a cos^2 window that sits on it (half-width
+   ``PeakParams.subbin_half_width``, 3 bins by default; :func:`~place_safe.sensor.histogram.windowed_centroid`),
+   which does not depend on where the return falls between bins as the spline's maximum does. A zone
+   whose return holds two surfaces reads its maximum instead (see :func:`~place_safe.sensor.histogram.find_peaks`).
 4. range, direction and point from :class:`place_safe.recovery.points.PeakParams`; the plane is
    the SVD least-squares fit of the zones with a return (3 or more needed).
 

@@ -34,7 +34,7 @@ from numpy.polynomial import chebyshev as cheb
 from place_safe.config import Bound, check_dataclass, dataclass_from_dict
 from place_safe.exceptions import CalibrationError, NoPlaneError
 from place_safe.geometry import Plane
-from place_safe.sensor.histogram import CENTROID_HALF_WIDTH, SUBBIN_METHODS, find_peaks
+from place_safe.sensor.histogram import CENTROID_HALF_WIDTH, CENTROID_HALF_WIDTHS, SUBBIN_METHODS, find_peaks
 from place_safe.sensor.zones import CORNER, EDGE, N_ZONES, ZONE_DIRECTIONS, ZONE_KIND
 
 #: The paper's calibrated peak method (their code): distance = (peak_bin - 13.155) / 72.073 m.
@@ -65,7 +65,7 @@ PEAK_BOUNDS: dict[str, Bound] = {
     "phase_coeffs": Bound(-10.0, 10.0, "reading units"),
     "zone_gains": Bound(0.0, 10.0, "(relative, mean 1)", lo_open=True, length=N_ZONES),
     "pileup": Bound(0.0, 1e-3, "1/counts"),
-    "subbin_half_width": Bound(0.5, 8.0, "bins"),
+    "subbin_half_width": Bound(CENTROID_HALF_WIDTHS[0], CENTROID_HALF_WIDTHS[1], "bins"),
 }
 #: Fixed-point iterations inverting ``m r + c(r) = x`` (c changes by far less than m per metre). Against 10
 #: iterations, 2 leave at most 0.002 mm on the real sweep's calibration (3: 0.0001 mm, 1: 0.05 mm).
@@ -182,24 +182,26 @@ class PeakParams:
         return self._correction(r0)
 
     def _correction(self, r: np.ndarray) -> np.ndarray:
-        """c(r) for an array ``r`` (m), with coefficients: Horner on the series' power form in ``r``."""
+        """c(r) for an array ``r`` (m), with coefficients: Horner on the series' power form in ``u``."""
         lo, hi = self.residual_domain
-        r = np.minimum(np.maximum(r, lo), hi)
-        coeffs = self._power_coeffs()
-        out = np.full_like(r, coeffs[0])
+        scale, shift, coeffs = self._power_coeffs()
+        u = np.minimum(np.maximum(r, lo), hi)
+        u *= scale
+        u += shift  # u = (2 r - lo - hi) / (hi - lo)
+        out = np.full_like(u, coeffs[0])
         for c in coeffs[1:]:
-            out *= r
+            out *= u
             out += c
         return out
 
-    def _power_coeffs(self) -> tuple[float, ...]:
-        """``residual_coeffs`` (Chebyshev in ``u = (2 r - lo - hi) / (hi - lo)``) as power-series
-        coefficients in ``r`` (m), highest first (cached)."""
-        def compute() -> tuple[float, ...]:
+    def _power_coeffs(self) -> tuple[float, float, tuple[float, ...]]:
+        """(scale, shift, coefficients): ``u = scale r + shift`` maps ``residual_domain`` to [-1, 1], and
+        ``residual_coeffs`` (Chebyshev in ``u``) as power-series coefficients in ``u``, highest first (cached;
+        the power form in ``u``, not in ``r``, which is ill-conditioned for a narrow domain far from 0)."""
+        def compute() -> tuple[float, float, tuple[float, ...]]:
             lo, hi = self.residual_domain
-            in_u = np.polynomial.Polynomial(cheb.cheb2poly(self.residual_coeffs))
-            in_r = in_u(np.polynomial.Polynomial([-(lo + hi) / (hi - lo), 2.0 / (hi - lo)]))
-            return tuple(float(v) for v in in_r.coef[::-1])
+            return (2.0 / (hi - lo), -(lo + hi) / (hi - lo),
+                    tuple(float(v) for v in cheb.cheb2poly(self.residual_coeffs)[::-1]))
 
         return self._memo("_power", (tuple(self.residual_coeffs), tuple(self.residual_domain)), compute)
 
@@ -305,10 +307,13 @@ def plane_through(points: np.ndarray, valid: np.ndarray) -> tuple[Plane, float]:
     raises NoPlaneError. The maths and the conditions of :func:`fit_planes`, for one frame without the
     batch's masking (a frame's estimate comes from here on every frame the sensor sends)."""
     pts = np.asarray(points, dtype=float)
-    keep = np.asarray(valid, dtype=bool) & np.isfinite(pts).all(axis=-1)
+    valid = np.asarray(valid, dtype=bool)
+    if valid.sum() < 3:
+        raise NoPlaneError(f"only {int(valid.sum())} zones have a return; a plane needs 3 or more")
+    keep = valid & np.isfinite(pts).all(axis=-1)
     count = int(keep.sum())
     if count < 3:
-        raise NoPlaneError(f"only {count} zones have a return; a plane needs 3 or more")
+        raise NoPlaneError("the zone points do not determine a plane in front of the sensor")
     p = pts[keep]
     centroid = p.mean(axis=0)
     _, s, vt = np.linalg.svd(p - centroid, full_matrices=False)

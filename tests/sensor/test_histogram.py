@@ -4,13 +4,13 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from scipy.special import erfc
 
-from place_safe.sensor.histogram import (CENTROID_MAX_SHIFT, PILEUP_MAX_FRACTION, find_peaks, reference_floor,
-                                         undo_pileup, windowed_centroid)
+from place_safe.sensor.histogram import (CENTROID_HALF_WIDTHS, CENTROID_MAX_SHIFT, MIXED_SHIFT, PILEUP_MAX_FRACTION,
+                                         find_peaks, reference_floor, undo_pileup, windowed_centroid)
 
 K = 3e-7  # 1/counts, about the real TMF8820's (the forward fit of the shared sweep)
 BINS = np.arange(128, dtype=float)
@@ -140,7 +140,8 @@ def test_centroid_moves_with_the_pulse_wherever_it_falls_between_bins(sigma, dec
 def test_centroid_shifts_with_the_histogram(centre, shift, sigma, decay, height):
     """Moving a histogram by whole bins moves the centroid by exactly as many (no dependence on the bin
     index), and a return's centroid stays within CENTROID_MAX_SHIFT bins of the highest bin (a return too
-    faint to count is invalid in both)."""
+    faint to count is invalid in both). Both returns lie past the bins searched for a return (from 8)."""
+    assume(centre + shift >= 15.0)
     h = 50.0 + height * np.tile(_emg(centre, sigma, decay), (9, 1))
     moved = 50.0 + height * np.tile(_emg(centre + shift, sigma, decay), (9, 1))
     pos, valid, _ = find_peaks(h, 0.0, "centroid")
@@ -161,14 +162,53 @@ def test_centroid_keeps_the_finders_masks_and_rejects_bad_options():
         assert valid[:4].all() and not valid[4:].any() and np.isnan(pos[4:]).all()
     with pytest.raises(ValueError, match="subbin"):
         find_peaks(h, 0.0, "parabola")
-    for width in (0.1, 9.0, float("nan")):
+    for width in (0.1, CENTROID_HALF_WIDTHS[0] - 0.1, CENTROID_HALF_WIDTHS[1] + 0.1, float("nan")):
         with pytest.raises(ValueError, match="half_width"):
             find_peaks(h, 0.0, "centroid", width)
+    empty = find_peaks(np.zeros((0, 9, 128)), 0.0, "centroid")
+    assert [a.shape for a in empty] == [(0, 9)] * 3
 
 
 def test_centroid_of_a_return_at_the_edge_of_the_histogram_stays_finite():
-    """A return in the last bins: the window reaches past bin 127 and the missing bins count as 0."""
-    rows = np.zeros((1, 128))
-    rows[0, 124:] = [10.0, 100.0, 300.0, 200.0]
-    p = windowed_centroid(rows, np.array([126]), np.array([126.2]))
-    assert np.isfinite(p).all() and 126 - CENTROID_MAX_SHIFT <= p[0] <= 126 + CENTROID_MAX_SHIFT
+    """A return in the last bins: the window reaches past bin 127 and the missing bins count as 0; the
+    centroid stays by the return (the spline's window cannot reach past bin 124)."""
+    h = np.full((9, 128), 20.0)
+    h[:, 124:] += [10.0, 100.0, 300.0, 200.0]
+    pos, valid, _ = find_peaks(h, 0.0, "centroid")
+    assert valid.all() and np.all(np.abs(pos - 126) <= CENTROID_MAX_SHIFT)
+
+
+@pytest.mark.parametrize("width", CENTROID_HALF_WIDTHS)
+def test_centroid_converges_at_either_end_of_the_allowed_widths(width):
+    """Noisy returns: the centroid within 0.005 bins of 60 Newton steps' (quadratic convergence; the loop
+    stops once a step is small)."""
+    import place_safe.sensor.histogram as H
+
+    rng = np.random.default_rng(3)
+    h = rng.poisson(100.0 + 2e4 * np.array([_emg(40.0 + 0.1 * z, 0.7, 1.5) for z in range(9)])).astype(float)
+    pos, _, _ = find_peaks(h, 0.0, "centroid", width)
+    many = H.CENTROID_MAX_ITERATIONS, H.CENTROID_STEP_TOL
+    try:
+        H.CENTROID_MAX_ITERATIONS, H.CENTROID_STEP_TOL = 60, 0.0
+        ref, _, _ = find_peaks(h, 0.0, "centroid", width)
+    finally:
+        H.CENTROID_MAX_ITERATIONS, H.CENTROID_STEP_TOL = many
+    assert np.abs(pos - ref).max() < 0.005
+
+
+def test_a_zone_with_two_surfaces_reads_its_maximum_not_a_blend():
+    """A box under part of zone 3: the table's return and a weaker one 2.5 bins nearer. The centroid would
+    land between them; the zone reads its maximum plus the frame's median centroid shift, within 0.1 bins of
+    where the centroid of the table's return alone would be. The single-surface zones keep their centroids."""
+    table = np.array([_emg(40.0 + 0.07 * z, 0.7, 1.2) for z in range(9)])
+    clean = 100.0 + 3e4 * table
+    mixed = clean.copy()
+    mixed[2] += 3e4 * 0.6 * _emg(40.14 - 2.5, 0.7, 1.2)
+    c_clean, _, _ = find_peaks(clean, 0.0, "centroid")
+    c_mixed, valid, _ = find_peaks(mixed, 0.0, "centroid")
+    blend = windowed_centroid(mixed - 100.0, np.argmax(mixed, axis=1), np.argmax(mixed, axis=1).astype(float))
+    assert valid.all()
+    assert abs(blend[2] - c_clean[2]) > MIXED_SHIFT  # what the centroid alone would read
+    assert abs(c_mixed[2] - c_clean[2]) < 0.1
+    others = np.arange(9) != 2
+    assert np.array_equal(c_mixed[others], c_clean[others])
