@@ -166,6 +166,9 @@ def _unmixed(centre: np.ndarray, top: np.ndarray, valid: np.ndarray) -> np.ndarr
     maximum ``top`` beyond the frame's median shift (over its valid zones) replaced by ``top`` + that median
     (see :func:`find_peaks`)."""
     shift = centre - top
+    used = shift[valid]
+    if used.size == 0 or float(used.max() - used.min()) <= MIXED_SHIFT:  # no zone can lie that far from a median
+        return centre
     n = valid.sum(axis=-1, keepdims=True)
     ordered = np.sort(np.where(valid, shift, np.inf), axis=-1)  # invalid zones last
     lo = np.take_along_axis(ordered, np.maximum((n - 1) // 2, 0), axis=-1)
