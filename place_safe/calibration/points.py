@@ -330,14 +330,12 @@ def fit_peak(frames: Sequence[Frame], init: PeakParams | None = None, progress: 
     """
     use = _calibration_frames(frames, min_range)
     hists = np.array([np.asarray(f.hists, dtype=float) for f in use])
-    if paper:
-        subbin = "spline"
     search: dict[str, list[float]] = {}
-    like = init if init is not None else PeakParams.default_peak()
-    like = replace(like, subbin=subbin, subbin_half_width=subbin_half_width)
     if paper:
-        k = 0.0
+        k, subbin = 0.0, "spline"
     elif pileup is None:
+        like = replace(init if init is not None else PeakParams.default_peak(), subbin=subbin,
+                       subbin_half_width=subbin_half_width)
         k, search = fit_pileup(hists, use, like, residual_degree=residual_degree, harmonics=harmonics)
     else:
         k = float(pileup)

@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from place_safe.sensor.histogram import find_peaks, measure_floor
+from place_safe.sensor.histogram import measure_floor
 from place_safe.sensor.zones import N_BINS, N_ZONES
 
 #: rad, half the TMF8820's 33 x 33 deg field of view, less a margin for the mount's calibration error.
@@ -270,14 +270,13 @@ class SurfaceMap:
             return None
         if h.shape != (N_ZONES, N_BINS) or T.shape != (4, 4) or not np.all(np.isfinite(T)):
             return None
-        pos, valid, _ = self.params.peaks(h)
+        # the shape tests look from each return's maximum, not the calibrated reading: a centroid moves towards
+        # a nearer surface mixed into the return, the very shoulder the early test looks for
+        pos, top, valid, _ = self.params.returns(h)
         valid = valid & np.isfinite(pos)
         with np.errstate(invalid="ignore"):
             pts = self.params.points(np.where(valid, pos, 0.0))
         valid &= np.all(np.isfinite(pts), axis=1) & (pts[:, 2] > 0)
-        # the shape tests look relative to the return's maximum, not the calibrated reading: a centroid moves
-        # towards a nearer surface mixed into the return, the very shoulder the early test looks for
-        top = pos if self.params.subbin == "spline" else find_peaks(h, self.params.pileup, "spline")[0]
         second, where = second_returns(h, top, valid)
         early = early_returns(h, top, valid)
         depth = (where - top) / self._bins_per_m

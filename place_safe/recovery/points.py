@@ -34,7 +34,7 @@ from numpy.polynomial import chebyshev as cheb
 from place_safe.config import Bound, check_dataclass, dataclass_from_dict
 from place_safe.exceptions import CalibrationError, NoPlaneError
 from place_safe.geometry import Plane
-from place_safe.sensor.histogram import CENTROID_HALF_WIDTH, CENTROID_HALF_WIDTHS, SUBBIN_METHODS, find_peaks
+from place_safe.sensor.histogram import CENTROID_HALF_WIDTH, CENTROID_HALF_WIDTHS, SUBBIN_METHODS, find_peaks, find_returns
 from place_safe.sensor.zones import CORNER, EDGE, N_ZONES, ZONE_DIRECTIONS, ZONE_KIND
 
 #: The paper's calibrated peak method (their code): distance = (peak_bin - 13.155) / 72.073 m.
@@ -230,6 +230,11 @@ class PeakParams:
         estimator, the return mask and the saturation mask (:func:`~place_safe.sensor.histogram.find_peaks`)."""
         return find_peaks(hists, self.pileup, self.subbin, self.subbin_half_width)
 
+    def returns(self, hists: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`peaks` with each zone's maximum from the same pass (readings, maxima, return mask, saturation
+        mask; :func:`~place_safe.sensor.histogram.find_returns`)."""
+        return find_returns(hists, self.pileup, self.subbin, self.subbin_half_width)
+
     def points(self, readings: np.ndarray) -> np.ndarray:
         """Points (..., 9, 3) in the sensor frame for readings (..., 9)."""
         return self.ranges(readings)[..., None] * self.directions()
@@ -267,12 +272,19 @@ def fit_planes(points: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.nd
     n = n * sign[..., None]
     d = (n * centroid).sum(-1)
     rms = s[..., -1] / np.sqrt(cnt)
-    ok = (count >= 3) & (s[..., 1] > 1e-9 * np.maximum(s[..., 0], 1e-30)) & (n[..., 2] > 1e-6) & (d > 0)
+    ok = (count >= 3) & _determines_plane(s, n, d)
     n = np.where(ok[..., None], n, np.nan)
     d = np.where(ok, d, np.nan)
     rms = np.where(ok, rms, np.nan)
     return n, d, rms, ok
 
+
+
+def _determines_plane(s: np.ndarray, n: np.ndarray, d) -> np.ndarray:
+    """Whether a least-squares fit with singular values ``s`` (..., 3) of its centred points, normal ``n``
+    (..., 3) and offset ``d`` (...) is a plane: the points not collinear, the normal off the sensor's
+    x-y plane and the plane in front of the sensor."""
+    return (s[..., 1] > 1e-9 * np.maximum(s[..., 0], 1e-30)) & (n[..., 2] > 1e-6) & (d > 0)
 
 
 def plane_covariance(points: np.ndarray, valid: np.ndarray, plane: Plane) -> np.ndarray:
@@ -319,7 +331,7 @@ def plane_through(points: np.ndarray, valid: np.ndarray) -> tuple[Plane, float]:
     _, s, vt = np.linalg.svd(p - centroid, full_matrices=False)
     n = vt[-1] if vt[-1, 2] >= 0 else -vt[-1]
     d = float(n @ centroid)
-    if not (s[1] > 1e-9 * max(float(s[0]), 1e-30) and n[2] > 1e-6 and d > 0):
+    if not _determines_plane(s, n, d):
         raise NoPlaneError("the zone points do not determine a plane in front of the sensor")
     return Plane(n, d), float(s[-1]) / math.sqrt(count)
 

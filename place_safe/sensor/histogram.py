@@ -6,6 +6,7 @@
 * :func:`find_peaks`: the calibrated ``peak`` method's sub-bin position of each zone's return (the
   maximum of a cubic spline, or a windowed centroid started there: :data:`SUBBIN_METHODS`), optionally
   after :func:`undo_pileup`.
+* :func:`find_returns`: the same readings with each zone's maximum, for the shape of its return.
 * :func:`undo_pileup`: the Coates correction of SPAD pile-up (a bright return arrives early).
 * :func:`first_return`: the first return above the noise, as the sensor's own firmware reports a
   distance (used to emulate on-sensor distances).
@@ -135,6 +136,24 @@ def find_peaks(hists: np.ndarray, pileup: float = 0.0, subbin: str = "spline",
     nearest the centroid's calibration can come to the stronger surface. (A random placement scene with a
     box 41 mm beside the cup read a level table as tilted 11.7 deg through pulled centroids.)
     """
+    reading, _, valid, saturated = _returns(hists, pileup, subbin, half_width)
+    return np.where(valid, reading, np.nan), valid, saturated
+
+
+def find_returns(hists: np.ndarray, pileup: float = 0.0, subbin: str = "spline",
+                 half_width: float = CENTROID_HALF_WIDTH) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`find_peaks`' readings (..., 9) with each zone's maximum (the spline's, bins (..., 9); NaN where
+    there is no return), from the same pass: the reading for the zone's point, the maximum for the shape of
+    its return (a shoulder or a second return is looked for relative to the maximum, which a nearer surface
+    mixed into the return does not pull). Then the return and saturation masks. With ``subbin="spline"``
+    the two positions are the same."""
+    reading, top, valid, saturated = _returns(hists, pileup, subbin, half_width)
+    return np.where(valid, reading, np.nan), np.where(valid, top, np.nan), valid, saturated
+
+
+def _returns(hists: np.ndarray, pileup: float, subbin: str,
+             half_width: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(reading, spline maximum, valid, saturated) of :func:`find_peaks`, positions not yet masked."""
     if subbin not in SUBBIN_METHODS:
         raise ValueError(f"subbin must be one of {', '.join(SUBBIN_METHODS)}, got {subbin!r}")
     h = np.asarray(hists, dtype=float)
@@ -155,10 +174,11 @@ def find_peaks(hists: np.ndarray, pileup: float = 0.0, subbin: str = "spline",
     fine = window @ _SPLINE.T  # (..., 9, F)
     pos = kc + _FINE[np.argmax(fine, axis=-1)]  # kc == k except for a top in the last bins
     valid = finite & has_return & ~saturated
+    reading = pos
     if subbin == "centroid":
         centre = windowed_centroid(rows, k.reshape(-1), pos.reshape(-1), half_width).reshape(pos.shape)
-        pos = _unmixed(centre, pos, valid)
-    return np.where(valid, pos, np.nan), valid, saturated & finite
+        reading = _unmixed(centre, pos, valid)
+    return reading, pos, valid, saturated & finite
 
 
 def _unmixed(centre: np.ndarray, top: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -303,6 +323,6 @@ def reference_problem(reference) -> str | None:
     return None
 
 
-__all__ = ["COUNT_MAX", "FLOOR_BINS", "measure_floor", "find_peaks", "windowed_centroid", "SUBBIN_METHODS",
+__all__ = ["COUNT_MAX", "FLOOR_BINS", "measure_floor", "find_peaks", "find_returns", "windowed_centroid", "SUBBIN_METHODS",
            "CENTROID_HALF_WIDTH", "CENTROID_HALF_WIDTHS", "MIXED_SHIFT", "first_return", "reference_floor",
            "reference_problem"]
