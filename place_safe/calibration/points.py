@@ -16,6 +16,7 @@ import numpy as np
 from numpy.polynomial import chebyshev as cheb
 from scipy.optimize import minimize
 
+from place_safe.calibration.near_range import fit_near_range
 from place_safe.exceptions import CalibrationError
 from place_safe.recovery.points import MM_PER_M, PeakParams, fit_planes
 from place_safe.sensor.frame import N_ZONES, Frame
@@ -311,10 +312,13 @@ def fit_pileup(hists: np.ndarray, frames: Sequence[Frame], like: PeakParams, gri
 def fit_peak(frames: Sequence[Frame], init: PeakParams | None = None, progress: bool = True,
              min_range: float = MIN_CALIBRATION_RANGE, residual_degree: int = 3, harmonics: int = 2,
              fit_offsets: bool = True, paper: bool = False, pileup: float | None = None,
-             subbin: str = "centroid", subbin_half_width: float = CENTROID_HALF_WIDTH) -> tuple[PeakParams, dict]:
+             subbin: str = "centroid", subbin_half_width: float = CENTROID_HALF_WIDTH,
+             near_range: bool = True) -> tuple[PeakParams, dict]:
     """Calibrate the peak method on frames with ground truth; returns the parameters and a report.
 
-    Frames closer than ``min_range`` (m) and frames without a usable return are left out. With
+    Frames closer than ``min_range`` (m) and frames without a usable return are left out of the mapping;
+    then, with ``near_range`` (and not ``paper``), the near-range table is fitted on the frames closer than
+    :data:`~place_safe.calibration.near_range.NEAR_END`, all of them (:func:`~place_safe.calibration.near_range.fit_near_range`). With
     ``paper=True`` this is the paper's calibration (Nelder-Mead over m, b, s_e, s_c only, no pile-up).
     ``pileup`` (1/counts): the SPAD pile-up to undo before finding peaks; None fits it
     (:func:`fit_pileup`), 0 turns the correction off. ``subbin``, ``subbin_half_width``: the sub-bin
@@ -343,6 +347,8 @@ def fit_peak(frames: Sequence[Frame], init: PeakParams | None = None, progress: 
     params, report = _fit_readings("peak", "returns", use, readings, valid, init, PeakParams.default_peak(), progress,
                                    residual_degree, harmonics, fit_offsets, paper, min_range)
     params = replace(params, pileup=k, subbin=subbin, subbin_half_width=subbin_half_width)
+    if not paper and near_range:
+        params, report["near_range"] = fit_near_range(frames, params)
     report["params"] = params.to_dict()
     report["pileup"] = {"value": k, "fitted": pileup is None and not paper,
                         "linear_fit_point_error_mm": search}

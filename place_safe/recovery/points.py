@@ -15,6 +15,15 @@ The reading is the sub-bin histogram peak (bins) for ``peak`` and the on-sensor 
   smooth residual correction shared by all zones: a Chebyshev series in ``r`` over
   ``residual_domain`` (m), evaluated at ``r`` clipped to the domain. Empty coefficient lists and unit
   gains are the paper's model.
+* near range (histogram readings only): ``r -= e_z(r u_z)``, the calibrated error of zone ``z`` at the depth
+  (m, along the optical axis) of its first-pass point, from a per-zone table over depth (``near_depths``,
+  ``near_errors``: shape-preserving PCHIP between the knots, the first knot's value before it, none from
+  the last knot on, where every zone's error is 0). There the emitter beside the receiver lights each
+  zone's footprint only in part, so a zone's return comes from a point off its nominal direction and its
+  timing no longer follows the far-range model; the table is fitted on a calibration sweep
+  (:mod:`place_safe.calibration.near_range`). In a frame with any zone closer than the table's end,
+  zones whose return is below ``near_min_fraction`` of the frame's highest are dropped: so little light
+  comes from the edge of the lit spot or from other zones.
 * direction of zone ``z``: the zone-centre direction (:data:`place_safe.sensor.zones.ZONE_DIRECTIONS`)
   with its angle from the optical axis multiplied by ``edge_scale`` (zones 2, 4, 6, 8) or
   ``corner_scale`` (zones 1, 3, 7, 9); azimuth kept, the centre zone stays on the axis.
@@ -66,6 +75,9 @@ PEAK_BOUNDS: dict[str, Bound] = {
     "zone_gains": Bound(0.0, 10.0, "(relative, mean 1)", lo_open=True, length=N_ZONES),
     "pileup": Bound(0.0, 1e-3, "1/counts"),
     "subbin_half_width": Bound(CENTROID_HALF_WIDTHS[0], CENTROID_HALF_WIDTHS[1], "bins"),
+    "near_depths": Bound(0.0, 10.0, "m"),
+    "near_errors": Bound(-0.1, 0.1, "m"),
+    "near_min_fraction": Bound(0.0, 1.0, "(of the frame's highest return)", hi_open=True),
 }
 #: Fixed-point iterations inverting ``m r + c(r) = x`` (c changes by far less than m per metre). Against 10
 #: iterations, 2 leave at most 0.002 mm on the real sweep's calibration (3: 0.0001 mm, 1: 0.05 mm).
@@ -83,7 +95,8 @@ class PeakParams:
     ``subbin``, ``subbin_half_width`` (bins): the sub-bin estimator the readings come from
     (:data:`place_safe.sensor.histogram.SUBBIN_METHODS`); the other fields were fitted to its readings.
     Files without them are ``"spline"`` (the estimator before the windowed centroid); calibration
-    writes ``"centroid"``.
+    writes ``"centroid"``. ``near_depths`` (K knots, m, increasing), ``near_errors`` (K x 9, m, knot-major,
+    the last knot's all 0), ``near_min_fraction``: the near-range table (module doc; empty: none).
     """
 
     m: float
@@ -98,6 +111,9 @@ class PeakParams:
     pileup: float = 0.0
     subbin: str = "spline"
     subbin_half_width: float = CENTROID_HALF_WIDTH
+    near_depths: list[float] = field(default_factory=list)
+    near_errors: list[float] = field(default_factory=list)
+    near_min_fraction: float = 0.0
 
     def __post_init__(self) -> None:
         check_dataclass(self, PEAK_BOUNDS, "peak parameters", CalibrationError)
@@ -114,6 +130,18 @@ class PeakParams:
         if not self.residual_domain[0] < self.residual_domain[1]:
             raise CalibrationError(f"peak parameters: residual_domain must be [lo, hi] with lo < hi, "
                                    f"got {self.residual_domain}")
+        self.near_depths = [float(v) for v in self.near_depths]
+        self.near_errors = [float(v) for v in self.near_errors]
+        k = len(self.near_depths)
+        if k == 1 or (k and not all(a < b for a, b in zip(self.near_depths, self.near_depths[1:]))):
+            raise CalibrationError("peak parameters: near_depths must be empty or 2 or more increasing depths (m), "
+                                   f"got {self.near_depths}")
+        if len(self.near_errors) != N_ZONES * k:
+            raise CalibrationError(f"peak parameters: near_errors needs {N_ZONES} values per near depth "
+                                   f"({N_ZONES * k}), got {len(self.near_errors)}")
+        if k and any(self.near_errors[-N_ZONES:]):
+            raise CalibrationError("peak parameters: near_errors of the last near depth must be 0 (the table "
+                                   "ends there)")
 
     # -- file form ---------------------------------------------------------------------------------
     def to_dict(self) -> dict:
@@ -214,6 +242,31 @@ class PeakParams:
             out = out + self.phase_coeffs[2 * k] * np.sin(w) + self.phase_coeffs[2 * k + 1] * np.cos(w)
         return out
 
+    def _near_table(self):
+        """The near-range table as one PCHIP over depth with the 9 zones as columns (cached)."""
+        from scipy.interpolate import PchipInterpolator
+
+        def compute():
+            return PchipInterpolator(np.asarray(self.near_depths),
+                                     np.asarray(self.near_errors).reshape(len(self.near_depths), N_ZONES), axis=0)
+
+        return self._memo("_near", (tuple(self.near_depths), tuple(self.near_errors)), compute)
+
+    def near_correction(self, r0: np.ndarray) -> np.ndarray:
+        """The near-range table's error e_z (m, (..., 9)) at first-pass ranges ``r0`` (..., 9): 0 without a
+        table and from its last depth on."""
+        r0 = np.asarray(r0, dtype=float)
+        if not self.near_depths:
+            return np.zeros_like(r0)
+        depth = r0 * self.directions()[:, 2]
+        lo, hi = self.near_depths[0], self.near_depths[-1]
+        with np.errstate(invalid="ignore"):
+            near = depth < hi
+        if not near.any():
+            return np.zeros_like(r0)
+        e = self._near_table()(np.minimum(np.maximum(depth, lo), hi))  # (..., 9 depths, 9 zones)
+        return np.where(near, np.diagonal(e, axis1=-2, axis2=-1), 0.0)
+
     def ranges(self, readings: np.ndarray) -> np.ndarray:
         """Ranges (m) for readings (..., 9)."""
         x = np.asarray(readings, dtype=float)
@@ -223,17 +276,41 @@ class PeakParams:
         if self.residual_coeffs:
             for _ in range(RANGE_ITERATIONS):  # solve m g r + c(r) = x by fixed-point iteration
                 r = (x - self._correction(r)) / mz
+        if self.near_depths:
+            r = r - self.near_correction(r)
         return r
+
+    def drop_weak(self, readings: np.ndarray, valid: np.ndarray, heights: np.ndarray) -> np.ndarray:
+        """The return mask (..., 9) without the zones that the near-range rule drops: in frames with a zone closer
+        than the table's last depth, returns below ``near_min_fraction`` of the frame's highest (module doc)."""
+        if not (self.near_depths and self.near_min_fraction > 0.0):
+            return valid
+        depth = self.ranges(np.where(valid, readings, np.nan)) * self.directions()[:, 2]
+        with np.errstate(invalid="ignore"):
+            near = (valid & (depth < self.near_depths[-1])).any(axis=-1, keepdims=True)
+        top = np.where(valid, heights, 0.0).max(axis=-1, keepdims=True)
+        return valid & ~(near & (heights < self.near_min_fraction * top))
 
     def peaks(self, hists: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Readings (..., 9) in bins of histograms (..., 9, 128) with this mapping's pile-up and sub-bin
-        estimator, the return mask and the saturation mask (:func:`~place_safe.sensor.histogram.find_peaks`)."""
-        return find_peaks(hists, self.pileup, self.subbin, self.subbin_half_width)
+        estimator, the return mask and the saturation mask (:func:`~place_safe.sensor.histogram.find_peaks`),
+        without the zones the near-range rule drops (:meth:`drop_weak`)."""
+        if not (self.near_depths and self.near_min_fraction > 0.0):
+            return find_peaks(hists, self.pileup, self.subbin, self.subbin_half_width)
+        pos, valid, saturated, heights = find_peaks(hists, self.pileup, self.subbin, self.subbin_half_width,
+                                                    heights=True)
+        keep = self.drop_weak(pos, valid, heights)
+        return np.where(keep, pos, np.nan), keep, saturated
 
     def returns(self, hists: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """:meth:`peaks` with each zone's maximum from the same pass (readings, maxima, return mask, saturation
         mask; :func:`~place_safe.sensor.histogram.find_returns`)."""
-        return find_returns(hists, self.pileup, self.subbin, self.subbin_half_width)
+        if not (self.near_depths and self.near_min_fraction > 0.0):
+            return find_returns(hists, self.pileup, self.subbin, self.subbin_half_width)
+        pos, top, valid, saturated, heights = find_returns(hists, self.pileup, self.subbin, self.subbin_half_width,
+                                                           heights=True)
+        keep = self.drop_weak(pos, valid, heights)
+        return np.where(keep, pos, np.nan), np.where(keep, top, np.nan), keep, saturated
 
     def points(self, readings: np.ndarray) -> np.ndarray:
         """Points (..., 9, 3) in the sensor frame for readings (..., 9)."""

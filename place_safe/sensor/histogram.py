@@ -119,8 +119,10 @@ def _median(x: np.ndarray) -> np.ndarray:
 
 
 def find_peaks(hists: np.ndarray, pileup: float = 0.0, subbin: str = "spline",
-               half_width: float = CENTROID_HALF_WIDTH) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Sub-bin return positions (..., 9) in bins, return mask (..., 9) and saturation mask (..., 9).
+               half_width: float = CENTROID_HALF_WIDTH, *, heights: bool = False) -> tuple[np.ndarray, ...]:
+    """Sub-bin return positions (..., 9) in bins, return mask (..., 9) and saturation mask (..., 9); with
+    ``heights``, then each zone's return height (..., 9): its highest bin in counts above the floor, after
+    pile-up is undone (0 where there is no return).
 
     ``hists`` is (..., 9, 128) counts (any leading shape). Zones without a return, or clipped, or
     with non-finite counts, are False in the mask and NaN in the positions. ``pileup`` (1/counts,
@@ -136,24 +138,26 @@ def find_peaks(hists: np.ndarray, pileup: float = 0.0, subbin: str = "spline",
     nearest the centroid's calibration can come to the stronger surface. (A random placement scene with a
     box 41 mm beside the cup read a level table as tilted 11.7 deg through pulled centroids.)
     """
-    reading, _, valid, saturated = _returns(hists, pileup, subbin, half_width)
-    return np.where(valid, reading, np.nan), valid, saturated
+    reading, _, valid, saturated, height = _returns(hists, pileup, subbin, half_width)
+    out = (np.where(valid, reading, np.nan), valid, saturated)
+    return out + (np.where(valid, height, 0.0),) if heights else out
 
 
 def find_returns(hists: np.ndarray, pileup: float = 0.0, subbin: str = "spline",
-                 half_width: float = CENTROID_HALF_WIDTH) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                 half_width: float = CENTROID_HALF_WIDTH, *, heights: bool = False) -> tuple[np.ndarray, ...]:
     """:func:`find_peaks`' readings (..., 9) with each zone's maximum (the spline's, bins (..., 9); NaN where
     there is no return), from the same pass: the reading for the zone's point, the maximum for the shape of
     its return (a shoulder or a second return is looked for relative to the maximum, which a nearer surface
     mixed into the return does not pull). Then the return and saturation masks. With ``subbin="spline"``
-    the two positions are the same."""
-    reading, top, valid, saturated = _returns(hists, pileup, subbin, half_width)
-    return np.where(valid, reading, np.nan), np.where(valid, top, np.nan), valid, saturated
+    the two positions are the same. ``heights``: the return heights last, as in :func:`find_peaks`."""
+    reading, top, valid, saturated, height = _returns(hists, pileup, subbin, half_width)
+    out = (np.where(valid, reading, np.nan), np.where(valid, top, np.nan), valid, saturated)
+    return out + (np.where(valid, height, 0.0),) if heights else out
 
 
 def _returns(hists: np.ndarray, pileup: float, subbin: str,
-             half_width: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(reading, spline maximum, valid, saturated) of :func:`find_peaks`, positions not yet masked."""
+             half_width: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(reading, spline maximum, valid, saturated, height) of :func:`find_peaks`, not yet masked."""
     if subbin not in SUBBIN_METHODS:
         raise ValueError(f"subbin must be one of {', '.join(SUBBIN_METHODS)}, got {subbin!r}")
     h = np.asarray(hists, dtype=float)
@@ -178,7 +182,7 @@ def _returns(hists: np.ndarray, pileup: float, subbin: str,
     if subbin == "centroid":
         centre = windowed_centroid(rows, k.reshape(-1), pos.reshape(-1), half_width).reshape(pos.shape)
         reading = _unmixed(centre, pos, valid)
-    return reading, pos, valid, saturated & finite
+    return reading, pos, valid, saturated & finite, top
 
 
 def _unmixed(centre: np.ndarray, top: np.ndarray, valid: np.ndarray) -> np.ndarray:

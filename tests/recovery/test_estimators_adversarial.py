@@ -6,7 +6,6 @@ what library callers can hand them: strings, objects, ragged and complex arrays,
 
 from __future__ import annotations
 
-import math
 
 import numpy as np
 import pytest
@@ -19,6 +18,7 @@ from place_safe.recovery.forward import FORWARD_BOUNDS
 from place_safe.recovery.points import PEAK_BOUNDS
 from place_safe.sensor.frame import N_BINS, N_ZONES, Frame
 from place_safe.sensor.histogram import COUNT_MAX
+from estimates import assert_safe
 
 ESTIMATORS = {m: make_estimator(m) for m in METHODS}
 FAST = [m for m in METHODS if m != "diff"]
@@ -27,17 +27,6 @@ FAST = [m for m in METHODS if m != "diff"]
 @pytest.fixture(scope="module")
 def base(synthetic_frames) -> Frame:
     return synthetic_frames[0]
-
-
-def assert_safe(est) -> None:
-    """No plane with a reason, or a finite plane in front of the sensor; a finite albedo or none."""
-    if est.plane is None:
-        assert isinstance(est.reason, str) and est.reason
-        return
-    n, d = np.asarray(est.plane.normal), est.plane.offset
-    assert np.all(np.isfinite(n)) and math.isfinite(d)
-    assert d > 0 and n[2] > 0 and abs(np.linalg.norm(n) - 1) < 1e-9
-    assert est.albedo is None or math.isfinite(est.albedo)
 
 
 floats = st.floats(allow_nan=True, allow_infinity=True, width=64)

@@ -1,0 +1,173 @@
+"""The peak method's near-range table (place_safe.calibration.near_range, PeakParams.near_*).
+
+Accuracy is measured held out: on real frames of the sweep's other half, and on frames of the independent
+generator calibrated on another seed. The mapping tests are convention checks of the table's arithmetic.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings, strategies as st
+
+from place_safe.calibration.near_range import NEAR_END, fit_near_range
+from place_safe.calibration.points import fit_peak
+from place_safe.exceptions import CalibrationError
+from place_safe.io.frame_file import load_frames
+from place_safe.recovery.peak import PeakEstimator
+from place_safe.recovery.points import PeakParams
+from place_safe.sensor.zones import N_ZONES
+from estimates import assert_safe
+
+
+def _angles(params, frames):
+    est = PeakEstimator(params)
+    out = []
+    for f in frames:
+        e = est.estimate(f)
+        out.append(math.degrees(math.acos(min(1.0, abs(float(e.plane.normal @ f.truth.normal))))) if e.ok else 90.0)
+    return np.array(out)
+
+
+def _without(params):
+    return replace(params, near_depths=[], near_errors=[], near_min_fraction=0.0)
+
+
+def _table(depths=(0.01, 0.03, 0.06), first=0.002):
+    """A table with zone z's error ``first * (z + 1) / 9`` at the first knot, half that at the second, 0 at the end."""
+    e = np.zeros((len(depths), N_ZONES))
+    e[0] = first * (np.arange(N_ZONES) + 1) / N_ZONES
+    e[1] = e[0] / 2
+    return PeakParams(70.0, 12.0, near_depths=list(depths), near_errors=list(e.ravel()), near_min_fraction=0.05)
+
+
+# -- the mapping (convention checks) ---------------------------------------------------------------------
+def test_table_subtracts_each_zones_error_at_its_depth_and_nothing_from_its_end_on():
+    p = _table()
+    base = _without(p)
+    uz = p.directions()[:, 2]
+    for depth, row in ((0.01, 0), (0.03, 1)):
+        x = base.m * base.zone_gains[0] * depth / uz + base.b  # readings that put every zone at this depth
+        expected = base.ranges(x) - np.asarray(p.near_errors).reshape(-1, N_ZONES)[row]
+        np.testing.assert_allclose(p.ranges(x), expected, atol=1e-12)
+    far = base.m * 0.061 / uz + base.b
+    np.testing.assert_array_equal(p.ranges(far), base.ranges(far))
+    close = base.m * 0.004 / uz + base.b  # before the first knot: the first knot's errors
+    np.testing.assert_allclose(base.ranges(close) - p.ranges(close), np.asarray(p.near_errors[:N_ZONES]), atol=1e-12)
+    batch = np.stack([x, far, np.full(N_ZONES, np.nan)])
+    out = p.ranges(batch)
+    assert out.shape == (3, N_ZONES) and np.isnan(out[2]).all()
+
+
+def test_table_round_trips_and_bad_tables_are_one_line_errors():
+    p = _table()
+    q = PeakParams.from_dict(p.to_dict())
+    assert q.near_depths == p.near_depths and q.near_errors == p.near_errors and q.near_min_fraction == 0.05
+    old = {k: v for k, v in p.to_dict().items() if not k.startswith("near_")}
+    assert PeakParams.from_dict(old).near_depths == []  # files from before the table: none
+    d = p.to_dict()
+    bad = [dict(d, near_depths=[0.01]), dict(d, near_errors=d["near_errors"][:-1]),
+           dict(d, near_depths=[0.03, 0.01, 0.06]), dict(d, near_errors=d["near_errors"][:-1] + [0.001]),
+           dict(d, near_errors=[0.5] + d["near_errors"][1:]), dict(d, near_min_fraction=1.0),
+           dict(d, near_depths=[0.01, float("nan"), 0.06])]
+    for b in bad:
+        with pytest.raises(CalibrationError) as info:
+            PeakParams.from_dict(b)
+        assert "\n" not in str(info.value) and "near" in str(info.value)
+
+
+def test_weak_zones_are_dropped_only_at_near_range_and_only_with_a_fraction():
+    p = _table()
+    uz = p.directions()[:, 2]
+    valid = np.ones(N_ZONES, bool)
+    heights = np.full(N_ZONES, 1e5)
+    heights[4] = 2e3  # 2 % of the highest
+    near = p.m * 0.02 / uz + p.b
+    far = p.m * 0.2 / uz + p.b
+    assert p.drop_weak(near, valid, heights).tolist() == [z != 4 for z in range(N_ZONES)]
+    assert p.drop_weak(far, valid, heights).all()
+    assert replace(p, near_min_fraction=0.0).drop_weak(near, valid, heights).all()
+    both = p.drop_weak(np.stack([near, far]), np.stack([valid, valid]), np.stack([heights, heights]))
+    assert both[0].sum() == 8 and both[1].all()
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(errors=st.lists(st.floats(-0.1, 0.1), min_size=2 * N_ZONES, max_size=2 * N_ZONES),
+       k0=st.floats(0.0, 0.05), gap=st.floats(1e-4, 0.2), fraction=st.floats(0.0, 0.99))
+def test_any_accepted_table_gives_a_safe_estimate(synthetic_frames, sweep_path, errors, k0, gap, fraction):
+    """Whatever table a file may hold (errors up to the 0.1 m bound), the peak method gives a finite plane in
+    front of the sensor or none with a reason, at any distance."""
+    p = PeakParams(72.0, 13.0, near_depths=[k0, k0 + gap, k0 + 2 * gap],
+                   near_errors=list(errors) + [0.0] * N_ZONES, near_min_fraction=fraction)
+    est = PeakEstimator(p)
+    for f in synthetic_frames[:2] + _sweep(sweep_path)[:4]:
+        assert_safe(est.estimate(f))
+
+
+_SWEEP: list = []
+
+
+def _sweep(path):
+    if not _SWEEP:
+        _SWEEP.extend(load_frames(path))
+    return _SWEEP
+
+
+# -- calibration, held out ---------------------------------------------------------------------------------
+def test_real_sweep_table_helps_held_out_close_frames_and_keeps_far_ones(sweep_path):
+    """Calibrated on one half of the real sweep, measured on the other, both ways: at 2-5 cm the held-out mean
+    angular error with the table is below the far-range mapping's alone (even -> odd: 4.1 -> 1.7 deg), and
+    at 5-40 cm issue 9's targets still hold (mean <= 0.25 deg, p95 <= 0.6 deg). Where cross-validation rejects
+    a table, calibration says why."""
+    frames = _sweep(sweep_path)
+    gains = []
+    for cal, test in ((frames[0::2], frames[1::2]), (frames[1::2], frames[0::2])):
+        params, report = fit_peak(cal, progress=False)
+        near = report["near_range"]
+        assert near["frames"] >= 5 and "cv_point_error_mm" in near
+        if not near["adopted"]:
+            assert params.near_depths == [] and near["why"]
+        close = [f for f in test if 0.02 <= f.truth.z0 <= 0.0501]
+        far = [f for f in test if 0.05 <= f.truth.z0 < 0.41]
+        with_table, alone = _angles(params, close).mean(), _angles(_without(params), close).mean()
+        assert with_table <= alone
+        gains.append(alone - with_table)
+        a = _angles(params, far)
+        assert a.mean() <= 0.25 and np.percentile(a, 95) <= 0.6
+    assert max(gains) >= 1.0
+
+
+def test_whole_sweep_adopts_a_table_that_ends_at_zero(sweep_path):
+    params, report = fit_peak(_sweep(sweep_path), progress=False)
+    near = report["near_range"]
+    assert near["adopted"] and near["frames"] == 12
+    assert params.near_depths[-1] == NEAR_END and params.near_depths[0] < 0.01
+    assert not any(params.near_errors[-N_ZONES:])
+    assert near["cv_point_error_mm"]["none"] > min(v for k, v in near["cv_point_error_mm"].items() if k != "none")
+
+
+def test_too_few_near_frames_leave_the_mapping_alone(sweep_path):
+    frames = [f for f in _sweep(sweep_path) if f.truth.z0 >= 0.07]
+    params, report = fit_peak(frames, progress=False)
+    assert params.near_depths == [] and not report["near_range"]["adopted"]
+    assert "frame" in report["near_range"]["why"]
+    same, rep = fit_near_range([], params)
+    assert same.near_depths == [] and rep["why"]
+
+
+@pytest.mark.slow
+def test_independent_frames_table_does_no_harm_held_out():
+    """On the independent generator's frames (tilted, 2-30 cm; calibrated on one seed, tested on another) the
+    table is either rejected by cross-validation or no worse than the far-range mapping at near range."""
+    from place_safe.evaluation.independent import make_frames
+
+    cal, test = make_frames(80, seed=11), make_frames(60, seed=12)
+    params, report = fit_peak(cal, progress=False)
+    near = [f for f in test if f.truth.z0 < NEAR_END]
+    assert len(near) >= 5
+    if report["near_range"]["adopted"]:
+        assert _angles(params, near).mean() <= 1.02 * _angles(_without(params), near).mean()
+    else:
+        assert params.near_depths == []
