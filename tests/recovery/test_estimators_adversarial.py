@@ -6,7 +6,6 @@ what library callers can hand them: strings, objects, ragged and complex arrays,
 
 from __future__ import annotations
 
-
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
