@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+from hypothesis import given, settings, strategies as st
 
 import place_safe.io.frame_file as frames_mod
 from place_safe.exceptions import FrameError, FrameFileError
@@ -145,3 +146,21 @@ def test_real_sweep_loads(sweep_path):
     assert all(f.truth is not None for f in fr)
     for f in fr:
         f.validate()
+
+
+@settings(max_examples=400, deadline=None)
+@given(st.lists(st.one_of(st.integers(-10**30, 10**30), st.floats(allow_nan=False, allow_infinity=False),
+                          st.sampled_from([" ", ",", "[", "]", "-", "0.000000000000000000012345678901234567", "e-7"])),
+                max_size=30))
+def test_long_integer_test_finds_exactly_the_integer_literals_of_19_digits_or_more(parts):
+    """The fast search for an integer literal of 19 digits or more (orjson would read it as a float) agrees with
+    its definition, a space before 19 digits in the number shape, on random runs of numbers and separators."""
+    raw = " ".join(repr(p) if not isinstance(p, str) else p for p in parts).encode()
+    assert frames_mod._long_integer(raw) == (frames_mod._LONG_INTEGER in raw.translate(frames_mod._NUMBER_SHAPE))
+
+
+def test_a_long_integer_is_read_exactly():
+    raw = b'{"hists": 1, "n": 123456789012345678901234567890, "x": -0.00047130262929605347}'
+    assert frames_mod._long_integer(raw)
+    assert frames_mod._decode(raw)["n"] == 123456789012345678901234567890
+    assert not frames_mod._long_integer(b'{"x": -0.00047130262929605347, "y": 1.2345678901234567890e3}')
