@@ -49,7 +49,7 @@ NEAR_MAX_KNOTS = 24
 #: Second-difference penalties tried (relative to one frame's weight at a knot).
 NEAR_PENALTIES = (1e-3, 1e-2, 1e-1, 1.0, 10.0)
 #: Fractions of a frame's highest return below which a zone is dropped at near range, tried.
-NEAR_MIN_FRACTIONS = (0.0, 0.05)
+NEAR_MIN_FRACTIONS = (0.0, 0.01, 0.05)
 #: The table is kept only when its cross-validated mean point error is at most this fraction of the
 #: far-range mapping's on the same frames, and lower by :data:`NEAR_MIN_GAIN` (m) or more. Ten candidates
 #: are compared, so the best of them looks better than it is by chance: on 80 frames of the independent
