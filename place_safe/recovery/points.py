@@ -145,7 +145,12 @@ class PeakParams:
 
     # -- file form ---------------------------------------------------------------------------------
     def to_dict(self) -> dict:
-        return asdict(self)
+        """The JSON form; without the near-range fields when there is no table (files older versions read)."""
+        d = asdict(self)
+        if not self.near_depths and not self.near_min_fraction:
+            for key in ("near_depths", "near_errors", "near_min_fraction"):
+                d.pop(key)
+        return d
 
     @classmethod
     def from_dict(cls, d: Any) -> "PeakParams":

@@ -67,6 +67,7 @@ def test_table_round_trips_and_bad_tables_are_one_line_errors():
     assert q.near_depths == p.near_depths and q.near_errors == p.near_errors and q.near_min_fraction == 0.05
     old = {k: v for k, v in p.to_dict().items() if not k.startswith("near_")}
     assert PeakParams.from_dict(old).near_depths == []  # files from before the table: none
+    assert _without(p).to_dict() == old  # and without a table the file is one they read
     d = p.to_dict()
     bad = [dict(d, near_depths=[0.01]), dict(d, near_errors=d["near_errors"][:-1]),
            dict(d, near_depths=[0.03, 0.01, 0.06]), dict(d, near_errors=d["near_errors"][:-1] + [0.001]),
