@@ -168,7 +168,7 @@ class PlaneEstimate:
             out["reason"] = self.reason
         if self.method_used is not None:
             out["method_used"] = self.method_used
-        if self.covariance is not None and np.all(np.isfinite(self.covariance)):
+        if self.covariance is not None and np.isfinite(self.covariance).all():
             out["covariance"] = [[float(f"{v:.6g}") for v in row] for row in self.covariance]
         return out
 
@@ -176,7 +176,7 @@ class PlaneEstimate:
 def checked(est: PlaneEstimate) -> PlaneEstimate:
     """``est`` unless its plane is not finite or lies behind the sensor (then no plane, with the reason)."""
     p = est.plane
-    if p is not None and not (np.all(np.isfinite(p.normal)) and np.isfinite(p.offset) and p.offset > 0):
+    if p is not None and not (np.isfinite(p.normal).all() and np.isfinite(p.offset) and p.offset > 0):
         return PlaneEstimate(None, reason=f"recovered plane is not in front of the sensor (offset {p.offset:.4g} m)",
                              seconds=est.seconds)
     if est.albedo is not None and not np.isfinite(est.albedo):

@@ -129,16 +129,16 @@ class Frame:
         h = real_array(self.hists, "hists")
         if h.shape != (N_ZONES, N_BINS):
             raise FrameError(f"hists has shape {h.shape}, expected ({N_ZONES}, {N_BINS})")
-        if not np.all(np.isfinite(h)):
+        if not np.isfinite(h).all():
             raise FrameError("hists contains NaN or infinite counts")
-        if np.any(h < 0):
+        if (h < 0).any():
             raise FrameError("hists contains negative counts")
         if self.reference is None:
             raise FrameError("reference histogram is missing")
         r = real_array(self.reference, "reference_hist")
         if r.shape != (N_BINS,):
             raise FrameError(f"reference_hist has shape {r.shape}, expected ({N_BINS},)")
-        if not np.all(np.isfinite(r)) or np.any(r < 0):
+        if not np.isfinite(r).all() or (r < 0).any():
             raise FrameError("reference_hist contains NaN, infinite or negative counts")
 
     # -- file form (docs/interfaces.md) ----------------------------------------------------------

@@ -101,7 +101,7 @@ def undo_pileup(net: np.ndarray, pileup: float) -> np.ndarray:
         raise ValueError(f"pileup must be a finite number >= 0 (1/counts), got {pileup!r}")
     if k == 0.0:
         return x
-    recorded = np.cumsum(np.maximum(x, 0.0), axis=-1)  # recorded counts up to and including each bin
+    recorded = np.maximum(x, 0.0).cumsum(axis=-1)  # recorded counts up to and including each bin
     true_upto = np.log1p(-np.minimum(k * recorded, PILEUP_MAX_FRACTION))
     np.negative(true_upto, out=true_upto)
     true_upto /= k
@@ -113,7 +113,8 @@ def undo_pileup(net: np.ndarray, pileup: float) -> np.ndarray:
 
 def _median(x: np.ndarray) -> np.ndarray:
     """Median over the last axis (as :func:`numpy.median`, without its overhead on small arrays)."""
-    s = np.sort(x, axis=-1)
+    s = x.copy()
+    s.sort(axis=-1)
     k = s.shape[-1]
     return s[..., k // 2] if k % 2 else 0.5 * (s[..., k // 2 - 1] + s[..., k // 2])
 
@@ -168,7 +169,7 @@ def _returns(hists: np.ndarray, pileup: float, subbin: str,
     saturated = (h >= COUNT_MAX).any(axis=-1)
     floor = np.minimum(_median(h[..., :EARLY_BINS]), _median(h[..., -LATE_BINS:]))
     x = undo_pileup(h - floor[..., None], pileup)
-    k = np.argmax(x[..., SEARCH_START:], axis=-1) + SEARCH_START
+    k = x[..., SEARCH_START:].argmax(axis=-1) + SEARCH_START
     rows = x.reshape(-1, x.shape[-1])  # one row per zone (of every frame)
     at = np.arange(rows.shape[0])
     top = rows[at, k.reshape(-1)].reshape(k.shape)
@@ -176,7 +177,7 @@ def _returns(hists: np.ndarray, pileup: float, subbin: str,
     kc = np.minimum(np.maximum(k, HALF_WINDOW), N_BINS - 1 - HALF_WINDOW)
     window = rows[at[:, None], kc.reshape(-1, 1) + _KNOT_OFFSETS].reshape(kc.shape + (len(_KNOTS),))  # (..., 9, W)
     fine = window @ _SPLINE.T  # (..., 9, F)
-    pos = kc + _FINE[np.argmax(fine, axis=-1)]  # kc == k except for a top in the last bins
+    pos = kc + _FINE[fine.argmax(axis=-1)]  # kc == k except for a top in the last bins
     valid = finite & has_return & ~saturated
     reading = pos
     if subbin == "centroid":
