@@ -298,12 +298,15 @@ def register(sub) -> None:
                                    "of a calibration file. If the output already is a calibration file, its other "
                                    "sections are kept, so one file can carry all methods.",
                        epilog="methods and the sections they write:\n"
-                              "  peak         -> 'peak' (histogram-peak distance and zone-angle scales)\n"
+                              "  peak         -> 'peak' (histogram-peak distance, zone-angle scales, pile-up and, from\n"
+                              "                  frames closer than 9 cm, a per-zone near-range table kept only if\n"
+                              "                  leave-one-out cross-validation says it helps)\n"
                               "  proprietary  -> 'proprietary' (on-sensor distances)\n"
                               "  diff         -> 'forward' (forward-model camera parameters and the residual weighting\n"
                               "                  that recovers the planes best), 'diff' (a z0 correction, kept only if\n"
                               "                  leave-one-out cross-validation says it helps), and 'peak' too when the\n"
-                              "                  file has none (the diff method starts from calibrated peak)\n\n"
+                              "                  file has none (the diff method starts from calibrated peak; to fit\n"
+                              "                  'peak' again in an existing file, run --method peak)\n\n"
                               "example:\n"
                               "  place-safe calibrate sweep.json --method peak -o calib.json\n"
                               "  place-safe calibrate sweep.json --method diff -o calib.json   # adds 'forward'")
