@@ -80,6 +80,8 @@ PEAK_BOUNDS: dict[str, Bound] = {
     "near_errors": Bound(-0.1, 0.1, "m"),
     "near_min_fraction": Bound(0.0, 1.0, "(of the frame's highest return)", hi_open=True),
 }
+#: m: closest two knots of the near-range table may lie (closer ones make its interpolant's slopes overflow).
+NEAR_MIN_SPACING = 1e-6
 #: Fixed-point iterations inverting ``m r + c(r) = x`` (c changes by far less than m per metre). Against 10
 #: iterations, 2 leave at most 0.002 mm on the real sweep's calibration (3: 0.0001 mm, 1: 0.05 mm).
 RANGE_ITERATIONS = 2
@@ -134,9 +136,9 @@ class PeakParams:
         self.near_depths = [float(v) for v in self.near_depths]
         self.near_errors = [float(v) for v in self.near_errors]
         k = len(self.near_depths)
-        if k == 1 or (k and not all(a < b for a, b in zip(self.near_depths, self.near_depths[1:]))):
+        if k == 1 or (k and not all(b - a >= NEAR_MIN_SPACING for a, b in zip(self.near_depths, self.near_depths[1:]))):
             raise CalibrationError("peak parameters: near_depths must be empty or 2 or more increasing depths (m), "
-                                   f"got {self.near_depths}")
+                                   f"{NEAR_MIN_SPACING * 1e6:g} um apart or more, got {self.near_depths}")
         if len(self.near_errors) != N_ZONES * k:
             raise CalibrationError(f"peak parameters: near_errors needs {N_ZONES} values per near depth "
                                    f"({N_ZONES * k}), got {len(self.near_errors)}")

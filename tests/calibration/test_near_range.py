@@ -72,7 +72,8 @@ def test_table_round_trips_and_bad_tables_are_one_line_errors():
     bad = [dict(d, near_depths=[0.01]), dict(d, near_errors=d["near_errors"][:-1]),
            dict(d, near_depths=[0.03, 0.01, 0.06]), dict(d, near_errors=d["near_errors"][:-1] + [0.001]),
            dict(d, near_errors=[0.5] + d["near_errors"][1:]), dict(d, near_min_fraction=1.0),
-           dict(d, near_depths=[0.01, float("nan"), 0.06])]
+           dict(d, near_depths=[0.01, float("nan"), 0.06]), dict(d, near_depths=[0.0, 5e-324, 1e-323]),
+           dict(d, near_depths=[0.01, 0.01 + 1e-9, 0.06])]
     for b in bad:
         with pytest.raises(CalibrationError) as info:
             PeakParams.from_dict(b)
