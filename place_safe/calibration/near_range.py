@@ -37,7 +37,8 @@ from typing import Sequence
 
 import numpy as np
 
-from place_safe.recovery.points import PeakParams, fit_planes
+from place_safe.calibration.points import FAILED_FIT_ERROR, frame_point_errors
+from place_safe.recovery.points import PeakParams
 from place_safe.sensor.frame import N_ZONES, Frame
 from place_safe.sensor.histogram import find_peaks
 
@@ -65,8 +66,6 @@ NEAR_LOO_MAX = 30
 NEAR_FOLDS = 10
 #: m: largest error a table may hold (a zone that far off is not a near-range effect).
 NEAR_MAX_ERROR = 0.05
-#: m: the mean point error charged for a frame whose plane cannot be fitted (as in calibration).
-FAILED_FIT_ERROR = 1.0
 
 
 def _knots(depths: np.ndarray) -> np.ndarray:
@@ -114,17 +113,6 @@ def _with_table(params: PeakParams, knots: np.ndarray, errors: np.ndarray, fract
                    near_min_fraction=float(fraction))
 
 
-def _point_errors(params: PeakParams, readings: np.ndarray, valid: np.ndarray, tn: np.ndarray,
-                  td: np.ndarray) -> np.ndarray:
-    from place_safe.evaluation.metrics import point_errors
-
-    n, d, _, ok = fit_planes(params.points(readings), valid)
-    e = np.full(len(td), FAILED_FIT_ERROR)
-    if ok.any():
-        e[ok] = point_errors(n[ok], d[ok], tn[ok], td[ok])
-    return e
-
-
 def fit_near_range(frames: Sequence[Frame], params: PeakParams, hists: np.ndarray | None = None) -> tuple[PeakParams, dict]:
     """``params`` with a near-range table fitted on ``frames`` (with ground truth; histograms (F, 9, 128) may
     be passed in), or unchanged when the frames do not support one; and a report.
@@ -165,11 +153,12 @@ def fit_near_range(frames: Sequence[Frame], params: PeakParams, hists: np.ndarra
     fold = np.empty(len(idx), dtype=int)
     fold[order] = np.arange(len(idx)) % n_folds
     scored = frame_depth > knots[0] + NEAR_MERGE  # the shallowest knot's frames would be extrapolated: not scored
-    cv = {"none": float(np.mean(_point_errors(base, pos, valid, tn, td)[scored]))}
+    cv = {"none": float(np.mean(frame_point_errors(base, pos, valid, tn, td)[scored]))}
     best: tuple[float, float, float] | None = None
+    kept: dict[float, np.ndarray] = {}  # the return mask after the weak-zone rule, per fraction
     for fraction in NEAR_MIN_FRACTIONS:
-        probe = _with_table(base, knots, np.zeros((len(knots), N_ZONES)), fraction)
-        keep = probe.drop_weak(pos, valid, heights)
+        keep = kept[fraction] = _with_table(base, knots, np.zeros((len(knots), N_ZONES)), fraction).drop_weak(
+            pos, valid, heights)
         readings = np.where(keep, pos, np.nan)
         for penalty in NEAR_PENALTIES:
             e = np.empty(len(idx))
@@ -179,7 +168,7 @@ def fit_near_range(frames: Sequence[Frame], params: PeakParams, hists: np.ndarra
                 if not _usable(table):
                     e[test] = FAILED_FIT_ERROR
                     continue
-                e[test] = _point_errors(_with_table(base, knots, table, fraction), readings[test], keep[test],
+                e[test] = frame_point_errors(_with_table(base, knots, table, fraction), readings[test], keep[test],
                                         tn[test], td[test])
             score = float(np.mean(e[scored]))
             cv[f"fraction {fraction:g}, penalty {penalty:g}"] = score
@@ -193,8 +182,7 @@ def fit_near_range(frames: Sequence[Frame], params: PeakParams, hists: np.ndarra
         report["why"] = (f"cross-validated point error {score * 1e3:.3f} mm with the table against "
                          f"{cv['none'] * 1e3:.3f} mm without")
         return base, report
-    probe = _with_table(base, knots, np.zeros((len(knots), N_ZONES)), fraction)
-    keep = probe.drop_weak(pos, valid, heights)
+    keep = kept[fraction]
     table = _fit_errors(knots, depth, err, keep, penalty)
     report["largest_error_mm"] = float(np.max(np.abs(table))) * 1e3
     if not _usable(table):

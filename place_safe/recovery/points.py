@@ -291,32 +291,38 @@ class PeakParams:
             r = r - self.near_correction(r)
         return r
 
+    @property
+    def drops_weak(self) -> bool:
+        """Whether the near-range rule drops weak zones (a table and a fraction above 0)."""
+        return bool(self.near_depths) and self.near_min_fraction > 0.0
+
     def drop_weak(self, readings: np.ndarray, valid: np.ndarray, heights: np.ndarray) -> np.ndarray:
         """The return mask (..., 9) without the zones that the near-range rule drops: in frames with a zone closer
         than the table's last depth, returns below ``near_min_fraction`` of the frame's highest (module doc)."""
-        if not (self.near_depths and self.near_min_fraction > 0.0):
+        if not self.drops_weak:
+            return valid
+        top = np.where(valid, heights, 0.0).max(axis=-1, keepdims=True)
+        weak = valid & (heights < self.near_min_fraction * top)
+        if not weak.any():  # the usual frame: no ranges needed
             return valid
         depth = self.ranges(np.where(valid, readings, np.nan)) * self.directions()[:, 2]
         with np.errstate(invalid="ignore"):
             near = (valid & (depth < self.near_depths[-1])).any(axis=-1, keepdims=True)
-        top = np.where(valid, heights, 0.0).max(axis=-1, keepdims=True)
-        return valid & ~(near & (heights < self.near_min_fraction * top))
+        return valid & ~(near & weak)
 
     def peaks(self, hists: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Readings (..., 9) in bins of histograms (..., 9, 128) with this mapping's pile-up and sub-bin
         estimator, the return mask and the saturation mask (:func:`~place_safe.sensor.histogram.find_peaks`),
         without the zones the near-range rule drops (:meth:`drop_weak`)."""
-        if not (self.near_depths and self.near_min_fraction > 0.0):
+        if not self.drops_weak:
             return find_peaks(hists, self.pileup, self.subbin, self.subbin_half_width)
-        pos, valid, saturated, heights = find_peaks(hists, self.pileup, self.subbin, self.subbin_half_width,
-                                                    heights=True)
-        keep = self.drop_weak(pos, valid, heights)
-        return np.where(keep, pos, np.nan), keep, saturated
+        pos, _, valid, saturated = self.returns(hists)
+        return pos, valid, saturated
 
     def returns(self, hists: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """:meth:`peaks` with each zone's maximum from the same pass (readings, maxima, return mask, saturation
         mask; :func:`~place_safe.sensor.histogram.find_returns`)."""
-        if not (self.near_depths and self.near_min_fraction > 0.0):
+        if not self.drops_weak:
             return find_returns(hists, self.pileup, self.subbin, self.subbin_half_width)
         pos, top, valid, saturated, heights = find_returns(hists, self.pileup, self.subbin, self.subbin_half_width,
                                                            heights=True)
