@@ -23,6 +23,9 @@ How it is fitted (:func:`fit_near_range`):
    there); the table is kept only if it beats the far-range mapping alone by :data:`NEAR_ADOPT` and
    :data:`NEAR_MIN_GAIN`.
 
+:func:`near_range_std` gives the zones' cross-validated range errors per knot, for the peak method's near-range
+uncertainty (:meth:`place_safe.recovery.estimator.Uncertainty.near_floor`).
+
 Held out on the real sweep (calibrated on the even frames, measured on the odd ones), the table took the
 2.75 and 4.25 cm frames from 8.1 and 0.17 deg to 3.3 and 0.09 deg, and the 5-40 cm frames from 0.16 to
 0.13 deg (p95 0.39 -> 0.24; README, issue 9). The other way round cross-validation rejects it: the odd
@@ -100,6 +103,57 @@ def _fit_errors(knots: np.ndarray, depth: np.ndarray, err: np.ndarray, valid: np
         hat = hat[:, :-1]
         out[:-1, z] = np.linalg.solve(hat.T @ hat + reg, hat.T @ err[m, z])
     return out
+
+
+def _knot_stds(knots: np.ndarray, depth: np.ndarray, err: np.ndarray, valid: np.ndarray) -> list[float]:
+    """RMS zone range error (m) at each knot: the errors ``err`` (F, 9) of the zones in ``valid`` (F, 9),
+    weighted by the hat function of their depth (``depth`` (F, 9), m; clipped to the knots), and 0 at the
+    last knot (from there on the far-range floor holds). A knot without data takes its neighbours'."""
+    k = len(knots)
+    m = valid & np.isfinite(depth) & np.isfinite(err) & (depth < knots[-1])
+    x = np.clip(depth[m], knots[0], knots[-1])
+    j = np.clip(np.searchsorted(knots, x, side="right") - 1, 0, k - 2)
+    t = (x - knots[j]) / (knots[j + 1] - knots[j])
+    weight = np.zeros(k)
+    square = np.zeros(k)
+    e2 = err[m] ** 2
+    np.add.at(weight, j, 1.0 - t)
+    np.add.at(weight, j + 1, t)
+    np.add.at(square, j, (1.0 - t) * e2)
+    np.add.at(square, j + 1, t * e2)
+    inner = np.arange(k - 1)
+    has = weight[:-1] > 1e-6
+    if not has.any():
+        return [0.0] * k
+    std = np.sqrt(np.interp(inner, inner[has], square[:-1][has] / weight[:-1][has]))
+    return [float(v) for v in std] + [0.0]
+
+
+def near_range_std(frames: Sequence[Frame], params: PeakParams) -> tuple[list[float], list[float], dict]:
+    """Depths (m) and the RMS zone range error (m) at each, with which ``params`` read frames closer than
+    :data:`NEAR_END`, judged on ``frames`` (with ground truth): the cross-validated errors of the table that
+    :func:`fit_near_range` fits on them (or of the far-range mapping, where it keeps none), or the errors of
+    ``params`` itself on them where those are larger (``params`` fitted on other frames: these are held out
+    for it). Empty lists where the frames hold too few near frames. For the peak method's near-range
+    uncertainty (:class:`~place_safe.recovery.estimator.Uncertainty`)."""
+    _, rep = fit_near_range(frames, params)
+    if "zone_std_mm" not in rep:
+        return [], [], {"why": rep.get("why", "no near-range errors")}
+    knots = np.asarray(rep["knots_m"])
+    cv = np.asarray(rep["zone_std_mm"]) * 1e-3
+    frames = [f for f in frames if f.truth is not None]
+    h = np.array([np.asarray(f.hists, dtype=float) for f in frames])
+    pos, valid, _ = params.peaks(h)
+    dirs = params.directions()
+    r = params.ranges(pos)
+    tn = np.array([f.truth.normal for f in frames])
+    td = np.array([f.truth.offset for f in frames])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        own = np.asarray(_knot_stds(knots, r * dirs[:, 2], r - td[:, None] / (tn @ dirs.T), valid))
+    std = np.maximum(cv, own)
+    return [float(v) for v in knots], [float(v) for v in std], {
+        "knots_mm": [float(v) * 1e3 for v in knots], "cross_validated_mm": [float(v) * 1e3 for v in cv],
+        "of_the_mapping_mm": [float(v) * 1e3 for v in own]}
 
 
 def _usable(table: np.ndarray) -> bool:
@@ -181,7 +235,17 @@ def fit_near_range(frames: Sequence[Frame], params: PeakParams, hists: np.ndarra
     if not (score <= NEAR_ADOPT * cv["none"] and cv["none"] - score >= NEAR_MIN_GAIN):
         report["why"] = (f"cross-validated point error {score * 1e3:.3f} mm with the table against "
                          f"{cv['none'] * 1e3:.3f} mm without")
+        # the far-range mapping was not fitted on these frames: its errors on them are held out already
+        report["zone_std_mm"] = [v * 1e3 for v in _knot_stds(knots, depth, err, valid)]
         return base, report
+    held = np.full(err.shape, np.nan)  # each frame's zone errors under the table fitted without it
+    for f in range(n_folds):
+        test = fold == f
+        table = _fit_errors(knots, depth[~test], err[~test], kept[fraction][~test], penalty)
+        if _usable(table):
+            r0 = depth[test] / dirs[:, 2]
+            held[test] = err[test] - _with_table(base, knots, table, fraction).near_correction(r0)
+    report["zone_std_mm"] = [v * 1e3 for v in _knot_stds(knots, depth, held, kept[fraction])]
     keep = kept[fraction]
     table = _fit_errors(knots, depth, err, keep, penalty)
     report["largest_error_mm"] = float(np.max(np.abs(table))) * 1e3
@@ -193,4 +257,4 @@ def fit_near_range(frames: Sequence[Frame], params: PeakParams, hists: np.ndarra
     return _with_table(base, knots, table, fraction), report
 
 
-__all__ = ["fit_near_range", "NEAR_END"]
+__all__ = ["fit_near_range", "near_range_std", "NEAR_END"]

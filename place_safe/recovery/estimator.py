@@ -19,7 +19,7 @@ from __future__ import annotations
 import math
 import time
 from abc import ABC, abstractmethod
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
@@ -50,8 +50,12 @@ class Uncertainty:
     floor) so the calibration frames' mean NEES per degree of freedom is 1. ``consistency_limit``
     (squared Mahalanobis distance, > 0; ``inf`` = never): ``diff`` also falls back to the peak estimate
     when the two estimates of ``(n_x, n_y, d)`` differ by more than that under their summed covariances
-    (a solution the chi-square passed but the independent peak estimate contradicts). The defaults (no
-    floor, no fallback, scale 1) are the behaviour of a missing section.
+    (a solution the chi-square passed but the independent peak estimate contradicts). ``near_depths``
+    (m, increasing, in (0, 10]) and ``near_range_std`` (m, one per depth, 0 .. :data:`NEAR_MAX_STD`): the
+    near-range term (:meth:`near_floor`; empty: none), the zones' range errors where the sensor is close
+    (the peak method's, cross-validated at calibration: :func:`place_safe.calibration.near_range.near_range_std`),
+    added to the covariance after ``scale``. The defaults (no floor, no fallback, scale 1) are the behaviour
+    of a missing section.
     """
 
     tilt_std: float = 0.0
@@ -61,6 +65,8 @@ class Uncertainty:
     offset_rel: float = 0.0
     scale: float = 1.0
     consistency_limit: float = math.inf
+    near_depths: list[float] = field(default_factory=list)
+    near_range_std: list[float] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         vals = (self.tilt_std, self.offset_std, self.tilt_range_std, self.offset_rel)
@@ -68,6 +74,15 @@ class Uncertainty:
                 or not (math.isfinite(self.scale) and self.scale > 0) or not self.consistency_limit > 0:
             raise ValueError("uncertainty needs finite floors >= 0, chi2_limit >= 0, consistency_limit > 0 and a "
                              "finite scale > 0")
+        self.near_depths = [float(v) for v in self.near_depths]
+        self.near_range_std = [float(v) for v in self.near_range_std]
+        k = len(self.near_depths)
+        if k == 1 or len(self.near_range_std) != k \
+                or not all(math.isfinite(v) and 0 < v <= 10.0 for v in self.near_depths) \
+                or not all(b > a for a, b in zip(self.near_depths, self.near_depths[1:])) \
+                or not all(math.isfinite(v) and 0 <= v <= NEAR_MAX_STD for v in self.near_range_std):
+            raise ValueError("uncertainty needs near_depths empty or 2 or more increasing depths in (0, 10] m and "
+                             f"as many near_range_std values in [0, {NEAR_MAX_STD:g}] m")
 
     def consistent(self, est: "PlaneEstimate", other: "PlaneEstimate") -> bool:
         """Whether ``est`` agrees with ``other`` within ``consistency_limit`` (True without both covariances)."""
@@ -83,32 +98,82 @@ class Uncertainty:
         return not (m2 > self.consistency_limit)
 
     def apply(self, covariance: np.ndarray, offset: float) -> np.ndarray:
-        """The reported covariance of an estimate at ``offset`` (m) whose fit gave ``covariance``."""
-        return self.scale * (np.asarray(covariance, dtype=float) + self.floor(offset))
+        """The reported covariance of an estimate at ``offset`` (m) whose fit gave ``covariance``: ``scale`` times
+        the fit's and the :meth:`floor`, plus the :meth:`near_floor` (cross-validated already, not scaled)."""
+        out = self.scale * (np.asarray(covariance, dtype=float) + self.floor(offset))
+        if self.near_depths and offset < self.near_depths[-1]:
+            out += self.near_floor(offset)
+        return out
 
     def floor(self, offset: float) -> np.ndarray:
-        """The model-error covariance (3, 3) added to an estimate at distance ``offset`` (m)."""
+        """The model-error covariance (3, 3) added to an estimate at distance ``offset`` (m) (the near-range
+        term apart)."""
         d = max(float(offset), 1e-3)
         tilt = self.tilt_std ** 2 + (self.tilt_range_std / d) ** 2
         return np.diag([tilt, tilt, self.offset_std ** 2 + (self.offset_rel * d) ** 2])
 
+    def near_floor(self, offset: float) -> np.ndarray:
+        """The near-range term (3, 3) of :meth:`floor` at distance ``offset`` (m): independent zone range errors
+        of standard deviation ``near_range_std`` (m; linear between ``near_depths``, the first value before the
+        first, none from the last on), carried through the least-squares plane of the 9 zones on a level
+        surface at that distance (:func:`zone_error_covariance`)."""
+        d = max(float(offset), 1e-3)
+        if not self.near_depths or d >= self.near_depths[-1]:
+            return np.zeros((3, 3))
+        std = float(np.interp(d, self.near_depths, self.near_range_std))
+        return std ** 2 * zone_error_covariance(d)
+
     def to_dict(self) -> dict:
+        """The JSON form; without the near-range fields when there are none (files older versions read)."""
         d = asdict(self)
         d["chi2_limit"] = None if math.isinf(self.chi2_limit) else float(self.chi2_limit)
         d["consistency_limit"] = None if math.isinf(self.consistency_limit) else float(self.consistency_limit)
+        if not self.near_depths:
+            del d["near_depths"], d["near_range_std"]
         return d
 
     @classmethod
     def from_dict(cls, d: dict) -> "Uncertainty":
         d = dict(d)
+        lists = ("near_depths", "near_range_std")
         unknown = set(d) - {"tilt_std", "offset_std", "chi2_limit", "tilt_range_std", "offset_rel", "scale",
-                            "consistency_limit"}
+                            "consistency_limit", *lists}
         if unknown:
             raise ValueError(f"unknown keys {', '.join(sorted(unknown))}")
         for key in ("chi2_limit", "consistency_limit"):
             if d.get(key, None) is None:
                 d[key] = math.inf
-        return cls(**{k: float(v) for k, v in d.items()})
+        for key in lists:
+            if not isinstance(d.get(key, []), list):
+                raise ValueError(f"{key} must be a list of numbers")
+        return cls(**{k: [float(x) for x in v] if k in lists else float(v) for k, v in d.items()})
+
+
+#: m: largest zone range error the near-range floor may hold.
+NEAR_MAX_STD = 0.05
+
+
+def zone_error_covariance(offset: float) -> np.ndarray:
+    """Covariance (3, 3) of ``(n_x, n_y, d)`` of the least-squares plane through the 9 zones' points on a level
+    surface at distance ``offset`` (m) when each zone's range has an independent error of 1 m standard
+    deviation (scale by the variance). Along zone direction ``u`` the point error's part off the plane is
+    ``u_z`` of it; the tilt entries go as ``1 / offset^2``, the offset's does not change."""
+    base = _ZONE_ERROR_COVARIANCE
+    scale = np.array([1.0 / offset, 1.0 / offset, 1.0])
+    return base * np.outer(scale, scale)
+
+
+def _zone_error_covariance_at_1m() -> np.ndarray:
+    from place_safe.sensor.zones import ZONE_DIRECTIONS
+
+    u = ZONE_DIRECTIONS
+    p = u / u[:, 2:]  # the zones' points on the level plane at 1 m
+    jac = np.column_stack([p[:, 0], p[:, 1], -np.ones(len(p))])
+    a = np.linalg.inv(jac.T @ jac)
+    return a @ jac.T @ np.diag(u[:, 2] ** 2) @ jac @ a
+
+
+_ZONE_ERROR_COVARIANCE = _zone_error_covariance_at_1m()
 
 
 def tilt_offset(plane: Plane) -> np.ndarray:

@@ -117,6 +117,16 @@ def _sweep(path):
     return _SWEEP
 
 
+_FITS: dict = {}
+
+
+def _fit_half(frames, which):
+    """fit_peak on the even (0) or odd (1) frames of the sweep, once per session."""
+    if which not in _FITS:
+        _FITS[which] = fit_peak(frames[which::2], progress=False)
+    return _FITS[which]
+
+
 # -- calibration, held out ---------------------------------------------------------------------------------
 def test_real_sweep_table_helps_held_out_close_frames_and_keeps_far_ones(sweep_path):
     """Calibrated on one half of the real sweep, measured on the other, both ways: at 2-5 cm the held-out mean
@@ -125,8 +135,9 @@ def test_real_sweep_table_helps_held_out_close_frames_and_keeps_far_ones(sweep_p
     a table, calibration says why."""
     frames = _sweep(sweep_path)
     gains = []
-    for cal, test in ((frames[0::2], frames[1::2]), (frames[1::2], frames[0::2])):
-        params, report = fit_peak(cal, progress=False)
+    for which in (0, 1):
+        test = frames[1 - which::2]
+        params, report = _fit_half(frames, which)
         near = report["near_range"]
         assert near["frames"] >= 5 and "cv_point_error_mm" in near
         if not near["adopted"]:
@@ -139,6 +150,28 @@ def test_real_sweep_table_helps_held_out_close_frames_and_keeps_far_ones(sweep_p
         a = _angles(params, far)
         assert a.mean() <= 0.25 and np.percentile(a, 95) <= 0.6
     assert max(gains) >= 1.0
+
+
+def test_real_sweep_near_range_uncertainty_is_honest_held_out(sweep_path):
+    """Calibrated on one half of the real sweep (table, floor and the near-range term from its cross-validated
+    zone errors), the other half's mean NEES per dof: at 1-5 cm at most 3 (1.8 / 0.7; with the far floor alone 42
+    and 8.7, the 1.25 and 2 cm frames 4-11 sigma off), at 5-40 cm within 0.7-1.5 (1.3 / 0.9)."""
+    from place_safe.calibration.uncertainty import fit_peak_uncertainty
+    from place_safe.evaluation.metrics import nees
+
+    frames = _sweep(sweep_path)
+    for which in (0, 1):
+        cal, test = frames[which::2], frames[1 - which::2]
+        params, _ = _fit_half(frames, which)
+        unc, report = fit_peak_uncertainty(cal, params)
+        near = report["near_range"]
+        assert unc.near_depths and unc.near_depths[-1] == NEAR_END and unc.near_range_std[-1] == 0.0
+        assert near["cross_validated_mm"][0] > near["cross_validated_mm"][-2] > 0  # worse closer
+        est = PeakEstimator(params, unc)
+        for lo, hi, bounds in ((0.01, 0.0501, (0.0, 3.0)), (0.05, 0.41, (0.7, 1.5))):
+            sel = [f for f in test if lo <= f.truth.z0 < hi]
+            value = float(np.nanmean(nees([est.estimate(f) for f in sel], [f.truth for f in sel])))
+            assert bounds[0] <= value <= bounds[1], (which, lo, value)
 
 
 def test_whole_sweep_adopts_a_table_that_ends_at_zero(sweep_path):

@@ -86,6 +86,52 @@ def test_plane_covariance_matches_the_scatter_of_fitted_planes(theta, phi, z0, s
     assert emp[2, 2] == pytest.approx(pred[2, 2], rel=0.25)
 
 
+def test_near_floor_is_the_scatter_of_planes_through_zones_with_independent_range_errors():
+    """zone_error_covariance (Monte Carlo of its own assumption: a level surface, each zone's range off by an
+    independent error along its direction, the SVD plane through the 9 points)."""
+    from place_safe.geometry import fit_plane
+    from place_safe.recovery.estimator import zone_error_covariance
+    from place_safe.sensor.zones import ZONE_DIRECTIONS
+
+    rng = np.random.default_rng(3)
+    sigma = 2e-5
+    for d in (0.02, 0.06):
+        states = []
+        for _ in range(3000):
+            r = d / ZONE_DIRECTIONS[:, 2] + rng.normal(0.0, sigma, 9)
+            plane, _ = fit_plane(r[:, None] * ZONE_DIRECTIONS)
+            states.append([plane.normal[0], plane.normal[1], plane.offset])
+        emp = np.cov(np.array(states).T)
+        pred = sigma ** 2 * zone_error_covariance(d)
+        np.testing.assert_allclose(np.diag(emp), np.diag(pred), rtol=0.1)
+        assert abs(emp[0, 1]) < 0.1 * emp[0, 0]
+
+
+def test_near_floor_between_its_depths_unscaled_and_none_from_the_last_on():
+    from place_safe.recovery.estimator import zone_error_covariance
+
+    u = Uncertainty(tilt_std=1e-3, scale=2.0, near_depths=[0.01, 0.03, 0.09], near_range_std=[2e-3, 1e-3, 0.0])
+    np.testing.assert_allclose(u.near_floor(0.02), (1.5e-3) ** 2 * zone_error_covariance(0.02))
+    np.testing.assert_allclose(u.near_floor(0.005), (2e-3) ** 2 * zone_error_covariance(0.005))  # held
+    assert not u.near_floor(0.09).any() and not u.near_floor(0.5).any()
+    cov = np.eye(3) * 1e-8
+    np.testing.assert_allclose(u.apply(cov, 0.02), 2.0 * (cov + u.floor(0.02)) + u.near_floor(0.02))
+    np.testing.assert_allclose(u.apply(cov, 0.2), 2.0 * (cov + u.floor(0.2)))
+    assert Uncertainty.from_dict(json.loads(json.dumps(u.to_dict()))) == u
+    assert "near_depths" not in Uncertainty().to_dict()  # files older versions read
+    for bad in ({"near_depths": [0.01], "near_range_std": [0.001]},
+                {"near_depths": [0.03, 0.01], "near_range_std": [0.001, 0.0]},
+                {"near_depths": [0.01, 0.03], "near_range_std": [0.001]},
+                {"near_depths": [0.01, 0.03], "near_range_std": [-0.001, 0.0]},
+                {"near_depths": [0.01, 0.03], "near_range_std": [float("nan"), 0.0]},
+                {"near_depths": [0.01, 0.03], "near_range_std": [1.0, 0.0]},
+                {"near_depths": 0.01, "near_range_std": [0.001]}):
+        cal = Calibration.from_dict({"format": "place_safe.calibration/1", "uncertainty": {"peak": bad}})
+        with pytest.raises(CalibrationError, match="uncertainty section") as info:
+            cal.uncertainty("peak")
+        assert "\n" not in str(info.value)
+
+
 def test_recovery_never_imports_the_calibration_package():
     # calibration depends on recovery (it fits its parameters), never the reverse: no import cycle
     import subprocess
