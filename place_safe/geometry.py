@@ -122,6 +122,22 @@ def fit_plane(points: np.ndarray, weights: np.ndarray | None = None) -> tuple[Pl
     return plane, rms
 
 
+#: Default tolerance of :func:`is_rotation` (largest entry of ``|R^T R - I|``): a transform computed in double
+#: precision or read from a file with 15 or more significant digits.
+ROTATION_TOL = 1e-6
+_EYE3 = np.eye(3)
+
+
+def is_rotation(r: np.ndarray, tol: float = ROTATION_TOL) -> bool:
+    """Whether the finite 3x3 array ``r`` is a proper rotation: orthonormal to ``tol`` (largest entry of
+    ``|R^T R - I|``) and of positive determinant (the triple product: numpy's determinant costs 5 us, a
+    noticeable share of reading a frame)."""
+    if float(np.abs(r.T @ r - _EYE3).max()) > tol:
+        return False
+    (a, b, c), (d, e, f), (g, h, i) = r.tolist()
+    return a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g) > 0
+
+
 def rotation_angle_between(n1: np.ndarray, n2: np.ndarray) -> float:
     """Angle between two unit vectors (rad), numerically safe near 0."""
     a = np.asarray(n1, dtype=float)

@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from place_safe.exceptions import NoPlaneError
-from place_safe.geometry import Plane, fit_plane, plane_from_pose, rotation_angle_between
+from place_safe.geometry import Plane, fit_plane, is_rotation, plane_from_pose, rotation_angle_between
 
 
 def test_plane_normalises_and_orients_towards_plus_z():
@@ -110,3 +112,14 @@ def test_rotation_angle_between():
     assert rotation_angle_between([0, 0, 1], [1, 0, 0]) == pytest.approx(np.pi / 2)
     small = np.array([np.sin(1e-7), 0.0, np.cos(1e-7)])
     assert rotation_angle_between([0, 0, 1], small) == pytest.approx(1e-7, rel=1e-6)
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.lists(st.floats(-1.0, 1.0), min_size=4, max_size=4).filter(lambda q: np.linalg.norm(q) > 0.1))
+def test_is_rotation_accepts_rotations_and_nothing_else(q):
+    r = Rotation.from_quat(q).as_matrix()
+    assert is_rotation(r)
+    assert not is_rotation(-r)  # a reflection: orthonormal, determinant -1
+    assert not is_rotation(r @ np.diag([1.0, 1.0, -1.0]))
+    assert not is_rotation(1.01 * r) and is_rotation(1.0001 * r, tol=1e-3)
+    assert not is_rotation(np.zeros((3, 3)))

@@ -65,6 +65,7 @@ import numpy as np
 
 from place_safe.config import Bound, check_dataclass, dataclass_from_dict, read_json, write_json
 from place_safe.exceptions import ConfigError
+from place_safe.geometry import is_rotation
 from place_safe.fusion.plane_filter import FusedPlane
 from place_safe.placement.speed import approach_speed
 
@@ -228,8 +229,7 @@ class RobotState:
                 return f"robot state {name} is not a 4x4 pose of numbers"
             if T.shape != (4, 4) or not np.all(np.isfinite(T)):
                 return f"robot state {name} is not a finite 4x4 pose"
-            R = T[:3, :3]
-            if np.abs(R.T @ R - np.eye(3)).max() > 1e-6 or np.linalg.det(R) <= 0:
+            if not is_rotation(T[:3, :3]):
                 return f"robot state {name} has no proper rotation"
         if _number(self.time) is None:
             return "robot time is not a finite number"

@@ -40,6 +40,7 @@ import numpy as np
 
 from place_safe.config import Bound, check_dataclass, dataclass_from_dict, read_json, write_json
 from place_safe.exceptions import ConfigError, RobotFault
+from place_safe.geometry import is_rotation
 from place_safe.robot.tool import ToolFrames
 
 _TWO_PI = 2.0 * math.pi
@@ -111,8 +112,7 @@ def check_pose(pose: Any, what: str = "pose") -> np.ndarray:
         raise ValueError(f"{what} must be a 4x4 homogeneous matrix; got shape {T.shape}")
     if not np.all(np.isfinite(T)):
         raise ValueError(f"{what} contains NaN or inf; expected a finite 4x4 transform")
-    R = T[:3, :3]
-    if np.abs(R.T @ R - np.eye(3)).max() > 1e-6 or np.linalg.det(R) < 0:
+    if not is_rotation(T[:3, :3]):
         raise ValueError(f"{what} rotation part is not a proper rotation (R^T R != I or det < 0)")
     if np.abs(T[3] - np.array([0.0, 0.0, 0.0, 1.0])).max() > 1e-9:
         raise ValueError(f"{what} last row must be [0, 0, 0, 1]; got {T[3].tolist()}")

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from place_safe.exceptions import ConfigError
+from place_safe.geometry import is_rotation
 
 
 def pose_from_xyz_rpy(xyz: Any, rpy: Any = (0.0, 0.0, 0.0)) -> np.ndarray:
@@ -39,8 +40,7 @@ def check_transform(T: Any, what: str) -> np.ndarray:
         raise ConfigError(f"{what} must be a 4x4 matrix of numbers") from None
     if M.shape != (4, 4) or not np.all(np.isfinite(M)):
         raise ConfigError(f"{what} must be a finite 4x4 matrix; got shape {M.shape}")
-    R = M[:3, :3]
-    if np.abs(R.T @ R - np.eye(3)).max() > 1e-6 or np.linalg.det(R) <= 0:
+    if not is_rotation(M[:3, :3]):
         raise ConfigError(f"{what} rotation is not a proper rotation matrix")
     if np.abs(M[3] - (0.0, 0.0, 0.0, 1.0)).max() > 1e-9:
         raise ConfigError(f"{what} last row must be [0, 0, 0, 1]")

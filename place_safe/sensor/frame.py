@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from place_safe.exceptions import FrameError, NoPlaneError
-from place_safe.geometry import Plane, plane_from_pose
+from place_safe.geometry import Plane, is_rotation, plane_from_pose
 from place_safe.sensor.zones import CENTRE, CORNER, EDGE, N_BINS, N_ZONES, ZONE_DIRECTIONS, ZONE_KIND, ZONE_RECTS  # noqa: F401
 
 
@@ -59,15 +59,6 @@ def _number(value: Any, name: str) -> float:
 POSE_ORTHONORMAL_TOL = 1e-3
 
 
-_EYE3 = np.eye(3)
-
-
-def _det3(r: list) -> float:
-    """Determinant of a 3x3 matrix given as nested lists (the triple product; numpy's costs 5 us a frame)."""
-    (a, b, c), (d, e, f), (g, h, i) = r
-    return a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
-
-
 def _truth(d: dict) -> Plane | None:
     """The ground-truth plane of a frame dict (None without one); raises ValueError/NoPlaneError if it is not
     a plane in front of the sensor (``n_z > 0``, ``d > 0``, finite; a pose must be a rigid transform)."""
@@ -84,8 +75,7 @@ def _truth(d: dict) -> Plane | None:
         pose = np.asarray(d["pose"], dtype=float)
         if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
             raise ValueError("pose must be a finite 4x4 matrix")
-        r = pose[:3, :3]
-        if np.max(np.abs(r.T @ r - _EYE3)) > POSE_ORTHONORMAL_TOL or _det3(r.tolist()) <= 0:
+        if not is_rotation(pose[:3, :3], POSE_ORTHONORMAL_TOL):
             raise ValueError("pose is not a rigid transform (its 3x3 block is not a rotation)")
         truth = plane_from_pose(pose, _number(d["dist_to_plane"], "dist_to_plane"))
     else:
