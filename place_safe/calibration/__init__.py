@@ -107,7 +107,7 @@ class Calibration:
             if method is None:
                 return {k: Uncertainty.from_dict(v) for k, v in sec.items()}
             return Uncertainty.from_dict(sec[method]) if method in sec else Uncertainty()
-        except (TypeError, ValueError, AttributeError) as exc:
+        except (TypeError, ValueError, AttributeError, OverflowError) as exc:
             raise CalibrationError(f"uncertainty section is malformed: {exc}") from None
 
     def forward(self) -> ForwardParams:

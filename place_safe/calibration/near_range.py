@@ -24,7 +24,7 @@ How it is fitted (:func:`fit_near_range`):
    :data:`NEAR_MIN_GAIN`.
 
 :func:`near_range_std` gives the zones' cross-validated range errors per knot, for the peak method's near-range
-uncertainty (:meth:`place_safe.recovery.estimator.Uncertainty.near_floor`).
+uncertainty (:meth:`place_safe.recovery.estimator.Uncertainty.near_std`).
 
 Held out on the real sweep (calibrated on the even frames, measured on the odd ones), the table took the
 2.75 and 4.25 cm frames from 8.1 and 0.17 deg to 3.3 and 0.09 deg, and the 5-40 cm frames from 0.16 to
@@ -235,10 +235,10 @@ def fit_near_range(frames: Sequence[Frame], params: PeakParams, hists: np.ndarra
     if not (score <= NEAR_ADOPT * cv["none"] and cv["none"] - score >= NEAR_MIN_GAIN):
         report["why"] = (f"cross-validated point error {score * 1e3:.3f} mm with the table against "
                          f"{cv['none'] * 1e3:.3f} mm without")
-        # the far-range mapping was not fitted on these frames: its errors on them are held out already
+        # the far-range mapping's errors (fitted on frames from 3 cm, so in sample from there to the table's end)
         report["zone_std_mm"] = [v * 1e3 for v in _knot_stds(knots, depth, err, valid)]
         return base, report
-    held = np.full(err.shape, np.nan)  # each frame's zone errors under the table fitted without it
+    held = err.copy()  # each frame's zone errors under the table fitted without it (none where that one failed)
     for f in range(n_folds):
         test = fold == f
         table = _fit_errors(knots, depth[~test], err[~test], kept[fraction][~test], penalty)

@@ -12,13 +12,15 @@ mean normalised estimation error squared (NEES, per degree of freedom; about 1 w
 honest) 1 on these frames. NEES is reported before and after.
 
 For ``peak`` closer than the near-range table's end (9 cm) the zones' range errors grow by orders of
-magnitude (the real sweep: 0.1 mm at 8 cm, 2 mm at 2 cm, 4-6 mm at 1 cm) and the 9 zones' lever arm
-shrinks with the distance: no floor of the far-range form describes both. There a near-range term carries
-the zones' cross-validated range errors through the plane fit
-(:meth:`~place_safe.recovery.estimator.Uncertainty.near_floor`,
-:func:`~place_safe.calibration.near_range.near_range_std`), and the floor and scale are fitted on the
-frames beyond it. Held out on the real sweep's halves the 1-5 cm mean NEES per dof went from 42 / 8.7 to
-1.8 / 0.7, the 5-40 cm one from 1.28 / 1.08 to 1.32 / 0.93.
+magnitude (the real sweep: 0.1 mm at 8 cm, 2 mm at 2 cm, 4-6 mm at 1 cm) and the zones' lever arm
+shrinks with the distance: no floor of the far-range form describes both. There each zone's error in the
+plane fit's covariance is at least the zones' cross-validated range error at that distance
+(:meth:`~place_safe.recovery.estimator.Uncertainty.near_std`,
+:func:`~place_safe.calibration.near_range.near_range_std`,
+:func:`~place_safe.recovery.points.plane_covariance`), and the floor and scale are fitted on the frames
+beyond it. Held out on the real sweep's halves the 1-5 cm mean NEES per dof went from 42 / 8.7 to 16 / 4.4
+and the 5-40 cm one from 1.28 / 1.07 to 1.34 / 0.98. The 1.25 cm frame stays 7 sigma off: its errors
+exceed what its zones' range errors explain, a distortion that fits a tilted plane.
 
 For ``diff``, a frame whose diff and peak estimates contradict each other (:data:`CONSISTENCY_LIMIT`)
 falls back to the peak estimate; so does a frame whose residual is above the chi-square limit
@@ -34,8 +36,6 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import replace
-
-from scipy.optimize import brentq
 
 import numpy as np
 
@@ -87,24 +87,14 @@ def fit_floor(estimates: Sequence[PlaneEstimate], truths: Sequence, base: Uncert
     err = np.array([r[0] for r in rows])
     cov = np.array([r[1] for r in rows])
     d = np.maximum(np.array([r[2] for r in rows]), 1e-3)
-    near = np.array([base.near_floor(dd) for dd in d])  # ``base``'s near-range term, cross-validated already
     one = np.ones(len(d))
-    t0, t1 = _fit_two(err[:, :2], (cov + near)[:, :2, :2], (one, 1.0 / d ** 2))
-    o0, o1 = _fit_two(err[:, 2:], (cov + near)[:, 2:, 2:], (one, d ** 2))
+    t0, t1 = _fit_two(err[:, :2], cov[:, :2, :2], (one, 1.0 / d ** 2))
+    o0, o1 = _fit_two(err[:, 2:], cov[:, 2:, 2:], (one, d ** 2))
     unc = replace(base, tilt_std=math.sqrt(t0), tilt_range_std=math.sqrt(t1), offset_std=math.sqrt(o0),
                   offset_rel=math.sqrt(o1))
-    fitted = cov + np.array([unc.floor(dd) for dd in d])
-
-    def mean_nees(scale: float) -> float:
-        return float(np.mean([e @ np.linalg.solve(scale * c + n, e) for e, c, n in zip(err, fitted, near)]) / 3.0)
-
     before = float(np.mean([e @ np.linalg.solve(c, e) for e, c in zip(err, cov)]) / 3.0)
-    ml = mean_nees(1.0)
-    # the scale that makes the mean NEES per dof 1 on these frames (it falls as the scale grows)
-    lo, hi = 0.1, 10.0
-    scale = lo if mean_nees(lo) <= 1.0 else hi if mean_nees(hi) >= 1.0 else \
-        brentq(lambda s: mean_nees(s) - 1.0, lo, hi, xtol=1e-6)
-    unc = replace(unc, scale=float(scale))
+    ml = float(np.mean([e @ np.linalg.solve(c + unc.floor(dd), e) for e, c, dd in zip(err, cov, d)]) / 3.0)
+    unc = replace(unc, scale=float(np.clip(ml, 0.1, 10.0)))  # mean NEES per dof 1 on these frames
     after = float(np.mean([e @ np.linalg.solve(unc.apply(c, dd), e) for e, c, dd in zip(err, cov, d)]) / 3.0)
     return unc, {"frames": len(rows), "tilt_std_deg": math.degrees(unc.tilt_std), "scale": unc.scale,
                  "nees_per_dof_maximum_likelihood": ml,
@@ -156,9 +146,9 @@ def fit_peak_uncertainty(frames: Sequence[Frame], peak_params, min_range: float 
     Why not closer frames: the mapping is not fitted there and its errors are of another kind (the real
     sweep at 0.5-2 cm: 10-60 deg). With them in, the floor's two terms and the scale could describe neither
     regime: held out at 5-40 cm the NEES per dof was 0.3-0.4 (covariances 3x too large), at 1-5 cm 5-8.
-    Those frames get the near-range term instead (module doc); where there is one, the floor and scale are
-    fitted on the frames beyond its last depth. The report's ``near_range`` holds the term's errors per depth
-    and the mean NEES per dof of the closer frames with it (in sample for the floor; the term is
+    Those frames get the zones' near-range errors instead (module doc); where there are some, the floor and
+    scale are fitted on the frames beyond their last depth. The report's ``near_range`` holds the errors per
+    depth and the mean NEES per dof of the closer frames with them (in sample for the floor; the errors are
     cross-validated)."""
     from place_safe.calibration.points import MIN_CALIBRATION_RANGE
     from place_safe.recovery.peak import PeakEstimator

@@ -52,10 +52,11 @@ class Uncertainty:
     when the two estimates of ``(n_x, n_y, d)`` differ by more than that under their summed covariances
     (a solution the chi-square passed but the independent peak estimate contradicts). ``near_depths``
     (m, increasing, in (0, 10]) and ``near_range_std`` (m, one per depth, 0 .. :data:`NEAR_MAX_STD`): the
-    near-range term (:meth:`near_floor`; empty: none), the zones' range errors where the sensor is close
-    (the peak method's, cross-validated at calibration: :func:`place_safe.calibration.near_range.near_range_std`),
-    added to the covariance after ``scale``. The defaults (no floor, no fallback, scale 1) are the behaviour
-    of a missing section.
+    zones' range errors where the sensor is close (:meth:`near_std`; empty: none), cross-validated at
+    calibration (:func:`place_safe.calibration.near_range.near_range_std`); the peak method fits its plane's
+    covariance with each zone's error at least that large
+    (:func:`~place_safe.recovery.points.plane_covariance`). The defaults (no floor, no fallback, scale 1) are
+    the behaviour of a missing section.
     """
 
     tilt_std: float = 0.0
@@ -98,30 +99,25 @@ class Uncertainty:
         return not (m2 > self.consistency_limit)
 
     def apply(self, covariance: np.ndarray, offset: float) -> np.ndarray:
-        """The reported covariance of an estimate at ``offset`` (m) whose fit gave ``covariance``: ``scale`` times
-        the fit's and the :meth:`floor`, plus the :meth:`near_floor` (cross-validated already, not scaled)."""
-        out = self.scale * (np.asarray(covariance, dtype=float) + self.floor(offset))
-        if self.near_depths and offset < self.near_depths[-1]:
-            out += self.near_floor(offset)
-        return out
+        """The reported covariance of an estimate at ``offset`` (m) whose fit gave ``covariance``."""
+        return self.scale * (np.asarray(covariance, dtype=float) + self.floor(offset))
 
     def floor(self, offset: float) -> np.ndarray:
-        """The model-error covariance (3, 3) added to an estimate at distance ``offset`` (m) (the near-range
-        term apart)."""
+        """The model-error covariance (3, 3) added to an estimate at distance ``offset`` (m)."""
         d = max(float(offset), 1e-3)
         tilt = self.tilt_std ** 2 + (self.tilt_range_std / d) ** 2
         return np.diag([tilt, tilt, self.offset_std ** 2 + (self.offset_rel * d) ** 2])
 
-    def near_floor(self, offset: float) -> np.ndarray:
-        """The near-range term (3, 3) of :meth:`floor` at distance ``offset`` (m): independent zone range errors
-        of standard deviation ``near_range_std`` (m; linear between ``near_depths``, the first value before the
-        first, none from the last on), carried through the least-squares plane of the 9 zones on a level
-        surface at that distance (:func:`zone_error_covariance`)."""
-        d = max(float(offset), 1e-3)
-        if not self.near_depths or d >= self.near_depths[-1]:
-            return np.zeros((3, 3))
-        std = float(np.interp(d, self.near_depths, self.near_range_std))
-        return std ** 2 * zone_error_covariance(d)
+    def near_std(self, depth: np.ndarray) -> np.ndarray:
+        """The zones' range error (m, a standard deviation) at ``depth`` (m, along the optical axis; any shape):
+        ``near_range_std``, linear between ``near_depths``, the first value before the first, 0 from the last on,
+        everywhere without them, and where the depth is not a number."""
+        depth = np.asarray(depth, dtype=float)
+        if not self.near_depths:
+            return np.zeros_like(depth)
+        with np.errstate(invalid="ignore"):
+            near = depth < self.near_depths[-1]
+        return np.where(near, np.interp(np.where(near, depth, 0.0), self.near_depths, self.near_range_std), 0.0)
 
     def to_dict(self) -> dict:
         """The JSON form; without the near-range fields when there are none (files older versions read)."""
@@ -144,36 +140,17 @@ class Uncertainty:
             if d.get(key, None) is None:
                 d[key] = math.inf
         for key in lists:
-            if not isinstance(d.get(key, []), list):
+            v = d.get(key, [])
+            if not isinstance(v, list) or any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in v):
                 raise ValueError(f"{key} must be a list of numbers")
-        return cls(**{k: [float(x) for x in v] if k in lists else float(v) for k, v in d.items()})
+        try:
+            return cls(**{k: [float(x) for x in v] if k in lists else float(v) for k, v in d.items()})
+        except OverflowError:
+            raise ValueError("a value is too large for a number") from None
 
 
-#: m: largest zone range error the near-range floor may hold.
+#: m: largest zone range error the near-range term may hold.
 NEAR_MAX_STD = 0.05
-
-
-def zone_error_covariance(offset: float) -> np.ndarray:
-    """Covariance (3, 3) of ``(n_x, n_y, d)`` of the least-squares plane through the 9 zones' points on a level
-    surface at distance ``offset`` (m) when each zone's range has an independent error of 1 m standard
-    deviation (scale by the variance). Along zone direction ``u`` the point error's part off the plane is
-    ``u_z`` of it; the tilt entries go as ``1 / offset^2``, the offset's does not change."""
-    base = _ZONE_ERROR_COVARIANCE
-    scale = np.array([1.0 / offset, 1.0 / offset, 1.0])
-    return base * np.outer(scale, scale)
-
-
-def _zone_error_covariance_at_1m() -> np.ndarray:
-    from place_safe.sensor.zones import ZONE_DIRECTIONS
-
-    u = ZONE_DIRECTIONS
-    p = u / u[:, 2:]  # the zones' points on the level plane at 1 m
-    jac = np.column_stack([p[:, 0], p[:, 1], -np.ones(len(p))])
-    a = np.linalg.inv(jac.T @ jac)
-    return a @ jac.T @ np.diag(u[:, 2] ** 2) @ jac @ a
-
-
-_ZONE_ERROR_COVARIANCE = _zone_error_covariance_at_1m()
 
 
 def tilt_offset(plane: Plane) -> np.ndarray:

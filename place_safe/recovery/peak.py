@@ -21,8 +21,9 @@ Per zone, vectorised over zones (and over frames in :func:`place_safe.sensor.his
    the SVD least-squares fit of the zones with a return (3 or more needed).
 
 ``residual`` of the estimate: RMS perpendicular distance (m) of the zone points from the plane;
-``covariance``: the SVD fit's (:func:`~place_safe.recovery.points.plane_covariance`) plus the
-calibrated floor (:class:`~place_safe.recovery.estimator.Uncertainty`).
+``covariance``: the SVD fit's (:func:`~place_safe.recovery.points.plane_covariance`; closer than the near-range
+table's end, each zone's error at least the calibrated near-range one) plus the calibrated floor
+(:class:`~place_safe.recovery.estimator.Uncertainty`).
 Histograms clipped at the 24-bit maximum, or frames flagged ``saturated`` in ``extra`` /
 ``extra["meta"]``, give no plane: a clipped peak has no usable position.
 """
@@ -76,7 +77,8 @@ class PeakEstimator(Estimator):
                                "a plane needs 3 or more")
         points = self.params.points(pos)
         plane, rms = plane_through(points, valid)
-        cov = self.uncertainty.apply(plane_covariance(points, valid, plane), plane.offset)
+        near = self.uncertainty.near_std(points[:, 2]) if self.uncertainty.near_depths else 0.0  # per zone
+        cov = self.uncertainty.apply(plane_covariance(points, valid, plane, near), plane.offset)
         return PlaneEstimate(plane, residual=rms, covariance=cov, method_used=self.name)
 
 

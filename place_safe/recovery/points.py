@@ -381,12 +381,16 @@ def _determines_plane(s: np.ndarray, n: np.ndarray, d) -> np.ndarray:
     return (s[..., 1] > 1e-9 * np.maximum(s[..., 0], 1e-30)) & (n[..., 2] > 1e-6) & (d > 0)
 
 
-def plane_covariance(points: np.ndarray, valid: np.ndarray, plane: Plane) -> np.ndarray:
+def plane_covariance(points: np.ndarray, valid: np.ndarray, plane: Plane, range_std: float | np.ndarray = 0.0) -> np.ndarray:
     """Covariance (3, 3) of ``(n_x, n_y, d)`` of a least-squares plane through points (N, 3) with mask (N,).
 
     The perpendicular residuals ``n . p - d`` are linearised in the normal's x and y components (``n_z``
     follows from unit length) and the offset; their variance is estimated from the fit itself
-    (sum of squares over ``N - 3``; zero with exactly 3 points, which fit any plane).
+    (sum of squares over ``N - 3``; zero with exactly 3 points, which fit any plane). ``range_std`` (m, one
+    value or one per point): a known error of each point's range (along its direction from the origin; the
+    peak method's zone errors at near range, :meth:`~place_safe.recovery.estimator.Uncertainty.near_std`).
+    Each point's residual variance is then the larger of the fit's and that error's share off the plane,
+    carried through the fit point by point (the points actually used, along their own directions).
     """
     p = np.asarray(points, dtype=float)[np.asarray(valid, dtype=bool)]
     n = plane.normal
@@ -395,7 +399,16 @@ def plane_covariance(points: np.ndarray, valid: np.ndarray, plane: Plane) -> np.
     res = p @ n - plane.offset
     dof = len(p) - 3
     sigma2 = float(res @ res) / dof if dof > 0 else 0.0
-    return sigma2 * _inverse(jac.T @ jac)
+    inverse = _inverse(jac.T @ jac)
+    std = np.asarray(range_std, dtype=float)
+    if std.ndim:
+        std = std[np.asarray(valid, dtype=bool)] if std.shape == np.shape(valid) else std
+    if not np.any(std > 0.0):
+        return sigma2 * inverse
+    with np.errstate(invalid="ignore", divide="ignore"):
+        off_plane = (p @ n) / np.sqrt(np.einsum("ij,ij->i", p, p))  # cosine of each point's ray with the normal
+    var = np.maximum(sigma2, np.nan_to_num((std * off_plane) ** 2))
+    return inverse @ (jac.T * var) @ jac @ inverse
 
 
 def _inverse(a: np.ndarray) -> np.ndarray:

@@ -86,37 +86,42 @@ def test_plane_covariance_matches_the_scatter_of_fitted_planes(theta, phi, z0, s
     assert emp[2, 2] == pytest.approx(pred[2, 2], rel=0.25)
 
 
-def test_near_floor_is_the_scatter_of_planes_through_zones_with_independent_range_errors():
-    """zone_error_covariance (Monte Carlo of its own assumption: a level surface, each zone's range off by an
-    independent error along its direction, the SVD plane through the 9 points)."""
+@pytest.mark.parametrize("z0, theta, zones", [(0.02, 0.0, range(9)), (0.05, 0.3, range(9)), (0.03, 0.1, (0, 1, 2, 3, 6))])
+def test_plane_covariance_with_range_errors_is_the_scatter_of_fitted_planes(z0, theta, zones):
+    """plane_covariance with a known range error (Monte Carlo of its own assumption: each zone's range off by
+    an independent error along its direction, the SVD plane through the zones used). Each zone's variance is
+    the larger of the fit's estimate and the known one, so the prediction is at least the scatter and not far
+    above it; with zones missing it follows the points actually used."""
     from place_safe.geometry import fit_plane
-    from place_safe.recovery.estimator import zone_error_covariance
     from place_safe.sensor.zones import ZONE_DIRECTIONS
 
     rng = np.random.default_rng(3)
     sigma = 2e-5
-    for d in (0.02, 0.06):
-        states = []
-        for _ in range(3000):
-            r = d / ZONE_DIRECTIONS[:, 2] + rng.normal(0.0, sigma, 9)
-            plane, _ = fit_plane(r[:, None] * ZONE_DIRECTIONS)
-            states.append([plane.normal[0], plane.normal[1], plane.offset])
-        emp = np.cov(np.array(states).T)
-        pred = sigma ** 2 * zone_error_covariance(d)
-        np.testing.assert_allclose(np.diag(emp), np.diag(pred), rtol=0.1)
-        assert abs(emp[0, 1]) < 0.1 * emp[0, 0]
+    truth = Plane.from_angles(theta, 0.7, z0)
+    used = np.zeros(9, dtype=bool)
+    used[list(zones)] = True
+    r = truth.offset / (ZONE_DIRECTIONS @ truth.normal)
+    states, covs = [], []
+    for _ in range(2000):
+        pts = (r + rng.normal(0.0, sigma, 9))[:, None] * ZONE_DIRECTIONS
+        plane, _ = fit_plane(pts[used])
+        states.append([plane.normal[0], plane.normal[1], plane.offset])
+        covs.append(plane_covariance(pts, used, plane, np.full(9, sigma)))
+    emp = np.diag(np.cov(np.array(states).T))
+    pred = np.diag(np.mean(covs, axis=0))
+    assert np.all(pred >= 0.9 * emp) and np.all(pred <= 1.6 * emp), (pred / emp)
+    # without a known error: the fit's own estimate alone, as before
+    plain = plane_covariance(pts, used, plane)
+    assert np.allclose(plain, plane_covariance(pts, used, plane, 0.0))
 
 
-def test_near_floor_between_its_depths_unscaled_and_none_from_the_last_on():
-    from place_safe.recovery.estimator import zone_error_covariance
-
-    u = Uncertainty(tilt_std=1e-3, scale=2.0, near_depths=[0.01, 0.03, 0.09], near_range_std=[2e-3, 1e-3, 0.0])
-    np.testing.assert_allclose(u.near_floor(0.02), (1.5e-3) ** 2 * zone_error_covariance(0.02))
-    np.testing.assert_allclose(u.near_floor(0.005), (2e-3) ** 2 * zone_error_covariance(0.005))  # held
-    assert not u.near_floor(0.09).any() and not u.near_floor(0.5).any()
+def test_near_std_between_its_depths_held_before_and_none_from_the_last_on():
+    u = Uncertainty(near_depths=[0.01, 0.03, 0.09], near_range_std=[2e-3, 1e-3, 0.0])
+    np.testing.assert_allclose(u.near_std(np.array([0.005, 0.01, 0.02, 0.06, 0.09, 0.5, np.nan])),
+                               [2e-3, 2e-3, 1.5e-3, 0.5e-3, 0.0, 0.0, 0.0])
+    assert not Uncertainty().near_std(np.full(9, 0.01)).any()
     cov = np.eye(3) * 1e-8
-    np.testing.assert_allclose(u.apply(cov, 0.02), 2.0 * (cov + u.floor(0.02)) + u.near_floor(0.02))
-    np.testing.assert_allclose(u.apply(cov, 0.2), 2.0 * (cov + u.floor(0.2)))
+    np.testing.assert_allclose(u.apply(cov, 0.02), cov + u.floor(0.02))  # the term acts in the fit, not here
     assert Uncertainty.from_dict(json.loads(json.dumps(u.to_dict()))) == u
     assert "near_depths" not in Uncertainty().to_dict()  # files older versions read
     for bad in ({"near_depths": [0.01], "near_range_std": [0.001]},
@@ -125,7 +130,10 @@ def test_near_floor_between_its_depths_unscaled_and_none_from_the_last_on():
                 {"near_depths": [0.01, 0.03], "near_range_std": [-0.001, 0.0]},
                 {"near_depths": [0.01, 0.03], "near_range_std": [float("nan"), 0.0]},
                 {"near_depths": [0.01, 0.03], "near_range_std": [1.0, 0.0]},
-                {"near_depths": 0.01, "near_range_std": [0.001]}):
+                {"near_depths": 0.01, "near_range_std": [0.001]},
+                {"near_depths": [True, 2], "near_range_std": [0.001, 0.0]},
+                {"near_depths": [0.01, 10 ** 400], "near_range_std": [0.001, 0.0]},
+                {"tilt_std": 10 ** 400}):
         cal = Calibration.from_dict({"format": "place_safe.calibration/1", "uncertainty": {"peak": bad}})
         with pytest.raises(CalibrationError, match="uncertainty section") as info:
             cal.uncertainty("peak")
