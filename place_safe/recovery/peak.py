@@ -77,7 +77,9 @@ class PeakEstimator(Estimator):
                                "a plane needs 3 or more")
         points = self.params.points(pos)
         plane, rms = plane_through(points, valid)
-        near = self.uncertainty.near_std(points[:, 2]) if self.uncertainty.near_depths else 0.0  # per zone
+        near = 0.0  # each zone's calibrated range error where any zone is closer than the near-range errors' end
+        if self.uncertainty.near_depths and points[valid, 2].min() < self.uncertainty.near_depths[-1]:
+            near = self.uncertainty.near_std(points[:, 2])
         cov = self.uncertainty.apply(plane_covariance(points, valid, plane, near), plane.offset)
         return PlaneEstimate(plane, residual=rms, covariance=cov, method_used=self.name)
 

@@ -400,6 +400,8 @@ def plane_covariance(points: np.ndarray, valid: np.ndarray, plane: Plane, range_
     dof = len(p) - 3
     sigma2 = float(res @ res) / dof if dof > 0 else 0.0
     inverse = _inverse(jac.T @ jac)
+    if np.ndim(range_std) == 0 and not range_std > 0.0:  # the usual call: no known error
+        return sigma2 * inverse
     std = np.asarray(range_std, dtype=float)
     if std.ndim:
         std = std[np.asarray(valid, dtype=bool)] if std.shape == np.shape(valid) else std
