@@ -19,8 +19,8 @@ plane fit's covariance is at least the zones' cross-validated range error at tha
 :func:`~place_safe.calibration.near_range.near_range_std`,
 :func:`~place_safe.recovery.points.plane_covariance`), and the floor and scale are fitted on the frames
 beyond it. Held out on the real sweep's halves the 1-5 cm mean NEES per dof went from 42 / 8.7 to 16 / 4.4
-and the 5-40 cm one from 1.28 / 1.07 to 1.34 / 0.98. The 1.25 cm frame stays 7 sigma off: its errors
-exceed what its zones' range errors explain, a distortion that fits a tilted plane.
+and the 5-40 cm one from 1.28 / 1.07 to 1.34 / 0.98. The 1.25 cm frame stays 7 sigma off: its zones' errors
+are correlated (a distortion that looks like a tilt), which independent zone errors do not describe.
 
 For ``diff``, a frame whose diff and peak estimates contradict each other (:data:`CONSISTENCY_LIMIT`)
 falls back to the peak estimate; so does a frame whose residual is above the chi-square limit
