@@ -84,6 +84,14 @@ def _knots(depths: np.ndarray) -> np.ndarray:
     return np.array(knots + [NEAR_END])
 
 
+def _hat(knots: np.ndarray, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Where depths (m, clipped to the knots) fall among the knots: the knot index ``j`` at or below each and
+    the fraction ``t`` of the way to the next (hat-function weights ``1 - t`` on knot ``j``, ``t`` on ``j + 1``)."""
+    x = np.clip(depth, knots[0], knots[-1])
+    j = np.clip(np.searchsorted(knots, x, side="right") - 1, 0, len(knots) - 2)
+    return j, (x - knots[j]) / (knots[j + 1] - knots[j])
+
+
 def _fit_errors(knots: np.ndarray, depth: np.ndarray, err: np.ndarray, valid: np.ndarray,
                 penalty: float) -> np.ndarray:
     """Per-zone errors (K, 9) at the knots: least squares on the hat functions of the knots with a
@@ -94,12 +102,10 @@ def _fit_errors(knots: np.ndarray, depth: np.ndarray, err: np.ndarray, valid: np
     reg = penalty * diff2.T @ diff2 + 1e-9 * np.eye(k - 1)
     for z in range(N_ZONES):
         m = valid[:, z] & np.isfinite(depth[:, z]) & (depth[:, z] < NEAR_END)
-        x = np.clip(depth[m, z], knots[0], knots[-1])
-        j = np.clip(np.searchsorted(knots, x, side="right") - 1, 0, k - 2)
-        t = (x - knots[j]) / (knots[j + 1] - knots[j])
-        hat = np.zeros((len(x), k))
-        hat[np.arange(len(x)), j] = 1.0 - t
-        hat[np.arange(len(x)), j + 1] = t
+        j, t = _hat(knots, depth[m, z])
+        hat = np.zeros((len(j), k))
+        hat[np.arange(len(j)), j] = 1.0 - t
+        hat[np.arange(len(j)), j + 1] = t
         hat = hat[:, :-1]
         out[:-1, z] = np.linalg.solve(hat.T @ hat + reg, hat.T @ err[m, z])
     return out
@@ -111,9 +117,7 @@ def _knot_stds(knots: np.ndarray, depth: np.ndarray, err: np.ndarray, valid: np.
     last knot (from there on the far-range floor holds). A knot without data takes its neighbours'."""
     k = len(knots)
     m = valid & np.isfinite(depth) & np.isfinite(err) & (depth < knots[-1])
-    x = np.clip(depth[m], knots[0], knots[-1])
-    j = np.clip(np.searchsorted(knots, x, side="right") - 1, 0, k - 2)
-    t = (x - knots[j]) / (knots[j + 1] - knots[j])
+    j, t = _hat(knots, depth[m])
     weight = np.zeros(k)
     square = np.zeros(k)
     e2 = err[m] ** 2
@@ -136,13 +140,13 @@ def near_range_std(frames: Sequence[Frame], params: PeakParams) -> tuple[list[fl
     ``params`` itself on them where those are larger (``params`` fitted on other frames: these are held out
     for it). Empty lists where the frames hold too few near frames. For the peak method's near-range
     uncertainty (:class:`~place_safe.recovery.estimator.Uncertainty`)."""
-    _, rep = fit_near_range(frames, params)
+    frames = [f for f in frames if f.truth is not None]
+    h = np.array([np.asarray(f.hists, dtype=float) for f in frames]) if frames else None
+    _, rep = fit_near_range(frames, params, h)
     if "zone_std_mm" not in rep:
         return [], [], {"why": rep.get("why", "no near-range errors")}
     knots = np.asarray(rep["knots_m"])
     cv = np.asarray(rep["zone_std_mm"]) * 1e-3
-    frames = [f for f in frames if f.truth is not None]
-    h = np.array([np.asarray(f.hists, dtype=float) for f in frames])
     pos, valid, _ = params.peaks(h)
     dirs = params.directions()
     r = params.ranges(pos)

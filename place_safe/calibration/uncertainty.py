@@ -150,10 +150,9 @@ def fit_peak_uncertainty(frames: Sequence[Frame], peak_params, min_range: float 
     scale are fitted on the frames beyond their last depth. The report's ``near_range`` holds the errors per
     depth and the mean NEES per dof of the closer frames with them (in sample for the floor; the errors are
     cross-validated)."""
+    from place_safe.calibration.near_range import near_range_std
     from place_safe.calibration.points import MIN_CALIBRATION_RANGE
     from place_safe.recovery.peak import PeakEstimator
-
-    from place_safe.calibration.near_range import near_range_std
 
     lo = MIN_CALIBRATION_RANGE if min_range is None else float(min_range)
     depths, stds, near = near_range_std(frames, peak_params)

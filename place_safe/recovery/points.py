@@ -403,8 +403,8 @@ def plane_covariance(points: np.ndarray, valid: np.ndarray, plane: Plane, range_
     if np.ndim(range_std) == 0 and not range_std > 0.0:  # the usual call: no known error
         return sigma2 * inverse
     std = np.asarray(range_std, dtype=float)
-    if std.ndim:
-        std = std[np.asarray(valid, dtype=bool)] if std.shape == np.shape(valid) else std
+    if std.ndim:  # one per point: those used
+        std = std[np.asarray(valid, dtype=bool)]
     if not np.any(std > 0.0):
         return sigma2 * inverse
     with np.errstate(invalid="ignore", divide="ignore"):
