@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -126,6 +127,7 @@ def fit_plane(points: np.ndarray, weights: np.ndarray | None = None) -> tuple[Pl
 #: precision or read from a file with 15 or more significant digits.
 ROTATION_TOL = 1e-6
 _EYE3 = np.eye(3)
+_LAST_ROW = np.array([0.0, 0.0, 0.0, 1.0])
 
 
 def is_rotation(r: np.ndarray, tol: float = ROTATION_TOL) -> bool:
@@ -136,6 +138,26 @@ def is_rotation(r: np.ndarray, tol: float = ROTATION_TOL) -> bool:
         return False
     (a, b, c), (d, e, f), (g, h, i) = r.tolist()
     return a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g) > 0
+
+
+def transform_problem(t: Any, tol: float = ROTATION_TOL) -> str | None:
+    """Why ``t`` is not a rigid 4x4 homogeneous transform (a phrase to follow its name), or None when it is:
+    numbers, shape (4, 4), finite, a proper rotation block (:func:`is_rotation` to ``tol``) and the last row
+    ``[0, 0, 0, 1]`` to 1e-9. The one check of the robot's poses, its tool frames and the placement's
+    robot states; callers raise their own error type with the name of what they checked."""
+    try:
+        m = np.asarray(t, dtype=np.float64)
+    except (TypeError, ValueError):
+        return "is not a 4x4 matrix of numbers"
+    if m.shape != (4, 4):
+        return f"must be a 4x4 homogeneous matrix; got shape {m.shape}"
+    if not np.all(np.isfinite(m)):
+        return "is not a finite 4x4 transform (it contains NaN or inf)"
+    if not is_rotation(m[:3, :3], tol):
+        return "rotation part is not a proper rotation (R^T R != I or det < 0)"
+    if float(np.abs(m[3] - _LAST_ROW).max()) > 1e-9:
+        return f"last row must be [0, 0, 0, 1]; got {m[3].tolist()}"
+    return None
 
 
 def rotation_angle_between(n1: np.ndarray, n2: np.ndarray) -> float:

@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from place_safe.exceptions import NoPlaneError
-from place_safe.geometry import Plane, fit_plane, is_rotation, plane_from_pose, rotation_angle_between
+from place_safe.geometry import Plane, fit_plane, is_rotation, plane_from_pose, rotation_angle_between, transform_problem
 
 
 def test_plane_normalises_and_orients_towards_plus_z():
@@ -123,3 +123,23 @@ def test_is_rotation_accepts_rotations_and_nothing_else(q):
     assert not is_rotation(r @ np.diag([1.0, 1.0, -1.0]))
     assert not is_rotation(1.01 * r) and is_rotation(1.0001 * r, tol=1e-3)
     assert not is_rotation(np.zeros((3, 3)))
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.lists(st.floats(-1.0, 1.0), min_size=4, max_size=4).filter(lambda q: np.linalg.norm(q) > 0.1),
+       st.lists(st.floats(-2.0, 2.0), min_size=3, max_size=3))
+def test_transform_problem_names_what_breaks_a_rigid_transform(q, t):
+    m = np.eye(4)
+    m[:3, :3] = Rotation.from_quat(q).as_matrix()
+    m[:3, 3] = t
+    assert transform_problem(m) is None and transform_problem(m.tolist()) is None
+    bad_row = m.copy()
+    bad_row[3, 0] = 1e-6
+    reflected = m.copy()
+    reflected[:3, :3] *= -1.0
+    with_nan = m.copy()
+    with_nan[1, 3] = np.nan
+    for bad, words in ((bad_row, "last row"), (reflected, "proper rotation"), (with_nan, "NaN"),
+                       (m[:3], "shape (3, 4)"), ([["a"] * 4] * 4, "numbers"), ([[1.0, 2.0], [3.0]], "numbers")):
+        why = transform_problem(bad)
+        assert why is not None and words in why and "\n" not in why

@@ -65,7 +65,7 @@ import numpy as np
 
 from place_safe.config import Bound, check_dataclass, dataclass_from_dict, read_json, write_json
 from place_safe.exceptions import ConfigError
-from place_safe.geometry import is_rotation
+from place_safe.geometry import transform_problem
 from place_safe.fusion.plane_filter import FusedPlane
 from place_safe.placement.speed import approach_speed
 
@@ -223,14 +223,8 @@ class RobotState:
         if self.fault:
             return f"robot fault: {str(self.fault).splitlines()[0]}"
         for name in ("base_T_tcp", "base_T_cup"):
-            try:
-                T = np.asarray(getattr(self, name), dtype=float)
-            except (TypeError, ValueError):
-                return f"robot state {name} is not a 4x4 pose of numbers"
-            if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-                return f"robot state {name} is not a finite 4x4 pose"
-            if not is_rotation(T[:3, :3]):
-                return f"robot state {name} has no proper rotation"
+            if (why := transform_problem(getattr(self, name))) is not None:
+                return f"robot state {name} {why}"
         if _number(self.time) is None:
             return "robot time is not a finite number"
         f = _number(self.contact_force)

@@ -40,7 +40,7 @@ import numpy as np
 
 from place_safe.config import Bound, check_dataclass, dataclass_from_dict, read_json, write_json
 from place_safe.exceptions import ConfigError, RobotFault
-from place_safe.geometry import is_rotation
+from place_safe.geometry import transform_problem
 from place_safe.robot.tool import ToolFrames
 
 _TWO_PI = 2.0 * math.pi
@@ -107,16 +107,9 @@ ROBOT_LIMIT_BOUNDS: dict[str, Bound] = {
 
 def check_pose(pose: Any, what: str = "pose") -> np.ndarray:
     """Validate a 4x4 homogeneous transform; return it as float64. Raises ValueError otherwise."""
-    T = np.asarray(pose, dtype=np.float64)
-    if T.shape != (4, 4):
-        raise ValueError(f"{what} must be a 4x4 homogeneous matrix; got shape {T.shape}")
-    if not np.all(np.isfinite(T)):
-        raise ValueError(f"{what} contains NaN or inf; expected a finite 4x4 transform")
-    if not is_rotation(T[:3, :3]):
-        raise ValueError(f"{what} rotation part is not a proper rotation (R^T R != I or det < 0)")
-    if np.abs(T[3] - np.array([0.0, 0.0, 0.0, 1.0])).max() > 1e-9:
-        raise ValueError(f"{what} last row must be [0, 0, 0, 1]; got {T[3].tolist()}")
-    return T
+    if (why := transform_problem(pose)) is not None:
+        raise ValueError(f"{what} {why}")
+    return np.asarray(pose, dtype=np.float64)
 
 
 def check_twist(twist: Any) -> np.ndarray:

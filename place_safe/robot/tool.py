@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from place_safe.exceptions import ConfigError
-from place_safe.geometry import is_rotation
+from place_safe.geometry import transform_problem
 
 
 def pose_from_xyz_rpy(xyz: Any, rpy: Any = (0.0, 0.0, 0.0)) -> np.ndarray:
@@ -34,17 +34,9 @@ def pose_from_xyz_rpy(xyz: Any, rpy: Any = (0.0, 0.0, 0.0)) -> np.ndarray:
 
 def check_transform(T: Any, what: str) -> np.ndarray:
     """``T`` as a float64 rigid 4x4 transform; raises ConfigError naming ``what`` otherwise."""
-    try:
-        M = np.array(T, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ConfigError(f"{what} must be a 4x4 matrix of numbers") from None
-    if M.shape != (4, 4) or not np.all(np.isfinite(M)):
-        raise ConfigError(f"{what} must be a finite 4x4 matrix; got shape {M.shape}")
-    if not is_rotation(M[:3, :3]):
-        raise ConfigError(f"{what} rotation is not a proper rotation matrix")
-    if np.abs(M[3] - (0.0, 0.0, 0.0, 1.0)).max() > 1e-9:
-        raise ConfigError(f"{what} last row must be [0, 0, 0, 1]")
-    return M
+    if (why := transform_problem(T)) is not None:
+        raise ConfigError(f"{what} {why}")
+    return np.array(T, dtype=np.float64)
 
 
 @dataclass(frozen=True)

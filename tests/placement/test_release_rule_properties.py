@@ -243,7 +243,7 @@ def test_each_adversarial_case_of_the_issue_refuses():
         "contact": "obstacle",
         "freeze": "frozen",
         "back": "backwards",
-        "bad_rot": "no proper rotation",
+        "bad_rot": "not a proper rotation",
         "str_time": "not a finite number",
         "fp_problem": "no safe support under the cup",
         "fp_unseen": "no support evidence",
