@@ -41,7 +41,7 @@ from typing import Sequence
 import numpy as np
 
 from place_safe.calibration.points import FAILED_FIT_ERROR, frame_point_errors
-from place_safe.recovery.points import PeakParams
+from place_safe.recovery.points import PeakParams, fit_planes
 from place_safe.sensor.frame import N_ZONES, Frame
 from place_safe.sensor.histogram import find_peaks
 
@@ -160,6 +160,15 @@ def near_range_std(frames: Sequence[Frame], params: PeakParams) -> tuple[list[fl
         "of_the_mapping_mm": [float(v) * 1e3 for v in own]}
 
 
+def _tilt_errors(params: PeakParams, readings: np.ndarray, valid: np.ndarray, tn: np.ndarray) -> np.ndarray:
+    """Angle (deg, (F,)) between each frame's plane through its zone points and the true normal ``tn`` (F, 3);
+    NaN where the points give no plane."""
+    n, _, _, ok = fit_planes(params.points(readings), valid)
+    out = np.full(len(tn), np.nan)
+    out[ok] = np.degrees(np.arccos(np.clip(np.abs(np.einsum("ij,ij->i", n[ok], tn[ok])), 0.0, 1.0)))
+    return out
+
+
 def _usable(table: np.ndarray) -> bool:
     """Whether a fitted table's errors are finite and within :data:`NEAR_MAX_ERROR`."""
     largest = float(np.max(np.abs(table)))
@@ -236,6 +245,10 @@ def fit_near_range(frames: Sequence[Frame], params: PeakParams, hists: np.ndarra
     score, fraction, penalty = best
     report.update(knots_m=[float(v) for v in knots], folds=n_folds,
                   cv_point_error_mm={k: v * 1e3 for k, v in cv.items()}, min_fraction=fraction, penalty=penalty)
+    # each near frame's tilt error by depth: the far-range mapping alone, and (below) the table fitted without it
+    report["held_out"] = {"depth_mm": [round(float(v) * 1e3, 2) for v in frame_depth[order]],
+                          "tilt_error_deg_without_table": [round(float(v), 3) for v in
+                                                           _tilt_errors(base, pos, valid, tn)[order]]}
     if not (score <= NEAR_ADOPT * cv["none"] and cv["none"] - score >= NEAR_MIN_GAIN):
         report["why"] = (f"cross-validated point error {score * 1e3:.3f} mm with the table against "
                          f"{cv['none'] * 1e3:.3f} mm without")
@@ -243,13 +256,18 @@ def fit_near_range(frames: Sequence[Frame], params: PeakParams, hists: np.ndarra
         report["zone_std_mm"] = [v * 1e3 for v in _knot_stds(knots, depth, err, valid)]
         return base, report
     held = err.copy()  # each frame's zone errors under the table fitted without it (none where that one failed)
+    tilt = np.full(len(idx), np.nan)  # and the tilt error of its plane (deg)
     for f in range(n_folds):
         test = fold == f
         table = _fit_errors(knots, depth[~test], err[~test], kept[fraction][~test], penalty)
         if _usable(table):
+            with_table = _with_table(base, knots, table, fraction)
             r0 = depth[test] / dirs[:, 2]
-            held[test] = err[test] - _with_table(base, knots, table, fraction).near_correction(r0)
+            held[test] = err[test] - with_table.near_correction(r0)
+            tilt[test] = _tilt_errors(with_table, np.where(kept[fraction][test], pos[test], np.nan),
+                                      kept[fraction][test], tn[test])
     report["zone_std_mm"] = [v * 1e3 for v in _knot_stds(knots, depth, held, kept[fraction])]
+    report["held_out"]["tilt_error_deg"] = [round(float(v), 3) for v in tilt[order]]
     keep = kept[fraction]
     table = _fit_errors(knots, depth, err, keep, penalty)
     report["largest_error_mm"] = float(np.max(np.abs(table))) * 1e3

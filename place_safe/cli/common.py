@@ -149,7 +149,7 @@ def _summarise(report: Any, indent: str = "  ") -> list[str]:
             if isinstance(v, dict):
                 walk(v, key + ".")
             elif isinstance(v, list):
-                if len(v) <= 9 and all(isinstance(x, (int, float)) or x is None for x in v):
+                if len(v) <= 16 and all(isinstance(x, (int, float)) or x is None for x in v):
                     lines.append(f"{indent}{key}: [{', '.join('-' if x is None else f'{x:.4g}' for x in v)}]")
                 else:
                     lines.append(f"{indent}{key}: list of {len(v)}")
