@@ -102,7 +102,7 @@ class Calibration:
         without a method, all entries of the section as a dict."""
         from place_safe.recovery.estimator import Uncertainty
 
-        sec = self.sections.get("uncertainty", {})
+        sec = self._section("uncertainty") or {}
         try:
             if method is None:
                 return {k: Uncertainty.from_dict(v) for k, v in sec.items()}
@@ -134,6 +134,9 @@ class Calibration:
                   source=source)
         # validate every section once, on its own, so a bad one fails clearly and only for its methods
         for name in list(cal.sections):
+            if not isinstance(cal.sections[name], dict):  # null or a list would read as "no section": built-in constants
+                cal.errors[name] = f"must be an object of parameters, got {type(cal.sections[name]).__name__}"
+                continue
             try:
                 getattr(cal, name)()
             except CalibrationError as exc:
@@ -164,7 +167,7 @@ def uncalibrated_reason(method: str, calibration: "Calibration | None") -> str |
     if need is None:
         return f"sensor not calibrated: method {method} uses built-in constants; {how}"
     have = calibration.sections if calibration is not None else {}
-    missing = [s for s in need if s not in have]
+    missing = [s for s in need if not isinstance(have.get(s), dict)]
     if missing:
         return f"sensor not calibrated for {method} (no '{missing[0]}' section); {how}"
     return None

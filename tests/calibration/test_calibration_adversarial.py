@@ -126,6 +126,11 @@ BAD_SECTIONS = [
     ("forward", {"zone_offsets": [float("nan")] * 9}),
     ("forward", {"edge_gain": -0.5}),
     ("forward", {"bogus": 1.0}),
+    # a section that is not an object would otherwise read as absent: the built-in constants, silently
+    ("peak", None),
+    ("proprietary", [72.0, 13.0]),
+    ("forward", None),
+    ("diff", None),
 ]
 USES = {"peak": {"peak", "diff"}, "proprietary": {"proprietary"}, "forward": {"diff"}, "diff": {"diff"}}
 
@@ -226,3 +231,15 @@ def test_model_error_is_not_chosen_from_infinite_scores(synthetic_frames):
                                         grid=(0.0, 0.01), progress=False)
     assert report["frames_skipped"] == {"saturated": 1}
     assert all(v is not None and math.isfinite(v) for v in report["mean_point_error_mm"].values())
+
+
+def test_null_sections_are_not_a_calibration_for_placement(tmp_path):
+    from place_safe.calibration import uncalibrated_reason
+
+    path = tmp_path / "cal.json"
+    path.write_text(json.dumps({"format": FORMAT, "peak": None, "forward": None, "uncertainty": "x"}))
+    cal = Calibration.load(path)
+    for method in ("peak", "diff", "proprietary"):
+        assert "not calibrated" in uncalibrated_reason(method, cal)
+    with pytest.raises(CalibrationError, match="section 'uncertainty'"):
+        cal.uncertainty("peak")
