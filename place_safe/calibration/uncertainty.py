@@ -34,6 +34,7 @@ diff as often as it does not hurt). Units: rad, m.
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Sequence
 from dataclasses import replace
 
@@ -134,6 +135,8 @@ def select_chi2_limit(chi2: np.ndarray, diff_errors: np.ndarray, peak_errors: np
     for lim in candidates:
         use_diff = (chi2 <= lim)[:, None]
         scores.append(float(np.max(np.mean(np.where(use_diff, diff_errors, peak_errors), axis=0))))
+    if not all(math.isfinite(sc) for sc in scores):  # errors that cannot be compared: diff always falls back
+        return 0.0
     best = min(scores)
     return max(c for c, sc in zip(candidates, scores) if sc <= best * (1 + 1e-9))
 
@@ -195,7 +198,10 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
     e_peak = np.array([errs(e, t) for e, t in zip(peak, truths)])
     # each error in units of peak's median error, capped at 10, so a few hopeless frames (both methods
     # far off) do not decide; the score is the worse of the two metrics' means
-    unit = np.maximum(np.median(np.where(np.isfinite(e_peak), e_peak, np.nan), axis=0), 1e-12)
+    finite = np.where(np.isfinite(e_peak), e_peak, np.nan)  # peak's median over the frames it read (all NaN: 1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a column without a finite error
+        unit = np.maximum(np.nan_to_num(np.nanmedian(finite, axis=0), nan=1.0) if len(finite) else 1.0, 1e-12)
     n_diff, n_peak = np.minimum(e_diff / unit, 10.0), np.minimum(e_peak / unit, 10.0)
     chi2 = np.array([e.residual ** 2 if e.ok and e.residual is not None else math.inf for e in diff])
     limit = select_chi2_limit(chi2, n_diff, n_peak)

@@ -74,3 +74,26 @@ def test_chi2_limit_only_counts_limits_enough_frames_pass():
     peak = np.ones((30, 2))
     assert select_chi2_limit(chi2, diff, peak) == pytest.approx(1.0)
     assert select_chi2_limit(np.array([]), np.zeros((0, 2)), np.zeros((0, 2))) == 0.0
+
+
+def test_chi2_limit_is_zero_when_the_errors_cannot_be_compared():
+    chi2 = np.array([0.5, 0.7, 0.9, 1.1])
+    diff = np.full((4, 2), np.nan)
+    assert select_chi2_limit(chi2, diff, np.ones((4, 2))) == 0.0
+
+
+def test_a_frame_no_method_reads_does_not_break_the_diff_uncertainty(sweep_path):
+    """One unusable frame (all-zero histograms) among calibration frames: it counts as failed for both methods
+    and the limit is chosen on the rest (it made peak's median error NaN, and calibration stopped)."""
+    from dataclasses import replace
+
+    from place_safe.calibration.uncertainty import fit_diff_uncertainty
+    from place_safe.io.frame_file import load_frames
+    from place_safe.recovery.forward import ForwardParams
+    from place_safe.recovery.points import PeakParams
+
+    frames = [f for f in load_frames(sweep_path) if 0.08 <= f.truth.z0 <= 0.2][:6]
+    frames.append(replace(frames[0], hists=np.zeros_like(np.asarray(frames[0].hists, dtype=float))))
+    unc, report = fit_diff_uncertainty(frames, ForwardParams(), PeakParams.default_peak())
+    assert unc.chi2_limit >= 0.0 and report["frames_using_diff"] + report["frames_using_peak"] == len(frames)
+    assert math.isfinite(report["point_mm"]["selected"])
