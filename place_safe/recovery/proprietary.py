@@ -15,7 +15,7 @@ import numpy as np
 
 from place_safe.recovery.points import MM_PER_M, PeakParams, plane_from_points
 from place_safe.exceptions import FrameError, NoPlaneError
-from place_safe.sensor.frame import N_ZONES, Frame, real_array
+from place_safe.sensor.frame import MAX_SENSOR_DISTANCE, MIN_SENSOR_DISTANCE, N_ZONES, Frame, real_array
 from place_safe.recovery.estimator import Estimator, PlaneEstimate
 
 
@@ -45,6 +45,9 @@ class ProprietaryEstimator(Estimator):
         if np.any(dist < 0):
             raise FrameError("distances contains negative values; expected metres >= 0 (0 = no object)")
         valid = dist > 0
+        if np.any(valid & ((dist < MIN_SENSOR_DISTANCE) | (dist > MAX_SENSOR_DISTANCE))):
+            raise FrameError(f"distances outside what the sensor reports (0 for no object, else "
+                             f"{MIN_SENSOR_DISTANCE * 1e3:g}-{MAX_SENSOR_DISTANCE * 1e3:g} mm)")
         if frame.confidences is not None:
             conf = real_array(frame.confidences, "confs_1").astype(float)
             if conf.shape == (N_ZONES,):

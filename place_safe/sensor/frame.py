@@ -20,14 +20,35 @@ from place_safe.geometry import Plane, is_rotation, plane_from_pose
 from place_safe.sensor.zones import CENTRE, CORNER, EDGE, N_BINS, N_ZONES, ZONE_DIRECTIONS, ZONE_KIND, ZONE_RECTS  # noqa: F401
 
 
+#: m: the largest on-sensor distance a frame may carry: the TMF8820 reports whole millimetres in 16 bits.
+MAX_SENSOR_DISTANCE = 0xFFFF / 1000.0
+#: m: the smallest non-zero one (0 means no object).
+MIN_SENSOR_DISTANCE = 1e-3
+
+
 def _array(value: Any, name: str, shape: tuple[int, ...]) -> np.ndarray:
+    """``value`` (a file's nested lists) as a float array of ``shape``; FrameError for strings, booleans, nulls
+    and ragged data. Booleans are caught where a list of them reads as booleans (all of an array, or any entry
+    of a short list such as the distances); a single ``true`` among a histogram's 1152 counts reads as a count
+    of 1 (checking every entry would cost a twentieth of the peak method's time a frame)."""
     try:
-        arr = np.asarray(value, dtype=float)
-    except (TypeError, ValueError, OverflowError) as exc:
-        raise FrameError(f"{name} is not numeric: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}") from None
+        arr = np.asarray(value)
+    except (TypeError, ValueError, OverflowError):
+        raise FrameError(f"{name} is not an array of numbers (ragged or unreadable)") from None
+    if arr.dtype.kind == "O":  # integers beyond 64 bits (or mixed objects): numbers only, as floats
+        if not all(type(v) in (int, float) for v in arr.ravel()):
+            raise FrameError(f"{name} must hold numbers only")
+        try:
+            arr = arr.astype(float)
+        except OverflowError:
+            raise FrameError(f"{name} is not numeric: a number too large for a float") from None
+    elif arr.dtype.kind not in "iuf" or (arr.size <= 16 and isinstance(value, list)
+                                         and any(isinstance(v, bool) for v in value)):
+        what = "booleans" if arr.dtype.kind in "biu" else "text" if arr.dtype.kind in "US" else f"{arr.dtype.name} values"
+        raise FrameError(f"{name} must hold numbers, not {what}")
     if arr.shape != shape:
         raise FrameError(f"{name} has shape {arr.shape}, expected {shape}")
-    return arr
+    return arr.astype(float, copy=False)
 
 
 def real_array(value: Any, name: str) -> np.ndarray:
@@ -66,22 +87,21 @@ def _truth(d: dict) -> Plane | None:
         pl = d["plane"]
         if not isinstance(pl, dict):
             raise ValueError(f"'plane' must be an object with 'normal' and 'offset', got {type(pl).__name__}")
-        normal = np.asarray(pl["normal"], dtype=float)
-        if normal.shape != (3,):
-            raise ValueError(f"plane.normal has shape {normal.shape}, expected (3,)")
+        normal = _array(pl["normal"], "plane.normal", (3,))
         offset = _number(pl["offset"], "plane.offset")
         truth = Plane(normal, offset)  # normalises, and flips a normal written with n_z < 0
     elif "pose" in d and "dist_to_plane" in d:
-        pose = np.asarray(d["pose"], dtype=float)
-        if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
+        pose = _array(d["pose"], "pose", (4, 4))
+        if any(isinstance(v, bool) for row in d["pose"] for v in row) or not np.all(np.isfinite(pose)):
             raise ValueError("pose must be a finite 4x4 matrix")
         if not is_rotation(pose[:3, :3], POSE_ORTHONORMAL_TOL):
             raise ValueError("pose is not a rigid transform (its 3x3 block is not a rotation)")
         truth = plane_from_pose(pose, _number(d["dist_to_plane"], "dist_to_plane"))
     else:
         return None
-    if not truth.offset > 0:
-        raise ValueError(f"plane offset must be > 0 (plane in front of the sensor), got {truth.offset:.6g} m")
+    if not 0 < truth.offset <= MAX_SENSOR_DISTANCE:
+        raise ValueError(f"plane offset must be > 0 (plane in front of the sensor) and at most "
+                         f"{MAX_SENSOR_DISTANCE:g} m (the farthest the sensor reports), got {truth.offset:.6g} m")
     return truth
 
 

@@ -45,6 +45,8 @@ def test_real_sweep_calibrated_cross_validated():
     ([-0.1] + [0.1] * 8, None, "negative"),
     ([0.0] * 7 + [0.1] * 2, None, "3 or more"),
     ([0.1] * 9, [0] * 7 + [200] * 2, "3 or more"),
+    ([1e4] + [0.1] * 8, None, "outside what the sensor reports"),  # 10 km: beyond 16-bit millimetres
+    ([1e-12] * 9, None, "outside what the sensor reports"),  # nonzero, under the field's 1 mm
 ])
 def test_bad_input_gives_reason(dist, conf, words):
     e = ProprietaryEstimator().estimate(_frame(dist, conf))

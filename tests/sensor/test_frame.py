@@ -71,6 +71,12 @@ def test_validate_says_what_is_wrong(change, message):
     ({"hists": np.zeros((9, 128)).tolist(), "timestamp": [1.0]}, "timestamp"),
     ({"hists": np.zeros((9, 128)).tolist(), "timestamp": float("nan")}, "timestamp"),
     ({"hists": [[10 ** 400] * 128] * 9}, "hists"),
+    ({"hists": [["12"] * 128] * 9}, "hists must hold numbers, not text"),
+    ({"hists": [[True] * 128] * 9}, "not booleans"),
+    ({"hists": [[None] * 128] * 9}, "numbers"),
+    ({"hists": np.zeros((9, 128)).tolist(), "distances": [{"depths_1": [True] * 9}]}, "depths_1 must hold numbers"),
+    ({"hists": np.zeros((9, 128)).tolist(), "distances": [{"depths_1": [100] * 8 + [True]}]}, "not booleans"),
+    ({"hists": np.zeros((9, 128)).tolist(), "distances": [{"depths_1": [100] * 9, "confs_1": ["x"] * 9}]}, "confs_1"),
 ])
 def test_from_dict_rejects_malformed_entries(entry, message):
     with pytest.raises(FrameError, match=message):
@@ -94,6 +100,9 @@ _POSE = np.eye(4).tolist()
     {"pose": (2 * np.eye(4)).tolist(), "dist_to_plane": 0.1},
     {"pose": [[1, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1]], "dist_to_plane": 0.1},  # horizontal
     {"pose": "up", "dist_to_plane": 0.1},
+    {"pose": _POSE, "dist_to_plane": 1e30},  # farther than the sensor's 16-bit millimetres reach
+    {"plane": {"normal": [False, False, True], "offset": 0.1}},
+    {"pose": [[True, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]], "dist_to_plane": 0.1},
 ])
 def test_bad_ground_truth_only_clears_the_truth(truth):
     """Recovery never needs ground truth: a frame whose truth is not a plane keeps its histograms."""
