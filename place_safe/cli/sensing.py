@@ -17,7 +17,7 @@ except ImportError:  # pragma: no cover - a dependency; the standard encoder sti
     _orjson = None
 
 from place_safe.cli import options
-from place_safe.exceptions import CalibrationError, FrameError, FrameFileError
+from place_safe.exceptions import CalibrationError, FrameError, FrameFileError, PlaceSafeError
 from place_safe.cli.common import (CALIBRATE_METHODS, METHODS, PROG, UsageError, _estimator, _FMT,
                                    _jsonable, _load_calibration, _load_truth_frames, _log, _progress, _summarise,
                                    not_a_file)
@@ -30,6 +30,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
     out = Path(args.output)
     cal, note = Calibration(), None
+    if out.exists() and (why := not_a_file(out)) is not None:  # a directory, a FIFO, /dev/full: never read or write it
+        raise PlaceSafeError(f"calibration output {out} {why}")
     if out.exists():  # checked before any work so a bad output path fails fast, with one line
         try:
             cal = Calibration.load(out)

@@ -12,7 +12,7 @@ import argparse
 import math
 from pathlib import Path
 
-from place_safe.cli.options import nonnegative_int, positive_float, positive_int
+from place_safe.cli.options import int_range, nonnegative_int, positive_float
 
 EPILOG = """examples:
   # calibration frames and separate test frames of the same simulated sensor
@@ -37,7 +37,8 @@ def register(subparsers) -> None:
                     "(same seed, same sensor); --seed draws the scenes.")
     s.add_argument("--generator", choices=("independent", "model"), default="independent",
                    help="independent simulation (default) or the project's forward model (convention checks)")
-    s.add_argument("--frames", type=positive_int, default=100, metavar="N", help="frames to write (default 100)")
+    s.add_argument("--frames", type=int_range(1, 100000), default=100, metavar="N",
+                   help="frames to write, 1-100000 (default 100; they are built in memory, about 10 kB each)")
     s.add_argument("--seed", type=nonnegative_int, default=0, help="seed of the scenes (default 0)")
     s.add_argument("--sensor-seed", type=nonnegative_int, default=0, help="seed of the simulated sensor (default 0)")
     s.add_argument("--min-distance", type=positive_float, default=0.02, metavar="M", help="nearest z0, m (default 0.02)")

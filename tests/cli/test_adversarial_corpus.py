@@ -166,6 +166,8 @@ OPTION_RUNS = [
     ["evaluate", "{good}", "--min-distance", "nan"], ["evaluate", "{good}", "--max-distance", "inf"],
     ["evaluate", "{good}", "--min-distance", "0.5", "--max-distance", "0.1"],
     ["calibrate", "{good}", "--method", "nope", "-o", "{tmp}/c.json"],
+    ["calibrate", "{good}", "--method", "peak", "-o", "/dev/full"],  # read as an old calibration: no end, no size
+    ["synth", "--frames", "100000000000000000000", "-o", "{tmp}/s.json"],  # built in memory: would never finish
 ]
 SIM_OPTION_RUNS = [
     ["sim", "place", "--seconds", "0"], ["sim", "place", "--seconds", "nan"], ["sim", "place", "--method", "bogus"],
