@@ -11,6 +11,7 @@ and the distance, and the recovered albedo against distance for methods that ret
 
 from __future__ import annotations
 
+import math
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -72,7 +73,8 @@ class EvaluationReport:
             s = res.summary()
             cells = []
             for key in ("angular_deg", "linear_mm", "point_mm"):
-                cells += [f"{s[key][k]:7.2f}" for k in ("mean", "median", "p95")]
+                cells += [f"{s[key][k]:7.2f}" if math.isfinite(s[key][k]) else f"{'-':>7}"  # every frame failed
+                          for k in ("mean", "median", "p95")]
             lines.append(f"{name:<18} " + " ".join(cells) + f" {s['failures']:>5d} {s['ms_per_frame']:8.3f}")
         for name, res in self.results.items():
             s = res.summary()

@@ -40,3 +40,12 @@ def test_frames_without_truth_are_skipped():
     rep = evaluate(sweep, None, ["peak"], progress=False)
     assert rep.skipped == 1 and len(rep.results["peak"].point) == 2
     assert np.all(np.isfinite(rep.results["peak"].seconds))
+
+
+def test_a_method_that_fails_every_frame_shows_dashes_not_nan():
+    from dataclasses import replace
+
+    sweep = [replace(f, hists=np.zeros((9, 128))) for f in load_frames(SWEEP)[20:23]]
+    rep = evaluate(sweep, None, ["peak"], progress=False)
+    row = next(line for line in rep.table().splitlines() if line.startswith("peak"))
+    assert "nan" not in row and row.split()[1:10] == ["-"] * 9 and row.split()[10] == "3"
