@@ -168,9 +168,11 @@ def near_range_std(frames: Sequence[Frame], params: PeakParams) -> tuple[list[fl
 def _tilt_errors(params: PeakParams, readings: np.ndarray, valid: np.ndarray, tn: np.ndarray) -> np.ndarray:
     """Angle (deg, (F,)) between each frame's plane through its zone points and the true normal ``tn`` (F, 3);
     NaN where the points give no plane."""
+    from place_safe.evaluation.metrics import angular_errors
+
     n, _, _, ok = fit_planes(params.points(readings), valid)
     out = np.full(len(tn), np.nan)
-    out[ok] = np.degrees(np.arccos(np.clip(np.abs(np.einsum("ij,ij->i", n[ok], tn[ok])), 0.0, 1.0)))
+    out[ok] = np.degrees(angular_errors(n[ok], tn[ok]))
     return out
 
 

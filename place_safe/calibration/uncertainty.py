@@ -201,7 +201,7 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
     finite = np.where(np.isfinite(e_peak), e_peak, np.nan)  # peak's median over the frames it read (all NaN: 1)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # a column without a finite error
-        unit = np.maximum(np.nan_to_num(np.nanmedian(finite, axis=0), nan=1.0) if len(finite) else 1.0, 1e-12)
+        unit = np.maximum(np.nan_to_num(np.nanmedian(finite, axis=0), nan=1.0), 1e-12)
     n_diff, n_peak = np.minimum(e_diff / unit, 10.0), np.minimum(e_peak / unit, 10.0)
     chi2 = np.array([e.residual ** 2 if e.ok and e.residual is not None else math.inf for e in diff])
     limit = select_chi2_limit(chi2, n_diff, n_peak)

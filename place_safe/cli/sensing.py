@@ -30,9 +30,9 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
     out = Path(args.output)
     cal, note = Calibration(), None
-    if out.exists() and (why := not_a_file(out)) is not None:  # a directory, a FIFO, /dev/full: never read or write it
-        raise PlaceSafeError(f"calibration output {out} {why}")
     if out.exists():  # checked before any work so a bad output path fails fast, with one line
+        if (why := not_a_file(out)) is not None:  # a directory, a FIFO, /dev/full: never read or write it
+            raise PlaceSafeError(f"calibration output {out} {why}")
         try:
             cal = Calibration.load(out)
             note = f"{out} is a calibration file; keeping its other sections (present: {', '.join(cal.sections) or 'none'})"

@@ -26,10 +26,15 @@ MAX_SENSOR_DISTANCE = 0xFFFF / 1000.0
 MIN_SENSOR_DISTANCE = 1e-3
 
 
+def _has_bool(value: Any) -> bool:
+    """Whether ``value`` is a boolean or a (nested) list holding one."""
+    return isinstance(value, bool) or (isinstance(value, list) and any(_has_bool(v) for v in value))
+
+
 def _array(value: Any, name: str, shape: tuple[int, ...]) -> np.ndarray:
     """``value`` (a file's nested lists) as a float array of ``shape``; FrameError for strings, booleans, nulls
     and ragged data. Booleans are caught where a list of them reads as booleans (all of an array, or any entry
-    of a short list such as the distances); a single ``true`` among a histogram's 1152 counts reads as a count
+    of a short one such as the distances or a pose); a single ``true`` among a histogram's 1152 counts reads as a count
     of 1 (checking every entry would cost a twentieth of the peak method's time a frame)."""
     try:
         arr = np.asarray(value)
@@ -42,8 +47,7 @@ def _array(value: Any, name: str, shape: tuple[int, ...]) -> np.ndarray:
             arr = arr.astype(float)
         except OverflowError:
             raise FrameError(f"{name} is not numeric: a number too large for a float") from None
-    elif arr.dtype.kind not in "iuf" or (arr.size <= 16 and isinstance(value, list)
-                                         and any(isinstance(v, bool) for v in value)):
+    elif arr.dtype.kind not in "iuf" or (arr.size <= 16 and _has_bool(value)):
         what = "booleans" if arr.dtype.kind in "biu" else "text" if arr.dtype.kind in "US" else f"{arr.dtype.name} values"
         raise FrameError(f"{name} must hold numbers, not {what}")
     if arr.shape != shape:
@@ -92,7 +96,7 @@ def _truth(d: dict) -> Plane | None:
         truth = Plane(normal, offset)  # normalises, and flips a normal written with n_z < 0
     elif "pose" in d and "dist_to_plane" in d:
         pose = _array(d["pose"], "pose", (4, 4))
-        if any(isinstance(v, bool) for row in d["pose"] for v in row) or not np.all(np.isfinite(pose)):
+        if not np.all(np.isfinite(pose)):
             raise ValueError("pose must be a finite 4x4 matrix")
         if not is_rotation(pose[:3, :3], POSE_ORTHONORMAL_TOL):
             raise ValueError("pose is not a rigid transform (its 3x3 block is not a rotation)")
