@@ -33,7 +33,7 @@ uncertainty (:meth:`place_safe.recovery.estimator.Uncertainty.near_std`).
 
 Held out on the real sweep (calibrated on the even frames, measured on the odd ones), the table took the
 2.75 and 4.25 cm frames from 8.1 and 0.17 deg to 3.3 and 0.09 deg, and the 5-40 cm frames from 0.16 to
-0.13 deg (p95 0.39 -> 0.24; README, issue 9). The other way round cross-validation rejects it: the odd
+0.13 deg (p95 0.39 -> 0.24; docs/results.md, near range). The other way round cross-validation rejects it: the odd
 half's 2.75 cm frame, left out, lies between its 1.25 and 4.25 cm ones. It rejects it too on frames of the
 independent generator (tilted, 2-30 cm, no near-range effect) and on both simulated sensors' captures.
 """

@@ -340,7 +340,7 @@ def fit_peak(frames: Sequence[Frame], init: PeakParams | None = None, progress: 
     other; ``place-safe calibrate --method diff``, then ``evaluate``), the centroid took the real sweep's
     halves at 5-40 cm from 0.25 / 0.25 deg (p95 0.75 / 0.47) and 0.17 / 0.10 mm to 0.16 / 0.16 deg (p95
     0.39 / 0.53) and 0.13 / 0.08 mm, the independent generator's frames from 0.30 to 0.26 deg, and its
-    linear-pulse sensors from 0.43 / 0.46 to 0.25 / 0.21 deg (README, issue 9).
+    linear-pulse sensors from 0.43 / 0.46 to 0.25 / 0.21 deg (docs/results.md).
     """
     use = _calibration_frames(frames, min_range)
     hists = np.array([np.asarray(f.hists, dtype=float) for f in use])

@@ -144,7 +144,7 @@ LEGACY_WINDOW_AFTER_PEAK = 24
 
 @dataclass
 class SolverOptions:
-    """Tuning of the fast solver (defaults chosen on synthetic and real data; see the README)."""
+    """Tuning of the fast solver (defaults chosen on synthetic and real data; see docs/results.md)."""
 
     rays: int = 6                 # stratified rays per axis and zone (rays x rays per zone)
     max_iterations: int = 20
@@ -154,7 +154,7 @@ class SolverOptions:
     chi2_tolerance: float = 0.01
     prior_specular_weight: float = 0.05   # std of the specular-weight prior
     prior_log_exponent: float = 0.25      # std of the log specular-exponent prior
-    window_after_peak: int = 60   # bins fitted after the frame's latest zone peak (its tail: see the README)
+    window_after_peak: int = 60   # bins fitted after the frame's latest zone peak (its tail: see docs/results.md)
     test_window: int = 24         # bins after that peak in the residual (the chi-square test of the fit)
     zone_albedo: bool = True      # an albedo per zone, so the plane rests mostly on timing and shape
     zone_albedo_spread: float = 0.1  # std of log zone albedo about the zones' mean (inf: untied)
