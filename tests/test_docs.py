@@ -2,7 +2,7 @@
 
 Every path under ``docs/`` (a Markdown document or a figure) named in the library, the simulation, the
 robot and scenario folders, the examples, the tests and the README must be a file of the repository; every
-relative link in README.md and ``docs/*.md`` must lead to a file, and every ``#anchor`` to a heading of it.
+relative link in the READMEs and ``docs/*.md`` must lead to a file, and every ``#anchor`` to a heading of it.
 """
 
 from __future__ import annotations
@@ -61,7 +61,11 @@ def _anchors(path: Path) -> set[str]:
     return {_slug(m.group(1)) for m in re.finditer(r"^#{1,6} (.+)$", text, flags=re.M)}
 
 
-@pytest.mark.parametrize("doc", ["README.md"] + sorted(str(p.relative_to(ROOT)) for p in (ROOT / "docs").glob("*.md")))
+DOCUMENTS = ["README.md", "scenarios/README.md", "robots/ur5/README.md"] + sorted(
+    str(p.relative_to(ROOT)) for p in (ROOT / "docs").glob("*.md"))
+
+
+@pytest.mark.parametrize("doc", DOCUMENTS)
 def test_links_in_the_documents_resolve(doc):
     path = ROOT / doc
     text = re.sub(r"```.*?```", "", path.read_text(encoding="utf-8"), flags=re.S)
