@@ -106,18 +106,21 @@ def runs():
     return scenario_runs()
 
 
+@pytest.mark.slow  # 17 placements through the loop, about 17 s together
 def test_every_transition_the_machine_makes_is_in_the_table(runs):
     for name, pairs in runs.items():
         unknown = [f"{a.name} -> {b.name}" for a, b in pairs if (a, b) not in TABLE]
         assert not unknown, f"{name}: transitions missing from TRANSITIONS: {unknown}"
 
 
+@pytest.mark.slow  # 17 placements through the loop, about 17 s together
 def test_every_row_of_the_table_is_taken_by_the_machine(runs):
     taken = {pair for pairs in runs.values() for pair in pairs}
     never = sorted(f"{a.name} -> {b.name}" for a, b in TABLE - taken)
     assert not never, f"rows of TRANSITIONS the machine never takes: {never}"
 
 
+@pytest.mark.slow  # 17 placements through the loop, about 17 s together
 def test_runs_start_in_the_initial_phase_and_end_in_a_final_one(runs):
     for name, pairs in runs.items():
         assert pairs and pairs[0][0] == INITIAL and pairs[-1][1] in FINAL, name
