@@ -55,10 +55,12 @@ def _gripper_opened(fake) -> bool:
     return any(name.endswith("DigitalOut") and args[1] is True for _, name, args in fake.commands)
 
 
-def test_connect_sets_tcp_payload_watchdog_and_reads_our_tcp(fake, robot, config):
+def test_connect_sets_tcp_payload_and_the_first_motion_arms_the_watchdog(fake, robot, config):
     names = [c[1] for c in fake.commands]
-    assert names[:3] == ["setTcp", "setPayload", "setWatchdog"]
-    assert fake.watchdog_hz == config.watchdog_hz
+    assert names[:2] == ["setTcp", "setPayload"] and "setWatchdog" not in names  # at rest by design until a motion
+    robot.move_linear(_down(robot, 0.01), speed=0.05, accel=0.5)
+    names = [c[1] for c in fake.commands]
+    assert names.index("setWatchdog") < names.index("moveL") and fake.watchdog_hz == config.watchdog_hz
     np.testing.assert_allclose(robot.tcp_pose(), fake.arm.tcp_pose(), atol=1e-9)  # controller TCP = ours
     np.testing.assert_allclose(robot.sensor_pose(), fake.arm.sensor_pose(), atol=1e-9)
     assert robot.time() > 0 and robot.contact_force() == pytest.approx(0.0, abs=1e-9)
