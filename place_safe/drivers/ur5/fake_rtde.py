@@ -102,6 +102,7 @@ class FakeUR:
         self.mode: str | None = None  # the motion thread: "move" (moveL/moveJ), "speed", "stop" or None
         self.errors: list[str] = []  # control-script errors (thread conflicts), in order
         self.watchdog_stops = 0  # times the watchdog stopped the script
+        self.rejected: list[str] = []  # commands answered False (script stopped or robot stopped)
         self.outputs: dict[tuple[str, int], bool] = {}
         self.gripper_output: tuple[str, int, bool] | None = ("standard", 0, True)
         self.commands: list[tuple[float, str, tuple]] = []  # (time, name, args): every motion/IO command
@@ -214,7 +215,10 @@ class FakeUR:
         if not self.connected:
             raise RuntimeError("RTDE control: not connected to the robot")
         self.commands.append((self.time, name, args))
-        return self.program_running and self.safety_mode == SAFETY_NORMAL
+        ok = self.program_running and self.safety_mode == SAFETY_NORMAL
+        if not ok:
+            self.rejected.append(name)
+        return ok
 
     # --- frames ---------------------------------------------------------------------------------
     def base_T_flange(self) -> np.ndarray:
