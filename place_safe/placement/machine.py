@@ -128,7 +128,7 @@ class PlacementConfig:
     survey_speed: float = 0.25  # m/s sideways while bringing the footprint into view and back
     recheck_timeout: float = 2.0  # s for a second look at footprint points only mixed zones saw (0: none)
     traverse_clearance: float = 0.06  # m the cup stays above the surface while it moves back sideways
-    near_surface_speed: float = 0.05  # m/s at most within near_surface_distance (a careful collaborative approach)
+    near_surface_speed: float = 0.25  # m/s at most within near_surface_distance (the arm's robot file sets 0.05)
     near_surface_distance: float = 0.05  # m of cup clearance that counts as near the surface
     obstacle_confirm: float = 0.1  # s a contact far above the surface must last with the arm at rest
     max_unconfirmed: int = 3  # contacts far above the surface that vanished before the descent is refused
