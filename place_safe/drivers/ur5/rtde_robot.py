@@ -87,6 +87,8 @@ _SAFETY_NAMES = {3: "protective stop", 4: "recovery mode", 5: "safeguard stop", 
 _ROBOT_RUNNING = 7
 _ROBOT_MODES = {-1: "no controller", 0: "disconnected", 1: "confirm safety", 2: "booting", 3: "power off",
                 4: "power on", 5: "idle", 6: "backdrive", 8: "updating firmware"}
+#: m/s and cycles: a TCP slower than this for this many cycles in a row is at rest (besides isSteady).
+_REST_SPEED, _REST_CYCLES = 1e-4, 5
 _FORCE_BASELINE_SAMPLES = 50  # cycles at rest for the force offset and its spread (0.4 s on a CB3)
 
 
@@ -671,11 +673,17 @@ class URRobot(Robot):
     def _wait_idle(self, timeout: float, what: str, steady: bool = False) -> None:
         t_end = self.time() + timeout
         n_max = int(math.ceil(timeout / self.period)) + 10
+        still = 0  # cycles in a row with the TCP at rest by its measured speed
         for _ in range(n_max):
             self._wait_cycle()
             self._check_state()
-            done = self._control.isSteady() if (steady or self._mode == "stopping") else \
-                (self._control.getAsyncOperationProgress() < 0 and self._control.isSteady())
+            if steady or self._mode == "stopping":
+                # at rest: the controller says so, or the measured TCP speed has been ~0 for REST_CYCLES cycles
+                # (a controller whose isSteady stays False outside position mode still ends the wait)
+                still = still + 1 if float(np.linalg.norm(self.tcp_twist()[:3])) < _REST_SPEED else 0
+                done = self._control.isSteady() or still >= _REST_CYCLES
+            else:
+                done = self._control.getAsyncOperationProgress() < 0 and self._control.isSteady()
             if done:
                 self._mode = None
                 return
