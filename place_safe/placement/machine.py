@@ -41,6 +41,12 @@ The release rule (the only path to :attr:`CommandKind.OPEN_GRIPPER`), checked on
   contact higher above the sensed surface is an obstacle, and a cup below the sensed surface without
   contact means the estimate is wrong or the surface moved; both refuse.
 
+A contact reported far above the sensed surface during the descent is first a question about the force
+reading: the arm stops hard (``obstacle_decel``) and it is an obstacle only if the contact lasts
+``obstacle_confirm`` s with the arm at rest; one that vanishes is noted (:attr:`PlacementMachine.notes`)
+and the descent goes on, at most ``max_unconfirmed`` times. Within ``near_surface_distance`` of the surface
+the approach is no faster than ``near_surface_speed`` (the arm's robot file sets 50 mm/s).
+
 Every phase has a deadline counted both on the robot clock and in control ticks (``period`` seconds
 each), so a frozen or jumping robot clock still ends the machine. :meth:`PlacementMachine.step` never
 raises: bad robot state, bad planes and internal errors end in ABORTED or REFUSE with the reason.
