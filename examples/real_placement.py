@@ -4,7 +4,8 @@ Run (on the arm's network, sensor on the host's I2C bus, after ``place-safe capt
 
     python examples/real_placement.py robots/ur5/real.toml i2c:/dev/i2c-1@0x41 cal.json [--dry-run]
 
-``--dry-run`` connects receive-only, prints the planned motion and commands nothing.
+``--dry-run`` connects receive-only, prints the planned motion and commands nothing. The speeds near the
+surface and the stop decelerations come from the robot file (``[motion]``, ``[limits]``).
 """
 
 import sys
@@ -12,9 +13,13 @@ import sys
 from place_safe import Calibration, PlacementConfig, PlacementLoop, make_estimator
 
 
-def place(robot, sensor, estimator, config=PlacementConfig(), timeout=30.0):
+def place(robot, sensor, estimator, config=None, timeout=30.0):
     """One placement; the robot and the sensor are opened and closed here."""
-    with robot, sensor:
+    if config is None:
+        from place_safe.drivers.ur5.config import placement_config
+
+        config = placement_config(robot.config) if hasattr(robot, "config") else PlacementConfig()
+    with sensor, robot:  # the sensor first: the robot's watchdog is armed by the first motion
         return PlacementLoop(robot, sensor, estimator, robot.tool, config).run(timeout=timeout)
 
 

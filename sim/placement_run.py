@@ -199,7 +199,7 @@ def run_placement(scenario: Any = "place_level", method: str | None = None, cali
     return PlacementResult(
         outcome=res.outcome, reason=res.reason, final_phase=res.final_phase, cup_tilt=tilt, cup_height=height,
         cup_held=robot.holding(), liquid_spilled=robot.liquid_spilled(), liquid_total=liquid_total,
-        contact_force_peak=res.contact_force_peak, sim_seconds=robot.time(), wall_seconds=_time.perf_counter() - wall0,
+        contact_force_peak=max(res.contact_force_peak, getattr(robot, "true_force_peak", 0.0)), sim_seconds=robot.time(), wall_seconds=_time.perf_counter() - wall0,
         frames=res.frames, planes=res.planes, transitions=res.transitions, frame_log=res.frame_log,
         release_height=truth.release_height, decision_time=(t_dec - t_ref) if (t_dec is not None and t_ref is not None)
         else None, surface_moved=truth.surface_moved, fault_injected=truth.stop_injected,

@@ -17,6 +17,13 @@ Conventions
   or liquid) on the gripper bodies and the held cup. Above ``limits.max_contact_force`` (or any robot
   link touching the environment that hard) the robot protective-stops: motion halts, servos hold the
   current position, the gripper stays closed, the fault is latched and RobotFault raised.
+* The force the placement sees is a UR controller's, not MuJoCo's: every control period (8 ms) the true
+  net force plus a constant offset plus white noise (``controller`` ``cb3``: 3.6 N per axis, the CB3's
+  motor-current estimate; ``e-series``: 1 N) feeds a
+  :class:`~place_safe.robot.contact_detector.ContactDetector` zeroed at rest at construction (and by
+  :meth:`SimRobot.zero_force`); :meth:`SimRobot.contact_force` is the detector's output (0.0 without a
+  confirmed contact). :meth:`SimRobot.true_contact_force` / ``true_contact_vector`` are the physics, for
+  judges and stand-ins; ``true_force_peak`` is its largest value since construction.
 """
 
 from __future__ import annotations
@@ -29,6 +36,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from place_safe.exceptions import RobotFault
+from place_safe.robot.contact_detector import ContactDetector, DetectorSettings
 from place_safe.robot.interface import Robot, RobotLimits, TrapezoidProfile, check_pose, check_twist
 from place_safe.robots import ur5_config
 
@@ -96,7 +104,9 @@ class SimRobot(Robot):
 
     def __init__(self, model: mujoco.MjModel | None = None, data: mujoco.MjData | None = None, *,
                  limits: RobotLimits | None = None, q_init: Any = None, hold_cup: bool = True,
-                 prefix: str = "", control_period: float = 0.008) -> None:
+                 prefix: str = "", control_period: float = 0.008, controller: str = "cb3",
+                 force_noise: float | None = None, force_offset: Any = None, force_seed: int = 0,
+                 detector: DetectorSettings | None = None) -> None:
         if model is None:
             model, data = load_robot_model()
         elif data is None:
@@ -177,9 +187,20 @@ class SimRobot(Robot):
         self._qd_cmd = np.zeros(6)
         self._last_force = 0.0
         self._gripper_open = False
+        from place_safe.drivers.ur5.fake_rtde import FORCE_NOISE, FORCE_OFFSET
+
+        self.force_noise = float(FORCE_NOISE[controller] if force_noise is None else force_noise)
+        self.force_offset = np.asarray(FORCE_OFFSET if force_offset is None else force_offset, dtype=float)
+        self._force_rng = np.random.default_rng(force_seed)
+        self.detector = ContactDetector(detector if detector is not None else DetectorSettings.for_controller(
+            controller, period=control_period))
+        self._sense_ticks = self._ticks_per_control
+        self._sense_left = self._sense_ticks
+        self.true_force_peak = 0.0
         if q_init is None:
             q_init = ur5_config()["arm"]["home"]
         self.set_joint_positions(q_init, hold_cup=hold_cup)
+        self.zero_force()
 
     # ------------------------------------------------------------------------------------------
     # setup helpers
@@ -360,8 +381,34 @@ class SimRobot(Robot):
                 net += on_ours
         return net, worst
 
-    def contact_force(self) -> float:
+    def true_contact_vector(self) -> np.ndarray:
+        """N: the net force of the environment on the gripper and the held cup (physics, base frame)."""
+        R = self.world_T_base()[:3, :3]
+        return R.T @ self._contact_forces()[0]
+
+    def true_contact_force(self) -> float:
+        """N: magnitude of :meth:`true_contact_vector` (physics)."""
         return float(np.linalg.norm(self._contact_forces()[0]))
+
+    def force_reading(self) -> np.ndarray:
+        """One TCP force reading as the controller gives it (N, base frame): truth + offset + noise."""
+        f = self.true_contact_vector() + self.force_offset
+        if self.force_noise:
+            f = f + self._force_rng.normal(0.0, self.force_noise, 3)
+        return f
+
+    def zero_force(self, samples: int = 50) -> np.ndarray:
+        """Take the rest reading (``samples`` readings at the current state) for the contact detector."""
+        offset, _ = self.detector.zero([self.force_reading() for _ in range(max(2, int(samples)))])
+        return offset
+
+    def _sense(self) -> None:
+        """One controller cycle of the force estimate into the contact detector (approach: the tool axis)."""
+        self.detector.update(self.force_reading(), self.tcp_pose()[:3, 2])
+
+    def contact_force(self) -> float:
+        """N: the contact detector's output on the noisy force reading (0.0 without a confirmed contact)."""
+        return self.detector.contact_force()
 
     # ------------------------------------------------------------------------------------------
     # faults
@@ -732,6 +779,7 @@ class SimRobot(Robot):
         net, worst = self._contact_forces()
         f = float(np.linalg.norm(net))
         self._last_force = max(f, worst)
+        self.true_force_peak = max(self.true_force_peak, f)
         thr = self.limits.max_contact_force
         if self._force_grace > 0:
             if self._last_force < thr:
@@ -763,6 +811,10 @@ class SimRobot(Robot):
                 cb(m, d, float(d.time))
             if self._fault is None:
                 self._safety()
+            self._sense_left -= 1
+            if self._sense_left <= 0:
+                self._sense_left = self._sense_ticks
+                self._sense()
 
     def _run_until_idle(self, timeout: float) -> None:
         h = self.model.opt.timestep

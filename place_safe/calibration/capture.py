@@ -140,8 +140,10 @@ def touch_plane(robot: Robot, points_xy: Any, start_height: float, *, speed: flo
 
     Each descent: moveL to (x, y, ``start_height``) with the current orientation, zero the force reading
     (robots that have ``zero_force``), speedL down at ``speed`` until ``contact_force()`` exceeds
-    ``force_threshold`` N averaged over :data:`TOUCH_SAMPLES` cycles (CB3: the controller's force estimate
-    has several N of noise; stay well above it and well below the protective stop), stop at once, record the TCP position, retract by
+    ``force_threshold`` N averaged over :data:`TOUCH_SAMPLES` cycles -- or, for a robot with a contact detector
+    (``zero_force``), its averaged output alone (CB3: the controller's force estimate has several N of noise;
+    stay well above it and well below the protective stop), stop at once -- with a contact detector, rise
+    slowly until it lets go (:func:`_release_point`) -- record the TCP position, retract by
     ``retract`` m. No contact within ``max_depth`` m is an error (RobotFault)."""
     pts = np.asarray(points_xy, dtype=float)
     if pts.ndim != 2 or pts.shape[1] != 2 or len(pts) < 3:
@@ -166,13 +168,19 @@ def touch_plane(robot: Robot, points_xy: Any, start_height: float, *, speed: flo
                 raise RobotFault(f"guarded descent at ({x:.3f}, {y:.3f}) m did not reach contact or "
                                  f"{max_depth * 1000:.0f} mm of travel in time (arm not moving?)")
             recent = (recent + [robot.contact_force() - base])[-TOUCH_SAMPLES:]
-            if len(recent) == TOUCH_SAMPLES and float(np.mean(recent)) > force_threshold:
+            # a robot with zero_force reports its contact detector's output, averaged already: no second average
+            hit = recent[-1] > force_threshold if zero is not None else \
+                len(recent) == TOUCH_SAMPLES and float(np.mean(recent)) > force_threshold
+            if hit:
                 robot.stop(decel=2.0)
                 break
             if z_start - robot.tcp_pose()[2, 3] > max_depth:
                 robot.stop(decel=2.0)
                 raise RobotFault(f"no contact within {max_depth * 1000:.0f} mm below ({x:.3f}, {y:.3f}) m")
-        contacts.append(robot.tcp_pose()[:3, 3].copy())
+        if zero is not None:  # a contact detector: back off slowly until it lets go, nearer the first touch
+            contacts.append(_release_point(robot, speed, accel))
+        else:
+            contacts.append(robot.tcp_pose()[:3, 3].copy())
         up = robot.tcp_pose()
         up[2, 3] += retract
         robot.move_linear(up, speed=0.02, accel=accel)
@@ -180,6 +188,20 @@ def touch_plane(robot: Robot, points_xy: Any, start_height: float, *, speed: flo
     plane, _ = fit_plane(P)
     n = plane.normal if plane.normal[2] > 0 else -plane.normal
     return n, float(n @ P.mean(axis=0)), P
+
+
+def _release_point(robot: Robot, speed: float, accel: float, max_back: float = 0.005) -> np.ndarray:
+    """After a guarded descent stopped on contact: rise at half the descent speed until the robot's contact
+    detector lets go of the contact (its averaged force below half its threshold) and return the TCP position
+    there -- within a fraction of a millimetre of the first touch, where the stop at the threshold force
+    (15 N: about 1 mm into a 20 kN/m contact, varying with the noise) is not."""
+    z0 = robot.tcp_pose()[2, 3]
+    robot.speed_linear([0.0, 0.0, abs(speed) / 2.0, 0.0, 0.0, 0.0], accel=accel)
+    while robot.contact_force() > 0.0 and robot.tcp_pose()[2, 3] - z0 < max_back:
+        robot.step(STEP_S)
+    p = robot.tcp_pose()[:3, 3].copy()
+    robot.stop(decel=2.0)
+    return p
 
 
 def _done_indices(path: Path) -> set[int]:

@@ -29,7 +29,7 @@ from place_safe.exceptions import PlaceSafeError
 #: (``parser_class=_Parser`` is inherited) with ``set_defaults(func=...)``. Modules import heavy packages
 #: (torch, MuJoCo, ur-rtde, smbus2) inside their command functions, not at import time.
 COMMAND_MODULES: tuple[str, ...] = ("place_safe.cli.sensing", "place_safe.cli.demo", "place_safe.cli.sensor",
-                                   "place_safe.cli.robot", "place_safe.cli.synth", "place_safe.cli.latency",
+                                   "place_safe.cli.robot", "place_safe.cli.robot_bench", "place_safe.cli.synth", "place_safe.cli.latency",
                                    "place_safe.cli.scenarios")
 
 

@@ -102,7 +102,10 @@ def cmd_place(args: argparse.Namespace) -> int:
             raise UsageError("place: --sensor URI is required with --robot (e.g. --sensor i2c:/dev/i2c-1)")
         from place_safe.drivers.ur5 import URRobot
 
+        from place_safe.drivers.ur5.config import placement_config
+
         robot = URRobot(robot_cfg, dry_run=args.dry_run)
+        cfg = placement_config(robot_cfg, cfg)  # near-surface speed and stop decelerations of the robot file
         source = open_sensor(args.sensor)
         where = f"UR5 at {robot_cfg.connection.host}" + (" (dry run)" if args.dry_run else "")
     with robot:
@@ -160,7 +163,10 @@ def cmd_capture(args: argparse.Namespace) -> int:
             raise UsageError("capture: --touch moves the arm; with --dry-run give --table-height instead")
         from place_safe.drivers.ur5 import URRobot
 
+        from place_safe.drivers.ur5.config import placement_config
+
         robot = URRobot(robot_cfg, dry_run=args.dry_run)
+        cfg = placement_config(robot_cfg, cfg)  # near-surface speed and stop decelerations of the robot file
         source = open_sensor(args.sensor)
     tool = robot_cfg.tool.frames()
     with robot:

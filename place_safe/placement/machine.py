@@ -41,6 +41,12 @@ The release rule (the only path to :attr:`CommandKind.OPEN_GRIPPER`), checked on
   contact higher above the sensed surface is an obstacle, and a cup below the sensed surface without
   contact means the estimate is wrong or the surface moved; both refuse.
 
+A contact reported far above the sensed surface during the descent is first a question about the force
+reading: the arm stops hard (``obstacle_decel``) and it is an obstacle only if the contact lasts
+``obstacle_confirm`` s with the arm at rest; one that vanishes is noted (:attr:`PlacementMachine.notes`)
+and the descent goes on, at most ``max_unconfirmed`` times. Within ``near_surface_distance`` of the surface
+the approach is no faster than ``near_surface_speed`` (the arm's robot file sets 50 mm/s).
+
 Every phase has a deadline counted both on the robot clock and in control ticks (``period`` seconds
 each), so a frozen or jumping robot clock still ends the machine. :meth:`PlacementMachine.step` never
 raises: bad robot state, bad planes and internal errors end in ABORTED or REFUSE with the reason.
@@ -128,6 +134,10 @@ class PlacementConfig:
     survey_speed: float = 0.25  # m/s sideways while bringing the footprint into view and back
     recheck_timeout: float = 2.0  # s for a second look at footprint points only mixed zones saw (0: none)
     traverse_clearance: float = 0.06  # m the cup stays above the surface while it moves back sideways
+    near_surface_speed: float = 0.25  # m/s at most within near_surface_distance (the arm's robot file sets 0.05)
+    near_surface_distance: float = 0.05  # m of cup clearance that counts as near the surface
+    obstacle_confirm: float = 0.1  # s a contact far above the surface must last with the arm at rest
+    max_unconfirmed: int = 3  # contacts far above the surface that vanished before the descent is refused
     # * footprint_frames = 0 is for sources without histograms (test doubles); it extrapolates the
     #   surface beside the cup to where it lands, which edges and clutter defeat
 
@@ -149,7 +159,7 @@ class PlacementConfig:
             raise ConfigError("placement config: early_refuse_tilt must be >= max_tilt")
 
     def to_dict(self) -> dict[str, float]:
-        ints = ("check_frames", "max_checks", "footprint_frames")
+        ints = ("check_frames", "max_checks", "footprint_frames", "max_unconfirmed")
         return {k: (int(v) if k in ints else float(v)) for k, v in asdict(self).items()}
 
     @classmethod
@@ -204,6 +214,10 @@ PLACEMENT_BOUNDS: dict[str, Bound] = {
     "survey_speed": Bound(0.0, 1.0, "m/s", lo_open=True),
     "recheck_timeout": Bound(0.0, 30.0, "s"),
     "traverse_clearance": Bound(0.0, 1.0, "m"),
+    "near_surface_speed": Bound(0.0, 1.0, "m/s", lo_open=True),
+    "near_surface_distance": Bound(0.0, 1.0, "m"),
+    "obstacle_confirm": Bound(0.0, 5.0, "s"),
+    "max_unconfirmed": Bound(0, 100, "contacts"),
 }
 
 
@@ -304,6 +318,19 @@ class _Recheck:
 
 
 @dataclass
+class _Suspect:
+    """A contact reported far above the sensed surface, being confirmed: when it was first reported, its
+    ticks, the TCP position of the previous tick and since when the arm is at rest (None: still moving)."""
+
+    t0: float
+    force: float
+    clearance: float
+    ticks: int = 0
+    last_tcp: np.ndarray | None = None
+    rest_since: float | None = None
+
+
+@dataclass
 class _Retreat:
     """RELEASE / REFUSE phase state: TCP height when the retreat started (None until it starts)."""
 
@@ -347,6 +374,9 @@ class PlacementMachine:
         self._footprint: Any = None
         self._surveyed = False
         self._recheck: _Recheck | None = None
+        self._suspect: _Suspect | None = None
+        self._unconfirmed = 0
+        self.notes: list[str] = []  # what the machine noticed without changing phase (unconfirmed contacts)
 
     @property
     def finished(self) -> bool:
@@ -694,9 +724,57 @@ class PlacementMachine:
             self._check = _Check(now)
             self._go(Phase.CHECK, now, f"contact {force:.1f} N at estimated clearance {c * 1e3:.1f} mm")
             return Command(CommandKind.STOP, accel=cfg.accel)
-        # an obstacle: stop hard (every millimetre pressed on into it adds force), then retreat
-        return self._refuse(now, f"obstacle: contact {force:.1f} N with the cup bottom {c * 1e3:.1f} mm above the "
-                                 f"sensed surface (> {cfg.contact_clearance * 1e3:.0f} mm)", decel=cfg.obstacle_decel)
+        # far above the sensed surface: first a question about the force reading. Stop hard at once (every
+        # millimetre pressed on into an obstacle adds force), then confirm while the arm is at rest.
+        self._suspect = _Suspect(now, force, c)
+        self._last_twist = None
+        log.info("t=%.3f s contact %.1f N with the cup bottom %.1f mm above the sensed surface: stopping to confirm",
+                 now, force, c * 1e3)
+        return Command(CommandKind.STOP, accel=cfg.obstacle_decel)
+
+    def _confirm_contact(self, state: RobotState, c: float, now: float) -> Command | None:
+        """A contact far above the sensed surface is an obstacle only if it persists ``obstacle_confirm`` s with
+        the arm at rest (a touch that pushes back keeps pushing while the arm stands on it; a glitch of the
+        force estimate does not). Returns the command while confirming, or None once it vanished."""
+        cfg = self.config
+        s = self._suspect
+        s.ticks += 1
+        force = float(state.contact_force)
+        tcp = np.asarray(state.base_T_tcp, dtype=float)[:3, 3].copy()
+        moved = math.inf if s.last_tcp is None else float(np.linalg.norm(tcp - s.last_tcp))
+        s.last_tcp = tcp
+        if moved <= cfg.rest_tolerance * 0.1:
+            s.rest_since = now if s.rest_since is None else s.rest_since
+        else:
+            s.rest_since = None
+        if force >= cfg.contact_force:
+            s.force = max(s.force, force)
+            if s.rest_since is not None and now - s.rest_since >= cfg.obstacle_confirm:
+                self._suspect = None
+                return self._refuse(now, f"obstacle: contact {force:.1f} N with the cup bottom {s.clearance * 1e3:.1f} mm "
+                                         f"above the sensed surface (> {cfg.contact_clearance * 1e3:.0f} mm), confirmed "
+                                         f"for {now - s.rest_since:.2f} s with the arm at rest",
+                                    decel=cfg.obstacle_decel)
+            if self._elapsed(now, s.t0, s.ticks) > cfg.obstacle_confirm + 2.0:  # never at rest: refuse all the same
+                self._suspect = None
+                return self._refuse(now, f"obstacle: contact {force:.1f} N with the cup bottom {s.clearance * 1e3:.1f} mm "
+                                         "above the sensed surface and the arm did not come to rest",
+                                    decel=cfg.obstacle_decel)
+            return Command.hold()
+        if s.rest_since is None and self._elapsed(now, s.t0, s.ticks) < cfg.obstacle_confirm:
+            return Command.hold()  # let the stop take effect before judging
+        self._suspect = None
+        self._unconfirmed += 1
+        note = (f"t={now:.3f} s: contact {s.force:.1f} N {s.clearance * 1e3:.1f} mm above the sensed surface vanished "
+                f"within {now - s.t0:.2f} s ({self._unconfirmed} of {cfg.max_unconfirmed} allowed): force reading, "
+                "not an obstacle; descending on")
+        self.notes.append(note)
+        log.info(note)
+        if self._unconfirmed > cfg.max_unconfirmed:
+            return self._refuse(now, f"the force reading is unreliable: {self._unconfirmed} contacts far above the "
+                                     "sensed surface vanished again")
+        self._last_twist = None
+        return None
 
     def _on_descent(self, state: RobotState, plane: FusedPlane | None, note: str | None, now: float) -> Command:
         """APPROACH and DESCEND: move down towards the surface, fast while it is far, slow near it."""
@@ -723,7 +801,10 @@ class PlacementMachine:
             return self._refuse(now, f"no support within reach: the surface seen is {c * 1e3:.0f} mm below the cup, "
                                      f"beyond the {cfg.max_travel:.2f} m descent limit (past an edge, or nothing "
                                      "under the cup)")
-        if (cmd := self._contact_rule(state, c, now)) is not None:
+        if self._suspect is not None:
+            if (cmd := self._confirm_contact(state, c, now)) is not None:
+                return cmd
+        elif (cmd := self._contact_rule(state, c, now)) is not None:
             return cmd
         if c < -cfg.max_penetration:
             return self._refuse(now, f"cup {-c * 1e3:.1f} mm below the estimated surface without contact: "
@@ -745,6 +826,8 @@ class PlacementMachine:
             if c > cfg.slow_clearance:
                 v = approach_speed(c, cfg.slow_clearance, cfg.sensor_latency, cfg.accel, cfg.approach_speed,
                                    cfg.descend_speed)
+                if c <= cfg.near_surface_distance:
+                    v = max(cfg.descend_speed, min(v, cfg.near_surface_speed))
                 if np.any(side):  # moving back over the landing spot: the ground under the way is unseen
                     v = min(v, max(self._axial(c - cfg.traverse_clearance), 0.0))
                 return self._speed(np.round(side + round(v, 3) * down, 3))

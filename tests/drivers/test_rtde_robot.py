@@ -55,10 +55,12 @@ def _gripper_opened(fake) -> bool:
     return any(name.endswith("DigitalOut") and args[1] is True for _, name, args in fake.commands)
 
 
-def test_connect_sets_tcp_payload_watchdog_and_reads_our_tcp(fake, robot, config):
+def test_connect_sets_tcp_payload_and_the_first_motion_arms_the_watchdog(fake, robot, config):
     names = [c[1] for c in fake.commands]
-    assert names[:3] == ["setTcp", "setPayload", "setWatchdog"]
-    assert fake.watchdog_hz == config.watchdog_hz
+    assert names[:2] == ["setTcp", "setPayload"] and "setWatchdog" not in names  # at rest by design until a motion
+    robot.move_linear(_down(robot, 0.01), speed=0.05, accel=0.5)
+    names = [c[1] for c in fake.commands]
+    assert names.index("setWatchdog") < names.index("moveL") and fake.watchdog_hz == config.watchdog_hz
     np.testing.assert_allclose(robot.tcp_pose(), fake.arm.tcp_pose(), atol=1e-9)  # controller TCP = ours
     np.testing.assert_allclose(robot.sensor_pose(), fake.arm.sensor_pose(), atol=1e-9)
     assert robot.time() > 0 and robot.contact_force() == pytest.approx(0.0, abs=1e-9)
@@ -265,3 +267,152 @@ def test_dry_run_capture_checks_and_prints_every_pose_and_writes_nothing(fake, c
     assert res.captured == 2 and res.frames == 0 and fake.commands == []
     assert len(lines) == 2 and all(x.startswith("[dry run] moveL") for x in lines)
     assert (tmp_path / "c.jsonl").read_text() == ""
+
+
+# ---------------------------------------------------------------------------------------------------
+# against a pessimistic controller (issue 29): force noise, the watchdog at rest, one motion thread
+# ---------------------------------------------------------------------------------------------------
+def test_the_fake_is_pessimistic_by_default(fake):
+    assert fake.force_noise == pytest.approx(3.6) and np.any(fake.force_offset)
+    assert fake_rtde.FakeUR(controller="e-series", host="es").force_noise < fake.force_noise
+    raw = np.array([fake.force()[:3] for _ in range(2000)])
+    np.testing.assert_allclose(raw.std(axis=0), 3.6, rtol=0.1)
+
+
+def test_free_air_noise_is_not_contact_and_the_rest_spread_is_kept(fake, robot):
+    assert np.all(robot.force_noise > 2.5) and robot.detector.threshold > 5.0
+    robot.speed_linear([0, 0, -0.05, 0, 0, 0], accel=0.5)
+    for _ in range(300):
+        robot.step(0.008)
+        assert robot.contact_force() == 0.0
+    robot.stop(decel=0.5)
+
+
+def test_the_watchdog_stops_the_script_at_rest_too(fake, robot):
+    robot.move_linear(_down(robot, 0.005), speed=0.05, accel=0.5)  # arms the watchdog
+    fake.advance(0.3)  # the host sleeps without kicking, the arm at rest
+    assert fake.watchdog_stops == 1 and not fake.program_running
+    with pytest.raises(RobotFault, match="control script stopped"):
+        robot.step(0.008)
+
+
+def test_the_gripper_settle_kicks_the_watchdog_and_a_plain_sleep_would_not(fake, robot, monkeypatch):
+    from place_safe.drivers.ur5 import gripper as gmod
+
+    monkeypatch.setattr(gmod.time, "sleep", fake.advance)  # wall time passing unkicked, as on a real controller
+    robot.move_linear(_down(robot, 0.005), speed=0.05, accel=0.5)
+    t0 = fake.time
+    robot.gripper(open=True)  # settle_s of the robot file, serviced cycle by cycle
+    assert fake.time - t0 >= robot.config.gripper.settle_s - 0.01
+    assert fake.watchdog_stops == 0 and fake.program_running and robot.fault() is None
+    unbound = gmod.DigitalOutputGripper(fake_rtde.RTDEIOInterface(fake.host), settle_s=0.4, sleep=fake.advance)
+    unbound.close()  # the old way: time.sleep(0.4) with the watchdog armed
+    assert fake.watchdog_stops == 1
+
+
+def test_a_motion_after_an_asynchronous_stop_waits_for_the_stop(fake, robot):
+    robot.move_linear(_down(robot, 0.05), speed=0.1, accel=0.5, asynchronous=True)
+    robot.step(0.1)
+    robot.stop(decel=0.5, asynchronous=True)
+    robot.speed_linear([0, 0, 0.01, 0, 0, 0], accel=0.5)  # the issue's sequence: stopL then speedL
+    names = [c[1] for c in fake.commands]
+    assert names[-2:] == ["stopL", "speedL"] and not fake.arm.is_moving() or fake.mode == "speed"
+    assert fake.errors == [] and fake.program_running
+    robot.move_linear(_down(robot, -0.01), speed=0.05, accel=0.5)  # speedL -> moveL: speedStop, wait, moveL
+    names = [c[1] for c in fake.commands]
+    assert names[-2:] == ["speedStop", "moveL"] and fake.errors == []
+
+
+def test_the_fake_answers_a_second_motion_thread_with_a_script_error(fake):
+    c = fake_rtde.RTDEControlInterface(fake.host)
+    T = fake.tcp_pose()
+    T[2, 3] -= 0.05
+    assert c.moveL(pose_to_vector(T), 0.1, 0.5, True)
+    fake.advance(0.1)
+    c.stopL(2.0, True)
+    assert c.speedL([0, 0, 0.01, 0, 0, 0], 0.5, 0.0) is False
+    assert fake_rtde.THREAD_CONFLICT in fake.errors[0] and not fake.program_running
+
+
+def test_disconnect_stops_waits_for_rest_and_stops_the_script(fake, config):
+    robot = URRobot(config, modules=fake_rtde.modules(), out=lambda s: None).connect()
+    robot.speed_linear([0, 0, -0.05, 0, 0, 0], accel=0.5)
+    robot.step(0.2)
+    robot.disconnect()
+    assert not fake.arm.is_moving() and not fake.program_running and fake.watchdog_hz is None
+    fake.advance(1.0)
+    assert fake.watchdog_stops == 0 and fake.errors == []
+
+
+def test_every_stop_is_bounded_by_the_robot_file(fake, config):
+    config.limits.max_linear_accel = 0.5
+    config.motion.emergency_decel = 2.0
+    robot = URRobot(config, modules=fake_rtde.modules(), out=lambda s: None).connect()
+    for asked in (0.3, 0.8, 4.0, 40.0):
+        robot.speed_linear([0, 0, -0.02, 0, 0, 0], accel=0.5)
+        robot.step(0.05)
+        robot.stop(decel=asked)
+    stops = [args[0] for _, name, args in fake.commands if name in ("speedStop", "stopL")]
+    assert stops == [0.3, 0.8, 2.0, 2.0] and max(stops) <= config.motion.emergency_decel
+
+
+def test_after_a_lost_connection_the_state_is_read_first_and_reported(fake, config):
+    lines = []
+    robot = URRobot(config, modules=fake_rtde.modules(), out=lines.append).connect()
+    fake.inject_disconnect(fake.time + 0.02)
+    fake.inject_protective_stop(fake.time + 0.03, "while away")
+    with pytest.raises(RobotFault, match="lost"):
+        robot.step(0.1)
+    fake.advance(0.1)  # the controller goes on while the link is down
+    with pytest.raises(RobotFault, match="teach pendant"):
+        robot.clear_fault()
+    assert "PROTECTIVE STOP" in robot.last_state and any(line.startswith("reconnected") for line in lines)
+    assert not _gripper_opened(fake)
+
+
+def test_ur_rtde_chatter_at_connect_goes_to_the_log_not_the_terminal(config, capfd, caplog):
+    import logging
+    import os
+
+    def refuse(*a, **k):
+        os.write(2, b"connect: Connection refused\n")
+        raise RuntimeError("Connection refused")
+
+    mods = SimpleNamespace(rtde_receive=SimpleNamespace(RTDEReceiveInterface=refuse),
+                           rtde_control=SimpleNamespace(RTDEControlInterface=refuse),
+                           rtde_io=SimpleNamespace(RTDEIOInterface=refuse))
+    with caplog.at_level(logging.INFO, logger="place_safe.drivers.ur5"):
+        with pytest.raises(RobotFault, match="Connection refused"):
+            URRobot(config, modules=mods).connect()
+    out, err = capfd.readouterr()
+    assert "connect: Connection refused" not in out + err
+    assert any("connect: Connection refused" in r.getMessage() for r in caplog.records)
+
+
+@pytest.mark.parametrize("kind, words", [("protective", "protective stop"), ("emergency", "emergency stop"),
+                                         ("connection", "lost")])
+def test_faults_during_a_noisy_descent_end_as_robot_faults_with_the_cup_held(kind, words):
+    """With CB3 force noise the descent goes on to the injected fault (no false obstacle first), and the fault
+    ends the placement holding the cup."""
+    from place_safe.drivers.ur5.config import placement_config
+    from place_safe.evaluation.contact import TablePlaneSource, TruthEstimator, make_stand_in
+    from place_safe.placement.loop import PlacementLoop
+    from place_safe.placement.machine import PlacementConfig
+
+    robot, fake = make_stand_in("cb3", table_gap=0.3, seed=11)
+    loop = PlacementLoop(robot, TablePlaneSource(robot, fake.arm.contact_plane[1]), TruthEstimator(),
+                         config=placement_config(robot.config, PlacementConfig(footprint_frames=0)))
+    tcp_T_cup = robot.tool.tcp_T_cup
+    when = lambda f: (f.arm.tcp_pose() @ tcp_T_cup)[2, 3] < f.arm.contact_plane[1] + 0.1  # cup 10 cm above
+    if kind == "protective":
+        fake.inject_protective_stop(when, "collision")
+    elif kind == "emergency":
+        fake.inject_emergency_stop(when)
+    else:
+        fake.inject_disconnect(when, reconnectable=False)
+    with robot:
+        res = loop.run(timeout=20.0)
+    assert res.outcome == "refused" and res.final_phase == "aborted", res.reason
+    assert words in res.reason and "holds the cup" in res.reason
+    assert not _gripper_opened(fake) and not fake.arm.gripper_is_open()
+    assert not any("obstacle" in t["reason"] for t in res.transitions)

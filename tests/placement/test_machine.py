@@ -430,3 +430,55 @@ def test_contact_high_above_the_sensed_surface_stops_hard_and_refuses():
     assert m.outcome == "refused" and "obstacle" in m.decision and not opened(w)
     stops = [c for c in w.commands if c.kind == CommandKind.STOP]
     assert stops and stops[0].accel == cfg.obstacle_decel > cfg.accel
+
+
+class GlitchWorld(FakeWorld):
+    """A free descent whose force reading shows ``glitches`` brief spikes (a noisy estimate, nothing touched)."""
+
+    def __init__(self, glitch_times, **kw):
+        super().__init__(**kw)
+        self.glitch_times = list(glitch_times)
+
+    def state(self):
+        s = super().state()
+        if any(t0 <= self.t < t0 + 0.024 for t0 in self.glitch_times):
+            s.contact_force = 9.0
+        return s
+
+
+def test_a_brief_force_reading_far_above_the_surface_is_confirmed_not_refused():
+    """A contact reading far above the sensed surface stops the arm, and when it vanishes with the arm at rest the
+    descent goes on (a question about the force reading, not an obstacle)."""
+    w = GlitchWorld([0.3], height=0.2)
+    m = run(w)
+    assert m.outcome == "released", m.decision
+    assert len(m.notes) == 1 and "vanished" in m.notes[0]
+    stops = [c for c in w.commands if c.kind == CommandKind.STOP]
+    assert stops[0].accel == m.config.obstacle_decel  # stopped hard while it was a question
+
+
+def test_a_force_reading_that_keeps_coming_back_is_refused_as_unreliable():
+    w = GlitchWorld([0.3, 0.8, 1.3, 1.8, 2.3, 2.8], height=0.35)
+    m = run(w, PlacementMachine(PlacementConfig(max_unconfirmed=2)))
+    assert m.outcome == "refused" and "unreliable" in m.decision and not opened(w)
+
+
+def test_a_persisting_contact_far_above_the_surface_is_confirmed_at_rest_before_the_refusal():
+    w = FakeWorld(height=0.2, contact_height=0.03)
+    m = run(w)
+    refusal = next(t for t in m.log if t.target == Phase.REFUSE)
+    assert "obstacle" in refusal.reason and "confirmed" in refusal.reason and "at rest" in refusal.reason
+    assert not opened(w)
+
+
+def test_the_approach_is_no_faster_than_the_near_surface_speed_within_its_distance():
+    cfg = PlacementConfig(near_surface_speed=0.05, near_surface_distance=0.05)
+    w = FakeWorld(height=0.3)
+    m = PlacementMachine(cfg)
+    while not m.finished and w.t < 20:
+        st = w.state()
+        cmd = m.step(st, w.plane(), None, w.footprint)
+        if cmd.kind == CommandKind.SPEED and m.phase in (Phase.APPROACH, Phase.DESCEND) and 0 < w.pos[2] < 0.045:
+            assert abs(cmd.twist[2]) <= cfg.near_surface_speed + 1e-9
+        w.apply(cmd)
+    assert m.outcome == "released"

@@ -40,3 +40,35 @@ def test_real_arm_example_runs_on_the_ur_rtde_stand_in():
     calibration = Calibration.load(calibration_file("nominal"))  # the simulated user calibration
     result = example["place"](robot, sensor, make_estimator("peak", calibration), timeout=10.0)
     assert result.outcome == "refused" and "tilted" in result.reason and arm.holding()
+
+
+@pytest.mark.parametrize("gripper", ["digital", "robotiq"])
+def test_real_arm_example_releases_and_retreats_on_the_pessimistic_fake(gripper):
+    """examples/real_placement.place() on the fake CB3 (force noise 3.6 N per axis, watchdog, one motion thread):
+    released and retreated, no watchdog stop, no script error, no command refused -- with either gripper."""
+    from urcap import FakeURCap
+
+    from place_safe.drivers.ur5.config import placement_config
+    from place_safe.evaluation.contact import TablePlaneSource, TruthEstimator, make_stand_in
+    from place_safe.placement.machine import PlacementConfig
+
+    example = runpy.run_path(str(EXAMPLES / "real_placement.py"), run_name="example")
+    srv = FakeURCap() if gripper == "robotiq" else None
+    robot, fake = make_stand_in("cb3", table_gap=0.4, gripper=gripper, seed=7)
+    if srv is not None:
+        robot.config.gripper.port = srv.port
+    config = placement_config(robot.config, PlacementConfig(footprint_frames=0))
+    try:
+        result = example["place"](robot, TablePlaneSource(robot, fake.arm.contact_plane[1]), TruthEstimator(),
+                                  config=config, timeout=20.0)
+    finally:
+        if srv is not None:
+            srv.close()
+    assert result.outcome == "released", result.reason
+    assert result.transitions[-1]["to"] == "done" and "retreated" in result.transitions[-1]["reason"]
+    assert fake.watchdog_stops == 0 and fake.errors == [] and fake.rejected == []
+    assert not fake.program_running and not fake.arm.is_moving()  # disconnect stopped the script at rest
+    if srv is None:
+        assert fake.arm.gripper_is_open()
+    else:
+        assert "SET POS 0" in srv.lines and srv.lines.index("SET POS 0") > srv.lines.index("SET ACT 1")

@@ -147,6 +147,8 @@ class URConfig(ConfigModel):
     gripper: DigitalGripperConfig | RobotiqGripperConfig | NoGripperConfig = Field(
         DigitalGripperConfig(), discriminator="kind")
     tool: ToolConfig = ToolConfig()
+    motion: "MotionConfig" = Field(default_factory=lambda: MotionConfig())
+    contact: "ContactConfig" = Field(default_factory=lambda: ContactConfig())
 
     @classmethod
     def load(cls, path: str | Path) -> "URConfig":
@@ -156,6 +158,71 @@ class URConfig(ConfigModel):
     def to_toml(self) -> str:
         """The configuration as TOML text (for writing back a fitted mount)."""
         return _toml(self.model_dump(mode="json", exclude_none=True))
+
+
+# ------------------------------------------------------------------------------------------------
+# motion near the surface, stop decelerations and the contact detector (issue 29)
+# ------------------------------------------------------------------------------------------------
+class MotionConfig(ConfigModel):
+    """Speeds near the surface and stop decelerations (SI units).
+
+    Defaults: ``near_surface_speed`` 0.05 m/s within ``near_surface_distance`` 0.05 m of the sensed surface --
+    a careful collaborative approach; UR's collaborative speed limit for a tool near people is 50 mm/s
+    (``shared/docs/ur5-rtde.md``), and at 50 mm/s the cup stops in 1.6 mm at 0.8 m/s^2. Every ordinary stop
+    decelerates at most at ``limits.max_linear_accel``; a stop asked harder (an obstacle, a fault) is an
+    emergency stop at most at ``emergency_decel`` 2.0 m/s^2: from 0.1 m/s it stops in 2.5 mm and 50 ms,
+    well under UR's own stopL default of 10 m/s^2 that would slosh a full cup.
+    """
+
+    near_surface_speed: float = Field(0.05, gt=0, le=0.25,
+                                      description="m/s: the fastest approach within near_surface_distance")
+    near_surface_distance: float = Field(0.05, ge=0, le=0.5,
+                                         description="m of cup clearance above the sensed surface that counts as near")
+    emergency_decel: float = Field(2.0, gt=0, le=10.0,
+                                   description="m/s^2: the hardest stop (obstacle, fault); ordinary stops use at "
+                                               "most limits.max_linear_accel")
+
+
+class ContactConfig(ConfigModel):
+    """The contact detector on the TCP force estimate (:mod:`place_safe.robot.contact_detector`); each unset
+    value takes the controller's default (CB3 about 3.6 N per axis per cycle, e-Series about 1 N).
+    ``place-safe robot bench --write`` measures ``noise_std`` on the arm at rest and writes it here."""
+
+    noise_std: float | None = Field(None, gt=0, le=50, description="N per axis per controller cycle at rest")
+    window: int | None = Field(None, ge=1, le=1000, description="controller cycles averaged")
+    sigmas: float | None = Field(None, gt=0, le=20, description="threshold in standard deviations of the average")
+    persistence: int | None = Field(None, ge=1, le=1000, description="consecutive cycles above the threshold")
+    min_threshold: float | None = Field(None, gt=0, le=100, description="N: the least threshold")
+    lateral_sigmas: float | None = Field(None, gt=0, le=30, description="threshold factor for the vector norm")
+    measured: dict | None = Field(None, description="written by place-safe robot bench: what it measured")
+
+    def settings(self, controller: str):
+        """The :class:`~place_safe.robot.contact_detector.DetectorSettings` for ``controller``."""
+        from place_safe.robot.contact_detector import DetectorSettings
+
+        return DetectorSettings.for_controller(
+            controller, noise_std=self.noise_std, window=self.window, sigmas=self.sigmas,
+            persistence=self.persistence, min_threshold=self.min_threshold, lateral_sigmas=self.lateral_sigmas)
+
+
+URConfig.model_rebuild()
+
+
+def placement_config(robot: URConfig, base=None):
+    """``base`` (a :class:`~place_safe.placement.machine.PlacementConfig`, default its defaults) with the robot
+    file's motion policy: the near-surface speed and distance, stops no harder than ``max_linear_accel`` and
+    the obstacle stop no harder than ``emergency_decel``."""
+    from dataclasses import replace
+
+    from place_safe.placement.machine import PlacementConfig
+
+    base = base if base is not None else PlacementConfig()
+    m, lim = robot.motion, robot.limits
+    return replace(base, near_surface_speed=m.near_surface_speed, near_surface_distance=m.near_surface_distance,
+                   accel=min(base.accel, lim.max_linear_accel),
+                   obstacle_decel=min(base.obstacle_decel, m.emergency_decel),
+                   descend_speed=min(base.descend_speed, m.near_surface_speed),
+                   approach_speed=min(base.approach_speed, lim.max_linear_speed))
 
 
 def packaged_config(name: str = "sim") -> Path:
@@ -190,5 +257,5 @@ def _toml(d: dict, prefix: str = "") -> str:
     return "\n".join(lines).strip("\n") + "\n" if not prefix else "\n".join(lines)
 
 
-__all__ = ["URConfig", "ConnectionConfig", "LimitsConfig", "ToolConfig", "FrameConfig", "DigitalGripperConfig",
+__all__ = ["URConfig", "MotionConfig", "ContactConfig", "placement_config", "ConnectionConfig", "LimitsConfig", "ToolConfig", "FrameConfig", "DigitalGripperConfig",
            "RobotiqGripperConfig", "NoGripperConfig", "CONTROLLER_HZ", "packaged_config"]

@@ -8,7 +8,19 @@ wrong: commands return ``False`` once the control script has stopped, a protecti
 and stops the script until it is unlocked, the watchdog stops the arm when the host stops kicking,
 a dropped connection freezes the received state and makes commands raise ``RuntimeError``, a slow
 controller stops advancing its timestamp. Faults are injected with :meth:`FakeUR.inject_protective_stop`,
-:meth:`FakeUR.inject_disconnect` and :meth:`FakeUR.inject_slow`.
+:meth:`FakeUR.inject_emergency_stop`, :meth:`FakeUR.inject_disconnect` and :meth:`FakeUR.inject_slow`.
+
+Pessimistic by default, as the hardware is:
+
+* **Force noise and offset**: the TCP force reading carries white noise of
+  :data:`FORCE_NOISE` per axis per cycle (CB3 3.6 N, the spread ``shared/docs/ur5-rtde.md`` gives for the
+  motor-current estimate; e-Series 1 N) and a constant offset (a payload set a little wrong).
+* **Watchdog**: once ``setWatchdog`` armed it, a host that does not kick it for longer than its period
+  gets the arm stopped and the control script ended -- in every mode, at rest too (the control script
+  shuts the control down, ur_rtde's ``setWatchdog`` docstring).
+* **One motion thread**: a motion command (moveL, moveJ, speedL) sent while a stop is still running, or
+  while a motion of another kind (or any move) runs, is the control script's "Another thread is already
+  controlling the robot": the script stops, the command returns False, the error is in ``errors``.
 
 The fake classes carry the installed ur-rtde's class names, method names, parameter names and defaults
 (``tests/drivers/test_fake_rtde.py`` checks them against the pybind11 signatures of the real module);
@@ -36,6 +48,13 @@ from place_safe.exceptions import RobotFault
 ROBOT_MODE_RUNNING = 7
 SAFETY_NORMAL, SAFETY_PROTECTIVE_STOP, SAFETY_ROBOT_EMERGENCY_STOP = 1, 3, 7
 
+#: N per axis per controller cycle: the standard deviation of the TCP force reading by controller.
+FORCE_NOISE = {"cb3": 3.6, "e-series": 1.0}
+#: N: the default constant offset of the TCP force reading (a payload set a little wrong).
+FORCE_OFFSET = (1.5, -2.0, 6.0)
+#: The control script's answer to a second motion thread.
+THREAD_CONFLICT = "Another thread is already controlling the robot"
+
 #: Fake controllers by host name, so ``FakeRTDEControlInterface("10.0.0.2")`` finds its controller.
 _CONTROLLERS: dict[str, "FakeUR"] = {}
 
@@ -45,12 +64,13 @@ class FakeUR:
 
     ``arm``: the Robot it moves (default a KinematicArm). ``controller``: ``cb3`` (125 Hz) or ``e-series``
     (500 Hz). ``arm_flange_T_tcp``: where ``arm.tcp_pose()`` sits on the flange (default the packaged
-    TCP, 0.14 m along the tool axis). ``force_noise``: N, standard deviation of the TCP force reading;
-    ``force_offset``: N, a constant bias (a mis-set payload). ``host``: name the fake interfaces find it by.
+    TCP, 0.14 m along the tool axis). ``force_noise``: N, standard deviation of the TCP force reading per
+    axis per cycle (default :data:`FORCE_NOISE` of the controller); ``force_offset``: N, a constant bias (default
+    :data:`FORCE_OFFSET`). ``host``: name the fake interfaces find it by.
     """
 
     def __init__(self, arm: Any = None, *, controller: str = "cb3", host: str = "127.0.0.1",
-                 arm_flange_T_tcp: Any = None, force_noise: float = 0.0, force_offset: Any = (0.0, 0.0, 0.0),
+                 arm_flange_T_tcp: Any = None, force_noise: float | None = None, force_offset: Any = FORCE_OFFSET,
                  seed: int = 0) -> None:
         if arm is None:
             from place_safe.drivers.ur5.kinematic_arm import KinematicArm
@@ -65,7 +85,9 @@ class FakeUR:
         self.arm_flange_T_tcp = np.asarray(arm_flange_T_tcp, dtype=float)
         self.tcp_offset = np.eye(4)  # the controller's active TCP (setTcp); flange until set
         self.payload: tuple[float, list[float]] | None = None
-        self.force_noise, self.force_offset = float(force_noise), np.asarray(force_offset, dtype=float)
+        self.controller = controller
+        self.force_noise = float(FORCE_NOISE[controller] if force_noise is None else force_noise)
+        self.force_offset = np.asarray(force_offset, dtype=float)
         self._rng = np.random.default_rng(seed)
         self.time = float(arm.time())  # the controller clock is the arm's (simulation time for SimRobot)
         self.stamp = self.time  # what getTimestamp reports (lags when slow)
@@ -77,7 +99,10 @@ class FakeUR:
         self.watchdog_hz: float | None = None
         self.last_kick = 0.0
         self.async_progress = -1
-        self.mode: str | None = None  # "move" (moveL/moveJ), "speed" or None
+        self.mode: str | None = None  # the motion thread: "move" (moveL/moveJ), "speed", "stop" or None
+        self.errors: list[str] = []  # control-script errors (thread conflicts), in order
+        self.watchdog_stops = 0  # times the watchdog stopped the script
+        self.rejected: list[str] = []  # commands answered False (script stopped or robot stopped)
         self.outputs: dict[tuple[str, int], bool] = {}
         self.gripper_output: tuple[str, int, bool] | None = ("standard", 0, True)
         self.commands: list[tuple[float, str, tuple]] = []  # (time, name, args): every motion/IO command
@@ -90,6 +115,14 @@ class FakeUR:
         """Protective-stop at controller time ``when`` (s) or at the first cycle where ``when(fake)`` is true."""
         cond = when if callable(when) else (lambda f, t=float(when): f.time >= t)
         self._triggers.append(("pstop", cond, reason))
+
+    def inject_emergency_stop(self, when: float | Callable[["FakeUR"], bool]) -> None:
+        """Emergency-stop at ``when`` (as above): the arm halts, the script stops, until :meth:`release_emergency_stop`."""
+        cond = when if callable(when) else (lambda f, t=float(when): f.time >= t)
+        self._triggers.append(("estop", cond, None))
+
+    def release_emergency_stop(self) -> None:
+        self.unlock_protective_stop()
 
     def inject_disconnect(self, when: float | Callable[["FakeUR"], bool], reconnectable: bool = True) -> None:
         """Drop the connection at ``when`` (as above); ``reconnectable=False``: reconnect() keeps failing."""
@@ -148,22 +181,44 @@ class FakeUR:
                 self._triggers.remove(trig)
                 if kind == "pstop":
                     self._protective_stop(arg)
+                elif kind == "estop":
+                    self._protective_stop("emergency stop")
+                    self.safety_mode = SAFETY_ROBOT_EMERGENCY_STOP
                 else:
                     self.connected, self.reconnectable = False, bool(arg)
-        if (self.watchdog_hz and self.program_running and self.mode == "speed"
-                and self.time - self.last_kick > 1.0 / self.watchdog_hz):
-            self._halt()
+        if (self.watchdog_hz and self.program_running
+                and self.time - self.last_kick > 1.0 / self.watchdog_hz + 1e-9):
+            if self.arm.is_moving():
+                self._halt()
             self.mode = None
-            self.program_running = False  # the control script stops on a watchdog timeout
+            self.program_running = False  # the control script stops on a watchdog timeout, at rest too
+            self.watchdog_hz = None  # a new script starts without one
+            self.watchdog_stops += 1
         if self.mode == "move" and not self.arm.is_moving():
             self.mode = None
             self.async_progress = -1 if self.async_progress != -1 else -2
+        elif self.mode == "stop" and not self.arm.is_moving():
+            self.mode = None
+
+    def _conflict(self, name: str, kind: str) -> bool:
+        """True (and the script stopped) if a ``kind`` motion ("move"/"speed") may not start now."""
+        if self.mode is None or (self.mode == "speed" and kind == "speed"):
+            return False
+        self.errors.append(f"{name}: {THREAD_CONFLICT} (a {self.mode} thread is running)")
+        self.program_running = False
+        self.mode = None
+        if self.arm.is_moving():
+            self._halt()
+        return True
 
     def _can_command(self, name: str, args: tuple) -> bool:
         if not self.connected:
             raise RuntimeError("RTDE control: not connected to the robot")
         self.commands.append((self.time, name, args))
-        return self.program_running and self.safety_mode == SAFETY_NORMAL
+        ok = self.program_running and self.safety_mode == SAFETY_NORMAL
+        if not ok:
+            self.rejected.append(name)
+        return ok
 
     # --- frames ---------------------------------------------------------------------------------
     def base_T_flange(self) -> np.ndarray:
@@ -183,7 +238,7 @@ class FakeUR:
 
     def force(self) -> np.ndarray:
         f = np.zeros(6)
-        vec = getattr(self.arm, "contact_vector", None)
+        vec = getattr(self.arm, "true_contact_vector", None) or getattr(self.arm, "contact_vector", None)
         f[:3] = vec() if vec is not None else np.array([0.0, 0.0, self.arm.contact_force()])
         f[:3] += self.force_offset
         if self.force_noise:
@@ -240,10 +295,15 @@ class RTDEControlInterface:
         if not self._f.connected:
             raise RuntimeError("RTDE control: not connected to the robot")
         self._f.program_running = self._f.safety_mode == SAFETY_NORMAL
+        self._f.watchdog_hz = None
         return self._f.program_running
 
     def stopScript(self) -> None:
-        self._f.program_running = False
+        f = self._f
+        f.program_running, f.watchdog_hz = False, None
+        if f.arm.is_moving():
+            f._halt()
+        f.mode = None
 
     # pacing and watchdog
     def initPeriod(self) -> datetime.timedelta:
@@ -314,8 +374,8 @@ class RTDEControlInterface:
         f = self._f
         if not f._can_command("moveL", (list(pose), speed, acceleration, asynchronous)):
             return False
-        if f.mode == "speed":
-            return False  # "Another thread is already controlling the robot": speedStop first
+        if f._conflict("moveL", "move"):
+            return False
         target = vector_to_pose(pose)
         if not f.reachable(target):
             return False
@@ -326,7 +386,7 @@ class RTDEControlInterface:
         f = self._f
         if not f._can_command("moveJ", (list(q), speed, acceleration, asynchronous)):
             return False
-        if f.mode == "speed" or not self.isJointsWithinSafetyLimits(list(q)):
+        if f._conflict("moveJ", "move") or not self.isJointsWithinSafetyLimits(list(q)):
             return False
         f.arm.move_joint(np.asarray(q, dtype=float), speed, acceleration, asynchronous=True)
         return self._started(asynchronous)
@@ -344,7 +404,7 @@ class RTDEControlInterface:
         f = self._f
         if not f._can_command("speedL", (list(xd), acceleration, time)):
             return False
-        if f.mode == "move":
+        if f._conflict("speedL", "speed"):
             return False
         f.arm.speed_linear(f.to_arm_twist(np.asarray(xd, dtype=float)), accel=acceleration)
         f.mode = "speed"
@@ -358,14 +418,14 @@ class RTDEControlInterface:
             return False
         if f.mode == "speed":
             f.arm.stop(decel=a, asynchronous=True)
-            f.mode = None
+            f.mode = "stop" if f.arm.is_moving() else None  # the stop runs until the arm is at rest
         return True
 
     def stopL(self, a: float = 10.0, asynchronous: bool = False) -> None:
         f = self._f
         if f._can_command("stopL", (a, asynchronous)) and f.arm.is_moving():
             f.arm.stop(decel=a, asynchronous=True)
-            f.mode = None
+            f.mode = "stop"
             if not asynchronous:
                 while f.arm.is_moving() and f.connected:
                     f._cycle()

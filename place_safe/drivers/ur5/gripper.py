@@ -11,10 +11,16 @@ one and never opens it on a fault. Two kinds:
   ``GET OBJ`` 1 or 2 means the fingers stopped on an object, 3 that they reached the position.
 
 Every failure is a :class:`~place_safe.exceptions.RobotFault` with one line saying what failed.
+
+Waiting: a gripper's waits (the digital gripper's settle, the Robotiq's polls and replies) go through its
+``wait`` function; the robot driver binds its own (:meth:`Gripper.bind_wait`), which kicks the RTDE watchdog
+every controller cycle -- a plain ``time.sleep`` there lets the 10 Hz watchdog stop the control script in the
+middle of the release. With a bound wait the Robotiq socket is polled without blocking, one wait at a time.
 """
 
 from __future__ import annotations
 
+import select
 import socket
 import time
 from abc import ABC, abstractmethod
@@ -38,6 +44,11 @@ class Gripper(ABC):
     def describe(self, open: bool) -> str:
         return f"{'open' if open else 'close'} gripper"
 
+    def bind_wait(self, wait: Callable[[float], None]) -> None:
+        """Wait with ``wait(seconds)`` from now on (the robot driver's, which services the watchdog)."""
+        self._sleep = wait
+        self._bound = True
+
 
 class NoGripper(Gripper):
     def open(self) -> None:
@@ -54,6 +65,7 @@ class DigitalOutputGripper(Gripper):
                  settle_s: float = 0.3, sleep: Callable[[float], None] = time.sleep) -> None:
         self.io, self.output, self.tool_output, self.open_level = io, int(output), bool(tool_output), bool(open_level)
         self.settle_s, self._sleep = float(settle_s), sleep
+        self._bound = False
 
     def _set(self, level: bool) -> None:
         fn = self.io.setToolDigitalOut if self.tool_output else self.io.setStandardDigitalOut
@@ -92,6 +104,7 @@ class RobotiqSocketGripper(Gripper):
         self.open_position, self.closed_position = open_position, closed_position
         self.speed, self.force, self.timeout_s = speed, force, float(timeout_s)
         self._clock, self._sleep = clock, sleep
+        self._bound = False
         self._sock: socket.socket | None = None
         self._buf = b""
 
@@ -116,7 +129,18 @@ class RobotiqSocketGripper(Gripper):
 
     def _line(self) -> str:
         assert self._sock is not None
+        deadline = self._clock() + self.timeout_s
         while b"\n" not in self._buf:
+            if self._bound:  # poll, waiting with the robot's wait (watchdog kicked) in between
+                try:
+                    ready = select.select([self._sock], [], [], 0.0)[0]
+                except (OSError, ValueError) as exc:
+                    raise RobotFault(f"Robotiq gripper: no reply ({exc})") from None
+                if not ready:
+                    if self._clock() > deadline:
+                        raise RobotFault(f"Robotiq gripper: no reply within {self.timeout_s:g} s")
+                    self._sleep(0.008)
+                    continue
             try:
                 chunk = self._sock.recv(1024)
             except OSError as exc:

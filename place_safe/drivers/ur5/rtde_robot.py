@@ -25,17 +25,47 @@ Safety, in the order it is applied:
 * ``dry_run``: only ``RTDEReceiveInterface`` is opened; every command prints the planned motion and returns
   without moving (the robot's state is read live, nothing is commanded).
 
+Contact: every controller cycle the TCP force estimate goes through a
+:class:`~place_safe.robot.contact_detector.ContactDetector` (the force along the tool axis, averaged over a
+few cycles, against a threshold set from the noise measured at rest by :meth:`URRobot.zero_force`, with a
+persistence test); :meth:`URRobot.contact_force` is its output (0.0 without confirmed contact). The
+settings come from the robot file's ``[contact]`` section or the controller's defaults (CB3 / e-Series).
+
+Threads on the controller: the ur_rtde control script runs one motion thread at a time; starting a motion
+while a stop or another motion still runs is answered "Another thread is already controlling the robot"
+and stops the script. So a motion command after an asynchronous stop first waits (servicing the watchdog)
+until the arm is at rest, and a motion of the other kind is stopped with its own stop (``speedStop`` for
+speedL, ``stopL`` for moveL/moveJ) and waited for. Every stop decelerates at most at
+``limits.max_linear_accel``, or at ``motion.emergency_decel`` for a stop asked harder (obstacle, fault).
+
+Watchdog: armed (``setWatchdog``) with the first motion command -- before it the arm is at rest by design
+(connecting, opening the sensor, loading an estimator) -- and kicked every cycle of every wait from then on:
+``step``, blocking moves, stops, the gripper's settle and its socket replies (the gripper gets
+:meth:`URRobot.service` as its wait). :meth:`URRobot.disconnect` stops any motion, waits for rest and stops
+the control script, so the watchdog never fires on the way out.
+
+After a lost connection, :meth:`URRobot.reconnect` reads the controller's state (safety mode, protective
+and emergency stop, robot mode, control script) before anything else and says what it found.
+
+ur_rtde prints its own lines (e.g. "connect: Connection refused") from C++ to the terminal; the driver
+captures file descriptors 1 and 2 while it connects and sends those lines to the ``place_safe.drivers.ur5``
+log, so the user reads one error line.
+
 Conventions: :mod:`place_safe.robot.interface` (4x4 base-frame poses, SI units). The controller's TCP is
 set to the configuration's ``flange_T_tcp`` at connect, so ``getActualTCPPose`` is our TCP.
 """
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import math
+import os
 import sys
+import tempfile
 import threading
 import time as _time
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import numpy as np
 
@@ -43,7 +73,10 @@ from place_safe.drivers.ur5.config import URConfig
 from place_safe.drivers.ur5.gripper import Gripper, make_gripper
 from place_safe.drivers.ur5.pose import pose_to_vector, vector_to_pose
 from place_safe.exceptions import RobotFault
+from place_safe.robot.contact_detector import ContactDetector
 from place_safe.robot.interface import Robot, RobotLimits, check_pose, check_twist
+
+log = logging.getLogger("place_safe.drivers.ur5")
 
 #: UR safety modes that allow motion (1 normal, 2 reduced) and names of the others (UR documentation).
 _SAFE_MODES = (1, 2)
@@ -54,7 +87,44 @@ _SAFETY_NAMES = {3: "protective stop", 4: "recovery mode", 5: "safeguard stop", 
 _ROBOT_RUNNING = 7
 _ROBOT_MODES = {-1: "no controller", 0: "disconnected", 1: "confirm safety", 2: "booting", 3: "power off",
                 4: "power on", 5: "idle", 6: "backdrive", 8: "updating firmware"}
-_FORCE_BASELINE_SAMPLES = 25
+#: m/s and cycles: a TCP slower than this for this many cycles in a row is at rest (besides isSteady).
+_REST_SPEED, _REST_CYCLES = 1e-4, 5
+_FORCE_BASELINE_SAMPLES = 50  # cycles at rest for the force offset and its spread (0.4 s on a CB3)
+
+
+@contextlib.contextmanager
+def captured_output(what: str) -> Iterator[None]:
+    """Send what C/C++ code prints to file descriptors 1 and 2 meanwhile to the log (``what: line``) instead of
+    the terminal (ur_rtde's own "connect: Connection refused" before our one-line error)."""
+    try:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        saved = (os.dup(1), os.dup(2))
+    except (OSError, ValueError, AttributeError):  # no real descriptors (embedded): leave them alone
+        yield
+        return
+    tmp = tempfile.TemporaryFile()
+    try:
+        os.dup2(tmp.fileno(), 1)
+        os.dup2(tmp.fileno(), 2)
+        yield
+    finally:
+        try:
+            import ctypes
+
+            ctypes.CDLL(None).fflush(None)  # C stdio buffers (std::cout is synced with them)
+        except Exception:  # noqa: BLE001 - best effort
+            pass
+        os.dup2(saved[0], 1)
+        os.dup2(saved[1], 2)
+        os.close(saved[0])
+        os.close(saved[1])
+        tmp.seek(0)
+        text = tmp.read().decode("utf-8", "replace")
+        tmp.close()
+        for line in text.splitlines():
+            if line.strip():
+                log.info("%s: %s", what, line.strip())
 
 
 def _import_modules() -> Any:
@@ -81,8 +151,9 @@ def _with_timeout(fn: Callable[[], Any], timeout: float, what: str) -> Any:
             box["error"] = exc
 
     th = threading.Thread(target=run, name=f"connect {what}", daemon=True)
-    th.start()
-    th.join(timeout)
+    with captured_output(what):
+        th.start()
+        th.join(timeout)
     if th.is_alive():
         raise RobotFault(f"{what}: no answer within {timeout:g} s (is the robot on and reachable?)")
     if "error" in box:
@@ -130,7 +201,9 @@ class URRobot(Robot):
         self._twist = np.zeros(6)
         self._accel = 0.5
         self._surface: tuple[np.ndarray, float] | None = None
-        self._force_zero = np.zeros(3)
+        self.detector = ContactDetector(config.contact.settings(config.connection.controller))
+        self._watchdog_armed = False
+        self.last_state: str | None = None  # what reconnect() found on the controller
         self._stamp = (math.nan, 0)  # last controller timestamp, cycles it has not changed
         self._connected = False
         self.planned: list[str] = []  # dry-run plans, in order
@@ -159,21 +232,33 @@ class URRobot(Robot):
             tool = self.config.tool
             self._ok(self._control.setTcp(pose_to_vector(self.tool.flange_T_tcp)), "setTcp")
             self._ok(self._control.setPayload(tool.payload_kg, list(tool.payload_cog)), "setPayload")
-            self._ok(self._control.setWatchdog(self.config.watchdog_hz), "setWatchdog")
         if self._gripper is None:
             self._gripper = make_gripper(self.config.gripper, host, self._io)
+        if not self.dry_run:
+            self._gripper.bind_wait(self.service)
+            if hasattr(self._gripper, "connect"):  # a socket gripper connects (and activates) before any motion
+                self._gripper.connect()
         self._connected = True
         self._check_state()
         self.zero_force()
         return self
 
     def disconnect(self) -> None:
-        """Stop any motion, close the gripper socket and every interface. Idempotent; never raises."""
-        if self._control is not None and self._mode is not None and not self._lost:
+        """Stop any motion and wait for rest, stop the control script (so the watchdog cannot fire), close the
+        gripper socket and every interface. Idempotent; never raises."""
+        if self._control is not None and not self._lost and not self.dry_run and self._connected:
             try:
-                self._stop_motion(self._accel)
+                if self._mode is not None and self._mode != "stopping":
+                    self._stop_motion(self._decel(self._accel))
+                if self._mode is not None:
+                    self._wait_rest(2.0 + 1.0 / self._decel(self._accel), "stop before disconnecting")
             except Exception:  # noqa: BLE001 - best effort on the way out
                 pass
+            try:
+                self._control.stopScript()
+            except Exception:  # noqa: BLE001
+                pass
+            self._watchdog_armed = False
         for closer in (getattr(self._gripper, "close_connection", None),
                        getattr(self._control, "disconnect", None), getattr(self._receive, "disconnect", None),
                        getattr(self._io, "disconnect", None)):
@@ -204,10 +289,35 @@ class URRobot(Robot):
             if ok:
                 self._lost = False
                 self._stamp = (math.nan, 0)
+                self.last_state = self.describe_state()
+                self._out(f"reconnected to the robot at {c.host}: {self.last_state}")
                 return
             if attempt < c.reconnect_attempts and c.reconnect_backoff_s:
                 _time.sleep(c.reconnect_backoff_s)
         raise RobotFault(f"cannot reconnect to the robot at {c.host} after {c.reconnect_attempts + 1} tries")
+
+    def describe_state(self) -> str:
+        """The controller's state in words: safety mode, emergency / protective stop, robot mode, control
+        script (read first after a reconnect, before any command)."""
+        r = self._receive
+        parts = []
+        try:
+            safety = int(r.getSafetyMode())
+            parts.append("safety mode " + ("normal" if safety == 1 else "reduced" if safety == 2
+                                           else _SAFETY_NAMES.get(safety, str(safety))))
+            if r.isEmergencyStopped():
+                parts.append("EMERGENCY STOPPED")
+            if r.isProtectiveStopped():
+                parts.append("PROTECTIVE STOP (unlock it on the teach pendant)")
+            mode = int(r.getRobotMode())
+            parts.append("robot running" if mode == _ROBOT_RUNNING else
+                         f"robot {_ROBOT_MODES.get(mode, f'mode {mode}')}")
+            if self._control is not None:
+                parts.append("control script running" if self._control.isProgramRunning()
+                             else "control script stopped")
+        except Exception as exc:  # noqa: BLE001 - the state could not be read: say so
+            parts.append(f"state unreadable ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})")
+        return ", ".join(parts)
 
     # ------------------------------------------------------------------------------------------
     # faults
@@ -221,7 +331,7 @@ class URRobot(Robot):
             self._fault = why
             if self._control is not None and not self._lost and self._mode is not None:
                 try:
-                    self._stop_motion(max(self._accel, 1.0))
+                    self._stop_motion(self.config.motion.emergency_decel)
                 except Exception:  # noqa: BLE001 - the fault is what matters
                     pass
             self._mode = None
@@ -239,7 +349,7 @@ class URRobot(Robot):
         if self._control is not None and not self._control.isProgramRunning():
             if not self._control.reuploadScript():
                 raise RobotFault("cannot restart the ur_rtde control script on the controller")
-            self._ok(self._control.setWatchdog(self.config.watchdog_hz), "setWatchdog")
+            self._watchdog_armed = False  # a new script: armed again with the next motion
         self._fault = None
         self._mode = None
 
@@ -287,7 +397,7 @@ class URRobot(Robot):
         if n > c.stale_cycles:
             self._lost = True
             raise self._latch(f"controller timestamp stuck at {stamp:.3f} s for {n} cycles (controller or link stalled)")
-        f = self.contact_force()
+        f = float(np.linalg.norm(self.detector.filtered))
         if f > self.limits.max_contact_force:
             raise self._latch(f"contact force {f:.1f} N exceeds our limit {self.limits.max_contact_force:.1f} N")
 
@@ -321,23 +431,35 @@ class URRobot(Robot):
     def tcp_twist(self) -> np.ndarray:
         return self._vec(self._receive.getActualTCPSpeed(), 6, "TCP speed")
 
+    def _raw_force(self) -> np.ndarray:
+        return self._vec(self._receive.getActualTCPForce(), 6, "TCP force")[:3]
+
     def force_vector(self) -> np.ndarray:
-        """TCP force (N, base frame) minus the reading at rest taken by :meth:`zero_force`."""
-        return self._vec(self._receive.getActualTCPForce(), 6, "TCP force")[:3] - self._force_zero
+        """One raw TCP force sample (N, base frame) minus the reading at rest taken by :meth:`zero_force`."""
+        return self._raw_force() - self.detector.offset
 
     def contact_force(self) -> float:
-        return float(np.linalg.norm(self.force_vector()))
+        """N: the contact detector's output -- the averaged force against the tool axis once contact is
+        confirmed, else 0.0 (see :mod:`place_safe.robot.contact_detector`)."""
+        return self.detector.contact_force()
 
     def zero_force(self, samples: int = _FORCE_BASELINE_SAMPLES) -> np.ndarray:
-        """Average the TCP force over ``samples`` cycles at rest and subtract it from now on (payload and
-        sensor offset; the CB3's estimate is off by several newtons otherwise)."""
-        self._force_zero = np.zeros(3)
-        acc = np.zeros(3)
-        for _ in range(samples):
-            acc += self.force_vector()
-            self._wait_cycle()
-        self._force_zero = acc / samples
-        return self._force_zero.copy()
+        """Sample the TCP force over ``samples`` cycles at rest: the mean is subtracted from now on (payload and
+        sensor offset; the CB3's estimate is off by several newtons otherwise), the per-axis spread sets the
+        contact detector's threshold (never below the configured noise). Returns the mean."""
+        acc = []
+        for _ in range(max(2, int(samples))):
+            acc.append(self._raw_force())
+            self._wait_cycle(detect=False)
+        offset, spread = self.detector.zero(acc)
+        log.info("force at rest: offset %s N, spread %s N per axis; contact threshold %.1f N",
+                 np.round(offset, 2).tolist(), np.round(spread, 2).tolist(), self.detector.threshold)
+        return offset
+
+    @property
+    def force_noise(self) -> np.ndarray:
+        """N per axis: the spread of the TCP force measured at rest by :meth:`zero_force`."""
+        return self.detector.rest_std.copy()
 
     def time(self) -> float:
         return float(self._receive.getTimestamp())
@@ -385,8 +507,30 @@ class URRobot(Robot):
 
     def _refuse(self, why: str) -> RobotFault:
         if self._mode == "speed" and not self.dry_run:
-            self._stop_motion(max(self._accel, 1.0))
+            self._stop_motion(self.config.motion.emergency_decel)
         return RobotFault(why)
+
+    def _decel(self, requested: float) -> float:
+        """The deceleration a stop asked at ``requested`` m/s^2 gets: as asked up to ``max_linear_accel``; a
+        harder one is an emergency stop, at most ``motion.emergency_decel``."""
+        lim = self.config.limits.max_linear_accel
+        return float(requested) if requested <= lim else min(float(requested), self.config.motion.emergency_decel)
+
+    def _arm_watchdog(self) -> None:
+        if not self._watchdog_armed:
+            self._ok(self._control.setWatchdog(self.config.watchdog_hz), "setWatchdog")
+            self._watchdog_armed = True
+
+    def _before_motion(self, kind: str, accel: float) -> None:
+        """Make way for a motion of ``kind`` ("move" or "speed"): the controller runs one motion thread at a
+        time, so a running stop is waited for and a running motion of the other kind (or a move) is stopped
+        with its own stop and waited for. Arms the watchdog."""
+        self._arm_watchdog()
+        if self._mode is None or (self._mode == "speed" and kind == "speed"):
+            return
+        if self._mode != "stopping":
+            self._stop_motion(self._decel(accel))
+        self._wait_rest(2.0 + 1.0 / self._decel(accel), "the stop before the next motion")
 
     def _check_rate(self, value: float, limit: float, what: str) -> float:
         if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
@@ -413,8 +557,7 @@ class URRobot(Robot):
         if not self._control.isPoseWithinSafetyLimits(vec):
             raise self._refuse(f"moveL target {np.round(vec, 4).tolist()} is outside the controller's safety limits "
                                "or unreachable")
-        if self._mode is not None:
-            self._stop_motion(a)
+        self._before_motion("move", a)
         self._ok(self._control.moveL(vec, v, a, True), "moveL")
         self._mode, self._accel = "move", a
         if not asynchronous:
@@ -443,8 +586,7 @@ class URRobot(Robot):
         if self.dry_run:
             self._plan(f"moveJ {np.round(goal, 4).tolist()} speed {v:g} rad/s accel {a:g} rad/s^2")
             return
-        if self._mode is not None:
-            self._stop_motion(a)
+        self._before_motion("move", self.limits.max_linear_accel)
         self._ok(self._control.moveJ([float(x) for x in goal], v, a, True), "moveJ")
         self._mode, self._accel = "move", a
         if not asynchronous:
@@ -478,8 +620,7 @@ class URRobot(Robot):
         if self.dry_run:
             self._plan(f"speedL {np.round(v, 4).tolist()} accel {a:g}" + (f" for {duration:g} s" if duration else ""))
             return
-        if self._mode == "move":
-            self._stop_motion(a)
+        self._before_motion("speed", a)
         self._ok(self._control.speedL([float(x) for x in v], a, 0.0), "speedL")
         self._mode, self._twist, self._accel = "speed", v, a
         if duration is not None:
@@ -487,33 +628,62 @@ class URRobot(Robot):
             self.stop(decel=a)
 
     def stop(self, decel: float = 1.0, asynchronous: bool = False) -> None:
-        d = self._check_rate(decel, 50.0, "decel")
+        """Decelerate to rest at ``decel`` m/s^2 -- at most ``limits.max_linear_accel``, or for a harder request
+        an emergency stop at most at ``motion.emergency_decel``. A stop already running is not sent again."""
+        d = self._decel(self._check_rate(decel, 50.0, "decel"))
         if self.dry_run:
             self._plan(f"stop decel {d:g}")
             return
         if self._mode is None or self._fault is not None:
             return
-        self._stop_motion(d)
+        speed = float(np.linalg.norm(self._twist[:3]))
+        if self._mode != "stopping":
+            self._stop_motion(d)
         if not asynchronous:
-            self._wait_idle(float(np.linalg.norm(self._twist[:3])) / d + 1.0, "stop", steady=True)
+            self._wait_rest(speed / d + 1.0, "stop")
 
     def _stop_motion(self, decel: float) -> None:
+        """The stop for the running mode: ``speedStop`` ends speedL, ``stopL`` an asynchronous moveL/moveJ."""
         c = self._control
+        d = min(float(decel), self.config.motion.emergency_decel)
         if self._mode == "speed":
-            c.speedStop(decel)
-        else:
-            c.stopL(decel, True)
+            c.speedStop(d)
+        elif self._mode == "move":
+            c.stopL(d, True)
         self._mode = "stopping"
         self._twist = np.zeros(6)
+
+    def _wait_rest(self, timeout: float, what: str) -> None:
+        """Service the connection until the arm is at rest (isSteady) after a stop."""
+        if self._mode is None:
+            return
+        self._mode = "stopping"
+        self._wait_idle(timeout, what, steady=True)
+
+    def service(self, dt: float) -> None:
+        """Let ``dt`` s pass with the arm at rest by design (the gripper's settle, a dwell): every controller
+        cycle the watchdog is kicked, the force read and the state checked (faults latch)."""
+        if not (math.isfinite(dt) and dt >= 0):
+            raise ValueError(f"dt must be a finite number of seconds >= 0; got {dt!r}")
+        for _ in range(max(1, int(math.ceil(dt / self.period)))):
+            self._wait_cycle()
+            if self._fault is None:
+                self._check_state()
 
     def _wait_idle(self, timeout: float, what: str, steady: bool = False) -> None:
         t_end = self.time() + timeout
         n_max = int(math.ceil(timeout / self.period)) + 10
+        still = 0  # cycles in a row with the TCP at rest by its measured speed
         for _ in range(n_max):
             self._wait_cycle()
             self._check_state()
-            done = self._control.isSteady() if (steady or self._mode == "stopping") else \
-                (self._control.getAsyncOperationProgress() < 0 and self._control.isSteady())
+            if steady or self._mode == "stopping":
+                # at rest: the controller says so, or the measured TCP speed has been ~0 for REST_CYCLES cycles
+                # (a controller whose isSteady stays False outside position mode still ends the wait)
+                still = still + 1 if float(np.linalg.norm(self.tcp_twist()[:3])) < _REST_SPEED else 0
+                done = self._control.isSteady() or still >= _REST_CYCLES
+            else:
+                done = self._control.getAsyncOperationProgress() < 0 and self._control.isSteady()
             if done:
                 self._mode = None
                 return
@@ -539,7 +709,8 @@ class URRobot(Robot):
                 if why:
                     raise self._latch(why)
 
-    def _wait_cycle(self) -> None:
+    def _wait_cycle(self, detect: bool = True) -> None:
+        """One controller cycle: kick the watchdog, wait for the period, feed the contact detector."""
         iface = self._control if self._control is not None else self._receive
         try:
             t0 = iface.initPeriod()
@@ -549,6 +720,14 @@ class URRobot(Robot):
         except RuntimeError as exc:
             self._lost = True
             raise self._latch(f"lost the connection to the controller ({exc})") from None
+        if detect and not self._lost:
+            try:
+                force = self._receive.getActualTCPForce()
+                pose = self._receive.getActualTCPPose()
+                axis = vector_to_pose(pose)[:3, 2]  # the tool axis: the direction the cup moves down along
+            except Exception:  # noqa: BLE001 - a bad reading is a fault, found by _check_state / _vec
+                return
+            self.detector.update(np.asarray(force, dtype=float)[:3], axis)
 
     # ------------------------------------------------------------------------------------------
     # gripper

@@ -1,0 +1,159 @@
+"""``place-safe robot``: measure the arm's force noise at rest (``bench``) and the contact detector against it
+(``contact-bench``).
+
+* ``robot bench --robot ROBOT.toml [--write]``: connect (receive, control; nothing moves), sample the TCP
+  force at rest for ``--seconds``, print its offset and spread per axis, the detector setting that follows
+  (:mod:`place_safe.robot.contact_detector`) and that setting's false-alarm rate and detection delays on
+  noise of the measured spread; ``--write`` stores ``[contact] noise_std`` (and what was measured) in the
+  robot file. ``--fake`` runs the same on the fake ur_rtde controller (CB3 noise by default).
+* ``robot contact-bench``: placements from 40 cm through URRobot on the fake CB3 (false contacts, outcomes,
+  watchdog stops, script errors) and guarded touches of the table (delay, force at detection).
+
+Parsing and printing only; the work is in :mod:`place_safe.evaluation.contact`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from place_safe.cli.options import nonnegative_int, positive_float, positive_int
+
+_FMT = argparse.RawDescriptionHelpFormatter
+
+
+def _log(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from place_safe.cli.app import UsageError
+    from place_safe.drivers.ur5 import URConfig, URRobot
+    from place_safe.evaluation.contact import format_settings_report, make_stand_in, rest_noise, settings_report
+
+    if args.fake:
+        robot, _ = make_stand_in(args.controller, host="127.0.0.1")
+        cfg = robot.config
+        path = Path(args.robot) if args.robot else None
+    else:
+        if not args.robot:
+            raise UsageError("robot bench: --robot ROBOT.toml is required (or --fake for the stand-in)")
+        path = Path(args.robot)
+        cfg = URConfig.load(path)
+        robot = URRobot(cfg)
+    controller = cfg.connection.controller
+    with robot:
+        offset, spread = rest_noise(robot, args.seconds)
+    sigma = float(np.max(spread))
+    print(f"{'fake ' if args.fake else ''}{controller} at {cfg.connection.host}: TCP force at rest over "
+          f"{args.seconds:g} s: offset {np.round(offset, 2).tolist()} N, spread {np.round(spread, 2).tolist()} N "
+          "per axis per cycle")
+    settings = cfg.contact.settings(controller).__class__.for_controller(
+        controller, **{**{k: getattr(cfg.contact, k) for k in ("window", "sigmas", "persistence", "min_threshold",
+                                                                 "lateral_sigmas")}, "noise_std": round(sigma, 2)})
+    rep = settings_report(settings, sigma, cycles=args.cycles)
+    print(format_settings_report(rep))
+    if args.write:
+        target = Path(args.write)
+        if path is None and not target.exists():
+            raise UsageError("robot bench --write: give --robot ROBOT.toml to start the written file from")
+        base = URConfig.load(path) if path is not None else cfg
+        base.contact.noise_std = round(sigma, 2)
+        base.contact.measured = {"seconds": float(args.seconds), "offset_n": [round(float(v), 3) for v in offset],
+                                 "std_n": [round(float(v), 3) for v in spread], "controller": controller,
+                                 "threshold_n": round(rep["threshold"], 2)}
+        target.write_text(base.to_toml(), encoding="utf-8")
+        _log(f"wrote [contact] noise_std = {sigma:.2f} N to {target}")
+    if args.json:
+        Path(args.json).write_text(json.dumps({"offset": offset.tolist(), "spread": spread.tolist(), **rep},
+                                              indent=1) + "\n", encoding="utf-8")
+    return 0
+
+
+def cmd_contact_bench(args: argparse.Namespace) -> int:
+    from place_safe.evaluation.contact import descents, format_settings_report, settings_report, touches
+    from place_safe.robot.contact_detector import DetectorSettings
+    from place_safe.drivers.ur5.fake_rtde import FORCE_NOISE
+
+    noise = args.noise if args.noise is not None else FORCE_NOISE[args.controller]
+    settings = DetectorSettings.for_controller(args.controller)
+    out: dict = {"controller": args.controller, "noise_std": noise}
+    rep = settings_report(settings, noise, cycles=args.cycles)
+    print("detector on synthetic noise:")
+    print(format_settings_report(rep))
+    out["settings"] = rep
+    if args.touch_trials:
+        rows = touches(controller=args.controller, trials=args.touch_trials, force_noise=noise,
+                       stiffness=args.stiffness)
+        print(f"guarded touches of the table through URRobot on the fake {args.controller} (table stiffness "
+              f"{args.stiffness:.0f} N/m), {args.touch_trials} each:")
+        for r in rows:
+            print(f"  {r['speed'] * 1e3:4.0f} mm/s ({r['rate']:.0f} N/s): contact after {r['delay_median'] * 1e3:.0f} ms "
+                  f"median / {r['delay_max'] * 1e3:.0f} ms worst, true force {r['force_median']:.1f} N median / "
+                  f"{r['force_max']:.1f} N worst; missed {r['missed']}")
+        out["touches"] = rows
+    if args.descents:
+        progress = None if args.quiet or args.jobs > 1 else (
+            lambda i, r: _log(f"  {i}/{args.descents}: false contacts {r.false_contacts}, {r.outcomes}"))
+        d = descents(args.descents, height=args.height, controller=args.controller, seed=args.seed,
+                     force_noise=noise, jobs=args.jobs, progress=progress)
+        print(d.summary())
+        for why in d.reasons[:10]:
+            print(f"  not released: {why}")
+        out["descents"] = d.__dict__
+    if args.json:
+        Path(args.json).write_text(json.dumps(out, indent=1, default=float) + "\n", encoding="utf-8")
+    return 0
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser("robot", formatter_class=_FMT,
+                              help="the arm's force noise at rest and the contact detector against it",
+                              description=__doc__.split("\n\n")[1] if __doc__ else None)
+    sub = p.add_subparsers(dest="robot_command", metavar="SUBCOMMAND", required=True)
+    b = sub.add_parser("bench", formatter_class=_FMT,
+                       help="measure the TCP force noise at rest on a connected arm and derive the detector setting",
+                       description="Connect to the arm (nothing moves), sample the TCP force at rest, print its "
+                                   "spread, the contact detector's threshold and its false-alarm rate and detection "
+                                   "delay for that noise; --write stores [contact] noise_std in a robot file.",
+                       epilog="examples:\n"
+                              "  place-safe robot bench --robot robots/ur5/real.toml\n"
+                              "  place-safe robot bench --robot robots/ur5/real.toml --write my_ur5.toml\n"
+                              "  place-safe robot bench --fake                # the fake ur_rtde CB3 stand-in")
+    b.add_argument("--robot", metavar="ROBOT.toml", help="robot file of the arm")
+    b.add_argument("--fake", action="store_true", help="measure the fake ur_rtde controller instead of an arm")
+    b.add_argument("--controller", choices=("cb3", "e-series"), default="cb3", help="with --fake (default cb3)")
+    b.add_argument("--seconds", type=positive_float, default=2.0, help="s at rest to sample (default 2)")
+    b.add_argument("--cycles", type=positive_int, default=2_000_000, help="noise cycles for the false-alarm rate")
+    b.add_argument("--write", metavar="ROBOT.toml", help="write the robot file with the measured noise here")
+    b.add_argument("--json", metavar="OUT.json", help="write the measurement and the report as JSON")
+    b.set_defaults(func=cmd_bench)
+    c = sub.add_parser("contact-bench", formatter_class=_FMT,
+                       help="false contacts over simulated 40 cm descents and touch detection on the fake CB3",
+                       description="The contact detector against the fake controller's force noise: placements "
+                                   "from --height through URRobot on the fake ur_rtde (false contacts, outcomes, "
+                                   "watchdog stops, script errors), guarded touches of the table (delay and true "
+                                   "force at detection) and the detector on synthetic noise.",
+                       epilog="examples:\n"
+                              "  place-safe robot contact-bench --descents 200 --jobs 2\n"
+                              "  place-safe robot contact-bench --descents 0 --touch-trials 50\n"
+                              "  place-safe robot contact-bench --controller e-series --descents 20")
+    c.add_argument("--controller", choices=("cb3", "e-series"), default="cb3", help="fake controller (default cb3)")
+    c.add_argument("--noise", type=positive_float, help="N per axis per cycle (default the controller's: 3.6 / 1.0)")
+    c.add_argument("--descents", type=nonnegative_int, default=200, help="placements from --height (default 200)")
+    c.add_argument("--height", type=positive_float, default=0.4, help="m of cup above the table (default 0.4)")
+    c.add_argument("--touch-trials", type=nonnegative_int, default=20, help="touches per speed (default 20)")
+    c.add_argument("--stiffness", type=positive_float, default=20000.0, help="N/m of the table contact (default 20000)")
+    c.add_argument("--cycles", type=positive_int, default=2_000_000, help="noise cycles for the false-alarm rate")
+    c.add_argument("--seed", type=nonnegative_int, default=0, help="first seed of the descents")
+    c.add_argument("--jobs", type=positive_int, default=1, help="worker processes for the descents")
+    c.add_argument("--json", metavar="OUT.json", help="write everything as JSON")
+    c.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
+    c.set_defaults(func=cmd_contact_bench)
+
+
+__all__ = ["register", "cmd_bench", "cmd_contact_bench"]

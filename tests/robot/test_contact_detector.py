@@ -1,0 +1,88 @@
+"""The contact detector on a CB3-like force estimate: free-air noise is not contact, a touch is, the threshold
+comes from the noise measured at rest; invariants as hypothesis properties."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from place_safe.robot.contact_detector import (ContactDetector, DetectorSettings, detection_delay,
+                                               false_alarm_rate)
+
+DOWN = np.array([0.0, 0.0, -1.0])  # the tool moves down: a table pushes up (+z)
+
+
+def _rest(det: ContactDetector, rng, sigma=3.6, offset=(2.0, -1.0, 6.0), n=50):
+    det.zero(rng.normal(0.0, sigma, (n, 3)) + offset)
+
+
+def test_free_air_cb3_noise_is_never_contact_and_a_table_touch_is():
+    rng = np.random.default_rng(3)
+    det = ContactDetector(DetectorSettings.for_controller("cb3"))
+    offset = np.array([2.0, -1.0, 6.0])
+    _rest(det, rng, offset=offset)
+    for _ in range(20_000):  # 160 s of free-air descent at 125 Hz
+        assert not det.update(rng.normal(0.0, 3.6, 3) + offset, DOWN)
+        assert det.contact_force() == 0.0
+    for k in range(40):  # a 15 N touch: seen within a few cycles
+        if det.update(rng.normal(0.0, 3.6, 3) + offset + [0.0, 0.0, 15.0], DOWN):
+            break
+    assert det.contact and k < 10 and det.contact_force() > det.threshold
+
+
+def test_threshold_follows_the_noise_measured_at_rest_never_below_the_setting():
+    rng = np.random.default_rng(0)
+    det = ContactDetector(DetectorSettings.for_controller("cb3"))
+    _rest(det, rng, sigma=1.0)  # quieter than the setting: the setting's floor holds
+    assert det.noise_std == pytest.approx(3.6)
+    t_cb3 = det.threshold
+    _rest(det, rng, sigma=8.0)  # a noisier arm: the threshold rises with it
+    assert det.noise_std > 7.0 and det.threshold > 2 * t_cb3
+    assert np.all(det.rest_std > 7.0)
+
+
+def test_e_series_defaults_are_more_sensitive():
+    cb3, es = DetectorSettings.for_controller("cb3"), DetectorSettings.for_controller("e-series")
+    assert es.threshold() < cb3.threshold() and es.period < cb3.period
+
+
+def test_a_force_along_the_motion_is_not_a_touch_and_a_nan_reading_is():
+    det = ContactDetector(DetectorSettings(noise_std=1.0))
+    det.zero(np.zeros((5, 3)) + np.random.default_rng(1).normal(0, 0.1, (5, 3)))
+    for _ in range(20):  # pulled along the motion (not pushed back): no touch of a surface
+        det.update([0.0, 0.0, -2.0], DOWN)
+    assert not det.contact
+    assert det.update([math.nan, 0.0, 0.0], DOWN) and det.contact_force() == math.inf
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10_000), sigma=st.floats(0.2, 6.0), cycles=st.integers(1, 400))
+def test_contact_force_is_zero_or_at_least_half_the_threshold(seed, sigma, cycles):
+    """Invariant: the reported force is 0 without a confirmed contact, and a confirmed one reports the averaged
+    force (never a single raw sample's norm)."""
+    rng = np.random.default_rng(seed)
+    det = ContactDetector(DetectorSettings(noise_std=sigma))
+    det.zero(rng.normal(0.0, sigma, (50, 3)))
+    for _ in range(cycles):
+        det.update(rng.normal(0.0, sigma, 3) + [0, 0, rng.uniform(0, 4 * sigma)], DOWN)
+        f = det.contact_force()
+        assert f == 0.0 if not det.contact else f >= 0.5 * det.threshold
+
+
+def test_rate_and_delay_functions_report_numbers():
+    s = DetectorSettings.for_controller("cb3")
+    fa = false_alarm_rate(s, 3.6, cycles=100_000)
+    assert fa["cycles"] == 100_000 and fa["per_cycle"] < 1e-3
+    d = detection_delay(s, 3.6, step=15.0, trials=200)
+    assert d["missed"] == 0.0 and 0 < d["delay_median"] <= 0.05
+    assert detection_delay(s, 3.6, step=0.0, ramp=0.0, trials=20, max_seconds=0.1)["missed"] > 0.5
+
+
+@pytest.mark.parametrize("bad", [{"window": 0}, {"noise_std": -1.0}, {"sigmas": math.nan}, {"persistence": True}])
+def test_bad_settings_are_refused(bad):
+    with pytest.raises(ValueError):
+        DetectorSettings(**bad)
