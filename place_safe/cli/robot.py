@@ -73,6 +73,31 @@ def _estimator(method: str, calibration: str | None, sim: bool):
     return make_estimator(method, None), "built-in defaults"
 
 
+def _mount_truth(path: str) -> Any:
+    """The true ``flange_T_sensor`` (4x4 rigid transform, metres) of a truth JSON file; one-line ConfigError."""
+    import numpy as np
+
+    from place_safe.config import read_json
+    from place_safe.exceptions import ConfigError
+
+    d = read_json(path, "mount truth", ConfigError)
+    if not isinstance(d, dict) or "flange_T_sensor" not in d:
+        got = "an object without it" if isinstance(d, dict) else f"a JSON {type(d).__name__}"
+        raise ConfigError(f"mount truth {path}: expected an object with \"flange_T_sensor\" (a 4x4 matrix), got {got}")
+    v = d["flange_T_sensor"]
+    ok = (isinstance(v, list) and len(v) == 4 and all(isinstance(r, list) and len(r) == 4 for r in v)
+          and all(isinstance(x, (int, float)) and not isinstance(x, bool) for r in v for x in r))
+    T = np.asarray(v, dtype=float) if ok else None
+    if T is None or not np.all(np.isfinite(T)):
+        raise ConfigError(f"mount truth {path}: flange_T_sensor must be a 4x4 list of finite numbers")
+    R = T[:3, :3]
+    if (np.abs(R @ R.T - np.eye(3)).max() > 1e-6 or abs(np.linalg.det(R) - 1.0) > 1e-6
+            or np.abs(T[3] - [0, 0, 0, 1]).max() > 1e-9 or np.abs(T[:3, 3]).max() > 2.0):
+        raise ConfigError(f"mount truth {path}: flange_T_sensor must be a rigid transform (rotation, last row "
+                          "0 0 0 1, translation within 2 m of the flange)")
+    return T
+
+
 def _write_json(path: str, value: Any) -> None:
     Path(path).write_text(json.dumps(value, indent=1) + "\n", encoding="utf-8")
 
@@ -200,6 +225,7 @@ def cmd_calibrate_mount(args: argparse.Namespace) -> int:
     from place_safe.cli.app import UsageError
 
     robot_cfg = _robot_config(args.robot)
+    truth = _mount_truth(args.truth) if args.truth else None  # every input checked before the fit runs
     frames = load_frames(args.capture)
     if not frames:
         raise UsageError(f"calibrate-mount: {args.capture} has no frames")
@@ -215,8 +241,7 @@ def cmd_calibrate_mount(args: argparse.Namespace) -> int:
     print(fit.summary())
     result = {"capture": args.capture, "method": args.method, "calibration": cal_note, "poses": args.poses,
               **fit.to_dict()}
-    if args.truth:
-        truth = np.asarray(json.loads(Path(args.truth).read_text())["flange_T_sensor"], dtype=float)
+    if truth is not None:
         et, er = fit.error_to(truth)
         result["error_to_truth"] = {"translation": et, "rotation": er}
         print(f"  error to the true mount: {et * 1000:.2f} mm, {math.degrees(er):.3f} deg")
