@@ -91,7 +91,7 @@ def describe_validation_error(exc: ValidationError, what: str) -> str:
         return f"{what}: invalid"
     first = errors[0]
     loc = ".".join(_printable(str(p)) for p in first.get("loc", ())) or "(top level)"
-    msg = _printable(first.get("msg", "invalid"))
+    msg = _printable(first.get("msg", "invalid")).removeprefix("Value error, ")
     more = f" (and {len(errors) - 1} more problem{'s' if len(errors) > 2 else ''})" if len(errors) > 1 else ""
     return f"{what}: {loc}: {msg}{more}"
 
