@@ -171,6 +171,10 @@ class PoseHistory:
         return T
 
 
+#: The fault the machine sees when ``robot.fault()`` itself fails.
+_NO_ANSWER = "robot does not answer"
+
+
 def clock_domain_of(source: Any) -> str:
     """A source's ``clock_domain`` ("robot" or "monotonic", the default when it has none); any other value
     (or an attribute that raises) is an :class:`~place_safe.exceptions.ArgumentTypeError`."""
@@ -684,6 +688,7 @@ class PlacementLoop:
             if _is_interrupt_here(exc):
                 raise
             self._cmd_error = f"robot step failed: {describe_exception(exc)}"
+            self._stop_robot()  # our own failure, not the controller's stop: the arm may still move
         now = self._robot_now()
         tcp = self._safe(self.robot.tcp_pose, np.full((4, 4), np.nan))
         self.history.add(now, tcp)
@@ -697,7 +702,9 @@ class PlacementLoop:
         note = self._note
         if self.pipeline.error is not None:
             note = f"sensor error: {self.pipeline.error}"
-        fault = self._safe(self.robot.fault, "robot does not answer") or self._cmd_error
+        fault = self._safe(self.robot.fault, _NO_ANSWER) or self._cmd_error
+        if fault is _NO_ANSWER:
+            self._stop_robot()  # a robot that cannot report its state may still move: stop it ourselves
         try:
             cup = np.asarray(tcp, dtype=float) @ self._tcp_T_cup
         except Exception:
@@ -719,8 +726,7 @@ class PlacementLoop:
                 math.isfinite(timeout) and 0 < timeout <= MAX_RUN_SECONDS):
             raise ValueError(f"timeout must be a number of seconds in (0, {MAX_RUN_SECONDS:g}], got {timeout!r}")
         max_ticks = int(math.ceil(timeout / self.period)) + 1
-        try:
-            self.start()
+        try:  # the first tick starts the pipeline (inside tick's guard: nothing escapes but an interrupt)
             while not self.machine.finished and self.ticks < max_ticks:
                 self.tick()
         finally:
