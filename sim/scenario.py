@@ -177,6 +177,11 @@ class Scenario(ConfigModel):
         from place_safe.recovery import METHODS
 
         self.scene_config()  # raises with the scene's own message
+        if self.calibration not in CALIBRATION_KINDS:  # a calibration file: there and readable before any run
+            from place_safe.io.input_file import input_file_problem
+
+            if (why := input_file_problem(self._calibration_path())) is not None:
+                raise ValueError(f"calibration file {self.calibration} {why}")
         if self.method not in METHODS:
             raise ValueError(f"method {self.method!r} unknown; expected one of {', '.join(METHODS)}")
         self.placement_config()
@@ -229,10 +234,15 @@ class Scenario(ConfigModel):
 
             p = calibration_file(self.sensor.model)
             return Calibration.load(p), f"simulated user calibration ({p.name}: level sweep -> place-safe calibrate)"
-        p = Path(kind)
+        p = self._calibration_path()
+        return Calibration.load(p), str(p)
+
+    def _calibration_path(self) -> Path:
+        """The calibration file (relative names from the scenario file's directory)."""
+        p = Path(self.calibration)
         if not p.is_absolute() and self.base_dir:
             p = Path(self.base_dir) / p
-        return Calibration.load(p), str(p)
+        return p
 
 
 def _kind(v: Any) -> str:
@@ -292,9 +302,15 @@ _HOME_CUP: np.ndarray | None = None
 # ---------------------------------------------------------------------------------------------
 def scenario_path(name: str | Path) -> Path:
     """A scenario file: a path, or the name of a packaged one (``place_level``, ``level_30cm.toml``)."""
+    from place_safe.io.input_file import input_file_problem
+
+    if not isinstance(name, (str, Path)):
+        raise ConfigError(f"scenario must be a file path or a packaged name, got {type(name).__name__}")
     p = Path(name)
     if p.is_file():
         return p
+    if p.exists() or p.is_symlink():  # a directory, a FIFO, a device: never opened, never a packaged name
+        raise ConfigError(f"scenario {name} {input_file_problem(p)}")
     root = Path(str(resources.files("place_safe.scenarios")))
     cands = [root / p.name] if p.suffix in SUFFIXES else [root / (p.name + s) for s in SUFFIXES]
     cands += [root / "set" / c.name for c in cands]

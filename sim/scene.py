@@ -138,6 +138,11 @@ class SceneConfig:
 
     def __post_init__(self) -> None:
         check_dataclass(self, SCENE_BOUNDS, "scene", SceneError)
+        if self.robot_xml is not None:  # checked when the scene is read, not only when it is built
+            from place_safe.io.input_file import input_file_problem
+
+            if not isinstance(self.robot_xml, str) or (why := input_file_problem(self.robot_xml)) is not None:
+                raise SceneError(f"robot_xml {self.robot_xml!r} {why or 'must be a path'}; expected the UR5 MJCF")
 
     # -- file form -----------------------------------------------------------------------------
     def to_dict(self) -> dict:
