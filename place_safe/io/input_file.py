@@ -14,6 +14,9 @@ is refused with one line naming the file and what it is instead:
 off there and refused, not read until memory runs out). Frame files are streamed by
 :mod:`place_safe.io.frame_file` after the same check, with their own, larger limit.
 
+Outputs get the mirror check, :func:`output_file_problem` (``place-safe`` runs it on every output option
+before a command starts): never a directory, never a FIFO without a reader.
+
 Limits (bytes): :data:`MAX_CONFIG_BYTES` for configuration-like files (calibration, placement, robot,
 scenario, scene, truth, sensor parameters), :data:`MAX_FRAME_FILE_BYTES` for frame files.
 """
@@ -97,4 +100,24 @@ def read_input_bytes(path: str | os.PathLike, what: str, error: type[Exception],
     return raw
 
 
-__all__ = ["check_input_file", "read_input_bytes", "input_file_problem", "MAX_CONFIG_BYTES", "MAX_FRAME_FILE_BYTES"]
+def output_file_problem(path: str | os.PathLike) -> str | None:
+    """Why a command must not write ``path`` (a directory; a FIFO nobody reads, where opening it would block for
+    ever; a socket or block device), or None. A missing path, a regular file, a character device such as
+    ``/dev/null`` and a FIFO with a reader (``>(gzip > out.gz)``) are fine."""
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        return None
+    except (OSError, ValueError) as exc:
+        return f"cannot be written ({getattr(exc, 'strerror', None) or str(exc).splitlines()[0]})"
+    if stat.S_ISDIR(st.st_mode) or stat.S_ISSOCK(st.st_mode) or stat.S_ISBLK(st.st_mode):
+        return _kind(st.st_mode)
+    if stat.S_ISFIFO(st.st_mode):
+        try:  # a non-blocking open for writing fails at once (ENXIO) when no process reads the pipe
+            os.close(os.open(path, os.O_WRONLY | os.O_NONBLOCK))
+        except OSError:
+            return "is a FIFO (named pipe) that nothing reads: writing it would wait for ever"
+    return None
+
+
+__all__ = ["output_file_problem", "check_input_file", "read_input_bytes", "input_file_problem", "MAX_CONFIG_BYTES", "MAX_FRAME_FILE_BYTES"]

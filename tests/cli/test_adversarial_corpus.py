@@ -327,6 +327,21 @@ NEW_OPTION_RUNS = [
 ]
 
 
+#: Commands with an output option, ``{out}`` the output (a FIFO without a reader, a directory).
+OUTPUT_RUNS = [
+    ["place", "--sim", "place_level", "--timeout", "0.5", "--json", "{out}", "--log", "{tmp}/r.jsonl"],
+    ["place", "--sim", "place_level", "--timeout", "0.5", "--log", "{out}", "--json", "{tmp}/r.json"],
+    ["capture", "--sim", "level_table", "--poses", "1", "-o", "{out}"],
+    ["calibrate-mount", _SWEEP, "--method", "peak", "-q", "--json", "{out}"],
+    ["calibrate-mount", _SWEEP, "--method", "peak", "-q", "--write", "{out}"],
+    ["scenarios", "level_30cm", "--quiet", "--json", "{out}"], ["sim", "place", "--seconds", "0.5", "--json", "{out}"],
+    ["sim", "render", "-o", "{out}"], ["synth", "--frames", "2", "-o", "{out}"],
+    ["sensor", "record", "emu:synthetic:3", "--frames", "2", "-o", "{out}"],
+    ["evaluate", "{good}", "--methods", "peak", "--no-plots", "-q", "--json", "{out}"],
+    ["calibrate", "{good}", "--method", "peak", "-q", "-o", "{out}"],
+]
+
+
 def _second_round(root: Path, paths: dict[str, str]) -> list[tuple[str, list[str], bool]]:
     """Write the second-round files under ``root`` (names into ``paths``) and return their runs."""
     fifo = root / "fifo"
@@ -393,6 +408,11 @@ def _second_round(root: Path, paths: dict[str, str]) -> list[tuple[str, list[str
             (f"sensor-info/{i}:{uri[:40]}", ["sensor", "info", u], False),
             (f"sensor-stream/{i}:{uri[:40]}", ["sensor", "stream", u, "--max-frames", "2", "--jsonl"], False),
         ]
+    for name in ["fifo", "directory"]:  # outputs: a FIFO nobody reads would block the writer for ever
+        o = paths[name]
+        for i, argv in enumerate(OUTPUT_RUNS):
+            runs.append((f"output-{name}/{i}:{' '.join(argv[:2])}", [a.format(out=o, **paths) for a in argv],
+                         argv[0] in ("sim", "scenarios", "place", "capture")))
     for i, argv in enumerate(NEW_OPTION_RUNS):
         runs.append((f"new-option/{i}:{' '.join(argv[:2])}", [a.format(**paths) for a in argv],
                      argv[0] in ("sim", "scenarios", "place", "capture")))
@@ -511,10 +531,60 @@ def test_corpus_expectations_that_must_hold(tmp_path, capsys):
     assert "1 ground truth not a plane" in capsys.readouterr().err
 
 
-if __name__ == "__main__":  # write the corpus and list its runs
-    target = Path(sys.argv[1] if len(sys.argv) > 1 else "adversarial-corpus")
-    for name, argv, _ in build_corpus(target):
-        print(json.dumps({"name": name, "argv": argv}))
+def replay(runs: list[tuple[str, list[str], bool]], timeout: float = 120.0, jobs: int = 1) -> dict[str, list[str]]:
+    """Run every corpus entry as its own ``place-safe`` process (stdin closed, ``timeout`` s each) and sort the
+    runs that break the contract: "traceback", "hang", "exit" (a status other than 0 / 2), "contract" (more
+    than one error line, output with an error, a NaN or a plane behind the sensor)."""
+    import subprocess
+    from concurrent.futures import ThreadPoolExecutor
+
+    def one(run: tuple[str, list[str], bool]) -> tuple[str, str | None]:
+        name, argv, _ = run
+        try:
+            proc = subprocess.run([sys.executable, "-m", "place_safe.cli", *argv], stdin=subprocess.DEVNULL,
+                                  capture_output=True, text=True, timeout=timeout, errors="replace")
+        except subprocess.TimeoutExpired:
+            return name, "hang"
+        if "Traceback" in proc.stderr or "Traceback" in proc.stdout:
+            return name, "traceback"
+        if proc.returncode not in (0, 2):
+            return name, "exit"
+        try:
+            check_run(argv, proc.returncode, proc.stdout, proc.stderr)
+        except (AssertionError, ValueError):
+            return name, "contract"
+        return name, None
+
+    bad: dict[str, list[str]] = {"traceback": [], "hang": [], "exit": [], "contract": []}
+    with ThreadPoolExecutor(max(1, jobs)) as pool:
+        for name, why in pool.map(one, runs):
+            if why is not None:
+                bad[why].append(name)
+    return bad
+
+
+if __name__ == "__main__":  # write the corpus and list its runs, or replay them (--replay)
+    import argparse
+
+    ap = argparse.ArgumentParser(description="Write the adversarial corpus to DIR and list its runs as JSON lines; "
+                                             "with --replay run each as a place-safe process and count failures.")
+    ap.add_argument("dir", nargs="?", default="adversarial-corpus")
+    ap.add_argument("--replay", action="store_true", help="run every entry (a process each) and print the counts")
+    ap.add_argument("--only", nargs="*", default=[], metavar="PREFIX", help="only runs whose name starts so")
+    ap.add_argument("--timeout", type=float, default=120.0, help="s per run before it counts as a hang")
+    ap.add_argument("--jobs", type=int, default=1, help="runs at once")
+    a = ap.parse_args()
+    all_runs = [r for r in build_corpus(Path(a.dir)) if not a.only or r[0].startswith(tuple(a.only))]
+    if not a.replay:
+        for name, argv, _ in all_runs:
+            print(json.dumps({"name": name, "argv": argv}))
+        sys.exit(0)
+    result = replay(all_runs, a.timeout, a.jobs)
+    for why, names in result.items():
+        for n in names:
+            print(f"{why}: {n}")
+    print(f"{len(all_runs)} runs: " + ", ".join(f"{len(v)} {k}" for k, v in result.items()))
+    sys.exit(1 if any(result.values()) else 0)
 
 
 from hypothesis import HealthCheck, given, settings  # noqa: E402
