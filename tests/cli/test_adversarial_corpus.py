@@ -279,6 +279,25 @@ def truth_kinds() -> dict[str, bytes]:
     }
 
 
+def capture_kinds() -> dict[str, bytes]:
+    """Captures for calibrate-mount (8 frames) whose flange poses are impossible."""
+    from place_safe.evaluation.synthetic import make_frames
+
+    frames = [f.to_dict() for f in make_frames(8, seed=5)]
+
+    def with_all(**extra) -> bytes:
+        return json.dumps([dict(f, **extra) for f in frames]).encode()
+
+    return {
+        "cap-joints-huge": with_all(joint_angles=[1e300] * 6), "cap-joints-short": with_all(joint_angles=[0.1] * 3),
+        "cap-joints-string": with_all(joint_angles="abc"), "cap-joints-null-entry": with_all(joint_angles=[0.1] * 5 + [None]),
+        "cap-joints-bools": with_all(joint_angles=[True] * 6), "cap-joints-nested": with_all(joint_angles=[[0.1] * 6]),
+        "cap-pose-huge": with_all(pose=[[1e300] * 4] * 4), "cap-pose-last-row": with_all(pose=np.diag([1, 1, 1, 0]).tolist()),
+        "cap-pose-string": with_all(pose="identity"), "cap-pose-scaled": with_all(pose=(2 * np.eye(4)).tolist()),
+        "cap-no-pose": with_all(),
+    }
+
+
 def task_file_kinds() -> dict[str, bytes]:
     fmt = {"format": "place_safe.calibration/1"}
     return {
@@ -349,7 +368,8 @@ def _second_round(root: Path, paths: dict[str, str]) -> list[tuple[str, list[str
         os.mkfifo(fifo)  # a named pipe: opening it would block until a writer appears
     paths["fifo"] = str(fifo)
     paths["dev-zero"] = "/dev/zero"
-    for name, data in {**scenario_kinds(), **robot_kinds(), **truth_kinds(), **task_file_kinds()}.items():
+    for name, data in {**scenario_kinds(), **robot_kinds(), **truth_kinds(), **task_file_kinds(),
+                       **capture_kinds()}.items():
         suffix = ".json" if name.endswith("-json") or not name.startswith(("scn-", "rob-")) else ".toml"
         p = root / f"{name}{suffix}"
         p.write_bytes(data)
@@ -380,6 +400,10 @@ def _second_round(root: Path, paths: dict[str, str]) -> list[tuple[str, list[str
     for name in [*truth_kinds(), "fifo", "dev-zero", "directory", "missing"]:
         runs.append((f"calibrate-mount-truth/{name}", ["calibrate-mount", _SWEEP, "--truth", paths[name], "--method",
                                                        "peak", "-q"], False))
+    for name in capture_kinds():
+        for poses in ("joints", "recorded"):
+            runs.append((f"calibrate-mount-capture-{poses}/{name}", ["calibrate-mount", paths[name], "--method", "peak",
+                                                                      "--poses", poses, "-q"], False))
     for name in [*task_file_kinds(), "fifo", "dev-zero", "directory"]:
         f = paths[name]
         runs += [
