@@ -153,8 +153,9 @@ def run_placement(scenario: Any = "place_level", method: str | None = None, cali
     sc = _as_scenario(scenario)
     name = sc.name or "scenario"
     method = method or sc.method
-    if not (math.isfinite(seconds) and seconds > 0):
-        raise ValueError(f"seconds must be a positive number of sim seconds; got {seconds!r}")
+    if isinstance(seconds, bool) or not isinstance(seconds, (int, float)) or not (
+            math.isfinite(seconds) and 0 < seconds <= 3600):
+        raise ValueError(f"seconds must be a number of sim seconds in (0, 3600]; got {str(seconds)[:40]!r}")
     calibration, cal_note = _calibration(sc, calibration, oracle)
     if calibration is not None:
         calibration.check()  # a placement runs only on a calibration whose every section is valid

@@ -651,6 +651,7 @@ def library_cases(root: Path) -> dict[str, object]:
     """Name -> zero-argument call. Each must return or raise a one-line TypeError / ValueError / place_safe error,
     within a bound (never block on a FIFO, never read /dev/zero until memory runs out)."""
     from place_safe.calibration import Calibration
+    from place_safe.calibration.capture import SweepPlan
     from place_safe.drivers.ur5 import URConfig
     from place_safe.io.frame_file import load_frames
     from place_safe.placement.loop import PlacementLoop
@@ -687,7 +688,30 @@ def library_cases(root: Path) -> dict[str, object]:
         "open_source-int": lambda: open_source(5),
         "open_source-huge-synthetic": lambda: open_source("emu:synthetic:100000000000"),
         "open_source-fifo": lambda: open_source(f"file:{fifo}"),
+        "open_source-rate-string": lambda: open_source(f"file:{cal}", rate_hz="fast"),
+        "open_source-rate-tiny": lambda: open_source(f"file:{cal}", rate_hz=1e-300),
+        "open_source-unknown-option": lambda: open_source("emu:synthetic:3", warp=9),
+        "SweepPlan-settle-huge": lambda: SweepPlan(settle_s=1e300),
+        "SweepPlan-distances-nan": lambda: SweepPlan(distances=[float("nan")]),
+        "SweepPlan-speed-string": lambda: SweepPlan(speed="fast"),
+        "SweepPlan-axis-huge": lambda: SweepPlan(azimuths=[0.0] * 100_000),
+        "make_estimator-bad-option": lambda: make_estimator("peak", None, warp=9),
     }
+    try:
+        from place_safe.sim.placement_run import run_placement
+        from place_safe.sim.scenario import load_scenario
+        from place_safe.sim.world import error_transform
+    except ImportError:  # without the [sim] extra
+        pass
+    else:
+        cases.update({
+            "run_placement-seconds-string": lambda: run_placement("place_level", seconds="10"),
+            "run_placement-seconds-huge": lambda: run_placement("place_level", seconds=1e300),
+            "error_transform-huge": lambda: error_transform([1e300] * 6),
+            "error_transform-string": lambda: error_transform("abc"),
+            "load_scenario-fifo": lambda: load_scenario(fifo), "load_scenario-dev-zero": lambda: load_scenario("/dev/zero"),
+            "load_scenario-int": lambda: load_scenario(5), "load_scenario-dir": lambda: load_scenario(root),
+        })
     for name, where in (("fifo", fifo), ("dev-zero", "/dev/zero"), ("dir", root), ("int", 5)):
         cases.update({
             f"Calibration.load-{name}": lambda w=where: Calibration.load(w),
