@@ -7,7 +7,9 @@ The caller chooses the robot, the frame source, the estimator and the tool frame
 * the **newest-estimate buffer** (:class:`EstimatePipeline`): for a real source a reader thread
   reads frames and estimates their planes off the control thread, keeping only the newest result, so a
   125 Hz tick never blocks on I/O or on the solver; a source driven by the robot's clock (the
-  simulated sensor, ``clock_domain == "robot"``) is polled and estimated inline instead;
+  simulated sensor, ``clock_domain == "robot"``) is polled once per tick instead -- on a helper thread
+  waited for at most :data:`READ_BOUND` seconds, so a source that blocks is a dead sensor, not a hung
+  loop -- and estimated inline;
 * the **clock map** (:class:`ClockMap`): frame stamps are on the source's clock (host
   ``time.monotonic`` for hardware); the loop converts them to the robot's clock before anything
   compares them with robot time;
@@ -18,7 +20,10 @@ The caller chooses the robot, the frame source, the estimator and the tool frame
   ``max_frame_age`` or is not later than the newest one already used (duplicates, out-of-order) are
   dropped with a reason, so a frozen or replaying sensor cannot count as fresh evidence;
 * **command dispatch** (speedL / stopL / open gripper) and a failed command becoming a fault;
-* the **transition and frame logs** and the :class:`LoopResult`.
+* the **transition and frame logs** and the :class:`LoopResult`;
+* the **failure policy**: any exception class from the robot, the source or the estimator ends in a safe
+  stop with the reason; an interrupt on the control thread (Ctrl-C) is re-raised after it (see
+  :class:`PlacementLoop`).
 
 Timing: ``tick()`` lets one control period pass (``robot.step(period)``: physics in simulation, the
 controller's ``waitPeriod`` on the real arm), then reads the newest estimate, updates the fusion, runs
