@@ -142,7 +142,8 @@ class SceneConfig:
             from place_safe.io.input_file import input_file_problem
 
             if not isinstance(self.robot_xml, str) or (why := input_file_problem(self.robot_xml)) is not None:
-                raise SceneError(f"robot_xml {self.robot_xml!r} {why or 'must be a path'}; expected the UR5 MJCF")
+                raise SceneError(f"robot model {self.robot_xml!r} not found or unusable: "
+                                 f"{'it ' + why if why else 'robot_xml must be a path'}; expected the UR5 MJCF")
 
     # -- file form -----------------------------------------------------------------------------
     def to_dict(self) -> dict:
