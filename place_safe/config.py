@@ -29,11 +29,13 @@ def check_keys(cls: type, d: Any, what: str, error: type[Exception] = ValueError
 
 
 def _read_text(path: str | Path, what: str, error: type[Exception]) -> str:
-    """The UTF-8 text of ``path`` (a byte-order mark allowed); ``error`` with one line when it cannot be read."""
-    try:
-        raw = Path(path).read_bytes()
-    except OSError as exc:
-        raise error(f"cannot read {what} from {path}: {exc.strerror or exc}") from None
+    """The UTF-8 text of ``path`` (a byte-order mark allowed); ``error`` with one line when it cannot be read.
+
+    Every file goes through :func:`place_safe.io.input_file.read_input_bytes`: a FIFO, a device, a directory
+    or a file over :data:`~place_safe.io.input_file.MAX_CONFIG_BYTES` is refused before it is opened."""
+    from place_safe.io.input_file import read_input_bytes
+
+    raw = read_input_bytes(path, what, error)  # a regular file of bounded size, or one line saying why not
     try:
         return raw.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
@@ -89,7 +91,7 @@ def describe_validation_error(exc: ValidationError, what: str) -> str:
         return f"{what}: invalid"
     first = errors[0]
     loc = ".".join(_printable(str(p)) for p in first.get("loc", ())) or "(top level)"
-    msg = _printable(first.get("msg", "invalid"))
+    msg = _printable(first.get("msg", "invalid")).removeprefix("Value error, ")
     more = f" (and {len(errors) - 1} more problem{'s' if len(errors) > 2 else ''})" if len(errors) > 1 else ""
     return f"{what}: {loc}: {msg}{more}"
 

@@ -35,3 +35,7 @@ class ConfigError(PlaceSafeError, ValueError):
 
 class SensorError(PlaceSafeError, RuntimeError):
     """The sensor failed in a way retries cannot fix (dead bus, wrong device, lost firmware)."""
+
+
+class ArgumentTypeError(PlaceSafeError, TypeError):
+    """A library function or constructor got an argument of the wrong type; the message says what it expected."""

@@ -12,11 +12,12 @@ URIs
     (``"CHIP:OFFSET"``, e.g. ``"/dev/gpiochip0:17"``, or an object with ``wait``), ``clock``, ``start``).
 ``serial:PORT[@BAUD]``
     The Arduino bridge on a serial port (baud default 115200), or a recorded bridge log when PORT is a
-    regular file (:class:`~place_safe.drivers.tmf8820.serial_bridge.BridgeSource`; option ``address``).
+    regular file (:class:`~place_safe.drivers.tmf8820.serial_bridge.BridgeSource`; option ``address``;
+    BAUD 300..4000000).
 ``emu:SOURCE``
     The I2C driver over the register-level emulator
     (:class:`~place_safe.drivers.tmf8820.emulated.EmulatedTMF8820`) fed by SOURCE: ``file:PATH`` (a
-    frame file), ``synthetic[:N]`` (N synthetic frames, default 100), ``scenario:NAME`` or ``NAME`` (the
+    frame file), ``synthetic[:N]`` (N synthetic frames, 1..100000, default 100), ``scenario:NAME`` or ``NAME`` (the
     simulated sensor over a packaged scenario's table, needs the [sim] extra) or ``sim`` (the simulated
     sensor passed as option ``tof``, clocked by its simulation: ``clock_domain`` "robot"). Options
     ``bus_hz`` (default 400 kHz), ``realtime`` (default True: frames at the pace of the emulated bus on
@@ -37,6 +38,10 @@ from place_safe.exceptions import ConfigError
 from place_safe.io.source import FrameSource
 
 SCHEMES = ("file", "i2c", "serial", "emu")
+#: Frames an ``emu:synthetic:N`` source may make (they are built in memory before the first read).
+MAX_SYNTHETIC = 100_000
+#: Baud rates a serial port is opened with (bit/s): what USB-serial bridges offer.
+BAUD_RANGE = (300, 4_000_000)
 _DRIVER_OPTIONS = {"patch", "period_ms", "kilo_iterations", "short_range", "calibration_dir", "int_line", "clock",
                    "start", "retries", "poll_s"}
 
@@ -58,6 +63,8 @@ def _split_at(rest: str, uri: str, what: str) -> tuple[str, str | None]:
 
 
 def _int(text: str, uri: str, what: str) -> int:
+    if len(text) > 20:  # no count, address or rate has more digits (and int() of a huge one is slow)
+        raise ConfigError(f"source {uri[:80]!r}: {what} {text[:20]!r}... is too long a number")
     try:
         return int(text, 0)
     except ValueError:
@@ -111,7 +118,10 @@ def open_source(uri: str, **options: Any) -> FrameSource:
         if Path(rest).is_file():
             return BridgeSource.open_log(rest, **options)
         port, baud = _split_at(rest, uri, "serial:PORT@BAUD, e.g. serial:/dev/ttyACM0@115200")
-        return BridgeSource.open_serial(port, 115200 if baud is None else _int(baud, uri, "baud rate"), **options)
+        rate = 115200 if baud is None else _int(baud, uri, "baud rate")
+        if not BAUD_RANGE[0] <= rate <= BAUD_RANGE[1]:
+            raise ConfigError(f"source {uri!r}: baud rate {rate} outside {BAUD_RANGE[0]}..{BAUD_RANGE[1]}")
+        return BridgeSource.open_serial(port, rate, **options)
     return _open_emulated(uri, rest, options)
 
 
@@ -141,8 +151,8 @@ def _open_emulated(uri: str, inner: str, options: dict) -> FrameSource:
         from place_safe.evaluation.synthetic import make_frames
 
         n = _int(arg, uri, "frame count") if arg else 100
-        if n < 1:
-            raise ConfigError(f"source {uri!r}: the frame count must be >= 1")
+        if not 1 <= n <= MAX_SYNTHETIC:
+            raise ConfigError(f"source {uri!r}: the frame count must be >= 1 and <= {MAX_SYNTHETIC}")
         frames = make_frames(n)
         feed = _cycle(frames) if loop else frames
     elif kind == "sim":

@@ -23,7 +23,7 @@ def add_sim_commands(subparsers: argparse._SubParsersAction) -> argparse.Argumen
     sim = subparsers.add_parser("sim", help="MuJoCo simulation: validate the simulated TMF8820, render, benchmark",
                                 description="MuJoCo simulation of the UR5 and the TMF8820 (needs the [sim] extra).")
     sub = sim.add_subparsers(dest="sim_command", metavar="{place,calibrate,validate,render,bench}")
-    sim.set_defaults(func=lambda a: (sim.print_help(sys.stderr), 2)[1])
+    sim.set_defaults(func=_no_sub_command)
 
     from place_safe.sim.placement_run import add_placement_command
 
@@ -39,8 +39,9 @@ def add_sim_commands(subparsers: argparse._SubParsersAction) -> argparse.Argumen
     c.add_argument("--sensor", choices=("nominal", "mismatch", "all"), default="all",
                    help="which simulated sensor (default all)")
     c.add_argument("-o", "--output", help="calibration file to write (one sensor only; default: the packaged file)")
-    c.add_argument("--frames", type=int, default=48, help="poses (one frame each) in the sweep (default 48)")
-    c.add_argument("--seed", type=int, default=0, help="sweep and noise seed (default 0)")
+    c.add_argument("--frames", type=options.int_range(8, 1000), default=48,
+                   help="poses (one frame each) in the sweep (default 48, 8..1000)")
+    c.add_argument("--seed", type=options.int_range(0, 2 ** 32 - 1), default=0, help="sweep and noise seed (default 0)")
     c.add_argument("--save-frames", help="also keep the capture file (JSON Lines) here (one sensor only)")
     c.set_defaults(func=cmd_calibrate)
 
@@ -52,7 +53,7 @@ def add_sim_commands(subparsers: argparse._SubParsersAction) -> argparse.Argumen
     v.add_argument("frames", help="frame file with ground truth (e.g. tests/data/tmf8820_ur5_sweep.json)")
     v.add_argument("--params", help="ForwardParams JSON of the simulated sensor (default sim/sensors/tmf8820_real.json)")
     v.add_argument("--rays", type=options.int_range(1, 64), default=8, help="stratified rays per axis and zone (default 8)")
-    v.add_argument("--min-distance", type=options.nonnegative_float, default=5.0, help="use frames at z0 >= this many cm (default 5)")
+    v.add_argument("--min-distance", type=options.float_range(0.0, 500.0), default=5.0, help="use frames at z0 >= this many cm (default 5)")
     v.add_argument("--json", action="store_true", help="print the per-zone figures as JSON instead of a table")
     v.add_argument("--strict", action="store_true", help="exit 1 if a target is missed")
     v.set_defaults(func=cmd_validate)
@@ -67,9 +68,10 @@ def add_sim_commands(subparsers: argparse._SubParsersAction) -> argparse.Argumen
     r.add_argument("--no-rays", action="store_true", help="do not draw the sensor's rays")
     r.add_argument("--width", type=options.int_range(16, 4096), default=640, help="image width (pixels, default 640)")
     r.add_argument("--height", type=options.int_range(16, 4096), default=480, help="image height (pixels, default 480)")
-    r.add_argument("--azimuth", type=options.finite_float, default=135.0, help="camera azimuth (deg)")
+    r.add_argument("--azimuth", type=options.float_range(-360.0, 360.0), default=135.0, help="camera azimuth (deg)")
     r.add_argument("--elevation", type=options.float_range(-90.0, 90.0), default=-25.0, help="camera elevation (deg)")
-    r.add_argument("--distance", type=options.positive_float, default=None, help="camera distance (m)")
+    r.add_argument("--distance", type=options.float_range(0.0, 100.0, lo_open=True), default=None,
+                   help="camera distance (m, at most 100)")
     r.add_argument("--view", action="store_true", help="open the interactive viewer instead (needs a display)")
     r.set_defaults(func=cmd_render)
 
@@ -83,6 +85,14 @@ def add_sim_commands(subparsers: argparse._SubParsersAction) -> argparse.Argumen
     b.add_argument("--rays", type=options.int_range(1, 64), default=8, help="stratified rays per axis and zone (default 8)")
     b.set_defaults(func=cmd_bench)
     return sim
+
+
+SUB_COMMANDS = ("place", "calibrate", "validate", "render", "bench")
+
+
+def _no_sub_command(_args: argparse.Namespace) -> int:
+    """``place-safe sim`` alone: one line naming the sub-commands and where the help is (exit 2)."""
+    raise UsageError(f"sim: a sub-command is required: {', '.join(SUB_COMMANDS)} (see 'place-safe sim --help')")
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:

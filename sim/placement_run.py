@@ -153,9 +153,12 @@ def run_placement(scenario: Any = "place_level", method: str | None = None, cali
     sc = _as_scenario(scenario)
     name = sc.name or "scenario"
     method = method or sc.method
-    if not (math.isfinite(seconds) and seconds > 0):
-        raise ValueError(f"seconds must be a positive number of sim seconds; got {seconds!r}")
+    if isinstance(seconds, bool) or not isinstance(seconds, (int, float)) or not (
+            math.isfinite(seconds) and 0 < seconds <= 3600):
+        raise ValueError(f"seconds must be a number of sim seconds in (0, 3600]; got {str(seconds)[:40]!r}")
     calibration, cal_note = _calibration(sc, calibration, oracle)
+    if calibration is not None:
+        calibration.check()  # a placement runs only on a calibration whose every section is valid
     cfg = config if config is not None else sc.placement_config()
     world = sim_world(sc, seed=seed, attach=False)  # the sensor starts with the truth recorder in place
     scene, robot, tof = world.scene, world.robot, world.tof
@@ -224,7 +227,7 @@ def add_placement_command(subparsers: argparse._SubParsersAction) -> argparse.Ar
                                                          "parameters (named ORACLE in the result)")
     p.add_argument("--config", help="PlacementConfig JSON (speeds m/s, distances m, angles rad)")
     p.add_argument("--seconds", type=options.float_range(0.0, 3600.0, lo_open=True), default=20.0, help="sim-time limit (default 20)")
-    p.add_argument("--seed", type=options.nonnegative_int, default=0, help="sensor noise seed")
+    p.add_argument("--seed", type=options.int_range(0, 2 ** 32 - 1), default=0, help="sensor noise seed")
     p.add_argument("--render", help="write a PNG of the final scene")
     p.add_argument("--json", help="write the full result (with the per-frame log) to this JSON file")
     p.set_defaults(func=cmd_place)

@@ -23,7 +23,7 @@ from __future__ import annotations
 import math
 from importlib import resources
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
 from pydantic import Field, field_validator, model_validator
@@ -47,9 +47,9 @@ SUFFIXES = (".toml", ".json")
 class SurfaceMotion(ConfigModel):
     """The table moving along world z during the descent (a lift table, a tray being handed over)."""
 
-    start: float = Field(1.0, ge=0, description="sim time the motion starts (s)")
-    velocity: float = Field(0.02, description="vertical speed (m/s, + rises)")
-    duration: float = Field(1.0, ge=0, description="how long it moves (s)")
+    start: float = Field(1.0, ge=0, le=3600, description="sim time the motion starts (s, 0..3600)")
+    velocity: float = Field(0.02, ge=-0.5, le=0.5, description="vertical speed (m/s, + rises; -0.5..0.5)")
+    duration: float = Field(1.0, ge=0, le=3600, description="how long it moves (s, 0..3600)")
 
 
 class SensorSection(ConfigModel):
@@ -59,7 +59,7 @@ class SensorSection(ConfigModel):
                                                   "model; mismatch: MismatchedToF, a sensor that is not the model")
     noise: bool = True
     rays: int = Field(8, ge=1, le=32)
-    rate_hz: float = Field(30.0, gt=0)
+    rate_hz: float = Field(30.0, ge=1, le=200, description="frame rate (Hz, 1..200)")
     ambient_range: tuple[float, float] = Field((60.0, 180.0), description="per-zone ambient floor range (counts)")
     drop_prob: float = Field(0.0, ge=0, le=1)
     corrupt_prob: float = Field(0.0, ge=0, le=1)
@@ -75,6 +75,17 @@ class SensorSection(ConfigModel):
             raise ValueError("ambient_range must be [low, high] counts with 0 <= low <= high")
         return v
 
+    @model_validator(mode="after")
+    def _in_simulator_bounds(self) -> "SensorSection":
+        """Every setting within the simulated sensor's own ranges (sim.tof.TOF_BOUNDS), checked on load."""
+        from place_safe.sim.scene import SceneError
+
+        try:
+            self.tof_config(0)
+        except SceneError as exc:
+            raise ValueError(str(exc).replace("sensor settings: ", "", 1)) from None
+        return self
+
     def tof_config(self, seed: int):
         from place_safe.sim.tof import ToFConfig
 
@@ -83,14 +94,20 @@ class SensorSection(ConfigModel):
                          spike_seconds=self.spike_seconds, seed=seed if self.seed is None else self.seed)
 
 
+#: rad: one UR5 joint angle (every joint turns -360..360 degrees).
+JointAngle = Annotated[float, Field(ge=-2 * math.pi, le=2 * math.pi)]
+
+
 class RobotSection(ConfigModel):
     """Where the robot starts and what goes wrong with it."""
 
-    start_q: tuple[float, float, float, float, float, float] | None = Field(
-        None, description="start joint angles (rad); default: home")
-    protective_stop_at: float | None = Field(None, ge=0, description="latch a protective stop at this sim time (s)")
+    start_q: tuple[JointAngle, JointAngle, JointAngle, JointAngle, JointAngle, JointAngle] | None = Field(
+        None, description="start joint angles (rad, each -2 pi..2 pi: the UR5's joint range); default: home")
+    protective_stop_at: float | None = Field(None, ge=0, le=3600,
+                                             description="latch a protective stop at this sim time (s, 0..3600)")
     protective_stop_below: float | None = Field(
-        None, gt=0, description="latch a protective stop when the cup bottom is this close to the surface (m)")
+        None, gt=0, le=1.0, description="latch a protective stop when the cup bottom is this close to the surface "
+                                        "(m, up to 1)")
 
 
 class Expectation(ConfigModel):
@@ -99,9 +116,11 @@ class Expectation(ConfigModel):
     outcome: Literal["released", "refused", "any"] = "released"
     reason: list[str] = Field(default_factory=list, description="for refusals: the reason must contain one of "
                               "these words (case-insensitive); empty: any reason")
-    max_release_height: float = Field(0.010, gt=0, description="cup bottom above the surface at release (m)")
-    max_spilled: int = Field(0, ge=0, description="liquid spheres allowed outside the cup")
-    max_decision_time: float | None = Field(None, gt=0, description="s from 40 cm above the surface to the decision")
+    max_release_height: float = Field(0.010, gt=0, le=1.0, description="cup bottom above the surface at release "
+                                      "(m, up to 1)")
+    max_spilled: int = Field(0, ge=0, le=10_000, description="liquid spheres allowed outside the cup")
+    max_decision_time: float | None = Field(None, gt=0, le=3600,
+                                            description="s from 40 cm above the surface to the decision (up to 3600)")
 
 
 class Scenario(ConfigModel):
@@ -129,7 +148,12 @@ class Scenario(ConfigModel):
         if not isinstance(d, dict):
             return d
         d = dict(d)
-        scene = dict(d.get("scene") or {})
+        scene = d.get("scene")
+        if scene is None:
+            scene = {}
+        if not isinstance(scene, dict):  # scene = 5, a list, true: the file's error, not an internal one
+            raise ValueError(f"scene must be a table of scene settings, got {_kind(scene)}")
+        scene = dict(scene)
         table = scene.get("table")
         if isinstance(table, dict):
             table = dict(table)
@@ -153,6 +177,11 @@ class Scenario(ConfigModel):
         from place_safe.recovery import METHODS
 
         self.scene_config()  # raises with the scene's own message
+        if self.calibration not in CALIBRATION_KINDS:  # a calibration file: there and readable before any run
+            from place_safe.io.input_file import input_file_problem
+
+            if (why := input_file_problem(self._calibration_path())) is not None:
+                raise ValueError(f"calibration file {self.calibration} {why}")
         if self.method not in METHODS:
             raise ValueError(f"method {self.method!r} unknown; expected one of {', '.join(METHODS)}")
         self.placement_config()
@@ -205,10 +234,20 @@ class Scenario(ConfigModel):
 
             p = calibration_file(self.sensor.model)
             return Calibration.load(p), f"simulated user calibration ({p.name}: level sweep -> place-safe calibrate)"
-        p = Path(kind)
+        p = self._calibration_path()
+        return Calibration.load(p), str(p)
+
+    def _calibration_path(self) -> Path:
+        """The calibration file (relative names from the scenario file's directory)."""
+        p = Path(self.calibration)
         if not p.is_absolute() and self.base_dir:
             p = Path(self.base_dir) / p
-        return Calibration.load(p), str(p)
+        return p
+
+
+def _kind(v: Any) -> str:
+    return {bool: "a boolean", int: "a number", float: "a number", str: "a string", list: "a list"}.get(
+        type(v), type(v).__name__)
 
 
 def _non_finite(v: Any, where: str) -> str | None:
@@ -263,9 +302,15 @@ _HOME_CUP: np.ndarray | None = None
 # ---------------------------------------------------------------------------------------------
 def scenario_path(name: str | Path) -> Path:
     """A scenario file: a path, or the name of a packaged one (``place_level``, ``level_30cm.toml``)."""
+    from place_safe.io.input_file import input_file_problem
+
+    if not isinstance(name, (str, Path)):
+        raise ConfigError(f"scenario must be a file path or a packaged name, got {type(name).__name__}")
     p = Path(name)
     if p.is_file():
         return p
+    if p.exists() or p.is_symlink():  # a directory, a FIFO, a device: never opened, never a packaged name
+        raise ConfigError(f"scenario {name} {input_file_problem(p)}")
     root = Path(str(resources.files("place_safe.scenarios")))
     cands = [root / p.name] if p.suffix in SUFFIXES else [root / (p.name + s) for s in SUFFIXES]
     cands += [root / "set" / c.name for c in cands]

@@ -138,6 +138,12 @@ class SceneConfig:
 
     def __post_init__(self) -> None:
         check_dataclass(self, SCENE_BOUNDS, "scene", SceneError)
+        if self.robot_xml is not None:  # checked when the scene is read, not only when it is built
+            from place_safe.io.input_file import input_file_problem
+
+            if not isinstance(self.robot_xml, str) or (why := input_file_problem(self.robot_xml)) is not None:
+                raise SceneError(f"robot model {self.robot_xml!r} not found or unusable: "
+                                 f"{'it ' + why if why else 'robot_xml must be a path'}; expected the UR5 MJCF")
 
     # -- file form -----------------------------------------------------------------------------
     def to_dict(self) -> dict:
@@ -203,7 +209,7 @@ MATERIAL_BOUNDS: dict[str, Bound] = {
     "albedo": Bound(0.0, 100.0, "(relative to the sensor's calibrated albedo)"),
     "specular_weight": Bound(0.0, 100.0, "(relative to the diffuse term)"),
     "specular_exponent": Bound(0.0, 1000.0, "(Phong exponent)", lo_open=True),
-    "square": Bound(0.0, 10.0, "m", lo_open=True),
+    "square": Bound(0.001, 10.0, "m"),  # a checker square smaller than a millimetre is not a surface pattern
     "albedo2": Bound(0.0, 100.0, "(relative)"),
 }
 TABLE_BOUNDS: dict[str, Bound] = {
@@ -223,7 +229,7 @@ SCENE_BOUNDS: dict[str, Bound] = {
     "robot_base_yaw": Bound(-2 * math.pi, 2 * math.pi, "rad"),
     "rig_pos": Bound(-10.0, 10.0, "m", length=3),
     "rig_euler": Bound(-2 * math.pi, 2 * math.pi, "rad", length=3),
-    "timestep": Bound(0.0, 0.1, "s", lo_open=True),
+    "timestep": Bound(5e-4, 0.008, "s"),  # at most the 125 Hz control period; 1e-12 s never ended a run
 }
 
 
@@ -448,9 +454,11 @@ def _robot_spec(cfg: SceneConfig):
     """
     import mujoco
 
+    from place_safe.io.input_file import input_file_problem
+
     xml = Path(cfg.robot_xml) if cfg.robot_xml else default_robot_xml()
-    if not xml.is_file():
-        raise SceneError(f"robot model {xml} not found; expected the UR5 MJCF (robots/ur5/ur5.xml)")
+    if (why := input_file_problem(xml)) is not None:  # also never a FIFO or a device, and a bounded size
+        raise SceneError(f"robot model {xml} not found or unusable: it {why}; expected the UR5 MJCF (robots/ur5/ur5.xml)")
     try:
         spec = mujoco.MjSpec.from_file(str(xml))
     except Exception as exc:  # mujoco raises plain ValueError with its parser message

@@ -86,11 +86,11 @@ class DistanceMap:
 #: Range of every simulated-sensor setting (units in the ToFConfig comments).
 TOF_BOUNDS: dict[str, Bound] = {
     "rays": Bound(1, 64, "rays per axis and zone"),
-    "rate_hz": Bound(0.0, 1000.0, "Hz", lo_open=True),
+    "rate_hz": Bound(1.0, 200.0, "Hz"),  # the TMF8820 measures at most a few tens of frames a second
     "transfer_bytes": Bound(1, 1 << 20, "bytes"),
     "bus_hz": Bound(0.0, 1e8, "Hz", lo_open=True),
     "bits_per_byte": Bound(1, 64, "bits"),
-    "ambient_range": Bound(0.0, 1e7, "counts", length=2),
+    "ambient_range": Bound(0.0, 1e6, "counts", length=2),  # per bin; the sensor's bins hold 24-bit counts
     "drop_prob": Bound(0.0, 1.0, "(probability)"),
     "corrupt_prob": Bound(0.0, 1.0, "(probability)"),
     "seed": Bound(0, 2 ** 63 - 1, "(seed)"),

@@ -27,7 +27,7 @@ Units: metres, seconds, degrees Celsius, histogram bins. Everything else is the 
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
 from pydantic import Field
@@ -38,18 +38,26 @@ from place_safe.sensor.frame import N_BINS, N_ZONES, Frame
 from place_safe.sim.tof import RayReturns, SimToF, ToFConfig
 
 
+#: A fraction 0..1 and a width in histogram bins (0.01..128) for :class:`MismatchConfig` ranges.
+Fraction = Annotated[float, Field(ge=0.0, le=1.0)]
+Bins = Annotated[float, Field(ge=0.01, le=128.0)]
+
+
 class MismatchConfig(ConfigModel):
     """How the mismatched sensor differs from the forward model (see module docstring)."""
 
-    seed: int = Field(7, description="seed of the per-zone differences (not the noise)")
-    tail_weight: tuple[float, float] = Field((0.02, 0.08), description="range of per-zone extra tail weights")
-    tail_decay: tuple[float, float] = Field((1.5, 5.0), description="range of per-zone extra tail decays (bins)")
-    skew_bins: float = Field(0.15, ge=0, description="per-zone timing skew std (bins) at 10 degC of warming")
-    temp_start: float = Field(25.0, description="die temperature at the start (degC)")
-    temp_rate: float = Field(0.5, ge=0, description="warming rate (degC/s)")
-    temp_max: float = Field(45.0, description="die temperature limit (degC)")
-    drift_bins_per_degc: float = Field(0.01, description="common timing drift (bins per degC of warming)")
-    tail_per_degc: float = Field(0.01, ge=0, description="relative lengthening of the extra tails per degC")
+    seed: int = Field(7, ge=0, le=2 ** 63 - 1, description="seed of the per-zone differences (not the noise)")
+    tail_weight: tuple[Fraction, Fraction] = Field((0.02, 0.08), description="range of per-zone extra tail weights "
+                                                   "(each 0..1)")
+    tail_decay: tuple[Bins, Bins] = Field((1.5, 5.0), description="range of per-zone extra tail decays (bins, "
+                                          "each 0.01..128)")
+    skew_bins: float = Field(0.15, ge=0, le=10, description="per-zone timing skew std (bins) at 10 degC of warming")
+    temp_start: float = Field(25.0, ge=-40, le=125, description="die temperature at the start (degC, -40..125)")
+    temp_rate: float = Field(0.5, ge=0, le=10, description="warming rate (degC/s, up to 10)")
+    temp_max: float = Field(45.0, ge=-40, le=125, description="die temperature limit (degC, -40..125)")
+    drift_bins_per_degc: float = Field(0.01, ge=-1, le=1, description="common timing drift (bins per degC of "
+                                       "warming, -1..1)")
+    tail_per_degc: float = Field(0.01, ge=0, le=1, description="relative lengthening of the extra tails per degC")
     baseline: float = Field(0.006, ge=0, le=0.05, description="emitter offset from the receiver along +x (m)")
     ambient_drift: float = Field(0.25, ge=0, le=1, description="relative frame-to-frame ambient variation")
     ambient_slope: float = Field(0.15, ge=-0.9, le=0.9, description="relative ambient change from first to last bin")

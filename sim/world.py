@@ -41,9 +41,13 @@ class SimWorld:
 
 
 def error_transform(mount_error: Any) -> np.ndarray:
-    e = np.asarray(mount_error if mount_error is not None else np.zeros(6), dtype=float)
-    if e.shape != (6,) or not np.all(np.isfinite(e)):
-        raise ValueError(f"mount_error must be 6 finite numbers (m, m, m, rad, rad, rad); got {mount_error!r}")
+    try:
+        e = np.asarray(mount_error if mount_error is not None else np.zeros(6), dtype=float)
+    except (TypeError, ValueError):
+        e = np.full(1, np.nan)
+    if e.shape != (6,) or not np.all(np.isfinite(e)) or np.abs(e[:3]).max() > 1.0 or np.abs(e[3:]).max() > np.pi:
+        raise ValueError(f"mount_error must be 6 finite numbers (m, m, m, rad, rad, rad), translations within 1 m "
+                         f"and rotations within pi rad; got {str(mount_error)[:80]}")
     E = np.eye(4)
     E[:3, :3] = Rotation.from_rotvec(e[3:]).as_matrix()
     E[:3, 3] = e[:3]

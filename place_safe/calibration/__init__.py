@@ -19,7 +19,7 @@ Fitting lives in :mod:`place_safe.calibration.points` (peak and on-sensor distan
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import InitVar, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -44,12 +44,53 @@ class Calibration:
     section and the field) only when a method that needs it asks for it, so a broken ``diff``
     section does not stop the ``peak`` method. The file itself must carry the format tag and no
     unknown top-level keys.
+
+    Built directly (``Calibration({"peak": {...}})``, a task script's way), every section is checked at
+    once: ``sections`` must be a dict of known section names to parameter dicts, and an invalid section
+    raises :class:`CalibrationError` (``Calibration({"peak": "garbage"})`` is refused). Only
+    :meth:`from_dict` / :meth:`load` keep a bad section in ``errors`` (``lenient``) for the reason above.
     """
 
     sections: dict[str, dict] = field(default_factory=dict)
     reports: dict[str, Any] = field(default_factory=dict)
     errors: dict[str, str] = field(default_factory=dict)
     source: str = "calibration"
+    lenient: InitVar[bool] = False
+
+    def __post_init__(self, lenient: bool) -> None:
+        from place_safe.exceptions import ArgumentTypeError
+
+        if not isinstance(self.sections, dict):
+            raise ArgumentTypeError(f"Calibration: sections must be a dict of section name -> parameter dict "
+                                    f"(some of {', '.join(SECTIONS)}), got {type(self.sections).__name__}; "
+                                    "read a file with Calibration.load(path)")
+        unknown = sorted(str(k) for k in self.sections if k not in SECTIONS)
+        if unknown:
+            raise CalibrationError(f"Calibration: unknown sections {unknown}; expected some of {list(SECTIONS)}")
+        if not isinstance(self.reports, dict) or not isinstance(self.errors, dict) or not isinstance(self.source, str):
+            raise ArgumentTypeError("Calibration: reports and errors must be dicts and source a str")
+        # validate every section once, on its own, so a bad one fails clearly and only for its methods
+        for name in list(self.sections):
+            if name in self.errors:
+                continue
+            if not isinstance(self.sections[name], dict):  # null or a list would read as "no section": built-in constants
+                self.errors[name] = f"must be an object of parameters, got {type(self.sections[name]).__name__}"
+                continue
+            try:
+                getattr(self, name)()
+            except CalibrationError as exc:
+                self.errors[name] = str(exc)
+        if self.errors and not lenient:
+            self.check()
+
+    def check(self) -> "Calibration":
+        """Raise :class:`CalibrationError` (one line, the first invalid section) unless every section is valid.
+
+        Commands that drive a robot (``place``, ``sim place``, ``scenarios``, ``calibrate-mount``) call it: a
+        file with a broken section (a NaN, a wrong type) is refused before anything moves."""
+        for name in sorted(self.errors):
+            raise CalibrationError(f"{self.source}: section '{name}': {self.errors[name]}")
+        return self
 
     def _section(self, name: str):
         if name in self.errors:
@@ -130,18 +171,8 @@ class Calibration:
             raise CalibrationError(f"{source}: unknown keys {unknown}; expected some of "
                                    f"{sorted(SECTIONS + OTHER_KEYS)}")
         reports = d.get("reports", {})
-        cal = cls({k: d[k] for k in SECTIONS if k in d}, dict(reports) if isinstance(reports, dict) else {},
-                  source=source)
-        # validate every section once, on its own, so a bad one fails clearly and only for its methods
-        for name in list(cal.sections):
-            if not isinstance(cal.sections[name], dict):  # null or a list would read as "no section": built-in constants
-                cal.errors[name] = f"must be an object of parameters, got {type(cal.sections[name]).__name__}"
-                continue
-            try:
-                getattr(cal, name)()
-            except CalibrationError as exc:
-                cal.errors[name] = str(exc)
-        return cal
+        return cls({k: d[k] for k in SECTIONS if k in d}, dict(reports) if isinstance(reports, dict) else {},
+                   source=source, lenient=True)  # sections validated one by one (see the class docstring)
 
     @classmethod
     def load(cls, path: str | Path) -> "Calibration":

@@ -36,6 +36,8 @@ from typing import Any, Callable
 
 import numpy as np
 
+from place_safe.config import Bound
+
 from place_safe.exceptions import RobotFault, SensorTimeout
 from place_safe.geometry import Plane, fit_plane
 from place_safe.robot.interface import Robot
@@ -64,12 +66,14 @@ class SweepPlan:
     frame_timeout_s: float = 2.0  # s of robot time to wait for the frames of one pose
 
     def __post_init__(self) -> None:
-        if not self.distances or min(self.distances) <= 0:
-            raise ValueError("SweepPlan.distances must be positive metres")
-        if not self.incidences or min(self.incidences) < 0 or max(self.incidences) >= math.pi / 2:
-            raise ValueError("SweepPlan.incidences must lie in [0, pi/2) rad")
-        if self.frames_per_pose < 1 or self.speed <= 0 or self.accel <= 0 or self.settle_s < 0:
-            raise ValueError("SweepPlan: frames_per_pose >= 1, speed and accel > 0, settle_s >= 0")
+        from place_safe.config import check_dataclass
+        from place_safe.exceptions import ConfigError
+
+        for name in ("distances", "incidences", "azimuths"):
+            v = getattr(self, name)
+            if not isinstance(v, (list, tuple)) or not 1 <= len(v) <= MAX_GRID_VALUES:
+                raise ConfigError(f"sweep plan: {name} must be a list of 1 to {MAX_GRID_VALUES} numbers")
+        check_dataclass(self, SWEEP_BOUNDS, "sweep plan")  # types, NaN and ranges, one line naming the field
 
     def grid(self) -> list[tuple[float, float, float]]:
         """(distance, incidence, azimuth) of every pose; incidence 0 once per distance."""
@@ -85,6 +89,23 @@ class SweepPlan:
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+
+#: The most values one axis of the sweep grid may have.
+MAX_GRID_VALUES = 100
+#: Range of every sweep setting (SI units), checked on construction.
+SWEEP_BOUNDS = {
+    "distances": Bound(0.01, 5.0, "m"),
+    "incidences": Bound(0.0, math.radians(80.0), "rad"),
+    "azimuths": Bound(-2 * math.pi, 2 * math.pi, "rad"),
+    "centre": Bound(-2.0, 2.0, "m", length=2),
+    "frames_per_pose": Bound(1, 100, "frames"),
+    "settle_s": Bound(0.0, 60.0, "s"),
+    "speed": Bound(0.0, 1.0, "m/s", lo_open=True),
+    "accel": Bound(0.0, 10.0, "m/s^2", lo_open=True),
+    "max_poses": Bound(1, 10_000, "poses"),
+    "frame_timeout_s": Bound(0.0, 60.0, "s", lo_open=True),
+}
 
 
 def level_plane(height: float) -> tuple[np.ndarray, float]:

@@ -262,12 +262,33 @@ def flange_poses(frames: Sequence[Any], use_kinematics: bool = True, kinematics:
                 from place_safe.robot.kinematics import Kinematics
 
                 kin = Kinematics()
-            out.append(kin.base_T_flange(np.asarray(extra["joint_angles"], dtype=float)))
+            out.append(kin.base_T_flange(_joint_angles(extra["joint_angles"], i)))
         elif extra.get("pose") is not None:
-            out.append(np.asarray(extra["pose"], dtype=float).reshape(4, 4))
+            from place_safe.geometry import transform_problem
+
+            T = extra["pose"]
+            if (why := transform_problem(T)) is not None or np.abs(np.asarray(T, dtype=float)[:3, 3]).max() > MAX_REACH:
+                raise CalibrationError(f"frame {i}: pose {why or f'is farther than {MAX_REACH:g} m from the base'}; "
+                                       "expected the flange's rigid base-frame transform (m)")
+            out.append(np.asarray(T, dtype=float))
         else:
             raise CalibrationError(f"frame {i} has neither joint_angles nor pose; the capture cannot fit a mount")
     return np.array(out)
 
 
-__all__ = ["MountFit", "fit_mount", "flange_poses"]
+#: m: no flange pose of a UR5 is farther than this from its base (reach 0.85 m).
+MAX_REACH = 2.0
+
+
+def _joint_angles(q: Any, i: int) -> np.ndarray:
+    """Frame ``i``'s six joint angles (rad, each within +-2 pi: a UR5 joint's range); CalibrationError otherwise."""
+    ok = isinstance(q, (list, tuple, np.ndarray)) and len(q) == 6 and all(
+        isinstance(v, (int, float, np.number)) and not isinstance(v, bool) for v in q)
+    a = np.asarray(q, dtype=float) if ok else None
+    if a is None or not np.all(np.isfinite(a)) or np.abs(a).max() > 2 * math.pi + 1e-9:
+        raise CalibrationError(f"frame {i}: joint_angles must be 6 finite numbers within +-2 pi rad (the UR5's joint "
+                               "range)")
+    return a
+
+
+__all__ = ["MountFit", "fit_mount", "flange_poses", "MAX_REACH"]

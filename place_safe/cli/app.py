@@ -117,6 +117,21 @@ def _commands(parser: argparse.ArgumentParser) -> list[str]:
     return []
 
 
+#: Options that name a file a command writes (checked before it starts: see :func:`_check_outputs`).
+OUTPUT_OPTIONS = ("output", "json", "log", "write", "plot", "render", "gif", "save_frames", "save")
+
+
+def _check_outputs(args: argparse.Namespace) -> None:
+    """One line (exit 2) before anything runs when an output option names a directory or a FIFO nobody reads
+    (opening it would block for ever)."""
+    from place_safe.io.input_file import output_file_problem
+
+    for name in OUTPUT_OPTIONS:
+        value = getattr(args, name, None)
+        if isinstance(value, str) and value and (why := output_file_problem(value)) is not None:
+            raise UsageError(f"{args.command}: --{name.replace('_', '-')} {value} {why}")
+
+
 def _one_line(exc: BaseException) -> str:
     """The first line of an exception's message (its type name when empty), at most 400 characters."""
     text = str(exc).strip()
@@ -148,6 +163,7 @@ def _main(argv: Sequence[str] | None) -> int:
         if not getattr(args, "command", None):
             raise UsageError("a command is required: " + ", ".join(sorted(_commands(parser)))
                              + f" (see '{PROG} --help')")
+        _check_outputs(args)
         return int(args.func(args) or 0)
     except PlaceSafeError as exc:
         _log(f"{PROG}: error: {_one_line(exc)}")

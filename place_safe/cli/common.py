@@ -46,15 +46,13 @@ def _progress(enabled: bool):
 # shared helpers
 # ------------------------------------------------------------------------------------------------
 def not_a_file(path: str | Path) -> str | None:
-    """Why ``path`` cannot be read as an input file ("does not exist", "is a directory", ...), or None."""
-    p = Path(path)
-    if not p.exists():
-        return "does not exist"
-    if p.is_dir():
-        return "is a directory, not a file"
-    if not p.is_file():
-        return "is not a regular file"
-    return None
+    """Why ``path`` cannot be read as an input file ("does not exist", "is a FIFO ...", ...), or None.
+
+    The checks of :func:`place_safe.io.input_file.input_file_problem` (no size limit here: the reader that
+    opens the file applies its kind's limit)."""
+    from place_safe.io.input_file import input_file_problem
+
+    return input_file_problem(path, None)
 
 
 def _load_calibration(path: str | None):

@@ -16,7 +16,7 @@ EPILOG = """examples:
 
 def register(subparsers) -> None:
     from place_safe.cli.app import METHODS
-    from place_safe.cli.options import positive_int
+    from place_safe.cli.options import int_range
 
     s = subparsers.add_parser(
         "latency", formatter_class=argparse.RawDescriptionHelpFormatter, epilog=EPILOG,
@@ -27,7 +27,7 @@ def register(subparsers) -> None:
     s.add_argument("file", metavar="FILE", help="frame file (2 frames or more)")
     s.add_argument("--method", default="diff", choices=METHODS, help="recovery method (default diff)")
     s.add_argument("--calibration", metavar="CALIB.json", help="calibration file (default: built-in parameters)")
-    s.add_argument("--batch", type=positive_int, default=1, metavar="N",
+    s.add_argument("--batch", type=int_range(1, 4096), default=1, metavar="N",
                    help="frames per recovery call (default 1; larger batches make per-frame gaps bursty)")
     s.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
     s.set_defaults(func=cmd_latency)

@@ -16,7 +16,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from place_safe.cli.options import nonnegative_int, positive_float, positive_int
+from place_safe.cli.options import float_range, int_range
 
 _FMT = argparse.RawDescriptionHelpFormatter
 
@@ -25,24 +25,38 @@ def _log(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
 
-def _floats(text: str, n: int | None = None, what: str = "numbers") -> list[float]:
+def _floats(text: str, n: int | None = None, what: str = "numbers", lo: float = -math.inf,
+            hi: float = math.inf) -> list[float]:
+    """Comma-separated finite numbers (``n`` of them when given, at most :data:`MAX_LIST`), each in [lo, hi]."""
     try:
         vals = [float(v) for v in text.replace(" ", "").split(",") if v != ""]
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated {what}, got {text!r}") from None
-    if not vals or not all(math.isfinite(v) for v in vals) or (n is not None and len(vals) != n):
-        raise argparse.ArgumentTypeError(f"expected {n or 'some'} comma-separated finite {what}, got {text!r}")
+        raise argparse.ArgumentTypeError(f"expected comma-separated {what}, got {text[:80]!r}") from None
+    if (not vals or not all(math.isfinite(v) for v in vals) or (n is not None and len(vals) != n)
+            or len(vals) > MAX_LIST):
+        raise argparse.ArgumentTypeError(f"expected {n or f'1 to {MAX_LIST}'} comma-separated finite {what}, "
+                                         f"got {text[:80]!r}")
+    if not all(lo <= v <= hi for v in vals):
+        raise argparse.ArgumentTypeError(f"expected {what} from {lo:g} to {hi:g}, got {text[:80]!r}")
     return vals
+
+
+#: The most values one comma-separated option takes (a sweep grid is their product).
+MAX_LIST = 100
+#: m: base-frame coordinates an option may name (the UR5 reaches 0.85 m from its base).
+REACH = 2.0
 
 
 def _mount_error(text: str) -> list[float]:
     """``dx,dy,dz,rx,ry,rz`` in mm and degrees -> m and rad."""
-    v = _floats(text, 6, "numbers (mm, mm, mm, deg, deg, deg)")
+    v = _floats(text, 6, "numbers (mm, mm, mm, deg, deg, deg)", -1000.0, 1000.0)
+    if max(abs(x) for x in v[3:]) > 180.0:
+        raise argparse.ArgumentTypeError(f"expected rotations from -180 to 180 degrees, got {text[:80]!r}")
     return [x / 1000.0 for x in v[:3]] + [math.radians(x) for x in v[3:]]
 
 
 def _xy_points(text: str) -> list[float]:
-    return _floats(text, 2, "x,y metres")
+    return _floats(text, 2, "x,y metres", -REACH, REACH)
 
 
 def open_sensor(uri: str) -> Any:
@@ -64,13 +78,38 @@ def _estimator(method: str, calibration: str | None, sim: bool):
     from place_safe.calibration import Calibration
     from place_safe.recovery import make_estimator
 
-    if calibration:
-        return make_estimator(method, Calibration.load(calibration)), calibration
+    if calibration:  # every section valid (a NaN anywhere is refused), not only the method's
+        return make_estimator(method, Calibration.load(calibration).check()), calibration
     if sim and method == "diff":
         from place_safe.sim.placement_run import oracle_calibration
 
         return make_estimator(method, oracle_calibration()), "ORACLE: the simulated sensor's true forward parameters"
     return make_estimator(method, None), "built-in defaults"
+
+
+def _mount_truth(path: str) -> Any:
+    """The true ``flange_T_sensor`` (4x4 rigid transform, metres) of a truth JSON file; one-line ConfigError."""
+    import numpy as np
+
+    from place_safe.config import read_json
+    from place_safe.exceptions import ConfigError
+
+    d = read_json(path, "mount truth", ConfigError)
+    if not isinstance(d, dict) or "flange_T_sensor" not in d:
+        got = "an object without it" if isinstance(d, dict) else f"a JSON {type(d).__name__}"
+        raise ConfigError(f"mount truth {path}: expected an object with \"flange_T_sensor\" (a 4x4 matrix), got {got}")
+    from place_safe.geometry import transform_problem
+
+    v = d["flange_T_sensor"]
+    ok = isinstance(v, list) and all(isinstance(x, (int, float)) and not isinstance(x, bool)
+                                     for r in v if isinstance(r, list) for x in r)
+    why = transform_problem(v) if ok else "is not a 4x4 matrix of numbers"
+    if why is None and np.abs(np.asarray(v, dtype=float)[:3, 3]).max() > 2.0:
+        why = "translation is more than 2 m from the flange"
+    if why is not None:
+        raise ConfigError(f"mount truth {path}: flange_T_sensor {why}")
+    T = np.asarray(v, dtype=float)
+    return T
 
 
 def _write_json(path: str, value: Any) -> None:
@@ -143,6 +182,12 @@ def cmd_capture(args: argparse.Namespace) -> int:
 
     from place_safe.cli.app import UsageError
 
+    grid = len(args.distances) * len(args.incidences) * len(args.azimuths)
+    if min(grid, args.poses or grid) * args.frames_per_pose > 100_000:
+        raise UsageError(f"capture: {grid} poses x {args.frames_per_pose} frames is too long a sweep; "
+                         "give --poses N (at most 100000 frames in all)")
+    if args.touch and not 3 <= len(args.touch) <= 20:
+        raise UsageError(f"capture: --touch needs 3 to 20 points, got {len(args.touch)}")
     plan = SweepPlan(distances=[d / 1000.0 for d in args.distances],
                      incidences=[math.radians(a) for a in args.incidences],
                      azimuths=[math.radians(a) for a in args.azimuths], frames_per_pose=args.frames_per_pose,
@@ -206,6 +251,7 @@ def cmd_calibrate_mount(args: argparse.Namespace) -> int:
     from place_safe.cli.app import UsageError
 
     robot_cfg = _robot_config(args.robot)
+    truth = _mount_truth(args.truth) if args.truth else None  # every input checked before the fit runs
     frames = load_frames(args.capture)
     if not frames:
         raise UsageError(f"calibrate-mount: {args.capture} has no frames")
@@ -221,8 +267,7 @@ def cmd_calibrate_mount(args: argparse.Namespace) -> int:
     print(fit.summary())
     result = {"capture": args.capture, "method": args.method, "calibration": cal_note, "poses": args.poses,
               **fit.to_dict()}
-    if args.truth:
-        truth = np.asarray(json.loads(Path(args.truth).read_text())["flange_T_sensor"], dtype=float)
+    if truth is not None:
         et, er = fit.error_to(truth)
         result["error_to_truth"] = {"translation": et, "rotation": er}
         print(f"  error to the true mount: {et * 1000:.2f} mm, {math.degrees(er):.3f} deg")
@@ -254,7 +299,7 @@ def _robot_or_sim(p: argparse.ArgumentParser, robot_help: str) -> None:
                                                           "command nothing")
     p.add_argument("--sim-mount-error", type=_mount_error, metavar="DX,DY,DZ,RX,RY,RZ",
                    help="simulation: the true sensor mount differs from the robot file's by this (mm and deg)")
-    p.add_argument("--seed", type=nonnegative_int, default=0, help="simulated sensor noise seed")
+    p.add_argument("--seed", type=int_range(0, 2 ** 32 - 1), default=0, help="simulated sensor noise seed")
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -276,7 +321,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                                              "diff falls back to the labelled ORACLE)")
     p.add_argument("--method", default="diff", choices=("diff", "peak", "proprietary"), help="plane recovery")
     p.add_argument("--config", metavar="PLACEMENT.json", help="placement thresholds (SI units)")
-    p.add_argument("--timeout", type=positive_float, default=30.0, help="s of robot time (default 30)")
+    p.add_argument("--timeout", type=float_range(0.0, 3600.0, lo_open=True), default=30.0,
+                   help="s of robot time (default 30, at most 3600)")
     p.add_argument("--json", default="place-result.json", help="result file (default place-result.json)")
     p.add_argument("--log", default="place-transitions.jsonl", help="transition log (default place-transitions.jsonl)")
     p.add_argument("--frame-log", action="store_true", help="include the per-frame log in the result file")
@@ -298,20 +344,24 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     c.add_argument("-o", "--output", required=True, help="capture file (JSON Lines; appended to when resuming)")
     c.add_argument("--robot-file", dest="robot_file", metavar="ROBOT.toml",
                    help="with --sim: the robot file whose tool frames define the ground truth (default sim.toml)")
-    c.add_argument("--distances", type=lambda s: _floats(s, None, "mm"), default=[80, 120, 170, 220, 270],
+    c.add_argument("--distances", type=lambda s: _floats(s, None, "mm", 10.0, 5000.0), default=[80, 120, 170, 220, 270],
                    help="sensor-to-plane distances in mm (default 80,120,170,220,270)")
-    c.add_argument("--incidences", type=lambda s: _floats(s, None, "degrees"), default=[0, 12, 24],
+    c.add_argument("--incidences", type=lambda s: _floats(s, None, "degrees", 0.0, 80.0), default=[0, 12, 24],
                    help="optical-axis tilts from the normal in degrees (default 0,12,24)")
-    c.add_argument("--azimuths", type=lambda s: _floats(s, None, "degrees"), default=[0, 60, 120, 180, 240, 300],
+    c.add_argument("--azimuths", type=lambda s: _floats(s, None, "degrees", -360.0, 360.0),
+                   default=[0, 60, 120, 180, 240, 300],
                    help="tilt directions in degrees (default every 60)")
-    c.add_argument("--poses", type=positive_int, help="subsample the grid evenly to this many poses")
-    c.add_argument("--frames-per-pose", type=positive_int, default=1, help="frames per pose (default 1)")
-    c.add_argument("--speed", type=positive_float, default=0.1, help="moveL speed m/s (default 0.1)")
-    c.add_argument("--settle", type=positive_float, default=0.25, help="s at rest before frames count (default 0.25)")
-    c.add_argument("--table-height", type=float, help="known table top z in the base frame (m)")
+    c.add_argument("--poses", type=int_range(1, 10_000), help="subsample the grid evenly to this many poses (1..10000)")
+    c.add_argument("--frames-per-pose", type=int_range(1, 100), default=1, help="frames per pose (default 1, at most 100)")
+    c.add_argument("--speed", type=float_range(0.0, 1.0, lo_open=True), default=0.1,
+                   help="moveL speed m/s (default 0.1, at most 1)")
+    c.add_argument("--settle", type=float_range(0.0, 60.0, lo_open=True), default=0.25,
+                   help="s at rest before frames count (default 0.25, at most 60)")
+    c.add_argument("--table-height", type=float_range(-REACH, REACH), help="known table top z in the base frame (m)")
     c.add_argument("--touch", type=_xy_points, action="append", metavar="X,Y", help="touch the plane here (m, base)")
-    c.add_argument("--touch-height", type=float, help="z (m) to start each guarded descent from")
-    c.add_argument("--touch-force", type=positive_float, default=12.0, help="contact threshold N (default 12)")
+    c.add_argument("--touch-height", type=float_range(-REACH, REACH), help="z (m) to start each guarded descent from")
+    c.add_argument("--touch-force", type=float_range(0.0, 200.0, lo_open=True), default=12.0,
+                   help="contact threshold N (default 12, at most 200)")
     c.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     c.set_defaults(func=lambda a: cmd_capture(_resolve(a)))
 
@@ -330,11 +380,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     m.add_argument("--calibration", metavar="CAL.json", help="sensor calibration for the method")
     m.add_argument("--poses", choices=("joints", "recorded"), default="joints",
                    help="flange poses from forward kinematics of the joint angles (default) or the recorded pose")
-    m.add_argument("--sigma-angle", type=positive_float, default=1.0, help="per-frame normal noise, deg (weighting)")
-    m.add_argument("--sigma-mm", type=positive_float, default=2.0, help="per-frame distance noise, mm (weighting)")
+    m.add_argument("--sigma-angle", type=float_range(0.0, 90.0, lo_open=True), default=1.0,
+                   help="per-frame normal noise, deg (weighting; at most 90)")
+    m.add_argument("--sigma-mm", type=float_range(0.0, 1000.0, lo_open=True), default=2.0,
+                   help="per-frame distance noise, mm (weighting; at most 1000)")
     m.add_argument("--level", action="store_true", help="the plane is level (normal = base z): needed to see the "
                                                         "mount's tilt from a straight-down sweep")
-    m.add_argument("--table-height", type=float, metavar="Z", help="the plane's known base-frame z (m): needed to "
+    m.add_argument("--table-height", type=float_range(-REACH, REACH), metavar="Z", help="the plane's known base-frame z (m): needed to "
                                                                     "see the mount's height from a straight-down sweep")
     m.add_argument("--truth", help="JSON with the true flange_T_sensor (simulation): report the error to it")
     m.add_argument("--json", help="write the fit (with per-frame residuals) here")

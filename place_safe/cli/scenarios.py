@@ -27,8 +27,21 @@ simulator's true parameters and is named ORACLE in every row. Exit status: 0 eve
 expectation, 1 some missed, 2 bad usage."""
 
 
+#: Random scenes one command may ask for (each is a placement of up to --seconds of sim time).
+MAX_RANDOM = 100_000
+#: Worker processes per CPU and at most (each loads MuJoCo and torch: ~0.5 GB).
+JOBS_PER_CPU, MAX_JOBS = 4, 64
+
+
+def max_jobs() -> int:
+    """The most local worker processes ``--jobs`` takes: 4 per CPU, at most 64."""
+    import os
+
+    return max(1, min(MAX_JOBS, JOBS_PER_CPU * (os.cpu_count() or 1)))
+
+
 def register(subparsers) -> None:
-    from place_safe.cli.options import nonnegative_int, positive_float, positive_int
+    from place_safe.cli.options import float_range, int_range
 
     p = subparsers.add_parser("scenarios", help="run scenario files / random scenes in simulation and judge them",
                               description="Run scenario files and random scenes through the simulated placement loop and judge each by simulation truth: table on stdout, JSON and PNG on request; exit 1 if any scenario missed its expectation.", epilog=EPILOG,
@@ -36,11 +49,15 @@ def register(subparsers) -> None:
     p.add_argument("paths", nargs="*", metavar="PATH",
                    help="scenario files (.toml/.json), directories of them, or packaged names "
                         "(default: scenarios/set unless --random is given)")
-    p.add_argument("--random", type=nonnegative_int, default=0, metavar="N", help="also run N random scenes")
-    p.add_argument("--seed", type=int, default=0, help="seed of the random scenes and sensor noise (default 0)")
-    p.add_argument("--jobs", type=positive_int, default=1, metavar="J", help="local worker processes (default 1)")
+    p.add_argument("--random", type=int_range(0, MAX_RANDOM), default=0, metavar="N",
+                   help=f"also run N random scenes (0..{MAX_RANDOM})")
+    p.add_argument("--seed", type=int_range(0, 2 ** 32 - 1), default=0,
+                   help="seed of the random scenes and sensor noise (default 0)")
+    p.add_argument("--jobs", type=int_range(1, max_jobs()), default=1, metavar="J",
+                   help=f"local worker processes (default 1; at most {JOBS_PER_CPU} per CPU and {MAX_JOBS})")
     p.add_argument("--ray", metavar="ADDRESS", help="run on a Ray cluster ('auto', an address, or 'local')")
-    p.add_argument("--seconds", type=positive_float, default=30.0, help="sim-time limit per run (default 30)")
+    p.add_argument("--seconds", type=float_range(0.0, 3600.0, lo_open=True), default=30.0,
+                   help="sim-time limit per run (s, default 30, at most 3600)")
     p.add_argument("--calibration", help="calibration for every run: a file, 'sim' or 'none' "
                                          "(default: each scenario's own)")
     p.add_argument("--oracle", action="store_true", help="DEBUGGING: the simulator's true sensor parameters")
@@ -66,8 +83,16 @@ def cmd_scenarios(args: argparse.Namespace) -> int:
             raise UsageError("scenarios: --ray needs Ray (pip install 'place-safe[ray]')") from None
     paths = args.paths if args.paths else ([] if args.random else [str(p) for p in packaged_scenarios()])
     items = []
+    if args.calibration not in (None, "sim", "none", "oracle"):
+        from place_safe.calibration import Calibration
+
+        Calibration.load(args.calibration).check()  # before any run: every section valid
     for p in expand_paths(paths):
-        load_scenario(p)  # validate every file before running any
+        sc = load_scenario(p)  # validate every file before running any
+        if args.calibration is None and not args.oracle:
+            cal = sc.resolve_calibration()[0]  # its calibration file too (every section valid)
+            if cal is not None:
+                cal.check()
         items.append({"scenario": str(p)})
     rng = np.random.default_rng(args.seed)
     for i in range(args.random):

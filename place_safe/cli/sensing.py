@@ -354,9 +354,9 @@ def register(sub) -> None:
     e.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS), metavar="METHOD",
                    help=f"methods to evaluate (default: all of {', '.join(METHODS)})")
     e.add_argument("--out", default="out/evaluate", metavar="DIR", help="directory for plots (default out/evaluate)")
-    e.add_argument("--min-distance", type=options.nonnegative_float, default=None, metavar="M",
+    e.add_argument("--min-distance", type=options.float_range(0.0, 100.0), default=None, metavar="M",
                    help="skip frames whose true plane is closer than M metres (perpendicular distance d)")
-    e.add_argument("--max-distance", type=options.positive_float, default=None, metavar="M",
+    e.add_argument("--max-distance", type=options.float_range(0.0, 100.0, lo_open=True), default=None, metavar="M",
                    help="skip frames whose true plane is farther than M metres (perpendicular distance d)")
     e.add_argument("--no-plots", action="store_true", help="do not write plots")
     e.add_argument("--diff-mode", choices=("fast", "paper"), default=None, help="diff solver (default fast)")
@@ -376,9 +376,11 @@ def register(sub) -> None:
     s.add_argument("--method", default="diff", choices=METHODS, help="recovery method (default diff)")
     s.add_argument("--calibration", metavar="CALIB.json", help="calibration file (default: built-in parameters)")
     s.add_argument("--mode", choices=("fast", "paper"), default=None, help="diff solver (default fast)")
-    s.add_argument("--rate", type=options.float_range(0.0, 10000.0, lo_open=True), default=30.0, metavar="HZ", help="replay rate, frames per second (default 30)")
+    s.add_argument("--rate", type=options.float_range(1.0, 10000.0), default=30.0, metavar="HZ",
+                   help="replay rate, frames per second (default 30; 1..10000)")
     s.add_argument("--loop", action="store_true", help="start again at the end of the file (stop with --max-frames)")
-    s.add_argument("--max-frames", type=options.positive_int, default=None, metavar="N", help="stop after N frames arrived")
+    s.add_argument("--max-frames", type=options.int_range(1, 10_000_000), default=None, metavar="N",
+                   help="stop after N frames arrived")
     s.add_argument("--queue", type=options.int_range(1, 10000), default=1, metavar="N",
                    help="frames that may wait for the estimator (default 1: always the newest)")
     s.add_argument("--jsonl", action="store_true",

@@ -16,8 +16,13 @@ import time
 from pathlib import Path
 from typing import Any
 
-from place_safe.cli.options import nonnegative_int, positive_float, positive_int, fraction
+from place_safe.cli.options import float_range, fraction, int_range
 from place_safe.recovery import METHODS
+
+#: Hz: an emulated I2C clock (standard 100 kHz .. high-speed 3.4 MHz, and slower buses down to 10 kHz).
+BUS_HZ = float_range(1e4, 3.4e6)
+#: s: how long a read may wait for a frame.
+TIMEOUT = float_range(0.0, 60.0, lo_open=True)
 
 _FMT = argparse.RawDescriptionHelpFormatter
 _URI_HELP = ("source URI: i2c:BUS[@ADDR], serial:PORT[@BAUD] or serial:LOG, file:FRAMES.json, "
@@ -32,12 +37,14 @@ def _add_source_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("uri", metavar="URI", help=_URI_HELP)
     g = p.add_argument_group("sensor options (i2c: and emu: sources)")
     g.add_argument("--patch", metavar="FILE.hex", help="Intel HEX RAM patch to download (default: ROM application)")
-    g.add_argument("--period-ms", type=nonnegative_int, metavar="MS", help="measurement period (default 33)")
-    g.add_argument("--kilo-iterations", type=positive_int, metavar="K", help="laser pulses in thousands (default 4000)")
+    g.add_argument("--period-ms", type=int_range(0, 0xFFFF), metavar="MS", help="measurement period (default 33)")
+    g.add_argument("--kilo-iterations", type=int_range(1, 0xFFFF), metavar="K",
+                   help="laser pulses in thousands (default 4000)")
     g.add_argument("--calibration-dir", metavar="DIR", help="factory calibration files (loaded by sensor serial)")
     g.add_argument("--int-line", metavar="CHIP:OFFSET", help="INT pin as a GPIO line, e.g. /dev/gpiochip0:17 "
                                                               "(default: poll INT_STATUS)")
-    g.add_argument("--bus-hz", type=positive_float, metavar="HZ", help="emu: emulated bus clock (default 400000)")
+    g.add_argument("--bus-hz", type=BUS_HZ, metavar="HZ", help="emu: emulated bus clock (default 400000; "
+                   "10 kHz..3.4 MHz, the I2C range)")
 
 
 def _open(args: argparse.Namespace, **extra: Any):
@@ -244,9 +251,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                               "  place-safe sensor record serial:capture.log -o frames.json")
     _add_source_options(r)
     r.add_argument("-o", "--output", required=True, metavar="FILE", help="frame file to write")
-    r.add_argument("--frames", type=positive_int, default=100, metavar="N", help="frames to record (default 100)")
-    r.add_argument("--seconds", type=positive_float, metavar="S", help="stop after S seconds")
-    r.add_argument("--timeout", type=positive_float, default=2.0, metavar="S",
+    r.add_argument("--frames", type=int_range(1, 1_000_000), default=100, metavar="N",
+                   help="frames to record (default 100, at most 1000000)")
+    r.add_argument("--seconds", type=float_range(0.0, 86400.0, lo_open=True), metavar="S",
+                   help="stop after S seconds")
+    r.add_argument("--timeout", type=TIMEOUT, default=2.0, metavar="S",
                    help="stop when no frame arrives for S seconds (default 2)")
     r.add_argument("--force", action="store_true", help="overwrite the output file")
     r.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
@@ -264,8 +273,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     st.add_argument("--method", default="peak", choices=METHODS,
                     help="plane recovery (default peak)")
     st.add_argument("--calibration", metavar="CALIB.json", help="calibration file")
-    st.add_argument("--max-frames", type=positive_int, metavar="N", help="stop after N frames")
-    st.add_argument("--timeout", type=positive_float, default=2.0, metavar="S", help="read timeout (default 2 s)")
+    st.add_argument("--max-frames", type=int_range(1, 10_000_000), metavar="N", help="stop after N frames")
+    st.add_argument("--timeout", type=TIMEOUT, default=2.0, metavar="S", help="read timeout (default 2 s, at most 60)")
     st.add_argument("--jsonl", action="store_true", help="one JSON line per frame on stdout")
     st.add_argument("--save", metavar="RUN.rrd", help="write a rerun recording (headless)")
     st.add_argument("--view", action="store_true", help="open a rerun viewer (needs a display)")
@@ -278,15 +287,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                    "payload (4182) and transfer (4368) minimums, and host CPU to decode a frame.",
                        epilog="examples:\n  place-safe sensor bench\n  place-safe sensor bench --bus-hz 400000 "
                               "1000000 --frames 500\n  place-safe sensor bench --fault-rate 0.001 --json bench.json")
-    b.add_argument("--bus-hz", type=positive_float, nargs="+", default=[400e3, 1e6], metavar="HZ",
+    b.add_argument("--bus-hz", type=BUS_HZ, nargs="+", default=[400e3, 1e6], metavar="HZ",
                    help="bus clocks (default 400000 1000000)")
-    b.add_argument("--frames", type=positive_int, default=200, metavar="N", help="frames per clock (default 200)")
-    b.add_argument("--period-ms", type=nonnegative_int, default=33, metavar="MS", help="period (default 33)")
-    b.add_argument("--kilo-iterations", type=positive_int, default=4000, metavar="K",
+    b.add_argument("--frames", type=int_range(1, 100_000), default=200, metavar="N",
+                   help="frames per clock (default 200)")
+    b.add_argument("--period-ms", type=int_range(0, 0xFFFF), default=33, metavar="MS", help="period (default 33)")
+    b.add_argument("--kilo-iterations", type=int_range(1, 0xFFFF), default=4000, metavar="K",
                    help="pulses in thousands (default 4000)")
     b.add_argument("--fault-rate", type=fraction, default=0.0, metavar="P",
                    help="probability per bus transfer of an injected fault (default 0)")
-    b.add_argument("--seed", type=nonnegative_int, default=0, help="seed of frames and faults")
+    b.add_argument("--seed", type=int_range(0, 2 ** 32 - 1), default=0, help="seed of frames and faults")
     b.add_argument("--json", metavar="FILE", help="write the figures as JSON")
     b.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     b.set_defaults(func=cmd_bench)

@@ -12,7 +12,7 @@ import argparse
 import math
 from pathlib import Path
 
-from place_safe.cli.options import int_range, nonnegative_int, positive_float
+from place_safe.cli.options import float_range, int_range
 
 EPILOG = """examples:
   # calibration frames and separate test frames of the same simulated sensor
@@ -39,11 +39,15 @@ def register(subparsers) -> None:
                    help="independent simulation (default) or the project's forward model (convention checks)")
     s.add_argument("--frames", type=int_range(1, 100000), default=100, metavar="N",
                    help="frames to write, 1-100000 (default 100; they are built in memory, about 10 kB each)")
-    s.add_argument("--seed", type=nonnegative_int, default=0, help="seed of the scenes (default 0)")
-    s.add_argument("--sensor-seed", type=nonnegative_int, default=0, help="seed of the simulated sensor (default 0)")
-    s.add_argument("--min-distance", type=positive_float, default=0.02, metavar="M", help="nearest z0, m (default 0.02)")
-    s.add_argument("--max-distance", type=positive_float, default=0.30, metavar="M", help="farthest z0, m (default 0.30)")
-    s.add_argument("--max-angle", type=float, default=30.0, metavar="DEG", help="largest incidence, deg (default 30)")
+    s.add_argument("--seed", type=int_range(0, 2 ** 32 - 1), default=0, help="seed of the scenes (default 0)")
+    s.add_argument("--sensor-seed", type=int_range(0, 2 ** 32 - 1), default=0,
+                   help="seed of the simulated sensor (default 0)")
+    s.add_argument("--min-distance", type=float_range(0.0, 5.0, lo_open=True), default=0.02, metavar="M",
+                   help="nearest z0, m (default 0.02, at most 5)")
+    s.add_argument("--max-distance", type=float_range(0.0, 5.0, lo_open=True), default=0.30, metavar="M",
+                   help="farthest z0, m (default 0.30, at most 5: the sensor's range)")
+    s.add_argument("--max-angle", type=float_range(0.0, 80.0), default=30.0, metavar="DEG",
+                   help="largest incidence, deg (default 30, 0..80)")
     s.add_argument("--pulse", choices=PULSE_MODES, default=None,
                    help="independent: zone pulse from the reference (default gaussian soft-binning)")
     s.add_argument("--saturation", choices=SATURATION_MODES, default=None,

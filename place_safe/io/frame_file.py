@@ -294,7 +294,9 @@ def _decode(raw: bytes) -> object:
 
 def _iter_entries(path: str | Path) -> Iterator[dict | FrameError]:
     """Each entry of a frame file as a dict, or a :class:`FrameError` naming the file and frame index."""
-    p = Path(path)
+    from place_safe.io.input_file import MAX_FRAME_FILE_BYTES, check_input_file
+
+    p = check_input_file(path, "frame file", FrameFileError, MAX_FRAME_FILE_BYTES, "open")  # no FIFO, device, directory
     try:
         fh = open(p, "rb")
     except OSError as exc:

@@ -41,6 +41,10 @@ def _bad_frame(reason: str) -> Frame:
     return Frame(np.full((N_ZONES, N_BINS), np.nan), None, extra={"parse_error": reason})
 
 
+#: Hz: the slowest and fastest replay (a frame a minute and a half .. a million a second).
+MIN_RATE_HZ, MAX_RATE_HZ = 0.01, 1e6
+
+
 class FileReplaySource(FrameSource):
     """Replay a frame file at ``rate_hz`` (Hz) as if it came from the sensor.
 
@@ -58,8 +62,12 @@ class FileReplaySource(FrameSource):
     def __init__(self, path: str | Path, rate_hz: float = 30.0, loop: bool = False, realtime: bool = True,
                  drop: Iterable[int] = (), gaps: Mapping[int, float] | None = None,
                  corrupt: Iterable[int] = (), clock=time.monotonic) -> None:
-        if not (rate_hz > 0 and np.isfinite(rate_hz)):
-            raise ValueError(f"rate_hz must be a positive number of frames per second, got {rate_hz}")
+        if isinstance(rate_hz, bool) or not isinstance(rate_hz, (int, float, np.number)):
+            from place_safe.exceptions import ArgumentTypeError
+
+            raise ArgumentTypeError(f"rate_hz must be a number of frames per second, got {type(rate_hz).__name__}")
+        if not (np.isfinite(rate_hz) and MIN_RATE_HZ <= rate_hz <= MAX_RATE_HZ):
+            raise ValueError(f"rate_hz must be {MIN_RATE_HZ:g}..{MAX_RATE_HZ:g} frames per second, got {rate_hz}")
         self.path = Path(path)
         self.rate_hz = float(rate_hz)
         self.loop = loop

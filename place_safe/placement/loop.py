@@ -7,7 +7,9 @@ The caller chooses the robot, the frame source, the estimator and the tool frame
 * the **newest-estimate buffer** (:class:`EstimatePipeline`): for a real source a reader thread
   reads frames and estimates their planes off the control thread, keeping only the newest result, so a
   125 Hz tick never blocks on I/O or on the solver; a source driven by the robot's clock (the
-  simulated sensor, ``clock_domain == "robot"``) is polled and estimated inline instead;
+  simulated sensor, ``clock_domain == "robot"``) is polled once per tick instead -- on a helper thread
+  waited for at most :data:`READ_BOUND` seconds, so a source that blocks is a dead sensor, not a hung
+  loop -- and estimated inline;
 * the **clock map** (:class:`ClockMap`): frame stamps are on the source's clock (host
   ``time.monotonic`` for hardware); the loop converts them to the robot's clock before anything
   compares them with robot time;
@@ -18,7 +20,10 @@ The caller chooses the robot, the frame source, the estimator and the tool frame
   ``max_frame_age`` or is not later than the newest one already used (duplicates, out-of-order) are
   dropped with a reason, so a frozen or replaying sensor cannot count as fresh evidence;
 * **command dispatch** (speedL / stopL / open gripper) and a failed command becoming a fault;
-* the **transition and frame logs** and the :class:`LoopResult`.
+* the **transition and frame logs** and the :class:`LoopResult`;
+* the **failure policy**: any exception class from the robot, the source or the estimator ends in a safe
+  stop with the reason; an interrupt on the control thread (Ctrl-C) is re-raised after it (see
+  :class:`PlacementLoop`).
 
 Timing: ``tick()`` lets one control period pass (``robot.step(period)``: physics in simulation, the
 controller's ``waitPeriod`` on the real arm), then reads the newest estimate, updates the fusion, runs
@@ -59,6 +64,28 @@ MIN_ON_KNOWN = 3
 KNOWN_SLOPE_STD = math.radians(5.0)
 #: m: the least height uncertainty per zone of such an estimate.
 KNOWN_HEIGHT_STD = 0.0005
+#: s (host clock): the longest a read of a robot-clock source may take before the loop goes on without it
+#: (a simulated sensor answers in milliseconds; one that blocks is a dead sensor, not a reason to hang).
+READ_BOUND = 2.0
+#: Exceptions that are a request to stop the program (Ctrl-C, ``sys.exit``): on the control thread the loop
+#: makes its safe stop and then re-raises them; raised by a source or an estimator on a reader thread they
+#: are that part's failure like any other.
+INTERRUPTS = (KeyboardInterrupt, SystemExit)
+
+
+def describe_exception(exc: BaseException) -> str:
+    """``Type: first line of the message`` of any exception, even one whose ``str`` raises."""
+    try:
+        text = str(exc).strip()
+    except BaseException:  # noqa: BLE001 - a broken __str__ must not break the report of it
+        text = ""
+    name = type(exc).__name__
+    return f"{name}: {text.splitlines()[0]}" if text else name
+
+
+def _is_interrupt_here(exc: BaseException) -> bool:
+    """An interrupt raised on the main thread (a real Ctrl-C or exit request), to be re-raised after a safe stop."""
+    return isinstance(exc, INTERRUPTS) and threading.current_thread() is threading.main_thread()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -149,6 +176,26 @@ class PoseHistory:
         return T
 
 
+#: The fault the machine sees when ``robot.fault()`` itself fails.
+_NO_ANSWER = "robot does not answer"
+
+
+def clock_domain_of(source: Any) -> str:
+    """A source's ``clock_domain`` ("robot" or "monotonic", the default when it has none); any other value
+    (or an attribute that raises) is an :class:`~place_safe.exceptions.ArgumentTypeError`."""
+    from place_safe.exceptions import ArgumentTypeError
+
+    try:
+        domain = getattr(source, "clock_domain", "monotonic")
+    except BaseException as exc:  # noqa: BLE001 - a property that raises is a broken source
+        if isinstance(exc, INTERRUPTS):
+            raise
+        raise ArgumentTypeError(f"source.clock_domain raised {describe_exception(exc)}") from None
+    if domain not in ("robot", "monotonic"):
+        raise ArgumentTypeError(f"source.clock_domain must be 'robot' or 'monotonic', got {domain!r}")
+    return domain
+
+
 # ---------------------------------------------------------------------------------------------
 # newest-estimate buffer
 # ---------------------------------------------------------------------------------------------
@@ -167,16 +214,27 @@ class EstimatePipeline:
     ``threaded=True`` (default for sources whose ``clock_domain`` is not ``"robot"``): a daemon
     thread loops ``source.read(timeout)`` + ``estimator.estimate``; results that were never taken are
     counted in ``overwritten``. ``threaded=False``: :meth:`take` polls ``source.read(0)`` and estimates
-    inline (sources that advance with the robot's clock). Source errors other than a timeout are kept
-    in ``error`` (the loop refuses on a dead sensor); the thread keeps trying with a back-off.
+    inline (sources that advance with the robot's clock). The poll runs on a helper thread and is waited
+    for at most ``read_bound`` seconds (host clock): a source that blocks in ``read`` is a dead sensor
+    (``error`` says so, later takes return None at once until the read comes back), never a hung loop.
+    Source errors other than a timeout -- any exception class, ``BaseException`` subclasses included --
+    are kept in ``error`` (the loop refuses on a dead sensor); the thread keeps trying with a back-off.
     """
 
     def __init__(self, source: Any, estimator: Any, threaded: bool | None = None, read_timeout: float = 0.1,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic, read_bound: float = READ_BOUND) -> None:
         self.source, self.estimator = source, estimator
-        self.threaded = (getattr(source, "clock_domain", "monotonic") != "robot") if threaded is None else threaded
+        self.threaded = (clock_domain_of(source) != "robot") if threaded is None else bool(threaded)
         self.read_timeout = read_timeout
+        self.read_bound = float(read_bound)
         self.clock = clock
+        self.blocked = 0  # robot-clock reads that did not return within read_bound
+        self._worker: threading.Thread | None = None
+        self._request = threading.Event()
+        self._done = threading.Event()
+        self._pending = False
+        self._waiting_out = False
+        self._polled: tuple[bool, Any] | None = None
         self.frames = 0
         self.overwritten = 0
         self.timeouts = 0
@@ -197,33 +255,79 @@ class EstimatePipeline:
 
     def stop(self) -> None:
         self._stop.set()
+        self._request.set()  # wakes the robot-clock helper so it can end
         if self._thread is not None:
             self._thread.join(timeout=2.0)
             self._thread = None
+        if self._worker is not None:
+            self._worker.join(timeout=0.05 if self._pending else 1.0)  # a blocked read is left behind (daemon)
+            self._worker = None
 
     # -- work ----------------------------------------------------------------------------------
-    def _read_one(self, timeout: float) -> Measurement | None:
+    def _poll(self, timeout: float) -> tuple[bool, Any]:
+        """``(True, frame)`` or ``(False, None)`` after a timeout, the end or an error of ``source.read``.
+
+        Never raises: every exception class is the source's failure (``error``) -- except an interrupt on
+        the main thread (Ctrl-C), which is re-raised for the loop's safe stop."""
         try:
-            frame = self.source.read(timeout)
+            return True, self.source.read(timeout)
         except SensorTimeout:
             self.timeouts += 1
-            return None
         except StopIteration:
             self._ended = True
-            return None
-        except Exception as exc:  # a dead bus, a driver bug: the loop must refuse, not crash
+        except BaseException as exc:  # a dead bus, a driver bug, a BaseException subclass: refuse, not crash
+            if _is_interrupt_here(exc):
+                raise
             self.errors += 1
-            self.error = f"{type(exc).__name__}: {exc}".splitlines()[0]
-            return None
+            self.error = describe_exception(exc)
+        return False, None
+
+    def _estimate(self, frame: Any) -> Measurement:
         self.frames += 1
         try:
             est = self.estimator.estimate(frame)
-        except Exception as exc:  # estimators never raise for bad data; a bug must not stop the loop
+        except BaseException as exc:  # estimators never raise for bad data; a bug must not stop the loop
+            if _is_interrupt_here(exc):
+                raise
             from place_safe.recovery.estimator import PlaneEstimate
 
-            est = PlaneEstimate(None, reason=f"estimator failed: {type(exc).__name__}: {exc}".splitlines()[0])
+            est = PlaneEstimate(None, reason=f"estimator failed: {describe_exception(exc)}")
         self.error = None
         return Measurement(frame, est, self.clock())
+
+    def _read_one(self, timeout: float) -> Measurement | None:
+        ok, frame = self._poll(timeout)
+        return self._estimate(frame) if ok else None
+
+    # -- robot-clock sources: one read at a time on a helper thread, waited for at most read_bound --------
+    def _serve(self) -> None:
+        while True:
+            self._request.wait()
+            self._request.clear()
+            if self._stop.is_set():
+                return
+            self._polled = self._poll(0.0)
+            self._done.set()
+
+    def _bounded_read(self) -> Measurement | None:
+        if self._worker is None:
+            self._worker = threading.Thread(target=self._serve, name="place-safe-sensor-poll", daemon=True)
+            self._worker.start()
+        if not self._pending:
+            self._done.clear()
+            self._pending = True
+            self._request.set()
+        if not self._done.wait(0.0 if self._waiting_out else self.read_bound):
+            if not self._waiting_out:
+                self._waiting_out = True
+                self.blocked += 1
+                self.errors += 1
+                self.error = (f"source did not return from read() within {self.read_bound:g} s "
+                              "(blocked: treated as a dead sensor)")
+            return None
+        self._pending = self._waiting_out = False
+        (ok, frame), self._polled = self._polled or (False, None), None
+        return self._estimate(frame) if ok else None
 
     def _run(self) -> None:
         backoff = 0.01
@@ -243,7 +347,7 @@ class EstimatePipeline:
     def take(self) -> Measurement | None:
         """The newest measurement not taken before, or None (never blocks)."""
         if not self.threaded:
-            return None if self._ended else self._read_one(0.0)
+            return None if (self._ended or self._stop.is_set()) else self._bounded_read()
         with self._lock:
             m, self._latest = self._latest, None
         return m
@@ -286,15 +390,27 @@ class PlacementLoop:
     period: control period in seconds (default 8 ms).
     max_frame_age: s; frames measured longer ago than this (robot clock) are dropped as stale.
     log_frames: keep a per-frame log in the result.
+    read_bound: s (host clock) a robot-clock source's ``read`` may take before it counts as dead.
+
+    Arguments of the wrong kind (``config="x"``, a robot without ``step``) raise
+    :class:`~place_safe.exceptions.ArgumentTypeError` saying what was expected.
+
+    Failure policy: :meth:`tick` and :meth:`run` never block on the source (see :class:`EstimatePipeline`)
+    and never raise for what the robot, the source or the estimator do: any exception class ends in a
+    safe stop (``stopL``, the cup held, the machine aborted) with the reason in the result. The one
+    exception is an interrupt on the control thread (``KeyboardInterrupt``: Ctrl-C; ``SystemExit``):
+    the loop makes the same safe stop, records the reason ("interrupted: ...") and then re-raises it,
+    so the program ends as the user asked; :meth:`result` still tells what happened.
     """
 
     def __init__(self, robot: Any, source: Any, estimator: Any, tool: ToolFrames | None = None,
                  config: PlacementConfig | None = None, *, period: float = CONTROL_PERIOD,
                  max_frame_age: float = 0.5, log_frames: bool = True, plane_filter: PlaneFilter | None = None,
                  pipeline: EstimatePipeline | None = None, host_clock: Callable[[], float] = time.monotonic,
-                 surface_map: SurfaceMap | None = None) -> None:
-        if not (math.isfinite(period) and period > 0):
-            raise ValueError(f"control period must be a positive number of seconds, got {period!r}")
+                 surface_map: SurfaceMap | None = None, read_bound: float = READ_BOUND) -> None:
+        _check_arguments(robot, source, estimator, tool, config, period=period, max_frame_age=max_frame_age,
+                         read_bound=read_bound, plane_filter=plane_filter, pipeline=pipeline,
+                         surface_map=surface_map, host_clock=host_clock)
         self.robot, self.source, self.estimator = robot, source, estimator
         self.tool = tool if tool is not None else robot.tool
         self.config = config if config is not None else PlacementConfig()
@@ -324,8 +440,9 @@ class PlacementLoop:
         self._footprint_key: tuple | None = None
         self._footprint = None
         self.multi_surface = 0  # frames that saw more than one surface
-        self.pipeline = pipeline if pipeline is not None else EstimatePipeline(source, estimator, clock=host_clock)
-        self.clock = ClockMap(getattr(source, "clock_domain", "monotonic"))
+        self.pipeline = pipeline if pipeline is not None else EstimatePipeline(source, estimator, clock=host_clock,
+                                                                               read_bound=read_bound)
+        self.clock = ClockMap(clock_domain_of(source))
         self.history = PoseHistory(tolerance=self.period / 2)
         self._tcp_T_sensor = self.tool.tcp_T_sensor
         self._tcp_T_cup = self.tool.tcp_T_cup
@@ -351,14 +468,18 @@ class PlacementLoop:
     def _robot_now(self) -> float:
         try:
             t = float(self.robot.time())
-        except Exception:  # a robot that cannot tell its time is faulted: the machine aborts on NaN
+        except BaseException as exc:  # a robot that cannot tell its time is faulted: the machine aborts on NaN
+            if _is_interrupt_here(exc):
+                raise
             return math.nan
         return t
 
     def _safe(self, fn: Callable[[], Any], default: Any) -> Any:
         try:
             return fn()
-        except Exception:
+        except BaseException as exc:  # any exception class; only an interrupt on this thread goes on
+            if _is_interrupt_here(exc):
+                raise
             return default
 
     def _use(self, m: Measurement, now: float) -> None:
@@ -504,9 +625,10 @@ class PlacementLoop:
                 self.robot.stop(decel=cmd.accel, asynchronous=True)
             elif cmd.kind == CommandKind.OPEN_GRIPPER:
                 self.robot.gripper(open=True)
-        except Exception as exc:  # any failure of a command is a fault: stop, hold the cup, say why
-            self._cmd_error = (f"command {cmd.kind.value} failed: "
-                               f"{str(exc).splitlines()[0] if str(exc) else type(exc).__name__}")
+        except BaseException as exc:  # any failure of a command is a fault: stop, hold the cup, say why
+            if _is_interrupt_here(exc):
+                raise
+            self._cmd_error = f"command {cmd.kind.value} failed: {describe_exception(exc)}"
             if cmd.kind == CommandKind.OPEN_GRIPPER:
                 self.machine.gripper_failed(self._robot_now(), self._cmd_error)
             self._stop_robot()
@@ -514,8 +636,9 @@ class PlacementLoop:
     def _stop_robot(self) -> None:
         try:
             self.robot.stop(decel=self.config.accel, asynchronous=True)
-        except Exception:
-            pass
+        except BaseException as exc:  # noqa: BLE001 - the stop is best effort; an interrupt still goes on
+            if _is_interrupt_here(exc):
+                raise
 
     # -- the tick ------------------------------------------------------------------------------
     def start(self) -> None:
@@ -538,14 +661,25 @@ class PlacementLoop:
     def tick(self) -> Any:
         """One control period: advance, sense, fuse, decide, command. Returns the machine's command.
 
-        Never raises: anything unexpected (a robot or estimator returning garbage, a bug) stops the robot
-        and ends the placement holding the cup, with the reason."""
+        Never raises: anything unexpected (a robot or estimator returning garbage or raising any exception
+        class, a bug) stops the robot and ends the placement holding the cup, with the reason. An interrupt
+        on the control thread (``KeyboardInterrupt``, ``SystemExit``) gets the same safe stop and is then
+        re-raised (see the class docstring)."""
         try:
             return self._tick()
-        except Exception as exc:
-            why = f"internal error: {type(exc).__name__}: {exc}".splitlines()[0]
-            self._stop_robot()
-            return self.machine.abort(self._robot_now(), why)
+        except BaseException as exc:
+            interrupt = isinstance(exc, INTERRUPTS)
+            why = f"{'interrupted' if interrupt else 'internal error'}: {describe_exception(exc)}"
+            try:
+                self._stop_robot()
+            finally:
+                try:
+                    cmd = self.machine.abort(self._robot_now(), why)
+                except BaseException:  # noqa: BLE001 - the robot is stopped; the record is best effort
+                    cmd = None
+            if interrupt:
+                raise
+            return cmd
 
     def _tick(self) -> Any:
         if not self._started:
@@ -555,8 +689,11 @@ class PlacementLoop:
             self.robot.step(self.period)
         except RobotFault:
             pass  # latched; the machine sees robot.fault() below
-        except Exception as exc:
-            self._cmd_error = f"robot step failed: {type(exc).__name__}: {exc}".splitlines()[0]
+        except BaseException as exc:
+            if _is_interrupt_here(exc):
+                raise
+            self._cmd_error = f"robot step failed: {describe_exception(exc)}"
+            self._stop_robot()  # our own failure, not the controller's stop: the arm may still move
         now = self._robot_now()
         tcp = self._safe(self.robot.tcp_pose, np.full((4, 4), np.nan))
         self.history.add(now, tcp)
@@ -570,7 +707,9 @@ class PlacementLoop:
         note = self._note
         if self.pipeline.error is not None:
             note = f"sensor error: {self.pipeline.error}"
-        fault = self._safe(self.robot.fault, "robot does not answer") or self._cmd_error
+        fault = self._safe(self.robot.fault, _NO_ANSWER) or self._cmd_error
+        if fault is _NO_ANSWER:
+            self._stop_robot()  # a robot that cannot report its state may still move: stop it ourselves
         try:
             cup = np.asarray(tcp, dtype=float) @ self._tcp_T_cup
         except Exception:
@@ -588,11 +727,11 @@ class PlacementLoop:
     def run(self, timeout: float = 60.0) -> LoopResult:
         """Tick until the machine finishes or ``timeout`` seconds of robot time pass (then the robot is
         stopped holding the cup and the outcome is "timeout"). Stops the sensor pipeline at the end."""
-        if not (math.isfinite(timeout) and timeout > 0):
-            raise ValueError(f"timeout must be a positive number of seconds, got {timeout!r}")
+        if isinstance(timeout, bool) or not isinstance(timeout, (int, float)) or not (
+                math.isfinite(timeout) and 0 < timeout <= MAX_RUN_SECONDS):
+            raise ValueError(f"timeout must be a number of seconds in (0, {MAX_RUN_SECONDS:g}], got {timeout!r}")
         max_ticks = int(math.ceil(timeout / self.period)) + 1
-        try:
-            self.start()
+        try:  # the first tick starts the pipeline (inside tick's guard: nothing escapes but an interrupt)
             while not self.machine.finished and self.ticks < max_ticks:
                 self.tick()
         finally:
@@ -620,6 +759,50 @@ class PlacementLoop:
                           transitions=[t.to_dict() for t in mach.log], frame_log=list(self.frame_log))
 
 
+#: s: the longest robot time one :meth:`PlacementLoop.run` may be given (a placement takes seconds).
+MAX_RUN_SECONDS = 3600.0
+#: What the loop calls on a robot (see :class:`place_safe.robot.interface.Robot`).
+ROBOT_METHODS = ("step", "time", "tcp_pose", "contact_force", "fault", "speed_linear", "stop", "gripper")
+
+
+def _check_arguments(robot: Any, source: Any, estimator: Any, tool: Any, config: Any, **kw: Any) -> None:
+    """Raise ArgumentTypeError / ValueError (one line, what was expected) for arguments of the wrong kind."""
+    from place_safe.exceptions import ArgumentTypeError
+
+    def name(v: Any) -> str:
+        return f"{type(v).__name__} {v!r}"[:80] if isinstance(v, (str, int, float)) else type(v).__name__
+
+    missing = [m for m in ROBOT_METHODS if not callable(getattr(robot, m, None))]
+    if missing:
+        raise ArgumentTypeError(f"PlacementLoop: robot must be a place_safe.robot.interface.Robot (with "
+                                f"{', '.join(ROBOT_METHODS)}); got {name(robot)}, which has no {', '.join(missing)}")
+    if not callable(getattr(source, "read", None)):
+        raise ArgumentTypeError(f"PlacementLoop: source must be a FrameSource with read(timeout) (e.g. "
+                                f"place_safe.sources.open_source(uri)); got {name(source)}")
+    if kw.get("pipeline") is None and not callable(getattr(estimator, "estimate", None)):
+        raise ArgumentTypeError(f"PlacementLoop: estimator must have estimate(frame) (e.g. "
+                                f"place_safe.recovery.make_estimator(method, calibration)); got {name(estimator)}")
+    if config is not None and not isinstance(config, PlacementConfig):
+        raise ArgumentTypeError(f"PlacementLoop: config must be a PlacementConfig or None (a file: "
+                                f"PlacementConfig.load(path)); got {name(config)}")
+    frames = tool if tool is not None else getattr(robot, "tool", None)
+    if not isinstance(frames, ToolFrames):
+        raise ArgumentTypeError(f"PlacementLoop: tool must be place_safe.robot.tool.ToolFrames (or None with a robot "
+                                f"whose .tool is one); got {name(frames)}")
+    for key, cls in (("plane_filter", PlaneFilter), ("pipeline", EstimatePipeline), ("surface_map", SurfaceMap)):
+        if kw.get(key) is not None and not isinstance(kw[key], cls):
+            raise ArgumentTypeError(f"PlacementLoop: {key} must be a {cls.__name__} or None; got {name(kw[key])}")
+    if not callable(kw.get("host_clock")):
+        raise ArgumentTypeError(f"PlacementLoop: host_clock must be a callable returning seconds; got "
+                                f"{name(kw.get('host_clock'))}")
+    for key, lo, hi in (("period", 1e-4, 1.0), ("max_frame_age", 1e-3, 60.0), ("read_bound", 1e-3, 60.0)):
+        v = kw[key]
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise ArgumentTypeError(f"PlacementLoop: {key} must be a number of seconds, got {name(v)}")
+        if not (math.isfinite(v) and lo <= v <= hi):
+            raise ValueError(f"PlacementLoop: {key} must be {lo:g}..{hi:g} s, got {v!r}")
+
+
 def peak_params_of(estimator: Any) -> Any:
     """The calibrated peak mapping an estimator carries (``peak``: its params; ``diff``: its initialiser's),
     else the built-in one; the surface map reads zone returns with it."""
@@ -634,5 +817,5 @@ def peak_params_of(estimator: Any) -> Any:
     return PeakParams.default_peak()
 
 
-__all__ = ["PlacementLoop", "peak_params_of", "LoopResult", "EstimatePipeline", "Measurement", "ClockMap", "PoseHistory",
+__all__ = ["PlacementLoop", "peak_params_of", "describe_exception", "clock_domain_of", "READ_BOUND", "INTERRUPTS", "LoopResult", "EstimatePipeline", "Measurement", "ClockMap", "PoseHistory",
            "CONTROL_PERIOD"]

@@ -14,11 +14,14 @@ method                what it uses
 
 from __future__ import annotations
 
+import os
 from typing import Any
 
 from place_safe.recovery.estimator import Estimator, PlaneEstimate
 
 METHODS = ("diff", "peak", "peak-naive", "proprietary", "proprietary-naive")
+#: What a calibration answers (:class:`place_safe.calibration.Calibration`, :class:`BuiltInParameters`).
+_SECTION_METHODS = ("peak", "proprietary", "forward", "diff", "diff_options", "uncertainty")
 
 
 class BuiltInParameters:
@@ -62,10 +65,23 @@ def make_estimator(method: str, calibration: Any = None, **options) -> Estimator
     """The estimator for a CLI method name, using ``calibration`` where the method has one.
 
     ``calibration``: a :class:`~place_safe.calibration.Calibration` (``Calibration.load(path)`` reads a
-    file) or None. Without a calibration (or without a section for the method) each method uses its
+    file) or None; anything else (a path, a dict, a number) raises
+    :class:`~place_safe.exceptions.ArgumentTypeError` saying what was expected. Without a calibration (or without a section for the method) each method uses its
     built-in defaults (:class:`BuiltInParameters`). ``options`` go to the estimator (e.g.
     ``mode="paper"`` for ``diff``).
     """
+    from place_safe.exceptions import ArgumentTypeError
+
+    if not isinstance(method, str):
+        raise ArgumentTypeError(f"make_estimator: method must be a str, one of {', '.join(METHODS)}; "
+                                f"got {type(method).__name__}")
+    if calibration is not None and not all(callable(getattr(calibration, s, None)) for s in _SECTION_METHODS):
+        hint = (" (a path: read it with place_safe.calibration.Calibration.load(path))"
+                if isinstance(calibration, (str, bytes, os.PathLike)) else
+                " (a dict of sections: Calibration(sections), or Calibration.from_dict(file_contents))"
+                if isinstance(calibration, dict) else "")
+        raise ArgumentTypeError(f"make_estimator: calibration must be a place_safe.calibration.Calibration or None, "
+                                f"got {type(calibration).__name__}{hint}")
     cal = calibration if calibration is not None else BuiltInParameters()
     if method == "peak":
         from place_safe.recovery.peak import PeakEstimator

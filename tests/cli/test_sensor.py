@@ -47,7 +47,7 @@ def test_bench_prints_and_writes_figures(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("argv, match", [
-    (["sensor", "bench", "--frames", "0"], "expected a whole number >= 1"),
+    (["sensor", "bench", "--frames", "0"], "expected a whole number from 1 to 100000"),
     (["sensor", "info", "file:x.json", "--patch", "p.hex"], "does not apply"),
     (["sensor", "info", "nope"], "not a source URI"),
     (["sensor", "info", "emu:synthetic:1", "--patch", "missing.hex"], "does not exist"),

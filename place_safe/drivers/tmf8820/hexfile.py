@@ -29,9 +29,11 @@ def load_patch(path: str | Path) -> RamPatch:
     """Parse an Intel HEX RAM patch; :class:`ConfigError` (one line) if it is missing or unusable."""
     from intelhex import IntelHex, IntelHexError
 
+    from place_safe.io.input_file import input_file_problem
+
     p = Path(path)
-    if not p.is_file():
-        raise ConfigError(f"RAM patch {p} does not exist (the TMF8820 patch is an Intel HEX file from ams)")
+    if (why := input_file_problem(p)) is not None:  # also no FIFO or device, and a bounded size
+        raise ConfigError(f"RAM patch {p} {why} (the TMF8820 patch is an Intel HEX file from ams)")
     try:
         ih = IntelHex(str(p))
     except (IntelHexError, ValueError, UnicodeDecodeError) as exc:

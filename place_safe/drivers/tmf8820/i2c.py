@@ -396,7 +396,9 @@ class TMF8820Source(FrameSource):
 
     def _calibration_page(self, path: Path) -> bytes:
         try:
-            d = json.loads(path.read_text())
+            from place_safe.io.input_file import read_input_bytes
+
+            d = json.loads(read_input_bytes(path, "factory calibration", ConfigError))
             data = bytes.fromhex(d["page"])
         except (OSError, ValueError, KeyError, TypeError) as exc:
             raise ConfigError(f"factory calibration {path} is unreadable: {exc}") from None

@@ -175,7 +175,9 @@ class BridgeSource(FrameSource):
     @classmethod
     def open_log(cls, path: str | Path, address: int | None = None, **kw: Any) -> "BridgeSource":
         """A recorded bridge log (text file, one line per record); the end of the file ends the source."""
-        p = Path(path)
+        from place_safe.io.input_file import MAX_FRAME_FILE_BYTES, check_input_file
+
+        p = check_input_file(path, "bridge log", ConfigError, MAX_FRAME_FILE_BYTES)  # never a FIFO or a device
         try:
             fh = open(p, encoding="ascii", errors="replace", newline="")
         except OSError as exc:

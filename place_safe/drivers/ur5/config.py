@@ -15,11 +15,12 @@ positions in the robot base frame (the UR controller's base frame).
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import Field, model_validator
+from pydantic import AfterValidator, Field, model_validator
 
 from place_safe.config import ConfigModel, load_config
 
@@ -27,6 +28,40 @@ from place_safe.config import ConfigModel, load_config
 CONTROLLER_HZ = {"cb3": 125.0, "e-series": 500.0}
 
 Vec3 = tuple[float, float, float]
+#: m: a position on the flange or in the base frame (the UR5 reaches 0.85 m; tools are much shorter).
+Metres2 = Annotated[float, Field(ge=-2.0, le=2.0)]
+#: m: an offset of a tool frame from the flange.
+ToolMetres = Annotated[float, Field(ge=-1.0, le=1.0)]
+#: rad: one roll, pitch or yaw angle.
+Angle = Annotated[float, Field(ge=-2 * math.pi, le=2 * math.pi)]
+
+#: A host name label (RFC 1123): letters, digits and inner hyphens, 1-63 characters.
+_LABEL = re.compile(r"(?!-)[A-Za-z0-9-]{1,63}(?<!-)")
+
+
+def _short(value: str) -> str:
+    return repr(value) if len(value) <= 60 else repr(value[:57]) + "..."
+
+
+def check_host(value: str) -> str:
+    """``value`` if it is an IPv4 or IPv6 address or a host name (RFC 1123 labels, at most 253 characters);
+    ValueError otherwise. A port (``host:port``), spaces, shell characters or a URL are not a host."""
+    import ipaddress
+
+    if not isinstance(value, str):
+        raise ValueError("must be a host name or an IP address (a string)")
+    try:
+        ipaddress.ip_address(value)
+        return value
+    except ValueError:
+        pass
+    name = value[:-1] if value.endswith(".") else value
+    if ":" in value and not value.startswith("["):
+        raise ValueError(f"{_short(value)} is not a host name or an IP address (give the host alone, no ':port')")
+    if not name or len(name) > 253 or not all(_LABEL.fullmatch(label) for label in name.split(".")) \
+            or name.replace(".", "").isdigit():
+        raise ValueError(f"{_short(value)} is not a host name or an IP address (letters, digits, '-' and '.' only)")
+    return value
 
 
 class DigitalGripperConfig(ConfigModel):
@@ -44,7 +79,8 @@ class RobotiqGripperConfig(ConfigModel):
 
     kind: Literal["robotiq"] = "robotiq"
     port: int = Field(63352, ge=1, le=65535, description="URCap socket port")
-    host: str | None = Field(None, description="default: the robot's host")
+    host: Annotated[str, AfterValidator(check_host)] | None = Field(
+        None, description="host name or IP address; default: the robot's host")
     open_position: int = Field(0, ge=0, le=255, description="POS value for open (0 = fully open on a 2F-85)")
     closed_position: int = Field(255, ge=0, le=255, description="POS value for closed on the cup")
     speed: int = Field(128, ge=0, le=255)
@@ -59,7 +95,8 @@ class NoGripperConfig(ConfigModel):
 
 
 class ConnectionConfig(ConfigModel):
-    host: str = Field(..., min_length=1, description="controller IP address or host name")
+    host: Annotated[str, AfterValidator(check_host)] = Field(
+        ..., min_length=1, description="controller IP address or host name (no port, nothing else)")
     controller: Literal["cb3", "e-series"] = Field("cb3", description="CB3 (125 Hz) or e-Series (500 Hz)")
     connect_timeout_s: float = Field(5.0, gt=0, le=120, description="s to wait for each interface to connect")
     reconnect_attempts: int = Field(3, ge=0, le=20, description="tries after a dropped connection")
@@ -82,9 +119,12 @@ class LimitsConfig(ConfigModel):
     max_joint_speed: float = Field(1.05, gt=0, le=3.15, description="rad/s, leading joint of moveJ")
     max_joint_accel: float = Field(1.4, gt=0, le=40.0, description="rad/s^2, leading joint of moveJ")
     max_contact_force: float = Field(60.0, gt=0, le=500, description="N: our protective stop on the TCP force")
-    workspace_min: Vec3 = Field((-0.9, -0.9, -0.2), description="m: lower corner of the TCP box (base frame)")
-    workspace_max: Vec3 = Field((0.9, 0.9, 0.9), description="m: upper corner of the TCP box (base frame)")
-    min_descent_z: float = Field(-0.2, description="m: deepest base-frame z a descent may bring the TCP to")
+    workspace_min: tuple[Metres2, Metres2, Metres2] = Field(
+        (-0.9, -0.9, -0.2), description="m: lower corner of the TCP box (base frame, each -2..2)")
+    workspace_max: tuple[Metres2, Metres2, Metres2] = Field(
+        (0.9, 0.9, 0.9), description="m: upper corner of the TCP box (base frame, each -2..2)")
+    min_descent_z: float = Field(-0.2, ge=-2.0, le=2.0,
+                                 description="m: deepest base-frame z a descent may bring the TCP to")
     surface_keepout: float = Field(0.01, ge=0.0, le=0.05,
                                    description="m: how far below the sensed surface the held object's bottom "
                                                "may be commanded (contact needs a few mm; the rest is keep-out)")
@@ -99,8 +139,10 @@ class LimitsConfig(ConfigModel):
 
 
 class FrameConfig(ConfigModel):
-    xyz: Vec3 = Field((0.0, 0.0, 0.0), description="m, translation in the flange frame")
-    rpy: Vec3 = Field((0.0, 0.0, 0.0), description="rad, fixed-axis roll-pitch-yaw")
+    xyz: tuple[ToolMetres, ToolMetres, ToolMetres] = Field(
+        (0.0, 0.0, 0.0), description="m, translation in the flange frame (each -1..1)")
+    rpy: tuple[Angle, Angle, Angle] = Field((0.0, 0.0, 0.0),
+                                            description="rad, fixed-axis roll-pitch-yaw (each -2 pi..2 pi)")
 
     def matrix(self) -> np.ndarray:
         from scipy.spatial.transform import Rotation
@@ -126,7 +168,8 @@ class ToolConfig(ConfigModel):
     sensor: FrameConfig = FrameConfig(xyz=(0.07, 0.0, 0.11))
     cup: FrameConfig = FrameConfig(xyz=(0.0, 0.0, 0.18), rpy=(math.pi, 0.0, 0.0))
     payload_kg: float = Field(1.1, ge=0, le=5.0, description="kg: gripper + sensor + cup (UR5 payload 5 kg)")
-    payload_cog: Vec3 = Field((0.0, 0.0, 0.08), description="m, centre of gravity in the flange frame")
+    payload_cog: tuple[ToolMetres, ToolMetres, ToolMetres] = Field(
+        (0.0, 0.0, 0.08), description="m, centre of gravity in the flange frame (each -1..1)")
     mount_fit: dict | None = Field(None, description="written by calibrate-mount: residuals and uncertainty")
 
     def frames(self):
@@ -257,5 +300,5 @@ def _toml(d: dict, prefix: str = "") -> str:
     return "\n".join(lines).strip("\n") + "\n" if not prefix else "\n".join(lines)
 
 
-__all__ = ["URConfig", "MotionConfig", "ContactConfig", "placement_config", "ConnectionConfig", "LimitsConfig", "ToolConfig", "FrameConfig", "DigitalGripperConfig",
-           "RobotiqGripperConfig", "NoGripperConfig", "CONTROLLER_HZ", "packaged_config"]
+__all__ = ["check_host", "URConfig", "MotionConfig", "ContactConfig", "placement_config", "ConnectionConfig",
+           "LimitsConfig", "ToolConfig", "FrameConfig", "DigitalGripperConfig", "RobotiqGripperConfig", "NoGripperConfig", "CONTROLLER_HZ", "packaged_config"]
