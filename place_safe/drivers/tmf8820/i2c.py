@@ -181,10 +181,12 @@ class TMF8820Source(FrameSource):
         self._running = False       # the user wants frames (start() / read())
         self._closed = False
         self._recoveries = 0
+        self._deadline = math.inf   # of the call in progress (read, start, ...): waits and retries stop there
         self._forget_stream()
         self._pre_poll = 0.0        # host wait between clearing an interrupt and the first poll (s, adaptive)
         self._intervals: deque[float] = deque(maxlen=R.HIST_PACKETS)  # packet-to-packet times (s)
         self._tuned = False
+        self._retune_due = False
         self._overwrite_frame: int | None = None
         if start:
             try:
@@ -203,7 +205,6 @@ class TMF8820Source(FrameSource):
         self._prev_seen: float | None = None
         self._stale_since: float | None = None
         self._next_due: float | None = None
-        self._deadline = math.inf
 
     # -- bus primitives ------------------------------------------------------------------------------
     def _xfer(self, *msgs: Any) -> None:
@@ -243,7 +244,9 @@ class TMF8820Source(FrameSource):
         """
         prev: bytes | None = None
         bad = 0
-        for _ in range(self.retries + 1):
+        for attempt in range(self.retries + 1):
+            if attempt:
+                self._due()
             data = self._read_raw(reg, n)
             if len(data) != n:
                 self.stats["short_read"] += 1
@@ -296,6 +299,7 @@ class TMF8820Source(FrameSource):
 
     def _bl(self, cmd: int, deadline: float, payload: bytes = b"", reply: int = 0) -> bytes:
         body = bytes([cmd, len(payload)]) + bytes(payload)
+        self._due()
         self._write(R.CMD_STAT, body + bytes([R.bl_checksum(body)]))
         limit = self._clock() + 0.05
         while True:
@@ -352,6 +356,7 @@ class TMF8820Source(FrameSource):
 
     def _command(self, cmd: int, deadline: float, timeout: float = 0.1,
                  ok: tuple[int, ...] = (R.STAT_OK,)) -> None:
+        self._due()
         self._write(R.CMD_STAT, [cmd])
         limit = self._clock() + timeout
         while (status := self._read(R.CMD_STAT, 1)[0]) >= R.STAT_BUSY_MIN:
@@ -371,6 +376,7 @@ class TMF8820Source(FrameSource):
     def _configure(self, deadline: float) -> None:
         self._command(R.CMD_SHORT_RANGE if self.short_range else R.CMD_LONG_RANGE, deadline)
         self._command(R.CMD_LOAD_CONFIG_COMMON, deadline)
+        self._due()
         t0 = self._clock()
         self._read(R.ACTIVE_RANGE, 1)
         t1 = self._clock()
@@ -578,6 +584,9 @@ class TMF8820Source(FrameSource):
         deadline = self._deadline = self._clock() + max(timeout, 0.0)
         while True:
             try:
+                if self._retune_due and self._measuring:
+                    self._retune_due = False
+                    self._retune(deadline)
                 if not self._measuring:
                     self._start_measuring(deadline)
                 frame = self._step(deadline)
@@ -589,7 +598,9 @@ class TMF8820Source(FrameSource):
             except _ProtocolError as exc:
                 self._recoveries += 1
                 if self._recoveries > MAX_RECOVERIES:
-                    raise SensorError(f"TMF8820 at 0x{self.address:02x} keeps resetting: {self._recoveries - 1} "
+                    self._recoveries = 0  # the next read tries again
+                    self._lost_device()
+                    raise SensorError(f"TMF8820 at 0x{self.address:02x} keeps resetting: {MAX_RECOVERIES} "
                                       f"re-initialisations without a whole measurement ({exc})") from None
                 self._lost_device()
                 continue
@@ -696,9 +707,8 @@ class TMF8820Source(FrameSource):
             if self._is_old(self._read(R.PAGE, _KEY)):
                 if seen - self._stale_since > LOST_INT_S:  # an interrupt with nothing behind it: release it
                     self._write(R.INT_STATUS, [bits & R.INT_MEASUREMENT])
-                    self._stale_since = None
-                else:
-                    self._nap(self.poll_s / 10, deadline)
+                    self._stale_since = seen
+                self._nap(self.poll_s, deadline)
                 return None
         self._due()
         buf = self._read(R.PAGE, R.HIST_PACKET_SIZE)
@@ -762,8 +772,7 @@ class TMF8820Source(FrameSource):
                 return None
             frame.timestamp = self._ticks.stamp(res.sys_ticks, first) if res.ticks_valid else first
             self.stats["frames"] += 1
-            if not self._tuned:
-                self._retune(deadline)
+            self._retune_due = not self._tuned  # at the next read: this one returns its frame now
             return frame
         # neither a histogram packet nor a result frame: a reset chip reads zeros; else drop the measurement
         self._check_app()
