@@ -22,21 +22,39 @@ to hold data until its transfer would have finished.
 
 Bus timing model: a transfer of ``m`` messages moving ``b`` bytes (each message: its address byte plus
 its data bytes) takes ``(9 b + m + 1) / clock_hz`` s (9 clocks a byte, one per START / repeated START,
-one for the STOP) plus :attr:`BusTiming.host_overhead_s`. Device timing model (assumptions where the
-protocol notes give no figure, all attributes): a measurement integrates ``kilo_iterations * 1000 /
-pulse_rate_hz`` s plus ``processing_s`` and repeats every ``max(period, that)``; the device measures
-while the host reads the previous one out and presents the newest finished measurement when its output
-is free (measurements finished meanwhile are counted in ``stats["skipped"]``; feed frames are only
-taken for presented measurements, so a fed frame list comes out in order). The next packet appears
-``packet_prep_s`` after the host cleared the previous packet's interrupt.
+one for the STOP) plus :attr:`BusTiming.host_overhead_s`. A write takes effect when its last byte has
+crossed the bus; a read samples each byte as it crosses it.
+
+Device timing model (assumptions where the protocol notes give no figure, all attributes; the defaults
+are the pessimistic ones, so that a driver that works here does not rely on a kind chip):
+
+* A measurement integrates ``kilo_iterations * 1000 / pulse_rate_hz`` s plus ``processing_s`` and
+  repeats every ``max(period, that)``; the device measures while the host reads the previous one out.
+* Publish latency: after the host clears a packet's interrupt (releases it), the next packet is put in
+  the 0x20 window, and its interrupt raised, ``publish_latency_s`` later (default uniform 50-100 us per
+  packet; a number for a fixed latency). A read that overlaps that moment returns the old packet's bytes
+  up to it and the new packet's after (``stats["racing_reads"]``).
+* Overwriting (``overwrite``, default on): when a measurement completes while the host has not read the
+  previous one out, the rest of the previous one is lost (``stats["overwritten"]``; the packet in the
+  window stays until released) and the new one is published next: a host slower than the period gets
+  no whole measurement. Measurements that complete while another is waiting are skipped
+  (``stats["skipped"]``). Off: the newest finished measurement is presented when the output is free.
+  Feed frames are only taken for presented measurements, and a measurement that never got out whole
+  (overwritten, or cut by a stop command) hands its feed frame to the next, so a fed frame list comes
+  out in order.
+* ENABLE: the first read after a change returns the old value (the protocol notes allow it).
 
 Faults on demand (:class:`FaultPlan`): each kind in :data:`FAULT_KINDS` is armed at a transfer index or
 at random with a per-transfer probability, and fires at its next applicable moment: ``nak`` / ``eio`` /
 ``timeout`` (an ``OSError`` with errno 121 / 5 / 110; a timeout first stalls the bus for ``stall_s``),
-``short_read`` (a read of 2 or more bytes returns fewer), ``reset`` (the device drops to standby with
-everything lost), ``checksum`` (a bootloader response with a wrong checksum), ``out_of_order`` (two
-neighbouring histogram packets swapped), ``missing_packet`` (one histogram packet never sent);
-``dead_after`` makes every later transfer fail (a dead bus). ``stats["injected"]`` counts what fired.
+``short_read`` (a read of 2 or more bytes is cut: with probability ``short_fill``, default 0.5, the rest
+reads 0xFF at full length, as an open bus does, else fewer bytes come back), ``reset`` (the device loses
+RAM, patch, configuration and measurement; with probability ``reset_keeps_wake``, default 0.5, the
+wake-up bit survives and the chip restarts into its bootloader by itself, APPID 0x80, else it drops to
+standby), ``checksum`` (a bootloader response with a wrong checksum), ``out_of_order`` (two neighbouring
+histogram packets swapped), ``missing_packet`` (one histogram packet never sent); ``dead_after`` makes
+every later transfer fail (a dead bus). :meth:`TMF8820Emulator.reset` resets at any moment a test wants.
+``stats["injected"]`` counts what fired.
 """
 
 from __future__ import annotations
@@ -165,6 +183,8 @@ class TMF8820Emulator:
     patch: the RAM patch the device accepts; starting RAM (0x11) fails unless exactly it was downloaded.
     serial: the 16-bit serial number; rom_version / patch_version: the 4 version bytes of each application.
     faults: a :class:`FaultPlan`. record: keep every presented measurement in :attr:`presented`.
+    publish_latency_s, overwrite, reset_keeps_wake, short_fill: the pessimistic device behaviours of the
+    module docstring (seconds or a (low, high) range; a switch; two probabilities).
     """
 
     def __init__(self, feed: Any = (), *, address: int = R.DEFAULT_ADDRESS, bus_hz: float = 400e3,

@@ -12,10 +12,32 @@ raw-histogram dump), factory calibration loaded from a file keyed by the sensor'
 measure. Each measurement's 30 histogram packets and result frame become one Frame
 (:class:`~.packets.MeasurementAssembler`).
 
-Bus traffic per measurement is kept near the protocol's minimum: after the host clears a packet's
-interrupt the next packet is read at once (it is ready within microseconds), checking its transaction id
-to notice a packet that was not ready yet; only the first packet of a measurement is waited for, on the
-interrupt line (``int_line``, e.g. :class:`GpiodIntLine`) or by polling ENABLE and INT_STATUS.
+Reading a measurement (``docs/tmf8820-protocol.md``, host discipline). The chip fills the 0x20 window
+with the next packet only after the host released the current one by clearing its interrupt, and that
+takes time (the publish latency: tens of microseconds, nothing guarantees zero); a read that races it
+returns the old packet or a mix of old and new bytes. So the driver reads a packet only once its interrupt
+says it is there (the INT line, ``int_line`` e.g. :class:`GpiodIntLine`, or polling the one-byte
+INT_STATUS register), reads it whole in one transaction, clears that interrupt bit, and waits again. The
+first poll after a clear is delayed by an adaptive estimate of the publish latency, so the bus carries
+data, not polls. A packet whose cid, transaction id and packet number are those of the packet read last
+is stale (an interrupt with nothing new behind it): counted in ``stale_reads``, and from then on short
+header reads, never whole packets, tell when a new one is there. In a measurement, an interrupt overdue by
+:data:`LOST_INT_S` is looked for in the window's header (a lost interrupt, ``lost_interrupts``).
+
+Validation: headers (cid, payload length 131 / 128), packet numbers 0..29, sub-headers (payload size and
+config id the same in all 30 packets), the result frame (valid results at most 18, a result number other
+than the last one). A read whose last byte is 0xFF is checked against a second read of its tail (an open
+bus reads 0xFF when the chip stops driving it mid-read, whatever length the adapter reports). A broken
+measurement is dropped with its reason counted (``bad_packet``, ``short_read``, ``missing_packet``,
+``out_of_order``, ``overwritten``): never a half or mixed frame. At most one measurement is in assembly
+(:class:`~.packets.MeasurementAssembler`); a packet 0 after a packet 0 means the chip moved on.
+
+Measurement period: the chip measures once per period and overwrites a measurement the host has not read
+out in time, so a period shorter than the read-out (about 100 ms at 400 kHz, 40 ms at 1 MHz) gives no
+frames at all. ``period_ms`` is the shortest period wanted; the driver fits the period in use
+(:attr:`TMF8820Source.period_in_use_ms`, ``info()["period_ms"]``) to the bus: first from the timing of
+two bring-up reads, then, after the first whole measurement, from the measured packet-to-packet times
+(``period_changes``), and it lengthens it again if measurements keep being overwritten.
 
 Time: ``Frame.timestamp`` is the measurement's completion on the host ``clock`` (default
 ``time.monotonic``; the simulation's clock when given, then ``clock_domain`` is ``"robot"``). It is
@@ -25,11 +47,17 @@ seen right when it finished fixes the offset, and the ticks carry it to the othe
 ``extra["tmf8820"]`` keeps the ticks, result number, temperature and the host detection time.
 
 Faults: NAK / EIO / adapter timeouts (errno 121, 5, 110) are retried with a bounded exponential back-off;
-a short read, a missing or out-of-order packet drops that measurement (never a half frame) and the next
-result frame resynchronises; a device reset (ENABLE's wake-up bit cleared) re-initialises and resumes
-the stream; a bus that keeps failing raises :class:`~place_safe.exceptions.SensorError`. ``stats`` counts
-each under its name in :data:`~.registers.FAULT_KINDS` (the emulator injects the same kinds) plus
-frames, dropped measurements, retries and re-initialisations.
+a bus that keeps failing raises :class:`~place_safe.exceptions.SensorError`. Resets: ENABLE's wake-up or
+CPU-ready bit found clear (read twice: the first read after a change may be stale, so a fresh start is
+not a reset) or APPID no longer 0x03 (a CPU reset back into the bootloader, 0x80, keeps the wake-up bit;
+checked after :data:`ALIVE_S` without interrupts, or on a packet that is neither histogram nor result):
+counted in ``reset``, then the application is restarted (ROM or the RAM patch again), the configuration
+and factory calibration restored and the measurement restarted (``reinit``), at the period in use.
+:data:`MAX_RECOVERIES` re-initialisations without a whole measurement in between are a SensorError (the
+next read tries again). ``read(timeout)`` always ends within its timeout plus the transfer in progress
+(waits, polls, retries and bring-up steps all stop at the deadline; a bring-up cut short goes on at the
+next read). ``stats`` counts each fault under its name in :data:`~.registers.FAULT_KINDS` (the emulator
+injects the same kinds) plus frames, dropped measurements, retries and re-initialisations.
 """
 
 from __future__ import annotations

@@ -7,8 +7,10 @@ Conventions
   Packet ``k`` carries byte plane ``k // 10`` (0 least significant) of channel ``k % 10``; channel 0
   is the reference histogram, channels 1..9 the zones 1..9. Bins are 24-bit counts.
 * The result frame is the delimiter: a measurement is whatever histogram packets arrived since the
-  previous result frame. It becomes a Frame only if exactly the 30 packets arrived, in order, each
-  whole; otherwise the measurement is dropped and the fault is reported (never a half frame).
+  previous result frame, or since a packet 0 that followed a packet 0 (the device overwrote the rest of
+  the previous measurement). It becomes a Frame only if exactly the 30 packets arrived, in order, each
+  whole, with the same sub-header; otherwise the measurement is dropped and the fault is reported (never
+  a half frame). At most one measurement is held, whatever arrives.
 * In the Frame, on-sensor distances are metres (the wire carries millimetres), confidences 0..255.
   ``extra["tmf8820"]`` keeps the result number, temperature (deg C), valid results, system ticks
   (units of 0.2 us) and the second objects.
