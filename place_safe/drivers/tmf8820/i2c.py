@@ -210,6 +210,7 @@ class TMF8820Source(FrameSource):
         self._closed = False
         self._recoveries = 0
         self._deadline = math.inf   # of the call in progress (read, start, ...): waits and retries stop there
+        self._free_look = False
         self._forget_stream()
         self._pre_poll = 0.0        # host wait between clearing an interrupt and the first poll (s, adaptive)
         self._intervals: deque[float] = deque(maxlen=R.HIST_PACKETS)  # packet-to-packet times (s)
@@ -610,6 +611,7 @@ class TMF8820Source(FrameSource):
             raise SensorError("the TMF8820 source is closed")
         self._running = True
         deadline = self._deadline = self._clock() + max(timeout, 0.0)
+        self._free_look = True  # a read with no time to wait still takes a packet that is there
         while True:
             try:
                 if self._retune_due and self._measuring:
@@ -635,6 +637,16 @@ class TMF8820Source(FrameSource):
             if frame is not None:
                 self._recoveries = 0
                 return frame
+
+    @property
+    def measurement_in_progress(self) -> bool:
+        """Some packets of a measurement have been read, not yet its result frame."""
+        return self._asm.started
+
+    @property
+    def streaming(self) -> bool:
+        """Initialised and told to measure (False after a reset until the bring-up is done again)."""
+        return self._measuring
 
     def _lost_device(self) -> None:
         """After a reset (or answers the protocol does not allow): forget the measurement in progress
@@ -690,7 +702,10 @@ class TMF8820Source(FrameSource):
             self._nap(self._pre_poll, deadline)
         polls = 0
         while True:
-            self._due()
+            if polls or not self._free_look:  # one look per read, even with no time to wait
+                self._due()
+            self._free_look = False
+            polls += 1
             if self.int_line is not None:
                 t = self._clock()
                 if self.int_line.wait(max(0.0, min(deadline, check) - t)):
@@ -699,7 +714,6 @@ class TMF8820Source(FrameSource):
                     self._nap(self.poll_s, max(deadline, t + 1e-9))
             else:
                 status = self._read(R.INT_STATUS, 1)[0]
-                polls += 1
                 if status & R.INT_ERROR:
                     self.stats["device_errors"] += 1
                     self._write(R.INT_STATUS, [R.INT_ERROR])
@@ -738,7 +752,6 @@ class TMF8820Source(FrameSource):
                     self._stale_since = seen
                 self._nap(self.poll_s, deadline)
                 return None
-        self._due()
         buf = self._read(R.PAGE, R.HIST_PACKET_SIZE)
         return self._handle(buf, bits, seen, deadline)
 
