@@ -112,6 +112,7 @@ CLASSES = {
     "publish_latency_200us": {"emulator": {"publish_latency_s": 200e-6}},
     "publish_latency_0_to_200us": {"emulator": {"publish_latency_s": (0.0, 200e-6)}},
     "host_cpu_stalls": {"stall_p": 0.003},
+    "released_on_read_not_on_clear": {"emulator": {"release_on_read": True, "publish_latency_s": (0.0, 20e-6)}},
     "mixed": {"faults": FaultPlan(rate=0.005, seed=6), "emulator": {"publish_latency_s": (0.0, 200e-6)},
               "stall_p": 0.001},
 }

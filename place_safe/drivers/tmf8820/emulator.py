@@ -42,6 +42,9 @@ are the pessimistic ones, so that a driver that works here does not rely on a ki
   Feed frames are only taken for presented measurements, and a measurement that never got out whole
   (overwritten, or cut by a stop command) hands its feed frame to the next, so a fed frame list comes
   out in order.
+* ``release_on_read`` (default off): the other interrupt-clear order, a chip that takes a packet as
+  released once its last byte was read, not when its interrupt is cleared; with a short publish latency
+  the host's clear then also clears the next packet's interrupt (a lost interrupt).
 * ENABLE: the first read after a change returns the old value (the protocol notes allow it).
 
 Faults on demand (:class:`FaultPlan`): each kind in :data:`FAULT_KINDS` is armed at a transfer index or
@@ -51,7 +54,8 @@ at random with a per-transfer probability, and fires at its next applicable mome
 reads 0xFF at full length, as an open bus does, else fewer bytes come back), ``reset`` (the device loses
 RAM, patch, configuration and measurement; with probability ``reset_keeps_wake``, default 0.5, the
 wake-up bit survives and the chip restarts into its bootloader by itself, APPID 0x80, else it drops to
-standby), ``checksum`` (a bootloader response with a wrong checksum), ``out_of_order`` (two neighbouring
+standby), ``reset`` fires only while the application runs (a chip restarting is not reset twice); ``checksum`` (a
+bootloader response with a wrong checksum), ``out_of_order`` (two neighbouring
 histogram packets swapped), ``missing_packet`` (one histogram packet never sent); ``dead_after`` makes
 every later transfer fail (a dead bus). :meth:`TMF8820Emulator.reset` resets at any moment a test wants.
 ``stats["injected"]`` counts what fired.
@@ -183,8 +187,8 @@ class TMF8820Emulator:
     patch: the RAM patch the device accepts; starting RAM (0x11) fails unless exactly it was downloaded.
     serial: the 16-bit serial number; rom_version / patch_version: the 4 version bytes of each application.
     faults: a :class:`FaultPlan`. record: keep every presented measurement in :attr:`presented`.
-    publish_latency_s, overwrite, reset_keeps_wake, short_fill: the pessimistic device behaviours of the
-    module docstring (seconds or a (low, high) range; a switch; two probabilities).
+    publish_latency_s, overwrite, reset_keeps_wake, short_fill, release_on_read: the device behaviours of the
+    module docstring (seconds or a (low, high) range; a switch; two probabilities; a switch).
     """
 
     def __init__(self, feed: Any = (), *, address: int = R.DEFAULT_ADDRESS, bus_hz: float = 400e3,
@@ -193,7 +197,8 @@ class TMF8820Emulator:
                  patch_version: tuple[int, int, int, int] = (3, 4, 27, 1), faults: FaultPlan | None = None,
                  record: bool = False, pulse_rate_hz: float = 100e6, processing_s: float = 1e-3,
                  publish_latency_s: float | tuple[float, float] = (50e-6, 100e-6), overwrite: bool = True,
-                 reset_keeps_wake: float = 0.5, short_fill: float = 0.5, command_s: float = 100e-6,
+                 reset_keeps_wake: float = 0.5, short_fill: float = 0.5, release_on_read: bool = False,
+                 command_s: float = 100e-6,
                  calibration_s: float = 0.3, wake_s: float = 1e-3, boot_s: float = 3e-3, stall_s: float = 0.025,
                  host_overhead_s: float = 0.0, tick_origin: int = 0x1234567) -> None:
         if not (bus_hz > 0 and math.isfinite(bus_hz)):
@@ -226,6 +231,7 @@ class TMF8820Emulator:
             raise ValueError(f"publish_latency_s must be seconds >= 0 or a (low, high) range, got {publish_latency_s}")
         self.publish_latency_s: tuple[float, float] = (float(lat[0]), float(lat[1]))
         self.overwrite = bool(overwrite)
+        self.release_on_read = bool(release_on_read)
         if not (0.0 <= reset_keeps_wake <= 1.0 and 0.0 <= short_fill <= 1.0):
             raise ValueError("reset_keeps_wake and short_fill are probabilities in [0, 1]")
         self.reset_keeps_wake, self.short_fill = float(reset_keeps_wake), float(short_fill)
@@ -301,8 +307,8 @@ class TMF8820Emulator:
         return bytes(self.config[o:o + n])
 
     def _applicable(self, kind: str) -> bool:
-        if kind == "reset":
-            return self.awake
+        if kind == "reset":  # a chip that is restarting is not reset again (it would look like one reset)
+            return self.awake and self.appid == R.APP_MEASUREMENT
         if kind == "checksum":
             return self.awake and self.appid == R.APP_BOOTLOADER
         if kind in ("out_of_order", "missing_packet"):
@@ -357,7 +363,7 @@ class TMF8820Emulator:
                 self._finish(start + self.timing.duration(1, 1) + stall, 1)
                 raise OSError(_ERRNO[kind], {"nak": "Remote I/O error", "eio": "Input/output error",
                                              "timeout": "Connection timed out"}[kind])
-        if self.awake and self._inject("reset"):
+        if self._applicable("reset") and self._inject("reset"):
             self.reset()
         t = start
         hz = self.timing.clock_hz
@@ -396,6 +402,12 @@ class TMF8820Emulator:
         first = t0 + (R.CLOCKS_PER_BYTE + 1) / hz  # after the address byte
         last = first + R.CLOCKS_PER_BYTE * n / hz
         pub = self._next_at
+        if self.release_on_read and self._current is not None and self._ptr <= R.PAGE \
+                and self._ptr + n >= R.PAGE + len(self._current):
+            done = first + R.CLOCKS_PER_BYTE * (R.PAGE + len(self._current) - self._ptr) / hz
+            data = self._read(n)  # the whole packet went out: released when its last byte has
+            self._release(done)
+            return data
         if pub is None or not first < pub < last or not (R.PAGE <= self._ptr < R.PAGE_END):
             return self._read(n)
         k = min(n, max(0, int((pub - first) * hz / R.CLOCKS_PER_BYTE)))
@@ -512,9 +524,12 @@ class TMF8820Emulator:
 
     def _clear_int(self, bits: int) -> None:
         self.regs[R.INT_STATUS] &= ~bits & 0xFF
-        if self._current is not None and bits & self._current_bit:
-            self._current = None  # released: the next packet is published after the publish latency
-            self._next_at = self.now() + self._latency() if self._queue else None
+        if self._current is not None and bits & self._current_bit and not self.release_on_read:
+            self._release(self.now())
+
+    def _release(self, t: float) -> None:
+        self._current = None  # released: the next packet is published after the publish latency
+        self._next_at = t + self._latency() if self._queue else None
 
     # -- bootloader ----------------------------------------------------------------------------------
     def _bl_status_byte(self, offset: int) -> int:

@@ -22,7 +22,11 @@ first poll after a clear is delayed by an adaptive estimate of the publish laten
 data, not polls. A packet whose cid, transaction id and packet number are those of the packet read last
 is stale (an interrupt with nothing new behind it): counted in ``stale_reads``, and from then on short
 header reads, never whole packets, tell when a new one is there. In a measurement, an interrupt overdue by
-:data:`LOST_INT_S` is looked for in the window's header (a lost interrupt, ``lost_interrupts``).
+:data:`LOST_INT_S` is looked for in the window's header (a lost interrupt, ``lost_interrupts``). A chip
+that takes a packet as released when it has been read, not when its interrupt is cleared (the other
+interrupt-clear order), raises the next packet's interrupt before the host's clear, which then wipes it:
+after two lost interrupts in a row the driver polls the window's 5-byte header (cid, tid, packet number)
+instead of INT_STATUS within a measurement.
 
 Validation: headers (cid, payload length 131 / 128), packet numbers 0..29, sub-headers (payload size and
 config id the same in all 30 packets), the result frame (valid results at most 18, a result number other
@@ -211,6 +215,9 @@ class TMF8820Source(FrameSource):
         self._recoveries = 0
         self._deadline = math.inf   # of the call in progress (read, start, ...): waits and retries stop there
         self._free_look = False
+        self._app_up = False        # the application ran during the bring-up in progress
+        self._lost_in_a_row = 0     # packets in a row found by a header read after their interrupt was overdue
+        self._peek_polls = False    # then poll the window's header, not INT_STATUS, within a measurement
         self._forget_stream()
         self._pre_poll = 0.0        # host wait between clearing an interrupt and the first poll (s, adaptive)
         self._intervals: deque[float] = deque(maxlen=R.HIST_PACKETS)  # packet-to-packet times (s)
@@ -435,9 +442,19 @@ class TMF8820Source(FrameSource):
             self._command(R.CMD_WRITE_CONFIG, deadline)
             self.identity["calibration"] = str(cal)
 
+    def _was_reset(self) -> bool:
+        try:
+            enable = self._enable_settled()
+            return not (enable & R.ENABLE_WAKEUP and enable & R.ENABLE_CPU_READY) \
+                or self._read(R.APPID, 1)[0] != R.APP_MEASUREMENT
+        except _Deadline:
+            return False
+
     def _initialise(self, deadline: float) -> None:
+        self._app_up = False
         self._power_up(deadline)
         self._start_app(deadline)
+        self._app_up = True
         version = self._read(R.VERSION, 4)
         serial = int.from_bytes(self._read(R.SERIAL_NUMBER, 2), "little")
         mode = self._read(R.MODE, 1)[0]
@@ -464,6 +481,8 @@ class TMF8820Source(FrameSource):
                 last = exc
                 self._initialised = False
                 self.stats["reinit"] += 1
+                if self._app_up and self._was_reset():  # the application ran, and the chip restarted since
+                    self.stats["reset"] += 1
         raise SensorError(f"TMF8820 at 0x{self.address:02x} could not be initialised: {last}")
 
     def _start_measuring(self, deadline: float) -> None:
@@ -706,7 +725,10 @@ class TMF8820Source(FrameSource):
                 self._due()
             self._free_look = False
             polls += 1
-            if self.int_line is not None:
+            if mid and self._peek_polls:  # interrupts get lost on this chip: poll the window's header
+                if self._window_has_new():
+                    return R.INT_MEASUREMENT
+            elif self.int_line is not None:
                 t = self._clock()
                 if self.int_line.wait(max(0.0, min(deadline, check) - t)):
                     return R.INT_MEASUREMENT
@@ -718,6 +740,7 @@ class TMF8820Source(FrameSource):
                     self.stats["device_errors"] += 1
                     self._write(R.INT_STATUS, [R.INT_ERROR])
                 if status & R.INT_MEASUREMENT:
+                    self._lost_in_a_row = 0
                     if mid:  # aim the first poll after a clear at the publish latency
                         step = (self._clock() - start) / polls / 8
                         self._pre_poll = self._pre_poll + 2 * step if polls > 1 else max(0.0, self._pre_poll - step / 4)
@@ -731,12 +754,16 @@ class TMF8820Source(FrameSource):
                 self._check_app()
                 if self._window_has_new():
                     self.stats["lost_interrupts"] += 1
+                    self._lost_in_a_row += 1
+                    self._peek_polls = self._peek_polls or self._lost_in_a_row >= 2
                     return R.INT_MEASUREMENT
                 check = now + ALIVE_S
                 mid = False
             if now >= deadline:
                 raise _Deadline
             due = self._next_due is not None and now >= self._next_due - 0.001
+            if mid and self._peek_polls:
+                continue
             if self.int_line is None and not mid and not due:
                 self._nap(min(self.poll_s, check - now), deadline)
 
