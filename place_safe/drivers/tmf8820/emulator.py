@@ -54,8 +54,8 @@ at random with a per-transfer probability, and fires at its next applicable mome
 reads 0xFF at full length, as an open bus does, else fewer bytes come back), ``reset`` (the device loses
 RAM, patch, configuration and measurement; with probability ``reset_keeps_wake``, default 0.5, the
 wake-up bit survives and the chip restarts into its bootloader by itself, APPID 0x80, else it drops to
-standby), ``reset`` fires only while the application runs (a chip restarting is not reset twice); ``checksum`` (a
-bootloader response with a wrong checksum), ``out_of_order`` (two neighbouring
+standby), a planned ``reset`` fires while the chip measures (:meth:`TMF8820Emulator.reset` resets it at any
+other moment); ``checksum`` (a bootloader response with a wrong checksum), ``out_of_order`` (two neighbouring
 histogram packets swapped), ``missing_packet`` (one histogram packet never sent); ``dead_after`` makes
 every later transfer fail (a dead bus). :meth:`TMF8820Emulator.reset` resets at any moment a test wants.
 ``stats["injected"]`` counts what fired.
@@ -307,8 +307,8 @@ class TMF8820Emulator:
         return bytes(self.config[o:o + n])
 
     def _applicable(self, kind: str) -> bool:
-        if kind == "reset":  # a chip that is restarting is not reset again (it would look like one reset)
-            return self.awake and self.appid == R.APP_MEASUREMENT
+        if kind == "reset":  # while measuring: a chip being brought up is reset by tests through reset()
+            return self.awake and self.appid == R.APP_MEASUREMENT and self.measuring
         if kind == "checksum":
             return self.awake and self.appid == R.APP_BOOTLOADER
         if kind in ("out_of_order", "missing_packet"):

@@ -95,6 +95,8 @@ ALIVE_S = 0.02
 PUBLISH_GUESS_S = 100e-6
 #: Two overwritten measurements within this many frames lengthen the period even if the median says not.
 OVERWRITE_MEMORY = 20
+#: Frames without an overwritten measurement after which the period may be shortened again.
+RELAX_FRAMES = 50
 _TAIL = 8  # bytes read again to tell a packet that ends in 0xFF from one cut short by an open bus
 _KEY = R.HEADER_SIZE + 1  # cid, tid, length (2), packet or result number: a packet's identity
 _RETRY_ERRNOS = {R.ERRNO_NAK: "nak", R.ERRNO_EIO: "eio", R.ERRNO_TIMEOUT: "timeout", errno.EAGAIN: "timeout"}
@@ -223,6 +225,7 @@ class TMF8820Source(FrameSource):
         self._intervals: deque[float] = deque(maxlen=R.HIST_PACKETS)  # packet-to-packet times (s)
         self._tuned = False
         self._retune_due = False
+        self._relax = False
         self._overwrite_frame: int | None = None
         if start:
             try:
@@ -381,8 +384,9 @@ class TMF8820Source(FrameSource):
                         raise SensorError(f"TMF8820 rejected the RAM patch (bootloader status 0x{status:02x}); "
                                           "is it the TMF8820 application patch from ams?")
                     raise _ProtocolError(f"application did not start (APPID 0x{appid:02x})")
-                if not self._enable_settled() & R.ENABLE_WAKEUP:
-                    raise _ProtocolError("the sensor was reset while its application started")
+                enable = self._enable_settled()
+                if not (enable & R.ENABLE_WAKEUP and enable & R.ENABLE_CPU_READY):
+                    self._reset_seen(f"ENABLE 0x{enable:02x} while its application started")
                 self._nap(0.001, deadline)
         elif appid == R.APP_MEASUREMENT:  # already running (e.g. a previous session): stop what it does
             self._command(R.CMD_STOP, deadline)
@@ -539,11 +543,12 @@ class TMF8820Source(FrameSource):
         self.period_in_use_ms = max(self.period_ms, self._need_ms(per_packet))
         self.rate_hz = 1000.0 / self.period_in_use_ms if self.period_in_use_ms else 30.0
 
-    def _retune(self, deadline: float, overwritten: bool = False) -> None:
+    def _retune(self, deadline: float, overwritten: bool = False, relax: bool = False) -> None:
         """After the first whole measurement, or an overwritten one: the period the measured read-out needs
         (from the packet-to-packet times without outliers, so one host stall does not lengthen it; a second
         overwritten
-        measurement within :data:`OVERWRITE_MEMORY` frames lengthens it by at least 5 %)."""
+        measurement within :data:`OVERWRITE_MEMORY` frames lengthens it by at least 5 %; ``relax``: after
+        :data:`RELAX_FRAMES` frames without one, it may shorten again to what the read-out needs)."""
         if len(self._intervals) < 8:
             return
         med = statistics.median(self._intervals)
@@ -554,7 +559,8 @@ class TMF8820Source(FrameSource):
             if self._overwrite_frame is not None and frames - self._overwrite_frame <= OVERWRITE_MEMORY:
                 need = max(need, math.ceil(self.period_in_use_ms * 1.05) + 1)
             self._overwrite_frame = frames
-        if need == self.period_in_use_ms or (need < self.period_in_use_ms and (self._tuned or overwritten)):
+        if need == self.period_in_use_ms or (need < self.period_in_use_ms and (overwritten or
+                                                                               (self._tuned and not relax))):
             return
         self._tuned = True
         self._measuring = False  # a deadline in the middle leaves the restart to the next read
@@ -635,7 +641,7 @@ class TMF8820Source(FrameSource):
             try:
                 if self._retune_due and self._measuring:
                     self._retune_due = False
-                    self._retune(deadline)
+                    self._retune(deadline, relax=self._relax)
                 if not self._measuring:
                     self._start_measuring(deadline)
                 frame = self._step(deadline)
@@ -840,7 +846,10 @@ class TMF8820Source(FrameSource):
                 return None
             frame.timestamp = self._ticks.stamp(res.sys_ticks, first) if res.ticks_valid else first
             self.stats["frames"] += 1
-            self._retune_due = not self._tuned  # at the next read: this one returns its frame now
+            # at the next read (this one returns its frame now): the first fit, or a shorter period again after
+            # a long run without overwritten measurements (faults and stalls lengthened it meanwhile)
+            calm = self._overwrite_frame is not None and self.stats["frames"] - self._overwrite_frame == RELAX_FRAMES
+            self._retune_due, self._relax = (not self._tuned) or calm, calm
             return frame
         # neither a histogram packet nor a result frame: a reset chip reads zeros; else drop the measurement
         self._check_app()
