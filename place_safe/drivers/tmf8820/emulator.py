@@ -276,6 +276,8 @@ class TMF8820Emulator:
         self._queue: list[bytes] = []
         self._meas_frame: Frame | None = None  # the feed frame of the measurement being published
         self._carry: Frame | None = None       # a feed frame whose measurement never got out whole
+        self._evidence: dict[str, int] = {}    # injected packet faults -> publish position that shows them
+        self._published = 0                    # packets of the current measurement put in the window
         self._current: bytes | None = None
         self._current_bit = 0
         self._next_at: float | None = None
@@ -651,6 +653,9 @@ class TMF8820Emulator:
                 self._last_done = done
                 if not free and self._queue:  # the host is too slow: the rest of the old one is lost
                     self.stats["overwritten"] += 1
+                    for kind, at in self._evidence.items():  # a fault the host never got to see: not injected
+                        if self._published <= at:
+                            self.stats["injected"][kind] -= 1
                     self._carry = self._meas_frame  # (its feed frame is not: the next measurement shows it)
                 self._present(self._meas_t0 + done * self._cycle)
         if self._current is None and self._queue and self._next_at is not None and t >= self._next_at:
@@ -672,13 +677,17 @@ class TMF8820Emulator:
             self.presented.append((ticks, channels, res))
         blocks = P.split_channels(channels)
         order = list(range(R.HIST_PACKETS))
+        evidence: dict[str, int] = {}
         swapped: tuple[int, ...] = ()
         if self._inject("out_of_order"):
             k = self.faults.rng.randrange(R.HIST_PACKETS - 1)
             order[k], order[k + 1] = order[k + 1], order[k]
             swapped = (k, k + 1)
+            evidence["out_of_order"] = k + 1  # the host sees it when the second of the pair arrives
         if self._inject("missing_packet"):  # never one of a swapped pair: both faults stay visible
             order.pop(self.faults.rng.choice([i for i in range(len(order)) if i not in swapped]))
+            evidence["missing_packet"] = len(order)  # counted when the result frame closes the measurement
+        self._evidence, self._published = evidence, 0
         queue = []
         for k in order:
             queue.append(P.encode_histogram_packet(k, blocks[k], self._tid, R.CMD_LOAD_CONFIG_COMMON))
@@ -692,6 +701,7 @@ class TMF8820Emulator:
             self._next_at = min(self._next_at, t_done + self._latency())
 
     def _place(self, packet: bytes) -> None:
+        self._published += 1
         self.regs[R.PAGE:R.PAGE + len(packet)] = packet
         self._current = packet
         self._current_bit = R.INT_RESULT if packet[0] == R.CID_RESULT else R.INT_RAW_HISTOGRAM

@@ -809,7 +809,7 @@ class TMF8820Source(FrameSource):
             fresh = not self._asm.started
             dropped = self._asm.add_histogram(number, data, tag=(buf[5], buf[6]))
             if dropped is not None:
-                self._count_drops([dropped])
+                self._count_drops(self._asm.drops)
             if fresh or dropped is not None:
                 self._first_seen = seen
                 self._next_due = seen + self.period_in_use_ms / 1000.0

@@ -187,7 +187,8 @@ class MeasurementAssembler:
     ``add_histogram`` returns None, or the reason the measurement in progress was dropped when this packet
     started a new one: a packet 0 arriving while the measurement already holds a packet 0 means the
     device moved on to its next measurement (``"overwritten"``: the host was too slow, or the rest was
-    lost); the new packet 0 then starts the new measurement. ``add_result`` returns a Frame, or None with
+    lost); the new packet 0 then starts the new measurement, and ``drops`` lists what the dropped one showed.
+    ``add_result`` returns a Frame, or None with
     ``drops`` saying why: the reason given to :meth:`mark` (e.g. ``"short_read"``, ``"bad_packet"``),
     else ``"missing_packet"`` if packets were missing and/or ``"out_of_order"`` if the packets that
     arrived did not come in increasing order (or some came twice); ``last_drop`` is the first of them.
@@ -236,6 +237,9 @@ class MeasurementAssembler:
         dropped = None
         if number == 0 and 0 in self._blocks:
             dropped = str(self._short) if self._short else "overwritten"
+            # what it showed: its reason, and disorder among the packets that came (not the ones that did not)
+            self.drops = [dropped] + (["out_of_order"] if self._disorder else [])
+            self.last_drop = dropped
             self.discard()
         if self._count and tag != self._tag:
             self.mark("bad_packet")
