@@ -282,6 +282,7 @@ class TMF8820Source(FrameSource):
         sees the same bytes (registers, a packet whose interrupt is still pending). Counted as ``short_read``.
         """
         prev: bytes | None = None
+        tail: bytes | None = None
         bad = 0
         for attempt in range(self.retries + 1):
             if attempt:
@@ -290,12 +291,15 @@ class TMF8820Source(FrameSource):
             if len(data) != n:
                 self.stats["short_read"] += 1
                 continue
-            if prev is None and n > 2 * _TAIL and data[-1] == 0xFF \
-                    and self._read_raw((reg + n - _TAIL) & 0xFF, _TAIL) == data[-_TAIL:]:
-                return data  # the bytes really end in 0xFF
+            if prev is None and tail is None and n > 2 * _TAIL and data[-1] == 0xFF:
+                tail = self._read_raw((reg + n - _TAIL) & 0xFF, _TAIL)
+                if tail == data[-_TAIL:]:
+                    return data  # the bytes really end in 0xFF
             if n < 2 or data[-1] != 0xFF or data == prev:
                 if prev is not None and prev != data:
                     bad += 1
+                if tail is not None and tail != data[-_TAIL:]:
+                    bad += 1  # the tail read itself was cut
                 self.stats["short_read"] += bad
                 return data
             if prev is not None:
