@@ -595,6 +595,7 @@ class TMF8820Emulator:
             self.measuring = False
             if self._queue or self._current is not None:  # a measurement cut short keeps its feed frame
                 self._carry = self._carry or self._meas_frame
+                self._unseen_faults()
             self._queue, self._current, self._next_at = [], None, None
             self.regs[R.INT_STATUS] &= ~R.INT_MEASUREMENT & 0xFF
         elif cmd in (R.CMD_LOAD_CONFIG_COMMON, R.CMD_LOAD_FACTORY_CALIBRATION, R.CMD_LOAD_SPAD_1, R.CMD_LOAD_SPAD_2):
@@ -653,9 +654,7 @@ class TMF8820Emulator:
                 self._last_done = done
                 if not free and self._queue:  # the host is too slow: the rest of the old one is lost
                     self.stats["overwritten"] += 1
-                    for kind, at in self._evidence.items():  # a fault the host never got to see: not injected
-                        if self._published <= at:
-                            self.stats["injected"][kind] -= 1
+                    self._unseen_faults()
                     self._carry = self._meas_frame  # (its feed frame is not: the next measurement shows it)
                 self._present(self._meas_t0 + done * self._cycle)
         if self._current is None and self._queue and self._next_at is not None and t >= self._next_at:
@@ -699,6 +698,14 @@ class TMF8820Emulator:
             self._place(self._queue.pop(0))
         elif self._current is None:  # the window was released: the new packet 0 is published next
             self._next_at = min(self._next_at, t_done + self._latency())
+
+    def _unseen_faults(self) -> None:
+        """The current measurement will not get out whole: packet faults the host never got to see in it
+        are not counted as injected."""
+        for kind, at in self._evidence.items():
+            if self._published <= at:
+                self.stats["injected"][kind] -= 1
+        self._evidence = {}
 
     def _place(self, packet: bytes) -> None:
         self._published += 1
