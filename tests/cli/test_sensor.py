@@ -43,7 +43,18 @@ def test_bench_prints_and_writes_figures(tmp_path, capsys):
     assert main(["sensor", "bench", "--frames", "10", "--bus-hz", "400000", "--json", str(js), "-q"]) == 0
     rows = json.loads(js.read_text())
     assert rows[0]["frames"] == 10 and rows[0]["bytes_per_frame"] >= rows[0]["transfer_min"]
-    assert "frames/s" in capsys.readouterr().out
+    # one row per publish latency (0, 50, 200 us by default), frames/s against the bus limit and the ceiling
+    assert [r["publish_latency_s"] for r in rows] == pytest.approx([0.0, 50e-6, 200e-6])
+    assert all(r["fps"] <= r["host_ceiling_fps"] <= r["fps_limit"] for r in rows)
+    out = capsys.readouterr().out
+    assert "frames/s" in out and "latency us" in out and "of limit" in out
+
+
+def test_bench_help_explains_the_figures(capsys):
+    with pytest.raises(SystemExit):
+        main(["sensor", "bench", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "publish latency" in text and "bus limit" in text and "ceiling" in text
 
 
 @pytest.mark.parametrize("argv, match", [

@@ -62,29 +62,42 @@ def test_a_cut_packet_never_decodes(prefix):
     raise AssertionError("a cut packet decoded")
 
 
-@settings(max_examples=200)
+@settings(max_examples=200, deadline=None)  # timing varies on a busy machine
 @given(st.lists(st.integers(0, 29), max_size=40), st.booleans())
 def test_the_assembler_never_returns_a_half_frame(numbers, short):
-    """Whatever packets arrive, a Frame comes out only for exactly packets 0..29 in order, whole."""
+    """Whatever packets arrive, a Frame comes out only for exactly packets 0..29 in order, whole, since the
+    last packet 0 that started a new measurement (a packet 0 after a packet 0: the device moved on)."""
     blocks = P.split_channels(np.ones((10, 128)))
     asm = P.MeasurementAssembler()
+    current: list[int] = []
     for n in numbers:
-        asm.add_histogram(n, blocks[n])
+        dropped = asm.add_histogram(n, blocks[n])
+        assert (dropped == "overwritten") == (n == 0 and 0 in current)
+        current = [n] if dropped else current + [n]
+        assert asm.packets == len(current) and len(asm._blocks) <= 30  # one measurement held, at most
     if short:
         asm.mark("short_read")
     frame = asm.add_result(P.Result())
-    whole = numbers == list(range(30)) and not short
+    whole = current == list(range(30)) and not short
     assert (frame is not None) == whole
     if frame is None:
         # every fault of the measurement is reported (a short read first), each exactly once
         assert ("short_read" in asm.drops) == short and (not short or asm.drops[0] == "short_read")
-        assert ("missing_packet" in asm.drops) == (len(set(numbers)) < 30)
-        increasing = all(b > a for a, b in zip(numbers, numbers[1:]))
+        assert ("missing_packet" in asm.drops) == (len(set(current)) < 30)
+        increasing = all(b > a for a, b in zip(current, current[1:]))
         assert ("out_of_order" in asm.drops) == (not increasing)
         assert len(asm.drops) == len(set(asm.drops)) and asm.last_drop == asm.drops[0]
     else:
         assert frame.hists.shape == (9, 128) and frame.reference.shape == (128,)
     assert not asm.started  # the result frame always closes the measurement
+
+
+def test_packets_whose_sub_headers_disagree_are_one_broken_measurement():
+    blocks = P.split_channels(np.ones((10, 128)))
+    asm = P.MeasurementAssembler()
+    for n in range(30):
+        asm.add_histogram(n, blocks[n], tag=(128, 0x16 if n != 7 else 0x17))
+    assert asm.add_result(P.Result()) is None and asm.drops == ["bad_packet"]
 
 
 @given(st.lists(st.floats(0, 0.2), min_size=1, max_size=50), u32)

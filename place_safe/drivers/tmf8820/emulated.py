@@ -91,6 +91,10 @@ class EmulatedTMF8820(FrameSource):
                 raise SensorTimeout("the emulated bus is still carrying the last measurement")
             if self.emulator.bus_time > now + 1e-12:
                 raise SensorTimeout("the emulated bus is busy")
+        if self._external is not None and (self.driver.measurement_in_progress or not self.driver.streaming):
+            # the host runs ahead on the bus cursor: a measurement under way is read out whole (or the sensor
+            # brought up again) in one call, and the frame is held until the simulation reaches its bus time
+            timeout = max(timeout, 0.25)
         try:
             frame = self.driver.read(timeout)
         except SensorTimeout:

@@ -22,21 +22,43 @@ to hold data until its transfer would have finished.
 
 Bus timing model: a transfer of ``m`` messages moving ``b`` bytes (each message: its address byte plus
 its data bytes) takes ``(9 b + m + 1) / clock_hz`` s (9 clocks a byte, one per START / repeated START,
-one for the STOP) plus :attr:`BusTiming.host_overhead_s`. Device timing model (assumptions where the
-protocol notes give no figure, all attributes): a measurement integrates ``kilo_iterations * 1000 /
-pulse_rate_hz`` s plus ``processing_s`` and repeats every ``max(period, that)``; the device measures
-while the host reads the previous one out and presents the newest finished measurement when its output
-is free (measurements finished meanwhile are counted in ``stats["skipped"]``; feed frames are only
-taken for presented measurements, so a fed frame list comes out in order). The next packet appears
-``packet_prep_s`` after the host cleared the previous packet's interrupt.
+one for the STOP) plus :attr:`BusTiming.host_overhead_s`. A write takes effect when its last byte has
+crossed the bus; a read samples each byte as it crosses it.
+
+Device timing model (assumptions where the protocol notes give no figure, all attributes; the defaults
+are the pessimistic ones, so that a driver that works here does not rely on a kind chip):
+
+* A measurement integrates ``kilo_iterations * 1000 / pulse_rate_hz`` s plus ``processing_s`` and
+  repeats every ``max(period, that)``; the device measures while the host reads the previous one out.
+* Publish latency: after the host clears a packet's interrupt (releases it), the next packet is put in
+  the 0x20 window, and its interrupt raised, ``publish_latency_s`` later (default uniform 50-100 us per
+  packet; a number for a fixed latency). A read that overlaps that moment returns the old packet's bytes
+  up to it and the new packet's after (``stats["racing_reads"]``).
+* Overwriting (``overwrite``, default on): when a measurement completes while the host has not read the
+  previous one out, the rest of the previous one is lost (``stats["overwritten"]``; the packet in the
+  window stays until released) and the new one is published next: a host slower than the period gets
+  no whole measurement. Measurements that complete while another is waiting are skipped
+  (``stats["skipped"]``). Off: the newest finished measurement is presented when the output is free.
+  Feed frames are only taken for presented measurements, and a measurement that never got out whole
+  (overwritten, or cut by a stop command) hands its feed frame to the next, so a fed frame list comes
+  out in order.
+* ``release_on_read`` (default off): the other interrupt-clear order, a chip that takes a packet as
+  released once its last byte was read, not when its interrupt is cleared; with a short publish latency
+  the host's clear then also clears the next packet's interrupt (a lost interrupt).
+* ENABLE: the first read after a change returns the old value (the protocol notes allow it).
 
 Faults on demand (:class:`FaultPlan`): each kind in :data:`FAULT_KINDS` is armed at a transfer index or
 at random with a per-transfer probability, and fires at its next applicable moment: ``nak`` / ``eio`` /
 ``timeout`` (an ``OSError`` with errno 121 / 5 / 110; a timeout first stalls the bus for ``stall_s``),
-``short_read`` (a read of 2 or more bytes returns fewer), ``reset`` (the device drops to standby with
-everything lost), ``checksum`` (a bootloader response with a wrong checksum), ``out_of_order`` (two
-neighbouring histogram packets swapped), ``missing_packet`` (one histogram packet never sent);
-``dead_after`` makes every later transfer fail (a dead bus). ``stats["injected"]`` counts what fired.
+``short_read`` (a read of 2 or more bytes is cut: with probability ``short_fill``, default 0.5, the rest
+reads 0xFF at full length, as an open bus does, else fewer bytes come back), ``reset`` (the device loses
+RAM, patch, configuration and measurement; with probability ``reset_keeps_wake``, default 0.5, the
+wake-up bit survives and the chip restarts into its bootloader by itself, APPID 0x80, else it drops to
+standby), a planned ``reset`` fires while the chip measures (:meth:`TMF8820Emulator.reset` resets it at any
+other moment); ``checksum`` (a bootloader response with a wrong checksum), ``out_of_order`` (two neighbouring
+histogram packets swapped), ``missing_packet`` (one histogram packet never sent); ``dead_after`` makes
+every later transfer fail (a dead bus). :meth:`TMF8820Emulator.reset` resets at any moment a test wants.
+``stats["injected"]`` counts what fired.
 """
 
 from __future__ import annotations
@@ -115,6 +137,7 @@ class FaultPlan:
         if not 0.0 <= rate <= 1.0:
             raise ValueError(f"fault rate must be in [0, 1], got {rate}")
         self.rate = float(rate)
+        self.seed = seed
         self.rng = random.Random(seed)
         self.dead_after = dead_after
         self.armed: list[str] = []
@@ -164,6 +187,8 @@ class TMF8820Emulator:
     patch: the RAM patch the device accepts; starting RAM (0x11) fails unless exactly it was downloaded.
     serial: the 16-bit serial number; rom_version / patch_version: the 4 version bytes of each application.
     faults: a :class:`FaultPlan`. record: keep every presented measurement in :attr:`presented`.
+    publish_latency_s, overwrite, reset_keeps_wake, short_fill, release_on_read: the device behaviours of the
+    module docstring (seconds or a (low, high) range; a switch; two probabilities; a switch).
     """
 
     def __init__(self, feed: Any = (), *, address: int = R.DEFAULT_ADDRESS, bus_hz: float = 400e3,
@@ -171,8 +196,10 @@ class TMF8820Emulator:
                  serial: int = 0x2A17, rom_version: tuple[int, int, int, int] = (3, 4, 12, 0),
                  patch_version: tuple[int, int, int, int] = (3, 4, 27, 1), faults: FaultPlan | None = None,
                  record: bool = False, pulse_rate_hz: float = 100e6, processing_s: float = 1e-3,
-                 packet_prep_s: float = 10e-6, command_s: float = 100e-6, calibration_s: float = 0.3,
-                 wake_s: float = 1e-3, boot_s: float = 3e-3, stall_s: float = 0.025,
+                 publish_latency_s: float | tuple[float, float] = (50e-6, 100e-6), overwrite: bool = True,
+                 reset_keeps_wake: float = 0.5, short_fill: float = 0.5, release_on_read: bool = False,
+                 command_s: float = 100e-6,
+                 calibration_s: float = 0.3, wake_s: float = 1e-3, boot_s: float = 3e-3, stall_s: float = 0.025,
                  host_overhead_s: float = 0.0, tick_origin: int = 0x1234567) -> None:
         if not (bus_hz > 0 and math.isfinite(bus_hz)):
             raise ValueError(f"bus_hz must be a positive clock rate, got {bus_hz}")
@@ -188,6 +215,7 @@ class TMF8820Emulator:
             self.clock, self._advance = vc, vc.advance_to
         self.virtual = self.clock if isinstance(self.clock, VirtualClock) else None
         self._bus_t = self.clock()
+        self._dev_t = self._bus_t  # the time the device has been advanced to (within a transfer)
         self._next = _feed_iter(feed)
         self.feed_ended = False
         self.expected_patch = patch
@@ -196,13 +224,25 @@ class TMF8820Emulator:
         self.faults = faults or FaultPlan()
         self.record = record
         self.presented: list[tuple[int, np.ndarray, P.Result]] = []
-        self.pulse_rate_hz, self.processing_s, self.packet_prep_s = pulse_rate_hz, processing_s, packet_prep_s
+        self.pulse_rate_hz, self.processing_s = pulse_rate_hz, processing_s
+        lat = (publish_latency_s, publish_latency_s) if isinstance(publish_latency_s, (int, float)) \
+            else tuple(publish_latency_s)
+        if len(lat) != 2 or not 0.0 <= lat[0] <= lat[1] or not math.isfinite(lat[1]):
+            raise ValueError(f"publish_latency_s must be seconds >= 0 or a (low, high) range, got {publish_latency_s}")
+        self.publish_latency_s: tuple[float, float] = (float(lat[0]), float(lat[1]))
+        self.overwrite = bool(overwrite)
+        self.release_on_read = bool(release_on_read)
+        if not (0.0 <= reset_keeps_wake <= 1.0 and 0.0 <= short_fill <= 1.0):
+            raise ValueError("reset_keeps_wake and short_fill are probabilities in [0, 1]")
+        self.reset_keeps_wake, self.short_fill = float(reset_keeps_wake), float(short_fill)
+        self._rng = random.Random(0x7EF8820 ^ self.faults.seed)
         self.command_s, self.calibration_s, self.wake_s, self.boot_s = command_s, calibration_s, wake_s, boot_s
         self.stall_s = stall_s
         self.tick_origin = tick_origin
         self.transfers = 0
         self.stats: dict[str, Any] = {"transfers": 0, "bytes": 0, "bus_seconds": 0.0, "measurements": 0,
-                                      "skipped": 0, "injected": {k: 0 for k in FAULT_KINDS}}
+                                      "skipped": 0, "overwritten": 0, "racing_reads": 0,
+                                      "injected": {k: 0 for k in FAULT_KINDS}}
         self.int_line = EmulatedIntLine(self)
         self._ptr = 0
         self._power_off()
@@ -213,6 +253,7 @@ class TMF8820Emulator:
         self.awake = False
         self._ready_at: float | None = None
         self._enable_stale = 0
+        self._enable_old = 0
         self._boot_at: float | None = None
         self._boot_version: tuple[int, ...] = ()
         self.appid = 0
@@ -233,6 +274,10 @@ class TMF8820Emulator:
         self._cycle = 1.0
         self._last_done = 0
         self._queue: list[bytes] = []
+        self._meas_frame: Frame | None = None  # the feed frame of the measurement being published
+        self._carry: Frame | None = None       # a feed frame whose measurement never got out whole
+        self._evidence: dict[str, int] = {}    # injected packet faults -> publish position that shows them
+        self._published = 0                    # packets of the current measurement put in the window
         self._current: bytes | None = None
         self._current_bit = 0
         self._next_at: float | None = None
@@ -245,7 +290,7 @@ class TMF8820Emulator:
         return self._bus_t
 
     def now(self) -> float:
-        return max(self.clock(), self._bus_t)
+        return max(self.clock(), self._bus_t, self._dev_t)
 
     def _sleep_until(self, t: float) -> None:
         debt = t - time.monotonic()
@@ -264,8 +309,8 @@ class TMF8820Emulator:
         return bytes(self.config[o:o + n])
 
     def _applicable(self, kind: str) -> bool:
-        if kind == "reset":
-            return self.awake
+        if kind == "reset":  # while measuring: a chip being brought up is reset by tests through reset()
+            return self.awake and self.appid == R.APP_MEASUREMENT and self.measuring
         if kind == "checksum":
             return self.awake and self.appid == R.APP_BOOTLOADER
         if kind in ("out_of_order", "missing_packet"):
@@ -278,9 +323,28 @@ class TMF8820Emulator:
             return True
         return False
 
-    def reset(self) -> None:
-        """A spontaneous device reset: back to standby, RAM, patch and configuration lost."""
+    def _set_enable(self, value: int) -> None:
+        """ENABLE changes; the first read after a change returns the old value (the protocol notes allow it)."""
+        if value != self.regs[R.ENABLE]:
+            self._enable_old, self._enable_stale = self.regs[R.ENABLE], 1
+            self.regs[R.ENABLE] = value
+
+    def reset(self, keep_wake: bool | None = None) -> None:
+        """A spontaneous device reset: RAM, patch, configuration and measurement lost. The wake-up bit either
+        survives (a CPU reset: the chip restarts into its bootloader, APPID 0x80, by itself) or not (a power
+        loss: standby until the host wakes it). ``keep_wake`` None: at random (``reset_keeps_wake``)."""
+        if keep_wake is None:
+            keep_wake = self._rng.random() < self.reset_keeps_wake
+        old, stale = self.regs[R.ENABLE], self._enable_stale
         self._power_off()
+        self.regs[R.ENABLE] = old
+        self._enable_stale = stale
+        if keep_wake:
+            self.awake = True
+            self._set_enable(R.ENABLE_WAKEUP)
+            self._ready_at = self.now() + self.wake_s
+        else:
+            self._set_enable(0)
 
     # -- smbus2 subset -------------------------------------------------------------------------------
     def i2c_rdwr(self, *msgs: Any) -> None:
@@ -301,24 +365,58 @@ class TMF8820Emulator:
                 self._finish(start + self.timing.duration(1, 1) + stall, 1)
                 raise OSError(_ERRNO[kind], {"nak": "Remote I/O error", "eio": "Input/output error",
                                              "timeout": "Connection timed out"}[kind])
-        if self.awake and self._inject("reset"):
+        if self._applicable("reset") and self._inject("reset"):
             self.reset()
-        self._update(start)
+        t = start
+        hz = self.timing.clock_hz
         for m in msgs:
+            t_end = t + (R.CLOCKS_PER_BYTE * (1 + m.len) + 1) / hz
             if m.flags & 1:  # I2C_M_RD
-                data = self._read(m.len)
                 n = m.len
+                data = self._read_timed(n, t)
                 if n >= 2 and self._inject("short_read"):
-                    n = self.faults.rng.randint(1, n - 1)
+                    k = self.faults.rng.randint(1, n - 1)
+                    if self._rng.random() < self.short_fill:  # an open bus: the rest reads 0xFF
+                        filled = data[:k] + b"\xff" * (n - k)
+                        if filled == data:  # indistinguishable from the truth: not a fault yet
+                            self.faults.armed.append("short_read")
+                            self.stats["injected"]["short_read"] -= 1
+                        data = filled
+                    else:
+                        data, n = data[:k], k
                 ctypes.memmove(m.buf, bytes(data[:n]), n)
                 m.len = n
             else:
+                self._update(t_end)  # a write takes effect when its last byte has arrived
                 buf = bytes(m)
                 if buf:
                     self._ptr = buf[0]
                     if len(buf) > 1:
                         self._write(self._ptr, buf[1:])
+            t = t_end
         self._finish(end, nbytes)
+
+    def _read_timed(self, n: int, t0: float) -> bytes:
+        """Read ``n`` bytes in a message starting at ``t0``: byte i is sampled when it crosses the bus, so a
+        read that overlaps the publication of the next packet returns old bytes then new ones."""
+        hz = self.timing.clock_hz
+        self._update(t0)
+        first = t0 + (R.CLOCKS_PER_BYTE + 1) / hz  # after the address byte
+        last = first + R.CLOCKS_PER_BYTE * n / hz
+        pub = self._next_at
+        if self.release_on_read and self._current is not None and self._ptr <= R.PAGE \
+                and self._ptr + n >= R.PAGE + len(self._current):
+            done = first + R.CLOCKS_PER_BYTE * (R.PAGE + len(self._current) - self._ptr) / hz
+            data = self._read(n)  # the whole packet went out: released when its last byte has
+            self._release(done)
+            return data
+        if pub is None or not first < pub < last or not (R.PAGE <= self._ptr < R.PAGE_END):
+            return self._read(n)
+        k = min(n, max(0, int((pub - first) * hz / R.CLOCKS_PER_BYTE)))
+        old = self._read(k) if k else b""
+        self._update(pub)
+        self.stats["racing_reads"] += 1
+        return old + self._read(n - k)
 
     def _finish(self, end: float, nbytes: int) -> None:
         self.stats["transfers"] += 1
@@ -380,9 +478,9 @@ class TMF8820Emulator:
 
     def _reg_value(self, reg: int) -> int:
         if reg == R.ENABLE:
-            if self.awake and self._enable_stale > 0:
+            if self._enable_stale > 0:
                 self._enable_stale -= 1
-                return R.ENABLE_WAKEUP
+                return self._enable_old
             return self.regs[R.ENABLE]
         if not self.awake:
             return 0
@@ -418,15 +516,22 @@ class TMF8820Emulator:
         if value & R.ENABLE_WAKEUP and not self.awake:
             self.awake = True
             self._ready_at = self.now() + self.wake_s
-            self.regs[R.ENABLE] = R.ENABLE_WAKEUP
+            self._set_enable(R.ENABLE_WAKEUP)
         elif not value & R.ENABLE_WAKEUP and self.awake:
             self._power_off()
 
+    def _latency(self) -> float:
+        lo, hi = self.publish_latency_s
+        return lo if hi <= lo else self._rng.uniform(lo, hi)
+
     def _clear_int(self, bits: int) -> None:
         self.regs[R.INT_STATUS] &= ~bits & 0xFF
-        if self._current is not None and bits & self._current_bit:
-            self._current = None
-            self._next_at = self.now() + self.packet_prep_s if self._queue else None
+        if self._current is not None and bits & self._current_bit and not self.release_on_read:
+            self._release(self.now())
+
+    def _release(self, t: float) -> None:
+        self._current = None  # released: the next packet is published after the publish latency
+        self._next_at = t + self._latency() if self._queue else None
 
     # -- bootloader ----------------------------------------------------------------------------------
     def _bl_status_byte(self, offset: int) -> int:
@@ -488,6 +593,9 @@ class TMF8820Emulator:
             status = R.STAT_ACCEPTED
         elif cmd == R.CMD_STOP:
             self.measuring = False
+            if self._queue or self._current is not None:  # a measurement cut short keeps its feed frame
+                self._carry = self._carry or self._meas_frame
+                self._unseen_faults()
             self._queue, self._current, self._next_at = [], None, None
             self.regs[R.INT_STATUS] &= ~R.INT_MEASUREMENT & 0xFF
         elif cmd in (R.CMD_LOAD_CONFIG_COMMON, R.CMD_LOAD_FACTORY_CALIBRATION, R.CMD_LOAD_SPAD_1, R.CMD_LOAD_SPAD_2):
@@ -518,10 +626,11 @@ class TMF8820Emulator:
 
     def _update(self, t: float) -> None:
         """Advance the device to time ``t``: wake-up, boot, commands, measurements, next packet."""
+        if t > self._dev_t:
+            self._dev_t = t
         if self._ready_at is not None and t >= self._ready_at:
             self._ready_at = None
-            self.regs[R.ENABLE] = R.ENABLE_WAKEUP | R.ENABLE_CPU_READY
-            self._enable_stale = 1
+            self._set_enable(R.ENABLE_WAKEUP | R.ENABLE_CPU_READY)
             self.appid = R.APP_BOOTLOADER
             self.regs[R.APPID] = R.APP_BOOTLOADER
         if self._boot_at is not None and t >= self._boot_at:
@@ -537,20 +646,26 @@ class TMF8820Emulator:
             self.regs[R.CMD_STAT] = self._cmd_status
         if not self.measuring:
             return
-        if self._current is None and not self._queue:
-            done = int((t - self._meas_t0) / self._cycle)
+        free = self._current is None and not self._queue
+        if free or self.overwrite:
+            done = int((t - self._meas_t0) / self._cycle + 1e-9)
             if done > self._last_done and not self.feed_ended:
                 self.stats["skipped"] += done - self._last_done - 1
                 self._last_done = done
+                if not free and self._queue:  # the host is too slow: the rest of the old one is lost
+                    self.stats["overwritten"] += 1
+                    self._unseen_faults()
+                    self._carry = self._meas_frame  # (its feed frame is not: the next measurement shows it)
                 self._present(self._meas_t0 + done * self._cycle)
         if self._current is None and self._queue and self._next_at is not None and t >= self._next_at:
             self._place(self._queue.pop(0))
 
     def _present(self, t_done: float) -> None:
-        frame = self._next(t_done)
+        frame, self._carry = (self._carry, None) if self._carry is not None else (self._next(t_done), None)
         if frame is None:
             self.feed_ended = True
             return
+        self._meas_frame = frame
         ticks = (self.tick_origin + int(round(t_done / R.TICK_SECONDS))) & 0xFFFFFFFF | 1
         channels = np.clip(np.rint(P.frame_channels(frame)), 0, P.COUNT_MAX).astype(np.int64)
         res = P.result_from_frame(frame, self._result_number, ticks,
@@ -561,13 +676,17 @@ class TMF8820Emulator:
             self.presented.append((ticks, channels, res))
         blocks = P.split_channels(channels)
         order = list(range(R.HIST_PACKETS))
+        evidence: dict[str, int] = {}
         swapped: tuple[int, ...] = ()
         if self._inject("out_of_order"):
             k = self.faults.rng.randrange(R.HIST_PACKETS - 1)
             order[k], order[k + 1] = order[k + 1], order[k]
             swapped = (k, k + 1)
+            evidence["out_of_order"] = k + 1  # the host sees it when the second of the pair arrives
         if self._inject("missing_packet"):  # never one of a swapped pair: both faults stay visible
             order.pop(self.faults.rng.choice([i for i in range(len(order)) if i not in swapped]))
+            evidence["missing_packet"] = len(order)  # counted when the result frame closes the measurement
+        self._evidence, self._published = evidence, 0
         queue = []
         for k in order:
             queue.append(P.encode_histogram_packet(k, blocks[k], self._tid, R.CMD_LOAD_CONFIG_COMMON))
@@ -575,9 +694,21 @@ class TMF8820Emulator:
         queue.append(P.encode_result(res, self._tid))
         self._tid = (self._tid + 1) & 0xFF
         self._queue = queue
-        self._place(self._queue.pop(0))
+        if self._current is None and self._next_at is None:
+            self._place(self._queue.pop(0))
+        elif self._current is None:  # the window was released: the new packet 0 is published next
+            self._next_at = min(self._next_at, t_done + self._latency())
+
+    def _unseen_faults(self) -> None:
+        """The current measurement will not get out whole: packet faults the host never got to see in it
+        are not counted as injected."""
+        for kind, at in self._evidence.items():
+            if self._published <= at:
+                self.stats["injected"][kind] -= 1
+        self._evidence = {}
 
     def _place(self, packet: bytes) -> None:
+        self._published += 1
         self.regs[R.PAGE:R.PAGE + len(packet)] = packet
         self._current = packet
         self._current_bit = R.INT_RESULT if packet[0] == R.CID_RESULT else R.INT_RAW_HISTOGRAM
@@ -587,7 +718,8 @@ class TMF8820Emulator:
     def next_event(self) -> float | None:
         """When the device will next change by itself (s), or None."""
         times = [t for t in (self._ready_at, self._boot_at, self._cmd_done_at, self._next_at) if t is not None]
-        if self.measuring and self._current is None and not self._queue and not self.feed_ended:
+        if self.measuring and (self.overwrite or (self._current is None and not self._queue)) \
+                and not self.feed_ended:
             times.append(self._meas_t0 + (self._last_done + 1) * self._cycle)
         return min(times) if times else None
 
@@ -614,7 +746,7 @@ class EmulatedIntLine:
             if t >= deadline:
                 return False
             nxt = emu.next_event()
-            target = deadline if nxt is None else min(max(nxt, t), deadline)
+            target = deadline if nxt is None else min(max(nxt, t + 1e-9), deadline)
             if emu.virtual is not None:
                 emu.virtual.advance_to(target)
             elif emu.realtime:

@@ -7,8 +7,10 @@ Conventions
   Packet ``k`` carries byte plane ``k // 10`` (0 least significant) of channel ``k % 10``; channel 0
   is the reference histogram, channels 1..9 the zones 1..9. Bins are 24-bit counts.
 * The result frame is the delimiter: a measurement is whatever histogram packets arrived since the
-  previous result frame. It becomes a Frame only if exactly the 30 packets arrived, in order, each
-  whole; otherwise the measurement is dropped and the fault is reported (never a half frame).
+  previous result frame, or since a packet 0 that followed a packet 0 (the device overwrote the rest of
+  the previous measurement). It becomes a Frame only if exactly the 30 packets arrived, in order, each
+  whole, with the same sub-header; otherwise the measurement is dropped and the fault is reported (never
+  a half frame). At most one measurement is held, whatever arrives.
 * In the Frame, on-sensor distances are metres (the wire carries millimetres), confidences 0..255.
   ``extra["tmf8820"]`` keeps the result number, temperature (deg C), valid results, system ticks
   (units of 0.2 us) and the second objects.
@@ -177,55 +179,83 @@ def build_frame(channels: np.ndarray, res: Result, timestamp: float | None = Non
 
 
 class MeasurementAssembler:
-    """Collects histogram packets until a result frame closes the measurement.
+    """Collects the histogram packets of ONE measurement until a result frame closes it.
 
-    ``add_histogram`` / ``add_result`` return nothing / a Frame or None. When a measurement is
-    dropped, ``drops`` says why: the reason given to :meth:`mark` (e.g. ``"short_read"``: a packet or
-    the result arrived cut short), else ``"missing_packet"`` if packets were missing and/or
-    ``"out_of_order"`` if the packets that arrived did not come in increasing order (or some came
-    twice); ``last_drop`` is the first of them. ``discard()`` forgets the current measurement
-    without counting it (after a device reset).
+    Memory is bounded whatever arrives: at most one measurement is held (30 data blocks and a few
+    counters), never a list that grows while the device misbehaves.
+
+    ``add_histogram`` returns None, or the reason the measurement in progress was dropped when this packet
+    started a new one: a packet 0 arriving while the measurement already holds a packet 0 means the
+    device moved on to its next measurement (``"overwritten"``: the host was too slow, or the rest was
+    lost); the new packet 0 then starts the new measurement, and ``drops`` lists what the dropped one showed.
+    ``add_result`` returns a Frame, or None with
+    ``drops`` saying why: the reason given to :meth:`mark` (e.g. ``"short_read"``, ``"bad_packet"``),
+    else ``"missing_packet"`` if packets were missing and/or ``"out_of_order"`` if the packets that
+    arrived did not come in increasing order (or some came twice); ``last_drop`` is the first of them.
+    ``discard()`` forgets the current measurement without counting it. ``tag`` (e.g. the sub-header's
+    payload size and config id) must be the same for every packet of a measurement, else it is marked
+    ``"bad_packet"``.
     """
 
     def __init__(self) -> None:
         self._blocks: dict[int, bytes] = {}
-        self._order: list[int] = []
+        self._count = 0
+        self._last: int | None = None
+        self._disorder = False
+        self._tag: object = None
         self._short: str | bool = False
         self.last_drop: str | None = None
         self.drops: list[str] = []
 
     @property
     def started(self) -> bool:
-        return bool(self._order) or bool(self._short)
+        return bool(self._count) or bool(self._short)
 
     @property
     def packets(self) -> int:
         """Histogram packets received for the current measurement."""
-        return len(self._order)
+        return self._count
 
     def discard(self) -> None:
-        self._blocks, self._order, self._short = {}, [], False
+        self._blocks, self._count, self._last, self._disorder, self._tag = {}, 0, None, False, None
+        self._short = False
 
     def abandon(self) -> list[str]:
         """Forget the measurement in progress (a device reset ended it) and return the faults it already
         showed: ``"out_of_order"`` if its packets so far were not strictly increasing. Faults it had not
         shown yet (a packet still to come, a gap) are lost with it."""
-        order = self._order
+        disorder = self._disorder
         self.discard()
-        return ["out_of_order"] if any(b <= a for a, b in zip(order, order[1:])) else []
+        return ["out_of_order"] if disorder else []
 
     def mark(self, reason: str) -> None:
         """Something of this measurement arrived broken (e.g. ``"short_read"``): it will be dropped."""
         if not self._short:
             self._short = reason
 
-    def add_histogram(self, number: int, data: bytes) -> None:
-        self._order.append(number)
+    def add_histogram(self, number: int, data: bytes, tag: object = None) -> str | None:
+        dropped = None
+        if number == 0 and 0 in self._blocks:
+            dropped = str(self._short) if self._short else "overwritten"
+            # what it showed: its reason, and disorder among the packets that came (not the ones that did not)
+            self.drops = [dropped] + (["out_of_order"] if self._disorder else [])
+            self.last_drop = dropped
+            self.discard()
+        if self._count and tag != self._tag:
+            self.mark("bad_packet")
+        self._tag = tag
+        if self._last is not None and number <= self._last:
+            self._disorder = True
+        if number in self._blocks:
+            self._disorder = True
+        self._last = number
+        self._count += 1
         self._blocks[number] = data
+        return dropped
 
     def add_result(self, res: Result, timestamp: float | None = None, **extra) -> Frame | None:
         """Close the measurement: the Frame if it is whole, else None with ``last_drop`` set."""
-        order, blocks, short = self._order, self._blocks, self._short
+        blocks, short, disorder, count = self._blocks, self._short, self._disorder, self._count
         self.discard()
         self.drops = []
         if short:
@@ -233,7 +263,7 @@ class MeasurementAssembler:
         # every fault of the measurement is reported, also when an earlier one already condemned it
         if len(blocks) < R.HIST_PACKETS:
             self.drops.append("missing_packet")
-        if len(order) != len(blocks) or any(b <= a for a, b in zip(order, order[1:])):
+        if disorder or count != len(blocks):
             self.drops.append("out_of_order")
         self.last_drop = self.drops[0] if self.drops else None
         if self.drops:
