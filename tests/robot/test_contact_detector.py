@@ -157,3 +157,20 @@ def test_cb3_default_meets_the_10n_50ms_figure_on_synthetic_noise():
 def test_bad_settings_are_refused(bad):
     with pytest.raises(ValueError):
         DetectorSettings(**bad)
+
+
+def test_rest_spread_within_sampling_error_keeps_the_setting() -> None:
+    """Zeroing on 50 samples of the CB3's own 3.6 N noise does not raise the threshold by sampling chance
+    (the largest of three per-axis estimates is ~10 % high), but a clearly noisier arm (6 N) does."""
+    settings = DetectorSettings.for_controller("cb3")
+    rng = np.random.default_rng(7)
+    kept = 0
+    for _ in range(200):
+        det = ContactDetector(settings)
+        det.zero(rng.normal(0.0, 3.6, size=(50, 3)) + [1.0, -2.0, 3.0])
+        kept += det.threshold == settings.threshold()
+    assert kept >= 190
+    noisy = ContactDetector(settings)
+    noisy.zero(rng.normal(0.0, 6.0, size=(50, 3)))
+    assert noisy.noise_std > 5.0
+    assert noisy.threshold > settings.threshold()
