@@ -17,7 +17,8 @@ Stopping (``Result.reason``):
     ``sqrt(decrement_tol)`` of their standard deviation (the Fisher metric ``J^T J`` scaled by the fit's
     reduced chi-square). The test of a minimum that a statistician would ask for.
 ``"converged: relative decrement"``
-    That step would lower chi-square by less than ``relative_tol`` of itself (off by default). Where the model
+    That step would lower chi-square by less than ``relative_tol`` of itself (off by default), and the reduced
+    chi-square is above :data:`RELATIVE_MIN_CHI2`. Where the model
     does not describe the data to their noise (a reduced chi-square of 9 on a real sensor), a tenth of a
     standard deviation of shot noise is far below what the model's own error moves the parameters: a fit that
     can still gain 0.01 % of its chi-square has nothing left that matters.
@@ -44,6 +45,9 @@ import numpy as np
 #: Chi-square decrease (times the reduced chi-square) below which the fit is converged: 0.01, a step of a
 #: tenth of a standard deviation.
 DECREMENT_TOL = 0.01
+#: Reduced chi-square above which the relative test (``relative_tol``) applies: residuals twice their noise (RMS
+#: 2) mean a model that does not describe the data; below it the absolute test alone decides.
+RELATIVE_MIN_CHI2 = 4.0
 #: Damping above which no step is tried any more (the trust region is a point).
 MAX_DAMPING = 1e12
 
@@ -158,7 +162,7 @@ def solve(fun: Callable[[np.ndarray], np.ndarray], jac: Callable[[np.ndarray], n
         if decrement < decrement_tol * chi2_red:
             converged, reason = True, "converged: Gauss-Newton decrement"
             break
-        if decrement < relative_tol * 2.0 * cost:
+        if chi2_red > RELATIVE_MIN_CHI2 and decrement < relative_tol * 2.0 * cost:
             converged, reason = True, "converged: relative decrement"
             break
         accepted = False
