@@ -46,10 +46,15 @@ def calibration_file(sensor: str = "nominal") -> Path:
 
 
 def capture_level_sweep(sensor: str = "nominal", n: int = SWEEP_FRAMES, seed: int = 0,
-                        temperature: float | None = None) -> list:
+                        temperature: float | None = None, heights: tuple[float, float] = SWEEP_HEIGHTS,
+                        max_tilt: float = SWEEP_MAX_TILT, min_tilt: float = 0.0, mismatch=None) -> list:
     """``n`` noisy frames with ground truth of a level table, sensor at varied heights and tilts.
 
-    ``temperature``: the mismatched sensor's die temperature at the start (degC; None: its cold default)."""
+    ``temperature``: the mismatched sensor's die temperature at the start (degC; None: its cold default).
+    ``heights`` (m, sensor to table), ``min_tilt``/``max_tilt`` (rad, spread about uniformly in solid angle
+    between them): ``max_tilt = 0`` is a level sweep, what a user captures by lowering the sensor straight down.
+    ``mismatch``: the mismatched sensor's :class:`~place_safe.sim.tof_mismatch.MismatchConfig` (another unit;
+    ``temperature`` then sets only its start temperature)."""
     from scipy.spatial.transform import Rotation
 
     from place_safe.sim.scene import SceneConfig, build_scene
@@ -61,7 +66,9 @@ def capture_level_sweep(sensor: str = "nominal", n: int = SWEEP_FRAMES, seed: in
     data = scene.make_data()
     from place_safe.sim.tof_mismatch import MismatchConfig
 
-    mis = MismatchConfig(temp_start=temperature) if temperature is not None else None
+    mis = mismatch
+    if temperature is not None:
+        mis = (mis or MismatchConfig()).model_copy(update={"temp_start": temperature})
     tof = make_sensor(sensor, scene, data, ToFConfig(seed=seed), mis)
     rng = np.random.default_rng(seed)
     top = cfg.table.height
@@ -69,14 +76,15 @@ def capture_level_sweep(sensor: str = "nominal", n: int = SWEEP_FRAMES, seed: in
     down = Rotation.from_euler("xyz", cfg.rig_euler)
     frames = []
     tries = 0
-    heights = np.linspace(*SWEEP_HEIGHTS, n)
+    heights = np.linspace(*heights, n)
     rng.shuffle(heights)
     for h in heights:
         while True:
             tries += 1
             if tries > 20 * n:
                 raise RuntimeError("calibration sweep: too few poses see only the table")
-            tilt = SWEEP_MAX_TILT * math.sqrt(rng.uniform())
+            # about uniform in solid angle between the two tilts (min_tilt = 0: the sweep as it always was)
+            tilt = math.sqrt(min_tilt ** 2 + (max_tilt ** 2 - min_tilt ** 2) * rng.uniform())
             az = rng.uniform(0, 2 * math.pi)
             lean = Rotation.from_rotvec(tilt * np.array([math.cos(az), math.sin(az), 0.0]))
             R = (lean * down).as_matrix()

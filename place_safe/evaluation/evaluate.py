@@ -41,6 +41,24 @@ class MethodResult:
     def failures(self) -> int:
         return int(np.sum(~np.isfinite(self.point)))
 
+    @property
+    def fallback_rate(self) -> float | None:
+        """Fraction of the frames with a plane on which the method returned another method's plane (diff's
+        fallback to peak); None when it returned none."""
+        used = [u for u in self.used if u is not None]
+        return sum(u != self.method for u in used) / len(used) if used else None
+
+    def albedo_spread(self) -> dict[str, float] | None:
+        """Mean, standard deviation and coefficient of variation (per cent) of the recovered albedos, or None
+        without any. Over frames of one surface (the real sweep: one table) the CV says how well the method
+        reads one albedo over distance and angle."""
+        a = self.albedo[np.isfinite(self.albedo)]
+        if a.size == 0:
+            return None
+        mean, std = float(a.mean()), float(a.std(ddof=1)) if a.size > 1 else 0.0
+        return {"mean": mean, "std": std, "cv_percent": 100.0 * std / mean if mean > 0 else float("nan"),
+                "count": int(a.size)}
+
     def summary(self) -> dict[str, Any]:
         return {"angular_deg": {k: (v * 180 / np.pi if k != "count" else v) for k, v in summarise(self.angular).items()},
                 "linear_mm": {k: (v * 1e3 if k != "count" else v) for k, v in summarise(self.linear).items()},
@@ -49,6 +67,8 @@ class MethodResult:
                 "nees_per_dof": ({"mean": float(np.nanmean(self.nees)), "median": float(np.nanmedian(self.nees)),
                                   "count": int(np.isfinite(self.nees).sum())} if np.isfinite(self.nees).any() else None),
                 "method_used": {k: self.used.count(k) for k in sorted({u for u in self.used if u is not None})},
+                "fallback_rate": self.fallback_rate,
+                "albedo": self.albedo_spread(),
                 "ms_per_frame": float(np.mean(self.seconds) * 1e3) if len(self.seconds) else float("nan")}
 
 
@@ -82,7 +102,10 @@ class EvaluationReport:
             if s["nees_per_dof"]:
                 notes.append(f"NEES per dof mean {s['nees_per_dof']['mean']:.2f} (median {s['nees_per_dof']['median']:.2f})")
             if s["method_used"] and set(s["method_used"]) != {name}:
-                notes.append("used " + ", ".join(f"{k} {v}" for k, v in s["method_used"].items()))
+                notes.append("used " + ", ".join(f"{k} {v}" for k, v in s["method_used"].items())
+                             + f" (fallback rate {100 * s['fallback_rate']:.0f} %)")
+            if s["albedo"] is not None:
+                notes.append(f"albedo {s['albedo']['mean']:.4g}, CV {s['albedo']['cv_percent']:.1f} %")
             if notes:
                 lines.append(f"{name:<18} " + "; ".join(notes))
         for name, why in self.unavailable.items():

@@ -38,6 +38,11 @@ from place_safe.sensor.histogram import COUNT_MAX
 
 _SQRT_2PI = math.sqrt(2.0 * math.pi)
 
+#: Lags (bins) of the learned impulse response (:class:`ForwardParams` ``response_kernel``). The real sweep's
+#: histograms hold a second bump 13-19 bins after the peak, which no exponential tail of the model reaches.
+RESPONSE_LAGS = 24
+
+
 #: Physical range of every forward-model parameter (checked on construction and when read from a
 #: file; a parameter without an entry must still be finite). The ranges are wide (a TMF8820 fitted on
 #: the shared sweep sits well inside) but exclude what breaks the model: a zero or negative albedo,
@@ -62,6 +67,7 @@ FORWARD_BOUNDS: dict[str, Bound] = {
     "tail_decay": Bound(0.0, 64.0, "bins", lo_open=True),
     "zone_tail_weights": Bound(0.0, 10.0, "(relative to the zone's histogram)", length=N_ZONES),
     "zone_tail_decays": Bound(0.0, 8.0, "bins", lo_open=True, length=N_ZONES),
+    "response_kernel": Bound(0.0, 1.0, "(of the histogram, at lags 1..RESPONSE_LAGS bins)", length=RESPONSE_LAGS),
     "edge_fov_scale": Bound(0.0, 3.0, "(of the nominal zone rectangle)", lo_open=True),
     "corner_fov_scale": Bound(0.0, 3.0, "(of the nominal zone rectangle)", lo_open=True),
     "pileup": Bound(0.0, 1.0, "1/counts"),
@@ -166,6 +172,10 @@ class ForwardParams:
     # angular profile. Defaults (co-located, uniform) are the paper's model.
     baseline: list[float] = field(default_factory=lambda: [0.0, 0.0])
     beam_power: float = 0.0
+    # The unit's impulse response beyond the reference pulse (version 2 of the model; absent from older files,
+    # whose default adds nothing): the zone histograms after the pulse are convolved with
+    # ``delta + sum_k response_kernel[k-1] delta(k)``, k = 1..RESPONSE_LAGS bins, every weight >= 0.
+    response_kernel: list[float] = field(default_factory=lambda: [0.0] * RESPONSE_LAGS)
 
     def __post_init__(self) -> None:
         check_dataclass(self, FORWARD_BOUNDS, "forward parameters", CalibrationError)
@@ -178,6 +188,7 @@ class ForwardParams:
         d["baseline"] = [float(v) for v in self.baseline]
         d["zone_tail_weights"] = [float(v) for v in self.zone_tail_weights]
         d["zone_tail_decays"] = [float(v) for v in self.zone_tail_decays]
+        d["response_kernel"] = [float(v) for v in self.response_kernel]
         return d
 
     @classmethod
@@ -387,20 +398,99 @@ def zone_tail_taps(weights, decays, dtype: torch.dtype = torch.float64) -> torch
     return w * torch.exp(-k / tau)
 
 
-def _causal_windows(x: torch.Tensor, k_len: int) -> torch.Tensor:
-    """Windows (B, Z, N, K) of histograms (B, Z, N): window ``j`` holds bins ``j-K+1 .. j`` (zeros before 0)."""
-    return torch.nn.functional.pad(x, (k_len - 1, 0)).unfold(-1, k_len, 1)
+def causal_matrix(kernel: torch.Tensor, n: int) -> torch.Tensor:
+    """Causal convolution with ``kernel`` (..., K) as matrices (..., n, n): ``M[j, i] = kernel[j - i]`` for
+    ``0 <= j - i < K``, else 0. A matrix product batches well under ``torch.func`` (the sliding windows it
+    replaces were copied once per tangent: the calibration's Jacobian took 3x longer)."""
+    k_len = kernel.shape[-1]
+    if k_len < n:
+        kernel = torch.nn.functional.pad(kernel, (0, n - k_len))
+    idx = torch.arange(n)
+    lag = idx.view(-1, 1) - idx.view(1, -1)
+    return kernel[..., torch.clamp(lag, 0, n - 1)] * ((lag >= 0) & (lag < k_len))
 
 
 def add_zone_tails(hist: torch.Tensor, taps: torch.Tensor) -> torch.Tensor:
     """Histograms (B, 9, N) plus each zone's tail: ``h_z[j] + sum_k taps[z, k-1] h_z[j - k]`` (causal)."""
     kernel = torch.cat([torch.ones_like(taps[:, :1]), taps], dim=-1)  # (9, 1 + L): the histogram, then its tail
-    return torch.einsum("bznk,zk->bzn", _causal_windows(hist, kernel.shape[-1]), kernel.flip(-1))
+    # zones first, so the product is batched over the 9 zones' own matrices (never expanded per frame)
+    return (hist.transpose(0, 1) @ causal_matrix(kernel, hist.shape[-1]).transpose(-1, -2)).transpose(0, 1)
+
+
+def response_matrix(kernel, n: int, dtype: torch.dtype = torch.float64) -> torch.Tensor:
+    """The learned impulse response (``ForwardParams.response_kernel``, weights at lags 1..) as an (n, n) causal
+    matrix: the identity plus the weights below the diagonal."""
+    w = torch.as_tensor(kernel, dtype=dtype)
+    return causal_matrix(torch.cat([torch.ones(1, dtype=dtype), w]), n)
+
+
+def add_response(hist: torch.Tensor, kernel: torch.Tensor) -> torch.Tensor:
+    """Histograms (B, 9, N) convolved with the learned impulse response ``delta + sum_k kernel[k-1] delta(k)``."""
+    return hist @ response_matrix(kernel, hist.shape[-1], hist.dtype).T
 
 
 def convolve_pulse(transient: torch.Tensor, kernel: torch.Tensor) -> torch.Tensor:
     """Causal convolution of transients (B, Z, N) with per-frame kernels (B, K) -> (B, Z, N)."""
-    return torch.einsum("bznk,bk->bzn", _causal_windows(transient, kernel.shape[-1]), kernel.flip(-1))
+    return transient @ causal_matrix(kernel, transient.shape[-1]).transpose(-1, -2)
+
+
+class _SoftBin(torch.autograd.Function):
+    """``T[b, z, n] = sum_r amp[b, z, r] G(n - u[b, z, r])``, ``G`` the Gaussian of width ``sigma`` (bins,
+    unit area), with its derivatives written out.
+
+    The (B, 9, R, N) Gaussian is the largest array of the model. Forward-mode derivatives by autograd would
+    build it again for every tangent (the calibration's Jacobian has ~50); here the Gaussian and its
+    derivatives in ``u`` and ``sigma`` are made once and every tangent is a matrix product with them.
+    """
+
+    generate_vmap_rule = True
+
+    @staticmethod
+    def forward(amp, u, sigma, bins):
+        z = (bins.view(1, 1, 1, -1) - u.unsqueeze(-1)) / sigma
+        g = torch.exp(-0.5 * z * z) / (sigma * _SQRT_2PI)
+        return torch.einsum("bzr,bzrn->bzn", amp, g)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output):
+        amp, u, sigma, bins = inputs
+        ctx.save_for_backward(amp, u, sigma, bins)
+        ctx.save_for_forward(amp, u, sigma, bins)
+
+    @staticmethod
+    def _parts(amp, u, sigma, bins):
+        z = (bins.view(1, 1, 1, -1) - u.unsqueeze(-1)) / sigma
+        g = torch.exp(-0.5 * z * z) / (sigma * _SQRT_2PI)
+        return g, g * z / sigma, g * (z * z - 1.0) / sigma  # G, dG/du, dG/dsigma
+
+    @staticmethod
+    def jvp(ctx, d_amp, d_u, d_sigma, _d_bins):
+        amp, u, sigma, bins = ctx.saved_tensors
+        g, g_u, g_s = _SoftBin._parts(amp, u, sigma, bins)
+        out = torch.zeros(amp.shape[:2] + bins.shape, dtype=amp.dtype)
+        if d_amp is not None:
+            out = out + torch.einsum("bzr,bzrn->bzn", d_amp, g)
+        if d_u is not None:
+            out = out + torch.einsum("bzr,bzrn->bzn", amp * d_u, g_u)
+        if d_sigma is not None:
+            out = out + d_sigma * torch.einsum("bzr,bzrn->bzn", amp, g_s)
+        return out
+
+    @staticmethod
+    def backward(ctx, grad):
+        amp, u, sigma, bins = ctx.saved_tensors
+        g, g_u, g_s = _SoftBin._parts(amp, u, sigma, bins)
+        d_amp = torch.einsum("bzn,bzrn->bzr", grad, g)
+        d_u = amp * torch.einsum("bzn,bzrn->bzr", grad, g_u)
+        d_sigma = (amp * torch.einsum("bzn,bzrn->bzr", grad, g_s)).sum().reshape(sigma.shape)
+        return d_amp, d_u, d_sigma, None
+
+
+def soft_bin(amp: torch.Tensor, u: torch.Tensor, sigma: torch.Tensor, bins: torch.Tensor) -> torch.Tensor:
+    """Transients (B, 9, N) of ray amplitudes ``amp`` (B, 9, R) at bin positions ``u`` (B, 9, R), each spread
+    by a unit-area Gaussian of ``sigma`` bins over the bin centres ``bins`` (N,)."""
+    amp, u = torch.broadcast_tensors(amp, u)
+    return _SoftBin.apply(amp, u, torch.as_tensor(sigma, dtype=amp.dtype), bins.to(amp.dtype))
 
 
 class ForwardModel:
@@ -455,7 +545,7 @@ class ForwardModel:
                        specular_weight: torch.Tensor | None = None,
                        specular_exponent: torch.Tensor | None = None,
                        hit: torch.Tensor | None = None, kernel: torch.Tensor | None = None,
-                       n_bins: int = N_BINS, light: tuple | None = None) -> torch.Tensor:
+                       n_bins: int = N_BINS, light: tuple | None = None, pulse_only: bool = False) -> torch.Tensor:
         """Histograms (B, 9, n_bins) from per-ray returns (the first ``n_bins`` bins; default all 128).
 
         ranges, cos_inc: (B, 9, R) range along the ray (m) and cosine of incidence (>= 0).
@@ -465,7 +555,7 @@ class ForwardModel:
         reference: (B, 128) reference histograms, or pass a precomputed pulse ``kernel`` (B, K).
         light: optional ``(emitter_ranges, light_cos, beam)`` (B, 9, R) of a separate emitter
         (:meth:`plane_light`); without it the emitter sits at the receiver (the ray's own range and cosine,
-        a uniform beam).
+        a uniform beam). pulse_only: stop after the pulse convolution (finish with :meth:`after_pulse`).
         """
         t = self.t
         r = torch.as_tensor(ranges, dtype=self.dtype)
@@ -499,11 +589,23 @@ class ForwardModel:
         path = r if light is None else 0.5 * (r + r_light)  # one-way range: half the light's path
         u = path / t["bin_size"] + t["bin_offset"] + t["zone_offsets"].view(1, N_ZONES, 1)
         sigma = t["soft_bin_sigma"]
-        z = (self.bins[:n_bins].view(1, 1, 1, n_bins) - u.unsqueeze(-1)) / sigma
-        transient = torch.einsum("bzr,bzrn->bzn", amp, torch.exp(-0.5 * z * z)) / (sigma * _SQRT_2PI)
+        transient = soft_bin(amp, u, sigma, self.bins[:n_bins])
         if kernel is None:
             kernel = self.pulse(torch.as_tensor(reference, dtype=self.dtype).expand(b, N_BINS))
         hist = convolve_pulse(transient, kernel)
+        return hist if pulse_only else self.after_pulse(hist)
+
+    #: Parameters that act only after the pulse convolution (:meth:`after_pulse`): a calibration's derivatives in
+    #: them need not render the rays again.
+    AFTER_PULSE = ("response_kernel", "zone_tail_weights", "zone_tail_decays", "crosstalk", "crosstalk_self", "pileup",
+                   "floor")
+
+    def after_pulse(self, hist: torch.Tensor) -> torch.Tensor:
+        """The zone histograms (B, 9, N) after the pulse convolution -> what the sensor reports: each zone's own
+        tail, crosstalk, pile-up and the constant floor (the parameters of :attr:`AFTER_PULSE`)."""
+        t = self.t
+        if torch.is_grad_enabled() or bool(torch.any(t["response_kernel"] != 0)):
+            hist = add_response(hist, t["response_kernel"])
         if torch.is_grad_enabled() or bool(torch.any(t["zone_tail_weights"] != 0)):
             hist = add_zone_tails(hist, zone_tail_taps(t["zone_tail_weights"], t["zone_tail_decays"], self.dtype))
         total = hist.sum(dim=1, keepdim=True)
@@ -548,12 +650,14 @@ class ForwardModel:
     def render_plane(self, normal: torch.Tensor, offset: torch.Tensor, albedo: torch.Tensor,
                      reference: torch.Tensor, specular_weight: torch.Tensor | None = None,
                      specular_exponent: torch.Tensor | None = None,
-                     kernel: torch.Tensor | None = None, n_bins: int = N_BINS) -> torch.Tensor:
-        """Histograms (B, 9, n_bins) of planes ``n . x = d`` with albedo (B,)."""
+                     kernel: torch.Tensor | None = None, n_bins: int = N_BINS,
+                     pulse_only: bool = False) -> torch.Tensor:
+        """Histograms (B, 9, n_bins) of planes ``n . x = d`` with albedo (B,) (``pulse_only``: see
+        :meth:`render_returns`)."""
         ranges, cos, hit = self.plane_returns(normal, offset)
         return self.render_returns(ranges, cos, albedo, reference, specular_weight=specular_weight,
                                    specular_exponent=specular_exponent, hit=hit, kernel=kernel, n_bins=n_bins,
-                                   light=self.plane_light(normal, offset, ranges, hit))
+                                   light=self.plane_light(normal, offset, ranges, hit), pulse_only=pulse_only)
 
 
 @contextmanager

@@ -18,7 +18,7 @@ Chain of the derivatives, per ray with direction ``v``::
     p = sat (1 - exp(-g^v rho h^w / (sat r^2))) h^(1-w) g^(1-v),   w = saturate_shading, v = saturate_gain
     u = r / bin_size + bin_offset + zone_offset
     T(bin) = sum_rays w p G(bin - u),      G = Gaussian of soft_bin_sigma
-    F = crosstalk-mix(zone-tail(T * pulse)),   H = pile-up(F)   (mix: h + c (total - (1 - crosstalk_self) h))   (Coates; identity when ``pileup = 0``)
+    F = crosstalk-mix(zone-tail(response(T * pulse))),   H = pile-up(F)   (mix: h + c (total - (1 - crosstalk_self) h))   (Coates; identity when ``pileup = 0``)
 
 With the emitter at ``E = (bx, by, 0)`` (``baseline``) the light's range ``r_e = |r v - E|`` replaces ``r`` in
 the inverse square, ``c = (z0 - a bx - b by) / (s r_e)`` is the light's cosine, the flux is weighted by the
@@ -31,7 +31,7 @@ import math
 
 import numpy as np
 
-from place_safe.recovery.forward import ForwardParams, ZoneRays, zone_tail_taps
+from place_safe.recovery.forward import ForwardParams, ZoneRays, response_matrix, zone_tail_taps
 from place_safe.sensor.frame import N_BINS, N_ZONES
 
 N_UNKNOWNS = 6
@@ -75,10 +75,16 @@ class PlaneRenderer:
             bx, by, self.dirs[..., 0] * bx + self.dirs[..., 1] * by, float(params.beam_power))
         # each zone's own tail (ForwardModel: add_zone_tails) as (9, 128, 128) causal matrices; a narrower
         # histogram uses their top-left corner (causal: the first W bins depend on the first W only). None: no tails
+        # The learned impulse response (ForwardModel.after_pulse: add_response, before the tails) is folded in:
+        # both are causal convolutions, so their matrices multiply
         self.tail_mats = None
         if np.any(np.asarray(params.zone_tail_weights) != 0.0):
             taps = zone_tail_taps(params.zone_tail_weights, params.zone_tail_decays).numpy()
             self.tail_mats = convolution_matrices(np.hstack([np.ones((N_ZONES, 1)), taps]), N_BINS)
+        if np.any(np.asarray(params.response_kernel) != 0.0):
+            resp = response_matrix(params.response_kernel, N_BINS).numpy()
+            self.tail_mats = (np.broadcast_to(resp, (N_ZONES, N_BINS, N_BINS)) if self.tail_mats is None
+                              else self.tail_mats @ resp)
 
     def render(self, x: np.ndarray, conv: np.ndarray, jacobian: bool = False):
         """Histograms (B, 9, W) for unknowns x (B, 6) and convolution matrices (B, W, W).

@@ -3,6 +3,7 @@
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from place_safe.calibration import Calibration
 from place_safe.calibration.points import fit_peak
@@ -49,3 +50,22 @@ def test_a_method_that_fails_every_frame_shows_dashes_not_nan():
     rep = evaluate(sweep, None, ["peak"], progress=False)
     row = next(line for line in rep.table().splitlines() if line.startswith("peak"))
     assert "nan" not in row and row.split()[1:10] == ["-"] * 9 and row.split()[10] == "3"
+
+
+def test_summary_reports_the_fallback_rate_and_the_albedo_spread():
+    """diff's share of frames answered by peak's plane, and the recovered albedos' spread (one surface: how
+    well one albedo is read over distance and angle)."""
+    import numpy as np
+
+    from place_safe.evaluation.evaluate import MethodResult
+
+    n = 4
+    res = MethodResult("diff", np.zeros(n), np.zeros(n), np.zeros(n), np.array([2.0, 2.2, 1.8, np.nan]),
+                       np.zeros(n), [None] * n, used=["diff", "peak", "diff", None])
+    s = res.summary()
+    assert s["fallback_rate"] == pytest.approx(1 / 3)
+    assert s["albedo"]["mean"] == pytest.approx(2.0)
+    assert s["albedo"]["cv_percent"] == pytest.approx(10.0)
+    assert s["albedo"]["count"] == 3
+    none = MethodResult("peak", np.zeros(1), np.zeros(1), np.zeros(1), np.full(1, np.nan), np.zeros(1), [None])
+    assert none.summary()["fallback_rate"] is None and none.summary()["albedo"] is None

@@ -227,3 +227,28 @@ def test_soft_binned_pulse_is_smoother_than_interpolated():
     assert abs(int(lin.argmax()) - int(soft.argmax())) <= 1
     assert soft.max().item() == pytest.approx(1.0)
     assert (soft > 0.05).sum() >= (lin > 0.05).sum()
+
+
+def test_a_file_without_the_learned_response_reads_as_none():
+    """Forward parameters written before the learned impulse response (no ``response_kernel`` key) load with
+    zero weights, which render exactly what the model rendered before."""
+    from place_safe.recovery.forward import RESPONSE_LAGS
+
+    d = ForwardParams().to_dict()
+    d.pop("response_kernel")
+    old = ForwardParams.from_dict(d)
+    assert old.response_kernel == [0.0] * RESPONSE_LAGS
+
+
+def test_the_learned_response_adds_delayed_copies_of_the_histogram():
+    """A weight ``w`` at lag ``k`` adds ``w`` times the histogram ``k`` bins later (causal, per zone)."""
+    from place_safe.recovery.forward import RESPONSE_LAGS, add_response
+
+    hist = torch.zeros(1, 9, 40, dtype=torch.float64)
+    hist[0, :, 5] = 100.0
+    kernel = torch.zeros(RESPONSE_LAGS, dtype=torch.float64)
+    kernel[14] = 0.02  # lag 15
+    out = add_response(hist, kernel)
+    expected = hist.clone()
+    expected[0, :, 20] = 2.0
+    torch.testing.assert_close(out, expected)

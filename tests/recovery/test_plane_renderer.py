@@ -78,3 +78,18 @@ def test_matches_torch_model_with_zone_tails():
                       pileup=1e-7, crosstalk=0.02, crosstalk_self=0.5, tail_weight=0.02, tail_decay=5.0)
     _check(p, np.array([0.15, -0.05, 0.06, math.log(3.0), 0.1, math.log(2.0)]))
     _check(p, np.array([-0.3, 0.2, 0.2, math.log(1.0), 0.2, math.log(1.5)]))
+
+
+def test_matches_torch_model_with_a_learned_impulse_response():
+    """The learned impulse response (non-negative weights at lags 1..24 bins, a second bump included) is rendered
+    and differentiated exactly as in the torch model, alone and together with the zones' own tails."""
+    from place_safe.recovery.forward import RESPONSE_LAGS
+
+    kernel = np.zeros(RESPONSE_LAGS)
+    kernel[:4] = [0.3, 0.1, 0.05, 0.02]
+    kernel[14:17] = [0.01, 0.02, 0.01]
+    _check(ForwardParams(response_kernel=list(kernel), pileup=1e-7, crosstalk=0.01),
+           np.array([0.1, 0.05, 0.08, math.log(3.0), 0.1, math.log(2.0)]))
+    p = ForwardParams(response_kernel=list(kernel), zone_tail_weights=list(np.linspace(0.0, 0.08, 9)),
+                      zone_tail_decays=list(np.linspace(1.5, 4.0, 9)))
+    _check(p, np.array([-0.2, 0.1, 0.15, math.log(2.0), 0.2, math.log(1.5)]))
