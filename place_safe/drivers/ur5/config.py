@@ -301,4 +301,5 @@ def _toml(d: dict, prefix: str = "") -> str:
 
 
 __all__ = ["check_host", "URConfig", "MotionConfig", "ContactConfig", "placement_config", "ConnectionConfig",
-           "LimitsConfig", "ToolConfig", "FrameConfig", "DigitalGripperConfig", "RobotiqGripperConfig", "NoGripperConfig", "CONTROLLER_HZ", "packaged_config"]
+           "LimitsConfig", "ToolConfig", "FrameConfig", "DigitalGripperConfig", "RobotiqGripperConfig",
+           "NoGripperConfig", "CONTROLLER_HZ", "packaged_config"]
