@@ -49,6 +49,20 @@ from typing import Any
 
 import numpy as np
 
+from place_safe.config import Bound, check_dataclass
+
+#: The physical range of each setting, once: :class:`DetectorSettings` checks itself against it, and the robot
+#: file's ``[contact]`` section takes its field ranges from it.
+DETECTOR_BOUNDS: dict[str, Bound] = {
+    "noise_std": Bound(0.0, 50.0, "N per axis per cycle", lo_open=True),
+    "window": Bound(1, 1000, "cycles"),
+    "sigmas": Bound(0.0, 20.0, "standard deviations", lo_open=True),
+    "persistence": Bound(1, 1000, "cycles"),
+    "min_threshold": Bound(0.0, 100.0, "N", lo_open=True),
+    "lateral_sigmas": Bound(0.0, 30.0, "standard deviations", lo_open=True),
+    "period": Bound(0.0, 1.0, "s", lo_open=True),
+}
+
 #: Per-controller default settings (see :class:`DetectorSettings`). CB3: about 3.6 N per axis per cycle
 #: (the documented spread of the motor-current estimate); 6 cycles (48 ms) averaged, 5 standard deviations
 #: of the average (7.35 N), one cycle above it: about 2e-7 false alarms per cycle of such noise (11 in 6e7
@@ -69,11 +83,12 @@ CONTROLLER_DEFAULTS: dict[str, dict[str, float]] = {
 class DetectorSettings:
     """One contact detector's settings (SI units; cycles are controller cycles).
 
-    ``noise_std``: N, standard deviation per axis per cycle of the force estimate at rest (the floor: the
-    noise measured at rest raises it, never lowers it). ``window``: cycles averaged. ``sigmas``: threshold
-    in standard deviations of the average. ``persistence``: consecutive cycles above it. ``min_threshold``:
-    N, the least threshold whatever the noise. ``lateral_sigmas``: the factor for the norm of the averaged
-    vector. ``period``: s, one controller cycle.
+    ``noise_std``: N, standard deviation per axis per cycle of the force estimate at rest (the floor:
+    a spread measured at rest raises it beyond its sampling error, never lowers it). ``window``: cycles
+    averaged. ``sigmas``: threshold in standard deviations of the average. ``persistence``: consecutive
+    cycles above it. ``min_threshold``: N, the least threshold whatever the noise. ``lateral_sigmas``: the
+    factor for the norm of the averaged vector. ``period``: s, one controller cycle. Ranges:
+    :data:`DETECTOR_BOUNDS`.
     """
 
     noise_std: float = 3.6
@@ -85,14 +100,7 @@ class DetectorSettings:
     period: float = 0.008
 
     def __post_init__(self) -> None:
-        for name in ("noise_std", "sigmas", "min_threshold", "lateral_sigmas", "period"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
-                raise ValueError(f"contact detector {name} must be a positive finite number; got {v!r}")
-        for name in ("window", "persistence"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 1 <= v <= 1000:
-                raise ValueError(f"contact detector {name} must be an integer 1..1000 cycles; got {v!r}")
+        check_dataclass(self, DETECTOR_BOUNDS, "contact detector", ValueError)
 
     @classmethod
     def for_controller(cls, controller: str, **overrides: Any) -> "DetectorSettings":

@@ -226,17 +226,31 @@ class MotionConfig(ConfigModel):
                                                "most limits.max_linear_accel")
 
 
+def _detector(name: str) -> dict:
+    """The range of contact-detector setting ``name`` (:data:`~place_safe.robot.contact_detector.DETECTOR_BOUNDS`),
+    as pydantic field constraints (numbers as written in a robot file: not strict)."""
+    from place_safe.robot.contact_detector import DETECTOR_BOUNDS
+
+    return {k: v for k, v in DETECTOR_BOUNDS[name].constraints().items() if k != "strict"}
+
+
 class ContactConfig(ConfigModel):
     """The contact detector on the TCP force estimate (:mod:`place_safe.robot.contact_detector`); each unset
     value takes the controller's default (CB3 about 3.6 N per axis per cycle, e-Series about 1 N).
     ``place-safe robot bench --write`` measures ``noise_std`` on the arm at rest and writes it here."""
 
-    noise_std: float | None = Field(None, gt=0, le=50, description="N per axis per controller cycle at rest")
-    window: int | None = Field(None, ge=1, le=1000, description="controller cycles averaged")
-    sigmas: float | None = Field(None, gt=0, le=20, description="threshold in standard deviations of the average")
-    persistence: int | None = Field(None, ge=1, le=1000, description="consecutive cycles above the threshold")
-    min_threshold: float | None = Field(None, gt=0, le=100, description="N: the least threshold")
-    lateral_sigmas: float | None = Field(None, gt=0, le=30, description="threshold factor for the vector norm")
+    noise_std: float | None = Field(None, **_detector("noise_std"),
+                                     description="N per axis per controller cycle at rest")
+    window: int | None = Field(None, **_detector("window"),
+                                description="controller cycles averaged")
+    sigmas: float | None = Field(None, **_detector("sigmas"),
+                                  description="threshold in standard deviations of the average")
+    persistence: int | None = Field(None, **_detector("persistence"),
+                                     description="consecutive cycles above the threshold")
+    min_threshold: float | None = Field(None, **_detector("min_threshold"),
+                                         description="N: the least threshold")
+    lateral_sigmas: float | None = Field(None, **_detector("lateral_sigmas"),
+                                          description="threshold factor for the vector norm")
     measured: dict | None = Field(None, description="written by place-safe robot bench: what it measured")
 
     def settings(self, controller: str):
