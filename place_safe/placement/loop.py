@@ -527,7 +527,7 @@ class PlacementLoop:
         try:
             fs = self.surface.add(frame, base_T_sensor, stamp)
         except Exception as exc:  # the map is evidence, not control: a bug there must not stop the loop
-            return est, f"surface map failed: {type(exc).__name__}: {exc}".splitlines()[0]
+            return est, f"surface map failed: {describe_exception(exc)}"
         if fs is None:
             return est, None
         # zones off the known surface while most still lie on it: clutter or a step coming into view
@@ -615,7 +615,7 @@ class PlacementLoop:
         except Exception as exc:
             from place_safe.fusion.surface_map import FootprintVerdict
 
-            return FootprintVerdict(problem=f"surface map failed: {type(exc).__name__}: {exc}".splitlines()[0])
+            return FootprintVerdict(problem=f"surface map failed: {describe_exception(exc)}")
 
     def _dispatch(self, cmd: Any) -> None:
         try:
