@@ -33,7 +33,7 @@ N_JOINTS = 6
 
 
 def _default_urdf() -> Path:
-    from place_safe.robots import ur5_urdf_path
+    from place_safe.robot.description import ur5_urdf_path
 
     return ur5_urdf_path()
 
@@ -64,7 +64,7 @@ class Kinematics:
     Parameters
     ----------
     urdf_path:
-        URDF file; default :func:`place_safe.robots.ur5_urdf_path`.
+        URDF file; default :func:`place_safe.robot.description.ur5_urdf_path`.
     root:
         Root link (the base frame). Default ``base_link``.
     frames:

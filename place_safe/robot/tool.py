@@ -79,7 +79,7 @@ class ToolFrames:
     @classmethod
     def ur5_default(cls) -> "ToolFrames":
         """The packaged UR5 gripper, TMF8820 mount and cup (``robots/ur5/config.json``)."""
-        from place_safe.robots import ur5_config
+        from place_safe.robot.description import ur5_config
 
         return cls.from_robot_config(ur5_config())
 

@@ -11,8 +11,8 @@ import pytest
 
 from place_safe.exceptions import RobotFault
 from place_safe.robot.kinematics import Kinematics
-from place_safe.robots import ur5_config, ur5_mjcf_path
-from place_safe.robots.ur5 import generate as gen
+from place_safe.robot.description import ur5_config, ur5_mjcf_path
+from place_safe.robot import model_generator as gen
 
 POS_TOL_M = 1e-4  # 0.1 mm
 ROT_TOL_RAD = np.deg2rad(0.01)

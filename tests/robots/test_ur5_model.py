@@ -8,8 +8,8 @@ import mujoco
 import numpy as np
 import pytest
 
-from place_safe.robots import ur5_config, ur5_config_path, ur5_mjcf_path, ur5_urdf_path
-from place_safe.robots.ur5 import generate as gen
+from place_safe.robot.description import ur5_config, ur5_config_path, ur5_mjcf_path, ur5_urdf_path
+from place_safe.robot import model_generator as gen
 from place_safe.sensor.frame import ZONE_RECTS
 
 

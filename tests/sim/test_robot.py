@@ -10,7 +10,7 @@ import pytest
 
 from place_safe.exceptions import RobotFault
 from place_safe.robot.interface import RobotLimits, TrapezoidProfile
-from place_safe.robots import ur5_mjcf_path
+from place_safe.robot.description import ur5_mjcf_path
 from place_safe.sim.robot import SimRobot
 
 

@@ -284,7 +284,7 @@ def placement_config(robot: URConfig, base=None):
 
 def packaged_config(name: str = "sim") -> Path:
     """Path of a packaged robot file: ``real`` or ``sim`` (``robots/ur5/<name>.toml``)."""
-    from place_safe.robots import ur5_dir
+    from place_safe.robot.description import ur5_dir
 
     return ur5_dir() / f"{name}.toml"
 

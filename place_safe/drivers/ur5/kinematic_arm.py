@@ -48,7 +48,7 @@ class KinematicArm(Robot):
                  kinematics: Any = None, contact_plane: tuple[Any, float] | None = None,
                  contact_points: Any = ((0.0, 0.0, 0.0),), stiffness: float = 20000.0) -> None:
         from place_safe.robot.kinematics import Kinematics
-        from place_safe.robots import ur5_config
+        from place_safe.robot.description import ur5_config
 
         self.kin = kinematics if kinematics is not None else Kinematics()
         self.limits = limits if limits is not None else RobotLimits()

@@ -145,7 +145,7 @@ def run_placement(scenario: Any = "place_level", method: str | None = None, cali
     """
     from place_safe.calibration import uncalibrated_reason
     from place_safe.recovery import make_estimator
-    from place_safe.robots import ur5_config
+    from place_safe.robot.description import ur5_config
     from place_safe.sim.scenario import TruthRecorder, surface_truth
     from place_safe.sim.world import sim_world
 

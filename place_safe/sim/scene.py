@@ -28,7 +28,6 @@ import json
 import math
 import os
 from dataclasses import asdict, dataclass, field, is_dataclass
-from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -36,6 +35,7 @@ import numpy as np
 
 from place_safe.config import Bound, check_dataclass, check_keys, read_json
 from place_safe.exceptions import PlaceSafeError
+from place_safe.robot.description import ur5_mjcf_path
 
 if "MUJOCO_GL" not in os.environ and not os.environ.get("DISPLAY"):
     os.environ["MUJOCO_GL"] = "egl"  # offscreen rendering without a display (read when mujoco is imported)
@@ -355,7 +355,7 @@ class Scene:
 
 def default_robot_xml() -> Path:
     """Path of the packaged UR5 model (robots/ur5/ur5.xml)."""
-    return Path(str(resources.files("place_safe.robots").joinpath("ur5/ur5.xml")))
+    return ur5_mjcf_path()
 
 
 def build_scene(config: SceneConfig | None = None) -> Scene:

@@ -35,7 +35,6 @@ import json
 import time
 from collections import deque
 from dataclasses import asdict, dataclass, field, fields
-from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -52,12 +51,13 @@ from place_safe.io.source import FrameSource
 from place_safe.evaluation.synthetic import default_reference
 
 from place_safe.sim.scene import Scene, SceneError
+from place_safe.assets import sim_sensors_dir
 
 
 
 def sensor_file(name: str) -> Path:
-    """Path of a packaged sensor parameter file in ``sim/sensors``."""
-    return Path(str(resources.files("place_safe.sim").joinpath("sensors", name)))
+    """Path of a simulated-sensor file in ``sim/sensors`` (see :mod:`place_safe.assets`)."""
+    return sim_sensors_dir() / name
 
 
 def true_params() -> ForwardParams:

@@ -21,7 +21,6 @@ passed 40 cm above the surface, and whether the cup ended upright, on the table,
 from __future__ import annotations
 
 import math
-from importlib import resources
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -29,6 +28,7 @@ import numpy as np
 from pydantic import Field, field_validator, model_validator
 
 from place_safe.config import ConfigModel, parse_config
+from place_safe.assets import scenarios_dir
 from place_safe.exceptions import ConfigError
 
 from place_safe.sim.tof_mismatch import MismatchConfig
@@ -285,7 +285,7 @@ def home_cup_position(scene_cfg) -> np.ndarray:
     from scipy.spatial.transform import Rotation
 
     from place_safe.robot.kinematics import Kinematics
-    from place_safe.robots import ur5_config
+    from place_safe.robot.description import ur5_config
 
     global _HOME_CUP
     if _HOME_CUP is None:
@@ -311,7 +311,7 @@ def scenario_path(name: str | Path) -> Path:
         return p
     if p.exists() or p.is_symlink():  # a directory, a FIFO, a device: never opened, never a packaged name
         raise ConfigError(f"scenario {name} {input_file_problem(p)}")
-    root = Path(str(resources.files("place_safe.scenarios")))
+    root = scenarios_dir()
     cands = [root / p.name] if p.suffix in SUFFIXES else [root / (p.name + s) for s in SUFFIXES]
     cands += [root / "set" / c.name for c in cands]
     for c in cands:
@@ -333,7 +333,7 @@ def load_scenario(name: str | Path) -> Scenario:
 
 def packaged_scenarios(subdir: str = "set") -> list[Path]:
     """The hand-written set (``scenarios/set/*.toml``) or, with ``subdir=''``, the top-level files."""
-    root = Path(str(resources.files("place_safe.scenarios")))
+    root = scenarios_dir()
     d = root / subdir if subdir else root
     return sorted(p for p in d.iterdir() if p.suffix in SUFFIXES)
 

@@ -16,8 +16,7 @@ Writes, next to this script (or to ``--out-dir``):
   ``mm = slope * first_peak_bin + intercept`` fitted (least squares) to the distances the real sensor
   reported, with the same peak finder the simulator uses (:func:`place_safe.sensor.histogram.first_return`).
 
-Run: ``python -m place_safe.sim.sensors.make_real --sweep /work/shared/data/tmf8820_ur5_sweep.json``
-(or ``python sim/sensors/make_real.py``).
+Run: ``python sim/make_real_sensor.py --sweep /work/shared/data/tmf8820_ur5_sweep.json``
 """
 
 from __future__ import annotations
@@ -34,7 +33,7 @@ from place_safe.recovery.forward import ForwardModel, ForwardParams, ZoneRays
 from place_safe.io.frame_file import load_frames
 from place_safe.sensor.frame import N_ZONES, Frame
 
-HERE = Path(__file__).resolve().parent
+HERE = Path(__file__).resolve().parent / "sensors"
 #: Parameters not fitted by default (kept at the published values), see the module docstring.
 HELD = ("specular_weight", "specular_exponent", "edge_fov_scale", "corner_fov_scale")
 

@@ -38,7 +38,7 @@ from scipy.spatial.transform import Rotation
 from place_safe.exceptions import RobotFault
 from place_safe.robot.contact_detector import ContactDetector, DetectorSettings
 from place_safe.robot.interface import Robot, RobotLimits, TrapezoidProfile, check_pose, check_twist
-from place_safe.robots import ur5_config
+from place_safe.robot.description import ur5_config
 
 from place_safe.sim.robot_model import ARM_JOINTS, FINGERS, load_robot_model, robot_spec  # noqa: F401
 
