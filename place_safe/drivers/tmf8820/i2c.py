@@ -282,12 +282,13 @@ class TMF8820Source(FrameSource):
     def _read(self, reg: int, n: int) -> bytes:
         """Read ``n`` register bytes, whole and not cut short by an open bus.
 
-        A read that comes back short is read again. A read whose last byte is 0xFF may have been cut short
-        by a device that stopped driving the bus (the rest reads 0xFF, whatever the length says). A long read
-        has its trailing run of 0xFF bytes read again (usually one byte): all 0xFF again, and the first read
-        holds the register bytes (a cut could only have put 0xFF where 0xFF was). A short read is read again
-        whole. When they differ it is read again until a read does not end in 0xFF or two reads agree. Only ever used where a second read
-        sees the same bytes (registers, a packet whose interrupt is still pending). Counted as ``short_read``.
+        A read that comes back short is read again. A read whose last byte is 0xFF may have been cut short by a
+        device that stopped driving the bus (the rest reads 0xFF, whatever the length says). A long read has its
+        trailing run of 0xFF bytes read again (usually one byte): all 0xFF again, and the first read holds the
+        register bytes (a cut could only have put 0xFF where 0xFF was). A short read is read again whole. When
+        they differ it is read again until a read does not end in 0xFF or two reads agree. Only ever used where
+        a second read sees the same bytes (registers, a packet whose interrupt is still pending). Counted as
+        ``short_read``.
         """
         prev: bytes | None = None
         tail: bytes | None = None

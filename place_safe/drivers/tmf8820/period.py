@@ -20,15 +20,15 @@ with :data:`QUEUE_K` = ln(1000) / 2 keeps that near one measurement in a thousan
 below deals with the rest).
 
 :class:`PeriodFit` decides, from that model and from what actually happens (``period_ms``, milliseconds,
-never below the floor the user asked for; ``need`` is a callable giving the model's need in ms, or None before there are enough
-timings, asked only when it matters):
+never below the floor the user asked for; ``need`` is a callable giving the model's need in ms, or None
+before there are enough timings, asked only when it matters):
 
 * ``fit``: at the first whole measurement the period becomes the model's need (before it, the caller uses
   a guess from the bus speed).
 * ``overwritten``: a measurement was lost. The period grows by ``step`` ms (1, doubling while overwrites
   come within :data:`OVERWRITE_MEMORY` frames of each other, so a far too short period is left in a few
-  steps), and to at least the model's need. If the period had just been shortened (a probe), that probe
-  failed: the wait before the next one doubles, up to :data:`MAX_RELAX_FRAMES`.
+  steps), and to at least the model's need. If the period is one a probe shortened it to, that probe
+  failed (however late): the wait before the next one doubles, up to :data:`MAX_RELAX_FRAMES`.
 * ``frame``: after ``wait`` frames (first :data:`RELAX_FRAMES`) with neither an overwrite nor a change, and
   when the model says a shorter period holds, the period is shortened to the model's need (a probe).
 
@@ -131,8 +131,6 @@ class PeriodFit:
         a shorter period holds."""
         self._clean += 1
         self._since_overwrite += 1
-        if self._probe and self._clean >= self.wait:
-            self._probe = False  # the probe held
         if not self.fitted:
             return self.fit(need)
         if self._clean < self.wait:
