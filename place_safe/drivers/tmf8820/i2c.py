@@ -228,6 +228,8 @@ class TMF8820Source(FrameSource):
         self._app_up = False        # the application ran during the bring-up in progress
         self._lost_in_a_row = 0     # packets in a row found by a header read after their interrupt was overdue
         self._peek_polls = False    # then poll the window's header, not INT_STATUS, within a measurement
+        self._order_probe = False   # check once whether the chip replaces a packet without our clear
+        self._clear_first = False   # it does (it releases a packet once read): clear before reading, not after
         self._forget_stream()
         self._pre_poll = 0.0        # host wait between clearing an interrupt and the first poll (s, adaptive)
         self._poll_cost = 0.0       # duration of one INT_STATUS poll (s, running mean)
@@ -763,7 +765,8 @@ class TMF8820Source(FrameSource):
                 if self._window_has_new():
                     self.stats["lost_interrupts"] += 1
                     self._lost_in_a_row += 1
-                    self._peek_polls = self._peek_polls or self._lost_in_a_row >= 2
+                    if self._lost_in_a_row >= 2 and not (self._peek_polls or self._clear_first):
+                        self._order_probe = True
                     return R.INT_MEASUREMENT
                 check = now + ALIVE_S
                 mid = False
@@ -797,8 +800,27 @@ class TMF8820Source(FrameSource):
                     self._stale_since = seen
                 self._nap(self.poll_s, deadline)
                 return None
+        if self._clear_first:  # a chip that releases on read: the clear cannot wipe the next interrupt now
+            self._write(R.INT_STATUS, [bits & R.INT_MEASUREMENT or R.INT_MEASUREMENT])
         buf = self._read(R.PAGE, R.HIST_PACKET_SIZE)
+        if self._order_probe and buf[0] == R.CID_RAW_HISTOGRAM and not self._is_old(buf):
+            self._probe_clear_order(buf, deadline)
         return self._handle(buf, bits, seen, deadline)
+
+    def _probe_clear_order(self, buf: bytes, deadline: float) -> None:
+        """Interrupts got lost twice in a row: does the chip replace a packet that was read but not cleared?
+        Wait :data:`LOST_INT_S` (far above any publish latency) and look at the window's header. A new packet
+        there is proof that the chip releases a packet once it has been read (the protocol's chip never
+        replaces a packet before its clear): from then on the interrupt is cleared before the read, which
+        cannot wipe the next packet's. Otherwise the driver polls the window's header within a measurement."""
+        self._order_probe = False
+        self._nap(LOST_INT_S, deadline)
+        head = self._read(R.PAGE, _KEY)
+        if head[0] in (R.CID_RAW_HISTOGRAM, R.CID_RESULT) and head != buf[:_KEY]:
+            self._clear_first = True
+            self._lost_in_a_row = 0
+        else:
+            self._peek_polls = True
 
     def _handle(self, buf: bytes, bits: int, seen: float, deadline: float) -> Frame | None:
         cid = buf[0]
@@ -811,7 +833,8 @@ class TMF8820Source(FrameSource):
         if cid == R.CID_RAW_HISTOGRAM:
             t0 = time.perf_counter()
             self._last_key = bytes(buf[:_KEY])
-            self._write(R.INT_STATUS, [R.INT_RAW_HISTOGRAM])
+            if not self._clear_first:
+                self._write(R.INT_STATUS, [R.INT_RAW_HISTOGRAM])
             self._transfers.append(self._clock() - seen)
             try:
                 number, data = P.decode_histogram_packet(buf)
@@ -835,7 +858,8 @@ class TMF8820Source(FrameSource):
             return None
         if cid == R.CID_RESULT:
             self._last_key = bytes(buf[:_KEY])
-            self._write(R.INT_STATUS, [R.INT_RESULT])
+            if not self._clear_first:
+                self._write(R.INT_STATUS, [R.INT_RESULT])
             self._transfers.append(self._clock() - seen)
             t0 = time.perf_counter()
             if self._prev_seen is not None and self._asm.started:
