@@ -26,9 +26,13 @@ is stale (an interrupt with nothing new behind it): counted in ``stale_reads``, 
 header reads, never whole packets, tell when a new one is there. In a measurement, an interrupt overdue by
 :data:`LOST_INT_S` is looked for in the window's header (a lost interrupt, ``lost_interrupts``). A chip
 that takes a packet as released when it has been read, not when its interrupt is cleared (the other
-interrupt-clear order), raises the next packet's interrupt before the host's clear, which then wipes it:
-after two lost interrupts in a row the driver polls the window's 5-byte header (cid, tid, packet number)
-instead of INT_STATUS within a measurement.
+interrupt-clear order), raises the next packet's interrupt before the host's clear, which then wipes it.
+After two lost interrupts in a row the driver checks once whether the chip replaces a packet it has read
+but not cleared (:meth:`TMF8820Source._probe_clear_order`; the protocol's chip never does): if it does,
+the driver clears each interrupt before reading its packet from then on (which on such a chip cannot
+release it, nor wipe the next one), else it polls the window's 5-byte header (cid, tid, packet number)
+instead of INT_STATUS within a measurement. On such a chip a packet ending in 0xFF can only be checked
+after its release, so when the check races the next packet the measurement is dropped.
 
 Validation: headers (cid, payload length 131 / 128), packet numbers 0..29, sub-headers (payload size and
 config id the same in all 30 packets), the result frame (valid results at most 18, a result number other
