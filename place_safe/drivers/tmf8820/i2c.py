@@ -31,8 +31,10 @@ After two lost interrupts in a row the driver checks once whether the chip repla
 but not cleared (:meth:`TMF8820Source._probe_clear_order`; the protocol's chip never does): if it does,
 the driver clears each interrupt before reading its packet from then on (which on such a chip cannot
 release it, nor wipe the next one), else it polls the window's 5-byte header (cid, tid, packet number)
-instead of INT_STATUS within a measurement. On such a chip a packet ending in 0xFF can only be checked
-after its release, so when the check races the next packet the measurement is dropped.
+instead of INT_STATUS within a measurement. A packet read that needed a second look (cut, or a 0xFF
+tail) is kept only if the window's header still shows it afterwards (:meth:`TMF8820Source._still_there`:
+always on the protocol's chip; on the other order the second look may mix two packets, and the measurement
+is dropped, ``unverified``).
 
 Validation: headers (cid, payload length 131 / 128), packet numbers 0..29, sub-headers (payload size and
 config id the same in all 30 packets), the result frame (valid results at most 18, a result number other
@@ -78,7 +80,6 @@ from __future__ import annotations
 import errno
 import json
 import math
-import statistics
 import time
 from collections import deque
 from collections.abc import Callable
@@ -216,7 +217,7 @@ class TMF8820Source(FrameSource):
         self.retries, self.backoff_s, self.poll_s = max(1, retries), backoff_s, poll_s
         self.start_timeout = float(start_timeout)
         self.stats: dict[str, float] = {"frames": 0, "dropped_frames": 0, "retries": 0, "bad_packet": 0,
-                                        "stale_reads": 0, "lost_interrupts": 0, "overwritten": 0,
+                                        "stale_reads": 0, "lost_interrupts": 0, "overwritten": 0, "unverified": 0,
                                         "period_changes": 0, "device_errors": 0, "reinit": 0,
                                         "decode_seconds": 0.0, **{k: 0 for k in R.FAULT_KINDS}}
         self.identity: dict[str, Any] = {}
@@ -233,6 +234,7 @@ class TMF8820Source(FrameSource):
         self._lost_in_a_row = 0     # packets in a row found by a header read after their interrupt was overdue
         self._peek_polls = False    # then poll the window's header, not INT_STATUS, within a measurement
         self._order_probe = False   # check once whether the chip replaces a packet without our clear
+        self._reread = False        # the read in progress needed a second look (see _still_there)
         self._clear_first = False   # it does (it releases a packet once read): clear before reading, not after
         self._forget_stream()
         self._pre_poll = 0.0        # host wait between clearing an interrupt and the first poll (s, adaptive)
@@ -303,12 +305,14 @@ class TMF8820Source(FrameSource):
         for attempt in range(self.retries + 1):
             if attempt:
                 self._due()
+                self._reread = True
             data = self._read_raw(reg, n)
             if len(data) != n:
                 self.stats["short_read"] += 1
                 continue
             if prev is None and tail is None and n > 2 * _TAIL and data[-1] == 0xFF:
                 tail_at = len(data.rstrip(b"\xff"))
+                self._reread = True
                 tail = self._read_raw((reg + tail_at) & 0xFF, n - tail_at)
                 if tail == data[tail_at:]:
                     return data  # the bytes really end in 0xFF
@@ -806,10 +810,26 @@ class TMF8820Source(FrameSource):
                 return None
         if self._clear_first:  # a chip that releases on read: the clear cannot wipe the next interrupt now
             self._write(R.INT_STATUS, [bits & R.INT_MEASUREMENT or R.INT_MEASUREMENT])
+        self._reread = False
         buf = self._read(R.PAGE, R.HIST_PACKET_SIZE)
+        if self._reread and not self._still_there(buf):
+            return None
         if self._order_probe and buf[0] == R.CID_RAW_HISTOGRAM and not self._is_old(buf):
             self._probe_clear_order(buf, deadline)
         return self._handle(buf, bits, seen, deadline)
+
+    def _still_there(self, buf: bytes) -> bool:
+        """After a packet read that needed a second look (cut, or a 0xFF tail): is the packet still in the
+        window (header read)? A chip that releases a packet once it has been read may have replaced it
+        meanwhile, and then the second look may hold a mix of two packets: the packet is dropped (its
+        measurement with it, ``unverified``). The protocol's chip keeps it until its clear: always there."""
+        self._due()
+        head = self._read(R.PAGE, _KEY)
+        if head == bytes(buf[:_KEY]):
+            return True
+        self.stats["unverified"] += 1
+        self._asm.mark("short_read")
+        return False
 
     def _probe_clear_order(self, buf: bytes, deadline: float) -> None:
         """Interrupts got lost twice in a row: does the chip replace a packet that was read but not cleared?

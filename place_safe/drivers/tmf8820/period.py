@@ -41,7 +41,6 @@ A host stall that overwrites a measurement lengthens the period by 1 ms, and a l
 from __future__ import annotations
 
 import math
-import statistics
 from collections.abc import Callable, Sequence
 
 #: Packets of one measurement (30 histogram packets and the result frame): intervals in one read-out.
@@ -68,11 +67,15 @@ def need_ms(intervals: Sequence[float], transfers: Sequence[float]) -> int | Non
     fewer than 8 intervals or no transfer."""
     if len(intervals) < 8 or not transfers:
         return None
-    med = statistics.median(intervals)
-    usual = [x for x in intervals if x <= med + 0.001]
-    transfer = max(statistics.fmean(transfers), 1e-6)
-    margin = QUEUE_K * INTERVALS * statistics.pvariance(usual) / transfer
-    readout = INTERVALS * statistics.fmean(usual) + margin + SLACK_S
+    ordered = sorted(intervals)
+    n = len(ordered)
+    med = 0.5 * (ordered[(n - 1) // 2] + ordered[n // 2])
+    usual = [x for x in ordered if x <= med + 0.001]  # plain float sums: this runs once a frame
+    mean = sum(usual) / len(usual)
+    var = sum((x - mean) ** 2 for x in usual) / len(usual)
+    transfer = max(sum(transfers) / len(transfers), 1e-6)
+    margin = QUEUE_K * INTERVALS * var / transfer
+    readout = INTERVALS * mean + margin + SLACK_S
     return min(PERIOD_MAX_MS, max(1, math.ceil(readout * 1000.0)))
 
 
