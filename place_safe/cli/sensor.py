@@ -12,6 +12,7 @@ import argparse
 import json
 import math
 import sys
+import textwrap
 import time
 from pathlib import Path
 from typing import Any
@@ -27,6 +28,11 @@ TIMEOUT = float_range(0.0, 60.0, lo_open=True)
 _FMT = argparse.RawDescriptionHelpFormatter
 _URI_HELP = ("source URI: i2c:BUS[@ADDR], serial:PORT[@BAUD] or serial:LOG, file:FRAMES.json, "
              "emu:file:FRAMES.json, emu:synthetic[:N], emu:SCENARIO")
+
+
+def _paragraphs(*paras: str) -> str:
+    """Help text for the raw-description formatter: each paragraph wrapped at 100 columns."""
+    return "\n\n".join(textwrap.fill(p, 100) for p in paras)
 
 
 def _log(msg: str) -> None:
@@ -196,21 +202,23 @@ def cmd_bench(args: argparse.Namespace) -> int:
     from place_safe.drivers.tmf8820 import bench
 
     rows = []
-    for hz in args.bus_hz:
-        for lat_us in args.latency_us:
-            bar = tqdm(total=args.frames, desc=f"bus {hz / 1e3:g} kHz, latency {lat_us:g} us", unit="frame",
-                       file=sys.stderr, disable=args.quiet or None, leave=False)
-            rows.append(bench.run(hz, frames=args.frames, fault_rate=args.fault_rate, seed=args.seed,
-                                  period_ms=args.period_ms, kilo_iterations=args.kilo_iterations,
-                                  progress=bar.update, publish_latency_s=lat_us * 1e-6))
-            bar.close()
-    print(f"{'bus kHz':>8} {'latency us':>10} {'frames/s':>9} {'limit':>7} {'of limit':>9} {'ceiling':>8} "
-          f"{'period ms':>9} {'bytes/frame':>12} {'vs 4182':>8} {'vs 4368':>8} {'decode ms':>10}")
+    for wait in args.wait:
+        for hz in args.bus_hz:
+            for lat_us in args.latency_us:
+                bar = tqdm(total=args.frames, desc=f"{wait}, bus {hz / 1e3:g} kHz, latency {lat_us:g} us",
+                           unit="frame", file=sys.stderr, disable=args.quiet or None, leave=False)
+                rows.append(bench.run(hz, frames=args.frames, fault_rate=args.fault_rate, seed=args.seed,
+                                      period_ms=args.period_ms, kilo_iterations=args.kilo_iterations,
+                                      progress=bar.update, publish_latency_s=lat_us * 1e-6, int_line=wait == "int"))
+                bar.close()
+    print(f"{'wait':>4} {'bus kHz':>7} {'latency us':>10} {'frames/s':>9} {'limit':>6} {'of limit':>8} "
+          f"{'ceiling':>7} {'of ceil':>7} {'period ms':>9} {'ceil ms':>7} {'bytes/frame':>11} {'vs 4368':>8} "
+          f"{'decode ms':>9}")
     for r in rows:
-        print(f"{r['bus_hz'] / 1e3:>8g} {r['publish_latency_s'] * 1e6:>10g} {r['fps']:>9.2f} {r['fps_limit']:>7.2f} "
-              f"{r['of_limit'] * 100:>8.1f}% {r['host_ceiling_fps']:>8.2f} {r['period_ms']:>9d} "
-              f"{r['bytes_per_frame']:>12.1f} {r['over_payload_min'] * 100:>+7.2f}% "
-              f"{r['over_transfer_min'] * 100:>+7.2f}% {r['decode_ms']:>10.3f}")
+        print(f"{r['wait']:>4} {r['bus_hz'] / 1e3:>7g} {r['publish_latency_s'] * 1e6:>10g} {r['fps']:>9.2f} "
+              f"{r['fps_limit']:>6.2f} {r['of_limit'] * 100:>7.1f}% {r['host_ceiling_fps']:>7.2f} "
+              f"{r['of_ceiling'] * 100:>6.1f}% {r['period_ms']:>9d} {r['ceiling_period_ms']:>7d} "
+              f"{r['bytes_per_frame']:>11.1f} {r['over_transfer_min'] * 100:>+7.2f}% {r['decode_ms']:>9.3f}")
         if r["faults"]:
             print(f"{'':>8} faults injected: {r['faults']}; measurements dropped: {r['dropped_frames']}")
     if args.json:
@@ -284,22 +292,41 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     st.set_defaults(func=cmd_stream)
 
     b = sub.add_parser("bench", formatter_class=_FMT, help="bus frame rate, bytes per frame, decode CPU (emulator)",
-                       description="Stream frames through the I2C driver over the register-level emulator with "
-                                   "its bus timing, for each bus clock and each publish latency (how long the "
-                                   "chip takes, after the host cleared a packet's interrupt, to put the next "
-                                   "packet in its 0x20 window), and print: frames/s of emulated time; the bus "
-                                   "limit (clock / (9 x 4182 payload bytes): 10.63 frames/s at 400 kHz, 26.57 "
-                                   "at 1 MHz) and frames/s as a share of it; the ceiling no host can pass on "
-                                   "that chip (the 4368 bytes any host moves, plus 31 publish latencies of idle "
-                                   "bus); the measurement period the driver fitted to its read-out (the chip "
-                                   "overwrites a measurement not read out within one period); bytes moved per "
-                                   "frame against the payload (4182) and transfer (4368) minimums; host CPU to "
-                                   "decode a frame.",
+                       description=_paragraphs(
+                           "Stream frames through the I2C driver over the register-level emulator with "
+                                   "its bus timing, for each way of waiting (INT line, polling INT_STATUS), bus "
+                                   "clock and publish latency (how long the chip takes, after the host cleared a "
+                                   "packet's interrupt, to put the next packet in its 0x20 window), and print: "
+                                   "frames/s of emulated time; the bus limit (clock / (9 x 4182 payload bytes): "
+                                   "10.63 frames/s at 400 kHz, 26.57 at 1 MHz) and frames/s as a share of it; the "
+                                   "ceiling no host keeping the protocol's discipline can pass on that chip, and "
+                                   "frames/s as a share of it; the measurement period the driver fitted to its "
+                                   "read-out (the chip overwrites a measurement not read out within one period) "
+                                   "and the ceiling's period; bytes moved per frame against the 4368-byte "
+                                   "transfer minimum; host CPU to decode a frame.",
+                                   "The ceiling: the chip publishes a packet only after the host released the "
+                                   "previous one by clearing its interrupt, plus the publish latency L, and the "
+                                   "host may clear it only once it has read and checked it. Per measurement the "
+                                   "bus carries 31 x (one write-register/read transaction + one interrupt clear) "
+                                   "= 4368 bytes of 9 clocks, plus 5 START/STOP clocks a packet, plus 31 x L of "
+                                   "idle bus (a late read-out delays the next packet 0 by one L, so a period "
+                                   "below all 31 never drains a backlog); polling adds one 4-byte INT_STATUS poll "
+                                   "a packet (39 clocks, of which the 19 before its status byte can overlap L). "
+                                   "The period is whole ms and at least the measurement time (41 ms at 4000 "
+                                   "kilo-iterations in the emulator). E.g. 400 kHz, 200 us: 98.67 + 6.2 ms -> "
+                                   "105 ms, 9.52 frames/s, 89.6 % of the limit; 1 MHz, 50 us: 39.47 + 1.55 ms "
+                                   "-> 42 ms, 23.81 frames/s, 89.6 %. Clearing in the same transaction as the "
+                                   "read would save 31 clocks but releases the packet before it is checked "
+                                   "(an open-bus cut shows only as a 0xFF tail); reading after the clear races "
+                                   "the next packet."),
                        epilog="examples:\n  place-safe sensor bench\n  place-safe sensor bench --bus-hz 1000000 "
                               "--latency-us 0 20 --frames 500\n  place-safe sensor bench --fault-rate 0.001 "
                               "--json bench.json")
     b.add_argument("--bus-hz", type=BUS_HZ, nargs="+", default=[400e3, 1e6], metavar="HZ",
                    help="bus clocks (default 400000 1000000)")
+    b.add_argument("--wait", nargs="+", choices=["int", "poll"], default=["int", "poll"],
+                   help="how the driver waits for a packet: the emulator's INT line, polling INT_STATUS "
+                        "(default both)")
     b.add_argument("--latency-us", type=float_range(0.0, 10000.0), nargs="+", default=[0.0, 50.0, 200.0],
                    metavar="US",
                    help="publish latencies of the emulated chip, microseconds, 0-10000 (default 0 50 200)")

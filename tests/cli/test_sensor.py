@@ -43,11 +43,15 @@ def test_bench_prints_and_writes_figures(tmp_path, capsys):
     assert main(["sensor", "bench", "--frames", "10", "--bus-hz", "400000", "--json", str(js), "-q"]) == 0
     rows = json.loads(js.read_text())
     assert rows[0]["frames"] == 10 and rows[0]["bytes_per_frame"] >= rows[0]["transfer_min"]
-    # one row per publish latency (0, 50, 200 us by default), frames/s against the bus limit and the ceiling
-    assert [r["publish_latency_s"] for r in rows] == pytest.approx([0.0, 50e-6, 200e-6])
-    assert all(r["fps"] <= r["host_ceiling_fps"] <= r["fps_limit"] for r in rows)
+    # one row per way of waiting (INT line, polling) and publish latency (0, 50, 200 us by default), frames/s
+    # against the bus limit and the ceiling (whole-ms periods: a driver at the ceiling equals it)
+    assert [(r["wait"], r["publish_latency_s"]) for r in rows] == [
+        (w, pytest.approx(lat)) for w in ("int", "poll") for lat in (0.0, 50e-6, 200e-6)]
+    assert all(r["fps"] <= r["host_ceiling_fps"] * (1 + 1e-9) and r["host_ceiling_fps"] <= r["fps_limit"]
+               for r in rows)
+    assert all(r["host_ceiling_fps"] <= r["bytes_ceiling_fps"] for r in rows)
     out = capsys.readouterr().out
-    assert "frames/s" in out and "latency us" in out and "of limit" in out
+    assert "frames/s" in out and "latency us" in out and "of limit" in out and "of ceil" in out
 
 
 def test_bench_help_explains_the_figures(capsys):
@@ -55,6 +59,7 @@ def test_bench_help_explains_the_figures(capsys):
         main(["sensor", "bench", "--help"])
     text = " ".join(capsys.readouterr().out.split())
     assert "publish latency" in text and "bus limit" in text and "ceiling" in text
+    assert "31 x L" in text and "START/STOP" in text  # the ceiling's arithmetic
 
 
 @pytest.mark.parametrize("argv, match", [

@@ -66,15 +66,17 @@ def test_a_cut_packet_never_decodes(prefix):
 @given(st.lists(st.integers(0, 29), max_size=40), st.booleans())
 def test_the_assembler_never_returns_a_half_frame(numbers, short):
     """Whatever packets arrive, a Frame comes out only for exactly packets 0..29 in order, whole, since the
-    last packet 0 that started a new measurement (a packet 0 after a packet 0: the device moved on)."""
+    last packet 0 that started a new measurement (a packet 0 after a packet 0 or after a packet numbered 2 or
+    more: the device moved on), and never more than 30 packets are held (a 31st drops the measurement)."""
     blocks = P.split_channels(np.ones((10, 128)))
     asm = P.MeasurementAssembler()
     current: list[int] = []
     for n in numbers:
         dropped = asm.add_histogram(n, blocks[n])
-        assert (dropped == "overwritten") == (n == 0 and 0 in current)
+        moved_on = n == 0 and (0 in current or any(k > 1 for k in current))
+        assert dropped == ("overwritten" if moved_on else "missing_packet" if len(current) >= 30 else None)
         current = [n] if dropped else current + [n]
-        assert asm.packets == len(current) and len(asm._blocks) <= 30  # one measurement held, at most
+        assert asm.packets == len(current) <= 30 and len(asm._blocks) <= 30  # one measurement held, at most
     if short:
         asm.mark("short_read")
     frame = asm.add_result(P.Result())

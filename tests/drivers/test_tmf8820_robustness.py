@@ -238,17 +238,20 @@ def test_a_read_that_races_the_publication_gets_old_then_new_bytes():
        rate=st.sampled_from([0.0, 0.001, 0.01]),
        keep_wake=st.floats(0.0, 1.0), fill=st.floats(0.0, 1.0), stall_p=st.sampled_from([0.0, 0.002]),
        int_line=st.booleans(), overwrite=st.booleans(), timeout=st.sampled_from([0.05, 0.3, 1.0]),
-       resets_at=st.lists(st.floats(0.05, 2.0), max_size=3), seed=st.integers(0, 99))
+       resets_at=st.lists(st.floats(0.05, 2.0), max_size=3), release_on_read=st.booleans(), seed=st.integers(0, 99))
 def test_whatever_the_device_does_reads_end_in_time_and_frames_are_exact(
-        bus_hz, latency, events, rate, keep_wake, fill, stall_p, int_line, overwrite, timeout, resets_at, seed):
+        bus_hz, latency, events, rate, keep_wake, fill, stall_p, int_line, overwrite, timeout, resets_at,
+        release_on_read, seed):
     """Property: any mix of device behaviours; every read ends (frame, SensorTimeout or one-line
     SensorError) within its timeout plus one transfer of simulated time, every frame is bit-exact, the
     assembler never holds more than one measurement, and a device that stops misbehaving streams again."""
     emu = TMF8820Emulator(_feed(), bus_hz=bus_hz, record=True, publish_latency_s=tuple(latency),
                           faults=FaultPlan(events, rate=rate, seed=seed), reset_keeps_wake=keep_wake,
-                          short_fill=fill, overwrite=overwrite)
+                          short_fill=fill, overwrite=overwrite, release_on_read=release_on_read)
     src, frames, ends = _drive(emu, 10, timeout, stall_p=stall_p, int_line=int_line, seed=seed,
                                resets_at=tuple(resets_at))
+    if not release_on_read:  # clearing before the read would race the protocol's chip: never without proof
+        assert not src._clear_first
     if "SensorError" not in ends and rate == 0.0:  # faults over: frames again within a second
         emu.faults.armed.clear()
         src.stats["reset"] = 0

@@ -40,6 +40,8 @@ class EmulatedTMF8820(FrameSource):
     bus_hz: emulated bus clock. realtime / clock: see the module docstring. patch: a RAM patch the
     emulator accepts and the driver downloads (None: the ROM application). faults: a
     :class:`~.emulator.FaultPlan`. record: keep every presented measurement (``emulator.presented``).
+    int_line: the driver waits on the emulator's INT pin (:class:`~.emulator.EmulatedIntLine`) instead of
+    polling INT_STATUS (virtual or real time, not an external clock).
     driver: extra keyword arguments of :class:`~.i2c.TMF8820Source` (period_ms, kilo_iterations, ...).
     emulator: extra keyword arguments of :class:`~.emulator.TMF8820Emulator`.
     """
@@ -47,7 +49,7 @@ class EmulatedTMF8820(FrameSource):
     def __init__(self, feed: Any, *, bus_hz: float = 400e3, realtime: bool = False,
                  clock: Callable[[], float] | None = None, patch: RamPatch | None = None,
                  faults: FaultPlan | None = None, record: bool = False, start: bool = True,
-                 driver: dict | None = None, emulator: dict | None = None) -> None:
+                 int_line: bool = False, driver: dict | None = None, emulator: dict | None = None) -> None:
         self.emulator = emu = TMF8820Emulator(feed, bus_hz=bus_hz, realtime=realtime and clock is None, clock=clock,
                                               patch=patch, faults=faults, record=record, **(emulator or {}))
         self._external = clock
@@ -62,8 +64,11 @@ class EmulatedTMF8820(FrameSource):
         self.clock_domain = domain
         self._held: Frame | None = None
         self._held_until = 0.0
+        if int_line and clock is not None:
+            raise ValueError("the emulated INT line cannot wait on an external clock")
         self.driver = TMF8820Source(emu, clock=host_clock, sleep=sleep, clock_domain=domain,
-                                    **{"start": start, "patch": patch, **(driver or {})})
+                                    **{"start": start, "patch": patch, "int_line": emu.int_line if int_line else None,
+                                       **(driver or {})})
         self.rate_hz = self.driver.rate_hz
 
     def _idle(self, seconds: float) -> None:

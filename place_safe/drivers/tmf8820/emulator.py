@@ -413,10 +413,15 @@ class TMF8820Emulator:
         if pub is None or not first < pub < last or not (R.PAGE <= self._ptr < R.PAGE_END):
             return self._read(n)
         k = min(n, max(0, int((pub - first) * hz / R.CLOCKS_PER_BYTE)))
+        start = self._ptr
         old = self._read(k) if k else b""
         self._update(pub)
         self.stats["racing_reads"] += 1
-        return old + self._read(n - k)
+        data = old + self._read(n - k)
+        if self.release_on_read and self._current is not None and start <= R.PAGE \
+                and start + n >= R.PAGE + len(self._current):  # the new packet's last byte went out too
+            self._release(first + R.CLOCKS_PER_BYTE * (R.PAGE + len(self._current) - start) / hz)
+        return data
 
     def _finish(self, end: float, nbytes: int) -> None:
         self.stats["transfers"] += 1

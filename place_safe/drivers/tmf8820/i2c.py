@@ -17,16 +17,24 @@ with the next packet only after the host released the current one by clearing it
 takes time (the publish latency: tens of microseconds, nothing guarantees zero); a read that races it
 returns the old packet or a mix of old and new bytes. So the driver reads a packet only once its interrupt
 says it is there (the INT line, ``int_line`` e.g. :class:`GpiodIntLine`, or polling the one-byte
-INT_STATUS register), reads it whole in one transaction, clears that interrupt bit, and waits again. The
-first poll after a clear is delayed by an adaptive estimate of the publish latency, so the bus carries
-data, not polls. A packet whose cid, transaction id and packet number are those of the packet read last
+INT_STATUS register), reads it whole in one transaction, clears that interrupt bit, and waits again. When
+polling, the first poll after a clear is held back by a tracked quantile of the publish latency (about one
+first poll in twenty misses, :data:`POLL_MISS_TARGET`), so the bus carries data and about one poll a
+packet. The clear is its own transaction: the packet is checked (stale, cut by an open bus) before the chip
+is allowed to replace it. A packet whose cid, transaction id and packet number are those of the packet read last
 is stale (an interrupt with nothing new behind it): counted in ``stale_reads``, and from then on short
 header reads, never whole packets, tell when a new one is there. In a measurement, an interrupt overdue by
 :data:`LOST_INT_S` is looked for in the window's header (a lost interrupt, ``lost_interrupts``). A chip
 that takes a packet as released when it has been read, not when its interrupt is cleared (the other
-interrupt-clear order), raises the next packet's interrupt before the host's clear, which then wipes it:
-after two lost interrupts in a row the driver polls the window's 5-byte header (cid, tid, packet number)
-instead of INT_STATUS within a measurement.
+interrupt-clear order), raises the next packet's interrupt before the host's clear, which then wipes it.
+After two lost interrupts in a row the driver checks once whether the chip replaces a packet it has read
+but not cleared (:meth:`TMF8820Source._probe_clear_order`; the protocol's chip never does): if it does,
+the driver clears each interrupt before reading its packet from then on (which on such a chip cannot
+release it, nor wipe the next one), else it polls the window's 5-byte header (cid, tid, packet number)
+instead of INT_STATUS within a measurement. A packet read that needed a second look (cut, or a 0xFF
+tail) is kept only if the window's header still shows it afterwards (:meth:`TMF8820Source._still_there`:
+always on the protocol's chip; on the other order the second look may mix two packets, and the measurement
+is dropped, ``unverified``).
 
 Validation: headers (cid, payload length 131 / 128), packet numbers 0..29, sub-headers (payload size and
 config id the same in all 30 packets), the result frame (valid results at most 18, a result number other
@@ -39,9 +47,12 @@ measurement is dropped with its reason counted (``bad_packet``, ``short_read``, 
 Measurement period: the chip measures once per period and overwrites a measurement the host has not read
 out in time, so a period shorter than the read-out (about 100 ms at 400 kHz, 40 ms at 1 MHz) gives no
 frames at all. ``period_ms`` is the shortest period wanted; the driver fits the period in use
-(:attr:`TMF8820Source.period_in_use_ms`, ``info()["period_ms"]``) to the bus: first from the timing of
-two bring-up reads, then, after the first whole measurement, from the measured packet-to-packet times
-(``period_changes``), and it lengthens it again if measurements keep being overwritten.
+(:attr:`TMF8820Source.period_in_use_ms`, ``info()["period_ms"]``) to the bus (:mod:`.period`): first from
+the timing of two bring-up reads, then, after the first whole measurement, the shortest whole-ms period
+that 31 measured packet-to-packet intervals plus a queue margin fit in; an overwritten measurement
+lengthens it, and after a run without overwrites it is shortened again to what the timings say (with a
+doubling wait after a shortening that did not hold). Each change is written to the chip at the next read
+(``period_changes``).
 
 Time: ``Frame.timestamp`` is the measurement's completion on the host ``clock`` (default
 ``time.monotonic``; the simulation's clock when given, then ``clock_domain`` is ``"robot"``). It is
@@ -69,7 +80,6 @@ from __future__ import annotations
 import errno
 import json
 import math
-import statistics
 import time
 from collections import deque
 from collections.abc import Callable
@@ -79,6 +89,7 @@ from typing import Any
 from place_safe.drivers.tmf8820 import packets as P
 from place_safe.drivers.tmf8820 import registers as R
 from place_safe.drivers.tmf8820.hexfile import RamPatch, load_patch
+from place_safe.drivers.tmf8820.period import PeriodFit, need_ms
 from place_safe.drivers.tmf8820.ticks import TickClock
 from place_safe.exceptions import ConfigError, SensorError, SensorTimeout
 from place_safe.io.source import FrameSource
@@ -93,11 +104,12 @@ LOST_INT_S = 0.002
 ALIVE_S = 0.02
 #: Publish latency (s) assumed per packet when the period is first fitted to the bus (then measured).
 PUBLISH_GUESS_S = 100e-6
-#: Two overwritten measurements within this many frames lengthen the period even if the median says not.
-OVERWRITE_MEMORY = 20
-#: Frames without an overwritten measurement after which the period may be shortened again.
-RELAX_FRAMES = 50
-_TAIL = 8  # bytes read again to tell a packet that ends in 0xFF from one cut short by an open bus
+#: Share of first polls after a clear that may find the packet not yet published (the first poll's hold-off
+#: is tracked to it: a miss costs one more poll, a hit a little waiting).
+POLL_MISS_TARGET = 0.05
+#: Packet timings kept for the period model (10 measurements).
+TIMING_WINDOW = 10 * R.HIST_PACKETS
+_TAIL = 8  # reads longer than twice this check a trailing 0xFF run by reading the run again, shorter ones whole
 _KEY = R.HEADER_SIZE + 1  # cid, tid, length (2), packet or result number: a packet's identity
 _RETRY_ERRNOS = {R.ERRNO_NAK: "nak", R.ERRNO_EIO: "eio", R.ERRNO_TIMEOUT: "timeout", errno.EAGAIN: "timeout"}
 
@@ -194,7 +206,8 @@ class TMF8820Source(FrameSource):
         self.address = address
         self.patch = load_patch(patch) if isinstance(patch, (str, Path)) else patch
         self.period_ms, self.kilo_iterations, self.short_range = int(period_ms), int(kilo_iterations), short_range
-        self.period_in_use_ms = self.period_ms
+        self._period = PeriodFit(self.period_ms)
+        self._device_period: int | None = None  # the period written to the chip since its last initialisation
         self.rate_hz = 1000.0 / period_ms if period_ms else 30.0
         self.calibration_dir = Path(calibration_dir) if calibration_dir is not None else None
         self.int_line = int_line
@@ -204,7 +217,7 @@ class TMF8820Source(FrameSource):
         self.retries, self.backoff_s, self.poll_s = max(1, retries), backoff_s, poll_s
         self.start_timeout = float(start_timeout)
         self.stats: dict[str, float] = {"frames": 0, "dropped_frames": 0, "retries": 0, "bad_packet": 0,
-                                        "stale_reads": 0, "lost_interrupts": 0, "overwritten": 0,
+                                        "stale_reads": 0, "lost_interrupts": 0, "overwritten": 0, "unverified": 0,
                                         "period_changes": 0, "device_errors": 0, "reinit": 0,
                                         "decode_seconds": 0.0, **{k: 0 for k in R.FAULT_KINDS}}
         self.identity: dict[str, Any] = {}
@@ -220,13 +233,15 @@ class TMF8820Source(FrameSource):
         self._app_up = False        # the application ran during the bring-up in progress
         self._lost_in_a_row = 0     # packets in a row found by a header read after their interrupt was overdue
         self._peek_polls = False    # then poll the window's header, not INT_STATUS, within a measurement
+        self._order_probe = False   # check once whether the chip replaces a packet without our clear
+        self._reread = False        # the read in progress needed a second look (see _still_there)
+        self._clear_first = False   # it does (it releases a packet once read): clear before reading, not after
         self._forget_stream()
         self._pre_poll = 0.0        # host wait between clearing an interrupt and the first poll (s, adaptive)
-        self._intervals: deque[float] = deque(maxlen=R.HIST_PACKETS)  # packet-to-packet times (s)
-        self._tuned = False
-        self._retune_due = False
-        self._relax = False
-        self._overwrite_frame: int | None = None
+        self._poll_cost = 0.0       # duration of one INT_STATUS poll (s, running mean)
+        # packet-to-packet times and transfers (detection to the end of the clear) of the last measurements (s)
+        self._intervals: deque[float] = deque(maxlen=TIMING_WINDOW)
+        self._transfers: deque[float] = deque(maxlen=TIMING_WINDOW)
         if start:
             try:
                 self.start()
@@ -275,30 +290,36 @@ class TMF8820Source(FrameSource):
     def _read(self, reg: int, n: int) -> bytes:
         """Read ``n`` register bytes, whole and not cut short by an open bus.
 
-        A read that comes back short is read again. A read whose last byte is 0xFF may have been cut short
-        by a device that stopped driving the bus (the rest reads 0xFF, whatever the length says): its last
-        :data:`_TAIL` bytes are read again (a long read) or all of it (a short one); when they differ it is
-        read again until a read does not end in 0xFF or two reads agree. Only ever used where a second read
-        sees the same bytes (registers, a packet whose interrupt is still pending). Counted as ``short_read``.
+        A read that comes back short is read again. A read whose last byte is 0xFF may have been cut short by a
+        device that stopped driving the bus (the rest reads 0xFF, whatever the length says). A long read has its
+        trailing run of 0xFF bytes read again (usually one byte): all 0xFF again, and the first read holds the
+        register bytes (a cut could only have put 0xFF where 0xFF was). A short read is read again whole. When
+        they differ it is read again until a read does not end in 0xFF or two reads agree. Only ever used where
+        a second read sees the same bytes (registers, a packet whose interrupt is still pending). Counted as
+        ``short_read``.
         """
         prev: bytes | None = None
         tail: bytes | None = None
+        tail_at = n
         bad = 0
         for attempt in range(self.retries + 1):
             if attempt:
                 self._due()
+                self._reread = True
             data = self._read_raw(reg, n)
             if len(data) != n:
                 self.stats["short_read"] += 1
                 continue
             if prev is None and tail is None and n > 2 * _TAIL and data[-1] == 0xFF:
-                tail = self._read_raw((reg + n - _TAIL) & 0xFF, _TAIL)
-                if tail == data[-_TAIL:]:
+                tail_at = len(data.rstrip(b"\xff"))
+                self._reread = True
+                tail = self._read_raw((reg + tail_at) & 0xFF, n - tail_at)
+                if tail == data[tail_at:]:
                     return data  # the bytes really end in 0xFF
             if n < 2 or data[-1] != 0xFF or data == prev:
                 if prev is not None and prev != data:
                     bad += 1
-                if tail is not None and tail != data[-_TAIL:]:
+                if tail is not None and tail != data[tail_at:]:
                     bad += 1  # the tail read itself was cut
                 self.stats["short_read"] += bad
                 return data
@@ -428,7 +449,7 @@ class TMF8820Source(FrameSource):
         t2 = self._clock()
         if page[0] != R.CMD_LOAD_CONFIG_COMMON:
             raise _ProtocolError(f"the config page did not load (page id 0x{page[0]:02x})")
-        if not self._tuned:  # the bus's speed from a 1-byte and a 192-byte read
+        if not self._period.fitted:  # the bus's speed from a 1-byte and a 192-byte read
             self._period_from_bus(t1 - t0, t2 - t1)
 
         def put(reg: int, value: int, n: int = 1) -> None:
@@ -442,6 +463,7 @@ class TMF8820Source(FrameSource):
         first, last = R.CFG_PERIOD_MS, R.CFG_HISTOGRAM_DUMP + 1
         self._write(first, page[first - R.PAGE:last - R.PAGE])
         self._command(R.CMD_WRITE_CONFIG, deadline)
+        self._device_period = self.period_in_use_ms
         cal = self.calibration_file()
         if cal is not None and cal.is_file():
             data = self._calibration_page(cal)
@@ -531,12 +553,10 @@ class TMF8820Source(FrameSource):
                 self._initialised = False
 
     # -- measurement period --------------------------------------------------------------------------
-    def _need_ms(self, per_packet: float, spread: float = 0.0) -> int:
-        """Shortest period (ms) in which the host reads a measurement out: ``per_packet`` s a packet on
-        average with a standard deviation of ``spread`` s (three deviations of the 31 packets' sum)."""
-        n = R.HIST_PACKETS + 1
-        readout = n * per_packet + 3.0 * spread * math.sqrt(n)
-        return min(0xFFFF, math.ceil((readout * 1.001 + 0.0002) * 1000.0))
+    @property
+    def period_in_use_ms(self) -> int:
+        """The measurement period in use (ms): ``period_ms`` or longer, fitted to the read-out (:mod:`.period`)."""
+        return self._period.period_ms
 
     def _period_from_bus(self, t_small: float, t_page: float) -> None:
         """Before the first measurement: a period the bus can carry, from the timing of a 1-byte read (5 bytes
@@ -544,39 +564,26 @@ class TMF8820Source(FrameSource):
         per_byte = max(0.0, (t_page - t_small) / 190.0)
         per_xfer = max(0.0, t_small - 5 * per_byte)
         per_packet = 3 * per_xfer + (R.HIST_PACKET_SIZE + 3 + 3 + 4) * per_byte + PUBLISH_GUESS_S
-        self.period_in_use_ms = max(self.period_ms, self._need_ms(per_packet))
+        self._period.guess(math.ceil((R.HIST_PACKETS + 1) * per_packet * 1000.0))
         self.rate_hz = 1000.0 / self.period_in_use_ms if self.period_in_use_ms else 30.0
 
-    def _retune(self, deadline: float, overwritten: bool = False, relax: bool = False) -> None:
-        """After the first whole measurement, or an overwritten one: the period the measured read-out needs
-        (from the packet-to-packet times without outliers, so one host stall does not lengthen it; a second
-        overwritten
-        measurement within :data:`OVERWRITE_MEMORY` frames lengthens it by at least 5 %; ``relax``: after
-        :data:`RELAX_FRAMES` frames without one, it may shorten again to what the read-out needs)."""
-        if len(self._intervals) < 8:
-            return
-        med = statistics.median(self._intervals)
-        usual = [x for x in self._intervals if x <= med + 0.001]  # a host stall is not the read-out time
-        need = max(self.period_ms, self._need_ms(statistics.fmean(usual), statistics.pstdev(usual)))
-        if overwritten:
-            frames = self.stats["frames"]
-            if self._overwrite_frame is not None and frames - self._overwrite_frame <= OVERWRITE_MEMORY:
-                need = max(need, math.ceil(self.period_in_use_ms * 1.05) + 1)
-            self._overwrite_frame = frames
-        if need == self.period_in_use_ms or (need < self.period_in_use_ms and (overwritten or
-                                                                               (self._tuned and not relax))):
-            return
-        self._tuned = True
-        self._measuring = False  # a deadline in the middle leaves the restart to the next read
+    def _need(self) -> int | None:
+        """The shortest period (ms) the measured read-out holds (:func:`.period.need_ms`)."""
+        return need_ms(self._intervals, self._transfers)
+
+    def _write_period(self, deadline: float) -> None:
+        """Put the period in use on the chip: stop, rewrite the config page's period, (re)start at the next step
+        (resumable: a deadline in the middle leaves it to the next read)."""
+        self._measuring = False
         self._command(R.CMD_STOP, deadline)
         self._write(R.INT_STATUS, [R.INT_MEASUREMENT])
         self._command(R.CMD_LOAD_CONFIG_COMMON, deadline)
-        self._write(R.CFG_PERIOD_MS, need.to_bytes(2, "little"))
+        ms = self.period_in_use_ms
+        self._write(R.CFG_PERIOD_MS, ms.to_bytes(2, "little"))
         self._command(R.CMD_WRITE_CONFIG, deadline)
-        self.period_in_use_ms = need
-        self.rate_hz = 1000.0 / need if need else 30.0
+        self._device_period = ms
+        self.rate_hz = 1000.0 / ms if ms else 30.0
         self.stats["period_changes"] += 1
-        self._start_measuring(deadline)
 
     # -- calibration ---------------------------------------------------------------------------------
     def calibration_file(self) -> Path | None:
@@ -645,9 +652,8 @@ class TMF8820Source(FrameSource):
         self._free_look = True  # a read with no time to wait still takes a packet that is there
         while True:
             try:
-                if self._retune_due and self._measuring:
-                    self._retune_due = False
-                    self._retune(deadline, relax=self._relax)
+                if self._initialised and self._device_period != self.period_in_use_ms:
+                    self._write_period(deadline)
                 if not self._measuring:
                     self._start_measuring(deadline)
                 frame = self._step(deadline)
@@ -747,16 +753,16 @@ class TMF8820Source(FrameSource):
                 if self._clock() <= t:  # a line that cannot wait on this clock
                     self._nap(self.poll_s, max(deadline, t + 1e-9))
             else:
+                t_poll = self._clock()
                 status = self._read(R.INT_STATUS, 1)[0]
+                self._poll_cost += (self._clock() - t_poll - self._poll_cost) / 8
                 if status & R.INT_ERROR:
                     self.stats["device_errors"] += 1
                     self._write(R.INT_STATUS, [R.INT_ERROR])
                 if status & R.INT_MEASUREMENT:
                     self._lost_in_a_row = 0
-                    if mid:  # aim the first poll after a clear at the publish latency
-                        step = (self._clock() - start) / polls / 8
-                        self._pre_poll = self._pre_poll + 2 * step if polls > 1 else max(0.0, self._pre_poll - step / 4)
-                        self._pre_poll = min(self._pre_poll, LOST_INT_S / 4)
+                    if mid:
+                        self._hold_first_poll(missed=polls > 1)
                     return status
             now = self._clock()
             if now >= check:
@@ -767,7 +773,8 @@ class TMF8820Source(FrameSource):
                 if self._window_has_new():
                     self.stats["lost_interrupts"] += 1
                     self._lost_in_a_row += 1
-                    self._peek_polls = self._peek_polls or self._lost_in_a_row >= 2
+                    if self._lost_in_a_row >= 2 and not (self._peek_polls or self._clear_first):
+                        self._order_probe = True
                     return R.INT_MEASUREMENT
                 check = now + ALIVE_S
                 mid = False
@@ -778,6 +785,16 @@ class TMF8820Source(FrameSource):
                 continue
             if self.int_line is None and not mid and not due:
                 self._nap(min(self.poll_s, check - now), deadline)
+
+    def _hold_first_poll(self, missed: bool) -> None:
+        """Aim the first poll after a clear at the publish latency: a quantile tracker of the hold-off (up by an
+        eighth of a poll when the first poll missed, down by a share that makes :data:`POLL_MISS_TARGET` of
+        first polls miss), so the bus carries data and about one poll a packet."""
+        step = self._poll_cost / 8
+        if missed:
+            self._pre_poll = min(LOST_INT_S / 4, self._pre_poll + step)
+        else:
+            self._pre_poll = max(0.0, self._pre_poll - step * POLL_MISS_TARGET / (1.0 - POLL_MISS_TARGET))
 
     def _step(self, deadline: float) -> Frame | None:
         """Wait for one packet, read it, handle it; a Frame when it closed a whole measurement."""
@@ -791,8 +808,43 @@ class TMF8820Source(FrameSource):
                     self._stale_since = seen
                 self._nap(self.poll_s, deadline)
                 return None
+        if self._clear_first:  # a chip that releases on read: the clear cannot wipe the next interrupt now
+            self._write(R.INT_STATUS, [bits & R.INT_MEASUREMENT or R.INT_MEASUREMENT])
+        self._reread = False
         buf = self._read(R.PAGE, R.HIST_PACKET_SIZE)
+        if self._reread and not self._still_there(buf):
+            return None
+        if self._order_probe and buf[0] == R.CID_RAW_HISTOGRAM and not self._is_old(buf):
+            self._probe_clear_order(buf, deadline)
         return self._handle(buf, bits, seen, deadline)
+
+    def _still_there(self, buf: bytes) -> bool:
+        """After a packet read that needed a second look (cut, or a 0xFF tail): is the packet still in the
+        window (header read)? A chip that releases a packet once it has been read may have replaced it
+        meanwhile, and then the second look may hold a mix of two packets: the packet is dropped (its
+        measurement with it, ``unverified``). The protocol's chip keeps it until its clear: always there."""
+        self._due()
+        head = self._read(R.PAGE, _KEY)
+        if head == bytes(buf[:_KEY]):
+            return True
+        self.stats["unverified"] += 1
+        self._asm.mark("short_read")
+        return False
+
+    def _probe_clear_order(self, buf: bytes, deadline: float) -> None:
+        """Interrupts got lost twice in a row: does the chip replace a packet that was read but not cleared?
+        Wait :data:`LOST_INT_S` (far above any publish latency) and look at the window's header. A new packet
+        there is proof that the chip releases a packet once it has been read (the protocol's chip never
+        replaces a packet before its clear): from then on the interrupt is cleared before the read, which
+        cannot wipe the next packet's. Otherwise the driver polls the window's header within a measurement."""
+        self._order_probe = False
+        self._nap(LOST_INT_S, deadline)
+        head = self._read(R.PAGE, _KEY)
+        if head[0] in (R.CID_RAW_HISTOGRAM, R.CID_RESULT) and head != buf[:_KEY]:
+            self._clear_first = True
+            self._lost_in_a_row = 0
+        else:
+            self._peek_polls = True
 
     def _handle(self, buf: bytes, bits: int, seen: float, deadline: float) -> Frame | None:
         cid = buf[0]
@@ -805,7 +857,9 @@ class TMF8820Source(FrameSource):
         if cid == R.CID_RAW_HISTOGRAM:
             t0 = time.perf_counter()
             self._last_key = bytes(buf[:_KEY])
-            self._write(R.INT_STATUS, [R.INT_RAW_HISTOGRAM])
+            if not self._clear_first:
+                self._write(R.INT_STATUS, [R.INT_RAW_HISTOGRAM])
+            self._transfers.append(self._clock() - seen)
             try:
                 number, data = P.decode_histogram_packet(buf)
             except P.PacketError:
@@ -823,12 +877,14 @@ class TMF8820Source(FrameSource):
                 self._intervals.append(seen - self._prev_seen)
             self._prev_seen = seen
             self.stats["decode_seconds"] += time.perf_counter() - t0
-            if dropped == "overwritten":
-                self._retune(deadline, overwritten=True)
+            if dropped == "overwritten":  # applied at once: the read loop rewrites the period
+                self._period.overwritten(self._need)
             return None
         if cid == R.CID_RESULT:
             self._last_key = bytes(buf[:_KEY])
-            self._write(R.INT_STATUS, [R.INT_RESULT])
+            if not self._clear_first:
+                self._write(R.INT_STATUS, [R.INT_RESULT])
+            self._transfers.append(self._clock() - seen)
             t0 = time.perf_counter()
             if self._prev_seen is not None and self._asm.started:
                 self._intervals.append(seen - self._prev_seen)
@@ -852,10 +908,8 @@ class TMF8820Source(FrameSource):
                 return None
             frame.timestamp = self._ticks.stamp(res.sys_ticks, first) if res.ticks_valid else first
             self.stats["frames"] += 1
-            # at the next read (this one returns its frame now): the first fit, or a shorter period again after
-            # a long run without overwritten measurements (faults and stalls lengthened it meanwhile)
-            calm = self._overwrite_frame is not None and self.stats["frames"] - self._overwrite_frame == RELAX_FRAMES
-            self._retune_due, self._relax = (not self._tuned) or calm, calm
+            # the first fit, or a shorter period after a long run without overwrites: written at the next read
+            self._period.frame(self._need)
             return frame
         # neither a histogram packet nor a result frame: a reset chip reads zeros; else drop the measurement
         self._check_app()

@@ -185,9 +185,12 @@ class MeasurementAssembler:
     counters), never a list that grows while the device misbehaves.
 
     ``add_histogram`` returns None, or the reason the measurement in progress was dropped when this packet
-    started a new one: a packet 0 arriving while the measurement already holds a packet 0 means the
+    started a new one: a packet 0 arriving while the measurement already holds a packet 0, or any packet
+    numbered 2 or more (a swap of neighbouring packets moves packet 0 behind packet 1 only), means the
     device moved on to its next measurement (``"overwritten"``: the host was too slow, or the rest was
     lost); the new packet 0 then starts the new measurement, and ``drops`` lists what the dropped one showed.
+    A 31st histogram packet without a result frame in between drops the measurement too (its result went
+    missing: ``"missing_packet"``) and starts the next one, so at most 30 packets are ever counted.
     ``add_result`` returns a Frame, or None with
     ``drops`` saying why: the reason given to :meth:`mark` (e.g. ``"short_read"``, ``"bad_packet"``),
     else ``"missing_packet"`` if packets were missing and/or ``"out_of_order"`` if the packets that
@@ -235,8 +238,9 @@ class MeasurementAssembler:
 
     def add_histogram(self, number: int, data: bytes, tag: object = None) -> str | None:
         dropped = None
-        if number == 0 and 0 in self._blocks:
-            dropped = str(self._short) if self._short else "overwritten"
+        moved_on = number == 0 and (0 in self._blocks or any(k > 1 for k in self._blocks))
+        if moved_on or self._count >= R.HIST_PACKETS:
+            dropped = str(self._short) if self._short else "overwritten" if moved_on else "missing_packet"
             # what it showed: its reason, and disorder among the packets that came (not the ones that did not)
             self.drops = [dropped] + (["out_of_order"] if self._disorder else [])
             self.last_drop = dropped
