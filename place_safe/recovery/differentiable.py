@@ -23,7 +23,10 @@ up to ``test_window`` after the frame's latest peak (about 1 when the model expl
 noise level; the solver fits a longer window, ``window_after_peak``, whose faint tail bins would dilute
 the test). Its square is a chi-square per bin
 against the calibrated noise: above the calibrated ``chi2_limit`` (:class:`~place_safe.recovery.estimator.Uncertainty`)
-the fast solver returns the peak estimate instead, with ``method_used = "peak"``. The fast solver's
+the fast solver returns the peak estimate instead, with ``method_used = "peak"``; so it does when the two
+contradict each other (``consistency_limit``) and where diff's tilt variance is above ``prefer_ratio`` times
+peak's (peak reads that slope better; calibrated on held-out frames, :mod:`place_safe.calibration.uncertainty`).
+The fast solver's
 ``covariance`` of ``(n_x, n_y, d)`` is the Gauss-Newton inverse at the solution scaled by that
 chi-square (plus the calibrated floor).
 """
@@ -276,13 +279,14 @@ class DifferentiableEstimator(Estimator):
         ``residual`` is the RMS Poisson-scaled residual, so its square is the chi-square per bin
         against the calibrated noise; above ``uncertainty.chi2_limit`` the model does not explain the
         frame and the peak estimate (``method_used = "peak"``) is returned, with diff's residual. So it is
-        when the two estimates contradict each other beyond ``uncertainty.consistency_limit``, and when
+        when the two estimates contradict each other beyond ``uncertainty.consistency_limit``, when diff's
+        tilt variance is above ``uncertainty.prefer_ratio`` times peak's (peak reads this slope better), and when
         diff's covariance is not positive definite (a degenerate Jacobian: the fit did not pin the plane
         down, and a zero covariance would claim it did).
         """
         failed = not est.ok or est.residual is None or not est.residual ** 2 <= self.uncertainty.chi2_limit \
             or not _positive_definite(est.covariance)
-        if not failed and self.uncertainty.consistent(est, peak):
+        if not failed and self.uncertainty.consistent(est, peak) and self.uncertainty.prefers(est, peak):
             return est
         if not est.ok and math.isinf(self.uncertainty.chi2_limit):
             return est  # no fallback calibrated: report diff's own failure
@@ -478,7 +482,7 @@ class DifferentiableEstimator(Estimator):
             plane = self._reported(a, b, z0)
             cov = None
             if cov_abz is not None and np.all(np.isfinite(cov_abz)):
-                cov = self.uncertainty.apply(self._state_covariance(a, b, z0, cov_abz), plane.offset)
+                cov = self.uncertainty.apply(self._state_covariance(a, b, z0, cov_abz), plane.offset, plane.normal)
         except NoPlaneError as exc:
             return PlaneEstimate(None, reason=str(exc))
         return PlaneEstimate(plane, albedo=math.exp(lr), residual=math.sqrt(max(cost, 0.0) / n_res),

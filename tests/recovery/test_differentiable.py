@@ -176,6 +176,19 @@ def test_consistency_fallback_when_peak_contradicts_diff(frames):
         assert w.method_used == "diff"
 
 
+def test_preference_fallback_when_peak_reads_the_slope_better(frames):
+    """Convention check: diff keeps its plane only where its tilt variance is at most prefer_ratio times peak's;
+    a ratio no frame meets returns peak's plane, a ratio every frame meets keeps diff."""
+    from place_safe.recovery.estimator import Uncertainty
+
+    never = DifferentiableEstimator(uncertainty=Uncertainty(prefer_ratio=1e-12))
+    always = DifferentiableEstimator(uncertainty=Uncertainty(prefer_ratio=1e12))
+    for f in frames[:3]:
+        n, a = never.estimate(f), always.estimate(f)
+        assert n.method_used == "peak" and n.plane is not None
+        assert a.method_used == "diff"
+
+
 def test_covariance_is_symmetric_positive_and_shrinks_with_signal():
     """Convention check: the fit covariance of (n_x, n_y, d) is a valid covariance, and a brighter surface
     (more photons, less shot noise) gives a smaller one."""
