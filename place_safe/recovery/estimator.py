@@ -28,6 +28,9 @@ from place_safe.geometry import Plane
 from place_safe.sensor.frame import Frame
 
 
+#: cos(80 deg): the tilt term's largest tilt.
+_COS_MAX_TILT = math.cos(math.radians(80.0))
+
 #: Order of the covariance entries: the normal's x and y components (rad) and the offset (m).
 COVARIANCE_ORDER = ("n_x", "n_y", "d")
 
@@ -129,14 +132,15 @@ class Uncertainty:
         """The covariance (3, 3) of ``(n_x, n_y, d)`` a plane with unit ``normal`` at ``offset`` (m) adds:
         variance ``(tilt_rel tan(tilt))^2`` on each tilt component (tilt capped at 80 deg), the plane turning
         about the point where it crosses the optical axis (``z0 = d / n_z``), so ``d`` moves by
-        ``-z0 (n_x dn_x + n_y dn_y) / n_z``."""
-        n = np.asarray(normal, dtype=float)
-        nz = max(float(n[2]), math.cos(math.radians(80.0))) if np.all(np.isfinite(n)) else math.cos(math.radians(80.0))
-        t = math.tan(math.acos(min(nz, 1.0)))
-        z0 = float(offset) / nz if math.isfinite(offset) else 0.0
-        jac = np.array([[1.0, 0.0], [0.0, 1.0], [-z0 * n[0] / nz, -z0 * n[1] / nz]])
-        jac = np.nan_to_num(jac)
-        return (self.tilt_rel * t) ** 2 * (jac @ jac.T)
+        ``-z0 (n_x dn_x + n_y dn_y) / n_z``. Scalar arithmetic: it is on the peak method's per-frame path."""
+        nx, ny, nz = (float(v) for v in normal)
+        if not (math.isfinite(nx) and math.isfinite(ny) and math.isfinite(nz) and math.isfinite(offset)):
+            nx, ny, nz, offset = 0.0, 0.0, _COS_MAX_TILT, 0.0
+        nz = min(max(nz, _COS_MAX_TILT), 1.0)
+        v = self.tilt_rel * self.tilt_rel * max(1.0 - nz * nz, 0.0) / (nz * nz)  # (tilt_rel tan(tilt))^2
+        k = -float(offset) / (nz * nz)  # -z0 / n_z
+        jx, jy = k * nx, k * ny
+        return np.array([[v, 0.0, v * jx], [0.0, v, v * jy], [v * jx, v * jy, v * (jx * jx + jy * jy)]])
 
     def floor(self, offset: float) -> np.ndarray:
         """The model-error covariance (3, 3) added to an estimate at distance ``offset`` (m)."""
