@@ -22,13 +22,22 @@ beyond it. Held out on the real sweep's halves the 1-5 cm mean NEES per dof went
 and the 5-40 cm one from 1.28 / 1.07 to 1.34 / 0.98. The 1.25 cm frame stays 7 sigma off: its zones' errors
 are correlated (a distortion that looks like a tilt), which independent zone errors do not describe.
 
-For ``diff``, a frame whose diff and peak estimates contradict each other (:data:`CONSISTENCY_LIMIT`)
-falls back to the peak estimate; so does a frame whose residual is above the chi-square limit
-(:func:`select_chi2_limit`): among 0 (always fall back), infinity and the frames' own residuals that
-admit at least :data:`MIN_DIFF_FRAMES` frames, the one whose selection has the lowest worse-of-two
-score: the means of the angular and of the point error, each per frame in units of peak's median error
-and capped at 10 (so frames on which both methods fail do not decide). Ties go to the larger limit (use
-diff as often as it does not hurt). Units: rad, m.
+A level sweep cannot show what a tilt does to ``peak``: each zone's return spreads over its footprint and
+the peak method reads the slope short (on mismatched units 0.06-0.08 rad per unit ``tan(tilt)``, 1.4 deg mean
+at 0-30 deg, where its level-calibrated covariance said 0.03 deg). Its covariance gets the stated tilt term
+``Uncertainty.tilt_rel =`` :data:`PEAK_TILT_REL` per tilt component.
+
+For ``diff`` the fallback to peak is a safety net chosen on held-out frames (:func:`select_fallback`): a
+frame falls back when its residual chi-square is above ``chi2_limit``, when the two estimates contradict each
+other (:data:`CONSISTENCY_LIMIT`), or when diff's tilt variance is above ``prefer_ratio`` times peak's (peak
+reads this slope better). The calibration frames are split in :data:`CV_FOLDS` folds interleaved in distance;
+for each, diff's floor is fitted on the others and every candidate pair (chi2_limit, prefer_ratio) returns a
+plane for each held-out frame. The pair whose returned planes score best over all held-out frames wins: the
+worse of the mean angular and mean point error, each per frame in units of peak's median error and capped at
+10 (so frames on which both methods fail do not decide). There is no "always fall back" candidate: where
+diff's own covariance says it reads the slope better, a level sweep cannot tell otherwise, and the
+per-frame comparison already returns peak where peak reads better. Ties go to the larger chi-square limit
+and the ratio nearest 1. Units: rad, m.
 """
 
 from __future__ import annotations
@@ -79,10 +88,11 @@ def _fit_two(errors: np.ndarray, covs: np.ndarray, basis: tuple[np.ndarray, np.n
 
 
 def fit_floor(estimates: Sequence[PlaneEstimate], truths: Sequence, base: Uncertainty | None = None) -> tuple[Uncertainty, dict]:
-    """The floors of :class:`Uncertainty` for estimates whose covariances hold no floor yet (maximum likelihood)."""
+    """The floors of :class:`Uncertainty` for estimates whose covariances hold no floor yet (maximum likelihood;
+    ``base``'s tilt term counts as known)."""
     base = base or Uncertainty()
-    rows = [(tilt_offset(e.plane) - tilt_offset(t), e.covariance, e.plane.offset) for e, t in zip(estimates, truths)
-            if e.ok and e.covariance is not None and t is not None]
+    rows = [(tilt_offset(e.plane) - tilt_offset(t), np.asarray(e.covariance, dtype=float) + base.tilt_floor(e.plane.normal, e.plane.offset),
+             e.plane.offset) for e, t in zip(estimates, truths) if e.ok and e.covariance is not None and t is not None]
     if len(rows) < 3:
         return base, {"frames": len(rows), "why": "fewer than 3 estimates with a covariance"}
     err = np.array([r[0] for r in rows])
@@ -108,37 +118,58 @@ def fit_floor(estimates: Sequence[PlaneEstimate], truths: Sequence, base: Uncert
 CONSISTENCY_LIMIT = 16.27
 
 
-#: Diff is used only under a chi-square limit that at least this many calibration frames pass; when no such
-#: limit beats peak alone, the limit is 0 and diff always falls back to peak. A limit chosen because one frame in 27 was
-#: better by chance (the real sweep's halves: score 0.03 % better) admits held-out frames near it just as
-#: much by chance (there: one frame at 0.69 deg against peak's 0.27).
-MIN_DIFF_FRAMES = 3
+#: Tilt term of peak's covariance (:attr:`~place_safe.recovery.estimator.Uncertainty.tilt_rel`): each tilt
+#: component's std per unit tan(tilt). Measured per component (RMS over frames tilted 3-30 deg, 5-30 cm):
+#: mismatched units A and B 0.047 and 0.048; the unit A's own calibrated forward model, rendered tilted, 0.046;
+#: the independent generator 0.023. A level sweep shows none of it, so it is stated, not fitted.
+PEAK_TILT_REL = 0.05
+
+#: Folds of the cross-validation that chooses diff's fallback limits (:func:`select_fallback`).
+CV_FOLDS = 3
+
+#: Candidate ratios of diff's to peak's tilt variance under which diff keeps its plane.
+PREFER_RATIOS = (0.25, 0.5, 1.0, 2.0, 4.0)
 
 
-def select_chi2_limit(chi2: np.ndarray, diff_errors: np.ndarray, peak_errors: np.ndarray) -> float:
-    """The chi-square limit above which diff falls back to peak, from calibration frames.
+def chi2_candidates(chi2: np.ndarray) -> list[float]:
+    """Candidate chi-square limits from the calibration frames' diff chi-squares (``inf``: diff failed): their
+    median, 90th percentile, largest, and twice the largest (a frame the model explains twice as badly as any
+    calibration frame is not one it was calibrated for). No finite chi-square: ``[inf]`` (nothing to go by)."""
+    c = np.asarray(chi2, dtype=float)
+    c = c[np.isfinite(c)]
+    if c.size == 0:
+        return [math.inf]
+    return sorted({float(np.median(c)), float(np.percentile(c, 90)), float(c.max()), 2.0 * float(c.max())})
 
-    chi2: (F,) each frame's diff residual chi-square per bin (``inf``: diff failed). diff_errors,
-    peak_errors: (F, M) each method's errors on M metrics, in comparable units. Each candidate limit is
-    scored by the worse metric's mean error when frames under it use diff and the rest peak; the largest
-    limit with the best score wins. Candidates: 0 (diff always falls back), infinity, and the frames'
-    chi-squares under which at least :data:`MIN_DIFF_FRAMES` frames lie (fewer cannot tell a better model
-    from luck). No frames: 0.
+
+def select_fallback(chi2: np.ndarray, consistent: np.ndarray, var_ratio: np.ndarray, diff_errors: np.ndarray,
+                    peak_errors: np.ndarray, chi2_limits: Sequence[float],
+                    ratios: Sequence[float] = PREFER_RATIOS) -> tuple[float, float, list[dict]]:
+    """The (chi2_limit, prefer_ratio) whose returned planes score best on held-out frames.
+
+    Per frame (F,): ``chi2`` diff's chi-square per bin (``inf``: failed), ``consistent`` whether diff agrees
+    with peak, ``var_ratio`` diff's tilt variance over peak's (NaN: no comparison, diff kept), all as seen on
+    the frame held out; ``diff_errors``, ``peak_errors`` (F, M): errors on M metrics in comparable units.
+    A frame returns diff's plane when ``chi2 <= chi2_limit``, it is consistent and ``var_ratio <=
+    prefer_ratio``; the score is the worse metric's mean error of the planes returned. Ties: the larger limit,
+    then the ratio nearest 1. Returns the pair and every candidate's score.
     """
     chi2 = np.asarray(chi2, dtype=float)
-    if chi2.size == 0:
-        return 0.0
-    admitted = [float(c) for c in np.unique(chi2[np.isfinite(chi2) & (chi2 > 0)])
-                if np.sum(chi2 <= c) >= MIN_DIFF_FRAMES]
-    candidates = [0.0] + admitted + ([math.inf] if chi2.size >= MIN_DIFF_FRAMES else [])
-    scores = []
-    for lim in candidates:
-        use_diff = (chi2 <= lim)[:, None]
-        scores.append(float(np.max(np.mean(np.where(use_diff, diff_errors, peak_errors), axis=0))))
-    if not all(math.isfinite(sc) for sc in scores):  # errors that cannot be compared: diff always falls back
-        return 0.0
-    best = min(scores)
-    return max(c for c, sc in zip(candidates, scores) if sc <= best * (1 + 1e-9))
+    vr = np.asarray(var_ratio, dtype=float)
+    table = []
+    for lim in chi2_limits:
+        for r in ratios:
+            use = (chi2 <= lim) & np.asarray(consistent, dtype=bool) & ~(vr > r)
+            sel = np.where(use[:, None], diff_errors, peak_errors)
+            score = float(np.max(np.mean(sel, axis=0))) if len(chi2) else 0.0
+            table.append({"chi2_limit": float(lim), "prefer_ratio": float(r), "score": score,
+                          "frames_using_diff": int(use.sum())})
+    if not all(math.isfinite(t["score"]) for t in table):  # errors that cannot be compared: the stated defaults
+        return float(max(chi2_limits)), 1.0, table
+    best = min(t["score"] for t in table)
+    tied = [t for t in table if t["score"] <= best * (1 + 1e-9) + 1e-12]
+    pick = max(tied, key=lambda t: (t["chi2_limit"], -abs(math.log(t["prefer_ratio"]))))
+    return pick["chi2_limit"], pick["prefer_ratio"], table
 
 
 def fit_peak_uncertainty(frames: Sequence[Frame], peak_params, min_range: float | None = None) -> tuple[Uncertainty, dict]:
@@ -159,7 +190,7 @@ def fit_peak_uncertainty(frames: Sequence[Frame], peak_params, min_range: float 
 
     lo = MIN_CALIBRATION_RANGE if min_range is None else float(min_range)
     depths, stds, near = near_range_std(frames, peak_params)
-    base = Uncertainty(near_depths=depths, near_range_std=stds)
+    base = Uncertainty(near_depths=depths, near_range_std=stds, tilt_rel=PEAK_TILT_REL)
     far = max(lo, depths[-1]) if depths else lo  # the floor and scale from the frames the near term leaves alone
     use = [f for f in frames if f.truth is not None and f.truth.z0 >= far]
     ests = [PeakEstimator(peak_params).estimate(f) for f in use]
@@ -176,17 +207,21 @@ def fit_peak_uncertainty(frames: Sequence[Frame], peak_params, min_range: float 
 
 def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correction=None,
                          peak_uncertainty: Uncertainty | None = None, options=None) -> tuple[Uncertainty, dict]:
-    """The diff method's chi-square limit (fallback to peak) and floor from frames with ground truth, for
-    the solver ``options`` (:class:`~place_safe.recovery.differentiable.SolverOptions`; default: the
-    solver's defaults): both depend on the bins the solver fits."""
+    """The diff method's floor and fallback limits (chi-square, consistency, preference) from frames with ground
+    truth, for the solver ``options`` (:class:`~place_safe.recovery.differentiable.SolverOptions`; default: the
+    solver's defaults): they depend on the bins the solver fits. The limits are chosen on held-out frames
+    (module doc); the report gives the held-out figures (``angular_deg``, ``point_mm``: diff's own plane, peak's
+    and the one returned; ``frames_using_diff``) and every candidate's score."""
     from place_safe.recovery.differentiable import DifferentiableEstimator
 
     use = [f for f in frames if f.truth is not None]
     truths = [f.truth for f in use]
-    est = DifferentiableEstimator(forward, peak_params, correction=correction, peak_uncertainty=peak_uncertainty,
-                                  options=options)
+    peak_unc = peak_uncertainty if peak_uncertainty is not None else Uncertainty()
+    est = DifferentiableEstimator(forward, peak_params, correction=correction, peak_uncertainty=peak_unc,
+                                  options=options)  # no floor, no fallback: diff's own plane and fit covariance
     diff = est.estimate_many(use)
     peak = [est.init.estimate(f) for f in use]
+    own = [e.ok and e.method_used == est.name and e.residual is not None for e in diff]
 
     def errs(e: PlaneEstimate, t) -> tuple[float, float]:
         if not e.ok:
@@ -194,8 +229,8 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
         return (float(angular_errors(e.plane.normal, t.normal)[0]),
                 float(point_errors(e.plane.normal, e.plane.offset, t.normal, t.offset)[0]))
 
-    e_diff = np.array([errs(e, t) for e, t in zip(diff, truths)])  # (F, 2): angular, point
-    e_peak = np.array([errs(e, t) for e, t in zip(peak, truths)])
+    e_diff = np.array([errs(e, t) if ok else (math.inf, math.inf) for e, t, ok in zip(diff, truths, own)]).reshape(-1, 2)
+    e_peak = np.array([errs(e, t) for e, t in zip(peak, truths)]).reshape(-1, 2)
     # each error in units of peak's median error, capped at 10, so a few hopeless frames (both methods
     # far off) do not decide; the score is the worse of the two metrics' means
     finite = np.where(np.isfinite(e_peak), e_peak, np.nan)  # peak's median over the frames it read (all NaN: 1)
@@ -203,26 +238,53 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
         warnings.simplefilter("ignore", RuntimeWarning)  # a column without a finite error
         unit = np.maximum(np.nan_to_num(np.nanmedian(finite, axis=0), nan=1.0), 1e-12)
     n_diff, n_peak = np.minimum(e_diff / unit, 10.0), np.minimum(e_peak / unit, 10.0)
-    chi2 = np.array([e.residual ** 2 if e.ok and e.residual is not None else math.inf for e in diff])
-    limit = select_chi2_limit(chi2, n_diff, n_peak)
-    by_diff = [e for e, c in zip(diff, chi2) if c <= limit]
-    unc, rep = fit_floor(by_diff, [t for t, c in zip(truths, chi2) if c <= limit],
-                         Uncertainty(chi2_limit=limit, consistency_limit=CONSISTENCY_LIMIT))
-    # with the fitted floors: the frames whose diff estimate the peak estimate contradicts (they fall back too)
-    final = [replace(e, covariance=unc.apply(e.covariance, e.plane.offset)) if e.ok and e.covariance is not None
-             else e for e in diff]
-    inconsistent = np.array([not unc.consistent(e, p) for e, p in zip(final, peak)])
-    sel = np.where(((chi2 <= limit) & ~inconsistent)[:, None], e_diff, e_peak)
+    chi2 = np.array([e.residual ** 2 if ok else math.inf for e, ok in zip(diff, own)])
+    test = Uncertainty(consistency_limit=CONSISTENCY_LIMIT)
+
+    def held_out(floor: Uncertainty, i: int) -> tuple[bool, float]:
+        """Whether frame i's diff estimate (with ``floor``) agrees with peak's, and its tilt variance over peak's."""
+        if not own[i] or diff[i].covariance is None:
+            return True, math.nan
+        e = replace(diff[i], covariance=floor.apply(diff[i].covariance, diff[i].plane.offset, diff[i].plane.normal))
+        mine, theirs = e.tilt_std(), peak[i].tilt_std()
+        ratio = (mine / theirs) ** 2 if mine is not None and theirs else math.nan
+        return test.consistent(e, peak[i]), ratio
+
+    def floor_from(rows: np.ndarray) -> Uncertainty:
+        return fit_floor([diff[i] for i in rows if own[i]], [truths[i] for i in rows if own[i]])[0]
+
+    n = len(use)
+    folds = min(CV_FOLDS, n // 2)
+    consistent, ratio = np.ones(n, dtype=bool), np.full(n, math.nan)
+    fold = np.empty(n, dtype=int)
+    fold[np.argsort([t.z0 for t in truths], kind="stable")] = np.arange(n) % max(folds, 1)
+    for k in range(folds):  # each fold's limits tested with the floor fitted on the other folds
+        floor = floor_from(np.flatnonzero(fold != k))
+        for i in np.flatnonzero(fold == k):
+            consistent[i], ratio[i] = held_out(floor, int(i))
+    candidates = chi2_candidates(chi2)
+    if folds >= 2:
+        limit, prefer, table = select_fallback(chi2, consistent, ratio, n_diff, n_peak, candidates)
+    else:  # too few frames to hold any out: the most permissive finite limit, equal variances
+        limit, prefer, table = max(candidates), 1.0, []
+    under = [i for i in range(n) if own[i] and chi2[i] <= limit]
+    unc, rep = fit_floor([diff[i] for i in under], [truths[i] for i in under],
+                         Uncertainty(chi2_limit=limit, consistency_limit=CONSISTENCY_LIMIT, prefer_ratio=prefer))
+    use_diff = (chi2 <= limit) & consistent & ~(ratio > prefer)
+    sel = np.where(use_diff[:, None], e_diff, e_peak)
 
     def mean_finite(a: np.ndarray, scale: float) -> float:
-        return float(np.mean(a[np.isfinite(a)])) * scale
+        return float(np.mean(a[np.isfinite(a)])) * scale if np.any(np.isfinite(a)) else math.nan
 
-    use_diff = (chi2 <= limit) & ~inconsistent
-    rep.update({"chi2_limit": None if math.isinf(limit) else limit, "frames_using_diff": int(np.sum(use_diff)),
-                "frames_using_peak": int(np.sum(~use_diff)), "frames_inconsistent_with_peak": int(inconsistent.sum()),
+    rep.update({"chi2_limit": None if math.isinf(limit) else limit, "prefer_ratio": prefer, "folds": folds,
+                "held_out": "frames_using_diff, angular_deg and point_mm: each frame with the floor of the other folds",
+                "frames_using_diff": int(np.sum(use_diff)), "frames_using_peak": int(np.sum(~use_diff)),
+                "frames_inconsistent_with_peak": int(np.sum(~consistent)),
+                "frames_peak_reads_better": int(np.sum(ratio > prefer)),
                 "angular_deg": {k: mean_finite(v[:, 0], 180 / math.pi) for k, v in
                                 (("diff", e_diff), ("peak", e_peak), ("selected", sel))},
-                "point_mm": {k: mean_finite(v[:, 1], 1e3) for k, v in (("diff", e_diff), ("peak", e_peak), ("selected", sel))}})
+                "point_mm": {k: mean_finite(v[:, 1], 1e3) for k, v in (("diff", e_diff), ("peak", e_peak), ("selected", sel))},
+                "candidates": table})
     return unc, rep
 
 
@@ -241,5 +303,5 @@ def update_calibration(cal, frames: Sequence[Frame], method: str) -> dict:
     return report
 
 
-__all__ = ["update_calibration", "nees", "fit_floor", "fit_peak_uncertainty", "fit_diff_uncertainty", "select_chi2_limit",
-           "MIN_DIFF_FRAMES", "CONSISTENCY_LIMIT"]
+__all__ = ["update_calibration", "nees", "fit_floor", "fit_peak_uncertainty", "fit_diff_uncertainty", "select_fallback",
+           "chi2_candidates", "CONSISTENCY_LIMIT", "PEAK_TILT_REL", "CV_FOLDS", "PREFER_RATIOS"]

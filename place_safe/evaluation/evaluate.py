@@ -23,6 +23,10 @@ from place_safe.evaluation.metrics import angular_errors, linear_errors, point_e
 from place_safe.sensor.frame import Frame
 
 
+#: Methods that may return another method's plane: their fallback rate is always printed (0 % too).
+FALLBACK_METHODS = ("diff",)
+
+
 @dataclass
 class MethodResult:
     """Per-frame results of one method over the evaluated frames (NaN where it gave no plane)."""
@@ -101,7 +105,7 @@ class EvaluationReport:
             notes = []
             if s["nees_per_dof"]:
                 notes.append(f"NEES per dof mean {s['nees_per_dof']['mean']:.2f} (median {s['nees_per_dof']['median']:.2f})")
-            if s["method_used"] and set(s["method_used"]) != {name}:
+            if s["method_used"] and (set(s["method_used"]) != {name} or name in FALLBACK_METHODS):  # 0 % said too
                 notes.append("used " + ", ".join(f"{k} {v}" for k, v in s["method_used"].items())
                              + f" (fallback rate {100 * s['fallback_rate']:.0f} %)")
             if s["albedo"] is not None:

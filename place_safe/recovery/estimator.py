@@ -28,6 +28,9 @@ from place_safe.geometry import Plane
 from place_safe.sensor.frame import Frame
 
 
+#: cos(80 deg): the tilt term's largest tilt.
+_COS_MAX_TILT = math.cos(math.radians(80.0))
+
 #: Order of the covariance entries: the normal's x and y components (rad) and the offset (m).
 COVARIANCE_ORDER = ("n_x", "n_y", "d")
 
@@ -55,8 +58,16 @@ class Uncertainty:
     zones' range errors where the sensor is close (:meth:`near_std`; empty: none), cross-validated at
     calibration (:func:`place_safe.calibration.near_range.near_range_std`); the peak method fits its plane's
     covariance with each zone's error at least that large
-    (:func:`~place_safe.recovery.points.plane_covariance`). The defaults (no floor, no fallback, scale 1) are
-    the behaviour of a missing section.
+    (:func:`~place_safe.recovery.points.plane_covariance`).
+
+    ``tilt_rel`` (dimensionless, 0 .. 1): what a tilted plane adds that a level sweep cannot show, each tilt
+    component's standard deviation per unit ``tan(tilt)`` of the estimated plane, added (outside ``scale``)
+    as the variance ``(tilt_rel tan(tilt))^2`` on both tilt components, the plane turning about its optical-axis
+    crossing (:meth:`tilt_floor`). ``prefer_ratio``
+    (> 0; ``inf`` = no comparison): ``diff`` keeps its own plane only where its tilt variance (worst axis of
+    the (n_x, n_y) block) is at most ``prefer_ratio`` times the peak estimate's, so it falls back where its
+    covariance says peak reads the slope better (:meth:`prefers`). The defaults (no floor, no fallback,
+    scale 1, no tilt term, no comparison) are the behaviour of a missing section.
     """
 
     tilt_std: float = 0.0
@@ -68,13 +79,16 @@ class Uncertainty:
     consistency_limit: float = math.inf
     near_depths: list[float] = field(default_factory=list)
     near_range_std: list[float] = field(default_factory=list)
+    tilt_rel: float = 0.0
+    prefer_ratio: float = math.inf
 
     def __post_init__(self) -> None:
         vals = (self.tilt_std, self.offset_std, self.tilt_range_std, self.offset_rel)
         if not all(math.isfinite(v) and v >= 0 for v in vals) or not self.chi2_limit >= 0 \
-                or not (math.isfinite(self.scale) and self.scale > 0) or not self.consistency_limit > 0:
-            raise ValueError("uncertainty needs finite floors >= 0, chi2_limit >= 0, consistency_limit > 0 and a "
-                             "finite scale > 0")
+                or not (math.isfinite(self.scale) and self.scale > 0) or not self.consistency_limit > 0 \
+                or not 0.0 <= self.tilt_rel <= 1.0 or not self.prefer_ratio > 0:
+            raise ValueError("uncertainty needs finite floors >= 0, chi2_limit >= 0, consistency_limit > 0, a "
+                             "finite scale > 0, tilt_rel in [0, 1] and prefer_ratio > 0")
         self.near_depths = [float(v) for v in self.near_depths]
         self.near_range_std = [float(v) for v in self.near_range_std]
         k = len(self.near_depths)
@@ -98,9 +112,35 @@ class Uncertainty:
             return True
         return not (m2 > self.consistency_limit)
 
-    def apply(self, covariance: np.ndarray, offset: float) -> np.ndarray:
-        """The reported covariance of an estimate at ``offset`` (m) whose fit gave ``covariance``."""
-        return self.scale * (np.asarray(covariance, dtype=float) + self.floor(offset))
+    def prefers(self, est: "PlaneEstimate", other: "PlaneEstimate") -> bool:
+        """Whether ``est``'s tilt variance is at most ``prefer_ratio`` times ``other``'s (True when
+        ``prefer_ratio`` is ``inf`` or a covariance is missing)."""
+        if math.isinf(self.prefer_ratio):
+            return True
+        mine, theirs = est.tilt_std(), other.tilt_std()
+        if mine is None or theirs is None:
+            return True
+        return bool(mine * mine <= self.prefer_ratio * theirs * theirs)
+
+    def apply(self, covariance: np.ndarray, offset: float, normal=None) -> np.ndarray:
+        """The reported covariance of an estimate at ``offset`` (m) with unit ``normal`` (None: level; for the tilt
+        term) whose fit gave ``covariance``."""
+        out = self.scale * (np.asarray(covariance, dtype=float) + self.floor(offset))
+        return out if normal is None or self.tilt_rel == 0.0 else out + self.tilt_floor(normal, offset)
+
+    def tilt_floor(self, normal, offset: float) -> np.ndarray:
+        """The covariance (3, 3) of ``(n_x, n_y, d)`` a plane with unit ``normal`` at ``offset`` (m) adds:
+        variance ``(tilt_rel tan(tilt))^2`` on each tilt component (tilt capped at 80 deg), the plane turning
+        about the point where it crosses the optical axis (``z0 = d / n_z``), so ``d`` moves by
+        ``-z0 (n_x dn_x + n_y dn_y) / n_z``. Scalar arithmetic: it is on the peak method's per-frame path."""
+        nx, ny, nz = (float(v) for v in normal)
+        if not (math.isfinite(nx) and math.isfinite(ny) and math.isfinite(nz) and math.isfinite(offset)):
+            nx, ny, nz, offset = 0.0, 0.0, _COS_MAX_TILT, 0.0
+        nz = min(max(nz, _COS_MAX_TILT), 1.0)
+        v = self.tilt_rel * self.tilt_rel * max(1.0 - nz * nz, 0.0) / (nz * nz)  # (tilt_rel tan(tilt))^2
+        k = -float(offset) / (nz * nz)  # -z0 / n_z
+        jx, jy = k * nx, k * ny
+        return np.array([[v, 0.0, v * jx], [0.0, v, v * jy], [v * jx, v * jy, v * (jx * jx + jy * jy)]])
 
     def floor(self, offset: float) -> np.ndarray:
         """The model-error covariance (3, 3) added to an estimate at distance ``offset`` (m)."""
@@ -124,8 +164,12 @@ class Uncertainty:
         d = asdict(self)
         d["chi2_limit"] = None if math.isinf(self.chi2_limit) else float(self.chi2_limit)
         d["consistency_limit"] = None if math.isinf(self.consistency_limit) else float(self.consistency_limit)
+        d["prefer_ratio"] = None if math.isinf(self.prefer_ratio) else float(self.prefer_ratio)
         if not self.near_depths:
             del d["near_depths"], d["near_range_std"]
+        for key, default in (("tilt_rel", 0.0), ("prefer_ratio", None)):  # files older versions read
+            if d[key] == default:
+                del d[key]
         return d
 
     @classmethod
@@ -133,10 +177,10 @@ class Uncertainty:
         d = dict(d)
         lists = ("near_depths", "near_range_std")
         unknown = set(d) - {"tilt_std", "offset_std", "chi2_limit", "tilt_range_std", "offset_rel", "scale",
-                            "consistency_limit", *lists}
+                            "consistency_limit", "tilt_rel", "prefer_ratio", *lists}
         if unknown:
             raise ValueError(f"unknown keys {', '.join(sorted(unknown))}")
-        for key in ("chi2_limit", "consistency_limit"):
+        for key in ("chi2_limit", "consistency_limit", "prefer_ratio"):
             if d.get(key, None) is None:
                 d[key] = math.inf
         for key in lists:

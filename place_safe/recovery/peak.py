@@ -22,8 +22,9 @@ Per zone, vectorised over zones (and over frames in :func:`place_safe.sensor.his
 
 ``residual`` of the estimate: RMS perpendicular distance (m) of the zone points from the plane;
 ``covariance``: the SVD fit's (:func:`~place_safe.recovery.points.plane_covariance`; closer than the near-range
-table's end, each zone's error at least the calibrated near-range one) plus the calibrated floor
-(:class:`~place_safe.recovery.estimator.Uncertainty`).
+table's end, each zone's error at least the calibrated near-range one) plus the calibrated floor and the
+tilt term (:class:`~place_safe.recovery.estimator.Uncertainty`: on a tilted plane each zone's return spreads
+over its footprint and the peak reads the slope short, an error a level sweep cannot show).
 Histograms clipped at the 24-bit maximum, or frames flagged ``saturated`` in ``extra`` /
 ``extra["meta"]``, give no plane: a clipped peak has no usable position.
 """
@@ -80,7 +81,7 @@ class PeakEstimator(Estimator):
         near = 0.0  # each zone's calibrated range error where any zone is closer than the near-range errors' end
         if self.uncertainty.near_depths and points[valid, 2].min() < self.uncertainty.near_depths[-1]:
             near = self.uncertainty.near_std(points[:, 2])
-        cov = self.uncertainty.apply(plane_covariance(points, valid, plane, near), plane.offset)
+        cov = self.uncertainty.apply(plane_covariance(points, valid, plane, near), plane.offset, plane.normal)
         return PlaneEstimate(plane, residual=rms, covariance=cov, method_used=self.name)
 
 

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from place_safe.calibration.uncertainty import MIN_DIFF_FRAMES, fit_floor, nees, select_chi2_limit
+from place_safe.calibration.uncertainty import PREFER_RATIOS, chi2_candidates, fit_floor, nees, select_fallback
 from place_safe.geometry import Plane
 from place_safe.recovery.estimator import PlaneEstimate
 
@@ -51,35 +51,55 @@ def test_chi2_limit_admits_the_frames_diff_explains_and_helps():
     chi2 = np.array([0.9, 1.0, 1.1, 1.2, 1.3, 5.0, 6.0, 7.0, np.inf])
     diff = np.array([[0.1, 0.1]] * 5 + [[3.0, 3.0]] * 3 + [[10.0, 10.0]])
     peak = np.ones((9, 2))
-    assert select_chi2_limit(chi2, diff, peak) == pytest.approx(1.3)
-    assert select_chi2_limit(chi2, diff * 0.1, peak) == math.inf  # diff better everywhere: never fall back
+    ok, ratio = np.ones(9, dtype=bool), np.full(9, 0.5)
+    limit, prefer, table = select_fallback(chi2, ok, ratio, diff, peak, [1.3, 7.0, 14.0])
+    assert limit == pytest.approx(1.3) and prefer == 1.0
+    assert len(table) == 3 * len(PREFER_RATIOS)
+    # diff better everywhere: the largest candidate
+    assert select_fallback(chi2, ok, ratio, diff * 0.1, peak, [1.3, 7.0, 14.0])[0] == 14.0
 
 
-def test_chi2_limit_is_zero_when_too_few_frames_would_use_diff():
-    """One frame in many better by chance is not evidence: diff always falls back (limit 0)."""
-    chi2 = np.array([1.0] + [5.0] * 20)
-    diff = np.array([[0.5, 0.5]] + [[2.0, 2.0]] * 20)
-    peak = np.ones((21, 2))
-    assert MIN_DIFF_FRAMES > 1
-    assert select_chi2_limit(chi2, diff, peak) == 0.0
-    diff_worse = np.full((21, 2), 2.0)
-    assert select_chi2_limit(chi2, diff_worse, peak) == 0.0  # never better: 0 too
+def test_preference_ratio_keeps_diff_where_its_covariance_says_it_reads_better():
+    """Frames where diff's tilt variance is below peak's are the ones diff reads better: ratio 1 returns the
+    better plane on every frame; a ratio that keeps diff everywhere, or nowhere, scores worse."""
+    ratio = np.array([0.1, 0.2, 0.3, 3.0, 5.0, 8.0])
+    diff = np.array([[0.5, 0.5]] * 3 + [[2.0, 2.0]] * 3)
+    peak = np.ones((6, 2))
+    limit, prefer, table = select_fallback(np.ones(6), np.ones(6, dtype=bool), ratio, diff, peak, [2.0],
+                                           ratios=(0.05, 1.0, 10.0))
+    assert prefer == 1.0 and limit == 2.0
+    scores = {t["prefer_ratio"]: t["score"] for t in table}
+    assert scores[1.0] < scores[0.05] and scores[1.0] < scores[10.0]
 
 
-def test_chi2_limit_only_counts_limits_enough_frames_pass():
-    """A limit that only 2 frames pass cannot win, however well diff did on them; the best limit that 3 or
-    more frames pass, and that still beats peak alone, does (here the one the third frame just passes)."""
-    chi2 = np.array([0.5, 0.6] + [1.0 + 0.01 * i for i in range(8)] + [5.0] * 20)
-    diff = np.array([[0.1, 0.1]] * 2 + [[1.05, 0.95]] * 8 + [[3.0, 3.0]] * 20)
-    peak = np.ones((30, 2))
-    assert select_chi2_limit(chi2, diff, peak) == pytest.approx(1.0)
-    assert select_chi2_limit(np.array([]), np.zeros((0, 2)), np.zeros((0, 2))) == 0.0
+def test_never_a_limit_that_always_falls_back():
+    """A level sweep where peak is better on every frame: diff's covariance already says so (ratio > 1), the
+    limits stay open (no candidate forces the fallback) and frames where diff's covariance is the smaller
+    would still keep diff."""
+    chi2 = np.array([1.0, 1.2, 1.4, 1.6, 2.0, 2.5])
+    diff, peak = np.full((6, 2), 3.0), np.ones((6, 2))
+    cands = chi2_candidates(chi2)
+    assert min(cands) > 0 and max(cands) == pytest.approx(5.0) and math.isinf(chi2_candidates(np.array([np.inf]))[0])
+    limit, prefer, _ = select_fallback(chi2, np.ones(6, dtype=bool), np.full(6, 9.0), diff, peak, cands)
+    assert limit == pytest.approx(5.0) and prefer >= 1.0
 
 
-def test_chi2_limit_is_zero_when_the_errors_cannot_be_compared():
+def test_errors_that_cannot_be_compared_give_the_stated_defaults():
     chi2 = np.array([0.5, 0.7, 0.9, 1.1])
     diff = np.full((4, 2), np.nan)
-    assert select_chi2_limit(chi2, diff, np.ones((4, 2))) == 0.0
+    limit, prefer, _ = select_fallback(chi2, np.ones(4, dtype=bool), np.ones(4), diff, np.ones((4, 2)), [1.1, 2.2])
+    assert limit == 2.2 and prefer == 1.0
+
+
+def test_peak_calibration_states_the_tilt_term(sweep_path):
+    """A level sweep cannot show peak's tilt error: the peak section carries the stated term."""
+    from place_safe.calibration.uncertainty import PEAK_TILT_REL, fit_peak_uncertainty
+    from place_safe.io.frame_file import load_frames
+    from place_safe.recovery.points import PeakParams
+
+    frames = [f for f in load_frames(sweep_path) if 0.05 <= f.truth.z0 <= 0.4]
+    unc, _ = fit_peak_uncertainty(frames, PeakParams.default_peak())
+    assert unc.tilt_rel == PEAK_TILT_REL > 0
 
 
 def test_a_frame_no_method_reads_does_not_break_the_diff_uncertainty(sweep_path):
@@ -95,5 +115,6 @@ def test_a_frame_no_method_reads_does_not_break_the_diff_uncertainty(sweep_path)
     frames = [f for f in load_frames(sweep_path) if 0.08 <= f.truth.z0 <= 0.2][:6]
     frames.append(replace(frames[0], hists=np.zeros_like(np.asarray(frames[0].hists, dtype=float))))
     unc, report = fit_diff_uncertainty(frames, ForwardParams(), PeakParams.default_peak())
-    assert unc.chi2_limit >= 0.0 and report["frames_using_diff"] + report["frames_using_peak"] == len(frames)
-    assert math.isfinite(report["point_mm"]["selected"])
+    assert unc.chi2_limit > 0.0 and report["frames_using_diff"] + report["frames_using_peak"] == len(frames)
+    assert math.isfinite(report["point_mm"]["selected"]) and report["folds"] >= 2
+    assert unc.prefer_ratio in PREFER_RATIOS and unc.consistency_limit < math.inf

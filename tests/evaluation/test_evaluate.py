@@ -69,3 +69,16 @@ def test_summary_reports_the_fallback_rate_and_the_albedo_spread():
     assert s["albedo"]["count"] == 3
     none = MethodResult("peak", np.zeros(1), np.zeros(1), np.zeros(1), np.full(1, np.nan), np.zeros(1), [None])
     assert none.summary()["fallback_rate"] is None and none.summary()["albedo"] is None
+
+
+def test_table_says_a_zero_fallback_rate():
+    """diff that kept its own plane on every frame: the table still says so (fallback rate 0 %)."""
+    import numpy as np
+
+    from place_safe.evaluation.evaluate import EvaluationReport, MethodResult
+
+    n = 3
+    res = MethodResult("diff", np.ones(n), np.ones(n), np.ones(n), np.full(n, 2.0), np.zeros(n), [None] * n,
+                       used=["diff"] * n)
+    table = EvaluationReport(results={"diff": res}, z0=np.full(n, 0.1), theta=np.zeros(n)).table()
+    assert "used diff 3 (fallback rate 0 %)" in table

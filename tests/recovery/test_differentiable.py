@@ -176,6 +176,19 @@ def test_consistency_fallback_when_peak_contradicts_diff(frames):
         assert w.method_used == "diff"
 
 
+def test_preference_fallback_when_peak_reads_the_slope_better(frames):
+    """Convention check: diff keeps its plane only where its tilt variance is at most prefer_ratio times peak's;
+    a ratio no frame meets returns peak's plane, a ratio every frame meets keeps diff."""
+    from place_safe.recovery.estimator import Uncertainty
+
+    never = DifferentiableEstimator(uncertainty=Uncertainty(prefer_ratio=1e-12))
+    always = DifferentiableEstimator(uncertainty=Uncertainty(prefer_ratio=1e12))
+    for f in frames[:3]:
+        n, a = never.estimate(f), always.estimate(f)
+        assert n.method_used == "peak" and n.plane is not None
+        assert a.method_used == "diff"
+
+
 def test_covariance_is_symmetric_positive_and_shrinks_with_signal():
     """Convention check: the fit covariance of (n_x, n_y, d) is a valid covariance, and a brighter surface
     (more photons, less shot noise) gives a smaller one."""
@@ -188,3 +201,40 @@ def test_covariance_is_symmetric_positive_and_shrinks_with_signal():
     for c in covs:
         assert c.shape == (3, 3) and np.allclose(c, c.T) and np.all(np.linalg.eigvalsh(c) > 0)
     assert np.trace(covs[1][:2, :2]) < np.trace(covs[0][:2, :2])
+
+
+@pytest.mark.filterwarnings("ignore")
+def test_diff_keeps_its_plane_only_when_every_fallback_test_passes():
+    """Safety invariant (hypothesis): for any calibrated limits and any pair of estimates, diff returns its own
+    plane only when its chi-square is under the limit, its covariance is positive definite, it agrees with peak
+    and peak does not read the slope better; otherwise exactly peak's plane and covariance, marked "peak"."""
+    from hypothesis import given, settings
+    from hypothesis import strategies as st
+
+    from place_safe.geometry import Plane
+    from place_safe.recovery.differentiable import _positive_definite
+    from place_safe.recovery.estimator import PlaneEstimate, Uncertainty
+
+    est = DifferentiableEstimator()
+    pos = st.floats(1e-9, 1e3, allow_nan=False)
+
+    @settings(max_examples=200, deadline=None)
+    @given(chi2_limit=st.one_of(st.just(math.inf), st.floats(0.0, 1e3)), consistency=st.one_of(st.just(math.inf), pos),
+           prefer=st.one_of(st.just(math.inf), pos), residual=st.floats(0.0, 1e3), tilt=st.floats(0.0, 1.2),
+           var_diff=st.floats(1e-12, 1.0), var_peak=st.floats(1e-12, 1.0), shift=st.floats(-0.2, 0.2))
+    def check(chi2_limit, consistency, prefer, residual, tilt, var_diff, var_peak, shift):
+        unc = Uncertainty(chi2_limit=chi2_limit, consistency_limit=consistency, prefer_ratio=prefer)
+        est.uncertainty = unc
+        d = PlaneEstimate(Plane.from_angles(tilt, 0.3, 0.1), albedo=1.0, residual=residual,
+                          covariance=np.diag([var_diff, var_diff, var_diff * 1e-3]), method_used="diff")
+        p = PlaneEstimate(Plane.from_angles(tilt + shift, 0.3, 0.1 + shift * 0.01), residual=1e-4,
+                          covariance=np.diag([var_peak, var_peak, var_peak * 1e-3]), method_used="peak")
+        out = est._checked(d, p)
+        passes = (residual ** 2 <= chi2_limit and _positive_definite(d.covariance) and unc.consistent(d, p)
+                  and unc.prefers(d, p))
+        if passes:
+            assert out is d
+        else:
+            assert out.method_used == "peak" and out.plane is p.plane and out.covariance is p.covariance
+
+    check()

@@ -48,6 +48,54 @@ def test_uncertainty_round_trip_and_defaults():
         Uncertainty.from_dict({"tilt": 1.0})
 
 
+def test_tilt_term_and_preference_round_trip_and_default_to_none():
+    u = Uncertainty(tilt_rel=0.05, prefer_ratio=2.0)
+    assert Uncertainty.from_dict(json.loads(json.dumps(u.to_dict()))) == u
+    old = Uncertainty().to_dict()
+    assert "tilt_rel" not in old and "prefer_ratio" not in old  # files older versions read
+    assert Uncertainty.from_dict({}).tilt_rel == 0.0 and Uncertainty.from_dict({"prefer_ratio": None}).prefer_ratio == math.inf
+    for bad in ({"tilt_rel": -0.1}, {"tilt_rel": 2.0}, {"prefer_ratio": 0.0}, {"tilt_rel": math.nan}):
+        with pytest.raises(ValueError):
+            Uncertainty(**bad)
+
+
+def test_tilt_term_is_zero_level_and_turns_the_plane_about_its_axis_crossing():
+    u = Uncertainty(tilt_rel=0.05)
+    level = np.array([0.0, 0.0, 1.0])
+    assert np.all(u.tilt_floor(level, 0.2) == 0.0)
+    assert np.all(u.apply(np.eye(3) * 1e-8, 0.2, level) == u.apply(np.eye(3) * 1e-8, 0.2))
+    t = math.radians(20.0)
+    n = np.array([math.sin(t), 0.0, math.cos(t)])
+    c = u.tilt_floor(n, 0.2)
+    assert c[0, 0] == pytest.approx((0.05 * math.tan(t)) ** 2) and c[1, 1] == pytest.approx(c[0, 0])
+    # turning about (0, 0, z0): d = z0 n_z moves by -z0 n_x dn_x / n_z
+    z0 = 0.2 / math.cos(t)
+    assert c[2, 2] == pytest.approx(c[0, 0] * (z0 * math.tan(t)) ** 2)
+    assert c[0, 2] == pytest.approx(-c[0, 0] * z0 * math.tan(t))
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.floats(0.0, 1.0), st.floats(0.0, 1.5), st.floats(-math.pi, math.pi), st.floats(1e-3, 5.0))
+def test_tilt_term_only_adds_uncertainty(rel, theta, phi, offset):
+    """Safety invariant: the tilt term is a finite positive semi-definite covariance, so it never makes an
+    estimate claim more certainty than without it."""
+    n = np.array([math.sin(theta) * math.cos(phi), math.sin(theta) * math.sin(phi), math.cos(theta)])
+    c = Uncertainty(tilt_rel=rel).tilt_floor(n, offset)
+    assert np.all(np.isfinite(c)) and np.allclose(c, c.T)
+    assert np.linalg.eigvalsh(c).min() >= -1e-12 * max(1.0, np.abs(c).max())
+
+
+def test_preference_compares_tilt_variances():
+    plane = Plane(np.array([0.0, 0.0, 1.0]), 0.1)
+    small = PlaneEstimate(plane, covariance=np.eye(3) * 1e-6)
+    large = PlaneEstimate(plane, covariance=np.eye(3) * 4e-6)
+    u = Uncertainty(prefer_ratio=1.0)
+    assert u.prefers(small, large) and not u.prefers(large, small)
+    assert Uncertainty(prefer_ratio=4.0).prefers(large, small)
+    assert Uncertainty().prefers(large, small)  # no comparison by default
+    assert u.prefers(PlaneEstimate(plane), small)  # no covariance: no claim to compare
+
+
 def test_calibration_without_uncertainty_section_loads_with_defaults():
     cal = Calibration.from_dict({"format": "place_safe.calibration/1"})
     assert cal.uncertainty("diff") == Uncertainty()
