@@ -22,7 +22,8 @@ Conventions
   (``std_offset``, m), both unweighted: every plane in the window counts in the spread.
 * Gates: once the window holds ``min_frames`` planes, a new plane more than ``angle_gate`` (rad) from
   the fused normal or whose anchor is more than ``offset_gate`` (m) off the fused plane is rejected as
-  an outlier. ``max_consecutive_rejects`` rejections in a row mean the surface itself changed (or the
+  an outlier. ``max_consecutive_rejects`` gate rejections in a row (frames without a plane between them
+  do not count, nor break the run: a frame too close to measure says nothing about the surface) mean the surface itself changed (or the
   old window was wrong): the window is cleared and the new plane starts it.
 * Rejected without touching the window: no plane (``estimate.plane is None``), non-finite values,
   a malformed pose, and a measurement time not later than the newest accepted one (the same frame fed
@@ -213,9 +214,12 @@ class PlaneFilter:
         sensor at ``base_T_sensor``. Returns whether it was accepted; the reason for a rejection is
         in :attr:`last_reject_reason`."""
         plane = getattr(estimate, "plane", estimate)
-        if plane is None:
+        if plane is None:  # no evidence either way ("too close", no return): not a gate rejection in a row
             why = getattr(estimate, "reason", None) or "no plane"
-            return self._reject(f"no plane: {why}")
+            run = self.consecutive_rejects
+            self._reject(f"no plane: {why}")
+            self.consecutive_rejects = run
+            return False
         if not isinstance(plane, Plane):
             return self._reject(f"not a Plane: {type(plane).__name__}")
         try:
