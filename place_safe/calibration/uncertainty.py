@@ -41,7 +41,7 @@ from dataclasses import replace
 import numpy as np
 
 from place_safe.evaluation.metrics import angular_errors, nees, point_errors  # noqa: F401 (nees: re-exported)
-from place_safe.recovery.estimator import NEAR_MAX_STD, PlaneEstimate, Uncertainty, tilt_offset
+from place_safe.recovery.estimator import PlaneEstimate, Uncertainty, tilt_offset
 from place_safe.recovery.too_close import TOO_CLOSE_REASON
 from place_safe.sensor.frame import Frame
 
@@ -153,7 +153,15 @@ def fit_peak_uncertainty(frames: Sequence[Frame], peak_params, min_range: float 
     Those frames get the zones' near-range errors instead (module doc); where there are some, the floor and
     scale are fitted on the frames beyond their last depth. The report's ``near_range`` holds the errors per
     depth and the mean NEES per dof of the closer frames with them (in sample for the floor; the errors are
-    cross-validated)."""
+    cross-validated), ``too_close``, how many of them the peak method reads as too close
+    (:mod:`place_safe.recovery.too_close`: no plane, no part in the mean), and ``nees_per_dof_closer_held_out``,
+    the same mean with each frame read by a table fitted without it (:func:`_held_out_near`).
+
+    A factor on the near-range errors chosen so that held-out mean is 1 was tried and is not applied: each
+    held-out frame lies on a knot that lost its own data, so it reads worse than a new frame between knots
+    with data on both sides. On level-sweep calibrations of two simulated mismatched units (5 mm-40 cm) the
+    factor (1.1-1.5) took the 2-5 cm NEES per dof of held-out level frames from 0.55 / 0.86 to 0.38 / 0.51; on the
+    real halves it took 5-9 cm below 0.5."""
     from place_safe.calibration.near_range import near_range_std
     from place_safe.calibration.points import MIN_CALIBRATION_RANGE
     from place_safe.recovery.peak import PeakEstimator
@@ -170,18 +178,13 @@ def fit_peak_uncertainty(frames: Sequence[Frame], peak_params, min_range: float 
     report["frames_closer"] = len(closer)
     report["near_range"] = near
     if closer and depths:
-        held = _held_out_near(frames, closer, peak_params)
-        ests = [PeakEstimator(p, unc).estimate(f) for f, p in held]
-        report["near_range"]["nees_per_dof_closer_before_scale"] = _mean_nees(ests, [f.truth for f in closer])
-        unc, report["near_range"]["scale"] = _near_scale(held, unc)
-        ests = [PeakEstimator(p, unc).estimate(f) for f, p in held]
+        ests = [PeakEstimator(peak_params, unc).estimate(f) for f in closer]
         report["near_range"]["nees_per_dof_closer"] = _mean_nees(ests, [f.truth for f in closer])
         report["near_range"]["too_close"] = sum(1 for e in ests if (e.reason or "").startswith(TOO_CLOSE_REASON))
+        held = _held_out_near(frames, closer, peak_params)
+        ests = [PeakEstimator(p, unc).estimate(f) for f, p in held]
+        report["near_range"]["nees_per_dof_closer_held_out"] = _mean_nees(ests, [f.truth for f in closer])
     return unc, report
-
-
-#: Factors of the near-range errors tried by :func:`_near_scale` (0.05 .. 20, log-spaced).
-NEAR_SCALES = tuple(float(v) for v in np.geomspace(0.05, 20.0, 61))
 
 
 def _mean_nees(estimates: Sequence[PlaneEstimate], truths: Sequence) -> float | None:
@@ -200,44 +203,6 @@ def _held_out_near(frames: Sequence[Frame], closer: Sequence[Frame], peak_params
 
     tables = held_out_tables(frames, peak_params) if peak_params.near_depths else {}
     return [(f, tables.get(id(f), peak_params)) for f in closer]
-
-
-def _near_scale(held: Sequence, unc: Uncertainty) -> tuple[Uncertainty, dict]:
-    """``unc`` with its near-range errors closer than :data:`NEAR_SCALE_END` multiplied by the factor of
-    :data:`NEAR_SCALES` that brings the mean NEES per dof of the held-out near frames ``held`` closer than that ((frame, parameters read without it), from
-    :func:`_held_out_near`) closest to 1 (in log); the report. The zones' errors there are correlated (a
-    distortion that looks like a tilt), which their cross-validated spread alone does not describe: on the real
-    sweep's halves that spread gave 2.75-4.25 cm frames NEES per dof of 0.1-0.2 and 1.25-2 cm frames 12-50.
-    Frames too close to read (:mod:`place_safe.recovery.too_close`) have no plane and take no part. Fewer
-    than :data:`MIN_NEAR_SCALE_FRAMES` frames with a plane: factor 1."""
-    from place_safe.recovery.peak import PeakEstimator
-
-    held = [(f, p) for f, p in held if f.truth.z0 < NEAR_SCALE_END]
-    truths = [f.truth for f, _ in held]
-
-    def scaled(k: float) -> Uncertainty:
-        return replace(unc, near_range_std=[min(v * k, NEAR_MAX_STD) if d < NEAR_SCALE_END else v
-                                            for d, v in zip(unc.near_depths, unc.near_range_std)])
-
-    def score(k: float) -> float | None:
-        return _mean_nees([PeakEstimator(p, scaled(k)).estimate(f) for f, p in held], truths)
-
-    at_one = score(1.0)
-    used = int(np.sum(np.isfinite(nees([PeakEstimator(p, unc).estimate(f) for f, p in held], truths))))
-    if at_one is None or used < MIN_NEAR_SCALE_FRAMES:
-        return unc, {"factor": 1.0, "frames": used, "why": f"{used} near frame(s) with a plane; "
-                                                           f"a factor needs {MIN_NEAR_SCALE_FRAMES}"}
-    scores = [(k, score(k)) for k in NEAR_SCALES]
-    k, best = min(((k, v) for k, v in scores if v is not None and v > 0), key=lambda kv: abs(math.log(kv[1])))
-    return scaled(k), {"factor": k, "frames": used, "nees_per_dof_at_1": at_one, "nees_per_dof": best}
-
-
-#: Near frames with a plane needed to scale the near-range errors (:func:`_near_scale`).
-MIN_NEAR_SCALE_FRAMES = 3
-#: m: the factor scales the near-range errors of knots closer than this, judged on frames closer than this
-#: (farther, 5-9 cm, the cross-validated errors alone held the real halves' NEES per dof at 0.7 / 1.2; one factor
-#: for both bands, set by a 3.5 cm frame read 6 deg off held out, took 5-9 cm to 0.4).
-NEAR_SCALE_END = 0.05
 
 
 def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correction=None,
