@@ -147,3 +147,13 @@ def test_too_close_frames_do_not_let_an_outlier_restart_the_window():
     assert not filt.update(PlaneEstimate(Plane(tilted, 0.10), covariance=cov), T, t)
     assert filt.last_reject_reason.startswith("outlier")
     assert len(filt.fused(t).stamps) == 5  # the window still rests on the five level planes only
+
+
+def test_evaluate_counts_the_frames_too_close_to_read():
+    from place_safe.evaluation.evaluate import evaluate
+
+    frames = load_frames(SWEEP)[:3]  # 0.5, 1.25, 2.0 cm
+    report = evaluate(frames, methods=("peak-naive",), progress=False)
+    res = report.results["peak-naive"]
+    assert res.too_close == 3 and res.summary()["too_close"] == 3
+    assert "3 of the failures too close to read" in report.table()
