@@ -42,7 +42,7 @@ from place_safe.exceptions import FrameError, NoPlaneError
 from place_safe.sensor.frame import N_BINS, N_ZONES, Frame
 from place_safe.recovery.estimator import Estimator, PlaneEstimate, Uncertainty
 from place_safe.recovery.points import PeakParams, plane_covariance, plane_through
-from place_safe.recovery.too_close import overlap_reason
+from place_safe.recovery.too_close import may_be_close, overlap_reason
 from place_safe.sensor.histogram import COUNT_MAX, find_peaks, find_returns
 
 def _flagged_saturated(frame: Frame) -> bool:
@@ -93,9 +93,10 @@ class PeakEstimator(Estimator):
         if saturated.any():
             zones = ", ".join(str(z + 1) for z in np.flatnonzero(saturated))
             raise NoPlaneError(f"histogram saturated (counts at the 24-bit maximum) in zone(s) {zones}")
-        too_close = overlap_reason(self._far_ranges(pos), valid, heights)
-        if too_close:
-            raise NoPlaneError(too_close)
+        if may_be_close(pos, valid, p):
+            too_close = overlap_reason(self._far_ranges(pos), valid, heights)
+            if too_close:
+                raise NoPlaneError(too_close)
         if p.drops_weak:  # as PeakParams.peaks: the near-range rule's weak zones out
             valid = p.drop_weak(pos, valid, heights)
             pos = np.where(valid, pos, np.nan)

@@ -20,7 +20,7 @@ from place_safe.recovery.points import MM_PER_M, PeakParams, plane_from_points
 from place_safe.exceptions import FrameError, NoPlaneError
 from place_safe.sensor.frame import MAX_SENSOR_DISTANCE, MIN_SENSOR_DISTANCE, N_ZONES, Frame, real_array
 from place_safe.recovery.estimator import Estimator, PlaneEstimate
-from place_safe.recovery.too_close import overlap_reason
+from place_safe.recovery.too_close import may_be_close, overlap_reason
 
 
 class ProprietaryEstimator(Estimator):
@@ -59,10 +59,11 @@ class ProprietaryEstimator(Estimator):
         if valid.sum() < 3:
             raise NoPlaneError(f"only {int(valid.sum())} zone(s) report an object; a plane needs 3 or more")
         # a zone without an object counts as dark (the on-sensor result holds no return heights)
-        too_close = overlap_reason(self.params.ranges(np.where(valid, dist * MM_PER_M, np.nan)), valid,
-                                   valid.astype(float))
-        if too_close:
-            raise NoPlaneError(too_close)
+        if may_be_close(dist * MM_PER_M, valid, self.params):
+            too_close = overlap_reason(self.params.ranges(np.where(valid, dist * MM_PER_M, np.nan)), valid,
+                                       valid.astype(float))
+            if too_close:
+                raise NoPlaneError(too_close)
         plane, rms = plane_from_points(self.params, dist * MM_PER_M, valid)
         return PlaneEstimate(plane, residual=rms)
 

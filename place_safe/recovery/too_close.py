@@ -49,6 +49,24 @@ DARK_CENTRE_RANGE = 0.03
 CENTRE = N_ZONES // 2
 
 
+#: m: a frame whose nearest zone reads farther than this on the linear part of the mapping cannot be too close
+#: (the mapping's corrections move a range by millimetres): :func:`may_be_close` skips the test (a peak frame's
+#: budget is half a millisecond).
+SCREEN_RANGE = 0.1
+
+
+def may_be_close(readings: np.ndarray, valid: np.ndarray, params) -> bool:
+    """Whether the nearest zone with a return reads closer than :data:`SCREEN_RANGE` on the linear part of
+    ``params``' mapping (:class:`~place_safe.recovery.points.PeakParams`; readings (9,) in its units). A few
+    microseconds: only frames for which it is True need :func:`overlap_reason`."""
+    x = np.where(np.asarray(valid, dtype=bool), np.asarray(readings, dtype=float), np.inf)
+    k = int(np.argmin(x))
+    if not np.isfinite(x[k]):
+        return False
+    r = (x[k] - params.b - params.zone_offsets[k]) / (params.m * params.zone_gains[k])
+    return not r > SCREEN_RANGE
+
+
 def overlap_reason(ranges: np.ndarray, valid: np.ndarray, heights: np.ndarray | None = None) -> str | None:
     """:data:`TOO_CLOSE_REASON` with what was seen, or None: for one frame's first-pass zone ranges (9,) (m,
     the far-range mapping's), their return mask (9,) and, where known, the zones' return heights (9,) (counts
@@ -57,7 +75,9 @@ def overlap_reason(ranges: np.ndarray, valid: np.ndarray, heights: np.ndarray | 
     v = np.asarray(valid, dtype=bool) & np.isfinite(r)
     if not v.any():
         return None
-    median = float(np.median(r[v]))
+    used = np.sort(r[v])
+    n = used.size
+    median = float(used[n // 2] if n % 2 else 0.5 * (used[n // 2 - 1] + used[n // 2]))
     if median < OVERLAP_RANGE:
         return (f"{TOO_CLOSE_REASON} (median zone range {median * 1e3:.1f} mm, within the pulse's "
                 f"{OVERLAP_RANGE * 1e3:.1f} mm of it)")
@@ -70,4 +90,5 @@ def overlap_reason(ranges: np.ndarray, valid: np.ndarray, heights: np.ndarray | 
     return None
 
 
-__all__ = ["TOO_CLOSE_REASON", "OVERLAP_RANGE", "DARK_CENTRE_FRACTION", "DARK_CENTRE_RANGE", "overlap_reason"]
+__all__ = ["TOO_CLOSE_REASON", "OVERLAP_RANGE", "DARK_CENTRE_FRACTION", "DARK_CENTRE_RANGE", "SCREEN_RANGE",
+           "may_be_close", "overlap_reason"]
