@@ -143,6 +143,8 @@ class PlacementConfig:
     near_surface_speed: float = 0.25  # m/s at most within near_surface_distance (the arm's robot file sets 0.05)
     near_surface_distance: float = 0.05  # m of cup clearance that counts as near the surface
     too_close_hold: float = 3.0  # s a fused plane may age while the newest frames are too close to read (0: never)
+    too_close_clearance: float = 0.03  # m: ... and only with the cup at most this far above that plane (farther
+    # away, a sensor too close to read sees something in front of it, not the surface: the plane goes stale)
     obstacle_confirm: float = 0.1  # s a contact far above the surface must last with the arm at rest
     max_unconfirmed: int = 3  # contacts far above the surface that vanished before the descent is refused
     # * footprint_frames = 0 is for sources without histograms (test doubles); it extrapolates the
@@ -200,6 +202,7 @@ PLACEMENT_BOUNDS: dict[str, Bound] = {
     "max_checks": Bound(1, 100, "retries"),
     "plane_timeout": Bound(0.0, 10.0, "s", lo_open=True),
     "too_close_hold": Bound(0.0, 30.0, "s"),
+    "too_close_clearance": Bound(0.0, 1.0, "m"),
     "sensor_timeout": Bound(0.0, 10.0, "s", lo_open=True),
     "acquire_timeout": Bound(0.0, 60.0, "s", lo_open=True),
     "contact_force": Bound(0.0, 200.0, "N", lo_open=True),
@@ -366,6 +369,7 @@ class PlacementMachine:
         self.log: list[Transition] = []
         self.gripper_opened = False
         self.last_clearance = math.nan
+        self._blind_from: float | None = None  # cup clearance when the current run of too-close frames began
         self.ticks = 0
         self._t_phase = math.nan
         self._phase_ticks = 0
@@ -468,12 +472,24 @@ class PlacementMachine:
         age = now - plane.stamp
         if age < -self.period:
             return f"surface plane is stamped {-age:.3f} s in the future"
-        if _too_close(note) and age <= cfg.too_close_hold:
+        if self._blind(note) and age <= cfg.too_close_hold:
             return None  # the sensor is too close to read: the farther frames' plane and the kinematics decide
         if not (age <= cfg.plane_timeout):
             return (f"surface plane is stale ({age:.2f} s old > {cfg.plane_timeout:.2f} s)"
                     + (f"; last frame: {note}" if note else ""))
         return None
+
+    def _blind(self, note: str | None) -> bool:
+        """Whether the last frame was too close to read and that run of such frames began with the cup close
+        enough to the fused plane for the sensor to be that close to it (``too_close_clearance``, on the
+        clearance computed last before the run). Keeps where the run began (a run that began far above the plane
+        sees something in front of the sensor, however close the cup gets on the old plane)."""
+        if not _too_close(note):
+            self._blind_from = None
+            return False
+        if self._blind_from is None:
+            self._blind_from = self.last_clearance
+        return self._blind_from <= self.config.too_close_clearance
 
     def _sensor_problem(self, state: RobotState, now: float, note: str | None) -> str | None:
         t_last = state.last_frame_time
@@ -859,7 +875,7 @@ class PlacementMachine:
         fresh = len(self.post_stop_stamps(plane, now))
         if self._check.at_rest is None and now - self._check.t_stop >= cfg.check_settle:
             self._check.at_rest = np.asarray(state.base_T_tcp, dtype=float)[:3, 3].copy()
-        if fresh < cfg.check_frames and not (_too_close(note) and cfg.too_close_hold > 0):
+        if fresh < cfg.check_frames and not (self._blind(note) and cfg.too_close_hold > 0):
             if self._elapsed(now, self._t_phase, self._phase_ticks) > cfg.check_timeout:
                 return self._refuse(now, f"only {fresh} of {cfg.check_frames} surface planes measured within "
                                          f"{cfg.check_timeout:.1f} s of stopping" + (f" ({note})" if note else ""))

@@ -520,5 +520,14 @@ def test_without_a_too_close_hold_the_old_plane_is_stale():
 def test_a_too_close_run_longer_than_the_hold_is_refused():
     w = FakeWorld()
     cfg = PlacementConfig(too_close_hold=0.05)
-    m = _too_close_run(w, PlacementMachine(cfg), below=0.05)  # 5 cm of descent blind: longer than 0.05 s
+    m = _too_close_run(w, PlacementMachine(cfg), below=0.025)  # 2.5 cm of descent blind: longer than 0.05 s
+    assert m.outcome == "refused" and "stale" in m.decision and not opened(w)
+
+
+def test_too_close_far_above_the_plane_is_something_in_front_of_the_sensor():
+    """With the cup 8 cm above the fused plane a too-close frame cannot be the surface: no hold, the plane goes
+    stale and the placement is refused."""
+    w = FakeWorld()
+    m = _too_close_run(w, PlacementMachine(), below=0.08)
+    assert m.config.too_close_clearance < 0.08
     assert m.outcome == "refused" and "stale" in m.decision and not opened(w)
