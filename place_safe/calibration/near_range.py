@@ -286,4 +286,39 @@ def fit_near_range(frames: Sequence[Frame], params: PeakParams, hists: np.ndarra
     return _with_table(base, knots, table, fraction), report
 
 
-__all__ = ["fit_near_range", "near_range_std", "NEAR_END"]
+def held_out_tables(frames: Sequence[Frame], params: PeakParams) -> dict[int, PeakParams]:
+    """For each near frame of ``frames`` (with ground truth, closer than :data:`NEAR_END`), ``params`` with the
+    near-range table fitted without that frame, keyed by the frame's ``id``: the knots, penalty and weak-zone
+    fraction that :func:`fit_near_range` chooses on all of them, the zones' errors again without the frame (as
+    its cross-validation does; a knot without data of its own takes its neighbours'). Empty where
+    :func:`fit_near_range` keeps no table (``params`` then reads these frames without one, held out already).
+    For the near-range uncertainty's factor (:mod:`place_safe.calibration.uncertainty`)."""
+    frames = [f for f in frames if f.truth is not None]
+    _, rep = fit_near_range(frames, params)
+    if not rep.get("adopted"):
+        return {}
+    knots, penalty, fraction = np.asarray(rep["knots_m"]), float(rep["penalty"]), float(rep["min_fraction"])
+    base = replace(params, near_depths=[], near_errors=[], near_min_fraction=0.0)
+    h = np.array([np.asarray(f.hists, dtype=float) for f in frames])
+    pos, valid, _, heights = find_peaks(h, base.pileup, base.subbin, base.subbin_half_width, heights=True)
+    tn = np.array([f.truth.normal for f in frames])
+    td = np.array([f.truth.offset for f in frames])
+    dirs = base.directions()
+    r0 = base.ranges(pos)
+    depth = r0 * dirs[:, 2]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        err = r0 - td[:, None] / (tn @ dirs.T)
+        frame_depth = np.nanmedian(np.where(valid, depth, np.nan), axis=-1)
+    near = (valid.sum(-1) >= 3) & np.isfinite(frame_depth) & (frame_depth < NEAR_END)
+    keep = _with_table(base, knots, np.zeros((len(knots), N_ZONES)), fraction).drop_weak(pos, valid, heights)
+    out: dict[int, PeakParams] = {}
+    for i in np.flatnonzero(near):
+        others = near.copy()
+        others[i] = False
+        table = _fit_errors(knots, depth[others], err[others], keep[others], penalty)
+        if _usable(table):
+            out[id(frames[i])] = _with_table(base, knots, table, fraction)
+    return out
+
+
+__all__ = ["fit_near_range", "near_range_std", "held_out_tables", "NEAR_END"]

@@ -46,6 +46,13 @@ class MethodResult:
         return int(np.sum(~np.isfinite(self.point)))
 
     @property
+    def too_close(self) -> int:
+        """Frames without a plane because they were too close to read (:mod:`place_safe.recovery.too_close`)."""
+        from place_safe.recovery.too_close import TOO_CLOSE_REASON
+
+        return sum(1 for r in self.reasons if isinstance(r, str) and r.startswith(TOO_CLOSE_REASON))
+
+    @property
     def fallback_rate(self) -> float | None:
         """Fraction of the frames with a plane on which the method returned another method's plane (diff's
         fallback to peak); None when it returned none."""
@@ -67,7 +74,7 @@ class MethodResult:
         return {"angular_deg": {k: (v * 180 / np.pi if k != "count" else v) for k, v in summarise(self.angular).items()},
                 "linear_mm": {k: (v * 1e3 if k != "count" else v) for k, v in summarise(self.linear).items()},
                 "point_mm": {k: (v * 1e3 if k != "count" else v) for k, v in summarise(self.point).items()},
-                "failures": self.failures, "frames": len(self.point),
+                "failures": self.failures, "too_close": self.too_close, "frames": len(self.point),
                 "nees_per_dof": ({"mean": float(np.nanmean(self.nees)), "median": float(np.nanmedian(self.nees)),
                                   "count": int(np.isfinite(self.nees).sum())} if np.isfinite(self.nees).any() else None),
                 "method_used": {k: self.used.count(k) for k in sorted({u for u in self.used if u is not None})},
@@ -108,6 +115,9 @@ class EvaluationReport:
             if s["method_used"] and (set(s["method_used"]) != {name} or name in FALLBACK_METHODS):  # 0 % said too
                 notes.append("used " + ", ".join(f"{k} {v}" for k, v in s["method_used"].items())
                              + f" (fallback rate {100 * s['fallback_rate']:.0f} %)")
+            if s["too_close"]:
+                notes.append(f"{s['too_close']} of the failures too close to read (the return overlaps the internal "
+                             "return)")
             if s["albedo"] is not None:
                 notes.append(f"albedo {s['albedo']['mean']:.4g}, CV {s['albedo']['cv_percent']:.1f} %")
             if notes:

@@ -22,8 +22,14 @@ Conventions
   (``std_offset``, m), both unweighted: every plane in the window counts in the spread.
 * Gates: once the window holds ``min_frames`` planes, a new plane more than ``angle_gate`` (rad) from
   the fused normal or whose anchor is more than ``offset_gate`` (m) off the fused plane is rejected as
-  an outlier. ``max_consecutive_rejects`` rejections in a row mean the surface itself changed (or the
-  old window was wrong): the window is cleared and the new plane starts it.
+  an outlier. ``max_consecutive_rejects`` gate rejections in a row (frames without a plane between
+  them do not count, nor break the run: a frame too close to measure says nothing about the surface) mean
+  the surface itself changed (or the old window was wrong): the window is cleared and the new plane starts it.
+* Too close: while the newest frames are too close to read (no plane, reason
+  :data:`~place_safe.recovery.too_close.TOO_CLOSE_REASON`: the return overlaps the internal return) the
+  window is not aged (``max_age``): the farther frames' planes, in the base frame, are what there is, and
+  the machine decides how long it trusts them (``PlacementConfig.too_close_hold``). Such a frame neither
+  updates nor vetoes.
 * Rejected without touching the window: no plane (``estimate.plane is None``), non-finite values,
   a malformed pose, and a measurement time not later than the newest accepted one (the same frame fed
   twice, or frames out of order, never count as new evidence). Times are seconds on the robot clock;
@@ -59,6 +65,7 @@ from typing import Any
 import numpy as np
 
 from place_safe.exceptions import NoPlaneError
+from place_safe.recovery.too_close import TOO_CLOSE_REASON
 from place_safe.geometry import Plane
 
 #: Huber constant in robust sigmas (95 % efficiency for Gaussian noise).
@@ -204,6 +211,7 @@ class PlaneFilter:
         self.rejected = 0  # rejected since reset
         self.consecutive_rejects = 0
         self.last_reject_reason: str | None = None
+        self.too_close = False  # the newest frame was too close to read (its return overlaps the internal return)
         self.last_time = -math.inf
         self.newest_accepted = -math.inf
 
@@ -213,9 +221,13 @@ class PlaneFilter:
         sensor at ``base_T_sensor``. Returns whether it was accepted; the reason for a rejection is
         in :attr:`last_reject_reason`."""
         plane = getattr(estimate, "plane", estimate)
-        if plane is None:
+        if plane is None:  # no evidence either way ("too close", no return): not a gate rejection in a row
             why = getattr(estimate, "reason", None) or "no plane"
-            return self._reject(f"no plane: {why}")
+            run = self.consecutive_rejects
+            self._reject(f"no plane: {why}")
+            self.consecutive_rejects = run
+            self.too_close = isinstance(why, str) and why.startswith(TOO_CLOSE_REASON)
+            return False
         if not isinstance(plane, Plane):
             return self._reject(f"not a Plane: {type(plane).__name__}")
         try:
@@ -251,6 +263,7 @@ class PlaneFilter:
         self._dirty = True
         self.count += 1
         self.consecutive_rejects = 0
+        self.too_close = False
         return True
 
     def _reject(self, reason: str) -> bool:
@@ -260,6 +273,8 @@ class PlaneFilter:
         return False
 
     def _expire(self, now: float) -> None:
+        if self.too_close:  # the sensor is too close to read: the planes of the farther frames are what there is
+            return
         while self._items and self._items[0][0] < now - self.max_age:
             self._items.popleft()
             self._dirty = True

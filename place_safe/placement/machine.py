@@ -74,6 +74,7 @@ from place_safe.exceptions import ConfigError
 from place_safe.geometry import transform_problem
 from place_safe.fusion.plane_filter import FusedPlane
 from place_safe.placement.speed import approach_speed
+from place_safe.recovery.too_close import TOO_CLOSE_REASON
 
 log = logging.getLogger("place_safe.placement.machine")
 
@@ -91,6 +92,11 @@ class Phase(str, Enum):
 
 #: Phases in which the machine has finished.
 FINAL = (Phase.DONE, Phase.ABORTED)
+
+
+def _too_close(note: str | None) -> bool:
+    """Whether the last frame's note says it was too close to read (:mod:`place_safe.recovery.too_close`)."""
+    return isinstance(note, str) and TOO_CLOSE_REASON in note
 
 
 @dataclass
@@ -136,6 +142,9 @@ class PlacementConfig:
     traverse_clearance: float = 0.06  # m the cup stays above the surface while it moves back sideways
     near_surface_speed: float = 0.25  # m/s at most within near_surface_distance (the arm's robot file sets 0.05)
     near_surface_distance: float = 0.05  # m of cup clearance that counts as near the surface
+    too_close_hold: float = 3.0  # s a fused plane may age while the newest frames are too close to read (0: never)
+    too_close_clearance: float = 0.03  # m: ... and only with the cup at most this far above that plane (farther
+    # away, a sensor too close to read sees something in front of it, not the surface: the plane goes stale)
     obstacle_confirm: float = 0.1  # s a contact far above the surface must last with the arm at rest
     max_unconfirmed: int = 3  # contacts far above the surface that vanished before the descent is refused
     # * footprint_frames = 0 is for sources without histograms (test doubles); it extrapolates the
@@ -192,6 +201,8 @@ PLACEMENT_BOUNDS: dict[str, Bound] = {
     "check_timeout": Bound(0.0, 60.0, "s", lo_open=True),
     "max_checks": Bound(1, 100, "retries"),
     "plane_timeout": Bound(0.0, 10.0, "s", lo_open=True),
+    "too_close_hold": Bound(0.0, 30.0, "s"),
+    "too_close_clearance": Bound(0.0, 1.0, "m"),
     "sensor_timeout": Bound(0.0, 10.0, "s", lo_open=True),
     "acquire_timeout": Bound(0.0, 60.0, "s", lo_open=True),
     "contact_force": Bound(0.0, 200.0, "N", lo_open=True),
@@ -358,6 +369,7 @@ class PlacementMachine:
         self.log: list[Transition] = []
         self.gripper_opened = False
         self.last_clearance = math.nan
+        self._blind_from: float | None = None  # cup clearance when the current run of too-close frames began
         self.ticks = 0
         self._t_phase = math.nan
         self._phase_ticks = 0
@@ -460,10 +472,24 @@ class PlacementMachine:
         age = now - plane.stamp
         if age < -self.period:
             return f"surface plane is stamped {-age:.3f} s in the future"
+        if self._blind(note) and age <= cfg.too_close_hold:
+            return None  # the sensor is too close to read: the farther frames' plane and the kinematics decide
         if not (age <= cfg.plane_timeout):
             return (f"surface plane is stale ({age:.2f} s old > {cfg.plane_timeout:.2f} s)"
                     + (f"; last frame: {note}" if note else ""))
         return None
+
+    def _blind(self, note: str | None) -> bool:
+        """Whether the last frame was too close to read and that run of such frames began with the cup close
+        enough to the fused plane for the sensor to be that close to it (``too_close_clearance``, on the
+        clearance computed last before the run). Keeps where the run began (a run that began far above the plane
+        sees something in front of the sensor, however close the cup gets on the old plane)."""
+        if not _too_close(note):
+            self._blind_from = None
+            return False
+        if self._blind_from is None:
+            self._blind_from = self.last_clearance
+        return self._blind_from <= self.config.too_close_clearance
 
     def _sensor_problem(self, state: RobotState, now: float, note: str | None) -> str | None:
         t_last = state.last_frame_time
@@ -849,7 +875,7 @@ class PlacementMachine:
         fresh = len(self.post_stop_stamps(plane, now))
         if self._check.at_rest is None and now - self._check.t_stop >= cfg.check_settle:
             self._check.at_rest = np.asarray(state.base_T_tcp, dtype=float)[:3, 3].copy()
-        if fresh < cfg.check_frames:
+        if fresh < cfg.check_frames and not (self._blind(note) and cfg.too_close_hold > 0):
             if self._elapsed(now, self._t_phase, self._phase_ticks) > cfg.check_timeout:
                 return self._refuse(now, f"only {fresh} of {cfg.check_frames} surface planes measured within "
                                          f"{cfg.check_timeout:.1f} s of stopping" + (f" ({note})" if note else ""))
@@ -891,7 +917,10 @@ class PlacementMachine:
             self._go(Phase.RELEASE, now, f"level ({math.degrees(plane.tilt_rad):.2f} deg, spread "
                                          f"{math.degrees(plane.std_angle):.2f} deg / {plane.std_offset * 1e3:.1f} mm), "
                                          f"clearance {c * 1e3:.1f} mm, contact {force:.1f} N "
-                                         f"from {fresh} planes measured at rest: release")
+                                         + (f"from {fresh} planes measured at rest: release"
+                                            if fresh >= cfg.check_frames else
+                                            f"from the fused plane of the farther frames (sensor too close to "
+                                            f"read, {fresh} planes at rest): release"))
             self.gripper_opened = True
             return Command(CommandKind.OPEN_GRIPPER)
         self._checks += 1

@@ -20,6 +20,10 @@ Per zone, vectorised over zones (and over frames in :func:`place_safe.sensor.his
 4. range, direction and point from :class:`place_safe.recovery.points.PeakParams`; the plane is
    the SVD least-squares fit of the zones with a return (3 or more needed).
 
+A frame whose return overlaps the internal return (:func:`~place_safe.recovery.too_close.overlap_reason`: the
+zones' median range within the pulse's half width, or a dark centre zone closer than 3 cm) gives no plane
+and the reason ``"too close: the return overlaps the internal return (...)"``.
+
 ``residual`` of the estimate: RMS perpendicular distance (m) of the zone points from the plane;
 ``covariance``: the SVD fit's (:func:`~place_safe.recovery.points.plane_covariance`; closer than the near-range
 table's end, each zone's error at least the calibrated near-range one) plus the calibrated floor and the
@@ -31,13 +35,16 @@ Histograms clipped at the 24-bit maximum, or frames flagged ``saturated`` in ``e
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from place_safe.exceptions import FrameError, NoPlaneError
 from place_safe.sensor.frame import N_BINS, N_ZONES, Frame
 from place_safe.recovery.estimator import Estimator, PlaneEstimate, Uncertainty
 from place_safe.recovery.points import PeakParams, plane_covariance, plane_through
-from place_safe.sensor.histogram import COUNT_MAX, find_peaks
+from place_safe.recovery.too_close import may_be_close, overlap_reason
+from place_safe.sensor.histogram import COUNT_MAX, find_peaks, find_returns
 
 def _flagged_saturated(frame: Frame) -> bool:
     extra = frame.extra or {}
@@ -63,16 +70,37 @@ class PeakEstimator(Estimator):
         est.name = "peak-naive"
         return est
 
+    def _far_ranges(self, readings: np.ndarray) -> np.ndarray:
+        """First-pass ranges (m, (9,)) of readings: the far-range mapping, without the near-range table (which
+        extrapolates where a frame is too close; :mod:`place_safe.recovery.too_close`)."""
+        p = self.params
+        if not p.near_depths:
+            return p.ranges(readings)
+        key = (p.m, p.b, p.edge_scale, p.corner_scale, tuple(p.zone_offsets), tuple(p.zone_gains),
+               tuple(p.residual_coeffs), tuple(p.residual_domain), tuple(p.phase_coeffs))
+        if getattr(self, "_far_key", None) != key:
+            self._far = replace(p, near_depths=[], near_errors=[], near_min_fraction=0.0)
+            self._far_key = key
+        return self._far.ranges(readings)
+
     def _estimate(self, frame: Frame) -> PlaneEstimate:
         if _flagged_saturated(frame):
             raise NoPlaneError("frame is flagged saturated; the peaks are clipped")
         h = np.asarray(frame.hists, dtype=float)
         if h.shape != (N_ZONES, N_BINS):
             raise FrameError(f"hists has shape {h.shape}, expected ({N_ZONES}, {N_BINS})")
-        pos, valid, saturated = self.params.peaks(h)
+        p = self.params
+        pos, _, valid, saturated, heights = find_returns(h, p.pileup, p.subbin, p.subbin_half_width, heights=True)
         if saturated.any():
             zones = ", ".join(str(z + 1) for z in np.flatnonzero(saturated))
             raise NoPlaneError(f"histogram saturated (counts at the 24-bit maximum) in zone(s) {zones}")
+        if may_be_close(pos, valid, p):
+            too_close = overlap_reason(self._far_ranges(pos), valid, heights)
+            if too_close:
+                raise NoPlaneError(too_close)
+        if p.drops_weak:  # as PeakParams.peaks: the near-range rule's weak zones out
+            valid = p.drop_weak(pos, valid, heights)
+            pos = np.where(valid, pos, np.nan)
         if valid.sum() < 3:
             raise NoPlaneError(f"only {int(valid.sum())} zone(s) show a return above the noise floor; "
                                "a plane needs 3 or more")

@@ -6,7 +6,10 @@ a confidence. The reading of a zone is that distance in millimetres, mapped to a
 plus the optional smooth correction); ``proprietary-naive`` uses m = 1000 mm/m, b = 0 and nominal
 directions, i.e. the distances as reported along the zone centres. Points at those ranges along the
 zone directions are fitted by SVD. Zones with distance 0 (or confidence 0) are dropped; 3 or more
-are needed. ``residual``: RMS perpendicular distance (m) of the points from the plane.
+are needed. A frame whose zones' median range (mapped) lies within the laser pulse's half width, or closer than 3 cm
+with no object in the centre zone, gives no plane,
+reason ``"too close: the return overlaps the internal return (...)"`` (:mod:`place_safe.recovery.too_close`).
+``residual``: RMS perpendicular distance (m) of the points from the plane.
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ from place_safe.recovery.points import MM_PER_M, PeakParams, plane_from_points
 from place_safe.exceptions import FrameError, NoPlaneError
 from place_safe.sensor.frame import MAX_SENSOR_DISTANCE, MIN_SENSOR_DISTANCE, N_ZONES, Frame, real_array
 from place_safe.recovery.estimator import Estimator, PlaneEstimate
+from place_safe.recovery.too_close import may_be_close, overlap_reason
 
 
 class ProprietaryEstimator(Estimator):
@@ -54,6 +58,12 @@ class ProprietaryEstimator(Estimator):
                 valid &= np.nan_to_num(conf, nan=0.0) > 0
         if valid.sum() < 3:
             raise NoPlaneError(f"only {int(valid.sum())} zone(s) report an object; a plane needs 3 or more")
+        # a zone without an object counts as dark (the on-sensor result holds no return heights)
+        if may_be_close(dist * MM_PER_M, valid, self.params):
+            too_close = overlap_reason(self.params.ranges(np.where(valid, dist * MM_PER_M, np.nan)), valid,
+                                       valid.astype(float))
+            if too_close:
+                raise NoPlaneError(too_close)
         plane, rms = plane_from_points(self.params, dist * MM_PER_M, valid)
         return PlaneEstimate(plane, residual=rms)
 

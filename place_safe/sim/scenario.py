@@ -52,6 +52,10 @@ class SurfaceMotion(ConfigModel):
     duration: float = Field(1.0, ge=0, le=3600, description="how long it moves (s, 0..3600)")
 
 
+#: m: one component of the sensor's mount offset (:attr:`SensorSection.mount_offset`).
+MountShift = Annotated[float, Field(ge=-0.2, le=0.2)]
+
+
 class SensorSection(ConfigModel):
     """The simulated sensor (``place_safe.sim.tof.ToFConfig`` settings and which simulator)."""
 
@@ -67,6 +71,10 @@ class SensorSection(ConfigModel):
     spike_seconds: float = Field(0.25, ge=0, le=5, description="extra latency of a spike (s)")
     seed: int | None = Field(None, description="noise seed; default: the run's seed")
     mismatch: MismatchConfig | None = Field(None, description="differences of the mismatched sensor")
+    mount_offset: tuple[MountShift, MountShift, MountShift] = Field(
+        (0.0, 0.0, 0.0), description="where the sensor is mounted, from the packaged bracket (m, flange frame, each "
+        "-0.2..0.2; +z towards the cup): moves the simulated sensor and the robot's configured sensor frame alike "
+        "(a known mount, e.g. near the jaws; not a mount error)")
 
     @field_validator("ambient_range")
     @classmethod

@@ -3,6 +3,8 @@ mount that differs from the robot file's (the error ``calibrate-mount`` has to f
 
 Concept: :func:`sim_world` builds what ``place-safe capture --sim`` and ``place-safe place --sim`` drive,
 so both run the same code as on the real arm (the task only sees a Robot and a FrameSource).
+The scenario's ``sensor.mount_offset`` (m, flange frame) moves the site and the robot's configured sensor frame
+alike: a sensor mounted elsewhere on purpose (near the jaws), known to the robot.
 ``mount_error`` moves the MuJoCo ``tof_sensor`` site -- where the simulated TMF8820 really looks from
 -- by ``E`` in the sensor frame (true flange_T_sensor = nominal @ E); the robot's configured tool frames
 stay nominal, as a user's would before calibration.
@@ -79,7 +81,16 @@ def sim_world(scenario: Any = "level_table", *, seed: int = 0, mount_error: Any 
         x, y, z, w = Rotation.from_matrix(R_site @ E[:3, :3]).as_quat()
         m.site_quat[s] = [w, x, y, z]
         m.site_sameframe[s] = 0  # the compiler marked the nominal site as aligned with its body: not any more
+    shift = np.asarray(sc.sensor.mount_offset, dtype=float)
+    if np.any(shift):  # a known mount elsewhere (e.g. near the jaws): the site and the configured frame move alike
+        s = scene.sensor_site
+        m.site_pos[s] = m.site_pos[s] + shift  # the site's position is in the flange body's frame
+        m.site_sameframe[s] = 0
     robot = SimRobot(m, mujoco.MjData(m), hold_cup=hold_cup)
+    if np.any(shift):
+        moved = robot.tool.flange_T_sensor.copy()
+        moved[:3, 3] += shift
+        robot.tool = robot.tool.with_sensor(moved)
     if sc.robot.start_q is not None:
         robot.set_joint_positions(sc.robot.start_q, hold_cup=hold_cup)
     tof = make_sensor(sc.sensor.model, scene, robot.data, sc.sensor.tof_config(seed), sc.sensor.mismatch)

@@ -482,3 +482,52 @@ def test_the_approach_is_no_faster_than_the_near_surface_speed_within_its_distan
             assert abs(cmd.twist[2]) <= cfg.near_surface_speed + 1e-9
         w.apply(cmd)
     assert m.outcome == "released"
+
+
+def _too_close_run(world: FakeWorld, machine: PlacementMachine, below: float):
+    """Frames closer than ``below`` (cup clearance, m) are too close to read: the fused plane stops at the last
+    farther frame and the note says why (as the loop passes the filter's reject reason)."""
+    from place_safe.recovery.too_close import TOO_CLOSE_REASON
+
+    frozen = {}
+    while not machine.finished and world.t < 20.0:
+        if world.pos[2] < below:
+            plane = frozen.setdefault("p", world.plane())
+            note = f"no plane: {TOO_CLOSE_REASON} (median zone range 9.0 mm)"
+        else:
+            plane, note = world.plane(), None
+        world.apply(machine.step(world.state(), plane, note, world.footprint))
+    return machine
+
+
+def test_too_close_frames_leave_the_decision_to_the_farther_frames_plane():
+    """A sensor by the jaws reads nothing in the last centimetre: the fused plane of the farther frames (in the
+    base frame, carried by the kinematics) decides, for at most too_close_hold; a tilted one is still refused."""
+    w = FakeWorld()
+    m = _too_close_run(w, PlacementMachine(), below=0.012)
+    assert m.outcome == "released" and "farther frames" in m.decision
+    w = FakeWorld(tilt_deg=7.0)
+    m = _too_close_run(w, PlacementMachine(), below=0.012)
+    assert m.outcome == "refused" and "tilted" in m.decision and not opened(w)
+
+
+def test_without_a_too_close_hold_the_old_plane_is_stale():
+    w = FakeWorld()
+    m = _too_close_run(w, PlacementMachine(PlacementConfig(too_close_hold=0.0)), below=0.012)
+    assert m.outcome == "refused" and not opened(w)
+
+
+def test_a_too_close_run_longer_than_the_hold_is_refused():
+    w = FakeWorld()
+    cfg = PlacementConfig(too_close_hold=0.05)
+    m = _too_close_run(w, PlacementMachine(cfg), below=0.025)  # 2.5 cm of descent blind: longer than 0.05 s
+    assert m.outcome == "refused" and "stale" in m.decision and not opened(w)
+
+
+def test_too_close_far_above_the_plane_is_something_in_front_of_the_sensor():
+    """With the cup 8 cm above the fused plane a too-close frame cannot be the surface: no hold, the plane goes
+    stale and the placement is refused."""
+    w = FakeWorld()
+    m = _too_close_run(w, PlacementMachine(), below=0.08)
+    assert m.config.too_close_clearance < 0.08
+    assert m.outcome == "refused" and "stale" in m.decision and not opened(w)

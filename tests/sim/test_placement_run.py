@@ -50,3 +50,17 @@ def test_tilted_table_is_refused_and_the_cup_kept(tmp_path):
     assert "timeout" in dead["reason"] or "no surface plane" in dead["reason"]
     assert main(["--scenario", str(tmp_path / "missing.json")]) == 2
     assert scenario_path("place_level").name == "place_level.json"
+
+
+@pytest.mark.slow
+def test_a_sensor_by_the_jaws_releases_from_the_farther_frames_and_never_reads_a_near_frame():
+    """The sensor 5 mm above the cup bottom: its last frames are too close to read (no plane, with the reason);
+    the release is decided from the fused plane of the farther frames, and no too-close frame carries a plane."""
+    from place_safe.recovery.too_close import TOO_CLOSE_REASON
+
+    res = run_placement(SCENARIOS / "set" / "jaw_sensor_level.toml", seconds=20, log_frames=True)
+    assert res.outcome == "released", res.summary()
+    assert "farther frames" in res.reason
+    close = [f for f in res.frame_log if (f.get("reason") or "").find(TOO_CLOSE_REASON) >= 0]
+    assert close and all(not f["plane"] for f in close)
+    assert abs(res.cup_height) < 0.003
