@@ -243,9 +243,10 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
     solver's defaults): they depend on the bins the solver fits. The limits are chosen on held-out frames
     (module doc); the report gives the held-out figures (``angular_deg``, ``point_mm``: diff's own plane, peak's
     and the one returned; ``frames_using_diff``) and every candidate's score."""
-    from place_safe.recovery.differentiable import DifferentiableEstimator
+    from place_safe.recovery.differentiable import NEAR_FALLBACK_RANGE, DifferentiableEstimator
 
-    use = [f for f in frames if f.truth is not None]
+    # closer frames always get peak's plane (NEAR_FALLBACK_RANGE): they take no part in choosing the limits
+    use = [f for f in frames if f.truth is not None and f.truth.z0 >= NEAR_FALLBACK_RANGE]
     truths = [f.truth for f in use]
     peak_unc = peak_uncertainty if peak_uncertainty is not None else Uncertainty()
     est = DifferentiableEstimator(forward, peak_params, correction=correction, peak_uncertainty=peak_unc,

@@ -26,6 +26,9 @@ against the calibrated noise: above the calibrated ``chi2_limit`` (:class:`~plac
 the fast solver returns the peak estimate instead, with ``method_used = "peak"``; so it does when the two
 contradict each other (``consistency_limit``) and where diff's tilt variance is above ``prefer_ratio`` times
 peak's (peak reads that slope better; calibrated on held-out frames, :mod:`place_safe.calibration.uncertainty`).
+Closer than :data:`NEAR_FALLBACK_RANGE` (peak's offset) a calibrated fast solver always returns peak's plane: the
+forward model has no validated near-range terms (internal return, partial illumination), and on the real sweep
+its own plane there was off by 10-19 deg where peak's near-range table read 1.7-3.3 deg.
 The fast solver's
 ``covariance`` of ``(n_x, n_y, d)`` is the Gauss-Newton inverse at the solution scaled by that
 chi-square (plus the calibrated floor).
@@ -130,6 +133,11 @@ def _positive_definite(cov) -> bool:
         return False
     w = np.linalg.eigvalsh(0.5 * (c + c.T))
     return bool(w[0] > 1e-12 * max(w[-1], 0.0) and w[-1] > 0.0)
+
+
+NEAR_FALLBACK_RANGE = 0.05
+"""m: closer than this (peak's plane offset) a calibrated fast solver returns peak's plane; the fallback limits are
+chosen on calibration frames at or beyond it (:func:`place_safe.calibration.uncertainty.fit_diff_uncertainty`)."""
 
 
 def _fallback(peak: PlaneEstimate, diff: PlaneEstimate | None = None) -> PlaneEstimate:
@@ -282,13 +290,18 @@ class DifferentiableEstimator(Estimator):
         against the calibrated noise; above ``uncertainty.chi2_limit`` the model does not explain the
         frame and the peak estimate (``method_used = "peak"``) is returned, with diff's residual. So it is
         when the two estimates contradict each other beyond ``uncertainty.consistency_limit``, when diff's
-        tilt variance is above ``uncertainty.prefer_ratio`` times peak's (peak reads this slope better), and when
+        tilt variance is above ``uncertainty.prefer_ratio`` times peak's (peak reads this slope better), closer than
+        :data:`NEAR_FALLBACK_RANGE` (with a calibrated fallback), and when
         diff's covariance is not positive definite (a degenerate Jacobian: the fit did not pin the plane
         down, and a zero covariance would claim it did).
         """
         failed = not est.ok or est.residual is None or not est.residual ** 2 <= self.uncertainty.chi2_limit \
             or not _positive_definite(est.covariance)
-        if not failed and self.uncertainty.consistent(est, peak) and self.uncertainty.prefers(est, peak):
+        if math.isinf(self.uncertainty.chi2_limit):
+            near = False  # no fallback calibrated: diff's own plane wherever it has one
+        else:
+            near = peak.ok and peak.plane.offset < NEAR_FALLBACK_RANGE
+        if not failed and not near and self.uncertainty.consistent(est, peak) and self.uncertainty.prefers(est, peak):
             return est
         if not est.ok and math.isinf(self.uncertainty.chi2_limit):
             return est  # no fallback calibrated: report diff's own failure

@@ -206,13 +206,14 @@ def test_covariance_is_symmetric_positive_and_shrinks_with_signal():
 @pytest.mark.filterwarnings("ignore")
 def test_diff_keeps_its_plane_only_when_every_fallback_test_passes():
     """Safety invariant (hypothesis): for any calibrated limits and any pair of estimates, diff returns its own
-    plane only when its chi-square is under the limit, its covariance is positive definite, it agrees with peak
-    and peak does not read the slope better; otherwise exactly peak's plane and covariance, marked "peak"."""
+    plane only when its chi-square is under the limit, its covariance is positive definite, it agrees with peak,
+    peak does not read the slope better and (with a calibrated fallback) peak's plane is not closer than
+    NEAR_FALLBACK_RANGE; otherwise exactly peak's plane and covariance, marked "peak"."""
     from hypothesis import given, settings
     from hypothesis import strategies as st
 
     from place_safe.geometry import Plane
-    from place_safe.recovery.differentiable import _positive_definite
+    from place_safe.recovery.differentiable import NEAR_FALLBACK_RANGE, _positive_definite
     from place_safe.recovery.estimator import PlaneEstimate, Uncertainty
 
     est = DifferentiableEstimator()
@@ -221,20 +222,38 @@ def test_diff_keeps_its_plane_only_when_every_fallback_test_passes():
     @settings(max_examples=200, deadline=None)
     @given(chi2_limit=st.one_of(st.just(math.inf), st.floats(0.0, 1e3)), consistency=st.one_of(st.just(math.inf), pos),
            prefer=st.one_of(st.just(math.inf), pos), residual=st.floats(0.0, 1e3), tilt=st.floats(0.0, 1.2),
-           var_diff=st.floats(1e-12, 1.0), var_peak=st.floats(1e-12, 1.0), shift=st.floats(-0.2, 0.2))
-    def check(chi2_limit, consistency, prefer, residual, tilt, var_diff, var_peak, shift):
+           var_diff=st.floats(1e-12, 1.0), var_peak=st.floats(1e-12, 1.0), shift=st.floats(-0.2, 0.2),
+           offset=st.floats(0.005, 0.4))
+    def check(chi2_limit, consistency, prefer, residual, tilt, var_diff, var_peak, shift, offset):
         unc = Uncertainty(chi2_limit=chi2_limit, consistency_limit=consistency, prefer_ratio=prefer)
         est.uncertainty = unc
-        d = PlaneEstimate(Plane.from_angles(tilt, 0.3, 0.1), albedo=1.0, residual=residual,
+        d = PlaneEstimate(Plane.from_angles(tilt, 0.3, offset), albedo=1.0, residual=residual,
                           covariance=np.diag([var_diff, var_diff, var_diff * 1e-3]), method_used="diff")
-        p = PlaneEstimate(Plane.from_angles(tilt + shift, 0.3, 0.1 + shift * 0.01), residual=1e-4,
+        p = PlaneEstimate(Plane.from_angles(tilt + shift, 0.3, offset + shift * 0.01), residual=1e-4,
                           covariance=np.diag([var_peak, var_peak, var_peak * 1e-3]), method_used="peak")
         out = est._checked(d, p)
+        near = not math.isinf(chi2_limit) and p.plane.offset < NEAR_FALLBACK_RANGE
         passes = (residual ** 2 <= chi2_limit and _positive_definite(d.covariance) and unc.consistent(d, p)
-                  and unc.prefers(d, p))
+                  and unc.prefers(d, p) and not near)
         if passes:
             assert out is d
         else:
             assert out.method_used == "peak" and out.plane is p.plane and out.covariance is p.covariance
 
     check()
+
+
+def test_a_calibrated_diff_returns_peak_closer_than_the_near_fallback_range():
+    """Convention check (frames rendered by the forward model, which diff fits well): with a calibrated fallback,
+    a frame closer than NEAR_FALLBACK_RANGE gets peak's plane although every other test passes; farther, diff's."""
+    from place_safe.recovery.differentiable import NEAR_FALLBACK_RANGE
+    from place_safe.recovery.estimator import Uncertainty
+
+    calibrated = DifferentiableEstimator(uncertainty=Uncertainty(chi2_limit=1e12, consistency_limit=1e12,
+                                                                 prefer_ratio=1e12))
+    near = make_frames(2, seed=3, spec=SyntheticSpec(z_range=(0.035, 0.04)))
+    far = make_frames(2, seed=3, spec=SyntheticSpec(z_range=(0.15, 0.2)))
+    for f in near:
+        e = calibrated.estimate(f)
+        assert e.ok and e.plane.offset < NEAR_FALLBACK_RANGE and e.method_used == "peak"
+    assert all(calibrated.estimate(f).method_used == "diff" for f in far)
