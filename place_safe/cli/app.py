@@ -21,12 +21,11 @@ import importlib.util
 import sys
 from collections.abc import Sequence
 
-from place_safe.cli.common import (CALIBRATE_METHODS, FMT, METHODS, PROG, UsageError, _estimator, _FMT,
-                                   _load_calibration, _log, _Parser)
+from place_safe.cli.common import FMT, PROG, Parser, UsageError, log
 from place_safe.exceptions import PlaceSafeError
 
 #: Command groups, each a module exposing ``register(subparsers) -> None``, which adds its sub-parser(s)
-#: (``parser_class=_Parser`` is inherited) with ``set_defaults(func=...)``. Modules import heavy packages
+#: (``parser_class=Parser`` is inherited) with ``set_defaults(func=...)``. Modules import heavy packages
 #: (torch, MuJoCo, ur-rtde, smbus2) inside their command functions, not at import time.
 COMMAND_MODULES: tuple[str, ...] = ("place_safe.cli.sensing", "place_safe.cli.demo", "place_safe.cli.sensor",
                                    "place_safe.cli.robot", "place_safe.cli.robot_bench", "place_safe.cli.synth", "place_safe.cli.latency",
@@ -93,14 +92,14 @@ examples:
 
 def build_parser(load_sim: bool = True) -> argparse.ArgumentParser:
     """The argument parser; with ``load_sim`` False the ``sim`` commands are a placeholder (fast start)."""
-    p = _Parser(prog=PROG, formatter_class=_FMT, epilog=MAIN_EPILOG,
+    p = Parser(prog=PROG, formatter_class=FMT, epilog=MAIN_EPILOG,
                 description="Put a held cup down safely with a UR5 and the TMF8820 on its gripper: recover the "
                             "plane below from transient histograms, calibrate and evaluate the methods, read the "
                             "sensor, drive the arm or its MuJoCo twin, and run scenario suites.")
     from place_safe import __version__
 
     p.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
-    sub = p.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    sub = p.add_subparsers(dest="command", metavar="COMMAND", parser_class=Parser)
 
     import importlib
 
@@ -166,7 +165,7 @@ def _main(argv: Sequence[str] | None) -> int:
         _check_outputs(args)
         return int(args.func(args) or 0)
     except PlaceSafeError as exc:
-        _log(f"{PROG}: error: {_one_line(exc)}")
+        log(f"{PROG}: error: {_one_line(exc)}")
         return 2
     except BrokenPipeError:
         # stdout closed early (e.g. piped into head): not an error of ours
@@ -176,20 +175,20 @@ def _main(argv: Sequence[str] | None) -> int:
             pass
         return 0
     except KeyboardInterrupt:
-        _log(f"{PROG}: interrupted")
+        log(f"{PROG}: interrupted")
         return 130
     except OSError as exc:  # e.g. an output directory that cannot be written
-        _log(f"{PROG}: error: {exc.strerror or _one_line(exc)}: {exc.filename or ''}".rstrip(": "))
+        log(f"{PROG}: error: {exc.strerror or _one_line(exc)}: {exc.filename or ''}".rstrip(": "))
         return 2
     except (ValueError, RecursionError, OverflowError, MemoryError) as exc:  # bad input Python noticed first
-        _log(f"{PROG}: error: invalid input: {_one_line(exc)}")
+        log(f"{PROG}: error: invalid input: {_one_line(exc)}")
         return 2
     except Exception as exc:  # noqa: BLE001 - an internal failure: one line, exit 1 (traceback on request)
         import os
 
         if os.environ.get("PLACE_SAFE_DEBUG"):
             raise
-        _log(f"{PROG}: internal error: {type(exc).__name__}: {_one_line(exc)} (set PLACE_SAFE_DEBUG=1 "
+        log(f"{PROG}: internal error: {type(exc).__name__}: {_one_line(exc)} (set PLACE_SAFE_DEBUG=1 "
              "for the traceback)")
         return 1
 
@@ -198,6 +197,4 @@ if __name__ == "__main__":
     sys.exit(main())
 
 
-#: Names command modules and scripts import from here (defined in :mod:`place_safe.cli.common`).
-__all__ = ["main", "build_parser", "COMMAND_MODULES", "PROG", "METHODS", "CALIBRATE_METHODS", "UsageError", "FMT",
-           "_FMT", "_Parser", "_log", "_load_calibration", "_estimator"]
+__all__ = ["main", "build_parser", "COMMAND_MODULES"]

@@ -15,7 +15,7 @@ EPILOG = """examples:
 
 
 def register(subparsers) -> None:
-    from place_safe.cli.app import METHODS
+    from place_safe.cli.common import METHODS
     from place_safe.cli.options import int_range
 
     s = subparsers.add_parser(
@@ -37,13 +37,13 @@ def cmd_latency(args: argparse.Namespace) -> int:
     import json
     from pathlib import Path
 
-    from place_safe.cli.common import _load_calibration, not_a_file
+    from place_safe.cli.common import load_calibration, not_a_file
     from place_safe.evaluation.bench import measure_recover_latency
     from place_safe.exceptions import FrameFileError, PlaceSafeError
 
     if (why := not_a_file(args.file)) is not None:
         raise FrameFileError(f"frame file {args.file} {why}")
-    _load_calibration(args.calibration)  # a bad calibration fails here with one line
+    load_calibration(args.calibration)  # a bad calibration fails here with one line
     try:
         res = measure_recover_latency(args.file, args.method, args.calibration, args.batch)
     except RuntimeError as exc:

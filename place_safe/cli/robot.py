@@ -16,13 +16,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from place_safe.cli.common import FMT, log
 from place_safe.cli.options import float_range, int_range
-
-_FMT = argparse.RawDescriptionHelpFormatter
-
-
-def _log(msg: str) -> None:
-    print(msg, file=sys.stderr, flush=True)
 
 
 def _floats(text: str, n: int | None = None, what: str = "numbers", lo: float = -math.inf,
@@ -123,7 +118,7 @@ def cmd_place(args: argparse.Namespace) -> int:
     from place_safe.placement.loop import PlacementLoop
     from place_safe.placement.machine import PlacementConfig
 
-    from place_safe.cli.app import UsageError
+    from place_safe.cli.common import UsageError
 
     cfg = PlacementConfig.load(args.config) if args.config else PlacementConfig()
     estimator, cal_note = _estimator(args.method, args.calibration, sim=bool(args.sim))
@@ -170,7 +165,7 @@ def cmd_place(args: argparse.Namespace) -> int:
         print(f"  t={tr['time']:7.3f} s  {tr['from']:>8} -> {tr['to']:<8} {tr['reason']}")
     if extra:
         print(f"  cup {'held' if extra['cup_held'] else 'released'}, liquid spilled {extra['liquid_spilled']}")
-    _log(f"wrote {args.json} and {args.log}")
+    log(f"wrote {args.json} and {args.log}")
     return 0 if res.outcome == "released" else 1
 
 
@@ -180,7 +175,7 @@ def cmd_place(args: argparse.Namespace) -> int:
 def cmd_capture(args: argparse.Namespace) -> int:
     from place_safe.calibration.capture import SweepPlan, capture_sweep, level_plane, touch_plane
 
-    from place_safe.cli.app import UsageError
+    from place_safe.cli.common import UsageError
 
     grid = len(args.distances) * len(args.incidences) * len(args.azimuths)
     if min(grid, args.poses or grid) * args.frames_per_pose > 100_000:
@@ -220,13 +215,13 @@ def cmd_capture(args: argparse.Namespace) -> int:
                 raise UsageError("capture: --touch needs at least 3 points")
             z0 = args.touch_height if args.touch_height is not None else robot.tcp_pose()[2, 3]
             n, d, pts = touch_plane(robot, args.touch, z0, force_threshold=args.touch_force)
-            _log(f"touched the plane at {len(pts)} points: normal {n.round(4).tolist()}, offset {d * 1000:.1f} mm")
+            log(f"touched the plane at {len(pts)} points: normal {n.round(4).tolist()}, offset {d * 1000:.1f} mm")
             plane = (n, d)
         elif args.table_height is not None:
             plane = level_plane(args.table_height)
         else:
             plane = world.table_plane_base()
-            _log(f"table from the scenario: z = {plane[1] * 1000:.1f} mm in the base frame")
+            log(f"table from the scenario: z = {plane[1] * 1000:.1f} mm in the base frame")
         try:
             res = capture_sweep(robot, source, plan, args.output, plane=plane, tool=tool, progress=not args.quiet)
         finally:
@@ -248,7 +243,7 @@ def cmd_calibrate_mount(args: argparse.Namespace) -> int:
     from place_safe.drivers.ur5.config import FrameConfig
     from place_safe.io.frame_file import load_frames
 
-    from place_safe.cli.app import UsageError
+    from place_safe.cli.common import UsageError
 
     robot_cfg = _robot_config(args.robot)
     truth = _mount_truth(args.truth) if args.truth else None  # every input checked before the fit runs
@@ -282,7 +277,7 @@ def cmd_calibrate_mount(args: argparse.Namespace) -> int:
                                     "sigma_rot_deg": [math.degrees(v) if v == v else -1.0 for v in fit.sigma_rot],
                                     "unobserved": list(fit.unobserved)}  # sigma -1: held (unobserved)
         Path(args.write).write_text(robot_cfg.to_toml(), encoding="utf-8")
-        _log(f"wrote the fitted mount into {args.write}")
+        log(f"wrote the fitted mount into {args.write}")
     return 0
 
 
@@ -304,7 +299,7 @@ def _robot_or_sim(p: argparse.ArgumentParser, robot_help: str) -> None:
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
-        "place", formatter_class=_FMT, help="put the held cup down (or refuse) on the UR5 or in MuJoCo",
+        "place", formatter_class=FMT, help="put the held cup down (or refuse) on the UR5 or in MuJoCo",
         description="Run one placement with the PlacementLoop: approach, descend, check the surface with the "
                     "TMF8820, release or refuse. The same loop drives the UR5 (--robot, over ur_rtde) and the "
                     "simulated arm (--sim). Writes the transition log and a result JSON either way; exit status 0 "
@@ -329,7 +324,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=lambda a: cmd_place(_resolve(a)))
 
     c = subparsers.add_parser(
-        "capture", formatter_class=_FMT, help="robot-driven sweep of sensor poses above a plane (for calibration)",
+        "capture", formatter_class=FMT, help="robot-driven sweep of sensor poses above a plane (for calibration)",
         description="Drive the arm through distances x incidence x azimuth above a plane and write every frame with "
                     "its ground-truth plane, flange pose and joint angles (JSON Lines, the shared frame format). "
                     "The plane: --touch (the TCP touches it at 3+ points, slow guarded descent: speedL + force "
@@ -366,7 +361,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     c.set_defaults(func=lambda a: cmd_capture(_resolve(a)))
 
     m = subparsers.add_parser(
-        "calibrate-mount", formatter_class=_FMT, help="fit the sensor mount (flange_T_sensor) from a capture",
+        "calibrate-mount", formatter_class=FMT, help="fit the sensor mount (flange_T_sensor) from a capture",
         description="Estimate every frame's plane, then fit flange_T_sensor (6 DoF) and the plane in the base frame "
                     "to all frames at once by nonlinear least squares on forward kinematics. Prints the fit, its "
                     "residuals and 1-sigma uncertainty, flags directions the sweep does not observe, and with "

@@ -19,19 +19,14 @@ import json
 import sys
 from pathlib import Path
 
+from place_safe.cli.common import FMT, log
 from place_safe.cli.options import nonnegative_int, positive_float, positive_int
-
-_FMT = argparse.RawDescriptionHelpFormatter
-
-
-def _log(msg: str) -> None:
-    print(msg, file=sys.stderr, flush=True)
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from place_safe.cli.app import UsageError
+    from place_safe.cli.common import UsageError
     from place_safe.drivers.ur5 import URConfig, URRobot
     from place_safe.evaluation.contact import format_settings_report, make_stand_in, rest_noise, settings_report
 
@@ -67,7 +62,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
                                  "std_n": [round(float(v), 3) for v in spread], "controller": controller,
                                  "threshold_n": round(rep["threshold"], 2)}
         target.write_text(base.to_toml(), encoding="utf-8")
-        _log(f"wrote [contact] noise_std = {sigma:.2f} N to {target}")
+        log(f"wrote [contact] noise_std = {sigma:.2f} N to {target}")
     if args.json:
         Path(args.json).write_text(json.dumps({"offset": offset.tolist(), "spread": spread.tolist(), **rep},
                                               indent=1) + "\n", encoding="utf-8")
@@ -98,7 +93,7 @@ def cmd_contact_bench(args: argparse.Namespace) -> int:
         out["touches"] = rows
     if args.descents:
         progress = None if args.quiet or args.jobs > 1 else (
-            lambda i, r: _log(f"  {i}/{args.descents}: false contacts {r.false_contacts}, {r.outcomes}"))
+            lambda i, r: log(f"  {i}/{args.descents}: false contacts {r.false_contacts}, {r.outcomes}"))
         d = descents(args.descents, height=args.height, controller=args.controller, seed=args.seed,
                      force_noise=noise, jobs=args.jobs, progress=progress)
         print(d.summary())
@@ -111,11 +106,11 @@ def cmd_contact_bench(args: argparse.Namespace) -> int:
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("robot", formatter_class=_FMT,
+    p = subparsers.add_parser("robot", formatter_class=FMT,
                               help="the arm's force noise at rest and the contact detector against it",
                               description=__doc__.split("\n\n")[1] if __doc__ else None)
     sub = p.add_subparsers(dest="robot_command", metavar="SUBCOMMAND", required=True)
-    b = sub.add_parser("bench", formatter_class=_FMT,
+    b = sub.add_parser("bench", formatter_class=FMT,
                        help="measure the TCP force noise at rest on a connected arm and derive the detector setting",
                        description="Connect to the arm (nothing moves), sample the TCP force at rest, print its "
                                    "spread, the contact detector's threshold and its false-alarm rate and detection "
@@ -132,7 +127,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     b.add_argument("--write", metavar="ROBOT.toml", help="write the robot file with the measured noise here")
     b.add_argument("--json", metavar="OUT.json", help="write the measurement and the report as JSON")
     b.set_defaults(func=cmd_bench)
-    c = sub.add_parser("contact-bench", formatter_class=_FMT,
+    c = sub.add_parser("contact-bench", formatter_class=FMT,
                        help="false contacts over simulated 40 cm descents and touch detection on the fake CB3",
                        description="The contact detector against the fake controller's force noise: placements "
                                    "from --height through URRobot on the fake ur_rtde (false contacts, outcomes, "

@@ -18,8 +18,8 @@ except ImportError:  # pragma: no cover - a dependency; the standard encoder sti
 
 from place_safe.cli import options
 from place_safe.exceptions import CalibrationError, FrameError, FrameFileError, PlaceSafeError
-from place_safe.cli.common import (CALIBRATE_METHODS, METHODS, PROG, UsageError, _estimator, _FMT,
-                                   _jsonable, _load_calibration, _load_truth_frames, _log, _progress, _summarise,
+from place_safe.cli.common import (CALIBRATE_METHODS, METHODS, PROG, UsageError, estimator_for, FMT,
+                                   jsonable, load_calibration, load_truth_frames, log, progress_options, summarise,
                                    not_a_file)
 
 # ------------------------------------------------------------------------------------------------
@@ -42,22 +42,22 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
             if not args.force:
                 raise CalibrationError(f"{exc}; refusing to overwrite it (use --force to replace the file)") from None
             note = f"replacing {out}: {exc}"
-    frames, skipped = _load_truth_frames(args.files)
+    frames, skipped = load_truth_frames(args.files)
     if not args.quiet:
-        _log(f"calibrate {args.method}: {len(frames)} frames with ground truth" + (f" ({skipped})" if skipped else ""))
+        log(f"calibrate {args.method}: {len(frames)} frames with ground truth" + (f" ({skipped})" if skipped else ""))
         if note:
-            _log(note)
+            log(note)
     progress = not args.quiet
     fitted: list[str] = []
     if args.method in ("peak", "diff") and (args.method == "peak" or "peak" not in cal.sections):
         from place_safe.calibration.points import fit_peak
 
         if args.method == "diff" and not args.quiet:
-            _log("the diff method starts from the calibrated peak method: fitting the 'peak' section first")
+            log("the diff method starts from the calibrated peak method: fitting the 'peak' section first")
         params, report = fit_peak(frames, progress=progress)
         cal.errors.pop("peak", None)
         cal.sections["peak"] = params.to_dict()
-        cal.reports["peak"] = _jsonable(report)
+        cal.reports["peak"] = jsonable(report)
         fitted.append("peak")
     if args.method == "proprietary":
         from place_safe.calibration.points import fit_proprietary
@@ -65,7 +65,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         params, report = fit_proprietary(frames, progress=progress)
         cal.errors.pop("proprietary", None)
         cal.sections["proprietary"] = params.to_dict()
-        cal.reports["proprietary"] = _jsonable(report)
+        cal.reports["proprietary"] = jsonable(report)
         fitted.append("proprietary")
     if args.method == "diff":
         from place_safe.calibration.forward_fit import fit_forward
@@ -78,35 +78,35 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
             from place_safe.calibration.points import adopt_pileup
 
             peak, peak_report, adopted = adopt_pileup(frames, cal.peak(), cal.reports["peak"], params.pileup)
-            cal.reports["peak"] = _jsonable(peak_report)
+            cal.reports["peak"] = jsonable(peak_report)
             if adopted:
                 cal.sections["peak"] = peak.to_dict()
                 if not args.quiet:
-                    _log(f"peak: undoing the forward fit's SPAD pile-up ({params.pileup:.3g} per count)")
+                    log(f"peak: undoing the forward fit's SPAD pile-up ({params.pileup:.3g} per count)")
 
         params.model_error, report["model_error"] = select_model_error(frames, params, cal.peak(), progress=progress)
         cal.errors.pop("forward", None)
         cal.sections["forward"] = params.to_dict()
-        cal.reports["forward"] = _jsonable(report)
+        cal.reports["forward"] = jsonable(report)
         fitted.append("forward")
 
         section, report = fit_range_correction(frames, params, cal.peak(), progress=progress)
         cal.errors.pop("diff", None)
         cal.sections["diff"] = {**section, "window_after_peak": SolverOptions().window_after_peak}
-        cal.reports["diff"] = _jsonable(report)
+        cal.reports["diff"] = jsonable(report)
         fitted.append("diff")
     if args.method in ("peak", "diff"):
         from place_safe.calibration.uncertainty import update_calibration
 
-        cal.reports["uncertainty"] = _jsonable(update_calibration(cal, frames, args.method))
+        cal.reports["uncertainty"] = jsonable(update_calibration(cal, frames, args.method))
         fitted.append("uncertainty")
     out.parent.mkdir(parents=True, exist_ok=True)
     cal.save(out)
     for name in fitted:
-        _log(f"fit quality, section '{name}':")
-        for line in _summarise(cal.reports.get(name, {})):
-            _log(line)
-    _log(f"wrote {out} (sections: {', '.join(cal.sections)})")
+        log(f"fit quality, section '{name}':")
+        for line in summarise(cal.reports.get(name, {})):
+            log(line)
+    log(f"wrote {out} (sections: {', '.join(cal.sections)})")
     return 0
 
 
@@ -167,14 +167,14 @@ def cmd_recover(args: argparse.Namespace) -> int:
 
     if (why := not_a_file(args.file)) is not None:
         raise FrameFileError(f"frame file {args.file} {why}")
-    cal = _load_calibration(args.calibration)
-    est = _estimator(args.method, cal, args.mode)
+    cal = load_calibration(args.calibration)
+    est = estimator_for(args.method, cal, args.mode)
     batch = args.batch or (16 if args.method == "diff" and args.mode != "paper" else 1)
     out = sys.stdout
     if not args.jsonl:
         out.write(f"{'frame':>5}  {'theta deg':>9} {'phi deg':>9} {'d mm':>9}  {'albedo':>7} {'ms':>8}  reason\n")
     n = bad = 0
-    bar = tqdm(desc=f"recover {args.method}", unit="frame", **_progress(not args.quiet))
+    bar = tqdm(desc=f"recover {args.method}", unit="frame", **progress_options(not args.quiet))
     for i, e in _recover_stream(args.file, est, max(1, batch)):
         if args.jsonl:
             line = e.to_json(i)
@@ -189,7 +189,7 @@ def cmd_recover(args: argparse.Namespace) -> int:
     bar.close()
     out.flush()
     if not args.quiet:
-        _log(f"recovered {n - bad} of {n} frames with {args.method}" + (f" ({bad} without a plane)" if bad else ""))
+        log(f"recovered {n - bad} of {n} frames with {args.method}" + (f" ({bad} without a plane)" if bad else ""))
     return 0
 
 
@@ -199,21 +199,21 @@ def cmd_recover(args: argparse.Namespace) -> int:
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from place_safe.evaluation.evaluate import evaluate
 
-    cal = _load_calibration(args.calibration)
+    cal = load_calibration(args.calibration)
     if args.min_distance is not None and args.max_distance is not None and args.min_distance > args.max_distance:
         raise UsageError(f"evaluate: --min-distance {args.min_distance:g} m exceeds --max-distance "
                          f"{args.max_distance:g} m")
-    frames, skipped = _load_truth_frames([args.file], args.min_distance, args.max_distance)
+    frames, skipped = load_truth_frames([args.file], args.min_distance, args.max_distance)
     if not args.quiet:
-        _log(f"evaluate on {len(frames)} frames" + (f" ({skipped})" if skipped else ""))
+        log(f"evaluate on {len(frames)} frames" + (f" ({skipped})" if skipped else ""))
     options = {"diff": {"mode": args.diff_mode}} if args.diff_mode else None
     report = evaluate(frames, cal, list(args.methods), None if args.no_plots else args.out, not args.quiet,
                       estimator_options=options)
     print(report.table(), flush=True)
     if args.json:
         data = report.to_dict() if hasattr(report, "to_dict") else report
-        Path(args.json).write_text(json.dumps(_jsonable(data), indent=2) + "\n")
-        _log(f"wrote {args.json}")
+        Path(args.json).write_text(json.dumps(jsonable(data), indent=2) + "\n")
+        log(f"wrote {args.json}")
     return 0
 
 
@@ -234,8 +234,8 @@ def cmd_stream(args: argparse.Namespace) -> int:
     from place_safe.io.replay import FileReplaySource
     from place_safe.io.live import run_live
 
-    cal = _load_calibration(args.calibration)
-    est = _estimator(args.method, cal, args.mode)
+    cal = load_calibration(args.calibration)
+    est = estimator_for(args.method, cal, args.mode)
 
     def on_estimate(index, frame, e, latency) -> None:
         if args.jsonl:
@@ -247,7 +247,7 @@ def cmd_stream(args: argparse.Namespace) -> int:
     with FileReplaySource(args.file, rate_hz=args.rate, loop=args.loop) as src:
         stats = run_live(src, est, on_estimate, max_frames=args.max_frames, queue_size=args.queue)
     summary = stats.summary()
-    (_log if args.jsonl else print)(summary)
+    (log if args.jsonl else print)(summary)
     if args.json:
         Path(args.json).write_text(json.dumps(stats.to_dict(), indent=2) + "\n")
     return 0
@@ -259,9 +259,9 @@ def cmd_stream(args: argparse.Namespace) -> int:
 def cmd_bench(args: argparse.Namespace) -> int:
     from place_safe.evaluation.bench import DEFAULT_RUNS, measure_file_rss, report_json, run_bench
 
-    cal = _load_calibration(args.calibration)
+    cal = load_calibration(args.calibration)
     if args.file:
-        frames, _ = _load_truth_frames([args.file])
+        frames, _ = load_truth_frames([args.file])
         frames = frames[: args.frames] if args.frames else frames
         source = args.file
     else:
@@ -276,7 +276,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
     status = 0
     if args.memory_file:
         if not args.quiet:
-            _log(f"measuring peak RSS of recover over a {args.memory_file}-frame file ...")
+            log(f"measuring peak RSS of recover over a {args.memory_file}-frame file ...")
         try:
             report.file_rss = measure_file_rss(args.memory_file, method=args.memory_method,
                                                calibration=args.calibration)
@@ -286,16 +286,16 @@ def cmd_bench(args: argparse.Namespace) -> int:
     print(report.table(), flush=True)
     if args.json:
         report_json(report, args.json)
-        _log(f"wrote {args.json}")
+        log(f"wrote {args.json}")
     if status:
-        _log(f"{PROG}: memory measurement failed: {report.file_rss['error']}")
+        log(f"{PROG}: memory measurement failed: {report.file_rss['error']}")
     return status
 
 
 def register(sub) -> None:
     """Add calibrate, recover, evaluate, stream and bench to the ``place-safe`` sub-parsers."""
     # calibrate
-    c = sub.add_parser("calibrate", formatter_class=_FMT, help="fit a method's parameters to frames with ground truth",
+    c = sub.add_parser("calibrate", formatter_class=FMT, help="fit a method's parameters to frames with ground truth",
                        description="Fit one method family to frames with ground-truth planes and write its section "
                                    "of a calibration file. If the output already is a calibration file, its other "
                                    "sections are kept, so one file can carry all methods.",
@@ -323,7 +323,7 @@ def register(sub) -> None:
     c.set_defaults(func=cmd_calibrate)
 
     # recover
-    r = sub.add_parser("recover", formatter_class=_FMT, help="recover the plane of every frame of a file",
+    r = sub.add_parser("recover", formatter_class=FMT, help="recover the plane of every frame of a file",
                        description="Recover one plane per frame, streaming the file (it is never loaded whole). "
                                    "With --jsonl, standard output carries exactly one JSON object per input frame, "
                                    "in input order, and nothing else:\n"
@@ -344,7 +344,7 @@ def register(sub) -> None:
     r.set_defaults(func=cmd_recover)
 
     # evaluate
-    e = sub.add_parser("evaluate", formatter_class=_FMT, help="score methods against ground truth",
+    e = sub.add_parser("evaluate", formatter_class=FMT, help="score methods against ground truth",
                        description="Recover every frame with ground truth with each method and print angular (deg), "
                                    "linear (mm) and point (mm) errors as a table; plots go to --out.",
                        epilog="example:\n  place-safe evaluate sweep.json --calibration calib.json "
@@ -365,7 +365,7 @@ def register(sub) -> None:
     e.set_defaults(func=cmd_evaluate)
 
     # stream
-    s = sub.add_parser("stream", formatter_class=_FMT, help="replay a file as a live sensor and recover frames as they arrive",
+    s = sub.add_parser("stream", formatter_class=FMT, help="replay a file as a live sensor and recover frames as they arrive",
                        description="Replay a frame file at --rate frames per second on the wall clock and recover "
                                    "planes live (a reader thread and the estimator, with a bounded buffer; frames that "
                                    "arrive while the estimator is busy replace older waiting ones and count as "
@@ -389,7 +389,7 @@ def register(sub) -> None:
     s.set_defaults(func=cmd_stream)
 
     # bench
-    b = sub.add_parser("bench", formatter_class=_FMT, help="speed and accuracy of diff (paper, fast) and peak",
+    b = sub.add_parser("bench", formatter_class=FMT, help="speed and accuracy of diff (paper, fast) and peak",
                        description="Run diff in paper mode, diff in fast mode and peak on the same frames in one "
                                    "process; print per-frame latency (median, p95; ms), throughput (frames/s), mean "
                                    "angular (deg), linear (mm) and point (mm) errors, the paper/fast speed ratio and "

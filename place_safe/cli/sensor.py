@@ -16,6 +16,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from place_safe.cli.common import FMT, log
 from place_safe.cli.options import float_range, fraction, int_range
 from place_safe.recovery import METHODS
 
@@ -24,13 +25,8 @@ BUS_HZ = float_range(1e4, 3.4e6)
 #: s: how long a read may wait for a frame.
 TIMEOUT = float_range(0.0, 60.0, lo_open=True)
 
-_FMT = argparse.RawDescriptionHelpFormatter
 _URI_HELP = ("source URI: i2c:BUS[@ADDR], serial:PORT[@BAUD] or serial:LOG, file:FRAMES.json, "
              "emu:file:FRAMES.json, emu:synthetic[:N], emu:SCENARIO")
-
-
-def _log(msg: str) -> None:
-    print(msg, file=sys.stderr, flush=True)
 
 
 def _add_source_options(p: argparse.ArgumentParser) -> None:
@@ -48,7 +44,7 @@ def _add_source_options(p: argparse.ArgumentParser) -> None:
 
 
 def _open(args: argparse.Namespace, **extra: Any):
-    from place_safe.cli.app import UsageError
+    from place_safe.cli.common import UsageError
     from place_safe.sources import open_source
 
     scheme = args.uri.split(":", 1)[0]
@@ -129,20 +125,20 @@ def cmd_record(args: argparse.Namespace) -> int:
         n = write_frames(out, frames(), jsonl=out.suffix == ".jsonl")
         stats = dict(getattr(src, "stats", {}))
     bar.close()
-    _log(f"wrote {n} frames to {out} (stopped: {ended})")
+    log(f"wrote {n} frames to {out} (stopped: {ended})")
     faults = {k: v for k, v in stats.items() if isinstance(v, (int, float)) and v and k not in ("frames",)}
     if faults and not args.quiet:
-        _log("source statistics: " + ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}"
+        log("source statistics: " + ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}"
                                                for k, v in faults.items()))
     return 0
 
 
 def cmd_stream(args: argparse.Namespace) -> int:
-    from place_safe.cli.app import _estimator, _load_calibration
+    from place_safe.cli.common import estimator_for, load_calibration
     from place_safe.io.live import run_live
 
-    cal = _load_calibration(args.calibration)
-    est = _estimator(args.method, cal)
+    cal = load_calibration(args.calibration)
+    est = estimator_for(args.method, cal)
     view = None
     if args.save or args.view:
         from place_safe.cli.live_view import RerunView
@@ -181,12 +177,12 @@ def cmd_stream(args: argparse.Namespace) -> int:
     finally:
         if view is not None:
             view.close()
-    _log(stats.summary())
+    log(stats.summary())
     counted = {k: v for k, v in source_stats.items() if isinstance(v, int) and v}
     if counted:
-        _log("source: " + ", ".join(f"{k} {v}" for k, v in counted.items()))
+        log("source: " + ", ".join(f"{k} {v}" for k, v in counted.items()))
     if args.save:
-        _log(f"wrote {args.save}")
+        log(f"wrote {args.save}")
     return 0
 
 
@@ -215,7 +211,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
             print(f"{'':>8} faults injected: {r['faults']}; measurements dropped: {r['dropped_frames']}")
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1) + "\n")
-        _log(f"wrote {args.json}")
+        log(f"wrote {args.json}")
     return 0
 
 
@@ -223,7 +219,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add ``place-safe sensor info|record|stream|bench``."""
     s = subparsers.add_parser(
-        "sensor", formatter_class=_FMT, help="read a TMF8820: info, record, stream, bench",
+        "sensor", formatter_class=FMT, help="read a TMF8820: info, record, stream, bench",
         description="Talk to a TMF8820 through the I2C driver (i2c:), the Arduino bridge (serial:), the "
                     "register-level emulator (emu:) or a frame file (file:).",
         epilog="examples:\n  place-safe sensor info i2c:/dev/i2c-1@0x41\n"
@@ -233,7 +229,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     sub = s.add_subparsers(dest="sensor_command", metavar="{info,record,stream,bench}")
     sub.required = True
 
-    i = sub.add_parser("info", formatter_class=_FMT, help="identity, versions, mode and configuration",
+    i = sub.add_parser("info", formatter_class=FMT, help="identity, versions, mode and configuration",
                        description="Bring the sensor up and print its identity (serial number), application "
                                    "version, mode, range and configuration without measuring.",
                        epilog="examples:\n  place-safe sensor info i2c:/dev/i2c-1@0x41\n"
@@ -246,7 +242,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "--calibration-dir, keyed by serial number; it is loaded at every start")
     i.set_defaults(func=cmd_info)
 
-    r = sub.add_parser("record", formatter_class=_FMT, help="record frames to a frame file",
+    r = sub.add_parser("record", formatter_class=FMT, help="record frames to a frame file",
                        description="Read frames from a source and write them to a frame file (JSON list, or "
                                    "JSON Lines for a .jsonl name), with a progress bar.",
                        epilog="examples:\n  place-safe sensor record i2c:1 -o sweep.json --frames 200\n"
@@ -264,7 +260,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     r.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     r.set_defaults(func=cmd_record)
 
-    st = sub.add_parser("stream", formatter_class=_FMT, help="live plane readout (and rerun view)",
+    st = sub.add_parser("stream", formatter_class=FMT, help="live plane readout (and rerun view)",
                         description="Recover the plane from every frame as it arrives and print tilt, "
                                     "distance and latency (age: from the measurement to the estimate, on "
                                     "monotonic-clock sources). --save writes a rerun recording (histograms, "
@@ -283,7 +279,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     st.add_argument("--view", action="store_true", help="open a rerun viewer (needs a display)")
     st.set_defaults(func=cmd_stream)
 
-    b = sub.add_parser("bench", formatter_class=_FMT, help="bus frame rate, bytes per frame, decode CPU (emulator)",
+    b = sub.add_parser("bench", formatter_class=FMT, help="bus frame rate, bytes per frame, decode CPU (emulator)",
                        description="Stream frames through the I2C driver over the register-level emulator with "
                                    "its bus timing, for each bus clock and each publish latency (how long the "
                                    "chip takes, after the host cleared a packet's interrupt, to put the next "

@@ -14,7 +14,7 @@ import time
 
 
 from place_safe.cli import options
-from place_safe.cli.app import UsageError
+from place_safe.cli.common import UsageError
 from place_safe.exceptions import FrameFileError
 
 

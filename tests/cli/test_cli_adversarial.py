@@ -13,7 +13,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from place_safe.cli.app import UsageError, build_parser, main
+from place_safe.cli.app import build_parser, main
+from place_safe.cli.common import UsageError
 
 #: (command words, option, kind, lo, hi, lo_open): the documented range of each numeric option.
 OPTIONS = [
