@@ -1,8 +1,9 @@
 """The ``place-safe`` command line: the root parser, the lazily loaded ``sim`` commands and ``main``.
 
 Each command group lives in its own module (``COMMAND_MODULES``): ``sensing`` (calibrate, recover,
-evaluate, stream, bench; docs/interfaces.md), ``demo``, ``sensor``, ``robot`` (place, capture,
-calibrate-mount), ``synth``, ``latency`` and ``scenarios``; shared helpers are in ``common``.
+evaluate, stream; docs/interfaces.md), ``demo``, ``sensor``, ``robot`` (place, capture,
+calibrate-mount), ``bench`` (every benchmark as a sub-command), ``synth`` and ``scenarios``; shared
+helpers are in ``common``.
 
 Conventions at this edge: distances on the command line are metres unless an option says otherwise,
 angles are printed in degrees, planes in files and JSON lines use the sensor-frame convention
@@ -28,7 +29,7 @@ from place_safe.exceptions import PlaceSafeError
 #: (``parser_class=Parser`` is inherited) with ``set_defaults(func=...)``. Modules import heavy packages
 #: (torch, MuJoCo, ur-rtde, smbus2) inside their command functions, not at import time.
 COMMAND_MODULES: tuple[str, ...] = ("place_safe.cli.sensing", "place_safe.cli.demo", "place_safe.cli.sensor",
-                                   "place_safe.cli.robot", "place_safe.cli.robot_bench", "place_safe.cli.synth", "place_safe.cli.latency",
+                                   "place_safe.cli.robot", "place_safe.cli.bench", "place_safe.cli.synth",
                                    "place_safe.cli.scenarios")
 
 
@@ -82,7 +83,7 @@ examples:
   place-safe recover frames.json --method diff --calibration calib.json --jsonl > planes.jsonl
   place-safe evaluate tests/data/tmf8820_ur5_sweep.json --calibration calib.json
   place-safe stream frames.json --method diff --rate 30
-  place-safe bench --frames 20 --paper-frames 3
+  place-safe bench recovery --frames 20 --paper-frames 3
   place-safe sensor stream emu:synthetic --method peak --max-frames 30
   place-safe place --sim place_level
   place-safe place --robot robots/ur5/real.toml --sensor i2c:/dev/i2c-1@0x41 --calibration cal.json --dry-run

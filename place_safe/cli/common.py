@@ -161,6 +161,39 @@ def summarise(report: Any, indent: str = "  ") -> list[str]:
     return lines
 
 
+#: The marker every output row of an uncalibrated run carries (JSON records carry ``"calibrated": false``).
+UNCALIBRATED_MARK = "[uncalibrated]"
+
+
+def uncalibrated_note(methods: str | Sequence[str], calibration, path: str | None = None) -> str | None:
+    """The first line of a command's output when a method of ``methods`` runs without its calibration, or None.
+
+    Without a calibration each method runs on built-in constants (another unit's published parameters):
+    the peak method reads a level table 200 mm away as tilted by about 11 degrees. Commands print this
+    line first on standard output (never on standard error, which stays one line for errors) and mark
+    every row with :data:`UNCALIBRATED_MARK` or ``"calibrated": false``."""
+    from place_safe.calibration import REQUIRED_SECTIONS, uncalibrated_reason
+
+    names = [methods] if isinstance(methods, str) else list(methods)
+    bare = [m for m in names if uncalibrated_reason(m, calibration) is not None]
+    if not bare:
+        return None
+    naive = [m for m in bare if m not in REQUIRED_SECTIONS]
+    fitted = [m for m in bare if m in REQUIRED_SECTIONS]
+    why = []
+    if fitted:
+        where = ("no --calibration" if calibration is None else
+                 f"{path or 'the calibration'} has no {'/'.join(REQUIRED_SECTIONS[m][0] for m in fitted)} section")
+        why.append(f"{where}: {', '.join(fitted)} run{'s' if len(fitted) == 1 else ''} on built-in constants "
+                   "(another unit's published parameters)")
+    if naive:
+        why.append(f"{', '.join(naive)} {'is a naive baseline' if len(naive) == 1 else 'are naive baselines'} "
+                   "on built-in constants")
+    fit = (fitted or [m.removesuffix("-naive") for m in naive])[0]
+    return (f"UNCALIBRATED: {'; '.join(why)}; planes can be off by degrees. Fit one with 'place-safe calibrate "
+            f"FRAMES.json --method {fit} -o cal.json' and pass --calibration cal.json")
+
+
 def estimator_for(method: str, calibration, mode: str | None = None):
     from place_safe.recovery import make_estimator
 

@@ -16,7 +16,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from place_safe.cli.common import FMT, log
+from place_safe.cli.common import FMT, UNCALIBRATED_MARK, log, uncalibrated_note
 from place_safe.cli.options import float_range, int_range
 
 
@@ -68,6 +68,10 @@ def _robot_config(path: str | None):
     return URConfig.load(path if path else packaged_config("sim"))
 
 
+#: What the result file's "calibration" says of a run without a calibration file.
+BUILT_IN = "built-in defaults"
+
+
 def _estimator(method: str, calibration: str | None, sim: bool):
     """(estimator, note saying where its calibration came from)."""
     from place_safe.calibration import Calibration
@@ -79,7 +83,7 @@ def _estimator(method: str, calibration: str | None, sim: bool):
         from place_safe.sim.placement_run import oracle_calibration
 
         return make_estimator(method, oracle_calibration()), "ORACLE: the simulated sensor's true forward parameters"
-    return make_estimator(method, None), "built-in defaults"
+    return make_estimator(method, None), BUILT_IN
 
 
 def _mount_truth(path: str) -> Any:
@@ -152,7 +156,8 @@ def cmd_place(args: argparse.Namespace) -> int:
             robot.step(0.8)  # let a released cup settle before measuring it
             extra = {"cup_held": bool(robot.holding()), "liquid_spilled": int(robot.liquid_spilled()),
                      "mount_error": [float(v) for v in (args.sim_mount_error or [0.0] * 6)]}
-    out = {"where": where, "method": args.method, "calibration": cal_note,
+    calibrated = cal_note != BUILT_IN
+    out = {"where": where, "method": args.method, "calibration": cal_note, "calibrated": calibrated,
            "robot_config": args.robot or ("packaged sim.toml" if args.sim else None), **res.to_dict(), **extra}
     if not args.frame_log:
         out.pop("frame_log", None)
@@ -160,7 +165,9 @@ def cmd_place(args: argparse.Namespace) -> int:
         for tr in res.transitions:
             fh.write(json.dumps(tr) + "\n")
     _write_json(args.json, out)
-    print(f"{where}: {res.outcome.upper()} ({res.reason})")
+    if not calibrated:
+        print(uncalibrated_note(args.method, None))
+    print(f"{where}: {res.outcome.upper()} ({res.reason})" + ("" if calibrated else "  " + UNCALIBRATED_MARK))
     for tr in res.transitions:
         print(f"  t={tr['time']:7.3f} s  {tr['from']:>8} -> {tr['to']:<8} {tr['reason']}")
     if extra:
@@ -251,16 +258,21 @@ def cmd_calibrate_mount(args: argparse.Namespace) -> int:
     if not frames:
         raise UsageError(f"calibrate-mount: {args.capture} has no frames")
     estimator, cal_note = _estimator(args.method, args.calibration, sim=False)
+    calibrated = cal_note != BUILT_IN
     planes = [estimator.estimate(f).plane for f in tqdm(frames, desc="planes", unit="frame", file=sys.stderr,
                                                         disable=None if not args.quiet else True)]
     F = flange_poses(frames, use_kinematics=args.poses == "joints")
     start = robot_cfg.tool.sensor.matrix()
     fit = fit_mount(F, planes, start, sigma_angle=math.radians(args.sigma_angle), sigma_distance=args.sigma_mm / 1000,
                     level=args.level, plane_offset=args.table_height)
+    if not calibrated:  # the first line of the output (printed once the fit succeeded: an error prints nothing)
+        print(uncalibrated_note(args.method, None))
     print(f"{args.capture}: {sum(p is not None for p in planes)}/{len(frames)} frames with a plane "
-          f"({args.method}, calibration: {cal_note}); flange poses from {args.poses}")
+          f"({args.method}, calibration: {cal_note}); flange poses from {args.poses}"
+          + ("" if calibrated else "  " + UNCALIBRATED_MARK))
     print(fit.summary())
-    result = {"capture": args.capture, "method": args.method, "calibration": cal_note, "poses": args.poses,
+    result = {"capture": args.capture, "method": args.method, "calibration": cal_note, "calibrated": calibrated,
+              "poses": args.poses,
               **fit.to_dict()}
     if truth is not None:
         et, er = fit.error_to(truth)

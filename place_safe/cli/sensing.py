@@ -1,4 +1,4 @@
-"""The commands on recorded frames: ``calibrate``, ``recover``, ``evaluate``, ``stream`` and ``bench``
+"""The commands on recorded frames: ``calibrate``, ``recover``, ``evaluate``, ``stream`` and ``bench recovery``
 (docs/interfaces.md keeps their faces stable)."""
 
 from __future__ import annotations
@@ -18,9 +18,9 @@ except ImportError:  # pragma: no cover - a dependency; the standard encoder sti
 
 from place_safe.cli import options
 from place_safe.exceptions import CalibrationError, FrameError, FrameFileError, PlaceSafeError
-from place_safe.cli.common import (CALIBRATE_METHODS, METHODS, PROG, UsageError, estimator_for, FMT,
+from place_safe.cli.common import (CALIBRATE_METHODS, METHODS, PROG, UNCALIBRATED_MARK, UsageError, estimator_for, FMT,
                                    jsonable, load_calibration, load_truth_frames, log, progress_options, summarise,
-                                   not_a_file)
+                                   not_a_file, uncalibrated_note)
 
 # ------------------------------------------------------------------------------------------------
 # calibrate
@@ -169,9 +169,13 @@ def cmd_recover(args: argparse.Namespace) -> int:
         raise FrameFileError(f"frame file {args.file} {why}")
     cal = load_calibration(args.calibration)
     est = estimator_for(args.method, cal, args.mode)
+    note = uncalibrated_note(args.method, cal, args.calibration)
+    mark = "" if note is None else "  " + UNCALIBRATED_MARK
     batch = args.batch or (16 if args.method == "diff" and args.mode != "paper" else 1)
     out = sys.stdout
     if not args.jsonl:
+        if note is not None:
+            out.write(note + "\n")
         out.write(f"{'frame':>5}  {'theta deg':>9} {'phi deg':>9} {'d mm':>9}  {'albedo':>7} {'ms':>8}  reason\n")
     n = bad = 0
     bar = tqdm(desc=f"recover {args.method}", unit="frame", **progress_options(not args.quiet))
@@ -180,9 +184,10 @@ def cmd_recover(args: argparse.Namespace) -> int:
             line = e.to_json(i)
             if e.plane is None and not line.get("reason"):
                 line["reason"] = "no plane"
+            line["calibrated"] = note is None
             _write_line(out, line)
         else:
-            out.write(_fmt_row(i, e) + "\n")
+            out.write(_fmt_row(i, e) + mark + "\n")
         n += 1
         bad += 0 if e.ok else 1
         bar.update(1)
@@ -206,6 +211,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     frames, skipped = load_truth_frames([args.file], args.min_distance, args.max_distance)
     if not args.quiet:
         log(f"evaluate on {len(frames)} frames" + (f" ({skipped})" if skipped else ""))
+    if (note := uncalibrated_note(args.methods, cal, args.calibration)) is not None:
+        print(note, flush=True)  # the first line; the table marks each uncalibrated method's row
     options = {"diff": {"mode": args.diff_mode}} if args.diff_mode else None
     report = evaluate(frames, cal, list(args.methods), None if args.no_plots else args.out, not args.quiet,
                       estimator_options=options)
@@ -236,20 +243,28 @@ def cmd_stream(args: argparse.Namespace) -> int:
 
     cal = load_calibration(args.calibration)
     est = estimator_for(args.method, cal, args.mode)
+    note = uncalibrated_note(args.method, cal, args.calibration)
 
     def on_estimate(index, frame, e, latency) -> None:
         if args.jsonl:
             line = e.to_json(index)
             line["latency_ms"] = round(latency * 1e3, 3)
+            line["calibrated"] = note is None
             _write_line(sys.stdout, line)
 
     _warm_up(est, args.file)
     with FileReplaySource(args.file, rate_hz=args.rate, loop=args.loop) as src:
         stats = run_live(src, est, on_estimate, max_frames=args.max_frames, queue_size=args.queue)
     summary = stats.summary()
-    (log if args.jsonl else print)(summary)
+    if note is not None:  # the summary's first line carries the mark
+        first, _, rest = summary.partition("\n")
+        summary = f"{first}  {UNCALIBRATED_MARK}" + (f"\n{rest}" if rest else "")
+    if args.jsonl:  # every record says whether it was calibrated
+        log(summary)
+    else:  # the summary is the output: the note on a missing calibration is its first line
+        print(summary if note is None else f"{note}\n{summary}")
     if args.json:
-        Path(args.json).write_text(json.dumps(stats.to_dict(), indent=2) + "\n")
+        Path(args.json).write_text(json.dumps({**stats.to_dict(), "calibrated": note is None}, indent=2) + "\n")
     return 0
 
 
@@ -271,6 +286,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
         frames = make_frames(n, seed=args.seed)
         source = f"synthetic (make_frames, seed {args.seed})"
     runs = [r for r in DEFAULT_RUNS if r[0] in args.methods]
+    if (note := uncalibrated_note([r[1] for r in runs], cal, args.calibration)) is not None:
+        print(note, flush=True)  # the first line; the table marks each uncalibrated run's row
     report = run_bench(frames, cal, paper_frames=args.paper_frames, runs=runs, source=source,
                        progress=not args.quiet)
     status = 0
@@ -293,7 +310,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 def register(sub) -> None:
-    """Add calibrate, recover, evaluate, stream and bench to the ``place-safe`` sub-parsers."""
+    """Add calibrate, recover, evaluate and stream to the ``place-safe`` sub-parsers."""
     # calibrate
     c = sub.add_parser("calibrate", formatter_class=FMT, help="fit a method's parameters to frames with ground truth",
                        description="Fit one method family to frames with ground-truth planes and write its section "
@@ -388,15 +405,18 @@ def register(sub) -> None:
     s.add_argument("--json", metavar="FILE", help="write the summary as JSON")
     s.set_defaults(func=cmd_stream)
 
-    # bench
-    b = sub.add_parser("bench", formatter_class=FMT, help="speed and accuracy of diff (paper, fast) and peak",
+
+
+def add_recovery_bench(sub) -> None:
+    """``place-safe bench recovery``: speed and accuracy of the recovery methods on the same frames."""
+    b = sub.add_parser("recovery", formatter_class=FMT, help="speed and accuracy of diff (paper, fast) and peak",
                        description="Run diff in paper mode, diff in fast mode and peak on the same frames in one "
                                    "process; print per-frame latency (median, p95; ms), throughput (frames/s), mean "
                                    "angular (deg), linear (mm) and point (mm) errors, the paper/fast speed ratio and "
                                    "peak RSS. Warm-up is excluded.",
-                       epilog="examples:\n  place-safe bench --frames 20 --paper-frames 3\n"
-                              "  place-safe bench tests/data/tmf8820_ur5_sweep.json --calibration calib.json\n"
-                              "  place-safe bench --frames 5 --paper-frames 0 --memory-file 1000")
+                       epilog="examples:\n  place-safe bench recovery --frames 20 --paper-frames 3\n"
+                              "  place-safe bench recovery tests/data/tmf8820_ur5_sweep.json --calibration calib.json\n"
+                              "  place-safe bench recovery --frames 5 --paper-frames 0 --memory-file 1000")
     b.add_argument("file", nargs="?", metavar="FILE", help="frame file with ground truth (default: synthetic frames)")
     b.add_argument("--calibration", metavar="CALIB.json", help="calibration file (default: built-in parameters)")
     b.add_argument("--frames", type=options.int_range(1, 100000), default=None, metavar="N",

@@ -134,11 +134,13 @@ def cmd_record(args: argparse.Namespace) -> int:
 
 
 def cmd_stream(args: argparse.Namespace) -> int:
-    from place_safe.cli.common import estimator_for, load_calibration
+    from place_safe.cli.common import UNCALIBRATED_MARK, estimator_for, load_calibration, uncalibrated_note
     from place_safe.io.live import run_live
 
     cal = load_calibration(args.calibration)
     est = estimator_for(args.method, cal)
+    note = uncalibrated_note(args.method, cal, args.calibration)
+    mark = "" if note is None else "  " + UNCALIBRATED_MARK
     view = None
     if args.save or args.view:
         from place_safe.cli.live_view import RerunView
@@ -151,6 +153,14 @@ def cmd_stream(args: argparse.Namespace) -> int:
         view = RerunView(save=args.save, params=params)
     src = _open(args)
     wall = src.clock_domain == "monotonic"
+    pending_note = [note] if note is not None and not args.jsonl else []  # with --jsonl every record says it
+
+    def say(text: str) -> None:
+        """Print a line of output; the note on the missing calibration goes first (only once there is output,
+        so an error before the first frame still leaves standard output empty)."""
+        while pending_note:
+            print(pending_note.pop(), flush=True)
+        print(text, flush=True)
 
     def on_estimate(index, frame, e, latency) -> None:
         age = time.monotonic() - frame.timestamp if wall and frame.timestamp is not None else None
@@ -161,14 +171,15 @@ def cmd_stream(args: argparse.Namespace) -> int:
             line["latency_ms"] = round(latency * 1e3, 3)
             if age is not None:
                 line["age_ms"] = round(age * 1e3, 3)
+            line["calibrated"] = note is None
             print(json.dumps(line), flush=True)
         elif e.plane is not None:
             p = e.plane
-            print(f"{index:>5}  tilt {math.degrees(p.theta):6.2f} deg  azimuth {math.degrees(p.phi):7.1f} deg  "
-                  f"distance {p.offset * 1e3:7.1f} mm  latency {latency * 1e3:6.1f} ms"
-                  + (f"  age {age * 1e3:6.1f} ms" if age is not None else ""), flush=True)
+            say(f"{index:>5}  tilt {math.degrees(p.theta):6.2f} deg  azimuth {math.degrees(p.phi):7.1f} deg  "
+                f"distance {p.offset * 1e3:7.1f} mm  latency {latency * 1e3:6.1f} ms"
+                + (f"  age {age * 1e3:6.1f} ms" if age is not None else "") + mark)
         else:
-            print(f"{index:>5}  no plane: {e.reason}", flush=True)
+            say(f"{index:>5}  no plane: {e.reason}{mark}")
 
     try:
         with src:
@@ -177,6 +188,8 @@ def cmd_stream(args: argparse.Namespace) -> int:
     finally:
         if view is not None:
             view.close()
+    while pending_note:  # no frame was printed: the note is still the output's first line
+        print(pending_note.pop(), flush=True)
     log(stats.summary())
     counted = {k: v for k, v in source_stats.items() if isinstance(v, int) and v}
     if counted:
@@ -217,16 +230,16 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 # ------------------------------------------------------------------------------------------------
 def register(subparsers: argparse._SubParsersAction) -> None:
-    """Add ``place-safe sensor info|record|stream|bench``."""
+    """Add ``place-safe sensor info|record|stream``."""
     s = subparsers.add_parser(
-        "sensor", formatter_class=FMT, help="read a TMF8820: info, record, stream, bench",
+        "sensor", formatter_class=FMT, help="read a TMF8820: info, record, stream",
         description="Talk to a TMF8820 through the I2C driver (i2c:), the Arduino bridge (serial:), the "
                     "register-level emulator (emu:) or a frame file (file:).",
         epilog="examples:\n  place-safe sensor info i2c:/dev/i2c-1@0x41\n"
                "  place-safe sensor record i2c:1 -o frames.json --frames 100\n"
                "  place-safe sensor stream emu:synthetic:50 --method peak --save run.rrd\n"
-               "  place-safe sensor bench --frames 200")
-    sub = s.add_subparsers(dest="sensor_command", metavar="{info,record,stream,bench}")
+               "  place-safe bench sensor --frames 200")
+    sub = s.add_subparsers(dest="sensor_command", metavar="{info,record,stream}")
     sub.required = True
 
     i = sub.add_parser("info", formatter_class=FMT, help="identity, versions, mode and configuration",
@@ -279,7 +292,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     st.add_argument("--view", action="store_true", help="open a rerun viewer (needs a display)")
     st.set_defaults(func=cmd_stream)
 
-    b = sub.add_parser("bench", formatter_class=FMT, help="bus frame rate, bytes per frame, decode CPU (emulator)",
+
+
+def add_sensor_bench(sub) -> None:
+    """``place-safe bench sensor``: the I2C driver over the register-level emulator with its bus timing."""
+    b = sub.add_parser("sensor", formatter_class=FMT, help="bus frame rate, bytes per frame, decode CPU (emulator)",
                        description="Stream frames through the I2C driver over the register-level emulator with "
                                    "its bus timing, for each bus clock and each publish latency (how long the "
                                    "chip takes, after the host cleared a packet's interrupt, to put the next "
@@ -291,8 +308,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                    "overwrites a measurement not read out within one period); bytes moved per "
                                    "frame against the payload (4182) and transfer (4368) minimums; host CPU to "
                                    "decode a frame.",
-                       epilog="examples:\n  place-safe sensor bench\n  place-safe sensor bench --bus-hz 1000000 "
-                              "--latency-us 0 20 --frames 500\n  place-safe sensor bench --fault-rate 0.001 "
+                       epilog="examples:\n  place-safe bench sensor\n  place-safe bench sensor --bus-hz 1000000 "
+                              "--latency-us 0 20 --frames 500\n  place-safe bench sensor --fault-rate 0.001 "
                               "--json bench.json")
     b.add_argument("--bus-hz", type=BUS_HZ, nargs="+", default=[400e3, 1e6], metavar="HZ",
                    help="bus clocks (default 400000 1000000)")
@@ -313,4 +330,4 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     b.set_defaults(func=cmd_bench)
 
 
-__all__ = ["register"]
+__all__ = ["register", "add_sensor_bench"]

@@ -32,7 +32,7 @@ A lateral contact (a box beside the cup) is seen by the same test on the norm of
 
 :func:`false_alarm_rate` and :func:`detection_delay` measure a setting on synthetic noise of the given
 standard deviation (numpy, no robot): the rate of false contacts per cycle and per descent, and the delay and
-the true force at detection for a touch that rises as a ramp (N/s) or a step (N). ``place-safe robot bench``
+the true force at detection for a touch that rises as a ramp (N/s) or a step (N). ``place-safe bench robot``
 prints them for the noise it measures on the arm.
 
 Conventions: SI units (N, s); forces in the base frame; the approach direction is a unit vector along which
@@ -70,7 +70,7 @@ DETECTOR_BOUNDS: dict[str, Bound] = {
 #: cycles in a row gave 5e-8 (3 in 6e7) but only 75 % of 10 N steps within 50 ms (48 ms median, 56-64 ms 95th
 #: percentile); a one-sided CUSUM was slower at the 95th percentile for the same rate (module docstring).
 #: e-Series: a flange force/torque sensor, about 1 N per axis per 2 ms cycle (assumed until
-#: ``place-safe robot bench`` measures it).
+#: ``place-safe bench robot`` measures it).
 CONTROLLER_DEFAULTS: dict[str, dict[str, float]] = {
     "cb3": {"noise_std": 3.6, "window": 6, "sigmas": 5.0, "persistence": 1, "min_threshold": 3.0,
             "lateral_sigmas": 7.0, "period": 1.0 / 125.0},
@@ -155,7 +155,7 @@ class ContactDetector:
         chance (by about 10 % for the 50 samples a zeroing takes), and raising the threshold by that much cost
         a tenth of the 10 N touches their 50 ms bound. So a measured spread counts only above
         ``setting * (1 + 2.5 / sqrt(2 (n - 1)))`` (2.5 standard errors of a sample standard deviation): a
-        clearly noisier arm still raises the threshold, and ``place-safe robot bench --write`` records an
+        clearly noisier arm still raises the threshold, and ``place-safe bench robot --write`` records an
         arm's own spread as the setting."""
         measured = float(self.rest_std.max())
         n = max(self.rest_samples, 2)

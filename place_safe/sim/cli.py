@@ -1,4 +1,4 @@
-"""The ``place-safe sim ...`` commands: validate the simulated sensor, render scenes, benchmark speed.
+"""The ``place-safe sim ...`` commands: validate the simulated sensor and render scenes (``bench sim`` times it).
 
 ``add_sim_commands(subparsers)`` registers a ``sim`` command with its own sub-commands on an
 argparse sub-parser collection; each sets ``func(args) -> int`` (exit status: 0 success, 1 a
@@ -19,10 +19,10 @@ from place_safe.exceptions import FrameFileError
 
 
 def add_sim_commands(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    """Register ``sim place``, ``sim validate``, ``sim render`` and ``sim bench``; returns the ``sim`` parser."""
-    sim = subparsers.add_parser("sim", help="MuJoCo simulation: validate the simulated TMF8820, render, benchmark",
+    """Register ``sim place``, ``sim calibrate``, ``sim validate`` and ``sim render``; returns the ``sim`` parser."""
+    sim = subparsers.add_parser("sim", help="MuJoCo simulation: validate the simulated TMF8820, render (its benchmark: bench sim)",
                                 description="MuJoCo simulation of the UR5 and the TMF8820 (needs the [sim] extra).")
-    sub = sim.add_subparsers(dest="sim_command", metavar="{place,calibrate,validate,render,bench}")
+    sub = sim.add_subparsers(dest="sim_command", metavar="{place,calibrate,validate,render}")
     sim.set_defaults(func=_no_sub_command)
 
     from place_safe.sim.placement_run import add_placement_command
@@ -75,19 +75,10 @@ def add_sim_commands(subparsers: argparse._SubParsersAction) -> argparse.Argumen
     r.add_argument("--view", action="store_true", help="open the interactive viewer instead (needs a display)")
     r.set_defaults(func=cmd_render)
 
-    b = sub.add_parser("bench", help="real-time factor of physics + simulated sensor in lockstep",
-                       description="Steps the scene for --seconds of sim time with the sensor measuring at --rate Hz "
-                                   "in lockstep and reports the real-time factor (sim time / wall time). Target >= 5.")
-    b.add_argument("--scene", help="scene JSON (default: level table)")
-    b.add_argument("--rig", action="store_true", help="sensor rig only (no robot); default: the UR5 holding the cup")
-    b.add_argument("--seconds", type=options.float_range(0.0, 3600.0, lo_open=True), default=5.0, help="sim seconds to run (default 5)")
-    b.add_argument("--rate", type=options.float_range(0.0, 1000.0, lo_open=True), default=30.0, help="sensor frame rate (Hz, default 30)")
-    b.add_argument("--rays", type=options.int_range(1, 64), default=8, help="stratified rays per axis and zone (default 8)")
-    b.set_defaults(func=cmd_bench)
     return sim
 
 
-SUB_COMMANDS = ("place", "calibrate", "validate", "render", "bench")
+SUB_COMMANDS = ("place", "calibrate", "validate", "render")
 
 
 def _no_sub_command(_args: argparse.Namespace) -> int:
@@ -160,16 +151,6 @@ def cmd_render(args: argparse.Namespace) -> int:
         rig_tof = tof if tof is not None else SimToF(scene, data)
         frames = render.sweep_frames(scene, rig_tof, **kw)
         print(f"wrote {render.save_gif(frames, args.gif)} ({len(frames)} frames)", file=sys.stderr)
-    return 0
-
-
-def cmd_bench(args: argparse.Namespace) -> int:
-    from place_safe.sim.bench import bench
-
-    res = bench(args.scene, args.rig, args.seconds, args.rate, args.rays)
-    print(f"{res['sim_seconds']:.2f} s sim in {res['wall_seconds']:.2f} s wall: real-time factor "
-          f"{res['real_time_factor']:.1f}x ({res['frames']} sensor frames at {args.rate:g} Hz, "
-          f"{res['physics_steps']} physics steps, {'UR5' if res['with_robot'] else 'rig'})")
     return 0
 
 

@@ -161,7 +161,8 @@ def config_kinds() -> dict[str, bytes]:
 OPTION_RUNS = [
     ["stream", "{good}", "--rate", "nan"], ["stream", "{good}", "--rate", "inf"], ["stream", "{good}", "--rate=-1"],
     ["stream", "{good}", "--queue", "0"], ["stream", "{good}", "--max-frames", "0"],
-    ["bench", "--frames=-1"], ["bench", "--memory-file=-5"], ["bench", "--frames", "1e3"],
+    ["bench", "recovery", "--frames=-1"], ["bench", "recovery", "--memory-file=-5"],
+    ["bench", "recovery", "--frames", "1e3"], ["bench", "sim", "--rays", "0"],
     ["demo", "--synthetic", "--frames", "0"], ["demo", "--seed=-1"],
     ["recover", "{good}", "--method", "peak", "--batch", "0"], ["recover", "{good}", "--method", "bogus"],
     ["evaluate", "{good}", "--min-distance", "nan"], ["evaluate", "{good}", "--max-distance", "inf"],
@@ -172,7 +173,7 @@ OPTION_RUNS = [
 ]
 SIM_OPTION_RUNS = [
     ["sim", "place", "--seconds", "0"], ["sim", "place", "--seconds", "nan"], ["sim", "place", "--method", "bogus"],
-    ["sim", "render", "--width", "0"], ["sim", "render", "--height=-3"], ["sim", "bench", "--rays", "0"],
+    ["sim", "render", "--width", "0"], ["sim", "render", "--height=-3"],
     ["sim", "place", "--config", "{placement-nan}"], ["sim", "place", "--config", "{placement-string}"],
     ["sim", "place", "--config", "{placement-unknown}"], ["sim", "place", "--config", "{placement-binary}"],
     ["sim", "place", "--scenario", "{scenario-unknown-sensor-key}"],
@@ -339,7 +340,7 @@ NEW_OPTION_RUNS = [
     ["calibrate-mount", _SWEEP, "--sigma-mm", "0", "--method", "peak"],
     ["sim", "place", "--seed=-1"], ["sim", "calibrate", "--frames", "1000000000"],
     ["sim", "render", "--distance", "1e300"], ["sim", "render", "--azimuth", "1e300"],
-    ["sensor", "bench", "--bus-hz", "1e-300"], ["sensor", "bench", "--frames", "1000000000"],
+    ["bench", "sensor", "--bus-hz", "1e-300"], ["bench", "sensor", "--frames", "1000000000"],
     ["sensor", "stream", "emu:synthetic:3", "--timeout", "1e300"], ["sensor", "info", "emu:synthetic:3",
                                                                      "--period-ms", "99999999"],
     ["stream", "{good}", "--rate", "1e-300"], ["synth", "--max-angle", "nan", "-o", "{tmp}/s.json"],

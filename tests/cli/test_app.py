@@ -75,7 +75,8 @@ def test_recover_human_table(synthetic_file, capsys):
     out = capsys.readouterr().out
     assert rc == 0
     assert "theta deg" in out and "d mm" in out
-    assert len(out.splitlines()) == 1 + 8
+    assert out.startswith("UNCALIBRATED:")  # no --calibration: the first line says so (issue 27, item 6)
+    assert len(out.splitlines()) == 1 + 1 + 8
 
 
 def test_recover_jsonl_on_jsonl_input(tmp_path, synthetic_frames, capsys):
