@@ -40,8 +40,8 @@ def _add_sim(sub, load: bool) -> None:
     """The ``sim`` commands; imported only when asked for (MuJoCo is slow to import and optional)."""
     reason = None
     if not load:
-        p = sub.add_parser("sim", help="simulated placement in MuJoCo (needs the [sim] extra; "
-                                       "see 'place-safe sim --help')", add_help=False)
+        p = sub.add_parser("sim", help="MuJoCo: validate the simulated TMF8820, render scenes (needs the [sim] "
+                                       "extra; see 'place-safe sim --help')", add_help=False)
         p.add_argument("rest", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
         return
     if importlib.util.find_spec("mujoco") is None:
@@ -60,7 +60,7 @@ def _add_sim(sub, load: bool) -> None:
         else:
             add_sim_commands(sub)
             return
-    p = sub.add_parser("sim", help="simulated placement in MuJoCo (needs the [sim] extra)",
+    p = sub.add_parser("sim", help="MuJoCo: validate the simulated TMF8820, render scenes (needs the [sim] extra)",
                        description=reason, add_help=True)
     p.add_argument("rest", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
 

@@ -45,10 +45,10 @@ def add_sim_bench(sub) -> None:
     b.add_argument("--rig", action="store_true", help="sensor rig only (no robot); default: the UR5 holding the cup")
     b.add_argument("--seconds", type=options.float_range(0.0, 3600.0, lo_open=True), default=5.0,
                    help="sim seconds to run (default 5)")
-    b.add_argument("--rate", type=options.float_range(0.0, 1000.0, lo_open=True), default=30.0,
-                   help="sensor frame rate (Hz, default 30)")
-    b.add_argument("--rays", type=options.int_range(1, 64), default=8,
-                   help="stratified rays per axis and zone (default 8)")
+    rate = options.field_option("place_safe.sim.tof:ToFConfig", "rate_hz", "sensor frame rate, default 30")
+    rays = options.field_option("place_safe.sim.tof:ToFConfig", "rays", "stratified rays per axis and zone, default 8")
+    b.add_argument("--rate", type=rate, default=30.0, help=rate.help)
+    b.add_argument("--rays", type=rays, default=8, help=rays.help)
     b.set_defaults(func=cmd_sim_bench)
 
 

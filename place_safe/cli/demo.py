@@ -37,7 +37,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         ok = True
         if args.method == "diff":
             log("demo: NOTE: diff uses the simulated USER calibration (a simulated level-table sweep fitted "
-                 "with 'place-safe calibrate'), not the simulator's true parameters; see 'place-safe sim place --help'")
+                 "with 'place-safe calibrate'), not the simulator's true parameters; see 'place-safe place --help'")
         for scenario, expected in DEMO_SCENARIOS:
             if not args.quiet:
                 log(f"demo: simulated UR5 placing a cup, scenario {scenario} (expected: {expected}) ...")

@@ -20,6 +20,7 @@ import sys
 from pathlib import Path
 
 from place_safe.cli.common import FMT, log
+from place_safe.cli import options
 from place_safe.cli.options import nonnegative_int, positive_float, positive_int
 
 
@@ -135,7 +136,9 @@ def add_robot_benches(sub: argparse._SubParsersAction) -> None:
                               "  place-safe bench contact --descents 0 --touch-trials 50\n"
                               "  place-safe bench contact --controller e-series --descents 20")
     c.add_argument("--controller", choices=("cb3", "e-series"), default="cb3", help="fake controller (default cb3)")
-    c.add_argument("--noise", type=positive_float, help="N per axis per cycle (default the controller's: 3.6 / 1.0)")
+    noise = options.field_option("place_safe.robot.contact_detector:DetectorSettings", "noise_std",
+                                 "force noise at rest, default the controller's (3.6 / 1.0)")
+    c.add_argument("--noise", type=noise, help=noise.help)
     c.add_argument("--descents", type=nonnegative_int, default=200, help="placements from --height (default 200)")
     c.add_argument("--height", type=positive_float, default=0.4, help="m of cup above the table (default 0.4)")
     c.add_argument("--touch-trials", type=nonnegative_int, default=20, help="touches per speed (default 20)")

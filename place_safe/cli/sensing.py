@@ -26,8 +26,21 @@ from place_safe.cli.common import (CALIBRATE_METHODS, METHODS, PROG, UNCALIBRATE
 # calibrate
 # ------------------------------------------------------------------------------------------------
 def cmd_calibrate(args: argparse.Namespace) -> int:
+    """Fit a method family to frame files (``calibrate FILE... --method M -o CAL``), or with ``--sim SENSOR`` run
+    the whole user chain in MuJoCo (touch the table, capture a sweep, fit diff then proprietary)."""
     from place_safe.calibration import Calibration
 
+    if args.sim:
+        return _calibrate_sim(args)
+    extra = [name for name, given in (("--frames", args.frames is not None), ("--seed", args.seed is not None),
+                                      ("--save-frames", args.save_frames)) if given]
+    if extra:
+        raise UsageError(f"calibrate: {', '.join(extra)} go{'es' if len(extra) == 1 else ''} with --sim SENSOR")
+    missing = [name for name, value in (("FILE", args.files), ("--method", args.method), ("-o/--output", args.output))
+               if not value]
+    if missing:
+        raise UsageError(f"calibrate: the following arguments are required: {', '.join(missing)} "
+                         f"(see '{PROG} calibrate --help')")
     out = Path(args.output)
     cal, note = Calibration(), None
     if out.exists():  # checked before any work so a bad output path fails fast, with one line
@@ -108,6 +121,33 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
             log(line)
     log(f"wrote {out} (sections: {', '.join(cal.sections)})")
     return 0
+
+
+def _calibrate_sim(args: argparse.Namespace) -> int:
+    """``calibrate --sim {nominal,mismatch,all}``: regenerate the simulated user calibration (default: the packaged
+    file placements use) by the chain a user runs on the arm, in MuJoCo."""
+    import importlib.util
+
+    if args.files or args.method:
+        raise UsageError("calibrate: --sim captures its own frames and fits diff, then proprietary: give no FILE "
+                         "or --method with it")
+    sensors = ("nominal", "mismatch") if args.sim == "all" else (args.sim,)
+    if len(sensors) > 1 and (args.output or args.save_frames):
+        raise UsageError("calibrate: -o and --save-frames need one simulated sensor (--sim nominal or mismatch)")
+    if importlib.util.find_spec("mujoco") is None:
+        raise UsageError("calibrate --sim: the simulation needs MuJoCo, which is not installed: install the [sim] "
+                         "extra, e.g. pip install -e \".[sim]\"")
+    from place_safe.sim.calibration_capture import calibrate_sim
+
+    frames = SIM_SWEEP_FRAMES if args.frames is None else args.frames
+    for sensor in sensors:
+        out = calibrate_sim(sensor, args.output, n=frames, seed=args.seed or 0, frames_out=args.save_frames)
+        log(f"wrote {out} ({sensor} simulated sensor, {frames} sweep frames)")
+    return 0
+
+
+#: Poses (one frame each) of the simulated sweep of ``calibrate --sim`` unless --frames says otherwise.
+SIM_SWEEP_FRAMES = 48
 
 
 # ------------------------------------------------------------------------------------------------
@@ -330,13 +370,27 @@ def register(sub) -> None:
                               "                  'peak' again in an existing file, run --method peak)\n\n"
                               "example:\n"
                               "  place-safe calibrate sweep.json --method peak -o calib.json\n"
-                              "  place-safe calibrate sweep.json --method diff -o calib.json   # adds 'forward'")
-    c.add_argument("files", nargs="+", metavar="FILE", help="frame files with ground truth ('plane' or 'pose' + "
+                              "  place-safe calibrate sweep.json --method diff -o calib.json   # adds 'forward'\n"
+                              "  place-safe calibrate --sim mismatch      # the packaged simulated calibration, anew")
+    c.add_argument("files", nargs="*", metavar="FILE", help="frame files with ground truth ('plane' or 'pose' + "
                                                              "'dist_to_plane')")
-    c.add_argument("--method", required=True, choices=CALIBRATE_METHODS, help="method family to fit")
-    c.add_argument("-o", "--output", required=True, metavar="CALIB.json", help="calibration file to write or update")
+    c.add_argument("--method", choices=CALIBRATE_METHODS, help="method family to fit (required with FILE)")
+    c.add_argument("-o", "--output", metavar="CALIB.json",
+                   help="calibration file to write or update (required with FILE; with --sim: default the packaged "
+                        "simulated calibration)")
     c.add_argument("--force", action="store_true", help="replace an output file that is not a valid calibration")
     c.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    g = c.add_argument_group("simulation (the [sim] extra)")
+    g.add_argument("--sim", choices=("nominal", "mismatch", "all"),
+                   help="instead of FILE: regenerate the simulated user calibration of this simulated sensor the "
+                        "way a user calibrates the arm: the simulated UR5 touches the level table at three points, "
+                        "captures a sweep above it with the simulated sensor and fits it (diff, then proprietary); "
+                        "without -o it rewrites the packaged sim/sensors/calibration_<sensor>.json placements use")
+    g.add_argument("--frames", type=options.int_range(8, 1000), default=None,
+                   help=f"with --sim: poses (one frame each) in the sweep (default {SIM_SWEEP_FRAMES}, 8..1000)")
+    g.add_argument("--seed", type=options.int_range(0, 2 ** 32 - 1), default=None,
+                   help="with --sim: sweep and noise seed (default 0)")
+    g.add_argument("--save-frames", help="with --sim: also keep the capture file (JSON Lines) here (one sensor only)")
     c.set_defaults(func=cmd_calibrate)
 
     # recover

@@ -29,14 +29,15 @@ OPTIONS = [
     (["bench", "recovery"], "--memory-file", int, 1, 1000000, False),
     (["bench", "recovery"], "--seed", int, 0, math.inf, False),
     (["bench", "sim"], "--seconds", float, 0.0, 3600.0, True),
-    (["bench", "sim"], "--rate", float, 0.0, 1000.0, True),
+    (["bench", "sim"], "--rate", float, 1.0, 200.0, False),  # the simulated sensor's rate_hz (ToFConfig)
     (["bench", "sim"], "--rays", int, 1, 64, False),
+    (["place", "--sim", "place_level"], "--timeout", float, 0.0, 3600.0, True),
+    (["place", "--sim", "place_level"], "--seed", int, 0, math.inf, False),
+    (["calibrate", "--sim", "nominal"], "--frames", int, 8, 1000, False),
     (["demo"], "--frames", int, 1, 100000, False),
     (["demo"], "--seed", int, 0, math.inf, False),
 ]
 SIM_OPTIONS = [
-    (["sim", "place"], "--seconds", float, 0.0, 3600.0, True),
-    (["sim", "place"], "--seed", int, 0, math.inf, False),
     (["sim", "render"], "--width", int, 16, 4096, False),
     (["sim", "render"], "--height", int, 16, 4096, False),
     (["sim", "render"], "--elevation", float, -90.0, 90.0, False),

@@ -227,11 +227,13 @@ class MotionConfig(ConfigModel):
 
 
 def _detector(name: str) -> dict:
-    """The range of contact-detector setting ``name`` (:data:`~place_safe.robot.contact_detector.DETECTOR_BOUNDS`),
-    as pydantic field constraints (numbers as written in a robot file: not strict)."""
-    from place_safe.robot.contact_detector import DETECTOR_BOUNDS
+    """The range of contact-detector setting ``name`` (a field of
+    :class:`~place_safe.robot.contact_detector.DetectorSettings`), as pydantic field constraints (numbers as
+    written in a robot file: not strict)."""
+    from place_safe.config import field_constraints
+    from place_safe.robot.contact_detector import DetectorSettings
 
-    return {k: v for k, v in DETECTOR_BOUNDS[name].constraints().items() if k != "strict"}
+    return field_constraints(DetectorSettings, name)
 
 
 class ContactConfig(ConfigModel):
