@@ -312,6 +312,7 @@ def test_demo_without_mujoco_falls_back_to_synthetic_recovery(monkeypatch, capsy
     assert main(["demo", "--frames", "2"]) == 0
     cap = capsys.readouterr()
     assert "MuJoCo is not installed" in cap.err
+    assert cap.out.startswith("UNCALIBRATED:")  # built-in constants: the first line says so (issue 27, item 6)
     for label in ("diff-fast", "peak", "proprietary"):
         assert label in cap.out
 
