@@ -355,7 +355,9 @@ def register(sub) -> None:
     c = sub.add_parser("calibrate", formatter_class=FMT, help="fit a method's parameters to frames with ground truth",
                        description="Fit one method family to frames with ground-truth planes and write its section "
                                    "of a calibration file. If the output already is a calibration file, its other "
-                                   "sections are kept, so one file can carry all methods.",
+                                   "sections are kept, so one file can carry all methods. With --sim SENSOR instead "
+                                   "of FILE, the user's whole chain runs in MuJoCo (touch the table, capture a sweep, "
+                                   "fit diff then proprietary) and rewrites the simulated calibration.",
                        epilog="methods and the sections they write:\n"
                               "  peak         -> 'peak' (histogram-peak distance, zone-angle scales, pile-up and, from\n"
                               "                  frames closer than 9 cm, a per-zone near-range table kept only if\n"
