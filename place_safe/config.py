@@ -135,6 +135,127 @@ def load_config(cls: type, path: str | Path, what: str | None = None):
 
 
 # ---------------------------------------------------------------------------------------------------
+# Parameter sets with physical ranges: pydantic models whose Field constraints are the ranges
+# ---------------------------------------------------------------------------------------------------
+from typing import ClassVar  # noqa: E402
+
+from pydantic import model_validator  # noqa: E402
+
+
+class ParamModel(ConfigModel):
+    """Base of a parameter set with physical ranges (robot limits, contact detector, simulated sensor, ...).
+
+    Each field is declared once, as pydantic declares it: ``Annotated[float, Field(gt=0, le=3,
+    description="m/s")]`` - the range as ``ge``/``gt``/``le``/``lt`` (on the elements of a vector, whose length
+    is ``min_length``/``max_length``) and the unit as the description. Values are strict (a string or a
+    boolean is not a number) and finite; NumPy numbers and arrays set in code are taken as plain numbers and
+    lists. Every problem, on construction, :meth:`from_dict` or assignment, is one line of the class's
+    :attr:`error` type: ``what: field: problem (expected lo < value <= hi unit)``. :meth:`to_dict` is the
+    file form (the fields by name, as JSON values).
+    """
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False, strict=True)
+
+    #: what messages call it, and the exception they raise
+    what: ClassVar[str] = "settings"
+    error: ClassVar[type[Exception]] = ConfigError
+
+    def __init__(self, **data: Any) -> None:  # pydantic calls it from model_validate too
+        try:
+            super().__init__(**data)
+        except ValidationError as exc:
+            raise self.error(range_message(exc, type(self), self.what)) from None
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        try:
+            super().__setattr__(name, value)
+        except ValidationError as exc:
+            raise self.error(range_message(exc, type(self), self.what)) from None
+
+    @model_validator(mode="before")
+    @classmethod
+    def _plain_numbers(cls, data: Any) -> Any:
+        return {k: _plain(v) for k, v in data.items()} if isinstance(data, dict) else data
+
+    @classmethod
+    def from_dict(cls, d: Any, what: str | None = None):
+        """An instance from a JSON object (its keys a subset of the fields); one-line :attr:`error` otherwise."""
+        what = what or cls.what
+        if not isinstance(d, dict):
+            raise cls.error(f"{what} must be a JSON object, got {_json_name(d)}")
+        if (odd := next((k for k in d if not isinstance(k, str)), None)) is not None:
+            raise cls.error(f"{what}: {_printable(str(odd))}: unknown key")
+        try:
+            return cls(**d)
+        except cls.error as exc:  # the constructor's message, under this file's name
+            raise cls.error(str(exc).replace(cls.what, what, 1) if what != cls.what else str(exc)) from None
+
+    def to_dict(self) -> dict:
+        """The file form: every field by name, as plain JSON values."""
+        return self.model_dump(mode="json")
+
+
+def _field_parts(model: type[BaseModel], name: str) -> tuple[dict, dict, str]:
+    """(constraints on the value, constraints on each element of a vector, unit) of field ``name``."""
+    import typing
+
+    import annotated_types as at
+
+    info = model.model_fields[name]
+
+    def constraints(metadata) -> dict:
+        out = {}
+        for m in metadata:
+            for key, cls_ in (("ge", at.Ge), ("gt", at.Gt), ("le", at.Le), ("lt", at.Lt)):
+                if isinstance(m, cls_):
+                    out[key] = getattr(m, key)
+            for key, cls_ in (("min_length", at.MinLen), ("max_length", at.MaxLen)):
+                if isinstance(m, cls_):
+                    out[key] = getattr(m, key)
+        return out
+
+    each: dict = {}
+    ann = info.annotation
+    for arg in typing.get_args(ann) or ():  # list[Annotated[float, Field(...)]] (optionally | None)
+        inner = typing.get_args(arg) if typing.get_origin(arg) in (list, tuple) else (arg,)
+        for el in inner:
+            if typing.get_origin(el) is typing.Annotated:
+                each = constraints(sum((getattr(m, "metadata", [m]) for m in typing.get_args(el)[1:]), []))
+    return constraints(info.metadata), each, info.description or ""
+
+
+def field_constraints(model: type[BaseModel], name: str) -> dict:
+    """The range of scalar field ``name`` of ``model`` as pydantic keywords (``ge``, ``gt``, ``le``, ``lt``): for
+    another model or a command-line option that takes the same quantity, so the range is written once."""
+    value, _, _ = _field_parts(model, name)
+    return {k: v for k, v in value.items() if k in ("ge", "gt", "le", "lt")}
+
+
+def field_range_text(model: type[BaseModel], name: str) -> str:
+    """``"0 < value <= 3 m/s"``: the range and unit of field ``name`` (of each element, for a vector)."""
+    value, each, unit = _field_parts(model, name)
+    c = each or value
+    lo = (f"{c['gt']:g} < " if "gt" in c else f"{c['ge']:g} <= " if "ge" in c else "")
+    hi = (f" < {c['lt']:g}" if "lt" in c else f" <= {c['le']:g}" if "le" in c else "")
+    return f"{lo}value{hi}{' ' + unit if unit else ''}"
+
+
+def range_message(exc: ValidationError, model: type[BaseModel], what: str) -> str:
+    """One line for a failed :class:`ParamModel`: ``what: field: problem (expected <range and unit>)``."""
+    message = describe_validation_error(exc, what).replace(f"{what}: (top level): ", f"{what}: ", 1)
+    errors = exc.errors()
+    first = errors[0] if errors else {}
+    if first.get("type") == "extra_forbidden":
+        return message.replace("Extra inputs are not permitted", "unknown key")
+    loc = first.get("loc", ())
+    if loc and loc[0] in model.model_fields and first.get("type") not in ("value_error", "frozen_instance"):
+        value, each, _ = _field_parts(model, str(loc[0]))
+        if value or each:
+            return f"{message} (expected {field_range_text(model, str(loc[0]))})"
+    return message
+
+
+# ---------------------------------------------------------------------------------------------------
 # Physical ranges for the parameter dataclasses (forward model, peak mapping, placement, robot, scene)
 # ---------------------------------------------------------------------------------------------------
 from dataclasses import MISSING, dataclass  # noqa: E402
@@ -282,5 +403,5 @@ def _json_name(value: Any) -> str:
             int: "a number", float: "a number"}.get(type(value), type(value).__name__)
 
 
-__all__ = ["ConfigModel", "Bound", "check_keys", "read_json", "write_json", "parse_config", "read_config_file",
+__all__ = ["ConfigModel", "ParamModel", "field_constraints", "field_range_text", "range_message", "Bound", "check_keys", "read_json", "write_json", "parse_config", "read_config_file",
            "load_config", "describe_validation_error", "dataclass_model", "check_dataclass", "dataclass_from_dict"]

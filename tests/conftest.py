@@ -5,7 +5,7 @@ Tiers (markers, registered in pyproject.toml): every test is ``fast`` unless it 
 ``python -m pytest -q`` runs all tiers; ``-m fast`` or ``-m "not slow"`` pick a quick subset.
 Torch's intra-op threads are pinned (``PLACE_SAFE_TEST_THREADS``, default 1) so results and run
 time do not depend on how busy the machine is. No test asserts a speed: speeds belong to
-``place-safe bench`` / ``place-safe sim bench``.
+``place-safe bench recovery`` / ``place-safe bench sim``.
 """
 
 from __future__ import annotations

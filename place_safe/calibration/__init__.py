@@ -86,7 +86,7 @@ class Calibration:
     def check(self) -> "Calibration":
         """Raise :class:`CalibrationError` (one line, the first invalid section) unless every section is valid.
 
-        Commands that drive a robot (``place``, ``sim place``, ``scenarios``, ``calibrate-mount``) call it: a
+        Commands that drive a robot (``place``, ``scenarios``, ``calibrate-mount``) call it: a
         file with a broken section (a NaN, a wrong type) is refused before anything moves."""
         for name in sorted(self.errors):
             raise CalibrationError(f"{self.source}: section '{name}': {self.errors[name]}")

@@ -1,8 +1,9 @@
 """The ``place-safe`` command line: the root parser, the lazily loaded ``sim`` commands and ``main``.
 
 Each command group lives in its own module (``COMMAND_MODULES``): ``sensing`` (calibrate, recover,
-evaluate, stream, bench; docs/interfaces.md), ``demo``, ``sensor``, ``robot`` (place, capture,
-calibrate-mount), ``synth``, ``latency`` and ``scenarios``; shared helpers are in ``common``.
+evaluate, stream; docs/interfaces.md), ``demo``, ``sensor``, ``robot`` (place, capture,
+calibrate-mount), ``bench`` (every benchmark as a sub-command), ``synth`` and ``scenarios``; shared
+helpers are in ``common``.
 
 Conventions at this edge: distances on the command line are metres unless an option says otherwise,
 angles are printed in degrees, planes in files and JSON lines use the sensor-frame convention
@@ -21,15 +22,14 @@ import importlib.util
 import sys
 from collections.abc import Sequence
 
-from place_safe.cli.common import (CALIBRATE_METHODS, FMT, METHODS, PROG, UsageError, _estimator, _FMT,
-                                   _load_calibration, _log, _Parser)
+from place_safe.cli.common import FMT, PROG, Parser, UsageError, log
 from place_safe.exceptions import PlaceSafeError
 
 #: Command groups, each a module exposing ``register(subparsers) -> None``, which adds its sub-parser(s)
-#: (``parser_class=_Parser`` is inherited) with ``set_defaults(func=...)``. Modules import heavy packages
+#: (``parser_class=Parser`` is inherited) with ``set_defaults(func=...)``. Modules import heavy packages
 #: (torch, MuJoCo, ur-rtde, smbus2) inside their command functions, not at import time.
 COMMAND_MODULES: tuple[str, ...] = ("place_safe.cli.sensing", "place_safe.cli.demo", "place_safe.cli.sensor",
-                                   "place_safe.cli.robot", "place_safe.cli.robot_bench", "place_safe.cli.synth", "place_safe.cli.latency",
+                                   "place_safe.cli.robot", "place_safe.cli.bench", "place_safe.cli.synth",
                                    "place_safe.cli.scenarios")
 
 
@@ -40,8 +40,8 @@ def _add_sim(sub, load: bool) -> None:
     """The ``sim`` commands; imported only when asked for (MuJoCo is slow to import and optional)."""
     reason = None
     if not load:
-        p = sub.add_parser("sim", help="simulated placement in MuJoCo (needs the [sim] extra; "
-                                       "see 'place-safe sim --help')", add_help=False)
+        p = sub.add_parser("sim", help="MuJoCo: validate the simulated TMF8820, render scenes (needs the [sim] "
+                                       "extra; see 'place-safe sim --help')", add_help=False)
         p.add_argument("rest", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
         return
     if importlib.util.find_spec("mujoco") is None:
@@ -60,7 +60,7 @@ def _add_sim(sub, load: bool) -> None:
         else:
             add_sim_commands(sub)
             return
-    p = sub.add_parser("sim", help="simulated placement in MuJoCo (needs the [sim] extra)",
+    p = sub.add_parser("sim", help="MuJoCo: validate the simulated TMF8820, render scenes (needs the [sim] extra)",
                        description=reason, add_help=True)
     p.add_argument("rest", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
 
@@ -83,7 +83,7 @@ examples:
   place-safe recover frames.json --method diff --calibration calib.json --jsonl > planes.jsonl
   place-safe evaluate tests/data/tmf8820_ur5_sweep.json --calibration calib.json
   place-safe stream frames.json --method diff --rate 30
-  place-safe bench --frames 20 --paper-frames 3
+  place-safe bench recovery --frames 20 --paper-frames 3
   place-safe sensor stream emu:synthetic --method peak --max-frames 30
   place-safe place --sim place_level
   place-safe place --robot robots/ur5/real.toml --sensor i2c:/dev/i2c-1@0x41 --calibration cal.json --dry-run
@@ -93,14 +93,14 @@ examples:
 
 def build_parser(load_sim: bool = True) -> argparse.ArgumentParser:
     """The argument parser; with ``load_sim`` False the ``sim`` commands are a placeholder (fast start)."""
-    p = _Parser(prog=PROG, formatter_class=_FMT, epilog=MAIN_EPILOG,
+    p = Parser(prog=PROG, formatter_class=FMT, epilog=MAIN_EPILOG,
                 description="Put a held cup down safely with a UR5 and the TMF8820 on its gripper: recover the "
                             "plane below from transient histograms, calibrate and evaluate the methods, read the "
                             "sensor, drive the arm or its MuJoCo twin, and run scenario suites.")
     from place_safe import __version__
 
     p.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
-    sub = p.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    sub = p.add_subparsers(dest="command", metavar="COMMAND", parser_class=Parser)
 
     import importlib
 
@@ -166,7 +166,7 @@ def _main(argv: Sequence[str] | None) -> int:
         _check_outputs(args)
         return int(args.func(args) or 0)
     except PlaceSafeError as exc:
-        _log(f"{PROG}: error: {_one_line(exc)}")
+        log(f"{PROG}: error: {_one_line(exc)}")
         return 2
     except BrokenPipeError:
         # stdout closed early (e.g. piped into head): not an error of ours
@@ -176,20 +176,20 @@ def _main(argv: Sequence[str] | None) -> int:
             pass
         return 0
     except KeyboardInterrupt:
-        _log(f"{PROG}: interrupted")
+        log(f"{PROG}: interrupted")
         return 130
     except OSError as exc:  # e.g. an output directory that cannot be written
-        _log(f"{PROG}: error: {exc.strerror or _one_line(exc)}: {exc.filename or ''}".rstrip(": "))
+        log(f"{PROG}: error: {exc.strerror or _one_line(exc)}: {exc.filename or ''}".rstrip(": "))
         return 2
     except (ValueError, RecursionError, OverflowError, MemoryError) as exc:  # bad input Python noticed first
-        _log(f"{PROG}: error: invalid input: {_one_line(exc)}")
+        log(f"{PROG}: error: invalid input: {_one_line(exc)}")
         return 2
     except Exception as exc:  # noqa: BLE001 - an internal failure: one line, exit 1 (traceback on request)
         import os
 
         if os.environ.get("PLACE_SAFE_DEBUG"):
             raise
-        _log(f"{PROG}: internal error: {type(exc).__name__}: {_one_line(exc)} (set PLACE_SAFE_DEBUG=1 "
+        log(f"{PROG}: internal error: {type(exc).__name__}: {_one_line(exc)} (set PLACE_SAFE_DEBUG=1 "
              "for the traceback)")
         return 1
 
@@ -198,6 +198,4 @@ if __name__ == "__main__":
     sys.exit(main())
 
 
-#: Names command modules and scripts import from here (defined in :mod:`place_safe.cli.common`).
-__all__ = ["main", "build_parser", "COMMAND_MODULES", "PROG", "METHODS", "CALIBRATE_METHODS", "UsageError", "FMT",
-           "_FMT", "_Parser", "_log", "_load_calibration", "_estimator"]
+__all__ = ["main", "build_parser", "COMMAND_MODULES"]

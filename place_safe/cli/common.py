@@ -25,7 +25,7 @@ class UsageError(PlaceSafeError):
     """Bad command-line usage (exit status 2)."""
 
 
-class _Parser(argparse.ArgumentParser):
+class Parser(argparse.ArgumentParser):
     """argparse with one-line errors (no usage dump) so scripts see exactly one line on stderr."""
 
     def error(self, message: str):  # type: ignore[override]
@@ -33,11 +33,11 @@ class _Parser(argparse.ArgumentParser):
         raise UsageError(f"{where + ': ' if where else ''}{message} (see '{self.prog} --help')")
 
 
-def _log(msg: str = "") -> None:
+def log(msg: str = "") -> None:
     print(msg, file=sys.stderr, flush=True)
 
 
-def _progress(enabled: bool):
+def progress_options(enabled: bool):
     """tqdm keyword arguments: bars on stderr, shown only when enabled and stderr is a terminal."""
     return {"file": sys.stderr, "disable": None if enabled else True, "leave": False}
 
@@ -55,7 +55,7 @@ def not_a_file(path: str | Path) -> str | None:
     return input_file_problem(path, None)
 
 
-def _load_calibration(path: str | None):
+def load_calibration(path: str | None):
     from place_safe.calibration import Calibration
 
     if path is None:
@@ -65,7 +65,7 @@ def _load_calibration(path: str | None):
     return Calibration.load(path)
 
 
-def _load_truth_frames(paths: Sequence[str], min_distance: float | None = None,
+def load_truth_frames(paths: Sequence[str], min_distance: float | None = None,
                        max_distance: float | None = None) -> tuple[list, str]:
     """All frames with ground truth from ``paths`` (within the distance limits), and a note on the skipped ones.
 
@@ -97,11 +97,11 @@ def _load_truth_frames(paths: Sequence[str], min_distance: float | None = None,
             limits = f" between {min_distance or 0:g} m and {max_distance if max_distance is not None else math.inf:g} m"
         raise FrameFileError(f"no frames with ground truth{limits} in {', '.join(paths)} "
                              "(expected 'plane' or 'pose' + 'dist_to_plane' per frame)"
-                             + (f"; {_count_note(skipped)}" if skipped else ""))
-    return frames, _count_note(skipped)
+                             + (f"; {count_note(skipped)}" if skipped else ""))
+    return frames, count_note(skipped)
 
 
-def _count_note(counts) -> str:
+def count_note(counts) -> str:
     """``"3 skipped: 2 unreadable, 1 no ground truth"`` for a Counter of reasons ('' when empty)."""
     total = sum(counts.values())
     if not total:
@@ -109,34 +109,34 @@ def _count_note(counts) -> str:
     return f"{total} skipped: " + ", ".join(f"{n} {why}" for why, n in counts.most_common())
 
 
-def _jsonable(obj: Any) -> Any:
+def jsonable(obj: Any) -> Any:
     """Fit reports may hold numpy scalars/arrays or dataclasses; make them plain JSON."""
     import dataclasses
 
     import numpy as np
 
     if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
+        return {str(k): jsonable(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
+        return [jsonable(v) for v in obj]
     if isinstance(obj, np.ndarray):
-        return _jsonable(obj.tolist())
+        return jsonable(obj.tolist())
     if isinstance(obj, np.generic):
-        return _jsonable(obj.item())
+        return jsonable(obj.item())
     if isinstance(obj, float):
         return obj if math.isfinite(obj) else None
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        return _jsonable(dataclasses.asdict(obj))
+        return jsonable(dataclasses.asdict(obj))
     if hasattr(obj, "to_dict"):
-        return _jsonable(obj.to_dict())
+        return jsonable(obj.to_dict())
     if obj is None or isinstance(obj, (str, int, bool)):
         return obj
     return str(obj)
 
 
-def _summarise(report: Any, indent: str = "  ") -> list[str]:
+def summarise(report: Any, indent: str = "  ") -> list[str]:
     """Scalar entries of a fit report, one per line (nested dicts flattened with dots)."""
-    rep = _jsonable(report)
+    rep = jsonable(report)
     if not isinstance(rep, dict):
         return [f"{indent}{rep}"]
     lines: list[str] = []
@@ -161,7 +161,40 @@ def _summarise(report: Any, indent: str = "  ") -> list[str]:
     return lines
 
 
-def _estimator(method: str, calibration, mode: str | None = None):
+#: The marker every output row of an uncalibrated run carries (JSON records carry ``"calibrated": false``).
+UNCALIBRATED_MARK = "[uncalibrated]"
+
+
+def uncalibrated_note(methods: str | Sequence[str], calibration, path: str | None = None) -> str | None:
+    """The first line of a command's output when a method of ``methods`` runs without its calibration, or None.
+
+    Without a calibration each method runs on built-in constants (another unit's published parameters):
+    the peak method reads a level table 200 mm away as tilted by about 11 degrees. Commands print this
+    line first on standard output (never on standard error, which stays one line for errors) and mark
+    every row with :data:`UNCALIBRATED_MARK` or ``"calibrated": false``."""
+    from place_safe.calibration import REQUIRED_SECTIONS, uncalibrated_reason
+
+    names = [methods] if isinstance(methods, str) else list(methods)
+    bare = [m for m in names if uncalibrated_reason(m, calibration) is not None]
+    if not bare:
+        return None
+    naive = [m for m in bare if m not in REQUIRED_SECTIONS]
+    fitted = [m for m in bare if m in REQUIRED_SECTIONS]
+    why = []
+    if fitted:
+        where = ("no --calibration" if calibration is None else
+                 f"{path or 'the calibration'} has no {'/'.join(REQUIRED_SECTIONS[m][0] for m in fitted)} section")
+        why.append(f"{where}: {', '.join(fitted)} run{'s' if len(fitted) == 1 else ''} on built-in constants "
+                   "(another unit's published parameters)")
+    if naive:
+        why.append(f"{', '.join(naive)} {'is a naive baseline' if len(naive) == 1 else 'are naive baselines'} "
+                   "on built-in constants")
+    fit = (fitted or [m.removesuffix("-naive") for m in naive])[0]
+    return (f"UNCALIBRATED: {'; '.join(why)}; planes can be off by degrees. Fit one with 'place-safe calibrate "
+            f"FRAMES.json --method {fit} -o cal.json' and pass --calibration cal.json")
+
+
+def estimator_for(method: str, calibration, mode: str | None = None):
     from place_safe.recovery import make_estimator
 
     options = {"mode": mode} if (method == "diff" and mode) else {}
@@ -170,4 +203,3 @@ def _estimator(method: str, calibration, mode: str | None = None):
 
 #: Help formatter of every command (keeps the line breaks of descriptions and epilogs).
 FMT = argparse.RawDescriptionHelpFormatter
-_FMT = FMT

@@ -1,4 +1,4 @@
-"""``place-safe latency``: per-frame wall time of ``recover`` measured from outside (a benchmark, not a test).
+"""``place-safe bench latency``: per-frame wall time of ``recover`` measured from outside (a benchmark, not a test).
 
 The figure the speed targets are stated in: a fresh ``place-safe recover --jsonl --batch 1`` process
 over a frame file, each output line timestamped as it arrives; milliseconds per frame (median, p95).
@@ -10,16 +10,17 @@ import argparse
 
 EPILOG = """examples:
   place-safe synth --frames 100 --seed 7 -o out/speed.json
-  place-safe latency out/speed.json --method diff --calibration calib.json
-  place-safe latency out/speed.json --method peak --json out/latency_peak.json"""
+  place-safe bench latency out/speed.json --method diff --calibration calib.json
+  place-safe bench latency out/speed.json --method peak --json out/latency_peak.json"""
 
 
-def register(subparsers) -> None:
-    from place_safe.cli.app import METHODS
+def add_latency_bench(subparsers) -> None:
+    """``place-safe bench latency`` on the ``bench`` sub-parsers."""
+    from place_safe.cli.common import FMT, METHODS
     from place_safe.cli.options import int_range
 
     s = subparsers.add_parser(
-        "latency", formatter_class=argparse.RawDescriptionHelpFormatter, epilog=EPILOG,
+        "latency", formatter_class=FMT, epilog=EPILOG,
         help="per-frame wall time of `recover` measured from outside (median, p95)",
         description="Run `place-safe recover --jsonl` in a fresh process over FILE and time each output line as "
                     "it arrives: the gaps are per-frame wall times as a caller sees them (parsing, recovery, "
@@ -37,20 +38,22 @@ def cmd_latency(args: argparse.Namespace) -> int:
     import json
     from pathlib import Path
 
-    from place_safe.cli.common import _load_calibration, not_a_file
+    from place_safe.cli.common import UNCALIBRATED_MARK, load_calibration, not_a_file, uncalibrated_note
     from place_safe.evaluation.bench import measure_recover_latency
     from place_safe.exceptions import FrameFileError, PlaceSafeError
 
     if (why := not_a_file(args.file)) is not None:
         raise FrameFileError(f"frame file {args.file} {why}")
-    _load_calibration(args.calibration)  # a bad calibration fails here with one line
+    note = uncalibrated_note(args.method, load_calibration(args.calibration), args.calibration)  # a bad file: one line
+    if note is not None:
+        print(note, flush=True)
     try:
         res = measure_recover_latency(args.file, args.method, args.calibration, args.batch)
     except RuntimeError as exc:
         raise PlaceSafeError(f"latency: {exc}") from None
     print(f"recover --method {res['method']}: {res['frames']} frames, per frame median {res['median_ms']:.2f} ms, "
           f"p95 {res['p95_ms']:.2f} ms, mean {res['mean_ms']:.2f} ms (first line after {res['first_line_ms']:.0f} ms); "
-          f"method used: {res['method_used']}")
+          f"method used: {res['method_used']}" + ("" if note is None else "  " + UNCALIBRATED_MARK))
     if args.json:
-        Path(args.json).write_text(json.dumps(res, indent=2) + "\n")
+        Path(args.json).write_text(json.dumps({**res, "calibrated": note is None}, indent=2) + "\n")
     return 0

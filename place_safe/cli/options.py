@@ -89,4 +89,45 @@ def float_range(lo: float, hi: float, lo_open: bool = False):
     return check
 
 
-__all__ = ["int_range", "float_range", "finite_float", "positive_float", "nonnegative_float", "positive_int", "nonnegative_int", "fraction"]
+def field_option(model: str, name: str, what: str):
+    """The validator of a command-line value that is field ``name`` of parameter model ``model``
+    (``"package.module:Class"``, a :class:`~place_safe.config.ParamModel`): the field's kind (whole number or
+    number) and range, declared once in the model. The model's module is imported when a value is checked
+    or the help is shown, not when the parser is built (it may import torch). Its ``help`` attribute is
+    ``what`` followed by the range and unit, for the option's help text."""
+    def resolve():
+        import importlib
+        import typing
+
+        from place_safe.config import field_constraints, field_range_text
+
+        module, _, cls = model.partition(":")
+        m = getattr(importlib.import_module(module), cls)
+        c = field_constraints(m, name)
+        ann = m.model_fields[name].annotation
+        lo, hi = c.get("ge", c.get("gt", -math.inf)), c.get("le", c.get("lt", math.inf))
+        if int in (ann, *typing.get_args(ann)):
+            return int_range(int(lo), int(hi)), field_range_text(m, name)
+        return float_range(lo, hi, lo_open="gt" in c), field_range_text(m, name)
+
+    def check(text: str):
+        return resolve()[0](text)
+
+    check.__name__ = name
+    check.help = _LazyHelp(what, lambda: f"{what}; {resolve()[1].replace('value', name)}")  # type: ignore[attr-defined]
+    return check
+
+
+class _LazyHelp(str):
+    """Help text computed when argparse formats it (``help % params``), so building a parser stays cheap."""
+
+    def __new__(cls, text: str, make):
+        obj = super().__new__(cls, text)
+        obj.make = make
+        return obj
+
+    def __mod__(self, params):
+        return self.make() % params
+
+
+__all__ = ["field_option", "int_range", "float_range", "finite_float", "positive_float", "nonnegative_float", "positive_int", "nonnegative_int", "fraction"]

@@ -16,13 +16,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from place_safe.cli.common import FMT, UNCALIBRATED_MARK, log, uncalibrated_note
 from place_safe.cli.options import float_range, int_range
-
-_FMT = argparse.RawDescriptionHelpFormatter
-
-
-def _log(msg: str) -> None:
-    print(msg, file=sys.stderr, flush=True)
 
 
 def _floats(text: str, n: int | None = None, what: str = "numbers", lo: float = -math.inf,
@@ -73,18 +68,18 @@ def _robot_config(path: str | None):
     return URConfig.load(path if path else packaged_config("sim"))
 
 
-def _estimator(method: str, calibration: str | None, sim: bool):
-    """(estimator, note saying where its calibration came from)."""
+#: What the result file's "calibration" says of a run without a calibration file.
+BUILT_IN = "built-in defaults"
+
+
+def _estimator(method: str, calibration: str | None):
+    """(estimator, note saying where its calibration came from: the file, or :data:`BUILT_IN`)."""
     from place_safe.calibration import Calibration
     from place_safe.recovery import make_estimator
 
     if calibration:  # every section valid (a NaN anywhere is refused), not only the method's
         return make_estimator(method, Calibration.load(calibration).check()), calibration
-    if sim and method == "diff":
-        from place_safe.sim.placement_run import oracle_calibration
-
-        return make_estimator(method, oracle_calibration()), "ORACLE: the simulated sensor's true forward parameters"
-    return make_estimator(method, None), "built-in defaults"
+    return make_estimator(method, None), BUILT_IN
 
 
 def _mount_truth(path: str) -> Any:
@@ -120,58 +115,77 @@ def _write_json(path: str, value: Any) -> None:
 # place
 # ------------------------------------------------------------------------------------------------
 def cmd_place(args: argparse.Namespace) -> int:
-    from place_safe.placement.loop import PlacementLoop
+    """One placement: on the UR5 (``--robot``) or in MuJoCo (``--sim``, :func:`~place_safe.sim.placement_run.run_placement`).
+
+    Writes the result (``--json``) and the transition log (``--log``) either way; exit 0 released, 1 refused or
+    timed out."""
     from place_safe.placement.machine import PlacementConfig
 
-    from place_safe.cli.app import UsageError
+    from place_safe.cli.common import UsageError
 
-    cfg = PlacementConfig.load(args.config) if args.config else PlacementConfig()
-    estimator, cal_note = _estimator(args.method, args.calibration, sim=bool(args.sim))
-    robot_cfg = _robot_config(args.robot) if (args.robot or args.sim) else None
-    extra: dict[str, Any] = {}
+    if not args.sim:
+        for flag, given in (("--oracle", args.oracle), ("--render", args.render)):
+            if given:
+                raise UsageError(f"place: {flag} is for the simulation (--sim SCENARIO)")
+    cfg = PlacementConfig.load(args.config) if args.config else None
     if args.sim:
-        from place_safe.sim.world import sim_world
-
-        world = sim_world(args.sim, seed=args.seed, mount_error=args.sim_mount_error)
-        robot, source = world.robot, world.tof
-        robot.tool = robot_cfg.tool.frames()  # the mount the robot file believes (nominal or calibrated)
-        where = f"simulation {world.name}"
+        out, res, lines = _place_sim(args, cfg)
     else:
-        if not args.sensor:
-            raise UsageError("place: --sensor URI is required with --robot (e.g. --sensor i2c:/dev/i2c-1)")
-        from place_safe.drivers.ur5 import URRobot
-
-        from place_safe.drivers.ur5.config import placement_config
-
-        robot = URRobot(robot_cfg, dry_run=args.dry_run)
-        cfg = placement_config(robot_cfg, cfg)  # near-surface speed and stop decelerations of the robot file
-        source = open_sensor(args.sensor)
-        where = f"UR5 at {robot_cfg.connection.host}" + (" (dry run)" if args.dry_run else "")
-    with robot:
-        loop = PlacementLoop(robot, source, estimator, tool=robot.tool, config=cfg)
-        try:
-            res = loop.run(timeout=args.timeout)
-        finally:
-            source.close()
-        if args.sim:
-            robot.step(0.8)  # let a released cup settle before measuring it
-            extra = {"cup_held": bool(robot.holding()), "liquid_spilled": int(robot.liquid_spilled()),
-                     "mount_error": [float(v) for v in (args.sim_mount_error or [0.0] * 6)]}
-    out = {"where": where, "method": args.method, "calibration": cal_note,
-           "robot_config": args.robot or ("packaged sim.toml" if args.sim else None), **res.to_dict(), **extra}
+        out, res, lines = _place_arm(args, cfg if cfg is not None else PlacementConfig())
     if not args.frame_log:
         out.pop("frame_log", None)
     with open(args.log, "w", encoding="utf-8") as fh:
         for tr in res.transitions:
             fh.write(json.dumps(tr) + "\n")
     _write_json(args.json, out)
-    print(f"{where}: {res.outcome.upper()} ({res.reason})")
-    for tr in res.transitions:
-        print(f"  t={tr['time']:7.3f} s  {tr['from']:>8} -> {tr['to']:<8} {tr['reason']}")
-    if extra:
-        print(f"  cup {'held' if extra['cup_held'] else 'released'}, liquid spilled {extra['liquid_spilled']}")
-    _log(f"wrote {args.json} and {args.log}")
+    print("\n".join(lines))
+    log(f"wrote {args.json} and {args.log}" + (f" and {args.render}" if args.render else ""))
     return 0 if res.outcome == "released" else 1
+
+
+def _place_sim(args: argparse.Namespace, cfg) -> tuple[dict, Any, list[str]]:
+    """The placement in MuJoCo: the scenario's calibration unless --calibration/--oracle, refused without one."""
+    from place_safe.sim.placement_run import run_placement
+
+    tool = _robot_config(args.robot).tool.frames() if args.robot else None  # the mount the robot file believes
+    res = run_placement(args.sim, method=args.method, calibration=args.calibration, seconds=args.timeout,
+                        render=args.render, seed=args.seed, config=cfg, oracle=args.oracle,
+                        log_frames=args.frame_log, mount_error=args.sim_mount_error, tool=tool)
+    out = {"where": f"simulation {res.scenario}", "robot_config": args.robot or "packaged sim.toml",
+           "mount_error": [float(v) for v in (args.sim_mount_error or [0.0] * 6)], **res.to_dict()}
+    return out, res, [res.summary()]
+
+
+def _place_arm(args: argparse.Namespace, cfg) -> tuple[dict, Any, list[str]]:
+    """The placement on the UR5 (or its dry run) with the sensor of --sensor."""
+    from place_safe.placement.loop import PlacementLoop
+
+    from place_safe.cli.common import UsageError
+    from place_safe.drivers.ur5 import URRobot
+    from place_safe.drivers.ur5.config import placement_config
+
+    if not args.sensor:
+        raise UsageError("place: --sensor URI is required with --robot (e.g. --sensor i2c:/dev/i2c-1)")
+    method = args.method or "diff"
+    estimator, cal_note = _estimator(method, args.calibration)
+    robot_cfg = _robot_config(args.robot)
+    robot = URRobot(robot_cfg, dry_run=args.dry_run)
+    cfg = placement_config(robot_cfg, cfg)  # near-surface speed and stop decelerations of the robot file
+    source = open_sensor(args.sensor)
+    where = f"UR5 at {robot_cfg.connection.host}" + (" (dry run)" if args.dry_run else "")
+    with robot:
+        loop = PlacementLoop(robot, source, estimator, tool=robot.tool, config=cfg)
+        try:
+            res = loop.run(timeout=args.timeout)
+        finally:
+            source.close()
+    calibrated = cal_note != BUILT_IN
+    out = {"where": where, "method": method, "calibration": cal_note, "calibrated": calibrated,
+           "robot_config": args.robot, **res.to_dict()}
+    lines = [] if calibrated else [uncalibrated_note(method, None)]
+    lines.append(f"{where}: {res.outcome.upper()} ({res.reason})" + ("" if calibrated else "  " + UNCALIBRATED_MARK))
+    lines += [f"  t={tr['time']:7.3f} s  {tr['from']:>8} -> {tr['to']:<8} {tr['reason']}" for tr in res.transitions]
+    return out, res, lines
 
 
 # ------------------------------------------------------------------------------------------------
@@ -180,7 +194,7 @@ def cmd_place(args: argparse.Namespace) -> int:
 def cmd_capture(args: argparse.Namespace) -> int:
     from place_safe.calibration.capture import SweepPlan, capture_sweep, level_plane, touch_plane
 
-    from place_safe.cli.app import UsageError
+    from place_safe.cli.common import UsageError
 
     grid = len(args.distances) * len(args.incidences) * len(args.azimuths)
     if min(grid, args.poses or grid) * args.frames_per_pose > 100_000:
@@ -220,13 +234,13 @@ def cmd_capture(args: argparse.Namespace) -> int:
                 raise UsageError("capture: --touch needs at least 3 points")
             z0 = args.touch_height if args.touch_height is not None else robot.tcp_pose()[2, 3]
             n, d, pts = touch_plane(robot, args.touch, z0, force_threshold=args.touch_force)
-            _log(f"touched the plane at {len(pts)} points: normal {n.round(4).tolist()}, offset {d * 1000:.1f} mm")
+            log(f"touched the plane at {len(pts)} points: normal {n.round(4).tolist()}, offset {d * 1000:.1f} mm")
             plane = (n, d)
         elif args.table_height is not None:
             plane = level_plane(args.table_height)
         else:
             plane = world.table_plane_base()
-            _log(f"table from the scenario: z = {plane[1] * 1000:.1f} mm in the base frame")
+            log(f"table from the scenario: z = {plane[1] * 1000:.1f} mm in the base frame")
         try:
             res = capture_sweep(robot, source, plan, args.output, plane=plane, tool=tool, progress=not args.quiet)
         finally:
@@ -248,24 +262,29 @@ def cmd_calibrate_mount(args: argparse.Namespace) -> int:
     from place_safe.drivers.ur5.config import FrameConfig
     from place_safe.io.frame_file import load_frames
 
-    from place_safe.cli.app import UsageError
+    from place_safe.cli.common import UsageError
 
     robot_cfg = _robot_config(args.robot)
     truth = _mount_truth(args.truth) if args.truth else None  # every input checked before the fit runs
     frames = load_frames(args.capture)
     if not frames:
         raise UsageError(f"calibrate-mount: {args.capture} has no frames")
-    estimator, cal_note = _estimator(args.method, args.calibration, sim=False)
+    estimator, cal_note = _estimator(args.method, args.calibration)
+    calibrated = cal_note != BUILT_IN
     planes = [estimator.estimate(f).plane for f in tqdm(frames, desc="planes", unit="frame", file=sys.stderr,
                                                         disable=None if not args.quiet else True)]
     F = flange_poses(frames, use_kinematics=args.poses == "joints")
     start = robot_cfg.tool.sensor.matrix()
     fit = fit_mount(F, planes, start, sigma_angle=math.radians(args.sigma_angle), sigma_distance=args.sigma_mm / 1000,
                     level=args.level, plane_offset=args.table_height)
+    if not calibrated:  # the first line of the output (printed once the fit succeeded: an error prints nothing)
+        print(uncalibrated_note(args.method, None))
     print(f"{args.capture}: {sum(p is not None for p in planes)}/{len(frames)} frames with a plane "
-          f"({args.method}, calibration: {cal_note}); flange poses from {args.poses}")
+          f"({args.method}, calibration: {cal_note}); flange poses from {args.poses}"
+          + ("" if calibrated else "  " + UNCALIBRATED_MARK))
     print(fit.summary())
-    result = {"capture": args.capture, "method": args.method, "calibration": cal_note, "poses": args.poses,
+    result = {"capture": args.capture, "method": args.method, "calibration": cal_note, "calibrated": calibrated,
+              "poses": args.poses,
               **fit.to_dict()}
     if truth is not None:
         et, er = fit.error_to(truth)
@@ -282,7 +301,7 @@ def cmd_calibrate_mount(args: argparse.Namespace) -> int:
                                     "sigma_rot_deg": [math.degrees(v) if v == v else -1.0 for v in fit.sigma_rot],
                                     "unobserved": list(fit.unobserved)}  # sigma -1: held (unobserved)
         Path(args.write).write_text(robot_cfg.to_toml(), encoding="utf-8")
-        _log(f"wrote the fitted mount into {args.write}")
+        log(f"wrote the fitted mount into {args.write}")
     return 0
 
 
@@ -304,11 +323,12 @@ def _robot_or_sim(p: argparse.ArgumentParser, robot_help: str) -> None:
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
-        "place", formatter_class=_FMT, help="put the held cup down (or refuse) on the UR5 or in MuJoCo",
+        "place", formatter_class=FMT, help="put the held cup down (or refuse) on the UR5 or in MuJoCo",
         description="Run one placement with the PlacementLoop: approach, descend, check the surface with the "
                     "TMF8820, release or refuse. The same loop drives the UR5 (--robot, over ur_rtde) and the "
-                    "simulated arm (--sim). Writes the transition log and a result JSON either way; exit status 0 "
-                    "released, 1 refused or timed out, 2 bad input.",
+                    "simulated arm (--sim SCENARIO: the scenario's table, sensor and calibration; the result also "
+                    "says what happened to the cup and the liquid). Writes the transition log and a result JSON "
+                    "either way; exit status 0 released, 1 refused or timed out, 2 bad input.",
         epilog="examples:\n"
                "  place-safe place --sim place_level --calibration cal.json\n"
                "  place-safe place --sim place_level --robot-file robots/ur5/sim.toml --method peak\n"
@@ -317,19 +337,26 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     _robot_or_sim(p, "robot file of the real UR5 (e.g. robots/ur5/real.toml)")
     p.add_argument("--robot-file", dest="robot_file", metavar="ROBOT.toml",
                    help="with --sim: the robot file whose tool frames the loop uses (default the packaged sim.toml)")
-    p.add_argument("--calibration", metavar="CAL.json", help="sensor calibration (default: built-in; in simulation "
-                                                             "diff falls back to the labelled ORACLE)")
-    p.add_argument("--method", default="diff", choices=("diff", "peak", "proprietary"), help="plane recovery")
-    p.add_argument("--config", metavar="PLACEMENT.json", help="placement thresholds (SI units)")
+    p.add_argument("--calibration", metavar="CAL.json",
+                   help="sensor calibration; with --sim also 'sim' or 'none' (default: the scenario's, normally the "
+                        "packaged simulated user calibration). Without one the placement refuses in simulation "
+                        "and, on the arm, runs on built-in constants (the output says UNCALIBRATED)")
+    p.add_argument("--oracle", action="store_true", help="with --sim, DEBUGGING: give the estimator the simulator's "
+                                                         "true parameters (named ORACLE in the result)")
+    p.add_argument("--method", default=None, choices=("diff", "peak", "proprietary"),
+                   help="plane recovery (default diff; with --sim the scenario's)")
+    p.add_argument("--config", metavar="PLACEMENT.json", help="placement thresholds (SI units; default with --sim: "
+                                                               "the scenario's)")
     p.add_argument("--timeout", type=float_range(0.0, 3600.0, lo_open=True), default=30.0,
-                   help="s of robot time (default 30, at most 3600)")
+                   help="s of robot (or simulated) time (default 30, at most 3600)")
+    p.add_argument("--render", metavar="PNG", help="with --sim: write a PNG of the final scene")
     p.add_argument("--json", default="place-result.json", help="result file (default place-result.json)")
     p.add_argument("--log", default="place-transitions.jsonl", help="transition log (default place-transitions.jsonl)")
     p.add_argument("--frame-log", action="store_true", help="include the per-frame log in the result file")
     p.set_defaults(func=lambda a: cmd_place(_resolve(a)))
 
     c = subparsers.add_parser(
-        "capture", formatter_class=_FMT, help="robot-driven sweep of sensor poses above a plane (for calibration)",
+        "capture", formatter_class=FMT, help="robot-driven sweep of sensor poses above a plane (for calibration)",
         description="Drive the arm through distances x incidence x azimuth above a plane and write every frame with "
                     "its ground-truth plane, flange pose and joint angles (JSON Lines, the shared frame format). "
                     "The plane: --touch (the TCP touches it at 3+ points, slow guarded descent: speedL + force "
@@ -366,7 +393,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     c.set_defaults(func=lambda a: cmd_capture(_resolve(a)))
 
     m = subparsers.add_parser(
-        "calibrate-mount", formatter_class=_FMT, help="fit the sensor mount (flange_T_sensor) from a capture",
+        "calibrate-mount", formatter_class=FMT, help="fit the sensor mount (flange_T_sensor) from a capture",
         description="Estimate every frame's plane, then fit flange_T_sensor (6 DoF) and the plane in the base frame "
                     "to all frames at once by nonlinear least squares on forward kinematics. Prints the fit, its "
                     "residuals and 1-sigma uncertainty, flags directions the sweep does not observe, and with "

@@ -1,12 +1,12 @@
-"""``place-safe robot``: measure the arm's force noise at rest (``bench``) and the contact detector against it
-(``contact-bench``).
+"""``place-safe bench robot``: measure the arm's force noise at rest; ``bench contact``: the contact detector
+against it.
 
-* ``robot bench --robot ROBOT.toml [--write]``: connect (receive, control; nothing moves), sample the TCP
+* ``bench robot --robot ROBOT.toml [--write]``: connect (receive, control; nothing moves), sample the TCP
   force at rest for ``--seconds``, print its offset and spread per axis, the detector setting that follows
   (:mod:`place_safe.robot.contact_detector`) and that setting's false-alarm rate and detection delays on
   noise of the measured spread; ``--write`` stores ``[contact] noise_std`` (and what was measured) in the
   robot file. ``--fake`` runs the same on the fake ur_rtde controller (CB3 noise by default).
-* ``robot contact-bench``: placements from 40 cm through URRobot on the fake CB3 (false contacts, outcomes,
+* ``bench contact``: placements from 40 cm through URRobot on the fake CB3 (false contacts, outcomes,
   watchdog stops, script errors) and guarded touches of the table (delay, force at detection).
 
 Parsing and printing only; the work is in :mod:`place_safe.evaluation.contact`.
@@ -19,19 +19,15 @@ import json
 import sys
 from pathlib import Path
 
+from place_safe.cli.common import FMT, log
+from place_safe.cli import options
 from place_safe.cli.options import nonnegative_int, positive_float, positive_int
-
-_FMT = argparse.RawDescriptionHelpFormatter
-
-
-def _log(msg: str) -> None:
-    print(msg, file=sys.stderr, flush=True)
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from place_safe.cli.app import UsageError
+    from place_safe.cli.common import UsageError
     from place_safe.drivers.ur5 import URConfig, URRobot
     from place_safe.evaluation.contact import format_settings_report, make_stand_in, rest_noise, settings_report
 
@@ -41,7 +37,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
         path = Path(args.robot) if args.robot else None
     else:
         if not args.robot:
-            raise UsageError("robot bench: --robot ROBOT.toml is required (or --fake for the stand-in)")
+            raise UsageError("bench robot: --robot ROBOT.toml is required (or --fake for the stand-in)")
         path = Path(args.robot)
         cfg = URConfig.load(path)
         robot = URRobot(cfg)
@@ -60,14 +56,14 @@ def cmd_bench(args: argparse.Namespace) -> int:
     if args.write:
         target = Path(args.write)
         if path is None and not target.exists():
-            raise UsageError("robot bench --write: give --robot ROBOT.toml to start the written file from")
+            raise UsageError("bench robot --write: give --robot ROBOT.toml to start the written file from")
         base = URConfig.load(path) if path is not None else cfg
         base.contact.noise_std = round(sigma, 2)
         base.contact.measured = {"seconds": float(args.seconds), "offset_n": [round(float(v), 3) for v in offset],
                                  "std_n": [round(float(v), 3) for v in spread], "controller": controller,
                                  "threshold_n": round(rep["threshold"], 2)}
         target.write_text(base.to_toml(), encoding="utf-8")
-        _log(f"wrote [contact] noise_std = {sigma:.2f} N to {target}")
+        log(f"wrote [contact] noise_std = {sigma:.2f} N to {target}")
     if args.json:
         Path(args.json).write_text(json.dumps({"offset": offset.tolist(), "spread": spread.tolist(), **rep},
                                               indent=1) + "\n", encoding="utf-8")
@@ -98,7 +94,7 @@ def cmd_contact_bench(args: argparse.Namespace) -> int:
         out["touches"] = rows
     if args.descents:
         progress = None if args.quiet or args.jobs > 1 else (
-            lambda i, r: _log(f"  {i}/{args.descents}: false contacts {r.false_contacts}, {r.outcomes}"))
+            lambda i, r: log(f"  {i}/{args.descents}: false contacts {r.false_contacts}, {r.outcomes}"))
         d = descents(args.descents, height=args.height, controller=args.controller, seed=args.seed,
                      force_noise=noise, jobs=args.jobs, progress=progress)
         print(d.summary())
@@ -110,20 +106,17 @@ def cmd_contact_bench(args: argparse.Namespace) -> int:
     return 0
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("robot", formatter_class=_FMT,
-                              help="the arm's force noise at rest and the contact detector against it",
-                              description=__doc__.split("\n\n")[1] if __doc__ else None)
-    sub = p.add_subparsers(dest="robot_command", metavar="SUBCOMMAND", required=True)
-    b = sub.add_parser("bench", formatter_class=_FMT,
+def add_robot_benches(sub: argparse._SubParsersAction) -> None:
+    """``place-safe bench robot`` and ``bench contact`` on the ``bench`` sub-parsers."""
+    b = sub.add_parser("robot", formatter_class=FMT,
                        help="measure the TCP force noise at rest on a connected arm and derive the detector setting",
                        description="Connect to the arm (nothing moves), sample the TCP force at rest, print its "
                                    "spread, the contact detector's threshold and its false-alarm rate and detection "
                                    "delay for that noise; --write stores [contact] noise_std in a robot file.",
                        epilog="examples:\n"
-                              "  place-safe robot bench --robot robots/ur5/real.toml\n"
-                              "  place-safe robot bench --robot robots/ur5/real.toml --write my_ur5.toml\n"
-                              "  place-safe robot bench --fake                # the fake ur_rtde CB3 stand-in")
+                              "  place-safe bench robot --robot robots/ur5/real.toml\n"
+                              "  place-safe bench robot --robot robots/ur5/real.toml --write my_ur5.toml\n"
+                              "  place-safe bench robot --fake                # the fake ur_rtde CB3 stand-in")
     b.add_argument("--robot", metavar="ROBOT.toml", help="robot file of the arm")
     b.add_argument("--fake", action="store_true", help="measure the fake ur_rtde controller instead of an arm")
     b.add_argument("--controller", choices=("cb3", "e-series"), default="cb3", help="with --fake (default cb3)")
@@ -132,18 +125,20 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     b.add_argument("--write", metavar="ROBOT.toml", help="write the robot file with the measured noise here")
     b.add_argument("--json", metavar="OUT.json", help="write the measurement and the report as JSON")
     b.set_defaults(func=cmd_bench)
-    c = sub.add_parser("contact-bench", formatter_class=_FMT,
+    c = sub.add_parser("contact", formatter_class=FMT,
                        help="false contacts over simulated 40 cm descents and touch detection on the fake CB3",
                        description="The contact detector against the fake controller's force noise: placements "
                                    "from --height through URRobot on the fake ur_rtde (false contacts, outcomes, "
                                    "watchdog stops, script errors), guarded touches of the table (delay and true "
                                    "force at detection) and the detector on synthetic noise.",
                        epilog="examples:\n"
-                              "  place-safe robot contact-bench --descents 200 --jobs 2\n"
-                              "  place-safe robot contact-bench --descents 0 --touch-trials 50\n"
-                              "  place-safe robot contact-bench --controller e-series --descents 20")
+                              "  place-safe bench contact --descents 200 --jobs 2\n"
+                              "  place-safe bench contact --descents 0 --touch-trials 50\n"
+                              "  place-safe bench contact --controller e-series --descents 20")
     c.add_argument("--controller", choices=("cb3", "e-series"), default="cb3", help="fake controller (default cb3)")
-    c.add_argument("--noise", type=positive_float, help="N per axis per cycle (default the controller's: 3.6 / 1.0)")
+    noise = options.field_option("place_safe.robot.contact_detector:DetectorSettings", "noise_std",
+                                 "force noise at rest, default the controller's (3.6 / 1.0)")
+    c.add_argument("--noise", type=noise, help=noise.help)
     c.add_argument("--descents", type=nonnegative_int, default=200, help="placements from --height (default 200)")
     c.add_argument("--height", type=positive_float, default=0.4, help="m of cup above the table (default 0.4)")
     c.add_argument("--touch-trials", type=nonnegative_int, default=20, help="touches per speed (default 20)")
@@ -156,4 +151,4 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     c.set_defaults(func=cmd_contact_bench)
 
 
-__all__ = ["register", "cmd_bench", "cmd_contact_bench"]
+__all__ = ["add_robot_benches", "cmd_bench", "cmd_contact_bench"]

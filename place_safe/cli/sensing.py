@@ -1,4 +1,4 @@
-"""The commands on recorded frames: ``calibrate``, ``recover``, ``evaluate``, ``stream`` and ``bench``
+"""The commands on recorded frames: ``calibrate``, ``recover``, ``evaluate``, ``stream`` and ``bench recovery``
 (docs/interfaces.md keeps their faces stable)."""
 
 from __future__ import annotations
@@ -18,16 +18,29 @@ except ImportError:  # pragma: no cover - a dependency; the standard encoder sti
 
 from place_safe.cli import options
 from place_safe.exceptions import CalibrationError, FrameError, FrameFileError, PlaceSafeError
-from place_safe.cli.common import (CALIBRATE_METHODS, METHODS, PROG, UsageError, _estimator, _FMT,
-                                   _jsonable, _load_calibration, _load_truth_frames, _log, _progress, _summarise,
-                                   not_a_file)
+from place_safe.cli.common import (CALIBRATE_METHODS, METHODS, PROG, UNCALIBRATED_MARK, UsageError, estimator_for, FMT,
+                                   jsonable, load_calibration, load_truth_frames, log, progress_options, summarise,
+                                   not_a_file, uncalibrated_note)
 
 # ------------------------------------------------------------------------------------------------
 # calibrate
 # ------------------------------------------------------------------------------------------------
 def cmd_calibrate(args: argparse.Namespace) -> int:
+    """Fit a method family to frame files (``calibrate FILE... --method M -o CAL``), or with ``--sim SENSOR`` run
+    the whole user chain in MuJoCo (touch the table, capture a sweep, fit diff then proprietary)."""
     from place_safe.calibration import Calibration
 
+    if args.sim:
+        return _calibrate_sim(args)
+    extra = [name for name, given in (("--frames", args.frames is not None), ("--seed", args.seed is not None),
+                                      ("--save-frames", args.save_frames)) if given]
+    if extra:
+        raise UsageError(f"calibrate: {', '.join(extra)} go{'es' if len(extra) == 1 else ''} with --sim SENSOR")
+    missing = [name for name, value in (("FILE", args.files), ("--method", args.method), ("-o/--output", args.output))
+               if not value]
+    if missing:
+        raise UsageError(f"calibrate: the following arguments are required: {', '.join(missing)} "
+                         f"(see '{PROG} calibrate --help')")
     out = Path(args.output)
     cal, note = Calibration(), None
     if out.exists():  # checked before any work so a bad output path fails fast, with one line
@@ -42,22 +55,22 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
             if not args.force:
                 raise CalibrationError(f"{exc}; refusing to overwrite it (use --force to replace the file)") from None
             note = f"replacing {out}: {exc}"
-    frames, skipped = _load_truth_frames(args.files)
+    frames, skipped = load_truth_frames(args.files)
     if not args.quiet:
-        _log(f"calibrate {args.method}: {len(frames)} frames with ground truth" + (f" ({skipped})" if skipped else ""))
+        log(f"calibrate {args.method}: {len(frames)} frames with ground truth" + (f" ({skipped})" if skipped else ""))
         if note:
-            _log(note)
+            log(note)
     progress = not args.quiet
     fitted: list[str] = []
     if args.method in ("peak", "diff") and (args.method == "peak" or "peak" not in cal.sections):
         from place_safe.calibration.points import fit_peak
 
         if args.method == "diff" and not args.quiet:
-            _log("the diff method starts from the calibrated peak method: fitting the 'peak' section first")
+            log("the diff method starts from the calibrated peak method: fitting the 'peak' section first")
         params, report = fit_peak(frames, progress=progress)
         cal.errors.pop("peak", None)
         cal.sections["peak"] = params.to_dict()
-        cal.reports["peak"] = _jsonable(report)
+        cal.reports["peak"] = jsonable(report)
         fitted.append("peak")
     if args.method == "proprietary":
         from place_safe.calibration.points import fit_proprietary
@@ -65,7 +78,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         params, report = fit_proprietary(frames, progress=progress)
         cal.errors.pop("proprietary", None)
         cal.sections["proprietary"] = params.to_dict()
-        cal.reports["proprietary"] = _jsonable(report)
+        cal.reports["proprietary"] = jsonable(report)
         fitted.append("proprietary")
     if args.method == "diff":
         from place_safe.calibration.forward_fit import fit_forward
@@ -78,36 +91,63 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
             from place_safe.calibration.points import adopt_pileup
 
             peak, peak_report, adopted = adopt_pileup(frames, cal.peak(), cal.reports["peak"], params.pileup)
-            cal.reports["peak"] = _jsonable(peak_report)
+            cal.reports["peak"] = jsonable(peak_report)
             if adopted:
                 cal.sections["peak"] = peak.to_dict()
                 if not args.quiet:
-                    _log(f"peak: undoing the forward fit's SPAD pile-up ({params.pileup:.3g} per count)")
+                    log(f"peak: undoing the forward fit's SPAD pile-up ({params.pileup:.3g} per count)")
 
         params.model_error, report["model_error"] = select_model_error(frames, params, cal.peak(), progress=progress)
         cal.errors.pop("forward", None)
         cal.sections["forward"] = params.to_dict()
-        cal.reports["forward"] = _jsonable(report)
+        cal.reports["forward"] = jsonable(report)
         fitted.append("forward")
 
         section, report = fit_range_correction(frames, params, cal.peak(), progress=progress)
         cal.errors.pop("diff", None)
         cal.sections["diff"] = {**section, "window_after_peak": SolverOptions().window_after_peak}
-        cal.reports["diff"] = _jsonable(report)
+        cal.reports["diff"] = jsonable(report)
         fitted.append("diff")
     if args.method in ("peak", "diff"):
         from place_safe.calibration.uncertainty import update_calibration
 
-        cal.reports["uncertainty"] = _jsonable(update_calibration(cal, frames, args.method))
+        cal.reports["uncertainty"] = jsonable(update_calibration(cal, frames, args.method))
         fitted.append("uncertainty")
     out.parent.mkdir(parents=True, exist_ok=True)
     cal.save(out)
     for name in fitted:
-        _log(f"fit quality, section '{name}':")
-        for line in _summarise(cal.reports.get(name, {})):
-            _log(line)
-    _log(f"wrote {out} (sections: {', '.join(cal.sections)})")
+        log(f"fit quality, section '{name}':")
+        for line in summarise(cal.reports.get(name, {})):
+            log(line)
+    log(f"wrote {out} (sections: {', '.join(cal.sections)})")
     return 0
+
+
+def _calibrate_sim(args: argparse.Namespace) -> int:
+    """``calibrate --sim {nominal,mismatch,all}``: regenerate the simulated user calibration (default: the packaged
+    file placements use) by the chain a user runs on the arm, in MuJoCo."""
+    import importlib.util
+
+    if args.files or args.method:
+        raise UsageError("calibrate: --sim captures its own frames and fits diff, then proprietary: give no FILE "
+                         "or --method with it")
+    sensors = ("nominal", "mismatch") if args.sim == "all" else (args.sim,)
+    if len(sensors) > 1 and (args.output or args.save_frames):
+        raise UsageError("calibrate: -o and --save-frames need one simulated sensor (--sim nominal or mismatch)")
+    if importlib.util.find_spec("mujoco") is None:
+        raise UsageError("calibrate --sim: the simulation needs MuJoCo, which is not installed: install the [sim] "
+                         "extra, e.g. pip install -e \".[sim]\"")
+    from place_safe.sim.calibration_capture import calibrate_sim
+
+    frames = SIM_SWEEP_FRAMES if args.frames is None else args.frames
+    for sensor in sensors:
+        out = calibrate_sim(sensor, args.output, n=frames, seed=args.seed or 0, frames_out=args.save_frames)
+        log(f"wrote {out} ({sensor} simulated sensor, {frames} sweep frames)")
+    return 0
+
+
+#: Poses (one frame each) of the simulated sweep of ``calibrate --sim`` unless --frames says otherwise.
+SIM_SWEEP_FRAMES = 48
 
 
 # ------------------------------------------------------------------------------------------------
@@ -167,29 +207,34 @@ def cmd_recover(args: argparse.Namespace) -> int:
 
     if (why := not_a_file(args.file)) is not None:
         raise FrameFileError(f"frame file {args.file} {why}")
-    cal = _load_calibration(args.calibration)
-    est = _estimator(args.method, cal, args.mode)
+    cal = load_calibration(args.calibration)
+    est = estimator_for(args.method, cal, args.mode)
+    note = uncalibrated_note(args.method, cal, args.calibration)
+    mark = "" if note is None else "  " + UNCALIBRATED_MARK
     batch = args.batch or (16 if args.method == "diff" and args.mode != "paper" else 1)
     out = sys.stdout
     if not args.jsonl:
+        if note is not None:
+            out.write(note + "\n")
         out.write(f"{'frame':>5}  {'theta deg':>9} {'phi deg':>9} {'d mm':>9}  {'albedo':>7} {'ms':>8}  reason\n")
     n = bad = 0
-    bar = tqdm(desc=f"recover {args.method}", unit="frame", **_progress(not args.quiet))
+    bar = tqdm(desc=f"recover {args.method}", unit="frame", **progress_options(not args.quiet))
     for i, e in _recover_stream(args.file, est, max(1, batch)):
         if args.jsonl:
             line = e.to_json(i)
             if e.plane is None and not line.get("reason"):
                 line["reason"] = "no plane"
+            line["calibrated"] = note is None
             _write_line(out, line)
         else:
-            out.write(_fmt_row(i, e) + "\n")
+            out.write(_fmt_row(i, e) + mark + "\n")
         n += 1
         bad += 0 if e.ok else 1
         bar.update(1)
     bar.close()
     out.flush()
     if not args.quiet:
-        _log(f"recovered {n - bad} of {n} frames with {args.method}" + (f" ({bad} without a plane)" if bad else ""))
+        log(f"recovered {n - bad} of {n} frames with {args.method}" + (f" ({bad} without a plane)" if bad else ""))
     return 0
 
 
@@ -199,21 +244,23 @@ def cmd_recover(args: argparse.Namespace) -> int:
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from place_safe.evaluation.evaluate import evaluate
 
-    cal = _load_calibration(args.calibration)
+    cal = load_calibration(args.calibration)
     if args.min_distance is not None and args.max_distance is not None and args.min_distance > args.max_distance:
         raise UsageError(f"evaluate: --min-distance {args.min_distance:g} m exceeds --max-distance "
                          f"{args.max_distance:g} m")
-    frames, skipped = _load_truth_frames([args.file], args.min_distance, args.max_distance)
+    frames, skipped = load_truth_frames([args.file], args.min_distance, args.max_distance)
     if not args.quiet:
-        _log(f"evaluate on {len(frames)} frames" + (f" ({skipped})" if skipped else ""))
+        log(f"evaluate on {len(frames)} frames" + (f" ({skipped})" if skipped else ""))
+    if (note := uncalibrated_note(args.methods, cal, args.calibration)) is not None:
+        print(note, flush=True)  # the first line; the table marks each uncalibrated method's row
     options = {"diff": {"mode": args.diff_mode}} if args.diff_mode else None
     report = evaluate(frames, cal, list(args.methods), None if args.no_plots else args.out, not args.quiet,
                       estimator_options=options)
     print(report.table(), flush=True)
     if args.json:
         data = report.to_dict() if hasattr(report, "to_dict") else report
-        Path(args.json).write_text(json.dumps(_jsonable(data), indent=2) + "\n")
-        _log(f"wrote {args.json}")
+        Path(args.json).write_text(json.dumps(jsonable(data), indent=2) + "\n")
+        log(f"wrote {args.json}")
     return 0
 
 
@@ -234,22 +281,30 @@ def cmd_stream(args: argparse.Namespace) -> int:
     from place_safe.io.replay import FileReplaySource
     from place_safe.io.live import run_live
 
-    cal = _load_calibration(args.calibration)
-    est = _estimator(args.method, cal, args.mode)
+    cal = load_calibration(args.calibration)
+    est = estimator_for(args.method, cal, args.mode)
+    note = uncalibrated_note(args.method, cal, args.calibration)
 
     def on_estimate(index, frame, e, latency) -> None:
         if args.jsonl:
             line = e.to_json(index)
             line["latency_ms"] = round(latency * 1e3, 3)
+            line["calibrated"] = note is None
             _write_line(sys.stdout, line)
 
     _warm_up(est, args.file)
     with FileReplaySource(args.file, rate_hz=args.rate, loop=args.loop) as src:
         stats = run_live(src, est, on_estimate, max_frames=args.max_frames, queue_size=args.queue)
     summary = stats.summary()
-    (_log if args.jsonl else print)(summary)
+    if note is not None:  # the summary's first line carries the mark
+        first, _, rest = summary.partition("\n")
+        summary = f"{first}  {UNCALIBRATED_MARK}" + (f"\n{rest}" if rest else "")
+    if args.jsonl:  # every record says whether it was calibrated
+        log(summary)
+    else:  # the summary is the output: the note on a missing calibration is its first line
+        print(summary if note is None else f"{note}\n{summary}")
     if args.json:
-        Path(args.json).write_text(json.dumps(stats.to_dict(), indent=2) + "\n")
+        Path(args.json).write_text(json.dumps({**stats.to_dict(), "calibrated": note is None}, indent=2) + "\n")
     return 0
 
 
@@ -259,9 +314,9 @@ def cmd_stream(args: argparse.Namespace) -> int:
 def cmd_bench(args: argparse.Namespace) -> int:
     from place_safe.evaluation.bench import DEFAULT_RUNS, measure_file_rss, report_json, run_bench
 
-    cal = _load_calibration(args.calibration)
+    cal = load_calibration(args.calibration)
     if args.file:
-        frames, _ = _load_truth_frames([args.file])
+        frames, _ = load_truth_frames([args.file])
         frames = frames[: args.frames] if args.frames else frames
         source = args.file
     else:
@@ -271,12 +326,14 @@ def cmd_bench(args: argparse.Namespace) -> int:
         frames = make_frames(n, seed=args.seed)
         source = f"synthetic (make_frames, seed {args.seed})"
     runs = [r for r in DEFAULT_RUNS if r[0] in args.methods]
+    if (note := uncalibrated_note([r[1] for r in runs], cal, args.calibration)) is not None:
+        print(note, flush=True)  # the first line; the table marks each uncalibrated run's row
     report = run_bench(frames, cal, paper_frames=args.paper_frames, runs=runs, source=source,
                        progress=not args.quiet)
     status = 0
     if args.memory_file:
         if not args.quiet:
-            _log(f"measuring peak RSS of recover over a {args.memory_file}-frame file ...")
+            log(f"measuring peak RSS of recover over a {args.memory_file}-frame file ...")
         try:
             report.file_rss = measure_file_rss(args.memory_file, method=args.memory_method,
                                                calibration=args.calibration)
@@ -286,19 +343,21 @@ def cmd_bench(args: argparse.Namespace) -> int:
     print(report.table(), flush=True)
     if args.json:
         report_json(report, args.json)
-        _log(f"wrote {args.json}")
+        log(f"wrote {args.json}")
     if status:
-        _log(f"{PROG}: memory measurement failed: {report.file_rss['error']}")
+        log(f"{PROG}: memory measurement failed: {report.file_rss['error']}")
     return status
 
 
 def register(sub) -> None:
-    """Add calibrate, recover, evaluate, stream and bench to the ``place-safe`` sub-parsers."""
+    """Add calibrate, recover, evaluate and stream to the ``place-safe`` sub-parsers."""
     # calibrate
-    c = sub.add_parser("calibrate", formatter_class=_FMT, help="fit a method's parameters to frames with ground truth",
+    c = sub.add_parser("calibrate", formatter_class=FMT, help="fit a method's parameters to frames with ground truth",
                        description="Fit one method family to frames with ground-truth planes and write its section "
                                    "of a calibration file. If the output already is a calibration file, its other "
-                                   "sections are kept, so one file can carry all methods.",
+                                   "sections are kept, so one file can carry all methods. With --sim SENSOR instead "
+                                   "of FILE, the user's whole chain runs in MuJoCo (touch the table, capture a sweep, "
+                                   "fit diff then proprietary) and rewrites the simulated calibration.",
                        epilog="methods and the sections they write:\n"
                               "  peak         -> 'peak' (histogram-peak distance, zone-angle scales, pile-up and, from\n"
                               "                  frames closer than 9 cm, a per-zone near-range table kept only if\n"
@@ -313,17 +372,31 @@ def register(sub) -> None:
                               "                  'peak' again in an existing file, run --method peak)\n\n"
                               "example:\n"
                               "  place-safe calibrate sweep.json --method peak -o calib.json\n"
-                              "  place-safe calibrate sweep.json --method diff -o calib.json   # adds 'forward'")
-    c.add_argument("files", nargs="+", metavar="FILE", help="frame files with ground truth ('plane' or 'pose' + "
+                              "  place-safe calibrate sweep.json --method diff -o calib.json   # adds 'forward'\n"
+                              "  place-safe calibrate --sim mismatch      # the packaged simulated calibration, anew")
+    c.add_argument("files", nargs="*", metavar="FILE", help="frame files with ground truth ('plane' or 'pose' + "
                                                              "'dist_to_plane')")
-    c.add_argument("--method", required=True, choices=CALIBRATE_METHODS, help="method family to fit")
-    c.add_argument("-o", "--output", required=True, metavar="CALIB.json", help="calibration file to write or update")
+    c.add_argument("--method", choices=CALIBRATE_METHODS, help="method family to fit (required with FILE)")
+    c.add_argument("-o", "--output", metavar="CALIB.json",
+                   help="calibration file to write or update (required with FILE; with --sim: default the packaged "
+                        "simulated calibration)")
     c.add_argument("--force", action="store_true", help="replace an output file that is not a valid calibration")
     c.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    g = c.add_argument_group("simulation (the [sim] extra)")
+    g.add_argument("--sim", choices=("nominal", "mismatch", "all"),
+                   help="instead of FILE: regenerate the simulated user calibration of this simulated sensor the "
+                        "way a user calibrates the arm: the simulated UR5 touches the level table at three points, "
+                        "captures a sweep above it with the simulated sensor and fits it (diff, then proprietary); "
+                        "without -o it rewrites the packaged sim/sensors/calibration_<sensor>.json placements use")
+    g.add_argument("--frames", type=options.int_range(8, 1000), default=None,
+                   help=f"with --sim: poses (one frame each) in the sweep (default {SIM_SWEEP_FRAMES}, 8..1000)")
+    g.add_argument("--seed", type=options.int_range(0, 2 ** 32 - 1), default=None,
+                   help="with --sim: sweep and noise seed (default 0)")
+    g.add_argument("--save-frames", help="with --sim: also keep the capture file (JSON Lines) here (one sensor only)")
     c.set_defaults(func=cmd_calibrate)
 
     # recover
-    r = sub.add_parser("recover", formatter_class=_FMT, help="recover the plane of every frame of a file",
+    r = sub.add_parser("recover", formatter_class=FMT, help="recover the plane of every frame of a file",
                        description="Recover one plane per frame, streaming the file (it is never loaded whole). "
                                    "With --jsonl, standard output carries exactly one JSON object per input frame, "
                                    "in input order, and nothing else:\n"
@@ -344,7 +417,7 @@ def register(sub) -> None:
     r.set_defaults(func=cmd_recover)
 
     # evaluate
-    e = sub.add_parser("evaluate", formatter_class=_FMT, help="score methods against ground truth",
+    e = sub.add_parser("evaluate", formatter_class=FMT, help="score methods against ground truth",
                        description="Recover every frame with ground truth with each method and print angular (deg), "
                                    "linear (mm) and point (mm) errors as a table; plots go to --out.",
                        epilog="example:\n  place-safe evaluate sweep.json --calibration calib.json "
@@ -365,7 +438,7 @@ def register(sub) -> None:
     e.set_defaults(func=cmd_evaluate)
 
     # stream
-    s = sub.add_parser("stream", formatter_class=_FMT, help="replay a file as a live sensor and recover frames as they arrive",
+    s = sub.add_parser("stream", formatter_class=FMT, help="replay a file as a live sensor and recover frames as they arrive",
                        description="Replay a frame file at --rate frames per second on the wall clock and recover "
                                    "planes live (a reader thread and the estimator, with a bounded buffer; frames that "
                                    "arrive while the estimator is busy replace older waiting ones and count as "
@@ -388,15 +461,18 @@ def register(sub) -> None:
     s.add_argument("--json", metavar="FILE", help="write the summary as JSON")
     s.set_defaults(func=cmd_stream)
 
-    # bench
-    b = sub.add_parser("bench", formatter_class=_FMT, help="speed and accuracy of diff (paper, fast) and peak",
+
+
+def add_recovery_bench(sub) -> None:
+    """``place-safe bench recovery``: speed and accuracy of the recovery methods on the same frames."""
+    b = sub.add_parser("recovery", formatter_class=FMT, help="speed and accuracy of diff (paper, fast) and peak",
                        description="Run diff in paper mode, diff in fast mode and peak on the same frames in one "
                                    "process; print per-frame latency (median, p95; ms), throughput (frames/s), mean "
                                    "angular (deg), linear (mm) and point (mm) errors, the paper/fast speed ratio and "
                                    "peak RSS. Warm-up is excluded.",
-                       epilog="examples:\n  place-safe bench --frames 20 --paper-frames 3\n"
-                              "  place-safe bench tests/data/tmf8820_ur5_sweep.json --calibration calib.json\n"
-                              "  place-safe bench --frames 5 --paper-frames 0 --memory-file 1000")
+                       epilog="examples:\n  place-safe bench recovery --frames 20 --paper-frames 3\n"
+                              "  place-safe bench recovery tests/data/tmf8820_ur5_sweep.json --calibration calib.json\n"
+                              "  place-safe bench recovery --frames 5 --paper-frames 0 --memory-file 1000")
     b.add_argument("file", nargs="?", metavar="FILE", help="frame file with ground truth (default: synthetic frames)")
     b.add_argument("--calibration", metavar="CALIB.json", help="calibration file (default: built-in parameters)")
     b.add_argument("--frames", type=options.int_range(1, 100000), default=None, metavar="N",

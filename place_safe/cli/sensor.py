@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from place_safe.cli.common import FMT, log
 from place_safe.cli.options import float_range, fraction, int_range
 from place_safe.recovery import METHODS
 
@@ -25,7 +26,6 @@ BUS_HZ = float_range(1e4, 3.4e6)
 #: s: how long a read may wait for a frame.
 TIMEOUT = float_range(0.0, 60.0, lo_open=True)
 
-_FMT = argparse.RawDescriptionHelpFormatter
 _URI_HELP = ("source URI: i2c:BUS[@ADDR], serial:PORT[@BAUD] or serial:LOG, file:FRAMES.json, "
              "emu:file:FRAMES.json, emu:synthetic[:N], emu:SCENARIO")
 
@@ -33,10 +33,6 @@ _URI_HELP = ("source URI: i2c:BUS[@ADDR], serial:PORT[@BAUD] or serial:LOG, file
 def _paragraphs(*paras: str) -> str:
     """Help text for the raw-description formatter: each paragraph wrapped at 100 columns."""
     return "\n\n".join(textwrap.fill(p, 100) for p in paras)
-
-
-def _log(msg: str) -> None:
-    print(msg, file=sys.stderr, flush=True)
 
 
 def _add_source_options(p: argparse.ArgumentParser) -> None:
@@ -54,7 +50,7 @@ def _add_source_options(p: argparse.ArgumentParser) -> None:
 
 
 def _open(args: argparse.Namespace, **extra: Any):
-    from place_safe.cli.app import UsageError
+    from place_safe.cli.common import UsageError
     from place_safe.sources import open_source
 
     scheme = args.uri.split(":", 1)[0]
@@ -135,20 +131,22 @@ def cmd_record(args: argparse.Namespace) -> int:
         n = write_frames(out, frames(), jsonl=out.suffix == ".jsonl")
         stats = dict(getattr(src, "stats", {}))
     bar.close()
-    _log(f"wrote {n} frames to {out} (stopped: {ended})")
+    log(f"wrote {n} frames to {out} (stopped: {ended})")
     faults = {k: v for k, v in stats.items() if isinstance(v, (int, float)) and v and k not in ("frames",)}
     if faults and not args.quiet:
-        _log("source statistics: " + ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}"
+        log("source statistics: " + ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}"
                                                for k, v in faults.items()))
     return 0
 
 
 def cmd_stream(args: argparse.Namespace) -> int:
-    from place_safe.cli.app import _estimator, _load_calibration
+    from place_safe.cli.common import UNCALIBRATED_MARK, estimator_for, load_calibration, uncalibrated_note
     from place_safe.io.live import run_live
 
-    cal = _load_calibration(args.calibration)
-    est = _estimator(args.method, cal)
+    cal = load_calibration(args.calibration)
+    est = estimator_for(args.method, cal)
+    note = uncalibrated_note(args.method, cal, args.calibration)
+    mark = "" if note is None else "  " + UNCALIBRATED_MARK
     view = None
     if args.save or args.view:
         from place_safe.cli.live_view import RerunView
@@ -161,6 +159,14 @@ def cmd_stream(args: argparse.Namespace) -> int:
         view = RerunView(save=args.save, params=params)
     src = _open(args)
     wall = src.clock_domain == "monotonic"
+    pending_note = [note] if note is not None and not args.jsonl else []  # with --jsonl every record says it
+
+    def say(text: str) -> None:
+        """Print a line of output; the note on the missing calibration goes first (only once there is output,
+        so an error before the first frame still leaves standard output empty)."""
+        while pending_note:
+            print(pending_note.pop(), flush=True)
+        print(text, flush=True)
 
     def on_estimate(index, frame, e, latency) -> None:
         age = time.monotonic() - frame.timestamp if wall and frame.timestamp is not None else None
@@ -171,14 +177,15 @@ def cmd_stream(args: argparse.Namespace) -> int:
             line["latency_ms"] = round(latency * 1e3, 3)
             if age is not None:
                 line["age_ms"] = round(age * 1e3, 3)
+            line["calibrated"] = note is None
             print(json.dumps(line), flush=True)
         elif e.plane is not None:
             p = e.plane
-            print(f"{index:>5}  tilt {math.degrees(p.theta):6.2f} deg  azimuth {math.degrees(p.phi):7.1f} deg  "
-                  f"distance {p.offset * 1e3:7.1f} mm  latency {latency * 1e3:6.1f} ms"
-                  + (f"  age {age * 1e3:6.1f} ms" if age is not None else ""), flush=True)
+            say(f"{index:>5}  tilt {math.degrees(p.theta):6.2f} deg  azimuth {math.degrees(p.phi):7.1f} deg  "
+                f"distance {p.offset * 1e3:7.1f} mm  latency {latency * 1e3:6.1f} ms"
+                + (f"  age {age * 1e3:6.1f} ms" if age is not None else "") + mark)
         else:
-            print(f"{index:>5}  no plane: {e.reason}", flush=True)
+            say(f"{index:>5}  no plane: {e.reason}{mark}")
 
     try:
         with src:
@@ -187,12 +194,14 @@ def cmd_stream(args: argparse.Namespace) -> int:
     finally:
         if view is not None:
             view.close()
-    _log(stats.summary())
+    while pending_note:  # no frame was printed: the note is still the output's first line
+        print(pending_note.pop(), flush=True)
+    log(stats.summary())
     counted = {k: v for k, v in source_stats.items() if isinstance(v, int) and v}
     if counted:
-        _log("source: " + ", ".join(f"{k} {v}" for k, v in counted.items()))
+        log("source: " + ", ".join(f"{k} {v}" for k, v in counted.items()))
     if args.save:
-        _log(f"wrote {args.save}")
+        log(f"wrote {args.save}")
     return 0
 
 
@@ -223,25 +232,25 @@ def cmd_bench(args: argparse.Namespace) -> int:
             print(f"{'':>8} faults injected: {r['faults']}; measurements dropped: {r['dropped_frames']}")
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1) + "\n")
-        _log(f"wrote {args.json}")
+        log(f"wrote {args.json}")
     return 0
 
 
 # ------------------------------------------------------------------------------------------------
 def register(subparsers: argparse._SubParsersAction) -> None:
-    """Add ``place-safe sensor info|record|stream|bench``."""
+    """Add ``place-safe sensor info|record|stream``."""
     s = subparsers.add_parser(
-        "sensor", formatter_class=_FMT, help="read a TMF8820: info, record, stream, bench",
+        "sensor", formatter_class=FMT, help="read a TMF8820: info, record, stream",
         description="Talk to a TMF8820 through the I2C driver (i2c:), the Arduino bridge (serial:), the "
                     "register-level emulator (emu:) or a frame file (file:).",
         epilog="examples:\n  place-safe sensor info i2c:/dev/i2c-1@0x41\n"
                "  place-safe sensor record i2c:1 -o frames.json --frames 100\n"
                "  place-safe sensor stream emu:synthetic:50 --method peak --save run.rrd\n"
-               "  place-safe sensor bench --frames 200")
-    sub = s.add_subparsers(dest="sensor_command", metavar="{info,record,stream,bench}")
+               "  place-safe bench sensor --frames 200")
+    sub = s.add_subparsers(dest="sensor_command", metavar="{info,record,stream}")
     sub.required = True
 
-    i = sub.add_parser("info", formatter_class=_FMT, help="identity, versions, mode and configuration",
+    i = sub.add_parser("info", formatter_class=FMT, help="identity, versions, mode and configuration",
                        description="Bring the sensor up and print its identity (serial number), application "
                                    "version, mode, range and configuration without measuring.",
                        epilog="examples:\n  place-safe sensor info i2c:/dev/i2c-1@0x41\n"
@@ -254,7 +263,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "--calibration-dir, keyed by serial number; it is loaded at every start")
     i.set_defaults(func=cmd_info)
 
-    r = sub.add_parser("record", formatter_class=_FMT, help="record frames to a frame file",
+    r = sub.add_parser("record", formatter_class=FMT, help="record frames to a frame file",
                        description="Read frames from a source and write them to a frame file (JSON list, or "
                                    "JSON Lines for a .jsonl name), with a progress bar.",
                        epilog="examples:\n  place-safe sensor record i2c:1 -o sweep.json --frames 200\n"
@@ -272,7 +281,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     r.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     r.set_defaults(func=cmd_record)
 
-    st = sub.add_parser("stream", formatter_class=_FMT, help="live plane readout (and rerun view)",
+    st = sub.add_parser("stream", formatter_class=FMT, help="live plane readout (and rerun view)",
                         description="Recover the plane from every frame as it arrives and print tilt, "
                                     "distance and latency (age: from the measurement to the estimate, on "
                                     "monotonic-clock sources). --save writes a rerun recording (histograms, "
@@ -291,7 +300,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     st.add_argument("--view", action="store_true", help="open a rerun viewer (needs a display)")
     st.set_defaults(func=cmd_stream)
 
-    b = sub.add_parser("bench", formatter_class=_FMT, help="bus frame rate, bytes per frame, decode CPU (emulator)",
+
+
+def add_sensor_bench(sub) -> None:
+    """``place-safe bench sensor``: the I2C driver over the register-level emulator with its bus timing."""
+    b = sub.add_parser("sensor", formatter_class=FMT, help="bus frame rate, bytes per frame, decode CPU (emulator)",
                        description=_paragraphs(
                            "Stream frames through the I2C driver over the register-level emulator with "
                                    "its bus timing, for each way of waiting (INT line, polling INT_STATUS), bus "
@@ -319,8 +332,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                    "read would save 31 clocks but releases the packet before it is checked "
                                    "(an open-bus cut shows only as a 0xFF tail); reading after the clear races "
                                    "the next packet."),
-                       epilog="examples:\n  place-safe sensor bench\n  place-safe sensor bench --bus-hz 1000000 "
-                              "--latency-us 0 20 --frames 500\n  place-safe sensor bench --fault-rate 0.001 "
+                       epilog="examples:\n  place-safe bench sensor\n  place-safe bench sensor --bus-hz 1000000 "
+                              "--latency-us 0 20 --frames 500\n  place-safe bench sensor --fault-rate 0.001 "
                               "--json bench.json")
     b.add_argument("--bus-hz", type=BUS_HZ, nargs="+", default=[400e3, 1e6], metavar="HZ",
                    help="bus clocks (default 400000 1000000)")
@@ -344,4 +357,4 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     b.set_defaults(func=cmd_bench)
 
 
-__all__ = ["register"]
+__all__ = ["register", "add_sensor_bench"]

@@ -60,7 +60,7 @@ def register(subparsers) -> None:
 
 
 def cmd_synth(args: argparse.Namespace) -> int:
-    from place_safe.cli.app import UsageError, _log
+    from place_safe.cli.common import UsageError, log
     from place_safe.io.frame_file import write_frames
 
     if not args.min_distance < args.max_distance:
@@ -86,5 +86,5 @@ def cmd_synth(args: argparse.Namespace) -> int:
     out = Path(args.output)
     out.parent.mkdir(parents=True, exist_ok=True)
     n = write_frames(out, frames)
-    _log(f"wrote {n} {args.generator} frames to {out}")
+    log(f"wrote {n} {args.generator} frames to {out}")
     return 0

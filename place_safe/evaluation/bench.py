@@ -56,6 +56,7 @@ class MethodResult:
     point_mm: list[float] = field(default_factory=list)
     failures: int = 0
     error: str | None = None   # why the method could not run at all
+    calibrated: bool = True    # False: the method ran on built-in constants (the row says so)
 
     @property
     def latency_median(self) -> float | None:
@@ -82,7 +83,8 @@ class MethodResult:
                 "latency_ms": {"median": r(None if self.latency_median is None else self.latency_median * 1e3),
                                "p95": r(None if self.latency_p95 is None else self.latency_p95 * 1e3)},
                 "fps": r(self.fps), "angular_deg": r(self._mean(self.angular_deg), 4),
-                "linear_mm": r(self._mean(self.linear_mm)), "point_mm": r(self._mean(self.point_mm))}
+                "linear_mm": r(self._mean(self.linear_mm)), "point_mm": r(self._mean(self.point_mm)),
+                "calibrated": self.calibrated}
 
 
 @dataclass
@@ -128,7 +130,7 @@ class BenchReport:
                 f"{f(None if r.latency_median is None else r.latency_median * 1e3, '10.2f'):>10} "
                 f"{f(None if r.latency_p95 is None else r.latency_p95 * 1e3, '9.2f'):>9} {f(r.fps, '9.2f'):>9} "
                 f"{f(r._mean(r.angular_deg), '11.3f'):>11} {f(r._mean(r.linear_mm), '9.2f'):>9} "
-                f"{f(r._mean(r.point_mm), '9.2f'):>9}")
+                f"{f(r._mean(r.point_mm), '9.2f'):>9}" + ("" if r.calibrated else "  [uncalibrated]"))
         if self.speed_ratio is not None:
             lines.append(f"speed ratio diff paper / fast (median latency): {self.speed_ratio:.1f}x")
         lines.append(f"peak RSS of this process: {self.peak_rss_bytes / 2**20:.0f} MB")
@@ -194,6 +196,7 @@ def run_bench(frames: Sequence[Frame], calibration=None, paper_frames: int = 5,
               runs: Sequence[tuple[str, str, dict]] = DEFAULT_RUNS, source: str = "frames",
               progress: bool = False) -> BenchReport:
     """Benchmark each run (label, method, options) on ``frames`` (``diff-paper``: ``paper_frames`` spread evenly)."""
+    from place_safe.calibration import uncalibrated_reason
     from place_safe.recovery import make_estimator
 
     results = []
@@ -207,11 +210,13 @@ def run_bench(frames: Sequence[Frame], calibration=None, paper_frames: int = 5,
             results.append(MethodResult(label, error=f"not available ({exc})"))
             continue
         results.append(bench_method(label, est, subset, warmup=options.get("mode") != "paper", progress=progress))
+        results[-1].calibrated = uncalibrated_reason(method, calibration) is None
     # accuracy on the same frames: the fast solver again on exactly the paper mode's frames
     labels = [r.label for r in results]
     if "diff-paper" in labels and "diff-fast" in labels and 0 < paper_frames < len(frames):
         est = make_estimator("diff", calibration, mode="fast")
         same = bench_method("diff-fast (same)", est, _spread(frames, paper_frames), progress=progress)
+        same.calibrated = uncalibrated_reason("diff", calibration) is None
         results.insert(labels.index("diff-paper") + 1, same)
     return BenchReport(results, len(frames), source, peak_rss_bytes())
 

@@ -1,7 +1,7 @@
 """Contact detection against a CB3's force noise, measured: false contacts over descents, touch delays, rest noise.
 
-Concept: the numbers issue 29 asks for, each from a function anyone can rerun (``place-safe robot
-contact-bench``, ``place-safe robot bench``):
+Concept: the numbers issue 29 asks for, each from a function anyone can rerun (``place-safe bench
+contact``, ``place-safe bench robot``):
 
 * :func:`descents` -- placements of a held cup from ``height`` (default 40 cm) onto a table through the real
   driver path: :class:`~place_safe.drivers.ur5.rtde_robot.URRobot` on the fake ur_rtde

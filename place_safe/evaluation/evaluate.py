@@ -93,6 +93,8 @@ class EvaluationReport:
     theta: np.ndarray = field(default_factory=lambda: np.zeros(0))  # true angle of incidence (rad)
     skipped: int = 0  # frames without ground truth
     plots: list[str] = field(default_factory=list)
+    #: methods that ran on built-in constants, not on the calibration (their rows say so)
+    uncalibrated: set[str] = field(default_factory=set)
 
     def table(self) -> str:
         """A text table like the paper's Table I (mean / median / p95 per error)."""
@@ -106,7 +108,8 @@ class EvaluationReport:
             for key in ("angular_deg", "linear_mm", "point_mm"):
                 cells += [f"{s[key][k]:7.2f}" if math.isfinite(s[key][k]) else f"{'-':>7}"  # every frame failed
                           for k in ("mean", "median", "p95")]
-            lines.append(f"{name:<18} " + " ".join(cells) + f" {s['failures']:>5d} {s['ms_per_frame']:8.3f}")
+            lines.append(f"{name:<18} " + " ".join(cells) + f" {s['failures']:>5d} {s['ms_per_frame']:8.3f}"
+                         + ("  [uncalibrated]" if name in self.uncalibrated else ""))
         for name, res in self.results.items():
             s = res.summary()
             notes = []
@@ -130,7 +133,8 @@ class EvaluationReport:
 
     def to_dict(self) -> dict:
         return {"frames": int(len(self.z0)), "skipped_without_truth": self.skipped,
-                "methods": {k: v.summary() for k, v in self.results.items()},
+                "methods": {k: {**v.summary(), "calibrated": k not in self.uncalibrated}
+                            for k, v in self.results.items()},
                 "unavailable": dict(self.unavailable), "plots": list(self.plots)}
 
 
@@ -144,6 +148,7 @@ def evaluate(frames: Sequence[Frame], calibration: Any = None, methods: Sequence
     """
     from tqdm import tqdm
 
+    from place_safe.calibration import uncalibrated_reason
     from place_safe.evaluation.metrics import nees
     from place_safe.recovery import make_estimator
 
@@ -184,6 +189,8 @@ def evaluate(frames: Sequence[Frame], calibration: Any = None, methods: Sequence
             ang[ok] = angular_errors(n[ok], tn[ok])
             lin[ok] = linear_errors(n[ok], d[ok], tn[ok], td[ok])
             pt[ok] = point_errors(n[ok], d[ok], tn[ok], td[ok])
+        if uncalibrated_reason(method, calibration) is not None:
+            report.uncalibrated.add(method)
         report.results[method] = MethodResult(method, ang, lin, pt, albedo, secs, reasons,
                                               nees(ests, [f.truth for f in use]), [e.method_used for e in ests])
     if out_dir is not None and report.results:

@@ -32,7 +32,7 @@ A lateral contact (a box beside the cup) is seen by the same test on the norm of
 
 :func:`false_alarm_rate` and :func:`detection_delay` measure a setting on synthetic noise of the given
 standard deviation (numpy, no robot): the rate of false contacts per cycle and per descent, and the delay and
-the true force at detection for a touch that rises as a ramp (N/s) or a step (N). ``place-safe robot bench``
+the true force at detection for a touch that rises as a ramp (N/s) or a step (N). ``place-safe bench robot``
 prints them for the noise it measures on the arm.
 
 Conventions: SI units (N, s); forces in the base frame; the approach direction is a unit vector along which
@@ -44,24 +44,13 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass
-from typing import Any
+from typing import Annotated, Any, ClassVar
 
 import numpy as np
 
-from place_safe.config import Bound, check_dataclass
+from pydantic import ConfigDict, Field
 
-#: The physical range of each setting, once: :class:`DetectorSettings` checks itself against it, and the robot
-#: file's ``[contact]`` section takes its field ranges from it.
-DETECTOR_BOUNDS: dict[str, Bound] = {
-    "noise_std": Bound(0.0, 50.0, "N per axis per cycle", lo_open=True),
-    "window": Bound(1, 1000, "cycles"),
-    "sigmas": Bound(0.0, 20.0, "standard deviations", lo_open=True),
-    "persistence": Bound(1, 1000, "cycles"),
-    "min_threshold": Bound(0.0, 100.0, "N", lo_open=True),
-    "lateral_sigmas": Bound(0.0, 30.0, "standard deviations", lo_open=True),
-    "period": Bound(0.0, 1.0, "s", lo_open=True),
-}
+from place_safe.config import ParamModel
 
 #: Per-controller default settings (see :class:`DetectorSettings`). CB3: about 3.6 N per axis per cycle
 #: (the documented spread of the motor-current estimate); 6 cycles (48 ms) averaged, 5 standard deviations
@@ -70,7 +59,7 @@ DETECTOR_BOUNDS: dict[str, Bound] = {
 #: cycles in a row gave 5e-8 (3 in 6e7) but only 75 % of 10 N steps within 50 ms (48 ms median, 56-64 ms 95th
 #: percentile); a one-sided CUSUM was slower at the 95th percentile for the same rate (module docstring).
 #: e-Series: a flange force/torque sensor, about 1 N per axis per 2 ms cycle (assumed until
-#: ``place-safe robot bench`` measures it).
+#: ``place-safe bench robot`` measures it).
 CONTROLLER_DEFAULTS: dict[str, dict[str, float]] = {
     "cb3": {"noise_std": 3.6, "window": 6, "sigmas": 5.0, "persistence": 1, "min_threshold": 3.0,
             "lateral_sigmas": 7.0, "period": 1.0 / 125.0},
@@ -79,28 +68,28 @@ CONTROLLER_DEFAULTS: dict[str, dict[str, float]] = {
 }
 
 
-@dataclass(frozen=True)
-class DetectorSettings:
-    """One contact detector's settings (SI units; cycles are controller cycles).
+class DetectorSettings(ParamModel):
+    """One contact detector's settings (SI units; cycles are controller cycles), immutable.
 
     ``noise_std``: N, standard deviation per axis per cycle of the force estimate at rest (the floor:
     a spread measured at rest raises it beyond its sampling error, never lowers it). ``window``: cycles
     averaged. ``sigmas``: threshold in standard deviations of the average. ``persistence``: consecutive
     cycles above it. ``min_threshold``: N, the least threshold whatever the noise. ``lateral_sigmas``: the
-    factor for the norm of the averaged vector. ``period``: s, one controller cycle. Ranges:
-    :data:`DETECTOR_BOUNDS`.
+    factor for the norm of the averaged vector. ``period``: s, one controller cycle. The ranges are the
+    fields' (the robot file's ``[contact]`` section takes them from here); a bad value raises ValueError.
     """
 
-    noise_std: float = 3.6
-    window: int = 6
-    sigmas: float = 5.0
-    persistence: int = 2
-    min_threshold: float = 3.0
-    lateral_sigmas: float = 7.0
-    period: float = 0.008
+    model_config = ConfigDict(frozen=True)
+    what: ClassVar[str] = "contact detector"
+    error: ClassVar[type[Exception]] = ValueError
 
-    def __post_init__(self) -> None:
-        check_dataclass(self, DETECTOR_BOUNDS, "contact detector", ValueError)
+    noise_std: Annotated[float, Field(gt=0.0, le=50.0, description="N per axis per cycle")] = 3.6
+    window: Annotated[int, Field(ge=1, le=1000, description="cycles")] = 6
+    sigmas: Annotated[float, Field(gt=0.0, le=20.0, description="standard deviations")] = 5.0
+    persistence: Annotated[int, Field(ge=1, le=1000, description="cycles")] = 2
+    min_threshold: Annotated[float, Field(gt=0.0, le=100.0, description="N")] = 3.0
+    lateral_sigmas: Annotated[float, Field(gt=0.0, le=30.0, description="standard deviations")] = 7.0
+    period: Annotated[float, Field(gt=0.0, le=1.0, description="s")] = 0.008
 
     @classmethod
     def for_controller(cls, controller: str, **overrides: Any) -> "DetectorSettings":
@@ -155,7 +144,7 @@ class ContactDetector:
         chance (by about 10 % for the 50 samples a zeroing takes), and raising the threshold by that much cost
         a tenth of the 10 N touches their 50 ms bound. So a measured spread counts only above
         ``setting * (1 + 2.5 / sqrt(2 (n - 1)))`` (2.5 standard errors of a sample standard deviation): a
-        clearly noisier arm still raises the threshold, and ``place-safe robot bench --write`` records an
+        clearly noisier arm still raises the threshold, and ``place-safe bench robot --write`` records an
         arm's own spread as the setting."""
         measured = float(self.rest_std.max())
         n = max(self.rest_samples, 2)

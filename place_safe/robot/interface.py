@@ -32,13 +32,15 @@ from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any, ClassVar
 
 import numpy as np
 
-from place_safe.config import Bound, check_dataclass, dataclass_from_dict, read_json, write_json
+from pydantic import Field, model_validator
+
+from place_safe.config import ParamModel, read_json, write_json
 from place_safe.exceptions import ConfigError, RobotFault
 from place_safe.geometry import transform_problem
 from place_safe.robot.tool import ToolFrames
@@ -46,63 +48,53 @@ from place_safe.robot.tool import ToolFrames
 _TWO_PI = 2.0 * math.pi
 
 
-@dataclass
-class RobotLimits:
+#: rad, one joint limit (a UR5-class joint turns at most two turns either way)
+_JointLimit = Annotated[float, Field(ge=-4 * math.pi, le=4 * math.pi)]
+
+
+class RobotLimits(ParamModel):
     """Motion and safety limits (SI units). Loadable from / saveable to JSON.
 
     Defaults: the UR5's joint ranges (+-2 pi, elbow +-pi) and joint speeds (about 180 deg/s) from the
     published UR5 data; Cartesian limits chosen for placing a cup (well under the UR5's 1 m/s tool speed).
+    Every range is what a UR5-class arm can do at all; each joint's lower limit must be below its upper one.
     """
 
-    max_linear_speed: float = 0.25  # m/s, TCP
-    max_linear_accel: float = 1.2  # m/s^2
-    max_angular_speed: float = 1.0  # rad/s, TCP orientation
-    max_angular_accel: float = 3.0  # rad/s^2
-    max_joint_speed: list[float] = field(default_factory=lambda: [3.15, 3.15, 3.15, 3.2, 3.2, 3.2])  # rad/s
-    joint_lower: list[float] = field(default_factory=lambda: [-_TWO_PI, -_TWO_PI, -math.pi, -_TWO_PI, -_TWO_PI, -_TWO_PI])
-    joint_upper: list[float] = field(default_factory=lambda: [_TWO_PI, _TWO_PI, math.pi, _TWO_PI, _TWO_PI, _TWO_PI])
-    max_contact_force: float = 60.0  # N, protective stop threshold on the gripper/held object
-    max_tracking_error: float = 0.02  # m, path deviation that counts as a fault (singularity, blocked)
+    what: ClassVar[str] = "robot limits"
 
-    def __post_init__(self) -> None:
-        self.validate()
+    max_linear_speed: Annotated[float, Field(gt=0.0, le=3.0, description="m/s")] = 0.25  # TCP
+    max_linear_accel: Annotated[float, Field(gt=0.0, le=50.0, description="m/s^2")] = 1.2
+    max_angular_speed: Annotated[float, Field(gt=0.0, le=10.0, description="rad/s")] = 1.0  # TCP orientation
+    max_angular_accel: Annotated[float, Field(gt=0.0, le=100.0, description="rad/s^2")] = 3.0
+    max_joint_speed: Annotated[list[Annotated[float, Field(gt=0.0, le=10.0)]],
+                               Field(min_length=6, max_length=6, description="rad/s")] = \
+        Field(default_factory=lambda: [3.15, 3.15, 3.15, 3.2, 3.2, 3.2])
+    joint_lower: Annotated[list[_JointLimit], Field(min_length=6, max_length=6, description="rad")] = \
+        Field(default_factory=lambda: [-_TWO_PI, -_TWO_PI, -math.pi, -_TWO_PI, -_TWO_PI, -_TWO_PI])
+    joint_upper: Annotated[list[_JointLimit], Field(min_length=6, max_length=6, description="rad")] = \
+        Field(default_factory=lambda: [_TWO_PI, _TWO_PI, math.pi, _TWO_PI, _TWO_PI, _TWO_PI])
+    # N, protective stop threshold on the gripper/held object
+    max_contact_force: Annotated[float, Field(gt=0.0, le=1000.0, description="N")] = 60.0
+    # m, path deviation that counts as a fault (singularity, blocked)
+    max_tracking_error: Annotated[float, Field(gt=0.0, le=1.0, description="m")] = 0.02
+
+    @model_validator(mode="after")
+    def _lower_below_upper(self) -> "RobotLimits":
+        if np.any(np.asarray(self.joint_lower) >= np.asarray(self.joint_upper)):
+            raise ValueError("joint_lower must be below joint_upper for every joint")
+        return self
 
     def validate(self) -> None:
         """Raise :class:`~place_safe.exceptions.ConfigError` (one line naming the field) unless every limit is in
-        its range (:data:`ROBOT_LIMIT_BOUNDS`) and each joint's lower limit is below its upper one."""
-        check_dataclass(self, ROBOT_LIMIT_BOUNDS, "robot limits")
-        if np.any(np.asarray(self.joint_lower) >= np.asarray(self.joint_upper)):
-            raise ConfigError("robot limits: joint_lower must be below joint_upper for every joint")
-
-    def to_dict(self) -> dict[str, Any]:
-        return {k: (list(map(float, v)) if isinstance(v, (list, tuple, np.ndarray)) else float(v))
-                for k, v in asdict(self).items()}
-
-    @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> "RobotLimits":
-        return dataclass_from_dict(cls, d, ROBOT_LIMIT_BOUNDS, "robot limits")
+        its range and each joint's lower limit is below its upper one (for limits changed in place)."""
+        type(self).from_dict(self.to_dict())
 
     def save(self, path: str | Path) -> None:
         write_json(path, self.to_dict())
 
     @classmethod
     def load(cls, path: str | Path) -> "RobotLimits":
-        return dataclass_from_dict(cls, read_json(path, "robot limits", ConfigError), ROBOT_LIMIT_BOUNDS,
-                                   f"robot limits {path}")
-
-
-#: Range of every robot limit (SI units): positive and within what a UR5-class arm can do at all.
-ROBOT_LIMIT_BOUNDS: dict[str, Bound] = {
-    "max_linear_speed": Bound(0.0, 3.0, "m/s", lo_open=True),
-    "max_linear_accel": Bound(0.0, 50.0, "m/s^2", lo_open=True),
-    "max_angular_speed": Bound(0.0, 10.0, "rad/s", lo_open=True),
-    "max_angular_accel": Bound(0.0, 100.0, "rad/s^2", lo_open=True),
-    "max_joint_speed": Bound(0.0, 10.0, "rad/s", lo_open=True, length=6),
-    "joint_lower": Bound(-4 * math.pi, 4 * math.pi, "rad", length=6),
-    "joint_upper": Bound(-4 * math.pi, 4 * math.pi, "rad", length=6),
-    "max_contact_force": Bound(0.0, 1000.0, "N", lo_open=True),
-    "max_tracking_error": Bound(0.0, 1.0, "m", lo_open=True),
-}
+        return cls.from_dict(read_json(path, "robot limits", ConfigError), f"robot limits {path}")
 
 
 def check_pose(pose: Any, what: str = "pose") -> np.ndarray:

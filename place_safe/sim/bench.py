@@ -1,4 +1,4 @@
-"""Speed of the simulation: the scene with the simulated sensor in lockstep (``place-safe sim bench``) and the
+"""Speed of the simulation: the scene with the simulated sensor in lockstep (``place-safe bench sim``) and the
 bare robot's physics (``python -m place_safe.sim.bench``). Speeds are measured here, never asserted in tests.
 """
 

@@ -1,4 +1,4 @@
-"""The ``place-safe sim ...`` commands: validate the simulated sensor, render scenes, benchmark speed.
+"""The ``place-safe sim ...`` commands: validate the simulated sensor and render scenes (``bench sim`` times it).
 
 ``add_sim_commands(subparsers)`` registers a ``sim`` command with its own sub-commands on an
 argparse sub-parser collection; each sets ``func(args) -> int`` (exit status: 0 success, 1 a
@@ -14,36 +14,17 @@ import time
 
 
 from place_safe.cli import options
-from place_safe.cli.app import UsageError
+from place_safe.cli.common import UsageError
 from place_safe.exceptions import FrameFileError
 
 
 def add_sim_commands(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    """Register ``sim place``, ``sim validate``, ``sim render`` and ``sim bench``; returns the ``sim`` parser."""
-    sim = subparsers.add_parser("sim", help="MuJoCo simulation: validate the simulated TMF8820, render, benchmark",
+    """Register ``sim validate`` and ``sim render``; returns the ``sim`` parser (placing in simulation is
+    ``place --sim``, calibrating it ``calibrate --sim``, timing it ``bench sim``)."""
+    sim = subparsers.add_parser("sim", help="MuJoCo: validate the simulated TMF8820, render scenes",
                                 description="MuJoCo simulation of the UR5 and the TMF8820 (needs the [sim] extra).")
-    sub = sim.add_subparsers(dest="sim_command", metavar="{place,calibrate,validate,render,bench}")
+    sub = sim.add_subparsers(dest="sim_command", metavar="{validate,render}")
     sim.set_defaults(func=_no_sub_command)
-
-    from place_safe.sim.placement_run import add_placement_command
-
-    add_placement_command(sub)
-
-    c = sub.add_parser("calibrate", help="regenerate the simulated user calibration (touch, capture, calibrate)",
-                       description="The chain a user runs on the UR5, in MuJoCo: the simulated arm touches the level "
-                                   "table at three points (the plane it measures is the ground truth), captures a "
-                                   "sweep of poses above it with the simulated sensor (as 'place-safe capture'), and "
-                                   "fits the capture with 'place-safe calibrate' (--method diff, then proprietary). "
-                                   "Without -o, rewrites the packaged sim/sensors/calibration_<sensor>.json that "
-                                   "placements use by default. Example: place-safe sim calibrate --sensor mismatch")
-    c.add_argument("--sensor", choices=("nominal", "mismatch", "all"), default="all",
-                   help="which simulated sensor (default all)")
-    c.add_argument("-o", "--output", help="calibration file to write (one sensor only; default: the packaged file)")
-    c.add_argument("--frames", type=options.int_range(8, 1000), default=48,
-                   help="poses (one frame each) in the sweep (default 48, 8..1000)")
-    c.add_argument("--seed", type=options.int_range(0, 2 ** 32 - 1), default=0, help="sweep and noise seed (default 0)")
-    c.add_argument("--save-frames", help="also keep the capture file (JSON Lines) here (one sensor only)")
-    c.set_defaults(func=cmd_calibrate)
 
     v = sub.add_parser("validate", help="compare simulated histograms with a real sweep, zone by zone",
                        description="For each real frame with ground truth, place the simulated sensor at the same "
@@ -52,7 +33,8 @@ def add_sim_commands(subparsers: argparse._SubParsersAction) -> argparse.Argumen
                                    "Targets: mean |peak diff| <= 0.5 bin and mean correlation >= 0.95 in every zone.")
     v.add_argument("frames", help="frame file with ground truth (e.g. tests/data/tmf8820_ur5_sweep.json)")
     v.add_argument("--params", help="ForwardParams JSON of the simulated sensor (default sim/sensors/tmf8820_real.json)")
-    v.add_argument("--rays", type=options.int_range(1, 64), default=8, help="stratified rays per axis and zone (default 8)")
+    rays = options.field_option("place_safe.sim.tof:ToFConfig", "rays", "stratified rays per axis and zone, default 8")
+    v.add_argument("--rays", type=rays, default=8, help=rays.help)
     v.add_argument("--min-distance", type=options.float_range(0.0, 500.0), default=5.0, help="use frames at z0 >= this many cm (default 5)")
     v.add_argument("--json", action="store_true", help="print the per-zone figures as JSON instead of a table")
     v.add_argument("--strict", action="store_true", help="exit 1 if a target is missed")
@@ -75,40 +57,15 @@ def add_sim_commands(subparsers: argparse._SubParsersAction) -> argparse.Argumen
     r.add_argument("--view", action="store_true", help="open the interactive viewer instead (needs a display)")
     r.set_defaults(func=cmd_render)
 
-    b = sub.add_parser("bench", help="real-time factor of physics + simulated sensor in lockstep",
-                       description="Steps the scene for --seconds of sim time with the sensor measuring at --rate Hz "
-                                   "in lockstep and reports the real-time factor (sim time / wall time). Target >= 5.")
-    b.add_argument("--scene", help="scene JSON (default: level table)")
-    b.add_argument("--rig", action="store_true", help="sensor rig only (no robot); default: the UR5 holding the cup")
-    b.add_argument("--seconds", type=options.float_range(0.0, 3600.0, lo_open=True), default=5.0, help="sim seconds to run (default 5)")
-    b.add_argument("--rate", type=options.float_range(0.0, 1000.0, lo_open=True), default=30.0, help="sensor frame rate (Hz, default 30)")
-    b.add_argument("--rays", type=options.int_range(1, 64), default=8, help="stratified rays per axis and zone (default 8)")
-    b.set_defaults(func=cmd_bench)
     return sim
 
 
-SUB_COMMANDS = ("place", "calibrate", "validate", "render", "bench")
+SUB_COMMANDS = ("validate", "render")
 
 
 def _no_sub_command(_args: argparse.Namespace) -> int:
     """``place-safe sim`` alone: one line naming the sub-commands and where the help is (exit 2)."""
     raise UsageError(f"sim: a sub-command is required: {', '.join(SUB_COMMANDS)} (see 'place-safe sim --help')")
-
-
-def cmd_calibrate(args: argparse.Namespace) -> int:
-    from place_safe.sim.calibration_capture import calibrate_sim
-
-    sensors = ("nominal", "mismatch") if args.sensor == "all" else (args.sensor,)
-    if len(sensors) > 1 and (args.output or args.save_frames):
-        print("error: sim calibrate: -o and --save-frames need one --sensor", file=sys.stderr)
-        return 2
-    if args.frames < 8:
-        print("error: sim calibrate: --frames must be at least 8", file=sys.stderr)
-        return 2
-    for s in sensors:
-        out = calibrate_sim(s, args.output, n=args.frames, seed=args.seed, frames_out=args.save_frames)
-        print(f"wrote {out} ({s} simulated sensor, {args.frames} sweep frames)", file=sys.stderr)
-    return 0
 
 
 def cmd_validate(args: argparse.Namespace) -> int:
@@ -160,16 +117,6 @@ def cmd_render(args: argparse.Namespace) -> int:
         rig_tof = tof if tof is not None else SimToF(scene, data)
         frames = render.sweep_frames(scene, rig_tof, **kw)
         print(f"wrote {render.save_gif(frames, args.gif)} ({len(frames)} frames)", file=sys.stderr)
-    return 0
-
-
-def cmd_bench(args: argparse.Namespace) -> int:
-    from place_safe.sim.bench import bench
-
-    res = bench(args.scene, args.rig, args.seconds, args.rate, args.rays)
-    print(f"{res['sim_seconds']:.2f} s sim in {res['wall_seconds']:.2f} s wall: real-time factor "
-          f"{res['real_time_factor']:.1f}x ({res['frames']} sensor frames at {args.rate:g} Hz, "
-          f"{res['physics_steps']} physics steps, {'UR5' if res['with_robot'] else 'rig'})")
     return 0
 
 

@@ -30,8 +30,6 @@ Conventions
 
 from __future__ import annotations
 
-import argparse
-import json
 import math
 import sys
 import time as _time
@@ -41,12 +39,10 @@ from typing import Any
 
 import numpy as np
 
-from place_safe.cli import options
 from place_safe.exceptions import RobotFault
 from place_safe.placement.loop import CONTROL_PERIOD, PlacementLoop
 from place_safe.placement.machine import PlacementConfig
 from place_safe.sim.scenario import oracle_calibration, scenario_path  # noqa: F401 - part of this module's API
-from place_safe.recovery import METHODS
 
 #: s of simulation after the machine finished, for the cup and liquid to settle.
 SETTLE_SECONDS = 0.8
@@ -84,6 +80,7 @@ class PlacementResult:
     surface_moved: float = 0.0  # m the table moved during the run
     fault_injected: str | None = None
     robot_fault: str | None = None
+    calibrated: bool = True  # False: the method had no calibration, so the placement refused before moving
 
     def to_dict(self) -> dict:
         return dict(self.__dict__)
@@ -131,7 +128,8 @@ def _calibration(sc: Any, calibration: Any, oracle: bool) -> tuple[Any, str]:
 def run_placement(scenario: Any = "place_level", method: str | None = None, calibration: Any = None,
                   seconds: float = 20.0, render: str | Path | None = None, seed: int = 0,
                   config: PlacementConfig | None = None, estimator_options: dict | None = None,
-                  log_frames: bool = True, oracle: bool = False) -> PlacementResult:
+                  log_frames: bool = True, oracle: bool = False, mount_error: Any = None,
+                  tool: Any = None) -> PlacementResult:
     """Simulate one placement (see module docstring).
 
     ``scenario``: a scenario file path or packaged name, a :class:`~place_safe.sim.scenario.Scenario`
@@ -141,7 +139,10 @@ def run_placement(scenario: Any = "place_level", method: str | None = None, cali
     ``oracle=True`` hands the estimator the simulator's true parameters (debugging; named in the result).
     ``seconds``: sim-time limit. ``render``: PNG path of the scene at the end. ``seed``: the simulated
     sensor's noise seed unless the scenario sets its own. ``config``: the placement thresholds
-    (default: the scenario's).
+    (default: the scenario's). ``mount_error``: how far the true sensor mount is off the nominal one
+    (dx, dy, dz mm, rx, ry, rz deg; :func:`place_safe.sim.world.sim_world`). ``tool``: the tool frames the loop
+    believes (:class:`~place_safe.robot.tool.ToolFrames`, e.g. from a robot file with a fitted mount; default the
+    robot's nominal ones).
     """
     from place_safe.calibration import uncalibrated_reason
     from place_safe.recovery import make_estimator
@@ -160,8 +161,10 @@ def run_placement(scenario: Any = "place_level", method: str | None = None, cali
     if calibration is not None:
         calibration.check()  # a placement runs only on a calibration whose every section is valid
     cfg = config if config is not None else sc.placement_config()
-    world = sim_world(sc, seed=seed, attach=False)  # the sensor starts with the truth recorder in place
+    world = sim_world(sc, seed=seed, attach=False, mount_error=mount_error)  # the truth recorder goes in first
     scene, robot, tof = world.scene, world.robot, world.tof
+    if tool is not None:
+        robot.tool = tool
     tilt_true, surface_z = surface_truth(scene, robot.data)
     liquid_total = int(ur5_config()["cup"]["liquid_count"])
     truth = TruthRecorder(sc, scene, robot)
@@ -170,7 +173,7 @@ def run_placement(scenario: Any = "place_level", method: str | None = None, cali
                   true_tilt=tilt_true, surface_height=surface_z, start_height=truth.start_height)
     why = uncalibrated_reason(method, calibration)
     if why is not None:  # calibration is required: refuse before anything moves
-        return PlacementResult(outcome="refused", reason=why, final_phase="idle", cup_tilt=0.0,
+        return PlacementResult(outcome="refused", reason=why, final_phase="idle", cup_tilt=0.0, calibrated=False,
                                cup_height=truth.start_height, cup_held=robot.holding(), liquid_spilled=0,
                                liquid_total=liquid_total, contact_force_peak=0.0, sim_seconds=robot.time(),
                                wall_seconds=_time.perf_counter() - wall0, frames=0, planes=0, **common)
@@ -209,53 +212,17 @@ def run_placement(scenario: Any = "place_level", method: str | None = None, cali
         robot_fault=robot.fault(), **common)
 
 
-# ---------------------------------------------------------------------------------------------
-# command line
-# ---------------------------------------------------------------------------------------------
-def add_placement_command(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    """Register ``place`` on a sub-parser collection (the ``sim`` command's); sets ``func(args) -> int``
-    (0 released, 1 refused or timed out, 2 bad input)."""
-    p = subparsers.add_parser("place", help="simulate putting the cup down (release or refuse)",
-                              description="UR5 holding the cup over a scenario's table: approach, descend, check "
-                                          "levelness and clearance with the TMF8820, then release or refuse.")
-    p.add_argument("--scenario", default="place_level",
-                   help="scenario file or packaged name (default place_level; place_tilted must be refused)")
-    p.add_argument("--method", choices=METHODS, help="plane-recovery method (default: the scenario's, diff)")
-    p.add_argument("--calibration", help="calibration JSON, 'sim' or 'none' (default: the scenario's, normally the "
-                                         "packaged simulated user calibration)")
-    p.add_argument("--oracle", action="store_true", help="DEBUGGING: give the estimator the simulator's true "
-                                                         "parameters (named ORACLE in the result)")
-    p.add_argument("--config", help="PlacementConfig JSON (speeds m/s, distances m, angles rad)")
-    p.add_argument("--seconds", type=options.float_range(0.0, 3600.0, lo_open=True), default=20.0, help="sim-time limit (default 20)")
-    p.add_argument("--seed", type=options.int_range(0, 2 ** 32 - 1), default=0, help="sensor noise seed")
-    p.add_argument("--render", help="write a PNG of the final scene")
-    p.add_argument("--json", help="write the full result (with the per-frame log) to this JSON file")
-    p.set_defaults(func=cmd_place)
-    return p
-
-
-def cmd_place(args: argparse.Namespace) -> int:
-    cfg = PlacementConfig.load(args.config) if args.config else None
-    res = run_placement(args.scenario, method=args.method, calibration=args.calibration, seconds=args.seconds,
-                        render=args.render, seed=args.seed, config=cfg, oracle=args.oracle)
-    print(res.summary())
-    if args.json:
-        Path(args.json).write_text(json.dumps(res.to_dict(), indent=1) + "\n")
-    if args.render:
-        print(f"wrote {args.render}", file=sys.stderr)
-    return 0 if res.outcome == "released" else 1
-
-
 def main(argv: list[str] | None = None) -> int:
-    """``python -m place_safe.sim.placement_run ...``: the same as ``place-safe sim place ...``."""
+    """``python -m place_safe.sim.placement_run SCENARIO ...``: the same as ``place-safe place --sim SCENARIO ...``."""
     from place_safe.cli.app import main as app_main
 
-    return app_main(["sim", "place", *(sys.argv[1:] if argv is None else argv)])
+    args = list(sys.argv[1:] if argv is None else argv)
+    return app_main(["place", "--sim", *args] if args and not args[0].startswith("-") else ["place", *args])
 
 
 if __name__ == "__main__":
     raise SystemExit(main())
 
 
-__all__ = ["PlacementResult", "run_placement", "oracle_calibration", "scenario_path", "add_placement_command", "cmd_place", "main",
+__all__ = ["PlacementResult", "run_placement", "oracle_calibration", "scenario_path", "main",
            "CONTROL_PERIOD", "SETTLE_SECONDS"]

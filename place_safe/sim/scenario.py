@@ -27,10 +27,11 @@ from typing import Annotated, Any, Literal
 import numpy as np
 from pydantic import Field, field_validator, model_validator
 
-from place_safe.config import ConfigModel, parse_config
+from place_safe.config import ConfigModel, field_constraints, parse_config
 from place_safe.assets import scenarios_dir
 from place_safe.exceptions import ConfigError
 
+from place_safe.sim.tof import ToFConfig
 from place_safe.sim.tof_mismatch import MismatchConfig
 
 #: m, the "time from 40 cm" reference height of the cup bottom above the surface (issue 12).
@@ -63,11 +64,12 @@ class SensorSection(ConfigModel):
                                                   "model; mismatch: MismatchedToF, a sensor that is not the model")
     noise: bool = True
     rays: int = Field(8, ge=1, le=32)
-    rate_hz: float = Field(30.0, ge=1, le=200, description="frame rate (Hz, 1..200)")
+    rate_hz: float = Field(30.0, **field_constraints(ToFConfig, "rate_hz"), description="frame rate (Hz)")
     ambient_range: tuple[float, float] = Field((60.0, 180.0), description="per-zone ambient floor range (counts)")
-    drop_prob: float = Field(0.0, ge=0, le=1)
-    corrupt_prob: float = Field(0.0, ge=0, le=1)
-    spike_prob: float = Field(0.0, ge=0, le=1, description="probability of a latency spike per frame")
+    drop_prob: float = Field(0.0, **field_constraints(ToFConfig, "drop_prob"))
+    corrupt_prob: float = Field(0.0, **field_constraints(ToFConfig, "corrupt_prob"))
+    spike_prob: float = Field(0.0, **field_constraints(ToFConfig, "spike_prob"),
+                              description="probability of a latency spike per frame")
     spike_seconds: float = Field(0.25, ge=0, le=5, description="extra latency of a spike (s)")
     seed: int | None = Field(None, description="noise seed; default: the run's seed")
     mismatch: MismatchConfig | None = Field(None, description="differences of the mismatched sensor")
@@ -85,7 +87,7 @@ class SensorSection(ConfigModel):
 
     @model_validator(mode="after")
     def _in_simulator_bounds(self) -> "SensorSection":
-        """Every setting within the simulated sensor's own ranges (sim.tof.TOF_BOUNDS), checked on load."""
+        """Every setting within the simulated sensor's own ranges (the fields of sim.tof.ToFConfig), checked on load."""
         from place_safe.sim.scene import SceneError
 
         try:
@@ -94,9 +96,7 @@ class SensorSection(ConfigModel):
             raise ValueError(str(exc).replace("sensor settings: ", "", 1)) from None
         return self
 
-    def tof_config(self, seed: int):
-        from place_safe.sim.tof import ToFConfig
-
+    def tof_config(self, seed: int) -> ToFConfig:
         return ToFConfig(rays=self.rays, rate_hz=self.rate_hz, noise=self.noise, ambient_range=self.ambient_range,
                          drop_prob=self.drop_prob, corrupt_prob=self.corrupt_prob, spike_prob=self.spike_prob,
                          spike_seconds=self.spike_seconds, seed=seed if self.seed is None else self.seed)

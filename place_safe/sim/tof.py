@@ -34,14 +34,16 @@ import json
 
 import time
 from collections import deque
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any, ClassVar
 
 import numpy as np
 import torch
 
-from place_safe.config import Bound, check_dataclass, dataclass_from_dict
+from pydantic import Field
+
+from place_safe.config import ParamModel
 from place_safe.exceptions import CalibrationError, NoPlaneError, SensorTimeout
 from place_safe.recovery.forward import ForwardModel, ForwardParams, ZoneRays, mount_rotation
 from place_safe.geometry import Plane
@@ -83,40 +85,33 @@ class DistanceMap:
             raise CalibrationError(f"cannot read on-sensor distance map {p}: {exc}") from None
 
 
-#: Range of every simulated-sensor setting (units in the ToFConfig comments).
-TOF_BOUNDS: dict[str, Bound] = {
-    "rays": Bound(1, 64, "rays per axis and zone"),
-    "rate_hz": Bound(1.0, 200.0, "Hz"),  # the TMF8820 measures at most a few tens of frames a second
-    "transfer_bytes": Bound(1, 1 << 20, "bytes"),
-    "bus_hz": Bound(0.0, 1e8, "Hz", lo_open=True),
-    "bits_per_byte": Bound(1, 64, "bits"),
-    "ambient_range": Bound(0.0, 1e6, "counts", length=2),  # per bin; the sensor's bins hold 24-bit counts
-    "drop_prob": Bound(0.0, 1.0, "(probability)"),
-    "corrupt_prob": Bound(0.0, 1.0, "(probability)"),
-    "seed": Bound(0, 2 ** 63 - 1, "(seed)"),
-    "max_range": Bound(0.0, 100.0, "m", lo_open=True),
-    "spike_prob": Bound(0.0, 1.0, "(probability)"),
-    "spike_seconds": Bound(0.0, 10.0, "s"),
-}
+class ToFConfig(ParamModel):
+    """Settings of the simulated sensor; each field's range and unit are its Field's (a scenario's ``sensor``
+    section is checked against them: a bad value is one :class:`~place_safe.sim.scene.SceneError` line)."""
 
+    what: ClassVar[str] = "sensor settings"
+    error: ClassVar[type[Exception]] = SceneError
 
-@dataclass
-class ToFConfig:
-    """Settings of the simulated sensor (units in the names or comments)."""
-
-    rays: int = 8  # stratified rays per axis and zone (R = rays**2)
-    rate_hz: float = 30.0
-    transfer_bytes: int = 4182  # 30 x 135 histogram packets + 132 result bytes
-    bus_hz: float = 400e3  # I2C clock
-    bits_per_byte: int = 9  # 8 data bits + ACK
+    rays: Annotated[int, Field(ge=1, le=64, description="rays per axis and zone")] = 8  # R = rays**2 per zone
+    # the TMF8820 measures at most a few tens of frames a second
+    rate_hz: Annotated[float, Field(ge=1.0, le=200.0, description="Hz")] = 30.0
+    # 30 x 135 histogram packets + 132 result bytes
+    transfer_bytes: Annotated[int, Field(ge=1, le=1 << 20, description="bytes")] = 4182
+    bus_hz: Annotated[float, Field(gt=0.0, le=1e8, description="Hz")] = 400e3  # I2C clock
+    bits_per_byte: Annotated[int, Field(ge=1, le=64, description="bits")] = 9  # 8 data bits + ACK
     noise: bool = True
-    ambient_range: tuple[float, float] = (60.0, 180.0)  # counts, per zone
-    drop_prob: float = 0.0
-    corrupt_prob: float = 0.0
-    spike_prob: float = 0.0  # probability that a frame's transfer stalls (latency spike)
-    spike_seconds: float = 0.25  # s, extra latency of a stalled transfer (later frames queue behind it)
-    seed: int = 0
-    max_range: float = 5.0  # m; farther surfaces are not seen
+    # per zone and bin; the sensor's bins hold 24-bit counts
+    ambient_range: Annotated[list[Annotated[float, Field(ge=0.0, le=1e6)]],
+                             Field(min_length=2, max_length=2, description="counts")] = \
+        Field(default_factory=lambda: [60.0, 180.0])
+    drop_prob: Annotated[float, Field(ge=0.0, le=1.0, description="(probability)")] = 0.0
+    corrupt_prob: Annotated[float, Field(ge=0.0, le=1.0, description="(probability)")] = 0.0
+    # probability that a frame's transfer stalls (latency spike)
+    spike_prob: Annotated[float, Field(ge=0.0, le=1.0, description="(probability)")] = 0.0
+    # extra latency of a stalled transfer (later frames queue behind it)
+    spike_seconds: Annotated[float, Field(ge=0.0, le=10.0, description="s")] = 0.25
+    seed: Annotated[int, Field(ge=0, le=2 ** 63 - 1, description="(seed)")] = 0
+    max_range: Annotated[float, Field(gt=0.0, le=100.0, description="m")] = 5.0  # farther surfaces are not seen
     params_file: str | None = None  # ForwardParams JSON; default sim/sensors/tmf8820_real.json
     distance_file: str | None = None  # DistanceMap JSON; default sim/sensors/tmf8820_real_distance.json
 
@@ -124,18 +119,6 @@ class ToFConfig:
     def latency(self) -> float:
         """Seconds from the end of a measurement until its data has crossed the bus."""
         return self.transfer_bytes * self.bits_per_byte / self.bus_hz
-
-    def __post_init__(self) -> None:
-        check_dataclass(self, TOF_BOUNDS, "sensor settings", SceneError)
-
-    @classmethod
-    def from_dict(cls, d: Any) -> "ToFConfig":
-        """Settings from a scenario's ``sensor`` object: unknown keys, wrong types and values outside
-        :data:`TOF_BOUNDS` are one-line :class:`~place_safe.sim.scene.SceneError` messages naming the field."""
-        return dataclass_from_dict(cls, d, TOF_BOUNDS, "sensor settings", SceneError)
-
-    def to_dict(self) -> dict:
-        return asdict(self)
 
 
 @dataclass

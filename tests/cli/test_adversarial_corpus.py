@@ -161,7 +161,8 @@ def config_kinds() -> dict[str, bytes]:
 OPTION_RUNS = [
     ["stream", "{good}", "--rate", "nan"], ["stream", "{good}", "--rate", "inf"], ["stream", "{good}", "--rate=-1"],
     ["stream", "{good}", "--queue", "0"], ["stream", "{good}", "--max-frames", "0"],
-    ["bench", "--frames=-1"], ["bench", "--memory-file=-5"], ["bench", "--frames", "1e3"],
+    ["bench", "recovery", "--frames=-1"], ["bench", "recovery", "--memory-file=-5"],
+    ["bench", "recovery", "--frames", "1e3"], ["bench", "sim", "--rays", "0"],
     ["demo", "--synthetic", "--frames", "0"], ["demo", "--seed=-1"],
     ["recover", "{good}", "--method", "peak", "--batch", "0"], ["recover", "{good}", "--method", "bogus"],
     ["evaluate", "{good}", "--min-distance", "nan"], ["evaluate", "{good}", "--max-distance", "inf"],
@@ -170,13 +171,18 @@ OPTION_RUNS = [
     ["calibrate", "{good}", "--method", "peak", "-o", "/dev/full"],  # read as an old calibration: no end, no size
     ["synth", "--frames", "100000000000000000000", "-o", "{tmp}/s.json"],  # built in memory: would never finish
 ]
+_TMP_OUT = ["--json", "{tmp}/r.json", "--log", "{tmp}/r.jsonl"]  # place writes both (default: the working folder)
 SIM_OPTION_RUNS = [
-    ["sim", "place", "--seconds", "0"], ["sim", "place", "--seconds", "nan"], ["sim", "place", "--method", "bogus"],
-    ["sim", "render", "--width", "0"], ["sim", "render", "--height=-3"], ["sim", "bench", "--rays", "0"],
-    ["sim", "place", "--config", "{placement-nan}"], ["sim", "place", "--config", "{placement-string}"],
-    ["sim", "place", "--config", "{placement-unknown}"], ["sim", "place", "--config", "{placement-binary}"],
-    ["sim", "place", "--scenario", "{scenario-unknown-sensor-key}"],
-    ["sim", "place", "--scenario", "{scenario-bad-table}"],
+    ["place", "--sim", "place_level", "--timeout", "0", *_TMP_OUT],
+    ["place", "--sim", "place_level", "--timeout", "nan", *_TMP_OUT],
+    ["place", "--sim", "place_level", "--method", "bogus", *_TMP_OUT],
+    ["sim", "render", "--width", "0"], ["sim", "render", "--height=-3"],
+    ["place", "--sim", "place_level", "--config", "{placement-nan}", *_TMP_OUT],
+    ["place", "--sim", "place_level", "--config", "{placement-string}", *_TMP_OUT],
+    ["place", "--sim", "place_level", "--config", "{placement-unknown}", *_TMP_OUT],
+    ["place", "--sim", "place_level", "--config", "{placement-binary}", *_TMP_OUT],
+    ["place", "--sim", "{scenario-unknown-sensor-key}", *_TMP_OUT],
+    ["place", "--sim", "{scenario-bad-table}", *_TMP_OUT],
 ]
 
 
@@ -337,9 +343,9 @@ NEW_OPTION_RUNS = [
     ["calibrate-mount", _SWEEP, "--table-height", "nan", "--method", "peak"],
     ["calibrate-mount", _SWEEP, "--sigma-angle", "1e300", "--method", "peak"],
     ["calibrate-mount", _SWEEP, "--sigma-mm", "0", "--method", "peak"],
-    ["sim", "place", "--seed=-1"], ["sim", "calibrate", "--frames", "1000000000"],
+    ["place", "--sim", "place_level", "--seed=-1", *_TMP_OUT], ["calibrate", "--sim", "nominal", "--frames", "1000000000"],
     ["sim", "render", "--distance", "1e300"], ["sim", "render", "--azimuth", "1e300"],
-    ["sensor", "bench", "--bus-hz", "1e-300"], ["sensor", "bench", "--frames", "1000000000"],
+    ["bench", "sensor", "--bus-hz", "1e-300"], ["bench", "sensor", "--frames", "1000000000"],
     ["sensor", "stream", "emu:synthetic:3", "--timeout", "1e300"], ["sensor", "info", "emu:synthetic:3",
                                                                      "--period-ms", "99999999"],
     ["stream", "{good}", "--rate", "1e-300"], ["synth", "--max-angle", "nan", "-o", "{tmp}/s.json"],
@@ -353,7 +359,7 @@ OUTPUT_RUNS = [
     ["capture", "--sim", "level_table", "--poses", "1", "-o", "{out}"],
     ["calibrate-mount", _SWEEP, "--method", "peak", "-q", "--json", "{out}"],
     ["calibrate-mount", _SWEEP, "--method", "peak", "-q", "--write", "{out}"],
-    ["scenarios", "level_30cm", "--quiet", "--json", "{out}"], ["sim", "place", "--seconds", "0.5", "--json", "{out}"],
+    ["scenarios", "level_30cm", "--quiet", "--json", "{out}"],
     ["sim", "render", "-o", "{out}"], ["synth", "--frames", "2", "-o", "{out}"],
     ["sensor", "record", "emu:synthetic:3", "--frames", "2", "-o", "{out}"],
     ["evaluate", "{good}", "--methods", "peak", "--no-plots", "-q", "--json", "{out}"],
@@ -380,7 +386,6 @@ def _second_round(root: Path, paths: dict[str, str]) -> list[tuple[str, list[str
         f = paths[name]
         runs += [
             (f"scenarios/{name}", ["scenarios", f, "--quiet"], True),
-            (f"sim-place-scenario/{name}", ["sim", "place", "--scenario", f, "--seconds", "0.5"], True),
             (f"place-sim/{name}", ["place", "--sim", f, "--timeout", "0.5", "--json", f"{out}/r.json", "--log",
                                    f"{out}/r.jsonl"], True),
             (f"capture-sim/{name}", ["capture", "--sim", f, "-o", f"{out}/cap-{name}.jsonl", "--poses", "1"], True),
@@ -410,7 +415,8 @@ def _second_round(root: Path, paths: dict[str, str]) -> list[tuple[str, list[str
             (f"place-sim-calibration/{name}", ["place", "--sim", "place_level", "--method", "peak", "--calibration",
                                                f, "--timeout", "0.5", "--json", f"{out}/r.json", "--log",
                                                f"{out}/r.jsonl"], True),
-            (f"sim-place-calibration/{name}", ["sim", "place", "--calibration", f, "--seconds", "0.5"], True),
+            (f"place-sim-calibration-diff/{name}", ["place", "--sim", "place_level", "--calibration", f, "--timeout",
+                                                    "0.5", "--json", f"{out}/r.json", "--log", f"{out}/r.jsonl"], True),
             (f"calibrate-mount-calibration/{name}", ["calibrate-mount", _SWEEP, "--calibration", f, "--method", "peak",
                                                      "-q"], False),
             (f"scenarios-calibration/{name}", ["scenarios", "level_30cm", "--calibration", f, "--quiet"], True),
@@ -420,7 +426,6 @@ def _second_round(root: Path, paths: dict[str, str]) -> list[tuple[str, list[str
         runs += [
             (f"place-sim-config/{name}", ["place", "--sim", "place_level", "--config", f, "--json", f"{out}/r.json",
                                           "--log", f"{out}/r.jsonl"], True),
-            (f"sim-place-config/{name}", ["sim", "place", "--config", f], True),
             (f"recover/{name}", ["recover", f, "--method", "peak", "--jsonl"], False),
             (f"calibrate-mount-capture/{name}", ["calibrate-mount", f, "--method", "peak"], False),
             (f"recover-calibration/{name}", ["recover", paths["good"], "--method", "peak", "--calibration", f], False),

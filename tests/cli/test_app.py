@@ -75,7 +75,8 @@ def test_recover_human_table(synthetic_file, capsys):
     out = capsys.readouterr().out
     assert rc == 0
     assert "theta deg" in out and "d mm" in out
-    assert len(out.splitlines()) == 1 + 8
+    assert out.startswith("UNCALIBRATED:")  # no --calibration: the first line says so (issue 27, item 6)
+    assert len(out.splitlines()) == 1 + 1 + 8
 
 
 def test_recover_jsonl_on_jsonl_input(tmp_path, synthetic_frames, capsys):
@@ -311,6 +312,7 @@ def test_demo_without_mujoco_falls_back_to_synthetic_recovery(monkeypatch, capsy
     assert main(["demo", "--frames", "2"]) == 0
     cap = capsys.readouterr()
     assert "MuJoCo is not installed" in cap.err
+    assert cap.out.startswith("UNCALIBRATED:")  # built-in constants: the first line says so (issue 27, item 6)
     for label in ("diff-fast", "peak", "proprietary"):
         assert label in cap.out
 

@@ -13,7 +13,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from place_safe.cli.app import UsageError, build_parser, main
+from place_safe.cli.app import build_parser, main
+from place_safe.cli.common import UsageError
 
 #: (command words, option, kind, lo, hi, lo_open): the documented range of each numeric option.
 OPTIONS = [
@@ -23,23 +24,24 @@ OPTIONS = [
     (["stream", "f.json"], "--rate", float, 0.0, 10000.0, True),
     (["stream", "f.json"], "--max-frames", int, 1, math.inf, False),
     (["stream", "f.json"], "--queue", int, 1, 10000, False),
-    (["bench"], "--frames", int, 1, 100000, False),
-    (["bench"], "--paper-frames", int, 0, 10000, False),
-    (["bench"], "--memory-file", int, 1, 1000000, False),
-    (["bench"], "--seed", int, 0, math.inf, False),
+    (["bench", "recovery"], "--frames", int, 1, 100000, False),
+    (["bench", "recovery"], "--paper-frames", int, 0, 10000, False),
+    (["bench", "recovery"], "--memory-file", int, 1, 1000000, False),
+    (["bench", "recovery"], "--seed", int, 0, math.inf, False),
+    (["bench", "sim"], "--seconds", float, 0.0, 3600.0, True),
+    (["bench", "sim"], "--rate", float, 1.0, 200.0, False),  # the simulated sensor's rate_hz (ToFConfig)
+    (["bench", "sim"], "--rays", int, 1, 64, False),
+    (["place", "--sim", "place_level"], "--timeout", float, 0.0, 3600.0, True),
+    (["place", "--sim", "place_level"], "--seed", int, 0, math.inf, False),
+    (["calibrate", "--sim", "nominal"], "--frames", int, 8, 1000, False),
     (["demo"], "--frames", int, 1, 100000, False),
     (["demo"], "--seed", int, 0, math.inf, False),
 ]
 SIM_OPTIONS = [
-    (["sim", "place"], "--seconds", float, 0.0, 3600.0, True),
-    (["sim", "place"], "--seed", int, 0, math.inf, False),
     (["sim", "render"], "--width", int, 16, 4096, False),
     (["sim", "render"], "--height", int, 16, 4096, False),
     (["sim", "render"], "--elevation", float, -90.0, 90.0, False),
     (["sim", "render"], "--distance", float, 0.0, math.inf, True),
-    (["sim", "bench"], "--seconds", float, 0.0, 3600.0, True),
-    (["sim", "bench"], "--rate", float, 0.0, 1000.0, True),
-    (["sim", "bench"], "--rays", int, 1, 64, False),
     (["sim", "validate", "f.json"], "--rays", int, 1, 64, False),
     (["sim", "validate", "f.json"], "--min-distance", float, 0.0, math.inf, False),
 ]

@@ -1,4 +1,4 @@
-"""place-safe robot bench / contact-bench: the rest noise measured and written to a robot file, one-line errors,
+"""place-safe bench robot / contact-bench: the rest noise measured and written to a robot file, one-line errors,
 and a refused connection is one line with ur_rtde's own chatter kept off the terminal."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ from place_safe.drivers.ur5 import URConfig, packaged_config
 
 def test_bench_on_the_fake_measures_cb3_noise_and_writes_the_setting(tmp_path, capsys):
     out = tmp_path / "mine.toml"
-    assert main(["robot", "bench", "--fake", "--robot", str(packaged_config("real")), "--seconds", "1",
+    assert main(["bench", "robot", "--fake", "--robot", str(packaged_config("real")), "--seconds", "1",
                  "--cycles", "20000", "--write", str(out)]) == 0
     text = capsys.readouterr().out
     assert "spread" in text and "false alarms" in text and "threshold" in text
@@ -19,7 +19,7 @@ def test_bench_on_the_fake_measures_cb3_noise_and_writes_the_setting(tmp_path, c
 
 
 def test_bench_needs_a_robot_file(capsys):
-    assert main(["robot", "bench"]) == 2
+    assert main(["bench", "robot"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--robot" in err[0]
 
@@ -30,7 +30,7 @@ def test_a_refused_connection_is_one_line(tmp_path, capfd):
     cfg.connection.connect_timeout_s = 3.0
     path = tmp_path / "local.toml"
     path.write_text(cfg.to_toml())
-    code = main(["robot", "bench", "--robot", str(path), "--seconds", "0.1"])
+    code = main(["bench", "robot", "--robot", str(path), "--seconds", "0.1"])
     out, err = capfd.readouterr()
     assert code != 0
     lines = [ln for ln in (out + err).splitlines() if ln.strip()]
@@ -39,7 +39,7 @@ def test_a_refused_connection_is_one_line(tmp_path, capfd):
 
 
 def test_contact_bench_small_run_reports_every_figure(capsys):
-    assert main(["robot", "contact-bench", "--descents", "1", "--touch-trials", "2", "--cycles", "20000",
+    assert main(["bench", "contact", "--descents", "1", "--touch-trials", "2", "--cycles", "20000",
                  "--height", "0.1", "-q"]) == 0
     text = capsys.readouterr().out
     assert "false alarms" in text and "guarded touches" in text and "1 descents of 10 cm" in text

@@ -40,7 +40,7 @@ def test_stream_saves_a_rerun_recording(tmp_path, capsys):
 
 def test_bench_prints_and_writes_figures(tmp_path, capsys):
     js = tmp_path / "bench.json"
-    assert main(["sensor", "bench", "--frames", "10", "--bus-hz", "400000", "--json", str(js), "-q"]) == 0
+    assert main(["bench", "sensor", "--frames", "10", "--bus-hz", "400000", "--json", str(js), "-q"]) == 0
     rows = json.loads(js.read_text())
     assert rows[0]["frames"] == 10 and rows[0]["bytes_per_frame"] >= rows[0]["transfer_min"]
     # one row per way of waiting (INT line, polling) and publish latency (0, 50, 200 us by default), frames/s
@@ -56,14 +56,14 @@ def test_bench_prints_and_writes_figures(tmp_path, capsys):
 
 def test_bench_help_explains_the_figures(capsys):
     with pytest.raises(SystemExit):
-        main(["sensor", "bench", "--help"])
+        main(["bench", "sensor", "--help"])
     text = " ".join(capsys.readouterr().out.split())
     assert "publish latency" in text and "bus limit" in text and "ceiling" in text
     assert "31 x L" in text and "START/STOP" in text  # the ceiling's arithmetic
 
 
 @pytest.mark.parametrize("argv, match", [
-    (["sensor", "bench", "--frames", "0"], "expected a whole number from 1 to 100000"),
+    (["bench", "sensor", "--frames", "0"], "expected a whole number from 1 to 100000"),
     (["sensor", "info", "file:x.json", "--patch", "p.hex"], "does not apply"),
     (["sensor", "info", "nope"], "not a source URI"),
     (["sensor", "info", "emu:synthetic:1", "--patch", "missing.hex"], "does not exist"),

@@ -1,4 +1,4 @@
-"""Tests of place_safe.evaluation.bench and ``place-safe bench``: timings, errors and memory figures."""
+"""Tests of place_safe.evaluation.bench and ``place-safe bench recovery``: timings, errors and memory figures."""
 
 from __future__ import annotations
 
@@ -62,7 +62,7 @@ def test_bench_command(tmp_path, capsys):
     from place_safe.cli.app import main
 
     out = tmp_path / "bench.json"
-    rc = main(["bench", "--frames", "2", "--methods", "peak", "--json", str(out), "-q"])
+    rc = main(["bench", "recovery", "--frames", "2", "--methods", "peak", "--json", str(out), "-q"])
     cap = capsys.readouterr()
     assert rc == 0, cap.err
     assert "peak" in cap.out and "frames/s" in cap.out
@@ -73,5 +73,5 @@ def test_bench_command(tmp_path, capsys):
 def test_bench_command_on_a_file(sweep_path, capsys):
     from place_safe.cli.app import main
 
-    assert main(["bench", str(sweep_path), "--frames", "5", "--methods", "peak", "-q"]) == 0
+    assert main(["bench", "recovery", str(sweep_path), "--frames", "5", "--methods", "peak", "-q"]) == 0
     assert "5 frames from" in capsys.readouterr().out

@@ -44,11 +44,12 @@ def test_tilted_table_is_refused_and_the_cup_kept(tmp_path):
     d["sensor"] = {"drop_prob": 1.0}  # a dead sensor link: refuse without a plane
     scen = tmp_path / "dead.json"
     scen.write_text(json.dumps(d))
-    assert main(["--scenario", str(scen), "--seconds", "5", "--json", str(out)]) == 1
+    log = ["--json", str(out), "--log", str(tmp_path / "t.jsonl")]  # python -m ...placement_run = place --sim
+    assert main([str(scen), "--timeout", "5", *log]) == 1
     dead = json.loads(out.read_text())
     assert dead["outcome"] == "refused" and dead["cup_held"] and dead["frames"] == 0
     assert "timeout" in dead["reason"] or "no surface plane" in dead["reason"]
-    assert main(["--scenario", str(tmp_path / "missing.json")]) == 2
+    assert main([str(tmp_path / "missing.json"), *log]) == 2
     assert scenario_path("place_level").name == "place_level.json"
 
 

@@ -29,4 +29,9 @@ def test_capture_and_place_commands_in_simulation(tmp_path, capsys):
     out = json.loads(res.read_text())
     assert code == 1 and out["outcome"] == "refused" and out["cup_held"], out["reason"]
     assert [json.loads(x)["to"] for x in log.read_text().splitlines()][-1] == "aborted"
-    assert out["calibration"] == "built-in defaults"
+    # one way to place in simulation (issue 27): the scenario's calibration, the simulated user calibration
+    assert out["calibration"].startswith("simulated user calibration") and out["calibrated"] is True
+    code = main(["place", "--sim", "place_level", "--method", "peak", "--calibration", "none", "--json", str(res),
+                 "--log", str(log)])
+    out = json.loads(res.read_text())  # no calibration: refused before anything moved, and it says why
+    assert code == 1 and out["calibrated"] is False and out["reason"].startswith("sensor not calibrated")

@@ -10,7 +10,7 @@ URIs open (:mod:`place_safe.sources`).
 Clocks (``clock_domain``):
 
 * ``"emulator"`` (default): virtual time; frames come as fast as the CPU allows while their timestamps and
-  the reported frame rate follow the emulated bus (used by tests and ``place-safe sensor bench``);
+  the reported frame rate follow the emulated bus (used by tests and ``place-safe bench sensor``);
 * ``"monotonic"`` (``realtime=True``): the host's clock; the bus takes real time (live commands);
 * ``"robot"`` (``clock=`` the simulation's time): the emulator follows the simulation. The host's bus
   transfers and waits run ahead of the simulation on the emulator's bus cursor; a frame is handed out

@@ -227,17 +227,19 @@ class MotionConfig(ConfigModel):
 
 
 def _detector(name: str) -> dict:
-    """The range of contact-detector setting ``name`` (:data:`~place_safe.robot.contact_detector.DETECTOR_BOUNDS`),
-    as pydantic field constraints (numbers as written in a robot file: not strict)."""
-    from place_safe.robot.contact_detector import DETECTOR_BOUNDS
+    """The range of contact-detector setting ``name`` (a field of
+    :class:`~place_safe.robot.contact_detector.DetectorSettings`), as pydantic field constraints (numbers as
+    written in a robot file: not strict)."""
+    from place_safe.config import field_constraints
+    from place_safe.robot.contact_detector import DetectorSettings
 
-    return {k: v for k, v in DETECTOR_BOUNDS[name].constraints().items() if k != "strict"}
+    return field_constraints(DetectorSettings, name)
 
 
 class ContactConfig(ConfigModel):
     """The contact detector on the TCP force estimate (:mod:`place_safe.robot.contact_detector`); each unset
     value takes the controller's default (CB3 about 3.6 N per axis per cycle, e-Series about 1 N).
-    ``place-safe robot bench --write`` measures ``noise_std`` on the arm at rest and writes it here."""
+    ``place-safe bench robot --write`` measures ``noise_std`` on the arm at rest and writes it here."""
 
     noise_std: float | None = Field(None, **_detector("noise_std"),
                                      description="N per axis per controller cycle at rest")
@@ -251,7 +253,7 @@ class ContactConfig(ConfigModel):
                                          description="N: the least threshold")
     lateral_sigmas: float | None = Field(None, **_detector("lateral_sigmas"),
                                           description="threshold factor for the vector norm")
-    measured: dict | None = Field(None, description="written by place-safe robot bench: what it measured")
+    measured: dict | None = Field(None, description="written by place-safe bench robot: what it measured")
 
     def settings(self, controller: str):
         """The :class:`~place_safe.robot.contact_detector.DetectorSettings` for ``controller``."""

@@ -1,0 +1,79 @@
+"""``place-safe bench``: every benchmark of the project, one sub-command each.
+
+* ``recovery``: speed and accuracy of the plane-recovery methods on the same frames (:mod:`place_safe.cli.sensing`);
+* ``latency``: per-frame wall time of ``recover`` measured from outside (:mod:`place_safe.cli.latency`);
+* ``sensor``: the TMF8820 driver over the emulated bus (:mod:`place_safe.cli.sensor`);
+* ``sim``: real-time factor of MuJoCo physics and the simulated sensor in lockstep (here; needs the [sim] extra);
+* ``robot`` and ``contact``: the arm's force noise at rest and the contact detector against it
+  (:mod:`place_safe.cli.robot_bench`).
+
+Benchmarks print figures anyone can rerun; tests assert behaviour, never timings.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+
+from place_safe.cli import options
+from place_safe.cli.common import FMT, UsageError
+
+SUB_COMMANDS = ("recovery", "latency", "sensor", "sim", "robot", "contact")
+
+
+def cmd_sim_bench(args: argparse.Namespace) -> int:
+    """``bench sim``: steps the scene for ``--seconds`` of sim time and prints the real-time factor."""
+    if importlib.util.find_spec("mujoco") is None:
+        raise UsageError("bench sim: the simulation needs MuJoCo, which is not installed: install the [sim] extra, "
+                         "e.g. pip install -e \".[sim]\"")
+    from place_safe.sim.bench import bench
+
+    res = bench(args.scene, args.rig, args.seconds, args.rate, args.rays)
+    print(f"{res['sim_seconds']:.2f} s sim in {res['wall_seconds']:.2f} s wall: real-time factor "
+          f"{res['real_time_factor']:.1f}x ({res['frames']} sensor frames at {args.rate:g} Hz, "
+          f"{res['physics_steps']} physics steps, {'UR5' if res['with_robot'] else 'rig'})")
+    return 0
+
+
+def add_sim_bench(sub) -> None:
+    b = sub.add_parser("sim", formatter_class=FMT, help="real-time factor of physics + simulated sensor in lockstep",
+                       description="Steps the scene for --seconds of sim time with the sensor measuring at --rate Hz "
+                                   "in lockstep and reports the real-time factor (sim time / wall time). Target >= 5. "
+                                   "Needs the [sim] extra.",
+                       epilog="example:\n  place-safe bench sim --seconds 5 --rate 30")
+    b.add_argument("--scene", help="scene JSON (default: level table)")
+    b.add_argument("--rig", action="store_true", help="sensor rig only (no robot); default: the UR5 holding the cup")
+    b.add_argument("--seconds", type=options.float_range(0.0, 3600.0, lo_open=True), default=5.0,
+                   help="sim seconds to run (default 5)")
+    rate = options.field_option("place_safe.sim.tof:ToFConfig", "rate_hz", "sensor frame rate, default 30")
+    rays = options.field_option("place_safe.sim.tof:ToFConfig", "rays", "stratified rays per axis and zone, default 8")
+    b.add_argument("--rate", type=rate, default=30.0, help=rate.help)
+    b.add_argument("--rays", type=rays, default=8, help=rays.help)
+    b.set_defaults(func=cmd_sim_bench)
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add ``place-safe bench {recovery,latency,sensor,sim,robot,contact}``."""
+    from place_safe.cli.latency import add_latency_bench
+    from place_safe.cli.robot_bench import add_robot_benches
+    from place_safe.cli.sensing import add_recovery_bench
+    from place_safe.cli.sensor import add_sensor_bench
+
+    p = subparsers.add_parser("bench", formatter_class=FMT, help="benchmarks: " + ", ".join(SUB_COMMANDS),
+                              description="Every benchmark, one sub-command each: recovery (speed and accuracy of "
+                                          "the recovery methods), latency (recover timed from outside), sensor (the "
+                                          "TMF8820 driver over the emulated bus), sim (MuJoCo real-time factor), "
+                                          "robot (the arm's force noise at rest) and contact (the contact detector "
+                                          "on the fake CB3). Figures anyone can rerun; tests never assert timings.",
+                              epilog="examples:\n  place-safe bench recovery --frames 20 --paper-frames 3\n"
+                                     "  place-safe bench sensor --frames 200\n  place-safe bench sim --rig\n"
+                                     "  place-safe bench contact --descents 20")
+    sub = p.add_subparsers(dest="bench_command", metavar="{" + ",".join(SUB_COMMANDS) + "}", required=True)
+    add_recovery_bench(sub)
+    add_latency_bench(sub)
+    add_sensor_bench(sub)
+    add_sim_bench(sub)
+    add_robot_benches(sub)
+
+
+__all__ = ["register", "cmd_sim_bench", "SUB_COMMANDS"]
