@@ -45,7 +45,7 @@ from typing import Sequence
 
 import numpy as np
 
-from place_safe.calibration.points import FAILED_FIT_ERROR, frame_point_errors
+from place_safe.calibration.point_errors import FAILED_FIT_ERROR, frame_point_errors
 from place_safe.recovery.points import PeakParams, fit_planes
 from place_safe.sensor.frame import N_ZONES, Frame
 from place_safe.sensor.histogram import find_peaks

@@ -14,15 +14,12 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from place_safe.exceptions import CalibrationError, FrameError, FrameFileError, PlaceSafeError
+from place_safe.exceptions import CalibrationError, FrameError, FrameFileError, PlaceSafeError, UsageError  # noqa: F401
+from place_safe.io.json_values import jsonable as _jsonable
 from place_safe.recovery import METHODS  # noqa: F401 - the one list of method names, for the commands
 
 PROG = "place-safe"
 CALIBRATE_METHODS = ("diff", "peak", "proprietary")
-
-
-class UsageError(PlaceSafeError):
-    """Bad command-line usage (exit status 2)."""
 
 
 class _Parser(argparse.ArgumentParser):
@@ -107,31 +104,6 @@ def _count_note(counts) -> str:
     if not total:
         return ""
     return f"{total} skipped: " + ", ".join(f"{n} {why}" for why, n in counts.most_common())
-
-
-def _jsonable(obj: Any) -> Any:
-    """Fit reports may hold numpy scalars/arrays or dataclasses; make them plain JSON."""
-    import dataclasses
-
-    import numpy as np
-
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _jsonable(obj.tolist())
-    if isinstance(obj, np.generic):
-        return _jsonable(obj.item())
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        return _jsonable(dataclasses.asdict(obj))
-    if hasattr(obj, "to_dict"):
-        return _jsonable(obj.to_dict())
-    if obj is None or isinstance(obj, (str, int, bool)):
-        return obj
-    return str(obj)
 
 
 def _summarise(report: Any, indent: str = "  ") -> list[str]:

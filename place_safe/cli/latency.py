@@ -15,7 +15,7 @@ EPILOG = """examples:
 
 
 def register(subparsers) -> None:
-    from place_safe.cli.app import METHODS
+    from place_safe.recovery import METHODS
     from place_safe.cli.options import int_range
 
     s = subparsers.add_parser(

@@ -123,7 +123,7 @@ def cmd_place(args: argparse.Namespace) -> int:
     from place_safe.placement.loop import PlacementLoop
     from place_safe.placement.machine import PlacementConfig
 
-    from place_safe.cli.app import UsageError
+    from place_safe.exceptions import UsageError
 
     cfg = PlacementConfig.load(args.config) if args.config else PlacementConfig()
     estimator, cal_note = _estimator(args.method, args.calibration, sim=bool(args.sim))
@@ -180,7 +180,7 @@ def cmd_place(args: argparse.Namespace) -> int:
 def cmd_capture(args: argparse.Namespace) -> int:
     from place_safe.calibration.capture import SweepPlan, capture_sweep, level_plane, touch_plane
 
-    from place_safe.cli.app import UsageError
+    from place_safe.exceptions import UsageError
 
     grid = len(args.distances) * len(args.incidences) * len(args.azimuths)
     if min(grid, args.poses or grid) * args.frames_per_pose > 100_000:
@@ -248,7 +248,7 @@ def cmd_calibrate_mount(args: argparse.Namespace) -> int:
     from place_safe.drivers.ur5.config import FrameConfig
     from place_safe.io.frame_file import load_frames
 
-    from place_safe.cli.app import UsageError
+    from place_safe.exceptions import UsageError
 
     robot_cfg = _robot_config(args.robot)
     truth = _mount_truth(args.truth) if args.truth else None  # every input checked before the fit runs

@@ -70,7 +70,7 @@ def register(subparsers) -> None:
 def cmd_scenarios(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from place_safe.cli.app import UsageError
+    from place_safe.exceptions import UsageError
     from place_safe.sim import suite
     from place_safe.sim.scenario import expand_paths, load_scenario, packaged_scenarios
 

@@ -47,59 +47,9 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         _log(f"calibrate {args.method}: {len(frames)} frames with ground truth" + (f" ({skipped})" if skipped else ""))
         if note:
             _log(note)
-    progress = not args.quiet
-    fitted: list[str] = []
-    if args.method in ("peak", "diff") and (args.method == "peak" or "peak" not in cal.sections):
-        from place_safe.calibration.points import fit_peak
+    from place_safe.calibration.fit import fit_method
 
-        if args.method == "diff" and not args.quiet:
-            _log("the diff method starts from the calibrated peak method: fitting the 'peak' section first")
-        params, report = fit_peak(frames, progress=progress)
-        cal.errors.pop("peak", None)
-        cal.sections["peak"] = params.to_dict()
-        cal.reports["peak"] = _jsonable(report)
-        fitted.append("peak")
-    if args.method == "proprietary":
-        from place_safe.calibration.points import fit_proprietary
-
-        params, report = fit_proprietary(frames, progress=progress)
-        cal.errors.pop("proprietary", None)
-        cal.sections["proprietary"] = params.to_dict()
-        cal.reports["proprietary"] = _jsonable(report)
-        fitted.append("proprietary")
-    if args.method == "diff":
-        from place_safe.calibration.forward_fit import fit_forward
-
-        params, report = fit_forward(frames, init=None, progress=progress)
-        from place_safe.calibration.forward_fit import fit_range_correction, select_model_error
-        from place_safe.recovery.differentiable import SolverOptions
-
-        if "peak" in fitted:  # the forward fit sees pile-up in the histograms' shapes: the peak method undoes it
-            from place_safe.calibration.points import adopt_pileup
-
-            peak, peak_report, adopted = adopt_pileup(frames, cal.peak(), cal.reports["peak"], params.pileup)
-            cal.reports["peak"] = _jsonable(peak_report)
-            if adopted:
-                cal.sections["peak"] = peak.to_dict()
-                if not args.quiet:
-                    _log(f"peak: undoing the forward fit's SPAD pile-up ({params.pileup:.3g} per count)")
-
-        params.model_error, report["model_error"] = select_model_error(frames, params, cal.peak(), progress=progress)
-        cal.errors.pop("forward", None)
-        cal.sections["forward"] = params.to_dict()
-        cal.reports["forward"] = _jsonable(report)
-        fitted.append("forward")
-
-        section, report = fit_range_correction(frames, params, cal.peak(), progress=progress)
-        cal.errors.pop("diff", None)
-        cal.sections["diff"] = {**section, "window_after_peak": SolverOptions().window_after_peak}
-        cal.reports["diff"] = _jsonable(report)
-        fitted.append("diff")
-    if args.method in ("peak", "diff"):
-        from place_safe.calibration.uncertainty import update_calibration
-
-        cal.reports["uncertainty"] = _jsonable(update_calibration(cal, frames, args.method))
-        fitted.append("uncertainty")
+    fitted = fit_method(cal, frames, args.method, progress=not args.quiet, log=None if args.quiet else _log)
     out.parent.mkdir(parents=True, exist_ok=True)
     cal.save(out)
     for name in fitted:

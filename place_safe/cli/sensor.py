@@ -48,7 +48,7 @@ def _add_source_options(p: argparse.ArgumentParser) -> None:
 
 
 def _open(args: argparse.Namespace, **extra: Any):
-    from place_safe.cli.app import UsageError
+    from place_safe.exceptions import UsageError
     from place_safe.sources import open_source
 
     scheme = args.uri.split(":", 1)[0]
@@ -138,7 +138,7 @@ def cmd_record(args: argparse.Namespace) -> int:
 
 
 def cmd_stream(args: argparse.Namespace) -> int:
-    from place_safe.cli.app import _estimator, _load_calibration
+    from place_safe.cli.common import _estimator, _load_calibration
     from place_safe.io.live import run_live
 
     cal = _load_calibration(args.calibration)

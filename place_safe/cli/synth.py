@@ -60,7 +60,7 @@ def register(subparsers) -> None:
 
 
 def cmd_synth(args: argparse.Namespace) -> int:
-    from place_safe.cli.app import UsageError, _log
+    from place_safe.cli.common import UsageError, _log
     from place_safe.io.frame_file import write_frames
 
     if not args.min_distance < args.max_distance:

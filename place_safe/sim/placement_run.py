@@ -246,16 +246,5 @@ def cmd_place(args: argparse.Namespace) -> int:
     return 0 if res.outcome == "released" else 1
 
 
-def main(argv: list[str] | None = None) -> int:
-    """``python -m place_safe.sim.placement_run ...``: the same as ``place-safe sim place ...``."""
-    from place_safe.cli.app import main as app_main
-
-    return app_main(["sim", "place", *(sys.argv[1:] if argv is None else argv)])
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
-
-
-__all__ = ["PlacementResult", "run_placement", "oracle_calibration", "scenario_path", "add_placement_command", "cmd_place", "main",
+__all__ = ["PlacementResult", "run_placement", "oracle_calibration", "scenario_path", "add_placement_command", "cmd_place",
            "CONTROL_PERIOD", "SETTLE_SECONDS"]

@@ -230,7 +230,7 @@ class Scenario(ConfigModel):
         if kind == "oracle":
             return oracle_calibration(), ORACLE_NOTE
         if kind == "sim":
-            from place_safe.sim.calibration_capture import calibration_file
+            from place_safe.sim.tof import calibration_file
 
             p = calibration_file(self.sensor.model)
             return Calibration.load(p), f"simulated user calibration ({p.name}: level sweep -> place-safe calibrate)"

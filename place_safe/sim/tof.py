@@ -60,6 +60,12 @@ def sensor_file(name: str) -> Path:
     return sim_sensors_dir() / name
 
 
+def calibration_file(sensor: str = "nominal") -> Path:
+    """Path of the packaged simulated user calibration of the simulated sensor ``sensor`` (``nominal`` or
+    ``mismatch``; made by :func:`place_safe.sim.calibration_capture.calibrate_sim`)."""
+    return sensor_file(f"calibration_{sensor}.json")
+
+
 def true_params() -> ForwardParams:
     """The simulated sensor's own forward parameters (fitted to the real sweep; not the estimators' defaults)."""
     return ForwardParams.load(sensor_file("tmf8820_real.json"))

@@ -10,7 +10,8 @@ import pytest
 
 pytest.importorskip("mujoco")
 
-from place_safe.sim.placement_run import main, run_placement, scenario_path  # noqa: E402
+from place_safe.cli import main  # noqa: E402
+from place_safe.sim.placement_run import run_placement, scenario_path  # noqa: E402
 
 SCENARIOS = Path(__file__).resolve().parents[2] / "scenarios"
 
@@ -44,9 +45,9 @@ def test_tilted_table_is_refused_and_the_cup_kept(tmp_path):
     d["sensor"] = {"drop_prob": 1.0}  # a dead sensor link: refuse without a plane
     scen = tmp_path / "dead.json"
     scen.write_text(json.dumps(d))
-    assert main(["--scenario", str(scen), "--seconds", "5", "--json", str(out)]) == 1
+    assert main(["sim", "place", "--scenario", str(scen), "--seconds", "5", "--json", str(out)]) == 1
     dead = json.loads(out.read_text())
     assert dead["outcome"] == "refused" and dead["cup_held"] and dead["frames"] == 0
     assert "timeout" in dead["reason"] or "no surface plane" in dead["reason"]
-    assert main(["--scenario", str(tmp_path / "missing.json")]) == 2
+    assert main(["sim", "place", "--scenario", str(tmp_path / "missing.json")]) == 2
     assert scenario_path("place_level").name == "place_level.json"
