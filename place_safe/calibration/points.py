@@ -17,7 +17,7 @@ from numpy.polynomial import chebyshev as cheb
 from scipy.optimize import minimize
 
 from place_safe.calibration.near_range import fit_near_range
-from place_safe.calibration.point_errors import FAILED_FIT_ERROR, frame_point_errors  # noqa: F401 - re-exported
+from place_safe.calibration.point_errors import frame_point_errors
 from place_safe.evaluation.metrics import angular_errors, linear_errors, point_errors
 from place_safe.exceptions import CalibrationError
 from place_safe.recovery.points import MM_PER_M, PeakParams, fit_planes

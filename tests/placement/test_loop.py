@@ -14,7 +14,9 @@ import numpy as np
 import pytest
 
 from place_safe.exceptions import SensorTimeout
-from place_safe.placement.loop import ClockMap, EstimatePipeline, PlacementLoop, PoseHistory
+from place_safe.io.pipeline import SensorPipeline
+from place_safe.placement.loop import PlacementLoop
+from place_safe.placement.time_alignment import ClockMap, PoseHistory
 from place_safe.placement.machine import PlacementConfig
 
 from placement_fakes import KinematicRobot, TruthEstimator, TruthSource
@@ -154,7 +156,7 @@ def test_pipeline_survives_an_estimator_that_raises():
 
             return Frame(np.zeros((9, 128)), np.ones(128), timestamp=0.0)
 
-    m = EstimatePipeline(One(), Boom()).take()
+    m = SensorPipeline(One(), Boom()).take()
     assert m is not None and m.estimate.plane is None and "solver bug" in m.estimate.reason
 
 
@@ -165,7 +167,7 @@ def test_pipeline_counts_timeouts():
         def read(self, timeout=1.0):
             raise SensorTimeout("nothing")
 
-    p = EstimatePipeline(Never(), None)
+    p = SensorPipeline(Never(), None)
     assert p.take() is None and p.timeouts == 1 and p.error is None
 
 
