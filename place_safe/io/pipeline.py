@@ -31,7 +31,7 @@ The same rules for every consumer; only the limits are the consumer's (:class:`F
 * **source error** (any other exception from ``read``, ``BaseException`` subclasses included): counted in
   ``errors``, its one-line description kept in ``error`` until a frame is estimated again; the reader waits a
   back-off (``backoff_start`` doubling to ``backoff_max``) while the error stands, then retries.
-  ``max_errors`` in a row end the pipeline and the first of them is kept in ``failure`` (the streams: 1, the
+  ``max_errors`` in a row end the pipeline and the last of them is kept in ``failure`` (the streams: 1, the
   command reports it; the placement loop: no limit, it refuses while ``error`` is set: a dead sensor).
 * **end** (``StopIteration``): the pipeline ends.
 * **blocked read** of a polled source (longer than ``read_bound``): a dead sensor (``error``), never a hung
