@@ -230,10 +230,11 @@ class Scenario(ConfigModel):
         if kind == "oracle":
             return oracle_calibration(), ORACLE_NOTE
         if kind == "sim":
-            from place_safe.sim.tof import calibration_file
+            from place_safe.sim.tof import calibration_file, simulated_calibration
 
             p = calibration_file(self.sensor.model)
-            return Calibration.load(p), f"simulated user calibration ({p.name}: level sweep -> place-safe calibrate)"
+            return (simulated_calibration(self.sensor.model),
+                    f"simulated user calibration ({p.name}: level sweep -> place-safe calibrate)")
         p = self._calibration_path()
         return Calibration.load(p), str(p)
 

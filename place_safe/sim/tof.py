@@ -41,6 +41,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from place_safe.calibration import Calibration
 from place_safe.config import Bound, check_dataclass, dataclass_from_dict
 from place_safe.exceptions import CalibrationError, NoPlaneError, SensorTimeout
 from place_safe.recovery.forward import ForwardModel, ForwardParams, ZoneRays, mount_rotation
@@ -64,6 +65,13 @@ def calibration_file(sensor: str = "nominal") -> Path:
     """Path of the packaged simulated user calibration of the simulated sensor ``sensor`` (``nominal`` or
     ``mismatch``; made by :func:`place_safe.sim.calibration_capture.calibrate_sim`)."""
     return sensor_file(f"calibration_{sensor}.json")
+
+
+def simulated_calibration(sensor: str = "nominal") -> Calibration:
+    """The packaged simulated user calibration of the simulated sensor ``sensor`` (``nominal`` or ``mismatch``):
+    what a user's ``place-safe capture`` + ``place-safe calibrate`` give, made in simulation (never the
+    simulator's own parameters; see :mod:`place_safe.sim.calibration_capture`)."""
+    return Calibration.load(calibration_file(sensor))
 
 
 def true_params() -> ForwardParams:
