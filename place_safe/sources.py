@@ -39,6 +39,11 @@ from typing import Any
 
 from place_safe.exceptions import ConfigError
 from place_safe.io.source import FrameSource
+from place_safe.drivers.tmf8820.emulated import EmulatedTMF8820
+from place_safe.drivers.tmf8820.hexfile import load_patch
+from place_safe.drivers.tmf8820.i2c import GpiodIntLine, TMF8820Source
+from place_safe.drivers.tmf8820.registers import DEFAULT_ADDRESS
+from place_safe.drivers.tmf8820.serial_bridge import BridgeSource
 
 SCHEMES = ("file", "i2c", "serial", "emu")
 #: Frames an ``emu:synthetic:N`` source may make (they are built in memory before the first read).
@@ -87,8 +92,6 @@ def _int(text: str, uri: str, what: str) -> int:
 
 
 def _int_line(spec: Any) -> Any:
-    from place_safe.drivers.tmf8820.i2c import GpiodIntLine
-
     if spec is None or hasattr(spec, "wait"):
         return spec
     chip, _, offset = str(spec).rpartition(":")
@@ -114,9 +117,6 @@ def open_source(uri: str, **options: Any) -> FrameSource:
         _check(uri, options, {"rate_hz", "loop", "realtime", "clock"})
         return FileReplaySource(rest, **options)
     if scheme == "i2c":
-        from place_safe.drivers.tmf8820.i2c import TMF8820Source
-        from place_safe.drivers.tmf8820.registers import DEFAULT_ADDRESS
-
         _check(uri, options, _DRIVER_OPTIONS)
         bus, addr = _split_at(rest, uri, "i2c:BUS@ADDRESS, e.g. i2c:/dev/i2c-1@0x41")
         address = DEFAULT_ADDRESS if addr is None else _int(addr, uri, "address")
@@ -127,8 +127,6 @@ def open_source(uri: str, **options: Any) -> FrameSource:
         opts["int_line"] = _int_line(opts.get("int_line"))
         return TMF8820Source(bus_arg, address, **opts)
     if scheme == "serial":
-        from place_safe.drivers.tmf8820.serial_bridge import BridgeSource
-
         _check(uri, options, {"address", "clock"})
         if Path(rest).is_file():
             return BridgeSource.open_log(rest, **options)
@@ -141,8 +139,6 @@ def open_source(uri: str, **options: Any) -> FrameSource:
 
 
 def _open_emulated(uri: str, inner: str, options: dict) -> FrameSource:
-    from place_safe.drivers.tmf8820.emulated import EmulatedTMF8820
-
     _check(uri, options, _DRIVER_OPTIONS | {"bus_hz", "realtime", "loop", "faults", "record", "tof", "emulator"})
     opts = dict(options)
     emu_kw = {k: opts.pop(k) for k in ("bus_hz", "faults", "record", "clock") if k in opts}
@@ -152,8 +148,6 @@ def _open_emulated(uri: str, inner: str, options: dict) -> FrameSource:
     emulator_kw = opts.pop("emulator", None)
     patch = opts.pop("patch", None)
     if isinstance(patch, (str, Path)):
-        from place_safe.drivers.tmf8820.hexfile import load_patch
-
         patch = load_patch(patch)
     kind, _, arg = inner.partition(":")
     if kind == "file":

@@ -43,6 +43,10 @@ import numpy as np
 from place_safe.evaluation.metrics import angular_errors, nees, point_errors  # noqa: F401 (nees: re-exported)
 from place_safe.recovery.estimator import PlaneEstimate, Uncertainty, tilt_offset
 from place_safe.sensor.frame import Frame
+from place_safe.calibration.near_range import near_range_std
+from place_safe.calibration.points import MIN_CALIBRATION_RANGE
+from place_safe.recovery.differentiable import DifferentiableEstimator
+from place_safe.recovery.peak import PeakEstimator
 
 
 def _nll(errors: np.ndarray, covs: np.ndarray, extra: np.ndarray) -> float:
@@ -153,10 +157,6 @@ def fit_peak_uncertainty(frames: Sequence[Frame], peak_params, min_range: float 
     scale are fitted on the frames beyond their last depth. The report's ``near_range`` holds the errors per
     depth and the mean NEES per dof of the closer frames with them (in sample for the floor; the errors are
     cross-validated)."""
-    from place_safe.calibration.near_range import near_range_std
-    from place_safe.calibration.points import MIN_CALIBRATION_RANGE
-    from place_safe.recovery.peak import PeakEstimator
-
     lo = MIN_CALIBRATION_RANGE if min_range is None else float(min_range)
     depths, stds, near = near_range_std(frames, peak_params)
     base = Uncertainty(near_depths=depths, near_range_std=stds)
@@ -179,8 +179,6 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
     """The diff method's chi-square limit (fallback to peak) and floor from frames with ground truth, for
     the solver ``options`` (:class:`~place_safe.recovery.differentiable.SolverOptions`; default: the
     solver's defaults): both depend on the bins the solver fits."""
-    from place_safe.recovery.differentiable import DifferentiableEstimator
-
     use = [f for f in frames if f.truth is not None]
     truths = [f.truth for f in use]
     est = DifferentiableEstimator(forward, peak_params, correction=correction, peak_uncertainty=peak_uncertainty,

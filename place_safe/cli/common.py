@@ -16,7 +16,9 @@ from typing import Any
 
 from place_safe.exceptions import CalibrationError, FrameError, FrameFileError, PlaceSafeError, UsageError  # noqa: F401
 from place_safe.io.json_values import jsonable as _jsonable
-from place_safe.recovery import METHODS  # noqa: F401 - the one list of method names, for the commands
+from place_safe.recovery import METHODS, make_estimator  # noqa: F401 - the one list of method names, for the commands
+from place_safe.io.frame_file import iter_frames
+from place_safe.io.input_file import input_file_problem
 
 PROG = "place-safe"
 CALIBRATE_METHODS = ("diff", "peak", "proprietary")
@@ -47,8 +49,6 @@ def not_a_file(path: str | Path) -> str | None:
 
     The checks of :func:`place_safe.io.input_file.input_file_problem` (no size limit here: the reader that
     opens the file applies its kind's limit)."""
-    from place_safe.io.input_file import input_file_problem
-
     return input_file_problem(path, None)
 
 
@@ -70,8 +70,6 @@ def _load_truth_frames(paths: Sequence[str], min_distance: float | None = None,
     outside the limits are skipped and counted; the note is empty when none was.
     """
     from collections import Counter
-
-    from place_safe.io.frame_file import iter_frames
 
     frames: list = []
     skipped: Counter = Counter()
@@ -134,8 +132,6 @@ def _summarise(report: Any, indent: str = "  ") -> list[str]:
 
 
 def _estimator(method: str, calibration, mode: str | None = None):
-    from place_safe.recovery import make_estimator
-
     options = {"mode": mode} if (method == "diff" and mode) else {}
     return make_estimator(method, calibration, **options)
 

@@ -8,6 +8,9 @@ from __future__ import annotations
 
 import argparse
 
+from place_safe.cli.options import int_range
+from place_safe.exceptions import FrameFileError, PlaceSafeError
+
 EPILOG = """examples:
   place-safe synth --frames 100 --seed 7 -o out/speed.json
   place-safe latency out/speed.json --method diff --calibration calib.json
@@ -16,8 +19,6 @@ EPILOG = """examples:
 
 def register(subparsers) -> None:
     from place_safe.recovery import METHODS
-    from place_safe.cli.options import int_range
-
     s = subparsers.add_parser(
         "latency", formatter_class=argparse.RawDescriptionHelpFormatter, epilog=EPILOG,
         help="per-frame wall time of `recover` measured from outside (median, p95)",
@@ -39,8 +40,6 @@ def cmd_latency(args: argparse.Namespace) -> int:
 
     from place_safe.cli.common import _load_calibration, not_a_file
     from place_safe.evaluation.bench import measure_recover_latency
-    from place_safe.exceptions import FrameFileError, PlaceSafeError
-
     if (why := not_a_file(args.file)) is not None:
         raise FrameFileError(f"frame file {args.file} {why}")
     _load_calibration(args.calibration)  # a bad calibration fails here with one line

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from place_safe.cli.options import float_range, int_range
+from place_safe.exceptions import ConfigError, UsageError
 
 _FMT = argparse.RawDescriptionHelpFormatter
 
@@ -92,8 +93,6 @@ def _mount_truth(path: str) -> Any:
     import numpy as np
 
     from place_safe.config import read_json
-    from place_safe.exceptions import ConfigError
-
     d = read_json(path, "mount truth", ConfigError)
     if not isinstance(d, dict) or "flange_T_sensor" not in d:
         got = "an object without it" if isinstance(d, dict) else f"a JSON {type(d).__name__}"
@@ -122,8 +121,6 @@ def _write_json(path: str, value: Any) -> None:
 def cmd_place(args: argparse.Namespace) -> int:
     from place_safe.placement.loop import PlacementLoop
     from place_safe.placement.machine import PlacementConfig
-
-    from place_safe.exceptions import UsageError
 
     cfg = PlacementConfig.load(args.config) if args.config else PlacementConfig()
     estimator, cal_note = _estimator(args.method, args.calibration, sim=bool(args.sim))
@@ -179,8 +176,6 @@ def cmd_place(args: argparse.Namespace) -> int:
 # ------------------------------------------------------------------------------------------------
 def cmd_capture(args: argparse.Namespace) -> int:
     from place_safe.calibration.capture import SweepPlan, capture_sweep, level_plane, touch_plane
-
-    from place_safe.exceptions import UsageError
 
     grid = len(args.distances) * len(args.incidences) * len(args.azimuths)
     if min(grid, args.poses or grid) * args.frames_per_pose > 100_000:
@@ -247,8 +242,6 @@ def cmd_calibrate_mount(args: argparse.Namespace) -> int:
     from place_safe.calibration.mount import fit_mount, flange_poses
     from place_safe.drivers.ur5.config import FrameConfig
     from place_safe.io.frame_file import load_frames
-
-    from place_safe.exceptions import UsageError
 
     robot_cfg = _robot_config(args.robot)
     truth = _mount_truth(args.truth) if args.truth else None  # every input checked before the fit runs

@@ -20,6 +20,7 @@ import sys
 from pathlib import Path
 
 from place_safe.cli.options import nonnegative_int, positive_float, positive_int
+from place_safe.exceptions import UsageError
 
 _FMT = argparse.RawDescriptionHelpFormatter
 
@@ -31,7 +32,6 @@ def _log(msg: str) -> None:
 def cmd_bench(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from place_safe.exceptions import UsageError
     from place_safe.drivers.ur5 import URConfig, URRobot
     from place_safe.evaluation.contact import format_settings_report, make_stand_in, rest_noise, settings_report
 

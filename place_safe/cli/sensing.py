@@ -21,6 +21,12 @@ from place_safe.exceptions import CalibrationError, FrameError, FrameFileError, 
 from place_safe.cli.common import (CALIBRATE_METHODS, METHODS, PROG, UsageError, _estimator, _FMT,
                                    _jsonable, _load_calibration, _load_truth_frames, _log, _progress, _summarise,
                                    not_a_file)
+from place_safe.evaluation.bench import DEFAULT_RUNS, measure_file_rss, report_json, run_bench
+from place_safe.evaluation.evaluate import evaluate
+from place_safe.io.frame_file import iter_frames
+from place_safe.io.live import run_live
+from place_safe.io.replay import FileReplaySource
+from place_safe.recovery.estimator import PlaneEstimate
 
 # ------------------------------------------------------------------------------------------------
 # calibrate
@@ -65,9 +71,6 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 # ------------------------------------------------------------------------------------------------
 def _recover_stream(path: str, estimator, batch: int) -> Iterator[tuple[int, Any]]:
     """(index, PlaneEstimate) for every entry of the file, in order, recovering ``batch`` frames at a time."""
-    from place_safe.recovery.estimator import PlaneEstimate
-    from place_safe.io.frame_file import iter_frames
-
     pending: list[tuple[int, Any]] = []
 
     def flush() -> Iterator[tuple[int, Any]]:
@@ -147,8 +150,6 @@ def cmd_recover(args: argparse.Namespace) -> int:
 # evaluate
 # ------------------------------------------------------------------------------------------------
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from place_safe.evaluation.evaluate import evaluate
-
     cal = _load_calibration(args.calibration)
     if args.min_distance is not None and args.max_distance is not None and args.min_distance > args.max_distance:
         raise UsageError(f"evaluate: --min-distance {args.min_distance:g} m exceeds --max-distance "
@@ -172,8 +173,6 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 # ------------------------------------------------------------------------------------------------
 def _warm_up(estimator, path: str) -> None:
     """Recover the file's first usable frame once, so first-call costs do not count as live latency."""
-    from place_safe.io.frame_file import iter_frames
-
     for f in iter_frames(path):
         if not isinstance(f, FrameError):
             estimator.estimate(f)
@@ -181,9 +180,6 @@ def _warm_up(estimator, path: str) -> None:
 
 
 def cmd_stream(args: argparse.Namespace) -> int:
-    from place_safe.io.replay import FileReplaySource
-    from place_safe.io.live import run_live
-
     cal = _load_calibration(args.calibration)
     est = _estimator(args.method, cal, args.mode)
 
@@ -207,8 +203,6 @@ def cmd_stream(args: argparse.Namespace) -> int:
 # bench
 # ------------------------------------------------------------------------------------------------
 def cmd_bench(args: argparse.Namespace) -> int:
-    from place_safe.evaluation.bench import DEFAULT_RUNS, measure_file_rss, report_json, run_bench
-
     cal = _load_calibration(args.calibration)
     if args.file:
         frames, _ = _load_truth_frames([args.file])

@@ -33,6 +33,8 @@ from pathlib import Path
 import numpy as np
 
 from place_safe.sensor.frame import Frame
+from place_safe.evaluation.metrics import angular_error, linear_error, point_error
+from place_safe.recovery import make_estimator
 
 #: Methods of the benchmark: (label, CLI method, estimator options), in the order they run. The paper
 #: mode runs after the fast mode, so torch is already warm, and skips its own warm-up estimate: its
@@ -150,8 +152,6 @@ def peak_rss_bytes() -> int:
 
 
 def _errors(est_plane, true_plane) -> tuple[float, float, float]:
-    from place_safe.evaluation.metrics import angular_error, linear_error, point_error
-
     return (float(np.degrees(angular_error(est_plane, true_plane))), float(linear_error(est_plane, true_plane)) * 1e3,
             float(point_error(est_plane, true_plane)) * 1e3)
 
@@ -194,8 +194,6 @@ def run_bench(frames: Sequence[Frame], calibration=None, paper_frames: int = 5,
               runs: Sequence[tuple[str, str, dict]] = DEFAULT_RUNS, source: str = "frames",
               progress: bool = False) -> BenchReport:
     """Benchmark each run (label, method, options) on ``frames`` (``diff-paper``: ``paper_frames`` spread evenly)."""
-    from place_safe.recovery import make_estimator
-
     results = []
     for label, method, options in runs:
         subset = _spread(frames, paper_frames) if options.get("mode") == "paper" else list(frames)

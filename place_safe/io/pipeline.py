@@ -54,7 +54,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from place_safe.exceptions import SensorTimeout
+from place_safe.exceptions import ArgumentTypeError, SensorTimeout
 from place_safe.io.source import FrameSource
 from place_safe.recovery.estimator import Estimator, PlaneEstimate
 
@@ -202,8 +202,6 @@ class _Buffer:
 def clock_domain_of(source: Any) -> str:
     """A source's ``clock_domain`` ("robot" or "monotonic", the default when it has none); any other value
     (or an attribute that raises) is an :class:`~place_safe.exceptions.ArgumentTypeError`."""
-    from place_safe.exceptions import ArgumentTypeError
-
     try:
         domain = getattr(source, "clock_domain", "monotonic")
     except BaseException as exc:  # noqa: BLE001 - a property that raises is a broken source

@@ -15,6 +15,7 @@ import time
 
 from place_safe.cli import options
 from place_safe.exceptions import FrameFileError, UsageError
+from place_safe.sim.bench import bench
 
 
 def add_sim_commands(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -163,8 +164,6 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from place_safe.sim.bench import bench
-
     res = bench(args.scene, args.rig, args.seconds, args.rate, args.rays)
     print(f"{res['sim_seconds']:.2f} s sim in {res['wall_seconds']:.2f} s wall: real-time factor "
           f"{res['real_time_factor']:.1f}x ({res['frames']} sensor frames at {args.rate:g} Hz, "

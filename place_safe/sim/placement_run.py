@@ -45,8 +45,14 @@ from place_safe.cli import options
 from place_safe.exceptions import RobotFault
 from place_safe.placement.loop import CONTROL_PERIOD, PlacementLoop
 from place_safe.placement.machine import PlacementConfig
-from place_safe.sim.scenario import oracle_calibration, scenario_path  # noqa: F401 - part of this module's API
-from place_safe.recovery import METHODS
+from place_safe.sim.scenario import (ORACLE_NOTE, Scenario, TruthRecorder, load_scenario, oracle_calibration,
+                                     scenario_path, surface_truth)  # noqa: F401 - part of this module's API
+from place_safe.recovery import METHODS, make_estimator
+from place_safe.calibration import Calibration, uncalibrated_reason
+from place_safe.robot.description import ur5_config
+from place_safe.sim import render as _render
+from place_safe.sim.scene import SceneConfig
+from place_safe.sim.world import sim_world
 
 #: s of simulation after the machine finished, for the cup and liquid to settle.
 SETTLE_SECONDS = 0.8
@@ -102,9 +108,6 @@ class PlacementResult:
 
 
 def _as_scenario(scenario: Any):
-    from place_safe.sim.scenario import Scenario, load_scenario
-    from place_safe.sim.scene import SceneConfig
-
     if isinstance(scenario, Scenario):
         return scenario
     if isinstance(scenario, SceneConfig):
@@ -113,10 +116,6 @@ def _as_scenario(scenario: Any):
 
 
 def _calibration(sc: Any, calibration: Any, oracle: bool) -> tuple[Any, str]:
-    from place_safe.calibration import Calibration
-
-    from place_safe.sim.scenario import ORACLE_NOTE, oracle_calibration
-
     if oracle:
         return oracle_calibration(), ORACLE_NOTE
     if calibration is None:
@@ -143,12 +142,6 @@ def run_placement(scenario: Any = "place_level", method: str | None = None, cali
     sensor's noise seed unless the scenario sets its own. ``config``: the placement thresholds
     (default: the scenario's).
     """
-    from place_safe.calibration import uncalibrated_reason
-    from place_safe.recovery import make_estimator
-    from place_safe.robot.description import ur5_config
-    from place_safe.sim.scenario import TruthRecorder, surface_truth
-    from place_safe.sim.world import sim_world
-
     wall0 = _time.perf_counter()
     sc = _as_scenario(scenario)
     name = sc.name or "scenario"
@@ -193,8 +186,6 @@ def run_placement(scenario: Any = "place_level", method: str | None = None, cali
     tilt = float(np.arccos(np.clip(cup_w[2, 2], -1.0, 1.0)))
     height = truth.cup_height()
     if render is not None:
-        from place_safe.sim import render as _render
-
         _render.save_png(_render.render_image(scene, robot.data, tof), render)
     decided = next((t for t in res.transitions if t["to"] in ("release", "refuse", "aborted")), None)
     t_dec = decided["time"] if decided is not None else None

@@ -27,11 +27,18 @@ from typing import Annotated, Any, Literal
 import numpy as np
 from pydantic import Field, field_validator, model_validator
 
-from place_safe.config import ConfigModel, parse_config
+from place_safe.config import ConfigModel, parse_config, read_config_file
 from place_safe.assets import scenarios_dir
 from place_safe.exceptions import ConfigError
 
 from place_safe.sim.tof_mismatch import MismatchConfig
+from place_safe.calibration import Calibration
+from place_safe.placement.machine import PlacementConfig
+from place_safe.recovery import METHODS
+from place_safe.robot.description import ur5_config
+from place_safe.robot.kinematics import Kinematics
+from place_safe.sim.scene import SceneConfig, SceneError
+from place_safe.sim.tof import ToFConfig, calibration_file, sensor_file, simulated_calibration
 
 #: m, the "time from 40 cm" reference height of the cup bottom above the surface (issue 12).
 REFERENCE_HEIGHT = 0.40
@@ -78,8 +85,6 @@ class SensorSection(ConfigModel):
     @model_validator(mode="after")
     def _in_simulator_bounds(self) -> "SensorSection":
         """Every setting within the simulated sensor's own ranges (sim.tof.TOF_BOUNDS), checked on load."""
-        from place_safe.sim.scene import SceneError
-
         try:
             self.tof_config(0)
         except SceneError as exc:
@@ -87,8 +92,6 @@ class SensorSection(ConfigModel):
         return self
 
     def tof_config(self, seed: int):
-        from place_safe.sim.tof import ToFConfig
-
         return ToFConfig(rays=self.rays, rate_hz=self.rate_hz, noise=self.noise, ambient_range=self.ambient_range,
                          drop_prob=self.drop_prob, corrupt_prob=self.corrupt_prob, spike_prob=self.spike_prob,
                          spike_seconds=self.spike_seconds, seed=seed if self.seed is None else self.seed)
@@ -174,8 +177,6 @@ class Scenario(ConfigModel):
 
     @model_validator(mode="after")
     def _check_parts(self) -> "Scenario":
-        from place_safe.recovery import METHODS
-
         self.scene_config()  # raises with the scene's own message
         if self.calibration not in CALIBRATION_KINDS:  # a calibration file: there and readable before any run
             from place_safe.io.input_file import input_file_problem
@@ -190,8 +191,6 @@ class Scenario(ConfigModel):
     # -- the parts as the simulation needs them --------------------------------------------------
     def scene_config(self):
         """The :class:`~place_safe.sim.scene.SceneConfig` (always with the robot)."""
-        from place_safe.sim.scene import SceneConfig, SceneError
-
         d = dict(self.scene)
         start_height = d.pop("start_height", None)
         try:
@@ -213,8 +212,6 @@ class Scenario(ConfigModel):
         return cfg
 
     def placement_config(self):
-        from place_safe.placement.machine import PlacementConfig
-
         try:
             return PlacementConfig.from_dict({**PlacementConfig().to_dict(), **self.placement})
         except (TypeError, ValueError) as exc:
@@ -222,16 +219,12 @@ class Scenario(ConfigModel):
 
     def resolve_calibration(self, method: str | None = None) -> tuple[Any, str]:
         """(Calibration or None, note naming where it came from). ``none`` gives (None, 'uncalibrated')."""
-        from place_safe.calibration import Calibration
-
         kind = self.calibration
         if kind == "none":
             return None, "uncalibrated"
         if kind == "oracle":
             return oracle_calibration(), ORACLE_NOTE
         if kind == "sim":
-            from place_safe.sim.tof import calibration_file, simulated_calibration
-
             p = calibration_file(self.sensor.model)
             return (simulated_calibration(self.sensor.model),
                     f"simulated user calibration ({p.name}: level sweep -> place-safe calibrate)")
@@ -275,18 +268,12 @@ def oracle_calibration():
     """The simulator's own parameters as a calibration: only for ``--oracle`` debugging runs."""
     import json
 
-    from place_safe.calibration import Calibration
-    from place_safe.sim.tof import sensor_file
-
     return Calibration({"forward": json.loads(sensor_file("tmf8820_real.json").read_text())})
 
 
 def home_cup_position(scene_cfg) -> np.ndarray:
     """World position of the cup bottom with the UR5 at home (from the kinematic model, not the simulator)."""
     from scipy.spatial.transform import Rotation
-
-    from place_safe.robot.kinematics import Kinematics
-    from place_safe.robot.description import ur5_config
 
     global _HOME_CUP
     if _HOME_CUP is None:
@@ -324,7 +311,6 @@ def scenario_path(name: str | Path) -> Path:
 def load_scenario(name: str | Path) -> Scenario:
     """Read and validate a scenario file (TOML or JSON); one-line ConfigError on any problem."""
     p = scenario_path(name)
-    from place_safe.config import read_config_file
 
     data = read_config_file(p, "scenario")
     if isinstance(data, dict):
