@@ -44,6 +44,7 @@ from place_safe.drivers.tmf8820.hexfile import load_patch
 from place_safe.drivers.tmf8820.i2c import GpiodIntLine, TMF8820Source
 from place_safe.drivers.tmf8820.registers import DEFAULT_ADDRESS
 from place_safe.drivers.tmf8820.serial_bridge import BridgeSource
+from place_safe.io.replay import FileReplaySource
 
 SCHEMES = ("file", "i2c", "serial", "emu")
 #: Frames an ``emu:synthetic:N`` source may make (they are built in memory before the first read).
@@ -112,8 +113,6 @@ def open_source(uri: str, **options: Any) -> FrameSource:
     if not rest:
         raise ConfigError(f"source {uri!r}: nothing after '{scheme}:'")
     if scheme == "file":
-        from place_safe.io.replay import FileReplaySource
-
         _check(uri, options, {"rate_hz", "loop", "realtime", "clock"})
         return FileReplaySource(rest, **options)
     if scheme == "i2c":
@@ -151,8 +150,6 @@ def _open_emulated(uri: str, inner: str, options: dict) -> FrameSource:
         patch = load_patch(patch)
     kind, _, arg = inner.partition(":")
     if kind == "file":
-        from place_safe.io.replay import FileReplaySource
-
         if not arg:
             raise ConfigError(f"source {uri!r}: expected emu:file:PATH")
         feed: Any = FileReplaySource(arg, realtime=False, loop=loop)

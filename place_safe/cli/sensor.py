@@ -22,6 +22,9 @@ from place_safe.cli.live_view import RerunView
 from place_safe.drivers.tmf8820 import bench
 from place_safe.exceptions import ConfigError, SensorTimeout, UsageError
 from place_safe.sources import open_source
+from place_safe.cli.common import _estimator, _load_calibration
+from place_safe.io.frame_file import write_frames
+from place_safe.io.live import run_live
 
 #: Hz: an emulated I2C clock (standard 100 kHz .. high-speed 3.4 MHz, and slower buses down to 10 kHz).
 BUS_HZ = float_range(1e4, 3.4e6)
@@ -91,8 +94,6 @@ def cmd_info(args: argparse.Namespace) -> int:
 def cmd_record(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from place_safe.io.frame_file import write_frames
-
     out = Path(args.output)
     if out.exists() and not args.force:
         raise ConfigError(f"{out} exists; use --force to overwrite it")
@@ -134,9 +135,6 @@ def cmd_record(args: argparse.Namespace) -> int:
 
 
 def cmd_stream(args: argparse.Namespace) -> int:
-    from place_safe.cli.common import _estimator, _load_calibration
-    from place_safe.io.live import run_live
-
     cal = _load_calibration(args.calibration)
     est = _estimator(args.method, cal)
     view = None

@@ -35,6 +35,7 @@ import numpy as np
 from place_safe.sensor.frame import Frame
 from place_safe.evaluation.metrics import angular_error, linear_error, point_error
 from place_safe.recovery import make_estimator
+from place_safe.io.frame_file import write_frames
 
 #: Methods of the benchmark: (label, CLI method, estimator options), in the order they run. The paper
 #: mode runs after the fast mode, so torch is already warm, and skips its own warm-up estimate: its
@@ -231,7 +232,6 @@ def _child_rss(cmd: list[str], stdout_path: Path) -> tuple[int, float, int]:
 
 def write_synthetic_file(path: Path, n: int, distinct: int = 16, seed: int = 0) -> int:
     """Write ``n`` synthetic frames (``distinct`` rendered ones repeated) as a JSON list; returns bytes."""
-    from place_safe.io.frame_file import write_frames
     from place_safe.evaluation.synthetic import make_frames
 
     base = make_frames(min(distinct, n), seed=seed)

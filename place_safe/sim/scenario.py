@@ -39,6 +39,7 @@ from place_safe.robot.description import ur5_config
 from place_safe.robot.kinematics import Kinematics
 from place_safe.sim.scene import SceneConfig, SceneError
 from place_safe.sim.tof import ToFConfig, calibration_file, sensor_file, simulated_calibration
+from place_safe.io.input_file import input_file_problem
 
 #: m, the "time from 40 cm" reference height of the cup bottom above the surface (issue 12).
 REFERENCE_HEIGHT = 0.40
@@ -179,7 +180,6 @@ class Scenario(ConfigModel):
     def _check_parts(self) -> "Scenario":
         self.scene_config()  # raises with the scene's own message
         if self.calibration not in CALIBRATION_KINDS:  # a calibration file: there and readable before any run
-            from place_safe.io.input_file import input_file_problem
 
             if (why := input_file_problem(self._calibration_path())) is not None:
                 raise ValueError(f"calibration file {self.calibration} {why}")
@@ -290,8 +290,6 @@ _HOME_CUP: np.ndarray | None = None
 # ---------------------------------------------------------------------------------------------
 def scenario_path(name: str | Path) -> Path:
     """A scenario file: a path, or the name of a packaged one (``place_level``, ``level_30cm.toml``)."""
-    from place_safe.io.input_file import input_file_problem
-
     if not isinstance(name, (str, Path)):
         raise ConfigError(f"scenario must be a file path or a packaged name, got {type(name).__name__}")
     p = Path(name)

@@ -31,6 +31,7 @@ from place_safe.sim.scenario import (Expectation, ON_TABLE_TOL, REFERENCE_HEIGHT
 from place_safe.exceptions import PlaceSafeError
 from place_safe.placement.machine import PlacementConfig
 from place_safe.sim.scene import SceneConfig
+from place_safe.sim.placement_run import run_placement
 
 #: N: a contact at least this hard counts as a collision in the summary (half the robot's 60 N protective stop;
 #: arrival on the surface stays under about 15 N).
@@ -178,7 +179,6 @@ def run_one(item: dict) -> dict:
     import os
 
     os.environ.setdefault("MUJOCO_GL", "egl")
-    from place_safe.sim.placement_run import run_placement
     src = item["scenario"]
     sc = Scenario.model_validate(src) if isinstance(src, dict) else load_scenario(src)
     try:
