@@ -16,5 +16,5 @@ with robot:
     result = PlacementLoop(robot, sensor, estimator, robot.tool, PlacementConfig()).run(timeout=20.0)
 print(f"{result.outcome}: {result.reason}")
 for t in result.transitions:
-    print(f"  t={t['time']:6.3f} s  {t['from']:>8} -> {t['to']:<8} {t['reason']}")
+    print(f"  t={t.time:6.3f} s  {t.source.value:>8} -> {t.target.value:<8} {t.reason}")
 sys.exit(0 if result.outcome in ("released", "refused") else 1)

@@ -160,11 +160,11 @@ def cmd_place(args: argparse.Namespace) -> int:
         out.pop("frame_log", None)
     with open(args.log, "w", encoding="utf-8") as fh:
         for tr in res.transitions:
-            fh.write(json.dumps(tr) + "\n")
+            fh.write(json.dumps(tr.to_dict()) + "\n")
     _write_json(args.json, out)
     print(f"{where}: {res.outcome.upper()} ({res.reason})")
     for tr in res.transitions:
-        print(f"  t={tr['time']:7.3f} s  {tr['from']:>8} -> {tr['to']:<8} {tr['reason']}")
+        print(f"  t={tr.time:7.3f} s  {tr.source.value:>8} -> {tr.target.value:<8} {tr.reason}")
     if extra:
         print(f"  cup {'held' if extra['cup_held'] else 'released'}, liquid spilled {extra['liquid_spilled']}")
     _log(f"wrote {args.json} and {args.log}")

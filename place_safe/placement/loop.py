@@ -50,7 +50,7 @@ from place_safe.geometry import Plane
 from place_safe.io.pipeline import (INTERRUPTS, PLACEMENT_POLICY, READ_BOUND, FrameGate, Measurement, SensorPipeline,
                                     clock_domain_of, describe_exception, is_interrupt_here)
 from place_safe.io.source import FrameSource
-from place_safe.placement.machine import CommandKind, PlacementConfig, PlacementMachine, RobotState
+from place_safe.placement.machine import CommandKind, PlacementConfig, PlacementMachine, RobotState, Transition
 from place_safe.placement.time_alignment import ClockMap, PoseHistory
 from place_safe.recovery.estimator import Estimator, PlaneEstimate
 from place_safe.recovery.points import PeakParams, fit_planes, plane_covariance
@@ -89,11 +89,15 @@ class LoopResult:
     planes: int  # planes the fusion accepted
     dropped: dict[str, int] = field(default_factory=dict)  # frames not used, by reason
     contact_force_peak: float = 0.0
-    transitions: list[dict] = field(default_factory=list)
+    transitions: list[Transition] = field(default_factory=list)  # the machine's log, in order
     frame_log: list[dict] = field(default_factory=list)
 
     def to_dict(self) -> dict:
-        return dict(self.__dict__)
+        """JSON form (what ``place --json`` writes; docs/interfaces.md): transitions as
+        ``{"time", "from", "to", "reason"}`` objects."""
+        d = dict(self.__dict__)
+        d["transitions"] = [t.to_dict() for t in self.transitions]
+        return d
 
 
 class PlacementLoop:
@@ -457,7 +461,7 @@ class PlacementLoop:
                           robot_seconds=float(now - t0) if math.isfinite(now - t0) else math.nan,
                           ticks=self.ticks, frames=self.frames, frames_used=self.frames_used,
                           planes=self.filter.count, dropped=dict(self.dropped), contact_force_peak=self.force_peak,
-                          transitions=[t.to_dict() for t in mach.log], frame_log=list(self.frame_log))
+                          transitions=list(mach.log), frame_log=list(self.frame_log))
 
 
 #: s: the longest robot time one :meth:`PlacementLoop.run` may be given (a placement takes seconds).

@@ -187,14 +187,14 @@ def run_placement(scenario: Any = "place_level", method: str | None = None, cali
     height = truth.cup_height()
     if render is not None:
         _render.save_png(_render.render_image(scene, robot.data, tof), render)
-    decided = next((t for t in res.transitions if t["to"] in ("release", "refuse", "aborted")), None)
-    t_dec = decided["time"] if decided is not None else None
+    decided = next((t for t in res.transitions if t.target.value in ("release", "refuse", "aborted")), None)
+    t_dec = decided.time if decided is not None else None
     t_ref = truth.t_reference
     return PlacementResult(
         outcome=res.outcome, reason=res.reason, final_phase=res.final_phase, cup_tilt=tilt, cup_height=height,
         cup_held=robot.holding(), liquid_spilled=robot.liquid_spilled(), liquid_total=liquid_total,
         contact_force_peak=max(res.contact_force_peak, getattr(robot, "true_force_peak", 0.0)), sim_seconds=robot.time(), wall_seconds=_time.perf_counter() - wall0,
-        frames=res.frames, planes=res.planes, transitions=res.transitions, frame_log=res.frame_log,
+        frames=res.frames, planes=res.planes, transitions=[t.to_dict() for t in res.transitions], frame_log=res.frame_log,
         release_height=truth.release_height, decision_time=(t_dec - t_ref) if (t_dec is not None and t_ref is not None)
         else None, surface_moved=truth.surface_moved, fault_injected=truth.stop_injected,
         robot_fault=robot.fault(), **common)

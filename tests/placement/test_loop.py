@@ -32,7 +32,7 @@ def test_level_table_is_released_near_the_surface():
     assert res.outcome == "released", res.reason
     assert robot.opened and 0.0 <= robot.opened_at <= PlacementConfig().release_clearance + 1e-6
     assert res.frames_used > 5 and res.planes == res.frames_used
-    assert [t["to"] for t in res.transitions][-1] == "done"
+    assert [t.target.value for t in res.transitions][-1] == "done"
 
 
 def test_sensor_frozen_after_the_stop_never_releases():
@@ -238,7 +238,7 @@ def test_level_table_release_happens_over_the_landing_spot_after_the_survey():
     loop, res = run(robot, TruthSource(robot))
     assert res.outcome == "released", res.reason
     assert np.linalg.norm(robot.tcp_pose()[:2, 3] - start) <= 0.002
-    assert any("observ" in t["reason"] or t["to"] == "check" for t in res.transitions)
+    assert any("observ" in t.reason or t.target.value == "check" for t in res.transitions)
 
 
 def test_surface_map_tolerance_is_tight_only_for_a_calibrated_peak_mapping():
