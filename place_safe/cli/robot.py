@@ -203,10 +203,7 @@ def cmd_capture(args: argparse.Namespace) -> int:
             raise UsageError("capture: --touch moves the arm; with --dry-run give --table-height instead")
         from place_safe.drivers.ur5 import URRobot
 
-        from place_safe.drivers.ur5.config import placement_config
-
         robot = URRobot(robot_cfg, dry_run=args.dry_run)
-        cfg = placement_config(robot_cfg, cfg)  # near-surface speed and stop decelerations of the robot file
         source = open_sensor(args.sensor)
     tool = robot_cfg.tool.frames()
     with robot:
