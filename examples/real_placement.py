@@ -10,23 +10,19 @@ surface and the stop decelerations come from the robot file (``[motion]``, ``[li
 
 import sys
 
-from place_safe import Calibration, PlacementConfig, PlacementLoop, make_estimator
+from place_safe import (Calibration, PlacementConfig, PlacementLoop, URConfig, URRobot, make_estimator, open_source,
+                        placement_config)
 
 
 def place(robot, sensor, estimator, config=None, timeout=30.0):
     """One placement; the robot and the sensor are opened and closed here."""
     if config is None:
-        from place_safe.drivers.ur5.config import placement_config
-
         config = placement_config(robot.config) if hasattr(robot, "config") else PlacementConfig()
     with sensor, robot:  # the sensor first: the robot's watchdog is armed by the first motion
         return PlacementLoop(robot, sensor, estimator, robot.tool, config).run(timeout=timeout)
 
 
 if __name__ == "__main__":
-    from place_safe.drivers.ur5 import URConfig, URRobot
-    from place_safe.sources import open_source
-
     robot_file, sensor_uri, calibration_file = sys.argv[1:4]
     robot = URRobot(URConfig.load(robot_file), dry_run="--dry-run" in sys.argv)
     result = place(robot, open_source(sensor_uri), make_estimator("diff", Calibration.load(calibration_file)))

@@ -6,17 +6,15 @@ The robot, the sensor and the calibration are the simulation's; everything else 
 
 import sys
 
-from place_safe import Calibration, PlacementConfig, PlacementLoop, make_estimator
-from place_safe.sim.calibration_capture import calibration_file
-from place_safe.sim.world import sim_world
+from place_safe import PlacementConfig, PlacementLoop, make_estimator, sim_world, simulated_calibration
 
 world = sim_world(sys.argv[1] if len(sys.argv) > 1 else "place_level")  # scene, SimRobot, simulated TMF8820
 robot, sensor = world.robot, world.tof
-calibration = Calibration.load(calibration_file("nominal"))  # a user's: capture -> place-safe calibrate
+calibration = simulated_calibration("nominal")  # a user's: capture -> place-safe calibrate, made in simulation
 estimator = make_estimator("diff", calibration)
 with robot:
     result = PlacementLoop(robot, sensor, estimator, robot.tool, PlacementConfig()).run(timeout=20.0)
 print(f"{result.outcome}: {result.reason}")
 for t in result.transitions:
-    print(f"  t={t['time']:6.3f} s  {t['from']:>8} -> {t['to']:<8} {t['reason']}")
+    print(f"  t={t.time:6.3f} s  {t.source.value:>8} -> {t.target.value:<8} {t.reason}")
 sys.exit(0 if result.outcome in ("released", "refused") else 1)

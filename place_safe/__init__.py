@@ -1,9 +1,11 @@
 """place_safe: put a held object down safely, sensing the surface with a TMF8820's transient histograms.
 
-The names a task script needs are importable from here (loaded on first use, so ``import place_safe``
-stays light)::
+The names a task script needs are importable from here (each loaded on first use, so ``import place_safe``
+stays light and needs neither MuJoCo nor ur_rtde; a name whose extra is not installed fails when it is used)::
 
     from place_safe import PlacementLoop, PlacementConfig, Calibration, make_estimator, ToolFrames
+    from place_safe import open_source, URRobot, URConfig, placement_config     # the real arm ([hw] extra)
+    from place_safe import sim_world, simulated_calibration                      # MuJoCo ([sim] extra)
 
 Flow: a :class:`FrameSource` (sensor driver, emulator, simulated sensor or file) gives :class:`Frame` s;
 an estimator (:func:`make_estimator`: ``diff``, ``peak``, ``proprietary``) turns each into a plane; a
@@ -45,6 +47,13 @@ _EXPORTS = {
     "Robot": "place_safe.robot.interface",
     "RobotLimits": "place_safe.robot.interface",
     "ToolFrames": "place_safe.robot.tool",
+    "SensorPipeline": "place_safe.io.pipeline",
+    "open_source": "place_safe.sources",
+    "URRobot": "place_safe.drivers.ur5.rtde_robot",
+    "URConfig": "place_safe.drivers.ur5.config",
+    "placement_config": "place_safe.drivers.ur5.config",
+    "sim_world": "place_safe.sim.world",
+    "simulated_calibration": "place_safe.sim.tof",
     "PlaceSafeError": "place_safe.exceptions",
     "FrameError": "place_safe.exceptions",
     "CalibrationError": "place_safe.exceptions",

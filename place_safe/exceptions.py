@@ -39,3 +39,8 @@ class SensorError(PlaceSafeError, RuntimeError):
 
 class ArgumentTypeError(PlaceSafeError, TypeError):
     """A library function or constructor got an argument of the wrong type; the message says what it expected."""
+
+
+class UsageError(PlaceSafeError):
+    """Bad command-line usage (exit status 2). Defined here, not in the command line, so that every part that
+    parses arguments (the ``place-safe`` commands, the simulation's sub-commands) raises the one class."""

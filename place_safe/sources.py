@@ -17,9 +17,10 @@ URIs
 ``emu:SOURCE``
     The I2C driver over the register-level emulator
     (:class:`~place_safe.drivers.tmf8820.emulated.EmulatedTMF8820`) fed by SOURCE: ``file:PATH`` (a
-    frame file), ``synthetic[:N]`` (N synthetic frames, 1..100000, default 100), ``scenario:NAME`` or ``NAME`` (the
-    simulated sensor over a packaged scenario's table, needs the [sim] extra) or ``sim`` (the simulated
-    sensor passed as option ``tof``, clocked by its simulation: ``clock_domain`` "robot"). Options
+    frame file), ``synthetic[:N]`` (N synthetic frames, 1..100000, default 100), ``sim`` (the simulated
+    sensor passed as option ``tof``, clocked by its simulation: ``clock_domain`` "robot"), or a feed
+    another package registers (:func:`register_feed`): the simulation registers ``scenario:NAME`` (the
+    simulated sensor over a packaged scenario's table, needs the [sim] extra; ``NAME`` alone means the same). Options
     ``bus_hz`` (default 400 kHz), ``realtime`` (default True: frames at the pace of the emulated bus on
     the host clock; False: virtual time), ``loop``, ``faults``, ``patch``, ``record``, ``clock``, and
     the driver's options (``period_ms``, ``kilo_iterations``, ...).
@@ -31,17 +32,37 @@ A malformed URI or an option the source does not take raises a one-line
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from importlib.metadata import entry_points
 from pathlib import Path
 from typing import Any
 
 from place_safe.exceptions import ConfigError
 from place_safe.io.source import FrameSource
+from place_safe.drivers.tmf8820.emulated import EmulatedTMF8820
+from place_safe.drivers.tmf8820.hexfile import load_patch
+from place_safe.drivers.tmf8820.i2c import GpiodIntLine, TMF8820Source
+from place_safe.drivers.tmf8820.registers import DEFAULT_ADDRESS
+from place_safe.drivers.tmf8820.serial_bridge import BridgeSource
+from place_safe.io.replay import FileReplaySource
 
 SCHEMES = ("file", "i2c", "serial", "emu")
 #: Frames an ``emu:synthetic:N`` source may make (they are built in memory before the first read).
 MAX_SYNTHETIC = 100_000
 #: Baud rates a serial port is opened with (bit/s): what USB-serial bridges offer.
 BAUD_RANGE = (300, 4_000_000)
+#: ``emu:KIND`` feeds this module makes itself.
+_BUILT_IN_FEEDS = ("file", "synthetic", "sim")
+#: Makes an emulator feed from (the whole URI, for messages; the text after ``emu:KIND:``).
+FeedFactory = Callable[[str, str], Any]
+#: ``emu:KIND`` feeds registered by other packages (:func:`register_feed`): kind -> factory.
+FEEDS: dict[str, FeedFactory] = {}
+#: Entry-point group of feed factories (name = kind), read once, when a URI names a kind not registered.
+FEED_GROUP = "place_safe.sources"
+#: The kind of ``emu:NAME`` when NAME is no registered kind: ``emu:place_level`` is ``emu:scenario:place_level``.
+DEFAULT_FEED = "scenario"
+_loaded_entry_points: list[str] = []
+_unavailable: dict[str, str] = {}
 _DRIVER_OPTIONS = {"patch", "period_ms", "kilo_iterations", "short_range", "calibration_dir", "int_line", "clock",
                    "start", "retries", "poll_s"}
 
@@ -72,8 +93,6 @@ def _int(text: str, uri: str, what: str) -> int:
 
 
 def _int_line(spec: Any) -> Any:
-    from place_safe.drivers.tmf8820.i2c import GpiodIntLine
-
     if spec is None or hasattr(spec, "wait"):
         return spec
     chip, _, offset = str(spec).rpartition(":")
@@ -94,14 +113,9 @@ def open_source(uri: str, **options: Any) -> FrameSource:
     if not rest:
         raise ConfigError(f"source {uri!r}: nothing after '{scheme}:'")
     if scheme == "file":
-        from place_safe.io.replay import FileReplaySource
-
         _check(uri, options, {"rate_hz", "loop", "realtime", "clock"})
         return FileReplaySource(rest, **options)
     if scheme == "i2c":
-        from place_safe.drivers.tmf8820.i2c import TMF8820Source
-        from place_safe.drivers.tmf8820.registers import DEFAULT_ADDRESS
-
         _check(uri, options, _DRIVER_OPTIONS)
         bus, addr = _split_at(rest, uri, "i2c:BUS@ADDRESS, e.g. i2c:/dev/i2c-1@0x41")
         address = DEFAULT_ADDRESS if addr is None else _int(addr, uri, "address")
@@ -112,8 +126,6 @@ def open_source(uri: str, **options: Any) -> FrameSource:
         opts["int_line"] = _int_line(opts.get("int_line"))
         return TMF8820Source(bus_arg, address, **opts)
     if scheme == "serial":
-        from place_safe.drivers.tmf8820.serial_bridge import BridgeSource
-
         _check(uri, options, {"address", "clock"})
         if Path(rest).is_file():
             return BridgeSource.open_log(rest, **options)
@@ -126,8 +138,6 @@ def open_source(uri: str, **options: Any) -> FrameSource:
 
 
 def _open_emulated(uri: str, inner: str, options: dict) -> FrameSource:
-    from place_safe.drivers.tmf8820.emulated import EmulatedTMF8820
-
     _check(uri, options, _DRIVER_OPTIONS | {"bus_hz", "realtime", "loop", "faults", "record", "tof", "emulator"})
     opts = dict(options)
     emu_kw = {k: opts.pop(k) for k in ("bus_hz", "faults", "record", "clock") if k in opts}
@@ -137,13 +147,9 @@ def _open_emulated(uri: str, inner: str, options: dict) -> FrameSource:
     emulator_kw = opts.pop("emulator", None)
     patch = opts.pop("patch", None)
     if isinstance(patch, (str, Path)):
-        from place_safe.drivers.tmf8820.hexfile import load_patch
-
         patch = load_patch(patch)
     kind, _, arg = inner.partition(":")
     if kind == "file":
-        from place_safe.io.replay import FileReplaySource
-
         if not arg:
             raise ConfigError(f"source {uri!r}: expected emu:file:PATH")
         feed: Any = FileReplaySource(arg, realtime=False, loop=loop)
@@ -160,8 +166,10 @@ def _open_emulated(uri: str, inner: str, options: dict) -> FrameSource:
             raise ConfigError(f"source {uri!r}: emu:sim needs the simulated sensor as option tof=SimToF")
         emu_kw.setdefault("clock", lambda: float(tof.data.time))
         feed = lambda _t: tof.measure()  # noqa: E731 - the simulated sensor at the current sim state
-    else:
-        feed = _scenario_feed(uri, arg if kind == "scenario" else inner)
+    elif kind in FEEDS or kind == DEFAULT_FEED:
+        feed = _feed_factory(uri, kind)(uri, arg)
+    else:  # emu:NAME: a name for the default feed (a packaged scenario)
+        feed = _feed_factory(uri, DEFAULT_FEED)(uri, inner)
     if tof is not None and kind != "sim":
         raise ConfigError(f"source {uri!r}: option tof is only for emu:sim")
     return EmulatedTMF8820(feed, realtime=realtime, patch=patch, driver=opts, emulator=emulator_kw, **emu_kw)
@@ -172,21 +180,35 @@ def _cycle(frames: list):
         yield from frames
 
 
-def _scenario_feed(uri: str, name: str):
-    try:
-        from place_safe.sim.scenario import load_scenario
-        from place_safe.sim.scene import build_scene
-        from place_safe.sim.tof_mismatch import make_sensor
-    except ImportError as exc:
-        raise ConfigError(f"source {uri!r}: a scenario needs the simulation ([sim] extra): {exc}") from None
-    try:
-        sc = load_scenario(name)
-    except (FileNotFoundError, ValueError) as exc:
-        raise ConfigError(f"source {uri!r}: {str(exc).splitlines()[0]}") from None
-    scene_cfg = sc.scene_config()
-    scene_cfg.with_robot = False  # the sensor rig alone over the scenario's scene
-    tof = make_sensor(sc.sensor.model, build_scene(scene_cfg), None, sc.sensor.tof_config(0), sc.sensor.mismatch)
-    return lambda _t: tof.measure()
+def register_feed(kind: str, factory: FeedFactory) -> None:
+    """Make ``emu:KIND:ARG`` feed the emulator with ``factory(uri, arg)`` (a frame list, an iterator or a
+    function of the emulator's time returning a frame). Packages that provide feeds (the simulation: ``scenario``)
+    register them here, or name them in the ``place_safe.sources`` entry-point group, which is read on the first
+    URI whose kind is not registered. Registering a kind again replaces it."""
+    if not (isinstance(kind, str) and kind.isidentifier()) or kind in _BUILT_IN_FEEDS:
+        raise ConfigError(f"register_feed: kind must be a name other than {', '.join(_BUILT_IN_FEEDS)}, got {kind!r}")
+    if not callable(factory):
+        raise ConfigError(f"register_feed: factory for {kind!r} must be callable, got {type(factory).__name__}")
+    FEEDS[kind] = factory
 
 
-__all__ = ["open_source", "SCHEMES"]
+def _feed_factory(uri: str, kind: str) -> FeedFactory:
+    """The registered factory of ``kind``, loading the entry-point group once if it is not registered yet."""
+    if kind not in FEEDS and not _loaded_entry_points:
+        _loaded_entry_points.append(FEED_GROUP)
+        for ep in entry_points(group=FEED_GROUP):
+            if ep.name in FEEDS or ep.name in _BUILT_IN_FEEDS:
+                continue
+            try:
+                FEEDS[ep.name] = ep.load()
+            except ImportError as exc:  # an optional extra that is not installed: say so when it is asked for
+                _unavailable[ep.name] = f"needs {exc.name or 'a package'} that is not installed ({exc})"
+    if kind in FEEDS:
+        return FEEDS[kind]
+    if kind in _unavailable:
+        raise ConfigError(f"source {uri!r}: emu:{kind} {_unavailable[kind]}; for scenarios install the [sim] extra")
+    raise ConfigError(f"source {uri!r}: no emulator feed {kind!r}; expected one of "
+                      + ", ".join(f"emu:{k}" for k in (*_BUILT_IN_FEEDS, *sorted(FEEDS))))
+
+
+__all__ = ["open_source", "register_feed", "SCHEMES", "FEEDS", "FEED_GROUP", "DEFAULT_FEED"]

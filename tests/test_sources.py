@@ -86,3 +86,45 @@ def test_missing_devices_and_files():
         open_source("i2c:/dev/i2c-does-not-exist@0x41")
     with pytest.raises(FrameFileError):
         open_source("file:/nonexistent/frames.json")
+
+
+# -- feeds other packages register (the simulation registers emu:scenario: the library never imports it) -----
+def test_a_registered_feed_is_opened_through_the_emulator(monkeypatch):
+    from place_safe import sources
+
+    monkeypatch.setattr(sources, "FEEDS", {})
+    seen = []
+
+    def feed(uri, arg):
+        seen.append((uri, arg))
+        return random_frames(3, seed=1)
+
+    sources.register_feed("canned", feed)
+    with open_source("emu:canned:three", realtime=False) as src:
+        assert isinstance(src, EmulatedTMF8820) and src.read(1.0).hists.shape == (9, 128)
+    assert seen == [("emu:canned:three", "three")]
+
+
+@pytest.mark.parametrize("kind, factory", [("file", lambda u, a: []), ("sim", lambda u, a: []), ("two words", len),
+                                           ("ok", "not callable")])
+def test_register_feed_refuses_built_in_kinds_and_non_callables(kind, factory):
+    from place_safe.sources import register_feed
+
+    with pytest.raises(ConfigError):
+        register_feed(kind, factory)
+
+
+def test_the_simulation_is_found_through_its_entry_point(monkeypatch):
+    """``emu:scenario:`` and ``emu:NAME`` reach the simulation's feed through the ``place_safe.sources`` group."""
+    from importlib.metadata import entry_points
+
+    from place_safe import sources
+
+    eps = {ep.name: ep.value for ep in entry_points(group=sources.FEED_GROUP)}
+    assert eps.get("scenario") == "place_safe.sim.sources:scenario_feed"
+    monkeypatch.setattr(sources, "FEEDS", {})
+    monkeypatch.setattr(sources, "_loaded_entry_points", [])
+    pytest.importorskip("mujoco")
+    with pytest.raises(ConfigError, match="no_such_scenario"):  # the simulation's own one-line error
+        open_source("emu:no_such_scenario")
+    assert "scenario" in sources.FEEDS

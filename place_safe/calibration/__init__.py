@@ -24,8 +24,11 @@ from pathlib import Path
 from typing import Any
 
 from place_safe.config import read_json, write_json
-from place_safe.exceptions import CalibrationError
+from place_safe.exceptions import ArgumentTypeError, CalibrationError
 from place_safe.recovery.forward import ForwardParams
+from place_safe.recovery.differentiable import LEGACY_WINDOW_AFTER_PEAK, RangeCorrection, SolverOptions
+from place_safe.recovery.estimator import Uncertainty
+from place_safe.recovery.points import PeakParams
 
 FORMAT = "place_safe.calibration/1"
 SECTIONS = ("peak", "proprietary", "forward", "diff", "uncertainty")
@@ -58,8 +61,6 @@ class Calibration:
     lenient: InitVar[bool] = False
 
     def __post_init__(self, lenient: bool) -> None:
-        from place_safe.exceptions import ArgumentTypeError
-
         if not isinstance(self.sections, dict):
             raise ArgumentTypeError(f"Calibration: sections must be a dict of section name -> parameter dict "
                                     f"(some of {', '.join(SECTIONS)}), got {type(self.sections).__name__}; "
@@ -98,21 +99,15 @@ class Calibration:
         return self.sections.get(name)
 
     def peak(self):
-        from place_safe.recovery.points import PeakParams
-
         d = self._section("peak")
         return PeakParams.from_dict(d) if d is not None else PeakParams.default_peak()
 
     def proprietary(self):
-        from place_safe.recovery.points import PeakParams
-
         d = self._section("proprietary")
         return PeakParams.from_dict(d) if d is not None else PeakParams.default_proprietary()
 
     def diff(self):
         """The ``diff`` section's range correction (none when the section is absent)."""
-        from place_safe.recovery.differentiable import RangeCorrection
-
         d = self._section("diff")
         if d is None:
             return RangeCorrection()
@@ -127,8 +122,6 @@ class Calibration:
         one its chi-square limit and covariance scale hold for. A file without it predates the key and
         was calibrated with :data:`~place_safe.recovery.differentiable.LEGACY_WINDOW_AFTER_PEAK`; without a
         ``diff`` section the solver's default is used."""
-        from place_safe.recovery.differentiable import LEGACY_WINDOW_AFTER_PEAK, SolverOptions
-
         d = self._section("diff")
         if d is None:
             return SolverOptions()
@@ -141,8 +134,6 @@ class Calibration:
     def uncertainty(self, method: str | None = None):
         """The :class:`~place_safe.recovery.estimator.Uncertainty` of ``method`` (defaults when absent);
         without a method, all entries of the section as a dict."""
-        from place_safe.recovery.estimator import Uncertainty
-
         sec = self._section("uncertainty") or {}
         try:
             if method is None:

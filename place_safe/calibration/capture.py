@@ -36,9 +36,9 @@ from typing import Any, Callable
 
 import numpy as np
 
-from place_safe.config import Bound
+from place_safe.config import Bound, check_dataclass
 
-from place_safe.exceptions import RobotFault, SensorTimeout
+from place_safe.exceptions import ConfigError, RobotFault, SensorTimeout
 from place_safe.geometry import Plane, fit_plane
 from place_safe.robot.interface import Robot
 
@@ -66,9 +66,6 @@ class SweepPlan:
     frame_timeout_s: float = 2.0  # s of robot time to wait for the frames of one pose
 
     def __post_init__(self) -> None:
-        from place_safe.config import check_dataclass
-        from place_safe.exceptions import ConfigError
-
         for name in ("distances", "incidences", "azimuths"):
             v = getattr(self, name)
             if not isinstance(v, (list, tuple)) or not 1 <= len(v) <= MAX_GRID_VALUES:

@@ -27,10 +27,15 @@ from tqdm import tqdm
 
 from place_safe.calibration import gauss_newton
 from place_safe.exceptions import CalibrationError, FrameError
-from place_safe.recovery.forward import (MODEL_ERROR, ForwardModel, ForwardParams, ZoneRays, mount_rotation,
-                                         residual_weights, single_thread)
+from place_safe.recovery.forward import (FORWARD_BOUNDS, ForwardModel, ForwardParams, MODEL_ERROR, ZoneRays,
+                                         mount_rotation, residual_weights, single_thread, tensors_to_params)
 from place_safe.sensor.frame import N_BINS, N_ZONES, Frame
 from place_safe.sensor.histogram import COUNT_MAX, measure_floor, reference_floor, reference_problem
+from place_safe.calibration.points import MIN_TILT_SPREAD
+from place_safe.evaluation.metrics import point_error
+from place_safe.geometry import Plane
+from place_safe.recovery.differentiable import (DifferentiableEstimator, RANGE_CORRECTION_BOUNDS, RangeCorrection,
+                                                SolverOptions)
 
 #: Camera parameters fitted by default, with how they are parametrised ("log": positive). The
 #: specular lobe is left at its published value: it is a property of the surface, fitted per frame
@@ -393,11 +398,9 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
     with torch.no_grad():
         keep[:] = 1.0
         per_frame = residual(cam, la).pow(2).mean(dim=1).sqrt().numpy()
-    from place_safe.recovery.forward import tensors_to_params
 
     fitted_params = tensors_to_params({k: v.detach() for k, v in model.t.items()}, init.rays_per_zone)
     # the model error the estimator will meet: rendered with its own quadrature
-    from place_safe.recovery.differentiable import SolverOptions
 
     check = ForwardModel(fitted_params, ZoneRays.stratified(SolverOptions().rays, dtype=dtype), dtype=dtype)
     with torch.no_grad():
@@ -447,8 +450,6 @@ def _posterior_spread(sol, layout, n_cam: int, n_good: int, params: ForwardParam
     solution, albedos marginalised, scaled by the reduced chi-square), in the parameter's own unit, and
     whether the frames determine it (:data:`DETERMINED_FRACTION`). A log parameter's spread is its value times
     the spread of its log. Parameters the frames do not inform at all have an infinite spread (JSON: null)."""
-    from place_safe.recovery.forward import FORWARD_BOUNDS
-
     J = sol.jac[np.repeat(good, nf_res)]
     cov = gauss_newton.covariance(J, 0.5 * float((sol.fun[np.repeat(good, nf_res)] ** 2).sum()))
     std = np.sqrt(np.clip(np.diag(cov)[:n_cam], 0.0, None))
@@ -474,8 +475,6 @@ def _posterior_spread(sol, layout, n_cam: int, n_good: int, params: ForwardParam
 
 def _fit_range(name: str, kind: str) -> tuple[float, float]:
     """Bounds of a fitted parameter in its fit coordinate (``log`` or ``lin``), just inside its physical range."""
-    from place_safe.recovery.forward import FORWARD_BOUNDS
-
     b = FORWARD_BOUNDS.get(name)
     lo = -math.inf if b is None or b.lo is None else b.lo
     hi = math.inf if b is None or b.hi is None else b.hi
@@ -525,9 +524,6 @@ def select_model_error(frames: Sequence[Frame], forward: ForwardParams, peak=Non
     with ground truth is returned, with a report of every value's error.
     """
     from dataclasses import replace
-
-    from place_safe.recovery.differentiable import DifferentiableEstimator
-    from place_safe.evaluation.metrics import point_error
 
     skipped: dict[str, int] = {}
     data = _usable(frames, min_distance, max_distance, skipped)
@@ -579,11 +575,6 @@ def fit_range_correction(frames: Sequence[Frame], forward: ForwardParams, peak=N
     it lowers the mean absolute error by at least 10 % (the gain: 10 % below the offset alone).
     """
     from numpy.polynomial import chebyshev
-
-    from place_safe.calibration.points import MIN_TILT_SPREAD
-    from place_safe.recovery.differentiable import RANGE_CORRECTION_BOUNDS, DifferentiableEstimator, RangeCorrection
-    from place_safe.recovery.forward import mount_rotation
-    from place_safe.geometry import Plane
 
     skipped: dict[str, int] = {}
     data = _usable(frames, min_distance, max_distance, skipped)

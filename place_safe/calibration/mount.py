@@ -32,7 +32,8 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from place_safe.exceptions import CalibrationError
-from place_safe.geometry import Plane
+from place_safe.geometry import Plane, transform_problem
+from place_safe.robot.kinematics import Kinematics
 
 #: Fraction of the prior sigma above which a direction counts as not observed by the sweep.
 UNOBSERVED = 0.5
@@ -259,13 +260,9 @@ def flange_poses(frames: Sequence[Any], use_kinematics: bool = True, kinematics:
         extra = f.extra if hasattr(f, "extra") else f
         if use_kinematics and extra.get("joint_angles") is not None:
             if kin is None:
-                from place_safe.robot.kinematics import Kinematics
-
                 kin = Kinematics()
             out.append(kin.base_T_flange(_joint_angles(extra["joint_angles"], i)))
         elif extra.get("pose") is not None:
-            from place_safe.geometry import transform_problem
-
             T = extra["pose"]
             if (why := transform_problem(T)) is not None or np.abs(np.asarray(T, dtype=float)[:3, 3]).max() > MAX_REACH:
                 raise CalibrationError(f"frame {i}: pose {why or f'is farther than {MAX_REACH:g} m from the base'}; "

@@ -45,10 +45,11 @@ from typing import Sequence
 
 import numpy as np
 
-from place_safe.calibration.points import FAILED_FIT_ERROR, frame_point_errors
+from place_safe.calibration.point_errors import FAILED_FIT_ERROR, frame_point_errors
 from place_safe.recovery.points import PeakParams, fit_planes
 from place_safe.sensor.frame import N_ZONES, Frame
 from place_safe.sensor.histogram import find_peaks
+from place_safe.evaluation.metrics import angular_errors
 
 #: m: the near-range table covers depths below this; the last knot, where every zone's error is 0.
 NEAR_END = 0.09
@@ -168,8 +169,6 @@ def near_range_std(frames: Sequence[Frame], params: PeakParams) -> tuple[list[fl
 def _tilt_errors(params: PeakParams, readings: np.ndarray, valid: np.ndarray, tn: np.ndarray) -> np.ndarray:
     """Angle (deg, (F,)) between each frame's plane through its zone points and the true normal ``tn`` (F, 3);
     NaN where the points give no plane."""
-    from place_safe.evaluation.metrics import angular_errors
-
     n, _, _, ok = fit_planes(params.points(readings), valid)
     out = np.full(len(tn), np.nan)
     out[ok] = np.degrees(angular_errors(n[ok], tn[ok]))

@@ -16,6 +16,9 @@ import numpy as np
 from numpy.polynomial import chebyshev as cheb
 from scipy.optimize import minimize
 
+from place_safe.calibration.near_range import fit_near_range
+from place_safe.calibration.point_errors import frame_point_errors
+from place_safe.evaluation.metrics import angular_errors, linear_errors, point_errors
 from place_safe.exceptions import CalibrationError
 from place_safe.recovery.points import MM_PER_M, PeakParams, fit_planes
 from place_safe.sensor.frame import N_ZONES, Frame
@@ -37,8 +40,6 @@ def _truth_arrays(frames: Sequence[Frame]) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _errors(params: PeakParams, readings: np.ndarray, valid: np.ndarray, tn: np.ndarray, td: np.ndarray) -> dict:
-    from place_safe.evaluation.metrics import angular_errors, linear_errors, point_errors
-
     n, d, _, ok = fit_planes(params.points(readings), valid)
     out = {"failures": int((~ok).sum())}
     if ok.any():
@@ -124,23 +125,6 @@ def fit_linear(edge_scale: float, corner_scale: float, readings: np.ndarray, val
         return PeakParams(m, b, edge_scale, corner_scale, list(offsets), res_coeffs, [lo, hi], phase, list(gains))
     except CalibrationError:
         return None
-
-
-#: m: the point error charged for a frame whose plane cannot be fitted.
-FAILED_FIT_ERROR = 1.0
-
-
-def frame_point_errors(p: PeakParams, readings: np.ndarray, valid: np.ndarray, tn: np.ndarray,
-                       td: np.ndarray) -> np.ndarray:
-    """Each frame's point error (m, (F,)) with mapping ``p``, readings and mask (F, 9) and true normals (F, 3)
-    and offsets (F,); :data:`FAILED_FIT_ERROR` where the readings give no plane."""
-    from place_safe.evaluation.metrics import point_errors
-
-    n, d, _, ok = fit_planes(p.points(readings), valid)
-    e = np.full(len(td), FAILED_FIT_ERROR)
-    if ok.any():
-        e[ok] = point_errors(n[ok], d[ok], tn[ok], td[ok])
-    return e
 
 
 def _mean_point_error(p: PeakParams, readings: np.ndarray, valid: np.ndarray, tn: np.ndarray,
@@ -358,8 +342,6 @@ def fit_peak(frames: Sequence[Frame], init: PeakParams | None = None, progress: 
                                    residual_degree, harmonics, fit_offsets, paper, min_range)
     params = replace(params, pileup=k, subbin=subbin, subbin_half_width=subbin_half_width)
     if not paper and near_range:
-        from place_safe.calibration.near_range import fit_near_range  # it scores with this module's point errors
-
         params, report["near_range"] = fit_near_range(frames, params)
     report["params"] = params.to_dict()
     report["pileup"] = {"value": k, "fitted": pileup is None and not paper,

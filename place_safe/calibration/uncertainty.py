@@ -53,6 +53,10 @@ from place_safe.evaluation.metrics import angular_errors, nees, point_errors  # 
 from place_safe.recovery.estimator import PlaneEstimate, Uncertainty, tilt_offset
 from place_safe.recovery.too_close import TOO_CLOSE_REASON
 from place_safe.sensor.frame import Frame
+from place_safe.calibration.near_range import near_range_std
+from place_safe.calibration.points import MIN_CALIBRATION_RANGE
+from place_safe.recovery.differentiable import DifferentiableEstimator
+from place_safe.recovery.peak import PeakEstimator
 
 
 def _nll(errors: np.ndarray, covs: np.ndarray, extra: np.ndarray) -> float:

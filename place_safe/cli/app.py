@@ -24,6 +24,8 @@ from collections.abc import Sequence
 
 from place_safe.cli.common import FMT, PROG, Parser, UsageError, log
 from place_safe.exceptions import PlaceSafeError
+from place_safe import __version__
+from place_safe.io.input_file import output_file_problem
 
 #: Command groups, each a module exposing ``register(subparsers) -> None``, which adds its sub-parser(s)
 #: (``parser_class=Parser`` is inherited) with ``set_defaults(func=...)``. Modules import heavy packages
@@ -97,7 +99,6 @@ def build_parser(load_sim: bool = True) -> argparse.ArgumentParser:
                 description="Put a held cup down safely with a UR5 and the TMF8820 on its gripper: recover the "
                             "plane below from transient histograms, calibrate and evaluate the methods, read the "
                             "sensor, drive the arm or its MuJoCo twin, and run scenario suites.")
-    from place_safe import __version__
 
     p.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     sub = p.add_subparsers(dest="command", metavar="COMMAND", parser_class=Parser)
@@ -124,8 +125,6 @@ OUTPUT_OPTIONS = ("output", "json", "log", "write", "plot", "render", "gif", "sa
 def _check_outputs(args: argparse.Namespace) -> None:
     """One line (exit 2) before anything runs when an output option names a directory or a FIFO nobody reads
     (opening it would block for ever)."""
-    from place_safe.io.input_file import output_file_problem
-
     for name in OUTPUT_OPTIONS:
         value = getattr(args, name, None)
         if isinstance(value, str) and value and (why := output_file_problem(value)) is not None:

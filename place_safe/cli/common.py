@@ -14,15 +14,14 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from place_safe.exceptions import CalibrationError, FrameError, FrameFileError, PlaceSafeError
-from place_safe.recovery import METHODS  # noqa: F401 - the one list of method names, for the commands
+from place_safe.exceptions import CalibrationError, FrameError, FrameFileError, PlaceSafeError, UsageError  # noqa: F401
+from place_safe.io.json_values import jsonable
+from place_safe.recovery import METHODS, make_estimator  # noqa: F401 - the one list of method names, for the commands
+from place_safe.io.frame_file import iter_frames
+from place_safe.io.input_file import input_file_problem
 
 PROG = "place-safe"
 CALIBRATE_METHODS = ("diff", "peak", "proprietary")
-
-
-class UsageError(PlaceSafeError):
-    """Bad command-line usage (exit status 2)."""
 
 
 class Parser(argparse.ArgumentParser):
@@ -50,8 +49,6 @@ def not_a_file(path: str | Path) -> str | None:
 
     The checks of :func:`place_safe.io.input_file.input_file_problem` (no size limit here: the reader that
     opens the file applies its kind's limit)."""
-    from place_safe.io.input_file import input_file_problem
-
     return input_file_problem(path, None)
 
 
@@ -73,8 +70,6 @@ def load_truth_frames(paths: Sequence[str], min_distance: float | None = None,
     outside the limits are skipped and counted; the note is empty when none was.
     """
     from collections import Counter
-
-    from place_safe.io.frame_file import iter_frames
 
     frames: list = []
     skipped: Counter = Counter()
@@ -107,31 +102,6 @@ def count_note(counts) -> str:
     if not total:
         return ""
     return f"{total} skipped: " + ", ".join(f"{n} {why}" for why, n in counts.most_common())
-
-
-def jsonable(obj: Any) -> Any:
-    """Fit reports may hold numpy scalars/arrays or dataclasses; make them plain JSON."""
-    import dataclasses
-
-    import numpy as np
-
-    if isinstance(obj, dict):
-        return {str(k): jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return jsonable(obj.tolist())
-    if isinstance(obj, np.generic):
-        return jsonable(obj.item())
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        return jsonable(dataclasses.asdict(obj))
-    if hasattr(obj, "to_dict"):
-        return jsonable(obj.to_dict())
-    if obj is None or isinstance(obj, (str, int, bool)):
-        return obj
-    return str(obj)
 
 
 def summarise(report: Any, indent: str = "  ") -> list[str]:

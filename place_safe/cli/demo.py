@@ -8,6 +8,7 @@ import importlib.util
 
 from place_safe.cli import options
 from place_safe.cli.common import FMT, METHODS, log, uncalibrated_note
+from place_safe.evaluation.bench import run_bench
 
 # ------------------------------------------------------------------------------------------------
 # demo (the main job)
@@ -47,7 +48,6 @@ def cmd_demo(args: argparse.Namespace) -> int:
             ok &= good
             print(f"-> {scenario}: {res.outcome} ({'as expected' if good else 'EXPECTED ' + expected})\n", flush=True)
         return 0 if ok else 1
-    from place_safe.evaluation.bench import run_bench
     from place_safe.evaluation.synthetic import make_frames
 
     if why_not and not args.quiet:

@@ -8,6 +8,9 @@ from __future__ import annotations
 
 import argparse
 
+from place_safe.cli.options import int_range
+from place_safe.exceptions import FrameFileError, PlaceSafeError
+
 EPILOG = """examples:
   place-safe synth --frames 100 --seed 7 -o out/speed.json
   place-safe bench latency out/speed.json --method diff --calibration calib.json
@@ -40,8 +43,6 @@ def cmd_latency(args: argparse.Namespace) -> int:
 
     from place_safe.cli.common import UNCALIBRATED_MARK, load_calibration, not_a_file, uncalibrated_note
     from place_safe.evaluation.bench import measure_recover_latency
-    from place_safe.exceptions import FrameFileError, PlaceSafeError
-
     if (why := not_a_file(args.file)) is not None:
         raise FrameFileError(f"frame file {args.file} {why}")
     note = uncalibrated_note(args.method, load_calibration(args.calibration), args.calibration)  # a bad file: one line

@@ -18,6 +18,7 @@ from typing import Any
 
 from place_safe.cli.common import FMT, UNCALIBRATED_MARK, log, uncalibrated_note
 from place_safe.cli.options import float_range, int_range
+from place_safe.exceptions import ConfigError, UsageError
 
 
 def _floats(text: str, n: int | None = None, what: str = "numbers", lo: float = -math.inf,
@@ -87,8 +88,6 @@ def _mount_truth(path: str) -> Any:
     import numpy as np
 
     from place_safe.config import read_json
-    from place_safe.exceptions import ConfigError
-
     d = read_json(path, "mount truth", ConfigError)
     if not isinstance(d, dict) or "flange_T_sensor" not in d:
         got = "an object without it" if isinstance(d, dict) else f"a JSON {type(d).__name__}"
@@ -135,12 +134,19 @@ def cmd_place(args: argparse.Namespace) -> int:
     if not args.frame_log:
         out.pop("frame_log", None)
     with open(args.log, "w", encoding="utf-8") as fh:
-        for tr in res.transitions:
+        for tr in _transition_rows(res):
             fh.write(json.dumps(tr) + "\n")
     _write_json(args.json, out)
     print("\n".join(lines))
     log(f"wrote {args.json} and {args.log}" + (f" and {args.render}" if args.render else ""))
     return 0 if res.outcome == "released" else 1
+
+
+def _transition_rows(res: Any) -> list[dict]:
+    """The placement's transitions as the log's JSON objects (``time``, ``from``, ``to``, ``reason``): the loop's
+    result holds the machine's :class:`~place_safe.placement.machine.Transition` objects, the simulation's result
+    their dicts."""
+    return [tr.to_dict() if hasattr(tr, "to_dict") else dict(tr) for tr in res.transitions]
 
 
 def _place_sim(args: argparse.Namespace, cfg) -> tuple[dict, Any, list[str]]:
@@ -184,7 +190,7 @@ def _place_arm(args: argparse.Namespace, cfg) -> tuple[dict, Any, list[str]]:
            "robot_config": args.robot, **res.to_dict()}
     lines = [] if calibrated else [uncalibrated_note(method, None)]
     lines.append(f"{where}: {res.outcome.upper()} ({res.reason})" + ("" if calibrated else "  " + UNCALIBRATED_MARK))
-    lines += [f"  t={tr['time']:7.3f} s  {tr['from']:>8} -> {tr['to']:<8} {tr['reason']}" for tr in res.transitions]
+    lines += [f"  t={tr['time']:7.3f} s  {tr['from']:>8} -> {tr['to']:<8} {tr['reason']}" for tr in _transition_rows(res)]
     return out, res, lines
 
 
@@ -222,10 +228,7 @@ def cmd_capture(args: argparse.Namespace) -> int:
             raise UsageError("capture: --touch moves the arm; with --dry-run give --table-height instead")
         from place_safe.drivers.ur5 import URRobot
 
-        from place_safe.drivers.ur5.config import placement_config
-
         robot = URRobot(robot_cfg, dry_run=args.dry_run)
-        cfg = placement_config(robot_cfg, cfg)  # near-surface speed and stop decelerations of the robot file
         source = open_sensor(args.sensor)
     tool = robot_cfg.tool.frames()
     with robot:

@@ -22,6 +22,7 @@ from pathlib import Path
 from place_safe.cli.common import FMT, log
 from place_safe.cli import options
 from place_safe.cli.options import nonnegative_int, positive_float, positive_int
+from place_safe.exceptions import UsageError
 
 
 def cmd_bench(args: argparse.Namespace) -> int:

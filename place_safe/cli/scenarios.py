@@ -14,6 +14,9 @@ import json
 import sys
 from pathlib import Path
 
+from place_safe.cli.options import float_range, int_range
+from place_safe.exceptions import UsageError
+
 EPILOG = """examples:
   place-safe scenarios                                  # the hand-written set (scenarios/set)
   place-safe scenarios scenarios/set/level_20cm.toml place_tilted --json out.json
@@ -41,8 +44,6 @@ def max_jobs() -> int:
 
 
 def register(subparsers) -> None:
-    from place_safe.cli.options import float_range, int_range
-
     p = subparsers.add_parser("scenarios", help="run scenario files / random scenes in simulation and judge them",
                               description="Run scenario files and random scenes through the simulated placement loop and judge each by simulation truth: table on stdout, JSON and PNG on request; exit 1 if any scenario missed its expectation.", epilog=EPILOG,
                               formatter_class=argparse.RawDescriptionHelpFormatter)

@@ -21,6 +21,12 @@ from place_safe.exceptions import CalibrationError, FrameError, FrameFileError, 
 from place_safe.cli.common import (CALIBRATE_METHODS, METHODS, PROG, UNCALIBRATED_MARK, UsageError, estimator_for, FMT,
                                    jsonable, load_calibration, load_truth_frames, log, progress_options, summarise,
                                    not_a_file, uncalibrated_note)
+from place_safe.evaluation.bench import DEFAULT_RUNS, measure_file_rss, report_json, run_bench
+from place_safe.evaluation.evaluate import evaluate
+from place_safe.io.frame_file import iter_frames
+from place_safe.io.live import run_live
+from place_safe.io.replay import FileReplaySource
+from place_safe.recovery.estimator import PlaneEstimate
 
 # ------------------------------------------------------------------------------------------------
 # calibrate
@@ -60,59 +66,9 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         log(f"calibrate {args.method}: {len(frames)} frames with ground truth" + (f" ({skipped})" if skipped else ""))
         if note:
             log(note)
-    progress = not args.quiet
-    fitted: list[str] = []
-    if args.method in ("peak", "diff") and (args.method == "peak" or "peak" not in cal.sections):
-        from place_safe.calibration.points import fit_peak
+    from place_safe.calibration.fit import fit_method
 
-        if args.method == "diff" and not args.quiet:
-            log("the diff method starts from the calibrated peak method: fitting the 'peak' section first")
-        params, report = fit_peak(frames, progress=progress)
-        cal.errors.pop("peak", None)
-        cal.sections["peak"] = params.to_dict()
-        cal.reports["peak"] = jsonable(report)
-        fitted.append("peak")
-    if args.method == "proprietary":
-        from place_safe.calibration.points import fit_proprietary
-
-        params, report = fit_proprietary(frames, progress=progress)
-        cal.errors.pop("proprietary", None)
-        cal.sections["proprietary"] = params.to_dict()
-        cal.reports["proprietary"] = jsonable(report)
-        fitted.append("proprietary")
-    if args.method == "diff":
-        from place_safe.calibration.forward_fit import fit_forward
-
-        params, report = fit_forward(frames, init=None, progress=progress)
-        from place_safe.calibration.forward_fit import fit_range_correction, select_model_error
-        from place_safe.recovery.differentiable import SolverOptions
-
-        if "peak" in fitted:  # the forward fit sees pile-up in the histograms' shapes: the peak method undoes it
-            from place_safe.calibration.points import adopt_pileup
-
-            peak, peak_report, adopted = adopt_pileup(frames, cal.peak(), cal.reports["peak"], params.pileup)
-            cal.reports["peak"] = jsonable(peak_report)
-            if adopted:
-                cal.sections["peak"] = peak.to_dict()
-                if not args.quiet:
-                    log(f"peak: undoing the forward fit's SPAD pile-up ({params.pileup:.3g} per count)")
-
-        params.model_error, report["model_error"] = select_model_error(frames, params, cal.peak(), progress=progress)
-        cal.errors.pop("forward", None)
-        cal.sections["forward"] = params.to_dict()
-        cal.reports["forward"] = jsonable(report)
-        fitted.append("forward")
-
-        section, report = fit_range_correction(frames, params, cal.peak(), progress=progress)
-        cal.errors.pop("diff", None)
-        cal.sections["diff"] = {**section, "window_after_peak": SolverOptions().window_after_peak}
-        cal.reports["diff"] = jsonable(report)
-        fitted.append("diff")
-    if args.method in ("peak", "diff"):
-        from place_safe.calibration.uncertainty import update_calibration
-
-        cal.reports["uncertainty"] = jsonable(update_calibration(cal, frames, args.method))
-        fitted.append("uncertainty")
+    fitted = fit_method(cal, frames, args.method, progress=not args.quiet, log=None if args.quiet else log)
     out.parent.mkdir(parents=True, exist_ok=True)
     cal.save(out)
     for name in fitted:
@@ -155,9 +111,6 @@ SIM_SWEEP_FRAMES = 48
 # ------------------------------------------------------------------------------------------------
 def _recover_stream(path: str, estimator, batch: int) -> Iterator[tuple[int, Any]]:
     """(index, PlaneEstimate) for every entry of the file, in order, recovering ``batch`` frames at a time."""
-    from place_safe.recovery.estimator import PlaneEstimate
-    from place_safe.io.frame_file import iter_frames
-
     pending: list[tuple[int, Any]] = []
 
     def flush() -> Iterator[tuple[int, Any]]:
@@ -242,8 +195,6 @@ def cmd_recover(args: argparse.Namespace) -> int:
 # evaluate
 # ------------------------------------------------------------------------------------------------
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from place_safe.evaluation.evaluate import evaluate
-
     cal = load_calibration(args.calibration)
     if args.min_distance is not None and args.max_distance is not None and args.min_distance > args.max_distance:
         raise UsageError(f"evaluate: --min-distance {args.min_distance:g} m exceeds --max-distance "
@@ -269,8 +220,6 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 # ------------------------------------------------------------------------------------------------
 def _warm_up(estimator, path: str) -> None:
     """Recover the file's first usable frame once, so first-call costs do not count as live latency."""
-    from place_safe.io.frame_file import iter_frames
-
     for f in iter_frames(path):
         if not isinstance(f, FrameError):
             estimator.estimate(f)
@@ -278,9 +227,6 @@ def _warm_up(estimator, path: str) -> None:
 
 
 def cmd_stream(args: argparse.Namespace) -> int:
-    from place_safe.io.replay import FileReplaySource
-    from place_safe.io.live import run_live
-
     cal = load_calibration(args.calibration)
     est = estimator_for(args.method, cal, args.mode)
     note = uncalibrated_note(args.method, cal, args.calibration)
@@ -312,8 +258,6 @@ def cmd_stream(args: argparse.Namespace) -> int:
 # bench
 # ------------------------------------------------------------------------------------------------
 def cmd_bench(args: argparse.Namespace) -> int:
-    from place_safe.evaluation.bench import DEFAULT_RUNS, measure_file_rss, report_json, run_bench
-
     cal = load_calibration(args.calibration)
     if args.file:
         frames, _ = load_truth_frames([args.file])

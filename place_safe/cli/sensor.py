@@ -20,6 +20,13 @@ from typing import Any
 from place_safe.cli.common import FMT, log
 from place_safe.cli.options import float_range, fraction, int_range
 from place_safe.recovery import METHODS
+from place_safe.cli.live_view import RerunView
+from place_safe.drivers.tmf8820 import bench
+from place_safe.exceptions import ConfigError, SensorTimeout, UsageError
+from place_safe.sources import open_source
+from place_safe.cli.common import UNCALIBRATED_MARK, estimator_for, load_calibration, uncalibrated_note
+from place_safe.io.frame_file import write_frames
+from place_safe.io.live import run_live
 
 #: Hz: an emulated I2C clock (standard 100 kHz .. high-speed 3.4 MHz, and slower buses down to 10 kHz).
 BUS_HZ = float_range(1e4, 3.4e6)
@@ -77,8 +84,6 @@ def cmd_info(args: argparse.Namespace) -> int:
         info = src.info() if hasattr(src, "info") else {"source": type(src).__name__}
         info.setdefault("clock_domain", src.clock_domain)
         if args.factory_calibrate:
-            from place_safe.exceptions import ConfigError
-
             driver = getattr(src, "driver", src)
             if not hasattr(driver, "factory_calibrate"):
                 raise ConfigError(f"{args.uri}: factory calibration needs an i2c: or emu: source")
@@ -94,13 +99,8 @@ def cmd_info(args: argparse.Namespace) -> int:
 def cmd_record(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from place_safe.exceptions import SensorTimeout
-    from place_safe.io.frame_file import write_frames
-
     out = Path(args.output)
     if out.exists() and not args.force:
-        from place_safe.exceptions import ConfigError
-
         raise ConfigError(f"{out} exists; use --force to overwrite it")
     src = _open(args)
     bar = tqdm(total=args.frames, desc="record", unit="frame", file=sys.stderr, disable=args.quiet or None,
@@ -140,17 +140,12 @@ def cmd_record(args: argparse.Namespace) -> int:
 
 
 def cmd_stream(args: argparse.Namespace) -> int:
-    from place_safe.cli.common import UNCALIBRATED_MARK, estimator_for, load_calibration, uncalibrated_note
-    from place_safe.io.live import run_live
-
     cal = load_calibration(args.calibration)
     est = estimator_for(args.method, cal)
     note = uncalibrated_note(args.method, cal, args.calibration)
     mark = "" if note is None else "  " + UNCALIBRATED_MARK
     view = None
     if args.save or args.view:
-        from place_safe.cli.live_view import RerunView
-
         params = cal.forward() if cal is not None and hasattr(cal, "forward") and "forward" in cal.sections else None
         if params is None and args.method == "diff":
             from place_safe.recovery.forward import ForwardParams
@@ -207,8 +202,6 @@ def cmd_stream(args: argparse.Namespace) -> int:
 
 def cmd_bench(args: argparse.Namespace) -> int:
     from tqdm import tqdm
-
-    from place_safe.drivers.tmf8820 import bench
 
     rows = []
     for wait in args.wait:

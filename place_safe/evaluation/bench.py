@@ -33,6 +33,9 @@ from pathlib import Path
 import numpy as np
 
 from place_safe.sensor.frame import Frame
+from place_safe.evaluation.metrics import angular_error, linear_error, point_error
+from place_safe.recovery import make_estimator
+from place_safe.io.frame_file import write_frames
 
 #: Methods of the benchmark: (label, CLI method, estimator options), in the order they run. The paper
 #: mode runs after the fast mode, so torch is already warm, and skips its own warm-up estimate: its
@@ -152,8 +155,6 @@ def peak_rss_bytes() -> int:
 
 
 def _errors(est_plane, true_plane) -> tuple[float, float, float]:
-    from place_safe.evaluation.metrics import angular_error, linear_error, point_error
-
     return (float(np.degrees(angular_error(est_plane, true_plane))), float(linear_error(est_plane, true_plane)) * 1e3,
             float(point_error(est_plane, true_plane)) * 1e3)
 
@@ -197,7 +198,6 @@ def run_bench(frames: Sequence[Frame], calibration=None, paper_frames: int = 5,
               progress: bool = False) -> BenchReport:
     """Benchmark each run (label, method, options) on ``frames`` (``diff-paper``: ``paper_frames`` spread evenly)."""
     from place_safe.calibration import uncalibrated_reason
-    from place_safe.recovery import make_estimator
 
     results = []
     for label, method, options in runs:
@@ -238,7 +238,6 @@ def _child_rss(cmd: list[str], stdout_path: Path) -> tuple[int, float, int]:
 
 def write_synthetic_file(path: Path, n: int, distinct: int = 16, seed: int = 0) -> int:
     """Write ``n`` synthetic frames (``distinct`` rendered ones repeated) as a JSON list; returns bytes."""
-    from place_safe.io.frame_file import write_frames
     from place_safe.evaluation.synthetic import make_frames
 
     base = make_frames(min(distinct, n), seed=seed)

@@ -28,6 +28,8 @@ from typing import Any
 import numpy as np
 
 from place_safe.exceptions import SensorTimeout
+from place_safe.geometry import Plane
+from place_safe.robot.kinematics import Kinematics
 
 #: m/s^2 of the reference touch ramps the bench reports (force rate = stiffness x speed).
 TOUCH_SPEEDS = (0.005, 0.01, 0.02)
@@ -57,7 +59,6 @@ class TablePlaneSource:
         pass
 
     def read(self, timeout: float = 1.0) -> Any:
-        from place_safe.geometry import Plane
         from place_safe.sensor.frame import Frame
 
         t = self.robot.time()
@@ -87,8 +88,6 @@ _KIN: list[Any] = []
 def _kinematics() -> Any:
     """One UR5 kinematics for every stand-in of this process (building it takes seconds)."""
     if not _KIN:
-        from place_safe.robot.kinematics import Kinematics
-
         _KIN.append(Kinematics())
     return _KIN[0]
 

@@ -19,8 +19,9 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from place_safe.evaluation.metrics import angular_errors, linear_errors, point_errors, summarise
+from place_safe.evaluation.metrics import angular_errors, linear_errors, nees, point_errors, summarise
 from place_safe.sensor.frame import Frame
+from place_safe.recovery import make_estimator
 
 
 #: Methods that may return another method's plane: their fallback rate is always printed (0 % too).
@@ -149,8 +150,6 @@ def evaluate(frames: Sequence[Frame], calibration: Any = None, methods: Sequence
     from tqdm import tqdm
 
     from place_safe.calibration import uncalibrated_reason
-    from place_safe.evaluation.metrics import nees
-    from place_safe.recovery import make_estimator
 
     use = [f for f in frames if f.truth is not None]
     report = EvaluationReport(skipped=len(frames) - len(use))

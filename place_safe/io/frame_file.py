@@ -23,6 +23,7 @@ from typing import IO
 
 from place_safe.exceptions import FrameError, FrameFileError
 from place_safe.sensor.frame import Frame
+from place_safe.io.input_file import MAX_FRAME_FILE_BYTES, check_input_file
 
 try:  # a C parser, 5-8x faster on a frame; the standard library's when it is missing or declines
     import orjson as _orjson
@@ -294,8 +295,6 @@ def _decode(raw: bytes) -> object:
 
 def _iter_entries(path: str | Path) -> Iterator[dict | FrameError]:
     """Each entry of a frame file as a dict, or a :class:`FrameError` naming the file and frame index."""
-    from place_safe.io.input_file import MAX_FRAME_FILE_BYTES, check_input_file
-
     p = check_input_file(path, "frame file", FrameFileError, MAX_FRAME_FILE_BYTES, "open")  # no FIFO, device, directory
     try:
         fh = open(p, "rb")

@@ -1,38 +1,32 @@
-"""Live recovery: estimate planes from a frame source as frames arrive.
+"""Live recovery: estimate planes from a frame source as frames arrive (``place-safe stream``, ``place-safe sensor
+stream`` and its live view).
 
-Concept
--------
-Two threads and a bounded buffer. The producer (a background thread) reads the
-:class:`~place_safe.io.source.FrameSource` and stamps each frame's arrival time (``time.monotonic``,
-seconds); the consumer (the calling thread) takes frames from the buffer and runs the estimator.
-When the buffer is full the OLDEST waiting frame is discarded and counted as dropped: a live
-pipeline wants the newest frame, not a growing backlog. With ``queue_size=1`` the consumer always
-works on the latest frame.
+:func:`run_live` is the consumer of a :class:`~place_safe.io.pipeline.SensorPipeline` (the one pipeline, with its
+reader thread, bounded newest-first buffer and fault policy: see :mod:`place_safe.io.pipeline`) that estimates in
+the calling thread, in arrival order, and reports every estimate to a callback. The streams' limits
+(:data:`~place_safe.io.pipeline.STREAM_POLICY`): a read may block ``read_timeout`` seconds, ``max_timeouts`` in
+a row end the run, and so does a source error (raised to the caller after the run has stopped). A frame whose
+stamp is not later than the previous one's (a frozen sensor, a duplicate) is not estimated; it is counted in
+``repeated``.
 
-Latency is measured from arrival (when ``read`` returned) to the end of the estimate, so it includes
-the time spent waiting in the buffer. Faults never stall the loop:
-
-* a frame that cannot be used (unparseable entry, NaN/negative counts, missing reference) gives a
-  no-plane :class:`~place_safe.recovery.estimator.PlaneEstimate` with a ``reason``;
-* :class:`~place_safe.exceptions.SensorTimeout` from the source is counted and reading goes on, until
-  ``max_timeouts`` timeouts in a row end the run;
-* an unexpected exception inside the estimator becomes a no-plane estimate with the error as reason.
+Latency is measured from arrival (when ``read`` returned) to the end of the estimate, so it includes the time
+spent waiting in the buffer.
 """
 
 from __future__ import annotations
 
+import math
 import threading
 import time
-from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from place_safe.recovery.estimator import Estimator, PlaneEstimate
-from place_safe.exceptions import SensorTimeout
-from place_safe.sensor.frame import Frame
+from place_safe.io.pipeline import STREAM_POLICY, FrameGate, SensorPipeline, stamp_of
 from place_safe.io.source import FrameSource
+from place_safe.recovery.estimator import Estimator, PlaneEstimate
+from place_safe.sensor.frame import Frame
 
 
 @dataclass
@@ -45,6 +39,7 @@ class StreamStats:
     bad_frames: int = 0        # estimates without a plane because the frame was unusable
     no_plane: int = 0          # estimates without a plane (includes bad_frames)
     timeouts: int = 0          # SensorTimeout raised by the source
+    repeated: int = 0          # frames not estimated: stamped no later than the previous one (a frozen sensor)
     elapsed: float = 0.0       # wall time of the run
     ended_by: str = ""         # "source ended", "max_frames", "timeouts", "stopped", "source error: ..."
     latencies: list[float] = field(default_factory=list)
@@ -81,6 +76,7 @@ class StreamStats:
 
         return {"received": self.received, "estimated": self.estimated, "dropped": self.dropped,
                 "bad_frames": self.bad_frames, "no_plane": self.no_plane, "timeouts": self.timeouts,
+                "repeated": self.repeated,
                 "elapsed_s": round(self.elapsed, 4), "fps": round(self.fps, 3),
                 "input_fps": round(self.input_fps, 3), "latency_ms": {
                     "median": ms(self.latency_median), "p95": ms(self.latency_p95), "max": ms(self.latency_max)},
@@ -92,7 +88,8 @@ class StreamStats:
             return "n/a" if v is None else f"{v * 1e3:.1f} ms"
 
         return (f"frames: {self.received} received, {self.estimated} estimated, {self.dropped} dropped, "
-                f"{self.no_plane} without a plane ({self.bad_frames} bad), {self.timeouts} timeouts\n"
+                f"{self.no_plane} without a plane ({self.bad_frames} bad), {self.timeouts} timeouts"
+                + (f", {self.repeated} repeated" if self.repeated else "") + "\n"
                 f"latency (arrival -> estimate): median {ms(self.latency_median)}, p95 {ms(self.latency_p95)}, "
                 f"max {ms(self.latency_max)}\n"
                 f"throughput: {self.fps:.1f} estimates/s (source {self.input_fps:.1f} frames/s) over "
@@ -103,45 +100,9 @@ class StreamStats:
 OnEstimate = Callable[[int, Frame, PlaneEstimate, float], None]
 
 
-class _Buffer:
-    """Bounded FIFO that discards the oldest item when full (thread-safe)."""
-
-    def __init__(self, size: int) -> None:
-        self.items: deque = deque()
-        self.size = size
-        self.cond = threading.Condition()
-        self.closed = False
-        self.dropped = 0
-
-    def put(self, item) -> None:
-        with self.cond:
-            if len(self.items) >= self.size:
-                self.items.popleft()
-                self.dropped += 1
-            self.items.append(item)
-            self.cond.notify()
-
-    def close(self) -> None:
-        with self.cond:
-            self.closed = True
-            self.cond.notify_all()
-
-    def get(self):
-        """Next item, or None once the buffer is closed and empty."""
-        with self.cond:
-            while not self.items and not self.closed:
-                self.cond.wait()
-            return self.items.popleft() if self.items else None
-
-
-def _unusable_reason(frame: Frame) -> str | None:
-    reason = frame.extra.get("parse_error") if isinstance(frame.extra, dict) else None
-    return str(reason) if reason else None
-
-
 def run_live(source: FrameSource, estimator: Estimator, on_estimate: OnEstimate | None = None,
-             max_frames: int | None = None, queue_size: int = 1, read_timeout: float = 1.0,
-             max_timeouts: int = 5, stop: threading.Event | None = None) -> StreamStats:
+             max_frames: int | None = None, queue_size: int = 1, read_timeout: float = STREAM_POLICY.read_timeout,
+             max_timeouts: int = STREAM_POLICY.max_timeouts or 5, stop: threading.Event | None = None) -> StreamStats:
     """Recover planes from ``source`` as frames arrive until it ends; returns the run's statistics.
 
     source: any frame source; it is not closed here.
@@ -156,73 +117,41 @@ def run_live(source: FrameSource, estimator: Estimator, on_estimate: OnEstimate 
     if queue_size < 1:
         raise ValueError(f"queue_size must be >= 1, got {queue_size}")
     stats = StreamStats()
-    buf = _Buffer(queue_size)
+    policy = replace(STREAM_POLICY, read_timeout=read_timeout, max_timeouts=max_timeouts)
+    pipe = SensorPipeline(source, estimator, policy, threaded=True, estimate_on_reader=False, queue_size=queue_size,
+                          max_frames=max_frames)
+    gate = FrameGate()
     stop = stop or threading.Event()
-    producer_error: list[BaseException] = []
-
-    def produce() -> None:
-        in_a_row = 0
-        try:
-            while not stop.is_set():
-                if max_frames is not None and stats.received >= max_frames:
-                    stats.ended_by = "max_frames"
-                    return
-                try:
-                    frame = source.read(read_timeout)
-                except StopIteration:
-                    stats.ended_by = "source ended"
-                    return
-                except SensorTimeout:
-                    stats.timeouts += 1
-                    in_a_row += 1
-                    if in_a_row >= max_timeouts:
-                        stats.ended_by = f"{in_a_row} timeouts in a row"
-                        return
-                    continue
-                in_a_row = 0
-                arrived = time.monotonic()
-                buf.put((stats.received, frame, arrived))
-                stats.received += 1
-            stats.ended_by = "stopped"
-        except BaseException as exc:  # a source failure ends the run; reported by the consumer
-            producer_error.append(exc)
-            stats.ended_by = f"source error: {exc}"
-        finally:
-            buf.close()
-
     t0 = time.monotonic()
-    thread = threading.Thread(target=produce, name="place-safe-frame-source", daemon=True)
-    thread.start()
+    pipe.start()
+    watcher = threading.Thread(target=lambda: (stop.wait(), pipe.request_stop()), daemon=True)
+    watcher.start()
     try:
-        while True:
-            item = buf.get()
-            if item is None:
-                break
-            index, frame, arrived = item
-            reason = _unusable_reason(frame)
-            if reason is not None:
-                est = PlaneEstimate(None, reason=reason)
-            else:
-                try:
-                    est = estimator.estimate(frame)
-                except Exception as exc:  # the loop must go on whatever one frame does
-                    est = PlaneEstimate(None, reason=f"estimator failed: {type(exc).__name__}: {exc}")
-            latency = time.monotonic() - arrived
+        while (m := pipe.next()) is not None:
+            stamp = stamp_of(m.frame)
+            if math.isfinite(stamp) and gate.check(stamp) is not None:
+                stats.repeated += 1
+                continue
+            gate.accept(stamp)
+            est = pipe.estimate(m.frame)
+            latency = time.monotonic() - m.arrived
             stats.estimated += 1
             stats.latencies.append(latency)
             if not est.ok:
                 stats.no_plane += 1
-                if reason is not None or _fails_validation(frame):
+                extra = getattr(m.frame, "extra", None)
+                if (isinstance(extra, dict) and extra.get("parse_error")) or _fails_validation(m.frame):
                     stats.bad_frames += 1
             if on_estimate is not None:
-                on_estimate(index, frame, est, latency)
+                on_estimate(m.index, m.frame, est, latency)
     finally:
         stop.set()
-        thread.join(timeout=read_timeout + 1.0)
+        pipe.stop(join=read_timeout + 1.0)
         stats.elapsed = time.monotonic() - t0
-        stats.dropped = buf.dropped
-    if producer_error:
-        raise producer_error[0]
+    stats.received, stats.timeouts, stats.dropped = pipe.frames, pipe.timeouts, pipe.dropped
+    stats.ended_by = pipe.ended_by or "stopped"
+    if pipe.failure is not None:
+        raise pipe.failure
     return stats
 
 

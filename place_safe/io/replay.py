@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from place_safe.exceptions import FrameError, SensorTimeout
+from place_safe.exceptions import ArgumentTypeError, FrameError, SensorTimeout
 from place_safe.io.frame_file import iter_frames
 from place_safe.sensor.frame import N_BINS, N_ZONES, Frame
 from place_safe.io.source import FrameSource
@@ -63,8 +63,6 @@ class FileReplaySource(FrameSource):
                  drop: Iterable[int] = (), gaps: Mapping[int, float] | None = None,
                  corrupt: Iterable[int] = (), clock=time.monotonic) -> None:
         if isinstance(rate_hz, bool) or not isinstance(rate_hz, (int, float, np.number)):
-            from place_safe.exceptions import ArgumentTypeError
-
             raise ArgumentTypeError(f"rate_hz must be a number of frames per second, got {type(rate_hz).__name__}")
         if not (np.isfinite(rate_hz) and MIN_RATE_HZ <= rate_hz <= MAX_RATE_HZ):
             raise ValueError(f"rate_hz must be {MIN_RATE_HZ:g}..{MAX_RATE_HZ:g} frames per second, got {rate_hz}")

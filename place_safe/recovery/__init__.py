@@ -17,7 +17,8 @@ from __future__ import annotations
 import os
 from typing import Any
 
-from place_safe.recovery.estimator import Estimator, PlaneEstimate
+from place_safe.recovery.estimator import Estimator, PlaneEstimate, Uncertainty
+from place_safe.exceptions import ArgumentTypeError
 
 METHODS = ("diff", "peak", "peak-naive", "proprietary", "proprietary-naive")
 #: What a calibration answers (:class:`place_safe.calibration.Calibration`, :class:`BuiltInParameters`).
@@ -56,8 +57,6 @@ class BuiltInParameters:
         return SolverOptions()
 
     def uncertainty(self, method: str | None = None):
-        from place_safe.recovery.estimator import Uncertainty
-
         return Uncertainty() if method is not None else {}
 
 
@@ -70,8 +69,6 @@ def make_estimator(method: str, calibration: Any = None, **options) -> Estimator
     built-in defaults (:class:`BuiltInParameters`). ``options`` go to the estimator (e.g.
     ``mode="paper"`` for ``diff``).
     """
-    from place_safe.exceptions import ArgumentTypeError
-
     if not isinstance(method, str):
         raise ArgumentTypeError(f"make_estimator: method must be a str, one of {', '.join(METHODS)}; "
                                 f"got {type(method).__name__}")

@@ -31,7 +31,7 @@ import math
 
 import numpy as np
 
-from place_safe.recovery.forward import ForwardParams, ZoneRays, response_matrix, zone_tail_taps
+from place_safe.recovery.forward import ForwardModel, ForwardParams, ZoneRays, response_matrix, zone_tail_taps
 from place_safe.sensor.frame import N_BINS, N_ZONES
 
 N_UNKNOWNS = 6
@@ -52,8 +52,6 @@ class PlaneRenderer:
     """Histograms of planes and their Jacobian in the six unknowns, batched over frames."""
 
     def __init__(self, params: ForwardParams, rays: ZoneRays, zone_albedo: bool = False) -> None:
-        from place_safe.recovery.forward import ForwardModel
-
         self.p = params
         dirs, w = ForwardModel(params, rays).ray_geometry()  # field-of-view scales applied
         self.dirs = dirs.detach().cpu().numpy().astype(float)  # (9, R, 3)

@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from place_safe.exceptions import RobotFault
+from place_safe.robot.description import ur5_urdf_path
 
 #: Frames :class:`Kinematics` knows by default (URDF link names).
 FRAMES = ("flange", "tcp", "tof_sensor", "cup")
@@ -33,8 +34,6 @@ N_JOINTS = 6
 
 
 def _default_urdf() -> Path:
-    from place_safe.robot.description import ur5_urdf_path
-
     return ur5_urdf_path()
 
 

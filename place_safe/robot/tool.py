@@ -20,6 +20,7 @@ import numpy as np
 
 from place_safe.exceptions import ConfigError
 from place_safe.geometry import transform_problem
+from place_safe.robot.description import ur5_config
 
 
 def pose_from_xyz_rpy(xyz: Any, rpy: Any = (0.0, 0.0, 0.0)) -> np.ndarray:
@@ -79,8 +80,6 @@ class ToolFrames:
     @classmethod
     def ur5_default(cls) -> "ToolFrames":
         """The packaged UR5 gripper, TMF8820 mount and cup (``robots/ur5/config.json``)."""
-        from place_safe.robot.description import ur5_config
-
         return cls.from_robot_config(ur5_config())
 
     def to_dict(self) -> dict[str, list[list[float]]]:

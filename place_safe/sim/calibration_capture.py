@@ -8,8 +8,8 @@ table at three points with the guarded descent of :func:`place_safe.calibration.
 :func:`place_safe.calibration.capture.capture_sweep` drives it through distances x incidence x
 azimuth above that plane and writes every frame of the simulated sensor (nominal or mismatched, see
 :mod:`place_safe.sim.tof_mismatch`) with the plane in the sensor frame from the *configured* tool
-frames. :func:`calibrate_sim` runs the ordinary ``place-safe calibrate`` command on that capture file
-(``--method diff``, which fits the ``peak`` section first, then ``--method proprietary``).
+frames. :func:`calibrate_sim` runs what ``place-safe calibrate`` runs (:func:`place_safe.calibration.fit.fit_method`)
+on that capture file (``diff``, which fits the ``peak`` section first, then ``proprietary``).
 :func:`capture_level_sweep` (a free sensor rig, no arm) calibrates the mismatched sensor
 (:data:`RIG_SENSORS`, at its operating temperature): the arm chain's 48 grid poses give that sensor a
 forward fit whose diff reads a level table as 5.6 deg; the rig's random tilts and offsets do not.
@@ -25,10 +25,23 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 import tempfile
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation
+
+from place_safe.calibration import Calibration
+from place_safe.calibration.capture import SweepPlan, capture_sweep, touch_plane
+from place_safe.calibration.fit import fit_method
+from place_safe.exceptions import CalibrationError
+from place_safe.io.frame_file import iter_frames, load_frames, write_frames
+from place_safe.sim.scenario import Scenario
+from place_safe.sim.scene import SceneConfig, build_scene
+from place_safe.sim.tof import ToFConfig, calibration_file
+from place_safe.sim.tof_mismatch import MismatchConfig, make_sensor
+from place_safe.sim.world import sim_world
 
 #: Frames in the default sweep (the issue's user-style calibration used 48).
 SWEEP_FRAMES = 48
@@ -36,13 +49,6 @@ SWEEP_FRAMES = 48
 SWEEP_HEIGHTS = (0.05, 0.42)
 #: rad, largest tilt of the sensor over the level table in the sweep.
 SWEEP_MAX_TILT = math.radians(12.0)
-
-
-def calibration_file(sensor: str = "nominal") -> Path:
-    """Path of the packaged simulated calibration for the simulated sensor ``sensor``."""
-    from place_safe.sim.tof import sensor_file
-
-    return sensor_file(f"calibration_{sensor}.json")
 
 
 def capture_level_sweep(sensor: str = "nominal", n: int = SWEEP_FRAMES, seed: int = 0,
@@ -55,17 +61,9 @@ def capture_level_sweep(sensor: str = "nominal", n: int = SWEEP_FRAMES, seed: in
     between them): ``max_tilt = 0`` is a level sweep, what a user captures by lowering the sensor straight down.
     ``mismatch``: the mismatched sensor's :class:`~place_safe.sim.tof_mismatch.MismatchConfig` (another unit;
     ``temperature`` then sets only its start temperature)."""
-    from scipy.spatial.transform import Rotation
-
-    from place_safe.sim.scene import SceneConfig, build_scene
-    from place_safe.sim.tof import ToFConfig
-    from place_safe.sim.tof_mismatch import make_sensor
-
     cfg = SceneConfig()  # level table, sensor rig
     scene = build_scene(cfg)
     data = scene.make_data()
-    from place_safe.sim.tof_mismatch import MismatchConfig
-
     mis = mismatch
     if temperature is not None:
         mis = (mis or MismatchConfig()).model_copy(update={"temp_start": temperature})
@@ -111,10 +109,6 @@ TOUCH_OFFSETS = ((0.0, 0.0), (0.08, 0.0), (0.0, 0.08))
 def capture_arm_sweep(path: str | Path, sensor: str = "nominal", poses: int = SWEEP_FRAMES, seed: int = 0,
                       progress: bool = False) -> Path:
     """Touch the level table with the simulated arm, then capture ``poses`` poses into ``path`` (JSON Lines)."""
-    from place_safe.calibration.capture import SweepPlan, capture_sweep, touch_plane
-    from place_safe.sim.scenario import Scenario
-    from place_safe.sim.world import sim_world
-
     out = Path(path)
     if out.exists():
         out.unlink()  # a fresh capture, not a resumed one
@@ -137,10 +131,6 @@ def calibrate_sim(sensor: str = "nominal", output: str | Path | None = None, n: 
                   seed: int = 0, frames_out: str | Path | None = None, quiet: bool = True) -> Path:
     """Touch, capture an arm sweep of ``n`` poses and run ``place-safe calibrate`` (diff, then proprietary) on
     it; returns the calibration file."""
-    from place_safe.cli.app import main as cli_main
-
-    from place_safe.io.frame_file import write_frames
-
     out = Path(output) if output is not None else calibration_file(sensor)
     with tempfile.TemporaryDirectory() as tmp:
         ff = Path(frames_out) if frames_out is not None else Path(tmp) / f"capture_{sensor}.jsonl"
@@ -148,13 +138,16 @@ def calibrate_sim(sensor: str = "nominal", output: str | Path | None = None, n: 
             write_frames(ff, capture_level_sweep(sensor, n, seed, temperature=OPERATING_TEMPERATURE))
         else:
             capture_arm_sweep(ff, sensor, n, seed, progress=not quiet)
-        if out.exists():
-            out.unlink()  # a fresh calibration, not an update of the old one
-        q = ["--quiet"] if quiet else []
+        # what 'place-safe calibrate FILE --method diff' then '--method proprietary' do, on the frames with truth
+        frames = [f for f in iter_frames(ff) if not isinstance(f, Exception) and f.truth is not None]
+        if not frames:
+            raise CalibrationError(f"the simulated sweep {ff} has no frames with ground truth")
+        cal = Calibration()  # a fresh calibration, not an update of the old file
+        log = None if quiet else (lambda line: print(line, file=sys.stderr, flush=True))
         for method in ("diff", "proprietary"):
-            rc = cli_main(["calibrate", str(ff), "--method", method, "-o", str(out), *q])
-            if rc != 0:
-                raise RuntimeError(f"place-safe calibrate --method {method} failed on the simulated sweep ({rc})")
+            fit_method(cal, frames, method, progress=not quiet, log=log)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        cal.save(out)
         record_provenance(out, sensor, ff, seed)
     return out
 
@@ -175,8 +168,6 @@ OPERATING_TEMPERATURE = 45.0
 
 def record_provenance(calibration: Path, sensor: str, capture: Path, seed: int) -> None:
     """Write how the calibration was made into its ``reports.capture`` (chain, sensor, seed, frames, plane)."""
-    from place_safe.io.frame_file import load_frames
-
     rig = sensor in RIG_SENSORS
     if rig:
         frames, base = len(load_frames(str(capture))), None

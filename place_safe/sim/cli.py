@@ -2,7 +2,7 @@
 
 ``add_sim_commands(subparsers)`` registers a ``sim`` command with its own sub-commands on an
 argparse sub-parser collection; each sets ``func(args) -> int`` (exit status: 0 success, 1 a
-``--strict`` target missed, 2 bad input). ``python -m place_safe.sim.cli ...`` runs them alone.
+``--strict`` target missed, 2 bad input). They run as ``place-safe sim ...`` (:func:`place_safe.cli.main`).
 """
 
 from __future__ import annotations
@@ -14,8 +14,7 @@ import time
 
 
 from place_safe.cli import options
-from place_safe.cli.common import UsageError
-from place_safe.exceptions import FrameFileError
+from place_safe.exceptions import FrameFileError, UsageError
 
 
 def add_sim_commands(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -120,14 +119,5 @@ def cmd_render(args: argparse.Namespace) -> int:
     return 0
 
 
-def main(argv: list[str] | None = None) -> int:
-    """``python -m place_safe.sim.cli sim ...``: the same as ``place-safe sim ...`` (one entry point, one error policy)."""
-    from place_safe.cli.app import main as app_main
-
-    return app_main(sys.argv[1:] if argv is None else argv)
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
-__all__ = ["add_sim_commands", "main"]
+__all__ = ["add_sim_commands"]
 

@@ -42,7 +42,14 @@ import numpy as np
 from place_safe.exceptions import RobotFault
 from place_safe.placement.loop import CONTROL_PERIOD, PlacementLoop
 from place_safe.placement.machine import PlacementConfig
-from place_safe.sim.scenario import oracle_calibration, scenario_path  # noqa: F401 - part of this module's API
+from place_safe.sim.scenario import (ORACLE_NOTE, Scenario, TruthRecorder, load_scenario, oracle_calibration,
+                                     scenario_path, surface_truth)  # noqa: F401 - part of this module's API
+from place_safe.recovery import METHODS, make_estimator
+from place_safe.calibration import Calibration, uncalibrated_reason
+from place_safe.robot.description import ur5_config
+from place_safe.sim import render as _render
+from place_safe.sim.scene import SceneConfig
+from place_safe.sim.world import sim_world
 
 #: s of simulation after the machine finished, for the cup and liquid to settle.
 SETTLE_SECONDS = 0.8
@@ -99,9 +106,6 @@ class PlacementResult:
 
 
 def _as_scenario(scenario: Any):
-    from place_safe.sim.scenario import Scenario, load_scenario
-    from place_safe.sim.scene import SceneConfig
-
     if isinstance(scenario, Scenario):
         return scenario
     if isinstance(scenario, SceneConfig):
@@ -110,10 +114,6 @@ def _as_scenario(scenario: Any):
 
 
 def _calibration(sc: Any, calibration: Any, oracle: bool) -> tuple[Any, str]:
-    from place_safe.calibration import Calibration
-
-    from place_safe.sim.scenario import ORACLE_NOTE, oracle_calibration
-
     if oracle:
         return oracle_calibration(), ORACLE_NOTE
     if calibration is None:
@@ -144,12 +144,6 @@ def run_placement(scenario: Any = "place_level", method: str | None = None, cali
     believes (:class:`~place_safe.robot.tool.ToolFrames`, e.g. from a robot file with a fitted mount; default the
     robot's nominal ones).
     """
-    from place_safe.calibration import uncalibrated_reason
-    from place_safe.recovery import make_estimator
-    from place_safe.robot.description import ur5_config
-    from place_safe.sim.scenario import TruthRecorder, surface_truth
-    from place_safe.sim.world import sim_world
-
     wall0 = _time.perf_counter()
     sc = _as_scenario(scenario)
     name = sc.name or "scenario"
@@ -196,33 +190,19 @@ def run_placement(scenario: Any = "place_level", method: str | None = None, cali
     tilt = float(np.arccos(np.clip(cup_w[2, 2], -1.0, 1.0)))
     height = truth.cup_height()
     if render is not None:
-        from place_safe.sim import render as _render
-
         _render.save_png(_render.render_image(scene, robot.data, tof), render)
-    decided = next((t for t in res.transitions if t["to"] in ("release", "refuse", "aborted")), None)
-    t_dec = decided["time"] if decided is not None else None
+    decided = next((t for t in res.transitions if t.target.value in ("release", "refuse", "aborted")), None)
+    t_dec = decided.time if decided is not None else None
     t_ref = truth.t_reference
     return PlacementResult(
         outcome=res.outcome, reason=res.reason, final_phase=res.final_phase, cup_tilt=tilt, cup_height=height,
         cup_held=robot.holding(), liquid_spilled=robot.liquid_spilled(), liquid_total=liquid_total,
         contact_force_peak=max(res.contact_force_peak, getattr(robot, "true_force_peak", 0.0)), sim_seconds=robot.time(), wall_seconds=_time.perf_counter() - wall0,
-        frames=res.frames, planes=res.planes, transitions=res.transitions, frame_log=res.frame_log,
+        frames=res.frames, planes=res.planes, transitions=[t.to_dict() for t in res.transitions], frame_log=res.frame_log,
         release_height=truth.release_height, decision_time=(t_dec - t_ref) if (t_dec is not None and t_ref is not None)
         else None, surface_moved=truth.surface_moved, fault_injected=truth.stop_injected,
         robot_fault=robot.fault(), **common)
 
 
-def main(argv: list[str] | None = None) -> int:
-    """``python -m place_safe.sim.placement_run SCENARIO ...``: the same as ``place-safe place --sim SCENARIO ...``."""
-    from place_safe.cli.app import main as app_main
-
-    args = list(sys.argv[1:] if argv is None else argv)
-    return app_main(["place", "--sim", *args] if args and not args[0].startswith("-") else ["place", *args])
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
-
-
-__all__ = ["PlacementResult", "run_placement", "oracle_calibration", "scenario_path", "main",
+__all__ = ["PlacementResult", "run_placement", "oracle_calibration", "scenario_path",
            "CONTROL_PERIOD", "SETTLE_SECONDS"]

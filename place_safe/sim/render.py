@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from place_safe.sim.scene import Scene
+from place_safe.exceptions import PlaceSafeError
 
 #: Colour (RGBA) of the rays of each zone 1..9.
 ZONE_COLOURS = np.array([[1, 0.2, 0.2, 1], [1, 0.6, 0.1, 1], [1, 1, 0.2, 1], [0.4, 1, 0.2, 1], [0.2, 1, 1, 1],
@@ -145,8 +146,6 @@ def sweep_frames(scene: Scene, tof: Any, n: int = 20, dz: float = 0.2, **kw: Any
 def view(scene: Scene, data: Any = None) -> None:
     """Open the interactive MuJoCo viewer (needs a display); blocks until closed."""
     if not os.environ.get("DISPLAY") and os.environ.get("MUJOCO_GL") in (None, "egl", "osmesa"):
-        from place_safe.exceptions import PlaceSafeError
-
         raise PlaceSafeError("the interactive viewer needs a display (DISPLAY is not set); use 'sim render' "
                              "to write images instead")
     import mujoco.viewer

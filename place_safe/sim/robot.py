@@ -41,6 +41,7 @@ from place_safe.robot.interface import Robot, RobotLimits, TrapezoidProfile, che
 from place_safe.robot.description import ur5_config
 
 from place_safe.sim.robot_model import ARM_JOINTS, FINGERS, load_robot_model, robot_spec  # noqa: F401
+from place_safe.drivers.ur5.fake_rtde import FORCE_NOISE, FORCE_OFFSET
 
 StepCallback = Callable[[mujoco.MjModel, mujoco.MjData, float], None]
 
@@ -187,7 +188,6 @@ class SimRobot(Robot):
         self._qd_cmd = np.zeros(6)
         self._last_force = 0.0
         self._gripper_open = False
-        from place_safe.drivers.ur5.fake_rtde import FORCE_NOISE, FORCE_OFFSET
 
         self.force_noise = float(FORCE_NOISE[controller] if force_noise is None else force_noise)
         self.force_offset = np.asarray(FORCE_OFFSET if force_offset is None else force_offset, dtype=float)

@@ -11,6 +11,8 @@ from typing import Any
 import mujoco
 import numpy as np
 
+from place_safe.robot.description import ur5_mjcf_path
+
 ARM_JOINTS = ("shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint",
               "wrist_2_joint", "wrist_3_joint")
 FINGERS = ("finger_left", "finger_right")
@@ -18,8 +20,6 @@ FINGERS = ("finger_left", "finger_right")
 
 def load_robot_model() -> tuple[mujoco.MjModel, mujoco.MjData]:
     """The bare packaged robot (UR5 + gripper + TMF8820 site + held cup with liquid), no scene."""
-    from place_safe.robot.description import ur5_mjcf_path
-
     model = mujoco.MjModel.from_xml_path(str(ur5_mjcf_path()))
     return model, mujoco.MjData(model)
 
@@ -28,8 +28,6 @@ def robot_spec(base_pos: Any = (0.0, 0.0, 0.0), base_quat: Any = (1.0, 0.0, 0.0,
     """An editable MjSpec of the packaged robot with its base at ``base_pos`` (m) / ``base_quat`` (w, x, y,
     z) in the world. Scene builders add their geoms to ``spec.worldbody`` and call ``spec.compile()``;
     :class:`SimRobot` re-places the cup in the gripper wherever the base ends up."""
-    from place_safe.robot.description import ur5_mjcf_path
-
     pos, quat = np.asarray(base_pos, dtype=float), np.asarray(base_quat, dtype=float)
     if pos.shape != (3,) or quat.shape != (4,) or not (np.all(np.isfinite(pos)) and np.all(np.isfinite(quat))):
         raise ValueError(f"base_pos must be 3 and base_quat 4 finite numbers; got {base_pos!r}, {base_quat!r}")

@@ -27,12 +27,20 @@ from typing import Annotated, Any, Literal
 import numpy as np
 from pydantic import Field, field_validator, model_validator
 
-from place_safe.config import ConfigModel, field_constraints, parse_config
+from place_safe.config import ConfigModel, field_constraints, parse_config, read_config_file
 from place_safe.assets import scenarios_dir
 from place_safe.exceptions import ConfigError
 
 from place_safe.sim.tof import ToFConfig
 from place_safe.sim.tof_mismatch import MismatchConfig
+from place_safe.calibration import Calibration
+from place_safe.placement.machine import PlacementConfig
+from place_safe.recovery import METHODS
+from place_safe.robot.description import ur5_config
+from place_safe.robot.kinematics import Kinematics
+from place_safe.sim.scene import SceneConfig, SceneError
+from place_safe.sim.tof import ToFConfig, calibration_file, sensor_file, simulated_calibration
+from place_safe.io.input_file import input_file_problem
 
 #: m, the "time from 40 cm" reference height of the cup bottom above the surface (issue 12).
 REFERENCE_HEIGHT = 0.40
@@ -182,11 +190,8 @@ class Scenario(ConfigModel):
 
     @model_validator(mode="after")
     def _check_parts(self) -> "Scenario":
-        from place_safe.recovery import METHODS
-
         self.scene_config()  # raises with the scene's own message
         if self.calibration not in CALIBRATION_KINDS:  # a calibration file: there and readable before any run
-            from place_safe.io.input_file import input_file_problem
 
             if (why := input_file_problem(self._calibration_path())) is not None:
                 raise ValueError(f"calibration file {self.calibration} {why}")
@@ -198,8 +203,6 @@ class Scenario(ConfigModel):
     # -- the parts as the simulation needs them --------------------------------------------------
     def scene_config(self):
         """The :class:`~place_safe.sim.scene.SceneConfig` (always with the robot)."""
-        from place_safe.sim.scene import SceneConfig, SceneError
-
         d = dict(self.scene)
         start_height = d.pop("start_height", None)
         try:
@@ -221,8 +224,6 @@ class Scenario(ConfigModel):
         return cfg
 
     def placement_config(self):
-        from place_safe.placement.machine import PlacementConfig
-
         try:
             return PlacementConfig.from_dict({**PlacementConfig().to_dict(), **self.placement})
         except (TypeError, ValueError) as exc:
@@ -230,18 +231,15 @@ class Scenario(ConfigModel):
 
     def resolve_calibration(self, method: str | None = None) -> tuple[Any, str]:
         """(Calibration or None, note naming where it came from). ``none`` gives (None, 'uncalibrated')."""
-        from place_safe.calibration import Calibration
-
         kind = self.calibration
         if kind == "none":
             return None, "uncalibrated"
         if kind == "oracle":
             return oracle_calibration(), ORACLE_NOTE
         if kind == "sim":
-            from place_safe.sim.calibration_capture import calibration_file
-
             p = calibration_file(self.sensor.model)
-            return Calibration.load(p), f"simulated user calibration ({p.name}: level sweep -> place-safe calibrate)"
+            return (simulated_calibration(self.sensor.model),
+                    f"simulated user calibration ({p.name}: level sweep -> place-safe calibrate)")
         p = self._calibration_path()
         return Calibration.load(p), str(p)
 
@@ -282,18 +280,12 @@ def oracle_calibration():
     """The simulator's own parameters as a calibration: only for ``--oracle`` debugging runs."""
     import json
 
-    from place_safe.calibration import Calibration
-    from place_safe.sim.tof import sensor_file
-
     return Calibration({"forward": json.loads(sensor_file("tmf8820_real.json").read_text())})
 
 
 def home_cup_position(scene_cfg) -> np.ndarray:
     """World position of the cup bottom with the UR5 at home (from the kinematic model, not the simulator)."""
     from scipy.spatial.transform import Rotation
-
-    from place_safe.robot.kinematics import Kinematics
-    from place_safe.robot.description import ur5_config
 
     global _HOME_CUP
     if _HOME_CUP is None:
@@ -310,8 +302,6 @@ _HOME_CUP: np.ndarray | None = None
 # ---------------------------------------------------------------------------------------------
 def scenario_path(name: str | Path) -> Path:
     """A scenario file: a path, or the name of a packaged one (``place_level``, ``level_30cm.toml``)."""
-    from place_safe.io.input_file import input_file_problem
-
     if not isinstance(name, (str, Path)):
         raise ConfigError(f"scenario must be a file path or a packaged name, got {type(name).__name__}")
     p = Path(name)
@@ -331,7 +321,6 @@ def scenario_path(name: str | Path) -> Path:
 def load_scenario(name: str | Path) -> Scenario:
     """Read and validate a scenario file (TOML or JSON); one-line ConfigError on any problem."""
     p = scenario_path(name)
-    from place_safe.config import read_config_file
 
     data = read_config_file(p, "scenario")
     if isinstance(data, dict):

@@ -26,8 +26,12 @@ from typing import Any
 
 import numpy as np
 
-from place_safe.sim.scenario import (ON_TABLE_TOL, REFERENCE_HEIGHT, TIPPED_TILT, Expectation, Scenario,
-                                     home_cup_position)
+from place_safe.sim.scenario import (Expectation, ON_TABLE_TOL, REFERENCE_HEIGHT, Scenario, TIPPED_TILT,
+                                     home_cup_position, load_scenario)
+from place_safe.exceptions import PlaceSafeError
+from place_safe.placement.machine import PlacementConfig
+from place_safe.sim.scene import SceneConfig
+from place_safe.sim.placement_run import run_placement
 
 #: N: a contact at least this hard counts as a collision in the summary (half the robot's 60 N protective stop;
 #: arrival on the surface stays under about 15 N).
@@ -43,9 +47,6 @@ TILT_MARGIN = math.radians(1.0)
 # ---------------------------------------------------------------------------------------------
 def random_scenario(rng: np.random.Generator, index: int = 0, calibration: str = "sim") -> Scenario:
     """One random scene (see module docstring); ``expect`` and ``labels`` come from its geometry."""
-    from place_safe.placement.machine import PlacementConfig
-    from place_safe.sim.scene import SceneConfig
-
     pc = PlacementConfig()
     base = SceneConfig()
     cup = home_cup_position(base)
@@ -178,10 +179,6 @@ def run_one(item: dict) -> dict:
     import os
 
     os.environ.setdefault("MUJOCO_GL", "egl")
-    from place_safe.exceptions import PlaceSafeError
-    from place_safe.sim.placement_run import run_placement
-    from place_safe.sim.scenario import load_scenario
-
     src = item["scenario"]
     sc = Scenario.model_validate(src) if isinstance(src, dict) else load_scenario(src)
     try:

@@ -44,6 +44,7 @@ import torch
 from pydantic import Field
 
 from place_safe.config import ParamModel
+from place_safe.calibration import Calibration
 from place_safe.exceptions import CalibrationError, NoPlaneError, SensorTimeout
 from place_safe.recovery.forward import ForwardModel, ForwardParams, ZoneRays, mount_rotation
 from place_safe.geometry import Plane
@@ -60,6 +61,19 @@ from place_safe.assets import sim_sensors_dir
 def sensor_file(name: str) -> Path:
     """Path of a simulated-sensor file in ``sim/sensors`` (see :mod:`place_safe.assets`)."""
     return sim_sensors_dir() / name
+
+
+def calibration_file(sensor: str = "nominal") -> Path:
+    """Path of the packaged simulated user calibration of the simulated sensor ``sensor`` (``nominal`` or
+    ``mismatch``; made by :func:`place_safe.sim.calibration_capture.calibrate_sim`)."""
+    return sensor_file(f"calibration_{sensor}.json")
+
+
+def simulated_calibration(sensor: str = "nominal") -> Calibration:
+    """The packaged simulated user calibration of the simulated sensor ``sensor`` (``nominal`` or ``mismatch``):
+    what a user's ``place-safe capture`` + ``place-safe calibrate`` give, made in simulation (never the
+    simulator's own parameters; see :mod:`place_safe.sim.calibration_capture`)."""
+    return Calibration.load(calibration_file(sensor))
 
 
 def true_params() -> ForwardParams:

@@ -27,7 +27,7 @@ from place_safe.sensor.frame import N_BINS, N_ZONES, Frame
 
 from place_safe.sim.scene import Material, SceneConfig, TableConfig, build_scene
 from place_safe.sensor.histogram import FLOOR_BINS
-from place_safe.sim.tof import SimToF, ToFConfig
+from place_safe.sim.tof import SimToF, ToFConfig, true_params
 
 PEAK_TARGET = 0.5  # bins
 CORR_TARGET = 0.95
@@ -132,8 +132,6 @@ def _height(h: np.ndarray) -> np.ndarray:
 
 
 def _rig_sensor(params: ForwardParams | None, rays: int) -> SimToF:
-    from place_safe.sim.tof import true_params
-
     p = params if params is not None else true_params()
     table = TableConfig(height=TABLE_HEIGHT, center=(0.0, 0.0), size=(2.0, 2.0, 0.04),
                         material=Material(albedo=1.0))

@@ -415,4 +415,4 @@ def test_faults_during_a_noisy_descent_end_as_robot_faults_with_the_cup_held(kin
     assert res.outcome == "refused" and res.final_phase == "aborted", res.reason
     assert words in res.reason and "holds the cup" in res.reason
     assert not _gripper_opened(fake) and not fake.arm.gripper_is_open()
-    assert not any("obstacle" in t["reason"] for t in res.transitions)
+    assert not any("obstacle" in t.reason for t in res.transitions)

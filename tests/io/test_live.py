@@ -192,7 +192,8 @@ def test_run_live_with_the_peak_estimator(synthetic_file, synthetic_frames):
 def test_stream_command(synthetic_file, capsys):
     from place_safe.cli.app import main
 
-    rc = main(["stream", str(synthetic_file), "--method", "peak", "--rate", "100", "--jsonl"])
+    # a queue as long as the file: no frame is dropped by design, however busy the machine (no timing in tests)
+    rc = main(["stream", str(synthetic_file), "--method", "peak", "--rate", "100", "--jsonl", "--queue", "8"])
     cap = capsys.readouterr()
     assert rc == 0
     lines = [json.loads(line) for line in cap.out.splitlines()]

@@ -199,7 +199,7 @@ def test_a_robot_clock_source_that_blocks_for_ever_is_a_dead_sensor_not_a_hang()
     finally:
         release.set()
     assert res.outcome == "refused" and not robot.opened
-    assert "did not return from read()" in " ".join(t["reason"] for t in res.transitions)
+    assert "did not return from read()" in " ".join(t.reason for t in res.transitions)
 
 
 @pytest.mark.parametrize("kwargs, match", [

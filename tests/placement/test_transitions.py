@@ -47,7 +47,7 @@ def run(robot: HookedRobot, source=None, timeout: float = 20.0) -> list[tuple[Ph
     """The (from, to) phase pairs of one placement, in order."""
     robot.loop = PlacementLoop(robot, source if source is not None else TruthSource(robot), TruthEstimator())
     res = robot.loop.run(timeout=timeout)
-    return [(Phase(t["from"]), Phase(t["to"])) for t in res.transitions]
+    return [(t.source, t.target) for t in res.transitions]
 
 
 def fault_in(phase: Phase, after: int = 1):

@@ -65,7 +65,7 @@ def test_real_arm_example_releases_and_retreats_on_the_pessimistic_fake(gripper)
         if srv is not None:
             srv.close()
     assert result.outcome == "released", result.reason
-    assert result.transitions[-1]["to"] == "done" and "retreated" in result.transitions[-1]["reason"]
+    assert result.transitions[-1].target.value == "done" and "retreated" in result.transitions[-1].reason
     assert fake.watchdog_stops == 0 and fake.errors == [] and fake.rejected == []
     assert not fake.program_running and not fake.arm.is_moving()  # disconnect stopped the script at rest
     if srv is None:

@@ -10,7 +10,8 @@ import pytest
 
 pytest.importorskip("mujoco")
 
-from place_safe.sim.placement_run import main, run_placement, scenario_path  # noqa: E402
+from place_safe.cli import main  # noqa: E402
+from place_safe.sim.placement_run import run_placement, scenario_path  # noqa: E402
 
 SCENARIOS = Path(__file__).resolve().parents[2] / "scenarios"
 
@@ -44,12 +45,12 @@ def test_tilted_table_is_refused_and_the_cup_kept(tmp_path):
     d["sensor"] = {"drop_prob": 1.0}  # a dead sensor link: refuse without a plane
     scen = tmp_path / "dead.json"
     scen.write_text(json.dumps(d))
-    log = ["--json", str(out), "--log", str(tmp_path / "t.jsonl")]  # python -m ...placement_run = place --sim
-    assert main([str(scen), "--timeout", "5", *log]) == 1
+    log = ["--json", str(out), "--log", str(tmp_path / "t.jsonl")]
+    assert main(["place", "--sim", str(scen), "--timeout", "5", *log]) == 1
     dead = json.loads(out.read_text())
     assert dead["outcome"] == "refused" and dead["cup_held"] and dead["frames"] == 0
     assert "timeout" in dead["reason"] or "no surface plane" in dead["reason"]
-    assert main([str(tmp_path / "missing.json"), *log]) == 2
+    assert main(["place", "--sim", str(tmp_path / "missing.json"), *log]) == 2
     assert scenario_path("place_level").name == "place_level.json"
 
 

@@ -94,7 +94,7 @@ def test_scenario_files_build():
 def test_render_writes_png(tmp_path):
     from PIL import Image
 
-    from place_safe.sim.cli import main
+    from place_safe.cli import main
 
     out = tmp_path / "scene.png"
     gif = tmp_path / "sweep.gif"

@@ -10,7 +10,7 @@ import pytest
 
 pytest.importorskip("mujoco")
 
-from place_safe.sim.cli import main  # noqa: E402
+from place_safe.cli import main  # noqa: E402
 from place_safe.sim.validate import CORR_TARGET, PEAK_TARGET, shape_correlation, subbin_peak  # noqa: E402
 
 SWEEP = Path(__file__).resolve().parents[1] / "data" / "tmf8820_ur5_sweep.json"

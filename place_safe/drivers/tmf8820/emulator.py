@@ -77,6 +77,7 @@ from place_safe.drivers.tmf8820 import packets as P
 from place_safe.drivers.tmf8820 import registers as R
 from place_safe.drivers.tmf8820.hexfile import RamPatch
 from place_safe.sensor.frame import Frame
+from place_safe.io.source import FrameSource
 
 #: Fault kinds the emulator injects and the driver counts under the same names.
 FAULT_KINDS = R.FAULT_KINDS
@@ -159,8 +160,6 @@ class FaultPlan:
 
 def _feed_iter(feed: Any) -> Callable[[float], Frame | None]:
     """Normalise a feed to ``next(t) -> Frame | None`` (None: the feed has ended)."""
-    from place_safe.io.source import FrameSource
-
     if isinstance(feed, FrameSource):
         def from_source(_t: float) -> Frame | None:
             while True:  # entries a file could not parse cannot come from a sensor: skip them

@@ -32,6 +32,7 @@ from place_safe.drivers.tmf8820.ticks import TickClock
 from place_safe.exceptions import ConfigError, SensorError, SensorTimeout
 from place_safe.io.source import FrameSource
 from place_safe.sensor.frame import Frame
+from place_safe.io.input_file import MAX_FRAME_FILE_BYTES, check_input_file
 
 RAW_FIELDS = 3 + R.HIST_DATA_SIZE                  # 131
 OBJ_FIELDS = 6 + 4 * R.RESULT_CHANNELS             # 78
@@ -175,8 +176,6 @@ class BridgeSource(FrameSource):
     @classmethod
     def open_log(cls, path: str | Path, address: int | None = None, **kw: Any) -> "BridgeSource":
         """A recorded bridge log (text file, one line per record); the end of the file ends the source."""
-        from place_safe.io.input_file import MAX_FRAME_FILE_BYTES, check_input_file
-
         p = check_input_file(path, "bridge log", ConfigError, MAX_FRAME_FILE_BYTES)  # never a FIFO or a device
         try:
             fh = open(p, encoding="ascii", errors="replace", newline="")

@@ -23,6 +23,10 @@ import numpy as np
 from pydantic import AfterValidator, Field, model_validator
 
 from place_safe.config import ConfigModel, load_config
+from place_safe.placement.machine import PlacementConfig
+from place_safe.robot.contact_detector import DETECTOR_BOUNDS, DetectorSettings
+from place_safe.robot.description import ur5_dir
+from place_safe.robot.tool import ToolFrames
 
 #: Controller cycle rates (Hz): CB3 125 Hz, e-Series 500 Hz (UR documentation).
 CONTROLLER_HZ = {"cb3": 125.0, "e-series": 500.0}
@@ -174,8 +178,6 @@ class ToolConfig(ConfigModel):
 
     def frames(self):
         """The :class:`place_safe.robot.tool.ToolFrames` of this tool."""
-        from place_safe.robot.tool import ToolFrames
-
         return ToolFrames(self.tcp.matrix(), self.sensor.matrix(), self.cup.matrix())
 
 
@@ -257,8 +259,6 @@ class ContactConfig(ConfigModel):
 
     def settings(self, controller: str):
         """The :class:`~place_safe.robot.contact_detector.DetectorSettings` for ``controller``."""
-        from place_safe.robot.contact_detector import DetectorSettings
-
         return DetectorSettings.for_controller(
             controller, noise_std=self.noise_std, window=self.window, sigmas=self.sigmas,
             persistence=self.persistence, min_threshold=self.min_threshold, lateral_sigmas=self.lateral_sigmas)
@@ -273,8 +273,6 @@ def placement_config(robot: URConfig, base=None):
     the obstacle stop no harder than ``emergency_decel``."""
     from dataclasses import replace
 
-    from place_safe.placement.machine import PlacementConfig
-
     base = base if base is not None else PlacementConfig()
     m, lim = robot.motion, robot.limits
     return replace(base, near_surface_speed=m.near_surface_speed, near_surface_distance=m.near_surface_distance,
@@ -286,8 +284,6 @@ def placement_config(robot: URConfig, base=None):
 
 def packaged_config(name: str = "sim") -> Path:
     """Path of a packaged robot file: ``real`` or ``sim`` (``robots/ur5/<name>.toml``)."""
-    from place_safe.robot.description import ur5_dir
-
     return ur5_dir() / f"{name}.toml"
 
 

@@ -43,6 +43,7 @@ import numpy as np
 from place_safe.drivers.ur5.config import CONTROLLER_HZ
 from place_safe.drivers.ur5.pose import pose_to_vector, vector_to_pose
 from place_safe.exceptions import RobotFault
+from place_safe.drivers.ur5.kinematic_arm import KinematicArm
 
 #: UR robot and safety mode numbers (ur_rtde getRobotMode / getSafetyMode).
 ROBOT_MODE_RUNNING = 7
@@ -73,8 +74,6 @@ class FakeUR:
                  arm_flange_T_tcp: Any = None, force_noise: float | None = None, force_offset: Any = FORCE_OFFSET,
                  seed: int = 0) -> None:
         if arm is None:
-            from place_safe.drivers.ur5.kinematic_arm import KinematicArm
-
             arm = KinematicArm(period=1.0 / CONTROLLER_HZ[controller])
         self.arm = arm
         self.period = 1.0 / CONTROLLER_HZ[controller]

@@ -22,6 +22,8 @@ from scipy.spatial.transform import Rotation
 
 from place_safe.exceptions import RobotFault
 from place_safe.robot.interface import Robot, RobotLimits, TrapezoidProfile, check_pose, check_twist
+from place_safe.robot.description import ur5_config
+from place_safe.robot.kinematics import Kinematics
 
 _GAIN_PER_S = 20.0  # Cartesian error feedback of the resolved-rate loop (1/s)
 _DLS = 1e-6  # damped least squares lambda^2
@@ -47,9 +49,6 @@ class KinematicArm(Robot):
     def __init__(self, q_init: Any = None, *, limits: RobotLimits | None = None, period: float = 0.008,
                  kinematics: Any = None, contact_plane: tuple[Any, float] | None = None,
                  contact_points: Any = ((0.0, 0.0, 0.0),), stiffness: float = 20000.0) -> None:
-        from place_safe.robot.kinematics import Kinematics
-        from place_safe.robot.description import ur5_config
-
         self.kin = kinematics if kinematics is not None else Kinematics()
         self.limits = limits if limits is not None else RobotLimits()
         self.period = float(period)

@@ -75,6 +75,7 @@ from place_safe.drivers.ur5.pose import pose_to_vector, vector_to_pose
 from place_safe.exceptions import RobotFault
 from place_safe.robot.contact_detector import ContactDetector
 from place_safe.robot.interface import Robot, RobotLimits, check_pose, check_twist
+from place_safe.robot.kinematics import Kinematics
 
 log = logging.getLogger("place_safe.drivers.ur5")
 
@@ -416,8 +417,6 @@ class URRobot(Robot):
     def tcp_pose(self) -> np.ndarray:
         if self.dry_run:  # the controller's TCP is not ours to set: flange from our kinematics
             if self._kin is None:
-                from place_safe.robot.kinematics import Kinematics
-
                 self._kin = Kinematics()
             return self._kin.base_T_flange(self.joint_positions()) @ self.tool.flange_T_tcp
         return vector_to_pose(self._vec(self._receive.getActualTCPPose(), 6, "TCP pose"))
@@ -576,8 +575,6 @@ class URRobot(Robot):
         if np.any(goal < lo) or np.any(goal > hi):
             raise self._refuse(f"moveJ target {np.round(goal, 4).tolist()} is outside the joint limits")
         if self._kin is None:
-            from place_safe.robot.kinematics import Kinematics
-
             self._kin = Kinematics()
         T = self._kin.base_T_flange(goal) @ self.tool.flange_T_tcp
         why = self.check_tcp_position(T[:3, 3], "moveJ target", descent=T[2, 3] < self.tcp_pose()[2, 3])

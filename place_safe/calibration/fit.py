@@ -1,0 +1,76 @@
+"""Fit one method family's sections of a calibration to frames with ground truth: what ``place-safe calibrate``
+runs, as a library function (the simulated user calibration calls it too).
+
+``fit_method(calibration, frames, method)`` updates ``calibration`` in place and returns the names of the
+sections it wrote, in order:
+
+* ``peak``: ``peak`` (the histogram-peak mapping, pile-up and near-range table), then ``uncertainty``;
+* ``proprietary``: ``proprietary`` (the on-sensor distances);
+* ``diff``: ``peak`` first when the calibration has none (the diff method starts from calibrated peak), then
+  ``forward`` (the forward model's parameters and residual weighting), ``diff`` (a z0 correction) and
+  ``uncertainty``.
+
+Reports go into ``calibration.reports`` as plain JSON values. SI units throughout (see the fits' modules).
+"""
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+from place_safe.calibration import REQUIRED_SECTIONS, Calibration
+from place_safe.calibration.forward_fit import fit_forward, fit_range_correction, select_model_error
+from place_safe.calibration.points import adopt_pileup, fit_peak, fit_proprietary
+from place_safe.calibration.uncertainty import update_calibration
+from place_safe.io.json_values import jsonable
+from place_safe.recovery.differentiable import SolverOptions
+from place_safe.sensor.frame import Frame
+
+def fit_method(calibration: Calibration, frames: Sequence[Frame], method: str, progress: bool = False,
+               log: Callable[[str], None] | None = None) -> list[str]:
+    """Fit ``method``'s sections of ``calibration`` (in place) to ``frames`` with ground truth; the sections
+    written, in order. ``log`` gets one line per step worth telling a user (None: silent)."""
+    if method not in REQUIRED_SECTIONS:  # the method families that have a calibration
+        raise ValueError(f"calibrate: method must be one of {', '.join(REQUIRED_SECTIONS)}, got {method!r}")
+    say = log if log is not None else (lambda _line: None)
+    cal = calibration
+    fitted: list[str] = []
+    if method in ("peak", "diff") and (method == "peak" or "peak" not in cal.sections):
+        if method == "diff":
+            say("the diff method starts from the calibrated peak method: fitting the 'peak' section first")
+        params, report = fit_peak(frames, progress=progress)
+        cal.errors.pop("peak", None)
+        cal.sections["peak"] = params.to_dict()
+        cal.reports["peak"] = jsonable(report)
+        fitted.append("peak")
+    if method == "proprietary":
+        params, report = fit_proprietary(frames, progress=progress)
+        cal.errors.pop("proprietary", None)
+        cal.sections["proprietary"] = params.to_dict()
+        cal.reports["proprietary"] = jsonable(report)
+        fitted.append("proprietary")
+    if method == "diff":
+        params, report = fit_forward(frames, init=None, progress=progress)
+        if "peak" in fitted:  # the forward fit sees pile-up in the histograms' shapes: the peak method undoes it
+            peak, peak_report, adopted = adopt_pileup(frames, cal.peak(), cal.reports["peak"], params.pileup)
+            cal.reports["peak"] = jsonable(peak_report)
+            if adopted:
+                cal.sections["peak"] = peak.to_dict()
+                say(f"peak: undoing the forward fit's SPAD pile-up ({params.pileup:.3g} per count)")
+
+        params.model_error, report["model_error"] = select_model_error(frames, params, cal.peak(), progress=progress)
+        cal.errors.pop("forward", None)
+        cal.sections["forward"] = params.to_dict()
+        cal.reports["forward"] = jsonable(report)
+        fitted.append("forward")
+
+        section, report = fit_range_correction(frames, params, cal.peak(), progress=progress)
+        cal.errors.pop("diff", None)
+        cal.sections["diff"] = {**section, "window_after_peak": SolverOptions().window_after_peak}
+        cal.reports["diff"] = jsonable(report)
+        fitted.append("diff")
+    if method in ("peak", "diff"):
+        cal.reports["uncertainty"] = jsonable(update_calibration(cal, frames, method))
+        fitted.append("uncertainty")
+    return fitted
+
+
+__all__ = ["fit_method"]
