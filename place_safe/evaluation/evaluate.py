@@ -125,7 +125,7 @@ class EvaluationReport:
             if s["albedo"] is not None:
                 notes.append(f"albedo {s['albedo']['mean']:.4g}, CV {s['albedo']['cv_percent']:.1f} %")
             if notes:
-                lines.append(f"{name:<18} " + "; ".join(notes))
+                lines.append(f"{name:<18} " + "; ".join(notes) + ("  [uncalibrated]" if name in self.uncalibrated else ""))
         for name, why in self.unavailable.items():
             lines.append(f"{name:<18} unavailable: {why}")
         lines.append(f"({len(self.z0)} frames with ground truth"

@@ -22,9 +22,9 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import AfterValidator, Field, model_validator
 
-from place_safe.config import ConfigModel, load_config
+from place_safe.config import ConfigModel, field_constraints, load_config
 from place_safe.placement.machine import PlacementConfig
-from place_safe.robot.contact_detector import DETECTOR_BOUNDS, DetectorSettings
+from place_safe.robot.contact_detector import DetectorSettings
 from place_safe.robot.description import ur5_dir
 from place_safe.robot.tool import ToolFrames
 
@@ -232,9 +232,6 @@ def _detector(name: str) -> dict:
     """The range of contact-detector setting ``name`` (a field of
     :class:`~place_safe.robot.contact_detector.DetectorSettings`), as pydantic field constraints (numbers as
     written in a robot file: not strict)."""
-    from place_safe.config import field_constraints
-    from place_safe.robot.contact_detector import DetectorSettings
-
     return field_constraints(DetectorSettings, name)
 
 
