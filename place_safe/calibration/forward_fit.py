@@ -138,6 +138,13 @@ COARSE_RELATIVE_DECREMENT = 1e-3
 #: The coarse stage's absolute test (:data:`~place_safe.calibration.gauss_newton.DECREMENT_TOL` is 0.01): a remaining
 #: step under one standard deviation.
 COARSE_DECREMENT = 1.0
+#: The frames are taken to be of one surface (``fit_forward(same_surface=None)``) when their albedos, fitted freely
+#: (after the coarse stage, or at the start), spread by at most this coefficient of variation: a level sweep of
+#: one table (the real sweep: 7-10 %), not frames of surfaces drawn at random (the synthetic sets: 0.5-1.5x, ~30 %).
+SAME_SURFACE_CV = 0.15
+#: Then their log albedos are held to their common mean by a Gaussian prior of this std (1 %): the falloff with
+#: range (saturation, pile-up, baseline, beam) must explain the brightness over the sweep, not a per-frame albedo.
+SAME_SURFACE_SD = 0.01
 #: Forward-mode tangents evaluated together (``vmap`` over ``jvp``): fewer passes over the model, but
 #: larger tensors; 18 was fastest for 40 frames on one thread (0.57 s a Jacobian against 0.69 s with 9).
 JVP_CHUNK = 18
@@ -179,7 +186,8 @@ def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, prog
                 rays: int = 4, iterations: int = 60, min_distance: float = 0.04,
                 max_distance: float = 1.0, fitted: dict[str, str] | None = None,
                 window_after_peak: int = 24, max_frames: int = 40, priors: dict | None = None,
-                objective: str = OBJECTIVE, coarse_rays: int = 2) -> tuple[ForwardParams, dict]:
+                objective: str = OBJECTIVE, coarse_rays: int = 2,
+                same_surface: bool | None = None) -> tuple[ForwardParams, dict]:
     """Fit camera parameters to frames with ground truth; returns (params, report).
 
     frames: frames with ``truth`` planes; those outside ``[min_distance, max_distance]`` (z0, m)
@@ -235,11 +243,11 @@ def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, prog
     with single_thread():  # a few thousand-element tensors: torch's thread pool only waits (3x slower when busy)
         return _fit_forward(frames, init, progress, rays, iterations, min_distance, max_distance, fitted,
                             window_after_peak, max_frames, PRIORS if priors is None else priors, objective,
-                            coarse_rays)
+                            coarse_rays, same_surface)
 
 
 def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_distance, fitted, window_after_peak,
-                 max_frames, priors, objective, coarse_rays) -> tuple[ForwardParams, dict]:
+                 max_frames, priors, objective, coarse_rays, same_surface) -> tuple[ForwardParams, dict]:
     """:func:`fit_forward` on the calling thread."""
     from scipy.optimize import least_squares
     from torch.func import jvp, vmap
@@ -389,8 +397,14 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
     bar = tqdm(total=iterations, desc="forward model", unit="it", disable=not progress, file=sys.stderr)
     evals = {"n": 0}
 
+    tie = {"sd": None}  # the std (log) of the frames' albedos about their mean when they are one surface
+
     def prior_rows(z: np.ndarray) -> np.ndarray:
-        return (z[prior_idx] - prior_mu[prior_idx]) / prior_sd[prior_idx]
+        rows = (z[prior_idx] - prior_mu[prior_idx]) / prior_sd[prior_idx]
+        if tie["sd"] is None:
+            return rows
+        la = z[n_cam:]
+        return np.concatenate([rows, (la - la.mean()) / tie["sd"]])
 
     def fun(z: np.ndarray) -> np.ndarray:
         with torch.no_grad():
@@ -423,8 +437,11 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
             return jvp(residual, (cam, la), (t[:n_cam], t[n_cam:]))[1]
 
         d = torch.cat([vmap(one)(chunk) for chunk in torch.split(tangents, JVP_CHUNK)]).numpy()  # (n_early + 1, nf, M)
-        J = np.zeros((nf * nf_res + len(prior_idx), n_cam + nf))
+        n_tie = nf if tie["sd"] is not None else 0
+        J = np.zeros((nf * nf_res + len(prior_idx) + n_tie, n_cam + nf))
         J[nf * nf_res + np.arange(len(prior_idx)), prior_idx] = 1.0 / prior_sd[prior_idx]
+        if n_tie:
+            J[nf * nf_res + len(prior_idx):, n_cam:] = (np.eye(nf) - 1.0 / nf) / tie["sd"]
         J[:nf * nf_res, early_idx] = d[:-1].reshape(len(early_idx), -1).T
         J[rows, n_cam + rows // nf_res] = d[-1].reshape(-1)
         if len(late_idx):
@@ -459,6 +476,7 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
     import time
 
     t_start = time.perf_counter()
+    cpu_start = time.process_time()
     coarse = None
     if coarse_rays and coarse_rays < rays:
         # the first steps on a coarser quadrature (a quarter of the rays or fewer: each Jacobian that much cheaper),
@@ -472,6 +490,12 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
         if np.all(np.isfinite(coarse.x)):
             z0 = coarse.x
     coarse_seconds = time.perf_counter() - t_start
+    # one surface? (a level sweep of one table): the frames' albedos, free so far, spread little
+    la_start = z0[n_cam:]
+    albedo_cv = float(np.std(np.exp(la_start)) / np.mean(np.exp(la_start)))
+    one_surface = same_surface if same_surface is not None else albedo_cv <= SAME_SURFACE_CV
+    if one_surface:
+        tie["sd"] = SAME_SURFACE_SD
     sol = gauss_newton.solve(fun, jac, z0, lower, upper, max_iterations=iterations, damping=INITIAL_DAMPING,
                              relative_tol=RELATIVE_DECREMENT)
     if not np.all(np.isfinite(sol.x)):
@@ -489,6 +513,7 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
         if not np.all(np.isfinite(sol.x)):
             raise CalibrationError("forward calibration diverged (non-finite parameters)")
     seconds = time.perf_counter() - t_start
+    cpu_seconds = time.process_time() - cpu_start  # this process's CPU time: what a quiet machine would take
     bar.close()
     cam, la = split(sol.x)
     good = ~bad if (~bad).sum() >= 3 else np.ones(nf, dtype=bool)
@@ -526,6 +551,8 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
         "rms_scaled_residual_before": math.sqrt(2 * cost0 / n_res),
         "rms_scaled_residual_after": math.sqrt(2 * data_cost(sol.fun) / max(n_good, 1)),
         "prior_chi2": 2.0 * prior_cost,
+        "one_surface": {"tied": bool(one_surface), "albedo_cv_before": albedo_cv,
+                        "albedo_cv_after": float(np.std(albedos) / np.mean(albedos))},
         "rms_scaled_residual_per_frame": {"median": float(np.median(per_frame)), "max": float(per_frame.max())},
         "converged": bool(sol.converged),
         "why": sol.reason if first is sol else f"first fit: {first.reason}; after excluding bad frames: {sol.reason}",
@@ -540,6 +567,7 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
                        "rays": coarse_rays, "jacobians": coarse.iterations, "message": coarse.reason,
                        "seconds": coarse_seconds, "rms_scaled_residual": math.sqrt(2 * data_cost(coarse.fun) / n_res)},
                    "evaluations": evals["n"], "gauss_newton_decrement": sol.decrement, "seconds": seconds,
+                   "cpu_seconds": cpu_seconds,
                    "objective_history": [round(math.sqrt(2 * c / n_res), 4) for c in first.history]
                    + ([round(math.sqrt(2 * c / n_good), 4) for c in sol.history] if sol is not first else [])},
         "posterior_std": spread,

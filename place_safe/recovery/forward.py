@@ -15,7 +15,10 @@ ray is soft-binned with a Gaussian of ``soft_bin_sigma`` bins; a zone's transien
 solid-angle weighted mean over its rays times ``rays_per_zone`` (so quadratures of any size share
 one scale). The transient is convolved with the laser pulse (the reference histogram, floor
 removed, normalised to peak 1, stretched in time by ``ref_time_scale``), zones leak
-``crosstalk`` of every other zone's histogram, and a constant ``floor`` is added.
+``crosstalk`` of every other zone's histogram, and a constant ``floor`` is added. The unit's own terms (crosstalk by
+neighbour in the 3x3 grid, the cover-glass return, the multipath echo, the learned response, per-zone timing, gain and
+tails, pile-up) are described in :class:`ForwardParams`; their priors are in
+:data:`place_safe.calibration.forward_fit.PRIORS`.
 
 Shapes: ``B`` frames, 9 zones, ``R`` rays per zone, 128 bins. Everything is batched over frames
 and differentiable in the plane, reflectance and every camera parameter.

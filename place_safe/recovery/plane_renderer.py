@@ -23,6 +23,12 @@ Chain of the derivatives, per ray with direction ``v``::
 With the emitter at ``E = (bx, by, 0)`` (``baseline``) the light's range ``r_e = |r v - E|`` replaces ``r`` in
 the inverse square, ``c = (z0 - a bx - b by) / (s r_e)`` is the light's cosine, the flux is weighted by the
 beam ``(r v_z / r_e)^beam_power`` and ``u`` uses the one-way range ``(r + r_e) / 2``.
+
+The unit terms of :class:`~place_safe.recovery.forward.ForwardParams` (version 3) follow
+``ForwardModel``: the multipath echo appends each ray again at twice its one-way range with ``echo_gain (0.1 m /
+range)^2`` of its amplitude (its derivatives by the chain above), the cover-glass return adds a fixed Gaussian per
+zone at ``bin_offset + glass_delay + zone_offset`` (no derivative in x), and the neighbour crosstalk
+(``crosstalk_grid``) is a (9, 9) matrix applied with the scalar crosstalk.
 """
 
 from __future__ import annotations
