@@ -24,7 +24,9 @@ Stopping (``Result.reason``):
     can still gain 0.01 % of its chi-square has nothing left that matters.
 ``"converged: cost change"``
     Three accepted steps in a row each lowered chi-square by less than ``decrement_tol`` times the
-    reduced chi-square (the decrement test cannot pass where the cost has a kink, e.g. a pulse resampled
+    reduced chi-square (or, above :data:`RELATIVE_MIN_CHI2`, by less than ``relative_tol`` of chi-square: a fit
+    whose predicted decrement stays large while its steps gain nothing, e.g. the real sweep crawling for 40
+    iterations at an unchanged RMS) (the decrement test cannot pass where the cost has a kink, e.g. a pulse resampled
     by linear interpolation: the gradient does not vanish there, the cost no longer moves).
 ``"not converged: no step lowers the cost"``
     ``lambda`` exceeded ``1e12`` without a step that lowers the cost and the decrement test failed.
@@ -179,7 +181,10 @@ def solve(fun: Callable[[np.ndarray], np.ndarray], jac: Callable[[np.ndarray], n
                 lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
                 nu = 2.0
                 gain = 2.0 * (cost - cn)
-                small = small + 1 if gain < decrement_tol * chi2_red else 0
+                least = decrement_tol * chi2_red
+                if chi2_red > RELATIVE_MIN_CHI2:  # a model that does not fit to the noise: gains relative to chi-square
+                    least = max(least, relative_tol * 2.0 * cost)
+                small = small + 1 if gain < least else 0
                 x, r, cost = xn, rn, cn
                 history.append(cost)
                 accepted = need_jac = True
