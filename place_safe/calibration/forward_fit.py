@@ -290,6 +290,8 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
                           "published": init.ref_floor}
     dtype = torch.float64
     model = ForwardModel(init, ZoneRays.stratified(rays, dtype=dtype), dtype=dtype)
+    model._echo = model._echo or "echo_gain" in fitted  # fitted terms are rendered under differentiation
+    model._glass = model._glass or "glass_gains" in fitted
 
     hists = np.array([f.hists for f in data], dtype=float)
     floor = measure_floor(hists)
@@ -502,6 +504,7 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
         full = model
         model = ForwardModel(init, ZoneRays.stratified(coarse_rays, dtype=dtype), dtype=dtype)
         model.t = full.t  # the same parameter tensors (unpack writes them)
+        model._echo, model._glass = full._echo, full._glass
         coarse = gauss_newton.solve(fun, jac, z0, lower, upper, max_iterations=iterations, damping=INITIAL_DAMPING,
                                     relative_tol=COARSE_RELATIVE_DECREMENT, decrement_tol=COARSE_DECREMENT)
         model = full

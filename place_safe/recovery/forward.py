@@ -581,6 +581,10 @@ class ForwardModel:
         self.dtype = dtype
         self.rays = rays if rays is not None else ZoneRays.stratified(8, dtype=dtype)
         self.t = params_to_tensors(self.params, dtype)
+        # whether the echo and the glass are rendered while derivatives are taken (they double the rays' soft
+        # binning): when the parameters the model is built with have them (a fit starts them just off zero)
+        self._echo = self.params.echo_gain != 0.0
+        self._glass = any(v != 0.0 for v in self.params.glass_gains)
         self.bins = torch.arange(N_BINS, dtype=dtype)
         self._kind = torch.as_tensor(ZONE_KIND)
         d = self.rays.directions.to(dtype)
@@ -681,17 +685,18 @@ class ForwardModel:
         squared). Exact for a surface parallel to the sensor's face; for a tilted one it is the first-order term.
         Glass: one return per zone of ``glass_gains`` (counts per unit-area transient) at zero range plus
         ``glass_delay`` bins, the same in every frame (the package's cover glass). Nothing is appended when
-        both are off (the defaults) and no derivative is being taken.
+        both are zero; while derivatives are taken, when the parameters the model was built with have them (a fit
+        starts them just above zero, :data:`place_safe.calibration.forward_fit.NONZERO_START`).
         """
         t = self.t
         grad = torch.is_grad_enabled()
-        if grad or float(t["echo_gain"]) != 0.0:
+        if (self._echo if grad else float(t["echo_gain"]) != 0.0):
             echo = t["echo_gain"] * (ECHO_REFERENCE_RANGE / torch.clamp(path, min=1e-4)) ** 2
             u_echo = 2.0 * path / t["bin_size"] + t["bin_offset"] + t["zone_offsets"].view(1, N_ZONES, 1)
             amp, u = torch.broadcast_tensors(amp, u)
             amp = torch.cat([amp, amp * echo], dim=-1)
             u = torch.cat([u, u_echo.expand_as(u)], dim=-1)
-        if grad or bool(torch.any(t["glass_gains"] != 0)):
+        if (self._glass if grad else bool(torch.any(t["glass_gains"] != 0))):
             amp, u = torch.broadcast_tensors(amp, u)
             b = amp.shape[0]
             g_amp = t["glass_gains"].view(1, N_ZONES, 1).expand(b, N_ZONES, 1)

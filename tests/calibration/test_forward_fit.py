@@ -164,3 +164,19 @@ def test_one_surface_is_tied_only_when_the_albedos_agree():
     assert one["one_surface"]["tied"] and one["one_surface"]["albedo_cv_after"] < 0.05
     assert not many["one_surface"]["tied"]
     assert not default["one_surface"]["tied"]  # by default each frame keeps its own albedo
+
+
+def test_unit_terms_fitted_from_zero_get_derivatives():
+    """An echo and a glass return fitted from an ``init`` that has none (zero, their lower bound) still move: the
+    fit renders them while it differentiates."""
+    from place_safe.calibration.forward_fit import UNIT_TERMS
+
+    truth = ForwardParams(bin_offset=9.3, echo_gain=0.3, glass_gains=[40.0] * 9)
+    spec = SyntheticSpec(z_range=(0.08, 0.3), theta_range=(0.0, 0.0), specular_weight_range=(0.14681, 0.14681),
+                         specular_exponent_range=(1.8378, 1.8378), noise=False, rays=4)
+    frames = make_frames(5, params=truth, spec=spec, seed=2)
+    fitted = {"echo_gain": UNIT_TERMS["echo_gain"], "glass_gains": UNIT_TERMS["glass_gains"]}
+    got, _ = fit_forward(frames, init=ForwardParams(bin_offset=9.3), progress=False, rays=4, iterations=10,
+                         fitted=fitted, coarse_rays=0, priors={})
+    assert got.echo_gain > 0.1
+    np.testing.assert_allclose(got.glass_gains, 40.0, rtol=0.2)
