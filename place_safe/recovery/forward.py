@@ -15,7 +15,10 @@ ray is soft-binned with a Gaussian of ``soft_bin_sigma`` bins; a zone's transien
 solid-angle weighted mean over its rays times ``rays_per_zone`` (so quadratures of any size share
 one scale). The transient is convolved with the laser pulse (the reference histogram, floor
 removed, normalised to peak 1, stretched in time by ``ref_time_scale``), zones leak
-``crosstalk`` of every other zone's histogram, and a constant ``floor`` is added.
+``crosstalk`` of every other zone's histogram, and a constant ``floor`` is added. The unit's own terms (crosstalk by
+neighbour in the 3x3 grid, the cover-glass return, the multipath echo, the learned response, per-zone timing, gain and
+tails, pile-up) are described in :class:`ForwardParams`; their priors are in
+:data:`place_safe.calibration.forward_fit.PRIORS`.
 
 Shapes: ``B`` frames, 9 zones, ``R`` rays per zone, 128 bins. Everything is batched over frames
 and differentiable in the plane, reflectance and every camera parameter.
@@ -41,6 +44,42 @@ _SQRT_2PI = math.sqrt(2.0 * math.pi)
 #: Lags (bins) of the learned impulse response (:class:`ForwardParams` ``response_kernel``). The real sweep's
 #: histograms hold a second bump 13-19 bins after the peak, which no exponential tail of the model reaches.
 RESPONSE_LAGS = 24
+#: m: the range at which :class:`ForwardParams` ``echo_gain`` is the echo's size relative to the direct return.
+ECHO_REFERENCE_RANGE = 0.1
+
+
+def _grid_positions() -> np.ndarray:
+    """Each zone's (column, row) in the 3x3 grid (9, 2), each in {-1, 0, 1}: the signs of its rectangle's centre."""
+    centre = np.stack([ZONE_RECTS[:, :2].mean(axis=1), ZONE_RECTS[:, 2:].mean(axis=1)], axis=1)
+    return np.sign(np.round(centre, 9)).astype(int)
+
+
+#: The 8 neighbour displacements (dx, dy) of the 3x3 grid, in the order of ``ForwardParams.crosstalk_grid``:
+#: row by row (dy = -1, 0, 1), within a row dx = -1, 0, 1, the zone itself (0, 0) left out.
+GRID_DISPLACEMENTS = tuple((dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if (dx, dy) != (0, 0))
+
+
+def _grid_selectors() -> np.ndarray:
+    """(8, 9, 9): ``S[k, to, from]`` is 1 where zone ``from`` sits at ``GRID_DISPLACEMENTS[k]`` from zone ``to``."""
+    pos = _grid_positions()
+    sel = np.zeros((len(GRID_DISPLACEMENTS), N_ZONES, N_ZONES))
+    for k, (dx, dy) in enumerate(GRID_DISPLACEMENTS):
+        for to in range(N_ZONES):
+            for frm in range(N_ZONES):
+                if pos[frm, 0] - pos[to, 0] == dx and pos[frm, 1] - pos[to, 1] == dy:
+                    sel[k, to, frm] = 1.0
+    return sel
+
+
+_GRID_SELECTORS = _grid_selectors()
+
+
+def grid_crosstalk_matrix(grid, dtype: torch.dtype = torch.float64) -> torch.Tensor:
+    """The neighbour crosstalk (``ForwardParams.crosstalk_grid``, 8 weights by displacement) as a (9, 9) matrix
+    ``M[to, from]``: zone ``to`` receives ``grid[k]`` of the histogram of the zone displaced by
+    ``GRID_DISPLACEMENTS[k]`` from it (zones without such a neighbour, at the grid's edge, receive nothing)."""
+    g = torch.as_tensor(grid, dtype=dtype)
+    return torch.einsum("k,ktf->tf", g, torch.as_tensor(_GRID_SELECTORS, dtype=dtype))
 
 
 #: Physical range of every forward-model parameter (checked on construction and when read from a
@@ -68,8 +107,14 @@ FORWARD_BOUNDS: dict[str, Bound] = {
     "zone_tail_weights": Bound(0.0, 10.0, "(relative to the zone's histogram)", length=N_ZONES),
     "zone_tail_decays": Bound(0.0, 8.0, "bins", lo_open=True, length=N_ZONES),
     "response_kernel": Bound(0.0, 1.0, "(of the histogram, at lags 1..RESPONSE_LAGS bins)", length=RESPONSE_LAGS),
+    "crosstalk_grid": Bound(0.0, 0.5, "(of a neighbouring zone's histogram, by grid displacement)", length=8),
+    "glass_gains": Bound(0.0, 1e5, "counts (per unit-area transient: about the counts at the pulse's peak)",
+                         length=N_ZONES),
+    "glass_delay": Bound(-8.0, 16.0, "bins (after zero range)"),
+    "echo_gain": Bound(0.0, 1.0, "(of the direct return, at ECHO_REFERENCE_RANGE)"),
     "edge_fov_scale": Bound(0.0, 3.0, "(of the nominal zone rectangle)", lo_open=True),
     "corner_fov_scale": Bound(0.0, 3.0, "(of the nominal zone rectangle)", lo_open=True),
+    "centre_fov_scale": Bound(0.0, 3.0, "(of the nominal zone rectangle)", lo_open=True),
     "pileup": Bound(0.0, 1.0, "1/counts"),
     "mount_tilt": Bound(-0.5, 0.5, "rad (x, y of a rotation vector)", length=2),
     "model_error": Bound(0.0, 1.0, "(fraction of the counts in a bin)"),
@@ -133,6 +178,24 @@ class ForwardParams:
     this tilts the illumination of the zones' footprints; far away it is the co-located model times a
     per-direction beam weight. ``baseline = (0, 0)``, ``beam_power = 0`` is the paper's model exactly.
 
+    The unit's own terms (version 3; every default adds nothing, so files without them read as the model as it
+    was). Each has a meaning, a unit, a bound (:data:`FORWARD_BOUNDS`) and a prior
+    (:data:`place_safe.calibration.forward_fit.PRIORS`, mean / std):
+
+    * ``crosstalk_grid`` (8, fraction, [0, 0.5], prior 0 / 0.02): light of a zone's neighbour that reaches the
+      zone's SPADs (lens blur, stray light between neighbouring apertures), by the neighbour's displacement in the
+      3x3 grid (:data:`GRID_DISPLACEMENTS`); added with the scalar ``crosstalk`` (which leaks into every zone).
+    * ``glass_gains`` (9, counts per unit-area transient, [0, 1e5], prior 0 / 100) and ``glass_delay`` (bins,
+      [-8, 16], prior 0 / 4): the return of the cover glass and package at zero range, the same in every frame,
+      shaped by the pulse; ``glass_delay`` is its position after ``bin_offset`` (zero range).
+    * ``echo_gain`` (fraction, [0, 1], prior 0 / 0.1): the multipath echo, light the surface returns to the
+      sensor's face and the face sends back to the surface, at twice the range, ``echo_gain (0.1 m / r)^2`` of the
+      direct return (:meth:`ForwardModel.add_echo_and_glass`).
+    * ``centre_fov_scale`` (fraction, (0, 3], prior 1 / 0.2 in log): the centre zone's rectangle scaled about the
+      axis, as ``edge_fov_scale`` and ``corner_fov_scale`` scale the others (the spread of ranges in its footprint).
+    * The per-zone timing offsets and gains (``zone_offsets``, ``zone_gains``), pile-up (``pileup``), the zones'
+      own tails and the learned response kernel are described above.
+
     Units: ``bin_offset``, ``soft_bin_sigma``, ``tail_decay``, ``zone_tail_decays`` and ``zone_offsets`` in bins; ``bin_size`` in metres
     of one-way range per bin; ``ref_floor`` and ``floor`` in counts; the rest dimensionless.
     """
@@ -176,6 +239,15 @@ class ForwardParams:
     # whose default adds nothing): the zone histograms after the pulse are convolved with
     # ``delta + sum_k response_kernel[k-1] delta(k)``, k = 1..RESPONSE_LAGS bins, every weight >= 0.
     response_kernel: list[float] = field(default_factory=lambda: [0.0] * RESPONSE_LAGS)
+    # Version 3 of the model (absent from older files; every default adds nothing, the model as it was):
+    # crosstalk between neighbouring zones by their displacement in the 3x3 grid (GRID_DISPLACEMENTS), the return
+    # of the cover glass / package at zero range (per zone, counts) ``glass_delay`` bins after zero range, and the
+    # multipath echo (sensor face -> surface -> sensor face -> surface) at twice the range.
+    crosstalk_grid: list[float] = field(default_factory=lambda: [0.0] * 8)
+    glass_gains: list[float] = field(default_factory=lambda: [0.0] * N_ZONES)
+    glass_delay: float = 0.0
+    echo_gain: float = 0.0
+    centre_fov_scale: float = 1.0
 
     def __post_init__(self) -> None:
         check_dataclass(self, FORWARD_BOUNDS, "forward parameters", CalibrationError)
@@ -189,6 +261,8 @@ class ForwardParams:
         d["zone_tail_weights"] = [float(v) for v in self.zone_tail_weights]
         d["zone_tail_decays"] = [float(v) for v in self.zone_tail_decays]
         d["response_kernel"] = [float(v) for v in self.response_kernel]
+        d["crosstalk_grid"] = [float(v) for v in self.crosstalk_grid]
+        d["glass_gains"] = [float(v) for v in self.glass_gains]
         return d
 
     @classmethod
@@ -507,6 +581,10 @@ class ForwardModel:
         self.dtype = dtype
         self.rays = rays if rays is not None else ZoneRays.stratified(8, dtype=dtype)
         self.t = params_to_tensors(self.params, dtype)
+        # whether the echo and the glass are rendered while derivatives are taken (they double the rays' soft
+        # binning): when the parameters the model is built with have them (a fit starts them just off zero)
+        self._echo = self.params.echo_gain != 0.0
+        self._glass = any(v != 0.0 for v in self.params.glass_gains)
         self.bins = torch.arange(N_BINS, dtype=dtype)
         self._kind = torch.as_tensor(ZONE_KIND)
         d = self.rays.directions.to(dtype)
@@ -519,8 +597,8 @@ class ForwardModel:
         re-weighted by the ratio of solid-angle densities so the quadrature stays uniform in solid angle.
         """
         t = self.t
-        one = torch.ones((), dtype=self.dtype)
-        scale = torch.stack([one, t["edge_fov_scale"], t["corner_fov_scale"]])[self._kind].view(N_ZONES, 1, 1)
+        scale = torch.stack([t["centre_fov_scale"], t["edge_fov_scale"], t["corner_fov_scale"]])[self._kind]
+        scale = scale.view(N_ZONES, 1, 1)
         xy = self._tangent * scale
         n2_old = 1.0 + (self._tangent ** 2).sum(-1)
         n2_new = 1.0 + (xy ** 2).sum(-1)
@@ -588,6 +666,7 @@ class ForwardModel:
             amp = amp * torch.as_tensor(hit, dtype=self.dtype)
         path = r if light is None else 0.5 * (r + r_light)  # one-way range: half the light's path
         u = path / t["bin_size"] + t["bin_offset"] + t["zone_offsets"].view(1, N_ZONES, 1)
+        amp, u = self.add_echo_and_glass(amp, u, path)
         sigma = t["soft_bin_sigma"]
         transient = soft_bin(amp, u, sigma, self.bins[:n_bins])
         if kernel is None:
@@ -595,10 +674,41 @@ class ForwardModel:
         hist = convolve_pulse(transient, kernel)
         return hist if pulse_only else self.after_pulse(hist)
 
+    def add_echo_and_glass(self, amp: torch.Tensor, u: torch.Tensor,
+                           path: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Ray amplitudes and bin positions (B, 9, R) with the multipath echo and the cover-glass return appended
+        (along the ray axis; the soft binning then renders them with the rays).
+
+        Echo: every ray again at twice its one-way range ``path`` (m), ``echo_gain (ECHO_REFERENCE_RANGE / path)^2``
+        times its amplitude (light that the surface sends back to the sensor's face, which sends it to the
+        surface again: one more round trip, and its spread over the face's solid angle falls with the range
+        squared). Exact for a surface parallel to the sensor's face; for a tilted one it is the first-order term.
+        Glass: one return per zone of ``glass_gains`` (counts per unit-area transient) at zero range plus
+        ``glass_delay`` bins, the same in every frame (the package's cover glass). Nothing is appended when
+        both are zero; while derivatives are taken, when the parameters the model was built with have them (a fit
+        starts them just above zero, :data:`place_safe.calibration.forward_fit.NONZERO_START`).
+        """
+        t = self.t
+        grad = torch.is_grad_enabled()
+        if (self._echo if grad else float(t["echo_gain"]) != 0.0):
+            echo = t["echo_gain"] * (ECHO_REFERENCE_RANGE / torch.clamp(path, min=1e-4)) ** 2
+            u_echo = 2.0 * path / t["bin_size"] + t["bin_offset"] + t["zone_offsets"].view(1, N_ZONES, 1)
+            amp, u = torch.broadcast_tensors(amp, u)
+            amp = torch.cat([amp, amp * echo], dim=-1)
+            u = torch.cat([u, u_echo.expand_as(u)], dim=-1)
+        if (self._glass if grad else bool(torch.any(t["glass_gains"] != 0))):
+            amp, u = torch.broadcast_tensors(amp, u)
+            b = amp.shape[0]
+            g_amp = t["glass_gains"].view(1, N_ZONES, 1).expand(b, N_ZONES, 1)
+            g_u = (t["bin_offset"] + t["glass_delay"] + t["zone_offsets"]).view(1, N_ZONES, 1).expand(b, N_ZONES, 1)
+            amp = torch.cat([amp, g_amp.to(amp.dtype)], dim=-1)
+            u = torch.cat([u, g_u.to(u.dtype)], dim=-1)
+        return amp, u
+
     #: Parameters that act only after the pulse convolution (:meth:`after_pulse`): a calibration's derivatives in
     #: them need not render the rays again.
-    AFTER_PULSE = ("response_kernel", "zone_tail_weights", "zone_tail_decays", "crosstalk", "crosstalk_self", "pileup",
-                   "floor")
+    AFTER_PULSE = ("response_kernel", "zone_tail_weights", "zone_tail_decays", "crosstalk", "crosstalk_self",
+                   "crosstalk_grid", "pileup", "floor")
 
     def after_pulse(self, hist: torch.Tensor) -> torch.Tensor:
         """The zone histograms (B, 9, N) after the pulse convolution -> what the sensor reports: each zone's own
@@ -609,7 +719,10 @@ class ForwardModel:
         if torch.is_grad_enabled() or bool(torch.any(t["zone_tail_weights"] != 0)):
             hist = add_zone_tails(hist, zone_tail_taps(t["zone_tail_weights"], t["zone_tail_decays"], self.dtype))
         total = hist.sum(dim=1, keepdim=True)
-        hist = hist + t["crosstalk"] * (total - (1.0 - t["crosstalk_self"]) * hist)
+        mixed = hist + t["crosstalk"] * (total - (1.0 - t["crosstalk_self"]) * hist)
+        if torch.is_grad_enabled() or bool(torch.any(t["crosstalk_grid"] != 0)):
+            mixed = mixed + torch.einsum("tf,bfn->btn", grid_crosstalk_matrix(t["crosstalk_grid"], self.dtype), hist)
+        hist = mixed
         return apply_pileup(hist, t["pileup"]) + t["floor"]
 
     def plane_returns(self, normal: torch.Tensor, offset: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

@@ -23,6 +23,12 @@ Chain of the derivatives, per ray with direction ``v``::
 With the emitter at ``E = (bx, by, 0)`` (``baseline``) the light's range ``r_e = |r v - E|`` replaces ``r`` in
 the inverse square, ``c = (z0 - a bx - b by) / (s r_e)`` is the light's cosine, the flux is weighted by the
 beam ``(r v_z / r_e)^beam_power`` and ``u`` uses the one-way range ``(r + r_e) / 2``.
+
+The unit terms of :class:`~place_safe.recovery.forward.ForwardParams` (version 3) follow
+``ForwardModel``: the multipath echo appends each ray again at twice its one-way range with ``echo_gain (0.1 m /
+range)^2`` of its amplitude (its derivatives by the chain above), the cover-glass return adds a fixed Gaussian per
+zone at ``bin_offset + glass_delay + zone_offset`` (no derivative in x), and the neighbour crosstalk
+(``crosstalk_grid``) is a (9, 9) matrix applied with the scalar crosstalk.
 """
 
 from __future__ import annotations
@@ -31,7 +37,8 @@ import math
 
 import numpy as np
 
-from place_safe.recovery.forward import ForwardModel, ForwardParams, ZoneRays, response_matrix, zone_tail_taps
+from place_safe.recovery.forward import (ECHO_REFERENCE_RANGE, ForwardModel, ForwardParams, ZoneRays,
+                                         grid_crosstalk_matrix, response_matrix, zone_tail_taps)
 from place_safe.sensor.frame import N_BINS, N_ZONES
 
 N_UNKNOWNS = 6
@@ -84,6 +91,14 @@ class PlaneRenderer:
             self.tail_mats = (np.broadcast_to(resp, (N_ZONES, N_BINS, N_BINS)) if self.tail_mats is None
                               else self.tail_mats @ resp)
 
+        # neighbour crosstalk (ForwardModel.after_pulse) as a (9, 9) matrix M[to, from]; None: none
+        self.grid_mix = (grid_crosstalk_matrix(params.crosstalk_grid).numpy()
+                         if np.any(np.asarray(params.crosstalk_grid) != 0.0) else None)
+        self.echo_gain = float(params.echo_gain)
+        self.glass = (np.asarray(params.glass_gains, dtype=float) if np.any(np.asarray(params.glass_gains) != 0.0)
+                      else None)
+        self.glass_u = params.bin_offset + params.glass_delay + self.offsets[:, 0]  # (9,)
+
     def render(self, x: np.ndarray, conv: np.ndarray, jacobian: bool = False):
         """Histograms (B, 9, W) for unknowns x (B, 6) and convolution matrices (B, W, W).
 
@@ -128,11 +143,20 @@ class PlaneRenderer:
         e = np.exp(-E)
         pp = sat * (1.0 - e)                            # saturated part
         amp = self.amp_weight * pp * rest * hit          # (B, 9, R)
-        u = (r if self.light is None else 0.5 * (r + r_e)) / p.bin_size + p.bin_offset + self.offsets
+        path = r if self.light is None else 0.5 * (r + r_e)   # one-way range (m)
+        u = path / p.bin_size + p.bin_offset + self.offsets
+        n_direct = u.shape[-1]
+        if self.echo_gain != 0.0:  # ForwardModel.add_echo_and_glass: each ray again at twice its range
+            echo = self.echo_gain * (ECHO_REFERENCE_RANGE / np.maximum(path, 1e-4)) ** 2
+            amp = np.concatenate([amp, amp * echo], axis=-1)
+            u = np.concatenate([u, 2.0 * path / p.bin_size + p.bin_offset + self.offsets], axis=-1)
         width = conv.shape[-1]
         t = np.arange(width)[None, None, None, :] - u[..., None]          # (B, 9, R, W)
         G = np.exp(-0.5 * self.inv_sigma2 * t * t) * self.gnorm
         T = np.einsum("bzr,bzrw->bzw", amp, G)
+        if self.glass is not None:  # the cover glass: the same return in every frame (no derivative in x)
+            tg = np.arange(width)[None, :] - self.glass_u[:, None]
+            T = T + (self.glass[:, None] * np.exp(-0.5 * self.inv_sigma2 * tg * tg) * self.gnorm)[None]
         F = self._mix(self._tail(np.matmul(conv[:, None], T[..., None])[..., 0]))  # expected photon counts
         kp = p.pileup
         if kp > 0:
@@ -168,12 +192,13 @@ class PlaneRenderer:
         logS = np.where(pos, np.log(Ssafe), 0.0)
         dsh = [None, None, None, None, Sa, ks * Sa * logS * alpha]                # d sh / d x4, x5
         nu = self.n_unknowns
-        A = np.zeros(amp.shape + (nu,))   # d amp / d x
-        B = np.zeros(amp.shape + (nu,))   # amp * d u / d x
+        amp_direct = amp[..., :n_direct]
+        A = np.zeros(amp_direct.shape + (nu,))   # d amp / d x
+        B = np.zeros(amp_direct.shape + (nu,))   # amp * d u / d x
         for k in range(3):
             dp_geo = dp_dr * dr[k] if dp_dr is not None else dp_dlogflux * dlog[k]
             A[..., k] = dp_geo + dp_dsh * dsh_dc * dc[k]
-            B[..., k] = amp * du[k]
+            B[..., k] = amp_direct * du[k]
         if self.zone_albedo:
             zones = np.arange(N_ZONES)
             A[:, zones, :, 3 + zones] = dp_dlogrho.transpose(1, 0, 2)
@@ -181,6 +206,16 @@ class PlaneRenderer:
             A[..., 3] = dp_dlogrho
         A[..., nu - 2] = dp_dsh * dsh[4]
         A[..., nu - 1] = dp_dsh * dsh[5]
+        if self.echo_gain != 0.0:  # the echo's rays: amplitude amp * echo(path), position 2 path / bin_size
+            d_path = [du[k] * p.bin_size for k in range(3)]
+            amp_d, echo_d = amp[..., :n_direct], echo
+            A_e = A * echo_d[..., None]
+            B_e = np.zeros_like(B)
+            for k in range(3):
+                A_e[..., k] += amp_d * echo_d * (-2.0 / np.maximum(path, 1e-4)) * d_path[k] * (path > 1e-4)
+                B_e[..., k] = amp_d * echo_d * 2.0 * du[k]
+            A = np.concatenate([A, A_e], axis=2)
+            B = np.concatenate([B, B_e], axis=2)
         Gt = G * t * self.inv_sigma2
         dT = np.einsum("bzrk,bzrw->bzwk", A, G) + np.einsum("bzrk,bzrw->bzwk", B, Gt)
         dF = self._mix(self._tail(np.matmul(conv[:, None], dT)), axis_zone=1)
@@ -203,7 +238,10 @@ class PlaneRenderer:
 
     def _mix(self, h: np.ndarray, axis_zone: int = 1) -> np.ndarray:
         c = self.p.crosstalk
-        return (1.0 - c * (1.0 - self.p.crosstalk_self)) * h + c * h.sum(axis=axis_zone, keepdims=True)
+        out = (1.0 - c * (1.0 - self.p.crosstalk_self)) * h + c * h.sum(axis=axis_zone, keepdims=True)
+        if self.grid_mix is not None:  # zones on axis 1 of (B, 9, W) or (B, 9, W, k)
+            out = out + np.tensordot(self.grid_mix, h, axes=([1], [1])).swapaxes(0, 1)
+        return out
 
 
 __all__ = ["PlaneRenderer", "convolution_matrices", "N_UNKNOWNS", "N_ZONES"]

@@ -123,3 +123,60 @@ def test_reference_floor_is_the_one_the_frames_start_better_with():
     assert report["ref_floor"]["counts"] == pytest.approx(ForwardParams().ref_floor)
     assert report["ref_floor"]["published"]["rms_scaled_residual_at_start"] < \
         report["ref_floor"]["measured"]["rms_scaled_residual_at_start"]
+
+
+def _level_frames(n: int, albedo_range=(1.0, 1.0), seed: int = 4):
+    spec = SyntheticSpec(z_range=(0.15, 0.35), theta_range=(0.0, 0.0), albedo_range=albedo_range,
+                         specular_weight_range=(0.14681, 0.14681), specular_exponent_range=(1.8378, 1.8378),
+                         noise=True, rays=4)
+    return make_frames(n, params=ForwardParams(bin_offset=9.3), spec=spec, seed=seed)
+
+
+def test_a_parameter_the_frames_cannot_determine_stays_at_its_prior():
+    """Far from saturation a level sweep says nothing about the saturation level: with a prior it stays at the prior
+    mean and the report says it is held there (posterior std about the prior's), while the bin offset, which the
+    frames determine, moves to its true value and is not held."""
+    from place_safe.calibration.forward_fit import PRIORS
+
+    frames = _level_frames(6)
+    fitted = {"bin_offset": "lin", "saturation": "log"}
+    prior = {"saturation": (2000.0, 0.5), "bin_offset": (9.5, 4.0)}
+    got, report = fit_forward(frames, init=ForwardParams(saturation=2000.0), progress=False, rays=3, iterations=20,
+                              fitted=fitted, priors=prior, coarse_rays=0)
+    assert got.bin_offset == pytest.approx(9.3, abs=0.05)
+    spread = report["posterior_std"]
+    assert "bin_offset" not in spread["held_at_prior"]
+    if "saturation" in spread["held_at_prior"]:
+        assert got.saturation == pytest.approx(2000.0, rel=0.3)
+    assert report["prior_chi2"] >= 0.0
+    assert set(PRIORS) >= {"crosstalk_grid", "glass_gains", "glass_delay", "echo_gain", "centre_fov_scale"}
+
+
+def test_one_surface_is_tied_only_when_the_albedos_agree():
+    """Asked to decide (``same_surface=None``), frames of one surface (a level table) have their albedos tied to one
+    value; frames of surfaces drawn at random (albedo 0.3-1.7x) are not."""
+    fitted = {"bin_offset": "lin"}
+    _, one = fit_forward(_level_frames(5), progress=False, rays=3, iterations=5, fitted=fitted, coarse_rays=0,
+                         same_surface=None)
+    _, many = fit_forward(_level_frames(8, albedo_range=(0.3, 1.7), seed=9), progress=False, rays=3, iterations=5,
+                          fitted=fitted, coarse_rays=0, same_surface=None)
+    _, default = fit_forward(_level_frames(5), progress=False, rays=3, iterations=5, fitted=fitted, coarse_rays=0)
+    assert one["one_surface"]["tied"] and one["one_surface"]["albedo_cv_after"] < 0.05
+    assert not many["one_surface"]["tied"]
+    assert not default["one_surface"]["tied"]  # by default each frame keeps its own albedo
+
+
+def test_unit_terms_fitted_from_zero_get_derivatives():
+    """An echo and a glass return fitted from an ``init`` that has none (zero, their lower bound) still move: the
+    fit renders them while it differentiates."""
+    from place_safe.calibration.forward_fit import UNIT_TERMS
+
+    truth = ForwardParams(bin_offset=9.3, echo_gain=0.3, glass_gains=[40.0] * 9)
+    spec = SyntheticSpec(z_range=(0.08, 0.3), theta_range=(0.0, 0.0), specular_weight_range=(0.14681, 0.14681),
+                         specular_exponent_range=(1.8378, 1.8378), noise=False, rays=4)
+    frames = make_frames(5, params=truth, spec=spec, seed=2)
+    fitted = {"echo_gain": UNIT_TERMS["echo_gain"], "glass_gains": UNIT_TERMS["glass_gains"]}
+    got, _ = fit_forward(frames, init=ForwardParams(bin_offset=9.3), progress=False, rays=4, iterations=10,
+                         fitted=fitted, coarse_rays=0, priors={})
+    assert got.echo_gain > 0.1
+    np.testing.assert_allclose(got.glass_gains, 40.0, rtol=0.2)

@@ -252,3 +252,73 @@ def test_the_learned_response_adds_delayed_copies_of_the_histogram():
     expected = hist.clone()
     expected[0, :, 20] = 2.0
     torch.testing.assert_close(out, expected)
+
+
+def test_a_file_without_the_unit_terms_renders_the_model_as_it_was():
+    """Forward parameters written before the unit terms of version 3 (no ``crosstalk_grid``, ``glass_*``,
+    ``echo_gain``, ``centre_fov_scale`` keys) load with the defaults, which render exactly what the model rendered
+    before: the same histograms as parameters that never had them."""
+    from place_safe.evaluation.synthetic import default_reference
+
+    d = ForwardParams(crosstalk=0.01, pileup=1e-7).to_dict()
+    for key in ("crosstalk_grid", "glass_gains", "glass_delay", "echo_gain", "centre_fov_scale"):
+        d.pop(key)
+    old = ForwardParams.from_dict(d)
+    assert old.crosstalk_grid == [0.0] * 8 and old.glass_gains == [0.0] * 9 and old.echo_gain == 0.0
+    assert old.centre_fov_scale == 1.0
+    model = ForwardModel(old, ZoneRays.stratified(4))
+    normal = torch.tensor([[0.1, -0.05, 1.0]], dtype=torch.float64)
+    normal = normal / normal.norm()
+    ref = torch.as_tensor(default_reference(), dtype=torch.float64)[None]
+    with torch.no_grad():
+        plain = model.render_plane(normal, torch.tensor([0.12]), torch.tensor([3.0]), ref)
+        amp = torch.rand(1, 9, 16, dtype=torch.float64)
+        u = torch.rand(1, 9, 16, dtype=torch.float64) * 50
+        a2, u2 = model.add_echo_and_glass(amp, u, u * 0.01)
+    assert a2.shape == amp.shape  # nothing appended when the terms are off
+    with torch.enable_grad():
+        again = model.render_plane(normal, torch.tensor([0.12]), torch.tensor([3.0]), ref)
+    torch.testing.assert_close(plain, again.detach())
+
+
+def test_grid_crosstalk_reaches_only_the_named_neighbours():
+    """A weight at displacement (dx, dy) takes that share of the zone at (x + dx, y + dy) in the 3x3 grid, and of
+    no other zone; zones at the grid's edge have no neighbour beyond it."""
+    from place_safe.recovery.forward import GRID_DISPLACEMENTS, _grid_positions, grid_crosstalk_matrix
+
+    pos = _grid_positions()
+    for k, (dx, dy) in enumerate(GRID_DISPLACEMENTS):
+        w = torch.zeros(8, dtype=torch.float64)
+        w[k] = 0.1
+        m = grid_crosstalk_matrix(w).numpy()
+        for to in range(9):
+            for frm in range(9):
+                expect = 0.1 if tuple(pos[frm] - pos[to]) == (dx, dy) else 0.0
+                assert m[to, frm] == pytest.approx(expect)
+
+
+def test_echo_and_glass_appear_where_they_belong():
+    """The multipath echo of a level plane at range r sits at twice the range, its size echo_gain (0.1 m / r)^2 of
+    the direct return's; the cover-glass return sits at zero range plus glass_delay and is the same for any
+    plane."""
+    from place_safe.evaluation.synthetic import default_reference
+
+    ref = torch.as_tensor(default_reference(), dtype=torch.float64)[None]
+    normal = torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64)
+    base = ForwardParams(soft_bin_sigma=0.5)
+    with torch.no_grad():
+        def render(p, z):
+            return ForwardModel(p, ZoneRays.stratified(4)).render_plane(normal, torch.tensor([z]), torch.tensor([3.0]),
+                                                                         ref)[0, 4].numpy()
+        z = 0.2
+        direct = render(base, z)
+        echo = render(ForwardParams(soft_bin_sigma=0.5, echo_gain=0.5), z) - direct
+        peak_direct, peak_echo = int(direct.argmax()), int(echo.argmax())
+        assert abs((peak_echo - peak_direct) - z / base.bin_size) <= 1.5
+        assert echo.sum() / direct.sum() == pytest.approx(0.5 * (0.1 / z) ** 2, rel=0.05)
+        glass = ForwardParams(glass_gains=[50.0] * 9, glass_delay=2.0)
+        g1 = render(glass, 0.2) - render(base, 0.2)
+        g2 = render(glass, 0.3) - render(base, 0.3)
+    np.testing.assert_allclose(g1, g2, atol=1e-9)
+    assert g1.max() > 5.0
+    assert int(np.argmax(g1)) < peak_direct

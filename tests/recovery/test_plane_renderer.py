@@ -93,3 +93,19 @@ def test_matches_torch_model_with_a_learned_impulse_response():
     p = ForwardParams(response_kernel=list(kernel), zone_tail_weights=list(np.linspace(0.0, 0.08, 9)),
                       zone_tail_decays=list(np.linspace(1.5, 4.0, 9)))
     _check(p, np.array([-0.2, 0.1, 0.15, math.log(2.0), 0.2, math.log(1.5)]))
+
+
+def test_matches_torch_model_with_grid_crosstalk_glass_and_echo():
+    """The unit terms of version 3 (crosstalk by neighbour displacement in the 3x3 grid, the cover-glass return
+    at zero range, the multipath echo at twice the range) are rendered and differentiated exactly as in the torch
+    model, alone, together, and with the emitter beside the receiver."""
+    grid = list(np.linspace(0.002, 0.016, 8))
+    glass = list(np.linspace(5.0, 40.0, 9))
+    x = np.array([0.12, -0.08, 0.07, math.log(3.0), 0.1, math.log(2.0)])
+    _check(ForwardParams(crosstalk_grid=grid), x)
+    _check(ForwardParams(glass_gains=glass, glass_delay=2.5), x)
+    _check(ForwardParams(echo_gain=0.05), x)
+    p = ForwardParams(crosstalk_grid=grid, glass_gains=glass, glass_delay=1.0, echo_gain=0.08, pileup=1e-7,
+                      crosstalk=0.01, zone_offsets=list(np.linspace(-0.5, 0.5, 9)))
+    _check(p, np.array([-0.25, 0.2, 0.18, math.log(2.0), 0.2, math.log(1.5)]))
+    _check(ForwardParams(echo_gain=0.05, baseline=[0.003, -0.0015], beam_power=1.2), x)
