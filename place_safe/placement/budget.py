@@ -25,6 +25,8 @@ from __future__ import annotations
 import math
 from typing import Any
 
+from place_safe.placement.speed import slosh_rise
+
 #: Budget buckets in the order a placement passes through them (see the module docstring).
 BUCKETS = ("wait for surface", "accelerate", "cruise", "brake", "survey", "confirm contact", "slow band", "stop",
            "check frames", "release", "retreat")
@@ -50,8 +52,9 @@ def budget_limits(cfg: Any, frame_period: float, frame_latency: float) -> dict[s
         "brake": f"braking at {a:.2f} m/s^2 to {cfg.descend_speed * 1e3:.0f} mm/s at the slow band "
                  f"({brake:.2f} s from cruise), and reacting {cfg.sensor_latency * 1e3:.0f} ms late still stops "
                  f"{cfg.brake_margin * 1e3:.0f} mm above the sensed surface",
-        "survey": f"survey_speed {cfg.survey_speed:.2f} m/s at lateral_accel {cfg.lateral_accel:.2f} m/s^2 (the "
-                  f"liquid's lateral acceleration); {cfg.footprint_frames} frames seeing the footprint",
+        "survey": f"survey_speed {cfg.survey_speed:.2f} m/s at lateral_accel {cfg.lateral_accel:.2f} m/s^2 (liquid "
+                  f"rises <= {slosh_rise(cfg.lateral_accel, cfg.cup_radius) * 1e3:.1f} mm at the wall); "
+                  f"{cfg.footprint_frames} frames seeing the footprint from <= the close height",
         "confirm contact": f"obstacle_confirm {cfg.obstacle_confirm:.2f} s at rest after a hard stop",
         "slow band": f"{band * 1e3:.0f} mm at descend_speed {cfg.descend_speed * 1e3:.0f} mm/s = "
                      f"{band / cfg.descend_speed:.2f} s (a touch of a mis-sensed surface at this speed stays "

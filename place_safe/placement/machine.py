@@ -100,7 +100,7 @@ class PlacementConfig:
     approach_speed: float = 0.25  # m/s at most while the surface is far (slower near it: placement/speed.py)
     descend_speed: float = 0.025  # m/s in the slow band (a touch of a mis-sensed surface at this speed stays gentle)
     accel: float = 1.2  # m/s^2 for speed changes and stops along the tool axis (the loop caps it at the robot's limit)
-    lateral_accel: float = 0.8  # m/s^2 at most for sideways moves (survey): bounds the liquid's lateral acceleration
+    lateral_accel: float = 1.2  # m/s^2 at most sideways (survey): the liquid's lateral acceleration (speed.slosh_rise)
     brake_margin: float = 0.005  # m: reacting sensor_latency late and braking at accel still stops this far above the surface
     obstacle_decel: float = 4.0  # m/s^2: the hard stop when the cup touches something above the surface
     slow_clearance: float = 0.010  # m: APPROACH -> DESCEND below this cup clearance
@@ -110,7 +110,7 @@ class PlacementConfig:
     early_refuse_tilt: float = math.radians(10.0)  # rad: refuse already while approaching above this
     max_std_angle: float = math.radians(2.0)  # rad: spread of the fused normals ("planar and consistent")
     max_std_offset: float = 0.003  # m: spread of the fused anchors about the plane
-    check_frames: int = 3  # planes measured after stopping that CHECK needs at least
+    check_frames: int = 2  # distinct planes measured after stopping that CHECK needs at least
     max_check_frames: int = 5  # ... and waits for (if more than check_frames) when the fused plane is within half of a limit
     check_timeout: float = 1.5  # s to gather them
     max_checks: int = 3  # CHECK -> DESCEND retries
@@ -657,7 +657,16 @@ class PlacementMachine:
             need = _number(getattr(fp, "certify_margin", None))
             need = max(need, 0.0) if need is not None else 0.0
             if margin is not None and margin - stopping > SURVEY_VIEW_SLACK and margin - need > SURVEY_VIEW_SLACK:
-                return None  # keep descending: the footprint stays in view down to where frames certify it
+                # keep descending: the footprint stays in view down to where frames certify it; meanwhile
+                # centre the view on it (the view narrows on the way down)
+                try:
+                    move = np.asarray(getattr(fp, "look_shift"), dtype=float).reshape(3)
+                except (TypeError, ValueError, AttributeError):
+                    return None
+                if not np.all(np.isfinite(move)):
+                    return None
+                side = move - down * float(move @ down)
+                return self._lateral(side, cfg.survey_speed) if float(np.linalg.norm(side)) > SURVEY_DONE else None
         # to the survey pose (the sensor over the footprint, just high enough to hold it), then wait there
         try:
             move = np.asarray(getattr(fp, "look_shift"), dtype=float).reshape(3)
