@@ -921,7 +921,10 @@ class PlacementMachine:
             look = self._second_look(state, c, now) if self.phase == Phase.APPROACH else None
             if look is not None:
                 return look
-            return self._refuse(now, why + (" (also from over those points)" if self._recheck else ""))
+            # something seen under the footprint while descending: stop hard (obstacle_decel) unless moving
+            # sideways (the liquid's lateral acceleration), so an obstacle seen late is not run into
+            return self._refuse(now, why + (" (also from over those points)" if self._recheck else ""),
+                                decel=None if self._sideways else max(cfg.accel, cfg.obstacle_decel))
         side = np.zeros(3)
         if self.phase == Phase.APPROACH:
             cmd = self._survey(state, c, now)

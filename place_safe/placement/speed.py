@@ -38,7 +38,7 @@ def braking_speed(distance: float, accel: float, v_end: float) -> float:
     if not (distance > 0 and accel > 0):
         return v_end if math.isfinite(v_end) else 0.0
     v = math.sqrt(v_end * v_end + 2.0 * accel * distance)
-    return v if math.isfinite(v) else v_end
+    return max(v, v_end) if math.isfinite(v) else v_end  # (max: squares of tiny speeds underflow)
 
 
 def approach_speed(clearance: float, slow_clearance: float, latency: float, accel: float, v_max: float,
