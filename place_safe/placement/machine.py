@@ -73,7 +73,7 @@ from place_safe.config import Bound, check_dataclass, dataclass_from_dict, read_
 from place_safe.exceptions import ConfigError
 from place_safe.geometry import transform_problem
 from place_safe.fusion.plane_filter import FusedPlane
-from place_safe.placement.speed import descent_speed, stopping_distance
+from place_safe.placement.speed import descent_speed, stoppable_speed, stopping_distance
 
 log = logging.getLogger("place_safe.placement.machine")
 
@@ -101,7 +101,7 @@ class PlacementConfig:
     descend_speed: float = 0.025  # m/s in the slow band (a touch of a mis-sensed surface at this speed stays gentle)
     accel: float = 1.2  # m/s^2 for speed changes and stops along the tool axis (the loop caps it at the robot's limit)
     lateral_accel: float = 1.2  # m/s^2 at most sideways (survey): the liquid's lateral acceleration (speed.slosh_rise)
-    brake_margin: float = 0.005  # m: reacting sensor_latency late and braking at accel still stops this far above the surface
+    brake_margin: float = 0.010  # m: reacting sensor_latency late and braking at accel still stops this far above the surface (the slow band: a box the map missed is met slowly)
     obstacle_decel: float = 4.0  # m/s^2: the hard stop when the cup touches something above the surface
     slow_clearance: float = 0.010  # m: APPROACH -> DESCEND below this cup clearance
     stop_clearance: float = 0.003  # m: DESCEND -> CHECK at or below this clearance
@@ -938,6 +938,10 @@ class PlacementMachine:
                 v = self._descent_speed(c)
                 if c <= cfg.near_surface_distance:
                     v = max(cfg.descend_speed, min(v, cfg.near_surface_speed))
+                if cfg.footprint_frames and not self._surveyed:
+                    # the footprint is not certified yet: something may stand on it (clutter, a step), so
+                    # keep room to stop above traverse_clearance even learning of it sensor_latency late
+                    v = min(v, stoppable_speed(c - cfg.traverse_clearance, cfg.sensor_latency, cfg.accel))
                 if np.any(side):  # moving back over the landing spot: the ground under the way is unseen
                     if self._back > 0.5 * cfg.footprint_margin:  # (within half the margin: over the seen footprint)
                         v = min(v, max(self._axial(c - cfg.traverse_clearance), 0.0))
