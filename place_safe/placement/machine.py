@@ -940,8 +940,10 @@ class PlacementMachine:
                     v = max(cfg.descend_speed, min(v, cfg.near_surface_speed))
                 if cfg.footprint_frames and not self._surveyed:
                     # the footprint is not certified yet: something may stand on it (clutter, a step), so
-                    # keep room to stop above traverse_clearance even learning of it sensor_latency late
-                    v = min(v, stoppable_speed(c - cfg.traverse_clearance, cfg.sensor_latency, cfg.accel))
+                    # keep room to stop above traverse_clearance even learning of it sensor_latency late (or
+                    # go no faster than the slow band's speed, at which a touch stays gentle)
+                    v = min(v, max(cfg.descend_speed,
+                                   stoppable_speed(c - cfg.traverse_clearance, cfg.sensor_latency, cfg.accel)))
                 if np.any(side):  # moving back over the landing spot: the ground under the way is unseen
                     if self._back > 0.5 * cfg.footprint_margin:  # (within half the margin: over the seen footprint)
                         v = min(v, max(self._axial(c - cfg.traverse_clearance), 0.0))
