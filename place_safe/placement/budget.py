@@ -57,8 +57,8 @@ def budget_limits(cfg: Any, frame_period: float, frame_latency: float) -> dict[s
                   f"{cfg.footprint_frames} frames seeing the footprint from <= the close height",
         "confirm contact": f"obstacle_confirm {cfg.obstacle_confirm:.2f} s at rest after a hard stop",
         "slow band": f"{band * 1e3:.0f} mm at descend_speed {cfg.descend_speed * 1e3:.0f} mm/s = "
-                     f"{band / cfg.descend_speed:.2f} s (a touch of a mis-sensed surface at this speed stays "
-                     "under ~15 N with the CB3 detector's ~40 ms delay)",
+                     f"{band / cfg.descend_speed:.2f} s (the speed at which a surface sensed a centimetre off, or a box "
+                     "the map missed, is met; the CB3 detector sees a touch ~40 ms late)",
         "stop": f"check_settle {cfg.check_settle * 1e3:.0f} ms (braking from {cfg.descend_speed * 1e3:.0f} mm/s "
                 f"takes {cfg.descend_speed / a * 1e3:.0f} ms, {stop_dist * 1e3:.2f} mm)",
         "check frames": f"{lo} post-stop measurements ({hi} when the fused plane is within half of a limit): "
