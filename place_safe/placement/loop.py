@@ -91,6 +91,7 @@ class LoopResult:
     contact_force_peak: float = 0.0
     transitions: list[Transition] = field(default_factory=list)  # the machine's log, in order
     frame_log: list[dict] = field(default_factory=list)
+    budget: dict[str, float] = field(default_factory=dict)  # s spent on each part (PlacementMachine.budget)
 
     def to_dict(self) -> dict:
         """JSON form (what ``place --json`` writes; docs/interfaces.md): transitions as
@@ -98,6 +99,32 @@ class LoopResult:
         d = dict(self.__dict__)
         d["transitions"] = [t.to_dict() for t in self.transitions]
         return d
+
+
+def within_robot_limits(config: PlacementConfig, robot: Any) -> PlacementConfig:
+    """``config`` with its speeds and accelerations capped at the robot's ``limits`` (``max_linear_speed``,
+    ``max_linear_accel``), so that the descent profile is planned with the braking the arm really has
+    (a driver would clip a faster command and the arm would then stop later than planned). A robot
+    without readable limits leaves the config as it is."""
+    import dataclasses
+
+    try:
+        lim = getattr(robot, "limits", None)
+        v = getattr(lim, "max_linear_speed", None)
+        a = getattr(lim, "max_linear_accel", None)
+    except Exception:  # a robot whose limits cannot be read: its driver clips what it must
+        v = a = None
+    ok = (lambda x: isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) and x > 0)
+    changes: dict[str, float] = {}
+    if ok(v):
+        for name in ("approach_speed", "descend_speed", "survey_speed", "retreat_speed", "near_surface_speed"):
+            if getattr(config, name) > v:
+                changes[name] = float(v)
+    if ok(a):
+        for name in ("accel", "lateral_accel"):
+            if getattr(config, name) > a:
+                changes[name] = float(a)
+    return dataclasses.replace(config, **changes) if changes else config
 
 
 class PlacementLoop:
@@ -136,13 +163,13 @@ class PlacementLoop:
                          surface_map=surface_map, host_clock=host_clock)
         self.robot, self.source, self.estimator = robot, source, estimator
         self.tool = tool if tool is not None else robot.tool
-        self.config = config if config is not None else PlacementConfig()
+        self.config = within_robot_limits(config if config is not None else PlacementConfig(), robot)
         self.period = float(period)
         self.max_frame_age = float(max_frame_age)
         self.log_frames = log_frames
         self.host_clock = host_clock
         self.filter = plane_filter if plane_filter is not None else PlaneFilter(
-            window=max(7, int(self.config.check_frames) + 2))
+            window=max(7, int(max(self.config.check_frames, self.config.max_check_frames)) + 2))
         if self.filter.window < self.config.check_frames:
             raise ValueError(f"the plane filter's window ({self.filter.window}) cannot hold check_frames "
                              f"({self.config.check_frames}) planes: nothing could ever be released")
@@ -461,7 +488,8 @@ class PlacementLoop:
                           robot_seconds=float(now - t0) if math.isfinite(now - t0) else math.nan,
                           ticks=self.ticks, frames=self.frames, frames_used=self.frames_used,
                           planes=self.filter.count, dropped=dict(self.dropped), contact_force_peak=self.force_peak,
-                          transitions=list(mach.log), frame_log=list(self.frame_log))
+                          transitions=list(mach.log), frame_log=list(self.frame_log),
+                          budget=dict(mach.budget))
 
 
 #: s: the longest robot time one :meth:`PlacementLoop.run` may be given (a placement takes seconds).

@@ -73,7 +73,7 @@ from place_safe.config import Bound, check_dataclass, dataclass_from_dict, read_
 from place_safe.exceptions import ConfigError
 from place_safe.geometry import transform_problem
 from place_safe.fusion.plane_filter import FusedPlane
-from place_safe.placement.speed import approach_speed
+from place_safe.placement.speed import descent_speed, stoppable_speed, stopping_distance
 from place_safe.recovery.too_close import TOO_CLOSE_REASON
 
 log = logging.getLogger("place_safe.placement.machine")
@@ -104,17 +104,20 @@ class PlacementConfig:
     """Thresholds and speeds of a placement (SI units; the JSON file holds the same numbers)."""
 
     approach_speed: float = 0.25  # m/s at most while the surface is far (slower near it: placement/speed.py)
-    descend_speed: float = 0.02  # m/s near the surface
-    accel: float = 0.8  # m/s^2 for speed changes and stops
+    descend_speed: float = 0.025  # m/s in the slow band (a touch of a mis-sensed surface at this speed stays gentle)
+    accel: float = 1.2  # m/s^2 for speed changes and stops along the tool axis (the loop caps it at the robot's limit)
+    lateral_accel: float = 1.2  # m/s^2 at most sideways (survey): the liquid's lateral acceleration (speed.slosh_rise)
+    brake_margin: float = 0.010  # m: reacting sensor_latency late and braking at accel still stops this far above the surface (the slow band: a box the map missed is met slowly)
     obstacle_decel: float = 4.0  # m/s^2: the hard stop when the cup touches something above the surface
     slow_clearance: float = 0.010  # m: APPROACH -> DESCEND below this cup clearance
-    stop_clearance: float = 0.002  # m: DESCEND -> CHECK at or below this clearance
+    stop_clearance: float = 0.003  # m: DESCEND -> CHECK at or below this clearance
     release_clearance: float = 0.005  # m: release only at or below this clearance (or in contact)
     max_tilt: float = math.radians(5.0)  # rad: steepest surface a cup may be put on
     early_refuse_tilt: float = math.radians(10.0)  # rad: refuse already while approaching above this
     max_std_angle: float = math.radians(2.0)  # rad: spread of the fused normals ("planar and consistent")
     max_std_offset: float = 0.003  # m: spread of the fused anchors about the plane
-    check_frames: int = 5  # planes measured after stopping that CHECK needs
+    check_frames: int = 2  # distinct planes measured after stopping that CHECK needs at least
+    max_check_frames: int = 5  # ... and waits for (if more than check_frames) when the fused plane is within half of a limit
     check_timeout: float = 1.5  # s to gather them
     max_checks: int = 3  # CHECK -> DESCEND retries
     plane_timeout: float = 0.5  # s: a fused plane whose newest frame is older is stale (4 frames at 10 Hz)
@@ -168,7 +171,7 @@ class PlacementConfig:
             raise ConfigError("placement config: early_refuse_tilt must be >= max_tilt")
 
     def to_dict(self) -> dict[str, float]:
-        ints = ("check_frames", "max_checks", "footprint_frames", "max_unconfirmed")
+        ints = ("check_frames", "max_check_frames", "max_checks", "footprint_frames", "max_unconfirmed")
         return {k: (int(v) if k in ints else float(v)) for k, v in asdict(self).items()}
 
     @classmethod
@@ -198,6 +201,9 @@ PLACEMENT_BOUNDS: dict[str, Bound] = {
     "max_std_angle": Bound(0.0, math.pi / 4, "rad", lo_open=True),
     "max_std_offset": Bound(0.0, 0.1, "m", lo_open=True),
     "check_frames": Bound(1, 1000, "frames"),
+    "max_check_frames": Bound(1, 1000, "frames"),
+    "lateral_accel": Bound(0.0, 10.0, "m/s^2", lo_open=True),
+    "brake_margin": Bound(0.0, 0.1, "m"),
     "check_timeout": Bound(0.0, 60.0, "s", lo_open=True),
     "max_checks": Bound(1, 100, "retries"),
     "plane_timeout": Bound(0.0, 10.0, "s", lo_open=True),
@@ -303,6 +309,9 @@ CLOCK_STALL_TICKS = 25
 SURVEY_DONE = 0.001
 #: m: the second look at doubtful footprint points has arrived this close to its pose.
 RECHECK_ARRIVED = 0.003
+#: 1/s: a sideways move ends no faster than this times the distance left (an arm tracking a speed command
+#: lags it by speed / its Cartesian gain; a slower end does not overshoot the landing spot).
+LATERAL_GAIN = 8.0
 #: m of view margin kept when descending before the footprint was seen.
 SURVEY_VIEW_SLACK = 0.005
 #: s the robot clock may step back (rounding) before it counts as running backwards.
@@ -389,6 +398,15 @@ class PlacementMachine:
         self._suspect: _Suspect | None = None
         self._unconfirmed = 0
         self.notes: list[str] = []  # what the machine noticed without changing phase (unconfirmed contacts)
+        self._sideways = False
+        self._back = math.inf  # m sideways from over the landing spot (known once the footprint is seen)
+        # time budget: s of robot time spent on each part of the placement (accelerate, cruise, brake,
+        # survey, slow band, stop, check frames, release, retreat, ...), counted tick by tick
+        self.budget: dict[str, float] = {}
+        self._budget_prev: tuple[float | None, np.ndarray | None] = (None, None)
+        self._budget_bucket: str | None = None
+        self._hint: str | None = None
+        self._tcp_speed = 0.0
 
     @property
     def finished(self) -> bool:
@@ -424,8 +442,11 @@ class PlacementMachine:
         return Command.hold() if faulted else Command(CommandKind.STOP, accel=self.config.accel)
 
     def abort(self, t: float, why: str) -> Command:
-        """End the placement now (a fault outside the machine's view, e.g. the loop's); never raises."""
+        """End the placement now (a fault outside the machine's view, e.g. the loop's); never raises. Once
+        finished, the outcome stands and ``why`` is only appended to :attr:`reason` (and noted)."""
         if self.finished:
+            self.reason = f"{self.reason}; then {why}"
+            self.notes.append(str(why))
             return Command.hold()
         return self._abort(t if isinstance(t, (int, float)) else math.nan, why)
 
@@ -436,13 +457,66 @@ class PlacementMachine:
             self.decision = f"{why}; the gripper may still hold the cup"
             self._go(Phase.ABORTED, t if isinstance(t, (int, float)) else math.nan, self.decision)
 
-    def _speed(self, v: np.ndarray) -> Command:
-        """speedL at linear velocity ``v`` (3,) m/s, no rotation."""
+    def _speed(self, v: np.ndarray, lateral: bool = False) -> Command:
+        """speedL at linear velocity ``v`` (3,) m/s, no rotation; at ``lateral_accel`` at most if the move
+        (or the one it replaces) goes sideways (the liquid's lateral acceleration), else at ``accel``."""
         tw = tuple(float(x) for x in v) + (0.0, 0.0, 0.0)
         if tw == self._last_twist:
             return Command.hold()
+        prev = self._sideways
+        self._sideways = lateral
         self._last_twist = tw
-        return Command(CommandKind.SPEED, tw, self.config.accel)
+        accel = self.config.accel
+        if lateral or prev:
+            accel = min(accel, self.config.lateral_accel)
+        return Command(CommandKind.SPEED, tw, accel)
+
+    def _descent_speed(self, c: float) -> float:
+        """Speed (m/s) down towards the surface at cup clearance ``c`` (:func:`~place_safe.placement.speed.descent_speed`)."""
+        cfg = self.config
+        return descent_speed(c, cfg.slow_clearance, cfg.brake_margin, cfg.sensor_latency, cfg.accel,
+                             cfg.approach_speed, cfg.descend_speed)
+
+    def _motion_bucket(self, v: float) -> str:
+        """Budget bucket of a descent commanded at ``v`` m/s: accelerating (the arm is still slower than
+        a speed it was given), cruising at ``approach_speed``, or braking (the profile holds it lower)."""
+        if v >= self.config.approach_speed - 1e-9:
+            return "cruise" if self._tcp_speed >= 0.95 * v else "accelerate"
+        return "accelerate" if self._tcp_speed < 0.95 * v - 0.005 else "brake"
+
+    def _bucket(self, now: float) -> str | None:
+        """What the time until the next tick is spent on (see :attr:`budget`)."""
+        if self._suspect is not None:
+            return "confirm contact"
+        p = self.phase
+        if p == Phase.IDLE:
+            return "wait for surface"
+        if p == Phase.APPROACH:
+            return self._hint or "brake"
+        if p == Phase.DESCEND:
+            return "slow band"
+        if p == Phase.CHECK:
+            chk = self._check
+            return "stop" if chk is None or now - chk.t_stop < self.config.check_settle else "check frames"
+        if p == Phase.RELEASE:
+            return "release" if self._retreat.z0 is None else "retreat"
+        if p == Phase.REFUSE:
+            return "retreat"
+        return None
+
+    def _account(self, state: RobotState, now: float) -> None:
+        """Add the time since the previous tick to what it was spent on; measure the TCP speed."""
+        prev_t, prev_pos = self._budget_prev
+        try:
+            pos = np.asarray(state.base_T_tcp, dtype=float)[:3, 3].copy()
+        except (TypeError, ValueError, IndexError):
+            pos = None
+        if prev_t is not None and now > prev_t:
+            if self._budget_bucket is not None:
+                self.budget[self._budget_bucket] = self.budget.get(self._budget_bucket, 0.0) + (now - prev_t)
+            if pos is not None and prev_pos is not None and np.all(np.isfinite(pos)):
+                self._tcp_speed = float(np.linalg.norm(pos - prev_pos)) / (now - prev_t)
+        self._budget_prev = (now, pos)
 
     def _elapsed(self, now: float, t0: float, ticks: int) -> float:
         """Time since ``t0``: the larger of the robot-clock and the tick count (a frozen clock still ends)."""
@@ -562,7 +636,8 @@ class PlacementMachine:
         dist = float(np.linalg.norm(move))
         if not (dist > SURVEY_DONE):
             return np.zeros(3)
-        speed = min(limit, 0.8 * math.sqrt(2.0 * self.config.accel * dist))
+        speed = min(limit, 0.8 * math.sqrt(2.0 * min(self.config.accel, self.config.lateral_accel) * dist),
+                    LATERAL_GAIN * dist)
         return np.round(move / dist * speed, 3)
 
     def _axial(self, dist: float) -> float:
@@ -592,20 +667,32 @@ class PlacementMachine:
             self._surveyed = True  # latched: no second survey; CHECK still needs the footprint supported
             back = self._start_pos - tcp
             back -= down * float(back @ down)
-            return self._lateral(back, cfg.survey_speed) if float(np.linalg.norm(back)) > SURVEY_DONE else None
+            self._back = float(np.linalg.norm(back))
+            return self._lateral(back, cfg.survey_speed) if self._back > SURVEY_DONE else None
         if fp is None:
             if self._elapsed(now, self._descent_t0, self._descent_ticks) > cfg.acquire_timeout:
                 return self._refuse(now, "no support evidence: no surface map of the cup's landing footprint")
+            self._hint = "survey"
             return self._speed(np.zeros(3))
         if bool(getattr(fp, "in_view", False)):
-            v = approach_speed(c, cfg.slow_clearance, cfg.sensor_latency, cfg.accel, cfg.approach_speed,
-                               cfg.descend_speed)
-            stopping = v * cfg.sensor_latency + v * v / (2.0 * cfg.accel)
+            # pass through: the frames the sensor takes now arrive sensor_latency later; the descent goes on
+            # while the footprint stays in view that long (if those frames do not certify it, the cup climbs
+            # back to the survey pose: slower, never less safe -- nothing is released without them)
+            stopping = self._descent_speed(c) * cfg.sensor_latency
             margin = _number(getattr(fp, "view_margin", None))
             need = _number(getattr(fp, "certify_margin", None))
             need = max(need, 0.0) if need is not None else 0.0
             if margin is not None and margin - stopping > SURVEY_VIEW_SLACK and margin - need > SURVEY_VIEW_SLACK:
-                return None  # keep descending: the footprint stays in view down to where frames certify it
+                # keep descending: the footprint stays in view down to where frames certify it; meanwhile
+                # centre the view on it (the view narrows on the way down)
+                try:
+                    move = np.asarray(getattr(fp, "look_shift"), dtype=float).reshape(3)
+                except (TypeError, ValueError, AttributeError):
+                    return None
+                if not np.all(np.isfinite(move)):
+                    return None
+                side = move - down * float(move @ down)
+                return self._lateral(side, cfg.survey_speed) if float(np.linalg.norm(side)) > SURVEY_DONE else None
         # to the survey pose (the sensor over the footprint, just high enough to hold it), then wait there
         try:
             move = np.asarray(getattr(fp, "look_shift"), dtype=float).reshape(3)
@@ -624,7 +711,8 @@ class PlacementMachine:
         side = self._lateral(move - down * along, cfg.survey_speed)
         if along > 0:  # never faster than the cup could stop before the slow band
             along = min(along, max(c - cfg.slow_clearance, 0.0))
-        return self._speed(np.round(side + self._axial(along) * down, 3))
+        self._hint = "survey"
+        return self._speed(np.round(side + self._axial(along) * down, 3), lateral=bool(np.any(side)))
 
     def _second_look(self, state: RobotState, c: float, now: float) -> Command | None:
         """Before refusing for footprint points that only zones seeing more than one surface covered, look
@@ -657,6 +745,7 @@ class PlacementMachine:
         if frames >= r.arrived + cfg.footprint_frames:
             r.done = True
             return None
+        self._hint = "survey"
         return self._speed(np.zeros(3))
 
     def _confidently_tilted(self, plane: FusedPlane) -> str | None:
@@ -670,6 +759,21 @@ class PlacementMachine:
             return (f"surface tilted {math.degrees(plane.tilt_rad):.1f} deg (> {math.degrees(cfg.max_tilt):.1f} deg "
                     f"allowed, with {cfg.level_confidence:.0%} confidence)")
         return None
+
+    def check_frames_needed(self, plane: FusedPlane) -> int:
+        """Post-stop measurements CHECK waits for: ``check_frames`` when the fused plane (frames taken while
+        slowing down included) lies well inside every limit -- its one-sided ``level_confidence`` tilt bound,
+        its angle and offset spreads all within half of ``max_tilt`` / ``max_std_angle`` /
+        ``max_std_offset`` -- else ``max_check_frames`` (if larger). Never fewer than ``check_frames``."""
+        cfg = self.config
+        most = max(cfg.check_frames, cfg.max_check_frames)
+        try:
+            bound = plane.tilt_rad + self._confidence_margin(self.tilt_sigma(plane))
+            clear = (bound <= 0.5 * cfg.max_tilt and plane.std_angle <= 0.5 * cfg.max_std_angle
+                     and plane.std_offset <= 0.5 * cfg.max_std_offset)
+        except (TypeError, ValueError, AttributeError):
+            clear = False
+        return cfg.check_frames if clear else most
 
     def post_stop_stamps(self, plane: FusedPlane, now: float) -> list[float]:
         """Distinct measurement times in the fused plane taken after the stop (+ ``check_settle``) and not
@@ -720,7 +824,11 @@ class PlacementMachine:
         bad = state.problem() if isinstance(state, RobotState) else "robot state is not a RobotState"
         if bad is not None:
             return self._abort(now, bad, faulted=bool(getattr(state, "fault", None)))
-        return _HANDLERS[self.phase](self, state, plane, note, now)
+        self._account(state, now)
+        self._hint = None
+        cmd = _HANDLERS[self.phase](self, state, plane, note, now)
+        self._budget_bucket = self._bucket(now)
+        return cmd
 
     # -- phase handlers ------------------------------------------------------------------------------
     def _on_idle(self, state: RobotState, plane: FusedPlane | None, note: str | None, now: float) -> Command:
@@ -839,7 +947,10 @@ class PlacementMachine:
             look = self._second_look(state, c, now) if self.phase == Phase.APPROACH else None
             if look is not None:
                 return look
-            return self._refuse(now, why + (" (also from over those points)" if self._recheck else ""))
+            # something seen under the footprint while descending: stop hard (obstacle_decel) unless moving
+            # sideways (the liquid's lateral acceleration), so an obstacle seen late is not run into
+            return self._refuse(now, why + (" (also from over those points)" if self._recheck else ""),
+                                decel=None if self._sideways else max(cfg.accel, cfg.obstacle_decel))
         side = np.zeros(3)
         if self.phase == Phase.APPROACH:
             cmd = self._survey(state, c, now)
@@ -850,15 +961,25 @@ class PlacementMachine:
         down = -np.asarray(state.base_T_cup, dtype=float)[:3, 2]
         if self.phase == Phase.APPROACH:
             if c > cfg.slow_clearance:
-                v = approach_speed(c, cfg.slow_clearance, cfg.sensor_latency, cfg.accel, cfg.approach_speed,
-                                   cfg.descend_speed)
+                v = self._descent_speed(c)
                 if c <= cfg.near_surface_distance:
                     v = max(cfg.descend_speed, min(v, cfg.near_surface_speed))
+                if cfg.footprint_frames and not self._surveyed:
+                    # the footprint is not certified yet: something may stand on it (clutter, a step), so
+                    # keep room to stop above traverse_clearance even learning of it sensor_latency late (or
+                    # go no faster than the slow band's speed, at which a touch stays gentle)
+                    v = min(v, max(cfg.descend_speed,
+                                   stoppable_speed(c - cfg.traverse_clearance, cfg.sensor_latency, cfg.accel)))
                 if np.any(side):  # moving back over the landing spot: the ground under the way is unseen
-                    v = min(v, max(self._axial(c - cfg.traverse_clearance), 0.0))
-                return self._speed(np.round(side + round(v, 3) * down, 3))
+                    if self._back > 0.5 * cfg.footprint_margin:  # (within half the margin: over the seen footprint)
+                        v = min(v, max(self._axial(c - cfg.traverse_clearance), 0.0))
+                    self._hint = "survey"
+                else:
+                    self._hint = self._motion_bucket(round(v, 3))
+                return self._speed(np.round(side + round(v, 3) * down, 3), lateral=bool(np.any(side)))
             if np.any(side):  # back over the landing spot before the slow, final part of the descent
-                return self._speed(side)
+                self._hint = "survey"
+                return self._speed(side, lateral=True)
             self._go(Phase.DESCEND, now, f"clearance {c * 1e3:.1f} mm < {cfg.slow_clearance * 1e3:.0f} mm: slow down")
         if c > cfg.stop_clearance:
             return self._speed(cfg.descend_speed * down)
@@ -875,9 +996,10 @@ class PlacementMachine:
         fresh = len(self.post_stop_stamps(plane, now))
         if self._check.at_rest is None and now - self._check.t_stop >= cfg.check_settle:
             self._check.at_rest = np.asarray(state.base_T_tcp, dtype=float)[:3, 3].copy()
-        if fresh < cfg.check_frames and not (self._blind(note) and cfg.too_close_hold > 0):
+        need = self.check_frames_needed(plane)
+        if fresh < need and not (self._blind(note) and cfg.too_close_hold > 0):
             if self._elapsed(now, self._t_phase, self._phase_ticks) > cfg.check_timeout:
-                return self._refuse(now, f"only {fresh} of {cfg.check_frames} surface planes measured within "
+                return self._refuse(now, f"only {fresh} of {need} surface planes measured within "
                                          f"{cfg.check_timeout:.1f} s of stopping" + (f" ({note})" if note else ""))
             return Command.hold()
         c = self.last_clearance = self._clearance(plane, state)

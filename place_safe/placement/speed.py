@@ -1,10 +1,20 @@
-"""Approach speed from what the robot can still stop in: sensor latency and braking distance.
+"""Descent speed from what the robot can still stop in: sensor latency, braking, and a planned slow-down.
 
-Concept: while the surface is far the cup may move fast, but only as fast as lets the arm stop
-before the slow band above the surface even if it learns about a change ``latency`` seconds late
-(a frame is measured, transferred and estimated before the machine sees it) and then brakes at
-``accel``. The distance covered is ``v * latency + v**2 / (2 * accel)``; :func:`stoppable_speed`
-is the largest ``v`` for which that fits in the distance left. SI units (m, s, m/s, m/s^2).
+Concept: while the surface is far the cup may move fast, but two limits hold at every cup clearance ``c``
+above the sensed surface:
+
+* **planned braking** (:func:`braking_speed`): the cup arrives at the slow band (``slow_clearance``) at the
+  band's speed ``v_band``, decelerating at ``accel``: ``v = sqrt(v_band**2 + 2 * accel * (c - slow_clearance))``.
+  For a surface that stays where it was sensed this is all the arm needs (the clearance is computed from
+  the current TCP pose each control tick, so it is not late).
+* **room for a late surprise** (:func:`stoppable_speed`): if a frame shows the surface (or something on it)
+  higher than believed, the machine learns it ``latency`` s late (a frame is measured, transferred and
+  estimated before the machine sees it) and then brakes at ``accel``; the distance covered,
+  ``v * latency + v**2 / (2 * accel)``, must fit in the measured clearance minus ``margin``.
+
+:func:`descent_speed` is the smallest of these and the cap ``v_max``, never below ``v_band``.
+:func:`approach_speed` is the earlier profile (latency limit only, to the slow band), kept for callers
+that want it. SI units (m, s, m/s, m/s^2).
 """
 
 from __future__ import annotations
@@ -21,6 +31,16 @@ def stoppable_speed(distance: float, latency: float, accel: float) -> float:
     return v if math.isfinite(v) else 0.0
 
 
+def braking_speed(distance: float, accel: float, v_end: float) -> float:
+    """Speed (m/s) from which braking at ``accel`` reaches ``v_end`` after ``distance`` m (``v_end`` for no
+    distance; NaN inputs give ``v_end``, or 0 if it is not a number)."""
+    v_end = v_end if v_end >= 0 else 0.0
+    if not (distance > 0 and accel > 0):
+        return v_end if math.isfinite(v_end) else 0.0
+    v = math.sqrt(v_end * v_end + 2.0 * accel * distance)
+    return max(v, v_end) if math.isfinite(v) else v_end  # (max: squares of tiny speeds underflow)
+
+
 def approach_speed(clearance: float, slow_clearance: float, latency: float, accel: float, v_max: float,
                    v_min: float) -> float:
     """Speed (m/s) at cup ``clearance`` above the surface: at most ``v_max``, stoppable before the slow band
@@ -28,4 +48,28 @@ def approach_speed(clearance: float, slow_clearance: float, latency: float, acce
     return max(v_min, min(v_max, stoppable_speed(clearance - slow_clearance, latency, accel)))
 
 
-__all__ = ["stoppable_speed", "approach_speed"]
+def descent_speed(clearance: float, slow_clearance: float, margin: float, latency: float, accel: float,
+                  v_max: float, v_band: float) -> float:
+    """Speed (m/s) at cup ``clearance`` (m) above the sensed surface (see the module docstring): at most
+    ``v_max``; braking at ``accel`` arrives at ``slow_clearance`` at ``v_band``; reacting ``latency`` s late
+    and braking at ``accel`` still stops ``margin`` m above the surface; never below ``v_band``."""
+    return max(v_band, min(v_max, braking_speed(clearance - slow_clearance, accel, v_band),
+                           stoppable_speed(clearance - margin, latency, accel)))
+
+
+def slosh_rise(accel: float, radius: float, amplification: float = 2.0) -> float:
+    """m the liquid's surface rises at the wall of a cup of inner ``radius`` (m) accelerated sideways at
+    ``accel`` (m/s^2): the quasi-static free surface tilts by atan(accel / g), so it rises
+    ``radius * accel / g`` at the wall; ``amplification`` allows for sloshing (a step in acceleration
+    overshoots the static tilt by up to 2x). A full cup (10 mm below its rim, 35 mm radius) stays
+    unspilled below about 1.4 m/s^2 by this bound; the placement's ``lateral_accel`` (1.2 m/s^2) gives
+    8.6 mm."""
+    return amplification * radius * abs(accel) / 9.81
+
+
+def stopping_distance(speed: float, latency: float, accel: float) -> float:
+    """m covered from ``speed`` when the machine reacts ``latency`` s late and then brakes at ``accel``."""
+    return speed * latency + speed * speed / (2.0 * accel)
+
+
+__all__ = ["stoppable_speed", "braking_speed", "approach_speed", "descent_speed", "stopping_distance", "slosh_rise"]

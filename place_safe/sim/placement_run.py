@@ -88,6 +88,7 @@ class PlacementResult:
     fault_injected: str | None = None
     robot_fault: str | None = None
     calibrated: bool = True  # False: the method had no calibration, so the placement refused before moving
+    budget: dict = field(default_factory=dict)  # s of robot time per part of the placement (PlacementMachine.budget)
 
     def to_dict(self) -> dict:
         return dict(self.__dict__)
@@ -201,7 +202,7 @@ def run_placement(scenario: Any = "place_level", method: str | None = None, cali
         frames=res.frames, planes=res.planes, transitions=[t.to_dict() for t in res.transitions], frame_log=res.frame_log,
         release_height=truth.release_height, decision_time=(t_dec - t_ref) if (t_dec is not None and t_ref is not None)
         else None, surface_moved=truth.surface_moved, fault_injected=truth.stop_injected,
-        robot_fault=robot.fault(), **common)
+        robot_fault=robot.fault(), budget=dict(getattr(res, "budget", {}) or {}), **common)
 
 
 __all__ = ["PlacementResult", "run_placement", "oracle_calibration", "scenario_path",

@@ -168,6 +168,7 @@ def judge(sc: Scenario, res: Any, max_tilt: float | None = None) -> dict:
         "expected": exp.outcome, "met": not misses, "misses": misses, "unsafe": unsafe,
         "clearly_safe": clearly_safe, "false_refusal": bool(clearly_safe and not released),
         "hazard": labels.get("hazard"), "wall_seconds": res.wall_seconds,
+        "budget": dict(getattr(res, "budget", {}) or {}),
     }
 
 
@@ -224,8 +225,10 @@ def summarize(rows: list[dict]) -> dict:
     rel = [r for r in rows if r.get("decision") == "released"]
     safe = [r for r in rows if r.get("clearly_safe")]
     heights = [r["release_height"] for r in rel if r.get("release_height") is not None]
-    times = [r["decision_time"] for r in rel if r.get("decision_time") is not None
-             and r.get("time_from", 0) >= REFERENCE_HEIGHT - 1e-3]
+    from place_safe.placement.budget import median_budget
+
+    from40 = [r for r in rel if r.get("decision_time") is not None and r.get("time_from", 0) >= REFERENCE_HEIGHT - 1e-3]
+    times = [r["decision_time"] for r in from40]
     return {
         "runs": len(rows), "released": len(rel),
         "refused": sum(r.get("decision") == "refused" for r in rows),
@@ -241,6 +244,8 @@ def summarize(rows: list[dict]) -> dict:
         "collisions": sum(bool(r.get("robot_fault")) for r in rows),
         "hard_contacts": sum((r.get("contact_force_peak") or 0.0) >= HARD_CONTACT for r in rows),
         "max_contact_force": max([float(r.get("contact_force_peak") or 0.0) for r in rows], default=0.0),
+        "spills": sum(int(r.get("liquid_spilled") or 0) > 0 for r in rows),
+        "budget_from_40cm": median_budget([r.get("budget") or {} for r in from40]),
     }
 
 
@@ -269,8 +274,28 @@ def format_table(rows: list[dict], summary: dict) -> str:
               f"{s['collisions']}; contacts >= {HARD_CONTACT:.0f} N: {s['hard_contacts']} "
               f"(largest {s['max_contact_force']:.1f} N)",
               f"median release height: {'-' if mh is None else f'{mh * 1e3:.1f} mm'}; median time from 40 cm to "
-              f"release: {'-' if mt is None else f'{mt:.2f} s'} ({s['releases_from_40cm']} releases from >= 40 cm)"]
+              f"release: {'-' if mt is None else f'{mt:.2f} s'} ({s['releases_from_40cm']} releases from >= 40 cm); "
+              f"runs with spilled liquid: {s.get('spills', 0)}"]
+    if s.get("budget_from_40cm"):
+        lines += ["", budget_table(s["budget_from_40cm"], s["releases_from_40cm"])]
     return "\n".join(lines)
+
+
+def budget_table(median: dict, runs: int) -> str:
+    """The time budget of releases from 40 cm with the limits that set each part (default placement
+    settings within the simulated arm's limits, the simulated sensor's frame period and transfer time)."""
+    from place_safe.placement.budget import budget_limits, format_budget
+    from place_safe.placement.loop import within_robot_limits
+    from place_safe.placement.machine import PlacementConfig
+    from place_safe.robot.interface import RobotLimits
+    from place_safe.sim.tof import ToFConfig
+
+    class _Arm:
+        limits = RobotLimits()
+
+    tof = ToFConfig()
+    cfg = within_robot_limits(PlacementConfig(), _Arm())
+    return format_budget(median, budget_limits(cfg, 1.0 / tof.rate_hz, tof.latency), runs)
 
 
 def plot(rows: list[dict], path: str) -> str:
@@ -309,5 +334,5 @@ def plot(rows: list[dict], path: str) -> str:
     return path
 
 
-__all__ = ["random_scenario", "judge", "run_one", "run_many", "summarize", "format_table", "plot",
+__all__ = ["random_scenario", "judge", "run_one", "run_many", "summarize", "format_table", "plot", "budget_table",
            "CLEAR_MARGIN", "TILT_MARGIN"]

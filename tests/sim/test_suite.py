@@ -79,6 +79,20 @@ def test_summary_and_table():
     assert "contacts >= 30 N: 1 (largest 45.0 N)" in suite.format_table(rows + [hard], s)
 
 
+def test_summary_has_the_time_budget_of_releases_from_40cm():
+    rows = [suite.judge(Scenario(name="a"), _res(budget={"cruise": 1.0, "survey": 0.5}, decision_time=2.0)),
+            suite.judge(Scenario(name="b"), _res(budget={"cruise": 2.0}, decision_time=3.0)),
+            suite.judge(Scenario(name="c"), _res(budget={"cruise": 9.0}, start_height=0.2)),  # not from 40 cm
+            suite.judge(Scenario(name="d"), _res(outcome="refused", budget={"cruise": 9.0})),
+            suite.judge(Scenario(name="e"), _res(liquid_spilled=2))]
+    s = suite.summarize(rows)
+    assert s["budget_from_40cm"]["cruise"] == pytest.approx(1.0)  # a, b and e (e has no budget: 0 s)
+    assert s["spills"] == 1
+    table = suite.format_table(rows, s)
+    assert "time budget" in table and "cruise" in table and "check frames" in table
+    assert "runs with spilled liquid: 1" in table
+
+
 def test_scenarios_command_ci_subset(tmp_path):
     """CI subset: an uncalibrated sensor (refused at once) and the 15 deg table (refused early)."""
     from place_safe.cli.app import main

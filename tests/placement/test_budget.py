@@ -1,0 +1,112 @@
+"""The placement's time budget, check sizing from the fused uncertainty, speeds within the robot's limits
+and the liquid's lateral acceleration on every sideways command."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from place_safe.fusion.plane_filter import FusedPlane
+from place_safe.fusion.surface_map import FootprintVerdict
+from place_safe.placement.budget import BEFORE_RELEASE, BUCKETS, budget_limits, format_budget, median_budget
+from place_safe.placement.loop import within_robot_limits
+from place_safe.placement.machine import CommandKind, Phase, PlacementConfig, PlacementMachine
+from place_safe.robot.interface import RobotLimits
+from tests.placement.test_machine import FakeWorld, run
+
+
+def test_the_budget_accounts_for_the_whole_placement():
+    w = FakeWorld(height=0.3)
+    m = run(w)
+    assert m.outcome == "released"
+    assert set(m.budget) <= set(BUCKETS)
+    t_end = m.log[-1].time
+    assert abs(sum(m.budget.values()) - t_end) < 0.02  # every tick's time went to one part
+    t_release = next(tr.time for tr in m.log if tr.target == Phase.RELEASE)
+    before = sum(m.budget.get(b, 0.0) for b in BEFORE_RELEASE)
+    assert abs(before - t_release) < 0.02
+    for part in ("cruise", "brake", "slow band", "stop", "check frames", "release", "retreat"):
+        assert m.budget.get(part, 0.0) > 0.0, part
+
+
+def test_budget_table_names_every_part_and_its_limit():
+    cfg = PlacementConfig()
+    limits = budget_limits(cfg, 1 / 30, 0.094)
+    assert set(limits) == set(BUCKETS) and all(limits.values())
+    med = median_budget([{"cruise": 1.0, "brake": 0.5}, {"cruise": 2.0}])
+    assert med["cruise"] == 1.5 and med["brake"] == 0.25 and med["survey"] == 0.0
+    text = format_budget(med, limits, 2)
+    assert "cruise" in text and "to release" in text and "lateral_accel" in text
+    assert format_budget({}, limits, 0) == "time budget: no releases"
+
+
+def _plane(std_angle, std_offset, tilt=0.0):
+    n = np.array([math.sin(tilt), 0.0, math.cos(tilt)])
+    return FusedPlane(n, 0.0, tilt, std_angle, std_offset, 7, 1.0, 7, stamps=tuple(0.1 * i for i in range(7)))
+
+
+@given(st.floats(0.0, math.radians(6)), st.floats(0.0, 0.004), st.floats(0.0, math.radians(4)))
+def test_the_check_waits_for_more_frames_the_less_certain_the_plane(std_angle, std_offset, tilt):
+    m = PlacementMachine()
+    cfg = m.config
+    need = m.check_frames_needed(_plane(std_angle, std_offset, tilt))
+    assert cfg.check_frames <= need <= max(cfg.check_frames, cfg.max_check_frames)
+    if std_angle > 0.5 * cfg.max_std_angle or std_offset > 0.5 * cfg.max_std_offset or tilt > 0.5 * cfg.max_tilt:
+        assert need == max(cfg.check_frames, cfg.max_check_frames)
+
+
+def test_a_malformed_plane_needs_the_most_check_frames():
+    m = PlacementMachine()
+    assert m.check_frames_needed(object()) == max(m.config.check_frames, m.config.max_check_frames)
+
+
+class _Arm:
+    def __init__(self, limits):
+        self.limits = limits
+
+
+@given(st.floats(0.01, 3.0), st.floats(0.01, 50.0))
+def test_the_loop_plans_within_the_robot_limits(v, a):
+    cfg = within_robot_limits(PlacementConfig(), _Arm(RobotLimits(max_linear_speed=v, max_linear_accel=a)))
+    for name in ("approach_speed", "descend_speed", "survey_speed", "retreat_speed", "near_surface_speed"):
+        assert getattr(cfg, name) <= v + 1e-12
+    assert cfg.accel <= a + 1e-12 and cfg.lateral_accel <= a + 1e-12
+
+
+def test_a_robot_without_readable_limits_leaves_the_config():
+    cfg = PlacementConfig()
+
+    class Broken:
+        @property
+        def limits(self):
+            raise RuntimeError("no limits")
+
+    assert within_robot_limits(cfg, Broken()) is cfg
+    assert within_robot_limits(cfg, object()) is cfg
+    assert within_robot_limits(cfg, _Arm(None)) is cfg
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(height=st.floats(0.08, 0.4), shift=st.floats(0.0, 0.08), angle=st.floats(-math.pi, math.pi))
+def test_every_sideways_command_respects_the_liquids_lateral_acceleration(height, shift, angle):
+    # the footprint must be surveyed from a pose `shift` sideways: the machine moves out and back
+    w = FakeWorld(height=height)
+    move = np.array([shift * math.cos(angle), shift * math.sin(angle), 0.0])
+    state = {"n": 0}
+
+    def verdict():
+        state["n"] += 1
+        seen = 3 if state["n"] > 60 else 0
+        return FootprintVerdict(observed=seen, supported=seen, in_view=seen > 0 or shift == 0.0, view_margin=1.0,
+                                look_shift=move if seen == 0 else np.zeros(3), certify_margin=0.0)
+
+    m = PlacementMachine()
+    while not m.finished and w.t < 20.0:
+        w.apply(m.step(w.state(), w.plane(), None, verdict()))
+    for c in w.commands:
+        if c.kind == CommandKind.SPEED and np.linalg.norm(c.twist[:2]) > 0:
+            assert c.accel <= m.config.lateral_accel + 1e-12
+    assert m.finished
