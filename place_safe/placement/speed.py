@@ -22,13 +22,19 @@ from __future__ import annotations
 import math
 
 
+MIN_DISTANCE = 1e-12
+"""m: a stopping distance below this (a picometre) is none: subnormal arithmetic would give nonsense speeds."""
+
+
 def stoppable_speed(distance: float, latency: float, accel: float) -> float:
     """Largest speed (m/s) from which reacting ``latency`` s late and braking at ``accel`` stops within
     ``distance`` m (0 for no distance; NaN inputs give 0)."""
-    if not (distance > 0 and accel > 0 and latency >= 0):
+    if not (distance > MIN_DISTANCE and accel > 0 and latency >= 0):
         return 0.0
-    v = accel * (-latency + math.sqrt(latency * latency + 2.0 * distance / accel))
-    return v if math.isfinite(v) else 0.0
+    # the root of v latency + v^2 / (2 accel) = distance, written without the cancellation of
+    # accel (-latency + sqrt(...)), which went negative (-2e-323) for subnormal distances
+    v = 2.0 * distance / (latency + math.sqrt(latency * latency + 2.0 * distance / accel))
+    return max(v, 0.0) if math.isfinite(v) else 0.0
 
 
 def braking_speed(distance: float, accel: float, v_end: float) -> float:
