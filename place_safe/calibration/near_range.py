@@ -186,6 +186,25 @@ def _with_table(params: PeakParams, knots: np.ndarray, errors: np.ndarray, fract
                    near_min_fraction=float(fraction))
 
 
+def _zone_readings(frames: Sequence[Frame], base: PeakParams, hists: np.ndarray | None = None):
+    """Each zone's reading of ``frames`` (with ground truth) by the far-range mapping ``base``: peak positions,
+    validity and heights (F, 9), depths (m) and range errors against the truth (m, F x 9), the truths' normals
+    (F, 3) and offsets (F,), each frame's median zone depth (F,) and whether it is near (3 or more valid zones,
+    median depth under :data:`NEAR_END`)."""
+    h = np.array([np.asarray(f.hists, dtype=float) for f in frames]) if hists is None else np.asarray(hists, float)
+    pos, valid, _, heights = find_peaks(h, base.pileup, base.subbin, base.subbin_half_width, heights=True)
+    tn = np.array([f.truth.normal for f in frames])
+    td = np.array([f.truth.offset for f in frames])
+    dirs = base.directions()
+    r0 = base.ranges(pos)
+    depth = r0 * dirs[:, 2]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        err = r0 - td[:, None] / (tn @ dirs.T)
+        frame_depth = np.nanmedian(np.where(valid, depth, np.nan), axis=-1) if valid.any() else np.full(len(frames), np.nan)
+    near = (valid.sum(-1) >= 3) & np.isfinite(frame_depth) & (frame_depth < NEAR_END)
+    return pos, valid, heights, depth, err, tn, td, frame_depth, near
+
+
 def fit_near_range(frames: Sequence[Frame], params: PeakParams, hists: np.ndarray | None = None) -> tuple[PeakParams, dict]:
     """``params`` with a near-range table fitted on ``frames`` (with ground truth; histograms (F, 9, 128) may
     be passed in), or unchanged when the frames do not support one; and a report.
@@ -198,17 +217,7 @@ def fit_near_range(frames: Sequence[Frame], params: PeakParams, hists: np.ndarra
     if not frames:
         report["why"] = "no frames with ground truth"
         return base, report
-    h = np.array([np.asarray(f.hists, dtype=float) for f in frames]) if hists is None else np.asarray(hists, float)
-    pos, valid, _, heights = find_peaks(h, base.pileup, base.subbin, base.subbin_half_width, heights=True)
-    tn = np.array([f.truth.normal for f in frames])
-    td = np.array([f.truth.offset for f in frames])
-    dirs = base.directions()
-    r0 = base.ranges(pos)
-    depth = r0 * dirs[:, 2]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        err = r0 - td[:, None] / (tn @ dirs.T)
-        frame_depth = np.nanmedian(np.where(valid, depth, np.nan), axis=-1) if valid.any() else np.full(len(frames), np.nan)
-    near = (valid.sum(-1) >= 3) & np.isfinite(frame_depth) & (frame_depth < NEAR_END)
+    pos, valid, heights, depth, err, tn, td, frame_depth, near = _zone_readings(frames, base, hists)
     report["frames"] = int(near.sum())
     if near.sum() < NEAR_MIN_FRAMES:
         report["why"] = (f"{int(near.sum())} frame(s) with ground truth closer than {NEAR_END * 1e3:.0f} mm; "
@@ -268,7 +277,7 @@ def fit_near_range(frames: Sequence[Frame], params: PeakParams, hists: np.ndarra
         table = _fit_errors(knots, depth[~test], err[~test], kept[fraction][~test], penalty)
         if _usable(table):
             with_table = _with_table(base, knots, table, fraction)
-            r0 = depth[test] / dirs[:, 2]
+            r0 = depth[test] / base.directions()[:, 2]
             held[test] = err[test] - with_table.near_correction(r0)
             tilt[test] = _tilt_errors(with_table, np.where(kept[fraction][test], pos[test], np.nan),
                                       kept[fraction][test], tn[test])
@@ -298,17 +307,7 @@ def held_out_tables(frames: Sequence[Frame], params: PeakParams) -> dict[int, Pe
         return {}
     knots, penalty, fraction = np.asarray(rep["knots_m"]), float(rep["penalty"]), float(rep["min_fraction"])
     base = replace(params, near_depths=[], near_errors=[], near_min_fraction=0.0)
-    h = np.array([np.asarray(f.hists, dtype=float) for f in frames])
-    pos, valid, _, heights = find_peaks(h, base.pileup, base.subbin, base.subbin_half_width, heights=True)
-    tn = np.array([f.truth.normal for f in frames])
-    td = np.array([f.truth.offset for f in frames])
-    dirs = base.directions()
-    r0 = base.ranges(pos)
-    depth = r0 * dirs[:, 2]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        err = r0 - td[:, None] / (tn @ dirs.T)
-        frame_depth = np.nanmedian(np.where(valid, depth, np.nan), axis=-1)
-    near = (valid.sum(-1) >= 3) & np.isfinite(frame_depth) & (frame_depth < NEAR_END)
+    pos, valid, heights, depth, err, _, _, _, near = _zone_readings(frames, base)
     keep = _with_table(base, knots, np.zeros((len(knots), N_ZONES)), fraction).drop_weak(pos, valid, heights)
     out: dict[int, PeakParams] = {}
     for i in np.flatnonzero(near):
