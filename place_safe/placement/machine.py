@@ -1040,7 +1040,7 @@ class PlacementMachine:
                                          f"{math.degrees(plane.std_angle):.2f} deg / {plane.std_offset * 1e3:.1f} mm), "
                                          f"clearance {c * 1e3:.1f} mm, contact {force:.1f} N "
                                          + (f"from {fresh} planes measured at rest: release"
-                                            if fresh >= cfg.check_frames else
+                                            if fresh >= need else
                                             f"from the fused plane of the farther frames (sensor too close to "
                                             f"read, {fresh} planes at rest): release"))
             self.gripper_opened = True

@@ -534,3 +534,25 @@ def test_too_close_far_above_the_plane_is_something_in_front_of_the_sensor():
     m = _too_close_run(w, PlacementMachine(), below=0.08)
     assert m.config.too_close_clearance < 0.08
     assert m.outcome == "refused" and "stale" in m.decision and not opened(w)
+
+
+def test_a_release_on_the_too_close_hold_says_so_when_fewer_than_the_needed_check_frames_were_measured():
+    """CHECK waits for check_frames_needed planes (max_check_frames on a wide plane). If the sensor goes too close
+    to read after only some of them, the release rests on the farther frames' plane, and its reason says so (not
+    "from N planes measured at rest", which claims the check's own evidence was complete)."""
+    from place_safe.recovery.too_close import TOO_CLOSE_REASON
+
+    cfg = PlacementConfig(check_frames=2, max_check_frames=5)
+    w = FakeWorld(std_angle=math.radians(1.5))  # within max_std_angle, above half of it: 5 frames needed
+    m = PlacementMachine(cfg)
+    frozen = {}
+    while not m.finished and w.t < 20.0:
+        if "p" in frozen or (m.phase == Phase.CHECK and 3 <= len(m.post_stop_stamps(w.plane(), w.t)) < 5):
+            plane = frozen.setdefault("p", w.plane())
+            note = f"no plane: {TOO_CLOSE_REASON} (median zone range 9.0 mm)"
+        else:
+            plane, note = w.plane(), None
+        w.apply(m.step(w.state(), plane, note, w.footprint))
+    release = next(t for t in m.log if t.target == Phase.RELEASE)
+    assert m.check_frames_needed(frozen["p"]) == 5
+    assert "farther frames" in release.reason and "measured at rest: release" not in release.reason, release.reason
