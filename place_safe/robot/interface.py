@@ -114,6 +114,17 @@ def check_twist(twist: Any) -> np.ndarray:
     return v
 
 
+def clamp_twist(v: np.ndarray, limits: RobotLimits) -> np.ndarray:
+    """Scale a twist's linear and angular parts (in place) down to ``limits.max_linear_speed`` and
+    ``max_angular_speed``, keeping their directions; returns ``v``."""
+    nv, nw = float(np.linalg.norm(v[:3])), float(np.linalg.norm(v[3:]))
+    if nv > limits.max_linear_speed:
+        v[:3] *= limits.max_linear_speed / nv
+    if nw > limits.max_angular_speed:
+        v[3:] *= limits.max_angular_speed / nw
+    return v
+
+
 @dataclass(frozen=True)
 class TrapezoidProfile:
     """Time-optimal trapezoidal (or triangular) speed profile over a distance, from rest to rest."""
@@ -280,4 +291,4 @@ class Robot(ABC):
 
 
 
-__all__ = ["Robot", "ToolFrames", "RobotLimits", "TrapezoidProfile", "check_pose", "check_twist", "RobotFault"]
+__all__ = ["Robot", "ToolFrames", "RobotLimits", "TrapezoidProfile", "check_pose", "check_twist", "clamp_twist", "RobotFault"]

@@ -37,7 +37,7 @@ from scipy.spatial.transform import Rotation
 
 from place_safe.exceptions import RobotFault
 from place_safe.robot.contact_detector import ContactDetector, DetectorSettings
-from place_safe.robot.interface import Robot, RobotLimits, TrapezoidProfile, check_pose, check_twist
+from place_safe.robot.interface import Robot, RobotLimits, TrapezoidProfile, check_pose, check_twist, clamp_twist
 from place_safe.robot.description import ur5_config
 
 from place_safe.sim.robot_model import ARM_JOINTS, FINGERS, load_robot_model, robot_spec  # noqa: F401
@@ -571,11 +571,7 @@ class SimRobot(Robot):
             raise ValueError(f"duration must be None or a finite number of seconds >= 0; got {duration!r}")
         self._require_ok()
         lim = self.limits
-        nv, nw = np.linalg.norm(v[:3]), np.linalg.norm(v[3:])
-        if nv > lim.max_linear_speed:
-            v[:3] *= lim.max_linear_speed / nv
-        if nw > lim.max_angular_speed:
-            v[3:] *= lim.max_angular_speed / nw
+        clamp_twist(v, lim)
         if self._mode == "joint":
             self.stop(decel=accel)
         ref = self._reference_pose()

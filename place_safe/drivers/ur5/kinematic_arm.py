@@ -21,7 +21,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from place_safe.exceptions import RobotFault
-from place_safe.robot.interface import Robot, RobotLimits, TrapezoidProfile, check_pose, check_twist
+from place_safe.robot.interface import Robot, RobotLimits, TrapezoidProfile, check_pose, check_twist, clamp_twist
 from place_safe.robot.description import ur5_config
 from place_safe.robot.kinematics import Kinematics
 
@@ -162,11 +162,7 @@ class KinematicArm(Robot):
         v = check_twist(twist)
         self._require_ok()
         lim = self.limits
-        nv, nw = np.linalg.norm(v[:3]), np.linalg.norm(v[3:])
-        if nv > lim.max_linear_speed:
-            v[:3] *= lim.max_linear_speed / nv
-        if nw > lim.max_angular_speed:
-            v[3:] *= lim.max_angular_speed / nw
+        clamp_twist(v, lim)
         if self._mode in ("linear", "joint"):
             self._twist[:] = 0.0
         self._mode = "speed"

@@ -74,7 +74,7 @@ from place_safe.drivers.ur5.gripper import Gripper, make_gripper
 from place_safe.drivers.ur5.pose import pose_to_vector, vector_to_pose
 from place_safe.exceptions import RobotFault
 from place_safe.robot.contact_detector import ContactDetector
-from place_safe.robot.interface import Robot, RobotLimits, check_pose, check_twist
+from place_safe.robot.interface import Robot, RobotLimits, check_pose, check_twist, clamp_twist
 from place_safe.robot.kinematics import Kinematics
 
 log = logging.getLogger("place_safe.drivers.ur5")
@@ -605,11 +605,7 @@ class URRobot(Robot):
         if duration is not None and not (math.isfinite(duration) and duration >= 0):
             raise ValueError(f"duration must be None or a finite number of seconds >= 0; got {duration!r}")
         lim = self.limits
-        nv, nw = np.linalg.norm(v[:3]), np.linalg.norm(v[3:])
-        if nv > lim.max_linear_speed:
-            v[:3] *= lim.max_linear_speed / nv
-        if nw > lim.max_angular_speed:
-            v[3:] *= lim.max_angular_speed / nw
+        clamp_twist(v, lim)
         self._require_ok()
         why = self.check_tcp_position(self._stop_point(v, a), "speedL stopping point", descent=v[2] < 0)
         if why:
