@@ -304,7 +304,7 @@ def measure_recover_latency(path: str | Path, method: str = "diff", calibration:
         stamps.append(time.perf_counter())  # take turns with recover for a core and lengthen its gaps
         lines.append(line)
     for line in lines:
-        m = json.loads(line).get("method_used")
+        m = json.loads(line).get("method_used") or "no plane"  # a frame without a plane (too close, no return)
         used[m] = used.get(m, 0) + 1
     err = proc.stderr.read().decode(errors="replace") if proc.stderr else ""
     if proc.wait() != 0:
