@@ -177,6 +177,10 @@ class Calibration:
 REQUIRED_SECTIONS = {"diff": ("forward",), "peak": ("peak",), "proprietary": ("proprietary",)}
 
 
+UNCALIBRATED_MARK = "[uncalibrated]"
+"""The marker every output row of an uncalibrated run carries (JSON records carry ``"calibrated": false``)."""
+
+
 def uncalibrated_reason(method: str, calibration: "Calibration | None") -> str | None:
     """Why ``method`` with ``calibration`` is not a calibrated sensor (and how to calibrate), or None.
 

@@ -24,6 +24,15 @@ from place_safe.io.json_values import jsonable
 from place_safe.recovery.differentiable import SolverOptions
 from place_safe.sensor.frame import Frame
 
+def _store(cal: Calibration, fitted: list[str], name: str, section: dict, report: dict) -> None:
+    """Put a freshly fitted section and its report into ``cal`` (clearing an earlier load error of that
+    section) and note it in ``fitted``."""
+    cal.errors.pop(name, None)
+    cal.sections[name] = section
+    cal.reports[name] = jsonable(report)
+    fitted.append(name)
+
+
 def fit_method(calibration: Calibration, frames: Sequence[Frame], method: str, progress: bool = False,
                log: Callable[[str], None] | None = None) -> list[str]:
     """Fit ``method``'s sections of ``calibration`` (in place) to ``frames`` with ground truth; the sections
@@ -37,16 +46,10 @@ def fit_method(calibration: Calibration, frames: Sequence[Frame], method: str, p
         if method == "diff":
             say("the diff method starts from the calibrated peak method: fitting the 'peak' section first")
         params, report = fit_peak(frames, progress=progress)
-        cal.errors.pop("peak", None)
-        cal.sections["peak"] = params.to_dict()
-        cal.reports["peak"] = jsonable(report)
-        fitted.append("peak")
+        _store(cal, fitted, "peak", params.to_dict(), report)
     if method == "proprietary":
         params, report = fit_proprietary(frames, progress=progress)
-        cal.errors.pop("proprietary", None)
-        cal.sections["proprietary"] = params.to_dict()
-        cal.reports["proprietary"] = jsonable(report)
-        fitted.append("proprietary")
+        _store(cal, fitted, "proprietary", params.to_dict(), report)
     if method == "diff":
         params, report = fit_forward(frames, init=None, progress=progress)
         if "peak" in fitted:  # the forward fit sees pile-up in the histograms' shapes: the peak method undoes it
@@ -57,16 +60,10 @@ def fit_method(calibration: Calibration, frames: Sequence[Frame], method: str, p
                 say(f"peak: undoing the forward fit's SPAD pile-up ({params.pileup:.3g} per count)")
 
         params.model_error, report["model_error"] = select_model_error(frames, params, cal.peak(), progress=progress)
-        cal.errors.pop("forward", None)
-        cal.sections["forward"] = params.to_dict()
-        cal.reports["forward"] = jsonable(report)
-        fitted.append("forward")
+        _store(cal, fitted, "forward", params.to_dict(), report)
 
         section, report = fit_range_correction(frames, params, cal.peak(), progress=progress)
-        cal.errors.pop("diff", None)
-        cal.sections["diff"] = {**section, "window_after_peak": SolverOptions().window_after_peak}
-        cal.reports["diff"] = jsonable(report)
-        fitted.append("diff")
+        _store(cal, fitted, "diff", {**section, "window_after_peak": SolverOptions().window_after_peak}, report)
     if method in ("peak", "diff"):
         cal.reports["uncertainty"] = jsonable(update_calibration(cal, frames, method))
         fitted.append("uncertainty")

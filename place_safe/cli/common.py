@@ -14,6 +14,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from place_safe.calibration import UNCALIBRATED_MARK  # noqa: F401 - the commands' row marker
 from place_safe.exceptions import CalibrationError, FrameError, FrameFileError, PlaceSafeError, UsageError  # noqa: F401
 from place_safe.io.json_values import jsonable
 from place_safe.recovery import METHODS, make_estimator  # noqa: F401 - the one list of method names, for the commands
@@ -131,8 +132,6 @@ def summarise(report: Any, indent: str = "  ") -> list[str]:
     return lines
 
 
-#: The marker every output row of an uncalibrated run carries (JSON records carry ``"calibrated": false``).
-UNCALIBRATED_MARK = "[uncalibrated]"
 
 
 def uncalibrated_note(methods: str | Sequence[str], calibration, path: str | None = None) -> str | None:

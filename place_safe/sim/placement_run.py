@@ -31,7 +31,6 @@ Conventions
 from __future__ import annotations
 
 import math
-import sys
 import time as _time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -44,7 +43,7 @@ from place_safe.placement.loop import CONTROL_PERIOD, PlacementLoop
 from place_safe.placement.machine import PlacementConfig
 from place_safe.sim.scenario import (ORACLE_NOTE, Scenario, TruthRecorder, load_scenario, oracle_calibration,
                                      scenario_path, surface_truth)  # noqa: F401 - part of this module's API
-from place_safe.recovery import METHODS, make_estimator
+from place_safe.recovery import make_estimator
 from place_safe.calibration import Calibration, uncalibrated_reason
 from place_safe.robot.description import ur5_config
 from place_safe.sim import render as _render

@@ -31,7 +31,6 @@ from place_safe.config import ConfigModel, field_constraints, parse_config, read
 from place_safe.assets import scenarios_dir
 from place_safe.exceptions import ConfigError
 
-from place_safe.sim.tof import ToFConfig
 from place_safe.sim.tof_mismatch import MismatchConfig
 from place_safe.calibration import Calibration
 from place_safe.placement.machine import PlacementConfig
