@@ -1,31 +1,23 @@
-"""Configuration dataclasses as JSON: key checking and file reading shared by every config type.
+"""Configuration as validated pydantic models, and the JSON/TOML file reading every config type shares.
 
-Each config (forward-model parameters, peak parameters, robot limits, placement and scene settings)
-is a plain dataclass with ``to_dict``/``from_dict``/``save``/``load``. The parts that are the same
-for all of them live here, so every one rejects unknown keys and unreadable files with the same
-kind of message: what was wrong and what was expected.
+Two bases: :class:`ConfigModel` for files (robot, scenario, ...) and :class:`ParamModel` for parameter sets with
+physical ranges (forward-model and peak parameters, placement settings, robot limits, scene objects, ...). Each
+field is declared once, with its range as ``Field(ge/gt/le/lt)`` and its unit as the description; validation,
+the one-line error messages (``what: field: problem (expected lo <= value <= hi unit)``) and the file form
+(``to_dict``/``from_dict``) come from that declaration. Files are read here too, so every type rejects unknown
+keys and unreadable files with the same kind of message: what was wrong and what was expected.
 """
 
 from __future__ import annotations
 
 import json
-from dataclasses import fields
+import math
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any, ClassVar, NamedTuple
 
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-def check_keys(cls: type, d: Any, what: str, error: type[Exception] = ValueError) -> dict:
-    """``d`` as a dict whose keys are all fields of dataclass ``cls``; raises ``error`` otherwise.
-
-    ``what`` names the thing in the message (e.g. ``"placement config"``).
-    """
-    if not isinstance(d, dict):
-        raise error(f"{what} must be a JSON object, got {type(d).__name__}")
-    known = {f.name for f in fields(cls)}
-    unknown = set(d) - known
-    if unknown:
-        raise error(f"{what}: unknown keys {sorted(unknown)}; expected some of {sorted(known)}")
-    return d
+from place_safe.exceptions import ConfigError
 
 
 def _read_text(path: str | Path, what: str, error: type[Exception]) -> str:
@@ -67,10 +59,6 @@ def write_json(path: str | Path, value: Any) -> None:
 # ---------------------------------------------------------------------------------------------------
 # Validated configuration models (pydantic v2): the one mechanism for new config and file types
 # ---------------------------------------------------------------------------------------------------
-from pydantic import BaseModel, ConfigDict, ValidationError  # noqa: E402
-
-from place_safe.exceptions import ConfigError  # noqa: E402
-
 
 class ConfigModel(BaseModel):
     """Base of every validated configuration (robot, sensor, scenario, ... files).
@@ -106,7 +94,7 @@ def parse_config(cls: type, data: Any, what: str):
     try:
         return cls.model_validate(data)
     except ValidationError as exc:
-        raise ConfigError(describe_validation_error(exc, what)) from None
+        raise ConfigError(range_message(exc, cls, what)) from None
 
 
 def read_config_file(path: str | Path, what: str) -> Any:
@@ -137,10 +125,6 @@ def load_config(cls: type, path: str | Path, what: str | None = None):
 # ---------------------------------------------------------------------------------------------------
 # Parameter sets with physical ranges: pydantic models whose Field constraints are the ranges
 # ---------------------------------------------------------------------------------------------------
-from typing import ClassVar  # noqa: E402
-
-from pydantic import model_validator  # noqa: E402
-
 
 class ParamModel(ConfigModel):
     """Base of a parameter set with physical ranges (robot limits, contact detector, simulated sensor, ...).
@@ -151,7 +135,11 @@ class ParamModel(ConfigModel):
     boolean is not a number) and finite; NumPy numbers and arrays set in code are taken as plain numbers and
     lists. Every problem, on construction, :meth:`from_dict` or assignment, is one line of the class's
     :attr:`error` type: ``what: field: problem (expected lo < value <= hi unit)``. :meth:`to_dict` is the
-    file form (the fields by name, as JSON values).
+    file form (the fields by name, as JSON values). A vector field is declared with :func:`vector`.
+
+    As the dataclasses they replace did, a parameter set takes its first fields positionally (in declaration
+    order), :meth:`replace` is ``dataclasses.replace`` (a validated copy with some fields changed) and two sets
+    are equal when their fields are (caches kept in private attributes do not count).
     """
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False, strict=True)
@@ -160,15 +148,27 @@ class ParamModel(ConfigModel):
     what: ClassVar[str] = "settings"
     error: ClassVar[type[Exception]] = ConfigError
 
-    def __init__(self, **data: Any) -> None:  # pydantic calls it from model_validate too
+    def __init__(self, *args: Any, **data: Any) -> None:  # pydantic calls it from model_validate too
+        if args:
+            names = list(type(self).model_fields)
+            if len(args) > len(names):
+                raise self.error(f"{self.what}: takes at most {len(names)} values, got {len(args)}")
+            for name, value in zip(names, args):
+                if name in data:
+                    raise self.error(f"{self.what}: {name}: given twice")
+                data[name] = value
         try:
             super().__init__(**data)
         except ValidationError as exc:
             raise self.error(range_message(exc, type(self), self.what)) from None
 
+    # pydantic validates a parameter set nested in another model without calling this constructor, so a nested
+    # problem is one error located at its path (``table.material.albedo``), not a message inside a message
+    __init__.__pydantic_base_init__ = True  # type: ignore[attr-defined]
+
     def __setattr__(self, name: str, value: Any) -> None:
         try:
-            super().__setattr__(name, value)
+            super().__setattr__(name, _plain(value))
         except ValidationError as exc:
             raise self.error(range_message(exc, type(self), self.what)) from None
 
@@ -194,6 +194,30 @@ class ParamModel(ConfigModel):
         """The file form: every field by name, as plain JSON values."""
         return self.model_dump(mode="json")
 
+    def replace(self, **changes: Any):
+        """A copy with ``changes`` applied, validated as a new instance (``dataclasses.replace`` for a model)."""
+        return type(self)(**{**{k: self.__dict__[k] for k in type(self).model_fields}, **changes})
+
+    def __eq__(self, other: Any) -> bool:
+        if type(other) is not type(self):
+            return NotImplemented
+        return all(self.__dict__[k] == other.__dict__[k] for k in type(self).model_fields)
+
+    __hash__ = None  # type: ignore[assignment]  # mutable, as the dataclasses were
+
+
+def vector(length: int | None = None, *, min_length: int | None = None, max_length: int | None = None,
+           **bounds: float) -> Any:
+    """The annotation of a :class:`ParamModel` vector field: a list of finite numbers, each within ``bounds``
+    (``ge``/``gt``/``le``/``lt``), of exactly ``length`` values (or ``min_length`` to ``max_length``) when given.
+    The default and the unit go in the field as for a number: ``zone_offsets: vector(N_ZONES, ge=-32, le=32) =
+    Field(default_factory=lambda: [0.0] * N_ZONES, description="bins")``.
+    """
+    if length is not None:
+        min_length = max_length = length
+    size = {k: v for k, v in (("min_length", min_length), ("max_length", max_length)) if v is not None}
+    return Annotated[list[Annotated[float, Field(**bounds)]], Field(**size)]
+
 
 def _field_parts(model: type[BaseModel], name: str) -> tuple[dict, dict, str]:
     """(constraints on the value, constraints on each element of a vector, unit) of field ``name``."""
@@ -214,14 +238,25 @@ def _field_parts(model: type[BaseModel], name: str) -> tuple[dict, dict, str]:
                     out[key] = getattr(m, key)
         return out
 
-    each: dict = {}
-    ann = info.annotation
-    for arg in typing.get_args(ann) or ():  # list[Annotated[float, Field(...)]] (optionally | None)
-        inner = typing.get_args(arg) if typing.get_origin(arg) in (list, tuple) else (arg,)
-        for el in inner:
-            if typing.get_origin(el) is typing.Annotated:
-                each = constraints(sum((getattr(m, "metadata", [m]) for m in typing.get_args(el)[1:]), []))
-    return constraints(info.metadata), each, info.description or ""
+    def element(ann, in_list: bool) -> dict:  # the constraints on the numbers of a list[Annotated[float, ...]]
+        if typing.get_origin(ann) is typing.Annotated:
+            base, *meta = typing.get_args(ann)
+            if in_list:
+                return constraints(sum((getattr(m, "metadata", [m]) for m in meta), []))
+            return element(base, False)
+        for arg in typing.get_args(ann):  # list[...], or X | None
+            found = element(arg, typing.get_origin(ann) in (list, tuple))
+            if found:
+                return found
+        return {}
+
+    value = constraints(info.metadata)
+    if typing.get_origin(info.annotation) is not list:  # an optional vector: its length sits inside
+        for arg in typing.get_args(info.annotation):
+            if typing.get_origin(arg) is typing.Annotated:
+                value = {**constraints(sum((getattr(m, "metadata", [m]) for m in typing.get_args(arg)[1:]), [])),
+                         **value}
+    return value, element(info.annotation, False), info.description or ""
 
 
 def field_constraints(model: type[BaseModel], name: str) -> dict:
@@ -229,6 +264,39 @@ def field_constraints(model: type[BaseModel], name: str) -> dict:
     another model or a command-line option that takes the same quantity, so the range is written once."""
     value, _, _ = _field_parts(model, name)
     return {k: v for k, v in value.items() if k in ("ge", "gt", "le", "lt")}
+
+
+class FieldRange(NamedTuple):
+    """The range of one field as its ``Field`` declares it (of each element, for a vector): ``lo``/``hi``
+    (``-inf``/``inf`` where unbounded), open or closed, the vector's length limits (``None``: a number, or no
+    limit) and the unit. A read-only view for code and tests that draw or clamp values; the field is the source."""
+
+    lo: float
+    hi: float
+    lo_open: bool
+    hi_open: bool
+    vector: bool
+    min_length: int | None
+    max_length: int | None
+    unit: str
+
+
+def field_range(model: type[BaseModel], name: str) -> FieldRange:
+    """The :class:`FieldRange` of field ``name`` of ``model``."""
+    import typing
+
+    value, each, unit = _field_parts(model, name)
+    c = each or value
+    vector = any(typing.get_origin(t) is list for t in _flat_args(model.model_fields[name].annotation))
+    return FieldRange(float(c.get("ge", c.get("gt", -math.inf))), float(c.get("le", c.get("lt", math.inf))),
+                      "gt" in c, "lt" in c, vector, value.get("min_length"), value.get("max_length"), unit)
+
+
+def field_interval(model: type[BaseModel], name: str) -> tuple[float, float]:
+    """``(lo, hi)``: the bounds of field ``name`` (of each element, for a vector), open or closed, with
+    ``-inf``/``inf`` where it has none: for code that keeps a fitted value inside the range a file may hold."""
+    r = field_range(model, name)
+    return r.lo, r.hi
 
 
 def field_range_text(model: type[BaseModel], name: str) -> str:
@@ -247,135 +315,40 @@ def range_message(exc: ValidationError, model: type[BaseModel], what: str) -> st
     first = errors[0] if errors else {}
     if first.get("type") == "extra_forbidden":
         return message.replace("Extra inputs are not permitted", "unknown key")
-    loc = first.get("loc", ())
-    if loc and loc[0] in model.model_fields and first.get("type") not in ("value_error", "frozen_instance"):
-        value, each, _ = _field_parts(model, str(loc[0]))
+    owner, name = _field_at(model, first.get("loc", ()))
+    if name is not None and first.get("type") not in ("value_error", "frozen_instance"):
+        value, each, _ = _field_parts(owner, name)
         if value or each:
-            return f"{message} (expected {field_range_text(model, str(loc[0]))})"
+            return f"{message} (expected {field_range_text(owner, name)})"
     return message
 
 
-# ---------------------------------------------------------------------------------------------------
-# Physical ranges for the parameter dataclasses (forward model, peak mapping, placement, robot, scene)
-# ---------------------------------------------------------------------------------------------------
-from dataclasses import MISSING, dataclass  # noqa: E402
-from functools import lru_cache  # noqa: E402
-from typing import Annotated, Mapping  # noqa: E402
-
-from pydantic import Field, create_model  # noqa: E402
-
-
-@dataclass(frozen=True)
-class Bound:
-    """The physical range of one parameter: ``lo <= v <= hi`` (strict where ``lo_open``/``hi_open``).
-
-    ``unit`` documents it (shown in messages); ``length`` fixes the number of values of a list
-    parameter, whose every value must then be in the range. ``None`` for ``lo``/``hi`` is unbounded.
-    """
-
-    lo: float | None = None
-    hi: float | None = None
-    unit: str = ""
-    lo_open: bool = False
-    hi_open: bool = False
-    length: int | None = None
-
-    def describe(self) -> str:
-        lo = "" if self.lo is None else f"{self.lo:g} {'<' if self.lo_open else '<='} "
-        hi = "" if self.hi is None else f" {'<' if self.hi_open else '<='} {self.hi:g}"
-        return f"{lo}value{hi}{' ' + self.unit if self.unit else ''}"
-
-    def constraints(self) -> dict:
-        c: dict = {"strict": True}
-        if self.lo is not None:
-            c["gt" if self.lo_open else "ge"] = self.lo
-        if self.hi is not None:
-            c["lt" if self.hi_open else "le"] = self.hi
-        return c
+def _field_at(model: type[BaseModel], loc: tuple) -> tuple[type[BaseModel], str | None]:
+    """The model and field name an error location points at, through nested models (``table.material.albedo``)
+    and lists of them (``clutter.0.size.2``); ``None`` for the name where it does not end on a field."""
+    owner, name = model, None
+    for part in loc:
+        if name is not None:  # inside field ``name``: a nested model (maybe in a list or optional) or an element
+            inner = [a for a in _flat_args(owner.model_fields[name].annotation)
+                     if isinstance(a, type) and issubclass(a, BaseModel)]
+            if not inner:
+                return owner, name  # an element of a vector
+            owner, name = inner[0], None
+        if isinstance(part, str) and part in owner.model_fields:
+            name = part
+        elif not isinstance(part, int):
+            return owner, None
+    return owner, name
 
 
-def _field_spec(f, bound: Bound | None):
-    """(annotation, FieldInfo) of a pydantic field for dataclass field ``f`` with its bound.
+def _flat_args(ann) -> list:
+    """``ann`` and every type inside it (``list[X]``, ``X | None``, ``Annotated[X, ...]``)."""
+    import typing
 
-    The kind comes from the annotation (``float``, ``int``, ``bool``, ``str``, lists and tuples of
-    numbers, each optionally ``| None``); other annotations (nested configs) are not checked here.
-    """
-    from typing import Any as _Any, Optional
-
-    if f.default is not MISSING:
-        default = f.default
-    elif f.default_factory is not MISSING:  # type: ignore[misc]
-        default = f.default_factory()  # type: ignore[misc]
-    else:
-        default = ...
-    b = bound or Bound()
-    desc = b.describe()
-    t = f.type
-    kind = (t if isinstance(t, str) else t.__name__ if isinstance(t, type) else str(t)).replace(" ", "")
-    kind = kind.replace("typing.", "")
-    optional = "None" in kind or default is None
-    base = kind.replace("|None", "").replace("None|", "").replace("Optional[", "").rstrip("]") if optional else kind
-    numeric_list = base.startswith(("list[float", "list[int", "tuple[float", "tuple[int"))
-    if numeric_list:
-        ann: _Any = list[Annotated[float, Field(**b.constraints())]]
-        extra = {"min_length": b.length, "max_length": b.length} if b.length is not None else {}
-        dflt = list(default) if isinstance(default, (list, tuple)) else default
-        return (Optional[ann] if optional else ann), Field(default=dflt, description=desc, **extra)
-    if base == "bool":
-        ann = Annotated[bool, Field(strict=True)]
-    elif base == "int":
-        ann = Annotated[int, Field(**b.constraints())]
-    elif base == "float":
-        ann = Annotated[float, Field(**b.constraints())]
-    elif base == "str":
-        ann = Annotated[str, Field(strict=True)]
-    else:
-        ann = _Any
-    return (Optional[ann] if optional else ann), Field(default=default, description=desc)
-
-
-@lru_cache(maxsize=None)
-def _model_for(cls: type, bounds_items: tuple) -> type[ConfigModel]:
-    from dataclasses import fields as dc_fields
-
-    bounds = dict(bounds_items)
-    specs = {f.name: _field_spec(f, bounds.get(f.name)) for f in dc_fields(cls) if f.init}
-    # nested configs (annotations that are other dataclasses) are validated by their own classes
-    return create_model(f"{cls.__name__}Model", __base__=ConfigModel, **specs)  # type: ignore[call-overload]
-
-
-def dataclass_model(cls: type, bounds: Mapping[str, Bound]) -> type[ConfigModel]:
-    """The pydantic model that validates dataclass ``cls``: its fields, with ``bounds`` as constraints.
-
-    Fields without a bound must still be finite numbers (or lists of them); new fields of ``cls``
-    are picked up automatically, so adding a parameter means adding one line to its bounds table.
-    """
-    return _model_for(cls, tuple(sorted(bounds.items())))
-
-
-def check_dataclass(obj: Any, bounds: Mapping[str, Bound], what: str, error: type[Exception] = ConfigError) -> None:
-    """Raise ``error`` (one line naming ``what`` and the field) unless every field of ``obj`` is in range."""
-    model = dataclass_model(type(obj), bounds)
-    try:
-        model.model_validate({f: _plain(getattr(obj, f)) for f in model.model_fields})
-    except ValidationError as exc:
-        raise error(_with_bounds(describe_validation_error(exc, what), exc, bounds)) from None
-
-
-def dataclass_from_dict(cls: type, d: Any, bounds: Mapping[str, Bound], what: str,
-                        error: type[Exception] = ConfigError):
-    """An instance of dataclass ``cls`` from a JSON object, validated (unknown keys, types, ranges).
-
-    Raises ``error`` with one line: ``what: field: problem (range)``.
-    """
-    if not isinstance(d, dict):
-        raise error(f"{what} must be a JSON object, got {_json_name(d)}")
-    model = dataclass_model(cls, bounds)
-    try:
-        values = model.model_validate(d)
-    except ValidationError as exc:
-        raise error(_with_bounds(describe_validation_error(exc, what), exc, bounds)) from None
-    return cls(**{k: getattr(values, k) for k in d})
+    out = [ann]
+    for arg in typing.get_args(ann):
+        out += _flat_args(arg)
+    return out
 
 
 def _plain(value: Any) -> Any:
@@ -387,21 +360,11 @@ def _plain(value: Any) -> Any:
     return value
 
 
-def _with_bounds(message: str, exc: ValidationError, bounds: Mapping[str, Bound]) -> str:
-    errors = exc.errors()
-    loc = errors[0].get("loc", ()) if errors else ()
-    name = loc[0] if loc else None
-    if name in bounds and errors[0].get("type") != "extra_forbidden":
-        return f"{message} (expected {bounds[name].describe()})"
-    if errors and errors[0].get("type") == "extra_forbidden":
-        return message.replace("Extra inputs are not permitted", "unknown key")
-    return message
-
-
 def _json_name(value: Any) -> str:
     return {dict: "an object", list: "a list", str: "a string", bool: "a boolean", type(None): "null",
             int: "a number", float: "a number"}.get(type(value), type(value).__name__)
 
 
-__all__ = ["ConfigModel", "ParamModel", "field_constraints", "field_range_text", "range_message", "Bound", "check_keys", "read_json", "write_json", "parse_config", "read_config_file",
-           "load_config", "describe_validation_error", "dataclass_model", "check_dataclass", "dataclass_from_dict"]
+__all__ = ["ConfigModel", "ParamModel", "vector", "field_constraints", "field_range", "FieldRange", "field_interval", "field_range_text",
+           "range_message", "read_json", "write_json", "parse_config", "read_config_file", "load_config",
+           "describe_validation_error"]

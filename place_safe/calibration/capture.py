@@ -30,15 +30,16 @@ import json
 import math
 import sys
 import time as _time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, ClassVar, Optional
 
 import numpy as np
+from pydantic import Field
 
-from place_safe.config import Bound, check_dataclass
+from place_safe.config import ParamModel, vector
 
-from place_safe.exceptions import ConfigError, RobotFault, SensorTimeout
+from place_safe.exceptions import RobotFault, SensorTimeout
 from place_safe.geometry import Plane, fit_plane
 from place_safe.robot.interface import Robot
 
@@ -48,29 +49,31 @@ STEP_S = 0.008
 #: currents has several newtons of noise per sample; 5 cycles (40 ms, 0.2 mm at 5 mm/s) keep single
 #: noisy samples from reading as contact.
 TOUCH_SAMPLES = 5
+#: The most values one axis of the sweep grid may have.
+MAX_GRID_VALUES = 100
 
 
-@dataclass
-class SweepPlan:
+class SweepPlan(ParamModel):
     """Sensor poses above a plane (SI units, angles in rad); see the module docstring."""
 
-    distances: list[float] = field(default_factory=lambda: [0.08, 0.12, 0.17, 0.22, 0.27])
-    incidences: list[float] = field(default_factory=lambda: [0.0, math.radians(12), math.radians(24)])
-    azimuths: list[float] = field(default_factory=lambda: [math.radians(a) for a in range(0, 360, 60)])
-    centre: tuple[float, float] | None = None  # base x, y the optical axis aims at; None: below the start pose
-    frames_per_pose: int = 1
-    settle_s: float = 0.25  # s at rest before the frames count
-    speed: float = 0.1  # m/s moveL
-    accel: float = 0.5  # m/s^2
-    max_poses: int | None = None  # subsample the grid evenly to this many poses
-    frame_timeout_s: float = 2.0  # s of robot time to wait for the frames of one pose
+    what: ClassVar[str] = "sweep plan"
 
-    def __post_init__(self) -> None:
-        for name in ("distances", "incidences", "azimuths"):
-            v = getattr(self, name)
-            if not isinstance(v, (list, tuple)) or not 1 <= len(v) <= MAX_GRID_VALUES:
-                raise ConfigError(f"sweep plan: {name} must be a list of 1 to {MAX_GRID_VALUES} numbers")
-        check_dataclass(self, SWEEP_BOUNDS, "sweep plan")  # types, NaN and ranges, one line naming the field
+    distances: vector(min_length=1, max_length=MAX_GRID_VALUES, ge=0.01, le=5.0) = Field(
+        default_factory=lambda: [0.08, 0.12, 0.17, 0.22, 0.27], description="m")
+    incidences: vector(min_length=1, max_length=MAX_GRID_VALUES, ge=0.0, le=math.radians(80.0)) = Field(
+        default_factory=lambda: [0.0, math.radians(12), math.radians(24)], description="rad")
+    azimuths: vector(min_length=1, max_length=MAX_GRID_VALUES, ge=-2 * math.pi, le=2 * math.pi) = Field(
+        default_factory=lambda: [math.radians(a) for a in range(0, 360, 60)], description="rad")
+    # base x, y the optical axis aims at; None: below the start pose
+    centre: Optional[vector(2, ge=-2.0, le=2.0)] = Field(None, description="m")
+    frames_per_pose: int = Field(1, ge=1, le=100, description="frames")
+    settle_s: float = Field(0.25, ge=0.0, le=60.0, description="s")  # at rest before the frames count
+    speed: float = Field(0.1, gt=0.0, le=1.0, description="m/s")  # moveL
+    accel: float = Field(0.5, gt=0.0, le=10.0, description="m/s^2")
+    # subsample the grid evenly to this many poses
+    max_poses: Optional[int] = Field(None, ge=1, le=10_000, description="poses")
+    # s of robot time to wait for the frames of one pose
+    frame_timeout_s: float = Field(2.0, gt=0.0, le=60.0, description="s")
 
     def grid(self) -> list[tuple[float, float, float]]:
         """(distance, incidence, azimuth) of every pose; incidence 0 once per distance."""
@@ -84,25 +87,6 @@ class SweepPlan:
             out = [out[i] for i in keep]
         return out
 
-    def to_dict(self) -> dict:
-        return asdict(self)
-
-
-#: The most values one axis of the sweep grid may have.
-MAX_GRID_VALUES = 100
-#: Range of every sweep setting (SI units), checked on construction.
-SWEEP_BOUNDS = {
-    "distances": Bound(0.01, 5.0, "m"),
-    "incidences": Bound(0.0, math.radians(80.0), "rad"),
-    "azimuths": Bound(-2 * math.pi, 2 * math.pi, "rad"),
-    "centre": Bound(-2.0, 2.0, "m", length=2),
-    "frames_per_pose": Bound(1, 100, "frames"),
-    "settle_s": Bound(0.0, 60.0, "s"),
-    "speed": Bound(0.0, 1.0, "m/s", lo_open=True),
-    "accel": Bound(0.0, 10.0, "m/s^2", lo_open=True),
-    "max_poses": Bound(1, 10_000, "poses"),
-    "frame_timeout_s": Bound(0.0, 60.0, "s", lo_open=True),
-}
 
 
 def level_plane(height: float) -> tuple[np.ndarray, float]:

@@ -26,16 +26,16 @@ import torch
 from tqdm import tqdm
 
 from place_safe.calibration import gauss_newton
+from place_safe.config import field_interval
 from place_safe.exceptions import CalibrationError, FrameError
-from place_safe.recovery.forward import (FORWARD_BOUNDS, ForwardModel, ForwardParams, MODEL_ERROR, ZoneRays,
+from place_safe.recovery.forward import (ForwardModel, ForwardParams, MODEL_ERROR, ZoneRays,
                                          mount_rotation, residual_weights, single_thread, tensors_to_params)
 from place_safe.sensor.frame import N_BINS, N_ZONES, Frame
 from place_safe.sensor.histogram import COUNT_MAX, measure_floor, reference_floor, reference_problem
 from place_safe.calibration.points import MIN_TILT_SPREAD
 from place_safe.evaluation.metrics import point_error
 from place_safe.geometry import Plane
-from place_safe.recovery.differentiable import (DifferentiableEstimator, RANGE_CORRECTION_BOUNDS, RangeCorrection,
-                                                SolverOptions)
+from place_safe.recovery.differentiable import DifferentiableEstimator, RangeCorrection, SolverOptions
 
 #: Camera parameters fitted by default, with how they are parametrised ("log": positive). The
 #: specular lobe is left at its published value: it is a property of the surface, fitted per frame
@@ -489,7 +489,7 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
     for name, kind, n in layout:
         if kind == "unit":
             lower[i:i + abs(n)], upper[i:i + abs(n)] = 0.0, 1.0
-        else:  # the physical range (FORWARD_BOUNDS), so a fit never writes parameters a file may not hold
+        else:  # the physical range (ForwardParams' fields), so a fit never writes parameters a file may not hold
             lo, hi = _fit_range(name, kind)
             lower[i:i + abs(n)], upper[i:i + abs(n)] = lo, hi
         i += abs(n)
@@ -636,15 +636,15 @@ def _posterior_spread(sol, layout, n_cam: int, n_good: int, params: ForwardParam
         if name in ZONE_GAUGED:
             value = np.delete(value, CENTRE)
         sd = std[i:i + m] * (value if kind == "log" else 1.0)
-        b = FORWARD_BOUNDS.get(name)
-        width = (b.hi - b.lo) if b is not None and b.hi is not None and b.lo is not None else math.inf
+        lo, hi = _physical_range(name)
+        width = hi - lo
         ref = np.abs(value) if kind == "log" else np.full(m, 1.0 if kind == "unit" else width)
         determined = bool(np.all(sd <= DETERMINED_FRACTION * ref))
         ratio = std[i:i + m] / psd[i:i + m]  # posterior / prior std (fit coordinates); nan without a prior
         held = bool(np.any(ratio > PRIOR_DOMINATED))
         out[name] = {"std": [float(v) if math.isfinite(v) else None for v in sd] if m > 1 or name in ZONE_GAUGED
                      else (float(sd[0]) if math.isfinite(sd[0]) else None),
-                     "unit": b.unit if b is not None else "", "determined": determined and not held,
+                     "unit": _unit(name), "determined": determined and not held,
                      "posterior_over_prior": (None if not np.any(np.isfinite(ratio))
                                               else round(float(np.nanmax(ratio)), 3)),
                      "held_at_prior": held}
@@ -654,11 +654,21 @@ def _posterior_spread(sol, layout, n_cam: int, n_good: int, params: ForwardParam
     return out
 
 
+def _physical_range(name: str) -> tuple[float, float]:
+    """``(lo, hi)`` of forward parameter ``name`` (of each value, for a vector) from its field; infinite where
+    it has no bound or is not a field."""
+    return field_interval(ForwardParams, name) if name in ForwardParams.model_fields else (-math.inf, math.inf)
+
+
+def _unit(name: str) -> str:
+    """The unit of forward parameter ``name`` (its field's description; "" if it is not a field)."""
+    info = ForwardParams.model_fields.get(name)
+    return (info.description or "") if info is not None else ""
+
+
 def _fit_range(name: str, kind: str) -> tuple[float, float]:
     """Bounds of a fitted parameter in its fit coordinate (``log`` or ``lin``), just inside its physical range."""
-    b = FORWARD_BOUNDS.get(name)
-    lo = -math.inf if b is None or b.lo is None else b.lo
-    hi = math.inf if b is None or b.hi is None else b.hi
+    lo, hi = _physical_range(name)
     margin = 1e-9 * max(abs(lo) if math.isfinite(lo) else 0.0, abs(hi) if math.isfinite(hi) else 0.0, 1.0)
     lo, hi = lo + margin, hi - margin
     if kind == "log":
@@ -704,7 +714,6 @@ def select_model_error(frames: Sequence[Frame], forward: ForwardParams, peak=Non
     the fast differentiable estimator and the one with the lowest mean point error on the frames
     with ground truth is returned, with a report of every value's error.
     """
-    from dataclasses import replace
 
     skipped: dict[str, int] = {}
     data = _usable(frames, min_distance, max_distance, skipped)
@@ -712,7 +721,7 @@ def select_model_error(frames: Sequence[Frame], forward: ForwardParams, peak=Non
         return forward.model_error, {"why": "no usable frames", "frames_skipped": skipped}
     scores, failures = {}, {}
     for e in tqdm(grid, desc="model error", unit="value", disable=not progress, file=sys.stderr):
-        est = DifferentiableEstimator(replace(forward, model_error=float(e)), peak)
+        est = DifferentiableEstimator(forward.replace(model_error=float(e)), peak)
         ests = est.estimate_many(data)
         errs = [point_error(x.plane, f.truth) for x, f in zip(ests, data) if x.ok]
         failures[float(e)] = len(data) - len(errs)
@@ -807,7 +816,8 @@ def fit_range_correction(frames: Sequence[Frame], forward: ForwardParams, peak=N
                 parts = {key: [float(c) for c in coef[i * (deg + 1):(i + 1) * (deg + 1)]]
                          for i, key in enumerate(names)}
                 bad = [k for k, v in parts.items()
-                       if not all(RANGE_CORRECTION_BOUNDS[k].lo <= c <= RANGE_CORRECTION_BOUNDS[k].hi for c in v)]
+                       if not all(field_interval(RangeCorrection, k)[0] <= c <= field_interval(RangeCorrection, k)[1]
+                                  for c in v)]
                 if bad:  # outside its physical range: not a correction
                     report[f"{'+'.join(names)}_rejected"] = f"{bad[0]} outside its physical range"
                     continue

@@ -40,7 +40,6 @@ independent generator (tilted, 2-30 cm, no near-range effect) and on both simula
 from __future__ import annotations
 
 import math
-from dataclasses import replace
 from typing import Sequence
 
 import numpy as np
@@ -182,8 +181,8 @@ def _usable(table: np.ndarray) -> bool:
 
 
 def _with_table(params: PeakParams, knots: np.ndarray, errors: np.ndarray, fraction: float) -> PeakParams:
-    return replace(params, near_depths=[float(v) for v in knots], near_errors=[float(v) for v in errors.ravel()],
-                   near_min_fraction=float(fraction))
+    return params.replace(near_depths=[float(v) for v in knots], near_errors=[float(v) for v in errors.ravel()],
+                          near_min_fraction=float(fraction))
 
 
 def _zone_readings(frames: Sequence[Frame], base: PeakParams, hists: np.ndarray | None = None):
@@ -211,7 +210,7 @@ def fit_near_range(frames: Sequence[Frame], params: PeakParams, hists: np.ndarra
 
     ``params`` is the far-range mapping (its own table, if any, is replaced). See the module doc.
     """
-    base = replace(params, near_depths=[], near_errors=[], near_min_fraction=0.0)
+    base = params.replace(near_depths=[], near_errors=[], near_min_fraction=0.0)
     frames = [f for f in frames if f.truth is not None]
     report: dict = {"end_m": NEAR_END, "adopted": False}
     if not frames:
@@ -306,7 +305,7 @@ def held_out_tables(frames: Sequence[Frame], params: PeakParams) -> dict[int, Pe
     if not rep.get("adopted"):
         return {}
     knots, penalty, fraction = np.asarray(rep["knots_m"]), float(rep["penalty"]), float(rep["min_fraction"])
-    base = replace(params, near_depths=[], near_errors=[], near_min_fraction=0.0)
+    base = params.replace(near_depths=[], near_errors=[], near_min_fraction=0.0)
     pos, valid, heights, depth, err, _, _, _, near = _zone_readings(frames, base)
     keep = _with_table(base, knots, np.zeros((len(knots), N_ZONES)), fraction).drop_weak(pos, valid, heights)
     out: dict[int, PeakParams] = {}

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import math
 import sys
-from dataclasses import replace
 from typing import Any, Sequence
 
 import numpy as np
@@ -332,15 +331,15 @@ def fit_peak(frames: Sequence[Frame], init: PeakParams | None = None, progress: 
     if paper:
         k, subbin = 0.0, "spline"
     elif pileup is None:
-        like = replace(init if init is not None else PeakParams.default_peak(), subbin=subbin,
-                       subbin_half_width=subbin_half_width)
+        like = (init if init is not None else PeakParams.default_peak()).replace(
+            subbin=subbin, subbin_half_width=subbin_half_width)
         k, search = fit_pileup(hists, use, like, residual_degree=residual_degree, harmonics=harmonics)
     else:
         k = float(pileup)
     readings, valid, _ = find_peaks(hists, k, subbin, subbin_half_width)
     params, report = _fit_readings("peak", "returns", use, readings, valid, init, PeakParams.default_peak(), progress,
                                    residual_degree, harmonics, fit_offsets, paper, min_range)
-    params = replace(params, pileup=k, subbin=subbin, subbin_half_width=subbin_half_width)
+    params = params.replace(pileup=k, subbin=subbin, subbin_half_width=subbin_half_width)
     if not paper and near_range:
         params, report["near_range"] = fit_near_range(frames, params)
     report["params"] = params.to_dict()

@@ -169,7 +169,7 @@ def descents(n: int = 200, *, height: float = 0.4, controller: str = "cb3", seed
 def _descent_seeds(seeds: list[int], height: float, controller: str, force_noise: float | None, timeout: float,
                    progress: Any = None) -> DescentReport:
     from place_safe.placement.loop import PlacementLoop
-    from place_safe.placement.machine import PlacementConfig
+    from place_safe.placement.config import PlacementConfig
     from place_safe.drivers.ur5.config import placement_config
 
     rep = DescentReport(len(seeds), controller, math.nan, height)

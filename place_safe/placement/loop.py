@@ -50,7 +50,8 @@ from place_safe.geometry import Plane
 from place_safe.io.pipeline import (INTERRUPTS, PLACEMENT_POLICY, READ_BOUND, FrameGate, Measurement, SensorPipeline,
                                     clock_domain_of, describe_exception, is_interrupt_here)
 from place_safe.io.source import FrameSource
-from place_safe.placement.machine import CommandKind, PlacementConfig, PlacementMachine, RobotState, Transition
+from place_safe.placement.config import PlacementConfig
+from place_safe.placement.machine import CommandKind, PlacementMachine, RobotState, Transition
 from place_safe.placement.time_alignment import ClockMap, PoseHistory
 from place_safe.recovery.estimator import Estimator, PlaneEstimate
 from place_safe.recovery.points import PeakParams, fit_planes, plane_covariance
@@ -106,8 +107,6 @@ def within_robot_limits(config: PlacementConfig, robot: Any) -> PlacementConfig:
     ``max_linear_accel``), so that the descent profile is planned with the braking the arm really has
     (a driver would clip a faster command and the arm would then stop later than planned). A robot
     without readable limits leaves the config as it is."""
-    import dataclasses
-
     try:
         lim = getattr(robot, "limits", None)
         v = getattr(lim, "max_linear_speed", None)
@@ -124,7 +123,7 @@ def within_robot_limits(config: PlacementConfig, robot: Any) -> PlacementConfig:
         for name in ("accel", "lateral_accel"):
             if getattr(config, name) > a:
                 changes[name] = float(a)
-    return dataclasses.replace(config, **changes) if changes else config
+    return config.replace(**changes) if changes else config
 
 
 class PlacementLoop:

@@ -62,17 +62,15 @@ from __future__ import annotations
 import logging
 import math
 from statistics import NormalDist
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from enum import Enum
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from place_safe.config import Bound, check_dataclass, dataclass_from_dict, read_json, write_json
-from place_safe.exceptions import ConfigError
 from place_safe.geometry import transform_problem
 from place_safe.fusion.plane_filter import FusedPlane
+from place_safe.placement.config import PlacementConfig
 from place_safe.placement.speed import descent_speed, stoppable_speed, stopping_distance
 from place_safe.recovery.too_close import TOO_CLOSE_REASON
 
@@ -97,145 +95,6 @@ FINAL = (Phase.DONE, Phase.ABORTED)
 def _too_close(note: str | None) -> bool:
     """Whether the last frame's note says it was too close to read (:mod:`place_safe.recovery.too_close`)."""
     return isinstance(note, str) and TOO_CLOSE_REASON in note
-
-
-@dataclass
-class PlacementConfig:
-    """Thresholds and speeds of a placement (SI units; the JSON file holds the same numbers)."""
-
-    approach_speed: float = 0.25  # m/s at most while the surface is far (slower near it: placement/speed.py)
-    descend_speed: float = 0.025  # m/s in the slow band (a touch of a mis-sensed surface at this speed stays gentle)
-    accel: float = 1.2  # m/s^2 for speed changes and stops along the tool axis (the loop caps it at the robot's limit)
-    lateral_accel: float = 1.2  # m/s^2 at most sideways (survey): the liquid's lateral acceleration (speed.slosh_rise)
-    brake_margin: float = 0.010  # m: reacting sensor_latency late and braking at accel still stops this far above the surface (the slow band: a box the map missed is met slowly)
-    obstacle_decel: float = 4.0  # m/s^2: the hard stop when the cup touches something above the surface
-    slow_clearance: float = 0.010  # m: APPROACH -> DESCEND below this cup clearance
-    stop_clearance: float = 0.003  # m: DESCEND -> CHECK at or below this clearance
-    release_clearance: float = 0.005  # m: release only at or below this clearance (or in contact)
-    max_tilt: float = math.radians(5.0)  # rad: steepest surface a cup may be put on
-    early_refuse_tilt: float = math.radians(10.0)  # rad: refuse already while approaching above this
-    max_std_angle: float = math.radians(2.0)  # rad: spread of the fused normals ("planar and consistent")
-    max_std_offset: float = 0.003  # m: spread of the fused anchors about the plane
-    check_frames: int = 2  # distinct planes measured after stopping that CHECK needs at least
-    max_check_frames: int = 5  # ... and waits for (if more than check_frames) when the fused plane is within half of a limit
-    check_timeout: float = 1.5  # s to gather them
-    max_checks: int = 3  # CHECK -> DESCEND retries
-    plane_timeout: float = 0.5  # s: a fused plane whose newest frame is older is stale (4 frames at 10 Hz)
-    sensor_timeout: float = 0.5  # s without any frame
-    acquire_timeout: float = 1.5  # s in IDLE to get a first plane
-    contact_force: float = 5.0  # N: contact with the surface (well under the robot's protective stop)
-    max_penetration: float = 0.01  # m: clearance this far below zero without contact = estimate is wrong
-    max_travel: float = 0.6  # m: descent limit
-    retreat_distance: float = 0.10  # m up after release or refusal
-    retreat_speed: float = 0.05  # m/s
-    release_settle: float = 0.3  # s between opening the gripper and retreating
-    cup_radius: float = 0.035  # m, radius of the cup bottom (rim touches first on a tilted surface)
-    contact_clearance: float = 0.008  # m: contact counts as arrival only this close to the sensed surface
-    check_settle: float = 0.04  # s after the stop command before planes count for CHECK (arm at rest)
-    descent_timeout: float = 30.0  # s: deadline of APPROACH + DESCEND together
-    retreat_timeout: float = 6.0  # s: deadline of the retreat after a release or refusal
-    rest_tolerance: float = 0.001  # m the TCP may move in CHECK once stopped (more: the arm did not stop)
-    level_confidence: float = 0.99  # the surface must be flatter than max_tilt with this confidence
-    sensor_latency: float = 0.15  # s from a measurement to the machine acting on it (transfer + frame + estimate)
-    footprint_frames: int = 3  # frames that saw the landing footprint on one surface (0: no footprint rule*)
-    footprint_margin: float = 0.01  # m around the cup bottom that must be seen supported
-    footprint_tolerance: float = 0.008  # m a zone over the footprint may lie off the fused surface
-    survey_speed: float = 0.25  # m/s sideways while bringing the footprint into view and back
-    recheck_timeout: float = 2.0  # s for a second look at footprint points only mixed zones saw (0: none)
-    traverse_clearance: float = 0.06  # m the cup stays above the surface while it moves back sideways
-    near_surface_speed: float = 0.25  # m/s at most within near_surface_distance (the arm's robot file sets 0.05)
-    near_surface_distance: float = 0.05  # m of cup clearance that counts as near the surface
-    too_close_hold: float = 3.0  # s a fused plane may age while the newest frames are too close to read (0: never)
-    too_close_clearance: float = 0.03  # m: ... and only with the cup at most this far above that plane (farther
-    # away, a sensor too close to read sees something in front of it, not the surface: the plane goes stale)
-    obstacle_confirm: float = 0.1  # s a contact far above the surface must last with the arm at rest
-    max_unconfirmed: int = 3  # contacts far above the surface that vanished before the descent is refused
-    # * footprint_frames = 0 is for sources without histograms (test doubles); it extrapolates the
-    #   surface beside the cup to where it lands, which edges and clutter defeat
-
-    def __post_init__(self) -> None:
-        self.validate()
-
-    def validate(self) -> None:
-        """Raise :class:`~place_safe.exceptions.ConfigError` (one line naming the field) unless every value is in
-        its range (:data:`PLACEMENT_BOUNDS`) and the thresholds are consistent with each other."""
-        check_dataclass(self, PLACEMENT_BOUNDS, "placement config")
-        if self.stop_clearance > self.release_clearance:
-            raise ConfigError("placement config: stop_clearance must not exceed release_clearance "
-                              f"({self.stop_clearance} > {self.release_clearance} m)")
-        if self.slow_clearance <= self.release_clearance:
-            raise ConfigError("placement config: slow_clearance must exceed release_clearance")
-        if self.contact_clearance < self.release_clearance:
-            raise ConfigError("placement config: contact_clearance must be >= release_clearance")
-        if self.early_refuse_tilt < self.max_tilt:
-            raise ConfigError("placement config: early_refuse_tilt must be >= max_tilt")
-
-    def to_dict(self) -> dict[str, float]:
-        ints = ("check_frames", "max_check_frames", "max_checks", "footprint_frames", "max_unconfirmed")
-        return {k: (int(v) if k in ints else float(v)) for k, v in asdict(self).items()}
-
-    @classmethod
-    def from_dict(cls, d: Any) -> "PlacementConfig":
-        return dataclass_from_dict(cls, d, PLACEMENT_BOUNDS, "placement config")
-
-    def save(self, path: str | Path) -> None:
-        write_json(path, self.to_dict())
-
-    @classmethod
-    def load(cls, path: str | Path) -> "PlacementConfig":
-        return dataclass_from_dict(cls, read_json(path, "placement config", ConfigError), PLACEMENT_BOUNDS,
-                                   f"placement config {path}")
-
-
-#: Range of every placement setting (SI units), checked on construction and when read from a file.
-PLACEMENT_BOUNDS: dict[str, Bound] = {
-    "approach_speed": Bound(0.0, 1.0, "m/s", lo_open=True),
-    "descend_speed": Bound(0.0, 0.5, "m/s", lo_open=True),
-    "accel": Bound(0.0, 10.0, "m/s^2", lo_open=True),
-    "obstacle_decel": Bound(0.0, 50.0, "m/s^2", lo_open=True),
-    "slow_clearance": Bound(0.0, 1.0, "m", lo_open=True),
-    "stop_clearance": Bound(0.0, 0.1, "m"),
-    "release_clearance": Bound(0.0, 0.1, "m", lo_open=True),
-    "max_tilt": Bound(0.0, math.pi / 4, "rad", lo_open=True),
-    "early_refuse_tilt": Bound(0.0, math.pi / 2, "rad", lo_open=True),
-    "max_std_angle": Bound(0.0, math.pi / 4, "rad", lo_open=True),
-    "max_std_offset": Bound(0.0, 0.1, "m", lo_open=True),
-    "check_frames": Bound(1, 1000, "frames"),
-    "max_check_frames": Bound(1, 1000, "frames"),
-    "lateral_accel": Bound(0.0, 10.0, "m/s^2", lo_open=True),
-    "brake_margin": Bound(0.0, 0.1, "m"),
-    "check_timeout": Bound(0.0, 60.0, "s", lo_open=True),
-    "max_checks": Bound(1, 100, "retries"),
-    "plane_timeout": Bound(0.0, 10.0, "s", lo_open=True),
-    "too_close_hold": Bound(0.0, 30.0, "s"),
-    "too_close_clearance": Bound(0.0, 1.0, "m"),
-    "sensor_timeout": Bound(0.0, 10.0, "s", lo_open=True),
-    "acquire_timeout": Bound(0.0, 60.0, "s", lo_open=True),
-    "contact_force": Bound(0.0, 200.0, "N", lo_open=True),
-    "max_penetration": Bound(0.0, 0.1, "m"),
-    "max_travel": Bound(0.0, 2.0, "m", lo_open=True),
-    "retreat_distance": Bound(0.0, 1.0, "m", lo_open=True),
-    "retreat_speed": Bound(0.0, 1.0, "m/s", lo_open=True),
-    "release_settle": Bound(0.0, 10.0, "s"),
-    "cup_radius": Bound(0.0, 0.5, "m"),
-    "contact_clearance": Bound(0.0, 0.1, "m", lo_open=True),
-    "check_settle": Bound(0.0, 10.0, "s"),
-    "descent_timeout": Bound(0.0, 600.0, "s", lo_open=True),
-    "retreat_timeout": Bound(0.0, 600.0, "s", lo_open=True),
-    "level_confidence": Bound(0.5, 0.999999, "(probability)"),
-    "rest_tolerance": Bound(0.0, 0.05, "m", lo_open=True),
-    "sensor_latency": Bound(0.0, 5.0, "s"),
-    "footprint_frames": Bound(0, 1000, "frames"),
-    "footprint_margin": Bound(0.0, 0.2, "m"),
-    "footprint_tolerance": Bound(0.0, 0.1, "m", lo_open=True),
-    "survey_speed": Bound(0.0, 1.0, "m/s", lo_open=True),
-    "recheck_timeout": Bound(0.0, 30.0, "s"),
-    "traverse_clearance": Bound(0.0, 1.0, "m"),
-    "near_surface_speed": Bound(0.0, 1.0, "m/s", lo_open=True),
-    "near_surface_distance": Bound(0.0, 1.0, "m"),
-    "obstacle_confirm": Bound(0.0, 5.0, "s"),
-    "max_unconfirmed": Bound(0, 100, "contacts"),
-}
 
 
 @dataclass

@@ -37,13 +37,15 @@ chi-square (plus the calibrated floor).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 import torch
+from pydantic import Field, model_validator
 
 from place_safe.recovery.points import PeakParams
-from place_safe.config import Bound, check_dataclass, dataclass_from_dict
+from place_safe.config import ParamModel, vector
 from place_safe.exceptions import CalibrationError, FrameError, NoPlaneError
 from place_safe.recovery.forward import (ForwardModel, ForwardParams, ZoneRays, mount_rotation, residual_weights,
                                          single_thread)
@@ -56,8 +58,7 @@ from place_safe.sensor.histogram import COUNT_MAX, measure_floor, reference_prob
 
 
 
-@dataclass
-class RangeCorrection:
+class RangeCorrection(ParamModel):
     """A calibrated correction of the recovered plane as a function of its axis crossing ``z0``.
 
     ``z0 += c(z0)`` and, in the optical frame, the slopes ``a += ca(z0) + ga(z0) a``,
@@ -67,14 +68,26 @@ class RangeCorrection:
     the domain the value at its nearer end is used. Fitted by
     :func:`place_safe.calibration.forward_fit.fit_range_correction` to what the forward model leaves
     over on data with ground truth; empty coefficients mean no correction.
+
+    The ranges: what the forward model leaves over is millimetres and a fraction of a degree, so a coefficient
+    of more than 5 cm (or a slope of 0.5) is not a correction.
     """
 
-    coeffs: list[float] = field(default_factory=list)
-    domain: list[float] = field(default_factory=lambda: [0.0, 1.0])
-    slope_a: list[float] = field(default_factory=list)
-    slope_b: list[float] = field(default_factory=list)
-    gain_a: list[float] = field(default_factory=list)
-    gain_b: list[float] = field(default_factory=list)
+    what: ClassVar[str] = "range correction"
+    error: ClassVar[type[Exception]] = CalibrationError
+
+    coeffs: vector(ge=-0.05, le=0.05) = Field(default_factory=list, description="m")
+    domain: vector(2, ge=0.0, le=10.0) = Field(default_factory=lambda: [0.0, 1.0], description="m")
+    slope_a: vector(ge=-0.5, le=0.5) = Field(default_factory=list, description="(slope)")
+    slope_b: vector(ge=-0.5, le=0.5) = Field(default_factory=list, description="(slope)")
+    gain_a: vector(ge=-0.2, le=0.2) = Field(default_factory=list, description="(of the slope)")
+    gain_b: vector(ge=-0.2, le=0.2) = Field(default_factory=list, description="(of the slope)")
+
+    @model_validator(mode="after")
+    def _ordered_domain(self) -> "RangeCorrection":
+        if not self.domain[1] > self.domain[0]:
+            raise ValueError(f"domain must be [lo, hi] with hi > lo, got {list(self.domain)}")
+        return self
 
     def _series(self, coeffs: list[float], z0: float) -> float:
         if not coeffs:
@@ -94,33 +107,7 @@ class RangeCorrection:
         return (self._series(self.slope_a, z0) + self._series(self.gain_a, z0) * a,
                 self._series(self.slope_b, z0) + self._series(self.gain_b, z0) * b)
 
-    def to_dict(self) -> dict:
-        return {"coeffs": [float(c) for c in self.coeffs], "domain": [float(v) for v in self.domain],
-                "slope_a": [float(c) for c in self.slope_a], "slope_b": [float(c) for c in self.slope_b],
-                "gain_a": [float(c) for c in self.gain_a], "gain_b": [float(c) for c in self.gain_b]}
 
-    def __post_init__(self) -> None:
-        check_dataclass(self, RANGE_CORRECTION_BOUNDS, "range correction", CalibrationError)
-        if not self.domain[1] > self.domain[0]:
-            raise CalibrationError(f"range correction: domain must be [lo, hi] with hi > lo, got {list(self.domain)}")
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "RangeCorrection":
-        """A correction from its JSON form; wrong types, unknown keys and values outside
-        :data:`RANGE_CORRECTION_BOUNDS` are one-line :class:`CalibrationError` messages."""
-        return dataclass_from_dict(cls, d, RANGE_CORRECTION_BOUNDS, "range correction", CalibrationError)
-
-
-#: Physical range of the diff correction: what the forward model leaves over is millimetres and a
-#: fraction of a degree, so a coefficient of more than 5 cm (or a slope of 0.5) is not a correction.
-RANGE_CORRECTION_BOUNDS: dict[str, Bound] = {
-    "coeffs": Bound(-0.05, 0.05, "m"),
-    "domain": Bound(0.0, 10.0, "m", length=2),
-    "slope_a": Bound(-0.5, 0.5, "(slope)"),
-    "slope_b": Bound(-0.5, 0.5, "(slope)"),
-    "gain_a": Bound(-0.2, 0.2, "(of the slope)"),
-    "gain_b": Bound(-0.2, 0.2, "(of the slope)"),
-}
 
 
 def _positive_definite(cov) -> bool:

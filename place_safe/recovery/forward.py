@@ -28,13 +28,15 @@ from __future__ import annotations
 
 import math
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import dataclass
+from typing import ClassVar
 from pathlib import Path
 
 import numpy as np
 import torch
+from pydantic import Field
 
-from place_safe.config import Bound, check_dataclass, dataclass_from_dict, read_json, write_json
+from place_safe.config import ParamModel, read_json, vector, write_json
 from place_safe.exceptions import CalibrationError
 from place_safe.sensor.frame import N_BINS, N_ZONES, ZONE_KIND, ZONE_RECTS
 from place_safe.sensor.histogram import COUNT_MAX
@@ -82,55 +84,7 @@ def grid_crosstalk_matrix(grid, dtype: torch.dtype = torch.float64) -> torch.Ten
     return torch.einsum("k,ktf->tf", g, torch.as_tensor(_GRID_SELECTORS, dtype=dtype))
 
 
-#: Physical range of every forward-model parameter (checked on construction and when read from a
-#: file; a parameter without an entry must still be finite). The ranges are wide (a TMF8820 fitted on
-#: the shared sweep sits well inside) but exclude what breaks the model: a zero or negative albedo,
-#: gain or specular exponent (undefined Phong term), a pulse stretched so far that its kernel would not
-#: fit in memory, a mount tilt beyond any soldering error.
-FORWARD_BOUNDS: dict[str, Bound] = {
-    "albedo": Bound(0.0, 1e4, "(dimensionless reflectance scale)", lo_open=True),
-    "edge_gain": Bound(0.0, 10.0, "(relative to the centre zone)", lo_open=True),
-    "corner_gain": Bound(0.0, 10.0, "(relative to the centre zone)", lo_open=True),
-    "bin_offset": Bound(-64.0, 128.0, "bins"),
-    "bin_size": Bound(0.001, 0.1, "m of one-way range per bin"),
-    "crosstalk": Bound(0.0, 0.5, "(fraction of every other zone)"),
-    "specular_weight": Bound(0.0, 100.0, "(relative to the diffuse term)"),
-    "specular_exponent": Bound(0.0, 1000.0, "(Phong exponent)", lo_open=True),
-    "soft_bin_sigma": Bound(0.01, 32.0, "bins"),
-    "ref_time_scale": Bound(0.01, 4.0, "zone bins per reference bin"),
-    "ref_floor": Bound(0.0, COUNT_MAX, "counts"),
-    "saturation": Bound(0.0, None, "counts (very large: no saturation)", lo_open=True),
-    "rays_per_zone": Bound(1, 1 << 16, "rays"),
-    "floor": Bound(-COUNT_MAX, COUNT_MAX, "counts"),
-    "tail_weight": Bound(0.0, 10.0, "(relative to the pulse)"),
-    "tail_decay": Bound(0.0, 64.0, "bins", lo_open=True),
-    "zone_tail_weights": Bound(0.0, 10.0, "(relative to the zone's histogram)", length=N_ZONES),
-    "zone_tail_decays": Bound(0.0, 8.0, "bins", lo_open=True, length=N_ZONES),
-    "response_kernel": Bound(0.0, 1.0, "(of the histogram, at lags 1..RESPONSE_LAGS bins)", length=RESPONSE_LAGS),
-    "crosstalk_grid": Bound(0.0, 0.5, "(of a neighbouring zone's histogram, by grid displacement)", length=8),
-    "glass_gains": Bound(0.0, 1e5, "counts (per unit-area transient: about the counts at the pulse's peak)",
-                         length=N_ZONES),
-    "glass_delay": Bound(-8.0, 16.0, "bins (after zero range)"),
-    "echo_gain": Bound(0.0, 1.0, "(of the direct return, at ECHO_REFERENCE_RANGE)"),
-    "edge_fov_scale": Bound(0.0, 3.0, "(of the nominal zone rectangle)", lo_open=True),
-    "corner_fov_scale": Bound(0.0, 3.0, "(of the nominal zone rectangle)", lo_open=True),
-    "centre_fov_scale": Bound(0.0, 3.0, "(of the nominal zone rectangle)", lo_open=True),
-    "pileup": Bound(0.0, 1.0, "1/counts"),
-    "mount_tilt": Bound(-0.5, 0.5, "rad (x, y of a rotation vector)", length=2),
-    "model_error": Bound(0.0, 1.0, "(fraction of the counts in a bin)"),
-    "zone_offsets": Bound(-32.0, 32.0, "bins", length=N_ZONES),
-    "zone_gains": Bound(0.0, 100.0, "(relative, centre zone 1)", lo_open=True, length=N_ZONES),
-    "pulse_soft_bin": Bound(0.0, 1.0, "(blend: 0 linear interpolation, 1 Gaussian soft binning)"),
-    "saturate_shading": Bound(0.0, 1.0, "(blend: 1 saturate the shaded intensity, 0 the unshaded term)"),
-    "crosstalk_self": Bound(0.0, 1.0, "(blend: 1 crosstalk includes the zone itself)"),
-    "saturate_gain": Bound(0.0, 1.0, "(blend: 1 the zone gains saturate with the flux, 0 they multiply afterwards)"),
-    "baseline": Bound(-0.02, 0.02, "m (emitter x, y in the optical frame)", length=2),
-    "beam_power": Bound(0.0, 20.0, "(emitter profile cos^beam_power)"),
-}
-
-
-@dataclass
-class ForwardParams:
+class ForwardParams(ParamModel):
     """Camera parameters of the forward model. Defaults are the values published with the paper.
 
     ``tail_weight`` and ``tail_decay`` (bins) extend the paper's model: the zone histograms of a real
@@ -179,7 +133,7 @@ class ForwardParams:
     per-direction beam weight. ``baseline = (0, 0)``, ``beam_power = 0`` is the paper's model exactly.
 
     The unit's own terms (version 3; every default adds nothing, so files without them read as the model as it
-    was). Each has a meaning, a unit, a bound (:data:`FORWARD_BOUNDS`) and a prior
+    was). Each has a meaning, a unit, a range (its ``Field``) and a prior
     (:data:`place_safe.calibration.forward_fit.PRIORS`, mean / std):
 
     * ``crosstalk_grid`` (8, fraction, [0, 0.5], prior 0 / 0.02): light of a zone's neighbour that reaches the
@@ -196,80 +150,81 @@ class ForwardParams:
     * The per-zone timing offsets and gains (``zone_offsets``, ``zone_gains``), pile-up (``pileup``), the zones'
       own tails and the learned response kernel are described above.
 
+    The ranges (each field's ``Field``) are wide (a TMF8820 fitted on the shared sweep sits well inside) but
+    exclude what breaks the model: a zero or negative albedo, gain or specular exponent (undefined Phong term), a
+    pulse stretched so far that its kernel would not fit in memory, a mount tilt beyond any soldering error.
+
     Units: ``bin_offset``, ``soft_bin_sigma``, ``tail_decay``, ``zone_tail_decays`` and ``zone_offsets`` in bins; ``bin_size`` in metres
     of one-way range per bin; ``ref_floor`` and ``floor`` in counts; the rest dimensionless.
     """
 
-    albedo: float = 3.4410
-    edge_gain: float = 0.5996
-    corner_gain: float = 0.4070
-    bin_offset: float = 9.5235
-    bin_size: float = 0.014131
-    crosstalk: float = 0.0097662
-    specular_weight: float = 0.14681
-    specular_exponent: float = 1.8378
-    soft_bin_sigma: float = 0.5
-    ref_time_scale: float = 0.27887
-    ref_floor: float = 135.14
-    saturation: float = 315.85
-    rays_per_zone: int = 2304
-    floor: float = 0.0
-    tail_weight: float = 0.0
-    tail_decay: float = 2.0
-    zone_tail_weights: list[float] = field(default_factory=lambda: [0.0] * N_ZONES)
-    zone_tail_decays: list[float] = field(default_factory=lambda: [2.0] * N_ZONES)
-    edge_fov_scale: float = 1.0
-    corner_fov_scale: float = 1.0
-    pileup: float = 0.0
-    mount_tilt: list[float] = field(default_factory=lambda: [0.0, 0.0])
-    model_error: float = 0.005
-    zone_offsets: list[float] = field(default_factory=lambda: [0.0] * N_ZONES)
-    zone_gains: list[float] = field(default_factory=lambda: [1.0] * N_ZONES)
+    what: ClassVar[str] = "forward parameters"
+    error: ClassVar[type[Exception]] = CalibrationError
+
+    albedo: float = Field(3.4410, gt=0.0, le=1e4, description="(dimensionless reflectance scale)")
+    edge_gain: float = Field(0.5996, gt=0.0, le=10.0, description="(relative to the centre zone)")
+    corner_gain: float = Field(0.4070, gt=0.0, le=10.0, description="(relative to the centre zone)")
+    bin_offset: float = Field(9.5235, ge=-64.0, le=128.0, description="bins")
+    bin_size: float = Field(0.014131, ge=0.001, le=0.1, description="m of one-way range per bin")
+    crosstalk: float = Field(0.0097662, ge=0.0, le=0.5, description="(fraction of every other zone)")
+    specular_weight: float = Field(0.14681, ge=0.0, le=100.0, description="(relative to the diffuse term)")
+    specular_exponent: float = Field(1.8378, gt=0.0, le=1000.0, description="(Phong exponent)")
+    soft_bin_sigma: float = Field(0.5, ge=0.01, le=32.0, description="bins")
+    ref_time_scale: float = Field(0.27887, ge=0.01, le=4.0, description="zone bins per reference bin")
+    ref_floor: float = Field(135.14, ge=0.0, le=COUNT_MAX, description="counts")
+    saturation: float = Field(315.85, gt=0.0, description="counts (very large: no saturation)")
+    rays_per_zone: int = Field(2304, ge=1, le=1 << 16, description="rays")
+    floor: float = Field(0.0, ge=-COUNT_MAX, le=COUNT_MAX, description="counts")
+    tail_weight: float = Field(0.0, ge=0.0, le=10.0, description="(relative to the pulse)")
+    tail_decay: float = Field(2.0, gt=0.0, le=64.0, description="bins")
+    zone_tail_weights: vector(N_ZONES, ge=0.0, le=10.0) = Field(default_factory=lambda: [0.0] * N_ZONES,
+                                                                description="(relative to the zone's histogram)")
+    zone_tail_decays: vector(N_ZONES, gt=0.0, le=8.0) = Field(default_factory=lambda: [2.0] * N_ZONES,
+                                                              description="bins")
+    edge_fov_scale: float = Field(1.0, gt=0.0, le=3.0, description="(of the nominal zone rectangle)")
+    corner_fov_scale: float = Field(1.0, gt=0.0, le=3.0, description="(of the nominal zone rectangle)")
+    pileup: float = Field(0.0, ge=0.0, le=1.0, description="1/counts")
+    mount_tilt: vector(2, ge=-0.5, le=0.5) = Field(default_factory=lambda: [0.0, 0.0],
+                                                   description="rad (x, y of a rotation vector)")
+    model_error: float = Field(0.005, ge=0.0, le=1.0, description="(fraction of the counts in a bin)")
+    zone_offsets: vector(N_ZONES, ge=-32.0, le=32.0) = Field(default_factory=lambda: [0.0] * N_ZONES,
+                                                             description="bins")
+    zone_gains: vector(N_ZONES, gt=0.0, le=100.0) = Field(default_factory=lambda: [1.0] * N_ZONES,
+                                                          description="(relative, centre zone 1)")
     # Structural choices of implementations of the paper's model, as continuous blends so calibration can
     # choose them by the data (see the class doc). All dimensionless, physical range [0, 1].
-    pulse_soft_bin: float = 0.0     # 0: reference rescaled by linear interpolation; 1: Gaussian soft binning
-    saturate_shading: float = 1.0   # 1: SPAD saturation of the shaded intensity; 0: of the unshaded term
-    crosstalk_self: float = 0.0     # 0: a zone leaks into the others; 1: into all zones, itself included
-    saturate_gain: float = 1.0      # 1: zone gains inside the SPAD saturation; 0: outside (per-pixel saturation)
+    # 0: reference rescaled by linear interpolation; 1: Gaussian soft binning
+    pulse_soft_bin: float = Field(0.0, ge=0.0, le=1.0,
+                                  description="(blend: 0 linear interpolation, 1 Gaussian soft binning)")
+    # 1: SPAD saturation of the shaded intensity; 0: of the unshaded term
+    saturate_shading: float = Field(1.0, ge=0.0, le=1.0,
+                                    description="(blend: 1 saturate the shaded intensity, 0 the unshaded term)")
+    # 0: a zone leaks into the others; 1: into all zones, itself included
+    crosstalk_self: float = Field(0.0, ge=0.0, le=1.0, description="(blend: 1 crosstalk includes the zone itself)")
+    # 1: zone gains inside the SPAD saturation; 0: outside (per-pixel saturation)
+    saturate_gain: float = Field(
+        1.0, ge=0.0, le=1.0, description="(blend: 1 the zone gains saturate with the flux, 0 they multiply afterwards)")
     # The emitter beside the receiver (what dominates close up): its position (m) in the optical frame and its
     # angular profile. Defaults (co-located, uniform) are the paper's model.
-    baseline: list[float] = field(default_factory=lambda: [0.0, 0.0])
-    beam_power: float = 0.0
+    baseline: vector(2, ge=-0.02, le=0.02) = Field(default_factory=lambda: [0.0, 0.0],
+                                                   description="m (emitter x, y in the optical frame)")
+    beam_power: float = Field(0.0, ge=0.0, le=20.0, description="(emitter profile cos^beam_power)")
     # The unit's impulse response beyond the reference pulse (version 2 of the model; absent from older files,
     # whose default adds nothing): the zone histograms after the pulse are convolved with
     # ``delta + sum_k response_kernel[k-1] delta(k)``, k = 1..RESPONSE_LAGS bins, every weight >= 0.
-    response_kernel: list[float] = field(default_factory=lambda: [0.0] * RESPONSE_LAGS)
+    response_kernel: vector(RESPONSE_LAGS, ge=0.0, le=1.0) = Field(
+        default_factory=lambda: [0.0] * RESPONSE_LAGS, description="(of the histogram, at lags 1..RESPONSE_LAGS bins)")
     # Version 3 of the model (absent from older files; every default adds nothing, the model as it was):
     # crosstalk between neighbouring zones by their displacement in the 3x3 grid (GRID_DISPLACEMENTS), the return
     # of the cover glass / package at zero range (per zone, counts) ``glass_delay`` bins after zero range, and the
     # multipath echo (sensor face -> surface -> sensor face -> surface) at twice the range.
-    crosstalk_grid: list[float] = field(default_factory=lambda: [0.0] * 8)
-    glass_gains: list[float] = field(default_factory=lambda: [0.0] * N_ZONES)
-    glass_delay: float = 0.0
-    echo_gain: float = 0.0
-    centre_fov_scale: float = 1.0
-
-    def __post_init__(self) -> None:
-        check_dataclass(self, FORWARD_BOUNDS, "forward parameters", CalibrationError)
-
-    def to_dict(self) -> dict:
-        d = asdict(self)
-        d["zone_offsets"] = [float(v) for v in self.zone_offsets]
-        d["zone_gains"] = [float(v) for v in self.zone_gains]
-        d["mount_tilt"] = [float(v) for v in self.mount_tilt]
-        d["baseline"] = [float(v) for v in self.baseline]
-        d["zone_tail_weights"] = [float(v) for v in self.zone_tail_weights]
-        d["zone_tail_decays"] = [float(v) for v in self.zone_tail_decays]
-        d["response_kernel"] = [float(v) for v in self.response_kernel]
-        d["crosstalk_grid"] = [float(v) for v in self.crosstalk_grid]
-        d["glass_gains"] = [float(v) for v in self.glass_gains]
-        return d
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "ForwardParams":
-        """Parameters from their JSON form: unknown keys, wrong types and values outside
-        :data:`FORWARD_BOUNDS` are one-line :class:`CalibrationError` messages naming the field."""
-        return dataclass_from_dict(cls, d, FORWARD_BOUNDS, "forward parameters", CalibrationError)
+    crosstalk_grid: vector(8, ge=0.0, le=0.5) = Field(
+        default_factory=lambda: [0.0] * 8, description="(of a neighbouring zone's histogram, by grid displacement)")
+    glass_gains: vector(N_ZONES, ge=0.0, le=1e5) = Field(
+        default_factory=lambda: [0.0] * N_ZONES, description="counts (per unit-area transient: about the counts at the pulse's peak)")
+    glass_delay: float = Field(0.0, ge=-8.0, le=16.0, description="bins (after zero range)")
+    echo_gain: float = Field(0.0, ge=0.0, le=1.0, description="(of the direct return, at ECHO_REFERENCE_RANGE)")
+    centre_fov_scale: float = Field(1.0, gt=0.0, le=3.0, description="(of the nominal zone rectangle)")
 
     def save(self, path: str | Path) -> None:
         write_json(path, self.to_dict())
@@ -285,7 +240,7 @@ class ForwardParams:
 
 
 #: Parameters that are tensors inside the model (everything but the ray count).
-TENSOR_PARAMS = tuple(f.name for f in fields(ForwardParams) if f.name != "rays_per_zone")
+TENSOR_PARAMS = tuple(name for name in ForwardParams.model_fields if name != "rays_per_zone")
 
 
 def mount_rotation(tilt) -> torch.Tensor:

@@ -35,7 +35,6 @@ Histograms clipped at the 24-bit maximum, or frames flagged ``saturated`` in ``e
 
 from __future__ import annotations
 
-from dataclasses import replace
 
 import numpy as np
 
@@ -79,7 +78,7 @@ class PeakEstimator(Estimator):
         key = (p.m, p.b, p.edge_scale, p.corner_scale, tuple(p.zone_offsets), tuple(p.zone_gains),
                tuple(p.residual_coeffs), tuple(p.residual_domain), tuple(p.phase_coeffs))
         if getattr(self, "_far_key", None) != key:
-            self._far = replace(p, near_depths=[], near_errors=[], near_min_fraction=0.0)
+            self._far = p.replace(near_depths=[], near_errors=[], near_min_fraction=0.0)
             self._far_key = key
         return self._far.ranges(readings)
 

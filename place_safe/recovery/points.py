@@ -34,14 +34,15 @@ The parameters are fitted from data by :mod:`place_safe.calibration.points`.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
-from typing import Any
+from typing import ClassVar
+
+from pydantic import Field, PrivateAttr, model_validator
 
 import numpy as np
 from numpy.polynomial import chebyshev as cheb
 from scipy.linalg import lapack
 
-from place_safe.config import Bound, check_dataclass, dataclass_from_dict
+from place_safe.config import ParamModel, vector
 from place_safe.exceptions import CalibrationError, NoPlaneError
 from place_safe.geometry import Plane
 from place_safe.sensor.histogram import CENTROID_HALF_WIDTH, CENTROID_HALF_WIDTHS, SUBBIN_METHODS, find_peaks, find_returns
@@ -61,25 +62,6 @@ FORWARD_BIN_OFFSET = 9.5235
 REF_TIME_SCALE = 0.27887
 #: Millimetres per metre: the reading scale of on-sensor distances.
 MM_PER_M = 1000.0
-#: Physical range of every mapping parameter (reading units: bins for ``peak``, mm for ``proprietary``).
-#: Wide enough for either reading, narrow enough that no accepted value can put a point behind the
-#: sensor or overflow: the calibrated sweep sits far inside.
-PEAK_BOUNDS: dict[str, Bound] = {
-    "m": Bound(1.0, 1e5, "reading units per metre", lo_open=False),
-    "b": Bound(-1e4, 1e4, "reading units"),
-    "edge_scale": Bound(0.0, 3.0, "(of the nominal zone angle)", lo_open=True, hi_open=True),
-    "corner_scale": Bound(0.0, 3.0, "(of the nominal zone angle)", lo_open=True, hi_open=True),
-    "zone_offsets": Bound(-1e3, 1e3, "reading units", length=N_ZONES),
-    "residual_coeffs": Bound(-1e3, 1e3, "reading units"),
-    "residual_domain": Bound(0.0, 10.0, "m", length=2),
-    "phase_coeffs": Bound(-10.0, 10.0, "reading units"),
-    "zone_gains": Bound(0.0, 10.0, "(relative, mean 1)", lo_open=True, length=N_ZONES),
-    "pileup": Bound(0.0, 1e-3, "1/counts"),
-    "subbin_half_width": Bound(CENTROID_HALF_WIDTHS[0], CENTROID_HALF_WIDTHS[1], "bins"),
-    "near_depths": Bound(0.0, 10.0, "m"),
-    "near_errors": Bound(-0.1, 0.1, "m"),
-    "near_min_fraction": Bound(0.0, 1.0, "(of the frame's highest return)", hi_open=True),
-}
 #: m: closest two knots of the near-range table may lie (closer ones make its interpolant's slopes overflow).
 NEAR_MIN_SPACING = 1e-6
 #: Fixed-point iterations inverting ``m r + c(r) = x`` (c changes by far less than m per metre). Against 10
@@ -87,8 +69,7 @@ NEAR_MIN_SPACING = 1e-6
 RANGE_ITERATIONS = 2
 
 
-@dataclass
-class PeakParams:
+class PeakParams(ParamModel):
     """Reading-to-point mapping of the peak and on-sensor-distance methods (see module doc).
 
     ``m``: reading units per metre; ``b``, ``zone_offsets`` (9), ``residual_coeffs``: reading units;
@@ -100,66 +81,62 @@ class PeakParams:
     Files without them are ``"spline"`` (the estimator before the windowed centroid); calibration
     writes ``"centroid"``. ``near_depths`` (K knots, m, increasing), ``near_errors`` (K x 9, m, knot-major,
     the last knot's all 0), ``near_min_fraction``: the near-range table (module doc; empty: none).
+
+    The ranges (reading units: bins for ``peak``, mm for ``proprietary``) are wide enough for either reading,
+    narrow enough that no accepted value can put a point behind the sensor or overflow: the calibrated sweep
+    sits far inside.
     """
 
-    m: float
-    b: float
-    edge_scale: float = 1.0
-    corner_scale: float = 1.0
-    zone_offsets: list[float] = field(default_factory=lambda: [0.0] * N_ZONES)
-    residual_coeffs: list[float] = field(default_factory=list)
-    residual_domain: list[float] = field(default_factory=lambda: [0.0, 1.0])
-    phase_coeffs: list[float] = field(default_factory=list)
-    zone_gains: list[float] = field(default_factory=lambda: [1.0] * N_ZONES)
-    pileup: float = 0.0
+    m: float = Field(..., ge=1.0, le=1e5, description="reading units per metre")
+    b: float = Field(..., ge=-1e4, le=1e4, description="reading units")
+    edge_scale: float = Field(1.0, gt=0.0, lt=3.0, description="(of the nominal zone angle)")
+    corner_scale: float = Field(1.0, gt=0.0, lt=3.0, description="(of the nominal zone angle)")
+    zone_offsets: vector(N_ZONES, ge=-1e3, le=1e3) = Field(default_factory=lambda: [0.0] * N_ZONES,
+                                                           description="reading units")
+    residual_coeffs: vector(ge=-1e3, le=1e3) = Field(default_factory=list, description="reading units")
+    residual_domain: vector(2, ge=0.0, le=10.0) = Field(default_factory=lambda: [0.0, 1.0], description="m")
+    phase_coeffs: vector(ge=-10.0, le=10.0) = Field(default_factory=list, description="reading units")
+    zone_gains: vector(N_ZONES, gt=0.0, le=10.0) = Field(default_factory=lambda: [1.0] * N_ZONES,
+                                                         description="(relative, mean 1)")
+    pileup: float = Field(0.0, ge=0.0, le=1e-3, description="1/counts")
     subbin: str = "spline"
-    subbin_half_width: float = CENTROID_HALF_WIDTH
-    near_depths: list[float] = field(default_factory=list)
-    near_errors: list[float] = field(default_factory=list)
-    near_min_fraction: float = 0.0
+    subbin_half_width: float = Field(CENTROID_HALF_WIDTH, ge=CENTROID_HALF_WIDTHS[0], le=CENTROID_HALF_WIDTHS[1],
+                                     description="bins")
+    near_depths: vector(ge=0.0, le=10.0) = Field(default_factory=list, description="m")
+    near_errors: vector(ge=-0.1, le=0.1) = Field(default_factory=list, description="m")
+    near_min_fraction: float = Field(0.0, ge=0.0, lt=1.0, description="(of the frame's highest return)")
 
-    def __post_init__(self) -> None:
-        check_dataclass(self, PEAK_BOUNDS, "peak parameters", CalibrationError)
+    what: ClassVar[str] = "peak parameters"
+    error: ClassVar[type[Exception]] = CalibrationError
+    _cache: dict = PrivateAttr(default_factory=dict)  # values computed from the fields (see _memo)
+
+    @model_validator(mode="after")
+    def _consistent(self) -> "PeakParams":
         if self.subbin not in SUBBIN_METHODS:
-            raise CalibrationError(f"peak parameters: subbin must be one of {', '.join(SUBBIN_METHODS)}, "
-                                   f"got {self.subbin!r}")
-        self.zone_offsets = [float(v) for v in self.zone_offsets]
-        self.zone_gains = [float(v) for v in self.zone_gains]
-        self.phase_coeffs = [float(v) for v in self.phase_coeffs]
-        self.residual_coeffs = [float(v) for v in self.residual_coeffs]
-        self.residual_domain = [float(v) for v in self.residual_domain]
+            raise ValueError(f"subbin must be one of {', '.join(SUBBIN_METHODS)}, got {self.subbin!r}")
         if len(self.phase_coeffs) % 2:
-            raise CalibrationError("peak parameters: phase_coeffs needs (sin, cos) pairs, got an odd count")
+            raise ValueError("phase_coeffs needs (sin, cos) pairs, got an odd count")
         if not self.residual_domain[0] < self.residual_domain[1]:
-            raise CalibrationError(f"peak parameters: residual_domain must be [lo, hi] with lo < hi, "
-                                   f"got {self.residual_domain}")
-        self.near_depths = [float(v) for v in self.near_depths]
-        self.near_errors = [float(v) for v in self.near_errors]
+            raise ValueError(f"residual_domain must be [lo, hi] with lo < hi, got {self.residual_domain}")
         k = len(self.near_depths)
         if k == 1 or (k and not all(b - a >= NEAR_MIN_SPACING for a, b in zip(self.near_depths, self.near_depths[1:]))):
-            raise CalibrationError("peak parameters: near_depths must be empty or 2 or more increasing depths (m), "
-                                   f"{NEAR_MIN_SPACING * 1e6:g} um apart or more, got {self.near_depths}")
+            raise ValueError("near_depths must be empty or 2 or more increasing depths (m), "
+                             f"{NEAR_MIN_SPACING * 1e6:g} um apart or more, got {self.near_depths}")
         if len(self.near_errors) != N_ZONES * k:
-            raise CalibrationError(f"peak parameters: near_errors needs {N_ZONES} values per near depth "
-                                   f"({N_ZONES * k}), got {len(self.near_errors)}")
+            raise ValueError(f"near_errors needs {N_ZONES} values per near depth ({N_ZONES * k}), "
+                             f"got {len(self.near_errors)}")
         if k and any(self.near_errors[-N_ZONES:]):
-            raise CalibrationError("peak parameters: near_errors of the last near depth must be 0 (the table "
-                                   "ends there)")
+            raise ValueError("near_errors of the last near depth must be 0 (the table ends there)")
+        return self
 
     # -- file form ---------------------------------------------------------------------------------
     def to_dict(self) -> dict:
         """The JSON form; without the near-range fields when there is no table (files older versions read)."""
-        d = asdict(self)
+        d = super().to_dict()
         if not self.near_depths and not self.near_min_fraction:
             for key in ("near_depths", "near_errors", "near_min_fraction"):
                 d.pop(key)
         return d
-
-    @classmethod
-    def from_dict(cls, d: Any) -> "PeakParams":
-        """Parameters from their JSON form; unknown keys, wrong types and values outside
-        :data:`PEAK_BOUNDS` are one-line :class:`CalibrationError` messages naming the field."""
-        return dataclass_from_dict(cls, d, PEAK_BOUNDS, "peak parameters", CalibrationError)
 
     # -- built-in sets -----------------------------------------------------------------------------
     @classmethod
@@ -191,10 +168,10 @@ class PeakParams:
 
     def _memo(self, name: str, key: tuple, compute):
         """``compute()``, kept under ``name`` for as long as the fields it depends on (``key``) do not change."""
-        cached = self.__dict__.get(name)
+        cached = self._cache.get(name)
         if cached is None or cached[0] != key:
             cached = (key, compute())
-            self.__dict__[name] = cached
+            self._cache[name] = cached
         return cached[1]
 
     def _scaled_directions(self) -> np.ndarray:

@@ -40,7 +40,7 @@ import numpy as np
 
 from place_safe.exceptions import RobotFault
 from place_safe.placement.loop import CONTROL_PERIOD, PlacementLoop
-from place_safe.placement.machine import PlacementConfig
+from place_safe.placement.config import PlacementConfig
 from place_safe.sim.scenario import (ORACLE_NOTE, Scenario, TruthRecorder, load_scenario, oracle_calibration,
                                      scenario_path, surface_truth)  # noqa: F401 - part of this module's API
 from place_safe.recovery import make_estimator

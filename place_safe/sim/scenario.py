@@ -33,7 +33,7 @@ from place_safe.exceptions import ConfigError
 
 from place_safe.sim.tof_mismatch import MismatchConfig
 from place_safe.calibration import Calibration
-from place_safe.placement.machine import PlacementConfig
+from place_safe.placement.config import PlacementConfig
 from place_safe.recovery import METHODS
 from place_safe.robot.description import ur5_config
 from place_safe.robot.kinematics import Kinematics

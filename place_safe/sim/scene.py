@@ -29,11 +29,12 @@ import math
 import os
 from dataclasses import asdict, dataclass, field, is_dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar, Optional
 
 import numpy as np
+from pydantic import Field, model_validator
 
-from place_safe.config import Bound, check_dataclass, check_keys, read_json
+from place_safe.config import ParamModel, read_json, vector
 from place_safe.exceptions import PlaceSafeError
 from place_safe.robot.description import ur5_mjcf_path
 
@@ -59,28 +60,31 @@ class SceneError(PlaceSafeError, ValueError):
 # ---------------------------------------------------------------------------------------------
 # Configuration
 # ---------------------------------------------------------------------------------------------
-@dataclass
-class Material:
+class _SceneModel(ParamModel):
+    """A scene setting: ranges wide enough for anything a lab bench could hold (m, rad); errors are SceneError."""
+
+    error: ClassVar[type[Exception]] = SceneError
+
+
+class Material(_SceneModel):
     """Reflectance of a surface for the ToF sensor (see module docstring)."""
 
-    albedo: float = 1.0
-    specular_weight: float | None = None  # None: the sensor's calibrated lobe (as the real sweep's table)
-    specular_exponent: float | None = None
-    pattern: str = "uniform"  # "uniform" or "checker"
-    square: float = 0.05  # m, checker square size
-    albedo2: float = 0.3  # second checker albedo (relative)
+    what: ClassVar[str] = "material"
 
-    def __post_init__(self) -> None:
+    albedo: float = Field(1.0, ge=0.0, le=100.0, description="(relative to the sensor's calibrated albedo)")
+    # None: the sensor's calibrated lobe (as the real sweep's table)
+    specular_weight: Optional[float] = Field(None, ge=0.0, le=100.0, description="(relative to the diffuse term)")
+    specular_exponent: Optional[float] = Field(None, gt=0.0, le=1000.0, description="(Phong exponent)")
+    pattern: str = "uniform"  # "uniform" or "checker"
+    # checker square size; one smaller than a millimetre is not a surface pattern
+    square: float = Field(0.05, ge=0.001, le=10.0, description="m")
+    albedo2: float = Field(0.3, ge=0.0, le=100.0, description="(relative)")  # second checker albedo
+
+    @model_validator(mode="after")
+    def _known_pattern(self) -> "Material":
         if self.pattern not in ("uniform", "checker"):
-            raise SceneError(f"material pattern {self.pattern!r} unknown; expected 'uniform' or 'checker'")
-        ks = 0.0 if self.specular_weight is None else self.specular_weight
-        alpha = 1.0 if self.specular_exponent is None else self.specular_exponent
-        vals = (self.albedo, self.albedo2, ks, alpha, self.square)
-        if not all(math.isfinite(float(v)) for v in vals) or min(self.albedo, self.albedo2, ks) < 0:
-            raise SceneError("material albedo, albedo2 and specular_weight must be finite and >= 0")
-        if self.square <= 0 or alpha <= 0:
-            raise SceneError("material square (m) and specular_exponent must be > 0")
-        check_dataclass(self, MATERIAL_BOUNDS, "material", SceneError)
+            raise ValueError(f"pattern {self.pattern!r} unknown; expected 'uniform' or 'checker'")
+        return self
 
     def rgba(self) -> list[float]:
         """A grey for the renderer that brightens with albedo (visual only)."""
@@ -88,71 +92,76 @@ class Material:
         return [g, g * 0.95, g * 0.9, 1.0]
 
 
-@dataclass
-class TableConfig:
-    height: float = 0.75  # m, top surface at the centre
-    center: tuple[float, float] = (-0.5, -0.1)  # m, world x, y of the top's centre (under the UR5's home TCP)
-    size: tuple[float, float, float] = (0.6, 0.9, 0.04)  # m, x length, y width, thickness
-    tilt: float = 0.0  # rad
-    tilt_direction: float = 0.0  # rad, world azimuth the top normal leans towards
-    material: Material = field(default_factory=Material)
+class TableConfig(_SceneModel):
+    what: ClassVar[str] = "table"
 
-    def __post_init__(self) -> None:
-        check_dataclass(self, TABLE_BOUNDS, "table", SceneError)
+    height: float = Field(0.75, ge=0.0, le=3.0, description="m")  # top surface at the centre
+    # world x, y of the top's centre (under the UR5's home TCP)
+    center: vector(2, ge=-10.0, le=10.0) = Field(default_factory=lambda: [-0.5, -0.1], description="m")
+    # x length, y width, thickness
+    size: vector(3, gt=0.0, le=10.0) = Field(default_factory=lambda: [0.6, 0.9, 0.04], description="m")
+    tilt: float = Field(0.0, gt=-math.pi / 2, lt=math.pi / 2, description="rad")
+    # world azimuth the top normal leans towards
+    tilt_direction: float = Field(0.0, ge=-2 * math.pi, le=2 * math.pi, description="rad")
+    material: Material = Field(default_factory=Material)
 
 
-@dataclass
-class ClutterItem:
+class ClutterItem(_SceneModel):
     """A box (size = half extents x, y, z) or cylinder (size = radius, half height) resting anywhere."""
 
-    shape: str = "box"
-    pos: tuple[float, float, float] = (0.5, 0.2, 0.8)
-    euler: tuple[float, float, float] = (0.0, 0.0, 0.0)  # rad, xyz extrinsic
-    size: tuple[float, ...] = (0.03, 0.03, 0.05)
-    material: Material = field(default_factory=lambda: Material(albedo=0.6))
+    what: ClassVar[str] = "clutter item"
 
-    def __post_init__(self) -> None:
+    shape: str = "box"
+    pos: vector(3, ge=-10.0, le=10.0) = Field(default_factory=lambda: [0.5, 0.2, 0.8], description="m")
+    # xyz extrinsic
+    euler: vector(3, ge=-2 * math.pi, le=2 * math.pi) = Field(default_factory=lambda: [0.0, 0.0, 0.0],
+                                                               description="rad")
+    size: vector(gt=0.0, le=5.0) = Field(default_factory=lambda: [0.03, 0.03, 0.05], description="m")
+    material: Material = Field(default_factory=lambda: Material(albedo=0.6))
+
+    @model_validator(mode="after")
+    def _sizes_fit_the_shape(self) -> "ClutterItem":
         need = {"box": 3, "cylinder": 2}
         if self.shape not in need:
-            raise SceneError(f"clutter shape {self.shape!r} unknown; expected 'box' or 'cylinder'")
-        if not isinstance(self.size, (list, tuple)) or len(self.size) != need[self.shape] or min(self.size) <= 0:
-            raise SceneError(f"clutter {self.shape} needs {need[self.shape]} positive sizes, got {self.size!r}")
-        check_dataclass(self, CLUTTER_BOUNDS, "clutter item", SceneError)
+            raise ValueError(f"shape {self.shape!r} unknown; expected 'box' or 'cylinder'")
+        if len(self.size) != need[self.shape]:
+            raise ValueError(f"a {self.shape} needs {need[self.shape]} positive sizes, got {self.size!r}")
+        return self
 
 
-@dataclass
-class SceneConfig:
+class SceneConfig(_SceneModel):
     """Everything needed to build a scene; loads from and saves to JSON."""
 
-    table: TableConfig = field(default_factory=TableConfig)
-    floor: Material = field(default_factory=lambda: Material(albedo=0.5))
-    clutter: list[ClutterItem] = field(default_factory=list)
-    with_robot: bool = False
-    robot_xml: str | None = None  # default: the packaged robots/ur5/ur5.xml
-    robot_base_pos: tuple[float, float, float] = (0.0, 0.0, 0.8)  # m; a pedestal fills the gap to the floor
-    robot_base_yaw: float = 0.0  # rad
-    rig_pos: tuple[float, float, float] = (-0.5, -0.1, 0.95)  # sensor rig: initial sensor position (m)
-    rig_euler: tuple[float, float, float] = (math.pi, 0.0, 0.0)  # rad; default looks straight down
-    robot_material: Material = field(default_factory=lambda: Material(albedo=0.4))
-    timestep: float | None = None  # s; default: the robot model's (0.002 for the rig)
+    what: ClassVar[str] = "scene"
 
-    def __post_init__(self) -> None:
-        check_dataclass(self, SCENE_BOUNDS, "scene", SceneError)
+    table: TableConfig = Field(default_factory=TableConfig)
+    floor: Material = Field(default_factory=lambda: Material(albedo=0.5))
+    clutter: list[ClutterItem] = Field(default_factory=list)
+    with_robot: bool = False
+    robot_xml: Optional[str] = None  # default: the packaged robots/ur5/ur5.xml
+    # a pedestal fills the gap to the floor
+    robot_base_pos: vector(3, ge=-10.0, le=10.0) = Field(default_factory=lambda: [0.0, 0.0, 0.8], description="m")
+    robot_base_yaw: float = Field(0.0, ge=-2 * math.pi, le=2 * math.pi, description="rad")
+    # sensor rig: initial sensor position
+    rig_pos: vector(3, ge=-10.0, le=10.0) = Field(default_factory=lambda: [-0.5, -0.1, 0.95], description="m")
+    # default looks straight down
+    rig_euler: vector(3, ge=-2 * math.pi, le=2 * math.pi) = Field(default_factory=lambda: [math.pi, 0.0, 0.0],
+                                                                  description="rad")
+    robot_material: Material = Field(default_factory=lambda: Material(albedo=0.4))
+    # default: the robot model's (0.002 for the rig); at most the 125 Hz control period (1e-12 s never ended a run)
+    timestep: Optional[float] = Field(None, ge=5e-4, le=0.008, description="s")
+
+    @model_validator(mode="after")
+    def _robot_model_usable(self) -> "SceneConfig":
         if self.robot_xml is not None:  # checked when the scene is read, not only when it is built
             from place_safe.io.input_file import input_file_problem
 
-            if not isinstance(self.robot_xml, str) or (why := input_file_problem(self.robot_xml)) is not None:
-                raise SceneError(f"robot model {self.robot_xml!r} not found or unusable: "
-                                 f"{'it ' + why if why else 'robot_xml must be a path'}; expected the UR5 MJCF")
+            if (why := input_file_problem(self.robot_xml)) is not None:
+                raise ValueError(f"robot model {self.robot_xml!r} not found or unusable: it {why}; "
+                                 "expected the UR5 MJCF")
+        return self
 
     # -- file form -----------------------------------------------------------------------------
-    def to_dict(self) -> dict:
-        return asdict(self)
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "SceneConfig":
-        return _from_dict(cls, d, "scene")
-
     def save(self, path: str | Path) -> None:
         Path(path).write_text(json.dumps(self.to_dict(), indent=2))
 
@@ -170,67 +179,6 @@ def scene_config(path: str | Path | None = None, with_robot: bool | None = None)
     if with_robot is not None:
         cfg.with_robot = with_robot
     return cfg
-
-
-_NESTED = {"table": TableConfig, "floor": Material, "material": Material, "robot_material": Material}
-
-
-def _from_dict(cls: type, d: Any, where: str) -> Any:
-    check_keys(cls, d, where, SceneError)
-    kw: dict[str, Any] = {}
-    for k, v in d.items():
-        if k in _NESTED:
-            if not isinstance(v, dict):
-                raise SceneError(f"{where}.{k} must be a JSON object, got {type(v).__name__}")
-            kw[k] = _from_dict(_NESTED[k], v, f"{where}.{k}")
-        elif k == "clutter":
-            if not isinstance(v, list):
-                raise SceneError(f"{where}.clutter must be a list")
-            kw[k] = [_from_dict(ClutterItem, c, f"{where}.clutter[{i}]") for i, c in enumerate(v)]
-        elif isinstance(v, list) and k not in ("clutter",):
-            kw[k] = tuple(v)
-        else:
-            kw[k] = v
-    try:
-        return cls(**kw)
-    except SceneError as exc:  # "table: height: ..." -> "scene.table: height: ..."
-        msg = str(exc)
-        for what in ("material: ", "table: ", "clutter item: ", "scene: "):
-            if msg.startswith(what):
-                msg = msg[len(what):]
-                break
-        raise SceneError(f"{where}: {msg}") from None
-    except (TypeError, ValueError) as exc:
-        raise SceneError(f"{where}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}") from None
-
-
-# Ranges of the scene settings (m, rad), checked on construction. Wide: anything a lab bench could hold.
-MATERIAL_BOUNDS: dict[str, Bound] = {
-    "albedo": Bound(0.0, 100.0, "(relative to the sensor's calibrated albedo)"),
-    "specular_weight": Bound(0.0, 100.0, "(relative to the diffuse term)"),
-    "specular_exponent": Bound(0.0, 1000.0, "(Phong exponent)", lo_open=True),
-    "square": Bound(0.001, 10.0, "m"),  # a checker square smaller than a millimetre is not a surface pattern
-    "albedo2": Bound(0.0, 100.0, "(relative)"),
-}
-TABLE_BOUNDS: dict[str, Bound] = {
-    "height": Bound(0.0, 3.0, "m"),
-    "center": Bound(-10.0, 10.0, "m", length=2),
-    "size": Bound(0.0, 10.0, "m", lo_open=True, length=3),
-    "tilt": Bound(-math.pi / 2, math.pi / 2, "rad", hi_open=True, lo_open=True),
-    "tilt_direction": Bound(-2 * math.pi, 2 * math.pi, "rad"),
-}
-CLUTTER_BOUNDS: dict[str, Bound] = {
-    "pos": Bound(-10.0, 10.0, "m", length=3),
-    "euler": Bound(-2 * math.pi, 2 * math.pi, "rad", length=3),
-    "size": Bound(0.0, 5.0, "m", lo_open=True),
-}
-SCENE_BOUNDS: dict[str, Bound] = {
-    "robot_base_pos": Bound(-10.0, 10.0, "m", length=3),
-    "robot_base_yaw": Bound(-2 * math.pi, 2 * math.pi, "rad"),
-    "rig_pos": Bound(-10.0, 10.0, "m", length=3),
-    "rig_euler": Bound(-2 * math.pi, 2 * math.pi, "rad", length=3),
-    "timestep": Bound(5e-4, 0.008, "s"),  # at most the 125 Hz control period; 1e-12 s never ended a run
-}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -496,5 +444,7 @@ def _quat_matrix(q: np.ndarray) -> np.ndarray:
 
 
 def as_plain(obj: Any) -> Any:
-    """Dataclasses to plain dicts (for JSON)."""
+    """Dataclasses and parameter models to plain dicts (for JSON)."""
+    if isinstance(obj, ParamModel):
+        return obj.to_dict()
     return asdict(obj) if is_dataclass(obj) else obj

@@ -29,7 +29,7 @@ import numpy as np
 from place_safe.sim.scenario import (Expectation, ON_TABLE_TOL, REFERENCE_HEIGHT, Scenario, TIPPED_TILT,
                                      home_cup_position, load_scenario)
 from place_safe.exceptions import PlaceSafeError
-from place_safe.placement.machine import PlacementConfig
+from place_safe.placement.config import PlacementConfig
 from place_safe.sim.scene import SceneConfig
 from place_safe.sim.placement_run import run_placement
 
@@ -286,7 +286,7 @@ def budget_table(median: dict, runs: int) -> str:
     settings within the simulated arm's limits, the simulated sensor's frame period and transfer time)."""
     from place_safe.placement.budget import budget_limits, format_budget
     from place_safe.placement.loop import within_robot_limits
-    from place_safe.placement.machine import PlacementConfig
+    from place_safe.placement.config import PlacementConfig
     from place_safe.robot.interface import RobotLimits
     from place_safe.sim.tof import ToFConfig
 

@@ -30,11 +30,10 @@ Conventions
 
 from __future__ import annotations
 
-import json
 
 import time
 from collections import deque
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, ClassVar
 
@@ -43,7 +42,7 @@ import torch
 
 from pydantic import Field
 
-from place_safe.config import ParamModel
+from place_safe.config import ParamModel, read_json, vector
 from place_safe.calibration import Calibration
 from place_safe.exceptions import CalibrationError, NoPlaneError, SensorTimeout
 from place_safe.recovery.forward import ForwardModel, ForwardParams, ZoneRays, mount_rotation
@@ -81,22 +80,26 @@ def true_params() -> ForwardParams:
     return ForwardParams.load(sensor_file("tmf8820_real.json"))
 
 
-@dataclass
-class DistanceMap:
+class DistanceMap(ParamModel):
     """On-sensor distance emulation: ``mm = slope[z] * peak_bin + intercept[z]`` per zone."""
 
-    slope: list[float] = field(default_factory=lambda: [1000 * 0.014131] * N_ZONES)
-    intercept: list[float] = field(default_factory=lambda: [-1000 * 0.014131 * 13.2] * N_ZONES)
-    noise_mm: float = 1.0  # std of the reported distance (mm)
+    what: ClassVar[str] = "on-sensor distance map"
+    error: ClassVar[type[Exception]] = CalibrationError
+
+    slope: vector(N_ZONES, gt=0.0, le=1e4) = Field(default_factory=lambda: [1000 * 0.014131] * N_ZONES,
+                                                   description="mm per bin")
+    intercept: vector(N_ZONES, ge=-1e5, le=1e5) = Field(default_factory=lambda: [-1000 * 0.014131 * 13.2] * N_ZONES,
+                                                        description="mm")
+    noise_mm: float = Field(1.0, ge=0.0, le=1e3, description="mm")  # std of the reported distance
 
     @classmethod
     def load(cls, path: str | Path | None = None) -> "DistanceMap":
+        """The map in ``path`` (default the packaged one); keys other than the fields (its fit report) are skipped."""
         p = Path(path) if path is not None else sensor_file("tmf8820_real_distance.json")
-        try:
-            d = json.loads(p.read_text())
-            return cls(**{k: v for k, v in d.items() if k in {f.name for f in fields(cls)}})
-        except (OSError, json.JSONDecodeError, TypeError) as exc:
-            raise CalibrationError(f"cannot read on-sensor distance map {p}: {exc}") from None
+        d = read_json(p, "on-sensor distance map", CalibrationError)
+        if not isinstance(d, dict):
+            raise CalibrationError(f"on-sensor distance map {p} must be a JSON object")
+        return cls.from_dict({k: v for k, v in d.items() if k in cls.model_fields}, f"on-sensor distance map {p}")
 
 
 class ToFConfig(ParamModel):

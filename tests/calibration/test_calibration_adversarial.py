@@ -17,12 +17,12 @@ from hypothesis import strategies as st
 
 from place_safe.calibration import FORMAT, Calibration
 from place_safe.calibration.forward_fit import _usable, select_model_error
-from place_safe.config import Bound
+from place_safe.config import field_range
 from place_safe.exceptions import CalibrationError
 from place_safe.recovery import make_estimator
-from place_safe.recovery.differentiable import RANGE_CORRECTION_BOUNDS
-from place_safe.recovery.forward import FORWARD_BOUNDS, ForwardParams
-from place_safe.recovery.points import PEAK_BOUNDS, PeakParams
+from place_safe.recovery.differentiable import RangeCorrection
+from place_safe.recovery.forward import ForwardParams
+from place_safe.recovery.points import PeakParams
 from place_safe.sensor.frame import N_BINS, Frame
 from place_safe.sensor.histogram import COUNT_MAX
 
@@ -32,18 +32,26 @@ json_values = st.recursive(json_scalars, lambda inner: st.lists(inner, max_size=
                            | st.dictionaries(st.text(max_size=6), inner, max_size=3), max_leaves=15)
 
 
-def _in_bound(value, b: Bound) -> bool:
+def _in_range(value, model, name) -> bool:
+    """Whether ``value`` of field ``name`` lies in the range its ``Field`` declares."""
+    r = field_range(model, name)
     values = value if isinstance(value, list) else [value]
-    if b.length is not None and len(values) != b.length:
+    if r.min_length is not None and len(values) < r.min_length or r.max_length is not None and len(values) > r.max_length:
         return False
     for v in values:
         if not math.isfinite(v):
             return False
-        if b.lo is not None and (v <= b.lo if b.lo_open else v < b.lo):
+        if v <= r.lo if r.lo_open else v < r.lo:
             return False
-        if b.hi is not None and (v >= b.hi if b.hi_open else v > b.hi):
+        if v >= r.hi if r.hi_open else v > r.hi:
             return False
     return True
+
+
+def _ranged(model) -> list[str]:
+    """The fields of ``model`` that declare a range."""
+    return [n for n in model.model_fields if math.isfinite(field_range(model, n).lo) or
+            math.isfinite(field_range(model, n).hi)]
 
 
 def _section_dicts(fields: dict, required: dict):
@@ -55,27 +63,27 @@ def _section_dicts(fields: dict, required: dict):
 
 
 @settings(max_examples=300, deadline=None)
-@given(d=_section_dicts(FORWARD_BOUNDS, {}))
+@given(d=_section_dicts(ForwardParams.model_fields, {}))
 def test_forward_parameters_are_in_range_or_refused(d):
     try:
         p = ForwardParams.from_dict(d)
     except CalibrationError as exc:
         assert "\n" not in str(exc) and str(exc).startswith("forward parameters")
         return
-    for name, b in FORWARD_BOUNDS.items():
-        assert _in_bound(getattr(p, name), b), name
+    for name in _ranged(ForwardParams):
+        assert _in_range(getattr(p, name), ForwardParams, name), name
 
 
 @settings(max_examples=300, deadline=None)
-@given(d=_section_dicts(PEAK_BOUNDS, {"m": st.floats(1, 1e5) | json_values, "b": st.floats(-50, 50)}))
+@given(d=_section_dicts(PeakParams.model_fields, {"m": st.floats(1, 1e5) | json_values, "b": st.floats(-50, 50)}))
 def test_peak_parameters_are_in_range_or_refused(d):
     try:
         p = PeakParams.from_dict(d)
     except CalibrationError as exc:
         assert "\n" not in str(exc) and str(exc).startswith("peak parameters")
         return
-    for name, b in PEAK_BOUNDS.items():
-        assert _in_bound(getattr(p, name), b), name
+    for name in _ranged(PeakParams):
+        assert _in_range(getattr(p, name), PeakParams, name), name
 
 
 @settings(max_examples=200, deadline=None)
@@ -167,7 +175,7 @@ def test_byte_order_mark_is_accepted(tmp_path):
 
 
 def test_range_correction_bounds_are_physical():
-    assert RANGE_CORRECTION_BOUNDS["coeffs"].hi <= 0.1  # metres: a correction, not a relocation
+    assert field_range(RangeCorrection, "coeffs").hi <= 0.1  # metres: a correction, not a relocation
 
 
 def test_the_diff_solver_window_comes_from_the_calibration():

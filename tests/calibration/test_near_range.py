@@ -32,7 +32,7 @@ def _angles(params, frames):
 
 
 def _without(params):
-    return replace(params, near_depths=[], near_errors=[], near_min_fraction=0.0)
+    return params.replace(near_depths=[], near_errors=[], near_min_fraction=0.0)
 
 
 def _table(depths=(0.01, 0.03, 0.06), first=0.002):
@@ -90,7 +90,7 @@ def test_weak_zones_are_dropped_only_at_near_range_and_only_with_a_fraction():
     far = p.m * 0.2 / uz + p.b
     assert p.drop_weak(near, valid, heights).tolist() == [z != 4 for z in range(N_ZONES)]
     assert p.drop_weak(far, valid, heights).all()
-    assert replace(p, near_min_fraction=0.0).drop_weak(near, valid, heights).all()
+    assert p.replace(near_min_fraction=0.0).drop_weak(near, valid, heights).all()
     both = p.drop_weak(np.stack([near, far]), np.stack([valid, valid]), np.stack([heights, heights]))
     assert both[0].sum() == 8 and both[1].all()
 

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import math
 
-from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -146,7 +145,7 @@ def test_a_faint_shoulder_is_found_whichever_sub_bin_estimator_is_calibrated(sub
     the leading edge from the return's maximum, not from the calibrated reading. A centroid reading moves
     towards the shoulder (here by 0.10 bins) and, read from there, the same shoulder passed unseen (a
     random scene's box 25 mm beside the footprint was then found only by the cup, at 46 N)."""
-    sm = SurfaceMap(replace(PARAMS, subbin=subbin))
+    sm = SurfaceMap(PARAMS.replace(subbin=subbin))
     T = sensor_pose((0.0, 0.0), sm.survey_height())
     f = frame_over(T, lambda x, y: 0.0)
     f.hists[4] += pulse(float(find_peaks(f.hists)[0][4]) - 2.2, height=500.0)

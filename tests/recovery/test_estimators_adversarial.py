@@ -6,6 +6,8 @@ what library callers can hand them: strings, objects, ragged and complex arrays,
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -13,8 +15,9 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from place_safe.recovery import METHODS, make_estimator
-from place_safe.recovery.forward import FORWARD_BOUNDS
-from place_safe.recovery.points import PEAK_BOUNDS
+from place_safe.config import field_range
+from place_safe.recovery.forward import ForwardParams
+from place_safe.recovery.points import PeakParams
 from place_safe.sensor.frame import N_BINS, N_ZONES, Frame
 from place_safe.sensor.histogram import COUNT_MAX
 from estimates import assert_safe
@@ -117,20 +120,23 @@ def test_complex_counts_never_give_a_plane(base):
         assert e.plane is None, method
 
 
-# -- any accepted parameter set: the ranges of FORWARD_BOUNDS / PEAK_BOUNDS keep every estimator safe --------
+# -- any accepted parameter set: the ranges ForwardParams / PeakParams declare keep every estimator safe -----
 def _in(b, integer=False):
-    lo = b.lo if b.lo is not None else -1e6
-    hi = b.hi if b.hi is not None else 1e6
+    lo = max(b.lo, -1e6)
+    hi = min(b.hi, 1e6)
     if integer:
         return st.integers(int(lo) + (1 if b.lo_open else 0), min(int(hi), 4096))
     return st.floats(lo, hi, exclude_min=b.lo_open, exclude_max=b.hi_open, allow_nan=False)
 
 
-def _params_strategy(bounds, required=()):
+def _params_strategy(model, required=()):
     fields = {}
-    for name, b in bounds.items():
-        if b.length is not None:
-            fields[name] = st.lists(_in(b), min_size=b.length, max_size=b.length)
+    for name in model.model_fields:
+        b = field_range(model, name)
+        if not (math.isfinite(b.lo) or math.isfinite(b.hi)):
+            continue  # a field without a range (the sub-bin estimator's name)
+        if b.min_length is not None and b.min_length == b.max_length:
+            fields[name] = st.lists(_in(b), min_size=b.min_length, max_size=b.max_length)
         elif name in ("residual_coeffs", "phase_coeffs", "coeffs", "slope_a", "slope_b"):
             fields[name] = st.lists(_in(b), max_size=6).map(lambda v: v[: len(v) // 2 * 2])
         else:
@@ -140,7 +146,7 @@ def _params_strategy(bounds, required=()):
 
 
 @settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(d=_params_strategy(FORWARD_BOUNDS))
+@given(d=_params_strategy(ForwardParams))
 def test_diff_is_safe_for_any_accepted_forward_parameters(synthetic_frames, d):
     from place_safe.exceptions import CalibrationError
     from place_safe.recovery.differentiable import DifferentiableEstimator
@@ -155,7 +161,7 @@ def test_diff_is_safe_for_any_accepted_forward_parameters(synthetic_frames, d):
 
 
 @settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(d=_params_strategy(PEAK_BOUNDS, required=("m", "b")))
+@given(d=_params_strategy(PeakParams, required=("m", "b")))
 def test_point_methods_are_safe_for_any_accepted_parameters(synthetic_frames, d):
     from place_safe.exceptions import CalibrationError
     from place_safe.recovery.peak import PeakEstimator

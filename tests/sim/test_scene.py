@@ -29,10 +29,10 @@ def test_config_json_round_trip(tmp_path):
 
 
 @pytest.mark.parametrize("bad, words", [
-    ({"tabel": {}}, "unknown keys"),
-    ({"table": {"material": {"pattern": "stripes"}}}, "pattern"),
-    ({"clutter": [{"shape": "box", "size": [0.1, 0.1]}]}, "3 positive sizes"),
-    ({"floor": {"albedo": -1}}, ">= 0"),
+    ({"tabel": {}}, "scene: tabel: unknown key"),
+    ({"table": {"material": {"pattern": "stripes"}}}, "scene: table.material: pattern 'stripes' unknown"),
+    ({"clutter": [{"shape": "box", "size": [0.1, 0.1]}]}, r"scene: clutter\.0: .*3 positive sizes"),
+    ({"floor": {"albedo": -1}}, r"scene: floor\.albedo: .*\(expected 0 <= value <= 100"),
 ])
 def test_bad_config_says_what_is_wrong(bad, words):
     with pytest.raises(SceneError, match=words):

@@ -194,19 +194,18 @@ def test_matched_sensor_frames_give_back_the_table_plane():
 def test_tilted_mount_is_undone_by_the_calibrated_estimator():
     """A sensor mounted 2.6 deg off its site: the estimator with the same mount tilt reports the site-frame plane."""
     import math
-    from dataclasses import replace
 
     from place_safe.recovery.differentiable import DifferentiableEstimator
     from place_safe.evaluation.metrics import angular_error
     from place_safe.sim.scene import SceneConfig, build_scene
     from place_safe.sim.tof import SimToF, ToFConfig, true_params
 
-    params = replace(true_params(), mount_tilt=[0.02, -0.04])
+    params = true_params().replace(mount_tilt=[0.02, -0.04])
     tof = SimToF(build_scene(SceneConfig()), config=ToFConfig(noise=False), params=params)
     frame = tof.measure()
     est = DifferentiableEstimator(params).estimate(frame)
     assert math.degrees(angular_error(est.plane, frame.truth)) < 0.05
     assert abs(est.plane.offset - frame.truth.offset) < 1e-4
     # without the calibration the tilt shows up as a tilted table
-    naive = DifferentiableEstimator(replace(params, mount_tilt=[0.0, 0.0])).estimate(frame)
+    naive = DifferentiableEstimator(params.replace(mount_tilt=[0.0, 0.0])).estimate(frame)
     assert math.degrees(angular_error(naive.plane, frame.truth)) > 2.0

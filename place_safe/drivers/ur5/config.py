@@ -23,7 +23,7 @@ import numpy as np
 from pydantic import AfterValidator, Field, model_validator
 
 from place_safe.config import ConfigModel, field_constraints, load_config
-from place_safe.placement.machine import PlacementConfig
+from place_safe.placement.config import PlacementConfig
 from place_safe.robot.contact_detector import DetectorSettings
 from place_safe.robot.description import ur5_dir
 from place_safe.robot.tool import ToolFrames
@@ -268,15 +268,13 @@ def placement_config(robot: URConfig, base=None):
     """``base`` (a :class:`~place_safe.placement.machine.PlacementConfig`, default its defaults) with the robot
     file's motion policy: the near-surface speed and distance, stops no harder than ``max_linear_accel`` and
     the obstacle stop no harder than ``emergency_decel``."""
-    from dataclasses import replace
-
     base = base if base is not None else PlacementConfig()
     m, lim = robot.motion, robot.limits
-    return replace(base, near_surface_speed=m.near_surface_speed, near_surface_distance=m.near_surface_distance,
-                   accel=min(base.accel, lim.max_linear_accel),
-                   obstacle_decel=min(base.obstacle_decel, m.emergency_decel),
-                   descend_speed=min(base.descend_speed, m.near_surface_speed),
-                   approach_speed=min(base.approach_speed, lim.max_linear_speed))
+    return base.replace(near_surface_speed=m.near_surface_speed, near_surface_distance=m.near_surface_distance,
+                        accel=min(base.accel, lim.max_linear_accel),
+                        obstacle_decel=min(base.obstacle_decel, m.emergency_decel),
+                        descend_speed=min(base.descend_speed, m.near_surface_speed),
+                        approach_speed=min(base.approach_speed, lim.max_linear_speed))
 
 
 def packaged_config(name: str = "sim") -> Path:
