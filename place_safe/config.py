@@ -194,6 +194,20 @@ class ParamModel(ConfigModel):
         """The file form: every field by name, as plain JSON values."""
         return self.model_dump(mode="json")
 
+    def validate(self) -> None:  # type: ignore[override]  # pydantic's deprecated classmethod of that name
+        """Raise :attr:`error` (one line naming the field) unless every value is in its range and every rule across
+        fields holds: for a set changed in place field by field."""
+        type(self).from_dict(self.to_dict())
+
+    def save(self, path: str | Path) -> None:
+        """Write the file form (:meth:`to_dict`) as indented JSON."""
+        write_json(path, self.to_dict())
+
+    @classmethod
+    def load(cls, path: str | Path):
+        """Read a JSON file written by :meth:`save`; every problem is one :attr:`error` line naming the file."""
+        return cls.from_dict(read_json(path, cls.what, cls.error), f"{cls.what} {path}")
+
     def replace(self, **changes: Any):
         """A copy with ``changes`` applied, validated as a new instance (``dataclasses.replace`` for a model)."""
         return type(self)(**{**{k: self.__dict__[k] for k in type(self).model_fields}, **changes})
@@ -299,6 +313,14 @@ def field_interval(model: type[BaseModel], name: str) -> tuple[float, float]:
     return r.lo, r.hi
 
 
+def field_like(model: type[BaseModel], name: str, description: str | None = None) -> Any:
+    """An optional field (default ``None``: unset) that takes the range of field ``name`` of ``model``: a file
+    section that overrides some of another model's settings declares each with one line, the range written once
+    (numbers as written in a file: not strict). ``description`` defaults to the field's own unit."""
+    return Field(None, **field_constraints(model, name),
+                 description=description if description is not None else model.model_fields[name].description)
+
+
 def field_range_text(model: type[BaseModel], name: str) -> str:
     """``"0 < value <= 3 m/s"``: the range and unit of field ``name`` (of each element, for a vector)."""
     value, each, unit = _field_parts(model, name)
@@ -366,5 +388,5 @@ def _json_name(value: Any) -> str:
 
 
 __all__ = ["ConfigModel", "ParamModel", "vector", "field_constraints", "field_range", "FieldRange", "field_interval", "field_range_text",
-           "range_message", "read_json", "write_json", "parse_config", "read_config_file", "load_config",
+           "range_message", "field_like", "read_json", "write_json", "parse_config", "read_config_file", "load_config",
            "describe_validation_error"]

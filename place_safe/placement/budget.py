@@ -3,7 +3,7 @@
 Concept: :class:`~place_safe.placement.machine.PlacementMachine` adds the robot time of every control tick
 to one *bucket* (:attr:`PlacementMachine.budget`, seconds); :data:`BUCKETS` lists them in the order a
 placement passes through them. :func:`budget_limits` says, for a
-:class:`~place_safe.placement.machine.PlacementConfig` and a sensor's frame period and latency, which
+:class:`~place_safe.placement.config.PlacementConfig` and a sensor's frame period and latency, which
 setting or physical limit sets the length of each bucket and what that length is at best.
 
 Buckets (robot clock, s):

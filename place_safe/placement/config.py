@@ -9,13 +9,11 @@ way, one line naming the field and its range. SI units (m, m/s, m/s^2, rad, s, N
 from __future__ import annotations
 
 import math
-from pathlib import Path
 from typing import ClassVar
 
 from pydantic import Field, model_validator
 
-from place_safe.config import ParamModel, read_json, write_json
-from place_safe.exceptions import ConfigError
+from place_safe.config import ParamModel
 
 
 class PlacementConfig(ParamModel):
@@ -125,14 +123,3 @@ class PlacementConfig(ParamModel):
             raise ValueError("early_refuse_tilt must be >= max_tilt")
         return self
 
-    def validate(self) -> None:
-        """Raise :class:`~place_safe.exceptions.ConfigError` (one line naming the field) unless every value is in
-        its range and the thresholds are consistent with each other (for settings changed in place)."""
-        type(self).from_dict(self.to_dict())
-
-    def save(self, path: str | Path) -> None:
-        write_json(path, self.to_dict())
-
-    @classmethod
-    def load(cls, path: str | Path) -> "PlacementConfig":
-        return cls.from_dict(read_json(path, "placement config", ConfigError), f"placement config {path}")

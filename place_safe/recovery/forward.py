@@ -30,13 +30,12 @@ import math
 from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import ClassVar
-from pathlib import Path
 
 import numpy as np
 import torch
 from pydantic import Field
 
-from place_safe.config import ParamModel, read_json, vector, write_json
+from place_safe.config import ParamModel, vector
 from place_safe.exceptions import CalibrationError
 from place_safe.sensor.frame import N_BINS, N_ZONES, ZONE_KIND, ZONE_RECTS
 from place_safe.sensor.histogram import COUNT_MAX
@@ -225,13 +224,6 @@ class ForwardParams(ParamModel):
     glass_delay: float = Field(0.0, ge=-8.0, le=16.0, description="bins (after zero range)")
     echo_gain: float = Field(0.0, ge=0.0, le=1.0, description="(of the direct return, at ECHO_REFERENCE_RANGE)")
     centre_fov_scale: float = Field(1.0, gt=0.0, le=3.0, description="(of the nominal zone rectangle)")
-
-    def save(self, path: str | Path) -> None:
-        write_json(path, self.to_dict())
-
-    @classmethod
-    def load(cls, path: str | Path) -> "ForwardParams":
-        return cls.from_dict(read_json(path, "forward parameters", CalibrationError))
 
     def kind_gains(self) -> np.ndarray:
         """Gain of each zone (9,): centre 1, edge/corner gains, times the per-zone gains."""

@@ -33,15 +33,14 @@ from __future__ import annotations
 import math
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Annotated, Any, ClassVar
 
 import numpy as np
 
 from pydantic import Field, model_validator
 
-from place_safe.config import ParamModel, read_json, write_json
-from place_safe.exceptions import ConfigError, RobotFault
+from place_safe.config import ParamModel
+from place_safe.exceptions import RobotFault
 from place_safe.geometry import transform_problem
 from place_safe.robot.tool import ToolFrames
 
@@ -84,17 +83,6 @@ class RobotLimits(ParamModel):
             raise ValueError("joint_lower must be below joint_upper for every joint")
         return self
 
-    def validate(self) -> None:
-        """Raise :class:`~place_safe.exceptions.ConfigError` (one line naming the field) unless every limit is in
-        its range and each joint's lower limit is below its upper one (for limits changed in place)."""
-        type(self).from_dict(self.to_dict())
-
-    def save(self, path: str | Path) -> None:
-        write_json(path, self.to_dict())
-
-    @classmethod
-    def load(cls, path: str | Path) -> "RobotLimits":
-        return cls.from_dict(read_json(path, "robot limits", ConfigError), f"robot limits {path}")
 
 
 def check_pose(pose: Any, what: str = "pose") -> np.ndarray:

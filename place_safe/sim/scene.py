@@ -24,7 +24,6 @@ per-geom material table the simulated sensor reads.
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from dataclasses import asdict, dataclass, field, is_dataclass
@@ -162,9 +161,6 @@ class SceneConfig(_SceneModel):
         return self
 
     # -- file form -----------------------------------------------------------------------------
-    def save(self, path: str | Path) -> None:
-        Path(path).write_text(json.dumps(self.to_dict(), indent=2))
-
     @classmethod
     def load(cls, path: str | Path) -> "SceneConfig":
         d = read_json(path, "scene file", SceneError)

@@ -50,7 +50,7 @@ def test_degrees_start_height_and_sensor_sections_become_si(tmp_path):
 
 @pytest.mark.parametrize("data, words", [
     ({"scene": {"table": {"tilt": 0.1, "tilt_deg": 5}}}, "not both"),
-    ({"scene": {"tabel": {}}}, "unknown keys"),
+    ({"scene": {"tabel": {}}}, "scene: tabel: unknown key"),
     ({"sensor": {"drop_prob": 1.5}}, "sensor.drop_prob"),
     ({"sensor": {"model": "perfect"}}, "sensor.model"),
     ({"expect": {"outcome": "maybe"}}, "expect.outcome"),

@@ -22,7 +22,7 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import AfterValidator, Field, model_validator
 
-from place_safe.config import ConfigModel, field_constraints, load_config
+from place_safe.config import ConfigModel, field_like, load_config
 from place_safe.placement.config import PlacementConfig
 from place_safe.robot.contact_detector import DetectorSettings
 from place_safe.robot.description import ur5_dir
@@ -228,30 +228,17 @@ class MotionConfig(ConfigModel):
                                                "most limits.max_linear_accel")
 
 
-def _detector(name: str) -> dict:
-    """The range of contact-detector setting ``name`` (a field of
-    :class:`~place_safe.robot.contact_detector.DetectorSettings`), as pydantic field constraints (numbers as
-    written in a robot file: not strict)."""
-    return field_constraints(DetectorSettings, name)
-
-
 class ContactConfig(ConfigModel):
     """The contact detector on the TCP force estimate (:mod:`place_safe.robot.contact_detector`); each unset
     value takes the controller's default (CB3 about 3.6 N per axis per cycle, e-Series about 1 N).
     ``place-safe bench robot --write`` measures ``noise_std`` on the arm at rest and writes it here."""
 
-    noise_std: float | None = Field(None, **_detector("noise_std"),
-                                     description="N per axis per controller cycle at rest")
-    window: int | None = Field(None, **_detector("window"),
-                                description="controller cycles averaged")
-    sigmas: float | None = Field(None, **_detector("sigmas"),
-                                  description="threshold in standard deviations of the average")
-    persistence: int | None = Field(None, **_detector("persistence"),
-                                     description="consecutive cycles above the threshold")
-    min_threshold: float | None = Field(None, **_detector("min_threshold"),
-                                         description="N: the least threshold")
-    lateral_sigmas: float | None = Field(None, **_detector("lateral_sigmas"),
-                                          description="threshold factor for the vector norm")
+    noise_std: float | None = field_like(DetectorSettings, "noise_std", "N per axis per controller cycle at rest")
+    window: int | None = field_like(DetectorSettings, "window", "controller cycles averaged")
+    sigmas: float | None = field_like(DetectorSettings, "sigmas", "threshold in standard deviations of the average")
+    persistence: int | None = field_like(DetectorSettings, "persistence", "consecutive cycles above the threshold")
+    min_threshold: float | None = field_like(DetectorSettings, "min_threshold", "N: the least threshold")
+    lateral_sigmas: float | None = field_like(DetectorSettings, "lateral_sigmas", "threshold factor for the vector norm")
     measured: dict | None = Field(None, description="written by place-safe bench robot: what it measured")
 
     def settings(self, controller: str):
@@ -265,7 +252,7 @@ URConfig.model_rebuild()
 
 
 def placement_config(robot: URConfig, base=None):
-    """``base`` (a :class:`~place_safe.placement.machine.PlacementConfig`, default its defaults) with the robot
+    """``base`` (a :class:`~place_safe.placement.config.PlacementConfig`, default its defaults) with the robot
     file's motion policy: the near-surface speed and distance, stops no harder than ``max_linear_accel`` and
     the obstacle stop no harder than ``emergency_decel``."""
     base = base if base is not None else PlacementConfig()
