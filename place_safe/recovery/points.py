@@ -168,10 +168,11 @@ class PeakParams(ParamModel):
 
     def _memo(self, name: str, key: tuple, compute):
         """``compute()``, kept under ``name`` for as long as the fields it depends on (``key``) do not change."""
-        cached = self._cache.get(name)
+        cache = self.__pydantic_private__["_cache"]  # directly: pydantic's own lookup of a private name is slow
+        cached = cache.get(name)
         if cached is None or cached[0] != key:
             cached = (key, compute())
-            self._cache[name] = cached
+            cache[name] = cached
         return cached[1]
 
     def _scaled_directions(self) -> np.ndarray:

@@ -62,28 +62,21 @@ def _section_dicts(fields: dict, required: dict):
         st.text(max_size=8), value, max_size=3)
 
 
-@settings(max_examples=300, deadline=None)
-@given(d=_section_dicts(ForwardParams.model_fields, {}))
-def test_forward_parameters_are_in_range_or_refused(d):
-    try:
-        p = ForwardParams.from_dict(d)
-    except CalibrationError as exc:
-        assert "\n" not in str(exc) and str(exc).startswith("forward parameters")
-        return
-    for name in _ranged(ForwardParams):
-        assert _in_range(getattr(p, name), ForwardParams, name), name
+_REQUIRED = {ForwardParams: {}, PeakParams: {"m": st.floats(1, 1e5) | json_values, "b": st.floats(-50, 50)}}
 
 
+@pytest.mark.parametrize("model", [ForwardParams, PeakParams], ids=lambda m: m.__name__)
 @settings(max_examples=300, deadline=None)
-@given(d=_section_dicts(PeakParams.model_fields, {"m": st.floats(1, 1e5) | json_values, "b": st.floats(-50, 50)}))
-def test_peak_parameters_are_in_range_or_refused(d):
+@given(data=st.data())
+def test_parameters_are_in_range_or_refused(model, data):
+    d = data.draw(_section_dicts(model.model_fields, _REQUIRED[model]))
     try:
-        p = PeakParams.from_dict(d)
+        p = model.from_dict(d)
     except CalibrationError as exc:
-        assert "\n" not in str(exc) and str(exc).startswith("peak parameters")
+        assert "\n" not in str(exc) and str(exc).startswith(model.what)
         return
-    for name in _ranged(PeakParams):
-        assert _in_range(getattr(p, name), PeakParams, name), name
+    for name in _ranged(model):
+        assert _in_range(getattr(p, name), model, name), name
 
 
 @settings(max_examples=200, deadline=None)
