@@ -40,7 +40,7 @@ _EXPORTS = {
     "Calibration": "place_safe.calibration",
     "PlaneFilter": "place_safe.fusion.plane_filter",
     "FusedPlane": "place_safe.fusion.plane_filter",
-    "PlacementConfig": "place_safe.placement.machine",
+    "PlacementConfig": "place_safe.placement.config",
     "PlacementMachine": "place_safe.placement.machine",
     "PlacementLoop": "place_safe.placement.loop",
     "LoopResult": "place_safe.placement.loop",

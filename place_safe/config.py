@@ -129,13 +129,13 @@ def load_config(cls: type, path: str | Path, what: str | None = None):
 class ParamModel(ConfigModel):
     """Base of a parameter set with physical ranges (robot limits, contact detector, simulated sensor, ...).
 
-    Each field is declared once, as pydantic declares it: ``Annotated[float, Field(gt=0, le=3,
-    description="m/s")]`` - the range as ``ge``/``gt``/``le``/``lt`` (on the elements of a vector, whose length
-    is ``min_length``/``max_length``) and the unit as the description. Values are strict (a string or a
+    Each field is declared once, as pydantic declares it: ``speed: float = Field(0.1, gt=0, le=3,
+    description="m/s")`` - the range as ``ge``/``gt``/``le``/``lt`` (on the elements of a vector, declared with
+    :func:`vector`, whose length is ``min_length``/``max_length``) and the unit as the description. Values are strict (a string or a
     boolean is not a number) and finite; NumPy numbers and arrays set in code are taken as plain numbers and
     lists. Every problem, on construction, :meth:`from_dict` or assignment, is one line of the class's
     :attr:`error` type: ``what: field: problem (expected lo < value <= hi unit)``. :meth:`to_dict` is the
-    file form (the fields by name, as JSON values). A vector field is declared with :func:`vector`.
+    file form (the fields by name, as JSON values), :meth:`save`/:meth:`load` write and read it as JSON.
 
     As the dataclasses they replace did, a parameter set takes its first fields positionally (in declaration
     order), :meth:`replace` is ``dataclasses.replace`` (a validated copy with some fields changed) and two sets
@@ -148,7 +148,7 @@ class ParamModel(ConfigModel):
     what: ClassVar[str] = "settings"
     error: ClassVar[type[Exception]] = ConfigError
 
-    def __init__(self, *args: Any, **data: Any) -> None:  # pydantic calls it from model_validate too
+    def __init__(self, *args: Any, **data: Any) -> None:
         if args:
             names = list(type(self).model_fields)
             if len(args) > len(names):
