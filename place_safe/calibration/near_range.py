@@ -293,29 +293,31 @@ def fit_near_range(frames: Sequence[Frame], params: PeakParams, hists: np.ndarra
     return _with_table(base, knots, table, fraction), report
 
 
-def held_out_tables(frames: Sequence[Frame], params: PeakParams) -> dict[int, PeakParams]:
-    """For each near frame of ``frames`` (with ground truth, closer than :data:`NEAR_END`), ``params`` with the
-    near-range table fitted without that frame, keyed by the frame's ``id``: the knots, penalty and weak-zone
-    fraction that :func:`fit_near_range` chooses on all of them, the zones' errors again without the frame (as
-    its cross-validation does; a knot without data of its own takes its neighbours'). Empty where
-    :func:`fit_near_range` keeps no table (``params`` then reads these frames without one, held out already).
-    For the near-range uncertainty's factor (:mod:`place_safe.calibration.uncertainty`)."""
+def held_out_fits(frames: Sequence[Frame], params: PeakParams, width: int = 1) -> dict[int, PeakParams]:
+    """For each near frame of ``frames`` (with ground truth, a zone closer than :data:`NEAR_END`), ``params`` with
+    the near-range table that :func:`fit_near_range` fits without it, keyed by the frame's ``id``: the whole fit
+    again (knots, penalty, weak-zone fraction, whether to keep a table), so the frame lies between knots of other
+    frames as a new frame does. ``width`` adjacent near frames (by depth) are left out together, so their gap
+    is wider; groups are left out one at a time up to :data:`NEAR_LOO_MAX` of them, else in :data:`NEAR_FOLDS`
+    folds dealt by depth. The far-range mapping is ``params``'s (fitted with the frames: from 3 cm on it is in
+    sample). For the near-range uncertainty (:mod:`place_safe.calibration.uncertainty`)."""
     frames = [f for f in frames if f.truth is not None]
-    _, rep = fit_near_range(frames, params)
-    if not rep.get("adopted"):
-        return {}
-    knots, penalty, fraction = np.asarray(rep["knots_m"]), float(rep["penalty"]), float(rep["min_fraction"])
     base = params.replace(near_depths=[], near_errors=[], near_min_fraction=0.0)
-    pos, valid, heights, depth, err, _, _, _, near = _zone_readings(frames, base)
-    keep = _with_table(base, knots, np.zeros((len(knots), N_ZONES)), fraction).drop_weak(pos, valid, heights)
+    if not frames:
+        return {}
+    *_, frame_depth, near = _zone_readings(frames, base)
+    idx = np.flatnonzero(near)
+    group = np.empty(len(idx), dtype=int)
+    group[np.argsort(frame_depth[idx], kind="stable")] = np.arange(len(idx)) // max(int(width), 1)
+    groups = int(group.max()) + 1 if len(idx) else 0
+    n_folds = groups if groups <= NEAR_LOO_MAX else NEAR_FOLDS
+    fold = group % max(n_folds, 1)
     out: dict[int, PeakParams] = {}
-    for i in np.flatnonzero(near):
-        others = near.copy()
-        others[i] = False
-        table = _fit_errors(knots, depth[others], err[others], keep[others], penalty)
-        if _usable(table):
-            out[id(frames[i])] = _with_table(base, knots, table, fraction)
+    for k in range(n_folds):
+        test = {int(i) for i in idx[fold == k]}
+        fitted, _ = fit_near_range([f for i, f in enumerate(frames) if i not in test], base)
+        out.update({id(frames[i]): fitted for i in test})
     return out
 
 
-__all__ = ["fit_near_range", "near_range_std", "held_out_tables", "NEAR_END"]
+__all__ = ["fit_near_range", "near_range_std", "held_out_fits", "NEAR_END"]

@@ -50,10 +50,12 @@ from dataclasses import replace
 import numpy as np
 
 from place_safe.evaluation.metrics import angular_errors, nees, point_errors  # noqa: F401 (nees: re-exported)
-from place_safe.recovery.estimator import PlaneEstimate, Uncertainty, tilt_offset
-from place_safe.recovery.too_close import TOO_CLOSE_REASON
+from place_safe.recovery.estimator import NEAR_MAX_STD, PlaneEstimate, Uncertainty, tilt_offset
+from place_safe.recovery.too_close import OVERLAP_RANGE, TOO_CLOSE_REASON
 from place_safe.sensor.frame import Frame
-from place_safe.calibration.near_range import near_range_std
+from place_safe.calibration.near_range import held_out_fits, near_range_std
+from place_safe.exceptions import FrameError, NoPlaneError
+from place_safe.recovery.points import plane_through
 from place_safe.calibration.points import MIN_CALIBRATION_RANGE
 from place_safe.recovery.differentiable import DifferentiableEstimator
 from place_safe.recovery.peak import PeakEstimator
@@ -177,6 +179,128 @@ def select_fallback(chi2: np.ndarray, consistent: np.ndarray, var_ratio: np.ndar
     return pick["chi2_limit"], pick["prefer_ratio"], table
 
 
+#: m: depth at which :func:`near_std_law`'s scale is stated.
+NEAR_REFERENCE_DEPTH = 0.05
+#: m: :func:`near_std_law` holds its value closer than this beyond the overlap (a return there is too close).
+NEAR_LAW_MIN_GAP = 0.002
+#: Largest power of :func:`near_std_law` (bounds the fit with few frames).
+NEAR_MAX_POWER = 4.0
+#: Near frames with a plane that the near-range law needs; with fewer, the cross-validated zone errors stand.
+NEAR_LAW_MIN_FRAMES = 3
+#: Depths at which the law is tabulated (``Uncertainty.near_depths``; linear between them): spaced evenly in
+#: the logarithm of the gap to the overlap, so a steep law is followed where it is steep.
+NEAR_LAW_DEPTHS = 24
+
+
+def near_std_law(depth, scale: float, power: float) -> np.ndarray:
+    """Zone range error (m) at ``depth`` (m, along the optical axis): ``scale`` (m) at
+    :data:`NEAR_REFERENCE_DEPTH`, growing as ``(gap / reference gap)^-power`` where the gap is the depth's distance
+    beyond the overlap with the internal return (:data:`~place_safe.recovery.too_close.OVERLAP_RANGE`, at least
+    :data:`NEAR_LAW_MIN_GAP`)."""
+    gap = np.maximum(np.asarray(depth, dtype=float) - OVERLAP_RANGE, NEAR_LAW_MIN_GAP)
+    return scale * (gap / (NEAR_REFERENCE_DEPTH - OVERLAP_RANGE)) ** (-power)
+
+
+def near_law_depths(end: float, knots: Sequence[float] = ()) -> np.ndarray:
+    """:data:`NEAR_LAW_DEPTHS` depths (m) from :data:`NEAR_LAW_MIN_GAP` beyond the overlap to ``end`` (m), evenly
+    spaced in the logarithm of the gap, with a near-range table's ``knots`` (m) among them (where
+    :func:`interpolation_measure` is 0)."""
+    gaps = np.geomspace(NEAR_LAW_MIN_GAP, max(end - OVERLAP_RANGE, 2 * NEAR_LAW_MIN_GAP), NEAR_LAW_DEPTHS)
+    d = np.sort(np.concatenate([OVERLAP_RANGE + gaps[:-1], [k for k in knots if OVERLAP_RANGE < k < end]]))
+    keep = np.concatenate([[True], np.diff(d) > 1e-5]) & (d < end - 1e-5)
+    return np.concatenate([d[keep], [max(end, OVERLAP_RANGE + 2 * NEAR_LAW_MIN_GAP)]])
+
+
+def interpolation_measure(depth, knots: Sequence[float]) -> np.ndarray:
+    """How far ``depth`` (m, any shape) lies from a near-range table's ``knots`` (m), as the error of a smooth
+    curve interpolated between them grows: ``delta (H - delta)`` (m^2) in a gap of ``H`` at ``delta`` from its
+    lower knot, 0 at a knot; before the first knot (where the table holds its first value)
+    ``delta (H + delta)`` with ``H`` the first gap; 0 from the last knot on (no table there)."""
+    k = np.asarray(knots, dtype=float)
+    x = np.asarray(depth, dtype=float)
+    j = np.clip(np.searchsorted(k, x, side="right") - 1, 0, len(k) - 2)
+    gap = k[j + 1] - k[j]
+    delta = x - k[j]
+    with np.errstate(invalid="ignore"):
+        m = np.where(x < k[0], (k[0] - x) * (k[1] - k[0] + k[0] - x), delta * (gap - delta))
+        return np.where(x >= k[-1], 0.0, np.maximum(m, 0.0))
+
+
+def fit_near_law(rows: Sequence[tuple], unc: Uncertainty, peak_params, end: float,
+                 in_sample: Sequence[tuple] = ()) -> tuple[Uncertainty, dict]:
+    """``unc`` with its near-range errors tabulated up to ``end`` (m; :func:`near_law_depths`) from
+    :func:`near_std_law` times an interpolation factor, chosen by maximum likelihood of held-out planes' errors
+    under the covariance the peak estimator reports with them (:meth:`PeakEstimator.covariance
+    <place_safe.recovery.peak.PeakEstimator.covariance>`: they replace the fit's residual). ``rows``: (zone points
+    (9, 3), used (9,), plane, error of (n_x, n_y, d) (3,), interpolation measure of the frame's median zone depth
+    among the knots of the table that read it (m^2, :func:`interpolation_measure`; None: no table)), each plane
+    read by a near-range table fitted without its frame (and, for some rows, without its neighbour too).
+
+    The factor: a frame read by a table is in error by the zones' own variation from frame to frame and by the
+    table's interpolation between knots, which grows with the measure. The zone variance is the law's square
+    times ``share + (1 - share) m / m_ref``, ``m_ref`` the median measure of the rows, ``share`` the part that does
+    not depend on the knots (1 where there is no table). Rows left out with a neighbour lie in wider gaps, so
+    with them the share is fitted too; without them (too few near frames) it is fitted on the calibration frames
+    read by the table itself (``in_sample``, same form), which understates it."""
+    from scipy.optimize import minimize, minimize_scalar
+
+    measured = [r[4] for r in rows if r[4] is not None]
+    knots = list(peak_params.near_depths) if peak_params.near_depths and measured else []
+    m_ref = float(np.median(measured)) if measured else 1.0
+    wide = len({round(m / m_ref, 1) for m in measured}) > 1 and max(measured) > 1.5 * m_ref  # two gap widths
+
+    def rel(m) -> float:
+        return 1.0 if m is None else min(m / m_ref, 4.0)
+
+    def law(theta: np.ndarray) -> tuple[float, float, float]:
+        share = 1.0 / (1.0 + math.exp(-theta[2])) if len(theta) > 2 else 1.0
+        return math.exp(theta[0]), NEAR_MAX_POWER / (1.0 + math.exp(-theta[1])), share
+
+    def unc_for(depths: np.ndarray, scale: float, power: float, factor) -> Uncertainty:
+        std = np.clip(near_std_law(depths, scale, power) * np.sqrt(factor), 1e-7, NEAR_MAX_STD)
+        return replace(unc, near_depths=[float(v) for v in depths], near_range_std=[float(v) for v in std])
+
+    plain = near_law_depths(end)
+
+    def nll(theta: np.ndarray) -> float:
+        scale, power, share = law(theta)
+        total = 0.0
+        for r in rows:  # each row its own factor (its table's knots): one estimator per row
+            est = PeakEstimator(peak_params, unc_for(plain, scale, power, share + (1.0 - share) * rel(r[4])))
+            total += _nll(r[3][None], est.covariance(r[0], r[1], r[2])[None], np.zeros((1, 3, 3)))
+        return total / len(rows)
+
+    starts = [(math.log(2e-4), 0.0), (math.log(5e-4), -2.0), (math.log(1e-4), 2.0)]
+    best = None
+    for start in starts:
+        x0 = np.array(start + ((0.0,) if wide else ()))
+        res = minimize(nll, x0, method="Nelder-Mead", options={"xatol": 1e-3, "fatol": 1e-6, "maxiter": 600})
+        if best is None or res.fun < best.fun:
+            best = res
+    scale, power, share = law(best.x)
+    depths = near_law_depths(end, knots)
+    measure = np.array([rel(float(m)) for m in interpolation_measure(depths, knots)]) if knots else None
+
+    def tabulated(share: float) -> Uncertainty:
+        return unc_for(depths, scale, power, 1.0 if measure is None else share + (1.0 - share) * measure)
+
+    how = "held out, two gap widths" if wide else "fixed at 1 (no table)"
+    if knots and not wide:
+        how = "in sample (too few near frames to leave two out)"
+        if in_sample:
+            est_rows = list(in_sample)
+            res = minimize_scalar(lambda ls: _nll(np.array([r[3] for r in est_rows]), np.array(
+                [PeakEstimator(peak_params, tabulated(math.exp(ls))).covariance(r[0], r[1], r[2]) for r in est_rows]),
+                np.zeros((len(est_rows), 3, 3))), bounds=(math.log(1e-3), 0.0), method="bounded")
+            share = math.exp(res.x)
+    mean_held = float(np.mean([r[3] @ np.linalg.solve(PeakEstimator(peak_params, unc_for(
+        plain, scale, power, share + (1.0 - share) * rel(r[4]))).covariance(r[0], r[1], r[2]), r[3]) for r in rows]) / 3.0)
+    return tabulated(share), {
+        "frames": len(rows), "std_at_reference_mm": scale * 1e3, "reference_depth_mm": NEAR_REFERENCE_DEPTH * 1e3,
+        "power": power, "table_knots": len(knots), "reference_measure_mm2": m_ref * 1e6 if knots else None,
+        "share_independent_of_knots": share, "share_fitted": how, "nees_per_dof_held_out": mean_held}
+
+
 def fit_peak_uncertainty(frames: Sequence[Frame], peak_params, min_range: float | None = None) -> tuple[Uncertainty, dict]:
     """The peak method's floor from frames with ground truth at ``min_range`` (m, axis distance) or farther:
     the range its mapping was calibrated on (default
@@ -186,21 +310,23 @@ def fit_peak_uncertainty(frames: Sequence[Frame], peak_params, min_range: float 
     sweep at 0.5-2 cm: 10-60 deg). With them in, the floor's two terms and the scale could describe neither
     regime: held out at 5-40 cm the NEES per dof was 0.3-0.4 (covariances 3x too large), at 1-5 cm 5-8.
     Those frames get the zones' near-range errors instead (module doc); where there are some, the floor and
-    scale are fitted on the frames beyond their last depth. The report's ``near_range`` holds the errors per
-    depth and the mean NEES per dof of the closer frames with them (in sample for the floor; the errors are
-    cross-validated), ``too_close``, how many of them the peak method reads as too close
-    (:mod:`place_safe.recovery.too_close`: no plane, no part in the mean), and ``nees_per_dof_closer_held_out``,
-    the same mean with each frame read by a table fitted without it (:func:`_held_out_near`).
+    scale are fitted on the frames beyond their last depth.
 
-    A factor on the near-range errors chosen so that held-out mean is 1 was tried and is not applied: each
-    held-out frame lies on a knot that lost its own data, so it reads worse than a new frame between knots
-    with data on both sides. On level-sweep calibrations of two simulated mismatched units (5 mm-40 cm) the
-    factor (1.1-1.5) took the 2-5 cm NEES per dof of held-out level frames from 0.55 / 0.86 to 0.38 / 0.51; on the
-    real halves it took 5-9 cm below 0.5."""
-    from place_safe.calibration.near_range import near_range_std
-    from place_safe.calibration.points import MIN_CALIBRATION_RANGE
-    from place_safe.recovery.peak import PeakEstimator
+    The near-range errors: each near frame (closer than the table's end) is read by the near-range table
+    fitted without it (:func:`~place_safe.calibration.near_range.held_out_fits`: knots, penalty and whether to
+    keep a table chosen again, so the frame lies between other frames' knots as a new frame does); the zone
+    error law :func:`near_std_law` (a scale at 5 cm growing as a power of the gap to the internal return) is
+    fitted by maximum likelihood of those planes' errors under the covariance the estimator reports with it
+    (:func:`fit_near_law`). With fewer than :data:`NEAR_LAW_MIN_FRAMES` such planes, the zones' cross-validated
+    range errors (:func:`~place_safe.calibration.near_range.near_range_std`) stand. The report's ``near_range``
+    holds the errors per depth, ``law`` (scale, power, frames, the floor at the knots and
+    ``nees_per_dof_held_out``, the held-out planes under the law alone), ``too_close`` (how many near frames the
+    peak method reads as too close, :mod:`place_safe.recovery.too_close`: no plane, no part in the means) and
+    ``nees_per_dof_closer`` (the calibration's own near frames read by its table: in sample).
 
+    An earlier factor on the cross-validated errors, chosen so that the held-out mean is 1 with tables that kept
+    the frame's own knot, was biased: such a frame sits on a knot that lost its own data and reads worse than a
+    new frame (on the real halves it took 5-9 cm below 0.5)."""
     lo = MIN_CALIBRATION_RANGE if min_range is None else float(min_range)
     depths, stds, near = near_range_std(frames, peak_params)
     base = Uncertainty(near_depths=depths, near_range_std=stds, tilt_rel=PEAK_TILT_REL)
@@ -213,13 +339,39 @@ def fit_peak_uncertainty(frames: Sequence[Frame], peak_params, min_range: float 
     report["frames_closer"] = len(closer)
     report["near_range"] = near
     if closer and depths:
+        rows = []
+        for width in (1, 2):  # left out alone, and with a neighbour (wider gaps: the interpolation's share)
+            held = held_out_fits(frames, peak_params, width)
+            rows += [r for r in (_near_row(f, held.get(id(f)), depths[-1]) for f in closer) if r is not None]
+        # read as new frames are: by a table where the calibration keeps one, by the mapping alone where not
+        rows = [r for r in rows if (r[4] is not None) == bool(peak_params.near_depths)]
+        own = [r for r in (_near_row(f, peak_params, depths[-1]) for f in closer) if r is not None]
+        if len(rows) >= NEAR_LAW_MIN_FRAMES:
+            unc, report["near_range"]["law"] = fit_near_law(rows, unc, peak_params, depths[-1], own)
+            report["near_range"]["std_mm"] = [v * 1e3 for v in unc.near_range_std]
         ests = [PeakEstimator(peak_params, unc).estimate(f) for f in closer]
         report["near_range"]["nees_per_dof_closer"] = _mean_nees(ests, [f.truth for f in closer])
         report["near_range"]["too_close"] = sum(1 for e in ests if (e.reason or "").startswith(TOO_CLOSE_REASON))
-        held = _held_out_near(frames, closer, peak_params)
-        ests = [PeakEstimator(p, unc).estimate(f) for f, p in held]
-        report["near_range"]["nees_per_dof_closer_held_out"] = _mean_nees(ests, [f.truth for f in closer])
     return unc, report
+
+
+def _near_row(frame: Frame, params, end: float) -> tuple | None:
+    """(zone points, used, plane, error of (n_x, n_y, d), interpolation measure of the median zone depth among
+    ``params``'s table knots or None) of ``frame`` read by peak with ``params``; None where there is no plane,
+    no such params, or no zone closer than ``end`` (m)."""
+    if params is None:
+        return None
+    try:
+        frame.validate()
+        points, valid = PeakEstimator(params).zone_points(frame)
+    except (FrameError, NoPlaneError):
+        return None
+    if not points[valid, 2].min() < end:
+        return None
+    plane, _ = plane_through(points, valid)
+    m = (float(interpolation_measure(np.median(points[valid, 2]), params.near_depths)) if params.near_depths
+         else None)
+    return points, valid, plane, tilt_offset(plane) - tilt_offset(frame.truth), m
 
 
 def _mean_nees(estimates: Sequence[PlaneEstimate], truths: Sequence) -> float | None:
@@ -227,17 +379,6 @@ def _mean_nees(estimates: Sequence[PlaneEstimate], truths: Sequence) -> float | 
     v = nees(estimates, truths)
     v = v[np.isfinite(v)]
     return float(np.mean(v)) if v.size else None
-
-
-def _held_out_near(frames: Sequence[Frame], closer: Sequence[Frame], peak_params) -> list:
-    """(frame, peak parameters) for each frame of ``closer``: with the near-range table's zone errors fitted
-    again without that frame (:func:`~place_safe.calibration.near_range.held_out_tables`: same knots, so the frame
-    sits between knots as a new frame does), so the frame's plane is held out from the table that reads it.
-    Without a table (or where the refit is unusable) ``peak_params`` as they are."""
-    from place_safe.calibration.near_range import held_out_tables
-
-    tables = held_out_tables(frames, peak_params) if peak_params.near_depths else {}
-    return [(f, tables.get(id(f), peak_params)) for f in closer]
 
 
 def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correction=None,
@@ -340,4 +481,4 @@ def update_calibration(cal, frames: Sequence[Frame], method: str) -> dict:
 
 
 __all__ = ["update_calibration", "nees", "fit_floor", "fit_peak_uncertainty", "fit_diff_uncertainty", "select_fallback",
-           "chi2_candidates", "CONSISTENCY_LIMIT", "PEAK_TILT_REL", "CV_FOLDS", "PREFER_RATIOS"]
+           "chi2_candidates", "near_std_law", "fit_near_law", "NEAR_REFERENCE_DEPTH", "CONSISTENCY_LIMIT", "PEAK_TILT_REL", "CV_FOLDS", "PREFER_RATIOS"]

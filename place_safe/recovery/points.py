@@ -359,7 +359,8 @@ def _determines_plane(s: np.ndarray, n: np.ndarray, d) -> np.ndarray:
     return (s[..., 1] > 1e-9 * np.maximum(s[..., 0], 1e-30)) & (n[..., 2] > 1e-6) & (d > 0)
 
 
-def plane_covariance(points: np.ndarray, valid: np.ndarray, plane: Plane, range_std: float | np.ndarray = 0.0) -> np.ndarray:
+def plane_covariance(points: np.ndarray, valid: np.ndarray, plane: Plane, range_std: float | np.ndarray = 0.0,
+                     replace_fit: bool = False) -> np.ndarray:
     """Covariance (3, 3) of ``(n_x, n_y, d)`` of a least-squares plane through points (N, 3) with mask (N,).
 
     The perpendicular residuals ``n . p - d`` are linearised in the normal's x and y components (``n_z``
@@ -369,6 +370,8 @@ def plane_covariance(points: np.ndarray, valid: np.ndarray, plane: Plane, range_
     peak method's zone errors at near range, :meth:`~place_safe.recovery.estimator.Uncertainty.near_std`).
     Each point's residual variance is then the larger of the fit's and that error's share off the plane,
     carried through the fit point by point (the points actually used, along their own directions).
+    ``replace_fit``: each point with a known error takes that error's share alone, not the larger of it and the
+    fit's (a calibrated error that already holds what the residual would say; points without one keep the fit's).
     """
     p = np.asarray(points, dtype=float)[np.asarray(valid, dtype=bool)]
     n = plane.normal
@@ -387,7 +390,8 @@ def plane_covariance(points: np.ndarray, valid: np.ndarray, plane: Plane, range_
         return sigma2 * inverse
     with np.errstate(invalid="ignore", divide="ignore"):
         off_plane = (p @ n) / np.sqrt(np.einsum("ij,ij->i", p, p))  # cosine of each point's ray with the normal
-    var = np.maximum(sigma2, np.nan_to_num((std * off_plane) ** 2))
+    known = np.nan_to_num((std * off_plane) ** 2)
+    var = np.where(known > 0.0, known, sigma2) if replace_fit else np.maximum(sigma2, known)
     return inverse @ (jac.T * var) @ jac @ inverse
 
 

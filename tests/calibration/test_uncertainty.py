@@ -118,3 +118,80 @@ def test_a_frame_no_method_reads_does_not_break_the_diff_uncertainty(sweep_path)
     assert unc.chi2_limit > 0.0 and report["frames_using_diff"] + report["frames_using_peak"] == len(frames)
     assert math.isfinite(report["point_mm"]["selected"]) and report["folds"] >= 2
     assert unc.prefer_ratio in PREFER_RATIOS and unc.consistency_limit < math.inf
+
+
+# -- the peak method's near-range law (issue 26) ------------------------------------------------------------------
+
+def _near_rows(n, scale, power, seed=0):
+    """Level planes at 2.5-9 cm read through 9 zone points whose ranges err by the law's std (independent)."""
+    from place_safe.calibration.uncertainty import near_std_law
+    from place_safe.recovery.estimator import tilt_offset
+    from place_safe.recovery.points import PeakParams, plane_through
+
+    rng = np.random.default_rng(seed)
+    dirs = PeakParams.default_peak().directions()
+    rows = []
+    for _ in range(n):
+        d = rng.uniform(0.025, 0.09)
+        r = d / dirs[:, 2]
+        r = r + rng.normal(0.0, 1.0, 9) * near_std_law(r * dirs[:, 2], scale, power)
+        points = r[:, None] * dirs
+        valid = np.ones(9, dtype=bool)
+        plane, _ = plane_through(points, valid)
+        rows.append((points, valid, plane, tilt_offset(plane) - np.array([0.0, 0.0, d]), None))
+    return rows
+
+
+def test_near_law_grows_toward_the_internal_return_and_is_tabulated_through_the_table_end():
+    from place_safe.calibration.uncertainty import NEAR_REFERENCE_DEPTH, near_law_depths, near_std_law
+    from place_safe.recovery.too_close import OVERLAP_RANGE
+
+    d = np.array([OVERLAP_RANGE + 0.004, 0.03, NEAR_REFERENCE_DEPTH, 0.09])
+    s = near_std_law(d, 1e-4, 1.5)
+    assert np.all(np.diff(s) < 0) and math.isclose(s[2], 1e-4)
+    assert near_std_law(OVERLAP_RANGE - 0.005, 1e-4, 1.5) == near_std_law(OVERLAP_RANGE, 1e-4, 1.5)  # held, finite
+    depths = near_law_depths(0.09, knots=[0.02, 0.035, 0.09])
+    assert depths[-1] == 0.09 and np.all(np.diff(depths) > 0) and 0.035 in depths and depths[0] > OVERLAP_RANGE
+
+
+def test_interpolation_measure_is_zero_at_the_knots_and_largest_mid_gap():
+    from place_safe.calibration.uncertainty import interpolation_measure
+
+    knots = [0.02, 0.035, 0.05, 0.09]
+    m = interpolation_measure(np.array([0.02, 0.0275, 0.035, 0.04, 0.05, 0.07, 0.095]), knots)
+    assert m[0] == m[2] == m[4] == 0.0 == m[6]
+    assert math.isclose(m[1], 0.0075 ** 2) and 0 < m[3] < m[1] and math.isclose(m[5], 0.02 ** 2)
+    assert interpolation_measure(0.015, knots) > 0  # before the first knot the table holds its value: not exact
+
+
+def test_near_law_maximum_likelihood_recovers_a_known_law_and_makes_nees_one():
+    from place_safe.calibration.uncertainty import fit_near_law
+    from place_safe.recovery.estimator import Uncertainty
+    from place_safe.recovery.peak import PeakEstimator
+    from place_safe.recovery.points import PeakParams
+
+    params = PeakParams.default_peak()
+    rows = _near_rows(80, 1e-4, 1.0, seed=1)  # zone errors well below the zones' spread: a linear regime
+    unc, rep = fit_near_law(rows, Uncertainty(), params, 0.09)
+    assert 0.7e-4 <= rep["std_at_reference_mm"] * 1e-3 <= 1.4e-4 and 0.5 <= rep["power"] <= 1.5
+    assert rep["share_independent_of_knots"] == 1.0  # no table: nothing to interpolate
+    test = _near_rows(80, 1e-4, 1.0, seed=2)
+    est = PeakEstimator(params, unc)
+    v = [r[3] @ np.linalg.solve(est.covariance(r[0], r[1], r[2]), r[3]) / 3 for r in test]
+    assert 0.75 <= float(np.mean(v)) <= 1.3
+
+
+def test_calibrated_near_errors_replace_the_fit_residual():
+    """Closer than the table's end the zones' calibrated errors stand for the fit's residual (a systematic pattern
+    over the zones, which the residual of independent zones overstates as tilt); farther the fit's own."""
+    from place_safe.recovery.points import PeakParams, plane_covariance, plane_through
+
+    dirs = PeakParams.default_peak().directions()
+    points = (0.03 / dirs[:, 2])[:, None] * dirs
+    points[4] += 0.002 * dirs[4]  # a bowl: the centre reads 2 mm far
+    valid = np.ones(9, dtype=bool)
+    plane, _ = plane_through(points, valid)
+    fit = plane_covariance(points, valid, plane)
+    larger = plane_covariance(points, valid, plane, 1e-5)
+    replaced = plane_covariance(points, valid, plane, 1e-5, replace_fit=True)
+    assert np.allclose(larger, fit) and np.all(np.diag(replaced) < np.diag(fit) / 100)
