@@ -142,10 +142,25 @@ class ForwardParams(ParamModel):
       [-8, 16], prior 0 / 4): the return of the cover glass and package at zero range, the same in every frame,
       shaped by the pulse; ``glass_delay`` is its position after ``bin_offset`` (zero range).
     * ``echo_gain`` (fraction, [0, 1], prior 0 / 0.1): the multipath echo, light the surface returns to the
-      sensor's face and the face sends back to the surface, at twice the range, ``echo_gain (0.1 m / r)^2`` of the
+      sensor's face and the face sends back to the surface, at twice the range, ``echo_gain (0.1 m / r)^echo_power`` of the
       direct return (:meth:`ForwardModel.add_echo_and_glass`).
     * ``centre_fov_scale`` (fraction, (0, 3], prior 1 / 0.2 in log): the centre zone's rectangle scaled about the
       axis, as ``edge_fov_scale`` and ``corner_fov_scale`` scale the others (the spread of ranges in its footprint).
+    * ``echo_power`` ((0 .. 4), default 2, prior 2 / 1): the echo's size relative to the direct return is
+      ``echo_gain (0.1 m / r)^echo_power``. 2 is the face-to-surface round trip spreading over the range squared; the
+      real sweep's second return is about 5e-4 of the peak at every range from 5 to 31 cm (a power near 0: light
+      that the package sends back along the same cone, whose share of the return does not change with range).
+    * ``pileup_shadow`` (blend, [0, 1], default 1, prior 1 / 0.5): the pile-up is
+      ``(1 - exp(-k h_b)) / k exp(-k pileup_shadow sum_{j<b} h_j)``. 1 is Coates' single-photon detector (counts early
+      in the cycle shadow later bins); 0 keeps only each bin's own compression, as in a zone of many SPADs with a
+      dead time about the pulse's width, where the peak is compressed and the tail after it is not (the real
+      sweep's tail grows relative to the peak as the surface comes closer).
+    * ``zone_pulse_widths`` (9, bins^2, [-0.25, 0.25], prior 0 / 0.1) and ``zone_pulse_skews`` (9, bins^3, [-0.25,
+      0.25], prior 0 / 0.1): each zone's pulse differs from the reference's rescaled shape (its SPADs' jitter, the
+      spread of its footprint's path lengths inside the package): after the pulse convolution zone ``z``'s
+      histogram is convolved with a short kernel of zero area and mean (:func:`pulse_shape_matrix`) that adds
+      ``2 w_z`` bins^2 to the pulse's variance and ``6 s_z`` bins^3 to its third central moment. Beside a sharp pulse
+      the correction can dip below zero; the expected counts are clamped at 0 (after the crosstalk, before pile-up).
     * The per-zone timing offsets and gains (``zone_offsets``, ``zone_gains``), pile-up (``pileup``), the zones'
       own tails and the learned response kernel are described above.
 
@@ -224,6 +239,14 @@ class ForwardParams(ParamModel):
     glass_delay: float = Field(0.0, ge=-8.0, le=16.0, description="bins (after zero range)")
     echo_gain: float = Field(0.0, ge=0.0, le=1.0, description="(of the direct return, at ECHO_REFERENCE_RANGE)")
     centre_fov_scale: float = Field(1.0, gt=0.0, le=3.0, description="(of the nominal zone rectangle)")
+    # Version 4 (absent from older files; the defaults are the model as it was): the echo's falloff with range, the
+    # pile-up's shadowing of later bins as a blend, and each zone's pulse width and skew (see the class doc).
+    echo_power: float = Field(2.0, ge=0.0, le=4.0, description="(the echo falls as (ECHO_REFERENCE_RANGE / range)^echo_power of the direct return)")
+    pileup_shadow: float = Field(1.0, ge=0.0, le=1.0, description="(blend: 1 Coates pile-up, earlier counts shadow later bins; 0 per-bin only)")
+    zone_pulse_widths: vector(N_ZONES, ge=-0.25, le=0.25) = Field(
+        default_factory=lambda: [0.0] * N_ZONES, description="bins^2 (half the variance added to each zone's pulse)")
+    zone_pulse_skews: vector(N_ZONES, ge=-0.25, le=0.25) = Field(
+        default_factory=lambda: [0.0] * N_ZONES, description="bins^3 (a sixth of the third moment added to each zone's pulse)")
 
     def kind_gains(self) -> np.ndarray:
         """Gain of each zone (9,): centre 1, edge/corner gains, times the per-zone gains."""
@@ -394,16 +417,33 @@ def _smooth_tail(ref: torch.Tensor) -> torch.Tensor:
     return torch.where(in_tail, smooth, ref)
 
 
-def apply_pileup(hist: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
+def apply_pileup(hist: torch.Tensor, k: torch.Tensor, shadow: torch.Tensor | float = 1.0) -> torch.Tensor:
     """Coates pile-up of expected counts (..., N) with ``k`` = 1 / (laser cycles x detectors).
 
+    ``shadow`` (blend in [0, 1], :class:`ForwardParams` ``pileup_shadow``) weights the earlier bins' shadowing:
+    ``(1 - exp(-k h_b)) / k exp(-k shadow sum_{j<b} h_j)``; 1 (the default) is Coates' formula.
     ``k = 0`` returns ``hist`` unchanged (the limit of the formula).
     """
     if not torch.is_grad_enabled() and float(k) == 0.0:
         return hist
     before = torch.cumsum(hist, dim=-1) - hist  # counts in earlier bins
     kk = torch.clamp(k, min=1e-30)
-    return -torch.expm1(-kk * hist) / kk * torch.exp(-kk * before)
+    return -torch.expm1(-kk * hist) / kk * torch.exp(-kk * shadow * before)
+
+
+def pulse_shape_matrix(widths, skews, n: int, dtype: torch.dtype = torch.float64) -> torch.Tensor:
+    """Each zone's pulse-shape correction (:class:`ForwardParams` ``zone_pulse_widths`` ``w``, ``zone_pulse_skews``
+    ``s``) as causal (9, n, n) matrices: convolution with ``delta + w B2 + (w - s) B3``, where ``B2 = (1, -2, 1)`` and
+    ``B3 = (1, -3, 3, -1)`` at lags 0.. are the backward second and third differences. The correction keeps the
+    pulse's area and mean time and adds ``2 w`` bins^2 to its variance and ``6 s`` bins^3 to its third central
+    moment (``B2``'s moments about lag 0 are 0, 0, 2, 6 and ``B3``'s 0, 0, 0, -6). Causal, so a histogram's first
+    ``W`` bins depend on its first ``W`` only."""
+    w = torch.as_tensor(widths, dtype=dtype).view(-1, 1)
+    s = torch.as_tensor(skews, dtype=dtype).view(-1, 1)
+    b2 = torch.tensor([1.0, -2.0, 1.0, 0.0], dtype=dtype)
+    b3 = torch.tensor([1.0, -3.0, 3.0, -1.0], dtype=dtype)
+    delta = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=dtype)
+    return causal_matrix(delta + w * b2 + (w - s) * b3, n)
 
 
 #: Length (bins) of each zone's own tail (:class:`ForwardParams` ``zone_tail_*``). At the longest decay
@@ -626,7 +666,8 @@ class ForwardModel:
         """Ray amplitudes and bin positions (B, 9, R) with the multipath echo and the cover-glass return appended
         (along the ray axis; the soft binning then renders them with the rays).
 
-        Echo: every ray again at twice its one-way range ``path`` (m), ``echo_gain (ECHO_REFERENCE_RANGE / path)^2``
+        Echo: every ray again at twice its one-way range ``path`` (m), ``echo_gain (ECHO_REFERENCE_RANGE / path)^p``
+        (``p = echo_power``, 2 by default)
         times its amplitude (light that the surface sends back to the sensor's face, which sends it to the
         surface again: one more round trip, and its spread over the face's solid angle falls with the range
         squared). Exact for a surface parallel to the sensor's face; for a tilted one it is the first-order term.
@@ -638,7 +679,7 @@ class ForwardModel:
         t = self.t
         grad = torch.is_grad_enabled()
         if (self._echo if grad else float(t["echo_gain"]) != 0.0):
-            echo = t["echo_gain"] * (ECHO_REFERENCE_RANGE / torch.clamp(path, min=1e-4)) ** 2
+            echo = t["echo_gain"] * (ECHO_REFERENCE_RANGE / torch.clamp(path, min=1e-4)) ** t["echo_power"]
             u_echo = 2.0 * path / t["bin_size"] + t["bin_offset"] + t["zone_offsets"].view(1, N_ZONES, 1)
             amp, u = torch.broadcast_tensors(amp, u)
             amp = torch.cat([amp, amp * echo], dim=-1)
@@ -655,12 +696,16 @@ class ForwardModel:
     #: Parameters that act only after the pulse convolution (:meth:`after_pulse`): a calibration's derivatives in
     #: them need not render the rays again.
     AFTER_PULSE = ("response_kernel", "zone_tail_weights", "zone_tail_decays", "crosstalk", "crosstalk_self",
-                   "crosstalk_grid", "pileup", "floor")
+                   "crosstalk_grid", "pileup", "floor", "pileup_shadow", "zone_pulse_widths", "zone_pulse_skews")
 
     def after_pulse(self, hist: torch.Tensor) -> torch.Tensor:
-        """The zone histograms (B, 9, N) after the pulse convolution -> what the sensor reports: each zone's own
-        tail, crosstalk, pile-up and the constant floor (the parameters of :attr:`AFTER_PULSE`)."""
+        """The zone histograms (B, 9, N) after the pulse convolution -> what the sensor reports: each zone's pulse
+        shape (width, skew), the learned response, its own tail, crosstalk, pile-up and the constant floor (the parameters of :attr:`AFTER_PULSE`)."""
         t = self.t
+        if torch.is_grad_enabled() or bool(torch.any(t["zone_pulse_widths"] != 0)) or bool(
+                torch.any(t["zone_pulse_skews"] != 0)):
+            shape = pulse_shape_matrix(t["zone_pulse_widths"], t["zone_pulse_skews"], hist.shape[-1], self.dtype)
+            hist = (hist.transpose(0, 1) @ shape.transpose(-1, -2)).transpose(0, 1)
         if torch.is_grad_enabled() or bool(torch.any(t["response_kernel"] != 0)):
             hist = add_response(hist, t["response_kernel"])
         if torch.is_grad_enabled() or bool(torch.any(t["zone_tail_weights"] != 0)):
@@ -670,7 +715,10 @@ class ForwardModel:
         if torch.is_grad_enabled() or bool(torch.any(t["crosstalk_grid"] != 0)):
             mixed = mixed + torch.einsum("tf,bfn->btn", grid_crosstalk_matrix(t["crosstalk_grid"], self.dtype), hist)
         hist = mixed
-        return apply_pileup(hist, t["pileup"]) + t["floor"]
+        if torch.is_grad_enabled() or bool(torch.any(t["zone_pulse_widths"] != 0)) or bool(
+                torch.any(t["zone_pulse_skews"] != 0)):
+            hist = torch.clamp(hist, min=0.0)  # the shape correction's negative lobes beside a sharp pulse: no counts
+        return apply_pileup(hist, t["pileup"], t["pileup_shadow"]) + t["floor"]
 
     def plane_returns(self, normal: torch.Tensor, offset: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Ranges, cosines of incidence and hit mask (B, 9, R) of this model's rays on planes.

@@ -26,9 +26,11 @@ beam ``(r v_z / r_e)^beam_power`` and ``u`` uses the one-way range ``(r + r_e) /
 
 The unit terms of :class:`~place_safe.recovery.forward.ForwardParams` (version 3) follow
 ``ForwardModel``: the multipath echo appends each ray again at twice its one-way range with ``echo_gain (0.1 m /
-range)^2`` of its amplitude (its derivatives by the chain above), the cover-glass return adds a fixed Gaussian per
+range)^echo_power`` of its amplitude (its derivatives by the chain above), the cover-glass return adds a fixed Gaussian per
 zone at ``bin_offset + glass_delay + zone_offset`` (no derivative in x), and the neighbour crosstalk
-(``crosstalk_grid``) is a (9, 9) matrix applied with the scalar crosstalk.
+(``crosstalk_grid``) is a (9, 9) matrix applied with the scalar crosstalk. Version 4: each zone's pulse width and
+skew are causal (9, 128, 128) matrices folded in before the response and tails, and the pile-up's shadowing of later bins is
+weighted by ``pileup_shadow``.
 """
 
 from __future__ import annotations
@@ -38,7 +40,7 @@ import math
 import numpy as np
 
 from place_safe.recovery.forward import (ECHO_REFERENCE_RANGE, ForwardModel, ForwardParams, ZoneRays,
-                                         grid_crosstalk_matrix, response_matrix, zone_tail_taps)
+                                         grid_crosstalk_matrix, pulse_shape_matrix, response_matrix, zone_tail_taps)
 from place_safe.sensor.frame import N_BINS, N_ZONES
 
 N_UNKNOWNS = 6
@@ -90,11 +92,18 @@ class PlaneRenderer:
             resp = response_matrix(params.response_kernel, N_BINS).numpy()
             self.tail_mats = (np.broadcast_to(resp, (N_ZONES, N_BINS, N_BINS)) if self.tail_mats is None
                               else self.tail_mats @ resp)
+        # each zone's pulse width and skew (ForwardModel.after_pulse: first, before the response), causal as well
+        self.shaped = bool(np.any(np.asarray(params.zone_pulse_widths) != 0.0)
+                           or np.any(np.asarray(params.zone_pulse_skews) != 0.0))
+        if self.shaped:
+            shape = pulse_shape_matrix(params.zone_pulse_widths, params.zone_pulse_skews, N_BINS).numpy()
+            self.tail_mats = shape if self.tail_mats is None else self.tail_mats @ shape
 
         # neighbour crosstalk (ForwardModel.after_pulse) as a (9, 9) matrix M[to, from]; None: none
         self.grid_mix = (grid_crosstalk_matrix(params.crosstalk_grid).numpy()
                          if np.any(np.asarray(params.crosstalk_grid) != 0.0) else None)
         self.echo_gain = float(params.echo_gain)
+        self.echo_power = float(params.echo_power)
         self.glass = (np.asarray(params.glass_gains, dtype=float) if np.any(np.asarray(params.glass_gains) != 0.0)
                       else None)
         self.glass_u = params.bin_offset + params.glass_delay + self.offsets[:, 0]  # (9,)
@@ -147,7 +156,7 @@ class PlaneRenderer:
         u = path / p.bin_size + p.bin_offset + self.offsets
         n_direct = u.shape[-1]
         if self.echo_gain != 0.0:  # ForwardModel.add_echo_and_glass: each ray again at twice its range
-            echo = self.echo_gain * (ECHO_REFERENCE_RANGE / np.maximum(path, 1e-4)) ** 2
+            echo = self.echo_gain * (ECHO_REFERENCE_RANGE / np.maximum(path, 1e-4)) ** self.echo_power
             amp = np.concatenate([amp, amp * echo], axis=-1)
             u = np.concatenate([u, 2.0 * path / p.bin_size + p.bin_offset + self.offsets], axis=-1)
         width = conv.shape[-1]
@@ -158,10 +167,14 @@ class PlaneRenderer:
             tg = np.arange(width)[None, :] - self.glass_u[:, None]
             T = T + (self.glass[:, None] * np.exp(-0.5 * self.inv_sigma2 * tg * tg) * self.gnorm)[None]
         F = self._mix(self._tail(np.matmul(conv[:, None], T[..., None])[..., 0]))  # expected photon counts
+        if self.shaped:  # ForwardModel.after_pulse: no negative counts beside a sharpened pulse
+            F_ok = F >= 0.0
+            F = np.maximum(F, 0.0)
         kp = p.pileup
+        ks_shadow = kp * p.pileup_shadow
         if kp > 0:
             before = np.cumsum(F, axis=-1) - F
-            e_b, e_c = np.exp(-kp * F), np.exp(-kp * before)
+            e_b, e_c = np.exp(-kp * F), np.exp(-ks_shadow * before)
             H = -np.expm1(-kp * F) / kp * e_c
         else:
             H = F
@@ -212,22 +225,25 @@ class PlaneRenderer:
             A_e = A * echo_d[..., None]
             B_e = np.zeros_like(B)
             for k in range(3):
-                A_e[..., k] += amp_d * echo_d * (-2.0 / np.maximum(path, 1e-4)) * d_path[k] * (path > 1e-4)
+                A_e[..., k] += amp_d * echo_d * (-self.echo_power / np.maximum(path, 1e-4)) * d_path[k] * (path > 1e-4)
                 B_e[..., k] = amp_d * echo_d * 2.0 * du[k]
             A = np.concatenate([A, A_e], axis=2)
             B = np.concatenate([B, B_e], axis=2)
         Gt = G * t * self.inv_sigma2
         dT = np.einsum("bzrk,bzrw->bzwk", A, G) + np.einsum("bzrk,bzrw->bzwk", B, Gt)
         dF = self._mix(self._tail(np.matmul(conv[:, None], dT)), axis_zone=1)
+        if self.shaped:
+            dF = dF * F_ok[..., None]
         if kp > 0:
             d_before = np.cumsum(dF, axis=2) - dF
-            dH = (e_b * e_c)[..., None] * dF - kp * H[..., None] * d_before
+            dH = (e_b * e_c)[..., None] * dF - ks_shadow * H[..., None] * d_before
         else:
             dH = dF
         return H, dH
 
     def _tail(self, h: np.ndarray) -> np.ndarray:
-        """Each zone's own tail added to histograms (B, 9, W) or their derivatives (B, 9, W, k)."""
+        """Each zone's pulse shape, response and own tail applied to histograms (B, 9, W) or their derivatives
+        (B, 9, W, k)."""
         if self.tail_mats is None:
             return h
         width = h.shape[2]

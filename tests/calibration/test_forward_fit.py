@@ -180,3 +180,22 @@ def test_unit_terms_fitted_from_zero_get_derivatives():
                          fitted=fitted, coarse_rays=0, priors={})
     assert got.echo_gain > 0.1
     np.testing.assert_allclose(got.glass_gains, 40.0, rtol=0.2)
+
+
+def test_pulse_terms_come_back_from_frames_made_with_them():
+    """Frames rendered with per-bin pile-up only (no shadowing of later bins) and with wider / skewed zone pulses:
+    fitted from the model as it was (Coates, the reference's shape), the terms move to what made the frames."""
+    from place_safe.calibration.forward_fit import PULSE_TERMS
+
+    widths = [0.08, -0.04, 0.1, 0.0, 0.0, 0.05, -0.02, 0.12, 0.06]
+    truth = ForwardParams(bin_offset=9.3, pileup=1e-5, pileup_shadow=0.0, zone_pulse_widths=widths,
+                          zone_pulse_skews=[0.05] * 9)
+    spec = SyntheticSpec(z_range=(0.06, 0.3), theta_range=(0.0, 0.0), specular_weight_range=(0.14681, 0.14681),
+                         specular_exponent_range=(1.8378, 1.8378), noise=False, rays=4)
+    frames = make_frames(6, params=truth, spec=spec, seed=2)
+    got, report = fit_forward(frames, init=ForwardParams(bin_offset=9.3, pileup=1e-5), progress=False, rays=4,
+                              iterations=15, fitted=dict(PULSE_TERMS), coarse_rays=0, priors={})
+    assert got.pileup_shadow < 0.1
+    np.testing.assert_allclose(got.zone_pulse_widths, widths, atol=0.02)
+    np.testing.assert_allclose(got.zone_pulse_skews, 0.05, atol=0.02)
+    assert report["rms_scaled_residual_after"] < 0.1 * report["rms_scaled_residual_before"]

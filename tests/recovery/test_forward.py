@@ -322,3 +322,79 @@ def test_echo_and_glass_appear_where_they_belong():
     np.testing.assert_allclose(g1, g2, atol=1e-9)
     assert g1.max() > 5.0
     assert int(np.argmax(g1)) < peak_direct
+
+
+def test_a_file_without_the_version_4_terms_renders_the_model_as_it_was():
+    """Forward parameters written before version 4 (no ``echo_power``, ``pileup_shadow``, ``zone_pulse_*`` keys)
+    load with the defaults (inverse-square echo, Coates pile-up, the reference's pulse shape) and render the same
+    histograms as before."""
+    d = ForwardParams(crosstalk=0.01, pileup=2e-7, echo_gain=0.05).to_dict()
+    for key in ("echo_power", "pileup_shadow", "zone_pulse_widths", "zone_pulse_skews"):
+        d.pop(key)
+    old = ForwardParams.from_dict(d)
+    assert old.echo_power == 2.0 and old.pileup_shadow == 1.0
+    assert old.zone_pulse_widths == [0.0] * 9 and old.zone_pulse_skews == [0.0] * 9
+    ref = torch.as_tensor(default_reference(), dtype=torch.float64)[None]
+    normal = torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64)
+    with torch.no_grad():
+        h = ForwardModel(old, ZoneRays.stratified(4)).render_plane(normal, torch.tensor([0.15]), torch.tensor([3.0]),
+                                                                   ref)
+        # the same thing written out by hand: the version 3 echo law and Coates' formula
+        p3 = ForwardParams(crosstalk=0.01, pileup=0.0, echo_gain=0.05)
+        raw = ForwardModel(p3, ZoneRays.stratified(4)).render_plane(normal, torch.tensor([0.15]), torch.tensor([3.0]),
+                                                                    ref)
+        before = torch.cumsum(raw, -1) - raw
+        coates = -torch.expm1(-2e-7 * raw) / 2e-7 * torch.exp(-2e-7 * before)
+    torch.testing.assert_close(h, coates)
+
+
+def test_pulse_shape_keeps_area_and_mean_and_adds_the_stated_moments():
+    """The zone's pulse-shape correction keeps the histogram's area and mean time, adds 2 w bins^2 to its variance
+    and 6 s bins^3 to its third central moment."""
+    from place_safe.recovery.forward import pulse_shape_matrix
+
+    n = 64
+    k = torch.arange(n, dtype=torch.float64)
+    h = torch.exp(-0.5 * ((k - 30.0) / 2.5) ** 2) + 0.3 * torch.exp(-0.5 * ((k - 33.0) / 3.0) ** 2)
+
+    def moments(x):
+        a = x.sum()
+        m = (k * x).sum() / a
+        return a, m, (((k - m) ** 2) * x).sum() / a, (((k - m) ** 3) * x).sum() / a
+
+    a0, m0, v0, t0 = moments(h)
+    for w, s in ((0.2, 0.0), (-0.1, 0.05), (0.05, -0.2)):
+        shape = pulse_shape_matrix([w] * 9, [s] * 9, n)
+        assert torch.allclose(shape[0], shape[8])
+        a, m, v, t = moments(shape[0] @ h)
+        assert float(a) == pytest.approx(float(a0), rel=1e-12)
+        assert float(m) == pytest.approx(float(m0), abs=1e-9)
+        assert float(v - v0) == pytest.approx(2.0 * w, abs=1e-9)
+        assert float(t - t0) == pytest.approx(6.0 * s, abs=1e-9)
+
+
+def test_pileup_without_shadowing_compresses_each_bin_on_its_own():
+    """``pileup_shadow = 0``: each bin is compressed by its own counts only, so a bright peak leaves the bins
+    after it as they were (relative to the peak the tail grows with brightness); 1 is Coates' formula, which lowers
+    them."""
+    h = torch.tensor([[0.0, 10.0, 4000.0, 50.0, 20.0]], dtype=torch.float64)
+    k = torch.tensor(1e-4, dtype=torch.float64)
+    own = apply_pileup(h, k, 0.0)
+    torch.testing.assert_close(own, -torch.expm1(-k * h) / k)
+    coates = apply_pileup(h, k, 1.0)
+    assert float(coates[0, 3]) < float(own[0, 3])
+    assert float(own[0, 3] / own[0, 2]) > float(h[0, 3] / h[0, 2])
+
+
+def test_the_echo_falls_with_the_stated_power_of_range():
+    """``echo_power`` 0: the echo is ``echo_gain`` of the direct return at every range."""
+    ref = torch.as_tensor(default_reference(), dtype=torch.float64)[None]
+    normal = torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64)
+    with torch.no_grad():
+        for z in (0.08, 0.25):
+            def render(p):
+                return ForwardModel(p, ZoneRays.stratified(4)).render_plane(normal, torch.tensor([z]),
+                                                                            torch.tensor([3.0]), ref)[0, 4].numpy()
+            direct = render(ForwardParams())
+            echo = render(ForwardParams(echo_gain=0.02, echo_power=0.0)) - direct
+            assert echo.sum() / direct.sum() == pytest.approx(0.02, rel=0.05)

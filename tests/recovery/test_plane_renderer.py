@@ -109,3 +109,20 @@ def test_matches_torch_model_with_grid_crosstalk_glass_and_echo():
                       crosstalk=0.01, zone_offsets=list(np.linspace(-0.5, 0.5, 9)))
     _check(p, np.array([-0.25, 0.2, 0.18, math.log(2.0), 0.2, math.log(1.5)]))
     _check(ForwardParams(echo_gain=0.05, baseline=[0.003, -0.0015], beam_power=1.2), x)
+
+
+def test_matches_torch_model_with_echo_falloff_pileup_shadow_and_pulse_shapes():
+    """The terms of version 4 (the echo's falloff power, the pile-up's shadowing blend, each zone's pulse width
+    and skew) are rendered and differentiated exactly as in the torch model, alone and together."""
+    x = np.array([0.12, -0.08, 0.07, math.log(3.0), 0.1, math.log(2.0)])
+    widths = list(np.linspace(-0.2, 0.2, 9))
+    skews = list(np.linspace(0.15, -0.1, 9))
+    _check(ForwardParams(echo_gain=0.05, echo_power=0.3), x)
+    _check(ForwardParams(pileup=3e-7, pileup_shadow=0.0), x)
+    _check(ForwardParams(pileup=3e-7, pileup_shadow=0.4, crosstalk=0.01), x)
+    _check(ForwardParams(zone_pulse_widths=widths, zone_pulse_skews=skews), x)
+    p = ForwardParams(zone_pulse_widths=widths, zone_pulse_skews=skews, echo_gain=0.02, echo_power=0.0,
+                      pileup=2e-7, pileup_shadow=0.2, zone_tail_weights=list(np.linspace(0.0, 0.08, 9)),
+                      glass_gains=list(np.linspace(5.0, 40.0, 9)), crosstalk_grid=list(np.linspace(0.002, 0.016, 8)),
+                      baseline=[0.003, -0.0015], beam_power=1.2)
+    _check(p, np.array([-0.25, 0.2, 0.18, math.log(2.0), 0.2, math.log(1.5)]))
