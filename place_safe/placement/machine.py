@@ -61,7 +61,6 @@ from __future__ import annotations
 
 import logging
 import math
-from statistics import NormalDist
 from dataclasses import asdict, dataclass
 from enum import Enum
 from pathlib import Path
@@ -73,8 +72,9 @@ from place_safe.config import Bound, check_dataclass, dataclass_from_dict, read_
 from place_safe.exceptions import ConfigError
 from place_safe.geometry import transform_problem
 from place_safe.fusion.plane_filter import FusedPlane
+from place_safe.placement import rules
+from place_safe.placement.rules import number
 from place_safe.placement.speed import descent_speed, stoppable_speed, stopping_distance
-from place_safe.recovery.too_close import TOO_CLOSE_REASON
 
 log = logging.getLogger("place_safe.placement.machine")
 
@@ -92,11 +92,6 @@ class Phase(str, Enum):
 
 #: Phases in which the machine has finished.
 FINAL = (Phase.DONE, Phase.ABORTED)
-
-
-def _too_close(note: str | None) -> bool:
-    """Whether the last frame's note says it was too close to read (:mod:`place_safe.recovery.too_close`)."""
-    return isinstance(note, str) and TOO_CLOSE_REASON in note
 
 
 @dataclass
@@ -256,22 +251,14 @@ class RobotState:
         for name in ("base_T_tcp", "base_T_cup"):
             if (why := transform_problem(getattr(self, name))) is not None:
                 return f"robot state {name} {why}"
-        if _number(self.time) is None:
+        if number(self.time) is None:
             return "robot time is not a finite number"
-        f = _number(self.contact_force)
+        f = number(self.contact_force)
         if f is None or f < 0:
             return "robot contact force is not a finite non-negative number"
-        if self.last_frame_time is not None and _number(self.last_frame_time) is None:
+        if self.last_frame_time is not None and number(self.last_frame_time) is None:
             return "time of the last sensor frame is not a finite number"
         return None
-
-
-def _number(v: Any) -> float | None:
-    """``v`` as a finite float, or None (bools, strings, NaN, inf and arrays are not numbers here)."""
-    if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
-        return None
-    v = float(v)
-    return v if math.isfinite(v) else None
 
 
 class CommandKind(str, Enum):
@@ -523,55 +510,17 @@ class PlacementMachine:
         return max(now - t0 if math.isfinite(t0) else 0.0, ticks * self.period)
 
     # -- checks (each fails closed) --------------------------------------------------------------
-    def _plane_problem(self, plane: FusedPlane | None, now: float, note: str | None) -> str | None:
-        cfg = self.config
-        if plane is None:
-            return "no surface plane" + (f" ({note})" if note else "")
-        try:
-            n = np.asarray(plane.normal_base, dtype=float)
-            vals = (float(plane.offset_base), float(plane.tilt_rad), float(plane.std_angle), float(plane.std_offset),
-                    float(plane.stamp))
-        except (TypeError, ValueError, AttributeError):
-            return "fused plane is malformed"
-        if n.shape != (3,) or not np.all(np.isfinite(n)) or not all(math.isfinite(v) for v in vals):
-            return "fused plane is not finite"
-        if abs(float(np.linalg.norm(n)) - 1.0) > 1e-6:
-            return "fused plane normal is not a unit vector"
-        if not (0.0 <= plane.tilt_rad <= math.pi):
-            return f"fused plane tilt {plane.tilt_rad!r} rad is out of range [0, pi]"
-        if abs(math.acos(max(-1.0, min(1.0, float(n[2] / np.linalg.norm(n))))) - plane.tilt_rad) > 1e-6:
-            return "fused plane is inconsistent: its tilt does not match its normal"
-        if not (plane.std_angle >= 0.0 and plane.std_offset >= 0.0):
-            return "fused plane spread is negative"
-        age = now - plane.stamp
-        if age < -self.period:
-            return f"surface plane is stamped {-age:.3f} s in the future"
-        if self._blind(note) and age <= cfg.too_close_hold:
-            return None  # the sensor is too close to read: the farther frames' plane and the kinematics decide
-        if not (age <= cfg.plane_timeout):
-            return (f"surface plane is stale ({age:.2f} s old > {cfg.plane_timeout:.2f} s)"
-                    + (f"; last frame: {note}" if note else ""))
-        return None
-
     def _blind(self, note: str | None) -> bool:
         """Whether the last frame was too close to read and that run of such frames began with the cup close
         enough to the fused plane for the sensor to be that close to it (``too_close_clearance``, on the
         clearance computed last before the run). Keeps where the run began (a run that began far above the plane
         sees something in front of the sensor, however close the cup gets on the old plane)."""
-        if not _too_close(note):
+        if not rules.too_close(note):
             self._blind_from = None
             return False
         if self._blind_from is None:
             self._blind_from = self.last_clearance
         return self._blind_from <= self.config.too_close_clearance
-
-    def _sensor_problem(self, state: RobotState, now: float, note: str | None) -> str | None:
-        t_last = state.last_frame_time
-        ref = self._t_start if t_last is None else float(t_last)
-        if not (now - ref <= self.config.sensor_timeout):
-            return (f"sensor timeout: no frame for {now - ref:.2f} s (> {self.config.sensor_timeout:.2f} s)"
-                    + (f"; {note}" if note else ""))
-        return None
 
     def _clearance(self, plane: FusedPlane, state: RobotState) -> float:
         cup = np.asarray(state.base_T_cup, dtype=float)
@@ -580,56 +529,6 @@ class PlacementMachine:
             return float(plane.distance_along(cup[:3, 3], -axis, self.config.cup_radius, axis))
         except ValueError:
             return math.nan
-
-    def _planar_problem(self, plane: FusedPlane) -> str | None:
-        cfg = self.config
-        if not (plane.std_angle <= cfg.max_std_angle and plane.std_offset <= cfg.max_std_offset):
-            return (f"surface not planar or estimates inconsistent: spread {math.degrees(plane.std_angle):.2f} deg / "
-                    f"{plane.std_offset * 1e3:.1f} mm (limits {math.degrees(cfg.max_std_angle):.1f} deg / "
-                    f"{cfg.max_std_offset * 1e3:.1f} mm)")
-        return None
-
-    def _tilt_problem(self, plane: FusedPlane, limit: float) -> str | None:
-        if not (plane.tilt_rad <= limit):
-            return (f"surface tilted {math.degrees(plane.tilt_rad):.1f} deg "
-                    f"(> {math.degrees(self.config.max_tilt):.1f} deg allowed)")
-        return None
-
-    def tilt_sigma(self, plane: FusedPlane) -> float:
-        """Standard error (rad) of the fused plane's tilt: ``plane.tilt_std`` from the estimates'
-        covariances, or, without them, the window's spread over sqrt(n)."""
-        s = getattr(plane, "tilt_std", math.nan)
-        spread = float(plane.std_angle) / math.sqrt(max(int(getattr(plane, "n", 1) or 1), 1))
-        return float(s) if isinstance(s, (int, float)) and math.isfinite(s) and s >= 0 else spread
-
-    def _confidence_margin(self, sigma: float) -> float:
-        """rad between the fused tilt and its one-sided ``level_confidence`` bound, for tilt std ``sigma``."""
-        return NormalDist().inv_cdf(self.config.level_confidence) * sigma
-
-    def _level_problem(self, plane: FusedPlane) -> str | None:
-        """Tilt below ``max_tilt`` with ``level_confidence`` (one-sided normal bound on the tilt)."""
-        cfg = self.config
-        if (why := self._tilt_problem(plane, cfg.max_tilt)) is not None:
-            return why
-        sigma = self.tilt_sigma(plane)
-        bound = plane.tilt_rad + self._confidence_margin(sigma)
-        if not (bound <= cfg.max_tilt):
-            return (f"surface tilt {math.degrees(plane.tilt_rad):.2f} +- {math.degrees(sigma):.2f} deg is not below "
-                    f"{math.degrees(cfg.max_tilt):.1f} deg with {cfg.level_confidence:.0%} confidence")
-        return None
-
-    def _footprint_problem(self) -> str | None:
-        """Why the landing footprint cannot take the cup, from the surface map (None: no problem seen)."""
-        fp = self._footprint
-        if self.config.footprint_frames == 0 or fp is None:
-            return None
-        problem = getattr(fp, "problem", None)
-        return f"no safe support under the cup: {problem}" if problem else None
-
-    def _footprint_seen(self) -> int:
-        """Frames that saw the landing footprint supported by the fused surface."""
-        s = _number(getattr(self._footprint, "supported", None))
-        return int(s) if s is not None else 0
 
     def _lateral(self, move: np.ndarray, limit: float) -> np.ndarray:
         """Velocity (3,) along ``move`` (m) at most ``limit`` m/s, slowing so it stops at its end."""
@@ -663,7 +562,7 @@ class PlacementMachine:
         fp = self._footprint
         tcp = np.asarray(state.base_T_tcp, dtype=float)[:3, 3]
         down = -np.asarray(state.base_T_cup, dtype=float)[:3, 2]
-        if self._surveyed or self._footprint_seen() >= cfg.footprint_frames:
+        if self._surveyed or rules.footprint_seen(self._footprint) >= cfg.footprint_frames:
             self._surveyed = True  # latched: no second survey; CHECK still needs the footprint supported
             back = self._start_pos - tcp
             back -= down * float(back @ down)
@@ -679,8 +578,8 @@ class PlacementMachine:
             # while the footprint stays in view that long (if those frames do not certify it, the cup climbs
             # back to the survey pose: slower, never less safe -- nothing is released without them)
             stopping = self._descent_speed(c) * cfg.sensor_latency
-            margin = _number(getattr(fp, "view_margin", None))
-            need = _number(getattr(fp, "certify_margin", None))
+            margin = number(getattr(fp, "view_margin", None))
+            need = number(getattr(fp, "certify_margin", None))
             need = max(need, 0.0) if need is not None else 0.0
             if margin is not None and margin - stopping > SURVEY_VIEW_SLACK and margin - need > SURVEY_VIEW_SLACK:
                 # keep descending: the footprint stays in view down to where frames certify it; meanwhile
@@ -725,7 +624,7 @@ class PlacementMachine:
         if (r is not None and r.done) or not cfg.recheck_timeout > 0 or cfg.footprint_frames == 0:
             return None
         fp = self._footprint
-        frames = _number(getattr(fp, "close_frames", None))
+        frames = number(getattr(fp, "close_frames", None))
         try:
             move = np.asarray(getattr(fp, "recheck_shift"), dtype=float).reshape(3)
         except (TypeError, ValueError, AttributeError):
@@ -748,46 +647,18 @@ class PlacementMachine:
         self._hint = "survey"
         return self._speed(np.zeros(3))
 
-    def _confidently_tilted(self, plane: FusedPlane) -> str | None:
-        """Refuse early (before descending onto it) a surface steeper than ``max_tilt`` with
-        ``level_confidence``, once the window holds ``check_frames`` planes."""
-        cfg = self.config
-        if int(getattr(plane, "n", 0) or 0) < cfg.check_frames:
-            return None
-        low = plane.tilt_rad - self._confidence_margin(self.tilt_sigma(plane))
-        if low > cfg.max_tilt:
-            return (f"surface tilted {math.degrees(plane.tilt_rad):.1f} deg (> {math.degrees(cfg.max_tilt):.1f} deg "
-                    f"allowed, with {cfg.level_confidence:.0%} confidence)")
-        return None
+    def tilt_sigma(self, plane: FusedPlane) -> float:
+        """Standard error (rad) of the fused plane's tilt (:func:`place_safe.placement.rules.tilt_sigma`)."""
+        return rules.tilt_sigma(plane)
 
     def check_frames_needed(self, plane: FusedPlane) -> int:
-        """Post-stop measurements CHECK waits for: ``check_frames`` when the fused plane (frames taken while
-        slowing down included) lies well inside every limit -- its one-sided ``level_confidence`` tilt bound,
-        its angle and offset spreads all within half of ``max_tilt`` / ``max_std_angle`` /
-        ``max_std_offset`` -- else ``max_check_frames`` (if larger). Never fewer than ``check_frames``."""
-        cfg = self.config
-        most = max(cfg.check_frames, cfg.max_check_frames)
-        try:
-            bound = plane.tilt_rad + self._confidence_margin(self.tilt_sigma(plane))
-            clear = (bound <= 0.5 * cfg.max_tilt and plane.std_angle <= 0.5 * cfg.max_std_angle
-                     and plane.std_offset <= 0.5 * cfg.max_std_offset)
-        except (TypeError, ValueError, AttributeError):
-            clear = False
-        return cfg.check_frames if clear else most
+        """Post-stop measurements CHECK waits for (:func:`place_safe.placement.rules.check_frames_needed`)."""
+        return rules.check_frames_needed(plane, self.config)
 
     def post_stop_stamps(self, plane: FusedPlane, now: float) -> list[float]:
         """Distinct measurement times in the fused plane taken after the stop (+ ``check_settle``) and not
-        after ``now`` (empty outside CHECK)."""
-        if self._check is None:
-            return []
-        lo = self._check.t_stop + self.config.check_settle
-        stamps = getattr(plane, "stamps", None) or ()
-        out = set()
-        for s in stamps:
-            v = _number(s)
-            if v is not None and lo <= v <= now + 1e-9:
-                out.add(v)
-        return sorted(out)
+        after ``now`` (empty outside CHECK; :func:`place_safe.placement.rules.post_stop_stamps`)."""
+        return rules.post_stop_stamps(plane, now, None if self._check is None else self._check.t_stop, self.config)
 
     # -- the tick --------------------------------------------------------------------------------
     def step(self, state: RobotState, plane: FusedPlane | None, note: str | None = None,
@@ -808,7 +679,7 @@ class PlacementMachine:
     def _step(self, state: RobotState, plane: FusedPlane | None, note: str | None) -> Command:
         self.ticks += 1
         self._phase_ticks += 1
-        now = _number(getattr(state, "time", None))
+        now = number(getattr(state, "time", None))
         if now is None:
             return self._abort(self._last_now if self._last_now is not None else math.nan,
                                "robot time is not a finite number")
@@ -834,7 +705,7 @@ class PlacementMachine:
     def _on_idle(self, state: RobotState, plane: FusedPlane | None, note: str | None, now: float) -> Command:
         cfg = self.config
         self._start_pos = np.asarray(state.base_T_tcp, dtype=float)[:3, 3].copy()
-        problem = self._plane_problem(plane, now, note)
+        problem = rules.plane_problem(plane, now, note, cfg, self.period, lambda: self._blind(note))
         if problem is None:
             self._descent_t0, self._descent_ticks = now, 0
             self._go(Phase.APPROACH, now, f"surface seen: tilt {math.degrees(plane.tilt_rad):.1f} deg, "
@@ -844,7 +715,7 @@ class PlacementMachine:
             detail = problem if plane is not None else note
             return self._refuse(now, f"no surface plane within {cfg.acquire_timeout:.1f} s"
                                 + (f" ({detail})" if detail else ""))
-        if (why := self._sensor_problem(state, now, note)) is not None:
+        if (why := rules.sensor_problem(state.last_frame_time, now, self._t_start, note, cfg)) is not None:
             return self._refuse(now, why)
         return Command.hold()
 
@@ -914,12 +785,13 @@ class PlacementMachine:
         """APPROACH and DESCEND: move down towards the surface, fast while it is far, slow near it."""
         cfg = self.config
         self._descent_ticks += 1
-        why = self._plane_problem(plane, now, note) or self._sensor_problem(state, now, note)
+        why = (rules.plane_problem(plane, now, note, cfg, self.period, lambda: self._blind(note))
+               or rules.sensor_problem(state.last_frame_time, now, self._t_start, note, cfg))
         if why is not None:
             return self._refuse(now, why)
-        if (why := self._tilt_problem(plane, cfg.early_refuse_tilt)) is not None:
+        if (why := rules.tilt_problem(plane, cfg.early_refuse_tilt, cfg)) is not None:
             return self._refuse(now, why)
-        if (why := self._confidently_tilted(plane)) is not None:
+        if (why := rules.confidently_tilted(plane, cfg)) is not None:
             return self._refuse(now, why)
         if self._elapsed(now, self._descent_t0, self._descent_ticks) > cfg.descent_timeout:
             return self._refuse(now, f"surface not reached within {cfg.descent_timeout:.1f} s")
@@ -943,7 +815,7 @@ class PlacementMachine:
         if c < -cfg.max_penetration:
             return self._refuse(now, f"cup {-c * 1e3:.1f} mm below the estimated surface without contact: "
                                      "the surface estimate is wrong")
-        if (why := self._footprint_problem()) is not None:
+        if (why := rules.footprint_problem(self._footprint, cfg)) is not None:
             look = self._second_look(state, c, now) if self.phase == Phase.APPROACH else None
             if look is not None:
                 return look
@@ -990,7 +862,8 @@ class PlacementMachine:
     def _on_check(self, state: RobotState, plane: FusedPlane | None, note: str | None, now: float) -> Command:
         """Stopped: gather fresh planes, then release, descend again or refuse."""
         cfg = self.config
-        why = self._plane_problem(plane, now, note) or self._sensor_problem(state, now, note)
+        why = (rules.plane_problem(plane, now, note, cfg, self.period, lambda: self._blind(note))
+               or rules.sensor_problem(state.last_frame_time, now, self._t_start, note, cfg))
         if why is not None:
             return self._refuse(now, why)
         fresh = len(self.post_stop_stamps(plane, now))
@@ -1005,15 +878,16 @@ class PlacementMachine:
         c = self.last_clearance = self._clearance(plane, state)
         if not math.isfinite(c):
             return self._refuse(now, "cup clearance above the surface cannot be computed")
-        if (why := self._level_problem(plane)) is not None:
+        if (why := rules.level_problem(plane, cfg)) is not None:
             return self._refuse(now, why)
-        if (why := self._planar_problem(plane)) is not None:
+        if (why := rules.planar_problem(plane, cfg)) is not None:
             return self._refuse(now, why)
-        if (why := self._footprint_problem()) is not None:
+        if (why := rules.footprint_problem(self._footprint, cfg)) is not None:
             return self._refuse(now, why)
-        if cfg.footprint_frames and self._footprint_seen() < cfg.footprint_frames:
+        if cfg.footprint_frames and rules.footprint_seen(self._footprint) < cfg.footprint_frames:
             return self._refuse(now, f"no support evidence: the surface under the cup's footprint was seen on one "
-                                     f"plane in {self._footprint_seen()} frames (< {cfg.footprint_frames})")
+                                     f"plane in {rules.footprint_seen(self._footprint)} frames "
+                                     f"(< {cfg.footprint_frames})")
         cup = np.asarray(state.base_T_cup, dtype=float)
         cup_to_surface = math.acos(max(-1.0, min(1.0, float(cup[:3, 2] @ np.asarray(plane.normal_base, float)))))
         if not (cup_to_surface <= cfg.max_tilt):
