@@ -301,6 +301,15 @@ RECHECK_ARRIVED = 0.003
 LATERAL_GAIN = 8.0
 #: m of view margin kept when descending before the footprint was seen.
 SURVEY_VIEW_SLACK = 0.005
+#: m above the certifying height (the surface map's close height) by which the view is centred on the
+#: footprint while the cup descends towards it, and how much faster than the even pace that needs the sideways
+#: move goes (it finishes early, not late).
+PASS_AHEAD = 0.03
+PASS_PACE = 1.5
+#: Fraction of ``footprint_margin``: a cup bottom this close sideways to the landing spot lies inside the
+#: footprint the survey certified (its disc reaches ``footprint_margin`` past the cup's rim), so the descent
+#: below ``traverse_clearance`` may go on while the last of the way back is made.
+OVER_FOOTPRINT = 0.8
 #: s the robot clock may step back (rounding) before it counts as running backwards.
 CLOCK_BACK_TOLERANCE = 1e-6
 
@@ -393,6 +402,8 @@ class PlacementMachine:
         self._budget_prev: tuple[float | None, np.ndarray | None] = (None, None)
         self._budget_bucket: str | None = None
         self._hint: str | None = None
+        self._survey_share = 0.0  # fraction of this tick's time the survey takes from the descent (the rest: _hint)
+        self._budget_share = 0.0
         self._tcp_speed = 0.0
 
     @property
@@ -500,7 +511,10 @@ class PlacementMachine:
             pos = None
         if prev_t is not None and now > prev_t:
             if self._budget_bucket is not None:
-                self.budget[self._budget_bucket] = self.budget.get(self._budget_bucket, 0.0) + (now - prev_t)
+                dt, share = now - prev_t, self._budget_share
+                if share > 0:  # the survey slowed the descent: its share of the tick is the survey's
+                    self.budget["survey"] = self.budget.get("survey", 0.0) + dt * share
+                self.budget[self._budget_bucket] = self.budget.get(self._budget_bucket, 0.0) + dt * (1.0 - share)
             if pos is not None and prev_pos is not None and np.all(np.isfinite(pos)):
                 self._tcp_speed = float(np.linalg.norm(pos - prev_pos)) / (now - prev_t)
         self._budget_prev = (now, pos)
@@ -539,6 +553,18 @@ class PlacementMachine:
                     LATERAL_GAIN * dist)
         return np.round(move / dist * speed, 3)
 
+    def _lateral_time(self, dist: float, target: float, speed: float) -> float:
+        """s a sideways move :meth:`_lateral` makes (no faster than ``speed`` m/s now) takes from ``dist`` m to
+        ``target`` m from its end (at least one control period)."""
+        a = min(self.config.accel, self.config.lateral_accel)
+        t, d = 0.0, dist
+        step = max((dist - target) / 40.0, 1e-4)
+        while d > target:
+            v = min(max(speed, 1e-3), 0.8 * math.sqrt(2.0 * a * d), LATERAL_GAIN * d)
+            t += step / v
+            d -= step
+        return max(t, self.period)
+
     def _axial(self, dist: float) -> float:
         """Speed (m/s) along the tool axis for a move of ``dist`` m: at most ``approach_speed``, slowing so
         it stops at its end (0 when done)."""
@@ -567,7 +593,12 @@ class PlacementMachine:
             back = self._start_pos - tcp
             back -= down * float(back @ down)
             self._back = float(np.linalg.norm(back))
-            return self._lateral(back, cfg.survey_speed) if self._back > SURVEY_DONE else None
+            if not self._back > SURVEY_DONE:
+                return None
+            # share the speed limit with the descent, in proportion to what each has left before the cup may
+            # go below traverse_clearance (within half the footprint margin of the landing spot)
+            limit = self._share(self._back, c - cfg.traverse_clearance)
+            return self._lateral(back, limit)
         if fp is None:
             if self._elapsed(now, self._descent_t0, self._descent_ticks) > cfg.acquire_timeout:
                 return self._refuse(now, "no support evidence: no surface map of the cup's landing footprint")
@@ -591,7 +622,14 @@ class PlacementMachine:
                 if not np.all(np.isfinite(move)):
                     return None
                 side = move - down * float(move @ down)
-                return self._lateral(side, cfg.survey_speed) if float(np.linalg.norm(side)) > SURVEY_DONE else None
+                dist = float(np.linalg.norm(side))
+                if not dist > SURVEY_DONE:
+                    return None
+                # paced: centred by the time the sensor is PASS_AHEAD above the certifying height at the
+                # descent speed, no faster (the speed limit is on the whole move: a slower sideways move leaves
+                # the descent more of it)
+                t_go = (need + PASS_AHEAD) / max(self._descent_speed(c), cfg.descend_speed)
+                return self._lateral(side, min(cfg.survey_speed, PASS_PACE * dist / t_go))
         # to the survey pose (the sensor over the footprint, just high enough to hold it), then wait there
         try:
             move = np.asarray(getattr(fp, "look_shift"), dtype=float).reshape(3)
@@ -607,11 +645,30 @@ class PlacementMachine:
         at the pose."""
         cfg = self.config
         along = float(move @ down)  # > 0: down towards the surface
-        side = self._lateral(move - down * along, cfg.survey_speed)
         if along > 0:  # never faster than the cup could stop before the slow band
             along = min(along, max(c - cfg.slow_clearance, 0.0))
+        lateral = move - down * float(move @ down)
+        side = self._lateral(lateral, self._share(float(np.linalg.norm(lateral)), along))
+        axial = self._axial(along)
         self._hint = "survey"
-        return self._speed(np.round(side + self._axial(along) * down, 3), lateral=bool(np.any(side)))
+        if axial > 0:  # down: the descent gets what the sideways move leaves of approach_speed
+            axial = min(axial, math.sqrt(max(cfg.approach_speed ** 2 - float(side @ side), 0.0)))
+            free = self._descent_speed(c)
+            if free > 0:  # budget: the part of the descent still made is the descent's
+                self._hint = self._motion_bucket(round(free, 3))
+                self._survey_share = min(max(1.0 - axial / free, 0.0), 1.0)
+        return self._speed(np.round(side + axial * down, 3), lateral=bool(np.any(side)))
+
+    def _share(self, sideways: float, down: float) -> float:
+        """Speed limit (m/s) of a sideways move of ``sideways`` m made while the cup descends ``down`` m: the
+        moves share ``approach_speed`` (the arm's limit is on the whole speed) in proportion to their lengths,
+        so that both end together; ``survey_speed`` when there is no descent to share with. At least
+        ``descend_speed``."""
+        cfg = self.config
+        if not (down > SURVEY_DONE and sideways > 0):
+            return cfg.survey_speed
+        share = cfg.approach_speed * sideways / math.hypot(sideways, down)
+        return min(cfg.survey_speed, max(share, cfg.descend_speed))
 
     def _second_look(self, state: RobotState, c: float, now: float) -> Command | None:
         """Before refusing for footprint points that only zones seeing more than one surface covered, look
@@ -697,8 +754,10 @@ class PlacementMachine:
             return self._abort(now, bad, faulted=bool(getattr(state, "fault", None)))
         self._account(state, now)
         self._hint = None
+        self._survey_share = 0.0
         cmd = _HANDLERS[self.phase](self, state, plane, note, now)
         self._budget_bucket = self._bucket(now)
+        self._budget_share = self._survey_share if self.phase == Phase.APPROACH and self._suspect is None else 0.0
         return cmd
 
     # -- phase handlers ------------------------------------------------------------------------------
@@ -842,12 +901,23 @@ class PlacementMachine:
                     # go no faster than the slow band's speed, at which a touch stays gentle)
                     v = min(v, max(cfg.descend_speed,
                                    stoppable_speed(c - cfg.traverse_clearance, cfg.sensor_latency, cfg.accel)))
-                if np.any(side):  # moving back over the landing spot: the ground under the way is unseen
-                    if self._back > 0.5 * cfg.footprint_margin:  # (within half the margin: over the seen footprint)
-                        v = min(v, max(self._axial(c - cfg.traverse_clearance), 0.0))
-                    self._hint = "survey"
-                else:
-                    self._hint = self._motion_bucket(round(v, 3))
+                free = v
+                if np.any(side):
+                    # the speed limit holds for the whole move: the descent gets what the sideways part leaves
+                    # of approach_speed (rather than the arm scaling both down)
+                    v = min(v, math.sqrt(max(cfg.approach_speed ** 2 - float(side @ side), 0.0)))
+                    # moving back over the landing spot: the ground under the way is unseen
+                    over = OVER_FOOTPRINT * cfg.footprint_margin  # (closer: over the seen footprint)
+                    if self._back > over:
+                        # reach traverse_clearance no sooner than the way back comes within `over` (if the
+                        # sideways move stalls, the descent slows to a stop above traverse_clearance)
+                        t_side = self._lateral_time(self._back, over, float(np.linalg.norm(side)))
+                        room = c - cfg.traverse_clearance
+                        v = min(v, max(self._axial(room), room / t_side if room > 0 else 0.0, 0.0))
+                # budget: the survey's time is what it takes from the descent
+                # budget: what the survey takes from the descent is the survey's, the rest the descent's
+                self._hint = self._motion_bucket(round(free, 3))
+                self._survey_share = min(max(1.0 - v / free, 0.0), 1.0) if free > 0 else 0.0
                 return self._speed(np.round(side + round(v, 3) * down, 3), lateral=bool(np.any(side)))
             if np.any(side):  # back over the landing spot before the slow, final part of the descent
                 self._hint = "survey"
