@@ -12,7 +12,9 @@ Buckets (robot clock, s):
 * ``accelerate``: the arm is still below a descent speed it was given (``accel``);
 * ``cruise``: descending at ``approach_speed``;
 * ``brake``: the descent profile (:mod:`place_safe.placement.speed`) holds the speed below the cruise;
-* ``survey``: moving sideways to see the landing footprint, waiting for it, or coming back;
+* ``survey``: what moving sideways to see the landing footprint (and back) takes from the descent -- a tick
+  in which the cup descends at a fraction ``f`` of the speed it would have without the sideways move counts
+  ``1 - f`` of its time here and the rest for the descent's part -- and waiting for the footprint's frames;
 * ``confirm contact``: stopped on a contact far above the surface, deciding whether it is real;
 * ``slow band``: the last ``slow_clearance - stop_clearance`` at ``descend_speed``;
 * ``stop``: from the stop command until frames count for the check (``check_settle``);
@@ -52,8 +54,9 @@ def budget_limits(cfg: Any, frame_period: float, frame_latency: float) -> dict[s
         "brake": f"braking at {a:.2f} m/s^2 to {cfg.descend_speed * 1e3:.0f} mm/s at the slow band "
                  f"({brake:.2f} s from cruise), and reacting {cfg.sensor_latency * 1e3:.0f} ms late still stops "
                  f"{cfg.brake_margin * 1e3:.0f} mm above the sensed surface",
-        "survey": f"survey_speed {cfg.survey_speed:.2f} m/s at lateral_accel {cfg.lateral_accel:.2f} m/s^2 (liquid "
-                  f"rises <= {slosh_rise(cfg.lateral_accel, cfg.cup_radius) * 1e3:.1f} mm at the wall); "
+        "survey": f"sideways moves share the arm's {v:.2f} m/s with the descent (at most survey_speed "
+                  f"{cfg.survey_speed:.2f} m/s, lateral_accel {cfg.lateral_accel:.2f} m/s^2: the liquid rises <= "
+                  f"{slosh_rise(cfg.lateral_accel, cfg.cup_radius) * 1e3:.1f} mm at the wall); "
                   f"{cfg.footprint_frames} frames seeing the footprint from <= the close height",
         "confirm contact": f"obstacle_confirm {cfg.obstacle_confirm:.2f} s at rest after a hard stop",
         "slow band": f"{band * 1e3:.0f} mm at descend_speed {cfg.descend_speed * 1e3:.0f} mm/s = "

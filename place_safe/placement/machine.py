@@ -61,7 +61,6 @@ from __future__ import annotations
 
 import logging
 import math
-from statistics import NormalDist
 from dataclasses import dataclass
 from enum import Enum
 from typing import Any
@@ -71,8 +70,9 @@ import numpy as np
 from place_safe.geometry import transform_problem
 from place_safe.fusion.plane_filter import FusedPlane
 from place_safe.placement.config import PlacementConfig
-from place_safe.placement.speed import descent_speed, stoppable_speed, stopping_distance
-from place_safe.recovery.too_close import TOO_CLOSE_REASON
+from place_safe.placement import rules
+from place_safe.placement.rules import number
+from place_safe.placement.speed import descent_speed, stoppable_speed
 
 log = logging.getLogger("place_safe.placement.machine")
 
@@ -90,11 +90,6 @@ class Phase(str, Enum):
 
 #: Phases in which the machine has finished.
 FINAL = (Phase.DONE, Phase.ABORTED)
-
-
-def _too_close(note: str | None) -> bool:
-    """Whether the last frame's note says it was too close to read (:mod:`place_safe.recovery.too_close`)."""
-    return isinstance(note, str) and TOO_CLOSE_REASON in note
 
 
 @dataclass
@@ -115,22 +110,14 @@ class RobotState:
         for name in ("base_T_tcp", "base_T_cup"):
             if (why := transform_problem(getattr(self, name))) is not None:
                 return f"robot state {name} {why}"
-        if _number(self.time) is None:
+        if number(self.time) is None:
             return "robot time is not a finite number"
-        f = _number(self.contact_force)
+        f = number(self.contact_force)
         if f is None or f < 0:
             return "robot contact force is not a finite non-negative number"
-        if self.last_frame_time is not None and _number(self.last_frame_time) is None:
+        if self.last_frame_time is not None and number(self.last_frame_time) is None:
             return "time of the last sensor frame is not a finite number"
         return None
-
-
-def _number(v: Any) -> float | None:
-    """``v`` as a finite float, or None (bools, strings, NaN, inf and arrays are not numbers here)."""
-    if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
-        return None
-    v = float(v)
-    return v if math.isfinite(v) else None
 
 
 class CommandKind(str, Enum):
@@ -173,6 +160,15 @@ RECHECK_ARRIVED = 0.003
 LATERAL_GAIN = 8.0
 #: m of view margin kept when descending before the footprint was seen.
 SURVEY_VIEW_SLACK = 0.005
+#: m above the certifying height (the surface map's close height) by which the view is centred on the
+#: footprint while the cup descends towards it, and how much faster than the even pace that needs the sideways
+#: move goes (it finishes early, not late).
+PASS_AHEAD = 0.03
+PASS_PACE = 1.5
+#: Fraction of ``footprint_margin``: a cup bottom this close sideways to the landing spot lies inside the
+#: footprint the survey certified (its disc reaches ``footprint_margin`` past the cup's rim), so the descent
+#: below ``traverse_clearance`` may go on while the last of the way back is made.
+OVER_FOOTPRINT = 0.8
 #: s the robot clock may step back (rounding) before it counts as running backwards.
 CLOCK_BACK_TOLERANCE = 1e-6
 
@@ -265,6 +261,8 @@ class PlacementMachine:
         self._budget_prev: tuple[float | None, np.ndarray | None] = (None, None)
         self._budget_bucket: str | None = None
         self._hint: str | None = None
+        self._survey_share = 0.0  # fraction of this tick's time the survey takes from the descent (the rest: _hint)
+        self._budget_share = 0.0
         self._tcp_speed = 0.0
 
     @property
@@ -372,7 +370,10 @@ class PlacementMachine:
             pos = None
         if prev_t is not None and now > prev_t:
             if self._budget_bucket is not None:
-                self.budget[self._budget_bucket] = self.budget.get(self._budget_bucket, 0.0) + (now - prev_t)
+                dt, share = now - prev_t, self._budget_share
+                if share > 0:  # the survey slowed the descent: its share of the tick is the survey's
+                    self.budget["survey"] = self.budget.get("survey", 0.0) + dt * share
+                self.budget[self._budget_bucket] = self.budget.get(self._budget_bucket, 0.0) + dt * (1.0 - share)
             if pos is not None and prev_pos is not None and np.all(np.isfinite(pos)):
                 self._tcp_speed = float(np.linalg.norm(pos - prev_pos)) / (now - prev_t)
         self._budget_prev = (now, pos)
@@ -382,55 +383,17 @@ class PlacementMachine:
         return max(now - t0 if math.isfinite(t0) else 0.0, ticks * self.period)
 
     # -- checks (each fails closed) --------------------------------------------------------------
-    def _plane_problem(self, plane: FusedPlane | None, now: float, note: str | None) -> str | None:
-        cfg = self.config
-        if plane is None:
-            return "no surface plane" + (f" ({note})" if note else "")
-        try:
-            n = np.asarray(plane.normal_base, dtype=float)
-            vals = (float(plane.offset_base), float(plane.tilt_rad), float(plane.std_angle), float(plane.std_offset),
-                    float(plane.stamp))
-        except (TypeError, ValueError, AttributeError):
-            return "fused plane is malformed"
-        if n.shape != (3,) or not np.all(np.isfinite(n)) or not all(math.isfinite(v) for v in vals):
-            return "fused plane is not finite"
-        if abs(float(np.linalg.norm(n)) - 1.0) > 1e-6:
-            return "fused plane normal is not a unit vector"
-        if not (0.0 <= plane.tilt_rad <= math.pi):
-            return f"fused plane tilt {plane.tilt_rad!r} rad is out of range [0, pi]"
-        if abs(math.acos(max(-1.0, min(1.0, float(n[2] / np.linalg.norm(n))))) - plane.tilt_rad) > 1e-6:
-            return "fused plane is inconsistent: its tilt does not match its normal"
-        if not (plane.std_angle >= 0.0 and plane.std_offset >= 0.0):
-            return "fused plane spread is negative"
-        age = now - plane.stamp
-        if age < -self.period:
-            return f"surface plane is stamped {-age:.3f} s in the future"
-        if self._blind(note) and age <= cfg.too_close_hold:
-            return None  # the sensor is too close to read: the farther frames' plane and the kinematics decide
-        if not (age <= cfg.plane_timeout):
-            return (f"surface plane is stale ({age:.2f} s old > {cfg.plane_timeout:.2f} s)"
-                    + (f"; last frame: {note}" if note else ""))
-        return None
-
     def _blind(self, note: str | None) -> bool:
         """Whether the last frame was too close to read and that run of such frames began with the cup close
         enough to the fused plane for the sensor to be that close to it (``too_close_clearance``, on the
         clearance computed last before the run). Keeps where the run began (a run that began far above the plane
         sees something in front of the sensor, however close the cup gets on the old plane)."""
-        if not _too_close(note):
+        if not rules.too_close(note):
             self._blind_from = None
             return False
         if self._blind_from is None:
             self._blind_from = self.last_clearance
         return self._blind_from <= self.config.too_close_clearance
-
-    def _sensor_problem(self, state: RobotState, now: float, note: str | None) -> str | None:
-        t_last = state.last_frame_time
-        ref = self._t_start if t_last is None else float(t_last)
-        if not (now - ref <= self.config.sensor_timeout):
-            return (f"sensor timeout: no frame for {now - ref:.2f} s (> {self.config.sensor_timeout:.2f} s)"
-                    + (f"; {note}" if note else ""))
-        return None
 
     def _clearance(self, plane: FusedPlane, state: RobotState) -> float:
         cup = np.asarray(state.base_T_cup, dtype=float)
@@ -440,56 +403,6 @@ class PlacementMachine:
         except ValueError:
             return math.nan
 
-    def _planar_problem(self, plane: FusedPlane) -> str | None:
-        cfg = self.config
-        if not (plane.std_angle <= cfg.max_std_angle and plane.std_offset <= cfg.max_std_offset):
-            return (f"surface not planar or estimates inconsistent: spread {math.degrees(plane.std_angle):.2f} deg / "
-                    f"{plane.std_offset * 1e3:.1f} mm (limits {math.degrees(cfg.max_std_angle):.1f} deg / "
-                    f"{cfg.max_std_offset * 1e3:.1f} mm)")
-        return None
-
-    def _tilt_problem(self, plane: FusedPlane, limit: float) -> str | None:
-        if not (plane.tilt_rad <= limit):
-            return (f"surface tilted {math.degrees(plane.tilt_rad):.1f} deg "
-                    f"(> {math.degrees(self.config.max_tilt):.1f} deg allowed)")
-        return None
-
-    def tilt_sigma(self, plane: FusedPlane) -> float:
-        """Standard error (rad) of the fused plane's tilt: ``plane.tilt_std`` from the estimates'
-        covariances, or, without them, the window's spread over sqrt(n)."""
-        s = getattr(plane, "tilt_std", math.nan)
-        spread = float(plane.std_angle) / math.sqrt(max(int(getattr(plane, "n", 1) or 1), 1))
-        return float(s) if isinstance(s, (int, float)) and math.isfinite(s) and s >= 0 else spread
-
-    def _confidence_margin(self, sigma: float) -> float:
-        """rad between the fused tilt and its one-sided ``level_confidence`` bound, for tilt std ``sigma``."""
-        return NormalDist().inv_cdf(self.config.level_confidence) * sigma
-
-    def _level_problem(self, plane: FusedPlane) -> str | None:
-        """Tilt below ``max_tilt`` with ``level_confidence`` (one-sided normal bound on the tilt)."""
-        cfg = self.config
-        if (why := self._tilt_problem(plane, cfg.max_tilt)) is not None:
-            return why
-        sigma = self.tilt_sigma(plane)
-        bound = plane.tilt_rad + self._confidence_margin(sigma)
-        if not (bound <= cfg.max_tilt):
-            return (f"surface tilt {math.degrees(plane.tilt_rad):.2f} +- {math.degrees(sigma):.2f} deg is not below "
-                    f"{math.degrees(cfg.max_tilt):.1f} deg with {cfg.level_confidence:.0%} confidence")
-        return None
-
-    def _footprint_problem(self) -> str | None:
-        """Why the landing footprint cannot take the cup, from the surface map (None: no problem seen)."""
-        fp = self._footprint
-        if self.config.footprint_frames == 0 or fp is None:
-            return None
-        problem = getattr(fp, "problem", None)
-        return f"no safe support under the cup: {problem}" if problem else None
-
-    def _footprint_seen(self) -> int:
-        """Frames that saw the landing footprint supported by the fused surface."""
-        s = _number(getattr(self._footprint, "supported", None))
-        return int(s) if s is not None else 0
-
     def _lateral(self, move: np.ndarray, limit: float) -> np.ndarray:
         """Velocity (3,) along ``move`` (m) at most ``limit`` m/s, slowing so it stops at its end."""
         dist = float(np.linalg.norm(move))
@@ -498,6 +411,18 @@ class PlacementMachine:
         speed = min(limit, 0.8 * math.sqrt(2.0 * min(self.config.accel, self.config.lateral_accel) * dist),
                     LATERAL_GAIN * dist)
         return np.round(move / dist * speed, 3)
+
+    def _lateral_time(self, dist: float, target: float, speed: float) -> float:
+        """s a sideways move :meth:`_lateral` makes (no faster than ``speed`` m/s now) takes from ``dist`` m to
+        ``target`` m from its end (at least one control period)."""
+        a = min(self.config.accel, self.config.lateral_accel)
+        t, d = 0.0, dist
+        step = max((dist - target) / 40.0, 1e-4)
+        while d > target:
+            v = min(max(speed, 1e-3), 0.8 * math.sqrt(2.0 * a * d), LATERAL_GAIN * d)
+            t += step / v
+            d -= step
+        return max(t, self.period)
 
     def _axial(self, dist: float) -> float:
         """Speed (m/s) along the tool axis for a move of ``dist`` m: at most ``approach_speed``, slowing so
@@ -522,12 +447,17 @@ class PlacementMachine:
         fp = self._footprint
         tcp = np.asarray(state.base_T_tcp, dtype=float)[:3, 3]
         down = -np.asarray(state.base_T_cup, dtype=float)[:3, 2]
-        if self._surveyed or self._footprint_seen() >= cfg.footprint_frames:
+        if self._surveyed or rules.footprint_seen(self._footprint) >= cfg.footprint_frames:
             self._surveyed = True  # latched: no second survey; CHECK still needs the footprint supported
             back = self._start_pos - tcp
             back -= down * float(back @ down)
             self._back = float(np.linalg.norm(back))
-            return self._lateral(back, cfg.survey_speed) if self._back > SURVEY_DONE else None
+            if not self._back > SURVEY_DONE:
+                return None
+            # share the speed limit with the descent, in proportion to what each has left before the cup may
+            # go below traverse_clearance (within half the footprint margin of the landing spot)
+            limit = self._share(self._back, c - cfg.traverse_clearance)
+            return self._lateral(back, limit)
         if fp is None:
             if self._elapsed(now, self._descent_t0, self._descent_ticks) > cfg.acquire_timeout:
                 return self._refuse(now, "no support evidence: no surface map of the cup's landing footprint")
@@ -538,8 +468,8 @@ class PlacementMachine:
             # while the footprint stays in view that long (if those frames do not certify it, the cup climbs
             # back to the survey pose: slower, never less safe -- nothing is released without them)
             stopping = self._descent_speed(c) * cfg.sensor_latency
-            margin = _number(getattr(fp, "view_margin", None))
-            need = _number(getattr(fp, "certify_margin", None))
+            margin = number(getattr(fp, "view_margin", None))
+            need = number(getattr(fp, "certify_margin", None))
             need = max(need, 0.0) if need is not None else 0.0
             if margin is not None and margin - stopping > SURVEY_VIEW_SLACK and margin - need > SURVEY_VIEW_SLACK:
                 # keep descending: the footprint stays in view down to where frames certify it; meanwhile
@@ -551,7 +481,14 @@ class PlacementMachine:
                 if not np.all(np.isfinite(move)):
                     return None
                 side = move - down * float(move @ down)
-                return self._lateral(side, cfg.survey_speed) if float(np.linalg.norm(side)) > SURVEY_DONE else None
+                dist = float(np.linalg.norm(side))
+                if not dist > SURVEY_DONE:
+                    return None
+                # paced: centred by the time the sensor is PASS_AHEAD above the certifying height at the
+                # descent speed, no faster (the speed limit is on the whole move: a slower sideways move leaves
+                # the descent more of it)
+                t_go = (need + PASS_AHEAD) / max(self._descent_speed(c), cfg.descend_speed)
+                return self._lateral(side, min(cfg.survey_speed, PASS_PACE * dist / t_go))
         # to the survey pose (the sensor over the footprint, just high enough to hold it), then wait there
         try:
             move = np.asarray(getattr(fp, "look_shift"), dtype=float).reshape(3)
@@ -567,11 +504,30 @@ class PlacementMachine:
         at the pose."""
         cfg = self.config
         along = float(move @ down)  # > 0: down towards the surface
-        side = self._lateral(move - down * along, cfg.survey_speed)
         if along > 0:  # never faster than the cup could stop before the slow band
             along = min(along, max(c - cfg.slow_clearance, 0.0))
+        lateral = move - down * float(move @ down)
+        side = self._lateral(lateral, self._share(float(np.linalg.norm(lateral)), along))
+        axial = self._axial(along)
         self._hint = "survey"
-        return self._speed(np.round(side + self._axial(along) * down, 3), lateral=bool(np.any(side)))
+        if axial > 0:  # down: the descent gets what the sideways move leaves of approach_speed
+            axial = min(axial, math.sqrt(max(cfg.approach_speed ** 2 - float(side @ side), 0.0)))
+            free = self._descent_speed(c)
+            if free > 0:  # budget: the part of the descent still made is the descent's
+                self._hint = self._motion_bucket(round(free, 3))
+                self._survey_share = min(max(1.0 - axial / free, 0.0), 1.0)
+        return self._speed(np.round(side + axial * down, 3), lateral=bool(np.any(side)))
+
+    def _share(self, sideways: float, down: float) -> float:
+        """Speed limit (m/s) of a sideways move of ``sideways`` m made while the cup descends ``down`` m: the
+        moves share ``approach_speed`` (the arm's limit is on the whole speed) in proportion to their lengths,
+        so that both end together; ``survey_speed`` when there is no descent to share with. At least
+        ``descend_speed``."""
+        cfg = self.config
+        if not (down > SURVEY_DONE and sideways > 0):
+            return cfg.survey_speed
+        share = cfg.approach_speed * sideways / math.hypot(sideways, down)
+        return min(cfg.survey_speed, max(share, cfg.descend_speed))
 
     def _second_look(self, state: RobotState, c: float, now: float) -> Command | None:
         """Before refusing for footprint points that only zones seeing more than one surface covered, look
@@ -584,7 +540,7 @@ class PlacementMachine:
         if (r is not None and r.done) or not cfg.recheck_timeout > 0 or cfg.footprint_frames == 0:
             return None
         fp = self._footprint
-        frames = _number(getattr(fp, "close_frames", None))
+        frames = number(getattr(fp, "close_frames", None))
         try:
             move = np.asarray(getattr(fp, "recheck_shift"), dtype=float).reshape(3)
         except (TypeError, ValueError, AttributeError):
@@ -607,46 +563,18 @@ class PlacementMachine:
         self._hint = "survey"
         return self._speed(np.zeros(3))
 
-    def _confidently_tilted(self, plane: FusedPlane) -> str | None:
-        """Refuse early (before descending onto it) a surface steeper than ``max_tilt`` with
-        ``level_confidence``, once the window holds ``check_frames`` planes."""
-        cfg = self.config
-        if int(getattr(plane, "n", 0) or 0) < cfg.check_frames:
-            return None
-        low = plane.tilt_rad - self._confidence_margin(self.tilt_sigma(plane))
-        if low > cfg.max_tilt:
-            return (f"surface tilted {math.degrees(plane.tilt_rad):.1f} deg (> {math.degrees(cfg.max_tilt):.1f} deg "
-                    f"allowed, with {cfg.level_confidence:.0%} confidence)")
-        return None
+    def tilt_sigma(self, plane: FusedPlane) -> float:
+        """Standard error (rad) of the fused plane's tilt (:func:`place_safe.placement.rules.tilt_sigma`)."""
+        return rules.tilt_sigma(plane)
 
     def check_frames_needed(self, plane: FusedPlane) -> int:
-        """Post-stop measurements CHECK waits for: ``check_frames`` when the fused plane (frames taken while
-        slowing down included) lies well inside every limit -- its one-sided ``level_confidence`` tilt bound,
-        its angle and offset spreads all within half of ``max_tilt`` / ``max_std_angle`` /
-        ``max_std_offset`` -- else ``max_check_frames`` (if larger). Never fewer than ``check_frames``."""
-        cfg = self.config
-        most = max(cfg.check_frames, cfg.max_check_frames)
-        try:
-            bound = plane.tilt_rad + self._confidence_margin(self.tilt_sigma(plane))
-            clear = (bound <= 0.5 * cfg.max_tilt and plane.std_angle <= 0.5 * cfg.max_std_angle
-                     and plane.std_offset <= 0.5 * cfg.max_std_offset)
-        except (TypeError, ValueError, AttributeError):
-            clear = False
-        return cfg.check_frames if clear else most
+        """Post-stop measurements CHECK waits for (:func:`place_safe.placement.rules.check_frames_needed`)."""
+        return rules.check_frames_needed(plane, self.config)
 
     def post_stop_stamps(self, plane: FusedPlane, now: float) -> list[float]:
         """Distinct measurement times in the fused plane taken after the stop (+ ``check_settle``) and not
-        after ``now`` (empty outside CHECK)."""
-        if self._check is None:
-            return []
-        lo = self._check.t_stop + self.config.check_settle
-        stamps = getattr(plane, "stamps", None) or ()
-        out = set()
-        for s in stamps:
-            v = _number(s)
-            if v is not None and lo <= v <= now + 1e-9:
-                out.add(v)
-        return sorted(out)
+        after ``now`` (empty outside CHECK; :func:`place_safe.placement.rules.post_stop_stamps`)."""
+        return rules.post_stop_stamps(plane, now, None if self._check is None else self._check.t_stop, self.config)
 
     # -- the tick --------------------------------------------------------------------------------
     def step(self, state: RobotState, plane: FusedPlane | None, note: str | None = None,
@@ -667,7 +595,7 @@ class PlacementMachine:
     def _step(self, state: RobotState, plane: FusedPlane | None, note: str | None) -> Command:
         self.ticks += 1
         self._phase_ticks += 1
-        now = _number(getattr(state, "time", None))
+        now = number(getattr(state, "time", None))
         if now is None:
             return self._abort(self._last_now if self._last_now is not None else math.nan,
                                "robot time is not a finite number")
@@ -685,15 +613,17 @@ class PlacementMachine:
             return self._abort(now, bad, faulted=bool(getattr(state, "fault", None)))
         self._account(state, now)
         self._hint = None
+        self._survey_share = 0.0
         cmd = _HANDLERS[self.phase](self, state, plane, note, now)
         self._budget_bucket = self._bucket(now)
+        self._budget_share = self._survey_share if self.phase == Phase.APPROACH and self._suspect is None else 0.0
         return cmd
 
     # -- phase handlers ------------------------------------------------------------------------------
     def _on_idle(self, state: RobotState, plane: FusedPlane | None, note: str | None, now: float) -> Command:
         cfg = self.config
         self._start_pos = np.asarray(state.base_T_tcp, dtype=float)[:3, 3].copy()
-        problem = self._plane_problem(plane, now, note)
+        problem = rules.plane_problem(plane, now, note, cfg, self.period, lambda: self._blind(note))
         if problem is None:
             self._descent_t0, self._descent_ticks = now, 0
             self._go(Phase.APPROACH, now, f"surface seen: tilt {math.degrees(plane.tilt_rad):.1f} deg, "
@@ -703,7 +633,7 @@ class PlacementMachine:
             detail = problem if plane is not None else note
             return self._refuse(now, f"no surface plane within {cfg.acquire_timeout:.1f} s"
                                 + (f" ({detail})" if detail else ""))
-        if (why := self._sensor_problem(state, now, note)) is not None:
+        if (why := rules.sensor_problem(state.last_frame_time, now, self._t_start, note, cfg)) is not None:
             return self._refuse(now, why)
         return Command.hold()
 
@@ -773,12 +703,13 @@ class PlacementMachine:
         """APPROACH and DESCEND: move down towards the surface, fast while it is far, slow near it."""
         cfg = self.config
         self._descent_ticks += 1
-        why = self._plane_problem(plane, now, note) or self._sensor_problem(state, now, note)
+        why = (rules.plane_problem(plane, now, note, cfg, self.period, lambda: self._blind(note))
+               or rules.sensor_problem(state.last_frame_time, now, self._t_start, note, cfg))
         if why is not None:
             return self._refuse(now, why)
-        if (why := self._tilt_problem(plane, cfg.early_refuse_tilt)) is not None:
+        if (why := rules.tilt_problem(plane, cfg.early_refuse_tilt, cfg)) is not None:
             return self._refuse(now, why)
-        if (why := self._confidently_tilted(plane)) is not None:
+        if (why := rules.confidently_tilted(plane, cfg)) is not None:
             return self._refuse(now, why)
         if self._elapsed(now, self._descent_t0, self._descent_ticks) > cfg.descent_timeout:
             return self._refuse(now, f"surface not reached within {cfg.descent_timeout:.1f} s")
@@ -802,7 +733,7 @@ class PlacementMachine:
         if c < -cfg.max_penetration:
             return self._refuse(now, f"cup {-c * 1e3:.1f} mm below the estimated surface without contact: "
                                      "the surface estimate is wrong")
-        if (why := self._footprint_problem()) is not None:
+        if (why := rules.footprint_problem(self._footprint, cfg)) is not None:
             look = self._second_look(state, c, now) if self.phase == Phase.APPROACH else None
             if look is not None:
                 return look
@@ -829,12 +760,23 @@ class PlacementMachine:
                     # go no faster than the slow band's speed, at which a touch stays gentle)
                     v = min(v, max(cfg.descend_speed,
                                    stoppable_speed(c - cfg.traverse_clearance, cfg.sensor_latency, cfg.accel)))
-                if np.any(side):  # moving back over the landing spot: the ground under the way is unseen
-                    if self._back > 0.5 * cfg.footprint_margin:  # (within half the margin: over the seen footprint)
-                        v = min(v, max(self._axial(c - cfg.traverse_clearance), 0.0))
-                    self._hint = "survey"
-                else:
-                    self._hint = self._motion_bucket(round(v, 3))
+                free = v
+                if np.any(side):
+                    # the speed limit holds for the whole move: the descent gets what the sideways part leaves
+                    # of approach_speed (rather than the arm scaling both down)
+                    v = min(v, math.sqrt(max(cfg.approach_speed ** 2 - float(side @ side), 0.0)))
+                    # moving back over the landing spot: the ground under the way is unseen
+                    over = OVER_FOOTPRINT * cfg.footprint_margin  # (closer: over the seen footprint)
+                    if self._back > over:
+                        # reach traverse_clearance no sooner than the way back comes within `over` (if the
+                        # sideways move stalls, the descent slows to a stop above traverse_clearance)
+                        t_side = self._lateral_time(self._back, over, float(np.linalg.norm(side)))
+                        room = c - cfg.traverse_clearance
+                        v = min(v, max(self._axial(room), room / t_side if room > 0 else 0.0, 0.0))
+                # budget: the survey's time is what it takes from the descent
+                # budget: what the survey takes from the descent is the survey's, the rest the descent's
+                self._hint = self._motion_bucket(round(free, 3))
+                self._survey_share = min(max(1.0 - v / free, 0.0), 1.0) if free > 0 else 0.0
                 return self._speed(np.round(side + round(v, 3) * down, 3), lateral=bool(np.any(side)))
             if np.any(side):  # back over the landing spot before the slow, final part of the descent
                 self._hint = "survey"
@@ -849,7 +791,8 @@ class PlacementMachine:
     def _on_check(self, state: RobotState, plane: FusedPlane | None, note: str | None, now: float) -> Command:
         """Stopped: gather fresh planes, then release, descend again or refuse."""
         cfg = self.config
-        why = self._plane_problem(plane, now, note) or self._sensor_problem(state, now, note)
+        why = (rules.plane_problem(plane, now, note, cfg, self.period, lambda: self._blind(note))
+               or rules.sensor_problem(state.last_frame_time, now, self._t_start, note, cfg))
         if why is not None:
             return self._refuse(now, why)
         fresh = len(self.post_stop_stamps(plane, now))
@@ -864,15 +807,16 @@ class PlacementMachine:
         c = self.last_clearance = self._clearance(plane, state)
         if not math.isfinite(c):
             return self._refuse(now, "cup clearance above the surface cannot be computed")
-        if (why := self._level_problem(plane)) is not None:
+        if (why := rules.level_problem(plane, cfg)) is not None:
             return self._refuse(now, why)
-        if (why := self._planar_problem(plane)) is not None:
+        if (why := rules.planar_problem(plane, cfg)) is not None:
             return self._refuse(now, why)
-        if (why := self._footprint_problem()) is not None:
+        if (why := rules.footprint_problem(self._footprint, cfg)) is not None:
             return self._refuse(now, why)
-        if cfg.footprint_frames and self._footprint_seen() < cfg.footprint_frames:
+        if cfg.footprint_frames and rules.footprint_seen(self._footprint) < cfg.footprint_frames:
             return self._refuse(now, f"no support evidence: the surface under the cup's footprint was seen on one "
-                                     f"plane in {self._footprint_seen()} frames (< {cfg.footprint_frames})")
+                                     f"plane in {rules.footprint_seen(self._footprint)} frames "
+                                     f"(< {cfg.footprint_frames})")
         cup = np.asarray(state.base_T_cup, dtype=float)
         cup_to_surface = math.acos(max(-1.0, min(1.0, float(cup[:3, 2] @ np.asarray(plane.normal_base, float)))))
         if not (cup_to_surface <= cfg.max_tilt):

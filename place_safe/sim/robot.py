@@ -41,6 +41,7 @@ from place_safe.robot.interface import Robot, RobotLimits, TrapezoidProfile, che
 from place_safe.robot.description import ur5_config
 
 from place_safe.sim.robot_model import ARM_JOINTS, FINGERS, load_robot_model, robot_spec  # noqa: F401
+from place_safe.drivers.ur5.config import MotionConfig
 from place_safe.drivers.ur5.fake_rtde import FORCE_NOISE, FORCE_OFFSET
 
 StepCallback = Callable[[mujoco.MjModel, mujoco.MjData, float], None]
@@ -91,6 +92,9 @@ class SimRobot(Robot):
         optionally with a common ``prefix``) and its data. ``None``: load the bare robot.
     limits:
         Motion/safety limits; default :class:`RobotLimits()`.
+    emergency_decel:
+        m/s^2: a stop asked harder than ``limits.max_linear_accel`` (an obstacle, a fault) decelerates at most
+        this hard, as the ur_rtde driver does (default: the robot file's ``motion.emergency_decel``, 2.0).
     q_init:
         Initial joint angles (6,), default the ``home`` of ``robots/ur5/config.json`` (gripper down).
         The arm is placed there at rest and, if ``hold_cup``, the cup and liquid are put in the gripper.
@@ -107,13 +111,16 @@ class SimRobot(Robot):
                  limits: RobotLimits | None = None, q_init: Any = None, hold_cup: bool = True,
                  prefix: str = "", control_period: float = 0.008, controller: str = "cb3",
                  force_noise: float | None = None, force_offset: Any = None, force_seed: int = 0,
-                 detector: DetectorSettings | None = None) -> None:
+                 detector: DetectorSettings | None = None, emergency_decel: float | None = None) -> None:
         if model is None:
             model, data = load_robot_model()
         elif data is None:
             data = mujoco.MjData(model)
         self.model, self.data = model, data
         self.limits = limits if limits is not None else RobotLimits()
+        # the hardest stop, as the ur_rtde driver gives it (a stop asked harder than max_linear_accel is an
+        # emergency stop at most at the robot file's motion.emergency_decel): never kinder than the real arm
+        self.emergency_decel = float(MotionConfig().emergency_decel if emergency_decel is None else emergency_decel)
         m = model
         p = prefix
 
@@ -596,7 +603,9 @@ class SimRobot(Robot):
             self._mode, self._motion = "speed", {"ref": self._base_T_site(self._tcp, sd), "t_last": self.time()}
         ref = self._reference_pose()
         self._mode = "speed"
-        self._motion = {"target": np.zeros(6), "accel": float(decel), "ref": ref, "stopping": True,
+        lim = self.limits.max_linear_accel
+        decel = float(decel) if decel <= lim else min(float(decel), self.emergency_decel)
+        self._motion = {"target": np.zeros(6), "accel": decel, "ref": ref, "stopping": True,
                         "t_last": self.time()}
         self._tick_left = 0
         if not asynchronous:

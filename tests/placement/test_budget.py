@@ -110,3 +110,44 @@ def test_every_sideways_command_respects_the_liquids_lateral_acceleration(height
         if c.kind == CommandKind.SPEED and np.linalg.norm(c.twist[:2]) > 0:
             assert c.accel <= m.config.lateral_accel + 1e-12
     assert m.finished
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(height=st.floats(0.22, 0.45), shift=st.floats(0.02, 0.08), angle=st.floats(-math.pi, math.pi))
+def test_the_survey_shares_the_speed_limit_and_keeps_above_unseen_ground(height, shift, angle):
+    """Out to see the footprint while descending and back over the landing spot: no command asks the arm
+    for more than approach_speed in all (sideways and down together), and after the footprint was certified
+    the cup goes below traverse_clearance only within OVER_FOOTPRINT of the margin of the landing spot."""
+    from place_safe.placement.machine import OVER_FOOTPRINT
+
+    w = FakeWorld(height=height)
+    start = w.pos.copy()
+    target = start + np.array([shift * math.cos(angle), shift * math.sin(angle), 0.0])
+    seen = {"n": 0}
+
+    def verdict():
+        off = target - w.pos
+        off[2] = 0.0
+        if float(np.linalg.norm(off)) < 0.003 and w.pos[2] <= 0.2:  # close and centred: frames certify it
+            seen["n"] += 1
+        n = min(seen["n"], 3)
+        return FootprintVerdict(observed=n, supported=n, in_view=True, view_margin=1.0, look_shift=off,
+                                certify_margin=float(w.pos[2]) - 0.2)
+
+    m = PlacementMachine()
+    cfg = m.config
+    low_and_away = []
+    farthest = 0.0
+    while not m.finished and w.t < 20.0:
+        w.apply(m.step(w.state(), w.plane(), None, verdict()))
+        away = float(np.linalg.norm((w.pos - start)[:2]))
+        farthest = max(farthest, away)
+        if seen["n"] >= 3 and away > OVER_FOOTPRINT * cfg.footprint_margin + 1e-3 \
+                and w.pos[2] < cfg.traverse_clearance - 1e-3:
+            low_and_away.append((w.t, away, float(w.pos[2])))
+    for c in w.commands:
+        if c.kind == CommandKind.SPEED:
+            assert float(np.linalg.norm(c.twist[:3])) <= cfg.approach_speed + 0.002  # (twists rounded to mm/s)
+    assert seen["n"] >= 3 and farthest > shift - 0.003  # it did go out and certify the footprint
+    assert not low_and_away, low_and_away[:3]
+    assert m.outcome == "released", m.reason

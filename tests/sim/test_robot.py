@@ -341,3 +341,15 @@ def test_joint_limit_during_speed_linear_faults_and_holds() -> None:
         robot.speed_linear([0, 0, 0, 0, 0, -0.8], accel=2.0, duration=2.0)  # tool points down: -wz turns wrist_3 up
     assert robot.is_faulted() and robot.holding()
     assert robot.joint_positions()[5] < 0.5 + 0.02
+
+
+def test_a_stop_asked_harder_than_the_arm_allows_is_an_emergency_stop_at_its_decel(robot: SimRobot) -> None:
+    """Like the ur_rtde driver: a stop asked harder than max_linear_accel decelerates at most at the robot
+    file's emergency_decel (2 m/s^2), never kinder (shorter) than the real arm's."""
+    robot.speed_linear([0, 0, 0.2, 0, 0, 0], accel=1.2)
+    robot.step(0.4)
+    p0 = robot.tcp_pose()[:3, 3].copy()
+    robot.stop(decel=10.0)
+    braking = float(np.linalg.norm(robot.tcp_pose()[:3, 3] - p0))
+    assert robot.emergency_decel == 2.0
+    assert braking >= 0.9 * 0.2 ** 2 / (2 * 2.0)  # 10 mm at 2 m/s^2 (1 mm at the 10 m/s^2 asked)

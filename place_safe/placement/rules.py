@@ -1,0 +1,187 @@
+"""The placement machine's rules: why the cup may not be released (or must be refused), as plain functions.
+
+Concept: each ``*_problem`` function takes what :class:`place_safe.placement.machine.PlacementMachine` knows
+on a tick (the fused plane, the robot state, the surface map's footprint verdict, the clock) and its
+placement config ``cfg`` (:class:`~place_safe.placement.machine.PlacementConfig`, or any object with the same
+fields), and returns a one-line reason, or None when the rule sees no problem. Every comparison fails
+closed: NaN, a missing attribute or a malformed value is a problem, never a pass. The machine decides what
+a problem leads to (refuse, abort, wait); the release rule itself is listed in the machine's docstring.
+
+Conventions: SI units (m, s, rad). The fused plane is a :class:`place_safe.fusion.plane_filter.FusedPlane`
+in the robot base frame; ``now`` and every stamp are on the robot clock.
+"""
+
+from __future__ import annotations
+
+import math
+from statistics import NormalDist
+from typing import Any, Callable
+
+import numpy as np
+
+from place_safe.fusion.plane_filter import FusedPlane
+from place_safe.recovery.too_close import TOO_CLOSE_REASON
+
+
+def number(v: Any) -> float | None:
+    """``v`` as a finite float, or None (bools, strings, NaN, inf and arrays are not numbers here)."""
+    if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
+        return None
+    v = float(v)
+    return v if math.isfinite(v) else None
+
+
+def too_close(note: str | None) -> bool:
+    """Whether the last frame's note says it was too close to read (:mod:`place_safe.recovery.too_close`)."""
+    return isinstance(note, str) and TOO_CLOSE_REASON in note
+
+
+def plane_problem(plane: FusedPlane | None, now: float, note: str | None, cfg: Any, period: float,
+                  blind: Callable[[], bool]) -> str | None:
+    """Why the fused plane cannot be used at robot time ``now``: missing, malformed, not finite, inconsistent,
+    stamped in the future (more than one control ``period``) or older than ``plane_timeout``. A plane up to
+    ``too_close_hold`` old still counts while ``blind()`` says the sensor is too close to read (called only
+    once the plane is otherwise valid; see :meth:`PlacementMachine._blind`). ``note`` says why the last frame
+    gave no plane and is quoted in the reason."""
+    if plane is None:
+        return "no surface plane" + (f" ({note})" if note else "")
+    try:
+        n = np.asarray(plane.normal_base, dtype=float)
+        vals = (float(plane.offset_base), float(plane.tilt_rad), float(plane.std_angle), float(plane.std_offset),
+                float(plane.stamp))
+    except (TypeError, ValueError, AttributeError):
+        return "fused plane is malformed"
+    if n.shape != (3,) or not np.all(np.isfinite(n)) or not all(math.isfinite(v) for v in vals):
+        return "fused plane is not finite"
+    if abs(float(np.linalg.norm(n)) - 1.0) > 1e-6:
+        return "fused plane normal is not a unit vector"
+    if not (0.0 <= plane.tilt_rad <= math.pi):
+        return f"fused plane tilt {plane.tilt_rad!r} rad is out of range [0, pi]"
+    if abs(math.acos(max(-1.0, min(1.0, float(n[2] / np.linalg.norm(n))))) - plane.tilt_rad) > 1e-6:
+        return "fused plane is inconsistent: its tilt does not match its normal"
+    if not (plane.std_angle >= 0.0 and plane.std_offset >= 0.0):
+        return "fused plane spread is negative"
+    age = now - plane.stamp
+    if age < -period:
+        return f"surface plane is stamped {-age:.3f} s in the future"
+    if blind() and age <= cfg.too_close_hold:
+        return None  # the sensor is too close to read: the farther frames' plane and the kinematics decide
+    if not (age <= cfg.plane_timeout):
+        return (f"surface plane is stale ({age:.2f} s old > {cfg.plane_timeout:.2f} s)"
+                + (f"; last frame: {note}" if note else ""))
+    return None
+
+
+def sensor_problem(last_frame_time: float | None, now: float, t_start: float, note: str | None,
+                   cfg: Any) -> str | None:
+    """Sensor timeout: no frame for more than ``sensor_timeout`` s before ``now`` (counted from ``t_start``,
+    the machine's first tick, until a frame has arrived)."""
+    ref = t_start if last_frame_time is None else float(last_frame_time)
+    if not (now - ref <= cfg.sensor_timeout):
+        return (f"sensor timeout: no frame for {now - ref:.2f} s (> {cfg.sensor_timeout:.2f} s)"
+                + (f"; {note}" if note else ""))
+    return None
+
+
+def planar_problem(plane: FusedPlane, cfg: Any) -> str | None:
+    """The fused estimates spread more than ``max_std_angle`` / ``max_std_offset`` (not one planar surface)."""
+    if not (plane.std_angle <= cfg.max_std_angle and plane.std_offset <= cfg.max_std_offset):
+        return (f"surface not planar or estimates inconsistent: spread {math.degrees(plane.std_angle):.2f} deg / "
+                f"{plane.std_offset * 1e3:.1f} mm (limits {math.degrees(cfg.max_std_angle):.1f} deg / "
+                f"{cfg.max_std_offset * 1e3:.1f} mm)")
+    return None
+
+
+def tilt_problem(plane: FusedPlane, limit: float, cfg: Any) -> str | None:
+    """The fused tilt exceeds ``limit`` rad (the reason quotes ``max_tilt``, the tilt a cup may stand on)."""
+    if not (plane.tilt_rad <= limit):
+        return (f"surface tilted {math.degrees(plane.tilt_rad):.1f} deg "
+                f"(> {math.degrees(cfg.max_tilt):.1f} deg allowed)")
+    return None
+
+
+def tilt_sigma(plane: FusedPlane) -> float:
+    """Standard error (rad) of the fused plane's tilt: ``plane.tilt_std`` from the estimates' covariances, or,
+    without them, the window's spread over sqrt(n)."""
+    s = getattr(plane, "tilt_std", math.nan)
+    spread = float(plane.std_angle) / math.sqrt(max(int(getattr(plane, "n", 1) or 1), 1))
+    return float(s) if isinstance(s, (int, float)) and math.isfinite(s) and s >= 0 else spread
+
+
+def confidence_margin(sigma: float, cfg: Any) -> float:
+    """rad between the fused tilt and its one-sided ``level_confidence`` bound, for tilt std ``sigma``."""
+    return NormalDist().inv_cdf(cfg.level_confidence) * sigma
+
+
+def level_problem(plane: FusedPlane, cfg: Any) -> str | None:
+    """Tilt not below ``max_tilt`` with ``level_confidence`` (one-sided normal bound on the tilt)."""
+    if (why := tilt_problem(plane, cfg.max_tilt, cfg)) is not None:
+        return why
+    sigma = tilt_sigma(plane)
+    bound = plane.tilt_rad + confidence_margin(sigma, cfg)
+    if not (bound <= cfg.max_tilt):
+        return (f"surface tilt {math.degrees(plane.tilt_rad):.2f} +- {math.degrees(sigma):.2f} deg is not below "
+                f"{math.degrees(cfg.max_tilt):.1f} deg with {cfg.level_confidence:.0%} confidence")
+    return None
+
+
+def confidently_tilted(plane: FusedPlane, cfg: Any) -> str | None:
+    """Refuse early (before descending onto it) a surface steeper than ``max_tilt`` with ``level_confidence``,
+    once the window holds ``check_frames`` planes."""
+    if int(getattr(plane, "n", 0) or 0) < cfg.check_frames:
+        return None
+    low = plane.tilt_rad - confidence_margin(tilt_sigma(plane), cfg)
+    if low > cfg.max_tilt:
+        return (f"surface tilted {math.degrees(plane.tilt_rad):.1f} deg (> {math.degrees(cfg.max_tilt):.1f} deg "
+                f"allowed, with {cfg.level_confidence:.0%} confidence)")
+    return None
+
+
+def footprint_problem(footprint: Any, cfg: Any) -> str | None:
+    """Why the landing footprint cannot take the cup, from the surface map's verdict ``footprint`` (None:
+    no problem seen, or nothing known yet, or ``footprint_frames`` = 0)."""
+    if cfg.footprint_frames == 0 or footprint is None:
+        return None
+    problem = getattr(footprint, "problem", None)
+    return f"no safe support under the cup: {problem}" if problem else None
+
+
+def footprint_seen(footprint: Any) -> int:
+    """Frames that saw the landing footprint supported by the fused surface (0 when unknown or malformed)."""
+    s = number(getattr(footprint, "supported", None))
+    return int(s) if s is not None else 0
+
+
+def check_frames_needed(plane: FusedPlane, cfg: Any) -> int:
+    """Post-stop measurements CHECK waits for: ``check_frames`` when the fused plane (frames taken while
+    slowing down included) lies well inside every limit -- its one-sided ``level_confidence`` tilt bound,
+    its angle and offset spreads all within half of ``max_tilt`` / ``max_std_angle`` / ``max_std_offset`` --
+    else ``max_check_frames`` (if larger). Never fewer than ``check_frames``."""
+    most = max(cfg.check_frames, cfg.max_check_frames)
+    try:
+        bound = plane.tilt_rad + confidence_margin(tilt_sigma(plane), cfg)
+        clear = (bound <= 0.5 * cfg.max_tilt and plane.std_angle <= 0.5 * cfg.max_std_angle
+                 and plane.std_offset <= 0.5 * cfg.max_std_offset)
+    except (TypeError, ValueError, AttributeError):
+        clear = False
+    return cfg.check_frames if clear else most
+
+
+def post_stop_stamps(plane: FusedPlane, now: float, t_stop: float | None, cfg: Any) -> list[float]:
+    """Distinct measurement times in the fused plane taken after the stop at ``t_stop`` (+ ``check_settle``)
+    and not after ``now`` (empty when there was no stop, ``t_stop`` None)."""
+    if t_stop is None:
+        return []
+    lo = t_stop + cfg.check_settle
+    stamps = getattr(plane, "stamps", None) or ()
+    out = set()
+    for s in stamps:
+        v = number(s)
+        if v is not None and lo <= v <= now + 1e-9:
+            out.add(v)
+    return sorted(out)
+
+
+__all__ = ["number", "too_close", "plane_problem", "sensor_problem", "planar_problem", "tilt_problem",
+           "tilt_sigma", "confidence_margin", "level_problem", "confidently_tilted", "footprint_problem",
+           "footprint_seen", "check_frames_needed", "post_stop_stamps"]
