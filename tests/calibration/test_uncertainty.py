@@ -118,3 +118,7 @@ def test_a_frame_no_method_reads_does_not_break_the_diff_uncertainty(sweep_path)
     assert unc.chi2_limit > 0.0 and report["frames_using_diff"] + report["frames_using_peak"] == len(frames)
     assert math.isfinite(report["point_mm"]["selected"]) and report["folds"] >= 2
     assert unc.prefer_ratio in PREFER_RATIOS and unc.consistency_limit < math.inf
+    # a level sweep cannot show diff's tilt error either: the diff section carries the stated terms
+    from place_safe.calibration.uncertainty import DIFF_TILT_OFFSET_REL, DIFF_TILT_PIVOT, DIFF_TILT_REL
+    assert (unc.tilt_rel, unc.tilt_offset_rel, unc.tilt_pivot) == (DIFF_TILT_REL, DIFF_TILT_OFFSET_REL, DIFF_TILT_PIVOT)
+    assert DIFF_TILT_REL > 0 and DIFF_TILT_OFFSET_REL > 0
