@@ -25,7 +25,13 @@ are correlated (a distortion that looks like a tilt), which independent zone err
 A level sweep cannot show what a tilt does to ``peak``: each zone's return spreads over its footprint and
 the peak method reads the slope short (on mismatched units 0.06-0.08 rad per unit ``tan(tilt)``, 1.4 deg mean
 at 0-30 deg, where its level-calibrated covariance said 0.03 deg). Its covariance gets the stated tilt term
-``Uncertainty.tilt_rel =`` :data:`PEAK_TILT_REL` per tilt component.
+``Uncertainty.tilt_rel =`` :data:`PEAK_TILT_REL` per tilt component. Diff's level-calibrated covariance is
+overconfident on tilts too (mean NEES per dof 4.7-30 on tilted frames of level-calibrated units): its covariance
+gets the stated terms :data:`DIFF_TILT_REL`, :data:`DIFF_TILT_OFFSET_REL` and :data:`DIFF_TILT_PIVOT` when the
+calibration frames are level (their tilts spread less than
+:data:`~place_safe.calibration.points.MIN_TILT_SPREAD`); calibration frames with tilts show the tilt error, and the
+floor and scale fitted on them hold it (with the stated term on top as well, the independent generator's tilted
+calibration gave a held-out NEES per dof of 0.64).
 
 For ``diff`` the fallback to peak is a safety net chosen on held-out frames (:func:`select_fallback`): a
 frame falls back when its residual chi-square is above ``chi2_limit``, when the two estimates contradict each
@@ -56,7 +62,7 @@ from place_safe.sensor.frame import Frame
 from place_safe.calibration.near_range import held_out_fits, near_range_std
 from place_safe.exceptions import FrameError, NoPlaneError
 from place_safe.recovery.points import plane_through
-from place_safe.calibration.points import MIN_CALIBRATION_RANGE
+from place_safe.calibration.points import MIN_CALIBRATION_RANGE, MIN_TILT_SPREAD
 from place_safe.recovery.differentiable import DifferentiableEstimator
 from place_safe.recovery.peak import PeakEstimator
 
@@ -130,6 +136,23 @@ CONSISTENCY_LIMIT = 16.27
 #: mismatched units A and B 0.047 and 0.048; the unit A's own calibrated forward model, rendered tilted, 0.046;
 #: the independent generator 0.023. A level sweep shows none of it, so it is stated, not fitted.
 PEAK_TILT_REL = 0.05
+
+#: Tilt term of diff's covariance (:meth:`~place_safe.recovery.estimator.Uncertainty.tilt_floor`) for level
+#: calibration frames: each tilt component's std per unit tan(tilt), the plane turning about the sensor (pivot 0:
+#: the offset's error on tilted frames follows the tilt's only in part, a fitted pivot of 0.3-0.9 z0 leaves
+#: 0.06-0.17 mm of it over), and an independent offset std per unit z0 tan(tilt). Measured RMS over frames tilted
+#: 3-30 deg, 5-30 cm, of level-calibrated units (per tilt component / offset): the independent generator 0.017
+#: and 0.012 / 0.0031, mismatched unit A 0.006 and 0.006 / 0.0022, unit B 0.007 and 0.009 / 0.0041. With these
+#: values diff's mean NEES per dof on those frames is 1.2 (generator), 0.4 (A) and 1.6 (B), against 30, 4.7 and
+#: 17 without the term (A and B need offset terms on either side of 0.0013: one value cannot put both in 0.5-2).
+#: Where the tilt error comes from: each zone's footprint is wide (std 0.05 rad about a centre 0.18 rad off axis);
+#: a level sweep shows the zones' mean squared off-axis angle, the slope needs their mean angle, and the two differ
+#: by the footprint's spread, which the model weighs differently from a unit (the generator's pixels, fill factor
+#: and cos^4 fall-off: the fitted fields of view read its tilts 2 % short). A level sweep shows none of it, so it
+#: is stated, not fitted.
+DIFF_TILT_REL = 0.015
+DIFF_TILT_OFFSET_REL = 0.0015
+DIFF_TILT_PIVOT = 0.0
 
 #: Folds of the cross-validation that chooses diff's fallback limits (:func:`select_fallback`).
 CV_FOLDS = 3
@@ -427,8 +450,15 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
         ratio = (mine / theirs) ** 2 if mine is not None and theirs else math.nan
         return test.consistent(e, peak[i]), ratio
 
+    # the stated tilt term where the frames cannot show diff's tilt error (a level sweep); frames whose tilts spread
+    # MIN_TILT_SPREAD or more show it, and the floor and scale fitted on them hold it
+    tilts = [math.acos(min(1.0, abs(float(t.normal[2])))) for t in truths]
+    level = not tilts or float(np.ptp(tilts)) < MIN_TILT_SPREAD
+    tilt_term = (Uncertainty(tilt_rel=DIFF_TILT_REL, tilt_offset_rel=DIFF_TILT_OFFSET_REL, tilt_pivot=DIFF_TILT_PIVOT)
+                 if level else Uncertainty())
+
     def floor_from(rows: np.ndarray) -> Uncertainty:
-        return fit_floor([diff[i] for i in rows if own[i]], [truths[i] for i in rows if own[i]])[0]
+        return fit_floor([diff[i] for i in rows if own[i]], [truths[i] for i in rows if own[i]], tilt_term)[0]
 
     n = len(use)
     folds = min(CV_FOLDS, n // 2)
@@ -446,7 +476,8 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
         limit, prefer, table = max(candidates), 1.0, []
     under = [i for i in range(n) if own[i] and chi2[i] <= limit]
     unc, rep = fit_floor([diff[i] for i in under], [truths[i] for i in under],
-                         Uncertainty(chi2_limit=limit, consistency_limit=CONSISTENCY_LIMIT, prefer_ratio=prefer))
+                         replace(tilt_term, chi2_limit=limit, consistency_limit=CONSISTENCY_LIMIT,
+                                 prefer_ratio=prefer))
     use_diff = (chi2 <= limit) & consistent & ~(ratio > prefer)
     sel = np.where(use_diff[:, None], e_diff, e_peak)
 
@@ -454,6 +485,8 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
         return float(np.mean(a[np.isfinite(a)])) * scale if np.any(np.isfinite(a)) else math.nan
 
     rep.update({"chi2_limit": None if math.isinf(limit) else limit, "prefer_ratio": prefer, "folds": folds,
+                "tilt_term": ("stated: the frames' tilts spread less than MIN_TILT_SPREAD" if level else
+                              "none: the frames' tilts spread MIN_TILT_SPREAD or more, the floor holds the tilt error"),
                 "held_out": "frames_using_diff, angular_deg and point_mm: each frame with the floor of the other folds",
                 "frames_using_diff": int(np.sum(use_diff)), "frames_using_peak": int(np.sum(~use_diff)),
                 "frames_inconsistent_with_peak": int(np.sum(~consistent)),
@@ -481,4 +514,5 @@ def update_calibration(cal, frames: Sequence[Frame], method: str) -> dict:
 
 
 __all__ = ["update_calibration", "nees", "fit_floor", "fit_peak_uncertainty", "fit_diff_uncertainty", "select_fallback",
-           "chi2_candidates", "near_std_law", "fit_near_law", "NEAR_REFERENCE_DEPTH", "CONSISTENCY_LIMIT", "PEAK_TILT_REL", "CV_FOLDS", "PREFER_RATIOS"]
+           "chi2_candidates", "near_std_law", "fit_near_law", "NEAR_REFERENCE_DEPTH", "CONSISTENCY_LIMIT", "PEAK_TILT_REL",
+           "DIFF_TILT_REL", "DIFF_TILT_OFFSET_REL", "DIFF_TILT_PIVOT", "CV_FOLDS", "PREFER_RATIOS"]

@@ -62,8 +62,11 @@ class Uncertainty:
 
     ``tilt_rel`` (dimensionless, 0 .. 1): what a tilted plane adds that a level sweep cannot show, each tilt
     component's standard deviation per unit ``tan(tilt)`` of the estimated plane, added (outside ``scale``)
-    as the variance ``(tilt_rel tan(tilt))^2`` on both tilt components, the plane turning about its optical-axis
-    crossing (:meth:`tilt_floor`). ``prefer_ratio``
+    as the variance ``(tilt_rel tan(tilt))^2`` on both tilt components, the plane turning about the point
+    ``tilt_pivot z0`` along the optical axis (dimensionless, 0 .. 2; 1: its optical-axis crossing ``z0``, 0: about
+    the sensor, so ``d`` does not move), and ``tilt_offset_rel`` (dimensionless, 0 .. 1) adds the variance
+    ``(tilt_offset_rel z0 tan(tilt))^2`` on the offset, independent of the tilt components (:meth:`tilt_floor`).
+    ``prefer_ratio``
     (> 0; ``inf`` = no comparison): ``diff`` keeps its own plane only where its tilt variance (worst axis of
     the (n_x, n_y) block) is at most ``prefer_ratio`` times the peak estimate's, so it falls back where its
     covariance says peak reads the slope better (:meth:`prefers`). The defaults (no floor, no fallback,
@@ -81,14 +84,18 @@ class Uncertainty:
     near_range_std: list[float] = field(default_factory=list)
     tilt_rel: float = 0.0
     prefer_ratio: float = math.inf
+    tilt_pivot: float = 1.0
+    tilt_offset_rel: float = 0.0
 
     def __post_init__(self) -> None:
         vals = (self.tilt_std, self.offset_std, self.tilt_range_std, self.offset_rel)
         if not all(math.isfinite(v) and v >= 0 for v in vals) or not self.chi2_limit >= 0 \
                 or not (math.isfinite(self.scale) and self.scale > 0) or not self.consistency_limit > 0 \
-                or not 0.0 <= self.tilt_rel <= 1.0 or not self.prefer_ratio > 0:
+                or not 0.0 <= self.tilt_rel <= 1.0 or not self.prefer_ratio > 0 \
+                or not 0.0 <= self.tilt_pivot <= 2.0 or not 0.0 <= self.tilt_offset_rel <= 1.0:
             raise ValueError("uncertainty needs finite floors >= 0, chi2_limit >= 0, consistency_limit > 0, a "
-                             "finite scale > 0, tilt_rel in [0, 1] and prefer_ratio > 0")
+                             "finite scale > 0, tilt_rel and tilt_offset_rel in [0, 1], tilt_pivot in [0, 2] and "
+                             "prefer_ratio > 0")
         self.near_depths = [float(v) for v in self.near_depths]
         self.near_range_std = [float(v) for v in self.near_range_std]
         k = len(self.near_depths)
@@ -126,21 +133,26 @@ class Uncertainty:
         """The reported covariance of an estimate at ``offset`` (m) with unit ``normal`` (None: level; for the tilt
         term) whose fit gave ``covariance``."""
         out = self.scale * (np.asarray(covariance, dtype=float) + self.floor(offset))
-        return out if normal is None or self.tilt_rel == 0.0 else out + self.tilt_floor(normal, offset)
+        if normal is None or (self.tilt_rel == 0.0 and self.tilt_offset_rel == 0.0):
+            return out
+        return out + self.tilt_floor(normal, offset)
 
     def tilt_floor(self, normal, offset: float) -> np.ndarray:
         """The covariance (3, 3) of ``(n_x, n_y, d)`` a plane with unit ``normal`` at ``offset`` (m) adds:
         variance ``(tilt_rel tan(tilt))^2`` on each tilt component (tilt capped at 80 deg), the plane turning
-        about the point where it crosses the optical axis (``z0 = d / n_z``), so ``d`` moves by
-        ``-z0 (n_x dn_x + n_y dn_y) / n_z``. Scalar arithmetic: it is on the peak method's per-frame path."""
+        about the point ``tilt_pivot z0`` on the optical axis (``z0 = d / n_z``), so ``d`` moves by
+        ``-tilt_pivot z0 (n_x dn_x + n_y dn_y) / n_z``, and ``(tilt_offset_rel z0 tan(tilt))^2`` on ``d`` alone.
+        Scalar arithmetic: it is on the peak method's per-frame path."""
         nx, ny, nz = (float(v) for v in normal)
         if not (math.isfinite(nx) and math.isfinite(ny) and math.isfinite(nz) and math.isfinite(offset)):
             nx, ny, nz, offset = 0.0, 0.0, _COS_MAX_TILT, 0.0
         nz = min(max(nz, _COS_MAX_TILT), 1.0)
-        v = self.tilt_rel * self.tilt_rel * max(1.0 - nz * nz, 0.0) / (nz * nz)  # (tilt_rel tan(tilt))^2
-        k = -float(offset) / (nz * nz)  # -z0 / n_z
+        tan2 = max(1.0 - nz * nz, 0.0) / (nz * nz)
+        v = self.tilt_rel * self.tilt_rel * tan2  # (tilt_rel tan(tilt))^2
+        k = -self.tilt_pivot * float(offset) / (nz * nz)  # -tilt_pivot z0 / n_z
         jx, jy = k * nx, k * ny
-        return np.array([[v, 0.0, v * jx], [0.0, v, v * jy], [v * jx, v * jy, v * (jx * jx + jy * jy)]])
+        vd = (self.tilt_offset_rel * float(offset) / nz) ** 2 * tan2  # (tilt_offset_rel z0 tan(tilt))^2
+        return np.array([[v, 0.0, v * jx], [0.0, v, v * jy], [v * jx, v * jy, v * (jx * jx + jy * jy) + vd]])
 
     def floor(self, offset: float) -> np.ndarray:
         """The model-error covariance (3, 3) added to an estimate at distance ``offset`` (m)."""
@@ -167,7 +179,8 @@ class Uncertainty:
         d["prefer_ratio"] = None if math.isinf(self.prefer_ratio) else float(self.prefer_ratio)
         if not self.near_depths:
             del d["near_depths"], d["near_range_std"]
-        for key, default in (("tilt_rel", 0.0), ("prefer_ratio", None)):  # files older versions read
+        for key, default in (("tilt_rel", 0.0), ("prefer_ratio", None), ("tilt_pivot", 1.0),
+                             ("tilt_offset_rel", 0.0)):  # files older versions read
             if d[key] == default:
                 del d[key]
         return d
@@ -177,7 +190,7 @@ class Uncertainty:
         d = dict(d)
         lists = ("near_depths", "near_range_std")
         unknown = set(d) - {"tilt_std", "offset_std", "chi2_limit", "tilt_range_std", "offset_rel", "scale",
-                            "consistency_limit", "tilt_rel", "prefer_ratio", *lists}
+                            "consistency_limit", "tilt_rel", "prefer_ratio", "tilt_pivot", "tilt_offset_rel", *lists}
         if unknown:
             raise ValueError(f"unknown keys {', '.join(sorted(unknown))}")
         for key in ("chi2_limit", "consistency_limit", "prefer_ratio"):

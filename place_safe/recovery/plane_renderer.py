@@ -162,7 +162,7 @@ class PlaneRenderer:
         width = conv.shape[-1]
         t = np.arange(width)[None, None, None, :] - u[..., None]          # (B, 9, R, W)
         G = np.exp(-0.5 * self.inv_sigma2 * t * t) * self.gnorm
-        T = np.einsum("bzr,bzrw->bzw", amp, G)
+        T = np.matmul(amp[:, :, None, :], G)[:, :, 0]  # sum over rays (a matmul: einsum is slower at these shapes)
         if self.glass is not None:  # the cover glass: the same return in every frame (no derivative in x)
             tg = np.arange(width)[None, :] - self.glass_u[:, None]
             T = T + (self.glass[:, None] * np.exp(-0.5 * self.inv_sigma2 * tg * tg) * self.gnorm)[None]
@@ -230,7 +230,7 @@ class PlaneRenderer:
             A = np.concatenate([A, A_e], axis=2)
             B = np.concatenate([B, B_e], axis=2)
         Gt = G * t * self.inv_sigma2
-        dT = np.einsum("bzrk,bzrw->bzwk", A, G) + np.einsum("bzrk,bzrw->bzwk", B, Gt)
+        dT = np.matmul(G.swapaxes(2, 3), A) + np.matmul(Gt.swapaxes(2, 3), B)  # (B, 9, W, k), sums over rays
         dF = self._mix(self._tail(np.matmul(conv[:, None], dT)), axis_zone=1)
         if self.shaped:
             dF = dF * F_ok[..., None]

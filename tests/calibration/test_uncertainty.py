@@ -118,6 +118,25 @@ def test_a_frame_no_method_reads_does_not_break_the_diff_uncertainty(sweep_path)
     assert unc.chi2_limit > 0.0 and report["frames_using_diff"] + report["frames_using_peak"] == len(frames)
     assert math.isfinite(report["point_mm"]["selected"]) and report["folds"] >= 2
     assert unc.prefer_ratio in PREFER_RATIOS and unc.consistency_limit < math.inf
+    # a level sweep cannot show diff's tilt error either: the diff section carries the stated terms
+    from place_safe.calibration.uncertainty import DIFF_TILT_OFFSET_REL, DIFF_TILT_PIVOT, DIFF_TILT_REL
+    assert (unc.tilt_rel, unc.tilt_offset_rel, unc.tilt_pivot) == (DIFF_TILT_REL, DIFF_TILT_OFFSET_REL, DIFF_TILT_PIVOT)
+    assert DIFF_TILT_REL > 0 and DIFF_TILT_OFFSET_REL > 0
+
+
+def test_tilted_calibration_frames_hold_diffs_tilt_error_without_the_stated_term():
+    """Frames whose tilts spread 5 deg or more show diff's tilt error: the floor fitted on them holds it, and the
+    stated term (for level sweeps) is not added on top."""
+    from place_safe.calibration.uncertainty import fit_diff_uncertainty
+    from place_safe.evaluation.independent import make_frames
+    from place_safe.recovery.forward import ForwardParams
+    from place_safe.recovery.points import PeakParams
+
+    frames = make_frames(8, seed=1)
+    tilts = [math.acos(abs(float(f.truth.normal[2]))) for f in frames]
+    assert np.ptp(tilts) >= math.radians(5.0)
+    unc, report = fit_diff_uncertainty(frames, ForwardParams(), PeakParams.default_peak())
+    assert unc.tilt_rel == 0.0 and unc.tilt_offset_rel == 0.0 and report["tilt_term"].startswith("none")
 
 
 # -- the peak method's near-range law (issue 26) ------------------------------------------------------------------

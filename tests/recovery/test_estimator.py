@@ -74,13 +74,36 @@ def test_tilt_term_is_zero_level_and_turns_the_plane_about_its_axis_crossing():
     assert c[0, 2] == pytest.approx(-c[0, 0] * z0 * math.tan(t))
 
 
+def test_tilt_pivot_and_offset_term():
+    """Pivot 0: the plane turns about the sensor (d does not follow the tilt); the offset term is independent."""
+    t = math.radians(20.0)
+    n = np.array([math.sin(t), 0.0, math.cos(t)])
+    z0 = 0.2 / math.cos(t)
+    c = Uncertainty(tilt_rel=0.02, tilt_pivot=0.0, tilt_offset_rel=0.003).tilt_floor(n, 0.2)
+    assert c[0, 0] == pytest.approx((0.02 * math.tan(t)) ** 2) and c[0, 2] == 0.0 and c[1, 2] == 0.0
+    assert c[2, 2] == pytest.approx((0.003 * z0 * math.tan(t)) ** 2)
+    half = Uncertainty(tilt_rel=0.02, tilt_pivot=0.5).tilt_floor(n, 0.2)
+    assert half[0, 2] == pytest.approx(-0.5 * half[0, 0] * z0 * math.tan(t))
+    only = Uncertainty(tilt_offset_rel=0.003)  # the offset term alone acts too
+    assert only.apply(np.zeros((3, 3)), 0.2, n)[2, 2] == pytest.approx(c[2, 2])
+    assert np.all(only.apply(np.zeros((3, 3)), 0.2, np.array([0.0, 0.0, 1.0])) == 0.0)
+    u = Uncertainty(tilt_rel=0.01, tilt_pivot=0.0, tilt_offset_rel=0.002)
+    assert Uncertainty.from_dict(json.loads(json.dumps(u.to_dict()))) == u
+    assert "tilt_pivot" not in Uncertainty().to_dict() and "tilt_offset_rel" not in Uncertainty().to_dict()
+    assert Uncertainty.from_dict({}).tilt_pivot == 1.0  # older files: peak's pivot about the axis crossing
+    for bad in ({"tilt_pivot": -0.1}, {"tilt_pivot": 3.0}, {"tilt_offset_rel": 2.0}, {"tilt_offset_rel": math.nan}):
+        with pytest.raises(ValueError):
+            Uncertainty(**bad)
+
+
 @settings(max_examples=60, deadline=None)
-@given(st.floats(0.0, 1.0), st.floats(0.0, 1.5), st.floats(-math.pi, math.pi), st.floats(1e-3, 5.0))
-def test_tilt_term_only_adds_uncertainty(rel, theta, phi, offset):
+@given(st.floats(0.0, 1.0), st.floats(0.0, 1.5), st.floats(-math.pi, math.pi), st.floats(1e-3, 5.0),
+       st.floats(0.0, 2.0), st.floats(0.0, 1.0))
+def test_tilt_term_only_adds_uncertainty(rel, theta, phi, offset, pivot, offset_rel):
     """Safety invariant: the tilt term is a finite positive semi-definite covariance, so it never makes an
     estimate claim more certainty than without it."""
     n = np.array([math.sin(theta) * math.cos(phi), math.sin(theta) * math.sin(phi), math.cos(theta)])
-    c = Uncertainty(tilt_rel=rel).tilt_floor(n, offset)
+    c = Uncertainty(tilt_rel=rel, tilt_pivot=pivot, tilt_offset_rel=offset_rel).tilt_floor(n, offset)
     assert np.all(np.isfinite(c)) and np.allclose(c, c.T)
     assert np.linalg.eigvalsh(c).min() >= -1e-12 * max(1.0, np.abs(c).max())
 
