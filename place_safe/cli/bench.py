@@ -36,20 +36,15 @@ def cmd_sim_bench(args: argparse.Namespace) -> int:
 
 
 def add_sim_bench(sub) -> None:
-    b = sub.add_parser("sim", formatter_class=FMT, help="real-time factor of physics + simulated sensor in lockstep",
-                       description="Steps the scene for --seconds of sim time with the sensor measuring at --rate Hz "
-                                   "in lockstep and reports the real-time factor (sim time / wall time). Target >= 5. "
-                                   "Needs the [sim] extra.",
-                       epilog="example:\n  place-safe bench sim --seconds 5 --rate 30")
-    b.add_argument("--scene", help="scene JSON (default: level table)")
-    b.add_argument("--rig", action="store_true", help="sensor rig only (no robot); default: the UR5 holding the cup")
-    b.add_argument("--seconds", type=options.float_range(0.0, 3600.0, lo_open=True), default=5.0,
-                   help="sim seconds to run (default 5)")
-    rate = options.field_option("place_safe.sim.tof:ToFConfig", "rate_hz", "sensor frame rate, default 30")
-    rays = options.field_option("place_safe.sim.tof:ToFConfig", "rays", "stratified rays per axis and zone, default 8")
-    b.add_argument("--rate", type=rate, default=30.0, help=rate.help)
-    b.add_argument("--rays", type=rays, default=8, help=rays.help)
-    b.set_defaults(func=cmd_sim_bench)
+    options.command(
+        sub, "sim", cmd_sim_bench, "real-time factor of physics + simulated sensor in lockstep",
+        "Steps the scene for --seconds of sim time with the sensor measuring at --rate Hz in lockstep and reports the "
+        "real-time factor (sim time / wall time). Target >= 5. Needs the [sim] extra.",
+        ["place-safe bench sim --seconds 5 --rate 30"],
+        options.opt("--scene", help="scene JSON (default: level table)"),
+        options.opt("--rig", action="store_true", help="sensor rig only (no robot); default: the UR5 holding the cup"),
+        "seconds", "rate_hz", "rays",
+        seconds={"default": 5.0, "metavar": None, "help": "sim seconds to run (default 5)"})
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

@@ -164,8 +164,6 @@ def uncalibrated_note(methods: str | Sequence[str], calibration, path: str | Non
 
 
 def estimator_for(method: str, calibration, mode: str | None = None):
-    from place_safe.recovery import make_estimator
-
     options = {"mode": mode} if (method == "diff" and mode) else {}
     return make_estimator(method, calibration, **options)
 
