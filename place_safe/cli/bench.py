@@ -26,8 +26,12 @@ def cmd_sim_bench(args: argparse.Namespace) -> int:
     if importlib.util.find_spec("mujoco") is None:
         raise UsageError("bench sim: the simulation needs MuJoCo, which is not installed: install the [sim] extra, "
                          "e.g. pip install -e \".[sim]\"")
-    from place_safe.sim.bench import bench
+    from place_safe.sim.bench import bench, benchmark
 
+    if args.bare:
+        for key, value in benchmark(args.seconds).items():
+            print(f"{key}: {value:.1f}")
+        return 0
     res = bench(args.scene, args.rig, args.seconds, args.rate, args.rays)
     print(f"{res['sim_seconds']:.2f} s sim in {res['wall_seconds']:.2f} s wall: real-time factor "
           f"{res['real_time_factor']:.1f}x ({res['frames']} sensor frames at {args.rate:g} Hz, "
@@ -39,10 +43,13 @@ def add_sim_bench(sub) -> None:
     options.command(
         sub, "sim", cmd_sim_bench, "real-time factor of physics + simulated sensor in lockstep",
         "Steps the scene for --seconds of sim time with the sensor measuring at --rate Hz in lockstep and reports the "
-        "real-time factor (sim time / wall time). Target >= 5. Needs the [sim] extra.",
-        ["place-safe bench sim --seconds 5 --rate 30"],
+        "real-time factor (sim time / wall time). Target >= 5. With --bare: the bare robot's physics alone (physics "
+        "steps/s and real-time factor, holding and during a 0.1 m/s linear move). Needs the [sim] extra.",
+        ["place-safe bench sim --seconds 5 --rate 30", "place-safe bench sim --bare --seconds 2"],
         options.opt("--scene", help="scene JSON (default: level table)"),
         options.opt("--rig", action="store_true", help="sensor rig only (no robot); default: the UR5 holding the cup"),
+        options.opt("--bare", action="store_true", help="the bare robot without scene or sensor: physics steps/s, "
+                                                        "holding and moving"),
         "seconds", "rate_hz", "rays",
         seconds={"default": 5.0, "metavar": None, "help": "sim seconds to run (default 5)"})
 
