@@ -53,9 +53,9 @@ from place_safe.evaluation.metrics import angular_errors, nees, point_errors  # 
 from place_safe.recovery.estimator import PlaneEstimate, Uncertainty, tilt_offset
 from place_safe.recovery.too_close import TOO_CLOSE_REASON
 from place_safe.sensor.frame import Frame
-from place_safe.calibration.near_range import near_range_std
+from place_safe.calibration.near_range import held_out_tables, near_range_std
 from place_safe.calibration.points import MIN_CALIBRATION_RANGE
-from place_safe.recovery.differentiable import DifferentiableEstimator
+from place_safe.recovery.differentiable import NEAR_FALLBACK_RANGE, DifferentiableEstimator
 from place_safe.recovery.peak import PeakEstimator
 
 
@@ -197,9 +197,6 @@ def fit_peak_uncertainty(frames: Sequence[Frame], peak_params, min_range: float 
     with data on both sides. On level-sweep calibrations of two simulated mismatched units (5 mm-40 cm) the
     factor (1.1-1.5) took the 2-5 cm NEES per dof of held-out level frames from 0.55 / 0.86 to 0.38 / 0.51; on the
     real halves it took 5-9 cm below 0.5."""
-    from place_safe.calibration.near_range import near_range_std
-    from place_safe.calibration.points import MIN_CALIBRATION_RANGE
-    from place_safe.recovery.peak import PeakEstimator
 
     lo = MIN_CALIBRATION_RANGE if min_range is None else float(min_range)
     depths, stds, near = near_range_std(frames, peak_params)
@@ -234,7 +231,6 @@ def _held_out_near(frames: Sequence[Frame], closer: Sequence[Frame], peak_params
     again without that frame (:func:`~place_safe.calibration.near_range.held_out_tables`: same knots, so the frame
     sits between knots as a new frame does), so the frame's plane is held out from the table that reads it.
     Without a table (or where the refit is unusable) ``peak_params`` as they are."""
-    from place_safe.calibration.near_range import held_out_tables
 
     tables = held_out_tables(frames, peak_params) if peak_params.near_depths else {}
     return [(f, tables.get(id(f), peak_params)) for f in closer]
@@ -247,7 +243,6 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
     solver's defaults): they depend on the bins the solver fits. The limits are chosen on held-out frames
     (module doc); the report gives the held-out figures (``angular_deg``, ``point_mm``: diff's own plane, peak's
     and the one returned; ``frames_using_diff``) and every candidate's score."""
-    from place_safe.recovery.differentiable import NEAR_FALLBACK_RANGE, DifferentiableEstimator
 
     # closer frames always get peak's plane (NEAR_FALLBACK_RANGE): they take no part in choosing the limits
     use = [f for f in frames if f.truth is not None and f.truth.z0 >= NEAR_FALLBACK_RANGE]

@@ -39,13 +39,18 @@ def cmd_sim_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+#: ``bench sim --help``: what it measures
+SIM_BENCH_ABOUT = ("Steps the scene for --seconds of sim time with the sensor measuring at --rate Hz in lockstep and "
+                   "reports the real-time factor (sim time / wall time). Target >= 5. With --bare: the bare robot's "
+                   "physics alone (physics steps/s and real-time factor, holding and during a 0.1 m/s linear move). "
+                   "Needs the [sim] extra.")
+
+
 def add_sim_bench(sub) -> None:
+    examples = ["place-safe bench sim --seconds 5 --rate 30", "place-safe bench sim --bare --seconds 2"]
     options.command(
-        sub, "sim", cmd_sim_bench, "real-time factor of physics + simulated sensor in lockstep",
-        "Steps the scene for --seconds of sim time with the sensor measuring at --rate Hz in lockstep and reports the "
-        "real-time factor (sim time / wall time). Target >= 5. With --bare: the bare robot's physics alone (physics "
-        "steps/s and real-time factor, holding and during a 0.1 m/s linear move). Needs the [sim] extra.",
-        ["place-safe bench sim --seconds 5 --rate 30", "place-safe bench sim --bare --seconds 2"],
+        sub, "sim", cmd_sim_bench, "real-time factor of physics + simulated sensor in lockstep", SIM_BENCH_ABOUT,
+        examples,
         options.opt("--scene", help="scene JSON (default: level table)"),
         options.opt("--rig", action="store_true", help="sensor rig only (no robot); default: the UR5 holding the cup"),
         options.opt("--bare", action="store_true", help="the bare robot without scene or sensor: physics steps/s, "

@@ -9,6 +9,8 @@ from __future__ import annotations
 import argparse
 
 from place_safe.exceptions import FrameFileError, PlaceSafeError
+from place_safe.cli import options
+from place_safe.cli.common import UNCALIBRATED_MARK, load_calibration, not_a_file, uncalibrated_note
 
 EPILOG = """examples:
   place-safe synth --frames 100 --seed 7 -o out/speed.json
@@ -18,7 +20,6 @@ EPILOG = """examples:
 
 def add_latency_bench(subparsers) -> None:
     """``place-safe bench latency`` on the ``bench`` sub-parsers."""
-    from place_safe.cli import options
 
     options.command(
         subparsers, "latency", cmd_latency, "per-frame wall time of `recover` measured from outside (median, p95)",
@@ -34,7 +35,6 @@ def cmd_latency(args: argparse.Namespace) -> int:
     import json
     from pathlib import Path
 
-    from place_safe.cli.common import UNCALIBRATED_MARK, load_calibration, not_a_file, uncalibrated_note
     from place_safe.evaluation.bench import measure_recover_latency
     if (why := not_a_file(args.file)) is not None:
         raise FrameFileError(f"frame file {args.file} {why}")

@@ -18,6 +18,7 @@ from typing import Any
 
 from place_safe.cli.common import FMT
 from place_safe.recovery import METHODS
+from place_safe.config import field_constraints, field_range_text
 
 
 def _number(text: str, kind: type = float):
@@ -108,8 +109,6 @@ def field_option(model: str, name: str, what: str):
     def resolve():
         import importlib
         import typing
-
-        from place_safe.config import field_constraints, field_range_text
 
         module, _, cls = model.partition(":")
         m = getattr(importlib.import_module(module), cls)

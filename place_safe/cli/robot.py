@@ -21,6 +21,11 @@ from place_safe.cli.options import opt
 from place_safe.cli.common import CALIBRATE_METHODS, UNCALIBRATED_MARK, log, uncalibrated_note
 from place_safe.cli.options import REACH, float_range, int_range
 from place_safe.exceptions import ConfigError, UsageError
+from place_safe.calibration import Calibration
+from place_safe.recovery import make_estimator
+from place_safe.config import read_json
+from place_safe.geometry import transform_problem
+from place_safe.io.frame_file import load_frames
 
 
 def _floats(text: str, n: int | None = None, what: str = "numbers", lo: float = -math.inf,
@@ -76,8 +81,6 @@ BUILT_IN = "built-in defaults"
 
 def _estimator(method: str, calibration: str | None):
     """(estimator, note saying where its calibration came from: the file, or :data:`BUILT_IN`)."""
-    from place_safe.calibration import Calibration
-    from place_safe.recovery import make_estimator
 
     if calibration:  # every section valid (a NaN anywhere is refused), not only the method's
         return make_estimator(method, Calibration.load(calibration).check()), calibration
@@ -88,12 +91,10 @@ def _mount_truth(path: str) -> Any:
     """The true ``flange_T_sensor`` (4x4 rigid transform, metres) of a truth JSON file; one-line ConfigError."""
     import numpy as np
 
-    from place_safe.config import read_json
     d = read_json(path, "mount truth", ConfigError)
     if not isinstance(d, dict) or "flange_T_sensor" not in d:
         got = "an object without it" if isinstance(d, dict) else f"a JSON {type(d).__name__}"
         raise ConfigError(f"mount truth {path}: expected an object with \"flange_T_sensor\" (a 4x4 matrix), got {got}")
-    from place_safe.geometry import transform_problem
 
     v = d["flange_T_sensor"]
     ok = isinstance(v, list) and all(isinstance(x, (int, float)) and not isinstance(x, bool)
@@ -260,7 +261,6 @@ def cmd_calibrate_mount(args: argparse.Namespace) -> int:
 
     from place_safe.calibration.mount import fit_mount, flange_poses
     from place_safe.drivers.ur5.config import FrameConfig
-    from place_safe.io.frame_file import load_frames
 
 
     robot_cfg = _robot_config(args.robot)

@@ -18,6 +18,7 @@ from place_safe.cli import options
 from place_safe.cli.options import opt
 from place_safe.cli.options import int_range
 from place_safe.exceptions import UsageError
+from place_safe.calibration import Calibration
 
 EPILOG = """examples:
   place-safe scenarios                                  # the hand-written set (scenarios/set)
@@ -86,7 +87,6 @@ def cmd_scenarios(args: argparse.Namespace) -> int:
     paths = args.paths if args.paths else ([] if args.random else [str(p) for p in packaged_scenarios()])
     items = []
     if args.calibration not in (None, "sim", "none", "oracle"):
-        from place_safe.calibration import Calibration
 
         Calibration.load(args.calibration).check()  # before any run: every section valid
     for p in expand_paths(paths):

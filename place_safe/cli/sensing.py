@@ -28,6 +28,7 @@ from place_safe.io.frame_file import iter_frames
 from place_safe.io.live import run_live
 from place_safe.io.replay import FileReplaySource
 from place_safe.recovery.estimator import PlaneEstimate
+from place_safe.calibration import Calibration
 
 # ------------------------------------------------------------------------------------------------
 # calibrate
@@ -35,7 +36,6 @@ from place_safe.recovery.estimator import PlaneEstimate
 def cmd_calibrate(args: argparse.Namespace) -> int:
     """Fit a method family to frame files (``calibrate FILE... --method M -o CAL``), or with ``--sim SENSOR`` run
     the whole user chain in MuJoCo (touch the table, capture a sweep, fit diff then proprietary)."""
-    from place_safe.calibration import Calibration
 
     if args.sim:
         return _calibrate_sim(args)

@@ -27,6 +27,7 @@ from place_safe.sources import open_source
 from place_safe.cli.common import UNCALIBRATED_MARK, estimator_for, load_calibration, uncalibrated_note
 from place_safe.io.frame_file import write_frames
 from place_safe.io.live import run_live
+from place_safe.recovery.forward import ForwardParams
 
 #: Hz: an emulated I2C clock (standard 100 kHz .. high-speed 3.4 MHz, and slower buses down to 10 kHz).
 #: s: how long a read may wait for a frame.
@@ -150,7 +151,6 @@ def cmd_stream(args: argparse.Namespace) -> int:
     if args.save or args.view:
         params = cal.forward() if cal is not None and hasattr(cal, "forward") and "forward" in cal.sections else None
         if params is None and args.method == "diff":
-            from place_safe.recovery.forward import ForwardParams
 
             params = ForwardParams()
         view = RerunView(save=args.save, params=params)

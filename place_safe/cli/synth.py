@@ -15,6 +15,8 @@ from pathlib import Path
 from place_safe.cli import options
 from place_safe.cli.options import opt
 from place_safe.cli.options import float_range, int_range
+from place_safe.cli.common import UsageError, log
+from place_safe.io.frame_file import write_frames
 
 EPILOG = """examples:
   # calibration frames and separate test frames of the same simulated sensor
@@ -62,8 +64,6 @@ def register(subparsers) -> None:
 
 
 def cmd_synth(args: argparse.Namespace) -> int:
-    from place_safe.cli.common import UsageError, log
-    from place_safe.io.frame_file import write_frames
 
     if not args.min_distance < args.max_distance:
         raise UsageError("synth: --min-distance must be below --max-distance")

@@ -15,6 +15,9 @@ import time
 
 from place_safe.cli import options
 from place_safe.exceptions import FrameFileError, UsageError
+from place_safe.recovery.forward import ForwardParams
+from place_safe.io.frame_file import load_frames
+from place_safe.sim import render
 
 
 def add_sim_commands(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -71,9 +74,6 @@ def _no_sub_command(_args: argparse.Namespace) -> int:
 def cmd_validate(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from place_safe.recovery.forward import ForwardParams
-    from place_safe.io.frame_file import load_frames
-
     from place_safe.sim.validate import validate
 
     frames = load_frames(args.frames)
@@ -92,7 +92,6 @@ def cmd_validate(args: argparse.Namespace) -> int:
 
 
 def cmd_render(args: argparse.Namespace) -> int:
-    from place_safe.sim import render
     from place_safe.sim.scene import build_scene, scene_config
     from place_safe.sim.tof import SimToF
 
