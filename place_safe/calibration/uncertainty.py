@@ -63,7 +63,7 @@ from place_safe.calibration.near_range import held_out_fits, near_range_std
 from place_safe.exceptions import FrameError, NoPlaneError
 from place_safe.recovery.points import plane_through
 from place_safe.calibration.points import MIN_CALIBRATION_RANGE, MIN_TILT_SPREAD
-from place_safe.recovery.differentiable import DifferentiableEstimator
+from place_safe.recovery.differentiable import NEAR_FALLBACK_RANGE, DifferentiableEstimator
 from place_safe.recovery.peak import PeakEstimator
 
 
@@ -411,7 +411,6 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
     solver's defaults): they depend on the bins the solver fits. The limits are chosen on held-out frames
     (module doc); the report gives the held-out figures (``angular_deg``, ``point_mm``: diff's own plane, peak's
     and the one returned; ``frames_using_diff``) and every candidate's score."""
-    from place_safe.recovery.differentiable import NEAR_FALLBACK_RANGE, DifferentiableEstimator
 
     # closer frames always get peak's plane (NEAR_FALLBACK_RANGE): they take no part in choosing the limits
     use = [f for f in frames if f.truth is not None and f.truth.z0 >= NEAR_FALLBACK_RANGE]

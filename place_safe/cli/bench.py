@@ -26,8 +26,12 @@ def cmd_sim_bench(args: argparse.Namespace) -> int:
     if importlib.util.find_spec("mujoco") is None:
         raise UsageError("bench sim: the simulation needs MuJoCo, which is not installed: install the [sim] extra, "
                          "e.g. pip install -e \".[sim]\"")
-    from place_safe.sim.bench import bench
+    from place_safe.sim.bench import bench, benchmark
 
+    if args.bare:
+        for key, value in benchmark(args.seconds).items():
+            print(f"{key}: {value:.1f}")
+        return 0
     res = bench(args.scene, args.rig, args.seconds, args.rate, args.rays)
     print(f"{res['sim_seconds']:.2f} s sim in {res['wall_seconds']:.2f} s wall: real-time factor "
           f"{res['real_time_factor']:.1f}x ({res['frames']} sensor frames at {args.rate:g} Hz, "
@@ -35,21 +39,24 @@ def cmd_sim_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+#: ``bench sim --help``: what it measures
+SIM_BENCH_ABOUT = ("Steps the scene for --seconds of sim time with the sensor measuring at --rate Hz in lockstep and "
+                   "reports the real-time factor (sim time / wall time). Target >= 5. With --bare: the bare robot's "
+                   "physics alone (physics steps/s and real-time factor, holding and during a 0.1 m/s linear move). "
+                   "Needs the [sim] extra.")
+
+
 def add_sim_bench(sub) -> None:
-    b = sub.add_parser("sim", formatter_class=FMT, help="real-time factor of physics + simulated sensor in lockstep",
-                       description="Steps the scene for --seconds of sim time with the sensor measuring at --rate Hz "
-                                   "in lockstep and reports the real-time factor (sim time / wall time). Target >= 5. "
-                                   "Needs the [sim] extra.",
-                       epilog="example:\n  place-safe bench sim --seconds 5 --rate 30")
-    b.add_argument("--scene", help="scene JSON (default: level table)")
-    b.add_argument("--rig", action="store_true", help="sensor rig only (no robot); default: the UR5 holding the cup")
-    b.add_argument("--seconds", type=options.float_range(0.0, 3600.0, lo_open=True), default=5.0,
-                   help="sim seconds to run (default 5)")
-    rate = options.field_option("place_safe.sim.tof:ToFConfig", "rate_hz", "sensor frame rate, default 30")
-    rays = options.field_option("place_safe.sim.tof:ToFConfig", "rays", "stratified rays per axis and zone, default 8")
-    b.add_argument("--rate", type=rate, default=30.0, help=rate.help)
-    b.add_argument("--rays", type=rays, default=8, help=rays.help)
-    b.set_defaults(func=cmd_sim_bench)
+    examples = ["place-safe bench sim --seconds 5 --rate 30", "place-safe bench sim --bare --seconds 2"]
+    options.command(
+        sub, "sim", cmd_sim_bench, "real-time factor of physics + simulated sensor in lockstep", SIM_BENCH_ABOUT,
+        examples,
+        options.opt("--scene", help="scene JSON (default: level table)"),
+        options.opt("--rig", action="store_true", help="sensor rig only (no robot); default: the UR5 holding the cup"),
+        options.opt("--bare", action="store_true", help="the bare robot without scene or sensor: physics steps/s, "
+                                                        "holding and moving"),
+        "seconds", "rate_hz", "rays",
+        seconds={"default": 5.0, "metavar": None, "help": "sim seconds to run (default 5)"})
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

@@ -20,6 +20,7 @@ from place_safe.io.json_values import jsonable
 from place_safe.recovery import METHODS, make_estimator  # noqa: F401 - the one list of method names, for the commands
 from place_safe.io.frame_file import iter_frames
 from place_safe.io.input_file import input_file_problem
+from place_safe.calibration import REQUIRED_SECTIONS, Calibration, uncalibrated_reason
 
 PROG = "place-safe"
 CALIBRATE_METHODS = ("diff", "peak", "proprietary")
@@ -54,7 +55,6 @@ def not_a_file(path: str | Path) -> str | None:
 
 
 def load_calibration(path: str | None):
-    from place_safe.calibration import Calibration
 
     if path is None:
         return None
@@ -141,7 +141,6 @@ def uncalibrated_note(methods: str | Sequence[str], calibration, path: str | Non
     the peak method reads a level table 200 mm away as tilted by about 11 degrees. Commands print this
     line first on standard output (never on standard error, which stays one line for errors) and mark
     every row with :data:`UNCALIBRATED_MARK` or ``"calibrated": false``."""
-    from place_safe.calibration import REQUIRED_SECTIONS, uncalibrated_reason
 
     names = [methods] if isinstance(methods, str) else list(methods)
     bare = [m for m in names if uncalibrated_reason(m, calibration) is not None]
@@ -164,8 +163,6 @@ def uncalibrated_note(methods: str | Sequence[str], calibration, path: str | Non
 
 
 def estimator_for(method: str, calibration, mode: str | None = None):
-    from place_safe.recovery import make_estimator
-
     options = {"mode": mode} if (method == "diff" and mode) else {}
     return make_estimator(method, calibration, **options)
 

@@ -7,7 +7,7 @@ import argparse
 import importlib.util
 
 from place_safe.cli import options
-from place_safe.cli.common import FMT, METHODS, log, uncalibrated_note
+from place_safe.cli.common import log, uncalibrated_note
 from place_safe.evaluation.bench import run_bench
 
 # ------------------------------------------------------------------------------------------------
@@ -67,18 +67,16 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 def register(sub) -> None:
     """Add demo to the ``place-safe`` sub-parsers."""
-    # demo
-    d = sub.add_parser("demo", formatter_class=FMT, help="run the main job (no data or hardware needed)",
-                       description="The main job on a fresh machine: a simulated UR5 puts a cup down on a level "
-                                   "table (it must release) and over a tilted one (it must refuse), sensing the "
-                                   "table with the simulated TMF8820. Exit status 1 if either outcome is wrong. "
-                                   "Without the [sim] extra, or with --synthetic: recover synthetic frames with "
-                                   "every method and print their errors and speed side by side.",
-                       epilog="examples:\n  place-safe demo\n  place-safe demo --method peak\n"
-                              "  place-safe demo --synthetic --frames 10")
-    d.add_argument("--method", default="diff", choices=METHODS, help="plane recovery in the placement (default diff)")
-    d.add_argument("--synthetic", action="store_true", help="show recovery on synthetic frames, no simulation")
-    d.add_argument("--frames", type=options.int_range(1, 100000), default=20, metavar="N", help="synthetic frames (default 20)")
-    d.add_argument("--seed", type=options.nonnegative_int, default=0, help="seed of the synthetic frames")
-    d.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
-    d.set_defaults(func=cmd_demo)
+    options.command(
+        sub, "demo", cmd_demo, "run the main job (no data or hardware needed)",
+        "The main job on a fresh machine: a simulated UR5 puts a cup down on a level table (it must release) and over "
+        "a tilted one (it must refuse), sensing the table with the simulated TMF8820. Exit status 1 if either outcome "
+        "is wrong. Without the [sim] extra, or with --synthetic: recover synthetic frames with every method and print "
+        "their errors and speed side by side.",
+        ["place-safe demo", "place-safe demo --method peak", "place-safe demo --synthetic --frames 10"],
+        "method",
+        options.opt("--synthetic", action="store_true", help="show recovery on synthetic frames, no simulation"),
+        "frames", "seed", "quiet",
+        method={"help": "plane recovery in the placement (default diff)"},
+        frames={"default": 20, "help": "synthetic frames (default 20)"},
+        seed={"help": "seed of the synthetic frames and the placements"})

@@ -8,8 +8,9 @@ from __future__ import annotations
 
 import argparse
 
-from place_safe.cli.options import int_range
 from place_safe.exceptions import FrameFileError, PlaceSafeError
+from place_safe.cli import options
+from place_safe.cli.common import UNCALIBRATED_MARK, load_calibration, not_a_file, uncalibrated_note
 
 EPILOG = """examples:
   place-safe synth --frames 100 --seed 7 -o out/speed.json
@@ -19,29 +20,21 @@ EPILOG = """examples:
 
 def add_latency_bench(subparsers) -> None:
     """``place-safe bench latency`` on the ``bench`` sub-parsers."""
-    from place_safe.cli.common import FMT, METHODS
-    from place_safe.cli.options import int_range
 
-    s = subparsers.add_parser(
-        "latency", formatter_class=FMT, epilog=EPILOG,
-        help="per-frame wall time of `recover` measured from outside (median, p95)",
-        description="Run `place-safe recover --jsonl` in a fresh process over FILE and time each output line as "
-                    "it arrives: the gaps are per-frame wall times as a caller sees them (parsing, recovery, "
-                    "output). The first line (start-up, imports) is reported apart.")
-    s.add_argument("file", metavar="FILE", help="frame file (2 frames or more)")
-    s.add_argument("--method", default="diff", choices=METHODS, help="recovery method (default diff)")
-    s.add_argument("--calibration", metavar="CALIB.json", help="calibration file (default: built-in parameters)")
-    s.add_argument("--batch", type=int_range(1, 4096), default=1, metavar="N",
-                   help="frames per recovery call (default 1; larger batches make per-frame gaps bursty)")
-    s.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
-    s.set_defaults(func=cmd_latency)
+    options.command(
+        subparsers, "latency", cmd_latency, "per-frame wall time of `recover` measured from outside (median, p95)",
+        "Run `place-safe recover --jsonl` in a fresh process over FILE and time each output line as it arrives: the "
+        "gaps are per-frame wall times as a caller sees them (parsing, recovery, output). The first line (start-up, "
+        "imports) is reported apart.", EPILOG,
+        options.opt("file", metavar="FILE", help="frame file (2 frames or more)"),
+        "method", "calibration", "batch", "json",
+        batch={"help": "frames per recovery call (default 1; larger batches make per-frame gaps bursty)"})
 
 
 def cmd_latency(args: argparse.Namespace) -> int:
     import json
     from pathlib import Path
 
-    from place_safe.cli.common import UNCALIBRATED_MARK, load_calibration, not_a_file, uncalibrated_note
     from place_safe.evaluation.bench import measure_recover_latency
     if (why := not_a_file(args.file)) is not None:
         raise FrameFileError(f"frame file {args.file} {why}")

@@ -1,13 +1,24 @@
-"""Typed command-line values: one validator per kind, used as argparse ``type=`` by every command.
+"""The command line's options, declared once: typed values (one validator per kind), the options several
+commands share (:data:`SHARED`, added to a parser by name with :func:`add`) and the declaration of a command
+(:func:`command`).
 
-Each raises :class:`argparse.ArgumentTypeError` with what was expected, so a bad value gives the
-usual one-line usage error (exit 2). Units: metres, seconds, hertz (SI) unless the name says otherwise.
+Each validator raises :class:`argparse.ArgumentTypeError` with what was expected, so a bad value gives the
+usual one-line usage error (exit 2). Units: metres, seconds, hertz (SI) unless the name says otherwise. An
+option that is a field of a parameter model (:class:`~place_safe.config.ParamModel`) takes its kind and range
+from the model's ``Field`` (:func:`field_option`), so the range is written in one place.
 """
 
 from __future__ import annotations
 
 import argparse
 import math
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+from place_safe.cli.common import FMT
+from place_safe.recovery import METHODS
+from place_safe.config import field_constraints, field_range_text
 
 
 def _number(text: str, kind: type = float):
@@ -99,8 +110,6 @@ def field_option(model: str, name: str, what: str):
         import importlib
         import typing
 
-        from place_safe.config import field_constraints, field_range_text
-
         module, _, cls = model.partition(":")
         m = getattr(importlib.import_module(module), cls)
         c = field_constraints(m, name)
@@ -130,4 +139,124 @@ class _LazyHelp(str):
         return self.make() % params
 
 
-__all__ = ["field_option", "int_range", "float_range", "finite_float", "positive_float", "nonnegative_float", "positive_int", "nonnegative_int", "fraction"]
+# ------------------------------------------------------------------------------------------------
+# the shared options
+# ------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Option:
+    """One command-line option or positional: its flags (or name) and argparse keywords. ``field`` names the
+    parameter-model field (``"package.module:Class.field"``) that gives the value's kind and range; ``what``
+    is then the help text before the range and unit."""
+
+    flags: tuple[str, ...]
+    kwargs: Mapping[str, Any] = field(default_factory=dict)
+    field: str | None = None
+    what: str = ""
+
+    def but(self, **changes: Any) -> "Option":
+        """This option with some argparse keywords changed (a command's own default or help text); ``flags``
+        renames it (``--diff-mode`` for a command where ``--mode`` means something else)."""
+        flags = tuple(changes.pop("flags", self.flags))
+        what = changes.pop("what", self.what)
+        return replace(self, flags=flags, what=what, kwargs={**self.kwargs, **changes})
+
+    def add_to(self, parser: Any) -> argparse.Action:
+        kwargs = dict(self.kwargs)
+        if self.field is not None:
+            model, _, name = self.field.rpartition(".")
+            check = field_option(model, name, self.what)
+            kwargs.setdefault("type", check)
+            kwargs.setdefault("help", check.help)  # type: ignore[attr-defined]
+        return parser.add_argument(*self.flags, **kwargs)
+
+
+def opt(*flags: str, field: str | None = None, what: str = "", **kwargs: Any) -> Option:
+    """An :class:`Option` from argparse's own spelling (``opt("--rate", type=..., help=...)``)."""
+    return Option(flags, kwargs, field, what)
+
+
+DIFF_MODES = ("fast", "paper")
+CONTROLLERS = ("cb3", "e-series")
+
+#: The options that mean the same in every command that has them, by name. A command adds them with
+#: :func:`add` and may change a keyword (``add(p, "method", method={"default": "peak"})``).
+SHARED: dict[str, Option] = {}
+
+
+def _shared() -> dict[str, Option]:
+    seed = int_range(0, 2 ** 32 - 1)
+    return {
+        "method": opt("--method", default="diff", choices=METHODS, help="plane recovery method (default diff)"),
+        "calibration": opt("--calibration", metavar="CALIB.json",
+                           help="calibration file (default: built-in parameters; the output says UNCALIBRATED)"),
+        "mode": opt("--mode", choices=DIFF_MODES, default=None, help="diff solver (default fast)"),
+        "batch": opt("--batch", type=int_range(1, 4096), metavar="N", default=1,
+                     help="frames recovered together (memory stays O(N))"),
+        "jsonl": opt("--jsonl", action="store_true", help="one JSON line per frame on stdout"),
+        "json": opt("--json", metavar="FILE", help="also write the results as JSON"),
+        "quiet": opt("-q", "--quiet", action="store_true", help="no progress bars"),
+        "seed": opt("--seed", type=seed, default=0, help="seed (default 0)"),
+        "frames": opt("--frames", type=int_range(1, 100_000), default=None, metavar="N", help="frames to use"),
+        "max_frames": opt("--max-frames", type=int_range(1, 10_000_000), default=None, metavar="N",
+                          help="stop after N frames arrived"),
+        "timeout": opt("--timeout", type=float_range(0.0, 60.0, lo_open=True), default=2.0, metavar="S",
+                       help="stop when no frame arrives for S seconds (default 2, at most 60)"),
+        "seconds": opt("--seconds", type=float_range(0.0, 3600.0, lo_open=True), metavar="S",
+                       help="seconds to run (at most 3600)"),
+        "jobs": opt("--jobs", type=positive_int, default=1, metavar="N", help="worker processes (default 1)"),
+        "force": opt("--force", action="store_true", help="overwrite the output file"),
+        "output": opt("-o", "--output", metavar="FILE", help="file to write"),
+        "controller": opt("--controller", choices=CONTROLLERS, default="cb3",
+                          help="controller generation: its force-sensing defaults (default cb3)"),
+        "cycles": opt("--cycles", type=positive_int, default=2_000_000,
+                      help="noise cycles for the false-alarm rate (default 2000000)"),
+        "robot_file": opt("--robot-file", dest="robot_file", metavar="ROBOT.toml",
+                          help="with --sim: the robot file whose tool frames are used (default the packaged sim.toml)"),
+        "table_height": opt("--table-height", type=float_range(-REACH, REACH), metavar="Z",
+                            help="the table top's known z in the base frame (m)"),
+        "bus_hz": opt("--bus-hz", type=float_range(1e4, 3.4e6), metavar="HZ",
+                      help="emulated bus clock (10 kHz..3.4 MHz, the I2C range)"),
+        "period_ms": opt("--period-ms", type=int_range(0, 0xFFFF), metavar="MS", help="measurement period (default 33)"),
+        "kilo_iterations": opt("--kilo-iterations", type=int_range(1, 0xFFFF), metavar="K",
+                               help="laser pulses in thousands (default 4000)"),
+        "rays": opt("--rays", field="place_safe.sim.tof:ToFConfig.rays", default=8,
+                    what="stratified rays per axis and zone, default 8"),
+        "rate_hz": opt("--rate", field="place_safe.sim.tof:ToFConfig.rate_hz", default=30.0,
+                       what="sensor frame rate, default 30"),
+        "noise": opt("--noise", field="place_safe.robot.contact_detector:DetectorSettings.noise_std",
+                     what="the detector's noise floor (default: the controller's)"),
+    }
+
+
+#: m, a length no UR5-class arm's base frame exceeds (heights and offsets on the command line)
+REACH = 2.0
+
+
+def add(parser: Any, *items: str | Option, **changes: Mapping[str, Any]) -> None:
+    """Add options to ``parser`` in order: a name of :data:`SHARED` (with ``changes[name]`` applied, e.g.
+    ``method={"default": "peak"}``) or a command's own :class:`Option`."""
+    if not SHARED:
+        SHARED.update(_shared())
+    unknown = set(changes) - {i for i in items if isinstance(i, str)}
+    if unknown:
+        raise KeyError(f"changes to options not added: {sorted(unknown)}")
+    for item in items:
+        option = item if isinstance(item, Option) else SHARED[item].but(**changes.get(item, {}))
+        option.add_to(parser)
+
+
+def command(sub: Any, name: str, func: Callable[[argparse.Namespace], int], help: str, description: str = "",
+            examples: str | list[str] = "", *options: str | Option, **changes: Mapping[str, Any]):
+    """Declare a command: the sub-parser ``name`` on ``sub`` running ``func``, its one-line ``help``, the
+    ``description`` of its ``--help`` and an epilog of ``examples`` (a string is the whole epilog), with
+    ``options`` added by :func:`add`. Returns the parser (for options that do not fit a table)."""
+    epilog = examples if isinstance(examples, str) else \
+        ("example" if len(examples) == 1 else "examples") + ":\n" + "\n".join(f"  {e}" for e in examples)
+    p = sub.add_parser(name, formatter_class=FMT, help=help, description=description or None, epilog=epilog or None)
+    add(p, *options, **changes)
+    p.set_defaults(func=func)
+    return p
+
+
+__all__ = ["add", "command", "opt", "Option", "SHARED", "REACH", "field_option", "int_range", "float_range",
+           "finite_float", "positive_float", "nonnegative_float", "positive_int", "nonnegative_int", "fraction"]

@@ -16,9 +16,16 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from place_safe.cli.common import FMT, UNCALIBRATED_MARK, log, uncalibrated_note
-from place_safe.cli.options import float_range, int_range
+from place_safe.cli import options
+from place_safe.cli.options import opt
+from place_safe.cli.common import CALIBRATE_METHODS, UNCALIBRATED_MARK, log, uncalibrated_note
+from place_safe.cli.options import REACH, float_range, int_range
 from place_safe.exceptions import ConfigError, UsageError
+from place_safe.calibration import Calibration
+from place_safe.recovery import make_estimator
+from place_safe.config import read_json
+from place_safe.geometry import transform_problem
+from place_safe.io.frame_file import load_frames
 
 
 def _floats(text: str, n: int | None = None, what: str = "numbers", lo: float = -math.inf,
@@ -40,7 +47,6 @@ def _floats(text: str, n: int | None = None, what: str = "numbers", lo: float = 
 #: The most values one comma-separated option takes (a sweep grid is their product).
 MAX_LIST = 100
 #: m: base-frame coordinates an option may name (the UR5 reaches 0.85 m from its base).
-REACH = 2.0
 
 
 def _mount_error(text: str) -> list[float]:
@@ -75,8 +81,6 @@ BUILT_IN = "built-in defaults"
 
 def _estimator(method: str, calibration: str | None):
     """(estimator, note saying where its calibration came from: the file, or :data:`BUILT_IN`)."""
-    from place_safe.calibration import Calibration
-    from place_safe.recovery import make_estimator
 
     if calibration:  # every section valid (a NaN anywhere is refused), not only the method's
         return make_estimator(method, Calibration.load(calibration).check()), calibration
@@ -87,12 +91,10 @@ def _mount_truth(path: str) -> Any:
     """The true ``flange_T_sensor`` (4x4 rigid transform, metres) of a truth JSON file; one-line ConfigError."""
     import numpy as np
 
-    from place_safe.config import read_json
     d = read_json(path, "mount truth", ConfigError)
     if not isinstance(d, dict) or "flange_T_sensor" not in d:
         got = "an object without it" if isinstance(d, dict) else f"a JSON {type(d).__name__}"
         raise ConfigError(f"mount truth {path}: expected an object with \"flange_T_sensor\" (a 4x4 matrix), got {got}")
-    from place_safe.geometry import transform_problem
 
     v = d["flange_T_sensor"]
     ok = isinstance(v, list) and all(isinstance(x, (int, float)) and not isinstance(x, bool)
@@ -120,7 +122,6 @@ def cmd_place(args: argparse.Namespace) -> int:
     timed out."""
     from place_safe.placement.machine import PlacementConfig
 
-    from place_safe.cli.common import UsageError
 
     if not args.sim:
         for flag, given in (("--oracle", args.oracle), ("--render", args.render)):
@@ -166,7 +167,6 @@ def _place_arm(args: argparse.Namespace, cfg) -> tuple[dict, Any, list[str]]:
     """The placement on the UR5 (or its dry run) with the sensor of --sensor."""
     from place_safe.placement.loop import PlacementLoop
 
-    from place_safe.cli.common import UsageError
     from place_safe.drivers.ur5 import URRobot
     from place_safe.drivers.ur5.config import placement_config
 
@@ -200,7 +200,6 @@ def _place_arm(args: argparse.Namespace, cfg) -> tuple[dict, Any, list[str]]:
 def cmd_capture(args: argparse.Namespace) -> int:
     from place_safe.calibration.capture import SweepPlan, capture_sweep, level_plane, touch_plane
 
-    from place_safe.cli.common import UsageError
 
     grid = len(args.distances) * len(args.incidences) * len(args.azimuths)
     if min(grid, args.poses or grid) * args.frames_per_pose > 100_000:
@@ -258,14 +257,11 @@ def cmd_capture(args: argparse.Namespace) -> int:
 # calibrate-mount
 # ------------------------------------------------------------------------------------------------
 def cmd_calibrate_mount(args: argparse.Namespace) -> int:
-    import numpy as np
     from tqdm import tqdm
 
     from place_safe.calibration.mount import fit_mount, flange_poses
     from place_safe.drivers.ur5.config import FrameConfig
-    from place_safe.io.frame_file import load_frames
 
-    from place_safe.cli.common import UsageError
 
     robot_cfg = _robot_config(args.robot)
     truth = _mount_truth(args.truth) if args.truth else None  # every input checked before the fit runs
@@ -311,118 +307,122 @@ def cmd_calibrate_mount(args: argparse.Namespace) -> int:
 # ------------------------------------------------------------------------------------------------
 # registration
 # ------------------------------------------------------------------------------------------------
-def _robot_or_sim(p: argparse.ArgumentParser, robot_help: str) -> None:
-    g = p.add_mutually_exclusive_group(required=True)
-    g.add_argument("--sim", metavar="SCENARIO", help="run in MuJoCo on a scenario (file or packaged name)")
-    g.add_argument("--robot", metavar="ROBOT.toml", help=robot_help)
-    p.add_argument("--sensor", metavar="URI", help="sensor URI on the arm (i2c:/dev/i2c-1, serial:/dev/ttyACM0, "
-                                                   "file:frames.json)")
-    p.add_argument("--dry-run", action="store_true", help="on the arm: receive-only, print the planned motion, "
-                                                          "command nothing")
-    p.add_argument("--sim-mount-error", type=_mount_error, metavar="DX,DY,DZ,RX,RY,RZ",
-                   help="simulation: the true sensor mount differs from the robot file's by this (mm and deg)")
-    p.add_argument("--seed", type=int_range(0, 2 ** 32 - 1), default=0, help="simulated sensor noise seed")
+def _robot_or_sim(sub, name: str, func, help: str, description: str, examples: list[str], robot_help: str,
+                  *more, **changes) -> argparse.ArgumentParser:
+    """A command that runs on the arm (--robot) or in MuJoCo (--sim): the choice, the sensor and the
+    simulation's options, then ``more`` (:func:`place_safe.cli.options.add`)."""
+    p = options.command(sub, name, lambda a: func(_resolve(a)), help, description, examples)
+    options.add(p.add_mutually_exclusive_group(required=True),
+                opt("--sim", metavar="SCENARIO", help="run in MuJoCo on a scenario (file or packaged name)"),
+                opt("--robot", metavar="ROBOT.toml", help=robot_help))
+    options.add(p, opt("--sensor", metavar="URI", help="sensor URI on the arm (i2c:/dev/i2c-1, serial:/dev/ttyACM0, "
+                                                     "file:frames.json)"),
+                opt("--dry-run", action="store_true", help="on the arm: receive-only, print the planned motion, "
+                                                         "command nothing"),
+                opt("--sim-mount-error", type=_mount_error, metavar="DX,DY,DZ,RX,RY,RZ",
+                    help="simulation: the true sensor mount differs from the robot file's by this (mm and deg)"),
+                "seed", *more, seed={"help": "simulated sensor noise seed"}, **changes)
+    return p
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser(
-        "place", formatter_class=FMT, help="put the held cup down (or refuse) on the UR5 or in MuJoCo",
-        description="Run one placement with the PlacementLoop: approach, descend, check the surface with the "
-                    "TMF8820, release or refuse. The same loop drives the UR5 (--robot, over ur_rtde) and the "
-                    "simulated arm (--sim SCENARIO: the scenario's table, sensor and calibration; the result also "
-                    "says what happened to the cup and the liquid). Writes the transition log and a result JSON "
-                    "either way; exit status 0 released, 1 refused or timed out, 2 bad input.",
-        epilog="examples:\n"
-               "  place-safe place --sim place_level --calibration cal.json\n"
-               "  place-safe place --sim place_level --robot-file robots/ur5/sim.toml --method peak\n"
-               "  place-safe place --robot robots/ur5/real.toml --sensor i2c:/dev/i2c-1 --calibration cal.json --dry-run\n"
-               "  place-safe place --robot robots/ur5/real.toml --sensor i2c:/dev/i2c-1 --calibration cal.json")
-    _robot_or_sim(p, "robot file of the real UR5 (e.g. robots/ur5/real.toml)")
-    p.add_argument("--robot-file", dest="robot_file", metavar="ROBOT.toml",
-                   help="with --sim: the robot file whose tool frames the loop uses (default the packaged sim.toml)")
-    p.add_argument("--calibration", metavar="CAL.json",
-                   help="sensor calibration; with --sim also 'sim' or 'none' (default: the scenario's, normally the "
-                        "packaged simulated user calibration). Without one the placement refuses in simulation "
-                        "and, on the arm, runs on built-in constants (the output says UNCALIBRATED)")
-    p.add_argument("--oracle", action="store_true", help="with --sim, DEBUGGING: give the estimator the simulator's "
-                                                         "true parameters (named ORACLE in the result)")
-    p.add_argument("--method", default=None, choices=("diff", "peak", "proprietary"),
-                   help="plane recovery (default diff; with --sim the scenario's)")
-    p.add_argument("--config", metavar="PLACEMENT.json", help="placement thresholds (SI units; default with --sim: "
-                                                               "the scenario's)")
-    p.add_argument("--timeout", type=float_range(0.0, 3600.0, lo_open=True), default=30.0,
-                   help="s of robot (or simulated) time (default 30, at most 3600)")
-    p.add_argument("--render", metavar="PNG", help="with --sim: write a PNG of the final scene")
-    p.add_argument("--json", default="place-result.json", help="result file (default place-result.json)")
-    p.add_argument("--log", default="place-transitions.jsonl", help="transition log (default place-transitions.jsonl)")
-    p.add_argument("--frame-log", action="store_true", help="include the per-frame log in the result file")
-    p.set_defaults(func=lambda a: cmd_place(_resolve(a)))
+    _robot_or_sim(
+        subparsers, "place", cmd_place, "put the held cup down (or refuse) on the UR5 or in MuJoCo",
+        "Run one placement with the PlacementLoop: approach, descend, check the surface with the TMF8820, release or "
+        "refuse. The same loop drives the UR5 (--robot, over ur_rtde) and the simulated arm (--sim SCENARIO: the "
+        "scenario's table, sensor and calibration; the result also says what happened to the cup and the liquid). "
+        "Writes the transition log and a result JSON either way; exit status 0 released, 1 refused or timed out, 2 "
+        "bad input.",
+        ["place-safe place --sim place_level --calibration cal.json",
+         "place-safe place --sim place_level --robot-file robots/ur5/sim.toml --method peak",
+         "place-safe place --robot robots/ur5/real.toml --sensor i2c:/dev/i2c-1 --calibration cal.json --dry-run",
+         "place-safe place --robot robots/ur5/real.toml --sensor i2c:/dev/i2c-1 --calibration cal.json"],
+        "robot file of the real UR5 (e.g. robots/ur5/real.toml)",
+        "robot_file", "calibration",
+        opt("--oracle", action="store_true", help="with --sim, DEBUGGING: give the estimator the simulator's true "
+                                                "parameters (named ORACLE in the result)"),
+        "method",
+        opt("--config", metavar="PLACEMENT.json", help="placement thresholds (SI units; default with --sim: the "
+                                                     "scenario's)"),
+        opt("--timeout", type=float_range(0.0, 3600.0, lo_open=True), default=30.0,
+            help="s of robot (or simulated) time (default 30, at most 3600)"),
+        opt("--render", metavar="PNG", help="with --sim: write a PNG of the final scene"),
+        opt("--json", default="place-result.json", help="result file (default place-result.json)"),
+        opt("--log", default="place-transitions.jsonl", help="transition log (default place-transitions.jsonl)"),
+        opt("--frame-log", action="store_true", help="include the per-frame log in the result file"),
+        calibration={"metavar": "CAL.json",
+                     "help": "sensor calibration; with --sim also 'sim' or 'none' (default: the scenario's, normally "
+                             "the packaged simulated user calibration). Without one the placement refuses in "
+                             "simulation and, on the arm, runs on built-in constants (the output says UNCALIBRATED)"},
+        method={"default": None, "choices": CALIBRATE_METHODS,
+                "help": "plane recovery (default diff; with --sim the scenario's)"})
 
-    c = subparsers.add_parser(
-        "capture", formatter_class=FMT, help="robot-driven sweep of sensor poses above a plane (for calibration)",
-        description="Drive the arm through distances x incidence x azimuth above a plane and write every frame with "
-                    "its ground-truth plane, flange pose and joint angles (JSON Lines, the shared frame format). "
-                    "The plane: --touch (the TCP touches it at 3+ points, slow guarded descent: speedL + force "
-                    "threshold, CB3-compatible), --table-height, or in simulation the scenario's table. Resumable: "
-                    "rerun with the same output to continue. Poses the robot's limits refuse are skipped and listed.",
-        epilog="examples:\n"
-               "  place-safe capture --sim level_table --poses 60 -o sim_capture.jsonl\n"
-               "  place-safe capture --sim level_table --sim-mount-error 5,0,0,0,2,0 -o perturbed.jsonl\n"
-               "  place-safe capture --robot robots/ur5/real.toml --sensor i2c:/dev/i2c-1 \\\n"
-               "      --touch -0.45,-0.05 --touch -0.55,-0.05 --touch -0.5,-0.15 --touch-height 0.05 -o lab.jsonl")
-    _robot_or_sim(c, "robot file of the real UR5")
-    c.add_argument("-o", "--output", required=True, help="capture file (JSON Lines; appended to when resuming)")
-    c.add_argument("--robot-file", dest="robot_file", metavar="ROBOT.toml",
-                   help="with --sim: the robot file whose tool frames define the ground truth (default sim.toml)")
-    c.add_argument("--distances", type=lambda s: _floats(s, None, "mm", 10.0, 5000.0), default=[80, 120, 170, 220, 270],
-                   help="sensor-to-plane distances in mm (default 80,120,170,220,270)")
-    c.add_argument("--incidences", type=lambda s: _floats(s, None, "degrees", 0.0, 80.0), default=[0, 12, 24],
-                   help="optical-axis tilts from the normal in degrees (default 0,12,24)")
-    c.add_argument("--azimuths", type=lambda s: _floats(s, None, "degrees", -360.0, 360.0),
-                   default=[0, 60, 120, 180, 240, 300],
-                   help="tilt directions in degrees (default every 60)")
-    c.add_argument("--poses", type=int_range(1, 10_000), help="subsample the grid evenly to this many poses (1..10000)")
-    c.add_argument("--frames-per-pose", type=int_range(1, 100), default=1, help="frames per pose (default 1, at most 100)")
-    c.add_argument("--speed", type=float_range(0.0, 1.0, lo_open=True), default=0.1,
-                   help="moveL speed m/s (default 0.1, at most 1)")
-    c.add_argument("--settle", type=float_range(0.0, 60.0, lo_open=True), default=0.25,
-                   help="s at rest before frames count (default 0.25, at most 60)")
-    c.add_argument("--table-height", type=float_range(-REACH, REACH), help="known table top z in the base frame (m)")
-    c.add_argument("--touch", type=_xy_points, action="append", metavar="X,Y", help="touch the plane here (m, base)")
-    c.add_argument("--touch-height", type=float_range(-REACH, REACH), help="z (m) to start each guarded descent from")
-    c.add_argument("--touch-force", type=float_range(0.0, 200.0, lo_open=True), default=12.0,
-                   help="contact threshold N (default 12, at most 200)")
-    c.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
-    c.set_defaults(func=lambda a: cmd_capture(_resolve(a)))
+    _robot_or_sim(
+        subparsers, "capture", cmd_capture, "robot-driven sweep of sensor poses above a plane (for calibration)",
+        "Drive the arm through distances x incidence x azimuth above a plane and write every frame with its "
+        "ground-truth plane, flange pose and joint angles (JSON Lines, the shared frame format). The plane: --touch "
+        "(the TCP touches it at 3+ points, slow guarded descent: speedL + force threshold, CB3-compatible), "
+        "--table-height, or in simulation the scenario's table. Resumable: rerun with the same output to continue. "
+        "Poses the robot's limits refuse are skipped and listed.",
+        ["place-safe capture --sim level_table --poses 60 -o sim_capture.jsonl",
+         "place-safe capture --sim level_table --sim-mount-error 5,0,0,0,2,0 -o perturbed.jsonl",
+         "place-safe capture --robot robots/ur5/real.toml --sensor i2c:/dev/i2c-1 \\\n"
+         "      --touch -0.45,-0.05 --touch -0.55,-0.05 --touch -0.5,-0.15 --touch-height 0.05 -o lab.jsonl"],
+        "robot file of the real UR5",
+        "output", "robot_file",
+        opt("--distances", type=lambda s: _floats(s, None, "mm", 10.0, 5000.0), default=[80, 120, 170, 220, 270],
+            help="sensor-to-plane distances in mm (default 80,120,170,220,270)"),
+        opt("--incidences", type=lambda s: _floats(s, None, "degrees", 0.0, 80.0), default=[0, 12, 24],
+            help="optical-axis tilts from the normal in degrees (default 0,12,24)"),
+        opt("--azimuths", type=lambda s: _floats(s, None, "degrees", -360.0, 360.0), default=[0, 60, 120, 180, 240, 300],
+            help="tilt directions in degrees (default every 60)"),
+        opt("--poses", type=int_range(1, 10_000), help="subsample the grid evenly to this many poses (1..10000)"),
+        opt("--frames-per-pose", type=int_range(1, 100), default=1, help="frames per pose (default 1, at most 100)"),
+        opt("--speed", type=float_range(0.0, 1.0, lo_open=True), default=0.1, help="moveL speed m/s (default 0.1, at "
+                                                                                   "most 1)"),
+        opt("--settle", type=float_range(0.0, 60.0, lo_open=True), default=0.25,
+            help="s at rest before frames count (default 0.25, at most 60)"),
+        "table_height",
+        opt("--touch", type=_xy_points, action="append", metavar="X,Y", help="touch the plane here (m, base)"),
+        opt("--touch-height", type=float_range(-REACH, REACH), help="z (m) to start each guarded descent from"),
+        opt("--touch-force", type=float_range(0.0, 200.0, lo_open=True), default=12.0,
+            help="contact threshold N (default 12, at most 200)"),
+        "quiet",
+        output={"required": True, "metavar": None, "help": "capture file (JSON Lines; appended to when resuming)"},
+        robot_file={"help": "with --sim: the robot file whose tool frames define the ground truth (default sim.toml)"},
+        table_height={"metavar": None, "help": "known table top z in the base frame (m)"},
+        quiet={"help": "no progress bar"})
 
-    m = subparsers.add_parser(
-        "calibrate-mount", formatter_class=FMT, help="fit the sensor mount (flange_T_sensor) from a capture",
-        description="Estimate every frame's plane, then fit flange_T_sensor (6 DoF) and the plane in the base frame "
-                    "to all frames at once by nonlinear least squares on forward kinematics. Prints the fit, its "
-                    "residuals and 1-sigma uncertainty, flags directions the sweep does not observe, and with "
-                    "--write saves a robot file with the fitted mount.",
-        epilog="examples:\n"
-               "  place-safe calibrate-mount sim_capture.jsonl --robot robots/ur5/sim.toml --write robot_fitted.toml\n"
-               "  place-safe calibrate-mount tests/data/tmf8820_ur5_sweep.json --method peak --calibration cal.json --level")
-    m.add_argument("capture", help="capture or sweep file (frames with joint_angles or pose)")
-    m.add_argument("--robot", metavar="ROBOT.toml", help="robot file with the starting mount (default sim.toml)")
-    m.add_argument("--method", default="diff", choices=("diff", "peak", "proprietary"), help="per-frame planes")
-    m.add_argument("--calibration", metavar="CAL.json", help="sensor calibration for the method")
-    m.add_argument("--poses", choices=("joints", "recorded"), default="joints",
-                   help="flange poses from forward kinematics of the joint angles (default) or the recorded pose")
-    m.add_argument("--sigma-angle", type=float_range(0.0, 90.0, lo_open=True), default=1.0,
-                   help="per-frame normal noise, deg (weighting; at most 90)")
-    m.add_argument("--sigma-mm", type=float_range(0.0, 1000.0, lo_open=True), default=2.0,
-                   help="per-frame distance noise, mm (weighting; at most 1000)")
-    m.add_argument("--level", action="store_true", help="the plane is level (normal = base z): needed to see the "
-                                                        "mount's tilt from a straight-down sweep")
-    m.add_argument("--table-height", type=float_range(-REACH, REACH), metavar="Z", help="the plane's known base-frame z (m): needed to "
-                                                                    "see the mount's height from a straight-down sweep")
-    m.add_argument("--truth", help="JSON with the true flange_T_sensor (simulation): report the error to it")
-    m.add_argument("--json", help="write the fit (with per-frame residuals) here")
-    m.add_argument("--write", metavar="ROBOT.toml", help="write the robot file with the fitted mount here")
-    m.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
-    m.set_defaults(func=cmd_calibrate_mount)
+    options.command(
+        subparsers, "calibrate-mount", cmd_calibrate_mount, "fit the sensor mount (flange_T_sensor) from a capture",
+        "Estimate every frame's plane, then fit flange_T_sensor (6 DoF) and the plane in the base frame to all frames "
+        "at once by nonlinear least squares on forward kinematics. Prints the fit, its residuals and 1-sigma "
+        "uncertainty, flags directions the sweep does not observe, and with --write saves a robot file with the "
+        "fitted mount.",
+        ["place-safe calibrate-mount sim_capture.jsonl --robot robots/ur5/sim.toml --write robot_fitted.toml",
+         "place-safe calibrate-mount tests/data/tmf8820_ur5_sweep.json --method peak --calibration cal.json --level"],
+        opt("capture", help="capture or sweep file (frames with joint_angles or pose)"),
+        opt("--robot", metavar="ROBOT.toml", help="robot file with the starting mount (default sim.toml)"),
+        "method", "calibration",
+        opt("--poses", choices=("joints", "recorded"), default="joints",
+            help="flange poses from forward kinematics of the joint angles (default) or the recorded pose"),
+        opt("--sigma-angle", type=float_range(0.0, 90.0, lo_open=True), default=1.0,
+            help="per-frame normal noise, deg (weighting; at most 90)"),
+        opt("--sigma-mm", type=float_range(0.0, 1000.0, lo_open=True), default=2.0,
+            help="per-frame distance noise, mm (weighting; at most 1000)"),
+        opt("--level", action="store_true", help="the plane is level (normal = base z): needed to see the mount's tilt "
+                                               "from a straight-down sweep"),
+        "table_height",
+        opt("--truth", help="JSON with the true flange_T_sensor (simulation): report the error to it"),
+        "json",
+        opt("--write", metavar="ROBOT.toml", help="write the robot file with the fitted mount here"),
+        "quiet",
+        method={"choices": CALIBRATE_METHODS, "help": "per-frame planes"},
+        calibration={"metavar": "CAL.json", "help": "sensor calibration for the method"},
+        table_height={"help": "the plane's known base-frame z (m): needed to see the mount's height from a "
+                              "straight-down sweep"},
+        json={"metavar": None, "help": "write the fit (with per-frame residuals) here"},
+        quiet={"help": "no progress bar"})
 
 
 def _resolve(args: argparse.Namespace) -> argparse.Namespace:

@@ -16,19 +16,17 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
-from place_safe.cli.common import FMT, log
+from place_safe.cli.common import log
 from place_safe.cli import options
-from place_safe.cli.options import nonnegative_int, positive_float, positive_int
+from place_safe.cli.options import nonnegative_int, opt, positive_float
 from place_safe.exceptions import UsageError
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from place_safe.cli.common import UsageError
     from place_safe.drivers.ur5 import URConfig, URRobot
     from place_safe.evaluation.contact import format_settings_report, make_stand_in, rest_noise, settings_report
 
@@ -109,47 +107,41 @@ def cmd_contact_bench(args: argparse.Namespace) -> int:
 
 def add_robot_benches(sub: argparse._SubParsersAction) -> None:
     """``place-safe bench robot`` and ``bench contact`` on the ``bench`` sub-parsers."""
-    b = sub.add_parser("robot", formatter_class=FMT,
-                       help="measure the TCP force noise at rest on a connected arm and derive the detector setting",
-                       description="Connect to the arm (nothing moves), sample the TCP force at rest, print its "
-                                   "spread, the contact detector's threshold and its false-alarm rate and detection "
-                                   "delay for that noise; --write stores [contact] noise_std in a robot file.",
-                       epilog="examples:\n"
-                              "  place-safe bench robot --robot robots/ur5/real.toml\n"
-                              "  place-safe bench robot --robot robots/ur5/real.toml --write my_ur5.toml\n"
-                              "  place-safe bench robot --fake                # the fake ur_rtde CB3 stand-in")
-    b.add_argument("--robot", metavar="ROBOT.toml", help="robot file of the arm")
-    b.add_argument("--fake", action="store_true", help="measure the fake ur_rtde controller instead of an arm")
-    b.add_argument("--controller", choices=("cb3", "e-series"), default="cb3", help="with --fake (default cb3)")
-    b.add_argument("--seconds", type=positive_float, default=2.0, help="s at rest to sample (default 2)")
-    b.add_argument("--cycles", type=positive_int, default=2_000_000, help="noise cycles for the false-alarm rate")
-    b.add_argument("--write", metavar="ROBOT.toml", help="write the robot file with the measured noise here")
-    b.add_argument("--json", metavar="OUT.json", help="write the measurement and the report as JSON")
-    b.set_defaults(func=cmd_bench)
-    c = sub.add_parser("contact", formatter_class=FMT,
-                       help="false contacts over simulated 40 cm descents and touch detection on the fake CB3",
-                       description="The contact detector against the fake controller's force noise: placements "
-                                   "from --height through URRobot on the fake ur_rtde (false contacts, outcomes, "
-                                   "watchdog stops, script errors), guarded touches of the table (delay and true "
-                                   "force at detection) and the detector on synthetic noise.",
-                       epilog="examples:\n"
-                              "  place-safe bench contact --descents 200 --jobs 2\n"
-                              "  place-safe bench contact --descents 0 --touch-trials 50\n"
-                              "  place-safe bench contact --controller e-series --descents 20")
-    c.add_argument("--controller", choices=("cb3", "e-series"), default="cb3", help="fake controller (default cb3)")
-    noise = options.field_option("place_safe.robot.contact_detector:DetectorSettings", "noise_std",
-                                 "force noise at rest, default the controller's (3.6 / 1.0)")
-    c.add_argument("--noise", type=noise, help=noise.help)
-    c.add_argument("--descents", type=nonnegative_int, default=200, help="placements from --height (default 200)")
-    c.add_argument("--height", type=positive_float, default=0.4, help="m of cup above the table (default 0.4)")
-    c.add_argument("--touch-trials", type=nonnegative_int, default=20, help="touches per speed (default 20)")
-    c.add_argument("--stiffness", type=positive_float, default=20000.0, help="N/m of the table contact (default 20000)")
-    c.add_argument("--cycles", type=positive_int, default=2_000_000, help="noise cycles for the false-alarm rate")
-    c.add_argument("--seed", type=nonnegative_int, default=0, help="first seed of the descents")
-    c.add_argument("--jobs", type=positive_int, default=1, help="worker processes for the descents")
-    c.add_argument("--json", metavar="OUT.json", help="write everything as JSON")
-    c.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
-    c.set_defaults(func=cmd_contact_bench)
+    options.command(
+        sub, "robot", cmd_bench, "measure the TCP force noise at rest on a connected arm and derive the detector setting",
+        "Connect to the arm (nothing moves), sample the TCP force at rest, print its spread, the contact detector's "
+        "threshold and its false-alarm rate and detection delay for that noise; --write stores [contact] noise_std in "
+        "a robot file.",
+        ["place-safe bench robot --robot robots/ur5/real.toml",
+         "place-safe bench robot --robot robots/ur5/real.toml --write my_ur5.toml",
+         "place-safe bench robot --fake                # the fake ur_rtde CB3 stand-in"],
+        opt("--robot", metavar="ROBOT.toml", help="robot file of the arm"),
+        opt("--fake", action="store_true", help="measure the fake ur_rtde controller instead of an arm"),
+        "controller", "seconds", "cycles",
+        opt("--write", metavar="ROBOT.toml", help="write the robot file with the measured noise here"),
+        "json",
+        controller={"help": "with --fake (default cb3)"},
+        seconds={"type": positive_float, "default": 2.0, "metavar": None, "help": "s at rest to sample (default 2)"},
+        json={"metavar": "OUT.json", "help": "write the measurement and the report as JSON"})
+    options.command(
+        sub, "contact", cmd_contact_bench,
+        "false contacts over simulated 40 cm descents and touch detection on the fake CB3",
+        "The contact detector against the fake controller's force noise: placements from --height through URRobot on "
+        "the fake ur_rtde (false contacts, outcomes, watchdog stops, script errors), guarded touches of the table "
+        "(delay and true force at detection) and the detector on synthetic noise.",
+        ["place-safe bench contact --descents 200 --jobs 2", "place-safe bench contact --descents 0 --touch-trials 50",
+         "place-safe bench contact --controller e-series --descents 20"],
+        "controller", "noise",
+        opt("--descents", type=nonnegative_int, default=200, help="placements from --height (default 200)"),
+        opt("--height", type=positive_float, default=0.4, help="m of cup above the table (default 0.4)"),
+        opt("--touch-trials", type=nonnegative_int, default=20, help="touches per speed (default 20)"),
+        opt("--stiffness", type=positive_float, default=20000.0, help="N/m of the table contact (default 20000)"),
+        "cycles", "seed", "jobs", "json", "quiet",
+        controller={"help": "fake controller (default cb3)"},
+        noise={"what": "force noise at rest, default the controller's (3.6 / 1.0)"},
+        seed={"help": "first seed of the descents"},
+        jobs={"metavar": None, "help": "worker processes for the descents"},
+        json={"metavar": "OUT.json", "help": "write everything as JSON"}, quiet={"help": "no progress lines"})
 
 
 __all__ = ["add_robot_benches", "cmd_bench", "cmd_contact_bench"]

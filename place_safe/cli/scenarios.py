@@ -14,8 +14,11 @@ import json
 import sys
 from pathlib import Path
 
-from place_safe.cli.options import float_range, int_range
+from place_safe.cli import options
+from place_safe.cli.options import opt
+from place_safe.cli.options import int_range
 from place_safe.exceptions import UsageError
+from place_safe.calibration import Calibration
 
 EPILOG = """examples:
   place-safe scenarios                                  # the hand-written set (scenarios/set)
@@ -44,34 +47,33 @@ def max_jobs() -> int:
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser("scenarios", help="run scenario files / random scenes in simulation and judge them",
-                              description="Run scenario files and random scenes through the simulated placement loop and judge each by simulation truth: table on stdout, JSON and PNG on request; exit 1 if any scenario missed its expectation.", epilog=EPILOG,
-                              formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("paths", nargs="*", metavar="PATH",
-                   help="scenario files (.toml/.json), directories of them, or packaged names "
-                        "(default: scenarios/set unless --random is given)")
-    p.add_argument("--random", type=int_range(0, MAX_RANDOM), default=0, metavar="N",
-                   help=f"also run N random scenes (0..{MAX_RANDOM})")
-    p.add_argument("--seed", type=int_range(0, 2 ** 32 - 1), default=0,
-                   help="seed of the random scenes and sensor noise (default 0)")
-    p.add_argument("--jobs", type=int_range(1, max_jobs()), default=1, metavar="J",
-                   help=f"local worker processes (default 1; at most {JOBS_PER_CPU} per CPU and {MAX_JOBS})")
-    p.add_argument("--ray", metavar="ADDRESS", help="run on a Ray cluster ('auto', an address, or 'local')")
-    p.add_argument("--seconds", type=float_range(0.0, 3600.0, lo_open=True), default=30.0,
-                   help="sim-time limit per run (s, default 30, at most 3600)")
-    p.add_argument("--calibration", help="calibration for every run: a file, 'sim' or 'none' "
-                                         "(default: each scenario's own)")
-    p.add_argument("--oracle", action="store_true", help="DEBUGGING: the simulator's true sensor parameters")
-    p.add_argument("--json", metavar="OUT", help="write rows and summary as JSON")
-    p.add_argument("--plot", metavar="PNG", help="write outcome / release-height plots (default: next to --json)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
-    p.set_defaults(func=cmd_scenarios)
+    options.command(
+        subparsers, "scenarios", cmd_scenarios, "run scenario files / random scenes in simulation and judge them",
+        "Run scenario files and random scenes through the simulated placement loop and judge each by simulation "
+        "truth: table on stdout, JSON and PNG on request; exit 1 if any scenario missed its expectation.", EPILOG,
+        opt("paths", nargs="*", metavar="PATH", help="scenario files (.toml/.json), directories of them, or packaged "
+                                                   "names (default: scenarios/set unless --random is given)"),
+        opt("--random", type=int_range(0, MAX_RANDOM), default=0, metavar="N",
+            help=f"also run N random scenes (0..{MAX_RANDOM})"),
+        "seed", "jobs",
+        opt("--ray", metavar="ADDRESS", help="run on a Ray cluster ('auto', an address, or 'local')"),
+        "seconds", "calibration",
+        opt("--oracle", action="store_true", help="DEBUGGING: the simulator's true sensor parameters"),
+        "json",
+        opt("--plot", metavar="PNG", help="write outcome / release-height plots (default: next to --json)"),
+        "quiet",
+        seed={"help": "seed of the random scenes and sensor noise (default 0)"},
+        jobs={"type": int_range(1, max_jobs()), "metavar": "J",
+              "help": f"local worker processes (default 1; at most {JOBS_PER_CPU} per CPU and {MAX_JOBS})"},
+        seconds={"default": 30.0, "metavar": None, "help": "sim-time limit per run (s, default 30, at most 3600)"},
+        calibration={"metavar": None, "help": "calibration for every run: a file, 'sim' or 'none' (default: each "
+                                              "scenario's own)"},
+        json={"metavar": "OUT", "help": "write rows and summary as JSON"}, quiet={"help": "no progress bar"})
 
 
 def cmd_scenarios(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from place_safe.cli.common import UsageError
     from place_safe.sim import suite
     from place_safe.sim.scenario import expand_paths, load_scenario, packaged_scenarios
 
@@ -85,7 +87,6 @@ def cmd_scenarios(args: argparse.Namespace) -> int:
     paths = args.paths if args.paths else ([] if args.random else [str(p) for p in packaged_scenarios()])
     items = []
     if args.calibration not in (None, "sim", "none", "oracle"):
-        from place_safe.calibration import Calibration
 
         Calibration.load(args.calibration).check()  # before any run: every section valid
     for p in expand_paths(paths):

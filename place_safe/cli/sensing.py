@@ -17,8 +17,9 @@ except ImportError:  # pragma: no cover - a dependency; the standard encoder sti
     _orjson = None
 
 from place_safe.cli import options
+from place_safe.cli.options import opt
 from place_safe.exceptions import CalibrationError, FrameError, FrameFileError, PlaceSafeError
-from place_safe.cli.common import (CALIBRATE_METHODS, METHODS, PROG, UNCALIBRATED_MARK, UsageError, estimator_for, FMT,
+from place_safe.cli.common import (CALIBRATE_METHODS, METHODS, PROG, UNCALIBRATED_MARK, UsageError, estimator_for,
                                    jsonable, load_calibration, load_truth_frames, log, progress_options, summarise,
                                    not_a_file, uncalibrated_note)
 from place_safe.evaluation.bench import DEFAULT_RUNS, measure_file_rss, report_json, run_bench
@@ -27,6 +28,7 @@ from place_safe.io.frame_file import iter_frames
 from place_safe.io.live import run_live
 from place_safe.io.replay import FileReplaySource
 from place_safe.recovery.estimator import PlaneEstimate
+from place_safe.calibration import Calibration
 
 # ------------------------------------------------------------------------------------------------
 # calibrate
@@ -34,7 +36,6 @@ from place_safe.recovery.estimator import PlaneEstimate
 def cmd_calibrate(args: argparse.Namespace) -> int:
     """Fit a method family to frame files (``calibrate FILE... --method M -o CAL``), or with ``--sim SENSOR`` run
     the whole user chain in MuJoCo (touch the table, capture a sweep, fit diff then proprietary)."""
-    from place_safe.calibration import Calibration
 
     if args.sim:
         return _calibrate_sim(args)
@@ -295,141 +296,122 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 def register(sub) -> None:
     """Add calibrate, recover, evaluate and stream to the ``place-safe`` sub-parsers."""
-    # calibrate
-    c = sub.add_parser("calibrate", formatter_class=FMT, help="fit a method's parameters to frames with ground truth",
-                       description="Fit one method family to frames with ground-truth planes and write its section "
-                                   "of a calibration file. If the output already is a calibration file, its other "
-                                   "sections are kept, so one file can carry all methods. With --sim SENSOR instead "
-                                   "of FILE, the user's whole chain runs in MuJoCo (touch the table, capture a sweep, "
-                                   "fit diff then proprietary) and rewrites the simulated calibration.",
-                       epilog="methods and the sections they write:\n"
-                              "  peak         -> 'peak' (histogram-peak distance, zone-angle scales, pile-up and, from\n"
-                              "                  frames closer than 9 cm, a per-zone near-range table kept only if\n"
-                              "                  leave-one-out cross-validation says it helps) and 'uncertainty'\n"
-                              "                  (its covariance floor; closer than 9 cm, the zones' cross-validated\n"
-                              "                  range errors)\n"
-                              "  proprietary  -> 'proprietary' (on-sensor distances)\n"
-                              "  diff         -> 'forward' (forward-model camera parameters and the residual weighting\n"
-                              "                  that recovers the planes best), 'diff' (a z0 correction, kept only if\n"
-                              "                  leave-one-out cross-validation says it helps), and 'peak' too when the\n"
-                              "                  file has none (the diff method starts from calibrated peak; to fit\n"
-                              "                  'peak' again in an existing file, run --method peak)\n\n"
-                              "example:\n"
-                              "  place-safe calibrate sweep.json --method peak -o calib.json\n"
-                              "  place-safe calibrate sweep.json --method diff -o calib.json   # adds 'forward'\n"
-                              "  place-safe calibrate --sim mismatch      # the packaged simulated calibration, anew")
-    c.add_argument("files", nargs="*", metavar="FILE", help="frame files with ground truth ('plane' or 'pose' + "
-                                                             "'dist_to_plane')")
-    c.add_argument("--method", choices=CALIBRATE_METHODS, help="method family to fit (required with FILE)")
-    c.add_argument("-o", "--output", metavar="CALIB.json",
-                   help="calibration file to write or update (required with FILE; with --sim: default the packaged "
-                        "simulated calibration)")
-    c.add_argument("--force", action="store_true", help="replace an output file that is not a valid calibration")
-    c.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
-    g = c.add_argument_group("simulation (the [sim] extra)")
-    g.add_argument("--sim", choices=("nominal", "mismatch", "all"),
-                   help="instead of FILE: regenerate the simulated user calibration of this simulated sensor the "
-                        "way a user calibrates the arm: the simulated UR5 touches the level table at three points, "
-                        "captures a sweep above it with the simulated sensor and fits it (diff, then proprietary); "
-                        "without -o it rewrites the packaged sim/sensors/calibration_<sensor>.json placements use")
-    g.add_argument("--frames", type=options.int_range(8, 1000), default=None,
-                   help=f"with --sim: poses (one frame each) in the sweep (default {SIM_SWEEP_FRAMES}, 8..1000)")
-    g.add_argument("--seed", type=options.int_range(0, 2 ** 32 - 1), default=None,
-                   help="with --sim: sweep and noise seed (default 0)")
-    g.add_argument("--save-frames", help="with --sim: also keep the capture file (JSON Lines) here (one sensor only)")
-    c.set_defaults(func=cmd_calibrate)
+    c = options.command(
+        sub, "calibrate", cmd_calibrate, "fit a method's parameters to frames with ground truth",
+        "Fit one method family to frames with ground-truth planes and write its section of a calibration file. If "
+        "the output already is a calibration file, its other sections are kept, so one file can carry all methods. "
+        "With --sim SENSOR instead of FILE, the user's whole chain runs in MuJoCo (touch the table, capture a sweep, "
+        "fit diff then proprietary) and rewrites the simulated calibration.",
+        "methods and the sections they write:\n"
+        "  peak         -> 'peak' (histogram-peak distance, zone-angle scales, pile-up and, from\n"
+        "                  frames closer than 9 cm, a per-zone near-range table kept only if\n"
+        "                  leave-one-out cross-validation says it helps) and 'uncertainty'\n"
+        "                  (its covariance floor; closer than 9 cm, the zones' cross-validated\n"
+        "                  range errors)\n"
+        "  proprietary  -> 'proprietary' (on-sensor distances)\n"
+        "  diff         -> 'forward' (forward-model camera parameters and the residual weighting\n"
+        "                  that recovers the planes best), 'diff' (a z0 correction, kept only if\n"
+        "                  leave-one-out cross-validation says it helps), and 'peak' too when the\n"
+        "                  file has none (the diff method starts from calibrated peak; to fit\n"
+        "                  'peak' again in an existing file, run --method peak)\n\n"
+        "example:\n"
+        "  place-safe calibrate sweep.json --method peak -o calib.json\n"
+        "  place-safe calibrate sweep.json --method diff -o calib.json   # adds 'forward'\n"
+        "  place-safe calibrate --sim mismatch      # the packaged simulated calibration, anew",
+        opt("files", nargs="*", metavar="FILE", help="frame files with ground truth ('plane' or 'pose' + 'dist_to_plane')"),
+        "method", "output", "force", "quiet",
+        method={"choices": CALIBRATE_METHODS, "default": None, "help": "method family to fit (required with FILE)"},
+        output={"metavar": "CALIB.json", "help": "calibration file to write or update (required with FILE; with "
+                                                 "--sim: default the packaged simulated calibration)"},
+        force={"help": "replace an output file that is not a valid calibration"})
+    options.add(c.add_argument_group("simulation (the [sim] extra)"),
+                opt("--sim", choices=("nominal", "mismatch", "all"),
+                    help="instead of FILE: regenerate the simulated user calibration of this simulated sensor the way a "
+                       "user calibrates the arm: the simulated UR5 touches the level table at three points, captures a "
+                       "sweep above it with the simulated sensor and fits it (diff, then proprietary); without -o it "
+                       "rewrites the packaged sim/sensors/calibration_<sensor>.json placements use"),
+                "frames", "seed",
+                opt("--save-frames", help="with --sim: also keep the capture file (JSON Lines) here (one sensor only)"),
+                frames={"type": options.int_range(8, 1000), "metavar": None,
+                        "help": f"with --sim: poses (one frame each) in the sweep (default {SIM_SWEEP_FRAMES}, 8..1000)"},
+                seed={"default": None, "help": "with --sim: sweep and noise seed (default 0)"})
 
-    # recover
-    r = sub.add_parser("recover", formatter_class=FMT, help="recover the plane of every frame of a file",
-                       description="Recover one plane per frame, streaming the file (it is never loaded whole). "
-                                   "With --jsonl, standard output carries exactly one JSON object per input frame, "
-                                   "in input order, and nothing else:\n"
-                                   '  {"index": 0, "normal": [nx, ny, nz], "offset": d_m, "albedo": a, "ms": t}\n'
-                                   "Frames without a recoverable plane get normal/offset null and a \"reason\".",
-                       epilog="the human table shows theta (angle of incidence, deg), phi (azimuth, deg) and d (mm).\n\n"
-                              "example:\n"
-                              "  place-safe recover frames.json --method diff --calibration calib.json --jsonl")
-    r.add_argument("file", metavar="FILE", help="frame file (JSON list or JSON Lines)")
-    r.add_argument("--method", required=True, choices=METHODS, help="recovery method")
-    r.add_argument("--calibration", metavar="CALIB.json", help="calibration file (default: built-in parameters)")
-    r.add_argument("--jsonl", action="store_true", help="one JSON line per frame on stdout (machine-readable)")
-    r.add_argument("--mode", choices=("fast", "paper"), default=None,
-                   help="diff solver: fast (default) or the paper's Adam, 100 iterations, 2304 rays (~s per frame)")
-    r.add_argument("--batch", type=options.int_range(1, 4096), default=None, metavar="N",
-                   help="frames recovered together (default 16 for diff fast, else 1); memory stays O(N)")
-    r.add_argument("-q", "--quiet", action="store_true", help="no progress bar or summary on stderr")
-    r.set_defaults(func=cmd_recover)
+    options.command(
+        sub, "recover", cmd_recover, "recover the plane of every frame of a file",
+        "Recover one plane per frame, streaming the file (it is never loaded whole). With --jsonl, standard output "
+        "carries exactly one JSON object per input frame, in input order, and nothing else:\n"
+        '  {"index": 0, "normal": [nx, ny, nz], "offset": d_m, "albedo": a, "ms": t}\n'
+        "Frames without a recoverable plane get normal/offset null and a \"reason\".",
+        "the human table shows theta (angle of incidence, deg), phi (azimuth, deg) and d (mm).\n\n"
+        "example:\n  place-safe recover frames.json --method diff --calibration calib.json --jsonl",
+        opt("file", metavar="FILE", help="frame file (JSON list or JSON Lines)"),
+        "method", "calibration", "jsonl", "mode", "batch", "quiet",
+        method={"required": True, "default": None, "help": "recovery method"},
+        jsonl={"help": "one JSON line per frame on stdout (machine-readable)"},
+        mode={"help": "diff solver: fast (default) or the paper's Adam, 100 iterations, 2304 rays (~s per frame)"},
+        batch={"default": None, "help": "frames recovered together (default 16 for diff fast, else 1); memory "
+                                        "stays O(N)"},
+        quiet={"help": "no progress bar or summary on stderr"})
 
-    # evaluate
-    e = sub.add_parser("evaluate", formatter_class=FMT, help="score methods against ground truth",
-                       description="Recover every frame with ground truth with each method and print angular (deg), "
-                                   "linear (mm) and point (mm) errors as a table; plots go to --out.",
-                       epilog="example:\n  place-safe evaluate sweep.json --calibration calib.json "
-                              "--methods diff peak --max-distance 0.3")
-    e.add_argument("file", metavar="FILE", help="frame file with ground truth")
-    e.add_argument("--calibration", metavar="CALIB.json", help="calibration file (default: built-in parameters)")
-    e.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS), metavar="METHOD",
-                   help=f"methods to evaluate (default: all of {', '.join(METHODS)})")
-    e.add_argument("--out", default="out/evaluate", metavar="DIR", help="directory for plots (default out/evaluate)")
-    e.add_argument("--min-distance", type=options.float_range(0.0, 100.0), default=None, metavar="M",
-                   help="skip frames whose true plane is closer than M metres (perpendicular distance d)")
-    e.add_argument("--max-distance", type=options.float_range(0.0, 100.0, lo_open=True), default=None, metavar="M",
-                   help="skip frames whose true plane is farther than M metres (perpendicular distance d)")
-    e.add_argument("--no-plots", action="store_true", help="do not write plots")
-    e.add_argument("--diff-mode", choices=("fast", "paper"), default=None, help="diff solver (default fast)")
-    e.add_argument("--json", metavar="FILE", help="also write the report as JSON")
-    e.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
-    e.set_defaults(func=cmd_evaluate)
+    options.command(
+        sub, "evaluate", cmd_evaluate, "score methods against ground truth",
+        "Recover every frame with ground truth with each method and print angular (deg), linear (mm) and point (mm) "
+        "errors as a table; plots go to --out.",
+        ["place-safe evaluate sweep.json --calibration calib.json --methods diff peak --max-distance 0.3"],
+        opt("file", metavar="FILE", help="frame file with ground truth"),
+        "calibration",
+        opt("--methods", nargs="+", choices=METHODS, default=list(METHODS), metavar="METHOD",
+            help=f"methods to evaluate (default: all of {', '.join(METHODS)})"),
+        opt("--out", default="out/evaluate", metavar="DIR", help="directory for plots (default out/evaluate)"),
+        opt("--min-distance", type=options.float_range(0.0, 100.0), default=None, metavar="M",
+            help="skip frames whose true plane is closer than M metres (perpendicular distance d)"),
+        opt("--max-distance", type=options.float_range(0.0, 100.0, lo_open=True), default=None, metavar="M",
+            help="skip frames whose true plane is farther than M metres (perpendicular distance d)"),
+        opt("--no-plots", action="store_true", help="do not write plots"),
+        "mode", "json", "quiet",
+        mode={"flags": ("--diff-mode",)}, json={"help": "also write the report as JSON"})
 
-    # stream
-    s = sub.add_parser("stream", formatter_class=FMT, help="replay a file as a live sensor and recover frames as they arrive",
-                       description="Replay a frame file at --rate frames per second on the wall clock and recover "
-                                   "planes live (a reader thread and the estimator, with a bounded buffer; frames that "
-                                   "arrive while the estimator is busy replace older waiting ones and count as "
-                                   "dropped). Prints a summary: frames dropped, latency from arrival to estimate "
-                                   "(median, p95, max) and throughput.",
-                       epilog="example:\n  place-safe stream frames.json --method diff --rate 30 --jsonl > live.jsonl")
-    s.add_argument("file", metavar="FILE", help="frame file to replay")
-    s.add_argument("--method", default="diff", choices=METHODS, help="recovery method (default diff)")
-    s.add_argument("--calibration", metavar="CALIB.json", help="calibration file (default: built-in parameters)")
-    s.add_argument("--mode", choices=("fast", "paper"), default=None, help="diff solver (default fast)")
-    s.add_argument("--rate", type=options.float_range(1.0, 10000.0), default=30.0, metavar="HZ",
-                   help="replay rate, frames per second (default 30; 1..10000)")
-    s.add_argument("--loop", action="store_true", help="start again at the end of the file (stop with --max-frames)")
-    s.add_argument("--max-frames", type=options.int_range(1, 10_000_000), default=None, metavar="N",
-                   help="stop after N frames arrived")
-    s.add_argument("--queue", type=options.int_range(1, 10000), default=1, metavar="N",
-                   help="frames that may wait for the estimator (default 1: always the newest)")
-    s.add_argument("--jsonl", action="store_true",
-                   help="one JSON line per estimated frame on stdout (with latency_ms); summary goes to stderr")
-    s.add_argument("--json", metavar="FILE", help="write the summary as JSON")
-    s.set_defaults(func=cmd_stream)
-
+    options.command(
+        sub, "stream", cmd_stream, "replay a file as a live sensor and recover frames as they arrive",
+        "Replay a frame file at --rate frames per second on the wall clock and recover planes live (a reader thread "
+        "and the estimator, with a bounded buffer; frames that arrive while the estimator is busy replace older "
+        "waiting ones and count as dropped). Prints a summary: frames dropped, latency from arrival to estimate "
+        "(median, p95, max) and throughput.",
+        ["place-safe stream frames.json --method diff --rate 30 --jsonl > live.jsonl"],
+        opt("file", metavar="FILE", help="frame file to replay"),
+        "method", "calibration", "mode",
+        opt("--rate", type=options.float_range(1.0, 10000.0), default=30.0, metavar="HZ",
+            help="replay rate, frames per second (default 30; 1..10000)"),
+        opt("--loop", action="store_true", help="start again at the end of the file (stop with --max-frames)"),
+        "max_frames",
+        opt("--queue", type=options.int_range(1, 10000), default=1, metavar="N",
+            help="frames that may wait for the estimator (default 1: always the newest)"),
+        "jsonl", "json",
+        max_frames={"help": "stop after N frames arrived"},
+        jsonl={"help": "one JSON line per estimated frame on stdout (with latency_ms); summary goes to stderr"},
+        json={"help": "write the summary as JSON"})
 
 
 def add_recovery_bench(sub) -> None:
     """``place-safe bench recovery``: speed and accuracy of the recovery methods on the same frames."""
-    b = sub.add_parser("recovery", formatter_class=FMT, help="speed and accuracy of diff (paper, fast) and peak",
-                       description="Run diff in paper mode, diff in fast mode and peak on the same frames in one "
-                                   "process; print per-frame latency (median, p95; ms), throughput (frames/s), mean "
-                                   "angular (deg), linear (mm) and point (mm) errors, the paper/fast speed ratio and "
-                                   "peak RSS. Warm-up is excluded.",
-                       epilog="examples:\n  place-safe bench recovery --frames 20 --paper-frames 3\n"
-                              "  place-safe bench recovery tests/data/tmf8820_ur5_sweep.json --calibration calib.json\n"
-                              "  place-safe bench recovery --frames 5 --paper-frames 0 --memory-file 1000")
-    b.add_argument("file", nargs="?", metavar="FILE", help="frame file with ground truth (default: synthetic frames)")
-    b.add_argument("--calibration", metavar="CALIB.json", help="calibration file (default: built-in parameters)")
-    b.add_argument("--frames", type=options.int_range(1, 100000), default=None, metavar="N",
-                   help="frames to use (default: 20 synthetic, or all of FILE)")
-    b.add_argument("--paper-frames", type=options.int_range(0, 10000), default=5, metavar="N",
-                   help="frames for diff paper mode, about 10 s each (default 5; 0 skips it)")
-    b.add_argument("--methods", nargs="+", choices=("diff-paper", "diff-fast", "peak"),
-                   default=["diff-paper", "diff-fast", "peak"], metavar="RUN",
-                   help="runs to include: diff-paper diff-fast peak (default all)")
-    b.add_argument("--memory-file", type=options.int_range(1, 1000000), default=None, metavar="N",
-                   help="also report the peak RSS of `recover` over an N-frame synthetic file in a fresh process")
-    b.add_argument("--memory-method", default="diff", choices=METHODS, help="method for --memory-file (default diff)")
-    b.add_argument("--seed", type=options.nonnegative_int, default=0, help="seed of the synthetic frames")
-    b.add_argument("--json", metavar="FILE", help="write the results as JSON")
-    b.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
-    b.set_defaults(func=cmd_bench)
+    options.command(
+        sub, "recovery", cmd_bench, "speed and accuracy of diff (paper, fast) and peak",
+        "Run diff in paper mode, diff in fast mode and peak on the same frames in one process; print per-frame "
+        "latency (median, p95; ms), throughput (frames/s), mean angular (deg), linear (mm) and point (mm) errors, "
+        "the paper/fast speed ratio and peak RSS. Warm-up is excluded.",
+        ["place-safe bench recovery --frames 20 --paper-frames 3",
+         "place-safe bench recovery tests/data/tmf8820_ur5_sweep.json --calibration calib.json",
+         "place-safe bench recovery --frames 5 --paper-frames 0 --memory-file 1000"],
+        opt("file", nargs="?", metavar="FILE", help="frame file with ground truth (default: synthetic frames)"),
+        "calibration", "frames",
+        opt("--paper-frames", type=options.int_range(0, 10000), default=5, metavar="N",
+            help="frames for diff paper mode, about 10 s each (default 5; 0 skips it)"),
+        opt("--methods", nargs="+", choices=("diff-paper", "diff-fast", "peak"),
+            default=["diff-paper", "diff-fast", "peak"], metavar="RUN",
+            help="runs to include: diff-paper diff-fast peak (default all)"),
+        opt("--memory-file", type=options.int_range(1, 1000000), default=None, metavar="N",
+            help="also report the peak RSS of `recover` over an N-frame synthetic file in a fresh process"),
+        "method", "seed", "json", "quiet",
+        frames={"help": "frames to use (default: 20 synthetic, or all of FILE)"},
+        method={"flags": ("--memory-method",), "help": "method for --memory-file (default diff)"},
+        seed={"help": "seed of the synthetic frames"}, json={"help": "write the results as JSON"})

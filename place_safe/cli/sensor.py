@@ -17,9 +17,9 @@ import time
 from pathlib import Path
 from typing import Any
 
+from place_safe.cli import options
 from place_safe.cli.common import FMT, log
-from place_safe.cli.options import float_range, fraction, int_range
-from place_safe.recovery import METHODS
+from place_safe.cli.options import float_range, fraction, int_range, opt
 from place_safe.cli.live_view import RerunView
 from place_safe.drivers.tmf8820 import bench
 from place_safe.exceptions import ConfigError, SensorTimeout, UsageError
@@ -27,11 +27,10 @@ from place_safe.sources import open_source
 from place_safe.cli.common import UNCALIBRATED_MARK, estimator_for, load_calibration, uncalibrated_note
 from place_safe.io.frame_file import write_frames
 from place_safe.io.live import run_live
+from place_safe.recovery.forward import ForwardParams
 
 #: Hz: an emulated I2C clock (standard 100 kHz .. high-speed 3.4 MHz, and slower buses down to 10 kHz).
-BUS_HZ = float_range(1e4, 3.4e6)
 #: s: how long a read may wait for a frame.
-TIMEOUT = float_range(0.0, 60.0, lo_open=True)
 
 _URI_HELP = ("source URI: i2c:BUS[@ADDR], serial:PORT[@BAUD] or serial:LOG, file:FRAMES.json, "
              "emu:file:FRAMES.json, emu:synthetic[:N], emu:SCENARIO")
@@ -42,23 +41,27 @@ def _paragraphs(*paras: str) -> str:
     return "\n\n".join(textwrap.fill(p, 100) for p in paras)
 
 
-def _add_source_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("uri", metavar="URI", help=_URI_HELP)
-    g = p.add_argument_group("sensor options (i2c: and emu: sources)")
-    g.add_argument("--patch", metavar="FILE.hex", help="Intel HEX RAM patch to download (default: ROM application)")
-    g.add_argument("--period-ms", type=int_range(0, 0xFFFF), metavar="MS", help="measurement period (default 33)")
-    g.add_argument("--kilo-iterations", type=int_range(1, 0xFFFF), metavar="K",
-                   help="laser pulses in thousands (default 4000)")
-    g.add_argument("--calibration-dir", metavar="DIR", help="factory calibration files (loaded by sensor serial)")
-    g.add_argument("--int-line", metavar="CHIP:OFFSET", help="INT pin as a GPIO line, e.g. /dev/gpiochip0:17 "
-                                                              "(default: poll INT_STATUS)")
-    g.add_argument("--bus-hz", type=BUS_HZ, metavar="HZ", help="emu: emulated bus clock (default 400000; "
-                   "10 kHz..3.4 MHz, the I2C range)")
+#: The options of every command that opens a source (``sensor info|record|stream``).
+_SOURCE = options.opt("uri", metavar="URI", help=_URI_HELP)
+_SOURCE_GROUP = "sensor options (i2c: and emu: sources)"
+
+
+def _sensor_command(sub, name: str, func, help: str, description: str, examples: list[str], *more, **changes):
+    """A ``sensor`` sub-command: the source URI and the source options (a group of their own), then ``more``."""
+    p = options.command(sub, name, func, help, description, examples, _SOURCE)
+    options.add(p.add_argument_group(_SOURCE_GROUP),
+                options.opt("--patch", metavar="FILE.hex",
+                            help="Intel HEX RAM patch to download (default: ROM application)"),
+                "period_ms", "kilo_iterations",
+                options.opt("--calibration-dir", metavar="DIR", help="factory calibration files (loaded by sensor serial)"),
+                options.opt("--int-line", metavar="CHIP:OFFSET",
+                            help="INT pin as a GPIO line, e.g. /dev/gpiochip0:17 (default: poll INT_STATUS)"),
+                "bus_hz", bus_hz={"help": "emu: emulated bus clock (default 400000; 10 kHz..3.4 MHz, the I2C range)"})
+    options.add(p, *more, **changes)
+    return p
 
 
 def _open(args: argparse.Namespace, **extra: Any):
-    from place_safe.cli.common import UsageError
-    from place_safe.sources import open_source
 
     scheme = args.uri.split(":", 1)[0]
     opts: dict[str, Any] = {}
@@ -148,7 +151,6 @@ def cmd_stream(args: argparse.Namespace) -> int:
     if args.save or args.view:
         params = cal.forward() if cal is not None and hasattr(cal, "forward") and "forward" in cal.sections else None
         if params is None and args.method == "diff":
-            from place_safe.recovery.forward import ForwardParams
 
             params = ForwardParams()
         view = RerunView(save=args.save, params=params)
@@ -243,111 +245,93 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     sub = s.add_subparsers(dest="sensor_command", metavar="{info,record,stream}")
     sub.required = True
 
-    i = sub.add_parser("info", formatter_class=FMT, help="identity, versions, mode and configuration",
-                       description="Bring the sensor up and print its identity (serial number), application "
-                                   "version, mode, range and configuration without measuring.",
-                       epilog="examples:\n  place-safe sensor info i2c:/dev/i2c-1@0x41\n"
-                              "  place-safe sensor info emu:synthetic --json\n"
-                              "  place-safe sensor info i2c:1 --calibration-dir cal --factory-calibrate")
-    _add_source_options(i)
-    i.add_argument("--json", action="store_true", help="print JSON")
-    i.add_argument("--factory-calibrate", action="store_true",
-                   help="run the sensor's factory calibration (nothing within 40 cm, dark) and save it in "
-                        "--calibration-dir, keyed by serial number; it is loaded at every start")
-    i.set_defaults(func=cmd_info)
-
-    r = sub.add_parser("record", formatter_class=FMT, help="record frames to a frame file",
-                       description="Read frames from a source and write them to a frame file (JSON list, or "
-                                   "JSON Lines for a .jsonl name), with a progress bar.",
-                       epilog="examples:\n  place-safe sensor record i2c:1 -o sweep.json --frames 200\n"
-                              "  place-safe sensor record serial:/dev/ttyACM0 -o bridge.jsonl --seconds 30\n"
-                              "  place-safe sensor record serial:capture.log -o frames.json")
-    _add_source_options(r)
-    r.add_argument("-o", "--output", required=True, metavar="FILE", help="frame file to write")
-    r.add_argument("--frames", type=int_range(1, 1_000_000), default=100, metavar="N",
-                   help="frames to record (default 100, at most 1000000)")
-    r.add_argument("--seconds", type=float_range(0.0, 86400.0, lo_open=True), metavar="S",
-                   help="stop after S seconds")
-    r.add_argument("--timeout", type=TIMEOUT, default=2.0, metavar="S",
-                   help="stop when no frame arrives for S seconds (default 2)")
-    r.add_argument("--force", action="store_true", help="overwrite the output file")
-    r.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
-    r.set_defaults(func=cmd_record)
-
-    st = sub.add_parser("stream", formatter_class=FMT, help="live plane readout (and rerun view)",
-                        description="Recover the plane from every frame as it arrives and print tilt, "
-                                    "distance and latency (age: from the measurement to the estimate, on "
-                                    "monotonic-clock sources). --save writes a rerun recording (histograms, "
-                                    "model fit, plane in 3D, latency, frame rate); --view opens a viewer.",
-                        epilog="examples:\n  place-safe sensor stream i2c:/dev/i2c-1 --method peak\n"
-                               "  place-safe sensor stream emu:place_level --max-frames 30 --save run.rrd\n"
-                               "  place-safe sensor stream serial:/dev/ttyACM0 --jsonl > planes.jsonl")
-    _add_source_options(st)
-    st.add_argument("--method", default="peak", choices=METHODS,
-                    help="plane recovery (default peak)")
-    st.add_argument("--calibration", metavar="CALIB.json", help="calibration file")
-    st.add_argument("--max-frames", type=int_range(1, 10_000_000), metavar="N", help="stop after N frames")
-    st.add_argument("--timeout", type=TIMEOUT, default=2.0, metavar="S", help="read timeout (default 2 s, at most 60)")
-    st.add_argument("--jsonl", action="store_true", help="one JSON line per frame on stdout")
-    st.add_argument("--save", metavar="RUN.rrd", help="write a rerun recording (headless)")
-    st.add_argument("--view", action="store_true", help="open a rerun viewer (needs a display)")
-    st.set_defaults(func=cmd_stream)
+    _sensor_command(
+        sub, "info", cmd_info, "identity, versions, mode and configuration",
+        "Bring the sensor up and print its identity (serial number), application version, mode, range and "
+        "configuration without measuring.",
+        ["place-safe sensor info i2c:/dev/i2c-1@0x41", "place-safe sensor info emu:synthetic --json",
+         "place-safe sensor info i2c:1 --calibration-dir cal --factory-calibrate"],
+        opt("--json", action="store_true", help="print JSON"),
+        opt("--factory-calibrate", action="store_true",
+            help="run the sensor's factory calibration (nothing within 40 cm, dark) and save it in --calibration-dir, "
+               "keyed by serial number; it is loaded at every start"))
+    _sensor_command(
+        sub, "record", cmd_record, "record frames to a frame file",
+        "Read frames from a source and write them to a frame file (JSON list, or JSON Lines for a .jsonl name), "
+        "with a progress bar.",
+        ["place-safe sensor record i2c:1 -o sweep.json --frames 200",
+         "place-safe sensor record serial:/dev/ttyACM0 -o bridge.jsonl --seconds 30",
+         "place-safe sensor record serial:capture.log -o frames.json"],
+        "output", "frames", "seconds", "timeout", "force", "quiet",
+        output={"required": True, "help": "frame file to write"},
+        frames={"type": int_range(1, 1_000_000), "default": 100, "help": "frames to record (default 100, at most 1000000)"},
+        seconds={"type": float_range(0.0, 86400.0, lo_open=True), "help": "stop after S seconds"},
+        quiet={"help": "no progress bar"})
+    _sensor_command(
+        sub, "stream", cmd_stream, "live plane readout (and rerun view)",
+        "Recover the plane from every frame as it arrives and print tilt, distance and latency (age: from the "
+        "measurement to the estimate, on monotonic-clock sources). --save writes a rerun recording (histograms, model "
+        "fit, plane in 3D, latency, frame rate); --view opens a viewer.",
+        ["place-safe sensor stream i2c:/dev/i2c-1 --method peak",
+         "place-safe sensor stream emu:place_level --max-frames 30 --save run.rrd",
+         "place-safe sensor stream serial:/dev/ttyACM0 --jsonl > planes.jsonl"],
+        "method", "calibration", "max_frames", "timeout", "jsonl",
+        opt("--save", metavar="RUN.rrd", help="write a rerun recording (headless)"),
+        opt("--view", action="store_true", help="open a rerun viewer (needs a display)"),
+        method={"default": "peak", "help": "plane recovery (default peak)"},
+        max_frames={"help": "stop after N frames"},
+        timeout={"help": "read timeout (default 2 s, at most 60)"})
 
 
 
 def add_sensor_bench(sub) -> None:
     """``place-safe bench sensor``: the I2C driver over the register-level emulator with its bus timing."""
-    b = sub.add_parser("sensor", formatter_class=FMT, help="bus frame rate, bytes per frame, decode CPU (emulator)",
-                       description=_paragraphs(
-                           "Stream frames through the I2C driver over the register-level emulator with "
-                                   "its bus timing, for each way of waiting (INT line, polling INT_STATUS), bus "
-                                   "clock and publish latency (how long the chip takes, after the host cleared a "
-                                   "packet's interrupt, to put the next packet in its 0x20 window), and print: "
-                                   "frames/s of emulated time; the bus limit (clock / (9 x 4182 payload bytes): "
-                                   "10.63 frames/s at 400 kHz, 26.57 at 1 MHz) and frames/s as a share of it; the "
-                                   "ceiling no host keeping the protocol's discipline can pass on that chip, and "
-                                   "frames/s as a share of it; the measurement period the driver fitted to its "
-                                   "read-out (the chip overwrites a measurement not read out within one period) "
-                                   "and the ceiling's period; bytes moved per frame against the 4368-byte "
-                                   "transfer minimum; host CPU to decode a frame.",
-                                   "The ceiling: the chip publishes a packet only after the host released the "
-                                   "previous one by clearing its interrupt, plus the publish latency L, and the "
-                                   "host may clear it only once it has read and checked it. Per measurement the "
-                                   "bus carries 31 x (one write-register/read transaction + one interrupt clear) "
-                                   "= 4368 bytes of 9 clocks, plus 5 START/STOP clocks a packet, plus 31 x L of "
-                                   "idle bus (a late read-out delays the next packet 0 by one L, so a period "
-                                   "below all 31 never drains a backlog); polling adds one 4-byte INT_STATUS poll "
-                                   "a packet (39 clocks, of which the 19 before its status byte can overlap L). "
-                                   "The period is whole ms and at least the measurement time (41 ms at 4000 "
-                                   "kilo-iterations in the emulator). E.g. 400 kHz, 200 us: 98.67 + 6.2 ms -> "
-                                   "105 ms, 9.52 frames/s, 89.6 % of the limit; 1 MHz, 50 us: 39.47 + 1.55 ms "
-                                   "-> 42 ms, 23.81 frames/s, 89.6 %. Clearing in the same transaction as the "
-                                   "read would save 31 clocks but releases the packet before it is checked "
-                                   "(an open-bus cut shows only as a 0xFF tail); reading after the clear races "
-                                   "the next packet."),
-                       epilog="examples:\n  place-safe bench sensor\n  place-safe bench sensor --bus-hz 1000000 "
-                              "--latency-us 0 20 --frames 500\n  place-safe bench sensor --fault-rate 0.001 "
-                              "--json bench.json")
-    b.add_argument("--bus-hz", type=BUS_HZ, nargs="+", default=[400e3, 1e6], metavar="HZ",
-                   help="bus clocks (default 400000 1000000)")
-    b.add_argument("--wait", nargs="+", choices=["int", "poll"], default=["int", "poll"],
-                   help="how the driver waits for a packet: the emulator's INT line, polling INT_STATUS "
-                        "(default both)")
-    b.add_argument("--latency-us", type=float_range(0.0, 10000.0), nargs="+", default=[0.0, 50.0, 200.0],
-                   metavar="US",
-                   help="publish latencies of the emulated chip, microseconds, 0-10000 (default 0 50 200)")
-    b.add_argument("--frames", type=int_range(1, 100_000), default=200, metavar="N",
-                   help="frames per clock and latency (default 200)")
-    b.add_argument("--period-ms", type=int_range(0, 0xFFFF), default=33, metavar="MS",
-                   help="shortest period wanted (default 33; the driver lengthens it to what the bus can read out)")
-    b.add_argument("--kilo-iterations", type=int_range(1, 0xFFFF), default=4000, metavar="K",
-                   help="pulses in thousands (default 4000)")
-    b.add_argument("--fault-rate", type=fraction, default=0.0, metavar="P",
-                   help="probability per bus transfer of an injected fault (default 0)")
-    b.add_argument("--seed", type=int_range(0, 2 ** 32 - 1), default=0, help="seed of frames and faults")
-    b.add_argument("--json", metavar="FILE", help="write the figures as JSON")
-    b.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
-    b.set_defaults(func=cmd_bench)
+    options.command(
+        sub, "sensor", cmd_bench, "bus frame rate, bytes per frame, decode CPU (emulator)",
+        _paragraphs(
+            "Stream frames through the I2C driver over the register-level emulator with "
+            "its bus timing, for each way of waiting (INT line, polling INT_STATUS), bus "
+            "clock and publish latency (how long the chip takes, after the host cleared a "
+            "packet's interrupt, to put the next packet in its 0x20 window), and print: "
+            "frames/s of emulated time; the bus limit (clock / (9 x 4182 payload bytes): "
+            "10.63 frames/s at 400 kHz, 26.57 at 1 MHz) and frames/s as a share of it; the "
+            "ceiling no host keeping the protocol's discipline can pass on that chip, and "
+            "frames/s as a share of it; the measurement period the driver fitted to its "
+            "read-out (the chip overwrites a measurement not read out within one period) "
+            "and the ceiling's period; bytes moved per frame against the 4368-byte "
+            "transfer minimum; host CPU to decode a frame.",
+            "The ceiling: the chip publishes a packet only after the host released the "
+            "previous one by clearing its interrupt, plus the publish latency L, and the "
+            "host may clear it only once it has read and checked it. Per measurement the "
+            "bus carries 31 x (one write-register/read transaction + one interrupt clear) "
+            "= 4368 bytes of 9 clocks, plus 5 START/STOP clocks a packet, plus 31 x L of "
+            "idle bus (a late read-out delays the next packet 0 by one L, so a period "
+            "below all 31 never drains a backlog); polling adds one 4-byte INT_STATUS poll "
+            "a packet (39 clocks, of which the 19 before its status byte can overlap L). "
+            "The period is whole ms and at least the measurement time (41 ms at 4000 "
+            "kilo-iterations in the emulator). E.g. 400 kHz, 200 us: 98.67 + 6.2 ms -> "
+            "105 ms, 9.52 frames/s, 89.6 % of the limit; 1 MHz, 50 us: 39.47 + 1.55 ms "
+            "-> 42 ms, 23.81 frames/s, 89.6 %. Clearing in the same transaction as the "
+            "read would save 31 clocks but releases the packet before it is checked "
+            "(an open-bus cut shows only as a 0xFF tail); reading after the clear races "
+            "the next packet."),
+        ["place-safe bench sensor", "place-safe bench sensor --bus-hz 1000000 --latency-us 0 20 --frames 500",
+         "place-safe bench sensor --fault-rate 0.001 --json bench.json"],
+        "bus_hz",
+        opt("--wait", nargs="+", choices=["int", "poll"], default=["int", "poll"],
+            help="how the driver waits for a packet: the emulator's INT line, polling INT_STATUS (default both)"),
+        opt("--latency-us", type=float_range(0.0, 10000.0), nargs="+", default=[0.0, 50.0, 200.0], metavar="US",
+            help="publish latencies of the emulated chip, microseconds, 0-10000 (default 0 50 200)"),
+        "frames", "period_ms", "kilo_iterations",
+        opt("--fault-rate", type=fraction, default=0.0, metavar="P",
+            help="probability per bus transfer of an injected fault (default 0)"),
+        "seed", "json", "quiet",
+        bus_hz={"nargs": "+", "default": [400e3, 1e6], "help": "bus clocks (default 400000 1000000)"},
+        frames={"default": 200, "help": "frames per clock and latency (default 200)"},
+        period_ms={"default": 33, "help": "shortest period wanted (default 33; the driver lengthens it to what the "
+                                          "bus can read out)"},
+        kilo_iterations={"default": 4000, "help": "pulses in thousands (default 4000)"},
+        seed={"help": "seed of frames and faults"}, json={"help": "write the figures as JSON"})
 
 
 __all__ = ["register", "add_sensor_bench"]

@@ -12,7 +12,11 @@ import argparse
 import math
 from pathlib import Path
 
+from place_safe.cli import options
+from place_safe.cli.options import opt
 from place_safe.cli.options import float_range, int_range
+from place_safe.cli.common import UsageError, log
+from place_safe.io.frame_file import write_frames
 
 EPILOG = """examples:
   # calibration frames and separate test frames of the same simulated sensor
@@ -28,40 +32,38 @@ EPILOG = """examples:
 def register(subparsers) -> None:
     from place_safe.evaluation.independent import CROSSTALK_MODES, PULSE_MODES, SATURATION_MODES
 
-    s = subparsers.add_parser(
-        "synth", formatter_class=argparse.RawDescriptionHelpFormatter, epilog=EPILOG,
-        help="write synthetic frames with ground truth (independent generator or the project's model)",
-        description="Draw random planes (distance uniform in [--min-distance, --max-distance] m, angle of "
-                    "incidence uniform in [0, --max-angle] deg, random albedo and specular lobe) and write their "
-                    "frames, with the true plane, as a frame file. The simulated sensor is fixed by --sensor-seed "
-                    "(same seed, same sensor); --seed draws the scenes.")
-    s.add_argument("--generator", choices=("independent", "model"), default="independent",
-                   help="independent simulation (default) or the project's forward model (convention checks)")
-    s.add_argument("--frames", type=int_range(1, 100000), default=100, metavar="N",
-                   help="frames to write, 1-100000 (default 100; they are built in memory, about 10 kB each)")
-    s.add_argument("--seed", type=int_range(0, 2 ** 32 - 1), default=0, help="seed of the scenes (default 0)")
-    s.add_argument("--sensor-seed", type=int_range(0, 2 ** 32 - 1), default=0,
-                   help="seed of the simulated sensor (default 0)")
-    s.add_argument("--min-distance", type=float_range(0.0, 5.0, lo_open=True), default=0.02, metavar="M",
-                   help="nearest z0, m (default 0.02, at most 5)")
-    s.add_argument("--max-distance", type=float_range(0.0, 5.0, lo_open=True), default=0.30, metavar="M",
-                   help="farthest z0, m (default 0.30, at most 5: the sensor's range)")
-    s.add_argument("--max-angle", type=float_range(0.0, 80.0), default=30.0, metavar="DEG",
-                   help="largest incidence, deg (default 30, 0..80)")
-    s.add_argument("--pulse", choices=PULSE_MODES, default=None,
-                   help="independent: zone pulse from the reference (default gaussian soft-binning)")
-    s.add_argument("--saturation", choices=SATURATION_MODES, default=None,
-                   help="independent: SPAD saturation of the shaded or unshaded intensity (default unshaded)")
-    s.add_argument("--crosstalk", choices=CROSSTALK_MODES, default=None,
-                   help="independent: crosstalk from the other zones or all zones (default all)")
-    s.add_argument("--no-noise", action="store_true", help="expected counts, no Poisson noise")
-    s.add_argument("-o", "--output", required=True, metavar="FILE", help="frame file to write (JSON list)")
-    s.set_defaults(func=cmd_synth)
+    options.command(
+        subparsers, "synth", cmd_synth,
+        "write synthetic frames with ground truth (independent generator or the project's model)",
+        "Draw random planes (distance uniform in [--min-distance, --max-distance] m, angle of incidence uniform in "
+        "[0, --max-angle] deg, random albedo and specular lobe) and write their frames, with the true plane, as a "
+        "frame file. The simulated sensor is fixed by --sensor-seed (same seed, same sensor); --seed draws the scenes.",
+        EPILOG,
+        opt("--generator", choices=("independent", "model"), default="independent",
+            help="independent simulation (default) or the project's forward model (convention checks)"),
+        "frames", "seed",
+        opt("--sensor-seed", type=int_range(0, 2 ** 32 - 1), default=0, help="seed of the simulated sensor (default 0)"),
+        opt("--min-distance", type=float_range(0.0, 5.0, lo_open=True), default=0.02, metavar="M",
+            help="nearest z0, m (default 0.02, at most 5)"),
+        opt("--max-distance", type=float_range(0.0, 5.0, lo_open=True), default=0.30, metavar="M",
+            help="farthest z0, m (default 0.30, at most 5: the sensor's range)"),
+        opt("--max-angle", type=float_range(0.0, 80.0), default=30.0, metavar="DEG",
+            help="largest incidence, deg (default 30, 0..80)"),
+        opt("--pulse", choices=PULSE_MODES, default=None,
+            help="independent: zone pulse from the reference (default gaussian soft-binning)"),
+        opt("--saturation", choices=SATURATION_MODES, default=None,
+            help="independent: SPAD saturation of the shaded or unshaded intensity (default unshaded)"),
+        opt("--crosstalk", choices=CROSSTALK_MODES, default=None,
+            help="independent: crosstalk from the other zones or all zones (default all)"),
+        opt("--no-noise", action="store_true", help="expected counts, no Poisson noise"),
+        "output",
+        frames={"default": 100, "help": "frames to write, 1-100000 (default 100; they are built in memory, about "
+                                        "10 kB each)"},
+        seed={"help": "seed of the scenes (default 0)"},
+        output={"required": True, "help": "frame file to write (JSON list)"})
 
 
 def cmd_synth(args: argparse.Namespace) -> int:
-    from place_safe.cli.common import UsageError, log
-    from place_safe.io.frame_file import write_frames
 
     if not args.min_distance < args.max_distance:
         raise UsageError("synth: --min-distance must be below --max-distance")

@@ -37,6 +37,7 @@ from place_safe.sensor.frame import Frame
 from place_safe.evaluation.metrics import angular_error, linear_error, point_error
 from place_safe.recovery import make_estimator
 from place_safe.io.frame_file import write_frames
+from place_safe.calibration import uncalibrated_reason
 
 #: Methods of the benchmark: (label, CLI method, estimator options), in the order they run. The paper
 #: mode runs after the fast mode, so torch is already warm, and skips its own warm-up estimate: its
@@ -198,7 +199,6 @@ def run_bench(frames: Sequence[Frame], calibration=None, paper_frames: int = 5,
               runs: Sequence[tuple[str, str, dict]] = DEFAULT_RUNS, source: str = "frames",
               progress: bool = False) -> BenchReport:
     """Benchmark each run (label, method, options) on ``frames`` (``diff-paper``: ``paper_frames`` spread evenly)."""
-    from place_safe.calibration import uncalibrated_reason
 
     results = []
     for label, method, options in runs:

@@ -30,6 +30,8 @@ import numpy as np
 from place_safe.exceptions import SensorTimeout
 from place_safe.geometry import Plane
 from place_safe.robot.kinematics import Kinematics
+from place_safe.sensor.frame import Frame
+from place_safe.recovery.estimator import PlaneEstimate
 
 #: m/s^2 of the reference touch ramps the bench reports (force rate = stiffness x speed).
 TOUCH_SPEEDS = (0.005, 0.01, 0.02)
@@ -59,7 +61,6 @@ class TablePlaneSource:
         pass
 
     def read(self, timeout: float = 1.0) -> Any:
-        from place_safe.sensor.frame import Frame
 
         t = self.robot.time()
         if t < self._next:
@@ -77,7 +78,6 @@ class TruthEstimator:
     """The frame's true plane (the driver and the decision are measured, not plane recovery)."""
 
     def estimate(self, frame: Any) -> Any:
-        from place_safe.recovery.estimator import PlaneEstimate
 
         return PlaneEstimate(frame.truth, reason=None if frame.truth is not None else "no truth")
 

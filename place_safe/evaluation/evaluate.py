@@ -23,6 +23,8 @@ from place_safe.calibration import UNCALIBRATED_MARK
 from place_safe.evaluation.metrics import angular_errors, linear_errors, nees, point_errors, summarise
 from place_safe.sensor.frame import Frame
 from place_safe.recovery import make_estimator
+from place_safe.calibration import uncalibrated_reason
+from place_safe.recovery.too_close import TOO_CLOSE_REASON
 
 
 #: Methods that may return another method's plane: their fallback rate is always printed (0 % too).
@@ -50,7 +52,6 @@ class MethodResult:
     @property
     def too_close(self) -> int:
         """Frames without a plane because they were too close to read (:mod:`place_safe.recovery.too_close`)."""
-        from place_safe.recovery.too_close import TOO_CLOSE_REASON
 
         return sum(1 for r in self.reasons if isinstance(r, str) and r.startswith(TOO_CLOSE_REASON))
 
@@ -149,8 +150,6 @@ def evaluate(frames: Sequence[Frame], calibration: Any = None, methods: Sequence
     (e.g. ``{"diff": {"mode": "paper"}}``).
     """
     from tqdm import tqdm
-
-    from place_safe.calibration import uncalibrated_reason
 
     use = [f for f in frames if f.truth is not None]
     report = EvaluationReport(skipped=len(frames) - len(use))

@@ -192,10 +192,9 @@ class _Splitter:
                         pos += 1
                         continue
                     m = (_INSIDE if self.is_list else _INSIDE_LINES).search(chunk, pos)
+                    pos = n if m is None else m.end()  # the string goes on past this chunk, or up to m
                     if m is None:
-                        pos = n
                         break
-                    pos = m.end()
                     if m.group() == b"\n":  # JSON Lines: the frame's line ended inside a string
                         self._broken_line()
                         done = True

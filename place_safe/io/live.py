@@ -5,9 +5,14 @@ stream`` and its live view).
 reader thread, bounded newest-first buffer and fault policy: see :mod:`place_safe.io.pipeline`) that estimates in
 the calling thread, in arrival order, and reports every estimate to a callback. The streams' limits
 (:data:`~place_safe.io.pipeline.STREAM_POLICY`): a read may block ``read_timeout`` seconds, ``max_timeouts`` in
-a row end the run, and so does a source error (raised to the caller after the run has stopped). A frame whose
-stamp is not later than the previous one's (a frozen sensor, a duplicate) is not estimated; it is counted in
-``repeated``.
+a row end the run, and so does a source error (raised to the caller after the run has stopped).
+
+Frames are gated by the pipeline's one :class:`~place_safe.io.pipeline.FrameGate`, as the placement loop's are,
+with the streams' limits: a frame whose stamp is not later than the previous one's (a frozen sensor, a
+duplicate) is not estimated and counts in ``repeated``; on a source stamped with this host's monotonic clock
+(``clock_domain`` "monotonic") a frame stamped later than now (+ :data:`FUTURE_TOLERANCE`) is not estimated and
+counts in ``future``. There is no age limit (a readout shows the age instead; the paper solver takes seconds a
+frame), and a frame without a stamp is estimated and counted in ``unstamped`` (there is no clock to judge it by).
 
 Latency is measured from arrival (when ``read`` returned) to the end of the estimate, so it includes the time
 spent waiting in the buffer.
@@ -23,7 +28,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from place_safe.io.pipeline import STREAM_POLICY, FrameGate, SensorPipeline, stamp_of
+from place_safe.io.pipeline import STREAM_POLICY, FrameGate, SensorPipeline, clock_domain_of, stamp_of
 from place_safe.io.source import FrameSource
 from place_safe.recovery.estimator import Estimator, PlaneEstimate
 from place_safe.sensor.frame import Frame
@@ -40,6 +45,8 @@ class StreamStats:
     no_plane: int = 0          # estimates without a plane (includes bad_frames)
     timeouts: int = 0          # SensorTimeout raised by the source
     repeated: int = 0          # frames not estimated: stamped no later than the previous one (a frozen sensor)
+    future: int = 0            # frames not estimated: stamped later than now on this host's clock
+    unstamped: int = 0         # frames estimated without a usable stamp (not gated)
     elapsed: float = 0.0       # wall time of the run
     ended_by: str = ""         # "source ended", "max_frames", "timeouts", "stopped", "source error: ..."
     latencies: list[float] = field(default_factory=list)
@@ -76,7 +83,7 @@ class StreamStats:
 
         return {"received": self.received, "estimated": self.estimated, "dropped": self.dropped,
                 "bad_frames": self.bad_frames, "no_plane": self.no_plane, "timeouts": self.timeouts,
-                "repeated": self.repeated,
+                "repeated": self.repeated, "future": self.future, "unstamped": self.unstamped,
                 "elapsed_s": round(self.elapsed, 4), "fps": round(self.fps, 3),
                 "input_fps": round(self.input_fps, 3), "latency_ms": {
                     "median": ms(self.latency_median), "p95": ms(self.latency_p95), "max": ms(self.latency_max)},
@@ -89,12 +96,16 @@ class StreamStats:
 
         return (f"frames: {self.received} received, {self.estimated} estimated, {self.dropped} dropped, "
                 f"{self.no_plane} without a plane ({self.bad_frames} bad), {self.timeouts} timeouts"
-                + (f", {self.repeated} repeated" if self.repeated else "") + "\n"
+                + "".join(f", {n} {what}" for what, n in (("repeated", self.repeated), ("from the future", self.future),
+                                                          ("unstamped", self.unstamped)) if n) + "\n"
                 f"latency (arrival -> estimate): median {ms(self.latency_median)}, p95 {ms(self.latency_p95)}, "
                 f"max {ms(self.latency_max)}\n"
                 f"throughput: {self.fps:.1f} estimates/s (source {self.input_fps:.1f} frames/s) over "
                 f"{self.elapsed:.2f} s; ended: {self.ended_by}")
 
+
+#: s, how far a frame's stamp may lie after the host's monotonic clock before it counts as from the future
+FUTURE_TOLERANCE = 0.01
 
 #: Called for every estimate: (index of the frame in arrival order, frame, estimate, latency in s).
 OnEstimate = Callable[[int, Frame, PlaneEstimate, float], None]
@@ -120,7 +131,8 @@ def run_live(source: FrameSource, estimator: Estimator, on_estimate: OnEstimate 
     policy = replace(STREAM_POLICY, read_timeout=read_timeout, max_timeouts=max_timeouts)
     pipe = SensorPipeline(source, estimator, policy, threaded=True, estimate_on_reader=False, queue_size=queue_size,
                           max_frames=max_frames)
-    gate = FrameGate()
+    gate = FrameGate(max_age=None, future_tolerance=FUTURE_TOLERANCE)
+    host_clock = clock_domain_of(source) == "monotonic"
     stop = stop or threading.Event()
     t0 = time.monotonic()
     pipe.start()
@@ -129,10 +141,16 @@ def run_live(source: FrameSource, estimator: Estimator, on_estimate: OnEstimate 
     try:
         while (m := pipe.next()) is not None:
             stamp = stamp_of(m.frame)
-            if math.isfinite(stamp) and gate.check(stamp) is not None:
-                stats.repeated += 1
+            if not math.isfinite(stamp):
+                stats.unstamped += 1
+            elif (why := gate.check(stamp, time.monotonic() if host_clock else None)) is not None:
+                if why.startswith("future"):
+                    stats.future += 1
+                else:
+                    stats.repeated += 1
                 continue
-            gate.accept(stamp)
+            else:
+                gate.accept(stamp)
             est = pipe.estimate(m.frame)
             latency = time.monotonic() - m.arrived
             stats.estimated += 1
@@ -163,4 +181,4 @@ def _fails_validation(frame: Frame) -> bool:
     return False
 
 
-__all__ = ["StreamStats", "run_live", "OnEstimate"]
+__all__ = ["StreamStats", "run_live", "OnEstimate", "FUTURE_TOLERANCE"]

@@ -40,8 +40,10 @@ The same rules for every consumer; only the limits are the consumer's (:class:`F
   with the reason, the estimator is not called; an **estimator that raises** (any exception class) gives a
   no-plane estimate "estimator failed: ...". An interrupt (Ctrl-C) on the main thread is always re-raised.
 * **stale, repeated, future or unstamped frames**: judged by :class:`FrameGate` against the consumer's clock:
-  the placement loop gates on the robot's clock (all four rules); the streams drop repeated frames (a stamp
-  not later than the previous frame's: a frozen sensor or a duplicate) and count them.
+  the placement loop gates on the robot's clock (all four rules); the streams (:func:`place_safe.io.live.run_live`)
+  drop repeated frames (a stamp not later than the previous frame's: a frozen sensor or a duplicate) and, on a
+  source stamped with the host's monotonic clock, frames from the future, and count them; they set no age limit
+  and count unstamped frames without dropping them.
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """Speed of the simulation: the scene with the simulated sensor in lockstep (``place-safe bench sim``) and the
-bare robot's physics (``python -m place_safe.sim.bench``). Speeds are measured here, never asserted in tests.
+bare robot's physics (``place-safe bench sim --bare``). Speeds are measured here, never asserted in tests.
 """
 
 from __future__ import annotations
@@ -53,11 +53,6 @@ def benchmark(seconds: float = 2.0) -> dict[str, float]:
     moving = (robot.time() - t0) / (time.perf_counter() - w0)
     return {"idle_steps_per_s": idle / h, "idle_realtime_factor": idle,
             "moving_steps_per_s": moving / h, "moving_realtime_factor": moving}
-
-
-if __name__ == "__main__":
-    for k, v in benchmark().items():
-        print(f"{k}: {v:.1f}")
 
 
 __all__ = ["bench", "benchmark"]

@@ -15,6 +15,9 @@ import time
 
 from place_safe.cli import options
 from place_safe.exceptions import FrameFileError, UsageError
+from place_safe.recovery.forward import ForwardParams
+from place_safe.io.frame_file import load_frames
+from place_safe.sim import render
 
 
 def add_sim_commands(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -25,36 +28,37 @@ def add_sim_commands(subparsers: argparse._SubParsersAction) -> argparse.Argumen
     sub = sim.add_subparsers(dest="sim_command", metavar="{validate,render}")
     sim.set_defaults(func=_no_sub_command)
 
-    v = sub.add_parser("validate", help="compare simulated histograms with a real sweep, zone by zone",
-                       description="For each real frame with ground truth, place the simulated sensor at the same "
-                                   "distance and angle over a level table, simulate without noise and report per zone "
-                                   "the sub-bin peak difference and the correlation of the histogram shapes. "
-                                   "Targets: mean |peak diff| <= 0.5 bin and mean correlation >= 0.95 in every zone.")
-    v.add_argument("frames", help="frame file with ground truth (e.g. tests/data/tmf8820_ur5_sweep.json)")
-    v.add_argument("--params", help="ForwardParams JSON of the simulated sensor (default sim/sensors/tmf8820_real.json)")
-    rays = options.field_option("place_safe.sim.tof:ToFConfig", "rays", "stratified rays per axis and zone, default 8")
-    v.add_argument("--rays", type=rays, default=8, help=rays.help)
-    v.add_argument("--min-distance", type=options.float_range(0.0, 500.0), default=5.0, help="use frames at z0 >= this many cm (default 5)")
-    v.add_argument("--json", action="store_true", help="print the per-zone figures as JSON instead of a table")
-    v.add_argument("--strict", action="store_true", help="exit 1 if a target is missed")
-    v.set_defaults(func=cmd_validate)
+    opt = options.opt
+    options.command(
+        sub, "validate", cmd_validate, "compare simulated histograms with a real sweep, zone by zone",
+        "For each real frame with ground truth, place the simulated sensor at the same distance and angle over a level "
+        "table, simulate without noise and report per zone the sub-bin peak difference and the correlation of the "
+        "histogram shapes. Targets: mean |peak diff| <= 0.5 bin and mean correlation >= 0.95 in every zone.", "",
+        opt("frames", help="frame file with ground truth (e.g. tests/data/tmf8820_ur5_sweep.json)"),
+        opt("--params", help="ForwardParams JSON of the simulated sensor (default sim/sensors/tmf8820_real.json)"),
+        "rays",
+        opt("--min-distance", type=options.float_range(0.0, 500.0), default=5.0,
+            help="use frames at z0 >= this many cm (default 5)"),
+        opt("--json", action="store_true", help="print the per-zone figures as JSON instead of a table"),
+        opt("--strict", action="store_true", help="exit 1 if a target is missed"))
 
-    r = sub.add_parser("render", help="write a PNG (and optionally a GIF) of a scene with the sensor's rays",
-                       description="Offscreen rendering with mujoco.Renderer (EGL when there is no display).")
-    r.add_argument("--scene", help="scene JSON (SceneConfig, or a scenario file with a 'scene' key); "
-                                   "default: level table and a sensor rig")
-    r.add_argument("--robot", action="store_true", help="with the UR5 (overrides the scene's with_robot)")
-    r.add_argument("-o", "--output", default="scene.png", help="PNG path (default scene.png)")
-    r.add_argument("--gif", help="also write a GIF of the rig descending 20 cm (rig scenes)")
-    r.add_argument("--no-rays", action="store_true", help="do not draw the sensor's rays")
-    r.add_argument("--width", type=options.int_range(16, 4096), default=640, help="image width (pixels, default 640)")
-    r.add_argument("--height", type=options.int_range(16, 4096), default=480, help="image height (pixels, default 480)")
-    r.add_argument("--azimuth", type=options.float_range(-360.0, 360.0), default=135.0, help="camera azimuth (deg)")
-    r.add_argument("--elevation", type=options.float_range(-90.0, 90.0), default=-25.0, help="camera elevation (deg)")
-    r.add_argument("--distance", type=options.float_range(0.0, 100.0, lo_open=True), default=None,
-                   help="camera distance (m, at most 100)")
-    r.add_argument("--view", action="store_true", help="open the interactive viewer instead (needs a display)")
-    r.set_defaults(func=cmd_render)
+    options.command(
+        sub, "render", cmd_render, "write a PNG (and optionally a GIF) of a scene with the sensor's rays",
+        "Offscreen rendering with mujoco.Renderer (EGL when there is no display).", "",
+        opt("--scene", help="scene JSON (SceneConfig, or a scenario file with a 'scene' key); default: level table "
+                            "and a sensor rig"),
+        opt("--robot", action="store_true", help="with the UR5 (overrides the scene's with_robot)"),
+        "output",
+        opt("--gif", help="also write a GIF of the rig descending 20 cm (rig scenes)"),
+        opt("--no-rays", action="store_true", help="do not draw the sensor's rays"),
+        opt("--width", type=options.int_range(16, 4096), default=640, help="image width (pixels, default 640)"),
+        opt("--height", type=options.int_range(16, 4096), default=480, help="image height (pixels, default 480)"),
+        opt("--azimuth", type=options.float_range(-360.0, 360.0), default=135.0, help="camera azimuth (deg)"),
+        opt("--elevation", type=options.float_range(-90.0, 90.0), default=-25.0, help="camera elevation (deg)"),
+        opt("--distance", type=options.float_range(0.0, 100.0, lo_open=True), default=None,
+            help="camera distance (m, at most 100)"),
+        opt("--view", action="store_true", help="open the interactive viewer instead (needs a display)"),
+        output={"default": "scene.png", "metavar": None, "help": "PNG path (default scene.png)"})
 
     return sim
 
@@ -69,9 +73,6 @@ def _no_sub_command(_args: argparse.Namespace) -> int:
 
 def cmd_validate(args: argparse.Namespace) -> int:
     import numpy as np
-
-    from place_safe.recovery.forward import ForwardParams
-    from place_safe.io.frame_file import load_frames
 
     from place_safe.sim.validate import validate
 
@@ -91,7 +92,6 @@ def cmd_validate(args: argparse.Namespace) -> int:
 
 
 def cmd_render(args: argparse.Namespace) -> int:
-    from place_safe.sim import render
     from place_safe.sim.scene import build_scene, scene_config
     from place_safe.sim.tof import SimToF
 

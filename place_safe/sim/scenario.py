@@ -95,7 +95,6 @@ class SensorSection(ConfigModel):
     @model_validator(mode="after")
     def _in_simulator_bounds(self) -> "SensorSection":
         """Every setting within the simulated sensor's own ranges (the fields of sim.tof.ToFConfig), checked on load."""
-        from place_safe.sim.scene import SceneError
 
         try:
             self.tof_config(0)

@@ -32,6 +32,9 @@ from place_safe.exceptions import PlaceSafeError
 from place_safe.placement.config import PlacementConfig
 from place_safe.sim.scene import SceneConfig
 from place_safe.sim.placement_run import run_placement
+from place_safe.placement.loop import within_robot_limits
+from place_safe.robot.interface import RobotLimits
+from place_safe.sim.tof import ToFConfig
 
 #: N: a contact at least this hard counts as a collision in the summary (half the robot's 60 N protective stop;
 #: arrival on the surface stays under about 15 N).
@@ -285,10 +288,6 @@ def budget_table(median: dict, runs: int) -> str:
     """The time budget of releases from 40 cm with the limits that set each part (default placement
     settings within the simulated arm's limits, the simulated sensor's frame period and transfer time)."""
     from place_safe.placement.budget import budget_limits, format_budget
-    from place_safe.placement.loop import within_robot_limits
-    from place_safe.placement.config import PlacementConfig
-    from place_safe.robot.interface import RobotLimits
-    from place_safe.sim.tof import ToFConfig
 
     class _Arm:
         limits = RobotLimits()

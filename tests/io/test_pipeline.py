@@ -181,7 +181,24 @@ def test_the_stream_does_not_estimate_repeated_frames():
     stats = run_live(src, truth, lambda i, f, e, lat: seen.append(i), queue_size=8)
     assert stats.received == 5 and stats.repeated == 2 and stats.estimated == 3 == truth.calls
     assert seen == [0, 3, 4]  # an unstamped frame is shown: the stream has no clock to judge it by
-    assert stats.to_dict()["repeated"] == 2
+    assert stats.to_dict()["repeated"] == 2 and stats.unstamped == 1
+
+
+def test_the_stream_gates_frames_from_the_future_on_the_host_clock_only():
+    import time
+
+    ahead = time.monotonic() + 100.0  # stamped on this host's monotonic clock, 100 s from now
+    stats = run_live(Script(frame(1.0), frame(ahead), frame(2.0)), Truth(), queue_size=8)
+    assert stats.future == 1 and stats.estimated == 2 and stats.to_dict()["future"] == 1
+    robot_clock = Script(frame(1.0), frame(ahead), frame(ahead + 1))
+    robot_clock.clock_domain = "robot"  # another clock: nothing to compare the stamp with
+    stats = run_live(robot_clock, Truth(), queue_size=8)
+    assert stats.future == 0 and stats.estimated == 3
+
+
+def test_a_repeated_stamp_after_an_unstamped_frame_is_still_repeated():
+    stats = run_live(Script(frame(1.0), frame(None), frame(1.0)), Truth(), queue_size=8)
+    assert stats.unstamped == 1 and stats.repeated == 1 and stats.estimated == 2
 
 
 def test_a_source_error_ends_the_stream_and_is_raised_after_it_stopped():
