@@ -407,8 +407,11 @@ class SurfaceMap:
         * when a point with fewer than ``min_frames`` clean views was flagged in ``min_frames`` views, or
         * **latest close views decide**: when the last ``min_frames`` views of a point from frames
           *looking at the footprint* -- the optical axis meets the plane inside the footprint, as from
-          the survey pose or the second look -- are all doubtful or flagged, whatever earlier views
-          certified. Frames that only hold part of the footprint at the edge of their view (the descent,
+          the survey pose or the second look -- all see something *raised* (a doubtful zone above the
+          plane, a nearer surface mixed in, a surface above), whatever earlier views certified. Edge
+          evidence (no return, a farther or lower surface) keeps to the first rule: a zone reaching past
+          the footprint sees the floor beyond a table edge 2 cm away, while a point over the floor is
+          never certified by a zone on the plane. Frames that only hold part of the footprint at the edge of their view (the descent,
           the sensor 7 cm beside the cup) add clean views but cannot veto: their zones over the footprint
           reach centimetres past it, where a box beside the cup may stand. A vetoed point stays vetoed
           until ``min_frames`` views with it in the centre zone (:data:`CENTRE_ZONE`, the second look's
@@ -444,6 +447,12 @@ class SurfaceMap:
             doubt = self._doubtful(fs, n, d)
             clean_zone = np.array([issue.get(int(z)) is None and not doubt[int(z)] for z in range(N_ZONES)])
             bad_zone = np.array([issue.get(int(z)) is not None for z in range(N_ZONES)])
+            # raised: something above the surface in the zone (a box's top lifts or leads its return); an edge's
+            # floor or a step down beside the footprint shows as a missing, farther or lower return instead
+            lifted = (fs.points_base @ n - d) > 0
+            raised_zone = np.array([(doubt[z] and bool(lifted[z])) or (issue.get(z) is not None
+                                                                       and issue[z][0] == "clutter")
+                                    for z in range(N_ZONES)])
             clean = inside & clean_zone[zone]
             bad = inside & bad_zone[zone]
             certified += clean
@@ -454,15 +463,16 @@ class SurfaceMap:
                     kinds[kind] += 1
                     details[kind] = detail
             if self._looks_at(fs.base_T_sensor, disc, n):
-                latest[inside] = np.column_stack([latest[inside][:, 1:], np.where(clean[inside], 1, 2)])
+                seen = clean | (inside & raised_zone[zone])  # edge evidence neither vetoes nor lifts
+                latest[seen] = np.column_stack([latest[seen][:, 1:], np.where(clean[seen], 1, 2)])
                 vetoed |= np.all(latest == 2, axis=1)
-                centred = inside & (zone == CENTRE_ZONE)
+                centred = seen & (zone == CENTRE_ZONE)
                 cleared = np.where(centred & vetoed, np.where(clean, cleared + 1, 0), cleared)
                 lift = vetoed & (cleared >= k)
                 vetoed &= ~lift
                 cleared[lift] = 0
                 latest[lift] = 0
-                doubted = inside & ~clean & ~bad
+                doubted = inside & ~clean & ~bad & raised_zone[zone]
                 if doubted.any():
                     z = int(zone[doubted][0])
                     s = float(fs.points_base[z] @ n - d)
