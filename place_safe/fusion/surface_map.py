@@ -76,6 +76,8 @@ DISC_SPACING = 0.01
 _RIM_POINTS = 24
 #: m above the survey height up to which a frame's zones are small enough to certify or blame the footprint.
 CLOSE_SLACK = 0.04
+#: The zone on the optical axis (0-based): the second look centres it on footprint points the latest views doubt.
+CENTRE_ZONE = 4
 
 
 def second_returns(hists: np.ndarray, first: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -389,12 +391,32 @@ class SurfaceMap:
         5 cm wide, so clutter a few centimetres across shows in it. From higher up a box covering part of
         a 9 cm zone moves the zone's point by a millimetre or two and the zone reads as clean table.
 
-        A sample point of the footprint is *certified* by a close frame in which it lies in a zone that saw
-        one surface on the plane (a zone that saw more is no proof either way: the other surface may lie
-        outside the footprint). ``supported`` is the smallest number of frames that certified a point (0
-        while any point is uncertified). A ``problem`` is reported when a point that is not certified was
-        seen with an issue (no return, a second return, a surface off the plane) in ``min_frames`` close
-        frames.
+        Each close frame *views* the sample points of the footprint in its field of view; a view is
+
+        * *clean*: the point lies in a zone that saw one surface on the fused plane within the frame's
+          consensus tolerance (:meth:`consensus_tolerance`, 2 % of the range: 4.6 mm from the survey
+          height);
+        * *doubtful*: the zone is off the plane by more than that but less than ``tolerance``: a box
+          covering part of the zone lifts its return by a fraction of its height;
+        * *flagged*: the zone shows an issue (no return, a second return, a nearer surface mixed in, a
+          surface more than ``tolerance`` off the plane).
+
+        A point is *certified* by its clean views; ``supported`` is the smallest number of clean views of
+        a point (0 while any point has none). A ``problem`` is reported
+
+        * when a point with fewer than ``min_frames`` clean views was flagged in ``min_frames`` views, or
+        * **latest close views decide**: when the last ``min_frames`` views of a point from frames
+          *looking at the footprint* -- the optical axis meets the plane inside the footprint, as from
+          the survey pose or the second look -- all see something *raised* (a doubtful zone above the
+          plane, a nearer surface mixed in, a surface above), whatever earlier views certified. Edge
+          evidence (no return, a farther or lower surface) keeps to the first rule: a zone reaching past
+          the footprint sees the floor beyond a table edge 2 cm away, while a point over the floor is
+          never certified by a zone on the plane. Frames that only hold part of the footprint at the edge of their view (the descent,
+          the sensor 7 cm beside the cup) add clean views but cannot veto: their zones over the footprint
+          reach centimetres past it, where a box beside the cup may stand. A vetoed point stays vetoed
+          until ``min_frames`` views with it in the centre zone (:data:`CENTRE_ZONE`, the second look's
+          view centred on it, whose zone reaches least far past it) see it clean; views sliding off a box
+          as the sensor moves away do not lift a veto.
         """
         n = np.asarray(normal, dtype=float)
         d = float(offset)
@@ -402,10 +424,15 @@ class SurfaceMap:
         if disc is None:
             return FootprintVerdict(problem="the cup's axis is parallel to the surface: no landing footprint")
         close = self.close_height()
+        k = max(self.min_frames, 1)
         certified = np.zeros(len(disc), dtype=int)
         flagged = np.zeros(len(disc), dtype=int)
+        latest = np.zeros((len(disc), k), dtype=int)  # last k views from frames looking at it: 0 none, 1 clean, 2 not
+        vetoed = np.zeros(len(disc), dtype=bool)  # latest views said no; only views centred on the point lift it
+        cleared = np.zeros(len(disc), dtype=int)  # clean views centred on a vetoed point since its veto
         details: dict[str, str] = {}
         kinds: Counter = Counter()
+        doubt_detail = None
         observed = close_frames = 0
         for fs in self.frames:
             inside, zone = self._view(disc, fs.base_T_sensor)
@@ -417,15 +444,40 @@ class SurfaceMap:
                 continue
             close_frames += 1
             issue = {z: self._zone_issue(fs, z, n, d) for z in set(zone[inside].tolist())}
-            clean = inside & np.array([issue.get(int(z)) is None for z in zone])
+            doubt = self._doubtful(fs, n, d)
+            clean_zone = np.array([issue.get(int(z)) is None and not doubt[int(z)] for z in range(N_ZONES)])
+            bad_zone = np.array([issue.get(int(z)) is not None for z in range(N_ZONES)])
+            # raised: something above the surface in the zone (a box's top lifts or leads its return); an edge's
+            # floor or a step down beside the footprint shows as a missing, farther or lower return instead
+            lifted = (fs.points_base @ n - d) > 0
+            raised_zone = np.array([(doubt[z] and bool(lifted[z])) or (issue.get(z) is not None
+                                                                       and issue[z][0] == "clutter")
+                                    for z in range(N_ZONES)])
+            clean = inside & clean_zone[zone]
+            bad = inside & bad_zone[zone]
             certified += clean
-            bad = inside & ~clean
             if bad.any():
                 flagged += bad
                 for z in set(zone[bad].tolist()):
                     kind, detail = issue[z]
                     kinds[kind] += 1
                     details[kind] = detail
+            if self._looks_at(fs.base_T_sensor, disc, n):
+                seen = clean | (inside & raised_zone[zone])  # edge evidence neither vetoes nor lifts
+                latest[seen] = np.column_stack([latest[seen][:, 1:], np.where(clean[seen], 1, 2)])
+                vetoed |= np.all(latest == 2, axis=1)
+                centred = seen & (zone == CENTRE_ZONE)
+                cleared = np.where(centred & vetoed, np.where(clean, cleared + 1, 0), cleared)
+                lift = vetoed & (cleared >= k)
+                vetoed &= ~lift
+                cleared[lift] = 0
+                latest[lift] = 0
+                doubted = inside & ~clean & ~bad & raised_zone[zone]
+                if doubted.any():
+                    z = int(zone[doubted][0])
+                    s = float(fs.points_base[z] @ n - d)
+                    doubt_detail = (f"zone {z + 1} over the cup's footprint {s * 1e3:+.0f} mm off the surface "
+                                    "(part of it covered: clutter or step)")
         supported = int(certified.min()) if len(certified) else 0
         problem = None
         recheck = None
@@ -436,7 +488,37 @@ class SurfaceMap:
             problem = (f"{details[kind]}; {share:.0f} % of the footprint never seen on the surface in "
                        f"{int(flagged.max())} close frames")
             recheck = disc[open_points].mean(axis=0)
+        elif vetoed.any():
+            kind = kinds.most_common(1)[0][0] if kinds else None
+            why = details[kind] if kind is not None and doubt_detail is None else doubt_detail
+            problem = (f"{why or 'zones over the cup footprint off the surface'}; the latest {k} close views of "
+                       f"{100.0 * float(np.mean(vetoed)):.0f} % of the footprint do not see it on the surface")
+            recheck = disc[vetoed].mean(axis=0)
         return FootprintVerdict(observed, supported, problem, close_frames=close_frames, recheck_point=recheck)
+
+    def _doubtful(self, fs: FrameSurfaces, n: np.ndarray, d: float) -> np.ndarray:
+        """Zones (9,) of a frame that returned one surface off the plane ``n . x = d`` by more than the frame's
+        consensus tolerance (they may still lie within ``tolerance``): see :meth:`footprint`."""
+        T = fs.base_T_sensor
+        ok = fs.valid & np.all(np.isfinite(fs.points_base), axis=1)
+        if not ok.any():
+            return np.zeros(N_ZONES, dtype=bool)
+        pb = np.where(ok[:, None], fs.points_base, 0.0)
+        tol = self.consensus_tolerance((pb - T[:3, 3]) @ T[:3, :3], ok)
+        return ok & (np.abs(pb @ n - d) > tol)
+
+    def _looks_at(self, base_T_sensor: np.ndarray, disc: np.ndarray, n: np.ndarray) -> bool:
+        """Whether the sensor's optical axis meets the plane inside the footprint (``disc[0]`` its centre)."""
+        T = np.asarray(base_T_sensor, dtype=float)
+        S, axis = T[:3, 3], T[:3, 2]
+        centre = disc[0]
+        height = float((S - centre) @ n)
+        den = float(-(axis @ n))
+        if height <= 0 or den <= 1e-6:
+            return False
+        off = S + axis * height / den - centre
+        off -= n * float(off @ n)
+        return float(np.linalg.norm(off)) <= self.radius
 
     def sight(self, verdict: FootprintVerdict, normal: Any, offset: float, landing_T_cup: Any,
               base_T_sensor: Any) -> FootprintVerdict:

@@ -135,6 +135,8 @@ class Expectation(ConfigModel):
     max_spilled: int = Field(0, ge=0, le=10_000, description="liquid spheres allowed outside the cup")
     max_decision_time: float | None = Field(None, gt=0, le=3600,
                                             description="s from 40 cm above the surface to the decision (up to 3600)")
+    max_contact_force: float | None = Field(None, gt=0, le=10_000,
+                                            description="N: the hardest contact of the cup allowed (up to 10000)")
 
 
 class Scenario(ConfigModel):

@@ -159,6 +159,9 @@ def judge(sc: Scenario, res: Any, max_tilt: float | None = None) -> dict:
     if exp.max_decision_time is not None and not (res.decision_time is not None
                                                   and res.decision_time <= exp.max_decision_time):
         misses.append(f"decision time {res.decision_time} s > {exp.max_decision_time} s")
+    force = float(res.contact_force_peak or 0.0)
+    if exp.max_contact_force is not None and not force < exp.max_contact_force:
+        misses.append(f"contact {force:.1f} N >= {exp.max_contact_force:.0f} N")
     clearly_safe = bool(labels.get("clearly_safe", exp.outcome == "released"))
     return {
         "name": res.scenario, "description": sc.description, "sensor": res.sensor, "method": res.method,

@@ -11,8 +11,10 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
 
-from place_safe.fusion.surface_map import SurfaceMap, consensus, early_returns, second_returns
+from place_safe.fusion.surface_map import DISC_SPACING, SurfaceMap, consensus, early_returns, second_returns
 from place_safe.io.frame_file import load_frames
 from place_safe.sensor.histogram import find_peaks
 from place_safe.recovery.points import PeakParams
@@ -280,3 +282,89 @@ def test_a_small_step_close_up_is_two_surfaces_not_a_steep_plane():
     assert far == sm.tolerance  # far away the zones are wide: the full tolerance
     T = sensor_pose((0.0, 0.0), 0.3)
     assert not sm.add(frame_over(T, lambda x, y: 0.0), T, 1.0).multi_surface  # a plain table is one surface
+
+
+# -- "latest close views decide" (properties) ----------------------------------------------------------------
+def _certified_map(sm: SurfaceMap, cup: np.ndarray) -> None:
+    """Three clean frames from the survey pose over the footprint: every point certified."""
+    T = sensor_pose((float(cup[0, 3]), float(cup[1, 3])), sm.survey_height())
+    for i in range(3):
+        sm.add(frame_over(T, lambda x, y: 0.0), T, float(i))
+    v = sm.verdict(UP, 0.0, cup, T)
+    assert v.problem is None and v.supported >= 3
+
+
+def _zone_hits(T: np.ndarray) -> np.ndarray:
+    """Where each zone's centre ray meets the table z = 0 (9, 2): the point frame_over reads per zone."""
+    dirs = T[:3, :3] @ PARAMS.directions().T
+    return (T[:3, 3][:, None] + dirs * (T[2, 3] / -dirs[2]))[:2].T
+
+
+@settings(max_examples=15)
+@given(off=st.tuples(st.floats(-0.03, 0.03), st.floats(-0.03, 0.03)), height=st.floats(0.0, 0.04),
+       zone=st.integers(0, 8), box=st.floats(0.009, 0.03))
+def test_a_box_under_the_footprint_seen_by_later_close_views_is_never_certified(off, height, zone, box):
+    """Whatever earlier frames certified: once the latest close views looking at the footprint see
+    something above the surface in a zone over it (a box 9-30 mm tall under the zone's centre), the
+    footprint has a problem -- and views from beside the cup, which see only table, do not lift it."""
+    sm = SurfaceMap(PARAMS)
+    cup = cup_at((0.0, 0.0))
+    _certified_map(sm, cup)
+    T = sensor_pose(off, sm.survey_height() + height)
+    hits = _zone_hits(T)
+    over = [h for h in hits if np.hypot(*h) < sm.radius - DISC_SPACING]  # zone centres over the footprint
+    hit = over[zone % len(over)]  # (the centre zone's always is: |off| < radius - spacing)
+    for i in range(3):
+        sm.add(frame_over(T, lambda x, y: box if np.allclose((x, y), hit) else 0.0), T, 10.0 + i)
+    v = sm.verdict(UP, 0.0, cup, T)
+    assert v.problem is not None and ("clutter" in v.problem or "covered" in v.problem)
+    assert v.recheck_point is not None
+    beside = sensor_pose((0.0, 0.07), 0.12)  # the descent: the sensor 7 cm beside the cup
+    for i in range(5):
+        sm.add(frame_over(beside, lambda x, y: 0.0), beside, 20.0 + i)
+    assert sm.verdict(UP, 0.0, cup, beside).problem is not None
+
+
+@settings(max_examples=15)
+@given(side=st.tuples(st.floats(-1.0, 1.0), st.floats(-1.0, 1.0)), dist=st.floats(0.05, 0.12),
+       height=st.floats(0.06, 0.25), box=st.floats(0.0, 0.04), frames=st.integers(1, 8))
+def test_frames_beside_the_footprint_never_veto_a_certified_one(side, dist, height, box, frames):
+    """Frames whose optical axis meets the table outside the footprint (the descent beside the cup) may see
+    a box anywhere -- their zones over the footprint reach centimetres past it -- but never take back the
+    certification of a footprint the survey saw clean."""
+    sm = SurfaceMap(PARAMS)
+    cup = cup_at((0.0, 0.0))
+    _certified_map(sm, cup)
+    u = np.asarray(side, dtype=float)
+    assume(np.linalg.norm(u) > 0.1)
+    u = u / np.linalg.norm(u)
+    assume(dist > sm.radius + 1e-3)
+    T = sensor_pose(tuple(dist * u), height)
+    lifted = lambda x, y: box  # noqa: E731 - everything in view lifted: the worst such a frame can show
+    for i in range(frames):
+        sm.add(frame_over(T, lifted if i % 2 else (lambda x, y: 0.0)), T, 10.0 + i)
+    v = sm.verdict(UP, 0.0, cup, T)
+    assert v.problem is None and v.supported >= 3
+
+
+def test_a_veto_is_lifted_only_by_views_centred_on_the_doubtful_points():
+    sm = SurfaceMap(PARAMS)
+    cup = cup_at((0.0, 0.0))
+    _certified_map(sm, cup)
+    T = sensor_pose((0.0, 0.0), sm.survey_height())
+    hit = _zone_hits(T)[7]  # a zone over the footprint's rim
+    box = lambda x, y: 0.007 if np.allclose((x, y), hit) else 0.0  # noqa: E731 - 7 mm: within the tolerance
+    for i in range(3):
+        sm.add(frame_over(T, box), T, 10.0 + i)
+    v = sm.verdict(UP, 0.0, cup, T)
+    assert v.problem is not None and "covered" in v.problem  # off the plane by less than the tolerance
+    # the sensor slides on, still looking at the footprint, and the zone slides off the box: no lift
+    T1 = sensor_pose((0.0, 0.02), sm.survey_height())
+    for i in range(3):
+        sm.add(frame_over(T1, lambda x, y: 0.0), T1, 20.0 + i)
+    assert sm.verdict(UP, 0.0, cup, T1).problem is not None
+    # the second look: the view centred on the doubtful points sees them clean
+    T2 = sensor_pose(tuple(v.recheck_point[:2]), sm.survey_height())
+    for i in range(3):
+        sm.add(frame_over(T2, lambda x, y: 0.0), T2, 30.0 + i)
+    assert sm.verdict(UP, 0.0, cup, T2).problem is None

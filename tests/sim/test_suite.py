@@ -46,6 +46,27 @@ def test_judge_checks_refusal_reasons_and_decision_time():
     timed = Scenario(expect=Expectation(outcome="released", max_decision_time=4.0))
     assert suite.judge(timed, _res(decision_time=3.9))["met"]
     assert not suite.judge(timed, _res(decision_time=4.1))["met"]
+    gentle = Scenario(expect=Expectation(outcome="refused", max_contact_force=30.0))
+    assert suite.judge(gentle, _res(outcome="refused", contact_force_peak=26.0))["met"]
+    row = suite.judge(gentle, _res(outcome="refused", contact_force_peak=41.0))
+    assert not row["met"] and "41.0 N" in row["misses"][0]
+
+
+def test_only_runs_the_chosen_random_scenes_as_in_the_full_run(monkeypatch, capsys):
+    """--only I runs random scene I with the scene and seed it has among --random N; an index past N is
+    bad usage (exit 2) before anything runs."""
+    from place_safe.cli.app import main
+
+    seen = []
+    monkeypatch.setattr(suite, "run_many", lambda items, **kw: seen.extend(items) or [])
+    monkeypatch.setattr(suite, "format_table", lambda rows, summary: "")
+    assert main(["scenarios", "--random", "20", "--seed", "14", "--only", "16", "--only", "3", "--quiet"]) == 0
+    rng = np.random.default_rng(14)
+    full = [suite.random_scenario(rng, i).model_dump() for i in range(20)]
+    assert [it["scenario"] for it in seen] == [full[3], full[16]]
+    assert [it["seed"] for it in seen] == [14 + 3, 14 + 16]
+    assert main(["scenarios", "--random", "5", "--only", "5", "--quiet"]) == 2
+    assert "--only 5 needs --random 6" in capsys.readouterr().err
 
 
 def test_random_scenes_are_valid_and_labelled_from_their_geometry():
