@@ -119,12 +119,14 @@ def _models() -> list[type[ParamModel]]:
     from place_safe.calibration.capture import SweepPlan
     from place_safe.placement.config import PlacementConfig
     from place_safe.recovery.differentiable import RangeCorrection
+    from place_safe.recovery.estimator import Uncertainty
     from place_safe.recovery.forward import ForwardParams
     from place_safe.recovery.points import PeakParams
     from place_safe.robot.contact_detector import DetectorSettings
     from place_safe.robot.interface import RobotLimits
 
-    out = [PlacementConfig, ForwardParams, PeakParams, RangeCorrection, SweepPlan, RobotLimits, DetectorSettings]
+    out = [PlacementConfig, ForwardParams, PeakParams, RangeCorrection, Uncertainty, SweepPlan, RobotLimits,
+           DetectorSettings]
     try:
         from place_safe.sim.scene import ClutterItem, Material, SceneConfig, TableConfig
         from place_safe.sim.tof import DistanceMap, ToFConfig

@@ -137,8 +137,8 @@ class Calibration:
         sec = self._section("uncertainty") or {}
         try:
             if method is None:
-                return {k: Uncertainty.from_dict(v) for k, v in sec.items()}
-            return Uncertainty.from_dict(sec[method]) if method in sec else Uncertainty()
+                return {k: Uncertainty.from_dict(v, f"uncertainty.{k}") for k, v in sec.items()}
+            return Uncertainty.from_dict(sec[method], f"uncertainty.{method}") if method in sec else Uncertainty()
         except (TypeError, ValueError, AttributeError, OverflowError) as exc:
             raise CalibrationError(f"uncertainty section is malformed: {exc}") from None
 

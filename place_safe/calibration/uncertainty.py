@@ -114,11 +114,11 @@ def fit_floor(estimates: Sequence[PlaneEstimate], truths: Sequence, base: Uncert
     one = np.ones(len(d))
     t0, t1 = _fit_two(err[:, :2], cov[:, :2, :2], (one, 1.0 / d ** 2))
     o0, o1 = _fit_two(err[:, 2:], cov[:, 2:, 2:], (one, d ** 2))
-    unc = replace(base, tilt_std=math.sqrt(t0), tilt_range_std=math.sqrt(t1), offset_std=math.sqrt(o0),
-                  offset_rel=math.sqrt(o1))
+    unc = base.replace(tilt_std=math.sqrt(t0), tilt_range_std=math.sqrt(t1), offset_std=math.sqrt(o0),
+                       offset_rel=math.sqrt(o1))
     before = float(np.mean([e @ np.linalg.solve(c, e) for e, c in zip(err, cov)]) / 3.0)
     ml = float(np.mean([e @ np.linalg.solve(c + unc.floor(dd), e) for e, c, dd in zip(err, cov, d)]) / 3.0)
-    unc = replace(unc, scale=float(np.clip(ml, 0.1, 10.0)))  # mean NEES per dof 1 on these frames
+    unc = unc.replace(scale=float(np.clip(ml, 0.1, 10.0)))  # mean NEES per dof 1 on these frames
     after = float(np.mean([e @ np.linalg.solve(unc.apply(c, dd), e) for e, c, dd in zip(err, cov, d)]) / 3.0)
     return unc, {"frames": len(rows), "tilt_std_deg": math.degrees(unc.tilt_std), "scale": unc.scale,
                  "nees_per_dof_maximum_likelihood": ml,
@@ -281,7 +281,7 @@ def fit_near_law(rows: Sequence[tuple], unc: Uncertainty, peak_params, end: floa
 
     def unc_for(depths: np.ndarray, scale: float, power: float, factor) -> Uncertainty:
         std = np.clip(near_std_law(depths, scale, power) * np.sqrt(factor), 1e-7, NEAR_MAX_STD)
-        return replace(unc, near_depths=[float(v) for v in depths], near_range_std=[float(v) for v in std])
+        return unc.replace(near_depths=[float(v) for v in depths], near_range_std=[float(v) for v in std])
 
     plain = near_law_depths(end)
 
@@ -475,8 +475,8 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
         limit, prefer, table = max(candidates), 1.0, []
     under = [i for i in range(n) if own[i] and chi2[i] <= limit]
     unc, rep = fit_floor([diff[i] for i in under], [truths[i] for i in under],
-                         replace(tilt_term, chi2_limit=limit, consistency_limit=CONSISTENCY_LIMIT,
-                                 prefer_ratio=prefer))
+                         tilt_term.replace(chi2_limit=limit, consistency_limit=CONSISTENCY_LIMIT,
+                                           prefer_ratio=prefer))
     use_diff = (chi2 <= limit) & consistent & ~(ratio > prefer)
     sel = np.where(use_diff[:, None], e_diff, e_peak)
 

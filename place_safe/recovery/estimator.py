@@ -19,11 +19,15 @@ from __future__ import annotations
 import math
 import time
 from abc import ABC, abstractmethod
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass
+from typing import Any, ClassVar
 
 import numpy as np
 
-from place_safe.exceptions import FrameError, NoPlaneError
+from pydantic import Field, model_validator
+
+from place_safe.config import ParamModel, vector
+from place_safe.exceptions import CalibrationError, FrameError, NoPlaneError
 from place_safe.geometry import Plane
 from place_safe.sensor.frame import Frame
 
@@ -35,17 +39,20 @@ _COS_MAX_TILT = math.cos(math.radians(80.0))
 COVARIANCE_ORDER = ("n_x", "n_y", "d")
 
 
-@dataclass
-class Uncertainty:
+#: m: largest zone range error the near-range term may hold.
+NEAR_MAX_STD = 0.05
+
+
+class Uncertainty(ParamModel):
     """Calibrated trust in one method (a calibration file's ``uncertainty`` section, one per method).
 
     A model-error floor, added to each estimate's covariance as variances: what the method gets wrong
     beyond its fit's own noise, chosen at calibration by maximum likelihood of the calibration frames'
     errors. On each tilt component the variance ``tilt_std^2 + (tilt_range_std / d)^2`` (a range
     error of ``tilt_range_std`` between zones tilts a plane at distance ``d`` by about that over
-    ``d``), on the offset ``offset_std^2 + (offset_rel d)^2``. Units and physical ranges:
-    ``tilt_std`` rad (0 .. 0.1), ``tilt_range_std`` m (0 .. 0.01), ``offset_std`` m (0 .. 0.01),
-    ``offset_rel`` dimensionless (0 .. 0.05). ``chi2_limit`` (reduced chi-square, >= 0; ``inf`` =
+    ``d``), on the offset ``offset_std^2 + (offset_rel d)^2``. Units and the values calibration gives
+    (each field's ``Field`` holds its accepted range, here >= 0): ``tilt_std`` rad (0 .. 0.1), ``tilt_range_std`` m
+    (0 .. 0.01), ``offset_std`` m (0 .. 0.01), ``offset_rel`` dimensionless (0 .. 0.05). ``chi2_limit`` (reduced chi-square, >= 0; ``inf`` =
     never): ``diff`` falls back to the peak estimate of a frame whose residual chi-square per bin
     (Poisson and calibrated model error, :func:`~place_safe.recovery.forward.residual_weights`) is
     above it; 0: always, without solving (calibration found the model no better than peak on this sensor).
@@ -71,40 +78,42 @@ class Uncertainty:
     the (n_x, n_y) block) is at most ``prefer_ratio`` times the peak estimate's, so it falls back where its
     covariance says peak reads the slope better (:meth:`prefers`). The defaults (no floor, no fallback,
     scale 1, no tilt term, no comparison) are the behaviour of a missing section.
+
+    File form (:meth:`to_dict`, as files have always had it): an infinite ``chi2_limit``, ``consistency_limit`` or
+    ``prefer_ratio`` is ``null``; the near-range fields are left out when empty, and ``tilt_rel``, ``prefer_ratio``,
+    ``tilt_pivot`` and ``tilt_offset_rel`` at their defaults (older files). Problems are one
+    :class:`~place_safe.exceptions.CalibrationError` line naming the field.
     """
 
-    tilt_std: float = 0.0
-    offset_std: float = 0.0
-    chi2_limit: float = math.inf
-    tilt_range_std: float = 0.0
-    offset_rel: float = 0.0
-    scale: float = 1.0
-    consistency_limit: float = math.inf
-    near_depths: list[float] = field(default_factory=list)
-    near_range_std: list[float] = field(default_factory=list)
-    tilt_rel: float = 0.0
-    prefer_ratio: float = math.inf
-    tilt_pivot: float = 1.0
-    tilt_offset_rel: float = 0.0
+    tilt_std: float = Field(0.0, ge=0.0, description="rad")
+    offset_std: float = Field(0.0, ge=0.0, description="m")
+    chi2_limit: float = Field(math.inf, ge=0.0, allow_inf_nan=True,
+                              description="(reduced chi-square)")
+    tilt_range_std: float = Field(0.0, ge=0.0, description="m")
+    offset_rel: float = Field(0.0, ge=0.0, description="(dimensionless)")
+    scale: float = Field(1.0, gt=0.0, description="(dimensionless)")
+    consistency_limit: float = Field(math.inf, gt=0.0, allow_inf_nan=True,
+                                     description="(squared Mahalanobis distance)")
+    near_depths: vector(gt=0.0, le=10.0) = Field(default_factory=list, description="m")
+    near_range_std: vector(ge=0.0, le=NEAR_MAX_STD) = Field(default_factory=list, description="m")
+    tilt_rel: float = Field(0.0, ge=0.0, le=1.0, description="(dimensionless)")
+    prefer_ratio: float = Field(math.inf, gt=0.0, allow_inf_nan=True,
+                                description="(dimensionless)")
+    tilt_pivot: float = Field(1.0, ge=0.0, le=2.0, description="(of z0)")
+    tilt_offset_rel: float = Field(0.0, ge=0.0, le=1.0, description="(dimensionless)")
 
-    def __post_init__(self) -> None:
-        vals = (self.tilt_std, self.offset_std, self.tilt_range_std, self.offset_rel)
-        if not all(math.isfinite(v) and v >= 0 for v in vals) or not self.chi2_limit >= 0 \
-                or not (math.isfinite(self.scale) and self.scale > 0) or not self.consistency_limit > 0 \
-                or not 0.0 <= self.tilt_rel <= 1.0 or not self.prefer_ratio > 0 \
-                or not 0.0 <= self.tilt_pivot <= 2.0 or not 0.0 <= self.tilt_offset_rel <= 1.0:
-            raise ValueError("uncertainty needs finite floors >= 0, chi2_limit >= 0, consistency_limit > 0, a "
-                             "finite scale > 0, tilt_rel and tilt_offset_rel in [0, 1], tilt_pivot in [0, 2] and "
-                             "prefer_ratio > 0")
-        self.near_depths = [float(v) for v in self.near_depths]
-        self.near_range_std = [float(v) for v in self.near_range_std]
+    what: ClassVar[str] = "uncertainty"
+    error: ClassVar[type[Exception]] = CalibrationError
+
+    @model_validator(mode="after")
+    def _near_law(self) -> "Uncertainty":
         k = len(self.near_depths)
-        if k == 1 or len(self.near_range_std) != k \
-                or not all(math.isfinite(v) and 0 < v <= 10.0 for v in self.near_depths) \
-                or not all(b > a for a, b in zip(self.near_depths, self.near_depths[1:])) \
-                or not all(math.isfinite(v) and 0 <= v <= NEAR_MAX_STD for v in self.near_range_std):
-            raise ValueError("uncertainty needs near_depths empty or 2 or more increasing depths in (0, 10] m and "
-                             f"as many near_range_std values in [0, {NEAR_MAX_STD:g}] m")
+        if k == 1 or len(self.near_range_std) != k:
+            raise ValueError(f"near_depths and near_range_std need 0 or 2 or more values each, as many of one as "
+                             f"of the other (got {k} and {len(self.near_range_std)})")
+        if not all(b > a for a, b in zip(self.near_depths, self.near_depths[1:])):
+            raise ValueError("near_depths must increase")
+        return self
 
     def consistent(self, est: "PlaneEstimate", other: "PlaneEstimate") -> bool:
         """Whether ``est`` agrees with ``other`` within ``consistency_limit`` (True without both covariances)."""
@@ -171,43 +180,31 @@ class Uncertainty:
             near = depth < self.near_depths[-1]
         return np.where(near, np.interp(np.where(near, depth, 0.0), self.near_depths, self.near_range_std), 0.0)
 
+    #: fields written as JSON null when infinite
+    _INF_AS_NULL: ClassVar[tuple[str, ...]] = ("chi2_limit", "consistency_limit", "prefer_ratio")
+    #: fields left out of the file at these values (the defaults of files older versions read)
+    _OMITTED_AT: ClassVar[tuple[tuple[str, Any], ...]] = (("tilt_rel", 0.0), ("prefer_ratio", None),
+                                                           ("tilt_pivot", 1.0), ("tilt_offset_rel", 0.0))
+
     def to_dict(self) -> dict:
-        """The JSON form; without the near-range fields when there are none (files older versions read)."""
-        d = asdict(self)
-        d["chi2_limit"] = None if math.isinf(self.chi2_limit) else float(self.chi2_limit)
-        d["consistency_limit"] = None if math.isinf(self.consistency_limit) else float(self.consistency_limit)
-        d["prefer_ratio"] = None if math.isinf(self.prefer_ratio) else float(self.prefer_ratio)
+        """The JSON form: ``inf`` limits as null; without the near-range fields when there are none and without
+        the tilt terms and ``prefer_ratio`` at their defaults (files older versions read)."""
+        d = super().to_dict()
+        for key in self._INF_AS_NULL:
+            d[key] = None if math.isinf(self.__dict__[key]) else float(self.__dict__[key])
         if not self.near_depths:
             del d["near_depths"], d["near_range_std"]
-        for key, default in (("tilt_rel", 0.0), ("prefer_ratio", None), ("tilt_pivot", 1.0),
-                             ("tilt_offset_rel", 0.0)):  # files older versions read
+        for key, default in self._OMITTED_AT:
             if d[key] == default:
                 del d[key]
         return d
 
     @classmethod
-    def from_dict(cls, d: dict) -> "Uncertainty":
-        d = dict(d)
-        lists = ("near_depths", "near_range_std")
-        unknown = set(d) - {"tilt_std", "offset_std", "chi2_limit", "tilt_range_std", "offset_rel", "scale",
-                            "consistency_limit", "tilt_rel", "prefer_ratio", "tilt_pivot", "tilt_offset_rel", *lists}
-        if unknown:
-            raise ValueError(f"unknown keys {', '.join(sorted(unknown))}")
-        for key in ("chi2_limit", "consistency_limit", "prefer_ratio"):
-            if d.get(key, None) is None:
-                d[key] = math.inf
-        for key in lists:
-            v = d.get(key, [])
-            if not isinstance(v, list) or any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in v):
-                raise ValueError(f"{key} must be a list of numbers")
-        try:
-            return cls(**{k: [float(x) for x in v] if k in lists else float(v) for k, v in d.items()})
-        except OverflowError:
-            raise ValueError("a value is too large for a number") from None
-
-
-#: m: largest zone range error the near-range term may hold.
-NEAR_MAX_STD = 0.05
+    def from_dict(cls, d: Any, what: str | None = None) -> "Uncertainty":
+        """An instance from the JSON form (a null or missing limit is ``inf``); one-line :attr:`error` otherwise."""
+        if isinstance(d, dict):
+            d = {**d, **{k: math.inf for k in cls._INF_AS_NULL if k in d and d[k] is None}}
+        return super().from_dict(d, what)
 
 
 def tilt_offset(plane: Plane) -> np.ndarray:

@@ -57,7 +57,13 @@ def _same_default(fake_default, real: str) -> bool:
 
 
 def _methods(cls):
-    return [(n, f) for n, f in vars(cls).items() if callable(f) and (not n.startswith("_") or n == "__init__")]
+    """The fake's methods, its own and those it inherits from a shared base (the first definition of each name)."""
+    seen: dict = {}
+    for klass in cls.__mro__[:-1]:
+        for n, f in vars(klass).items():
+            if callable(f) and (not n.startswith("_") or n == "__init__"):
+                seen.setdefault(n, f)
+    return list(seen.items())
 
 
 @pytest.mark.parametrize("fake, module, name", FAKES, ids=[f[2] for f in FAKES])

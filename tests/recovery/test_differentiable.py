@@ -163,26 +163,19 @@ def test_chi_square_fallback_returns_the_peak_estimate(frames):
         assert s.residual == pytest.approx(l.residual)  # diff's residual is what failed the test
 
 
-def test_consistency_fallback_when_peak_contradicts_diff(frames):
-    """Convention check: diff falls back to peak when the two estimates differ by more than the consistency
-    limit allows under their covariances; a limit no honest pair exceeds keeps diff."""
+@pytest.mark.parametrize("limit, tight, loose", [
+    # the two estimates differ by more than the consistency limit allows under their covariances
+    ("consistency_limit", 1e-12, 1e12),
+    # diff keeps its plane only where its tilt variance is at most prefer_ratio times peak's
+    ("prefer_ratio", 1e-12, 1e12),
+])
+def test_fallback_to_peak_when_peak_contradicts_or_reads_the_slope_better(frames, limit, tight, loose):
+    """Convention check: a limit no frame meets returns peak's plane, marked as such; a limit every frame meets
+    keeps diff."""
     from place_safe.recovery.estimator import Uncertainty
 
-    tiny = DifferentiableEstimator(uncertainty=Uncertainty(consistency_limit=1e-12))
-    wide = DifferentiableEstimator(uncertainty=Uncertainty(consistency_limit=1e12))
-    for f in frames[:3]:
-        t, w = tiny.estimate(f), wide.estimate(f)
-        assert t.method_used == "peak" and t.plane is not None
-        assert w.method_used == "diff"
-
-
-def test_preference_fallback_when_peak_reads_the_slope_better(frames):
-    """Convention check: diff keeps its plane only where its tilt variance is at most prefer_ratio times peak's;
-    a ratio no frame meets returns peak's plane, a ratio every frame meets keeps diff."""
-    from place_safe.recovery.estimator import Uncertainty
-
-    never = DifferentiableEstimator(uncertainty=Uncertainty(prefer_ratio=1e-12))
-    always = DifferentiableEstimator(uncertainty=Uncertainty(prefer_ratio=1e12))
+    never = DifferentiableEstimator(uncertainty=Uncertainty(**{limit: tight}))
+    always = DifferentiableEstimator(uncertainty=Uncertainty(**{limit: loose}))
     for f in frames[:3]:
         n, a = never.estimate(f), always.estimate(f)
         assert n.method_used == "peak" and n.plane is not None

@@ -48,6 +48,34 @@ def test_uncertainty_round_trip_and_defaults():
         Uncertainty.from_dict({"tilt": 1.0})
 
 
+def test_calibration_files_keep_their_uncertainty_sections_byte_for_byte():
+    """Every shipped calibration's uncertainty sections load and write back exactly (null limits, left-out keys)."""
+    from place_safe.assets import sim_sensors_dir
+
+    files = sorted(sim_sensors_dir().glob("calibration*.json"))
+    sections = [s for f in files for s in json.loads(f.read_text())["uncertainty"].values()]
+    assert sections
+    for sec in sections:
+        assert json.dumps(Uncertainty.from_dict(sec).to_dict(), indent=2) == json.dumps(sec, indent=2)
+
+
+@pytest.mark.parametrize("bad, words", [
+    ({"tilt": 1.0}, "uncertainty: tilt: unknown key"),
+    ({"scale": 0}, "uncertainty: scale: Input should be greater than 0"),
+    ({"chi2_limit": -1.0}, "uncertainty: chi2_limit: Input should be greater than or equal to 0"),
+    ({"tilt_std": "0.1"}, "uncertainty: tilt_std: Input should be a valid number"),
+    ({"near_depths": [0.1, 0.2], "near_range_std": [0.01]}, "uncertainty: near_depths and near_range_std need"),
+    ({"near_depths": [0.2, 0.1], "near_range_std": [0.01, 0.0]}, "uncertainty: near_depths must increase"),
+    ({"near_depths": [0.1, 0.2], "near_range_std": [0.01, 0.06]}, "uncertainty: near_range_std.1: Input should be "
+                                                                  "less than or equal to 0.05"),
+    ([0.1], "uncertainty must be a JSON object, got a list"),
+])
+def test_uncertainty_errors_are_one_line_naming_the_field(bad, words):
+    with pytest.raises(CalibrationError) as exc:
+        Uncertainty.from_dict(bad)
+    assert str(exc.value).startswith(words) and "\n" not in str(exc.value)
+
+
 def test_tilt_term_and_preference_round_trip_and_default_to_none():
     u = Uncertainty(tilt_rel=0.05, prefer_ratio=2.0)
     assert Uncertainty.from_dict(json.loads(json.dumps(u.to_dict()))) == u

@@ -263,29 +263,41 @@ def _controller(hostname: str) -> FakeUR:
     return fake
 
 
-class RTDEControlInterface:
-    """Fake of ``rtde_control.RTDEControlInterface`` (names and defaults as in ur-rtde 1.6.5)."""
+class _Connection:
+    """What the three fake interfaces share: a connection to the fake controller at ``hostname`` that
+    ``disconnect`` closes (this interface only) and ``reconnect`` reopens when the controller allows it."""
 
-    def __init__(self, hostname: str, frequency: float = -1.0, flags: int = 1, ur_cap_port: int = 50002,
-                 rt_priority: int = 0) -> None:
+    def __init__(self, hostname: str) -> None:
         self._f = _controller(hostname)
-        self._f.program_running = self._f.safety_mode == SAFETY_NORMAL
         self._open = True
 
-    # connection
     def isConnected(self) -> bool:
         return self._open and self._f.connected
 
     def reconnect(self) -> bool:
-        f = self._f
-        if not f.reconnectable:
+        if not self._f.reconnectable:
             return False
-        f.connected, self._open = True, True
-        f.program_running = f.safety_mode == SAFETY_NORMAL
+        self._f.connected, self._open = True, True
         return True
 
     def disconnect(self) -> None:
         self._open = False
+
+
+class RTDEControlInterface(_Connection):
+    """Fake of ``rtde_control.RTDEControlInterface`` (names and defaults as in ur-rtde 1.6.5)."""
+
+    def __init__(self, hostname: str, frequency: float = -1.0, flags: int = 1, ur_cap_port: int = 50002,
+                 rt_priority: int = 0) -> None:
+        super().__init__(hostname)
+        self._f.program_running = self._f.safety_mode == SAFETY_NORMAL
+
+    # connection
+    def reconnect(self) -> bool:
+        if not super().reconnect():
+            return False
+        self._f.program_running = self._f.safety_mode == SAFETY_NORMAL
+        return True
 
     def isProgramRunning(self) -> bool:
         return self._f.connected and self._f.program_running
@@ -437,31 +449,18 @@ class RTDEControlInterface:
         return True
 
 
-class RTDEReceiveInterface:
+class RTDEReceiveInterface(_Connection):
     """Fake of ``rtde_receive.RTDEReceiveInterface``: the controller's state (frozen while disconnected)."""
 
     def __init__(self, hostname: str, frequency: float = -1.0, variables: list[str] = [],  # noqa: B006
                  verbose: bool = False, use_upper_range_registers: bool = False, rt_priority: int = 0) -> None:
-        self._f = _controller(hostname)
-        self._open = True
+        super().__init__(hostname)
         self._last: dict[str, Any] = {}
 
     def _get(self, key: str, fn: Callable[[], Any]) -> Any:
         if self._open and self._f.connected:
             self._last[key] = fn()
         return self._last.get(key, fn())
-
-    def isConnected(self) -> bool:
-        return self._open and self._f.connected
-
-    def reconnect(self) -> bool:
-        if not self._f.reconnectable:
-            return False
-        self._f.connected, self._open = True, True
-        return True
-
-    def disconnect(self) -> None:
-        self._open = False
 
     def initPeriod(self) -> datetime.timedelta:
         return _timedelta(self._f.time)
@@ -503,24 +502,11 @@ class RTDEReceiveInterface:
         return sum(1 << i for (kind, i), v in self._f.outputs.items() if kind == "standard" and v)
 
 
-class RTDEIOInterface:
+class RTDEIOInterface(_Connection):
     """Fake of ``rtde_io.RTDEIOInterface``: digital outputs (one of them may drive the arm's gripper)."""
 
     def __init__(self, hostname: str, verbose: bool = False, use_upper_range_registers: bool = False) -> None:
-        self._f = _controller(hostname)
-        self._open = True
-
-    def isConnected(self) -> bool:
-        return self._open and self._f.connected
-
-    def reconnect(self) -> bool:
-        if not self._f.reconnectable:
-            return False
-        self._f.connected, self._open = True, True
-        return True
-
-    def disconnect(self) -> None:
-        self._open = False
+        super().__init__(hostname)
 
     def _set(self, kind: str, arg0: int, arg1: bool) -> bool:
         f = self._f
