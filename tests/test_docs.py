@@ -80,3 +80,20 @@ def test_links_in_the_documents_resolve(doc):
         elif anchor and linked.suffix == ".md" and anchor not in _anchors(linked):
             broken.append(f"{target} (no such heading)")
     assert not broken, f"{doc}: " + "; ".join(broken)
+
+
+def test_the_footprint_vetos_reaction_distance_uses_the_stop_the_arm_gives():
+    """docs/placement.md's reaction distance to a footprint veto at the cruise: the machine asks for
+    ``obstacle_decel``, but a stop asked harder than ``max_linear_accel`` brakes at most at the robot file's
+    ``motion.emergency_decel`` (the ur_rtde driver and, since 25a, the simulated arm); the figure must use that."""
+    from place_safe.drivers.ur5.config import MotionConfig
+    from place_safe.placement.config import PlacementConfig
+    from place_safe.robot.interface import RobotLimits
+
+    cfg, lim = PlacementConfig(), RobotLimits()
+    asked = max(cfg.accel, cfg.obstacle_decel)
+    decel = asked if asked <= lim.max_linear_accel else min(asked, MotionConfig().emergency_decel)
+    v = cfg.approach_speed
+    react, brake = round(cfg.sensor_latency * v * 1e3), round(v * v / (2 * decel) * 1e3)
+    text = " ".join((ROOT / "docs" / "placement.md").read_text(encoding="utf-8").split())
+    assert f"at the {v:g} m/s cruise {react} + {brake} = {react + brake} mm" in text
