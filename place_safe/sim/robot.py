@@ -15,8 +15,10 @@ Conventions
   deactivates the weld and opens the fingers, so the cup is free (it falls or stands on a surface).
 * Contact force = norm of the net contact force from the environment (anything that is not robot, cup
   or liquid) on the gripper bodies and the held cup. Above ``limits.max_contact_force`` (or any robot
-  link touching the environment that hard) the robot protective-stops: motion halts, servos hold the
-  current position, the gripper stays closed, the fault is latched and RobotFault raised.
+  link touching the environment that hard) the robot protective-stops: the fault is latched, a moving
+  arm brakes to rest at ``emergency_decel`` as the ur_rtde driver does (then the servos hold it), the
+  gripper stays closed and RobotFault is raised. Every fault (tracking, joint limit, timeout, an injected
+  protective stop) stops so.
 * The force the placement sees is a UR controller's, not MuJoCo's: every control period (8 ms) the true
   net force plus a constant offset plus white noise (``controller`` ``cb3``: 3.6 N per axis, the CB3's
   motor-current estimate; ``e-series``: 1 N) feeds a
@@ -105,6 +107,10 @@ class SimRobot(Robot):
                                    force_seed=force_seed, detector=detector)
         self._callbacks: list[StepCallback] = []
         self._fault: str | None = None
+        # the fault's stop: started (pending) inside the step loop, finished by the outermost loop
+        self._loop_depth, self._brake_pending, self._braking, self._brake_limit = 0, False, False, 0.0
+        #: faults raised while a fault's stop was braking (recorded only; the first fault stays latched)
+        self.faults_while_stopping: list[str] = []
         if q_init is None:
             q_init = ur5_config()["arm"]["home"]
         self.set_joint_positions(q_init, hold_cup=hold_cup)
@@ -158,6 +164,7 @@ class SimRobot(Robot):
         (default: home) holding the cup."""
         mujoco.mj_resetData(self.model, self.data)
         self._fault, self.forces.grace = None, 0.0
+        self._brake_pending, self.faults_while_stopping = False, []
         self.set_joint_positions(ur5_config()["arm"]["home"] if q is None else q, hold_cup=hold_cup)
 
     def regrasp_cup(self) -> None:
@@ -245,11 +252,54 @@ class SimRobot(Robot):
         self._fault = None
 
     def _raise_fault(self, msg: str) -> None:
-        """Latch a fault: halt (hold the current position), keep the gripper as it is, raise."""
+        """Latch a fault, stop the arm as the real driver does and raise RobotFault; the gripper stays as it is.
+
+        A moving arm brakes to rest at ``emergency_decel`` (the Cartesian stop :meth:`stop` uses: the ur_rtde
+        driver stops a faulted arm at ``motion.emergency_decel``; holding at once would stop the cup kinder than
+        the real arm). A fault raised inside the step loop (the Cartesian loop's faults, the contact-force stop,
+        a step callback's injected protective stop) only latches and starts that stop: the outermost step loop
+        finishes the braking once the exception has left the loop and its callbacks, so nothing runs
+        re-entrantly. A fault raised during the braking is only recorded (``faults_while_stopping``) and is not
+        re-entered; if it comes from the Cartesian loop (tracking, joint limit) the arm holds where it is."""
+        if self._braking:  # a fault during the fault's stop: record it; the braking loop decides
+            self.faults_while_stopping.append(msg)
+            raise RobotFault(msg)
         self._fault = msg
         self.data.qfrc_applied[self.arm.vadr] = 0.0
-        self.motion.hold(self.data.qpos[self.arm.qadr])
+        if self.motion.mode is not None and np.all(np.isfinite(self.data.qpos)) \
+                and np.all(np.isfinite(self.data.qvel)):
+            self._brake_limit = self.motion.start_stop(self.emergency_decel)
+            self._brake_pending = True
+            if self._loop_depth == 0:  # called from outside the step loop: brake now
+                self._brake_after_fault()
+        else:
+            self.motion.hold(self.data.qpos[self.arm.qadr])
         raise RobotFault(msg)
+
+    def _brake_after_fault(self) -> None:
+        """Step physics (motion, callbacks, force record) until the fault's stop is at rest or its time limit
+        has passed; then hold. Faults raised meanwhile are recorded, not re-entered."""
+        self._brake_pending, self._braking = False, True
+        m, d = self.model, self.data
+        h = m.opt.timestep
+        t_end = self.time() + self._brake_limit
+        try:
+            while self.motion.mode is not None and self.time() <= t_end:
+                try:
+                    self._step_once(m, d, h)
+                except RobotFault:  # the Cartesian loop faulted while stopping (recorded): hold here
+                    break
+                if not (np.all(np.isfinite(d.qpos)) and np.all(np.isfinite(d.qvel))):
+                    break
+                if (why := self.forces.overload(self.limits.max_contact_force)) is not None:
+                    self.faults_while_stopping.append(why)  # recorded (and its peak kept); the stop goes on
+                self.forces.tick()
+        finally:
+            self._braking = False
+            if self.motion.mode is not None:
+                q = d.qpos[self.arm.qadr]
+                self.motion.hold(q if np.all(np.isfinite(q)) else self.motion.q_cmd)
+            d.qfrc_applied[self.arm.vadr] = 0.0
 
     def _require_ok(self) -> None:
         if self._fault is not None:
@@ -352,18 +402,27 @@ class SimRobot(Robot):
             self._fault = "simulation diverged (NaN state)"
             raise RobotFault(self._fault)
 
+    def _step_once(self, m: mujoco.MjModel, d: mujoco.MjData, h: float) -> None:
+        self.motion.step(h)
+        mujoco.mj_step(m, d)
+        for cb in self._callbacks:
+            cb(m, d, float(d.time))
+
     def _advance(self, duration: float) -> None:
         m, d = self.model, self.data
         h = m.opt.timestep
         n = max(1, int(round(duration / h)))
-        for _ in range(n):
-            self.motion.step(h)
-            mujoco.mj_step(m, d)
-            for cb in self._callbacks:
-                cb(m, d, float(d.time))
-            if self._fault is None:
-                self._safety()
-            self.forces.tick()
+        self._loop_depth += 1
+        try:
+            for _ in range(n):
+                self._step_once(m, d, h)
+                if self._fault is None:
+                    self._safety()
+                self.forces.tick()
+        finally:
+            self._loop_depth -= 1
+            if self._loop_depth == 0 and self._brake_pending:  # a fault in the loop: its stop, then its raise
+                self._brake_after_fault()
 
     def _run_until_idle(self, timeout: float) -> None:
         h = self.model.opt.timestep

@@ -86,3 +86,100 @@ def test_sim_robot_composes_the_parts_and_keeps_its_public_face():
         robot.move_joint(robot.joint_positions())
     robot.clear_fault()
     assert robot.fault() is None
+
+
+# a fault stops like the real driver: brake at emergency_decel, never kinder (review finding 3) -------------------
+def _moving_down(speed: float = 0.1) -> SimRobot:
+    robot = SimRobot.load()
+    robot.speed_linear([0.0, 0.0, -speed, 0.0, 0.0, 0.0], accel=0.5)
+    robot.step(0.5)
+    assert robot.tcp_twist()[2] == pytest.approx(-speed, abs=2e-3)
+    return robot
+
+
+def _travel_mm(robot: SimRobot, p0: np.ndarray) -> float:
+    return 1000.0 * float(np.linalg.norm(robot.tcp_pose()[:3, 3] - p0))
+
+
+def test_a_fault_brakes_at_the_emergency_decel_not_at_once():
+    robot = _moving_down(0.1)
+    theory = 1000.0 * 0.1**2 / (2.0 * robot.emergency_decel)  # 2.5 mm
+    p0 = robot.tcp_pose()[:3, 3].copy()
+    with pytest.raises(RobotFault, match="protective stop"):
+        robot._raise_fault("protective stop (test)")
+    travel = _travel_mm(robot, p0)
+    assert 0.8 * theory <= travel <= 1.2 * theory
+    assert robot.fault() == "protective stop (test)" and not robot.is_moving()
+    assert np.linalg.norm(robot.tcp_twist()[:3]) < 0.01
+    assert robot.faults_while_stopping == []
+
+
+def test_a_fault_in_the_step_loop_brakes_after_leaving_it_and_a_second_fault_is_only_recorded():
+    robot = _moving_down(0.1)
+    theory = 1000.0 * 0.1**2 / (2.0 * robot.emergency_decel)
+    p0 = robot.tcp_pose()[:3, 3].copy()
+    calls = {"n": 0, "depth": 0, "max_depth": 0}
+
+    def injector(model, data, t):  # like the scenario's injected protective stop, and again while braking
+        calls["n"] += 1
+        calls["depth"] += 1
+        calls["max_depth"] = max(calls["max_depth"], calls["depth"])
+        try:
+            if calls["n"] == 1:
+                robot._raise_fault("protective stop (first)")
+            if calls["n"] == 5:
+                robot._raise_fault("protective stop (second)")
+        finally:
+            calls["depth"] -= 1
+
+    robot.add_step_callback(injector)
+    with pytest.raises(RobotFault, match="first"):
+        robot.step(1.0)
+    assert calls["max_depth"] == 1  # never re-entered
+    assert robot.fault() == "protective stop (first)" and not robot.is_moving()
+    assert robot.faults_while_stopping == ["protective stop (second)"]
+    # the second fault held the arm where it was; before it, it braked (not held at once)
+    travel = _travel_mm(robot, p0)
+    assert 0.0 < travel < 1.2 * theory
+    robot.remove_step_callback(injector)
+
+
+def test_a_loop_fault_during_the_stop_ends_it_without_recursion():
+    robot = _moving_down(0.1)
+    p0 = robot.tcp_pose()[:3, 3].copy()
+    robot.limits = robot.limits.replace(max_tracking_error=1e-9)  # the Cartesian loop faults at every tick
+    with pytest.raises(RobotFault, match="cannot follow"):
+        robot.step(0.1)
+    assert "cannot follow" in robot.fault() and not robot.is_moving()
+    assert len(robot.faults_while_stopping) == 1 and "cannot follow" in robot.faults_while_stopping[0]
+    assert _travel_mm(robot, p0) < 1.0
+
+
+def test_a_fault_at_rest_does_not_move_the_arm():
+    robot, twin = SimRobot.load(), SimRobot.load()
+    robot.step(0.2)
+    twin.step(0.2)
+    q0 = robot.joint_positions()
+    with pytest.raises(RobotFault):
+        robot._raise_fault("protective stop (at rest)")
+    assert not robot.is_moving() and robot.time() == pytest.approx(0.2, abs=1e-9)  # no braking steps
+    assert np.array_equal(robot.joint_positions(), q0)
+    robot.step(0.2)
+    twin.step(0.2)  # the servos hold it (where it was, as before: only their sag, like an arm that never faulted)
+    assert np.abs(robot.joint_positions() - twin.joint_positions()).max() < 2e-4
+    assert np.linalg.norm(robot.tcp_pose()[:3, 3] - twin.tcp_pose()[:3, 3]) < 1e-4
+
+
+def test_the_force_peak_is_recorded_while_braking():
+    robot = _moving_down(0.1)
+    recorded = []
+    orig = robot.forces.overload
+
+    def overload(limit):
+        recorded.append(robot.time())
+        return orig(limit)
+
+    robot.forces.overload = overload
+    with pytest.raises(RobotFault):
+        robot._raise_fault("protective stop (test)")
+    assert len(recorded) > 10  # the contact-force record goes on through the stop
