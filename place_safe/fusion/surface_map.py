@@ -416,7 +416,9 @@ class SurfaceMap:
           reach centimetres past it, where a box beside the cup may stand. A vetoed point stays vetoed
           until ``min_frames`` views with it in the centre zone (:data:`CENTRE_ZONE`, the second look's
           view centred on it, whose zone reaches least far past it) see it clean; views sliding off a box
-          as the sensor moves away do not lift a veto.
+          as the sensor moves away do not lift a veto. This rule needs zone points good to a few millimetres:
+          it applies only to a calibrated peak mapping (``relative > 0``); with built-in constants, whose zone
+          points lie a centimetre off, the first rule alone decides.
         """
         n = np.asarray(normal, dtype=float)
         d = float(offset)
@@ -462,7 +464,9 @@ class SurfaceMap:
                     kind, detail = issue[z]
                     kinds[kind] += 1
                     details[kind] = detail
-            if self._looks_at(fs.base_T_sensor, disc, n):
+            # raised evidence is a few millimetres: only zone points of a calibrated peak mapping (relative > 0,
+            # see consensus_tolerance) are good enough for it; built-in constants put zones a centimetre off
+            if self.relative > 0 and self._looks_at(fs.base_T_sensor, disc, n):
                 seen = clean | (inside & raised_zone[zone])  # edge evidence neither vetoes nor lifts
                 latest[seen] = np.column_stack([latest[seen][:, 1:], np.where(clean[seen], 1, 2)])
                 vetoed |= np.all(latest == 2, axis=1)
