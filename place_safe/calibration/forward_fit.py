@@ -291,7 +291,6 @@ def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, prog
 def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_distance, fitted, window_after_peak,
                  max_frames, priors, objective, coarse_rays, same_surface) -> tuple[ForwardParams, dict]:
     """:func:`fit_forward` on the calling thread."""
-    from scipy.optimize import least_squares
     from torch.func import jvp, vmap
 
     skipped: dict[str, int] = {}

@@ -285,12 +285,17 @@ def fit_near_law(rows: Sequence[tuple], unc: Uncertainty, peak_params, end: floa
 
     plain = near_law_depths(end)
 
+    def row_covariance(r, scale: float, power: float, share: float) -> np.ndarray:
+        """The covariance the estimator reports for held-out row ``r`` under the law (its own factor: its
+        table's knots)."""
+        est = PeakEstimator(peak_params, unc_for(plain, scale, power, share + (1.0 - share) * rel(r[4])))
+        return est.covariance(r[0], r[1], r[2])
+
     def nll(theta: np.ndarray) -> float:
         scale, power, share = law(theta)
         total = 0.0
-        for r in rows:  # each row its own factor (its table's knots): one estimator per row
-            est = PeakEstimator(peak_params, unc_for(plain, scale, power, share + (1.0 - share) * rel(r[4])))
-            total += _nll(r[3][None], est.covariance(r[0], r[1], r[2])[None], np.zeros((1, 3, 3)))
+        for r in rows:
+            total += _nll(r[3][None], row_covariance(r, scale, power, share)[None], np.zeros((1, 3, 3)))
         return total / len(rows)
 
     starts = [(math.log(2e-4), 0.0), (math.log(5e-4), -2.0), (math.log(1e-4), 2.0)]
@@ -316,8 +321,8 @@ def fit_near_law(rows: Sequence[tuple], unc: Uncertainty, peak_params, end: floa
                 [PeakEstimator(peak_params, tabulated(math.exp(ls))).covariance(r[0], r[1], r[2]) for r in est_rows]),
                 np.zeros((len(est_rows), 3, 3))), bounds=(math.log(1e-3), 0.0), method="bounded")
             share = math.exp(res.x)
-    mean_held = float(np.mean([r[3] @ np.linalg.solve(PeakEstimator(peak_params, unc_for(
-        plain, scale, power, share + (1.0 - share) * rel(r[4]))).covariance(r[0], r[1], r[2]), r[3]) for r in rows]) / 3.0)
+    mean_held = float(np.mean([r[3] @ np.linalg.solve(row_covariance(r, scale, power, share), r[3])
+                               for r in rows]) / 3.0)
     return tabulated(share), {
         "frames": len(rows), "std_at_reference_mm": scale * 1e3, "reference_depth_mm": NEAR_REFERENCE_DEPTH * 1e3,
         "power": power, "table_knots": len(knots), "reference_measure_mm2": m_ref * 1e6 if knots else None,
@@ -368,8 +373,8 @@ def fit_peak_uncertainty(frames: Sequence[Frame], peak_params, min_range: float 
             rows += [r for r in (_near_row(f, held.get(id(f)), depths[-1]) for f in closer) if r is not None]
         # read as new frames are: by a table where the calibration keeps one, by the mapping alone where not
         rows = [r for r in rows if (r[4] is not None) == bool(peak_params.near_depths)]
-        own = [r for r in (_near_row(f, peak_params, depths[-1]) for f in closer) if r is not None]
         if len(rows) >= NEAR_LAW_MIN_FRAMES:
+            own = [r for r in (_near_row(f, peak_params, depths[-1]) for f in closer) if r is not None]
             unc, report["near_range"]["law"] = fit_near_law(rows, unc, peak_params, depths[-1], own)
             report["near_range"]["std_mm"] = [v * 1e3 for v in unc.near_range_std]
         ests = [PeakEstimator(peak_params, unc).estimate(f) for f in closer]

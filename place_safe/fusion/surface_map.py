@@ -449,12 +449,6 @@ class SurfaceMap:
             doubt = self._doubtful(fs, n, d)
             clean_zone = np.array([issue.get(int(z)) is None and not doubt[int(z)] for z in range(N_ZONES)])
             bad_zone = np.array([issue.get(int(z)) is not None for z in range(N_ZONES)])
-            # raised: something above the surface in the zone (a box's top lifts or leads its return); an edge's
-            # floor or a step down beside the footprint shows as a missing, farther or lower return instead
-            lifted = (fs.points_base @ n - d) > 0
-            raised_zone = np.array([(doubt[z] and bool(lifted[z])) or (issue.get(z) is not None
-                                                                       and issue[z][0] == "clutter")
-                                    for z in range(N_ZONES)])
             clean = inside & clean_zone[zone]
             bad = inside & bad_zone[zone]
             certified += clean
@@ -467,6 +461,12 @@ class SurfaceMap:
             # raised evidence is a few millimetres: only zone points of a calibrated peak mapping (relative > 0,
             # see consensus_tolerance) are good enough for it; built-in constants put zones a centimetre off
             if self.relative > 0 and self._looks_at(fs.base_T_sensor, disc, n):
+                # raised: something above the surface in the zone (a box's top lifts or leads its return); an edge's
+                # floor or a step down beside the footprint shows as a missing, farther or lower return instead
+                lifted = (fs.points_base @ n - d) > 0
+                raised_zone = np.array([(doubt[z] and bool(lifted[z])) or (issue.get(z) is not None
+                                                                           and issue[z][0] == "clutter")
+                                        for z in range(N_ZONES)])
                 seen = clean | (inside & raised_zone[zone])  # edge evidence neither vetoes nor lifts
                 latest[seen] = np.column_stack([latest[seen][:, 1:], np.where(clean[seen], 1, 2)])
                 vetoed |= np.all(latest == 2, axis=1)

@@ -408,18 +408,20 @@ class PlacementMachine:
         dist = float(np.linalg.norm(move))
         if not (dist > SURVEY_DONE):
             return np.zeros(3)
-        speed = min(limit, 0.8 * math.sqrt(2.0 * min(self.config.accel, self.config.lateral_accel) * dist),
-                    LATERAL_GAIN * dist)
-        return np.round(move / dist * speed, 3)
+        return np.round(move / dist * self._lateral_speed(dist, limit), 3)
+
+    def _lateral_speed(self, dist: float, limit: float) -> float:
+        """m/s of a sideways move ``dist`` m from its end: at most ``limit``, slowing so it stops there."""
+        a = min(self.config.accel, self.config.lateral_accel)
+        return min(limit, 0.8 * math.sqrt(2.0 * a * dist), LATERAL_GAIN * dist)
 
     def _lateral_time(self, dist: float, target: float, speed: float) -> float:
         """s a sideways move :meth:`_lateral` makes (no faster than ``speed`` m/s now) takes from ``dist`` m to
         ``target`` m from its end (at least one control period)."""
-        a = min(self.config.accel, self.config.lateral_accel)
         t, d = 0.0, dist
         step = max((dist - target) / 40.0, 1e-4)
         while d > target:
-            v = min(max(speed, 1e-3), 0.8 * math.sqrt(2.0 * a * d), LATERAL_GAIN * d)
+            v = self._lateral_speed(d, max(speed, 1e-3))
             t += step / v
             d -= step
         return max(t, self.period)

@@ -702,8 +702,9 @@ class ForwardModel:
         """The zone histograms (B, 9, N) after the pulse convolution -> what the sensor reports: each zone's pulse
         shape (width, skew), the learned response, its own tail, crosstalk, pile-up and the constant floor (the parameters of :attr:`AFTER_PULSE`)."""
         t = self.t
-        if torch.is_grad_enabled() or bool(torch.any(t["zone_pulse_widths"] != 0)) or bool(
-                torch.any(t["zone_pulse_skews"] != 0)):
+        shaped = torch.is_grad_enabled() or bool(torch.any(t["zone_pulse_widths"] != 0)) or bool(
+            torch.any(t["zone_pulse_skews"] != 0))
+        if shaped:
             shape = pulse_shape_matrix(t["zone_pulse_widths"], t["zone_pulse_skews"], hist.shape[-1], self.dtype)
             hist = (hist.transpose(0, 1) @ shape.transpose(-1, -2)).transpose(0, 1)
         if torch.is_grad_enabled() or bool(torch.any(t["response_kernel"] != 0)):
@@ -715,8 +716,7 @@ class ForwardModel:
         if torch.is_grad_enabled() or bool(torch.any(t["crosstalk_grid"] != 0)):
             mixed = mixed + torch.einsum("tf,bfn->btn", grid_crosstalk_matrix(t["crosstalk_grid"], self.dtype), hist)
         hist = mixed
-        if torch.is_grad_enabled() or bool(torch.any(t["zone_pulse_widths"] != 0)) or bool(
-                torch.any(t["zone_pulse_skews"] != 0)):
+        if shaped:
             hist = torch.clamp(hist, min=0.0)  # the shape correction's negative lobes beside a sharp pulse: no counts
         return apply_pileup(hist, t["pileup"], t["pileup_shadow"]) + t["floor"]
 

@@ -221,12 +221,14 @@ class PlaneRenderer:
         A[..., nu - 1] = dp_dsh * dsh[5]
         if self.echo_gain != 0.0:  # the echo's rays: amplitude amp * echo(path), position 2 path / bin_size
             d_path = [du[k] * p.bin_size for k in range(3)]
-            amp_d, echo_d = amp[..., :n_direct], echo
-            A_e = A * echo_d[..., None]
+            amp_e = amp[..., n_direct:]  # amp_direct * echo (concatenated above)
+            falloff = amp_e * (-self.echo_power / np.maximum(path, 1e-4))
+            near = path > 1e-4
+            A_e = A * echo[..., None]
             B_e = np.zeros_like(B)
             for k in range(3):
-                A_e[..., k] += amp_d * echo_d * (-self.echo_power / np.maximum(path, 1e-4)) * d_path[k] * (path > 1e-4)
-                B_e[..., k] = amp_d * echo_d * 2.0 * du[k]
+                A_e[..., k] += falloff * d_path[k] * near
+                B_e[..., k] = amp_e * 2.0 * du[k]
             A = np.concatenate([A, A_e], axis=2)
             B = np.concatenate([B, B_e], axis=2)
         Gt = G * t * self.inv_sigma2

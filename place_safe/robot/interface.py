@@ -102,6 +102,12 @@ def check_twist(twist: Any) -> np.ndarray:
     return v
 
 
+def stop_decel(requested: float, max_linear_accel: float, emergency_decel: float) -> float:
+    """m/s^2 a stop asked at ``requested`` gets: as asked up to ``max_linear_accel``; a harder one is an
+    emergency stop, at most ``emergency_decel`` (what the ur_rtde driver gives, and the simulated arm with it)."""
+    return float(requested) if requested <= max_linear_accel else min(float(requested), emergency_decel)
+
+
 def clamp_twist(v: np.ndarray, limits: RobotLimits) -> np.ndarray:
     """Scale a twist's linear and angular parts (in place) down to ``limits.max_linear_speed`` and
     ``max_angular_speed``, keeping their directions; returns ``v``."""

@@ -44,7 +44,7 @@ import numpy as np
 
 from place_safe.exceptions import RobotFault
 from place_safe.robot.contact_detector import DetectorSettings
-from place_safe.robot.interface import Robot, RobotLimits, check_pose, check_twist, clamp_twist
+from place_safe.robot.interface import Robot, RobotLimits, check_pose, check_twist, clamp_twist, stop_decel
 from place_safe.robot.description import ur5_config
 
 from place_safe.sim.arm_model import ArmModel
@@ -368,9 +368,7 @@ class SimRobot(Robot):
         self._check_speed(1.0, decel)
         if self.motion.mode is None:
             return
-        lim = self.limits.max_linear_accel
-        decel = float(decel) if decel <= lim else min(float(decel), self.emergency_decel)
-        longest = self.motion.start_stop(decel)
+        longest = self.motion.start_stop(stop_decel(decel, self.limits.max_linear_accel, self.emergency_decel))
         if not asynchronous:
             self._run_until_idle(longest)
 

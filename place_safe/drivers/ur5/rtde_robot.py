@@ -74,7 +74,7 @@ from place_safe.drivers.ur5.gripper import Gripper, make_gripper
 from place_safe.drivers.ur5.pose import pose_to_vector, vector_to_pose
 from place_safe.exceptions import RobotFault
 from place_safe.robot.contact_detector import ContactDetector
-from place_safe.robot.interface import Robot, RobotLimits, check_pose, check_twist, clamp_twist
+from place_safe.robot.interface import Robot, RobotLimits, check_pose, check_twist, clamp_twist, stop_decel
 from place_safe.robot.kinematics import Kinematics
 
 log = logging.getLogger("place_safe.drivers.ur5")
@@ -512,8 +512,7 @@ class URRobot(Robot):
     def _decel(self, requested: float) -> float:
         """The deceleration a stop asked at ``requested`` m/s^2 gets: as asked up to ``max_linear_accel``; a
         harder one is an emergency stop, at most ``motion.emergency_decel``."""
-        lim = self.config.limits.max_linear_accel
-        return float(requested) if requested <= lim else min(float(requested), self.config.motion.emergency_decel)
+        return stop_decel(requested, self.config.limits.max_linear_accel, self.config.motion.emergency_decel)
 
     def _arm_watchdog(self) -> None:
         if not self._watchdog_armed:
