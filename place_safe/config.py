@@ -194,11 +194,6 @@ class ParamModel(ConfigModel):
         """The file form: every field by name, as plain JSON values."""
         return self.model_dump(mode="json")
 
-    def validate(self) -> None:  # type: ignore[override]  # pydantic's deprecated classmethod of that name
-        """Raise :attr:`error` (one line naming the field) unless every value is in its range and every rule across
-        fields holds: for a set changed in place field by field."""
-        type(self).from_dict(self.to_dict())
-
     def save(self, path: str | Path) -> None:
         """Write the file form (:meth:`to_dict`) as indented JSON."""
         write_json(path, self.to_dict())

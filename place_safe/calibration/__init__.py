@@ -140,7 +140,7 @@ class Calibration:
                 return {k: Uncertainty.from_dict(v, f"uncertainty.{k}") for k, v in sec.items()}
             return Uncertainty.from_dict(sec[method], f"uncertainty.{method}") if method in sec else Uncertainty()
         except (TypeError, ValueError, AttributeError, OverflowError) as exc:
-            raise CalibrationError(f"uncertainty section is malformed: {exc}") from None
+            raise CalibrationError(str(exc)) from None
 
     def forward(self) -> ForwardParams:
         d = self._section("forward")

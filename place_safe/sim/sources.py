@@ -2,8 +2,8 @@
 ``emu:NAME``), the register-level emulator fed by the simulated sensor over a packaged scenario's scene.
 
 The library does not import the simulation: this factory reaches ``sources`` through the ``place_safe.sources``
-entry-point group (pyproject.toml), read on the first URI that names it; :func:`register` registers it
-directly (for a checkout used without installing it).
+entry-point group (pyproject.toml), read on the first URI that names it (the package must be installed, as the
+README's install does, for the group to exist).
 """
 from __future__ import annotations
 
@@ -14,7 +14,6 @@ from place_safe.sensor.frame import Frame
 from place_safe.sim.scenario import load_scenario
 from place_safe.sim.scene import build_scene
 from place_safe.sim.tof_mismatch import make_sensor
-from place_safe.sources import register_feed
 
 
 def scenario_feed(uri: str, name: str) -> Callable[[float], Frame]:
@@ -32,9 +31,4 @@ def scenario_feed(uri: str, name: str) -> Callable[[float], Frame]:
     return lambda _t: tof.measure()
 
 
-def register() -> None:
-    """Register the simulation's feeds with :mod:`place_safe.sources`."""
-    register_feed("scenario", scenario_feed)
-
-
-__all__ = ["scenario_feed", "register"]
+__all__ = ["scenario_feed"]
