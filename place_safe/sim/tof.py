@@ -11,6 +11,13 @@ Conventions
   ``ForwardModel(true_params).render_returns`` of those returns, so several surfaces in a zone mix.
   Material albedo is relative: the ray's albedo is ``material.albedo * true_params.albedo``; a
   material without its own specular lobe uses the true sensor's (as the real sweep's table).
+* Internal return and crosstalk: the true parameters carry the real sweep's zero-range (cover-glass) return,
+  ``glass_gains`` / ``glass_delay``, measured on its frames at >= 15 cm (30-45 counts at the peak, bins 13-14;
+  ``sim/make_real_sensor.py``), rendered by the forward model in every frame whatever the scene (a ray that
+  misses adds nothing; the glass is still there), and the scalar ``crosstalk`` fitted at >= 4 cm. A surface
+  closer than about 2 cm returns inside the internal return's bins: the overlap is rendered, not special-cased.
+  The real sweep's dark zones close up (a zone 1e3-1e5 times darker than its neighbours at 5-20 mm) are not: no
+  emitter-illumination model with a stated basis reproduces them (see ``docs/results.md``, Near range).
 * Noise: Poisson shot noise on the histogram plus a per-zone ambient floor drawn once per sensor
   in ``ambient_range`` counts; the reference histogram is the shipped real one with Poisson noise.
 * Timing: measurement ``k`` is taken when the sim clock passes ``k / rate_hz`` and stamped with the
