@@ -12,7 +12,7 @@ Conventions
   Material albedo is relative: the ray's albedo is ``material.albedo * true_params.albedo``; a
   material without its own specular lobe uses the true sensor's (as the real sweep's table).
 * Internal return and crosstalk: the true parameters carry the real sweep's zero-range (cover-glass) return,
-  ``glass_gains`` / ``glass_delay``, measured on its frames at >= 15 cm (30-45 counts at the peak, bins 13-14;
+  ``glass_gains`` / ``glass_delay``, measured on its frames at >= 15 cm (26-44 counts at the peak, bins 13-14;
   ``sim/make_real_sensor.py``), rendered by the forward model in every frame whatever the scene (a ray that
   misses adds nothing; the glass is still there), and the scalar ``crosstalk`` fitted at >= 4 cm. A surface
   closer than about 2 cm returns inside the internal return's bins: the overlap is rendered, not special-cased.

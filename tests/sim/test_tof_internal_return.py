@@ -183,3 +183,43 @@ def test_simulated_near_frames_read_too_close_or_a_plane_within_its_bound(sensor
             std = e.tilt_std()
             bound = 3.0 * math.degrees(std) if std is not None else 0.0
             assert err <= max(5.0, bound), (method, sensor, f.truth.z0, err, bound)
+
+
+def test_the_packaged_internal_return_is_reproduced_from_the_real_sweep():
+    """``sim/make_real_sensor.py``'s measurement gives the packaged glass gains and delay again (reproducible)."""
+    import importlib.util
+
+    from place_safe.io.frame_file import load_frames
+
+    path = Path(__file__).resolve().parents[2] / "sim" / "make_real_sensor.py"
+    spec = importlib.util.spec_from_file_location("make_real_sensor", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    frames = load_frames(SWEEP)
+    p = true_params()
+    glass, report = mod.fit_internal_return(frames, p)
+    np.testing.assert_allclose(glass["glass_gains"], p.glass_gains, rtol=1e-6)
+    assert glass["glass_delay"] == p.glass_delay
+    assert report["frames"] >= 30
+    bound = mod.crosstalk_bound(frames)
+    assert bound["frames"] == 3 and bound["scalar"] < 1e-5
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["jaw_sensor_level", "jaw_sensor_mismatch_level", "jaw_sensor_tilt_10",
+                                  "jaw_sensor_mismatch_tilt_7"])
+def test_the_jaw_mounted_sensor_with_the_internal_return_releases_level_refuses_tilted(name):
+    """With the internal return rendered: the sensor 5 mm above the cup bottom releases on level tables (from the
+    fused plane of the farther frames) and refuses tilted ones; no frame flagged too close carries a plane, so
+    none can decide a release."""
+    from place_safe.sim.placement_run import run_placement
+    from place_safe.sim.scenario import load_scenario
+
+    path = Path(__file__).resolve().parents[2] / "scenarios" / "set" / f"{name}.toml"
+    expected = load_scenario(path).expect.outcome
+    res = run_placement(path, seconds=20, log_frames=True)
+    assert res.outcome == expected, res.summary()
+    close = [f for f in res.frame_log if TOO_CLOSE_REASON in (f.get("reason") or "")]
+    assert all(not f["plane"] for f in close)
+    if expected == "released":
+        assert close and "farther frames" in res.reason
