@@ -22,6 +22,13 @@ Writes, next to this script (or to ``--out-dir``):
   the delay by a 0.25-bin grid). The zones' neighbour crosstalk is bounded by the real 5-20 mm frames, whose dark
   zones sit beside zones 1e5x brighter (:func:`crosstalk_bound`); the bound is below the scalar ``crosstalk``
   the sensor already renders, so ``crosstalk_grid`` stays 0.
+* ``tmf8820_real_blinding.json``: the real sensor's dark zones close up (:func:`fit_blinding`; used by the simulator
+  only with ``ToFConfig.blinding``). A zone goes dark where the emitter's mirror image in the surface (a glint)
+  falls, and less so as the range grows: per zone ``exp(-(g / g0)^power)`` of its light, ``g`` the zone's
+  quadrature mean of ``exp(-a^2 / 2 w^2) / (r + r_e)^2`` over its rays (``a`` the angle between the surface
+  normal and the half vector of the directions to the emitter and to the receiver, ``r`` and ``r_e`` the hit
+  point's distances to the receiver and the emitter). Emitter position, ``w``, ``g0`` and ``power`` by grid search
+  on the log zone brightness (relative to the frame's median zone) of the real frames closer than 7 cm.
 
 Run: ``python sim/make_real_sensor.py --sweep /work/shared/data/tmf8820_ur5_sweep.json``; only the internal return
 (on the packaged parameters): ``python sim/make_real_sensor.py --sweep tests/data/tmf8820_ur5_sweep.json
@@ -32,6 +39,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -185,6 +193,47 @@ def crosstalk_bound(frames: list[Frame], max_distance: float = 0.021, sigmas: fl
             "grid": {f"{dx},{dy}": float(v) for (dx, dy), v in zip(GRID_DISPLACEMENTS, grid)}}
 
 
+def blinding_glint(dirs: np.ndarray, weights: np.ndarray, depth: float, emitter, width: float) -> np.ndarray:
+    """Per-zone glint measure ``g`` (9,) of a level surface at ``depth`` (m) for rays ``dirs`` (9, R, 3) with
+    quadrature ``weights`` (9, R) (see :func:`fit_blinding`; the simulator's own is in ``place_safe.sim.tof``)."""
+    from place_safe.sim.tof import glint_measure
+
+    points = depth / dirs[..., 2:3] * dirs
+    normals = np.broadcast_to(np.array([0.0, 0.0, -1.0]), points.shape)
+    return glint_measure(points, normals, weights, np.ones(weights.shape, bool), emitter, width)
+
+
+def fit_blinding(frames: list[Frame], max_distance: float = 0.07) -> dict:
+    """The dark-zone (blinding) parameters that best give the real near frames' zone brightness pattern."""
+    import itertools
+
+    near = [f for f in frames if f.truth is not None and f.truth.z0 < max_distance]
+    obs = []
+    for f in near:
+        h = f.hists - np.median(f.hists[:, EARLY_FLOOR_BINS], 1, keepdims=True)
+        a = np.maximum(h[:, 8:30].sum(1), 1.0)
+        obs.append(np.log10(a / np.median(a)))
+    obs = np.array(obs)
+    m = ForwardModel(ForwardParams(), ZoneRays.stratified(12))
+    with torch.no_grad():
+        dirs, w = (t.numpy() for t in m.ray_geometry())
+    best = None
+    for ex, ey, wd in itertools.product(np.arange(-2e-3, 2.001e-3, 5e-4), np.arange(-4e-3, 4.001e-3, 5e-4),
+                                        (2.0, 3.0, 4.0, 5.0)):
+        g = np.array([blinding_glint(dirs, w, f.truth.z0, (ex, ey), math.radians(wd)) for f in near])
+        for lg0, q in itertools.product(np.arange(0.0, 8.0, 0.1), (0.5, 1.0, 2.0)):
+            pred = np.maximum(-((g / 10 ** lg0) ** q) / math.log(10), -6.0)
+            pred = pred - np.median(pred, 1, keepdims=True)
+            err = float(np.mean((pred - obs) ** 2))
+            if best is None or err < best[0]:
+                best = (err, float(ex), float(ey), math.radians(wd), float(10 ** lg0), q)
+    err, ex, ey, wd, g0, q = best
+    return {"emitter": [ex, ey], "glint_width": wd, "g0": g0, "power": q,
+            "source": f"grid search on the log10 zone brightness (bins 8-29 less the early floor, over the frame's "
+                      f"median zone) of the {len(near)} real frames closer than {max_distance} m; lower clamp -6",
+            "mse_dex2": err, "mse_dex2_without": float(np.mean(obs ** 2))}
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--sweep", default="/work/shared/data/tmf8820_ur5_sweep.json", help="real sweep (frame file)")
@@ -207,6 +256,9 @@ def main(argv: list[str] | None = None) -> int:
         report["internal_return"] = {**glass, **glass_report, "crosstalk_bound": crosstalk_bound(frames)}
         rp.write_text(json.dumps(report, indent=2))
         print(json.dumps(report["internal_return"], indent=2), file=sys.stderr)
+        blinding = fit_blinding(frames)
+        (out / "tmf8820_real_blinding.json").write_text(json.dumps(blinding, indent=2))
+        print(json.dumps(blinding, indent=2), file=sys.stderr)
         return 0
     data = usable(frames, args.min_distance)
     method = args.method
@@ -233,6 +285,7 @@ def main(argv: list[str] | None = None) -> int:
     params.save(out / "tmf8820_real.json")
     (out / "tmf8820_real_distance.json").write_text(json.dumps(fit_distance_map(frames), indent=2))
     (out / "tmf8820_real_report.json").write_text(json.dumps(report, indent=2))
+    (out / "tmf8820_real_blinding.json").write_text(json.dumps(fit_blinding(frames), indent=2))
     print(json.dumps(report, indent=2), file=sys.stderr)
     return 0
 

@@ -223,3 +223,77 @@ def test_the_jaw_mounted_sensor_with_the_internal_return_releases_level_refuses_
     assert all(not f["plane"] for f in close)
     if expected == "released":
         assert close and "farther frames" in res.reason
+
+
+# -- the real sensor's dark zones close up (opt-in: ToFConfig.blinding) -------------------------------------------
+
+def _zone_brightness(frame) -> np.ndarray:
+    """log10 of each zone's return (bins 8-29 less the early floor) over the frame's median zone (9,)."""
+    h = frame.hists - np.median(frame.hists[:, :8], axis=1, keepdims=True)
+    a = np.maximum(h[:, 8:30].sum(axis=1), 1.0)
+    return np.log10(a / np.median(a))
+
+
+def test_blinding_is_off_by_default_and_leaves_the_frame_alone(sensors):
+    assert ToFConfig().blinding is False
+    for tof in sensors:
+        assert tof.blinding is None
+        np.testing.assert_array_equal(tof.blinding_factors(tof.cast()), np.ones(N_ZONES))
+
+
+def test_blinding_gives_the_real_sweeps_dark_zones_close_up():
+    """With ``blinding`` a level table darkens the zones the real sweep's do: zone 4 at 5 mm, zone 5 (centre) at
+    12.5 and 20 mm, fading with range (real, log10 of the median zone: -3.3, -5.4, -2.1, -0.8 at 27.5 mm, within
+    0.1 from 5 cm on)."""
+    scene = _scene()
+    tof = SimToF(scene, config=ToFConfig(noise=False, blinding=True))
+    got, share = {}, {}
+    for gap in (0.005, 0.0125, 0.02, 0.0275, 0.05, 0.1):
+        scene.set_sensor_pose(tof.data, np.array([0.0, 0.0, H + gap]), np.diag([1.0, -1.0, -1.0]))
+        got[gap] = _zone_brightness(tof.measure())
+        share[gap] = tof.blinding_factors(tof.cast())
+    assert np.argmin(got[0.005]) == 3 and got[0.005][3] < -3.0
+    assert np.argmin(got[0.0125]) == 4 and got[0.0125][4] < -4.0
+    assert np.argmin(got[0.02]) == 4 and -3.0 < got[0.02][4] < -1.0
+    assert -1.0 < got[0.0275][4] < -0.2
+    assert np.all(share[0.05] > 0.7) and np.all(share[0.1] > 0.99)
+
+
+@settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(gap=st.floats(0.003, 0.5), tilt=st.floats(0.0, 30.0), albedo=st.floats(0.05, 5.0))
+def test_blinding_factors_are_finite_shares(gap, tilt, albedo):
+    from place_safe.recovery.forward import ForwardModel, ZoneRays
+    from place_safe.sim.tof import Blinding, glint_measure
+
+    t = math.radians(tilt)
+    n = np.array([0.0, math.sin(t), -math.cos(t)])  # the surface faces the sensor
+    d, w = (x.numpy() for x in ForwardModel(true_params(), ZoneRays.stratified(4)).ray_geometry())
+    pts = gap / np.abs(d @ n)[..., None] * d
+    b = Blinding.load()
+    g = glint_measure(pts, np.broadcast_to(n, pts.shape), albedo * w, np.ones(w.shape, bool), b.emitter,
+                      b.glint_width)
+    assert np.all(np.isfinite(g)) and np.all(g >= 0.0)
+    share = np.exp(-np.power(g / b.g0, b.power))
+    assert np.all((share >= 0.0) & (share <= 1.0))
+
+
+@pytest.mark.parametrize("sensor,seed", [("nominal", 1), ("mismatch", 11)])
+def test_with_blinding_level_near_frames_read_too_close_or_a_plane_within_its_bound(sensor, seed):
+    """The dark zones on: below 2.5 cm over a level table each frame is too close or a plane within 5 deg or 3 sigma.
+    (Tilted tables are not asserted: there the glint darkens an edge zone, no rule flags it and the packaged
+    calibrations read 15-25 mm planes 10-36 deg off, beyond 3 sigma; see docs/results.md.)"""
+    scene = _scene(0.0)
+    cfg = ToFConfig(noise=True, seed=seed, blinding=True)
+    tof = (SimToF(scene, config=cfg) if sensor == "nominal"
+           else MismatchedToF(scene, config=cfg, mismatch=MismatchConfig(seed=seed)))
+    est = make_estimator("peak", simulated_calibration(sensor))
+    for gap in (0.005, 0.01, 0.015, 0.02, 0.025):
+        scene.set_sensor_pose(tof.data, np.array([0.0, 0.0, H + gap]), np.diag([1.0, -1.0, -1.0]))
+        f = tof.measure()
+        e = est.estimate(f)
+        if e.plane is None:
+            assert e.reason
+            continue
+        err = math.degrees(angular_error(e.plane, f.truth))
+        std = e.tilt_std()
+        assert err <= max(5.0, 3.0 * math.degrees(std) if std is not None else 0.0), (gap, err)
