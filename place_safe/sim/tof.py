@@ -11,6 +11,17 @@ Conventions
   ``ForwardModel(true_params).render_returns`` of those returns, so several surfaces in a zone mix.
   Material albedo is relative: the ray's albedo is ``material.albedo * true_params.albedo``; a
   material without its own specular lobe uses the true sensor's (as the real sweep's table).
+* Internal return and crosstalk: the true parameters carry the real sweep's zero-range (cover-glass) return,
+  ``glass_gains`` / ``glass_delay``, measured on its frames at >= 15 cm (26-44 counts at the peak, bins 13-14;
+  ``sim/make_real_sensor.py``), rendered by the forward model in every frame whatever the scene (a ray that
+  misses adds nothing; the glass is still there), and the scalar ``crosstalk`` fitted at >= 4 cm. A surface
+  closer than about 2 cm returns inside the internal return's bins: the overlap is rendered, not special-cased.
+  The real sweep's dark zones close up (a zone 1e3-1e6 times darker than its neighbours at 5-20 mm) are rendered
+  only with ``ToFConfig.blinding`` (off by default; the packaged calibrations and scenarios were made without
+  it): a zone keeps ``exp(-(g / g0)^power)`` of its histogram, ``g`` its glint measure (:func:`glint_measure`:
+  where the emitter's mirror image in the surface falls, weakening with range), parameters
+  ``sim/sensors/tmf8820_real_blinding.json`` fitted to the real frames closer than 7 cm
+  (``sim/make_real_sensor.py``). A fitted pattern, not a measured mechanism (see ``docs/results.md``, Near range).
 * Noise: Poisson shot noise on the histogram plus a per-zone ambient floor drawn once per sensor
   in ``ambient_range`` counts; the reference histogram is the shipped real one with Poisson noise.
 * Timing: measurement ``k`` is taken when the sim clock passes ``k / rate_hz`` and stamped with the
@@ -129,6 +140,9 @@ class ToFConfig(ParamModel):
     spike_seconds: Annotated[float, Field(ge=0.0, le=10.0, description="s")] = 0.25
     seed: Annotated[int, Field(ge=0, le=2 ** 63 - 1, description="(seed)")] = 0
     max_range: Annotated[float, Field(gt=0.0, le=100.0, description="m")] = 5.0  # farther surfaces are not seen
+    # the real sensor's dark zones close up (see the module doc); off: the packaged calibrations were made without
+    blinding: bool = False
+    blinding_file: str | None = None  # Blinding JSON; default sim/sensors/tmf8820_real_blinding.json
     params_file: str | None = None  # ForwardParams JSON; default sim/sensors/tmf8820_real.json
     distance_file: str | None = None  # DistanceMap JSON; default sim/sensors/tmf8820_real_distance.json
 
@@ -151,6 +165,52 @@ class RayReturns:
     geom: np.ndarray
     points: np.ndarray  # (9, R, 3) world hit points (NaN on misses)
     normals: np.ndarray  # (9, R, 3) world surface normals (NaN on misses)
+    sensor_points: np.ndarray | None = None  # (9, R, 3) hit points in the sensor frame (m; NaN on misses)
+    sensor_normals: np.ndarray | None = None  # (9, R, 3) surface normals in the sensor frame (NaN on misses)
+
+
+class Blinding(ParamModel):
+    """The real sensor's dark zones close up (module doc): emitter position (m, sensor x, y), glint angular width
+    (rad), the glint measure ``g0`` at which a zone keeps 1/e of its light, and the power of the fall."""
+
+    what: ClassVar[str] = "sensor blinding"
+    error: ClassVar[type[Exception]] = CalibrationError
+
+    emitter: vector(2, ge=-0.02, le=0.02) = Field(default_factory=lambda: [0.0, 0.002], description="m")
+    glint_width: float = Field(0.052, gt=0.0, le=1.0, description="rad")
+    g0: float = Field(126.0, gt=0.0, le=1e12, description="1/m^2")
+    power: float = Field(2.0, gt=0.0, le=10.0, description="(exponent)")
+
+    @classmethod
+    def load(cls, path: str | Path | None = None) -> "Blinding":
+        """The parameters in ``path`` (default the packaged ones); keys other than the fields (the fit's report)
+        are skipped."""
+        p = Path(path) if path is not None else sensor_file("tmf8820_real_blinding.json")
+        d = read_json(p, "sensor blinding", CalibrationError)
+        if not isinstance(d, dict):
+            raise CalibrationError(f"sensor blinding {p} must be a JSON object")
+        return cls.from_dict({k: v for k, v in d.items() if k in cls.model_fields}, f"sensor blinding {p}")
+
+
+def glint_measure(points: np.ndarray, normals: np.ndarray, weights: np.ndarray, hit: np.ndarray, emitter,
+                  width: float) -> np.ndarray:
+    """Per-zone glint measure (9,) (1/m^2): the quadrature mean over the zone's rays of
+    ``exp(-a^2 / 2 width^2) / (r + r_e)^2``, ``a`` the angle between the surface normal and the half vector of the
+    directions from the hit point to the emitter ``(ex, ey, 0)`` and to the receiver (the origin), ``r`` and ``r_e``
+    the point's distances to them. points, normals: (9, R, 3) in the sensor frame (m); weights (9, R) summing to 1
+    per zone; hit (9, R) bool (misses add nothing)."""
+    e = np.array([float(emitter[0]), float(emitter[1]), 0.0])
+    p = np.nan_to_num(np.asarray(points, dtype=float))
+    n = np.nan_to_num(np.asarray(normals, dtype=float))
+    to_e = e - p
+    r_e = np.maximum(np.linalg.norm(to_e, axis=-1), 1e-6)
+    r = np.maximum(np.linalg.norm(p, axis=-1), 1e-6)
+    half = to_e / r_e[..., None] - p / r[..., None]
+    half /= np.maximum(np.linalg.norm(half, axis=-1, keepdims=True), 1e-12)
+    cos = np.clip(np.abs(np.einsum("zrk,zrk->zr", half, n)), 0.0, 1.0)
+    a = np.arccos(cos)
+    g = np.exp(-0.5 * (a / width) ** 2) / (r + r_e) ** 2
+    return (np.asarray(weights, dtype=float) * np.where(np.asarray(hit, dtype=bool), g, 0.0)).sum(axis=-1)
 
 
 class SimToF(FrameSource):
@@ -170,6 +230,7 @@ class SimToF(FrameSource):
         self.params = params if params is not None else (
             ForwardParams.load(cfg.params_file) if cfg.params_file else true_params())
         self.distance_map = distance_map if distance_map is not None else DistanceMap.load(cfg.distance_file)
+        self.blinding = Blinding.load(cfg.blinding_file) if cfg.blinding else None
         self.rate_hz = cfg.rate_hz
         self.forward = ForwardModel(self.params, ZoneRays.stratified(cfg.rays))
         with torch.no_grad():
@@ -232,7 +293,8 @@ class SimToF(FrameSource):
         return RayReturns(np.where(hit, dist, 1.0).reshape(shape), cos.reshape(shape),
                           (rel * self.params.albedo).reshape(shape), ks.reshape(shape), alpha.reshape(shape),
                           hit.reshape(shape), gid.reshape(shape), pts.reshape(N_ZONES, -1, 3),
-                          normals.reshape(N_ZONES, -1, 3))
+                          normals.reshape(N_ZONES, -1, 3),
+                          ((pts - pos) @ R).reshape(N_ZONES, -1, 3), (normals @ R).reshape(N_ZONES, -1, 3))
 
     # -- measurement ---------------------------------------------------------------------------
     def render(self, returns: RayReturns, reference: np.ndarray) -> np.ndarray:
@@ -261,7 +323,23 @@ class SimToF(FrameSource):
                 weights=self._weights, specular_weight=torch.as_tensor(returns.specular_weight[None]),
                 specular_exponent=torch.as_tensor(returns.specular_exponent[None]),
                 hit=torch.as_tensor(returns.hit[None]), kernel=kernel)
-        return h[0].numpy() - self.params.floor
+        out = h[0].numpy() - self.params.floor
+        if self.blinding is not None and returns.sensor_points is not None:
+            out = out * self.blinding_factors(returns)[:, None]
+        return out
+
+    def blinding_factors(self, returns: RayReturns) -> np.ndarray:
+        """Per zone the share (9,) of its histogram the real sensor's dark zones close up leave (module doc; 1
+        without ``ToFConfig.blinding``). The glint scales with the material's reflectance and specular weight
+        relative to the real sweep's table."""
+        b = self.blinding
+        if b is None or returns.sensor_points is None:
+            return np.ones(N_ZONES)
+        rel = (returns.albedo / self.params.albedo) * (returns.specular_weight / max(self.params.specular_weight,
+                                                                                       1e-12))
+        w = np.asarray(self._weights, dtype=float) * np.where(returns.hit, rel, 0.0)
+        g = glint_measure(returns.sensor_points, returns.sensor_normals, w, returns.hit, b.emitter, b.glint_width)
+        return np.exp(-np.power(np.maximum(g, 0.0) / b.g0, b.power))
 
     def measure(self, model: Any = None, data: Any = None, noise: bool | None = None,
                 reference: np.ndarray | None = None) -> Frame:
@@ -411,6 +489,6 @@ def zone_rays_world(tof: SimToF, data: Any = None) -> tuple[np.ndarray, np.ndarr
     return pos, (tof._dirs @ R.T).reshape(N_ZONES, -1, 3)
 
 
-__all__ = ["SimToF", "ToFConfig", "DistanceMap", "RayReturns", "true_params", "sensor_file", "zone_rays_world",
+__all__ = ["SimToF", "ToFConfig", "DistanceMap", "RayReturns", "Blinding", "glint_measure", "true_params", "sensor_file", "zone_rays_world",
            "COUNT_MAX"]
 

@@ -16,6 +16,11 @@ model did not generate. The differences (all configurable in :class:`MismatchCon
 * **Emitter-receiver baseline**: light leaves from an emitter ``baseline`` metres from the
   receiver along sensor +x, so a return's time of flight is ``|e - p| + |p - r|``, not ``2 |p - r|``
   (matters at close range).
+* **Its own internal return and neighbour crosstalk**: each zone's cover-glass return (the true sensor's
+  ``glass_gains``, measured on the real sweep) is scaled by a factor drawn log-uniformly in
+  ``[1 / (1 + glass_spread), 1 + glass_spread]``, its delay moved by ``glass_delay_std`` bins (normal), and the
+  unit leaks ``crosstalk_grid`` (uniform in ``[0, crosstalk_grid_max]`` per neighbour displacement) into its
+  neighbours, where the true sensor has none: a calibration made on another unit does not know them.
 * **Varying ambient floor**: the ambient level drifts from frame to frame (``ambient_drift``
   relative, a slow sinusoid plus a random walk) and slopes across the histogram bins
   (``ambient_slope`` relative change from first to last bin); the model assumes a flat floor.
@@ -33,6 +38,7 @@ import numpy as np
 from pydantic import Field
 
 from place_safe.config import ConfigModel
+from place_safe.recovery.forward import ForwardModel, ZoneRays
 from place_safe.sensor.frame import N_BINS, N_ZONES, Frame
 
 from place_safe.sim.tof import RayReturns, SimToF, ToFConfig
@@ -61,6 +67,11 @@ class MismatchConfig(ConfigModel):
     baseline: float = Field(0.006, ge=0, le=0.05, description="emitter offset from the receiver along +x (m)")
     ambient_drift: float = Field(0.25, ge=0, le=1, description="relative frame-to-frame ambient variation")
     ambient_slope: float = Field(0.15, ge=-0.9, le=0.9, description="relative ambient change from first to last bin")
+    glass_spread: float = Field(0.5, ge=0, le=10, description="per-zone internal-return gain factor range "
+                                "[1/(1+s), 1+s] (log-uniform)")
+    glass_delay_std: float = Field(0.5, ge=0, le=4, description="std of the internal return's delay shift (bins)")
+    crosstalk_grid_max: float = Field(4e-5, ge=0, le=0.01, description="largest neighbour crosstalk per "
+                                      "displacement (fraction)")
 
 
 class MismatchedToF(SimToF):
@@ -79,6 +90,16 @@ class MismatchedToF(SimToF):
         self._amb_base = self.ambient.copy()
         self._amb_walk = np.zeros(N_ZONES)
         self._time = 0.0
+        # the unit's own internal return and neighbour crosstalk (drawn after the older differences, so a seed's
+        # pulse tails, skews and ambient phases are what they were)
+        spread = math.log1p(mc.glass_spread)
+        glass = np.asarray(self.params.glass_gains) * np.exp(rng.uniform(-spread, spread, N_ZONES))
+        delay = float(np.clip(self.params.glass_delay + rng.normal(0.0, mc.glass_delay_std), -8.0, 16.0))
+        grid = rng.uniform(0.0, mc.crosstalk_grid_max, len(self.params.crosstalk_grid))
+        self.params = self.params.model_copy(update={"glass_gains": [float(g) for g in glass], "glass_delay": delay,
+                                                     "crosstalk_grid": [float(g) for g in grid]})
+        self.forward = ForwardModel(self.params, ZoneRays.stratified(self.config.rays))
+        self._kernel = None
 
     # -- what differs --------------------------------------------------------------------------
     def temperature(self, t: float) -> float:
