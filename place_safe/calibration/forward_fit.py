@@ -897,10 +897,11 @@ def fit_range_correction(frames: Sequence[Frame], forward: ForwardParams, peak=N
             slope = table[:, 4] if col == 2 else table[:, 5]
             true_slope = slope + err
             # what the frames can say about a gain (identifiability): the std of a constant gain beside a
-            # constant offset, least squares with the errors' own scatter; over a level sweep the slopes are
-            # the estimates' noise and it is large (a level sweep does not determine how a tilt is scaled)
-            spread = float(np.sqrt(np.sum((slope - slope.mean()) ** 2)))
-            report[f"{gain}_std"] = float(np.std(err, ddof=min(2, n - 1)) / spread) if spread > 0 else None
+            # constant offset (the Fisher information of the true slopes' spread) with the errors' own
+            # scatter. Over a level sweep the true slopes do not differ and there is none (None): a level sweep
+            # does not determine how a tilt is scaled
+            spread = float(np.sqrt(np.sum((true_slope - true_slope.mean()) ** 2)))
+            report[f"{gain}_std"] = float(np.std(err, ddof=min(2, n - 1)) / spread) if spread > 1e-9 else None
             if np.ptp(np.arctan(true_slope)) >= MIN_TILT_SPREAD:
                 candidates.append(((name, gain), slope))
             else:
