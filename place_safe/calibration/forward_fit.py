@@ -35,7 +35,7 @@ from place_safe.sensor.histogram import COUNT_MAX, measure_floor, reference_floo
 from place_safe.calibration.points import MIN_TILT_SPREAD
 from place_safe.evaluation.metrics import point_error
 from place_safe.geometry import Plane
-from place_safe.recovery.differentiable import DifferentiableEstimator, RangeCorrection, SolverOptions
+from place_safe.recovery.differentiable import DifferentiableEstimator, RangeCorrection, SolverOptions, range_argument
 
 #: Camera parameters fitted by default, with how they are parametrised ("log": positive). The
 #: specular lobe is left at its published value: it is a property of the surface, fitted per frame
@@ -734,15 +734,12 @@ def select_model_error(frames: Sequence[Frame], forward: ForwardParams, peak=Non
     the fast differentiable estimator on the frames with ground truth, and scored by the worse of two errors,
     each in units of its smallest value over the grid: the mean angular error, and the mean offset error left
     after the plane correction that calibration fits next (:func:`fit_range_correction`: a Chebyshev series in
-    the estimated ``z0``, here cross-validated leave-one-out). The raw point error is not the score: a bias in
+    the estimated ``z0`` or ``1 / z0``, here cross-validated leave-one-out). The raw point error is not the score: a bias in
     ``z0`` that the correction removes would decide it. (It chose 0.02 on the level sweeps of the independent
     generator and two mismatched units, where the angle and the corrected offset both say 0.01; on those units'
     tilted frames diff's mean angular error went 0.32 -> 0.27, 0.15 -> 0.12 and 0.27 -> 0.22 deg.) The lowest
     score wins, fewest frames without a plane first; the report gives every value's errors.
     """
-
-    from numpy.polynomial import chebyshev
-
     skipped: dict[str, int] = {}
     data = _usable(frames, min_distance, max_distance, skipped)
     if not data:
@@ -759,7 +756,7 @@ def select_model_error(frames: Sequence[Frame], forward: ForwardParams, peak=Non
         ang = [math.acos(min(1.0, abs(float(np.dot(p.normal, t.normal))))) for p, t in rows]
         angles[float(e)] = float(np.mean(ang)) if ang else math.inf
         corrected[float(e)] = _corrected_offset_error(np.array([p.z0 for p, _ in rows]),
-                                                      np.array([t.z0 for _, t in rows]), chebyshev)
+                                                      np.array([t.z0 for _, t in rows]))
     finite = [e for e in scores if math.isfinite(scores[e])]
     report = {"frames": len(data), "frames_skipped": skipped,
               "mean_point_error_mm": {str(k): (v * 1e3 if math.isfinite(v) else None) for k, v in scores.items()},
@@ -787,17 +784,16 @@ def select_model_error(frames: Sequence[Frame], forward: ForwardParams, peak=Non
     return best, report
 
 
-def _corrected_offset_error(z_est: np.ndarray, z_true: np.ndarray, chebyshev) -> float:
-    """Mean absolute ``z0`` error (m) left after a Chebyshev series in the estimated ``z0`` (degree as
-    :func:`fit_range_correction` takes it), leave-one-out; fewer than 8 frames: the mean absolute error as is."""
+def _corrected_offset_error(z_est: np.ndarray, z_true: np.ndarray) -> float:
+    """Mean absolute ``z0`` error (m) left after the best series in the estimated ``z0`` that
+    :func:`fit_range_correction` would choose (:func:`_best_series`), leave-one-out; fewer than 8 frames: the mean
+    absolute error as is."""
     ok = np.isfinite(z_est) & np.isfinite(z_true)
     z_est, err = z_est[ok], z_true[ok] - z_est[ok]
     if len(err) < 8:
         return float(np.mean(np.abs(err))) if len(err) else math.inf
-    deg = int(min(3, max(0, len(err) // 8 - 1)))
-    lo, hi = float(z_est.min()), float(z_est.max())
-    t = 2.0 * (z_est - lo) / max(hi - lo, 1e-9) - 1.0
-    return _leave_one_out(chebyshev.chebvander(t, deg), err)
+    domain = [float(z_est.min()), max(float(z_est.max()), float(z_est.min()) + 1e-9)]
+    return min(float(np.mean(np.abs(err))), _best_series(z_est, err, domain, _series_degree(len(err)))[0])
 
 
 def _leave_one_out(design: np.ndarray, y: np.ndarray) -> float:
@@ -811,21 +807,57 @@ def _leave_one_out(design: np.ndarray, y: np.ndarray) -> float:
     return float(np.mean(errs))
 
 
-def fit_range_correction(frames: Sequence[Frame], forward: ForwardParams, peak=None, degree: int = 3,
-                         min_distance: float = 0.04, max_distance: float = 1.0,
+#: the highest degree of a correction series, and frames per coefficient it needs at least
+MAX_SERIES_DEGREE = 4
+FRAMES_PER_DEGREE = 5
+
+
+def _series_degree(n_frames: int, degree: int = MAX_SERIES_DEGREE) -> int:
+    """The highest degree tried for a correction series over ``n_frames`` frames (e.g. 4 over 24 real frames)."""
+    return int(min(degree, max(0, n_frames // FRAMES_PER_DEGREE)))
+
+
+def _series_design(z: np.ndarray, domain, degree: int, inverse: bool) -> np.ndarray:
+    """Chebyshev design matrix (frames, degree + 1) in z0 or its inverse (:func:`range_argument`)."""
+    from numpy.polynomial import chebyshev
+
+    return chebyshev.chebvander(range_argument(z, domain, inverse), degree)
+
+
+def _best_series(z: np.ndarray, err: np.ndarray, domain, max_degree: int,
+                 extra: np.ndarray | None = None) -> tuple[float, bool, int]:
+    """The series (in ``z0`` or ``1 / z0``, degree 0..``max_degree``) with the lowest leave-one-out mean absolute
+    error for ``err``; ``extra`` (a column per frame, e.g. the estimated slope) multiplies a second series of the
+    same kind (a gain). Returns (error, inverse, degree)."""
+    best = (math.inf, False, 0)
+    for inverse in (False, True):
+        for deg in range(max_degree + 1):
+            design = _series_design(z, domain, deg, inverse)
+            if extra is not None:
+                design = np.hstack([design, design * extra[:, None]])
+            if design.shape[1] >= len(err):
+                continue
+            loo = _leave_one_out(design, err)
+            if loo < best[0]:
+                best = (loo, inverse, deg)
+    return best
+
+
+def fit_range_correction(frames: Sequence[Frame], forward: ForwardParams, peak=None,
+                         degree: int = MAX_SERIES_DEGREE, min_distance: float = 0.04, max_distance: float = 1.0,
                          progress: bool = True) -> tuple[dict, dict]:
     """Fit the diff estimator's plane correction; returns (``diff`` section, report).
 
     Runs the fast differentiable estimator with ``forward`` on the frames with ground truth and fits
-    Chebyshev series of degree ``degree`` (fewer with few frames) against the estimated ``z0`` to
-    what it leaves over: ``z0_true - z0_est`` and, in the optical frame, the slope errors
-    ``a_true - a_est`` and ``b_true - b_est``, for the slopes also with a gain (a series times the
-    estimated slope, so a tilt read a fixed fraction too large is corrected; tilted calibration frames
-    identify it, a level sweep does not). Each series is kept only if leave-one-out cross-validation says
-    it lowers the mean absolute error by at least 10 % (the gain: 10 % below the offset alone).
+    Chebyshev series against the estimated ``z0`` to what it leaves over: ``z0_true - z0_est`` and, in the
+    optical frame, the slope errors ``a_true - a_est`` and ``b_true - b_est``, for the slopes also with a gain
+    (a series times the estimated slope, so a tilt read a fixed fraction too large is corrected; tilted
+    calibration frames identify it, a level sweep does not). Each series is chosen by leave-one-out
+    cross-validation among degrees 0..``degree`` (at most one per :data:`FRAMES_PER_DEGREE` frames) in ``z0``
+    or in ``1 / z0`` (:func:`_best_series`), and kept only if it lowers the mean absolute error by at least 10 %
+    (the gain: 10 % below the offset alone). On the real sweep's halves the slopes' series in ``1 / z0``
+    follow diff's tilt error of 2-3 deg at 5 cm that a cubic in ``z0`` missed (docs/results.md).
     """
-    from numpy.polynomial import chebyshev
-
     skipped: dict[str, int] = {}
     data = _usable(frames, min_distance, max_distance, skipped)
     est = DifferentiableEstimator(forward, peak)
@@ -846,12 +878,12 @@ def fit_range_correction(frames: Sequence[Frame], forward: ForwardParams, peak=N
                 {"frames": len(rows), "frames_skipped": skipped, "kept": [], "why": "fewer than 8 recovered frames"})
     table = np.array(rows)
     z = table[:, 0]
-    deg = int(min(degree, max(0, len(z) // 8 - 1)))
+    max_deg = _series_degree(len(z), degree)
     lo, hi = float(z.min()), float(z.max())
-    t = 2.0 * (z - lo) / max(hi - lo, 1e-9) - 1.0
+    domain = [lo, max(hi, lo + 1e-6)]
     n = len(z)
-    series, report = {}, {"frames": n, "frames_skipped": skipped, "degree": deg, "kept": []}
-    basis = chebyshev.chebvander(t, deg)  # (n, deg + 1)
+    series, inverse = {}, []
+    report = {"frames": n, "frames_skipped": skipped, "max_degree": max_deg, "kept": []}
     for col, name, gain, unit in ((1, "coeffs", None, 1e3), (2, "slope_a", "gain_a", 1.0),
                                   (3, "slope_b", "gain_b", 1.0)):
         err = table[:, col]
@@ -860,33 +892,47 @@ def fit_range_correction(frames: Sequence[Frame], forward: ForwardParams, peak=N
         # an offset in z0, then for the slopes also a gain (the error proportional to the slope itself). The
         # gain needs true slopes that differ between frames: over a level sweep the error is minus the
         # estimated slope itself, and a gain of -1 would "correct" every plane to the sweep's slope
-        candidates = [((name,), basis)]
+        candidates = [((name,), None)]
         if gain is not None:
             slope = table[:, 4] if col == 2 else table[:, 5]
             true_slope = slope + err
+            # what the frames can say about a gain (identifiability): the std of a constant gain beside a
+            # constant offset (the Fisher information of the true slopes' spread) with the errors' own
+            # scatter. Over a level sweep the true slopes do not differ and there is none (None): a level sweep
+            # does not determine how a tilt is scaled
+            spread = float(np.sqrt(np.sum((true_slope - true_slope.mean()) ** 2)))
+            report[f"{gain}_std"] = float(np.std(err, ddof=min(2, n - 1)) / spread) if spread > 1e-9 else None
             if np.ptp(np.arctan(true_slope)) >= MIN_TILT_SPREAD:
-                candidates.append(((name, gain), np.hstack([basis, basis * slope[:, None]])))
+                candidates.append(((name, gain), slope))
             else:
                 report[f"{gain}_why_not"] = "true slopes differ by less than the tilt spread a gain needs"
-        for names, design in candidates:
-            after = _leave_one_out(design, err)
-            report[f"{'+'.join(names)}_mean_abs_leave_one_out"] = after * unit
+        for names, extra in candidates:
+            after, inv, deg = _best_series(z, err, domain, max_deg, extra)
+            key = "+".join(names)
+            report[f"{key}_mean_abs_leave_one_out"] = after * unit
+            report[f"{key}_series"] = {"variable": "1/z0" if inv else "z0", "degree": deg}
             if after < 0.9 * best:  # kept only for a clear (10 %) out-of-sample gain over the simpler model
+                design = _series_design(z, domain, deg, inv)
+                if extra is not None:
+                    design = np.hstack([design, design * extra[:, None]])
                 coef = np.linalg.lstsq(design, err, rcond=None)[0]
-                parts = {key: [float(c) for c in coef[i * (deg + 1):(i + 1) * (deg + 1)]]
-                         for i, key in enumerate(names)}
+                parts = {k: [float(c) for c in coef[i * (deg + 1):(i + 1) * (deg + 1)]]
+                         for i, k in enumerate(names)}
                 bad = [k for k, v in parts.items()
                        if not all(field_interval(RangeCorrection, k)[0] <= c <= field_interval(RangeCorrection, k)[1]
                                   for c in v)]
                 if bad:  # outside its physical range: not a correction
-                    report[f"{'+'.join(names)}_rejected"] = f"{bad[0]} outside its physical range"
+                    report[f"{key}_rejected"] = f"{bad[0]} outside its physical range"
                     continue
                 best = after
                 series.update(parts)
+                inverse = [k for k in inverse if k not in names] + (list(names) if inv else [])
     report["kept"] = sorted(series)
+    report["inverse"] = sorted(inverse)
     try:
-        corr = RangeCorrection(series.get("coeffs", []), [lo, hi], series.get("slope_a", []),
-                               series.get("slope_b", []), series.get("gain_a", []), series.get("gain_b", []))
+        corr = RangeCorrection(series.get("coeffs", []), domain, series.get("slope_a", []),
+                               series.get("slope_b", []), series.get("gain_a", []), series.get("gain_b", []),
+                               sorted(k for k in inverse if k in series))
     except CalibrationError as exc:  # a "correction" outside its physical range is not one: keep none
         corr = RangeCorrection()
         report.update(kept=[], why=f"fitted correction rejected: {exc}")

@@ -153,6 +153,10 @@ PEAK_TILT_REL = 0.05
 DIFF_TILT_REL = 0.015
 DIFF_TILT_OFFSET_REL = 0.0015
 DIFF_TILT_PIVOT = 0.0
+#: the share of calibration frames tilted MIN_TILT_SPREAD or more (from the least tilted) from which the fitted floor
+#: holds diff's tilt error without the stated term: a level sweep of 150 frames with 30 tilted ones (17 %) held
+#: out NEES per dof 2.65 on the independent generator's tilted frames without it (10 tilted: 6.7)
+DIFF_TILTED_SHARE = 0.5
 
 #: Folds of the cross-validation that chooses diff's fallback limits (:func:`select_fallback`).
 CV_FOLDS = 3
@@ -454,10 +458,13 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
         ratio = (mine / theirs) ** 2 if mine is not None and theirs else math.nan
         return test.consistent(e, peak[i]), ratio
 
-    # the stated tilt term where the frames cannot show diff's tilt error (a level sweep); frames whose tilts spread
-    # MIN_TILT_SPREAD or more show it, and the floor and scale fitted on them hold it
-    tilts = [math.acos(min(1.0, abs(float(t.normal[2])))) for t in truths]
-    level = not tilts or float(np.ptp(tilts)) < MIN_TILT_SPREAD
+    # the stated tilt term where the frames cannot show diff's tilt error (a level sweep, or one with a few tilted
+    # frames: the floor, fitted on all, would follow the level ones); frames whose tilts spread MIN_TILT_SPREAD or
+    # more, at least DIFF_TILTED_SHARE of them tilted that far from the least, show it, and the floor and scale
+    # fitted on them hold it
+    tilts = np.array([math.acos(min(1.0, abs(float(t.normal[2])))) for t in truths])
+    level = tilts.size == 0 or float(np.ptp(tilts)) < MIN_TILT_SPREAD \
+        or float(np.mean(tilts - tilts.min() >= MIN_TILT_SPREAD)) < DIFF_TILTED_SHARE
     tilt_term = (Uncertainty(tilt_rel=DIFF_TILT_REL, tilt_offset_rel=DIFF_TILT_OFFSET_REL, tilt_pivot=DIFF_TILT_PIVOT)
                  if level else Uncertainty())
 
@@ -489,7 +496,8 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
         return float(np.mean(a[np.isfinite(a)])) * scale if np.any(np.isfinite(a)) else math.nan
 
     rep.update({"chi2_limit": None if math.isinf(limit) else limit, "prefer_ratio": prefer, "folds": folds,
-                "tilt_term": ("stated: the frames' tilts spread less than MIN_TILT_SPREAD" if level else
+                "tilt_term": ("stated: the frames' tilts spread less than MIN_TILT_SPREAD, or too few frames are tilted "
+                              "(DIFF_TILTED_SHARE)" if level else
                               "none: the frames' tilts spread MIN_TILT_SPREAD or more, the floor holds the tilt error"),
                 "held_out": "frames_using_diff, angular_deg and point_mm: each frame with the floor of the other folds",
                 "frames_using_diff": int(np.sum(use_diff)), "frames_using_peak": int(np.sum(~use_diff)),
@@ -519,4 +527,4 @@ def update_calibration(cal, frames: Sequence[Frame], method: str) -> dict:
 
 __all__ = ["update_calibration", "nees", "fit_floor", "fit_peak_uncertainty", "fit_diff_uncertainty", "select_fallback",
            "chi2_candidates", "near_std_law", "fit_near_law", "NEAR_REFERENCE_DEPTH", "CONSISTENCY_LIMIT", "PEAK_TILT_REL",
-           "DIFF_TILT_REL", "DIFF_TILT_OFFSET_REL", "DIFF_TILT_PIVOT", "CV_FOLDS", "PREFER_RATIOS"]
+           "DIFF_TILT_REL", "DIFF_TILT_OFFSET_REL", "DIFF_TILT_PIVOT", "DIFF_TILTED_SHARE", "CV_FOLDS", "PREFER_RATIOS"]

@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import ClassVar, Literal
 
 import numpy as np
 import torch
@@ -64,8 +64,10 @@ class RangeCorrection(ParamModel):
     ``z0 += c(z0)`` and, in the optical frame, the slopes ``a += ca(z0) + ga(z0) a``,
     ``b += cb(z0) + gb(z0) b`` (plane ``a x + b y + z = z0``; ``ga``, ``gb``: a tilt read a fraction too
     large or too small, e.g. 1 % along y on the independent generator's frames). Each is a Chebyshev
-    series (coefficients in metres, or dimensionless for the slopes and gains) on ``domain`` (m); outside
-    the domain the value at its nearer end is used. Fitted by
+    series (coefficients in metres, or dimensionless for the slopes and gains) on ``domain`` (m) in the range
+    ``z0`` or, for the series named in ``inverse``, in the inverse range ``1 / z0`` (:func:`range_argument`:
+    an error that grows as the plane comes closer, e.g. a zone's depth disagreement of fixed size seen as a
+    slope, is a low-degree series there); outside the domain the value at its nearer end is used. Fitted by
     :func:`place_safe.calibration.forward_fit.fit_range_correction` to what the forward model leaves
     over on data with ground truth; empty coefficients mean no correction.
 
@@ -82,30 +84,52 @@ class RangeCorrection(ParamModel):
     slope_b: vector(ge=-0.5, le=0.5) = Field(default_factory=list, description="(slope)")
     gain_a: vector(ge=-0.2, le=0.2) = Field(default_factory=list, description="(of the slope)")
     gain_b: vector(ge=-0.2, le=0.2) = Field(default_factory=list, description="(of the slope)")
+    inverse: list[Literal["coeffs", "slope_a", "slope_b", "gain_a", "gain_b"]] = Field(
+        default_factory=list, description="series in the inverse range 1 / z0 (the others: in z0)")
 
     @model_validator(mode="after")
     def _ordered_domain(self) -> "RangeCorrection":
         if not self.domain[1] > self.domain[0]:
             raise ValueError(f"domain must be [lo, hi] with hi > lo, got {list(self.domain)}")
+        if self.inverse and not self.domain[0] >= MIN_INVERSE_DOMAIN:
+            raise ValueError(f"a series in 1 / z0 needs a domain from at least {MIN_INVERSE_DOMAIN} m, "
+                             f"got {list(self.domain)}")
         return self
 
-    def _series(self, coeffs: list[float], z0: float) -> float:
+    def _series(self, name: str, z0: float) -> float:
+        coeffs = getattr(self, name)
         if not coeffs:
             return 0.0
         from numpy.polynomial import chebyshev
 
-        lo, hi = self.domain
-        t = 2.0 * (min(max(z0, lo), hi) - lo) / max(hi - lo, 1e-9) - 1.0
-        return float(chebyshev.chebval(t, coeffs))
+        return float(chebyshev.chebval(range_argument(z0, self.domain, name in self.inverse), coeffs))
 
     def __call__(self, z0: float) -> float:
         """The correction of z0 (m) at z0."""
-        return self._series(self.coeffs, z0)
+        return self._series("coeffs", z0)
 
     def slopes(self, z0: float, a: float = 0.0, b: float = 0.0) -> tuple[float, float]:
         """The corrections of the slopes (a, b) of a plane at z0."""
-        return (self._series(self.slope_a, z0) + self._series(self.gain_a, z0) * a,
-                self._series(self.slope_b, z0) + self._series(self.gain_b, z0) * b)
+        return (self._series("slope_a", z0) + self._series("gain_a", z0) * a,
+                self._series("slope_b", z0) + self._series("gain_b", z0) * b)
+
+
+#: m: the nearest domain end a series in inverse range may have (1 / z0 stays below 1000 per metre)
+MIN_INVERSE_DOMAIN = 1e-3
+
+
+def range_argument(z0, domain, inverse: bool = False):
+    """The Chebyshev argument in [-1, 1] of a plane at ``z0`` (m; a float or an array) on ``domain`` = [lo, hi]:
+    ``z0`` mapped linearly (lo -> -1, hi -> 1) or, ``inverse``, ``1 / z0`` mapped linearly (hi -> -1, lo -> 1).
+    ``z0`` outside the domain is taken at its nearer end."""
+    lo, hi = float(domain[0]), float(domain[1])
+    z = np.clip(np.asarray(z0, dtype=float), lo, hi)
+    if inverse:
+        lo = max(lo, MIN_INVERSE_DOMAIN)
+        t = 2.0 * (1.0 / np.maximum(z, lo) - 1.0 / hi) / max(1.0 / lo - 1.0 / hi, 1e-9) - 1.0
+    else:
+        t = 2.0 * (z - lo) / max(hi - lo, 1e-9) - 1.0
+    return float(t) if t.ndim == 0 else t
 
 
 

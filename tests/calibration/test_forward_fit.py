@@ -199,3 +199,21 @@ def test_pulse_terms_come_back_from_frames_made_with_them():
     np.testing.assert_allclose(got.zone_pulse_widths, widths, atol=0.02)
     np.testing.assert_allclose(got.zone_pulse_skews, 0.05, atol=0.02)
     assert report["rms_scaled_residual_after"] < 0.1 * report["rms_scaled_residual_before"]
+
+
+def test_correction_series_chosen_by_cross_validation_in_range_or_inverse_range():
+    """An error that grows as 1 / z0 (a zone's depth disagreement of fixed size seen as a slope) is taken as a
+    low-degree series in 1 / z0; one linear in z0 as a line in z0; pure noise as degree 0 at most."""
+    from place_safe.calibration.forward_fit import _best_series, _series_degree
+
+    rng = np.random.default_rng(3)
+    z = np.sort(rng.uniform(0.05, 0.40, 24))
+    domain = [float(z.min()), float(z.max())]
+    noise = 1e-4 * rng.standard_normal(z.size)
+    assert _series_degree(24) == 4 and _series_degree(8) == 1 and _series_degree(150) == 4
+    _, inverse, deg = _best_series(z, 3e-4 / z + noise, domain, 4)
+    assert inverse and deg == 1
+    _, inverse, deg = _best_series(z, 0.01 * z + noise, domain, 4)
+    assert not inverse and deg == 1
+    loo, _, deg = _best_series(z, noise, domain, 4)
+    assert deg <= 1 and loo < 2e-4

@@ -250,3 +250,27 @@ def test_a_calibrated_diff_returns_peak_closer_than_the_near_fallback_range():
         e = calibrated.estimate(f)
         assert e.ok and e.plane.offset < NEAR_FALLBACK_RANGE and e.method_used == "peak"
     assert all(calibrated.estimate(f).method_used == "diff" for f in far)
+
+
+def test_range_correction_series_in_inverse_range():
+    """A series named in ``inverse`` is a Chebyshev series in 1 / z0 over the domain (hi -> -1, lo -> +1);
+    the others stay in z0; files without ``inverse`` read as before; a name that is no series, or an inverse
+    series on a domain reaching 0, is refused."""
+    from place_safe.exceptions import CalibrationError
+    from place_safe.recovery.differentiable import RangeCorrection, range_argument
+
+    lo, hi = 0.05, 0.40
+    c = RangeCorrection(coeffs=[0.0, 0.001], domain=[lo, hi], slope_b=[0.0, 0.01], inverse=["slope_b"])
+    for z in (0.05, 0.1, 0.2, 0.4):
+        u = 2.0 * (1.0 / z - 1.0 / hi) / (1.0 / lo - 1.0 / hi) - 1.0
+        assert c.slopes(z)[1] == pytest.approx(0.01 * u)
+        assert c(z) == pytest.approx(0.001 * (2.0 * (z - lo) / (hi - lo) - 1.0))
+        assert range_argument(z, [lo, hi], True) == pytest.approx(u)
+    assert c.slopes(0.01) == c.slopes(lo) and c.slopes(1.0) == c.slopes(hi)  # outside: the nearer end
+    assert np.allclose(range_argument(np.array([0.05, 0.4]), [lo, hi], True), [1.0, -1.0])
+    assert RangeCorrection.from_dict(c.to_dict()) == c
+    assert RangeCorrection.from_dict({"coeffs": [0.001], "domain": [0.0, 1.0]}).inverse == []
+    with pytest.raises(CalibrationError):
+        RangeCorrection.from_dict({**c.to_dict(), "inverse": ["albedo"]})
+    with pytest.raises(CalibrationError):
+        RangeCorrection(domain=[0.0, 1.0], slope_a=[0.001], inverse=["slope_a"])
