@@ -234,7 +234,7 @@ def test_near_std_between_its_depths_held_before_and_none_from_the_last_on():
                 {"near_depths": [0.01, 10 ** 400], "near_range_std": [0.001, 0.0]},
                 {"tilt_std": 10 ** 400}):
         cal = Calibration.from_dict({"format": "place_safe.calibration/1", "uncertainty": {"peak": bad}})
-        with pytest.raises(CalibrationError, match="uncertainty section") as info:
+        with pytest.raises(CalibrationError, match="section .uncertainty.: uncertainty.peak") as info:
             cal.uncertainty("peak")
         assert "\n" not in str(info.value)
 
