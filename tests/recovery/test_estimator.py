@@ -223,7 +223,13 @@ def test_near_std_between_its_depths_held_before_and_none_from_the_last_on():
     np.testing.assert_allclose(u.apply(cov, 0.02), cov + u.floor(0.02))  # the term acts in the fit, not here
     assert Uncertainty.from_dict(json.loads(json.dumps(u.to_dict()))) == u
     assert "near_depths" not in Uncertainty().to_dict()  # files older versions read
+    assert "near_common_std" not in u.to_dict() and not u.near_common(np.full(9, 0.02)).any()
+    shared = u.replace(near_common_std=[1e-3, 4e-4, 0.0])
+    np.testing.assert_allclose(shared.near_common(np.array([0.005, 0.02, 0.09])), [1e-3, 7e-4, 0.0])
+    assert Uncertainty.from_dict(json.loads(json.dumps(shared.to_dict()))) == shared
     for bad in ({"near_depths": [0.01], "near_range_std": [0.001]},
+                {"near_depths": [0.01, 0.03], "near_range_std": [0.001, 0.0], "near_common_std": [0.001]},
+                {"near_depths": [0.01, 0.03], "near_range_std": [0.001, 0.0], "near_common_std": [0.001, -1.0]},
                 {"near_depths": [0.03, 0.01], "near_range_std": [0.001, 0.0]},
                 {"near_depths": [0.01, 0.03], "near_range_std": [0.001]},
                 {"near_depths": [0.01, 0.03], "near_range_std": [-0.001, 0.0]},
