@@ -272,8 +272,9 @@ def fit_near_law(rows: Sequence[tuple], unc: Uncertainty, peak_params, end: floa
     The variance is split further: the part ``shared_by_zones`` of it is one range error common to all zones of a
     frame (``Uncertainty.near_common_std``: mostly the offset), the rest independent from zone to zone
     (``near_range_std``: the tilt). On the real sweep the table's errors at 5-9 cm are mostly common (held out,
-    offsets 3-4 sigma off under independent zones, while the tilt was over-stated 2-5x to make up for them); the
-    fit puts half the variance there. The simulated units have none (0.00-0.06).
+    offsets up to 3.4 sigma off under independent zones, while the tilts had NEES 0.0-0.5: the zones' errors were
+    over-stated to make up for the offset); the fit puts half the variance there. The simulated units have none
+    (0.00-0.06).
 
     The report's ``held_out_rows``: each row's median zone depth (mm) and NEES per dof under the law."""
     from scipy.optimize import minimize, minimize_scalar

@@ -84,8 +84,8 @@ class Uncertainty(ParamModel):
 
     File form (:meth:`to_dict`, as files have always had it): an infinite ``chi2_limit``, ``consistency_limit`` or
     ``prefer_ratio`` is ``null``; the near-range fields are left out when empty, and ``tilt_rel``, ``prefer_ratio``,
-    ``tilt_pivot`` and ``tilt_offset_rel`` at their defaults (older files), ``near_common_std`` when empty. Problems are one
-    :class:`~place_safe.exceptions.CalibrationError` line naming the field.
+    ``tilt_pivot`` and ``tilt_offset_rel`` at their defaults (older files), ``near_common_std`` when empty.
+    Problems are one :class:`~place_safe.exceptions.CalibrationError` line naming the field.
     """
 
     tilt_std: float = Field(0.0, ge=0.0, description="rad")
