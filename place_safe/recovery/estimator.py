@@ -65,7 +65,10 @@ class Uncertainty(ParamModel):
     zones' range errors where the sensor is close (:meth:`near_std`; empty: none), cross-validated at
     calibration (:func:`place_safe.calibration.near_range.near_range_std`); the peak method fits its plane's
     covariance with each zone's error at least that large
-    (:func:`~place_safe.recovery.points.plane_covariance`).
+    (:func:`~place_safe.recovery.points.plane_covariance`). ``near_common_std`` (m, empty or one per depth, 0 ..
+    :data:`NEAR_MAX_STD`): a range error that all zones of a frame share besides (one error along every zone's ray
+    at once: it moves the plane's offset more than its tilt; :meth:`near_common`); empty: the zones err
+    independently.
 
     ``tilt_rel`` (dimensionless, 0 .. 1): what a tilted plane adds that a level sweep cannot show, each tilt
     component's standard deviation per unit ``tan(tilt)`` of the estimated plane, added (outside ``scale``)
@@ -81,8 +84,8 @@ class Uncertainty(ParamModel):
 
     File form (:meth:`to_dict`, as files have always had it): an infinite ``chi2_limit``, ``consistency_limit`` or
     ``prefer_ratio`` is ``null``; the near-range fields are left out when empty, and ``tilt_rel``, ``prefer_ratio``,
-    ``tilt_pivot`` and ``tilt_offset_rel`` at their defaults (older files). Problems are one
-    :class:`~place_safe.exceptions.CalibrationError` line naming the field.
+    ``tilt_pivot`` and ``tilt_offset_rel`` at their defaults (older files), ``near_common_std`` when empty.
+    Problems are one :class:`~place_safe.exceptions.CalibrationError` line naming the field.
     """
 
     tilt_std: float = Field(0.0, ge=0.0, description="rad")
@@ -101,6 +104,7 @@ class Uncertainty(ParamModel):
                                 description="(dimensionless)")
     tilt_pivot: float = Field(1.0, ge=0.0, le=2.0, description="(of z0)")
     tilt_offset_rel: float = Field(0.0, ge=0.0, le=1.0, description="(dimensionless)")
+    near_common_std: vector(ge=0.0, le=NEAR_MAX_STD) = Field(default_factory=list, description="m")
 
     what: ClassVar[str] = "uncertainty"
     error: ClassVar[type[Exception]] = CalibrationError
@@ -113,6 +117,9 @@ class Uncertainty(ParamModel):
                              f"of the other (got {k} and {len(self.near_range_std)})")
         if not all(b > a for a, b in zip(self.near_depths, self.near_depths[1:])):
             raise ValueError("near_depths must increase")
+        if self.near_common_std and len(self.near_common_std) != k:
+            raise ValueError(f"near_common_std needs none or one value per near_depths value (got "
+                             f"{len(self.near_common_std)} for {k})")
         return self
 
     def consistent(self, est: "PlaneEstimate", other: "PlaneEstimate") -> bool:
@@ -173,12 +180,22 @@ class Uncertainty(ParamModel):
         """The zones' range error (m, a standard deviation) at ``depth`` (m, along the optical axis; any shape):
         ``near_range_std``, linear between ``near_depths``, the first value before the first, 0 from the last on,
         everywhere without them, and where the depth is not a number."""
+        return self._near_table(depth, self.near_range_std)
+
+    def near_common(self, depth: np.ndarray) -> np.ndarray:
+        """The zones' shared range error (m, a standard deviation) at ``depth`` (m, any shape): ``near_common_std``
+        read as :meth:`near_std` reads ``near_range_std``; 0 without it."""
+        return self._near_table(depth, self.near_common_std)
+
+    def _near_table(self, depth: np.ndarray, values: list[float]) -> np.ndarray:
+        """``values`` (one per ``near_depths``) at ``depth``: linear between the depths, the first value before
+        the first, 0 from the last on, everywhere without values, and where the depth is not a number."""
         depth = np.asarray(depth, dtype=float)
-        if not self.near_depths:
+        if not self.near_depths or not values:
             return np.zeros_like(depth)
         with np.errstate(invalid="ignore"):
             near = depth < self.near_depths[-1]
-        return np.where(near, np.interp(np.where(near, depth, 0.0), self.near_depths, self.near_range_std), 0.0)
+        return np.where(near, np.interp(np.where(near, depth, 0.0), self.near_depths, values), 0.0)
 
     #: fields written as JSON null when infinite
     _INF_AS_NULL: ClassVar[tuple[str, ...]] = ("chi2_limit", "consistency_limit", "prefer_ratio")
@@ -194,6 +211,8 @@ class Uncertainty(ParamModel):
             d[key] = None if math.isinf(self.__dict__[key]) else float(self.__dict__[key])
         if not self.near_depths:
             del d["near_depths"], d["near_range_std"]
+        if not self.near_common_std:
+            del d["near_common_std"]
         for key, default in self._OMITTED_AT:
             if d[key] == default:
                 del d[key]

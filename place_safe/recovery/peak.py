@@ -123,11 +123,11 @@ class PeakEstimator(Estimator):
         (9, 3) in ``valid`` (9,): the fit's, where any zone used is closer than the near-range errors' end with
         each zone's error the calibrated near-range one in place of the fit's residual (module doc), plus the
         floor and the tilt term."""
-        near = 0.0
+        near = common = 0.0
         unc = self.uncertainty
         if unc.near_depths and points[valid, 2].min() < unc.near_depths[-1]:
-            near = unc.near_std(points[:, 2])
-        cov = plane_covariance(points, valid, plane, near, replace_fit=True)
+            near, common = unc.near_std(points[:, 2]), unc.near_common(points[:, 2])
+        cov = plane_covariance(points, valid, plane, near, replace_fit=True, common_std=common)
         return unc.apply(cov, plane.offset, plane.normal)
 
 

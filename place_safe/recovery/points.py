@@ -360,7 +360,7 @@ def _determines_plane(s: np.ndarray, n: np.ndarray, d) -> np.ndarray:
 
 
 def plane_covariance(points: np.ndarray, valid: np.ndarray, plane: Plane, range_std: float | np.ndarray = 0.0,
-                     replace_fit: bool = False) -> np.ndarray:
+                     replace_fit: bool = False, common_std: float | np.ndarray = 0.0) -> np.ndarray:
     """Covariance (3, 3) of ``(n_x, n_y, d)`` of a least-squares plane through points (N, 3) with mask (N,).
 
     The perpendicular residuals ``n . p - d`` are linearised in the normal's x and y components (``n_z``
@@ -372,6 +372,8 @@ def plane_covariance(points: np.ndarray, valid: np.ndarray, plane: Plane, range_
     carried through the fit point by point (the points actually used, along their own directions).
     ``replace_fit``: each point with a known error takes that error's share alone, not the larger of it and the
     fit's (a calibrated error that already holds what the residual would say; points without one keep the fit's).
+    ``common_std`` (m, one value or one per point; with ``replace_fit``): a range error the points share besides,
+    one error along all their rays at once (each point's ``range_std`` is then its independent part).
     """
     p = np.asarray(points, dtype=float)[np.asarray(valid, dtype=bool)]
     n = plane.normal
@@ -392,7 +394,14 @@ def plane_covariance(points: np.ndarray, valid: np.ndarray, plane: Plane, range_
         off_plane = (p @ n) / np.sqrt(np.einsum("ij,ij->i", p, p))  # cosine of each point's ray with the normal
     known = np.nan_to_num((std * off_plane) ** 2)
     var = np.where(known > 0.0, known, sigma2) if replace_fit else np.maximum(sigma2, known)
-    return inverse @ (jac.T * var) @ jac @ inverse
+    cov = inverse @ (jac.T * var) @ jac @ inverse
+    common = np.asarray(common_std, dtype=float)
+    if replace_fit and np.any(common > 0.0):
+        if common.ndim:
+            common = common[np.asarray(valid, dtype=bool)]
+        g = inverse @ (jac.T @ np.nan_to_num(common * off_plane))  # the state's response to the shared error
+        cov = cov + np.outer(g, g)
+    return cov
 
 
 def _inverse(a: np.ndarray) -> np.ndarray:

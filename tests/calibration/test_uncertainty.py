@@ -158,8 +158,9 @@ def test_a_level_sweep_with_a_few_tilted_frames_keeps_the_stated_term():
 
 # -- the peak method's near-range law (issue 26) ------------------------------------------------------------------
 
-def _near_rows(n, scale, power, seed=0):
-    """Level planes at 2.5-9 cm read through 9 zone points whose ranges err by the law's std (independent)."""
+def _near_rows(n, scale, power, seed=0, shared=0.0):
+    """Level planes at 2.5-9 cm read through 9 zone points whose ranges err by the law's std, the part ``shared``
+    of its variance common to the zones of a frame, the rest independent."""
     from place_safe.calibration.uncertainty import near_std_law
     from place_safe.recovery.estimator import tilt_offset
     from place_safe.recovery.points import PeakParams, plane_through
@@ -170,7 +171,8 @@ def _near_rows(n, scale, power, seed=0):
     for _ in range(n):
         d = rng.uniform(0.025, 0.09)
         r = d / dirs[:, 2]
-        r = r + rng.normal(0.0, 1.0, 9) * near_std_law(r * dirs[:, 2], scale, power)
+        mix = math.sqrt(1.0 - shared) * rng.normal(0.0, 1.0, 9) + math.sqrt(shared) * rng.normal()
+        r = r + mix * near_std_law(r * dirs[:, 2], scale, power)
         points = r[:, None] * dirs
         valid = np.ones(9, dtype=bool)
         plane, _ = plane_through(points, valid)
@@ -211,10 +213,51 @@ def test_near_law_maximum_likelihood_recovers_a_known_law_and_makes_nees_one():
     unc, rep = fit_near_law(rows, Uncertainty(), params, 0.09)
     assert 0.7e-4 <= rep["std_at_reference_mm"] * 1e-3 <= 1.4e-4 and 0.5 <= rep["power"] <= 1.5
     assert rep["share_independent_of_knots"] == 1.0  # no table: nothing to interpolate
+    assert rep["shared_by_zones"] < 0.3  # the zones erred independently
     test = _near_rows(80, 1e-4, 1.0, seed=2)
     est = PeakEstimator(params, unc)
     v = [r[3] @ np.linalg.solve(est.covariance(r[0], r[1], r[2]), r[3]) / 3 for r in test]
     assert 0.75 <= float(np.mean(v)) <= 1.3
+
+
+def test_near_law_finds_the_error_the_zones_share_and_keeps_tilt_and_offset_honest():
+    """Zones that err together move the plane's offset, not its tilt: a law of independent zones would have to
+    overstate the tilt error to cover the offset's (issue 26: the real sweep at 5-9 cm)."""
+    from place_safe.calibration.uncertainty import fit_near_law
+    from place_safe.recovery.estimator import Uncertainty
+    from place_safe.recovery.peak import PeakEstimator
+    from place_safe.recovery.points import PeakParams
+
+    params = PeakParams.default_peak()
+    unc, rep = fit_near_law(_near_rows(80, 1e-4, 1.0, seed=3, shared=0.6), Uncertainty(), params, 0.09)
+    assert 0.35 <= rep["shared_by_zones"] <= 0.85 and len(unc.near_common_std) == len(unc.near_depths)
+    est = PeakEstimator(params, unc)
+    test = _near_rows(120, 1e-4, 1.0, seed=4, shared=0.6)
+    cov = [est.covariance(r[0], r[1], r[2]) for r in test]
+    tilt = np.mean([r[3][:2] @ np.linalg.solve(c[:2, :2], r[3][:2]) / 2 for r, c in zip(test, cov)])
+    offset = np.mean([r[3][2] ** 2 / c[2, 2] for r, c in zip(test, cov)])
+    assert 0.7 <= tilt <= 1.4 and 0.7 <= offset <= 1.4
+
+
+def test_a_range_error_the_zones_share_moves_the_offset_as_sampling_says():
+    from place_safe.recovery.estimator import tilt_offset
+    from place_safe.recovery.points import PeakParams, plane_covariance, plane_through
+
+    dirs = PeakParams.default_peak().directions()
+    r0 = 0.04 / dirs[:, 2]
+    valid = np.ones(9, dtype=bool)
+    plane, _ = plane_through(r0[:, None] * dirs, valid)
+    indep, common = np.full(9, 2e-4), np.full(9, 3e-4)
+    cov = plane_covariance(r0[:, None] * dirs, valid, plane, indep, replace_fit=True, common_std=common)
+    rng = np.random.default_rng(5)
+    samples = []
+    for _ in range(4000):
+        r = r0 + indep * rng.normal(size=9) + common * rng.normal()
+        samples.append(tilt_offset(plane_through(r[:, None] * dirs, valid)[0]))
+    sampled = np.cov(np.array(samples).T)
+    assert np.allclose(np.diag(cov), np.diag(sampled), rtol=0.12)
+    alone = plane_covariance(r0[:, None] * dirs, valid, plane, indep, replace_fit=True)
+    assert cov[2, 2] > 5 * alone[2, 2] and np.allclose(cov[:2, :2], alone[:2, :2], rtol=0.05, atol=1e-12)
 
 
 def test_calibrated_near_errors_replace_the_fit_residual():

@@ -223,7 +223,13 @@ def test_near_std_between_its_depths_held_before_and_none_from_the_last_on():
     np.testing.assert_allclose(u.apply(cov, 0.02), cov + u.floor(0.02))  # the term acts in the fit, not here
     assert Uncertainty.from_dict(json.loads(json.dumps(u.to_dict()))) == u
     assert "near_depths" not in Uncertainty().to_dict()  # files older versions read
+    assert "near_common_std" not in u.to_dict() and not u.near_common(np.full(9, 0.02)).any()
+    shared = u.replace(near_common_std=[1e-3, 4e-4, 0.0])
+    np.testing.assert_allclose(shared.near_common(np.array([0.005, 0.02, 0.09])), [1e-3, 7e-4, 0.0])
+    assert Uncertainty.from_dict(json.loads(json.dumps(shared.to_dict()))) == shared
     for bad in ({"near_depths": [0.01], "near_range_std": [0.001]},
+                {"near_depths": [0.01, 0.03], "near_range_std": [0.001, 0.0], "near_common_std": [0.001]},
+                {"near_depths": [0.01, 0.03], "near_range_std": [0.001, 0.0], "near_common_std": [0.001, -1.0]},
                 {"near_depths": [0.03, 0.01], "near_range_std": [0.001, 0.0]},
                 {"near_depths": [0.01, 0.03], "near_range_std": [0.001]},
                 {"near_depths": [0.01, 0.03], "near_range_std": [-0.001, 0.0]},
@@ -248,3 +254,25 @@ def test_recovery_never_imports_the_calibration_package():
             "make_estimator('proprietary'); print('place_safe.calibration' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "False"
+
+
+@settings(max_examples=40, deadline=None)
+@given(depth=st.floats(0.02, 0.09), tilt=st.floats(-0.3, 0.3), indep=st.floats(1e-6, 2e-3),
+       shared=st.floats(0.0, 2e-3), drop=st.integers(-1, 8))
+def test_a_shared_zone_error_never_makes_the_plane_look_more_certain(depth, tilt, indep, shared, drop):
+    """The near-range covariance with a range error the zones share is the one without it plus a positive
+    semi-definite term (issue 26): adding the shared error can only widen what the estimate admits."""
+    from place_safe.recovery.points import PeakParams, plane_through
+
+    dirs = PeakParams.default_peak().directions()
+    n = np.array([math.sin(tilt), 0.0, math.cos(tilt)])
+    r = depth * n[2] / (dirs @ n)  # each zone's range to the tilted plane through (0, 0, depth)
+    used = np.ones(9, dtype=bool)
+    if drop >= 0:
+        used[drop] = False
+    pts = r[:, None] * dirs
+    plane, _ = plane_through(pts, used)
+    alone = plane_covariance(pts, used, plane, np.full(9, indep), replace_fit=True)
+    both = plane_covariance(pts, used, plane, np.full(9, indep), replace_fit=True, common_std=np.full(9, shared))
+    assert np.all(np.isfinite(both))
+    assert np.linalg.eigvalsh(both - alone).min() >= -1e-12 * max(1.0, float(np.abs(alone).max()))
