@@ -199,3 +199,28 @@ def test_pulse_terms_come_back_from_frames_made_with_them():
     np.testing.assert_allclose(got.zone_pulse_widths, widths, atol=0.02)
     np.testing.assert_allclose(got.zone_pulse_skews, 0.05, atol=0.02)
     assert report["rms_scaled_residual_after"] < 0.1 * report["rms_scaled_residual_before"]
+
+
+def test_the_tdc_terms_come_back_from_frames_made_with_them():
+    """Frames rendered with a bin-to-bin pattern of bin widths and a bowed time warp: fitted from nominal bins
+    (``DNL_TERMS``, ``INL_TERMS``), the widths of the bins the returns cover and the warp where they fall come back."""
+    import torch
+
+    from place_safe.calibration.forward_fit import DNL_TERMS, INL_TERMS
+    from place_safe.recovery.forward import bin_widths
+    from place_safe.sensor.frame import N_BINS
+
+    gains = list(1.0 + 0.04 * (-1.0) ** np.arange(N_BINS) * np.cos(np.arange(N_BINS) * 0.3))
+    warp = [0.0, 0.0, 0.3, -0.2, 0.25, 0.0] + [0.0] * 11
+    truth = ForwardParams(bin_offset=9.3, bin_gains=gains, time_warp=warp)
+    spec = SyntheticSpec(z_range=(0.1, 0.3), theta_range=(0.0, 0.0), specular_weight_range=(0.14681, 0.14681),
+                         specular_exponent_range=(1.8378, 1.8378), noise=False, rays=4)
+    frames = make_frames(8, params=truth, spec=spec, seed=3)
+    got, report = fit_forward(frames, init=ForwardParams(bin_offset=9.3), progress=False, rays=4, iterations=15,
+                              fitted={**DNL_TERMS, **INL_TERMS}, coarse_rays=0,
+                              priors={"bin_gains": (1.0, 0.03), "time_warp": (0.0, 0.3)})
+    covered = slice(20, 34)
+    np.testing.assert_allclose(bin_widths(torch.tensor(got.bin_gains, dtype=torch.float64))[covered],
+                               bin_widths(torch.tensor(gains, dtype=torch.float64))[covered], atol=0.01)
+    np.testing.assert_allclose(got.time_warp[2:5], warp[2:5], atol=0.05)
+    assert report["rms_scaled_residual_after"] < 0.1 * report["rms_scaled_residual_before"]
