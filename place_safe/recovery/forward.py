@@ -177,9 +177,9 @@ class ForwardParams(ParamModel):
       bin index is separable from the pulse's shape (fixed relative to the return).
     * ``time_warp`` (17, bins, [-4, 4], default 0, prior 0 / 0.3; version 5): the time-to-digital converter's
       integral non-linearity, where a return appears minus where ``bin_offset + range / bin_size`` (plus the zone's
-      offset) puts it, at bins 0, 8, ..., 128 and linear between (:func:`warp_positions`); it moves the direct
-      return, the echo and the glass alike. A level sweep with known ranges determines it where returns fall
-      (its mean and slope trade with ``bin_offset`` and ``bin_size``, which the priors settle).
+      offset) puts it, at bins 0, 8, ..., 128 and linear between, less its straight line over the knots (which is
+      ``bin_offset`` and ``bin_size``'s, :func:`warp_positions`); it moves the direct return, the echo and the glass
+      alike. A level sweep with known ranges determines it where returns fall.
     * The per-zone timing offsets and gains (``zone_offsets``, ``zone_gains``), pile-up (``pileup``), the zones'
       own tails and the learned response kernel are described above.
 
@@ -500,9 +500,13 @@ def zone_tail_taps(weights, decays, dtype: torch.dtype = torch.float64) -> torch
 def warp_positions(u: torch.Tensor, warp) -> tuple[torch.Tensor, torch.Tensor]:
     """Bin positions ``u`` (any shape) moved by the TDC's integral non-linearity, and the slope ``d u' / d u``.
 
-    ``warp`` (:data:`WARP_KNOTS`,) are the shifts (bins) at bins ``0, 8, ..., 128``, interpolated linearly between
-    them and held at the end values outside. Zeros (the default) move nothing."""
+    ``warp`` (:data:`WARP_KNOTS`,) are the shifts (bins) at bins ``0, 8, ..., 128`` less their least-squares straight
+    line over the knots (an integral non-linearity is the departure from the best straight line: a constant is
+    ``bin_offset``, a slope ``bin_size``, so the warp cannot trade with them), interpolated linearly between the knots
+    and held at the end values outside. Zeros (the default) move nothing; so does any straight line."""
     w = torch.as_tensor(warp, dtype=u.dtype)
+    k = torch.arange(WARP_KNOTS, dtype=u.dtype) - 0.5 * (WARP_KNOTS - 1)
+    w = w - w.mean() - k * (k * w).sum() / (k * k).sum()
     x = torch.clamp(u, 0.0, float(N_BINS)) / WARP_SPACING
     i = torch.clamp(torch.floor(x).long(), max=WARP_KNOTS - 2)
     f = x - i

@@ -440,56 +440,24 @@ def test_bin_widths_keep_the_bin_to_bin_pattern_and_drop_a_slow_trend():
 
 
 def test_time_warp_moves_returns_by_the_interpolated_shift():
-    """``time_warp`` (version 5): a return at bin position ``u`` appears at ``u + warp(u)``, the knots' values
-    interpolated linearly; zeros move nothing and a file without the key reads as zeros."""
+    """``time_warp`` (version 5): a return at bin position ``u`` appears at ``u + warp(u)``, the knots' values less
+    their straight line, interpolated linearly; zeros and straight lines move nothing (they are ``bin_offset`` and
+    ``bin_size``), and a file without the key reads as zeros."""
     from place_safe.recovery.forward import WARP_KNOTS, warp_positions
 
     d = ForwardParams().to_dict()
     d.pop("time_warp")
     assert ForwardParams.from_dict(d).time_warp == [0.0] * WARP_KNOTS
-    warp = torch.zeros(WARP_KNOTS, dtype=torch.float64)
-    warp[2], warp[3] = 0.5, -0.3  # bins 16 and 24
-    u = torch.tensor([16.0, 20.0, 24.0, 40.0], dtype=torch.float64)
-    moved, slope = warp_positions(u, warp)
-    torch.testing.assert_close(moved, torch.tensor([16.5, 20.1, 23.7, 40.0], dtype=torch.float64))
-    torch.testing.assert_close(slope[1], torch.tensor(1.0 - 0.1, dtype=torch.float64))
-    ref = torch.as_tensor(default_reference(), dtype=torch.float64)[None]
-    normal = torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64)
-    with torch.no_grad():
-        def render(p):
-            return ForwardModel(p, ZoneRays.stratified(4)).render_plane(normal, torch.tensor([0.2]),
-                                                                        torch.tensor([3.0]), ref)[0]
-        # a flat warp of one bin is the histogram one bin later
-        late = render(ForwardParams(time_warp=[1.0] * WARP_KNOTS))
-        torch.testing.assert_close(late[:, 1:], render(ForwardParams())[:, :-1], atol=1e-9, rtol=1e-9)
-
-
-def test_a_bright_return_shadows_the_ambient_after_it():
-    """``ambient_pileup``: the ambient takes part in the pile-up. With no ambient it is ``apply_pileup``; after a
-    bright return the ambient reads lower than before it by Coates' factor ``exp(-k shadow N)`` (N the return's
-    counts), so the counts above the arriving ambient go negative there; without pile-up it is the return alone."""
-    from place_safe.recovery.forward import ambient_pileup
-
-    h = torch.zeros((1, 9, 40), dtype=torch.float64)
-    h[0, :, 10] = 2e5
-    k = torch.tensor(1e-6, dtype=torch.float64)
-    torch.testing.assert_close(ambient_pileup(h, torch.zeros((1, 9), dtype=torch.float64), k, 0.5),
-                               apply_pileup(h, k, 0.5))
-    a = torch.full((1, 9), 120.0, dtype=torch.float64)
-    torch.testing.assert_close(ambient_pileup(h, a, torch.tensor(0.0, dtype=torch.float64)), h)
-    out = ambient_pileup(h, a, k, 0.5)
-    before, after = float(out[0, 4, 5]) + 120.0, float(out[0, 4, 30]) + 120.0
-    assert after < before
-    # after the return: arriving ambient times exp(-k shadow (N_return + earlier ambient)), per-bin compression aside
-    expected = 120.0 * math.exp(-1e-6 * 0.5 * (2e5 + 120.0 * 30)) * (-math.expm1(-1e-6 * 120.0) / (1e-6 * 120.0))
-    assert after == pytest.approx(expected, rel=1e-9)
-    # through the model: the same as rendering the return and piling it up with the ambient by hand
-    ref = torch.as_tensor(default_reference(), dtype=torch.float64)[None]
-    normal = torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64)
-    p = ForwardParams(pileup=3e-7, pileup_shadow=0.4)
-    with torch.no_grad():
-        m = ForwardModel(p, ZoneRays.stratified(4))
-        raw = ForwardModel(ForwardParams(), ZoneRays.stratified(4)).render_plane(normal, torch.tensor([0.1]),
-                                                                                 torch.tensor([3.0]), ref)
-        got = m.render_plane(normal, torch.tensor([0.1]), torch.tensor([3.0]), ref, ambient=a)
-    torch.testing.assert_close(got, apply_pileup(raw + 120.0, torch.tensor(3e-7, dtype=torch.float64), 0.4) - 120.0)
+    u = torch.tensor([3.0, 16.0, 20.0, 24.0, 40.0, 77.0], dtype=torch.float64)
+    line = 0.3 - 0.02 * torch.arange(WARP_KNOTS, dtype=torch.float64)
+    moved, slope = warp_positions(u, line)
+    torch.testing.assert_close(moved, u)
+    torch.testing.assert_close(slope, torch.ones_like(u))
+    bow = torch.zeros(WARP_KNOTS, dtype=torch.float64)
+    bow[2], bow[3] = 0.5, -0.3  # bins 16 and 24
+    k = torch.arange(WARP_KNOTS, dtype=torch.float64) - 0.5 * (WARP_KNOTS - 1)
+    w = bow - bow.mean() - k * (k * bow).sum() / (k * k).sum()
+    moved, slope = warp_positions(u, bow + line)  # the line added changes nothing
+    torch.testing.assert_close(moved[1:4], u[1:4] + torch.stack([w[2], 0.5 * (w[2] + w[3]), w[3]]))
+    torch.testing.assert_close(slope[2], 1.0 + (w[3] - w[2]) / 8.0)
+    assert float(w[2]) > 0.45 and float(w[3]) < -0.3
