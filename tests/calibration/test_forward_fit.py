@@ -225,3 +225,19 @@ def test_the_tdc_terms_come_back_from_frames_made_with_them():
     where = torch.tensor([16.0, 20.0, 24.0, 28.0, 32.0], dtype=torch.float64)  # the warp (less its line) there
     np.testing.assert_allclose(warp_positions(where, got.time_warp)[0], warp_positions(where, warp)[0], atol=0.05)
     assert report["rms_scaled_residual_after"] < 0.1 * report["rms_scaled_residual_before"]
+
+
+def test_the_ambient_option_fits_and_says_why_it_stopped():
+    """``fit_forward(..., ambient=True)`` (the ambient through the pile-up, compared above the ambient of bins 0-7)
+    fits synthetic frames as well as the floor-subtracted fit and reports whether and why it stopped."""
+    spec = SyntheticSpec(z_range=(0.08, 0.3), theta_range=(0.0, 0.0), specular_weight_range=(0.14681, 0.14681),
+                         specular_exponent_range=(1.8378, 1.8378), noise=True, rays=4)
+    frames = make_frames(6, params=ForwardParams(bin_offset=9.3, pileup=1e-6), spec=spec, seed=4)
+    fitted = {"bin_offset": "lin", "pileup": "log"}
+    init = ForwardParams(bin_offset=9.0, pileup=5e-7)
+    _, plain = fit_forward(frames, init=init, progress=False, rays=4, iterations=15, fitted=fitted, coarse_rays=0)
+    _, amb = fit_forward(frames, init=init, progress=False, rays=4, iterations=15, fitted=fitted, coarse_rays=0,
+                         ambient=True)
+    assert amb["converged"] and amb["why"]
+    assert amb["rms_scaled_residual_after"] < 0.5 * amb["rms_scaled_residual_before"]
+    assert amb["rms_scaled_residual_after"] < 1.2 * plain["rms_scaled_residual_after"]

@@ -461,3 +461,34 @@ def test_time_warp_moves_returns_by_the_interpolated_shift():
     torch.testing.assert_close(moved[1:4], u[1:4] + torch.stack([w[2], 0.5 * (w[2] + w[3]), w[3]]))
     torch.testing.assert_close(slope[2], 1.0 + (w[3] - w[2]) / 8.0)
     assert float(w[2]) > 0.45 and float(w[3]) < -0.3
+
+
+def test_a_bright_return_shadows_the_ambient_after_it():
+    """``ambient_pileup``: the ambient takes part in the pile-up. With no ambient it is ``apply_pileup``; after a
+    bright return the ambient reads lower than before it by Coates' factor ``exp(-k shadow N)`` (N the return's
+    counts), so the counts above the arriving ambient go negative there; without pile-up it is the return alone."""
+    from place_safe.recovery.forward import ambient_pileup
+
+    h = torch.zeros((1, 9, 40), dtype=torch.float64)
+    h[0, :, 10] = 2e5
+    k = torch.tensor(1e-6, dtype=torch.float64)
+    torch.testing.assert_close(ambient_pileup(h, torch.zeros((1, 9), dtype=torch.float64), k, 0.5),
+                               apply_pileup(h, k, 0.5))
+    a = torch.full((1, 9), 120.0, dtype=torch.float64)
+    torch.testing.assert_close(ambient_pileup(h, a, torch.tensor(0.0, dtype=torch.float64)), h)
+    out = ambient_pileup(h, a, k, 0.5)
+    before, after = float(out[0, 4, 5]) + 120.0, float(out[0, 4, 30]) + 120.0
+    assert after < before
+    # after the return: arriving ambient times exp(-k shadow (N_return + earlier ambient)), per-bin compression aside
+    expected = 120.0 * math.exp(-1e-6 * 0.5 * (2e5 + 120.0 * 30)) * (-math.expm1(-1e-6 * 120.0) / (1e-6 * 120.0))
+    assert after == pytest.approx(expected, rel=1e-9)
+    # through the model: the same as rendering the return and piling it up with the ambient by hand
+    ref = torch.as_tensor(default_reference(), dtype=torch.float64)[None]
+    normal = torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64)
+    p = ForwardParams(pileup=3e-7, pileup_shadow=0.4)
+    with torch.no_grad():
+        m = ForwardModel(p, ZoneRays.stratified(4))
+        raw = ForwardModel(ForwardParams(), ZoneRays.stratified(4)).render_plane(normal, torch.tensor([0.1]),
+                                                                                 torch.tensor([3.0]), ref)
+        got = m.render_plane(normal, torch.tensor([0.1]), torch.tensor([3.0]), ref, ambient=a)
+    torch.testing.assert_close(got, apply_pileup(raw + 120.0, torch.tensor(3e-7, dtype=torch.float64), 0.4) - 120.0)
