@@ -99,7 +99,8 @@ DNL_TERMS: dict[str, str] = {
     "bin_gains": "lin",
 }
 #: The TDC's integral non-linearity (``ForwardParams.time_warp``: where a return appears minus where the linear
-#: range law puts it), fitted on request: ``fit_forward(..., fitted={**FITTED, **INL_TERMS})``.
+#: range law puts it), fitted on request: ``fit_forward(..., fitted={**FITTED, **INL_TERMS})``, best with
+#: ``bin_offset`` and ``bin_size`` held (left out of ``fitted``; the real sweep's knots otherwise trade with them).
 INL_TERMS: dict[str, str] = {
     "time_warp": "lin",
 }
