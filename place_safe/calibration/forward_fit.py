@@ -92,6 +92,21 @@ PULSE_TERMS: dict[str, str] = {
     "zone_pulse_skews": "lin",
 }
 UNIT_TERMS.update(PULSE_TERMS)
+#: The TDC's differential non-linearity (``ForwardParams.bin_gains``: the width of each time bin, shared by the zones),
+#: fitted on request: ``fit_forward(..., fitted={**FITTED, **DNL_TERMS})``. Bins that no return of the sweep reaches
+#: stay at the prior (1). Acts after the pulse convolution (cheap to differentiate).
+DNL_TERMS: dict[str, str] = {
+    "bin_gains": "lin",
+}
+#: The TDC's integral non-linearity (``ForwardParams.time_warp``: where a return appears minus where the linear
+#: range law puts it), fitted on request: ``fit_forward(..., fitted={**FITTED, **INL_TERMS})``, best with
+#: ``bin_offset`` and ``bin_size`` held (left out of ``fitted``; the real sweep's knots otherwise trade with them).
+INL_TERMS: dict[str, str] = {
+    "time_warp": "lin",
+}
+#: Bins of each histogram that hold the ambient alone, before the earliest return (zero range is bin 9-10):
+#: ``fit_forward(..., ambient=True)`` reads the ambient as it arrives there.
+AMBIENT_BINS = slice(0, 8)
 #: Gaussian priors of the fitted parameters, ``(mean, std)``; the std is in the fit coordinate (for ``log``
 #: parameters a factor ``exp(std)`` either way, the mean in the parameter's unit). They enter the objective as
 #: residual rows ``(x - mean) / std``: a parameter the frames determine moves off its prior at almost no cost, one
@@ -126,6 +141,8 @@ PRIORS: dict[str, tuple[float, float]] = {
     "zone_pulse_widths": (0.0, 0.1),      # bins^2: the variance of a zone's pulse within +-0.2 bins^2 of the reference's
     "zone_pulse_skews": (0.0, 0.1),       # bins^3
     "response_kernel": (0.0, 0.05),
+    "bin_gains": (1.0, 0.03),             # relative bin width: a TDC's DNL is a few %
+    "time_warp": (0.0, 0.3),              # bins
 }
 #: A parameter is prior-dominated when its posterior std is above this fraction of its prior std: the frames
 #: added little to what was assumed.
@@ -225,7 +242,7 @@ def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, prog
                 max_distance: float = 1.0, fitted: dict[str, str] | None = None,
                 window_after_peak: int = 24, max_frames: int = 40, priors: dict | None = None,
                 objective: str = OBJECTIVE, coarse_rays: int = 2,
-                same_surface: bool | None = False) -> tuple[ForwardParams, dict]:
+                same_surface: bool | None = False, ambient: bool = False) -> tuple[ForwardParams, dict]:
     """Fit camera parameters to frames with ground truth; returns (params, report).
 
     frames: frames with ``truth`` planes; those outside ``[min_distance, max_distance]`` (z0, m)
@@ -273,6 +290,10 @@ def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, prog
     (default) leaves each frame its own albedo (report: ``one_surface``). ``rms_scaled_residual_*`` are the
     Neyman-weighted residuals whatever the objective (the measure reported before), ``objective_rms_*`` the
     objective's own.
+    ``ambient``: True lets each frame's ambient (the mean of :data:`AMBIENT_BINS`, before any return) take part in
+    the pile-up with the return (:func:`~place_safe.recovery.forward.ambient_pileup`), and compares the model with
+    the counts above that ambient instead of above the floor measured after the return (which the return's pile-up
+    lowers); False (default) is the fit as it was.
 
     ``posterior_std`` in the report is each fitted parameter's posterior standard deviation (Gauss-Newton
     covariance at the solution, albedos marginalised, scaled by the reduced chi-square) in its own unit,
@@ -285,11 +306,11 @@ def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, prog
     with single_thread():  # a few thousand-element tensors: torch's thread pool only waits (3x slower when busy)
         return _fit_forward(frames, init, progress, rays, iterations, min_distance, max_distance, fitted,
                             window_after_peak, max_frames, PRIORS if priors is None else priors, objective,
-                            coarse_rays, same_surface)
+                            coarse_rays, same_surface, ambient)
 
 
 def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_distance, fitted, window_after_peak,
-                 max_frames, priors, objective, coarse_rays, same_surface) -> tuple[ForwardParams, dict]:
+                 max_frames, priors, objective, coarse_rays, same_surface, ambient=False) -> tuple[ForwardParams, dict]:
     """:func:`fit_forward` on the calling thread."""
     from torch.func import jvp, vmap
 
@@ -321,6 +342,11 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
     floor = measure_floor(hists)
     obs_np = np.clip(hists - floor[..., None], 0.0, None)
     width = int(min(N_BINS, obs_np.argmax(axis=-1).max() + window_after_peak))
+    amb_t = None
+    if ambient:  # the counts above the ambient as it arrives (after the return they go below it)
+        floor = hists[..., AMBIENT_BINS].mean(axis=-1)
+        obs_np = hists - floor[..., None]
+        amb_t = torch.as_tensor(floor, dtype=dtype)
     obs = torch.as_tensor(obs_np[..., :width], dtype=dtype)
     inv_sigma = torch.as_tensor(residual_weights(hists[..., :width], MODEL_ERROR), dtype=dtype)
     normals = torch.as_tensor(np.array([f.truth.normal for f in data]), dtype=dtype)
@@ -379,7 +405,8 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
         # ground truth is in the reported (mount) frame; the model renders in the optical frame
         n_optical = normals @ mount_rotation(model.t["mount_tilt"])
         # only the fitted bins: pulse convolution and pile-up are causal, so they do not depend on later ones
-        return model.render_plane(n_optical, offsets, torch.exp(log_albedo), refs, n_bins=width, pulse_only=pulse_only)
+        return model.render_plane(n_optical, offsets, torch.exp(log_albedo), refs, n_bins=width, pulse_only=pulse_only,
+                                  ambient=amb_t)
 
     raw_obs = torch.as_tensor(hists[..., :width], dtype=dtype)
     floor_t = torch.as_tensor(floor, dtype=dtype).unsqueeze(-1)
@@ -402,7 +429,7 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
         """The residuals from the pulse-convolved histograms ``pulsed``: exact in the parameters of
         ``ForwardModel.AFTER_PULSE`` (nothing before the pulse convolution depends on them)."""
         unpack(cam)
-        return scaled(model.after_pulse(pulsed))
+        return scaled(model.after_pulse(pulsed, amb_t))
 
     cam0 = torch.as_tensor(np.array(start), dtype=dtype)
 
@@ -579,7 +606,7 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
     check = ForwardModel(fitted_params, ZoneRays.stratified(SolverOptions().rays, dtype=dtype), dtype=dtype)
     with torch.no_grad():
         n_optical = normals @ mount_rotation(check.t["mount_tilt"])
-        model_h = check.render_plane(n_optical, offsets, torch.exp(la), refs)[..., :width] - check.t["floor"]
+        model_h = check.render_plane(n_optical, offsets, torch.exp(la), refs, ambient=amb_t)[..., :width] - check.t["floor"]
     chi2_error = measure_model_error((model_h - obs).numpy(), hists[..., :width])
     albedos = np.exp(la.numpy())
     fitted_params.albedo = float(np.median(albedos))

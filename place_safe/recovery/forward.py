@@ -49,6 +49,11 @@ RESPONSE_LAGS = 24
 ECHO_REFERENCE_RANGE = 0.1
 
 
+#: Spacing (bins) of the knots of ``ForwardParams.time_warp`` and their number (bins 0, 8, ..., 128).
+WARP_SPACING = 8
+WARP_KNOTS = N_BINS // WARP_SPACING + 1
+
+
 def _grid_positions() -> np.ndarray:
     """Each zone's (column, row) in the 3x3 grid (9, 2), each in {-1, 0, 1}: the signs of its rectangle's centre."""
     centre = np.stack([ZONE_RECTS[:, :2].mean(axis=1), ZONE_RECTS[:, 2:].mean(axis=1)], axis=1)
@@ -161,6 +166,21 @@ class ForwardParams(ParamModel):
       histogram is convolved with a short kernel of zero area and mean (:func:`pulse_shape_matrix`) that adds
       ``2 w_z`` bins^2 to the pulse's variance and ``6 s_z`` bins^3 to its third central moment. Beside a sharp pulse
       the correction can dip below zero; the expected counts are clamped at 0 (after the crosstalk, before pile-up).
+    * ``bin_gains`` (128, relative width, [0.5, 1.5], default 1, prior 1 / 0.03; version 5): the time-to-digital
+      converter's differential non-linearity. Bin ``b`` of every zone is ``bin_gains[b]`` times as wide as nominal, so
+      it collects that much more (or less) of the light arriving in it: the expected counts of bin ``b`` are multiplied
+      by it after the crosstalk and before the pile-up. One vector shared by the zones. Only the bin-to-bin pattern
+      acts: each gain is divided by the mean of its neighbours within 4 bins (:func:`bin_widths`), because a slow
+      trend is the brightness's fall with range to a level sweep. The measured floor (ambient)
+      is not multiplied: a few % of a 100-150 count ambient is below its Poisson noise (the real sweep's ambient bins
+      90-127 show no pattern above it). A level sweep moves each zone's return across the bins, so a gain fixed in
+      bin index is separable from the pulse's shape (fixed relative to the return).
+    * ``time_warp`` (17, bins, [-4, 4], default 0, prior 0 / 0.3; version 5): the time-to-digital converter's
+      integral non-linearity, where a return appears minus where ``bin_offset + range / bin_size`` (plus the zone's
+      offset) puts it, at bins 0, 8, ..., 128 and linear between, less its straight line over the knots (which is
+      ``bin_offset`` and ``bin_size``'s, :func:`warp_positions`); it moves the direct return, the echo and the glass
+      alike. A level sweep with known ranges determines it where returns fall, with ``bin_offset`` and ``bin_size``
+      held (fitted together, the reached knots trade with ``bin_size``).
     * The per-zone timing offsets and gains (``zone_offsets``, ``zone_gains``), pile-up (``pileup``), the zones'
       own tails and the learned response kernel are described above.
 
@@ -247,6 +267,13 @@ class ForwardParams(ParamModel):
         default_factory=lambda: [0.0] * N_ZONES, description="bins^2 (half the variance added to each zone's pulse)")
     zone_pulse_skews: vector(N_ZONES, ge=-0.25, le=0.25) = Field(
         default_factory=lambda: [0.0] * N_ZONES, description="bins^3 (a sixth of the third moment added to each zone's pulse)")
+    # Version 5 (absent from older files; the default is the model as it was): the TDC's differential non-linearity.
+    bin_gains: vector(N_BINS, ge=0.5, le=1.5) = Field(
+        default_factory=lambda: [1.0] * N_BINS,
+        description="(width of each time bin relative to the nominal; multiplies the expected counts of that bin)")
+    time_warp: vector(WARP_KNOTS, ge=-4.0, le=4.0) = Field(
+        default_factory=lambda: [0.0] * WARP_KNOTS,
+        description="bins (where a return appears minus where the linear range law puts it, at bins 0, 8, ..., 128)")
 
     def kind_gains(self) -> np.ndarray:
         """Gain of each zone (9,): centre 1, edge/corner gains, times the per-zone gains."""
@@ -431,6 +458,18 @@ def apply_pileup(hist: torch.Tensor, k: torch.Tensor, shadow: torch.Tensor | flo
     return -torch.expm1(-kk * hist) / kk * torch.exp(-kk * shadow * before)
 
 
+def ambient_pileup(hist: torch.Tensor, ambient: torch.Tensor, k: torch.Tensor | float,
+                   shadow: torch.Tensor | float = 1.0) -> torch.Tensor:
+    """Expected counts (B, 9, N) of a return ``hist`` above the ambient ``ambient`` (B, 9, counts per bin as it
+    arrives), both through the pile-up (:func:`apply_pileup`): ``pileup(hist + ambient) - ambient``.
+
+    A SPAD that has fired on the return is blind to the ambient photons after it, so after a bright return the
+    ambient reads lower than before it (the real sweep at 10 cm: bins 100-127 hold 48-78 % of bins 0-7's ambient,
+    least in the brightest zones). Zero ambient is :func:`apply_pileup`."""
+    a = torch.as_tensor(ambient, dtype=hist.dtype).unsqueeze(-1)
+    return apply_pileup(hist + a, k, shadow) - a
+
+
 def pulse_shape_matrix(widths, skews, n: int, dtype: torch.dtype = torch.float64) -> torch.Tensor:
     """Each zone's pulse-shape correction (:class:`ForwardParams` ``zone_pulse_widths`` ``w``, ``zone_pulse_skews``
     ``s``) as causal (9, n, n) matrices: convolution with ``delta + w B2 + (w - s) B3``, where ``B2 = (1, -2, 1)`` and
@@ -457,6 +496,48 @@ def zone_tail_taps(weights, decays, dtype: torch.dtype = torch.float64) -> torch
     w = torch.as_tensor(weights, dtype=dtype).view(-1, 1)
     tau = torch.as_tensor(decays, dtype=dtype).view(-1, 1)
     return w * torch.exp(-k / tau)
+
+
+def warp_positions(u: torch.Tensor, warp) -> tuple[torch.Tensor, torch.Tensor]:
+    """Bin positions ``u`` (any shape) moved by the TDC's integral non-linearity, and the slope ``d u' / d u``.
+
+    ``warp`` (:data:`WARP_KNOTS`,) are the shifts (bins) at bins ``0, 8, ..., 128`` less their least-squares straight
+    line over the knots (an integral non-linearity is the departure from the best straight line: a constant is
+    ``bin_offset``, a slope ``bin_size``), interpolated linearly between the knots and held at the end values
+    outside. Zeros (the default) move nothing; so does any straight line. The gauge is over all knots: a fit whose
+    returns reach only some of them can still tilt those against ``bin_size`` (the real sweep did, 0.01408 -> 0.01353
+    m), so fit the warp with ``bin_offset`` and ``bin_size`` held (docs/results.md, the unit model, step 4)."""
+    w = torch.as_tensor(warp, dtype=u.dtype)
+    k = torch.arange(WARP_KNOTS, dtype=u.dtype) - 0.5 * (WARP_KNOTS - 1)
+    w = w - w.mean() - k * (k * w).sum() / (k * k).sum()
+    x = torch.clamp(u, 0.0, float(N_BINS)) / WARP_SPACING
+    i = torch.clamp(torch.floor(x).long(), max=WARP_KNOTS - 2)
+    f = x - i
+    shift = w[i] * (1.0 - f) + w[i + 1] * f
+    inside = (u > 0.0) & (u < float(N_BINS))
+    slope = torch.where(inside, (w[i + 1] - w[i]) / WARP_SPACING, torch.zeros_like(u))
+    return u + shift, 1.0 + slope
+
+
+#: Half-width (bins) of the running mean that :func:`bin_widths` divides out of ``ForwardParams.bin_gains``.
+BIN_GAIN_SMOOTHING = 4
+
+
+def bin_widths(gains) -> torch.Tensor:
+    """The bins' relative widths (N,) from ``ForwardParams.bin_gains`` (N,): each gain divided by the mean of the
+    gains within :data:`BIN_GAIN_SMOOTHING` bins of it (fewer at the ends), so only their bin-to-bin pattern acts.
+
+    A level sweep cannot tell a slow trend of the bins' widths from the fall of the brightness with range and the
+    return's tail (each frame's albedo is free, and a return sits in neighbouring bins at neighbouring ranges), so
+    the smooth part is not part of the model: a fit that tried it traded a +-50 % trend over 50 bins against the
+    tails. Gains all 1 (the default) give widths all exactly 1."""
+    g = torch.as_tensor(gains)
+    k = 2 * BIN_GAIN_SMOOTHING + 1
+    box = torch.ones(1, 1, k, dtype=g.dtype)
+    pad = BIN_GAIN_SMOOTHING
+    total = torch.nn.functional.conv1d(g.view(1, 1, -1), box, padding=pad).view(-1)
+    count = torch.nn.functional.conv1d(torch.ones_like(g).view(1, 1, -1), box, padding=pad).view(-1)
+    return g * count / total
 
 
 def causal_matrix(kernel: torch.Tensor, n: int) -> torch.Tensor:
@@ -610,7 +691,8 @@ class ForwardModel:
                        specular_weight: torch.Tensor | None = None,
                        specular_exponent: torch.Tensor | None = None,
                        hit: torch.Tensor | None = None, kernel: torch.Tensor | None = None,
-                       n_bins: int = N_BINS, light: tuple | None = None, pulse_only: bool = False) -> torch.Tensor:
+                       n_bins: int = N_BINS, light: tuple | None = None, pulse_only: bool = False,
+                       ambient: torch.Tensor | None = None) -> torch.Tensor:
         """Histograms (B, 9, n_bins) from per-ray returns (the first ``n_bins`` bins; default all 128).
 
         ranges, cos_inc: (B, 9, R) range along the ray (m) and cosine of incidence (>= 0).
@@ -620,7 +702,8 @@ class ForwardModel:
         reference: (B, 128) reference histograms, or pass a precomputed pulse ``kernel`` (B, K).
         light: optional ``(emitter_ranges, light_cos, beam)`` (B, 9, R) of a separate emitter
         (:meth:`plane_light`); without it the emitter sits at the receiver (the ray's own range and cosine,
-        a uniform beam). pulse_only: stop after the pulse convolution (finish with :meth:`after_pulse`).
+        a uniform beam). pulse_only: stop after the pulse convolution (finish with :meth:`after_pulse`). ambient:
+        (B, 9) counts per bin, see :meth:`after_pulse`.
         """
         t = self.t
         r = torch.as_tensor(ranges, dtype=self.dtype)
@@ -654,12 +737,14 @@ class ForwardModel:
         path = r if light is None else 0.5 * (r + r_light)  # one-way range: half the light's path
         u = path / t["bin_size"] + t["bin_offset"] + t["zone_offsets"].view(1, N_ZONES, 1)
         amp, u = self.add_echo_and_glass(amp, u, path)
+        if torch.is_grad_enabled() or bool(torch.any(t["time_warp"] != 0)):
+            u = warp_positions(u, t["time_warp"])[0]  # the TDC's integral non-linearity (direct, echo and glass)
         sigma = t["soft_bin_sigma"]
         transient = soft_bin(amp, u, sigma, self.bins[:n_bins])
         if kernel is None:
             kernel = self.pulse(torch.as_tensor(reference, dtype=self.dtype).expand(b, N_BINS))
         hist = convolve_pulse(transient, kernel)
-        return hist if pulse_only else self.after_pulse(hist)
+        return hist if pulse_only else self.after_pulse(hist, ambient)
 
     def add_echo_and_glass(self, amp: torch.Tensor, u: torch.Tensor,
                            path: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -696,11 +781,18 @@ class ForwardModel:
     #: Parameters that act only after the pulse convolution (:meth:`after_pulse`): a calibration's derivatives in
     #: them need not render the rays again.
     AFTER_PULSE = ("response_kernel", "zone_tail_weights", "zone_tail_decays", "crosstalk", "crosstalk_self",
-                   "crosstalk_grid", "pileup", "floor", "pileup_shadow", "zone_pulse_widths", "zone_pulse_skews")
+                   "crosstalk_grid", "pileup", "floor", "pileup_shadow", "zone_pulse_widths", "zone_pulse_skews",
+                   "bin_gains")
 
-    def after_pulse(self, hist: torch.Tensor) -> torch.Tensor:
+    def after_pulse(self, hist: torch.Tensor, ambient: torch.Tensor | None = None) -> torch.Tensor:
         """The zone histograms (B, 9, N) after the pulse convolution -> what the sensor reports: each zone's pulse
-        shape (width, skew), the learned response, its own tail, crosstalk, pile-up and the constant floor (the parameters of :attr:`AFTER_PULSE`)."""
+        shape (width, skew), the learned response, its own tail, crosstalk, the bins' widths, pile-up and the constant
+        floor (the parameters of :attr:`AFTER_PULSE`).
+
+        ``ambient`` (B, 9), counts per bin: the frames' ambient light as it arrives (before any pile-up), which then
+        takes part in the pile-up with the return (:func:`ambient_pileup`); the result is the return's counts above
+        that ambient (negative where the return's counts shadow the ambient after it). None: the return alone (the
+        model as it was: the sensor's floor, measured after the return, is subtracted from the data instead)."""
         t = self.t
         shaped = torch.is_grad_enabled() or bool(torch.any(t["zone_pulse_widths"] != 0)) or bool(
             torch.any(t["zone_pulse_skews"] != 0))
@@ -718,6 +810,10 @@ class ForwardModel:
         hist = mixed
         if shaped:
             hist = torch.clamp(hist, min=0.0)  # the shape correction's negative lobes beside a sharp pulse: no counts
+        if torch.is_grad_enabled() or bool(torch.any(t["bin_gains"] != 1)):
+            hist = hist * bin_widths(t["bin_gains"])[:hist.shape[-1]]  # the TDC's bin widths (its DNL)
+        if ambient is not None:
+            return ambient_pileup(hist, ambient, t["pileup"], t["pileup_shadow"]) + t["floor"]
         return apply_pileup(hist, t["pileup"], t["pileup_shadow"]) + t["floor"]
 
     def plane_returns(self, normal: torch.Tensor, offset: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -759,13 +855,14 @@ class ForwardModel:
                      reference: torch.Tensor, specular_weight: torch.Tensor | None = None,
                      specular_exponent: torch.Tensor | None = None,
                      kernel: torch.Tensor | None = None, n_bins: int = N_BINS,
-                     pulse_only: bool = False) -> torch.Tensor:
-        """Histograms (B, 9, n_bins) of planes ``n . x = d`` with albedo (B,) (``pulse_only``: see
+                     pulse_only: bool = False, ambient: torch.Tensor | None = None) -> torch.Tensor:
+        """Histograms (B, 9, n_bins) of planes ``n . x = d`` with albedo (B,) (``pulse_only``, ``ambient``: see
         :meth:`render_returns`)."""
         ranges, cos, hit = self.plane_returns(normal, offset)
         return self.render_returns(ranges, cos, albedo, reference, specular_weight=specular_weight,
                                    specular_exponent=specular_exponent, hit=hit, kernel=kernel, n_bins=n_bins,
-                                   light=self.plane_light(normal, offset, ranges, hit), pulse_only=pulse_only)
+                                   light=self.plane_light(normal, offset, ranges, hit), pulse_only=pulse_only,
+                                   ambient=ambient)
 
 
 @contextmanager

@@ -30,7 +30,8 @@ range)^echo_power`` of its amplitude (its derivatives by the chain above), the c
 zone at ``bin_offset + glass_delay + zone_offset`` (no derivative in x), and the neighbour crosstalk
 (``crosstalk_grid``) is a (9, 9) matrix applied with the scalar crosstalk. Version 4: each zone's pulse width and
 skew are causal (9, 128, 128) matrices folded in before the response and tails, and the pile-up's shadowing of later bins is
-weighted by ``pileup_shadow``.
+weighted by ``pileup_shadow``. Version 5: the bins' widths (``bin_gains``) multiply the expected counts before the pile-up, and the time warp
+(``time_warp``) moves every position ``u`` to ``u + warp(u)`` (its slope multiplies ``d u / d x``).
 """
 
 from __future__ import annotations
@@ -38,9 +39,11 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import torch
 
-from place_safe.recovery.forward import (ECHO_REFERENCE_RANGE, ForwardModel, ForwardParams, ZoneRays,
-                                         grid_crosstalk_matrix, pulse_shape_matrix, response_matrix, zone_tail_taps)
+from place_safe.recovery.forward import (ECHO_REFERENCE_RANGE, ForwardModel, ForwardParams, ZoneRays, bin_widths,
+                                         grid_crosstalk_matrix, pulse_shape_matrix, response_matrix, warp_positions,
+                                         zone_tail_taps)
 from place_safe.sensor.frame import N_BINS, N_ZONES
 
 N_UNKNOWNS = 6
@@ -107,6 +110,14 @@ class PlaneRenderer:
         self.glass = (np.asarray(params.glass_gains, dtype=float) if np.any(np.asarray(params.glass_gains) != 0.0)
                       else None)
         self.glass_u = params.bin_offset + params.glass_delay + self.offsets[:, 0]  # (9,)
+        # the TDC's integral non-linearity (ForwardModel.render_returns: every position, after the echo and glass)
+        self.warp = (torch.as_tensor(params.time_warp, dtype=torch.float64)
+                     if np.any(np.asarray(params.time_warp) != 0.0) else None)
+        if self.warp is not None:
+            self.glass_u = warp_positions(torch.as_tensor(self.glass_u), self.warp)[0].numpy()
+        # the TDC's bin widths (ForwardModel.after_pulse: after the crosstalk, before the pile-up); None: nominal
+        self.bin_gains = (bin_widths(torch.as_tensor(params.bin_gains, dtype=torch.float64)).numpy()
+                          if np.any(np.asarray(params.bin_gains) != 1.0) else None)
 
     def render(self, x: np.ndarray, conv: np.ndarray, jacobian: bool = False):
         """Histograms (B, 9, W) for unknowns x (B, 6) and convolution matrices (B, W, W).
@@ -159,6 +170,9 @@ class PlaneRenderer:
             echo = self.echo_gain * (ECHO_REFERENCE_RANGE / np.maximum(path, 1e-4)) ** self.echo_power
             amp = np.concatenate([amp, amp * echo], axis=-1)
             u = np.concatenate([u, 2.0 * path / p.bin_size + p.bin_offset + self.offsets], axis=-1)
+        slope = None
+        if self.warp is not None:  # apparent positions, and d u' / d u for the derivatives
+            u, slope = (v.numpy() for v in warp_positions(torch.from_numpy(u), self.warp))
         width = conv.shape[-1]
         t = np.arange(width)[None, None, None, :] - u[..., None]          # (B, 9, R, W)
         G = np.exp(-0.5 * self.inv_sigma2 * t * t) * self.gnorm
@@ -170,6 +184,8 @@ class PlaneRenderer:
         if self.shaped:  # ForwardModel.after_pulse: no negative counts beside a sharpened pulse
             F_ok = F >= 0.0
             F = np.maximum(F, 0.0)
+        if self.bin_gains is not None:
+            F = F * self.bin_gains[:width]
         kp = p.pileup
         ks_shadow = kp * p.pileup_shadow
         if kp > 0:
@@ -211,7 +227,7 @@ class PlaneRenderer:
         for k in range(3):
             dp_geo = dp_dr * dr[k] if dp_dr is not None else dp_dlogflux * dlog[k]
             A[..., k] = dp_geo + dp_dsh * dsh_dc * dc[k]
-            B[..., k] = amp_direct * du[k]
+            B[..., k] = amp_direct * du[k] * (1.0 if slope is None else slope[..., :n_direct])
         if self.zone_albedo:
             zones = np.arange(N_ZONES)
             A[:, zones, :, 3 + zones] = dp_dlogrho.transpose(1, 0, 2)
@@ -228,7 +244,7 @@ class PlaneRenderer:
             B_e = np.zeros_like(B)
             for k in range(3):
                 A_e[..., k] += falloff * d_path[k] * near
-                B_e[..., k] = amp_e * 2.0 * du[k]
+                B_e[..., k] = amp_e * 2.0 * du[k] * (1.0 if slope is None else slope[..., n_direct:])
             A = np.concatenate([A, A_e], axis=2)
             B = np.concatenate([B, B_e], axis=2)
         Gt = G * t * self.inv_sigma2
@@ -236,6 +252,8 @@ class PlaneRenderer:
         dF = self._mix(self._tail(np.matmul(conv[:, None], dT)), axis_zone=1)
         if self.shaped:
             dF = dF * F_ok[..., None]
+        if self.bin_gains is not None:
+            dF = dF * self.bin_gains[:width, None]
         if kp > 0:
             d_before = np.cumsum(dF, axis=2) - dF
             dH = (e_b * e_c)[..., None] * dF - ks_shadow * H[..., None] * d_before

@@ -217,3 +217,45 @@ def test_correction_series_chosen_by_cross_validation_in_range_or_inverse_range(
     assert not inverse and deg == 1
     loo, _, deg = _best_series(z, noise, domain, 4)
     assert deg <= 1 and loo < 2e-4
+
+
+def test_the_tdc_terms_come_back_from_frames_made_with_them():
+    """Frames rendered with a bin-to-bin pattern of bin widths and a bowed time warp: fitted from nominal bins
+    (``DNL_TERMS``, ``INL_TERMS``), the widths of the bins the returns cover and the warp where they fall come back."""
+    import torch
+
+    from place_safe.calibration.forward_fit import DNL_TERMS, INL_TERMS
+    from place_safe.recovery.forward import bin_widths, warp_positions
+    from place_safe.sensor.frame import N_BINS
+
+    gains = list(1.0 + 0.04 * (-1.0) ** np.arange(N_BINS) * np.cos(np.arange(N_BINS) * 0.3))
+    warp = [0.0, 0.0, 0.3, -0.2, 0.25, 0.0] + [0.0] * 11
+    truth = ForwardParams(bin_offset=9.3, bin_gains=gains, time_warp=warp)
+    spec = SyntheticSpec(z_range=(0.1, 0.3), theta_range=(0.0, 0.0), specular_weight_range=(0.14681, 0.14681),
+                         specular_exponent_range=(1.8378, 1.8378), noise=False, rays=4)
+    frames = make_frames(8, params=truth, spec=spec, seed=3)
+    got, report = fit_forward(frames, init=ForwardParams(bin_offset=9.3), progress=False, rays=4, iterations=15,
+                              fitted={**DNL_TERMS, **INL_TERMS}, coarse_rays=0,
+                              priors={"bin_gains": (1.0, 0.03), "time_warp": (0.0, 0.3)})
+    covered = slice(20, 34)
+    np.testing.assert_allclose(bin_widths(torch.tensor(got.bin_gains, dtype=torch.float64))[covered],
+                               bin_widths(torch.tensor(gains, dtype=torch.float64))[covered], atol=0.01)
+    where = torch.tensor([16.0, 20.0, 24.0, 28.0, 32.0], dtype=torch.float64)  # the warp (less its line) there
+    np.testing.assert_allclose(warp_positions(where, got.time_warp)[0], warp_positions(where, warp)[0], atol=0.05)
+    assert report["rms_scaled_residual_after"] < 0.1 * report["rms_scaled_residual_before"]
+
+
+def test_the_ambient_option_fits_and_says_why_it_stopped():
+    """``fit_forward(..., ambient=True)`` (the ambient through the pile-up, compared above the ambient of bins 0-7)
+    fits synthetic frames as well as the floor-subtracted fit and reports whether and why it stopped."""
+    spec = SyntheticSpec(z_range=(0.08, 0.3), theta_range=(0.0, 0.0), specular_weight_range=(0.14681, 0.14681),
+                         specular_exponent_range=(1.8378, 1.8378), noise=True, rays=4)
+    frames = make_frames(6, params=ForwardParams(bin_offset=9.3, pileup=1e-6), spec=spec, seed=4)
+    fitted = {"bin_offset": "lin", "pileup": "log"}
+    init = ForwardParams(bin_offset=9.0, pileup=5e-7)
+    _, plain = fit_forward(frames, init=init, progress=False, rays=4, iterations=15, fitted=fitted, coarse_rays=0)
+    _, amb = fit_forward(frames, init=init, progress=False, rays=4, iterations=15, fitted=fitted, coarse_rays=0,
+                         ambient=True)
+    assert amb["converged"] and amb["why"]
+    assert amb["rms_scaled_residual_after"] < 0.5 * amb["rms_scaled_residual_before"]
+    assert amb["rms_scaled_residual_after"] < 1.2 * plain["rms_scaled_residual_after"]

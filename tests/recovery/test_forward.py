@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from place_safe.exceptions import CalibrationError
-from place_safe.recovery.forward import (ForwardModel, ForwardParams, ZoneRays, apply_pileup, params_to_tensors,
-                                pulse_kernel)
+from place_safe.recovery.forward import (ForwardModel, ForwardParams, ZoneRays, apply_pileup, bin_widths,
+                                params_to_tensors, pulse_kernel)
 from place_safe.geometry import Plane
 from place_safe.sensor.frame import N_BINS, ZONE_DIRECTIONS
 from place_safe.evaluation.synthetic import default_reference
@@ -398,3 +398,97 @@ def test_the_echo_falls_with_the_stated_power_of_range():
             direct = render(ForwardParams())
             echo = render(ForwardParams(echo_gain=0.02, echo_power=0.0)) - direct
             assert echo.sum() / direct.sum() == pytest.approx(0.02, rel=0.05)
+
+
+def test_bin_gains_scale_each_bin_before_the_pileup_and_old_files_read_as_nominal():
+    """``bin_gains`` (version 5, the TDC's bin widths) multiply bin ``b``'s expected counts before the pile-up, the
+    same in every zone, through their bin-to-bin pattern (:func:`bin_widths`); a file without the key loads with every
+    bin nominal (1) and renders as before."""
+    d = ForwardParams(pileup=2e-7).to_dict()
+    d.pop("bin_gains")
+    old = ForwardParams.from_dict(d)
+    assert old.bin_gains == [1.0] * N_BINS
+    gains = list(1.0 + 0.04 * np.sin(np.arange(N_BINS) * 1.3))
+    ref = torch.as_tensor(default_reference(), dtype=torch.float64)[None]
+    normal = torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64)
+    with torch.no_grad():
+        def render(p):
+            return ForwardModel(p, ZoneRays.stratified(4)).render_plane(normal, torch.tensor([0.12]),
+                                                                        torch.tensor([3.0]), ref)
+        raw = render(ForwardParams())
+        torch.testing.assert_close(render(old), apply_pileup(raw, torch.tensor(2e-7, dtype=torch.float64)))
+        g = bin_widths(torch.as_tensor(gains, dtype=torch.float64))
+        torch.testing.assert_close(render(ForwardParams(bin_gains=gains)), raw * g)
+        torch.testing.assert_close(render(ForwardParams(bin_gains=gains, pileup=2e-7)),
+                                   apply_pileup(raw * g, torch.tensor(2e-7, dtype=torch.float64)))
+        # a narrower render uses the first bins' gains
+        narrow = ForwardModel(ForwardParams(bin_gains=gains), ZoneRays.stratified(4)).render_plane(
+            normal, torch.tensor([0.12]), torch.tensor([3.0]), ref, n_bins=48)
+        torch.testing.assert_close(narrow, (raw * g)[..., :48], atol=1e-9, rtol=1e-9)
+
+
+def test_bin_widths_keep_the_bin_to_bin_pattern_and_drop_a_slow_trend():
+    """Only the bins' pattern acts: a constant or a slow trend of the gains gives widths of (nearly) 1, an
+    alternating pattern passes almost unchanged."""
+    n = torch.arange(N_BINS, dtype=torch.float64)
+    torch.testing.assert_close(bin_widths(torch.full((N_BINS,), 1.3, dtype=torch.float64)),
+                               torch.ones(N_BINS, dtype=torch.float64))
+    slow = bin_widths(1.0 + 0.3 * n / N_BINS)
+    assert float((slow[8:-8] - 1.0).abs().max()) < 1e-3
+    alt = 1.0 + 0.03 * (-1.0) ** n
+    assert float((bin_widths(alt)[8:-8] - alt[8:-8]).abs().max()) < 0.004
+
+
+def test_time_warp_moves_returns_by_the_interpolated_shift():
+    """``time_warp`` (version 5): a return at bin position ``u`` appears at ``u + warp(u)``, the knots' values less
+    their straight line, interpolated linearly; zeros and straight lines move nothing (they are ``bin_offset`` and
+    ``bin_size``), and a file without the key reads as zeros."""
+    from place_safe.recovery.forward import WARP_KNOTS, warp_positions
+
+    d = ForwardParams().to_dict()
+    d.pop("time_warp")
+    assert ForwardParams.from_dict(d).time_warp == [0.0] * WARP_KNOTS
+    u = torch.tensor([3.0, 16.0, 20.0, 24.0, 40.0, 77.0], dtype=torch.float64)
+    line = 0.3 - 0.02 * torch.arange(WARP_KNOTS, dtype=torch.float64)
+    moved, slope = warp_positions(u, line)
+    torch.testing.assert_close(moved, u)
+    torch.testing.assert_close(slope, torch.ones_like(u))
+    bow = torch.zeros(WARP_KNOTS, dtype=torch.float64)
+    bow[2], bow[3] = 0.5, -0.3  # bins 16 and 24
+    k = torch.arange(WARP_KNOTS, dtype=torch.float64) - 0.5 * (WARP_KNOTS - 1)
+    w = bow - bow.mean() - k * (k * bow).sum() / (k * k).sum()
+    moved, slope = warp_positions(u, bow + line)  # the line added changes nothing
+    torch.testing.assert_close(moved[1:4], u[1:4] + torch.stack([w[2], 0.5 * (w[2] + w[3]), w[3]]))
+    torch.testing.assert_close(slope[2], 1.0 + (w[3] - w[2]) / 8.0)
+    assert float(w[2]) > 0.45 and float(w[3]) < -0.3
+
+
+def test_a_bright_return_shadows_the_ambient_after_it():
+    """``ambient_pileup``: the ambient takes part in the pile-up. With no ambient it is ``apply_pileup``; after a
+    bright return the ambient reads lower than before it by Coates' factor ``exp(-k shadow N)`` (N the return's
+    counts), so the counts above the arriving ambient go negative there; without pile-up it is the return alone."""
+    from place_safe.recovery.forward import ambient_pileup
+
+    h = torch.zeros((1, 9, 40), dtype=torch.float64)
+    h[0, :, 10] = 2e5
+    k = torch.tensor(1e-6, dtype=torch.float64)
+    torch.testing.assert_close(ambient_pileup(h, torch.zeros((1, 9), dtype=torch.float64), k, 0.5),
+                               apply_pileup(h, k, 0.5))
+    a = torch.full((1, 9), 120.0, dtype=torch.float64)
+    torch.testing.assert_close(ambient_pileup(h, a, torch.tensor(0.0, dtype=torch.float64)), h)
+    out = ambient_pileup(h, a, k, 0.5)
+    before, after = float(out[0, 4, 5]) + 120.0, float(out[0, 4, 30]) + 120.0
+    assert after < before
+    # after the return: arriving ambient times exp(-k shadow (N_return + earlier ambient)), per-bin compression aside
+    expected = 120.0 * math.exp(-1e-6 * 0.5 * (2e5 + 120.0 * 30)) * (-math.expm1(-1e-6 * 120.0) / (1e-6 * 120.0))
+    assert after == pytest.approx(expected, rel=1e-9)
+    # through the model: the same as rendering the return and piling it up with the ambient by hand
+    ref = torch.as_tensor(default_reference(), dtype=torch.float64)[None]
+    normal = torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64)
+    p = ForwardParams(pileup=3e-7, pileup_shadow=0.4)
+    with torch.no_grad():
+        m = ForwardModel(p, ZoneRays.stratified(4))
+        raw = ForwardModel(ForwardParams(), ZoneRays.stratified(4)).render_plane(normal, torch.tensor([0.1]),
+                                                                                 torch.tensor([3.0]), ref)
+        got = m.render_plane(normal, torch.tensor([0.1]), torch.tensor([3.0]), ref, ambient=a)
+    torch.testing.assert_close(got, apply_pileup(raw + 120.0, torch.tensor(3e-7, dtype=torch.float64), 0.4) - 120.0)

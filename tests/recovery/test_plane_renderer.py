@@ -126,3 +126,24 @@ def test_matches_torch_model_with_echo_falloff_pileup_shadow_and_pulse_shapes():
                       glass_gains=list(np.linspace(5.0, 40.0, 9)), crosstalk_grid=list(np.linspace(0.002, 0.016, 8)),
                       baseline=[0.003, -0.0015], beam_power=1.2)
     _check(p, np.array([-0.25, 0.2, 0.18, math.log(2.0), 0.2, math.log(1.5)]))
+
+
+def test_matches_torch_model_with_bin_gains():
+    """The bins' widths (version 5) are rendered and differentiated exactly as in the torch model, alone and with
+    the pile-up and the pulse shapes."""
+    x = np.array([0.12, -0.08, 0.07, math.log(3.0), 0.1, math.log(2.0)])
+    gains = list(1.0 + 0.05 * np.cos(np.arange(128) * 0.9))
+    _check(ForwardParams(bin_gains=gains), x)
+    _check(ForwardParams(bin_gains=gains, pileup=3e-7, pileup_shadow=0.4, crosstalk=0.01,
+                         zone_pulse_widths=list(np.linspace(-0.2, 0.2, 9))), x)
+
+
+def test_matches_torch_model_with_time_warp():
+    """The TDC's integral non-linearity (version 5) moves the direct return, the echo and the glass as in the torch
+    model, with the warp's slope in the derivatives."""
+    x = np.array([0.12, -0.08, 0.07, math.log(3.0), 0.1, math.log(2.0)])
+    warp = list(0.4 * np.sin(np.arange(17) * 0.7))
+    _check(ForwardParams(time_warp=warp), x)
+    _check(ForwardParams(time_warp=warp, echo_gain=0.03, echo_power=1.0, glass_gains=list(np.linspace(5.0, 40.0, 9)),
+                         pileup=2e-7, bin_gains=list(1.0 + 0.05 * np.cos(np.arange(128) * 0.9))),
+           np.array([-0.25, 0.2, 0.18, math.log(2.0), 0.2, math.log(1.5)]))
