@@ -21,8 +21,9 @@ class PlacementConfig(ParamModel):
 
     what: ClassVar[str] = "placement config"
 
-    # m/s at most while the surface is far (slower near it: placement/speed.py)
-    approach_speed: float = Field(0.25, gt=0.0, le=1.0, description="m/s")
+    # m/s at most while the surface is far (slower near it: placement/speed.py); the loop caps it at the robot
+    # file's max_linear_speed (sim.toml 0.5, real.toml 0.1), which then sets the cruise
+    approach_speed: float = Field(0.5, gt=0.0, le=1.0, description="m/s")
     # m/s in the slow band (a touch of a mis-sensed surface at this speed stays gentle)
     descend_speed: float = Field(0.025, gt=0.0, le=0.5, description="m/s")
     # m/s^2 for speed changes and stops along the tool axis (the loop caps it at the robot's limit)
