@@ -51,7 +51,7 @@ class PlacementConfig(ParamModel):
     max_std_offset: float = Field(0.003, gt=0.0, le=0.1, description="m")
     # distinct planes measured after stopping that CHECK needs at least
     check_frames: int = Field(2, ge=1, le=1000, description="frames")
-    # ... and waits for (if more than check_frames) when the fused plane is within half of a limit
+    # ... and waits for (if more than check_frames) when the fused plane is near a limit (rules.check_frames_needed)
     max_check_frames: int = Field(5, ge=1, le=1000, description="frames")
     check_timeout: float = Field(1.5, gt=0.0, le=60.0, description="s")  # s to gather them
     max_checks: int = Field(3, ge=1, le=100, description="retries")  # CHECK -> DESCEND retries
