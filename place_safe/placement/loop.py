@@ -55,7 +55,7 @@ from place_safe.placement.machine import CommandKind, PlacementMachine, RobotSta
 from place_safe.placement.time_alignment import ClockMap, PoseHistory
 from place_safe.recovery.estimator import Estimator, PlaneEstimate
 from place_safe.recovery.points import PeakParams, fit_planes, plane_covariance
-from place_safe.robot.interface import Robot
+from place_safe.robot.interface import Robot, RobotLimits
 from place_safe.robot.tool import ToolFrames
 
 log = logging.getLogger("place_safe.placement.loop")
@@ -106,7 +106,8 @@ def within_robot_limits(config: PlacementConfig, robot: Any) -> PlacementConfig:
     """``config`` with its speeds and accelerations capped at the robot's ``limits`` (``max_linear_speed``,
     ``max_linear_accel``), so that the descent profile is planned with the braking the arm really has
     (a driver would clip a faster command and the arm would then stop later than planned). A robot
-    without readable limits leaves the config as it is."""
+    without readable limits gets :class:`~place_safe.robot.interface.RobotLimits`' defaults (0.25 m/s,
+    1.2 m/s^2): the config's cruise (sized for an arm that states a faster limit) is not trusted blind."""
     try:
         lim = getattr(robot, "limits", None)
         v = getattr(lim, "max_linear_speed", None)
@@ -114,15 +115,17 @@ def within_robot_limits(config: PlacementConfig, robot: Any) -> PlacementConfig:
     except Exception:  # a robot whose limits cannot be read: its driver clips what it must
         v = a = None
     ok = (lambda x: isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) and x > 0)
+    if not ok(v):
+        v = RobotLimits().max_linear_speed
+    if not ok(a):
+        a = RobotLimits().max_linear_accel
     changes: dict[str, float] = {}
-    if ok(v):
-        for name in ("approach_speed", "descend_speed", "survey_speed", "retreat_speed", "near_surface_speed"):
-            if getattr(config, name) > v:
-                changes[name] = float(v)
-    if ok(a):
-        for name in ("accel", "lateral_accel"):
-            if getattr(config, name) > a:
-                changes[name] = float(a)
+    for name in ("approach_speed", "descend_speed", "survey_speed", "retreat_speed", "near_surface_speed"):
+        if getattr(config, name) > v:
+            changes[name] = float(v)
+    for name in ("accel", "lateral_accel"):
+        if getattr(config, name) > a:
+            changes[name] = float(a)
     return config.replace(**changes) if changes else config
 
 

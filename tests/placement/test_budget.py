@@ -91,17 +91,19 @@ def test_the_loop_plans_within_the_robot_limits(v, a):
     assert cfg.accel <= a + 1e-12 and cfg.lateral_accel <= a + 1e-12
 
 
-def test_a_robot_without_readable_limits_leaves_the_config():
-    cfg = PlacementConfig()
+def test_a_robot_without_readable_limits_is_planned_at_the_default_limits():
+    cfg = PlacementConfig()  # its 0.5 m/s cruise is sized for an arm that states it can
+    default = within_robot_limits(cfg, _Arm(RobotLimits()))
+    assert default.approach_speed == RobotLimits().max_linear_speed < cfg.approach_speed
 
     class Broken:
         @property
         def limits(self):
             raise RuntimeError("no limits")
 
-    assert within_robot_limits(cfg, Broken()) is cfg
-    assert within_robot_limits(cfg, object()) is cfg
-    assert within_robot_limits(cfg, _Arm(None)) is cfg
+    assert within_robot_limits(cfg, Broken()) == default
+    assert within_robot_limits(cfg, object()) == default
+    assert within_robot_limits(cfg, _Arm(None)) == default
 
 
 @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
