@@ -8,6 +8,9 @@ Per zone, vectorised over zones (and over frames in :func:`place_safe.sensor.his
    return of anything within about 1.3 m); subtracted.
 2. the highest bin from :data:`SEARCH_START` on; a zone has a return when that bin is more than
    :data:`NOISE_SIGMAS` Poisson standard deviations of the floor (and :data:`MIN_NET_COUNTS`) above it.
+   Within the internal return's bins it must also stand well above the internal return
+   (:data:`~place_safe.sensor.histogram.INTERNAL_MAX_COUNTS`); otherwise the highest bin beyond them is
+   looked at instead (a zone that sees nothing does not read a surface at zero range).
 3. sub-bin position, by :attr:`PeakParams.subbin <place_safe.recovery.points.PeakParams>`:
    ``"spline"``, the maximum of a not-a-knot cubic spline (:class:`scipy.interpolate.CubicSpline`)
    through the :data:`HALF_WINDOW` bins on either side, on a grid of :data:`SUBBIN_STEPS` points per

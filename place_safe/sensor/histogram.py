@@ -7,6 +7,8 @@
   maximum of a cubic spline, or a windowed centroid started there: :data:`SUBBIN_METHODS`), optionally
   after :func:`undo_pileup`.
 * :func:`find_returns`: the same readings with each zone's maximum, for the shape of its return.
+* :data:`INTERNAL_BINS` / :data:`INTERNAL_MAX_COUNTS`: where the sensor's internal (cover-glass) return lies and
+  how high it can be; a zone's maximum there is a return only when it stands well above it (:func:`find_peaks`).
 * :func:`undo_pileup`: the Coates correction of SPAD pile-up (a bright return arrives early).
 * :func:`first_return`: the first return above the noise, as the sensor's own firmware reports a
   distance (used to emulate on-sensor distances).
@@ -68,6 +70,22 @@ MIXED_SHIFT = 0.3
 #: Largest distance (bins) the centroid may move from the highest bin: a window reaching past the
 #: bins gathered around it would be cut off.
 CENTROID_MAX_SHIFT = 1.5
+#: Bins [start, stop) the internal (cover-glass / package) return reaches: it arrives at zero range in every
+#: frame, whatever the scene. On the real sweep's frames at >= 15 cm it peaks at bins 13-14 (its zero-range
+#: bump spans bins 12-16); the simulated units put it at bins 12-15 (the true sensor's ``bin_offset`` plus
+#: ``glass_delay`` and zone offsets, each mismatched unit its delay moved by N(0, 0.5) bins), and a pulse of
+#: 2.1 bins at half maximum carries it about 3 bins past its peak (its tail after bin 18: under 4 counts).
+#: From :data:`SEARCH_START` (the search starts there) to the end of that tail.
+INTERNAL_BINS = (SEARCH_START, 19)
+#: counts above the floor: the internal return's largest plausible height. The real sweep's bump peaks at
+#: 26-44 counts; the mismatched units scale it per zone by up to x1.5 (their ``glass_spread``); a safety
+#: factor of 2 covers the simulated rendering (up to 52 counts nominal, 75 on mismatched units) and a unit
+#: brighter than the one measured: 44 x 1.5 x 2 = 132. A zone's maximum within :data:`INTERNAL_BINS` is a
+#: return only above this plus its noise margin; a real surface there (0-5 cm) returns 1e4-1e6 counts.
+INTERNAL_MAX_COUNTS = 132.0
+#: Fraction of the in-window maximum a return found beyond :data:`INTERNAL_BINS` must clear on top of the
+#: noise margin: the internal return's tail past the window (under 6 % of its peak on every simulated unit).
+INTERNAL_TAIL_FRACTION = 0.1
 
 _KNOTS = np.arange(-HALF_WINDOW, HALF_WINDOW + 1, dtype=float)
 _KNOT_OFFSETS = _KNOTS.astype(int)
@@ -169,11 +187,9 @@ def _returns(hists: np.ndarray, pileup: float, subbin: str,
     saturated = (h >= COUNT_MAX).any(axis=-1)
     floor = np.minimum(_median(h[..., :EARLY_BINS]), _median(h[..., -LATE_BINS:]))
     x = undo_pileup(h - floor[..., None], pileup)
-    k = x[..., SEARCH_START:].argmax(axis=-1) + SEARCH_START
+    k, top, has_return = _highest_return(x, floor)
     rows = x.reshape(-1, x.shape[-1])  # one row per zone (of every frame)
     at = np.arange(rows.shape[0])
-    top = rows[at, k.reshape(-1)].reshape(k.shape)
-    has_return = top > np.maximum(NOISE_SIGMAS * np.sqrt(np.maximum(floor, 0.0) + 1.0), MIN_NET_COUNTS)
     kc = np.minimum(np.maximum(k, HALF_WINDOW), N_BINS - 1 - HALF_WINDOW)
     window = rows[at[:, None], kc.reshape(-1, 1) + _KNOT_OFFSETS].reshape(kc.shape + (len(_KNOTS),))  # (..., 9, W)
     fine = window @ _SPLINE.T  # (..., 9, F)
@@ -184,6 +200,36 @@ def _returns(hists: np.ndarray, pileup: float, subbin: str,
         centre = windowed_centroid(rows, k.reshape(-1), pos.reshape(-1), half_width).reshape(pos.shape)
         reading = _unmixed(centre, pos, valid)
     return reading, pos, valid, saturated & finite, top
+
+
+def _highest_return(x: np.ndarray, floor: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each zone's return bin (..., 9), its height (counts above the floor) and whether it is a return, from the
+    floor-subtracted counts ``x`` (..., 9, 128) and the floors (..., 9).
+
+    The highest bin from :data:`SEARCH_START` on is a return when it clears the noise margin
+    (:data:`NOISE_SIGMAS` Poisson sigmas of the floor and :data:`MIN_NET_COUNTS`). Within the internal return's
+    bins (:data:`INTERNAL_BINS`) it must clear :data:`INTERNAL_MAX_COUNTS` by the same number of Poisson sigmas of
+    the floor plus that return (189 counts on a floor of 0, 236 on 300): otherwise it may be the internal return alone (a zone that sees nothing would read a surface at zero range). Such a zone reads instead the
+    highest bin beyond the internal return, a return if it clears the noise margin plus
+    :data:`INTERNAL_TAIL_FRACTION` of the in-window maximum (the internal return's tail).
+    """
+    lo, hi = INTERNAL_BINS
+    noise = np.maximum(NOISE_SIGMAS * np.sqrt(np.maximum(floor, 0.0) + 1.0), MIN_NET_COUNTS)
+    k = x[..., SEARCH_START:].argmax(axis=-1) + SEARCH_START
+    top = np.take_along_axis(x, k[..., None], axis=-1)[..., 0]
+    inside = (k >= lo) & (k < hi)
+    # the internal return at its largest plus NOISE_SIGMAS of its own and the floor's shot noise
+    near = INTERNAL_MAX_COUNTS + NOISE_SIGMAS * np.sqrt(np.maximum(floor, 0.0) + INTERNAL_MAX_COUNTS + 1.0)
+    internal = inside & (top <= near)  # not told apart from the internal return
+    if not internal.any():
+        return k, top, top > noise
+    k2 = x[..., hi:].argmax(axis=-1) + hi
+    top2 = np.take_along_axis(x, k2[..., None], axis=-1)[..., 0]
+    far = top2 > noise + INTERNAL_TAIL_FRACTION * np.maximum(top, 0.0)
+    k = np.where(internal, k2, k)
+    has_return = np.where(internal, far, top > noise)
+    top = np.where(internal, top2, top)
+    return k, top, has_return
 
 
 def _unmixed(centre: np.ndarray, top: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -329,5 +375,5 @@ def reference_problem(reference) -> str | None:
 
 
 __all__ = ["COUNT_MAX", "FLOOR_BINS", "measure_floor", "find_peaks", "find_returns", "windowed_centroid", "SUBBIN_METHODS",
-           "CENTROID_HALF_WIDTH", "CENTROID_HALF_WIDTHS", "MIXED_SHIFT", "first_return", "reference_floor",
+           "CENTROID_HALF_WIDTH", "CENTROID_HALF_WIDTHS", "MIXED_SHIFT", "INTERNAL_BINS", "INTERNAL_MAX_COUNTS", "first_return", "reference_floor",
            "reference_problem"]

@@ -9,8 +9,9 @@ from hypothesis import strategies as st
 
 from scipy.special import erfc
 
-from place_safe.sensor.histogram import (CENTROID_HALF_WIDTHS, CENTROID_MAX_SHIFT, MIXED_SHIFT, PILEUP_MAX_FRACTION,
-                                         find_peaks, reference_floor, undo_pileup, windowed_centroid)
+from place_safe.sensor.histogram import (CENTROID_HALF_WIDTHS, CENTROID_MAX_SHIFT, INTERNAL_BINS, INTERNAL_MAX_COUNTS,
+                                         MIXED_SHIFT, PILEUP_MAX_FRACTION, find_peaks, find_returns, reference_floor,
+                                         undo_pileup, windowed_centroid)
 
 K = 3e-7  # 1/counts, about the real TMF8820's (the forward fit of the shared sweep)
 BINS = np.arange(128, dtype=float)
@@ -212,3 +213,66 @@ def test_a_zone_with_two_surfaces_reads_its_maximum_not_a_blend():
     assert abs(c_mixed[2] - c_clean[2]) < 0.1
     others = np.arange(9) != 2
     assert np.array_equal(c_mixed[others], c_clean[others])
+
+
+# -- the internal (cover-glass) return: at zero range in every frame, not a surface ---------------------------------
+
+#: bin of the real sweep's internal return (its zero-range bump peaks at bins 13-14)
+GLASS_BIN = 13.5
+
+
+def _glass(height: float, centre: float = GLASS_BIN) -> np.ndarray:
+    """The internal return: a pulse of ``height`` counts at zero range (the same skewed shape as a surface's)."""
+    return _pulse(centre, height, width=0.9)
+
+
+def _frames(expected: np.ndarray, seed: int = 0) -> np.ndarray:
+    """Poisson frames (9, 128) of expected counts (128,) or (9, 128)."""
+    return np.random.default_rng(seed).poisson(np.broadcast_to(expected, (9, 128))).astype(float)
+
+
+@pytest.mark.parametrize("floor", [0.0, 60.0, 120.0, 300.0])
+@pytest.mark.parametrize("subbin", ["spline", "centroid"])
+def test_floor_and_the_internal_return_alone_give_no_return(floor, subbin):
+    """A zone that sees nothing holds the floor and the internal return (the real sweep's 26-44 counts; here up
+    to the largest plausible height): no zone reads a surface, least of all one at zero range."""
+    for height in (26.0, 44.0, 66.0, INTERNAL_MAX_COUNTS):
+        for seed in range(5):
+            _, valid, _ = find_peaks(_frames(floor + _glass(height), seed), 0.0, subbin)
+            assert not valid.any(), (height, seed)
+
+
+@pytest.mark.parametrize("depth_bins", [0.35, 0.7, 1.05, 1.4])  # 5, 10, 15, 20 mm at 14.1 mm per bin
+def test_a_near_surface_over_the_internal_return_still_reads(depth_bins):
+    """A real surface at 5-20 mm returns 1e4-1e6 counts into the internal return's bins: it reads as before,
+    where its return peaks."""
+    for height in (1e4, 1e5, 1e6):
+        expected = 60.0 + _glass(INTERNAL_MAX_COUNTS) + _pulse(GLASS_BIN - 0.5 + depth_bins, height)
+        h = _frames(expected, int(height))
+        pos, top, valid, _, heights = find_returns(h, 0.0, "spline", heights=True)
+        assert valid.all()
+        assert np.all(np.abs(top - np.argmax(expected)) <= 1.0)
+        assert np.all(heights > 0.9 * height)
+
+
+@pytest.mark.parametrize("floor", [0.0, 60.0, 300.0])
+@pytest.mark.parametrize("far_bin", [22.0, 40.0, 90.0])
+def test_a_weak_far_surface_behind_the_internal_return_is_found(floor, far_bin):
+    """A surface fainter than the internal return (a dark floor far away) is still found when it clears the noise:
+    the zone reads it, not the internal return."""
+    height = 6.0 * math.sqrt(floor + 1.0) + 15.0 + 0.1 * 66.0  # above the noise margin and the internal return's tail
+    expected = floor + _glass(66.0) + _pulse(far_bin, height)
+    pos, valid, _ = find_peaks(_frames(expected, 3), 0.0, "spline")
+    assert valid.all()
+    assert np.all(np.abs(pos - far_bin) < 2.0)  # within the weak pulse's half width (its top is 4 bins wide)
+
+
+@settings(max_examples=60, deadline=None)
+@given(floor=st.floats(0.0, 300.0), height=st.floats(0.0, INTERNAL_MAX_COUNTS),
+       centre=st.floats(INTERNAL_BINS[0] + 4.0, INTERNAL_BINS[1] - 3.5), seed=st.integers(0, 2 ** 31),
+       pileup=st.sampled_from([0.0, K]), subbin=st.sampled_from(["spline", "centroid"]))
+def test_the_internal_return_alone_never_reads_as_a_return_in_its_bins(floor, height, centre, seed, pileup, subbin):
+    """Random floors and internal returns up to their largest plausible height (anywhere the units put it),
+    without a surface: no zone has a return within the internal return's bins."""
+    pos, valid, _ = find_peaks(_frames(floor + _glass(height, centre), seed), pileup, subbin)
+    assert not (valid & (pos < INTERNAL_BINS[1])).any()

@@ -297,3 +297,26 @@ def test_with_blinding_level_near_frames_read_too_close_or_a_plane_within_its_bo
         err = math.degrees(angular_error(e.plane, f.truth))
         std = e.tilt_std()
         assert err <= max(5.0, 3.0 * math.degrees(std) if std is not None else 0.0), (gap, err)
+
+
+@pytest.mark.parametrize("sensor,ambient,seed", [("nominal", 60.0, 1), ("nominal", 120.0, 2), ("nominal", 0.0, 3),
+                                                 ("mismatch", 60.0, 11), ("mismatch", 60.0, 12)])
+def test_a_frame_that_sees_nothing_has_no_return_at_the_internal_return(sensor, ambient, seed):
+    """The sensor looks up at nothing: its frames hold the floor and the internal return only. No zone reads a
+    return at the internal return's bins (a surface at zero range); the nominal sensor's none anywhere. (Before the
+    peak finder told the internal return apart: 5.8 of 9 zones per frame at ambient 60, 2.0 at 120.)"""
+    from place_safe.sensor.histogram import INTERNAL_BINS, find_peaks
+
+    table = TableConfig(height=H, center=(0.0, 0.0), size=(1.0, 1.0, 0.04))
+    scene = build_scene(SceneConfig(table=table, rig_pos=(0.0, 0.0, H + 0.2), rig_euler=(0.0, 0.0, 0.0)))  # facing up
+    cfg = ToFConfig(rays=4, ambient_range=[ambient, ambient], seed=seed)
+    tof = (SimToF(scene, config=cfg) if sensor == "nominal"
+           else MismatchedToF(scene, config=cfg, mismatch=MismatchConfig(seed=seed)))
+    frames = [tof.measure() for _ in range(20)]
+    assert all(f.extra["sim"]["hit_fraction"] == 0.0 for f in frames)
+    h = np.array([f.hists for f in frames])
+    for subbin in ("spline", "centroid"):
+        pos, valid, _ = find_peaks(h, 0.0, subbin)
+        assert not (valid & (pos < INTERNAL_BINS[1])).any()
+        if sensor == "nominal":
+            assert not valid.any()
