@@ -46,6 +46,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from place_safe.calibration.forward_fit import AMBIENT_BINS
 from place_safe.recovery.forward import ForwardModel, ForwardParams, ZoneRays
 from place_safe.io.frame_file import load_frames
 from place_safe.sensor.frame import N_ZONES, Frame
@@ -117,8 +118,9 @@ def fit_distance_map(frames: list[Frame], min_distance: float = 0.03) -> dict:
 GLASS_MIN_DISTANCE = 0.15
 #: Bins of the internal return (zero range is bin ~9 plus the pulse's delay: it peaks at bins 13-14).
 GLASS_BINS = slice(4, 19)
-#: Bins of the early floor subtracted from each frame (the real sweep's late bins sit 10-25 counts lower).
-EARLY_FLOOR_BINS = slice(0, 8)
+#: Bins of the early floor subtracted from each frame (the real sweep's late bins sit 10-25 counts lower): the
+#: ambient before any return, as the forward fit reads it.
+EARLY_FLOOR_BINS = AMBIENT_BINS
 
 
 def measured_internal_return(frames: list[Frame], min_distance: float = GLASS_MIN_DISTANCE) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
