@@ -212,6 +212,11 @@ NEAR_REFERENCE_DEPTH = 0.05
 NEAR_LAW_MIN_GAP = 0.002
 #: Largest power of :func:`near_std_law` (bounds the fit with few frames).
 NEAR_MAX_POWER = 4.0
+#: Largest part of the near law's variance :func:`fit_near_law` may call common to all zones: the rest stays
+#: independent, so each zone keeps at least half the law's std and the tilt at least half its spread. A level
+#: sweep shows the common part through the offset only; tilted near frames (not in a level sweep) may read their
+#: tilt worse. Fitted values: 0.57 on the whole real sweep, 0.21 / ~0 on its halves, 0.00-0.06 on simulated units.
+NEAR_MAX_SHARED = 0.75
 #: Near frames with a plane that the near-range law needs; with fewer, the cross-validated zone errors stand.
 NEAR_LAW_MIN_FRAMES = 3
 #: Depths at which the law is tabulated (``Uncertainty.near_depths``; linear between them): spaced evenly in
@@ -294,7 +299,8 @@ def fit_near_law(rows: Sequence[tuple], unc: Uncertainty, peak_params, end: floa
     def law(x: np.ndarray) -> tuple[float, float, float, float]:
         """(scale, power, shared part of the variance, share) from the free parameters."""
         share = 1.0 / (1.0 + math.exp(-x[3])) if len(x) > 3 else 1.0
-        return math.exp(x[0]), NEAR_MAX_POWER / (1.0 + math.exp(-x[1])), 1.0 / (1.0 + math.exp(-x[2])), share
+        return (math.exp(x[0]), NEAR_MAX_POWER / (1.0 + math.exp(-x[1])), NEAR_MAX_SHARED / (1.0 + math.exp(-x[2])),
+                share)
 
     def unc_for(depths: np.ndarray, theta: tuple, factor) -> Uncertainty:
         scale, power, shared, _ = theta

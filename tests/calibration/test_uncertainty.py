@@ -239,6 +239,20 @@ def test_near_law_finds_the_error_the_zones_share_and_keeps_tilt_and_offset_hone
     assert 0.7 <= tilt <= 1.4 and 0.7 <= offset <= 1.4
 
 
+def test_the_common_part_never_takes_the_whole_near_law():
+    """Zones whose errors are almost all common (a level sweep shows it through the offset alone) still keep at
+    least (1 - NEAR_MAX_SHARED) of the law's variance each: the tilt is never stated from the offset's evidence."""
+    from place_safe.calibration.uncertainty import NEAR_MAX_SHARED, fit_near_law
+    from place_safe.recovery.estimator import Uncertainty
+    from place_safe.recovery.points import PeakParams
+
+    unc, rep = fit_near_law(_near_rows(60, 1e-4, 1.0, seed=5, shared=0.99), Uncertainty(),
+                            PeakParams.default_peak(), 0.09)
+    assert rep["shared_by_zones"] <= NEAR_MAX_SHARED + 1e-12
+    indep, common = np.array(unc.near_range_std), np.array(unc.near_common_std)
+    assert np.all(indep ** 2 >= (1.0 - NEAR_MAX_SHARED) * (indep ** 2 + common ** 2) * (1 - 1e-9))
+
+
 def test_a_range_error_the_zones_share_moves_the_offset_as_sampling_says():
     from place_safe.recovery.estimator import tilt_offset
     from place_safe.recovery.points import PeakParams, plane_covariance, plane_through
