@@ -107,7 +107,7 @@ def within_robot_limits(config: PlacementConfig, robot: Any) -> PlacementConfig:
     ``max_linear_accel``), so that the descent profile is planned with the braking the arm really has
     (a driver would clip a faster command and the arm would then stop later than planned). A robot
     without readable limits gets :class:`~place_safe.robot.interface.RobotLimits`' defaults (0.25 m/s,
-    1.2 m/s^2): the config's cruise (sized for an arm that states a faster limit) is not trusted blind."""
+    1.2 m/s^2): a config's cruise sized for an arm that states a faster limit is not trusted blind."""
     try:
         lim = getattr(robot, "limits", None)
         v = getattr(lim, "max_linear_speed", None)

@@ -77,7 +77,7 @@ def test_the_loop_plans_within_the_robot_limits(v, a):
 
 
 def test_a_robot_without_readable_limits_is_planned_at_the_default_limits():
-    cfg = PlacementConfig()  # its 0.5 m/s cruise is sized for an arm that states it can
+    cfg = PlacementConfig(approach_speed=0.5)  # a cruise sized for an arm that states it can
     default = within_robot_limits(cfg, _Arm(RobotLimits()))
     assert default.approach_speed == RobotLimits().max_linear_speed < cfg.approach_speed
 
