@@ -64,7 +64,7 @@ def budget_limits(cfg: Any, frame_period: float, frame_latency: float) -> dict[s
                      "the map missed, is met; the CB3 detector sees a touch ~40 ms late)",
         "stop": f"check_settle {cfg.check_settle * 1e3:.0f} ms (braking from {cfg.descend_speed * 1e3:.0f} mm/s "
                 f"takes {cfg.descend_speed / a * 1e3:.0f} ms, {stop_dist * 1e3:.2f} mm)",
-        "check frames": f"{lo} post-stop measurements ({hi} when the fused plane is within half of a limit): "
+        "check frames": f"{lo} post-stop measurements ({hi} near a limit, sized from the fused uncertainty): "
                         f">= {frame_latency + (lo - 1) * frame_period:.2f} s "
                         f"({frame_latency * 1e3:.0f} ms transfer + {lo - 1} frame periods)",
         "release": f"release_settle {cfg.release_settle:.2f} s with the gripper open (after the decision)",

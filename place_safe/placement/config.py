@@ -21,8 +21,9 @@ class PlacementConfig(ParamModel):
 
     what: ClassVar[str] = "placement config"
 
-    # m/s at most while the surface is far (slower near it: placement/speed.py)
-    approach_speed: float = Field(0.25, gt=0.0, le=1.0, description="m/s")
+    # m/s at most while the surface is far (slower near it: placement/speed.py); the loop caps it at the robot
+    # file's max_linear_speed (sim.toml 0.5, real.toml 0.1), which then sets the cruise
+    approach_speed: float = Field(0.5, gt=0.0, le=1.0, description="m/s")
     # m/s in the slow band (a touch of a mis-sensed surface at this speed stays gentle)
     descend_speed: float = Field(0.025, gt=0.0, le=0.5, description="m/s")
     # m/s^2 for speed changes and stops along the tool axis (the loop caps it at the robot's limit)
@@ -50,7 +51,7 @@ class PlacementConfig(ParamModel):
     max_std_offset: float = Field(0.003, gt=0.0, le=0.1, description="m")
     # distinct planes measured after stopping that CHECK needs at least
     check_frames: int = Field(2, ge=1, le=1000, description="frames")
-    # ... and waits for (if more than check_frames) when the fused plane is within half of a limit
+    # ... and waits for (if more than check_frames) when the fused plane is near a limit (rules.check_frames_needed)
     max_check_frames: int = Field(5, ge=1, le=1000, description="frames")
     check_timeout: float = Field(1.5, gt=0.0, le=60.0, description="s")  # s to gather them
     max_checks: int = Field(3, ge=1, le=100, description="retries")  # CHECK -> DESCEND retries

@@ -72,7 +72,7 @@ from place_safe.fusion.plane_filter import FusedPlane
 from place_safe.placement.config import PlacementConfig
 from place_safe.placement import rules
 from place_safe.placement.rules import number
-from place_safe.placement.speed import descent_speed, stoppable_speed
+from place_safe.placement.speed import braking_speed, descent_speed, stoppable_speed
 
 log = logging.getLogger("place_safe.placement.machine")
 
@@ -165,6 +165,8 @@ SURVEY_VIEW_SLACK = 0.005
 #: move goes (it finishes early, not late).
 PASS_AHEAD = 0.03
 PASS_PACE = 1.5
+#: Arrival gaps of sensor frames over which the machine measures the frame period (median).
+FRAME_GAPS = 8
 #: Fraction of ``footprint_margin``: a cup bottom this close sideways to the landing spot lies inside the
 #: footprint the survey certified (its disc reaches ``footprint_margin`` past the cup's rim), so the descent
 #: below ``traverse_clearance`` may go on while the last of the way back is made.
@@ -262,6 +264,14 @@ class PlacementMachine:
         self._budget_bucket: str | None = None
         self._hint: str | None = None
         self._survey_share = 0.0  # fraction of this tick's time the survey takes from the descent (the rest: _hint)
+        self._view_cap = math.inf  # m/s: the pass-through's limit on the descent this tick (see _pass_speed)
+        self._passed: float | None = None  # robot time the footprint was last in view from the certifying height
+        self._window_t0: float | None = None  # ... and first, in this pass
+        self._early_back = False  # the way back began before the certifying frames were in (once only)
+        self._early_back_failed = False  # ... and they did not certify the footprint
+        self._early_back_t = math.nan
+        self._last_frame: float | None = None  # arrival time of the newest frame, and the gaps between arrivals
+        self._frame_gaps: list[float] = []
         self._budget_share = 0.0
         self._tcp_speed = 0.0
 
@@ -377,6 +387,17 @@ class PlacementMachine:
             if pos is not None and prev_pos is not None and np.all(np.isfinite(pos)):
                 self._tcp_speed = float(np.linalg.norm(pos - prev_pos)) / (now - prev_t)
         self._budget_prev = (now, pos)
+        frame = number(getattr(state, "last_frame_time", None))
+        if frame is not None and self._last_frame is not None and frame > self._last_frame:
+            self._frame_gaps = (self._frame_gaps + [frame - self._last_frame])[-FRAME_GAPS:]
+        if frame is not None:
+            self._last_frame = frame
+
+    def _frame_period(self) -> float | None:
+        """s between frames, measured (the median of the last ``FRAME_GAPS`` arrival gaps; None before)."""
+        if len(self._frame_gaps) < FRAME_GAPS // 2:
+            return None
+        return float(np.median(self._frame_gaps))
 
     def _elapsed(self, now: float, t0: float, ticks: int) -> float:
         """Time since ``t0``: the larger of the robot-clock and the tick count (a frozen clock still ends)."""
@@ -451,29 +472,44 @@ class PlacementMachine:
         down = -np.asarray(state.base_T_cup, dtype=float)[:3, 2]
         if self._surveyed or rules.footprint_seen(self._footprint) >= cfg.footprint_frames:
             self._surveyed = True  # latched: no second survey; CHECK still needs the footprint supported
-            back = self._start_pos - tcp
-            back -= down * float(back @ down)
-            self._back = float(np.linalg.norm(back))
-            if not self._back > SURVEY_DONE:
-                return None
-            # share the speed limit with the descent, in proportion to what each has left before the cup may
-            # go below traverse_clearance (within half the footprint margin of the landing spot)
-            limit = self._share(self._back, c - cfg.traverse_clearance)
-            return self._lateral(back, limit)
+            return self._way_back(tcp, down, c)
         if fp is None:
             if self._elapsed(now, self._descent_t0, self._descent_ticks) > cfg.acquire_timeout:
                 return self._refuse(now, "no support evidence: no surface map of the cup's landing footprint")
             self._hint = "survey"
             return self._speed(np.zeros(3))
+        if self._early_back and not self._early_back_failed \
+                and self._elapsed(now, self._early_back_t, 0) > cfg.sensor_latency + (self._frame_period() or 0.0):
+            self._early_back_failed = True  # the frames taken before the way back began are in: not certified
+        if (self._passed is not None and not bool(getattr(fp, "in_view", False))
+                and self._elapsed(now, self._passed, 0) <= cfg.sensor_latency):
+            # the view left the footprint, but frames taken over it from the certifying height are still in
+            # flight (they arrive sensor_latency after they were taken): keep descending -- no lower than
+            # the descent's cap for uncertified ground lets the cup stop above traverse_clearance -- rather
+            # than climbing back to the survey pose, which frames that do not certify it still bring
+            return self._way_back(tcp, down, c) if self._early_back and not self._early_back_failed else None
+        if self._passed is None or not bool(getattr(fp, "in_view", False)):
+            self._passed = self._window_t0 = None
         if bool(getattr(fp, "in_view", False)):
             # pass through: the frames the sensor takes now arrive sensor_latency later; the descent goes on
             # while the footprint stays in view that long (if those frames do not certify it, the cup climbs
             # back to the survey pose: slower, never less safe -- nothing is released without them)
-            stopping = self._descent_speed(c) * cfg.sensor_latency
             margin = number(getattr(fp, "view_margin", None))
             need = number(getattr(fp, "certify_margin", None))
             need = max(need, 0.0) if need is not None else 0.0
-            if margin is not None and margin - stopping > SURVEY_VIEW_SLACK and margin - need > SURVEY_VIEW_SLACK:
+            if margin is not None and margin > SURVEY_VIEW_SLACK and margin - need > SURVEY_VIEW_SLACK:
+                self._view_cap = self._pass_speed(margin, need)
+                if need <= 0:
+                    self._passed = now  # frames taken now can certify the footprint
+                    self._window_t0 = now if self._window_t0 is None else self._window_t0
+                    if self._frames_taken(now) and not self._early_back_failed:
+                        # enough frames taken over the footprint: start back over the landing spot while
+                        # they are in flight (the cup stays above traverse_clearance until they certify it);
+                        # once only -- if they do not certify it, the survey pose and its wait follow
+                        self._view_cap = math.inf
+                        if not self._early_back:
+                            self._early_back, self._early_back_t = True, now
+                        return self._way_back(tcp, down, c)
                 # keep descending: the footprint stays in view down to where frames certify it; meanwhile
                 # centre the view on it (the view narrows on the way down)
                 try:
@@ -499,6 +535,51 @@ class PlacementMachine:
         if not np.all(np.isfinite(move)):
             return self._refuse(now, "surface map gave no way to bring the cup's footprint into view")
         return self._toward(move, down, c)
+
+    def _way_back(self, tcp: np.ndarray, down: np.ndarray, c: float) -> np.ndarray | None:
+        """The sideways velocity (3,) back over the landing spot (the start pose's axis), sharing the speed
+        limit with the descent; None once there. Sets ``_back`` (m still to go)."""
+        cfg = self.config
+        back = self._start_pos - tcp
+        back -= down * float(back @ down)
+        self._back = float(np.linalg.norm(back))
+        if not self._back > SURVEY_DONE:
+            return None
+        # share the speed limit with the descent, in proportion to what each has left before the cup may
+        # go below traverse_clearance (within half the footprint margin of the landing spot)
+        limit = self._share(self._back, c - cfg.traverse_clearance)
+        return self._lateral(back, limit)
+
+    def _frames_taken(self, now: float) -> bool:
+        """Whether ``footprint_frames`` frames (and one more, for the phase of the frame clock) were taken
+        since the view first held the footprint from the certifying height (needs a measured frame period)."""
+        period = self._frame_period()
+        return (self._window_t0 is not None and period is not None
+                and now - self._window_t0 >= (self.config.footprint_frames + 1) * period)
+
+    def _pass_speed(self, margin: float | None, need: float) -> float:
+        """Speed (m/s) at most while descending past the footprint: the sensor may still descend ``margin`` m
+        before the footprint leaves the view and must descend ``need`` m before frames certify it. Between
+        the two heights (the window) the cup must be able to stop, reacting ``sensor_latency`` late and
+        braking at ``accel``, before the view loses the footprint (less ``SURVEY_VIEW_SLACK``), so that the
+        certifying frames, which arrive ``sensor_latency`` after they were taken, are taken inside the window
+        and no climb back to the survey pose is needed; above the window the planned braking at ``accel``
+        reaches that speed at the window's top. With the frame period measured, the window may be crossed
+        faster: in the time ``footprint_frames + 1`` frames take (frames still in flight when the view leaves
+        the footprint count: :meth:`_survey` descends on, under the cap for uncertified ground, until they
+        are in). (Faster descents left the window before the frames were in and climbed back.)"""
+        cfg = self.config
+        if margin is None:
+            return math.inf
+        window = margin - need - SURVEY_VIEW_SLACK
+        inside = stoppable_speed(window, cfg.sensor_latency, cfg.accel)
+        period = self._frame_period()
+        if period is not None and period > 0:
+            # frames measured at this period: footprint_frames of them (and one more, for the phase of the
+            # frame clock) are taken while the sensor crosses the window; those in flight when the view
+            # leaves it still count (see _survey)
+            inside = max(inside, window / ((cfg.footprint_frames + 1) * period))
+        return braking_speed(need, cfg.accel, inside)
 
     def _toward(self, move: np.ndarray, down: np.ndarray, c: float) -> Command:
         """speedL towards a pose ``move`` (m, base frame) away: sideways at up to ``survey_speed``, along the
@@ -616,6 +697,7 @@ class PlacementMachine:
         self._account(state, now)
         self._hint = None
         self._survey_share = 0.0
+        self._view_cap = math.inf
         cmd = _HANDLERS[self.phase](self, state, plane, note, now)
         self._budget_bucket = self._bucket(now)
         self._budget_share = self._survey_share if self.phase == Phase.APPROACH and self._suspect is None else 0.0
@@ -763,6 +845,7 @@ class PlacementMachine:
                     v = min(v, max(cfg.descend_speed,
                                    stoppable_speed(c - cfg.traverse_clearance, cfg.sensor_latency, cfg.accel)))
                 free = v
+                v = min(v, self._view_cap)  # passing the footprint: frames inside the window (_pass_speed)
                 if np.any(side):
                     # the speed limit holds for the whole move: the descent gets what the sideways part leaves
                     # of approach_speed (rather than the arm scaling both down)

@@ -153,14 +153,17 @@ def footprint_seen(footprint: Any) -> int:
 
 
 def check_frames_needed(plane: FusedPlane, cfg: Any) -> int:
-    """Post-stop measurements CHECK waits for: ``check_frames`` when the fused plane (frames taken while
-    slowing down included) lies well inside every limit -- its one-sided ``level_confidence`` tilt bound,
-    its angle and offset spreads all within half of ``max_tilt`` / ``max_std_angle`` / ``max_std_offset`` --
-    else ``max_check_frames`` (if larger). Never fewer than ``check_frames``."""
+    """Post-stop measurements CHECK waits for, sized from the fused uncertainty: ``check_frames`` when the
+    fused plane (frames taken while slowing down included) lies well inside every limit -- its tilt below
+    ``max_tilt`` by twice its one-sided ``level_confidence`` margin (the bound itself clears the limit by one
+    margin: more frames of the same surface are not expected to move it across), its angle and offset spreads
+    within half of ``max_std_angle`` / ``max_std_offset`` -- else ``max_check_frames`` (if larger). Never
+    fewer than ``check_frames``. (It was half of ``max_tilt`` for the bound, which made every plane tilted
+    more than 2.5 deg wait for 5 frames however well it was measured.)"""
     most = max(cfg.check_frames, cfg.max_check_frames)
     try:
-        bound = plane.tilt_rad + confidence_margin(tilt_sigma(plane), cfg)
-        clear = (bound <= 0.5 * cfg.max_tilt and plane.std_angle <= 0.5 * cfg.max_std_angle
+        bound = plane.tilt_rad + 2.0 * confidence_margin(tilt_sigma(plane), cfg)
+        clear = (bound <= cfg.max_tilt and plane.std_angle <= 0.5 * cfg.max_std_angle
                  and plane.std_offset <= 0.5 * cfg.max_std_offset)
     except (TypeError, ValueError, AttributeError):
         clear = False

@@ -52,7 +52,17 @@ from place_safe.sim.arm_motion import SETTLE_MAX_S, ArmMotion, outside_limits
 from place_safe.sim.force_sensing import ForceSensing
 from place_safe.sim.payload import HeldCup
 from place_safe.sim.robot_model import ARM_JOINTS, FINGERS, load_robot_model, robot_spec  # noqa: F401
-from place_safe.drivers.ur5.config import MotionConfig
+from place_safe.drivers.ur5.config import MotionConfig, URConfig, packaged_config
+
+
+def sim_limits() -> RobotLimits:
+    """The simulated arm's limits: the Cartesian speed, acceleration and contact limits of the packaged
+    ``robots/ur5/sim.toml`` (one definition: the descent is planned from what the simulated arm does), the
+    joint ranges of :class:`RobotLimits`. The real arm's ``real.toml`` allows 0.1 m/s and 0.5 m/s^2."""
+    lim = URConfig.load(packaged_config("sim")).limits
+    return RobotLimits(max_linear_speed=lim.max_linear_speed, max_linear_accel=lim.max_linear_accel,
+                       max_angular_speed=lim.max_angular_speed, max_angular_accel=lim.max_angular_accel,
+                       max_contact_force=lim.max_contact_force)
 
 StepCallback = Callable[[mujoco.MjModel, mujoco.MjData, float], None]
 
@@ -66,7 +76,7 @@ class SimRobot(Robot):
         A MuJoCo model containing the robot (joint/site/body names as in ``robots/ur5/ur5.xml``,
         optionally with a common ``prefix``) and its data. ``None``: load the bare robot.
     limits:
-        Motion/safety limits; default :class:`RobotLimits()`.
+        Motion/safety limits; default :func:`sim_limits` (``robots/ur5/sim.toml``).
     emergency_decel:
         m/s^2: a stop asked harder than ``limits.max_linear_accel`` (an obstacle, a fault) decelerates at most
         this hard, as the ur_rtde driver does (default: the robot file's ``motion.emergency_decel``, 2.0).
@@ -92,7 +102,7 @@ class SimRobot(Robot):
         elif data is None:
             data = mujoco.MjData(model)
         self.model, self.data = model, data
-        self.limits = limits if limits is not None else RobotLimits()
+        self.limits = limits if limits is not None else sim_limits()
         # the hardest stop, as the ur_rtde driver gives it (a stop asked harder than max_linear_accel is an
         # emergency stop at most at the robot file's motion.emergency_decel): never kinder than the real arm
         self.emergency_decel = float(MotionConfig().emergency_decel if emergency_decel is None else emergency_decel)
@@ -431,4 +441,4 @@ class SimRobot(Robot):
             self._advance(h)
 
 
-__all__ = ["SimRobot", "load_robot_model", "robot_spec", "ARM_JOINTS", "FINGERS", "StepCallback"]
+__all__ = ["SimRobot", "sim_limits", "load_robot_model", "robot_spec", "ARM_JOINTS", "FINGERS", "StepCallback"]

@@ -33,7 +33,7 @@ from place_safe.placement.config import PlacementConfig
 from place_safe.sim.scene import SceneConfig
 from place_safe.sim.placement_run import run_placement
 from place_safe.placement.loop import within_robot_limits
-from place_safe.robot.interface import RobotLimits
+from place_safe.sim.robot import sim_limits
 from place_safe.sim.tof import ToFConfig
 
 #: N: a contact at least this hard counts as a collision in the summary (half the robot's 60 N protective stop;
@@ -293,7 +293,7 @@ def budget_table(median: dict, runs: int) -> str:
     from place_safe.placement.budget import budget_limits, format_budget
 
     class _Arm:
-        limits = RobotLimits()
+        limits = sim_limits()
 
     tof = ToFConfig()
     cfg = within_robot_limits(PlacementConfig(), _Arm())

@@ -259,7 +259,7 @@ def robot_kinds() -> dict[str, bytes]:
         "rob-rpy-huge": sub("rpy = [3.141592653589793, 0.0, 0.0]", "rpy = [1e308, 0.0, 0.0]"),
         "rob-rpy-string": sub("rpy = [3.141592653589793, 0.0, 0.0]", 'rpy = ["pi", 0.0, 0.0]'),
         "rob-workspace-huge": sub("workspace_max = [0.9, 0.9, 0.9]", "workspace_max = [1e300, 0.9, 0.9]"),
-        "rob-speed-huge": sub("max_linear_speed = 0.25", "max_linear_speed = 1e300"),
+        "rob-speed-huge": sub("max_linear_speed = 0.5", "max_linear_speed = 1e300"),
         "rob-watchdog-zero": sub("watchdog_hz = 10.0", "watchdog_hz = 0.0"),
         "rob-timeout-huge": sub("connect_timeout_s = 2.0", "connect_timeout_s = 1e300"),
         "rob-gripper-bogus": sub('kind = "digital"', 'kind = "magnet"'),

@@ -54,8 +54,23 @@ def test_the_check_waits_for_more_frames_the_less_certain_the_plane(std_angle, s
     cfg = m.config
     need = m.check_frames_needed(_plane(std_angle, std_offset, tilt))
     assert cfg.check_frames <= need <= max(cfg.check_frames, cfg.max_check_frames)
-    if std_angle > 0.5 * cfg.max_std_angle or std_offset > 0.5 * cfg.max_std_offset or tilt > 0.5 * cfg.max_tilt:
+    # sized from the fused uncertainty: the tilt must clear max_tilt by twice its confidence margin
+    from place_safe.placement.rules import confidence_margin, tilt_sigma
+
+    p = _plane(std_angle, std_offset, tilt)
+    near = tilt + 2.0 * confidence_margin(tilt_sigma(p), cfg) > cfg.max_tilt
+    if std_angle > 0.5 * cfg.max_std_angle or std_offset > 0.5 * cfg.max_std_offset or near:
         assert need == max(cfg.check_frames, cfg.max_check_frames)
+    else:
+        assert need == cfg.check_frames
+
+
+def test_a_well_measured_tilted_plane_needs_no_extra_check_frames_a_doubtful_one_does():
+    cfg = PlacementConfig()
+    m = PlacementMachine(cfg)
+    assert m.check_frames_needed(_plane(math.radians(0.05), 0.0002, math.radians(4.0))) == cfg.check_frames
+    assert m.check_frames_needed(_plane(math.radians(0.05), 0.0002, math.radians(4.97))) == cfg.max_check_frames
+    assert m.check_frames_needed(_plane(math.radians(1.5), 0.0002, math.radians(1.0))) == cfg.max_check_frames
 
 
 def test_a_malformed_plane_needs_the_most_check_frames():
