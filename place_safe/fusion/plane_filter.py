@@ -97,6 +97,8 @@ class FusedPlane:
     tilt_std: float = math.nan  # rad, standard error of the fused normal's direction (see module doc)
     source: str = "window"  # where the normal comes from: "window" or "memory" (see module doc)
     memory_n: int = 0  # planes remembered since the window last started
+    heights: tuple[float, ...] = ()  # m, each window plane's anchor above the fused plane (in stamps' order)
+    height_stds: tuple[float, ...] = ()  # m, each one's offset std from its covariance (NaN: none)
 
     def height_at(self, point: Any) -> float:
         """Signed distance (m) of ``point`` (base frame) above the plane (negative: below / behind it)."""
@@ -203,7 +205,7 @@ class PlaneFilter:
 
     def reset(self) -> None:
         """Forget every plane and counter."""
-        self._items: deque[tuple[float, np.ndarray, np.ndarray, float]] = deque(maxlen=self.window)
+        self._items: deque[tuple[float, np.ndarray, np.ndarray, float, float]] = deque(maxlen=self.window)
         self._memory: deque[tuple[float, np.ndarray, float]] = deque(maxlen=max(self.memory, 1))
         self._cache: FusedPlane | None = None
         self._dirty = True
@@ -256,7 +258,7 @@ class PlaneFilter:
                 self._items.clear()  # the surface changed: start again from this plane
                 self._memory.clear()
         var = _direction_variance(estimate)
-        self._items.append((stamp, n, anchor, var))
+        self._items.append((stamp, n, anchor, var, _offset_std(estimate)))
         if self.memory > 0:
             self._memory.append((stamp, n, var))
         self.newest_accepted = stamp
@@ -331,7 +333,8 @@ class PlaneFilter:
         res = A @ n - d
         self._cache = FusedPlane(n, d, _angle(n, _Z), spread, float(np.sqrt(np.mean(res**2))),
                                  len(self._items), float(stamps.max()), self.count, anchor,
-                                 tuple(float(s) for s in stamps), tilt_std, source, len(self._memory))
+                                 tuple(float(s) for s in stamps), tilt_std, source, len(self._memory),
+                                 tuple(float(h) for h in res), tuple(float(it[4]) for it in self._items))
         self._dirty = False
         return self._cache
 
@@ -368,6 +371,17 @@ def _direction_variance(estimate: Any) -> float:
     tilt_std = getattr(estimate, "tilt_std", None)
     s = tilt_std() if callable(tilt_std) else None
     return max(s, MIN_SCALE_RAD) ** 2 if s is not None else math.nan
+
+
+def _offset_std(estimate: Any) -> float:
+    """Standard deviation (m) of an estimate's offset ``d`` from its covariance (the anchor's error along the
+    normal), NaN when it has none or it is not a finite non-negative number."""
+    cov = getattr(estimate, "covariance", None)
+    try:
+        v = float(np.asarray(cov, dtype=float)[2, 2])
+    except (TypeError, ValueError, IndexError):
+        return math.nan
+    return math.sqrt(v) if math.isfinite(v) and v >= 0.0 else math.nan
 
 
 def _unit(v: np.ndarray) -> np.ndarray:

@@ -81,6 +81,10 @@ class PlacementConfig(ParamModel):
     rest_tolerance: float = Field(0.001, gt=0.0, le=0.05, description="m")
     # the surface must be flatter than max_tilt with this confidence
     level_confidence: float = Field(0.99, ge=0.5, le=0.999999, description="(probability)")
+    # a still surface passes the stillness and clearance tests (rules.still_problem) with this probability
+    still_confidence: float = Field(0.999, ge=0.5, le=0.999999, description="(probability)")
+    # m: each plane's offset std is taken as at least this in those tests (model error the covariance omits)
+    still_offset_floor: float = Field(0.0001, gt=0.0, le=0.01, description="m")
     # s from a measurement to the machine acting on it (transfer + frame + estimate)
     sensor_latency: float = Field(0.15, ge=0.0, le=5.0, description="s")
     # frames that saw the landing footprint on one surface (0: no footprint rule*)

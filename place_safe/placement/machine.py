@@ -36,8 +36,12 @@ The release rule (the only path to :attr:`CommandKind.OPEN_GRIPPER`), checked on
   ``footprint_margin``) in at least ``footprint_frames`` frames with every zone over it on the fused
   surface (within ``footprint_tolerance``) and reports no edge, step or clutter there -- observed, not
   extrapolated from the patch beside the cup the sensor sees at the end;
-* the cup bottom's clearance above the plane lies in ``[-release_clearance, release_clearance]``, or the
-  cup is in contact (``contact_force``) with a clearance in ``[-max_penetration, contact_clearance]``:
+* the surface is still (:func:`~place_safe.placement.rules.still_problem`): the planes measured at rest
+  (or, too close to read, the newest of the window) agree in offset within what their covariances allow,
+  with ``still_confidence``, and show no trend;
+* the cup bottom's clearance above the plane lies in ``[floor, release_clearance]``, ``floor`` the noise's
+  allowance below zero (:func:`~place_safe.placement.rules.clearance_floor`, at most ``release_clearance``),
+  or the cup is in contact (``contact_force``) with a clearance in ``[-max_penetration, contact_clearance]``:
   contact higher above the sensed surface is an obstacle, and a cup below the sensed surface without
   contact means the estimate is wrong or the surface moved; both refuse.
 
@@ -914,12 +918,15 @@ class PlacementMachine:
         if not (moved <= cfg.rest_tolerance):
             return self._refuse(now, f"the arm did not stop: the TCP moved {moved * 1e3:.1f} mm after the stop "
                                      f"(> {cfg.rest_tolerance * 1e3:.1f} mm)")
+        post = self.post_stop_stamps(plane, now)
+        if (why := rules.still_problem(plane, post, cfg)) is not None:
+            return self._refuse(now, why)
         force = float(state.contact_force)
         contact = force >= cfg.contact_force
         if contact and c > cfg.contact_clearance:
             return self._refuse(now, f"obstacle: contact {force:.1f} N with the cup bottom {c * 1e3:.1f} mm above "
                                      f"the sensed surface (> {cfg.contact_clearance * 1e3:.0f} mm)")
-        if c < -cfg.max_penetration or (not contact and c < -cfg.release_clearance):
+        if c < -cfg.max_penetration or (not contact and c < rules.clearance_floor(plane, post, cfg)):
             return self._refuse(now, f"cup {-c * 1e3:.1f} mm below the estimated surface"
                                      + ("" if contact else " without contact")
                                      + ": the surface estimate is wrong or the surface moved")

@@ -18,6 +18,7 @@ from statistics import NormalDist
 from typing import Any, Callable
 
 import numpy as np
+from scipy.stats import chi2 as _chi2
 
 from place_safe.fusion.plane_filter import FusedPlane
 from place_safe.recovery.too_close import TOO_CLOSE_REASON
@@ -185,6 +186,76 @@ def post_stop_stamps(plane: FusedPlane, now: float, t_stop: float | None, cfg: A
     return sorted(out)
 
 
+def _still_planes(plane: FusedPlane, post: list[float], cfg: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray] | str:
+    """(stamps, heights, stds) of the planes the stillness test judges: the post-stop ones (``post``), or the
+    newest ``check_frames`` (at least 2) of the window when fewer than 2 were measured at rest (the sensor too
+    close to read); else a reason. Stds are floored at ``still_offset_floor``."""
+    stamps = tuple(getattr(plane, "stamps", ()) or ())
+    h = tuple(getattr(plane, "heights", ()) or ())
+    s = tuple(getattr(plane, "height_stds", ()) or ())
+    if not stamps or len(h) != len(stamps) or len(s) != len(stamps):
+        return "the fused plane carries no per-plane offsets: whether the surface is still is unknown"
+    rest = set(post)
+    idx = [i for i, t in enumerate(stamps) if t in rest]
+    if len(idx) < 2:
+        idx = list(range(len(stamps)))[-max(2, int(cfg.check_frames)):]
+    if len(idx) < 2:
+        return f"only {len(idx)} plane to tell whether the surface is still"
+    try:
+        t = np.array([float(stamps[i]) for i in idx])
+        y = np.array([float(h[i]) for i in idx])
+        sd = np.array([float(s[i]) for i in idx])
+    except (TypeError, ValueError):
+        return "the fused plane's per-plane offsets are malformed"
+    if not (np.all(np.isfinite(t)) and np.all(np.isfinite(y))):
+        return "the fused plane's per-plane offsets are not finite"
+    if not np.all(np.isfinite(sd) & (sd >= 0.0)):
+        return "a plane's offset has no uncertainty: whether the surface is still is unknown"
+    return t, y, np.maximum(sd, cfg.still_offset_floor)
+
+
+def still_problem(plane: FusedPlane, post: list[float], cfg: Any) -> str | None:
+    """The surface is not shown still by the planes measured at rest (:func:`_still_planes`): their offsets
+    along the fused normal (anchors in the base frame, so the arm's own motion does not enter) disagree more
+    than their covariances allow (chi-square of the inverse-variance weighted offsets about their mean
+    above its ``still_confidence`` quantile, ``k - 1`` degrees of freedom), or they trend (weighted
+    least-squares rate over time more than the two-sided ``still_confidence`` normal quantile times its
+    standard error). A surface that moves while the cup stands still above it is no place to let go: the
+    fused offset lags it, and the clearance computed from it is wrong by the motion since."""
+    got = _still_planes(plane, post, cfg)
+    if isinstance(got, str):
+        return got
+    t, y, sd = got
+    w = 1.0 / sd**2
+    mean = float(w @ y / w.sum())
+    chi2 = float(w @ (y - mean) ** 2)
+    limit = float(_chi2.ppf(cfg.still_confidence, len(y) - 1))
+    z = NormalDist().inv_cdf(0.5 + 0.5 * cfg.still_confidence)
+    tc = t - float(w @ t / w.sum())
+    stt = float(w @ tc**2)
+    rate, rate_sd = (float(w @ (tc * (y - mean)) / stt), 1.0 / math.sqrt(stt)) if stt > 0 else (0.0, math.inf)
+    if not (chi2 <= limit):
+        return (f"surface not still: {len(y)} planes at rest spread {1e3 * (y.max() - y.min()):.1f} mm "
+                f"(chi-square {chi2:.1f} > {limit:.1f} for offsets +- {1e3 * float(sd.min()):.1f} mm)")
+    if not (abs(rate) <= z * rate_sd):
+        return (f"surface not still: {len(y)} planes at rest move {1e3 * rate:.0f} mm/s "
+                f"(> {1e3 * z * rate_sd:.0f} mm/s their noise allows)")
+    return None
+
+
+def clearance_floor(plane: FusedPlane, post: list[float], cfg: Any) -> float:
+    """The most negative cup clearance (m, <= 0) the noise allows without contact: minus the two-sided
+    ``still_confidence`` quantile of the standard error of the planes' mean offset (:func:`_still_planes`), and
+    never below ``-release_clearance``. A surface farther above the cup bottom than that has moved, or the
+    cup stands on something; 0 when the planes cannot say (the caller's stillness test refuses then)."""
+    got = _still_planes(plane, post, cfg)
+    if isinstance(got, str):
+        return 0.0
+    sd = got[2]
+    z = NormalDist().inv_cdf(0.5 + 0.5 * cfg.still_confidence)
+    return -min(cfg.release_clearance, z * math.sqrt(1.0 / float(np.sum(1.0 / sd**2))))
+
+
 __all__ = ["number", "too_close", "plane_problem", "sensor_problem", "planar_problem", "tilt_problem",
            "tilt_sigma", "confidence_margin", "level_problem", "confidently_tilted", "footprint_problem",
-           "footprint_seen", "check_frames_needed", "post_stop_stamps"]
+           "footprint_seen", "check_frames_needed", "post_stop_stamps", "still_problem", "clearance_floor"]

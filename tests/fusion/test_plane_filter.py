@@ -313,3 +313,18 @@ def test_fused_plane_stays_valid_with_any_stream(events, memory, gate):
         assert f.source == "window" or (memory > 0 and f.memory_n >= 5 and math.isfinite(f.tilt_std))
         assert math.isnan(f.tilt_std) or f.tilt_std >= 0.0
         assert list(f.stamps) == sorted(set(f.stamps))
+
+
+def test_the_fused_plane_lists_each_planes_offset_and_its_std_for_the_stillness_test():
+    """heights: each window plane's anchor above the fused plane, in the stamps' order (a table rising 1 mm
+    a frame shows as a ramp); height_stds: each one's offset std from its covariance, NaN without one."""
+    T = looking_down([0.4, 0.0, 0.5])
+    f = PlaneFilter(window=5, min_frames=3)
+    for i in range(5):
+        cov = np.diag([1e-6, 1e-6, (1e-4 * (i + 1)) ** 2]) if i else None
+        f.update(PlaneEstimate(sensor_plane([0.0, 0.0, 1.0], 0.001 * i, T), covariance=cov), T, 0.05 * i)
+    fused = f.fused()
+    assert len(fused.heights) == len(fused.height_stds) == len(fused.stamps) == 5
+    assert np.allclose(np.diff(fused.heights), 0.001, atol=1e-9)
+    assert math.isnan(fused.height_stds[0])
+    assert np.allclose(fused.height_stds[1:], [2e-4, 3e-4, 4e-4, 5e-4])

@@ -53,7 +53,9 @@ class FakeWorld:
         s = self.t - LATENCY if stamp is None else stamp
         if not self.stamps or s > self.stamps[-1]:
             self.stamps = (self.stamps + (s,))[-7:]
-        return FusedPlane(n, self.bias, math.acos(n[2]), *self.std, 7, s, self.count, stamps=self.stamps)
+        # a still surface: every plane's anchor on the fused plane, offsets known to 10 um
+        return FusedPlane(n, self.bias, math.acos(n[2]), *self.std, 7, s, self.count, stamps=self.stamps,
+                          heights=(0.0,) * len(self.stamps), height_stds=(1e-5,) * len(self.stamps))
 
     def apply(self, cmd):
         self.commands.append(cmd)
@@ -217,7 +219,8 @@ def test_surface_estimate_jumping_above_the_cup_without_contact_is_refused():
     def plane_fn(world, m):
         p = world.plane()
         if world.pos[2] < 0.01:
-            return FusedPlane(p.normal_base, 0.03, p.tilt_rad, p.std_angle, p.std_offset, 7, p.stamp, p.count, stamps=p.stamps)
+            return FusedPlane(p.normal_base, 0.03, p.tilt_rad, p.std_angle, p.std_offset, 7, p.stamp, p.count, stamps=p.stamps,
+                              heights=p.heights, height_stds=p.height_stds)
         return p
 
     w = FakeWorld()
@@ -230,7 +233,8 @@ def test_estimate_too_high_makes_check_descend_again_then_refuses():
     def plane_fn(world, m):
         p = world.plane()
         if m.phase == Phase.CHECK:
-            return FusedPlane(p.normal_base, -0.02, p.tilt_rad, p.std_angle, p.std_offset, 7, p.stamp, p.count, stamps=p.stamps)
+            return FusedPlane(p.normal_base, -0.02, p.tilt_rad, p.std_angle, p.std_offset, 7, p.stamp, p.count, stamps=p.stamps,
+                              heights=p.heights, height_stds=p.height_stds)
         return p
 
     w = FakeWorld()
@@ -291,7 +295,8 @@ def test_a_plane_whose_tilt_does_not_match_its_normal_is_refused():
     def plane_fn(world, m):
         p = world.plane()
         n = np.array([math.sin(math.radians(60)), 0.0, math.cos(math.radians(60))])
-        return FusedPlane(n, p.offset_base, 0.0, p.std_angle, p.std_offset, 7, p.stamp, p.count, stamps=p.stamps)
+        return FusedPlane(n, p.offset_base, 0.0, p.std_angle, p.std_offset, 7, p.stamp, p.count, stamps=p.stamps,
+                              heights=p.heights, height_stds=p.height_stds)
 
     w = FakeWorld()
     m = run(w, plane_fn=plane_fn)

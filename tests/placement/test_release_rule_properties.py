@@ -29,7 +29,7 @@ MAX_TICKS = int((CFG.acquire_timeout + CFG.max_checks * (CFG.descent_timeout + C
 EVENTS = ("dup", "old", "future", "nan_tilt", "neg_tilt", "nan_std", "big_std", "tilted", "no_plane", "fault",
           "freeze", "back", "jump", "nan_time", "str_time", "nan_force", "neg_force", "contact", "bad_rot",
           "nan_pose", "bias_up", "bias_down", "bad_normal", "stale", "fp_problem", "fp_unseen", "fp_none",
-          "fp_nan")
+          "fp_nan", "moving")
 
 
 class World:
@@ -106,8 +106,12 @@ def run_with_events(height: float, events: dict[int, tuple[str, int, float]]):
         stamp = max(stamps) if stamps else w.t
         if "stale" in x:
             stamp -= 1.0
+        # each plane's anchor above the fused plane: still (offsets known to 10 um), or rising 3 cm/s
+        rate = 0.03 if "moving" in x else 0.0
+        heights = tuple(rate * (s - stamp) for s in stamps)
         plane = None if ("no_plane" in x or not stamps) else FusedPlane(
-            n, offset, tilt, std_a, std_o, len(stamps), stamp, w.count, stamps=stamps)
+            n, offset, tilt, std_a, std_o, len(stamps), stamp, w.count, stamps=stamps,
+            heights=heights, height_stds=(1e-5,) * len(stamps))
         # --- robot state ----------------------------------------------------------------------------
         t_report: object = w.t
         if "freeze" in x:
@@ -204,8 +208,12 @@ def rule_holds(state: RobotState, plane: FusedPlane | None, prev_time, t_stop: f
     if not (math.acos(min(1.0, float(cup[:3, 2] @ plane.normal_base))) <= cfg.max_tilt):
         return "released with the cup axis far from the surface normal"
     c = clearance_along(plane.normal_base, plane.offset_base, cup[:3, 3], -cup[:3, 2], cfg.cup_radius, cup[:3, 2])
+    rest = [h for s, h in zip(plane.stamps, plane.heights) if s in fresh]
+    if not (len(rest) >= 2 and max(rest) - min(rest) <= 0.5e-3):
+        return "released on a surface that moved while the cup stood still (offsets known to 10 um)"
     contact = f >= cfg.contact_force
-    if not ((-cfg.release_clearance <= c <= cfg.release_clearance)
+    # without contact, the noise (offsets known to 10 um, floored at still_offset_floor) allows < 0.5 mm below
+    if not ((-min(cfg.release_clearance, 0.5e-3) <= c <= cfg.release_clearance)
             or (contact and -cfg.max_penetration <= c <= cfg.contact_clearance)):
         return f"released at clearance {c}"
     return None

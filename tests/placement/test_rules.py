@@ -96,3 +96,62 @@ def test_only_distinct_post_stop_stamps_up_to_now_count():
     p = dataclasses.replace(_plane(stamp=2.0), stamps=(1.0, 1.5, 1.5, 1.9, 2.0, 3.0))
     assert rules.post_stop_stamps(p, 2.0, 1.4, CFG) == [1.5, 1.9, 2.0]
     assert rules.post_stop_stamps(p, 2.0, None, CFG) == []
+
+
+# --- a still surface (rules.still_problem, rules.clearance_floor) ------------------------------------------
+def _at_rest(heights, stds, gap, t0=2.0):
+    """A fused plane whose window is the planes measured at rest, ``gap`` s apart, with these anchor heights
+    and offset stds; and those stamps (all post-stop)."""
+    stamps = tuple(t0 + gap * i for i in range(len(heights)))
+    plane = FusedPlane(np.array([0.0, 0.0, 1.0]), 0.0, 0.0, 0.001, 0.0005, len(stamps), stamps[-1],
+                       len(stamps), stamps=stamps, heights=tuple(heights), height_stds=tuple(stds))
+    return plane, list(stamps)
+
+
+_rest = st.integers(2, 7).flatmap(lambda k: st.tuples(
+    st.lists(st.floats(0.0, 1e-4), min_size=k, max_size=k),  # stated offset stds (floored at 0.1 mm)
+    st.lists(st.floats(-1.0, 1.0), min_size=k, max_size=k),  # each error in units of its std
+    st.floats(1 / 30, 0.1)))  # s between frames
+
+
+@given(_rest)
+def test_a_still_surface_measured_with_the_stated_noise_releases(rest):
+    """Offsets that err by at most one (floored) std each pass the stillness test, and a cup at or above the
+    surface passes the clearance floor: with k <= 7 planes the chi-square is at most k and the trend's z at
+    most sqrt(k), below the 99.9 % quantiles."""
+    stds, errs, gap = rest
+    sd = [max(s, CFG.still_offset_floor) for s in stds]
+    plane, post = _at_rest([e * s for e, s in zip(errs, sd)], stds, gap)
+    assert rules.still_problem(plane, post, CFG) is None
+    floor = rules.clearance_floor(plane, post, CFG)
+    assert -CFG.release_clearance <= floor < 0.0
+
+
+@given(_rest, st.floats(0.025, 0.5), st.booleans())
+def test_a_moving_surface_never_releases(rest, speed, up):
+    """A surface rising or falling at 25 mm/s or more under a cup at rest is not still, whatever the
+    bounded noise on its offsets (stated stds up to 0.1 mm, frames 33-100 ms apart, 2-7 planes)."""
+    stds, errs, gap = rest
+    v = speed if up else -speed
+    sd = [max(s, CFG.still_offset_floor) for s in stds]
+    plane, post = _at_rest([v * gap * i + e * s for i, (e, s) in enumerate(zip(errs, sd))], stds, gap)
+    why = rules.still_problem(plane, post, CFG)
+    assert why is not None and "not still" in why
+
+
+def test_the_stillness_test_fails_closed():
+    plane, post = _at_rest([0.0, 0.0], [1e-5, 1e-5], 0.033)
+    assert rules.still_problem(dataclasses.replace(plane, heights=()), post, CFG) is not None
+    assert rules.still_problem(dataclasses.replace(plane, height_stds=(math.nan, 1e-5)), post, CFG) is not None
+    assert rules.still_problem(dataclasses.replace(plane, heights=(math.nan, 0.0)), post, CFG) is not None
+    one, _ = _at_rest([0.0], [1e-5], 0.033)
+    assert rules.still_problem(one, post[:1], CFG) is not None
+    assert rules.clearance_floor(dataclasses.replace(plane, heights=()), post, CFG) == 0.0
+
+
+def test_too_close_to_read_the_newest_planes_of_the_window_are_judged():
+    """With fewer than 2 planes at rest (the sensor too close to read), the window's newest planes decide."""
+    plane, stamps = _at_rest([0.0, 0.0, 0.0, 0.002, 0.004], [1e-5] * 5, 0.033)
+    assert rules.still_problem(plane, [], CFG) is not None
+    still, _ = _at_rest([0.0] * 5, [1e-5] * 5, 0.033)
+    assert rules.still_problem(still, stamps[-1:], CFG) is None
