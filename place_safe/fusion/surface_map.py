@@ -416,7 +416,10 @@ class SurfaceMap:
           reach centimetres past it, where a box beside the cup may stand. A vetoed point stays vetoed
           until ``min_frames`` views with it in the centre zone (:data:`CENTRE_ZONE`, the second look's
           view centred on it, whose zone reaches least far past it) see it clean; views sliding off a box
-          as the sensor moves away do not lift a veto. This rule needs zone points good to a few millimetres:
+          as the sensor moves away do not lift a veto. A point whose latest such view saw it raised (fewer
+          than ``min_frames`` of them: no veto yet) is *in doubt* and counts 0 in ``supported`` until a clean
+          view from no lower than the one that raised it (less :data:`CLIMB_MARGIN`), or centred on it, sees it
+          clean: the descent's lower views reach past the far rim. This rule needs zone points good to a few millimetres:
           it applies only to a calibrated peak mapping (``relative > 0``); with built-in constants, whose zone
           points lie a centimetre off, the first rule alone decides.
         """
@@ -431,6 +434,7 @@ class SurfaceMap:
         flagged = np.zeros(len(disc), dtype=int)
         latest = np.zeros((len(disc), k), dtype=int)  # last k views from frames looking at it: 0 none, 1 clean, 2 not
         vetoed = np.zeros(len(disc), dtype=bool)  # latest views said no; only views centred on the point lift it
+        doubt_at = np.full(len(disc), np.nan)  # height of the frame whose view of the point last saw it raised
         cleared = np.zeros(len(disc), dtype=int)  # clean views centred on a vetoed point since its veto
         details: dict[str, str] = {}
         kinds: Counter = Counter()
@@ -471,6 +475,13 @@ class SurfaceMap:
                 latest[seen] = np.column_stack([latest[seen][:, 1:], np.where(clean[seen], 1, 2)])
                 vetoed |= np.all(latest == 2, axis=1)
                 centred = seen & (zone == CENTRE_ZONE)
+                # in doubt: raised in the latest such view; lifted by a clean view from no lower (zones as wide as the
+                # one that saw it, or wider) or centred on it, not by views from further down the descent, whose
+                # zones over the far rim lie at the edge of the view and reach past it
+                doubt_at[seen & ~clean] = height
+                with np.errstate(invalid="ignore"):
+                    lifts = clean & ((height >= doubt_at - CLIMB_MARGIN) | centred)
+                doubt_at[lifts] = np.nan
                 cleared = np.where(centred & vetoed, np.where(clean, cleared + 1, 0), cleared)
                 lift = vetoed & (cleared >= k)
                 vetoed &= ~lift
@@ -482,7 +493,11 @@ class SurfaceMap:
                     s = float(fs.points_base[z] @ n - d)
                     doubt_detail = (f"zone {z + 1} over the cup's footprint {s * 1e3:+.0f} mm off the surface "
                                     "(part of it covered: clutter or step)")
-        supported = int(certified.min()) if len(certified) else 0
+        # a point in doubt is not supported by its clean views from before: a placement that moves on as soon as
+        # every point has min_frames clean views (the faster descent) would leave before the views that veto it
+        # (box_at_rim_mismatch: a box at the rim seen clean 3 times as it came into view at the survey pose,
+        # raised twice, then clean from 5 cm lower, where its zone reaches past it)
+        supported = int(np.where(np.isfinite(doubt_at), 0, certified).min()) if len(certified) else 0
         problem = None
         recheck = None
         open_points = (certified < self.min_frames) & (flagged >= self.min_frames)

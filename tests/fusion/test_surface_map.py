@@ -368,3 +368,27 @@ def test_a_veto_is_lifted_only_by_views_centred_on_the_doubtful_points():
     for i in range(3):
         sm.add(frame_over(T2, lambda x, y: 0.0), T2, 30.0 + i)
     assert sm.verdict(UP, 0.0, cup, T2).problem is None
+
+
+def test_a_point_seen_raised_is_in_doubt_until_a_view_from_no_lower_sees_it_clean():
+    """Raised in the latest view looking at the footprint (fewer than min_frames such views: no veto yet), a
+    point is not supported by its earlier clean views; clean views from further down (the descent, whose zones
+    over the far rim reach past it) do not lift the doubt, a clean one from the height that saw it does."""
+    sm = SurfaceMap(PARAMS)
+    cup = cup_at((0.0, 0.0))
+    _certified_map(sm, cup)
+    T = sensor_pose((0.0, 0.0), sm.survey_height())
+    hit = _zone_hits(T)[7]  # a zone over the footprint's rim
+    box = lambda x, y: 0.007 if np.allclose((x, y), hit) else 0.0  # noqa: E731 - within the tolerance
+    for i in range(2):
+        sm.add(frame_over(T, box), T, 10.0 + i)
+    v = sm.verdict(UP, 0.0, cup, T)
+    assert v.problem is None and v.supported == 0
+    low = sensor_pose((0.0, 0.0), sm.survey_height() - 0.05)
+    for i in range(3):
+        sm.add(frame_over(low, lambda x, y: 0.0), low, 20.0 + i)
+    v = sm.verdict(UP, 0.0, cup, low)
+    assert v.problem is None and v.supported == 0
+    sm.add(frame_over(T, lambda x, y: 0.0), T, 30.0)
+    v = sm.verdict(UP, 0.0, cup, T)
+    assert v.problem is None and v.supported >= 3
