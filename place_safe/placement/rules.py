@@ -189,7 +189,8 @@ def post_stop_stamps(plane: FusedPlane, now: float, t_stop: float | None, cfg: A
 def _still_planes(plane: FusedPlane, post: list[float], cfg: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray] | str:
     """(stamps, heights, stds) of the planes the stillness test judges: the post-stop ones (``post``), or the
     newest ``check_frames`` (at least 2) of the window when fewer than 2 were measured at rest (the sensor too
-    close to read); else a reason. Stds are floored at ``still_offset_floor``."""
+    close to read); else a reason. Stds are floored at ``still_offset_floor``; a plane without one (no
+    covariance) gets ``max_std_offset``."""
     stamps = tuple(getattr(plane, "stamps", ()) or ())
     h = tuple(getattr(plane, "heights", ()) or ())
     s = tuple(getattr(plane, "height_stds", ()) or ())
@@ -209,8 +210,10 @@ def _still_planes(plane: FusedPlane, post: list[float], cfg: Any) -> tuple[np.nd
         return "the fused plane's per-plane offsets are malformed"
     if not (np.all(np.isfinite(t)) and np.all(np.isfinite(y))):
         return "the fused plane's per-plane offsets are not finite"
-    if not np.all(np.isfinite(sd) & (sd >= 0.0)):
-        return "a plane's offset has no uncertainty: whether the surface is still is unknown"
+    if np.any(sd < 0.0):
+        return "a plane's offset std is negative"
+    # an estimate without a covariance states no noise: the spread the planar check allows stands in for it
+    sd = np.where(np.isfinite(sd), sd, cfg.max_std_offset)
     return t, y, np.maximum(sd, cfg.still_offset_floor)
 
 

@@ -142,7 +142,11 @@ def test_a_moving_surface_never_releases(rest, speed, up):
 def test_the_stillness_test_fails_closed():
     plane, post = _at_rest([0.0, 0.0], [1e-5, 1e-5], 0.033)
     assert rules.still_problem(dataclasses.replace(plane, heights=()), post, CFG) is not None
-    assert rules.still_problem(dataclasses.replace(plane, height_stds=(math.nan, 1e-5)), post, CFG) is not None
+    assert rules.still_problem(dataclasses.replace(plane, height_stds=(-1e-5, 1e-5)), post, CFG) is not None
+    # no covariance: max_std_offset stands in for the noise (a 2 mm step passes, a 20 mm one does not)
+    nocov = dataclasses.replace(plane, height_stds=(math.nan, math.nan))
+    assert rules.still_problem(dataclasses.replace(nocov, heights=(0.0, 0.002)), post, CFG) is None
+    assert rules.still_problem(dataclasses.replace(nocov, heights=(0.0, 0.02)), post, CFG) is not None
     assert rules.still_problem(dataclasses.replace(plane, heights=(math.nan, 0.0)), post, CFG) is not None
     one, _ = _at_rest([0.0], [1e-5], 0.033)
     assert rules.still_problem(one, post[:1], CFG) is not None
