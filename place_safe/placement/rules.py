@@ -254,9 +254,12 @@ def clearance_floor(plane: FusedPlane, post: list[float], cfg: Any) -> float:
     got = _still_planes(plane, post, cfg)
     if isinstance(got, str):
         return 0.0
-    sd = got[2]
+    with np.errstate(over="ignore"):
+        info = float(np.sum(1.0 / got[2] ** 2))  # stds beyond ~1e154 m square to inf: no information
+    if not (info > 0.0):
+        return 0.0
     z = NormalDist().inv_cdf(0.5 + 0.5 * cfg.still_confidence)
-    return -min(cfg.release_clearance, z * math.sqrt(1.0 / float(np.sum(1.0 / sd**2))))
+    return -min(cfg.release_clearance, z * math.sqrt(1.0 / info))
 
 
 __all__ = ["number", "too_close", "plane_problem", "sensor_problem", "planar_problem", "tilt_problem",

@@ -151,6 +151,11 @@ def test_the_stillness_test_fails_closed():
     one, _ = _at_rest([0.0], [1e-5], 0.033)
     assert rules.still_problem(one, post[:1], CFG) is not None
     assert rules.clearance_floor(dataclasses.replace(plane, heights=()), post, CFG) == 0.0
+    # stds so large their inverse variances vanish (1e160 m: squared, inf): refused, and the floor says 0
+    # instead of dividing by zero (was ZeroDivisionError, found by the property below)
+    huge = dataclasses.replace(plane, height_stds=(1e160, 1e160))
+    assert rules.still_problem(huge, post, CFG) is not None
+    assert rules.clearance_floor(huge, post, CFG) == 0.0
 
 
 def test_too_close_to_read_the_newest_planes_of_the_window_are_judged():
@@ -159,3 +164,66 @@ def test_too_close_to_read_the_newest_planes_of_the_window_are_judged():
     assert rules.still_problem(plane, [], CFG) is not None
     still, _ = _at_rest([0.0] * 5, [1e-5] * 5, 0.033)
     assert rules.still_problem(still, stamps[-1:], CFG) is None
+
+
+# --- the stillness test searched in both directions (review-34) ---------------------------------------------
+def _effective_std(s: float) -> float:
+    """The offset std the stillness test uses for a stated one: none (NaN, inf) -> max_std_offset, floored."""
+    return max(s if math.isfinite(s) else CFG.max_std_offset, CFG.still_offset_floor)
+
+
+_any_std = st.one_of(st.floats(0.0, 5e-3), st.sampled_from([0.0, 5e-324, 1e-12, math.nan, math.inf, 1e-4, 1e160]))
+_any_height = st.one_of(st.floats(-0.05, 0.05), st.sampled_from([0.0, math.nan, math.inf, -math.inf, 1e300]))
+# measurement times: 25-100 ms apart, repeated (identical stamps), or after a clock jump of up to an hour
+_gap = st.one_of(st.floats(0.025, 0.1), st.just(0.0), st.floats(1.0, 3600.0))
+_window = st.integers(1, 9).flatmap(lambda k: st.tuples(
+    st.lists(_any_height, min_size=k, max_size=k), st.lists(_any_std, min_size=k, max_size=k),
+    st.lists(_gap, min_size=k, max_size=k), st.lists(st.booleans(), min_size=k, max_size=k)))
+
+
+@given(_window)
+def test_the_stillness_test_passes_only_planes_that_agree_within_their_noise(window):
+    """Any window (heights and stated stds finite or not, stamps repeated or after clock jumps, any subset
+    at rest): the test never raises, and when it passes, the planes it judged are at least 2, finite, and
+    every two of them agree within the 99.9 % chi-square bound of their (floored) stds -- the pair alone
+    has a chi-square no larger than the set's -- so no surface that moved more than that between two of
+    them passes, whatever the clock did. The clearance floor is finite and within [-release_clearance, 0]."""
+    from scipy.stats import chi2
+    heights, stds, gaps, at_rest = window
+    stamps = tuple(float(np.cumsum([2.0] + gaps)[i]) for i in range(len(heights)))
+    plane = FusedPlane(np.array([0.0, 0.0, 1.0]), 0.0, 0.0, 0.001, 0.0005, len(stamps), stamps[-1], len(stamps),
+                       stamps=stamps, heights=tuple(heights), height_stds=tuple(stds))
+    post = sorted({t for t, r in zip(stamps, at_rest) if r})
+    why = rules.still_problem(plane, post, CFG)
+    floor = rules.clearance_floor(plane, post, CFG)
+    assert math.isfinite(floor) and -CFG.release_clearance <= floor <= 0.0
+    if why is not None:
+        assert isinstance(why, str) and "\n" not in why
+        return
+    judged = [i for i, t in enumerate(stamps) if t in set(post)]
+    if len(judged) < 2:
+        judged = list(range(len(stamps)))[-max(2, CFG.check_frames):]
+    assert len(judged) >= 2
+    q = float(chi2.ppf(CFG.still_confidence, len(judged) - 1))
+    for a in judged:
+        assert math.isfinite(heights[a])
+        for b in judged:
+            bound = math.sqrt(q) * math.hypot(_effective_std(stds[a]), _effective_std(stds[b]))
+            assert abs(heights[a] - heights[b]) <= bound * (1 + 1e-9) + 1e-15
+
+
+@given(st.integers(2, 10).flatmap(lambda k: st.tuples(
+    st.lists(st.one_of(st.floats(0.0, 3e-3), st.just(math.nan)), min_size=k, max_size=k),
+    st.lists(st.floats(-1.0, 1.0), min_size=k, max_size=k), st.lists(_gap, min_size=k, max_size=k))))
+def test_a_still_surface_passes_whatever_its_clock_does(rest):
+    """The other direction: offsets that err by at most one std each (stated, or max_std_offset without a
+    covariance; floored) pass for 2-10 planes at rest, with repeated stamps or clock jumps of up to an hour
+    between them: the chi-square is then at most k and the trend's z at most sqrt(k) (Cauchy-Schwarz), both
+    below the 99.9 % quantiles for k <= 10."""
+    stds, errs, gaps = rest
+    stamps = tuple(float(np.cumsum([2.0] + gaps)[i]) for i in range(len(stds)))
+    heights = tuple(e * _effective_std(s) for e, s in zip(errs, stds))
+    plane = FusedPlane(np.array([0.0, 0.0, 1.0]), 0.0, 0.0, 0.001, 0.0005, len(stamps), stamps[-1], len(stamps),
+                       stamps=stamps, heights=heights, height_stds=tuple(stds))
+    assert rules.still_problem(plane, sorted(set(stamps)), CFG) is None
+    assert -CFG.release_clearance <= rules.clearance_floor(plane, sorted(set(stamps)), CFG) < 0.0
