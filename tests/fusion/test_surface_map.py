@@ -392,3 +392,71 @@ def test_a_point_seen_raised_is_in_doubt_until_a_view_from_no_lower_sees_it_clea
     sm.add(frame_over(T, lambda x, y: 0.0), T, 30.0)
     v = sm.verdict(UP, 0.0, cup, T)
     assert v.problem is None and v.supported >= 3
+
+
+# -- the doubt rule searched in both directions (review-34) --------------------------------------------------
+def _raised_at_rim(sm: SurfaceMap, cup: np.ndarray, height: float, zone: int, box: float, views: int) -> None:
+    """``views`` (< min_frames: no veto) frames from ``height`` over the cup that see ``box`` m above the table
+    under one of the zones over the footprint's rim (1, 3, 5, 7: their centre rays meet the table 41-49 mm from
+    the cup's axis from the survey up to the close height; ``zone`` picks one)."""
+    T = sensor_pose((0.0, 0.0), height)
+    hit = _zone_hits(T)[(1, 3, 5, 7)[zone % 4]]
+    for i in range(views):
+        sm.add(frame_over(T, lambda x, y: box if np.allclose((x, y), hit) else 0.0), T, 10.0 + i)
+
+
+@settings(max_examples=15)
+@given(rise=st.floats(0.0, 0.04), zone=st.integers(0, 7), box=st.floats(0.0075, 0.03), views=st.integers(1, 2),
+       lower=st.lists(st.tuples(st.floats(0.0101, 0.12), st.floats(-0.005, 0.005), st.floats(-0.005, 0.005)),
+                      max_size=4))
+def test_a_point_raised_last_is_never_supported_by_lower_views(rise, zone, box, views, lower):
+    """Raised in its latest view looking at the footprint (from anywhere between the survey and the close
+    height, a box 7.5-30 mm under one rim zone), a footprint point counts 0 in ``supported`` whatever clean
+    views follow from more than CLIMB_MARGIN lower (the descent, a few millimetres off the axis): the
+    placement cannot go on as if the footprint were certified."""
+    sm = SurfaceMap(PARAMS)
+    cup = cup_at((0.0, 0.0))
+    _certified_map(sm, cup)
+    h = sm.survey_height() + rise
+    _raised_at_rim(sm, cup, h, zone, box, views)
+    T = sensor_pose((0.0, 0.0), h)
+    assert sm.verdict(UP, 0.0, cup, T).supported == 0
+    for i, (drop, dx, dy) in enumerate(lower):
+        T = sensor_pose((dx, dy), h - drop)
+        sm.add(frame_over(T, lambda x, y: 0.0), T, 20.0 + i)
+        assert sm.verdict(UP, 0.0, cup, T).supported == 0
+
+
+@settings(max_examples=15)
+@given(rise=st.floats(0.0, 0.04), zone=st.integers(0, 7), box=st.floats(0.0075, 0.03), views=st.integers(1, 2),
+       up=st.floats(0.0, 1.0))
+def test_a_clean_view_from_no_lower_lifts_the_doubt(rise, zone, box, views, up):
+    """The other direction: one clean view over the cup from no lower than the raising view (less
+    CLIMB_MARGIN) and no higher than the close height lifts the doubt (the box was taken away, or the raised
+    reading was noise), and the earlier clean views support the footprint again: no refusal for ever."""
+    sm = SurfaceMap(PARAMS)
+    cup = cup_at((0.0, 0.0))
+    _certified_map(sm, cup)
+    h = sm.survey_height() + rise
+    _raised_at_rim(sm, cup, h, zone, box, views)
+    lo = max(sm.survey_height(), h - 0.0099)
+    T = sensor_pose((0.0, 0.0), lo + up * (sm.close_height() - lo))
+    sm.add(frame_over(T, lambda x, y: 0.0), T, 30.0)
+    v = sm.verdict(UP, 0.0, cup, T)
+    assert v.problem is None and v.supported >= 3
+
+
+@settings(max_examples=15)
+@given(views=st.lists(st.tuples(st.floats(0.08, 0.27), st.floats(-0.01, 0.01), st.floats(-0.01, 0.01)),
+                      min_size=1, max_size=6))
+def test_clean_views_never_put_a_certified_footprint_in_doubt(views):
+    """A clean table seen by any views over the cup from 8 cm up to the close height: no doubt, no problem;
+    the footprint stays supported (the doubt rule adds no refusal on a clean surface)."""
+    sm = SurfaceMap(PARAMS)
+    cup = cup_at((0.0, 0.0))
+    _certified_map(sm, cup)
+    for i, (h, dx, dy) in enumerate(views):
+        T = sensor_pose((dx, dy), min(h, sm.close_height()))
+        sm.add(frame_over(T, lambda x, y: 0.0), T, 10.0 + i)
+        v = sm.verdict(UP, 0.0, cup, T)
+        assert v.problem is None and v.supported >= 3
