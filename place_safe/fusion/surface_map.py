@@ -418,8 +418,8 @@ class SurfaceMap:
           view centred on it, whose zone reaches least far past it) see it clean; views sliding off a box
           as the sensor moves away do not lift a veto. A point whose latest such view saw it raised (fewer
           than ``min_frames`` of them: no veto yet) is *in doubt* and counts 0 in ``supported`` until a clean
-          view from no lower than the one that raised it (less :data:`CLIMB_MARGIN`), or centred on it, sees it
-          clean: the descent's lower views reach past the far rim. This rule needs zone points good to a few millimetres:
+          view from no lower than the highest one that raised it since (less :data:`CLIMB_MARGIN`), or centred on
+          it, sees it clean: the descent's lower views reach past the far rim. This rule needs zone points good to a few millimetres:
           it applies only to a calibrated peak mapping (``relative > 0``); with built-in constants, whose zone
           points lie a centimetre off, the first rule alone decides.
         """
@@ -478,7 +478,10 @@ class SurfaceMap:
                 # in doubt: raised in the latest such view; lifted by a clean view from no lower (zones as wide as the
                 # one that saw it, or wider) or centred on it, not by views from further down the descent, whose
                 # zones over the far rim lie at the edge of the view and reach past it
-                doubt_at[seen & ~clean] = height
+                # the highest raising view since the doubt was last lifted sets the bar: seeing it raised again from
+                # lower down is more evidence, not a lower bar (fmax: NaN, no doubt yet, gives this height)
+                raised = seen & ~clean
+                doubt_at[raised] = np.fmax(doubt_at[raised], height)
                 with np.errstate(invalid="ignore"):
                     lifts = clean & ((height >= doubt_at - CLIMB_MARGIN) | centred)
                 doubt_at[lifts] = np.nan

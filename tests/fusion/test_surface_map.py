@@ -460,3 +460,26 @@ def test_clean_views_never_put_a_certified_footprint_in_doubt(views):
         sm.add(frame_over(T, lambda x, y: 0.0), T, 10.0 + i)
         v = sm.verdict(UP, 0.0, cup, T)
         assert v.problem is None and v.supported >= 3
+
+
+@settings(max_examples=15)
+@given(edge=st.floats(0.02, 0.035), drop=st.floats(0.015, 0.08), below=st.floats(0.0, 0.009))
+def test_seeing_the_raised_rim_again_from_lower_never_eases_the_doubt(edge, drop, below):
+    """Monotone in the evidence: a box over the far rim (everything beyond ``edge`` from the cup's axis, 7 mm
+    tall) raised from the survey pose puts the rim in doubt until a clean view from no lower than that pose
+    (less CLIMB_MARGIN); seeing it raised again from lower down must not lower that bar. (It did: the latest
+    raising view's height replaced the survey's, and a clean view just below the second one -- the far rim at
+    the edge of the view, as in box_at_rim_mismatch -- lifted the doubt: supported 4, no problem, for boxes
+    from 20-30 mm out seen again 3-5 cm lower.)"""
+    sm = SurfaceMap(PARAMS)
+    cup = cup_at((0.0, 0.0))
+    _certified_map(sm, cup)
+    T = sensor_pose((0.0, 0.0), sm.survey_height())
+    u = _zone_hits(T)[7] / np.linalg.norm(_zone_hits(T)[7])
+    rim = lambda x, y: 0.007 if x * u[0] + y * u[1] > edge else 0.0  # noqa: E731
+    sm.add(frame_over(T, rim), T, 10.0)
+    low = sensor_pose((0.0, 0.0), sm.survey_height() - drop)
+    sm.add(frame_over(low, rim), low, 11.0)
+    lower = sensor_pose((0.0, 0.0), sm.survey_height() - drop - below)
+    sm.add(frame_over(lower, lambda x, y: 0.0), lower, 12.0)
+    assert sm.verdict(UP, 0.0, cup, lower).supported == 0
