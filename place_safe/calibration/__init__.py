@@ -181,6 +181,11 @@ UNCALIBRATED_MARK = "[uncalibrated]"
 """The marker every output row of an uncalibrated run carries (JSON records carry ``"calibrated": false``)."""
 
 
+def mark(text: str, calibrated: bool) -> str:
+    """An output row ``text`` as printed: with :data:`UNCALIBRATED_MARK` after two spaces unless ``calibrated``."""
+    return text if calibrated else f"{text}  {UNCALIBRATED_MARK}"
+
+
 def uncalibrated_reason(method: str, calibration: "Calibration | None") -> str | None:
     """Why ``method`` with ``calibration`` is not a calibrated sensor (and how to calibrate), or None.
 
