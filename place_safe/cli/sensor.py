@@ -20,7 +20,6 @@ from typing import Any
 from place_safe.cli import options
 from place_safe.cli.common import FMT, log
 from place_safe.cli.options import float_range, fraction, int_range, opt
-from place_safe.cli.live_view import RerunView
 from place_safe.drivers.tmf8820 import bench
 from place_safe.exceptions import ConfigError, SensorTimeout, UsageError
 from place_safe.sources import open_source
@@ -28,7 +27,6 @@ from place_safe.calibration import mark
 from place_safe.cli.common import estimator_for, load_calibration, uncalibrated_note
 from place_safe.io.frame_file import write_frames
 from place_safe.io.live import run_live
-from place_safe.recovery.forward import ForwardParams
 
 #: Hz: an emulated I2C clock (standard 100 kHz .. high-speed 3.4 MHz, and slower buses down to 10 kHz).
 #: s: how long a read may wait for a frame.
@@ -149,8 +147,11 @@ def cmd_stream(args: argparse.Namespace) -> int:
     note = uncalibrated_note(args.method, cal, args.calibration)
     view = None
     if args.save or args.view:
+        from place_safe.cli.live_view import RerunView
+
         params = cal.forward() if cal is not None and hasattr(cal, "forward") and "forward" in cal.sections else None
         if params is None and args.method == "diff":
+            from place_safe.recovery.forward import ForwardParams
 
             params = ForwardParams()
         view = RerunView(save=args.save, params=params)

@@ -18,10 +18,10 @@ Histograms are arrays ``(..., 9, 128)`` of counts (zones 1..9 in reporting order
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
-from scipy.interpolate import CubicSpline
 
 from place_safe.sensor.zones import N_BINS
 
@@ -90,8 +90,15 @@ INTERNAL_TAIL_FRACTION = 0.1
 _KNOTS = np.arange(-HALF_WINDOW, HALF_WINDOW + 1, dtype=float)
 _KNOT_OFFSETS = _KNOTS.astype(int)
 _FINE = np.linspace(-1.0, 1.0, 2 * SUBBIN_STEPS + 1)
-#: (fine points, window) matrix: spline values at _FINE from the window's counts.
-_SPLINE = CubicSpline(_KNOTS, np.eye(len(_KNOTS)), axis=0)(_FINE)
+
+
+@functools.cache
+def _spline() -> np.ndarray:
+    """(fine points, window) matrix: spline values at _FINE from the window's counts (built on first use: scipy's
+    interpolation is slow to import, and a command's --help needs none of it)."""
+    from scipy.interpolate import CubicSpline
+
+    return CubicSpline(_KNOTS, np.eye(len(_KNOTS)), axis=0)(_FINE)
 
 
 #: Largest fraction of the laser cycles x detectors that :func:`undo_pileup` lets the counts before a
@@ -192,7 +199,7 @@ def _returns(hists: np.ndarray, pileup: float, subbin: str,
     at = np.arange(rows.shape[0])
     kc = np.minimum(np.maximum(k, HALF_WINDOW), N_BINS - 1 - HALF_WINDOW)
     window = rows[at[:, None], kc.reshape(-1, 1) + _KNOT_OFFSETS].reshape(kc.shape + (len(_KNOTS),))  # (..., 9, W)
-    fine = window @ _SPLINE.T  # (..., 9, F)
+    fine = window @ _spline().T  # (..., 9, F)
     pos = kc + _FINE[fine.argmax(axis=-1)]  # kc == k except for a top in the last bins
     valid = finite & has_return & ~saturated
     reading = pos
