@@ -381,7 +381,8 @@ def adopt_pileup(frames: Sequence[Frame], params: PeakParams, report: dict, pile
     the histograms' shapes. Nothing changes when ``report`` shows that the peak calibration identified
     pile-up itself (:data:`PILEUP_IDENTIFIED`); otherwise the refit is kept unless its mean point error
     on ``frames`` exceeds ``params``' by more than :data:`PILEUP_ADOPT_TOLERANCE`. Returns (parameters,
-    report, adopted)."""
+    report, adopted). ``pileup`` must come from a forward model whose ``pileup_shadow`` is 1 (Coates), the
+    pile-up :func:`~place_safe.sensor.histogram.undo_pileup` inverts: the default forward fit holds it there."""
     k = float(pileup)
     if not (math.isfinite(k) and k > 0.0) or abs(k - params.pileup) <= 1e-3 * k:
         return params, report, False

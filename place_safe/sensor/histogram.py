@@ -119,6 +119,13 @@ def undo_pileup(net: np.ndarray, pileup: float) -> np.ndarray:
     earlier (up to a bin and more at a few centimetres on white), by an amount that differs between
     zones that see different brightness: a tilt the surface does not have. Negative net counts count
     as 0; ``k M`` is capped at :data:`PILEUP_MAX_FRACTION`. ``pileup = 0`` returns ``net`` unchanged.
+
+    This inverts Coates' pile-up only: the forward model's ``pileup_shadow = 1`` (its default). With a shadow
+    ``s < 1`` the model's earlier counts shadow later bins by ``exp(-k s H_i)``, which this over-corrects. The
+    peak method's ``pileup`` is its own calibration's (:func:`~place_safe.calibration.points.fit_pileup`), or the
+    forward fit's ``pileup`` through :func:`~place_safe.calibration.points.adopt_pileup`, and that fit holds
+    ``pileup_shadow`` at 1 (it is not in :data:`~place_safe.calibration.forward_fit.FITTED`; only a fit asked for
+    its ``PULSE_TERMS`` frees it, and ``calibrate`` does not ask), so the two agree.
     """
     x = np.asarray(net, dtype=float)
     k = float(pileup)
