@@ -21,14 +21,16 @@ from __future__ import annotations
 
 from dataclasses import InitVar, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from place_safe.config import read_json, write_json
 from place_safe.exceptions import ArgumentTypeError, CalibrationError
-from place_safe.recovery.forward import ForwardParams
-from place_safe.recovery.differentiable import LEGACY_WINDOW_AFTER_PEAK, RangeCorrection, SolverOptions
 from place_safe.recovery.estimator import Uncertainty
-from place_safe.recovery.points import PeakParams
+
+if TYPE_CHECKING:  # imported when a section is read: the forward model and diff load torch, the peak
+    # mapping scipy, and a command's parser and --help need neither
+    from place_safe.recovery.forward import ForwardParams
+    from place_safe.recovery.points import PeakParams
 
 FORMAT = "place_safe.calibration/1"
 SECTIONS = ("peak", "proprietary", "forward", "diff", "uncertainty")
@@ -98,16 +100,22 @@ class Calibration:
             raise CalibrationError(f"{self.source}: section '{name}': {self.errors[name]}")
         return self.sections.get(name)
 
-    def peak(self):
+    def peak(self) -> PeakParams:
+        from place_safe.recovery.points import PeakParams
+
         d = self._section("peak")
         return PeakParams.from_dict(d) if d is not None else PeakParams.default_peak()
 
-    def proprietary(self):
+    def proprietary(self) -> PeakParams:
+        from place_safe.recovery.points import PeakParams
+
         d = self._section("proprietary")
         return PeakParams.from_dict(d) if d is not None else PeakParams.default_proprietary()
 
     def diff(self):
         """The ``diff`` section's range correction (none when the section is absent)."""
+        from place_safe.recovery.differentiable import RangeCorrection
+
         d = self._section("diff")
         if d is None:
             return RangeCorrection()
@@ -122,6 +130,8 @@ class Calibration:
         one its chi-square limit and covariance scale hold for. A file without it predates the key and
         was calibrated with :data:`~place_safe.recovery.differentiable.LEGACY_WINDOW_AFTER_PEAK`; without a
         ``diff`` section the solver's default is used."""
+        from place_safe.recovery.differentiable import LEGACY_WINDOW_AFTER_PEAK, SolverOptions
+
         d = self._section("diff")
         if d is None:
             return SolverOptions()
@@ -143,6 +153,8 @@ class Calibration:
             raise CalibrationError(str(exc)) from None
 
     def forward(self) -> ForwardParams:
+        from place_safe.recovery.forward import ForwardParams
+
         d = self._section("forward")
         return ForwardParams.from_dict(d) if d is not None else ForwardParams()
 
@@ -179,6 +191,11 @@ REQUIRED_SECTIONS = {"diff": ("forward",), "peak": ("peak",), "proprietary": ("p
 
 UNCALIBRATED_MARK = "[uncalibrated]"
 """The marker every output row of an uncalibrated run carries (JSON records carry ``"calibrated": false``)."""
+
+
+def mark(text: str, calibrated: bool) -> str:
+    """An output row ``text`` as printed: with :data:`UNCALIBRATED_MARK` after two spaces unless ``calibrated``."""
+    return text if calibrated else f"{text}  {UNCALIBRATED_MARK}"
 
 
 def uncalibrated_reason(method: str, calibration: "Calibration | None") -> str | None:

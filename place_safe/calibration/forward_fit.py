@@ -334,9 +334,8 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
             ref_floors = {"measured": float(np.median([reference_floor(f.reference) for f in data])),
                           "published": init.ref_floor}
     dtype = torch.float64
-    model = ForwardModel(init, ZoneRays.stratified(rays, dtype=dtype), dtype=dtype)
-    model._echo = model._echo or "echo_gain" in fitted  # fitted terms are rendered under differentiation
-    model._glass = model._glass or "glass_gains" in fitted
+    # (fitted: its echo and glass terms are rendered under differentiation even while they start at zero)
+    model = ForwardModel(init, ZoneRays.stratified(rays, dtype=dtype), dtype=dtype, fitted=fitted)
 
     hists = np.array([f.hists for f in data], dtype=float)
     floor = measure_floor(hists)
@@ -554,9 +553,8 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
         # the first steps on a coarser quadrature (a quarter of the rays or fewer: each Jacobian that much cheaper),
         # to a looser test; the fit on the full quadrature then starts near its minimum
         full = model
-        model = ForwardModel(init, ZoneRays.stratified(coarse_rays, dtype=dtype), dtype=dtype)
+        model = ForwardModel(init, ZoneRays.stratified(coarse_rays, dtype=dtype), dtype=dtype, fitted=fitted)
         model.t = full.t  # the same parameter tensors (unpack writes them)
-        model._echo, model._glass = full._echo, full._glass
         coarse = gauss_newton.solve(fun, jac, z0, lower, upper, max_iterations=iterations, damping=INITIAL_DAMPING,
                                     relative_tol=COARSE_RELATIVE_DECREMENT, decrement_tol=COARSE_DECREMENT)
         model = full

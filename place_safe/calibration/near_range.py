@@ -210,7 +210,7 @@ def fit_near_range(frames: Sequence[Frame], params: PeakParams, hists: np.ndarra
 
     ``params`` is the far-range mapping (its own table, if any, is replaced). See the module doc.
     """
-    base = params.replace(near_depths=[], near_errors=[], near_min_fraction=0.0)
+    base = params.without_near_table()
     frames = [f for f in frames if f.truth is not None]
     report: dict = {"end_m": NEAR_END, "adopted": False}
     if not frames:
@@ -302,7 +302,7 @@ def held_out_fits(frames: Sequence[Frame], params: PeakParams, width: int = 1) -
     folds dealt by depth. The far-range mapping is ``params``'s (fitted with the frames: from 3 cm on it is in
     sample). For the near-range uncertainty (:mod:`place_safe.calibration.uncertainty`)."""
     frames = [f for f in frames if f.truth is not None]
-    base = params.replace(near_depths=[], near_errors=[], near_min_fraction=0.0)
+    base = params.without_near_table()
     if not frames:
         return {}
     *_, frame_depth, near = _zone_readings(frames, base)

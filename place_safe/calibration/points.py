@@ -29,6 +29,19 @@ MIN_TILT_SPREAD = math.radians(5.0)
 #: moving with range there (pulse and target overlap), see the shared sweep below 25 mm.
 MIN_CALIBRATION_RANGE = 0.03  # m
 
+
+def tilt_angles(normals: np.ndarray) -> np.ndarray:
+    """rad: each unit plane normal's (F, 3) angle from the optical axis (:attr:`~place_safe.geometry.Plane.theta`;
+    ``n_z > 0`` by the plane convention)."""
+    n = np.asarray(normals, dtype=float).reshape(-1, 3)
+    return np.arccos(np.clip(n[:, 2], -1.0, 1.0))
+
+
+def level_frames(tilts: np.ndarray) -> bool:
+    """Whether calibration frames of these tilts (rad, :func:`tilt_angles`) are level: none, or their tilts spread
+    less than :data:`MIN_TILT_SPREAD`, so the frames cannot show what a tilt does."""
+    return tilts.size == 0 or float(np.ptp(tilts)) < MIN_TILT_SPREAD
+
 # ---------------------------------------------------------------------------------------------
 # Calibration
 # ---------------------------------------------------------------------------------------------
@@ -205,8 +218,7 @@ def fit_points(readings: np.ndarray, valid: np.ndarray, frames: Sequence[Frame],
 
     tn, td = _truth_arrays(frames)
     before = _summary(_errors(init, readings, valid, tn, td))
-    tilt = np.arccos(np.clip(tn[:, 2], -1.0, 1.0))
-    tilted = bool(np.ptp(tilt) >= MIN_TILT_SPREAD)
+    tilted = not level_frames(tilt_angles(tn))
     bar = tqdm(total=max_iter * (2 if tilted and not paper else 1), desc=label, unit="it", disable=not progress,
                leave=False, file=sys.stderr)
     try:
@@ -369,7 +381,8 @@ def adopt_pileup(frames: Sequence[Frame], params: PeakParams, report: dict, pile
     the histograms' shapes. Nothing changes when ``report`` shows that the peak calibration identified
     pile-up itself (:data:`PILEUP_IDENTIFIED`); otherwise the refit is kept unless its mean point error
     on ``frames`` exceeds ``params``' by more than :data:`PILEUP_ADOPT_TOLERANCE`. Returns (parameters,
-    report, adopted)."""
+    report, adopted). ``pileup`` must come from a forward model whose ``pileup_shadow`` is 1 (Coates), the
+    pile-up :func:`~place_safe.sensor.histogram.undo_pileup` inverts: the default forward fit holds it there."""
     k = float(pileup)
     if not (math.isfinite(k) and k > 0.0) or abs(k - params.pileup) <= 1e-3 * k:
         return params, report, False
@@ -433,4 +446,5 @@ def fit_proprietary(frames: Sequence[Frame], init: PeakParams | None = None, pro
     return params, report
 
 
-__all__ = ["fit_points", "fit_peak", "fit_proprietary", "proprietary_readings", "MIN_CALIBRATION_RANGE"]
+__all__ = ["fit_points", "fit_peak", "fit_proprietary", "proprietary_readings", "MIN_CALIBRATION_RANGE", "tilt_angles",
+           "level_frames"]

@@ -62,7 +62,7 @@ from place_safe.sensor.frame import Frame
 from place_safe.calibration.near_range import held_out_fits, near_range_std
 from place_safe.exceptions import FrameError, NoPlaneError
 from place_safe.recovery.points import plane_through
-from place_safe.calibration.points import MIN_CALIBRATION_RANGE, MIN_TILT_SPREAD
+from place_safe.calibration.points import MIN_CALIBRATION_RANGE, MIN_TILT_SPREAD, level_frames, tilt_angles
 from place_safe.recovery.differentiable import NEAR_FALLBACK_RANGE, DifferentiableEstimator
 from place_safe.recovery.peak import PeakEstimator
 
@@ -493,9 +493,8 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
     # frames: the floor, fitted on all, would follow the level ones); frames whose tilts spread MIN_TILT_SPREAD or
     # more, at least DIFF_TILTED_SHARE of them tilted that far from the least, show it, and the floor and scale
     # fitted on them hold it
-    tilts = np.array([math.acos(min(1.0, abs(float(t.normal[2])))) for t in truths])
-    level = tilts.size == 0 or float(np.ptp(tilts)) < MIN_TILT_SPREAD \
-        or float(np.mean(tilts - tilts.min() >= MIN_TILT_SPREAD)) < DIFF_TILTED_SHARE
+    tilts = tilt_angles(np.array([t.normal for t in truths]))
+    level = level_frames(tilts) or float(np.mean(tilts - tilts.min() >= MIN_TILT_SPREAD)) < DIFF_TILTED_SHARE
     tilt_term = (Uncertainty(tilt_rel=DIFF_TILT_REL, tilt_offset_rel=DIFF_TILT_OFFSET_REL, tilt_pivot=DIFF_TILT_PIVOT)
                  if level else Uncertainty())
 

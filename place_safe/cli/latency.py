@@ -10,7 +10,8 @@ import argparse
 
 from place_safe.exceptions import FrameFileError, PlaceSafeError
 from place_safe.cli import options
-from place_safe.cli.common import UNCALIBRATED_MARK, load_calibration, not_a_file, uncalibrated_note
+from place_safe.calibration import mark
+from place_safe.cli.common import load_calibration, not_a_file, uncalibrated_note
 
 EPILOG = """examples:
   place-safe synth --frames 100 --seed 7 -o out/speed.json
@@ -45,9 +46,9 @@ def cmd_latency(args: argparse.Namespace) -> int:
         res = measure_recover_latency(args.file, args.method, args.calibration, args.batch)
     except RuntimeError as exc:
         raise PlaceSafeError(f"latency: {exc}") from None
-    print(f"recover --method {res['method']}: {res['frames']} frames, per frame median {res['median_ms']:.2f} ms, "
-          f"p95 {res['p95_ms']:.2f} ms, mean {res['mean_ms']:.2f} ms (first line after {res['first_line_ms']:.0f} ms); "
-          f"method used: {res['method_used']}" + ("" if note is None else "  " + UNCALIBRATED_MARK))
+    print(mark(f"recover --method {res['method']}: {res['frames']} frames, per frame median {res['median_ms']:.2f} ms, "
+               f"p95 {res['p95_ms']:.2f} ms, mean {res['mean_ms']:.2f} ms (first line after {res['first_line_ms']:.0f} ms); "
+               f"method used: {res['method_used']}", note is None))
     if args.json:
         Path(args.json).write_text(json.dumps({**res, "calibrated": note is None}, indent=2) + "\n")
     return 0

@@ -28,7 +28,6 @@ from place_safe.exceptions import ConfigError
 from place_safe.sensor.frame import Frame
 from place_safe.sensor.histogram import measure_floor
 from place_safe.sensor.zones import N_ZONES, ZONE_DIRECTIONS
-from place_safe.recovery.forward import ForwardModel, ZoneRays
 
 #: Half side (m) of the plane patch drawn in 3D.
 PATCH_HALF = 0.08
@@ -53,6 +52,7 @@ class RerunView:
             rr.save(str(save))
         self._model = None
         if params is not None:
+            from place_safe.recovery.forward import ForwardModel, ZoneRays  # torch: only for the fit overlay
 
             self._model = ForwardModel(params, ZoneRays.stratified(4))
         self._last_t: float | None = None

@@ -18,10 +18,10 @@ from typing import Any
 
 from place_safe.cli import options
 from place_safe.cli.options import opt
-from place_safe.cli.common import CALIBRATE_METHODS, UNCALIBRATED_MARK, log, uncalibrated_note
+from place_safe.cli.common import CALIBRATE_METHODS, log, uncalibrated_note
 from place_safe.cli.options import REACH, float_range, int_range
 from place_safe.exceptions import ConfigError, UsageError
-from place_safe.calibration import Calibration
+from place_safe.calibration import Calibration, mark
 from place_safe.recovery import make_estimator
 from place_safe.config import read_json
 from place_safe.geometry import transform_problem
@@ -189,7 +189,7 @@ def _place_arm(args: argparse.Namespace, cfg) -> tuple[dict, Any, list[str]]:
     out = {"where": where, "method": method, "calibration": cal_note, "calibrated": calibrated,
            "robot_config": args.robot, **res.to_dict()}
     lines = [] if calibrated else [uncalibrated_note(method, None)]
-    lines.append(f"{where}: {res.outcome.upper()} ({res.reason})" + ("" if calibrated else "  " + UNCALIBRATED_MARK))
+    lines.append(mark(f"{where}: {res.outcome.upper()} ({res.reason})", calibrated))
     lines += [f"  t={tr['time']:7.3f} s  {tr['from']:>8} -> {tr['to']:<8} {tr['reason']}" for tr in _transition_rows(res)]
     return out, res, lines
 
@@ -278,9 +278,8 @@ def cmd_calibrate_mount(args: argparse.Namespace) -> int:
                     level=args.level, plane_offset=args.table_height)
     if not calibrated:  # the first line of the output (printed once the fit succeeded: an error prints nothing)
         print(uncalibrated_note(args.method, None))
-    print(f"{args.capture}: {sum(p is not None for p in planes)}/{len(frames)} frames with a plane "
-          f"({args.method}, calibration: {cal_note}); flange poses from {args.poses}"
-          + ("" if calibrated else "  " + UNCALIBRATED_MARK))
+    print(mark(f"{args.capture}: {sum(p is not None for p in planes)}/{len(frames)} frames with a plane "
+               f"({args.method}, calibration: {cal_note}); flange poses from {args.poses}", calibrated))
     print(fit.summary())
     result = {"capture": args.capture, "method": args.method, "calibration": cal_note, "calibrated": calibrated,
               "poses": args.poses,

@@ -19,7 +19,7 @@ except ImportError:  # pragma: no cover - a dependency; the standard encoder sti
 from place_safe.cli import options
 from place_safe.cli.options import opt
 from place_safe.exceptions import CalibrationError, FrameError, FrameFileError, PlaceSafeError
-from place_safe.cli.common import (CALIBRATE_METHODS, METHODS, PROG, UNCALIBRATED_MARK, UsageError, estimator_for,
+from place_safe.cli.common import (CALIBRATE_METHODS, METHODS, PROG, UsageError, estimator_for,
                                    jsonable, load_calibration, load_truth_frames, log, progress_options, summarise,
                                    not_a_file, uncalibrated_note)
 from place_safe.evaluation.bench import DEFAULT_RUNS, measure_file_rss, report_json, run_bench
@@ -28,7 +28,7 @@ from place_safe.io.frame_file import iter_frames
 from place_safe.io.live import run_live
 from place_safe.io.replay import FileReplaySource
 from place_safe.recovery.estimator import PlaneEstimate
-from place_safe.calibration import Calibration
+from place_safe.calibration import Calibration, mark
 
 # ------------------------------------------------------------------------------------------------
 # calibrate
@@ -164,7 +164,6 @@ def cmd_recover(args: argparse.Namespace) -> int:
     cal = load_calibration(args.calibration)
     est = estimator_for(args.method, cal, args.mode)
     note = uncalibrated_note(args.method, cal, args.calibration)
-    mark = "" if note is None else "  " + UNCALIBRATED_MARK
     batch = args.batch or (16 if args.method == "diff" and args.mode != "paper" else 1)
     out = sys.stdout
     if not args.jsonl:
@@ -181,7 +180,7 @@ def cmd_recover(args: argparse.Namespace) -> int:
             line["calibrated"] = note is None
             _write_line(out, line)
         else:
-            out.write(_fmt_row(i, e) + mark + "\n")
+            out.write(mark(_fmt_row(i, e), note is None) + "\n")
         n += 1
         bad += 0 if e.ok else 1
         bar.update(1)
@@ -245,7 +244,7 @@ def cmd_stream(args: argparse.Namespace) -> int:
     summary = stats.summary()
     if note is not None:  # the summary's first line carries the mark
         first, _, rest = summary.partition("\n")
-        summary = f"{first}  {UNCALIBRATED_MARK}" + (f"\n{rest}" if rest else "")
+        summary = mark(first, False) + (f"\n{rest}" if rest else "")
     if args.jsonl:  # every record says whether it was calibrated
         log(summary)
     else:  # the summary is the output: the note on a missing calibration is its first line

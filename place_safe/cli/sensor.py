@@ -20,14 +20,13 @@ from typing import Any
 from place_safe.cli import options
 from place_safe.cli.common import FMT, log
 from place_safe.cli.options import float_range, fraction, int_range, opt
-from place_safe.cli.live_view import RerunView
 from place_safe.drivers.tmf8820 import bench
 from place_safe.exceptions import ConfigError, SensorTimeout, UsageError
 from place_safe.sources import open_source
-from place_safe.cli.common import UNCALIBRATED_MARK, estimator_for, load_calibration, uncalibrated_note
+from place_safe.calibration import mark
+from place_safe.cli.common import estimator_for, load_calibration, uncalibrated_note
 from place_safe.io.frame_file import write_frames
 from place_safe.io.live import run_live
-from place_safe.recovery.forward import ForwardParams
 
 #: Hz: an emulated I2C clock (standard 100 kHz .. high-speed 3.4 MHz, and slower buses down to 10 kHz).
 #: s: how long a read may wait for a frame.
@@ -146,11 +145,13 @@ def cmd_stream(args: argparse.Namespace) -> int:
     cal = load_calibration(args.calibration)
     est = estimator_for(args.method, cal)
     note = uncalibrated_note(args.method, cal, args.calibration)
-    mark = "" if note is None else "  " + UNCALIBRATED_MARK
     view = None
     if args.save or args.view:
+        from place_safe.cli.live_view import RerunView
+
         params = cal.forward() if cal is not None and hasattr(cal, "forward") and "forward" in cal.sections else None
         if params is None and args.method == "diff":
+            from place_safe.recovery.forward import ForwardParams
 
             params = ForwardParams()
         view = RerunView(save=args.save, params=params)
@@ -178,11 +179,11 @@ def cmd_stream(args: argparse.Namespace) -> int:
             print(json.dumps(line), flush=True)
         elif e.plane is not None:
             p = e.plane
-            say(f"{index:>5}  tilt {math.degrees(p.theta):6.2f} deg  azimuth {math.degrees(p.phi):7.1f} deg  "
-                f"distance {p.offset * 1e3:7.1f} mm  latency {latency * 1e3:6.1f} ms"
-                + (f"  age {age * 1e3:6.1f} ms" if age is not None else "") + mark)
+            say(mark(f"{index:>5}  tilt {math.degrees(p.theta):6.2f} deg  azimuth {math.degrees(p.phi):7.1f} deg  "
+                     f"distance {p.offset * 1e3:7.1f} mm  latency {latency * 1e3:6.1f} ms"
+                     + (f"  age {age * 1e3:6.1f} ms" if age is not None else ""), note is None))
         else:
-            say(f"{index:>5}  no plane: {e.reason}{mark}")
+            say(mark(f"{index:>5}  no plane: {e.reason}", note is None))
 
     try:
         with src:

@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from place_safe.calibration import UNCALIBRATED_MARK
+from place_safe.calibration import mark
 from place_safe.sensor.frame import Frame
 from place_safe.evaluation.metrics import angular_error, linear_error, point_error
 from place_safe.recovery import make_estimator
@@ -130,12 +130,12 @@ class BenchReport:
             if r.error:
                 lines.append(f"{r.label:<18} not run: {r.error}")
                 continue
-            lines.append(
+            lines.append(mark(
                 f"{r.label:<18} {r.frames:>6d} {r.failures:>8d} "
                 f"{f(None if r.latency_median is None else r.latency_median * 1e3, '10.2f'):>10} "
                 f"{f(None if r.latency_p95 is None else r.latency_p95 * 1e3, '9.2f'):>9} {f(r.fps, '9.2f'):>9} "
                 f"{f(r._mean(r.angular_deg), '11.3f'):>11} {f(r._mean(r.linear_mm), '9.2f'):>9} "
-                f"{f(r._mean(r.point_mm), '9.2f'):>9}" + ("" if r.calibrated else "  " + UNCALIBRATED_MARK))
+                f"{f(r._mean(r.point_mm), '9.2f'):>9}", r.calibrated))
         if self.speed_ratio is not None:
             lines.append(f"speed ratio diff paper / fast (median latency): {self.speed_ratio:.1f}x")
         lines.append(f"peak RSS of this process: {self.peak_rss_bytes / 2**20:.0f} MB")

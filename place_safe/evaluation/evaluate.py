@@ -19,7 +19,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from place_safe.calibration import UNCALIBRATED_MARK
+from place_safe.calibration import mark
 from place_safe.evaluation.metrics import angular_errors, linear_errors, nees, point_errors, summarise
 from place_safe.sensor.frame import Frame
 from place_safe.recovery import make_estimator
@@ -111,8 +111,8 @@ class EvaluationReport:
             for key in ("angular_deg", "linear_mm", "point_mm"):
                 cells += [f"{s[key][k]:7.2f}" if math.isfinite(s[key][k]) else f"{'-':>7}"  # every frame failed
                           for k in ("mean", "median", "p95")]
-            lines.append(f"{name:<18} " + " ".join(cells) + f" {s['failures']:>5d} {s['ms_per_frame']:8.3f}"
-                         + ("  " + UNCALIBRATED_MARK if name in self.uncalibrated else ""))
+            lines.append(mark(f"{name:<18} " + " ".join(cells) + f" {s['failures']:>5d} {s['ms_per_frame']:8.3f}",
+                              name not in self.uncalibrated))
         for name, res in self.results.items():
             s = res.summary()
             notes = []
@@ -127,7 +127,7 @@ class EvaluationReport:
             if s["albedo"] is not None:
                 notes.append(f"albedo {s['albedo']['mean']:.4g}, CV {s['albedo']['cv_percent']:.1f} %")
             if notes:
-                lines.append(f"{name:<18} " + "; ".join(notes) + ("  " + UNCALIBRATED_MARK if name in self.uncalibrated else ""))
+                lines.append(mark(f"{name:<18} " + "; ".join(notes), name not in self.uncalibrated))
         for name, why in self.unavailable.items():
             lines.append(f"{name:<18} unavailable: {why}")
         lines.append(f"({len(self.z0)} frames with ground truth"

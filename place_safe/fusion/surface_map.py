@@ -199,6 +199,7 @@ class FrameSurfaces:
     inliers: np.ndarray  # zones on the frame's consensus plane
     plane_sensor: np.ndarray  # (4,) consensus plane (n, d) in the sensor frame, NaN if none
     rms: float = math.nan
+    tolerance: float = math.nan  # m, the frame's consensus tolerance (SurfaceMap.consensus_tolerance of its valid zones)
 
     @property
     def multi_surface(self) -> bool:
@@ -282,11 +283,12 @@ class SurfaceMap:
         second, where = second_returns(h, top, valid)
         early = early_returns(h, top, valid)
         depth = (where - top) / self._bins_per_m
-        inliers, plane, rms = consensus(pts, valid, self.consensus_tolerance(pts, valid))
+        tol = self.consensus_tolerance(pts, valid)
+        inliers, plane, rms = consensus(pts, valid, tol)
         pb = pts @ T[:3, :3].T + T[:3, 3]
         pb[~valid] = np.nan
         fs = FrameSurfaces(float(stamp), T.copy(), pb, valid, second, np.where(second, depth, np.nan), early,
-                           inliers, plane, rms)
+                           inliers, plane, rms, tol)
         self.frames.append(fs)
         return fs
 
@@ -521,26 +523,16 @@ class SurfaceMap:
     def _doubtful(self, fs: FrameSurfaces, n: np.ndarray, d: float) -> np.ndarray:
         """Zones (9,) of a frame that returned one surface off the plane ``n . x = d`` by more than the frame's
         consensus tolerance (they may still lie within ``tolerance``): see :meth:`footprint`."""
-        T = fs.base_T_sensor
         ok = fs.valid & np.all(np.isfinite(fs.points_base), axis=1)
         if not ok.any():
             return np.zeros(N_ZONES, dtype=bool)
         pb = np.where(ok[:, None], fs.points_base, 0.0)
-        tol = self.consensus_tolerance((pb - T[:3, 3]) @ T[:3, :3], ok)
-        return ok & (np.abs(pb @ n - d) > tol)
+        return ok & (np.abs(pb @ n - d) > fs.tolerance)
 
     def _looks_at(self, base_T_sensor: np.ndarray, disc: np.ndarray, n: np.ndarray) -> bool:
         """Whether the sensor's optical axis meets the plane inside the footprint (``disc[0]`` its centre)."""
-        T = np.asarray(base_T_sensor, dtype=float)
-        S, axis = T[:3, 3], T[:3, 2]
-        centre = disc[0]
-        height = float((S - centre) @ n)
-        den = float(-(axis @ n))
-        if height <= 0 or den <= 1e-6:
-            return False
-        off = S + axis * height / den - centre
-        off -= n * float(off @ n)
-        return float(np.linalg.norm(off)) <= self.radius
+        aim = _axis_offset(np.asarray(base_T_sensor, dtype=float), disc[0], n)
+        return aim is not None and float(np.linalg.norm(aim[0])) <= self.radius
 
     def sight(self, verdict: FootprintVerdict, normal: Any, offset: float, landing_T_cup: Any,
               base_T_sensor: Any) -> FootprintVerdict:
@@ -570,19 +562,28 @@ class SurfaceMap:
         """The TCP move (base frame) to the survey pose -- the optical axis through the footprint's centre,
         the sensor :meth:`survey_height` above the surface -- and the height (m) the sensor may still lose
         before the footprint leaves the view from where it is now (negative: out of view already)."""
-        centre = disc[0]
-        S = base_T_sensor[:3, 3]
-        axis = base_T_sensor[:3, 2]
-        height = float((S - centre) @ n)
-        den = float(-(axis @ n))
-        if height <= 0 or den <= 1e-6:
+        aim = _axis_offset(base_T_sensor, disc[0], n)
+        if aim is None:
             return np.zeros(3), -math.inf
-        hit = S + axis * height / den  # where the optical axis meets the plane
-        off = centre - hit
-        off -= n * float(off @ n)
+        off, height = aim
         dist = float(np.linalg.norm(off))
         margin = height - (dist + self.radius) / self.tan_fov
         return off + n * (self.survey_height() - height), margin
+
+
+def _axis_offset(base_T_sensor: np.ndarray, centre: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, float] | None:
+    """Where the sensor's optical axis meets the plane through ``centre`` with unit normal ``n`` (base frame):
+    (the in-plane move from that point to ``centre`` (3,), the sensor's height above the plane in m), or None
+    when the sensor is not above the plane or its axis does not point down onto it."""
+    S, axis = base_T_sensor[:3, 3], base_T_sensor[:3, 2]
+    height = float((S - centre) @ n)
+    den = float(-(axis @ n))
+    if height <= 0 or den <= 1e-6:
+        return None
+    hit = S + axis * height / den
+    off = centre - hit
+    off -= n * float(off @ n)
+    return off, height
 
 
 __all__ = ["SurfaceMap", "FrameSurfaces", "FootprintVerdict", "consensus", "second_returns", "early_returns",

@@ -13,8 +13,7 @@ above the sensed surface:
   ``v * latency + v**2 / (2 * accel)``, must fit in the measured clearance minus ``margin``.
 
 :func:`descent_speed` is the smallest of these and the cap ``v_max``, never below ``v_band``.
-:func:`approach_speed` is the earlier profile (latency limit only, to the slow band), kept for callers
-that want it. SI units (m, s, m/s, m/s^2).
+SI units (m, s, m/s, m/s^2).
 """
 
 from __future__ import annotations
@@ -47,13 +46,6 @@ def braking_speed(distance: float, accel: float, v_end: float) -> float:
     return max(v, v_end) if math.isfinite(v) else v_end  # (max: squares of tiny speeds underflow)
 
 
-def approach_speed(clearance: float, slow_clearance: float, latency: float, accel: float, v_max: float,
-                   v_min: float) -> float:
-    """Speed (m/s) at cup ``clearance`` above the surface: at most ``v_max``, stoppable before the slow band
-    at ``slow_clearance``, never below ``v_min`` (the slow band's speed)."""
-    return max(v_min, min(v_max, stoppable_speed(clearance - slow_clearance, latency, accel)))
-
-
 def descent_speed(clearance: float, slow_clearance: float, margin: float, latency: float, accel: float,
                   v_max: float, v_band: float) -> float:
     """Speed (m/s) at cup ``clearance`` (m) above the sensed surface (see the module docstring): at most
@@ -78,4 +70,4 @@ def stopping_distance(speed: float, latency: float, accel: float) -> float:
     return speed * latency + speed * speed / (2.0 * accel)
 
 
-__all__ = ["stoppable_speed", "braking_speed", "approach_speed", "descent_speed", "stopping_distance", "slosh_rise"]
+__all__ = ["stoppable_speed", "braking_speed", "descent_speed", "stopping_distance", "slosh_rise"]

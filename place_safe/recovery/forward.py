@@ -29,7 +29,7 @@ from __future__ import annotations
 import math
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import ClassVar, Collection
 
 import numpy as np
 import torch
@@ -640,19 +640,21 @@ class ForwardModel:
 
     ``params`` are held as tensors (``self.t``) so calibration can optimise them; ``rays`` is the
     quadrature. Use :meth:`render_plane` for planes and :meth:`render_returns` for anything a ray
-    caster gives (the MuJoCo sensor).
+    caster gives (the MuJoCo sensor). ``fitted``: names of the parameters a calibration will optimise;
+    ``echo_gain`` and ``glass_gains`` among them have their returns rendered while derivatives are taken even
+    when the parameters start at zero (:meth:`add_echo_and_glass`).
     """
 
     def __init__(self, params: ForwardParams | None = None, rays: ZoneRays | None = None,
-                 dtype: torch.dtype = torch.float64) -> None:
+                 dtype: torch.dtype = torch.float64, fitted: Collection[str] = ()) -> None:
         self.params = params if params is not None else ForwardParams()
         self.dtype = dtype
         self.rays = rays if rays is not None else ZoneRays.stratified(8, dtype=dtype)
         self.t = params_to_tensors(self.params, dtype)
         # whether the echo and the glass are rendered while derivatives are taken (they double the rays' soft
-        # binning): when the parameters the model is built with have them (a fit starts them just off zero)
-        self._echo = self.params.echo_gain != 0.0
-        self._glass = any(v != 0.0 for v in self.params.glass_gains)
+        # binning): when the parameters the model is built with have them, or a fit will optimise them
+        self._echo = self.params.echo_gain != 0.0 or "echo_gain" in fitted
+        self._glass = any(v != 0.0 for v in self.params.glass_gains) or "glass_gains" in fitted
         self.bins = torch.arange(N_BINS, dtype=dtype)
         self._kind = torch.as_tensor(ZONE_KIND)
         d = self.rays.directions.to(dtype)
@@ -759,7 +761,8 @@ class ForwardModel:
         Glass: one return per zone of ``glass_gains`` (counts per unit-area transient) at zero range plus
         ``glass_delay`` bins, the same in every frame (the package's cover glass). Nothing is appended when
         both are zero; while derivatives are taken, when the parameters the model was built with have them (a fit
-        starts them just above zero, :data:`place_safe.calibration.forward_fit.NONZERO_START`).
+        starts them just above zero, :data:`place_safe.calibration.forward_fit.NONZERO_START`) or its ``fitted``
+        names them.
         """
         t = self.t
         grad = torch.is_grad_enabled()

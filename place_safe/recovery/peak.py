@@ -85,7 +85,7 @@ class PeakEstimator(Estimator):
         key = (p.m, p.b, p.edge_scale, p.corner_scale, tuple(p.zone_offsets), tuple(p.zone_gains),
                tuple(p.residual_coeffs), tuple(p.residual_domain), tuple(p.phase_coeffs))
         if getattr(self, "_far_key", None) != key:
-            self._far = p.replace(near_depths=[], near_errors=[], near_min_fraction=0.0)
+            self._far = p.without_near_table()
             self._far_key = key
         return self._far.ranges(readings)
 

@@ -269,6 +269,10 @@ class PeakParams(ParamModel):
             r = r - self.near_correction(r)
         return r
 
+    def without_near_table(self) -> "PeakParams":
+        """A copy without the near-range table (no depths, errors or weak-return fraction): the far-range mapping."""
+        return self.replace(near_depths=[], near_errors=[], near_min_fraction=0.0)
+
     @property
     def drops_weak(self) -> bool:
         """Whether the near-range rule drops weak zones (a table and a fraction above 0)."""

@@ -18,10 +18,10 @@ Histograms are arrays ``(..., 9, 128)`` of counts (zones 1..9 in reporting order
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
-from scipy.interpolate import CubicSpline
 
 from place_safe.sensor.zones import N_BINS
 
@@ -90,8 +90,15 @@ INTERNAL_TAIL_FRACTION = 0.1
 _KNOTS = np.arange(-HALF_WINDOW, HALF_WINDOW + 1, dtype=float)
 _KNOT_OFFSETS = _KNOTS.astype(int)
 _FINE = np.linspace(-1.0, 1.0, 2 * SUBBIN_STEPS + 1)
-#: (fine points, window) matrix: spline values at _FINE from the window's counts.
-_SPLINE = CubicSpline(_KNOTS, np.eye(len(_KNOTS)), axis=0)(_FINE)
+
+
+@functools.cache
+def _spline() -> np.ndarray:
+    """(fine points, window) matrix: spline values at _FINE from the window's counts (built on first use: scipy's
+    interpolation is slow to import, and a command's --help needs none of it)."""
+    from scipy.interpolate import CubicSpline
+
+    return CubicSpline(_KNOTS, np.eye(len(_KNOTS)), axis=0)(_FINE)
 
 
 #: Largest fraction of the laser cycles x detectors that :func:`undo_pileup` lets the counts before a
@@ -112,6 +119,13 @@ def undo_pileup(net: np.ndarray, pileup: float) -> np.ndarray:
     earlier (up to a bin and more at a few centimetres on white), by an amount that differs between
     zones that see different brightness: a tilt the surface does not have. Negative net counts count
     as 0; ``k M`` is capped at :data:`PILEUP_MAX_FRACTION`. ``pileup = 0`` returns ``net`` unchanged.
+
+    This inverts Coates' pile-up only: the forward model's ``pileup_shadow = 1`` (its default). With a shadow
+    ``s < 1`` the model's earlier counts shadow later bins by ``exp(-k s H_i)``, which this over-corrects. The
+    peak method's ``pileup`` is its own calibration's (:func:`~place_safe.calibration.points.fit_pileup`), or the
+    forward fit's ``pileup`` through :func:`~place_safe.calibration.points.adopt_pileup`, and that fit holds
+    ``pileup_shadow`` at 1 (it is not in :data:`~place_safe.calibration.forward_fit.FITTED`; only a fit asked for
+    its ``PULSE_TERMS`` frees it, and ``calibrate`` does not ask), so the two agree.
     """
     x = np.asarray(net, dtype=float)
     k = float(pileup)
@@ -192,7 +206,7 @@ def _returns(hists: np.ndarray, pileup: float, subbin: str,
     at = np.arange(rows.shape[0])
     kc = np.minimum(np.maximum(k, HALF_WINDOW), N_BINS - 1 - HALF_WINDOW)
     window = rows[at[:, None], kc.reshape(-1, 1) + _KNOT_OFFSETS].reshape(kc.shape + (len(_KNOTS),))  # (..., 9, W)
-    fine = window @ _SPLINE.T  # (..., 9, F)
+    fine = window @ _spline().T  # (..., 9, F)
     pos = kc + _FINE[fine.argmax(axis=-1)]  # kc == k except for a top in the last bins
     valid = finite & has_return & ~saturated
     reading = pos

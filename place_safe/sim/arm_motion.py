@@ -201,8 +201,9 @@ class ArmMotion:
         if self.mode == "joint":
             sd = self.arm.at_joints(self.q_cmd)
             self.ref_twist = self.arm.jac_base(sd) @ self.qd_cmd
-            self.mode, self.motion = "speed", {"ref": self.arm.base_T_site(self.arm.tcp, sd), "t_last": self.time()}
-        ref = self.reference_pose()
+            ref = self.arm.base_T_site(self.arm.tcp, sd)
+        else:
+            ref = self.reference_pose()
         self.mode = "speed"
         self.motion = {"target": np.zeros(6), "accel": float(decel), "ref": ref, "stopping": True,
                        "t_last": self.time()}

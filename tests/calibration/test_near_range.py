@@ -31,10 +31,6 @@ def _angles(params, frames):
     return np.array(out)
 
 
-def _without(params):
-    return params.replace(near_depths=[], near_errors=[], near_min_fraction=0.0)
-
-
 def _table(depths=(0.01, 0.03, 0.06), first=0.002):
     """A table with zone z's error ``first * (z + 1) / 9`` at the first knot, half that at the second, 0 at the end."""
     e = np.zeros((len(depths), N_ZONES))
@@ -46,7 +42,7 @@ def _table(depths=(0.01, 0.03, 0.06), first=0.002):
 # -- the mapping (convention checks) ---------------------------------------------------------------------
 def test_table_subtracts_each_zones_error_at_its_depth_and_nothing_from_its_end_on():
     p = _table()
-    base = _without(p)
+    base = p.without_near_table()
     uz = p.directions()[:, 2]
     for depth, row in ((0.01, 0), (0.03, 1)):
         x = base.m * base.zone_gains[0] * depth / uz + base.b  # readings that put every zone at this depth
@@ -67,7 +63,7 @@ def test_table_round_trips_and_bad_tables_are_one_line_errors():
     assert q.near_depths == p.near_depths and q.near_errors == p.near_errors and q.near_min_fraction == 0.05
     old = {k: v for k, v in p.to_dict().items() if not k.startswith("near_")}
     assert PeakParams.from_dict(old).near_depths == []  # files from before the table: none
-    assert _without(p).to_dict() == old  # and without a table the file is one they read
+    assert p.without_near_table().to_dict() == old  # and without a table the file is one they read
     d = p.to_dict()
     bad = [dict(d, near_depths=[0.01]), dict(d, near_errors=d["near_errors"][:-1]),
            dict(d, near_depths=[0.03, 0.01, 0.06]), dict(d, near_errors=d["near_errors"][:-1] + [0.001]),
@@ -145,7 +141,7 @@ def test_real_sweep_table_helps_held_out_close_frames_and_keeps_far_ones(sweep_p
             assert params.near_depths == [] and near["why"] and "tilt_error_deg" not in near["held_out"]
         close = [f for f in test if 0.02 <= f.truth.z0 <= 0.0501]
         far = [f for f in test if 0.05 <= f.truth.z0 < 0.41]
-        with_table, alone = _angles(params, close).mean(), _angles(_without(params), close).mean()
+        with_table, alone = _angles(params, close).mean(), _angles(params.without_near_table(), close).mean()
         assert with_table <= alone
         gains.append(alone - with_table)
         a = _angles(params, far)
@@ -218,6 +214,6 @@ def test_independent_frames_table_does_no_harm_held_out():
     near = [f for f in test if f.truth.z0 < NEAR_END]
     assert len(near) >= 5
     if report["near_range"]["adopted"]:
-        assert _angles(params, near).mean() <= 1.02 * _angles(_without(params), near).mean()
+        assert _angles(params, near).mean() <= 1.02 * _angles(params.without_near_table(), near).mean()
     else:
         assert params.near_depths == []

@@ -176,6 +176,20 @@ def test_help_teaches_with_examples(capsys):
     assert "metres" in capsys.readouterr().out
 
 
+def test_help_loads_no_torch_scipy_or_mujoco():
+    """Building the parser and printing a command's help imports none of the heavy packages: they load in the
+    command bodies that use them (``sim`` and ``bench sim`` need MuJoCo and the simulator's models)."""
+    code = ("import contextlib, io, sys\n"
+            "from place_safe.cli.app import main\n"
+            "for argv in (['--help'], ['recover', '--help'], ['place', '--help'], ['sensor', 'stream', '--help'],\n"
+            "             ['calibrate', '--help'], ['bench', 'recovery', '--help'], ['scenarios', '--help']):\n"
+            "    with contextlib.redirect_stdout(io.StringIO()), contextlib.suppress(SystemExit):\n"
+            "        main(argv)\n"
+            "print(','.join(m for m in ('torch', 'scipy', 'mujoco', 'rerun') if m in sys.modules))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=300)
+    assert out.stdout.strip() == ""
+
+
 def test_sim_without_mujoco_says_how_to_install(monkeypatch, capsys):
     import importlib.util
 

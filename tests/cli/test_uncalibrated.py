@@ -25,6 +25,13 @@ def _lines(text: str) -> list[str]:
     return [x for x in text.splitlines() if x.strip()]
 
 
+def test_a_row_is_marked_only_when_uncalibrated():
+    from place_safe.calibration import mark
+
+    assert mark("peak  1.00", True) == "peak  1.00"
+    assert mark("peak  1.00", False) == "peak  1.00  " + UNCALIBRATED_MARK
+
+
 def test_note_names_the_cause_and_the_cure(peak_calibration):
     from place_safe.calibration import Calibration
 

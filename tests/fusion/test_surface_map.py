@@ -347,13 +347,20 @@ def test_frames_beside_the_footprint_never_veto_a_certified_one(side, dist, heig
     assert v.problem is None and v.supported >= 3
 
 
-def test_a_veto_is_lifted_only_by_views_centred_on_the_doubtful_points():
+def _box_at_the_rim() -> tuple[SurfaceMap, np.ndarray, np.ndarray, object]:
+    """A map that certified the footprint of a cup at the origin, the survey pose over it, and a 7 mm box (within
+    the tolerance) in the zone over the footprint's rim: (map, cup pose, sensor pose, surface height function)."""
     sm = SurfaceMap(PARAMS)
     cup = cup_at((0.0, 0.0))
     _certified_map(sm, cup)
     T = sensor_pose((0.0, 0.0), sm.survey_height())
     hit = _zone_hits(T)[7]  # a zone over the footprint's rim
-    box = lambda x, y: 0.007 if np.allclose((x, y), hit) else 0.0  # noqa: E731 - 7 mm: within the tolerance
+    box = lambda x, y: 0.007 if np.allclose((x, y), hit) else 0.0  # noqa: E731
+    return sm, cup, T, box
+
+
+def test_a_veto_is_lifted_only_by_views_centred_on_the_doubtful_points():
+    sm, cup, T, box = _box_at_the_rim()
     for i in range(3):
         sm.add(frame_over(T, box), T, 10.0 + i)
     v = sm.verdict(UP, 0.0, cup, T)
@@ -374,12 +381,7 @@ def test_a_point_seen_raised_is_in_doubt_until_a_view_from_no_lower_sees_it_clea
     """Raised in the latest view looking at the footprint (fewer than min_frames such views: no veto yet), a
     point is not supported by its earlier clean views; clean views from further down (the descent, whose zones
     over the far rim reach past it) do not lift the doubt, a clean one from the height that saw it does."""
-    sm = SurfaceMap(PARAMS)
-    cup = cup_at((0.0, 0.0))
-    _certified_map(sm, cup)
-    T = sensor_pose((0.0, 0.0), sm.survey_height())
-    hit = _zone_hits(T)[7]  # a zone over the footprint's rim
-    box = lambda x, y: 0.007 if np.allclose((x, y), hit) else 0.0  # noqa: E731 - within the tolerance
+    sm, cup, T, box = _box_at_the_rim()
     for i in range(2):
         sm.add(frame_over(T, box), T, 10.0 + i)
     v = sm.verdict(UP, 0.0, cup, T)

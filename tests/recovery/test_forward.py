@@ -281,6 +281,20 @@ def test_a_file_without_the_unit_terms_renders_the_model_as_it_was():
     torch.testing.assert_close(plain, again.detach())
 
 
+def test_terms_a_fit_will_optimise_are_rendered_under_differentiation_from_zero():
+    """A model built with echo and glass at zero appends their returns while derivatives are taken only when
+    ``fitted`` names them: a fit that starts them at zero still gets their derivatives."""
+    amp = torch.rand(1, 9, 16, dtype=torch.float64)
+    u = torch.rand(1, 9, 16, dtype=torch.float64) * 50
+    for fitted, rays in (((), 16), (("echo_gain",), 32), (("glass_gains",), 17), (("echo_gain", "glass_gains"), 33)):
+        model = ForwardModel(ForwardParams(), ZoneRays.stratified(4), fitted=fitted)
+        with torch.enable_grad():
+            a2, u2 = model.add_echo_and_glass(amp, u, u * 0.01)
+        assert a2.shape[-1] == u2.shape[-1] == rays, fitted
+        with torch.no_grad():  # without derivatives only terms that are not zero are rendered
+            assert model.add_echo_and_glass(amp, u, u * 0.01)[0].shape == amp.shape
+
+
 def test_grid_crosstalk_reaches_only_the_named_neighbours():
     """A weight at displacement (dx, dy) takes that share of the zone at (x + dx, y + dy) in the 3x3 grid, and of
     no other zone; zones at the grid's edge have no neighbour beyond it."""
