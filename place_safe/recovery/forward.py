@@ -186,9 +186,10 @@ class ForwardParams(ParamModel):
       footprint differing from the nominal rectangle's): a return at one-way range ``r`` sits at
       ``r / bin_size * zone_bin_scales[z] + bin_offset + zone_offsets[z]`` (the echo at twice that range likewise; the
       glass at zero range does not move). ``zone_offsets`` is each zone's constant delay, this its delay growing with
-      range. The centre zone's is the gauge (1: ``bin_size`` is the common scale). A level sweep determines it: the real
-      sweep's rising edges, fitted without it, drift by -0.11 .. +0.08 bins per 10 cm from zone to zone
-      (docs/results.md, the unit model, step 5).
+      range. The centre zone's is the gauge (1: ``bin_size`` is the common scale). A level sweep determines it with the
+      fields of view and the beam held (on level planes they move a zone's return with range alike): the real sweep's
+      rising edges, fitted without it, drift by -0.11 .. +0.08 bins per 10 cm from zone to zone (docs/results.md, the
+      unit model, step 5).
     * The per-zone timing offsets and gains (``zone_offsets``, ``zone_gains``), pile-up (``pileup``), the zones'
       own tails and the learned response kernel are described above.
 
