@@ -104,6 +104,17 @@ DNL_TERMS: dict[str, str] = {
 INL_TERMS: dict[str, str] = {
     "time_warp": "lin",
 }
+#: Each zone's own time scale (``ForwardParams.zone_bin_scales``: bins per nominal bin, the centre zone's the gauge),
+#: fitted on request: ``fit_forward(..., fitted={**FITTED, **ZONE_SCALE_TERMS})``. On the real sweep the zones' rising
+#: edges drift against the model by -0.11 .. +0.08 bins per 10 cm (docs/results.md, the unit model, step 5). On a level
+#: sweep a zone's time scale and its field of view (and the beam's weighting of its footprint) move its return alike,
+#: so fit the scales as a second fit with ``edge_fov_scale``, ``corner_fov_scale``, ``centre_fov_scale`` and
+#: ``beam_power`` held: fitted together, the mismatched units' tilted frames lost 0.21-0.41 of held-out RMS; held, the
+#: scales stay within 0.13 % of 1 there (+0.003-0.006) and the real halves' held-out RMS falls 2.30 -> 1.94 and
+#: 2.45 -> 2.16 (1.50 and 1.46 with the time warp after them).
+ZONE_SCALE_TERMS: dict[str, str] = {
+    "zone_bin_scales": "log",
+}
 #: Bins of each histogram that hold the ambient alone, before the earliest return (zero range is bin 9-10):
 #: ``fit_forward(..., ambient=True)`` reads the ambient as it arrives there.
 AMBIENT_BINS = slice(0, 8)
@@ -143,6 +154,7 @@ PRIORS: dict[str, tuple[float, float]] = {
     "response_kernel": (0.0, 0.05),
     "bin_gains": (1.0, 0.03),             # relative bin width: a TDC's DNL is a few %
     "time_warp": (0.0, 0.3),              # bins
+    "zone_bin_scales": (1.0, 0.02),       # a zone's time scale within about 2 % of the centre zone's
 }
 #: A parameter is prior-dominated when its posterior std is above this fraction of its prior std: the frames
 #: added little to what was assumed.
@@ -167,8 +179,8 @@ LEARNED_RESPONSE: dict[str, str] = {"response_kernel": "lin"}
 BAD_FRAME_FACTOR = 3.0
 #: The structural choices (blends in [0, 1], ``"unit"`` above) start in the middle so the data choose.
 STRUCTURAL = ("pulse_soft_bin", "saturate_shading", "crosstalk_self", "saturate_gain")
-CENTRE = 4  # zone 5: gauge for zone gains and offsets
-ZONE_GAUGED = ("zone_gains", "zone_offsets")
+CENTRE = 4  # zone 5: gauge for zone gains, offsets and time scales
+ZONE_GAUGED = ("zone_gains", "zone_offsets", "zone_bin_scales")
 #: How far (in log) a frame's albedo may rise above its least-squares start. From the published
 #: parameters the first Gauss-Newton steps can push a close frame's albedo deep into saturation, where
 #: its histogram no longer depends on it (zero gradient); the fit then leaves it there, a spurious
@@ -383,7 +395,7 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
             prior_sd[i:i + abs(n)] = sd
         i += abs(n)
     prior_idx = np.flatnonzero(np.isfinite(prior_sd))
-    fixed_centre = {"zone_gains": 0.0, "zone_offsets": 0.0}  # log gain 0 -> gain 1; offset 0
+    fixed_centre = {"zone_gains": 0.0, "zone_offsets": 0.0, "zone_bin_scales": 0.0}  # log 0 -> 1; offset 0
 
     def unpack(cam: torch.Tensor) -> None:
         i = 0

@@ -181,6 +181,15 @@ class ForwardParams(ParamModel):
       ``bin_offset`` and ``bin_size``'s, :func:`warp_positions`); it moves the direct return, the echo and the glass
       alike. A level sweep with known ranges determines it where returns fall, with ``bin_offset`` and ``bin_size``
       held (fitted together, the reached knots trade with ``bin_size``).
+    * ``zone_bin_scales`` (9, bins per nominal bin, [0.9, 1.1], default 1, prior 1 / 0.02 in log; version 6): each
+      zone's histogram has its own time scale (its own TDC channel's bin width, or the return-weighted obliquity of its
+      footprint differing from the nominal rectangle's): a return at one-way range ``r`` sits at
+      ``r / bin_size * zone_bin_scales[z] + bin_offset + zone_offsets[z]`` (the echo at twice that range likewise; the
+      glass at zero range does not move). ``zone_offsets`` is each zone's constant delay, this its delay growing with
+      range. The centre zone's is the gauge (1: ``bin_size`` is the common scale). A level sweep determines it with the
+      fields of view and the beam held (on level planes they move a zone's return with range alike): the real sweep's
+      rising edges, fitted without it, drift by -0.11 .. +0.08 bins per 10 cm from zone to zone (docs/results.md, the
+      unit model, step 5).
     * The per-zone timing offsets and gains (``zone_offsets``, ``zone_gains``), pile-up (``pileup``), the zones'
       own tails and the learned response kernel are described above.
 
@@ -274,6 +283,10 @@ class ForwardParams(ParamModel):
     time_warp: vector(WARP_KNOTS, ge=-4.0, le=4.0) = Field(
         default_factory=lambda: [0.0] * WARP_KNOTS,
         description="bins (where a return appears minus where the linear range law puts it, at bins 0, 8, ..., 128)")
+    # Version 6 (absent from older files; the default is the model as it was): each zone's own TDC time scale.
+    zone_bin_scales: vector(N_ZONES, ge=0.9, le=1.1) = Field(
+        default_factory=lambda: [1.0] * N_ZONES,
+        description="(bins of each zone's histogram per nominal bin: multiplies range / bin_size)")
 
     def kind_gains(self) -> np.ndarray:
         """Gain of each zone (9,): centre 1, edge/corner gains, times the per-zone gains."""
@@ -677,6 +690,10 @@ class ForwardModel:
         return dirs, w / w.sum(dim=1, keepdim=True)
 
     # -- pieces ------------------------------------------------------------------------------
+    def bin_scales(self) -> torch.Tensor:
+        """Each zone's time scale (``ForwardParams.zone_bin_scales``) shaped (1, 9, 1) to multiply ``range / bin_size``."""
+        return self.t["zone_bin_scales"].view(1, N_ZONES, 1)
+
     def zone_gains(self) -> torch.Tensor:
         t = self.t
         one = torch.ones((), dtype=self.dtype)
@@ -737,7 +754,7 @@ class ForwardModel:
         if hit is not None:
             amp = amp * torch.as_tensor(hit, dtype=self.dtype)
         path = r if light is None else 0.5 * (r + r_light)  # one-way range: half the light's path
-        u = path / t["bin_size"] + t["bin_offset"] + t["zone_offsets"].view(1, N_ZONES, 1)
+        u = path / t["bin_size"] * self.bin_scales() + t["bin_offset"] + t["zone_offsets"].view(1, N_ZONES, 1)
         amp, u = self.add_echo_and_glass(amp, u, path)
         if torch.is_grad_enabled() or bool(torch.any(t["time_warp"] != 0)):
             u = warp_positions(u, t["time_warp"])[0]  # the TDC's integral non-linearity (direct, echo and glass)
@@ -753,7 +770,7 @@ class ForwardModel:
         """Ray amplitudes and bin positions (B, 9, R) with the multipath echo and the cover-glass return appended
         (along the ray axis; the soft binning then renders them with the rays).
 
-        Echo: every ray again at twice its one-way range ``path`` (m), ``echo_gain (ECHO_REFERENCE_RANGE / path)^p``
+        Echo: every ray again at twice its one-way range ``path`` (m, at the zone's time scale ``zone_bin_scales``), ``echo_gain (ECHO_REFERENCE_RANGE / path)^p``
         (``p = echo_power``, 2 by default)
         times its amplitude (light that the surface sends back to the sensor's face, which sends it to the
         surface again: one more round trip, and its spread over the face's solid angle falls with the range
@@ -768,7 +785,8 @@ class ForwardModel:
         grad = torch.is_grad_enabled()
         if (self._echo if grad else float(t["echo_gain"]) != 0.0):
             echo = t["echo_gain"] * (ECHO_REFERENCE_RANGE / torch.clamp(path, min=1e-4)) ** t["echo_power"]
-            u_echo = 2.0 * path / t["bin_size"] + t["bin_offset"] + t["zone_offsets"].view(1, N_ZONES, 1)
+            u_echo = (2.0 * path / t["bin_size"] * self.bin_scales() + t["bin_offset"]
+                      + t["zone_offsets"].view(1, N_ZONES, 1))
             amp, u = torch.broadcast_tensors(amp, u)
             amp = torch.cat([amp, amp * echo], dim=-1)
             u = torch.cat([u, u_echo.expand_as(u)], dim=-1)

@@ -16,7 +16,7 @@ Chain of the derivatives, per ray with direction ``v``::
     q = a v_x + b v_y + v_z,   r = z0 / q,   c = q / s,   s = sqrt(1 + a^2 + b^2)
     h = c + k S^alpha,   S = max(2 c^2 - 1, 0)              (shading)
     p = sat (1 - exp(-g^v rho h^w / (sat r^2))) h^(1-w) g^(1-v),   w = saturate_shading, v = saturate_gain
-    u = r / bin_size + bin_offset + zone_offset
+    u = r / bin_size * zone_bin_scale + bin_offset + zone_offset
     T(bin) = sum_rays w p G(bin - u),      G = Gaussian of soft_bin_sigma
     F = crosstalk-mix(zone-tail(response(T * pulse))),   H = pile-up(F)   (mix: h + c (total - (1 - crosstalk_self) h))   (Coates; identity when ``pileup = 0``)
 
@@ -31,7 +31,8 @@ zone at ``bin_offset + glass_delay + zone_offset`` (no derivative in x), and the
 (``crosstalk_grid``) is a (9, 9) matrix applied with the scalar crosstalk. Version 4: each zone's pulse width and
 skew are causal (9, 128, 128) matrices folded in before the response and tails, and the pile-up's shadowing of later bins is
 weighted by ``pileup_shadow``. Version 5: the bins' widths (``bin_gains``) multiply the expected counts before the pile-up, and the time warp
-(``time_warp``) moves every position ``u`` to ``u + warp(u)`` (its slope multiplies ``d u / d x``).
+(``time_warp``) moves every position ``u`` to ``u + warp(u)`` (its slope multiplies ``d u / d x``). Version 6: each
+zone's time scale (``zone_bin_scales``) multiplies ``r / bin_size`` (and the echo's ``2 r / bin_size``) and ``d u / d x``.
 """
 
 from __future__ import annotations
@@ -73,6 +74,7 @@ class PlaneRenderer:
         self.gain = gain ** w_g  # the part of the zone gain inside the saturation
         self.amp_weight = w * float(params.rays_per_zone) * gain ** (1.0 - w_g)  # (9, R), the rest after it
         self.offsets = np.asarray(params.zone_offsets, dtype=float)[:, None]  # (9, 1)
+        self.scales = np.asarray(params.zone_bin_scales, dtype=float)[:, None]  # (9, 1): each zone's time scale
         self.inv_sigma2 = 1.0 / params.soft_bin_sigma ** 2
         #: with ``zone_albedo`` the unknowns are (a, b, z0, log albedo of zones 1..9, ks, log alpha):
         #: each zone's brightness is free, so only timing and shape inform the plane
@@ -164,12 +166,12 @@ class PlaneRenderer:
         pp = sat * (1.0 - e)                            # saturated part
         amp = self.amp_weight * pp * rest * hit          # (B, 9, R)
         path = r if self.light is None else 0.5 * (r + r_e)   # one-way range (m)
-        u = path / p.bin_size + p.bin_offset + self.offsets
+        u = path / p.bin_size * self.scales + p.bin_offset + self.offsets
         n_direct = u.shape[-1]
         if self.echo_gain != 0.0:  # ForwardModel.add_echo_and_glass: each ray again at twice its range
             echo = self.echo_gain * (ECHO_REFERENCE_RANGE / np.maximum(path, 1e-4)) ** self.echo_power
             amp = np.concatenate([amp, amp * echo], axis=-1)
-            u = np.concatenate([u, 2.0 * path / p.bin_size + p.bin_offset + self.offsets], axis=-1)
+            u = np.concatenate([u, 2.0 * path / p.bin_size * self.scales + p.bin_offset + self.offsets], axis=-1)
         slope = None
         if self.warp is not None:  # apparent positions, and d u' / d u for the derivatives
             u, slope = (v.numpy() for v in warp_positions(torch.from_numpy(u), self.warp))
@@ -205,7 +207,7 @@ class PlaneRenderer:
         if self.light is None:
             dp_dr = aw * sat * e * (-2.0 * E / r) * rest
             dc = [vx / s - qs * a / s ** 3, vy / s - qs * b / s ** 3, 0.0 * vx]      # d c / d (a, b, z0)
-            du = [dr[k] / p.bin_size for k in range(3)]
+            du = [dr[k] / p.bin_size * self.scales for k in range(3)]
         else:
             inside = c_raw > 0.0  # the clamp's derivative
             dre_dr = (r - w_e) / r_e
@@ -215,7 +217,7 @@ class PlaneRenderer:
             dnum = [-bx + 0 * vx, -by + 0 * vx, 1.0 + 0 * vx]
             ds = [a / s, b / s, 0.0]
             dc = [np.where(inside, dnum[k] / (s * r_e) - c_raw * (ds[k] / s + dre[k] / r_e), 0.0) for k in range(3)]
-            du = [0.5 * (dr[k] + dre[k]) / p.bin_size for k in range(3)]
+            du = [0.5 * (dr[k] + dre[k]) / p.bin_size * self.scales for k in range(3)]
             dp_dr = None
         dp_dlogflux = aw * sat * e * E * rest
         logS = np.where(pos, np.log(Ssafe), 0.0)
@@ -236,7 +238,7 @@ class PlaneRenderer:
         A[..., nu - 2] = dp_dsh * dsh[4]
         A[..., nu - 1] = dp_dsh * dsh[5]
         if self.echo_gain != 0.0:  # the echo's rays: amplitude amp * echo(path), position 2 path / bin_size
-            d_path = [du[k] * p.bin_size for k in range(3)]
+            d_path = [du[k] * p.bin_size / self.scales for k in range(3)]
             amp_e = amp[..., n_direct:]  # amp_direct * echo (concatenated above)
             falloff = amp_e * (-self.echo_power / np.maximum(path, 1e-4))
             near = path > 1e-4

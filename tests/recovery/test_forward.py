@@ -506,3 +506,37 @@ def test_a_bright_return_shadows_the_ambient_after_it():
                                                                                  torch.tensor([3.0]), ref)
         got = m.render_plane(normal, torch.tensor([0.1]), torch.tensor([3.0]), ref, ambient=a)
     torch.testing.assert_close(got, apply_pileup(raw + 120.0, torch.tensor(3e-7, dtype=torch.float64), 0.4) - 120.0)
+
+
+def test_zone_bin_scales_move_each_zones_return_with_range_and_old_files_read_as_one():
+    """``zone_bin_scales`` (version 6): zone ``z``'s return sits at ``range / bin_size * scale_z + bin_offset +
+    zone_offset_z``: with one ray a zone, exactly a zone offset of ``(scale_z - 1) range_z / bin_size`` bins, growing
+    with the range; the glass at zero range does not move; a file without the key reads as ones, the model as it
+    was."""
+    d = ForwardParams().to_dict()
+    d.pop("zone_bin_scales")
+    assert ForwardParams.from_dict(d).zone_bin_scales == [1.0] * 9
+    ref = torch.as_tensor(default_reference(), dtype=torch.float64)[None]
+    normal = torch.tensor([[0.05, -0.03, 1.0]], dtype=torch.float64)
+    normal = normal / normal.norm()
+    scales = list(np.linspace(0.97, 1.04, 9))
+    p = ForwardParams(soft_bin_sigma=0.3, zone_offsets=list(np.linspace(-0.3, 0.2, 9)))
+    rays = ZoneRays.stratified(1)
+    for z0 in (0.1, 0.3):
+        with torch.no_grad():
+            scaled = ForwardModel(p.model_copy(update={"zone_bin_scales": scales}), rays).render_plane(
+                normal, torch.tensor([z0]), torch.tensor([3.0]), ref)
+            r = ForwardModel(p, rays).plane_returns(normal, torch.tensor([z0]))[0][0, :, 0].numpy()
+            moved = p.model_copy(update={"zone_offsets": list(np.asarray(p.zone_offsets)
+                                                              + (np.asarray(scales) - 1.0) * r / p.bin_size)})
+            offset = ForwardModel(moved, rays).render_plane(normal, torch.tensor([z0]), torch.tensor([3.0]), ref)
+            plain = ForwardModel(p, rays).render_plane(normal, torch.tensor([z0]), torch.tensor([3.0]), ref)
+        torch.testing.assert_close(scaled, offset)
+        assert float((scaled - plain).abs().max()) > 0.1 * float(plain.max())
+    glass = ForwardParams(glass_gains=[50.0] * 9, glass_delay=2.0)
+    with torch.no_grad():
+        far = torch.tensor([5.0])  # the direct return beyond the histogram: the glass alone
+        a = ForwardModel(glass, rays).render_plane(normal, far, torch.tensor([1e-9]), ref)
+        b = ForwardModel(glass.model_copy(update={"zone_bin_scales": scales}), rays).render_plane(
+            normal, far, torch.tensor([1e-9]), ref)
+    torch.testing.assert_close(a, b)

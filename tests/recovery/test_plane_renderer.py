@@ -147,3 +147,15 @@ def test_matches_torch_model_with_time_warp():
     _check(ForwardParams(time_warp=warp, echo_gain=0.03, echo_power=1.0, glass_gains=list(np.linspace(5.0, 40.0, 9)),
                          pileup=2e-7, bin_gains=list(1.0 + 0.05 * np.cos(np.arange(128) * 0.9))),
            np.array([-0.25, 0.2, 0.18, math.log(2.0), 0.2, math.log(1.5)]))
+
+
+def test_matches_torch_model_with_zone_bin_scales():
+    """Each zone's time scale (version 6) moves the direct return and the echo as in the torch model, the glass not,
+    with the scale in the derivatives (co-located emitter and beside the receiver)."""
+    x = np.array([0.12, -0.08, 0.07, math.log(3.0), 0.1, math.log(2.0)])
+    scales = list(np.linspace(0.96, 1.05, 9))
+    _check(ForwardParams(zone_bin_scales=scales), x)
+    _check(ForwardParams(zone_bin_scales=scales, echo_gain=0.03, echo_power=1.0,
+                         glass_gains=list(np.linspace(5.0, 40.0, 9)), pileup=2e-7, baseline=[0.003, -0.0015],
+                         beam_power=1.2, time_warp=list(0.4 * np.sin(np.arange(17) * 0.7))),
+           np.array([-0.25, 0.2, 0.18, math.log(2.0), 0.2, math.log(1.5)]))
