@@ -236,11 +236,43 @@ def near_std_law(depth, scale: float, power: float) -> np.ndarray:
 def near_law_depths(end: float, knots: Sequence[float] = ()) -> np.ndarray:
     """:data:`NEAR_LAW_DEPTHS` depths (m) from :data:`NEAR_LAW_MIN_GAP` beyond the overlap to ``end`` (m), evenly
     spaced in the logarithm of the gap, with a near-range table's ``knots`` (m) among them (where
-    :func:`interpolation_measure` is 0)."""
+    :func:`interpolation_measure` is 0) and, in each gap between two of them, its midpoint (where the measure is
+    largest) and its quarter points: the tabulated law is read linearly between depths, and without these a gap
+    whose midpoint fell between two depths of the logarithmic grid was stated up to a third narrower there than the
+    law says (4 mm gaps, a factor that grows mid-gap). A grid depth within 10 um of one of these gives way to it."""
     gaps = np.geomspace(NEAR_LAW_MIN_GAP, max(end - OVERLAP_RANGE, 2 * NEAR_LAW_MIN_GAP), NEAR_LAW_DEPTHS)
-    d = np.sort(np.concatenate([OVERLAP_RANGE + gaps[:-1], [k for k in knots if OVERLAP_RANGE < k < end]]))
-    keep = np.concatenate([[True], np.diff(d) > 1e-5]) & (d < end - 1e-5)
-    return np.concatenate([d[keep], [max(end, OVERLAP_RANGE + 2 * NEAR_LAW_MIN_GAP)]])
+    k = np.array(sorted(v for v in knots if OVERLAP_RANGE < v <= end), dtype=float)
+    fixed = np.concatenate([k, *(k[:-1] + f * np.diff(k) for f in (0.25, 0.5, 0.75))]) if len(k) > 1 else k
+    fixed = fixed[(fixed > OVERLAP_RANGE) & (fixed < end - 1e-5)]
+    grid = OVERLAP_RANGE + gaps[:-1]
+    if fixed.size:
+        grid = grid[np.min(np.abs(grid[:, None] - fixed[None, :]), axis=1) > 1e-5]
+    d = np.unique(np.concatenate([grid, fixed]))
+    d = d[d < end - 1e-5]
+    return np.concatenate([d, [max(end, OVERLAP_RANGE + 2 * NEAR_LAW_MIN_GAP)]])
+
+
+def near_law_parameters(x: Sequence[float]) -> tuple[float, float, float, float]:
+    """The near law's (scale (m), power, part of the variance shared by the zones, share independent of the knots)
+    from :func:`fit_near_law`'s free parameters (log scale, then logits; without a fourth the share is 1). Finite
+    for any finite ``x``: the optimiser's simplex may step far out (a math.exp logistic overflowed there and
+    stopped ``calibrate`` on a simulated unit)."""
+    from scipy.special import expit
+
+    share = float(expit(x[3])) if len(x) > 3 else 1.0
+    return (math.exp(min(float(x[0]), 0.0)), NEAR_MAX_POWER * float(expit(x[1])),
+            NEAR_MAX_SHARED * float(expit(x[2])), share)
+
+
+def near_law_uncertainty(unc: Uncertainty, depths: np.ndarray, scale: float, power: float, shared: float,
+                         factor=1.0) -> Uncertainty:
+    """``unc`` with the near law tabulated at ``depths`` (m): :func:`near_std_law` times ``sqrt(factor)`` (one
+    value or one per depth), clipped to (1e-7 m, :data:`NEAR_MAX_STD`), its variance split into the part
+    ``shared`` common to the zones (``near_common_std``) and the rest (``near_range_std``)."""
+    std = np.clip(near_std_law(depths, scale, power) * np.sqrt(factor), 1e-7, NEAR_MAX_STD)
+    return unc.replace(near_depths=[float(v) for v in depths],
+                       near_range_std=[float(v) for v in np.maximum(std * math.sqrt(1.0 - shared), 1e-7)],
+                       near_common_std=[float(v) for v in std * math.sqrt(shared)])
 
 
 def interpolation_measure(depth, knots: Sequence[float]) -> np.ndarray:
@@ -256,6 +288,25 @@ def interpolation_measure(depth, knots: Sequence[float]) -> np.ndarray:
     with np.errstate(invalid="ignore"):
         m = np.where(x < k[0], (k[0] - x) * (k[1] - k[0] + k[0] - x), delta * (gap - delta))
         return np.where(x >= k[-1], 0.0, np.maximum(m, 0.0))
+
+
+def knot_factor(measure, m_ref: float, share: float):
+    """The factor on the near law's variance (:func:`fit_near_law`) for a depth whose
+    :func:`interpolation_measure` among a table's knots is ``measure`` (m^2, any shape; None: read without a table,
+    factor 1): ``share + (1 - share) min(measure / m_ref, 4)^2``."""
+    if measure is None:
+        return 1.0
+    return share + (1.0 - share) * np.minimum(np.asarray(measure, dtype=float) / m_ref, 4.0) ** 2
+
+
+def near_law_table(unc: Uncertainty, end: float, knots: Sequence[float], scale: float, power: float,
+                   shared: float, share: float, m_ref: float) -> Uncertainty:
+    """``unc`` with the near law tabulated up to ``end`` (m) at :func:`near_law_depths` (a table's ``knots``, their
+    gaps' midpoints and quarter points among them), each depth's variance times :func:`knot_factor` among the
+    ``knots`` (none: factor 1)."""
+    depths = near_law_depths(end, knots)
+    factor = knot_factor(interpolation_measure(depths, knots), m_ref, share) if len(knots) > 1 else 1.0
+    return near_law_uncertainty(unc, depths, scale, power, shared, factor)
 
 
 def fit_near_law(rows: Sequence[tuple], unc: Uncertainty, peak_params, end: float,
@@ -292,30 +343,17 @@ def fit_near_law(rows: Sequence[tuple], unc: Uncertainty, peak_params, end: floa
     knots = list(peak_params.near_depths) if peak_params.near_depths and measured else []
     m_ref = float(np.median(measured)) if measured else 1.0
     wide = len({round(m / m_ref, 1) for m in measured}) > 1 and max(measured) > 1.5 * m_ref  # two gap widths
-
-    def rel(m) -> float:
-        return 1.0 if m is None else min(m / m_ref, 4.0) ** 2
-
-    def law(x: np.ndarray) -> tuple[float, float, float, float]:
-        """(scale, power, shared part of the variance, share) from the free parameters."""
-        share = 1.0 / (1.0 + math.exp(-x[3])) if len(x) > 3 else 1.0
-        return (math.exp(x[0]), NEAR_MAX_POWER / (1.0 + math.exp(-x[1])), NEAR_MAX_SHARED / (1.0 + math.exp(-x[2])),
-                share)
+    law = near_law_parameters
 
     def unc_for(depths: np.ndarray, theta: tuple, factor) -> Uncertainty:
-        scale, power, shared, _ = theta
-        std = np.clip(near_std_law(depths, scale, power) * np.sqrt(factor), 1e-7, NEAR_MAX_STD)
-        return unc.replace(near_depths=[float(v) for v in depths],
-                           near_range_std=[float(v) for v in np.maximum(std * math.sqrt(1.0 - shared), 1e-7)],
-                           near_common_std=[float(v) for v in std * math.sqrt(shared)])
+        return near_law_uncertainty(unc, depths, theta[0], theta[1], theta[2], factor)
 
     plain = near_law_depths(end)
 
     def row_covariance(r, theta: tuple) -> np.ndarray:
         """The covariance the estimator reports for held-out row ``r`` under the law (its own factor: its
         table's knots)."""
-        share = theta[3]
-        return PeakEstimator(peak_params, unc_for(plain, theta, share + (1.0 - share) * rel(r[4]))).covariance(
+        return PeakEstimator(peak_params, unc_for(plain, theta, knot_factor(r[4], m_ref, theta[3]))).covariance(
             r[0], r[1], r[2])
 
     def nll(x: np.ndarray) -> float:
@@ -335,11 +373,9 @@ def fit_near_law(rows: Sequence[tuple], unc: Uncertainty, peak_params, end: floa
         if best is None or res.fun < best.fun:
             best = res
     theta = law(best.x)
-    depths = near_law_depths(end, knots)
-    measure = np.array([rel(float(m)) for m in interpolation_measure(depths, knots)]) if knots else None
 
     def tabulated(share: float) -> Uncertainty:
-        return unc_for(depths, theta, 1.0 if measure is None else share + (1.0 - share) * measure)
+        return near_law_table(unc, end, knots, theta[0], theta[1], theta[2], share, m_ref)
 
     how = "held out, two gap widths" if wide else "fixed at 1 (no table)"
     if knots and not wide:
@@ -556,5 +592,6 @@ def update_calibration(cal, frames: Sequence[Frame], method: str) -> dict:
 
 
 __all__ = ["update_calibration", "nees", "fit_floor", "fit_peak_uncertainty", "fit_diff_uncertainty", "select_fallback",
-           "chi2_candidates", "near_std_law", "fit_near_law", "NEAR_REFERENCE_DEPTH", "CONSISTENCY_LIMIT", "PEAK_TILT_REL",
+           "chi2_candidates", "near_std_law", "fit_near_law", "near_law_table", "near_law_parameters", "knot_factor",
+           "NEAR_REFERENCE_DEPTH", "CONSISTENCY_LIMIT", "PEAK_TILT_REL",
            "DIFF_TILT_REL", "DIFF_TILT_OFFSET_REL", "DIFF_TILT_PIVOT", "DIFF_TILTED_SHARE", "CV_FOLDS", "PREFER_RATIOS"]
