@@ -19,7 +19,7 @@ from place_safe.calibration.near_range import fit_near_range
 from place_safe.calibration.point_errors import frame_point_errors
 from place_safe.evaluation.metrics import angular_errors, linear_errors, point_errors
 from place_safe.exceptions import CalibrationError
-from place_safe.recovery.points import MM_PER_M, PeakParams, fit_planes
+from place_safe.recovery.points import MAX_ZONE_RESIDUAL, MM_PER_M, PeakParams, fit_planes
 from place_safe.sensor.frame import N_ZONES, Frame
 from place_safe.sensor.histogram import CENTROID_HALF_WIDTH, find_peaks
 
@@ -433,18 +433,48 @@ def proprietary_readings(frames: Sequence[Frame]) -> tuple[np.ndarray, np.ndarra
     return out, valid
 
 
+def zone_residuals(params: PeakParams, readings: np.ndarray, valid: np.ndarray,
+                   frames: Sequence[Frame]) -> tuple[float, float]:
+    """(own, shared) parts (m) of the zones' range errors that the mapping ``params`` leaves on readings (F, 9)
+    with mask (F, 9) of ``frames`` with ground truth (the true range along each zone's direction): ``own``, the
+    RMS of each zone's error about its frame's mean error (``n - 1`` degrees of freedom per frame of ``n`` zones);
+    ``shared``, the spread of the frames' mean errors (RMS about 0) less the share ``own^2 / n`` the own parts
+    put into a mean of ``n`` zones (0 when that is all of it). Frames with fewer than 2 zones do not count;
+    (0, 0) without any."""
+    tn, td = _truth_arrays(frames)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        err = params.ranges(np.where(valid, readings, np.nan)) - td[:, None] / (tn @ params.directions().T)
+    use = valid & np.isfinite(err)
+    n = use.sum(1)
+    rows = n >= 2
+    if not rows.any():
+        return 0.0, 0.0
+    e, use, n = np.where(use, err, 0.0)[rows], use[rows], n[rows]
+    mean = e.sum(1) / n
+    own2 = float(np.sum(np.where(use, e - mean[:, None], 0.0) ** 2) / np.sum(n - 1))
+    shared2 = float(np.mean(mean ** 2) - own2 * np.mean(1.0 / n))
+    return math.sqrt(own2), math.sqrt(max(shared2, 0.0))
+
+
 def fit_proprietary(frames: Sequence[Frame], init: PeakParams | None = None, progress: bool = True,
                     min_range: float = MIN_CALIBRATION_RANGE, residual_degree: int = 3, fit_offsets: bool = True,
                     paper: bool = False) -> tuple[PeakParams, dict]:
     """Calibrate the on-sensor distances (mm readings) on frames with ground truth (no phase
-    correction: the readings are whole millimetres, not sub-bin peaks)."""
+    correction: the readings are whole millimetres, not sub-bin peaks). The mapping carries what it leaves of
+    the zones' range errors on these frames (:func:`zone_residuals`: ``zone_residual``, ``common_residual``),
+    from which the method states its covariance; the report gives them in mm (``zone_residual_mm``)."""
     use = _calibration_frames(frames, min_range)
     readings, valid = proprietary_readings(use)
     params, report = _fit_readings("proprietary", "on-sensor distances", use, readings, valid, init,
                                    PeakParams.default_proprietary(), progress, residual_degree, 0, fit_offsets,
                                    paper, min_range)
+    keep = valid.sum(1) >= 3  # the frames the mapping was fitted on (_fit_readings)
+    own, shared = zone_residuals(params, readings[keep], valid[keep], [f for f, k in zip(use, keep) if k])
+    params = params.replace(zone_residual=min(own, MAX_ZONE_RESIDUAL), common_residual=min(shared, MAX_ZONE_RESIDUAL))
+    report["params"] = params.to_dict()
+    report["zone_residual_mm"] = {"own": own * 1e3, "shared": shared * 1e3}
     return params, report
 
 
-__all__ = ["fit_points", "fit_peak", "fit_proprietary", "proprietary_readings", "MIN_CALIBRATION_RANGE", "tilt_angles",
-           "level_frames"]
+__all__ = ["fit_points", "fit_peak", "fit_proprietary", "proprietary_readings", "zone_residuals", "MIN_CALIBRATION_RANGE",
+           "tilt_angles", "level_frames"]

@@ -74,12 +74,23 @@ class TablePlaneSource:
         return Frame(np.zeros((9, 128)), np.zeros(128), timestamp=t, truth=Plane(n, d))
 
 
+#: (rad, m): the tilt and offset stds the truth states by default: honest (the truth does not err; any bound is),
+#: and at the still test's floor (``still_offset_floor``), as a well-measured plane states.
+TRUTH_SIGMA = (math.radians(0.1), 1e-4)
+
+
 class TruthEstimator:
-    """The frame's true plane (the driver and the decision are measured, not plane recovery)."""
+    """The frame's true plane (the driver and the decision are measured, not plane recovery) with a stated
+    covariance of ``(n_x, n_y, d)``: ``sigma`` (rad, m) on each tilt component and the offset (default
+    :data:`TRUTH_SIGMA`; then the fusion weights it and remembers the slope); ``sigma=None`` states none (an
+    estimate the stillness test cannot judge: a placement refuses)."""
 
-    def estimate(self, frame: Any) -> Any:
+    def __init__(self, sigma: tuple[float, float] | None = TRUTH_SIGMA) -> None:
+        self.sigma = sigma
 
-        return PlaneEstimate(frame.truth, reason=None if frame.truth is not None else "no truth")
+    def estimate(self, frame: Any) -> PlaneEstimate:
+        cov = None if self.sigma is None else np.diag([self.sigma[0] ** 2, self.sigma[0] ** 2, self.sigma[1] ** 2])
+        return PlaneEstimate(frame.truth, reason=None if frame.truth is not None else "no truth", covariance=cov)
 
 
 _KIN: list[Any] = []
@@ -282,5 +293,5 @@ def format_settings_report(rep: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-__all__ = ["TablePlaneSource", "TruthEstimator", "make_stand_in", "DescentReport", "descents", "touches",
+__all__ = ["TablePlaneSource", "TruthEstimator", "TRUTH_SIGMA", "make_stand_in", "DescentReport", "descents", "touches",
            "rest_noise", "settings_report", "format_settings_report"]

@@ -189,8 +189,9 @@ def post_stop_stamps(plane: FusedPlane, now: float, t_stop: float | None, cfg: A
 def _still_planes(plane: FusedPlane, post: list[float], cfg: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray] | str:
     """(stamps, heights, stds) of the planes the stillness test judges: the post-stop ones (``post``), or the
     newest ``check_frames`` (at least 2) of the window when fewer than 2 were measured at rest (the sensor too
-    close to read); else a reason. Stds are floored at ``still_offset_floor``; a plane without one (no
-    covariance) gets ``max_std_offset``."""
+    close to read); else a reason. Stds are floored at ``still_offset_floor``. A judged plane that states no
+    finite offset std (its estimate has no covariance) is a reason, not a guess: nothing else says how far its
+    offset may err, so nothing can tell a still surface from a moving one (fail closed)."""
     stamps = tuple(getattr(plane, "stamps", ()) or ())
     h = tuple(getattr(plane, "heights", ()) or ())
     s = tuple(getattr(plane, "height_stds", ()) or ())
@@ -210,10 +211,11 @@ def _still_planes(plane: FusedPlane, post: list[float], cfg: Any) -> tuple[np.nd
         return "the fused plane's per-plane offsets are malformed"
     if not (np.all(np.isfinite(t)) and np.all(np.isfinite(y))):
         return "the fused plane's per-plane offsets are not finite"
+    if not np.all(np.isfinite(sd)):
+        return ("a plane at rest states no uncertainty in its offset (its estimate has no covariance): "
+                "whether the surface is still is unknown")
     if np.any(sd < 0.0):
         return "a plane's offset std is negative"
-    # an estimate without a covariance states no noise: the spread the planar check allows stands in for it
-    sd = np.where(np.isfinite(sd), sd, cfg.max_std_offset)
     return t, y, np.maximum(sd, cfg.still_offset_floor)
 
 

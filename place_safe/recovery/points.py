@@ -67,6 +67,9 @@ NEAR_MIN_SPACING = 1e-6
 #: Fixed-point iterations inverting ``m r + c(r) = x`` (c changes by far less than m per metre). Against 10
 #: iterations, 2 leave at most 0.002 mm on the real sweep's calibration (3: 0.0001 mm, 1: 0.05 mm).
 RANGE_ITERATIONS = 2
+#: m: largest zone residual a mapping may state (PeakParams.zone_residual, .common_residual); the real sweep's on-sensor
+#: distances leave 0.5-0.9 mm.
+MAX_ZONE_RESIDUAL = 0.1
 
 
 class PeakParams(ParamModel):
@@ -81,6 +84,11 @@ class PeakParams(ParamModel):
     Files without them are ``"spline"`` (the estimator before the windowed centroid); calibration
     writes ``"centroid"``. ``near_depths`` (K knots, m, increasing), ``near_errors`` (K x 9, m, knot-major,
     the last knot's all 0), ``near_min_fraction``: the near-range table (module doc; empty: none).
+    ``zone_residual``, ``common_residual`` (m, 0 .. :data:`MAX_ZONE_RESIDUAL`; 0: not known): what the mapping
+    leaves of the zones' range errors on its calibration frames, the part each zone has on its own (RMS about its
+    frame's mean error) and the part a frame's zones share (the frame means' spread less the own part's share);
+    :func:`~place_safe.calibration.points.fit_proprietary` writes them and the ``proprietary`` method states its
+    covariance from them (:mod:`place_safe.recovery.proprietary`).
 
     The ranges (reading units: bins for ``peak``, mm for ``proprietary``) are wide enough for either reading,
     narrow enough that no accepted value can put a point behind the sensor or overflow: the calibrated sweep
@@ -105,6 +113,8 @@ class PeakParams(ParamModel):
     near_depths: vector(ge=0.0, le=10.0) = Field(default_factory=list, description="m")
     near_errors: vector(ge=-0.1, le=0.1) = Field(default_factory=list, description="m")
     near_min_fraction: float = Field(0.0, ge=0.0, lt=1.0, description="(of the frame's highest return)")
+    zone_residual: float = Field(0.0, ge=0.0, le=MAX_ZONE_RESIDUAL, description="m")
+    common_residual: float = Field(0.0, ge=0.0, le=MAX_ZONE_RESIDUAL, description="m")
 
     what: ClassVar[str] = "peak parameters"
     error: ClassVar[type[Exception]] = CalibrationError
@@ -131,10 +141,14 @@ class PeakParams(ParamModel):
 
     # -- file form ---------------------------------------------------------------------------------
     def to_dict(self) -> dict:
-        """The JSON form; without the near-range fields when there is no table (files older versions read)."""
+        """The JSON form; without the near-range fields when there is no table and without the residuals when
+        they are not known (files older versions read)."""
         d = super().to_dict()
         if not self.near_depths and not self.near_min_fraction:
             for key in ("near_depths", "near_errors", "near_min_fraction"):
+                d.pop(key)
+        for key in ("zone_residual", "common_residual"):
+            if not d[key]:
                 d.pop(key)
         return d
 

@@ -169,3 +169,47 @@ def test_adopt_pileup_keeps_a_fit_only_when_it_does_not_hurt(sweep_path):
     assert rep["pileup_from_forward"]["point_mean_mm_with_forward_pileup"] < report["after"]["point_mean_mm"]
     kept, rep, adopted = adopt_pileup(even, own, report, 2e-6)  # far too much: the refit is much worse
     assert not adopted and kept is own and rep["pileup_from_forward"]["adopted"] is False
+
+
+def test_zone_residuals_round_trip_and_old_files_read_as_unknown():
+    p = PeakParams(1000.0, 0.0, zone_residual=6e-4, common_residual=9e-4)
+    q = PeakParams.from_dict(p.to_dict())
+    assert (q.zone_residual, q.common_residual) == (6e-4, 9e-4)
+    old = PeakParams(1000.0, 0.0).to_dict()
+    assert "zone_residual" not in old and "common_residual" not in old  # files older versions read stay as they were
+    assert PeakParams.from_dict(old).zone_residual == 0.0
+    for key, value in (("zone_residual", -1e-4), ("common_residual", float("nan")), ("zone_residual", 1.0)):
+        with pytest.raises(CalibrationError, match=key):
+            PeakParams.from_dict({**p.to_dict(), key: value})
+
+
+def test_zone_residuals_split_the_errors_into_each_zones_own_and_the_shared_part():
+    from types import SimpleNamespace
+
+    from place_safe.calibration.points import zone_residuals
+    from place_safe.geometry import Plane
+
+    rng = np.random.default_rng(3)
+    p = PeakParams(1000.0, 0.0)
+    own, shared, n = 0.6e-3, 0.9e-3, 4000
+    frames, readings = [], []
+    for _ in range(n):
+        d = rng.uniform(0.05, 0.4)
+        frames.append(SimpleNamespace(truth=Plane(np.array([0.0, 0.0, 1.0]), d)))  # what the split reads
+        r = d / p.directions()[:, 2] + rng.normal(0.0, shared) + rng.normal(0.0, own, 9)
+        readings.append(r * 1e3)  # mm
+    valid = np.ones((n, 9), bool)
+    valid[::3, :4] = False  # frames with 5 zones count too
+    got_own, got_shared = zone_residuals(p, np.array(readings), valid, frames)
+    assert got_own == pytest.approx(own, rel=0.03) and got_shared == pytest.approx(shared, rel=0.05)
+
+
+def test_fit_proprietary_states_the_zone_residuals_of_its_frames(sweep_path):
+    from place_safe.calibration.points import fit_proprietary
+    from place_safe.io.frame_file import load_frames
+
+    params, report = fit_proprietary(load_frames(sweep_path)[0::2], progress=False)
+    # the real sweep's even half: 0.63 mm of each zone's own, 0.91 mm shared (whole millimetres read)
+    assert 0.3e-3 < params.zone_residual < 1.5e-3 and 0.3e-3 < params.common_residual < 2e-3
+    assert report["zone_residual_mm"]["own"] == pytest.approx(params.zone_residual * 1e3)
+    assert report["params"]["zone_residual"] == params.zone_residual

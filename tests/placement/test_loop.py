@@ -35,6 +35,14 @@ def test_level_table_is_released_near_the_surface():
     assert [t.target.value for t in res.transitions][-1] == "done"
 
 
+def test_estimates_without_a_covariance_never_release():
+    # the stillness test cannot tell a still table from a moving one without the planes' offset stds
+    robot = KinematicRobot(height=0.12)
+    res = PlacementLoop(robot, TruthSource(robot), TruthEstimator(sigma=None)).run(timeout=20.0)
+    assert res.outcome == "refused" and not robot.opened
+    assert "states no uncertainty" in res.reason
+
+
 def test_sensor_frozen_after_the_stop_never_releases():
     # the frozen sensor repeats one frame (same stamp): one post-stop measurement, not check_frames
     robot = KinematicRobot(height=0.08)

@@ -143,10 +143,11 @@ def test_the_stillness_test_fails_closed():
     plane, post = _at_rest([0.0, 0.0], [1e-5, 1e-5], 0.033)
     assert rules.still_problem(dataclasses.replace(plane, heights=()), post, CFG) is not None
     assert rules.still_problem(dataclasses.replace(plane, height_stds=(-1e-5, 1e-5)), post, CFG) is not None
-    # no covariance: max_std_offset stands in for the noise (a 2 mm step passes, a 20 mm one does not)
-    nocov = dataclasses.replace(plane, height_stds=(math.nan, math.nan))
-    assert rules.still_problem(dataclasses.replace(nocov, heights=(0.0, 0.002)), post, CFG) is None
-    assert rules.still_problem(dataclasses.replace(nocov, heights=(0.0, 0.02)), post, CFG) is not None
+    # no covariance (NaN) or an infinite std: nothing says how far the offsets may err -- refused, even for
+    # identical offsets (bd11c9d let max_std_offset stand in, which passed a table rising at 30-300 mm/s)
+    for stds in ((math.nan, math.nan), (math.nan, 1e-5), (1e-5, math.inf)):
+        why = rules.still_problem(dataclasses.replace(plane, height_stds=stds), post, CFG)
+        assert why is not None and "states no uncertainty" in why and "\n" not in why
     assert rules.still_problem(dataclasses.replace(plane, heights=(math.nan, 0.0)), post, CFG) is not None
     one, _ = _at_rest([0.0], [1e-5], 0.033)
     assert rules.still_problem(one, post[:1], CFG) is not None
@@ -168,8 +169,9 @@ def test_too_close_to_read_the_newest_planes_of_the_window_are_judged():
 
 # --- the stillness test searched in both directions (review-34) ---------------------------------------------
 def _effective_std(s: float) -> float:
-    """The offset std the stillness test uses for a stated one: none (NaN, inf) -> max_std_offset, floored."""
-    return max(s if math.isfinite(s) else CFG.max_std_offset, CFG.still_offset_floor)
+    """The offset std the stillness test uses for a stated one (which must be finite: it refuses none): floored."""
+    assert math.isfinite(s), "the stillness test passed a plane that states no uncertainty"
+    return max(s, CFG.still_offset_floor)
 
 
 _any_std = st.one_of(st.floats(0.0, 5e-3), st.sampled_from([0.0, 5e-324, 1e-12, math.nan, math.inf, 1e-4, 1e160]))
@@ -213,11 +215,11 @@ def test_the_stillness_test_passes_only_planes_that_agree_within_their_noise(win
 
 
 @given(st.integers(2, 10).flatmap(lambda k: st.tuples(
-    st.lists(st.one_of(st.floats(0.0, 3e-3), st.just(math.nan)), min_size=k, max_size=k),
+    st.lists(st.floats(0.0, 3e-3), min_size=k, max_size=k),
     st.lists(st.floats(-1.0, 1.0), min_size=k, max_size=k), st.lists(_gap, min_size=k, max_size=k))))
 def test_a_still_surface_passes_whatever_its_clock_does(rest):
-    """The other direction: offsets that err by at most one std each (stated, or max_std_offset without a
-    covariance; floored) pass for 2-10 planes at rest, with repeated stamps or clock jumps of up to an hour
+    """The other direction: offsets that err by at most one stated (floored) std each pass for 2-10 planes at
+    rest, with repeated stamps or clock jumps of up to an hour
     between them: the chi-square is then at most k and the trend's z at most sqrt(k) (Cauchy-Schwarz), both
     below the 99.9 % quantiles for k <= 10."""
     stds, errs, gaps = rest
@@ -227,3 +229,38 @@ def test_a_still_surface_passes_whatever_its_clock_does(rest):
                        stamps=stamps, heights=heights, height_stds=tuple(stds))
     assert rules.still_problem(plane, sorted(set(stamps)), CFG) is None
     assert -CFG.release_clearance <= rules.clearance_floor(plane, sorted(set(stamps)), CFG) < 0.0
+
+
+@given(st.integers(2, 9).flatmap(lambda k: st.tuples(
+    st.lists(_any_height, min_size=k, max_size=k), st.lists(_any_std, min_size=k, max_size=k),
+    st.lists(_gap, min_size=k, max_size=k), st.lists(st.booleans(), min_size=k, max_size=k),
+    st.integers(0, k - 1), st.sampled_from([math.nan, math.inf]))))
+def test_covariance_free_planes_never_pass_the_stillness_test(window):
+    """Any window in which a plane the test judges states no finite offset std (its estimate has no
+    covariance) is refused in one line, whatever the heights (a still or a moving surface), the other
+    stds, the stamps and which planes are at rest; the reason names the cause when the offsets are finite."""
+    heights, stds, gaps, at_rest, which, none = window
+    stamps = tuple(float(np.cumsum([2.0] + gaps)[i]) for i in range(len(heights)))
+    post = sorted({t for t, r in zip(stamps, at_rest) if r})
+    judged = [i for i, t in enumerate(stamps) if t in set(post)]
+    if len(judged) < 2:
+        judged = list(range(len(stamps)))[-max(2, CFG.check_frames):]
+    stds = list(stds)
+    stds[judged[which % len(judged)]] = none
+    plane = FusedPlane(np.array([0.0, 0.0, 1.0]), 0.0, 0.0, 0.001, 0.0005, len(stamps), stamps[-1], len(stamps),
+                       stamps=stamps, heights=tuple(heights), height_stds=tuple(stds))
+    why = rules.still_problem(plane, post, CFG)
+    assert isinstance(why, str) and "\n" not in why
+    if all(math.isfinite(heights[i]) for i in judged):
+        assert "states no uncertainty" in why
+
+
+@given(st.integers(2, 7), st.floats(0.03, 0.3), st.floats(1 / 30, 0.1), st.booleans())
+def test_a_rising_table_fed_without_covariance_is_refused(k, speed, gap, up):
+    """The reviewer's case against bd11c9d: a table rising (or falling) at 30-300 mm/s, measured by planes
+    without a covariance, passed with max_std_offset standing in; now it is refused for the missing
+    uncertainty."""
+    v = speed if up else -speed
+    plane, post = _at_rest([v * gap * i for i in range(k)], [math.nan] * k, gap)
+    why = rules.still_problem(plane, post, CFG)
+    assert why is not None and "states no uncertainty" in why

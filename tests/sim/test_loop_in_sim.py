@@ -6,13 +6,8 @@ from __future__ import annotations
 import pytest
 
 from place_safe import PlacementConfig, PlacementLoop
-from place_safe.recovery.estimator import PlaneEstimate
+from place_safe.evaluation.contact import TruthEstimator
 from place_safe.sim.world import sim_world
-
-
-class TruthEstimator:
-    def estimate(self, frame):
-        return PlaneEstimate(frame.truth, reason=None if frame.truth is not None else "no truth")
 
 
 class FreezesAtCheck:

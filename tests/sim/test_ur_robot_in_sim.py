@@ -10,13 +10,8 @@ import pytest
 from place_safe import PlacementConfig, PlacementLoop
 from place_safe.drivers.ur5 import URConfig, URRobot, packaged_config
 from place_safe.drivers.ur5 import fake_rtde
-from place_safe.recovery.estimator import PlaneEstimate
+from place_safe.evaluation.contact import TruthEstimator
 from place_safe.sim.world import sim_world
-
-
-class TruthEstimator:
-    def estimate(self, frame):
-        return PlaneEstimate(frame.truth, reason=None if frame.truth is not None else "no truth")
 
 
 def setup(scenario="place_level"):

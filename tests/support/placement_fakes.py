@@ -9,7 +9,7 @@ pose at the measurement time and delivers the frame ``latency`` seconds later, s
 peak mapping gives for the zone's range to the table (what the surface map reads), or none where the zone's
 centre ray lands in ``hole`` (a base-frame region without table: an edge), nearer where it lands on something
 ``raised`` above the table. ``TruthEstimator`` returns the
-frame's ``truth``.
+frame's ``truth`` with a stated covariance.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ import numpy as np
 from place_safe.exceptions import RobotFault, SensorTimeout
 from place_safe.geometry import Plane
 from place_safe.io.source import FrameSource
-from place_safe.recovery.estimator import PlaneEstimate
+from place_safe.evaluation.contact import TRUTH_SIGMA, TruthEstimator  # noqa: F401 (the fakes' estimator)
 from place_safe.recovery.points import PeakParams
 from place_safe.robot.interface import Robot, RobotLimits
 from place_safe.robot.tool import ToolFrames
@@ -189,18 +189,6 @@ class TruthSource(FrameSource):
             raise SensorTimeout("no frame ready")
         self._last = ready
         return ready
-
-
-class TruthEstimator:
-    """The frame's true plane; with ``sigma`` (rad, m) it also states a covariance of ``(n_x, n_y, d)``
-    (then the fusion weights it and remembers the slope)."""
-
-    def __init__(self, sigma: tuple[float, float] | None = None) -> None:
-        self.sigma = sigma
-
-    def estimate(self, frame: Frame) -> PlaneEstimate:
-        cov = None if self.sigma is None else np.diag([self.sigma[0] ** 2, self.sigma[0] ** 2, self.sigma[1] ** 2])
-        return PlaneEstimate(frame.truth, reason=None if frame.truth is not None else "no truth", covariance=cov)
 
 
 def tilted(robot: KinematicRobot, deg: float) -> None:
