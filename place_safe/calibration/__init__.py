@@ -188,6 +188,11 @@ class Calibration:
 #: Sections a method needs before it may drive a placement (naive methods are uncalibrated by definition).
 REQUIRED_SECTIONS = {"diff": ("forward",), "peak": ("peak",), "proprietary": ("proprietary",)}
 
+#: The diff method's forward-model fits (``calibrate --unit-model``): ``default`` is
+#: :func:`~place_safe.calibration.forward_fit.fit_forward` with its default terms, ``staged`` is
+#: :func:`~place_safe.calibration.forward_fit.fit_forward_staged` (the learned unit model in three fits).
+UNIT_MODELS = ("default", "staged")
+
 
 UNCALIBRATED_MARK = "[uncalibrated]"
 """The marker every output row of an uncalibrated run carries (JSON records carry ``"calibrated": false``)."""

@@ -8,7 +8,10 @@ sections it wrote, in order:
 * ``proprietary``: ``proprietary`` (the on-sensor distances);
 * ``diff``: ``peak`` first when the calibration has none (the diff method starts from calibrated peak), then
   ``forward`` (the forward model's parameters and residual weighting), ``diff`` (a z0 correction) and
-  ``uncertainty``.
+  ``uncertainty``. ``unit_model`` chooses the forward model's fit (:data:`~place_safe.calibration.UNIT_MODELS`):
+  ``default`` (:func:`~place_safe.calibration.forward_fit.fit_forward` with its default terms) or ``staged`` (the
+  learned unit model in three fits, :func:`~place_safe.calibration.forward_fit.fit_forward_staged`); the rest of
+  the chain is the same.
 
 Reports go into ``calibration.reports`` as plain JSON values. SI units throughout (see the fits' modules).
 """
@@ -16,8 +19,9 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 
-from place_safe.calibration import REQUIRED_SECTIONS, Calibration
-from place_safe.calibration.forward_fit import fit_forward, fit_range_correction, select_model_error
+from place_safe.calibration import REQUIRED_SECTIONS, UNIT_MODELS, Calibration
+from place_safe.calibration.forward_fit import (fit_forward, fit_forward_staged, fit_range_correction,
+                                               select_model_error)
 from place_safe.calibration.points import adopt_pileup, fit_peak, fit_proprietary
 from place_safe.calibration.uncertainty import update_calibration
 from place_safe.io.json_values import jsonable
@@ -34,11 +38,16 @@ def _store(cal: Calibration, fitted: list[str], name: str, section: dict, report
 
 
 def fit_method(calibration: Calibration, frames: Sequence[Frame], method: str, progress: bool = False,
-               log: Callable[[str], None] | None = None) -> list[str]:
+               log: Callable[[str], None] | None = None, unit_model: str = "default") -> list[str]:
     """Fit ``method``'s sections of ``calibration`` (in place) to ``frames`` with ground truth; the sections
-    written, in order. ``log`` gets one line per step worth telling a user (None: silent)."""
+    written, in order. ``log`` gets one line per step worth telling a user (None: silent). ``unit_model``: the
+    forward model's fit for ``diff`` (see the module)."""
     if method not in REQUIRED_SECTIONS:  # the method families that have a calibration
         raise ValueError(f"calibrate: method must be one of {', '.join(REQUIRED_SECTIONS)}, got {method!r}")
+    if unit_model not in UNIT_MODELS:
+        raise ValueError(f"calibrate: unit model must be one of {', '.join(UNIT_MODELS)}, got {unit_model!r}")
+    if unit_model != "default" and method != "diff":
+        raise ValueError(f"calibrate: a unit model is a fit of the diff method's forward model, not of {method}")
     say = log if log is not None else (lambda _line: None)
     cal = calibration
     fitted: list[str] = []
@@ -51,7 +60,10 @@ def fit_method(calibration: Calibration, frames: Sequence[Frame], method: str, p
         params, report = fit_proprietary(frames, progress=progress)
         _store(cal, fitted, "proprietary", params.to_dict(), report)
     if method == "diff":
-        params, report = fit_forward(frames, init=None, progress=progress)
+        if unit_model == "staged":
+            params, report = fit_forward_staged(frames, progress=progress, log=log)
+        else:
+            params, report = fit_forward(frames, init=None, progress=progress)
         if "peak" in fitted:  # the forward fit sees pile-up in the histograms' shapes: the peak method undoes it
             peak, peak_report, adopted = adopt_pileup(frames, cal.peak(), cal.reports["peak"], params.pileup)
             cal.reports["peak"] = jsonable(peak_report)
