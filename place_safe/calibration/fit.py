@@ -11,7 +11,8 @@ sections it wrote, in order:
   ``uncertainty``. ``unit_model`` chooses the forward model's fit (:data:`~place_safe.calibration.UNIT_MODELS`):
   ``default`` (:func:`~place_safe.calibration.forward_fit.fit_forward` with its default terms) or ``staged`` (the
   learned unit model in three fits, :func:`~place_safe.calibration.forward_fit.fit_forward_staged`); the rest of
-  the chain is the same.
+  the chain is the same, with the diff solver comparing the staged model with the counts above the arriving ambient
+  (the ``diff`` section's ``ambient``).
 
 Reports go into ``calibration.reports`` as plain JSON values. SI units throughout (see the fits' modules).
 """
@@ -64,6 +65,8 @@ def fit_method(calibration: Calibration, frames: Sequence[Frame], method: str, p
             params, report = fit_forward_staged(frames, progress=progress, log=log)
         else:
             params, report = fit_forward(frames, init=None, progress=progress)
+        # the solver compares the model with the data as it was fitted (the staged model: above the arriving ambient)
+        options = SolverOptions(ambient=unit_model == "staged")
         if "peak" in fitted:  # the forward fit sees pile-up in the histograms' shapes: the peak method undoes it
             peak, peak_report, adopted = adopt_pileup(frames, cal.peak(), cal.reports["peak"], params.pileup)
             cal.reports["peak"] = jsonable(peak_report)
@@ -71,11 +74,15 @@ def fit_method(calibration: Calibration, frames: Sequence[Frame], method: str, p
                 cal.sections["peak"] = peak.to_dict()
                 say(f"peak: undoing the forward fit's SPAD pile-up ({params.pileup:.3g} per count)")
 
-        params.model_error, report["model_error"] = select_model_error(frames, params, cal.peak(), progress=progress)
+        params.model_error, report["model_error"] = select_model_error(frames, params, cal.peak(), progress=progress,
+                                                                       options=options)
         _store(cal, fitted, "forward", params.to_dict(), report)
 
-        section, report = fit_range_correction(frames, params, cal.peak(), progress=progress)
-        _store(cal, fitted, "diff", {**section, "window_after_peak": SolverOptions().window_after_peak}, report)
+        section, report = fit_range_correction(frames, params, cal.peak(), progress=progress, options=options)
+        section = {**section, "window_after_peak": options.window_after_peak}
+        if options.ambient:  # (absent: false, as files without the key were made)
+            section["ambient"] = True
+        _store(cal, fitted, "diff", section, report)
     if method in ("peak", "diff"):
         cal.reports["uncertainty"] = jsonable(update_calibration(cal, frames, method))
         fitted.append("uncertainty")

@@ -28,7 +28,7 @@ from tqdm import tqdm
 from place_safe.calibration import gauss_newton
 from place_safe.config import field_interval
 from place_safe.exceptions import CalibrationError, FrameError
-from place_safe.recovery.forward import (ForwardModel, ForwardParams, MODEL_ERROR, ZoneRays,
+from place_safe.recovery.forward import (ForwardModel, ForwardParams, MODEL_ERROR, ZoneRays, arriving_ambient,
                                          mount_rotation, residual_weights, single_thread, tensors_to_params)
 from place_safe.sensor.frame import N_BINS, N_ZONES, Frame
 from place_safe.sensor.histogram import COUNT_MAX, measure_floor, reference_floor, reference_problem
@@ -123,9 +123,6 @@ GEOMETRY = ("edge_fov_scale", "corner_fov_scale", "centre_fov_scale", "beam_powe
 RANGE_LAW = ("bin_offset", "bin_size")
 
 
-#: Bins of each histogram that hold the ambient alone, before the earliest return (zero range is bin 9-10):
-#: ``fit_forward(..., ambient=True)`` reads the ambient as it arrives there.
-AMBIENT_BINS = slice(0, 8)
 #: Gaussian priors of the fitted parameters, ``(mean, std)``; the std is in the fit coordinate (for ``log``
 #: parameters a factor ``exp(std)`` either way, the mean in the parameter's unit). They enter the objective as
 #: residual rows ``(x - mean) / std``: a parameter the frames determine moves off its prior at almost no cost, one
@@ -310,7 +307,7 @@ def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, prog
     (default) leaves each frame its own albedo (report: ``one_surface``). ``rms_scaled_residual_*`` are the
     Neyman-weighted residuals whatever the objective (the measure reported before), ``objective_rms_*`` the
     objective's own.
-    ``ambient``: True lets each frame's ambient (the mean of :data:`AMBIENT_BINS`, before any return) take part in
+    ``ambient``: True lets each frame's ambient (the mean of :data:`~place_safe.recovery.forward.AMBIENT_BINS`, before any return) take part in
     the pile-up with the return (:func:`~place_safe.recovery.forward.ambient_pileup`), and compares the model with
     the counts above that ambient instead of above the floor measured after the return (which the return's pile-up
     lowers); False (default) is the fit as it was.
@@ -363,7 +360,7 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
     width = int(min(N_BINS, obs_np.argmax(axis=-1).max() + window_after_peak))
     amb_t = None
     if ambient:  # the counts above the ambient as it arrives (after the return they go below it)
-        floor = hists[..., AMBIENT_BINS].mean(axis=-1)
+        floor = arriving_ambient(hists)
         obs_np = hists - floor[..., None]
         amb_t = torch.as_tensor(floor, dtype=dtype)
     obs = torch.as_tensor(obs_np[..., :width], dtype=dtype)
@@ -825,7 +822,8 @@ MODEL_ERROR_GRID = (0.0, 0.005, 0.01, 0.02, 0.04)
 
 def select_model_error(frames: Sequence[Frame], forward: ForwardParams, peak=None,
                        grid: Sequence[float] = MODEL_ERROR_GRID, min_distance: float = 0.04,
-                       max_distance: float = 1.0, progress: bool = True) -> tuple[float, dict]:
+                       max_distance: float = 1.0, progress: bool = True,
+                       options: SolverOptions | None = None) -> tuple[float, dict]:
     """The residual weighting (relative model error) that recovers these frames' planes best.
 
     The model error sets how much the brightest bins count against the rest
@@ -839,7 +837,8 @@ def select_model_error(frames: Sequence[Frame], forward: ForwardParams, peak=Non
     ``z0`` that the correction removes would decide it. (It chose 0.02 on the level sweeps of the independent
     generator and two mismatched units, where the angle and the corrected offset both say 0.01; on those units'
     tilted frames diff's mean angular error went 0.32 -> 0.27, 0.15 -> 0.12 and 0.27 -> 0.22 deg.) The lowest
-    score wins, fewest frames without a plane first; the report gives every value's errors.
+    score wins, fewest frames without a plane first; the report gives every value's errors. ``options``: the diff
+    solver's (default :class:`~place_safe.recovery.differentiable.SolverOptions`; the staged unit model's ambient).
     """
     skipped: dict[str, int] = {}
     data = _usable(frames, min_distance, max_distance, skipped)
@@ -847,7 +846,7 @@ def select_model_error(frames: Sequence[Frame], forward: ForwardParams, peak=Non
         return forward.model_error, {"why": "no usable frames", "frames_skipped": skipped}
     scores, angles, corrected, failures = {}, {}, {}, {}
     for e in tqdm(grid, desc="model error", unit="value", disable=not progress, file=sys.stderr):
-        est = DifferentiableEstimator(forward.replace(model_error=float(e)), peak)
+        est = DifferentiableEstimator(forward.replace(model_error=float(e)), peak, options=options)
         ests = est.estimate_many(data)
         rows = [(x.plane, f.truth) for x, f in zip(ests, data) if x.ok]
         failures[float(e)] = len(data) - len(rows)
@@ -946,7 +945,7 @@ def _best_series(z: np.ndarray, err: np.ndarray, domain, max_degree: int,
 
 def fit_range_correction(frames: Sequence[Frame], forward: ForwardParams, peak=None,
                          degree: int = MAX_SERIES_DEGREE, min_distance: float = 0.04, max_distance: float = 1.0,
-                         progress: bool = True) -> tuple[dict, dict]:
+                         progress: bool = True, options: SolverOptions | None = None) -> tuple[dict, dict]:
     """Fit the diff estimator's plane correction; returns (``diff`` section, report).
 
     Runs the fast differentiable estimator with ``forward`` on the frames with ground truth and fits
@@ -957,11 +956,12 @@ def fit_range_correction(frames: Sequence[Frame], forward: ForwardParams, peak=N
     cross-validation among degrees 0..``degree`` (at most one per :data:`FRAMES_PER_DEGREE` frames) in ``z0``
     or in ``1 / z0`` (:func:`_best_series`), and kept only if it lowers the mean absolute error by at least 10 %
     (the gain: 10 % below the offset alone). On the real sweep's halves the slopes' series in ``1 / z0``
-    follow diff's tilt error of 2-3 deg at 5 cm that a cubic in ``z0`` missed (docs/results.md).
+    follow diff's tilt error of 2-3 deg at 5 cm that a cubic in ``z0`` missed (docs/results.md). ``options``: the
+    diff solver's (as :func:`select_model_error`).
     """
     skipped: dict[str, int] = {}
     data = _usable(frames, min_distance, max_distance, skipped)
-    est = DifferentiableEstimator(forward, peak)
+    est = DifferentiableEstimator(forward, peak, options=options)
     to_optical = mount_rotation(forward.mount_tilt).numpy().T
     rows = []  # (z0_est, dz0, da, db, a_est, b_est)
     bar = tqdm(total=len(data), desc="plane correction", unit="frame", disable=not progress, file=sys.stderr)
