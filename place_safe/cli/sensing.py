@@ -326,14 +326,16 @@ def register(sub) -> None:
         "method",
         opt("--unit-model", choices=UNIT_MODELS, default=None,
             help="with --method diff: how the forward model is fitted. default: the published model's camera "
-                 "parameters (about 20 terms, one fit; 30-50 s for 150 frames on a quiet machine). staged: a model "
-                 "learned for this unit, in three fits, each from the one before: (1) all unit terms (crosstalk "
-                 "by neighbour, cover-glass return, echo, each zone's pulse shape, a learned impulse response) "
-                 "with the ambient light through the pile-up; (2) each zone's time scale, the fields of view and "
-                 "beam held; (3) the TDC's time warp, the range law held too. The report gives each stage's RMS "
-                 "scaled residual and whether it converged, and why. It fits the real sweep's histograms to an "
-                 "RMS of about 1.5 (default: about 4) but takes several times as long: 3-6 minutes of CPU for a "
-                 "real sweep. Default: default"),
+                 "parameters (about 20 terms, one fit; 150 frames: 30-90 s). staged (experimental): a model learned "
+                 "for a real unit in three fits, each from the one before: (1) all unit terms (crosstalk by "
+                 "neighbour, cover-glass return, echo, each zone's pulse shape, a learned impulse response) with "
+                 "the ambient light through the pile-up; (2) each zone's time scale, fields of view and beam held; "
+                 "(3) the TDC's time warp, the range law held too. The report gives each stage's RMS scaled "
+                 "residual, whether it converged, and why. It takes 4-5 times as long (24 real frames: 2-2.5 min "
+                 "of CPU; 150 frames: 4-5 min). It fits the real sweep's histograms better (held out about 1.5 "
+                 "against 3.7) but did not make diff's planes better there, and on simulated sensors, whose "
+                 "ambient does not pile up like the real one's, it is worse (docs/results.md, the unit model, "
+                 "step 6). Default: default"),
         "output", "force", "quiet",
         method={"choices": CALIBRATE_METHODS, "default": None, "help": "method family to fit (required with FILE)"},
         output={"metavar": "CALIB.json", "help": "calibration file to write or update (required with FILE; with "
