@@ -29,7 +29,7 @@ from place_safe.io.frame_file import load_frames  # noqa: E402
 from place_safe.recovery.forward import (MODEL_ERROR, ForwardModel, ForwardParams, ZoneRays,  # noqa: E402
                                          mount_rotation, residual_weights, warp_positions)
 
-AMBIENT = slice(0, 8)  # forward_fit.AMBIENT_BINS
+AMBIENT = slice(0, 8)  # recovery.forward.AMBIENT_BINS
 STEP = 0.02  # the derivatives' finite step (bins for the shift, relative for the width)
 
 

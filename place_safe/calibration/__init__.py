@@ -119,9 +119,9 @@ class Calibration:
         d = self._section("diff")
         if d is None:
             return RangeCorrection()
-        if not isinstance(d, dict) or set(d) - {"range_correction", "window_after_peak"}:
-            raise CalibrationError("diff section must be an object with only 'range_correction' and "
-                                   "'window_after_peak'")
+        if not isinstance(d, dict) or set(d) - {"range_correction", "window_after_peak", "ambient"}:
+            raise CalibrationError("diff section must be an object with only 'range_correction', "
+                                   "'window_after_peak' and 'ambient'")
         self.diff_options()  # validated with the section
         return RangeCorrection.from_dict(d.get("range_correction", {}))
 
@@ -129,7 +129,9 @@ class Calibration:
         """The diff solver's options this calibration was made with: its window after the peak (bins), the
         one its chi-square limit and covariance scale hold for. A file without it predates the key and
         was calibrated with :data:`~place_safe.recovery.differentiable.LEGACY_WINDOW_AFTER_PEAK`; without a
-        ``diff`` section the solver's default is used."""
+        ``diff`` section the solver's default is used. ``ambient`` (true or false, absent: false): the forward
+        model was fitted with the ambient as it arrives through the pile-up (``calibrate --unit-model staged``),
+        and the solver compares it with the data so (:attr:`~place_safe.recovery.differentiable.SolverOptions.ambient`)."""
         from place_safe.recovery.differentiable import LEGACY_WINDOW_AFTER_PEAK, SolverOptions
 
         d = self._section("diff")
@@ -139,7 +141,10 @@ class Calibration:
         if isinstance(w, bool) or not isinstance(w, int) or not 1 <= w <= 128:
             raise CalibrationError(f"diff section: window_after_peak must be a whole number of bins in 1..128, "
                                    f"got {w!r}")
-        return SolverOptions(window_after_peak=w)
+        ambient = d.get("ambient", False)
+        if not isinstance(ambient, bool):
+            raise CalibrationError(f"diff section: ambient must be true or false, got {ambient!r}")
+        return SolverOptions(window_after_peak=w, ambient=ambient)
 
     def uncertainty(self, method: str | None = None):
         """The :class:`~place_safe.recovery.estimator.Uncertainty` of ``method`` (defaults when absent);
@@ -187,6 +192,11 @@ class Calibration:
 
 #: Sections a method needs before it may drive a placement (naive methods are uncalibrated by definition).
 REQUIRED_SECTIONS = {"diff": ("forward",), "peak": ("peak",), "proprietary": ("proprietary",)}
+
+#: The diff method's forward-model fits (``calibrate --unit-model``): ``default`` is
+#: :func:`~place_safe.calibration.forward_fit.fit_forward` with its default terms, ``staged`` is
+#: :func:`~place_safe.calibration.forward_fit.fit_forward_staged` (the learned unit model in three fits).
+UNIT_MODELS = ("default", "staged")
 
 
 UNCALIBRATED_MARK = "[uncalibrated]"

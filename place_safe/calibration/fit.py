@@ -8,7 +8,11 @@ sections it wrote, in order:
 * ``proprietary``: ``proprietary`` (the on-sensor distances);
 * ``diff``: ``peak`` first when the calibration has none (the diff method starts from calibrated peak), then
   ``forward`` (the forward model's parameters and residual weighting), ``diff`` (a z0 correction) and
-  ``uncertainty``.
+  ``uncertainty``. ``unit_model`` chooses the forward model's fit (:data:`~place_safe.calibration.UNIT_MODELS`):
+  ``default`` (:func:`~place_safe.calibration.forward_fit.fit_forward` with its default terms) or ``staged`` (the
+  learned unit model in three fits, :func:`~place_safe.calibration.forward_fit.fit_forward_staged`); the rest of
+  the chain is the same, with the diff solver comparing the staged model with the counts above the arriving ambient
+  (the ``diff`` section's ``ambient``).
 
 Reports go into ``calibration.reports`` as plain JSON values. SI units throughout (see the fits' modules).
 """
@@ -16,8 +20,9 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 
-from place_safe.calibration import REQUIRED_SECTIONS, Calibration
-from place_safe.calibration.forward_fit import fit_forward, fit_range_correction, select_model_error
+from place_safe.calibration import REQUIRED_SECTIONS, UNIT_MODELS, Calibration
+from place_safe.calibration.forward_fit import (fit_forward, fit_forward_staged, fit_range_correction,
+                                               select_model_error)
 from place_safe.calibration.points import adopt_pileup, fit_peak, fit_proprietary
 from place_safe.calibration.uncertainty import update_calibration
 from place_safe.io.json_values import jsonable
@@ -34,11 +39,16 @@ def _store(cal: Calibration, fitted: list[str], name: str, section: dict, report
 
 
 def fit_method(calibration: Calibration, frames: Sequence[Frame], method: str, progress: bool = False,
-               log: Callable[[str], None] | None = None) -> list[str]:
+               log: Callable[[str], None] | None = None, unit_model: str = "default") -> list[str]:
     """Fit ``method``'s sections of ``calibration`` (in place) to ``frames`` with ground truth; the sections
-    written, in order. ``log`` gets one line per step worth telling a user (None: silent)."""
+    written, in order. ``log`` gets one line per step worth telling a user (None: silent). ``unit_model``: the
+    forward model's fit for ``diff`` (see the module)."""
     if method not in REQUIRED_SECTIONS:  # the method families that have a calibration
         raise ValueError(f"calibrate: method must be one of {', '.join(REQUIRED_SECTIONS)}, got {method!r}")
+    if unit_model not in UNIT_MODELS:
+        raise ValueError(f"calibrate: unit model must be one of {', '.join(UNIT_MODELS)}, got {unit_model!r}")
+    if unit_model != "default" and method != "diff":
+        raise ValueError(f"calibrate: a unit model is a fit of the diff method's forward model, not of {method}")
     say = log if log is not None else (lambda _line: None)
     cal = calibration
     fitted: list[str] = []
@@ -51,7 +61,12 @@ def fit_method(calibration: Calibration, frames: Sequence[Frame], method: str, p
         params, report = fit_proprietary(frames, progress=progress)
         _store(cal, fitted, "proprietary", params.to_dict(), report)
     if method == "diff":
-        params, report = fit_forward(frames, init=None, progress=progress)
+        if unit_model == "staged":
+            params, report = fit_forward_staged(frames, progress=progress, log=log)
+        else:
+            params, report = fit_forward(frames, init=None, progress=progress)
+        # the solver compares the model with the data as it was fitted (the staged model: above the arriving ambient)
+        options = SolverOptions(ambient=unit_model == "staged")
         if "peak" in fitted:  # the forward fit sees pile-up in the histograms' shapes: the peak method undoes it
             peak, peak_report, adopted = adopt_pileup(frames, cal.peak(), cal.reports["peak"], params.pileup)
             cal.reports["peak"] = jsonable(peak_report)
@@ -59,11 +74,15 @@ def fit_method(calibration: Calibration, frames: Sequence[Frame], method: str, p
                 cal.sections["peak"] = peak.to_dict()
                 say(f"peak: undoing the forward fit's SPAD pile-up ({params.pileup:.3g} per count)")
 
-        params.model_error, report["model_error"] = select_model_error(frames, params, cal.peak(), progress=progress)
+        params.model_error, report["model_error"] = select_model_error(frames, params, cal.peak(), progress=progress,
+                                                                       options=options)
         _store(cal, fitted, "forward", params.to_dict(), report)
 
-        section, report = fit_range_correction(frames, params, cal.peak(), progress=progress)
-        _store(cal, fitted, "diff", {**section, "window_after_peak": SolverOptions().window_after_peak}, report)
+        section, report = fit_range_correction(frames, params, cal.peak(), progress=progress, options=options)
+        section = {**section, "window_after_peak": options.window_after_peak}
+        if options.ambient:  # (absent: false, as files without the key were made)
+            section["ambient"] = True
+        _store(cal, fitted, "diff", section, report)
     if method in ("peak", "diff"):
         cal.reports["uncertainty"] = jsonable(update_calibration(cal, frames, method))
         fitted.append("uncertainty")

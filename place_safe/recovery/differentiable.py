@@ -47,8 +47,8 @@ from pydantic import Field, model_validator
 from place_safe.recovery.points import PeakParams
 from place_safe.config import ParamModel, vector
 from place_safe.exceptions import CalibrationError, FrameError, NoPlaneError
-from place_safe.recovery.forward import (ForwardModel, ForwardParams, ZoneRays, mount_rotation, residual_weights,
-                                         single_thread)
+from place_safe.recovery.forward import (ForwardModel, ForwardParams, ZoneRays, arriving_ambient, mount_rotation,
+                                         residual_weights, single_thread)
 from place_safe.geometry import Plane
 from place_safe.recovery.plane_renderer import PlaneRenderer, convolution_matrices
 from place_safe.sensor.frame import N_BINS, N_ZONES, Frame
@@ -182,6 +182,10 @@ class SolverOptions:
     test_window: int = 24         # bins after that peak in the residual (the chi-square test of the fit)
     zone_albedo: bool = True      # an albedo per zone, so the plane rests mostly on timing and shape
     zone_albedo_spread: float = 0.1  # std of log zone albedo about the zones' mean (inf: untied)
+    # the data's ambient: False, the floor measured after the return is subtracted (the model as it was); True, the
+    # ambient as it arrives (forward.arriving_ambient) goes through the pile-up with the return and the model is
+    # compared with the counts above it, as the forward model was fitted with fit_forward(..., ambient=True)
+    ambient: bool = False
     # paper mode
     paper_iterations: int = 100
     paper_rays: int = 2304
@@ -319,10 +323,17 @@ class DifferentiableEstimator(Estimator):
         return _fallback(peak, est)
 
     # -- data preparation ----------------------------------------------------------------------
+    def _observed(self, hists: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """The counts the model is compared with (B, 9, bins) and the ambient as it arrives (B, 9; None): above the
+        floor measured after the return, or with :attr:`SolverOptions.ambient` above the arriving ambient."""
+        if self.opt.ambient:
+            amb = arriving_ambient(hists)
+            return hists - amb[..., None], amb
+        return np.clip(hists - measure_floor(hists)[..., None], 0.0, None), None
+
     def _prepare(self, frames: list[Frame], inits: list[Plane]):
         hists = np.array([f.hists for f in frames], dtype=float)
-        floor = measure_floor(hists)
-        obs = np.clip(hists - floor[..., None], 0.0, None)
+        obs, amb = self._observed(hists)
         last_peak = int(obs.argmax(axis=-1).max())
         width = int(min(N_BINS, last_peak + self.opt.window_after_peak))
         ref = torch.as_tensor(np.array([f.reference for f in frames]), dtype=self.dtype)
@@ -330,20 +341,23 @@ class DifferentiableEstimator(Estimator):
             kernel = self.model.pulse(ref)
         obs_t = torch.as_tensor(obs[..., :width], dtype=self.dtype)
         sigma = 1.0 / torch.as_tensor(residual_weights(hists[..., :width], self.params.model_error), dtype=self.dtype)
-        return obs_t, sigma, kernel, width
+        amb_t = None if amb is None else torch.as_tensor(amb, dtype=self.dtype)
+        return obs_t, sigma, kernel, width, amb_t
 
-    def _render(self, x: torch.Tensor, kernel: torch.Tensor, width: int) -> torch.Tensor:
-        """Histograms (9, width) of one frame's unknowns x = (a, b, z0, log rho, ks, log alpha)."""
+    def _render(self, x: torch.Tensor, kernel: torch.Tensor, width: int,
+                ambient: torch.Tensor | None = None) -> torch.Tensor:
+        """Histograms (9, width) of one frame's unknowns x = (a, b, z0, log rho, ks, log alpha); ``ambient`` (9,)
+        as it arrives, or None."""
         a, b, z0 = x[0], x[1], x[2]
         s = torch.sqrt(1.0 + a * a + b * b)
         n = torch.stack([a, b, torch.ones_like(a)]) / s
         d = z0 / s
         h = self.model.render_plane(n.unsqueeze(0), d.reshape(1), torch.exp(x[3]).reshape(1), None,
                                     specular_weight=x[4].reshape(1), specular_exponent=torch.exp(x[5]).reshape(1),
-                                    kernel=kernel.unsqueeze(0))[0]
+                                    kernel=kernel.unsqueeze(0), ambient=None if ambient is None else ambient.unsqueeze(0))[0]
         return h[:, :width] - self.model.t["floor"]
 
-    def _initial_x(self, frames: list[Frame], inits: list[Plane], obs, kernel, width) -> torch.Tensor:
+    def _initial_x(self, frames: list[Frame], inits: list[Plane], obs, kernel, width, amb=None) -> torch.Tensor:
         x = torch.zeros(len(frames), 6, dtype=self.dtype)
         for i, p in enumerate(inits):
             a, b, z0 = p.slopes
@@ -355,7 +369,8 @@ class DifferentiableEstimator(Estimator):
         # because saturation makes the model sub-linear in albedo
         with torch.no_grad():
             for _ in range(2):
-                h = torch.stack([self._render(x[i], kernel[i], width) for i in range(len(frames))])
+                h = torch.stack([self._render(x[i], kernel[i], width, None if amb is None else amb[i])
+                                 for i in range(len(frames))])
                 scale = (h * obs).sum(dim=(1, 2)) / torch.clamp((h * h).sum(dim=(1, 2)), min=1e-12)
                 x[:, 3] += torch.log(torch.clamp(scale, 1e-3, 1e3))
         return x
@@ -364,8 +379,7 @@ class DifferentiableEstimator(Estimator):
     def _solve_fast(self, frames: list[Frame], inits: list[Plane]) -> list[PlaneEstimate]:
         """Batched Levenberg-Marquardt with the analytic Jacobian of :class:`PlaneRenderer`."""
         hists = np.array([f.hists for f in frames], dtype=float)
-        floor = measure_floor(hists)
-        obs_full = np.clip(hists - floor[..., None], 0.0, None)
+        obs_full, amb = self._observed(hists)
         # each frame's own window (bins up to its latest zone peak plus window_after_peak): the batch renders
         # up to the widest, and the bins past a frame's window weigh 0, so no frame depends on its batch
         last_peak = obs_full.argmax(axis=-1).max(axis=-1)
@@ -391,7 +405,7 @@ class DifferentiableEstimator(Estimator):
         x[:, -1] = math.log(self.params.specular_exponent)
         x = np.clip(x, lower, upper)
         for _ in range(2):  # albedo by linear least squares on the rendered shape (saturation: twice)
-            h = rd.render(x, conv)
+            h = rd.render(x, conv, ambient=amb)
             axes = (2,) if n_alb > 1 else (1, 2)
             scale = (h * obs).sum(axis=axes) / np.maximum((h * h).sum(axis=axes), 1e-12)
             x[:, 3:3 + n_alb] = np.clip(x[:, 3:3 + n_alb] + np.log(np.clip(scale, 1e-3, 1e3)).reshape(nb, -1),
@@ -405,7 +419,7 @@ class DifferentiableEstimator(Estimator):
         centre = (np.eye(n_alb) - 1.0 / n_alb) / (spread if tie else 1.0)
 
         def residual(xs, rows, jac=False):
-            out = rd.render(xs, conv[rows], jacobian=jac)
+            out = rd.render(xs, conv[rows], jacobian=jac, ambient=None if amb is None else amb[rows])
             h, dh = (out if jac else (out, None))
             parts = [((h - obs[rows]) * inv_sigma[rows]).reshape(len(rows), -1),
                      (xs[:, -2:] - prior_mu) * prior_w]
@@ -548,10 +562,10 @@ class DifferentiableEstimator(Estimator):
         paper_model = ForwardModel(self.params, ZoneRays.random(self.opt.paper_rays, rng, dtype=torch.float32),
                                    dtype=torch.float32)
         for f, p in zip(frames, inits):
-            obs, sigma, kernel, width = self._prepare([f], [p])
+            obs, sigma, kernel, width, amb = self._prepare([f], [p])
             obs32 = obs[0].float()
             scale = torch.clamp(obs32.max(), min=1.0)
-            x0 = self._initial_x([f], [p], obs, kernel, width)[0]
+            x0 = self._initial_x([f], [p], obs, kernel, width, amb)[0]
             theta = torch.tensor(p.theta, dtype=torch.float32, requires_grad=True)
             phi = torch.tensor(p.phi, dtype=torch.float32, requires_grad=True)
             z0 = torch.tensor(p.z0, dtype=torch.float32, requires_grad=True)
@@ -569,7 +583,7 @@ class DifferentiableEstimator(Estimator):
                                              torch.exp(log_rho).reshape(1), None,
                                              specular_weight=ks.reshape(1),
                                              specular_exponent=torch.exp(log_alpha).reshape(1), kernel=k32,
-                                             n_bins=width)[0]
+                                             n_bins=width, ambient=None if amb is None else amb.float())[0]
                 loss = (((h - paper_model.t["floor"]) - obs32) / scale).pow(2).mean()
                 loss.backward()
                 adam.step()

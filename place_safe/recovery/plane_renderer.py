@@ -121,11 +121,13 @@ class PlaneRenderer:
         self.bin_gains = (bin_widths(torch.as_tensor(params.bin_gains, dtype=torch.float64)).numpy()
                           if np.any(np.asarray(params.bin_gains) != 1.0) else None)
 
-    def render(self, x: np.ndarray, conv: np.ndarray, jacobian: bool = False):
+    def render(self, x: np.ndarray, conv: np.ndarray, jacobian: bool = False, ambient: np.ndarray | None = None):
         """Histograms (B, 9, W) for unknowns x (B, 6) and convolution matrices (B, W, W).
 
         With ``jacobian`` also returns d hist / d x as (B, 9, W, 6). The model's constant floor is
-        not added (the solver subtracts the measured floor from the data instead).
+        not added (the solver subtracts the measured floor from the data instead). ``ambient`` (B, 9), counts per
+        bin: each zone's ambient as it arrives, which goes through the pile-up with the return; the histograms are
+        then the counts above it (:func:`~place_safe.recovery.forward.ambient_pileup`; None: the return alone).
         """
         p = self.p
         a, b, z0 = x[:, 0, None, None], x[:, 1, None, None], x[:, 2, None, None]
@@ -190,10 +192,13 @@ class PlaneRenderer:
             F = F * self.bin_gains[:width]
         kp = p.pileup
         ks_shadow = kp * p.pileup_shadow
+        amb = 0.0 if ambient is None else np.asarray(ambient, dtype=float)[:, :, None]
         if kp > 0:
-            before = np.cumsum(F, axis=-1) - F
-            e_b, e_c = np.exp(-kp * F), np.exp(-ks_shadow * before)
-            H = -np.expm1(-kp * F) / kp * e_c
+            Fa = F + amb  # the ambient arrives with the return and piles up with it
+            before = np.cumsum(Fa, axis=-1) - Fa
+            e_b, e_c = np.exp(-kp * Fa), np.exp(-ks_shadow * before)
+            Ha = -np.expm1(-kp * Fa) / kp * e_c
+            H = Ha - amb
         else:
             H = F
         if not jacobian:
@@ -258,7 +263,7 @@ class PlaneRenderer:
             dF = dF * self.bin_gains[:width, None]
         if kp > 0:
             d_before = np.cumsum(dF, axis=2) - dF
-            dH = (e_b * e_c)[..., None] * dF - ks_shadow * H[..., None] * d_before
+            dH = (e_b * e_c)[..., None] * dF - ks_shadow * Ha[..., None] * d_before
         else:
             dH = dF
         return H, dH

@@ -190,6 +190,21 @@ def test_the_diff_solver_window_comes_from_the_calibration():
         assert make_estimator("peak", cal).name == "peak"  # a bad diff section stops only diff
 
 
+def test_the_diff_sections_ambient_reaches_the_solver():
+    """``diff.ambient`` (written by ``calibrate --unit-model staged``): the solver compares the model with the counts
+    above the arriving ambient; absent, as before; anything but true/false stops diff only, with a one-line error."""
+    base = {"format": FORMAT, "forward": ForwardParams().to_dict()}
+    on = Calibration.from_dict({**base, "diff": {"range_correction": {}, "window_after_peak": 60, "ambient": True}})
+    off = Calibration.from_dict({**base, "diff": {"range_correction": {}, "window_after_peak": 60}})
+    assert make_estimator("diff", on).opt.ambient is True
+    assert make_estimator("diff", off).opt.ambient is False
+    for bad in (1, "true", None):
+        cal = Calibration.from_dict({**base, "diff": {"ambient": bad}})
+        with pytest.raises(CalibrationError, match="ambient"):
+            make_estimator("diff", cal)
+        assert make_estimator("peak", cal).name == "peak"
+
+
 def test_range_correction_gains_scale_the_slopes():
     from place_safe.recovery.differentiable import RangeCorrection
 

@@ -279,3 +279,48 @@ def test_the_zones_time_scales_come_back_from_a_level_sweep():
     np.testing.assert_allclose(got.zone_offsets, offsets, atol=0.03)
     assert report["converged"]
     assert "zone_bin_scales" not in report["posterior_std"]["not_determined"]
+
+
+@pytest.mark.slow
+def test_the_staged_unit_model_holds_what_each_stage_trades_with(monkeypatch):
+    """Convention check on a small synthetic level sweep (6 frames, a few iterations; not a measure of the fit):
+    ``fit_forward_staged`` runs three fits, each from the one before and with the ambient through the pile-up;
+    the second adds the zones' time scales with the fields of view and the beam held at the first's values, the
+    third the time warp with the range law held as well. The report gives each stage's residuals, convergence and
+    reason, and converges only when every stage did."""
+    from place_safe.calibration import forward_fit as ff
+
+    calls = []
+    real = ff.fit_forward
+
+    def spy(frames, init=None, **kw):
+        params, report = real(frames, init=init, **kw)
+        calls.append((init, kw["fitted"], kw["ambient"], params))
+        return params, report
+
+    monkeypatch.setattr(ff, "fit_forward", spy)
+    frames = _level_frames(6)
+    logged = []
+    params, report = ff.fit_forward_staged(frames, progress=False, log=logged.append, rays=2, coarse_rays=0,
+                                           iterations=2)
+    assert len(calls) == 3 and all(amb for _, _, amb, _ in calls)
+    (init1, fit1, _, p1), (init2, fit2, _, p2), (init3, fit3, _, p3) = calls
+    assert init1 is None and init2 is p1 and init3 is p2 and params is p3
+    assert {**ff.FITTED, **ff.UNIT_TERMS, **ff.LEARNED_RESPONSE}.items() <= fit1.items()
+    assert "zone_bin_scales" in fit2 and not set(ff.GEOMETRY) & set(fit2)
+    assert "time_warp" in fit3 and not (set(ff.GEOMETRY) | set(ff.RANGE_LAW)) & set(fit3)
+    for name in ff.GEOMETRY:
+        assert getattr(p3, name) == getattr(p1, name)
+    for name in ff.RANGE_LAW:
+        assert getattr(p3, name) == getattr(p2, name)
+    stages = report["stages"]
+    assert list(stages) == ["1_unit", "2_zone_scales", "3_time_warp"]
+    for s in stages.values():
+        assert {"rms_scaled_residual_before", "rms_scaled_residual_after", "converged", "why", "seconds"} <= set(s)
+    assert report["unit_model"] == "staged"
+    assert report["converged"] == all(s["converged"] for s in stages.values())
+    assert all(k in report["why"] for k in stages)
+    assert report["rms_scaled_residual_after"] == stages["3_time_warp"]["rms_scaled_residual_after"]
+    assert len(logged) == 3 and "stage 3 of 3" in logged[-1]
+    with pytest.raises(TypeError, match="ambient"):
+        ff.fit_forward_staged(frames, ambient=False)

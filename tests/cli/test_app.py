@@ -248,6 +248,39 @@ def test_calibrated_file_is_used_by_recover(tmp_path, sweep_path, capsys):
     assert any(a["offset"] != b["offset"] for a, b in zip(calibrated, default))
 
 
+def test_calibrate_passes_the_unit_model_to_the_diff_fit(tmp_path, sweep_path, monkeypatch, capsys):
+    """--unit-model staged reaches the diff fit; without it the default fit runs (the fit itself: the forward fit's
+    tests)."""
+    import place_safe.calibration.fit as fit
+
+    seen = []
+
+    def fake(cal, frames, method, progress=False, log=None, unit_model="default"):
+        seen.append((method, unit_model))
+        return []
+
+    monkeypatch.setattr(fit, "fit_method", fake)
+    for extra in ([], ["--unit-model", "staged"], ["--unit-model", "default"]):
+        assert main(["calibrate", str(sweep_path), "--method", "diff", "-o", str(tmp_path / "c.json"), "-q",
+                     *extra]) == 0
+    assert seen == [("diff", "default"), ("diff", "staged"), ("diff", "default")]
+
+
+@pytest.mark.parametrize("args", [["--method", "peak", "--unit-model", "staged"],
+                                  ["--method", "proprietary", "--unit-model", "default"],
+                                  ["--method", "diff", "--unit-model", "learned"]])
+def test_calibrate_unit_model_goes_with_diff_only(tmp_path, sweep_path, args, capsys):
+    out = tmp_path / "c.json"
+    assert main(["calibrate", str(sweep_path), "-o", str(out), *args]) == 2
+    assert "--unit-model" in one_line_error(capsys.readouterr().err)
+    assert not out.exists()
+
+
+def test_calibrate_sim_takes_no_unit_model(capsys):
+    assert main(["calibrate", "--sim", "mismatch", "--unit-model", "staged"]) == 2
+    assert "--unit-model" in one_line_error(capsys.readouterr().err)
+
+
 # -- evaluate -------------------------------------------------------------------------------------
 def test_evaluate_prints_a_table_and_writes_json(tmp_path, sweep_path, capsys):
     rep = tmp_path / "report.json"

@@ -11,7 +11,7 @@ from place_safe.recovery.plane_renderer import PlaneRenderer, convolution_matric
 from place_safe.evaluation.synthetic import default_reference
 
 
-def _check(params: ForwardParams, x: np.ndarray, width: int = 70) -> None:
+def _check(params: ForwardParams, x: np.ndarray, width: int = 70, ambient: np.ndarray | None = None) -> None:
     rays = ZoneRays.stratified(4)
     model = ForwardModel(params, rays)
     renderer = PlaneRenderer(params, rays)
@@ -24,12 +24,14 @@ def _check(params: ForwardParams, x: np.ndarray, width: int = 70) -> None:
         n = torch.stack([a, b, torch.ones_like(a)]) / s
         return model.render_plane(n[None], (z0 / s).reshape(1), torch.exp(xt[3]).reshape(1), None,
                                   specular_weight=xt[4].reshape(1), specular_exponent=torch.exp(xt[5]).reshape(1),
-                                  kernel=kernel)[0, :, :width] - model.t["floor"]
+                                  kernel=kernel, ambient=amb_t)[0, :, :width] - model.t["floor"]
+
+    amb_t = None if ambient is None else torch.as_tensor(ambient, dtype=torch.float64)[None]
 
     xt = torch.tensor(x)
     h_ref = f(xt).numpy()
     j_ref = jacfwd(f)(xt).numpy()
-    h, j = renderer.render(x[None], conv, jacobian=True)
+    h, j = renderer.render(x[None], conv, jacobian=True, ambient=None if ambient is None else ambient[None])
     np.testing.assert_allclose(h[0], h_ref, rtol=1e-9, atol=1e-9 * h_ref.max())
     for k in range(6):
         scale = np.abs(j_ref[..., k]).max()
@@ -159,3 +161,21 @@ def test_matches_torch_model_with_zone_bin_scales():
                          glass_gains=list(np.linspace(5.0, 40.0, 9)), pileup=2e-7, baseline=[0.003, -0.0015],
                          beam_power=1.2, time_warp=list(0.4 * np.sin(np.arange(17) * 0.7))),
            np.array([-0.25, 0.2, 0.18, math.log(2.0), 0.2, math.log(1.5)]))
+
+
+def test_matches_torch_model_with_the_ambient_through_the_pile_up():
+    """The ambient as it arrives (per zone) goes through the pile-up with the return, as in the torch model: the
+    counts above it, negative after a bright return (its shadow), derivatives included; with no pile-up it is the
+    return alone."""
+    x = np.array([0.05, -0.1, 0.06, math.log(3.0), 0.1, math.log(2.0)])
+    ambient = np.linspace(80.0, 160.0, 9)
+    params = ForwardParams(pileup=2e-6, pileup_shadow=0.7, zone_tail_weights=[0.02] * 9)
+    _check(params, x, ambient=ambient)
+    rays = ZoneRays.stratified(4)
+    kernel = ForwardModel(params, rays).pulse(torch.as_tensor(default_reference())[None]).numpy()
+    conv = convolution_matrices(kernel, 70)
+    renderer = PlaneRenderer(params, rays)
+    h = renderer.render(x[None], conv, ambient=ambient[None])[0]
+    assert h[:, -10:].max() < 0.0  # the ambient after the return is shadowed
+    plain = PlaneRenderer(params.replace(pileup=0.0), rays)
+    np.testing.assert_array_equal(plain.render(x[None], conv, ambient=ambient[None]), plain.render(x[None], conv))
