@@ -707,7 +707,8 @@ def fit_forward_staged(frames: Sequence[Frame], progress: bool = True, log=None,
     if bad:
         raise TypeError(f"fit_forward_staged: {', '.join(bad)} are set by the stages")
     params, stages, report = None, {}, {}
-    for i, (name, fitted, held) in enumerate(staged_stages(), 1):
+    plan = staged_stages()
+    for i, (name, fitted, held) in enumerate(plan, 1):
         params, report = fit_forward(frames, init=params, progress=progress, fitted=fitted, ambient=True, **options)
         solver = report["solver"]
         stages[f"{i}_{name}"] = {
@@ -716,7 +717,7 @@ def fit_forward_staged(frames: Sequence[Frame], progress: bool = True, log=None,
             "converged": report["converged"], "why": report["why"], "jacobians": solver["jacobians"],
             "seconds": solver["seconds"], "cpu_seconds": solver["cpu_seconds"], "held": ", ".join(held) or "none"}
         if log is not None:
-            log(f"unit model, stage {i} of 3 ({name}): RMS scaled residual {report['rms_scaled_residual_before']:.3f} "
+            log(f"unit model, stage {i} of {len(plan)} ({name}): RMS scaled residual {report['rms_scaled_residual_before']:.3f} "
                 f"-> {report['rms_scaled_residual_after']:.3f}, "
                 f"{'converged' if report['converged'] else 'NOT converged'} ({report['why']}), "
                 f"{solver['seconds']:.0f} s")
