@@ -44,7 +44,7 @@ from typing import Sequence
 
 import numpy as np
 
-from place_safe.calibration.point_errors import FAILED_FIT_ERROR, frame_point_errors
+from place_safe.calibration.point_errors import FAILED_FIT_ERROR, frame_point_errors, true_ranges
 from place_safe.recovery.points import PeakParams, fit_planes
 from place_safe.sensor.frame import N_ZONES, Frame
 from place_safe.sensor.histogram import find_peaks
@@ -158,7 +158,7 @@ def near_range_std(frames: Sequence[Frame], params: PeakParams) -> tuple[list[fl
     tn = np.array([f.truth.normal for f in frames])
     td = np.array([f.truth.offset for f in frames])
     with np.errstate(invalid="ignore", divide="ignore"):
-        own = np.asarray(_knot_stds(knots, r * dirs[:, 2], r - td[:, None] / (tn @ dirs.T), valid))
+        own = np.asarray(_knot_stds(knots, r * dirs[:, 2], r - true_ranges(tn, td, dirs), valid))
     std = np.maximum(cv, own)
     return [float(v) for v in knots], [float(v) for v in std], {
         "knots_mm": [float(v) * 1e3 for v in knots], "cross_validated_mm": [float(v) * 1e3 for v in cv],
@@ -198,7 +198,7 @@ def _zone_readings(frames: Sequence[Frame], base: PeakParams, hists: np.ndarray 
     r0 = base.ranges(pos)
     depth = r0 * dirs[:, 2]
     with np.errstate(invalid="ignore", divide="ignore"):
-        err = r0 - td[:, None] / (tn @ dirs.T)
+        err = r0 - true_ranges(tn, td, dirs)
         frame_depth = np.nanmedian(np.where(valid, depth, np.nan), axis=-1) if valid.any() else np.full(len(frames), np.nan)
     near = (valid.sum(-1) >= 3) & np.isfinite(frame_depth) & (frame_depth < NEAR_END)
     return pos, valid, heights, depth, err, tn, td, frame_depth, near

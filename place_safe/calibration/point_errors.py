@@ -12,6 +12,13 @@ from place_safe.recovery.points import PeakParams, fit_planes
 FAILED_FIT_ERROR = 1.0
 
 
+
+def true_ranges(tn: np.ndarray, td: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    """m: the range (F, Z) along each zone direction ``dirs`` (Z, 3; unit) to each frame's true plane ``n . x = d``
+    (normals ``tn`` (F, 3), offsets ``td`` (F,)); inf / NaN where a direction misses the plane (callers mask them,
+    and silence the division's warnings where they expect it)."""
+    return td[:, None] / (tn @ dirs.T)
+
 def frame_point_errors(p: PeakParams, readings: np.ndarray, valid: np.ndarray, tn: np.ndarray,
                        td: np.ndarray) -> np.ndarray:
     """Each frame's point error (m, (F,)) with mapping ``p``, readings and mask (F, 9) and true normals (F, 3)
@@ -23,4 +30,4 @@ def frame_point_errors(p: PeakParams, readings: np.ndarray, valid: np.ndarray, t
     return e
 
 
-__all__ = ["FAILED_FIT_ERROR", "frame_point_errors"]
+__all__ = ["FAILED_FIT_ERROR", "frame_point_errors", "true_ranges"]

@@ -16,7 +16,7 @@ from numpy.polynomial import chebyshev as cheb
 from scipy.optimize import minimize
 
 from place_safe.calibration.near_range import fit_near_range
-from place_safe.calibration.point_errors import frame_point_errors
+from place_safe.calibration.point_errors import frame_point_errors, true_ranges
 from place_safe.evaluation.metrics import angular_errors, linear_errors, point_errors
 from place_safe.exceptions import CalibrationError
 from place_safe.recovery.points import MAX_ZONE_RESIDUAL, MM_PER_M, PeakParams, fit_planes
@@ -80,7 +80,7 @@ def fit_linear(edge_scale: float, corner_scale: float, readings: np.ndarray, val
     scaled directions (reading units). Returns None when the data do not determine them."""
     dirs = PeakParams(1.0, 0.0, edge_scale, corner_scale).directions()
     with np.errstate(divide="ignore", invalid="ignore"):
-        r = td[:, None] / (tn @ dirs.T)
+        r = true_ranges(tn, td, dirs)
     use = valid & np.isfinite(readings) & np.isfinite(r) & (r > 0)
     if use.sum() < 3:
         return None
@@ -255,7 +255,7 @@ def _calibration_frames(frames: Sequence[Frame], min_range: float) -> list[Frame
 def _initial_linear(readings: np.ndarray, valid: np.ndarray, frames: Sequence[Frame], like: PeakParams) -> PeakParams:
     """Start values for m, b from a straight-line fit of readings vs. true ranges (nominal directions)."""
     tn, td = _truth_arrays(frames)
-    r = td[:, None] / (tn @ like.directions().T)
+    r = true_ranges(tn, td, like.directions())
     use = valid & np.isfinite(readings)
     if use.sum() < 2 or np.ptp(r[use]) < 1e-3:
         return like
@@ -443,7 +443,7 @@ def zone_residuals(params: PeakParams, readings: np.ndarray, valid: np.ndarray,
     (0, 0) without any."""
     tn, td = _truth_arrays(frames)
     with np.errstate(divide="ignore", invalid="ignore"):
-        err = params.ranges(np.where(valid, readings, np.nan)) - td[:, None] / (tn @ params.directions().T)
+        err = params.ranges(np.where(valid, readings, np.nan)) - true_ranges(tn, td, params.directions())
     use = valid & np.isfinite(err)
     n = use.sum(1)
     rows = n >= 2

@@ -443,11 +443,6 @@ def _svd(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return s, vt
 
 
-def plane_from_points(params: PeakParams, readings: np.ndarray, valid: np.ndarray) -> tuple[Plane, float]:
-    """The plane of one frame's readings (9,) and mask (9,), and its RMS residual (m); raises NoPlaneError."""
-    return plane_through(params.points(readings), valid)
-
-
 def plane_through(points: np.ndarray, valid: np.ndarray) -> tuple[Plane, float]:
     """The least-squares plane of one frame's zone points (9, 3) with mask (9,), and its RMS residual (m);
     raises NoPlaneError. The maths and the conditions of :func:`fit_planes`, for one frame without the
@@ -470,4 +465,4 @@ def plane_through(points: np.ndarray, valid: np.ndarray) -> tuple[Plane, float]:
     return Plane(n, d), float(s[-1]) / math.sqrt(count)
 
 
-__all__ = ["PeakParams", "fit_planes", "plane_from_points", "plane_through", "plane_covariance", "PAPER_PEAK_M", "PAPER_PEAK_B", "BIN_SIZE", "MM_PER_M"]
+__all__ = ["PeakParams", "fit_planes", "plane_through", "plane_covariance", "PAPER_PEAK_M", "PAPER_PEAK_B", "BIN_SIZE", "MM_PER_M"]

@@ -27,9 +27,9 @@ zones' errors are largely shared).
 
 from __future__ import annotations
 
-import numpy as np
-
 import math
+
+import numpy as np
 
 from place_safe.recovery.points import MM_PER_M, PeakParams, plane_covariance, plane_through
 from place_safe.exceptions import FrameError, NoPlaneError
