@@ -2,7 +2,7 @@
 smooth in range could remove) or a scatter from frame to frame (which neither can).
 
     python docs/figures/diff_tilt_scatter.py CAL.json A.json B.json [--options JSON] [--model-error E]
-                                             [--mean-reference all|near] [--save OUT.npy]
+                                             [--mean-reference all|near] [--weight W LO HI] [--save OUT.npy]
 
 Every frame of A and B (two halves of a level sweep, interleaved in distance; 5-40 cm) is recovered by diff with
 CAL's forward model and solver options, without its plane correction and without its fallback limits (its own
@@ -18,7 +18,8 @@ its own per zone (harmonic 1, ridge), fitted on one file's frames and tested on 
 
 ``--options``: SolverOptions fields to change (JSON); ``--model-error``: the forward model's relative model error
 instead of the calibrated one; ``--mean-reference``: every frame's reference histogram replaced by the mean over
-the frames (``all``) or over the 5 nearest in distance (``near``).
+the frames (``all``) or over the 5 nearest in distance (``near``); ``--weight``: diff's residual weights of each
+zone's bins LO..HI about its highest bin multiplied by W (-3 -1: the rising edge).
 """
 
 import argparse
@@ -32,7 +33,7 @@ import torch
 from place_safe.calibration import Calibration
 from place_safe.cli.common import load_truth_frames
 from place_safe.geometry import Plane
-from place_safe.recovery import make_estimator
+from place_safe.recovery import differentiable, make_estimator
 from place_safe.recovery.forward import ForwardModel, ZoneRays, mount_rotation
 
 SMOOTH_DEGREE = 6
@@ -152,6 +153,17 @@ def report(rows: np.ndarray, cal: Calibration, names) -> None:
         print("  " + " | ".join(text))
 
 
+def weight_bins(w: float, lo: int, hi: int) -> None:
+    """Make diff's solver weigh each zone's bins ``lo..hi`` about its highest bin ``w`` times as much."""
+    plain = differentiable.residual_weights
+
+    def weights(hists, model_error):
+        rel = np.arange(hists.shape[-1]) - hists.argmax(-1)[..., None]
+        return plain(hists, model_error) * np.where((rel >= lo) & (rel <= hi), w, 1.0)
+
+    differentiable.residual_weights = weights
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("calibration")
@@ -160,8 +172,11 @@ def main() -> None:
     ap.add_argument("--options", type=json.loads, default=None)
     ap.add_argument("--model-error", type=float, default=None)
     ap.add_argument("--mean-reference", choices=("all", "near"), default=None)
+    ap.add_argument("--weight", nargs=3, type=float, default=None)
     ap.add_argument("--save", default=None)
     args = ap.parse_args()
+    if args.weight is not None:
+        weight_bins(args.weight[0], int(args.weight[1]), int(args.weight[2]))
     cal = Calibration.load(args.calibration)
     rows = slope_errors(cal, [args.a, args.b], args.options, args.model_error, args.mean_reference)
     if args.save:
