@@ -128,14 +128,20 @@ def albedo_ratio_cv(tilt: Path, cal: Path) -> float | None:
     return float(100 * r.std(ddof=1) / r.mean())
 
 
-def score(unit: str, out: Path, fresh: bool) -> dict:
+def score(unit: str, out: Path, fresh: bool, reevaluate: bool = False) -> dict:
+    """The unit's row: from its score file if there is one (unless ``fresh`` or ``reevaluate``); ``reevaluate`` keeps
+    the calibration (and its time) and evaluates again."""
     path = out / f"{unit}_score.json"
-    if path.exists() and not fresh:
+    if path.exists() and not (fresh or reevaluate):
         return json.loads(path.read_text())
     level, tilt = make_frames(unit, out)
     cal = out / f"{unit}_cal.json"
-    cal.unlink(missing_ok=True)  # calibrate keeps the other sections of an existing file: start from none
-    wall, cpu = run(["calibrate", str(level), "--method", "diff", "-o", str(cal)], out / f"{unit}_cal.log")
+    timing = out / f"{unit}_cal.time"
+    if reevaluate and cal.exists() and timing.exists():
+        wall, cpu = (float(x) for x in timing.read_text().split()[-3:-1])
+    else:
+        cal.unlink(missing_ok=True)  # calibrate keeps the other sections of an existing file: start from none
+        wall, cpu = run(["calibrate", str(level), "--method", "diff", "-o", str(cal)], out / f"{unit}_cal.log")
     own = own_copy(cal)
     run(["evaluate", str(tilt), "--calibration", str(cal), "--methods", "diff", "peak", "--no-plots", "-q",
          "--json", str(out / f"{unit}_eval.json")], out / f"{unit}_eval.log")
@@ -212,6 +218,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=ROOT / "out" / "unit_scorecard",
                     help="directory for the frames, calibrations, logs and scores (default out/unit_scorecard)")
     ap.add_argument("--fresh", action="store_true", help="recalibrate and re-evaluate units already scored")
+    ap.add_argument("--reevaluate", action="store_true",
+                    help="keep the units' calibrations (and their times), evaluate them again")
     ap.add_argument("--table", action="store_true", help="only print the table of the units already scored")
     a = ap.parse_args(argv)
     a.out.mkdir(parents=True, exist_ok=True)
@@ -224,7 +232,7 @@ def main(argv: list[str] | None = None) -> int:
             continue
         t0 = time.time()
         print(f"[{i}/{len(a.units)}] unit {u} ...", flush=True)
-        r = score(u, a.out, a.fresh)
+        r = score(u, a.out, a.fresh, a.reevaluate)
         rows.append(r)
         print(f"[{i}/{len(a.units)}] unit {u}: RMS {r['rms']:.3f} ({'converged' if r['converged'] else 'NOT converged'}), "
               f"calibrate {r['cal_cpu_s']:.0f} s CPU; diff {r['diff_deg']:.3f} deg / {r['diff_mm']:.3f} mm, fallback "
