@@ -197,6 +197,13 @@ class SolverOptions:
 #: slopes up to 80 deg of incidence, planes 1 mm to 5 m away, albedo within 1e-4..1e4 of the model's.
 _LOWER = np.array([-5.67, -5.67, 1e-3, math.log(1e-4), 0.0, math.log(0.5)])
 _UPPER = np.array([5.67, 5.67, 5.0, math.log(1e4), 1.0, math.log(50.0)])
+#: The largest posterior standard deviation of the log albedo (the fast solver's Gauss-Newton covariance, scaled by
+#: the residual's chi-square) with which diff reports an albedo; above it the frame does not determine the albedo
+#: (a saturated return: its height no longer grows with the albedo) and ``PlaneEstimate.albedo`` is None. Measured
+#: (docs/results.md, simulated units, scorecard): at most 0.5 on the tilted frames of mismatched units and of the
+#: independent generator that read their albedo; 3e6-8e6 on the generator's saturated 5-7 cm frames, whose albedos
+#: ran to 50-1e4 (the bound) against about 4 times the true value elsewhere.
+ALBEDO_STD_LIMIT = 1.0
 
 
 class DifferentiableEstimator(Estimator):
@@ -512,9 +519,12 @@ class DifferentiableEstimator(Estimator):
         except np.linalg.LinAlgError:
             inv = np.linalg.pinv(JtJ)
         cov = inv[:, :3, :3] * chi2_red[:, None, None]
+        # the reported albedo's spread: the mean log albedo over zones (one albedo: that one)
+        albedo_std = np.sqrt(np.abs(inv[:, 3:3 + n_alb, 3:3 + n_alb].sum(axis=(1, 2))) / n_alb ** 2 * chi2_red)
         # report one albedo: the mean log albedo over zones when each zone has its own
         xr = np.concatenate([x[:, :3], x[:, 3:3 + n_alb].mean(axis=1, keepdims=True)], axis=1)
-        return [self._finish(torch.as_tensor(xr[i]), float(core_cost[i]), int(n_core[i]), cov[i]) for i in range(nb)]
+        return [self._finish(torch.as_tensor(xr[i]), float(core_cost[i]), int(n_core[i]), cov[i], float(albedo_std[i]))
+                for i in range(nb)]
 
     def _kernels(self, frames: list[Frame]) -> np.ndarray:
         ref = torch.as_tensor(np.array([f.reference for f in frames]), dtype=self.dtype)
@@ -538,7 +548,10 @@ class DifferentiableEstimator(Estimator):
             jac[:, k] = (tilt_offset(self._reported(*xk)) - f0) / h
         return jac @ cov_abz @ jac.T
 
-    def _finish(self, x: torch.Tensor, cost: float, n_res: int, cov_abz: np.ndarray | None = None) -> PlaneEstimate:
+    def _finish(self, x: torch.Tensor, cost: float, n_res: int, cov_abz: np.ndarray | None = None,
+                albedo_std: float | None = None) -> PlaneEstimate:
+        """The estimate of the solved unknowns; ``albedo_std``: the log albedo's posterior spread (None: not known),
+        above :data:`ALBEDO_STD_LIMIT` (or not finite) the albedo is not reported."""
         a, b, z0, lr = (float(v) for v in x[:4])
         if not all(math.isfinite(v) for v in (a, b, z0, lr)):
             return PlaneEstimate(None, reason="solver diverged (non-finite plane)")
@@ -551,7 +564,9 @@ class DifferentiableEstimator(Estimator):
                 cov = self.uncertainty.apply(self._state_covariance(a, b, z0, cov_abz), plane.offset, plane.normal)
         except NoPlaneError as exc:
             return PlaneEstimate(None, reason=str(exc))
-        return PlaneEstimate(plane, albedo=math.exp(lr), residual=math.sqrt(max(cost, 0.0) / n_res),
+        determined = albedo_std is None or (math.isfinite(albedo_std) and albedo_std <= ALBEDO_STD_LIMIT)
+        return PlaneEstimate(plane, albedo=math.exp(lr) if determined else None,
+                             residual=math.sqrt(max(cost, 0.0) / n_res),
                              covariance=cov, method_used=self.name)
 
     # -- the paper's procedure -----------------------------------------------------------------

@@ -303,3 +303,24 @@ def test_with_the_ambient_option_the_plane_comes_back_from_frames_whose_ambient_
     # the residual (the chi-square test) sees the ambient's shadow only when it is modelled
     plain = DifferentiableEstimator(params).estimate(frame)
     assert est.residual < 0.1 < 1.0 < plain.residual
+
+
+def test_an_albedo_the_frame_does_not_determine_is_not_reported():
+    """A saturated return (bright table 5 cm away, independent generator) no longer grows with the albedo: the solver's
+    log albedo has no posterior bound and ran to its upper bound (1e4); diff reports no albedo there, its plane still,
+    and keeps reporting the albedo of unsaturated returns."""
+    from place_safe.evaluation.independent import SceneSpec
+    from place_safe.evaluation.independent import make_frames as independent_frames
+
+    tilt = (0.15, 0.25)
+    near = independent_frames(4, seed=4, scene=SceneSpec(z_range=(0.05, 0.055), theta_range=tilt,
+                                                         albedo_range=(1.45, 1.5)))
+    far = independent_frames(4, seed=5, scene=SceneSpec(z_range=(0.15, 0.25), theta_range=tilt,
+                                                        albedo_range=(0.8, 1.0)))
+    est = DifferentiableEstimator()
+    for f in near:
+        e = est.estimate(f)
+        assert e.plane is not None and e.albedo is None
+    for f in far:
+        e = est.estimate(f)
+        assert e.plane is not None and e.albedo is not None and math.isfinite(e.albedo) and e.albedo > 0

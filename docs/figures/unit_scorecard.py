@@ -1,0 +1,246 @@
+"""Issue 24's "Done when" on simulated units: each calibrated by ``place-safe calibrate --method diff`` on its own level
+sweep (150 frames, table 2-40 cm below the sensor, level) and read on tilted planes (150 frames, 0-30 deg, 5-30 cm).
+
+    nice -n 10 env OMP_NUM_THREADS=1 python docs/figures/unit_scorecard.py --out ../scorecard    # every unit (~30 min)
+    python docs/figures/unit_scorecard.py --units A 31 --out ../scorecard                      # some of them
+    python docs/figures/unit_scorecard.py --out ../scorecard --table                           # the table from disk
+
+The units: ``A`` (the default :class:`~place_safe.sim.tof_mismatch.MismatchConfig`), ``B`` (seed 11, longer tails:
+docs/results.md, the unit's forward model), ``31``, ``32``, ``33`` (new seeds, their other differences varied within
+the config's bounds: see :data:`UNITS`), and ``synth`` (the independent generator, ``place-safe synth``, sensor seed
+0; ``synth3``: sensor seed 3). Everything runs through the command line a user has (``place-safe calibrate``,
+``place-safe evaluate --json``); each step's output is kept in ``--out`` and reused when rerun (``--fresh``: redo).
+
+Per unit it prints: the forward fit's RMS scaled residual and whether it converged (``reports.forward``), the
+calibration's user CPU and wall seconds (``/usr/bin/time``), diff as returned (mean angle deg,
+linear mm, fallback rate), peak, diff's own plane (the same calibration with ``uncertainty.diff.chi2_limit``,
+``consistency_limit`` and ``prefer_ratio`` null: never falls back), the albedo CV (diff as returned, per cent; for
+the independent generator, whose planes have random albedos, the CV of recovered / true albedo) and diff's NEES per
+dof. Targets (issue 24): RMS <= 1.5 and converged, fallback <= 10 %, diff no worse than peak, diff <= 0.5 deg,
+albedo CV <= 3 %, calibration <= 60 s; a failed target is marked ``!``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[2]
+FRAMES = 150
+LEVEL_HEIGHTS = (0.02, 0.40)  # m, sensor to table
+TILT_HEIGHTS = (0.05, 0.30)
+MAX_TILT_DEG = 30.0
+
+#: The mismatched units: MismatchConfig fields (None: the default unit A).
+UNITS: dict[str, dict | None] = {
+    "A": None,
+    "B": {"seed": 11, "tail_weight": (0.05, 0.12), "tail_decay": (2.0, 6.0), "skew_bins": 0.2},
+    # short tails, more skew, a larger cover-glass spread and more crosstalk, a floor falling across the bins
+    "31": {"seed": 31, "tail_weight": (0.03, 0.10), "tail_decay": (1.0, 4.0), "skew_bins": 0.25, "baseline": 0.004,
+           "ambient_slope": -0.15, "glass_spread": 1.0, "crosstalk_grid_max": 8e-5, "drift_bins_per_degc": 0.015},
+    # long heavy tails, a steep drifting floor, a wider emitter baseline, the glass return's delay spread
+    "32": {"seed": 32, "tail_weight": (0.06, 0.15), "tail_decay": (3.0, 8.0), "skew_bins": 0.1, "baseline": 0.008,
+           "ambient_slope": 0.3, "ambient_drift": 0.4, "glass_delay_std": 1.0},
+    # light short tails that lengthen fast, fast warming, timing that drifts the other way
+    "33": {"seed": 33, "tail_weight": (0.01, 0.05), "tail_decay": (1.5, 3.0), "skew_bins": 0.3, "temp_rate": 1.0,
+           "tail_per_degc": 0.02, "drift_bins_per_degc": -0.01, "crosstalk_grid_max": 2e-5},
+}
+#: The independent generator's units: ``place-safe synth --sensor-seed``.
+SYNTH = {"synth": 0, "synth3": 3}
+DEFAULT_UNITS = ("A", "B", "31", "32", "33", "synth")
+
+TARGETS = {"rms": 1.5, "fallback": 0.10, "diff_deg": 0.5, "albedo_cv": 3.0, "cpu_s": 60.0}
+
+
+def env() -> dict:
+    e = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", PYTHONPATH=str(ROOT))
+    return e
+
+
+def run(cmd: list[str], log: Path) -> tuple[float, float]:
+    """Run a ``place-safe`` command (nice 10, one thread) under ``/usr/bin/time``, its output to ``log``;
+    (wall, user CPU) seconds."""
+    timing = log.with_suffix(".time")
+    with open(log, "w") as fh:
+        rc = subprocess.call(["/usr/bin/time", "-f", "%e %U %S", "-o", str(timing), "nice", "-n", "10",
+                              sys.executable, "-m", "place_safe.cli", *cmd], stdout=fh, stderr=subprocess.STDOUT,
+                             env=env(), cwd=ROOT)
+    if rc != 0:
+        raise RuntimeError(f"{' '.join(cmd)} exited {rc}: see {log}")
+    wall, user, _ = (float(x) for x in timing.read_text().split()[-3:])
+    return wall, user
+
+
+def make_frames(unit: str, out: Path) -> tuple[Path, Path]:
+    level, tilt = out / f"{unit}_level.json", out / f"{unit}_tilt.json"
+    if level.exists() and tilt.exists():
+        return level, tilt
+    if unit in SYNTH:
+        s = str(SYNTH[unit])
+        run(["synth", "--frames", str(FRAMES), "--seed", "1", "--sensor-seed", s, "--max-angle", "0",
+             "--min-distance", str(LEVEL_HEIGHTS[0]), "--max-distance", str(LEVEL_HEIGHTS[1]), "-o", str(level)],
+            out / f"{unit}_synth_level.log")
+        run(["synth", "--frames", str(FRAMES), "--seed", "2", "--sensor-seed", s, "--max-angle", str(MAX_TILT_DEG),
+             "--min-distance", str(TILT_HEIGHTS[0]), "--max-distance", str(TILT_HEIGHTS[1]), "-o", str(tilt)],
+            out / f"{unit}_synth_tilt.log")
+        return level, tilt
+    from place_safe.io.frame_file import write_frames
+    from place_safe.sim.calibration_capture import OPERATING_TEMPERATURE, capture_level_sweep
+    from place_safe.sim.tof_mismatch import MismatchConfig
+    mc = None if UNITS[unit] is None else MismatchConfig(**UNITS[unit])
+    write_frames(str(level), capture_level_sweep("mismatch", FRAMES, seed=5, temperature=OPERATING_TEMPERATURE,
+                                                 heights=LEVEL_HEIGHTS, max_tilt=0.0, mismatch=mc))
+    write_frames(str(tilt), capture_level_sweep("mismatch", FRAMES, seed=6, temperature=OPERATING_TEMPERATURE,
+                                                heights=TILT_HEIGHTS, max_tilt=math.radians(MAX_TILT_DEG),
+                                                mismatch=mc))
+    return level, tilt
+
+
+def own_copy(cal: Path) -> Path:
+    """The calibration with diff's fallback limits null: diff always returns its own plane."""
+    d = json.loads(cal.read_text())
+    for k in ("chi2_limit", "consistency_limit", "prefer_ratio"):
+        d["uncertainty"]["diff"][k] = None
+    own = cal.with_name(cal.stem + "_own.json")
+    own.write_text(json.dumps(d))
+    return own
+
+
+def albedo_ratio_cv(tilt: Path, cal: Path) -> float | None:
+    """CV (per cent) of diff's recovered / true albedo, for frames that carry their true albedo (the generator)."""
+    from place_safe.calibration import Calibration
+    from place_safe.evaluation.evaluate import evaluate
+    from place_safe.io.frame_file import load_frames
+    frames = load_frames(str(tilt))
+    true = np.array([(f.extra or {}).get("meta", {}).get("albedo", np.nan) for f in frames], float)
+    if not np.isfinite(true).all():
+        return None
+    rep = evaluate(frames, Calibration.load(str(cal)), ["diff"], None, False)
+    r = rep.results["diff"].albedo / true
+    r = r[np.isfinite(r)]
+    return float(100 * r.std(ddof=1) / r.mean())
+
+
+def score(unit: str, out: Path, fresh: bool, reevaluate: bool = False) -> dict:
+    """The unit's row: from its score file if there is one (unless ``fresh`` or ``reevaluate``); ``reevaluate`` keeps
+    the calibration (and its time) and evaluates again."""
+    path = out / f"{unit}_score.json"
+    if path.exists() and not (fresh or reevaluate):
+        return json.loads(path.read_text())
+    level, tilt = make_frames(unit, out)
+    cal = out / f"{unit}_cal.json"
+    timing = out / f"{unit}_cal.time"
+    if reevaluate and cal.exists() and timing.exists():
+        wall, cpu = (float(x) for x in timing.read_text().split()[-3:-1])
+    else:
+        cal.unlink(missing_ok=True)  # calibrate keeps the other sections of an existing file: start from none
+        wall, cpu = run(["calibrate", str(level), "--method", "diff", "-o", str(cal)], out / f"{unit}_cal.log")
+    own = own_copy(cal)
+    run(["evaluate", str(tilt), "--calibration", str(cal), "--methods", "diff", "peak", "--no-plots", "-q",
+         "--json", str(out / f"{unit}_eval.json")], out / f"{unit}_eval.log")
+    run(["evaluate", str(tilt), "--calibration", str(own), "--methods", "diff", "--no-plots", "-q",
+         "--json", str(out / f"{unit}_own.json")], out / f"{unit}_own.log")
+    c = json.loads(cal.read_text())
+    fwd = c["reports"]["forward"]
+    ev = json.loads((out / f"{unit}_eval.json").read_text())
+    ow = json.loads((out / f"{unit}_own.json").read_text())
+    s = summaries(ev)
+    d, p, o = s["diff"], s["peak"], summaries(ow)["diff"]
+    ratio_cv = albedo_ratio_cv(tilt, cal)
+    row = {"unit": unit, "rms": fwd["rms_scaled_residual_after"], "rms_before": fwd["rms_scaled_residual_before"],
+           "converged": fwd["converged"], "why": fwd["why"], "cal_wall_s": wall, "cal_cpu_s": cpu,
+           "diff_deg": d["angular_deg"]["mean"], "diff_p95_deg": d["angular_deg"]["p95"],
+           "diff_mm": d["linear_mm"]["mean"], "fallback": d["fallback_rate"], "diff_failures": d["failures"],
+           "peak_deg": p["angular_deg"]["mean"], "peak_mm": p["linear_mm"]["mean"],
+           "own_deg": o["angular_deg"]["mean"], "own_mm": o["linear_mm"]["mean"],
+           "albedo_cv": ratio_cv if ratio_cv is not None else (d["albedo"] or {}).get("cv_percent"),
+           "albedo_cv_of": "recovered/true" if ratio_cv is not None else "recovered",
+           "nees": (d["nees_per_dof"] or {}).get("mean"), "frames": d["frames"]}
+    path.write_text(json.dumps(row, indent=1))
+    return row
+
+
+def summaries(report: dict) -> dict:
+    """``{method: summary}`` from ``evaluate --json`` (the methods' summaries, wherever the file keeps them)."""
+    res = report.get("results", report.get("methods", report))
+    return {k: (v.get("summary", v) if isinstance(v, dict) else v) for k, v in res.items()}
+
+
+def fails(r: dict) -> list[str]:
+    bad = []
+    if not r["converged"]:
+        bad.append("not converged")
+    if not r["rms"] <= TARGETS["rms"]:
+        bad.append("RMS")
+    if not r["cal_cpu_s"] <= TARGETS["cpu_s"]:
+        bad.append("time")
+    if not (r["fallback"] is not None and r["fallback"] <= TARGETS["fallback"]):
+        bad.append("fallback")
+    if not (r["diff_deg"] <= r["peak_deg"] and r["diff_mm"] <= r["peak_mm"]):
+        bad.append("worse than peak")
+    if not r["diff_deg"] <= TARGETS["diff_deg"]:
+        bad.append("angle")
+    if not (r["albedo_cv"] is not None and r["albedo_cv"] <= TARGETS["albedo_cv"]):
+        bad.append("albedo")
+    if r["diff_failures"]:
+        bad.append(f"{r['diff_failures']} frames without a plane")
+    return bad
+
+
+def table(rows: list[dict]) -> str:
+    head = ("| unit | forward RMS (converged) | calibrate CPU / wall s | diff as returned deg (p95) / mm | fallback | "
+            "peak deg / mm | diff's own plane deg / mm | albedo CV | NEES/dof diff | fails |")
+    lines = [head, "|" + "---|" * (head.count("|") - 1)]
+    for r in rows:
+        cv = "-" if r["albedo_cv"] is None else f"{r['albedo_cv']:.1f} %" + (
+            " (/true)" if r["albedo_cv_of"] != "recovered" else "")
+        nees = "-" if r["nees"] is None else f"{r['nees']:.2f}"
+        lines.append(
+            f"| {r['unit']} | {r['rms']:.3f} ({'yes' if r['converged'] else 'NO'}) | {r['cal_cpu_s']:.0f} / "
+            f"{r['cal_wall_s']:.0f} | {r['diff_deg']:.3f} ({r['diff_p95_deg']:.2f}) / {r['diff_mm']:.3f} | "
+            f"{100 * (r['fallback'] or 0):.0f} % | {r['peak_deg']:.2f} / {r['peak_mm']:.2f} | "
+            f"{r['own_deg']:.3f} / {r['own_mm']:.3f} | {cv} | {nees} | {', '.join(fails(r)) or '-'} |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--units", nargs="+", default=list(DEFAULT_UNITS), choices=[*UNITS, *SYNTH],
+                    help=f"units to score (default: {' '.join(DEFAULT_UNITS)})")
+    ap.add_argument("--out", type=Path, default=ROOT / "out" / "unit_scorecard",
+                    help="directory for the frames, calibrations, logs and scores (default out/unit_scorecard)")
+    ap.add_argument("--fresh", action="store_true", help="recalibrate and re-evaluate units already scored")
+    ap.add_argument("--reevaluate", action="store_true",
+                    help="keep the units' calibrations (and their times), evaluate them again")
+    ap.add_argument("--table", action="store_true", help="only print the table of the units already scored")
+    a = ap.parse_args(argv)
+    a.out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for i, u in enumerate(a.units, 1):
+        if a.table:
+            p = a.out / f"{u}_score.json"
+            if p.exists():
+                rows.append(json.loads(p.read_text()))
+            continue
+        t0 = time.time()
+        print(f"[{i}/{len(a.units)}] unit {u} ...", flush=True)
+        r = score(u, a.out, a.fresh, a.reevaluate)
+        rows.append(r)
+        print(f"[{i}/{len(a.units)}] unit {u}: RMS {r['rms']:.3f} ({'converged' if r['converged'] else 'NOT converged'}), "
+              f"calibrate {r['cal_cpu_s']:.0f} s CPU; diff {r['diff_deg']:.3f} deg / {r['diff_mm']:.3f} mm, fallback "
+              f"{100 * (r['fallback'] or 0):.0f} %, peak {r['peak_deg']:.3f} / {r['peak_mm']:.3f}; "
+              f"fails: {', '.join(fails(r)) or 'none'} ({time.time() - t0:.0f} s)", flush=True)
+    print(table(rows))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
