@@ -220,6 +220,10 @@ SAME_SURFACE_SD = 0.01
 #: Forward-mode tangents evaluated together (``vmap`` over ``jvp``): fewer passes over the model, but
 #: larger tensors; 18 was fastest for 40 frames on one thread (0.57 s a Jacobian against 0.69 s with 9).
 JVP_CHUNK = 18
+#: The parameters the laser pulse is made of (:meth:`~place_safe.recovery.forward.ForwardModel.pulse`): their
+#: tangents are taken apart from the others, whose pulse (one (n, n) matrix per frame) is then built once instead of
+#: once per tangent. Only the Jacobian's speed depends on this list; its values are exact whatever it holds.
+PULSE_PARAMS = ("ref_time_scale", "ref_floor", "tail_weight", "tail_decay", "pulse_soft_bin", "soft_bin_sigma")
 
 
 def _usable(frames: Sequence[Frame], min_distance: float, max_distance: float,
@@ -402,19 +406,25 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
     prior_idx = np.flatnonzero(np.isfinite(prior_sd))
     fixed_centre = {"zone_gains": 0.0, "zone_offsets": 0.0, "zone_bin_scales": 0.0}  # log 0 -> 1; offset 0
 
-    def unpack(cam: torch.Tensor) -> None:
-        i = 0
+    def unpack(cam: torch.Tensor, part: torch.Tensor | None = None, names: frozenset = frozenset()) -> None:
+        """Write the camera vector ``cam`` into the model's parameters; the parameters ``names`` take their values
+        from ``part`` instead (their entries of ``cam`` one after the other, in the layout's order): under
+        ``torch.func.jvp`` only those then carry tangents, and whatever the others alone determine (e.g. the
+        pulse, the matrices after it) is computed once, not once per tangent."""
+        i = j = 0
         for name, kind, n in layout:
+            m = abs(n)
+            src, k = (part, j) if name in names else (cam, i)
             if n < 0:
-                n = -n
-                v = cam[i:i + n]
+                v = src[k:k + m]
             elif n == 1 and name not in ZONE_GAUGED:
-                v = cam[i]
+                v = src[k]
             else:
                 centre = torch.full((1,), fixed_centre.get(name, 0.0), dtype=dtype)
-                v = torch.cat([cam[i:i + CENTRE], centre, cam[i + CENTRE:i + n]])
+                v = torch.cat([src[k:k + CENTRE], centre, src[k + CENTRE:k + m]])
             model.t[name] = torch.exp(v) if kind == "log" else v
-            i += n
+            i += m
+            j += m if name in names else 0
 
     def render(log_albedo: torch.Tensor, pulse_only: bool = False) -> torch.Tensor:
         """Histograms (nf, 9, width) of the frames' planes with the camera parameters last unpacked."""
@@ -441,11 +451,6 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
         unpack(cam)
         return scaled(render(log_albedo))
 
-    def residual_after_pulse(cam: torch.Tensor, pulsed: torch.Tensor) -> torch.Tensor:
-        """The residuals from the pulse-convolved histograms ``pulsed``: exact in the parameters of
-        ``ForwardModel.AFTER_PULSE`` (nothing before the pulse convolution depends on them)."""
-        unpack(cam)
-        return scaled(model.after_pulse(pulsed, amb_t))
 
     cam0 = torch.as_tensor(np.array(start), dtype=dtype)
 
@@ -499,48 +504,63 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
         return np.concatenate([r, prior_rows(z)])
 
     # forward-mode tangents: one per camera parameter, and one shared by all albedos (each frame
-    # depends on its own albedo only, so that tangent fills the block-diagonal albedo columns at once).
-    # Parameters that act after the pulse convolution are differentiated from the pulse-convolved
-    # histograms, rendered once (the rays are the expensive part)
-    late = np.zeros(n_cam, dtype=bool)
-    i = 0
-    for name, kind, n in layout:
-        late[i:i + abs(n)] = name in ForwardModel.AFTER_PULSE
-        i += abs(n)
-    early_idx = np.flatnonzero(~late)
-    late_idx = np.flatnonzero(late)
-    tangents = torch.zeros((len(early_idx) + 1, n_cam + nf), dtype=dtype)
-    tangents[torch.arange(len(early_idx)), torch.as_tensor(early_idx)] = 1.0
-    tangents[len(early_idx), n_cam:] = 1.0
-    late_tangents = torch.zeros((len(late_idx), n_cam), dtype=dtype)
-    late_tangents[torch.arange(len(late_idx)), torch.as_tensor(late_idx, dtype=torch.long)] = 1.0
+    # depends on its own albedo only, so that tangent fills the block-diagonal albedo columns at once), taken in
+    # groups (TANGENT_GROUPS) in which only the group's parameters carry tangents: what the others alone determine
+    # is then computed once per group, not once per tangent. Parameters that act after the pulse convolution are
+    # differentiated from the pulse-convolved histograms, rendered once (the rays are the expensive part)
+    pulse_names = frozenset(n for n, _, _ in layout if n in PULSE_PARAMS and n not in ForwardModel.AFTER_PULSE)
+    late_names = frozenset(n for n, _, _ in layout if n in ForwardModel.AFTER_PULSE)
+    other_names = frozenset(n for n, _, _ in layout) - pulse_names - late_names
+    groups = []  # (names, their entries of the camera vector, with the albedo tangent, after the pulse)
+    owner = [name for name, _, n in layout for _ in range(abs(n))]  # the parameter of each camera entry
+    for names, albedo, after in ((pulse_names, False, False), (other_names, True, False), (late_names, False, True)):
+        idx = np.array([i for i, name in enumerate(owner) if name in names], dtype=int)
+        if len(idx) or albedo:
+            groups.append((names, idx, albedo, after))
     rows = np.arange(nf * nf_res)
 
     def jac(z: np.ndarray) -> np.ndarray:
         cam, la = split(z)
-
-        def one(t: torch.Tensor) -> torch.Tensor:
-            return jvp(residual, (cam, la), (t[:n_cam], t[n_cam:]))[1]
-
-        d = torch.cat([vmap(one)(chunk) for chunk in torch.split(tangents, JVP_CHUNK)]).numpy()  # (n_early + 1, nf, M)
         n_tie = nf if tie["sd"] is not None else 0
         J = np.zeros((nf * nf_res + len(prior_idx) + n_tie, n_cam + nf))
         J[nf * nf_res + np.arange(len(prior_idx)), prior_idx] = 1.0 / prior_sd[prior_idx]
         if n_tie:
             J[nf * nf_res + len(prior_idx):, n_cam:] = (np.eye(nf) - 1.0 / nf) / tie["sd"]
-        if len(early_idx):  # (none when only parameters after the pulse are fitted)
-            J[:nf * nf_res, early_idx] = d[:-1].reshape(len(early_idx), -1).T
-        J[rows, n_cam + rows // nf_res] = d[-1].reshape(-1)
-        if len(late_idx):
-            with torch.no_grad():
-                unpack(cam)
-                pulsed = render(la, pulse_only=True)
+        pulsed = None
+        for names, idx, albedo, after in groups:
+            part = cam[torch.as_tensor(idx, dtype=torch.long)]
+            if after:
+                if pulsed is None:
+                    with torch.no_grad():
+                        unpack(cam)
+                        pulsed = render(la, pulse_only=True)
 
-            def one_late(t: torch.Tensor) -> torch.Tensor:
-                return jvp(lambda c: residual_after_pulse(c, pulsed), (cam,), (t,))[1]
+                def f(p: torch.Tensor, _la: torch.Tensor) -> torch.Tensor:
+                    unpack(cam, p, names)
+                    return scaled(model.after_pulse(pulsed, amb_t))
+            else:
+                def f(p: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+                    unpack(cam, p, names)
+                    return scaled(render(a))
 
-            d_late = torch.cat([vmap(one_late)(chunk) for chunk in torch.split(late_tangents, JVP_CHUNK)]).numpy()
-            J[:nf * nf_res, late_idx] = d_late.reshape(len(late_idx), -1).T
+            n_t = len(idx) + int(albedo)
+            tangents = torch.zeros((n_t, len(idx)), dtype=dtype)
+            tangents[torch.arange(len(idx)), torch.arange(len(idx))] = 1.0
+            t_albedo = torch.zeros((n_t, nf), dtype=dtype)
+            if albedo:
+                t_albedo[-1] = 1.0
+
+            def one(t: torch.Tensor, ta: torch.Tensor) -> torch.Tensor:
+                if albedo:
+                    return jvp(f, (part, la), (t, ta))[1]
+                return jvp(lambda p: f(p, la), (part,), (t,))[1]
+
+            d = torch.cat([vmap(one)(tc, ta) for tc, ta in zip(torch.split(tangents, JVP_CHUNK),
+                                                               torch.split(t_albedo, JVP_CHUNK))]).numpy()
+            if len(idx):
+                J[:nf * nf_res, idx] = d[:len(idx)].reshape(len(idx), -1).T
+            if albedo:
+                J[rows, n_cam + rows // nf_res] = d[-1].reshape(-1)
         bar.update(1)
         return J
 
