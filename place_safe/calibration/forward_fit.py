@@ -218,12 +218,18 @@ SAME_SURFACE_CV = 0.2
 #: range (saturation, pile-up, baseline, beam) must explain the brightness over the sweep, not a per-frame albedo.
 SAME_SURFACE_SD = 0.01
 #: Forward-mode tangents evaluated together (``vmap`` over ``jvp``): fewer passes over the model, but
-#: larger tensors; 18 was fastest for 40 frames on one thread (0.57 s a Jacobian against 0.69 s with 9).
-JVP_CHUNK = 18
+#: larger tensors. With the tangents in groups (:data:`PULSE_PARAMS`) 32, a whole group of the default fit, was
+#: fastest for 40 frames on one thread (a Jacobian on 4 x 4 rays 0.49 s against 0.53 s with 18 and 0.59 s with 10).
+JVP_CHUNK = 32
 #: The parameters the laser pulse is made of (:meth:`~place_safe.recovery.forward.ForwardModel.pulse`): their
 #: tangents are taken apart from the others, whose pulse (one (n, n) matrix per frame) is then built once instead of
 #: once per tangent. Only the Jacobian's speed depends on this list; its values are exact whatever it holds.
 PULSE_PARAMS = ("ref_time_scale", "ref_floor", "tail_weight", "tail_decay", "pulse_soft_bin", "soft_bin_sigma")
+#: Per-zone parameters whose entry for a zone acts on that zone's pulse-convolved histogram alone (before
+#: :attr:`~place_safe.recovery.forward.ForwardModel.AFTER_PULSE`, where crosstalk mixes the zones): the Jacobian takes
+#: one tangent through the rays for all of a parameter's zones and splits it by zone. Unlike :data:`PULSE_PARAMS`
+#: this list must be true (``tests/calibration/test_forward_fit.py`` checks the Jacobian against differences).
+ZONE_LOCAL = ("zone_offsets", "zone_gains", "zone_bin_scales", "glass_gains")
 
 
 def _usable(frames: Sequence[Frame], min_distance: float, max_distance: float,
@@ -295,10 +301,12 @@ def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, prog
     deviation) on the Poisson-scaled residuals (with the model-error term of
     :func:`~place_safe.recovery.forward.residual_weights`) of the bins up to ``window_after_peak`` past the
     latest peak, the only bins rendered. Its Jacobian is exact, built from forward-mode derivatives
-    (``torch.func.jvp``, batched :data:`JVP_CHUNK` tangents at a time with ``torch.func.vmap``): one
-    tangent per camera parameter and one shared by all per-frame albedos (each frame depends on its own
-    albedo only, so that tangent fills the block-diagonal albedo columns at once); the parameters that act
-    after the pulse convolution are differentiated from the pulse-convolved histograms, rendered once. Each
+    (``torch.func.jvp``, batched :data:`JVP_CHUNK` tangents at a time with ``torch.func.vmap``) in two passes:
+    through the rays to the pulse-convolved histograms, one tangent per parameter acting there (those of the pulse,
+    :data:`PULSE_PARAMS`, apart), one per :data:`ZONE_LOCAL` parameter shared by its zones and one shared by all
+    per-frame albedos (each frame depends on its own albedo only, so that tangent fills the block-diagonal albedo
+    columns at once); then from those histograms to the residuals, with the parameters that act after the pulse
+    convolution and each tangent of the first pass split by zone. Each
     albedo starts at its least-squares value and may rise at most :data:`ALBEDO_RISE` (log) above it.
 
     The objective is :data:`OBJECTIVE` (``objective``: Anscombe residuals of the raw counts with the relative model
@@ -503,21 +511,54 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
         evals["n"] += 1
         return np.concatenate([r, prior_rows(z)])
 
-    # forward-mode tangents: one per camera parameter, and one shared by all albedos (each frame
-    # depends on its own albedo only, so that tangent fills the block-diagonal albedo columns at once), taken in
-    # groups (TANGENT_GROUPS) in which only the group's parameters carry tangents: what the others alone determine
-    # is then computed once per group, not once per tangent. Parameters that act after the pulse convolution are
-    # differentiated from the pulse-convolved histograms, rendered once (the rays are the expensive part)
+    # The Jacobian by forward-mode tangents in two passes. (1) Up to the pulse-convolved histograms ("pulsed"), a
+    # tangent per parameter before the pulse convolution, in two groups (PULSE_PARAMS; the rest), in each of which only
+    # the group's parameters carry tangents, so what the others alone determine (the pulse's per-frame matrices) is
+    # built once per group, not once per tangent; one tangent shared by all albedos (each frame depends on its own
+    # albedo only, so it fills the block-diagonal albedo columns at once); and one per ZONE_LOCAL parameter shared by
+    # its zones (each zone's pulsed histogram depends on its own entry only). (2) From the pulsed histograms to the
+    # residuals (ForwardModel.AFTER_PULSE: what mixes the zones), a tangent per parameter acting there and each
+    # tangent of (1), a shared one split into its zones. The rays are the expensive part: pass (1) has fewest tangents.
     pulse_names = frozenset(n for n, _, _ in layout if n in PULSE_PARAMS and n not in ForwardModel.AFTER_PULSE)
     late_names = frozenset(n for n, _, _ in layout if n in ForwardModel.AFTER_PULSE)
     other_names = frozenset(n for n, _, _ in layout) - pulse_names - late_names
-    groups = []  # (names, their entries of the camera vector, with the albedo tangent, after the pulse)
     owner = [name for name, _, n in layout for _ in range(abs(n))]  # the parameter of each camera entry
-    for names, albedo, after in ((pulse_names, False, False), (other_names, True, False), (late_names, False, True)):
-        idx = np.array([i for i, name in enumerate(owner) if name in names], dtype=int)
-        if len(idx) or albedo:
-            groups.append((names, idx, albedo, after))
+    zone_of = np.array([z for name, _, n in layout for z in (
+        (np.delete(np.arange(N_ZONES), CENTRE) if name in ZONE_GAUGED else np.arange(abs(n)))
+        if name in ZONE_LOCAL else np.full(abs(n), -1))])  # each entry's zone, for the ZONE_LOCAL parameters
+
+    def entries(names: frozenset) -> np.ndarray:
+        return np.array([i for i, name in enumerate(owner) if name in names], dtype=int)
+
+    # pass (1): (names, their entries, tangents over them (T, len(entries)), the columns each tangent fills: a list
+    # of (column, zone or -1 for all zones)); the albedo tangent comes last in the group that has it
+    ray_groups = []
+    for names, albedo in ((pulse_names, False), (other_names, True)):
+        idx = entries(names)
+        rows_t, cols = [], []
+        for k, i in enumerate(idx):
+            if zone_of[i] < 0:
+                rows_t.append(np.eye(len(idx))[k])
+                cols.append([(int(i), -1)])
+        for name in sorted(names & set(ZONE_LOCAL)):
+            mine = [k for k, i in enumerate(idx) if owner[i] == name]
+            rows_t.append(np.isin(np.arange(len(idx)), mine).astype(float))
+            cols.append([(int(idx[k]), int(zone_of[idx[k]])) for k in mine])
+        if rows_t or albedo:
+            t = torch.as_tensor(np.array(rows_t).reshape(len(rows_t), len(idx)), dtype=dtype)
+            ray_groups.append((names, idx, t, cols, albedo))
+    late_idx = entries(late_names)
     rows = np.arange(nf * nf_res)
+    zone_mask = torch.eye(N_ZONES, dtype=dtype).view(N_ZONES, 1, N_ZONES, 1)  # (zone, 1, 9, 1)
+
+    def tangents_vmapped(f, primals: tuple, tangents: tuple) -> torch.Tensor:
+        """``jvp(f, primals, .)`` for each row of the ``tangents`` (one (T, ...) batch per primal), :data:`JVP_CHUNK`
+        at a time: (T, ...)."""
+        def one(*t):
+            return jvp(f, primals, t)[1]
+
+        n = len(tangents[0])
+        return torch.cat([vmap(one)(*(t[i:i + JVP_CHUNK] for t in tangents)) for i in range(0, n, JVP_CHUNK)])
 
     def jac(z: np.ndarray) -> np.ndarray:
         cam, la = split(z)
@@ -526,41 +567,46 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
         J[nf * nf_res + np.arange(len(prior_idx)), prior_idx] = 1.0 / prior_sd[prior_idx]
         if n_tie:
             J[nf * nf_res + len(prior_idx):, n_cam:] = (np.eye(nf) - 1.0 / nf) / tie["sd"]
-        pulsed = None
-        for names, idx, albedo, after in groups:
+        with torch.no_grad():
+            unpack(cam)
+            pulsed = render(la, pulse_only=True)
+        # pass (1): tangents of the pulsed histograms, each split into the columns it fills
+        d_pulsed, columns = [], []  # (the albedo tangent's column: None)
+        for names, idx, t, cols, albedo in ray_groups:
             part = cam[torch.as_tensor(idx, dtype=torch.long)]
-            if after:
-                if pulsed is None:
-                    with torch.no_grad():
-                        unpack(cam)
-                        pulsed = render(la, pulse_only=True)
 
-                def f(p: torch.Tensor, _la: torch.Tensor) -> torch.Tensor:
-                    unpack(cam, p, names)
-                    return scaled(model.after_pulse(pulsed, amb_t))
-            else:
-                def f(p: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
-                    unpack(cam, p, names)
-                    return scaled(render(a))
+            def f(p: torch.Tensor, a: torch.Tensor, names=names) -> torch.Tensor:
+                unpack(cam, p, names)
+                return render(a, pulse_only=True)
 
-            n_t = len(idx) + int(albedo)
-            tangents = torch.zeros((n_t, len(idx)), dtype=dtype)
-            tangents[torch.arange(len(idx)), torch.arange(len(idx))] = 1.0
-            t_albedo = torch.zeros((n_t, nf), dtype=dtype)
+            t_albedo = torch.zeros((len(t) + int(albedo), nf), dtype=dtype)
             if albedo:
+                t = torch.cat([t, torch.zeros((1, len(idx)), dtype=dtype)])
                 t_albedo[-1] = 1.0
-
-            def one(t: torch.Tensor, ta: torch.Tensor) -> torch.Tensor:
-                if albedo:
-                    return jvp(f, (part, la), (t, ta))[1]
-                return jvp(lambda p: f(p, la), (part,), (t,))[1]
-
-            d = torch.cat([vmap(one)(tc, ta) for tc, ta in zip(torch.split(tangents, JVP_CHUNK),
-                                                               torch.split(t_albedo, JVP_CHUNK))]).numpy()
-            if len(idx):
-                J[:nf * nf_res, idx] = d[:len(idx)].reshape(len(idx), -1).T
+            d = tangents_vmapped(f, (part, la), (t, t_albedo))
+            for k, fills in enumerate(cols):
+                for col, zone in fills:
+                    d_pulsed.append(d[k] if zone < 0 else d[k] * zone_mask[zone])
+                    columns.append(col)
             if albedo:
-                J[rows, n_cam + rows // nf_res] = d[-1].reshape(-1)
+                d_pulsed.append(d[-1])
+                columns.append(None)
+        # pass (2): from the pulsed histograms to the residuals, the parameters after the pulse and those tangents
+        part = cam[torch.as_tensor(late_idx, dtype=torch.long)]
+
+        def g(p: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
+            unpack(cam, p, late_names)
+            return scaled(model.after_pulse(h, amb_t))
+
+        n_late, n_ray = len(late_idx), len(d_pulsed)
+        t_p = torch.zeros((n_late + n_ray, n_late), dtype=dtype)
+        t_p[torch.arange(n_late), torch.arange(n_late)] = 1.0
+        t_h = torch.cat([torch.zeros((n_late,) + pulsed.shape, dtype=dtype)] + [v.unsqueeze(0) for v in d_pulsed])
+        d = tangents_vmapped(g, (part, pulsed), (t_p, t_h)).numpy()  # (n_late + n_ray, nf, M)
+        tangent = list(range(n_late)) + [n_late + k for k, c in enumerate(columns) if c is not None]
+        cols = np.concatenate([late_idx, [c for c in columns if c is not None]]).astype(int)
+        J[:nf * nf_res, cols] = d[tangent].reshape(len(tangent), -1).T
+        J[rows, n_cam + rows // nf_res] = d[n_late + columns.index(None)].reshape(-1)
         bar.update(1)
         return J
 

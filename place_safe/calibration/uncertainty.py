@@ -350,17 +350,21 @@ def fit_near_law(rows: Sequence[tuple], unc: Uncertainty, peak_params, end: floa
 
     plain = near_law_depths(end)
 
-    def row_covariance(r, theta: tuple) -> np.ndarray:
+    def row_covariance(r, theta: tuple, estimators: dict | None = None) -> np.ndarray:
         """The covariance the estimator reports for held-out row ``r`` under the law (its own factor: its
-        table's knots)."""
-        return PeakEstimator(peak_params, unc_for(plain, theta, knot_factor(r[4], m_ref, theta[3]))).covariance(
-            r[0], r[1], r[2])
+        table's knots). ``estimators``: the estimators made so far for this ``theta``, by measure (rows read without
+        a table, or at the same measure, share one)."""
+        memo = {} if estimators is None else estimators
+        if r[4] not in memo:
+            memo[r[4]] = PeakEstimator(peak_params, unc_for(plain, theta, knot_factor(r[4], m_ref, theta[3])))
+        return memo[r[4]].covariance(r[0], r[1], r[2])
 
     def nll(x: np.ndarray) -> float:
         theta = law(x)
         total = 0.0
+        estimators: dict = {}
         for r in rows:
-            total += _nll(r[3][None], row_covariance(r, theta)[None], np.zeros((1, 3, 3)))
+            total += _nll(r[3][None], row_covariance(r, theta, estimators)[None], np.zeros((1, 3, 3)))
         return total / len(rows)
 
     starts = [(math.log(2e-4), 0.0, 0.0), (math.log(5e-4), -2.0, -2.0), (math.log(1e-4), 2.0, 2.0)]
