@@ -230,6 +230,11 @@ PULSE_PARAMS = ("ref_time_scale", "ref_floor", "tail_weight", "tail_decay", "pul
 #: one tangent through the rays for all of a parameter's zones and splits it by zone. Unlike :data:`PULSE_PARAMS`
 #: this list must be true (``tests/calibration/test_forward_fit.py`` checks the Jacobian against differences).
 ZONE_LOCAL = ("zone_offsets", "zone_gains", "zone_bin_scales", "glass_gains")
+#: Parameters after the pulse convolution whose tangents the Jacobian takes together, apart from the rest (each
+#: group builds its own (n, n) matrices once per tangent, the others' once): the zones' pulse shapes, the learned
+#: response, the zones' tails. Only the Jacobian's speed depends on this (as on :data:`PULSE_PARAMS`).
+AFTER_PULSE_GROUPS = (("zone_pulse_widths", "zone_pulse_skews"), ("response_kernel",),
+                      ("zone_tail_weights", "zone_tail_decays"))
 
 
 def _usable(frames: Sequence[Frame], min_distance: float, max_distance: float,
@@ -517,7 +522,7 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
     # built once per group, not once per tangent; one tangent shared by all albedos (each frame depends on its own
     # albedo only, so it fills the block-diagonal albedo columns at once); and one per ZONE_LOCAL parameter shared by
     # its zones (each zone's pulsed histogram depends on its own entry only). (2) From the pulsed histograms to the
-    # residuals (ForwardModel.AFTER_PULSE: what mixes the zones), a tangent per parameter acting there and each
+    # residuals (ForwardModel.AFTER_PULSE: what mixes the zones), a tangent per parameter acting there, then each
     # tangent of (1), a shared one split into its zones. The rays are the expensive part: pass (1) has fewest tangents.
     pulse_names = frozenset(n for n, _, _ in layout if n in PULSE_PARAMS and n not in ForwardModel.AFTER_PULSE)
     late_names = frozenset(n for n, _, _ in layout if n in ForwardModel.AFTER_PULSE)
@@ -547,7 +552,11 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
         if rows_t or albedo:
             t = torch.as_tensor(np.array(rows_t).reshape(len(rows_t), len(idx)), dtype=dtype)
             ray_groups.append((names, idx, t, cols, albedo))
-    late_idx = entries(late_names)
+    late_groups = []  # pass (2)'s parameters in groups (AFTER_PULSE_GROUPS), each with its own matrices dual
+    for names in [frozenset(g) & late_names for g in AFTER_PULSE_GROUPS] + [
+            late_names - frozenset(n for g in AFTER_PULSE_GROUPS for n in g)]:
+        if names:
+            late_groups.append((names, entries(names)))
     rows = np.arange(nf * nf_res)
     zone_mask = torch.eye(N_ZONES, dtype=dtype).view(N_ZONES, 1, N_ZONES, 1)  # (zone, 1, 9, 1)
 
@@ -591,22 +600,25 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
             if albedo:
                 d_pulsed.append(d[-1])
                 columns.append(None)
-        # pass (2): from the pulsed histograms to the residuals, the parameters after the pulse and those tangents
-        part = cam[torch.as_tensor(late_idx, dtype=torch.long)]
+        # pass (2): from the pulsed histograms to the residuals: the parameters after the pulse (from the pulsed
+        # histograms as they are), then the tangents of pass (1) (those parameters held: their matrices built once)
+        for names, idx in late_groups:
+            def g(p: torch.Tensor, names=names) -> torch.Tensor:
+                unpack(cam, p, names)
+                return scaled(model.after_pulse(pulsed, amb_t))
 
-        def g(p: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
-            unpack(cam, p, late_names)
-            return scaled(model.after_pulse(h, amb_t))
+            d = tangents_vmapped(g, (cam[torch.as_tensor(idx, dtype=torch.long)],),
+                                 (torch.eye(len(idx), dtype=dtype),)).numpy()  # (len(idx), nf, M)
+            J[:nf * nf_res, idx] = d.reshape(len(idx), -1).T
+        unpack(cam)
 
-        n_late, n_ray = len(late_idx), len(d_pulsed)
-        t_p = torch.zeros((n_late + n_ray, n_late), dtype=dtype)
-        t_p[torch.arange(n_late), torch.arange(n_late)] = 1.0
-        t_h = torch.cat([torch.zeros((n_late,) + pulsed.shape, dtype=dtype)] + [v.unsqueeze(0) for v in d_pulsed])
-        d = tangents_vmapped(g, (part, pulsed), (t_p, t_h)).numpy()  # (n_late + n_ray, nf, M)
-        tangent = list(range(n_late)) + [n_late + k for k, c in enumerate(columns) if c is not None]
-        cols = np.concatenate([late_idx, [c for c in columns if c is not None]]).astype(int)
-        J[:nf * nf_res, cols] = d[tangent].reshape(len(tangent), -1).T
-        J[rows, n_cam + rows // nf_res] = d[n_late + columns.index(None)].reshape(-1)
+        def h(x: torch.Tensor) -> torch.Tensor:
+            return scaled(model.after_pulse(x, amb_t))
+
+        d = tangents_vmapped(h, (pulsed,), (torch.stack(d_pulsed),)).numpy()  # (n_ray, nf, M)
+        tangent = [k for k, c in enumerate(columns) if c is not None]
+        J[:nf * nf_res, [columns[k] for k in tangent]] = d[tangent].reshape(len(tangent), -1).T
+        J[rows, n_cam + rows // nf_res] = d[columns.index(None)].reshape(-1)
         bar.update(1)
         return J
 

@@ -129,16 +129,18 @@ def _fit_errors_many(knots: np.ndarray, depth: np.ndarray, err: np.ndarray, vali
 
 
 def _table_point_errors(base_ranges: np.ndarray, dirs: np.ndarray, knots: np.ndarray, tables: np.ndarray,
-                        valid: np.ndarray, tn: np.ndarray, td: np.ndarray) -> np.ndarray:
-    """The point errors (P, F) of frames read through each of the near-range tables ``tables`` (P, K, 9) at
-    ``knots``: their zones' ranges by the far-range mapping ``base_ranges`` (F, 9), less each table's error there
-    (as :meth:`PeakParams.ranges <place_safe.recovery.points.PeakParams.ranges>` reads them), along the zone
-    directions ``dirs`` (9, 3), mask ``valid`` (F, 9), true planes ``tn`` (F, 3), ``td`` (F,)."""
-    p = len(tables)
-    errors = near_table_errors(near_table(knots, np.moveaxis(tables, 0, 1)), knots, base_ranges * dirs[:, 2])
+                        group: np.ndarray, valid: np.ndarray, tn: np.ndarray, td: np.ndarray) -> np.ndarray:
+    """The point errors (P, F) of frames read through near-range tables at ``knots``: frame ``f`` through each of
+    the P tables ``tables[group[f]]`` (``tables``: (G, P, K, 9)). Their zones' ranges are those of the far-range
+    mapping ``base_ranges`` (F, 9) less the table's error there (as :meth:`PeakParams.ranges
+    <place_safe.recovery.points.PeakParams.ranges>` reads them), along the zone directions ``dirs`` (9, 3); mask
+    ``valid`` (F, 9), true planes ``tn`` (F, 3), ``td`` (F,). One PCHIP holds all the tables."""
+    n, p = len(base_ranges), tables.shape[1]
+    errors = near_table_errors(near_table(knots, np.moveaxis(tables, 2, 0)), knots, base_ranges * dirs[:, 2])
+    errors = errors[np.arange(n), group]  # (F, P, 9): each frame's own group
     points = (base_ranges[:, None, :] - errors)[..., None] * dirs  # (F, P, 9, 3)
     rep = lambda a: np.repeat(a[:, None], p, axis=1).reshape((-1,) + a.shape[1:])  # noqa: E731  (F, ...) -> (F P, ...)
-    return plane_point_errors(points.reshape(-1, N_ZONES, 3), rep(valid), rep(tn), rep(td)).reshape(-1, p).T
+    return plane_point_errors(points.reshape(-1, N_ZONES, 3), rep(valid), rep(tn), rep(td)).reshape(n, p).T
 
 
 def _knot_stds(knots: np.ndarray, depth: np.ndarray, err: np.ndarray, valid: np.ndarray) -> list[float]:
@@ -268,14 +270,12 @@ def fit_near_range(frames: Sequence[Frame], params: PeakParams, hists: np.ndarra
             pos, valid, heights)
         with np.errstate(invalid="ignore"):
             far_ranges = base.ranges(np.where(keep, pos, np.nan))  # each table then takes its errors off these
-        e_all = np.empty((len(NEAR_PENALTIES), len(idx)))
-        for f in range(n_folds):  # every penalty's table at once
-            test = fold == f
-            tables = _fit_errors_many(knots, depth[~test], err[~test], keep[~test], NEAR_PENALTIES)
-            e_all[:, test] = _table_point_errors(far_ranges[test], dirs, knots, tables, keep[test], tn[test], td[test])
-            for i, t in enumerate(tables):
-                if not _usable(t):
-                    e_all[i, test] = FAILED_FIT_ERROR
+        # every fold's table for every penalty (folds, P, K, 9), each frame read by its fold's
+        tables = np.stack([_fit_errors_many(knots, depth[fold != f], err[fold != f], keep[fold != f], NEAR_PENALTIES)
+                           for f in range(n_folds)])
+        e_all = _table_point_errors(far_ranges, dirs, knots, tables, fold, keep, tn, td)  # (P, frames)
+        for f, i in zip(*np.nonzero([[not _usable(t) for t in by_penalty] for by_penalty in tables])):
+            e_all[i, fold == f] = FAILED_FIT_ERROR
         for penalty, e in zip(NEAR_PENALTIES, e_all):
             score = float(np.mean(e[scored]))
             cv[f"fraction {fraction:g}, penalty {penalty:g}"] = score
