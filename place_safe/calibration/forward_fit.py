@@ -617,7 +617,8 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
 
         d = tangents_vmapped(h, (pulsed,), (torch.stack(d_pulsed),)).numpy()  # (n_ray, nf, M)
         tangent = [k for k, c in enumerate(columns) if c is not None]
-        J[:nf * nf_res, [columns[k] for k in tangent]] = d[tangent].reshape(len(tangent), -1).T
+        if tangent:  # (none when only parameters after the pulse are fitted)
+            J[:nf * nf_res, [columns[k] for k in tangent]] = d[tangent].reshape(len(tangent), -1).T
         J[rows, n_cam + rows // nf_res] = d[columns.index(None)].reshape(-1)
         bar.update(1)
         return J
