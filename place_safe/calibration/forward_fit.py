@@ -218,8 +218,23 @@ SAME_SURFACE_CV = 0.2
 #: range (saturation, pile-up, baseline, beam) must explain the brightness over the sweep, not a per-frame albedo.
 SAME_SURFACE_SD = 0.01
 #: Forward-mode tangents evaluated together (``vmap`` over ``jvp``): fewer passes over the model, but
-#: larger tensors; 18 was fastest for 40 frames on one thread (0.57 s a Jacobian against 0.69 s with 9).
-JVP_CHUNK = 18
+#: larger tensors. With the tangents in groups (:data:`PULSE_PARAMS`) 32, a whole group of the default fit, was
+#: fastest for 40 frames on one thread (a Jacobian on 4 x 4 rays 0.49 s against 0.53 s with 18 and 0.59 s with 10).
+JVP_CHUNK = 32
+#: The parameters the laser pulse is made of (:meth:`~place_safe.recovery.forward.ForwardModel.pulse`): their
+#: tangents are taken apart from the others, whose pulse (one (n, n) matrix per frame) is then built once instead of
+#: once per tangent. Only the Jacobian's speed depends on this list; its values are exact whatever it holds.
+PULSE_PARAMS = ("ref_time_scale", "ref_floor", "tail_weight", "tail_decay", "pulse_soft_bin", "soft_bin_sigma")
+#: Per-zone parameters whose entry for a zone acts on that zone's pulse-convolved histogram alone (before
+#: :attr:`~place_safe.recovery.forward.ForwardModel.AFTER_PULSE`, where crosstalk mixes the zones): the Jacobian takes
+#: one tangent through the rays for all of a parameter's zones and splits it by zone. Unlike :data:`PULSE_PARAMS`
+#: this list must be true (``tests/calibration/test_forward_fit.py`` checks the Jacobian against differences).
+ZONE_LOCAL = ("zone_offsets", "zone_gains", "zone_bin_scales", "glass_gains")
+#: Parameters after the pulse convolution whose tangents the Jacobian takes together, apart from the rest (each
+#: group builds its own (n, n) matrices once per tangent, the others' once): the zones' pulse shapes, the learned
+#: response, the zones' tails. Only the Jacobian's speed depends on this (as on :data:`PULSE_PARAMS`).
+AFTER_PULSE_GROUPS = (("zone_pulse_widths", "zone_pulse_skews"), ("response_kernel",),
+                      ("zone_tail_weights", "zone_tail_decays"))
 
 
 def _usable(frames: Sequence[Frame], min_distance: float, max_distance: float,
@@ -291,10 +306,12 @@ def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, prog
     deviation) on the Poisson-scaled residuals (with the model-error term of
     :func:`~place_safe.recovery.forward.residual_weights`) of the bins up to ``window_after_peak`` past the
     latest peak, the only bins rendered. Its Jacobian is exact, built from forward-mode derivatives
-    (``torch.func.jvp``, batched :data:`JVP_CHUNK` tangents at a time with ``torch.func.vmap``): one
-    tangent per camera parameter and one shared by all per-frame albedos (each frame depends on its own
-    albedo only, so that tangent fills the block-diagonal albedo columns at once); the parameters that act
-    after the pulse convolution are differentiated from the pulse-convolved histograms, rendered once. Each
+    (``torch.func.jvp``, batched :data:`JVP_CHUNK` tangents at a time with ``torch.func.vmap``) in two passes:
+    through the rays to the pulse-convolved histograms, one tangent per parameter acting there (those of the pulse,
+    :data:`PULSE_PARAMS`, apart), one per :data:`ZONE_LOCAL` parameter shared by its zones and one shared by all
+    per-frame albedos (each frame depends on its own albedo only, so that tangent fills the block-diagonal albedo
+    columns at once); then from those histograms to the residuals, with the parameters that act after the pulse
+    convolution and each tangent of the first pass split by zone. Each
     albedo starts at its least-squares value and may rise at most :data:`ALBEDO_RISE` (log) above it.
 
     The objective is :data:`OBJECTIVE` (``objective``: Anscombe residuals of the raw counts with the relative model
@@ -402,19 +419,25 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
     prior_idx = np.flatnonzero(np.isfinite(prior_sd))
     fixed_centre = {"zone_gains": 0.0, "zone_offsets": 0.0, "zone_bin_scales": 0.0}  # log 0 -> 1; offset 0
 
-    def unpack(cam: torch.Tensor) -> None:
-        i = 0
+    def unpack(cam: torch.Tensor, part: torch.Tensor | None = None, names: frozenset = frozenset()) -> None:
+        """Write the camera vector ``cam`` into the model's parameters; the parameters ``names`` take their values
+        from ``part`` instead (their entries of ``cam`` one after the other, in the layout's order): under
+        ``torch.func.jvp`` only those then carry tangents, and whatever the others alone determine (e.g. the
+        pulse, the matrices after it) is computed once, not once per tangent."""
+        i = j = 0
         for name, kind, n in layout:
+            m = abs(n)
+            src, k = (part, j) if name in names else (cam, i)
             if n < 0:
-                n = -n
-                v = cam[i:i + n]
+                v = src[k:k + m]
             elif n == 1 and name not in ZONE_GAUGED:
-                v = cam[i]
+                v = src[k]
             else:
                 centre = torch.full((1,), fixed_centre.get(name, 0.0), dtype=dtype)
-                v = torch.cat([cam[i:i + CENTRE], centre, cam[i + CENTRE:i + n]])
+                v = torch.cat([src[k:k + CENTRE], centre, src[k + CENTRE:k + m]])
             model.t[name] = torch.exp(v) if kind == "log" else v
-            i += n
+            i += m
+            j += m if name in names else 0
 
     def render(log_albedo: torch.Tensor, pulse_only: bool = False) -> torch.Tensor:
         """Histograms (nf, 9, width) of the frames' planes with the camera parameters last unpacked."""
@@ -441,11 +464,6 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
         unpack(cam)
         return scaled(render(log_albedo))
 
-    def residual_after_pulse(cam: torch.Tensor, pulsed: torch.Tensor) -> torch.Tensor:
-        """The residuals from the pulse-convolved histograms ``pulsed``: exact in the parameters of
-        ``ForwardModel.AFTER_PULSE`` (nothing before the pulse convolution depends on them)."""
-        unpack(cam)
-        return scaled(model.after_pulse(pulsed, amb_t))
 
     cam0 = torch.as_tensor(np.array(start), dtype=dtype)
 
@@ -498,49 +516,110 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
         evals["n"] += 1
         return np.concatenate([r, prior_rows(z)])
 
-    # forward-mode tangents: one per camera parameter, and one shared by all albedos (each frame
-    # depends on its own albedo only, so that tangent fills the block-diagonal albedo columns at once).
-    # Parameters that act after the pulse convolution are differentiated from the pulse-convolved
-    # histograms, rendered once (the rays are the expensive part)
-    late = np.zeros(n_cam, dtype=bool)
-    i = 0
-    for name, kind, n in layout:
-        late[i:i + abs(n)] = name in ForwardModel.AFTER_PULSE
-        i += abs(n)
-    early_idx = np.flatnonzero(~late)
-    late_idx = np.flatnonzero(late)
-    tangents = torch.zeros((len(early_idx) + 1, n_cam + nf), dtype=dtype)
-    tangents[torch.arange(len(early_idx)), torch.as_tensor(early_idx)] = 1.0
-    tangents[len(early_idx), n_cam:] = 1.0
-    late_tangents = torch.zeros((len(late_idx), n_cam), dtype=dtype)
-    late_tangents[torch.arange(len(late_idx)), torch.as_tensor(late_idx, dtype=torch.long)] = 1.0
+    # The Jacobian by forward-mode tangents in two passes. (1) Up to the pulse-convolved histograms ("pulsed"), a
+    # tangent per parameter before the pulse convolution, in two groups (PULSE_PARAMS; the rest), in each of which only
+    # the group's parameters carry tangents, so what the others alone determine (the pulse's per-frame matrices) is
+    # built once per group, not once per tangent; one tangent shared by all albedos (each frame depends on its own
+    # albedo only, so it fills the block-diagonal albedo columns at once); and one per ZONE_LOCAL parameter shared by
+    # its zones (each zone's pulsed histogram depends on its own entry only). (2) From the pulsed histograms to the
+    # residuals (ForwardModel.AFTER_PULSE: what mixes the zones), a tangent per parameter acting there, then each
+    # tangent of (1), a shared one split into its zones. The rays are the expensive part: pass (1) has fewest tangents.
+    pulse_names = frozenset(n for n, _, _ in layout if n in PULSE_PARAMS and n not in ForwardModel.AFTER_PULSE)
+    late_names = frozenset(n for n, _, _ in layout if n in ForwardModel.AFTER_PULSE)
+    other_names = frozenset(n for n, _, _ in layout) - pulse_names - late_names
+    owner = [name for name, _, n in layout for _ in range(abs(n))]  # the parameter of each camera entry
+    zone_of = np.array([z for name, _, n in layout for z in (
+        (np.delete(np.arange(N_ZONES), CENTRE) if name in ZONE_GAUGED else np.arange(abs(n)))
+        if name in ZONE_LOCAL else np.full(abs(n), -1))])  # each entry's zone, for the ZONE_LOCAL parameters
+
+    def entries(names: frozenset) -> np.ndarray:
+        return np.array([i for i, name in enumerate(owner) if name in names], dtype=int)
+
+    # pass (1): (names, their entries, tangents over them (T, len(entries)), the columns each tangent fills: a list
+    # of (column, zone or -1 for all zones)); the albedo tangent comes last in the group that has it
+    ray_groups = []
+    for names, albedo in ((pulse_names, False), (other_names, True)):
+        idx = entries(names)
+        rows_t, cols = [], []
+        for k, i in enumerate(idx):
+            if zone_of[i] < 0:
+                rows_t.append(np.eye(len(idx))[k])
+                cols.append([(int(i), -1)])
+        for name in sorted(names & set(ZONE_LOCAL)):
+            mine = [k for k, i in enumerate(idx) if owner[i] == name]
+            rows_t.append(np.isin(np.arange(len(idx)), mine).astype(float))
+            cols.append([(int(idx[k]), int(zone_of[idx[k]])) for k in mine])
+        if rows_t or albedo:
+            t = torch.as_tensor(np.array(rows_t).reshape(len(rows_t), len(idx)), dtype=dtype)
+            ray_groups.append((names, idx, t, cols, albedo))
+    late_groups = []  # pass (2)'s parameters in groups (AFTER_PULSE_GROUPS), each with its own matrices dual
+    for names in [frozenset(g) & late_names for g in AFTER_PULSE_GROUPS] + [
+            late_names - frozenset(n for g in AFTER_PULSE_GROUPS for n in g)]:
+        if names:
+            late_groups.append((names, entries(names)))
     rows = np.arange(nf * nf_res)
+    zone_mask = torch.eye(N_ZONES, dtype=dtype).view(N_ZONES, 1, N_ZONES, 1)  # (zone, 1, 9, 1)
+
+    def tangents_vmapped(f, primals: tuple, tangents: tuple) -> torch.Tensor:
+        """``jvp(f, primals, .)`` for each row of the ``tangents`` (one (T, ...) batch per primal), :data:`JVP_CHUNK`
+        at a time: (T, ...)."""
+        def one(*t):
+            return jvp(f, primals, t)[1]
+
+        n = len(tangents[0])
+        return torch.cat([vmap(one)(*(t[i:i + JVP_CHUNK] for t in tangents)) for i in range(0, n, JVP_CHUNK)])
 
     def jac(z: np.ndarray) -> np.ndarray:
         cam, la = split(z)
-
-        def one(t: torch.Tensor) -> torch.Tensor:
-            return jvp(residual, (cam, la), (t[:n_cam], t[n_cam:]))[1]
-
-        d = torch.cat([vmap(one)(chunk) for chunk in torch.split(tangents, JVP_CHUNK)]).numpy()  # (n_early + 1, nf, M)
         n_tie = nf if tie["sd"] is not None else 0
         J = np.zeros((nf * nf_res + len(prior_idx) + n_tie, n_cam + nf))
         J[nf * nf_res + np.arange(len(prior_idx)), prior_idx] = 1.0 / prior_sd[prior_idx]
         if n_tie:
             J[nf * nf_res + len(prior_idx):, n_cam:] = (np.eye(nf) - 1.0 / nf) / tie["sd"]
-        if len(early_idx):  # (none when only parameters after the pulse are fitted)
-            J[:nf * nf_res, early_idx] = d[:-1].reshape(len(early_idx), -1).T
-        J[rows, n_cam + rows // nf_res] = d[-1].reshape(-1)
-        if len(late_idx):
-            with torch.no_grad():
-                unpack(cam)
-                pulsed = render(la, pulse_only=True)
+        with torch.no_grad():
+            unpack(cam)
+            pulsed = render(la, pulse_only=True)
+        # pass (1): tangents of the pulsed histograms, each split into the columns it fills
+        d_pulsed, columns = [], []  # (the albedo tangent's column: None)
+        for names, idx, t, cols, albedo in ray_groups:
+            part = cam[torch.as_tensor(idx, dtype=torch.long)]
 
-            def one_late(t: torch.Tensor) -> torch.Tensor:
-                return jvp(lambda c: residual_after_pulse(c, pulsed), (cam,), (t,))[1]
+            def f(p: torch.Tensor, a: torch.Tensor, names=names) -> torch.Tensor:
+                unpack(cam, p, names)
+                return render(a, pulse_only=True)
 
-            d_late = torch.cat([vmap(one_late)(chunk) for chunk in torch.split(late_tangents, JVP_CHUNK)]).numpy()
-            J[:nf * nf_res, late_idx] = d_late.reshape(len(late_idx), -1).T
+            t_albedo = torch.zeros((len(t) + int(albedo), nf), dtype=dtype)
+            if albedo:
+                t = torch.cat([t, torch.zeros((1, len(idx)), dtype=dtype)])
+                t_albedo[-1] = 1.0
+            d = tangents_vmapped(f, (part, la), (t, t_albedo))
+            for k, fills in enumerate(cols):
+                for col, zone in fills:
+                    d_pulsed.append(d[k] if zone < 0 else d[k] * zone_mask[zone])
+                    columns.append(col)
+            if albedo:
+                d_pulsed.append(d[-1])
+                columns.append(None)
+        # pass (2): from the pulsed histograms to the residuals: the parameters after the pulse (from the pulsed
+        # histograms as they are), then the tangents of pass (1) (those parameters held: their matrices built once)
+        for names, idx in late_groups:
+            def g(p: torch.Tensor, names=names) -> torch.Tensor:
+                unpack(cam, p, names)
+                return scaled(model.after_pulse(pulsed, amb_t))
+
+            d = tangents_vmapped(g, (cam[torch.as_tensor(idx, dtype=torch.long)],),
+                                 (torch.eye(len(idx), dtype=dtype),)).numpy()  # (len(idx), nf, M)
+            J[:nf * nf_res, idx] = d.reshape(len(idx), -1).T
+        unpack(cam)
+
+        def h(x: torch.Tensor) -> torch.Tensor:
+            return scaled(model.after_pulse(x, amb_t))
+
+        d = tangents_vmapped(h, (pulsed,), (torch.stack(d_pulsed),)).numpy()  # (n_ray, nf, M)
+        tangent = [k for k, c in enumerate(columns) if c is not None]
+        if tangent:  # (none when only parameters after the pulse are fitted)
+            J[:nf * nf_res, [columns[k] for k in tangent]] = d[tangent].reshape(len(tangent), -1).T
+        J[rows, n_cam + rows // nf_res] = d[columns.index(None)].reshape(-1)
         bar.update(1)
         return J
 

@@ -44,8 +44,8 @@ from typing import Sequence
 
 import numpy as np
 
-from place_safe.calibration.point_errors import FAILED_FIT_ERROR, frame_point_errors, true_ranges
-from place_safe.recovery.points import PeakParams, fit_planes
+from place_safe.calibration.point_errors import FAILED_FIT_ERROR, frame_point_errors, plane_point_errors, true_ranges
+from place_safe.recovery.points import PeakParams, fit_planes, near_table, near_table_errors
 from place_safe.sensor.frame import N_ZONES, Frame
 from place_safe.sensor.histogram import find_peaks
 from place_safe.evaluation.metrics import angular_errors
@@ -101,19 +101,46 @@ def _fit_errors(knots: np.ndarray, depth: np.ndarray, err: np.ndarray, valid: np
                 penalty: float) -> np.ndarray:
     """Per-zone errors (K, 9) at the knots: least squares on the hat functions of the knots with a
     second-difference penalty, the last knot held at 0. ``depth``, ``err``, ``valid``: (F, 9)."""
+    return _fit_errors_many(knots, depth, err, valid, (penalty,))[0]
+
+
+def _fit_errors_many(knots: np.ndarray, depth: np.ndarray, err: np.ndarray, valid: np.ndarray,
+                     penalties) -> np.ndarray:
+    """:func:`_fit_errors` for each of ``penalties`` (P,): (P, K, 9), the normal equations of the 9 zones built once
+    (from each zone return's two hat weights) and solved together."""
     k = len(knots)
-    out = np.zeros((k, N_ZONES))
     diff2 = np.diff(np.eye(k), 2, axis=0)[:, :-1]
-    reg = penalty * diff2.T @ diff2 + 1e-9 * np.eye(k - 1)
-    for z in range(N_ZONES):
-        m = valid[:, z] & np.isfinite(depth[:, z]) & (depth[:, z] < NEAR_END)
-        j, t = _hat(knots, depth[m, z])
-        hat = np.zeros((len(j), k))
-        hat[np.arange(len(j)), j] = 1.0 - t
-        hat[np.arange(len(j)), j + 1] = t
-        hat = hat[:, :-1]
-        out[:-1, z] = np.linalg.solve(hat.T @ hat + reg, hat.T @ err[m, z])
+    reg = np.asarray(penalties, dtype=float)[:, None, None] * (diff2.T @ diff2) + 1e-9 * np.eye(k - 1)  # (P, K-1, K-1)
+    with np.errstate(invalid="ignore"):
+        m = valid & np.isfinite(depth) & (depth < NEAR_END)
+    zone = np.broadcast_to(np.arange(N_ZONES), m.shape)[m]
+    j, t = _hat(knots, depth[m])
+    e = err[m]
+    ata = np.zeros((N_ZONES, k, k))  # each zone's hat^T hat, and hat^T err, with the last knot's column
+    atb = np.zeros((N_ZONES, k))
+    for a, wa in ((j, 1.0 - t), (j + 1, t)):
+        np.add.at(atb, (zone, a), wa * e)
+        for b, wb in ((j, 1.0 - t), (j + 1, t)):
+            np.add.at(ata, (zone, a, b), wa * wb)
+    out = np.zeros((len(reg), k, N_ZONES))
+    sol = np.linalg.solve(ata[None, :, :-1, :-1] + reg[:, None], atb[None, :, :-1, None])[..., 0]  # (P, 9, K-1)
+    out[:, :-1] = sol.transpose(0, 2, 1)
     return out
+
+
+def _table_point_errors(base_ranges: np.ndarray, dirs: np.ndarray, knots: np.ndarray, tables: np.ndarray,
+                        group: np.ndarray, valid: np.ndarray, tn: np.ndarray, td: np.ndarray) -> np.ndarray:
+    """The point errors (P, F) of frames read through near-range tables at ``knots``: frame ``f`` through each of
+    the P tables ``tables[group[f]]`` (``tables``: (G, P, K, 9)). Their zones' ranges are those of the far-range
+    mapping ``base_ranges`` (F, 9) less the table's error there (as :meth:`PeakParams.ranges
+    <place_safe.recovery.points.PeakParams.ranges>` reads them), along the zone directions ``dirs`` (9, 3); mask
+    ``valid`` (F, 9), true planes ``tn`` (F, 3), ``td`` (F,). One PCHIP holds all the tables."""
+    n, p = len(base_ranges), tables.shape[1]
+    errors = near_table_errors(near_table(knots, np.moveaxis(tables, 2, 0)), knots, base_ranges * dirs[:, 2])
+    errors = errors[np.arange(n), group]  # (F, P, 9): each frame's own group
+    points = (base_ranges[:, None, :] - errors)[..., None] * dirs  # (F, P, 9, 3)
+    rep = lambda a: np.repeat(a[:, None], p, axis=1).reshape((-1,) + a.shape[1:])  # noqa: E731  (F, ...) -> (F P, ...)
+    return plane_point_errors(points.reshape(-1, N_ZONES, 3), rep(valid), rep(tn), rep(td)).reshape(n, p).T
 
 
 def _knot_stds(knots: np.ndarray, depth: np.ndarray, err: np.ndarray, valid: np.ndarray) -> list[float]:
@@ -237,20 +264,19 @@ def fit_near_range(frames: Sequence[Frame], params: PeakParams, hists: np.ndarra
     cv = {"none": float(np.mean(frame_point_errors(base, pos, valid, tn, td)[scored]))}
     best: tuple[float, float, float] | None = None
     kept: dict[float, np.ndarray] = {}  # the return mask after the weak-zone rule, per fraction
+    dirs = base.directions()
     for fraction in NEAR_MIN_FRACTIONS:
         keep = kept[fraction] = _with_table(base, knots, np.zeros((len(knots), N_ZONES)), fraction).drop_weak(
             pos, valid, heights)
-        readings = np.where(keep, pos, np.nan)
-        for penalty in NEAR_PENALTIES:
-            e = np.empty(len(idx))
-            for f in range(n_folds):
-                test = fold == f
-                table = _fit_errors(knots, depth[~test], err[~test], keep[~test], penalty)
-                if not _usable(table):
-                    e[test] = FAILED_FIT_ERROR
-                    continue
-                e[test] = frame_point_errors(_with_table(base, knots, table, fraction), readings[test], keep[test],
-                                        tn[test], td[test])
+        with np.errstate(invalid="ignore"):
+            far_ranges = base.ranges(np.where(keep, pos, np.nan))  # each table then takes its errors off these
+        # every fold's table for every penalty (folds, P, K, 9), each frame read by its fold's
+        tables = np.stack([_fit_errors_many(knots, depth[fold != f], err[fold != f], keep[fold != f], NEAR_PENALTIES)
+                           for f in range(n_folds)])
+        e_all = _table_point_errors(far_ranges, dirs, knots, tables, fold, keep, tn, td)  # (P, frames)
+        for f, i in zip(*np.nonzero([[not _usable(t) for t in by_penalty] for by_penalty in tables])):
+            e_all[i, fold == f] = FAILED_FIT_ERROR
+        for penalty, e in zip(NEAR_PENALTIES, e_all):
             score = float(np.mean(e[scored]))
             cv[f"fraction {fraction:g}, penalty {penalty:g}"] = score
             if best is None or score < best[0]:

@@ -23,11 +23,17 @@ def frame_point_errors(p: PeakParams, readings: np.ndarray, valid: np.ndarray, t
                        td: np.ndarray) -> np.ndarray:
     """Each frame's point error (m, (F,)) with mapping ``p``, readings and mask (F, 9) and true normals (F, 3)
     and offsets (F,); :data:`FAILED_FIT_ERROR` where the readings give no plane."""
-    n, d, _, ok = fit_planes(p.points(readings), valid)
+    return plane_point_errors(p.points(readings), valid, tn, td)
+
+
+def plane_point_errors(points: np.ndarray, valid: np.ndarray, tn: np.ndarray, td: np.ndarray) -> np.ndarray:
+    """The point error (m, (F,)) of the plane through each frame's zone points (F, 9, 3) with mask (F, 9) against
+    its true plane (normals ``tn`` (F, 3), offsets ``td`` (F,)); :data:`FAILED_FIT_ERROR` where they give no plane."""
+    n, d, _, ok = fit_planes(points, valid)
     e = np.full(len(td), FAILED_FIT_ERROR)
     if ok.any():
         e[ok] = point_errors(n[ok], d[ok], tn[ok], td[ok])
     return e
 
 
-__all__ = ["FAILED_FIT_ERROR", "frame_point_errors", "true_ranges"]
+__all__ = ["FAILED_FIT_ERROR", "frame_point_errors", "plane_point_errors", "true_ranges"]

@@ -69,12 +69,18 @@ from place_safe.recovery.peak import PeakEstimator
 
 def _nll(errors: np.ndarray, covs: np.ndarray, extra: np.ndarray) -> float:
     """Mean negative log-likelihood of errors (F, k) under covariances covs (F, k, k) + extra (F, k, k)."""
-    c = covs + extra
-    sign, logdet = np.linalg.slogdet(c)
+    rows = _nll_rows(errors, covs + extra)
+    return math.inf if rows is None else float(np.mean(rows))
+
+
+def _nll_rows(errors: np.ndarray, covs: np.ndarray) -> np.ndarray | None:
+    """Each row's negative log-likelihood (F,) of errors (F, k) under covariances (F, k, k); None where a covariance
+    is not positive definite."""
+    sign, logdet = np.linalg.slogdet(covs)
     if np.any(sign <= 0):
-        return math.inf
-    quad = np.einsum("fi,fi->f", errors, np.linalg.solve(c, errors[..., None])[..., 0])
-    return float(np.mean(0.5 * (quad + logdet)))
+        return None
+    quad = np.einsum("fi,fi->f", errors, np.linalg.solve(covs, errors[..., None])[..., 0])
+    return 0.5 * (quad + logdet)
 
 
 def _fit_two(errors: np.ndarray, covs: np.ndarray, basis: tuple[np.ndarray, np.ndarray]) -> tuple[float, float]:
@@ -350,18 +356,22 @@ def fit_near_law(rows: Sequence[tuple], unc: Uncertainty, peak_params, end: floa
 
     plain = near_law_depths(end)
 
-    def row_covariance(r, theta: tuple) -> np.ndarray:
+    def row_covariance(r, theta: tuple, estimators: dict | None = None) -> np.ndarray:
         """The covariance the estimator reports for held-out row ``r`` under the law (its own factor: its
-        table's knots)."""
-        return PeakEstimator(peak_params, unc_for(plain, theta, knot_factor(r[4], m_ref, theta[3]))).covariance(
-            r[0], r[1], r[2])
+        table's knots). ``estimators``: the estimators made so far for this ``theta``, by measure (rows read without
+        a table, or at the same measure, share one)."""
+        memo = {} if estimators is None else estimators
+        if r[4] not in memo:
+            memo[r[4]] = PeakEstimator(peak_params, unc_for(plain, theta, knot_factor(r[4], m_ref, theta[3])))
+        return memo[r[4]].covariance(r[0], r[1], r[2])
+
+    errors = np.array([r[3] for r in rows])
 
     def nll(x: np.ndarray) -> float:
         theta = law(x)
-        total = 0.0
-        for r in rows:
-            total += _nll(r[3][None], row_covariance(r, theta)[None], np.zeros((1, 3, 3)))
-        return total / len(rows)
+        estimators: dict = {}
+        each = _nll_rows(errors, np.array([row_covariance(r, theta, estimators) for r in rows]))
+        return math.inf if each is None else sum(each.tolist()) / len(rows)  # (summed in order, as row by row)
 
     starts = [(math.log(2e-4), 0.0, 0.0), (math.log(5e-4), -2.0, -2.0), (math.log(1e-4), 2.0, 2.0)]
     best = None

@@ -246,13 +246,8 @@ class PeakParams(ParamModel):
 
     def _near_table(self):
         """The near-range table as one PCHIP over depth with the 9 zones as columns (cached)."""
-        from scipy.interpolate import PchipInterpolator
-
-        def compute():
-            return PchipInterpolator(np.asarray(self.near_depths),
-                                     np.asarray(self.near_errors).reshape(len(self.near_depths), N_ZONES), axis=0)
-
-        return self._memo("_near", (tuple(self.near_depths), tuple(self.near_errors)), compute)
+        return self._memo("_near", (tuple(self.near_depths), tuple(self.near_errors)), lambda: near_table(
+            self.near_depths, np.asarray(self.near_errors).reshape(len(self.near_depths), N_ZONES)))
 
     def near_correction(self, r0: np.ndarray) -> np.ndarray:
         """The near-range table's error e_z (m, (..., 9)) at first-pass ranges ``r0`` (..., 9): 0 without a
@@ -261,13 +256,11 @@ class PeakParams(ParamModel):
         if not self.near_depths:
             return np.zeros_like(r0)
         depth = r0 * self.directions()[:, 2]
-        lo, hi = self.near_depths[0], self.near_depths[-1]
         with np.errstate(invalid="ignore"):
-            near = depth < hi
+            near = depth < self.near_depths[-1]
         if not near.any():
             return np.zeros_like(r0)
-        e = self._near_table()(np.minimum(np.maximum(depth, lo), hi))  # (..., 9 depths, 9 zones)
-        return np.where(near, np.diagonal(e, axis1=-2, axis2=-1), 0.0)
+        return near_table_errors(self._near_table(), self.near_depths, depth)
 
     def ranges(self, readings: np.ndarray) -> np.ndarray:
         """Ranges (m) for readings (..., 9)."""
@@ -341,6 +334,30 @@ class PeakParams(ParamModel):
 # ---------------------------------------------------------------------------------------------
 # Batched plane fit
 # ---------------------------------------------------------------------------------------------
+def near_table(depths, errors: np.ndarray):
+    """Near-range table(s) (:attr:`PeakParams.near_depths`, ``near_errors``) as one PCHIP over depth: ``errors``
+    (K, ..., 9), m, at the K ``depths`` (m); the zones (and any tables between, e.g. several candidates of a
+    calibration) are its columns."""
+    from scipy.interpolate import PchipInterpolator
+
+    return PchipInterpolator(np.asarray(depths, dtype=float), np.asarray(errors, dtype=float), axis=0)
+
+
+def near_table_errors(table, depths, depth: np.ndarray) -> np.ndarray:
+    """Each zone's range error e_z (m) by the table(s) ``table`` (:func:`near_table` over ``depths``) at that zone's
+    depth ``depth`` (..., 9), m: (..., [tables,] 9); held at the first depth's error closer than it, 0 from the last
+    depth on (and at NaN depths)."""
+    depth = np.asarray(depth, dtype=float)
+    lo, hi = depths[0], depths[-1]
+    with np.errstate(invalid="ignore"):
+        near = depth < hi
+    e = table(np.minimum(np.maximum(depth, lo), hi))  # (..., 9 depths, [tables,] 9 zones)
+    e = np.moveaxis(e, depth.ndim - 1, -2)  # (..., [tables,] 9 depths, 9 zones)
+    extra = e.ndim - depth.ndim - 1  # the tables' axes
+    near = near.reshape(depth.shape[:-1] + (1,) * extra + depth.shape[-1:])
+    return np.where(near, np.diagonal(e, axis1=-2, axis2=-1), 0.0)
+
+
 def fit_planes(points: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Least-squares planes through point sets, batched: points (F, N, 3), valid (F, N) bool.
 

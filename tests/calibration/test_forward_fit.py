@@ -324,3 +324,38 @@ def test_the_staged_unit_model_holds_what_each_stage_trades_with(monkeypatch):
     assert len(logged) == 3 and "stage 3 of 3" in logged[-1]
     with pytest.raises(TypeError, match="ambient"):
         ff.fit_forward_staged(frames, ambient=False)
+
+
+@pytest.mark.parametrize("ambient", [False, True])
+def test_the_jacobian_is_the_derivative_of_the_residuals(monkeypatch, ambient):
+    """The solver's Jacobian (forward-mode tangents taken in groups of parameters) against central differences of
+    its residuals, with every term of the model fitted, at a point off the start (tilted frames, so the tilt and the
+    beam act): each column within 1e-5 of its largest entry."""
+    from place_safe.calibration import forward_fit as ff, gauss_newton
+
+    every = {**ff.FITTED, **ff.UNIT_TERMS, **ff.LEARNED_RESPONSE, **ff.ZONE_SCALE_TERMS, **ff.DNL_TERMS,
+             **ff.INL_TERMS}
+    spec = SyntheticSpec(z_range=(0.06, 0.3), theta_range=(0.0, 0.3), specular_weight_range=(0.14681, 0.14681),
+                         specular_exponent_range=(1.8378, 1.8378), noise=True, rays=4)
+    frames = make_frames(4, params=ForwardParams(bin_offset=9.3), spec=spec, seed=5)
+    seen = {}
+
+    def capture(fun, jac, x0, lower, upper, **_):
+        seen.update(fun=fun, jac=jac, x0=np.clip(x0, lower, upper), lower=lower, upper=upper)
+        raise StopIteration
+
+    monkeypatch.setattr(gauss_newton, "solve", capture)
+    with pytest.raises(StopIteration):
+        ff.fit_forward(frames, progress=False, rays=2, coarse_rays=0, fitted=every, ambient=ambient)
+    rng = np.random.default_rng(1)
+    lo, hi = seen["lower"], seen["upper"]
+    x = seen["x0"] + 0.02 * rng.standard_normal(seen["x0"].size)
+    x = np.clip(x, np.where(np.isfinite(lo), lo + 1e-3, -np.inf), np.where(np.isfinite(hi), hi - 1e-3, np.inf))
+    J = seen["jac"](x)
+    step = 1e-6
+    for i in range(x.size):
+        e = np.zeros(x.size)
+        e[i] = step
+        fd = (seen["fun"](x + e) - seen["fun"](x - e)) / (2 * step)
+        scale = max(np.abs(fd).max(), np.abs(J[:, i]).max(), 1e-12)
+        np.testing.assert_allclose(J[:, i], fd, rtol=0, atol=1e-5 * scale, err_msg=f"column {i}")

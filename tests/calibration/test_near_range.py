@@ -57,6 +57,32 @@ def test_table_subtracts_each_zones_error_at_its_depth_and_nothing_from_its_end_
     assert out.shape == (3, N_ZONES) and np.isnan(out[2]).all()
 
 
+def test_the_cross_validation_reads_frames_as_each_table_would():
+    """The cross-validation's batched reading (every frame through its own group's tables, one PCHIP for all) gives
+    each frame the point error that a ``PeakParams`` holding that table gives it."""
+    from place_safe.calibration.near_range import _table_point_errors, _with_table
+    from place_safe.calibration.point_errors import frame_point_errors
+
+    rng = np.random.default_rng(3)
+    knots = np.array([0.01, 0.03, 0.06, NEAR_END])
+    tables = rng.normal(0.0, 0.002, (3, 2, len(knots), N_ZONES))  # 3 groups of 2 tables
+    tables[..., -1, :] = 0.0
+    base = _table().without_near_table()
+    uz = base.directions()[:, 2]
+    depth = rng.uniform(0.005, 0.1, (12, 1)) * (1.0 + 0.05 * rng.standard_normal((12, N_ZONES)))
+    readings = base.m * depth / uz + base.b
+    valid = rng.random((12, N_ZONES)) > 0.2
+    tn = np.tile([0.0, 0.0, 1.0], (12, 1))
+    td = depth.mean(axis=1)
+    group = rng.integers(0, 3, 12)
+    got = _table_point_errors(base.ranges(readings), base.directions(), knots, tables, group, valid, tn, td)
+    for f in range(12):
+        for i in range(2):
+            p = _with_table(base, knots, tables[group[f], i], 0.0)
+            want = frame_point_errors(p, readings[f:f + 1], valid[f:f + 1], tn[f:f + 1], td[f:f + 1])[0]
+            assert got[i, f] == pytest.approx(want, rel=1e-12, abs=1e-15)
+
+
 def test_table_round_trips_and_bad_tables_are_one_line_errors():
     p = _table()
     q = PeakParams.from_dict(p.to_dict())
