@@ -27,11 +27,13 @@ the peak method reads the slope short (on mismatched units 0.06-0.08 rad per uni
 at 0-30 deg, where its level-calibrated covariance said 0.03 deg). Its covariance gets the stated tilt term
 ``Uncertainty.tilt_rel =`` :data:`PEAK_TILT_REL` per tilt component. Diff's level-calibrated covariance is
 overconfident on tilts too (mean NEES per dof 4.7-30 on tilted frames of level-calibrated units): its covariance
-gets the stated terms :data:`DIFF_TILT_REL`, :data:`DIFF_TILT_OFFSET_REL` and :data:`DIFF_TILT_PIVOT` when the
-calibration frames are level (their tilts spread less than
-:data:`~place_safe.calibration.points.MIN_TILT_SPREAD`); calibration frames with tilts show the tilt error, and the
-floor and scale fitted on them hold it (with the stated term on top as well, the independent generator's tilted
-calibration gave a held-out NEES per dof of 0.64).
+gets a stated tilt term when the calibration frames are level (their tilts spread less than
+:data:`~place_safe.calibration.points.MIN_TILT_SPREAD`), sized by the unit's relative model error, the share of each
+bin's counts the fitted forward model misses at the calibration frames' true planes (:func:`diff_tilt_term`: a
+model that misses the return's shape by more misreads a tilted plane's spread return by more; one fixed term left
+the NEES per dof of 7 level-calibrated units at 0.38-3.5, the model-error law 0.32-1.65); calibration frames with
+tilts show the tilt error, and the floor and scale fitted on them hold it (with the stated term on top as well, the
+independent generator's tilted calibration gave a held-out NEES per dof of 0.64).
 
 For ``diff`` the fallback to peak is a safety net chosen on held-out frames (:func:`select_fallback`): a
 frame falls back when its residual chi-square is above ``chi2_limit``, when the two estimates contradict each
@@ -144,25 +146,55 @@ CONSISTENCY_LIMIT = 16.27
 PEAK_TILT_REL = 0.05
 
 #: Tilt term of diff's covariance (:meth:`~place_safe.recovery.estimator.Uncertainty.tilt_floor`) for level
-#: calibration frames: each tilt component's std per unit tan(tilt), the plane turning about the sensor (pivot 0:
-#: the offset's error on tilted frames follows the tilt's only in part, a fitted pivot of 0.3-0.9 z0 leaves
-#: 0.06-0.17 mm of it over), and an independent offset std per unit z0 tan(tilt). Measured RMS over frames tilted
-#: 3-30 deg, 5-30 cm, of level-calibrated units (per tilt component / offset): the independent generator 0.017
-#: and 0.012 / 0.0031, mismatched unit A 0.006 and 0.006 / 0.0022, unit B 0.007 and 0.009 / 0.0041. With these
-#: values diff's mean NEES per dof on those frames is 1.2 (generator), 0.4 (A) and 1.6 (B), against 30, 4.7 and
-#: 17 without the term (A and B need offset terms on either side of 0.0013: one value cannot put both in 0.5-2).
+#: calibration frames whose unit's model error is not known (:func:`diff_tilt_term`; the values before the model-error
+#: law): each tilt component's std per unit tan(tilt), the plane turning about the sensor (pivot 0: the offset's error
+#: on tilted frames follows the tilt's only in part, a fitted pivot of 0.3-0.9 z0 leaves 0.06-0.17 mm of it over), and
+#: an independent offset std per unit z0 tan(tilt). Measured RMS over frames tilted 3-30 deg, 5-30 cm, of
+#: level-calibrated units (per tilt component / offset): the independent generator 0.017 and 0.012 / 0.0031,
+#: mismatched unit A 0.006 and 0.006 / 0.0022, unit B 0.007 and 0.009 / 0.0041.
 #: Where the tilt error comes from: each zone's footprint is wide (std 0.05 rad about a centre 0.18 rad off axis);
 #: a level sweep shows the zones' mean squared off-axis angle, the slope needs their mean angle, and the two differ
 #: by the footprint's spread, which the model weighs differently from a unit (the generator's pixels, fill factor
-#: and cos^4 fall-off: the fitted fields of view read its tilts 2 % short). A level sweep shows none of it, so it
-#: is stated, not fitted.
+#: and cos^4 fall-off: the fitted fields of view read its tilts 2 % short); and a tilted plane spreads each zone's
+#: return over a range of depths, whose shape the model renders only as well as it renders the unit's pulse.
 DIFF_TILT_REL = 0.015
 DIFF_TILT_OFFSET_REL = 0.0015
 DIFF_TILT_PIVOT = 0.0
+#: The tilt term from the unit's relative model error ``e`` (:func:`diff_tilt_term`; the forward fit's
+#: ``model_error_chi2``: the share of each bin's counts, beyond shot noise, that the fitted model misses at the true
+#: planes of the calibration frames): each tilt component's std per unit tan(tilt) ``hypot(DIFF_TILT_FLOOR,
+#: DIFF_TILT_PER_ERROR e)``, the offset's std per unit z0 tan(tilt) ``DIFF_TILT_OFFSET_PER_ERROR e``. A tilted plane
+#: spreads each zone's return over ``z0 tan(tilt)`` times the footprint's width; a model that misses the return's
+#: shape by ``e`` misreads where that spread return sits by a share of the spread that grows with ``e``. Measured on 7
+#: level-calibrated simulated units (docs/results.md, "Diff's covariance on tilted frames of other units"): the
+#: offset std each unit's tilted frames need (NEES 1 on the offset) over its ``e`` is 0.062-0.075 on 6 of 7 units
+#: (mismatched A 0.037: conservative there), against a spread of 0.0015-0.0055 in the std itself; the tilt's need
+#: follows ``e`` less closely (0.056-0.14 on the mismatched units); the floor is for what no level sweep shows (the
+#: footprint's weighting: the independent generator with sensor seed 0 needs 0.013 at ``e`` = 0.04). Chosen over the 7
+#: units: mean NEES per dof 0.32-1.65 on them (6 in 0.5-2; before 0.38-3.5, 3 in the band).
+DIFF_TILT_FLOOR = 0.008
+DIFF_TILT_PER_ERROR = 0.1
+DIFF_TILT_OFFSET_PER_ERROR = 0.05
 #: the share of calibration frames tilted MIN_TILT_SPREAD or more (from the least tilted) from which the fitted floor
 #: holds diff's tilt error without the stated term: a level sweep of 150 frames with 30 tilted ones (17 %) held
 #: out NEES per dof 2.65 on the independent generator's tilted frames without it (10 tilted: 6.7)
 DIFF_TILTED_SHARE = 0.5
+
+
+def diff_tilt_term(model_error: float | None = None) -> Uncertainty:
+    """The stated tilt term of diff's covariance for level calibration frames, from the unit's relative model error
+    ``model_error`` (dimensionless, the forward fit's ``model_error_chi2``; module constants
+    :data:`DIFF_TILT_FLOOR`, :data:`DIFF_TILT_PER_ERROR`, :data:`DIFF_TILT_OFFSET_PER_ERROR`; taken at most 1): a unit
+    the model fits worse gets a wider covariance on tilted planes, and none more on level ones (the term grows with
+    tan(tilt)). Not known (None, not a finite number >= 0): :data:`DIFF_TILT_REL` and :data:`DIFF_TILT_OFFSET_REL`.
+    Pivot :data:`DIFF_TILT_PIVOT` either way."""
+    if model_error is None or not (isinstance(model_error, (int, float)) and math.isfinite(model_error)
+                                   and model_error >= 0.0):
+        return Uncertainty(tilt_rel=DIFF_TILT_REL, tilt_offset_rel=DIFF_TILT_OFFSET_REL, tilt_pivot=DIFF_TILT_PIVOT)
+    e = min(float(model_error), 1.0)
+    return Uncertainty(tilt_rel=math.hypot(DIFF_TILT_FLOOR, DIFF_TILT_PER_ERROR * e),
+                       tilt_offset_rel=DIFF_TILT_OFFSET_PER_ERROR * e, tilt_pivot=DIFF_TILT_PIVOT)
+
 
 #: Folds of the cross-validation that chooses diff's fallback limits (:func:`select_fallback`).
 CV_FOLDS = 3
@@ -491,12 +523,15 @@ def _mean_nees(estimates: Sequence[PlaneEstimate], truths: Sequence) -> float | 
 
 
 def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correction=None,
-                         peak_uncertainty: Uncertainty | None = None, options=None) -> tuple[Uncertainty, dict]:
+                         peak_uncertainty: Uncertainty | None = None, options=None,
+                         model_error: float | None = None) -> tuple[Uncertainty, dict]:
     """The diff method's floor and fallback limits (chi-square, consistency, preference) from frames with ground
     truth, for the solver ``options`` (:class:`~place_safe.recovery.differentiable.SolverOptions`; default: the
     solver's defaults): they depend on the bins the solver fits. The limits are chosen on held-out frames
     (module doc); the report gives the held-out figures (``angular_deg``, ``point_mm``: diff's own plane, peak's
-    and the one returned; ``frames_using_diff``) and every candidate's score."""
+    and the one returned; ``frames_using_diff``) and every candidate's score. ``model_error``: the unit's relative
+    model error at the frames' true planes (the forward fit's ``model_error_chi2``; None: not known), which sizes the
+    stated tilt term of level frames (:func:`diff_tilt_term`)."""
 
     # closer frames always get peak's plane (NEAR_FALLBACK_RANGE): they take no part in choosing the limits
     use = [f for f in frames if f.truth is not None and f.truth.z0 >= NEAR_FALLBACK_RANGE]
@@ -541,11 +576,13 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
     # fitted on them hold it
     tilts = tilt_angles(np.array([t.normal for t in truths]))
     level = level_frames(tilts) or float(np.mean(tilts - tilts.min() >= MIN_TILT_SPREAD)) < DIFF_TILTED_SHARE
-    tilt_term = (Uncertainty(tilt_rel=DIFF_TILT_REL, tilt_offset_rel=DIFF_TILT_OFFSET_REL, tilt_pivot=DIFF_TILT_PIVOT)
-                 if level else Uncertainty())
+    tilt_term = diff_tilt_term(model_error) if level else Uncertainty()
 
     def floor_from(rows: np.ndarray) -> Uncertainty:
-        return fit_floor([diff[i] for i in rows if own[i]], [truths[i] for i in rows if own[i]], tilt_term)[0]
+        # the folds' floors without the stated term: the limits follow what the calibration frames show, not the size of
+        # a term for tilted planes they do not contain (sized by the model error, it flipped the real even half's
+        # prefer_ratio 2 -> 1 through its frames' 0.3-0.8 deg tilts); the reported covariance has the term
+        return fit_floor([diff[i] for i in rows if own[i]], [truths[i] for i in rows if own[i]], Uncertainty())[0]
 
     n = len(use)
     folds = min(CV_FOLDS, n // 2)
@@ -573,8 +610,9 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
 
     rep.update({"chi2_limit": None if math.isinf(limit) else limit, "prefer_ratio": prefer, "folds": folds,
                 "tilt_term": ("stated: the frames' tilts spread less than MIN_TILT_SPREAD, or too few frames are tilted "
-                              "(DIFF_TILTED_SHARE)" if level else
+                              "(DIFF_TILTED_SHARE); sized by the unit's model error (diff_tilt_term)" if level else
                               "none: the frames' tilts spread MIN_TILT_SPREAD or more, the floor holds the tilt error"),
+                "tilt_model_error": model_error, "tilt_rel": unc.tilt_rel, "tilt_offset_rel": unc.tilt_offset_rel,
                 "held_out": "frames_using_diff, angular_deg and point_mm: each frame with the floor of the other folds",
                 "frames_using_diff": int(np.sum(use_diff)), "frames_using_peak": int(np.sum(~use_diff)),
                 "frames_inconsistent_with_peak": int(np.sum(~consistent)),
@@ -594,8 +632,11 @@ def update_calibration(cal, frames: Sequence[Frame], method: str) -> dict:
         unc, report["peak"] = fit_peak_uncertainty(frames, cal.peak())
         section["peak"] = unc.to_dict()
     if method == "diff":
+        # the unit's model error as the forward fit measured it at the frames' true planes (sizes diff's tilt term)
+        measured = (cal.reports.get("forward") or {}).get("model_error_chi2")
         unc, report["diff"] = fit_diff_uncertainty(frames, cal.forward(), cal.peak(), cal.diff(),
-                                                   Uncertainty.from_dict(section["peak"]), cal.diff_options())
+                                                   Uncertainty.from_dict(section["peak"]), cal.diff_options(),
+                                                   model_error=measured)
         section["diff"] = unc.to_dict()
     cal.sections["uncertainty"] = section
     return report
@@ -604,4 +645,5 @@ def update_calibration(cal, frames: Sequence[Frame], method: str) -> dict:
 __all__ = ["update_calibration", "nees", "fit_floor", "fit_peak_uncertainty", "fit_diff_uncertainty", "select_fallback",
            "chi2_candidates", "near_std_law", "fit_near_law", "near_law_table", "near_law_parameters", "knot_factor",
            "NEAR_REFERENCE_DEPTH", "CONSISTENCY_LIMIT", "PEAK_TILT_REL",
-           "DIFF_TILT_REL", "DIFF_TILT_OFFSET_REL", "DIFF_TILT_PIVOT", "DIFF_TILTED_SHARE", "CV_FOLDS", "PREFER_RATIOS"]
+           "DIFF_TILT_REL", "DIFF_TILT_OFFSET_REL", "DIFF_TILT_PIVOT", "DIFF_TILTED_SHARE",
+           "DIFF_TILT_FLOOR", "DIFF_TILT_PER_ERROR", "DIFF_TILT_OFFSET_PER_ERROR", "diff_tilt_term", "CV_FOLDS", "PREFER_RATIOS"]

@@ -4,6 +4,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from place_safe.calibration.uncertainty import PREFER_RATIOS, chi2_candidates, fit_floor, nees, select_fallback
 from place_safe.geometry import Plane
@@ -154,6 +156,66 @@ def test_a_level_sweep_with_a_few_tilted_frames_keeps_the_stated_term():
     assert len(tilted) / len(frames) < DIFF_TILTED_SHARE
     unc, report = fit_diff_uncertainty(frames, ForwardParams(), PeakParams.default_peak())
     assert unc.tilt_rel == DIFF_TILT_REL and report["tilt_term"].startswith("stated")
+
+
+def _tilted(deg: float, azimuth: float = 0.3) -> np.ndarray:
+    t, a = math.radians(deg), azimuth
+    return np.array([math.sin(t) * math.cos(a), math.sin(t) * math.sin(a), math.cos(t)])
+
+
+def test_a_unit_the_model_fits_worse_gets_a_wider_covariance_on_tilted_planes_and_the_same_on_level_ones():
+    """Diff's stated tilt term grows with the unit's relative model error: on a plane tilted 20 deg the covariance of
+    a unit the model misses by 8 % of the counts exceeds that of a unit it misses by 2 % (the difference positive
+    definite: tilt components and offset); on a level plane the two are the same. Without a model error the stated
+    values stand."""
+    from place_safe.calibration.uncertainty import (DIFF_TILT_OFFSET_REL, DIFF_TILT_REL, diff_tilt_term)
+
+    fit = np.diag([1e-6, 1e-6, 1e-8])
+    good, bad = diff_tilt_term(0.02), diff_tilt_term(0.08)
+    n, d = _tilted(20.0), 0.2
+    more = bad.apply(fit, d, n) - good.apply(fit, d, n)
+    assert np.linalg.eigvalsh(more).min() > 0.0
+    assert bad.apply(fit, d, np.array([0.0, 0.0, 1.0])) == pytest.approx(good.apply(fit, d, np.array([0.0, 0.0, 1.0])))
+    assert good.tilt_rel < bad.tilt_rel and good.tilt_offset_rel < bad.tilt_offset_rel
+    for unknown in (None, math.nan, -0.1, math.inf):
+        t = diff_tilt_term(unknown)
+        assert (t.tilt_rel, t.tilt_offset_rel) == (DIFF_TILT_REL, DIFF_TILT_OFFSET_REL)
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.one_of(st.none(), st.floats(allow_nan=True, allow_infinity=True)), st.floats(0.0, 89.0),
+       st.floats(-math.pi, math.pi), st.floats(1e-3, 5.0), st.floats(1e-12, 1e-2), st.floats(0.0, 0.5))
+def test_diffs_tilted_covariance_is_finite_and_positive_definite_for_any_model_error(e, deg, azimuth, offset, var, more):
+    """For any model error (none, negative, NaN, infinite, huge) and any plane in front of the sensor, the covariance
+    diff reports with the tilt term is finite, symmetric and positive definite, and a larger model error never
+    shrinks it."""
+    from place_safe.calibration.uncertainty import diff_tilt_term
+
+    fit = np.diag([var, var, var * 1e-2])
+    n = _tilted(deg, azimuth)
+    c = diff_tilt_term(e).apply(fit, offset, n)
+    assert np.all(np.isfinite(c)) and np.allclose(c, c.T) and np.linalg.eigvalsh(c).min() > 0.0
+    if e is not None and math.isfinite(e) and e >= 0.0:
+        bigger = diff_tilt_term(e + more).apply(fit, offset, n)
+        assert np.linalg.eigvalsh(bigger - c).min() >= -1e-12 * np.abs(c).max()
+
+
+def test_the_model_error_sizes_diffs_tilt_term_and_leaves_its_limits_alone(sweep_path):
+    """Calibrated on the same level frames, a unit with a larger model error gets the larger tilt term, and the same
+    fallback limits and scale: the planes diff returns do not depend on it (only their covariance on tilted planes)."""
+    from place_safe.calibration.uncertainty import diff_tilt_term, fit_diff_uncertainty
+    from place_safe.io.frame_file import load_frames
+    from place_safe.recovery.forward import ForwardParams
+    from place_safe.recovery.points import PeakParams
+
+    frames = [f for f in load_frames(sweep_path) if 0.08 <= f.truth.z0 <= 0.2][:6]
+    low, rep_low = fit_diff_uncertainty(frames, ForwardParams(), PeakParams.default_peak(), model_error=0.02)
+    high, rep_high = fit_diff_uncertainty(frames, ForwardParams(), PeakParams.default_peak(), model_error=0.08)
+    assert (low.tilt_rel, low.tilt_offset_rel) == (diff_tilt_term(0.02).tilt_rel, diff_tilt_term(0.02).tilt_offset_rel)
+    assert (high.tilt_rel, high.tilt_offset_rel) == (diff_tilt_term(0.08).tilt_rel, diff_tilt_term(0.08).tilt_offset_rel)
+    assert (low.chi2_limit, low.prefer_ratio, low.consistency_limit) == (high.chi2_limit, high.prefer_ratio,
+                                                                         high.consistency_limit)
+    assert low.scale == pytest.approx(high.scale, rel=0.01) and rep_high["tilt_model_error"] == 0.08
 
 
 # -- the peak method's near-range law (issue 26) ------------------------------------------------------------------
