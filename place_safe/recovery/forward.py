@@ -190,6 +190,12 @@ class ForwardParams(ParamModel):
       fields of view and the beam held (on level planes they move a zone's return with range alike): the real sweep's
       rising edges, fitted without it, drift by -0.11 .. +0.08 bins per 10 cm from zone to zone (docs/results.md, the
       unit model, step 5).
+    * ``soft_bin_integrated`` (blend, [0, 1], default 0; version 7): how a ray's arrival becomes counts in bins. 0 is
+      the paper's Gaussian of ``soft_bin_sigma`` sampled at the bin centres, whose sum over the bins and centroid
+      vary with the ray's sub-bin position (sigma 0.5: +-1.4 %, +-0.023 bins); 1 is that Gaussian integrated over each
+      bin, ``Phi((n + 1/2 - u) / sigma) - Phi((n - 1/2 - u) / sigma)``, which sums to 1 and keeps the centroid at any
+      position, as a time-to-digital converter that counts every arrival within a bin does (:func:`bin_kernel`). A
+      structural choice held at its value (not among the fitted parameters).
     * The per-zone timing offsets and gains (``zone_offsets``, ``zone_gains``), pile-up (``pileup``), the zones'
       own tails and the learned response kernel are described above.
 
@@ -287,6 +293,11 @@ class ForwardParams(ParamModel):
     zone_bin_scales: vector(N_ZONES, ge=0.9, le=1.1) = Field(
         default_factory=lambda: [1.0] * N_ZONES,
         description="(bins of each zone's histogram per nominal bin: multiplies range / bin_size)")
+    # Version 7 (absent from older files; the default is the model as it was): the soft binning integrated over each
+    # bin (a TDC counts every arrival inside a bin) instead of sampled at its centre. Held, not fitted.
+    soft_bin_integrated: float = Field(
+        0.0, ge=0.0, le=1.0,
+        description="(blend: 0 the Gaussian sampled at bin centres, 1 the Gaussian integrated over each bin)")
 
     def kind_gains(self) -> np.ndarray:
         """Gain of each zone (9,): centre 1, edge/corner gains, times the per-zone gains."""
@@ -600,9 +611,40 @@ def convolve_pulse(transient: torch.Tensor, kernel: torch.Tensor) -> torch.Tenso
     return transient @ causal_matrix(kernel, transient.shape[-1]).transpose(-1, -2)
 
 
+def bin_kernel(t, sigma, integrated: float, derivatives: bool = False):
+    """The soft binning's kernel at ``t = n - u`` (bins; numpy or torch arrays): ``(1 - integrated)`` times the
+    unit-area Gaussian of ``sigma`` bins sampled at ``t`` plus ``integrated`` times that Gaussian integrated over the
+    bin, ``Phi((t + 1/2) / sigma) - Phi((t - 1/2) / sigma)`` (:class:`ForwardParams` ``soft_bin_integrated``).
+
+    With ``derivatives`` returns ``(K, dK/du, dK/dsigma)``; for the integrated part ``dK/du = G(t - 1/2) - G(t + 1/2)``
+    and ``dK/dsigma = -((t + 1/2) G(t + 1/2) - (t - 1/2) G(t - 1/2)) / sigma`` (``G`` the Gaussian).
+    """
+    if isinstance(t, torch.Tensor):
+        exp, erf = torch.exp, torch.special.erf
+    else:
+        from scipy.special import erf
+        exp = np.exp
+    inv = 1.0 / sigma
+    norm = inv / _SQRT_2PI
+
+    def gauss(x):
+        return exp(-0.5 * (x * inv) ** 2) * norm
+
+    g = gauss(t)
+    w = float(integrated)
+    k = (1.0 - w) * g + w * 0.5 * (erf((t + 0.5) * (inv / math.sqrt(2.0))) - erf((t - 0.5) * (inv / math.sqrt(2.0))))
+    if not derivatives:
+        return k
+    g_p, g_m = gauss(t + 0.5), gauss(t - 0.5)
+    k_u = (1.0 - w) * g * t * inv * inv + w * (g_m - g_p)
+    k_s = (1.0 - w) * g * ((t * inv) ** 2 - 1.0) * inv - w * ((t + 0.5) * g_p - (t - 0.5) * g_m) * inv
+    return k, k_u, k_s
+
+
 class _SoftBin(torch.autograd.Function):
     """``T[b, z, n] = sum_r amp[b, z, r] G(n - u[b, z, r])``, ``G`` the Gaussian of width ``sigma`` (bins,
-    unit area), with its derivatives written out.
+    unit area), with its derivatives written out. With ``integrated`` > 0 (a float, not differentiated) ``G`` is
+    :func:`bin_kernel`'s blend with the Gaussian integrated over each bin.
 
     The (B, 9, R, N) Gaussian is the largest array of the model. Forward-mode derivatives by autograd would
     build it again for every tangent (the calibration's Jacobian has ~50); here the Gaussian and its
@@ -612,27 +654,33 @@ class _SoftBin(torch.autograd.Function):
     generate_vmap_rule = True
 
     @staticmethod
-    def forward(amp, u, sigma, bins):
-        z = (bins.view(1, 1, 1, -1) - u.unsqueeze(-1)) / sigma
-        g = torch.exp(-0.5 * z * z) / (sigma * _SQRT_2PI)
+    def forward(amp, u, sigma, bins, integrated):
+        if integrated:
+            g = bin_kernel(bins.view(1, 1, 1, -1) - u.unsqueeze(-1), sigma, integrated)
+        else:
+            z = (bins.view(1, 1, 1, -1) - u.unsqueeze(-1)) / sigma
+            g = torch.exp(-0.5 * z * z) / (sigma * _SQRT_2PI)
         return torch.einsum("bzr,bzrn->bzn", amp, g)
 
     @staticmethod
     def setup_context(ctx, inputs, output):
-        amp, u, sigma, bins = inputs
+        amp, u, sigma, bins, integrated = inputs
+        ctx.integrated = integrated
         ctx.save_for_backward(amp, u, sigma, bins)
         ctx.save_for_forward(amp, u, sigma, bins)
 
     @staticmethod
-    def _parts(amp, u, sigma, bins):
+    def _parts(amp, u, sigma, bins, integrated):
+        if integrated:
+            return bin_kernel(bins.view(1, 1, 1, -1) - u.unsqueeze(-1), sigma, integrated, derivatives=True)
         z = (bins.view(1, 1, 1, -1) - u.unsqueeze(-1)) / sigma
         g = torch.exp(-0.5 * z * z) / (sigma * _SQRT_2PI)
         return g, g * z / sigma, g * (z * z - 1.0) / sigma  # G, dG/du, dG/dsigma
 
     @staticmethod
-    def jvp(ctx, d_amp, d_u, d_sigma, _d_bins):
+    def jvp(ctx, d_amp, d_u, d_sigma, _d_bins, _d_integrated):
         amp, u, sigma, bins = ctx.saved_tensors
-        g, g_u, g_s = _SoftBin._parts(amp, u, sigma, bins)
+        g, g_u, g_s = _SoftBin._parts(amp, u, sigma, bins, ctx.integrated)
         out = torch.zeros(amp.shape[:2] + bins.shape, dtype=amp.dtype)
         if d_amp is not None:
             out = out + torch.einsum("bzr,bzrn->bzn", d_amp, g)
@@ -645,18 +693,20 @@ class _SoftBin(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad):
         amp, u, sigma, bins = ctx.saved_tensors
-        g, g_u, g_s = _SoftBin._parts(amp, u, sigma, bins)
+        g, g_u, g_s = _SoftBin._parts(amp, u, sigma, bins, ctx.integrated)
         d_amp = torch.einsum("bzn,bzrn->bzr", grad, g)
         d_u = amp * torch.einsum("bzn,bzrn->bzr", grad, g_u)
         d_sigma = (amp * torch.einsum("bzn,bzrn->bzr", grad, g_s)).sum().reshape(sigma.shape)
-        return d_amp, d_u, d_sigma, None
+        return d_amp, d_u, d_sigma, None, None
 
 
-def soft_bin(amp: torch.Tensor, u: torch.Tensor, sigma: torch.Tensor, bins: torch.Tensor) -> torch.Tensor:
+def soft_bin(amp: torch.Tensor, u: torch.Tensor, sigma: torch.Tensor, bins: torch.Tensor,
+             integrated: float = 0.0) -> torch.Tensor:
     """Transients (B, 9, N) of ray amplitudes ``amp`` (B, 9, R) at bin positions ``u`` (B, 9, R), each spread
-    by a unit-area Gaussian of ``sigma`` bins over the bin centres ``bins`` (N,)."""
+    by a unit-area Gaussian of ``sigma`` bins over the bin centres ``bins`` (N,); ``integrated`` (blend in [0, 1],
+    :func:`bin_kernel`) integrates it over each bin instead."""
     amp, u = torch.broadcast_tensors(amp, u)
-    return _SoftBin.apply(amp, u, torch.as_tensor(sigma, dtype=amp.dtype), bins.to(amp.dtype))
+    return _SoftBin.apply(amp, u, torch.as_tensor(sigma, dtype=amp.dtype), bins.to(amp.dtype), float(integrated))
 
 
 class ForwardModel:
@@ -770,7 +820,7 @@ class ForwardModel:
         if torch.is_grad_enabled() or bool(torch.any(t["time_warp"] != 0)):
             u = warp_positions(u, t["time_warp"])[0]  # the TDC's integral non-linearity (direct, echo and glass)
         sigma = t["soft_bin_sigma"]
-        transient = soft_bin(amp, u, sigma, self.bins[:n_bins])
+        transient = soft_bin(amp, u, sigma, self.bins[:n_bins], float(t["soft_bin_integrated"]))
         if kernel is None:
             kernel = self.pulse(torch.as_tensor(reference, dtype=self.dtype).expand(b, N_BINS))
         hist = convolve_pulse(transient, kernel)

@@ -17,7 +17,8 @@ Chain of the derivatives, per ray with direction ``v``::
     h = c + k S^alpha,   S = max(2 c^2 - 1, 0)              (shading)
     p = sat (1 - exp(-g^v rho h^w / (sat r^2))) h^(1-w) g^(1-v),   w = saturate_shading, v = saturate_gain
     u = r / bin_size * zone_bin_scale + bin_offset + zone_offset
-    T(bin) = sum_rays w p G(bin - u),      G = Gaussian of soft_bin_sigma
+    T(bin) = sum_rays w p G(bin - u),      G = Gaussian of soft_bin_sigma (blended with its integral over the bin
+                                           by soft_bin_integrated, version 7: forward.bin_kernel)
     F = crosstalk-mix(zone-tail(response(T * pulse))),   H = pile-up(F)   (mix: h + c (total - (1 - crosstalk_self) h))   (Coates; identity when ``pileup = 0``)
 
 With the emitter at ``E = (bx, by, 0)`` (``baseline``) the light's range ``r_e = |r v - E|`` replaces ``r`` in
@@ -42,8 +43,8 @@ import math
 import numpy as np
 import torch
 
-from place_safe.recovery.forward import (ECHO_REFERENCE_RANGE, ForwardModel, ForwardParams, ZoneRays, bin_widths,
-                                         grid_crosstalk_matrix, pulse_shape_matrix, response_matrix, warp_positions,
+from place_safe.recovery.forward import (ECHO_REFERENCE_RANGE, ForwardModel, ForwardParams, ZoneRays, bin_kernel,
+                                         bin_widths, grid_crosstalk_matrix, pulse_shape_matrix, response_matrix, warp_positions,
                                          zone_tail_taps)
 from place_safe.sensor.frame import N_BINS, N_ZONES
 
@@ -81,6 +82,7 @@ class PlaneRenderer:
         self.zone_albedo = zone_albedo
         self.n_unknowns = N_UNKNOWNS + (N_ZONES - 1 if zone_albedo else 0)
         self.gnorm = 1.0 / (params.soft_bin_sigma * math.sqrt(2.0 * math.pi))
+        self.integrated = float(params.soft_bin_integrated)  # > 0: the kernel integrated over each bin (bin_kernel)
         # the emitter beside the receiver (ForwardModel.plane_light); None: co-located, uniform beam
         bx, by = (float(v) for v in params.baseline)
         self.light = None if (bx == 0.0 and by == 0.0 and params.beam_power == 0.0) else (
@@ -179,11 +181,17 @@ class PlaneRenderer:
             u, slope = (v.numpy() for v in warp_positions(torch.from_numpy(u), self.warp))
         width = conv.shape[-1]
         t = np.arange(width)[None, None, None, :] - u[..., None]          # (B, 9, R, W)
-        G = np.exp(-0.5 * self.inv_sigma2 * t * t) * self.gnorm
+        G_u = None  # d G / d u, with the Jacobian
+        if self.integrated:
+            G, G_u, _ = bin_kernel(t, p.soft_bin_sigma, self.integrated, derivatives=True)
+        else:
+            G = np.exp(-0.5 * self.inv_sigma2 * t * t) * self.gnorm
         T = np.matmul(amp[:, :, None, :], G)[:, :, 0]  # sum over rays (a matmul: einsum is slower at these shapes)
         if self.glass is not None:  # the cover glass: the same return in every frame (no derivative in x)
             tg = np.arange(width)[None, :] - self.glass_u[:, None]
-            T = T + (self.glass[:, None] * np.exp(-0.5 * self.inv_sigma2 * tg * tg) * self.gnorm)[None]
+            kg = (bin_kernel(tg, p.soft_bin_sigma, self.integrated) if self.integrated
+                  else np.exp(-0.5 * self.inv_sigma2 * tg * tg) * self.gnorm)
+            T = T + (self.glass[:, None] * kg)[None]
         F = self._mix(self._tail(np.matmul(conv[:, None], T[..., None])[..., 0]))  # expected photon counts
         if self.shaped:  # ForwardModel.after_pulse: no negative counts beside a sharpened pulse
             F_ok = F >= 0.0
@@ -254,7 +262,7 @@ class PlaneRenderer:
                 B_e[..., k] = amp_e * 2.0 * du[k] * (1.0 if slope is None else slope[..., n_direct:])
             A = np.concatenate([A, A_e], axis=2)
             B = np.concatenate([B, B_e], axis=2)
-        Gt = G * t * self.inv_sigma2
+        Gt = G * t * self.inv_sigma2 if G_u is None else G_u
         dT = np.matmul(G.swapaxes(2, 3), A) + np.matmul(Gt.swapaxes(2, 3), B)  # (B, 9, W, k), sums over rays
         dF = self._mix(self._tail(np.matmul(conv[:, None], dT)), axis_zone=1)
         if self.shaped:

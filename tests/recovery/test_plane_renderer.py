@@ -179,3 +179,14 @@ def test_matches_torch_model_with_the_ambient_through_the_pile_up():
     assert h[:, -10:].max() < 0.0  # the ambient after the return is shadowed
     plain = PlaneRenderer(params.replace(pileup=0.0), rays)
     np.testing.assert_array_equal(plain.render(x[None], conv, ambient=ambient[None]), plain.render(x[None], conv))
+
+
+def test_matches_torch_model_with_integrated_soft_binning():
+    """The soft binning integrated over each bin (version 7), fully and blended, renders and differentiates as in
+    the torch model, the echo and the glass included."""
+    x = np.array([0.12, -0.08, 0.07, math.log(3.0), 0.1, math.log(2.0)])
+    _check(ForwardParams(soft_bin_integrated=1.0, soft_bin_sigma=0.54), x)
+    _check(ForwardParams(soft_bin_integrated=0.4, soft_bin_sigma=0.7, echo_gain=0.03, echo_power=1.0,
+                         glass_gains=list(np.linspace(5.0, 40.0, 9)), pileup=2e-7, baseline=[0.003, -0.0015],
+                         beam_power=1.2, zone_bin_scales=list(np.linspace(0.96, 1.05, 9))),
+           np.array([-0.25, 0.2, 0.18, math.log(2.0), 0.2, math.log(1.5)]))
