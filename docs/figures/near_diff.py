@@ -6,7 +6,8 @@ plus a dense near sweep (40 frames 19-51 mm); ``--close`` adds 20 frames 12-21 m
 tilted 0-20 deg. "diff own" is diff with its fallback limits null in a copy of the calibration (docs/results.md,
 step 6); peak is read from the same calibration. A variant lowers the forward fit's ``min_distance`` (the
 monkeypatch of step 7's commands), ``+rc`` lowers the plane correction's and the model error's as well, ``+unit``
-fits the cover-glass return, crosstalk grid and echo too. Bands 1.5-2, 2-5 (2-3.5, 3.5-5) and 5-40 cm; for the level
+fits the cover-glass return, crosstalk grid and echo too, ``+int`` starts the forward fit with the soft binning
+integrated over each bin (``ForwardParams.soft_bin_integrated`` 1). Bands 1.5-2, 2-5 (2-3.5, 3.5-5) and 5-40 cm; for the level
 frames also the share of diff's 2-5 cm slope error (times z0) that one sinusoid in z0 of period 0.5, 1 and 2 bins explains.
 
     python docs/figures/near_diff.py --units 11 21 --variants default ff0.02 ff0.02+rc --data DIR --cals DIR
@@ -34,6 +35,8 @@ from place_safe.calibration import forward_fit as ff
 from place_safe.evaluation.metrics import angular_error, nees
 from place_safe.io.frame_file import load_frames, write_frames
 from place_safe.recovery import make_estimator
+from place_safe.recovery.forward import ForwardParams
+from pydantic import Field
 
 ROOT = Path(__file__).resolve().parents[2]
 SWEEP = ROOT / "tests" / "data" / "tmf8820_ur5_sweep.json"
@@ -42,11 +45,20 @@ BANDS = (("1.5-2 cm", 0.015, 0.02), ("2-5 cm", 0.02, 0.05), ("2-3.5 cm", 0.02, 0
 ORIGINAL = (fit.fit_forward, fit.fit_range_correction, fit.select_model_error)
 
 
+class IntegratedSoftBin(ForwardParams):
+    """The forward fit's starting parameters with the soft binning integrated over each bin (``+int``)."""
+
+    soft_bin_integrated: float = Field(1.0, ge=0.0, le=1.0)
+
+
 def calibrate(frames, variant: str) -> Calibration:
     """``calibrate --method diff`` on ``frames``; ``variant``: ``default``, ``ffD`` (the forward fit from D m),
     ``ffD+rc`` (and the plane correction and model error from D m); ``+unit`` adds the unit terms (crosstalk grid,
     cover-glass return, echo: ``forward_fit.UNIT_TERMS``) to the forward fit."""
     fit.fit_forward, fit.fit_range_correction, fit.select_model_error = ORIGINAL
+    if "+int" in variant:  # the soft binning integrated over each bin from the start of the forward fit (step 8)
+        ff.ForwardParams = IntegratedSoftBin
+        variant = variant.replace("+int", "")
     if variant != "default":
         d = float(variant[2:].split("+")[0])
         extra = {"fitted": {**ff.FITTED, **ff.UNIT_TERMS}} if "+unit" in variant else {}
@@ -55,8 +67,11 @@ def calibrate(frames, variant: str) -> Calibration:
             fit.fit_range_correction = lambda *a, **kw: ff.fit_range_correction(*a, **{**kw, "min_distance": d})
             fit.select_model_error = lambda *a, **kw: ff.select_model_error(*a, **{**kw, "min_distance": d})
     cal = Calibration()
-    fit.fit_method(cal, frames, "diff", progress=False, log=None)
-    fit.fit_forward, fit.fit_range_correction, fit.select_model_error = ORIGINAL
+    try:
+        fit.fit_method(cal, frames, "diff", progress=False, log=None)
+    finally:
+        fit.fit_forward, fit.fit_range_correction, fit.select_model_error = ORIGINAL
+        ff.ForwardParams = ForwardParams
     return cal
 
 
