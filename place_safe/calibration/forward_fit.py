@@ -464,7 +464,6 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
         unpack(cam)
         return scaled(render(log_albedo))
 
-
     cam0 = torch.as_tensor(np.array(start), dtype=dtype)
 
     def start_albedos() -> torch.Tensor:

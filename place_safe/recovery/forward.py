@@ -624,18 +624,20 @@ def bin_kernel(t, sigma, integrated: float, derivatives: bool = False):
     else:
         from scipy.special import erf
         exp = np.exp
-    inv = 1.0 / sigma
-    norm = inv / _SQRT_2PI
 
     def gauss(x):
-        return exp(-0.5 * (x * inv) ** 2) * norm
+        z = x / sigma
+        return exp(-0.5 * z * z) / (sigma * _SQRT_2PI), z
 
-    g = gauss(t)
+    g, z = gauss(t)
     w = float(integrated)
+    if w == 0.0:  # the sampled Gaussian alone
+        return (g, g * z / sigma, g * (z * z - 1.0) / sigma) if derivatives else g
+    inv = 1.0 / sigma
     k = (1.0 - w) * g + w * 0.5 * (erf((t + 0.5) * (inv / math.sqrt(2.0))) - erf((t - 0.5) * (inv / math.sqrt(2.0))))
     if not derivatives:
         return k
-    g_p, g_m = gauss(t + 0.5), gauss(t - 0.5)
+    g_p, g_m = gauss(t + 0.5)[0], gauss(t - 0.5)[0]
     k_u = (1.0 - w) * g * t * inv * inv + w * (g_m - g_p)
     k_s = (1.0 - w) * g * ((t * inv) ** 2 - 1.0) * inv - w * ((t + 0.5) * g_p - (t - 0.5) * g_m) * inv
     return k, k_u, k_s
@@ -655,11 +657,7 @@ class _SoftBin(torch.autograd.Function):
 
     @staticmethod
     def forward(amp, u, sigma, bins, integrated):
-        if integrated:
-            g = bin_kernel(bins.view(1, 1, 1, -1) - u.unsqueeze(-1), sigma, integrated)
-        else:
-            z = (bins.view(1, 1, 1, -1) - u.unsqueeze(-1)) / sigma
-            g = torch.exp(-0.5 * z * z) / (sigma * _SQRT_2PI)
+        g = bin_kernel(bins.view(1, 1, 1, -1) - u.unsqueeze(-1), sigma, integrated)
         return torch.einsum("bzr,bzrn->bzn", amp, g)
 
     @staticmethod
@@ -671,11 +669,8 @@ class _SoftBin(torch.autograd.Function):
 
     @staticmethod
     def _parts(amp, u, sigma, bins, integrated):
-        if integrated:
-            return bin_kernel(bins.view(1, 1, 1, -1) - u.unsqueeze(-1), sigma, integrated, derivatives=True)
-        z = (bins.view(1, 1, 1, -1) - u.unsqueeze(-1)) / sigma
-        g = torch.exp(-0.5 * z * z) / (sigma * _SQRT_2PI)
-        return g, g * z / sigma, g * (z * z - 1.0) / sigma  # G, dG/du, dG/dsigma
+        """G, dG/du, dG/dsigma (:func:`bin_kernel`)."""
+        return bin_kernel(bins.view(1, 1, 1, -1) - u.unsqueeze(-1), sigma, integrated, derivatives=True)
 
     @staticmethod
     def jvp(ctx, d_amp, d_u, d_sigma, _d_bins, _d_integrated):
