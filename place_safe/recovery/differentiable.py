@@ -71,8 +71,15 @@ class RangeCorrection(ParamModel):
     :func:`place_safe.calibration.forward_fit.fit_range_correction` to what the forward model leaves
     over on data with ground truth; empty coefficients mean no correction.
 
+    ``albedo`` is a series of the log albedo in ``ln z0`` (a range law: a power of the range is a line there): the
+    reported albedo is ``exp(log rho + albedo(z0))``. It is what a
+    sweep of one surface reads as a trend of its albedo over distance (the real sweep: 14 at 5 cm, 25 at 10 cm, 28
+    at 38 cm, smooth and the same on both halves), the return's range law that the forward fit cannot see because
+    every calibration frame's albedo is free; fitted to the sweep's mean log albedo, so the scale stays the
+    forward model's.
+
     The ranges: what the forward model leaves over is millimetres and a fraction of a degree, so a coefficient
-    of more than 5 cm (or a slope of 0.5) is not a correction.
+    of more than 5 cm (or a slope of 0.5) is not a correction; nor is an albedo factor beyond ``e^3``.
     """
 
     what: ClassVar[str] = "range correction"
@@ -84,6 +91,7 @@ class RangeCorrection(ParamModel):
     slope_b: vector(ge=-0.5, le=0.5) = Field(default_factory=list, description="(slope)")
     gain_a: vector(ge=-0.2, le=0.2) = Field(default_factory=list, description="(of the slope)")
     gain_b: vector(ge=-0.2, le=0.2) = Field(default_factory=list, description="(of the slope)")
+    albedo: vector(ge=-3.0, le=3.0) = Field(default_factory=list, description="(log albedo)")
     inverse: list[Literal["coeffs", "slope_a", "slope_b", "gain_a", "gain_b"]] = Field(
         default_factory=list, description="series in the inverse range 1 / z0 (the others: in z0)")
 
@@ -102,11 +110,16 @@ class RangeCorrection(ParamModel):
             return 0.0
         from numpy.polynomial import chebyshev
 
-        return float(chebyshev.chebval(range_argument(z0, self.domain, name in self.inverse), coeffs))
+        return float(chebyshev.chebval(range_argument(z0, self.domain, name in self.inverse, name == "albedo"),
+                                       coeffs))
 
     def __call__(self, z0: float) -> float:
         """The correction of z0 (m) at z0."""
         return self._series("coeffs", z0)
+
+    def log_albedo(self, z0: float) -> float:
+        """The correction of the log albedo of a plane at z0."""
+        return self._series("albedo", z0)
 
     def slopes(self, z0: float, a: float = 0.0, b: float = 0.0) -> tuple[float, float]:
         """The corrections of the slopes (a, b) of a plane at z0."""
@@ -118,13 +131,17 @@ class RangeCorrection(ParamModel):
 MIN_INVERSE_DOMAIN = 1e-3
 
 
-def range_argument(z0, domain, inverse: bool = False):
+def range_argument(z0, domain, inverse: bool = False, log: bool = False):
     """The Chebyshev argument in [-1, 1] of a plane at ``z0`` (m; a float or an array) on ``domain`` = [lo, hi]:
-    ``z0`` mapped linearly (lo -> -1, hi -> 1) or, ``inverse``, ``1 / z0`` mapped linearly (hi -> -1, lo -> 1).
-    ``z0`` outside the domain is taken at its nearer end."""
+    ``z0`` mapped linearly (lo -> -1, hi -> 1) or, ``inverse``, ``1 / z0`` mapped linearly (hi -> -1, lo -> 1), or,
+    ``log``, ``ln z0`` mapped linearly (lo -> -1, hi -> 1; ``lo`` at least :data:`MIN_INVERSE_DOMAIN`). ``z0``
+    outside the domain is taken at its nearer end."""
     lo, hi = float(domain[0]), float(domain[1])
     z = np.clip(np.asarray(z0, dtype=float), lo, hi)
-    if inverse:
+    if log:
+        lo = max(lo, MIN_INVERSE_DOMAIN)
+        t = 2.0 * (np.log(np.maximum(z, lo)) - math.log(lo)) / max(math.log(max(hi, lo) / lo), 1e-9) - 1.0
+    elif inverse:
         lo = max(lo, MIN_INVERSE_DOMAIN)
         t = 2.0 * (1.0 / np.maximum(z, lo) - 1.0 / hi) / max(1.0 / lo - 1.0 / hi, 1e-9) - 1.0
     else:
@@ -569,7 +586,7 @@ class DifferentiableEstimator(Estimator):
         except NoPlaneError as exc:
             return PlaneEstimate(None, reason=str(exc))
         determined = albedo_std is None or (math.isfinite(albedo_std) and albedo_std <= ALBEDO_STD_LIMIT)
-        return PlaneEstimate(plane, albedo=math.exp(lr) if determined else None,
+        return PlaneEstimate(plane, albedo=math.exp(lr + self.correction.log_albedo(z0)) if determined else None,
                              residual=math.sqrt(max(cost, 0.0) / n_res),
                              covariance=cov, method_used=self.name)
 
@@ -620,5 +637,6 @@ class DifferentiableEstimator(Estimator):
             if not math.isfinite(res):
                 out.append(PlaneEstimate(None, reason="solver diverged (non-finite loss)"))
             else:
-                out.append(PlaneEstimate(plane, albedo=math.exp(float(log_rho.detach())), residual=res))
+                out.append(PlaneEstimate(plane, albedo=math.exp(float(log_rho.detach())
+                                                           + self.correction.log_albedo(float(z0))), residual=res))
         return out

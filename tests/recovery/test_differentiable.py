@@ -271,9 +271,30 @@ def test_range_correction_series_in_inverse_range():
     assert RangeCorrection.from_dict(c.to_dict()) == c
     assert RangeCorrection.from_dict({"coeffs": [0.001], "domain": [0.0, 1.0]}).inverse == []
     with pytest.raises(CalibrationError):
-        RangeCorrection.from_dict({**c.to_dict(), "inverse": ["albedo"]})
+        RangeCorrection.from_dict({**c.to_dict(), "inverse": ["albedo"]})  # the albedo series is in ln z0
     with pytest.raises(CalibrationError):
         RangeCorrection(domain=[0.0, 1.0], slope_a=[0.001], inverse=["slope_a"])
+
+
+def test_the_albedo_series_scales_the_reported_albedo_and_leaves_the_plane(frames):
+    """``RangeCorrection.albedo`` (a log-albedo series in z0) multiplies the reported albedo by ``exp(series(z0))``
+    at the solver's z0 and moves nothing else; a factor beyond e^3 is not a correction and is refused."""
+    from place_safe.exceptions import CalibrationError
+    from place_safe.recovery.differentiable import RangeCorrection
+
+    plain = DifferentiableEstimator()
+    series = RangeCorrection(domain=[0.05, 0.40], albedo=[0.2, -0.3])
+    scaled = DifferentiableEstimator(correction=series)
+    for f in frames[:3]:
+        a, b = plain.estimate(f), scaled.estimate(f)
+        assert a.ok and b.ok and a.albedo is not None
+        assert np.array_equal(a.plane.normal, b.plane.normal) and a.plane.offset == b.plane.offset
+        # the solver's z0 is the uncorrected plane's axis crossing (no plane series here)
+        assert b.albedo == pytest.approx(a.albedo * math.exp(series.log_albedo(a.plane.z0)), rel=1e-9)
+    assert series.log_albedo(0.01) == series.log_albedo(0.05) == pytest.approx(0.5)  # outside: the nearer end
+    assert series.log_albedo(math.sqrt(0.05 * 0.40)) == pytest.approx(0.2)  # a series in ln z0
+    with pytest.raises(CalibrationError):
+        RangeCorrection.from_dict({"domain": [0.05, 0.4], "albedo": [3.5]})
 
 
 def test_with_the_ambient_option_the_plane_comes_back_from_frames_whose_ambient_piles_up():
