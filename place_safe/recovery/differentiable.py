@@ -104,17 +104,17 @@ class RangeCorrection(ParamModel):
                              f"got {list(self.domain)}")
         return self
 
-    def _series(self, name: str, z0: float) -> float:
+    def _series(self, name: str, z0):
         coeffs = getattr(self, name)
         if not coeffs:
-            return 0.0
+            return 0.0 if np.ndim(z0) == 0 else np.zeros(np.shape(z0))
         from numpy.polynomial import chebyshev
 
-        return float(chebyshev.chebval(range_argument(z0, self.domain, name in self.inverse, name == "albedo"),
-                                       coeffs))
+        value = chebyshev.chebval(range_argument(z0, self.domain, name in self.inverse, name == "albedo"), coeffs)
+        return float(value) if np.ndim(value) == 0 else value
 
     def __call__(self, z0: float) -> float:
-        """The correction of z0 (m) at z0."""
+        """The correction of z0 (m) at z0 (a float, or an array: element by element)."""
         return self._series("coeffs", z0)
 
     def log_albedo(self, z0: float) -> float:
@@ -122,7 +122,7 @@ class RangeCorrection(ParamModel):
         return self._series("albedo", z0)
 
     def slopes(self, z0: float, a: float = 0.0, b: float = 0.0) -> tuple[float, float]:
-        """The corrections of the slopes (a, b) of a plane at z0."""
+        """The corrections of the slopes (a, b) of a plane at z0 (floats, or arrays: element by element)."""
         return (self._series("slope_a", z0) + self._series("gain_a", z0) * a,
                 self._series("slope_b", z0) + self._series("gain_b", z0) * b)
 
@@ -418,7 +418,7 @@ class DifferentiableEstimator(Estimator):
         inv_sigma = inv_sigma * (np.arange(width) < own[:, None])[:, None, :]
         n_res_own = N_ZONES * own  # residuals per frame
         kernels = self._kernels(frames)
-        conv = convolution_matrices(kernels, width)
+        conv = self._renderer.responses(convolution_matrices(kernels, width))  # once per frame
         nb = len(frames)
         rd = self._renderer
         nu = rd.n_unknowns
@@ -446,22 +446,30 @@ class DifferentiableEstimator(Estimator):
         tie = n_alb > 1 and spread is not None and math.isfinite(spread)
         centre = (np.eye(n_alb) - 1.0 / n_alb) / (spread if tie else 1.0)
 
+        n_hist = N_ZONES * width  # histogram residuals; the priors' follow
+        Jp = np.zeros((2 + (n_alb if tie else 0), nu))  # the priors' rows of the Jacobian (constant)
+        Jp[0, -2], Jp[1, -1] = prior_w
+        if tie:
+            Jp[2:, 3:3 + n_alb] = centre
+        inv_sigma_j = inv_sigma[..., None]
+
         def residual(xs, rows, jac=False):
-            out = rd.render(xs, conv[rows], jacobian=jac, ambient=None if amb is None else amb[rows])
+            whole = rows.size == nb  # every frame (rows are sorted and distinct): no copies of the frames' arrays
+            pick = (lambda v: v) if whole else (lambda v: v[rows])
+            out = rd.render(xs, pick(conv), jacobian=jac, ambient=None if amb is None else pick(amb))
             h, dh = (out if jac else (out, None))
-            parts = [((h - obs[rows]) * inv_sigma[rows]).reshape(len(rows), -1),
-                     (xs[:, -2:] - prior_mu) * prior_w]
+            res = np.empty((len(rows), n_hist + len(Jp)))
+            hist = res[:, :n_hist].reshape(h.shape)
+            np.multiply(np.subtract(h, pick(obs), out=hist), pick(inv_sigma), out=hist)
+            res[:, n_hist:n_hist + 2] = (xs[:, -2:] - prior_mu) * prior_w
             if tie:
-                parts.append(xs[:, 3:3 + n_alb] @ centre.T)
-            res = np.concatenate(parts, axis=1)
+                res[:, n_hist + 2:] = xs[:, 3:3 + n_alb] @ centre.T
             if not jac:
                 return res
-            J = (dh * inv_sigma[rows][..., None]).reshape(len(rows), -1, nu)
-            Jp = np.zeros((len(rows), 2 + (n_alb if tie else 0), nu))
-            Jp[:, 0, -2], Jp[:, 1, -1] = prior_w
-            if tie:
-                Jp[:, 2:, 3:3 + n_alb] = centre
-            return res, np.concatenate([J, Jp], axis=1)
+            J = np.empty((len(rows), n_hist + len(Jp), nu))
+            np.multiply(dh, pick(inv_sigma_j), out=J[:, :n_hist].reshape(dh.shape))
+            J[:, n_hist:] = Jp
+            return res, J
 
         all_rows = np.arange(nb)
         # the cost at x comes with each Jacobian (no separate render to start); each frame keeps its residuals at
@@ -477,9 +485,11 @@ class DifferentiableEstimator(Estimator):
             if rows.size == 0:
                 break
             r, J = residual(x[rows], rows, jac=True)
-            if res_at is None:
-                res_at, J_at = np.zeros((nb, r.shape[1])), np.zeros((nb,) + J.shape[1:])
-            res_at[rows], J_at[rows], fresh[rows] = r, J, True
+            if rows.size == nb:  # every frame (always so at first): keep the arrays themselves
+                res_at, J_at = r, J
+            else:
+                res_at[rows], J_at[rows] = r, J
+            fresh[rows] = True
             cost[rows] = (r * r).sum(axis=1)
             Jt = J.transpose(0, 2, 1)
             JtJ = Jt @ J  # matmul (BLAS): several times faster than einsum for (B, 9 W, unknowns)
@@ -549,25 +559,41 @@ class DifferentiableEstimator(Estimator):
 
     def _kernels(self, frames: list[Frame]) -> np.ndarray:
         ref = torch.as_tensor(np.array([f.reference for f in frames]), dtype=self.dtype)
-        with torch.no_grad(), single_thread():
+        with torch.inference_mode(), single_thread():  # inference mode: less per-operation bookkeeping than no_grad
             return self.model.pulse(ref).numpy()
 
     def _reported(self, a: float, b: float, z0: float) -> Plane:
         """The plane of optical-frame unknowns, range-corrected, in the reported sensor frame."""
-        da, db = self.correction.slopes(z0, a, b)
-        optical = Plane.from_slopes(a + da, b + db, z0 + self.correction(z0))
-        return Plane(self._mount @ optical.normal, optical.offset)
+        return self._reported_many(np.array([a]), np.array([b]), np.array([z0]))[0]
 
-    def _state_covariance(self, a: float, b: float, z0: float, cov_abz: np.ndarray) -> np.ndarray:
-        """Covariance of (a, b, z0) mapped to (n_x, n_y, d) of the reported plane (numerical Jacobian)."""
-        x0 = np.array([a, b, z0])
-        f0 = tilt_offset(self._reported(*x0))
+    def _reported_many(self, a: np.ndarray, b: np.ndarray, z0: np.ndarray) -> list[Plane]:
+        """:meth:`_reported` of each element of the arrays (the corrections evaluated at once)."""
+        da, db = self.correction.slopes(z0, a, b)
+        a, b, z = a + da, b + db, z0 + self.correction(z0)
+        planes = []
+        for i in range(len(z)):
+            optical = Plane.from_slopes(float(a[i]), float(b[i]), float(z[i]))
+            planes.append(Plane(self._mount @ optical.normal, optical.offset))
+        return planes
+
+    #: steps of the numerical Jacobian of the reported plane in (a, b, z0)
+    _STEPS = (1e-6, 1e-6, 1e-7)
+
+    def _plane_and_covariance(self, a: float, b: float, z0: float,
+                              cov_abz: np.ndarray | None) -> tuple[Plane, np.ndarray | None]:
+        """The reported plane (:meth:`_reported`) and the covariance of (a, b, z0) ``cov_abz`` mapped to (n_x, n_y, d) of
+        it (numerical Jacobian; None without a finite ``cov_abz``)."""
+        if cov_abz is None or not np.all(np.isfinite(cov_abz)):
+            return self._reported(a, b, z0), None
+        pts = np.tile(np.array([a, b, z0]), (4, 1))  # the solution, and each unknown moved by its step
+        for k, h in enumerate(self._STEPS):
+            pts[1 + k, k] += h
+        planes = self._reported_many(pts[:, 0], pts[:, 1], pts[:, 2])
+        f0 = tilt_offset(planes[0])
         jac = np.zeros((3, 3))
-        for k, h in enumerate((1e-6, 1e-6, 1e-7)):
-            xk = x0.copy()
-            xk[k] += h
-            jac[:, k] = (tilt_offset(self._reported(*xk)) - f0) / h
-        return jac @ cov_abz @ jac.T
+        for k, h in enumerate(self._STEPS):
+            jac[:, k] = (tilt_offset(planes[1 + k]) - f0) / h
+        return planes[0], jac @ cov_abz @ jac.T
 
     def _finish(self, x: torch.Tensor, cost: float, n_res: int, cov_abz: np.ndarray | None = None,
                 albedo_std: float | None = None) -> PlaneEstimate:
@@ -579,10 +605,9 @@ class DifferentiableEstimator(Estimator):
         if z0 <= 0:
             return PlaneEstimate(None, reason="solver found no plane in front of the sensor")
         try:
-            plane = self._reported(a, b, z0)
-            cov = None
-            if cov_abz is not None and np.all(np.isfinite(cov_abz)):
-                cov = self.uncertainty.apply(self._state_covariance(a, b, z0, cov_abz), plane.offset, plane.normal)
+            plane, cov = self._plane_and_covariance(a, b, z0, cov_abz)
+            if cov is not None:
+                cov = self.uncertainty.apply(cov, plane.offset, plane.normal)
         except NoPlaneError as exc:
             return PlaneEstimate(None, reason=str(exc))
         determined = albedo_std is None or (math.isfinite(albedo_std) and albedo_std <= ALBEDO_STD_LIMIT)

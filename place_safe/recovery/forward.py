@@ -611,13 +611,14 @@ def convolve_pulse(transient: torch.Tensor, kernel: torch.Tensor) -> torch.Tenso
     return transient @ causal_matrix(kernel, transient.shape[-1]).transpose(-1, -2)
 
 
-def bin_kernel(t, sigma, integrated: float, derivatives: bool = False):
+def bin_kernel(t, sigma, integrated: float, derivatives: bool | str = False):
     """The soft binning's kernel at ``t = n - u`` (bins; numpy or torch arrays): ``(1 - integrated)`` times the
     unit-area Gaussian of ``sigma`` bins sampled at ``t`` plus ``integrated`` times that Gaussian integrated over the
     bin, ``Phi((t + 1/2) / sigma) - Phi((t - 1/2) / sigma)`` (:class:`ForwardParams` ``soft_bin_integrated``).
 
     With ``derivatives`` returns ``(K, dK/du, dK/dsigma)``; for the integrated part ``dK/du = G(t - 1/2) - G(t + 1/2)``
-    and ``dK/dsigma = -((t + 1/2) G(t + 1/2) - (t - 1/2) G(t - 1/2)) / sigma`` (``G`` the Gaussian).
+    and ``dK/dsigma = -((t + 1/2) G(t + 1/2) - (t - 1/2) G(t - 1/2)) / sigma`` (``G`` the Gaussian). With
+    ``derivatives="u"`` returns ``(K, dK/du)`` only.
     """
     if isinstance(t, torch.Tensor):
         exp, erf = torch.exp, torch.special.erf
@@ -632,13 +633,17 @@ def bin_kernel(t, sigma, integrated: float, derivatives: bool = False):
     g, z = gauss(t)
     w = float(integrated)
     if w == 0.0:  # the sampled Gaussian alone
-        return (g, g * z / sigma, g * (z * z - 1.0) / sigma) if derivatives else g
+        if not derivatives:
+            return g
+        return (g, g * z / sigma) if derivatives == "u" else (g, g * z / sigma, g * (z * z - 1.0) / sigma)
     inv = 1.0 / sigma
     k = (1.0 - w) * g + w * 0.5 * (erf((t + 0.5) * (inv / math.sqrt(2.0))) - erf((t - 0.5) * (inv / math.sqrt(2.0))))
     if not derivatives:
         return k
     g_p, g_m = gauss(t + 0.5)[0], gauss(t - 0.5)[0]
     k_u = (1.0 - w) * g * t * inv * inv + w * (g_m - g_p)
+    if derivatives == "u":
+        return k, k_u
     k_s = (1.0 - w) * g * ((t * inv) ** 2 - 1.0) * inv - w * ((t + 0.5) * g_p - (t - 0.5) * g_m) * inv
     return k, k_u, k_s
 

@@ -42,6 +42,7 @@ import math
 
 import numpy as np
 import torch
+from numpy.lib.stride_tricks import sliding_window_view
 
 from place_safe.recovery.forward import (ECHO_REFERENCE_RANGE, ForwardModel, ForwardParams, ZoneRays, bin_kernel,
                                          bin_widths, grid_crosstalk_matrix, pulse_shape_matrix, response_matrix, warp_positions,
@@ -49,17 +50,19 @@ from place_safe.recovery.forward import (ECHO_REFERENCE_RANGE, ForwardModel, For
 from place_safe.sensor.frame import N_BINS, N_ZONES
 
 N_UNKNOWNS = 6
+#: soft-bin kernel widths (``soft_bin_sigma``) from a ray's position beyond which :meth:`PlaneRenderer.soft_bin` takes the
+#: kernel as 0 (the Gaussian there is below ``exp(-40)`` of its peak)
+SOFT_BIN_REACH = 9.0
 
 
 def convolution_matrices(kernels: np.ndarray, width: int) -> np.ndarray:
-    """Causal convolution as matrices (B, width, width): ``(T @ M^T)[j] = sum_k K[k] T[j-k]``."""
+    """Causal convolution as matrices (B, width, width): ``(T @ M^T)[j] = sum_k K[k] T[j-k]``, i.e.
+    ``M[j, i] = K[j - i]`` for ``0 <= j - i < K`` (kernels (B, K)), else 0."""
     b, k_len = kernels.shape
-    idx = np.arange(width)
-    lag = idx[:, None] - idx[None, :]  # j - i
-    valid = (lag >= 0) & (lag < k_len)
-    mats = np.zeros((b, width, width))
-    mats[:, valid] = kernels[:, lag[valid]]
-    return mats
+    n = min(k_len, width)
+    line = np.zeros((b, 2 * width - 1))  # line[width - 1 + lag] = K[lag]: row j of M is line[width - 1 + j - i] over i
+    line[:, width - 1:width - 1 + n] = kernels[:, :n]
+    return sliding_window_view(line[:, ::-1], width, axis=1)[:, ::-1].copy()  # a copy of windows: no index arrays
 
 
 class PlaneRenderer:
@@ -76,17 +79,21 @@ class PlaneRenderer:
         self.amp_weight = w * float(params.rays_per_zone) * gain ** (1.0 - w_g)  # (9, R), the rest after it
         self.offsets = np.asarray(params.zone_offsets, dtype=float)[:, None]  # (9, 1)
         self.scales = np.asarray(params.zone_bin_scales, dtype=float)[:, None]  # (9, 1): each zone's time scale
-        self.inv_sigma2 = 1.0 / params.soft_bin_sigma ** 2
+        #: bins on either side of a ray's position within which its soft-bin kernel is evaluated (beyond them the
+        #: kernel is below 1e-17 of its peak and taken as 0; :meth:`soft_bin`)
+        self.reach = int(math.ceil(SOFT_BIN_REACH * params.soft_bin_sigma)) + 1
+        self._span = np.arange(2 * self.reach)
         #: with ``zone_albedo`` the unknowns are (a, b, z0, log albedo of zones 1..9, ks, log alpha):
         #: each zone's brightness is free, so only timing and shape inform the plane
         self.zone_albedo = zone_albedo
         self.n_unknowns = N_UNKNOWNS + (N_ZONES - 1 if zone_albedo else 0)
-        self.gnorm = 1.0 / (params.soft_bin_sigma * math.sqrt(2.0 * math.pi))
         self.integrated = float(params.soft_bin_integrated)  # > 0: the kernel integrated over each bin (bin_kernel)
         # the emitter beside the receiver (ForwardModel.plane_light); None: co-located, uniform beam
         bx, by = (float(v) for v in params.baseline)
         self.light = None if (bx == 0.0 and by == 0.0 and params.beam_power == 0.0) else (
             bx, by, self.dirs[..., 0] * bx + self.dirs[..., 1] * by, float(params.beam_power))
+        self.light_dnum = np.array([-bx, -by, 1.0])[:, None, None, None]  # d (z0 - a bx - b by) / d (a, b, z0)
+        self.dirs_xy = np.moveaxis(self.dirs[..., :2], -1, 0)[:, None]  # (2, 1, 9, R): the rays' x and y
         # each zone's own tail (ForwardModel: add_zone_tails) as (9, 128, 128) causal matrices; a narrower
         # histogram uses their top-left corner (causal: the first W bins depend on the first W only). None: no tails
         # The learned impulse response (ForwardModel.after_pulse: add_response, before the tails) is folded in:
@@ -124,7 +131,8 @@ class PlaneRenderer:
                           if np.any(np.asarray(params.bin_gains) != 1.0) else None)
 
     def render(self, x: np.ndarray, conv: np.ndarray, jacobian: bool = False, ambient: np.ndarray | None = None):
-        """Histograms (B, 9, W) for unknowns x (B, 6) and convolution matrices (B, W, W).
+        """Histograms (B, 9, W) for unknowns x (B, 6) and the frames' pulse convolution matrices (B, W, W) or, made
+        once per frame for the renders of a solve, their :meth:`responses` (B, 9, W, W) (the same histograms).
 
         With ``jacobian`` also returns d hist / d x as (B, 9, W, 6). The model's constant floor is
         not added (the solver subtracts the measured floor from the data instead). ``ambient`` (B, 9), counts per
@@ -180,19 +188,14 @@ class PlaneRenderer:
         if self.warp is not None:  # apparent positions, and d u' / d u for the derivatives
             u, slope = (v.numpy() for v in warp_positions(torch.from_numpy(u), self.warp))
         width = conv.shape[-1]
-        t = np.arange(width)[None, None, None, :] - u[..., None]          # (B, 9, R, W)
-        G_u = None  # d G / d u, with the Jacobian
-        if self.integrated:
-            G, G_u, _ = bin_kernel(t, p.soft_bin_sigma, self.integrated, derivatives=True)
-        else:
-            G = np.exp(-0.5 * self.inv_sigma2 * t * t) * self.gnorm
-        T = np.matmul(amp[:, :, None, :], G)[:, :, 0]  # sum over rays (a matmul: einsum is slower at these shapes)
+        if conv.ndim == 3:
+            conv = self.responses(conv)
+        G, G_u, place = self.soft_bin(u, width, derivatives=jacobian)  # (B, 9, R, band); G_u = d G / d u
+        T = place(np.matmul(amp[:, :, None, :], G)[:, :, 0])  # sum over rays (a matmul: einsum is slower here)
         if self.glass is not None:  # the cover glass: the same return in every frame (no derivative in x)
             tg = np.arange(width)[None, :] - self.glass_u[:, None]
-            kg = (bin_kernel(tg, p.soft_bin_sigma, self.integrated) if self.integrated
-                  else np.exp(-0.5 * self.inv_sigma2 * tg * tg) * self.gnorm)
-            T = T + (self.glass[:, None] * kg)[None]
-        F = self._mix(self._tail(np.matmul(conv[:, None], T[..., None])[..., 0]))  # expected photon counts
+            T = T + (self.glass[:, None] * bin_kernel(tg, p.soft_bin_sigma, self.integrated))[None]
+        F = self._mix(np.matmul(conv, T[..., None])[..., 0])  # expected photon counts
         if self.shaped:  # ForwardModel.after_pulse: no negative counts beside a sharpened pulse
             F_ok = F >= 0.0
             F = np.maximum(F, 0.0)
@@ -216,33 +219,33 @@ class PlaneRenderer:
         dp_dlogrho = aw * sat * e * E * rest
         dp_dsh = aw * (sat * e * E * wsat / sh * rest + (0.0 if wsat == 1.0 else pp * (1.0 - wsat) * sh ** -wsat))
         dsh_dc = 1.0 + np.where(pos, ks * alpha * Sa / Ssafe * 4.0 * c, 0.0)
-        dr = [-z0 * vx / (qs * qs), -z0 * vy / (qs * qs), 1.0 / qs + 0 * vx]       # d r / d (a, b, z0)
+        # the derivatives in (a, b, z0) stacked on a leading axis of 3 (the same arithmetic, element by element, as
+        # three separate arrays, in a third of the array operations)
+        dr = np.empty((3,) + qs.shape)                                     # d r / d (a, b, z0)
+        dr[:2] = -z0 * self.dirs_xy / (qs * qs)
+        dr[2] = 1.0 / qs
         if self.light is None:
-            dp_dr = aw * sat * e * (-2.0 * E / r) * rest
-            dc = [vx / s - qs * a / s ** 3, vy / s - qs * b / s ** 3, 0.0 * vx]      # d c / d (a, b, z0)
-            du = [dr[k] / p.bin_size * self.scales for k in range(3)]
+            dp_geo = aw * sat * e * (-2.0 * E / r) * rest * dr
+            dc = np.zeros_like(dr)                                         # d c / d (a, b, z0)
+            dc[:2] = self.dirs_xy / s - qs * np.stack([a, b]) / s ** 3
+            du = dr / p.bin_size * self.scales
         else:
             inside = c_raw > 0.0  # the clamp's derivative
-            dre_dr = (r - w_e) / r_e
-            dre = [dre_dr * dr[k] for k in range(3)]
+            dre = (r - w_e) / r_e * dr
             # d log(flux) / d x: inverse square in r_e and the beam (P_z / r_e)^bp
-            dlog = [-2.0 * dre[k] / r_e + bp * (dr[k] / r - dre[k] / r_e) for k in range(3)]
-            dnum = [-bx + 0 * vx, -by + 0 * vx, 1.0 + 0 * vx]
-            ds = [a / s, b / s, 0.0]
-            dc = [np.where(inside, dnum[k] / (s * r_e) - c_raw * (ds[k] / s + dre[k] / r_e), 0.0) for k in range(3)]
-            du = [0.5 * (dr[k] + dre[k]) / p.bin_size * self.scales for k in range(3)]
-            dp_dr = None
-        dp_dlogflux = aw * sat * e * E * rest
+            dlog = -2.0 * dre / r_e + bp * (dr / r - dre / r_e)
+            ds = np.stack([a / s, b / s, np.zeros_like(s)])
+            dc = np.where(inside, self.light_dnum / (s * r_e) - c_raw * (ds / s + dre / r_e), 0.0)
+            du = 0.5 * (dr + dre) / p.bin_size * self.scales
+            dp_geo = dp_dlogrho * dlog  # d amp / d log(flux) is d amp / d log(albedo)
         logS = np.where(pos, np.log(Ssafe), 0.0)
         dsh = [None, None, None, None, Sa, ks * Sa * logS * alpha]                # d sh / d x4, x5
         nu = self.n_unknowns
         amp_direct = amp[..., :n_direct]
         A = np.zeros(amp_direct.shape + (nu,))   # d amp / d x
         B = np.zeros(amp_direct.shape + (nu,))   # amp * d u / d x
-        for k in range(3):
-            dp_geo = dp_dr * dr[k] if dp_dr is not None else dp_dlogflux * dlog[k]
-            A[..., k] = dp_geo + dp_dsh * dsh_dc * dc[k]
-            B[..., k] = amp_direct * du[k] * (1.0 if slope is None else slope[..., :n_direct])
+        A[..., :3] = np.moveaxis(dp_geo + dp_dsh * dsh_dc * dc, 0, -1)
+        B[..., :3] = np.moveaxis(amp_direct * du * (1.0 if slope is None else slope[..., :n_direct]), 0, -1)
         if self.zone_albedo:
             zones = np.arange(N_ZONES)
             A[:, zones, :, 3 + zones] = dp_dlogrho.transpose(1, 0, 2)
@@ -262,9 +265,8 @@ class PlaneRenderer:
                 B_e[..., k] = amp_e * 2.0 * du[k] * (1.0 if slope is None else slope[..., n_direct:])
             A = np.concatenate([A, A_e], axis=2)
             B = np.concatenate([B, B_e], axis=2)
-        Gt = G * t * self.inv_sigma2 if G_u is None else G_u
-        dT = np.matmul(G.swapaxes(2, 3), A) + np.matmul(Gt.swapaxes(2, 3), B)  # (B, 9, W, k), sums over rays
-        dF = self._mix(self._tail(np.matmul(conv[:, None], dT)), axis_zone=1)
+        dT = place(np.matmul(G.swapaxes(2, 3), A) + np.matmul(G_u.swapaxes(2, 3), B))  # (B, 9, W, k), sums over rays
+        dF = self._mix(np.matmul(conv, dT), axis_zone=1)
         if self.shaped:
             dF = dF * F_ok[..., None]
         if self.bin_gains is not None:
@@ -276,16 +278,59 @@ class PlaneRenderer:
             dH = dF
         return H, dH
 
-    def _tail(self, h: np.ndarray) -> np.ndarray:
-        """Each zone's pulse shape, response and own tail applied to histograms (B, 9, W) or their derivatives
-        (B, 9, W, k)."""
+    def soft_bin(self, u: np.ndarray, width: int, derivatives: bool = False):
+        """The soft-bin kernel ``G(n - u)`` (:func:`~place_safe.recovery.forward.bin_kernel`) of rays at positions
+        ``u`` (B, 9, R; bins) over the bins ``n = 0..width-1``, in a band of each zone's bins: returns ``(G, G_u,
+        place)`` with ``G`` (B, 9, R, L) the kernel at bins ``start + l`` (``start`` per frame and zone), ``G_u`` its
+        derivative in ``u`` (with ``derivatives``, else None) and ``place`` the function that puts (B, 9, L, ...)
+        arrays of the band at their bins of (B, 9, width, ...) (0 elsewhere, and bins outside the histogram dropped).
+
+        Each ray's kernel is evaluated only at the ``2 reach`` bins nearest its position (a window that covers every
+        bin within ``reach`` of ``u``, moved inside ``[-reach, width + reach)`` for rays beyond the histogram) and is
+        0 elsewhere: beyond :data:`SOFT_BIN_REACH` widths the Gaussian is below ``exp(-40)`` of its peak, so the
+        histograms are those of the kernel evaluated at every bin to rounding. A zone's rays lie within a few bins,
+        so its band is some 20 bins where the histogram has 60-130.
+        """
+        sigma, reach = self.p.soft_bin_sigma, self.reach
+        span = 2 * reach
+        lo = np.clip(np.floor(u).astype(np.intp) - (reach - 1), -reach, width - reach)  # first bin of each window
+        n = lo[..., None] + self._span  # (B, 9, R, span), within [-reach, width + reach)
+        t = n - u[..., None]
+        start = lo.min(axis=-1)  # (B, 9): each zone's first band bin
+        local = lo - start[..., None]
+        band = int(local.max()) + span
+        rows = np.arange(u.size).reshape(u.shape + (1,)) * band
+        flat = (rows + local[..., None] + self._span).ravel()
+
+        def dense(values):
+            out = np.zeros(u.shape + (band,))
+            out.reshape(-1)[flat] = values.reshape(-1)
+            return out
+
+        padded = width + reach + band  # band bins start + l at start + reach + l of rows this long
+        at = ((np.arange(start.size).reshape(start.shape) * padded + start + reach)[..., None]
+              + np.arange(band)).ravel()
+
+        def place(x: np.ndarray) -> np.ndarray:
+            out = np.zeros(start.shape + (padded,) + x.shape[3:])
+            out.reshape((-1,) + x.shape[3:])[at] = x.reshape((-1,) + x.shape[3:])
+            return out[:, :, reach:reach + width]
+
+        if not derivatives:
+            return dense(bin_kernel(t, sigma, self.integrated)), None, place
+        k, k_u = bin_kernel(t, sigma, self.integrated, derivatives="u")
+        return dense(k), dense(k_u), place
+
+    def responses(self, conv: np.ndarray) -> np.ndarray:
+        """Each zone's whole causal response to a transient, (B, 9, W, W) (or (B, 1, W, W) when the zones share it),
+        from the frames' pulse convolution matrices ``conv`` (B, W, W): the pulse, then the zone's pulse shape,
+        learned response and own tail. All are causal convolutions, so their product is one per zone, built from its
+        first column (one matrix product per render instead of two; the same histograms to rounding)."""
         if self.tail_mats is None:
-            return h
-        width = h.shape[2]
-        mats = self.tail_mats[:, :width, :width]
-        if h.ndim == 3:
-            return np.matmul(mats, h[..., None])[..., 0]
-        return np.matmul(mats, h)  # (9, W, W) @ (B, 9, W, k): one small matrix product per frame and zone
+            return conv[:, None]
+        b, width = conv.shape[0], conv.shape[-1]
+        first = np.matmul(self.tail_mats[:, :width, :width], conv[:, None, :, :1])[..., 0]  # (B, 9, W)
+        return convolution_matrices(first.reshape(b * N_ZONES, width), width).reshape(b, N_ZONES, width, width)
 
     def _mix(self, h: np.ndarray, axis_zone: int = 1) -> np.ndarray:
         c = self.p.crosstalk

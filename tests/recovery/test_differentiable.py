@@ -345,3 +345,17 @@ def test_an_albedo_the_frame_does_not_determine_is_not_reported():
     for f in far:
         e = est.estimate(f)
         assert e.plane is not None and e.albedo is not None and math.isfinite(e.albedo) and e.albedo > 0
+
+
+def test_range_correction_of_arrays_is_that_of_each_element():
+    """The correction evaluated on arrays of planes (the covariance's moved points at once) is, element by element,
+    the correction of each plane alone."""
+    from place_safe.recovery.differentiable import RangeCorrection
+
+    c = RangeCorrection(coeffs=[0.0, 0.001, -0.0005], domain=[0.02, 0.4], slope_a=[0.002, 0.001],
+                        gain_b=[0.01, -0.005], inverse=["coeffs"])
+    z0, a, b = np.array([0.01, 0.05, 0.2, 0.5]), np.array([0.1, -0.2, 0.0, 0.3]), np.array([0.0, 0.1, -0.3, 0.2])
+    da, db = c.slopes(z0, a, b)
+    for i in range(len(z0)):
+        assert c(float(z0[i])) == c(z0)[i]
+        assert c.slopes(float(z0[i]), float(a[i]), float(b[i])) == (da[i], db[i])

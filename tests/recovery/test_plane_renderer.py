@@ -190,3 +190,32 @@ def test_matches_torch_model_with_integrated_soft_binning():
                          glass_gains=list(np.linspace(5.0, 40.0, 9)), pileup=2e-7, baseline=[0.003, -0.0015],
                          beam_power=1.2, zone_bin_scales=list(np.linspace(0.96, 1.05, 9))),
            np.array([-0.25, 0.2, 0.18, math.log(2.0), 0.2, math.log(1.5)]))
+
+
+def test_responses_made_once_give_the_same_renders_and_the_band_covers_rays_beyond_the_histogram():
+    """The per-frame responses (pulse, pulse shape, learned response and zone tails folded into one causal matrix per
+    zone) render what the pulse matrices render, Jacobian included; rays whose windows reach past either end of the
+    histogram (a plane beyond it, a zone offset before bin 0) are rendered as the kernel evaluated at every bin."""
+    from place_safe.recovery.forward import RESPONSE_LAGS, bin_kernel
+
+    kernel = np.zeros(RESPONSE_LAGS)
+    kernel[:3] = [0.2, 0.05, 0.01]
+    p = ForwardParams(response_kernel=list(kernel), zone_tail_weights=list(np.linspace(0.01, 0.08, 9)),
+                      zone_tail_decays=list(np.linspace(1.5, 4.0, 9)), zone_pulse_widths=[0.2] * 9,
+                      zone_pulse_skews=[0.1] * 9, pileup=1e-7, crosstalk=0.01)
+    rays = ZoneRays.stratified(4)
+    renderer = PlaneRenderer(p, rays, zone_albedo=True)
+    pulse = ForwardModel(p, rays).pulse(torch.as_tensor(default_reference())[None]).numpy()
+    conv = convolution_matrices(np.repeat(pulse, 2, axis=0), 50)
+    x = np.array([[0.2, -0.1, 0.1] + [math.log(3.0)] * 9 + [0.1, math.log(2.0)],
+                  [-0.3, 0.2, 0.3] + [math.log(2.0)] * 9 + [0.2, math.log(1.5)]])
+    h, j = renderer.render(x, conv, jacobian=True)
+    h2, j2 = renderer.render(x, renderer.responses(conv), jacobian=True)
+    np.testing.assert_allclose(h2, h, rtol=1e-12, atol=1e-12 * np.abs(h).max())
+    np.testing.assert_allclose(j2, j, rtol=1e-12, atol=1e-12 * np.abs(j).max())
+    u = np.array([[[-8.3, -0.4, 3.2, 48.7, 49.6, 63.0, 200.0]]])
+    g, g_u, place = renderer.soft_bin(u, 50, derivatives=True)
+    full, full_u, _ = bin_kernel(np.arange(50) - u[..., None], p.soft_bin_sigma, 0.0, derivatives=True)
+    amp = np.linspace(1.0, 2.0, u.shape[-1])
+    np.testing.assert_allclose(place(np.matmul(amp, g)), np.matmul(amp, full), atol=1e-15)
+    np.testing.assert_allclose(place(np.matmul(amp, g_u)), np.matmul(amp, full_u), atol=1e-15)
