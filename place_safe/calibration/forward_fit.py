@@ -203,6 +203,12 @@ RELATIVE_DECREMENT = 1e-4
 #: Starts of added terms whose prior mean is 0, their lower bound: just inside, so that their derivatives (and
 #: those of the parameters they carry, e.g. ``glass_delay``) are not zero.
 NONZERO_START = {"crosstalk_grid": [1e-3] * 8, "glass_gains": [1.0] * N_ZONES, "echo_gain": 0.01}
+#: The soft binning a calibration starts from (and holds: a structural choice), as ``ForwardParams`` fields; empty: the
+#: paper's sampled Gaussian. ``{"soft_bin_spline": 1.0, "soft_bin_sigma": 0.25}`` starts from the quadratic B-spline
+#: convolved with a Gaussian (its shape does not follow the return's sub-bin position; total width sqrt(1/4 + 0.25^2)
+#: = 0.56 bins, the paper's 0.5 Gaussian's), which halves the zones' timing scatter against the real frames but not
+#: diff's plane error (docs/results.md, the unit model, step 10), so it is not the default.
+SOFT_BINNING_START: dict[str, float] = {}
 #: The coarse stage's relative decrement test (see :data:`RELATIVE_DECREMENT`; ``fit_forward(coarse_rays=...)``):
 #: it only has to bring the fit near the minimum of the full quadrature.
 COARSE_RELATIVE_DECREMENT = 1e-3
@@ -363,7 +369,7 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
     if init is None:
         init = ForwardParams(pileup=1e-7, beam_power=1.0, zone_tail_weights=[0.03] * N_ZONES,
                              zone_tail_decays=[3.0] * N_ZONES, **{k: 0.5 for k in STRUCTURAL if k in fitted},
-                             **{k: v for k, v in NONZERO_START.items() if k in fitted})
+                             **{k: v for k, v in NONZERO_START.items() if k in fitted}, **SOFT_BINNING_START)
         if "ref_floor" not in fitted:  # (a fitted floor starts from the published value)
             ref_floors = {"measured": float(np.median([reference_floor(f.reference) for f in data])),
                           "published": init.ref_floor}

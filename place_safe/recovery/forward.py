@@ -33,7 +33,7 @@ from typing import ClassVar, Collection
 
 import numpy as np
 import torch
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from place_safe.config import ParamModel, vector
 from place_safe.exceptions import CalibrationError
@@ -196,6 +196,14 @@ class ForwardParams(ParamModel):
       bin, ``Phi((n + 1/2 - u) / sigma) - Phi((n - 1/2 - u) / sigma)``, which sums to 1 and keeps the centroid at any
       position, as a time-to-digital converter that counts every arrival within a bin does (:func:`bin_kernel`). A
       structural choice held at its value (not among the fitted parameters).
+    * ``soft_bin_spline`` (0 or 1, default 0; version 8): 1 spreads each ray's arrival by the quadratic B-spline (the
+      bin's box convolved with itself twice, variance 1/4 bin^2) convolved with the Gaussian of ``soft_bin_sigma``
+      (:func:`bin_kernel`). A B-spline of degree 2 reproduces polynomials up to degree 2, so the kernel's sum over
+      the bins, its centroid and its width stay the same wherever the ray falls within a bin, for any sigma. The
+      sampled Gaussian's do not below sigma ~0.65: the fitted sigma (0.48-0.55 on real and simulated units) then
+      makes the model's shape, and so diff's timing, follow the return's sub-bin position by a one-bin periodic error
+      that the sensor does not have (docs/results.md, the unit model, step 10). Its total width is
+      ``sqrt(1/4 + sigma^2)`` bins. Exclusive with ``soft_bin_integrated``; held, not fitted.
     * The per-zone timing offsets and gains (``zone_offsets``, ``zone_gains``), pile-up (``pileup``), the zones'
       own tails and the learned response kernel are described above.
 
@@ -298,6 +306,19 @@ class ForwardParams(ParamModel):
     soft_bin_integrated: float = Field(
         0.0, ge=0.0, le=1.0,
         description="(blend: 0 the Gaussian sampled at bin centres, 1 the Gaussian integrated over each bin)")
+    # Version 8 (absent from older files; the default is the model as it was): the quadratic B-spline convolved with
+    # the Gaussian as the soft binning's kernel (its sum, centroid and width do not follow the sub-bin position).
+    soft_bin_spline: float = Field(
+        0.0, ge=0.0, le=1.0,
+        description="(0 the Gaussian as soft_bin_integrated says, 1 the quadratic B-spline convolved with it)")
+
+    @model_validator(mode="after")
+    def _one_soft_binning(self) -> "ForwardParams":
+        if self.soft_bin_spline not in (0.0, 1.0):
+            raise ValueError(f"soft_bin_spline must be 0 or 1 (a structural choice), got {self.soft_bin_spline}")
+        if self.soft_bin_spline and self.soft_bin_integrated:
+            raise ValueError("soft_bin_spline and soft_bin_integrated exclude each other (one soft binning)")
+        return self
 
     def kind_gains(self) -> np.ndarray:
         """Gain of each zone (9,): centre 1, edge/corner gains, times the per-zone gains."""
@@ -611,15 +632,19 @@ def convolve_pulse(transient: torch.Tensor, kernel: torch.Tensor) -> torch.Tenso
     return transient @ causal_matrix(kernel, transient.shape[-1]).transpose(-1, -2)
 
 
-def bin_kernel(t, sigma, integrated: float, derivatives: bool | str = False):
+def bin_kernel(t, sigma, integrated: float, derivatives: bool | str = False, spline: float = 0.0):
     """The soft binning's kernel at ``t = n - u`` (bins; numpy or torch arrays): ``(1 - integrated)`` times the
     unit-area Gaussian of ``sigma`` bins sampled at ``t`` plus ``integrated`` times that Gaussian integrated over the
-    bin, ``Phi((t + 1/2) / sigma) - Phi((t - 1/2) / sigma)`` (:class:`ForwardParams` ``soft_bin_integrated``).
+    bin, ``Phi((t + 1/2) / sigma) - Phi((t - 1/2) / sigma)`` (:class:`ForwardParams` ``soft_bin_integrated``); with
+    ``spline`` 1 the quadratic B-spline convolved with the Gaussian instead (:func:`spline_bin_kernel`, whose ``t``
+    steps by one bin along its last axis, as every caller's does: ``n`` consecutive bins).
 
     With ``derivatives`` returns ``(K, dK/du, dK/dsigma)``; for the integrated part ``dK/du = G(t - 1/2) - G(t + 1/2)``
     and ``dK/dsigma = -((t + 1/2) G(t + 1/2) - (t - 1/2) G(t - 1/2)) / sigma`` (``G`` the Gaussian). With
     ``derivatives="u"`` returns ``(K, dK/du)`` only.
     """
+    if spline:
+        return spline_bin_kernel(t, sigma, derivatives)
     if isinstance(t, torch.Tensor):
         exp, erf = torch.exp, torch.special.erf
     else:
@@ -648,6 +673,54 @@ def bin_kernel(t, sigma, integrated: float, derivatives: bool | str = False):
     return k, k_u, k_s
 
 
+#: Gaussian widths beyond the quadratic B-spline's support at which :func:`spline_bin_kernel` is set to 0 (its value
+#: there is below 1e-15 of its peak; the terms it is made of cancel only to rounding, ~1e-16 of bin^2 in float64)
+SPLINE_SUPPORT_SIGMAS = 8.0
+
+
+def spline_bin_kernel(t, sigma, derivatives: bool | str = False):
+    """The quadratic B-spline (the unit box convolved with itself twice, support [-3/2, 3/2] bins) convolved with the
+    unit-area Gaussian of ``sigma`` bins, at ``t = n - u`` (numpy or torch arrays whose last axis steps by one bin):
+    the soft binning of :class:`ForwardParams` ``soft_bin_spline``. Its sum over consecutive bins is 1, its centroid
+    ``u`` and its variance ``1/4 + sigma^2`` for every sub-bin position ``u`` (a B-spline of degree 2 reproduces
+    polynomials up to degree 2).
+
+    Written as the third difference of the Gaussian's third integral ``G3(x) = (x^2 + sigma^2) / 2 Phi(x / sigma) +
+    sigma x / 2 phi(x / sigma)`` over the half-integer points ``t + 3/2, t + 1/2, t - 1/2, t - 3/2``: one evaluation
+    per half-integer point, shared by neighbouring bins. ``dK/du = -(third difference of G2)``, ``G2(x) = x
+    Phi(x / sigma) + sigma phi(x / sigma)``, and ``dK/dsigma = sigma (third difference of Phi(x / sigma))`` (the
+    Gaussian's width obeys the heat equation). With ``derivatives`` returns ``(K, dK/du, dK/dsigma)``, with
+    ``derivatives="u"`` ``(K, dK/du)``.
+    """
+    if isinstance(t, torch.Tensor):
+        exp, erf, xp = torch.exp, torch.special.erf, torch
+        steps = torch.arange(t.shape[-1] + 3, dtype=t.dtype)
+        points = t[..., :1] - 1.5 + steps  # the half-integer points t_0 - 3/2 ... t_last + 3/2
+
+        def third_difference(f):
+            return f[..., 3:] - 3.0 * f[..., 2:-1] + 3.0 * f[..., 1:-2] - f[..., :-3]
+    else:
+        from scipy.special import erf
+        exp, xp = np.exp, np
+        points = np.asarray(t)[..., :1] - 1.5 + np.arange(np.shape(t)[-1] + 3)
+
+        def third_difference(f):
+            return np.diff(f, n=3, axis=-1)
+    z = points / sigma
+    Phi = 0.5 * (1.0 + erf(z / math.sqrt(2.0)))
+    phi = exp(-0.5 * z * z) / _SQRT_2PI
+    g3 = 0.5 * (points * points + sigma * sigma) * Phi + 0.5 * sigma * points * phi
+    inside = xp.abs(t) <= 1.5 + SPLINE_SUPPORT_SIGMAS * sigma
+    k = third_difference(g3) * inside
+    if not derivatives:
+        return k
+    g2 = points * Phi + sigma * phi
+    k_u = -third_difference(g2) * inside
+    if derivatives == "u":
+        return k, k_u
+    return k, k_u, sigma * third_difference(Phi) * inside
+
+
 class _SoftBin(torch.autograd.Function):
     """``T[b, z, n] = sum_r amp[b, z, r] G(n - u[b, z, r])``, ``G`` the Gaussian of width ``sigma`` (bins,
     unit area), with its derivatives written out. With ``integrated`` > 0 (a float, not differentiated) ``G`` is
@@ -661,26 +734,26 @@ class _SoftBin(torch.autograd.Function):
     generate_vmap_rule = True
 
     @staticmethod
-    def forward(amp, u, sigma, bins, integrated):
-        g = bin_kernel(bins.view(1, 1, 1, -1) - u.unsqueeze(-1), sigma, integrated)
+    def forward(amp, u, sigma, bins, integrated, spline):
+        g = bin_kernel(bins.view(1, 1, 1, -1) - u.unsqueeze(-1), sigma, integrated, spline=spline)
         return torch.einsum("bzr,bzrn->bzn", amp, g)
 
     @staticmethod
     def setup_context(ctx, inputs, output):
-        amp, u, sigma, bins, integrated = inputs
-        ctx.integrated = integrated
+        amp, u, sigma, bins, integrated, spline = inputs
+        ctx.integrated, ctx.spline = integrated, spline
         ctx.save_for_backward(amp, u, sigma, bins)
         ctx.save_for_forward(amp, u, sigma, bins)
 
     @staticmethod
-    def _parts(amp, u, sigma, bins, integrated):
+    def _parts(amp, u, sigma, bins, integrated, spline):
         """G, dG/du, dG/dsigma (:func:`bin_kernel`)."""
-        return bin_kernel(bins.view(1, 1, 1, -1) - u.unsqueeze(-1), sigma, integrated, derivatives=True)
+        return bin_kernel(bins.view(1, 1, 1, -1) - u.unsqueeze(-1), sigma, integrated, derivatives=True, spline=spline)
 
     @staticmethod
-    def jvp(ctx, d_amp, d_u, d_sigma, _d_bins, _d_integrated):
+    def jvp(ctx, d_amp, d_u, d_sigma, _d_bins, _d_integrated, _d_spline):
         amp, u, sigma, bins = ctx.saved_tensors
-        g, g_u, g_s = _SoftBin._parts(amp, u, sigma, bins, ctx.integrated)
+        g, g_u, g_s = _SoftBin._parts(amp, u, sigma, bins, ctx.integrated, ctx.spline)
         out = torch.zeros(amp.shape[:2] + bins.shape, dtype=amp.dtype)
         if d_amp is not None:
             out = out + torch.einsum("bzr,bzrn->bzn", d_amp, g)
@@ -693,20 +766,22 @@ class _SoftBin(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad):
         amp, u, sigma, bins = ctx.saved_tensors
-        g, g_u, g_s = _SoftBin._parts(amp, u, sigma, bins, ctx.integrated)
+        g, g_u, g_s = _SoftBin._parts(amp, u, sigma, bins, ctx.integrated, ctx.spline)
         d_amp = torch.einsum("bzn,bzrn->bzr", grad, g)
         d_u = amp * torch.einsum("bzn,bzrn->bzr", grad, g_u)
         d_sigma = (amp * torch.einsum("bzn,bzrn->bzr", grad, g_s)).sum().reshape(sigma.shape)
-        return d_amp, d_u, d_sigma, None, None
+        return d_amp, d_u, d_sigma, None, None, None
 
 
 def soft_bin(amp: torch.Tensor, u: torch.Tensor, sigma: torch.Tensor, bins: torch.Tensor,
-             integrated: float = 0.0) -> torch.Tensor:
+             integrated: float = 0.0, spline: float = 0.0) -> torch.Tensor:
     """Transients (B, 9, N) of ray amplitudes ``amp`` (B, 9, R) at bin positions ``u`` (B, 9, R), each spread
-    by a unit-area Gaussian of ``sigma`` bins over the bin centres ``bins`` (N,); ``integrated`` (blend in [0, 1],
-    :func:`bin_kernel`) integrates it over each bin instead."""
+    by a unit-area Gaussian of ``sigma`` bins over the bin centres ``bins`` (N,, consecutive); ``integrated`` (blend in
+    [0, 1], :func:`bin_kernel`) integrates it over each bin instead; ``spline`` 1 spreads it by the quadratic B-spline
+    convolved with that Gaussian (:func:`spline_bin_kernel`)."""
     amp, u = torch.broadcast_tensors(amp, u)
-    return _SoftBin.apply(amp, u, torch.as_tensor(sigma, dtype=amp.dtype), bins.to(amp.dtype), float(integrated))
+    return _SoftBin.apply(amp, u, torch.as_tensor(sigma, dtype=amp.dtype), bins.to(amp.dtype), float(integrated),
+                          float(spline))
 
 
 class ForwardModel:
@@ -820,7 +895,8 @@ class ForwardModel:
         if torch.is_grad_enabled() or bool(torch.any(t["time_warp"] != 0)):
             u = warp_positions(u, t["time_warp"])[0]  # the TDC's integral non-linearity (direct, echo and glass)
         sigma = t["soft_bin_sigma"]
-        transient = soft_bin(amp, u, sigma, self.bins[:n_bins], float(t["soft_bin_integrated"]))
+        transient = soft_bin(amp, u, sigma, self.bins[:n_bins], float(t["soft_bin_integrated"]),
+                             float(t["soft_bin_spline"]))
         if kernel is None:
             kernel = self.pulse(torch.as_tensor(reference, dtype=self.dtype).expand(b, N_BINS))
         hist = convolve_pulse(transient, kernel)

@@ -18,7 +18,8 @@ Chain of the derivatives, per ray with direction ``v``::
     p = sat (1 - exp(-g^v rho h^w / (sat r^2))) h^(1-w) g^(1-v),   w = saturate_shading, v = saturate_gain
     u = r / bin_size * zone_bin_scale + bin_offset + zone_offset
     T(bin) = sum_rays w p G(bin - u),      G = Gaussian of soft_bin_sigma (blended with its integral over the bin
-                                           by soft_bin_integrated, version 7: forward.bin_kernel)
+                                           by soft_bin_integrated, version 7, or convolved with the quadratic
+                                           B-spline, soft_bin_spline, version 8: forward.bin_kernel)
     F = crosstalk-mix(zone-tail(response(T * pulse))),   H = pile-up(F)   (mix: h + c (total - (1 - crosstalk_self) h))   (Coates; identity when ``pileup = 0``)
 
 With the emitter at ``E = (bx, by, 0)`` (``baseline``) the light's range ``r_e = |r v - E|`` replaces ``r`` in
@@ -80,14 +81,15 @@ class PlaneRenderer:
         self.offsets = np.asarray(params.zone_offsets, dtype=float)[:, None]  # (9, 1)
         self.scales = np.asarray(params.zone_bin_scales, dtype=float)[:, None]  # (9, 1): each zone's time scale
         #: bins on either side of a ray's position within which its soft-bin kernel is evaluated (beyond them the
-        #: kernel is below 1e-17 of its peak and taken as 0; :meth:`soft_bin`)
-        self.reach = int(math.ceil(SOFT_BIN_REACH * params.soft_bin_sigma)) + 1
+        #: kernel is below 1e-17 of its peak and taken as 0; :meth:`soft_bin`; the spline's reaches 3/2 bin further)
+        self.reach = int(math.ceil(SOFT_BIN_REACH * params.soft_bin_sigma + 1.5 * params.soft_bin_spline)) + 1
         self._span = np.arange(2 * self.reach)
         #: with ``zone_albedo`` the unknowns are (a, b, z0, log albedo of zones 1..9, ks, log alpha):
         #: each zone's brightness is free, so only timing and shape inform the plane
         self.zone_albedo = zone_albedo
         self.n_unknowns = N_UNKNOWNS + (N_ZONES - 1 if zone_albedo else 0)
         self.integrated = float(params.soft_bin_integrated)  # > 0: the kernel integrated over each bin (bin_kernel)
+        self.spline = float(params.soft_bin_spline)  # 1: the quadratic B-spline convolved with the Gaussian (bin_kernel)
         # the emitter beside the receiver (ForwardModel.plane_light); None: co-located, uniform beam
         bx, by = (float(v) for v in params.baseline)
         self.light = None if (bx == 0.0 and by == 0.0 and params.beam_power == 0.0) else (
@@ -194,7 +196,8 @@ class PlaneRenderer:
         T = place(np.matmul(amp[:, :, None, :], G)[:, :, 0])  # sum over rays (a matmul: einsum is slower here)
         if self.glass is not None:  # the cover glass: the same return in every frame (no derivative in x)
             tg = np.arange(width)[None, :] - self.glass_u[:, None]
-            T = T + (self.glass[:, None] * bin_kernel(tg, p.soft_bin_sigma, self.integrated))[None]
+            kg = bin_kernel(tg, p.soft_bin_sigma, self.integrated, spline=self.spline)
+            T = T + (self.glass[:, None] * kg)[None]
         F = self._mix(np.matmul(conv, T[..., None])[..., 0])  # expected photon counts
         if self.shaped:  # ForwardModel.after_pulse: no negative counts beside a sharpened pulse
             F_ok = F >= 0.0
@@ -317,8 +320,8 @@ class PlaneRenderer:
             return out[:, :, reach:reach + width]
 
         if not derivatives:
-            return dense(bin_kernel(t, sigma, self.integrated)), None, place
-        k, k_u = bin_kernel(t, sigma, self.integrated, derivatives="u")
+            return dense(bin_kernel(t, sigma, self.integrated, spline=self.spline)), None, place
+        k, k_u = bin_kernel(t, sigma, self.integrated, derivatives="u", spline=self.spline)
         return dense(k), dense(k_u), place
 
     def responses(self, conv: np.ndarray) -> np.ndarray:

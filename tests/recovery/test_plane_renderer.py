@@ -181,6 +181,15 @@ def test_matches_torch_model_with_the_ambient_through_the_pile_up():
     np.testing.assert_array_equal(plain.render(x[None], conv, ambient=ambient[None]), plain.render(x[None], conv))
 
 
+def test_matches_torch_model_with_spline_soft_binning():
+    """The quadratic B-spline soft binning (version 8) renders and differentiates as in the torch model, with the
+    cover-glass return, the echo and per-zone albedos."""
+    x = np.array([0.07, -0.04, 0.11, math.log(3.4), 0.12, math.log(1.8)])
+    _check(ForwardParams(soft_bin_spline=1.0, soft_bin_sigma=0.22), x)
+    _check(ForwardParams(soft_bin_spline=1.0, soft_bin_sigma=0.05, echo_gain=0.03, echo_power=1.0,
+                         glass_gains=[0.5] * 9), x)
+
+
 def test_matches_torch_model_with_integrated_soft_binning():
     """The soft binning integrated over each bin (version 7), fully and blended, renders and differentiates as in
     the torch model, the echo and the glass included."""
