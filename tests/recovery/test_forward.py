@@ -585,13 +585,15 @@ def test_integrated_soft_binning_derivatives_are_exact():
                                         check_forward_ad=True)
 
 
-def test_a_file_without_the_integrated_soft_binning_renders_the_model_as_it_was():
-    """Parameters written before version 7 (no ``soft_bin_integrated``) load with 0, the Gaussian sampled at the bin
-    centres, and render exactly as before; 1 moves counts (the field acts)."""
+@pytest.mark.parametrize("field, acting", [("soft_bin_integrated", {"soft_bin_integrated": 1.0}),
+                                           ("soft_bin_spline", {"soft_bin_spline": 1.0, "soft_bin_sigma": 0.22})])
+def test_a_file_without_a_later_soft_binning_renders_the_model_as_it_was(field, acting):
+    """Parameters written before version 7 (no ``soft_bin_integrated``) or 8 (no ``soft_bin_spline``) load with 0, the
+    Gaussian sampled at the bin centres, and render exactly as before; set, the field moves counts (it acts)."""
     d = ForwardParams(soft_bin_sigma=0.54).to_dict()
-    d.pop("soft_bin_integrated")
+    d.pop(field)
     old = ForwardParams.from_dict(d)
-    assert old.soft_bin_integrated == 0.0
+    assert getattr(old, field) == 0.0
     normal = torch.tensor([[0.1, -0.05, 1.0]], dtype=torch.float64)
     normal = normal / normal.norm()
     ref = torch.as_tensor(default_reference(), dtype=torch.float64)[None]
@@ -602,7 +604,7 @@ def test_a_file_without_the_integrated_soft_binning_renders_the_model_as_it_was(
                                                                          torch.tensor([3.0]), ref)
 
     torch.testing.assert_close(render(old), render(ForwardParams(soft_bin_sigma=0.54)), rtol=0, atol=0)
-    assert not torch.allclose(render(old), render(old.replace(soft_bin_integrated=1.0)))
+    assert not torch.allclose(render(old), render(old.replace(**acting)))
 
 
 def test_spline_soft_binning_keeps_each_rays_count_centroid_and_width_at_any_sub_bin_position():
@@ -648,24 +650,8 @@ def test_spline_soft_binning_derivatives_are_exact():
                                     check_forward_ad=True)
 
 
-def test_a_file_without_the_spline_soft_binning_renders_the_model_as_it_was():
-    """Parameters written before version 8 (no ``soft_bin_spline``) load with 0 and render exactly as before; 1 moves
-    counts; it is 0 or 1 and excludes the integrated soft binning (one line each)."""
-    d = ForwardParams(soft_bin_sigma=0.54).to_dict()
-    d.pop("soft_bin_spline")
-    old = ForwardParams.from_dict(d)
-    assert old.soft_bin_spline == 0.0
-    normal = torch.tensor([[0.1, -0.05, 1.0]], dtype=torch.float64)
-    normal = normal / normal.norm()
-    ref = torch.as_tensor(default_reference(), dtype=torch.float64)[None]
-
-    def render(p):
-        with torch.no_grad():
-            return ForwardModel(p, ZoneRays.stratified(4)).render_plane(normal, torch.tensor([0.12]),
-                                                                         torch.tensor([3.0]), ref)
-
-    torch.testing.assert_close(render(old), render(ForwardParams(soft_bin_sigma=0.54)), rtol=0, atol=0)
-    assert not torch.allclose(render(old), render(old.replace(soft_bin_spline=1.0, soft_bin_sigma=0.22)))
+def test_the_spline_soft_binning_is_a_structural_choice_of_one_soft_binning():
+    """``soft_bin_spline`` is 0 or 1 and excludes the integrated soft binning (one line each)."""
     with pytest.raises(CalibrationError, match="soft_bin_spline must be 0 or 1"):
         ForwardParams(soft_bin_spline=0.5)
     with pytest.raises(CalibrationError, match="exclude each other"):
