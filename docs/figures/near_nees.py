@@ -104,19 +104,34 @@ def real(show: bool) -> None:
     summary("real, one distance out", rows, show)
 
 
-def unit(seed: int, data: Path, show: bool) -> None:
-    files = {k: data / f"u{seed}_{k}.json" for k in ("level", "test", "near")}
-    if not all(p.exists() for p in files.values()):
-        from place_safe.io.frame_file import write_frames
-        from place_safe.sim.calibration_capture import capture_level_sweep
-        from place_safe.sim.tof_mismatch import MismatchConfig
-        u = MismatchConfig(seed=seed)
-        for k, (n, s, h) in {"level": (100, 3, (0.005, 0.40)), "test": (80, 5, (0.005, 0.40)),
-                             "near": (40, 7, (0.019, 0.051))}.items():
+#: the level sweep's heights (m) and frames; its spacing; the interleaved near sweep's frames (half a spacing above
+#: each of the level sweep's frames closer than 9 cm)
+LEVEL, LEVEL_FRAMES = (0.005, 0.40), 100
+SPACING = (LEVEL[1] - LEVEL[0]) / (LEVEL_FRAMES - 1)
+INTERLEAVED_FRAMES = 21
+
+
+def unit(seed: int, data: Path, show: bool, interleaved: bool = False) -> None:
+    sweeps = {"level": (LEVEL_FRAMES, 3, LEVEL), "test": (80, 5, (0.005, 0.40)), "near": (40, 7, (0.019, 0.051)),
+              "inter": (INTERLEAVED_FRAMES, 9, (LEVEL[0] + SPACING / 2,
+                                                LEVEL[0] + SPACING / 2 + (INTERLEAVED_FRAMES - 1) * SPACING))}
+    files = {k: data / f"u{seed}_{k}.json" for k in sweeps}
+    from place_safe.io.frame_file import write_frames
+    from place_safe.sim.calibration_capture import capture_level_sweep
+    from place_safe.sim.tof_mismatch import MismatchConfig
+    u = MismatchConfig(seed=seed)
+    for k, (n, s, h) in sweeps.items():
+        if not files[k].exists() and (k != "inter" or interleaved):
             write_frames(files[k], capture_level_sweep("mismatch", n, s, heights=h, max_tilt=0.0, mismatch=u,
                                                        temperature=45.0))
-    cal = calibrate(load_frames(files["level"]))
-    summary(f"unit {seed}", read(cal, load_frames(files["test"]) + load_frames(files["near"])), show)
+    level = load_frames(files["level"]) + (load_frames(files["inter"]) if interleaved else [])
+    cal = calibrate(level)
+    name = f"unit {seed}" + (" + interleaved" if interleaved else "")
+    if show:
+        law = cal.reports.get("uncertainty", {}).get("peak", {}).get("near_range", {}).get("law", {})
+        print(f"    law: share {law.get('share_independent_of_knots')} ({law.get('share_fitted')}), "
+              f"held-out NEES/dof {law.get('nees_per_dof_held_out')}, knots {law.get('table_knots')}")
+    summary(name, read(cal, load_frames(files["test"]) + load_frames(files["near"])), show)
 
 
 def main() -> int:
@@ -126,6 +141,9 @@ def main() -> int:
     ap.add_argument("--data", default=os.environ.get("NEAR_NEES_DATA", ""),
                     help="folder for the simulated units' frames (made there when missing; default: a temporary one)")
     ap.add_argument("--frames", action="store_true", help="each 2-5 cm frame too")
+    ap.add_argument("--interleaved", action="store_true",
+                    help="units: calibrate on the level sweep plus a second near sweep half a spacing above its "
+                         "frames closer than 9 cm (the capture issue 26c proposed)")
     a = ap.parse_args()
     if a.units is None or a.real:
         real(a.frames)
@@ -133,7 +151,7 @@ def main() -> int:
         a.units = [11, 12, 13, 21, 22, 23]
     with tempfile.TemporaryDirectory() as tmp:
         for s in a.units or []:
-            unit(s, Path(a.data or tmp), a.frames)
+            unit(s, Path(a.data or tmp), a.frames, a.interleaved)
     return 0
 
 

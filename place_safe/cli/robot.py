@@ -46,6 +46,31 @@ def _floats(text: str, n: int | None = None, what: str = "numbers", lo: float = 
 
 #: The most values one comma-separated option takes (a sweep grid is their product).
 MAX_LIST = 100
+
+
+def _distances(text: str) -> list[float]:
+    """``capture --distances``: comma-separated millimetres from 10 to 5000, each a number or a range
+    ``START:STOP:STEP`` (STOP included when the steps reach it), e.g. ``10:90:2,100:400:10``; at most
+    :data:`MAX_LIST` in all."""
+    items = []
+    for item in text.replace(" ", "").split(","):
+        if ":" not in item:
+            items.append(item)
+            continue
+        try:
+            start, stop, step = (float(v) for v in item.split(":"))
+        except ValueError:
+            start = stop = step = math.nan
+        if not (math.isfinite(start + stop + step) and step > 0.0 and stop >= start
+                and (stop - start) / step <= MAX_LIST):
+            raise argparse.ArgumentTypeError(f"expected a range START:STOP:STEP (mm) with STOP >= START, STEP > 0 "
+                                             f"and at most {MAX_LIST} steps, got {item[:80]!r}")
+        n = int(math.floor((stop - start) / step + 1e-9))
+        items += [f"{start + i * step:.6g}" for i in range(n + 1)]
+    try:
+        return _floats(",".join(items), None, "mm", 10.0, 5000.0)
+    except argparse.ArgumentTypeError as exc:
+        raise argparse.ArgumentTypeError(f"{str(exc).rsplit(', got', 1)[0]}, got {text[:80]!r}") from None
 #: m: base-frame coordinates an option may name (the UR5 reaches 0.85 m from its base).
 
 
@@ -366,11 +391,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         ["place-safe capture --sim level_table --poses 60 -o sim_capture.jsonl",
          "place-safe capture --sim level_table --sim-mount-error 5,0,0,0,2,0 -o perturbed.jsonl",
          "place-safe capture --robot robots/ur5/real.toml --sensor i2c:/dev/i2c-1 \\\n"
-         "      --touch -0.45,-0.05 --touch -0.55,-0.05 --touch -0.5,-0.15 --touch-height 0.05 -o lab.jsonl"],
+         "      --touch -0.45,-0.05 --touch -0.55,-0.05 --touch -0.5,-0.15 --touch-height 0.05 -o lab.jsonl",
+         "place-safe capture --robot robots/ur5/real.toml --sensor i2c:/dev/i2c-1 --table-height 0.02 \\\n"
+         "      --incidences 0 --azimuths 0 --distances 10:90:2,100:400:10 -o level_sweep.jsonl   # for calibrate"],
         "robot file of the real UR5",
         "output", "robot_file",
-        opt("--distances", type=lambda s: _floats(s, None, "mm", 10.0, 5000.0), default=[80, 120, 170, 220, 270],
-            help="sensor-to-plane distances in mm (default 80,120,170,220,270)"),
+        opt("--distances", type=_distances, default=[80, 120, 170, 220, 270],
+            help="sensor-to-plane distances in mm, numbers or START:STOP:STEP ranges (default 80,120,170,220,270; "
+                 "a level sweep for calibration: 10:90:2,100:400:10 with --incidences 0 --azimuths 0, the 2 mm "
+                 "steps below 9 cm so that calibrate sizes the near-range covariance at a new frame's gap)"),
         opt("--incidences", type=lambda s: _floats(s, None, "degrees", 0.0, 80.0), default=[0, 12, 24],
             help="optical-axis tilts from the normal in degrees (default 0,12,24)"),
         opt("--azimuths", type=lambda s: _floats(s, None, "degrees", -360.0, 360.0), default=[0, 60, 120, 180, 240, 300],

@@ -282,6 +282,28 @@ def test_near_law_maximum_likelihood_recovers_a_known_law_and_makes_nees_one():
     assert 0.75 <= float(np.mean(v)) <= 1.3
 
 
+def test_the_near_law_says_when_no_held_out_frame_lay_in_a_gap_as_narrow_as_a_new_frames():
+    """A plain sweep's frames, left out, lie mid-way in gaps twice the table's spacing: the law then states the
+    wider gaps' error and the report says so, with the capture that fixes it (a second pass between the first's
+    distances, whose frames held out lie at a new frame's gap)."""
+    from place_safe.calibration.uncertainty import NARROW_GAP_NOTE, fit_near_law, new_frame_measure
+    from place_safe.recovery.estimator import Uncertainty
+    from place_safe.recovery.points import PeakParams
+
+    knots = [0.025, 0.029, 0.033, 0.037, 0.041, 0.045, 0.09]
+    params = PeakParams.default_peak().replace(near_depths=knots, near_errors=[0.0] * (9 * len(knots)))
+    m_new = new_frame_measure(knots)
+    assert math.isclose(m_new, 0.002 ** 2)
+    base = _near_rows(40, 1e-4, 1.0, seed=6)
+    plain = [r[:4] + (m,) for r, m in zip(base, [m_new] + [4 * m_new, 9 * m_new] * 20)]  # one at the table's end
+    _, rep = fit_near_law(plain, Uncertainty(), params, 0.09)
+    assert rep["held_out_at_new_frame_gaps"] == 1 and rep["note"] == NARROW_GAP_NOTE
+    interleaved = [r[:4] + (m,) for r, m in zip(base, np.resize([m_new, 4 * m_new, 9 * m_new], len(base)))]
+    _, rep = fit_near_law(interleaved, Uncertainty(), params, 0.09)
+    assert rep["held_out_at_new_frame_gaps"] == 14 and "note" not in rep
+    assert math.isclose(rep["new_frame_measure_mm2"], 4.0)
+
+
 def test_near_law_finds_the_error_the_zones_share_and_keeps_tilt_and_offset_honest():
     """Zones that err together move the plane's offset, not its tilt: a law of independent zones would have to
     overstate the tilt error to cover the offset's (issue 26: the real sweep at 5-9 cm)."""

@@ -17,6 +17,10 @@ from place_safe.drivers.ur5 import URConfig, packaged_config
     (["capture", "--robot", "robots/ur5/real.toml", "--sensor", "file:x", "-o", "x"], "give the plane"),
     (["calibrate-mount", "missing.jsonl"], "missing.jsonl"),
     (["place", "--robot", "nope.toml", "--sensor", "file:x"], "nope.toml"),
+    (["capture", "--sim", "level_table", "-o", "x", "--distances", "10:90:0"], "a range START:STOP:STEP"),
+    (["capture", "--sim", "level_table", "-o", "x", "--distances", "90:10:2"], "STOP >= START"),
+    (["capture", "--sim", "level_table", "-o", "x", "--distances", "5:90:2"], "from 10 to 5000, got '5:90:2'"),
+    (["capture", "--sim", "level_table", "-o", "x", "--distances", "10:1000:5"], "at most 100 steps"),
 ])
 def test_usage_errors_are_one_line(argv, match, capsys, monkeypatch, tmp_path):
     monkeypatch.chdir(tmp_path)
@@ -26,6 +30,15 @@ def test_usage_errors_are_one_line(argv, match, capsys, monkeypatch, tmp_path):
     assert main(argv) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and match in err[0], err
+
+
+def test_capture_distances_take_ranges_with_the_stop_included():
+    from place_safe.cli.robot import _distances
+
+    assert _distances("80,120") == [80.0, 120.0]
+    level = _distances("10:90:2,100:400:10")  # the level sweep of the help: 2 mm steps below 9 cm
+    assert len(level) == 41 + 31 and level[:3] == [10.0, 12.0, 14.0] and 90.0 in level and level[-1] == 400.0
+    assert _distances("10:15:2") == [10.0, 12.0, 14.0]  # a stop the steps do not reach is not added
 
 
 def test_place_on_an_unreachable_arm_is_a_one_line_error(capsys, sweep_path, tmp_path):
