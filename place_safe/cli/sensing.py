@@ -80,8 +80,21 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         log(f"fit quality, section '{name}':")
         for line in summarise(cal.reports.get(name, {})):
             log(line)
+    for name in fitted:  # what a report asks the user to act on, where the long listing cannot hide it
+        for where, text in report_notes(cal.reports.get(name, {}), name):
+            log(f"note ({where}): {text}")
     log(f"wrote {out} (sections: {', '.join(cal.sections)})")
     return 0
+
+
+def report_notes(report, where: str = "") -> list[tuple[str, str]]:
+    """Every ``note`` in a calibration report (nested dicts), with its dotted place: ``(place, text)``."""
+    if not isinstance(report, dict):
+        return []
+    out = [(where, str(report["note"]))] if "note" in report else []
+    for key, value in report.items():
+        out += report_notes(value, f"{where}.{key}" if where else str(key))
+    return out
 
 
 def _calibrate_sim(args: argparse.Namespace) -> int:

@@ -208,6 +208,9 @@ def test_calibrate_writes_and_merges_sections(tmp_path, sweep_path, capsys):
     assert main(["calibrate", str(sweep_path), "--method", "peak", "-o", str(out), "-q"]) == 0
     err = capsys.readouterr().err
     assert "fit quality" in err
+    # the real sweep is one pass 7.5 mm apart: its near law is cautious, and the last lines before "wrote" say so
+    lines = err.strip().splitlines()
+    assert lines[-2].startswith("note (uncertainty.peak.near_range.law): cautious near range") and "wrote" in lines[-1]
     assert set(Calibration.load(out).sections) == {"peak", "uncertainty"}  # peak's covariance floor
     peak_before = json.loads(out.read_text())["peak"]
     assert main(["calibrate", str(sweep_path), "--method", "proprietary", "-o", str(out), "-q"]) == 0
@@ -215,6 +218,15 @@ def test_calibrate_writes_and_merges_sections(tmp_path, sweep_path, capsys):
     assert set(cal.sections) == {"peak", "proprietary", "uncertainty"}
     assert json.loads(out.read_text())["peak"] == peak_before  # kept as it was
     assert {"peak", "proprietary"} <= set(cal.reports)
+
+
+def test_report_notes_are_found_at_any_depth_with_their_place():
+    from place_safe.cli.sensing import report_notes
+
+    report = {"a": 1, "note": "top", "peak": {"near_range": {"law": {"note": "deep", "x": [1]}}, "y": "note"}}
+    assert report_notes(report, "uncertainty") == [("uncertainty", "top"),
+                                                   ("uncertainty.peak.near_range.law", "deep")]
+    assert report_notes([1, 2]) == [] and report_notes({}) == []
 
 
 def test_calibrate_refuses_to_clobber_a_foreign_file(tmp_path, sweep_path, capsys):
