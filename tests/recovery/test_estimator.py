@@ -76,6 +76,30 @@ def test_uncertainty_errors_are_one_line_naming_the_field(bad, words):
     assert str(exc.value).startswith(words) and "\n" not in str(exc.value)
 
 
+@pytest.mark.parametrize("name", ["tilt_std", "offset_std", "tilt_range_std", "offset_rel", "scale"])
+def test_an_uncertainty_that_loads_gives_a_finite_covariance(name):
+    """Property (hypothesis): a floor or scale a file may hold keeps every covariance finite. ``tilt_std`` 1e308 in a
+    calibration overflowed squaring it and cost every plane of peak and diff ("numerical failure: (34, 'Numerical
+    result out of range')"); such a value is refused when the file is read, with one line naming the field."""
+    from hypothesis import given, settings
+    from hypothesis import strategies as st
+
+    @settings(max_examples=100, deadline=None)
+    @given(value=st.floats(1e-12, 1e308), offset=st.floats(1e-3, 10.0), tilt=st.floats(0.0, 1.5))
+    def check(value, offset, tilt):
+        try:
+            u = Uncertainty.from_dict({name: value})
+        except CalibrationError as exc:
+            assert str(exc).startswith(f"uncertainty: {name}:") and "\n" not in str(exc)
+            return
+        n = np.array([math.sin(tilt), 0.0, math.cos(tilt)])
+        assert np.all(np.isfinite(u.apply(np.eye(3) * 1e-6, offset, n)))
+
+    check()
+    with pytest.raises(CalibrationError, match=name):
+        Uncertainty.from_dict({name: 1e308})
+
+
 def test_tilt_term_and_preference_round_trip_and_default_to_none():
     u = Uncertainty(tilt_rel=0.05, prefer_ratio=2.0)
     assert Uncertainty.from_dict(json.loads(json.dumps(u.to_dict()))) == u
