@@ -52,7 +52,8 @@ from place_safe.recovery.forward import (ForwardModel, ForwardParams, ZoneRays, 
 from place_safe.geometry import Plane
 from place_safe.recovery.plane_renderer import PlaneRenderer, convolution_matrices
 from place_safe.sensor.frame import N_BINS, N_ZONES, Frame
-from place_safe.recovery.estimator import Estimator, PlaneEstimate, Uncertainty, checked, tilt_offset
+from place_safe.recovery.estimator import (Estimator, PlaneEstimate, Uncertainty, check_arguments, checked,
+                                          tilt_offset)
 from place_safe.recovery.peak import PeakEstimator
 from place_safe.sensor.histogram import COUNT_MAX, measure_floor, reference_problem
 
@@ -266,6 +267,9 @@ class DifferentiableEstimator(Estimator):
                  peak_uncertainty: Uncertainty | None = None) -> None:
         if mode not in ("fast", "paper"):
             raise ValueError(f"mode must be 'fast' or 'paper', got {mode!r}")
+        check_arguments(type(self).__name__, forward=(forward, ForwardParams), peak=(peak, PeakParams),
+                        options=(options, SolverOptions), correction=(correction, RangeCorrection),
+                        uncertainty=(uncertainty, Uncertainty), peak_uncertainty=(peak_uncertainty, Uncertainty))
         self.params = forward if forward is not None else ForwardParams()
         self.mode = mode
         self.opt = options or SolverOptions()

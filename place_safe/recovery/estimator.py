@@ -27,7 +27,7 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from place_safe.config import ParamModel, vector
-from place_safe.exceptions import CalibrationError, FrameError, NoPlaneError
+from place_safe.exceptions import ArgumentTypeError, CalibrationError, FrameError, NoPlaneError
 from place_safe.geometry import Plane
 from place_safe.sensor.frame import Frame
 
@@ -301,6 +301,15 @@ def checked(est: PlaneEstimate) -> PlaneEstimate:
     if est.albedo is not None and not np.isfinite(est.albedo):
         est.albedo = None
     return est
+
+
+def check_arguments(owner: str, **given: tuple[Any, type]) -> None:
+    """Raise :class:`~place_safe.exceptions.ArgumentTypeError` (one line: the argument, what it must be, what it got)
+    unless each ``name=(value, cls)`` has a value that is None or a ``cls``: an estimator's constructor checks its
+    parameter sets so a wrong one fails there, not as an AttributeError out of every :meth:`Estimator.estimate`."""
+    for name, (value, cls) in given.items():
+        if value is not None and not isinstance(value, cls):
+            raise ArgumentTypeError(f"{owner}: {name} must be a {cls.__name__} or None; got {type(value).__name__}")
 
 
 class Estimator(ABC):

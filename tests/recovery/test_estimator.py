@@ -300,3 +300,25 @@ def test_a_shared_zone_error_never_makes_the_plane_look_more_certain(depth, tilt
     both = plane_covariance(pts, used, plane, np.full(9, indep), replace_fit=True, common_std=np.full(9, shared))
     assert np.all(np.isfinite(both))
     assert np.linalg.eigvalsh(both - alone).min() >= -1e-12 * max(1.0, float(np.abs(alone).max()))
+
+
+@pytest.mark.parametrize("options", [5, {"rays": 2}])
+def test_estimator_arguments_of_the_wrong_type_are_refused_saying_what_was_expected(options):
+    """``make_estimator("diff", cal, options=5)`` raised AttributeError ('int' object has no attribute 'rays'), and an
+    estimator built with ``uncertainty=1`` was accepted and raised AttributeError out of every ``estimate``: library
+    calls say what they expected (ArgumentTypeError, a TypeError), when they are made."""
+    from place_safe.exceptions import ArgumentTypeError
+    from place_safe.recovery import make_estimator
+    from place_safe.recovery.differentiable import DifferentiableEstimator
+    from place_safe.recovery.peak import PeakEstimator
+    from place_safe.recovery.proprietary import ProprietaryEstimator
+
+    with pytest.raises(ArgumentTypeError, match="options") as exc:
+        make_estimator("diff", None, options=options)
+    assert "\n" not in str(exc.value)
+    for build, arg in ((DifferentiableEstimator, "forward"), (DifferentiableEstimator, "peak"),
+                       (DifferentiableEstimator, "correction"), (DifferentiableEstimator, "uncertainty"),
+                       (DifferentiableEstimator, "peak_uncertainty"), (DifferentiableEstimator, "options"),
+                       (PeakEstimator, "params"), (PeakEstimator, "uncertainty"), (ProprietaryEstimator, "params")):
+        with pytest.raises(ArgumentTypeError, match=arg):
+            build(**{arg: {"m": 1.0}})
