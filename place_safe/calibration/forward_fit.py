@@ -1056,8 +1056,7 @@ def _albedo_series(z: np.ndarray, log_albedo: np.ndarray, domain, max_degree: in
         report["albedo_why_not"] = "no clear (10 %) gain out of sample: no trend over distance"
         return None
     coef = [float(c) for c in np.linalg.lstsq(_series_design(zs, domain, deg, False, True), err, rcond=None)[0]]
-    lo, hi = field_interval(RangeCorrection, "albedo")
-    if not all(lo <= c <= hi for c in coef):
+    if RangeCorrection.series_problem("albedo", coef) is not None:
         report["albedo_rejected"] = "albedo outside its physical range"
         return None
     return coef
@@ -1141,9 +1140,7 @@ def fit_range_correction(frames: Sequence[Frame], forward: ForwardParams, peak=N
                 coef = np.linalg.lstsq(design, err, rcond=None)[0]
                 parts = {k: [float(c) for c in coef[i * (deg + 1):(i + 1) * (deg + 1)]]
                          for i, k in enumerate(names)}
-                bad = [k for k, v in parts.items()
-                       if not all(field_interval(RangeCorrection, k)[0] <= c <= field_interval(RangeCorrection, k)[1]
-                                  for c in v)]
+                bad = [k for k, v in parts.items() if RangeCorrection.series_problem(k, v) is not None]
                 if bad:  # outside its physical range: not a correction
                     report[f"{key}_rejected"] = f"{bad[0]} outside its physical range"
                     continue

@@ -58,7 +58,7 @@ from dataclasses import replace
 import numpy as np
 
 from place_safe.evaluation.metrics import angular_errors, nees, point_errors  # noqa: F401 (nees: re-exported)
-from place_safe.recovery.estimator import NEAR_MAX_STD, PlaneEstimate, Uncertainty, tilt_offset
+from place_safe.recovery.estimator import MAX_SCALE, NEAR_MAX_STD, PlaneEstimate, Uncertainty, tilt_offset
 from place_safe.recovery.too_close import OVERLAP_RANGE, TOO_CLOSE_REASON
 from place_safe.sensor.frame import Frame
 from place_safe.calibration.near_range import held_out_fits, near_range_std
@@ -126,7 +126,7 @@ def fit_floor(estimates: Sequence[PlaneEstimate], truths: Sequence, base: Uncert
                        offset_rel=math.sqrt(o1))
     before = float(np.mean([e @ np.linalg.solve(c, e) for e, c in zip(err, cov)]) / 3.0)
     ml = float(np.mean([e @ np.linalg.solve(c + unc.floor(dd), e) for e, c, dd in zip(err, cov, d)]) / 3.0)
-    unc = unc.replace(scale=float(np.clip(ml, 0.1, 10.0)))  # mean NEES per dof 1 on these frames
+    unc = unc.replace(scale=float(np.clip(ml, 0.1, MAX_SCALE)))  # mean NEES per dof 1 on these frames
     after = float(np.mean([e @ np.linalg.solve(unc.apply(c, dd), e) for e, c, dd in zip(err, cov, d)]) / 3.0)
     return unc, {"frames": len(rows), "tilt_std_deg": math.degrees(unc.tilt_std), "scale": unc.scale,
                  "nees_per_dof_maximum_likelihood": ml,

@@ -25,6 +25,7 @@ from place_safe.cli.common import (CALIBRATE_METHODS, METHODS, PROG, UsageError,
 from place_safe.evaluation.bench import DEFAULT_RUNS, measure_file_rss, report_json, run_bench
 from place_safe.evaluation.evaluate import evaluate
 from place_safe.io.frame_file import iter_frames
+from place_safe.io.input_file import output_dir_problem
 from place_safe.io.live import run_live
 from place_safe.io.replay import FileReplaySource
 from place_safe.recovery.estimator import PlaneEstimate
@@ -212,6 +213,8 @@ def cmd_recover(args: argparse.Namespace) -> int:
 # evaluate
 # ------------------------------------------------------------------------------------------------
 def cmd_evaluate(args: argparse.Namespace) -> int:
+    if not args.no_plots and (why := output_dir_problem(args.out)) is not None:  # before minutes of recovery
+        raise UsageError(f"evaluate: --out {args.out} {why} (a folder for the plots)")
     cal = load_calibration(args.calibration)
     if args.min_distance is not None and args.max_distance is not None and args.min_distance > args.max_distance:
         raise UsageError(f"evaluate: --min-distance {args.min_distance:g} m exceeds --max-distance "

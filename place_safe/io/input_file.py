@@ -15,7 +15,8 @@ off there and refused, not read until memory runs out). Frame files are streamed
 :mod:`place_safe.io.frame_file` after the same check, with their own, larger limit.
 
 Outputs get the mirror check, :func:`output_file_problem` (``place-safe`` runs it on every output option
-before a command starts): never a directory, never a FIFO without a reader.
+before a command starts): never a directory, never a FIFO without a reader; an output folder,
+:func:`output_dir_problem`: a directory, or a path under one.
 
 Limits (bytes): :data:`MAX_CONFIG_BYTES` for configuration-like files (calibration, placement, robot,
 scenario, scene, truth, sensor parameters), :data:`MAX_FRAME_FILE_BYTES` for frame files.
@@ -120,4 +121,18 @@ def output_file_problem(path: str | os.PathLike) -> str | None:
     return None
 
 
-__all__ = ["output_file_problem", "check_input_file", "read_input_bytes", "input_file_problem", "MAX_CONFIG_BYTES", "MAX_FRAME_FILE_BYTES"]
+def output_dir_problem(path: str | os.PathLike) -> str | None:
+    """Why a command cannot write files into the folder ``path`` (it, or a part of the path, is not a directory), or
+    None (a directory, or a missing path whose folders can be made)."""
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        return None
+    except NotADirectoryError:
+        return "cannot be a directory (a part of the path is a file)"
+    except (OSError, ValueError) as exc:
+        return f"cannot be written ({getattr(exc, 'strerror', None) or str(exc).splitlines()[0]})"
+    return None if stat.S_ISDIR(st.st_mode) else "is not a directory"
+
+
+__all__ = ["output_file_problem", "output_dir_problem", "check_input_file", "read_input_bytes", "input_file_problem", "MAX_CONFIG_BYTES", "MAX_FRAME_FILE_BYTES"]

@@ -45,14 +45,15 @@ import torch
 from pydantic import Field, model_validator
 
 from place_safe.recovery.points import PeakParams
-from place_safe.config import ParamModel, vector
+from place_safe.config import ParamModel, field_interval, vector
 from place_safe.exceptions import CalibrationError, FrameError, NoPlaneError
 from place_safe.recovery.forward import (ForwardModel, ForwardParams, ZoneRays, arriving_ambient, mount_rotation,
                                          residual_weights, single_thread)
 from place_safe.geometry import Plane
 from place_safe.recovery.plane_renderer import PlaneRenderer, convolution_matrices
 from place_safe.sensor.frame import N_BINS, N_ZONES, Frame
-from place_safe.recovery.estimator import Estimator, PlaneEstimate, Uncertainty, checked, tilt_offset
+from place_safe.recovery.estimator import (Estimator, PlaneEstimate, Uncertainty, check_arguments, checked,
+                                          tilt_offset)
 from place_safe.recovery.peak import PeakEstimator
 from place_safe.sensor.histogram import COUNT_MAX, measure_floor, reference_problem
 
@@ -78,8 +79,11 @@ class RangeCorrection(ParamModel):
     every calibration frame's albedo is free; fitted to the sweep's mean log albedo, so the scale stays the
     forward model's.
 
-    The ranges: what the forward model leaves over is millimetres and a fraction of a degree, so a coefficient
-    of more than 5 cm (or a slope of 0.5) is not a correction; nor is an albedo factor beyond ``e^3``.
+    The ranges: what the forward model leaves over is millimetres and a fraction of a degree, so a correction
+    of more than 5 cm (or a slope of 0.5) is not a correction; nor is an albedo factor beyond ``e^3``. Each field's
+    range bounds its coefficients and also the series' value: the sizes of a series' coefficients sum to at most
+    the range's larger bound (a Chebyshev series on its domain never exceeds that sum), so 400 coefficients of 5 cm
+    cannot move a plane by 20 m, nor an albedo series overflow.
     """
 
     what: ClassVar[str] = "range correction"
@@ -103,6 +107,31 @@ class RangeCorrection(ParamModel):
             raise ValueError(f"a series in 1 / z0 needs a domain from at least {MIN_INVERSE_DOMAIN} m, "
                              f"got {list(self.domain)}")
         return self
+
+    #: the Chebyshev series of a correction (the fields :meth:`series_problem` judges)
+    SERIES: ClassVar[tuple[str, ...]] = ("coeffs", "slope_a", "slope_b", "gain_a", "gain_b", "albedo")
+
+    @model_validator(mode="after")
+    def _bounded_series(self) -> "RangeCorrection":
+        for name in self.SERIES:
+            if (why := self.series_problem(name, getattr(self, name))) is not None:
+                raise ValueError(why)
+        return self
+
+    @classmethod
+    def series_problem(cls, name: str, coeffs) -> str | None:
+        """Why ``coeffs`` cannot be series ``name`` (one of :data:`SERIES`), or None: a coefficient outside the field's
+        range, or coefficients whose sizes sum beyond its larger bound (on its domain a Chebyshev series reaches at
+        most that sum, and the range is what the correction may be: 400 coefficients of 5 cm are 20 m)."""
+        lo, hi = field_interval(cls, name)
+        unit = cls.model_fields[name].description
+        if not all(lo <= c <= hi for c in coeffs):
+            return f"{name}: a coefficient outside {lo:g} .. {hi:g} {unit}"
+        reach, bound = math.fsum(abs(c) for c in coeffs), max(abs(lo), abs(hi))
+        if reach > bound:
+            return (f"{name}: the series reaches {reach:.4g} {unit} (the sum of its coefficients' sizes), beyond the "
+                    f"{bound:g} {unit} a correction may have")
+        return None
 
     def _series(self, name: str, z0):
         coeffs = getattr(self, name)
@@ -238,6 +267,9 @@ class DifferentiableEstimator(Estimator):
                  peak_uncertainty: Uncertainty | None = None) -> None:
         if mode not in ("fast", "paper"):
             raise ValueError(f"mode must be 'fast' or 'paper', got {mode!r}")
+        check_arguments(type(self).__name__, forward=(forward, ForwardParams), peak=(peak, PeakParams),
+                        options=(options, SolverOptions), correction=(correction, RangeCorrection),
+                        uncertainty=(uncertainty, Uncertainty), peak_uncertainty=(peak_uncertainty, Uncertainty))
         self.params = forward if forward is not None else ForwardParams()
         self.mode = mode
         self.opt = options or SolverOptions()

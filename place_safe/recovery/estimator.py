@@ -27,7 +27,7 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from place_safe.config import ParamModel, vector
-from place_safe.exceptions import CalibrationError, FrameError, NoPlaneError
+from place_safe.exceptions import ArgumentTypeError, CalibrationError, FrameError, NoPlaneError
 from place_safe.geometry import Plane
 from place_safe.sensor.frame import Frame
 
@@ -42,6 +42,9 @@ COVARIANCE_ORDER = ("n_x", "n_y", "d")
 #: m: largest zone range error the near-range term may hold.
 NEAR_MAX_STD = 0.05
 
+#: The largest ``Uncertainty.scale`` (calibration keeps its fit within 0.1 .. this).
+MAX_SCALE = 10.0
+
 
 class Uncertainty(ParamModel):
     """Calibrated trust in one method (a calibration file's ``uncertainty`` section, one per method).
@@ -51,12 +54,13 @@ class Uncertainty(ParamModel):
     errors. On each tilt component the variance ``tilt_std^2 + (tilt_range_std / d)^2`` (a range
     error of ``tilt_range_std`` between zones tilts a plane at distance ``d`` by about that over
     ``d``), on the offset ``offset_std^2 + (offset_rel d)^2``. Units and the values calibration gives
-    (each field's ``Field`` holds its accepted range, here >= 0): ``tilt_std`` rad (0 .. 0.1), ``tilt_range_std`` m
+    (each field's ``Field`` holds its accepted range, wider: at most a right angle, 1 m, 10 m and 1, so a covariance
+    stays finite): ``tilt_std`` rad (0 .. 0.1), ``tilt_range_std`` m
     (0 .. 0.01), ``offset_std`` m (0 .. 0.01), ``offset_rel`` dimensionless (0 .. 0.05). ``chi2_limit`` (reduced chi-square, >= 0; ``inf`` =
     never): ``diff`` falls back to the peak estimate of a frame whose residual chi-square per bin
     (Poisson and calibrated model error, :func:`~place_safe.recovery.forward.residual_weights`) is
     above it; 0: always, without solving (calibration found the model no better than peak on this sensor).
-    The fallbacks act in the ``fast`` solver; ``paper`` mode reports its own fit. ``scale`` (dimensionless, 0.1 .. 10) multiplies the whole covariance (the fit's and the
+    The fallbacks act in the ``fast`` solver; ``paper`` mode reports its own fit. ``scale`` (dimensionless, 0.1 .. :data:`MAX_SCALE`) multiplies the whole covariance (the fit's and the
     floor) so the calibration frames' mean NEES per degree of freedom is 1. ``consistency_limit``
     (squared Mahalanobis distance, > 0; ``inf`` = never): ``diff`` also falls back to the peak estimate
     when the two estimates of ``(n_x, n_y, d)`` differ by more than that under their summed covariances
@@ -88,13 +92,13 @@ class Uncertainty(ParamModel):
     Problems are one :class:`~place_safe.exceptions.CalibrationError` line naming the field.
     """
 
-    tilt_std: float = Field(0.0, ge=0.0, description="rad")
-    offset_std: float = Field(0.0, ge=0.0, description="m")
+    tilt_std: float = Field(0.0, ge=0.0, le=math.pi / 2, description="rad")
+    offset_std: float = Field(0.0, ge=0.0, le=10.0, description="m")
     chi2_limit: float = Field(math.inf, ge=0.0, allow_inf_nan=True,
                               description="(reduced chi-square)")
-    tilt_range_std: float = Field(0.0, ge=0.0, description="m")
-    offset_rel: float = Field(0.0, ge=0.0, description="(dimensionless)")
-    scale: float = Field(1.0, gt=0.0, description="(dimensionless)")
+    tilt_range_std: float = Field(0.0, ge=0.0, le=1.0, description="m")
+    offset_rel: float = Field(0.0, ge=0.0, le=1.0, description="(dimensionless)")
+    scale: float = Field(1.0, gt=0.0, le=MAX_SCALE, description="(dimensionless)")
     consistency_limit: float = Field(math.inf, gt=0.0, allow_inf_nan=True,
                                      description="(squared Mahalanobis distance)")
     near_depths: vector(gt=0.0, le=10.0) = Field(default_factory=list, description="m")
@@ -297,6 +301,15 @@ def checked(est: PlaneEstimate) -> PlaneEstimate:
     if est.albedo is not None and not np.isfinite(est.albedo):
         est.albedo = None
     return est
+
+
+def check_arguments(owner: str, **given: tuple[Any, type]) -> None:
+    """Raise :class:`~place_safe.exceptions.ArgumentTypeError` (one line: the argument, what it must be, what it got)
+    unless each ``name=(value, cls)`` has a value that is None or a ``cls``: an estimator's constructor checks its
+    parameter sets so a wrong one fails there, not as an AttributeError out of every :meth:`Estimator.estimate`."""
+    for name, (value, cls) in given.items():
+        if value is not None and not isinstance(value, cls):
+            raise ArgumentTypeError(f"{owner}: {name} must be a {cls.__name__} or None; got {type(value).__name__}")
 
 
 class Estimator(ABC):

@@ -47,7 +47,7 @@ import numpy as np
 
 from place_safe.exceptions import FrameError, NoPlaneError
 from place_safe.sensor.frame import N_BINS, N_ZONES, Frame
-from place_safe.recovery.estimator import Estimator, PlaneEstimate, Uncertainty
+from place_safe.recovery.estimator import Estimator, PlaneEstimate, Uncertainty, check_arguments
 from place_safe.recovery.points import PeakParams, plane_covariance, plane_through
 from place_safe.recovery.too_close import may_be_close, overlap_reason
 from place_safe.sensor.histogram import COUNT_MAX, find_peaks, find_returns
@@ -65,6 +65,7 @@ class PeakEstimator(Estimator):
     needs_histograms = True
 
     def __init__(self, params: PeakParams | None = None, uncertainty: Uncertainty | None = None) -> None:
+        check_arguments(type(self).__name__, params=(params, PeakParams), uncertainty=(uncertainty, Uncertainty))
         self.params = params if params is not None else PeakParams.default_peak()
         self.uncertainty = uncertainty if uncertainty is not None else Uncertainty()
 

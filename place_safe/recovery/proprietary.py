@@ -34,7 +34,7 @@ import numpy as np
 from place_safe.recovery.points import MM_PER_M, PeakParams, plane_covariance, plane_through
 from place_safe.exceptions import FrameError, NoPlaneError
 from place_safe.sensor.frame import MAX_SENSOR_DISTANCE, MIN_SENSOR_DISTANCE, N_ZONES, Frame, real_array
-from place_safe.recovery.estimator import Estimator, PlaneEstimate
+from place_safe.recovery.estimator import Estimator, PlaneEstimate, check_arguments
 from place_safe.recovery.too_close import may_be_close, overlap_reason
 
 #: Reading units (mm): standard deviation of rounding to the sensor's whole millimetres (a uniform step of 1 mm).
@@ -52,6 +52,7 @@ class ProprietaryEstimator(Estimator):
     needs_histograms = False
 
     def __init__(self, params: PeakParams | None = None) -> None:
+        check_arguments(type(self).__name__, params=(params, PeakParams))
         self.params = params if params is not None else PeakParams.default_proprietary()
 
     @classmethod

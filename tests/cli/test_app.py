@@ -305,6 +305,27 @@ def test_evaluate_prints_a_table_and_writes_json(tmp_path, sweep_path, capsys):
     assert any((tmp_path / "plots").glob("*.png"))
 
 
+@pytest.mark.parametrize("kind", ["file", "under-a-file"])
+def test_evaluate_refuses_a_plot_folder_that_cannot_be_one_before_it_recovers(tmp_path, sweep_path, monkeypatch,
+                                                                             capsys, kind):
+    """``--out FILE`` ran the whole evaluation, then ended in "place-safe: error: File exists: FILE" (after the
+    table, which a script had read as a result). Now one line naming --out before anything is recovered; with
+    --no-plots the option is not used and not checked."""
+    import place_safe.cli.sensing as sensing
+
+    a_file = tmp_path / "plots.png"
+    a_file.write_text("x")
+    out = a_file if kind == "file" else a_file / "plots"
+    monkeypatch.setattr(sensing, "evaluate", lambda *a, **k: pytest.fail("evaluate ran"))
+    assert main(["evaluate", str(sweep_path), "--methods", "peak", "--out", str(out), "-q"]) == 2
+    cap = capsys.readouterr()
+    line = one_line_error(cap.err)
+    assert "--out" in line and str(out) in line and "directory" in line and cap.out == ""
+    monkeypatch.undo()
+    assert main(["evaluate", str(sweep_path), "--methods", "peak", "--out", str(out), "--no-plots", "-q",
+                 "--max-distance", "0.1"]) == 0
+
+
 def test_evaluate_with_no_frames_in_range_exits_2(sweep_path, capsys):
     assert main(["evaluate", str(sweep_path), "--min-distance", "5", "--no-plots", "-q"]) == 2
     assert "no frames with ground truth" in one_line_error(capsys.readouterr().err)

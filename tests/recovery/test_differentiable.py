@@ -297,6 +297,56 @@ def test_the_albedo_series_scales_the_reported_albedo_and_leaves_the_plane(frame
         RangeCorrection.from_dict({"domain": [0.05, 0.4], "albedo": [3.5]})
 
 
+@pytest.mark.parametrize("name", ["coeffs", "slope_a", "slope_b", "gain_a", "gain_b", "albedo"])
+def test_a_range_correction_series_stays_within_its_fields_range_at_every_z0(name):
+    """Property (hypothesis): a correction series read from a file is within its field's range wherever it is
+    evaluated, not only coefficient by coefficient: 400 coefficients of 5 cm each summed to a plane moved by 20 m, and
+    an albedo series of 300 x 3 overflowed ``exp`` and cost every plane ("numerical failure: math range error").
+    A series that could leave the range is refused with one line naming it."""
+    from hypothesis import given, settings
+    from hypothesis import strategies as st
+
+    from place_safe.config import field_interval
+    from place_safe.exceptions import CalibrationError
+    from place_safe.recovery.differentiable import RangeCorrection
+
+    lo, hi = field_interval(RangeCorrection, name)
+    bound = max(abs(lo), abs(hi))
+    inverse = [name] if name != "albedo" else []
+
+    @settings(max_examples=150, deadline=None)
+    @given(coeffs=st.lists(st.floats(lo, hi), max_size=40), z0=st.floats(1e-4, 20.0), width=st.floats(1e-3, 1.0))
+    def check(coeffs, z0, width):
+        try:
+            c = RangeCorrection(domain=[0.01, 0.01 + width], inverse=inverse, **{name: coeffs})
+        except CalibrationError as exc:
+            assert name in str(exc) and "\n" not in str(exc)
+            return
+        value = {"coeffs": c(z0), "albedo": c.log_albedo(z0)}.get(name)
+        if value is None:
+            a, b = c.slopes(z0, 1.0, 1.0)
+            value = a if name.endswith("_a") else b
+        assert abs(value) <= bound * (1 + 1e-9)
+
+    check()
+    with pytest.raises(CalibrationError, match=name):
+        RangeCorrection.from_dict({"domain": [0.0, 0.01], name: [hi] * 400})
+
+
+def test_a_valid_albedo_series_never_costs_the_plane(frames):
+    """The largest albedo correction a file may hold moves the reported albedo by at most e^3 and leaves the plane."""
+    from place_safe.config import field_interval
+    from place_safe.recovery.differentiable import RangeCorrection
+
+    _, hi = field_interval(RangeCorrection, "albedo")
+    plain = DifferentiableEstimator()
+    scaled = DifferentiableEstimator(correction=RangeCorrection(domain=[0.0, 0.01], albedo=[hi]))
+    for f in frames[:2]:
+        a, b = plain.estimate(f), scaled.estimate(f)
+        assert a.ok and b.ok and b.plane.offset == a.plane.offset
+        assert b.albedo == pytest.approx(a.albedo * math.exp(hi), rel=1e-9)
+
+
 def test_with_the_ambient_option_the_plane_comes_back_from_frames_whose_ambient_piles_up():
     """Frames whose ambient (120 counts a bin as it arrives) went through the pile-up with the return: the solver
     with ``SolverOptions(ambient=True)`` compares the model with the counts above that ambient and finds the plane

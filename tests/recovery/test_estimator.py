@@ -76,6 +76,30 @@ def test_uncertainty_errors_are_one_line_naming_the_field(bad, words):
     assert str(exc.value).startswith(words) and "\n" not in str(exc.value)
 
 
+@pytest.mark.parametrize("name", ["tilt_std", "offset_std", "tilt_range_std", "offset_rel", "scale"])
+def test_an_uncertainty_that_loads_gives_a_finite_covariance(name):
+    """Property (hypothesis): a floor or scale a file may hold keeps every covariance finite. ``tilt_std`` 1e308 in a
+    calibration overflowed squaring it and cost every plane of peak and diff ("numerical failure: (34, 'Numerical
+    result out of range')"); such a value is refused when the file is read, with one line naming the field."""
+    from hypothesis import given, settings
+    from hypothesis import strategies as st
+
+    @settings(max_examples=100, deadline=None)
+    @given(value=st.floats(1e-12, 1e308), offset=st.floats(1e-3, 10.0), tilt=st.floats(0.0, 1.5))
+    def check(value, offset, tilt):
+        try:
+            u = Uncertainty.from_dict({name: value})
+        except CalibrationError as exc:
+            assert str(exc).startswith(f"uncertainty: {name}:") and "\n" not in str(exc)
+            return
+        n = np.array([math.sin(tilt), 0.0, math.cos(tilt)])
+        assert np.all(np.isfinite(u.apply(np.eye(3) * 1e-6, offset, n)))
+
+    check()
+    with pytest.raises(CalibrationError, match=name):
+        Uncertainty.from_dict({name: 1e308})
+
+
 def test_tilt_term_and_preference_round_trip_and_default_to_none():
     u = Uncertainty(tilt_rel=0.05, prefer_ratio=2.0)
     assert Uncertainty.from_dict(json.loads(json.dumps(u.to_dict()))) == u
@@ -276,3 +300,25 @@ def test_a_shared_zone_error_never_makes_the_plane_look_more_certain(depth, tilt
     both = plane_covariance(pts, used, plane, np.full(9, indep), replace_fit=True, common_std=np.full(9, shared))
     assert np.all(np.isfinite(both))
     assert np.linalg.eigvalsh(both - alone).min() >= -1e-12 * max(1.0, float(np.abs(alone).max()))
+
+
+@pytest.mark.parametrize("options", [5, {"rays": 2}])
+def test_estimator_arguments_of_the_wrong_type_are_refused_saying_what_was_expected(options):
+    """``make_estimator("diff", cal, options=5)`` raised AttributeError ('int' object has no attribute 'rays'), and an
+    estimator built with ``uncertainty=1`` was accepted and raised AttributeError out of every ``estimate``: library
+    calls say what they expected (ArgumentTypeError, a TypeError), when they are made."""
+    from place_safe.exceptions import ArgumentTypeError
+    from place_safe.recovery import make_estimator
+    from place_safe.recovery.differentiable import DifferentiableEstimator
+    from place_safe.recovery.peak import PeakEstimator
+    from place_safe.recovery.proprietary import ProprietaryEstimator
+
+    with pytest.raises(ArgumentTypeError, match="options") as exc:
+        make_estimator("diff", None, options=options)
+    assert "\n" not in str(exc.value)
+    for build, arg in ((DifferentiableEstimator, "forward"), (DifferentiableEstimator, "peak"),
+                       (DifferentiableEstimator, "correction"), (DifferentiableEstimator, "uncertainty"),
+                       (DifferentiableEstimator, "peak_uncertainty"), (DifferentiableEstimator, "options"),
+                       (PeakEstimator, "params"), (PeakEstimator, "uncertainty"), (ProprietaryEstimator, "params")):
+        with pytest.raises(ArgumentTypeError, match=arg):
+            build(**{arg: {"m": 1.0}})
