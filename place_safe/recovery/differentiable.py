@@ -242,6 +242,31 @@ class SolverOptions:
     paper_lr: float = 0.01
     seed: int = 0
 
+    #: whole-number options and their accepted ranges (a ray grid beyond 64 x 64 per zone does not finish in
+    #: useful time; the window holds at most the histogram)
+    WHOLE: ClassVar[dict[str, tuple[int, int]]] = {
+        "rays": (1, 64), "max_iterations": (1, 1000), "window_after_peak": (1, N_BINS), "test_window": (1, N_BINS),
+        "paper_iterations": (1, 100_000), "paper_rays": (1, 100_000), "seed": (0, 2 ** 63 - 1)}
+    #: real-valued options that must be finite and above 0 (``zone_albedo_spread`` may also be inf: untied)
+    POSITIVE: ClassVar[tuple[str, ...]] = ("tolerance", "chi2_tolerance", "prior_specular_weight",
+                                           "prior_log_exponent", "paper_lr", "zone_albedo_spread")
+
+    def __post_init__(self) -> None:
+        """Refuse options the solver cannot run with, naming the option (one line), instead of a frame without a
+        plane ("SVD did not converge") or a solve that never ends."""
+        for name, (lo, hi) in self.WHOLE.items():
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not lo <= v <= hi:
+                raise ValueError(f"SolverOptions: {name} must be a whole number in {lo}..{hi}, got {v!r}")
+        for name in self.POSITIVE:
+            v = getattr(self, name)
+            ok = isinstance(v, (int, float, np.floating)) and not isinstance(v, bool) and v > 0 and not math.isnan(v)
+            if not ok or (math.isinf(v) and name != "zone_albedo_spread"):
+                raise ValueError(f"SolverOptions: {name} must be a number above 0, got {v!r}")
+        for name in ("zone_albedo", "ambient"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"SolverOptions: {name} must be true or false, got {getattr(self, name)!r}")
+
 
 #: Bounds of the unknowns (a, b, z0 [m], log albedo, specular weight, log specular exponent):
 #: slopes up to 80 deg of incidence, planes 1 mm to 5 m away, albedo within 1e-4..1e4 of the model's.

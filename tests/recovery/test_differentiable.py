@@ -409,3 +409,23 @@ def test_range_correction_of_arrays_is_that_of_each_element():
     for i in range(len(z0)):
         assert c(float(z0[i])) == c(z0)[i]
         assert c.slopes(float(z0[i]), float(a[i]), float(b[i])) == (da[i], db[i])
+
+
+@pytest.mark.parametrize("option, value, match", [
+    ("rays", 0, "rays must be a whole number in 1..64"),
+    ("rays", 10_000, "rays must be a whole number in 1..64"),
+    ("rays", 6.0, "rays must be a whole number"),
+    ("max_iterations", True, "max_iterations must be a whole number"),
+    ("window_after_peak", 200, "window_after_peak must be a whole number in 1..128"),
+    ("zone_albedo_spread", 0.0, "zone_albedo_spread must be a number above 0"),
+    ("tolerance", math.inf, "tolerance must be a number above 0"),
+    ("chi2_tolerance", math.nan, "chi2_tolerance must be a number above 0"),
+    ("paper_lr", "0.01", "paper_lr must be a number above 0"),
+    ("ambient", 1, "ambient must be true or false"),
+])
+def test_solver_options_the_solver_cannot_run_with_are_refused_by_name(option, value, match):
+    """A zero ray grid, a spread of 0 (every frame "SVD did not converge") or a 10000 x 10000 grid (a solve that never
+    ends) fail when the options are made, naming the option."""
+    with pytest.raises(ValueError, match=match):
+        SolverOptions(**{option: value})
+    assert SolverOptions(zone_albedo_spread=math.inf).zone_albedo_spread == math.inf  # untied: allowed
