@@ -143,6 +143,11 @@ def calibration_kinds() -> dict[str, bytes]:
         "cal-albedo-zero": cal(forward={"albedo": 0.0}),
         "cal-specular-exponent-zero": cal(forward={"specular_exponent": 0.0}),
         "cal-ref-time-scale-1e6": cal(forward={"ref_time_scale": 1e6}),
+        # third round: each coefficient in range, the series not (400 x 5 cm: a plane moved 20 m; 300 x 3 in the
+        # log albedo: an overflow), and an uncertainty floor no covariance survives
+        "cal-range-correction-400-coeffs": cal(diff={"range_correction": {"coeffs": [0.05] * 400}}),
+        "cal-albedo-series-overflow": cal(diff={"range_correction": {"albedo": [3.0] * 300}}),
+        "cal-uncertainty-tilt-1e308": cal(peak=peak, uncertainty={"peak": {"tilt_std": 1e308}}),
     }
 
 
@@ -325,6 +330,10 @@ SENSOR_URIS = [
 
 #: Command-line values on the newer surfaces, each a full argv.
 NEW_OPTION_RUNS = [
+    ["capture", "--sim", "level_table", "-o", "{tmp}/c.jsonl", "--distances", "10:1e300:1"],
+    ["capture", "--sim", "level_table", "-o", "{tmp}/c.jsonl", "--distances", "10:nan:1"],
+    ["capture", "--sim", "level_table", "-o", "{tmp}/c.jsonl", "--distances", "10:90:1e-300"],
+    ["capture", "--sim", "level_table", "-o", "{tmp}/c.jsonl", "--distances", "::"],
     ["sim"], ["scenarios", "--jobs", "100000"], ["scenarios", "--jobs", "0"], ["scenarios", "--random", "10" * 10],
     ["scenarios", "--seconds", "1e300"], ["scenarios", "--seed=-1"], ["scenarios", "--seconds", "nan"],
     ["place", "--sim", "place_level", "--timeout", "1e300"], ["place", "--sim", "place_level", "--seed=-1"],
