@@ -153,7 +153,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         return _main(argv)
 
 
+def _outputs_named(args: argparse.Namespace | None) -> str:
+    """The output options a command was given, as ``--json out.json, -o cal.json`` ('' without any): what an
+    error without a file name (a full disk while writing) was most likely writing."""
+    if args is None:
+        return ""
+    named = [f"--{name.replace('_', '-')} {value}" for name in OUTPUT_OPTIONS
+             if isinstance(value := getattr(args, name, None), str) and value]
+    return ", ".join(named)
+
+
 def _main(argv: Sequence[str] | None) -> int:
+    args = None
     try:
         argv = list(sys.argv[1:] if argv is None else argv)
         command = next((a for a in argv if not a.startswith("-")), None)
@@ -178,7 +189,8 @@ def _main(argv: Sequence[str] | None) -> int:
         log(f"{PROG}: interrupted")
         return 130
     except OSError as exc:  # e.g. an output directory that cannot be written
-        log(f"{PROG}: error: {exc.strerror or _one_line(exc)}: {exc.filename or ''}".rstrip(": "))
+        where = exc.filename or (f"writing {named}" if (named := _outputs_named(args)) else "")
+        log(f"{PROG}: error: {exc.strerror or _one_line(exc)}: {where}".rstrip(": "))
         return 2
     except (ValueError, RecursionError, OverflowError, MemoryError) as exc:  # bad input Python noticed first
         log(f"{PROG}: error: invalid input: {_one_line(exc)}")

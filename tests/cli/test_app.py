@@ -407,3 +407,10 @@ def test_synth_writes_frames_with_truth_and_rejects_bad_ranges(tmp_path, capsys)
     assert "wrote 3" in capsys.readouterr().err
     assert main(["synth", "--frames", "3", "--min-distance", "0.2", "--max-distance", "0.1", "-o", str(out)]) == 2
     assert one_line_error(capsys.readouterr().err)
+
+
+def test_a_full_disk_names_the_output_it_was_writing(sweep_path, capsys):
+    """A write that fails without a file name (ENOSPC on /dev/full) still says which output it was: one line."""
+    assert main(["evaluate", str(sweep_path), "--methods", "peak", "--no-plots", "-q", "--json", "/dev/full"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["place-safe: error: No space left on device: writing --json /dev/full"], err
