@@ -62,3 +62,22 @@ def test_calibrate_mount_on_the_real_sweep_writes_a_robot_file(sweep_path, tmp_p
     cfg = URConfig.load(out)
     assert cfg.tool.mount_fit["frames"] >= 40 and "translation x" in cfg.tool.mount_fit["unobserved"]
     assert cfg.tool.sensor.xyz != URConfig.load(packaged_config("sim")).tool.sensor.xyz
+
+
+from hypothesis import given, settings, strategies as st  # noqa: E402
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.text(alphabet="0123456789:.,-+eEinfa ", max_size=40))
+def test_capture_distances_are_a_bounded_list_of_millimetres_or_one_clear_error(text):
+    import argparse
+    import math
+
+    from place_safe.cli.robot import MAX_LIST, _distances
+
+    try:
+        values = _distances(text)
+    except argparse.ArgumentTypeError as exc:
+        assert "\n" not in str(exc) and str(exc).startswith("expected")
+        return
+    assert 1 <= len(values) <= MAX_LIST and all(math.isfinite(v) and 10.0 <= v <= 5000.0 for v in values)
