@@ -1,5 +1,5 @@
 """How much of a method's frame-to-frame tilt scatter photon noise explains: each real frame's histograms resampled
-(Poisson about the observed counts, so about sqrt(2) times the frame's own noise) K times and recovered again.
+(Poisson about the observed counts: a copy differs from the frame by about its own noise) K times and recovered again.
 
 For every frame with ground truth at 5-40 cm the script recovers K resampled copies with diff's own plane (the
 calibration's fallback limits set to null in a copy, so diff never returns peak's plane) and with peak, and prints,

@@ -399,8 +399,8 @@ def fit_near_law(rows: Sequence[tuple], unc: Uncertainty, peak_params, end: floa
     Held out from a plain sweep, a frame lies mid-way in a gap twice the table's spacing (4 times a new frame's
     measure), and where the error stops growing with the gap the fitted share is 1 and the law states the wider
     gaps' error for new frames (simulated units 21 and 23: 2-5 cm NEES per dof 0.30 / 0.32). A second level pass
-    half a step above the first below 9 cm gives held-out frames at a new frame's gap (its frames lie between
-    knots, not on them): the six units 0.56-0.75 (docs/results.md). The report's ``held_out_at_new_frame_gaps``
+    half a step above the first below 9 cm halves the spacing, so a frame left out still has neighbours as near as
+    a new frame's and is read across a gap about as wide: the six units 0.56-0.75 (docs/results.md). The report's ``held_out_at_new_frame_gaps``
     counts the rows within :data:`NEW_FRAME_GAP_FACTOR` of :func:`new_frame_measure`; with fewer than
     :data:`NEW_FRAME_GAP_SHARE` of the rows there, ``note`` says the law is cautious and how to capture for one
     that is not.

@@ -18,6 +18,7 @@ Exit status: 0 on success, 2 for a usage or input error (one line on standard er
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib.util
 import sys
 from collections.abc import Sequence
@@ -153,14 +154,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         return _main(argv)
 
 
-def _outputs_named(args: argparse.Namespace | None) -> str:
-    """The output options a command was given, as ``--json out.json, -o cal.json`` ('' without any): what an
-    error without a file name (a full disk while writing) was most likely writing."""
-    if args is None:
-        return ""
-    named = [f"--{name.replace('_', '-')} {value}" for name in OUTPUT_OPTIONS
-             if isinstance(value := getattr(args, name, None), str) and value]
-    return ", ".join(named)
+#: errno values of a write that found no room (a full disk or quota, a file too large): the error names no file
+NO_ROOM = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
+
+
+def _no_room_where(args: argparse.Namespace | None) -> str:
+    """Where a write that found no room (:data:`NO_ROOM`, no file name in the error) may have gone: the output
+    options the command was given and standard output, e.g. ``writing --json out.json or standard output``."""
+    named = [] if args is None else [f"--{name.replace('_', '-')} {value}" for name in OUTPUT_OPTIONS
+                                     if isinstance(value := getattr(args, name, None), str) and value]
+    return "writing " + " or ".join(named + ["standard output"])
 
 
 def _main(argv: Sequence[str] | None) -> int:
@@ -189,7 +192,7 @@ def _main(argv: Sequence[str] | None) -> int:
         log(f"{PROG}: interrupted")
         return 130
     except OSError as exc:  # e.g. an output directory that cannot be written
-        where = exc.filename or (f"writing {named}" if (named := _outputs_named(args)) else "")
+        where = exc.filename or (_no_room_where(args) if exc.errno in NO_ROOM else "")
         log(f"{PROG}: error: {exc.strerror or _one_line(exc)}: {where}".rstrip(": "))
         return 2
     except (ValueError, RecursionError, OverflowError, MemoryError) as exc:  # bad input Python noticed first

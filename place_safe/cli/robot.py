@@ -51,26 +51,33 @@ MAX_LIST = 100
 def _distances(text: str) -> list[float]:
     """``capture --distances``: comma-separated millimetres from 10 to 5000, each a number or a range
     ``START:STOP:STEP`` (STOP included when the steps reach it), e.g. ``10:90:2,100:400:10``; at most
-    :data:`MAX_LIST` in all."""
-    items = []
+    :data:`MAX_LIST` values in all."""
+    values: list[float] = []
     for item in text.replace(" ", "").split(","):
         if ":" not in item:
-            items.append(item)
+            try:
+                values += [float(item)] if item else []
+            except ValueError:
+                raise argparse.ArgumentTypeError(f"expected comma-separated mm (numbers or START:STOP:STEP), got "
+                                                 f"{text[:80]!r}") from None
             continue
         try:
             start, stop, step = (float(v) for v in item.split(":"))
         except ValueError:
             start = stop = step = math.nan
         if not (math.isfinite(start + stop + step) and step > 0.0 and stop >= start
-                and (stop - start) / step <= MAX_LIST):
+                and (stop - start) / step + 1 <= MAX_LIST):
             raise argparse.ArgumentTypeError(f"expected a range START:STOP:STEP (mm) with STOP >= START, STEP > 0 "
-                                             f"and at most {MAX_LIST} steps, got {item[:80]!r}")
+                                             f"and at most {MAX_LIST} values, got {item[:80]!r}")
         n = int(math.floor((stop - start) / step + 1e-9))
-        items += [f"{start + i * step:.6g}" for i in range(n + 1)]
-    try:
-        return _floats(",".join(items), None, "mm", 10.0, 5000.0)
-    except argparse.ArgumentTypeError as exc:
-        raise argparse.ArgumentTypeError(f"{str(exc).rsplit(', got', 1)[0]}, got {text[:80]!r}") from None
+        values += [round(start + i * step, 9) for i in range(n + 1)]  # no drift from adding steps up
+    if not 1 <= len(values) <= MAX_LIST or not all(math.isfinite(v) for v in values):
+        raise argparse.ArgumentTypeError(f"expected 1 to {MAX_LIST} comma-separated finite mm, got {text[:80]!r}")
+    if not all(10.0 <= v <= 5000.0 for v in values):
+        raise argparse.ArgumentTypeError(f"expected mm from 10 to 5000, got {text[:80]!r}")
+    return values
+
+
 #: m: base-frame coordinates an option may name (the UR5 reaches 0.85 m from its base).
 
 

@@ -122,8 +122,9 @@ def output_file_problem(path: str | os.PathLike) -> str | None:
 
 
 def output_dir_problem(path: str | os.PathLike) -> str | None:
-    """Why a command cannot write files into the folder ``path`` (it, or a part of the path, is not a directory), or
-    None (a directory, or a missing path whose folders can be made)."""
+    """Why ``path`` cannot be a folder for a command's files (it, or a part of the path, is not a directory), or None
+    (a directory, or a missing path). Permissions are not checked: a folder that cannot be written fails when written,
+    with its name."""
     try:
         st = os.stat(path)
     except FileNotFoundError:

@@ -37,6 +37,7 @@ chi-square (plus the calibrated floor).
 from __future__ import annotations
 
 import math
+import reprlib
 from dataclasses import dataclass
 from typing import ClassVar, Literal
 
@@ -257,15 +258,19 @@ class SolverOptions:
         for name, (lo, hi) in self.WHOLE.items():
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not lo <= v <= hi:
-                raise ValueError(f"SolverOptions: {name} must be a whole number in {lo}..{hi}, got {v!r}")
+                raise ValueError(f"SolverOptions: {name} must be a whole number in {lo}..{hi}, got {reprlib.repr(v)}")
         for name in self.POSITIVE:
             v = getattr(self, name)
-            ok = isinstance(v, (int, float, np.floating)) and not isinstance(v, bool) and v > 0 and not math.isnan(v)
-            if not ok or (math.isinf(v) and name != "zone_albedo_spread"):
-                raise ValueError(f"SolverOptions: {name} must be a number above 0, got {v!r}")
+            try:
+                x = float(v) if isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool) \
+                    else math.nan
+            except OverflowError:  # an int beyond a float
+                x = math.nan
+            if not x > 0 or (math.isinf(x) and name != "zone_albedo_spread"):
+                raise ValueError(f"SolverOptions: {name} must be a number above 0, got {reprlib.repr(v)}")
         for name in ("zone_albedo", "ambient"):
             if not isinstance(getattr(self, name), bool):
-                raise ValueError(f"SolverOptions: {name} must be true or false, got {getattr(self, name)!r}")
+                raise ValueError(f"SolverOptions: {name} must be true or false, got {reprlib.repr(getattr(self, name))}")
 
 
 #: Bounds of the unknowns (a, b, z0 [m], log albedo, specular weight, log specular exponent):

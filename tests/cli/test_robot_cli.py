@@ -20,7 +20,7 @@ from place_safe.drivers.ur5 import URConfig, packaged_config
     (["capture", "--sim", "level_table", "-o", "x", "--distances", "10:90:0"], "a range START:STOP:STEP"),
     (["capture", "--sim", "level_table", "-o", "x", "--distances", "90:10:2"], "STOP >= START"),
     (["capture", "--sim", "level_table", "-o", "x", "--distances", "5:90:2"], "from 10 to 5000, got '5:90:2'"),
-    (["capture", "--sim", "level_table", "-o", "x", "--distances", "10:1000:5"], "at most 100 steps"),
+    (["capture", "--sim", "level_table", "-o", "x", "--distances", "10:1000:5"], "at most 100 values"),
 ])
 def test_usage_errors_are_one_line(argv, match, capsys, monkeypatch, tmp_path):
     monkeypatch.chdir(tmp_path)
