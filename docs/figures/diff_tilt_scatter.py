@@ -23,7 +23,6 @@ zone's bins LO..HI about its highest bin multiplied by W (-3 -1: the rising edge
 """
 
 import argparse
-import copy
 import dataclasses
 import json
 
@@ -41,9 +40,7 @@ SMOOTH_DEGREE = 6
 
 def own_calibration(cal: Calibration, model_error: float | None) -> Calibration:
     """CAL with diff's fallback limits off and no plane correction (and another model error if given)."""
-    d = copy.deepcopy(cal.to_dict())
-    for k in ("chi2_limit", "consistency_limit", "prefer_ratio"):
-        d["uncertainty"]["diff"][k] = None
+    d = cal.without_fallback().to_dict()
     d["diff"]["range_correction"] = {}
     if model_error is not None:
         d["forward"]["model_error"] = model_error

@@ -19,7 +19,6 @@ Calibrations are kept in ``--cals`` (made when missing). The NEES interval is ne
 from __future__ import annotations
 
 import argparse
-import copy
 import math
 import os
 import sys
@@ -77,10 +76,7 @@ def calibrate(frames, variant: str) -> Calibration:
 
 def own(cal: Calibration) -> Calibration:
     """A copy of ``cal`` with diff's fallback limits null: diff's own plane wherever it solves."""
-    c = copy.deepcopy(cal)
-    for k in ("chi2_limit", "consistency_limit", "prefer_ratio"):
-        c.sections["uncertainty"]["diff"][k] = None
-    return Calibration.from_dict(c.to_dict()) if hasattr(c, "to_dict") else c
+    return cal.without_fallback()
 
 
 def rows_of(est, frames) -> list[dict]:

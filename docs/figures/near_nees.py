@@ -18,7 +18,6 @@ have ``c = 1``. "gap position" is a frame's depth's place between the calibratio
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import sys

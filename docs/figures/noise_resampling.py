@@ -15,10 +15,6 @@ from __future__ import annotations
 
 import argparse
 import copy
-import json
-import math
-import tempfile
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -28,21 +24,6 @@ from place_safe.cli.common import load_truth_frames
 from place_safe.recovery import make_estimator
 from place_safe.recovery.estimator import tilt_offset
 
-#: the calibration's fallback limits: null in the copy, so diff returns its own plane
-LIMITS = ("chi2_limit", "consistency_limit", "prefer_ratio")
-
-
-def own_calibration(path: str) -> Calibration:
-    """The calibration at ``path`` with diff's fallback limits null (diff's own plane on every frame)."""
-    d = json.loads(Path(path).read_text(encoding="utf-8"))
-    for k in LIMITS:
-        d["uncertainty"]["diff"][k] = None
-    with tempfile.TemporaryDirectory() as tmp:
-        own = Path(tmp) / "own.json"
-        own.write_text(json.dumps(d), encoding="utf-8")
-        return Calibration.load(own)
-
-
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("calibration", help="calibration file with diff and peak sections")
@@ -50,8 +31,10 @@ def main() -> int:
     ap.add_argument("--copies", type=int, default=8, help="resampled copies of each frame (default 8)")
     ap.add_argument("--seed", type=int, default=0)
     a = ap.parse_args()
+    if a.copies < 2:
+        ap.error("--copies must be 2 or more (a spread needs two copies)")
     torch.set_num_threads(1)
-    diff = make_estimator("diff", own_calibration(a.calibration))
+    diff = make_estimator("diff", Calibration.load(a.calibration).without_fallback())
     peak = make_estimator("peak", Calibration.load(a.calibration))
     frames, _ = load_truth_frames([a.frames])
     rng = np.random.default_rng(a.seed)
@@ -68,7 +51,7 @@ def main() -> int:
                 td.append(tilt_offset(e.plane)[:2])
                 tp.append(tilt_offset(p.plane)[:2])
         own = diff.estimate(f)
-        if len(td) > 2:
+        if len(td) >= 2:
             spread_d.append(np.std(td, axis=0))
             spread_p.append(np.std(tp, axis=0))
             if own.covariance is not None:
@@ -78,6 +61,9 @@ def main() -> int:
         v = np.degrees(np.sqrt((np.asarray(rows) ** 2).mean(axis=0)))
         return f"a {v[0]:.3f}, b {v[1]:.3f}"
 
+    if not spread_d:
+        print("no frame with ground truth at 5-40 cm gave a plane in two copies or more")
+        return 1
     print(f"{len(spread_d)} frames at 5-40 cm, {a.copies} resampled copies each (deg, rms over frames)")
     print(f"  diff's own tilt across copies: {rms(spread_d)}")
     print(f"  peak's tilt across copies:     {rms(spread_p)}")

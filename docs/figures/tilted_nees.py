@@ -15,7 +15,6 @@ method (diff / its fallback to peak).
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 from pathlib import Path

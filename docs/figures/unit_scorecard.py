@@ -105,11 +105,10 @@ def make_frames(unit: str, out: Path) -> tuple[Path, Path]:
 
 def own_copy(cal: Path) -> Path:
     """The calibration with diff's fallback limits null: diff always returns its own plane."""
-    d = json.loads(cal.read_text())
-    for k in ("chi2_limit", "consistency_limit", "prefer_ratio"):
-        d["uncertainty"]["diff"][k] = None
+    from place_safe.calibration import Calibration
+
     own = cal.with_name(cal.stem + "_own.json")
-    own.write_text(json.dumps(d))
+    Calibration.load(cal).without_fallback().save(own)
     return own
 
 

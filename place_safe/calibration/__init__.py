@@ -19,6 +19,7 @@ Fitting lives in :mod:`place_safe.calibration.points` (peak and on-sensor distan
 
 from __future__ import annotations
 
+import copy
 from dataclasses import InitVar, dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -156,6 +157,15 @@ class Calibration:
             return Uncertainty.from_dict(sec[method], f"uncertainty.{method}") if method in sec else Uncertainty()
         except (TypeError, ValueError, AttributeError, OverflowError) as exc:
             raise CalibrationError(str(exc)) from None
+
+    def without_fallback(self) -> "Calibration":
+        """A copy whose ``diff`` uncertainty never falls back to peak's plane
+        (:meth:`~place_safe.recovery.estimator.Uncertainty.without_fallback`): diff's own plane on every frame it
+        solves, the way docs/results.md measures it; every other section and the reports as they are."""
+        d = copy.deepcopy(self.to_dict())
+        unc = d.setdefault("uncertainty", {})
+        unc["diff"] = self.uncertainty("diff").without_fallback().to_dict()
+        return Calibration.from_dict(d, f"{self.source} without diff's fallback")
 
     def forward(self) -> ForwardParams:
         from place_safe.recovery.forward import ForwardParams

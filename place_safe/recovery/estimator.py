@@ -201,8 +201,15 @@ class Uncertainty(ParamModel):
             near = depth < self.near_depths[-1]
         return np.where(near, np.interp(np.where(near, depth, 0.0), self.near_depths, values), 0.0)
 
+    #: the limits at which ``diff`` returns peak's plane instead of its own (``inf``: never)
+    FALLBACK_LIMITS: ClassVar[tuple[str, ...]] = ("chi2_limit", "consistency_limit", "prefer_ratio")
     #: fields written as JSON null when infinite
-    _INF_AS_NULL: ClassVar[tuple[str, ...]] = ("chi2_limit", "consistency_limit", "prefer_ratio")
+    _INF_AS_NULL: ClassVar[tuple[str, ...]] = FALLBACK_LIMITS
+
+    def without_fallback(self) -> "Uncertainty":
+        """This uncertainty with every :data:`FALLBACK_LIMITS` at ``inf``: ``diff`` returns its own plane wherever it
+        solves one (how its own accuracy is measured), with the same covariance."""
+        return self.replace(**{k: math.inf for k in self.FALLBACK_LIMITS})
     #: fields left out of the file at these values (the defaults of files older versions read)
     _OMITTED_AT: ClassVar[tuple[tuple[str, Any], ...]] = (("tilt_rel", 0.0), ("prefer_ratio", None),
                                                            ("tilt_pivot", 1.0), ("tilt_offset_rel", 0.0))

@@ -259,3 +259,19 @@ def test_null_sections_are_not_a_calibration_for_placement(tmp_path):
         assert "not calibrated" in uncalibrated_reason(method, cal)
     with pytest.raises(CalibrationError, match="section 'uncertainty'"):
         cal.uncertainty("peak")
+
+
+def test_a_calibration_without_fallback_returns_diffs_own_plane_and_keeps_every_other_section(sweep_path):
+    from place_safe import simulated_calibration
+    from place_safe.io.frame_file import load_frames
+
+    cal = simulated_calibration("nominal")  # a simulated unit's: on real frames diff falls back often
+    own = cal.without_fallback()
+    assert {k: v for k, v in own.to_dict().items() if k != "uncertainty"} == \
+        {k: v for k, v in cal.to_dict().items() if k != "uncertainty"}
+    assert own.to_dict()["uncertainty"]["peak"] == cal.to_dict()["uncertainty"]["peak"]
+    assert all(own.to_dict()["uncertainty"]["diff"].get(k) is None for k in ("chi2_limit", "consistency_limit"))
+    frames = [f for f in load_frames(sweep_path) if f.truth is not None and 0.05 <= f.truth.z0 <= 0.4][::6]
+    used = {e.method_used for e in make_estimator("diff", cal).estimate_many(frames) if e.ok}
+    own_used = {e.method_used for e in make_estimator("diff", own).estimate_many(frames) if e.ok}
+    assert "peak" in used and own_used == {"diff"}

@@ -322,3 +322,12 @@ def test_estimator_arguments_of_the_wrong_type_are_refused_saying_what_was_expec
                        (PeakEstimator, "params"), (PeakEstimator, "uncertainty"), (ProprietaryEstimator, "params")):
         with pytest.raises(ArgumentTypeError, match=arg):
             build(**{arg: {"m": 1.0}})
+
+
+def test_without_fallback_lifts_only_the_fallback_limits():
+    from place_safe.recovery.estimator import Uncertainty
+
+    unc = Uncertainty(tilt_std=1e-3, chi2_limit=2.0, consistency_limit=9.0, prefer_ratio=1.5, scale=1.3)
+    own = unc.without_fallback()
+    assert all(math.isinf(getattr(own, k)) for k in Uncertainty.FALLBACK_LIMITS)
+    assert own.replace(**{k: getattr(unc, k) for k in Uncertainty.FALLBACK_LIMITS}) == unc  # nothing else moved
