@@ -224,6 +224,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         log(f"evaluate on {len(frames)} frames" + (f" ({skipped})" if skipped else ""))
     if (note := uncalibrated_note(args.methods, cal, args.calibration)) is not None:
         print(note, flush=True)  # the first line; the table marks each uncalibrated method's row
+    if args.no_fallback and "diff" in args.methods:
+        cal = (cal if cal is not None else Calibration()).without_fallback()
+        print("diff without its fallback: its own plane on every frame it solves (never peak's)", flush=True)
     options = {"diff": {"mode": args.diff_mode}} if args.diff_mode else None
     report = evaluate(frames, cal, list(args.methods), None if args.no_plots else args.out, not args.quiet,
                       estimator_options=options)
@@ -390,7 +393,8 @@ def register(sub) -> None:
         sub, "evaluate", cmd_evaluate, "score methods against ground truth",
         "Recover every frame with ground truth with each method and print angular (deg), linear (mm) and point (mm) "
         "errors as a table; plots go to --out.",
-        ["place-safe evaluate sweep.json --calibration calib.json --methods diff peak --max-distance 0.3"],
+        ["place-safe evaluate sweep.json --calibration calib.json --methods diff peak --max-distance 0.3",
+         "place-safe evaluate sweep.json --calibration calib.json --methods diff --no-fallback   # diff's own plane"],
         opt("file", metavar="FILE", help="frame file with ground truth"),
         "calibration",
         opt("--methods", nargs="+", choices=METHODS, default=list(METHODS), metavar="METHOD",
@@ -401,6 +405,9 @@ def register(sub) -> None:
         opt("--max-distance", type=options.float_range(0.0, 100.0, lo_open=True), default=None, metavar="M",
             help="skip frames whose true plane is farther than M metres (perpendicular distance d)"),
         opt("--no-plots", action="store_true", help="do not write plots"),
+        opt("--no-fallback", action="store_true",
+            help="diff's own plane on every frame it solves, never peak's (the calibration's fallback limits lifted: "
+                 "how diff's own accuracy is measured)"),
         "mode", "json", "quiet",
         mode={"flags": ("--diff-mode",)}, json={"help": "also write the report as JSON"})
 

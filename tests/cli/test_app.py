@@ -414,3 +414,20 @@ def test_a_full_disk_names_the_output_it_was_writing(sweep_path, capsys):
     assert main(["evaluate", str(sweep_path), "--methods", "peak", "--no-plots", "-q", "--json", "/dev/full"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err == ["place-safe: error: No space left on device: writing --json /dev/full or standard output"], err
+
+
+def test_evaluate_no_fallback_reports_diffs_own_plane(sweep_path, tmp_path, capsys):
+    """--no-fallback lifts the calibration's fallback limits: every plane diff returns is its own (a simulated unit's
+    calibration on the real sweep falls back on every frame without it)."""
+    from place_safe.sim.tof import calibration_file
+
+    cal = str(calibration_file("nominal"))
+    runs = {}
+    for flag in ([], ["--no-fallback"]):
+        out = tmp_path / f"ev{len(flag)}.json"
+        assert main(["evaluate", str(sweep_path), "--calibration", cal, "--methods", "diff", "--no-plots", "-q",
+                     "--min-distance", "0.2", "--max-distance", "0.3", "--json", str(out), *flag]) == 0
+        runs[bool(flag)] = json.loads(out.read_text())["methods"]["diff"]
+    assert runs[False]["fallback_rate"] > 0.5 and runs[True]["fallback_rate"] == 0.0
+    assert set(runs[True]["method_used"]) == {"diff"}
+    assert "diff without its fallback" in capsys.readouterr().out
