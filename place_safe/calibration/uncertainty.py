@@ -400,8 +400,8 @@ def fit_near_law(rows: Sequence[tuple], unc: Uncertainty, peak_params, end: floa
     measure), and where the error stops growing with the gap the fitted share is 1 and the law states the wider
     gaps' error for new frames (simulated units 21 and 23: 2-5 cm NEES per dof 0.30 / 0.32). A second level pass
     half a step above the first below 9 cm halves the spacing, so a frame left out still has neighbours as near as
-    a new frame's and is read across a gap about as wide: the six units 0.56-0.75 (docs/results.md). The report's ``held_out_at_new_frame_gaps``
-    counts the rows within :data:`NEW_FRAME_GAP_FACTOR` of :func:`new_frame_measure`; with fewer than
+    a new frame's and is read across a gap about as wide: the six units 0.56-0.75 (docs/results.md). The report's
+    ``held_out_at_new_frame_gaps`` counts the rows within :data:`NEW_FRAME_GAP_FACTOR` of :func:`new_frame_measure`; with fewer than
     :data:`NEW_FRAME_GAP_SHARE` of the rows there, ``note`` says the law is cautious and how to capture for one
     that is not.
 
@@ -461,7 +461,7 @@ def fit_near_law(rows: Sequence[tuple], unc: Uncertainty, peak_params, end: floa
             theta = theta[:3] + (math.exp(res.x),)
     scale, power, shared, share = theta
     m_new = new_frame_measure(knots) if knots else None
-    narrow = sum(1 for m in measured if m_new is not None and m <= NEW_FRAME_GAP_FACTOR * m_new)
+    narrow = sum(m <= NEW_FRAME_GAP_FACTOR * m_new for m in measured) if knots else 0
     held = np.array([r[3] * r[3] / np.diag(row_covariance(r, theta)) for r in rows])  # per component
     per_row = [float(r[3] @ np.linalg.solve(row_covariance(r, theta), r[3])) / 3.0 for r in rows]
     return tabulated(share), {

@@ -105,31 +105,42 @@ def count_note(counts) -> str:
     return f"{total} skipped: " + ", ".join(f"{n} {why}" for why, n in counts.most_common())
 
 
+def report_items(report: dict, prefix: str = ""):
+    """The entries of a (nested) report that are not dicts, as ``(dotted key, value)`` in order."""
+    for k, v in report.items():
+        if isinstance(v, dict):
+            yield from report_items(v, f"{prefix}{k}.")
+        else:
+            yield f"{prefix}{k}", v
+
+
 def summarise(report: Any, indent: str = "  ") -> list[str]:
     """Scalar entries of a fit report, one per line (nested dicts flattened with dots)."""
     rep = jsonable(report)
     if not isinstance(rep, dict):
         return [f"{indent}{rep}"]
     lines: list[str] = []
-
-    def walk(d: dict, prefix: str) -> None:
-        for k, v in d.items():
-            key = f"{prefix}{k}"
-            if isinstance(v, dict):
-                walk(v, key + ".")
-            elif isinstance(v, list):
-                if len(v) <= 16 and all(isinstance(x, (int, float)) or x is None for x in v):
-                    lines.append(f"{indent}{key}: [{', '.join('-' if x is None else f'{x:.4g}' for x in v)}]")
-                else:
-                    lines.append(f"{indent}{key}: list of {len(v)}")
-            elif isinstance(v, float):
-                lines.append(f"{indent}{key}: {v:.6g}")
-            else:
-                lines.append(f"{indent}{key}: {v}")
-
     rep = {k: v for k, v in rep.items() if k != "params"}  # the parameters themselves are in the file
-    walk(rep, "")
+    for key, v in report_items(rep):
+        if isinstance(v, list):
+            if len(v) <= 16 and all(isinstance(x, (int, float)) or x is None for x in v):
+                lines.append(f"{indent}{key}: [{', '.join('-' if x is None else f'{x:.4g}' for x in v)}]")
+            else:
+                lines.append(f"{indent}{key}: list of {len(v)}")
+        elif isinstance(v, float):
+            lines.append(f"{indent}{key}: {v:.6g}")
+        else:
+            lines.append(f"{indent}{key}: {v}")
     return lines
+
+
+def report_notes(report: Any, where: str = "") -> list[tuple[str, str]]:
+    """Every ``note`` in a calibration report (nested dicts), with the dotted place of the report that holds it
+    (``where`` first): ``(place, text)``."""
+    if not isinstance(report, dict):
+        return []
+    return [(key.removesuffix(".note") if key != "note" else "", str(v))
+            for key, v in report_items(report, f"{where}." if where else "") if key.split(".")[-1] == "note"]
 
 
 

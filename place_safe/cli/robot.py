@@ -35,6 +35,12 @@ def _floats(text: str, n: int | None = None, what: str = "numbers", lo: float = 
         vals = [float(v) for v in text.replace(" ", "").split(",") if v != ""]
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected comma-separated {what}, got {text[:80]!r}") from None
+    return _checked(vals, text, n, what, lo, hi)
+
+
+def _checked(vals: list[float], text: str, n: int | None, what: str, lo: float, hi: float) -> list[float]:
+    """``vals`` read from option ``text`` if finite, ``n`` of them (1 to :data:`MAX_LIST` without ``n``) and each in
+    [lo, hi]; else one ``expected ...`` line naming ``text``."""
     if (not vals or not all(math.isfinite(v) for v in vals) or (n is not None and len(vals) != n)
             or len(vals) > MAX_LIST):
         raise argparse.ArgumentTypeError(f"expected {n or f'1 to {MAX_LIST}'} comma-separated finite {what}, "
@@ -71,11 +77,7 @@ def _distances(text: str) -> list[float]:
                                              f"and at most {MAX_LIST} values, got {item[:80]!r}")
         n = int(math.floor((stop - start) / step + 1e-9))
         values += [round(start + i * step, 9) for i in range(n + 1)]  # no drift from adding steps up
-    if not 1 <= len(values) <= MAX_LIST or not all(math.isfinite(v) for v in values):
-        raise argparse.ArgumentTypeError(f"expected 1 to {MAX_LIST} comma-separated finite mm, got {text[:80]!r}")
-    if not all(10.0 <= v <= 5000.0 for v in values):
-        raise argparse.ArgumentTypeError(f"expected mm from 10 to 5000, got {text[:80]!r}")
-    return values
+    return _checked(values, text, None, "mm", 10.0, 5000.0)
 
 
 #: m: base-frame coordinates an option may name (the UR5 reaches 0.85 m from its base).

@@ -20,8 +20,8 @@ from place_safe.cli import options
 from place_safe.cli.options import opt
 from place_safe.exceptions import CalibrationError, FrameError, FrameFileError, PlaceSafeError
 from place_safe.cli.common import (CALIBRATE_METHODS, METHODS, PROG, UsageError, estimator_for,
-                                   jsonable, load_calibration, load_truth_frames, log, progress_options, summarise,
-                                   not_a_file, uncalibrated_note)
+                                   jsonable, load_calibration, load_truth_frames, log, progress_options, report_notes,
+                                   summarise, not_a_file, uncalibrated_note)
 from place_safe.evaluation.bench import DEFAULT_RUNS, measure_file_rss, report_json, run_bench
 from place_safe.evaluation.evaluate import evaluate
 from place_safe.io.frame_file import iter_frames
@@ -86,16 +86,6 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
             log(f"note ({where}): {text}")
     log(f"wrote {out} (sections: {', '.join(cal.sections)})")
     return 0
-
-
-def report_notes(report, where: str = "") -> list[tuple[str, str]]:
-    """Every ``note`` in a calibration report (nested dicts), with its dotted place: ``(place, text)``."""
-    if not isinstance(report, dict):
-        return []
-    out = [(where, str(report["note"]))] if "note" in report else []
-    for key, value in report.items():
-        out += report_notes(value, f"{where}.{key}" if where else str(key))
-    return out
 
 
 def _calibrate_sim(args: argparse.Namespace) -> int:

@@ -53,7 +53,7 @@ from place_safe.io.source import FrameSource
 from place_safe.placement.config import PlacementConfig
 from place_safe.placement.machine import CommandKind, PlacementMachine, RobotState, Transition
 from place_safe.placement.time_alignment import ClockMap, PoseHistory
-from place_safe.recovery.estimator import Estimator, PlaneEstimate
+from place_safe.recovery.estimator import Estimator, PlaneEstimate, check_arguments, describe
 from place_safe.recovery.points import PeakParams, fit_planes, plane_covariance
 from place_safe.robot.interface import Robot, RobotLimits
 from place_safe.robot.tool import ToolFrames
@@ -502,36 +502,33 @@ ROBOT_METHODS = ("step", "time", "tcp_pose", "contact_force", "fault", "speed_li
 
 def _check_arguments(robot: Any, source: Any, estimator: Any, tool: Any, config: Any, **kw: Any) -> None:
     """Raise ArgumentTypeError / ValueError (one line, what was expected) for arguments of the wrong kind."""
-    def name(v: Any) -> str:
-        return f"{type(v).__name__} {v!r}"[:80] if isinstance(v, (str, int, float)) else type(v).__name__
-
     missing = [m for m in ROBOT_METHODS if not callable(getattr(robot, m, None))]
     if missing:
         raise ArgumentTypeError(f"PlacementLoop: robot must be a place_safe.robot.interface.Robot (with "
-                                f"{', '.join(ROBOT_METHODS)}); got {name(robot)}, which has no {', '.join(missing)}")
+                                f"{', '.join(ROBOT_METHODS)}); got {describe(robot)}, which has no "
+                                f"{', '.join(missing)}")
     if not callable(getattr(source, "read", None)):
         raise ArgumentTypeError(f"PlacementLoop: source must be a FrameSource with read(timeout) (e.g. "
-                                f"place_safe.sources.open_source(uri)); got {name(source)}")
+                                f"place_safe.sources.open_source(uri)); got {describe(source)}")
     if kw.get("pipeline") is None and not callable(getattr(estimator, "estimate", None)):
         raise ArgumentTypeError(f"PlacementLoop: estimator must have estimate(frame) (e.g. "
-                                f"place_safe.recovery.make_estimator(method, calibration)); got {name(estimator)}")
+                                f"place_safe.recovery.make_estimator(method, calibration)); got {describe(estimator)}")
     if config is not None and not isinstance(config, PlacementConfig):
         raise ArgumentTypeError(f"PlacementLoop: config must be a PlacementConfig or None (a file: "
-                                f"PlacementConfig.load(path)); got {name(config)}")
+                                f"PlacementConfig.load(path)); got {describe(config)}")
     frames = tool if tool is not None else getattr(robot, "tool", None)
     if not isinstance(frames, ToolFrames):
         raise ArgumentTypeError(f"PlacementLoop: tool must be place_safe.robot.tool.ToolFrames (or None with a robot "
-                                f"whose .tool is one); got {name(frames)}")
-    for key, cls in (("plane_filter", PlaneFilter), ("pipeline", SensorPipeline), ("surface_map", SurfaceMap)):
-        if kw.get(key) is not None and not isinstance(kw[key], cls):
-            raise ArgumentTypeError(f"PlacementLoop: {key} must be a {cls.__name__} or None; got {name(kw[key])}")
+                                f"whose .tool is one); got {describe(frames)}")
+    check_arguments("PlacementLoop", plane_filter=(kw.get("plane_filter"), PlaneFilter),
+                    pipeline=(kw.get("pipeline"), SensorPipeline), surface_map=(kw.get("surface_map"), SurfaceMap))
     if not callable(kw.get("host_clock")):
         raise ArgumentTypeError(f"PlacementLoop: host_clock must be a callable returning seconds; got "
-                                f"{name(kw.get('host_clock'))}")
+                                f"{describe(kw.get('host_clock'))}")
     for key, lo, hi in (("period", 1e-4, 1.0), ("max_frame_age", 1e-3, 60.0), ("read_bound", 1e-3, 60.0)):
         v = kw[key]
         if isinstance(v, bool) or not isinstance(v, (int, float)):
-            raise ArgumentTypeError(f"PlacementLoop: {key} must be a number of seconds, got {name(v)}")
+            raise ArgumentTypeError(f"PlacementLoop: {key} must be a number of seconds, got {describe(v)}")
         if not (math.isfinite(v) and lo <= v <= hi):
             raise ValueError(f"PlacementLoop: {key} must be {lo:g}..{hi:g} s, got {v!r}")
 

@@ -269,8 +269,8 @@ class SolverOptions:
             if not x > 0 or (math.isinf(x) and name != "zone_albedo_spread"):
                 raise ValueError(f"SolverOptions: {name} must be a number above 0, got {reprlib.repr(v)}")
         for name in ("zone_albedo", "ambient"):
-            if not isinstance(getattr(self, name), bool):
-                raise ValueError(f"SolverOptions: {name} must be true or false, got {reprlib.repr(getattr(self, name))}")
+            if not isinstance(v := getattr(self, name), bool):
+                raise ValueError(f"SolverOptions: {name} must be true or false, got {reprlib.repr(v)}")
 
 
 #: Bounds of the unknowns (a, b, z0 [m], log albedo, specular weight, log specular exponent):

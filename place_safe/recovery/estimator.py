@@ -55,12 +55,12 @@ class Uncertainty(ParamModel):
     error of ``tilt_range_std`` between zones tilts a plane at distance ``d`` by about that over
     ``d``), on the offset ``offset_std^2 + (offset_rel d)^2``. Units and the values calibration gives
     (each field's ``Field`` holds its accepted range, wider: at most a right angle, 1 m, 10 m and 1, so a covariance
-    stays finite): ``tilt_std`` rad (0 .. 0.1), ``tilt_range_std`` m
-    (0 .. 0.01), ``offset_std`` m (0 .. 0.01), ``offset_rel`` dimensionless (0 .. 0.05). ``chi2_limit`` (reduced chi-square, >= 0; ``inf`` =
+    stays finite): ``tilt_std`` rad (0 .. 0.1), ``tilt_range_std`` m (0 .. 0.01), ``offset_std`` m (0 .. 0.01), ``offset_rel`` dimensionless (0 .. 0.05). ``chi2_limit`` (reduced chi-square, >= 0; ``inf`` =
     never): ``diff`` falls back to the peak estimate of a frame whose residual chi-square per bin
     (Poisson and calibrated model error, :func:`~place_safe.recovery.forward.residual_weights`) is
     above it; 0: always, without solving (calibration found the model no better than peak on this sensor).
-    The fallbacks act in the ``fast`` solver; ``paper`` mode reports its own fit. ``scale`` (dimensionless, 0.1 .. :data:`MAX_SCALE`) multiplies the whole covariance (the fit's and the
+    The fallbacks act in the ``fast`` solver; ``paper`` mode reports its own fit. ``scale`` (dimensionless,
+    0.1 .. :data:`MAX_SCALE`) multiplies the whole covariance (the fit's and the
     floor) so the calibration frames' mean NEES per degree of freedom is 1. ``consistency_limit``
     (squared Mahalanobis distance, > 0; ``inf`` = never): ``diff`` also falls back to the peak estimate
     when the two estimates of ``(n_x, n_y, d)`` differ by more than that under their summed covariances
@@ -205,14 +205,14 @@ class Uncertainty(ParamModel):
     FALLBACK_LIMITS: ClassVar[tuple[str, ...]] = ("chi2_limit", "consistency_limit", "prefer_ratio")
     #: fields written as JSON null when infinite
     _INF_AS_NULL: ClassVar[tuple[str, ...]] = FALLBACK_LIMITS
+    #: fields left out of the file at these values (the defaults of files older versions read)
+    _OMITTED_AT: ClassVar[tuple[tuple[str, Any], ...]] = (("tilt_rel", 0.0), ("prefer_ratio", None),
+                                                           ("tilt_pivot", 1.0), ("tilt_offset_rel", 0.0))
 
     def without_fallback(self) -> "Uncertainty":
         """This uncertainty with every :data:`FALLBACK_LIMITS` at ``inf``: ``diff`` returns its own plane wherever it
         solves one (how its own accuracy is measured), with the same covariance."""
         return self.replace(**{k: math.inf for k in self.FALLBACK_LIMITS})
-    #: fields left out of the file at these values (the defaults of files older versions read)
-    _OMITTED_AT: ClassVar[tuple[tuple[str, Any], ...]] = (("tilt_rel", 0.0), ("prefer_ratio", None),
-                                                           ("tilt_pivot", 1.0), ("tilt_offset_rel", 0.0))
 
     def to_dict(self) -> dict:
         """The JSON form: ``inf`` limits as null; without the near-range fields when there are none and without
@@ -310,13 +310,18 @@ def checked(est: PlaneEstimate) -> PlaneEstimate:
     return est
 
 
+def describe(value: Any) -> str:
+    """A wrong argument as an error line names it: its type, and for a string or number its value (80 characters)."""
+    return f"{type(value).__name__} {value!r}"[:80] if isinstance(value, (str, int, float)) else type(value).__name__
+
+
 def check_arguments(owner: str, **given: tuple[Any, type]) -> None:
     """Raise :class:`~place_safe.exceptions.ArgumentTypeError` (one line: the argument, what it must be, what it got)
     unless each ``name=(value, cls)`` has a value that is None or a ``cls``: an estimator's constructor checks its
     parameter sets so a wrong one fails there, not as an AttributeError out of every :meth:`Estimator.estimate`."""
     for name, (value, cls) in given.items():
         if value is not None and not isinstance(value, cls):
-            raise ArgumentTypeError(f"{owner}: {name} must be a {cls.__name__} or None; got {type(value).__name__}")
+            raise ArgumentTypeError(f"{owner}: {name} must be a {cls.__name__} or None; got {describe(value)}")
 
 
 class Estimator(ABC):

@@ -221,7 +221,7 @@ def test_calibrate_writes_and_merges_sections(tmp_path, sweep_path, capsys):
 
 
 def test_report_notes_are_found_at_any_depth_with_their_place():
-    from place_safe.cli.sensing import report_notes
+    from place_safe.cli.common import report_notes
 
     report = {"a": 1, "note": "top", "peak": {"near_range": {"law": {"note": "deep", "x": [1]}}, "y": "note"}}
     assert report_notes(report, "uncertainty") == [("uncertainty", "top"),
