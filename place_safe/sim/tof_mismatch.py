@@ -6,8 +6,11 @@ an estimator calibrated on it (``place-safe scenarios calibrate``) is measured o
 model did not generate. The differences (all configurable in :class:`MismatchConfig`, seeded):
 
 * **Per-zone pulse shape**: each zone's pulse gets its own extra exponential tail (weight and decay
-  drawn per zone). The model has per-zone tails too (``ForwardParams.zone_tail_*``), but these lengthen
-  as the die warms (below), which no constant parameter follows.
+  drawn per zone), over ``tail_lags`` bins after the pulse. The model has per-zone tails too
+  (``ForwardParams.zone_tail_*``), but these lengthen as the die warms (below), which no constant parameter
+  follows. Until 2026-11-28 every unit's tail stopped at 23 bins (``tail_lags=23`` reproduces the figures
+  measured then): a step of up to 10 % of the tail's start (units with 8-bin decays) that no exponential and no
+  physical impulse response has; it was most of units B's and 32's forward residual (docs/results.md).
 * **Temperature drift**: the die warms from ``temp_start`` by ``temp_rate`` degC/s (up to
   ``temp_max``); the timing shifts by ``drift_bins_per_degc`` bins per degree and the extra tails
   lengthen by ``tail_per_degc`` per degree. A calibration taken cold cannot know the warm sensor.
@@ -47,6 +50,10 @@ from place_safe.sim.tof import RayReturns, SimToF, ToFConfig
 #: A fraction 0..1 and a width in histogram bins (0.01..128) for :class:`MismatchConfig` ranges.
 Fraction = Annotated[float, Field(ge=0.0, le=1.0)]
 Bins = Annotated[float, Field(ge=0.01, le=128.0)]
+#: Bins after the pulse that each zone's extra tail reaches by default: the longest decay the config allows a warm
+#: unit (128 bins' decay is far beyond any unit here; 8 bins warmed 20 degC at 1 % per degC is 9.6 bins) has fallen
+#: to 5e-5 of its start by then, so the tail ends as an exponential does.
+TAIL_LAGS = 96
 
 
 class MismatchConfig(ConfigModel):
@@ -57,6 +64,8 @@ class MismatchConfig(ConfigModel):
                                                    "(each 0..1)")
     tail_decay: tuple[Bins, Bins] = Field((1.5, 5.0), description="range of per-zone extra tail decays (bins, "
                                           "each 0.01..128)")
+    tail_lags: int = Field(TAIL_LAGS, ge=1, le=127, description="bins after the pulse the extra tails reach "
+                           "(1..127; 23 before 2026-11-28)")
     skew_bins: float = Field(0.15, ge=0, le=10, description="per-zone timing skew std (bins) at 10 degC of warming")
     temp_start: float = Field(25.0, ge=-40, le=125, description="die temperature at the start (degC, -40..125)")
     temp_rate: float = Field(0.5, ge=0, le=10, description="warming rate (degC/s, up to 10)")
@@ -118,17 +127,21 @@ class MismatchedToF(SimToF):
             r.ranges = np.where(r.hit, 0.5 * (back + out), r.ranges)
         return r
 
+    def tail_taps(self, zone: int, warm: float = 0.0) -> np.ndarray:
+        """Zone ``zone``'s extra tail at lags 1..``tail_lags`` bins when the die is ``warm`` degC above its start:
+        an exponential whose taps sum to the zone's tail weight."""
+        mc = self.mismatch
+        k = np.arange(1, mc.tail_lags + 1, dtype=float)
+        kern = np.exp(-k / (self._tail_k[zone] * (1.0 + mc.tail_per_degc * warm)))
+        return kern * (self._tail_w[zone] / kern.sum())
+
     def _render(self, returns: RayReturns, reference: np.ndarray) -> np.ndarray:
         h = super()._render(returns, reference)
         mc = self.mismatch
         warm = self.temperature(self._time) - mc.temp_start
-        k = np.arange(1, 24, dtype=float)
         out = np.empty_like(h)
         for z in range(N_ZONES):
-            decay = self._tail_k[z] * (1.0 + mc.tail_per_degc * warm)
-            kern = np.exp(-k / decay)
-            kern *= self._tail_w[z] / kern.sum()
-            tail = np.convolve(h[z], np.concatenate([[0.0], kern]))[:N_BINS]
+            tail = np.convolve(h[z], np.concatenate([[0.0], self.tail_taps(z, warm)]))[:N_BINS]
             hz = (h[z] + tail) / (1.0 + self._tail_w[z])
             shift = mc.drift_bins_per_degc * warm + self._skew[z] * (warm / 10.0)
             out[z] = _shift(hz, shift)

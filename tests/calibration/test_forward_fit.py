@@ -384,3 +384,25 @@ def test_the_jacobian_is_the_derivative_of_the_residuals(monkeypatch, ambient):
         fd = (seen["fun"](x + e) - seen["fun"](x - e)) / (2 * step)
         scale = max(np.abs(fd).max(), np.abs(J[:, i]).max(), 1e-12)
         np.testing.assert_allclose(J[:, i], fd, rtol=0, atol=1e-5 * scale, err_msg=f"column {i}")
+
+
+def test_the_coarse_stage_starts_from_each_tail_decay_and_keeps_the_lower():
+    """From the default start the coarse stage runs from each of TAIL_DECAY_STARTS (each frame's albedo at its
+    least-squares value there) and the fit continues from the run whose objective ended lower. Frames rendered by
+    the forward model with long tails (a convention check of the bookkeeping, not of accuracy)."""
+    from place_safe.calibration import forward_fit as ff
+
+    truth = ForwardParams(bin_offset=9.3, zone_tail_weights=[0.08] * 9, zone_tail_decays=[7.0] * 9)
+    spec = SyntheticSpec(z_range=(0.05, 0.35), theta_range=(0.0, 0.0), albedo_range=(1.0, 1.0),
+                         specular_weight_range=(0.14681, 0.14681), specular_exponent_range=(1.8378, 1.8378),
+                         noise=True, rays=3)
+    frames = make_frames(8, params=truth, spec=spec, seed=5)
+    _, report = fit_forward(frames, progress=False, rays=3, iterations=8)
+    starts = report["solver"]["coarse"]["starts"]
+    assert [s["tail_decay_bins"] for s in starts] == list(ff.TAIL_DECAY_STARTS)
+    chosen = [s for s in starts if s["chosen"]]
+    assert len(chosen) == 1 and chosen[0]["objective_rms"] == min(s["objective_rms"] for s in starts)
+    assert report["solver"]["coarse"]["rms_scaled_residual"] <= chosen[0]["objective_rms"] + 1e-9
+    # a start the caller gives is the only one
+    _, given = fit_forward(frames, init=ForwardParams(bin_offset=9.3), progress=False, rays=3, iterations=2)
+    assert [s["tail_decay_bins"] for s in given["solver"]["coarse"]["starts"]] == [None]

@@ -75,3 +75,18 @@ def test_latency_spikes_delay_frames_in_order():
     f = tof.read(2.0)
     assert f.extra["sim"]["latency_spike"] == 0.2
     assert tof.data.time - f.timestamp >= tof.config.latency + 0.2 - 1e-9
+
+
+def test_extra_tails_end_as_exponentials_do():
+    # each zone's extra tail is one exponential to its last lag, long enough to have died out (no step where it
+    # stops: before 2026-11-28 the tails stopped at 23 bins, a step of up to 10 % of their start)
+    scene = build_scene(SceneConfig())
+    mc = MismatchConfig(tail_decay=(8.0, 8.0), tail_weight=(0.15, 0.15))
+    mis = MismatchedToF(scene, None, ToFConfig(noise=False), mc)
+    taps = mis.tail_taps(0, warm=20.0)
+    assert taps.size == mc.tail_lags and np.isclose(taps.sum(), 0.15)
+    ratio = taps[1:] / taps[:-1]
+    assert np.allclose(ratio, ratio[0])
+    assert taps[-1] < 1e-4 * taps[0]
+    old = MismatchedToF(scene, None, ToFConfig(noise=False), mc.model_copy(update={"tail_lags": 23}))
+    assert old.tail_taps(0, warm=20.0).size == 23 and old.tail_taps(0, warm=20.0)[-1] > 0.09 * old.tail_taps(0, 20.0)[0]
