@@ -179,12 +179,15 @@ OBJECTIVE = "neyman"
 #: residual 1.39 against 1.22), although on the mismatched units (1.20, range error 0.05 against 0.5 mm) and
 #: the real halves (3.0-3.2 against 3.8) it fits better.
 LEARNED_RESPONSE: dict[str, str] = {"response_kernel": "lin"}
-#: bins: where each zone's tail decay starts. From the default start the coarse stage runs once from each and the fit
-#: continues from the one that ends with the lower objective (report: ``solver.coarse.starts``). One start was not
-#: enough: a unit whose tails decay over 4-8 bins (docs/figures/unit_scorecard.py, unit 32) ended from 3 bins in a
-#: minimum of RMS 2.47 with its timing 1.1 bins late (diff 1.07 deg on its tilted frames), from 6 bins at 1.47; the
-#: independent generator the other way (1.04 from 3 bins, 1.70 from 6). The coarse stage's objective ranked both
-#: correctly (2.48 / 1.48; 1.46 / 2.08); the other units, the real sweep and its halves end the same from either.
+#: bins: where each zone's tail decay starts. From the default start the coarse stage runs from each, with each
+#: reference floor (``fit_forward``: the measured one and the published one), and the fit continues from the run
+#: whose objective ended lowest (report: ``solver.coarse.starts``). One start was not enough (docs/results.md, the
+#: scorecard of 2026-11-28 evening): a unit whose tails decay over 4-8 bins (``docs/figures/unit_scorecard.py``,
+#: unit 32) ended from 3 bins and the measured floor (the floor that started better) at RMS 2.47 with its timing a
+#: bin late (diff 1.07 deg on its tilted frames), from 6 bins at 1.26; the same unit with another cover-glass delay
+#: at 1.57 with its fields of view 15-23 % wide (diff 1.39 deg, NEES 45), from 6 bins and the published floor at
+#: 1.47; the independent generator the other way (1.04 from 3 bins, 1.70 from 6). The coarse stage's objective
+#: ranked every one of them as the full fit did; the other units and the real sweep end alike from every start.
 TAIL_DECAY_STARTS = (3.0, 6.0)
 #: A frame whose RMS scaled residual after the first fit is above this many times the median (and
 #: above 1) is excluded as bad and the fit repeated without it.
@@ -300,8 +303,11 @@ def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, prog
     the published 135 counts. A sensor whose reference sits on a floor of 3-4 counts needs the first
     (135 would cut the pulse's tail below 0.2 % of its peak and lower the rest: up to 20 sigma a bin on
     bright returns, and an RMS scaled residual of 2.2 instead of 1.2 on the independent generator's
-    frames); frames rendered by a model that subtracts 135 need the second. The report gives both
-    starting residuals under ``ref_floor`` (``measured``, ``published``, ``chosen``).
+    frames); frames rendered by a model that subtracts 135 need the second. With the default ``init`` and a coarse
+    stage, the coarse stage runs from both floors with each of :data:`TAIL_DECAY_STARTS` and the fit goes on from
+    the run whose objective ended lowest (report: ``solver.coarse.starts``); without a coarse stage, from the floor
+    that starts with the smaller residual. The report gives both starting residuals (at the chosen start's tail
+    decay) under ``ref_floor`` (``measured``, ``published``, ``chosen``).
     iterations: Levenberg-Marquardt iterations (Jacobians) at most. max_frames: at most this many
     frames are fitted, taken evenly over distance (a few dozen frames pin down the ~50 camera
     parameters; more only cost time).
@@ -491,21 +497,28 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
                 log_albedo += torch.log(torch.clamp(scale, 1e-3, 1e3))
         return log_albedo
 
-    floor_choice = {}
-    if ref_floors is not None:  # the measured reference floor or the published one, whichever starts better
-        starts = []
+    def floor_starts(cam: torch.Tensor) -> list[tuple[float, torch.Tensor, torch.Tensor, dict]]:
+        """From the camera vector ``cam``, one start per reference floor (the measured one and the published one; the
+        model's own when the floor is given): (RMS scaled residual there, the floor, each frame's log albedo at its
+        least-squares value, the report of the floors), the one with the smaller residual first."""
+        if ref_floors is None:
+            la = start_albedos(cam)
+            with torch.no_grad():
+                rms = float(residual(cam, la).pow(2).mean().sqrt())
+            return [(rms, model.t["ref_floor"], la, {})]
+        tried, report = [], {}
         for name, value in ref_floors.items():
             model.t["ref_floor"] = torch.as_tensor(value, dtype=dtype)
-            la = start_albedos()
+            la = start_albedos(cam)
             with torch.no_grad():
-                rms = float(residual(cam0, la).pow(2).mean().sqrt())
-            starts.append((rms, name, value, la))
-            floor_choice[name] = {"counts": value, "rms_scaled_residual_at_start": rms}
-        rms, name, value, log_albedo0 = min(starts, key=lambda s: s[0])
-        floor_choice["chosen"] = name
-        model.t["ref_floor"] = torch.as_tensor(value, dtype=dtype)
-    else:
-        log_albedo0 = start_albedos()
+                rms = float(residual(cam, la).pow(2).mean().sqrt())
+            tried.append((rms, model.t["ref_floor"], la, name))
+            report[name] = {"counts": value, "rms_scaled_residual_at_start": rms}
+        tried.sort(key=lambda t: t[0])
+        return [(rms, floor, la, {**report, "chosen": name}) for rms, floor, la, name in tried]
+
+    _, first_floor, log_albedo0, floor_choice = floor_starts(cam0)[0]
+    model.t["ref_floor"] = first_floor
 
     def split(z: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
         t = torch.as_tensor(z, dtype=dtype)
@@ -657,11 +670,17 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
         return np.clip(z, lower + 1e-6, up - 1e-6), up
 
     z0, upper = albedo_bounds(z0)
-    starts = [(z0, upper)]
-    if default_start:  # the other tail decays, each frame's albedo at its least-squares value there
-        for z in _tail_decay_starts(z0, layout, lower, upper)[1:]:
-            z[n_cam:] = start_albedos(torch.as_tensor(z[:n_cam], dtype=dtype)).numpy()
-            starts.append(albedo_bounds(z))
+    # (tail decay, floor, start, upper bounds, floor tensor, floor report): the first is where a single fit starts
+    starts = [(TAIL_DECAY_STARTS[0] if default_start else None, floor_choice.get("chosen"), z0, upper, first_floor,
+               floor_choice)]
+    if default_start and coarse_rays and coarse_rays < rays:  # every tail decay with every reference floor
+        starts = []
+        for decay, z in zip(TAIL_DECAY_STARTS, _tail_decay_starts(z0, layout, lower, upper)):
+            for _, floor, la, choice in floor_starts(torch.as_tensor(z[:n_cam], dtype=dtype)):
+                z = z.copy()
+                z[n_cam:] = la.numpy()
+                starts.append((decay, choice.get("chosen"), *albedo_bounds(z), floor, choice))
+    model.t["ref_floor"] = first_floor
 
     import time
 
@@ -675,12 +694,15 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
         full = model
         model = ForwardModel(init, ZoneRays.stratified(coarse_rays, dtype=dtype), dtype=dtype, fitted=fitted)
         model.t = full.t  # the same parameter tensors (unpack writes them)
-        runs = [gauss_newton.solve(fun, jac, z_start, lower, up, max_iterations=iterations, damping=INITIAL_DAMPING,
-                                   relative_tol=COARSE_RELATIVE_DECREMENT, decrement_tol=COARSE_DECREMENT)
-                for z_start, up in starts]
+        runs = []
+        for _, _, z_start, up, ref_floor, _ in starts:
+            model.t["ref_floor"] = ref_floor
+            runs.append(gauss_newton.solve(fun, jac, z_start, lower, up, max_iterations=iterations,
+                                           damping=INITIAL_DAMPING, relative_tol=COARSE_RELATIVE_DECREMENT,
+                                           decrement_tol=COARSE_DECREMENT))
         costs = [float((r.fun ** 2).sum()) if np.all(np.isfinite(r.fun)) else math.inf for r in runs]
         best = int(np.argmin(costs))
-        coarse, upper = runs[best], starts[best][1]
+        coarse, (_, _, _, upper, model.t["ref_floor"], floor_choice) = runs[best], starts[best]
         model = full
         if np.all(np.isfinite(coarse.x)):
             z0 = coarse.x
@@ -766,8 +788,8 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
                    "jacobians": first.iterations + (sol.iterations if sol is not first else 0),
                    "coarse": None if coarse is None else {
                        "rays": coarse_rays, "jacobians": sum(r.iterations for r in runs), "message": coarse.reason,
-                       "starts": [{"tail_decay_bins": d, "objective_rms": math.sqrt(c / n_res),
-                                   "chosen": r is coarse} for d, c, r in zip(TAIL_DECAY_STARTS if len(runs) > 1 else (None,), costs, runs)],
+                       "starts": [{"tail_decay_bins": st[0], "ref_floor": st[1], "objective_rms": math.sqrt(c / n_res),
+                                   "chosen": r is coarse} for st, c, r in zip(starts, costs, runs)],
                        "seconds": coarse_seconds, "rms_scaled_residual": math.sqrt(2 * data_cost(coarse.fun) / n_res)},
                    "evaluations": evals["n"], "gauss_newton_decrement": sol.decrement, "seconds": seconds,
                    "cpu_seconds": cpu_seconds,

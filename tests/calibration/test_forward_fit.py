@@ -386,10 +386,10 @@ def test_the_jacobian_is_the_derivative_of_the_residuals(monkeypatch, ambient):
         np.testing.assert_allclose(J[:, i], fd, rtol=0, atol=1e-5 * scale, err_msg=f"column {i}")
 
 
-def test_the_coarse_stage_starts_from_each_tail_decay_and_keeps_the_lower():
-    """From the default start the coarse stage runs from each of TAIL_DECAY_STARTS (each frame's albedo at its
-    least-squares value there) and the fit continues from the run whose objective ended lower. Frames rendered by
-    the forward model with long tails (a convention check of the bookkeeping, not of accuracy)."""
+def test_the_coarse_stage_starts_from_each_tail_decay_and_floor_and_keeps_the_lower():
+    """From the default start the coarse stage runs from each of TAIL_DECAY_STARTS with each reference floor (each
+    frame's albedo at its least-squares value there) and the fit continues from the run whose objective ended lower.
+    Frames rendered by the forward model with long tails (a convention check of the bookkeeping, not of accuracy)."""
     from place_safe.calibration import forward_fit as ff
 
     truth = ForwardParams(bin_offset=9.3, zone_tail_weights=[0.08] * 9, zone_tail_decays=[7.0] * 9)
@@ -399,10 +399,12 @@ def test_the_coarse_stage_starts_from_each_tail_decay_and_keeps_the_lower():
     frames = make_frames(8, params=truth, spec=spec, seed=5)
     _, report = fit_forward(frames, progress=False, rays=3, iterations=8)
     starts = report["solver"]["coarse"]["starts"]
-    assert [s["tail_decay_bins"] for s in starts] == list(ff.TAIL_DECAY_STARTS)
+    assert sorted((s["tail_decay_bins"], s["ref_floor"]) for s in starts) == sorted(
+        (d, f) for d in ff.TAIL_DECAY_STARTS for f in ("measured", "published"))
     chosen = [s for s in starts if s["chosen"]]
     assert len(chosen) == 1 and chosen[0]["objective_rms"] == min(s["objective_rms"] for s in starts)
     assert report["solver"]["coarse"]["rms_scaled_residual"] <= chosen[0]["objective_rms"] + 1e-9
+    assert report["ref_floor"]["chosen"] == chosen[0]["ref_floor"]  # the floor the fit went on with
     # a start the caller gives is the only one
     _, given = fit_forward(frames, init=ForwardParams(bin_offset=9.3), progress=False, rays=3, iterations=2)
     assert [s["tail_decay_bins"] for s in given["solver"]["coarse"]["starts"]] == [None]
