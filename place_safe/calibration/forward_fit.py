@@ -298,9 +298,9 @@ def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, prog
     per-zone tails, pile-up and beam profile so their gradients are not zero). rays: stratified rays per axis and zone.
 
     ``ref_floor`` (what the pulse model subtracts from the reference) is not fitted; with the default
-    ``init`` it is whichever of two values starts with the smaller residual: the floor measured in the
-    references (the median over the frames of :func:`~place_safe.sensor.histogram.reference_floor`) or
-    the published 135 counts. A sensor whose reference sits on a floor of 3-4 counts needs the first
+    ``init`` it is one of two values, the floor measured in the references (the median over the frames of
+    :func:`~place_safe.sensor.histogram.reference_floor`) or the published 135 counts (which one: below). A sensor
+    whose reference sits on a floor of 3-4 counts needs the first
     (135 would cut the pulse's tail below 0.2 % of its peak and lower the rest: up to 20 sigma a bin on
     bright returns, and an RMS scaled residual of 2.2 instead of 1.2 on the independent generator's
     frames); frames rendered by a model that subtracts 135 need the second. With the default ``init`` and a coarse
@@ -308,7 +308,8 @@ def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, prog
     the run whose objective ended lowest (report: ``solver.coarse.starts``); without a coarse stage, from the floor
     that starts with the smaller residual. The report gives both starting residuals (at the chosen start's tail
     decay) under ``ref_floor`` (``measured``, ``published``, ``chosen``).
-    iterations: Levenberg-Marquardt iterations (Jacobians) at most. max_frames: at most this many
+    iterations: Levenberg-Marquardt iterations (Jacobians) at most, per run (each coarse start, the full fit; the
+    refit after excluding bad frames half as many). max_frames: at most this many
     frames are fitted, taken evenly over distance (a few dozen frames pin down the ~50 camera
     parameters; more only cost time).
 
@@ -662,10 +663,11 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
             lower[i:i + abs(n)], upper[i:i + abs(n)] = lo, hi
         i += abs(n)
     lower[n_cam:] = math.log(init.albedo) - 8.0
+    upper_cam = upper.copy()  # the camera parameters' bounds (each start sets its albedos')
 
     def albedo_bounds(z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The start ``z`` inside the bounds, and the upper bounds with its albedos' rise (:data:`ALBEDO_RISE`)."""
-        up = upper.copy()
+        up = upper_cam.copy()
         up[n_cam:] = np.minimum(math.log(init.albedo) + 8.0, np.maximum(z[n_cam:], lower[n_cam:]) + ALBEDO_RISE)
         return np.clip(z, lower + 1e-6, up - 1e-6), up
 
@@ -676,10 +678,10 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
     if default_start and coarse_rays and coarse_rays < rays:  # every tail decay with every reference floor
         starts = []
         for decay, z in zip(TAIL_DECAY_STARTS, _tail_decay_starts(z0, layout, lower, upper)):
-            for _, floor, la, choice in floor_starts(torch.as_tensor(z[:n_cam], dtype=dtype)):
+            for _, ref_floor_t, la, choice in floor_starts(torch.as_tensor(z[:n_cam], dtype=dtype)):
                 z = z.copy()
                 z[n_cam:] = la.numpy()
-                starts.append((decay, choice.get("chosen"), *albedo_bounds(z), floor, choice))
+                starts.append((decay, choice.get("chosen"), *albedo_bounds(z), ref_floor_t, choice))
     model.t["ref_floor"] = first_floor
 
     import time
@@ -694,18 +696,27 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
         full = model
         model = ForwardModel(init, ZoneRays.stratified(coarse_rays, dtype=dtype), dtype=dtype, fitted=fitted)
         model.t = full.t  # the same parameter tensors (unpack writes them)
-        runs = []
+        runs: list = []
+        failed: list[ArithmeticError] = []
         for _, _, z_start, up, ref_floor, _ in starts:
             model.t["ref_floor"] = ref_floor
-            runs.append(gauss_newton.solve(fun, jac, z_start, lower, up, max_iterations=iterations,
-                                           damping=INITIAL_DAMPING, relative_tol=COARSE_RELATIVE_DECREMENT,
-                                           decrement_tol=COARSE_DECREMENT))
-        costs = [float((r.fun ** 2).sum()) if np.all(np.isfinite(r.fun)) else math.inf for r in runs]
+            try:
+                runs.append(gauss_newton.solve(fun, jac, z_start, lower, up, max_iterations=iterations,
+                                               damping=INITIAL_DAMPING, relative_tol=COARSE_RELATIVE_DECREMENT,
+                                               decrement_tol=COARSE_DECREMENT))
+            except ArithmeticError as exc:  # residuals not finite from this start: the others may still run
+                runs.append(None)
+                failed.append(exc)
+        if len(failed) == len(runs):
+            raise failed[0]
+        # the objective with its prior rows, the one each run minimised
+        costs = [r.cost if r is not None and math.isfinite(r.cost) else math.inf for r in runs]
         best = int(np.argmin(costs))
-        coarse, (_, _, _, upper, model.t["ref_floor"], floor_choice) = runs[best], starts[best]
+        coarse, (_, _, z_first, upper, model.t["ref_floor"], floor_choice) = runs[best], starts[best]
         model = full
-        if np.all(np.isfinite(coarse.x)):
-            z0 = coarse.x
+        z_first = z_first.copy()  # the chosen start, and the data objective there on the full quadrature
+        cost0 = 0.5 * float((fun(z_first)[:nf * nf_res] ** 2).sum())
+        z0 = coarse.x
     coarse_seconds = time.perf_counter() - t_start
     # one surface? (a level sweep of one table): the frames' albedos, free so far, spread little
     la_start = z0[n_cam:]
@@ -788,8 +799,10 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
                    "jacobians": first.iterations + (sol.iterations if sol is not first else 0),
                    "coarse": None if coarse is None else {
                        "rays": coarse_rays, "jacobians": sum(r.iterations for r in runs), "message": coarse.reason,
-                       "starts": [{"tail_decay_bins": st[0], "ref_floor": st[1], "objective_rms": math.sqrt(c / n_res),
-                                   "chosen": r is coarse} for st, c, r in zip(starts, costs, runs)],
+                       "starts": [{"tail_decay_bins": st[0], "ref_floor": st[1], "chosen": r is coarse,
+                                   "objective_rms": None if r is None else math.sqrt(2 * data_cost(r.fun) / n_res),
+                                   "objective_rms_with_priors": math.sqrt(2 * c / n_res) if math.isfinite(c) else None}
+                                  for st, c, r in zip(starts, costs, runs)],
                        "seconds": coarse_seconds, "rms_scaled_residual": math.sqrt(2 * data_cost(coarse.fun) / n_res)},
                    "evaluations": evals["n"], "gauss_newton_decrement": sol.decrement, "seconds": seconds,
                    "cpu_seconds": cpu_seconds,

@@ -50,9 +50,9 @@ from place_safe.sim.tof import RayReturns, SimToF, ToFConfig
 #: A fraction 0..1 and a width in histogram bins (0.01..128) for :class:`MismatchConfig` ranges.
 Fraction = Annotated[float, Field(ge=0.0, le=1.0)]
 Bins = Annotated[float, Field(ge=0.01, le=128.0)]
-#: Bins after the pulse that each zone's extra tail reaches by default: the longest decay the config allows a warm
-#: unit (128 bins' decay is far beyond any unit here; 8 bins warmed 20 degC at 1 % per degC is 9.6 bins) has fallen
-#: to 5e-5 of its start by then, so the tail ends as an exponential does.
+#: Bins after the pulse that each zone's extra tail reaches by default: the longest decay of any unit here (8 bins,
+#: warmed 20 degC at 1 % per degC: 9.6 bins) has fallen to 5e-5 of its start by then, so the tail ends as an
+#: exponential does (a config may ask for decays up to 128 bins; their tails are cut here).
 TAIL_LAGS = 96
 
 

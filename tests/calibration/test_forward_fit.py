@@ -107,11 +107,11 @@ def test_a_level_sweep_never_fits_a_tilt_gain():
     assert "gain_a_why_not" in report and "gain_b_why_not" in report
 
 
-def test_reference_floor_is_the_one_the_frames_start_better_with():
+def test_reference_floor_is_the_one_the_frames_fit_better_with():
     """The pulse model's reference floor is not fitted: calibration starts from the floor measured in the
-    references or the published 135 counts, whichever explains the frames better at the start. Frames of
-    the independent generator (references on a floor of 3 counts) take the measured one; frames rendered by
-    the forward model itself (which subtracts 135) take 135 (a convention check)."""
+    references and from the published 135 counts, and goes on with the one whose coarse fit ends lower (each also
+    starts better here). Frames of the independent generator (references on a floor of 3 counts) take the measured
+    one; frames rendered by the forward model itself (which subtracts 135) take 135 (a convention check)."""
     from place_safe.evaluation import independent
 
     indep = independent.make_frames(12, seed=4)
@@ -404,7 +404,12 @@ def test_the_coarse_stage_starts_from_each_tail_decay_and_floor_and_keeps_the_lo
     chosen = [s for s in starts if s["chosen"]]
     assert len(chosen) == 1 and chosen[0]["objective_rms"] == min(s["objective_rms"] for s in starts)
     assert report["solver"]["coarse"]["rms_scaled_residual"] <= chosen[0]["objective_rms"] + 1e-9
-    assert report["ref_floor"]["chosen"] == chosen[0]["ref_floor"]  # the floor the fit went on with
+    assert report["ref_floor"]["chosen"] == chosen[0]["ref_floor"]  # the floor the fit went on with ...
+    floor = report["ref_floor"][chosen[0]["ref_floor"]]["counts"]
+    assert report["ref_floor"]["counts"] == floor and report["params"]["ref_floor"] == floor  # ... and kept
+    # the residual reported before the fit is the chosen start's: what the fit started from
+    assert report["rms_scaled_residual_before"] == pytest.approx(
+        report["ref_floor"][chosen[0]["ref_floor"]]["rms_scaled_residual_at_start"], rel=0.02)
     # a start the caller gives is the only one
     _, given = fit_forward(frames, init=ForwardParams(bin_offset=9.3), progress=False, rays=3, iterations=2)
     assert [s["tail_decay_bins"] for s in given["solver"]["coarse"]["starts"]] == [None]
