@@ -526,6 +526,11 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
         return t[:n_cam], t[n_cam:]
 
     bar = tqdm(total=iterations, desc="forward model", unit="it", disable=not progress, file=sys.stderr)
+
+    def stage(name: str, total: int = iterations) -> None:
+        """The progress bar counts the Jacobians of one run (a coarse start, the fit, the refit) at a time."""
+        bar.reset(total=total)
+        bar.set_description(name)
     evals = {"n": 0}
 
     tie = {"sd": None}  # the std (log) of the frames' albedos about their mean when they are one surface
@@ -698,8 +703,10 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
         model.t = full.t  # the same parameter tensors (unpack writes them)
         runs: list = []
         failed: list[ArithmeticError] = []
-        for _, _, z_start, up, ref_floor, _ in starts:
+        for k, (decay, floor_name, z_start, up, ref_floor, _) in enumerate(starts, 1):
             model.t["ref_floor"] = ref_floor
+            stage(f"forward model, coarse start {k}/{len(starts)}"
+                  + (f" ({decay:g}-bin tails, {floor_name} floor)" if decay is not None and floor_name else ""))
             try:
                 runs.append(gauss_newton.solve(fun, jac, z_start, lower, up, max_iterations=iterations,
                                                damping=INITIAL_DAMPING, relative_tol=COARSE_RELATIVE_DECREMENT,
@@ -724,6 +731,7 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
     one_surface = same_surface if same_surface is not None else albedo_cv <= SAME_SURFACE_CV
     if one_surface:
         tie["sd"] = SAME_SURFACE_SD
+    stage("forward model")
     sol = gauss_newton.solve(fun, jac, z0, lower, upper, max_iterations=iterations, damping=INITIAL_DAMPING,
                              relative_tol=RELATIVE_DECREMENT)
     if not np.all(np.isfinite(sol.x)):
@@ -736,6 +744,8 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
     first = sol
     if bad.any() and (~bad).sum() >= 3:
         keep[torch.as_tensor(bad)] = 0.0
+        stage(f"forward model, again without {int(bad.sum())} bad frame{'s' if bad.sum() > 1 else ''}",
+              max(iterations // 2, 5))
         sol = gauss_newton.solve(fun, jac, sol.x, lower, upper, max_iterations=max(iterations // 2, 5),
                                  damping=INITIAL_DAMPING, relative_tol=RELATIVE_DECREMENT)
         if not np.all(np.isfinite(sol.x)):
