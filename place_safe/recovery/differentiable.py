@@ -56,7 +56,7 @@ from place_safe.sensor.frame import N_BINS, N_ZONES, Frame
 from place_safe.recovery.estimator import (Estimator, PlaneEstimate, Uncertainty, check_arguments, checked,
                                           tilt_offset)
 from place_safe.recovery.peak import PeakEstimator
-from place_safe.sensor.histogram import COUNT_MAX, measure_floor, reference_problem
+from place_safe.sensor.histogram import COUNT_MAX, floor_profile, reference_problem
 
 
 
@@ -415,11 +415,12 @@ class DifferentiableEstimator(Estimator):
     # -- data preparation ----------------------------------------------------------------------
     def _observed(self, hists: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         """The counts the model is compared with (B, 9, bins) and the ambient as it arrives (B, 9; None): above the
-        floor measured after the return, or with :attr:`SolverOptions.ambient` above the arriving ambient."""
+        floor measured after the return (across the bins as the unit's ``ambient_slope`` says), or with
+        :attr:`SolverOptions.ambient` above the arriving ambient."""
         if self.opt.ambient:
             amb = arriving_ambient(hists)
             return hists - amb[..., None], amb
-        return np.clip(hists - measure_floor(hists)[..., None], 0.0, None), None
+        return np.clip(hists - floor_profile(hists, self.params.ambient_slope), 0.0, None), None
 
     def _prepare(self, frames: list[Frame], inits: list[Plane]):
         hists = np.array([f.hists for f in frames], dtype=float)

@@ -206,6 +206,12 @@ class ForwardParams(ParamModel):
       ``sqrt(1/4 + sigma^2)`` bins. Exclusive with ``soft_bin_integrated``; held, not fitted.
     * The per-zone timing offsets and gains (``zone_offsets``, ``zone_gains``), pile-up (``pileup``), the zones'
       own tails and the learned response kernel are described above.
+    * ``ambient_slope`` (version 9, [-0.9, 0.9], default 0): a unit whose ambient floor changes by this share of its
+      middle value from the first bin to the last, the same in every frame. Not part of the rendering: the floor
+      subtracted from a frame's counts before they are compared with the model follows it
+      (:func:`~place_safe.sensor.histogram.floor_profile`); calibration measures it from the first bins of a level
+      sweep and keeps it only where it is one number over distance
+      (:func:`~place_safe.calibration.forward_fit.measure_ambient_slope`).
 
     The ranges (each field's ``Field``) are wide (a TMF8820 fitted on the shared sweep sits well inside) but
     exclude what breaks the model: a zero or negative albedo, gain or specular exponent (undefined Phong term), a
@@ -311,6 +317,12 @@ class ForwardParams(ParamModel):
     soft_bin_spline: float = Field(
         0.0, ge=0.0, le=1.0,
         description="(0 the Gaussian as soft_bin_integrated says, 1 the quadratic B-spline convolved with it)")
+    # Version 9 (absent from older files; the default is the model as it was): the ambient's shape across the bins.
+    # Not rendered: the floor subtracted from a frame before it is compared with the model
+    # (:func:`~place_safe.sensor.histogram.floor_profile`); measured by calibration, not fitted.
+    ambient_slope: float = Field(
+        0.0, ge=-0.9, le=0.9,
+        description="(the ambient's relative change from the first bin to the last; 0 a flat floor)")
 
     @model_validator(mode="after")
     def _one_soft_binning(self) -> "ForwardParams":

@@ -3,6 +3,9 @@
 * :data:`COUNT_MAX`: the TMF8820's histogram bins are 24-bit counters; a bin at this value is clipped.
 * :data:`FLOOR_BINS` / :func:`measure_floor`: the late bins where no return of a surface within the
   sensor's range lands (beyond ~1.3 m); their median is the per-zone floor (ambient and dark counts).
+* :func:`floor_profile` / :func:`ambient_slopes`: the floor across the bins when the ambient slopes (a unit whose
+  ambient changes by the same share from the first bin to the last in every frame), and each frame's slope read
+  from :data:`HEAD_BINS`, the first bins, before any return.
 * :func:`find_peaks`: the calibrated ``peak`` method's sub-bin position of each zone's return (the
   maximum of a cubic spline, or a windowed centroid started there: :data:`SUBBIN_METHODS`), optionally
   after :func:`undo_pileup`.
@@ -20,6 +23,7 @@ from __future__ import annotations
 
 import functools
 import math
+import warnings
 
 import numpy as np
 
@@ -34,6 +38,40 @@ FLOOR_BINS = slice(100, N_BINS)
 def measure_floor(hists: np.ndarray) -> np.ndarray:
     """Per-zone floor (..., 9) in counts: median of :data:`FLOOR_BINS`."""
     return np.median(np.asarray(hists)[..., FLOOR_BINS], axis=-1)
+
+
+#: Bins at the start of every histogram where the ambient arrives alone: before the cover glass's return (bins 9-10,
+#: zero range) and any surface's.
+HEAD_BINS = slice(0, 6)
+#: Positions ``u = bin / (N_BINS - 1)`` (0 first bin, 1 last) of the middle of :data:`HEAD_BINS` and of
+#: :data:`FLOOR_BINS`.
+_U_HEAD = (HEAD_BINS.start + HEAD_BINS.stop - 1) / 2 / (N_BINS - 1)
+_U_FLOOR = (FLOOR_BINS.start + N_BINS - 1) / 2 / (N_BINS - 1)
+
+
+def floor_profile(hists: np.ndarray, slope: float = 0.0) -> np.ndarray:
+    """Per-zone floor across the bins (..., 9, N_BINS), counts: the floor :func:`measure_floor` reads in
+    :data:`FLOOR_BINS`, times ``(1 + slope (u - 1/2)) / (1 + slope (u_floor - 1/2))`` at ``u = bin / (N_BINS - 1)``
+    (``slope``: the ambient's relative change from the first bin to the last; 0, the flat floor)."""
+    floor = measure_floor(hists)[..., None]
+    if slope == 0.0:
+        return np.broadcast_to(floor, floor.shape[:-1] + (N_BINS,))
+    u = np.arange(N_BINS) / (N_BINS - 1)
+    return floor * ((1.0 + slope * (u - 0.5)) / (1.0 + slope * (_U_FLOOR - 0.5)))
+
+
+def ambient_slopes(hists: np.ndarray) -> np.ndarray:
+    """Each frame's ambient slope (...,), as :func:`floor_profile` takes it: the median over the zones of the slope
+    that puts the mean of :data:`HEAD_BINS` and the floor of :data:`FLOOR_BINS` on one line through the bins (NaN
+    where a zone's floor is not positive). On a real TMF8820 the first bins sit above the floor after a bright
+    return by the pile-up's shadowing, a step at the return and not a slope: its values then change with distance."""
+    h = np.asarray(hists, dtype=float)
+    floor = measure_floor(h)
+    ratio = h[..., HEAD_BINS].mean(axis=-1) / np.where(floor > 0, floor, np.nan)
+    slope = (ratio - 1.0) / ((_U_HEAD - 0.5) - ratio * (_U_FLOOR - 0.5))
+    with warnings.catch_warnings():  # a frame without a positive floor in any zone: NaN, quietly
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return np.nanmedian(slope, axis=-1)
 
 
 EARLY_BINS = 10
@@ -388,6 +426,6 @@ def reference_problem(reference) -> str | None:
     return None
 
 
-__all__ = ["COUNT_MAX", "FLOOR_BINS", "measure_floor", "find_peaks", "find_returns", "windowed_centroid", "SUBBIN_METHODS",
+__all__ = ["COUNT_MAX", "FLOOR_BINS", "HEAD_BINS", "measure_floor", "floor_profile", "ambient_slopes", "find_peaks", "find_returns", "windowed_centroid", "SUBBIN_METHODS",
            "CENTROID_HALF_WIDTH", "CENTROID_HALF_WIDTHS", "MIXED_SHIFT", "INTERNAL_BINS", "INTERNAL_MAX_COUNTS", "first_return", "reference_floor",
            "reference_problem"]

@@ -413,3 +413,31 @@ def test_the_coarse_stage_starts_from_each_tail_decay_and_floor_and_keeps_the_lo
     # a start the caller gives is the only one
     _, given = fit_forward(frames, init=ForwardParams(bin_offset=9.3), progress=False, rays=3, iterations=2)
     assert [s["tail_decay_bins"] for s in given["solver"]["coarse"]["starts"]] == [None]
+
+
+def test_the_ambient_slope_is_kept_only_when_it_is_one_number_over_distance():
+    """A unit whose ambient falls by the same share in every frame: measured and kept (the fit then compares the
+    frames above the sloping floor); the real sweep, whose first bins move with the return (the pile-up's
+    shadowing): not one number, the floor stays flat; a flat unit, or one whose ambient rises: 0."""
+    from place_safe.calibration.forward_fit import AMBIENT_SLOPE_AGREEMENT, measure_ambient_slope
+
+    rng = np.random.default_rng(3)
+    z = np.linspace(0.03, 0.40, 30)
+    u = np.arange(128) / 127.0
+
+    def frames(slope_at):
+        return np.stack([rng.poisson(np.broadcast_to(100.0 * (1.0 + slope_at(zi) * (u - 0.5)), (9, 128)))
+                         for zi in z]).astype(float)
+
+    value, report = measure_ambient_slope(frames(lambda zi: -0.2), z)
+    assert report["adopted"] and value == pytest.approx(-0.2, abs=0.02)
+    value, report = measure_ambient_slope(frames(lambda zi: 0.0), z)
+    assert value == 0.0 and not report["adopted"]
+    value, report = measure_ambient_slope(frames(lambda zi: 0.2), z)  # rising: nothing physical makes it
+    assert value == 0.0 and not report["adopted"] and "rises" in report["why"]
+    value, report = measure_ambient_slope(frames(lambda zi: -0.02 / zi), z)  # changes with distance
+    assert value == 0.0 and not report["adopted"]
+    assert abs(report["near_half"] - report["far_half"]) > AMBIENT_SLOPE_AGREEMENT
+    real = load_frames(SWEEP)
+    value, report = measure_ambient_slope(np.array([f.hists for f in real], float), np.array([f.truth.z0 for f in real]))
+    assert value == 0.0 and "not one number over distance" in report["why"]

@@ -429,3 +429,16 @@ def test_solver_options_the_solver_cannot_run_with_are_refused_by_name(option, v
     with pytest.raises(ValueError, match=match):
         SolverOptions(**{option: value})
     assert SolverOptions(zone_albedo_spread=math.inf).zone_albedo_spread == math.inf  # untied: allowed
+
+
+def test_the_unit_ambient_slope_sets_the_floor_diff_subtracts():
+    """With a calibrated ``ambient_slope`` diff compares the model with the counts above the sloping floor: the first
+    bins of a frame whose ambient slopes that way hold nothing but noise; with a flat floor they hold the slope."""
+    from place_safe.recovery.forward import ForwardParams
+
+    rng = np.random.default_rng(1)
+    u = np.arange(128) / 127.0
+    hists = rng.poisson(np.broadcast_to(100.0 * (1.0 - 0.3 * (u - 0.5)), (1, 9, 128))).astype(float)
+    sloped, _ = DifferentiableEstimator(ForwardParams(ambient_slope=-0.3))._observed(hists)
+    flat, _ = DifferentiableEstimator(ForwardParams())._observed(hists)
+    assert sloped[..., :6].mean() < 8.0 < 20.0 < flat[..., :6].mean()  # (clipped noise: ~4)

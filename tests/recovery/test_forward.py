@@ -656,3 +656,14 @@ def test_the_spline_soft_binning_is_a_structural_choice_of_one_soft_binning():
         ForwardParams(soft_bin_spline=0.5)
     with pytest.raises(CalibrationError, match="exclude each other"):
         ForwardParams(soft_bin_spline=1.0, soft_bin_integrated=1.0)
+
+
+def test_a_file_without_the_ambient_slope_loads_with_a_flat_floor():
+    """Parameters written before version 9 (no ``ambient_slope``) load with 0, the flat floor; out of its range it is
+    refused."""
+    d = ForwardParams(ambient_slope=0.2).to_dict()
+    assert d["ambient_slope"] == 0.2
+    d.pop("ambient_slope")
+    assert ForwardParams.from_dict(d).ambient_slope == 0.0
+    with pytest.raises(CalibrationError, match="ambient_slope"):
+        ForwardParams.from_dict({**d, "ambient_slope": 2.0})

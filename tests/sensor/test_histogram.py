@@ -299,3 +299,40 @@ def test_a_noise_spike_beyond_the_internal_return_is_the_noise_margin_not_the_in
     pos, valid, _ = find_peaks(h, 0.0, "spline")
     assert valid.sum() <= 1 and _highest_bin(h)[valid].tolist() == [INTERNAL_BINS[1]]
     assert pos[valid][0] < INTERNAL_BINS[1]  # what the property above used to assert on: read a tenth of a bin inside
+
+
+def _sloped_frames(slope: float, n: int = 20, ambient: float = 100.0, seed: int = 0) -> np.ndarray:
+    """Poisson histograms (n, 9, 128) of an ambient that changes by ``slope`` of its middle value from the first bin
+    to the last, with a return somewhere after bin 12 (numpy alone, not the forward model)."""
+    rng = np.random.default_rng(seed)
+    u = BINS / 127.0
+    mean = np.broadcast_to(ambient * (1.0 + slope * (u - 0.5)), (n, 9, 128)).copy()
+    for i in range(n):
+        mean[i] += _pulse(15.0 + 2.0 * i, 3000.0)
+    return rng.poisson(mean).astype(float)
+
+
+@pytest.mark.parametrize("slope", [-0.3, -0.15, 0.0, 0.15, 0.3])
+def test_ambient_slopes_reads_the_floors_slope_and_floor_profile_removes_it(slope):
+    from place_safe.sensor.histogram import FLOOR_BINS, HEAD_BINS, ambient_slopes, floor_profile, measure_floor
+
+    h = _sloped_frames(slope)
+    s = ambient_slopes(h)
+    assert s.shape == (20,) and np.all(np.abs(s - slope) < 0.06)  # one frame: ~0.02 of scatter
+    assert abs(np.median(s) - slope) < 0.02
+    flat = floor_profile(h, 0.0)
+    assert np.array_equal(flat, np.broadcast_to(measure_floor(h)[..., None], h.shape))
+    # with the slope, what is left in the first bins and the late ones is noise about zero
+    rest = h - floor_profile(h, float(np.median(s)))
+    assert abs(rest[..., HEAD_BINS].mean()) < 2.0 and abs(rest[..., FLOOR_BINS].mean()) < 2.0
+    if slope:  # the flat floor leaves the slope in the first bins
+        assert abs((h - flat)[..., HEAD_BINS].mean()) > 8.0
+
+
+def test_ambient_slopes_of_a_zone_without_a_floor_is_not_a_number():
+    from place_safe.sensor.histogram import ambient_slopes
+
+    h = np.zeros((2, 9, 128))
+    assert np.all(np.isnan(ambient_slopes(h)))
+    h[1, :4] = 50.0  # four zones with a floor: their median
+    assert np.isnan(ambient_slopes(h)[0]) and ambient_slopes(h)[1] == pytest.approx(0.0)
