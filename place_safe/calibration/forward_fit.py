@@ -817,7 +817,7 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
                    "message": sol.reason, "first_fit_message": first.reason,
                    "jacobians": first.iterations + (sol.iterations if sol is not first else 0),
                    "coarse": None if coarse is None else {
-                       "rays": coarse_rays, "jacobians": sum(r.iterations for r in runs), "message": coarse.reason,
+                       "rays": coarse_rays, "jacobians": sum(r.iterations for r in runs if r is not None), "message": coarse.reason,
                        "starts": [{"tail_decay_bins": st[0], "ref_floor": st[1], "chosen": r is coarse,
                                    "objective_rms": None if r is None else math.sqrt(2 * data_cost(r.fun) / n_res),
                                    "objective_rms_with_priors": math.sqrt(2 * c / n_res) if math.isfinite(c) else None}

@@ -441,3 +441,31 @@ def test_the_ambient_slope_is_kept_only_when_it_is_one_number_over_distance():
     real = load_frames(SWEEP)
     value, report = measure_ambient_slope(np.array([f.hists for f in real], float), np.array([f.truth.z0 for f in real]))
     assert value == 0.0 and "not one number over distance" in report["why"]
+
+
+def test_a_coarse_start_whose_residuals_are_not_finite_is_skipped(monkeypatch):
+    """One start of the coarse stage that cannot run (its residuals not finite: gauss_newton raises) leaves the
+    others to run; the report marks it with no objective. All of them failing fails the fit as one start did."""
+    from place_safe.calibration import forward_fit as ff
+    from place_safe.calibration import gauss_newton
+
+    solve = gauss_newton.solve
+    calls = {"n": 0}
+
+    def first_fails(*a, **kw):
+        calls["n"] += 1
+        if calls["n"] == 1:
+            raise ArithmeticError("the residuals at the start are not finite")
+        return solve(*a, **kw)
+
+    monkeypatch.setattr(gauss_newton, "solve", first_fails)
+    _, report = fit_forward(_level_frames(6), progress=False, rays=3, iterations=3)
+    starts = report["solver"]["coarse"]["starts"]
+    assert starts[0]["objective_rms"] is None and not starts[0]["chosen"] and any(s["chosen"] for s in starts[1:])
+
+    def all_fail(*a, **kw):
+        raise ArithmeticError("the residuals at the start are not finite")
+
+    monkeypatch.setattr(gauss_newton, "solve", all_fail)
+    with pytest.raises(ArithmeticError):
+        ff.fit_forward(_level_frames(6), progress=False, rays=3, iterations=3)
