@@ -46,7 +46,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from place_safe.recovery.forward import AMBIENT_BINS, ForwardModel, ForwardParams, ZoneRays
+from place_safe.recovery.forward import ForwardModel, ForwardParams, ZoneRays
+from place_safe.sensor.histogram import AMBIENT_BINS
 from place_safe.io.frame_file import load_frames
 from place_safe.sensor.frame import N_ZONES, Frame
 

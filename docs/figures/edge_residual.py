@@ -28,8 +28,8 @@ import torch  # noqa: E402
 from place_safe.io.frame_file import load_frames  # noqa: E402
 from place_safe.recovery.forward import (MODEL_ERROR, ForwardModel, ForwardParams, ZoneRays,  # noqa: E402
                                          mount_rotation, residual_weights, warp_positions)
+from place_safe.sensor.histogram import arriving_ambient  # noqa: E402
 
-AMBIENT = slice(0, 8)  # recovery.forward.AMBIENT_BINS
 STEP = 0.02  # the derivatives' finite step (bins for the shift, relative for the width)
 
 
@@ -69,7 +69,7 @@ def analyse(fwd: str, frames: str) -> dict:
     fr = sorted((f for f in load_frames(frames) if f.truth is not None and 0.05 - 1e-9 <= f.truth.z0 <= 0.40 + 1e-9),
                 key=lambda f: f.truth.z0)
     hists = np.array([f.hists for f in fr], float)
-    amb = hists[..., AMBIENT].mean(-1)
+    amb = arriving_ambient(hists)
     s = {"z0": np.array([f.truth.z0 for f in fr]), "amb": amb, "obs": hists - amb[..., None],
          "normals": torch.as_tensor(np.array([f.truth.normal for f in fr])),
          "offsets": torch.as_tensor(np.array([f.truth.offset for f in fr])),

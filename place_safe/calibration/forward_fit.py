@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 import sys
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -28,10 +29,10 @@ from tqdm import tqdm
 from place_safe.calibration import gauss_newton
 from place_safe.config import field_interval
 from place_safe.exceptions import CalibrationError, FrameError
-from place_safe.recovery.forward import (ForwardModel, ForwardParams, MODEL_ERROR, ZoneRays, arriving_ambient,
+from place_safe.recovery.forward import (ForwardModel, ForwardParams, MODEL_ERROR, ZoneRays,
                                          mount_rotation, residual_weights, single_thread, tensors_to_params)
 from place_safe.sensor.frame import N_BINS, N_ZONES, Frame
-from place_safe.sensor.histogram import (COUNT_MAX, ambient_slopes, floor_profile, reference_floor,
+from place_safe.sensor.histogram import (COUNT_MAX, ambient_slopes, arriving_ambient, floor_profile, reference_floor,
                                          reference_problem)
 from place_safe.calibration.points import MIN_TILT_SPREAD
 from place_safe.evaluation.metrics import point_error
@@ -345,8 +346,8 @@ def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, prog
     (default) leaves each frame its own albedo (report: ``one_surface``). ``rms_scaled_residual_*`` are the
     Neyman-weighted residuals whatever the objective (the measure reported before), ``objective_rms_*`` the
     objective's own.
-    ``ambient``: True lets each frame's ambient (the mean of :data:`~place_safe.recovery.forward.AMBIENT_BINS`, before any return) take part in
-    the pile-up with the return (:func:`~place_safe.recovery.forward.ambient_pileup`), and compares the model with
+    ``ambient``: True lets each frame's ambient (the mean of :data:`~place_safe.sensor.histogram.AMBIENT_BINS`, before
+    any return) take part in the pile-up with the return (:func:`~place_safe.recovery.forward.ambient_pileup`), and compares the model with
     the counts above that ambient instead of above the floor measured after the return (which the return's pile-up
     lowers); False (default) is the fit as it was.
 
@@ -384,7 +385,8 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
     default_start = init is None
     if init is None:
         init = ForwardParams(pileup=1e-7, beam_power=1.0, zone_tail_weights=[0.03] * N_ZONES,
-                             zone_tail_decays=[TAIL_DECAY_STARTS[0]] * N_ZONES, **{k: 0.5 for k in STRUCTURAL if k in fitted},
+                             zone_tail_decays=[TAIL_DECAY_STARTS[0]] * N_ZONES,
+                             **{k: 0.5 for k in STRUCTURAL if k in fitted},
                              **{k: v for k, v in NONZERO_START.items() if k in fitted}, **SOFT_BINNING_START)
         if "ref_floor" not in fitted:  # (a fitted floor starts from the published value)
             ref_floors = {"measured": float(np.median([reference_floor(f.reference) for f in data])),
@@ -526,7 +528,8 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
         tried.sort(key=lambda t: t[0])
         return [(rms, floor, la, {**report, "chosen": name}) for rms, floor, la, name in tried]
 
-    _, first_floor, log_albedo0, floor_choice = floor_starts(cam0)[0]
+    first_options = floor_starts(cam0)
+    _, first_floor, log_albedo0, floor_choice = first_options[0]
     model.t["ref_floor"] = first_floor
 
     def split(z: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
@@ -685,16 +688,18 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
         return np.clip(z, lower + 1e-6, up - 1e-6), up
 
     z0, upper = albedo_bounds(z0)
-    # (tail decay, floor, start, upper bounds, floor tensor, floor report): the first is where a single fit starts
-    starts = [(TAIL_DECAY_STARTS[0] if default_start else None, floor_choice.get("chosen"), z0, upper, first_floor,
-               floor_choice)]
+    # the first is where a single fit starts
+    starts = [_Start(TAIL_DECAY_STARTS[0] if default_start else None, floor_choice.get("chosen"), z0, upper,
+                     first_floor, floor_choice)]
     if default_start and coarse_rays and coarse_rays < rays:  # every tail decay with every reference floor
         starts = []
-        for decay, z in zip(TAIL_DECAY_STARTS, _tail_decay_starts(z0, layout, lower, upper)):
-            for _, ref_floor_t, la, choice in floor_starts(torch.as_tensor(z[:n_cam], dtype=dtype)):
+        for i, (decay, z) in enumerate(zip(TAIL_DECAY_STARTS, _tail_decay_starts(z0, layout, lower, upper))):
+            # (the first decay's camera vector is the start's own: its floors were tried above)
+            options = first_options if i == 0 else floor_starts(torch.as_tensor(z[:n_cam], dtype=dtype))
+            for _, ref_floor_t, la, choice in options:
                 z = z.copy()
                 z[n_cam:] = la.numpy()
-                starts.append((decay, choice.get("chosen"), *albedo_bounds(z), ref_floor_t, choice))
+                starts.append(_Start(decay, choice.get("chosen"), *albedo_bounds(z), ref_floor_t, choice))
     model.t["ref_floor"] = first_floor
 
     import time
@@ -711,12 +716,13 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
         model.t = full.t  # the same parameter tensors (unpack writes them)
         runs: list = []
         failed: list[ArithmeticError] = []
-        for k, (decay, floor_name, z_start, up, ref_floor, _) in enumerate(starts, 1):
-            model.t["ref_floor"] = ref_floor
+        for k, st in enumerate(starts, 1):
+            model.t["ref_floor"] = st.ref_floor
             stage(f"forward model, coarse start {k}/{len(starts)}"
-                  + (f" ({decay:g}-bin tails, {floor_name} floor)" if decay is not None and floor_name else ""))
+                  + (f" ({st.decay:g}-bin tails, {st.floor_name} floor)" if st.decay is not None and st.floor_name
+                     else ""))
             try:
-                runs.append(gauss_newton.solve(fun, jac, z_start, lower, up, max_iterations=iterations,
+                runs.append(gauss_newton.solve(fun, jac, st.z, lower, st.upper, max_iterations=iterations,
                                                damping=INITIAL_DAMPING, relative_tol=COARSE_RELATIVE_DECREMENT,
                                                decrement_tol=COARSE_DECREMENT))
             except ArithmeticError as exc:  # residuals not finite from this start: the others may still run
@@ -727,9 +733,10 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
         # the objective with its prior rows, the one each run minimised
         costs = [r.cost if r is not None and math.isfinite(r.cost) else math.inf for r in runs]
         best = int(np.argmin(costs))
-        coarse, (_, _, z_first, upper, model.t["ref_floor"], floor_choice) = runs[best], starts[best]
+        coarse, chosen = runs[best], starts[best]
+        upper, model.t["ref_floor"], floor_choice = chosen.upper, chosen.ref_floor, chosen.floor_report
         model = full
-        z_first = z_first.copy()  # the chosen start, and the data objective there on the full quadrature
+        z_first = chosen.z.copy()  # the chosen start, and the data objective there on the full quadrature
         cost0 = 0.5 * float((fun(z_first)[:nf * nf_res] ** 2).sum())
         z0 = coarse.x
     coarse_seconds = time.perf_counter() - t_start
@@ -817,8 +824,9 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
                    "message": sol.reason, "first_fit_message": first.reason,
                    "jacobians": first.iterations + (sol.iterations if sol is not first else 0),
                    "coarse": None if coarse is None else {
-                       "rays": coarse_rays, "jacobians": sum(r.iterations for r in runs if r is not None), "message": coarse.reason,
-                       "starts": [{"tail_decay_bins": st[0], "ref_floor": st[1], "chosen": r is coarse,
+                       "rays": coarse_rays, "jacobians": sum(r.iterations for r in runs if r is not None),
+                       "message": coarse.reason,
+                       "starts": [{"tail_decay_bins": st.decay, "ref_floor": st.floor_name, "chosen": r is coarse,
                                    "objective_rms": None if r is None else math.sqrt(2 * data_cost(r.fun) / n_res),
                                    "objective_rms_with_priors": math.sqrt(2 * c / n_res) if math.isfinite(c) else None}
                                   for st, c, r in zip(starts, costs, runs)],
@@ -831,6 +839,19 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
         "params": fitted_params.to_dict(),
     }
     return fitted_params, report
+
+
+class _Start(NamedTuple):
+    """A start of the forward fit's coarse stage: its tail decay (bins; None for a start the caller gave) and
+    reference floor (its name, its tensor, the report of the floors tried there), the start ``z`` (camera vector
+    and log albedos) and the upper bounds that go with its albedos."""
+
+    decay: float | None
+    floor_name: str | None
+    z: np.ndarray
+    upper: np.ndarray
+    ref_floor: torch.Tensor
+    floor_report: dict
 
 
 def _tail_decay_starts(z0: np.ndarray, layout: list[tuple[str, str, int]], lower: np.ndarray,

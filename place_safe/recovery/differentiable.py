@@ -48,7 +48,7 @@ from pydantic import Field, model_validator
 from place_safe.recovery.points import PeakParams
 from place_safe.config import ParamModel, field_interval, vector
 from place_safe.exceptions import CalibrationError, FrameError, NoPlaneError
-from place_safe.recovery.forward import (ForwardModel, ForwardParams, ZoneRays, arriving_ambient, mount_rotation,
+from place_safe.recovery.forward import (ForwardModel, ForwardParams, ZoneRays, mount_rotation,
                                          residual_weights, single_thread)
 from place_safe.geometry import Plane
 from place_safe.recovery.plane_renderer import PlaneRenderer, convolution_matrices
@@ -56,7 +56,7 @@ from place_safe.sensor.frame import N_BINS, N_ZONES, Frame
 from place_safe.recovery.estimator import (Estimator, PlaneEstimate, Uncertainty, check_arguments, checked,
                                           tilt_offset)
 from place_safe.recovery.peak import PeakEstimator
-from place_safe.sensor.histogram import COUNT_MAX, floor_profile, reference_problem
+from place_safe.sensor.histogram import COUNT_MAX, arriving_ambient, floor_profile, reference_problem
 
 
 
@@ -234,7 +234,7 @@ class SolverOptions:
     zone_albedo: bool = True      # an albedo per zone, so the plane rests mostly on timing and shape
     zone_albedo_spread: float = 0.1  # std of log zone albedo about the zones' mean (inf: untied)
     # the data's ambient: False, the floor measured after the return is subtracted (the model as it was); True, the
-    # ambient as it arrives (forward.arriving_ambient) goes through the pile-up with the return and the model is
+    # ambient as it arrives (sensor.histogram.arriving_ambient) goes through the pile-up with the return and the model is
     # compared with the counts above it, as the forward model was fitted with fit_forward(..., ambient=True)
     ambient: bool = False
     # paper mode

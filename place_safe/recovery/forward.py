@@ -515,16 +515,6 @@ def apply_pileup(hist: torch.Tensor, k: torch.Tensor, shadow: torch.Tensor | flo
     return -torch.expm1(-kk * hist) / kk * torch.exp(-kk * shadow * before)
 
 
-#: Bins of each histogram that hold the ambient alone, before the earliest return (zero range is bin 9-10): a
-#: model fitted with the ambient through the pile-up (``fit_forward(..., ambient=True)``) reads it there.
-AMBIENT_BINS = slice(0, 8)
-
-
-def arriving_ambient(hists: np.ndarray) -> np.ndarray:
-    """Each zone's ambient as it arrives, counts per bin (..., 9): the mean of :data:`AMBIENT_BINS` of ``hists``
-    (..., 9, bins), before any return and so before the return's pile-up shadows it."""
-    return np.asarray(hists, dtype=float)[..., AMBIENT_BINS].mean(axis=-1)
-
 
 def ambient_pileup(hist: torch.Tensor, ambient: torch.Tensor, k: torch.Tensor | float,
                    shadow: torch.Tensor | float = 1.0) -> torch.Tensor:

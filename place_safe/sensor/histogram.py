@@ -40,9 +40,19 @@ def measure_floor(hists: np.ndarray) -> np.ndarray:
     return np.median(np.asarray(hists)[..., FLOOR_BINS], axis=-1)
 
 
-#: Bins at the start of every histogram where the ambient arrives alone: before the cover glass's return (bins 9-10,
-#: zero range) and any surface's.
-HEAD_BINS = slice(0, 6)
+#: Bins of each histogram that hold the ambient alone, before the earliest return (zero range is bin 9-10): a
+#: model fitted with the ambient through the pile-up (``fit_forward(..., ambient=True)``) reads it there.
+AMBIENT_BINS = slice(0, 8)
+#: The first of :data:`AMBIENT_BINS`, where :func:`ambient_slopes` reads a unit's slope: two bins short of them, for
+#: a cover-glass return that comes early (the simulated units' glass delays spread by 0.5-1 bin).
+HEAD_BINS = slice(AMBIENT_BINS.start, AMBIENT_BINS.stop - 2)
+
+
+def arriving_ambient(hists: np.ndarray) -> np.ndarray:
+    """Each zone's ambient as it arrives, counts per bin (..., 9): the mean of :data:`AMBIENT_BINS` of ``hists``
+    (..., 9, bins), before any return and so before the return's pile-up shadows it."""
+    return np.asarray(hists, dtype=float)[..., AMBIENT_BINS].mean(axis=-1)
+
 #: Positions ``u = bin / (N_BINS - 1)`` (0 first bin, 1 last) of the middle of :data:`HEAD_BINS` and of
 #: :data:`FLOOR_BINS`.
 _U_HEAD = (HEAD_BINS.start + HEAD_BINS.stop - 1) / 2 / (N_BINS - 1)
@@ -426,6 +436,6 @@ def reference_problem(reference) -> str | None:
     return None
 
 
-__all__ = ["COUNT_MAX", "FLOOR_BINS", "HEAD_BINS", "measure_floor", "floor_profile", "ambient_slopes", "find_peaks", "find_returns", "windowed_centroid", "SUBBIN_METHODS",
+__all__ = ["COUNT_MAX", "FLOOR_BINS", "AMBIENT_BINS", "HEAD_BINS", "arriving_ambient", "measure_floor", "floor_profile", "ambient_slopes", "find_peaks", "find_returns", "windowed_centroid", "SUBBIN_METHODS",
            "CENTROID_HALF_WIDTH", "CENTROID_HALF_WIDTHS", "MIXED_SHIFT", "INTERNAL_BINS", "INTERNAL_MAX_COUNTS", "first_return", "reference_floor",
            "reference_problem"]
