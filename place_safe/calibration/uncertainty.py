@@ -262,13 +262,30 @@ NEAR_LAW_MIN_FRAMES = 3
 NEAR_LAW_DEPTHS = 24
 
 
-def near_std_law(depth, scale: float, power: float) -> np.ndarray:
+#: The near law's least power closer than the nearest frame it was fitted on (:func:`near_std_law`'s
+#: ``nearest``). How fast the peak's error grows as the return runs into the internal return is measured only by
+#: frames near the overlap: the real sweep (planes down to 1.5 cm) gives 0.97 (1.07 / 1.56 on its halves), a
+#: simulated unit swept from 2 cm 1.07, while a sweep that starts at 5 cm sees 5-9 cm only and fitted 0.29 on a
+#: simulated unit, whose law then put 2 cm at twice its 5 cm error where other units read 2.4-6 deg planes there
+#: (2.4 deg 3-sigma). Beyond its frames the law is not measured, so it grows at least as the real sensor's did.
+NEAR_PRIOR_POWER = 1.0
+
+
+def near_std_law(depth, scale: float, power: float, nearest: float | None = None) -> np.ndarray:
     """Zone range error (m) at ``depth`` (m, along the optical axis): ``scale`` (m) at
     :data:`NEAR_REFERENCE_DEPTH`, growing as ``(gap / reference gap)^-power`` where the gap is the depth's distance
     beyond the overlap with the internal return (:data:`~place_safe.recovery.too_close.OVERLAP_RANGE`, at least
-    :data:`NEAR_LAW_MIN_GAP`)."""
+    :data:`NEAR_LAW_MIN_GAP`). ``nearest`` (m; None: no limit): the nearest depth the law was fitted on; closer,
+    it continues from its value there with the power at least :data:`NEAR_PRIOR_POWER` (an extrapolation the
+    fitted frames cannot bound)."""
+    ref = NEAR_REFERENCE_DEPTH - OVERLAP_RANGE
     gap = np.maximum(np.asarray(depth, dtype=float) - OVERLAP_RANGE, NEAR_LAW_MIN_GAP)
-    return scale * (gap / (NEAR_REFERENCE_DEPTH - OVERLAP_RANGE)) ** (-power)
+    std = scale * (gap / ref) ** (-power)
+    if nearest is None or power >= NEAR_PRIOR_POWER:
+        return std
+    g0 = max(float(nearest) - OVERLAP_RANGE, NEAR_LAW_MIN_GAP)
+    beyond = scale * (g0 / ref) ** (-power) * (np.minimum(gap, g0) / g0) ** (-NEAR_PRIOR_POWER)
+    return np.where(gap < g0, beyond, std)
 
 
 def near_law_depths(end: float, knots: Sequence[float] = ()) -> np.ndarray:
@@ -303,11 +320,11 @@ def near_law_parameters(x: Sequence[float]) -> tuple[float, float, float, float]
 
 
 def near_law_uncertainty(unc: Uncertainty, depths: np.ndarray, scale: float, power: float, shared: float,
-                         factor=1.0) -> Uncertainty:
-    """``unc`` with the near law tabulated at ``depths`` (m): :func:`near_std_law` times ``sqrt(factor)`` (one
-    value or one per depth), clipped to (1e-7 m, :data:`NEAR_MAX_STD`), its variance split into the part
-    ``shared`` common to the zones (``near_common_std``) and the rest (``near_range_std``)."""
-    std = np.clip(near_std_law(depths, scale, power) * np.sqrt(factor), 1e-7, NEAR_MAX_STD)
+                         factor=1.0, nearest: float | None = None) -> Uncertainty:
+    """``unc`` with the near law tabulated at ``depths`` (m): :func:`near_std_law` (``nearest``: see there) times
+    ``sqrt(factor)`` (one value or one per depth), clipped to (1e-7 m, :data:`NEAR_MAX_STD`), its variance split
+    into the part ``shared`` common to the zones (``near_common_std``) and the rest (``near_range_std``)."""
+    std = np.clip(near_std_law(depths, scale, power, nearest) * np.sqrt(factor), 1e-7, NEAR_MAX_STD)
     return unc.replace(near_depths=[float(v) for v in depths],
                        near_range_std=[float(v) for v in np.maximum(std * math.sqrt(1.0 - shared), 1e-7)],
                        near_common_std=[float(v) for v in std * math.sqrt(shared)])
@@ -354,13 +371,13 @@ def knot_factor(measure, m_ref: float, share: float):
 
 
 def near_law_table(unc: Uncertainty, end: float, knots: Sequence[float], scale: float, power: float,
-                   shared: float, share: float, m_ref: float) -> Uncertainty:
+                   shared: float, share: float, m_ref: float, nearest: float | None = None) -> Uncertainty:
     """``unc`` with the near law tabulated up to ``end`` (m) at :func:`near_law_depths` (a table's ``knots``, their
     gaps' midpoints and quarter points among them), each depth's variance times :func:`knot_factor` among the
-    ``knots`` (none: factor 1)."""
+    ``knots`` (none: factor 1); ``nearest``: see :func:`near_std_law`."""
     depths = near_law_depths(end, knots)
     factor = knot_factor(interpolation_measure(depths, knots), m_ref, share) if len(knots) > 1 else 1.0
-    return near_law_uncertainty(unc, depths, scale, power, shared, factor)
+    return near_law_uncertainty(unc, depths, scale, power, shared, factor, nearest)
 
 
 #: :func:`fit_near_law`'s report note when no held-out near frame lay in a gap as narrow as a new frame's
@@ -447,8 +464,11 @@ def fit_near_law(rows: Sequence[tuple], unc: Uncertainty, peak_params, end: floa
             best = res
     theta = law(best.x)
 
+    # the nearest depth the law is fitted on (the rows' median zone depths): closer, it is an extrapolation
+    nearest = min(float(np.median(r[0][r[1], 2])) for r in rows)
+
     def tabulated(share: float) -> Uncertainty:
-        return near_law_table(unc, end, knots, theta[0], theta[1], theta[2], share, m_ref)
+        return near_law_table(unc, end, knots, theta[0], theta[1], theta[2], share, m_ref, nearest)
 
     how = "held out, two gap widths" if wide else "fixed at 1 (no table)"
     if knots and not wide:
@@ -466,7 +486,8 @@ def fit_near_law(rows: Sequence[tuple], unc: Uncertainty, peak_params, end: floa
     per_row = [float(r[3] @ np.linalg.solve(row_covariance(r, theta), r[3])) / 3.0 for r in rows]
     return tabulated(share), {
         "frames": len(rows), "std_at_reference_mm": scale * 1e3, "reference_depth_mm": NEAR_REFERENCE_DEPTH * 1e3,
-        "power": power, "shared_by_zones": shared,
+        "power": power, "shared_by_zones": shared, "nearest_fitted_mm": nearest * 1e3,
+        "power_closer": max(power, NEAR_PRIOR_POWER),
         "table_knots": len(knots), "reference_measure_mm2": m_ref * 1e6 if knots else None,
         "share_independent_of_knots": share, "share_fitted": how,
         "new_frame_measure_mm2": None if m_new is None else m_new * 1e6, "held_out_at_new_frame_gaps": narrow,

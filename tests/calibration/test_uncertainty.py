@@ -220,9 +220,9 @@ def test_the_model_error_sizes_diffs_tilt_term_and_leaves_its_limits_alone(sweep
 
 # -- the peak method's near-range law (issue 26) ------------------------------------------------------------------
 
-def _near_rows(n, scale, power, seed=0, shared=0.0):
-    """Level planes at 2.5-9 cm read through 9 zone points whose ranges err by the law's std, the part ``shared``
-    of its variance common to the zones of a frame, the rest independent."""
+def _near_rows(n, scale, power, seed=0, shared=0.0, depths=(0.025, 0.09)):
+    """Level planes at ``depths`` (m; default 2.5-9 cm) read through 9 zone points whose ranges err by the law's
+    std, the part ``shared`` of its variance common to the zones of a frame, the rest independent."""
     from place_safe.calibration.uncertainty import near_std_law
     from place_safe.recovery.estimator import tilt_offset
     from place_safe.recovery.points import PeakParams, plane_through
@@ -231,7 +231,7 @@ def _near_rows(n, scale, power, seed=0, shared=0.0):
     dirs = PeakParams.default_peak().directions()
     rows = []
     for _ in range(n):
-        d = rng.uniform(0.025, 0.09)
+        d = rng.uniform(*depths)
         r = d / dirs[:, 2]
         mix = math.sqrt(1.0 - shared) * rng.normal(0.0, 1.0, 9) + math.sqrt(shared) * rng.normal()
         r = r + mix * near_std_law(r * dirs[:, 2], scale, power)
@@ -252,6 +252,34 @@ def test_near_law_grows_toward_the_internal_return_and_is_tabulated_through_the_
     assert near_std_law(OVERLAP_RANGE - 0.005, 1e-4, 1.5) == near_std_law(OVERLAP_RANGE, 1e-4, 1.5)  # held, finite
     depths = near_law_depths(0.09, knots=[0.02, 0.035, 0.09])
     assert depths[-1] == 0.09 and np.all(np.diff(depths) > 0) and 0.035 in depths and depths[0] > OVERLAP_RANGE
+
+
+def test_closer_than_its_nearest_frame_the_near_law_grows_at_least_as_the_real_sensors_did():
+    """A sweep that starts at 5 cm cannot measure how fast the error grows toward the internal return: closer than
+    the nearest fitted frame the law continues from its value there with the power at least NEAR_PRIOR_POWER; a
+    steeper fitted law, and everything at or beyond the nearest frame, stay as fitted."""
+    from place_safe.calibration.uncertainty import NEAR_PRIOR_POWER, fit_near_law, near_std_law
+    from place_safe.recovery.estimator import Uncertainty
+    from place_safe.recovery.points import PeakParams
+    from place_safe.recovery.too_close import OVERLAP_RANGE
+
+    d = np.array([0.02, 0.03, 0.05, 0.07])
+    flat = near_std_law(d, 1e-4, 0.3, nearest=0.05)
+    assert np.allclose(flat[2:], near_std_law(d[2:], 1e-4, 0.3))  # at and beyond the nearest frame: as fitted
+    gaps = d[:2] - OVERLAP_RANGE
+    assert np.allclose(flat[:2] / flat[2], (gaps / (0.05 - OVERLAP_RANGE)) ** -NEAR_PRIOR_POWER)
+    assert np.all(flat[:2] > near_std_law(d[:2], 1e-4, 0.3))
+    assert np.allclose(near_std_law(d, 1e-4, 1.5, nearest=0.05), near_std_law(d, 1e-4, 1.5))  # steeper: unchanged
+
+    params = PeakParams.default_peak()
+    rows = _near_rows(40, 1e-4, 0.3, seed=4, depths=(0.05, 0.09))
+    unc, rep = fit_near_law(rows, Uncertainty(), params, 0.09)
+    assert rep["power"] < NEAR_PRIOR_POWER and rep["power_closer"] == NEAR_PRIOR_POWER
+    nearest = rep["nearest_fitted_mm"] * 1e-3
+    assert 0.05 <= nearest < 0.055
+    s_near, s_2cm = unc.near_std(np.array([nearest, 0.02]))
+    want = ((0.02 - OVERLAP_RANGE) / (nearest - OVERLAP_RANGE)) ** -NEAR_PRIOR_POWER
+    assert s_2cm / s_near >= 0.95 * want  # (the table is read linearly between its depths)
 
 
 def test_interpolation_measure_is_zero_at_the_knots_and_largest_mid_gap():
