@@ -158,6 +158,79 @@ def test_a_level_sweep_with_a_few_tilted_frames_keeps_the_stated_term():
     assert unc.tilt_rel == DIFF_TILT_REL and report["tilt_term"].startswith("stated")
 
 
+def _tilted_estimates(n: int, kt: float, ko: float, seed: int = 0, scale: float = 1.0):
+    """``n`` diff-like estimates of planes tilted 8-30 deg, 5-30 cm, with a small fit covariance, whose errors are
+    drawn from that covariance plus the stated term (tilt_rel 0.01, tilt_offset_rel 0.002) with its tilt part times
+    ``kt`` and its offset part times ``ko``, all times ``scale``; the term and the truths."""
+    from place_safe.geometry import Plane
+    from place_safe.recovery.estimator import PlaneEstimate, Uncertainty
+
+    rng = np.random.default_rng(seed)
+    term = Uncertainty(tilt_rel=0.01, tilt_offset_rel=0.002)
+    ests, truths = [], []
+    for _ in range(n):
+        normal = _tilted(rng.uniform(8.0, 30.0), rng.uniform(0.0, 2 * math.pi))
+        truth = Plane(normal, rng.uniform(0.05, 0.3))
+        fit = np.diag([1e-6, 1e-6, 1e-8])
+        tilt_part = term.replace(tilt_offset_rel=0.0).tilt_floor(normal, truth.offset)
+        offset_part = term.tilt_floor(normal, truth.offset) - tilt_part
+        cov = fit + kt * kt * tilt_part + ko * ko * offset_part
+        e = scale * rng.multivariate_normal(np.zeros(3), cov)
+        nx, ny = normal[0] + e[0], normal[1] + e[1]
+        plane = Plane(np.array([nx, ny, math.sqrt(1.0 - nx * nx - ny * ny)]), truth.offset + e[2])
+        ests.append(PlaneEstimate(plane, covariance=fit, method_used="diff"))
+        truths.append(truth)
+    return ests, truths, term
+
+
+def test_a_few_tilted_frames_size_the_stated_tilt_term():
+    """Tilted calibration frames among level ones scale the stated term's tilt and offset parts by maximum
+    likelihood (convention check on drawn errors: the factors they were drawn with come back, the frames' NEES per
+    component is then 1); within TILT_TERM_SCALES when the frames read better or worse than any factor explains."""
+    from place_safe.calibration.uncertainty import TILT_TERM_SCALES, size_tilt_term
+
+    ests, truths, term = _tilted_estimates(600, 2.0, 3.0, seed=1)
+    sized, rep = size_tilt_term(ests, truths, term)
+    assert rep["frames"] == 600
+    assert 1.8 <= rep["tilt_factor"] <= 2.2 and 2.6 <= rep["offset_factor"] <= 3.4
+    assert math.isclose(sized.tilt_rel, term.tilt_rel * rep["tilt_factor"])
+    assert math.isclose(sized.tilt_offset_rel, term.tilt_offset_rel * rep["offset_factor"])
+    assert abs(rep["nees_tilt_after"] - 1.0) < 0.02 and abs(rep["nees_offset_after"] - 1.0) < 0.02
+    assert rep["nees_offset_before"] > 3.0
+    ests, truths, term = _tilted_estimates(20, 1.0, 1.0, seed=2, scale=1e-3)  # read far better than the term says
+    _, rep = size_tilt_term(ests, truths, term)
+    assert (rep["tilt_factor"], rep["offset_factor"]) == (TILT_TERM_SCALES[0], TILT_TERM_SCALES[0])
+    ests, truths, term = _tilted_estimates(20, 1.0, 1.0, seed=3, scale=20.0)  # far worse (20 > 10 times)
+    _, rep = size_tilt_term(ests, truths, term)
+    assert (rep["tilt_factor"], rep["offset_factor"]) == (TILT_TERM_SCALES[1], TILT_TERM_SCALES[1])
+
+
+def test_a_level_sweep_with_enough_tilted_frames_sizes_the_stated_term_on_them():
+    """TILT_TERM_MIN_FRAMES or more tilted frames, still under DIFF_TILTED_SHARE of the frames: the term stays stated
+    (the floor from the level frames alone) and is sized on the tilted ones; the report says so."""
+    from place_safe.calibration.uncertainty import (DIFF_TILTED_SHARE, TILT_TERM_MIN_FRAMES, TILT_TERM_SCALES,
+                                                    diff_tilt_term, fit_diff_uncertainty)
+    from place_safe.evaluation.independent import SceneSpec, make_frames
+    from place_safe.recovery.forward import ForwardParams
+    from place_safe.recovery.points import PeakParams
+
+    level = make_frames(22, seed=1, scene=SceneSpec(z_range=(0.06, 0.30), theta_range=(0.0, 0.0)))
+    tilted = make_frames(TILT_TERM_MIN_FRAMES + 4, seed=2, scene=SceneSpec(z_range=(0.06, 0.30),
+                                                                             theta_range=(0.2, 0.4)))
+    frames = level + tilted
+    assert len(tilted) / len(frames) < DIFF_TILTED_SHARE
+    unc, report = fit_diff_uncertainty(frames, ForwardParams(), PeakParams.default_peak())
+    sized = report["tilt_term_sized"]
+    assert report["tilt_term"].startswith("stated") and "then by the tilted frames" in report["tilt_term"]
+    assert sized["frames"] >= TILT_TERM_MIN_FRAMES, sized
+    stated = diff_tilt_term(None)
+    lo, hi = TILT_TERM_SCALES
+    assert lo * stated.tilt_rel <= unc.tilt_rel <= hi * stated.tilt_rel
+    assert math.isclose(unc.tilt_rel, stated.tilt_rel * sized["tilt_factor"])
+    assert math.isclose(unc.tilt_offset_rel, stated.tilt_offset_rel * sized["offset_factor"])
+    assert report["frames"] <= len(level)  # the floor from the level frames alone
+
+
 def _tilted(deg: float, azimuth: float = 0.3) -> np.ndarray:
     t, a = math.radians(deg), azimuth
     return np.array([math.sin(t) * math.cos(a), math.sin(t) * math.sin(a), math.cos(t)])
