@@ -192,6 +192,11 @@ TILT_TERM_MIN_FRAMES = 8
 #: Bounds of the factors on the stated term's tilt and offset parts that the tilted frames may choose: at most
 #: halved (a few frames that happen to read well do not take the term away), at most ten times.
 TILT_TERM_SCALES = (0.5, 10.0)
+#: The diff report's note (``calibrate`` prints it last) when the stated tilt term is not sized on tilted frames.
+TILT_TERM_NOTE = ("diff's covariance on tilted planes is stated from the unit's model error, not measured: {n} "
+                  "calibration frames tilted 5 deg or more were read by diff ({need} needed); capture about 20 tilted "
+                  "poses too (capture --distances 80,150,220 --incidences 12,24 --azimuths 0,90,180,270) and "
+                  "calibrate on both files for a covariance sized on them")
 
 
 def diff_tilt_term(model_error: float | None = None) -> Uncertainty:
@@ -721,9 +726,11 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
                                            prefer_ratio=prefer))
     if sizing:
         unc, rep["tilt_term_sized"] = size_tilt_term([diff[i] for i in few], [truths[i] for i in few], unc)
-    elif level and few:
-        rep["tilt_term_sized"] = {"frames": len(few), "why": f"fewer than {TILT_TERM_MIN_FRAMES} tilted frames: "
-                                  "the stated term as the model error sizes it"}
+    elif level:
+        if few:
+            rep["tilt_term_sized"] = {"frames": len(few), "why": f"fewer than {TILT_TERM_MIN_FRAMES} tilted frames: "
+                                      "the stated term as the model error sizes it"}
+        rep["note"] = TILT_TERM_NOTE.format(n=len(few), need=TILT_TERM_MIN_FRAMES)
     use_diff = (chi2 <= limit) & consistent & ~(ratio > prefer)
     sel = np.where(use_diff[:, None], e_diff, e_peak)
 
@@ -771,4 +778,4 @@ __all__ = ["update_calibration", "nees", "fit_floor", "fit_peak_uncertainty", "f
            "NEAR_REFERENCE_DEPTH", "CONSISTENCY_LIMIT", "PEAK_TILT_REL",
            "DIFF_TILT_REL", "DIFF_TILT_OFFSET_REL", "DIFF_TILT_PIVOT", "DIFF_TILTED_SHARE",
            "DIFF_TILT_FLOOR", "DIFF_TILT_PER_ERROR", "DIFF_TILT_OFFSET_PER_ERROR", "diff_tilt_term",
-           "size_tilt_term", "TILT_TERM_MIN_FRAMES", "TILT_TERM_SCALES", "CV_FOLDS", "PREFER_RATIOS"]
+           "size_tilt_term", "TILT_TERM_MIN_FRAMES", "TILT_TERM_SCALES", "TILT_TERM_NOTE", "CV_FOLDS", "PREFER_RATIOS"]

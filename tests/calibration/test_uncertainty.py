@@ -156,6 +156,8 @@ def test_a_level_sweep_with_a_few_tilted_frames_keeps_the_stated_term():
     assert len(tilted) / len(frames) < DIFF_TILTED_SHARE
     unc, report = fit_diff_uncertainty(frames, ForwardParams(), PeakParams.default_peak())
     assert unc.tilt_rel == DIFF_TILT_REL and report["tilt_term"].startswith("stated")
+    # calibrate prints the report's note: the term is stated, not measured, and how to capture for one that is
+    assert "not measured" in report["note"] and "--incidences" in report["note"]
 
 
 def _tilted_estimates(n: int, kt: float, ko: float, seed: int = 0, scale: float = 1.0):
@@ -229,6 +231,7 @@ def test_a_level_sweep_with_enough_tilted_frames_sizes_the_stated_term_on_them()
     assert math.isclose(unc.tilt_rel, stated.tilt_rel * sized["tilt_factor"])
     assert math.isclose(unc.tilt_offset_rel, stated.tilt_offset_rel * sized["offset_factor"])
     assert report["frames"] <= len(level)  # the floor from the level frames alone
+    assert "note" not in report  # measured: nothing to add
 
 
 def _tilted(deg: float, azimuth: float = 0.3) -> np.ndarray:
