@@ -2,6 +2,7 @@
 and by tilt; and whether two sets of calibrations return the same planes (only their covariances may differ).
 
     python docs/figures/tilted_nees.py --out ../scorecard --units A B 31 32 33 synth synth3
+    python docs/figures/tilted_nees.py --out ../scorecard --units A_few12 32_few12     # unit_scorecard.py --few-tilts 12
     python docs/figures/tilted_nees.py --out ../scorecard_new --same-planes ../scorecard --units A B ...
 
 ``--out``: a directory of ``docs/figures/unit_scorecard.py`` (``{unit}_cal.json``, ``{unit}_tilt.json``). Each unit's
@@ -32,7 +33,9 @@ def read(out: Path, unit: str):
     from place_safe.io.frame_file import load_frames
     from place_safe.recovery import make_estimator
 
-    frames = [f for f in load_frames(str(out / f"{unit}_tilt.json")) if f.truth is not None]
+    tilt = out / f"{unit}_tilt.json"  # a unit_scorecard.py --few-tilts row (UNIT_fewN) reads its unit's frames
+    tilt = tilt if tilt.exists() else out / f"{unit.split('_few')[0]}_tilt.json"
+    frames = [f for f in load_frames(str(tilt)) if f.truth is not None]
     cal = Calibration.load(str(out / f"{unit}_cal.json"))
     return frames, make_estimator("diff", cal).estimate_many(frames), cal
 

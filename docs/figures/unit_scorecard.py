@@ -4,6 +4,7 @@ sweep (150 frames, table 2-40 cm below the sensor, level) and read on tilted pla
     nice -n 10 env OMP_NUM_THREADS=1 python docs/figures/unit_scorecard.py --out ../scorecard    # every unit (~30 min)
     python docs/figures/unit_scorecard.py --units A 31 --out ../scorecard                      # some of them
     python docs/figures/unit_scorecard.py --out ../scorecard --table                           # the table from disk
+    python docs/figures/unit_scorecard.py --out ../scorecard --few-tilts 12    # level sweep + 12 tilted frames
 
 The units: ``A`` (the default :class:`~place_safe.sim.tof_mismatch.MismatchConfig`), ``B`` (seed 11, longer tails:
 docs/results.md, the unit's forward model), ``31``, ``32``, ``33`` (new seeds, their other differences varied within
@@ -78,10 +79,41 @@ def run(cmd: list[str], log: Path) -> tuple[float, float]:
     return wall, user
 
 
-def make_frames(unit: str, out: Path) -> tuple[Path, Path]:
+#: The few tilted calibration frames of ``--few-tilts``: tilts (deg) and heights (m) they are drawn from, and their seed.
+FEW_TILTS_DEG = (8.0, 30.0)
+FEW_SEED = 7
+
+
+def add_few_tilts(unit: str, out: Path, level: Path, n: int) -> Path:
+    """``{unit}_level_few{n}.json``: the unit's level sweep with ``n`` tilted frames added (another seed, tilts
+    :data:`FEW_TILTS_DEG`, heights :data:`TILT_HEIGHTS`): "a few tilts" on top of the level sweep."""
+    path = out / f"{unit}_level_few{n}.json"
+    if path.exists():
+        return path
+    few = out / f"{unit}_few{n}.json"
+    if unit in SYNTH:  # the generator draws incidences 0..max: the frames under 5 deg count as level
+        run(["synth", "--frames", str(n), "--seed", str(FEW_SEED), "--sensor-seed", str(SYNTH[unit]), "--max-angle",
+             str(FEW_TILTS_DEG[1]), "--min-distance", str(TILT_HEIGHTS[0]), "--max-distance", str(TILT_HEIGHTS[1]),
+             "-o", str(few)], out / f"{unit}_synth_few.log")
+    else:
+        from place_safe.io.frame_file import write_frames
+        from place_safe.sim.calibration_capture import OPERATING_TEMPERATURE, capture_level_sweep
+        from place_safe.sim.tof_mismatch import MismatchConfig
+        mc = None if UNITS[unit] is None else MismatchConfig(**UNITS[unit])
+        write_frames(str(few), capture_level_sweep("mismatch", n, seed=FEW_SEED, temperature=OPERATING_TEMPERATURE,
+                                                   heights=TILT_HEIGHTS, min_tilt=math.radians(FEW_TILTS_DEG[0]),
+                                                   max_tilt=math.radians(FEW_TILTS_DEG[1]), mismatch=mc))
+    path.write_text(json.dumps(json.loads(level.read_text()) + json.loads(few.read_text())))
+    return path
+
+
+def make_frames(unit: str, out: Path, few_tilts: int = 0) -> tuple[Path, Path]:
     level, tilt = out / f"{unit}_level.json", out / f"{unit}_tilt.json"
     if level.exists() and tilt.exists():
-        return level, tilt
+        return (add_few_tilts(unit, out, level, few_tilts) if few_tilts else level), tilt
+    if few_tilts:
+        make_frames(unit, out)
+        return make_frames(unit, out, few_tilts)
     if unit in SYNTH:
         s = str(SYNTH[unit])
         run(["synth", "--frames", str(FRAMES), "--seed", "1", "--sensor-seed", s, "--max-angle", "0",
@@ -127,13 +159,15 @@ def albedo_ratio_cv(tilt: Path, cal: Path) -> float | None:
     return float(100 * r.std(ddof=1) / r.mean())
 
 
-def score(unit: str, out: Path, fresh: bool, reevaluate: bool = False) -> dict:
+def score(unit: str, out: Path, fresh: bool, reevaluate: bool = False, few_tilts: int = 0) -> dict:
     """The unit's row: from its score file if there is one (unless ``fresh`` or ``reevaluate``); ``reevaluate`` keeps
-    the calibration (and its time) and evaluates again."""
+    the calibration (and its time) and evaluates again. ``few_tilts``: calibrate on the level sweep with that many
+    tilted frames added (:func:`add_few_tilts`); its files are the unit's with ``_few{n}`` after the unit."""
+    level, tilt = make_frames(unit, out, few_tilts)
+    unit = f"{unit}_few{few_tilts}" if few_tilts else unit
     path = out / f"{unit}_score.json"
     if path.exists() and not (fresh or reevaluate):
         return json.loads(path.read_text())
-    level, tilt = make_frames(unit, out)
     cal = out / f"{unit}_cal.json"
     timing = out / f"{unit}_cal.time"
     if reevaluate and cal.exists() and timing.exists():
@@ -220,18 +254,21 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--reevaluate", action="store_true",
                     help="keep the units' calibrations (and their times), evaluate them again")
     ap.add_argument("--table", action="store_true", help="only print the table of the units already scored")
+    ap.add_argument("--few-tilts", type=int, default=0, metavar="N",
+                    help="calibrate on the level sweep with N tilted frames added (8-30 deg, 5-30 cm, seed 7): the "
+                         "rows are UNIT_fewN (default 0: the level sweep alone)")
     a = ap.parse_args(argv)
     a.out.mkdir(parents=True, exist_ok=True)
     rows = []
     for i, u in enumerate(a.units, 1):
         if a.table:
-            p = a.out / f"{u}_score.json"
+            p = a.out / (f"{u}_few{a.few_tilts}_score.json" if a.few_tilts else f"{u}_score.json")
             if p.exists():
                 rows.append(json.loads(p.read_text()))
             continue
         t0 = time.time()
         print(f"[{i}/{len(a.units)}] unit {u} ...", flush=True)
-        r = score(u, a.out, a.fresh, a.reevaluate)
+        r = score(u, a.out, a.fresh, a.reevaluate, a.few_tilts)
         rows.append(r)
         print(f"[{i}/{len(a.units)}] unit {u}: RMS {r['rms']:.3f} ({'converged' if r['converged'] else 'NOT converged'}), "
               f"calibrate {r['cal_cpu_s']:.0f} s CPU; diff {r['diff_deg']:.3f} deg / {r['diff_mm']:.3f} mm, fallback "

@@ -184,8 +184,9 @@ DIFF_TILT_OFFSET_PER_ERROR = 0.05
 #: holds diff's tilt error without the stated term: a level sweep of 150 frames with 30 tilted ones (17 %) held
 #: out NEES per dof 2.65 on the independent generator's tilted frames without it (10 tilted: 6.7)
 DIFF_TILTED_SHARE = 0.5
-#: Tilted frames (MIN_TILT_SPREAD or more from the least tilted) among mostly level calibration frames from which the
-#: stated tilt term is sized on them (:func:`size_tilt_term`): "a few tilts" added to a level sweep. Held out on the
+#: Tilted frames (MIN_TILT_SPREAD or more from the least tilted, read by diff under its chi-square limit) among mostly
+#: level calibration frames from which the stated tilt term is sized on them (:func:`size_tilt_term`): "a few tilts"
+#: added to a level sweep. Held out on the
 #: other tilted frames of 7 level-calibrated simulated units, 10 such frames took the NEES per dof from 0.52-3.62 to
 #: a median 0.77-1.22 over 20 random draws of the ten, 95-100 % of draws in 0.5-2 (20 frames: 0.73-0.99, 95-100 %).
 TILT_TERM_MIN_FRAMES = 8
@@ -194,7 +195,8 @@ TILT_TERM_MIN_FRAMES = 8
 TILT_TERM_SCALES = (0.5, 10.0)
 #: The diff report's note (``calibrate`` prints it last) when the stated tilt term is not sized on tilted frames.
 TILT_TERM_NOTE = ("diff's covariance on tilted planes is stated from the unit's model error, not measured: {n} "
-                  "calibration frames tilted 5 deg or more were read by diff ({need} needed); capture about 20 tilted "
+                  "calibration frames tilted 5 deg or more from the least tilted were read by diff ({need} needed) "
+                  "and fewer than half are; capture about 20 tilted "
                   "poses too (capture --distances 80,150,220 --incidences 12,24 --azimuths 0,90,180,270) and "
                   "calibrate on both files for a covariance sized on them")
 
@@ -214,17 +216,31 @@ def diff_tilt_term(model_error: float | None = None) -> Uncertainty:
                        tilt_offset_rel=DIFF_TILT_OFFSET_PER_ERROR * e, tilt_pivot=DIFF_TILT_PIVOT)
 
 
+def _usable_tilted(e: PlaneEstimate, t) -> bool:
+    """Whether a tilted frame's estimate can size the term: a plane, a truth, a finite fit covariance."""
+    return (e.ok and t is not None and e.covariance is not None
+            and bool(np.all(np.isfinite(np.asarray(e.covariance, dtype=float)))))
+
+
 def size_tilt_term(estimates: Sequence[PlaneEstimate], truths: Sequence, floor: Uncertainty) -> tuple[Uncertainty, dict]:
     """``floor`` (with a stated tilt term, :func:`diff_tilt_term`) with the term's tilt part and offset part each
-    times the factor that makes the tilted frames' NEES 1 on those components (maximum likelihood of one variance
-    scale: the mean over the frames of ``e_k^2 / C_kk`` is 1), the tilt part first (it also moves the offset through
-    the pivot), each factor within :data:`TILT_TERM_SCALES`. ``estimates``: diff's own planes of tilted calibration
-    frames with their fit covariances (no floor yet). The report gives the factors and the frames' per-component
-    NEES before and after (in sample)."""
+    times the factor (on the standard deviations ``tilt_rel`` and ``tilt_offset_rel``) that makes the tilted frames'
+    mean NEES 1 on those components (the mean over the frames of ``e_k^2 / C_kk``; a moment match, which is the
+    maximum likelihood only where the term's share of the variance is alike in every frame), the tilt part first (it
+    also moves the offset through the pivot), each factor within :data:`TILT_TERM_SCALES`. A part that is 0 (a unit
+    whose model error is 0) starts from the value for a model error not known (:data:`DIFF_TILT_REL`,
+    :data:`DIFF_TILT_OFFSET_REL`), so the frames can size it. ``estimates``: diff's own planes of tilted calibration
+    frames with their fit covariances (no floor yet); frames without a plane, a truth or a finite covariance are
+    left out, and with none left ``floor`` is returned as it is. The report gives the factors and the frames'
+    per-component NEES before and after (in sample)."""
     from scipy.optimize import brentq
 
     rows = [(tilt_offset(e.plane) - tilt_offset(t), np.asarray(e.covariance, dtype=float), e.plane.normal,
-             e.plane.offset) for e, t in zip(estimates, truths) if e.ok and e.covariance is not None]
+             e.plane.offset) for e, t in zip(estimates, truths) if _usable_tilted(e, t)]
+    if not rows:
+        return floor, {"frames": 0, "why": "no tilted frame with a plane and a finite covariance"}
+    base = floor.replace(tilt_rel=floor.tilt_rel or DIFF_TILT_REL,
+                         tilt_offset_rel=floor.tilt_offset_rel or DIFF_TILT_OFFSET_REL)
 
     def components(unc: Uncertainty) -> tuple[float, float]:
         c = [unc.apply(cov, d, n) for _, cov, n, d in rows]
@@ -232,7 +248,7 @@ def size_tilt_term(estimates: Sequence[PlaneEstimate], truths: Sequence, floor: 
         return float(tilt), float(np.mean([r[0][2] ** 2 / ci[2, 2] for r, ci in zip(rows, c)]))
 
     def with_factors(kt: float, ko: float) -> Uncertainty:
-        return floor.replace(tilt_rel=min(floor.tilt_rel * kt, 1.0), tilt_offset_rel=min(floor.tilt_offset_rel * ko, 1.0))
+        return base.replace(tilt_rel=min(base.tilt_rel * kt, 1.0), tilt_offset_rel=min(base.tilt_offset_rel * ko, 1.0))
 
     def factor(which: int, kt: float = 1.0) -> float:
         lo, hi = (math.log(v) for v in TILT_TERM_SCALES)
@@ -241,18 +257,19 @@ def size_tilt_term(estimates: Sequence[PlaneEstimate], truths: Sequence, floor: 
             k = math.exp(lk)
             return components(with_factors(k, 1.0) if which == 0 else with_factors(kt, k))[which] - 1.0
 
-        if excess(lo) <= 0.0:
+        if not excess(lo) > 0.0:  # (a NaN, from a covariance that is not positive, keeps the least factor)
             return TILT_TERM_SCALES[0]
         if excess(hi) >= 0.0:
             return TILT_TERM_SCALES[1]
         return math.exp(brentq(excess, lo, hi, xtol=1e-4))
 
     before = components(floor)
-    kt = factor(0) if floor.tilt_rel > 0.0 else 1.0
-    ko = factor(1, kt) if floor.tilt_offset_rel > 0.0 else 1.0
+    kt = factor(0)
+    ko = factor(1, kt)
     sized = with_factors(kt, ko)
     after = components(sized)
     return sized, {"frames": len(rows), "tilt_factor": kt, "offset_factor": ko,
+                   "tilt_rel_sized": sized.tilt_rel, "tilt_offset_rel_sized": sized.tilt_offset_rel,
                    "nees_tilt_before": before[0], "nees_offset_before": before[1],
                    "nees_tilt_after": after[0], "nees_offset_after": after[1]}
 
@@ -336,7 +353,8 @@ def near_std_law(depth, scale: float, power: float, nearest: float | None = None
     """Zone range error (m) at ``depth`` (m, along the optical axis): ``scale`` (m) at
     :data:`NEAR_REFERENCE_DEPTH`, growing as ``(gap / reference gap)^-power`` where the gap is the depth's distance
     beyond the overlap with the internal return (:data:`~place_safe.recovery.too_close.OVERLAP_RANGE`, at least
-    :data:`NEAR_LAW_MIN_GAP`). ``nearest`` (m; None: no limit): the nearest depth the law was fitted on; closer,
+    :data:`NEAR_LAW_MIN_GAP`). ``nearest`` (m; None: no limit): the nearest depth the law was fitted on (the least
+median zone depth of its frames); closer,
     it continues from its value there with the power at least :data:`NEAR_PRIOR_POWER` (an extrapolation the
     fitted frames cannot bound)."""
     ref = NEAR_REFERENCE_DEPTH - OVERLAP_RANGE
@@ -692,7 +710,7 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
     # more, at least DIFF_TILTED_SHARE of them tilted that far from the least, show it, and the floor and scale
     # fitted on them hold it
     tilts = tilt_angles(np.array([t.normal for t in truths]))
-    tilted = tilts - tilts.min() >= MIN_TILT_SPREAD
+    tilted = tilts - tilts.min() >= MIN_TILT_SPREAD if tilts.size else np.zeros(0, dtype=bool)
     level = level_frames(tilts) or float(np.mean(tilted)) < DIFF_TILTED_SHARE
     tilt_term = diff_tilt_term(model_error) if level else Uncertainty()
 
@@ -718,9 +736,11 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
         limit, prefer, table = max(candidates), 1.0, []
     under = [i for i in range(n) if own[i] and chi2[i] <= limit]
     # a few tilted frames among level ones: the level ones size the floor, the tilted ones the stated term
-    few = [i for i in under if tilted[i]] if level else []
+    few = [i for i in under if tilted[i] and _usable_tilted(diff[i], truths[i])] if level else []
     sizing = len(few) >= TILT_TERM_MIN_FRAMES
     floor_rows = [i for i in under if not tilted[i]] if sizing else under
+    if len(floor_rows) < 3:  # too few level frames for a floor: all of them, as without the few tilts
+        floor_rows = under
     unc, rep = fit_floor([diff[i] for i in floor_rows], [truths[i] for i in floor_rows],
                          tilt_term.replace(chi2_limit=limit, consistency_limit=CONSISTENCY_LIMIT,
                                            prefer_ratio=prefer))

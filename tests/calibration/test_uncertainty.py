@@ -207,6 +207,38 @@ def test_a_few_tilted_frames_size_the_stated_tilt_term():
     assert (rep["tilt_factor"], rep["offset_factor"]) == (TILT_TERM_SCALES[1], TILT_TERM_SCALES[1])
 
 
+def test_a_part_of_the_tilt_term_that_is_zero_is_sized_from_the_unknown_model_errors_value():
+    """A unit whose model error is 0 has no offset part (diff_tilt_term(0)): the tilted frames size it from the value
+    for a model error not known, rather than leaving it at 0 and reporting a factor of 1; frames without a finite
+    covariance are left out, and with none the term is returned as it was."""
+    from dataclasses import replace
+
+    from place_safe.calibration.uncertainty import DIFF_TILT_OFFSET_REL, size_tilt_term
+
+    ests, truths, term = _tilted_estimates(400, 1.0, 3.0, seed=5)
+    zero = term.replace(tilt_offset_rel=0.0)
+    sized, rep = size_tilt_term(ests, truths, zero)
+    assert sized.tilt_offset_rel > 0 and abs(rep["nees_offset_after"] - 1.0) < 0.02
+    assert math.isclose(sized.tilt_offset_rel, DIFF_TILT_OFFSET_REL * rep["offset_factor"])
+    bad = [replace(e, covariance=np.full((3, 3), np.nan)) for e in ests[:5]] + [replace(ests[5], covariance=None)]
+    same, rep = size_tilt_term(bad, truths[:6], term)
+    assert same == term and rep["frames"] == 0 and rep["why"]
+
+
+def test_diff_uncertainty_from_near_frames_only_does_not_break():
+    """Calibration frames all closer than the near fallback range (5 cm): none takes part in diff's limits, and the
+    tilt rule has no frames to look at (an empty array's minimum stopped calibrate there)."""
+    from place_safe.calibration.uncertainty import fit_diff_uncertainty
+    from place_safe.evaluation.independent import SceneSpec, make_frames
+    from place_safe.recovery.forward import ForwardParams
+    from place_safe.recovery.points import PeakParams
+
+    frames = make_frames(3, seed=1, scene=SceneSpec(z_range=(0.025, 0.04), theta_range=(0.0, 0.3)))
+    assert all(f.truth.z0 < 0.05 for f in frames)
+    unc, report = fit_diff_uncertainty(frames, ForwardParams(), PeakParams.default_peak())
+    assert unc is not None and "tilt_term_sized" not in report
+
+
 def test_a_level_sweep_with_enough_tilted_frames_sizes_the_stated_term_on_them():
     """TILT_TERM_MIN_FRAMES or more tilted frames, still under DIFF_TILTED_SHARE of the frames: the term stays stated
     (the floor from the level frames alone) and is sized on the tilted ones; the report says so."""
@@ -230,6 +262,9 @@ def test_a_level_sweep_with_enough_tilted_frames_sizes_the_stated_term_on_them()
     assert lo * stated.tilt_rel <= unc.tilt_rel <= hi * stated.tilt_rel
     assert math.isclose(unc.tilt_rel, stated.tilt_rel * sized["tilt_factor"])
     assert math.isclose(unc.tilt_offset_rel, stated.tilt_offset_rel * sized["offset_factor"])
+    for part in ("tilt", "offset"):  # each factor makes its frames' NEES 1, or sits at a bound
+        k, after = sized[f"{part}_factor"], sized[f"nees_{part}_after"]
+        assert k in TILT_TERM_SCALES or abs(after - 1.0) < 0.02, (part, k, after)
     assert report["frames"] <= len(level)  # the floor from the level frames alone
     assert "note" not in report  # measured: nothing to add
 
