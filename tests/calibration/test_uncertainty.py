@@ -104,6 +104,32 @@ def test_peak_calibration_states_the_tilt_term(sweep_path):
     assert unc.tilt_rel == PEAK_TILT_REL > 0
 
 
+def test_peaks_stated_tilt_term_follows_the_frames_tilts():
+    """Peak's stated term is for frames that cannot show its tilt error: mostly tilted calibration frames fit the edge
+    and corner scales and the floor holds the rest (no term on top: with it the packaged mismatched calibration read
+    0-12 deg planes at NEES per dof 2.56); a level sweep with TILT_TERM_MIN_FRAMES or more tilted frames sizes it on
+    them (factors within PEAK_TILT_TERM_SCALES), the floor from the level ones."""
+    from place_safe.calibration.uncertainty import (PEAK_TILT_REL, PEAK_TILT_TERM_SCALES, TILT_TERM_MIN_FRAMES,
+                                                    fit_peak_uncertainty)
+    from place_safe.evaluation.independent import SceneSpec, make_frames
+    from place_safe.recovery.points import PeakParams
+
+    tilted = make_frames(TILT_TERM_MIN_FRAMES + 4, seed=2, scene=SceneSpec(z_range=(0.06, 0.30),
+                                                                             theta_range=(0.2, 0.4)))
+    level = make_frames(30, seed=1, scene=SceneSpec(z_range=(0.06, 0.30), theta_range=(0.0, 0.0)))
+    unc, report = fit_peak_uncertainty(level[:3] + tilted, PeakParams.default_peak())
+    assert unc.tilt_rel == 0.0 and unc.tilt_offset_rel == 0.0 and report["tilt_term"].startswith("none")
+    unc, report = fit_peak_uncertainty(level + tilted, PeakParams.default_peak())
+    sized = report["tilt_term_sized"]
+    assert report["tilt_term"].startswith("stated") and sized["frames"] >= TILT_TERM_MIN_FRAMES
+    lo, hi = PEAK_TILT_TERM_SCALES
+    assert lo * PEAK_TILT_REL <= unc.tilt_rel <= hi * PEAK_TILT_REL and unc.tilt_offset_rel > 0
+    assert math.isclose(unc.tilt_rel, PEAK_TILT_REL * sized["tilt_factor"])
+    assert report["frames"] <= len(level)  # the floor from the level frames alone
+    unc, report = fit_peak_uncertainty(level, PeakParams.default_peak())  # level alone: stated as it is
+    assert unc.tilt_rel == PEAK_TILT_REL and "tilt_term_sized" not in report
+
+
 def test_a_frame_no_method_reads_does_not_break_the_diff_uncertainty(sweep_path):
     """One unusable frame (all-zero histograms) among calibration frames: it counts as failed for both methods
     and the limit is chosen on the rest (it made peak's median error NaN, and calibration stopped)."""
