@@ -108,8 +108,8 @@ def test_peaks_stated_tilt_term_follows_the_frames_tilts():
     """Peak's stated term is for frames that cannot show its tilt error: mostly tilted calibration frames fit the edge
     and corner scales and the floor holds the rest (no term on top: with it the packaged mismatched calibration read
     0-12 deg planes at NEES per dof 2.56); a level sweep with TILT_TERM_MIN_FRAMES or more tilted frames sizes it on
-    them (factors within PEAK_TILT_TERM_SCALES), the floor from the level ones."""
-    from place_safe.calibration.uncertainty import (PEAK_TILT_REL, PEAK_TILT_TERM_SCALES, TILT_TERM_MIN_FRAMES,
+    them (factors within TILT_TERM_SCALES), the floor from the level ones."""
+    from place_safe.calibration.uncertainty import (PEAK_TILT_REL, TILT_TERM_MIN_FRAMES, TILT_TERM_SCALES,
                                                     fit_peak_uncertainty)
     from place_safe.evaluation.independent import SceneSpec, make_frames
     from place_safe.recovery.points import PeakParams
@@ -122,7 +122,7 @@ def test_peaks_stated_tilt_term_follows_the_frames_tilts():
     unc, report = fit_peak_uncertainty(level + tilted, PeakParams.default_peak())
     sized = report["tilt_term_sized"]
     assert report["tilt_term"].startswith("stated") and sized["frames"] >= TILT_TERM_MIN_FRAMES
-    lo, hi = PEAK_TILT_TERM_SCALES
+    lo, hi = TILT_TERM_SCALES
     assert lo * PEAK_TILT_REL <= unc.tilt_rel <= hi * PEAK_TILT_REL and unc.tilt_offset_rel > 0
     assert math.isclose(unc.tilt_rel, PEAK_TILT_REL * sized["tilt_factor"])
     assert report["frames"] <= len(level)  # the floor from the level frames alone
