@@ -84,17 +84,18 @@ FEW_TILTS_DEG = (8.0, 30.0)
 FEW_SEED = 7
 
 
-def add_few_tilts(unit: str, out: Path, level: Path, n: int) -> Path:
+def add_few_tilts(unit: str, out: Path, level: Path, n: int, fresh: bool = False) -> Path:
     """``{unit}_level_few{n}.json``: the unit's level sweep with ``n`` tilted frames added (another seed, tilts
-    :data:`FEW_TILTS_DEG`, heights :data:`TILT_HEIGHTS`): "a few tilts" on top of the level sweep."""
+    :data:`FEW_TILTS_DEG`, heights :data:`TILT_HEIGHTS`; the generator's tilts 0 to the largest): "a few tilts" on
+    top of the level sweep. Made again with ``fresh`` or when the level sweep is newer."""
     path = out / f"{unit}_level_few{n}.json"
-    if path.exists():
+    if path.exists() and not fresh and path.stat().st_mtime >= level.stat().st_mtime:
         return path
     few = out / f"{unit}_few{n}.json"
     if unit in SYNTH:  # the generator draws incidences 0..max: the frames under 5 deg count as level
         run(["synth", "--frames", str(n), "--seed", str(FEW_SEED), "--sensor-seed", str(SYNTH[unit]), "--max-angle",
              str(FEW_TILTS_DEG[1]), "--min-distance", str(TILT_HEIGHTS[0]), "--max-distance", str(TILT_HEIGHTS[1]),
-             "-o", str(few)], out / f"{unit}_synth_few.log")
+             "-o", str(few)], out / f"{unit}_synth_few{n}.log")
     else:
         from place_safe.io.frame_file import write_frames
         from place_safe.sim.calibration_capture import OPERATING_TEMPERATURE, capture_level_sweep
@@ -107,13 +108,13 @@ def add_few_tilts(unit: str, out: Path, level: Path, n: int) -> Path:
     return path
 
 
-def make_frames(unit: str, out: Path, few_tilts: int = 0) -> tuple[Path, Path]:
+def make_frames(unit: str, out: Path, few_tilts: int = 0, fresh: bool = False) -> tuple[Path, Path]:
     level, tilt = out / f"{unit}_level.json", out / f"{unit}_tilt.json"
     if level.exists() and tilt.exists():
-        return (add_few_tilts(unit, out, level, few_tilts) if few_tilts else level), tilt
+        return (add_few_tilts(unit, out, level, few_tilts, fresh) if few_tilts else level), tilt
     if few_tilts:
         make_frames(unit, out)
-        return make_frames(unit, out, few_tilts)
+        return make_frames(unit, out, few_tilts, fresh)
     if unit in SYNTH:
         s = str(SYNTH[unit])
         run(["synth", "--frames", str(FRAMES), "--seed", "1", "--sensor-seed", s, "--max-angle", "0",
@@ -163,11 +164,12 @@ def score(unit: str, out: Path, fresh: bool, reevaluate: bool = False, few_tilts
     """The unit's row: from its score file if there is one (unless ``fresh`` or ``reevaluate``); ``reevaluate`` keeps
     the calibration (and its time) and evaluates again. ``few_tilts``: calibrate on the level sweep with that many
     tilted frames added (:func:`add_few_tilts`); its files are the unit's with ``_few{n}`` after the unit."""
-    level, tilt = make_frames(unit, out, few_tilts)
-    unit = f"{unit}_few{few_tilts}" if few_tilts else unit
-    path = out / f"{unit}_score.json"
+    name = f"{unit}_few{few_tilts}" if few_tilts else unit
+    path = out / f"{name}_score.json"
     if path.exists() and not (fresh or reevaluate):
         return json.loads(path.read_text())
+    level, tilt = make_frames(unit, out, few_tilts, fresh)
+    unit = name
     cal = out / f"{unit}_cal.json"
     timing = out / f"{unit}_cal.time"
     if reevaluate and cal.exists() and timing.exists():
@@ -255,9 +257,11 @@ def main(argv: list[str] | None = None) -> int:
                     help="keep the units' calibrations (and their times), evaluate them again")
     ap.add_argument("--table", action="store_true", help="only print the table of the units already scored")
     ap.add_argument("--few-tilts", type=int, default=0, metavar="N",
-                    help="calibrate on the level sweep with N tilted frames added (8-30 deg, 5-30 cm, seed 7): the "
-                         "rows are UNIT_fewN (default 0: the level sweep alone)")
+                    help="calibrate on the level sweep with N tilted frames added (8-30 deg, the generator's 0-30 deg, "
+                         "5-30 cm, seed 7): the rows are UNIT_fewN (default 0: the level sweep alone)")
     a = ap.parse_args(argv)
+    if not 0 <= a.few_tilts <= 1000:
+        ap.error(f"--few-tilts must be 0..1000, got {a.few_tilts}")
     a.out.mkdir(parents=True, exist_ok=True)
     rows = []
     for i, u in enumerate(a.units, 1):

@@ -25,7 +25,9 @@ are correlated (a distortion that looks like a tilt), which independent zone err
 A level sweep cannot show what a tilt does to ``peak``: each zone's return spreads over its footprint and
 the peak method reads the slope short (on mismatched units 0.06-0.08 rad per unit ``tan(tilt)``, 1.4 deg mean
 at 0-30 deg, where its level-calibrated covariance said 0.03 deg). Its covariance gets the stated tilt term
-``Uncertainty.tilt_rel =`` :data:`PEAK_TILT_REL` per tilt component. Diff's level-calibrated covariance is
+``Uncertainty.tilt_rel =`` :data:`PEAK_TILT_REL` per tilt component when the calibration frames are level (with 8 or
+more tilted frames among them, sized on those: :func:`size_tilt_term`); mostly tilted frames fit the edge and corner
+scales behind it, and the floor fitted on them holds the rest (as diff's below). Diff's level-calibrated covariance is
 overconfident on tilts too (mean NEES per dof 4.7-30 on tilted frames of level-calibrated units): its covariance
 gets a stated tilt term when the calibration frames are level (their tilts spread less than
 :data:`~place_safe.calibration.points.MIN_TILT_SPREAD`), sized by the unit's relative model error, the share of each
@@ -235,11 +237,12 @@ def size_tilt_term(estimates: Sequence[PlaneEstimate], truths: Sequence, floor: 
     times the factor (on the standard deviations ``tilt_rel`` and ``tilt_offset_rel``) that makes the tilted frames'
     mean NEES 1 on those components (the mean over the frames of ``e_k^2 / C_kk``; a moment match, which is the
     maximum likelihood only where the term's share of the variance is alike in every frame), the tilt part first (it
-    also moves the offset through the pivot), each factor within :data:`TILT_TERM_SCALES`. A part that is 0 (a unit whose model error is 0; peak's offset part) starts from
-    the value for a model error not known (:data:`DIFF_TILT_REL`, :data:`DIFF_TILT_OFFSET_REL`), so the frames can
-    size it. ``estimates``: the method's own planes of tilted calibration frames with their fit covariances (no floor yet); frames without a plane, a truth or a finite covariance are
-    left out, and with none left ``floor`` is returned as it is. The report gives the factors and the frames'
-    per-component NEES before and after (in sample)."""
+    also moves the offset through the pivot), each factor within :data:`TILT_TERM_SCALES`. A part that is 0 (a unit
+    whose model error is 0; peak's offset part) starts from the value for a model error not known
+    (:data:`DIFF_TILT_REL`, :data:`DIFF_TILT_OFFSET_REL`), so the frames can size it. ``estimates``: the method's own
+    planes of tilted calibration frames with their fit covariances (no floor yet); frames without a plane, a truth or
+    a finite covariance are left out, and with none left ``floor`` is returned as it is. The report gives the
+    factors and the frames' per-component NEES before and after (in sample)."""
     from scipy.optimize import brentq
 
     rows = [(tilt_offset(e.plane) - tilt_offset(t), np.asarray(e.covariance, dtype=float), e.plane.normal,
@@ -622,8 +625,11 @@ def fit_peak_uncertainty(frames: Sequence[Frame], peak_params, min_range: float 
     ests = [PeakEstimator(peak_params).estimate(f) for f in use]
     few = [i for i in range(len(use)) if tilted[i] and _usable_tilted(ests[i], use[i].truth)] if level else []
     sizing = len(few) >= TILT_TERM_MIN_FRAMES
-    rows = [i for i in range(len(use)) if not (sizing and tilted[i])]
-    rows = rows if len(rows) >= 3 else list(range(len(use)))
+    # the floor from the level frames peak reads (from all it reads when fewer than 3 are level); the tilted ones
+    # counted here lie beyond the near table's end (about 9 cm), diff's from NEAR_FALLBACK_RANGE (5 cm)
+    read = [i for i in range(len(use)) if ests[i].ok and ests[i].covariance is not None]
+    rows = [i for i in read if not (sizing and tilted[i])]
+    rows = rows if len(rows) >= 3 else read
     unc, report = fit_floor([ests[i] for i in rows], [use[i].truth for i in rows], base)
     if sizing:
         unc, report["tilt_term_sized"] = size_tilt_term([ests[i] for i in few], [use[i].truth for i in few], unc)
@@ -760,7 +766,8 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
     # a few tilted frames among level ones: the level ones size the floor, the tilted ones the stated term
     few = [i for i in under if tilted[i] and _usable_tilted(diff[i], truths[i])] if level else []
     sizing = len(few) >= TILT_TERM_MIN_FRAMES
-    floor_rows = [i for i in under if not tilted[i]] if sizing else under
+    read = [i for i in under if diff[i].covariance is not None]
+    floor_rows = [i for i in read if not tilted[i]] if sizing else under
     if len(floor_rows) < 3:  # too few level frames for a floor: all of them, as without the few tilts
         floor_rows = under
     unc, rep = fit_floor([diff[i] for i in floor_rows], [truths[i] for i in floor_rows],

@@ -35,7 +35,8 @@ independent zones overstates as tilt (real halves held out, 2-5 cm: NEES per dof
 The calibrated errors are fitted by maximum likelihood on held-out planes
 (:func:`~place_safe.calibration.uncertainty.fit_peak_uncertainty`). Then the calibrated floor and the
 tilt term (:class:`~place_safe.recovery.estimator.Uncertainty`: on a tilted plane each zone's return spreads
-over its footprint and the peak reads the slope short, an error a level sweep cannot show).
+over its footprint and the peak reads the slope short, an error a level sweep cannot show; a calibration on mostly
+tilted frames has none, its floor holds that error).
 Histograms clipped at the 24-bit maximum, or frames flagged ``saturated`` in ``extra`` /
 ``extra["meta"]``, give no plane: a clipped peak has no usable position.
 """

@@ -128,6 +128,11 @@ def test_peaks_stated_tilt_term_follows_the_frames_tilts():
     assert report["frames"] <= len(level)  # the floor from the level frames alone
     unc, report = fit_peak_uncertainty(level, PeakParams.default_peak())  # level alone: stated as it is
     assert unc.tilt_rel == PEAK_TILT_REL and "tilt_term_sized" not in report
+    # level frames peak cannot read (saturated) leave too few for a floor: it is fitted on all the frames peak reads
+    from dataclasses import replace
+    unread = [replace(f, extra={**(f.extra or {}), "saturated": True}) for f in level[2:20]]
+    unc, report = fit_peak_uncertainty(level[:2] + unread + tilted, PeakParams.default_peak())
+    assert report["frames"] >= 3 and "why" not in report
 
 
 def test_a_frame_no_method_reads_does_not_break_the_diff_uncertainty(sweep_path):
