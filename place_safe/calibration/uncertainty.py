@@ -204,9 +204,9 @@ TILT_TERM_MIN_FRAMES = 8
 #: halved (a few frames that happen to read well do not take the term away), at most ten times.
 TILT_TERM_SCALES = (0.5, 10.0)
 #: The diff report's note (``calibrate`` prints it last) when the stated tilt term is not sized on tilted frames.
-TILT_TERM_NOTE = ("diff's covariance on tilted planes is stated from the unit's model error, not measured: {n} "
-                  "calibration frames tilted 5 deg or more from the least tilted were read by diff ({need} needed) "
-                  "and fewer than half are; capture about 20 tilted "
+TILT_TERM_NOTE = ("diff's covariance on tilted planes is stated from the unit's model error, not measured: diff read "
+                  "{n} of the calibration frames tilted 5 deg or more from the least tilted ({need} needed, and "
+                  "fewer than half of all frames); capture about 20 tilted "
                   "poses too (capture --distances 80,150,220 --incidences 12,24 --azimuths 0,90,180,270) and "
                   "calibrate on both files for a covariance sized on them")
 
