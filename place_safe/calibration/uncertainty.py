@@ -284,6 +284,32 @@ def size_tilt_term(estimates: Sequence[PlaneEstimate], truths: Sequence, floor: 
                    "nees_tilt_after": after[0], "nees_offset_after": after[1]}
 
 
+def _tilt_regime(normals: np.ndarray) -> tuple[np.ndarray, bool]:
+    """Of calibration frames with true unit ``normals`` (n, 3): which are tilted :data:`MIN_TILT_SPREAD` or more from
+    the least tilted (n,), and whether they are level for the stated tilt term (their tilts spread less than that, or
+    fewer than :data:`DIFF_TILTED_SHARE` of them are tilted)."""
+    tilts = tilt_angles(np.asarray(normals, dtype=float).reshape(-1, 3))
+    tilted = tilts - tilts.min() >= MIN_TILT_SPREAD if tilts.size else np.zeros(0, dtype=bool)
+    return tilted, level_frames(tilts) or float(np.mean(tilted)) < DIFF_TILTED_SHARE
+
+
+def _floor_with_tilt_term(estimates: Sequence[PlaneEstimate], truths: Sequence, tilted: np.ndarray, level: bool,
+                          base: Uncertainty) -> tuple[Uncertainty, dict, int]:
+    """:func:`fit_floor` of the estimates (fit covariances, no floor yet) with ``base``'s stated tilt term, and with
+    :data:`TILT_TERM_MIN_FRAMES` or more usable ``tilted`` ones among ``level`` frames, the floor from the others (from
+    all the method reads when fewer than 3 are left) and the term sized on those (:func:`size_tilt_term`; report
+    ``tilt_term_sized``). Also the number of usable tilted frames (0 unless ``level``)."""
+    few = [i for i, (e, t) in enumerate(zip(estimates, truths)) if tilted[i] and _usable_tilted(e, t)] if level else []
+    sizing = len(few) >= TILT_TERM_MIN_FRAMES
+    read = [i for i, e in enumerate(estimates) if e.ok and e.covariance is not None]
+    rows = [i for i in read if not (sizing and tilted[i])]
+    rows = rows if len(rows) >= 3 else read
+    unc, report = fit_floor([estimates[i] for i in rows], [truths[i] for i in rows], base)
+    if sizing:
+        unc, report["tilt_term_sized"] = size_tilt_term([estimates[i] for i in few], [truths[i] for i in few], unc)
+    return unc, report, len(few)
+
+
 #: Folds of the cross-validation that chooses diff's fallback limits (:func:`select_fallback`).
 CV_FOLDS = 3
 
@@ -617,22 +643,13 @@ def fit_peak_uncertainty(frames: Sequence[Frame], peak_params, min_range: float 
     depths, stds, near = near_range_std(frames, peak_params)
     far = max(lo, depths[-1]) if depths else lo  # the floor and scale from the frames the near term leaves alone
     use = [f for f in frames if f.truth is not None and f.truth.z0 >= far]
-    # the stated tilt term where the frames cannot show peak's tilt error (as diff's: fit_diff_uncertainty)
-    tilts = tilt_angles(np.array([f.truth.normal for f in use])) if use else np.zeros(0)
-    tilted = tilts - tilts.min() >= MIN_TILT_SPREAD if tilts.size else np.zeros(0, dtype=bool)
-    level = level_frames(tilts) or float(np.mean(tilted)) < DIFF_TILTED_SHARE
+    # the stated tilt term where the frames cannot show peak's tilt error (as diff's: fit_diff_uncertainty); the
+    # tilted frames counted here lie beyond the near table's end (about 9 cm), diff's from NEAR_FALLBACK_RANGE (5 cm)
+    tilted, level = _tilt_regime(np.array([f.truth.normal for f in use]))
     base = Uncertainty(near_depths=depths, near_range_std=stds, tilt_rel=PEAK_TILT_REL if level else 0.0)
     ests = [PeakEstimator(peak_params).estimate(f) for f in use]
-    few = [i for i in range(len(use)) if tilted[i] and _usable_tilted(ests[i], use[i].truth)] if level else []
-    sizing = len(few) >= TILT_TERM_MIN_FRAMES
-    # the floor from the level frames peak reads (from all it reads when fewer than 3 are level); the tilted ones
-    # counted here lie beyond the near table's end (about 9 cm), diff's from NEAR_FALLBACK_RANGE (5 cm)
-    read = [i for i in range(len(use)) if ests[i].ok and ests[i].covariance is not None]
-    rows = [i for i in read if not (sizing and tilted[i])]
-    rows = rows if len(rows) >= 3 else read
-    unc, report = fit_floor([ests[i] for i in rows], [use[i].truth for i in rows], base)
-    if sizing:
-        unc, report["tilt_term_sized"] = size_tilt_term([ests[i] for i in few], [use[i].truth for i in few], unc)
+    unc, report, n_few = _floor_with_tilt_term(ests, [f.truth for f in use], tilted, level, base)
+    sizing = n_few >= TILT_TERM_MIN_FRAMES
     report["tilt_term"] = (("stated (PEAK_TILT_REL): the frames' tilts spread less than MIN_TILT_SPREAD, or too few "
                             "frames are tilted (DIFF_TILTED_SHARE)" + (", sized by the tilted frames (tilt_term_sized; "
                                                                         "the floor from the others)" if sizing else ""))
@@ -737,9 +754,7 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
     # frames: the floor, fitted on all, would follow the level ones); frames whose tilts spread MIN_TILT_SPREAD or
     # more, at least DIFF_TILTED_SHARE of them tilted that far from the least, show it, and the floor and scale
     # fitted on them hold it
-    tilts = tilt_angles(np.array([t.normal for t in truths]))
-    tilted = tilts - tilts.min() >= MIN_TILT_SPREAD if tilts.size else np.zeros(0, dtype=bool)
-    level = level_frames(tilts) or float(np.mean(tilted)) < DIFF_TILTED_SHARE
+    tilted, level = _tilt_regime(np.array([t.normal for t in truths]))
     tilt_term = diff_tilt_term(model_error) if level else Uncertainty()
 
     def floor_from(rows: np.ndarray) -> Uncertainty:
@@ -764,22 +779,15 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
         limit, prefer, table = max(candidates), 1.0, []
     under = [i for i in range(n) if own[i] and chi2[i] <= limit]
     # a few tilted frames among level ones: the level ones size the floor, the tilted ones the stated term
-    few = [i for i in under if tilted[i] and _usable_tilted(diff[i], truths[i])] if level else []
-    sizing = len(few) >= TILT_TERM_MIN_FRAMES
-    read = [i for i in under if diff[i].covariance is not None]
-    floor_rows = [i for i in read if not tilted[i]] if sizing else under
-    if len(floor_rows) < 3:  # too few level frames for a floor: all of them, as without the few tilts
-        floor_rows = under
-    unc, rep = fit_floor([diff[i] for i in floor_rows], [truths[i] for i in floor_rows],
-                         tilt_term.replace(chi2_limit=limit, consistency_limit=CONSISTENCY_LIMIT,
-                                           prefer_ratio=prefer))
-    if sizing:
-        unc, rep["tilt_term_sized"] = size_tilt_term([diff[i] for i in few], [truths[i] for i in few], unc)
-    elif level:
-        if few:
-            rep["tilt_term_sized"] = {"frames": len(few), "why": f"fewer than {TILT_TERM_MIN_FRAMES} tilted frames: "
+    base = tilt_term.replace(chi2_limit=limit, consistency_limit=CONSISTENCY_LIMIT, prefer_ratio=prefer)
+    unc, rep, n_few = _floor_with_tilt_term([diff[i] for i in under], [truths[i] for i in under], tilted[under],
+                                            level, base)
+    sizing = n_few >= TILT_TERM_MIN_FRAMES
+    if level and not sizing:
+        if n_few:
+            rep["tilt_term_sized"] = {"frames": n_few, "why": f"fewer than {TILT_TERM_MIN_FRAMES} tilted frames: "
                                       "the stated term as the model error sizes it"}
-        rep["note"] = TILT_TERM_NOTE.format(n=len(few), need=TILT_TERM_MIN_FRAMES)
+        rep["note"] = TILT_TERM_NOTE.format(n=n_few, need=TILT_TERM_MIN_FRAMES)
     use_diff = (chi2 <= limit) & consistent & ~(ratio > prefer)
     sel = np.where(use_diff[:, None], e_diff, e_peak)
 
