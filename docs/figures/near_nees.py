@@ -128,7 +128,7 @@ def unit(seed: int, data: Path, show: bool, interleaved: bool = False) -> None:
     name = f"unit {seed}" + (" + interleaved" if interleaved else "")
     if show:
         law = cal.reports.get("uncertainty", {}).get("peak", {}).get("near_range", {}).get("law", {})
-        print(f"    law: share {law.get('share_independent_of_knots')} ({law.get('share_fitted')}), "
+        print(f"    law: share {law.get('share_independent_of_knots')} ({law.get('share_how')}), "
               f"held-out NEES/dof {law.get('nees_per_dof_held_out')}, knots {law.get('table_knots')}")
     summary(name, read(cal, load_frames(files["test"]) + load_frames(files["near"])), show)
 

@@ -422,16 +422,14 @@ def near_law_depths(end: float, knots: Sequence[float] = ()) -> np.ndarray:
     return np.concatenate([d, [max(end, OVERLAP_RANGE + 2 * NEAR_LAW_MIN_GAP)]])
 
 
-def near_law_parameters(x: Sequence[float]) -> tuple[float, float, float, float]:
-    """The near law's (scale (m), power, part of the variance shared by the zones, share independent of the knots)
-    from :func:`fit_near_law`'s free parameters (log scale, then logits; without a fourth the share is 1). Finite
-    for any finite ``x``: the optimiser's simplex may step far out (a math.exp logistic overflowed there and
-    stopped ``calibrate`` on a simulated unit)."""
+def near_law_parameters(x: Sequence[float]) -> tuple[float, float, float]:
+    """The near law's (scale (m), power, part of the variance shared by the zones) from :func:`fit_near_law`'s free
+    parameters (log scale, then logits). Finite for any finite ``x``: the optimiser's simplex may step far out (a
+    math.exp logistic overflowed there and stopped ``calibrate`` on a simulated unit)."""
     from scipy.special import expit
 
-    share = float(expit(x[3])) if len(x) > 3 else 1.0
     return (math.exp(min(float(x[0]), 0.0)), NEAR_MAX_POWER * float(expit(x[1])),
-            NEAR_MAX_SHARED * float(expit(x[2])), share)
+            NEAR_MAX_SHARED * float(expit(x[2])))
 
 
 def near_law_uncertainty(unc: Uncertainty, depths: np.ndarray, scale: float, power: float, shared: float,
@@ -496,13 +494,24 @@ def near_law_table(unc: Uncertainty, end: float, knots: Sequence[float], scale: 
 
 
 #: :func:`fit_near_law`'s report note when no held-out near frame lay in a gap as narrow as a new frame's
-NARROW_GAP_NOTE = ("cautious near range: the held-out near frames lay in gaps wider than a new frame's, so the law "
-                   "states the wider gaps' error; capture a second level pass closer than 9 cm, half a step above "
-                   "the first, for a covariance sized at the table's own spacing")
+NARROW_GAP_NOTE = ("near range from wider gaps: the held-out near frames lay in gaps wider than a new frame's, so the "
+                   "law's error at a new frame's gap is extrapolated (NEAR_KNOT_SHARE); capture a second level pass "
+                   "closer than 9 cm, half a step above the first, for a covariance measured at the table's own "
+                   "spacing")
+
+#: The part of the near law's variance that does not shrink as a frame comes closer to a table's knot (the zones'
+#: own variation from frame to frame; the rest is the table's interpolation error, which does): :func:`knot_factor`'s
+#: ``share``, held, not fitted. Held-out frames of a calibration sweep lie in gaps two and three times the table's
+#: spacing, and the share is what carries their error to a new frame's gap, an extrapolation they barely determine:
+#: fitted (until 2026-11-28), it came out 0.32-1 on 14 simulated units whose held-out likelihoods at 0.5 and at the
+#: fitted value were alike, and their 2-5 cm frames of another sweep read at NEES per dof 0.24-2.41 (9 of 14 in
+#: 0.5-2, unit 23 overconfident); held at 0.5, 0.55-1.77 (14 of 14), and on 10 units not used to choose it 0.54-1.70
+#: (10 of 10; fitted: 0.26-1.07, 5 of 10); with a second near pass (fitted 0.92-1) 0.66-1.31 on six units
+#: (fitted: 0.52-0.82). docs/results.md, "The near law's share held".
+NEAR_KNOT_SHARE = 0.5
 
 
-def fit_near_law(rows: Sequence[tuple], unc: Uncertainty, peak_params, end: float,
-                 in_sample: Sequence[tuple] = ()) -> tuple[Uncertainty, dict]:
+def fit_near_law(rows: Sequence[tuple], unc: Uncertainty, peak_params, end: float) -> tuple[Uncertainty, dict]:
     """``unc`` with its near-range errors tabulated up to ``end`` (m; :func:`near_law_depths`) from
     :func:`near_std_law` times an interpolation factor, chosen by maximum likelihood of held-out planes' errors
     under the covariance the peak estimator reports with them (:meth:`PeakEstimator.covariance
@@ -514,12 +523,11 @@ def fit_near_law(rows: Sequence[tuple], unc: Uncertainty, peak_params, end: floa
     The factor: a frame read by a table is in error by the zones' own variation from frame to frame and by the
     table's interpolation between knots, an error (not a variance) that grows with the measure. The zone variance
     is the law's square times ``share + (1 - share) (m / m_ref)^2``, ``m_ref`` the median measure of the rows
-    (the ratio at most 4), ``share`` the part that does not depend on the knots (1 where there is no table). Rows
-    left out with a neighbour lie in wider gaps, so with them the share is fitted too; without them (too few near
-    frames) it is fitted on the calibration frames read by the table itself (``in_sample``, same form), which
-    understates it. (Until round 34 the factor was linear in the measure, as if the interpolation's variance grew
-    with it: on the real sweep left out a distance at a time that put 2-9 cm NEES/dof at 0.48 / 1.26 against
-    0.51 / 1.09.)
+    (the ratio at most 4), ``share`` the part that does not depend on the knots: :data:`NEAR_KNOT_SHARE` where
+    there is a table (held: the rows, in gaps two and three times the table's spacing, barely determine how much
+    of their error a new frame's narrower gap keeps), 1 where there is none. (Until round 34 the factor was linear
+    in the measure, as if the interpolation's variance grew with it: on the real sweep left out a distance at a
+    time that put 2-9 cm NEES/dof at 0.48 / 1.26 against 0.51 / 1.09.)
 
     The variance is split further: the part ``shared_by_zones`` of it is one range error common to all zones of a
     frame (``Uncertainty.near_common_std``: mostly the offset), the rest independent from zone to zone
@@ -529,22 +537,20 @@ def fit_near_law(rows: Sequence[tuple], unc: Uncertainty, peak_params, end: floa
     (0.00-0.06).
 
     Held out from a plain sweep, a frame lies mid-way in a gap twice the table's spacing (4 times a new frame's
-    measure), and where the error stops growing with the gap the fitted share is 1 and the law states the wider
-    gaps' error for new frames (simulated units 21 and 23: 2-5 cm NEES per dof 0.30 / 0.32). A second level pass
-    half a step above the first below 9 cm halves the spacing, so a frame left out still has neighbours as near as
-    a new frame's and is read across a gap about as wide: the six units 0.56-0.75 (docs/results.md). The report's
-    ``held_out_at_new_frame_gaps`` counts the rows within :data:`NEW_FRAME_GAP_FACTOR` of :func:`new_frame_measure`; with fewer than
-    :data:`NEW_FRAME_GAP_SHARE` of the rows there, ``note`` says the law is cautious and how to capture for one
-    that is not.
+    measure), so the law's error at a new frame's gap rests on the held share. A second level pass half a step
+    above the first below 9 cm halves the spacing, so a frame left out still has neighbours as near as a new
+    frame's and is read across a gap about as wide: the law is then measured where new frames fall. The report's
+    ``held_out_at_new_frame_gaps`` counts the rows within :data:`NEW_FRAME_GAP_FACTOR` of :func:`new_frame_measure`;
+    with fewer than :data:`NEW_FRAME_GAP_SHARE` of the rows there, ``note`` says so and how to capture for a law
+    measured there.
 
     The report's ``held_out_rows``: each row's median zone depth (mm) and NEES per dof under the law."""
-    from scipy.optimize import minimize, minimize_scalar
+    from scipy.optimize import minimize
 
     measured = [r[4] for r in rows if r[4] is not None]
     knots = list(peak_params.near_depths) if peak_params.near_depths and measured else []
     m_ref = float(np.median(measured)) if measured else 1.0
-    wide = len({round(m / m_ref, 1) for m in measured}) > 1 and max(measured) > 1.5 * m_ref  # two gap widths
-    law = near_law_parameters
+    share = NEAR_KNOT_SHARE if knots else 1.0
 
     def unc_for(depths: np.ndarray, theta: tuple, factor) -> Uncertainty:
         return near_law_uncertainty(unc, depths, theta[0], theta[1], theta[2], factor)
@@ -557,13 +563,13 @@ def fit_near_law(rows: Sequence[tuple], unc: Uncertainty, peak_params, end: floa
         a table, or at the same measure, share one)."""
         memo = {} if estimators is None else estimators
         if r[4] not in memo:
-            memo[r[4]] = PeakEstimator(peak_params, unc_for(plain, theta, knot_factor(r[4], m_ref, theta[3])))
+            memo[r[4]] = PeakEstimator(peak_params, unc_for(plain, theta, knot_factor(r[4], m_ref, share)))
         return memo[r[4]].covariance(r[0], r[1], r[2])
 
     errors = np.array([r[3] for r in rows])
 
     def nll(x: np.ndarray) -> float:
-        theta = law(x)
+        theta = near_law_parameters(x)
         estimators: dict = {}
         each = _nll_rows(errors, np.array([row_covariance(r, theta, estimators) for r in rows]))
         return math.inf if each is None else sum(each.tolist()) / len(rows)  # (summed in order, as row by row)
@@ -571,40 +577,28 @@ def fit_near_law(rows: Sequence[tuple], unc: Uncertainty, peak_params, end: floa
     starts = [(math.log(2e-4), 0.0, 0.0), (math.log(5e-4), -2.0, -2.0), (math.log(1e-4), 2.0, 2.0)]
     best = None
     for start in starts:
-        x0 = np.array(start + ((0.0,) if wide else ()))
+        x0 = np.array(start)
         simplex = np.vstack([x0, x0 + np.eye(len(x0))])  # unit steps: scipy's default moves a 0 start by 2.5e-4
         res = minimize(nll, x0, method="Nelder-Mead",
                        options={"xatol": 1e-3, "fatol": 1e-6, "maxiter": 1500, "initial_simplex": simplex})
         if best is None or res.fun < best.fun:
             best = res
-    theta = law(best.x)
+    theta = near_law_parameters(best.x)
+    scale, power, shared = theta
 
     # the nearest depth the law is fitted on (the rows' median zone depths): closer, it is an extrapolation
     nearest = min(float(np.median(r[0][r[1], 2])) for r in rows)
-
-    def tabulated(share: float) -> Uncertainty:
-        return near_law_table(unc, end, knots, theta[0], theta[1], theta[2], share, m_ref, nearest)
-
-    how = "held out, two gap widths" if wide else "fixed at 1 (no table)"
-    if knots and not wide:
-        how = "in sample (too few near frames to leave two out)"
-        if in_sample:
-            est_rows = list(in_sample)
-            res = minimize_scalar(lambda ls: _nll(np.array([r[3] for r in est_rows]), np.array(
-                [PeakEstimator(peak_params, tabulated(math.exp(ls))).covariance(r[0], r[1], r[2]) for r in est_rows]),
-                np.zeros((len(est_rows), 3, 3))), bounds=(math.log(1e-3), 0.0), method="bounded")
-            theta = theta[:3] + (math.exp(res.x),)
-    scale, power, shared, share = theta
     m_new = new_frame_measure(knots) if knots else None
     narrow = sum(m <= NEW_FRAME_GAP_FACTOR * m_new for m in measured) if knots else 0
     held = np.array([r[3] * r[3] / np.diag(row_covariance(r, theta)) for r in rows])  # per component
     per_row = [float(r[3] @ np.linalg.solve(row_covariance(r, theta), r[3])) / 3.0 for r in rows]
-    return tabulated(share), {
+    return near_law_table(unc, end, knots, scale, power, shared, share, m_ref, nearest), {
         "frames": len(rows), "std_at_reference_mm": scale * 1e3, "reference_depth_mm": NEAR_REFERENCE_DEPTH * 1e3,
         "power": power, "shared_by_zones": shared, "nearest_fitted_mm": nearest * 1e3,
         "power_closer": max(power, NEAR_PRIOR_POWER),
         "table_knots": len(knots), "reference_measure_mm2": m_ref * 1e6 if knots else None,
-        "share_independent_of_knots": share, "share_fitted": how,
+        "share_independent_of_knots": share,
+        "share_how": "held (NEAR_KNOT_SHARE)" if knots else "1: no table, nothing to interpolate",
         "new_frame_measure_mm2": None if m_new is None else m_new * 1e6, "held_out_at_new_frame_gaps": narrow,
         **({"note": NARROW_GAP_NOTE} if knots and narrow < NEW_FRAME_GAP_SHARE * len(measured) else {}),
         "nees_per_dof_held_out": float(np.mean(per_row)),
@@ -667,8 +661,7 @@ def fit_peak_uncertainty(frames: Sequence[Frame], peak_params, min_range: float 
         # read as new frames are: by a table where the calibration keeps one, by the mapping alone where not
         rows = [r for r in rows if (r[4] is not None) == bool(peak_params.near_depths)]
         if len(rows) >= NEAR_LAW_MIN_FRAMES:
-            own = [r for r in (_near_row(f, peak_params, depths[-1]) for f in closer) if r is not None]
-            unc, report["near_range"]["law"] = fit_near_law(rows, unc, peak_params, depths[-1], own)
+            unc, report["near_range"]["law"] = fit_near_law(rows, unc, peak_params, depths[-1])
             report["near_range"]["std_mm"] = [v * 1e3 for v in unc.near_range_std]
         ests = [PeakEstimator(peak_params, unc).estimate(f) for f in closer]
         report["near_range"]["nees_per_dof_closer"] = _mean_nees(ests, [f.truth for f in closer])
@@ -832,7 +825,7 @@ def update_calibration(cal, frames: Sequence[Frame], method: str) -> dict:
 
 __all__ = ["update_calibration", "nees", "fit_floor", "fit_peak_uncertainty", "fit_diff_uncertainty", "select_fallback",
            "chi2_candidates", "near_std_law", "fit_near_law", "near_law_table", "near_law_parameters", "knot_factor",
-           "NEAR_REFERENCE_DEPTH", "CONSISTENCY_LIMIT", "PEAK_TILT_REL",
+           "NEAR_KNOT_SHARE",            "NEAR_REFERENCE_DEPTH", "CONSISTENCY_LIMIT", "PEAK_TILT_REL",
            "DIFF_TILT_REL", "DIFF_TILT_OFFSET_REL", "DIFF_TILT_PIVOT", "DIFF_TILTED_SHARE",
            "DIFF_TILT_FLOOR", "DIFF_TILT_PER_ERROR", "DIFF_TILT_OFFSET_PER_ERROR", "diff_tilt_term",
            "size_tilt_term", "TILT_TERM_MIN_FRAMES", "TILT_TERM_SCALES", "TILT_TERM_NOTE", "CV_FOLDS", "PREFER_RATIOS"]
