@@ -9,6 +9,7 @@ between the table's knots).
     python docs/figures/near_nees.py --real               # the real figures only
     python docs/figures/near_nees.py --units 21 22 23     # the simulated units only
     python docs/figures/near_nees.py --frames             # and each 2-5 cm frame's depth, gap position, error, NEES
+    python docs/figures/near_nees.py --units 11 --tilted  # and 30 frames at 2-5 cm tilted 0-20 deg per unit
 
 The interval: the mean NEES per dof ``x`` of ``n`` frames (``3 n`` dof) is read as ``c`` times a chi-square mean
 with ``3 n`` dof; the 90 % interval of ``c`` is ``[3 n x / chi2_0.95, 3 n x / chi2_0.05]``. Honest covariances
@@ -110,19 +111,24 @@ SPACING = (LEVEL[1] - LEVEL[0]) / (LEVEL_FRAMES - 1)
 INTERLEAVED_FRAMES = 21
 
 
-def unit(seed: int, data: Path, show: bool, interleaved: bool = False) -> None:
+#: ``--tilted``: frames at 2-5 cm tilted 0 to this (rad), their number and seed
+TILTED_MAX, TILTED_FRAMES, TILTED_SEED = math.radians(20.0), 30, 8
+
+
+def unit(seed: int, data: Path, show: bool, interleaved: bool = False, tilted: bool = False) -> None:
     sweeps = {"level": (LEVEL_FRAMES, 3, LEVEL), "test": (80, 5, (0.005, 0.40)), "near": (40, 7, (0.019, 0.051)),
               "inter": (INTERLEAVED_FRAMES, 9, (LEVEL[0] + SPACING / 2,
-                                                LEVEL[0] + SPACING / 2 + (INTERLEAVED_FRAMES - 1) * SPACING))}
+                                                LEVEL[0] + SPACING / 2 + (INTERLEAVED_FRAMES - 1) * SPACING)),
+              "tilted": (TILTED_FRAMES, TILTED_SEED, (0.02, 0.05))}
     files = {k: data / f"u{seed}_{k}.json" for k in sweeps}
     from place_safe.io.frame_file import write_frames
     from place_safe.sim.calibration_capture import capture_level_sweep
     from place_safe.sim.tof_mismatch import MismatchConfig
     u = MismatchConfig(seed=seed)
     for k, (n, s, h) in sweeps.items():
-        if not files[k].exists() and (k != "inter" or interleaved):
-            write_frames(files[k], capture_level_sweep("mismatch", n, s, heights=h, max_tilt=0.0, mismatch=u,
-                                                       temperature=45.0))
+        if not files[k].exists() and (k != "inter" or interleaved) and (k != "tilted" or tilted):
+            write_frames(files[k], capture_level_sweep("mismatch", n, s, heights=h, mismatch=u, temperature=45.0,
+                                                       max_tilt=TILTED_MAX if k == "tilted" else 0.0))
     level = load_frames(files["level"]) + (load_frames(files["inter"]) if interleaved else [])
     cal = calibrate(level)
     name = f"unit {seed}" + (" + interleaved" if interleaved else "")
@@ -131,6 +137,8 @@ def unit(seed: int, data: Path, show: bool, interleaved: bool = False) -> None:
         print(f"    law: share {law.get('share_independent_of_knots')} ({law.get('share_how')}), "
               f"held-out NEES/dof {law.get('nees_per_dof_held_out')}, knots {law.get('table_knots')}")
     summary(name, read(cal, load_frames(files["test"]) + load_frames(files["near"])), show)
+    if tilted:
+        summary(name + " tilted", read(cal, load_frames(files["tilted"])), show)
 
 
 def main() -> int:
@@ -143,6 +151,8 @@ def main() -> int:
     ap.add_argument("--interleaved", action="store_true",
                     help="units: calibrate on the level sweep plus a second near sweep half a spacing above its "
                          "frames closer than 9 cm (the capture issue 26c proposed)")
+    ap.add_argument("--tilted", action="store_true",
+                    help=f"units: also {TILTED_FRAMES} frames at 2-5 cm tilted 0-{math.degrees(TILTED_MAX):.0f} deg")
     a = ap.parse_args()
     if a.units is None or a.real:
         real(a.frames)
@@ -150,7 +160,7 @@ def main() -> int:
         a.units = [11, 12, 13, 21, 22, 23]
     with tempfile.TemporaryDirectory() as tmp:
         for s in a.units or []:
-            unit(s, Path(a.data or tmp), a.frames, a.interleaved)
+            unit(s, Path(a.data or tmp), a.frames, a.interleaved, a.tilted)
     return 0
 
 
