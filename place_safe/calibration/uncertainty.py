@@ -469,7 +469,8 @@ def new_frame_measure(knots: Sequence[float]) -> float:
 #: interpolation measure is at most this many times :func:`new_frame_measure` of the calibration's own table
 #: (left out alone from a plain sweep, a frame sits mid-way in a gap twice as wide: 4 times the measure).
 NEW_FRAME_GAP_FACTOR = 1.5
-#: Below this part of the held-out rows at a new frame's gap the report notes the law as cautious (a plain sweep
+#: Below this part of the held-out rows at a new frame's gap the report notes that the law's error there is extrapolated
+#: from wider gaps (:data:`NARROW_GAP_NOTE`; a plain sweep
 #: has one or two such rows at the table's end: simulated units, 1 of 38; with a second near pass 27 of 76)
 NEW_FRAME_GAP_SHARE = 0.1
 
@@ -523,7 +524,7 @@ def fit_near_law(rows: Sequence[tuple], unc: Uncertainty, peak_params, end: floa
     The factor: a frame read by a table is in error by the zones' own variation from frame to frame and by the
     table's interpolation between knots, an error (not a variance) that grows with the measure. The zone variance
     is the law's square times ``share + (1 - share) (m / m_ref)^2``, ``m_ref`` the median measure of the rows
-    (the ratio at most 4), ``share`` the part that does not depend on the knots: :data:`NEAR_KNOT_SHARE` where
+    that lie in a gap (the ratio at most 4), ``share`` the part that does not depend on the knots: :data:`NEAR_KNOT_SHARE` where
     there is a table (held: the rows, in gaps two and three times the table's spacing, barely determine how much
     of their error a new frame's narrower gap keeps), 1 where there is none. (Until round 34 the factor was linear
     in the measure, as if the interpolation's variance grew with it: on the real sweep left out a distance at a
@@ -549,7 +550,10 @@ def fit_near_law(rows: Sequence[tuple], unc: Uncertainty, peak_params, end: floa
 
     measured = [r[4] for r in rows if r[4] is not None]
     knots = list(peak_params.near_depths) if peak_params.near_depths and measured else []
-    m_ref = float(np.median(measured)) if measured else 1.0
+    # the rows' median measure in a gap (rows on a knot, or past the table's end, have none: were most of them there,
+    # the median would be 0 and every factor 0 / 0); a new frame's mid-gap measure when no row lies in a gap
+    gaps = [m for m in measured if m > 0.0]
+    m_ref = float(np.median(gaps)) if gaps else (new_frame_measure(knots) if knots else 0.0) or 1.0
     share = NEAR_KNOT_SHARE if knots else 1.0
 
     def unc_for(depths: np.ndarray, theta: tuple, factor) -> Uncertainty:
@@ -655,7 +659,7 @@ def fit_peak_uncertainty(frames: Sequence[Frame], peak_params, min_range: float 
     report["near_range"] = near
     if closer and depths:
         rows = []
-        for width in (1, 2):  # left out alone, and with a neighbour (wider gaps: the interpolation's share)
+        for width in (1, 2):  # left out alone, and with a neighbour (wider gaps: more rows for the law)
             held = held_out_fits(frames, peak_params, width)
             rows += [r for r in (_near_row(f, held.get(id(f)), depths[-1]) for f in closer) if r is not None]
         # read as new frames are: by a table where the calibration keeps one, by the mapping alone where not

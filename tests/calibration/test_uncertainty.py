@@ -453,9 +453,9 @@ def test_near_law_maximum_likelihood_recovers_a_known_law_and_makes_nees_one():
 
 
 def test_the_near_law_says_when_no_held_out_frame_lay_in_a_gap_as_narrow_as_a_new_frames():
-    """A plain sweep's frames, left out, lie mid-way in gaps twice the table's spacing: the law then states the
-    wider gaps' error and the report says so, with the capture that fixes it (a second pass between the first's
-    distances, whose frames held out lie at a new frame's gap)."""
+    """A plain sweep's frames, left out, lie mid-way in gaps twice the table's spacing: the law's error at a new
+    frame's gap is then extrapolated from them (through the held share) and the report says so, with the capture that
+    fixes it (a second pass between the first's distances, whose frames held out lie at a new frame's gap)."""
     from place_safe.calibration.uncertainty import (NARROW_GAP_NOTE, NEAR_KNOT_SHARE, fit_near_law, near_std_law,
                                                     new_frame_measure)
     from place_safe.recovery.estimator import Uncertainty
@@ -480,6 +480,24 @@ def test_the_near_law_says_when_no_held_out_frame_lay_in_a_gap_as_narrow_as_a_ne
     _, rep = fit_near_law(interleaved, Uncertainty(), params, 0.09)
     assert rep["held_out_at_new_frame_gaps"] == 14 and "note" not in rep
     assert math.isclose(rep["new_frame_measure_mm2"], 4.0)
+
+
+def test_the_near_law_is_finite_when_most_held_out_rows_lie_on_a_knot():
+    """Rows whose frame lies on a knot (or past the table's end) have measure 0; were most rows there, the median
+    measure the factor divides by was 0 and calibrate stopped on a NaN near-range std (found in review)."""
+    from place_safe.calibration.uncertainty import fit_near_law, new_frame_measure
+    from place_safe.recovery.estimator import Uncertainty
+    from place_safe.recovery.points import PeakParams
+
+    knots = [0.025, 0.029, 0.033, 0.037, 0.041, 0.045, 0.09]
+    params = PeakParams.default_peak().replace(near_depths=knots, near_errors=[0.0] * (9 * len(knots)))
+    base = _near_rows(10, 1e-4, 1.0, seed=6)
+    m = new_frame_measure(knots)
+    for measures in ([0.0] * 6 + [4 * m] * 4, [0.0] * 10):
+        rows = [r[:4] + (v,) for r, v in zip(base, measures)]
+        unc, rep = fit_near_law(rows, Uncertainty(), params, 0.09)
+        assert np.all(np.isfinite(unc.near_range_std)) and np.all(np.isfinite(unc.near_common_std))
+        assert math.isfinite(rep["nees_per_dof_held_out"]) and rep["reference_measure_mm2"] > 0
 
 
 def test_near_law_finds_the_error_the_zones_share_and_keeps_tilt_and_offset_honest():
