@@ -98,46 +98,16 @@ def lookup(q, u, n_bins):
 
 
 class DelayedPulseModel(fw.ForwardModel):
-    """The forward model with the pulse read at each ray's continuous delay (``render_returns`` as the model's, the
-    soft binning and pulse convolution replaced)."""
+    """The forward model with the pulse read at each ray's continuous delay: its soft binning and pulse convolution
+    (:meth:`~place_safe.recovery.forward.ForwardModel.bin_arrivals`) replaced, the rays' counts and positions and
+    everything after the pulse as the model's."""
 
-    def render_returns(self, ranges, cos_inc, albedo, reference, weights=None, specular_weight=None,
-                       specular_exponent=None, hit=None, kernel=None, n_bins=N_BINS, light=None, pulse_only=False,
-                       ambient=None):
+    def bin_arrivals(self, amp, u, reference, kernel=None, n_bins=N_BINS):
         t = self.t
-        r = torch.as_tensor(ranges, dtype=self.dtype)
-        c = torch.clamp(torch.as_tensor(cos_inc, dtype=self.dtype), min=0.0)
-        b = r.shape[0]
-        ks = t["specular_weight"] if specular_weight is None else fw._per_ray(specular_weight, r)
-        alpha = t["specular_exponent"] if specular_exponent is None else fw._per_ray(specular_exponent, r)
-        rho = fw._per_ray(albedo, r)
-        r_light, beam = r, None
-        if light is not None:
-            r_light, c, beam = light
-            c = torch.clamp(c, min=0.0)
-        spec = torch.clamp(2.0 * c * c - 1.0, min=0.0)
-        spec = torch.where(spec > 0, torch.pow(torch.clamp(spec, min=1e-30), alpha), torch.zeros_like(spec))
-        shade = torch.clamp(c + ks * spec, min=1e-12)
-        s, w_sat, w_g = t["saturation"], t["saturate_shading"], t["saturate_gain"]
-        g = self.zone_gains().view(1, N_ZONES, 1)
-        flux = g ** w_g * rho * shade ** w_sat / (s * torch.clamp(r_light, min=1e-4) ** 2)
-        if beam is not None:
-            flux = flux * beam
-        photons = s * -torch.expm1(-flux) * shade ** (1.0 - w_sat) * g ** (1.0 - w_g)
-        w = self.ray_geometry()[1] if weights is None else torch.as_tensor(weights, dtype=self.dtype)
-        amp = photons * (w.expand_as(photons) if w.dim() == 2 else w) * float(self.params.rays_per_zone)
-        if hit is not None:
-            amp = amp * torch.as_tensor(hit, dtype=self.dtype)
-        path = r if light is None else 0.5 * (r + r_light)
-        u = path / t["bin_size"] * self.bin_scales() + t["bin_offset"] + t["zone_offsets"].view(1, N_ZONES, 1)
-        amp, u = self.add_echo_and_glass(amp, u, path)
-        if torch.is_grad_enabled() or bool(torch.any(t["time_warp"] != 0)):
-            u = fw.warp_positions(u, t["time_warp"])[0]
-        q = fine_pulse(torch.as_tensor(reference, dtype=self.dtype).expand(b, N_BINS), t["ref_time_scale"],
+        q = fine_pulse(torch.as_tensor(reference, dtype=self.dtype).expand(amp.shape[0], N_BINS), t["ref_time_scale"],
                        t["ref_floor"], t["soft_bin_sigma"])
         amp, u = torch.broadcast_tensors(amp, u)
-        hist = torch.einsum("bzr,bzrn->bzn", amp, lookup(q, u, n_bins))
-        return hist if pulse_only else self.after_pulse(hist, ambient)
+        return torch.einsum("bzr,bzrn->bzn", amp, lookup(q, u, n_bins))
 
 
 def pulse(args) -> None:

@@ -862,10 +862,20 @@ class ForwardModel:
         a uniform beam). pulse_only: stop after the pulse convolution (finish with :meth:`after_pulse`). ambient:
         (B, 9) counts per bin, see :meth:`after_pulse`.
         """
+        amp, u = self.ray_arrivals(ranges, cos_inc, albedo, weights, specular_weight, specular_exponent, hit, light)
+        hist = self.bin_arrivals(amp, u, reference, kernel, n_bins)
+        return hist if pulse_only else self.after_pulse(hist, ambient)
+
+    def ray_arrivals(self, ranges: torch.Tensor, cos_inc: torch.Tensor, albedo: torch.Tensor,
+                     weights: torch.Tensor | None = None, specular_weight: torch.Tensor | None = None,
+                     specular_exponent: torch.Tensor | None = None, hit: torch.Tensor | None = None,
+                     light: tuple | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """What each ray brings back and when (:meth:`render_returns`' arguments): its counts (shading, inverse
+        square, saturation, gains, quadrature weight) and its bin position (the TDC's warp applied), both (B, 9, R'),
+        with the multipath echo and the cover-glass return appended along the rays (:meth:`add_echo_and_glass`)."""
         t = self.t
         r = torch.as_tensor(ranges, dtype=self.dtype)
         c = torch.clamp(torch.as_tensor(cos_inc, dtype=self.dtype), min=0.0)
-        b = r.shape[0]
         ks = t["specular_weight"] if specular_weight is None else _per_ray(specular_weight, r)
         alpha = t["specular_exponent"] if specular_exponent is None else _per_ray(specular_exponent, r)
         rho = _per_ray(albedo, r)
@@ -896,13 +906,19 @@ class ForwardModel:
         amp, u = self.add_echo_and_glass(amp, u, path)
         if torch.is_grad_enabled() or bool(torch.any(t["time_warp"] != 0)):
             u = warp_positions(u, t["time_warp"])[0]  # the TDC's integral non-linearity (direct, echo and glass)
-        sigma = t["soft_bin_sigma"]
-        transient = soft_bin(amp, u, sigma, self.bins[:n_bins], float(t["soft_bin_integrated"]),
+        return amp, u
+
+    def bin_arrivals(self, amp: torch.Tensor, u: torch.Tensor, reference: torch.Tensor,
+                     kernel: torch.Tensor | None = None, n_bins: int = N_BINS) -> torch.Tensor:
+        """The zone histograms (B, 9, n_bins) of ray counts ``amp`` at bin positions ``u`` (B, 9, R'): each ray
+        soft-binned, the transient convolved with the laser pulse (from ``reference`` (B, 128), or the precomputed
+        ``kernel`` (B, K))."""
+        t = self.t
+        transient = soft_bin(amp, u, t["soft_bin_sigma"], self.bins[:n_bins], float(t["soft_bin_integrated"]),
                              float(t["soft_bin_spline"]))
         if kernel is None:
-            kernel = self.pulse(torch.as_tensor(reference, dtype=self.dtype).expand(b, N_BINS))
-        hist = convolve_pulse(transient, kernel)
-        return hist if pulse_only else self.after_pulse(hist, ambient)
+            kernel = self.pulse(torch.as_tensor(reference, dtype=self.dtype).expand(amp.shape[0], N_BINS))
+        return convolve_pulse(transient, kernel)
 
     def add_echo_and_glass(self, amp: torch.Tensor, u: torch.Tensor,
                            path: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
