@@ -552,8 +552,9 @@ def fit_near_law(rows: Sequence[tuple], unc: Uncertainty, peak_params, end: floa
     knots = list(peak_params.near_depths) if peak_params.near_depths and measured else []
     # the rows' median measure in a gap (rows on a knot, or past the table's end, have none: were most of them there,
     # the median would be 0 and every factor 0 / 0); a new frame's mid-gap measure when no row lies in a gap
+    m_new = new_frame_measure(knots) if knots else None
     gaps = [m for m in measured if m > 0.0]
-    m_ref = float(np.median(gaps)) if gaps else (new_frame_measure(knots) if knots else 0.0) or 1.0
+    m_ref = float(np.median(gaps)) if gaps else (m_new or 1.0)
     share = NEAR_KNOT_SHARE if knots else 1.0
 
     def unc_for(depths: np.ndarray, theta: tuple, factor) -> Uncertainty:
@@ -592,7 +593,6 @@ def fit_near_law(rows: Sequence[tuple], unc: Uncertainty, peak_params, end: floa
 
     # the nearest depth the law is fitted on (the rows' median zone depths): closer, it is an extrapolation
     nearest = min(float(np.median(r[0][r[1], 2])) for r in rows)
-    m_new = new_frame_measure(knots) if knots else None
     narrow = sum(m <= NEW_FRAME_GAP_FACTOR * m_new for m in measured) if knots else 0
     held = np.array([r[3] * r[3] / np.diag(row_covariance(r, theta)) for r in rows])  # per component
     per_row = [float(r[3] @ np.linalg.solve(row_covariance(r, theta), r[3])) / 3.0 for r in rows]
