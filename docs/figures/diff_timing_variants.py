@@ -330,8 +330,7 @@ def modes(args) -> None:
     for name, e in misfits.items():
         co[name] = np.linalg.lstsq(grid, e.T, rcond=None)[0].T
         rest = e - co[name] @ grid.T
-        step = np.linalg.solve(np.einsum("bzk,bzl->bkl", g, g), np.einsum("bzk,bz->bk", g, -e if "peak" in name
-                                                                          else e)[..., None])[..., 0]
+        step = np.linalg.solve(np.einsum("bzk,bzl->bkl", g, g), np.einsum("bzk,bz->bk", g, e)[..., None])[..., 0]
         tilt = np.degrees(np.sqrt(np.mean(np.stack([about(step[:, 0]), about(step[:, 1])], 1) ** 2, 0)))
         print(f"{name} | {np.sqrt(np.mean(e ** 2)):.4f} | " + " | ".join(
             f"{np.sqrt(np.mean(co[name][:, i] ** 2)):.4f}" for i in range(3)) +
