@@ -191,6 +191,14 @@ LEARNED_RESPONSE: dict[str, str] = {"response_kernel": "lin"}
 #: 1.47; the independent generator the other way (1.04 from 3 bins, 1.70 from 6). The coarse stage's objective
 #: ranked every one of them as the full fit did; the other units and the real sweep end alike from every start.
 TAIL_DECAY_STARTS = (3.0, 6.0)
+#: Further starts of the pulse's soft-binning blend (``ForwardParams.pulse_soft_bin``, a structural choice that the
+#: other starts begin at 0.5): from the default start the coarse stage also runs from the winning tail decay and
+#: floor with the blend at each of these, and the fit continues from whichever run ended lowest. From 0.5 the
+#: simulated units (``docs/figures/near_nees.py``: units 11, 21, 23) stop in a basin with the pulse's soft binning
+#: half on and the soft-bin width at 0.48 bins (RMS scaled residual 1.28-1.34); from 0.02 the fit finds the
+#: simulator's own pulse (blend 0, width 0.71 bins) at 0.78-0.85, and diff's 3.5-5 cm planes on those units go from
+#: 0.56 to 0.09 deg (docs/results.md, "The forward fit's two basins"). The real halves end lower from 0.5, and keep it.
+PULSE_SOFT_BIN_STARTS = (0.02,)
 #: A frame whose RMS scaled residual after the first fit is above this many times the median (and
 #: above 1) is excluded as bad and the fit repeated without it.
 BAD_FRAME_FACTOR = 3.0
@@ -730,6 +738,23 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
                 failed.append(exc)
         if len(failed) == len(runs):
             raise failed[0]
+        if default_start and PULSE_SOFT_BIN_STARTS and any(name == "pulse_soft_bin" for name, _, _ in layout):
+            # the pulse's soft binning from elsewhere, at the tail decay and floor that ran lowest from 0.5
+            costs = [r.cost if r is not None and math.isfinite(r.cost) else math.inf for r in runs]
+            won = starts[int(np.argmin(costs))]
+            model.t["ref_floor"] = won.ref_floor
+            for blend in PULSE_SOFT_BIN_STARTS:
+                z = _with_value(won.z, layout, "pulse_soft_bin", blend, lower, won.upper)
+                z[n_cam:] = start_albedos(torch.as_tensor(z[:n_cam], dtype=dtype)).numpy()
+                st = _Start(won.decay, won.floor_name, *albedo_bounds(z), won.ref_floor, won.floor_report, blend)
+                starts.append(st)
+                stage(f"forward model, coarse start {len(starts)}/{len(starts)} (pulse soft-binning blend {blend:g})")
+                try:
+                    runs.append(gauss_newton.solve(fun, jac, st.z, lower, st.upper, max_iterations=iterations,
+                                                   damping=INITIAL_DAMPING, relative_tol=COARSE_RELATIVE_DECREMENT,
+                                                   decrement_tol=COARSE_DECREMENT))
+                except ArithmeticError:  # this start's residuals not finite: the runs from 0.5 stand
+                    runs.append(None)
         # the objective with its prior rows, the one each run minimised
         costs = [r.cost if r is not None and math.isfinite(r.cost) else math.inf for r in runs]
         best = int(np.argmin(costs))
@@ -826,7 +851,9 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
                    "coarse": None if coarse is None else {
                        "rays": coarse_rays, "jacobians": sum(r.iterations for r in runs if r is not None),
                        "message": coarse.reason,
-                       "starts": [{"tail_decay_bins": st.decay, "ref_floor": st.floor_name, "chosen": r is coarse,
+                       "starts": [{"tail_decay_bins": st.decay, "ref_floor": st.floor_name,
+                                   "pulse_soft_bin": 0.5 if st.pulse_soft_bin is None else st.pulse_soft_bin,
+                                   "chosen": r is coarse,
                                    "objective_rms": None if r is None else math.sqrt(2 * data_cost(r.fun) / n_res),
                                    "objective_rms_with_priors": math.sqrt(2 * c / n_res) if math.isfinite(c) else None}
                                   for st, c, r in zip(starts, costs, runs)],
@@ -852,23 +879,29 @@ class _Start(NamedTuple):
     upper: np.ndarray
     ref_floor: torch.Tensor
     floor_report: dict
+    pulse_soft_bin: float | None = None  # the blend's start when it is not the structural 0.5
 
 
 def _tail_decay_starts(z0: np.ndarray, layout: list[tuple[str, str, int]], lower: np.ndarray,
                        upper: np.ndarray) -> list[np.ndarray]:
     """The fit's start ``z0`` with each zone's tail decay at each of :data:`TAIL_DECAY_STARTS` (in the layout's
     coordinates, inside the bounds); ``[z0]`` when the decays are not fitted."""
+    if not any(name == "zone_tail_decays" for name, _, _ in layout):
+        return [z0]
+    return [_with_value(z0, layout, "zone_tail_decays", decay, lower, upper) for decay in TAIL_DECAY_STARTS]
+
+
+def _with_value(z: np.ndarray, layout: list[tuple[str, str, int]], name: str, value: float, lower: np.ndarray,
+                upper: np.ndarray) -> np.ndarray:
+    """A copy of the fit vector ``z`` with every entry of the parameter ``name`` at ``value`` (in its own unit: the
+    log of it where the layout fits the log), inside the bounds."""
+    z = z.copy()
     i = 0
-    for name, kind, n in layout:
-        if name == "zone_tail_decays":
-            starts = []
-            for decay in TAIL_DECAY_STARTS:
-                z = z0.copy()
-                z[i:i + abs(n)] = math.log(decay) if kind == "log" else decay
-                starts.append(np.clip(z, lower + 1e-6, upper - 1e-6))
-            return starts
+    for entry, kind, n in layout:
+        if entry == name:
+            z[i:i + abs(n)] = math.log(value) if kind == "log" else value
         i += abs(n)
-    return [z0]
+    return np.clip(z, lower + 1e-6, upper - 1e-6)
 
 
 #: :func:`measure_ambient_slope`: the slopes of the nearer and the farther half of the frames (each their median)

@@ -386,9 +386,10 @@ def test_the_jacobian_is_the_derivative_of_the_residuals(monkeypatch, ambient):
         np.testing.assert_allclose(J[:, i], fd, rtol=0, atol=1e-5 * scale, err_msg=f"column {i}")
 
 
-def test_the_coarse_stage_starts_from_each_tail_decay_and_floor_and_keeps_the_lower():
+def test_the_coarse_stage_starts_from_each_tail_decay_and_floor_and_keeps_the_lower(monkeypatch):
     """From the default start the coarse stage runs from each of TAIL_DECAY_STARTS with each reference floor (each
-    frame's albedo at its least-squares value there) and the fit continues from the run whose objective ended lower.
+    frame's albedo at its least-squares value there), then from the winner's decay and floor with the pulse's
+    soft-binning blend at each of PULSE_SOFT_BIN_STARTS, and the fit continues from the run whose objective ended lower.
     Frames rendered by the forward model with long tails (a convention check of the bookkeeping, not of accuracy)."""
     from place_safe.calibration import forward_fit as ff
 
@@ -399,11 +400,24 @@ def test_the_coarse_stage_starts_from_each_tail_decay_and_floor_and_keeps_the_lo
     frames = make_frames(8, params=truth, spec=spec, seed=5)
     _, report = fit_forward(frames, progress=False, rays=3, iterations=8)
     starts = report["solver"]["coarse"]["starts"]
-    assert sorted((s["tail_decay_bins"], s["ref_floor"]) for s in starts) == sorted(
+    from_middle = [s for s in starts if s["pulse_soft_bin"] == 0.5]
+    assert sorted((s["tail_decay_bins"], s["ref_floor"]) for s in from_middle) == sorted(
         (d, f) for d in ff.TAIL_DECAY_STARTS for f in ("measured", "published"))
+    # then the pulse's soft-binning blend from each of PULSE_SOFT_BIN_STARTS, at the tail decay and floor that won
+    won = min(from_middle, key=lambda s: s["objective_rms_with_priors"])
+    assert [(s["tail_decay_bins"], s["ref_floor"], s["pulse_soft_bin"]) for s in starts[len(from_middle):]] == [
+        (won["tail_decay_bins"], won["ref_floor"], b) for b in ff.PULSE_SOFT_BIN_STARTS]
+    chosen = [s for s in starts if s["chosen"]]
+    assert len(chosen) == 1 and chosen[0]["objective_rms_with_priors"] == min(
+        s["objective_rms_with_priors"] for s in starts)
+    assert report["solver"]["coarse"]["rms_scaled_residual"] <= chosen[0]["objective_rms"] + 1e-9
+    # the floors' bookkeeping, from the blend's middle alone
+    monkeypatch.setattr(ff, "PULSE_SOFT_BIN_STARTS", ())
+    _, report = fit_forward(frames, progress=False, rays=3, iterations=8)
+    starts = report["solver"]["coarse"]["starts"]
+    assert len(starts) == 2 * len(ff.TAIL_DECAY_STARTS)
     chosen = [s for s in starts if s["chosen"]]
     assert len(chosen) == 1 and chosen[0]["objective_rms"] == min(s["objective_rms"] for s in starts)
-    assert report["solver"]["coarse"]["rms_scaled_residual"] <= chosen[0]["objective_rms"] + 1e-9
     assert report["ref_floor"]["chosen"] == chosen[0]["ref_floor"]  # the floor the fit went on with ...
     floor = report["ref_floor"][chosen[0]["ref_floor"]]["counts"]
     assert report["ref_floor"]["counts"] == floor and report["params"]["ref_floor"] == floor  # ... and kept

@@ -61,6 +61,28 @@ def test_chi2_limit_admits_the_frames_diff_explains_and_helps():
     assert select_fallback(chi2, ok, ratio, diff * 0.1, peak, [1.3, 7.0, 14.0])[0] == 14.0
 
 
+def test_a_score_better_by_less_than_its_standard_error_does_not_take_diff_away():
+    """Level frames both methods read well, diff a hair worse on the farther half (by a twentieth of the frames'
+    scatter): the limits that keep diff everywhere score within one standard error of the best and win (a level sweep
+    cannot show what the narrower limit would cost on tilted planes). The same frames with diff clearly worse there:
+    the narrower limit."""
+    rng = np.random.default_rng(4)
+    n = 40
+    chi2 = np.linspace(1.0, 3.0, n)
+    peak = rng.uniform(0.5, 1.5, (n, 2))
+    far = chi2 > 2.0
+    diff = peak.copy()
+    diff[far] += 0.05 * peak.std()
+    ok, ratio = np.ones(n, dtype=bool), np.full(n, 0.5)
+    limit, prefer, table = select_fallback(chi2, ok, ratio, diff, peak, [2.0, 3.0])
+    assert limit == 3.0 and prefer >= 0.5
+    best = min(t["score"] for t in table)
+    assert [t for t in table if t["chi2_limit"] == 3.0 and t["prefer_ratio"] == prefer][0]["score"] > best
+    assert [t for t in table if t["score"] == best][0]["chi2_limit"] == 2.0  # the best score alone: the narrower one
+    diff[far] = peak[far] + 3.0
+    assert select_fallback(chi2, ok, ratio, diff, peak, [2.0, 3.0])[0] == 2.0
+
+
 def test_preference_ratio_keeps_diff_where_its_covariance_says_it_reads_better():
     """Frames where diff's tilt variance is below peak's are the ones diff reads better: ratio 1 returns the
     better plane on every frame; a ratio that keeps diff everywhere, or nowhere, scores worse."""
