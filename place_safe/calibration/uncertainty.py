@@ -50,7 +50,8 @@ for each, diff's floor is fitted on the others and every candidate pair (chi2_li
 plane for each held-out frame. Each pair is scored over all held-out frames by its returned planes: the
 worse of the mean angular and mean point error, each per frame in units of peak's median error and capped at
 10 (so frames on which both methods fail do not decide). Of the pairs within one standard error of the best score
-(:data:`FALLBACK_SCORE_SE`) the one that keeps diff on the most frames wins. There is no "always fall back" candidate: where
+(:data:`FALLBACK_SCORE_SE`) the one with the largest chi-square limit wins, then the one that keeps diff on the most
+frames. There is no "always fall back" candidate: where
 diff's own covariance says it reads the slope better, a level sweep cannot tell otherwise, and the
 per-frame comparison already returns peak where peak reads better. Then ties go to the larger chi-square limit
 and the ratio nearest 1. Units: rad, m.
@@ -329,13 +330,16 @@ CV_FOLDS = 3
 
 #: Candidate ratios of diff's to peak's tilt variance under which diff keeps its plane.
 PREFER_RATIOS = (0.25, 0.5, 1.0, 2.0, 4.0)
-#: :func:`select_fallback` takes the pair that keeps diff on the most frames among those whose held-out score is within
-#: this many standard errors of the best (the "one standard error" rule of cross-validation): a level sweep reads
-#: both methods' planes to a few hundredths of a degree, and a difference in score smaller than its own scatter over
-#: the frames says nothing about the tilted planes the sweep does not contain. With the best score alone (before),
-#: simulated units whose forward model fits (RMS 0.8-1.1) were given the median chi-square as their limit by a score
-#: 1 % better (unit 31: 1.093 against 1.103 for 5.0) and fell back on 59-81 % of their tilted frames, where diff's
-#: own plane read 0.07 deg and peak's 1.36 (docs/results.md, "The forward fit's two basins, landed").
+#: :func:`select_fallback` takes, among the pairs whose held-out score is within this many standard errors of the best
+#: (the "one standard error" rule of cross-validation), the one with the largest chi-square limit, then the one that
+#: keeps diff on the most frames. A level sweep reads both methods' planes to a few hundredths of a degree, and a
+#: difference in score smaller than its own scatter over the frames says nothing about the tilted planes the sweep
+#: does not contain; on a level sweep the calibration frames' chi-square grows as they come closer (brighter), so
+#: a limit at its median is a distance cut, not a test of the fit. With the best score alone (before), simulated units
+#: whose forward model fits (RMS 0.8-1.1) were given the median chi-square as their limit by a score 1 % better
+#: (unit 31: 1.093 against 1.103 for 5.0) and fell back on 59-81 % of their tilted frames, where diff's own plane
+#: read 0.07 deg and peak's 1.36 (docs/results.md, "The forward fit's two basins, landed"). The most frames first
+#: instead (tried) chose unit B's median chi-square with ratio 1 over the largest limit with ratio 0.5 (77 % fallback).
 FALLBACK_SCORE_SE = 1.0
 
 
@@ -359,9 +363,9 @@ def select_fallback(chi2: np.ndarray, consistent: np.ndarray, var_ratio: np.ndar
     with peak, ``var_ratio`` diff's tilt variance over peak's (NaN: no comparison, diff kept), all as seen on
     the frame held out; ``diff_errors``, ``peak_errors`` (F, M): errors on M metrics in comparable units.
     A frame returns diff's plane when ``chi2 <= chi2_limit``, it is consistent and ``var_ratio <=
-    prefer_ratio``; the score is the worse metric's mean error of the planes returned. The pair chosen is the one that
-    keeps diff on the most frames among those scoring within one standard error of the best (the best score's
-    standard error over the frames: :data:`FALLBACK_SCORE_SE`); then the larger limit, then the ratio nearest 1.
+    prefer_ratio``; the score is the worse metric's mean error of the planes returned. Among the pairs scoring within
+    one standard error of the best (the best score's standard error over the frames: :data:`FALLBACK_SCORE_SE`) the
+    one with the largest limit wins; then the one that keeps diff on the most frames, then the ratio nearest 1.
     Returns the pair and every candidate's score (``within_se``: whether it was within).
     """
     chi2 = np.asarray(chi2, dtype=float)
@@ -385,7 +389,7 @@ def select_fallback(chi2: np.ndarray, consistent: np.ndarray, var_ratio: np.ndar
     for t in table:
         t["within_se"] = bool(t["score"] <= bound * (1 + 1e-9) + 1e-12)
     pick = max((t for t in table if t["within_se"]),
-               key=lambda t: (t["frames_using_diff"], t["chi2_limit"], -abs(math.log(t["prefer_ratio"]))))
+               key=lambda t: (t["chi2_limit"], t["frames_using_diff"], -abs(math.log(t["prefer_ratio"]))))
     return pick["chi2_limit"], pick["prefer_ratio"], table
 
 

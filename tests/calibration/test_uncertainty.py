@@ -65,7 +65,7 @@ def test_a_score_better_by_less_than_its_standard_error_does_not_take_diff_away(
     """Level frames both methods read well, diff a hair worse on the farther half (by a twentieth of the frames'
     scatter): the limits that keep diff everywhere score within one standard error of the best and win (a level sweep
     cannot show what the narrower limit would cost on tilted planes). The same frames with diff clearly worse there:
-    the narrower limit."""
+    diff is kept on none of them."""
     rng = np.random.default_rng(4)
     n = 40
     chi2 = np.linspace(1.0, 3.0, n)
@@ -79,8 +79,11 @@ def test_a_score_better_by_less_than_its_standard_error_does_not_take_diff_away(
     best = min(t["score"] for t in table)
     assert [t for t in table if t["chi2_limit"] == 3.0 and t["prefer_ratio"] == prefer][0]["score"] > best
     assert [t for t in table if t["score"] == best][0]["chi2_limit"] == 2.0  # the best score alone: the narrower one
+    # diff clearly worse on the farther half: the pair returned keeps diff on none of those frames (the narrower
+    # limit, or a ratio that returns peak's plane)
     diff[far] = peak[far] + 3.0
-    assert select_fallback(chi2, ok, ratio, diff, peak, [2.0, 3.0])[0] == 2.0
+    limit, prefer, table = select_fallback(chi2, ok, ratio, diff, peak, [2.0, 3.0])
+    assert not np.any(far & (chi2 <= limit) & ~(ratio > prefer))
 
 
 def test_preference_ratio_keeps_diff_where_its_covariance_says_it_reads_better():
