@@ -24,7 +24,7 @@ from place_safe.recovery.forward import ForwardParams
 def fit_from(frames, blend: float | None, middle_only: bool = False) -> str:
     """One fit; ``blend`` None: the default start. ``middle_only``: no further blend starts."""
     plain_params, plain_structural, plain_starts = ff.ForwardParams, ff.STRUCTURAL, ff.PULSE_SOFT_BIN_STARTS
-    if middle_only:
+    if middle_only or blend is not None:  # (from a given blend, not again from 0.02)
         ff.PULSE_SOFT_BIN_STARTS = ()
     if blend is not None:
         class Start(ForwardParams):

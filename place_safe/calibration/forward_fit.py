@@ -314,8 +314,9 @@ def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, prog
     (135 would cut the pulse's tail below 0.2 % of its peak and lower the rest: up to 20 sigma a bin on
     bright returns, and an RMS scaled residual of 2.2 instead of 1.2 on the independent generator's
     frames); frames rendered by a model that subtracts 135 need the second. With the default ``init`` and a coarse
-    stage, the coarse stage runs from both floors with each of :data:`TAIL_DECAY_STARTS` and the fit goes on from
-    the run whose objective ended lowest (report: ``solver.coarse.starts``); without a coarse stage, from the floor
+    stage, the coarse stage runs from both floors with each of :data:`TAIL_DECAY_STARTS`, then from the winner's
+    decay and floor with the pulse's soft-binning blend at each of :data:`PULSE_SOFT_BIN_STARTS`, and the fit goes on
+    from the run whose objective ended lowest (report: ``solver.coarse.starts``); without a coarse stage, from the floor
     that starts with the smaller residual. The report gives both starting residuals (at the chosen start's tail
     decay) under ``ref_floor`` (``measured``, ``published``, ``chosen``).
     iterations: Levenberg-Marquardt iterations (Jacobians) at most, per run (each coarse start, the full fit; the
@@ -324,7 +325,8 @@ def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, prog
     parameters; more only cost time).
 
     The structural choices (:data:`STRUCTURAL`: pulse soft binning, saturation before shading,
-    crosstalk including the zone, zone gains inside the saturation) are fitted as blends in [0, 1] from the middle, so the data choose
+    crosstalk including the zone, zone gains inside the saturation) are fitted as blends in [0, 1] from the middle
+    (the pulse's soft binning also from :data:`PULSE_SOFT_BIN_STARTS`), so the data choose
     them; the report lists them under ``structural_choices``. After the first fit, frames whose RMS
     scaled residual is above :data:`BAD_FRAME_FACTOR` times the median are excluded (counted in
     ``frames_excluded_as_bad``) and the fit repeated from its solution; ``converged`` says whether the
@@ -745,8 +747,17 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
             model.t["ref_floor"] = won.ref_floor
             for blend in PULSE_SOFT_BIN_STARTS:
                 z = _with_value(won.z, layout, "pulse_soft_bin", blend, lower, won.upper)
-                z[n_cam:] = start_albedos(torch.as_tensor(z[:n_cam], dtype=dtype)).numpy()
-                st = _Start(won.decay, won.floor_name, *albedo_bounds(z), won.ref_floor, won.floor_report, blend)
+                cam = torch.as_tensor(z[:n_cam], dtype=dtype)
+                coarse_model, model = model, full  # the albedos and the starting residual on the full quadrature,
+                la = start_albedos(cam)            # as every other start's
+                with torch.no_grad():
+                    rms = float(residual(cam, la).pow(2).mean().sqrt())
+                model = coarse_model
+                z[n_cam:] = la.numpy()
+                report = {k: dict(v) if isinstance(v, dict) else v for k, v in won.floor_report.items()}
+                if won.floor_name in report:  # the floor's starting residual is this start's, at this blend
+                    report[won.floor_name].update(rms_scaled_residual_at_start=rms, pulse_soft_bin=blend)
+                st = _Start(won.decay, won.floor_name, *albedo_bounds(z), won.ref_floor, report, blend)
                 starts.append(st)
                 stage(f"forward model, coarse start {len(starts)}/{len(starts)} (pulse soft-binning blend {blend:g})")
                 try:
@@ -852,7 +863,8 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
                        "rays": coarse_rays, "jacobians": sum(r.iterations for r in runs if r is not None),
                        "message": coarse.reason,
                        "starts": [{"tail_decay_bins": st.decay, "ref_floor": st.floor_name,
-                                   "pulse_soft_bin": 0.5 if st.pulse_soft_bin is None else st.pulse_soft_bin,
+                                   "pulse_soft_bin": float(init.pulse_soft_bin) if st.pulse_soft_bin is None
+                                   else st.pulse_soft_bin,
                                    "chosen": r is coarse,
                                    "objective_rms": None if r is None else math.sqrt(2 * data_cost(r.fun) / n_res),
                                    "objective_rms_with_priors": math.sqrt(2 * c / n_res) if math.isfinite(c) else None}

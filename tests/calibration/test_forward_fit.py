@@ -411,6 +411,11 @@ def test_the_coarse_stage_starts_from_each_tail_decay_and_floor_and_keeps_the_lo
     assert len(chosen) == 1 and chosen[0]["objective_rms_with_priors"] == min(
         s["objective_rms_with_priors"] for s in starts)
     assert report["solver"]["coarse"]["rms_scaled_residual"] <= chosen[0]["objective_rms"] + 1e-9
+    assert report["ref_floor"]["chosen"] == chosen[0]["ref_floor"]
+    # the residual reported before the fit is the chosen start's (here the blend's: its floor's entry says so)
+    entry = report["ref_floor"][chosen[0]["ref_floor"]]
+    assert entry.get("pulse_soft_bin", 0.5) == chosen[0]["pulse_soft_bin"]
+    assert report["rms_scaled_residual_before"] == pytest.approx(entry["rms_scaled_residual_at_start"], rel=0.02)
     # the floors' bookkeeping, from the blend's middle alone
     monkeypatch.setattr(ff, "PULSE_SOFT_BIN_STARTS", ())
     _, report = fit_forward(frames, progress=False, rays=3, iterations=8)
