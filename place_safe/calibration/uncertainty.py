@@ -51,8 +51,8 @@ for each, diff's floor is fitted on the others and every candidate pair (chi2_li
 plane for each held-out frame. Each pair is scored over all held-out frames by its returned planes: the
 worse of the mean angular and mean point error, each per frame in units of peak's median error and capped at
 10 (so frames on which both methods fail do not decide). Of the pairs within one standard error of the best score
-(:data:`FALLBACK_SCORE_SE`, paired: each against the best on the same frames) and keeping diff on at least as many
-frames as the best, the one with the largest chi-square limit wins, then the one that keeps diff on the most frames,
+(:data:`FALLBACK_SCORE_SE`, paired: each against the best on the same frames) and keeping diff on some frame (where
+the best does), the one with the largest chi-square limit wins, then the one that keeps diff on the most frames,
 then the ratio nearest 1. There is no "always fall back" candidate: where
 diff's own covariance says it reads the slope better, a level sweep cannot tell otherwise, and the
 per-frame comparison already returns peak where peak reads better. Units: rad, m.
@@ -372,8 +372,8 @@ def select_fallback(chi2: np.ndarray, consistent: np.ndarray, var_ratio: np.ndar
     prefer_ratio``; the score is the worse metric's mean error of the planes returned. Among the pairs scoring within
     one standard error of the best (:data:`FALLBACK_SCORE_SE`; the standard error of the mean difference, frame by
     frame, between the pair's returned errors and the best's, on the metric that gives the pair its score) the one
-    with the largest limit wins, of those that keep diff on at least as many frames as the best; then the one that
-    keeps diff on the most frames, then the ratio nearest 1.
+    with the largest limit wins (of those that keep diff on some frame, where the best does); then the one that keeps
+    diff on the most frames, then the ratio nearest 1.
     Returns the pair and every candidate's score (``within_se``: whether it was within).
     """
     chi2 = np.asarray(chi2, dtype=float)
@@ -399,9 +399,11 @@ def select_fallback(chi2: np.ndarray, consistent: np.ndarray, var_ratio: np.ndar
         m = int(np.argmax(np.mean(sel, axis=0))) if n else 0
         se = float(np.std(sel[:, m] - returned[k][:, m]) / math.sqrt(n)) if n > 1 else 0.0
         t["within_se"] = bool(t["score"] - table[k]["score"] <= FALLBACK_SCORE_SE * se + 1e-12 * max(1.0, t["score"]))
-    # (never a pair that keeps diff on fewer frames than the best: a larger limit with a ratio that returns peak's
-    # plane everywhere is not the more open pair)
-    pick = max((t for t in table if t["within_se"] and t["frames_using_diff"] >= table[k]["frames_using_diff"]),
+    # (never a pair that keeps diff on no frame where the best keeps it on some: a larger limit with a ratio that
+    # returns peak's plane everywhere is not the more open pair; fewer frames than the best is allowed: unit 31's best
+    # kept 69 frames with the median chi-square as its limit and ratio 4, the open limit with ratio 1 kept 50)
+    pick = max((t for t in table if t["within_se"] and (t["frames_using_diff"] > 0 or
+                                                        table[k]["frames_using_diff"] == 0)),
                key=lambda t: (t["chi2_limit"], t["frames_using_diff"], -abs(math.log(t["prefer_ratio"]))))
     return pick["chi2_limit"], pick["prefer_ratio"], table
 

@@ -90,8 +90,8 @@ def test_a_score_better_by_less_than_its_standard_error_does_not_take_diff_away(
 
 def test_a_larger_limit_is_not_taken_with_a_ratio_that_returns_peak_everywhere():
     """A frame both methods fail (capped errors) and diff worse beyond chi-square 2: the best pair keeps diff on the
-    nearer frames (ratio 0.5); a larger limit with ratio 0.25 keeps it nowhere and scores within noise, but it is not
-    the more open pair: the pick keeps diff on at least as many frames as the best."""
+    nearer frames (ratio 0.5); a larger limit with ratio 0.25 keeps it nowhere and is not the more open pair: the pick
+    keeps diff on some frames, and on none where it reads worse."""
     n = 40
     chi2 = np.linspace(1.0, 3.0, n)
     peak = np.ones((n, 2))
@@ -102,8 +102,16 @@ def test_a_larger_limit_is_not_taken_with_a_ratio_that_returns_peak_everywhere()
     limit, prefer, table = select_fallback(chi2, ok, ratio, diff, peak, [2.0, 3.0, 6.0])
     best = min(table, key=lambda t: t["score"])
     chosen = [t for t in table if t["chi2_limit"] == limit and t["prefer_ratio"] == prefer][0]
-    assert chosen["frames_using_diff"] >= best["frames_using_diff"] > 0
-    assert limit == 2.0
+    assert chosen["frames_using_diff"] > 0 and best["frames_using_diff"] > 0
+    assert limit == 2.0 and prefer >= 0.5
+    # the same, the pairs' scores made equal (a steady cost nowhere): the larger limits with ratio 0.25 tie with the
+    # best, and still the pick keeps diff on some frame
+    diff[chi2 > 2.0] = 1.0
+    diff[chi2 <= 2.0] = 1.0
+    diff[-1] = 10.0
+    limit, prefer, table = select_fallback(chi2, ok, ratio, diff, peak, [2.0, 3.0, 6.0])
+    chosen = [t for t in table if t["chi2_limit"] == limit and t["prefer_ratio"] == prefer][0]
+    assert chosen["frames_using_diff"] > 0 and limit == 6.0
 
 
 def test_preference_ratio_keeps_diff_where_its_covariance_says_it_reads_better():
