@@ -20,6 +20,7 @@ import torch
 
 from place_safe.calibration import Calibration
 from place_safe.calibration import uncertainty as U
+from place_safe.calibration.points import tilt_angles
 from place_safe.evaluation.metrics import nees
 from place_safe.io.frame_file import load_frames
 from place_safe.recovery import make_estimator
@@ -60,7 +61,8 @@ def main() -> None:
             stated = [PlaneEstimate(x.plane, covariance=term.apply(x.covariance, x.plane.offset, x.plane.normal))
                       for x, _ in own]
             line.append(f"({tf:g}, {of:g}) {np.nanmean(nees(stated, [t for _, t in own])):.2f}")
-        steep = [(x, t) for x, t in own if math.degrees(math.acos(min(abs(t.normal[2]), 1.0))) >= 3.0]
+        tilts = tilt_angles(np.array([t.normal for _, t in own]).reshape(-1, 3))
+        steep = [xt for xt, tilt in zip(own, tilts) if tilt >= math.radians(3.0)]
         _, need = U.size_tilt_term([x for x, _ in steep], [t for _, t in steep], unc)
         line.append(f"need: tilt {need.get('tilt_rel_sized', math.nan):.4f}, "
                     f"offset {need.get('tilt_offset_rel_sized', math.nan):.5f} (frames tilted >= 3 deg)")

@@ -726,24 +726,33 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
         model.t = full.t  # the same parameter tensors (unpack writes them)
         runs: list = []
         failed: list[ArithmeticError] = []
+
+        def run_coarse(st: _Start) -> None:
+            """One coarse run from ``st``, appended to ``runs`` (None when its residuals are not finite: the other
+            starts may still run)."""
+            try:
+                runs.append(gauss_newton.solve(fun, jac, st.z, lower, st.upper, max_iterations=iterations,
+                                               damping=INITIAL_DAMPING, relative_tol=COARSE_RELATIVE_DECREMENT,
+                                               decrement_tol=COARSE_DECREMENT))
+            except ArithmeticError as exc:
+                runs.append(None)
+                failed.append(exc)
+
+        def run_costs() -> list[float]:
+            """The objective with its prior rows, the one each run minimised (inf: the run failed)."""
+            return [r.cost if r is not None and math.isfinite(r.cost) else math.inf for r in runs]
+
         for k, st in enumerate(starts, 1):
             model.t["ref_floor"] = st.ref_floor
             stage(f"forward model, coarse start {k}/{len(starts)}"
                   + (f" ({st.decay:g}-bin tails, {st.floor_name} floor)" if st.decay is not None and st.floor_name
                      else ""))
-            try:
-                runs.append(gauss_newton.solve(fun, jac, st.z, lower, st.upper, max_iterations=iterations,
-                                               damping=INITIAL_DAMPING, relative_tol=COARSE_RELATIVE_DECREMENT,
-                                               decrement_tol=COARSE_DECREMENT))
-            except ArithmeticError as exc:  # residuals not finite from this start: the others may still run
-                runs.append(None)
-                failed.append(exc)
+            run_coarse(st)
         if len(failed) == len(runs):
             raise failed[0]
         if default_start and PULSE_SOFT_BIN_STARTS and any(name == "pulse_soft_bin" for name, _, _ in layout):
             # the pulse's soft binning from elsewhere, at the tail decay and floor that ran lowest from 0.5
-            costs = [r.cost if r is not None and math.isfinite(r.cost) else math.inf for r in runs]
-            won = starts[int(np.argmin(costs))]
+            won = starts[int(np.argmin(run_costs()))]
             model.t["ref_floor"] = won.ref_floor
             for blend in PULSE_SOFT_BIN_STARTS:
                 z = _with_value(won.z, layout, "pulse_soft_bin", blend, lower, won.upper)
@@ -760,14 +769,8 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
                 st = _Start(won.decay, won.floor_name, *albedo_bounds(z), won.ref_floor, report, blend)
                 starts.append(st)
                 stage(f"forward model, coarse start {len(starts)}/{len(starts)} (pulse soft-binning blend {blend:g})")
-                try:
-                    runs.append(gauss_newton.solve(fun, jac, st.z, lower, st.upper, max_iterations=iterations,
-                                                   damping=INITIAL_DAMPING, relative_tol=COARSE_RELATIVE_DECREMENT,
-                                                   decrement_tol=COARSE_DECREMENT))
-                except ArithmeticError:  # this start's residuals not finite: the runs from 0.5 stand
-                    runs.append(None)
-        # the objective with its prior rows, the one each run minimised
-        costs = [r.cost if r is not None and math.isfinite(r.cost) else math.inf for r in runs]
+                run_coarse(st)  # (not finite: the runs from 0.5 stand)
+        costs = run_costs()
         best = int(np.argmin(costs))
         coarse, chosen = runs[best], starts[best]
         upper, model.t["ref_floor"], floor_choice = chosen.upper, chosen.ref_floor, chosen.floor_report

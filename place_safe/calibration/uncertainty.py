@@ -334,23 +334,24 @@ CV_FOLDS = 3
 PREFER_RATIOS = (0.25, 0.5, 1.0, 2.0, 4.0)
 #: :func:`select_fallback` takes, among the pairs whose held-out score is within this many standard errors of the best
 #: (the "one standard error" rule of cross-validation, paired) and that keep diff on some frame where the best does,
-#: the one with the largest chi-square limit, then the one that keeps diff on the most frames. Two stricter forms were
-#: measured and not taken: within one standard error on every metric (the generator with sensor seed 0, whose level
-#: frames diff reads 0.030 mm against peak's 0.026, then kept its median chi-square as the limit: 90 % fallback on its
-#: tilted frames, where diff reads 0.11 deg and peak 0.21); and asking for at least half the best's frames on diff
-#: would exclude that generator's pick as it is (the open limit with ratio 0.25: diff on 4 of its level frames against
-#: the best's 69, and on 96 % of its tilted frames, where peak's stated tilt term grows), not measured further. A level sweep reads both methods' planes to a few hundredths of a degree, and a
-#: difference in score smaller than its own scatter over the frames says nothing about the tilted planes the sweep
-#: does not contain; on a level sweep the calibration frames' chi-square grows as they come closer (brighter), so
-#: a limit at its median is a distance cut, not a test of the fit. With the best score alone (before), simulated units
-#: whose forward model fits (RMS 0.8-1.1) were given the median chi-square as their limit by a score 1 % better
-#: (unit 31: 1.093 against 1.103 for 5.0) and fell back on 59-81 % of their tilted frames, where diff's own plane
-#: read 0.07 deg and peak's 1.36 (docs/results.md, "The forward fit's two basins, landed"). The most frames first
-#: instead (tried) chose unit B's median chi-square with ratio 1 over the largest limit with ratio 0.5 (77 % fallback).
-#: The standard error is paired (each pair against the best on the same frames): the two score the same frames, whose
-#: errors they share, so their difference scatters far less than either score. With the best score's own standard
-#: error instead (tried) the real odd half's calibration kept diff on 96 % of the even half's frames, 0.161 deg
-#: against peak's 0.156; paired, on 42 %, 0.142 deg, as the best score alone chose; the units' picks are the same.
+#: the one with the largest chi-square limit, then the one that keeps diff on the most frames. A level sweep reads
+#: both methods' planes to a few hundredths of a degree, and a difference in score smaller than its own scatter over
+#: the frames says nothing about the tilted planes the sweep does not contain; on a level sweep the calibration
+#: frames' chi-square grows as they come closer (brighter), so a limit at its median is a distance cut, not a test of
+#: the fit. With the best score alone (before), simulated units whose forward model fits (RMS 0.8-1.1) were given the
+#: median chi-square as their limit by a score 1 % better (unit 31: 1.093 against 1.103 for 5.0) and fell back on
+#: 59-81 % of their tilted frames, where diff's own plane read 0.07 deg and peak's 1.36 (docs/results.md, "The forward
+#: fit's two basins, landed"). The most frames first instead (tried) chose unit B's median chi-square with ratio 1
+#: over the largest limit with ratio 0.5 (77 % fallback). The standard error is paired (each pair against the best on
+#: the same frames): the two score the same frames, whose errors they share, so their difference scatters far less
+#: than either score. With the best score's own standard error instead (tried) the real odd half's calibration kept
+#: diff on 96 % of the even half's frames, 0.161 deg against peak's 0.156; paired, on 43 %, 0.132 deg; the units'
+#: picks are the same. Two stricter forms were weighed and not taken: within one standard error on every metric
+#: (measured: the generator with sensor seed 0, whose level frames diff reads 0.030 mm against peak's 0.026, then kept
+#: its median chi-square as the limit, 90 % fallback on its tilted frames, where diff reads 0.11 deg and peak 0.21);
+#: and at least half the best's frames on diff, which would exclude that generator's pick as it is (the open limit with
+#: ratio 0.25: diff on 4 of its level frames against the best's 69, and on 96 % of its tilted frames, where peak's
+#: stated tilt term grows; not measured further).
 FALLBACK_SCORE_SE = 1.0
 
 
@@ -886,5 +887,6 @@ __all__ = ["update_calibration", "nees", "fit_floor", "fit_peak_uncertainty", "f
            "chi2_candidates", "near_std_law", "fit_near_law", "near_law_table", "near_law_parameters", "knot_factor",
            "NEAR_KNOT_SHARE", "NEAR_REFERENCE_DEPTH", "CONSISTENCY_LIMIT", "PEAK_TILT_REL",
            "DIFF_TILT_REL", "DIFF_TILT_OFFSET_REL", "DIFF_TILT_PIVOT", "DIFF_TILTED_SHARE",
-           "DIFF_TILT_FLOOR", "DIFF_TILT_PER_ERROR", "DIFF_TILT_OFFSET_PER_ERROR", "diff_tilt_term",
-           "size_tilt_term", "TILT_TERM_MIN_FRAMES", "TILT_TERM_SCALES", "TILT_TERM_NOTE", "CV_FOLDS", "PREFER_RATIOS"]
+           "DIFF_TILT_FLOOR", "DIFF_TILT_PER_ERROR", "DIFF_TILT_OFFSET_FLOOR", "DIFF_TILT_OFFSET_PER_ERROR",
+           "diff_tilt_term", "size_tilt_term", "TILT_TERM_MIN_FRAMES", "TILT_TERM_SCALES", "TILT_TERM_NOTE", "CV_FOLDS",
+           "PREFER_RATIOS", "FALLBACK_SCORE_SE"]
