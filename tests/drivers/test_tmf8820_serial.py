@@ -143,3 +143,14 @@ def test_reads_a_serial_port_through_pyserial():
     finally:
         os.close(master)
         os.close(slave)
+
+
+def test_a_lost_result_line_drops_that_measurement_once_and_keeps_the_next():
+    lines = _lines(FRAMES[:3])
+    del lines[2 + 31 * 1 + 30]  # measurement 1's #Obj line: its packets are followed by measurement 2's
+    src = BridgeSource.from_lines(lines)
+    got = list(src.frames())
+    assert len(got) == 2
+    _same(got[0], FRAMES[0])
+    _same(got[1], FRAMES[2])
+    assert src.stats["dropped_frames"] == 1 and src.stats["overwritten"] == 1 and src.stats["missing_packet"] == 0

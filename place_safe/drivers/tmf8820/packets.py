@@ -185,16 +185,17 @@ class MeasurementAssembler:
     counters), never a list that grows while the device misbehaves.
 
     ``add_histogram`` returns None, or the reason the measurement in progress was dropped when this packet
-    started a new one: a packet 0 arriving while the measurement already holds a packet 0, or any packet
-    numbered 2 or more (a swap of neighbouring packets moves packet 0 behind packet 1 only), means the
-    device moved on to its next measurement (``"overwritten"``: the host was too slow, or the rest was
-    lost); the new packet 0 then starts the new measurement, and ``drops`` lists what the dropped one showed.
-    A 31st histogram packet without a result frame in between drops the measurement too (its result went
-    missing: ``"missing_packet"``) and starts the next one, so at most 30 packets are ever counted.
+    started a new one. The chip sends each packet of a measurement once, so a packet whose number the
+    measurement already holds, or a packet 0 arriving after any packet numbered 2 or more (a swap of
+    neighbouring packets moves packet 0 behind packet 1 only), means the device moved on to its next
+    measurement (``"overwritten"``: the host was too slow, or the rest, e.g. the result frame, was lost);
+    this packet then starts the new measurement (which may begin with packet 1 when its first two were
+    swapped), and ``drops`` lists what the dropped one showed. So a measurement never holds a packet
+    twice and at most 30 packets are ever counted (a 31st would drop it as ``"missing_packet"``: a guard).
     ``add_result`` returns a Frame, or None with
     ``drops`` saying why: the reason given to :meth:`mark` (e.g. ``"short_read"``, ``"bad_packet"``),
     else ``"missing_packet"`` if packets were missing and/or ``"out_of_order"`` if the packets that
-    arrived did not come in increasing order (or some came twice); ``last_drop`` is the first of them.
+    arrived did not come in increasing order; ``last_drop`` is the first of them.
     ``discard()`` forgets the current measurement without counting it. ``tag`` (e.g. the sub-header's
     payload size and config id) must be the same for every packet of a measurement, else it is marked
     ``"bad_packet"``.
@@ -238,7 +239,8 @@ class MeasurementAssembler:
 
     def add_histogram(self, number: int, data: bytes, tag: object = None) -> str | None:
         dropped = None
-        moved_on = number == 0 and (0 in self._blocks or any(k > 1 for k in self._blocks))
+        # the chip sends each packet of a measurement once: a number already held belongs to the next one
+        moved_on = number in self._blocks or (number == 0 and any(k > 1 for k in self._blocks))
         if moved_on or self._count >= R.HIST_PACKETS:
             dropped = str(self._short) if self._short else "overwritten" if moved_on else "missing_packet"
             # what it showed: its reason, and disorder among the packets that came (not the ones that did not)
@@ -250,8 +252,6 @@ class MeasurementAssembler:
         self._tag = tag
         if self._last is not None and number <= self._last:
             self._disorder = True
-        if number in self._blocks:
-            self._disorder = True
         self._last = number
         self._count += 1
         self._blocks[number] = data
@@ -259,7 +259,7 @@ class MeasurementAssembler:
 
     def add_result(self, res: Result, timestamp: float | None = None, **extra) -> Frame | None:
         """Close the measurement: the Frame if it is whole, else None with ``last_drop`` set."""
-        blocks, short, disorder, count = self._blocks, self._short, self._disorder, self._count
+        blocks, short, disorder = self._blocks, self._short, self._disorder
         self.discard()
         self.drops = []
         if short:
@@ -267,7 +267,7 @@ class MeasurementAssembler:
         # every fault of the measurement is reported, also when an earlier one already condemned it
         if len(blocks) < R.HIST_PACKETS:
             self.drops.append("missing_packet")
-        if disorder or count != len(blocks):
+        if disorder:
             self.drops.append("out_of_order")
         self.last_drop = self.drops[0] if self.drops else None
         if self.drops:
