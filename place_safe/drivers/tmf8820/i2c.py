@@ -869,7 +869,7 @@ class TMF8820Source(FrameSource):
             fresh = not self._asm.started
             dropped = self._asm.add_histogram(number, data, tag=(buf[5], buf[6]))
             if dropped is not None:
-                self._count_drops(self._asm.drops)
+                P.count_drops(self.stats, self._asm.drops)
             if fresh or dropped is not None:
                 self._first_seen = seen
                 self._next_due = seen + self.period_in_use_ms / 1000.0
@@ -904,7 +904,7 @@ class TMF8820Source(FrameSource):
             frame = self._asm.add_result(res)
             self.stats["decode_seconds"] += time.perf_counter() - t0
             if frame is None:
-                self._count_drops(self._asm.drops)
+                P.count_drops(self.stats, self._asm.drops)
                 return None
             frame.timestamp = self._ticks.stamp(res.sys_ticks, first) if res.ticks_valid else first
             self.stats["frames"] += 1
@@ -917,13 +917,6 @@ class TMF8820Source(FrameSource):
         self._asm.mark("bad_packet")
         self._write(R.INT_STATUS, [bits & R.INT_MEASUREMENT or R.INT_MEASUREMENT])
         return None
-
-    def _count_drops(self, reasons: list[str]) -> None:
-        """A dropped measurement: counted once in ``dropped_frames`` and under each packet-level reason."""
-        for reason in reasons:
-            if reason in ("missing_packet", "out_of_order", "overwritten"):
-                self.stats[reason] += 1
-        self.stats["dropped_frames"] += 1
 
     def close(self) -> None:
         if self._closed:

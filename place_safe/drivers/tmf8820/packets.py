@@ -275,6 +275,21 @@ class MeasurementAssembler:
         return build_frame(join_channels([blocks[k] for k in range(R.HIST_PACKETS)]), res, timestamp, **extra)
 
 
+#: The reasons a dropped measurement is counted under in a source's ``stats`` (:func:`count_drops`); the others
+#: (``short_read``, ``bad_packet``) are counted where the transfer failed.
+PACKET_DROP_REASONS = ("missing_packet", "out_of_order", "overwritten")
+
+
+def count_drops(stats: dict[str, int], reasons: list[str]) -> None:
+    """A dropped measurement (``MeasurementAssembler.drops``): counted once in ``stats["dropped_frames"]`` and
+    under each of its packet-level reasons (:data:`PACKET_DROP_REASONS`)."""
+    for reason in reasons:
+        if reason in PACKET_DROP_REASONS:
+            stats[reason] += 1
+    stats["dropped_frames"] += 1
+
+
 __all__ = ["PacketError", "Header", "Result", "decode_header", "encode_result", "decode_result",
            "encode_histogram_packet", "decode_histogram_packet", "split_channels", "join_channels",
-           "result_from_frame", "frame_channels", "build_frame", "MeasurementAssembler"]
+           "result_from_frame", "frame_channels", "build_frame", "MeasurementAssembler", "PACKET_DROP_REASONS",
+           "count_drops"]

@@ -144,8 +144,7 @@ class BridgeSource(FrameSource):
         self._first_seen: float | None = None
         self.rate_hz = 4.5
         self.stats: dict[str, int] = {"frames": 0, "dropped_frames": 0, "lines": 0, "other_lines": 0,
-                                      "other_address": 0, "missing_packet": 0, "out_of_order": 0,
-                                      "overwritten": 0,
+                                      "other_address": 0, **{k: 0 for k in P.PACKET_DROP_REASONS},
                                       **{k: 0 for k in LINE_FAULTS}}
 
     @classmethod
@@ -230,25 +229,18 @@ class BridgeSource(FrameSource):
             self._first_seen = self._clock()
         if isinstance(rec, RawLine):
             if self._asm.add_histogram(rec.number, rec.data) is not None:  # a new measurement began: drop the last
-                self._count_drops()
+                P.count_drops(self.stats, self._asm.drops)
                 self._first_seen = self._clock()
             return None
         seen = self._first_seen if self._first_seen is not None else self._clock()
         self._first_seen = None
         frame = self._asm.add_result(rec.result)
         if frame is None:
-            self._count_drops()
+            P.count_drops(self.stats, self._asm.drops)
             return None
         frame.timestamp = self._ticks.stamp(rec.result.sys_ticks, seen) if rec.result.ticks_valid else seen
         self.stats["frames"] += 1
         return frame
-
-    def _count_drops(self) -> None:
-        """A dropped measurement: counted once in ``dropped_frames`` and under each packet-level reason."""
-        for reason in self._asm.drops:
-            if reason in ("missing_packet", "out_of_order", "overwritten"):
-                self.stats[reason] += 1
-        self.stats["dropped_frames"] += 1
 
     def info(self) -> dict[str, Any]:
         return {"source": self.name, "address": None if self.address is None else f"0x{self.address:02x}",
