@@ -8,7 +8,8 @@ sweep (150 frames, table 2-40 cm below the sensor, level) and read on tilted pla
 
 The units: ``A`` (the default :class:`~place_safe.sim.tof_mismatch.MismatchConfig`), ``B`` (seed 11, longer tails:
 docs/results.md, the unit's forward model), ``31``, ``32``, ``33`` (new seeds, their other differences varied within
-the config's bounds: see :data:`UNITS`), and ``synth`` (the independent generator, ``place-safe synth``, sensor seed
+the config's bounds: see :data:`UNITS`), ``34`` (unit A whose zones each have their own time scale, not in the
+default set), and ``synth`` (the independent generator, ``place-safe synth``, sensor seed
 0; ``synth3``: sensor seed 3). Everything runs through the command line a user has (``place-safe calibrate``,
 ``place-safe evaluate --json``); each step's output is kept in ``--out`` and reused when rerun (``--fresh``: redo).
 
@@ -52,6 +53,8 @@ UNITS: dict[str, dict | None] = {
     # light short tails that lengthen fast, fast warming, timing that drifts the other way
     "33": {"seed": 33, "tail_weight": (0.01, 0.05), "tail_decay": (1.5, 3.0), "skew_bins": 0.3, "temp_rate": 1.0,
            "tail_per_degc": 0.02, "drift_bins_per_degc": -0.01, "crosstalk_grid_max": 2e-5},
+    # unit A with each zone's own time scale, +-1.5 % (the real sweep's zones: -0.11 .. +0.08 bins per 10 cm)
+    "34": {"zone_time_scale": 0.015},
 }
 #: The independent generator's units: ``place-safe synth --sensor-seed``.
 SYNTH = {"synth": 0, "synth3": 3}

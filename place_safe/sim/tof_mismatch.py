@@ -24,6 +24,10 @@ model did not generate. The differences (all configurable in :class:`MismatchCon
   ``[1 / (1 + glass_spread), 1 + glass_spread]``, its delay moved by ``glass_delay_std`` bins (normal), and the
   unit leaks ``crosstalk_grid`` (uniform in ``[0, crosstalk_grid_max]`` per neighbour displacement) into its
   neighbours, where the true sensor has none: a calibration made on another unit does not know them.
+* **Each zone's own time scale** (``zone_time_scale``, off by default): a zone's returns land ``1 + u`` times as
+  far from range 0 as the model puts them (``u`` per zone, uniform in +-``zone_time_scale``). The real sweep's
+  zones drift against the model by -0.11 .. +0.08 bins per 10 cm (docs/results.md, the unit model, step 5), about
+  +-1.5 %; on a level sweep this moves a zone's return with distance as its field of view does.
 * **Varying ambient floor**: the ambient level drifts from frame to frame (``ambient_drift``
   relative, a slow sinusoid plus a random walk) and slopes across the histogram bins
   (``ambient_slope`` relative change from first to last bin); the model assumes a flat floor.
@@ -81,6 +85,8 @@ class MismatchConfig(ConfigModel):
     glass_delay_std: float = Field(0.5, ge=0, le=4, description="std of the internal return's delay shift (bins)")
     crosstalk_grid_max: float = Field(4e-5, ge=0, le=0.01, description="largest neighbour crosstalk per "
                                       "displacement (fraction)")
+    zone_time_scale: float = Field(0.0, ge=0, le=0.1, description="each zone's own time scale: its returns "
+                                   "land (1 + u) times as far from range 0, u uniform in +-this (0: none)")
 
 
 class MismatchedToF(SimToF):
@@ -109,6 +115,8 @@ class MismatchedToF(SimToF):
                                                      "crosstalk_grid": [float(g) for g in grid]})
         self.forward = ForwardModel(self.params, ZoneRays.stratified(self.config.rays))
         self._kernel = None
+        # each zone's own time scale (drawn last: the differences above stay what each seed gave them)
+        self._time_scale = 1.0 + rng.uniform(-mc.zone_time_scale, mc.zone_time_scale, N_ZONES)
 
     # -- what differs --------------------------------------------------------------------------
     def temperature(self, t: float) -> float:
@@ -144,7 +152,7 @@ class MismatchedToF(SimToF):
             tail = np.convolve(h[z], np.concatenate([[0.0], self.tail_taps(z, warm)]))[:N_BINS]
             hz = (h[z] + tail) / (1.0 + self._tail_w[z])
             shift = mc.drift_bins_per_degc * warm + self._skew[z] * (warm / 10.0)
-            out[z] = _shift(hz, shift)
+            out[z] = _shift(hz, shift, self._time_scale[z], self.params.bin_offset)
         # an ambient floor that slopes across the bins (the model's floor is flat); measure() adds the mean
         prof = mc.ambient_slope * (np.linspace(0.0, 1.0, N_BINS) - 0.5)
         return out + self.ambient[:, None] * prof[None, :]
@@ -164,11 +172,12 @@ class MismatchedToF(SimToF):
         return f
 
 
-def _shift(h: np.ndarray, s: float) -> np.ndarray:
-    """``h`` delayed by ``s`` bins (linear interpolation; edge values held)."""
-    if s == 0:
+def _shift(h: np.ndarray, s: float, scale: float = 1.0, origin: float = 0.0) -> np.ndarray:
+    """``h`` delayed by ``s`` bins and stretched ``scale`` times about bin ``origin`` (range 0): what lay at bin
+    ``b`` moves to ``origin + scale (b - origin) + s`` (linear interpolation; edge values held)."""
+    if s == 0 and scale == 1.0:
         return h
-    x = np.arange(h.size, dtype=float) - s
+    x = origin + (np.arange(h.size, dtype=float) - s - origin) / scale
     return np.interp(x, np.arange(h.size, dtype=float), h)
 
 

@@ -90,3 +90,35 @@ def test_extra_tails_end_as_exponentials_do():
     assert taps[-1] < 1e-4 * taps[0]
     old = MismatchedToF(scene, None, ToFConfig(noise=False), mc.model_copy(update={"tail_lags": 23}))
     assert old.tail_taps(0, warm=20.0).size == 23 and old.tail_taps(0, warm=20.0)[-1] > 0.09 * old.tail_taps(0, 20.0)[0]
+
+
+def test_a_zones_own_time_scale_moves_its_return_in_proportion_to_range():
+    from place_safe.sim.tof_mismatch import _shift
+
+    # the warp: what lay at bin b lands at origin + scale (b - origin) + s (a full centroid maps exactly)
+    x = np.arange(128, dtype=float)
+    g = np.exp(-0.5 * ((x - 40.0) / 1.5) ** 2)
+    w = _shift(g, 0.5, 1.05, 10.0)
+    assert abs((w * x).sum() / w.sum() - (10.0 + 1.05 * 30.0 + 0.5)) < 0.02
+
+    # off by default (a seed's frames are what they were); on, each zone's return moves with its own sign, by more
+    # the farther the table
+    def centroids(height, mc):
+        scene, data, _, _ = _pair(height)
+        mis = MismatchedToF(scene, data, ToFConfig(noise=False), mc)
+        h = mis.measure().hists
+        h = np.clip(h - np.median(h, axis=1, keepdims=True), 0.0, None)
+        h = np.where(h > 0.2 * h.max(axis=1, keepdims=True), h, 0.0)  # the return, not the floor
+        return (h * np.arange(h.shape[1])).sum(1) / h.sum(1), mis
+
+    still = MismatchConfig(ambient_drift=0.0, ambient_slope=0.0)
+    scaled = still.model_copy(update={"zone_time_scale": 0.05})
+    (near0, _), (near1, mis) = centroids(0.1, still), centroids(0.1, scaled)
+    (far0, _), (far1, _) = centroids(0.35, still), centroids(0.35, scaled)
+    u = mis._time_scale - 1.0
+    assert np.all(np.abs(u) <= 0.05) and np.ptp(u) > 0.02
+    moved = np.abs(u) > 0.005
+    assert np.all(np.sign(far1 - far0)[moved] == np.sign(u)[moved])
+    assert np.all(np.abs(far1 - far0)[moved] > np.abs(near1 - near0)[moved])
+    _, _, _, default = _pair(0.1)
+    assert np.all(default._time_scale == 1.0)
