@@ -177,7 +177,9 @@ def _shift(h: np.ndarray, s: float, scale: float = 1.0, origin: float = 0.0) -> 
     ``b`` moves to ``origin + scale (b - origin) + s`` (linear interpolation; edge values held)."""
     if s == 0 and scale == 1.0:
         return h
-    x = origin + (np.arange(h.size, dtype=float) - s - origin) / scale
+    x = np.arange(h.size, dtype=float) - s
+    if scale != 1.0:  # (no stretch: the delay alone, bit for bit as before the stretch existed)
+        x = origin + (x - origin) / scale
     return np.interp(x, np.arange(h.size, dtype=float), h)
 
 

@@ -228,6 +228,11 @@ def test_a_sensor_that_keeps_resetting_ends_in_a_sensor_error():
 @example(events=[(150, "short_read"), (826, "out_of_order"), (830, "short_read")], seed=23)
 @example(events=[(150, "nak")] * 3 + [(150, "short_read"), (150, "reset"), (807, "out_of_order"),
                                       (826, "short_read")], seed=22)
+# a period change's STOP wipes an unread packet 0 of a swapped pair: the swap was never shown
+@example(events=[(1406, "checksum"), (1603, "short_read"), (646, "out_of_order"), (1750, "missing_packet"),
+                 (1521, "out_of_order"), (1279, "short_read")], seed=59)
+@example(events=[(527, "timeout"), (1208, "reset")], seed=46)  # a reset tears a read's second look
+@example(events=[(1997, "short_read"), (2318, "missing_packet")], seed=90)  # the last measurement still going out
 def test_whatever_the_faults_frames_are_exact_or_the_source_says_why(events, seed):
     """Property: under any schedule of faults the driver hands out only whole, exact frames, or ends in a
     one-line SensorError / SensorTimeout; injected faults are all counted."""
@@ -241,12 +246,18 @@ def test_whatever_the_faults_frames_are_exact_or_the_source_says_why(events, see
         ended = exc
     _assert_exact(src, got)
     st_ = src.stats
-    reset = st_["injected"]["reset"] > 0
+    resets = st_["injected"]["reset"]
+    # the measurement still going out when the reads stopped: its packet faults are counted when it closes
+    pending = src.emulator.pending_faults()
     for kind in FAULT_KINDS:
-        if ended is None and not (reset and kind in ("out_of_order", "missing_packet")):
-            assert st_[kind] == st_["injected"][kind], kind
+        shown = st_["injected"][kind] - pending.get(kind, 0)
+        if kind == "short_read":  # a reset during a read's second look tears that read as a cut would
+            assert st_[kind] <= shown + resets, kind
+            assert ended is not None or st_[kind] >= shown, kind
+        elif ended is None and not (resets and kind in ("out_of_order", "missing_packet")):
+            assert st_[kind] == shown, kind
         else:  # a reset erases the measurement in progress, and packet faults it had not shown yet with it
-            assert st_[kind] <= st_["injected"][kind], kind
+            assert st_[kind] <= shown, kind
     # and no fault is blamed on the host being late: a measurement is dropped as overwritten only if it was
     assert st_["overwritten"] <= src.emulator.stats["overwritten"]
 

@@ -65,10 +65,12 @@ def test_a_cut_packet_never_decodes(prefix):
 @settings(max_examples=200, deadline=None)  # timing varies on a busy machine
 @given(st.lists(st.integers(0, 29), max_size=40), st.booleans())
 @example(numbers=list(range(30)) + [1, 0] + list(range(2, 30)), short=False)  # a lost result, then a swap
+@example(numbers=[0, 1, 1, 0, 1] + list(range(2, 30)), short=False)  # a stray packet 1, then a whole measurement
 def test_the_assembler_never_returns_a_half_frame(numbers, short):
     """Whatever packets arrive, a Frame comes out only for exactly packets 0..29 in order, whole, since the
     last packet that started a new measurement (a number the measurement already held, or a packet 0 after
-    a packet numbered 2 or more: the device moved on), so never more than 30 packets are held."""
+    a packet numbered 2 or more: the device moved on; a packet 1 after a stray 1 and a 0 continues from that
+    0), so never more than 30 packets are held."""
     blocks = P.split_channels(np.ones((10, 128)))
     asm = P.MeasurementAssembler()
     current: list[int] = []
@@ -76,7 +78,11 @@ def test_the_assembler_never_returns_a_half_frame(numbers, short):
         dropped = asm.add_histogram(n, blocks[n])
         moved_on = n in current or (n == 0 and any(k > 1 for k in current))
         assert dropped == ("overwritten" if moved_on else None)
-        current = [n] if dropped else current + [n]
+        stray = moved_on and n == 1 and current == [1, 0]  # a stray 1, then the next measurement's 0 and this 1
+        if dropped:
+            assert asm.drops == ["overwritten"] + (["out_of_order"] if not stray and any(
+                b <= a for a, b in zip(current, current[1:])) else [])
+        current = [0, 1] if stray else [n] if dropped else current + [n]
         assert asm.packets == len(current) <= 30 and len(asm._blocks) <= 30  # one measurement held, at most
     if short:
         asm.mark("short_read")

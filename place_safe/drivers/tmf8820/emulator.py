@@ -599,7 +599,8 @@ class TMF8820Emulator:
             self.measuring = False
             if self._queue or self._current is not None:  # a measurement cut short keeps its feed frame
                 self._carry = self._carry or self._meas_frame
-                self._unseen_faults()
+                # (a packet in the window that the host has not released is wiped unread: not seen either)
+                self._unseen_faults(unread=int(self._current is not None))
             self._queue, self._current, self._next_at = [], None, None
             self.regs[R.INT_STATUS] &= ~R.INT_MEASUREMENT & 0xFF
         elif cmd in (R.CMD_LOAD_CONFIG_COMMON, R.CMD_LOAD_FACTORY_CALIBRATION, R.CMD_LOAD_SPAD_1, R.CMD_LOAD_SPAD_2):
@@ -703,11 +704,19 @@ class TMF8820Emulator:
         elif self._current is None:  # the window was released: the new packet 0 is published next
             self._next_at = min(self._next_at, t_done + self._latency())
 
-    def _unseen_faults(self) -> None:
+    def pending_faults(self) -> dict[str, int]:
+        """Packet faults (``out_of_order``, ``missing_packet``) injected into the measurement still going out, which a
+        host counts only when that measurement closes (its result frame) or is dropped: none once its result frame
+        has been released."""
+        if not self._queue and self._current is None:
+            return {}
+        return {kind: 1 for kind in self._evidence}
+
+    def _unseen_faults(self, unread: int = 0) -> None:
         """The current measurement will not get out whole: packet faults the host never got to see in it
-        are not counted as injected."""
+        are not counted as injected (``unread``: packets published that the host will not read)."""
         for kind, at in self._evidence.items():
-            if self._published <= at:
+            if self._published - unread <= at:
                 self.stats["injected"][kind] -= 1
         self._evidence = {}
 

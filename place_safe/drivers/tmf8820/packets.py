@@ -190,7 +190,8 @@ class MeasurementAssembler:
     neighbouring packets moves packet 0 behind packet 1 only), means the device moved on to its next
     measurement (``"overwritten"``: the host was too slow, or the rest, e.g. the result frame, was lost);
     this packet then starts the new measurement (which may begin with packet 1 when its first two were
-    swapped), and ``drops`` lists what the dropped one showed. So a measurement never holds a packet
+    swapped; a packet 1 after packets 1, 0 keeps that 0 as the new measurement's first, the 1 before it a stray),
+    and ``drops`` lists what the dropped one showed. So a measurement never holds a packet
     twice and at most 30 packets are ever counted (a 31st would drop it as ``"missing_packet"``: a guard).
     ``add_result`` returns a Frame, or None with
     ``drops`` saying why: the reason given to :meth:`mark` (e.g. ``"short_read"``, ``"bad_packet"``),
@@ -241,12 +242,19 @@ class MeasurementAssembler:
         dropped = None
         # the chip sends each packet of a measurement once: a number already held belongs to the next one
         moved_on = number in self._blocks or (number == 0 and any(k > 1 for k in self._blocks))
+        # a packet 1 after packets 1, 0: not a swapped first pair, but a stray packet 1 (the rest of its measurement
+        # overwritten) and then the next measurement's packet 0, which this 1 follows
+        carry = (moved_on and number == 1 and not self._short and self._last == 0 and self._count == 2
+                 and set(self._blocks) == {0, 1})
         if moved_on or self._count >= R.HIST_PACKETS:
             dropped = str(self._short) if self._short else "overwritten" if moved_on else "missing_packet"
             # what it showed: its reason, and disorder among the packets that came (not the ones that did not)
-            self.drops = [dropped] + (["out_of_order"] if self._disorder else [])
+            self.drops = [dropped] + (["out_of_order"] if self._disorder and not carry else [])
             self.last_drop = dropped
+            first, first_tag = self._blocks.get(0), self._tag
             self.discard()
+            if carry:
+                self._blocks, self._count, self._last, self._tag = {0: first}, 1, 0, first_tag
         if self._count and tag != self._tag:
             self.mark("bad_packet")
         self._tag = tag
