@@ -233,6 +233,8 @@ def test_a_sensor_that_keeps_resetting_ends_in_a_sensor_error():
                  (1521, "out_of_order"), (1279, "short_read")], seed=59)
 @example(events=[(527, "timeout"), (1208, "reset")], seed=46)  # a reset tears a read's second look
 @example(events=[(1997, "short_read"), (2318, "missing_packet")], seed=90)  # the last measurement still going out
+# two short reads back to back cut a header read and its second look alike: the 0xFF run is read again on its own
+@example(events=[(520, "short_read"), (908, "missing_packet"), (495, "short_read")], seed=67)
 def test_whatever_the_faults_frames_are_exact_or_the_source_says_why(events, seed):
     """Property: under any schedule of faults the driver hands out only whole, exact frames, or ends in a
     one-line SensorError / SensorTimeout; injected faults are all counted."""

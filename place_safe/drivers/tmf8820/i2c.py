@@ -109,7 +109,6 @@ PUBLISH_GUESS_S = 100e-6
 POLL_MISS_TARGET = 0.05
 #: Packet timings kept for the period model (10 measurements).
 TIMING_WINDOW = 10 * R.HIST_PACKETS
-_TAIL = 8  # reads longer than twice this check a trailing 0xFF run by reading the run again, shorter ones whole
 _KEY = R.HEADER_SIZE + 1  # cid, tid, length (2), packet or result number: a packet's identity
 _RETRY_ERRNOS = {R.ERRNO_NAK: "nak", R.ERRNO_EIO: "eio", R.ERRNO_TIMEOUT: "timeout", errno.EAGAIN: "timeout"}
 
@@ -291,10 +290,12 @@ class TMF8820Source(FrameSource):
         """Read ``n`` register bytes, whole and not cut short by an open bus.
 
         A read that comes back short is read again. A read whose last byte is 0xFF may have been cut short by a
-        device that stopped driving the bus (the rest reads 0xFF, whatever the length says). A long read has its
-        trailing run of 0xFF bytes read again (usually one byte): all 0xFF again, and the first read holds the
-        register bytes (a cut could only have put 0xFF where 0xFF was). A short read is read again whole. When
-        they differ it is read again until a read does not end in 0xFF or two reads agree. Only ever used where
+        device that stopped driving the bus (the rest reads 0xFF, whatever the length says). Its trailing run of
+        0xFF bytes is read again (usually one byte), from the run's first byte: all 0xFF again, and the first read
+        holds the register bytes (a cut could only have put 0xFF where 0xFF was; a read cut again still starts
+        true). A read that is 0xFF throughout is read again whole. When they differ it is read again until a read
+        does not end in 0xFF or two reads agree (two whole reads cut alike would agree: before 2026-11-29 reads of
+        16 bytes or fewer were checked that way, and two identical cuts of a header got through). Only ever used where
         a second read sees the same bytes (registers, a packet whose interrupt is still pending). Counted as
         ``short_read``.
         """
@@ -310,7 +311,7 @@ class TMF8820Source(FrameSource):
             if len(data) != n:
                 self.stats["short_read"] += 1
                 continue
-            if prev is None and tail is None and n > 2 * _TAIL and data[-1] == 0xFF:
+            if prev is None and tail is None and n >= 2 and data[-1] == 0xFF and data[0] != 0xFF:
                 tail_at = len(data.rstrip(b"\xff"))
                 self._reread = True
                 tail = self._read_raw((reg + tail_at) & 0xFF, n - tail_at)
