@@ -311,7 +311,7 @@ class TMF8820Source(FrameSource):
             if len(data) != n:
                 self.stats["short_read"] += 1
                 continue
-            if prev is None and tail is None and n >= 2 and data[-1] == 0xFF and data[0] != 0xFF:
+            if prev is None and tail is None and n >= 2 and data[-1] == 0xFF and data.rstrip(b"\xff"):
                 tail_at = len(data.rstrip(b"\xff"))
                 self._reread = True
                 tail = self._read_raw((reg + tail_at) & 0xFF, n - tail_at)
