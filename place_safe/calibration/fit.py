@@ -21,7 +21,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 
 from place_safe.calibration import REQUIRED_SECTIONS, UNIT_MODELS, Calibration
-from place_safe.calibration.forward_fit import (fit_forward, fit_forward_staged, fit_range_correction,
+from place_safe.calibration.forward_fit import (fit_forward, fit_forward_staged, fit_range_correction, geometry_note,
                                                select_model_error)
 from place_safe.calibration.points import adopt_pileup, fit_peak, fit_proprietary
 from place_safe.calibration.uncertainty import update_calibration
@@ -76,6 +76,9 @@ def fit_method(calibration: Calibration, frames: Sequence[Frame], method: str, p
 
         params.model_error, report["model_error"] = select_model_error(frames, params, cal.peak(), progress=progress,
                                                                        options=options)
+        if (note := geometry_note(params, frames)) is not None:  # (calibrate prints every report's note)
+            report["geometry"] = {"note": note, "edge_fov_scale": params.edge_fov_scale,
+                                  "corner_fov_scale": params.corner_fov_scale, "mount_tilt": list(params.mount_tilt)}
         _store(cal, fitted, "forward", params.to_dict(), report)
 
         section, report = fit_range_correction(frames, params, cal.peak(), progress=progress, options=options)

@@ -488,3 +488,28 @@ def test_a_coarse_start_whose_residuals_are_not_finite_is_skipped(monkeypatch):
     monkeypatch.setattr(gauss_newton, "solve", all_fail)
     with pytest.raises(ArithmeticError):
         ff.fit_forward(_level_frames(6), progress=False, rays=3, iterations=3)
+
+
+def test_a_level_sweep_that_sets_the_geometry_far_from_nominal_gets_a_note():
+    """The real sweep's level fit put its mount tilt at 4.2 deg and its fields of view at 0.81 / 0.67: a level table
+    cannot tell those from each zone's own time scale, and ``calibrate`` says so. Near-nominal geometry, or tilted
+    calibration frames (which do tell), get no note."""
+    from types import SimpleNamespace
+
+    from place_safe.calibration.forward_fit import geometry_note
+    from place_safe.recovery.forward import ForwardParams
+
+    def frames(tilts_deg):
+        return [SimpleNamespace(truth=SimpleNamespace(normal=np.array([math.sin(math.radians(t)), 0.0,
+                                                                       math.cos(math.radians(t))])))
+                for t in tilts_deg]
+
+    level, tilted = frames([0.3, 0.5, 0.4]), frames([0.0, 12.0, 24.0])
+    real = ForwardParams(edge_fov_scale=0.81, corner_fov_scale=0.67, mount_tilt=[-0.008, -0.073])
+    note = geometry_note(real, level)
+    assert note is not None and "0.81 / 0.67" in note and "4.2 deg" in note and "capture" in note
+    assert geometry_note(ForwardParams(mount_tilt=[0.0, 0.02]), level) is not None  # 1.1 deg alone
+    assert geometry_note(ForwardParams(edge_fov_scale=1.078, corner_fov_scale=1.055), level) is None
+    assert geometry_note(ForwardParams(), level) is None
+    assert geometry_note(real, tilted) is None
+    assert geometry_note(real, []) is None
