@@ -77,8 +77,7 @@ def fit_method(calibration: Calibration, frames: Sequence[Frame], method: str, p
         params.model_error, report["model_error"] = select_model_error(frames, params, cal.peak(), progress=progress,
                                                                        options=options)
         if (note := geometry_note(params, frames)) is not None:  # (calibrate prints every report's note)
-            report["geometry"] = {"note": note, "edge_fov_scale": params.edge_fov_scale,
-                                  "corner_fov_scale": params.corner_fov_scale, "mount_tilt": list(params.mount_tilt)}
+            report["geometry"] = {"note": note}  # (the values it names are the section's own)
         _store(cal, fitted, "forward", params.to_dict(), report)
 
         section, report = fit_range_correction(frames, params, cal.peak(), progress=progress, options=options)

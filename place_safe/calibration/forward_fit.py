@@ -34,7 +34,7 @@ from place_safe.recovery.forward import (ForwardModel, ForwardParams, MODEL_ERRO
 from place_safe.sensor.frame import N_BINS, N_ZONES, Frame
 from place_safe.sensor.histogram import (COUNT_MAX, ambient_slopes, arriving_ambient, floor_profile, reference_floor,
                                          reference_problem)
-from place_safe.calibration.points import MIN_TILT_SPREAD
+from place_safe.calibration.points import MIN_TILT_SPREAD, level_frames, tilt_angles
 from place_safe.evaluation.metrics import point_error
 from place_safe.geometry import Plane
 from place_safe.recovery.differentiable import DifferentiableEstimator, RangeCorrection, SolverOptions, range_argument
@@ -1291,8 +1291,6 @@ GEOMETRY_NOTE = ("the level sweep set the zones' geometry away from the nominal 
 def geometry_note(params: ForwardParams, frames: Sequence[Frame]) -> str | None:
     """:data:`GEOMETRY_NOTE` when ``frames`` (their truths) are level and ``params`` puts the mount tilt or the edge or
     corner field of view beyond :data:`GEOMETRY_NOTE_MOUNT_TILT` / :data:`GEOMETRY_NOTE_FOV`, else None."""
-    from place_safe.calibration.points import level_frames, tilt_angles
-
     normals = [f.truth.normal for f in frames if f.truth is not None]
     if not normals or not level_frames(tilt_angles(np.array(normals))):
         return None

@@ -203,8 +203,7 @@ class MeasurementAssembler:
     """
 
     def __init__(self) -> None:
-        self._blocks: dict[int, bytes] = {}
-        self._count = 0
+        self._blocks: dict[int, bytes] = {}  # packet number -> data; each number at most once
         self._last: int | None = None
         self._disorder = False
         self._tag: object = None
@@ -214,15 +213,15 @@ class MeasurementAssembler:
 
     @property
     def started(self) -> bool:
-        return bool(self._count) or bool(self._short)
+        return bool(self._blocks) or bool(self._short)
 
     @property
     def packets(self) -> int:
         """Histogram packets received for the current measurement."""
-        return self._count
+        return len(self._blocks)
 
     def discard(self) -> None:
-        self._blocks, self._count, self._last, self._disorder, self._tag = {}, 0, None, False, None
+        self._blocks, self._last, self._disorder, self._tag = {}, None, False, None
         self._short = False
 
     def abandon(self) -> list[str]:
@@ -244,9 +243,8 @@ class MeasurementAssembler:
         moved_on = number in self._blocks or (number == 0 and any(k > 1 for k in self._blocks))
         # a packet 1 after packets 1, 0: not a swapped first pair, but a stray packet 1 (the rest of its measurement
         # overwritten) and then the next measurement's packet 0, which this 1 follows
-        carry = (moved_on and number == 1 and not self._short and self._last == 0 and self._count == 2
-                 and set(self._blocks) == {0, 1})
-        if moved_on or self._count >= R.HIST_PACKETS:
+        carry = moved_on and number == 1 and not self._short and self._last == 0 and set(self._blocks) == {0, 1}
+        if moved_on or len(self._blocks) >= R.HIST_PACKETS:
             dropped = str(self._short) if self._short else "overwritten" if moved_on else "missing_packet"
             # what it showed: its reason, and disorder among the packets that came (not the ones that did not)
             self.drops = [dropped] + (["out_of_order"] if self._disorder and not carry else [])
@@ -254,14 +252,13 @@ class MeasurementAssembler:
             first, first_tag = self._blocks.get(0), self._tag
             self.discard()
             if carry:
-                self._blocks, self._count, self._last, self._tag = {0: first}, 1, 0, first_tag
-        if self._count and tag != self._tag:
+                self._blocks, self._last, self._tag = {0: first}, 0, first_tag
+        if self._blocks and tag != self._tag:
             self.mark("bad_packet")
         self._tag = tag
         if self._last is not None and number <= self._last:
             self._disorder = True
         self._last = number
-        self._count += 1
         self._blocks[number] = data
         return dropped
 
