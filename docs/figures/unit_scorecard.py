@@ -8,8 +8,8 @@ sweep (150 frames, table 2-40 cm below the sensor, level) and read on tilted pla
 
 The units: ``A`` (the default :class:`~place_safe.sim.tof_mismatch.MismatchConfig`), ``B`` (seed 11, longer tails:
 docs/results.md, the unit's forward model), ``31``, ``32``, ``33`` (new seeds, their other differences varied within
-the config's bounds: see :data:`UNITS`), ``34`` (unit A whose zones each have their own time scale, not in the
-default set), and ``synth`` (the independent generator, ``place-safe synth``, sensor seed
+the config's bounds: see :data:`UNITS`), ``34`` (unit A whose zones each have their own time scale), ``35`` and ``36``
+(units 32 and B with +-1 % and +-2 % time scales; 34-36 are not in the default set), and ``synth`` (the independent generator, ``place-safe synth``, sensor seed
 0; ``synth3``: sensor seed 3). Everything runs through the command line a user has (``place-safe calibrate``,
 ``place-safe evaluate --json``); each step's output is kept in ``--out`` and reused when rerun (``--fresh``: redo).
 
@@ -55,6 +55,10 @@ UNITS: dict[str, dict | None] = {
            "tail_per_degc": 0.02, "drift_bins_per_degc": -0.01, "crosstalk_grid_max": 2e-5},
     # unit A with each zone's own time scale, +-1.5 % (the real sweep's zones: -0.11 .. +0.08 bins per 10 cm)
     "34": {"zone_time_scale": 0.015},
+    # unit 32 with +-1 % time scales, unit B with +-2 %: the nominal-geometry choice on units it was not set on
+    "35": {"seed": 32, "tail_weight": (0.06, 0.15), "tail_decay": (3.0, 8.0), "skew_bins": 0.1, "baseline": 0.008,
+           "ambient_slope": 0.3, "ambient_drift": 0.4, "glass_delay_std": 1.0, "zone_time_scale": 0.01},
+    "36": {"seed": 11, "tail_weight": (0.05, 0.12), "tail_decay": (2.0, 6.0), "skew_bins": 0.2, "zone_time_scale": 0.02},
 }
 #: The independent generator's units: ``place-safe synth --sensor-seed``.
 SYNTH = {"synth": 0, "synth3": 3}

@@ -9,7 +9,9 @@ sections it wrote, in order:
 * ``diff``: ``peak`` first when the calibration has none (the diff method starts from calibrated peak), then
   ``forward`` (the forward model's parameters and residual weighting), ``diff`` (a z0 correction) and
   ``uncertainty``. ``unit_model`` chooses the forward model's fit (:data:`~place_safe.calibration.UNIT_MODELS`):
-  ``default`` (:func:`~place_safe.calibration.forward_fit.fit_forward` with its default terms) or ``staged`` (the
+  ``default`` (:func:`~place_safe.calibration.forward_fit.fit_forward` with its default terms; when a level sweep
+  sets the zones' geometry far from nominal, also with the geometry nominal and each zone's own time scale, kept for a
+  clear gain: :func:`~place_safe.calibration.forward_fit.reconsider_geometry`) or ``staged`` (the
   learned unit model in three fits, :func:`~place_safe.calibration.forward_fit.fit_forward_staged`); the rest of
   the chain is the same, with the diff solver comparing the staged model with the counts above the arriving ambient
   (the ``diff`` section's ``ambient``).
@@ -21,8 +23,8 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 
 from place_safe.calibration import REQUIRED_SECTIONS, UNIT_MODELS, Calibration
-from place_safe.calibration.forward_fit import (fit_forward, fit_forward_staged, fit_range_correction, geometry_note,
-                                               select_model_error)
+from place_safe.calibration.forward_fit import (fit_forward, fit_forward_staged, fit_range_correction,
+                                               reconsider_geometry, select_model_error)
 from place_safe.calibration.points import adopt_pileup, fit_peak, fit_proprietary
 from place_safe.calibration.uncertainty import update_calibration
 from place_safe.io.json_values import jsonable
@@ -63,8 +65,9 @@ def fit_method(calibration: Calibration, frames: Sequence[Frame], method: str, p
     if method == "diff":
         if unit_model == "staged":
             params, report = fit_forward_staged(frames, progress=progress, log=log)
-        else:
-            params, report = fit_forward(frames, init=None, progress=progress)
+        else:  # (a level sweep whose fit set the geometry far from nominal: also each zone's time scale instead)
+            params, report = reconsider_geometry(frames, *fit_forward(frames, init=None, progress=progress),
+                                                 progress=progress, log=log)
         # the solver compares the model with the data as it was fitted (the staged model: above the arriving ambient)
         options = SolverOptions(ambient=unit_model == "staged")
         if "peak" in fitted:  # the forward fit sees pile-up in the histograms' shapes: the peak method undoes it
@@ -76,8 +79,6 @@ def fit_method(calibration: Calibration, frames: Sequence[Frame], method: str, p
 
         params.model_error, report["model_error"] = select_model_error(frames, params, cal.peak(), progress=progress,
                                                                        options=options)
-        if (note := geometry_note(params, frames)) is not None:  # (calibrate prints every report's note)
-            report["geometry"] = {"note": note}  # (the values it names are the section's own)
         _store(cal, fitted, "forward", params.to_dict(), report)
 
         section, report = fit_range_correction(frames, params, cal.peak(), progress=progress, options=options)

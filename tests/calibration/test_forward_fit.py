@@ -513,3 +513,50 @@ def test_a_level_sweep_that_sets_the_geometry_far_from_nominal_gets_a_note():
     assert geometry_note(ForwardParams(), level) is None
     assert geometry_note(real, tilted) is None
     assert geometry_note(real, []) is None
+
+
+def test_a_far_geometry_gives_way_to_the_zones_time_scales_only_for_a_clear_gain(monkeypatch):
+    """The choice of :func:`reconsider_geometry` (the second fit stood in by the values it would report; the fits
+    themselves are measured in docs/results.md): no note, no second fit; a converged nominal-geometry fit at least 10 %
+    lower in RMS is adopted, and the report says from what; a smaller gain, a fit that did not converge or one that
+    failed leaves the first fit with its note, which then names the comparison."""
+    from types import SimpleNamespace
+
+    import place_safe.calibration.forward_fit as ff
+
+    level = [SimpleNamespace(truth=SimpleNamespace(normal=np.array([0.0, 0.0, 1.0]))) for _ in range(3)]
+    far = ForwardParams(edge_fov_scale=0.81, corner_fov_scale=0.67, mount_tilt=[-0.008, -0.073])
+    first = {"rms_scaled_residual_after": 2.0, "converged": True}
+    calls = []
+
+    def second(rms, converged=True, scales=0.98):
+        def fit(frames, init=None, progress=True, fitted=None, **kw):
+            calls.append(fitted)
+            if rms is None:
+                raise ArithmeticError("the residuals at the start are not finite")
+            return (ForwardParams(zone_bin_scales=[scales] * 4 + [1.0] + [scales] * 4),
+                    {"rms_scaled_residual_after": rms, "converged": converged, "solver": {"seconds": 1.0}})
+        return fit
+
+    monkeypatch.setattr(ff, "fit_forward", second(1.7))
+    p, r = ff.reconsider_geometry(level, ForwardParams(), dict(first), progress=False)
+    assert p == ForwardParams() and "geometry" not in r and not calls  # nominal already: nothing to compare
+
+    p, r = ff.reconsider_geometry(level, far, dict(first), progress=False)
+    assert calls[-1] == ff.NOMINAL_GEOMETRY_FITTED and "zone_bin_scales" in calls[-1]
+    assert not {"edge_fov_scale", "corner_fov_scale", "mount_tilt"} & set(calls[-1])
+    assert p.edge_fov_scale == 1.0 and p.mount_tilt == [0.0, 0.0] and p.zone_bin_scales[0] == 0.98
+    g = r["geometry"]
+    assert g["adopted"] == "nominal_time_scales" and "note" not in g and "2.000 -> 1.700" in g["why"]
+    assert g["free"]["edge_fov_scale"] == 0.81 and abs(g["free"]["mount_tilt_deg"][1] + 4.18) < 0.01
+
+    for fit, says in ((second(1.9), "1.900 against 2.000"), (second(1.5, converged=False), "not converged"),
+                      (second(None), None)):
+        monkeypatch.setattr(ff, "fit_forward", fit)
+        p, r = ff.reconsider_geometry(level, far, dict(first), progress=False)
+        g = r["geometry"]
+        assert p is far and g["adopted"] == "free" and "0.81 / 0.67" in g["note"] and "capture" in g["note"]
+        if says is None:
+            assert "ArithmeticError" in g["nominal_time_scales"]["failed"]
+        else:
+            assert says in g["note"]
