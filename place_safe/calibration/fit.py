@@ -63,8 +63,9 @@ def fit_method(calibration: Calibration, frames: Sequence[Frame], method: str, p
         params, report = fit_proprietary(frames, progress=progress)
         _store(cal, fitted, "proprietary", params.to_dict(), report)
     if method == "diff":
-        if unit_model == "staged":
-            params, report = fit_forward_staged(frames, progress=progress, log=log)
+        if unit_model == "staged":  # (its geometry is set by its first stage: a far one gets the note alone)
+            params, report = reconsider_geometry(frames, *fit_forward_staged(frames, progress=progress, log=log),
+                                                 second_fit=False)
         else:  # (a level sweep whose fit set the geometry far from nominal: also each zone's time scale instead)
             params, report = reconsider_geometry(frames, *fit_forward(frames, init=None, progress=progress),
                                                  progress=progress, log=log)

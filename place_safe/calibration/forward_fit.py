@@ -191,6 +191,9 @@ LEARNED_RESPONSE: dict[str, str] = {"response_kernel": "lin"}
 #: 1.47; the independent generator the other way (1.04 from 3 bins, 1.70 from 6). The coarse stage's objective
 #: ranked every one of them as the full fit did; the other units and the real sweep end alike from every start.
 TAIL_DECAY_STARTS = (3.0, 6.0)
+#: The reference floors the default start tries (``fit_forward(floors=...)``): the one measured in the frames' references
+#: and the published one.
+REFERENCE_FLOORS = ("measured", "published")
 #: Further starts of the pulse's soft-binning blend (``ForwardParams.pulse_soft_bin``, a structural choice that the
 #: other starts begin at 0.5): from the default start the coarse stage also runs from the winning tail decay and
 #: floor with the blend at each of these, and the fit continues from whichever run ended lowest. From 0.5 the
@@ -316,11 +319,12 @@ def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, prog
     bright returns, and an RMS scaled residual of 2.2 instead of 1.2 on the independent generator's
     frames); frames rendered by a model that subtracts 135 need the second. With the default ``init`` and a coarse
     stage, the coarse stage runs from both floors with each of :data:`TAIL_DECAY_STARTS`, then from the winner's
-    decay and floor with the pulse's soft-binning blend at each of :data:`PULSE_SOFT_BIN_STARTS` (``floors``: only
-    these of ``measured`` and ``published``, e.g. the floor another fit of the same frames chose), and the fit goes on
+    decay and floor with the pulse's soft-binning blend at each of :data:`PULSE_SOFT_BIN_STARTS`, and the fit goes on
     from the run whose objective ended lowest (report: ``solver.coarse.starts``); without a coarse stage, from the floor
     that starts with the smaller residual. The report gives both starting residuals (at the chosen start's tail
     decay) under ``ref_floor`` (``measured``, ``published``, ``chosen``).
+    ``floors``: the default start's reference floors to try, some of :data:`REFERENCE_FLOORS` (default both; e.g. the
+    floor another fit of the same frames chose), with or without a coarse stage.
     iterations: Levenberg-Marquardt iterations (Jacobians) at most, per run (each coarse start, the full fit; the
     refit after excluding bad frames half as many). max_frames: at most this many
     frames are fitted, taken evenly over distance (a few dozen frames pin down the ~50 camera
@@ -394,6 +398,8 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
         pick = order[np.round(np.linspace(0, len(data) - 1, max_frames)).astype(int)]
         data = [data[i] for i in sorted(set(pick.tolist()))]
     fitted = dict(FITTED if fitted is None else fitted)
+    if floors is not None and (isinstance(floors, str) or not floors or not set(floors) <= set(REFERENCE_FLOORS)):
+        raise ValueError(f"floors must name some of {', '.join(REFERENCE_FLOORS)}, got {floors!r}")
     ref_floors = None
     default_start = init is None
     if init is None:
@@ -404,7 +410,7 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
         if "ref_floor" not in fitted:  # (a fitted floor starts from the published value)
             ref_floors = {"measured": float(np.median([reference_floor(f.reference) for f in data])),
                           "published": init.ref_floor}
-            if floors is not None and any(k in floors for k in ref_floors):
+            if floors is not None:
                 ref_floors = {k: v for k, v in ref_floors.items() if k in floors}
     dtype = torch.float64
     # (fitted: its echo and glass terms are rendered under differentiation even while they start at zero)
@@ -1307,57 +1313,76 @@ def geometry_note(params: ForwardParams, frames: Sequence[Frame]) -> str | None:
     return GEOMETRY_NOTE.format(edge=params.edge_fov_scale, corner=params.corner_fov_scale, tilt=math.degrees(tilt))
 
 
-#: What the nominal-geometry fit of :func:`reconsider_geometry` fits: :data:`FITTED` and each zone's own time scale
-#: (:data:`ZONE_SCALE_TERMS`), with the edge and corner fields of view and the mount tilt held at their nominal values
-#: (1, 1, level), the way the peak method holds its own geometry and fits a gain per zone.
+#: The zones' geometry that a level sweep cannot tell from each zone's own time scale, held at its nominal value (fields
+#: of view 1, the mount level) by the second fit of :func:`reconsider_geometry`, the way the peak method holds its own
+#: geometry and fits a gain per zone. ``beam_power`` (the beam's weighting of a footprint, which the staged fit holds
+#: with :data:`GEOMETRY` while it fits the scales from stage 1's values) stays fitted here: this fit starts from the
+#: default start, not from geometry a fit has already set, and was measured so (docs/results.md, "A far geometry").
+NOMINAL_GEOMETRY = ("edge_fov_scale", "corner_fov_scale", "mount_tilt")
+#: What the second fit of :func:`reconsider_geometry` fits: :data:`FITTED` and each zone's own time scale
+#: (:data:`ZONE_SCALE_TERMS`) less :data:`NOMINAL_GEOMETRY`.
 NOMINAL_GEOMETRY_FITTED: dict[str, str] = {k: v for k, v in {**FITTED, **ZONE_SCALE_TERMS}.items()
-                                           if k not in ("edge_fov_scale", "corner_fov_scale", "mount_tilt")}
+                                           if k not in NOMINAL_GEOMETRY}
 #: The relative fall of the level fit's RMS scaled residual that adopts the nominal-geometry fit: the house's clear
-#: gain (10 %, as the plane correction's series). Measured (docs/results.md, "Each zone's own time scale"): a simulated
-#: unit whose zones keep their own time (+-1.5 %, unit 34) 1.69 -> 1.37 (-19 %), and diff's tilted planes then 2.9 ->
-#: 0.13 deg; the real halves 3.68 -> 3.48 and 3.79 -> 3.62 (-5 %: not adopted, their albedo's range law does not
-#: survive it).
+#: gain (10 %, as the plane correction's series). Measured (docs/results.md, "A far geometry gives way"): simulated
+#: units whose zones keep their own time (+-1.5-2 %, units 34 and 36) -19 % and -24 %, and diff's tilted planes then
+#: 2.2-2.9 -> 0.11-0.13 deg; the real sweep -4.5 .. -5.4 % (not adopted: its albedo's range law does not survive it).
 NOMINAL_GEOMETRY_GAIN = 0.10
 
 
-def reconsider_geometry(frames: Sequence[Frame], params: ForwardParams, report: dict,
-                        progress: bool = True, log=None) -> tuple[ForwardParams, dict]:
+def _number(x) -> float:
+    """``x`` as a float (NaN when it is not a real number)."""
+    try:
+        return float(x)
+    except (TypeError, ValueError):
+        return math.nan
+
+
+def reconsider_geometry(frames: Sequence[Frame], params: ForwardParams, report: dict, progress: bool = True,
+                        log=None, second_fit: bool = True) -> tuple[ForwardParams, dict]:
     """The forward fit to keep after ``params`` (with its ``report``) from :func:`fit_forward` on ``frames``.
 
     When :func:`geometry_note` has a note (a level sweep that set the fields of view or the mount tilt far from
-    nominal), a second fit runs from the default start with the geometry held nominal and each zone's own time scale
-    fitted (:data:`NOMINAL_GEOMETRY_FITTED`): a level table reads both alike, so the data cannot choose between them
-    by their directions, only by how well each explains the sweep. It is adopted (its params and report are returned)
-    when converged with an RMS scaled residual at least :data:`NOMINAL_GEOMETRY_GAIN` below the first fit's.
-    Either way the returned report's ``geometry`` section says what was compared and chosen; a note stays (printed by
-    ``calibrate``) when the far geometry is kept. No note: ``(params, report)`` unchanged. ``log`` gets a line for
-    the user (None: silent)."""
+    nominal), a second fit runs from the default start with :data:`NOMINAL_GEOMETRY` held nominal and each zone's own
+    time scale fitted (:data:`NOMINAL_GEOMETRY_FITTED`), from the reference floor the first fit chose (its report's
+    ``ref_floor.chosen``; the other floor's starts cost a third of the time and won on no unit measured): a level table
+    reads both alike, so the data cannot choose between them by the zones' directions, only by how well each explains
+    the sweep. It is adopted (its params and report are returned) when converged with an RMS scaled residual at least
+    :data:`NOMINAL_GEOMETRY_GAIN` below the first fit's. Either way the returned report's ``geometry`` section says
+    what was compared (``free``, ``nominal_time_scales``) and which was kept (``adopted``; ``why`` when the second fit
+    was adopted, else the ``note``, printed by ``calibrate``, which names the comparison or the second fit's
+    failure). The first fit's ``report`` gets its ``geometry`` section in place when it is kept. ``second_fit``
+    False: the note alone (a fit whose geometry is not free to swap, e.g. the staged unit model). No note:
+    ``(params, report)`` unchanged. ``log`` gets a line for the user (None: silent)."""
     note = geometry_note(params, frames)
     if note is None:
+        return params, report
+    free = {"edge_fov_scale": params.edge_fov_scale, "corner_fov_scale": params.corner_fov_scale,
+            "mount_tilt_deg": [math.degrees(float(t)) for t in params.mount_tilt],
+            "rms_scaled_residual": report.get("rms_scaled_residual_after"), "converged": report.get("converged")}
+    if not second_fit:
+        report["geometry"] = {"note": note, "free": free, "adopted": "free"}
         return params, report
     say = log if log is not None else (lambda _line: None)
     say("forward model: the level sweep set the zones' geometry far from nominal; fitting each zone's own time "
         "scale with the geometry held nominal, to compare")
-    free = {"edge_fov_scale": params.edge_fov_scale, "corner_fov_scale": params.corner_fov_scale,
-            "mount_tilt_deg": [math.degrees(float(t)) for t in params.mount_tilt],
-            "rms_scaled_residual": report.get("rms_scaled_residual_after"), "converged": report.get("converged")}
-    # (from the reference floor the first fit's coarse stage ended on: the other floor's starts cost a third of the time
-    # and have not won on the units where the second fit was measured, docs/results.md)
-    won = [s.get("ref_floor") for s in report.get("solver", {}).get("coarse", {}).get("starts", []) if s.get("chosen")]
+    floor = (report.get("ref_floor") or {}).get("chosen")
     try:
         alt, alt_report = fit_forward(frames, init=None, progress=progress, fitted=NOMINAL_GEOMETRY_FITTED,
-                                      floors=tuple(won) if won and won[0] else None)
+                                      floors=(floor,) if floor in REFERENCE_FLOORS else None)
     except (ArithmeticError, ValueError) as exc:  # the first fit stands, with its note
-        report["geometry"] = {"note": note, "free": free, "adopted": "free",
-                              "nominal_time_scales": {"failed": f"{type(exc).__name__}: {exc}"}}
+        failed = f"{type(exc).__name__}: {exc}"
+        report["geometry"] = {"note": f"{note} (the second fit, with the nominal geometry and each zone's own time "
+                                      f"scale, failed: {failed})",
+                              "free": free, "adopted": "free", "nominal_time_scales": {"failed": failed}}
+        say(f"forward model: kept the fitted geometry; the second fit failed ({failed})")
         return params, report
-    rms, rms_alt = report.get("rms_scaled_residual_after"), alt_report.get("rms_scaled_residual_after")
-    nominal = {"rms_scaled_residual": rms_alt, "converged": alt_report.get("converged"),
+    rms, rms_alt = _number(report.get("rms_scaled_residual_after")), _number(alt_report.get("rms_scaled_residual_after"))
+    converged = bool(alt_report.get("converged"))
+    nominal = {"rms_scaled_residual": rms_alt, "converged": converged,
                "zone_bin_scales": [float(s) for s in alt.zone_bin_scales],
-               "seconds": alt_report.get("solver", {}).get("seconds")}
-    better = (alt_report.get("converged") is True and isinstance(rms, float) and isinstance(rms_alt, float)
-              and math.isfinite(rms_alt) and rms_alt <= (1.0 - NOMINAL_GEOMETRY_GAIN) * rms)
-    if better:
+               "seconds": (alt_report.get("solver") or {}).get("seconds")}
+    if converged and math.isfinite(rms_alt) and rms_alt <= (1.0 - NOMINAL_GEOMETRY_GAIN) * rms:
         alt_report["geometry"] = {"adopted": "nominal_time_scales", "free": free, "nominal_time_scales": nominal,
                                   "why": f"RMS scaled residual {rms:.3f} -> {rms_alt:.3f}, at least "
                                          f"{NOMINAL_GEOMETRY_GAIN:.0%} lower with the geometry nominal and each "
@@ -1365,11 +1390,12 @@ def reconsider_geometry(frames: Sequence[Frame], params: ForwardParams, report: 
         say(f"forward model: adopted the nominal geometry with each zone's own time scale (RMS {rms:.3f} -> "
             f"{rms_alt:.3f})")
         return alt, alt_report
-    why = (f"{rms_alt:.3f} against {rms:.3f}" if isinstance(rms_alt, float) and isinstance(rms, float) else "n/a")
-    report["geometry"] = {"note": note + f" (a fit with the nominal geometry and each zone's own time scale: RMS {why}"
-                                         f"{'' if alt_report.get('converged') else ', not converged'}; it is adopted when "
-                                         f"converged and at least {NOMINAL_GEOMETRY_GAIN:.0%} lower)",
+    compared = f"RMS {rms_alt:.3f} against {rms:.3f}{'' if converged else ', not converged'}"
+    report["geometry"] = {"note": f"{note} (kept the fitted geometry: a second fit with the nominal geometry and each "
+                                  f"zone's own time scale gave {compared}, and is adopted only when converged and at "
+                                  f"least {NOMINAL_GEOMETRY_GAIN:.0%} lower)",
                           "adopted": "free", "free": free, "nominal_time_scales": nominal}
+    say(f"forward model: kept the fitted geometry (the nominal one with each zone's own time scale: {compared})")
     return params, report
 
 

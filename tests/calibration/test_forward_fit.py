@@ -518,20 +518,21 @@ def test_a_level_sweep_that_sets_the_geometry_far_from_nominal_gets_a_note():
 def test_a_far_geometry_gives_way_to_the_zones_time_scales_only_for_a_clear_gain(monkeypatch):
     """The choice of :func:`reconsider_geometry` (the second fit stood in by the values it would report; the fits
     themselves are measured in docs/results.md): no note, no second fit; a converged nominal-geometry fit at least 10 %
-    lower in RMS is adopted, and the report says from what; a smaller gain, a fit that did not converge or one that
-    failed leaves the first fit with its note, which then names the comparison."""
+    lower in RMS, started from the first fit's reference floor, is adopted, and the report says from what; a smaller
+    gain, a fit that did not converge or one that failed leaves the first fit with its note, which then names the
+    comparison or the failure; without a second fit (the staged unit model) the note alone."""
     from types import SimpleNamespace
 
     import place_safe.calibration.forward_fit as ff
 
     level = [SimpleNamespace(truth=SimpleNamespace(normal=np.array([0.0, 0.0, 1.0]))) for _ in range(3)]
     far = ForwardParams(edge_fov_scale=0.81, corner_fov_scale=0.67, mount_tilt=[-0.008, -0.073])
-    first = {"rms_scaled_residual_after": 2.0, "converged": True}
+    first = {"rms_scaled_residual_after": 2.0, "converged": True, "ref_floor": {"chosen": "published"}}
     calls = []
 
     def second(rms, converged=True, scales=0.98):
-        def fit(frames, init=None, progress=True, fitted=None, **kw):
-            calls.append(fitted)
+        def fit(frames, init=None, progress=True, fitted=None, floors=None, **kw):
+            calls.append((fitted, floors, init))
             if rms is None:
                 raise ArithmeticError("the residuals at the start are not finite")
             return (ForwardParams(zone_bin_scales=[scales] * 4 + [1.0] + [scales] * 4),
@@ -542,21 +543,34 @@ def test_a_far_geometry_gives_way_to_the_zones_time_scales_only_for_a_clear_gain
     p, r = ff.reconsider_geometry(level, ForwardParams(), dict(first), progress=False)
     assert p == ForwardParams() and "geometry" not in r and not calls  # nominal already: nothing to compare
 
-    p, r = ff.reconsider_geometry(level, far, dict(first), progress=False)
-    assert calls[-1] == ff.NOMINAL_GEOMETRY_FITTED and "zone_bin_scales" in calls[-1]
-    assert not {"edge_fov_scale", "corner_fov_scale", "mount_tilt"} & set(calls[-1])
+    lines = []
+    p, r = ff.reconsider_geometry(level, far, dict(first), progress=False, log=lines.append)
+    fitted, floors, init = calls[-1]
+    assert fitted == ff.NOMINAL_GEOMETRY_FITTED and "zone_bin_scales" in fitted and init is None
+    assert not set(ff.NOMINAL_GEOMETRY) & set(fitted) and floors == ("published",)
     assert p.edge_fov_scale == 1.0 and p.mount_tilt == [0.0, 0.0] and p.zone_bin_scales[0] == 0.98
     g = r["geometry"]
     assert g["adopted"] == "nominal_time_scales" and "note" not in g and "2.000 -> 1.700" in g["why"]
     assert g["free"]["edge_fov_scale"] == 0.81 and abs(g["free"]["mount_tilt_deg"][1] + 4.18) < 0.01
+    assert "adopted" in lines[-1]
 
     for fit, says in ((second(1.9), "1.900 against 2.000"), (second(1.5, converged=False), "not converged"),
-                      (second(None), None)):
+                      (second(None), "failed: ArithmeticError")):
         monkeypatch.setattr(ff, "fit_forward", fit)
-        p, r = ff.reconsider_geometry(level, far, dict(first), progress=False)
+        p, r = ff.reconsider_geometry(level, far, dict(first, ref_floor=None), progress=False, log=lines.append)
         g = r["geometry"]
         assert p is far and g["adopted"] == "free" and "0.81 / 0.67" in g["note"] and "capture" in g["note"]
-        if says is None:
-            assert "ArithmeticError" in g["nominal_time_scales"]["failed"]
-        else:
-            assert says in g["note"]
+        assert says in g["note"] and "kept the fitted geometry" in lines[-1] and calls[-1][1] is None
+
+    n = len(calls)
+    p, r = ff.reconsider_geometry(level, far, dict(first), second_fit=False)
+    assert p is far and len(calls) == n and r["geometry"]["adopted"] == "free" and "0.81 / 0.67" in r["geometry"]["note"]
+
+
+def test_fit_forward_refuses_reference_floors_it_does_not_know():
+    from place_safe.calibration.forward_fit import REFERENCE_FLOORS
+
+    assert REFERENCE_FLOORS == ("measured", "published")
+    for floors in ("published", (), ("publishd",), ("measured", "other")):
+        with pytest.raises(ValueError, match="floors must name"):
+            fit_forward(_level_frames(4), progress=False, floors=floors, rays=2, iterations=1)
