@@ -34,3 +34,18 @@ def test_packaged_calibrations_record_their_capture_chain():
     # the nominal sensor's is the arm chain a user runs, over the heights placements start from
     rep = json.loads(calibration_file("nominal").read_text())["reports"]["capture"]
     assert rep["chain"] == CHAIN and max(rep["distances_m"]) >= 0.45
+
+
+def test_the_zone_time_units_calibration_is_its_own_level_sweep_with_the_time_scales_taken():
+    """``sim/sensors/calibration_mismatch_zone_time.json`` (sim/make_unit_calibration.py; the zone_time_* scenarios):
+    valid, made from a level sweep of the unit it names, whose far geometry ``calibrate`` replaced by each zone's own
+    time scale (the zones' scales within 1 +- 1.5 % of the centre zone's, the fields of view and the mount nominal)."""
+    path = calibration_file("mismatch").with_name("calibration_mismatch_zone_time.json")
+    cal = Calibration.load(path).check()
+    reports = json.loads(path.read_text())["reports"]
+    cap = reports["capture"]
+    assert cap["unit"] == {"zone_time_scale": 0.015} and cap["max_tilt_deg"] == 0.0 and cap["frames"] >= 100
+    assert reports["forward"]["geometry"]["adopted"] == "nominal_time_scales"
+    fwd = cal.forward()
+    assert fwd.edge_fov_scale == 1.0 and fwd.corner_fov_scale == 1.0 and list(fwd.mount_tilt) == [0.0, 0.0]
+    assert all(0.97 <= s <= 1.03 for s in fwd.zone_bin_scales) and np.ptp(fwd.zone_bin_scales) > 0.005

@@ -1,0 +1,75 @@
+"""Calibrate another simulated unit the way a user calibrates theirs: a level sweep, then ``place-safe calibrate``.
+
+The packaged simulated calibrations (``calibration_mismatch.json``, ``calibration_nominal.json``) are made by
+``place-safe calibrate --sim`` on the default units. This script makes one for a mismatched unit whose
+:class:`~place_safe.sim.tof_mismatch.MismatchConfig` differs, from a level sweep alone (the table straight below the
+sensor, no tilt), which is what a user with a bench and a level table captures:
+
+    python sim/make_unit_calibration.py --zone-time-scale 0.015 -o sim/sensors/calibration_mismatch_zone_time.json
+
+``calibration_mismatch_zone_time.json`` (unit A whose zones each keep their own time scale, +-1.5 %, as the real
+sweep's zones do; docs/results.md, "Each zone's own time scale") is the calibration of the ``zone_time_*`` scenarios
+in ``scenarios/set``: a level sweep sets such a unit's geometry far from nominal, and ``calibrate`` replaces it by
+each zone's own time scale (``forward_fit.reconsider_geometry``). The sweep: :data:`FRAMES` frames, the sensor
+:data:`HEIGHTS` above the table, at operating temperature, seed :data:`SEED` (the unit scorecard's level sweep,
+``docs/figures/unit_scorecard.py --units 34``). ``reports.capture`` records the unit and the sweep. About a minute.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+#: Frames of the level sweep.
+FRAMES = 150
+#: m, sensor-to-table heights of the level sweep.
+HEIGHTS = (0.02, 0.40)
+#: The sweep's seed (the pose draw and the sensor's noise).
+SEED = 5
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("-o", "--output", required=True, help="calibration file to write")
+    ap.add_argument("--zone-time-scale", type=float, default=0.0,
+                    help="MismatchConfig.zone_time_scale: each zone's time scale within 1 +- this (default 0)")
+    ap.add_argument("--unit-seed", type=int, default=None, help="MismatchConfig.seed (default: the default unit's)")
+    ap.add_argument("--frames-out", help="also keep the level sweep's frames here")
+    a = ap.parse_args(argv)
+
+    import torch
+
+    from place_safe.calibration import Calibration
+    from place_safe.calibration.fit import fit_method
+    from place_safe.io.frame_file import write_frames
+    from place_safe.sim.calibration_capture import OPERATING_TEMPERATURE, capture_level_sweep
+    from place_safe.sim.tof_mismatch import MismatchConfig
+
+    torch.set_num_threads(1)
+    unit = {"zone_time_scale": a.zone_time_scale, **({"seed": a.unit_seed} if a.unit_seed is not None else {})}
+    mc = MismatchConfig(**unit)
+    print(f"level sweep: {FRAMES} frames, {HEIGHTS[0] * 100:g}-{HEIGHTS[1] * 100:g} cm, unit {unit}", file=sys.stderr)
+    frames = capture_level_sweep("mismatch", FRAMES, seed=SEED, temperature=OPERATING_TEMPERATURE, heights=HEIGHTS,
+                                 max_tilt=0.0, mismatch=mc)
+    if a.frames_out:
+        write_frames(a.frames_out, frames)
+    cal = Calibration()
+    for method in ("diff", "proprietary"):
+        fit_method(cal, frames, method, progress=True, log=lambda line: print(line, file=sys.stderr, flush=True))
+    cal.reports["capture"] = {"sensor": "mismatch", "unit": unit, "seed": SEED, "frames": len(frames),
+                              "chain": "capture_level_sweep (level: the table straight below, at operating "
+                                       "temperature) -> place-safe calibrate --method diff, proprietary",
+                              "distances_m": list(HEIGHTS), "max_tilt_deg": 0.0,
+                              "temperature_degc": OPERATING_TEMPERATURE}
+    out = Path(a.output)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    cal.save(out)
+    g = cal.reports.get("forward", {}).get("geometry", {})
+    print(f"wrote {out}: forward RMS {cal.reports['forward']['rms_scaled_residual_after']:.3f}, geometry "
+          f"{g.get('adopted', 'nominal (no note)')}; {json.dumps(g.get('why') or g.get('note') or '')}", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
