@@ -1288,7 +1288,7 @@ GEOMETRY_NOTE = ("the level sweep set the zones' geometry away from the nominal 
                  "12,24 --azimuths 0,90,180,270) and calibrate on both files")
 
 
-def _level_sweep(frames: Sequence[Frame]) -> bool:
+def level_sweep(frames: Sequence[Frame]) -> bool:
     """Whether ``frames``' truths are level (:func:`~place_safe.calibration.points.level_frames`; none: False)."""
     normals = [f.truth.normal for f in frames if f.truth is not None]
     return bool(normals) and level_frames(tilt_angles(np.array(normals)))
@@ -1305,7 +1305,7 @@ def _geometry_beyond(params: ForwardParams, fov: tuple[float, float], mount_tilt
 def geometry_note(params: ForwardParams, frames: Sequence[Frame]) -> str | None:
     """:data:`GEOMETRY_NOTE` when ``frames`` (their truths) are level and ``params`` puts the mount tilt or the edge or
     corner field of view beyond :data:`GEOMETRY_NOTE_MOUNT_TILT` / :data:`GEOMETRY_NOTE_FOV`, else None."""
-    if not _level_sweep(frames) or not _geometry_beyond(params, GEOMETRY_NOTE_FOV, GEOMETRY_NOTE_MOUNT_TILT):
+    if not level_sweep(frames) or not _geometry_beyond(params, GEOMETRY_NOTE_FOV, GEOMETRY_NOTE_MOUNT_TILT):
         return None
     tilt = float(np.max(np.abs(params.mount_tilt)))
     return GEOMETRY_NOTE.format(edge=params.edge_fov_scale, corner=params.corner_fov_scale, tilt=math.degrees(tilt))
@@ -1355,8 +1355,15 @@ def _albedo_cv(report: dict) -> float:
     return _number((report.get("one_surface") or {}).get("albedo_cv_after"))
 
 
+def nominal_geometry_fit(frames: Sequence[Frame], progress: bool = False) -> tuple[ForwardParams, dict]:
+    """The second fit of :func:`reconsider_geometry`: :func:`fit_forward` from the default start with
+    :data:`NOMINAL_GEOMETRY_FITTED` (a module-level function: ``calibrate`` may run it in a process alongside the
+    first fit, :class:`~place_safe.calibration.alongside.Alongside`)."""
+    return fit_forward(frames, init=None, progress=progress, fitted=NOMINAL_GEOMETRY_FITTED)
+
+
 def reconsider_geometry(frames: Sequence[Frame], params: ForwardParams, report: dict, progress: bool = True,
-                        log=None, second_fit: bool = True) -> tuple[ForwardParams, dict]:
+                        log=None, second_fit: bool = True, second=None) -> tuple[ForwardParams, dict]:
     """The forward fit to keep after ``params`` (with its ``report``) from :func:`fit_forward` on ``frames``.
 
     On a level sweep whose fit set a field of view or the mount tilt away from nominal (beyond
@@ -1373,7 +1380,8 @@ def reconsider_geometry(frames: Sequence[Frame], params: ForwardParams, report: 
     the comparison or the second fit's failure. The first fit's ``report`` gets its ``geometry`` section in place when
     it is kept. ``second_fit`` False: the note alone (a fit whose geometry is not free to swap, e.g. the staged unit
     model). Not a level sweep, or a geometry near nominal: ``(params, report)`` unchanged. ``log`` gets a line for the
-    user (None: silent)."""
+    user (None: silent). ``second``: a callable returning the second fit's ``(params, report)`` (e.g. the result of
+    :func:`nominal_geometry_fit` run alongside the first fit); None: :func:`nominal_geometry_fit` here, when needed."""
     note = geometry_note(params, frames)
     free = {"edge_fov_scale": params.edge_fov_scale, "corner_fov_scale": params.corner_fov_scale,
             "mount_tilt_deg": [math.degrees(float(t)) for t in params.mount_tilt],
@@ -1383,13 +1391,14 @@ def reconsider_geometry(frames: Sequence[Frame], params: ForwardParams, report: 
         if note is not None:
             report["geometry"] = {"note": note, "free": free, "adopted": "free"}
         return params, report
-    if not _level_sweep(frames) or not _geometry_beyond(params, SECOND_FIT_FOV, SECOND_FIT_MOUNT_TILT):
+    if not level_sweep(frames) or not _geometry_beyond(params, SECOND_FIT_FOV, SECOND_FIT_MOUNT_TILT):
         return params, report
     say = log if log is not None else (lambda _line: None)
     say("forward model: the level sweep set the zones' geometry away from nominal; fitting each zone's own time "
         "scale with the geometry held nominal, to compare")
     try:
-        alt, alt_report = fit_forward(frames, init=None, progress=progress, fitted=NOMINAL_GEOMETRY_FITTED)
+        alt, alt_report = (second() if second is not None else
+                           fit_forward(frames, init=None, progress=progress, fitted=NOMINAL_GEOMETRY_FITTED))
     except (ArithmeticError, ValueError) as exc:  # the first fit stands, with its note
         failed = f"{type(exc).__name__}: {exc}"
         report["geometry"] = {"free": free, "adopted": "free", "nominal_time_scales": {"failed": failed},
