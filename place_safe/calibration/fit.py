@@ -23,7 +23,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 
 from place_safe.calibration import REQUIRED_SECTIONS, UNIT_MODELS, Calibration
-from place_safe.calibration.alongside import Alongside
+from place_safe.calibration.alongside import Alongside, spare_cores
 from place_safe.calibration.forward_fit import (fit_forward, fit_forward_staged, fit_range_correction, level_sweep,
                                                nominal_geometry_fit, reconsider_geometry, select_model_error)
 from place_safe.calibration.points import adopt_pileup, fit_peak, fit_proprietary
@@ -69,7 +69,8 @@ def fit_method(calibration: Calibration, frames: Sequence[Frame], method: str, p
                                                  second_fit=False)
         else:  # a level sweep's fit may want a second one (the nominal geometry, each zone's own time scale): it
             # starts beside the first on a spare core, and is stopped if the first fit does not want it
-            with Alongside(nominal_geometry_fit, frames, parallel=None if level_sweep(frames) else False) as second:
+            parallel = level_sweep(frames) and spare_cores() > 0
+            with Alongside(nominal_geometry_fit, frames, progress and not parallel, parallel=parallel) as second:
                 params, report = reconsider_geometry(frames, *fit_forward(frames, init=None, progress=progress),
                                                      progress=progress, log=log, second=second.result)
         # the solver compares the model with the data as it was fitted (the staged model: above the arriving ambient)

@@ -1324,7 +1324,7 @@ NOMINAL_GEOMETRY_FITTED: dict[str, str] = {k: v for k, v in {**FITTED, **ZONE_SC
                                            if k not in NOMINAL_GEOMETRY}
 #: A level sweep's first fit with a field of view outside these, or a mount tilt (rad, either component) beyond this,
 #: gets the second fit of :func:`reconsider_geometry` (tighter than the note's :data:`GEOMETRY_NOTE_FOV`: the second fit
-#: decides by the data; this only spares the units that land near nominal its 15-20 s). Measured (docs/results.md, "A
+#: decides by the data; this only spares the units that land near nominal its 28-38 s). Measured (docs/results.md, "A
 #: far geometry"): units A, B, 31, 33 and the generator's seeds land within 0.97-1.05 and 0.06 deg, and their second
 #: fits moved the RMS by 0.2 % at most; units 32 and 35 at 1.078 and 0.37 deg.
 SECOND_FIT_FOV = (0.95, 1.05)
@@ -1340,6 +1340,9 @@ NOMINAL_GEOMETRY_GAIN = 0.05
 #: time scales, 1.9 / 1.4 -> 5.8 / 7.0 % on the other half); unit 32 1.6 -> 1.8 %; units 34, 35, 36 fall (114 -> 8 %,
 #: 1.6 -> 0.8 %, 93 -> 8 %).
 NOMINAL_GEOMETRY_ALBEDO_SPREAD = 1.5
+#: ...or by at most this much more (an absolute CV), whichever is larger: a first fit whose frames read nearly one albedo
+#: (its CV near 0) does not refuse every second fit for noise.
+NOMINAL_GEOMETRY_ALBEDO_CV = 0.005
 
 
 def _number(x) -> float:
@@ -1374,7 +1377,8 @@ def reconsider_geometry(frames: Sequence[Frame], params: ForwardParams, report: 
     them. Two things the sweep does show can: how well each explains the counts, and whether one table
     reads one albedo. The second fit is adopted (its params and report are returned) when it converged, its RMS scaled
     residual is at least :data:`NOMINAL_GEOMETRY_GAIN` below the first fit's, and its frames' albedos spread at most
-    :data:`NOMINAL_GEOMETRY_ALBEDO_SPREAD` times as much. Either way the returned report's ``geometry`` section says
+    :data:`NOMINAL_GEOMETRY_ALBEDO_SPREAD` times as much (or :data:`NOMINAL_GEOMETRY_ALBEDO_CV` more; both must be
+    known). Either way the returned report's ``geometry`` section says
     what was compared (``free``, ``nominal_time_scales``) and which was kept (``adopted``; ``why``). A first fit beyond
     the note's limits (:func:`geometry_note`) that is kept also gets the ``note``, printed by ``calibrate``, which names
     the comparison or the second fit's failure. The first fit's ``report`` gets its ``geometry`` section in place when
@@ -1417,16 +1421,18 @@ def reconsider_geometry(frames: Sequence[Frame], params: ForwardParams, report: 
     compared = (f"RMS {rms:.3f} -> {rms_alt:.3f}{'' if converged else ' (not converged)'}, the frames' albedo CV "
                 f"{100 * cv:.1f} -> {100 * cv_alt:.1f} %")
     better_fit = converged and math.isfinite(rms_alt) and rms_alt <= (1.0 - NOMINAL_GEOMETRY_GAIN) * rms
-    one_albedo = math.isfinite(cv_alt) and not cv_alt > NOMINAL_GEOMETRY_ALBEDO_SPREAD * cv
+    compared_albedo = math.isfinite(cv) and math.isfinite(cv_alt)
+    one_albedo = compared_albedo and cv_alt <= max(NOMINAL_GEOMETRY_ALBEDO_SPREAD * cv, cv + NOMINAL_GEOMETRY_ALBEDO_CV)
     if better_fit and one_albedo:
         alt_report["geometry"] = {"adopted": "nominal_time_scales", "free": free, "nominal_time_scales": nominal,
                                   "why": f"{compared}: a clearly better fit with the geometry nominal and each zone's "
                                          "own time scale, one table still reading one albedo"}
         say(f"forward model: adopted the nominal geometry with each zone's own time scale ({compared})")
         return alt, alt_report
-    why = (("the frames' albedos spread more than "
-            f"{NOMINAL_GEOMETRY_ALBEDO_SPREAD:g} times as much: one table would read many albedos") if better_fit else
-           f"not a converged fit {NOMINAL_GEOMETRY_GAIN:.0%} lower")
+    why = (f"not a converged fit {NOMINAL_GEOMETRY_GAIN:.0%} lower" if not better_fit else
+           "the frames' albedos could not be compared" if not compared_albedo else
+           f"the frames' albedos spread more than {NOMINAL_GEOMETRY_ALBEDO_SPREAD:g} times as much: one table would "
+           "read many albedos")
     report["geometry"] = {"adopted": "free", "free": free, "nominal_time_scales": nominal,
                           "why": f"{compared}: kept the fitted geometry ({why})"}
     if note is not None:

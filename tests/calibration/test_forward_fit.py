@@ -582,6 +582,15 @@ def test_a_far_geometry_gives_way_to_the_zones_time_scales_only_for_a_better_fit
             else:
                 assert "note" not in g
 
+    # the albedos: a first fit reading nearly one albedo does not refuse every second fit; unknown spreads do not adopt
+    monkeypatch.setattr(ff, "fit_forward", second(1.5, cv=0.004))
+    p, r = ff.reconsider_geometry(level, off, dict(first, one_surface={"albedo_cv_after": 0.0}), progress=False)
+    assert r["geometry"]["adopted"] == "nominal_time_scales"
+    for a, b in ((math.nan, 0.01), (0.01, math.nan)):
+        monkeypatch.setattr(ff, "fit_forward", second(1.5, cv=b))
+        p, r = ff.reconsider_geometry(level, off, dict(first, one_surface={"albedo_cv_after": a}), progress=False)
+        assert p is off and "could not be compared" in r["geometry"]["why"]
+
     n = len(calls)
     p, r = ff.reconsider_geometry(level, far, dict(first), second_fit=False)
     assert p is far and len(calls) == n and r["geometry"]["adopted"] == "free" and "0.81 / 0.67" in r["geometry"]["note"]
