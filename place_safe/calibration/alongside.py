@@ -78,16 +78,16 @@ class Alongside:
         except Exception as exc:  # (pickle raises several kinds)
             self.why_inline = f"not picklable: {type(exc).__name__}"
             return
-        self._dir = Path(tempfile.mkdtemp(prefix="place_safe_alongside_"))
-        (self._dir / "in.pkl").write_bytes(payload)
         env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p), "PYTHONSAFEPATH": "1"}
         try:
+            self._dir = Path(tempfile.mkdtemp(prefix="place_safe_alongside_"))
+            (self._dir / "in.pkl").write_bytes(payload)
             with open(self._dir / "stderr.txt", "wb") as err:
                 self._proc = subprocess.Popen(
                     [sys.executable, "-m", __name__, str(self._dir / "in.pkl"), str(self._dir / "out.pkl")],
                     stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=err, env=env,
                     start_new_session=os.name == "posix")
-        except OSError as exc:
+        except OSError as exc:  # no temporary directory, or no process
             self.why_inline = f"the child did not start: {type(exc).__name__}: {exc}"
             self._stop()
 

@@ -70,6 +70,22 @@ def test_what_cannot_go_to_a_child_runs_inline():
         assert isinstance(job.result(), type(threading.Lock())) and "without a usable result" in job.why_inline
 
 
+def test_no_temporary_directory_or_interpreter_runs_inline(monkeypatch):
+    import sys
+    import tempfile
+
+    def no_dir(**kw):
+        raise PermissionError("read-only")
+
+    monkeypatch.setattr(tempfile, "mkdtemp", no_dir)
+    with Alongside(math.comb, 10, 3, parallel=True) as job:
+        assert job._proc is None and "PermissionError" in job.why_inline and job.result() == 120
+    monkeypatch.undo()
+    monkeypatch.setattr(sys, "executable", "")
+    with Alongside(math.comb, 10, 3, parallel=True) as job:
+        assert job._proc is None and "interpreter" in job.why_inline and job.result() == 120
+
+
 def test_spare_cores_is_the_cores_less_one():
     n = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     assert spare_cores() == max(n - 1, 0)
