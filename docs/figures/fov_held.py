@@ -9,7 +9,7 @@ much of diff's tilt a level sweep's fitted geometry decides.
     python docs/figures/fov_held.py LEVEL.json OUT.json --zone-scales           # the time scales with everything free
     place-safe evaluate TILTED.json --calibration OUT.json --methods diff peak --no-fallback
 
-Everything else is `place-safe calibrate FILE --method diff` (docs/results.md, "The zones' fields of view" and "Each
+Everything else is `place-safe calibrate FILE --method diff` (without its second fit, ``reconsider_geometry``) (docs/results.md, "The zones' fields of view" and "Each
 zone's own time scale").
 """
 from __future__ import annotations
@@ -51,6 +51,7 @@ def main() -> None:
     start = Calibration.load(a.start_from).forward() if a.start_from else None
     fit.fit_forward = lambda frames, init=None, progress=True, **kw: fit_forward(frames, start, progress,
                                                                                 fitted=fitted, **kw)
+    fit.reconsider_geometry = lambda frames, params, report, **kw: (params, report)  # the fit as asked for, kept
     cal = Calibration()
     fit.fit_method(cal, load_frames(a.frames), "diff", progress=True)
     cal.save(a.out)
