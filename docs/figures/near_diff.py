@@ -41,7 +41,7 @@ ROOT = Path(__file__).resolve().parents[2]
 SWEEP = ROOT / "tests" / "data" / "tmf8820_ur5_sweep.json"
 BANDS = (("1.5-2 cm", 0.015, 0.02), ("2-5 cm", 0.02, 0.05), ("2-3.5 cm", 0.02, 0.035), ("3.5-5 cm", 0.035, 0.05),
          ("5-40 cm", 0.05, 0.40))
-ORIGINAL = (fit.fit_forward, fit.fit_range_correction, fit.select_model_error)
+ORIGINAL = (fit.fit_forward, fit.fit_range_correction, fit.select_model_error, fit.reconsider_geometry)
 
 
 class IntegratedSoftBin(ForwardParams):
@@ -54,7 +54,7 @@ def calibrate(frames, variant: str) -> Calibration:
     """``calibrate --method diff`` on ``frames``; ``variant``: ``default``, ``ffD`` (the forward fit from D m),
     ``ffD+rc`` (and the plane correction and model error from D m); ``+unit`` adds the unit terms (crosstalk grid,
     cover-glass return, echo: ``forward_fit.UNIT_TERMS``) to the forward fit."""
-    fit.fit_forward, fit.fit_range_correction, fit.select_model_error = ORIGINAL
+    fit.fit_forward, fit.fit_range_correction, fit.select_model_error, fit.reconsider_geometry = ORIGINAL
     if "+int" in variant:  # the soft binning integrated over each bin from the start of the forward fit (step 8)
         ff.ForwardParams = IntegratedSoftBin
         variant = variant.replace("+int", "")
@@ -62,6 +62,8 @@ def calibrate(frames, variant: str) -> Calibration:
         d = float(variant[2:].split("+")[0])
         extra = {"fitted": {**ff.FITTED, **ff.UNIT_TERMS}} if "+unit" in variant else {}
         fit.fit_forward = lambda frames, **kw: ff.fit_forward(frames, **{**kw, "min_distance": d, **extra})
+        # the variant's own fit, kept: calibrate's second fit (the zones' time scales) would not see the variant
+        fit.reconsider_geometry = lambda frames, params, report, **kw: (params, report)
         if "+rc" in variant:
             fit.fit_range_correction = lambda *a, **kw: ff.fit_range_correction(*a, **{**kw, "min_distance": d})
             fit.select_model_error = lambda *a, **kw: ff.select_model_error(*a, **{**kw, "min_distance": d})
@@ -69,7 +71,7 @@ def calibrate(frames, variant: str) -> Calibration:
     try:
         fit.fit_method(cal, frames, "diff", progress=False, log=None)
     finally:
-        fit.fit_forward, fit.fit_range_correction, fit.select_model_error = ORIGINAL
+        fit.fit_forward, fit.fit_range_correction, fit.select_model_error, fit.reconsider_geometry = ORIGINAL
         ff.ForwardParams = ForwardParams
     return cal
 
