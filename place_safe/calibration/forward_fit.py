@@ -1398,8 +1398,8 @@ def reconsider_geometry(frames: Sequence[Frame], params: ForwardParams, report: 
     if not level_sweep(frames) or not _geometry_beyond(params, SECOND_FIT_FOV, SECOND_FIT_MOUNT_TILT):
         return params, report
     say = log if log is not None else (lambda _line: None)
-    say("forward model: the level sweep set the zones' geometry away from nominal; fitting each zone's own time "
-        "scale with the geometry held nominal, to compare")
+    say("forward model: the level sweep set the zones' geometry away from nominal; comparing a fit of each zone's own "
+        "time scale with the geometry held nominal")
     try:
         alt, alt_report = (second() if second is not None else
                            fit_forward(frames, init=None, progress=progress, fitted=NOMINAL_GEOMETRY_FITTED))
