@@ -10,8 +10,10 @@ sections it wrote, in order:
   ``forward`` (the forward model's parameters and residual weighting), ``diff`` (a z0 correction) and
   ``uncertainty``. ``unit_model`` chooses the forward model's fit (:data:`~place_safe.calibration.UNIT_MODELS`):
   ``default`` (:func:`~place_safe.calibration.forward_fit.fit_forward` with its default terms; when a level sweep
-  sets the zones' geometry far from nominal, also with the geometry nominal and each zone's own time scale, kept for a
-  clear gain: :func:`~place_safe.calibration.forward_fit.reconsider_geometry`) or ``staged`` (the
+  sets the zones' geometry away from nominal, also with the geometry nominal and each zone's own time scale, kept when
+  it fits clearly better and the table still reads one albedo:
+  :func:`~place_safe.calibration.forward_fit.reconsider_geometry`; on a level sweep that second fit starts at once
+  beside the first when a core is spare, :class:`~place_safe.calibration.alongside.Alongside`) or ``staged`` (the
   learned unit model in three fits, :func:`~place_safe.calibration.forward_fit.fit_forward_staged`); the rest of
   the chain is the same, with the diff solver comparing the staged model with the counts above the arriving ambient
   (the ``diff`` section's ``ambient``).
