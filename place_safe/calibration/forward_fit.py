@@ -1398,20 +1398,24 @@ def reconsider_geometry(frames: Sequence[Frame], params: ForwardParams, report: 
     if not level_sweep(frames) or not _geometry_beyond(params, SECOND_FIT_FOV, SECOND_FIT_MOUNT_TILT):
         return params, report
     say = log if log is not None else (lambda _line: None)
+
+    def keep(nominal: dict, reason: str) -> tuple[ForwardParams, dict]:
+        """The first fit, its report saying why (and, beyond the note's limits, its note naming the comparison)."""
+        report["geometry"] = {"adopted": "free", "free": free, "nominal_time_scales": nominal,
+                              "why": f"kept the fitted geometry: {reason}"}
+        if note is not None:
+            report["geometry"]["note"] = (f"{note} (a second fit with the nominal geometry and each zone's own time "
+                                          f"scale: kept the fitted geometry: {reason})")
+        say(f"forward model: kept the fitted geometry ({reason})")
+        return params, report
+
     say("forward model: the level sweep set the zones' geometry away from nominal; comparing a fit of each zone's own "
         "time scale with the geometry held nominal")
     try:
-        alt, alt_report = (second() if second is not None else
-                           fit_forward(frames, init=None, progress=progress, fitted=NOMINAL_GEOMETRY_FITTED))
+        alt, alt_report = second() if second is not None else nominal_geometry_fit(frames, progress)
     except (ArithmeticError, ValueError) as exc:  # the first fit stands, with its note
         failed = f"{type(exc).__name__}: {exc}"
-        report["geometry"] = {"free": free, "adopted": "free", "nominal_time_scales": {"failed": failed},
-                              "why": f"kept the fitted geometry: the second fit failed: {failed}"}
-        if note is not None:
-            report["geometry"]["note"] = (f"{note} (the second fit, with the nominal geometry and each zone's own "
-                                          f"time scale, failed: {failed})")
-        say(f"forward model: kept the fitted geometry; the second fit failed ({failed})")
-        return params, report
+        return keep({"failed": failed}, f"the second fit failed: {failed}")
     rms, rms_alt = _number(report.get("rms_scaled_residual_after")), _number(alt_report.get("rms_scaled_residual_after"))
     cv, cv_alt = _albedo_cv(report), _albedo_cv(alt_report)
     converged = bool(alt_report.get("converged"))
@@ -1433,13 +1437,7 @@ def reconsider_geometry(frames: Sequence[Frame], params: ForwardParams, report: 
            "the frames' albedos could not be compared" if not compared_albedo else
            f"the frames' albedos spread more than {NOMINAL_GEOMETRY_ALBEDO_SPREAD:g} times as much: one table would "
            "read many albedos")
-    report["geometry"] = {"adopted": "free", "free": free, "nominal_time_scales": nominal,
-                          "why": f"{compared}: kept the fitted geometry ({why})"}
-    if note is not None:
-        report["geometry"]["note"] = (f"{note} (a second fit with the nominal geometry and each zone's own time scale: "
-                                      f"{compared}; kept the fitted geometry: {why})")
-    say(f"forward model: kept the fitted geometry (the nominal one with each zone's own time scale: {compared}; {why})")
-    return params, report
+    return keep(nominal, f"{compared}; {why}")
 
 
 def fit_range_correction(frames: Sequence[Frame], forward: ForwardParams, peak=None,
