@@ -9,7 +9,8 @@ sweep (150 frames, table 2-40 cm below the sensor, level) and read on tilted pla
 The units: ``A`` (the default :class:`~place_safe.sim.tof_mismatch.MismatchConfig`), ``B`` (seed 11, longer tails:
 docs/results.md, the unit's forward model), ``31``, ``32``, ``33`` (new seeds, their other differences varied within
 the config's bounds: see :data:`UNITS`), ``34`` (unit A whose zones each have their own time scale), ``35`` and ``36``
-(units 32 and B with +-1 % and +-2 % time scales; 34-36 are not in the default set), and ``synth`` (the independent generator, ``place-safe synth``, sensor seed
+(units 32 and B with +-1 % and +-2 % time scales), ``37`` and ``38`` (units A and B mounted 0.94 and 1.5 deg off
+their nominal orientation; 34-38 are not in the default set), and ``synth`` (the independent generator, ``place-safe synth``, sensor seed
 0; ``synth3``: sensor seed 3). Everything runs through the command line a user has (``place-safe calibrate``,
 ``place-safe evaluate --json``); each step's output is kept in ``--out`` and reused when rerun (``--fresh``: redo).
 
@@ -59,6 +60,11 @@ UNITS: dict[str, dict | None] = {
     "35": {"seed": 32, "tail_weight": (0.06, 0.15), "tail_decay": (3.0, 8.0), "skew_bins": 0.1, "baseline": 0.008,
            "ambient_slope": 0.3, "ambient_drift": 0.4, "glass_delay_std": 1.0, "zone_time_scale": 0.01},
     "36": {"seed": 11, "tail_weight": (0.05, 0.12), "tail_decay": (2.0, 6.0), "skew_bins": 0.2, "zone_time_scale": 0.02},
+    # units A and B mounted off their nominal orientation (0.94 and 1.5 deg): what a level sweep reads as either the
+    # zones' time scales or the mount, where the forward fit keeps the mount
+    "37": {"mount_tilt": (math.radians(0.8), math.radians(-0.5))},
+    "38": {"seed": 11, "tail_weight": (0.05, 0.12), "tail_decay": (2.0, 6.0), "skew_bins": 0.2,
+           "mount_tilt": (math.radians(-1.2), math.radians(0.9))},
 }
 #: The independent generator's units: ``place-safe synth --sensor-seed``.
 SYNTH = {"synth": 0, "synth3": 3}

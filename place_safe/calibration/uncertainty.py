@@ -162,6 +162,20 @@ CONSISTENCY_LIMIT = 16.27
 #: NEES 1.6-1.7) and diff fell back to peak on 99 % of them, where its own plane is 3 times better in range. With diff's
 #: lower bound (half the stated term) their NEES per dof is 1.40-1.44 (tilt components 0.05-0.07: cautious).
 PEAK_TILT_REL = 0.05
+#: The offset part of peak's stated tilt term (:attr:`~place_safe.recovery.estimator.Uncertainty.tilt_offset_rel`,
+#: its std per unit z0 tan(tilt)) per radian of the mount tilt the unit's forward model holds (:func:`peak_tilt_term`).
+#: A level sweep cannot tell a sensor mounted off its nominal orientation from zones that each keep their own time:
+#: both make the zones' ranges on a level table differ in proportion to the distance. The peak method reads it the
+#: second way (its zone gains absorb it, its zone directions are held), and a forward fit that keeps its geometry
+#: (:func:`~place_safe.calibration.forward_fit.reconsider_geometry`) reads it the first. On a tilted plane the two
+#: readings part: peak's offset moves by a share of ``mount tilt * z0 tan(tilt)`` that does not follow its tilt error,
+#: where its stated term has none (it turns the plane about the point it crosses the axis). Measured (mismatched unit A
+#: with a true mount tilt of 0.94 deg, and with 0.59 deg and fields of view 0.93 / 0.88; 150 frames tilted 5-30 deg,
+#: 5-30 cm): peak's z0 error over ``z0 tan(tilt)``, RMS, 0.0122 and 0.0075 (unit A without the tilt: 0.0025), 0.74 and
+#: 0.73 of the fitted mount tilt; peak's NEES per dof there was 25 and 127, and diff, whose own plane read 0.06 deg,
+#: fell back to peak's (1.4 deg) on 54 % and 26 % of the frames as "inconsistent" (docs/results.md, "A sensor mounted
+#: off its nominal orientation").
+PEAK_MOUNT_OFFSET_REL = 0.75
 
 #: Tilt term of diff's covariance (:meth:`~place_safe.recovery.estimator.Uncertainty.tilt_floor`) for level
 #: calibration frames whose unit's model error is not known (:func:`diff_tilt_term`; the values before the model-error
@@ -352,6 +366,12 @@ PREFER_RATIOS = (0.25, 0.5, 1.0, 2.0, 4.0)
 #: and at least half the best's frames on diff, which would exclude that generator's pick as it is (the open limit with
 #: ratio 0.25: diff on 4 of its level frames against the best's 69, and on 96 % of its tilted frames, where peak's
 #: stated tilt term grows; not measured further).
+#: The standard error is the sample one (``ddof = 1``). With the population's, a pair that parts from the best on a
+#: single frame always lay outside it (its mean difference ``d / n`` against ``d sqrt(n - 1) / n^1.5``), so one level
+#: frame decided: mismatched unit B with a mount tilt of 1.5 deg took the median chi-square as its limit over the open
+#: one, which differed from it on one of 138 frames, and fell back on 73 % of its tilted frames, where diff's own plane
+#: read 0.07 deg and peak's 1.4 (docs/results.md, "A sensor mounted off its nominal orientation"); the real halves'
+#: and the other units' picks are the same either way.
 FALLBACK_SCORE_SE = 1.0
 
 
@@ -403,7 +423,7 @@ def select_fallback(chi2: np.ndarray, consistent: np.ndarray, var_ratio: np.ndar
         # the pair against the best on the same frames: the standard error of the mean of their difference, frame by
         # frame, on the metric that gives this pair its score
         m = int(np.argmax(np.mean(sel, axis=0))) if n else 0
-        se = float(np.std(sel[:, m] - returned[k][:, m]) / math.sqrt(n)) if n > 1 else 0.0
+        se = float(np.std(sel[:, m] - returned[k][:, m], ddof=1) / math.sqrt(n)) if n > 1 else 0.0
         t["within_se"] = bool(t["score"] - table[k]["score"] <= FALLBACK_SCORE_SE * se + 1e-12 * max(1.0, t["score"]))
     # (never a pair that keeps diff on no frame where the best keeps it on some: a larger limit with a ratio that
     # returns peak's plane everywhere is not the more open pair; fewer frames than the best is allowed: unit 31's best
@@ -667,10 +687,28 @@ def fit_near_law(rows: Sequence[tuple], unc: Uncertainty, peak_params, end: floa
                           for r, v in zip(rows, per_row)]}
 
 
-def fit_peak_uncertainty(frames: Sequence[Frame], peak_params, min_range: float | None = None) -> tuple[Uncertainty, dict]:
+def peak_tilt_term(mount_tilt=None) -> Uncertainty:
+    """The stated tilt term of peak's covariance for level calibration frames: :data:`PEAK_TILT_REL` on each tilt
+    component, and with the unit's forward model's ``mount_tilt`` (rad, ``(rx, ry)``; None or not finite: none) an
+    offset part :data:`PEAK_MOUNT_OFFSET_REL` times its size: where the forward model reads the level sweep as a sensor
+    mounted off its nominal orientation, peak's zone gains read the same sweep as the zones' own time scales, and the
+    two readings part on a tilted plane."""
+    size = 0.0
+    if mount_tilt is not None:
+        try:
+            size = float(np.hypot(*np.asarray(mount_tilt, dtype=float).reshape(2)))
+        except (TypeError, ValueError):
+            size = 0.0
+        size = size if math.isfinite(size) else 0.0
+    return Uncertainty(tilt_rel=PEAK_TILT_REL, tilt_offset_rel=PEAK_MOUNT_OFFSET_REL * size)
+
+
+def fit_peak_uncertainty(frames: Sequence[Frame], peak_params, min_range: float | None = None,
+                         mount_tilt=None) -> tuple[Uncertainty, dict]:
     """The peak method's floor from frames with ground truth at ``min_range`` (m, axis distance) or farther:
     the range its mapping was calibrated on (default
-    :data:`~place_safe.calibration.points.MIN_CALIBRATION_RANGE`).
+    :data:`~place_safe.calibration.points.MIN_CALIBRATION_RANGE`). ``mount_tilt``: the unit's forward model's (rad,
+    ``(rx, ry)``; None: no forward model), which sizes the offset part of the stated tilt term (:func:`peak_tilt_term`).
 
     Why not closer frames: the mapping is not fitted there and its errors are of another kind (the real
     sweep at 0.5-2 cm: 10-60 deg). With them in, the floor's two terms and the scale could describe neither
@@ -700,7 +738,9 @@ def fit_peak_uncertainty(frames: Sequence[Frame], peak_params, min_range: float 
     # the stated tilt term where the frames cannot show peak's tilt error (as diff's: fit_diff_uncertainty); the
     # tilted frames counted here lie beyond the near table's end (about 9 cm), diff's from NEAR_FALLBACK_RANGE (5 cm)
     tilted, level = _tilt_regime(np.array([f.truth.normal for f in use]))
-    base = Uncertainty(near_depths=depths, near_range_std=stds, tilt_rel=PEAK_TILT_REL if level else 0.0)
+    stated = peak_tilt_term(mount_tilt) if level else Uncertainty(tilt_rel=0.0)
+    base = Uncertainty(near_depths=depths, near_range_std=stds, tilt_rel=stated.tilt_rel,
+                       tilt_offset_rel=stated.tilt_offset_rel)
     ests = [PeakEstimator(peak_params).estimate(f) for f in use]
     unc, report, n_few = _floor_with_tilt_term(ests, [f.truth for f in use], tilted, level, base)
     sizing = n_few >= TILT_TERM_MIN_FRAMES
@@ -709,6 +749,11 @@ def fit_peak_uncertainty(frames: Sequence[Frame], peak_params, min_range: float 
                                                                         "the floor from the others)" if sizing else ""))
                            if level else
                            "none: the frames' tilts spread MIN_TILT_SPREAD or more, the floor holds the tilt error")
+    if level:
+        report["tilt_offset_rel"] = unc.tilt_offset_rel
+        report["tilt_offset_from"] = ("PEAK_MOUNT_OFFSET_REL x the forward model's mount tilt "
+                                      f"({math.degrees(stated.tilt_offset_rel / PEAK_MOUNT_OFFSET_REL):.2f} deg)"
+                                      if stated.tilt_offset_rel > 0 else "none: no forward model, or no mount tilt")
     report["min_range_m"] = far
     closer = [f for f in frames if f.truth is not None and f.truth.z0 < far]
     report["frames_closer"] = len(closer)
@@ -870,7 +915,10 @@ def update_calibration(cal, frames: Sequence[Frame], method: str) -> dict:
     section = dict(cal.sections.get("uncertainty", {}))
     report = {}
     if method in ("peak", "diff"):
-        unc, report["peak"] = fit_peak_uncertainty(frames, cal.peak())
+        # the forward model's mount tilt where the file has one (diff's calibration fits it before this)
+        forward = cal.sections.get("forward")
+        unc, report["peak"] = fit_peak_uncertainty(frames, cal.peak(),
+                                                   mount_tilt=cal.forward().mount_tilt if forward else None)
         section["peak"] = unc.to_dict()
     if method == "diff":
         # the unit's model error as the forward fit measured it at the frames' true planes (sizes diff's tilt term)
@@ -885,7 +933,7 @@ def update_calibration(cal, frames: Sequence[Frame], method: str) -> dict:
 
 __all__ = ["update_calibration", "nees", "fit_floor", "fit_peak_uncertainty", "fit_diff_uncertainty", "select_fallback",
            "chi2_candidates", "near_std_law", "fit_near_law", "near_law_table", "near_law_parameters", "knot_factor",
-           "NEAR_KNOT_SHARE", "NEAR_REFERENCE_DEPTH", "CONSISTENCY_LIMIT", "PEAK_TILT_REL",
+           "NEAR_KNOT_SHARE", "NEAR_REFERENCE_DEPTH", "CONSISTENCY_LIMIT", "PEAK_TILT_REL", "PEAK_MOUNT_OFFSET_REL", "peak_tilt_term",
            "DIFF_TILT_REL", "DIFF_TILT_OFFSET_REL", "DIFF_TILT_PIVOT", "DIFF_TILTED_SHARE",
            "DIFF_TILT_FLOOR", "DIFF_TILT_PER_ERROR", "DIFF_TILT_OFFSET_FLOOR", "DIFF_TILT_OFFSET_PER_ERROR",
            "diff_tilt_term", "size_tilt_term", "TILT_TERM_MIN_FRAMES", "TILT_TERM_SCALES", "TILT_TERM_NOTE", "CV_FOLDS",

@@ -233,13 +233,7 @@ class SimToF(FrameSource):
         self.blinding = Blinding.load(cfg.blinding_file) if cfg.blinding else None
         self.rate_hz = cfg.rate_hz
         self.forward = ForwardModel(self.params, ZoneRays.stratified(cfg.rays))
-        with torch.no_grad():
-            dirs, w = self.forward.ray_geometry()
-            # a sensor mounted off its nominal orientation: its optical frame is the site (mount)
-            # frame rotated by the true mount tilt (identity for a perfect mount)
-            dirs = dirs @ mount_rotation(self.params.mount_tilt).T
-        self._dirs = dirs.numpy().reshape(-1, 3)  # (9R, 3) sensor (mount) frame
-        self._weights = w
+        self._dirs, self._weights = self._mounted_rays()
         self._kernel_ref = default_reference()
         self._kernel: torch.Tensor | None = None
         self._rng = np.random.default_rng(cfg.seed)
@@ -256,6 +250,15 @@ class SimToF(FrameSource):
         self.dropped = 0
         self.corrupted = 0
         self.overruns = 0
+
+    def _mounted_rays(self) -> tuple[np.ndarray, torch.Tensor]:
+        """The rays' directions (9R, 3) in the sensor (mount) frame and their weights, from ``self.forward``: a sensor
+        mounted off its nominal orientation has its optical frame rotated from the mount frame by the true mount tilt
+        (``params.mount_tilt``; identity for a perfect mount)."""
+        with torch.no_grad():
+            dirs, w = self.forward.ray_geometry()
+            dirs = dirs @ mount_rotation(self.params.mount_tilt).T
+        return dirs.numpy().reshape(-1, 3), w
 
     # -- ray casting ---------------------------------------------------------------------------
     @property

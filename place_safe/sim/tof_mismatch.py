@@ -28,6 +28,10 @@ model did not generate. The differences (all configurable in :class:`MismatchCon
   far from range 0 as the model puts them (``u`` per zone, uniform in +-``zone_time_scale``). The real sweep's
   zones drift against the model by -0.11 .. +0.08 bins per 10 cm (docs/results.md, the unit model, step 5), about
   +-1.5 %; on a level sweep this moves a zone's return with distance as its field of view does.
+* **A sensor mounted off its nominal orientation** (``mount_tilt``, off by default): the optical frame is turned from
+  the mount frame by a rotation vector ``(rx, ry)`` (rad), added to the sensor file's. On a level sweep this moves the
+  zones' returns with distance as their own time scales do; peak's calibration reads it that way, the forward fit as
+  the tilt (docs/results.md, "A sensor mounted off its nominal orientation").
 * **Varying ambient floor**: the ambient level drifts from frame to frame (``ambient_drift``
   relative, a slow sinusoid plus a random walk) and slopes across the histogram bins
   (``ambient_slope`` relative change from first to last bin); the model assumes a flat floor.
@@ -87,6 +91,9 @@ class MismatchConfig(ConfigModel):
                                       "displacement (fraction)")
     zone_time_scale: float = Field(0.0, ge=0, le=0.1, description="each zone's own time scale: its returns "
                                    "land (1 + u) times as far from range 0, u uniform in +-this (0: none)")
+    mount_tilt: tuple[Annotated[float, Field(ge=-0.05, le=0.05)], Annotated[float, Field(ge=-0.05, le=0.05)]] = Field(
+        (0.0, 0.0), description="the sensor mounted off its nominal orientation: rotation vector (rx, ry) from the "
+                                "mount frame to the optical frame, rad, each -0.05..0.05 (added to the sensor file's)")
 
 
 class MismatchedToF(SimToF):
@@ -117,6 +124,11 @@ class MismatchedToF(SimToF):
         self._kernel = None
         # each zone's own time scale (drawn last: the differences above stay what each seed gave them)
         self._time_scale = 1.0 + rng.uniform(-mc.zone_time_scale, mc.zone_time_scale, N_ZONES)
+        if any(mc.mount_tilt):  # the unit's own mount (no draw: the seeds' differences stay)
+            tilt = [float(a) + float(b) for a, b in zip(self.params.mount_tilt, mc.mount_tilt)]
+            self.params = self.params.model_copy(update={"mount_tilt": tilt})
+            self.forward = ForwardModel(self.params, ZoneRays.stratified(self.config.rays))
+            self._dirs, self._weights = self._mounted_rays()
 
     # -- what differs --------------------------------------------------------------------------
     def temperature(self, t: float) -> float:

@@ -88,6 +88,27 @@ def test_a_score_better_by_less_than_its_standard_error_does_not_take_diff_away(
         assert prefer >= 0.5  # ... and still on the nearer frames, where it is as good
 
 
+def test_a_pair_that_parts_from_the_best_on_one_frame_only_is_within_its_standard_error():
+    """One level frame cannot tell two pairs apart: the open limit, which returns diff's plane on one frame more than
+    the best (where diff reads it worse), is within one (sample) standard error of the best, paired, and wins; two such
+    frames, both worse, are a steady difference and it is not."""
+    rng = np.random.default_rng(7)
+    n = 40
+    chi2 = np.r_[np.linspace(1.0, 2.0, n - 2), 2.5, 2.6]
+    peak = rng.uniform(0.5, 1.5, (n, 2))
+    diff = peak * 0.98  # a little better than peak on the frames both pairs return it
+    ok, ratio = np.ones(n, dtype=bool), np.full(n, 0.5)
+    one = diff.copy()
+    one[-2] = peak[-2] * 1.5  # diff worse on one frame beyond the narrower limit
+    one[-1] = peak[-1]        # and as good on the other
+    limit, _, table = select_fallback(chi2, ok, ratio, one, peak, [2.0, 3.0])
+    assert min(table, key=lambda t: t["score"])["chi2_limit"] == 2.0  # the best score alone: the narrower one
+    assert limit == 3.0
+    two = one.copy()
+    two[-1] = peak[-1] * 1.5
+    assert select_fallback(chi2, ok, ratio, two, peak, [2.0, 3.0])[0] == 2.0
+
+
 def test_a_larger_limit_is_not_taken_with_a_ratio_that_returns_peak_everywhere():
     """A frame both methods fail (capped errors) and diff worse beyond chi-square 2: the best pair keeps diff on the
     nearer frames (ratio 0.5); a larger limit with ratio 0.25 keeps it nowhere and is not the more open pair: the pick

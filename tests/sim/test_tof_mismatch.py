@@ -122,3 +122,20 @@ def test_a_zones_own_time_scale_moves_its_return_in_proportion_to_range():
     assert np.all(np.abs(far1 - far0)[moved] > np.abs(near1 - near0)[moved])
     _, _, _, default = _pair(0.1)
     assert np.all(default._time_scale == 1.0)
+
+
+def test_a_unit_mounted_off_its_nominal_orientation_turns_its_rays_and_keeps_its_other_differences():
+    """``MismatchConfig.mount_tilt`` turns every ray by the mount rotation (the forward model's convention, so a
+    forward fit can find it) and draws nothing: the seed's other differences stay what they were."""
+    from place_safe.recovery.forward import mount_rotation
+
+    scene = build_scene(SceneConfig())
+    tilt = (0.012, -0.02)
+    plain = MismatchedToF(scene, None, ToFConfig(noise=False), MismatchConfig())
+    mounted = MismatchedToF(scene, None, ToFConfig(noise=False), MismatchConfig(mount_tilt=tilt))
+    turned = plain.directions @ mount_rotation(list(tilt)).numpy().T
+    assert np.allclose(mounted.directions, turned)
+    assert np.allclose(mounted.params.mount_tilt, tilt)
+    assert np.array_equal(mounted._tail_w, plain._tail_w) and np.array_equal(mounted._skew, plain._skew)
+    with pytest.raises(ValueError):
+        MismatchConfig(mount_tilt=(0.2, 0.0))  # beyond 3 deg: not a mount error
