@@ -10,7 +10,13 @@ sensor, no tilt), which is what a user with a bench and a level table captures:
 ``calibration_mismatch_zone_time.json`` (unit A whose zones each keep their own time scale, +-1.5 %, as the real
 sweep's zones do; docs/results.md, "Each zone's own time scale") is the calibration of the ``zone_time_*`` scenarios
 in ``scenarios/set``: a level sweep sets such a unit's geometry far from nominal, and ``calibrate`` replaces it by
-each zone's own time scale (``forward_fit.reconsider_geometry``). The sweep: :data:`FRAMES` frames, the sensor
+each zone's own time scale (``forward_fit.reconsider_geometry``).
+
+    python sim/make_unit_calibration.py --mount-tilt 1.2 -0.9 -o sim/sensors/calibration_mismatch_mount_tilt.json
+
+``calibration_mismatch_mount_tilt.json`` (unit A mounted 1.5 deg off its nominal orientation; docs/results.md, "A
+sensor mounted off its nominal orientation") is the calibration of the ``mount_tilt_*`` scenarios: there the forward
+fit keeps the mount, and peak's covariance widens by it on tilted planes so that diff is not thrown away for peak. The sweep: :data:`FRAMES` frames, the sensor
 :data:`HEIGHTS` above the table, at operating temperature, seed :data:`SEED` (the unit scorecard's level sweep,
 ``docs/figures/unit_scorecard.py --units 34``). ``reports.capture`` records the unit and the sweep. About a minute.
 """
@@ -18,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -35,6 +42,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--zone-time-scale", type=float, default=0.0,
                     help="MismatchConfig.zone_time_scale: each zone's time scale within 1 +- this (default 0)")
     ap.add_argument("--unit-seed", type=int, default=None, help="MismatchConfig.seed (default: the default unit's)")
+    ap.add_argument("--mount-tilt", type=float, nargs=2, default=None, metavar=("RX_DEG", "RY_DEG"),
+                    help="MismatchConfig.mount_tilt in degrees: the sensor mounted off its nominal orientation "
+                         "(rotation vector about x and y; default: mounted nominally)")
     ap.add_argument("--frames-out", help="also keep the level sweep's frames here")
     a = ap.parse_args(argv)
 
@@ -47,7 +57,8 @@ def main(argv: list[str] | None = None) -> int:
     from place_safe.sim.tof_mismatch import MismatchConfig
 
     torch.set_num_threads(1)
-    unit = {"zone_time_scale": a.zone_time_scale, **({"seed": a.unit_seed} if a.unit_seed is not None else {})}
+    unit = {"zone_time_scale": a.zone_time_scale, **({"seed": a.unit_seed} if a.unit_seed is not None else {}),
+            **({"mount_tilt": [math.radians(v) for v in a.mount_tilt]} if a.mount_tilt is not None else {})}
     mc = MismatchConfig(**unit)
     print(f"level sweep: {FRAMES} frames, {HEIGHTS[0] * 100:g}-{HEIGHTS[1] * 100:g} cm, unit {unit}", file=sys.stderr)
     frames = capture_level_sweep("mismatch", FRAMES, seed=SEED, temperature=OPERATING_TEMPERATURE, heights=HEIGHTS,

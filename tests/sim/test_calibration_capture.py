@@ -6,6 +6,7 @@ import json
 import math
 
 import numpy as np
+import pytest
 
 from place_safe.calibration import Calibration
 from place_safe.sim.calibration_capture import CHAIN, calibration_file, capture_arm_sweep
@@ -49,6 +50,27 @@ def test_the_zone_time_units_calibration_is_its_own_level_sweep_with_the_time_sc
     fwd = cal.forward()
     assert fwd.edge_fov_scale == 1.0 and fwd.corner_fov_scale == 1.0 and list(fwd.mount_tilt) == [0.0, 0.0]
     assert all(0.97 <= s <= 1.03 for s in fwd.zone_bin_scales) and np.ptp(fwd.zone_bin_scales) > 0.005
+
+
+def test_the_mount_tilt_units_calibration_keeps_the_mount_and_widens_peaks_offset_by_it():
+    """``sim/sensors/calibration_mismatch_mount_tilt.json`` (sim/make_unit_calibration.py; the mount_tilt_*
+    scenarios): valid, made from a level sweep of unit A mounted 1.5 deg off its nominal orientation; the forward fit
+    keeps the mount (the time-scale reading explains the sweep no better) and finds it within 0.1 deg, and peak's stated
+    tilt term has the offset part that mount asks for."""
+    from place_safe.calibration.uncertainty import PEAK_MOUNT_OFFSET_REL
+
+    path = calibration_file("mismatch").with_name("calibration_mismatch_mount_tilt.json")
+    cal = Calibration.load(path).check()
+    reports = json.loads(path.read_text())["reports"]
+    cap = reports["capture"]
+    assert cap["max_tilt_deg"] == 0.0 and cap["frames"] >= 100
+    truth = np.array(cap["unit"]["mount_tilt"])
+    assert math.degrees(np.hypot(*truth)) == pytest.approx(1.5, abs=0.01)
+    assert reports["forward"]["geometry"]["adopted"] == "free"
+    fitted = np.array(cal.forward().mount_tilt)
+    assert math.degrees(np.abs(fitted - truth).max()) < 0.1
+    peak = cal.sections["uncertainty"]["peak"]
+    assert peak["tilt_offset_rel"] == pytest.approx(PEAK_MOUNT_OFFSET_REL * np.hypot(*fitted))
 
 
 def test_a_sensor_mounted_off_its_nominal_orientation_widens_peaks_offset_on_tilted_planes():
