@@ -11,7 +11,7 @@ docs/results.md, the unit's forward model), ``31``, ``32``, ``33`` (new seeds, t
 the config's bounds: see :data:`UNITS`), ``34`` (unit A whose zones each have their own time scale), ``35`` and ``36``
 (units 32 and B with +-1 % and +-2 % time scales), ``37`` and ``38`` (units A and B mounted 0.94 and 1.5 deg off
 their nominal orientation), ``39`` (unit 34 mounted 1 deg off; 34-39 are not in the default set), and ``synth`` (the independent generator, ``place-safe synth``, sensor seed
-0; ``synth3``, ``synth5``, ``synth8``: sensor seeds 3, 5, 8). Everything runs through the command line a user has (``place-safe calibrate``,
+0; ``synth1`` .. ``synth9``: sensor seeds 1-9). Everything runs through the command line a user has (``place-safe calibrate``,
 ``place-safe evaluate --json``); each step's output is kept in ``--out`` and reused when rerun (``--fresh``: redo).
 
 Per unit it prints: the forward fit's RMS scaled residual and whether it converged (``reports.forward``), the
@@ -69,7 +69,7 @@ UNITS: dict[str, dict | None] = {
     "39": {"zone_time_scale": 0.015, "mount_tilt": (math.radians(0.8), math.radians(-0.6))},
 }
 #: The independent generator's units: ``place-safe synth --sensor-seed``.
-SYNTH = {"synth": 0, "synth3": 3, "synth5": 5, "synth8": 8}
+SYNTH = {"synth": 0, **{f"synth{k}": k for k in range(1, 10)}}
 DEFAULT_UNITS = ("A", "B", "31", "32", "33", "synth")
 
 TARGETS = {"rms": 1.5, "fallback": 0.10, "diff_deg": 0.5, "albedo_cv": 3.0, "cpu_s": 60.0}
