@@ -10,15 +10,15 @@ sensor, no tilt), which is what a user with a bench and a level table captures:
 ``calibration_mismatch_zone_time.json`` (unit A whose zones each keep their own time scale, +-1.5 %, as the real
 sweep's zones do; docs/results.md, "Each zone's own time scale") is the calibration of the ``zone_time_*`` scenarios
 in ``scenarios/set``: a level sweep sets such a unit's geometry far from nominal, and ``calibrate`` replaces it by
-each zone's own time scale (``forward_fit.reconsider_geometry``).
+each zone's own time scale (``forward_fit.reconsider_geometry``). The sweep: :data:`FRAMES` frames, the sensor
+:data:`HEIGHTS` above the table, at operating temperature, seed :data:`SEED` (the unit scorecard's level sweep,
+``docs/figures/unit_scorecard.py --units 34``). ``reports.capture`` records the unit and the sweep. About a minute.
 
     python sim/make_unit_calibration.py --mount-tilt 1.2 -0.9 -o sim/sensors/calibration_mismatch_mount_tilt.json
 
 ``calibration_mismatch_mount_tilt.json`` (unit A mounted 1.5 deg off its nominal orientation; docs/results.md, "A
 sensor mounted off its nominal orientation") is the calibration of the ``mount_tilt_*`` scenarios: there the forward
-fit keeps the mount, and peak's covariance widens by it on tilted planes so that diff is not thrown away for peak. The sweep: :data:`FRAMES` frames, the sensor
-:data:`HEIGHTS` above the table, at operating temperature, seed :data:`SEED` (the unit scorecard's level sweep,
-``docs/figures/unit_scorecard.py --units 34``). ``reports.capture`` records the unit and the sweep. About a minute.
+fit keeps the mount, and peak's covariance widens by it on tilted planes so that diff is not thrown away for peak.
 """
 from __future__ import annotations
 

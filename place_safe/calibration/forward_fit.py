@@ -1348,7 +1348,7 @@ NOMINAL_GEOMETRY_ALBEDO_CV = 0.005
 #: independent generator draws one per frame: CV 190-250 %) cannot witness for either reading, and the RMS alone
 #: does not choose: the generator with sensor seed 5 (first fit's fields of view 0.945 / 0.952) read 6 % better with
 #: the time scales, which were adopted, and diff then read its tilted frames at 1.2 deg against peak's 0.34 (NEES 46;
-#: docs/results.md, "A sensor mounted off its nominal orientation"). Units whose second fit is adopted read 0.8-8 %.
+#: docs/results.md, "The independent generator's other sensors"). Units whose second fit is adopted read 0.8-8 %.
 
 
 def _number(x) -> float:
@@ -1384,8 +1384,8 @@ def reconsider_geometry(frames: Sequence[Frame], params: ForwardParams, report: 
     reads one albedo. The second fit is adopted (its params and report are returned) when it converged, its RMS scaled
     residual is at least :data:`NOMINAL_GEOMETRY_GAIN` below the first fit's, and its frames' albedos spread at most
     :data:`NOMINAL_GEOMETRY_ALBEDO_SPREAD` times as much (or :data:`NOMINAL_GEOMETRY_ALBEDO_CV` more; both must be
-    known) and at most :data:`SAME_SURFACE_CV` (a sweep of one table reads as one surface). Either way the returned report's ``geometry`` section says
-    what was compared (``free``, ``nominal_time_scales``) and which was kept (``adopted``; ``why``). A first fit beyond
+    known) and at most :data:`SAME_SURFACE_CV` (a sweep of one table reads as one surface). Either way the returned
+    report's ``geometry`` section says what was compared (``free``, ``nominal_time_scales``) and which was kept (``adopted``; ``why``). A first fit beyond
     the note's limits (:func:`geometry_note`) that is kept also gets the ``note``, printed by ``calibrate``, which names
     the comparison or the second fit's failure. The first fit's ``report`` gets its ``geometry`` section in place when
     it is kept. ``second_fit`` False: the note alone (a fit whose geometry is not free to swap, e.g. the staged unit
