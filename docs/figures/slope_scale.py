@@ -30,6 +30,8 @@ def slope_map(frames, estimator) -> tuple[np.ndarray, np.ndarray, float, float, 
         t, n = np.asarray(f.truth.normal, float), np.asarray(e.plane.normal, float)
         true.append(t[:2] / t[2])
         est.append(n[:2] / n[2])
+    if len(true) < 3:
+        raise SystemExit(f"slope_scale: {len(true)} frames with a truth and a plane; need at least 3")
     true, est = np.array(true), np.array(est)
     a = np.c_[true, np.ones(len(true))]
     coef, *_ = np.linalg.lstsq(a, est, rcond=None)

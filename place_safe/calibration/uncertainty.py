@@ -427,8 +427,12 @@ def select_fallback(chi2: np.ndarray, consistent: np.ndarray, var_ratio: np.ndar
         # the pair against the best on the same frames: the standard error of the mean of their difference, frame by
         # frame, on the metric that gives this pair its score
         m = int(np.argmax(np.mean(sel, axis=0))) if n else 0
-        se = float(np.std(sel[:, m] - returned[k][:, m], ddof=1) / math.sqrt(n)) if n > 1 else 0.0
-        t["within_se"] = bool(t["score"] - table[k]["score"] <= FALLBACK_SCORE_SE * se + 1e-12 * max(1.0, t["score"]))
+        d = sel[:, m] - returned[k][:, m]
+        se = float(np.std(d, ddof=1) / math.sqrt(n)) if n > 1 else 0.0
+        # a pair that parts from the best on one frame is one standard error off by construction (sample std): one
+        # frame cannot tell them apart, whatever FALLBACK_SCORE_SE says
+        t["within_se"] = bool(np.count_nonzero(d) < 2 or t["score"] - table[k]["score"] <= FALLBACK_SCORE_SE * se
+                              + 1e-12 * max(1.0, t["score"]))
     # (never a pair that keeps diff on no frame where the best keeps it on some: a larger limit with a ratio that
     # returns peak's plane everywhere is not the more open pair; fewer frames than the best is allowed: unit 31's best
     # kept 69 frames with the median chi-square as its limit and ratio 4, the open limit with ratio 1 kept 50)
@@ -755,9 +759,10 @@ def fit_peak_uncertainty(frames: Sequence[Frame], peak_params, min_range: float 
                            "none: the frames' tilts spread MIN_TILT_SPREAD or more, the floor holds the tilt error")
     if level:
         report["tilt_offset_rel"] = unc.tilt_offset_rel
-        report["tilt_offset_from"] = ("PEAK_MOUNT_OFFSET_REL x the forward model's mount tilt "
-                                      f"({math.degrees(stated.tilt_offset_rel / PEAK_MOUNT_OFFSET_REL):.2f} deg)"
-                                      if stated.tilt_offset_rel > 0 else "none: no forward model, or no mount tilt")
+        report["tilt_offset_from"] = (("PEAK_MOUNT_OFFSET_REL x the forward model's mount tilt "
+                                       f"({math.degrees(stated.tilt_offset_rel / PEAK_MOUNT_OFFSET_REL):.2f} deg)")
+                                      if stated.tilt_offset_rel > 0 else "no forward model, or no mount tilt") + (
+            "; sized by the tilted frames (tilt_term_sized)" if sizing else "")
     report["min_range_m"] = far
     closer = [f for f in frames if f.truth is not None and f.truth.z0 < far]
     report["frames_closer"] = len(closer)
@@ -919,8 +924,9 @@ def update_calibration(cal, frames: Sequence[Frame], method: str) -> dict:
     section = dict(cal.sections.get("uncertainty", {}))
     report = {}
     if method in ("peak", "diff"):
-        # the forward model's mount tilt where the file has one (diff's calibration fits it before this)
-        forward = cal.sections.get("forward")
+        # the forward model's mount tilt where the file has a valid one (diff's calibration fits it before this; a
+        # broken forward section does not stop the peak method)
+        forward = bool(cal.sections.get("forward")) and "forward" not in cal.errors
         unc, report["peak"] = fit_peak_uncertainty(frames, cal.peak(),
                                                    mount_tilt=cal.forward().mount_tilt if forward else None)
         section["peak"] = unc.to_dict()

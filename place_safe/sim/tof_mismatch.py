@@ -28,8 +28,9 @@ model did not generate. The differences (all configurable in :class:`MismatchCon
   far from range 0 as the model puts them (``u`` per zone, uniform in +-``zone_time_scale``). The real sweep's
   zones drift against the model by -0.11 .. +0.08 bins per 10 cm (docs/results.md, the unit model, step 5), about
   +-1.5 %; on a level sweep this moves a zone's return with distance as its field of view does.
-* **A sensor mounted off its nominal orientation** (``mount_tilt``, off by default): the optical frame is turned from
-  the mount frame by a rotation vector ``(rx, ry)`` (rad), added to the sensor file's. On a level sweep this moves the
+* **A sensor mounted off its nominal orientation** (``mount_tilt``, off by default): the rotation from the optical
+  frame to the mount frame, a rotation vector ``(rx, ry)`` (rad) as ``ForwardParams.mount_tilt``, added to the sensor
+  file's (a sum of small rotation vectors, not a composition). On a level sweep this moves the
   zones' returns with distance as their own time scales do; peak's calibration reads it that way, the forward fit as
   the tilt (docs/results.md, "A sensor mounted off its nominal orientation").
 * **Varying ambient floor**: the ambient level drifts from frame to frame (``ambient_drift``
@@ -93,7 +94,8 @@ class MismatchConfig(ConfigModel):
                                    "land (1 + u) times as far from range 0, u uniform in +-this (0: none)")
     mount_tilt: tuple[Annotated[float, Field(ge=-0.05, le=0.05)], Annotated[float, Field(ge=-0.05, le=0.05)]] = Field(
         (0.0, 0.0), description="the sensor mounted off its nominal orientation: rotation vector (rx, ry) from the "
-                                "mount frame to the optical frame, rad, each -0.05..0.05 (added to the sensor file's)")
+                                "optical frame to the mount frame (as ForwardParams.mount_tilt), rad, each -0.05..0.05 "
+                                "(added to the sensor file's)")
 
 
 class MismatchedToF(SimToF):

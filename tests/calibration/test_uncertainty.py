@@ -209,6 +209,39 @@ def test_peaks_stated_tilt_term_follows_the_frames_tilts():
     assert report["frames"] >= 3 and "why" not in report
 
 
+def test_the_forward_models_mount_widens_peaks_offset_on_level_sweeps_only():
+    """Peak's stated term gets an offset part PEAK_MOUNT_OFFSET_REL x |mount tilt| of the unit's forward model, for
+    level calibration frames only (tilted frames show the error and the floor holds it); no mount, or one that is not a
+    finite pair, gives none. ``update_calibration`` takes the mount from a valid forward section, and a broken one
+    does not stop the peak method."""
+    from place_safe.calibration import Calibration
+    from place_safe.calibration.uncertainty import (PEAK_MOUNT_OFFSET_REL, PEAK_TILT_REL, fit_peak_uncertainty,
+                                                    peak_tilt_term, update_calibration)
+    from place_safe.evaluation.independent import SceneSpec, make_frames
+    from place_safe.recovery.forward import ForwardParams
+    from place_safe.recovery.points import PeakParams
+
+    tilt = [0.012, -0.009]
+    term = peak_tilt_term(tilt)
+    assert term.tilt_rel == PEAK_TILT_REL and math.isclose(term.tilt_offset_rel, PEAK_MOUNT_OFFSET_REL * 0.015)
+    for bad in (None, [math.nan, 0.0], [math.inf, 0.0], [0.1], "x", [[1, 2], [3, 4]]):
+        assert peak_tilt_term(bad).tilt_offset_rel == 0.0, bad
+    level = make_frames(30, seed=1, scene=SceneSpec(z_range=(0.06, 0.30), theta_range=(0.0, 0.0)))
+    tilted = make_frames(30, seed=2, scene=SceneSpec(z_range=(0.06, 0.30), theta_range=(0.2, 0.4)))
+    unc, report = fit_peak_uncertainty(level, PeakParams.default_peak(), mount_tilt=tilt)
+    assert math.isclose(unc.tilt_offset_rel, term.tilt_offset_rel) and "mount tilt" in report["tilt_offset_from"]
+    unc, report = fit_peak_uncertainty(level[:3] + tilted, PeakParams.default_peak(), mount_tilt=tilt)
+    assert unc.tilt_rel == 0.0 and unc.tilt_offset_rel == 0.0 and "tilt_offset_from" not in report
+    cal = Calibration(sections={"forward": ForwardParams(mount_tilt=tilt).to_dict()})
+    update_calibration(cal, level, "peak")
+    assert math.isclose(cal.sections["uncertainty"]["peak"]["tilt_offset_rel"], term.tilt_offset_rel)
+    broken = Calibration.from_dict({"format": cal.to_dict()["format"], "forward": {"mount_tilt": [math.nan, 0.0]}})
+    assert "forward" in broken.errors
+    rep = update_calibration(broken, level, "peak")  # no traceback: the peak method needs no forward model
+    assert broken.sections["uncertainty"]["peak"].get("tilt_offset_rel", 0.0) == 0.0
+    assert rep["peak"]["tilt_offset_from"].startswith("no forward model")
+
+
 def test_a_frame_no_method_reads_does_not_break_the_diff_uncertainty(sweep_path):
     """One unusable frame (all-zero histograms) among calibration frames: it counts as failed for both methods
     and the limit is chosen on the rest (it made peak's median error NaN, and calibration stopped)."""

@@ -136,6 +136,9 @@ def test_a_unit_mounted_off_its_nominal_orientation_turns_its_rays_and_keeps_its
     turned = plain.directions @ mount_rotation(list(tilt)).numpy().T
     assert np.allclose(mounted.directions, turned)
     assert np.allclose(mounted.params.mount_tilt, tilt)
-    assert np.array_equal(mounted._tail_w, plain._tail_w) and np.array_equal(mounted._skew, plain._skew)
+    for name in ("_tail_w", "_tail_k", "_skew", "_amb_phase", "_time_scale", "ambient"):
+        assert np.array_equal(getattr(mounted, name), getattr(plain, name)), name
+    for name in ("glass_gains", "glass_delay", "crosstalk_grid"):
+        assert getattr(mounted.params, name) == getattr(plain.params, name), name
     with pytest.raises(ValueError):
         MismatchConfig(mount_tilt=(0.2, 0.0))  # beyond 3 deg: not a mount error
