@@ -375,7 +375,9 @@ PREFER_RATIOS = (0.25, 0.5, 1.0, 2.0, 4.0)
 #: frame decided: mismatched unit B with a mount tilt of 1.5 deg took the median chi-square as its limit over the open
 #: one, which differed from it on one of 138 frames, and fell back on 73 % of its tilted frames, where diff's own plane
 #: read 0.07 deg and peak's 1.4 (docs/results.md, "A sensor mounted off its nominal orientation"); the real halves'
-#: and the other units' picks are the same either way.
+#: and the other units' picks are the same either way. With the sample one such a pair sits exactly one standard error
+#: off, so :func:`select_fallback` also says it outright: a pair that parts from the best on fewer than two frames is
+#: within.
 FALLBACK_SCORE_SE = 1.0
 
 
