@@ -176,6 +176,11 @@ PEAK_TILT_REL = 0.05
 #: fell back to peak's (1.4 deg) on 54 % and 26 % of the frames as "inconsistent" (docs/results.md, "A sensor mounted
 #: off its nominal orientation").
 PEAK_MOUNT_OFFSET_REL = 0.75
+#: The peak report's note (``calibrate`` prints it) when a peak-only calibration takes the mount of a forward model
+#: already in the file.
+PEAK_MOUNT_NOTE = ("peak's covariance on tilted planes widens by the mount tilt ({deg:.2f} deg) of the forward model "
+                   "already in this file; that holds only if the file was calibrated on this unit (calibrate --method "
+                   "diff on this sweep fits the mount again)")
 
 #: Tilt term of diff's covariance (:meth:`~place_safe.recovery.estimator.Uncertainty.tilt_floor`) for level
 #: calibration frames whose unit's model error is not known (:func:`diff_tilt_term`; the values before the model-error
@@ -929,9 +934,13 @@ def update_calibration(cal, frames: Sequence[Frame], method: str) -> dict:
         # the forward model's mount tilt where the file has a valid one (diff's calibration fits it before this; a
         # broken forward section does not stop the peak method)
         forward = bool(cal.sections.get("forward")) and "forward" not in cal.errors
-        unc, report["peak"] = fit_peak_uncertainty(frames, cal.peak(),
-                                                   mount_tilt=cal.forward().mount_tilt if forward else None)
+        mount = cal.forward().mount_tilt if forward else None
+        unc, report["peak"] = fit_peak_uncertainty(frames, cal.peak(), mount_tilt=mount)
         section["peak"] = unc.to_dict()
+        stated = peak_tilt_term(mount).tilt_offset_rel
+        if method == "peak" and stated > 0 and "tilt_offset_rel" in report["peak"]:
+            # a forward model this calibration did not fit: say whose mount peak's covariance now carries
+            report["peak"]["note"] = PEAK_MOUNT_NOTE.format(deg=math.degrees(stated / PEAK_MOUNT_OFFSET_REL))
     if method == "diff":
         # the unit's model error as the forward fit measured it at the frames' true planes (sizes diff's tilt term)
         measured = (cal.reports.get("forward") or {}).get("model_error_chi2")
@@ -946,7 +955,7 @@ def update_calibration(cal, frames: Sequence[Frame], method: str) -> dict:
 __all__ = ["update_calibration", "nees", "fit_floor", "fit_peak_uncertainty", "fit_diff_uncertainty", "select_fallback",
            "chi2_candidates", "near_std_law", "fit_near_law", "near_law_table", "near_law_parameters", "knot_factor",
            "NEAR_KNOT_SHARE", "NEAR_REFERENCE_DEPTH", "CONSISTENCY_LIMIT", "PEAK_TILT_REL",
-           "PEAK_MOUNT_OFFSET_REL", "peak_tilt_term",
+           "PEAK_MOUNT_OFFSET_REL", "PEAK_MOUNT_NOTE", "peak_tilt_term",
            "DIFF_TILT_REL", "DIFF_TILT_OFFSET_REL", "DIFF_TILT_PIVOT", "DIFF_TILTED_SHARE",
            "DIFF_TILT_FLOOR", "DIFF_TILT_PER_ERROR", "DIFF_TILT_OFFSET_FLOOR", "DIFF_TILT_OFFSET_PER_ERROR",
            "diff_tilt_term", "size_tilt_term", "TILT_TERM_MIN_FRAMES", "TILT_TERM_SCALES", "TILT_TERM_NOTE", "CV_FOLDS",

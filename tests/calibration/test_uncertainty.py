@@ -233,8 +233,10 @@ def test_the_forward_models_mount_widens_peaks_offset_on_level_sweeps_only():
     unc, report = fit_peak_uncertainty(level[:3] + tilted, PeakParams.default_peak(), mount_tilt=tilt)
     assert unc.tilt_rel == 0.0 and unc.tilt_offset_rel == 0.0 and "tilt_offset_from" not in report
     cal = Calibration(sections={"forward": ForwardParams(mount_tilt=tilt).to_dict()})
-    update_calibration(cal, level, "peak")
+    rep = update_calibration(cal, level, "peak")
     assert math.isclose(cal.sections["uncertainty"]["peak"]["tilt_offset_rel"], term.tilt_offset_rel)
+    assert "0.86 deg" in rep["peak"]["note"]  # a peak-only calibration says whose mount it took
+    assert "note" not in update_calibration(cal, level, "diff")["peak"]  # diff's calibration fitted it just before
     broken = Calibration.from_dict({"format": cal.to_dict()["format"], "forward": {"mount_tilt": [math.nan, 0.0]}})
     assert "forward" in broken.errors
     rep = update_calibration(broken, level, "peak")  # no traceback: the peak method needs no forward model
