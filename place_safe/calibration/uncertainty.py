@@ -765,10 +765,11 @@ def fit_peak_uncertainty(frames: Sequence[Frame], peak_params, min_range: float 
                            if level else
                            "none: the frames' tilts spread MIN_TILT_SPREAD or more, the floor holds the tilt error")
     if level:
+        mount_deg = math.degrees(stated.tilt_offset_rel / PEAK_MOUNT_OFFSET_REL)
         report["tilt_offset_rel"] = unc.tilt_offset_rel
-        report["tilt_offset_from"] = (("PEAK_MOUNT_OFFSET_REL x the forward model's mount tilt "
-                                       f"({math.degrees(stated.tilt_offset_rel / PEAK_MOUNT_OFFSET_REL):.2f} deg)")
-                                      if stated.tilt_offset_rel > 0 else "no forward model, or no mount tilt") + (
+        report["tilt_offset_mount_deg"] = mount_deg
+        report["tilt_offset_from"] = (f"PEAK_MOUNT_OFFSET_REL x the forward model's mount tilt ({mount_deg:.2f} deg)"
+                                      if mount_deg > 0 else "no forward model, or no mount tilt") + (
             "; sized by the tilted frames (tilt_term_sized)" if sizing else "")
     report["min_range_m"] = far
     closer = [f for f in frames if f.truth is not None and f.truth.z0 < far]
@@ -934,13 +935,13 @@ def update_calibration(cal, frames: Sequence[Frame], method: str) -> dict:
         # the forward model's mount tilt where the file has a valid one (diff's calibration fits it before this; a
         # broken forward section does not stop the peak method)
         forward = bool(cal.sections.get("forward")) and "forward" not in cal.errors
-        mount = cal.forward().mount_tilt if forward else None
-        unc, report["peak"] = fit_peak_uncertainty(frames, cal.peak(), mount_tilt=mount)
+        unc, report["peak"] = fit_peak_uncertainty(frames, cal.peak(),
+                                                   mount_tilt=cal.forward().mount_tilt if forward else None)
         section["peak"] = unc.to_dict()
-        stated = peak_tilt_term(mount).tilt_offset_rel
-        if method == "peak" and stated > 0 and "tilt_offset_rel" in report["peak"]:
+        mount_deg = report["peak"].get("tilt_offset_mount_deg", 0.0)
+        if method == "peak" and mount_deg > 0:
             # a forward model this calibration did not fit: say whose mount peak's covariance now carries
-            report["peak"]["note"] = PEAK_MOUNT_NOTE.format(deg=math.degrees(stated / PEAK_MOUNT_OFFSET_REL))
+            report["peak"]["note"] = PEAK_MOUNT_NOTE.format(deg=mount_deg)
     if method == "diff":
         # the unit's model error as the forward fit measured it at the frames' true planes (sizes diff's tilt term)
         measured = (cal.reports.get("forward") or {}).get("model_error_chi2")

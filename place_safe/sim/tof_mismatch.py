@@ -120,17 +120,15 @@ class MismatchedToF(SimToF):
         glass = np.asarray(self.params.glass_gains) * np.exp(rng.uniform(-spread, spread, N_ZONES))
         delay = float(np.clip(self.params.glass_delay + rng.normal(0.0, mc.glass_delay_std), -8.0, 16.0))
         grid = rng.uniform(0.0, mc.crosstalk_grid_max, len(self.params.crosstalk_grid))
+        # and its own mount (no draw: the seeds' differences stay), which turns its rays
+        tilt = [float(a) + float(b) for a, b in zip(self.params.mount_tilt, mc.mount_tilt)]
         self.params = self.params.model_copy(update={"glass_gains": [float(g) for g in glass], "glass_delay": delay,
-                                                     "crosstalk_grid": [float(g) for g in grid]})
+                                                     "crosstalk_grid": [float(g) for g in grid], "mount_tilt": tilt})
         self.forward = ForwardModel(self.params, ZoneRays.stratified(self.config.rays))
+        self._dirs, self._weights = self._mounted_rays()
         self._kernel = None
         # each zone's own time scale (drawn last: the differences above stay what each seed gave them)
         self._time_scale = 1.0 + rng.uniform(-mc.zone_time_scale, mc.zone_time_scale, N_ZONES)
-        if any(mc.mount_tilt):  # the unit's own mount (no draw: the seeds' differences stay)
-            tilt = [float(a) + float(b) for a, b in zip(self.params.mount_tilt, mc.mount_tilt)]
-            self.params = self.params.model_copy(update={"mount_tilt": tilt})
-            self.forward = ForwardModel(self.params, ZoneRays.stratified(self.config.rays))
-            self._dirs, self._weights = self._mounted_rays()
 
     # -- what differs --------------------------------------------------------------------------
     def temperature(self, t: float) -> float:
