@@ -59,7 +59,11 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(1)
     unit = {"zone_time_scale": a.zone_time_scale, **({"seed": a.unit_seed} if a.unit_seed is not None else {}),
             **({"mount_tilt": [math.radians(v) for v in a.mount_tilt]} if a.mount_tilt is not None else {})}
-    mc = MismatchConfig(**unit)
+    try:
+        mc = MismatchConfig(**unit)
+    except ValueError as exc:  # pydantic's ValidationError: a unit out of the config's bounds
+        lines = str(exc).splitlines()
+        ap.error(f"not a unit the simulator can make: {lines[0]} ({'; '.join(x.strip() for x in lines[1:3])})")
     print(f"level sweep: {FRAMES} frames, {HEIGHTS[0] * 100:g}-{HEIGHTS[1] * 100:g} cm, unit {unit}", file=sys.stderr)
     frames = capture_level_sweep("mismatch", FRAMES, seed=SEED, temperature=OPERATING_TEMPERATURE, heights=HEIGHTS,
                                  max_tilt=0.0, mismatch=mc)

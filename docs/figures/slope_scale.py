@@ -47,9 +47,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("calibration", help="calibration file")
     ap.add_argument("--method", default="diff", choices=("diff", "peak"), help="diff's own plane (default) or peak")
     a = ap.parse_args(argv)
-    cal = Calibration.load(a.calibration)
-    est = make_estimator(a.method, cal.without_fallback() if a.method == "diff" else cal)
-    m, c, before, after, n = slope_map(load_frames(a.frames), est)
+    from place_safe.exceptions import PlaceSafeError
+
+    try:
+        cal = Calibration.load(a.calibration)
+        est = make_estimator(a.method, cal.without_fallback() if a.method == "diff" else cal)
+        frames = load_frames(a.frames)
+    except PlaceSafeError as exc:
+        raise SystemExit(f"slope_scale: {exc}") from None
+    m, c, before, after, n = slope_map(frames, est)
     print(f"{a.method} on {n} frames: slopes read as M = [[{m[0, 0]:.4f}, {m[0, 1]:.4f}], [{m[1, 0]:.4f}, "
           f"{m[1, 1]:.4f}]] times the truth's, plus ({c[0]:.4f}, {c[1]:.4f}); slope error RMS {before:.4f} "
           f"({after:.4f} about the fit)")
