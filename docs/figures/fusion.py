@@ -11,6 +11,9 @@ vector ``(n_x, n_y, d)`` with its stated covariance ``C_d``, ``C_p``, the rows a
 * ``fused``: the inverse-covariance weighting ``(C_d^-1 + C_p^-1)^-1 (C_d^-1 x_d + C_p^-1 x_p)``, which treats the
   two errors as independent (they are not: both read the same histograms);
 * ``fused where kept``: the fused plane where diff keeps its own, peak's where it falls back;
+* ``fused where consistent``: the fused plane wherever diff passes the fallback's gates but its preference (its
+  chi-square limit, its consistency with peak, 5 cm and farther), peak's elsewhere: the weighting then decides
+  between the two continuously where ``prefer_ratio`` chose one;
 * ``intersection``: covariance intersection (``P^-1 = w C_d^-1 + (1 - w) C_p^-1``, ``w`` in [0, 1] maximising
   ``det P^-1``), a combination that stays consistent whatever the two errors' correlation, and its ``where kept``.
 
@@ -27,6 +30,7 @@ import numpy as np
 from place_safe.calibration import Calibration
 from place_safe.io.frame_file import load_frames
 from place_safe.recovery import make_estimator
+from place_safe.recovery.differentiable import NEAR_FALLBACK_RANGE
 
 
 def _vec(plane) -> np.ndarray:
@@ -56,7 +60,8 @@ def intersect(xd: np.ndarray, cd: np.ndarray, xp: np.ndarray, cp: np.ndarray,
     return np.linalg.solve(info, w * id_ @ xd + (1.0 - w) * ip @ xp), float(w)
 
 
-ROWS = ("diff", "peak", "returned", "fused", "fused where kept", "intersection", "intersection where kept")
+ROWS = ("diff", "peak", "returned", "fused", "fused where kept", "fused where consistent", "intersection",
+        "intersection where kept")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -78,7 +83,7 @@ def main(argv: list[str] | None = None) -> int:
     except PlaceSafeError as exc:
         raise SystemExit(f"fusion: {exc}") from None
     rows: dict[str, list] = {k: [] for k in ROWS}
-    weights = []
+    weights, nees = [], []
     for f in frames:
         d, p, r = own.estimate(f), peak.estimate(f), ret.estimate(f)
         if d.plane is None or p.plane is None or r.plane is None or d.covariance is None or p.covariance is None:
@@ -86,10 +91,17 @@ def main(argv: list[str] | None = None) -> int:
         xd, xp, xr = _vec(d.plane), _vec(p.plane), _vec(r.plane)
         cd, cp = np.asarray(d.covariance, dtype=float), np.asarray(p.covariance, dtype=float)
         kept = r.method_used in (None, "diff")
+        unc = ret.uncertainty  # the fallback's gates but its preference (the weighting weighs the two itself)
+        gated = (d.residual is not None and d.residual ** 2 <= unc.chi2_limit and unc.consistent(d, p)
+                 and p.plane.offset >= NEAR_FALLBACK_RANGE)
         xf = fuse(xd, cd, xp, cp)
         xi, w = intersect(xd, cd, xp, cp)
         weights.append(w)
-        for k, x in zip(ROWS, (xd, xp, xr, xf, xf if kept else xr, xi, xi if kept else xr)):
+        if gated:  # the fused plane's NEES per dof under diff's covariance and under the weighting's
+            e = xf - _vec(f.truth)
+            cf = np.linalg.inv(np.linalg.inv(cd) + np.linalg.inv(cp))
+            nees.append((e @ np.linalg.solve(cd, e) / 3.0, e @ np.linalg.solve(cf, e) / 3.0))
+        for k, x in zip(ROWS, (xd, xp, xr, xf, xf if kept else xr, xf if gated else xp, xi, xi if kept else xr)):
             rows[k].append(_errors(x, f.truth))
     if not weights:
         raise SystemExit("fusion: no frame with a truth and both methods' planes and covariances")
@@ -97,6 +109,10 @@ def main(argv: list[str] | None = None) -> int:
         v = np.array(v)
         print(f"{k:24s} {v[:, 0].mean():.3f} deg  {v[:, 1].mean():.3f} mm")
     print(f"{len(weights)} frames; intersection's weight on diff: median {np.median(weights):.2f}")
+    if nees:
+        m = np.mean(nees, axis=0)
+        print(f"fused where consistent ({len(nees)} frames): NEES per dof {m[0]:.2f} under diff's covariance, "
+              f"{m[1]:.2f} under the weighting's")
     return 0
 
 
