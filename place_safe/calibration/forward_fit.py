@@ -366,7 +366,9 @@ def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, prog
     with ``determined`` false when it exceeds :data:`DETERMINED_FRACTION` of the value (or of the physical
     range) or the prior dominates it (``posterior_over_prior`` above :data:`PRIOR_DOMINATED`: ``held_at_prior``),
     and ``not_determined`` and ``held_at_prior`` listing those: what these frames cannot identify (a level sweep leaves
-    crosstalk, saturation and the beam profile open). ``solver`` has the Jacobians, evaluations, seconds,
+    crosstalk, saturation and the beam profile open; the crosstalk and the fields of view it trades against each
+    other, which no spread shows, so those are reported not determined on a level sweep, with the reason:
+    :data:`LEVEL_SWEEP_TRADED`). ``solver`` has the Jacobians, evaluations, seconds,
     the last decrement (chi-square) and the RMS scaled residual after each accepted step.
     """
     with single_thread():  # a few thousand-element tensors: torch's thread pool only waits (3x slower when busy)
@@ -836,7 +838,8 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
         return 0.5 * float((f[:n_res] ** 2).sum())
 
     n_good = int(good.sum()) * nf_res
-    spread = _posterior_spread(sol, layout, n_cam, n_good, fitted_params, good, nf_res, prior_sd)
+    spread = _posterior_spread(sol, layout, n_cam, n_good, fitted_params, good, nf_res, prior_sd,
+                               level=level_sweep(data))
     prior_cost = 0.5 * float((sol.fun[n_res:] ** 2).sum())
     report = {
         "frames": nf,
@@ -1029,14 +1032,36 @@ def fit_forward_staged(frames: Sequence[Frame], progress: bool = True, log=None,
 #: A fitted parameter counts as determined by the frames when its posterior standard deviation is below this
 #: fraction of its value (``log`` parameters) or of the width of its physical range (``lin``, ``unit``).
 DETERMINED_FRACTION = 0.1
+#: Terms a level sweep trades against each other, reported as not determined whatever their posterior spread
+#: (``posterior_std[name]["level_sweep"]`` says why). On a level table each zone's range grows in proportion to the
+#: distance, by the ``1 / cos`` of its direction; the scalar crosstalk pulls every zone's return towards the other
+#: zones' (later for the centre, earlier for the corners, also in proportion to the distance), and the edge and
+#: corner fields of view move the same ranges. So the fit can trade the crosstalk against the fields of view (with the
+#: zones' offsets and tails) at almost no cost, while on a tilted plane the crosstalk pulls the zones' returns
+#: together and sets how steep diff reads the slope. Measured on the independent generator (``docs/figures/
+#: held_term.py``; docs/results.md, "What a level sweep leaves to the crosstalk"): sensor seed 1's level sweep fits
+#: crosstalk 0.0171 (true 0.0054) with a posterior std of 0.0007, and diff reads every slope 5-7 % steep (0.93 deg on
+#: its tilted frames); held at 0.0054 the coarse objective moves by 0.001 (1.2418 against 1.2408), the corner field of
+#: view goes 1.006 -> 0.974, and diff reads 0.14 deg. The Gauss-Newton spread misses this: the residuals the trade
+#: leaves are the model's own error, not noise. Tilted frames tell the two apart.
+LEVEL_SWEEP_TRADED = {
+    "crosstalk": "a level sweep trades the crosstalk against the edge and corner fields of view: tilted frames "
+                 "determine it",
+    "edge_fov_scale": "a level sweep trades the fields of view against the crosstalk (and each zone's own time "
+                      "scale): tilted frames determine them",
+    "corner_fov_scale": "a level sweep trades the fields of view against the crosstalk (and each zone's own time "
+                        "scale): tilted frames determine them",
+}
 
 
 def _posterior_spread(sol, layout, n_cam: int, n_good: int, params: ForwardParams, good: np.ndarray,
-                      nf_res: int, prior_sd: np.ndarray | None = None) -> dict:
+                      nf_res: int, prior_sd: np.ndarray | None = None, level: bool = False) -> dict:
     """Posterior standard deviation of each fitted camera parameter (the Gauss-Newton covariance at the
     solution, albedos marginalised, scaled by the reduced chi-square), in the parameter's own unit, and
     whether the frames determine it (:data:`DETERMINED_FRACTION`). A log parameter's spread is its value times
-    the spread of its log. Parameters the frames do not inform at all have an infinite spread (JSON: null)."""
+    the spread of its log. Parameters the frames do not inform at all have an infinite spread (JSON: null).
+    ``level``: the frames are a level sweep, whose trades (:data:`LEVEL_SWEEP_TRADED`) no spread shows: those terms
+    are not determined, and say why."""
 
     n_data = len(good) * nf_res
     rows = np.repeat(good, nf_res)
@@ -1066,6 +1091,9 @@ def _posterior_spread(sol, layout, n_cam: int, n_good: int, params: ForwardParam
                      "posterior_over_prior": (None if not np.any(np.isfinite(ratio))
                                               else round(float(np.nanmax(ratio)), 3)),
                      "held_at_prior": held}
+        if level and name in LEVEL_SWEEP_TRADED:
+            out[name]["determined"] = False
+            out[name]["level_sweep"] = LEVEL_SWEEP_TRADED[name]
         i += m
     out["not_determined"] = sorted(k for k, v in out.items() if isinstance(v, dict) and not v["determined"])
     out["held_at_prior"] = sorted(k for k, v in out.items() if isinstance(v, dict) and v["held_at_prior"])

@@ -238,13 +238,15 @@ TILT_TERM_MIN_FRAMES = 8
 #: halved (a few frames that happen to read well do not take the term away), at most ten times.
 TILT_TERM_SCALES = (0.5, 10.0)
 #: The diff report's note (``calibrate`` prints it last) when the stated tilt term is not sized on tilted frames. The
-#: slopes too: the independent generator's per-pixel gains move its zones' directions by what a level sweep cannot
-#: see, and diff read seeds 1 and 7 3-7 % steep after a level sweep, 0.07-0.10 deg with 12 tilted frames added
-#: (docs/results.md, "The independent generator's other sensors, by a level sweep alone").
+#: slopes too: a level sweep trades the crosstalk between zones against the zones' fields of view
+#: (:data:`~place_safe.calibration.forward_fit.LEVEL_SWEEP_TRADED`), and the crosstalk sets how steep diff reads a
+#: slope; diff read the independent generator's seeds 1 and 7 3-7 % steep after a level sweep (their fits' crosstalk
+#: 2.5-3 times the truth), 0.07-0.10 deg with 12 tilted frames added (docs/results.md, "The independent generator's other
+#: sensors, by a level sweep alone" and "What a level sweep leaves to the crosstalk").
 TILT_TERM_NOTE = ("diff's covariance on tilted planes is stated from the unit's model error, not measured: diff read "
                   "{n} of the calibration frames tilted 5 deg or more from the least tilted ({need} needed, and "
-                  "fewer than half of all frames), and a level table cannot show each zone's direction, so on some "
-                  "units diff reads slopes a few per cent steep; capture about 20 tilted "
+                  "fewer than half of all frames), and a level table cannot tell the crosstalk between zones from their "
+                  "fields of view, so on some units diff misreads slopes by a few per cent; capture about 20 tilted "
                   "poses too (capture --distances 80,150,220 --incidences 12,24 --azimuths 0,90,180,270) and "
                   "calibrate on both files for slopes and a covariance sized on them")
 

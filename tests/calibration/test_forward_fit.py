@@ -152,6 +152,26 @@ def test_a_parameter_the_frames_cannot_determine_stays_at_its_prior():
     assert set(PRIORS) >= {"crosstalk_grid", "glass_gains", "glass_delay", "echo_gain", "centre_fov_scale"}
 
 
+def test_a_level_sweep_reports_the_crosstalk_and_the_fields_of_view_as_not_determined():
+    """A level sweep trades the crosstalk against the edge and corner fields of view (LEVEL_SWEEP_TRADED): whatever
+    their Gauss-Newton spread, the report says they are not determined there, and why; frames tilted 0-23 deg (from
+    the same sensor) are judged by their spread alone."""
+    from place_safe.calibration.forward_fit import LEVEL_SWEEP_TRADED
+
+    fitted = {"bin_offset": "lin", "crosstalk": "log", "edge_fov_scale": "log", "corner_fov_scale": "log"}
+    _, level = fit_forward(_level_frames(6), progress=False, rays=3, iterations=8, fitted=fitted, coarse_rays=0)
+    spread = level["posterior_std"]
+    for name in ("crosstalk", "edge_fov_scale", "corner_fov_scale"):
+        assert not spread[name]["determined"] and spread[name]["level_sweep"] == LEVEL_SWEEP_TRADED[name]
+        assert name in spread["not_determined"]
+    assert "level_sweep" not in spread["bin_offset"]
+    spec = SyntheticSpec(z_range=(0.05, 0.3), theta_range=(0.1, 0.4), specular_weight_range=(0.14681, 0.14681),
+                         specular_exponent_range=(1.8378, 1.8378), noise=True, rays=4)
+    tilted = make_frames(6, params=ForwardParams(bin_offset=9.3), spec=spec, seed=5)
+    _, tilt = fit_forward(tilted, progress=False, rays=3, iterations=8, fitted=fitted, coarse_rays=0)
+    assert all("level_sweep" not in tilt["posterior_std"][name] for name in fitted)
+
+
 def test_one_surface_is_tied_only_when_the_albedos_agree():
     """Asked to decide (``same_surface=None``), frames of one surface (a level table) have their albedos tied to one
     value; frames of surfaces drawn at random (albedo 0.3-1.7x) are not."""
