@@ -125,6 +125,8 @@ def summarise(report: Any, indent: str = "  ") -> list[str]:
         if isinstance(v, list):
             if len(v) <= 16 and all(isinstance(x, (int, float)) or x is None for x in v):
                 lines.append(f"{indent}{key}: [{', '.join('-' if x is None else f'{x:.4g}' for x in v)}]")
+            elif len(v) <= 32 and all(isinstance(x, str) for x in v):  # names (e.g. the terms not determined)
+                lines.append(f"{indent}{key}: {', '.join(v) if v else '(none)'}")
             else:
                 lines.append(f"{indent}{key}: list of {len(v)}")
         elif isinstance(v, float):
@@ -141,7 +143,6 @@ def report_notes(report: Any, where: str = "") -> list[tuple[str, str]]:
         return []
     return [(key.removesuffix(".note") if key != "note" else "", str(v))
             for key, v in report_items(report, f"{where}." if where else "") if key.split(".")[-1] == "note"]
-
 
 
 

@@ -433,3 +433,13 @@ def test_evaluate_no_fallback_reports_diffs_own_plane(sweep_path, tmp_path, caps
     assert runs[False]["fallback_rate"] > 0.5 and runs[True]["fallback_rate"] == 0.0
     assert set(runs[True]["method_used"]) == {"diff"}
     assert "diff without its fallback" in capsys.readouterr().out
+
+
+def test_the_fit_summary_names_the_terms_a_report_lists():
+    """`calibrate`'s fit summary prints a report's lists of names (the forward fit's terms not determined) as names,
+    not as "list of N"; numbers as before."""
+    from place_safe.cli.common import summarise
+
+    lines = summarise({"posterior_std": {"not_determined": ["crosstalk", "edge_fov_scale"]}, "gains": [1.0, 2.5]})
+    assert "  posterior_std.not_determined: crosstalk, edge_fov_scale" in lines
+    assert "  gains: [1, 2.5]" in lines
