@@ -819,6 +819,19 @@ def _mean_nees(estimates: Sequence[PlaneEstimate], truths: Sequence) -> float | 
     return float(np.mean(v)) if v.size else None
 
 
+#: m: calibration frames farther than this take no part in choosing diff's fallback limits and floor (unless fewer than
+#: :data:`FALLBACK_MIN_FRAMES` are left). A level sweep out to 0.6-1 m reads the crosstalk between zones that a sweep
+#: to 0.4 m trades against the fields of view (docs/results.md, "A level sweep out to 1 m"), but its dim far frames
+#: have a low chi-square, so the limits chosen on all of them became a distance cut: the generator's sensor seeds 1
+#: and 8 calibrated on 2-100 cm took the median chi-square (1.1) as their limit and fell back to peak on 100 % of
+#: their tilted frames at 5-30 cm, where diff's own plane read 0.31 and 0.13 deg against peak's 0.47 and 0.23; chosen
+#: on their frames up to 0.45 m, 4-5 % (0.31 and 0.13 deg as returned). The default sweep (2-40 cm) and the real one
+#: (5 mm-39.5 cm) lie within it: their limits are unchanged.
+FALLBACK_MAX_RANGE = 0.45
+#: ... the fewest frames in range for that (else every frame from NEAR_FALLBACK_RANGE on).
+FALLBACK_MIN_FRAMES = 10
+
+
 def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correction=None,
                          peak_uncertainty: Uncertainty | None = None, options=None,
                          model_error: float | None = None) -> tuple[Uncertainty, dict]:
@@ -828,10 +841,16 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
     (module doc); the report gives the held-out figures (``angular_deg``, ``point_mm``: diff's own plane, peak's
     and the one returned; ``frames_using_diff``) and every candidate's score. ``model_error``: the unit's relative
     model error at the frames' true planes (the forward fit's ``model_error_chi2``; None: not known), which sizes the
-    stated tilt term of level frames (:func:`diff_tilt_term`)."""
+    stated tilt term of level frames (:func:`diff_tilt_term`). Frames closer than ``NEAR_FALLBACK_RANGE`` take no
+    part, nor do those beyond :data:`FALLBACK_MAX_RANGE` (reported as ``frames_beyond_range``) while at least
+    :data:`FALLBACK_MIN_FRAMES` are left."""
 
-    # closer frames always get peak's plane (NEAR_FALLBACK_RANGE): they take no part in choosing the limits
-    use = [f for f in frames if f.truth is not None and f.truth.z0 >= NEAR_FALLBACK_RANGE]
+    # closer frames always get peak's plane (NEAR_FALLBACK_RANGE): they take no part in choosing the limits; nor do
+    # frames beyond FALLBACK_MAX_RANGE while enough are left (a far sweep's dim frames: see the constant)
+    near_on = [f for f in frames if f.truth is not None and f.truth.z0 >= NEAR_FALLBACK_RANGE]
+    use = [f for f in near_on if f.truth.z0 <= FALLBACK_MAX_RANGE]
+    if len(use) < FALLBACK_MIN_FRAMES:
+        use = near_on
     truths = [f.truth for f in use]
     peak_unc = peak_uncertainty if peak_uncertainty is not None else Uncertainty()
     est = DifferentiableEstimator(forward, peak_params, correction=correction, peak_uncertainty=peak_unc,
@@ -912,6 +931,7 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
         return float(np.mean(a[np.isfinite(a)])) * scale if np.any(np.isfinite(a)) else math.nan
 
     rep.update({"chi2_limit": None if math.isinf(limit) else limit, "prefer_ratio": prefer, "folds": folds,
+                "frames_beyond_range": len(near_on) - len(use),
                 "tilt_term": ("stated: the frames' tilts spread less than MIN_TILT_SPREAD, or too few frames are tilted "
                               "(DIFF_TILTED_SHARE); sized by the unit's model error (diff_tilt_term)"
                               + (", then by the tilted frames (tilt_term_sized; the floor from the others)"

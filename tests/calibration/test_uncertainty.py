@@ -266,6 +266,25 @@ def test_a_frame_no_method_reads_does_not_break_the_diff_uncertainty(sweep_path)
     assert DIFF_TILT_REL > 0 and DIFF_TILT_OFFSET_REL > 0
 
 
+def test_frames_beyond_the_fallback_range_do_not_choose_diffs_limits():
+    """A level sweep out to 1 m: its frames beyond FALLBACK_MAX_RANGE take no part in choosing the fallback limits
+    (their low chi-square made the limit a distance cut), while enough frames are left in range; with too few, all
+    frames from 5 cm on choose them."""
+    from place_safe.calibration.uncertainty import FALLBACK_MAX_RANGE, FALLBACK_MIN_FRAMES, fit_diff_uncertainty
+    from place_safe.evaluation.independent import SceneSpec, make_frames
+    from place_safe.recovery.forward import ForwardParams
+    from place_safe.recovery.points import PeakParams
+
+    near = make_frames(FALLBACK_MIN_FRAMES, seed=1, scene=SceneSpec(z_range=(0.06, 0.35), theta_range=(0.0, 0.0)))
+    far = make_frames(4, seed=2, scene=SceneSpec(z_range=(FALLBACK_MAX_RANGE + 0.05, 0.9), theta_range=(0.0, 0.0)))
+    _, report = fit_diff_uncertainty(near + far, ForwardParams(), PeakParams.default_peak())
+    assert report["frames_beyond_range"] == len(far)
+    assert report["frames_using_diff"] + report["frames_using_peak"] == len(near)
+    _, few = fit_diff_uncertainty(near[:4] + far, ForwardParams(), PeakParams.default_peak())
+    assert few["frames_beyond_range"] == 0
+    assert few["frames_using_diff"] + few["frames_using_peak"] == 4 + len(far)
+
+
 def test_tilted_calibration_frames_hold_diffs_tilt_error_without_the_stated_term():
     """Frames whose tilts spread 5 deg or more show diff's tilt error: the floor fitted on them holds it, and the
     stated term (for level sweeps) is not added on top."""
