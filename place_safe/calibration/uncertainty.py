@@ -820,12 +820,13 @@ def _mean_nees(estimates: Sequence[PlaneEstimate], truths: Sequence) -> float | 
 
 
 #: m: calibration frames farther than this take no part in choosing diff's fallback limits and floor (unless fewer than
-#: :data:`FALLBACK_MIN_FRAMES` are left). A level sweep out to 0.6-1 m reads the crosstalk between zones that a sweep
-#: to 0.4 m trades against the fields of view (docs/results.md, "A level sweep out to 1 m"), but its dim far frames
-#: have a low chi-square, so the limits chosen on all of them became a distance cut: the generator's sensor seeds 1
+#: :data:`FALLBACK_MIN_FRAMES` are left). A level sweep out to 0.6-1 m reads the crosstalk between zones, which a sweep
+#: to 0.4 m trades against the fields of view, better on most units (docs/results.md, "A level sweep out to 1 m"), but
+#: its dim far frames have a low chi-square, so the limits chosen on all of them became a distance cut: the
+#: generator's sensor seeds 1
 #: and 8 calibrated on 2-100 cm took the median chi-square (1.1) as their limit and fell back to peak on 100 % of
 #: their tilted frames at 5-30 cm, where diff's own plane read 0.31 and 0.13 deg against peak's 0.47 and 0.23; chosen
-#: on their frames up to 0.45 m, 4-5 % (0.31 and 0.13 deg as returned). The default sweep (2-40 cm) and the real one
+#: on their frames up to 0.45 m, 5-6 % (0.31 and 0.13 deg as returned). The default sweep (2-40 cm) and the real one
 #: (5 mm-39.5 cm) lie within it: their limits are unchanged.
 FALLBACK_MAX_RANGE = 0.45
 #: ... the fewest frames in range for that (else every frame from NEAR_FALLBACK_RANGE on).
