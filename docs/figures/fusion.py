@@ -76,6 +76,10 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         cal = Calibration.load(a.calibration)
+        missing = [k for k in ("forward", "diff", "uncertainty") if k not in cal.sections]
+        if missing:
+            raise SystemExit(f"fusion: {a.calibration} has no {', '.join(missing)} section: calibrate it with "
+                             "--method diff")
         own, peak, ret = (make_estimator("diff", cal.without_fallback()), make_estimator("peak", cal),
                           make_estimator("diff", cal))
         frames = [f for f in load_frames(a.frames)
@@ -94,12 +98,15 @@ def main(argv: list[str] | None = None) -> int:
         unc = ret.uncertainty  # the fallback's gates but its preference (the weighting weighs the two itself)
         gated = (d.residual is not None and d.residual ** 2 <= unc.chi2_limit and unc.consistent(d, p)
                  and p.plane.offset >= NEAR_FALLBACK_RANGE)
-        xf = fuse(xd, cd, xp, cp)
-        xi, w = intersect(xd, cd, xp, cp)
+        try:
+            xf = fuse(xd, cd, xp, cp)
+            xi, w = intersect(xd, cd, xp, cp)
+            cf = np.linalg.inv(np.linalg.inv(cd) + np.linalg.inv(cp))
+        except np.linalg.LinAlgError:  # a singular covariance: no weighting of this frame
+            continue
         weights.append(w)
         if gated:  # the fused plane's NEES per dof under diff's covariance and under the weighting's
             e = xf - _vec(f.truth)
-            cf = np.linalg.inv(np.linalg.inv(cd) + np.linalg.inv(cp))
             nees.append((e @ np.linalg.solve(cd, e) / 3.0, e @ np.linalg.solve(cf, e) / 3.0))
         for k, x in zip(ROWS, (xd, xp, xr, xf, xf if kept else xr, xf if gated else xp, xi, xi if kept else xr)):
             rows[k].append(_errors(x, f.truth))

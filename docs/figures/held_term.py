@@ -13,6 +13,7 @@ docs/results.md, "What a level sweep leaves to the crosstalk".
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 import torch
 
@@ -36,6 +37,12 @@ def _held(items: list[str]) -> dict[str, float]:
             out[name] = float(value)
         except ValueError:
             raise SystemExit(f"held_term: {name}={value!r} is not a number") from None
+    try:  # the field's own bounds (a NaN, a crosstalk of 0.6: refused before a minute of fitting)
+        ff.ForwardParams(**out)
+    except ValueError as exc:
+        first = str(exc).splitlines()
+        raise SystemExit(f"held_term: {', '.join(f'{k}={v:g}' for k, v in out.items())} is out of range: "
+                         f"{first[-1].strip() if first else exc}") from None
     return out
 
 
@@ -47,24 +54,41 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--hold", nargs="+", required=True, metavar="NAME=VALUE", help="terms held, in their own units")
     a = ap.parse_args(argv)
     held = _held(a.hold)
+    out = Path(a.out)
+    if not out.parent.is_dir():
+        raise SystemExit(f"held_term: cannot write {out}: {out.parent} is not a directory")
+    from place_safe.exceptions import PlaceSafeError
+
+    try:
+        frames = load_frames(a.frames)
+    except PlaceSafeError as exc:
+        raise SystemExit(f"held_term: {exc}") from None
     torch.set_num_threads(1)
     fitted = {k: v for k, v in ff.FITTED.items() if k not in held}
+
+    class Held(ff.ForwardParams):
+        """Every parameter set the fit builds (its default start among them) carries the held values."""
+
+        def __init__(self, **data):
+            super().__init__(**{**data, **held})
+
+    ff.ForwardParams = Held
     fit_forward = ff.fit_forward
-    # the default start with the held values: fit_forward's coarse starts only run from the default start, so the
-    # parameter class's defaults are what must change
-    defaults = type("Held", (ff.ForwardParams,), {"__annotations__": {k: float for k in held}, **held})
-    ff.ForwardParams = defaults
     fit.fit_forward = lambda frames, init=None, progress=True, **kw: fit_forward(frames, None, progress,
                                                                                 fitted=fitted, **kw)
     fit.reconsider_geometry = lambda frames, params, report, **kw: (params, report)  # the fit as asked for, kept
+    fit.spare_cores = lambda: 0  # (and no second fit started beside it, whose result would be thrown away)
     cal = Calibration()
-    fit.fit_method(cal, load_frames(a.frames), "diff", progress=True)
-    cal.save(a.out)
+    try:
+        fit.fit_method(cal, frames, "diff", progress=True)
+        cal.save(str(out))
+    except (PlaceSafeError, OSError) as exc:
+        raise SystemExit(f"held_term: {exc}") from None
     f, r = cal.forward(), cal.reports["forward"]
     got = {k: getattr(f, k) for k in held}
     if any(abs(got[k] - v) > 1e-12 * max(1.0, abs(v)) for k, v in held.items()):
         raise SystemExit(f"held_term: the fit did not hold {held} (got {got})")
-    print(f"{a.out}: held {held}; RMS {r['rms_scaled_residual_after']:.3f} (coarse "
+    print(f"{out}: held {held}; RMS {r['rms_scaled_residual_after']:.3f} (coarse "
           f"{r['solver']['coarse']['rms_scaled_residual']:.4f}), {r['frames_excluded_as_bad']} frames excluded, "
           f"converged {r['converged']}")
     return 0

@@ -366,9 +366,9 @@ def fit_forward(frames: Sequence[Frame], init: ForwardParams | None = None, prog
     with ``determined`` false when it exceeds :data:`DETERMINED_FRACTION` of the value (or of the physical
     range) or the prior dominates it (``posterior_over_prior`` above :data:`PRIOR_DOMINATED`: ``held_at_prior``),
     and ``not_determined`` and ``held_at_prior`` listing those: what these frames cannot identify (a level sweep leaves
-    crosstalk, saturation and the beam profile open; the crosstalk and the fields of view it trades against each
-    other, which no spread shows, so those are reported not determined on a level sweep, with the reason:
-    :data:`LEVEL_SWEEP_TRADED`). ``solver`` has the Jacobians, evaluations, seconds,
+    crosstalk, saturation and the beam profile open). On a level sweep the crosstalk and the edge and corner fields
+    of view are reported not determined whatever their spread, with the reason: the sweep trades them against each
+    other, which no spread shows (:data:`LEVEL_SWEEP_TRADED`). ``solver`` has the Jacobians, evaluations, seconds,
     the last decrement (chi-square) and the RMS scaled residual after each accepted step.
     """
     with single_thread():  # a few thousand-element tensors: torch's thread pool only waits (3x slower when busy)
@@ -1049,7 +1049,7 @@ DETERMINED_FRACTION = 0.1
 #: any length reports these not determined.
 LEVEL_SWEEP_TRADED = {
     "crosstalk": "a level sweep trades the crosstalk against the edge and corner fields of view: tilted frames "
-                 "determine it (a sweep out to 0.6-1 m narrows it)",
+                 "determine it",
     "edge_fov_scale": "a level sweep trades the fields of view against the crosstalk (and each zone's own time "
                       "scale): tilted frames determine them",
     "corner_fov_scale": "a level sweep trades the fields of view against the crosstalk (and each zone's own time "

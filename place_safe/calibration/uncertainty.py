@@ -933,6 +933,11 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
 
     rep.update({"chi2_limit": None if math.isinf(limit) else limit, "prefer_ratio": prefer, "folds": folds,
                 "frames_beyond_range": len(near_on) - len(use),
+                "frames_choosing": (f"the {len(use)} frames from {NEAR_FALLBACK_RANGE:g} m to {FALLBACK_MAX_RANGE:g} m"
+                                    if len(use) < len(near_on) or not near_on
+                                    or max(f.truth.z0 for f in near_on) <= FALLBACK_MAX_RANGE else
+                                    f"all {len(use)} frames from {NEAR_FALLBACK_RANGE:g} m on (fewer than "
+                                    f"{FALLBACK_MIN_FRAMES} within {FALLBACK_MAX_RANGE:g} m)"),
                 "tilt_term": ("stated: the frames' tilts spread less than MIN_TILT_SPREAD, or too few frames are tilted "
                               "(DIFF_TILTED_SHARE); sized by the unit's model error (diff_tilt_term)"
                               + (", then by the tilted frames (tilt_term_sized; the floor from the others)"

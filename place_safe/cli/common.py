@@ -126,7 +126,7 @@ def summarise(report: Any, indent: str = "  ") -> list[str]:
             if len(v) <= 16 and all(isinstance(x, (int, float)) or x is None for x in v):
                 lines.append(f"{indent}{key}: [{', '.join('-' if x is None else f'{x:.4g}' for x in v)}]")
             elif len(v) <= 32 and all(isinstance(x, str) for x in v):  # names (e.g. the terms not determined)
-                lines.append(f"{indent}{key}: {', '.join(v) if v else '(none)'}")
+                lines.append(f"{indent}{key}: {', '.join(v)}")
             else:
                 lines.append(f"{indent}{key}: list of {len(v)}")
         elif isinstance(v, float):

@@ -281,7 +281,8 @@ def test_frames_beyond_the_fallback_range_do_not_choose_diffs_limits():
     assert report["frames_beyond_range"] == len(far)
     assert report["frames_using_diff"] + report["frames_using_peak"] == len(near)
     _, few = fit_diff_uncertainty(near[:4] + far, ForwardParams(), PeakParams.default_peak())
-    assert few["frames_beyond_range"] == 0
+    assert few["frames_beyond_range"] == 0 and few["frames_choosing"].startswith("all")
+    assert report["frames_choosing"].startswith(f"the {len(near)} frames")
     assert few["frames_using_diff"] + few["frames_using_peak"] == 4 + len(far)
 
 
