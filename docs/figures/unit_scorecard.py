@@ -5,6 +5,7 @@ sweep (150 frames, table 2-40 cm below the sensor, level) and read on tilted pla
     python docs/figures/unit_scorecard.py --units A 31 --out ../scorecard                      # some of them
     python docs/figures/unit_scorecard.py --out ../scorecard --table                           # the table from disk
     python docs/figures/unit_scorecard.py --out ../scorecard --few-tilts 12    # level sweep + 12 tilted frames
+    python docs/figures/unit_scorecard.py --units synth1 A --out ../scorecard_far --level-max 1.0   # sweep to 1 m
 
 The units: ``A`` (the default :class:`~place_safe.sim.tof_mismatch.MismatchConfig`), ``B`` (seed 11, longer tails:
 docs/results.md, the unit's forward model), ``31``, ``32``, ``33`` (new seeds, their other differences varied within
@@ -261,6 +262,7 @@ def table(rows: list[dict]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    global LEVEL_HEIGHTS  # --level-max sets the sweep's far end for make_frames
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--units", nargs="+", default=list(DEFAULT_UNITS), choices=[*UNITS, *SYNTH],
@@ -274,9 +276,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--few-tilts", type=int, default=0, metavar="N",
                     help="calibrate on the level sweep with N tilted frames added (8-30 deg, the generator's 0-30 deg, "
                          "5-30 cm, seed 7): the rows are UNIT_fewN (default 0: the level sweep alone)")
+    ap.add_argument("--level-max", type=float, default=LEVEL_HEIGHTS[1], metavar="M",
+                    help=f"the level sweep's far end, m (default {LEVEL_HEIGHTS[1]:g}; 0.1..1.0). The frames are kept "
+                         "by unit name: give another --out (docs/results.md, \"A level sweep out to 1 m\")")
     a = ap.parse_args(argv)
     if not 0 <= a.few_tilts <= 1000:
         ap.error(f"--few-tilts must be 0..1000, got {a.few_tilts}")
+    if not 0.1 <= a.level_max <= 1.0:  # (the forward fit reads frames to 1 m)
+        ap.error(f"--level-max must be 0.1..1.0 m, got {a.level_max:g}")
+    LEVEL_HEIGHTS = (LEVEL_HEIGHTS[0], a.level_max)
     a.out.mkdir(parents=True, exist_ok=True)
     rows = []
     for i, u in enumerate(a.units, 1):
