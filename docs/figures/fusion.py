@@ -28,6 +28,7 @@ import math
 import numpy as np
 
 from place_safe.calibration import Calibration
+from place_safe.evaluation.metrics import angular_errors
 from place_safe.io.frame_file import load_frames
 from place_safe.recovery import make_estimator
 from place_safe.recovery.differentiable import NEAR_FALLBACK_RANGE
@@ -41,7 +42,7 @@ def _vec(plane) -> np.ndarray:
 def _errors(x: np.ndarray, truth) -> tuple[float, float]:
     """(angle deg, |offset error| mm) of the plane vector ``x`` against ``truth``."""
     n = np.array([x[0], x[1], math.sqrt(max(1.0 - x[0] ** 2 - x[1] ** 2, 0.0))])
-    ang = math.degrees(math.acos(float(np.clip(n @ np.asarray(truth.normal, dtype=float), -1.0, 1.0))))
+    ang = math.degrees(float(angular_errors(n[None], np.asarray(truth.normal, dtype=float)[None])[0]))
     return ang, abs(float(x[2]) - float(truth.offset)) * 1e3
 
 

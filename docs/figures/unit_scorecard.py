@@ -13,7 +13,8 @@ the config's bounds: see :data:`UNITS`), ``34`` (unit A whose zones each have th
 (units 32 and B with +-1 % and +-2 % time scales), ``37`` and ``38`` (units A and B mounted 0.94 and 1.5 deg off
 their nominal orientation), ``39`` (unit 34 mounted 1 deg off; 34-39 are not in the default set), and ``synth``
 (the independent generator, ``place-safe synth``, sensor seed 0; ``synth1`` .. ``synth9``: sensor seeds 1-9).
-Everything runs through the command line a user has (``place-safe calibrate``, ``place-safe evaluate --json``); each step's output is kept in ``--out`` and reused when rerun (``--fresh``: redo).
+Everything runs through the command line a user has (``place-safe calibrate``, ``place-safe evaluate --json``); each
+step's output is kept in ``--out`` and reused when rerun (``--fresh``: redo).
 
 Per unit it prints: the forward fit's RMS scaled residual and whether it converged (``reports.forward``), the
 calibration's user CPU and wall seconds (``/usr/bin/time``), diff as returned (mean angle deg,

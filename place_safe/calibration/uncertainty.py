@@ -849,9 +849,9 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
     # closer frames always get peak's plane (NEAR_FALLBACK_RANGE): they take no part in choosing the limits; nor do
     # frames beyond FALLBACK_MAX_RANGE while enough are left (a far sweep's dim frames: see the constant)
     near_on = [f for f in frames if f.truth is not None and f.truth.z0 >= NEAR_FALLBACK_RANGE]
-    use = [f for f in near_on if f.truth.z0 <= FALLBACK_MAX_RANGE]
-    if len(use) < FALLBACK_MIN_FRAMES:
-        use = near_on
+    in_range = [f for f in near_on if f.truth.z0 <= FALLBACK_MAX_RANGE]
+    every_frame = len(in_range) < min(FALLBACK_MIN_FRAMES, len(near_on))  # too few in range: the far ones too
+    use = near_on if every_frame else in_range
     truths = [f.truth for f in use]
     peak_unc = peak_uncertainty if peak_uncertainty is not None else Uncertainty()
     est = DifferentiableEstimator(forward, peak_params, correction=correction, peak_uncertainty=peak_unc,
@@ -933,11 +933,9 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
 
     rep.update({"chi2_limit": None if math.isinf(limit) else limit, "prefer_ratio": prefer, "folds": folds,
                 "frames_beyond_range": len(near_on) - len(use),
-                "frames_choosing": (f"the {len(use)} frames from {NEAR_FALLBACK_RANGE:g} m to {FALLBACK_MAX_RANGE:g} m"
-                                    if len(use) < len(near_on) or not near_on
-                                    or max(f.truth.z0 for f in near_on) <= FALLBACK_MAX_RANGE else
-                                    f"all {len(use)} frames from {NEAR_FALLBACK_RANGE:g} m on (fewer than "
-                                    f"{FALLBACK_MIN_FRAMES} within {FALLBACK_MAX_RANGE:g} m)"),
+                "frames_choosing": (f"all {len(use)} frames from {NEAR_FALLBACK_RANGE:g} m on (fewer than "
+                                    f"{FALLBACK_MIN_FRAMES} within {FALLBACK_MAX_RANGE:g} m)" if every_frame else
+                                    f"the {len(use)} frames from {NEAR_FALLBACK_RANGE:g} m to {FALLBACK_MAX_RANGE:g} m"),
                 "tilt_term": ("stated: the frames' tilts spread less than MIN_TILT_SPREAD, or too few frames are tilted "
                               "(DIFF_TILTED_SHARE); sized by the unit's model error (diff_tilt_term)"
                               + (", then by the tilted frames (tilt_term_sized; the floor from the others)"
