@@ -57,10 +57,11 @@ class MethodResult:
 
     @property
     def fallback_rate(self) -> float | None:
-        """Fraction of the frames with a plane on which the method returned another method's plane (diff's
-        fallback to peak); None when it returned none."""
+        """Fraction of the frames with a plane on which the method returned another method's plane alone (diff's
+        fallback to peak; a blend of its own with another's, ``diff+peak``, is not one); None when it returned
+        none."""
         used = [u for u in self.used if u is not None]
-        return sum(u != self.method for u in used) / len(used) if used else None
+        return sum(u != self.method and not u.startswith(self.method + "+") for u in used) / len(used) if used else None
 
     def albedo_spread(self) -> dict[str, float] | None:
         """Mean, standard deviation and coefficient of variation (per cent) of the recovered albedos, or None

@@ -26,6 +26,9 @@ against the calibrated noise: above the calibrated ``chi2_limit`` (:class:`~plac
 the fast solver returns the peak estimate instead, with ``method_used = "peak"``; so it does when the two
 contradict each other (``consistency_limit``) and where diff's tilt variance is above ``prefer_ratio`` times
 peak's (peak reads that slope better; calibrated on held-out frames, :mod:`place_safe.calibration.uncertainty`).
+A calibration that blends (``Uncertainty.blend``, what ``calibrate`` writes) returns, where the other gates pass,
+diff's plane and peak's blended by their tilt variances (:mod:`place_safe.recovery.blend`, ``method_used =
+"diff+peak"``) in place of that choice: on the real sweep held out the blend read better than either plane.
 Closer than :data:`NEAR_FALLBACK_RANGE` (peak's offset) a calibrated fast solver always returns peak's plane: the
 forward model has no validated near-range terms (internal return, partial illumination), and on the real sweep
 its own plane there was off by 10-19 deg where peak's near-range table read 1.7-3.3 deg.
@@ -55,6 +58,7 @@ from place_safe.recovery.plane_renderer import PlaneRenderer, convolution_matric
 from place_safe.sensor.frame import N_BINS, N_ZONES, Frame
 from place_safe.recovery.estimator import (Estimator, PlaneEstimate, Uncertainty, check_arguments, checked,
                                           tilt_offset)
+from place_safe.recovery.blend import blended
 from place_safe.recovery.peak import PeakEstimator
 from place_safe.sensor.histogram import COUNT_MAX, arriving_ambient, floor_profile, reference_problem
 
@@ -200,6 +204,10 @@ Measured again with the forward fit and plane correction reaching down to 1.5-2 
 on six simulated units diff's own 2-5 cm plane stayed 6-14 times peak's error on level frames (a timing error that
 repeats every bin, falling as 1 / z0) with NEES 2-5; moved to 3.5 or 2 cm, the calibrated limits kept real planes
 1.8 and 14 deg off where peak read 0.1 and 3.3 deg."""
+
+
+#: ``method_used`` of a plane blended from diff's and peak's (``Uncertainty.blend``).
+BLENDED = "diff+peak"
 
 
 def _fallback(peak: PlaneEstimate, diff: PlaneEstimate | None = None) -> PlaneEstimate:
@@ -398,7 +406,9 @@ class DifferentiableEstimator(Estimator):
         tilt variance is above ``uncertainty.prefer_ratio`` times peak's (peak reads this slope better), closer than
         :data:`NEAR_FALLBACK_RANGE` (with a calibrated fallback), and when
         diff's covariance is not positive definite (a degenerate Jacobian: the fit did not pin the plane
-        down, and a zero covariance would claim it did).
+        down, and a zero covariance would claim it did). With ``uncertainty.blend`` a frame that passes the other
+        gates gets the two planes blended by their tilt variances (:mod:`place_safe.recovery.blend`,
+        ``method_used`` :data:`BLENDED`) in place of ``prefer_ratio``'s choice.
         """
         failed = not est.ok or est.residual is None or not est.residual ** 2 <= self.uncertainty.chi2_limit \
             or not _positive_definite(est.covariance)
@@ -406,8 +416,13 @@ class DifferentiableEstimator(Estimator):
             near = False  # no fallback calibrated: diff's own plane wherever it has one
         else:
             near = peak.ok and peak.plane.offset < NEAR_FALLBACK_RANGE
-        if not failed and not near and self.uncertainty.consistent(est, peak) and self.uncertainty.prefers(est, peak):
-            return est
+        if not failed and not near and self.uncertainty.consistent(est, peak):
+            if self.uncertainty.blend:  # both planes usable: blended by their tilt variances
+                mixed = blended(est, peak, BLENDED)
+                if mixed is not None:
+                    return mixed
+            if self.uncertainty.prefers(est, peak):
+                return est
         if not est.ok and math.isinf(self.uncertainty.chi2_limit):
             return est  # no fallback calibrated: report diff's own failure
         return _fallback(peak, est)

@@ -83,12 +83,15 @@ class Uncertainty(ParamModel):
     ``prefer_ratio``
     (> 0; ``inf`` = no comparison): ``diff`` keeps its own plane only where its tilt variance (worst axis of
     the (n_x, n_y) block) is at most ``prefer_ratio`` times the peak estimate's, so it falls back where its
-    covariance says peak reads the slope better (:meth:`prefers`). The defaults (no floor, no fallback,
+    covariance says peak reads the slope better (:meth:`prefers`). ``blend`` (``diff`` only; true or false): where
+    diff passes its chi-square, consistency and near-range gates it returns its plane blended with peak's by their tilt
+    variances (:mod:`place_safe.recovery.blend`, ``method_used = "diff+peak"``) instead of choosing one by
+    ``prefer_ratio`` (calibration writes ``prefer_ratio`` null with it). The defaults (no floor, no fallback,
     scale 1, no tilt term, no comparison) are the behaviour of a missing section.
 
     File form (:meth:`to_dict`, as files have always had it): an infinite ``chi2_limit``, ``consistency_limit`` or
     ``prefer_ratio`` is ``null``; the near-range fields are left out when empty, and ``tilt_rel``, ``prefer_ratio``,
-    ``tilt_pivot`` and ``tilt_offset_rel`` at their defaults (older files), ``near_common_std`` when empty.
+    ``tilt_pivot``, ``tilt_offset_rel`` and ``blend`` at their defaults (older files), ``near_common_std`` when empty.
     Problems are one :class:`~place_safe.exceptions.CalibrationError` line naming the field.
     """
 
@@ -109,6 +112,7 @@ class Uncertainty(ParamModel):
     tilt_pivot: float = Field(1.0, ge=0.0, le=2.0, description="(of z0)")
     tilt_offset_rel: float = Field(0.0, ge=0.0, le=1.0, description="(dimensionless)")
     near_common_std: vector(ge=0.0, le=NEAR_MAX_STD) = Field(default_factory=list, description="m")
+    blend: bool = Field(False, description="(diff: blend its plane with peak's where its gates pass)")
 
     what: ClassVar[str] = "uncertainty"
     error: ClassVar[type[Exception]] = CalibrationError
@@ -207,12 +211,13 @@ class Uncertainty(ParamModel):
     _INF_AS_NULL: ClassVar[tuple[str, ...]] = FALLBACK_LIMITS
     #: fields left out of the file at these values (the defaults of files older versions read)
     _OMITTED_AT: ClassVar[tuple[tuple[str, Any], ...]] = (("tilt_rel", 0.0), ("prefer_ratio", None),
-                                                           ("tilt_pivot", 1.0), ("tilt_offset_rel", 0.0))
+                                                           ("tilt_pivot", 1.0), ("tilt_offset_rel", 0.0),
+                                                           ("blend", False))
 
     def without_fallback(self) -> "Uncertainty":
         """This uncertainty with every :data:`FALLBACK_LIMITS` at ``inf``: ``diff`` returns its own plane wherever it
         solves one (how its own accuracy is measured), with the same covariance."""
-        return self.replace(**{k: math.inf for k in self.FALLBACK_LIMITS})
+        return self.replace(blend=False, **{k: math.inf for k in self.FALLBACK_LIMITS})
 
     def to_dict(self) -> dict:
         """The JSON form: ``inf`` limits as null; without the near-range fields when there are none and without

@@ -244,12 +244,17 @@ def test_the_forward_models_mount_widens_peaks_offset_on_level_sweeps_only():
     assert rep["peak"]["tilt_offset_from"].startswith("no forward model")
 
 
-def test_a_frame_no_method_reads_does_not_break_the_diff_uncertainty(sweep_path):
+@pytest.mark.parametrize("blend", [True, False])
+def test_a_frame_no_method_reads_does_not_break_the_diff_uncertainty(sweep_path, monkeypatch, blend):
     """One unusable frame (all-zero histograms) among calibration frames: it counts as failed for both methods
-    and the limit is chosen on the rest (it made peak's median error NaN, and calibration stopped)."""
+    and the limit is chosen on the rest (it made peak's median error NaN, and calibration stopped). With the blend
+    (the default) only the chi-square limit is chosen and ``prefer_ratio`` is null; without it, a ratio too."""
     from dataclasses import replace
 
+    import place_safe.calibration.uncertainty as uncertainty
     from place_safe.calibration.uncertainty import fit_diff_uncertainty
+
+    monkeypatch.setattr(uncertainty, "BLEND", blend)
     from place_safe.io.frame_file import load_frames
     from place_safe.recovery.forward import ForwardParams
     from place_safe.recovery.points import PeakParams
@@ -259,7 +264,10 @@ def test_a_frame_no_method_reads_does_not_break_the_diff_uncertainty(sweep_path)
     unc, report = fit_diff_uncertainty(frames, ForwardParams(), PeakParams.default_peak())
     assert unc.chi2_limit > 0.0 and report["frames_using_diff"] + report["frames_using_peak"] == len(frames)
     assert math.isfinite(report["point_mm"]["selected"]) and report["folds"] >= 2
-    assert unc.prefer_ratio in PREFER_RATIOS and unc.consistency_limit < math.inf
+    assert unc.consistency_limit < math.inf and unc.blend is blend
+    assert unc.prefer_ratio == math.inf if blend else unc.prefer_ratio in PREFER_RATIOS
+    assert report["blend"].startswith("diff's plane blended" if blend else "none")
+    assert math.isfinite(report["angular_deg"]["blend"])
     # a level sweep cannot show diff's tilt error either: the diff section carries the stated terms
     from place_safe.calibration.uncertainty import DIFF_TILT_OFFSET_REL, DIFF_TILT_PIVOT, DIFF_TILT_REL
     assert (unc.tilt_rel, unc.tilt_offset_rel, unc.tilt_pivot) == (DIFF_TILT_REL, DIFF_TILT_OFFSET_REL, DIFF_TILT_PIVOT)

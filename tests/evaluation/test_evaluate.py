@@ -64,6 +64,10 @@ def test_summary_reports_the_fallback_rate_and_the_albedo_spread():
                        np.zeros(n), [None] * n, used=["diff", "peak", "diff", None])
     s = res.summary()
     assert s["fallback_rate"] == pytest.approx(1 / 3)
+    mixed = MethodResult("diff", np.zeros(n), np.zeros(n), np.zeros(n), np.full(n, np.nan), np.zeros(n), [None] * n,
+                         used=["diff+peak", "peak", "diff", "diff+peak"])  # a blend is not a fallback
+    assert mixed.summary()["fallback_rate"] == pytest.approx(1 / 4)
+    assert mixed.summary()["method_used"] == {"diff": 1, "diff+peak": 2, "peak": 1}
     assert s["albedo"]["mean"] == pytest.approx(2.0)
     assert s["albedo"]["cv_percent"] == pytest.approx(10.0)
     assert s["albedo"]["count"] == 3

@@ -199,26 +199,27 @@ def test_covariance_is_symmetric_positive_and_shrinks_with_signal():
 @pytest.mark.filterwarnings("ignore")
 def test_diff_keeps_its_plane_only_when_every_fallback_test_passes():
     """Safety invariant (hypothesis): for any calibrated limits and any pair of estimates, diff returns its own
-    plane only when its chi-square is under the limit, its covariance is positive definite, it agrees with peak,
-    peak does not read the slope better and (with a calibrated fallback) peak's plane is not closer than
-    NEAR_FALLBACK_RANGE; otherwise exactly peak's plane and covariance, marked "peak"."""
+    plane (or, with ``blend``, its plane blended with peak's) only when its chi-square is under the limit, its
+    covariance is positive definite, it agrees with peak, (without ``blend``) peak does not read the slope better and
+    (with a calibrated fallback) peak's plane is not closer than NEAR_FALLBACK_RANGE; otherwise exactly peak's plane
+    and covariance, marked "peak". A blend lies between the two planes, component by component."""
     from hypothesis import given, settings
     from hypothesis import strategies as st
 
     from place_safe.geometry import Plane
-    from place_safe.recovery.differentiable import NEAR_FALLBACK_RANGE, _positive_definite
-    from place_safe.recovery.estimator import PlaneEstimate, Uncertainty
+    from place_safe.recovery.differentiable import BLENDED, NEAR_FALLBACK_RANGE, _positive_definite
+    from place_safe.recovery.estimator import PlaneEstimate, Uncertainty, tilt_offset
 
     est = DifferentiableEstimator()
     pos = st.floats(1e-9, 1e3, allow_nan=False)
 
-    @settings(max_examples=200, deadline=None)
+    @settings(max_examples=300, deadline=None)
     @given(chi2_limit=st.one_of(st.just(math.inf), st.floats(0.0, 1e3)), consistency=st.one_of(st.just(math.inf), pos),
            prefer=st.one_of(st.just(math.inf), pos), residual=st.floats(0.0, 1e3), tilt=st.floats(0.0, 1.2),
            var_diff=st.floats(1e-12, 1.0), var_peak=st.floats(1e-12, 1.0), shift=st.floats(-0.2, 0.2),
-           offset=st.floats(0.005, 0.4))
-    def check(chi2_limit, consistency, prefer, residual, tilt, var_diff, var_peak, shift, offset):
-        unc = Uncertainty(chi2_limit=chi2_limit, consistency_limit=consistency, prefer_ratio=prefer)
+           offset=st.floats(0.005, 0.4), blend=st.booleans())
+    def check(chi2_limit, consistency, prefer, residual, tilt, var_diff, var_peak, shift, offset, blend):
+        unc = Uncertainty(chi2_limit=chi2_limit, consistency_limit=consistency, prefer_ratio=prefer, blend=blend)
         est.uncertainty = unc
         d = PlaneEstimate(Plane.from_angles(tilt, 0.3, offset), albedo=1.0, residual=residual,
                           covariance=np.diag([var_diff, var_diff, var_diff * 1e-3]), method_used="diff")
@@ -226,10 +227,14 @@ def test_diff_keeps_its_plane_only_when_every_fallback_test_passes():
                           covariance=np.diag([var_peak, var_peak, var_peak * 1e-3]), method_used="peak")
         out = est._checked(d, p)
         near = not math.isinf(chi2_limit) and p.plane.offset < NEAR_FALLBACK_RANGE
-        passes = (residual ** 2 <= chi2_limit and _positive_definite(d.covariance) and unc.consistent(d, p)
-                  and unc.prefers(d, p) and not near)
-        if passes:
-            assert out is d
+        gates = residual ** 2 <= chi2_limit and _positive_definite(d.covariance) and unc.consistent(d, p) and not near
+        if gates and blend and out.method_used == BLENDED:  # both usable: between the two, with a covariance
+            for k in range(3):
+                lo, hi = sorted((tilt_offset(d.plane)[k], tilt_offset(p.plane)[k]))
+                assert lo - 1e-12 <= tilt_offset(out.plane)[k] <= hi + 1e-12
+            assert np.all(np.linalg.eigvalsh(out.covariance) > 0) and out.residual == d.residual
+        elif gates and (unc.prefers(d, p) or blend):  # kept (a blend whose weight is all diff's returns diff's own)
+            assert out is d or (blend and out.plane is p.plane and out.covariance is p.covariance)
         else:
             assert out.method_used == "peak" and out.plane is p.plane and out.covariance is p.covariance
 

@@ -111,6 +111,18 @@ def test_tilt_term_and_preference_round_trip_and_default_to_none():
             Uncertainty(**bad)
 
 
+def test_blend_round_trips_is_left_out_when_off_and_goes_with_the_fallback():
+    """``blend`` is written when on, left out when off (files older versions read, which never blended), refused
+    unless true or false, and off in the copy that measures diff's own plane."""
+    u = Uncertainty(chi2_limit=3.0, blend=True)
+    assert u.to_dict()["blend"] is True and Uncertainty.from_dict(json.loads(json.dumps(u.to_dict()))) == u
+    assert "blend" not in Uncertainty().to_dict() and Uncertainty.from_dict({}).blend is False
+    assert u.without_fallback().blend is False and u.without_fallback().chi2_limit == math.inf
+    for bad in (1, "yes", None):
+        with pytest.raises(ValueError):
+            Uncertainty.from_dict({"blend": bad})
+
+
 def test_tilt_term_is_zero_level_and_turns_the_plane_about_its_axis_crossing():
     u = Uncertainty(tilt_rel=0.05)
     level = np.array([0.0, 0.0, 1.0])

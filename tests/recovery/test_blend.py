@@ -1,0 +1,85 @@
+"""Two planes blended by their tilt variances (place_safe.recovery.blend)."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from place_safe.geometry import Plane
+from place_safe.recovery.blend import blend_weight, blended
+from place_safe.recovery.estimator import PlaneEstimate, tilt_offset
+
+
+def _est(tilt, azimuth, offset, cov, method="x"):
+    return PlaneEstimate(Plane.from_angles(tilt, azimuth, offset), albedo=0.5, residual=1.2,
+                         covariance=np.asarray(cov, dtype=float), method_used=method)
+
+
+def test_the_plane_that_reads_the_slope_better_counts_more():
+    """Equal tilt variances: the midpoint of the two states; a variance 3 times the other's: weight 1/4 on it. The
+    albedo and residual are the first estimate's, the method the name given."""
+    a = _est(0.02, 0.0, 0.10, np.diag([1e-6, 1e-6, 1e-8]), "diff")
+    b = _est(0.04, 0.0, 0.12, np.diag([1e-6, 1e-6, 1e-8]), "peak")
+    m = blended(a, b, "diff+peak")
+    assert blend_weight(a, b) == pytest.approx(0.5)
+    assert tilt_offset(m.plane) == pytest.approx(0.5 * (tilt_offset(a.plane) + tilt_offset(b.plane)), abs=1e-12)
+    assert (m.albedo, m.residual, m.method_used) == (0.5, 1.2, "diff+peak")
+    worse = _est(0.02, 0.0, 0.10, np.diag([3e-6, 3e-6, 1e-8]))
+    assert blend_weight(worse, b) == pytest.approx(0.25)
+    assert abs(float(np.linalg.norm(m.plane.normal)) - 1.0) < 1e-12 and m.plane.normal[2] > 0
+
+
+def test_edges_return_one_estimate_and_missing_covariances_no_blend():
+    a = _est(0.02, 0.0, 0.10, np.diag([1e-6, 1e-6, 1e-8]), "diff")
+    sure = _est(0.04, 0.0, 0.12, np.diag([1e-30, 1e-30, 1e-8]), "peak")  # its tilt known exactly: all its weight
+    out = blended(a, sure, "diff+peak")
+    assert out.plane is sure.plane and out.covariance is sure.covariance and out.method_used == "peak"
+    assert blended(sure, a, "peak+diff") is sure
+    bare = PlaneEstimate(a.plane, covariance=None)
+    assert blended(a, bare, "m") is None and blended(bare, a, "m") is None
+    assert blended(a, PlaneEstimate(None, reason="no return"), "m") is None
+    zero = _est(0.0, 0.0, 0.1, np.zeros((3, 3)))
+    assert blend_weight(zero, zero) is None and blended(zero, zero, "m") is None
+
+
+@settings(max_examples=300, deadline=None)
+@given(seed=st.integers(0, 2 ** 32 - 1), rho=st.floats(-1.0, 1.0), scale_b=st.floats(1e-3, 1e3))
+def test_the_blends_covariance_holds_whatever_the_two_errors_correlation(seed, rho, scale_b):
+    """Property: for any covariances C_a, C_b and any joint covariance of the two errors with them as marginals
+    (cross term C_a^1/2 K C_b^1/2 with K a contraction), the blend's stated covariance is at least the covariance
+    of its error ``w e_a + (1 - w) e_b``: the stated one never claims more than the planes give."""
+    rng = np.random.default_rng(seed)
+
+    def spd(scale):
+        m = rng.normal(size=(3, 3))
+        return scale * (m @ m.T + 0.05 * np.eye(3))
+
+    ca, cb = spd(1e-6), spd(1e-6 * scale_b)
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    k = rho * q  # a contraction: singular values |rho| <= 1
+    la, lb = np.linalg.cholesky(ca), np.linalg.cholesky(cb)
+    cab = la @ k @ lb.T
+    a = PlaneEstimate(Plane.from_angles(0.01, 0.2, 0.1), covariance=ca)
+    b = PlaneEstimate(Plane.from_angles(0.02, 0.3, 0.1), covariance=cb)
+    m = blended(a, b, "m")
+    w = blend_weight(a, b)
+    if m is None or m is a or m.method_used != "m":
+        return  # an edge: one estimate unchanged
+    true = w * w * ca + (1 - w) ** 2 * cb + w * (1 - w) * (cab + cab.T)
+    gap = np.linalg.eigvalsh(m.covariance - true)
+    assert gap.min() >= -1e-9 * np.abs(m.covariance).max()
+    # on the tilt trace, never looser than the plain convex bound w C_a + (1 - w) C_b (the scalar optimum of t)
+    assert np.trace(m.covariance[:2, :2]) <= np.trace((w * ca + (1 - w) * cb)[:2, :2]) * (1 + 1e-9)
+
+
+def test_perfectly_correlated_scalar_errors_are_bounded_exactly():
+    """Convention check: with both covariances proportional to one matrix the bound is (w s_a + (1 - w) s_b)^2 in
+    that direction, the variance of the blend of perfectly correlated errors."""
+    base = np.diag([1e-6, 2e-6, 1e-8])
+    a = PlaneEstimate(Plane.from_angles(0.01, 0.0, 0.1), covariance=base)
+    b = PlaneEstimate(Plane.from_angles(0.02, 0.0, 0.1), covariance=4.0 * base)
+    m = blended(a, b, "m")
+    w = blend_weight(a, b)
+    assert w == pytest.approx(0.8)
+    assert m.covariance == pytest.approx((w * 1.0 + (1 - w) * 2.0) ** 2 * base, rel=1e-9)
+    assert float(m.plane.offset) == pytest.approx(0.8 * a.plane.offset + 0.2 * b.plane.offset, rel=1e-12)
