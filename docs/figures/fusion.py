@@ -95,7 +95,7 @@ def main(argv: list[str] | None = None) -> int:
             continue
         xd, xp, xr = _vec(d.plane), _vec(p.plane), _vec(r.plane)
         cd, cp = np.asarray(d.covariance, dtype=float), np.asarray(p.covariance, dtype=float)
-        kept = r.method_used in (None, "diff")
+        kept = r.method_used in (None, "diff", "diff+peak")  # diff returned its own plane or its blend with peak's
         unc = ret.uncertainty  # the fallback's gates but its preference (the weighting weighs the two itself)
         gated = (d.residual is not None and d.residual ** 2 <= unc.chi2_limit and unc.consistent(d, p)
                  and p.plane.offset >= NEAR_FALLBACK_RANGE)

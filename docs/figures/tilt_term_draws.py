@@ -30,6 +30,7 @@ def read_rows(out: Path, unit: str):
     from place_safe.recovery import make_estimator
 
     est = make_estimator("diff", Calibration.load(out / f"{unit}_cal.json"))
+    est.uncertainty = est.uncertainty.replace(blend=False)  # diff's own plane and covariance where it keeps them
     unc = est.uncertainty
     rows = []
     for f in load_frames(out / f"{unit}_tilt.json"):

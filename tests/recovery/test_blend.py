@@ -6,7 +6,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from place_safe.geometry import Plane
-from place_safe.recovery.blend import blend_weight, blended
+from place_safe.recovery.blend import blend_weights, blended
 from place_safe.recovery.estimator import PlaneEstimate, tilt_offset
 
 
@@ -15,31 +15,48 @@ def _est(tilt, azimuth, offset, cov, method="x"):
                          covariance=np.asarray(cov, dtype=float), method_used=method)
 
 
-def test_the_plane_that_reads_the_slope_better_counts_more():
-    """Equal tilt variances: the midpoint of the two states; a variance 3 times the other's: weight 1/4 on it. The
-    albedo and residual are the first estimate's, the method the name given."""
+def test_the_plane_that_reads_the_slope_better_counts_more_in_the_tilt_the_other_in_the_offset():
+    """Equal variances: the midpoint of the two states; a tilt variance 3 times the other's: weight 1/4 on its tilt,
+    while the offset follows the offset variances (here 1/5 on the other's). The albedo and residual are the first
+    estimate's, the method the name given."""
     a = _est(0.02, 0.0, 0.10, np.diag([1e-6, 1e-6, 1e-8]), "diff")
     b = _est(0.04, 0.0, 0.12, np.diag([1e-6, 1e-6, 1e-8]), "peak")
     m = blended(a, b, "diff+peak")
-    assert blend_weight(a, b) == pytest.approx(0.5)
+    assert blend_weights(a, b) == pytest.approx((0.5, 0.5))
     assert tilt_offset(m.plane) == pytest.approx(0.5 * (tilt_offset(a.plane) + tilt_offset(b.plane)), abs=1e-12)
     assert (m.albedo, m.residual, m.method_used) == (0.5, 1.2, "diff+peak")
-    worse = _est(0.02, 0.0, 0.10, np.diag([3e-6, 3e-6, 1e-8]))
-    assert blend_weight(worse, b) == pytest.approx(0.25)
     assert abs(float(np.linalg.norm(m.plane.normal)) - 1.0) < 1e-12 and m.plane.normal[2] > 0
+    worse = _est(0.02, 0.0, 0.10, np.diag([3e-6, 3e-6, 4e-8]))
+    assert blend_weights(worse, b) == pytest.approx((0.25, 0.2))
+    mixed = blended(worse, b, "m")
+    assert tilt_offset(mixed.plane)[:2] == pytest.approx(0.25 * tilt_offset(worse.plane)[:2]
+                                                         + 0.75 * tilt_offset(b.plane)[:2], abs=1e-12)
+    assert mixed.plane.offset == pytest.approx(0.2 * worse.plane.offset + 0.8 * b.plane.offset, rel=1e-12)
 
 
 def test_edges_return_one_estimate_and_missing_covariances_no_blend():
     a = _est(0.02, 0.0, 0.10, np.diag([1e-6, 1e-6, 1e-8]), "diff")
-    sure = _est(0.04, 0.0, 0.12, np.diag([1e-30, 1e-30, 1e-8]), "peak")  # its tilt known exactly: all its weight
+    sure = _est(0.04, 0.0, 0.12, np.diag([1e-30, 1e-30, 1e-30]), "peak")  # known exactly: all its weight
     out = blended(a, sure, "diff+peak")
     assert out.plane is sure.plane and out.covariance is sure.covariance and out.method_used == "peak"
     assert blended(sure, a, "peak+diff") is sure
+    # its tilt known exactly, the offsets alike: the tilt is its, the offset the mean, the offset's variance bounded
+    tilt_known = _est(0.04, 0.0, 0.12, np.diag([1e-30, 1e-30, 1e-8]), "peak")
+    out = blended(a, tilt_known, "diff+peak")
+    assert out.plane.normal == pytest.approx(tilt_known.plane.normal)
+    assert out.plane.offset == pytest.approx(0.5 * (a.plane.offset + tilt_known.plane.offset))
+    assert 0.25e-8 < out.covariance[2, 2] <= 1.5e-8  # (0.5 * 1e-4 + 0.5 * 1e-4)^2 = 1e-8 at perfect correlation
     bare = PlaneEstimate(a.plane, covariance=None)
     assert blended(a, bare, "m") is None and blended(bare, a, "m") is None
     assert blended(a, PlaneEstimate(None, reason="no return"), "m") is None
     zero = _est(0.0, 0.0, 0.1, np.zeros((3, 3)))
-    assert blend_weight(zero, zero) is None and blended(zero, zero, "m") is None
+    assert blend_weights(zero, zero) is None and blended(zero, zero, "m") is None
+    # the tilt all one's, the offset all the other's: a blend still, with a covariance over both
+    tilt_sure = _est(0.02, 0.0, 0.10, np.diag([1e-30, 1e-30, 1.0]))
+    off_sure = _est(0.04, 0.0, 0.12, np.diag([1e-6, 1e-6, 1e-30]))
+    out = blended(tilt_sure, off_sure, "m")
+    assert out.method_used == "m" and out.plane.offset == pytest.approx(off_sure.plane.offset)
+    assert out.plane.normal == pytest.approx(tilt_sure.plane.normal) and np.all(np.isfinite(out.covariance))
 
 
 @settings(max_examples=300, deadline=None)
@@ -62,14 +79,14 @@ def test_the_blends_covariance_holds_whatever_the_two_errors_correlation(seed, r
     a = PlaneEstimate(Plane.from_angles(0.01, 0.2, 0.1), covariance=ca)
     b = PlaneEstimate(Plane.from_angles(0.02, 0.3, 0.1), covariance=cb)
     m = blended(a, b, "m")
-    w = blend_weight(a, b)
+    w, wd = blend_weights(a, b)
     if m is None or m is a or m.method_used != "m":
         return  # an edge: one estimate unchanged
-    true = w * w * ca + (1 - w) ** 2 * cb + w * (1 - w) * (cab + cab.T)
+    wa = np.diag([w, w, wd])
+    wb = np.eye(3) - wa
+    true = wa @ ca @ wa + wb @ cb @ wb + wa @ cab @ wb + wb @ cab.T @ wa
     gap = np.linalg.eigvalsh(m.covariance - true)
     assert gap.min() >= -1e-9 * np.abs(m.covariance).max()
-    # on the tilt trace, never looser than the plain convex bound w C_a + (1 - w) C_b (the scalar optimum of t)
-    assert np.trace(m.covariance[:2, :2]) <= np.trace((w * ca + (1 - w) * cb)[:2, :2]) * (1 + 1e-9)
 
 
 def test_perfectly_correlated_scalar_errors_are_bounded_exactly():
@@ -79,7 +96,7 @@ def test_perfectly_correlated_scalar_errors_are_bounded_exactly():
     a = PlaneEstimate(Plane.from_angles(0.01, 0.0, 0.1), covariance=base)
     b = PlaneEstimate(Plane.from_angles(0.02, 0.0, 0.1), covariance=4.0 * base)
     m = blended(a, b, "m")
-    w = blend_weight(a, b)
-    assert w == pytest.approx(0.8)
+    w, wd = blend_weights(a, b)
+    assert w == pytest.approx(0.8) and wd == pytest.approx(0.8)
     assert m.covariance == pytest.approx((w * 1.0 + (1 - w) * 2.0) ** 2 * base, rel=1e-9)
     assert float(m.plane.offset) == pytest.approx(0.8 * a.plane.offset + 0.2 * b.plane.offset, rel=1e-12)
