@@ -58,7 +58,7 @@ diff's own covariance says it reads the slope better, a level sweep cannot tell 
 per-frame comparison already returns peak where peak reads better.
 
 With :data:`BLEND` (the default) the preference is not a choice: a frame that passes the chi-square limit and the
-consistency test returns diff's plane blended with peak's by their tilt variances (:mod:`place_safe.recovery.blend`),
+consistency test returns diff's plane blended with peak's by their variances (:mod:`place_safe.recovery.blend`),
 so only ``chi2_limit`` is chosen, on the blended planes' held-out errors (the floor of the other folds sizes diff's
 weight), and ``prefer_ratio`` is written null. Pairs within :data:`FALLBACK_SCORE_REL` of the best score count as
 within whatever their standard error. Units: rad, m.
@@ -365,11 +365,11 @@ CV_FOLDS = 3
 #: Whether calibration makes diff blend its plane with peak's where its gates pass (``Uncertainty.blend``,
 #: :mod:`place_safe.recovery.blend`; ``prefer_ratio`` then null and only the chi-square limit chosen) instead of
 #: choosing one of the two by ``prefer_ratio``. Measured (docs/results.md, "Diff and peak blended"): on the real
-#: sweep held out, even -> odd / odd -> even at 5-40 cm, 0.116 / 0.143 deg, 0.109 / 0.076 mm against the switch's
-#: 0.179 / 0.142 deg and peak's 0.126 / 0.166 deg; four interleaved folds 0.121 deg / 0.103 mm pooled against 0.141 /
-#: 0.115 and peak's 0.132 / 0.123, NEES per dof 0.69-1.02 (the switch's even -> odd 2.17); on the tilted frames of
-#: simulated units calibrated by a level sweep the weight goes to diff (about 0.99) and the angle moves by -0.008 to
-#: +0.007 deg.
+#: sweep held out at 5-40 cm (``calibrate`` on one half, ``evaluate`` on the other) 0.116 / 0.133 deg, 0.087 / 0.068 mm,
+#: NEES per dof 1.04 / 0.81, against the choice's 0.179 / 0.142 deg (NEES 2.17 / 1.10) and peak's 0.126 / 0.156 deg,
+#: 0.135 / 0.082 mm; four interleaved folds 0.115 deg / 0.083 mm pooled against peak's 0.125 / 0.118; on the tilted
+#: frames of 15 simulated units calibrated by a level sweep the weights go to diff (about 0.99) and the angle moves by
+#: -0.011 to +0.007 deg.
 BLEND = True
 
 #: Candidate ratios of diff's to peak's tilt variance under which diff keeps its plane.

@@ -27,7 +27,7 @@ the fast solver returns the peak estimate instead, with ``method_used = "peak"``
 contradict each other (``consistency_limit``) and where diff's tilt variance is above ``prefer_ratio`` times
 peak's (peak reads that slope better; calibrated on held-out frames, :mod:`place_safe.calibration.uncertainty`).
 A calibration that blends (``Uncertainty.blend``, what ``calibrate`` writes) returns, where the other gates pass,
-diff's plane and peak's blended by their tilt variances (:mod:`place_safe.recovery.blend`, ``method_used =
+diff's plane and peak's blended by their variances (:mod:`place_safe.recovery.blend`, ``method_used =
 "diff+peak"``) in place of that choice: on the real sweep held out the blend read better than either plane.
 Closer than :data:`NEAR_FALLBACK_RANGE` (peak's offset) a calibrated fast solver always returns peak's plane: the
 forward model has no validated near-range terms (internal return, partial illumination), and on the real sweep
@@ -407,7 +407,7 @@ class DifferentiableEstimator(Estimator):
         :data:`NEAR_FALLBACK_RANGE` (with a calibrated fallback), and when
         diff's covariance is not positive definite (a degenerate Jacobian: the fit did not pin the plane
         down, and a zero covariance would claim it did). With ``uncertainty.blend`` a frame that passes the other
-        gates gets the two planes blended by their tilt variances (:mod:`place_safe.recovery.blend`,
+        gates gets the two planes blended by their variances (:mod:`place_safe.recovery.blend`,
         ``method_used`` :data:`BLENDED`) in place of ``prefer_ratio``'s choice.
         """
         failed = not est.ok or est.residual is None or not est.residual ** 2 <= self.uncertainty.chi2_limit \
@@ -417,7 +417,7 @@ class DifferentiableEstimator(Estimator):
         else:
             near = peak.ok and peak.plane.offset < NEAR_FALLBACK_RANGE
         if not failed and not near and self.uncertainty.consistent(est, peak):
-            if self.uncertainty.blend:  # both planes usable: blended by their tilt variances
+            if self.uncertainty.blend:  # both planes usable: blended by their variances
                 mixed = blended(est, peak, BLENDED)
                 if mixed is not None:
                     return mixed

@@ -84,7 +84,7 @@ class Uncertainty(ParamModel):
     (> 0; ``inf`` = no comparison): ``diff`` keeps its own plane only where its tilt variance (worst axis of
     the (n_x, n_y) block) is at most ``prefer_ratio`` times the peak estimate's, so it falls back where its
     covariance says peak reads the slope better (:meth:`prefers`). ``blend`` (``diff`` only; true or false): where
-    diff passes its chi-square, consistency and near-range gates it returns its plane blended with peak's by their tilt
+    diff passes its chi-square, consistency and near-range gates it returns its plane blended with peak's by their
     variances (:mod:`place_safe.recovery.blend`, ``method_used = "diff+peak"``) instead of choosing one by
     ``prefer_ratio`` (calibration writes ``prefer_ratio`` null with it). The defaults (no floor, no fallback,
     scale 1, no tilt term, no comparison) are the behaviour of a missing section.
