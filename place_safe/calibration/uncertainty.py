@@ -229,6 +229,15 @@ DIFF_TILT_PIVOT = 0.0
 #: a unit needs; 12 tilted frames size it (``unit_scorecard.py --few-tilts 12``).
 DIFF_TILT_FLOOR = 0.005
 DIFF_TILT_PER_ERROR = 0.1
+#: Each tilt component's std per unit tan(tilt) per unit of the forward fit's crosstalk (:func:`diff_tilt_term`), added
+#: in quadrature: a level sweep trades the crosstalk between zones against the zones' fields of view
+#: (:data:`~place_safe.calibration.forward_fit.LEVEL_SWEEP_TRADED`), and the crosstalk sets how steep diff reads a
+#: slope. Measured on the independent generator (docs/results.md, "What a level sweep leaves to the crosstalk"): a
+#: crosstalk 0.0117 too high read seed 1's slopes 4.7-6.6 % steep, 0.0127 too high seed 7's 3-7 %: about 4.5 per unit
+#: of crosstalk. What the level sweep leaves of the crosstalk is taken as half its fitted value (seeds 0 and 3 fitted
+#: 0.012 and 0.0065 against 0.0098 and true values near; 1 and 7 2.5-3 times the truth), so 4.5 / 2. A unit whose
+#: fit finds no crosstalk (the mismatched units 1e-6-1e-4, the real unit 1e-5) gets nothing from it.
+DIFF_TILT_PER_CROSSTALK = 2.25
 DIFF_TILT_OFFSET_FLOOR = 0.001
 DIFF_TILT_OFFSET_PER_ERROR = 0.05
 #: the share of calibration frames tilted MIN_TILT_SPREAD or more (from the least tilted) from which the fitted floor
@@ -258,21 +267,31 @@ TILT_TERM_NOTE = ("diff's covariance on tilted planes is stated from the unit's 
                   "calibrate on both files for slopes and a covariance sized on them")
 
 
-def diff_tilt_term(model_error: float | None = None) -> Uncertainty:
+def _share(value) -> float | None:
+    """``value`` as a number in [0, 1], or None where it is not a finite number >= 0."""
+    if value is None or isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
+            or value < 0.0:
+        return None
+    return min(float(value), 1.0)
+
+
+def diff_tilt_term(model_error: float | None = None, crosstalk: float | None = None) -> Uncertainty:
     """The stated tilt term of diff's covariance for level calibration frames, from the unit's relative model error
     ``model_error`` (dimensionless, the forward fit's ``model_error_chi2``; module constants
     :data:`DIFF_TILT_FLOOR`, :data:`DIFF_TILT_PER_ERROR`, :data:`DIFF_TILT_OFFSET_FLOOR`,
     :data:`DIFF_TILT_OFFSET_PER_ERROR`; taken at most 1): a unit
     the model fits worse gets a wider covariance on tilted planes, and none more on level ones (the term grows with
     tan(tilt)). Not known (None, not a finite number >= 0): :data:`DIFF_TILT_REL` and :data:`DIFF_TILT_OFFSET_REL`.
-    Pivot :data:`DIFF_TILT_PIVOT` either way."""
-    if model_error is None or not (isinstance(model_error, (int, float)) and math.isfinite(model_error)
-                                   and model_error >= 0.0):
-        return Uncertainty(tilt_rel=DIFF_TILT_REL, tilt_offset_rel=DIFF_TILT_OFFSET_REL, tilt_pivot=DIFF_TILT_PIVOT)
-    e = min(float(model_error), 1.0)
-    return Uncertainty(tilt_rel=math.hypot(DIFF_TILT_FLOOR, DIFF_TILT_PER_ERROR * e),
-                       tilt_offset_rel=math.hypot(DIFF_TILT_OFFSET_FLOOR, DIFF_TILT_OFFSET_PER_ERROR * e),
-                       tilt_pivot=DIFF_TILT_PIVOT)
+    ``crosstalk`` (the forward fit's, a fraction; None: not known, nothing added) adds
+    :data:`DIFF_TILT_PER_CROSSTALK` times it to the tilt part in quadrature: what a level sweep leaves undetermined of
+    the crosstalk turns into a slope scale. Pivot :data:`DIFF_TILT_PIVOT` either way."""
+    e, xt = _share(model_error), _share(crosstalk)
+    tilt, offset = ((DIFF_TILT_REL, DIFF_TILT_OFFSET_REL) if e is None else
+                    (math.hypot(DIFF_TILT_FLOOR, DIFF_TILT_PER_ERROR * e),
+                     math.hypot(DIFF_TILT_OFFSET_FLOOR, DIFF_TILT_OFFSET_PER_ERROR * e)))
+    if xt is not None:
+        tilt = math.hypot(tilt, DIFF_TILT_PER_CROSSTALK * xt)
+    return Uncertainty(tilt_rel=tilt, tilt_offset_rel=offset, tilt_pivot=DIFF_TILT_PIVOT)
 
 
 def _usable_tilted(e: PlaneEstimate, t) -> bool:
@@ -861,7 +880,7 @@ FALLBACK_MIN_FRAMES = 10
 
 def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correction=None,
                          peak_uncertainty: Uncertainty | None = None, options=None,
-                         model_error: float | None = None) -> tuple[Uncertainty, dict]:
+                         model_error: float | None = None, crosstalk: float | None = None) -> tuple[Uncertainty, dict]:
     """The diff method's floor and fallback limits (chi-square, consistency, preference) from frames with ground
     truth, for the solver ``options`` (:class:`~place_safe.recovery.differentiable.SolverOptions`; default: the
     solver's defaults): they depend on the bins the solver fits. The limits are chosen on held-out frames
@@ -920,7 +939,7 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
     # more, at least DIFF_TILTED_SHARE of them tilted that far from the least, show it, and the floor and scale
     # fitted on them hold it
     tilted, level = _tilt_regime(np.array([t.normal for t in truths]))
-    tilt_term = diff_tilt_term(model_error) if level else Uncertainty()
+    tilt_term = diff_tilt_term(model_error, crosstalk) if level else Uncertainty()
 
     def floor_from(rows: np.ndarray) -> Uncertainty:
         # the folds' floors without the stated term: the limits follow what the calibration frames show, not the size of
@@ -977,7 +996,7 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
                               + (", then by the tilted frames (tilt_term_sized; the floor from the others)"
                                  if sizing else "") if level else
                               "none: the frames' tilts spread MIN_TILT_SPREAD or more, the floor holds the tilt error"),
-                "tilt_model_error": model_error, "tilt_rel": unc.tilt_rel, "tilt_offset_rel": unc.tilt_offset_rel,
+                "tilt_model_error": model_error, "tilt_crosstalk": crosstalk, "tilt_rel": unc.tilt_rel, "tilt_offset_rel": unc.tilt_offset_rel,
                 "held_out": "frames_using_diff, angular_deg and point_mm: each frame with the floor of the other folds",
                 "blend": (f"diff's plane blended with peak's where the gates pass ({BLENDED}; recovery.blend)" if blend
                           else "none: diff's plane or peak's, as prefer_ratio chooses"),
@@ -1010,9 +1029,14 @@ def update_calibration(cal, frames: Sequence[Frame], method: str) -> dict:
     if method == "diff":
         # the unit's model error as the forward fit measured it at the frames' true planes (sizes diff's tilt term)
         measured = (cal.reports.get("forward") or {}).get("model_error_chi2")
-        unc, report["diff"] = fit_diff_uncertainty(frames, cal.forward(), cal.peak(), cal.diff(),
+        forward = cal.forward()
+        # the crosstalk where the forward fit says a level sweep left it undetermined (LEVEL_SWEEP_TRADED)
+        post = ((cal.reports.get("forward") or {}).get("posterior_std") or {}).get("crosstalk")
+        traded = isinstance(post, dict) and "level_sweep" in post
+        unc, report["diff"] = fit_diff_uncertainty(frames, forward, cal.peak(), cal.diff(),
                                                    Uncertainty.from_dict(section["peak"]), cal.diff_options(),
-                                                   model_error=measured)
+                                                   model_error=measured,
+                                                   crosstalk=forward.crosstalk if traded else None)
         section["diff"] = unc.to_dict()
     cal.sections["uncertainty"] = section
     return report
@@ -1023,6 +1047,6 @@ __all__ = ["update_calibration", "nees", "fit_floor", "fit_peak_uncertainty", "f
            "NEAR_KNOT_SHARE", "NEAR_REFERENCE_DEPTH", "CONSISTENCY_LIMIT", "PEAK_TILT_REL",
            "PEAK_MOUNT_OFFSET_REL", "PEAK_MOUNT_NOTE", "peak_tilt_term",
            "DIFF_TILT_REL", "DIFF_TILT_OFFSET_REL", "DIFF_TILT_PIVOT", "DIFF_TILTED_SHARE",
-           "DIFF_TILT_FLOOR", "DIFF_TILT_PER_ERROR", "DIFF_TILT_OFFSET_FLOOR", "DIFF_TILT_OFFSET_PER_ERROR",
+           "DIFF_TILT_FLOOR", "DIFF_TILT_PER_ERROR", "DIFF_TILT_PER_CROSSTALK", "DIFF_TILT_OFFSET_FLOOR", "DIFF_TILT_OFFSET_PER_ERROR",
            "diff_tilt_term", "size_tilt_term", "TILT_TERM_MIN_FRAMES", "TILT_TERM_SCALES", "TILT_TERM_NOTE", "CV_FOLDS",
            "PREFER_RATIOS", "FALLBACK_SCORE_SE", "FALLBACK_SCORE_REL", "BLEND"]

@@ -479,6 +479,21 @@ def test_diffs_tilted_covariance_is_finite_and_positive_definite_for_any_model_e
         assert np.linalg.eigvalsh(bigger - c).min() >= -1e-12 * np.abs(c).max()
 
 
+def test_the_crosstalk_a_level_sweep_leaves_widens_diffs_tilt_term_only():
+    """The forward fit's crosstalk, where a level sweep traded it against the fields of view, adds
+    DIFF_TILT_PER_CROSSTALK times it to the tilt part in quadrature; the offset part stays; no crosstalk (None, NaN,
+    negative, a bool) adds nothing, and a crosstalk of 0 neither."""
+    from place_safe.calibration.uncertainty import DIFF_TILT_PER_CROSSTALK, diff_tilt_term
+
+    base = diff_tilt_term(0.02)
+    wide = diff_tilt_term(0.02, 0.02)
+    assert wide.tilt_rel == pytest.approx(math.hypot(base.tilt_rel, DIFF_TILT_PER_CROSSTALK * 0.02))
+    assert (wide.tilt_offset_rel, wide.tilt_pivot) == (base.tilt_offset_rel, base.tilt_pivot)
+    for none in (None, math.nan, -0.1, True, 0.0):
+        assert diff_tilt_term(0.02, none) == base
+    assert diff_tilt_term(None, 0.02).tilt_rel > diff_tilt_term(None).tilt_rel
+
+
 def test_the_model_error_sizes_diffs_tilt_term_and_leaves_its_limits_alone(sweep_path):
     """Calibrated on the same level frames, a unit with a larger model error gets the larger tilt term, and the same
     fallback limits and scale: the planes diff returns do not depend on it (only their covariance on tilted planes)."""
