@@ -60,7 +60,8 @@ per-frame comparison already returns peak where peak reads better.
 With :data:`BLEND` (the default) the preference is not a choice: a frame that passes the chi-square limit and the
 consistency test returns diff's plane blended with peak's by their variances (:mod:`place_safe.recovery.blend`),
 so only ``chi2_limit`` is chosen, on the blended planes' held-out errors (the floor of the other folds sizes diff's
-weight), and ``prefer_ratio`` is written null. Pairs within :data:`FALLBACK_SCORE_REL` of the best score count as
+weight), and ``prefer_ratio`` is written null; unless the best choice between the two planes scores clearly better
+on these frames (:func:`_blend_holds`), which is then kept as before. Pairs within :data:`FALLBACK_SCORE_REL` of the best score count as
 within whatever their standard error. Units: rad, m.
 """
 
@@ -381,15 +382,6 @@ def _floor_with_tilt_term(estimates: Sequence[PlaneEstimate], truths: Sequence, 
 #: Folds of the cross-validation that chooses diff's fallback limits (:func:`select_fallback`).
 CV_FOLDS = 3
 
-#: Whether calibration makes diff blend its plane with peak's where its gates pass (``Uncertainty.blend``,
-#: :mod:`place_safe.recovery.blend`; ``prefer_ratio`` then null and only the chi-square limit chosen) instead of
-#: choosing one of the two by ``prefer_ratio``. Measured (docs/results.md, "Diff and peak blended"): on the real
-#: sweep held out at 5-40 cm (``calibrate`` on one half, ``evaluate`` on the other) 0.116 / 0.133 deg, 0.087 / 0.068 mm,
-#: NEES per dof 1.04 / 0.81, against the choice's 0.179 / 0.142 deg (NEES 2.17 / 1.10) and peak's 0.126 / 0.156 deg,
-#: 0.135 / 0.082 mm; four interleaved folds 0.115 deg / 0.083 mm pooled against peak's 0.125 / 0.118; on the tilted
-#: frames of 15 simulated units calibrated by a level sweep the weights go to diff (about 0.99) and the angle moves by
-#: -0.011 to +0.007 deg.
-BLEND = True
 
 #: Candidate ratios of diff's to peak's tilt variance under which diff keeps its plane.
 PREFER_RATIOS = (0.25, 0.5, 1.0, 2.0, 4.0)
@@ -495,6 +487,29 @@ def select_fallback(chi2: np.ndarray, consistent: np.ndarray, var_ratio: np.ndar
                key=lambda t: (t["chi2_limit"], t["frames_using_diff"], -abs(math.log(t["prefer_ratio"]))))
     return pick["chi2_limit"], pick["prefer_ratio"], table
 
+
+def _blend_holds(blend: np.ndarray, choice: np.ndarray) -> tuple[bool, dict]:
+    """Whether the blend's returned errors (F, M; per frame, each metric in units of peak's median error) hold
+    against those of the best choice between diff's plane and peak's: it does unless the choice's score (the worse
+    metric's mean) is lower by more than both the paired standard error (:data:`FALLBACK_SCORE_SE`) and
+    :data:`FALLBACK_SCORE_REL` of the blend's score. Also the two scores and that standard error."""
+    sb, sc = np.mean(blend, axis=0), np.mean(choice, axis=0)
+    score_b, score_c = float(np.max(sb)), float(np.max(sc))
+    m = int(np.argmax(sc))
+    d = choice[:, m] - blend[:, m]
+    se = float(np.std(d, ddof=1) / math.sqrt(len(d))) if len(d) > 1 else 0.0
+    holds = not (score_b - score_c > max(FALLBACK_SCORE_SE * se, FALLBACK_SCORE_REL * score_b))
+    return holds, {"blend_score": score_b, "choice_score": score_c, "paired_se": se}
+
+#: Whether calibration makes diff blend its plane with peak's where its gates pass (``Uncertainty.blend``,
+#: :mod:`place_safe.recovery.blend`; ``prefer_ratio`` then null and only the chi-square limit chosen) instead of
+#: choosing one of the two by ``prefer_ratio``. Measured (docs/results.md, "Diff and peak blended"): on the real
+#: sweep held out at 5-40 cm (``calibrate`` on one half, ``evaluate`` on the other) 0.116 / 0.133 deg, 0.087 / 0.068 mm,
+#: NEES per dof 1.04 / 0.81, against the choice's 0.179 / 0.142 deg (NEES 2.17 / 1.10) and peak's 0.126 / 0.156 deg,
+#: 0.135 / 0.082 mm; four interleaved folds 0.115 deg / 0.083 mm pooled against peak's 0.125 / 0.118; on the tilted
+#: frames of 15 simulated units calibrated by a level sweep the weights go to diff (about 0.99) and the angle moves by
+#: -0.011 to +0.007 deg.
+BLEND = True
 
 #: m: depth at which :func:`near_std_law`'s scale is stated.
 NEAR_REFERENCE_DEPTH = 0.05
@@ -961,14 +976,20 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
                 e_blend[i] = errs(mixed, truths[i])
     n_blend = np.minimum(e_blend / unit, 10.0)
     candidates = chi2_candidates(chi2)
-    if folds >= 2 and BLEND:  # the blend where the gates pass: only the chi-square limit to choose
-        limit, _, table = select_fallback(chi2, consistent, ratio, n_blend, n_peak, candidates, ratios=(math.inf,))
-        prefer = math.inf
-    elif folds >= 2:
+    blend, choice = False, None
+    if folds >= 2:
         limit, prefer, table = select_fallback(chi2, consistent, ratio, n_diff, n_peak, candidates)
+        if BLEND:  # the blend where the gates pass (only the chi-square limit to choose), unless the choice beats it
+            b_limit, _, b_table = select_fallback(chi2, consistent, ratio, n_blend, n_peak, candidates,
+                                                  ratios=(math.inf,))
+            gated = consistent.copy()
+            returned_blend = np.where(((chi2 <= b_limit) & gated)[:, None], n_blend, n_peak)
+            returned_switch = np.where(((chi2 <= limit) & gated & ~(ratio > prefer))[:, None], n_diff, n_peak)
+            blend, choice = _blend_holds(returned_blend, returned_switch)
+            if blend:
+                limit, prefer, table = b_limit, math.inf, b_table
     else:  # too few frames to hold any out: the most permissive finite limit, equal variances (no blend tested)
         limit, prefer, table = max(candidates), 1.0, []
-    blend = BLEND and folds >= 2
     under = [i for i in range(n) if own[i] and chi2[i] <= limit]
     # a few tilted frames among level ones: the level ones size the floor, the tilted ones the stated term
     base = tilt_term.replace(chi2_limit=limit, consistency_limit=CONSISTENCY_LIMIT, prefer_ratio=prefer, blend=blend)
@@ -999,7 +1020,9 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
                 "tilt_model_error": model_error, "tilt_crosstalk": crosstalk, "tilt_rel": unc.tilt_rel, "tilt_offset_rel": unc.tilt_offset_rel,
                 "held_out": "frames_using_diff, angular_deg and point_mm: each frame with the floor of the other folds",
                 "blend": (f"diff's plane blended with peak's where the gates pass ({BLENDED}; recovery.blend)" if blend
-                          else "none: diff's plane or peak's, as prefer_ratio chooses"),
+                          else "none: diff's plane or peak's, as prefer_ratio chooses"
+                          + (" (it scored better than the blend on these frames)" if choice else "")),
+                "blend_against_choice": choice,
                 "frames_using_diff": int(np.sum(use_diff)), "frames_using_peak": int(np.sum(~use_diff)),
                 "frames_inconsistent_with_peak": int(np.sum(~consistent)),
                 "frames_peak_reads_better": int(np.sum(ratio > prefer)),

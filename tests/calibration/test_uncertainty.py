@@ -479,6 +479,22 @@ def test_diffs_tilted_covariance_is_finite_and_positive_definite_for_any_model_e
         assert np.linalg.eigvalsh(bigger - c).min() >= -1e-12 * np.abs(c).max()
 
 
+def test_the_blend_holds_unless_the_choice_scores_clearly_better():
+    """Calibration keeps the blend unless choosing diff's plane or peak's scores better on the held-out frames by more
+    than both the paired standard error and 2 % of the blend's score."""
+    from place_safe.calibration.uncertainty import _blend_holds
+
+    rng = np.random.default_rng(0)
+    base = rng.uniform(0.5, 1.5, size=(60, 2))
+    assert _blend_holds(base, base)[0]  # a tie: the blend
+    assert _blend_holds(base, base * 0.99)[0]  # 1 % better, consistently: within FALLBACK_SCORE_REL
+    holds, scores = _blend_holds(base, base * 0.9)  # 10 % better on every frame
+    assert not holds and scores["choice_score"] < scores["blend_score"]
+    noisy = base * 0.95 + rng.normal(0.0, 1.0, size=base.shape)  # 5 % better on average, but scattered
+    assert _blend_holds(base, noisy)[0]
+    assert _blend_holds(base, base * 1.2)[0]  # the choice worse
+
+
 def test_the_crosstalk_a_level_sweep_leaves_widens_diffs_tilt_term_only():
     """The forward fit's crosstalk, where a level sweep traded it against the fields of view, adds
     DIFF_TILT_PER_CROSSTALK times it to the tilt part in quadrature; the offset part stays; no crosstalk (None, NaN,
