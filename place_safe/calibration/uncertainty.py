@@ -61,8 +61,8 @@ With :data:`BLEND` (the default) the preference is not a choice: a frame that pa
 consistency test returns diff's plane blended with peak's by their variances (:mod:`place_safe.recovery.blend`),
 so only ``chi2_limit`` is chosen, on the blended planes' held-out errors (the floor of the other folds sizes diff's
 weight), and ``prefer_ratio`` is written null; unless the best choice between the two planes scores clearly better
-on these frames (:func:`_blend_holds`), which is then kept as before. Pairs within :data:`FALLBACK_SCORE_REL` of the best score count as
-within whatever their standard error. Units: rad, m.
+on these frames (:func:`_blend_holds`), which is then kept as before. Pairs within :data:`FALLBACK_SCORE_REL` of the
+best score count as within whatever their standard error. Units: rad, m.
 """
 
 from __future__ import annotations
@@ -382,7 +382,6 @@ def _floor_with_tilt_term(estimates: Sequence[PlaneEstimate], truths: Sequence, 
 #: Folds of the cross-validation that chooses diff's fallback limits (:func:`select_fallback`).
 CV_FOLDS = 3
 
-
 #: Candidate ratios of diff's to peak's tilt variance under which diff keeps its plane.
 PREFER_RATIOS = (0.25, 0.5, 1.0, 2.0, 4.0)
 #: :func:`select_fallback` takes, among the pairs whose held-out score is within this many standard errors of the best
@@ -501,13 +500,14 @@ def _blend_holds(blend: np.ndarray, choice: np.ndarray) -> tuple[bool, dict]:
     holds = not (score_b - score_c > max(FALLBACK_SCORE_SE * se, FALLBACK_SCORE_REL * score_b))
     return holds, {"blend_score": score_b, "choice_score": score_c, "paired_se": se}
 
+
 #: Whether calibration makes diff blend its plane with peak's where its gates pass (``Uncertainty.blend``,
 #: :mod:`place_safe.recovery.blend`; ``prefer_ratio`` then null and only the chi-square limit chosen) instead of
 #: choosing one of the two by ``prefer_ratio``, where the blend holds its own against that choice on the held-out
-#: calibration frames (:func:`_blend_holds`; the independent generator's tilted calibration set does not). Measured (docs/results.md, "Diff and peak blended"): on the real
-#: sweep held out at 5-40 cm (``calibrate`` on one half, ``evaluate`` on the other) 0.116 / 0.133 deg, 0.087 / 0.068 mm,
-#: NEES per dof 1.04 / 0.81, against the choice's 0.179 / 0.142 deg (NEES 2.17 / 1.10) and peak's 0.126 / 0.156 deg,
-#: 0.135 / 0.082 mm; four interleaved folds 0.115 deg / 0.083 mm pooled against peak's 0.125 / 0.118; on the tilted
+#: calibration frames (:func:`_blend_holds`; the independent generator's tilted calibration set does not).
+#: Measured (docs/results.md, "Diff and peak blended"): on the real sweep held out at 5-40 cm (``calibrate`` on one
+#: half, ``evaluate`` on the other) 0.116 / 0.133 deg, 0.087 / 0.068 mm, NEES per dof 1.04 / 0.81, against the
+#: choice's 0.179 / 0.142 deg (NEES 2.17 / 1.10) and peak's 0.126 / 0.156 deg, 0.135 / 0.082 mm; four interleaved folds 0.115 deg / 0.083 mm pooled against peak's 0.125 / 0.118; on the tilted
 #: frames of 15 simulated units calibrated by a level sweep the weights go to diff (about 0.99) and the angle moves by
 #: -0.011 to +0.007 deg.
 BLEND = True
@@ -903,7 +903,8 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
     (module doc); the report gives the held-out figures (``angular_deg``, ``point_mm``: diff's own plane, peak's
     and the one returned; ``frames_using_diff``) and every candidate's score. ``model_error``: the unit's relative
     model error at the frames' true planes (the forward fit's ``model_error_chi2``; None: not known), which sizes the
-    stated tilt term of level frames (:func:`diff_tilt_term`). Frames closer than ``NEAR_FALLBACK_RANGE`` take no
+    stated tilt term of level frames (:func:`diff_tilt_term`), with ``crosstalk`` (the forward fit's, where a level
+    sweep left it undetermined; None: nothing added). Frames closer than ``NEAR_FALLBACK_RANGE`` take no
     part, nor do those beyond :data:`FALLBACK_MAX_RANGE` (reported as ``frames_beyond_range``) while at least
     :data:`FALLBACK_MIN_FRAMES` are left. With :data:`BLEND` the section blends (``blend`` true, ``prefer_ratio``
     inf) and the report's ``angular_deg`` / ``point_mm`` give the blend's held-out figures too."""
@@ -983,9 +984,8 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
         if BLEND:  # the blend where the gates pass (only the chi-square limit to choose), unless the choice beats it
             b_limit, _, b_table = select_fallback(chi2, consistent, ratio, n_blend, n_peak, candidates,
                                                   ratios=(math.inf,))
-            gated = consistent.copy()
-            returned_blend = np.where(((chi2 <= b_limit) & gated)[:, None], n_blend, n_peak)
-            returned_switch = np.where(((chi2 <= limit) & gated & ~(ratio > prefer))[:, None], n_diff, n_peak)
+            returned_blend = np.where(((chi2 <= b_limit) & consistent)[:, None], n_blend, n_peak)
+            returned_switch = np.where(((chi2 <= limit) & consistent & ~(ratio > prefer))[:, None], n_diff, n_peak)
             blend, choice = _blend_holds(returned_blend, returned_switch)
             if blend:
                 limit, prefer, table = b_limit, math.inf, b_table
@@ -1018,7 +1018,8 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
                               + (", then by the tilted frames (tilt_term_sized; the floor from the others)"
                                  if sizing else "") if level else
                               "none: the frames' tilts spread MIN_TILT_SPREAD or more, the floor holds the tilt error"),
-                "tilt_model_error": model_error, "tilt_crosstalk": crosstalk, "tilt_rel": unc.tilt_rel, "tilt_offset_rel": unc.tilt_offset_rel,
+                "tilt_model_error": model_error, "tilt_crosstalk": crosstalk, "tilt_rel": unc.tilt_rel,
+                "tilt_offset_rel": unc.tilt_offset_rel,
                 "held_out": "frames_using_diff, angular_deg and point_mm: each frame with the floor of the other folds",
                 "blend": (f"diff's plane blended with peak's where the gates pass ({BLENDED}; recovery.blend)" if blend
                           else "none: diff's plane or peak's, as prefer_ratio chooses"
