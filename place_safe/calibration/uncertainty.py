@@ -507,9 +507,9 @@ def _blend_holds(blend: np.ndarray, choice: np.ndarray) -> tuple[bool, dict]:
 #: calibration frames (:func:`_blend_holds`; the independent generator's tilted calibration set does not).
 #: Measured (docs/results.md, "Diff and peak blended"): on the real sweep held out at 5-40 cm (``calibrate`` on one
 #: half, ``evaluate`` on the other) 0.116 / 0.133 deg, 0.087 / 0.068 mm, NEES per dof 1.04 / 0.81, against the
-#: choice's 0.179 / 0.142 deg (NEES 2.17 / 1.10) and peak's 0.126 / 0.156 deg, 0.135 / 0.082 mm; four interleaved folds 0.115 deg / 0.083 mm pooled against peak's 0.125 / 0.118; on the tilted
-#: frames of 15 simulated units calibrated by a level sweep the weights go to diff (about 0.99) and the angle moves by
-#: -0.011 to +0.007 deg.
+#: choice's 0.179 / 0.142 deg (NEES 2.17 / 1.10) and peak's 0.126 / 0.156 deg, 0.135 / 0.082 mm; four interleaved
+#: folds 0.115 deg / 0.083 mm pooled against peak's 0.125 / 0.118; on the tilted frames of 15 simulated units
+#: calibrated by a level sweep the weights go to diff (about 0.99) and the angle moves by -0.011 to +0.007 deg.
 BLEND = True
 
 #: m: depth at which :func:`near_std_law`'s scale is stated.
