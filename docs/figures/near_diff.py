@@ -98,7 +98,7 @@ def band_line(name: str, rows: list[dict], lo: float, hi: float) -> str | None:
         return None
     p = [x for x in r if x["plane"]]
     deg = [x["deg"] for x in p]
-    own_n = sum(x["used"] == "diff" for x in p)
+    own_n = sum(x["used"] in ("diff", "diff+peak") for x in p)  # its own plane, or its blend with peak's
     acc = f"mean {np.mean(deg):5.2f} max {np.max(deg):6.2f} deg" if deg else "no planes"
     return (f"  {name:9s} n {len(r):3d} no plane {len(r) - len(p):2d} own {own_n:3d}  {acc}  "
             f"NEES/dof {interval([x['nees'] for x in p])}")

@@ -290,8 +290,8 @@ def diff_tilt_term(model_error: float | None = None, crosstalk: float | None = N
     tilt, offset = ((DIFF_TILT_REL, DIFF_TILT_OFFSET_REL) if e is None else
                     (math.hypot(DIFF_TILT_FLOOR, DIFF_TILT_PER_ERROR * e),
                      math.hypot(DIFF_TILT_OFFSET_FLOOR, DIFF_TILT_OFFSET_PER_ERROR * e)))
-    if xt is not None:
-        tilt = math.hypot(tilt, DIFF_TILT_PER_CROSSTALK * xt)
+    if xt is not None:  # (at most 1: Uncertainty's bound; the forward fit allows a crosstalk up to 0.5)
+        tilt = min(math.hypot(tilt, DIFF_TILT_PER_CROSSTALK * xt), 1.0)
     return Uncertainty(tilt_rel=tilt, tilt_offset_rel=offset, tilt_pivot=DIFF_TILT_PIVOT)
 
 

@@ -49,6 +49,20 @@ from place_safe.recovery.estimator import PlaneEstimate, tilt_offset
 _EDGE = 1e-9
 
 
+def _covariance(c, definite: bool = False) -> bool:
+    """Whether ``c`` is a finite 3 x 3 covariance: its symmetric part positive semi-definite (``definite``: its
+    smallest eigenvalue above 1e-12 of its largest), within 1e-12 of its largest eigenvalue."""
+    if c is None:
+        return False
+    m = np.asarray(c, dtype=float)
+    if m.shape != (3, 3) or not np.all(np.isfinite(m)):
+        return False
+    w = np.linalg.eigvalsh(0.5 * (m + m.T))
+    if not w[-1] > 0.0:
+        return False
+    return bool(w[0] > 1e-12 * w[-1]) if definite else bool(w[0] >= -1e-12 * w[-1])
+
+
 def blend_weights(a: PlaneEstimate, b: PlaneEstimate) -> tuple[float, float] | None:
     """``a``'s weights ``(w, w_d)`` in the tilt and in the offset (module doc), or None when either estimate has no
     usable covariance or both variances of a pair are 0."""
@@ -75,8 +89,9 @@ def _ratio(ca: np.ndarray, cb: np.ndarray) -> float:
 def blended(a: PlaneEstimate, b: PlaneEstimate, method_used: str) -> PlaneEstimate | None:
     """The blend of ``a`` and ``b`` (module doc) as ``method_used``, with ``a``'s albedo and residual; ``a`` or ``b``'s
     plane and covariance (unchanged) where both weights are within 1e-9 of 1 or of 0; None when the two cannot be
-    blended (a plane or a usable covariance missing)."""
-    if not (a.ok and b.ok) or a.covariance is None or b.covariance is None:
+    blended (a plane missing, a covariance missing or not a covariance, or a blended covariance that is not positive
+    definite)."""
+    if not (a.ok and b.ok and _covariance(a.covariance) and _covariance(b.covariance)):
         return None
     weights = blend_weights(a, b)
     if weights is None:
@@ -95,9 +110,11 @@ def blended(a: PlaneEstimate, b: PlaneEstimate, method_used: str) -> PlaneEstima
     ca = wa[:, None] * np.asarray(a.covariance, dtype=float) * wa[None, :]
     cb = (1.0 - wa)[:, None] * np.asarray(b.covariance, dtype=float) * (1.0 - wa)[None, :]
     t = _ratio(ca, cb)
-    cov = (1.0 + t) * ca + (1.0 + 1.0 / t) * cb
+    cov = 0.5 * (ca + ca.T) * (1.0 + t) + 0.5 * (cb + cb.T) * (1.0 + 1.0 / t)
+    if not _covariance(cov, definite=True):  # a weight that zeroes a direction both leave open: no claim to make
+        return None
     return PlaneEstimate(Plane(normal, float(x[2])), albedo=a.albedo, residual=a.residual,
-                         covariance=0.5 * (cov + cov.T), method_used=method_used)
+                         covariance=cov, method_used=method_used)
 
 
 __all__ = ["blended", "blend_weights"]

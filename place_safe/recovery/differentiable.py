@@ -412,9 +412,9 @@ class DifferentiableEstimator(Estimator):
         """
         failed = not est.ok or est.residual is None or not est.residual ** 2 <= self.uncertainty.chi2_limit \
             or not _positive_definite(est.covariance)
-        if math.isinf(self.uncertainty.chi2_limit):
+        if math.isinf(self.uncertainty.chi2_limit) and not self.uncertainty.blend:
             near = False  # no fallback calibrated: diff's own plane wherever it has one
-        else:
+        else:  # (a blend is never made closer than NEAR_FALLBACK_RANGE, whatever the limit)
             near = peak.ok and peak.plane.offset < NEAR_FALLBACK_RANGE
         if not failed and not near and self.uncertainty.consistent(est, peak):
             if self.uncertainty.blend:  # both planes usable: blended by their variances

@@ -508,6 +508,7 @@ def test_the_crosstalk_a_level_sweep_leaves_widens_diffs_tilt_term_only():
     for none in (None, math.nan, -0.1, True, 0.0):
         assert diff_tilt_term(0.02, none) == base
     assert diff_tilt_term(None, 0.02).tilt_rel > diff_tilt_term(None).tilt_rel
+    assert diff_tilt_term(1.0, 0.5).tilt_rel == 1.0  # the forward fit's largest crosstalk: held at the field's bound
 
 
 def test_the_model_error_sizes_diffs_tilt_term_and_leaves_its_limits_alone(sweep_path):

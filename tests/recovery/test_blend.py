@@ -41,9 +41,9 @@ def test_edges_return_one_estimate_and_missing_covariances_no_blend():
     assert out.plane is sure.plane and out.covariance is sure.covariance and out.method_used == "peak"
     assert blended(sure, a, "peak+diff") is sure
     # its tilt known exactly, the offsets alike: the tilt is its, the offset the mean, the offset's variance bounded
-    tilt_known = _est(0.04, 0.0, 0.12, np.diag([1e-30, 1e-30, 1e-8]), "peak")
+    tilt_known = _est(0.04, 0.0, 0.12, np.diag([1e-14, 1e-14, 1e-8]), "peak")
     out = blended(a, tilt_known, "diff+peak")
-    assert out.plane.normal == pytest.approx(tilt_known.plane.normal)
+    assert out.plane.normal == pytest.approx(tilt_known.plane.normal, abs=1e-9)
     assert out.plane.offset == pytest.approx(0.5 * (a.plane.offset + tilt_known.plane.offset))
     assert 0.25e-8 < out.covariance[2, 2] <= 1.5e-8  # (0.5 * 1e-4 + 0.5 * 1e-4)^2 = 1e-8 at perfect correlation
     bare = PlaneEstimate(a.plane, covariance=None)
@@ -100,3 +100,30 @@ def test_perfectly_correlated_scalar_errors_are_bounded_exactly():
     assert w == pytest.approx(0.8) and wd == pytest.approx(0.8)
     assert m.covariance == pytest.approx((w * 1.0 + (1 - w) * 2.0) ** 2 * base, rel=1e-9)
     assert float(m.plane.offset) == pytest.approx(0.8 * a.plane.offset + 0.2 * b.plane.offset, rel=1e-12)
+
+
+def test_a_matrix_that_is_no_covariance_is_not_blended():
+    """A covariance with a negative or NaN eigenvalue (a broken estimate), on either side, gives no blend (the caller
+    then returns one plane whole), never a blended covariance that is indefinite or claims a zero variance."""
+    a = _est(0.02, 0.0, 0.10, np.diag([1e-6, 1e-6, 1e-8]), "diff")
+    for bad in ([[1e-6, 0, 5e-6], [0, 1e-6, 0], [5e-6, 0, 1e-8]], np.diag([-1e-6, 1e-6, 1e-8]),
+                np.diag([np.nan, 1e-6, 1e-8]), np.zeros((2, 2))):
+        b = PlaneEstimate(Plane.from_angles(0.03, 0.0, 0.11), covariance=np.asarray(bad, dtype=float))
+        assert blended(a, b, "m") is None and blended(b, a, "m") is None
+
+
+def test_diff_blends_nothing_closer_than_the_near_fallback_range_even_without_a_limit():
+    """A calibration that blends but has no chi-square limit (none could be chosen, or a hand-edited file) still
+    returns peak's plane closer than NEAR_FALLBACK_RANGE."""
+    from place_safe.recovery.differentiable import NEAR_FALLBACK_RANGE, DifferentiableEstimator
+    from place_safe.recovery.estimator import Uncertainty
+
+    est = DifferentiableEstimator(uncertainty=Uncertainty(blend=True))
+    d = _est(0.02, 0.0, 0.03, np.diag([1e-6, 1e-6, 1e-8]), "diff")
+    p = _est(0.021, 0.0, 0.03, np.diag([1e-6, 1e-6, 1e-8]), "peak")
+    assert p.plane.offset < NEAR_FALLBACK_RANGE
+    out = est._checked(d, p)
+    assert out.method_used == "peak" and out.plane is p.plane
+    far_d = _est(0.02, 0.0, 0.2, np.diag([1e-6, 1e-6, 1e-8]), "diff")
+    far_p = _est(0.021, 0.0, 0.2, np.diag([1e-6, 1e-6, 1e-8]), "peak")
+    assert est._checked(far_d, far_p).method_used == "diff+peak"

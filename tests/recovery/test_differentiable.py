@@ -201,8 +201,8 @@ def test_diff_keeps_its_plane_only_when_every_fallback_test_passes():
     """Safety invariant (hypothesis): for any calibrated limits and any pair of estimates, diff returns its own
     plane (or, with ``blend``, its plane blended with peak's) only when its chi-square is under the limit, its
     covariance is positive definite, it agrees with peak, (without ``blend``) peak does not read the slope better and
-    (with a calibrated fallback) peak's plane is not closer than NEAR_FALLBACK_RANGE; otherwise exactly peak's plane
-    and covariance, marked "peak". A blend lies between the two planes, component by component."""
+    (with a calibrated fallback, or a blend) peak's plane is not closer than NEAR_FALLBACK_RANGE; otherwise exactly
+    peak's plane and covariance, marked "peak". A blend lies between the two planes, component by component."""
     from hypothesis import given, settings
     from hypothesis import strategies as st
 
@@ -226,7 +226,7 @@ def test_diff_keeps_its_plane_only_when_every_fallback_test_passes():
         p = PlaneEstimate(Plane.from_angles(tilt + shift, 0.3, offset + shift * 0.01), residual=1e-4,
                           covariance=np.diag([var_peak, var_peak, var_peak * 1e-3]), method_used="peak")
         out = est._checked(d, p)
-        near = not math.isinf(chi2_limit) and p.plane.offset < NEAR_FALLBACK_RANGE
+        near = (not math.isinf(chi2_limit) or blend) and p.plane.offset < NEAR_FALLBACK_RANGE
         gates = residual ** 2 <= chi2_limit and _positive_definite(d.covariance) and unc.consistent(d, p) and not near
         if gates and blend and out.method_used == BLENDED:  # both usable: between the two, with a covariance
             for k in range(3):
