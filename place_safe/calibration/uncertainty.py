@@ -423,6 +423,12 @@ FALLBACK_SCORE_SE = 1.0
 FALLBACK_SCORE_REL = 0.02
 
 
+def _paired_se(d: np.ndarray) -> float:
+    """The standard error of the mean of per-frame differences ``d`` between two rules' errors on the same frames
+    (sample std, ``ddof = 1``; 0 for fewer than two frames)."""
+    return float(np.std(d, ddof=1) / math.sqrt(len(d))) if len(d) > 1 else 0.0
+
+
 def chi2_candidates(chi2: np.ndarray) -> list[float]:
     """Candidate chi-square limits from the calibration frames' diff chi-squares (``inf``: diff failed): their
     median, 90th percentile, largest, and twice the largest (a frame the model explains twice as badly as any
@@ -473,7 +479,7 @@ def select_fallback(chi2: np.ndarray, consistent: np.ndarray, var_ratio: np.ndar
         # frame, on the metric that gives this pair its score
         m = int(np.argmax(np.mean(sel, axis=0))) if n else 0
         d = sel[:, m] - returned[k][:, m]
-        se = float(np.std(d, ddof=1) / math.sqrt(n)) if n > 1 else 0.0
+        se = _paired_se(d)
         # a pair that parts from the best on one frame is one standard error off by construction (sample std): one
         # frame cannot tell them apart, whatever FALLBACK_SCORE_SE says
         t["within_se"] = bool(np.count_nonzero(d) < 2 or t["score"] - table[k]["score"] <= max(
@@ -495,8 +501,7 @@ def _blend_holds(blend: np.ndarray, choice: np.ndarray) -> tuple[bool, dict]:
     sb, sc = np.mean(blend, axis=0), np.mean(choice, axis=0)
     score_b, score_c = float(np.max(sb)), float(np.max(sc))
     m = int(np.argmax(sc))
-    d = choice[:, m] - blend[:, m]
-    se = float(np.std(d, ddof=1) / math.sqrt(len(d))) if len(d) > 1 else 0.0
+    se = _paired_se(choice[:, m] - blend[:, m])
     holds = not (score_b - score_c > max(FALLBACK_SCORE_SE * se, FALLBACK_SCORE_REL * score_b))
     return holds, {"blend_score": score_b, "choice_score": score_c, "paired_se": se}
 

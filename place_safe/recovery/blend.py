@@ -43,24 +43,10 @@ import math
 import numpy as np
 
 from place_safe.geometry import Plane
-from place_safe.recovery.estimator import PlaneEstimate, tilt_offset
+from place_safe.recovery.estimator import PlaneEstimate, is_covariance, tilt_offset
 
 #: Weights closer to 0 or 1 than this return the one estimate unchanged (a blend that would only add rounding).
 _EDGE = 1e-9
-
-
-def _covariance(c, definite: bool = False) -> bool:
-    """Whether ``c`` is a finite 3 x 3 covariance: its symmetric part positive semi-definite (``definite``: its
-    smallest eigenvalue above 1e-12 of its largest), within 1e-12 of its largest eigenvalue."""
-    if c is None:
-        return False
-    m = np.asarray(c, dtype=float)
-    if m.shape != (3, 3) or not np.all(np.isfinite(m)):
-        return False
-    w = np.linalg.eigvalsh(0.5 * (m + m.T))
-    if not w[-1] > 0.0:
-        return False
-    return bool(w[0] > 1e-12 * w[-1]) if definite else bool(w[0] >= -1e-12 * w[-1])
 
 
 def blend_weights(a: PlaneEstimate, b: PlaneEstimate) -> tuple[float, float] | None:
@@ -91,7 +77,7 @@ def blended(a: PlaneEstimate, b: PlaneEstimate, method_used: str) -> PlaneEstima
     plane and covariance (unchanged) where both weights are within 1e-9 of 1 or of 0; None when the two cannot be
     blended (a plane missing, a covariance missing or not a covariance, or a blended covariance that is not positive
     definite)."""
-    if not (a.ok and b.ok and _covariance(a.covariance) and _covariance(b.covariance)):
+    if not (a.ok and b.ok and is_covariance(a.covariance) and is_covariance(b.covariance)):
         return None
     weights = blend_weights(a, b)
     if weights is None:
@@ -111,7 +97,7 @@ def blended(a: PlaneEstimate, b: PlaneEstimate, method_used: str) -> PlaneEstima
     cb = (1.0 - wa)[:, None] * np.asarray(b.covariance, dtype=float) * (1.0 - wa)[None, :]
     t = _ratio(ca, cb)
     cov = 0.5 * (ca + ca.T) * (1.0 + t) + 0.5 * (cb + cb.T) * (1.0 + 1.0 / t)
-    if not _covariance(cov, definite=True):  # a weight that zeroes a direction both leave open: no claim to make
+    if not is_covariance(cov, definite=True):  # a weight that zeroes a direction both leave open: no claim to make
         return None
     return PlaneEstimate(Plane(normal, float(x[2])), albedo=a.albedo, residual=a.residual,
                          covariance=cov, method_used=method_used)

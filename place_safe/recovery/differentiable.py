@@ -57,7 +57,7 @@ from place_safe.geometry import Plane
 from place_safe.recovery.plane_renderer import PlaneRenderer, convolution_matrices
 from place_safe.sensor.frame import N_BINS, N_ZONES, Frame
 from place_safe.recovery.estimator import (Estimator, PlaneEstimate, Uncertainty, check_arguments, checked,
-                                          tilt_offset)
+                                          is_covariance, tilt_offset)
 from place_safe.recovery.blend import blended
 from place_safe.recovery.peak import PeakEstimator
 from place_safe.sensor.histogram import COUNT_MAX, arriving_ambient, floor_profile, reference_problem
@@ -188,13 +188,7 @@ def range_argument(z0, domain, inverse: bool = False, log: bool = False):
 def _positive_definite(cov) -> bool:
     """Whether ``cov`` (3 x 3, or None: no claim made) is finite with eigenvalues above 1e-12 of its
     largest (a covariance of a plane the fit pinned down)."""
-    if cov is None:
-        return True
-    c = np.asarray(cov, dtype=float)
-    if c.shape != (3, 3) or not np.all(np.isfinite(c)):
-        return False
-    w = np.linalg.eigvalsh(0.5 * (c + c.T))
-    return bool(w[0] > 1e-12 * max(w[-1], 0.0) and w[-1] > 0.0)
+    return cov is None or is_covariance(cov, definite=True)
 
 
 NEAR_FALLBACK_RANGE = 0.05

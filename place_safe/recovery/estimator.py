@@ -242,6 +242,21 @@ class Uncertainty(ParamModel):
         return super().from_dict(d, what)
 
 
+def is_covariance(c, definite: bool = False) -> bool:
+    """Whether ``c`` is a finite 3 x 3 covariance: its symmetric part's largest eigenvalue above 0 and its smallest
+    at least -1e-12 of it (positive semi-definite up to rounding), or with ``definite`` above 1e-12 of it (positive
+    definite: a plane the fit pinned down). None is none."""
+    if c is None:
+        return False
+    m = np.asarray(c, dtype=float)
+    if m.shape != (3, 3) or not np.all(np.isfinite(m)):
+        return False
+    w = np.linalg.eigvalsh(0.5 * (m + m.T))
+    if not w[-1] > 0.0:
+        return False
+    return bool(w[0] > 1e-12 * w[-1]) if definite else bool(w[0] >= -1e-12 * w[-1])
+
+
 def tilt_offset(plane: Plane) -> np.ndarray:
     """The state ``(n_x, n_y, d)`` of a plane, in the order of :data:`COVARIANCE_ORDER`."""
     return np.array([plane.normal[0], plane.normal[1], plane.offset])
