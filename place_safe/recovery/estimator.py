@@ -280,8 +280,9 @@ class PlaneEstimate:
 
     def tilt_std(self) -> float | None:
         """Standard deviation (rad) of the tilt along its worst direction (largest eigenvalue of the
-        (n_x, n_y) block); None without a covariance or with one that is not a finite, symmetric-part
-        positive semi-definite 3 x 3 matrix."""
+        symmetric part of the (n_x, n_y) block); None without a covariance, with one that is not a finite
+        3 x 3 matrix, or when that largest eigenvalue is negative. It does not check that the matrix is a
+        covariance (a negative eigenvalue elsewhere passes): :func:`is_covariance` does."""
         if self.covariance is None:
             return None
         try:
