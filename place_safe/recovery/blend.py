@@ -17,8 +17,7 @@ with ``v`` each estimate's tilt variance along its worst direction
 in the tilt, the one that reads the distance better in the offset, continuously (the fallback's ``prefer_ratio``
 chose one plane whole). On a tilted plane peak's stated tilt term grows with ``tan(tilt)``
 (:func:`~place_safe.calibration.uncertainty.peak_tilt_term`) and the weights go to diff (about 0.99 on the simulated
-units' 0-30 deg frames), where diff's own plane is returned unchanged once both its weights reach :data:`OWN_WEIGHT`;
-on the real level table, where diff's stated tilt variance is 2-3 times peak's, ``w`` is
+units' 0-30 deg frames); on the real level table, where diff's stated tilt variance is 2-3 times peak's, ``w`` is
 about 0.3. (One weight for all three, tried first, let peak's wide offset variance on tilted planes into the blend's
 covariance: NEES per dof 0.17 against 0.24 on a simulated unit's tilted frames, 0.82 against 0.99 on the real odd
 half; its offsets read 0.109 mm there against 0.088.)
@@ -46,15 +45,8 @@ import numpy as np
 from place_safe.geometry import Plane
 from place_safe.recovery.estimator import PlaneEstimate, is_covariance, tilt_offset
 
-#: An estimate whose weights are at least this in both the tilt and the offset is returned unchanged (and the other
-#: one where both are at most ``1 - OWN_WEIGHT``): the other's stated variances are then 9 or more times its own. There
-#: the blend gains next to nothing and states more than the better plane alone: its bound (module doc) is always at
-#: least the better plane's covariance, about 17 % wider at weights of 0.99. Measured on the simulated units' tilted
-#: frames, where diff's weights are about 0.99 (docs/results.md, "Diff's own plane where it carries the blend"):
-#: mismatched unit A 0.0577 deg (diff's own) against 0.0549 (blended), NEES per dof 0.29 against 0.24; unit 31
-#: 0.0760 against 0.0756, 0.32 against 0.27. On the real level table diff's tilt weight is 0.2-0.7, so nothing
-#: changes there.
-OWN_WEIGHT = 0.9
+#: Weights closer to 0 or 1 than this return the one estimate unchanged (a blend that would only add rounding).
+_EDGE = 1e-9
 
 
 def blend_weights(a: PlaneEstimate, b: PlaneEstimate) -> tuple[float, float] | None:
@@ -82,8 +74,7 @@ def _ratio(ca: np.ndarray, cb: np.ndarray) -> float:
 
 def blended(a: PlaneEstimate, b: PlaneEstimate, method_used: str) -> PlaneEstimate | None:
     """The blend of ``a`` and ``b`` (module doc) as ``method_used``, with ``a``'s albedo and residual; ``a`` or ``b``'s
-    plane and covariance (unchanged) where both weights are at least :data:`OWN_WEIGHT` or at most
-    ``1 - OWN_WEIGHT``; None when the two cannot be
+    plane and covariance (unchanged) where both weights are within 1e-9 of 1 or of 0; None when the two cannot be
     blended (a plane missing, a covariance missing or not a covariance, or a blended covariance that is not positive
     definite)."""
     if not (a.ok and b.ok and is_covariance(a.covariance) and is_covariance(b.covariance)):
@@ -91,9 +82,9 @@ def blended(a: PlaneEstimate, b: PlaneEstimate, method_used: str) -> PlaneEstima
     weights = blend_weights(a, b)
     if weights is None:
         return None
-    if min(weights) >= OWN_WEIGHT:
+    if min(weights) >= 1.0 - _EDGE:
         return a
-    if max(weights) <= 1.0 - OWN_WEIGHT:
+    if max(weights) <= _EDGE:
         return PlaneEstimate(b.plane, albedo=a.albedo, residual=a.residual, covariance=b.covariance,
                              method_used=b.method_used)
     wa = np.array([weights[0], weights[0], weights[1]])
@@ -112,4 +103,4 @@ def blended(a: PlaneEstimate, b: PlaneEstimate, method_used: str) -> PlaneEstima
                          covariance=cov, method_used=method_used)
 
 
-__all__ = ["OWN_WEIGHT", "blended", "blend_weights"]
+__all__ = ["blended", "blend_weights"]

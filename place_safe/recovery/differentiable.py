@@ -28,8 +28,7 @@ contradict each other (``consistency_limit``) and where diff's tilt variance is 
 peak's (peak reads that slope better; calibrated on held-out frames, :mod:`place_safe.calibration.uncertainty`).
 A calibration that blends (``Uncertainty.blend``, what ``calibrate`` writes) returns, where the other gates pass,
 diff's plane and peak's blended by their variances (:mod:`place_safe.recovery.blend`, ``method_used =
-"diff+peak"``) in place of that choice: on the real sweep held out the blend read better than either plane. Where
-peak's stated variances are 9 or more times diff's (tilted planes), diff's own plane is returned as it is.
+"diff+peak"``) in place of that choice: on the real sweep held out the blend read better than either plane.
 Closer than :data:`NEAR_FALLBACK_RANGE` (peak's offset) a calibrated fast solver always returns peak's plane: the
 forward model has no validated near-range terms (internal return, partial illumination), and on the real sweep
 its own plane there was off by 10-19 deg where peak's near-range table read 1.7-3.3 deg.
@@ -403,8 +402,7 @@ class DifferentiableEstimator(Estimator):
         diff's covariance is not positive definite (a degenerate Jacobian: the fit did not pin the plane
         down, and a zero covariance would claim it did). With ``uncertainty.blend`` a frame that passes the other
         gates gets the two planes blended by their variances (:mod:`place_safe.recovery.blend`,
-        ``method_used`` :data:`BLENDED`) in place of ``prefer_ratio``'s choice, or diff's own plane unchanged where
-        peak's stated variances are 9 or more times diff's (:data:`~place_safe.recovery.blend.OWN_WEIGHT`).
+        ``method_used`` :data:`BLENDED`) in place of ``prefer_ratio``'s choice.
         """
         failed = not est.ok or est.residual is None or not est.residual ** 2 <= self.uncertainty.chi2_limit \
             or not _positive_definite(est.covariance)

@@ -59,26 +59,6 @@ def test_edges_return_one_estimate_and_missing_covariances_no_blend():
     assert out.plane.normal == pytest.approx(tilt_sure.plane.normal) and np.all(np.isfinite(out.covariance))
 
 
-def test_a_plane_that_carries_the_blend_in_tilt_and_offset_is_returned_as_it_is():
-    """Where one plane's weights are OWN_WEIGHT or more in both the tilt and the offset (the other's stated variances 9
-    or more times its own) it is returned unchanged, with its own method; where only one weight is, the two are
-    blended; where both are 1 - OWN_WEIGHT or less, the other plane is returned whole."""
-    from place_safe.recovery.blend import OWN_WEIGHT
-
-    a = _est(0.02, 0.0, 0.10, np.diag([1e-6, 1e-6, 1e-8]), "diff")
-    far = _est(0.05, 0.0, 0.12, np.diag([19e-6, 19e-6, 12e-8]), "peak")  # weights 0.95 and 12/13 = 0.923
-    assert min(blend_weights(a, far)) >= OWN_WEIGHT
-    assert blended(a, far, "diff+peak") is a
-    out = blended(far, a, "peak+diff")  # seen from the other side: a's plane, whole, as a's method
-    assert out.plane is a.plane and out.covariance is a.covariance and out.method_used == "diff"
-    offset_shared = _est(0.05, 0.0, 0.12, np.diag([19e-6, 19e-6, 4e-8]), "peak")  # offset weight 0.8: a blend
-    mixed = blended(a, offset_shared, "diff+peak")
-    assert mixed.method_used == "diff+peak"
-    assert mixed.plane.offset == pytest.approx(0.8 * a.plane.offset + 0.2 * offset_shared.plane.offset, rel=1e-12)
-    just_under = _est(0.05, 0.0, 0.12, np.diag([8e-6, 8e-6, 12e-8]), "peak")  # tilt weight 8/9 < 0.9: a blend
-    assert blended(a, just_under, "diff+peak").method_used == "diff+peak"
-
-
 @settings(max_examples=300, deadline=None)
 @given(seed=st.integers(0, 2 ** 32 - 1), rho=st.floats(-1.0, 1.0), scale_b=st.floats(1e-3, 1e3))
 def test_the_blends_covariance_holds_whatever_the_two_errors_correlation(seed, rho, scale_b):
