@@ -19,6 +19,14 @@ each zone's own time scale (``forward_fit.reconsider_geometry``). The sweep: :da
 ``calibration_mismatch_mount_tilt.json`` (unit A mounted 1.5 deg off its nominal orientation; docs/results.md, "A
 sensor mounted off its nominal orientation") is the calibration of the ``mount_tilt_*`` scenarios: there the forward
 fit keeps the mount, and peak's covariance widens by it on tilted planes so that diff is not thrown away for peak.
+
+    python sim/make_unit_calibration.py --zone-time-scale 0.015 --mount-tilt 0.8 -0.6 -o OUT.json
+
+(``OUT.json``: ``sim/sensors/calibration_mismatch_zone_time_mount.json``)
+
+``calibration_mismatch_zone_time_mount.json`` (the zone-time unit mounted 1.0 deg off: both things a level table
+cannot tell apart in one unit, scorecard unit 39) is the calibration of the ``zone_time_mount_*`` scenarios: the
+time-scale reading is kept, and the scales take up the mount as far as a level table shows it.
 """
 from __future__ import annotations
 

@@ -52,6 +52,25 @@ def test_the_zone_time_units_calibration_is_its_own_level_sweep_with_the_time_sc
     assert all(0.97 <= s <= 1.03 for s in fwd.zone_bin_scales) and np.ptp(fwd.zone_bin_scales) > 0.005
 
 
+def test_the_zone_time_and_mount_units_calibration_takes_the_time_scales_for_both():
+    """``sim/sensors/calibration_mismatch_zone_time_mount.json`` (sim/make_unit_calibration.py; the zone_time_mount_*
+    scenarios): valid, made from a level sweep of the unit whose zones keep their own time and which is mounted 1.0 deg
+    off, the two things a level table cannot tell apart; ``calibrate`` keeps the time-scale reading (the mount and the
+    fields of view nominal), whose scales then take up the mount as well (they spread wider than without it)."""
+    path = calibration_file("mismatch").with_name("calibration_mismatch_zone_time_mount.json")
+    cal = Calibration.load(path).check()
+    reports = json.loads(path.read_text())["reports"]
+    cap = reports["capture"]
+    assert cap["unit"]["zone_time_scale"] == 0.015 and cap["max_tilt_deg"] == 0.0 and cap["frames"] >= 100
+    assert math.degrees(np.hypot(*cap["unit"]["mount_tilt"])) == pytest.approx(1.0, abs=0.01)
+    assert reports["forward"]["geometry"]["adopted"] == "nominal_time_scales"
+    fwd = cal.forward()
+    assert fwd.edge_fov_scale == 1.0 and fwd.corner_fov_scale == 1.0 and list(fwd.mount_tilt) == [0.0, 0.0]
+    sister = Calibration.load(path.with_name("calibration_mismatch_zone_time.json")).forward()
+    assert all(0.97 <= s <= 1.03 for s in fwd.zone_bin_scales)
+    assert np.ptp(fwd.zone_bin_scales) > np.ptp(sister.zone_bin_scales)
+
+
 def test_the_mount_tilt_units_calibration_keeps_the_mount_and_widens_peaks_offset_by_it():
     """``sim/sensors/calibration_mismatch_mount_tilt.json`` (sim/make_unit_calibration.py; the mount_tilt_*
     scenarios): valid, made from a level sweep of unit A mounted 1.5 deg off its nominal orientation; the forward fit
