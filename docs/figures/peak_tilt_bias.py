@@ -32,10 +32,10 @@ def _errors(frames, estimates):
     for f, r in zip(frames, estimates):
         if not r.ok or f.truth is None:
             continue
-        n = f.truth.normal
+        nz = f.truth.normal[2]
         t = tilt_offset(f.truth)
         e = tilt_offset(r.plane) - t
-        rows.append((t[0], t[1], e[0], e[1], e[2], f.truth.offset / n[2] * np.sqrt(max(1 - n[2] ** 2, 0.0)) / n[2]))
+        rows.append((t[0], t[1], e[0], e[1], e[2], f.truth.z0 * np.sqrt(max(1 - nz * nz, 0.0)) / nz))
     return np.array(rows)
 
 

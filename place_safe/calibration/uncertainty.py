@@ -440,6 +440,16 @@ def chi2_candidates(chi2: np.ndarray) -> list[float]:
     return sorted({float(np.median(c)), float(np.percentile(c, 90)), float(c.max()), 2.0 * float(c.max())})
 
 
+def _keeps_diff(chi2: np.ndarray, consistent: np.ndarray, var_ratio: np.ndarray, chi2_limit: float,
+                prefer_ratio: float) -> np.ndarray:
+    """Per frame (F,), whether the fallback keeps diff's plane (or, with a blend, its blend with peak's): ``chi2`` at
+    most ``chi2_limit``, ``consistent`` with peak, and ``var_ratio`` (diff's tilt variance over peak's; NaN: no
+    comparison) at most ``prefer_ratio`` (``inf``: any). The rule :func:`select_fallback` scores and the calibration
+    reports."""
+    return (np.asarray(chi2, dtype=float) <= chi2_limit) & np.asarray(consistent, dtype=bool) \
+        & ~(np.asarray(var_ratio, dtype=float) > prefer_ratio)
+
+
 def select_fallback(chi2: np.ndarray, consistent: np.ndarray, var_ratio: np.ndarray, diff_errors: np.ndarray,
                     peak_errors: np.ndarray, chi2_limits: Sequence[float],
                     ratios: Sequence[float] = PREFER_RATIOS) -> tuple[float, float, list[dict]]:
@@ -463,7 +473,7 @@ def select_fallback(chi2: np.ndarray, consistent: np.ndarray, var_ratio: np.ndar
     table, returned = [], []
     for lim in chi2_limits:
         for r in ratios:
-            use = (chi2 <= lim) & np.asarray(consistent, dtype=bool) & ~(vr > r)
+            use = _keeps_diff(chi2, consistent, vr, lim, r)
             sel = np.where(use[:, None], diff_errors, peak_errors)
             score = float(np.max(np.mean(sel, axis=0))) if n else 0.0
             table.append({"chi2_limit": float(lim), "prefer_ratio": float(r), "score": score,
@@ -989,9 +999,10 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
         if BLEND:  # the blend where the gates pass (only the chi-square limit to choose), unless the choice beats it
             b_limit, _, b_table = select_fallback(chi2, consistent, ratio, n_blend, n_peak, candidates,
                                                   ratios=(math.inf,))
-            returned_blend = np.where(((chi2 <= b_limit) & consistent)[:, None], n_blend, n_peak)
-            returned_switch = np.where(((chi2 <= limit) & consistent & ~(ratio > prefer))[:, None], n_diff, n_peak)
-            blend, choice = _blend_holds(returned_blend, returned_switch)
+            kept_blend = _keeps_diff(chi2, consistent, ratio, b_limit, math.inf)
+            kept_switch = _keeps_diff(chi2, consistent, ratio, limit, prefer)
+            blend, choice = _blend_holds(np.where(kept_blend[:, None], n_blend, n_peak),
+                                         np.where(kept_switch[:, None], n_diff, n_peak))
             if blend:
                 limit, prefer, table = b_limit, math.inf, b_table
     else:  # too few frames to hold any out: the most permissive finite limit, equal variances (no blend tested)
@@ -1007,7 +1018,7 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
             rep["tilt_term_sized"] = {"frames": n_few, "why": f"fewer than {TILT_TERM_MIN_FRAMES} tilted frames: "
                                       "the stated term as the model error sizes it"}
         rep["note"] = TILT_TERM_NOTE.format(n=n_few, need=TILT_TERM_MIN_FRAMES)
-    use_diff = (chi2 <= limit) & consistent & ~(ratio > prefer)
+    use_diff = _keeps_diff(chi2, consistent, ratio, limit, prefer)
     sel = np.where(use_diff[:, None], e_blend if blend else e_diff, e_peak)
 
     def mean_finite(a: np.ndarray, scale: float) -> float:
