@@ -806,6 +806,10 @@ class ForwardModel:
         # binning): when the parameters the model is built with have them, or a fit will optimise them
         self._echo = self.params.echo_gain != 0.0 or "echo_gain" in fitted
         self._glass = any(v != 0.0 for v in self.params.glass_gains) or "glass_gains" in fitted
+        # the terms that are the identity at their defaults (each zone's pulse shape, the learned response, the zones'
+        # tails, the grid crosstalk, the bins' widths, the time warp) are rendered while derivatives are taken only
+        # where a fit names them, if it names any (None: every such term, as for a model built without ``fitted``)
+        self._fitted = frozenset(fitted) if fitted else None
         self.bins = torch.arange(N_BINS, dtype=dtype)
         self._kind = torch.as_tensor(ZONE_KIND)
         d = self.rays.directions.to(dtype)
@@ -828,6 +832,17 @@ class ForwardModel:
         return dirs, w / w.sum(dim=1, keepdim=True)
 
     # -- pieces ------------------------------------------------------------------------------
+    def _renders(self, names: tuple[str, ...], away_from_default: bool) -> bool:
+        """Whether a term that is the identity at its default values is rendered: where its parameters
+        (``names``) are away from their defaults, or while derivatives are taken and a fit may move them (the
+        model's ``fitted`` names one of them, or the model was built without ``fitted``). Skipping it elsewhere
+        changes neither the histogram nor any derivative the fit takes, only its time."""
+        if away_from_default:
+            return True
+        if not torch.is_grad_enabled():
+            return False
+        return self._fitted is None or any(n in self._fitted for n in names)
+
     def bin_scales(self) -> torch.Tensor:
         """Each zone's time scale (``ForwardParams.zone_bin_scales``) shaped (1, 9, 1) to multiply ``range / bin_size``."""
         return self.t["zone_bin_scales"].view(1, N_ZONES, 1)
@@ -904,7 +919,7 @@ class ForwardModel:
         path = r if light is None else 0.5 * (r + r_light)  # one-way range: half the light's path
         u = path / t["bin_size"] * self.bin_scales() + t["bin_offset"] + t["zone_offsets"].view(1, N_ZONES, 1)
         amp, u = self.add_echo_and_glass(amp, u, path)
-        if torch.is_grad_enabled() or bool(torch.any(t["time_warp"] != 0)):
+        if self._renders(("time_warp",), bool(torch.any(t["time_warp"] != 0))):
             u = warp_positions(u, t["time_warp"])[0]  # the TDC's integral non-linearity (direct, echo and glass)
         return amp, u
 
@@ -970,23 +985,23 @@ class ForwardModel:
         that ambient (negative where the return's counts shadow the ambient after it). None: the return alone (the
         model as it was: the sensor's floor, measured after the return, is subtracted from the data instead)."""
         t = self.t
-        shaped = torch.is_grad_enabled() or bool(torch.any(t["zone_pulse_widths"] != 0)) or bool(
-            torch.any(t["zone_pulse_skews"] != 0))
+        shaped = self._renders(("zone_pulse_widths", "zone_pulse_skews"),
+                               bool(torch.any(t["zone_pulse_widths"] != 0)) or bool(torch.any(t["zone_pulse_skews"] != 0)))
         if shaped:
             shape = pulse_shape_matrix(t["zone_pulse_widths"], t["zone_pulse_skews"], hist.shape[-1], self.dtype)
             hist = (hist.transpose(0, 1) @ shape.transpose(-1, -2)).transpose(0, 1)
-        if torch.is_grad_enabled() or bool(torch.any(t["response_kernel"] != 0)):
+        if self._renders(("response_kernel",), bool(torch.any(t["response_kernel"] != 0))):
             hist = add_response(hist, t["response_kernel"])
-        if torch.is_grad_enabled() or bool(torch.any(t["zone_tail_weights"] != 0)):
+        if self._renders(("zone_tail_weights", "zone_tail_decays"), bool(torch.any(t["zone_tail_weights"] != 0))):
             hist = add_zone_tails(hist, zone_tail_taps(t["zone_tail_weights"], t["zone_tail_decays"], self.dtype))
         total = hist.sum(dim=1, keepdim=True)
         mixed = hist + t["crosstalk"] * (total - (1.0 - t["crosstalk_self"]) * hist)
-        if torch.is_grad_enabled() or bool(torch.any(t["crosstalk_grid"] != 0)):
+        if self._renders(("crosstalk_grid",), bool(torch.any(t["crosstalk_grid"] != 0))):
             mixed = mixed + torch.einsum("tf,bfn->btn", grid_crosstalk_matrix(t["crosstalk_grid"], self.dtype), hist)
         hist = mixed
         if shaped:
             hist = torch.clamp(hist, min=0.0)  # the shape correction's negative lobes beside a sharp pulse: no counts
-        if torch.is_grad_enabled() or bool(torch.any(t["bin_gains"] != 1)):
+        if self._renders(("bin_gains",), bool(torch.any(t["bin_gains"] != 1))):
             hist = hist * bin_widths(t["bin_gains"])[:hist.shape[-1]]  # the TDC's bin widths (its DNL)
         if ambient is not None:
             return ambient_pileup(hist, ambient, t["pileup"], t["pileup_shadow"]) + t["floor"]

@@ -295,6 +295,43 @@ def test_terms_a_fit_will_optimise_are_rendered_under_differentiation_from_zero(
             assert model.add_echo_and_glass(amp, u, u * 0.01)[0].shape == amp.shape
 
 
+def test_identity_terms_a_fit_does_not_name_are_skipped_with_the_same_histogram_and_derivatives():
+    """A model built with ``fitted`` skips, while derivatives are taken, the terms that are the identity at their
+    defaults and that the fit does not name (each zone's pulse shape, the learned response, the grid crosstalk, the
+    bins' widths, the time warp): the histogram and its forward-mode derivatives in the fitted parameters are those
+    of a model built without ``fitted``, which renders every term."""
+    from torch.func import jvp
+
+    from place_safe.evaluation.synthetic import default_reference
+
+    ref = torch.as_tensor(default_reference(), dtype=torch.float64)[None].expand(2, -1)
+    normal = torch.tensor([[0.1, -0.05, 1.0], [0.0, 0.2, 1.0]], dtype=torch.float64)
+    normal = normal / normal.norm(dim=1, keepdim=True)
+    offset, albedo = torch.tensor([0.12, 0.3], dtype=torch.float64), torch.tensor([3.0, 2.0], dtype=torch.float64)
+    fitted = ("bin_offset", "soft_bin_sigma", "crosstalk", "zone_tail_weights", "pileup")
+    derivs = []
+    for kw in ({}, {"fitted": fitted}):
+        model = ForwardModel(ForwardParams(), ZoneRays.stratified(3), **kw)
+        base = {n: model.t[n] for n in fitted}
+
+        def f(*values, model=model, base=base):
+            for n, v in zip(fitted, values):
+                model.t[n] = v
+            return model.render_plane(normal, offset, albedo, ref)
+
+        tangents = tuple(torch.ones_like(v) * (k + 1) for k, v in enumerate(base.values()))
+        derivs.append(jvp(f, tuple(base.values()), tangents))
+    torch.testing.assert_close(derivs[0][0], derivs[1][0], rtol=0, atol=0)
+    torch.testing.assert_close(derivs[0][1], derivs[1][1], rtol=1e-12, atol=1e-9)
+    assert float(derivs[0][1].abs().max()) > 0
+    model = ForwardModel(ForwardParams(), ZoneRays.stratified(3), fitted=fitted)
+    with torch.enable_grad():
+        assert not model._renders(("time_warp",), False) and not model._renders(("bin_gains",), False)
+        assert model._renders(("zone_tail_weights", "zone_tail_decays"), False)
+        assert model._renders(("time_warp",), True)  # a warp away from zero is rendered whatever is fitted
+    assert ForwardModel(ForwardParams())._fitted is None
+
+
 def test_grid_crosstalk_reaches_only_the_named_neighbours():
     """A weight at displacement (dx, dy) takes that share of the zone at (x + dx, y + dy) in the 3x3 grid, and of
     no other zone; zones at the grid's edge have no neighbour beyond it."""
