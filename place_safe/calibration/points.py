@@ -74,10 +74,12 @@ def _summary(errs: dict) -> dict:
 
 def fit_linear(edge_scale: float, corner_scale: float, readings: np.ndarray, valid: np.ndarray, tn: np.ndarray,
                td: np.ndarray, degree: int = 2, harmonics: int = 2, fit_offsets: bool = True,
-               fit_gains: bool = True) -> PeakParams | None:
+               fit_gains: bool = True, inverse: int = 0) -> PeakParams | None:
     """For fixed direction scales, the least-squares m, b, zone offsets, residual correction and phase
     correction: ``reading = m r + b + off_z + c(r) + s(reading)`` at the true ranges ``r`` along the
-    scaled directions (reading units). Returns None when the data do not determine them."""
+    scaled directions (reading units); with ``inverse`` K > 0 also each zone's terms in the inverse range,
+    ``+ sum_{k <= K} a_kz (lo / r)^k`` (:meth:`PeakParams.inverse_correction`; ``lo`` the nearest range fitted).
+    Returns None when the data do not determine them."""
     dirs = PeakParams(1.0, 0.0, edge_scale, corner_scale).directions()
     with np.errstate(divide="ignore", invalid="ignore"):
         r = true_ranges(tn, td, dirs)
@@ -106,6 +108,11 @@ def fit_linear(edge_scale: float, corner_scale: float, readings: np.ndarray, val
     if degree > 1:  # the constant and linear Chebyshev terms are b and m
         u = (2.0 * rr - (lo + hi)) / (hi - lo)
         cols.append(cheb.chebvander(u, degree)[:, 2:])
+    if inverse > 0:
+        if not seen.all():
+            return None  # a zone never seen cannot get its own terms
+        q = lo / rr
+        cols.extend(onehot * q[:, None] ** k for k in range(1, inverse + 1))
     for k in range(harmonics):
         w = 2.0 * np.pi * (k + 1) * y
         cols.append(np.stack([np.sin(w), np.cos(w)], axis=1))
@@ -132,9 +139,12 @@ def fit_linear(edge_scale: float, corner_scale: float, readings: np.ndarray, val
     if degree > 1:
         res_coeffs = [0.0, 0.0] + [float(v) for v in coef[k:k + degree - 1]]
         k += degree - 1
+    zone_inverse = [float(v) for v in coef[k:k + inverse * N_ZONES]] if inverse > 0 else []
+    k += len(zone_inverse)
     phase = [float(v) for v in coef[k:k + 2 * harmonics]]
     try:
-        return PeakParams(m, b, edge_scale, corner_scale, list(offsets), res_coeffs, [lo, hi], phase, list(gains))
+        return PeakParams(m, b, edge_scale, corner_scale, list(offsets), res_coeffs, [lo, hi], phase, list(gains),
+                          zone_inverse=zone_inverse)
     except CalibrationError:
         return None
 
@@ -146,14 +156,14 @@ def _mean_point_error(p: PeakParams, readings: np.ndarray, valid: np.ndarray, tn
 
 def _fit_scales(start: PeakParams, readings: np.ndarray, valid: np.ndarray, tn: np.ndarray, td: np.ndarray,
                 bar: Any, max_iter: int, degree: int, harmonics: int, fit_offsets: bool,
-                fit_gains: bool) -> PeakParams:
+                fit_gains: bool, inverse: int = 0) -> PeakParams:
     """Nelder-Mead over (s_e, s_c) on the mean point error, the rest solved linearly inside."""
 
     def make(x: np.ndarray) -> PeakParams | None:
         if not (0 < x[0] < 3 and 0 < x[1] < 3):
             return None
         return fit_linear(float(x[0]), float(x[1]), readings, valid, tn, td, degree, harmonics, fit_offsets,
-                          fit_gains)
+                          fit_gains, inverse)
 
     def cost(x: np.ndarray) -> float:
         p = make(x)
@@ -199,10 +209,69 @@ def _simplex(x0: np.ndarray) -> np.ndarray:
     return np.vstack([x0] + [x0 + np.eye(len(x0))[i] * steps[i] for i in range(len(x0))])
 
 
+#: Powers of the inverse range each zone's own term may have (:meth:`PeakParams.inverse_correction`), chosen by
+#: :func:`select_inverse`: 0 (none), 1 or 2. On the real sweep (halves: calibrated on one, planes of the other at
+#: 5-40 cm) the two powers took peak from 0.156 to 0.09 deg (odd -> even) and from 0.126 to 0.11 (even -> odd);
+#: on simulated units' tilted frames they changed nothing (docs/results.md, "Each zone's own term in the inverse
+#: range").
+INVERSE_DEGREES = (0, 1, 2)
+#: Folds of :func:`select_inverse` (frames sorted by range, every FOLDS-th in one fold) and the relative fall of the
+#: held-out range error a higher power must bring to be chosen over a lower one.
+INVERSE_FOLDS = 5
+INVERSE_MIN_GAIN = 0.02
+#: m: :func:`select_inverse` scores the held-out frames from this depth on. Closer, the zones' errors are the
+#: near-range table's to follow (:mod:`~place_safe.calibration.near_range`) and the return merges with the
+#: internal return: scored there too, the real odd half chose one power (its 3-5 cm frames decide), which left its
+#: 5-40 cm tilt where it was (0.156 -> 0.146 deg held out) where two powers read 0.080.
+INVERSE_SCORE_FROM = 0.05
+
+
+def select_inverse(edge_scale: float, corner_scale: float, readings: np.ndarray, valid: np.ndarray, tn: np.ndarray,
+                   td: np.ndarray, degree: int, harmonics: int, fit_offsets: bool, fit_gains: bool,
+                   candidates: Sequence[int] = INVERSE_DEGREES) -> tuple[int, dict]:
+    """The power of each zone's own term in the inverse range (:func:`fit_linear`'s ``inverse``) among
+    ``candidates`` by cross-validation over frames: each of :data:`INVERSE_FOLDS` folds (frames sorted by depth,
+    interleaved) held out in turn, the mapping fitted on the rest, the RMS of the range errors (m) of the held-out
+    frames' zones at depth :data:`INVERSE_SCORE_FROM` or more pooled. A higher power is chosen only where it lowers that RMS by :data:`INVERSE_MIN_GAIN` or more from the
+    one chosen below it. Returns (power, {"rms_mm": {power: RMS in mm, or None where a fold could not be fitted},
+    "folds": n}); with fewer than 2 * INVERSE_FOLDS frames, the lowest candidate."""
+    candidates = sorted(set(int(k) for k in candidates))
+    n = len(readings)
+    if len(candidates) == 1 or n < 2 * INVERSE_FOLDS:
+        return candidates[0], {"rms_mm": {}, "folds": 0}
+    depth = td / np.maximum(tn[:, 2], 1e-9)
+    order = np.argsort(depth)
+    fold = np.empty(n, dtype=int)
+    fold[order] = np.arange(n) % INVERSE_FOLDS
+    rms: dict[int, float | None] = {}
+    for k in candidates:
+        sq, count = 0.0, 0
+        for f in range(INVERSE_FOLDS):
+            train, test = fold != f, (fold == f) & (depth >= INVERSE_SCORE_FROM)
+            p = fit_linear(edge_scale, corner_scale, readings[train], valid[train], tn[train], td[train], degree,
+                           harmonics, fit_offsets, fit_gains, k)
+            if p is None:
+                sq = math.nan
+                break
+            with np.errstate(divide="ignore", invalid="ignore"):
+                err = p.ranges(np.where(valid[test], readings[test], np.nan)) - true_ranges(tn[test], td[test],
+                                                                                             p.directions())
+            use = valid[test] & np.isfinite(err)
+            sq += float(np.sum(err[use] ** 2))
+            count += int(use.sum())
+        rms[k] = math.sqrt(sq / count) if count and math.isfinite(sq) else None
+    chosen = candidates[0]
+    for k in candidates[1:]:
+        if rms[k] is not None and (rms[chosen] is None or rms[k] <= (1.0 - INVERSE_MIN_GAIN) * rms[chosen]):
+            chosen = k
+    return chosen, {"rms_mm": {str(k): (None if v is None else v * 1e3) for k, v in rms.items()},
+                    "folds": INVERSE_FOLDS}
+
+
 def fit_points(readings: np.ndarray, valid: np.ndarray, frames: Sequence[Frame], init: PeakParams,
                progress: bool = True, residual_degree: int = 3, harmonics: int = 2, fit_offsets: bool = True,
                fit_gains: bool = True, paper: bool = False, max_iter: int = 400,
-               label: str = "calibrate") -> tuple[PeakParams, dict]:
+               label: str = "calibrate", inverse_degrees: Sequence[int] = (0,)) -> tuple[PeakParams, dict]:
     """Calibrate a reading-to-point mapping on readings (F, 9) with mask (F, 9) and the frames' truth.
 
     First the paper's procedure: Nelder-Mead over (m, b, s_e, s_c) on the mean point error from
@@ -212,7 +281,9 @@ def fit_points(readings: np.ndarray, valid: np.ndarray, frames: Sequence[Frame],
     least squares (:func:`fit_linear`); the scales s_e, s_c are refined by Nelder-Mead on the point
     error only when the ground-truth planes are tilted by :data:`MIN_TILT_SPREAD` or more between
     frames. Otherwise (e.g. a sweep towards a level table) the scales are not identifiable: they
-    would only trade the fit's lever arm and are kept at ``init``'s values.
+    would only trade the fit's lever arm and are kept at ``init``'s values. Each zone's own terms in the inverse
+    range (:func:`fit_linear`'s ``inverse``) take the power :func:`select_inverse` chooses among
+    ``inverse_degrees`` (the default: none).
     """
     from tqdm import tqdm
 
@@ -225,22 +296,34 @@ def fit_points(readings: np.ndarray, valid: np.ndarray, frames: Sequence[Frame],
         base = PeakParams(init.m, init.b, init.edge_scale, init.corner_scale)
         params = _nelder_mead(base, readings, valid, tn, td, bar, max_iter)
         paper_style = _summary(_errors(params, readings, valid, tn, td))
+        inverse, inverse_report = 0, None
         if not paper:
+            if fit_offsets and fit_gains:
+                inverse, inverse_report = select_inverse(init.edge_scale, init.corner_scale, readings, valid, tn, td,
+                                                         residual_degree, harmonics, fit_offsets, fit_gains,
+                                                         inverse_degrees)
             full = fit_linear(init.edge_scale, init.corner_scale, readings, valid, tn, td, residual_degree, harmonics,
-                              fit_offsets, fit_gains)
+                              fit_offsets, fit_gains, inverse)
+            if full is None and inverse:
+                inverse = 0
+                full = fit_linear(init.edge_scale, init.corner_scale, readings, valid, tn, td, residual_degree,
+                                  harmonics, fit_offsets, fit_gains)
             if full is None:
                 raise CalibrationError("calibration data do not determine the per-zone parameters "
                                        "(every zone needs returns in several frames at different distances)")
             params = full
             if tilted:
                 params = _fit_scales(params, readings, valid, tn, td, bar, max_iter, residual_degree, harmonics,
-                                     fit_offsets, fit_gains)
+                                     fit_offsets, fit_gains, inverse)
     finally:
         bar.close()
     after = _summary(_errors(params, readings, valid, tn, td))
     report = {"frames": len(frames), "before": before, "paper_style_fit": paper_style, "after": after,
               "params": params.to_dict(), "residual_degree": residual_degree, "harmonics": harmonics,
               "fit_offsets": fit_offsets, "fit_gains": fit_gains, "scales_fitted": tilted or paper, "paper": paper}
+    if inverse_report is not None:
+        report["zone_inverse"] = {"power": inverse, "held_out_range_rms_mm": inverse_report["rms_mm"],
+                                  "folds": inverse_report["folds"]}
     return params, report
 
 
@@ -318,7 +401,7 @@ def fit_peak(frames: Sequence[Frame], init: PeakParams | None = None, progress: 
              min_range: float = MIN_CALIBRATION_RANGE, residual_degree: int = 3, harmonics: int = 2,
              fit_offsets: bool = True, paper: bool = False, pileup: float | None = None,
              subbin: str = "centroid", subbin_half_width: float = CENTROID_HALF_WIDTH,
-             near_range: bool = True) -> tuple[PeakParams, dict]:
+             near_range: bool = True, inverse_degrees: Sequence[int] = INVERSE_DEGREES) -> tuple[PeakParams, dict]:
     """Calibrate the peak method on frames with ground truth; returns the parameters and a report.
 
     Frames closer than ``min_range`` (m) and frames without a usable return are left out of the mapping;
@@ -328,7 +411,8 @@ def fit_peak(frames: Sequence[Frame], init: PeakParams | None = None, progress: 
     ``pileup`` (1/counts): the SPAD pile-up to undo before finding peaks; None fits it
     (:func:`fit_pileup`), 0 turns the correction off. ``subbin``, ``subbin_half_width``: the sub-bin
     estimator of the readings (:func:`~place_safe.sensor.histogram.find_peaks`; the windowed centroid by
-    default, the spline's maximum with ``paper=True``).
+    default, the spline's maximum with ``paper=True``). ``inverse_degrees``: the powers of each zone's own term in
+    the inverse range to choose among (:func:`select_inverse`; ``(0,)``: none).
 
     The centroid replaced the spline's maximum because the spline's error has a period of one bin that
     the phase correction removes only on average. Held out (calibrated on one half, measured on the
@@ -350,13 +434,14 @@ def fit_peak(frames: Sequence[Frame], init: PeakParams | None = None, progress: 
         k = float(pileup)
     readings, valid, _ = find_peaks(hists, k, subbin, subbin_half_width)
     params, report = _fit_readings("peak", "returns", use, readings, valid, init, PeakParams.default_peak(), progress,
-                                   residual_degree, harmonics, fit_offsets, paper, min_range)
+                                   residual_degree, harmonics, fit_offsets, paper, min_range, inverse_degrees)
     params = params.replace(pileup=k, subbin=subbin, subbin_half_width=subbin_half_width)
     if not paper and near_range:
         params, report["near_range"] = fit_near_range(frames, params)
     report["params"] = params.to_dict()
     report["pileup"] = {"value": k, "fitted": pileup is None and not paper,
                         "linear_fit_point_error_mm": search}
+    report["inverse_degrees"] = [int(d) for d in inverse_degrees]
     return params, report
 
 
@@ -394,7 +479,8 @@ def adopt_pileup(frames: Sequence[Frame], params: PeakParams, report: dict, pile
                                        "why": "the peak calibration identified its own pile-up"}
         return params, kept, False
     new, new_report = fit_peak(frames, progress=progress, pileup=k, subbin=params.subbin,
-                               subbin_half_width=params.subbin_half_width)
+                               subbin_half_width=params.subbin_half_width,
+                               inverse_degrees=report.get("inverse_degrees", INVERSE_DEGREES))
     before = report.get("after", {}).get("point_mean_mm", math.inf)
     after = new_report.get("after", {}).get("point_mean_mm", math.inf)
     adopted = bool(after <= PILEUP_ADOPT_TOLERANCE * before)
@@ -407,7 +493,8 @@ def adopt_pileup(frames: Sequence[Frame], params: PeakParams, report: dict, pile
 
 def _fit_readings(method: str, what: str, use: list[Frame], readings: np.ndarray, valid: np.ndarray,
                   init: PeakParams | None, default: PeakParams, progress: bool, residual_degree: int,
-                  harmonics: int, fit_offsets: bool, paper: bool, min_range: float) -> tuple[PeakParams, dict]:
+                  harmonics: int, fit_offsets: bool, paper: bool, min_range: float,
+                  inverse_degrees: Sequence[int] = (0,)) -> tuple[PeakParams, dict]:
     """Fit readings (F, 9) of frames ``use`` for ``method``: frames with 3 or more valid zones, a
     straight-line start unless ``init`` is given, then :func:`fit_points`."""
     keep = valid.sum(1) >= 3
@@ -417,7 +504,7 @@ def _fit_readings(method: str, what: str, use: list[Frame], readings: np.ndarray
     readings, valid = readings[keep], valid[keep]
     start = init if init is not None else _initial_linear(readings, valid, use, default)
     params, report = fit_points(readings, valid, use, start, progress, residual_degree, harmonics, fit_offsets,
-                                fit_offsets, paper, label=f"calibrate {method}")
+                                fit_offsets, paper, label=f"calibrate {method}", inverse_degrees=inverse_degrees)
     report["method"] = method
     report["min_range_m"] = min_range
     return params, report

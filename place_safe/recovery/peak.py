@@ -85,7 +85,7 @@ class PeakEstimator(Estimator):
         if not p.near_depths:
             return p.ranges(readings)
         key = (p.m, p.b, p.edge_scale, p.corner_scale, tuple(p.zone_offsets), tuple(p.zone_gains),
-               tuple(p.residual_coeffs), tuple(p.residual_domain), tuple(p.phase_coeffs))
+               tuple(p.residual_coeffs), tuple(p.residual_domain), tuple(p.phase_coeffs), tuple(p.zone_inverse))
         if getattr(self, "_far_key", None) != key:
             self._far = p.without_near_table()
             self._far_key = key

@@ -67,6 +67,9 @@ NEAR_MIN_SPACING = 1e-6
 #: Fixed-point iterations inverting ``m r + c(r) = x`` (c changes by far less than m per metre). Against 10
 #: iterations, 2 leave at most 0.002 mm on the real sweep's calibration (3: 0.0001 mm, 1: 0.05 mm).
 RANGE_ITERATIONS = 2
+#: Iterations inverting the mapping with each zone's own term in the inverse range (:meth:`PeakParams.ranges`:
+#: Newton's steps in that term, which can change by a fifth of ``m`` per metre at the domain's near end).
+INVERSE_RANGE_ITERATIONS = 3
 #: m: largest zone residual a mapping may state (PeakParams.zone_residual, .common_residual); the real sweep's on-sensor
 #: distances leave 0.5-0.9 mm.
 MAX_ZONE_RESIDUAL = 0.1
@@ -115,6 +118,7 @@ class PeakParams(ParamModel):
     near_min_fraction: float = Field(0.0, ge=0.0, lt=1.0, description="(of the frame's highest return)")
     zone_residual: float = Field(0.0, ge=0.0, le=MAX_ZONE_RESIDUAL, description="m")
     common_residual: float = Field(0.0, ge=0.0, le=MAX_ZONE_RESIDUAL, description="m")
+    zone_inverse: vector(ge=-1e3, le=1e3) = Field(default_factory=list, description="reading units")
 
     what: ClassVar[str] = "peak parameters"
     error: ClassVar[type[Exception]] = CalibrationError
@@ -124,6 +128,9 @@ class PeakParams(ParamModel):
     def _consistent(self) -> "PeakParams":
         if self.subbin not in SUBBIN_METHODS:
             raise ValueError(f"subbin must be one of {', '.join(SUBBIN_METHODS)}, got {self.subbin!r}")
+        if len(self.zone_inverse) % N_ZONES:
+            raise ValueError(f"zone_inverse needs {N_ZONES} values per power of the inverse range, "
+                             f"got {len(self.zone_inverse)}")
         if len(self.phase_coeffs) % 2:
             raise ValueError("phase_coeffs needs (sin, cos) pairs, got an odd count")
         if not self.residual_domain[0] < self.residual_domain[1]:
@@ -147,7 +154,7 @@ class PeakParams(ParamModel):
         if not self.near_depths and not self.near_min_fraction:
             for key in ("near_depths", "near_errors", "near_min_fraction"):
                 d.pop(key)
-        for key in ("zone_residual", "common_residual"):
+        for key in ("zone_residual", "common_residual", "zone_inverse"):
             if not d[key]:
                 d.pop(key)
         return d
@@ -233,6 +240,44 @@ class PeakParams(ParamModel):
 
         return self._memo("_power", (tuple(self.residual_coeffs), tuple(self.residual_domain)), compute)
 
+    def inverse_correction(self, r: np.ndarray) -> np.ndarray:
+        """Each zone's own term in the inverse range, in reading units ((..., 9) for ranges ``r`` (..., 9), m):
+        ``sum_k zone_inverse[k, z] (lo / r)^k`` for the powers ``k = 1, 2, ..`` (``zone_inverse`` power-major, 9 a
+        power), ``r`` held within ``residual_domain`` ``[lo, hi]`` (a value at its nearer end outside it, as the
+        residual correction's; closer than ``lo`` the near-range table takes over). 0 without coefficients.
+
+        What it is for: a zone's peak that reads long or short by an amount that falls with range and differs
+        from zone to zone, which per-zone offsets and gains cannot follow and a level table reads as a tilt that
+        grows as the plane comes closer (the real sweep: 0.5-0.7 deg at 6-8 cm). On the real sweep it is there
+        on both halves; the simulated units and the independent generator do not have it (their fitted terms are
+        small and change nothing). Likely sources: the emitter's offset from the receiver, whose parallax moves
+        each zone's spot within its footprint as the range changes, or the return's strength (a timing walk),
+        which on one surface also falls as a power of the range, and which a calibration on one surface cannot
+        tell apart from it."""
+        return self._inverse(r)[0]
+
+    def _inverse(self, r, derivative: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
+        """:meth:`inverse_correction` at ``r`` and, with ``derivative``, its derivative in ``r`` (reading units per
+        metre; 0 outside the domain, where the term is held)."""
+        r = np.asarray(r, dtype=float)
+        if not self.zone_inverse:
+            return np.zeros_like(r), (np.zeros_like(r) if derivative else None)
+        lo, hi = self.residual_domain
+        coeffs = np.asarray(self.zone_inverse, dtype=float).reshape(-1, N_ZONES)  # (powers, 9)
+        with np.errstate(invalid="ignore"):
+            held = np.minimum(np.maximum(r, lo), hi)
+            q = lo / held
+        out = np.zeros_like(q)
+        slope = np.zeros_like(q) if derivative else None
+        for k in range(len(coeffs), 0, -1):  # Horner in q: ((c_K q + c_{K-1}) q + ..) q, and k c_k q^(k-1)
+            out = (out + coeffs[k - 1]) * q
+            if derivative:
+                slope = slope * q + k * coeffs[k - 1]
+        if derivative:  # d/dr of sum_k c_k q^k = (sum_k k c_k q^(k-1)) dq/dr, dq/dr = -q / r inside the domain
+            with np.errstate(invalid="ignore"):
+                slope = np.where((r > lo) & (r < hi), -slope * q / held, 0.0)
+        return out, slope
+
     def phase_correction(self, readings: np.ndarray) -> np.ndarray:
         """Sub-bin phase correction s(x) in reading units (0 without coefficients)."""
         x = np.asarray(readings, dtype=float)
@@ -269,7 +314,11 @@ class PeakParams(ParamModel):
             self.b + np.asarray(self.zone_offsets), self.m * np.asarray(self.zone_gains)))
         x = x - self.phase_correction(x) - shift
         r = x / mz
-        if self.residual_coeffs:
+        if self.zone_inverse:  # m g r + c(r) + i_z(r) = x: Newton's steps in the zone's own term (c changes slowly)
+            for _ in range(INVERSE_RANGE_ITERATIONS):
+                i, di = self._inverse(r, derivative=True)
+                r = r - (mz * r + self.correction(r) + i - x) / (mz + di)
+        elif self.residual_coeffs:
             for _ in range(RANGE_ITERATIONS):  # solve m g r + c(r) = x by fixed-point iteration
                 r = (x - self._correction(r)) / mz
         if self.near_depths:
