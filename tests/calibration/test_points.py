@@ -304,3 +304,16 @@ def test_real_sweep_held_out_the_zones_inverse_terms_lower_peaks_error(sweep_pat
                 assert report["zone_inverse"]["power"] == 2 and len(params.zone_inverse) == 18
                 assert linear_errors(n, d, tn, td).mean() <= 0.12e-3
         assert mean[(0, 1, 2)] < mean[(0,)] - 0.02
+
+
+@pytest.mark.parametrize("powers", [1, 2, 3])
+def test_ranges_invert_each_power_of_the_inverse_terms_for_one_frame_and_many(powers):
+    """One frame (9,) or many (F, 9), any number of powers: ``ranges`` inverts the mapping with the zones' inverse
+    terms (convention check)."""
+    rng = np.random.default_rng(powers)
+    coeffs = list(rng.normal(0.0, 0.1, 9 * powers))
+    p = PeakParams(71.0, 13.0, residual_domain=[0.03, 0.4], zone_inverse=coeffs)
+    r = rng.uniform(0.05, 0.4, (5, 9))
+    readings = 71.0 * r + 13.0 + p.inverse_correction(r)
+    assert np.allclose(p.ranges(readings), r, atol=1e-6)
+    assert np.allclose(p.ranges(readings[0]), r[0], atol=1e-6)
