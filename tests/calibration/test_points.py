@@ -317,3 +317,31 @@ def test_ranges_invert_each_power_of_the_inverse_terms_for_one_frame_and_many(po
     readings = 71.0 * r + 13.0 + p.inverse_correction(r)
     assert np.allclose(p.ranges(readings), r, atol=1e-6)
     assert np.allclose(p.ranges(readings[0]), r[0], atol=1e-6)
+
+
+def test_the_tabulated_inverse_matches_newtons_and_a_falling_mapping_takes_newtons_steps():
+    """``ranges`` reads the mapping's tabulated inverse (``_inverse_table``) within 0.2 um of Newton's steps taken
+    to convergence, NaN readings stay NaN; where the terms make the mapping fall with range over part of its domain
+    there is no table and Newton's steps give the ranges."""
+    import place_safe.recovery.points as points
+
+    rng = np.random.default_rng(3)
+    p = PeakParams(71.0, 13.0, residual_coeffs=[0.0, 0.0, 0.05], residual_domain=[0.03, 0.4],
+                   zone_inverse=list(rng.normal(0.0, 0.2, 18)))
+    assert p._inverse_table() is not None
+    r = rng.uniform(0.01, 0.6, (40, 9))
+    readings = 71.0 * r + 13.0 + p.correction(r) + p.inverse_correction(r)
+    readings[0, 3] = np.nan
+    got = p.ranges(readings)
+    assert np.isnan(got[0, 3]) and np.isfinite(np.delete(got.ravel(), 3)).all()
+    ok = np.isfinite(readings)
+    assert np.allclose(got[ok], r[ok], atol=2e-7)
+    steep = PeakParams(71.0, 13.0, residual_domain=[0.03, 0.4], zone_inverse=[-60.0] * 9 + [80.0] * 9)
+    assert steep._inverse_table() is None
+    saved = points.INVERSE_RANGE_ITERATIONS
+    points.INVERSE_RANGE_ITERATIONS = 30
+    try:
+        rr = np.linspace(0.25, 0.4, 9)  # where this mapping rises: Newton's steps find the range
+        assert np.allclose(steep.ranges(71.0 * rr + 13.0 + steep.inverse_correction(rr)), rr, atol=1e-6)
+    finally:
+        points.INVERSE_RANGE_ITERATIONS = saved
