@@ -213,11 +213,17 @@ def test_fit_proprietary_states_the_zone_residuals_of_its_frames(sweep_path):
     from place_safe.calibration.points import fit_proprietary
     from place_safe.io.frame_file import load_frames
 
-    params, report = fit_proprietary(load_frames(sweep_path)[0::2], progress=False)
+    even = load_frames(sweep_path)[0::2]
+    params, report = fit_proprietary(even, progress=False, inverse_degrees=(0,))
     # the real sweep's even half: 0.63 mm of each zone's own, 0.91 mm shared (whole millimetres read)
     assert 0.3e-3 < params.zone_residual < 1.5e-3 and 0.3e-3 < params.common_residual < 2e-3
     assert report["zone_residual_mm"]["own"] == pytest.approx(params.zone_residual * 1e3)
     assert report["params"]["zone_residual"] == params.zone_residual
+    # with each zone's own terms in the inverse range (two powers here) the mapping leaves less of both:
+    # 0.53 mm own, 0.29 mm shared, which the method's covariance then states
+    terms, report = fit_proprietary(even, progress=False)
+    assert report["zone_inverse"]["power"] >= 1
+    assert 0.3e-3 < terms.zone_residual < params.zone_residual and 0.1e-3 < terms.common_residual < params.common_residual
 
 
 def test_zone_inverse_round_trips_old_files_read_as_none_and_bad_lengths_are_errors():
