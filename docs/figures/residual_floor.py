@@ -1,0 +1,85 @@
+"""What a forward model's residual on frames it was not fitted to is made of, and the floor a frame-to-frame timing
+scatter puts under it.
+
+    python docs/figures/residual_floor.py CALIBRATION.json FRAMES.json [--jitter 0.008 0.010]
+
+CALIBRATION.json: a calibration (its ``forward`` section) or forward parameters; FRAMES.json: frames with ground
+truth (4 cm and beyond are used). Each frame is rendered at its true plane with its least-squares albedo, as
+``forward_residuals.py`` does, and the residual scaled as the forward fit scales it (Poisson noise and the 2 % model
+error: ``recovery.forward.residual_weights``) over the bins the fit uses. Prints:
+
+- the RMS scaled residual, by band of depth and by bins relative to each zone's highest bin (share of the squares);
+- the share of the squares that a shape fixed per zone and relative bin explains (what a learned response could take);
+- the RMS that a timing scatter of each ``--jitter`` (bins, independent per zone and frame) alone gives at these
+  weights, and with shot noise (RMS 1) the floor it puts under any model that is the same in every frame.
+"""
+
+import argparse
+import json
+
+import numpy as np
+import torch
+
+from place_safe.io.frame_file import load_frames
+from place_safe.recovery.forward import (MODEL_ERROR, ForwardModel, ForwardParams, ZoneRays, mount_rotation,
+                                         residual_weights)
+from place_safe.sensor.histogram import measure_floor
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("calibration")
+    ap.add_argument("frames")
+    ap.add_argument("--jitter", type=float, nargs="+", default=[0.008, 0.010], help="timing scatter, bins")
+    a = ap.parse_args()
+    torch.set_num_threads(1)
+    d = json.load(open(a.calibration))
+    p = ForwardParams.from_dict(d.get("forward", d))
+    fr = sorted((f for f in load_frames(a.frames) if f.truth is not None and f.truth.z0 >= 0.04), key=lambda f: f.truth.z0)
+    m = ForwardModel(p, ZoneRays.stratified(4))
+    hists = np.array([f.hists for f in fr], float)
+    obs = np.clip(hists - measure_floor(hists)[..., None], 0, None)
+    normals = torch.as_tensor(np.array([f.truth.normal for f in fr]))
+    offsets = torch.as_tensor(np.array([f.truth.offset for f in fr]))
+    refs = torch.as_tensor(np.array([f.reference for f in fr]), dtype=torch.float64)
+    with torch.no_grad():
+        n_opt = normals @ mount_rotation(m.t["mount_tilt"])
+        la = torch.full((len(fr),), float(np.log(p.albedo)), dtype=torch.float64)
+        for _ in range(4):
+            h = m.render_plane(n_opt, offsets, torch.exp(la), refs).numpy() - p.floor
+            la += torch.log(torch.as_tensor((h * obs).sum((1, 2)) / (h * h).sum((1, 2))))
+    w = residual_weights(hists, MODEL_ERROR)
+    width = int(obs.argmax(-1).max() + 24)
+    res = ((h - obs) * w)[..., :width]
+    total = float((res ** 2).sum())
+    print(f"{len(fr)} frames, bins 0-{width - 1}: RMS scaled residual {np.sqrt((res ** 2).mean()):.3f}")
+    z = np.array([f.truth.z0 for f in fr])
+    for lo, hi in ((0.04, 0.1), (0.1, 0.2), (0.2, 0.3), (0.3, 0.41)):
+        s = (z >= lo) & (z < hi)
+        if s.any():
+            print(f"  depth {lo * 100:.0f}-{hi * 100:.0f} cm: RMS {np.sqrt((res[s] ** 2).mean()):.2f} ({s.sum()} frames)")
+    peak = obs[..., :width].argmax(-1)
+    rel = np.arange(width)[None, None, :] - peak[..., None]
+    for lo, hi in ((-200, -8), (-8, -3), (-3, -1), (-1, 1), (1, 3), (3, 8), (8, 20), (20, 200)):
+        msk = (rel >= lo) & (rel < hi)
+        if msk.any():
+            print(f"  bins {lo:+d}..{hi:+d} from the highest: {100 * (res[msk] ** 2).sum() / total:4.1f} % of the "
+                  f"squares, RMS {np.sqrt((res[msk] ** 2).mean()):.2f}")
+    grid = np.full((len(fr), 9, 60), np.nan)
+    for i in range(len(fr)):
+        for k in range(9):
+            idx = peak[i, k] + np.arange(-20, 40)
+            ok = (idx >= 0) & (idx < width)
+            grid[i, k, ok] = res[i, k, idx[ok]]
+    left = np.nansum((grid - np.nanmean(grid, 0)[None]) ** 2)
+    print(f"a shape fixed per zone and bin from the highest explains {100 * (1 - left / np.nansum(grid ** 2)):.0f} % "
+          f"of the squares; RMS without it {np.sqrt((res ** 2).mean() * left / np.nansum(grid ** 2)):.2f}")
+    slope = np.gradient(h, axis=-1)[..., :width] * w[..., :width]
+    for j in a.jitter:
+        r = float(np.sqrt(((slope * j) ** 2).mean()))
+        print(f"a timing scatter of {j:g} bins per zone and frame alone: RMS {r:.2f}; with shot noise a floor of "
+              f"{np.sqrt(1 + r * r):.2f}")
+
+
+if __name__ == "__main__":
+    main()
