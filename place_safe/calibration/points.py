@@ -235,7 +235,7 @@ def select_inverse(edge_scale: float, corner_scale: float, readings: np.ndarray,
     frames' zones at depth :data:`INVERSE_SCORE_FROM` or more pooled. A higher power is chosen only where it lowers that RMS by :data:`INVERSE_MIN_GAIN` or more from the
     one chosen below it. Returns (power, {"rms_mm": {power: RMS in mm, or None where a fold could not be fitted},
     "folds": n}); with fewer than 2 * INVERSE_FOLDS frames, the lowest candidate."""
-    candidates = sorted(set(int(k) for k in candidates))
+    candidates = sorted(set(int(k) for k in candidates)) or [0]
     n = len(readings)
     if len(candidates) == 1 or n < 2 * INVERSE_FOLDS:
         return candidates[0], {"rms_mm": {}, "folds": 0}
@@ -304,10 +304,10 @@ def fit_points(readings: np.ndarray, valid: np.ndarray, frames: Sequence[Frame],
                                                          inverse_degrees)
             full = fit_linear(init.edge_scale, init.corner_scale, readings, valid, tn, td, residual_degree, harmonics,
                               fit_offsets, fit_gains, inverse)
-            if full is None and inverse:
-                inverse = 0
+            while full is None and inverse > 0:  # (terms the mapping cannot have: PeakParams.inverse_problem)
+                inverse -= 1
                 full = fit_linear(init.edge_scale, init.corner_scale, readings, valid, tn, td, residual_degree,
-                                  harmonics, fit_offsets, fit_gains)
+                                  harmonics, fit_offsets, fit_gains, inverse)
             if full is None:
                 raise CalibrationError("calibration data do not determine the per-zone parameters "
                                        "(every zone needs returns in several frames at different distances)")

@@ -67,14 +67,17 @@ NEAR_MIN_SPACING = 1e-6
 #: Fixed-point iterations inverting ``m r + c(r) = x`` (c changes by far less than m per metre). Against 10
 #: iterations, 2 leave at most 0.002 mm on the real sweep's calibration (3: 0.0001 mm, 1: 0.05 mm).
 RANGE_ITERATIONS = 2
-#: Newton's steps inverting the mapping with each zone's own term in the inverse range where its tabulated inverse
-#: cannot (:meth:`PeakParams._inverse_table`: a mapping that does not rise with range over its domain); the term
-#: can change by a fifth of ``m`` per metre at the domain's near end. Against 20, 2 leave at most 0.3 um from 5 cm
-#: on on the real sweep's readings, 7 um closer (3: 0.01 um; 1: 1.4 mm).
-INVERSE_RANGE_ITERATIONS = 2
-#: Points of each zone's tabulated inverse of the mapping with its own terms in the inverse range
-#: (:meth:`PeakParams._inverse_table`): about 0.2 mm apart over a domain of 0.4 m.
-INVERSE_TABLE_POINTS = 2048
+#: Spacing (m) of each zone's tabulated inverse of the mapping with its own terms in the inverse range
+#: (:meth:`PeakParams._inverse_table`), and the bounds on its number of points (the real sweep's 0.37 m domain: 3700).
+INVERSE_TABLE_SPACING = 1e-4
+INVERSE_TABLE_POINTS = (2048, 20000)
+#: m: the most each zone's own terms may move a range anywhere in the domain (:meth:`PeakParams.inverse_problem`; as
+#: a range correction, more than 5 cm is not a correction: the real sweep's fits move ranges by at most 6-10 mm).
+INVERSE_MAX_SHIFT = 0.05
+#: The least slope, per unit of the linear part's ``m g``, of the mapping with the terms over the domain: it must
+#: keep rising with range for a reading to have one range (the real fits: 0.8 and more), and its inverse is then
+#: tabulated to well under a micrometre.
+INVERSE_MIN_SLOPE = 0.5
 #: m: largest zone residual a mapping may state (PeakParams.zone_residual, .common_residual); the real sweep's on-sensor
 #: distances leave 0.5-0.9 mm.
 MAX_ZONE_RESIDUAL = 0.1
@@ -125,7 +128,7 @@ class PeakParams(ParamModel):
     near_min_fraction: float = Field(0.0, ge=0.0, lt=1.0, description="(of the frame's highest return)")
     zone_residual: float = Field(0.0, ge=0.0, le=MAX_ZONE_RESIDUAL, description="m")
     common_residual: float = Field(0.0, ge=0.0, le=MAX_ZONE_RESIDUAL, description="m")
-    zone_inverse: vector(ge=-100.0, le=100.0) = Field(default_factory=list, description="reading units")
+    zone_inverse: vector(ge=-1e3, le=1e3) = Field(default_factory=list, description="reading units")
 
     what: ClassVar[str] = "peak parameters"
     error: ClassVar[type[Exception]] = CalibrationError
@@ -138,9 +141,8 @@ class PeakParams(ParamModel):
         if len(self.zone_inverse) % N_ZONES:
             raise ValueError(f"zone_inverse needs {N_ZONES} values per power of the inverse range, "
                              f"got {len(self.zone_inverse)}")
-        if self.zone_inverse and not self.residual_domain[0] > 0.0:
-            raise ValueError(f"zone_inverse needs a residual_domain from above 0 m (its terms are in lo / r), "
-                             f"got {self.residual_domain}")
+        if self.zone_inverse and (why := self.inverse_problem()) is not None:
+            raise ValueError(why)
         if len(self.phase_coeffs) % 2:
             raise ValueError("phase_coeffs needs (sin, cos) pairs, got an odd count")
         if not self.residual_domain[0] < self.residual_domain[1]:
@@ -289,57 +291,77 @@ class PeakParams(ParamModel):
                 np.negative(slope, out=slope)
         return out, slope
 
-    def _newton_ranges(self, x: np.ndarray, r: np.ndarray, mz: np.ndarray) -> np.ndarray:
-        """Ranges (m) solving ``m g r + c(r) + i_z(r) = x`` (``x``: readings less the phase correction and offsets,
-        ``r`` a start, ``mz`` = m g) by :data:`INVERSE_RANGE_ITERATIONS` Newton's steps in the zone's own term."""
-        lo, hi, coeffs, slopes = self._inverse_coeffs()
-        floor = 0.5 * mz  # (a step at most twice the fixed point's)
-        for _ in range(INVERSE_RANGE_ITERATIONS):
-            held = np.minimum(np.maximum(r, lo), hi)
-            q = lo / held
-            i = coeffs[-1] * q
-            d = slopes[-1]
-            for k in range(len(coeffs) - 2, -1, -1):  # Horner in q, as _inverse
-                i += coeffs[k]
-                i *= q
-                d = d * q + slopes[k]
-            if self.residual_coeffs:
-                i += self._correction(r)
-            i += mz * r
-            i -= x
-            d = d * q  # the term's slope in r: -d q / r inside the domain, 0 outside (where it is held)
-            d /= held
-            d *= held == r
-            np.subtract(mz, d, out=d)
-            r = r - i / np.maximum(d, floor)
-        return r
+    def inverse_problem(self) -> str | None:
+        """Why :attr:`zone_inverse` cannot be this mapping's (None: it can): a residual domain from 0 (the terms are in
+        ``lo / r``), terms that move a range by more than :data:`INVERSE_MAX_SHIFT` somewhere in the domain, or a
+        mapping that rises with range by less than :data:`INVERSE_MIN_SLOPE` of its linear part somewhere (a reading
+        would have more than one range, or one that moves by much more than the reading)."""
+        lo, hi = (float(v) for v in self.residual_domain)
+        if not lo > 0.0:
+            return f"zone_inverse needs a residual_domain from above 0 m (its terms are in lo / r), got {[lo, hi]}"
+        _, shift, slope = self._inverse_fine()
+        terms = shift - self.correction(self._fine_ranges())[:, None] / (self.m * np.asarray(self.zone_gains))
+        reach = float(np.abs(terms).max())
+        if not reach <= INVERSE_MAX_SHIFT:
+            return (f"zone_inverse moves a range by {reach * 1e3:.1f} mm in its domain, more than the "
+                    f"{INVERSE_MAX_SHIFT * 1e3:g} mm a correction may")
+        if not float(slope.min()) >= INVERSE_MIN_SLOPE:
+            return (f"with zone_inverse the mapping rises with range at {float(slope.min()):.2f} of its linear part "
+                    f"somewhere in its domain (at least {INVERSE_MIN_SLOPE:g} needed: a reading must have one range)")
+        return None
+
+    def _fine_ranges(self) -> np.ndarray:
+        """The ranges (m) the inverse is tabulated from: evenly over the residual domain, twice as dense as the table."""
+        lo, hi = (float(v) for v in self.residual_domain)
+        points = int(np.clip(np.ceil((hi - lo) / INVERSE_TABLE_SPACING), *INVERSE_TABLE_POINTS))
+        return np.linspace(lo, hi, 2 * points)
+
+    def _inverse_fine(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """On :meth:`_fine_ranges` ``r`` (n,): ``y = r + (c(r) + i_z(r)) / (m g_z)`` (n, 9), the shift ``y - r`` and
+        the slope ``dy / dr`` between neighbours (n - 1, 9)."""
+        r = self._fine_ranges()
+        mz = self.m * np.asarray(self.zone_gains, dtype=float)
+        g = self.correction(r)[:, None] + self._inverse(np.repeat(r[:, None], N_ZONES, axis=1))[0]
+        shift = g / mz
+        y = r[:, None] + shift
+        return y, shift, np.diff(y, axis=0) / np.diff(r)[:, None]
 
     def _inverse_table(self):
         """The mapping's inverse with each zone's own terms, tabulated (cached): for each zone the range ``r`` at
-        :data:`INVERSE_TABLE_POINTS` evenly spaced values of ``y = r + (c(r) + i_z(r)) / (m g_z)`` over the residual
-        domain, with the end values of ``(c + i_z) / (m g_z)`` (outside the domain both are held, so there ``r = y -``
-        that value exactly). None where ``y`` does not rise with ``r`` over the domain (then :meth:`ranges` takes
-        Newton's steps). Linear interpolation in it is within 0.2 um of the exact inverse on the real sweep's
-        calibrations (0.03 um from 5 cm on); it is built in about a millisecond, and :meth:`ranges` with it takes
-        less time than the residual correction's fixed-point iterations without the terms."""
+        evenly spaced values of ``y = r + (c(r) + i_z(r)) / (m g_z)`` over the residual domain
+        (:data:`INVERSE_TABLE_SPACING`), with the end values of ``(c + i_z) / (m g_z)`` (outside the domain both are
+        held, so there ``r = y -`` that value exactly). The mapping rises with range at :data:`INVERSE_MIN_SLOPE` or
+        more (:meth:`inverse_problem`), so linear interpolation in it is within a micrometre of the exact inverse
+        (0.2 um on the real sweep's calibrations, 0.03 um from 5 cm on); it is built in a few milliseconds, and
+        :meth:`ranges` with it takes less time than the residual correction's fixed-point iterations without the
+        terms."""
         def compute():
-            lo, hi = (float(v) for v in self.residual_domain)
-            mz = self.m * np.asarray(self.zone_gains, dtype=float)
-            r_fine = np.linspace(lo, hi, 2 * INVERSE_TABLE_POINTS)
-            g = self.correction(r_fine)[:, None] + self._inverse(np.repeat(r_fine[:, None], N_ZONES, axis=1))[0]
-            shift = g / mz  # (fine, 9): range units
-            y_fine = r_fine[:, None] + shift
-            if not np.all(np.diff(y_fine, axis=0) > 0.0):
-                return None
+            y_fine, shift, _ = self._inverse_fine()
+            r_fine = self._fine_ranges()
+            n = len(r_fine) // 2
             y0, y1 = y_fine[0], y_fine[-1]
-            grid = y0 + (y1 - y0) * np.linspace(0.0, 1.0, INVERSE_TABLE_POINTS)[:, None]
-            tab = np.stack([np.interp(grid[:, z], y_fine[:, z], r_fine) for z in range(N_ZONES)])  # (9, points)
-            return (y0, (INVERSE_TABLE_POINTS - 1) / (y1 - y0), tab.ravel(), np.arange(N_ZONES) * INVERSE_TABLE_POINTS,
-                    shift[0], shift[-1], float(INVERSE_TABLE_POINTS - 1))
+            grid = y0 + (y1 - y0) * np.linspace(0.0, 1.0, n)[:, None]
+            tab = np.stack([np.interp(grid[:, z], y_fine[:, z], r_fine) for z in range(N_ZONES)])  # (9, n)
+            return (y0, (n - 1) / (y1 - y0), tab.ravel(), np.arange(N_ZONES) * n, shift[0], shift[-1], float(n - 1))
 
         key = (self.m, tuple(self.zone_gains), tuple(self.residual_coeffs), tuple(self.residual_domain),
                tuple(self.zone_inverse))
         return self._memo("_inverse_table", key, compute)
+
+    def inverse_screen_shift(self) -> np.ndarray:
+        """Per zone (9,), m: the most the residual correction and the zone's own terms together take off a range
+        anywhere (the larger of 0 and the largest of ``(c + i_z) / (m g_z)`` over the domain, held beyond it), what a
+        screen on the linear part of the mapping must allow for (:func:`~place_safe.recovery.too_close.may_be_close`).
+        Zeros without the terms."""
+        if not self.zone_inverse:
+            return np.zeros(N_ZONES)
+
+        def compute():
+            return np.maximum(self._inverse_fine()[1].max(axis=0), 0.0)
+
+        key = (self.m, tuple(self.zone_gains), tuple(self.residual_coeffs), tuple(self.residual_domain),
+               tuple(self.zone_inverse))
+        return self._memo("_inverse_screen", key, compute)
 
     def _inverse_coeffs(self) -> tuple[float, float, np.ndarray, np.ndarray]:
         """(lo, hi, coefficients (powers, 9), k times them): :attr:`zone_inverse` as arrays (cached)."""
@@ -387,11 +409,7 @@ class PeakParams(ParamModel):
         x = x - self.phase_correction(x) - shift
         r = x / mz
         if self.zone_inverse:  # m g r + c(r) + i_z(r) = x, by the mapping's inverse tabulated once (_inverse_table)
-            table = self._inverse_table()
-            if table is not None:
-                r = _tabulated(r, *table)
-            else:  # (not monotonic: Newton's steps in the zone's own term)
-                r = self._newton_ranges(x, r, mz)
+            r = _tabulated(r, *self._inverse_table())
         elif self.residual_coeffs:
             for _ in range(RANGE_ITERATIONS):  # solve m g r + c(r) = x by fixed-point iteration
                 r = (x - self._correction(r)) / mz

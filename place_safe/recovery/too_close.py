@@ -50,7 +50,8 @@ CENTRE = N_ZONES // 2
 
 
 #: m: a frame whose nearest zone reads farther than this on the linear part of the mapping cannot be too close
-#: (the mapping's corrections move a range by millimetres): :func:`may_be_close` skips the test (a peak frame's
+#: (the mapping's corrections move a range by millimetres; each zone's own terms in the inverse range, by up to
+#: 5 cm, are allowed for: ``PeakParams.inverse_screen_shift``): :func:`may_be_close` skips the test (a peak frame's
 #: budget is half a millisecond).
 SCREEN_RANGE = 0.1
 
@@ -64,6 +65,8 @@ def may_be_close(readings: np.ndarray, valid: np.ndarray, params) -> bool:
     if not np.isfinite(x[k]):
         return False
     r = (x[k] - params.b - params.zone_offsets[k]) / (params.m * params.zone_gains[k])
+    if params.zone_inverse:  # each zone's own terms in the inverse range may take centimetres off a range
+        r -= params.inverse_screen_shift()[k]
     return not r > SCREEN_RANGE
 
 

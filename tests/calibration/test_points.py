@@ -219,11 +219,14 @@ def test_fit_proprietary_states_the_zone_residuals_of_its_frames(sweep_path):
     assert 0.3e-3 < params.zone_residual < 1.5e-3 and 0.3e-3 < params.common_residual < 2e-3
     assert report["zone_residual_mm"]["own"] == pytest.approx(params.zone_residual * 1e3)
     assert report["params"]["zone_residual"] == params.zone_residual
-    # with each zone's own terms in the inverse range (two powers here) the mapping leaves less of both:
-    # 0.53 mm own, 0.29 mm shared, which the method's covariance then states
-    terms, report = fit_proprietary(even, progress=False)
+    # with each zone's own terms in the inverse range the mapping leaves less of both, which the method's covariance
+    # then states (the odd half: one power; the even half's terms would move its 3-5 cm ranges by centimetres, which
+    # a mapping may not, and it takes none)
+    odd = load_frames(sweep_path)[1::2]
+    plain, _ = fit_proprietary(odd, progress=False, inverse_degrees=(0,))
+    terms, report = fit_proprietary(odd, progress=False)
     assert report["zone_inverse"]["power"] >= 1
-    assert 0.3e-3 < terms.zone_residual < params.zone_residual and 0.1e-3 < terms.common_residual < params.common_residual
+    assert 0.3e-3 < terms.zone_residual < plain.zone_residual and 0.1e-3 < terms.common_residual < plain.common_residual
 
 
 def test_zone_inverse_round_trips_old_files_read_as_none_and_bad_lengths_are_errors():
@@ -317,7 +320,7 @@ def test_ranges_invert_each_power_of_the_inverse_terms_for_one_frame_and_many(po
     """One frame (9,) or many (F, 9), any number of powers: ``ranges`` inverts the mapping with the zones' inverse
     terms (convention check)."""
     rng = np.random.default_rng(powers)
-    coeffs = list(rng.normal(0.0, 0.1, 9 * powers))
+    coeffs = list(rng.normal(0.0, 0.05, 9 * powers))
     p = PeakParams(71.0, 13.0, residual_domain=[0.03, 0.4], zone_inverse=coeffs)
     r = rng.uniform(0.05, 0.4, (5, 9))
     readings = 71.0 * r + 13.0 + p.inverse_correction(r)
@@ -325,16 +328,16 @@ def test_ranges_invert_each_power_of_the_inverse_terms_for_one_frame_and_many(po
     assert np.allclose(p.ranges(readings[0]), r[0], atol=1e-6)
 
 
-def test_the_tabulated_inverse_matches_newtons_and_a_falling_mapping_takes_newtons_steps():
-    """``ranges`` reads the mapping's tabulated inverse (``_inverse_table``) within 0.2 um of Newton's steps taken
-    to convergence, NaN readings stay NaN; where the terms make the mapping fall with range over part of its domain
-    there is no table and Newton's steps give the ranges."""
-    import place_safe.recovery.points as points
+def test_the_tabulated_inverse_matches_the_mapping_and_terms_it_cannot_have_are_refused():
+    """``ranges`` reads the mapping's tabulated inverse (``_inverse_table``) within 0.2 um of the ranges the readings
+    were made from, below, inside and above the domain; NaN readings stay NaN. Terms that would move a range by
+    more than 5 cm, or make the mapping fall (or barely rise) with range, are refused with a one-line reason."""
+    from place_safe.recovery.points import INVERSE_MAX_SHIFT
 
     rng = np.random.default_rng(3)
     p = PeakParams(71.0, 13.0, residual_coeffs=[0.0, 0.0, 0.05], residual_domain=[0.03, 0.4],
-                   zone_inverse=list(rng.normal(0.0, 0.2, 18)))
-    assert p._inverse_table() is not None
+                   zone_inverse=list(rng.normal(0.0, 0.05, 18)))
+    assert p.inverse_problem() is None
     r = rng.uniform(0.01, 0.6, (40, 9))
     readings = 71.0 * r + 13.0 + p.correction(r) + p.inverse_correction(r)
     readings[0, 3] = np.nan
@@ -342,12 +345,24 @@ def test_the_tabulated_inverse_matches_newtons_and_a_falling_mapping_takes_newto
     assert np.isnan(got[0, 3]) and np.isfinite(np.delete(got.ravel(), 3)).all()
     ok = np.isfinite(readings)
     assert np.allclose(got[ok], r[ok], atol=2e-7)
-    steep = PeakParams(71.0, 13.0, residual_domain=[0.03, 0.4], zone_inverse=[-60.0] * 9 + [80.0] * 9)
-    assert steep._inverse_table() is None
-    saved = points.INVERSE_RANGE_ITERATIONS
-    points.INVERSE_RANGE_ITERATIONS = 30
-    try:
-        rr = np.linspace(0.25, 0.4, 9)  # where this mapping rises: Newton's steps find the range
-        assert np.allclose(steep.ranges(71.0 * rr + 13.0 + steep.inverse_correction(rr)), rr, atol=1e-6)
-    finally:
-        points.INVERSE_RANGE_ITERATIONS = saved
+    for terms, why in (([14.0] * 9 + [-7.0] * 9, "more than the 50 mm"), ([2.0] * 9 + [1.5] * 9, "rises with range"),
+                       ([-60.0] * 9 + [80.0] * 9, "zone_inverse")):
+        with pytest.raises(CalibrationError, match=why):
+            PeakParams(71.0, 13.0, residual_domain=[0.03, 0.4], zone_inverse=terms)
+    with pytest.raises(CalibrationError, match="from above 0 m"):
+        PeakParams(71.0, 13.0, residual_domain=[0.0, 0.4], zone_inverse=[0.1] * 9)
+    assert INVERSE_MAX_SHIFT == 0.05
+
+
+def test_the_too_close_screen_allows_for_what_the_terms_take_off_a_range():
+    """A frame whose nearest zone reads 10.5 cm on the linear part of a mapping whose terms take up to 1.4 cm off a
+    range is screened (may be close); without the terms it is not."""
+    from place_safe.recovery.too_close import may_be_close
+
+    terms = [1.0] * 9  # 1 bin (lo / r): 14 mm at 3 cm, held below
+    p = PeakParams(71.0, 13.0, residual_domain=[0.03, 0.4], zone_inverse=terms)
+    assert np.allclose(p.inverse_screen_shift(), 1.0 / 71.0, rtol=1e-3)
+    readings = np.full(9, 13.0 + 71.0 * 0.105)
+    valid = np.ones(9, bool)
+    assert may_be_close(readings, valid, p)
+    assert not may_be_close(readings, valid, PeakParams(71.0, 13.0, residual_domain=[0.03, 0.4]))
