@@ -551,8 +551,9 @@ def fit_proprietary(frames: Sequence[Frame], init: PeakParams | None = None, pro
     the zones' range errors on these frames (:func:`zone_residuals`: ``zone_residual``, ``common_residual``),
     from which the method states its covariance; the report gives them in mm (``zone_residual_mm``). Each zone's
     own terms in the inverse range as for peak (``inverse_degrees``, :func:`select_inverse`): the sensor's own
-    distances carry the same error falling with range (real halves held out, 0.69 / 0.81 -> 0.59 / 0.74 deg,
-    0.67 / 0.54 -> 0.43 / 0.29 mm)."""
+    distances carry the same error falling with range (the real odd half, one power: held out 0.81 -> 0.74 deg,
+    0.52 -> 0.28 mm; on the even half the folds' fits with the terms move its far-off 3-5 cm distances by more than
+    a mapping may, :meth:`~place_safe.recovery.points.PeakParams.inverse_problem`, and it takes none)."""
     use = _calibration_frames(frames, min_range)
     readings, valid = proprietary_readings(use)
     params, report = _fit_readings("proprietary", "on-sensor distances", use, readings, valid, init,
