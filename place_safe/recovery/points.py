@@ -72,11 +72,12 @@ RANGE_ITERATIONS = 2
 INVERSE_TABLE_SPACING = 1e-4
 INVERSE_TABLE_POINTS = (2048, 20000)
 #: m: the most each zone's own terms may move a range anywhere in the domain (:meth:`PeakParams.inverse_problem`; as
-#: a range correction, more than 5 cm is not a correction: the real sweep's fits move ranges by at most 6-10 mm).
+#: a range correction, more than 5 cm is not a correction: the real sweep's peak fits move ranges by at most 9-10 mm,
+#: the odd half's on-sensor distances by 23 mm).
 INVERSE_MAX_SHIFT = 0.05
 #: The least slope, per unit of the linear part's ``m g``, of the mapping with the terms over the domain: it must
-#: keep rising with range for a reading to have one range (the real fits: 0.8 and more), and its inverse is then
-#: tabulated to well under a micrometre.
+#: keep rising with range for a reading to have one range (the real peak fits: 0.84 and more; the odd half's
+#: on-sensor distances 0.58), and its inverse is then tabulated to well under a micrometre.
 INVERSE_MIN_SLOPE = 0.5
 #: m: largest zone residual a mapping may state (PeakParams.zone_residual, .common_residual); the real sweep's on-sensor
 #: distances leave 0.5-0.9 mm.
@@ -261,35 +262,26 @@ class PeakParams(ParamModel):
         What it is for: a zone's peak that reads long or short by an amount that falls with range and differs
         from zone to zone, which per-zone offsets and gains cannot follow and a level table reads as a tilt that
         grows as the plane comes closer (the real sweep: 0.5-0.7 deg at 6-8 cm). On the real sweep it is there
-        on both halves; the simulated units and the independent generator do not have it (their fitted terms are
-        small and change nothing). Likely sources: the emitter's offset from the receiver, whose parallax moves
+        on both halves (terms of 9-10 mm); the independent generator's sweeps and the MuJoCo captures choose none,
+        the mismatched simulator's level sweeps small ones (0.3-1 mm) that change nothing on its tilted frames.
+        Likely sources: the emitter's offset from the receiver, whose parallax moves
         each zone's spot within its footprint as the range changes, or the return's strength (a timing walk),
         which on one surface also falls as a power of the range, and which a calibration on one surface cannot
         tell apart from it."""
-        return self._inverse(r)[0]
-
-    def _inverse(self, r, derivative: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
-        """:meth:`inverse_correction` at ``r`` and, with ``derivative``, its derivative in ``r`` (reading units per
-        metre; 0 outside the domain, where the term is held)."""
         r = np.asarray(r, dtype=float)
-        if not self.zone_inverse:
-            return np.zeros_like(r), (np.zeros_like(r) if derivative else None)
-        lo, hi, coeffs, slopes = self._inverse_coeffs()
+        return self._inverse_terms(r) if self.zone_inverse else np.zeros_like(r)
+
+    def _inverse_terms(self, r) -> np.ndarray:
+        """:meth:`inverse_correction` at ``r`` (..., 9) (m) for a mapping with terms."""
+        r = np.asarray(r, dtype=float)
+        lo, hi, coeffs = self._inverse_coeffs()
         with np.errstate(invalid="ignore", divide="ignore"):
-            held = np.minimum(np.maximum(r, lo), hi)
-            q = lo / held
+            q = lo / np.minimum(np.maximum(r, lo), hi)
             out = coeffs[-1] * q
-            slope = slopes[-1] if derivative else None
-            for k in range(len(coeffs) - 2, -1, -1):  # Horner in q: ((c_K q + c_{K-1}) q + ..) q, and k c_k q^(k-1)
+            for k in range(len(coeffs) - 2, -1, -1):  # Horner in q: ((c_K q + c_{K-1}) q + ..) q
                 out += coeffs[k]
                 out *= q
-                if derivative:
-                    slope = slope * q + slopes[k]
-            if derivative:  # d/dr of sum_k c_k q^k = (sum_k k c_k q^(k-1)) dq/dr, dq/dr = -q / r inside the domain
-                slope = slope * q / held  # (a new array: slope may be the cached coefficients)
-                slope *= (r > lo) & (r < hi)
-                np.negative(slope, out=slope)
-        return out, slope
+        return out
 
     def inverse_problem(self) -> str | None:
         """Why :attr:`zone_inverse` cannot be this mapping's (None: it can): a residual domain from 0 (the terms are in
@@ -321,7 +313,7 @@ class PeakParams(ParamModel):
         the slope ``dy / dr`` between neighbours (n - 1, 9)."""
         r = self._fine_ranges()
         mz = self.m * np.asarray(self.zone_gains, dtype=float)
-        g = self.correction(r)[:, None] + self._inverse(np.repeat(r[:, None], N_ZONES, axis=1))[0]
+        g = self.correction(r)[:, None] + self._inverse_terms(np.repeat(r[:, None], N_ZONES, axis=1))
         shift = g / mz
         y = r[:, None] + shift
         return y, shift, np.diff(y, axis=0) / np.diff(r)[:, None]
@@ -363,12 +355,12 @@ class PeakParams(ParamModel):
                tuple(self.zone_inverse))
         return self._memo("_inverse_screen", key, compute)
 
-    def _inverse_coeffs(self) -> tuple[float, float, np.ndarray, np.ndarray]:
-        """(lo, hi, coefficients (powers, 9), k times them): :attr:`zone_inverse` as arrays (cached)."""
+    def _inverse_coeffs(self) -> tuple[float, float, np.ndarray]:
+        """(lo, hi, coefficients (powers, 9)): :attr:`zone_inverse` as an array (cached)."""
         def compute():
             c = np.asarray(self.zone_inverse, dtype=float).reshape(-1, N_ZONES)
             lo, hi = self.residual_domain
-            return float(lo), float(hi), c, c * np.arange(1, len(c) + 1)[:, None]
+            return float(lo), float(hi), c
 
         return self._memo("_zone_inverse", (tuple(self.zone_inverse), tuple(self.residual_domain)), compute)
 
