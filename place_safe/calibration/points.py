@@ -211,7 +211,7 @@ def _simplex(x0: np.ndarray) -> np.ndarray:
 
 #: Powers of the inverse range each zone's own term may have (:meth:`PeakParams.inverse_correction`), chosen by
 #: :func:`select_inverse`: 0 (none), 1 or 2. On the real sweep (halves: calibrated on one, planes of the other at
-#: 5-40 cm) the two powers took peak from 0.156 to 0.09 deg (odd -> even) and from 0.126 to 0.11 (even -> odd);
+#: 5-40 cm) the two powers took peak from 0.156 to 0.081 deg (odd -> even) and from 0.126 to 0.100 (even -> odd);
 #: on simulated units' tilted frames they changed nothing (docs/results.md, "Each zone's own term in the inverse
 #: range").
 INVERSE_DEGREES = (0, 1, 2)
@@ -232,8 +232,9 @@ def select_inverse(edge_scale: float, corner_scale: float, readings: np.ndarray,
     """The power of each zone's own term in the inverse range (:func:`fit_linear`'s ``inverse``) among
     ``candidates`` by cross-validation over frames: each of :data:`INVERSE_FOLDS` folds (frames sorted by depth,
     interleaved) held out in turn, the mapping fitted on the rest, the RMS of the range errors (m) of the held-out
-    frames' zones at depth :data:`INVERSE_SCORE_FROM` or more pooled. A higher power is chosen only where it lowers that RMS by :data:`INVERSE_MIN_GAIN` or more from the
-    one chosen below it. Returns (power, {"rms_mm": {power: RMS in mm, or None where a fold could not be fitted},
+    frames' zones at depth :data:`INVERSE_SCORE_FROM` or more pooled. A higher power is chosen only where it lowers
+    that RMS by :data:`INVERSE_MIN_GAIN` or more from the one chosen below it, and only where every fold could be
+    fitted with it (a fold whose terms the mapping may not have, :meth:`PeakParams.inverse_problem`, scores None). Returns (power, {"rms_mm": {power: RMS in mm, or None where a fold could not be fitted},
     "folds": n}); with fewer than 2 * INVERSE_FOLDS frames, the lowest candidate."""
     candidates = sorted(set(int(k) for k in candidates)) or [0]
     n = len(readings)
