@@ -234,8 +234,9 @@ def select_inverse(edge_scale: float, corner_scale: float, readings: np.ndarray,
     interleaved) held out in turn, the mapping fitted on the rest, the RMS of the range errors (m) of the held-out
     frames' zones at depth :data:`INVERSE_SCORE_FROM` or more pooled. A higher power is chosen only where it lowers
     that RMS by :data:`INVERSE_MIN_GAIN` or more from the one chosen below it, and only where every fold could be
-    fitted with it (a fold whose terms the mapping may not have, :meth:`PeakParams.inverse_problem`, scores None). Returns (power, {"rms_mm": {power: RMS in mm, or None where a fold could not be fitted},
-    "folds": n}); with fewer than 2 * INVERSE_FOLDS frames, the lowest candidate."""
+    fitted with it (a fold whose terms the mapping may not have, :meth:`PeakParams.inverse_problem`, scores None).
+    Returns (power, {"rms_mm": {power: RMS in mm, or None where a fold could not be fitted}, "folds": n}); with
+    fewer than 2 * INVERSE_FOLDS frames, the lowest candidate."""
     candidates = sorted(set(int(k) for k in candidates)) or [0]
     n = len(readings)
     if len(candidates) == 1 or n < 2 * INVERSE_FOLDS:

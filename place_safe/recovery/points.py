@@ -68,7 +68,7 @@ NEAR_MIN_SPACING = 1e-6
 #: iterations, 2 leave at most 0.002 mm on the real sweep's calibration (3: 0.0001 mm, 1: 0.05 mm).
 RANGE_ITERATIONS = 2
 #: Spacing (m) of each zone's tabulated inverse of the mapping with its own terms in the inverse range
-#: (:meth:`PeakParams._inverse_table`), and the bounds on its number of points (the real sweep's 0.37 m domain: 3700).
+#: (:meth:`PeakParams._inverse_mapping`), and the bounds on its number of points (the real sweep's 0.37 m domain: 3700).
 INVERSE_TABLE_SPACING = 1e-4
 INVERSE_TABLE_POINTS = (2048, 20000)
 #: m: the most each zone's own terms may move a range anywhere in the domain (:meth:`PeakParams.inverse_problem`; as
@@ -291,69 +291,61 @@ class PeakParams(ParamModel):
         lo, hi = (float(v) for v in self.residual_domain)
         if not lo > 0.0:
             return f"zone_inverse needs a residual_domain from above 0 m (its terms are in lo / r), got {[lo, hi]}"
-        _, shift, slope = self._inverse_fine()
-        terms = shift - self.correction(self._fine_ranges())[:, None] / (self.m * np.asarray(self.zone_gains))
-        reach = float(np.abs(terms).max())
-        if not reach <= INVERSE_MAX_SHIFT:
-            return (f"zone_inverse moves a range by {reach * 1e3:.1f} mm in its domain, more than the "
+        mapping = self._inverse_mapping()
+        if not mapping["reach"] <= INVERSE_MAX_SHIFT:
+            return (f"zone_inverse moves a range by {mapping['reach'] * 1e3:.1f} mm in its domain, more than the "
                     f"{INVERSE_MAX_SHIFT * 1e3:g} mm a correction may")
-        if not float(slope.min()) >= INVERSE_MIN_SLOPE:
-            return (f"with zone_inverse the mapping rises with range at {float(slope.min()):.2f} of its linear part "
+        if not mapping["min_slope"] >= INVERSE_MIN_SLOPE:
+            return (f"with zone_inverse the mapping rises with range at {mapping['min_slope']:.2f} of its linear part "
                     f"somewhere in its domain (at least {INVERSE_MIN_SLOPE:g} needed: a reading must have one range)")
         return None
 
-    def _fine_ranges(self) -> np.ndarray:
-        """The ranges (m) the inverse is tabulated from: evenly over the residual domain, twice as dense as the table."""
-        lo, hi = (float(v) for v in self.residual_domain)
-        points = int(np.clip(np.ceil((hi - lo) / INVERSE_TABLE_SPACING), *INVERSE_TABLE_POINTS))
-        return np.linspace(lo, hi, 2 * points)
+    def _inverse_mapping(self) -> dict:
+        """The mapping with each zone's own terms, evaluated once over the residual domain (cached): on ranges ``r``
+        every :data:`INVERSE_TABLE_SPACING` / 2, ``y = r + (c(r) + i_z(r)) / (m g_z)`` and from it
 
-    def _inverse_fine(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """On :meth:`_fine_ranges` ``r`` (n,): ``y = r + (c(r) + i_z(r)) / (m g_z)`` (n, 9), the shift ``y - r`` and
-        the slope ``dy / dr`` between neighbours (n - 1, 9)."""
-        r = self._fine_ranges()
-        mz = self.m * np.asarray(self.zone_gains, dtype=float)
-        g = self.correction(r)[:, None] + self._inverse_terms(np.repeat(r[:, None], N_ZONES, axis=1))
-        shift = g / mz
-        y = r[:, None] + shift
-        return y, shift, np.diff(y, axis=0) / np.diff(r)[:, None]
-
-    def _inverse_table(self):
-        """The mapping's inverse with each zone's own terms, tabulated (cached): for each zone the range ``r`` at
-        evenly spaced values of ``y = r + (c(r) + i_z(r)) / (m g_z)`` over the residual domain
-        (:data:`INVERSE_TABLE_SPACING`), with the end values of ``(c + i_z) / (m g_z)`` (outside the domain both are
-        held, so there ``r = y -`` that value exactly). The mapping rises with range at :data:`INVERSE_MIN_SLOPE` or
-        more (:meth:`inverse_problem`), so linear interpolation in it is within a micrometre of the exact inverse
-        (0.2 um on the real sweep's calibrations, 0.03 um from 5 cm on); it is built in a few milliseconds, and
-        :meth:`ranges` with it takes less time than the residual correction's fixed-point iterations without the
-        terms."""
-        def compute():
-            y_fine, shift, _ = self._inverse_fine()
-            r_fine = self._fine_ranges()
-            n = len(r_fine) // 2
-            y0, y1 = y_fine[0], y_fine[-1]
+        - ``"reach"`` (m): the most the terms alone move a range, ``max |i_z| / (m g_z)``;
+        - ``"min_slope"``: the least ``dy / dr`` between neighbours;
+        - ``"screen"`` (9,), m: the most the residual correction and the terms together take off a range (the larger
+          of 0 and the largest ``(c + i_z) / (m g_z)``; held beyond the domain), what a screen on the linear part of
+          the mapping must allow for;
+        - ``"table"``: the inverse, each zone's range at evenly spaced values of ``y`` (:data:`INVERSE_TABLE_SPACING`),
+          with the end values of ``(c + i_z) / (m g_z)`` (outside the domain both are held, so there ``r = y -`` that
+          value exactly), as :func:`_tabulated` reads it. Where the mapping rises at :data:`INVERSE_MIN_SLOPE` or
+          more (:meth:`inverse_problem`) linear interpolation in it is within a micrometre of the exact inverse (0.2
+          um on the real sweep's calibrations, 0.03 um from 5 cm on); it is built in a few milliseconds, and
+          :meth:`ranges` with it takes less time than the residual correction's fixed-point iterations without the
+          terms."""
+        def compute() -> dict:
+            lo, hi = (float(v) for v in self.residual_domain)
+            n = int(np.clip(np.ceil((hi - lo) / INVERSE_TABLE_SPACING), *INVERSE_TABLE_POINTS))
+            r = np.linspace(lo, hi, 2 * n)
+            mz = self.m * np.asarray(self.zone_gains, dtype=float)
+            terms = self._inverse_terms(np.repeat(r[:, None], N_ZONES, axis=1))  # reading units
+            shift = (self.correction(r)[:, None] + terms) / mz
+            y = r[:, None] + shift
+            y0, y1 = y[0], y[-1]
             grid = y0 + (y1 - y0) * np.linspace(0.0, 1.0, n)[:, None]
-            tab = np.stack([np.interp(grid[:, z], y_fine[:, z], r_fine) for z in range(N_ZONES)])  # (9, n)
-            return (y0, (n - 1) / (y1 - y0), tab.ravel(), np.arange(N_ZONES) * n, shift[0], shift[-1], float(n - 1))
+            tab = np.stack([np.interp(grid[:, z], y[:, z], r) for z in range(N_ZONES)])  # (9, n)
+            return {"reach": float((np.abs(terms) / mz).max()),
+                    "min_slope": float((np.diff(y, axis=0) / np.diff(r)[:, None]).min()),
+                    "screen": np.maximum(shift.max(axis=0), 0.0),
+                    "table": (y0, (n - 1) / (y1 - y0), tab.ravel(), np.arange(N_ZONES) * n, shift[0], shift[-1],
+                              float(n - 1))}
 
         key = (self.m, tuple(self.zone_gains), tuple(self.residual_coeffs), tuple(self.residual_domain),
                tuple(self.zone_inverse))
-        return self._memo("_inverse_table", key, compute)
+        return self._memo("_inverse_mapping", key, compute)
+
+    def _inverse_table(self) -> tuple:
+        """The mapping's tabulated inverse with each zone's own terms (:meth:`_inverse_mapping`'s ``"table"``)."""
+        return self._inverse_mapping()["table"]
 
     def inverse_screen_shift(self) -> np.ndarray:
         """Per zone (9,), m: the most the residual correction and the zone's own terms together take off a range
-        anywhere (the larger of 0 and the largest of ``(c + i_z) / (m g_z)`` over the domain, held beyond it), what a
-        screen on the linear part of the mapping must allow for (:func:`~place_safe.recovery.too_close.may_be_close`).
-        Zeros without the terms."""
-        if not self.zone_inverse:
-            return np.zeros(N_ZONES)
-
-        def compute():
-            return np.maximum(self._inverse_fine()[1].max(axis=0), 0.0)
-
-        key = (self.m, tuple(self.zone_gains), tuple(self.residual_coeffs), tuple(self.residual_domain),
-               tuple(self.zone_inverse))
-        return self._memo("_inverse_screen", key, compute)
+        anywhere (:meth:`_inverse_mapping`'s ``"screen"``), what a screen on the linear part of the mapping must allow
+        for (:func:`~place_safe.recovery.too_close.may_be_close`). Zeros without the terms."""
+        return self._inverse_mapping()["screen"] if self.zone_inverse else np.zeros(N_ZONES)
 
     def _inverse_coeffs(self) -> tuple[float, float, np.ndarray]:
         """(lo, hi, coefficients (powers, 9)): :attr:`zone_inverse` as an array (cached)."""
