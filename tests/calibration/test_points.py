@@ -90,6 +90,19 @@ def _held_out_angular_deg(params, frames, lo=0.05, hi=0.41):
     return float(np.mean(errs))
 
 
+def _held_out_errors(params, frames, lo=0.05, hi=0.41):
+    """Peak's angular (deg) and linear (m) errors with ``params`` on the frames with truth at ``lo`` <= z0 < ``hi``."""
+    from place_safe.evaluation.metrics import angular_errors, linear_errors
+
+    test = [f for f in frames if f.truth is not None and lo <= f.truth.z0 < hi]
+    tn = np.array([f.truth.normal for f in test])
+    td = np.array([f.truth.offset for f in test])
+    est = PeakEstimator(params)
+    planes = [est.estimate(f).plane for f in test]
+    n, d = np.array([p.normal for p in planes]), np.array([p.offset for p in planes])
+    return np.degrees(angular_errors(n, tn)), linear_errors(n, d, tn, td)
+
+
 @pytest.mark.parametrize("subbin, gain_deg", [("spline", 0.04), ("centroid", 0.0)])
 def test_real_sweep_identifies_pileup_and_it_helps_held_out_frames(sweep_path, subbin, gain_deg):
     """Real frames: the fitted pile-up is the TMF8820's (~3e-7 per count, as the forward fit finds) and
@@ -112,24 +125,15 @@ def test_real_sweep_held_out_centroid_beats_the_spline_and_meets_the_targets(swe
     """Real frames at 5-40 cm, calibrated on one half of the sweep and measured on the other, both ways:
     the windowed centroid's mean angular error is below the spline maximum's and within issue 9's
     targets (mean <= 0.25 deg, p95 <= 0.6 deg, linear <= 0.15 mm)."""
-    from place_safe.evaluation.metrics import angular_errors, linear_errors
-
     even, odd = _real_halves(sweep_path)
     for cal, test in ((even, odd), (odd, even)):
-        test = [f for f in test if f.truth is not None and 0.05 <= f.truth.z0 < 0.41]
-        tn = np.array([f.truth.normal for f in test])
-        td = np.array([f.truth.offset for f in test])
         mean = {}
         for subbin in ("spline", "centroid"):
-            est = PeakEstimator(fit_peak(cal, progress=False, subbin=subbin)[0])
-            planes = [est.estimate(f).plane for f in test]
-            n = np.array([p.normal for p in planes])
-            d = np.array([p.offset for p in planes])
-            ang = np.degrees(angular_errors(n, tn))
+            ang, lin = _held_out_errors(fit_peak(cal, progress=False, subbin=subbin)[0], test)
             mean[subbin] = ang.mean()
             if subbin == "centroid":
                 assert ang.mean() <= 0.25 and np.percentile(ang, 95) <= 0.6
-                assert linear_errors(n, d, tn, td).mean() <= 0.15e-3
+                assert lin.mean() <= 0.15e-3
         assert mean["centroid"] < mean["spline"]
 
 
@@ -296,22 +300,16 @@ def test_real_sweep_held_out_the_zones_inverse_terms_lower_peaks_error(sweep_pat
     terms in the inverse range (chosen by ``select_inverse``: two powers on either half) peak's mean angular error
     is lower than without them (0.126 -> 0.100 and 0.156 -> 0.081 deg) and its linear error no higher than
     0.12 mm (docs/results.md, "Each zone's own term in the inverse range")."""
-    from place_safe.evaluation.metrics import angular_errors, linear_errors
-
     even, odd = _real_halves(sweep_path)
     for cal, test in ((even, odd), (odd, even)):
-        test = [f for f in test if f.truth is not None and 0.05 <= f.truth.z0 < 0.41]
-        tn = np.array([f.truth.normal for f in test])
-        td = np.array([f.truth.offset for f in test])
         mean = {}
         for degrees in ((0,), (0, 1, 2)):
             params, report = fit_peak(cal, progress=False, inverse_degrees=degrees)
-            planes = [PeakEstimator(params).estimate(f).plane for f in test]
-            n, d = np.array([p.normal for p in planes]), np.array([p.offset for p in planes])
-            mean[degrees] = np.degrees(angular_errors(n, tn)).mean()
+            ang, lin = _held_out_errors(params, test)
+            mean[degrees] = ang.mean()
             if len(degrees) > 1:
                 assert report["zone_inverse"]["power"] == 2 and len(params.zone_inverse) == 18
-                assert linear_errors(n, d, tn, td).mean() <= 0.12e-3
+                assert lin.mean() <= 0.12e-3
         assert mean[(0, 1, 2)] < mean[(0,)] - 0.02
 
 
