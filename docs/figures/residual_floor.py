@@ -16,15 +16,12 @@ error: ``recovery.forward.residual_weights``) over the bins the fit uses. Prints
 """
 
 import argparse
-import json
 
 import numpy as np
 import torch
 
-from place_safe.io.frame_file import load_frames
-from place_safe.recovery.forward import (MODEL_ERROR, ForwardModel, ForwardParams, ZoneRays, mount_rotation,
-                                         residual_weights)
-from place_safe.sensor.histogram import measure_floor
+from forward_residuals import relative_to_peak, rendered_at_truth  # (docs/figures: the rendering it plots)
+from place_safe.recovery.forward import MODEL_ERROR, residual_weights
 
 
 def main() -> None:
@@ -34,21 +31,7 @@ def main() -> None:
     ap.add_argument("--jitter", type=float, nargs="+", default=[0.008, 0.010], help="timing scatter, bins")
     a = ap.parse_args()
     torch.set_num_threads(1)
-    d = json.load(open(a.calibration))
-    p = ForwardParams.from_dict(d.get("forward", d))
-    fr = sorted((f for f in load_frames(a.frames) if f.truth is not None and f.truth.z0 >= 0.04), key=lambda f: f.truth.z0)
-    m = ForwardModel(p, ZoneRays.stratified(4))
-    hists = np.array([f.hists for f in fr], float)
-    obs = np.clip(hists - measure_floor(hists)[..., None], 0, None)
-    normals = torch.as_tensor(np.array([f.truth.normal for f in fr]))
-    offsets = torch.as_tensor(np.array([f.truth.offset for f in fr]))
-    refs = torch.as_tensor(np.array([f.reference for f in fr]), dtype=torch.float64)
-    with torch.no_grad():
-        n_opt = normals @ mount_rotation(m.t["mount_tilt"])
-        la = torch.full((len(fr),), float(np.log(p.albedo)), dtype=torch.float64)
-        for _ in range(4):
-            h = m.render_plane(n_opt, offsets, torch.exp(la), refs).numpy() - p.floor
-            la += torch.log(torch.as_tensor((h * obs).sum((1, 2)) / (h * h).sum((1, 2))))
+    fr, hists, obs, h = rendered_at_truth(a.calibration, a.frames)
     w = residual_weights(hists, MODEL_ERROR)
     width = int(obs.argmax(-1).max() + 24)
     res = ((h - obs) * w)[..., :width]
@@ -66,12 +49,7 @@ def main() -> None:
         if msk.any():
             print(f"  bins {lo:+d}..{hi:+d} from the highest: {100 * (res[msk] ** 2).sum() / total:4.1f} % of the "
                   f"squares, RMS {np.sqrt((res[msk] ** 2).mean()):.2f}")
-    grid = np.full((len(fr), 9, 60), np.nan)
-    for i in range(len(fr)):
-        for k in range(9):
-            idx = peak[i, k] + np.arange(-20, 40)
-            ok = (idx >= 0) & (idx < width)
-            grid[i, k, ok] = res[i, k, idx[ok]]
+    grid = relative_to_peak(res, peak, np.arange(-20, 40))
     left = np.nansum((grid - np.nanmean(grid, 0)[None]) ** 2)
     print(f"a shape fixed per zone and bin from the highest explains {100 * (1 - left / np.nansum(grid ** 2)):.0f} % "
           f"of the squares; RMS without it {np.sqrt((res ** 2).mean() * left / np.nansum(grid ** 2)):.2f}")
