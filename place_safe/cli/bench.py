@@ -60,7 +60,8 @@ def add_sim_bench(sub) -> None:
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    """Add ``place-safe bench {recovery,latency,sensor,sim,robot,contact}``."""
+    """Add ``place-safe bench {recovery,latency,sensor,sim,robot,contact}``, and ``place-safe latency`` (the same as
+    ``bench latency``)."""
     from place_safe.cli.latency import add_latency_bench
     from place_safe.cli.robot_bench import add_robot_benches
     from place_safe.cli.sensing import add_recovery_bench
@@ -81,6 +82,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_sensor_bench(sub)
     add_sim_bench(sub)
     add_robot_benches(sub)
+    add_latency_bench(subparsers, top_level=True)  # ``place-safe latency``: the name the speed targets use
 
 
 __all__ = ["register", "cmd_sim_bench", "SUB_COMMANDS"]

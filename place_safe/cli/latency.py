@@ -1,4 +1,4 @@
-"""``place-safe bench latency``: per-frame wall time of ``recover`` measured from outside (a benchmark, not a test).
+"""``place-safe bench latency`` (also ``place-safe latency``): per-frame wall time of ``recover`` measured from outside (a benchmark, not a test).
 
 The figure the speed targets are stated in: a fresh ``place-safe recover --jsonl --batch 1`` process
 over a frame file, each output line timestamped as it arrives; milliseconds per frame (median, p95).
@@ -15,15 +15,18 @@ from place_safe.cli.common import load_calibration, not_a_file, uncalibrated_not
 
 EPILOG = """examples:
   place-safe synth --frames 100 --seed 7 -o out/speed.json
+  place-safe latency out/speed.json --method diff --calibration calib.json
   place-safe bench latency out/speed.json --method diff --calibration calib.json
   place-safe bench latency out/speed.json --method peak --json out/latency_peak.json"""
 
 
-def add_latency_bench(subparsers) -> None:
-    """``place-safe bench latency`` on the ``bench`` sub-parsers."""
+def add_latency_bench(subparsers, top_level: bool = False) -> None:
+    """``place-safe bench latency`` on the ``bench`` sub-parsers, or with ``top_level`` ``place-safe latency`` (the
+    same command under the name the speed targets give it)."""
 
     options.command(
-        subparsers, "latency", cmd_latency, "per-frame wall time of `recover` measured from outside (median, p95)",
+        subparsers, "latency", cmd_latency, "per-frame wall time of `recover` measured from outside (median, p95)"
+        + (" (the same as `bench latency`)" if top_level else ""),
         "Run `place-safe recover --jsonl` in a fresh process over FILE and time each output line as it arrives: the "
         "gaps are per-frame wall times as a caller sees them (parsing, recovery, output). The first line (start-up, "
         "imports) is reported apart.", EPILOG,

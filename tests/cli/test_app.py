@@ -443,3 +443,21 @@ def test_the_fit_summary_names_the_terms_a_report_lists():
     lines = summarise({"posterior_std": {"not_determined": ["crosstalk", "edge_fov_scale"]}, "gains": [1.0, 2.5]})
     assert "  posterior_std.not_determined: crosstalk, edge_fov_scale" in lines
     assert "  gains: [1, 2.5]" in lines
+
+
+@pytest.mark.parametrize("command", [("latency",), ("bench", "latency")])
+def test_latency_times_recover_from_outside_under_both_names(command, synthetic_file, tmp_path, capsys):
+    # a behaviour check, not a timing one: a fresh recover process is timed line by line and every frame is counted
+    out_json = tmp_path / "latency.json"
+    assert main([*command, str(synthetic_file), "--method", "peak", "--json", str(out_json)]) == 0
+    line = capsys.readouterr().out
+    assert "recover --method peak:" in line and "per frame median" in line and "UNCALIBRATED" in line
+    res = json.loads(out_json.read_text())
+    n = sum(1 for _ in json.loads(Path(synthetic_file).read_text()))
+    assert res["frames"] == n and sum(res["method_used"].values()) == n and res["calibrated"] is False
+    assert 0 < res["median_ms"] <= res["p95_ms"] and res["first_line_ms"] > 0
+
+
+def test_latency_of_a_missing_file_is_one_line(capsys):
+    assert main(["latency", "no_such_frames.json", "--method", "peak"]) == 2
+    assert "does not exist" in one_line_error(capsys.readouterr().err)
