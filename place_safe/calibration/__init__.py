@@ -120,9 +120,9 @@ class Calibration:
         d = self._section("diff")
         if d is None:
             return RangeCorrection()
-        if not isinstance(d, dict) or set(d) - {"range_correction", "window_after_peak", "ambient"}:
+        if not isinstance(d, dict) or set(d) - {"range_correction", "window_after_peak", "ambient", "crosstalk_std"}:
             raise CalibrationError("diff section must be an object with only 'range_correction', "
-                                   "'window_after_peak' and 'ambient'")
+                                   "'window_after_peak', 'ambient' and 'crosstalk_std'")
         self.diff_options()  # validated with the section
         return RangeCorrection.from_dict(d.get("range_correction", {}))
 
@@ -132,7 +132,9 @@ class Calibration:
         was calibrated with :data:`~place_safe.recovery.differentiable.LEGACY_WINDOW_AFTER_PEAK`; without a
         ``diff`` section the solver's default is used. ``ambient`` (true or false, absent: false): the forward
         model was fitted with the ambient as it arrives through the pile-up (``calibrate --unit-model staged``),
-        and the solver compares it with the data so (:attr:`~place_safe.recovery.differentiable.SolverOptions.ambient`)."""
+        and the solver compares it with the data so (:attr:`~place_safe.recovery.differentiable.SolverOptions.ambient`).
+        ``crosstalk_std`` (a fraction in 0..0.5, absent: 0): each frame's crosstalk is solved under a prior of that
+        standard deviation about the forward model's (a level sweep left it undetermined); 0 holds it."""
         from place_safe.recovery.differentiable import LEGACY_WINDOW_AFTER_PEAK, SolverOptions
 
         d = self._section("diff")
@@ -145,7 +147,10 @@ class Calibration:
         ambient = d.get("ambient", False)
         if not isinstance(ambient, bool):
             raise CalibrationError(f"diff section: ambient must be true or false, got {ambient!r}")
-        return SolverOptions(window_after_peak=w, ambient=ambient)
+        xt = d.get("crosstalk_std", 0.0)
+        if isinstance(xt, bool) or not isinstance(xt, (int, float)) or not 0.0 <= xt <= 0.5:
+            raise CalibrationError(f"diff section: crosstalk_std must be a number in 0..0.5, got {xt!r}")
+        return SolverOptions(window_after_peak=w, ambient=ambient, crosstalk_std=float(xt))
 
     def uncertainty(self, method: str | None = None):
         """The :class:`~place_safe.recovery.estimator.Uncertainty` of ``method`` (defaults when absent);

@@ -16,7 +16,9 @@ sections it wrote, in order:
   beside the first when a core is spare, :class:`~place_safe.calibration.alongside.Alongside`) or ``staged`` (the
   learned unit model in three fits, :func:`~place_safe.calibration.forward_fit.fit_forward_staged`); the rest of
   the chain is the same, with the diff solver comparing the staged model with the counts above the arriving ambient
-  (the ``diff`` section's ``ambient``).
+  (the ``diff`` section's ``ambient``). Where the forward fit's frames (a level sweep) left its crosstalk undetermined,
+  the diff solver solves each frame's own under a prior about it (the ``diff`` section's ``crosstalk_std``,
+  :func:`~place_safe.calibration.forward_fit.free_crosstalk_std`).
 
 Reports go into ``calibration.reports`` as plain JSON values. SI units throughout (see the fits' modules).
 """
@@ -26,8 +28,9 @@ from collections.abc import Callable, Sequence
 
 from place_safe.calibration import REQUIRED_SECTIONS, UNIT_MODELS, Calibration
 from place_safe.calibration.alongside import Alongside, spare_cores
-from place_safe.calibration.forward_fit import (fit_forward, fit_forward_staged, fit_range_correction, level_sweep,
-                                               nominal_geometry_fit, reconsider_geometry, select_model_error)
+from place_safe.calibration.forward_fit import (fit_forward, fit_forward_staged, fit_range_correction,
+                                               free_crosstalk_std, level_sweep, nominal_geometry_fit,
+                                               reconsider_geometry, select_model_error)
 from place_safe.calibration.points import adopt_pileup, fit_peak, fit_proprietary
 from place_safe.calibration.uncertainty import update_calibration
 from place_safe.io.json_values import jsonable
@@ -75,8 +78,12 @@ def fit_method(calibration: Calibration, frames: Sequence[Frame], method: str, p
             with Alongside(nominal_geometry_fit, frames, progress and not parallel, parallel=parallel) as second:
                 params, report = reconsider_geometry(frames, *fit_forward(frames, init=None, progress=progress),
                                                      progress=progress, log=log, second=second.result)
-        # the solver compares the model with the data as it was fitted (the staged model: above the arriving ambient)
-        options = SolverOptions(ambient=unit_model == "staged")
+        # the solver compares the model with the data as it was fitted (the staged model: above the arriving ambient);
+        # where a level sweep left the crosstalk undetermined, each frame solves its own under a prior about the fit's
+        options = SolverOptions(ambient=unit_model == "staged", crosstalk_std=free_crosstalk_std(params, report))
+        if options.crosstalk_std > 0.0:
+            say(f"diff: each frame solves its own crosstalk between zones (prior std {options.crosstalk_std:.4f} about "
+                f"the fit's {params.crosstalk:.4f}): a level sweep does not tell it from the zones' fields of view")
         if "peak" in fitted:  # the forward fit sees pile-up in the histograms' shapes: the peak method undoes it
             peak, peak_report, adopted = adopt_pileup(frames, cal.peak(), cal.reports["peak"], params.pileup)
             cal.reports["peak"] = jsonable(peak_report)
@@ -90,6 +97,9 @@ def fit_method(calibration: Calibration, frames: Sequence[Frame], method: str, p
 
         section, report = fit_range_correction(frames, params, cal.peak(), progress=progress, options=options)
         section = {**section, "window_after_peak": options.window_after_peak}
+        report["crosstalk_std"] = options.crosstalk_std
+        if options.crosstalk_std > 0.0:  # (absent: 0, the crosstalk held, as files without the key were made)
+            section["crosstalk_std"] = options.crosstalk_std
         if options.ambient:  # (absent: false, as files without the key were made)
             section["ambient"] = True
         _store(cal, fitted, "diff", section, report)

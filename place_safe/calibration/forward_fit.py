@@ -1047,6 +1047,17 @@ DETERMINED_FRACTION = 0.1
 #: (the corners' returns lie a bin or more behind the centre's there): the generator's seeds read 0.0092-0.0108
 #: against true 0.0080-0.0102, but seed 1 still 0.0103 against 0.0054 (posterior std 0.0003), so a level sweep of
 #: any length reports these not determined.
+#: The share of its fitted value that a level sweep leaves undetermined of the crosstalk (taken so: seeds 0 and 3 of
+#: the generator fitted 0.012 and 0.0065 against true values near 0.0098 and 0.0080, seeds 1 and 7 2.5-3 times the
+#: truth). Sizes the prior under which diff solves each frame's crosstalk after a level sweep
+#: (:attr:`~place_safe.recovery.differentiable.SolverOptions.crosstalk_std`) and the crosstalk's part of its stated
+#: tilt term (:data:`~place_safe.calibration.uncertainty.DIFF_TILT_PER_CROSSTALK`).
+CROSSTALK_LEFT_SHARE = 0.5
+#: A fitted crosstalk below this (a fraction; a tenth of the paper's published 0.0098) stays held in diff's solve: what it
+#: can move a slope by is below diff's stated tilt floor, and a free unknown the frame cannot pin only adds scatter
+#: (mismatched unit B, fitted 2e-4: 0.079 -> 0.088 deg with it free). The real unit fits 1e-5-1e-4, the mismatched
+#: simulated units and the packaged simulated calibrations at most 2e-4, the generator's sensors 0.006-0.021.
+CROSSTALK_FREE_MIN = 0.001
 LEVEL_SWEEP_TRADED = {
     "crosstalk": "a level sweep trades the crosstalk against the edge and corner fields of view: tilted frames "
                  "determine it",
@@ -1055,6 +1066,25 @@ LEVEL_SWEEP_TRADED = {
     "corner_fov_scale": "a level sweep trades the fields of view against the crosstalk (and each zone's own time "
                         "scale): tilted frames determine them",
 }
+
+
+def crosstalk_traded(report: dict | None) -> bool:
+    """Whether a forward fit's report (:func:`fit_forward`) says its frames, a level sweep, left the crosstalk
+    undetermined (:data:`LEVEL_SWEEP_TRADED`)."""
+    post = ((report or {}).get("posterior_std") or {}).get("crosstalk")
+    return isinstance(post, dict) and "level_sweep" in post
+
+
+def free_crosstalk_std(params: ForwardParams, report: dict | None) -> float:
+    """The prior standard deviation (a fraction) under which diff solves each frame's crosstalk
+    (:attr:`~place_safe.recovery.differentiable.SolverOptions.crosstalk_std`): :data:`CROSSTALK_LEFT_SHARE` of the
+    fitted crosstalk where the fit's frames left it undetermined (:func:`crosstalk_traded`), else 0 (held). A tilted
+    plane shows the crosstalk (each zone's return pulled towards the others', bins apart), so the frame decides it there;
+    on the generator's sensor seeds 1 and 7, whose level sweeps fit 2.5-3 times their crosstalk, diff's tilt error went
+    0.73 -> 0.27 and 0.36 -> 0.12 deg (docs/results.md, "Each frame's own crosstalk"). A unit whose fit finds less
+    than :data:`CROSSTALK_FREE_MIN` (the mismatched units, the real one) keeps it held."""
+    c = float(params.crosstalk)
+    return min(CROSSTALK_LEFT_SHARE * c, 0.5) if crosstalk_traded(report) and c >= CROSSTALK_FREE_MIN else 0.0
 
 
 def _posterior_spread(sol, layout, n_cam: int, n_good: int, params: ForwardParams, good: np.ndarray,

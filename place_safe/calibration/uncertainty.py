@@ -79,6 +79,7 @@ from place_safe.recovery.estimator import MAX_SCALE, NEAR_MAX_STD, PlaneEstimate
 from place_safe.recovery.too_close import OVERLAP_RANGE, TOO_CLOSE_REASON
 from place_safe.sensor.frame import Frame
 from place_safe.calibration.near_range import held_out_fits, near_range_std
+from place_safe.calibration.forward_fit import CROSSTALK_LEFT_SHARE, crosstalk_traded
 from place_safe.exceptions import FrameError, NoPlaneError
 from place_safe.recovery.points import plane_through
 from place_safe.calibration.points import MIN_CALIBRATION_RANGE, MIN_TILT_SPREAD, level_frames, tilt_angles
@@ -238,7 +239,13 @@ DIFF_TILT_PER_ERROR = 0.1
 #: of crosstalk. What the level sweep leaves of the crosstalk is taken as half its fitted value (seeds 0 and 3 fitted
 #: 0.012 and 0.0065 against 0.0098 and true values near; 1 and 7 2.5-3 times the truth), so 4.5 / 2. A unit whose
 #: fit finds no crosstalk (the mismatched units 1e-6-1e-4, the real unit 1e-5) gets nothing from it.
-DIFF_TILT_PER_CROSSTALK = 2.25
+DIFF_TILT_PER_CROSSTALK = 4.5 * CROSSTALK_LEFT_SHARE
+#: The offset's std per unit z0 tan(tilt) per unit of the forward fit's crosstalk (:func:`diff_tilt_term`), added in
+#: quadrature to the offset part: the same trade moves where diff reads a tilted plane along the optical axis. With
+#: each frame solving its own crosstalk (``SolverOptions.crosstalk_std``) the generator's sensor seeds 1, 2, 7 and 8
+#: (level sweeps, fitted crosstalk 0.014-0.021) needed 0.21-0.47 for NEES 1 on the offset; without it their offsets
+#: read NEES 2.5-26 (docs/results.md, "Each frame's own crosstalk").
+DIFF_TILT_OFFSET_PER_CROSSTALK = 0.3
 DIFF_TILT_OFFSET_FLOOR = 0.001
 DIFF_TILT_OFFSET_PER_ERROR = 0.05
 #: the share of calibration frames tilted MIN_TILT_SPREAD or more (from the least tilted) from which the fitted floor
@@ -285,13 +292,15 @@ def diff_tilt_term(model_error: float | None = None, crosstalk: float | None = N
     tan(tilt)). Not known (None, not a finite number >= 0): :data:`DIFF_TILT_REL` and :data:`DIFF_TILT_OFFSET_REL`.
     ``crosstalk`` (the forward fit's, a fraction; None: not known, nothing added) adds
     :data:`DIFF_TILT_PER_CROSSTALK` times it to the tilt part in quadrature: what a level sweep leaves undetermined of
-    the crosstalk turns into a slope scale. Pivot :data:`DIFF_TILT_PIVOT` either way."""
+    the crosstalk turns into a slope scale; and :data:`DIFF_TILT_OFFSET_PER_CROSSTALK` times it to the offset part.
+    Pivot :data:`DIFF_TILT_PIVOT` either way."""
     e, xt = _share(model_error), _share(crosstalk)
     tilt, offset = ((DIFF_TILT_REL, DIFF_TILT_OFFSET_REL) if e is None else
                     (math.hypot(DIFF_TILT_FLOOR, DIFF_TILT_PER_ERROR * e),
                      math.hypot(DIFF_TILT_OFFSET_FLOOR, DIFF_TILT_OFFSET_PER_ERROR * e)))
     if xt is not None:  # (at most 1: Uncertainty's bound; the forward fit allows a crosstalk up to 0.5)
         tilt = min(math.hypot(tilt, DIFF_TILT_PER_CROSSTALK * xt), 1.0)
+        offset = min(math.hypot(offset, DIFF_TILT_OFFSET_PER_CROSSTALK * xt), 1.0)
     return Uncertainty(tilt_rel=tilt, tilt_offset_rel=offset, tilt_pivot=DIFF_TILT_PIVOT)
 
 
@@ -1072,8 +1081,7 @@ def update_calibration(cal, frames: Sequence[Frame], method: str) -> dict:
         measured = (cal.reports.get("forward") or {}).get("model_error_chi2")
         forward = cal.forward()
         # the crosstalk where the forward fit says a level sweep left it undetermined (LEVEL_SWEEP_TRADED)
-        post = ((cal.reports.get("forward") or {}).get("posterior_std") or {}).get("crosstalk")
-        traded = isinstance(post, dict) and "level_sweep" in post
+        traded = crosstalk_traded(cal.reports.get("forward"))
         unc, report["diff"] = fit_diff_uncertainty(frames, forward, cal.peak(), cal.diff(),
                                                    Uncertainty.from_dict(section["peak"]), cal.diff_options(),
                                                    model_error=measured,

@@ -7,7 +7,9 @@ calibrated peak method):
     Levenberg-Marquardt on six unknowns per frame: the plane as slopes and axis crossing
     ``(a, b, z0)`` (normal ~ ``(a, b, 1)``, smooth at normal incidence), ``log albedo``, specular
     weight and ``log`` specular exponent, the last two held near the calibrated values by a weak
-    prior (a fronto-parallel plane cannot tell them from albedo). Residuals are Poisson-scaled:
+    prior (a fronto-parallel plane cannot tell them from albedo); where the calibration says a level sweep left the
+    unit's crosstalk undetermined (``SolverOptions.crosstalk_std``), also the frame's own crosstalk, under a prior
+    about the calibrated one (a tilted plane shows it). Residuals are Poisson-scaled:
     ``(model - observed) / sqrt(observed + 1 + (e observed)^2)`` (Poisson noise and the calibrated
     relative model error ``e``, :func:`~place_safe.recovery.forward.residual_weights`) over the bins that hold the returns. Jacobians come
     from ``torch.func.jacfwd``; rays are a deterministic stratified quadrature; the laser pulse is
@@ -239,6 +241,10 @@ class SolverOptions:
     # ambient as it arrives (sensor.histogram.arriving_ambient) goes through the pile-up with the return and the model is
     # compared with the counts above it, as the forward model was fitted with fit_forward(..., ambient=True)
     ambient: bool = False
+    # the frame's scalar crosstalk between zones: 0, held at the calibrated value; above 0, solved with the plane under a
+    # prior of that standard deviation about the calibrated value (a fraction; a level sweep trades it against the
+    # zones' fields of view, and a tilted plane shows it)
+    crosstalk_std: float = 0.0
     # paper mode
     paper_iterations: int = 100
     paper_rays: int = 2304
@@ -270,6 +276,9 @@ class SolverOptions:
                 x = math.nan
             if not x > 0 or (math.isinf(x) and name != "zone_albedo_spread"):
                 raise ValueError(f"SolverOptions: {name} must be a number above 0, got {reprlib.repr(v)}")
+        v = self.crosstalk_std
+        if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) or not 0.0 <= float(v) <= 0.5:
+            raise ValueError(f"SolverOptions: crosstalk_std must be a number in 0..0.5, got {reprlib.repr(v)}")
         for name in ("zone_albedo", "ambient"):
             if not isinstance(v := getattr(self, name), bool):
                 raise ValueError(f"SolverOptions: {name} must be true or false, got {reprlib.repr(v)}")
@@ -314,7 +323,8 @@ class DifferentiableEstimator(Estimator):
                                    dtype=self.dtype)
         self._prior_std = torch.tensor([self.opt.prior_specular_weight, self.opt.prior_log_exponent],
                                        dtype=self.dtype)
-        self._renderer = PlaneRenderer(self.params, self.model.rays, zone_albedo=self.opt.zone_albedo)
+        self._renderer = PlaneRenderer(self.params, self.model.rays, zone_albedo=self.opt.zone_albedo,
+                                       free_crosstalk=self.opt.crosstalk_std > 0.0)
         # optical frame -> reported sensor frame (the calibrated mount tilt; identity by default)
         self._mount = mount_rotation(self.params.mount_tilt).numpy()
 
@@ -494,13 +504,17 @@ class DifferentiableEstimator(Estimator):
         nb = len(frames)
         rd = self._renderer
         nu = rd.n_unknowns
-        n_alb = nu - 5  # 1, or 9 with per-zone albedo
-        lower = np.concatenate([_LOWER[:3], np.full(n_alb, _LOWER[3]), _LOWER[4:]])
-        upper = np.concatenate([_UPPER[:3], np.full(n_alb, _UPPER[3]), _UPPER[4:]])
+        xt_col = rd.crosstalk_column  # None: the crosstalk held at the calibrated value
+        n_xt = 0 if xt_col is None else 1
+        n_alb = nu - 5 - n_xt  # 1, or 9 with per-zone albedo
+        lower = np.concatenate([_LOWER[:3], np.full(n_alb, _LOWER[3]), np.zeros(n_xt), _LOWER[4:]])
+        upper = np.concatenate([_UPPER[:3], np.full(n_alb, _UPPER[3]), np.full(n_xt, 0.5), _UPPER[4:]])
         x = np.zeros((nb, nu))
         for i, p in enumerate(inits):
             x[i, :3] = p.slopes
         x[:, 3:3 + n_alb] = math.log(self.params.albedo)
+        if xt_col is not None:
+            x[:, xt_col] = self.params.crosstalk
         x[:, -2] = self.params.specular_weight
         x[:, -1] = math.log(self.params.specular_exponent)
         x = np.clip(x, lower, upper)
@@ -519,10 +533,12 @@ class DifferentiableEstimator(Estimator):
         centre = (np.eye(n_alb) - 1.0 / n_alb) / (spread if tie else 1.0)
 
         n_hist = N_ZONES * width  # histogram residuals; the priors' follow
-        Jp = np.zeros((2 + (n_alb if tie else 0), nu))  # the priors' rows of the Jacobian (constant)
+        Jp = np.zeros((2 + (n_alb if tie else 0) + n_xt, nu))  # the priors' rows of the Jacobian (constant)
         Jp[0, -2], Jp[1, -1] = prior_w
         if tie:
-            Jp[2:, 3:3 + n_alb] = centre
+            Jp[2:2 + n_alb, 3:3 + n_alb] = centre
+        if xt_col is not None:  # the crosstalk about its calibrated value
+            Jp[-1, xt_col] = 1.0 / self.opt.crosstalk_std
         inv_sigma_j = inv_sigma[..., None]
 
         def residual(xs, rows, jac=False):
@@ -535,7 +551,9 @@ class DifferentiableEstimator(Estimator):
             np.multiply(np.subtract(h, pick(obs), out=hist), pick(inv_sigma), out=hist)
             res[:, n_hist:n_hist + 2] = (xs[:, -2:] - prior_mu) * prior_w
             if tie:
-                res[:, n_hist + 2:] = xs[:, 3:3 + n_alb] @ centre.T
+                res[:, n_hist + 2:n_hist + 2 + n_alb] = xs[:, 3:3 + n_alb] @ centre.T
+            if xt_col is not None:
+                res[:, -1] = (xs[:, xt_col] - self.params.crosstalk) / self.opt.crosstalk_std
             if not jac:
                 return res
             J = np.empty((len(rows), n_hist + len(Jp), nu))

@@ -5,6 +5,10 @@ tool for calibration), specialised to a plane and to the six unknowns the solver
 
     x = (a, b, z0, log albedo, specular weight, log specular exponent),
 
+(with ``zone_albedo`` each zone's log albedo, and with ``free_crosstalk`` the frame's scalar crosstalk after the albedo:
+``(a, b, z0, log albedo(s), crosstalk, specular weight, log specular exponent)``; the crosstalk's column is
+``d F / d c = sum over zones - (1 - crosstalk_self) F``, before the pile-up),
+
 where the plane is ``a x + b y + z = z0`` (normal ``~ (a, b, 1)``, ``z0`` where it meets the optical
 axis). Everything that does not depend on ``x`` (ray directions and weights, zone gains, the pulse
 as a convolution matrix) is prepared once, and the Jacobian is accumulated alongside the
@@ -69,7 +73,8 @@ def convolution_matrices(kernels: np.ndarray, width: int) -> np.ndarray:
 class PlaneRenderer:
     """Histograms of planes and their Jacobian in the six unknowns, batched over frames."""
 
-    def __init__(self, params: ForwardParams, rays: ZoneRays, zone_albedo: bool = False) -> None:
+    def __init__(self, params: ForwardParams, rays: ZoneRays, zone_albedo: bool = False,
+                 free_crosstalk: bool = False) -> None:
         self.p = params
         dirs, w = ForwardModel(params, rays).ray_geometry()  # field-of-view scales applied
         self.dirs = dirs.detach().cpu().numpy().astype(float)  # (9, R, 3)
@@ -87,7 +92,12 @@ class PlaneRenderer:
         #: with ``zone_albedo`` the unknowns are (a, b, z0, log albedo of zones 1..9, ks, log alpha):
         #: each zone's brightness is free, so only timing and shape inform the plane
         self.zone_albedo = zone_albedo
-        self.n_unknowns = N_UNKNOWNS + (N_ZONES - 1 if zone_albedo else 0)
+        #: with ``free_crosstalk`` the scalar crosstalk of the frame is an unknown too, after the albedo(s) and before
+        #: the specular weight: (a, b, z0, log albedo(s), crosstalk, ks, log alpha); else the calibrated one
+        self.free_crosstalk = free_crosstalk
+        self.n_unknowns = N_UNKNOWNS + (N_ZONES - 1 if zone_albedo else 0) + (1 if free_crosstalk else 0)
+        #: the column of the crosstalk among the unknowns (None: held at ``params.crosstalk``)
+        self.crosstalk_column = 3 + (N_ZONES if zone_albedo else 1) if free_crosstalk else None
         self.integrated = float(params.soft_bin_integrated)  # > 0: the kernel integrated over each bin (bin_kernel)
         self.spline = float(params.soft_bin_spline)  # 1: the quadratic B-spline convolved with the Gaussian (bin_kernel)
         # the emitter beside the receiver (ForwardModel.plane_light); None: co-located, uniform beam
@@ -133,10 +143,10 @@ class PlaneRenderer:
                           if np.any(np.asarray(params.bin_gains) != 1.0) else None)
 
     def render(self, x: np.ndarray, conv: np.ndarray, jacobian: bool = False, ambient: np.ndarray | None = None):
-        """Histograms (B, 9, W) for unknowns x (B, 6) and the frames' pulse convolution matrices (B, W, W) or, made
+        """Histograms (B, 9, W) for unknowns x (B, n_unknowns) and the frames' pulse convolution matrices (B, W, W) or, made
         once per frame for the renders of a solve, their :meth:`responses` (B, 9, W, W) (the same histograms).
 
-        With ``jacobian`` also returns d hist / d x as (B, 9, W, 6). The model's constant floor is
+        With ``jacobian`` also returns d hist / d x as (B, 9, W, n_unknowns). The model's constant floor is
         not added (the solver subtracts the measured floor from the data instead). ``ambient`` (B, 9), counts per
         bin: each zone's ambient as it arrives, which goes through the pile-up with the return; the histograms are
         then the counts above it (:func:`~place_safe.recovery.forward.ambient_pileup`; None: the return alone).
@@ -198,7 +208,9 @@ class PlaneRenderer:
             tg = np.arange(width)[None, :] - self.glass_u[:, None]
             kg = bin_kernel(tg, p.soft_bin_sigma, self.integrated, spline=self.spline)
             T = T + (self.glass[:, None] * kg)[None]
-        F = self._mix(np.matmul(conv, T[..., None])[..., 0])  # expected photon counts
+        xt = self.p.crosstalk if self.crosstalk_column is None else x[:, self.crosstalk_column, None, None]
+        P = np.matmul(conv, T[..., None])[..., 0]  # expected photon counts before the zones mix
+        F = self._mix(P, crosstalk=xt)
         if self.shaped:  # ForwardModel.after_pulse: no negative counts beside a sharpened pulse
             F_ok = F >= 0.0
             F = np.maximum(F, 0.0)
@@ -269,7 +281,9 @@ class PlaneRenderer:
             A = np.concatenate([A, A_e], axis=2)
             B = np.concatenate([B, B_e], axis=2)
         dT = place(np.matmul(G.swapaxes(2, 3), A) + np.matmul(G_u.swapaxes(2, 3), B))  # (B, 9, W, k), sums over rays
-        dF = self._mix(np.matmul(conv, dT), axis_zone=1)
+        dF = self._mix(np.matmul(conv, dT), axis_zone=1, crosstalk=xt if np.ndim(xt) == 0 else xt[..., None])
+        if self.crosstalk_column is not None:  # d F / d crosstalk: every zone's share of the others
+            dF[..., self.crosstalk_column] = (P.sum(axis=1, keepdims=True) - (1.0 - self.p.crosstalk_self) * P)
         if self.shaped:
             dF = dF * F_ok[..., None]
         if self.bin_gains is not None:
@@ -335,8 +349,8 @@ class PlaneRenderer:
         first = np.matmul(self.tail_mats[:, :width, :width], conv[:, None, :, :1])[..., 0]  # (B, 9, W)
         return convolution_matrices(first.reshape(b * N_ZONES, width), width).reshape(b, N_ZONES, width, width)
 
-    def _mix(self, h: np.ndarray, axis_zone: int = 1) -> np.ndarray:
-        c = self.p.crosstalk
+    def _mix(self, h: np.ndarray, axis_zone: int = 1, crosstalk=None) -> np.ndarray:
+        c = self.p.crosstalk if crosstalk is None else crosstalk
         out = (1.0 - c * (1.0 - self.p.crosstalk_self)) * h + c * h.sum(axis=axis_zone, keepdims=True)
         if self.grid_mix is not None:  # zones on axis 1 of (B, 9, W) or (B, 9, W, k)
             out = out + np.tensordot(self.grid_mix, h, axes=([1], [1])).swapaxes(0, 1)

@@ -205,6 +205,23 @@ def test_the_diff_sections_ambient_reaches_the_solver():
         assert make_estimator("peak", cal).name == "peak"
 
 
+def test_the_diff_sections_crosstalk_std_reaches_the_solver():
+    """``diff.crosstalk_std`` (written by ``calibrate`` after a level sweep that left the crosstalk undetermined): each
+    frame solves its own crosstalk under that prior, one more unknown; absent, held as before; anything but a number in
+    0..0.5 stops diff only, with a one-line error."""
+    base = {"format": FORMAT, "forward": ForwardParams().to_dict()}
+    on = Calibration.from_dict({**base, "diff": {"range_correction": {}, "window_after_peak": 60, "crosstalk_std": 0.005}})
+    off = Calibration.from_dict({**base, "diff": {"range_correction": {}, "window_after_peak": 60}})
+    est_on, est_off = make_estimator("diff", on), make_estimator("diff", off)
+    assert est_on.opt.crosstalk_std == 0.005 and est_off.opt.crosstalk_std == 0.0
+    assert est_on._renderer.n_unknowns == est_off._renderer.n_unknowns + 1
+    for bad in (-0.1, 0.7, "0.01", None, True, float("nan")):
+        cal = Calibration.from_dict({**base, "diff": {"crosstalk_std": bad}})
+        with pytest.raises(CalibrationError, match="crosstalk_std"):
+            make_estimator("diff", cal)
+        assert make_estimator("peak", cal).name == "peak"
+
+
 def test_range_correction_gains_scale_the_slopes():
     from place_safe.recovery.differentiable import RangeCorrection
 

@@ -625,3 +625,19 @@ def test_a_far_geometry_gives_way_to_the_zones_time_scales_only_for_a_better_fit
     assert "geometry" not in ff.reconsider_geometry(level, off, dict(first), second_fit=False)[1]
 
 
+
+
+def test_each_frame_solves_its_crosstalk_only_where_a_level_sweep_left_it_undetermined():
+    """``free_crosstalk_std``: CROSSTALK_LEFT_SHARE of the fitted crosstalk when the fit's report marks the crosstalk as
+    traded by a level sweep, 0 (held) when its frames determined it or the report says nothing."""
+    from place_safe.calibration.forward_fit import (CROSSTALK_FREE_MIN, CROSSTALK_LEFT_SHARE, LEVEL_SWEEP_TRADED,
+                                                   crosstalk_traded, free_crosstalk_std)
+    p = ForwardParams(crosstalk=0.018)
+    level = {"posterior_std": {"crosstalk": {"std": 0.0007, "level_sweep": LEVEL_SWEEP_TRADED["crosstalk"]}}}
+    tilted = {"posterior_std": {"crosstalk": {"std": 0.0007}}}
+    assert crosstalk_traded(level) and not crosstalk_traded(tilted) and not crosstalk_traded(None)
+    assert free_crosstalk_std(p, level) == pytest.approx(CROSSTALK_LEFT_SHARE * 0.018)
+    assert free_crosstalk_std(p, tilted) == 0.0 and free_crosstalk_std(p, {}) == 0.0
+    assert free_crosstalk_std(ForwardParams(crosstalk=0.0), level) == 0.0
+    # a crosstalk the fit found next to none (the real unit, the mismatched simulated units) stays held
+    assert free_crosstalk_std(ForwardParams(crosstalk=0.5 * CROSSTALK_FREE_MIN), level) == 0.0

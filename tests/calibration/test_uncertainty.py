@@ -495,16 +495,18 @@ def test_the_blend_holds_unless_the_choice_scores_clearly_better():
     assert _blend_holds(base, base * 1.2)[0]  # the choice worse
 
 
-def test_the_crosstalk_a_level_sweep_leaves_widens_diffs_tilt_term_only():
+def test_the_crosstalk_a_level_sweep_leaves_widens_diffs_tilt_term():
     """The forward fit's crosstalk, where a level sweep traded it against the fields of view, adds
-    DIFF_TILT_PER_CROSSTALK times it to the tilt part in quadrature; the offset part stays; no crosstalk (None, NaN,
-    negative, a bool) adds nothing, and a crosstalk of 0 neither."""
-    from place_safe.calibration.uncertainty import DIFF_TILT_PER_CROSSTALK, diff_tilt_term
+    DIFF_TILT_PER_CROSSTALK times it to the tilt part and DIFF_TILT_OFFSET_PER_CROSSTALK times it to the offset part, in
+    quadrature; the pivot stays; no crosstalk (None, NaN, negative, a bool) adds nothing, and a crosstalk of 0 neither."""
+    from place_safe.calibration.uncertainty import (DIFF_TILT_OFFSET_PER_CROSSTALK, DIFF_TILT_PER_CROSSTALK,
+                                                     diff_tilt_term)
 
     base = diff_tilt_term(0.02)
     wide = diff_tilt_term(0.02, 0.02)
     assert wide.tilt_rel == pytest.approx(math.hypot(base.tilt_rel, DIFF_TILT_PER_CROSSTALK * 0.02))
-    assert (wide.tilt_offset_rel, wide.tilt_pivot) == (base.tilt_offset_rel, base.tilt_pivot)
+    assert wide.tilt_offset_rel == pytest.approx(math.hypot(base.tilt_offset_rel, DIFF_TILT_OFFSET_PER_CROSSTALK * 0.02))
+    assert wide.tilt_pivot == base.tilt_pivot
     for none in (None, math.nan, -0.1, True, 0.0):
         assert diff_tilt_term(0.02, none) == base
     assert diff_tilt_term(None, 0.02).tilt_rel > diff_tilt_term(None).tilt_rel

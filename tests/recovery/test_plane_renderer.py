@@ -228,3 +228,40 @@ def test_responses_made_once_give_the_same_renders_and_the_band_covers_rays_beyo
     amp = np.linspace(1.0, 2.0, u.shape[-1])
     np.testing.assert_allclose(place(np.matmul(amp, g)), np.matmul(amp, full), atol=1e-15)
     np.testing.assert_allclose(place(np.matmul(amp, g_u)), np.matmul(amp, full_u), atol=1e-15)
+
+
+def test_the_frames_own_crosstalk_as_an_unknown_renders_as_the_model_and_its_derivative_is_the_models():
+    """With ``free_crosstalk`` the crosstalk is an unknown after the albedo: the histograms are the torch model's with that
+    crosstalk (with pile-up, grid crosstalk and the zone in its own share), and its Jacobian column is the model's change
+    with it (central differences of the torch model); the other columns stay where they were, so held at the calibrated
+    value the renderer is the one without the unknown."""
+    rays = ZoneRays.stratified(4)
+    base = ForwardParams(pileup=2e-7, crosstalk=0.004, crosstalk_self=0.3, crosstalk_grid=[0.002] * 8)
+    x6 = np.array([0.15, -0.1, 0.09, math.log(4.0), 0.2, math.log(2.0)])
+    c = 0.011
+    x7 = np.concatenate([x6[:4], [c], x6[4:]])
+    renderer = PlaneRenderer(base, rays, free_crosstalk=True)
+    assert renderer.n_unknowns == 7 and renderer.crosstalk_column == 4
+    kernel = ForwardModel(base, rays).pulse(torch.as_tensor(default_reference())[None])
+    conv = convolution_matrices(kernel.numpy(), 70)
+    h, j = renderer.render(x7[None], conv, jacobian=True)
+
+    def torch_render(crosstalk: float) -> np.ndarray:
+        model = ForwardModel(base.model_copy(update={"crosstalk": crosstalk}), rays)
+        a, b, z0 = (torch.tensor(v, dtype=torch.float64) for v in x6[:3])
+        s = torch.sqrt(1 + a * a + b * b)
+        n = torch.stack([a, b, torch.ones_like(a)]) / s
+        out = model.render_plane(n[None], (z0 / s).reshape(1), torch.tensor([math.exp(x6[3])], dtype=torch.float64),
+                                 None, specular_weight=torch.tensor([x6[4]], dtype=torch.float64),
+                                 specular_exponent=torch.tensor([math.exp(x6[5])], dtype=torch.float64), kernel=kernel)
+        return (out[0, :, :70] - model.t["floor"]).numpy()
+
+    ref = torch_render(c)
+    np.testing.assert_allclose(h[0], ref, rtol=1e-9, atol=1e-9 * ref.max())
+    eps = 1e-6
+    fd = (torch_render(c + eps) - torch_render(c - eps)) / (2 * eps)
+    np.testing.assert_allclose(j[0, ..., 4], fd, atol=1e-6 * np.abs(fd).max())
+    held = PlaneRenderer(base.model_copy(update={"crosstalk": c}), rays)
+    h6, j6 = held.render(x6[None], conv, jacobian=True)
+    np.testing.assert_allclose(h[0], h6[0], rtol=1e-12, atol=0)
+    np.testing.assert_allclose(np.delete(j[0], 4, axis=-1), j6[0], rtol=1e-12, atol=1e-12 * np.abs(j6).max())
