@@ -39,9 +39,11 @@ SMOOTH_DEGREE = 6
 
 
 def own_calibration(cal: Calibration, model_error: float | None) -> Calibration:
-    """CAL with diff's fallback limits off and no plane correction (and another model error if given)."""
+    """CAL with diff's fallback limits off and no plane correction (and another model error if given), the crosstalk held
+    (``diff_timing_variants.py``'s solvers have no crosstalk column; the real unit's calibrations hold it anyway)."""
     d = cal.without_fallback().to_dict()
     d["diff"]["range_correction"] = {}
+    d["diff"].pop("crosstalk_std", None)
     if model_error is not None:
         d["forward"]["model_error"] = model_error
     return Calibration.from_dict(d)

@@ -133,9 +133,9 @@ class Calibration:
         ``diff`` section the solver's default is used. ``ambient`` (true or false, absent: false): the forward
         model was fitted with the ambient as it arrives through the pile-up (``calibrate --unit-model staged``),
         and the solver compares it with the data so (:attr:`~place_safe.recovery.differentiable.SolverOptions.ambient`).
-        ``crosstalk_std`` (a fraction in 0..0.5, absent: 0): each frame's crosstalk is solved under a prior of that
+        ``crosstalk_std`` (a fraction, 0 or 1e-6..0.5, absent: 0): each frame's crosstalk is solved under a prior of that
         standard deviation about the forward model's (a level sweep left it undetermined); 0 holds it."""
-        from place_safe.recovery.differentiable import LEGACY_WINDOW_AFTER_PEAK, SolverOptions
+        from place_safe.recovery.differentiable import LEGACY_WINDOW_AFTER_PEAK, SolverOptions, crosstalk_std_problem
 
         d = self._section("diff")
         if d is None:
@@ -148,8 +148,8 @@ class Calibration:
         if not isinstance(ambient, bool):
             raise CalibrationError(f"diff section: ambient must be true or false, got {ambient!r}")
         xt = d.get("crosstalk_std", 0.0)
-        if isinstance(xt, bool) or not isinstance(xt, (int, float)) or not 0.0 <= xt <= 0.5:
-            raise CalibrationError(f"diff section: crosstalk_std must be a number in 0..0.5, got {xt!r}")
+        if (why := crosstalk_std_problem(xt)) is not None:
+            raise CalibrationError(f"diff section: {why}")
         return SolverOptions(window_after_peak=w, ambient=ambient, crosstalk_std=float(xt))
 
     def uncertainty(self, method: str | None = None):

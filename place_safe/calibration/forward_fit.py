@@ -1047,6 +1047,15 @@ DETERMINED_FRACTION = 0.1
 #: (the corners' returns lie a bin or more behind the centre's there): the generator's seeds read 0.0092-0.0108
 #: against true 0.0080-0.0102, but seed 1 still 0.0103 against 0.0054 (posterior std 0.0003), so a level sweep of
 #: any length reports these not determined.
+LEVEL_SWEEP_TRADED = {
+    "crosstalk": "a level sweep trades the crosstalk against the edge and corner fields of view: tilted frames "
+                 "determine it",
+    "edge_fov_scale": "a level sweep trades the fields of view against the crosstalk (and each zone's own time "
+                      "scale): tilted frames determine them",
+    "corner_fov_scale": "a level sweep trades the fields of view against the crosstalk (and each zone's own time "
+                        "scale): tilted frames determine them",
+}
+
 #: The share of its fitted value that a level sweep leaves undetermined of the crosstalk (taken so: seeds 0 and 3 of
 #: the generator fitted 0.012 and 0.0065 against true values near 0.0098 and 0.0080, seeds 1 and 7 2.5-3 times the
 #: truth). Sizes the prior under which diff solves each frame's crosstalk after a level sweep
@@ -1058,14 +1067,6 @@ CROSSTALK_LEFT_SHARE = 0.5
 #: (mismatched unit B, fitted 2e-4: 0.079 -> 0.088 deg with it free). The real unit fits 1e-5-1e-4, the mismatched
 #: simulated units and the packaged simulated calibrations at most 2e-4, the generator's sensors 0.006-0.021.
 CROSSTALK_FREE_MIN = 0.001
-LEVEL_SWEEP_TRADED = {
-    "crosstalk": "a level sweep trades the crosstalk against the edge and corner fields of view: tilted frames "
-                 "determine it",
-    "edge_fov_scale": "a level sweep trades the fields of view against the crosstalk (and each zone's own time "
-                      "scale): tilted frames determine them",
-    "corner_fov_scale": "a level sweep trades the fields of view against the crosstalk (and each zone's own time "
-                        "scale): tilted frames determine them",
-}
 
 
 def crosstalk_traded(report: dict | None) -> bool:

@@ -219,6 +219,21 @@ def _fallback(peak: PlaneEstimate, diff: PlaneEstimate | None = None) -> PlaneEs
 LEGACY_WINDOW_AFTER_PEAK = 24
 
 
+#: The smallest prior standard deviation of a frame's own crosstalk (``SolverOptions.crosstalk_std``) other than 0 (held):
+#: the prior's row weighs 1 / std, and below about 1e-154 its square overflows the normal equations (the solve then never
+#: leaves peak's plane while the covariance reads as the floor alone); from 1e-9 down the covariance loses digits to the
+#: conditioning. ``calibrate`` writes 5e-4 or more.
+MIN_CROSSTALK_STD = 1e-6
+
+
+def crosstalk_std_problem(value) -> str | None:
+    """Why ``value`` is not a ``crosstalk_std`` (0, or a number in :data:`MIN_CROSSTALK_STD`..0.5), or None."""
+    ok = (not isinstance(value, bool) and isinstance(value, (int, float, np.integer, np.floating))
+          and (value == 0 or MIN_CROSSTALK_STD <= value <= 0.5))  # (no float(): an int beyond a float compares)
+    return None if ok else (f"crosstalk_std must be 0 (held) or a number in {MIN_CROSSTALK_STD:g}..0.5, "
+                            f"got {reprlib.repr(value)}")
+
+
 @dataclass
 class SolverOptions:
     """Tuning of the fast solver (defaults chosen on synthetic and real data; see docs/results.md)."""
@@ -244,7 +259,7 @@ class SolverOptions:
     # the frame's scalar crosstalk between zones: 0, held at the calibrated value; above 0, solved with the plane under a
     # prior of that standard deviation about the calibrated value (a fraction; a level sweep trades it against the
     # zones' fields of view, and a tilted plane shows it)
-    crosstalk_std: float = 0.0
+    crosstalk_std: float = 0.0  # 0, or MIN_CROSSTALK_STD..0.5
     # paper mode
     paper_iterations: int = 100
     paper_rays: int = 2304
@@ -276,9 +291,8 @@ class SolverOptions:
                 x = math.nan
             if not x > 0 or (math.isinf(x) and name != "zone_albedo_spread"):
                 raise ValueError(f"SolverOptions: {name} must be a number above 0, got {reprlib.repr(v)}")
-        v = self.crosstalk_std
-        if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) or not 0.0 <= float(v) <= 0.5:
-            raise ValueError(f"SolverOptions: crosstalk_std must be a number in 0..0.5, got {reprlib.repr(v)}")
+        if (why := crosstalk_std_problem(self.crosstalk_std)) is not None:
+            raise ValueError(f"SolverOptions: {why}")
         for name in ("zone_albedo", "ambient"):
             if not isinstance(v := getattr(self, name), bool):
                 raise ValueError(f"SolverOptions: {name} must be true or false, got {reprlib.repr(v)}")

@@ -7,7 +7,7 @@ tool for calibration), specialised to a plane and to the six unknowns the solver
 
 (with ``zone_albedo`` each zone's log albedo, and with ``free_crosstalk`` the frame's scalar crosstalk after the albedo:
 ``(a, b, z0, log albedo(s), crosstalk, specular weight, log specular exponent)``; the crosstalk's column is
-``d F / d c = sum over zones - (1 - crosstalk_self) F``, before the pile-up),
+``d F / d c = sum over zones of P - (1 - crosstalk_self) P``, P the counts before the zones mix, then the pile-up),
 
 where the plane is ``a x + b y + z = z0`` (normal ``~ (a, b, 1)``, ``z0`` where it meets the optical
 axis). Everything that does not depend on ``x`` (ray directions and weights, zone gains, the pulse

@@ -428,9 +428,10 @@ def test_range_correction_of_arrays_is_that_of_each_element():
     ("chi2_tolerance", math.nan, "chi2_tolerance must be a number above 0"),
     ("paper_lr", "0.01", "paper_lr must be a number above 0"),
     ("ambient", 1, "ambient must be true or false"),
-    ("crosstalk_std", -0.01, "crosstalk_std must be a number in 0..0.5"),
-    ("crosstalk_std", math.nan, "crosstalk_std must be a number in 0..0.5"),
-    ("crosstalk_std", True, "crosstalk_std must be a number in 0..0.5"),
+    ("crosstalk_std", -0.01, "crosstalk_std must be 0 .held. or a number in 1e-06..0.5"),
+    ("crosstalk_std", math.nan, "crosstalk_std must be 0"),
+    ("crosstalk_std", True, "crosstalk_std must be 0"),
+    ("crosstalk_std", 1e-300, "crosstalk_std must be 0"),  # its prior's row would overflow the normal equations
 ])
 def test_solver_options_the_solver_cannot_run_with_are_refused_by_name(option, value, match):
     """A zero ray grid, a spread of 0 (every frame "SVD did not converge") or a 10000 x 10000 grid (a solve that never
