@@ -81,6 +81,23 @@ def test_diff_never_raises_on_bad_frames(hists, reference):
         assert_safe(e)
 
 
+@settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(hists=counts, reference=references, std=st.sampled_from([1e-6, 1e-3, 0.05, 0.5]),
+       crosstalk=st.sampled_from([0.0, 0.01, 0.5]))
+def test_diff_with_each_frames_own_crosstalk_never_raises_on_bad_frames(hists, reference, std, crosstalk):
+    """The frame's crosstalk solved with the plane (SolverOptions.crosstalk_std, from its smallest allowed prior to its
+    widest, about a crosstalk from none to the bound): bad frames still get a safe estimate or a reason."""
+    from dataclasses import replace
+
+    from place_safe.recovery.differentiable import DifferentiableEstimator, SolverOptions
+    from place_safe.recovery.forward import ForwardParams
+
+    est = DifferentiableEstimator(ForwardParams(crosstalk=crosstalk), options=replace(SolverOptions(), crosstalk_std=std))
+    frame = Frame(hists, reference)
+    for e in est.estimate_many([frame, frame]):
+        assert_safe(e)
+
+
 @settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(method=st.sampled_from(METHODS), scale=st.floats(1e-3, 1e3), zone=st.integers(0, N_ZONES - 1),
        value=st.sampled_from([0.0, float(COUNT_MAX), 1e9, np.nan]))
@@ -89,6 +106,23 @@ def test_perturbed_real_frames_are_safe(base, method, scale, zone, value):
     h = np.array(base.hists, dtype=float) * scale
     h[zone] = value
     assert_safe(ESTIMATORS[method].estimate(Frame(h, base.reference, base.distances, base.confidences)))
+
+
+@settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(scale=st.floats(1e-3, 1e3), zones=st.lists(st.integers(0, N_ZONES - 1), min_size=1, max_size=6, unique=True),
+       value=st.sampled_from([0.0, float(COUNT_MAX), 1e9, np.nan]), std=st.sampled_from([1e-6, 0.005, 0.5]))
+def test_perturbed_frames_with_each_frames_own_crosstalk_are_safe(base, scale, zones, value, std):
+    """A good frame scaled, with up to six zones blanked, clipped or poisoned, read with the frame's crosstalk solved (it
+    may run to its bounds where the zones that show it are gone): never a NaN plane or one behind the sensor."""
+    from dataclasses import replace
+
+    from place_safe.recovery.differentiable import DifferentiableEstimator, SolverOptions
+    from place_safe.recovery.forward import ForwardParams
+
+    h = np.array(base.hists, dtype=float) * scale
+    h[zones] = value
+    est = DifferentiableEstimator(ForwardParams(crosstalk=0.01), options=replace(SolverOptions(), crosstalk_std=std))
+    assert_safe(est.estimate(Frame(h, base.reference, base.distances, base.confidences)))
 
 
 def test_non_frames_get_a_reason():
