@@ -1,14 +1,13 @@
-"""Diff as returned (the blend of diff's and peak's planes) with the blend made where the planes meet the optical axis.
+"""Diff as returned (the blend of diff's and peak's planes) with the blend made in other coordinates.
 
     python docs/figures/blend_in_z0.py s1:s1_cal.json:s1_tilt.json A:A_cal.json:A_tilt.json [--mode d z zw]
 
 For each ``NAME:CALIBRATION:FRAMES`` the mean angle (deg), axis-crossing error ``|z0 - z0_true|`` (mm), point error (mm)
-and NEES per dof of what ``diff`` returns, with :func:`place_safe.recovery.blend.blended` as it is (``d``: the state
-``(n_x, n_y, d)``) or replaced by a blend of ``(n_x, n_y, z0)`` (``z``: weights from the covariances carried into
-those coordinates; ``zw``: the weights the blend uses now, from the ``(n_x, n_y, d)`` covariances). In each the
-covariance bound is the module's, taken in ``(n_x, n_y, z0)`` through the Jacobian of ``z0 = d / n_z`` and carried
-back at the blended plane. Frames closer than 5 cm are left out of real files (``real`` in NAME). A what-if, not the
-code: docs/results.md, "Each frame's own crosstalk".
+and NEES per dof of what ``diff`` returns, with :func:`place_safe.recovery.blend.blended` as it is (``zw``: the state
+``(n_x, n_y, z0)``, weights from the ``(n_x, n_y, d)`` covariances) or replaced by the first version's blend of
+``(n_x, n_y, d)`` (``d``) or by a blend of ``(n_x, n_y, z0)`` with weights from the covariances carried there
+(``z``). Frames closer than 5 cm are left out of real files (``real`` in NAME). docs/results.md, "Each frame's own
+crosstalk".
 """
 from __future__ import annotations
 
@@ -38,6 +37,28 @@ def _in_z0(e: PlaneEstimate) -> tuple[np.ndarray, np.ndarray]:
     j = _jacobian(e.plane)
     x = tilt_offset(e.plane)
     return np.array([x[0], x[1], e.plane.offset / e.plane.normal[2]]), j @ np.asarray(e.covariance) @ j.T
+
+
+def blend_in_d(a: PlaneEstimate, b: PlaneEstimate, method_used: str) -> PlaneEstimate | None:
+    """The first version of the blend: ``(n_x, n_y, d)`` combined with the same weights, its bound taken there."""
+    if not (a.ok and b.ok and is_covariance(a.covariance) and is_covariance(b.covariance)):
+        return None
+    ws = blend.blend_weights(a, b)
+    if ws is None:
+        return None
+    w = np.array([ws[0], ws[0], ws[1]])
+    x = w * tilt_offset(a.plane) + (1.0 - w) * tilt_offset(b.plane)
+    s = x[0] * x[0] + x[1] * x[1]
+    if not s < 1.0 - 1e-12:
+        return None
+    ua = w[:, None] * np.asarray(a.covariance) * w[None, :]
+    ub = (1.0 - w)[:, None] * np.asarray(b.covariance) * (1.0 - w)[None, :]
+    t = blend._ratio(ua, ub)
+    cov = 0.5 * (ua + ua.T) * (1.0 + t) + 0.5 * (ub + ub.T) * (1.0 + 1.0 / t)
+    if not is_covariance(cov, definite=True):
+        return None
+    return PlaneEstimate(Plane(np.array([x[0], x[1], math.sqrt(1.0 - s)]), float(x[2])), albedo=a.albedo,
+                         residual=a.residual, covariance=cov, method_used=method_used)
 
 
 def blend_in_z0(own_weights: bool):
@@ -77,11 +98,13 @@ def blend_in_z0(own_weights: bool):
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("units", nargs="+", metavar="NAME:CALIBRATION:FRAMES")
-    ap.add_argument("--mode", nargs="+", choices=("d", "z", "zw"), default=["d", "zw"])
+    ap.add_argument("--mode", nargs="+", choices=("d", "z", "zw"), default=["d", "zw"],
+                    help="d: the first version's blend of (n_x, n_y, d); z: of (n_x, n_y, z0) with weights from the z0 "
+                         "covariances; zw: the blend as it is")
     args = ap.parse_args()
     as_is = differentiable.blended
     for mode in args.mode:
-        differentiable.blended = as_is if mode == "d" else blend_in_z0(own_weights=mode == "zw")
+        differentiable.blended = {"zw": as_is, "d": blend_in_d, "z": blend_in_z0(own_weights=False)}[mode]
         for item in args.units:
             name, cal, path = item.split(":")
             frames = [f for f in iter_frames(path) if f.truth is not None

@@ -6,11 +6,20 @@ Concept
 ``diff`` and ``peak`` read the same histograms in two ways: diff renders the forward model, peak finds each zone's
 return. Where diff passes its fallback's gates (chi-square, consistency with peak, 5 cm and farther) the two planes
 are both usable, and their errors are partly independent: on the real sweep's held-out frames their blend beat
-either one (docs/results.md, "Diff and peak blended"). Each plane is the state ``x = (n_x, n_y, d)``
-(:data:`~place_safe.recovery.estimator.COVARIANCE_ORDER`) with a covariance ``C``. The blend is
+either one (docs/results.md, "Diff and peak blended"). Each plane has a covariance ``C`` of ``(n_x, n_y, d)``
+(:data:`~place_safe.recovery.estimator.COVARIANCE_ORDER`). The blend combines the states ``x = (n_x, n_y, z0)``, where
+each plane meets the optical axis (``z0 = d / n_z``, :func:`axis_state`; the covariances carried there through the
+Jacobian), and carries the result back to ``(n_x, n_y, d)`` at the blended plane:
 
     x = W x_a + (I - W) x_b,   W = diag(w, w, w_d),
     w = v_b / (v_a + v_b),     w_d = C_b[d, d] / (C_a[d, d] + C_b[d, d]),
+
+(Blending ``d`` instead, as the first version did, mixes on a steep plane each plane's ``d`` with its own tilt: ``d``
+moves by about ``z0 sin(tilt)`` times a tilt error. On the generator's tilted frames after a level sweep diff's own
+``z0`` read 0.04-0.06 mm and the blend of ``d`` 0.17-0.25 mm; blended at ``z0`` it reads 0.04 mm; level planes, where
+``n_z`` is 1, are the same to 1e-3 mm: docs/results.md, "Each frame's own crosstalk". The weights stay those of the
+``(n_x, n_y, d)`` covariances: taken from the ``z0`` covariances they let peak's ``z0``, stated tight on tilted planes
+where it errs by millimetres, into the blend.)
 
 with ``v`` each estimate's tilt variance along its worst direction
 (:meth:`~place_safe.recovery.estimator.PlaneEstimate.tilt_std`): the plane that reads the slope better counts more
@@ -43,10 +52,20 @@ import math
 import numpy as np
 
 from place_safe.geometry import Plane
-from place_safe.recovery.estimator import PlaneEstimate, is_covariance, tilt_offset
+from place_safe.recovery.estimator import PlaneEstimate, is_covariance
 
 #: Weights closer to 0 or 1 than this return the one estimate unchanged (a blend that would only add rounding).
 _EDGE = 1e-9
+
+
+def axis_state(plane: Plane) -> tuple[np.ndarray, np.ndarray]:
+    """The state the blend combines, ``(n_x, n_y, z0)`` (``z0 = d / n_z``: where the plane meets the optical axis), of
+    ``plane``, and the Jacobian ``d (n_x, n_y, z0) / d (n_x, n_y, d)`` there (3, 3), which carries a covariance of
+    :data:`~place_safe.recovery.estimator.COVARIANCE_ORDER` into it."""
+    nx, ny, nz = (float(v) for v in plane.normal)
+    d = float(plane.offset)
+    jac = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [d * nx / nz ** 3, d * ny / nz ** 3, 1.0 / nz]])
+    return np.array([nx, ny, d / nz]), jac
 
 
 def blend_weights(a: PlaneEstimate, b: PlaneEstimate) -> tuple[float, float] | None:
@@ -88,19 +107,23 @@ def blended(a: PlaneEstimate, b: PlaneEstimate, method_used: str) -> PlaneEstima
         return PlaneEstimate(b.plane, albedo=a.albedo, residual=a.residual, covariance=b.covariance,
                              method_used=b.method_used)
     wa = np.array([weights[0], weights[0], weights[1]])
-    x = wa * tilt_offset(a.plane) + (1.0 - wa) * tilt_offset(b.plane)
+    (xa, ja), (xb, jb) = axis_state(a.plane), axis_state(b.plane)
+    x = wa * xa + (1.0 - wa) * xb
     s = x[0] * x[0] + x[1] * x[1]
     if not s < 1.0 - 1e-12:  # no normal with n_z > 0 (two planes far off a level one)
         return None
-    normal = np.array([x[0], x[1], math.sqrt(1.0 - s)])
-    ca = wa[:, None] * np.asarray(a.covariance, dtype=float) * wa[None, :]
-    cb = (1.0 - wa)[:, None] * np.asarray(b.covariance, dtype=float) * (1.0 - wa)[None, :]
+    nz = math.sqrt(1.0 - s)
+    plane = Plane(np.array([x[0], x[1], nz]), float(x[2] * nz))
+    ca = wa[:, None] * (ja @ np.asarray(a.covariance, dtype=float) @ ja.T) * wa[None, :]
+    cb = (1.0 - wa)[:, None] * (jb @ np.asarray(b.covariance, dtype=float) @ jb.T) * (1.0 - wa)[None, :]
     t = _ratio(ca, cb)
-    cov = 0.5 * (ca + ca.T) * (1.0 + t) + 0.5 * (cb + cb.T) * (1.0 + 1.0 / t)
+    bound = 0.5 * (ca + ca.T) * (1.0 + t) + 0.5 * (cb + cb.T) * (1.0 + 1.0 / t)
+    back = np.linalg.inv(axis_state(plane)[1])  # (n_x, n_y, z0) -> (n_x, n_y, d) at the blended plane
+    cov = back @ bound @ back.T
+    cov = 0.5 * (cov + cov.T)
     if not is_covariance(cov, definite=True):  # a weight that zeroes a direction both leave open: no claim to make
         return None
-    return PlaneEstimate(Plane(normal, float(x[2])), albedo=a.albedo, residual=a.residual,
-                         covariance=cov, method_used=method_used)
+    return PlaneEstimate(plane, albedo=a.albedo, residual=a.residual, covariance=cov, method_used=method_used)
 
 
-__all__ = ["blended", "blend_weights"]
+__all__ = ["blended", "blend_weights", "axis_state"]

@@ -6,8 +6,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from place_safe.geometry import Plane
-from place_safe.recovery.blend import blend_weights, blended
-from place_safe.recovery.estimator import PlaneEstimate, tilt_offset
+from place_safe.recovery.blend import axis_state, blend_weights, blended
+from place_safe.recovery.estimator import PlaneEstimate
+
+
+def _axis(plane):
+    """``(n_x, n_y, z0)``: the state the blend combines."""
+    return axis_state(plane)[0]
 
 
 def _est(tilt, azimuth, offset, cov, method="x"):
@@ -16,22 +21,21 @@ def _est(tilt, azimuth, offset, cov, method="x"):
 
 
 def test_the_plane_that_reads_the_slope_better_counts_more_in_the_tilt_the_other_in_the_offset():
-    """Equal variances: the midpoint of the two states; a tilt variance 3 times the other's: weight 1/4 on its tilt,
-    while the offset follows the offset variances (here 1/5 on the other's). The albedo and residual are the first
-    estimate's, the method the name given."""
+    """Equal variances: the midpoint of the two states (n_x, n_y, z0); a tilt variance 3 times the other's: weight 1/4
+    on its tilt, while the axis crossing follows the offset variances (here 1/5 on the other's). The albedo and residual
+    are the first estimate's, the method the name given."""
     a = _est(0.02, 0.0, 0.10, np.diag([1e-6, 1e-6, 1e-8]), "diff")
     b = _est(0.04, 0.0, 0.12, np.diag([1e-6, 1e-6, 1e-8]), "peak")
     m = blended(a, b, "diff+peak")
     assert blend_weights(a, b) == pytest.approx((0.5, 0.5))
-    assert tilt_offset(m.plane) == pytest.approx(0.5 * (tilt_offset(a.plane) + tilt_offset(b.plane)), abs=1e-12)
+    assert _axis(m.plane) == pytest.approx(0.5 * (_axis(a.plane) + _axis(b.plane)), abs=1e-12)
     assert (m.albedo, m.residual, m.method_used) == (0.5, 1.2, "diff+peak")
     assert abs(float(np.linalg.norm(m.plane.normal)) - 1.0) < 1e-12 and m.plane.normal[2] > 0
     worse = _est(0.02, 0.0, 0.10, np.diag([3e-6, 3e-6, 4e-8]))
     assert blend_weights(worse, b) == pytest.approx((0.25, 0.2))
     mixed = blended(worse, b, "m")
-    assert tilt_offset(mixed.plane)[:2] == pytest.approx(0.25 * tilt_offset(worse.plane)[:2]
-                                                         + 0.75 * tilt_offset(b.plane)[:2], abs=1e-12)
-    assert mixed.plane.offset == pytest.approx(0.2 * worse.plane.offset + 0.8 * b.plane.offset, rel=1e-12)
+    assert _axis(mixed.plane)[:2] == pytest.approx(0.25 * _axis(worse.plane)[:2] + 0.75 * _axis(b.plane)[:2], abs=1e-12)
+    assert mixed.plane.z0 == pytest.approx(0.2 * worse.plane.z0 + 0.8 * b.plane.z0, rel=1e-12)
 
 
 def test_edges_return_one_estimate_and_missing_covariances_no_blend():
@@ -40,11 +44,12 @@ def test_edges_return_one_estimate_and_missing_covariances_no_blend():
     out = blended(a, sure, "diff+peak")
     assert out.plane is sure.plane and out.covariance is sure.covariance and out.method_used == "peak"
     assert blended(sure, a, "peak+diff") is sure
-    # its tilt known exactly, the offsets alike: the tilt is its, the offset the mean, the offset's variance bounded
+    # its tilt known exactly, the offsets alike: the tilt is its, the axis crossing the mean, the offset's variance
+    # bounded
     tilt_known = _est(0.04, 0.0, 0.12, np.diag([1e-14, 1e-14, 1e-8]), "peak")
     out = blended(a, tilt_known, "diff+peak")
     assert out.plane.normal == pytest.approx(tilt_known.plane.normal, abs=1e-9)
-    assert out.plane.offset == pytest.approx(0.5 * (a.plane.offset + tilt_known.plane.offset))
+    assert out.plane.z0 == pytest.approx(0.5 * (a.plane.z0 + tilt_known.plane.z0), rel=1e-12)
     assert 0.25e-8 < out.covariance[2, 2] <= 1.5e-8  # (0.5 * 1e-4 + 0.5 * 1e-4)^2 = 1e-8 at perfect correlation
     bare = PlaneEstimate(a.plane, covariance=None)
     assert blended(a, bare, "m") is None and blended(bare, a, "m") is None
@@ -52,10 +57,15 @@ def test_edges_return_one_estimate_and_missing_covariances_no_blend():
     zero = _est(0.0, 0.0, 0.1, np.zeros((3, 3)))
     assert blend_weights(zero, zero) is None and blended(zero, zero, "m") is None
     # the tilt all one's, the offset all the other's: a blend still, with a covariance over both
-    tilt_sure = _est(0.02, 0.0, 0.10, np.diag([1e-30, 1e-30, 1.0]))
-    off_sure = _est(0.04, 0.0, 0.12, np.diag([1e-6, 1e-6, 1e-30]))
+    tilt_sure = _est(0.02, 0.0, 0.10, np.diag([1e-16, 1e-16, 1.0]))
+    off_sure = _est(0.04, 0.0, 0.12, np.diag([1e-6, 1e-6, 1e-16]))
+    # (variances 1e-30 apart from 1e-11 are below rounding once carried to (n_x, n_y, z0) and back: no blend then, or
+    # a covariance; never one that is not)
+    extreme = blended(_est(0.02, 0.0, 0.10, np.diag([1e-30, 1e-30, 1.0])),
+                      _est(0.04, 0.0, 0.12, np.diag([1e-6, 1e-6, 1e-30])), "m")
+    assert extreme is None or np.all(np.linalg.eigvalsh(extreme.covariance) > 0)
     out = blended(tilt_sure, off_sure, "m")
-    assert out.method_used == "m" and out.plane.offset == pytest.approx(off_sure.plane.offset)
+    assert out.method_used == "m" and out.plane.z0 == pytest.approx(off_sure.plane.z0)
     assert out.plane.normal == pytest.approx(tilt_sure.plane.normal) and np.all(np.isfinite(out.covariance))
 
 
@@ -91,10 +101,11 @@ def test_the_blends_covariance_holds_whatever_the_two_errors_correlation(seed, r
 
 def test_perfectly_correlated_scalar_errors_are_bounded_exactly():
     """Convention check: with both covariances proportional to one matrix the bound is (w s_a + (1 - w) s_b)^2 in
-    that direction, the variance of the blend of perfectly correlated errors."""
+    that direction, the variance of the blend of perfectly correlated errors (level planes: there (n_x, n_y, z0) and
+    (n_x, n_y, d) are the same coordinates)."""
     base = np.diag([1e-6, 2e-6, 1e-8])
-    a = PlaneEstimate(Plane.from_angles(0.01, 0.0, 0.1), covariance=base)
-    b = PlaneEstimate(Plane.from_angles(0.02, 0.0, 0.1), covariance=4.0 * base)
+    a = PlaneEstimate(Plane.from_angles(0.0, 0.0, 0.1), covariance=base)
+    b = PlaneEstimate(Plane.from_angles(0.0, 0.0, 0.12), covariance=4.0 * base)
     m = blended(a, b, "m")
     w, wd = blend_weights(a, b)
     assert w == pytest.approx(0.8) and wd == pytest.approx(0.8)
@@ -127,3 +138,17 @@ def test_diff_blends_nothing_closer_than_the_near_fallback_range_even_without_a_
     far_d = _est(0.02, 0.0, 0.2, np.diag([1e-6, 1e-6, 1e-8]), "diff")
     far_p = _est(0.021, 0.0, 0.2, np.diag([1e-6, 1e-6, 1e-8]), "peak")
     assert est._checked(far_d, far_p).method_used == "diff+peak"
+
+
+def test_the_blend_keeps_the_axis_crossing_of_two_planes_that_agree_on_it_however_they_tilt():
+    """Two steep planes that meet the optical axis at the same point but disagree in tilt: the blend meets it there
+    too (a blend of d would not: d moves by about z0 sin(tilt) times the tilt's difference), and its stated covariance,
+    carried back to (n_x, n_y, d), is a covariance whose offset part grows with that tilt."""
+    a = _est(0.45, 0.3, 0.15, np.diag([1e-6, 1e-6, 1e-8]), "diff")
+    steeper = Plane.from_angles(0.46, 0.3, 0.15)  # 0.01 rad steeper, the same z0
+    b = PlaneEstimate(Plane(steeper.normal, a.plane.z0 * steeper.normal[2]), covariance=np.diag([1e-6, 1e-6, 4e-8]))
+    assert b.plane.z0 == pytest.approx(a.plane.z0, rel=1e-12)
+    m = blended(a, b, "m")
+    assert m.plane.z0 == pytest.approx(a.plane.z0, rel=1e-12)
+    assert a.plane.offset < m.plane.offset < b.plane.offset or b.plane.offset < m.plane.offset < a.plane.offset
+    assert np.all(np.linalg.eigvalsh(m.covariance) > 0)
