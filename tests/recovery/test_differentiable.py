@@ -7,6 +7,7 @@ import pytest
 
 from place_safe.recovery import make_estimator
 from place_safe.recovery.differentiable import DifferentiableEstimator, SolverOptions
+from place_safe.recovery.blend import axis_state
 from place_safe.recovery.forward import ForwardParams
 from place_safe.evaluation.metrics import angular_error, linear_error, point_error
 from place_safe.sensor.frame import Frame
@@ -209,7 +210,7 @@ def test_diff_keeps_its_plane_only_when_every_fallback_test_passes():
 
     from place_safe.geometry import Plane
     from place_safe.recovery.differentiable import BLENDED, NEAR_FALLBACK_RANGE, _positive_definite
-    from place_safe.recovery.estimator import PlaneEstimate, Uncertainty, tilt_offset
+    from place_safe.recovery.estimator import PlaneEstimate, Uncertainty
 
     est = DifferentiableEstimator()
     pos = st.floats(1e-9, 1e3, allow_nan=False)
@@ -230,9 +231,9 @@ def test_diff_keeps_its_plane_only_when_every_fallback_test_passes():
         near = (not math.isinf(chi2_limit) or blend) and p.plane.offset < NEAR_FALLBACK_RANGE
         gates = residual ** 2 <= chi2_limit and _positive_definite(d.covariance) and unc.consistent(d, p) and not near
         if gates and blend and out.method_used == BLENDED:  # both usable: between the two, with a covariance
-            for k in range(3):
-                lo, hi = sorted((tilt_offset(d.plane)[k], tilt_offset(p.plane)[k]))
-                assert lo - 1e-12 <= tilt_offset(out.plane)[k] <= hi + 1e-12
+            for k in range(3):  # (n_x, n_y, z0): the state the blend combines
+                lo, hi = sorted((axis_state(d.plane)[0][k], axis_state(p.plane)[0][k]))
+                assert lo - 1e-12 <= axis_state(out.plane)[0][k] <= hi + 1e-12
             assert np.all(np.linalg.eigvalsh(out.covariance) > 0) and out.residual == d.residual
         elif gates and (unc.prefers(d, p) or blend):  # kept (a blend whose weight is all diff's returns diff's own)
             assert out is d or (blend and out.plane is p.plane and out.covariance is p.covariance)
