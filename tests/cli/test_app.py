@@ -455,7 +455,7 @@ def test_latency_times_recover_from_outside_under_both_names(command, synthetic_
     res = json.loads(out_json.read_text())
     n = sum(1 for _ in json.loads(Path(synthetic_file).read_text()))
     assert res["frames"] == n and sum(res["method_used"].values()) == n and res["calibrated"] is False
-    assert 0 < res["median_ms"] <= res["p95_ms"] and res["first_line_ms"] > 0
+    assert 0 <= res["median_ms"] <= res["p95_ms"] and res["first_line_ms"] > 0  # (lines may arrive together: gaps of 0)
 
 
 def test_latency_of_a_missing_file_is_one_line(capsys):
