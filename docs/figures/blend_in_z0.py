@@ -26,17 +26,10 @@ from place_safe.recovery import make_estimator
 from place_safe.recovery.estimator import PlaneEstimate, is_covariance, tilt_offset
 
 
-def _jacobian(p: Plane) -> np.ndarray:
-    """d (n_x, n_y, z0) / d (n_x, n_y, d) at plane ``p``."""
-    nx, ny, nz = p.normal
-    d = p.offset
-    return np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [d * nx / nz ** 3, d * ny / nz ** 3, 1.0 / nz]])
-
-
 def _in_z0(e: PlaneEstimate) -> tuple[np.ndarray, np.ndarray]:
-    j = _jacobian(e.plane)
-    x = tilt_offset(e.plane)
-    return np.array([x[0], x[1], e.plane.offset / e.plane.normal[2]]), j @ np.asarray(e.covariance) @ j.T
+    """``e``'s state ``(n_x, n_y, z0)`` and its covariance carried there (:func:`~place_safe.recovery.blend.axis_state`)."""
+    x, j = blend.axis_state(e.plane)
+    return x, j @ np.asarray(e.covariance) @ j.T
 
 
 def blend_in_d(a: PlaneEstimate, b: PlaneEstimate, method_used: str) -> PlaneEstimate | None:
@@ -61,38 +54,32 @@ def blend_in_d(a: PlaneEstimate, b: PlaneEstimate, method_used: str) -> PlaneEst
                          residual=a.residual, covariance=cov, method_used=method_used)
 
 
-def blend_in_z0(own_weights: bool):
-    def blended(a: PlaneEstimate, b: PlaneEstimate, method_used: str) -> PlaneEstimate | None:
-        if not (a.ok and b.ok and is_covariance(a.covariance) and is_covariance(b.covariance)):
-            return None
-        xa, ca = _in_z0(a)
-        xb, cb = _in_z0(b)
-        if own_weights:
-            ws = blend.blend_weights(a, b)
-            if ws is None:
-                return None
-            w = np.array([ws[0], ws[0], ws[1]])
-        else:
-            sa2, sb2 = (max(float(np.linalg.eigvalsh(c[:2, :2]).max()), 0.0) for c in (ca, cb))
-            if not (sa2 + sb2 > 0.0 and ca[2, 2] + cb[2, 2] > 0.0):
-                return None
-            w = np.array([sb2 / (sa2 + sb2)] * 2 + [cb[2, 2] / (ca[2, 2] + cb[2, 2])])
-        x = w * xa + (1.0 - w) * xb
-        s = x[0] * x[0] + x[1] * x[1]
-        if not s < 1.0 - 1e-12:
-            return None
-        nz = math.sqrt(1.0 - s)
-        plane = Plane(np.array([x[0], x[1], nz]), float(x[2] * nz))
-        ua = w[:, None] * ca * w[None, :]
-        ub = (1.0 - w)[:, None] * cb * (1.0 - w)[None, :]
-        t = blend._ratio(ua, ub)
-        cz = 0.5 * (ua + ua.T) * (1.0 + t) + 0.5 * (ub + ub.T) * (1.0 + 1.0 / t)
-        back = np.linalg.inv(_jacobian(plane))
-        cov = back @ cz @ back.T
-        if not is_covariance(cov, definite=True):
-            return None
-        return PlaneEstimate(plane, albedo=a.albedo, residual=a.residual, covariance=cov, method_used=method_used)
-    return blended
+def blend_in_z0_own_weights(a: PlaneEstimate, b: PlaneEstimate, method_used: str) -> PlaneEstimate | None:
+    """The blend of ``(n_x, n_y, z0)`` as :func:`~place_safe.recovery.blend.blended` makes it, but with weights from the
+    covariances carried into those coordinates."""
+    if not (a.ok and b.ok and is_covariance(a.covariance) and is_covariance(b.covariance)):
+        return None
+    xa, ca = _in_z0(a)
+    xb, cb = _in_z0(b)
+    sa2, sb2 = (max(float(np.linalg.eigvalsh(c[:2, :2]).max()), 0.0) for c in (ca, cb))
+    if not (sa2 + sb2 > 0.0 and ca[2, 2] + cb[2, 2] > 0.0):
+        return None
+    w = np.array([sb2 / (sa2 + sb2)] * 2 + [cb[2, 2] / (ca[2, 2] + cb[2, 2])])
+    x = w * xa + (1.0 - w) * xb
+    s = x[0] * x[0] + x[1] * x[1]
+    if not s < 1.0 - 1e-12:
+        return None
+    nz = math.sqrt(1.0 - s)
+    plane = Plane(np.array([x[0], x[1], nz]), float(x[2] * nz))
+    ua = w[:, None] * ca * w[None, :]
+    ub = (1.0 - w)[:, None] * cb * (1.0 - w)[None, :]
+    t = blend._ratio(ua, ub)
+    cz = 0.5 * (ua + ua.T) * (1.0 + t) + 0.5 * (ub + ub.T) * (1.0 + 1.0 / t)
+    back = np.linalg.inv(blend.axis_state(plane)[1])
+    cov = back @ cz @ back.T
+    if not is_covariance(cov, definite=True):
+        return None
+    return PlaneEstimate(plane, albedo=a.albedo, residual=a.residual, covariance=cov, method_used=method_used)
 
 
 def main() -> None:
@@ -104,7 +91,7 @@ def main() -> None:
     args = ap.parse_args()
     as_is = differentiable.blended
     for mode in args.mode:
-        differentiable.blended = {"zw": as_is, "d": blend_in_d, "z": blend_in_z0(own_weights=False)}[mode]
+        differentiable.blended = {"zw": as_is, "d": blend_in_d, "z": blend_in_z0_own_weights}[mode]
         for item in args.units:
             name, cal, path = item.split(":")
             frames = [f for f in iter_frames(path) if f.truth is not None

@@ -93,11 +93,10 @@ class PlaneRenderer:
         #: each zone's brightness is free, so only timing and shape inform the plane
         self.zone_albedo = zone_albedo
         #: with ``free_crosstalk`` the scalar crosstalk of the frame is an unknown too, after the albedo(s) and before
-        #: the specular weight: (a, b, z0, log albedo(s), crosstalk, ks, log alpha); else the calibrated one
-        self.free_crosstalk = free_crosstalk
-        self.n_unknowns = N_UNKNOWNS + (N_ZONES - 1 if zone_albedo else 0) + (1 if free_crosstalk else 0)
-        #: the column of the crosstalk among the unknowns (None: held at ``params.crosstalk``)
+        #: the specular weight: (a, b, z0, log albedo(s), crosstalk, ks, log alpha); its column (None: held at
+        #: ``params.crosstalk``)
         self.crosstalk_column = 3 + (N_ZONES if zone_albedo else 1) if free_crosstalk else None
+        self.n_unknowns = N_UNKNOWNS + (N_ZONES - 1 if zone_albedo else 0) + (1 if free_crosstalk else 0)
         self.integrated = float(params.soft_bin_integrated)  # > 0: the kernel integrated over each bin (bin_kernel)
         self.spline = float(params.soft_bin_spline)  # 1: the quadratic B-spline convolved with the Gaussian (bin_kernel)
         # the emitter beside the receiver (ForwardModel.plane_light); None: co-located, uniform beam
