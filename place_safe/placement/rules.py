@@ -186,12 +186,18 @@ def post_stop_stamps(plane: FusedPlane, now: float, t_stop: float | None, cfg: A
     return sorted(out)
 
 
+#: A judged plane's offset std above this (m) carries no information on whether the surface is still (its inverse
+#: variance would vanish, or overflow to 0 beyond ~1e154 m): a reason, as a plane with no std is.
+STILL_STD_LIMIT = 1.0
+
+
 def _still_planes(plane: FusedPlane, post: list[float], cfg: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray] | str:
     """(stamps, heights, stds) of the planes the stillness test judges: the post-stop ones (``post``), or the
     newest ``check_frames`` (at least 2) of the window when fewer than 2 were measured at rest (the sensor too
     close to read); else a reason. Stds are floored at ``still_offset_floor``. A judged plane that states no
     finite offset std (its estimate has no covariance) is a reason, not a guess: nothing else says how far its
-    offset may err, so nothing can tell a still surface from a moving one (fail closed)."""
+    offset may err, so nothing can tell a still surface from a moving one (fail closed); so is one above
+    :data:`STILL_STD_LIMIT`."""
     stamps = tuple(getattr(plane, "stamps", ()) or ())
     h = tuple(getattr(plane, "heights", ()) or ())
     s = tuple(getattr(plane, "height_stds", ()) or ())
@@ -216,6 +222,9 @@ def _still_planes(plane: FusedPlane, post: list[float], cfg: Any) -> tuple[np.nd
                 "whether the surface is still is unknown")
     if np.any(sd < 0.0):
         return "a plane's offset std is negative"
+    if np.any(sd > STILL_STD_LIMIT):
+        return (f"a plane at rest states an offset std over {STILL_STD_LIMIT:g} m (no information): whether the "
+                "surface is still is unknown")
     return t, y, np.maximum(sd, cfg.still_offset_floor)
 
 
@@ -231,19 +240,22 @@ def still_problem(plane: FusedPlane, post: list[float], cfg: Any) -> str | None:
     if isinstance(got, str):
         return got
     t, y, sd = got
-    w = 1.0 / sd**2
-    mean = float(w @ y / w.sum())
-    chi2 = float(w @ (y - mean) ** 2)
+    # (offsets of 1e154 m and beyond overflow their squares: the chi-square and the rate then read inf or NaN, and
+    # both tests below fail closed on either)
+    with np.errstate(over="ignore", invalid="ignore"):
+        w = 1.0 / sd**2
+        mean = float(w @ y / w.sum())
+        chi2 = float(w @ (y - mean) ** 2)
+        tc = t - float(w @ t / w.sum())
+        stt = float(w @ tc**2)
+        rate, rate_sd = (float(w @ (tc * (y - mean)) / stt), 1.0 / math.sqrt(stt)) if stt > 0 else (0.0, math.inf)
     limit = float(_chi2.ppf(cfg.still_confidence, len(y) - 1))
     z = NormalDist().inv_cdf(0.5 + 0.5 * cfg.still_confidence)
-    tc = t - float(w @ t / w.sum())
-    stt = float(w @ tc**2)
-    rate, rate_sd = (float(w @ (tc * (y - mean)) / stt), 1.0 / math.sqrt(stt)) if stt > 0 else (0.0, math.inf)
     if not (chi2 <= limit):
-        return (f"surface not still: {len(y)} planes at rest spread {1e3 * (y.max() - y.min()):.1f} mm "
-                f"(chi-square {chi2:.1f} > {limit:.1f} for offsets +- {1e3 * float(sd.min()):.1f} mm)")
+        return (f"surface not still: {len(y)} planes at rest spread {1e3 * (y.max() - y.min()):.3g} mm "
+                f"(chi-square {chi2:.3g} > {limit:.1f} for offsets +- {1e3 * float(sd.min()):.1f} mm)")
     if not (abs(rate) <= z * rate_sd):
-        return (f"surface not still: {len(y)} planes at rest move {1e3 * rate:.0f} mm/s "
+        return (f"surface not still: {len(y)} planes at rest move {1e3 * rate:.3g} mm/s "
                 f"(> {1e3 * z * rate_sd:.0f} mm/s their noise allows)")
     return None
 

@@ -157,6 +157,11 @@ def test_the_stillness_test_fails_closed():
     huge = dataclasses.replace(plane, height_stds=(1e160, 1e160))
     assert rules.still_problem(huge, post, CFG) is not None
     assert rules.clearance_floor(huge, post, CFG) == 0.0
+    # one plane beside a well-measured one with an std over STILL_STD_LIMIT: no information, said so (was a
+    # chi-square of NaN from inverse variances that underflow)
+    for stds in ((1e160, 1e-5), (2.0 * rules.STILL_STD_LIMIT, 1e-5)):
+        why = rules.still_problem(dataclasses.replace(plane, height_stds=stds), post, CFG)
+        assert why is not None and "no information" in why and "\n" not in why
 
 
 def test_too_close_to_read_the_newest_planes_of_the_window_are_judged():
