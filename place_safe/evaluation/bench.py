@@ -297,20 +297,25 @@ def measure_recover_latency(path: str | Path, method: str = "diff", calibration:
            "--quiet", "--batch", str(batch)]
     if calibration is not None:
         cmd += ["--calibration", str(calibration)]
-    t0 = time.perf_counter()
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     stamps, lines, used = [], [], {}
-    assert proc.stdout is not None
-    for line in proc.stdout:  # only the time stamp while recover runs: on a busy machine the parsing would
-        stamps.append(time.perf_counter())  # take turns with recover for a core and lengthen its gaps
-        lines.append(line)
+    # stderr to a file, not a pipe: a child that wrote more than a pipe holds there while this reads its stdout to
+    # the end would wait for it forever
+    with tempfile.TemporaryFile() as err_file:
+        t0 = time.perf_counter()
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=err_file)
+        assert proc.stdout is not None
+        for line in proc.stdout:  # only the time stamp while recover runs: on a busy machine the parsing would
+            stamps.append(time.perf_counter())  # take turns with recover for a core and lengthen its gaps
+            lines.append(line)
+        proc.wait()
+        err_file.seek(0)
+        err = err_file.read().decode(errors="replace")
+    if proc.returncode != 0:
+        last = (err.strip().splitlines() or ["(no message)"])[-1]
+        raise RuntimeError(f"recover exited with {proc.returncode}: {last}")
     for line in lines:
         m = json.loads(line).get("method_used") or "no plane"  # a frame without a plane (too close, no return)
         used[m] = used.get(m, 0) + 1
-    err = proc.stderr.read().decode(errors="replace") if proc.stderr else ""
-    if proc.wait() != 0:
-        last = (err.strip().splitlines() or ["(no message)"])[-1]
-        raise RuntimeError(f"recover exited with {proc.returncode}: {last}")
     if len(stamps) < 2:
         raise RuntimeError("recover wrote fewer than 2 lines; need 2 or more frames")
     gaps = np.diff(np.array(stamps)) * 1e3

@@ -14,13 +14,6 @@ Jacobian), and carries the result back to ``(n_x, n_y, d)`` at the blended plane
     x = W x_a + (I - W) x_b,   W = diag(w, w, w_d),
     w = v_b / (v_a + v_b),     w_d = C_b[d, d] / (C_a[d, d] + C_b[d, d]),
 
-(Blending ``d`` instead, as the first version did, mixes on a steep plane each plane's ``d`` with its own tilt: ``d``
-moves by about ``z0 sin(tilt)`` times a tilt error. On the generator's tilted frames after a level sweep diff's own
-``z0`` read 0.04-0.06 mm and the blend of ``d`` 0.17-0.25 mm; blended at ``z0`` it reads 0.04 mm; level planes, where
-``n_z`` is 1, are the same to 1e-3 mm: docs/results.md, "Each frame's own crosstalk". The weights stay those of the
-``(n_x, n_y, d)`` covariances: taken from the ``z0`` covariances they let peak's ``z0``, stated tight on tilted planes
-where it errs by millimetres, into the blend.)
-
 with ``v`` each estimate's tilt variance along its worst direction
 (:meth:`~place_safe.recovery.estimator.PlaneEstimate.tilt_std`): the plane that reads the slope better counts more
 in the tilt, the one that reads the distance better in the offset, continuously (the fallback's ``prefer_ratio``
@@ -31,14 +24,22 @@ about 0.3. (One weight for all three, tried first, let peak's wide offset varian
 covariance: NEES per dof 0.17 against 0.24 on a simulated unit's tilted frames, 0.82 against 0.99 on the real odd
 half; its offsets read 0.109 mm there against 0.088.)
 
+(Blending ``d`` instead, as the first version did, mixes on a steep plane each plane's ``d`` with its own tilt: ``d``
+moves by about ``z0 sin(tilt)`` times a tilt error. On the generator's tilted frames after a level sweep diff's own
+``z0`` read 0.04-0.06 mm and the blend of ``d`` 0.17-0.25 mm; blended at ``z0`` it reads 0.04 mm; level planes, where
+``n_z`` is 1, are the same to 1e-3 mm: docs/results.md, "Each frame's own crosstalk". The weights stay those of the
+``(n_x, n_y, d)`` covariances: taken from the ``z0`` covariances they let peak's ``z0``, stated tight on tilted planes
+where it errs by millimetres, into the blend.)
+
 The two errors are correlated (both read the same photons; about 0.7 on the real halves), and no frame says by how
-much. So the covariance is a bound that holds for any correlation: for ``e = u + v`` (``u = W e_a``,
-``v = (I - W) e_b``) and any ``t > 0``, ``e e^T <= (1 + t) u u^T + (1 + 1/t) v v^T`` (the cross term
+much. So the covariance is a bound that holds for any correlation: for ``e = u + v`` (``u = W J_a e_a``,
+``v = (I - W) J_b e_b``) and any ``t > 0``, ``e e^T <= (1 + t) u u^T + (1 + 1/t) v v^T`` (the cross term
 ``u v^T + v u^T <= t u u^T + v v^T / t``), so
 
-    C = (1 + t) W C_a W + (1 + 1/t) (I - W) C_b (I - W),
+    C_x = (1 + t) W J_a C_a J_a^T W + (1 + 1/t) (I - W) J_b C_b J_b^T (I - W),
 
-with ``t = sqrt(B / A)``, ``A`` and ``B`` each term's share of the two terms' variances summed over the three
+(``J`` each plane's Jacobian of :func:`axis_state`; ``C_x`` is carried back to ``(n_x, n_y, d)`` through the inverse
+of the blended plane's), with ``t = sqrt(B / A)``, ``A`` and ``B`` each term's share of the two terms' variances summed over the three
 components (unit-free; it minimises that sum of the bound's shares, and for one component it makes the bound exact for
 perfectly correlated errors, ``(w s_a + (1 - w) s_b)^2``). (``t`` from the tilt traces alone, tried first, blew the
 offset's variance up by 1e11 where one plane's tilt was known far better and the offsets alike.) The normal is made

@@ -4,15 +4,15 @@ Two solvers share one forward model (:mod:`place_safe.recovery.forward`) and one
 calibrated peak method):
 
 ``fast`` (default)
-    Levenberg-Marquardt on six unknowns per frame: the plane as slopes and axis crossing
-    ``(a, b, z0)`` (normal ~ ``(a, b, 1)``, smooth at normal incidence), ``log albedo``, specular
-    weight and ``log`` specular exponent, the last two held near the calibrated values by a weak
-    prior (a fronto-parallel plane cannot tell them from albedo); where the calibration says a level sweep left the
+    Levenberg-Marquardt per frame on the plane as slopes and axis crossing ``(a, b, z0)`` (normal ~
+    ``(a, b, 1)``, smooth at normal incidence), ``log albedo`` (one, or one per zone tied to their mean:
+    ``SolverOptions.zone_albedo``), specular weight and ``log`` specular exponent, the last two held near the
+    calibrated values by a weak prior (a fronto-parallel plane cannot tell them from albedo); where the calibration says a level sweep left the
     unit's crosstalk undetermined (``SolverOptions.crosstalk_std``), also the frame's own crosstalk, under a prior
     about the calibrated one (a tilted plane shows it). Residuals are Poisson-scaled:
     ``(model - observed) / sqrt(observed + 1 + (e observed)^2)`` (Poisson noise and the calibrated
-    relative model error ``e``, :func:`~place_safe.recovery.forward.residual_weights`) over the bins that hold the returns. Jacobians come
-    from ``torch.func.jacfwd``; rays are a deterministic stratified quadrature; the laser pulse is
+    relative model error ``e``, :func:`~place_safe.recovery.forward.residual_weights`) over the bins that hold the returns. Jacobians are
+    the analytic ones of :class:`~place_safe.recovery.plane_renderer.PlaneRenderer`; rays are a deterministic stratified quadrature; the laser pulse is
     prepared once per frame. Frames are solved as a batch.
 
 ``paper``
@@ -234,9 +234,11 @@ def crosstalk_std_problem(value) -> str | None:
                             f"got {reprlib.repr(value)}")
 
 
-@dataclass
+@dataclass(frozen=True)
 class SolverOptions:
-    """Tuning of the fast solver (defaults chosen on synthetic and real data; see docs/results.md)."""
+    """Tuning of the fast solver (defaults chosen on synthetic and real data; see docs/results.md). Frozen: an
+    estimator lays out its unknowns from these when it is made (the crosstalk column, the zones' albedos, the rays),
+    so options changed afterwards would disagree with that layout (``dataclasses.replace`` makes new ones)."""
 
     rays: int = 6                 # stratified rays per axis and zone (rays x rays per zone)
     max_iterations: int = 20
@@ -258,7 +260,8 @@ class SolverOptions:
     ambient: bool = False
     # the frame's scalar crosstalk between zones: 0, held at the calibrated value; above 0, solved with the plane under a
     # prior of that standard deviation about the calibrated value (a fraction; a level sweep trades it against the
-    # zones' fields of view, and a tilted plane shows it)
+    # zones' fields of view, and a tilted plane shows it). The fast solver's, as zone_albedo (paper mode holds the
+    # crosstalk and reads one albedo).
     crosstalk_std: float = 0.0  # 0, or MIN_CROSSTALK_STD..0.5
     # paper mode
     paper_iterations: int = 100

@@ -71,7 +71,9 @@ def convolution_matrices(kernels: np.ndarray, width: int) -> np.ndarray:
 
 
 class PlaneRenderer:
-    """Histograms of planes and their Jacobian in the six unknowns, batched over frames."""
+    """Histograms of planes and their Jacobian in the unknowns (``a, b, z0``, one log albedo or one per zone, with
+    ``free_crosstalk`` the frame's crosstalk, the specular weight and log exponent: :attr:`n_unknowns`), batched over
+    frames."""
 
     def __init__(self, params: ForwardParams, rays: ZoneRays, zone_albedo: bool = False,
                  free_crosstalk: bool = False) -> None:

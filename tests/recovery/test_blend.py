@@ -70,15 +70,17 @@ def test_edges_return_one_estimate_and_missing_covariances_no_blend():
 
 
 @settings(max_examples=300, deadline=None)
-@given(seed=st.integers(0, 2 ** 32 - 1), rho=st.floats(-1.0, 1.0), scale_b=st.floats(1e-3, 1e3))
-@example(seed=311, rho=1.0, scale_b=11.0)  # CI's counterexample to a model of the error without the Jacobians
-def test_the_blends_covariance_holds_whatever_the_two_errors_correlation(seed, rho, scale_b):
+@given(seed=st.integers(0, 2 ** 32 - 1), rho=st.floats(-1.0, 1.0), scale_b=st.floats(1e-3, 1e3),
+       tilts=st.sampled_from([(0.01, 0.02), (0.6, 0.9), (1.2, 1.35)]))
+@example(seed=311, rho=1.0, scale_b=11.0, tilts=(0.01, 0.02))  # CI's counterexample to a model without the Jacobians
+def test_the_blends_covariance_holds_whatever_the_two_errors_correlation(seed, rho, scale_b, tilts):
     """Property: for any covariances C_a, C_b and any joint covariance of the two errors with them as marginals
     (cross term C_a^1/2 K C_b^1/2 with K a contraction), the blend's stated covariance is at least the covariance
     of its error: ``W J_a e_a + (I - W) J_b e_b`` in ``(n_x, n_y, z0)``, where the blend combines the planes (``J``
     each plane's Jacobian there), carried back to ``(n_x, n_y, d)`` at the blended plane. The stated one never claims
     more than the planes give. (With perfectly correlated errors the bound is tight in one direction, so a model of
-    the error that leaves out the Jacobians is off by more than the rounding there: seed 311.)"""
+    the error that leaves out the Jacobians is off by more than the rounding there: seed 311.) Planes near level and
+    steep ones (0.6-1.35 rad), where the Jacobians differ from the identity."""
     rng = np.random.default_rng(seed)
 
     def spd(scale):
@@ -90,8 +92,8 @@ def test_the_blends_covariance_holds_whatever_the_two_errors_correlation(seed, r
     k = rho * q  # a contraction: singular values |rho| <= 1
     la, lb = np.linalg.cholesky(ca), np.linalg.cholesky(cb)
     cab = la @ k @ lb.T
-    a = PlaneEstimate(Plane.from_angles(0.01, 0.2, 0.1), covariance=ca)
-    b = PlaneEstimate(Plane.from_angles(0.02, 0.3, 0.1), covariance=cb)
+    a = PlaneEstimate(Plane.from_angles(tilts[0], 0.2, 0.1), covariance=ca)  # near level, or steep: the Jacobians
+    b = PlaneEstimate(Plane.from_angles(tilts[1], 0.3, 0.1), covariance=cb)  # of the axis crossing then matter
     m = blended(a, b, "m")
     w, wd = blend_weights(a, b)
     if m is None or m is a or m.method_used != "m":
