@@ -13,6 +13,8 @@ Phases::
      ``footprint_frames`` frames, then back over the landing spot)
     CHECK --level, planar, close, enough fresh planes--> RELEASE (open gripper, wait, retreat up) --> DONE
     CHECK --still too high--> DESCEND (at most ``max_checks`` times)
+    CHECK --footprint points in doubt that no second look has seen--> APPROACH (once: up to
+                       ``traverse_clearance`` first, then the second look from over them, back and down again)
     any active phase --tilted / not planar / no plane / stale plane / sensor timeout / no support under
                        the footprint (edge, step, clutter) / obstacle (contact
                        above the surface) / travel limit, or a surface farther than it (a floor
@@ -256,6 +258,7 @@ class PlacementMachine:
         self._footprint: Any = None
         self._surveyed = False
         self._recheck: _Recheck | None = None
+        self._look_target: np.ndarray | None = None  # TCP position of the second look decided at CHECK (base)
         self._suspect: _Suspect | None = None
         self._unconfirmed = 0
         self.notes: list[str] = []  # what the machine noticed without changing phase (unconfirmed contacts)
@@ -650,6 +653,55 @@ class PlacementMachine:
         self._hint = "survey"
         return self._speed(np.zeros(3))
 
+    def _look_from_check(self, state: RobotState, c: float, now: float) -> Command | None:
+        """The second look decided at CHECK (:meth:`_can_look_again`), made whatever the verdict says meanwhile
+        (a doubt that came up with the plane refined at rest may come and go with it): straight up to
+        ``traverse_clearance`` first (sideways from a few millimetres up, the cup would sweep into what the
+        zones saw beside the footprint), then to the pose over the doubtful points, then ``footprint_frames``
+        close frames from there. Returns the move or the wait, or None when there is none or it is over (then
+        the footprint is judged as in any approach, and the cup goes back over the landing spot and down)."""
+        cfg = self.config
+        r = self._recheck
+        if self._look_target is None or r is None or r.done:
+            return None
+        r.ticks += 1
+        down = -np.asarray(state.base_T_cup, dtype=float)[:3, 2]
+        self._hint = "survey"
+        if r.arrived is None and c < cfg.traverse_clearance:
+            if self._elapsed(now, self._t_phase, self._phase_ticks) > cfg.recheck_timeout:  # the arm did not rise
+                r.done = True
+                return None
+            r.t0, r.ticks = now, 0  # the look's own time starts above traverse_clearance
+            return self._speed(np.round(self._axial(min(c - cfg.traverse_clearance, -2.0 * SURVEY_DONE)) * down, 3))
+        if self._elapsed(now, r.t0, r.ticks) > cfg.recheck_timeout:
+            r.done = True
+            return None
+        move = self._look_target - np.asarray(state.base_T_tcp, dtype=float)[:3, 3]
+        if r.arrived is None and float(np.linalg.norm(move)) > RECHECK_ARRIVED:
+            return self._toward(move, down, c)
+        frames = number(getattr(self._footprint, "close_frames", None))
+        if frames is None:
+            r.done = True
+            return None
+        if r.arrived is None:
+            r.arrived = frames
+        if frames >= r.arrived + cfg.footprint_frames:
+            r.done = True
+            return None
+        return self._speed(np.zeros(3))
+
+    def _can_look_again(self) -> bool:
+        """Whether a footprint problem found at CHECK may send the cup back up for the second look (once: no
+        second look made yet, the rule and its time on, and a verdict that says where to look from)."""
+        cfg = self.config
+        if self._recheck is not None or not cfg.recheck_timeout > 0 or cfg.footprint_frames == 0:
+            return False
+        try:
+            move = np.asarray(getattr(self._footprint, "recheck_shift"), dtype=float).reshape(3)
+        except (TypeError, ValueError, AttributeError):
+            return False
+        return bool(np.all(np.isfinite(move))) and number(getattr(self._footprint, "close_frames", None)) is not None
+
     def tilt_sigma(self, plane: FusedPlane) -> float:
         """Standard error (rad) of the fused plane's tilt (:func:`place_safe.placement.rules.tilt_sigma`)."""
         return rules.tilt_sigma(plane)
@@ -821,6 +873,8 @@ class PlacementMachine:
         if c < -cfg.max_penetration:
             return self._refuse(now, f"cup {-c * 1e3:.1f} mm below the estimated surface without contact: "
                                      "the surface estimate is wrong")
+        if self.phase == Phase.APPROACH and (look := self._look_from_check(state, c, now)) is not None:
+            return look
         if (why := rules.footprint_problem(self._footprint, cfg)) is not None:
             look = self._second_look(state, c, now) if self.phase == Phase.APPROACH else None
             if look is not None:
@@ -901,7 +955,17 @@ class PlacementMachine:
         if (why := rules.planar_problem(plane, cfg)) is not None:
             return self._refuse(now, why)
         if (why := rules.footprint_problem(self._footprint, cfg)) is not None:
-            return self._refuse(now, why)
+            if not self._can_look_again():
+                return self._refuse(now, why + (" (also from over those points)" if self._recheck else ""))
+            # the doubt came up only here (the fused plane refined at rest moved a zone's reading over the line):
+            # look again from over those points, as the approach would have, then come back down
+            move = np.asarray(getattr(self._footprint, "recheck_shift"), dtype=float).reshape(3)
+            self._look_target = np.asarray(state.base_T_tcp, dtype=float)[:3, 3] + move
+            self._recheck = _Recheck(now)
+            self._check = None
+            self._go(Phase.APPROACH, now, f"{why}: look again from over those points")
+            self._descent_t0, self._descent_ticks = now, 0
+            return Command.hold()
         if cfg.footprint_frames and rules.footprint_seen(self._footprint) < cfg.footprint_frames:
             return self._refuse(now, f"no support evidence: the surface under the cup's footprint was seen on one "
                                      f"plane in {rules.footprint_seen(self._footprint)} frames "

@@ -10,7 +10,8 @@ import pytest
 
 from place_safe.fusion.plane_filter import FusedPlane
 from place_safe.fusion.surface_map import FootprintVerdict
-from place_safe.placement.machine import (CommandKind, Phase, PlacementConfig, PlacementMachine, RobotState)
+from place_safe.placement.machine import (CommandKind, Phase, PlacementConfig, PlacementMachine, RobotState,
+                                         _Recheck)
 
 DT = 0.008  # s, control tick
 LATENCY = 0.1  # s, age of the newest plane in a healthy stream
@@ -392,6 +393,77 @@ def test_a_doubtful_footprint_gets_a_second_look_before_refusing(clears):
     else:
         assert m.outcome == "refused" and not opened(w)
         assert "edge" in m.decision and "also from over those points" in m.decision
+
+
+def _doubt_at_check_fn(clears: bool, target_x: float = -0.03):
+    """The footprint seen supported until the first check, where a doubt over points near x = ``target_x`` comes up
+    (and then comes and goes with the plane: every other tick); the second look centres the view on them (the cup
+    moves to x <= target_x + 0.004, 12 cm up), each tick there adds a close frame. With ``clears`` the frames from
+    there lift the doubt."""
+    state = {"doubted": False, "there": 0}
+
+    def fn(world, m):
+        fp = world.footprint
+        if m.phase == Phase.CHECK and not state["doubted"]:
+            state["doubted"] = True
+        there = world.pos[0] <= target_x + 0.004 and world.pos[2] >= 0.11
+        state["there"] += int(there)
+        frames = (fp.close_frames or 0) + (1 if there else 0)
+        doubt = state["doubted"] and not (clears and state["there"] >= 6) and (m.phase == Phase.CHECK
+                                                                              or world.count % 2 == 0)
+        world.footprint = FootprintVerdict(
+            observed=5, supported=0 if doubt else 5, in_view=True, view_margin=1.0, close_frames=frames,
+            problem=("zone 7 over the cup's footprint +3 mm off the surface (part of it covered: clutter or step)"
+                     if doubt else None),
+            recheck_point=np.array([target_x, 0.0, 0.0]) if doubt else None,
+            recheck_shift=(np.array([target_x - world.pos[0], 0.0, 0.12 - world.pos[2]]) if doubt else None))
+        return world.plane()
+    return fn
+
+
+@pytest.mark.parametrize("clears", [True, False])
+def test_a_doubt_first_seen_at_the_check_goes_back_up_to_look_before_refusing(clears):
+    """A footprint doubt that comes up only at the check (the plane refined at rest), with no second look made:
+    the cup goes back up once (CHECK -> APPROACH), straight up to traverse_clearance before any sideways move, to
+    the pose over the points, and looks whatever the verdict says meanwhile; cleared, it comes back over the landing
+    spot and is released; not cleared, it refuses, saying it looked."""
+    w = FakeWorld(height=0.2)
+    trace = []  # (phase, cup position, command) each tick
+    apply = w.apply
+
+    def recorded(cmd):
+        trace.append((m.phase, w.pos.copy(), cmd))
+        apply(cmd)
+    w.apply = recorded
+    m = PlacementMachine()
+    run(w, m, plane_fn=_doubt_at_check_fn(clears))
+    pairs = [(t.source, t.target) for t in m.log]
+    assert pairs.count((Phase.CHECK, Phase.APPROACH)) == 1
+    assert "look again" in next(t.reason for t in m.log if (t.source, t.target) == (Phase.CHECK, Phase.APPROACH))
+    first = next(i for i, (ph, _, _) in enumerate(trace) if ph == Phase.APPROACH and i > 0
+                 and trace[i - 1][0] == Phase.CHECK)
+    traverse = PlacementConfig().traverse_clearance
+    risen = next(i for i in range(first, len(trace)) if trace[i][1][2] >= traverse - 0.001)
+    low = [cmd for _, _, cmd in trace[first:risen] if cmd.kind == CommandKind.SPEED]
+    assert low and all(abs(c.twist[0]) < 1e-9 and abs(c.twist[1]) < 1e-9 and c.twist[2] > 0 for c in low)
+    assert any(c.kind == CommandKind.SPEED and c.twist[0] < -0.01 for _, _, c in trace[risen:])  # then over them
+    assert max(p[2] for _, p, _ in trace[risen:]) >= 0.11
+    if clears:
+        assert m.outcome == "released", m.decision
+        assert abs(w.opened_at[0]) <= 0.002  # back over the landing spot
+    else:
+        assert m.outcome == "refused" and not opened(w)
+        assert "also from over those points" in m.decision
+
+
+def test_a_doubt_at_the_check_after_a_second_look_refuses_there():
+    """Once only: a second look already made in the approach leaves a doubt at the check to refuse there."""
+    w = FakeWorld(height=0.2)
+    m = PlacementMachine()
+    m._recheck = _Recheck(0.0, done=True)  # the approach's second look, over
+    run(w, m, plane_fn=_doubt_at_check_fn(clears=True))
+    assert (Phase.CHECK, Phase.APPROACH) not in [(t.source, t.target) for t in m.log]
+    assert m.outcome == "refused" and not opened(w) and "also from over those points" in m.decision
 
 
 def test_footprint_never_seen_supported_is_refused_at_check():
