@@ -236,7 +236,7 @@ class FootprintVerdict:
     view_margin: float = math.nan  # m the sensor may descend before the footprint leaves the view
     certify_margin: float = math.nan  # m the sensor must still descend before its frames can certify it
     close_frames: int = 0  # frames from the close height that saw part of the footprint
-    recheck_point: np.ndarray | None = None  # base frame: centre of the footprint points behind ``problem``
+    recheck_point: np.ndarray | None = None  # base frame: centre of the points behind ``problem``, or of those in doubt
     recheck_shift: np.ndarray | None = None  # m, base frame: TCP move that centres the view on it
 
 
@@ -518,6 +518,8 @@ class SurfaceMap:
             problem = (f"{why or 'zones over the cup footprint off the surface'}; the latest {k} close views of "
                        f"{100.0 * float(np.mean(vetoed)):.0f} % of the footprint do not see it on the surface")
             recheck = disc[vetoed].mean(axis=0)
+        elif np.isfinite(doubt_at).any():  # no problem, but points in doubt: where a second look would lift it
+            recheck = disc[np.isfinite(doubt_at)].mean(axis=0)
         return FootprintVerdict(observed, supported, problem, close_frames=close_frames, recheck_point=recheck)
 
     def _doubtful(self, fs: FrameSurfaces, n: np.ndarray, d: float) -> np.ndarray:

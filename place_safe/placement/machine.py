@@ -13,7 +13,7 @@ Phases::
      ``footprint_frames`` frames, then back over the landing spot)
     CHECK --level, planar, close, enough fresh planes--> RELEASE (open gripper, wait, retreat up) --> DONE
     CHECK --still too high--> DESCEND (at most ``max_checks`` times)
-    CHECK --footprint points in doubt that no second look has seen--> APPROACH (once: up to
+    CHECK --footprint points vetoed or in doubt that no second look has seen--> APPROACH (once: up to
                        ``traverse_clearance`` first, then the second look from over them, back and down again)
     any active phase --tilted / not planar / no plane / stale plane / sensor timeout / no support under
                        the footprint (edge, step, clutter) / obstacle (contact
@@ -690,9 +690,21 @@ class PlacementMachine:
             return None
         return self._speed(np.zeros(3))
 
+    def _go_look_again(self, state: RobotState, now: float, why: str) -> Command:
+        """CHECK -> APPROACH for the second look over the verdict's doubtful points (:meth:`_look_from_check`), its
+        TCP target fixed now; the arm holds this tick."""
+        move = np.asarray(getattr(self._footprint, "recheck_shift"), dtype=float).reshape(3)
+        self._look_target = np.asarray(state.base_T_tcp, dtype=float)[:3, 3] + move
+        self._recheck = _Recheck(now)
+        self._check = None
+        self._go(Phase.APPROACH, now, f"{why}: look again from over those points")
+        self._descent_t0, self._descent_ticks = now, 0
+        return Command.hold()
+
     def _can_look_again(self) -> bool:
-        """Whether a footprint problem found at CHECK may send the cup back up for the second look (once: no
-        second look made yet, the rule and its time on, and a verdict that says where to look from)."""
+        """Whether a footprint problem, or points in doubt, found at CHECK may send the cup back up for the second
+        look (once: no second look made yet, the rule and its time on, and a verdict that says where to look
+        from)."""
         cfg = self.config
         if self._recheck is not None or not cfg.recheck_timeout > 0 or cfg.footprint_frames == 0:
             return False
@@ -959,14 +971,10 @@ class PlacementMachine:
                 return self._refuse(now, why + (" (also from over those points)" if self._recheck else ""))
             # the doubt came up only here (the fused plane refined at rest moved a zone's reading over the line):
             # look again from over those points, as the approach would have, then come back down
-            move = np.asarray(getattr(self._footprint, "recheck_shift"), dtype=float).reshape(3)
-            self._look_target = np.asarray(state.base_T_tcp, dtype=float)[:3, 3] + move
-            self._recheck = _Recheck(now)
-            self._check = None
-            self._go(Phase.APPROACH, now, f"{why}: look again from over those points")
-            self._descent_t0, self._descent_ticks = now, 0
-            return Command.hold()
+            return self._go_look_again(state, now, why)
         if cfg.footprint_frames and rules.footprint_seen(self._footprint) < cfg.footprint_frames:
+            if self._can_look_again():  # points in doubt (raised in their latest view): the look may lift it
+                return self._go_look_again(state, now, "footprint points in doubt (raised in their latest view)")
             return self._refuse(now, f"no support evidence: the surface under the cup's footprint was seen on one "
                                      f"plane in {rules.footprint_seen(self._footprint)} frames "
                                      f"(< {cfg.footprint_frames})")

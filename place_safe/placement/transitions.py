@@ -33,7 +33,8 @@ TRANSITIONS: tuple[tuple[Phase, Phase, str], ...] = (
     (Phase.DESCEND, Phase.REFUSE, _REFUSE_MOVING),
     (Phase.CHECK, Phase.RELEASE, "release rule holds (open gripper)"),
     (Phase.CHECK, Phase.DESCEND, "still above release_clearance (at most max_checks times)"),
-    (Phase.CHECK, Phase.APPROACH, "footprint points in doubt that no second look has seen (once, up first)"),
+    (Phase.CHECK, Phase.APPROACH, "footprint points vetoed or in doubt that no second look has seen "
+                                  "(once, up first)"),
     (Phase.CHECK, Phase.REFUSE, "tilted / not planar / stale / no support under the footprint / obstacle / "
                                 "arm not at rest / too few fresh planes by check_timeout / max_checks"),
     (Phase.RELEASE, Phase.DONE, "settled and retreated (or retreat deadline, or a robot fault once released)"),

@@ -396,6 +396,25 @@ def test_a_point_seen_raised_is_in_doubt_until_a_view_from_no_lower_sees_it_clea
     assert v.problem is None and v.supported >= 3
 
 
+def test_points_in_doubt_are_pointed_at_and_a_view_centred_on_them_lifts_the_doubt():
+    """No problem but points in doubt (raised in their latest view looking at the footprint, fewer than min_frames
+    such views): the verdict points at their centre (``recheck_point``, near the box's zone) for the machine's
+    second look, and views centred there that see them clean lift the doubt; a clean map points nowhere."""
+    sm, cup, T, box = _box_at_the_rim()
+    assert sm.verdict(UP, 0.0, cup, T).recheck_point is None
+    for i in range(2):
+        sm.add(frame_over(T, box), T, 10.0 + i)
+    v = sm.verdict(UP, 0.0, cup, T)
+    assert v.problem is None and v.supported == 0 and v.recheck_point is not None
+    assert np.linalg.norm(v.recheck_point[:2] - _zone_hits(T)[7][:2]) < sm.radius
+    assert v.recheck_shift is not None and np.all(np.isfinite(v.recheck_shift))
+    T2 = sensor_pose(tuple(v.recheck_point[:2]), sm.survey_height())
+    for i in range(3):
+        sm.add(frame_over(T2, lambda x, y: 0.0), T2, 30.0 + i)
+    v = sm.verdict(UP, 0.0, cup, T2)
+    assert v.problem is None and v.supported >= 3 and v.recheck_point is None
+
+
 # -- the doubt rule searched in both directions (review-34) --------------------------------------------------
 def _raised_at_rim(sm: SurfaceMap, cup: np.ndarray, height: float, zone: int, box: float, views: int) -> None:
     """``views`` (< min_frames: no veto) frames from ``height`` over the cup that see ``box`` m above the table

@@ -456,6 +456,37 @@ def test_a_doubt_first_seen_at_the_check_goes_back_up_to_look_before_refusing(cl
         assert "also from over those points" in m.decision
 
 
+@pytest.mark.parametrize("clears", [True, False])
+def test_points_in_doubt_at_the_check_go_back_up_to_look_before_refusing(clears):
+    """No footprint problem, but points in doubt at the check (supported 0: raised in their latest view): the cup
+    goes back up once to look from over them, as for a veto; lifted, it is released; not, the check refuses for
+    want of support evidence."""
+    state = {"there": 0}
+
+    def fn(world, m):
+        there = world.pos[0] <= -0.026 and world.pos[2] >= 0.11
+        state["there"] += int(there)
+        lifted = clears and state["there"] >= 6
+        ever_checked = any(t.target == Phase.CHECK for t in m.log)
+        doubt = ever_checked and not lifted
+        world.footprint = FootprintVerdict(
+            observed=5, supported=0 if doubt else 5, in_view=True, view_margin=1.0,
+            close_frames=(world.footprint.close_frames or 0) + int(there),
+            recheck_point=np.array([-0.03, 0.0, 0.0]) if doubt else None,
+            recheck_shift=np.array([-0.03 - world.pos[0], 0.0, 0.12 - world.pos[2]]) if doubt else None)
+        return world.plane()
+
+    w = FakeWorld(height=0.2)
+    m = run(w, plane_fn=fn)
+    looks = [t for t in m.log if (t.source, t.target) == (Phase.CHECK, Phase.APPROACH)]
+    assert len(looks) == 1 and "in doubt" in looks[0].reason
+    if clears:
+        assert m.outcome == "released", m.decision
+        assert abs(w.opened_at[0]) <= 0.002
+    else:
+        assert m.outcome == "refused" and not opened(w) and "no support evidence" in m.decision
+
+
 def test_a_doubt_at_the_check_after_a_second_look_refuses_there():
     """Once only: a second look already made in the approach leaves a doubt at the check to refuse there."""
     w = FakeWorld(height=0.2)
