@@ -133,8 +133,7 @@ class PeakEstimator(Estimator):
         if unc.near_depths and points[valid, 2].min() < unc.near_depths[-1]:
             near, common = unc.near_std(points[:, 2]), unc.near_common(points[:, 2])
         cov = plane_covariance(points, valid, plane, near, replace_fit=True, common_std=common)
-        cov = unc.apply(cov, plane.offset, plane.normal)
-        return 0.5 * (cov + cov.T)  # symmetric to the last bit (the terms' products leave 1e-20 rounding)
+        return unc.apply(cov, plane.offset, plane.normal)
 
 
 __all__ = ["PeakEstimator", "find_peaks", "COUNT_MAX"]

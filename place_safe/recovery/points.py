@@ -559,6 +559,7 @@ def plane_covariance(points: np.ndarray, valid: np.ndarray, plane: Plane, range_
     dof = len(p) - 3
     sigma2 = float(res @ res) / dof if dof > 0 else 0.0
     inverse = _inverse(jac.T @ jac)
+    inverse = 0.5 * (inverse + inverse.T)  # LU's inverse of a symmetric matrix is symmetric only to rounding
     if np.ndim(range_std) == 0 and not range_std > 0.0:  # the usual call: no known error
         return sigma2 * inverse
     std = np.asarray(range_std, dtype=float)
@@ -577,7 +578,7 @@ def plane_covariance(points: np.ndarray, valid: np.ndarray, plane: Plane, range_
             common = common[np.asarray(valid, dtype=bool)]
         g = inverse @ (jac.T @ np.nan_to_num(common * off_plane))  # the state's response to the shared error
         cov = cov + np.outer(g, g)
-    return cov
+    return 0.5 * (cov + cov.T)  # (the sandwich's products leave 1e-20 of asymmetry)
 
 
 def _inverse(a: np.ndarray) -> np.ndarray:
