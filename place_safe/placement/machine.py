@@ -640,11 +640,22 @@ class PlacementMachine:
         if r is None:
             r = self._recheck = _Recheck(now)
         r.ticks += 1
+        return self._look_there(r, move, frames, state, c, now)
+
+    def _look_there(self, r: _Recheck, move: np.ndarray | None, frames: float | None, state: RobotState, c: float,
+                    now: float) -> Command | None:
+        """The part both second looks share: within ``recheck_timeout`` of ``r.t0``, the TCP ``move`` to the pose
+        over the points (None: no move), then ``footprint_frames`` more close frames (``frames``, the verdict's
+        count; None: not known) there. The move or the wait, or None once over (``r.done``)."""
+        cfg = self.config
         if self._elapsed(now, r.t0, r.ticks) > cfg.recheck_timeout:
             r.done = True
             return None
-        if float(np.linalg.norm(move)) > RECHECK_ARRIVED:
+        if move is not None and float(np.linalg.norm(move)) > RECHECK_ARRIVED:
             return self._toward(move, -np.asarray(state.base_T_cup, dtype=float)[:3, 2], c)
+        if frames is None:
+            r.done = True
+            return None
         if r.arrived is None:
             r.arrived = frames
         if frames >= r.arrived + cfg.footprint_frames:
@@ -665,30 +676,16 @@ class PlacementMachine:
         if self._look_target is None or r is None or r.done:
             return None
         r.ticks += 1
-        down = -np.asarray(state.base_T_cup, dtype=float)[:3, 2]
-        self._hint = "survey"
         if r.arrived is None and c < cfg.traverse_clearance:
             if self._elapsed(now, self._t_phase, self._phase_ticks) > cfg.recheck_timeout:  # the arm did not rise
                 r.done = True
                 return None
             r.t0, r.ticks = now, 0  # the look's own time starts above traverse_clearance
+            self._hint = "survey"
+            down = -np.asarray(state.base_T_cup, dtype=float)[:3, 2]
             return self._speed(np.round(self._axial(min(c - cfg.traverse_clearance, -2.0 * SURVEY_DONE)) * down, 3))
-        if self._elapsed(now, r.t0, r.ticks) > cfg.recheck_timeout:
-            r.done = True
-            return None
-        move = self._look_target - np.asarray(state.base_T_tcp, dtype=float)[:3, 3]
-        if r.arrived is None and float(np.linalg.norm(move)) > RECHECK_ARRIVED:
-            return self._toward(move, down, c)
-        frames = number(getattr(self._footprint, "close_frames", None))
-        if frames is None:
-            r.done = True
-            return None
-        if r.arrived is None:
-            r.arrived = frames
-        if frames >= r.arrived + cfg.footprint_frames:
-            r.done = True
-            return None
-        return self._speed(np.zeros(3))
+        move = (self._look_target - np.asarray(state.base_T_tcp, dtype=float)[:3, 3]) if r.arrived is None else None
+        return self._look_there(r, move, number(getattr(self._footprint, "close_frames", None)), state, c, now)
 
     def _go_look_again(self, state: RobotState, now: float, why: str) -> Command:
         """CHECK -> APPROACH for the second look over the verdict's doubtful points (:meth:`_look_from_check`), its
