@@ -4,16 +4,16 @@ Two solvers share one forward model (:mod:`place_safe.recovery.forward`) and one
 calibrated peak method):
 
 ``fast`` (default)
-    Levenberg-Marquardt per frame on the plane as slopes and axis crossing ``(a, b, z0)`` (normal ~
-    ``(a, b, 1)``, smooth at normal incidence), ``log albedo`` (one, or one per zone tied to their mean:
+    Levenberg-Marquardt per frame on the plane as slopes and axis crossing ``(a, b, z0)`` (normal ~ ``(a, b, 1)``,
+    smooth at normal incidence), ``log albedo`` (one, or one per zone tied to their mean:
     ``SolverOptions.zone_albedo``), specular weight and ``log`` specular exponent, the last two held near the
-    calibrated values by a weak prior (a fronto-parallel plane cannot tell them from albedo); where the calibration says a level sweep left the
-    unit's crosstalk undetermined (``SolverOptions.crosstalk_std``), also the frame's own crosstalk, under a prior
-    about the calibrated one (a tilted plane shows it). Residuals are Poisson-scaled:
-    ``(model - observed) / sqrt(observed + 1 + (e observed)^2)`` (Poisson noise and the calibrated
-    relative model error ``e``, :func:`~place_safe.recovery.forward.residual_weights`) over the bins that hold the returns. Jacobians are
-    the analytic ones of :class:`~place_safe.recovery.plane_renderer.PlaneRenderer`; rays are a deterministic stratified quadrature; the laser pulse is
-    prepared once per frame. Frames are solved as a batch.
+    calibrated values by a weak prior (a fronto-parallel plane cannot tell them from albedo); where the calibration
+    says a level sweep left the unit's crosstalk undetermined (``SolverOptions.crosstalk_std``), also the frame's
+    own crosstalk, under a prior about the calibrated one (a tilted plane shows it). Residuals are Poisson-scaled:
+    ``(model - observed) / sqrt(observed + 1 + (e observed)^2)`` (Poisson noise and the calibrated relative model
+    error ``e``, :func:`~place_safe.recovery.forward.residual_weights`) over the bins that hold the returns.
+    Jacobians are the analytic ones of :class:`~place_safe.recovery.plane_renderer.PlaneRenderer`; rays are a
+    deterministic stratified quadrature; the laser pulse is prepared once per frame. Frames are solved as a batch.
 
 ``paper``
     The paper's procedure: Adam, 100 iterations, 2304 random rays per zone, optimising angle of
