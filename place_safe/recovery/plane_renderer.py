@@ -311,14 +311,19 @@ class PlaneRenderer:
         """
         sigma, reach = self.p.soft_bin_sigma, self.reach
         span = 2 * reach
-        lo = np.clip(np.floor(u).astype(np.intp) - (reach - 1), -reach, width - reach)  # first bin of each window
-        n = lo[..., None] + self._span  # (B, 9, R, span), within [-reach, width + reach)
-        t = n - u[..., None]
+        # first bin of each window, kept within [-reach, width - reach] (maximum / minimum in place: np.clip's
+        # checks cost more than the arithmetic on these small arrays)
+        lo = np.floor(u).astype(np.intp)
+        lo -= reach - 1
+        np.maximum(lo, -reach, out=lo)
+        np.minimum(lo, width - reach, out=lo)
+        t = (lo[..., None] + self._span) - u[..., None]  # n - u at the window's bins, (B, 9, R, span)
         start = lo.min(axis=-1)  # (B, 9): each zone's first band bin
         local = lo - start[..., None]
         band = int(local.max()) + span
-        rows = np.arange(u.size).reshape(u.shape + (1,)) * band
-        flat = (rows + local[..., None] + self._span).ravel()
+        flat = local[..., None] + self._span
+        flat += np.arange(0, u.size * band, band).reshape(u.shape + (1,))
+        flat = flat.ravel()
 
         def dense(values):
             out = np.zeros(u.shape + (band,))
@@ -326,8 +331,9 @@ class PlaneRenderer:
             return out
 
         padded = width + reach + band  # band bins start + l at start + reach + l of rows this long
-        at = ((np.arange(start.size).reshape(start.shape) * padded + start + reach)[..., None]
-              + np.arange(band)).ravel()
+        at = (start + np.arange(reach, start.size * padded + reach, padded).reshape(start.shape))[..., None] \
+            + np.arange(band)
+        at = at.ravel()
 
         def place(x: np.ndarray) -> np.ndarray:
             out = np.zeros(start.shape + (padded,) + x.shape[3:])
