@@ -303,14 +303,15 @@ class SurfaceMap:
             return self.tolerance
         return float(np.clip(self.relative * np.median(r), min(CONSENSUS_MIN, self.tolerance), self.tolerance))
 
-    def on_plane(self, fs: FrameSurfaces, normal: Any, offset: float) -> np.ndarray:
+    def on_plane(self, fs: FrameSurfaces, normal: Any, offset: float, mixed: bool = False) -> np.ndarray:
         """Zones (9,) of a recorded frame whose single return lies on the base-frame plane
         ``normal . x = offset`` within the frame's consensus tolerance (:meth:`consensus_tolerance`):
-        valid, no nearer surface mixed in. With the fused surface as the plane these are the zones that
+        valid, no nearer surface mixed in (with ``mixed``, also zones with a nearer surface mixed into the
+        return whose peak still lies on the plane). With the fused surface as the plane these are the zones that
         still see the known surface when clutter or a step comes into view beside it."""
         n = np.asarray(normal, dtype=float)
         T = fs.base_T_sensor
-        ok = fs.valid & ~fs.early & np.all(np.isfinite(fs.points_base), axis=1)
+        ok = fs.valid & (True if mixed else ~fs.early) & np.all(np.isfinite(fs.points_base), axis=1)
         if not ok.any() or n.shape != (3,) or not np.all(np.isfinite(n)) or not math.isfinite(float(offset)):
             return np.zeros(N_ZONES, dtype=bool)
         pb = np.where(ok[:, None], fs.points_base, 0.0)

@@ -284,16 +284,34 @@ class PlacementLoop:
                 on = np.zeros(len(fs.valid), dtype=bool)
             off = fs.valid & ~on
             n_on = int(on.sum())
-            what = (f"zone(s) {', '.join(str(z + 1) for z in np.flatnonzero(off))} off the known surface"
-                    + (f" ({fs.describe()})" if fs.multi_surface else ""))
+
+            def what(off: np.ndarray) -> str:
+                return (f"zone(s) {', '.join(str(z + 1) for z in np.flatnonzero(off))} off the known surface"
+                        + (f" ({fs.describe()})" if fs.multi_surface else ""))
+
             if off.any() and n_on >= MIN_INLIERS:
                 self.multi_surface += 1
-                return self._zone_plane(fs, on, base_T_sensor), f"{what}: plane from the {n_on} zones still on it"
+                return self._zone_plane(fs, on, base_T_sensor), f"{what(off)}: plane from the {n_on} zones still on it"
             if off.any() and n_on >= MIN_ON_KNOWN and known.source == "memory":
                 # too few zones for a slope of their own: the remembered slope, their height
                 self.multi_surface += 1
                 return self._known_plane(fs, on, known, base_T_sensor), (
-                    f"{what}: the known surface's slope, its height from the {n_on} zones still on it")
+                    f"{what(off)}: the known surface's slope, its height from the {n_on} zones still on it")
+            if off.any() and known.source == "memory":
+                # clutter beside the footprint covers most of the view, and the zones that still see the known
+                # surface have the clutter's edge mixed into their returns: their peaks still lie on it (within
+                # the frame's tolerance, which then bounds their height error), so they give its height. A
+                # frame's own majority would be the clutter's top
+                try:
+                    mixed = self.surface.on_plane(fs, known.normal_base, known.offset_base, mixed=True)
+                except Exception:  # evidence, not control (see above)
+                    mixed = np.zeros(len(fs.valid), dtype=bool)
+                n_mixed = int(mixed.sum())
+                if n_mixed >= MIN_ON_KNOWN and (fs.valid & ~mixed).any():
+                    self.multi_surface += 1
+                    return self._known_plane(fs, mixed, known, base_T_sensor, height_std=fs.tolerance), (
+                        f"{what(fs.valid & ~mixed)}: the known surface's slope, its height from the {n_mixed} zones "
+                        "still on it (a nearer surface mixed into their returns)")
         if not fs.multi_surface:
             return est, None
         self.multi_surface += 1
@@ -307,10 +325,13 @@ class PlacementLoop:
                 f"more than one surface in view, plane from the {int(fs.inliers.sum())} zones that agree: {fs.describe()}")
 
     @staticmethod
-    def _known_plane(fs: Any, zones: np.ndarray, known: Any, base_T_sensor: np.ndarray) -> Any:
+    def _known_plane(fs: Any, zones: np.ndarray, known: Any, base_T_sensor: np.ndarray,
+                     height_std: float = KNOWN_HEIGHT_STD) -> Any:
         """An estimate (sensor frame) with the known surface's normal and the height the calibrated peak
         points of ``zones`` give it (their median). It measures no slope: its normal carries
-        :data:`KNOWN_SLOPE_STD` so the fusion's slope stays with the frames that measured one."""
+        :data:`KNOWN_SLOPE_STD` so the fusion's slope stays with the frames that measured one. Each zone's
+        height counts as uncertain by at least ``height_std`` (m; zones whose returns have a nearer surface
+        mixed in: the tolerance they were held to)."""
         T = np.asarray(base_T_sensor, dtype=float)
         n_b = np.asarray(known.normal_base, dtype=float)
         heights = fs.points_base[np.asarray(zones, dtype=bool)] @ n_b
@@ -320,7 +341,7 @@ class PlacementLoop:
         if not (n_s[2] > 0 and d_s > 0):
             return PlaneEstimate(None, reason="the known surface is not in front of the sensor")
         spread = float(np.std(heights)) if heights.size > 1 else 0.0
-        var_d = max(spread, KNOWN_HEIGHT_STD) ** 2 / heights.size
+        var_d = max(spread, height_std) ** 2 / heights.size
         cov = np.diag([KNOWN_SLOPE_STD ** 2, KNOWN_SLOPE_STD ** 2, var_d])
         return PlaneEstimate(Plane(n_s, d_s), residual=spread, covariance=cov, method_used="peak-known-slope")
 

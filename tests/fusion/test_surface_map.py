@@ -105,6 +105,30 @@ def test_a_nearer_surface_mixed_into_a_return_is_an_early_return():
     assert has.tolist() == [z == 4 for z in range(9)]
 
 
+def _box_over_six_zones(height: float = 0.08, box: float = 0.03) -> Frame:
+    """Looking straight down from ``height`` over a table at z = 0: zones 1-6 see the top of a box ``box``
+    high, zones 7-9 the table, with part of the box's return mixed into their leading edges."""
+    T = sensor_pose(height=height)
+    frame = frame_over(T, lambda x, y: 0.0)
+    nearer = frame_over(T, lambda x, y: box).hists - 30.0
+    h = frame.hists.copy()
+    h[:6] = 30.0 + nearer[:6]
+    h[6:] += 0.3 * nearer[6:]  # the box's edge in the table zones: a shoulder 1.8 bins ahead of the table
+    return Frame(h, np.ones(128), timestamp=0.0), T
+
+
+def test_zones_with_a_nearer_surface_mixed_in_lie_on_the_known_surface_only_when_asked():
+    # the zones still on the table have the box's edge mixed into their returns: not clean evidence of one
+    # surface (on_plane), but their peaks lie on the table (on_plane with mixed), and never on the box's top
+    frame, T = _box_over_six_zones()
+    sm = SurfaceMap(PARAMS)
+    fs = sm.add(frame, T, 0.0)
+    assert fs.early[6:].all() and not fs.early[:6].any()
+    assert not sm.on_plane(fs, UP, 0.0).any()
+    assert sm.on_plane(fs, UP, 0.0, mixed=True).tolist() == [z >= 6 for z in range(9)]
+    assert sm.on_plane(fs, UP, 0.03, mixed=True).tolist() == [z < 6 for z in range(9)]
+
+
 def test_a_wider_pulse_in_every_zone_is_the_pulse_not_clutter():
     # a sensor whose pulse is wider (another configuration, temperature): every zone's leading edge is
     # up, which is the pulse, not a nearer surface; a box under one zone still shows over it

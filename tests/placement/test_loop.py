@@ -232,6 +232,53 @@ def test_a_box_beside_the_footprint_under_the_sensor_does_not_hide_the_table():
     assert loop.surface.relative == 0.0
 
 
+def test_zones_still_on_the_known_surface_with_a_box_edge_mixed_in_give_its_height():
+    """Random scene 48 of seed 52 (scenarios/set/clutter_beside_footprint_covers_view.toml), in miniature: a box
+    beside the footprint covers six zones of the sensor, and the three still on the table have the box's edge
+    mixed into their returns. The frame's own majority is the box's top; the three zones give the table's
+    height with the remembered slope, and the box's top is never the plane."""
+    from place_safe.fusion.surface_map import CONSENSUS_RELATIVE
+    from place_safe.geometry import Plane
+    from place_safe.recovery.estimator import PlaneEstimate
+
+    robot = KinematicRobot(height=0.12)
+    loop = PlacementLoop(robot, TruthSource(robot), TruthEstimator())
+    loop.surface.relative = CONSENSUS_RELATIVE
+    T = np.eye(4)
+    T[:3, :3] = np.diag([1.0, -1.0, -1.0])  # looking straight down
+    T[:3, 3] = (0.0, 0.0, 0.08)  # 8 cm over the table at z = 0
+    level = PlaneEstimate(Plane(np.array([0.0, 0.0, 1.0]), 0.08), residual=0.0,
+                          covariance=np.diag([1e-6, 1e-6, 1e-8]), method_used="peak")
+    for k in range(30):  # the table seen on the way down: the filter remembers its slope
+        assert loop.filter.update(level, T, 0.01 * (k + 1))
+    known = loop.filter.fused()
+    assert known.source == "memory"
+
+    dirs = loop.surface.params.directions()
+    bins = np.arange(128, dtype=float)
+
+    def returns(top):
+        n, d = np.array([0.0, 0.0, 1.0]), 0.08 - top
+        at = loop.surface.params.expected_readings(n[None], np.array([d]))[0]
+        g = np.exp(-0.5 * ((bins[None] - at[:, None]) / 0.9) ** 2)
+        return 5000.0 * (g + np.where(bins[None] > at[:, None], 0.05 * np.exp(-(bins[None] - at[:, None]) / 4), 0))
+
+    h = 30.0 + returns(0.0)
+    h[:6] = 30.0 + returns(0.03)[:6]  # a box 3 cm high under six zones
+    h[6:] += 0.3 * returns(0.03)[6:]  # its edge mixed into the other three
+    from place_safe.sensor.frame import Frame
+    frame = Frame(h, np.ones(128), timestamp=0.5)
+    boxy = PlaneEstimate(Plane(np.array([0.0, 0.0, 1.0]), 0.05), residual=0.0,
+                         covariance=np.diag([1e-6, 1e-6, 1e-8]), method_used="diff")  # the frame's own plane
+    est, why = loop._surfaces(frame, boxy, T, 0.5)
+    assert dirs.shape == (9, 3)
+    assert est is not None and est.method_used == "peak-known-slope", why
+    assert "mixed into their returns" in why and why.startswith("zone(s) 1, 2, 3, 4, 5, 6 off the known surface")
+    assert abs(est.plane.offset - 0.08) <= loop.surface.consensus_tolerance(np.array([[0, 0, 0.05]]), np.ones(1, bool))
+    assert np.allclose(est.plane.normal, [0.0, 0.0, 1.0], atol=1e-9)
+    assert loop.filter.update(est, T, 0.5)
+
+
 def test_a_box_under_the_footprint_is_refused_as_clutter():
     robot = KinematicRobot(height=0.12)
     box = lambda x, y: 0.02 if abs(x - 0.42) < 0.02 and abs(y - 0.1) < 0.03 else 0.0  # noqa: E731
