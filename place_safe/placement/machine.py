@@ -171,6 +171,10 @@ SURVEY_VIEW_SLACK = 0.005
 #: move goes (it finishes early, not late).
 PASS_AHEAD = 0.03
 PASS_PACE = 1.5
+#: s the survey may go on with footprint points in doubt (seen raised, not seen clean since from as high or centred
+#: on them) before it takes the second look, centred on them: the survey's own passes see them from its
+#: pose again and again, and from there a zone reaching past the footprint may keep raising them.
+DOUBT_PATIENCE = 2.0
 #: Arrival gaps of sensor frames over which the machine measures the frame period (median).
 FRAME_GAPS = 8
 #: Fraction of ``footprint_margin``: a cup bottom this close sideways to the landing spot lies inside the
@@ -259,6 +263,8 @@ class PlacementMachine:
         self._surveyed = False
         self._recheck: _Recheck | None = None
         self._look_target: np.ndarray | None = None  # TCP position of the second look decided at CHECK (base)
+        self._doubt_since: float | None = None  # robot time the survey's verdict began to have points in doubt
+        self._doubt_ticks = 0
         self._suspect: _Suspect | None = None
         self._unconfirmed = 0
         self.notes: list[str] = []  # what the machine noticed without changing phase (unconfirmed contacts)
@@ -642,6 +648,25 @@ class PlacementMachine:
         r.ticks += 1
         return self._look_there(r, move, frames, state, c, now)
 
+    def _look_at_doubt(self, state: RobotState, c: float, now: float) -> Command | None:
+        """The second look (:meth:`_second_look`) at footprint points in doubt that the survey has not cleared
+        within :data:`DOUBT_PATIENCE`: no problem, but points seen raised and not seen clean since (the verdict's
+        ``recheck_point``). Once begun it goes on as any second look (a doubt that comes and goes with the verdict
+        ends it early); the cup then surveys, descends or refuses as the verdict says. None: no look now."""
+        fp = self._footprint
+        if self._recheck is None:
+            if getattr(fp, "problem", None) is not None or getattr(fp, "recheck_point", None) is None:
+                self._doubt_since, self._doubt_ticks = None, 0
+                return None
+            if self._doubt_since is None:
+                self._doubt_since = now
+            self._doubt_ticks += 1
+            if not self._elapsed(now, self._doubt_since, self._doubt_ticks) > DOUBT_PATIENCE:
+                return None
+        elif self._recheck.done:
+            return None
+        return self._second_look(state, c, now)
+
     def _look_there(self, r: _Recheck, move: np.ndarray | None, frames: float | None, state: RobotState, c: float,
                     now: float) -> Command | None:
         """The part both second looks share: within ``recheck_timeout`` of ``r.t0``, the TCP ``move`` to the pose
@@ -698,12 +723,18 @@ class PlacementMachine:
         self._descent_t0, self._descent_ticks = now, 0
         return Command.hold()
 
+    def _looked(self) -> bool:
+        """Whether a second look has been made: arrived over the doubtful points, ended (done, or timed out) or decided
+        at CHECK. A look at points in doubt left on its way there, because the survey's frames cleared them, is not."""
+        r = self._recheck
+        return r is not None and (r.arrived is not None or r.done or self._look_target is not None)
+
     def _can_look_again(self) -> bool:
         """Whether a footprint problem, or points in doubt, found at CHECK may send the cup back up for the second
-        look (once: no second look made yet, the rule and its time on, and a verdict that says where to look
-        from)."""
+        look (once: no second look made yet (:meth:`_looked`), the rule and its time on, and a verdict that says
+        where to look from)."""
         cfg = self.config
-        if self._recheck is not None or not cfg.recheck_timeout > 0 or cfg.footprint_frames == 0:
+        if self._looked() or not cfg.recheck_timeout > 0 or cfg.footprint_frames == 0:
             return False
         try:
             move = np.asarray(getattr(self._footprint, "recheck_shift"), dtype=float).reshape(3)
@@ -890,9 +921,12 @@ class PlacementMachine:
                 return look
             # something seen under the footprint while descending: stop hard (obstacle_decel) unless moving
             # sideways (the liquid's lateral acceleration), so an obstacle seen late is not run into
-            return self._refuse(now, why + (" (also from over those points)" if self._recheck else ""),
+            return self._refuse(now, why + (" (also from over those points)" if self._looked() else ""),
                                 decel=None if self._sideways else max(cfg.accel, cfg.obstacle_decel))
         side = np.zeros(3)
+        if self.phase == Phase.APPROACH and not self._surveyed and self._look_target is None \
+                and (look := self._look_at_doubt(state, c, now)) is not None:
+            return look
         if self.phase == Phase.APPROACH:
             cmd = self._survey(state, c, now)
             if isinstance(cmd, Command):
@@ -965,7 +999,7 @@ class PlacementMachine:
             return self._refuse(now, why)
         if (why := rules.footprint_problem(self._footprint, cfg)) is not None:
             if not self._can_look_again():
-                return self._refuse(now, why + (" (also from over those points)" if self._recheck else ""))
+                return self._refuse(now, why + (" (also from over those points)" if self._looked() else ""))
             # the doubt came up only here (the fused plane refined at rest moved a zone's reading over the line):
             # look again from over those points, as the approach would have, then come back down
             return self._go_look_again(state, now, why)

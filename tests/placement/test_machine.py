@@ -10,8 +10,8 @@ import pytest
 
 from place_safe.fusion.plane_filter import FusedPlane
 from place_safe.fusion.surface_map import FootprintVerdict
-from place_safe.placement.machine import (CommandKind, Phase, PlacementConfig, PlacementMachine, RobotState,
-                                         _Recheck)
+from place_safe.placement.machine import (DOUBT_PATIENCE, CommandKind, Phase, PlacementConfig, PlacementMachine,
+                                         RobotState, _Recheck)
 
 DT = 0.008  # s, control tick
 LATENCY = 0.1  # s, age of the newest plane in a healthy stream
@@ -393,6 +393,41 @@ def test_a_doubtful_footprint_gets_a_second_look_before_refusing(clears):
     else:
         assert m.outcome == "refused" and not opened(w)
         assert "edge" in m.decision and "also from over those points" in m.decision
+
+
+@pytest.mark.parametrize("clears", [True, False])
+def test_points_in_doubt_the_survey_does_not_clear_get_the_second_look(clears):
+    """Random scene 146 of seed 17: points near a box beside the footprint stay in doubt while the survey's passes
+    see them from its pose again and again (it hovered 15 s). After DOUBT_PATIENCE the cup takes the second look,
+    centred on them (x = -0.03, 12 cm up); cleared there, it surveys no more and lands; never cleared, the look is
+    made once and nothing is released."""
+    w = FakeWorld(height=0.2)
+    m = PlacementMachine()
+    state = {"there": 0, "first_move": None}
+
+    def fn(world, machine):
+        there = world.pos[0] <= -0.026 and world.pos[2] >= 0.11
+        state["there"] += int(there)
+        if state["first_move"] is None and world.pos[0] < -0.001:
+            state["first_move"] = world.t
+        doubt = not (clears and state["there"] >= 6)
+        fp = world.footprint
+        world.footprint = FootprintVerdict(  # the survey holds its pose (look_shift 0) while the points are in doubt
+            observed=5, supported=0 if doubt else 5, in_view=not doubt, view_margin=1.0 if not doubt else -0.01,
+            close_frames=(fp.close_frames or 0) + 1,
+            recheck_point=np.array([-0.03, 0.0, 0.0]) if doubt else None,
+            recheck_shift=np.array([-0.03 - world.pos[0], 0.0, 0.12 - world.pos[2]]) if doubt else None)
+        return world.plane()
+
+    run(w, m, plane_fn=fn, seconds=40.0)
+    assert state["first_move"] is not None and state["first_move"] >= DOUBT_PATIENCE
+    assert state["there"] > 0
+    if clears:
+        assert m.outcome == "released", m.decision
+        assert abs(w.opened_at[0]) <= 0.002  # back over the landing spot
+    else:
+        assert m.outcome != "released" and not opened(w)
+        assert m._recheck is not None and m._recheck.done
 
 
 def _doubt_at_check_fn(clears: bool, target_x: float = -0.03):
