@@ -663,9 +663,7 @@ class PlacementMachine:
             self._doubt_ticks += 1
             if not self._elapsed(now, self._doubt_since, self._doubt_ticks) > DOUBT_PATIENCE:
                 return None
-        elif self._recheck.done:
-            return None
-        return self._second_look(state, c, now)
+        return self._second_look(state, c, now)  # (None once the look is over)
 
     def _look_there(self, r: _Recheck, move: np.ndarray | None, frames: float | None, state: RobotState, c: float,
                     now: float) -> Command | None:
