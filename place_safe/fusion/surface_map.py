@@ -206,6 +206,14 @@ class FrameSurfaces:
         """More than one surface in view: a valid zone off the consensus plane, or a second return."""
         return bool(np.any(self.valid & ~self.inliers) or np.any(self.second) or np.any(self.early))
 
+    @property
+    def split(self) -> np.ndarray:
+        """Zones (9,) whose field holds more than one surface: a second, farther return or a nearer surface mixed
+        into the first. The first return of such a zone comes from part of its field only, whose mean direction is
+        not the zone's: its point lies off the surface by up to 1-2 % of the range even where the zone agrees with
+        the others within the consensus tolerance (a zone half past a table edge reads 1-2 mm near at 10 cm)."""
+        return self.valid & (self.second | self.early)
+
     def describe(self) -> str:
         out = []
         off = np.flatnonzero(self.valid & ~self.inliers)
@@ -308,7 +316,9 @@ class SurfaceMap:
         ``normal . x = offset`` within the frame's consensus tolerance (:meth:`consensus_tolerance`):
         valid, no nearer surface mixed in (with ``mixed``, also zones with a nearer surface mixed into the
         return whose peak still lies on the plane). With the fused surface as the plane these are the zones that
-        still see the known surface when clutter or a step comes into view beside it."""
+        still see the known surface when clutter or a step comes into view beside it. A zone that also sees a
+        farther surface behind (the floor past a table edge) counts: its first return is the known surface,
+        though from part of its field only (:attr:`FrameSurfaces.split`)."""
         n = np.asarray(normal, dtype=float)
         T = fs.base_T_sensor
         ok = fs.valid & (True if mixed else ~fs.early) & np.all(np.isfinite(fs.points_base), axis=1)

@@ -291,6 +291,9 @@ class PlacementLoop:
 
             if off.any() and n_on >= MIN_INLIERS:
                 self.multi_surface += 1
+                single = on & ~fs.split  # zones that see two surfaces read their first off (FrameSurfaces.split)
+                if int(single.sum()) >= MIN_INLIERS:
+                    on, n_on = single, int(single.sum())
                 return self._zone_plane(fs, on, base_T_sensor), f"{what(off)}: plane from the {n_on} zones still on it"
             if off.any() and n_on >= MIN_ON_KNOWN and known.source == "memory":
                 # too few zones for a slope of their own: the remembered slope, their height
@@ -316,13 +319,22 @@ class PlacementLoop:
             return est, None
         self.multi_surface += 1
         off = fs.valid & ~fs.inliers
+        # zones that see two surfaces read their first one off by up to 1-2 % of the range (FrameSurfaces.split):
+        # within the consensus tolerance, but enough to tilt the frame's plane by degrees at 10 cm; the plane
+        # comes from the zones that see one surface where enough of them agree
+        single = fs.inliers & ~fs.split
         if not off.any():
+            if fs.split.any() and int(single.sum()) >= MIN_INLIERS:
+                return (self._zone_plane(fs, single, base_T_sensor),
+                        f"more than one surface in view, plane from the {int(single.sum())} zones that see one: "
+                        f"{fs.describe()}")
             return est, f"more than one surface in view: {fs.describe()}"
         if int(fs.inliers.sum()) < MIN_INLIERS:
             return None, (f"multi-surface: more than one surface in view and no {MIN_INLIERS} zones agree "
                           f"(edge, step or clutter): {fs.describe()}")
-        return (self._zone_plane(fs, fs.inliers, base_T_sensor),
-                f"more than one surface in view, plane from the {int(fs.inliers.sum())} zones that agree: {fs.describe()}")
+        zones = single if int(single.sum()) >= MIN_INLIERS else fs.inliers
+        return (self._zone_plane(fs, zones, base_T_sensor),
+                f"more than one surface in view, plane from the {int(zones.sum())} zones that agree: {fs.describe()}")
 
     @staticmethod
     def _known_plane(fs: Any, zones: np.ndarray, known: Any, base_T_sensor: np.ndarray,

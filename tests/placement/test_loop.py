@@ -277,6 +277,51 @@ def test_zones_still_on_the_known_surface_with_a_box_edge_mixed_in_give_its_heig
     assert loop.filter.update(est, T, 0.5)
 
 
+def test_zones_that_also_see_the_floor_past_an_edge_do_not_tilt_the_plane():
+    """Random scene 136 of seed 54, in miniature: a table edge beyond the footprint runs through the row of zones
+    farthest out. Those zones see the table and, behind it, the floor; their first return comes from the part of
+    their field on the table and reads 1.5 mm near, within the frame's consensus tolerance. With them the frame's
+    plane tilts by about 2 deg and the fused surface with it; the plane comes from the six zones that see one
+    surface."""
+    from place_safe.fusion.surface_map import CONSENSUS_RELATIVE
+    from place_safe.geometry import Plane
+    from place_safe.recovery.estimator import PlaneEstimate
+    from place_safe.sensor.frame import Frame
+
+    robot = KinematicRobot(height=0.12)
+    loop = PlacementLoop(robot, TruthSource(robot), TruthEstimator())
+    loop.surface.relative = CONSENSUS_RELATIVE
+    T = np.eye(4)
+    T[:3, :3] = np.diag([1.0, -1.0, -1.0])  # looking straight down
+    T[:3, 3] = (0.0, 0.0, 0.10)  # 10 cm over the table at z = 0
+    bins = np.arange(128, dtype=float)
+    n = np.array([0.0, 0.0, 1.0])
+
+    def returns(d):  # pulses wide enough that the built-in mapping reads them to 0.1 mm
+        at = loop.surface.params.expected_readings(n[None], np.array([d]))[0]
+        return 5000.0 * np.exp(-0.5 * ((bins[None] - at[:, None]) / 2.0) ** 2)
+
+    tilted = PlaneEstimate(Plane(np.array([math.sin(math.radians(2.0)), 0.0, math.cos(math.radians(2.0))]), 0.10),
+                           residual=0.0, covariance=np.diag([1e-6, 1e-6, 1e-8]), method_used="diff")
+    for known in (False, True):
+        if known:  # the table seen level on the way down: the zones are held against it first
+            level = PlaneEstimate(Plane(n, 0.10), residual=0.0, covariance=np.diag([1e-6, 1e-6, 1e-8]),
+                                  method_used="peak")
+            for k in range(30):
+                assert loop.filter.update(level, T, 0.01 * (k + 1))
+        h = 30.0 + returns(0.10)
+        h[:3] = 30.0 + 0.5 * returns(0.0985)[:3] + 0.3 * returns(0.4)[:3]  # table part near, floor 30 cm below
+        fs_est, why = loop._surfaces(Frame(h, np.ones(128), timestamp=0.5), tilted, T, 0.5)
+        fs = loop.surface.frames[-1]
+        assert fs.second[:3].all() and not fs.second[3:].any() and fs.inliers.all()  # one plane within tolerance
+        assert fs_est.method_used == "peak-consensus" and "6 zones that see one" in why, why
+        assert math.degrees(math.acos(min(1.0, abs(float(fs_est.plane.normal @ n))))) < 0.2  # the estimate: 2 deg
+        assert abs(fs_est.plane.offset - 0.10) < 2e-4
+    # a frame whose zones see one surface each keeps its own estimate
+    est, why = loop._surfaces(Frame(30.0 + returns(0.10), np.ones(128), timestamp=0.6), tilted, T, 0.6)
+    assert est is tilted and why is None
+
+
 def test_a_box_under_the_footprint_is_refused_as_clutter():
     robot = KinematicRobot(height=0.12)
     box = lambda x, y: 0.02 if abs(x - 0.42) < 0.02 and abs(y - 0.1) < 0.03 else 0.0  # noqa: E731
