@@ -129,6 +129,23 @@ def test_zones_with_a_nearer_surface_mixed_in_lie_on_the_known_surface_only_when
     assert sm.on_plane(fs, UP, 0.03, mixed=True).tolist() == [z < 6 for z in range(9)]
 
 
+def test_zones_that_see_two_surfaces_are_split_and_still_on_the_known_surface():
+    # zones 7-9 have a box's edge mixed in (early), zone 1 sees a farther surface behind the table: all four are
+    # split (their first return comes from part of their field); zone 1's first return is the table itself
+    frame, T = _box_over_six_zones(box=0.0)  # no box: the table everywhere...
+    sm = SurfaceMap(PARAMS)
+    fs = sm.add(frame, T, 0.0)
+    assert not fs.split.any()
+    frame, T = _box_over_six_zones()
+    h = frame_over(T, lambda x, y: 0.0).hists.copy()
+    h[6:] = frame.hists[6:]  # ... the box's edge mixed into zones 7-9 ...
+    h[0] += pulse(95.0, 300.0)  # ... and a farther surface behind zone 1
+    fs = sm.add(Frame(h, np.ones(128), timestamp=1.0), T, 1.0)
+    assert fs.second.tolist() == [z == 0 for z in range(9)] and fs.early[6:].all()
+    assert fs.split.tolist() == [z == 0 or z >= 6 for z in range(9)]
+    assert sm.on_plane(fs, UP, 0.0).tolist() == [z < 6 for z in range(9)]
+
+
 def test_a_wider_pulse_in_every_zone_is_the_pulse_not_clutter():
     # a sensor whose pulse is wider (another configuration, temperature): every zone's leading edge is
     # up, which is the pulse, not a nearer surface; a box under one zone still shows over it
