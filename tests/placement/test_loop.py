@@ -322,6 +322,46 @@ def test_zones_that_also_see_the_floor_past_an_edge_do_not_tilt_the_plane():
     assert est is tilted and why is None
 
 
+def test_a_box_beside_the_view_gives_the_known_slope_not_the_slope_of_the_zones_beside_it():
+    """Random scene 17 of seed 57, in miniature: a box under zones 2 and 3 at 7 cm, its edge under part of zone 1,
+    which reads 1.5 mm near: within the tolerance, no shoulder. The plane of the 7 zones still on the table would
+    tilt by degrees; with the table's slope remembered the frame gives that slope at their height."""
+    from place_safe.fusion.surface_map import CONSENSUS_RELATIVE
+    from place_safe.geometry import Plane
+    from place_safe.recovery.estimator import PlaneEstimate
+    from place_safe.sensor.frame import Frame
+
+    robot = KinematicRobot(height=0.12)
+    loop = PlacementLoop(robot, TruthSource(robot), TruthEstimator())
+    loop.surface.relative = CONSENSUS_RELATIVE
+    T = np.eye(4)
+    T[:3, :3] = np.diag([1.0, -1.0, -1.0])  # looking straight down
+    T[:3, 3] = (0.0, 0.0, 0.07)  # 7 cm over the table at z = 0
+    bins = np.arange(128, dtype=float)
+    n = np.array([0.0, 0.0, 1.0])
+
+    def returns(d):  # pulses wide enough that the built-in mapping reads them to 0.1 mm
+        at = loop.surface.params.expected_readings(n[None], np.array([d]))[0]
+        return 5000.0 * np.exp(-0.5 * ((bins[None] - at[:, None]) / 2.0) ** 2)
+
+    h = 30.0 + returns(0.07)
+    h[1:3] = 30.0 + returns(0.055)[1:3]  # a box 15 mm high under zones 2 and 3
+    h[0] = 30.0 + returns(0.0685)[0]  # its edge under part of zone 1
+    frame = Frame(h, np.ones(128), timestamp=0.5)
+    own = PlaneEstimate(Plane(n, 0.07), residual=0.0, covariance=np.diag([1e-6, 1e-6, 1e-8]), method_used="diff")
+    est, why = loop._surfaces(frame, own, T, 0.5)  # nothing known yet: the frame's own consensus, 7 zones
+    assert est.method_used == "peak-consensus" and "7 zones that agree" in why, why
+    tilt = math.degrees(math.acos(min(1.0, abs(float(est.plane.normal @ n)))))
+    assert tilt > 1.0  # what zone 1 does to the slope of the 7
+    level = PlaneEstimate(Plane(n, 0.07), residual=0.0, covariance=np.diag([1e-6, 1e-6, 1e-8]), method_used="peak")
+    for k in range(30):  # the table seen level on the way down: its slope is remembered
+        assert loop.filter.update(level, T, 0.01 * (k + 1))
+    assert loop.filter.fused().source == "memory"
+    est, why = loop._surfaces(Frame(h, np.ones(128), timestamp=0.6), own, T, 0.6)
+    assert est.method_used == "peak-known-slope" and why.startswith("zone(s) 2, 3 off the known surface"), why
+    assert np.allclose(est.plane.normal, n, atol=1e-9) and abs(est.plane.offset - 0.07) < 1e-3
+
+
 def test_a_box_under_the_footprint_is_refused_as_clutter():
     robot = KinematicRobot(height=0.12)
     box = lambda x, y: 0.02 if abs(x - 0.42) < 0.02 and abs(y - 0.1) < 0.03 else 0.0  # noqa: E731
