@@ -301,9 +301,8 @@ class PlacementLoop:
                     f"{what(off)}: the known surface's slope, its height from the {n_on} zones still on it")
             if off.any() and n_on >= MIN_INLIERS:  # no slope remembered yet: the plane of the zones on it
                 self.multi_surface += 1
-                single = on & ~fs.split  # zones that see two surfaces read their first off (FrameSurfaces.split)
-                if int(single.sum()) >= MIN_INLIERS:
-                    on, n_on = single, int(single.sum())
+                on = self._one_surface(fs, on)
+                n_on = int(on.sum())
                 return self._zone_plane(fs, on, base_T_sensor), f"{what(off)}: plane from the {n_on} zones still on it"
             if off.any() and known.source == "memory":
                 # clutter beside the footprint covers most of the view, and the zones that still see the known
@@ -324,12 +323,9 @@ class PlacementLoop:
             return est, None
         self.multi_surface += 1
         off = fs.valid & ~fs.inliers
-        # zones that see two surfaces read their first one off by up to 1-2 % of the range (FrameSurfaces.split):
-        # within the consensus tolerance, but enough to tilt the frame's plane by degrees at 10 cm; the plane
-        # comes from the zones that see one surface where enough of them agree
-        single = fs.inliers & ~fs.split
+        single = self._one_surface(fs, fs.inliers)
         if not off.any():
-            if fs.split.any() and int(single.sum()) >= MIN_INLIERS:
+            if not np.array_equal(single, fs.inliers):  # zones that see two surfaces left out
                 return (self._zone_plane(fs, single, base_T_sensor),
                         f"more than one surface in view, plane from the {int(single.sum())} zones that see one: "
                         f"{fs.describe()}")
@@ -337,9 +333,17 @@ class PlacementLoop:
         if int(fs.inliers.sum()) < MIN_INLIERS:
             return None, (f"multi-surface: more than one surface in view and no {MIN_INLIERS} zones agree "
                           f"(edge, step or clutter): {fs.describe()}")
-        zones = single if int(single.sum()) >= MIN_INLIERS else fs.inliers
-        return (self._zone_plane(fs, zones, base_T_sensor),
-                f"more than one surface in view, plane from the {int(zones.sum())} zones that agree: {fs.describe()}")
+        return (self._zone_plane(fs, single, base_T_sensor),
+                f"more than one surface in view, plane from the {int(single.sum())} zones that agree: {fs.describe()}")
+
+    @staticmethod
+    def _one_surface(fs: Any, zones: np.ndarray) -> np.ndarray:
+        """``zones`` (9,) of a recorded frame without those that see two surfaces (:attr:`FrameSurfaces.split
+        <place_safe.fusion.surface_map.FrameSurfaces.split>`), when :data:`MIN_INLIERS` of them remain; else ``zones``
+        as they are. Such a zone reads its first surface off by up to 1-2 % of the range: within the consensus
+        tolerance, but enough to tilt a frame's plane by degrees at 10 cm."""
+        single = np.asarray(zones, dtype=bool) & ~fs.split
+        return single if int(single.sum()) >= MIN_INLIERS else zones
 
     @staticmethod
     def _known_plane(fs: Any, zones: np.ndarray, known: Any, base_T_sensor: np.ndarray,
