@@ -232,28 +232,54 @@ def test_a_box_beside_the_footprint_under_the_sensor_does_not_hide_the_table():
     assert loop.surface.relative == 0.0
 
 
-def test_zones_still_on_the_known_surface_with_a_box_edge_mixed_in_give_its_height():
-    """Random scene 48 of seed 52 (scenarios/set/clutter_beside_footprint_covers_view.toml), in miniature: a box
-    beside the footprint covers six zones of the sensor, and the three still on the table have the box's edge
-    mixed into their returns. The frame's own majority is the box's top; the three zones give the table's
-    height with the remembered slope, and the box's top is never the plane."""
+def _looking_down(height: float):
+    """A loop whose zones are held against the known surface (a calibrated mapping's tolerance: the fake renders its
+    pulses with the built-in mapping, so its points are as good), and its sensor pose ``height`` m straight over a
+    table at z = 0."""
     from place_safe.fusion.surface_map import CONSENSUS_RELATIVE
-    from place_safe.geometry import Plane
-    from place_safe.recovery.estimator import PlaneEstimate
-    from place_safe.sensor.frame import Frame
 
     robot = KinematicRobot(height=0.12)
     loop = PlacementLoop(robot, TruthSource(robot), TruthEstimator())
     loop.surface.relative = CONSENSUS_RELATIVE
     T = np.eye(4)
     T[:3, :3] = np.diag([1.0, -1.0, -1.0])  # looking straight down
-    T[:3, 3] = (0.0, 0.0, 0.08)  # 8 cm over the table at z = 0
-    level = PlaneEstimate(Plane(np.array([0.0, 0.0, 1.0]), 0.08), residual=0.0,
-                          covariance=np.diag([1e-6, 1e-6, 1e-8]), method_used="peak")
-    for k in range(30):  # the table seen on the way down: the filter remembers its slope
+    T[:3, 3] = (0.0, 0.0, height)
+    return loop, T
+
+
+def _estimate(normal, offset: float, method: str):
+    """A plane estimate (sensor frame) with a tight covariance."""
+    from place_safe.geometry import Plane
+    from place_safe.recovery.estimator import PlaneEstimate
+
+    return PlaneEstimate(Plane(np.asarray(normal, dtype=float), offset), residual=0.0,
+                         covariance=np.diag([1e-6, 1e-6, 1e-8]), method_used=method)
+
+
+def _remember_level(loop, T, offset: float) -> None:
+    """The table seen level on the way down, 30 frames: the filter remembers its slope."""
+    level = _estimate([0.0, 0.0, 1.0], offset, "peak")
+    for k in range(30):
         assert loop.filter.update(level, T, 0.01 * (k + 1))
-    known = loop.filter.fused()
-    assert known.source == "memory"
+    assert loop.filter.fused().source == "memory"
+
+
+def _wide_returns(loop, d: float) -> np.ndarray:
+    """(9, 128) counts of a level plane ``d`` m below the sensor: pulses wide enough (2 bins) that the built-in
+    mapping reads them to 0.1 mm."""
+    at = loop.surface.params.expected_readings(np.array([[0.0, 0.0, 1.0]]), np.array([d]))[0]
+    return 5000.0 * np.exp(-0.5 * ((np.arange(128, dtype=float)[None] - at[:, None]) / 2.0) ** 2)
+
+
+def test_zones_still_on_the_known_surface_with_a_box_edge_mixed_in_give_its_height():
+    """Random scene 48 of seed 52 (scenarios/set/clutter_beside_footprint_covers_view.toml), in miniature: a box
+    beside the footprint covers six zones of the sensor, and the three still on the table have the box's edge
+    mixed into their returns. The frame's own majority is the box's top; the three zones give the table's
+    height with the remembered slope, and the box's top is never the plane."""
+    from place_safe.sensor.frame import Frame
+
+    loop, T = _looking_down(0.08)
+    _remember_level(loop, T, 0.08)
 
     bins = np.arange(128, dtype=float)
 
@@ -267,8 +293,7 @@ def test_zones_still_on_the_known_surface_with_a_box_edge_mixed_in_give_its_heig
     h[:6] = 30.0 + returns(0.03)[:6]  # a box 3 cm high under six zones
     h[6:] += 0.3 * returns(0.03)[6:]  # its edge mixed into the other three
     frame = Frame(h, np.ones(128), timestamp=0.5)
-    boxy = PlaneEstimate(Plane(np.array([0.0, 0.0, 1.0]), 0.05), residual=0.0,
-                         covariance=np.diag([1e-6, 1e-6, 1e-8]), method_used="diff")  # the frame's own plane
+    boxy = _estimate([0.0, 0.0, 1.0], 0.05, "diff")  # the frame's own plane
     est, why = loop._surfaces(frame, boxy, T, 0.5)
     assert est is not None and est.method_used == "peak-known-slope", why
     assert "mixed into their returns" in why and why.startswith("zone(s) 1, 2, 3, 4, 5, 6 off the known surface")
@@ -283,34 +308,17 @@ def test_zones_that_also_see_the_floor_past_an_edge_do_not_tilt_the_plane():
     their field on the table and reads 1.5 mm near, within the frame's consensus tolerance. With them the frame's
     plane tilts by about 2 deg and the fused surface with it; the plane comes from the six zones that see one
     surface."""
-    from place_safe.fusion.surface_map import CONSENSUS_RELATIVE
-    from place_safe.geometry import Plane
-    from place_safe.recovery.estimator import PlaneEstimate
     from place_safe.sensor.frame import Frame
 
-    robot = KinematicRobot(height=0.12)
-    loop = PlacementLoop(robot, TruthSource(robot), TruthEstimator())
-    loop.surface.relative = CONSENSUS_RELATIVE
-    T = np.eye(4)
-    T[:3, :3] = np.diag([1.0, -1.0, -1.0])  # looking straight down
-    T[:3, 3] = (0.0, 0.0, 0.10)  # 10 cm over the table at z = 0
-    bins = np.arange(128, dtype=float)
+    loop, T = _looking_down(0.10)
     n = np.array([0.0, 0.0, 1.0])
-
-    def returns(d):  # pulses wide enough that the built-in mapping reads them to 0.1 mm
-        at = loop.surface.params.expected_readings(n[None], np.array([d]))[0]
-        return 5000.0 * np.exp(-0.5 * ((bins[None] - at[:, None]) / 2.0) ** 2)
-
-    tilted = PlaneEstimate(Plane(np.array([math.sin(math.radians(2.0)), 0.0, math.cos(math.radians(2.0))]), 0.10),
-                           residual=0.0, covariance=np.diag([1e-6, 1e-6, 1e-8]), method_used="diff")
+    tilted = _estimate([math.sin(math.radians(2.0)), 0.0, math.cos(math.radians(2.0))], 0.10, "diff")
     for known in (False, True):
         if known:  # the table seen level on the way down: the zones are held against it first
-            level = PlaneEstimate(Plane(n, 0.10), residual=0.0, covariance=np.diag([1e-6, 1e-6, 1e-8]),
-                                  method_used="peak")
-            for k in range(30):
-                assert loop.filter.update(level, T, 0.01 * (k + 1))
-        h = 30.0 + returns(0.10)
-        h[:3] = 30.0 + 0.5 * returns(0.0985)[:3] + 0.3 * returns(0.4)[:3]  # table part near, floor 30 cm below
+            _remember_level(loop, T, 0.10)
+        h = 30.0 + _wide_returns(loop, 0.10)
+        # the far row: the table part of its field 1.5 mm near, the floor 30 cm below behind it
+        h[:3] = 30.0 + 0.5 * _wide_returns(loop, 0.0985)[:3] + 0.3 * _wide_returns(loop, 0.4)[:3]
         fs_est, why = loop._surfaces(Frame(h, np.ones(128), timestamp=0.5), tilted, T, 0.5)
         fs = loop.surface.frames[-1]
         assert fs.second[:3].all() and not fs.second[3:].any() and fs.inliers.all()  # one plane within tolerance
@@ -318,7 +326,7 @@ def test_zones_that_also_see_the_floor_past_an_edge_do_not_tilt_the_plane():
         assert math.degrees(math.acos(min(1.0, abs(float(fs_est.plane.normal @ n))))) < 0.2  # the estimate: 2 deg
         assert abs(fs_est.plane.offset - 0.10) < 2e-4
     # a frame whose zones see one surface each keeps its own estimate
-    est, why = loop._surfaces(Frame(30.0 + returns(0.10), np.ones(128), timestamp=0.6), tilted, T, 0.6)
+    est, why = loop._surfaces(Frame(30.0 + _wide_returns(loop, 0.10), np.ones(128), timestamp=0.6), tilted, T, 0.6)
     assert est is tilted and why is None
 
 
@@ -326,37 +334,20 @@ def test_a_box_beside_the_view_gives_the_known_slope_not_the_slope_of_the_zones_
     """Random scene 17 of seed 57, in miniature: a box under zones 2 and 3 at 7 cm, its edge under part of zone 1,
     which reads 1.5 mm near: within the tolerance, no shoulder. The plane of the 7 zones still on the table would
     tilt by degrees; with the table's slope remembered the frame gives that slope at their height."""
-    from place_safe.fusion.surface_map import CONSENSUS_RELATIVE
-    from place_safe.geometry import Plane
-    from place_safe.recovery.estimator import PlaneEstimate
     from place_safe.sensor.frame import Frame
 
-    robot = KinematicRobot(height=0.12)
-    loop = PlacementLoop(robot, TruthSource(robot), TruthEstimator())
-    loop.surface.relative = CONSENSUS_RELATIVE
-    T = np.eye(4)
-    T[:3, :3] = np.diag([1.0, -1.0, -1.0])  # looking straight down
-    T[:3, 3] = (0.0, 0.0, 0.07)  # 7 cm over the table at z = 0
-    bins = np.arange(128, dtype=float)
+    loop, T = _looking_down(0.07)
     n = np.array([0.0, 0.0, 1.0])
-
-    def returns(d):  # pulses wide enough that the built-in mapping reads them to 0.1 mm
-        at = loop.surface.params.expected_readings(n[None], np.array([d]))[0]
-        return 5000.0 * np.exp(-0.5 * ((bins[None] - at[:, None]) / 2.0) ** 2)
-
-    h = 30.0 + returns(0.07)
-    h[1:3] = 30.0 + returns(0.055)[1:3]  # a box 15 mm high under zones 2 and 3
-    h[0] = 30.0 + returns(0.0685)[0]  # its edge under part of zone 1
+    h = 30.0 + _wide_returns(loop, 0.07)
+    h[1:3] = 30.0 + _wide_returns(loop, 0.055)[1:3]  # a box 15 mm high under zones 2 and 3
+    h[0] = 30.0 + _wide_returns(loop, 0.0685)[0]  # its edge under part of zone 1
     frame = Frame(h, np.ones(128), timestamp=0.5)
-    own = PlaneEstimate(Plane(n, 0.07), residual=0.0, covariance=np.diag([1e-6, 1e-6, 1e-8]), method_used="diff")
+    own = _estimate(n, 0.07, "diff")
     est, why = loop._surfaces(frame, own, T, 0.5)  # nothing known yet: the frame's own consensus, 7 zones
     assert est.method_used == "peak-consensus" and "7 zones that agree" in why, why
     tilt = math.degrees(math.acos(min(1.0, abs(float(est.plane.normal @ n)))))
     assert tilt > 1.0  # what zone 1 does to the slope of the 7
-    level = PlaneEstimate(Plane(n, 0.07), residual=0.0, covariance=np.diag([1e-6, 1e-6, 1e-8]), method_used="peak")
-    for k in range(30):  # the table seen level on the way down: its slope is remembered
-        assert loop.filter.update(level, T, 0.01 * (k + 1))
-    assert loop.filter.fused().source == "memory"
+    _remember_level(loop, T, 0.07)
     est, why = loop._surfaces(Frame(h, np.ones(128), timestamp=0.6), own, T, 0.6)
     assert est.method_used == "peak-known-slope" and why.startswith("zone(s) 2, 3 off the known surface"), why
     assert np.allclose(est.plane.normal, n, atol=1e-9) and abs(est.plane.offset - 0.07) < 1e-3
