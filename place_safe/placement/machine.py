@@ -265,6 +265,7 @@ class PlacementMachine:
         self._look_target: np.ndarray | None = None  # TCP position of the second look decided at CHECK (base)
         self._doubt_since: float | None = None  # robot time the survey's verdict began to have points in doubt
         self._doubt_ticks = 0
+        self._doubt_after_look = False  # the doubt counted since the second look ended (not since before it)
         self._suspect: _Suspect | None = None
         self._unconfirmed = 0
         self.notes: list[str] = []  # what the machine noticed without changing phase (unconfirmed contacts)
@@ -652,17 +653,25 @@ class PlacementMachine:
         """The second look (:meth:`_second_look`) at footprint points in doubt that the survey has not cleared
         within :data:`DOUBT_PATIENCE`: no problem, but points seen raised and not seen clean since (the verdict's
         ``recheck_point``). Once begun it goes on as any second look (a doubt that comes and goes with the verdict
-        ends it early); the cup then surveys, descends or refuses as the verdict says. None: no look now."""
+        ends it early); the cup then surveys, descends or refuses as the verdict says. Points still in doubt
+        :data:`DOUBT_PATIENCE` after the look is over refuse the cup: the survey's passes would only see them again
+        from where they were raised (until the surface map forgets its oldest frames). None: no look now."""
         fp = self._footprint
-        if self._recheck is None:
+        r = self._recheck
+        if r is None or r.done:
             if getattr(fp, "problem", None) is not None or getattr(fp, "recheck_point", None) is None:
                 self._doubt_since, self._doubt_ticks = None, 0
                 return None
+            if r is not None and not self._doubt_after_look:  # the look is over: its own patience starts now
+                self._doubt_since, self._doubt_ticks, self._doubt_after_look = None, 0, True
             if self._doubt_since is None:
                 self._doubt_since = now
             self._doubt_ticks += 1
             if not self._elapsed(now, self._doubt_since, self._doubt_ticks) > DOUBT_PATIENCE:
                 return None
+            if r is not None:  # looked from over them already: the survey's passes would only see them again
+                return self._refuse(now, f"no support evidence: footprint points seen raised were not seen clean "
+                                         f"within {DOUBT_PATIENCE:.1f} s of looking from over them")
         return self._second_look(state, c, now)  # (None once the look is over)
 
     def _look_there(self, r: _Recheck, move: np.ndarray | None, frames: float | None, state: RobotState, c: float,
