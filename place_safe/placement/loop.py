@@ -38,6 +38,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections import deque
 from dataclasses import dataclass, field, replace
 from typing import Any, Callable
 
@@ -69,6 +70,16 @@ MIN_ON_KNOWN = 3
 KNOWN_SLOPE_STD = math.radians(5.0)
 #: m: the least height uncertainty per zone of such an estimate.
 KNOWN_HEIGHT_STD = 0.0005
+#: m: a zone that saw two surfaces (:attr:`FrameSurfaces.split <place_safe.fusion.surface_map.FrameSurfaces.split>`)
+#: in a frame is held to see them still in later frames taken within this distance across the sensor's axis of
+#: that frame's sensor position (the same orientation within :data:`SPLIT_HOLD_ANGLE`) ...
+SPLIT_HOLD_RADIUS = 0.005
+SPLIT_HOLD_ANGLE = math.radians(1.0)
+#: ... and from at least this fraction of that frame's range (closer, the zone's field shrinks towards its own
+#: direction and may leave the edge behind; farther, it holds more of the other surface).
+SPLIT_HOLD_RANGE = 0.7
+#: Frames with zones that saw two surfaces that the loop remembers for it.
+SPLIT_HOLD_FRAMES = 200
 #: The fault the machine sees when ``robot.fault()`` itself fails.
 _NO_ANSWER = "robot does not answer"
 
@@ -189,6 +200,8 @@ class PlacementLoop:
         self._footprint_key: tuple | None = None
         self._footprint = None
         self.multi_surface = 0  # frames that saw more than one surface
+        # (sensor position, axis, median range, zones) of the frames with zones that saw two surfaces (_held_split)
+        self._split_seen: deque[tuple[np.ndarray, np.ndarray, float, np.ndarray]] = deque(maxlen=SPLIT_HOLD_FRAMES)
         self.pipeline = pipeline if pipeline is not None else SensorPipeline(
             source, estimator, replace(PLACEMENT_POLICY, read_bound=read_bound), clock=host_clock)
         self.clock = ClockMap(clock_domain_of(source))
@@ -273,6 +286,7 @@ class PlacementLoop:
             return est, f"surface map failed: {describe_exception(exc)}"
         if fs is None:
             return est, None
+        held = self._held_split(fs)
         # zones off the known surface while most still lie on it: clutter or a step coming into view
         # beside the footprint. A frame's own consensus can miss it -- a tilted plane through every zone
         # absorbs a box on one side -- so the zones are held against the fused surface too.
@@ -301,7 +315,7 @@ class PlacementLoop:
                     f"{what(off)}: the known surface's slope, its height from the {n_on} zones still on it")
             if off.any() and n_on >= MIN_INLIERS:  # no slope remembered yet: the plane of the zones on it
                 self.multi_surface += 1
-                on = self._one_surface(fs, on)
+                on = self._one_surface(fs, on, held)
                 n_on = int(on.sum())
                 return self._zone_plane(fs, on, base_T_sensor), f"{what(off)}: plane from the {n_on} zones still on it"
             if off.any() and known.source == "memory":
@@ -320,10 +334,18 @@ class PlacementLoop:
                         f"{what(fs.valid & ~mixed)}: the known surface's slope, its height from the {n_mixed} zones "
                         "still on it (a nearer surface mixed into their returns)")
         if not fs.multi_surface:
-            return est, None
+            single = self._one_surface(fs, fs.inliers, held)
+            if np.array_equal(single, fs.inliers):
+                return est, None
+            # random scene 136 of seed 54 made level: the far row reached past the table's edge and saw the floor
+            # down to 84 mm; closer, and at rest, its floor return fell below the second-return test while the row
+            # still read 0.4-0.9 mm near, and those frames' own planes (2 deg off) took the fused slope with them
+            return self._zone_plane(fs, single, base_T_sensor), (
+                f"zone(s) {', '.join(str(z + 1) for z in np.flatnonzero(fs.inliers & ~single))} saw two surfaces "
+                f"from about this pose: plane from the {int(single.sum())} others")
         self.multi_surface += 1
         off = fs.valid & ~fs.inliers
-        single = self._one_surface(fs, fs.inliers)
+        single = self._one_surface(fs, fs.inliers, held)
         if not off.any():
             if not np.array_equal(single, fs.inliers):  # zones that see two surfaces left out
                 return (self._zone_plane(fs, single, base_T_sensor),
@@ -336,13 +358,38 @@ class PlacementLoop:
         return (self._zone_plane(fs, single, base_T_sensor),
                 f"more than one surface in view, plane from the {int(single.sum())} zones that agree: {fs.describe()}")
 
+    def _held_split(self, fs: Any) -> np.ndarray:
+        """Zones (9,) of a recorded frame that saw two surfaces in an earlier frame taken from about its pose
+        (within :data:`SPLIT_HOLD_RADIUS` across the axis, :data:`SPLIT_HOLD_ANGLE`, and from at least
+        :data:`SPLIT_HOLD_RANGE` of that frame's range) and do not show it now: the other surface's share of the
+        zone's field may have fallen below what the second-return test sees (a floor 0.7 m down returns
+        1/100 as much per area as a table at 8 cm) while its first return still comes from part of its field only.
+        Remembers this frame's own split zones for the frames after it."""
+        T = np.asarray(fs.base_T_sensor, dtype=float)
+        p, axis = T[:3, 3], T[:3, 2]
+        ranges = np.linalg.norm(fs.points_base[fs.valid] - p, axis=1)
+        r = float(np.median(ranges)) if ranges.size else math.nan
+        held = np.zeros(len(fs.valid), dtype=bool)
+        if math.isfinite(r):
+            for q, a, r0, zones in self._split_seen:
+                d = p - q
+                across = d - axis * float(d @ axis)
+                if (float(np.linalg.norm(across)) <= SPLIT_HOLD_RADIUS and float(a @ axis) >= math.cos(SPLIT_HOLD_ANGLE)
+                        and r >= SPLIT_HOLD_RANGE * r0):
+                    held |= zones
+            if fs.split.any():
+                self._split_seen.append((p.copy(), axis.copy(), r, fs.split.copy()))
+        return held & fs.valid & ~fs.split
+
     @staticmethod
-    def _one_surface(fs: Any, zones: np.ndarray) -> np.ndarray:
+    def _one_surface(fs: Any, zones: np.ndarray, held: np.ndarray | None = None) -> np.ndarray:
         """``zones`` (9,) of a recorded frame without those that see two surfaces (:attr:`FrameSurfaces.split
-        <place_safe.fusion.surface_map.FrameSurfaces.split>`), when :data:`MIN_INLIERS` of them remain; else ``zones``
-        as they are. Such a zone reads its first surface off by up to 1-2 % of the range: within the consensus
-        tolerance, but enough to tilt a frame's plane by degrees at 10 cm."""
+        <place_safe.fusion.surface_map.FrameSurfaces.split>`) or are held to (``held``, :meth:`_held_split`), when
+        :data:`MIN_INLIERS` of them remain; else ``zones`` as they are. Such a zone reads its first surface off by up
+        to 1-2 % of the range: within the consensus tolerance, but enough to tilt a frame's plane by degrees at 10 cm."""
         single = np.asarray(zones, dtype=bool) & ~fs.split
+        if held is not None and int((fewer := single & ~np.asarray(held, dtype=bool)).sum()) >= MIN_INLIERS:
+            return fewer
         return single if int(single.sum()) >= MIN_INLIERS else zones
 
     @staticmethod
