@@ -38,7 +38,6 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections import deque
 from dataclasses import dataclass, field, replace
 from typing import Any, Callable
 
@@ -200,8 +199,10 @@ class PlacementLoop:
         self._footprint_key: tuple | None = None
         self._footprint = None
         self.multi_surface = 0  # frames that saw more than one surface
-        # (sensor position, axis, median range, zones) of the frames with zones that saw two surfaces (_held_split)
-        self._split_seen: deque[tuple[np.ndarray, np.ndarray, float, np.ndarray]] = deque(maxlen=SPLIT_HOLD_FRAMES)
+        # the frames with zones that saw two surfaces (_held_split), one row each: sensor position (3), axis (3),
+        # median range (1), zones (9); a ring of SPLIT_HOLD_FRAMES rows, _split_rows of them filled
+        self._split_seen = np.zeros((SPLIT_HOLD_FRAMES, 16))
+        self._split_rows = 0
         self.pipeline = pipeline if pipeline is not None else SensorPipeline(
             source, estimator, replace(PLACEMENT_POLICY, read_bound=read_bound), clock=host_clock)
         self.clock = ClockMap(clock_domain_of(source))
@@ -369,16 +370,17 @@ class PlacementLoop:
         p, axis = T[:3, 3], T[:3, 2]
         ranges = np.linalg.norm(fs.points_base[fs.valid] - p, axis=1)
         r = float(np.median(ranges)) if ranges.size else math.nan
-        held = np.zeros(len(fs.valid), dtype=bool)
-        if math.isfinite(r):
-            for q, a, r0, zones in self._split_seen:
-                d = p - q
-                across = d - axis * float(d @ axis)
-                if (float(np.linalg.norm(across)) <= SPLIT_HOLD_RADIUS and float(a @ axis) >= math.cos(SPLIT_HOLD_ANGLE)
-                        and r >= SPLIT_HOLD_RANGE * r0):
-                    held |= zones
-            if fs.split.any():
-                self._split_seen.append((p.copy(), axis.copy(), r, fs.split.copy()))
+        if not math.isfinite(r) or len(fs.valid) != 9:
+            return np.zeros(len(fs.valid), dtype=bool)
+        seen = self._split_seen[:min(self._split_rows, SPLIT_HOLD_FRAMES)]
+        d = p - seen[:, 0:3]
+        across = d - np.outer(d @ axis, axis)
+        near = ((np.einsum("ij,ij->i", across, across) <= SPLIT_HOLD_RADIUS ** 2)
+                & (seen[:, 3:6] @ axis >= math.cos(SPLIT_HOLD_ANGLE)) & (r >= SPLIT_HOLD_RANGE * seen[:, 6]))
+        held = np.any(seen[near, 7:16] > 0.5, axis=0)
+        if fs.split.any():
+            self._split_seen[self._split_rows % SPLIT_HOLD_FRAMES] = np.concatenate((p, axis, [r], fs.split))
+            self._split_rows += 1
         return held & fs.valid & ~fs.split
 
     @staticmethod

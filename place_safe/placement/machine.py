@@ -670,8 +670,9 @@ class PlacementMachine:
             if not self._elapsed(now, self._doubt_since, self._doubt_ticks) > DOUBT_PATIENCE:
                 return None
             if r is not None:  # looked from over them already: the survey's passes would only see them again
+                look = "looking from over them" if r.arrived is not None else "the second look at them (timed out)"
                 return self._refuse(now, f"no support evidence: footprint points seen raised were not seen clean "
-                                         f"within {DOUBT_PATIENCE:.1f} s of looking from over them")
+                                         f"within {DOUBT_PATIENCE:.1f} s of {look}")
         return self._second_look(state, c, now)  # (None once the look is over)
 
     def _look_there(self, r: _Recheck, move: np.ndarray | None, frames: float | None, state: RobotState, c: float,
