@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 
 from place_safe.sensor.histogram import measure_floor
-from place_safe.sensor.zones import N_BINS, N_ZONES
+from place_safe.sensor.zones import N_BINS, N_ZONES, zone_numbers
 
 #: rad, half the TMF8820's 33 x 33 deg field of view, less a margin for the mount's calibration error.
 FOV_HALF_ANGLE = math.radians(15.5)
@@ -218,17 +218,17 @@ class FrameSurfaces:
         out = []
         off = np.flatnonzero(self.valid & ~self.inliers)
         if off.size:
-            out.append("zone(s) " + ", ".join(str(z + 1) for z in off) + " off the plane of the others")
+            out.append("zone(s) " + zone_numbers(off) + " off the plane of the others")
         two = np.flatnonzero(self.second)
         if two.size:
-            out.append("zone(s) " + ", ".join(str(z + 1) for z in two) + " see a second surface "
+            out.append("zone(s) " + zone_numbers(two) + " see a second surface "
                        f"{np.nanmax(self.second_depth[two]) * 1e3:.0f} mm farther")
         near = np.flatnonzero(self.early)
         if near.size:
-            out.append("zone(s) " + ", ".join(str(z + 1) for z in near) + " see a nearer surface mixed into the return")
+            out.append("zone(s) " + zone_numbers(near) + " see a nearer surface mixed into the return")
         none = np.flatnonzero(~self.valid)
         if none.size:
-            out.append("no return in zone(s) " + ", ".join(str(z + 1) for z in none))
+            out.append("no return in zone(s) " + zone_numbers(none))
         return "; ".join(out)
 
 

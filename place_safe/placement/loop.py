@@ -57,6 +57,7 @@ from place_safe.recovery.estimator import Estimator, PlaneEstimate, check_argume
 from place_safe.recovery.points import PeakParams, fit_planes, plane_covariance
 from place_safe.robot.interface import Robot, RobotLimits
 from place_safe.robot.tool import ToolFrames
+from place_safe.sensor.zones import N_ZONES, zone_numbers
 
 log = logging.getLogger("place_safe.placement.loop")
 
@@ -200,8 +201,8 @@ class PlacementLoop:
         self._footprint = None
         self.multi_surface = 0  # frames that saw more than one surface
         # the frames with zones that saw two surfaces (_held_split), one row each: sensor position (3), axis (3),
-        # median range (1), zones (9); a ring of SPLIT_HOLD_FRAMES rows, _split_rows of them filled
-        self._split_seen = np.zeros((SPLIT_HOLD_FRAMES, 16))
+        # median range (1), zones (N_ZONES); a ring of SPLIT_HOLD_FRAMES rows, _split_rows of them filled
+        self._split_seen = np.zeros((SPLIT_HOLD_FRAMES, 7 + N_ZONES))
         self._split_rows = 0
         self.pipeline = pipeline if pipeline is not None else SensorPipeline(
             source, estimator, replace(PLACEMENT_POLICY, read_bound=read_bound), clock=host_clock)
@@ -301,7 +302,7 @@ class PlacementLoop:
             n_on = int(on.sum())
 
             def what(off: np.ndarray) -> str:
-                return (f"zone(s) {', '.join(str(z + 1) for z in np.flatnonzero(off))} off the known surface"
+                return (f"zone(s) {zone_numbers(off)} off the known surface"
                         + (f" ({fs.describe()})" if fs.multi_surface else ""))
 
             if off.any() and n_on >= MIN_ON_KNOWN and known.source == "memory":
@@ -334,19 +335,18 @@ class PlacementLoop:
                     return self._known_plane(fs, mixed, known, base_T_sensor, height_std=fs.tolerance), (
                         f"{what(fs.valid & ~mixed)}: the known surface's slope, its height from the {n_mixed} zones "
                         "still on it (a nearer surface mixed into their returns)")
+        single = self._one_surface(fs, fs.inliers, held)  # the consensus zones that see one surface
         if not fs.multi_surface:
-            single = self._one_surface(fs, fs.inliers, held)
             if np.array_equal(single, fs.inliers):
                 return est, None
             # random scene 136 of seed 54 made level: the far row reached past the table's edge and saw the floor
             # down to 84 mm; closer, and at rest, its floor return fell below the second-return test while the row
             # still read 0.4-0.9 mm near, and those frames' own planes (2 deg off) took the fused slope with them
             return self._zone_plane(fs, single, base_T_sensor), (
-                f"zone(s) {', '.join(str(z + 1) for z in np.flatnonzero(fs.inliers & ~single))} saw two surfaces "
+                f"zone(s) {zone_numbers(fs.inliers & ~single)} saw two surfaces "
                 f"from about this pose: plane from the {int(single.sum())} others")
         self.multi_surface += 1
         off = fs.valid & ~fs.inliers
-        single = self._one_surface(fs, fs.inliers, held)
         if not off.any():
             if not np.array_equal(single, fs.inliers):  # zones that see two surfaces left out
                 return (self._zone_plane(fs, single, base_T_sensor),
@@ -370,14 +370,14 @@ class PlacementLoop:
         p, axis = T[:3, 3], T[:3, 2]
         ranges = np.linalg.norm(fs.points_base[fs.valid] - p, axis=1)
         r = float(np.median(ranges)) if ranges.size else math.nan
-        if not math.isfinite(r) or len(fs.valid) != 9:
+        if not math.isfinite(r) or len(fs.valid) != N_ZONES:
             return np.zeros(len(fs.valid), dtype=bool)
         seen = self._split_seen[:min(self._split_rows, SPLIT_HOLD_FRAMES)]
         d = p - seen[:, 0:3]
         across = d - np.outer(d @ axis, axis)
         near = ((np.einsum("ij,ij->i", across, across) <= SPLIT_HOLD_RADIUS ** 2)
                 & (seen[:, 3:6] @ axis >= math.cos(SPLIT_HOLD_ANGLE)) & (r >= SPLIT_HOLD_RANGE * seen[:, 6]))
-        held = np.any(seen[near, 7:16] > 0.5, axis=0)
+        held = np.any(seen[near, 7:] > 0.5, axis=0)
         if fs.split.any():
             self._split_seen[self._split_rows % SPLIT_HOLD_FRAMES] = np.concatenate((p, axis, [r], fs.split))
             self._split_rows += 1

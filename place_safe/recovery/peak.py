@@ -52,6 +52,7 @@ from place_safe.recovery.estimator import Estimator, PlaneEstimate, Uncertainty,
 from place_safe.recovery.points import PeakParams, plane_covariance, plane_through
 from place_safe.recovery.too_close import may_be_close, overlap_reason
 from place_safe.sensor.histogram import COUNT_MAX, find_peaks, find_returns
+from place_safe.sensor.zones import zone_numbers
 
 def _flagged_saturated(frame: Frame) -> bool:
     extra = frame.extra or {}
@@ -103,7 +104,7 @@ class PeakEstimator(Estimator):
         p = self.params
         pos, _, valid, saturated, heights = find_returns(h, p.pileup, p.subbin, p.subbin_half_width, heights=True)
         if saturated.any():
-            zones = ", ".join(str(z + 1) for z in np.flatnonzero(saturated))
+            zones = zone_numbers(saturated)
             raise NoPlaneError(f"histogram saturated (counts at the 24-bit maximum) in zone(s) {zones}")
         if may_be_close(pos, valid, p):
             too_close = overlap_reason(self._far_ranges(pos), valid, heights)

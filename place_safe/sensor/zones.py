@@ -39,6 +39,12 @@ ZONE_KIND = np.array([2, 1, 2, 1, 0, 1, 2, 1, 2])
 CENTRE, EDGE, CORNER = 0, 1, 2
 
 
+def zone_numbers(zones: np.ndarray) -> str:
+    """The zones of a (9,) mask, or of an array of indices 0..8, as the sensor numbers them: "1, 2, 3"."""
+    z = np.asarray(zones)
+    return ", ".join(str(int(i) + 1) for i in (np.flatnonzero(z) if z.dtype == bool else z))
+
+
 def zone_centre_directions() -> np.ndarray:
     """Unit direction (9, 3) through the middle of each zone rectangle on z = 1."""
     cx = ZONE_RECTS[:, :2].mean(axis=1)
