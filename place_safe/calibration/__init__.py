@@ -9,6 +9,7 @@ Layout::
      "diff":        {"range_correction": {...},  # what diff's solver leaves over (optional)
                      "window_after_peak": 60},   # the solver's window it was calibrated with (bins)
      "uncertainty": {"peak": {...}, "diff": {...}},  # model-error floors and diff's chi-square limit
+     "reference":   {"tilt_std": ..., ...},      # how far the frames' ground truth was off (optional)
      "reports":     {"peak": {...}, ...}}        # fit-quality summaries (informational)
 
 ``place-safe calibrate --method M -o FILE`` fits one family and writes its section; if FILE already
@@ -26,7 +27,7 @@ from typing import TYPE_CHECKING, Any
 
 from place_safe.config import read_json, write_json
 from place_safe.exceptions import ArgumentTypeError, CalibrationError
-from place_safe.recovery.estimator import Uncertainty
+from place_safe.recovery.estimator import Reference, Uncertainty
 
 if TYPE_CHECKING:  # imported when a section is read: the forward model and diff load torch, the peak
     # mapping scipy, and a command's parser and --help need neither
@@ -34,7 +35,7 @@ if TYPE_CHECKING:  # imported when a section is read: the forward model and diff
     from place_safe.recovery.points import PeakParams
 
 FORMAT = "place_safe.calibration/1"
-SECTIONS = ("peak", "proprietary", "forward", "diff", "uncertainty")
+SECTIONS = ("peak", "proprietary", "forward", "diff", "uncertainty", "reference")
 
 
 #: Keys a calibration file may have besides its sections.
@@ -162,6 +163,12 @@ class Calibration:
             return Uncertainty.from_dict(sec[method], f"uncertainty.{method}") if method in sec else Uncertainty()
         except (TypeError, ValueError, AttributeError, OverflowError) as exc:
             raise CalibrationError(str(exc)) from None
+
+    def reference(self) -> Reference:
+        """How far the calibration frames' ground truth was off (:class:`~place_safe.recovery.estimator.Reference`;
+        exact when the section is absent)."""
+        d = self._section("reference")
+        return Reference.from_dict(d, "reference") if d is not None else Reference()
 
     def without_fallback(self) -> "Calibration":
         """A copy whose ``diff`` uncertainty never falls back to peak's plane

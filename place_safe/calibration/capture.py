@@ -39,8 +39,9 @@ from pydantic import Field
 
 from place_safe.config import ParamModel, vector
 
-from place_safe.exceptions import RobotFault, SensorTimeout
+from place_safe.exceptions import NoPlaneError, RobotFault, SensorTimeout
 from place_safe.geometry import Plane, fit_plane
+from place_safe.recovery.estimator import Reference
 from place_safe.robot.interface import Robot
 
 #: s between control steps while waiting for frames (the UR CB3's cycle).
@@ -51,6 +52,10 @@ STEP_S = 0.008
 TOUCH_SAMPLES = 5
 #: The most values one axis of the sweep grid may have.
 MAX_GRID_VALUES = 100
+#: m, the standard deviation taken for each touched contact's height: the UR5's stated pose repeatability
+#: (+-0.1 mm) read as one standard deviation. The simulated arm's three touches of a level table lie 0.06-0.18 mm
+#: low, 0.12 mm apart (docs/results.md, "The calibration's reference").
+TOUCH_HEIGHT_STD = 1e-4
 
 
 class SweepPlan(ParamModel):
@@ -192,6 +197,31 @@ def touch_plane(robot: Robot, points_xy: Any, start_height: float, *, speed: flo
     return n, float(n @ P.mean(axis=0)), P
 
 
+def touched_reference(points: Any, height_std: float = TOUCH_HEIGHT_STD) -> Reference:
+    """How far the plane :func:`touch_plane` fits through its contact ``points`` (k, 3) may be off, each contact's
+    height along the normal ``height_std`` (m) uncertain, or as scattered as the fit's residual says where that is
+    more (four or more points): ``tilt_std``, the normal's standard deviation along its worst direction (three
+    touches 8 cm apart at 0.1 mm: 0.12 deg), and ``offset_std``, the offset's at the points' centroid. Raises
+    ValueError when the points do not fix a plane (fewer than 3, not finite, on a line)."""
+    P = np.asarray(points, dtype=float)
+    if P.ndim != 2 or P.shape[1] != 3 or len(P) < 3 or not np.all(np.isfinite(P)):
+        raise ValueError(f"the touched plane's uncertainty needs 3 or more finite contact points (x, y, z); got "
+                         f"an array of shape {P.shape}")
+    centred = P - P.mean(axis=0)
+    try:
+        plane, rms = fit_plane(centred)
+    except NoPlaneError as exc:
+        raise ValueError(f"the touch points do not fix a plane: {exc}") from None
+    n = plane.normal if plane.normal[2] > 0 else -plane.normal
+    # the plane's residuals linearised in (n_x, n_y, d), as plane_covariance does for the zones' points
+    jac = np.column_stack([centred[:, :2] - centred[:, 2:] * (n[:2] / n[2]), -np.ones(len(P))])
+    dof = len(P) - 3
+    var = max(height_std ** 2, rms ** 2 * len(P) / dof if dof > 0 else 0.0)
+    cov = var * np.linalg.inv(jac.T @ jac)
+    return Reference(tilt_std=float(math.sqrt(np.linalg.eigvalsh(cov[:2, :2]).max())),
+                     offset_std=float(math.sqrt(cov[2, 2])), points=len(P), height_std=float(math.sqrt(var)))
+
+
 def _release_point(robot: Robot, speed: float, accel: float, max_back: float = 0.005) -> np.ndarray:
     """After a guarded descent stopped on contact: rise at half the descent speed until the robot's contact
     detector lets go of the contact (its averaged force below half its threshold) and return the TCP position
@@ -255,11 +285,15 @@ def _read_frames(robot: Robot, source: Any, n: int, t_ready: float, timeout: flo
 
 def capture_sweep(robot: Robot, source: Any, plan: SweepPlan, out_path: str | Path, *,
                   plane: tuple[np.ndarray, float], tool: Any, progress: bool = True,
-                  log: Callable[[str], None] | None = None) -> CaptureResult:
+                  log: Callable[[str], None] | None = None,
+                  reference: Reference | None = None) -> CaptureResult:
     """Run the sweep (see module docstring) and append frames to ``out_path`` (JSON Lines).
 
     ``plane``: the surface in the base frame (from :func:`touch_plane` or :func:`level_plane`). ``tool``:
     the :class:`~place_safe.robot.tool.ToolFrames` believed for the robot (flange_T_tcp, flange_T_sensor).
+    ``reference``: how far that plane may be off (:func:`touched_reference`), written with it into each frame's
+    ``meta.base_plane.reference``; ``calibrate`` keeps it as the calibration's ``reference`` section. None: not
+    stated (a table height given by hand).
     """
     from tqdm import tqdm
 
@@ -269,6 +303,9 @@ def capture_sweep(robot: Robot, source: Any, plan: SweepPlan, out_path: str | Pa
     n = np.asarray(plane[0], dtype=float)
     n = n / np.linalg.norm(n)
     pl = (n, float(plane[1]) / float(np.linalg.norm(plane[0])))
+    base_plane: dict[str, Any] = {"normal": pl[0].tolist(), "offset": pl[1]}
+    if reference is not None:
+        base_plane["reference"] = reference.to_dict()
     tcp_T_sensor = np.linalg.inv(tool.flange_T_tcp) @ tool.flange_T_sensor
     start_sensor = robot.tcp_pose() @ tcp_T_sensor
     if plan.centre is not None:
@@ -314,8 +351,7 @@ def capture_sweep(robot: Robot, source: Any, plan: SweepPlan, out_path: str | Pa
                 d["pose"] = flange.tolist()
                 d["joint_angles"] = [float(v) for v in q]
                 d["meta"] = {"pose_index": i, "frame": j, "distance": dist, "incidence": inc, "azimuth": az,
-                             "time": robot.time(), "base_T_tcp": tcp.tolist(), "base_plane":
-                             {"normal": pl[0].tolist(), "offset": pl[1]}}
+                             "time": robot.time(), "base_T_tcp": tcp.tolist(), "base_plane": base_plane}
                 if f.truth is not None:  # a simulated source knows the true plane: kept apart, for checks only
                     d["meta"]["source_truth"] = f.truth.to_dict()
                 fh.write(json.dumps(d) + "\n")
@@ -330,5 +366,5 @@ def capture_sweep(robot: Robot, source: Any, plan: SweepPlan, out_path: str | Pa
     return CaptureResult(str(out), len(grid), captured, len(done), refused, frames_written, robot.time() - t0)
 
 
-__all__ = ["SweepPlan", "CaptureResult", "capture_sweep", "touch_plane", "level_plane", "sensor_target",
-           "plane_in_sensor"]
+__all__ = ["SweepPlan", "CaptureResult", "capture_sweep", "touch_plane", "touched_reference", "level_plane",
+           "sensor_target", "plane_in_sensor", "TOUCH_HEIGHT_STD"]

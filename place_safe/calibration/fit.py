@@ -20,10 +20,14 @@ sections it wrote, in order:
   the diff solver solves each frame's own under a prior about it (the ``diff`` section's ``crosstalk_std``,
   :func:`~place_safe.calibration.forward_fit.free_crosstalk_std`).
 
+Every method also writes ``reference`` when the frames' ground truth states how far it may be off (a capture's
+touched plane: :func:`frames_reference`), and drops an earlier one when they state none.
+
 Reports go into ``calibration.reports`` as plain JSON values. SI units throughout (see the fits' modules).
 """
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 
 from place_safe.calibration import REQUIRED_SECTIONS, UNIT_MODELS, Calibration
@@ -35,6 +39,7 @@ from place_safe.calibration.points import adopt_pileup, fit_peak, fit_proprietar
 from place_safe.calibration.uncertainty import update_calibration
 from place_safe.io.json_values import jsonable
 from place_safe.recovery.differentiable import SolverOptions
+from place_safe.recovery.estimator import Reference
 from place_safe.sensor.frame import Frame
 
 def _store(cal: Calibration, fitted: list[str], name: str, section: dict, report: dict) -> None:
@@ -106,7 +111,30 @@ def fit_method(calibration: Calibration, frames: Sequence[Frame], method: str, p
     if method in ("peak", "diff"):
         cal.reports["uncertainty"] = jsonable(update_calibration(cal, frames, method))
         fitted.append("uncertainty")
+    reference = frames_reference(frames)
+    if reference is not None:
+        _store(cal, fitted, "reference", reference.to_dict(), {"frames": len(frames)})
+        say(f"reference: the frames' ground truth is a touched plane, within {math.degrees(reference.tilt_std):.2f} "
+            f"deg (1 sigma): every plane this calibration reads shares that error, and fusion adds it once")
+    elif "reference" in cal.sections:  # these frames' truth states no error: an older capture's does not hold
+        del cal.sections["reference"]
+        cal.reports.pop("reference", None)
+        cal.errors.pop("reference", None)
     return fitted
 
 
-__all__ = ["fit_method"]
+def frames_reference(frames: Sequence[Frame]) -> Reference | None:
+    """How far the frames' ground truth may be off: the largest ``meta.base_plane.reference`` (a capture's touched
+    plane, :func:`~place_safe.calibration.capture.touched_reference`) among them; None when no frame states one. A
+    stated one that is not a valid :class:`~place_safe.recovery.estimator.Reference` raises its one-line
+    CalibrationError."""
+    found: list[Reference] = []
+    for f in frames:
+        meta = (getattr(f, "extra", None) or {}).get("meta")
+        base = meta.get("base_plane") if isinstance(meta, dict) else None
+        if isinstance(base, dict) and base.get("reference") is not None:
+            found.append(Reference.from_dict(base["reference"], "frame meta.base_plane.reference"))
+    return max(found, key=lambda r: r.tilt_std) if found else None
+
+
+__all__ = ["fit_method", "frames_reference"]

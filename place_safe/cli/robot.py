@@ -232,7 +232,7 @@ def _place_arm(args: argparse.Namespace, cfg) -> tuple[dict, Any, list[str]]:
 # capture
 # ------------------------------------------------------------------------------------------------
 def cmd_capture(args: argparse.Namespace) -> int:
-    from place_safe.calibration.capture import SweepPlan, capture_sweep, level_plane, touch_plane
+    from place_safe.calibration.capture import SweepPlan, capture_sweep, level_plane, touch_plane, touched_reference
 
 
     grid = len(args.distances) * len(args.incidences) * len(args.azimuths)
@@ -264,13 +264,17 @@ def cmd_capture(args: argparse.Namespace) -> int:
         robot = URRobot(robot_cfg, dry_run=args.dry_run)
         source = open_sensor(args.sensor)
     tool = robot_cfg.tool.frames()
+    reference = None  # how far the plane may be off: stated for touches only
     with robot:
         if args.touch:
             if len(args.touch) < 3:
                 raise UsageError("capture: --touch needs at least 3 points")
             z0 = args.touch_height if args.touch_height is not None else robot.tcp_pose()[2, 3]
             n, d, pts = touch_plane(robot, args.touch, z0, force_threshold=args.touch_force)
-            log(f"touched the plane at {len(pts)} points: normal {n.round(4).tolist()}, offset {d * 1000:.1f} mm")
+            reference = touched_reference(pts)
+            log(f"touched the plane at {len(pts)} points: normal {n.round(4).tolist()}, offset {d * 1000:.1f} mm, "
+                f"within {math.degrees(reference.tilt_std):.2f} deg / {reference.offset_std * 1000:.2f} mm (1 sigma, "
+                f"{reference.height_std * 1000:.2f} mm per contact)")
             plane = (n, d)
         elif args.table_height is not None:
             plane = level_plane(args.table_height)
@@ -278,7 +282,8 @@ def cmd_capture(args: argparse.Namespace) -> int:
             plane = world.table_plane_base()
             log(f"table from the scenario: z = {plane[1] * 1000:.1f} mm in the base frame")
         try:
-            res = capture_sweep(robot, source, plan, args.output, plane=plane, tool=tool, progress=not args.quiet)
+            res = capture_sweep(robot, source, plan, args.output, plane=plane, tool=tool, progress=not args.quiet,
+                                reference=reference)
         finally:
             source.close()
     print(res.summary())

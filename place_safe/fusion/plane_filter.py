@@ -41,7 +41,10 @@ Conventions
   When every plane in the window has one, the Huber weights are multiplied by the inverse variances.
   ``FusedPlane.tilt_std`` (rad) is the standard error of the fused normal's direction: the larger of
   ``sqrt(1 / sum(1 / var_i))`` (NaN without covariances) and the window's own spread over ``sqrt(n)``,
-  so model disagreement the covariances do not know about still counts.
+  so model disagreement the covariances do not know about still counts. The tilt error every plane shares
+  through the calibration's reference (``reference_tilt_std``, rad; a table touched by the arm to calibrate
+  against, :class:`~place_safe.recovery.estimator.Reference`) is added to it once, in quadrature: no number of
+  frames averages it away, and no estimate's covariance holds it.
 * Memory of the normal: every plane accepted since the window last started (``reset``, or cleared after
   ``max_consecutive_rejects``) is remembered (at most ``memory`` planes, for ``memory_age`` seconds).
   A surface does not change its slope while the window follows it, and the frames from farther up
@@ -182,12 +185,14 @@ class PlaneFilter:
     memory_frames: remembered planes needed before the memory's normal is used.
     memory_gate: rad; the memory's normal is used only within this angle of the window's.
     memory_age: s; remembered planes older than this (relative to the newest time seen) are forgotten.
+    reference_tilt_std: rad; the tilt error every plane shares through the estimator's calibration (its
+        reference: :class:`~place_safe.recovery.estimator.Reference`), added once to the fused ``tilt_std``.
     """
 
     def __init__(self, window: int = 7, angle_gate: float = math.radians(5.0), offset_gate: float = 0.01,
                  min_frames: int = 3, max_consecutive_rejects: int = 5, max_age: float = 1.0,
                  memory: int = 300, memory_frames: int = 15, memory_gate: float = math.radians(1.5),
-                 memory_age: float = 30.0) -> None:
+                 memory_age: float = 30.0, reference_tilt_std: float = 0.0) -> None:
         if window < 1 or not (1 <= min_frames <= window) or max_consecutive_rejects < 1:
             raise ValueError("PlaneFilter needs window >= 1, 1 <= min_frames <= window, max_consecutive_rejects >= 1")
         if memory < 0 or memory_frames < 1:
@@ -201,6 +206,10 @@ class PlaneFilter:
         self.max_age = float(max_age)
         self.memory, self.memory_frames = int(memory), int(memory_frames)
         self.memory_gate, self.memory_age = float(memory_gate), float(memory_age)
+        if isinstance(reference_tilt_std, bool) or not isinstance(reference_tilt_std, (int, float)) or \
+                not (math.isfinite(reference_tilt_std) and 0.0 <= reference_tilt_std <= 0.1):
+            raise ValueError(f"PlaneFilter.reference_tilt_std must be 0..0.1 rad; got {reference_tilt_std!r}")
+        self.reference_tilt_std = float(reference_tilt_std)
         self.reset()
 
     def reset(self) -> None:
@@ -329,6 +338,7 @@ class PlaneFilter:
         if remembered is not None and _angle(remembered[0], n) <= self.memory_gate:
             n, tilt_std = remembered
             source = "memory"
+        tilt_std = math.hypot(tilt_std, self.reference_tilt_std)  # shared by every plane: not averaged away
         d = float(n @ anchor)
         res = A @ n - d
         self._cache = FusedPlane(n, d, _angle(n, _Z), spread, float(np.sqrt(np.mean(res**2))),

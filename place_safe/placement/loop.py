@@ -182,7 +182,8 @@ class PlacementLoop:
         self.log_frames = log_frames
         self.host_clock = host_clock
         self.filter = plane_filter if plane_filter is not None else PlaneFilter(
-            window=max(7, int(max(self.config.check_frames, self.config.max_check_frames)) + 2))
+            window=max(7, int(max(self.config.check_frames, self.config.max_check_frames)) + 2),
+            reference_tilt_std=reference_tilt_std_of(estimator))
         if self.filter.window < self.config.check_frames:
             raise ValueError(f"the plane filter's window ({self.filter.window}) cannot hold check_frames "
                              f"({self.config.check_frames}) planes: nothing could ever be released")
@@ -624,6 +625,16 @@ def _check_arguments(robot: Any, source: Any, estimator: Any, tool: Any, config:
             raise ValueError(f"PlacementLoop: {key} must be {lo:g}..{hi:g} s, got {v!r}")
 
 
+def reference_tilt_std_of(estimator: Any) -> float:
+    """rad, the tilt error every plane of ``estimator`` shares through its calibration's reference
+    (``estimator.reference_tilt_std``, set by :func:`~place_safe.recovery.make_estimator`); 0 for an estimator
+    without one. A value that is not a number in 0..0.1 rad raises ValueError (one line)."""
+    v = getattr(estimator, "reference_tilt_std", 0.0)
+    if not (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and 0.0 <= v <= 0.1):
+        raise ValueError(f"PlacementLoop: the estimator's reference_tilt_std must be 0..0.1 rad, got {describe(v)}")
+    return float(v)
+
+
 def peak_params_of(estimator: Any) -> Any:
     """The calibrated peak mapping an estimator carries (``peak``: its params; ``diff``: its initialiser's),
     else the built-in one; the surface map reads zone returns with it."""
@@ -636,4 +647,4 @@ def peak_params_of(estimator: Any) -> Any:
     return PeakParams.default_peak()
 
 
-__all__ = ["PlacementLoop", "LoopResult", "peak_params_of", "CONTROL_PERIOD", "MAX_RUN_SECONDS"]
+__all__ = ["PlacementLoop", "LoopResult", "peak_params_of", "reference_tilt_std_of", "CONTROL_PERIOD", "MAX_RUN_SECONDS"]

@@ -21,7 +21,8 @@ from place_safe.recovery.estimator import Estimator, PlaneEstimate, Uncertainty
 from place_safe.exceptions import ArgumentTypeError
 
 METHODS = ("diff", "peak", "peak-naive", "proprietary", "proprietary-naive")
-#: What a calibration answers (:class:`place_safe.calibration.Calibration`, :class:`BuiltInParameters`).
+#: What a calibration answers (:class:`place_safe.calibration.Calibration`, :class:`BuiltInParameters`); ``reference``
+#: besides is optional.
 _SECTION_METHODS = ("peak", "proprietary", "forward", "diff", "diff_options", "uncertainty")
 
 
@@ -56,6 +57,11 @@ class BuiltInParameters:
 
         return SolverOptions()
 
+    def reference(self):
+        from place_safe.recovery.estimator import Reference
+
+        return Reference()
+
     def uncertainty(self, method: str | None = None):
         return Uncertainty() if method is not None else {}
 
@@ -67,7 +73,9 @@ def make_estimator(method: str, calibration: Any = None, **options) -> Estimator
     file) or None; anything else (a path, a dict, a number) raises
     :class:`~place_safe.exceptions.ArgumentTypeError` saying what was expected. Without a calibration (or without a section for the method) each method uses its
     built-in defaults (:class:`BuiltInParameters`). ``options`` go to the estimator (e.g.
-    ``mode="paper"`` for ``diff``).
+    ``mode="paper"`` for ``diff``). The estimator's ``reference_tilt_std`` is the calibration's reference error
+    (``calibration.reference()``, a :class:`~place_safe.recovery.estimator.Reference`; 0 for a calibration object
+    without the method, and for the naive methods), which fusion adds once to the fused tilt.
     """
     if not isinstance(method, str):
         raise ArgumentTypeError(f"make_estimator: method must be a str, one of {', '.join(METHODS)}; "
@@ -80,6 +88,15 @@ def make_estimator(method: str, calibration: Any = None, **options) -> Estimator
         raise ArgumentTypeError(f"make_estimator: calibration must be a place_safe.calibration.Calibration or None, "
                                 f"got {type(calibration).__name__}{hint}")
     cal = calibration if calibration is not None else BuiltInParameters()
+    est = _made(method, cal, options)
+    if not method.endswith("-naive"):  # a naive method uses no calibration, nor its reference
+        reference = getattr(cal, "reference", None)  # optional: a task script's own calibration object may lack it
+        est.reference_tilt_std = float(reference().tilt_std) if callable(reference) else 0.0
+    return est
+
+
+def _made(method: str, cal: Any, options: dict) -> Estimator:
+    """The estimator of ``method`` from the sections of ``cal`` (see :func:`make_estimator`)."""
     if method == "peak":
         from place_safe.recovery.peak import PeakEstimator
         return PeakEstimator(cal.peak(), uncertainty=cal.uncertainty("peak"), **options)

@@ -242,6 +242,30 @@ class Uncertainty(ParamModel):
         return super().from_dict(d, what)
 
 
+class Reference(ParamModel):
+    """How far the ground truth a calibration was fitted to is itself off (a calibration file's ``reference``
+    section; absent: exact, as in a rig or a file whose truth came with no error).
+
+    A calibration learns the sensor's pointing (peak's zone mapping, the forward model's mount) so that its
+    frames read the planes they were captured against. When that reference plane is off, for instance a table
+    the arm touched at three points (:func:`place_safe.calibration.capture.touched_plane_std`), the calibration
+    learns the error with the pointing, and every plane the sensor reads afterwards is turned by about the same
+    rotation. The frames' own covariances cannot show it (their floor is fitted against the same reference),
+    and fusing frames does not average it away: :class:`~place_safe.fusion.plane_filter.PlaneFilter` adds it
+    once to the fused tilt's standard error (``reference_tilt_std``), and an estimate's ``covariance`` leaves it
+    out. ``tilt_std`` (rad, 0 .. 0.1): the reference normal's standard deviation along its worst direction;
+    ``offset_std`` (m, 0 .. 0.01): its offset's, at the touch points' centroid; ``points`` (0: not from touches)
+    and ``height_std`` (m): what the touches were and the error taken for each contact's height."""
+
+    tilt_std: float = Field(0.0, ge=0.0, le=0.1, description="rad")
+    offset_std: float = Field(0.0, ge=0.0, le=0.01, description="m")
+    points: int = Field(0, ge=0, le=1000, description="(touch points)")
+    height_std: float = Field(0.0, ge=0.0, le=0.01, description="m")
+
+    what: ClassVar[str] = "reference"
+    error: ClassVar[type[Exception]] = CalibrationError
+
+
 def is_covariance(c, definite: bool = False) -> bool:
     """Whether ``c`` is a finite 3 x 3 covariance: its symmetric part's largest eigenvalue above 0 and its smallest
     at least -1e-12 of it (positive semi-definite up to rounding), or with ``definite`` above 1e-12 of it (positive
@@ -352,6 +376,9 @@ class Estimator(ABC):
     name: str = "base"
     #: Whether the method needs the histograms (False: only the on-sensor distances).
     needs_histograms: bool = True
+    #: rad, the standard deviation of the tilt error every estimate shares through the calibration's reference
+    #: (:class:`Reference`; :func:`~place_safe.recovery.make_estimator` sets it): not in any estimate's covariance.
+    reference_tilt_std: float = 0.0
 
     def estimate(self, frame: Frame) -> PlaneEstimate:
         """Recover the plane of one frame; never raises for bad data, never returns a NaN plane or a

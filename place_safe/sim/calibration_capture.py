@@ -4,7 +4,8 @@ Concept: the estimators in simulation must be calibrated the way a user calibrat
 never handed the simulator's true parameters. :func:`capture_arm_sweep` runs the same chain a user
 runs on the UR5 (``place-safe capture``): the simulated UR5 (``SimRobot``) without the cup touches the
 table at three points with the guarded descent of :func:`place_safe.calibration.capture.touch_plane`
-(the ground-truth plane is what the arm measured, not the simulator's table), then
+(the ground-truth plane is what the arm measured, not the simulator's table, and the touches' uncertainty goes
+with it: :func:`~place_safe.calibration.capture.touched_reference`), then
 :func:`place_safe.calibration.capture.capture_sweep` drives it through distances x incidence x
 azimuth above that plane and writes every frame of the simulated sensor (nominal or mismatched, see
 :mod:`place_safe.sim.tof_mismatch`) with the plane in the sensor frame from the *configured* tool
@@ -33,7 +34,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from place_safe.calibration import Calibration
-from place_safe.calibration.capture import SweepPlan, capture_sweep, touch_plane
+from place_safe.calibration.capture import SweepPlan, capture_sweep, touch_plane, touched_reference
 from place_safe.calibration.fit import fit_method
 from place_safe.exceptions import CalibrationError
 from place_safe.io.frame_file import iter_frames, load_frames, write_frames
@@ -120,10 +121,11 @@ def capture_arm_sweep(path: str | Path, sensor: str = "nominal", poses: int = SW
     pts = [(start[0] + dx, start[1] + dy) for dx, dy in TOUCH_OFFSETS]
     # like a user who jogs the TCP to a few centimetres above the table before touching it
     near = world.table_plane_base()[1] + TOUCH_START
-    n, d, _ = touch_plane(robot, pts, float(near))
+    n, d, contacts = touch_plane(robot, pts, float(near))
     plan = SweepPlan(distances=list(ARM_DISTANCES), incidences=list(ARM_INCIDENCES), max_poses=poses,
                      centre=(float(start[0]), float(start[1])))
-    capture_sweep(robot, source, plan, out, plane=(n, d), tool=tool, progress=progress, log=lambda s: None)
+    capture_sweep(robot, source, plan, out, plane=(n, d), tool=tool, progress=progress, log=lambda s: None,
+                  reference=touched_reference(contacts))
     return out
 
 

@@ -279,6 +279,29 @@ def test_memory_options_are_validated():
             PlaneFilter(**kw)
 
 
+# -- the calibration's reference error: shared by every plane, added once ---------------------------------
+
+@pytest.mark.parametrize("heights", [np.linspace(0.30, 0.10, 8), np.linspace(0.30, 0.08, 200)])
+def test_the_reference_error_is_added_once_and_no_number_of_planes_averages_it_away(heights):
+    """A calibration fitted against a touched table shares the touch's tilt error with every plane it reads: the
+    fused standard error is the planes' own and the reference's in quadrature (window and memory alike), and so
+    never falls below the reference however many planes come; the fused normal itself does not change."""
+    ref = math.radians(0.124)
+    plain, with_ref = PlaneFilter(), PlaneFilter(reference_tilt_std=ref)
+    _feed(plain, _tilted(3.0), heights, std_deg=0.1)
+    _feed(with_ref, _tilted(3.0), heights, std_deg=0.1)
+    a, b = plain.fused(), with_ref.fused()
+    assert a.source == b.source and a.tilt_rad == b.tilt_rad
+    assert b.tilt_std == pytest.approx(math.hypot(a.tilt_std, ref))
+    assert b.tilt_std >= ref
+
+
+def test_the_reference_error_must_be_a_small_angle():
+    for bad in (-1e-3, 0.2, math.nan, math.inf, "0.001", True):
+        with pytest.raises(ValueError, match="reference_tilt_std"):
+            PlaneFilter(reference_tilt_std=bad)
+
+
 # -- property: the memory never makes the fused plane invalid ----------------------------------------
 
 @st.composite

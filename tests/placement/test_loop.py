@@ -13,6 +13,7 @@ import time
 import numpy as np
 import pytest
 
+from place_safe.geometry import Plane
 from place_safe.placement.loop import PlacementLoop
 from place_safe.placement.machine import PlacementConfig
 
@@ -433,3 +434,38 @@ def test_surface_map_tolerance_is_tight_only_for_a_calibrated_peak_mapping():
     loop = PlacementLoop(robot, TruthSource(robot), PeakEstimator(calibrated))
     assert loop.surface.params is calibrated and loop.surface.relative == CONSENSUS_RELATIVE
     assert loop.surface.consensus_tolerance(near, np.ones(9, bool)) < bare.surface.tolerance
+
+
+@pytest.mark.parametrize("reference_deg, outcome", [(0.0, "released"), (0.124, "refused")])
+def test_a_table_just_within_the_tilt_limit_is_refused_when_the_calibration_reference_may_be_off(reference_deg,
+                                                                                                outcome):
+    """A table 4.8 deg steep (the limit: 5) read exactly, each plane stating 0.01 deg: released. The same planes
+    from a calibration fitted against a table touched at three points (0.124 deg, 1 sigma: every plane may be off
+    by it together) leave 4.8 deg not below 5 with 99 % confidence: refused, and the reason says so."""
+    class Steeper(TruthEstimator):  # the table as read: turned 4.8 deg about the sensor's x axis
+        def estimate(self, frame):
+            est = super().estimate(frame)
+            c, s = math.cos(math.radians(4.8)), math.sin(math.radians(4.8))
+            n = np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]]) @ est.plane.normal
+            est.plane = Plane(n, est.plane.offset)
+            return est
+
+    robot = KinematicRobot(height=0.12)
+    est = Steeper(sigma=(math.radians(0.01), 1e-5))
+    est.reference_tilt_std = math.radians(reference_deg)
+    loop = PlacementLoop(robot, TruthSource(robot), est)
+    assert loop.filter.reference_tilt_std == pytest.approx(math.radians(reference_deg))
+    res = loop.run(timeout=20.0)
+    assert res.outcome == outcome, res.reason
+    assert robot.opened == (outcome == "released")
+    if outcome == "refused":
+        assert "confidence" in res.reason and "+- 0.12 deg" in res.reason
+
+
+def test_an_estimator_whose_reference_error_is_not_a_small_angle_is_refused_at_construction():
+    robot = KinematicRobot(height=0.12)
+    for bad in (math.nan, -0.01, 0.5, "0.002"):
+        est = TruthEstimator()
+        est.reference_tilt_std = bad
+        with pytest.raises(ValueError, match="reference_tilt_std"):
+            PlacementLoop(robot, TruthSource(robot), est)
