@@ -10,8 +10,8 @@ import math
 import numpy as np
 import pytest
 
-from place_safe.calibration.capture import (SweepPlan, capture_sweep, level_plane, plane_in_sensor, sensor_target,
-                                            touch_plane)
+from place_safe.calibration.capture import (TOUCH_HEIGHT_STD, SweepPlan, capture_sweep, level_plane, plane_in_sensor,
+                                            sensor_target, touch_plane, touched_reference)
 from place_safe.drivers.ur5 import URConfig, URRobot, packaged_config
 from place_safe.drivers.ur5 import fake_rtde
 from place_safe.drivers.ur5.kinematic_arm import KinematicArm
@@ -72,6 +72,26 @@ def test_touch_without_contact_is_an_error(kin):
         touch_plane(robot, [(-0.49, -0.1)] * 3, start_height=0.2, speed=0.02, max_depth=0.02)
 
 
+def test_a_touched_plane_states_how_far_it_may_be_off():
+    """Three touches 8 cm apart, each contact's height 0.1 mm uncertain: the normal within 0.124 deg along its worst
+    direction (the diagonal), the offset at their centroid within 0.1 / sqrt(3) mm. A fourth touch 0.3 mm off the
+    plane of the others shows a larger scatter than the stated one, which then holds; wider touches fix the tilt
+    better; points on a line, or not finite, fix no plane."""
+    base = np.array([0.4, -0.1, 0.05])
+    three = base + np.array([[0.0, 0.0, 0.0], [0.08, 0.0, 0.0], [0.0, 0.08, 0.0]])
+    r = touched_reference(three)
+    assert TOUCH_HEIGHT_STD == 1e-4 and r.points == 3 and r.height_std == pytest.approx(1e-4)
+    assert math.degrees(r.tilt_std) == pytest.approx(math.degrees(math.sqrt(3) * 1e-4 / 0.08), rel=1e-6)
+    assert math.degrees(r.tilt_std) == pytest.approx(0.124, abs=5e-4)
+    assert r.offset_std == pytest.approx(1e-4 / math.sqrt(3))
+    four = np.vstack([three, base + [0.08, 0.08, 3e-4]])
+    assert touched_reference(four).height_std > 1e-4 and touched_reference(four).points == 4
+    assert touched_reference(base + 2.0 * (three - base)).tilt_std == pytest.approx(r.tilt_std / 2.0)
+    for bad in (three[:2], base + np.outer([0.0, 1.0, 2.0], [0.04, 0.0, 0.0]), np.where(three > 0.3, np.nan, three)):
+        with pytest.raises(ValueError, match="plane"):
+            touched_reference(bad)
+
+
 def test_sensor_target_geometry():
     plane = level_plane(0.0)
     for inc, az in [(0.0, 0.0), (math.radians(20), math.radians(135))]:
@@ -94,7 +114,8 @@ def test_capture_writes_truth_poses_joints_resumes_and_refuses(kin, tmp_path):
                         progress=False, log=lambda s: None)
     assert res.captured == 1 and len(res.refused) == 1  # the subsample is poses 0 and 5; 5 is too low
     res = capture_sweep(robot, ClockSource(robot), plan, out, plane=level_plane(TABLE_Z), tool=robot.tool,
-                        progress=False, log=lambda s: None)
+                        progress=False, log=lambda s: None, reference=touched_reference(
+                            [(-0.46, -0.08, TABLE_Z), (-0.54, -0.08, TABLE_Z), (-0.46, -0.16, TABLE_Z)]))
     assert res.skipped_done == 1 and res.poses == 6  # pose 0 was in the file (pose 5 of the subsample was not)
     assert len(res.refused) == 3 and all("workspace box" in r["reason"] for r in res.refused)
     assert {r["distance"] for r in res.refused} == {0.03}
@@ -109,6 +130,9 @@ def test_capture_writes_truth_poses_joints_resumes_and_refuses(kin, tmp_path):
             f.extra["meta"]["distance"], abs=0.002)
     lines = [json.loads(x) for x in out.read_text().splitlines()]
     assert sorted(d["meta"]["pose_index"] for d in lines) == [0, 1, 2]
+    # the frames of the second run carry how far the touched plane may be off; the first run's stated nothing
+    refs = [d["meta"]["base_plane"].get("reference") for d in sorted(lines, key=lambda d: d["meta"]["pose_index"])]
+    assert refs[0] is None and all(r["points"] == 3 and r["tilt_std"] > 0 for r in refs[1:])
 
 
 def test_capture_stops_on_a_latched_fault_and_a_dead_sensor(kin, tmp_path):

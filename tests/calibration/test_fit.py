@@ -1,9 +1,16 @@
-"""fit_method: the unit model is a choice of the diff fit only, and only a known one."""
+"""fit_method: the unit model is a choice of the diff fit only, and only a known one; the frames' stated reference
+error goes into the calibration."""
+
+import copy
+import math
 
 import pytest
 
 from place_safe.calibration import UNIT_MODELS, Calibration
-from place_safe.calibration.fit import fit_method
+from place_safe.calibration.fit import fit_method, frames_reference
+from place_safe.exceptions import CalibrationError
+from place_safe.recovery import make_estimator
+from place_safe.recovery.estimator import Reference
 
 
 def test_the_unit_models_offered():
@@ -16,3 +23,57 @@ def test_an_unknown_unit_model_or_one_for_another_method_is_refused_before_any_f
     with pytest.raises(ValueError, match="unit model"):
         fit_method(cal, [], method, unit_model=unit_model)
     assert not cal.sections
+
+
+@pytest.fixture(scope="module")
+def sweep_frames(sweep_path):
+    from place_safe.io.frame_file import load_frames
+
+    return load_frames(sweep_path)
+
+
+def _touched(frames, tilt_std):
+    """Copies of ``frames`` whose ground truth says it came from a touched plane within ``tilt_std`` rad."""
+    out = []
+    for f in frames:
+        g = copy.copy(f)
+        g.extra = {**f.extra, "meta": {"base_plane": {"normal": [0.0, 0.0, 1.0], "offset": 0.0, "reference":
+                                                      Reference(tilt_std=tilt_std, points=3).to_dict()}}}
+        out.append(g)
+    return out
+
+
+def test_the_frames_reference_is_the_largest_they_state(sweep_frames):
+    frames = sweep_frames[:4]
+    assert frames_reference(frames) is None  # the public sweep's truth states no error
+    mixed = _touched(frames[:2], 0.001) + _touched(frames[2:3], 0.003) + frames[3:]
+    assert frames_reference(mixed).tilt_std == pytest.approx(0.003)
+    bad = _touched(frames[:1], 0.001)
+    bad[0].extra["meta"]["base_plane"]["reference"]["tilt_std"] = -1.0
+    with pytest.raises(CalibrationError, match="reference"):
+        frames_reference(bad)
+
+
+def test_a_calibration_keeps_its_frames_reference_and_its_estimators_carry_it(sweep_frames):
+    """Calibrated from a capture against a touched table, the file gets a ``reference`` section and every estimator
+    made from it its tilt error (added once by fusion); calibrated again from frames that state none, the section
+    goes (it described other frames); a calibration without it, and the naive methods, carry none."""
+    frames = sweep_frames[::4]
+    cal = Calibration()
+    assert "reference" in fit_method(cal, _touched(frames, math.radians(0.124)), "proprietary")
+    again = Calibration.from_dict(cal.to_dict())
+    assert again.reference().tilt_std == pytest.approx(math.radians(0.124))
+    for method in ("proprietary", "peak", "diff"):
+        assert make_estimator(method, again).reference_tilt_std == pytest.approx(math.radians(0.124))
+    assert make_estimator("peak-naive", again).reference_tilt_std == 0.0
+    assert make_estimator("peak").reference_tilt_std == 0.0
+    assert "reference" not in fit_method(again, frames, "proprietary") and "reference" not in again.sections
+    assert make_estimator("proprietary", again).reference_tilt_std == 0.0
+
+
+def test_a_malformed_reference_section_is_one_line_for_the_methods_that_read_it():
+    cal = Calibration.from_dict({"format": "place_safe.calibration/1", "reference": {"tilt_std": "big"}})
+    with pytest.raises(CalibrationError, match="reference"):
+        make_estimator("peak", cal)
+    with pytest.raises(CalibrationError, match="reference"):
+        Calibration({"reference": {"tilt_std": 1.0}})

@@ -23,6 +23,9 @@ def test_arm_capture_measures_the_table_by_touch_and_records_frames_with_it(tmp_
         assert math.degrees(math.acos(min(1.0, float(n @ t)))) < 0.3
         assert abs(r["plane"]["offset"] - r["meta"]["source_truth"]["offset"]) < 0.002
         assert len(r["hists"]) == 9 and len(r["joint_angles"]) == 6
+        # and how far the touch may be off goes with it: here 0.075 deg off, stated 0.124 deg (1 sigma)
+        assert r["meta"]["base_plane"]["reference"]["points"] == 3
+        assert math.acos(min(1.0, float(n @ t))) < 3 * r["meta"]["base_plane"]["reference"]["tilt_std"]
 
 
 def test_packaged_calibrations_record_their_capture_chain():
@@ -35,6 +38,10 @@ def test_packaged_calibrations_record_their_capture_chain():
     # the nominal sensor's is the arm chain a user runs, over the heights placements start from
     rep = json.loads(calibration_file("nominal").read_text())["reports"]["capture"]
     assert rep["chain"] == CHAIN and max(rep["distances_m"]) >= 0.45
+    # against a table the arm touched: how far the touch may be off goes with it; the rig's truth is exact
+    assert math.degrees(Calibration.load(calibration_file("nominal")).reference().tilt_std) == pytest.approx(0.124,
+                                                                                                          abs=0.002)
+    assert Calibration.load(calibration_file("mismatch")).reference().tilt_std == 0.0
 
 
 def test_the_zone_time_units_calibration_is_its_own_level_sweep_with_the_time_scales_taken():
