@@ -233,12 +233,15 @@ def _place_arm(args: argparse.Namespace, cfg) -> tuple[dict, Any, list[str]]:
 # ------------------------------------------------------------------------------------------------
 def cmd_capture(args: argparse.Namespace) -> int:
     from place_safe.calibration.capture import SweepPlan, capture_sweep, level_plane, touch_plane, touched_reference
+    from place_safe.recovery.estimator import Reference
 
 
     grid = len(args.distances) * len(args.incidences) * len(args.azimuths)
     if min(grid, args.poses or grid) * args.frames_per_pose > 100_000:
         raise UsageError(f"capture: {grid} poses x {args.frames_per_pose} frames is too long a sweep; "
                          "give --poses N (at most 100000 frames in all)")
+    if args.table_tilt_std is not None and args.table_height is None:
+        raise UsageError("capture: --table-tilt-std goes with --table-height (a touched plane states its own error)")
     if args.touch and not 3 <= len(args.touch) <= 20:
         raise UsageError(f"capture: --touch needs 3 to 20 points, got {len(args.touch)}")
     plan = SweepPlan(distances=[d / 1000.0 for d in args.distances],
@@ -278,6 +281,11 @@ def cmd_capture(args: argparse.Namespace) -> int:
             plane = (n, d)
         elif args.table_height is not None:
             plane = level_plane(args.table_height)
+            if args.table_tilt_std is not None:
+                reference = Reference(tilt_std=math.radians(args.table_tilt_std))
+            else:
+                log("note: the table is taken as exactly level in the base frame; --table-tilt-std DEG states how far "
+                    "it may be off (or --touch the table), so that placements count it")
         else:
             plane = world.table_plane_base()
             log(f"table from the scenario: z = {plane[1] * 1000:.1f} mm in the base frame")
@@ -425,6 +433,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         opt("--settle", type=float_range(0.0, 60.0, lo_open=True), default=0.25,
             help="s at rest before frames count (default 0.25, at most 60)"),
         "table_height",
+        opt("--table-tilt-std", type=float_range(0.0, 5.0), metavar="DEG",
+            help="with --table-height: how far the table may be from level in the robot's base frame, one standard "
+                 "deviation in degrees (e.g. 0.1 for a table and a robot base each levelled by a spirit level). It goes "
+                 "with the capture into the calibration (its 'reference') and a placement adds it to the fused tilt's "
+                 "uncertainty once: no number of frames averages it away. Default: the table is taken as exactly level. "
+                 "--touch states its own (0.1 mm per contact)"),
         opt("--touch", type=_xy_points, action="append", metavar="X,Y", help="touch the plane here (m, base)"),
         opt("--touch-height", type=float_range(-REACH, REACH), help="z (m) to start each guarded descent from"),
         opt("--touch-force", type=float_range(0.0, 200.0, lo_open=True), default=12.0,

@@ -346,6 +346,7 @@ NEW_OPTION_RUNS = [
     ["capture", "--sim", "level_table", "-o", "{tmp}/cap.jsonl", "--speed", "1e300"],
     ["capture", "--sim", "level_table", "-o", "{tmp}/cap.jsonl", "--touch-force", "nan"],
     ["capture", "--sim", "level_table", "-o", "{tmp}/cap.jsonl", "--table-height", "nan"],
+    ["capture", "--sim", "level_table", "-o", "{tmp}/cap.jsonl", "--table-height", "0", "--table-tilt-std", "inf"],
     ["capture", "--sim", "level_table", "-o", "{tmp}/cap.jsonl", "--incidences", "90,180"],
     ["capture", "--sim", "level_table", "-o", "{tmp}/cap.jsonl", "--distances", ",".join(["100"] * 1000)],
     ["capture", "--robot", _ROBOT, "--sensor", "emu:synthetic:3", "-o", "{tmp}/cap.jsonl", "--touch", "1e300,0"],

@@ -21,6 +21,9 @@ from place_safe.drivers.ur5 import URConfig, packaged_config
     (["capture", "--sim", "level_table", "-o", "x", "--distances", "90:10:2"], "STOP >= START"),
     (["capture", "--sim", "level_table", "-o", "x", "--distances", "5:90:2"], "from 10 to 5000, got '5:90:2'"),
     (["capture", "--sim", "level_table", "-o", "x", "--distances", "10:1000:5"], "at most 100 values"),
+    (["capture", "--sim", "level_table", "-o", "x", "--table-tilt-std", "0.1"], "goes with --table-height"),
+    (["capture", "--sim", "level_table", "-o", "x", "--table-height", "0", "--table-tilt-std", "nan"], "--table-tilt-std"),
+    (["capture", "--sim", "level_table", "-o", "x", "--table-height", "0", "--table-tilt-std", "9"], "--table-tilt-std"),
 ])
 def test_usage_errors_are_one_line(argv, match, capsys, monkeypatch, tmp_path):
     monkeypatch.chdir(tmp_path)
@@ -81,3 +84,24 @@ def test_capture_distances_are_a_bounded_list_of_millimetres_or_one_clear_error(
         assert "\n" not in str(exc) and str(exc).startswith("expected")
         return
     assert 1 <= len(values) <= MAX_LIST and all(math.isfinite(v) and 10.0 <= v <= 5000.0 for v in values)
+
+
+@pytest.mark.parametrize("tilt_std", [None, 0.1])
+def test_a_capture_against_a_table_height_states_the_tables_levelness_only_when_told(tilt_std, tmp_path, capsys):
+    """``--table-height`` takes the table as level in the base frame: with ``--table-tilt-std`` the frames say how far
+    it may be off (the calibration keeps it as its reference, fusion adds it); without, a note says it is taken as
+    exact."""
+    import json
+    import math
+
+    out = tmp_path / "cap.jsonl"
+    argv = ["capture", "--sim", "level_table", "--table-height", "0.0", "--poses", "1", "--settle", "0.01", "-q",
+            "-o", str(out)] + ([] if tilt_std is None else ["--table-tilt-std", str(tilt_std)])
+    assert main(argv) == 0
+    rows = [json.loads(x) for x in out.read_text().splitlines()]
+    refs = [r["meta"]["base_plane"].get("reference") for r in rows]
+    if tilt_std is None:
+        assert refs and all(r is None for r in refs)
+        assert "taken as exactly level" in capsys.readouterr().err
+    else:
+        assert refs and all(r["tilt_std"] == pytest.approx(math.radians(0.1)) and r["points"] == 0 for r in refs)
