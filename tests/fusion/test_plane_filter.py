@@ -318,11 +318,12 @@ def _plane_stream(draw):
 
 
 @settings(max_examples=150, deadline=None)
-@given(_plane_stream(), st.integers(0, 40), st.floats(0.01, 0.2))
-def test_fused_plane_stays_valid_with_any_stream(events, memory, gate):
+@given(_plane_stream(), st.integers(0, 40), st.floats(0.01, 0.2), st.sampled_from([0.0, 1e-4, 0.0022, 0.1]))
+def test_fused_plane_stays_valid_with_any_stream(events, memory, gate, reference):
     """Duplicate, out-of-order and non-finite stamps, missing or NaN covariances, outliers: the fused plane is
-    None or finite with a unit normal, and its source is one of the two; the memory holds at most ``memory``."""
-    filt = PlaneFilter(memory=memory, memory_frames=5, memory_gate=gate)
+    None or finite with a unit normal, and its source is one of the two; the memory holds at most ``memory``; its
+    tilt's standard error is never below the calibration's reference error."""
+    filt = PlaneFilter(memory=memory, memory_frames=5, memory_gate=gate, reference_tilt_std=reference)
     T = looking_down([0.4, -0.1, 0.3])
     for tilt, az, std, stamp, offset in events:
         cov = None if std is None else np.diag([std ** 2, std ** 2, 1e-8])
@@ -334,7 +335,7 @@ def test_fused_plane_stays_valid_with_any_stream(events, memory, gate):
         assert math.isfinite(f.offset_base) and 0.0 <= f.tilt_rad <= math.pi
         assert f.source in ("window", "memory") and f.memory_n <= max(memory, 1)
         assert f.source == "window" or (memory > 0 and f.memory_n >= 5 and math.isfinite(f.tilt_std))
-        assert math.isnan(f.tilt_std) or f.tilt_std >= 0.0
+        assert math.isnan(f.tilt_std) or f.tilt_std >= reference
         assert list(f.stamps) == sorted(set(f.stamps))
 
 
