@@ -114,8 +114,9 @@ def fit_method(calibration: Calibration, frames: Sequence[Frame], method: str, p
     reference = frames_reference(frames)
     if reference is not None:
         _store(cal, fitted, "reference", reference.to_dict(), {"frames": len(frames)})
-        say(f"reference: the frames' ground truth is a touched plane, within {math.degrees(reference.tilt_std):.2f} "
-            f"deg (1 sigma): every plane this calibration reads shares that error, and fusion adds it once")
+        what = f"a plane touched at {reference.points} points" if reference.points else "a table stated level"
+        say(f"reference: the frames' ground truth is {what}, within {math.degrees(reference.tilt_std):.2f} deg "
+            f"(1 sigma): every plane this calibration reads shares that error, and fusion adds it once")
     elif "reference" in cal.sections:  # these frames' truth states no error: an older capture's does not hold
         del cal.sections["reference"]
         cal.reports.pop("reference", None)
