@@ -22,7 +22,6 @@ import numpy as np
 from place_safe.calibration.capture import touch_plane, touched_reference
 
 TABLE_Z = 0.05  # m, the fake's table top in the base frame
-OFFSETS = ((0.0, 0.0), (0.08, 0.0), (0.0, 0.08))  # m, as place_safe.sim.calibration_capture.TOUCH_OFFSETS
 
 
 def cb3_touch(seed: int, kinematics) -> tuple[np.ndarray, np.ndarray]:
@@ -34,7 +33,9 @@ def cb3_touch(seed: int, kinematics) -> tuple[np.ndarray, np.ndarray]:
     fake = fake_rtde.FakeUR(arm, force_noise=3.6, force_offset=(0.0, 0.0, 4.0), seed=seed)
     robot = URRobot(URConfig.load(packaged_config("sim")), modules=fake_rtde.modules(), out=lambda s: None).connect()
     del fake
-    pts = [(-0.46 + dx, -0.08 - dy) for dx, dy in OFFSETS]
+    from place_safe.sim.calibration_capture import TOUCH_OFFSETS
+
+    pts = [(-0.46 + dx, -0.08 - dy) for dx, dy in TOUCH_OFFSETS]
     n, _, P = touch_plane(robot, pts, start_height=0.08, speed=0.005, force_threshold=15.0)
     return n, P
 

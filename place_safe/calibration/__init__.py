@@ -9,7 +9,7 @@ Layout::
      "diff":        {"range_correction": {...},  # what diff's solver leaves over (optional)
                      "window_after_peak": 60},   # the solver's window it was calibrated with (bins)
      "uncertainty": {"peak": {...}, "diff": {...}},  # model-error floors and diff's chi-square limit
-     "reference":   {"tilt_std": ..., ...},      # how far the frames' ground truth was off (optional)
+     "reference":   {"diff": {"tilt_std": ...}, ...},  # how far each method's frames' truth was off (optional)
      "reports":     {"peak": {...}, ...}}        # fit-quality summaries (informational)
 
 ``place-safe calibrate --method M -o FILE`` fits one family and writes its section; if FILE already
@@ -164,11 +164,22 @@ class Calibration:
         except (TypeError, ValueError, AttributeError, OverflowError) as exc:
             raise CalibrationError(str(exc)) from None
 
-    def reference(self) -> Reference:
-        """How far the calibration frames' ground truth was off (:class:`~place_safe.recovery.estimator.Reference`;
-        exact when the section is absent)."""
-        d = self._section("reference")
-        return Reference.from_dict(d, "reference") if d is not None else Reference()
+    def reference(self, method: str | None = None):
+        """How far the ground truth ``method``'s sections were fitted to was off
+        (:class:`~place_safe.recovery.estimator.Reference`; exact when the section or its entry is absent). ``diff``
+        starts from and blends with peak's plane: its reference is the larger of its own and peak's. Without a
+        method, every entry of the section as a dict."""
+        sec = self._section("reference") or {}
+        if (bad := next((k for k in sec if k not in REQUIRED_SECTIONS), None)) is not None:
+            raise CalibrationError(f"reference section: {str(bad)[:40]!r} is not a method family; expected some of "
+                                   f"{', '.join(REQUIRED_SECTIONS)}")
+        entries = {k: Reference.from_dict(v, f"reference.{k}") for k, v in sec.items()}
+        if method is None:
+            return entries
+        own = entries.get(method, Reference())
+        if method == "diff" and entries.get("peak", own).tilt_std > own.tilt_std:
+            return entries["peak"]
+        return own
 
     def without_fallback(self) -> "Calibration":
         """A copy whose ``diff`` uncertainty never falls back to peak's plane

@@ -41,7 +41,7 @@ from place_safe.config import ParamModel, vector
 
 from place_safe.exceptions import NoPlaneError, RobotFault, SensorTimeout
 from place_safe.geometry import Plane, fit_plane
-from place_safe.recovery.estimator import Reference
+from place_safe.recovery.estimator import MAX_REFERENCE_TILT, Reference
 from place_safe.robot.interface import Robot
 
 #: s between control steps while waiting for frames (the UR CB3's cycle).
@@ -213,13 +213,22 @@ def touched_reference(points: Any, height_std: float = TOUCH_HEIGHT_STD) -> Refe
     except NoPlaneError as exc:
         raise ValueError(f"the touch points do not fix a plane: {exc}") from None
     n = plane.normal if plane.normal[2] > 0 else -plane.normal
+    if n[2] < 0.5:
+        raise ValueError(f"the touch points do not fix a table: their plane is {math.degrees(math.acos(n[2])):.0f} deg "
+                         "from level")
     # the plane's residuals linearised in (n_x, n_y, d), as plane_covariance does for the zones' points
     jac = np.column_stack([centred[:, :2] - centred[:, 2:] * (n[:2] / n[2]), -np.ones(len(P))])
     dof = len(P) - 3
     var = max(height_std ** 2, rms ** 2 * len(P) / dof if dof > 0 else 0.0)
     cov = var * np.linalg.inv(jac.T @ jac)
-    return Reference(tilt_std=float(math.sqrt(np.linalg.eigvalsh(cov[:2, :2]).max())),
-                     offset_std=float(math.sqrt(cov[2, 2])), points=len(P), height_std=float(math.sqrt(var)))
+    tilt, offset = float(math.sqrt(np.linalg.eigvalsh(cov[:2, :2]).max())), float(math.sqrt(cov[2, 2]))
+    if not (tilt <= MAX_REFERENCE_TILT and offset <= 0.01 and var <= 1e-4):
+        within = f"only within {min(math.degrees(tilt), 90.0):.2g} deg"
+        if var > height_std ** 2:
+            raise ValueError(f"the touches disagree by {math.sqrt(var) * 1e3:.2g} mm about one plane, which they fix "
+                             f"{within}: check the table and the contacts")
+        raise ValueError(f"the touch points lie too near a line: they fix the plane {within}; touch farther apart")
+    return Reference(tilt_std=tilt, offset_std=offset, points=len(P), height_std=float(math.sqrt(var)))
 
 
 def _release_point(robot: Robot, speed: float, accel: float, max_back: float = 0.005) -> np.ndarray:

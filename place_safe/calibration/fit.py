@@ -20,8 +20,9 @@ sections it wrote, in order:
   the diff solver solves each frame's own under a prior about it (the ``diff`` section's ``crosstalk_std``,
   :func:`~place_safe.calibration.forward_fit.free_crosstalk_std`).
 
-Every method also writes ``reference`` when the frames' ground truth states how far it may be off (a capture's
-touched plane: :func:`frames_reference`), and drops an earlier one when they state none.
+Every method also writes its entries of ``reference`` (those of the methods it fitted: diff's, and peak's when it fitted
+peak) when the frames' ground truth states how far it may be off (a capture's touched plane, or a table stated level
+within some angle: :func:`frames_reference`), and drops them when the frames state none.
 
 Reports go into ``calibration.reports`` as plain JSON values. SI units throughout (see the fits' modules).
 """
@@ -111,23 +112,39 @@ def fit_method(calibration: Calibration, frames: Sequence[Frame], method: str, p
     if method in ("peak", "diff"):
         cal.reports["uncertainty"] = jsonable(update_calibration(cal, frames, method))
         fitted.append("uncertainty")
+    _keep_reference(cal, fitted, frames, [m for m in ("peak", "proprietary") if m in fitted] +
+                    (["diff"] if method == "diff" else []), say)
+    return fitted
+
+
+def _keep_reference(cal: Calibration, fitted: list[str], frames: Sequence[Frame], methods: list[str],
+                    say: Callable[[str], None]) -> None:
+    """Set the ``reference`` entries of the ``methods`` just fitted to what ``frames`` state (:func:`frames_reference`),
+    or drop them when the frames state none (an entry from another capture does not hold for these fits); the other
+    methods' entries stay; the section goes when it is left empty."""
     reference = frames_reference(frames)
+    section = dict(cal.sections.get("reference") or {}) if "reference" not in cal.errors else {}
+    for m in methods:
+        section.pop(m, None)
+        if reference is not None:
+            section[m] = reference.to_dict()
+    cal.errors.pop("reference", None)
+    if section:
+        _store(cal, fitted, "reference", section, {"frames": len(frames), "methods": sorted(section)})
+    else:
+        cal.sections.pop("reference", None)
+        cal.reports.pop("reference", None)
     if reference is not None:
-        _store(cal, fitted, "reference", reference.to_dict(), {"frames": len(frames)})
         what = f"a plane touched at {reference.points} points" if reference.points else "a table stated level"
         say(f"reference: the frames' ground truth is {what}, within {math.degrees(reference.tilt_std):.2f} deg "
-            f"(1 sigma): every plane this calibration reads shares that error, and fusion adds it once")
-    elif "reference" in cal.sections:  # these frames' truth states no error: an older capture's does not hold
-        del cal.sections["reference"]
-        cal.reports.pop("reference", None)
-        cal.errors.pop("reference", None)
-    return fitted
+            f"(1 sigma): every plane {', '.join(methods)} reads shares that error, and fusion adds it once")
 
 
 def frames_reference(frames: Sequence[Frame]) -> Reference | None:
     """How far the frames' ground truth may be off: the largest ``meta.base_plane.reference`` (a capture's touched
-    plane, :func:`~place_safe.calibration.capture.touched_reference`) among them; None when no frame states one. A
-    stated one that is not a valid :class:`~place_safe.recovery.estimator.Reference` raises its one-line
+    plane, :func:`~place_safe.calibration.capture.touched_reference`) among them (a resumed capture, or several files,
+    may mix frames that state one with frames that do not: the largest holds for all); None when no frame states one.
+    A stated one that is not a valid :class:`~place_safe.recovery.estimator.Reference` raises its one-line
     CalibrationError."""
     found: list[Reference] = []
     for f in frames:

@@ -240,8 +240,9 @@ def cmd_capture(args: argparse.Namespace) -> int:
     if min(grid, args.poses or grid) * args.frames_per_pose > 100_000:
         raise UsageError(f"capture: {grid} poses x {args.frames_per_pose} frames is too long a sweep; "
                          "give --poses N (at most 100000 frames in all)")
-    if args.table_tilt_std is not None and args.table_height is None:
-        raise UsageError("capture: --table-tilt-std goes with --table-height (a touched plane states its own error)")
+    if args.table_tilt_std is not None and (args.table_height is None or args.touch):
+        raise UsageError("capture: --table-tilt-std goes with --table-height, not --touch (a touched plane states its "
+                         "own error)")
     if args.touch and not 3 <= len(args.touch) <= 20:
         raise UsageError(f"capture: --touch needs 3 to 20 points, got {len(args.touch)}")
     plan = SweepPlan(distances=[d / 1000.0 for d in args.distances],

@@ -68,6 +68,7 @@ from typing import Any
 import numpy as np
 
 from place_safe.exceptions import NoPlaneError
+from place_safe.recovery.estimator import reference_tilt_problem
 from place_safe.recovery.too_close import TOO_CLOSE_REASON
 from place_safe.geometry import Plane
 
@@ -102,6 +103,7 @@ class FusedPlane:
     memory_n: int = 0  # planes remembered since the window last started
     heights: tuple[float, ...] = ()  # m, each window plane's anchor above the fused plane (in stamps' order)
     height_stds: tuple[float, ...] = ()  # m, each one's offset std from its covariance (NaN: none)
+    reference_tilt_std: float = 0.0  # rad, the calibration's reference error, in tilt_std (see module doc)
 
     def height_at(self, point: Any) -> float:
         """Signed distance (m) of ``point`` (base frame) above the plane (negative: below / behind it)."""
@@ -206,9 +208,8 @@ class PlaneFilter:
         self.max_age = float(max_age)
         self.memory, self.memory_frames = int(memory), int(memory_frames)
         self.memory_gate, self.memory_age = float(memory_gate), float(memory_age)
-        if isinstance(reference_tilt_std, bool) or not isinstance(reference_tilt_std, (int, float)) or \
-                not (math.isfinite(reference_tilt_std) and 0.0 <= reference_tilt_std <= 0.1):
-            raise ValueError(f"PlaneFilter.reference_tilt_std must be 0..0.1 rad; got {reference_tilt_std!r}")
+        if (why := reference_tilt_problem(reference_tilt_std)) is not None:
+            raise ValueError(f"PlaneFilter.reference_tilt_std {why}")
         self.reference_tilt_std = float(reference_tilt_std)
         self.reset()
 
@@ -344,7 +345,8 @@ class PlaneFilter:
         self._cache = FusedPlane(n, d, _angle(n, _Z), spread, float(np.sqrt(np.mean(res**2))),
                                  len(self._items), float(stamps.max()), self.count, anchor,
                                  tuple(float(s) for s in stamps), tilt_std, source, len(self._memory),
-                                 tuple(float(h) for h in res), tuple(float(it[4]) for it in self._items))
+                                 tuple(float(h) for h in res), tuple(float(it[4]) for it in self._items),
+                                 self.reference_tilt_std)
         self._dirty = False
         return self._cache
 

@@ -53,7 +53,8 @@ from place_safe.io.source import FrameSource
 from place_safe.placement.config import PlacementConfig
 from place_safe.placement.machine import CommandKind, PlacementMachine, RobotState, Transition
 from place_safe.placement.time_alignment import ClockMap, PoseHistory
-from place_safe.recovery.estimator import Estimator, PlaneEstimate, check_arguments, describe
+from place_safe.recovery.estimator import (Estimator, PlaneEstimate, check_arguments, describe,
+                                          reference_tilt_problem)
 from place_safe.recovery.points import PeakParams, fit_planes, plane_covariance
 from place_safe.robot.interface import Robot, RobotLimits
 from place_safe.robot.tool import ToolFrames
@@ -181,9 +182,12 @@ class PlacementLoop:
         self.max_frame_age = float(max_frame_age)
         self.log_frames = log_frames
         self.host_clock = host_clock
+        reference = reference_tilt_std_of(estimator if estimator is not None else getattr(pipeline, "estimator", None))
         self.filter = plane_filter if plane_filter is not None else PlaneFilter(
             window=max(7, int(max(self.config.check_frames, self.config.max_check_frames)) + 2),
-            reference_tilt_std=reference_tilt_std_of(estimator))
+            reference_tilt_std=reference)
+        # a filter of the caller's own counts at least the reference error of the estimator's calibration
+        self.filter.reference_tilt_std = max(self.filter.reference_tilt_std, reference)
         if self.filter.window < self.config.check_frames:
             raise ValueError(f"the plane filter's window ({self.filter.window}) cannot hold check_frames "
                              f"({self.config.check_frames}) planes: nothing could ever be released")
@@ -628,10 +632,10 @@ def _check_arguments(robot: Any, source: Any, estimator: Any, tool: Any, config:
 def reference_tilt_std_of(estimator: Any) -> float:
     """rad, the tilt error every plane of ``estimator`` shares through its calibration's reference
     (``estimator.reference_tilt_std``, set by :func:`~place_safe.recovery.make_estimator`); 0 for an estimator
-    without one. A value that is not a number in 0..0.1 rad raises ValueError (one line)."""
+    without one. A value that is not a number in 0..``MAX_REFERENCE_TILT`` rad raises ValueError (one line)."""
     v = getattr(estimator, "reference_tilt_std", 0.0)
-    if not (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and 0.0 <= v <= 0.1):
-        raise ValueError(f"PlacementLoop: the estimator's reference_tilt_std must be 0..0.1 rad, got {describe(v)}")
+    if (why := reference_tilt_problem(v)) is not None:
+        raise ValueError(f"PlacementLoop: the estimator's reference_tilt_std {why}")
     return float(v)
 
 

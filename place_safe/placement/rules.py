@@ -102,11 +102,15 @@ def tilt_problem(plane: FusedPlane, limit: float, cfg: Any) -> str | None:
 
 
 def tilt_sigma(plane: FusedPlane) -> float:
-    """Standard error (rad) of the fused plane's tilt: ``plane.tilt_std`` from the estimates' covariances, or,
-    without them, the window's spread over sqrt(n)."""
+    """Standard error (rad) of the fused plane's tilt: ``plane.tilt_std`` from the estimates' covariances (the
+    calibration's reference error in it), or, without them, the window's spread over sqrt(n) with the reference
+    error (``plane.reference_tilt_std``) added."""
     s = getattr(plane, "tilt_std", math.nan)
+    if isinstance(s, (int, float)) and math.isfinite(s) and s >= 0:
+        return float(s)
     spread = float(plane.std_angle) / math.sqrt(max(int(getattr(plane, "n", 1) or 1), 1))
-    return float(s) if isinstance(s, (int, float)) and math.isfinite(s) and s >= 0 else spread
+    ref = getattr(plane, "reference_tilt_std", 0.0)
+    return math.hypot(spread, float(ref)) if isinstance(ref, (int, float)) and math.isfinite(ref) else spread
 
 
 def confidence_margin(sigma: float, cfg: Any) -> float:

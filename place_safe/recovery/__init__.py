@@ -57,10 +57,10 @@ class BuiltInParameters:
 
         return SolverOptions()
 
-    def reference(self):
+    def reference(self, method: str | None = None):
         from place_safe.recovery.estimator import Reference
 
-        return Reference()
+        return Reference() if method is not None else {}
 
     def uncertainty(self, method: str | None = None):
         return Uncertainty() if method is not None else {}
@@ -74,7 +74,7 @@ def make_estimator(method: str, calibration: Any = None, **options) -> Estimator
     :class:`~place_safe.exceptions.ArgumentTypeError` saying what was expected. Without a calibration (or without a section for the method) each method uses its
     built-in defaults (:class:`BuiltInParameters`). ``options`` go to the estimator (e.g.
     ``mode="paper"`` for ``diff``). The estimator's ``reference_tilt_std`` is the calibration's reference error
-    (``calibration.reference()``, a :class:`~place_safe.recovery.estimator.Reference`; 0 for a calibration object
+    (``calibration.reference(method)``, a :class:`~place_safe.recovery.estimator.Reference`; 0 for a calibration object
     without the method, and for the naive methods), which fusion adds once to the fused tilt.
     """
     if not isinstance(method, str):
@@ -91,7 +91,7 @@ def make_estimator(method: str, calibration: Any = None, **options) -> Estimator
     est = _made(method, cal, options)
     if not method.endswith("-naive"):  # a naive method uses no calibration, nor its reference
         reference = getattr(cal, "reference", None)  # optional: a task script's own calibration object may lack it
-        est.reference_tilt_std = float(reference().tilt_std) if callable(reference) else 0.0
+        est.reference_tilt_std = float(reference(method).tilt_std) if callable(reference) else 0.0
     return est
 
 

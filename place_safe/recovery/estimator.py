@@ -242,22 +242,37 @@ class Uncertainty(ParamModel):
         return super().from_dict(d, what)
 
 
+#: rad, the largest tilt error a calibration's reference may state (:class:`Reference`, the plane filter's
+#: ``reference_tilt_std``): beyond it the capture's plane says nothing about the sensor's pointing.
+MAX_REFERENCE_TILT = 0.1
+
+
+def reference_tilt_problem(value: Any) -> str | None:
+    """Why ``value`` is not a reference tilt error (a number of radians in 0 .. :data:`MAX_REFERENCE_TILT`);
+    None when it is."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (
+            math.isfinite(value) and 0.0 <= value <= MAX_REFERENCE_TILT):
+        return f"must be 0..{MAX_REFERENCE_TILT:g} rad, got {describe(value)}"
+    return None
+
+
 class Reference(ParamModel):
-    """How far the ground truth a calibration was fitted to is itself off (a calibration file's ``reference``
-    section; absent: exact, as in a rig or a file whose truth came with no error).
+    """How far the ground truth a method's calibration was fitted to is itself off (an entry of a calibration file's
+    ``reference`` section, one per method family; absent: exact, as in a rig or a file whose truth came with no error).
 
     A calibration learns the sensor's pointing (peak's zone mapping, the forward model's mount) so that its
     frames read the planes they were captured against. When that reference plane is off, for instance a table
-    the arm touched at three points (:func:`place_safe.calibration.capture.touched_plane_std`), the calibration
+    the arm touched at three points (:func:`place_safe.calibration.capture.touched_reference`), the calibration
     learns the error with the pointing, and every plane the sensor reads afterwards is turned by about the same
     rotation. The frames' own covariances cannot show it (their floor is fitted against the same reference),
     and fusing frames does not average it away: :class:`~place_safe.fusion.plane_filter.PlaneFilter` adds it
     once to the fused tilt's standard error (``reference_tilt_std``), and an estimate's ``covariance`` leaves it
-    out. ``tilt_std`` (rad, 0 .. 0.1): the reference normal's standard deviation along its worst direction;
-    ``offset_std`` (m, 0 .. 0.01): its offset's, at the touch points' centroid; ``points`` (0: not from touches)
-    and ``height_std`` (m): what the touches were and the error taken for each contact's height."""
+    out. ``tilt_std`` (rad, 0 .. :data:`MAX_REFERENCE_TILT`): the reference normal's standard deviation along its
+    worst direction, what placements use; ``offset_std`` (m, 0 .. 0.01; informational: a tenth of a millimetre is far
+    inside the release clearance): its offset's, at the touch points' centroid; ``points`` (0: not from touches) and
+    ``height_std`` (m): what the touches were and the error taken for each contact's height."""
 
-    tilt_std: float = Field(0.0, ge=0.0, le=0.1, description="rad")
+    tilt_std: float = Field(0.0, ge=0.0, le=MAX_REFERENCE_TILT, description="rad")
     offset_std: float = Field(0.0, ge=0.0, le=0.01, description="m")
     points: int = Field(0, ge=0, le=1000, description="(touch points)")
     height_std: float = Field(0.0, ge=0.0, le=0.01, description="m")

@@ -87,9 +87,12 @@ def test_a_touched_plane_states_how_far_it_may_be_off():
     four = np.vstack([three, base + [0.08, 0.08, 3e-4]])
     assert touched_reference(four).height_std > 1e-4 and touched_reference(four).points == 4
     assert touched_reference(base + 2.0 * (three - base)).tilt_std == pytest.approx(r.tilt_std / 2.0)
-    for bad in (three[:2], base + np.outer([0.0, 1.0, 2.0], [0.04, 0.0, 0.0]), np.where(three > 0.3, np.nan, three)):
+    for bad in (three[:2], base + np.outer([0.0, 1.0, 2.0], [0.04, 0.0, 0.0]), np.where(three > 0.3, np.nan, three),
+                base + [[0.0, 0.0, 0.0], [0.08, 0.0, 0.0], [0.16, 1e-4, 0.0]]):  # the last nearly on a line
         with pytest.raises(ValueError, match="plane"):
             touched_reference(bad)
+    with pytest.raises(ValueError, match="disagree by 9.8 mm"):  # a fourth touch on something else
+        touched_reference(np.vstack([three, base + [0.08, 0.08, 0.02]]))
 
 
 def test_sensor_target_geometry():

@@ -54,26 +54,38 @@ def test_the_frames_reference_is_the_largest_they_state(sweep_frames):
         frames_reference(bad)
 
 
-def test_a_calibration_keeps_its_frames_reference_and_its_estimators_carry_it(sweep_frames):
-    """Calibrated from a capture against a touched table, the file gets a ``reference`` section and every estimator
-    made from it its tilt error (added once by fusion); calibrated again from frames that state none, the section
-    goes (it described other frames); a calibration without it, and the naive methods, carry none."""
+def test_a_calibration_keeps_its_frames_reference_per_method_and_its_estimators_carry_it(sweep_frames):
+    """Calibrated from a capture against a touched table, the file's ``reference`` section gets an entry for each
+    method fitted, and every estimator made from it its tilt error (added once by fusion). Another method calibrated
+    into the same file from frames that state none leaves the first method's entry as it was; diff reads the larger of
+    its own and peak's (it starts from and blends with peak's plane); the same method calibrated again from such frames
+    drops its entry. A calibration without the section, and the naive methods, carry none."""
     frames = sweep_frames[::4]
     cal = Calibration()
     assert "reference" in fit_method(cal, _touched(frames, math.radians(0.124)), "proprietary")
+    assert fit_method(cal, _touched(frames, math.radians(0.2)), "peak")
+    assert set(cal.sections["reference"]) == {"proprietary", "peak"}
     again = Calibration.from_dict(cal.to_dict())
-    assert again.reference().tilt_std == pytest.approx(math.radians(0.124))
-    for method in ("proprietary", "peak", "diff"):
-        assert make_estimator(method, again).reference_tilt_std == pytest.approx(math.radians(0.124))
+    assert again.reference("proprietary").tilt_std == pytest.approx(math.radians(0.124))
+    assert make_estimator("proprietary", again).reference_tilt_std == pytest.approx(math.radians(0.124))
+    assert make_estimator("peak", again).reference_tilt_std == pytest.approx(math.radians(0.2))
+    assert make_estimator("diff", again).reference_tilt_std == pytest.approx(math.radians(0.2))  # peak's, the larger
     assert make_estimator("peak-naive", again).reference_tilt_std == 0.0
     assert make_estimator("peak").reference_tilt_std == 0.0
-    assert "reference" not in fit_method(again, frames, "proprietary") and "reference" not in again.sections
-    assert make_estimator("proprietary", again).reference_tilt_std == 0.0
+    fit_method(again, frames, "peak")  # a capture that states no error: peak's entry goes, proprietary's stays
+    assert set(again.sections["reference"]) == {"proprietary"}
+    assert make_estimator("peak", again).reference_tilt_std == 0.0
+    assert make_estimator("proprietary", again).reference_tilt_std == pytest.approx(math.radians(0.124))
+    fit_method(again, frames, "proprietary")
+    assert "reference" not in again.sections and make_estimator("proprietary", again).reference_tilt_std == 0.0
 
 
-def test_a_malformed_reference_section_is_one_line_for_the_methods_that_read_it():
-    cal = Calibration.from_dict({"format": "place_safe.calibration/1", "reference": {"tilt_std": "big"}})
-    with pytest.raises(CalibrationError, match="reference"):
+@pytest.mark.parametrize("section", [{"peak": {"tilt_std": "big"}}, {"peak": {"tilt_std": 1.0}}, {"lidar": {}},
+                                     {"peak": []}, []])
+def test_a_malformed_reference_section_is_one_line_for_the_methods_that_read_it(section):
+    cal = Calibration.from_dict({"format": "place_safe.calibration/1", "reference": section})
+    with pytest.raises(CalibrationError, match="reference") as err:
         make_estimator("peak", cal)
+    assert "\n" not in str(err.value)
     with pytest.raises(CalibrationError, match="reference"):
-        Calibration({"reference": {"tilt_std": 1.0}})
+        Calibration({"reference": section})

@@ -22,6 +22,8 @@ from place_safe.drivers.ur5 import URConfig, packaged_config
     (["capture", "--sim", "level_table", "-o", "x", "--distances", "5:90:2"], "from 10 to 5000, got '5:90:2'"),
     (["capture", "--sim", "level_table", "-o", "x", "--distances", "10:1000:5"], "at most 100 values"),
     (["capture", "--sim", "level_table", "-o", "x", "--table-tilt-std", "0.1"], "goes with --table-height"),
+    (["capture", "--sim", "level_table", "-o", "x", "--table-height", "0", "--table-tilt-std", "0.1", "--touch",
+      "0,0", "--touch", "0.1,0", "--touch", "0,0.1"], "not --touch"),
     (["capture", "--sim", "level_table", "-o", "x", "--table-height", "0", "--table-tilt-std", "nan"], "--table-tilt-std"),
     (["capture", "--sim", "level_table", "-o", "x", "--table-height", "0", "--table-tilt-std", "9"], "--table-tilt-std"),
 ])

@@ -469,3 +469,21 @@ def test_an_estimator_whose_reference_error_is_not_a_small_angle_is_refused_at_c
         est.reference_tilt_std = bad
         with pytest.raises(ValueError, match="reference_tilt_std"):
             PlacementLoop(robot, TruthSource(robot), est)
+
+
+def test_the_reference_error_reaches_the_filter_through_a_pipeline_and_a_filter_of_ones_own():
+    """The estimator's reference error reaches the fused tilt however the loop is built: from a pipeline's estimator
+    when no estimator is given, and into a plane filter the caller made (which keeps a larger one of its own)."""
+    from place_safe.fusion.plane_filter import PlaneFilter
+    from place_safe.io.pipeline import SensorPipeline
+
+    robot = KinematicRobot(height=0.12)
+    est = TruthEstimator()
+    est.reference_tilt_std = 0.002
+    source = TruthSource(robot)
+    loop = PlacementLoop(robot, source, None, pipeline=SensorPipeline(source, est))
+    assert loop.filter.reference_tilt_std == 0.002
+    own = PlaneFilter(window=9)
+    assert PlacementLoop(robot, source, est, plane_filter=own).filter is own and own.reference_tilt_std == 0.002
+    larger = PlaneFilter(window=9, reference_tilt_std=0.003)
+    assert PlacementLoop(robot, source, est, plane_filter=larger).filter.reference_tilt_std == 0.003

@@ -72,6 +72,16 @@ def test_steeper_than_max_tilt_is_never_level(tilt):
     assert rules.level_problem(_plane(tilt=tilt), CFG) is not None
 
 
+def test_the_reference_error_stays_in_the_tilt_sigma_without_covariances():
+    """A fused plane without a standard error from covariances falls back on its spread over sqrt(n); the
+    calibration's reference error is added to that too, so a 4.8 deg plane is not level with 99 % confidence."""
+    p = dataclasses.replace(_plane(math.radians(4.8), std_angle=1e-4), tilt_std=math.nan)
+    assert rules.tilt_sigma(p) == 1e-4 / math.sqrt(7) and rules.level_problem(p, CFG) is None
+    q = dataclasses.replace(p, reference_tilt_std=math.radians(0.124))
+    assert rules.tilt_sigma(q) == math.hypot(1e-4 / math.sqrt(7), math.radians(0.124))
+    assert "confidence" in rules.level_problem(q, CFG)
+
+
 def test_sensor_timeout_counts_from_the_first_tick_until_a_frame_arrives():
     assert rules.sensor_problem(None, CFG.sensor_timeout - 0.01, 0.0, None, CFG) is None
     assert "sensor timeout" in rules.sensor_problem(None, CFG.sensor_timeout + 0.01, 0.0, None, CFG)
