@@ -39,9 +39,10 @@ def test_packaged_calibrations_record_their_capture_chain():
     rep = json.loads(calibration_file("nominal").read_text())["reports"]["capture"]
     assert rep["chain"] == CHAIN and max(rep["distances_m"]) >= 0.45
     # against a table the arm touched: how far the touch may be off goes with it; the rig's truth is exact
-    assert math.degrees(Calibration.load(calibration_file("nominal")).reference().tilt_std) == pytest.approx(0.124,
-                                                                                                          abs=0.002)
-    assert Calibration.load(calibration_file("mismatch")).reference().tilt_std == 0.0
+    nominal = Calibration.load(calibration_file("nominal"))
+    assert set(nominal.reference()) == {"peak", "diff", "proprietary"}
+    assert all(math.degrees(nominal.reference(m).tilt_std) == pytest.approx(0.124, abs=0.002) for m in nominal.reference())
+    assert Calibration.load(calibration_file("mismatch")).reference() == {}
 
 
 def test_the_zone_time_units_calibration_is_its_own_level_sweep_with_the_time_scales_taken():
