@@ -77,7 +77,8 @@ def main() -> None:
               f"{math.degrees(err):.3f} deg off, stated {math.degrees(ref.tilt_std):.3f} deg", flush=True)
     e = np.array(rows)
     print(f"CB3, {len(e)} touches: error mean {math.degrees(e[:, 0].mean()):.3f} deg, largest "
-          f"{math.degrees(e[:, 0].max()):.3f}; (error / stated)^2 / 2 = {np.mean((e[:, 0] / e[:, 1]) ** 2) / 2:.2f} (honest: "
+          f"{math.degrees(e[:, 0].max()):.3f}; (error / stated)^2 / 2 = "
+          f"{np.mean((e[:, 0] / e[:, 1]) ** 2) / 2:.2f} (honest: "
           f"0.67); "
           f"beyond 2 sigma: {int(np.sum(e[:, 0] > 2 * e[:, 1]))}")
 

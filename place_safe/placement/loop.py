@@ -651,4 +651,5 @@ def peak_params_of(estimator: Any) -> Any:
     return PeakParams.default_peak()
 
 
-__all__ = ["PlacementLoop", "LoopResult", "peak_params_of", "reference_tilt_std_of", "CONTROL_PERIOD", "MAX_RUN_SECONDS"]
+__all__ = ["PlacementLoop", "LoopResult", "peak_params_of", "reference_tilt_std_of", "CONTROL_PERIOD",
+           "MAX_RUN_SECONDS"]

@@ -24,8 +24,10 @@ from place_safe.drivers.ur5 import URConfig, packaged_config
     (["capture", "--sim", "level_table", "-o", "x", "--table-tilt-std", "0.1"], "goes with --table-height"),
     (["capture", "--sim", "level_table", "-o", "x", "--table-height", "0", "--table-tilt-std", "0.1", "--touch",
       "0,0", "--touch", "0.1,0", "--touch", "0,0.1"], "not --touch"),
-    (["capture", "--sim", "level_table", "-o", "x", "--table-height", "0", "--table-tilt-std", "nan"], "--table-tilt-std"),
-    (["capture", "--sim", "level_table", "-o", "x", "--table-height", "0", "--table-tilt-std", "9"], "--table-tilt-std"),
+    (["capture", "--sim", "level_table", "-o", "x", "--table-height", "0", "--table-tilt-std", "nan"],
+     "--table-tilt-std"),
+    (["capture", "--sim", "level_table", "-o", "x", "--table-height", "0", "--table-tilt-std", "9"],
+     "--table-tilt-std"),
 ])
 def test_usage_errors_are_one_line(argv, match, capsys, monkeypatch, tmp_path):
     monkeypatch.chdir(tmp_path)
