@@ -3,7 +3,7 @@
     python docs/figures/release_tilt.py r17_old.json r17_new.json ...
 
 For each ``place-safe scenarios --json`` file: the released runs whose reason states the tilt the machine released
-on ("level (X deg, ..."), and the mean, 95th percentile and largest ``|X - true_tilt_deg|`` over them (deg).
+on ("level (X deg +- S deg, ..."; older runs "level (X deg, ..."), and the mean, 95th percentile and largest ``|X - true_tilt_deg|`` over them (deg).
 docs/results.md, "Zones beside an edge or a box do not tilt the plane".
 """
 from __future__ import annotations

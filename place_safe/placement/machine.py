@@ -1042,7 +1042,8 @@ class PlacementMachine:
                                      + ("" if contact else " without contact")
                                      + ": the surface estimate is wrong or the surface moved")
         if contact or c <= cfg.release_clearance:
-            self._go(Phase.RELEASE, now, f"level ({math.degrees(plane.tilt_rad):.2f} deg, spread "
+            self._go(Phase.RELEASE, now, f"level ({math.degrees(plane.tilt_rad):.2f} deg +- "
+                                         f"{math.degrees(rules.tilt_sigma(plane)):.2f} deg, spread "
                                          f"{math.degrees(plane.std_angle):.2f} deg / {plane.std_offset * 1e3:.1f} mm), "
                                          f"clearance {c * 1e3:.1f} mm, contact {force:.1f} N "
                                          + (f"from {fresh} planes measured at rest: release"
