@@ -29,7 +29,7 @@ from place_safe.io.input_file import output_dir_problem
 from place_safe.io.live import run_live
 from place_safe.io.replay import FileReplaySource
 from place_safe.recovery.estimator import PlaneEstimate
-from place_safe.calibration import UNIT_MODELS, Calibration, mark
+from place_safe.calibration import REQUIRED_SECTIONS, UNIT_MODELS, Calibration, mark
 
 # ------------------------------------------------------------------------------------------------
 # calibrate
@@ -214,6 +214,10 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         log(f"evaluate on {len(frames)} frames" + (f" ({skipped})" if skipped else ""))
     if (note := uncalibrated_note(args.methods, cal, args.calibration)) is not None:
         print(note, flush=True)  # the first line; the table marks each uncalibrated method's row
+    if cal is not None and not args.quiet and (ref := max((cal.reference(m).tilt_std for m in args.methods
+                                                            if m in REQUIRED_SECTIONS), default=0.0)) > 0.0:
+        log(f"note: the plane this calibration was captured against may be off by {math.degrees(ref):.2f} deg (its "
+            f"reference): errors against frames of that same capture do not show it; placements add it to the tilt")
     if args.no_fallback and "diff" in args.methods:
         cal = (cal if cal is not None else Calibration()).without_fallback()
         print("diff without its fallback: its own plane on every frame it solves (never peak's)", flush=True)

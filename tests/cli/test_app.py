@@ -307,6 +307,18 @@ def test_evaluate_prints_a_table_and_writes_json(tmp_path, sweep_path, capsys):
     assert any((tmp_path / "plots").glob("*.png"))
 
 
+def test_evaluate_says_when_the_calibrations_own_reference_may_be_off(sweep_path, capsys):
+    """A calibration captured against a touched table (the packaged simulated one): evaluate notes that errors against
+    frames of that capture cannot show the touch's own error; a calibration without a reference gets no note."""
+    from place_safe.sim.tof import calibration_file
+
+    for cal, noted in ((calibration_file("nominal"), True), (calibration_file("mismatch"), False)):
+        assert main(["evaluate", str(sweep_path), "--methods", "peak", "--calibration", str(cal), "--no-plots",
+                     "--min-distance", "0.3"]) == 0
+        err = capsys.readouterr().err
+        assert ("may be off by 0.12 deg" in err) == noted, err
+
+
 @pytest.mark.parametrize("kind", ["file", "under-a-file"])
 def test_evaluate_refuses_a_plot_folder_that_cannot_be_one_before_it_recovers(tmp_path, sweep_path, monkeypatch,
                                                                              capsys, kind):
