@@ -268,7 +268,7 @@ def cmd_capture(args: argparse.Namespace) -> int:
         robot = URRobot(robot_cfg, dry_run=args.dry_run)
         source = open_sensor(args.sensor)
     tool = robot_cfg.tool.frames()
-    reference = None  # how far the plane may be off: stated for touches only
+    reference = None  # how far the plane may be off: stated for touches, and for a table height with its tilt std
     with robot:
         if args.touch:
             if len(args.touch) < 3:
