@@ -208,10 +208,20 @@ class PlaneFilter:
         self.max_age = float(max_age)
         self.memory, self.memory_frames = int(memory), int(memory_frames)
         self.memory_gate, self.memory_age = float(memory_gate), float(memory_age)
-        if (why := reference_tilt_problem(reference_tilt_std)) is not None:
-            raise ValueError(f"PlaneFilter.reference_tilt_std {why}")
-        self.reference_tilt_std = float(reference_tilt_std)
+        self.reference_tilt_std = reference_tilt_std
         self.reset()
+
+    @property
+    def reference_tilt_std(self) -> float:
+        """rad, the calibration's reference error the fused tilt's standard error holds (see the class doc)."""
+        return self._reference_tilt_std
+
+    @reference_tilt_std.setter
+    def reference_tilt_std(self, value: float) -> None:
+        if (why := reference_tilt_problem(value)) is not None:
+            raise ValueError(f"PlaneFilter.reference_tilt_std {why}")
+        self._reference_tilt_std = float(value)
+        self._dirty = True  # a fused plane already made states the old one
 
     def reset(self) -> None:
         """Forget every plane and counter."""

@@ -296,10 +296,17 @@ def test_the_reference_error_is_added_once_and_no_number_of_planes_averages_it_a
     assert b.tilt_std >= ref
 
 
-def test_the_reference_error_must_be_a_small_angle():
+def test_the_reference_error_must_be_a_small_angle_and_set_later_counts_at_once():
     for bad in (-1e-3, 0.2, math.nan, math.inf, "0.001", True):
         with pytest.raises(ValueError, match="reference_tilt_std"):
             PlaneFilter(reference_tilt_std=bad)
+    filt = PlaneFilter()
+    _feed(filt, _tilted(3.0), np.linspace(0.30, 0.10, 30), std_deg=0.1)
+    before = filt.fused().tilt_std
+    filt.reference_tilt_std = 0.002  # as PlacementLoop raises it on a filter the caller made
+    assert filt.fused().tilt_std == pytest.approx(math.hypot(before, 0.002))
+    with pytest.raises(ValueError, match="reference_tilt_std"):
+        filt.reference_tilt_std = math.nan
 
 
 # -- property: the memory never makes the fused plane invalid ----------------------------------------
