@@ -416,7 +416,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
          "place-safe capture --robot robots/ur5/real.toml --sensor i2c:/dev/i2c-1 \\\n"
          "      --touch -0.45,-0.05 --touch -0.55,-0.05 --touch -0.5,-0.15 --touch-height 0.05 -o lab.jsonl",
          "place-safe capture --robot robots/ur5/real.toml --sensor i2c:/dev/i2c-1 --table-height 0.02 \\\n"
-         "      --incidences 0 --azimuths 0 --distances 10:90:2,100:400:10 -o level_sweep.jsonl   # for calibrate"],
+         "      --table-tilt-std 0.1 --incidences 0 --azimuths 0 --distances 10:90:2,100:400:10 \\\n"
+         "      -o level_sweep.jsonl   # for calibrate: the table levelled to about 0.1 deg"],
         "robot file of the real UR5",
         "output", "robot_file",
         opt("--distances", type=_distances, default=[80, 120, 170, 220, 270],
