@@ -39,9 +39,9 @@ from pydantic import Field
 
 from place_safe.config import ParamModel, vector
 
-from place_safe.exceptions import NoPlaneError, RobotFault, SensorTimeout
+from place_safe.exceptions import CalibrationError, NoPlaneError, RobotFault, SensorTimeout
 from place_safe.geometry import Plane, fit_plane
-from place_safe.recovery.estimator import MAX_REFERENCE_TILT, Reference
+from place_safe.recovery.estimator import Reference
 from place_safe.robot.interface import Robot
 
 #: s between control steps while waiting for frames (the UR CB3's cycle).
@@ -222,13 +222,15 @@ def touched_reference(points: Any, height_std: float = TOUCH_HEIGHT_STD) -> Refe
     var = max(height_std ** 2, rms ** 2 * len(P) / dof if dof > 0 else 0.0)
     cov = var * np.linalg.inv(jac.T @ jac)
     tilt, offset = float(math.sqrt(np.linalg.eigvalsh(cov[:2, :2]).max())), float(math.sqrt(cov[2, 2]))
-    if not (tilt <= MAX_REFERENCE_TILT and offset <= 0.01 and var <= 1e-4):
+    try:
+        return Reference(tilt_std=tilt, offset_std=offset, points=len(P), height_std=float(math.sqrt(var)))
+    except CalibrationError:  # beyond what a reference may state (Reference's bounds): say why in the touches' terms
         within = f"only within {min(math.degrees(tilt), 90.0):.2g} deg"
         if var > height_std ** 2:
             raise ValueError(f"the touches disagree by {math.sqrt(var) * 1e3:.2g} mm about one plane, which they fix "
-                             f"{within}: check the table and the contacts")
-        raise ValueError(f"the touch points lie too near a line: they fix the plane {within}; touch farther apart")
-    return Reference(tilt_std=tilt, offset_std=offset, points=len(P), height_std=float(math.sqrt(var)))
+                             f"{within}: check the table and the contacts") from None
+        raise ValueError(f"the touch points lie too near a line: they fix the plane {within}; touch farther "
+                         "apart") from None
 
 
 def _release_point(robot: Robot, speed: float, accel: float, max_back: float = 0.005) -> np.ndarray:

@@ -184,9 +184,8 @@ class PlacementLoop:
         self.host_clock = host_clock
         reference = reference_tilt_std_of(estimator if estimator is not None else getattr(pipeline, "estimator", None))
         self.filter = plane_filter if plane_filter is not None else PlaneFilter(
-            window=max(7, int(max(self.config.check_frames, self.config.max_check_frames)) + 2),
-            reference_tilt_std=reference)
-        # a filter of the caller's own counts at least the reference error of the estimator's calibration
+            window=max(7, int(max(self.config.check_frames, self.config.max_check_frames)) + 2))
+        # the filter (its own, or the caller's) counts at least the reference error of the estimator's calibration
         self.filter.reference_tilt_std = max(self.filter.reference_tilt_std, reference)
         if self.filter.window < self.config.check_frames:
             raise ValueError(f"the plane filter's window ({self.filter.window}) cannot hold check_frames "
