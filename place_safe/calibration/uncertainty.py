@@ -81,11 +81,11 @@ from place_safe.sensor.frame import Frame
 from place_safe.calibration.near_range import held_out_fits, near_range_std
 from place_safe.calibration.forward_fit import CROSSTALK_LEFT_SHARE, crosstalk_traded
 from place_safe.exceptions import FrameError, NoPlaneError
-from place_safe.recovery.points import plane_through
+from place_safe.recovery.points import PlaneFitGeometry, plane_fit_geometry, plane_through
 from place_safe.calibration.points import MIN_CALIBRATION_RANGE, MIN_TILT_SPREAD, level_frames, tilt_angles
 from place_safe.recovery.blend import blended
 from place_safe.recovery.differentiable import BLENDED, NEAR_FALLBACK_RANGE, DifferentiableEstimator
-from place_safe.recovery.peak import PeakEstimator
+from place_safe.recovery.peak import PeakEstimator, near_applies, near_covariances
 
 
 def _nll(errors: np.ndarray, covs: np.ndarray, extra: np.ndarray) -> float:
@@ -742,21 +742,34 @@ def fit_near_law(rows: Sequence[tuple], unc: Uncertainty, peak_params, end: floa
 
     plain = near_law_depths(end)
 
-    def row_covariance(r, theta: tuple, estimators: dict | None = None) -> np.ndarray:
-        """The covariance the estimator reports for held-out row ``r`` under the law (its own factor: its
-        table's knots). ``estimators``: the estimators made so far for this ``theta``, by measure (rows read without
-        a table, or at the same measure, share one)."""
-        memo = {} if estimators is None else estimators
-        if r[4] not in memo:
-            memo[r[4]] = PeakEstimator(peak_params, unc_for(plain, theta, knot_factor(r[4], m_ref, share)))
-        return memo[r[4]].covariance(r[0], r[1], r[2])
+    # The covariance the peak estimator reports for each held-out row under a law (its own factor: its table's
+    # knots), PeakEstimator.covariance for all rows at once: the fits' own parts are the same for every law, and
+    # Uncertainty.apply is affine in the fit's covariance (unc.scale times it, plus what it adds to none); the near
+    # law's end (the depths ``plain``) is the same for every law, so is which rows it reads.
+    first = unc_for(plain, (1e-4, 0.0, 0.0), 1.0)
+    near_rows = np.array([near_applies(first, r[0], r[1]) for r in rows])
+    geometry = PlaneFitGeometry(*(np.stack(parts) for parts in zip(*(plane_fit_geometry(r[0], r[1], r[2])
+                                                                        for r in rows))))
+    depths = np.array([r[0][:, 2] for r in rows])
+    added = np.array([unc.apply(np.zeros((3, 3)), r[2].offset, r[2].normal) for r in rows])
+    own = geometry.sigma2[:, None, None] * geometry.inverse  # the fit's own covariance: rows the law does not read
+    groups: dict = {}  # the rows it reads, by measure (read without a table, or at the same measure: one law)
+    for i, r in enumerate(rows):
+        if near_rows[i]:
+            groups.setdefault(r[4], []).append(i)
+    groups = {m: (np.array(i), PlaneFitGeometry(*(part[i] for part in geometry))) for m, i in groups.items()}
+
+    def row_covariances(theta: tuple) -> np.ndarray:
+        """Each row's reported covariance (rows, 3, 3) under the law ``theta``."""
+        fit = own.copy()
+        for m, (i, fits) in groups.items():
+            fit[i] = near_covariances(unc_for(plain, theta, knot_factor(m, m_ref, share)), fits, depths[i])
+        return unc.scale * fit + added
 
     errors = np.array([r[3] for r in rows])
 
     def nll(x: np.ndarray) -> float:
-        theta = near_law_parameters(x)
-        estimators: dict = {}
-        each = _nll_rows(errors, np.array([row_covariance(r, theta, estimators) for r in rows]))
+        each = _nll_rows(errors, row_covariances(near_law_parameters(x)))
         return math.inf if each is None else sum(each.tolist()) / len(rows)  # (summed in order, as row by row)
 
     starts = [(math.log(2e-4), 0.0, 0.0), (math.log(5e-4), -2.0, -2.0), (math.log(1e-4), 2.0, 2.0)]
@@ -774,8 +787,9 @@ def fit_near_law(rows: Sequence[tuple], unc: Uncertainty, peak_params, end: floa
     # the nearest depth the law is fitted on (the rows' median zone depths): closer, it is an extrapolation
     nearest = min(float(np.median(r[0][r[1], 2])) for r in rows)
     narrow = sum(m <= NEW_FRAME_GAP_FACTOR * m_new for m in measured) if knots else 0
-    held = np.array([r[3] * r[3] / np.diag(row_covariance(r, theta)) for r in rows])  # per component
-    per_row = [float(r[3] @ np.linalg.solve(row_covariance(r, theta), r[3])) / 3.0 for r in rows]
+    covs = row_covariances(theta)
+    held = errors * errors / np.diagonal(covs, axis1=1, axis2=2)  # per component
+    per_row = [float(e @ np.linalg.solve(c, e)) / 3.0 for e, c in zip(errors, covs)]
     return near_law_table(unc, end, knots, scale, power, shared, share, m_ref, nearest), {
         "frames": len(rows), "std_at_reference_mm": scale * 1e3, "reference_depth_mm": NEAR_REFERENCE_DEPTH * 1e3,
         "power": power, "shared_by_zones": shared, "nearest_fitted_mm": nearest * 1e3,

@@ -49,7 +49,8 @@ import numpy as np
 from place_safe.exceptions import FrameError, NoPlaneError
 from place_safe.sensor.frame import N_BINS, N_ZONES, Frame
 from place_safe.recovery.estimator import Estimator, PlaneEstimate, Uncertainty, check_arguments
-from place_safe.recovery.points import PeakParams, plane_covariance, plane_through
+from place_safe.recovery.points import (PeakParams, PlaneFitGeometry, known_error_covariance, plane_covariance,
+                                       plane_fit_geometry, plane_through)
 from place_safe.recovery.too_close import may_be_close, overlap_reason
 from place_safe.sensor.histogram import COUNT_MAX, find_peaks, find_returns
 from place_safe.sensor.zones import zone_numbers
@@ -129,12 +130,26 @@ class PeakEstimator(Estimator):
         (9, 3) in ``valid`` (9,): the fit's, where any zone used is closer than the near-range errors' end with
         each zone's error the calibrated near-range one in place of the fit's residual (module doc), plus the
         floor and the tilt term."""
-        near = common = 0.0
         unc = self.uncertainty
-        if unc.near_depths and points[valid, 2].min() < unc.near_depths[-1]:
-            near, common = unc.near_std(points[:, 2]), unc.near_common(points[:, 2])
-        cov = plane_covariance(points, valid, plane, near, replace_fit=True, common_std=common)
+        if near_applies(unc, points, valid):
+            cov = near_covariances(unc, plane_fit_geometry(points, valid, plane), points[:, 2])
+        else:
+            cov = plane_covariance(points, valid, plane)
         return unc.apply(cov, plane.offset, plane.normal)
 
 
-__all__ = ["PeakEstimator", "find_peaks", "COUNT_MAX"]
+def near_applies(unc: Uncertainty, points: np.ndarray, valid: np.ndarray) -> bool:
+    """Whether :meth:`PeakEstimator.covariance` of a fit through zone ``points`` (9, 3) in ``valid`` (9,) takes the
+    zones' errors from ``unc``'s near-range law: a zone used is closer than the law's end."""
+    return bool(unc.near_depths) and bool(points[valid, 2].min() < unc.near_depths[-1])
+
+
+def near_covariances(unc: Uncertainty, geometry: PlaneFitGeometry, depths: np.ndarray) -> np.ndarray:
+    """The fit's part of :meth:`PeakEstimator.covariance` (before ``unc.apply``) where :func:`near_applies`: each
+    zone's error ``unc.near_std`` at its depth in place of the fit's residual, and ``unc.near_common`` shared by the
+    zones. ``geometry``: :func:`~place_safe.recovery.points.plane_fit_geometry` of one fit or of many stacked (leading
+    axes), ``depths`` (..., 9) m their zones' depths; returns (..., 3, 3)."""
+    return known_error_covariance(geometry, unc.near_std(depths), replace_fit=True, common_std=unc.near_common(depths))
+
+
+__all__ = ["PeakEstimator", "find_peaks", "COUNT_MAX", "near_applies", "near_covariances"]

@@ -34,7 +34,7 @@ The parameters are fitted from data by :mod:`place_safe.calibration.points`.
 from __future__ import annotations
 
 import math
-from typing import ClassVar
+from typing import ClassVar, NamedTuple
 
 from pydantic import Field, PrivateAttr, model_validator
 
@@ -550,7 +550,44 @@ def plane_covariance(points: np.ndarray, valid: np.ndarray, plane: Plane, range_
     fit's (a calibrated error that already holds what the residual would say; points without one keep the fit's).
     ``common_std`` (m, one value or one per point; with ``replace_fit``): a range error the points share besides,
     one error along all their rays at once (each point's ``range_std`` is then its independent part).
+    The two steps are :func:`plane_fit_geometry` (the fit's own part) and :func:`known_error_covariance` (the known
+    errors carried through it), which a caller holding many fits and trying many errors calls apart.
     """
+    if np.ndim(range_std) == 0 and not range_std > 0.0:  # the usual call: no known error
+        _, _, sigma2, inverse = _fit(points, valid, plane)
+        return sigma2 * inverse
+    geometry = plane_fit_geometry(points, valid, plane)
+    n = geometry.off_plane.shape[-1]
+    return known_error_covariance(geometry, np.broadcast_to(np.asarray(range_std, dtype=float), (n,)), replace_fit,
+                                  np.broadcast_to(np.asarray(common_std, dtype=float), (n,)))
+
+
+class PlaneFitGeometry(NamedTuple):
+    """What the covariance of a least-squares plane takes from its fit alone (:func:`plane_fit_geometry`), for
+    N points; the arrays may carry leading axes (many fits, stacked: :func:`known_error_covariance` takes either)."""
+
+    inverse: np.ndarray  #: (3, 3) the inverse of the residuals' normal matrix in (n_x, n_y, d)
+    gain: np.ndarray  #: (3, N) each point's residual carried to (n_x, n_y, d): ``inverse @ jac^T``; 0 for a point not used
+    off_plane: np.ndarray  #: (N,) the cosine of each point's ray with the normal (0 for a point not used)
+    sigma2: np.ndarray  #: () the fit's residual variance (m^2; 0 with exactly 3 points)
+    used: np.ndarray  #: (N,) bool, the points the fit used
+
+
+def plane_fit_geometry(points: np.ndarray, valid: np.ndarray, plane: Plane) -> PlaneFitGeometry:
+    """The fit's own part of :func:`plane_covariance` of ``plane`` through ``points`` (N, 3) with mask ``valid`` (N,)."""
+    used = np.asarray(valid, dtype=bool)
+    p, jac, sigma2, inverse = _fit(points, used, plane)
+    gain = np.zeros((3, used.size))
+    gain[:, used] = inverse @ jac.T
+    off_plane = np.zeros(used.size)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        off_plane[used] = (p @ plane.normal) / np.sqrt(np.einsum("ij,ij->i", p, p))
+    return PlaneFitGeometry(inverse, gain, off_plane, np.float64(sigma2), used)
+
+
+def _fit(points: np.ndarray, valid: np.ndarray, plane: Plane) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+    """The points used (k, 3), the residuals' Jacobian in (n_x, n_y, d) (k, 3), their variance from the fit and the
+    inverse (3, 3) of their normal matrix: :func:`plane_covariance`'s linearisation."""
     p = np.asarray(points, dtype=float)[np.asarray(valid, dtype=bool)]
     n = plane.normal
     jac = p - p[:, 2:] * (n / n[2])  # columns: d(res)/d(n_x), d(res)/d(n_y); the third is replaced next
@@ -560,25 +597,29 @@ def plane_covariance(points: np.ndarray, valid: np.ndarray, plane: Plane, range_
     sigma2 = float(res @ res) / dof if dof > 0 else 0.0
     inverse = _inverse(jac.T @ jac)
     inverse = 0.5 * (inverse + inverse.T)  # LU's inverse of a symmetric matrix is symmetric only to rounding
-    if np.ndim(range_std) == 0 and not range_std > 0.0:  # the usual call: no known error
-        return sigma2 * inverse
+    return p, jac, sigma2, inverse
+
+
+def known_error_covariance(geometry: PlaneFitGeometry, range_std: np.ndarray, replace_fit: bool = False,
+                           common_std: np.ndarray | float = 0.0) -> np.ndarray:
+    """:func:`plane_covariance` (..., 3, 3) of fits' ``geometry`` (:func:`plane_fit_geometry`; stacked along leading
+    axes, or one) with each point's known range error ``range_std`` (..., N; m) and the error the points share
+    ``common_std`` (..., N, or one value; m): see there. Where no point used has a known error above 0, the fit's
+    own covariance ``sigma2 inverse`` (the shared error then unused)."""
+    g = geometry
     std = np.asarray(range_std, dtype=float)
-    if std.ndim:  # one per point: those used
-        std = std[np.asarray(valid, dtype=bool)]
-    if not np.any(std > 0.0):
-        return sigma2 * inverse
-    with np.errstate(invalid="ignore", divide="ignore"):
-        off_plane = (p @ n) / np.sqrt(np.einsum("ij,ij->i", p, p))  # cosine of each point's ray with the normal
-    known = np.nan_to_num((std * off_plane) ** 2)
+    with np.errstate(invalid="ignore"):
+        known = np.nan_to_num((std * g.off_plane) ** 2)
+        any_known = np.any((std > 0.0) & g.used, axis=-1)
+    sigma2 = np.asarray(g.sigma2)[..., None]
     var = np.where(known > 0.0, known, sigma2) if replace_fit else np.maximum(sigma2, known)
-    cov = inverse @ (jac.T * var) @ jac @ inverse
-    common = np.asarray(common_std, dtype=float)
-    if replace_fit and np.any(common > 0.0):
-        if common.ndim:
-            common = common[np.asarray(valid, dtype=bool)]
-        g = inverse @ (jac.T @ np.nan_to_num(common * off_plane))  # the state's response to the shared error
-        cov = cov + np.outer(g, g)
-    return 0.5 * (cov + cov.T)  # (the sandwich's products leave 1e-20 of asymmetry)
+    cov = np.einsum("...in,...n,...jn->...ij", g.gain, var, g.gain)
+    if replace_fit:
+        common = np.nan_to_num(np.asarray(common_std, dtype=float) * g.off_plane)
+        shared = np.einsum("...in,...n->...i", g.gain, common)  # the state's response to the shared error
+        cov = cov + shared[..., :, None] * shared[..., None, :]
+    cov = 0.5 * (cov + np.swapaxes(cov, -1, -2))  # (the sandwich's products leave 1e-20 of asymmetry)
+    return np.where(any_known[..., None, None], cov, np.asarray(g.sigma2)[..., None, None] * g.inverse)
 
 
 def _inverse(a: np.ndarray) -> np.ndarray:
@@ -624,4 +665,5 @@ def plane_through(points: np.ndarray, valid: np.ndarray) -> tuple[Plane, float]:
     return Plane(n, d), float(s[-1]) / math.sqrt(count)
 
 
-__all__ = ["PeakParams", "fit_planes", "plane_through", "plane_covariance", "PAPER_PEAK_M", "PAPER_PEAK_B", "BIN_SIZE", "MM_PER_M"]
+__all__ = ["PeakParams", "fit_planes", "plane_through", "plane_covariance", "PlaneFitGeometry",
+           "plane_fit_geometry", "known_error_covariance", "PAPER_PEAK_M", "PAPER_PEAK_B", "BIN_SIZE", "MM_PER_M"]

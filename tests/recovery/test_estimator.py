@@ -314,6 +314,36 @@ def test_a_shared_zone_error_never_makes_the_plane_look_more_certain(depth, tilt
     assert np.linalg.eigvalsh(both - alone).min() >= -1e-12 * max(1.0, float(np.abs(alone).max()))
 
 
+def test_stacked_fits_give_each_fit_its_own_covariance():
+    """known_error_covariance of many fits stacked (what the near-range law's fit tries hundreds of times) is
+    plane_covariance of each: the zones used, the known and shared errors, the fit's own where none is known."""
+    from place_safe.recovery.points import (PeakParams, PlaneFitGeometry, known_error_covariance, plane_fit_geometry,
+                                            plane_through)
+
+    rng = np.random.default_rng(3)
+    dirs = PeakParams.default_peak().directions()
+    fits, stds, commons, expected = [], [], [], []
+    for k in range(24):
+        n = np.array([rng.normal(0, 0.2), rng.normal(0, 0.2), 1.0])
+        n /= np.linalg.norm(n)
+        r = rng.uniform(0.02, 0.12) * n[2] / (dirs @ n) + rng.normal(0, 3e-4, 9)
+        pts = r[:, None] * dirs
+        used = rng.uniform(size=9) > 0.25
+        used[:3] = True
+        plane, _ = plane_through(pts, used)
+        std = rng.uniform(0, 2e-3, 9) * (rng.uniform(size=9) > 0.3) * (k % 4 != 0)  # some fits: none known
+        common = rng.uniform(0, 1e-3, 9) * (k % 3 == 0)
+        fits.append(plane_fit_geometry(pts, used, plane))
+        stds.append(std)
+        commons.append(common)
+        expected.append(plane_covariance(pts, used, plane, std, replace_fit=True, common_std=common))
+    stacked = PlaneFitGeometry(*(np.stack(parts) for parts in zip(*fits)))
+    got = known_error_covariance(stacked, np.array(stds), replace_fit=True, common_std=np.array(commons))
+    assert got.shape == (24, 3, 3)
+    for g, e in zip(got, expected):
+        assert np.allclose(g, e, rtol=1e-12, atol=1e-30)
+
+
 @pytest.mark.parametrize("options", [5, {"rays": 2}])
 def test_estimator_arguments_of_the_wrong_type_are_refused_saying_what_was_expected(options):
     """``make_estimator("diff", cal, options=5)`` raised AttributeError ('int' object has no attribute 'rays'), and an
