@@ -1413,6 +1413,18 @@ NOMINAL_GEOMETRY_ALBEDO_CV = 0.005
 #: docs/results.md, "The independent generator's other sensors"). Units whose second fit is adopted read 0.8-8 %.
 
 
+#: A level sweep tells its two readings apart (``report["geometry"]["told_apart"]``, :func:`reconsider_geometry`) where
+#: the second fit is adopted (a clearly better fit, one table still one albedo), or where the first is kept and the
+#: second's RMS scaled residual is at least this much above the first's. Otherwise both readings stay possible, and on
+#: a tilted plane they read different slopes: diff's covariance there holds the difference
+#: (:func:`~place_safe.calibration.uncertainty.reading_disagreement`). Measured (docs/results.md, "Two readings of a
+#: level sweep"): units whose zones keep their own time and whose sensor is mounted off (simulated units 40, 41) kept
+#: the fitted geometry with the second fit 0.9 % worse and 12.6 % better (its albedos spread 2.9 times as much), and
+#: diff read their tilted planes 6-9 % too shallow (1.3-1.8 deg) with NEES 68-75; the other reading, rendered, shows
+#: that slope to within 0.3 points.
+TOLD_APART_GAIN = 0.05
+
+
 def _number(x) -> float:
     """``x`` as a float (NaN when it is not a real number)."""
     try:
@@ -1467,10 +1479,14 @@ def reconsider_geometry(frames: Sequence[Frame], params: ForwardParams, report: 
         return params, report
     say = log if log is not None else (lambda _line: None)
 
-    def keep(nominal: dict, reason: str) -> tuple[ForwardParams, dict]:
-        """The first fit, its report saying why (and, beyond the note's limits, its note naming the comparison)."""
+    def keep(nominal: dict, reason: str, other: ForwardParams | None = None,
+             told_apart: bool = False) -> tuple[ForwardParams, dict]:
+        """The first fit, its report saying why (and, beyond the note's limits, its note naming the comparison); with
+        the second fit's params ``other`` where it converged, and whether the sweep ``told_apart`` the readings."""
         report["geometry"] = {"adopted": "free", "free": free, "nominal_time_scales": nominal,
-                              "why": f"kept the fitted geometry: {reason}"}
+                              "why": f"kept the fitted geometry: {reason}", "told_apart": told_apart}
+        if other is not None:
+            report["geometry"]["other_params"] = other.to_dict()
         if note is not None:
             report["geometry"]["note"] = (f"{note} (a second fit with the nominal geometry and each zone's own time "
                                           f"scale: kept the fitted geometry: {reason})")
@@ -1499,7 +1515,8 @@ def reconsider_geometry(frames: Sequence[Frame], params: ForwardParams, report: 
     if better_fit and one_albedo:
         alt_report["geometry"] = {"adopted": "nominal_time_scales", "free": free, "nominal_time_scales": nominal,
                                   "why": f"{compared}: a clearly better fit with the geometry nominal and each zone's "
-                                         "own time scale, one table still reading one albedo"}
+                                         "own time scale, one table still reading one albedo",
+                                  "told_apart": True, "other_params": params.to_dict()}
         say(f"forward model: adopted the nominal geometry with each zone's own time scale ({compared})")
         return alt, alt_report
     why = (f"not a converged fit {NOMINAL_GEOMETRY_GAIN:.0%} lower" if not better_fit else
@@ -1508,7 +1525,10 @@ def reconsider_geometry(frames: Sequence[Frame], params: ForwardParams, report: 
            "the two readings apart" if not one_surface else
            f"the frames' albedos spread more than {NOMINAL_GEOMETRY_ALBEDO_SPREAD:g} times as much: one table would "
            "read many albedos")
-    return keep(nominal, f"{compared}; {why}")
+    # the sweep tells the readings apart only where the second fit is clearly worse; a better fit set aside for its
+    # albedos, or one about as good, leaves both readings possible (TOLD_APART_GAIN)
+    told_apart = converged and math.isfinite(rms_alt) and rms_alt >= (1.0 + TOLD_APART_GAIN) * rms
+    return keep(nominal, f"{compared}; {why}", alt if converged else None, told_apart)
 
 
 def fit_range_correction(frames: Sequence[Frame], forward: ForwardParams, peak=None,

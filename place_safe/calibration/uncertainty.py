@@ -80,7 +80,7 @@ from place_safe.recovery.too_close import OVERLAP_RANGE, TOO_CLOSE_REASON
 from place_safe.sensor.frame import Frame
 from place_safe.calibration.near_range import held_out_fits, near_range_std
 from place_safe.calibration.forward_fit import CROSSTALK_LEFT_SHARE, crosstalk_traded
-from place_safe.exceptions import FrameError, NoPlaneError
+from place_safe.exceptions import CalibrationError, FrameError, NoPlaneError
 from place_safe.recovery.points import PlaneFitGeometry, plane_fit_geometry, plane_through
 from place_safe.calibration.points import MIN_CALIBRATION_RANGE, MIN_TILT_SPREAD, level_frames, tilt_angles
 from place_safe.recovery.blend import blended
@@ -276,6 +276,12 @@ TILT_TERM_NOTE = ("diff's covariance on tilted planes is stated from the unit's 
                   "poses too (capture --distances 80,150,220 --incidences 12,24 --azimuths 0,90,180,270) and "
                   "calibrate on both files for slopes and a covariance sized on them")
 
+#: Added to :data:`TILT_TERM_NOTE` where diff's tilt term holds the two readings of a level sweep
+#: (:func:`reading_disagreement`).
+READINGS_NOTE = ("; this sweep also left two readings of the zones' geometry (fields of view and mount, or each zone's "
+                 "own time scale) that read tilted planes {slope:.1%} apart in slope ({angle:.2f} deg on average at "
+                 "5-30 deg), and diff's covariance there holds that difference: tilted poses tell the readings apart")
+
 
 def _share(value) -> float | None:
     """``value`` as a number in [0, 1], or None where it is not a finite number >= 0."""
@@ -285,7 +291,13 @@ def _share(value) -> float | None:
     return min(float(value), 1.0)
 
 
-def diff_tilt_term(model_error: float | None = None, crosstalk: float | None = None) -> Uncertainty:
+def _magnitude(value):
+    """``abs(value)`` of a real number (not a bool), else None."""
+    return abs(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else None
+
+
+def diff_tilt_term(model_error: float | None = None, crosstalk: float | None = None,
+                   disagreement: dict | None = None) -> Uncertainty:
     """The stated tilt term of diff's covariance for level calibration frames, from the unit's relative model error
     ``model_error`` (dimensionless, the forward fit's ``model_error_chi2``; module constants
     :data:`DIFF_TILT_FLOOR`, :data:`DIFF_TILT_PER_ERROR`, :data:`DIFF_TILT_OFFSET_FLOOR`,
@@ -295,6 +307,9 @@ def diff_tilt_term(model_error: float | None = None, crosstalk: float | None = N
     ``crosstalk`` (the forward fit's, a fraction; None: not known, nothing added) adds
     :data:`DIFF_TILT_PER_CROSSTALK` times it to the tilt part in quadrature: what a level sweep leaves undetermined of
     the crosstalk turns into a slope scale; and :data:`DIFF_TILT_OFFSET_PER_CROSSTALK` times it to the offset part.
+    ``disagreement`` (:func:`reading_disagreement`; None: the sweep told its readings apart, or had one) adds its
+    ``slope_scale`` to the tilt part and its ``offset_bias`` to the offset part, both in quadrature: how differently
+    diff reads a tilted plane under the other reading of the level sweep, which the sweep could not rule out.
     Pivot :data:`DIFF_TILT_PIVOT` either way."""
     e, xt = _share(model_error), _share(crosstalk)
     tilt, offset = ((DIFF_TILT_REL, DIFF_TILT_OFFSET_REL) if e is None else
@@ -303,7 +318,55 @@ def diff_tilt_term(model_error: float | None = None, crosstalk: float | None = N
     if xt is not None:  # (at most 1: Uncertainty's bound; the forward fit allows a crosstalk up to 0.5)
         tilt = min(math.hypot(tilt, DIFF_TILT_PER_CROSSTALK * xt), 1.0)
         offset = min(math.hypot(offset, DIFF_TILT_OFFSET_PER_CROSSTALK * xt), 1.0)
+    if disagreement is not None:
+        k, c = (_share(_magnitude(disagreement.get(key))) for key in ("slope_scale", "offset_bias"))
+        tilt = min(math.hypot(tilt, k or 0.0), 1.0)
+        offset = min(math.hypot(offset, c or 0.0), 1.0)
     return Uncertainty(tilt_rel=tilt, tilt_offset_rel=offset, tilt_pivot=DIFF_TILT_PIVOT)
+
+
+#: The tilted planes on which :func:`reading_disagreement` compares a level sweep's two readings: how many, their
+#: heights (m, the axis crossing) and tilts (rad), and the seed that draws them. Rendered without noise, each reading
+#: with its own pulse scale and albedo, the calibration frames' mean reference histogram as the pulse.
+DISAGREEMENT_FRAMES = 48
+DISAGREEMENT_HEIGHTS = (0.05, 0.30)
+DISAGREEMENT_TILTS = (math.radians(5.0), math.radians(30.0))
+DISAGREEMENT_SEED = 5
+
+
+def reading_disagreement(frames: Sequence[Frame], forward, other, peak_params, correction=None,
+                         options=None) -> dict:
+    """How differently diff reads tilted planes under the two readings of a level sweep that the sweep did not tell
+    apart (:data:`~place_safe.calibration.forward_fit.TOLD_APART_GAIN`): the kept forward model ``forward`` and the
+    ``other`` (:class:`~place_safe.recovery.forward.ForwardParams`) each render the same :data:`DISAGREEMENT_FRAMES`
+    tilted planes, and diff with the kept model (``peak_params``, ``correction``, ``options``: the calibration's) reads
+    both. Returns ``slope_scale`` (least squares ``k`` in ``delta_t = k t``: ``delta_t`` the difference of the two
+    readings' planes in ``(n_x, n_y)``, ``t`` the true ``(n_x, n_y)``; dimensionless) and ``offset_bias`` (``c`` in
+    ``delta_d = c z0 tan(tilt)``), with the frames compared. Where the unit is the other reading, diff's plane errs by
+    about these; the stated tilt term takes them (:func:`diff_tilt_term`). ``frames``: the calibration's (their mean
+    reference histogram is the pulse)."""
+    from place_safe.evaluation.synthetic import SyntheticSpec, make_frames
+
+    refs = [f.reference for f in frames if f.reference is not None][:20]
+    reference = np.mean(refs, axis=0) if refs else None
+    spec = SyntheticSpec(z_range=DISAGREEMENT_HEIGHTS, theta_range=DISAGREEMENT_TILTS, albedo_range=(1.0, 1.0),
+                         specular_weight_range=(0.0, 0.0), noise=False)
+    est = DifferentiableEstimator(forward, peak_params, correction=correction, options=options)
+    kept = make_frames(DISAGREEMENT_FRAMES, params=forward, spec=spec, seed=DISAGREEMENT_SEED, reference=reference)
+    alt = make_frames(DISAGREEMENT_FRAMES, params=other, spec=spec, seed=DISAGREEMENT_SEED, reference=reference)
+    rows = []
+    for a, b, f in zip(est.estimate_many(kept), est.estimate_many(alt), kept):
+        if a.ok and b.ok:
+            t, n = tilt_offset(f.truth), f.truth.normal
+            rows.append((*(tilt_offset(b.plane) - tilt_offset(a.plane)), t[0], t[1],
+                         f.truth.z0 * math.sqrt(max(1.0 - n[2] * n[2], 0.0)) / n[2]))
+    if len(rows) < DISAGREEMENT_FRAMES // 2:
+        return {"frames": len(rows), "why": "diff read too few of the rendered planes to compare the readings"}
+    a = np.array(rows)
+    t, dt = a[:, 3:5], a[:, 0:2]
+    return {"frames": len(rows), "slope_scale": float(np.sum(dt * t) / np.sum(t * t)),
+            "offset_bias": float(np.sum(a[:, 2] * a[:, 5]) / np.sum(a[:, 5] ** 2)),
+            "angle_deg": float(np.degrees(np.mean(np.hypot(dt[:, 0], dt[:, 1]))))}
 
 
 def _usable_tilted(e: PlaneEstimate, t) -> bool:
@@ -936,7 +999,8 @@ FALLBACK_MIN_FRAMES = 10
 
 def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correction=None,
                          peak_uncertainty: Uncertainty | None = None, options=None,
-                         model_error: float | None = None, crosstalk: float | None = None) -> tuple[Uncertainty, dict]:
+                         model_error: float | None = None, crosstalk: float | None = None,
+                         disagreement: dict | None = None) -> tuple[Uncertainty, dict]:
     """The diff method's floor and fallback limits (chi-square, consistency, preference) from frames with ground
     truth, for the solver ``options`` (:class:`~place_safe.recovery.differentiable.SolverOptions`; default: the
     solver's defaults): they depend on the bins the solver fits. The limits are chosen on held-out frames
@@ -944,7 +1008,8 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
     and the one returned; ``frames_using_diff``) and every candidate's score. ``model_error``: the unit's relative
     model error at the frames' true planes (the forward fit's ``model_error_chi2``; None: not known), which sizes the
     stated tilt term of level frames (:func:`diff_tilt_term`), with ``crosstalk`` (the forward fit's, where a level
-    sweep left it undetermined; None: nothing added). Frames closer than ``NEAR_FALLBACK_RANGE`` take no
+    sweep left it undetermined; None: nothing added) and ``disagreement`` (:func:`reading_disagreement`, where the sweep
+    did not tell its two readings apart; None: nothing added). Frames closer than ``NEAR_FALLBACK_RANGE`` take no
     part, nor do those beyond :data:`FALLBACK_MAX_RANGE` (reported as ``frames_beyond_range``) while at least
     :data:`FALLBACK_MIN_FRAMES` are left. With :data:`BLEND` the section blends (``blend`` true, ``prefer_ratio``
     inf) and the report's ``angular_deg`` / ``point_mm`` give the blend's held-out figures too."""
@@ -996,7 +1061,7 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
     # more, at least DIFF_TILTED_SHARE of them tilted that far from the least, show it, and the floor and scale
     # fitted on them hold it
     tilted, level = _tilt_regime(np.array([t.normal for t in truths]))
-    tilt_term = diff_tilt_term(model_error, crosstalk) if level else Uncertainty()
+    tilt_term = diff_tilt_term(model_error, crosstalk, disagreement) if level else Uncertainty()
 
     def floor_from(rows: np.ndarray) -> Uncertainty:
         # the folds' floors without the stated term: the limits follow what the calibration frames show, not the size of
@@ -1043,6 +1108,9 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
             rep["tilt_term_sized"] = {"frames": n_few, "why": f"fewer than {TILT_TERM_MIN_FRAMES} tilted frames: "
                                       "the stated term as the model error sizes it"}
         rep["note"] = TILT_TERM_NOTE.format(n=n_few, need=TILT_TERM_MIN_FRAMES)
+        if _magnitude((disagreement or {}).get("slope_scale")) is not None:
+            rep["note"] += READINGS_NOTE.format(slope=abs(disagreement["slope_scale"]),
+                                                angle=disagreement.get("angle_deg", math.nan))
     use_diff = _keeps_diff(chi2, consistent, ratio, limit, prefer)
     sel = np.where(use_diff[:, None], e_blend if blend else e_diff, e_peak)
 
@@ -1059,7 +1127,8 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
                               + (", then by the tilted frames (tilt_term_sized; the floor from the others)"
                                  if sizing else "") if level else
                               "none: the frames' tilts spread MIN_TILT_SPREAD or more, the floor holds the tilt error"),
-                "tilt_model_error": model_error, "tilt_crosstalk": crosstalk, "tilt_rel": unc.tilt_rel,
+                "tilt_model_error": model_error, "tilt_crosstalk": crosstalk, "tilt_readings": disagreement,
+                "tilt_rel": unc.tilt_rel,
                 "tilt_offset_rel": unc.tilt_offset_rel,
                 "held_out": "frames_using_diff, angular_deg and point_mm: each frame with the floor of the other folds",
                 "blend": (f"diff's plane blended with peak's where the gates pass ({BLENDED}; recovery.blend)" if blend
@@ -1101,13 +1170,37 @@ def update_calibration(cal, frames: Sequence[Frame], method: str) -> dict:
         unc, report["diff"] = fit_diff_uncertainty(frames, forward, cal.peak(), cal.diff(),
                                                    Uncertainty.from_dict(section["peak"]), cal.diff_options(),
                                                    model_error=measured,
-                                                   crosstalk=forward.crosstalk if traded else None)
+                                                   crosstalk=forward.crosstalk if traded else None,
+                                                   disagreement=_readings_left(cal, frames))
         section["diff"] = unc.to_dict()
     cal.sections["uncertainty"] = section
     return report
 
 
-__all__ = ["update_calibration", "nees", "fit_floor", "fit_peak_uncertainty", "fit_diff_uncertainty", "select_fallback",
+def _readings_left(cal, frames: Sequence[Frame]) -> dict | None:
+    """:func:`reading_disagreement` of ``cal``'s forward fit where its level sweep left two readings of the zones'
+    geometry (``reports.forward.geometry``: ``told_apart`` false, the other reading's params kept) and few of
+    ``frames`` are tilted (at least :data:`TILT_TERM_MIN_FRAMES` tilted ones show diff's slopes themselves); else
+    None."""
+    geometry = (cal.reports.get("forward") or {}).get("geometry") or {}
+    if geometry.get("told_apart", True) or not isinstance(geometry.get("other_params"), dict):
+        return None
+    truths = [f.truth for f in frames if f.truth is not None]
+    if not truths:
+        return None
+    tilted, _ = _tilt_regime(np.array([t.normal for t in truths]))
+    if int(np.sum(tilted)) >= TILT_TERM_MIN_FRAMES:
+        return None
+    from place_safe.recovery.forward import ForwardParams
+
+    try:
+        other = ForwardParams.from_dict(geometry["other_params"], "reports.forward.geometry.other_params")
+    except CalibrationError:
+        return None
+    return reading_disagreement(frames, cal.forward(), other, cal.peak(), cal.diff(), cal.diff_options())
+
+
+__all__ = ["update_calibration", "reading_disagreement", "DISAGREEMENT_FRAMES", "nees", "fit_floor", "fit_peak_uncertainty", "fit_diff_uncertainty", "select_fallback",
            "chi2_candidates", "near_std_law", "fit_near_law", "near_law_table", "near_law_parameters", "knot_factor",
            "NEAR_KNOT_SHARE", "NEAR_REFERENCE_DEPTH", "CONSISTENCY_LIMIT", "PEAK_TILT_REL",
            "PEAK_MOUNT_OFFSET_REL", "PEAK_MOUNT_NOTE", "peak_tilt_term",

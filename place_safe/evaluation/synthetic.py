@@ -15,7 +15,7 @@ from importlib import resources
 import numpy as np
 import torch
 
-from place_safe.recovery.forward import ForwardModel, ForwardParams, ZoneRays
+from place_safe.recovery.forward import ForwardModel, ForwardParams, ZoneRays, mount_rotation
 from place_safe.geometry import Plane
 from place_safe.sensor.frame import N_ZONES, ZONE_DIRECTIONS, Frame
 
@@ -56,7 +56,9 @@ def make_frames(n: int, params: ForwardParams | None = None, spec: SyntheticSpec
     albedo = params.albedo * rng.uniform(*spec.albedo_range, n)
     ks = rng.uniform(*spec.specular_weight_range, n)
     alpha = rng.uniform(*spec.specular_exponent_range, n)
-    normals = torch.as_tensor(np.array([p.normal for p in planes]))
+    # the planes are the ground truth in the reported sensor frame; the model renders in its optical frame (a unit
+    # mounted off its nominal orientation: ForwardParams.mount_tilt), about the same origin
+    normals = torch.as_tensor(np.array([p.normal for p in planes])) @ mount_rotation(params.mount_tilt)
     offsets = torch.as_tensor(np.array([p.offset for p in planes]))
     with torch.no_grad():
         h = model.render_plane(normals, offsets, torch.as_tensor(albedo), torch.as_tensor(ref)[None].expand(n, -1),
@@ -66,10 +68,11 @@ def make_frames(n: int, params: ForwardParams | None = None, spec: SyntheticSpec
         ref_noisy = rng.poisson(ref, size=(n, ref.size)).astype(float)
     else:
         ref_noisy = np.broadcast_to(ref, (n, ref.size)).copy()
+    zone_dirs = ZONE_DIRECTIONS @ mount_rotation(params.mount_tilt).numpy().T  # the zones' centres, reported frame
     frames = []
     for i, p in enumerate(planes):
         # on-sensor distances: range along each zone's centre ray, with 2 mm noise
-        pts = p.intersect(ZONE_DIRECTIONS)
+        pts = p.intersect(zone_dirs)
         dist = np.linalg.norm(pts, axis=1) + (rng.normal(0, 0.002, N_ZONES) if spec.noise else 0)
         meta = {"albedo": float(albedo[i]), "specular_weight": float(ks[i]), "specular_exponent": float(alpha[i])}
         frames.append(Frame(h[i], ref_noisy[i], distances=np.round(dist, 3), confidences=np.full(N_ZONES, 255.0),

@@ -779,3 +779,64 @@ def test_the_near_law_parameters_are_finite_and_bounded_wherever_the_optimiser_s
 
     scale, power, shared = near_law_parameters(x)
     assert 0.0 <= scale <= 1.0 and 0.0 <= power <= NEAR_MAX_POWER and 0.0 <= shared <= NEAR_MAX_SHARED
+
+
+def test_two_readings_a_level_sweep_left_widen_diffs_tilt_term_by_their_difference():
+    """Where a level sweep did not tell its two readings of the zones' geometry apart, diff's stated tilt term takes, in
+    quadrature, how differently it reads tilted planes under the other reading (reading_disagreement): the slope scale
+    on the tilt part, the offset bias on the offset part; a sweep that told them apart, or a disagreement not known,
+    adds nothing."""
+    from place_safe.calibration.uncertainty import diff_tilt_term
+
+    base = diff_tilt_term(0.02)
+    wide = diff_tilt_term(0.02, None, {"slope_scale": -0.08, "offset_bias": 0.03})
+    assert wide.tilt_rel == pytest.approx(math.hypot(base.tilt_rel, 0.08))
+    assert wide.tilt_offset_rel == pytest.approx(math.hypot(base.tilt_offset_rel, 0.03))
+    assert wide.tilt_pivot == base.tilt_pivot
+    for none in (None, {}, {"frames": 3, "why": "too few"}, {"slope_scale": math.nan, "offset_bias": None}):
+        assert diff_tilt_term(0.02, None, none) == base
+    assert diff_tilt_term(0.02, None, {"slope_scale": 5.0, "offset_bias": -5.0}).tilt_rel == 1.0  # the field's bound
+
+
+def test_the_other_reading_rendered_shows_how_diff_misreads_its_slopes():
+    """reading_disagreement renders the same tilted planes with the kept forward model and with the other reading (here:
+    edge and corner zones seen 15 % farther off the axis) and reads both with diff on the kept one: the other reading's
+    planes come out steeper (its zones' ranges part more on a slope than the kept geometry expects), the kept one's as
+    they are (a convention check of the comparison: both models are the renderer's own)."""
+    from place_safe.calibration.uncertainty import DISAGREEMENT_FRAMES, reading_disagreement
+    from place_safe.evaluation.synthetic import SyntheticSpec, make_frames
+    from place_safe.recovery.forward import ForwardParams
+    from place_safe.recovery.points import PeakParams
+
+    kept = ForwardParams()
+    level = make_frames(4, params=kept, spec=SyntheticSpec(theta_range=(0.0, 0.0)), seed=1)
+    same = reading_disagreement(level, kept, kept, PeakParams.default_peak())
+    assert same["frames"] >= DISAGREEMENT_FRAMES // 2 and abs(same["slope_scale"]) < 1e-6
+    wide = reading_disagreement(level, kept, ForwardParams(edge_fov_scale=1.15, corner_fov_scale=1.15),
+                                PeakParams.default_peak())
+    assert 0.05 < wide["slope_scale"] < 0.2 and wide["angle_deg"] > 0.5
+
+
+def test_diffs_tilt_term_takes_the_readings_only_where_the_sweep_left_both(monkeypatch):
+    """update_calibration asks for the readings' disagreement only where the forward report says the level sweep did not
+    tell them apart and keeps the other's params; a sweep that told them apart, or with enough tilted frames (they show
+    diff's slopes), gets none."""
+    import place_safe.calibration.uncertainty as u
+    from place_safe.calibration import Calibration
+    from place_safe.evaluation.synthetic import SyntheticSpec, make_frames
+    from place_safe.recovery.forward import ForwardParams
+
+    level = make_frames(12, spec=SyntheticSpec(theta_range=(0.0, 0.0)), seed=2)
+    tilted = make_frames(12, spec=SyntheticSpec(theta_range=(0.2, 0.4)), seed=3)
+    other = ForwardParams(edge_fov_scale=1.1).to_dict()
+    asked = []
+    monkeypatch.setattr(u, "reading_disagreement", lambda *a, **k: asked.append(a) or {"slope_scale": 0.1})
+    for geometry, frames, wanted in (({"told_apart": False, "other_params": other}, level, True),
+                                     ({"told_apart": True, "other_params": other}, level, False),
+                                     ({"told_apart": False}, level, False),
+                                     ({"told_apart": False, "other_params": other}, level + tilted, False),
+                                     ({"told_apart": False, "other_params": {"edge_fov_scale": "wide"}}, level, False)):
+        cal = Calibration(sections={"forward": ForwardParams().to_dict()}, reports={"forward": {"geometry": geometry}})
+        asked.clear()
+        got = u._readings_left(cal, frames)
+        assert (got == {"slope_scale": 0.1}) is wanted and bool(asked) is wanted
