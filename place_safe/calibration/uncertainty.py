@@ -436,6 +436,25 @@ def _tilt_regime(normals: np.ndarray) -> tuple[np.ndarray, bool]:
     return tilted, level_frames(tilts) or float(np.mean(tilted)) < DIFF_TILTED_SHARE
 
 
+#: A mean slope below this (about 0.0001 deg) counts as level: a sweep of a level table centres its tilt term nowhere
+#: (:func:`sweep_slopes`; ``Uncertainty.tilt_about`` stays at its default and out of the file).
+LEVEL_SLOPE = 1e-6
+
+
+def sweep_slopes(normals: np.ndarray, tilted: np.ndarray) -> list[float]:
+    """``Uncertainty.tilt_about`` of calibration frames with true unit ``normals`` (n, 3): the mean slopes ``(n_x / n_z,
+    n_y / n_z)`` of those not ``tilted`` (n,; all of them where every one is), each 0 below :data:`LEVEL_SLOPE` and
+    within -1 .. 1. A stated tilt term counts the tilt from there: the sweep read planes at its own tilt as it was
+    calibrated on them (the real sweep's table sat 0.3-0.8 deg off the sensor's axis)."""
+    n = np.asarray(normals, dtype=float).reshape(-1, 3)
+    keep = ~np.asarray(tilted, dtype=bool)
+    n = n[keep] if keep.any() else n
+    if n.size == 0:
+        return [0.0, 0.0]
+    slopes = np.clip((n[:, :2] / n[:, 2:]).mean(axis=0), -1.0, 1.0)
+    return [float(v) if abs(v) >= LEVEL_SLOPE else 0.0 for v in slopes]
+
+
 def _floor_with_tilt_term(estimates: Sequence[PlaneEstimate], truths: Sequence, tilted: np.ndarray, level: bool,
                           base: Uncertainty) -> tuple[Uncertainty, dict, int]:
     """:func:`fit_floor` of the estimates (fit covariances, no floor yet) with ``base``'s stated tilt term, and with
@@ -921,7 +940,8 @@ def fit_peak_uncertainty(frames: Sequence[Frame], peak_params, min_range: float 
     tilted, level = _tilt_regime(np.array([f.truth.normal for f in use]))
     stated = peak_tilt_term(mount_tilt) if level else Uncertainty(tilt_rel=0.0)
     base = Uncertainty(near_depths=depths, near_range_std=stds, tilt_rel=stated.tilt_rel,
-                       tilt_offset_rel=stated.tilt_offset_rel)
+                       tilt_offset_rel=stated.tilt_offset_rel,
+                       tilt_about=sweep_slopes(np.array([f.truth.normal for f in use]), tilted) if level else [0.0, 0.0])
     ests = [PeakEstimator(peak_params).estimate(f) for f in use]
     unc, report, n_few = _floor_with_tilt_term(ests, [f.truth for f in use], tilted, level, base)
     sizing = n_few >= TILT_TERM_MIN_FRAMES
@@ -1061,7 +1081,8 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
     # more, at least DIFF_TILTED_SHARE of them tilted that far from the least, show it, and the floor and scale
     # fitted on them hold it
     tilted, level = _tilt_regime(np.array([t.normal for t in truths]))
-    tilt_term = diff_tilt_term(model_error, crosstalk, disagreement) if level else Uncertainty()
+    tilt_term = (diff_tilt_term(model_error, crosstalk, disagreement).replace(
+        tilt_about=sweep_slopes(np.array([t.normal for t in truths]), tilted)) if level else Uncertainty())
 
     def floor_from(rows: np.ndarray) -> Uncertainty:
         # the folds' floors without the stated term: the limits follow what the calibration frames show, not the size of
@@ -1200,7 +1221,7 @@ def _readings_left(cal, frames: Sequence[Frame]) -> dict | None:
     return reading_disagreement(frames, cal.forward(), other, cal.peak(), cal.diff(), cal.diff_options())
 
 
-__all__ = ["update_calibration", "reading_disagreement", "DISAGREEMENT_FRAMES", "nees", "fit_floor", "fit_peak_uncertainty", "fit_diff_uncertainty", "select_fallback",
+__all__ = ["update_calibration", "reading_disagreement", "DISAGREEMENT_FRAMES", "sweep_slopes", "LEVEL_SLOPE", "nees", "fit_floor", "fit_peak_uncertainty", "fit_diff_uncertainty", "select_fallback",
            "chi2_candidates", "near_std_law", "fit_near_law", "near_law_table", "near_law_parameters", "knot_factor",
            "NEAR_KNOT_SHARE", "NEAR_REFERENCE_DEPTH", "CONSISTENCY_LIMIT", "PEAK_TILT_REL",
            "PEAK_MOUNT_OFFSET_REL", "PEAK_MOUNT_NOTE", "peak_tilt_term",

@@ -34,6 +34,7 @@ from place_safe.sensor.frame import Frame
 
 #: cos(80 deg): the tilt term's largest tilt.
 _COS_MAX_TILT = math.cos(math.radians(80.0))
+_TAN2_MAX_TILT = math.tan(math.radians(80.0)) ** 2
 
 #: Order of the covariance entries: the normal's x and y components (rad) and the offset (m).
 COVARIANCE_ORDER = ("n_x", "n_y", "d")
@@ -80,6 +81,9 @@ class Uncertainty(ParamModel):
     ``tilt_pivot z0`` along the optical axis (dimensionless, 0 .. 2; 1: its optical-axis crossing ``z0``, 0: about
     the sensor, so ``d`` does not move), and ``tilt_offset_rel`` (dimensionless, 0 .. 1) adds the variance
     ``(tilt_offset_rel z0 tan(tilt))^2`` on the offset, independent of the tilt components (:meth:`tilt_floor`).
+    ``tilt_about`` (the slopes ``(n_x / n_z, n_y / n_z)`` of the calibration frames' mean plane, each -1 .. 1): the tilt
+    these terms grow with is counted from there (a sweep whose table sat half a degree off the sensor's axis read planes
+    at that tilt as it was calibrated on them); ``(0, 0)``, level, the default.
     ``prefer_ratio``
     (> 0; ``inf`` = no comparison): ``diff`` keeps its own plane only where its tilt variance (worst axis of
     the (n_x, n_y) block) is at most ``prefer_ratio`` times the peak estimate's, so it falls back where its
@@ -111,6 +115,7 @@ class Uncertainty(ParamModel):
                                 description="(dimensionless)")
     tilt_pivot: float = Field(1.0, ge=0.0, le=2.0, description="(of z0)")
     tilt_offset_rel: float = Field(0.0, ge=0.0, le=1.0, description="(dimensionless)")
+    tilt_about: vector(2, ge=-1.0, le=1.0) = Field(default_factory=lambda: [0.0, 0.0], description="(slopes)")
     near_common_std: vector(ge=0.0, le=NEAR_MAX_STD) = Field(default_factory=list, description="m")
     blend: bool = Field(False, description="(diff: blend its plane with peak's where its gates pass)")
 
@@ -165,13 +170,17 @@ class Uncertainty(ParamModel):
         """The covariance (3, 3) of ``(n_x, n_y, d)`` a plane with unit ``normal`` at ``offset`` (m) adds:
         variance ``(tilt_rel tan(tilt))^2`` on each tilt component (tilt capped at 80 deg), the plane turning
         about the point ``tilt_pivot z0`` on the optical axis (``z0 = d / n_z``), so ``d`` moves by
-        ``-tilt_pivot z0 (n_x dn_x + n_y dn_y) / n_z``, and ``(tilt_offset_rel z0 tan(tilt))^2`` on ``d`` alone.
-        Scalar arithmetic: it is on the peak method's per-frame path."""
+        ``-tilt_pivot z0 (n_x dn_x + n_y dn_y) / n_z``, and ``(tilt_offset_rel z0 tan(tilt))^2`` on ``d`` alone; the tilt
+        counted from ``tilt_about``. Scalar arithmetic: it is on the peak method's per-frame path."""
         nx, ny, nz = (float(v) for v in normal)
         if not (math.isfinite(nx) and math.isfinite(ny) and math.isfinite(nz) and math.isfinite(offset)):
             nx, ny, nz, offset = 0.0, 0.0, _COS_MAX_TILT, 0.0
         nz = min(max(nz, _COS_MAX_TILT), 1.0)
-        tan2 = max(1.0 - nz * nz, 0.0) / (nz * nz)
+        a0, b0 = self.tilt_about
+        if a0 == 0.0 and b0 == 0.0:
+            tan2 = max(1.0 - nz * nz, 0.0) / (nz * nz)
+        else:  # the tilt from the calibration frames' mean plane: the difference of the slopes (at most 80 deg)
+            tan2 = min((nx / nz - a0) ** 2 + (ny / nz - b0) ** 2, _TAN2_MAX_TILT)
         v = self.tilt_rel * self.tilt_rel * tan2  # (tilt_rel tan(tilt))^2
         k = -self.tilt_pivot * float(offset) / (nz * nz)  # -tilt_pivot z0 / n_z
         jx, jy = k * nx, k * ny
@@ -212,7 +221,7 @@ class Uncertainty(ParamModel):
     #: fields left out of the file at these values (the defaults of files older versions read)
     _OMITTED_AT: ClassVar[tuple[tuple[str, Any], ...]] = (("tilt_rel", 0.0), ("prefer_ratio", None),
                                                            ("tilt_pivot", 1.0), ("tilt_offset_rel", 0.0),
-                                                           ("blend", False))
+                                                           ("blend", False), ("tilt_about", [0.0, 0.0]))
 
     def without_fallback(self) -> "Uncertainty":
         """This uncertainty with every :data:`FALLBACK_LIMITS` at ``inf``: ``diff`` returns its own plane wherever it

@@ -840,3 +840,21 @@ def test_diffs_tilt_term_takes_the_readings_only_where_the_sweep_left_both(monke
         asked.clear()
         got = u._readings_left(cal, frames)
         assert (got == {"slope_scale": 0.1}) is wanted and bool(asked) is wanted
+
+
+def test_a_sweeps_own_tilt_centres_the_stated_tilt_terms():
+    """sweep_slopes: the level frames' mean slopes (the tilted ones left out), 0 for a level table and below
+    LEVEL_SLOPE; a peak calibration of frames whose table sat off the sensor's axis centres its stated term there."""
+    from place_safe.calibration.uncertainty import LEVEL_SLOPE, fit_peak_uncertainty, sweep_slopes
+    from place_safe.evaluation.synthetic import SyntheticSpec, make_frames
+    from place_safe.geometry import Plane
+    from place_safe.recovery.points import PeakParams
+
+    normals = np.array([Plane.from_slopes(0.01, -0.004, 0.2).normal] * 3 + [Plane.from_slopes(0.3, 0.0, 0.2).normal])
+    assert sweep_slopes(normals, np.array([False, False, False, True])) == pytest.approx([0.01, -0.004])
+    assert sweep_slopes(np.array([[0.0, LEVEL_SLOPE / 2, 1.0]]), np.array([False])) == [0.0, 0.0]
+    frames = make_frames(12, spec=SyntheticSpec(theta_range=(0.0, 0.0), z_range=(0.05, 0.3)), seed=4)
+    for f in frames:
+        f.truth = Plane(Plane.from_slopes(0.008, 0.0, f.truth.offset).normal, f.truth.offset)
+    unc, _ = fit_peak_uncertainty(frames, PeakParams.default_peak())
+    assert unc.tilt_about == pytest.approx([0.008, 0.0]) and unc.tilt_rel > 0

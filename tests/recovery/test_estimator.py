@@ -314,6 +314,23 @@ def test_a_shared_zone_error_never_makes_the_plane_look_more_certain(depth, tilt
     assert np.linalg.eigvalsh(both - alone).min() >= -1e-12 * max(1.0, float(np.abs(alone).max()))
 
 
+def test_the_tilt_term_counts_the_tilt_from_the_calibration_sweeps_own_plane():
+    """With ``tilt_about`` (the calibration frames' mean slopes) a plane at that tilt gets no tilt term, one tilted from
+    it gets the term of that tilt, whichever way; the default (level) is as before, and stays out of the file."""
+    unc = Uncertainty(tilt_rel=0.1, tilt_offset_rel=0.01, tilt_pivot=0.0)
+    about = unc.replace(tilt_about=[0.01, -0.005])
+    at = Plane.from_slopes(0.01, -0.005, 0.2)
+    assert np.allclose(about.tilt_floor(at.normal, at.offset), 0.0)
+    assert np.allclose(unc.tilt_floor(Plane.from_slopes(0.03, 0.0, 0.2).normal, 0.2),
+                       about.tilt_floor(Plane.from_slopes(0.04, -0.005, 0.2).normal, 0.2), rtol=1e-6)
+    level = Plane(np.array([0.0, 0.0, 1.0]), 0.2)
+    assert np.allclose(unc.tilt_floor(level.normal, 0.2), 0.0) and not np.allclose(about.tilt_floor(level.normal, 0.2), 0)
+    assert "tilt_about" not in unc.to_dict() and about.to_dict()["tilt_about"] == [0.01, -0.005]
+    assert Uncertainty.from_dict(about.to_dict()) == about
+    with pytest.raises(CalibrationError, match="tilt_about"):
+        Uncertainty.from_dict({**about.to_dict(), "tilt_about": [2.0, 0.0]})
+
+
 def test_stacked_fits_give_each_fit_its_own_covariance():
     """known_error_covariance of many fits stacked (what the near-range law's fit tries hundreds of times) is
     plane_covariance of each: the zones used, the known and shared errors, the fit's own where none is known."""
