@@ -11,8 +11,9 @@ The units: ``A`` (the default :class:`~place_safe.sim.tof_mismatch.MismatchConfi
 docs/results.md, the unit's forward model), ``31``, ``32``, ``33`` (new seeds, their other differences varied within
 the config's bounds: see :data:`UNITS`), ``34`` (unit A whose zones each have their own time scale), ``35`` and ``36``
 (units 32 and B with +-1 % and +-2 % time scales), ``37`` and ``38`` (units A and B mounted 0.94 and 1.5 deg off
-their nominal orientation), ``39`` (unit 34 mounted 1 deg off), ``40`` and ``41`` (units 31 and 33 with their zones'
-own time scales, +-1.2 % and +-2 %, mounted 1.1 and 1.3 deg off; 34-41 are not in the default set), and ``synth``
+their nominal orientation), ``39`` (unit 34 mounted 1 deg off), ``40`` and ``41`` (unit 31's seed, tails, skew and
+emitter baseline, and unit 33's seed, tails and skew, with their zones' own time scales, +-1.2 % and +-2 %, mounted 1.1
+and 1.3 deg off; 34-41 are not in the default set), and ``synth``
 (the independent generator, ``place-safe synth``, sensor seed 0; ``synth1`` .. ``synth9``: sensor seeds 1-9).
 Everything runs through the command line a user has (``place-safe calibrate``, ``place-safe evaluate --json``); each
 step's output is kept in ``--out`` and reused when rerun (``--fresh``: redo).

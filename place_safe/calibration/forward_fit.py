@@ -1460,7 +1460,8 @@ def reconsider_geometry(frames: Sequence[Frame], params: ForwardParams, report: 
     :data:`NOMINAL_GEOMETRY_ALBEDO_SPREAD` times as much (or :data:`NOMINAL_GEOMETRY_ALBEDO_CV` more; both must be
     known) and at most :data:`SAME_SURFACE_CV` (a sweep of one table reads as one surface). Either way the returned
     report's ``geometry`` section says what was compared (``free``, ``nominal_time_scales``) and which was kept
-    (``adopted``; ``why``). A first fit beyond the note's limits (:func:`geometry_note`) that is kept also gets the ``note``, printed by ``calibrate``, which names
+    (``adopted``; ``why``), the reading not kept (``other_params``, where that fit converged) and whether the sweep
+    told the two apart (``told_apart``: :data:`TOLD_APART_GAIN`). A first fit beyond the note's limits (:func:`geometry_note`) that is kept also gets the ``note``, printed by ``calibrate``, which names
     the comparison or the second fit's failure. The first fit's ``report`` gets its ``geometry`` section in place when
     it is kept. ``second_fit`` False: the note alone (a fit whose geometry is not free to swap, e.g. the staged unit
     model). Not a level sweep, or a geometry near nominal: ``(params, report)`` unchanged. ``log`` gets a line for the

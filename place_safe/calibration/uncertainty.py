@@ -1081,8 +1081,6 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
     # more, at least DIFF_TILTED_SHARE of them tilted that far from the least, show it, and the floor and scale
     # fitted on them hold it
     tilted, level = _tilt_regime(np.array([t.normal for t in truths]))
-    tilt_term = (diff_tilt_term(model_error, crosstalk, disagreement).replace(
-        tilt_about=sweep_slopes(np.array([t.normal for t in truths]), tilted)) if level else Uncertainty())
 
     def floor_from(rows: np.ndarray) -> Uncertainty:
         # the folds' floors without the stated term: the limits follow what the calibration frames show, not the size of
@@ -1119,6 +1117,12 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
     else:  # too few frames to hold any out: the most permissive finite limit, equal variances (no blend tested)
         limit, prefer, table = max(candidates), 1.0, []
     under = [i for i in range(n) if own[i] and chi2[i] <= limit]
+    # the stated term (level frames): with enough tilted frames diff reads they size it (_floor_with_tilt_term), and
+    # show its slopes themselves, so the two readings' difference is left out
+    if level and sum(tilted[i] and _usable_tilted(diff[i], truths[i]) for i in under) >= TILT_TERM_MIN_FRAMES:
+        disagreement = None
+    tilt_term = (diff_tilt_term(model_error, crosstalk, disagreement).replace(
+        tilt_about=sweep_slopes(np.array([t.normal for t in truths]), tilted)) if level else Uncertainty())
     # a few tilted frames among level ones: the level ones size the floor, the tilted ones the stated term
     base = tilt_term.replace(chi2_limit=limit, consistency_limit=CONSISTENCY_LIMIT, prefer_ratio=prefer, blend=blend)
     unc, rep, n_few = _floor_with_tilt_term([diff[i] for i in under], [truths[i] for i in under], tilted[under],
@@ -1129,7 +1133,7 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
             rep["tilt_term_sized"] = {"frames": n_few, "why": f"fewer than {TILT_TERM_MIN_FRAMES} tilted frames: "
                                       "the stated term as the model error sizes it"}
         rep["note"] = TILT_TERM_NOTE.format(n=n_few, need=TILT_TERM_MIN_FRAMES)
-        if _magnitude((disagreement or {}).get("slope_scale")) is not None:
+        if _share(_magnitude((disagreement or {}).get("slope_scale"))) is not None:
             rep["note"] += READINGS_NOTE.format(slope=abs(disagreement["slope_scale"]),
                                                 angle=disagreement.get("angle_deg", math.nan))
     use_diff = _keeps_diff(chi2, consistent, ratio, limit, prefer)
@@ -1203,8 +1207,10 @@ def _readings_left(cal, frames: Sequence[Frame]) -> dict | None:
     geometry (``reports.forward.geometry``: ``told_apart`` false, the other reading's params kept) and few of
     ``frames`` are tilted (at least :data:`TILT_TERM_MIN_FRAMES` tilted ones show diff's slopes themselves); else
     None."""
-    geometry = (cal.reports.get("forward") or {}).get("geometry") or {}
-    if geometry.get("told_apart", True) or not isinstance(geometry.get("other_params"), dict):
+    forward = cal.reports.get("forward")
+    geometry = forward.get("geometry") if isinstance(forward, dict) else None
+    if not isinstance(geometry, dict) or geometry.get("told_apart") is not False \
+            or not isinstance(geometry.get("other_params"), dict):
         return None
     truths = [f.truth for f in frames if f.truth is not None]
     if not truths:
@@ -1221,7 +1227,8 @@ def _readings_left(cal, frames: Sequence[Frame]) -> dict | None:
     return reading_disagreement(frames, cal.forward(), other, cal.peak(), cal.diff(), cal.diff_options())
 
 
-__all__ = ["update_calibration", "reading_disagreement", "DISAGREEMENT_FRAMES", "sweep_slopes", "LEVEL_SLOPE", "nees", "fit_floor", "fit_peak_uncertainty", "fit_diff_uncertainty", "select_fallback",
+__all__ = ["update_calibration", "reading_disagreement", "DISAGREEMENT_FRAMES", "READINGS_NOTE", "sweep_slopes",
+           "LEVEL_SLOPE", "nees", "fit_floor", "fit_peak_uncertainty", "fit_diff_uncertainty", "select_fallback",
            "chi2_candidates", "near_std_law", "fit_near_law", "near_law_table", "near_law_parameters", "knot_factor",
            "NEAR_KNOT_SHARE", "NEAR_REFERENCE_DEPTH", "CONSISTENCY_LIMIT", "PEAK_TILT_REL",
            "PEAK_MOUNT_OFFSET_REL", "PEAK_MOUNT_NOTE", "peak_tilt_term",

@@ -175,10 +175,13 @@ class Uncertainty(ParamModel):
         nx, ny, nz = (float(v) for v in normal)
         if not (math.isfinite(nx) and math.isfinite(ny) and math.isfinite(nz) and math.isfinite(offset)):
             nx, ny, nz, offset = 0.0, 0.0, _COS_MAX_TILT, 0.0
+        steep = nz <= _COS_MAX_TILT  # (and a normal that is not a number: the fallback above)
         nz = min(max(nz, _COS_MAX_TILT), 1.0)
         a0, b0 = self.tilt_about
         if a0 == 0.0 and b0 == 0.0:
             tan2 = max(1.0 - nz * nz, 0.0) / (nz * nz)
+        elif steep:
+            tan2 = _TAN2_MAX_TILT
         else:  # the tilt from the calibration frames' mean plane: the difference of the slopes (at most 80 deg)
             tan2 = min((nx / nz - a0) ** 2 + (ny / nz - b0) ** 2, _TAN2_MAX_TILT)
         v = self.tilt_rel * self.tilt_rel * tan2  # (tilt_rel tan(tilt))^2

@@ -556,10 +556,7 @@ def plane_covariance(points: np.ndarray, valid: np.ndarray, plane: Plane, range_
     if np.ndim(range_std) == 0 and not range_std > 0.0:  # the usual call: no known error
         _, _, sigma2, inverse = _fit(points, valid, plane)
         return sigma2 * inverse
-    geometry = plane_fit_geometry(points, valid, plane)
-    n = geometry.off_plane.shape[-1]
-    return known_error_covariance(geometry, np.broadcast_to(np.asarray(range_std, dtype=float), (n,)), replace_fit,
-                                  np.broadcast_to(np.asarray(common_std, dtype=float), (n,)))
+    return known_error_covariance(plane_fit_geometry(points, valid, plane), range_std, replace_fit, common_std)
 
 
 class PlaneFitGeometry(NamedTuple):
@@ -603,20 +600,26 @@ def _fit(points: np.ndarray, valid: np.ndarray, plane: Plane) -> tuple[np.ndarra
 def known_error_covariance(geometry: PlaneFitGeometry, range_std: np.ndarray, replace_fit: bool = False,
                            common_std: np.ndarray | float = 0.0) -> np.ndarray:
     """:func:`plane_covariance` (..., 3, 3) of fits' ``geometry`` (:func:`plane_fit_geometry`; stacked along leading
-    axes, or one) with each point's known range error ``range_std`` (..., N; m) and the error the points share
-    ``common_std`` (..., N, or one value; m): see there. Where no point used has a known error above 0, the fit's
+    axes, or one) with each point's known range error ``range_std`` (..., N, or one value; m) and the error the points
+    share ``common_std`` (..., N, or one value; m): see there. Where no point used has a known error above 0, the fit's
     own covariance ``sigma2 inverse`` (the shared error then unused)."""
     g = geometry
     std = np.asarray(range_std, dtype=float)
+    shared_std = np.asarray(common_std, dtype=float)
     with np.errstate(invalid="ignore"):
-        known = np.nan_to_num((std * g.off_plane) ** 2)
-        any_known = np.any((std > 0.0) & g.used, axis=-1)
+        known = (std * g.off_plane) ** 2  # (a fresh array: NaN set to 0 in place, as np.nan_to_num would, faster)
+        any_known = ((std > 0.0) & g.used).any(axis=-1)
+        has_shared = ((shared_std > 0.0).any(axis=-1) if shared_std.ndim else bool(shared_std > 0.0)) if replace_fit \
+            else False
+    known[np.isnan(known)] = 0.0
     sigma2 = np.asarray(g.sigma2)[..., None]
     var = np.where(known > 0.0, known, sigma2) if replace_fit else np.maximum(sigma2, known)
-    cov = np.einsum("...in,...n,...jn->...ij", g.gain, var, g.gain)
-    if replace_fit:
-        common = np.nan_to_num(np.asarray(common_std, dtype=float) * g.off_plane)
-        shared = np.einsum("...in,...n->...i", g.gain, common)  # the state's response to the shared error
+    gain_t = np.swapaxes(g.gain, -1, -2)
+    cov = (g.gain * var[..., None, :]) @ gain_t
+    if np.any(has_shared):
+        common = shared_std * g.off_plane * np.asarray(has_shared)[..., None]
+        common[np.isnan(common)] = 0.0
+        shared = (common[..., None, :] @ gain_t)[..., 0, :]  # the state's response to the shared error
         cov = cov + shared[..., :, None] * shared[..., None, :]
     cov = 0.5 * (cov + np.swapaxes(cov, -1, -2))  # (the sandwich's products leave 1e-20 of asymmetry)
     return np.where(any_known[..., None, None], cov, np.asarray(g.sigma2)[..., None, None] * g.inverse)

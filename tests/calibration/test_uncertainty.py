@@ -835,11 +835,39 @@ def test_diffs_tilt_term_takes_the_readings_only_where_the_sweep_left_both(monke
                                      ({"told_apart": True, "other_params": other}, level, False),
                                      ({"told_apart": False}, level, False),
                                      ({"told_apart": False, "other_params": other}, level + tilted, False),
-                                     ({"told_apart": False, "other_params": {"edge_fov_scale": "wide"}}, level, False)):
+                                     ({"told_apart": False, "other_params": {"edge_fov_scale": "wide"}}, level, False),
+                                     ({"told_apart": None, "other_params": other}, level, False),
+                                     ({"told_apart": 0, "other_params": other}, level, False),
+                                     ("free", level, False), ([1, 2], level, False), (None, level, False)):
         cal = Calibration(sections={"forward": ForwardParams().to_dict()}, reports={"forward": {"geometry": geometry}})
         asked.clear()
         got = u._readings_left(cal, frames)
         assert (got == {"slope_scale": 0.1}) is wanted and bool(asked) is wanted
+    for report in ("broken", None, []):  # a report of another shape: no readings, no error
+        assert u._readings_left(Calibration(sections={"forward": ForwardParams().to_dict()},
+                                            reports={"forward": report}), level) is None
+
+
+def test_a_mounted_units_frames_render_in_its_optical_frame_and_keep_their_truth_in_the_reported_one():
+    """make_frames of a forward model with a mount tilt: the frames' truth is in the reported frame, so diff with the
+    same model reads them as it reads an unmounted model's, and reading_disagreement of two readings that differ only
+    by a mount the diff model holds is the mount's plain rotation, not a slope scale (a convention check of the
+    comparison's rendering: both models are the renderer's own)."""
+    from place_safe.calibration.uncertainty import reading_disagreement
+    from place_safe.evaluation.synthetic import SyntheticSpec, make_frames
+    from place_safe.recovery.differentiable import DifferentiableEstimator
+    from place_safe.recovery.forward import ForwardParams
+    from place_safe.recovery.points import PeakParams
+
+    spec = SyntheticSpec(z_range=(0.08, 0.25), theta_range=(0.1, 0.4), specular_weight_range=(0.0, 0.0), noise=False)
+    mounted = ForwardParams(mount_tilt=[0.03, -0.02])  # 2 deg
+    frames = make_frames(8, params=mounted, spec=spec, seed=6)
+    est = DifferentiableEstimator(mounted, PeakParams.default_peak())
+    for e, f in zip(est.estimate_many(frames), frames):
+        assert e.ok and math.degrees(math.acos(min(1.0, float(e.plane.normal @ f.truth.normal)))) < 0.1
+    level = make_frames(4, params=mounted, spec=SyntheticSpec(theta_range=(0.0, 0.0)), seed=1)
+    same = reading_disagreement(level, mounted, mounted, PeakParams.default_peak())
+    assert abs(same["slope_scale"]) < 1e-6 and same["angle_deg"] < 1e-4
 
 
 def test_a_sweeps_own_tilt_centres_the_stated_tilt_terms():

@@ -320,11 +320,19 @@ def test_the_tilt_term_counts_the_tilt_from_the_calibration_sweeps_own_plane():
     unc = Uncertainty(tilt_rel=0.1, tilt_offset_rel=0.01, tilt_pivot=0.0)
     about = unc.replace(tilt_about=[0.01, -0.005])
     at = Plane.from_slopes(0.01, -0.005, 0.2)
-    assert np.allclose(about.tilt_floor(at.normal, at.offset), 0.0)
-    assert np.allclose(unc.tilt_floor(Plane.from_slopes(0.03, 0.0, 0.2).normal, 0.2),
-                       about.tilt_floor(Plane.from_slopes(0.04, -0.005, 0.2).normal, 0.2), rtol=1e-6)
+    assert np.array_equal(about.tilt_floor(at.normal, at.offset), np.zeros((3, 3)))
+    for da, db in ((0.03, 0.0), (-0.03, 0.0), (0.0, 0.03), (0.018, -0.024)):  # 0.03 off the sweep's slopes, any way
+        p = Plane.from_slopes(0.01 + da, -0.005 + db, 0.2)
+        c = about.tilt_floor(p.normal, p.offset)
+        z0 = p.offset / p.normal[2]
+        assert np.isclose(c[0, 0], (0.1 * 0.03) ** 2, rtol=1e-9, atol=0) and np.isclose(c[1, 1], c[0, 0], rtol=0, atol=0)
+        assert np.isclose(c[2, 2], (0.01 * z0 * 0.03) ** 2, rtol=1e-9, atol=0)
     level = Plane(np.array([0.0, 0.0, 1.0]), 0.2)
-    assert np.allclose(unc.tilt_floor(level.normal, 0.2), 0.0) and not np.allclose(about.tilt_floor(level.normal, 0.2), 0)
+    assert np.array_equal(unc.tilt_floor(level.normal, 0.2), np.zeros((3, 3)))
+    assert about.tilt_floor(level.normal, 0.2)[0, 0] > 0
+    steepest = unc.tilt_floor(np.array([1.0, 0.0, 0.0]), 0.2)  # past 80 deg, or not a normal: the 80 deg cap either way
+    for bad in (np.array([1.0, 0.0, 0.0]), np.array([math.nan, 0.0, 1.0])):
+        assert np.isclose(about.tilt_floor(bad, 0.2)[0, 0], steepest[0, 0], rtol=1e-12, atol=0)
     assert "tilt_about" not in unc.to_dict() and about.to_dict()["tilt_about"] == [0.01, -0.005]
     assert Uncertainty.from_dict(about.to_dict()) == about
     with pytest.raises(CalibrationError, match="tilt_about"):
