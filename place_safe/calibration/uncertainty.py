@@ -188,8 +188,9 @@ PEAK_MOUNT_OFFSET_REL = 0.75
 #: The peak report's note (``calibrate`` prints it) when a peak-only calibration takes the mount of a forward model
 #: already in the file.
 PEAK_MOUNT_NOTE = ("peak's covariance on tilted planes widens by the mount tilt ({deg:.2f} deg) of the forward model "
-                   "already in this file; that holds only if the file was calibrated on this unit (calibrate --method "
-                   "diff on this sweep fits the mount again)")
+                   "already in this file (or, where it holds the mount level, of its level sweep's other reading); that "
+                   "holds only if the file was calibrated on this unit (calibrate --method diff on this sweep fits the "
+                   "mount again)")
 
 #: Tilt term of diff's covariance (:meth:`~place_safe.recovery.estimator.Uncertainty.tilt_floor`) for level
 #: calibration frames whose unit's model error is not known (:func:`diff_tilt_term`; the values before the model-error
@@ -297,7 +298,7 @@ def _magnitude(value):
 
 
 def diff_tilt_term(model_error: float | None = None, crosstalk: float | None = None,
-                   disagreement: dict | None = None) -> Uncertainty:
+                   disagreement: dict | None = None, mount_left: float | None = None) -> Uncertainty:
     """The stated tilt term of diff's covariance for level calibration frames, from the unit's relative model error
     ``model_error`` (dimensionless, the forward fit's ``model_error_chi2``; module constants
     :data:`DIFF_TILT_FLOOR`, :data:`DIFF_TILT_PER_ERROR`, :data:`DIFF_TILT_OFFSET_FLOOR`,
@@ -310,7 +311,9 @@ def diff_tilt_term(model_error: float | None = None, crosstalk: float | None = N
     ``disagreement`` (:func:`reading_disagreement`; None: the sweep told its readings apart, or had one) adds its
     ``slope_scale`` to the tilt part and its ``offset_bias`` to the offset part, both in quadrature: how differently
     diff reads a tilted plane under the other reading of the level sweep, which the sweep could not rule out.
-    Pivot :data:`DIFF_TILT_PIVOT` either way."""
+    ``mount_left`` (rad; None: nothing added): the mount the free reading saw where the sweep adopted each zone's own
+    time scale with the mount held level (:func:`mount_left`); :data:`ADOPTED_MOUNT_OFFSET_REL` times it goes into the
+    offset part in quadrature. Pivot :data:`DIFF_TILT_PIVOT` either way."""
     e, xt = _share(model_error), _share(crosstalk)
     tilt, offset = ((DIFF_TILT_REL, DIFF_TILT_OFFSET_REL) if e is None else
                     (math.hypot(DIFF_TILT_FLOOR, DIFF_TILT_PER_ERROR * e),
@@ -322,7 +325,36 @@ def diff_tilt_term(model_error: float | None = None, crosstalk: float | None = N
         k, c = (_share(_magnitude(disagreement.get(key))) for key in ("slope_scale", "offset_bias"))
         tilt = min(math.hypot(tilt, k or 0.0), 1.0)
         offset = min(math.hypot(offset, c or 0.0), 1.0)
+    if (m := _share(_magnitude(mount_left))) is not None:
+        offset = min(math.hypot(offset, ADOPTED_MOUNT_OFFSET_REL * m), 1.0)
     return Uncertainty(tilt_rel=tilt, tilt_offset_rel=offset, tilt_pivot=DIFF_TILT_PIVOT)
+
+
+#: Diff's offset std per unit ``z0 tan(tilt)`` per radian of the mount the free reading of a level sweep saw, where the
+#: sweep adopted each zone's own time scale with the mount held level (:func:`mount_left`): the time scales take up as
+#: much of a real mount as a level table shows, and leave the rays pointing off by what they did not, which on a tilted
+#: plane moves the offset by ``z0 tan(tilt)`` times that pointing error. How much of the free reading's mount is real, a
+#: level sweep cannot say: anywhere from none to all of it, whose RMS is ``1 / sqrt(3)`` of it. Measured (docs/results.md,
+#: "Two readings of a level sweep"): units 39 and 42 (zones' own time and a mount of 1.0 and 1.2 deg; the free reading
+#: 2.4 and 1.3 deg) left pointing errors of 0.57 deg and about 0.7 deg, their NEES per dof 4.8 and 8.6 without the term
+#: and 1.2 and 2.3 with it; units 34 and 36 (no mount; the free reading 1.4 and 0.5 deg) 0.55 and 0.26 -> 0.23 and 0.19.
+ADOPTED_MOUNT_OFFSET_REL = 1.0 / math.sqrt(3.0)
+
+
+def mount_left(cal) -> float | None:
+    """The size (rad) of the mount tilt the free reading of ``cal``'s level sweep saw, where ``calibrate`` adopted the
+    other reading, each zone's own time scale with the mount held level (``reports.forward.geometry.adopted``
+    ``nominal_time_scales``; ``free.mount_tilt_deg``); else None (a report of another shape, too)."""
+    forward = cal.reports.get("forward")
+    geometry = forward.get("geometry") if isinstance(forward, dict) else None
+    if not isinstance(geometry, dict) or geometry.get("adopted") != "nominal_time_scales":
+        return None
+    free = geometry.get("free")
+    deg = free.get("mount_tilt_deg") if isinstance(free, dict) else None
+    if not (isinstance(deg, list) and len(deg) == 2 and all(_magnitude(v) is not None for v in deg)):
+        return None
+    size = math.radians(math.hypot(*deg))
+    return size if math.isfinite(size) else None
 
 
 #: The tilted planes on which :func:`reading_disagreement` compares a level sweep's two readings: how many, their
@@ -1020,7 +1052,7 @@ FALLBACK_MIN_FRAMES = 10
 def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correction=None,
                          peak_uncertainty: Uncertainty | None = None, options=None,
                          model_error: float | None = None, crosstalk: float | None = None,
-                         disagreement: dict | None = None) -> tuple[Uncertainty, dict]:
+                         disagreement: dict | None = None, mount_left: float | None = None) -> tuple[Uncertainty, dict]:
     """The diff method's floor and fallback limits (chi-square, consistency, preference) from frames with ground
     truth, for the solver ``options`` (:class:`~place_safe.recovery.differentiable.SolverOptions`; default: the
     solver's defaults): they depend on the bins the solver fits. The limits are chosen on held-out frames
@@ -1029,7 +1061,8 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
     model error at the frames' true planes (the forward fit's ``model_error_chi2``; None: not known), which sizes the
     stated tilt term of level frames (:func:`diff_tilt_term`), with ``crosstalk`` (the forward fit's, where a level
     sweep left it undetermined; None: nothing added) and ``disagreement`` (:func:`reading_disagreement`, where the sweep
-    did not tell its two readings apart; None: nothing added). Frames closer than ``NEAR_FALLBACK_RANGE`` take no
+    did not tell its two readings apart; None: nothing added) and ``mount_left`` (:func:`mount_left`; None: nothing
+    added). Frames closer than ``NEAR_FALLBACK_RANGE`` take no
     part, nor do those beyond :data:`FALLBACK_MAX_RANGE` (reported as ``frames_beyond_range``) while at least
     :data:`FALLBACK_MIN_FRAMES` are left. With :data:`BLEND` the section blends (``blend`` true, ``prefer_ratio``
     inf) and the report's ``angular_deg`` / ``point_mm`` give the blend's held-out figures too."""
@@ -1121,7 +1154,7 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
     # show its slopes themselves, so the two readings' difference is left out
     if level and sum(tilted[i] and _usable_tilted(diff[i], truths[i]) for i in under) >= TILT_TERM_MIN_FRAMES:
         disagreement = None
-    tilt_term = (diff_tilt_term(model_error, crosstalk, disagreement).replace(
+    tilt_term = (diff_tilt_term(model_error, crosstalk, disagreement, mount_left).replace(
         tilt_about=sweep_slopes(np.array([t.normal for t in truths]), tilted)) if level else Uncertainty())
     # a few tilted frames among level ones: the level ones size the floor, the tilted ones the stated term
     base = tilt_term.replace(chi2_limit=limit, consistency_limit=CONSISTENCY_LIMIT, prefer_ratio=prefer, blend=blend)
@@ -1153,6 +1186,7 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
                                  if sizing else "") if level else
                               "none: the frames' tilts spread MIN_TILT_SPREAD or more, the floor holds the tilt error"),
                 "tilt_model_error": model_error, "tilt_crosstalk": crosstalk, "tilt_readings": disagreement,
+                "tilt_mount_left_deg": None if mount_left is None else math.degrees(mount_left),
                 "tilt_rel": unc.tilt_rel,
                 "tilt_offset_rel": unc.tilt_offset_rel,
                 "held_out": "frames_using_diff, angular_deg and point_mm: each frame with the floor of the other folds",
@@ -1179,8 +1213,12 @@ def update_calibration(cal, frames: Sequence[Frame], method: str) -> dict:
         # the forward model's mount tilt where the file has a valid one (diff's calibration fits it before this; a
         # broken forward section does not stop the peak method)
         forward = bool(cal.sections.get("forward")) and "forward" not in cal.errors
+        # where the sweep adopted each zone's own time scale with the mount held level, the mount the free reading saw
+        # (peak's zone gains read the sweep the same way: its slopes part from a mounted unit's by as much)
+        left = mount_left(cal) if forward else None
         unc, report["peak"] = fit_peak_uncertainty(frames, cal.peak(),
-                                                   mount_tilt=cal.forward().mount_tilt if forward else None)
+                                                   mount_tilt=(left, 0.0) if left is not None else
+                                                   cal.forward().mount_tilt if forward else None)
         section["peak"] = unc.to_dict()
         mount_deg = report["peak"].get("tilt_offset_mount_deg", 0.0)
         if method == "peak" and mount_deg > 0:
@@ -1196,7 +1234,7 @@ def update_calibration(cal, frames: Sequence[Frame], method: str) -> dict:
                                                    Uncertainty.from_dict(section["peak"]), cal.diff_options(),
                                                    model_error=measured,
                                                    crosstalk=forward.crosstalk if traded else None,
-                                                   disagreement=_readings_left(cal, frames))
+                                                   disagreement=_readings_left(cal, frames), mount_left=mount_left(cal))
         section["diff"] = unc.to_dict()
     cal.sections["uncertainty"] = section
     return report
@@ -1228,6 +1266,7 @@ def _readings_left(cal, frames: Sequence[Frame]) -> dict | None:
 
 
 __all__ = ["update_calibration", "reading_disagreement", "DISAGREEMENT_FRAMES", "READINGS_NOTE", "sweep_slopes",
+           "mount_left", "ADOPTED_MOUNT_OFFSET_REL",
            "LEVEL_SLOPE", "nees", "fit_floor", "fit_peak_uncertainty", "fit_diff_uncertainty", "select_fallback",
            "chi2_candidates", "near_std_law", "fit_near_law", "near_law_table", "near_law_parameters", "knot_factor",
            "NEAR_KNOT_SHARE", "NEAR_REFERENCE_DEPTH", "CONSISTENCY_LIMIT", "PEAK_TILT_REL",

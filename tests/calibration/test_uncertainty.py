@@ -886,3 +886,44 @@ def test_a_sweeps_own_tilt_centres_the_stated_tilt_terms():
         f.truth = Plane(Plane.from_slopes(0.008, 0.0, f.truth.offset).normal, f.truth.offset)
     unc, _ = fit_peak_uncertainty(frames, PeakParams.default_peak())
     assert unc.tilt_about == pytest.approx([0.008, 0.0]) and unc.tilt_rel > 0
+
+
+def test_a_mount_the_adopted_time_scales_may_have_taken_up_widens_both_methods_offsets_on_tilted_planes(monkeypatch):
+    """Where calibrate adopted each zone's own time scale with the mount held level, the mount the free reading saw
+    (mount_left) widens diff's offset part by ADOPTED_MOUNT_OFFSET_REL times it, in quadrature, and peak's mount term
+    takes it as the unit's mount; a kept free reading, or a report of another shape, adds nothing."""
+    import place_safe.calibration.uncertainty as u
+    from place_safe.calibration import Calibration
+    from place_safe.calibration.uncertainty import ADOPTED_MOUNT_OFFSET_REL, diff_tilt_term, mount_left
+    from place_safe.evaluation.synthetic import SyntheticSpec, make_frames
+    from place_safe.recovery.forward import ForwardParams
+
+    def cal(geometry):
+        return Calibration(sections={"forward": ForwardParams().to_dict()}, reports={"forward": {"geometry": geometry}})
+
+    adopted = {"adopted": "nominal_time_scales", "told_apart": True, "free": {"mount_tilt_deg": [1.2, -0.9]}}
+    assert mount_left(cal(adopted)) == pytest.approx(math.radians(1.5))
+    for other in ({**adopted, "adopted": "free"}, {**adopted, "free": {"mount_tilt_deg": [math.nan, 0.0]}},
+                  {**adopted, "free": "level"}, {"adopted": "nominal_time_scales"}, "broken", None):
+        assert mount_left(cal(other)) is None
+    base = diff_tilt_term(0.02)
+    wide = diff_tilt_term(0.02, None, None, 0.02)
+    assert wide.tilt_offset_rel == pytest.approx(math.hypot(base.tilt_offset_rel, ADOPTED_MOUNT_OFFSET_REL * 0.02))
+    assert wide.tilt_rel == base.tilt_rel and diff_tilt_term(0.02, None, None, None) == base
+
+    from place_safe.recovery.points import PeakParams
+
+    seen = []
+    real_fit = u.fit_peak_uncertainty
+    frames = make_frames(10, spec=SyntheticSpec(theta_range=(0.0, 0.0), z_range=(0.05, 0.3)), seed=8)
+
+    def spy(frames, peak, min_range=None, mount_tilt=None):
+        seen.append(mount_tilt)
+        return real_fit(frames, peak, min_range, mount_tilt)
+
+    monkeypatch.setattr(u, "fit_peak_uncertainty", spy)
+    for geometry, want in ((adopted, math.radians(1.5)), ({**adopted, "adopted": "free"}, 0.0)):
+        c = cal(geometry)
+        c.sections["peak"] = PeakParams.default_peak().to_dict()
+        u.update_calibration(c, frames, "peak")
+        assert float(np.hypot(*seen[-1])) == pytest.approx(want)
