@@ -13,7 +13,8 @@ the config's bounds: see :data:`UNITS`), ``34`` (unit A whose zones each have th
 (units 32 and B with +-1 % and +-2 % time scales), ``37`` and ``38`` (units A and B mounted 0.94 and 1.5 deg off
 their nominal orientation), ``39`` (unit 34 mounted 1 deg off), ``40`` and ``41`` (unit 31's seed, tails, skew and
 emitter baseline, and unit 33's seed, tails and skew, with their zones' own time scales, +-1.2 % and +-2 %, mounted 1.1
-and 1.3 deg off; 34-41 are not in the default set), and ``synth``
+and 1.3 deg off), ``42`` (unit B's tails, +-1 %, mounted 1.2 deg off) and ``43`` (seed 43, +-2 %, mounted 1.2 deg
+off; 34-43 are not in the default set), and ``synth``
 (the independent generator, ``place-safe synth``, sensor seed 0; ``synth1`` .. ``synth9``: sensor seeds 1-9).
 Everything runs through the command line a user has (``place-safe calibrate``, ``place-safe evaluate --json``); each
 step's output is kept in ``--out`` and reused when rerun (``--fresh``: redo).
@@ -77,6 +78,10 @@ UNITS: dict[str, dict | None] = {
            "zone_time_scale": 0.012, "mount_tilt": (math.radians(-0.6), math.radians(-0.9))},
     "41": {"seed": 33, "tail_weight": (0.01, 0.05), "tail_decay": (1.5, 3.0), "skew_bins": 0.3,
            "zone_time_scale": 0.02, "mount_tilt": (math.radians(1.2), math.radians(0.4))},
+    # unit B's tails with its zones' own time, mounted (adopted: the time scales), and another seed's (not told apart)
+    "42": {"seed": 11, "tail_weight": (0.05, 0.12), "tail_decay": (2.0, 6.0), "skew_bins": 0.2,
+           "zone_time_scale": 0.01, "mount_tilt": (math.radians(-1.0), math.radians(0.6))},
+    "43": {"seed": 43, "zone_time_scale": 0.02, "mount_tilt": (math.radians(0.3), math.radians(-1.2))},
 }
 #: The independent generator's units: ``place-safe synth --sensor-seed``.
 SYNTH = {"synth": 0, **{f"synth{k}": k for k in range(1, 10)}}
