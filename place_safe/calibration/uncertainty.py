@@ -336,8 +336,9 @@ def diff_tilt_term(model_error: float | None = None, crosstalk: float | None = N
 #: plane moves the offset by ``z0 tan(tilt)`` times that pointing error. How much of the free reading's mount is real, a
 #: level sweep cannot say: anywhere from none to all of it, whose RMS is ``1 / sqrt(3)`` of it. Measured (docs/results.md,
 #: "Two readings of a level sweep"): units 39 and 42 (zones' own time and a mount of 1.0 and 1.2 deg; the free reading
-#: 2.4 and 1.3 deg) left pointing errors of 0.57 deg and about 0.7 deg, their NEES per dof 4.8 and 8.6 without the term
-#: and 1.2 and 2.3 with it; units 34 and 36 (no mount; the free reading 1.4 and 0.5 deg) 0.55 and 0.26 -> 0.23 and 0.19.
+#: 2.4 and 1.3 deg; 39's rays left 0.57 deg off) read their tilted frames at NEES per dof 4.8 and 8.6 without the term
+#: and 0.35 and 0.57 with it (and peak's mount term from the same reading); units 34 and 36 (no mount; the free reading
+#: 1.4 and 0.5 deg) 0.55 and 0.26 -> 0.22 and 0.18.
 ADOPTED_MOUNT_OFFSET_REL = 1.0 / math.sqrt(3.0)
 
 
