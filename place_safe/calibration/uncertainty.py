@@ -342,13 +342,20 @@ def diff_tilt_term(model_error: float | None = None, crosstalk: float | None = N
 ADOPTED_MOUNT_OFFSET_REL = 1.0 / math.sqrt(3.0)
 
 
+def _forward_geometry(cal) -> dict:
+    """``cal``'s ``reports.forward.geometry`` (:func:`~place_safe.calibration.forward_fit.reconsider_geometry`), or an
+    empty dict where the report has none or one of another shape."""
+    forward = cal.reports.get("forward")
+    geometry = forward.get("geometry") if isinstance(forward, dict) else None
+    return geometry if isinstance(geometry, dict) else {}
+
+
 def mount_left(cal) -> float | None:
     """The size (rad) of the mount tilt the free reading of ``cal``'s level sweep saw, where ``calibrate`` adopted the
     other reading, each zone's own time scale with the mount held level (``reports.forward.geometry.adopted``
     ``nominal_time_scales``; ``free.mount_tilt_deg``); else None (a report of another shape, too)."""
-    forward = cal.reports.get("forward")
-    geometry = forward.get("geometry") if isinstance(forward, dict) else None
-    if not isinstance(geometry, dict) or geometry.get("adopted") != "nominal_time_scales":
+    geometry = _forward_geometry(cal)
+    if geometry.get("adopted") != "nominal_time_scales":
         return None
     free = geometry.get("free")
     deg = free.get("mount_tilt_deg") if isinstance(free, dict) else None
@@ -1053,7 +1060,7 @@ FALLBACK_MIN_FRAMES = 10
 def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correction=None,
                          peak_uncertainty: Uncertainty | None = None, options=None,
                          model_error: float | None = None, crosstalk: float | None = None,
-                         disagreement: dict | None = None, mount_left: float | None = None) -> tuple[Uncertainty, dict]:
+                         other_reading=None, mount_left: float | None = None) -> tuple[Uncertainty, dict]:
     """The diff method's floor and fallback limits (chi-square, consistency, preference) from frames with ground
     truth, for the solver ``options`` (:class:`~place_safe.recovery.differentiable.SolverOptions`; default: the
     solver's defaults): they depend on the bins the solver fits. The limits are chosen on held-out frames
@@ -1061,9 +1068,10 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
     and the one returned; ``frames_using_diff``) and every candidate's score. ``model_error``: the unit's relative
     model error at the frames' true planes (the forward fit's ``model_error_chi2``; None: not known), which sizes the
     stated tilt term of level frames (:func:`diff_tilt_term`), with ``crosstalk`` (the forward fit's, where a level
-    sweep left it undetermined; None: nothing added) and ``disagreement`` (:func:`reading_disagreement`, where the sweep
-    did not tell its two readings apart; None: nothing added) and ``mount_left`` (:func:`mount_left`; None: nothing
-    added). Frames closer than ``NEAR_FALLBACK_RANGE`` take no
+    sweep left it undetermined; None: nothing added), ``other_reading`` (:func:`other_reading`: where the sweep did not
+    tell its two readings apart, their :func:`reading_disagreement` on ``frames``, unless enough tilted frames size the
+    term; None: nothing added) and ``mount_left`` (:func:`mount_left`; None: nothing added). Frames closer than
+    ``NEAR_FALLBACK_RANGE`` take no
     part, nor do those beyond :data:`FALLBACK_MAX_RANGE` (reported as ``frames_beyond_range``) while at least
     :data:`FALLBACK_MIN_FRAMES` are left. With :data:`BLEND` the section blends (``blend`` true, ``prefer_ratio``
     inf) and the report's ``angular_deg`` / ``point_mm`` give the blend's held-out figures too."""
@@ -1152,9 +1160,11 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
         limit, prefer, table = max(candidates), 1.0, []
     under = [i for i in range(n) if own[i] and chi2[i] <= limit]
     # the stated term (level frames): with enough tilted frames diff reads they size it (_floor_with_tilt_term), and
-    # show its slopes themselves, so the two readings' difference is left out
-    if level and sum(tilted[i] and _usable_tilted(diff[i], truths[i]) for i in under) >= TILT_TERM_MIN_FRAMES:
-        disagreement = None
+    # show its slopes themselves, so the two readings are compared only without them
+    disagreement = None
+    if other_reading is not None and level and \
+            sum(tilted[i] and _usable_tilted(diff[i], truths[i]) for i in under) < TILT_TERM_MIN_FRAMES:
+        disagreement = reading_disagreement(frames, forward, other_reading, peak_params, correction, options)
     tilt_term = (diff_tilt_term(model_error, crosstalk, disagreement, mount_left).replace(
         tilt_about=sweep_slopes(np.array([t.normal for t in truths]), tilted)) if level else Uncertainty())
     # a few tilted frames among level ones: the level ones size the floor, the tilted ones the stated term
@@ -1215,7 +1225,7 @@ def update_calibration(cal, frames: Sequence[Frame], method: str) -> dict:
         # broken forward section does not stop the peak method)
         forward = bool(cal.sections.get("forward")) and "forward" not in cal.errors
         # where the sweep adopted each zone's own time scale with the mount held level, the mount the free reading saw
-        # (peak's zone gains read the sweep the same way: its slopes part from a mounted unit's by as much)
+        # (peak's zone gains read the sweep the same way: its slopes part from a mounted unit's by as much; diff's too)
         left = mount_left(cal) if forward else None
         unc, report["peak"] = fit_peak_uncertainty(frames, cal.peak(),
                                                    mount_tilt=(left, 0.0) if left is not None else
@@ -1235,39 +1245,30 @@ def update_calibration(cal, frames: Sequence[Frame], method: str) -> dict:
                                                    Uncertainty.from_dict(section["peak"]), cal.diff_options(),
                                                    model_error=measured,
                                                    crosstalk=forward.crosstalk if traded else None,
-                                                   disagreement=_readings_left(cal, frames), mount_left=mount_left(cal))
+                                                   other_reading=other_reading(cal), mount_left=left)
         section["diff"] = unc.to_dict()
     cal.sections["uncertainty"] = section
     return report
 
 
-def _readings_left(cal, frames: Sequence[Frame]) -> dict | None:
-    """:func:`reading_disagreement` of ``cal``'s forward fit where its level sweep left two readings of the zones'
-    geometry (``reports.forward.geometry``: ``told_apart`` false, the other reading's params kept) and few of
-    ``frames`` are tilted (at least :data:`TILT_TERM_MIN_FRAMES` tilted ones show diff's slopes themselves); else
-    None."""
-    forward = cal.reports.get("forward")
-    geometry = forward.get("geometry") if isinstance(forward, dict) else None
-    if not isinstance(geometry, dict) or geometry.get("told_apart") is not False \
-            or not isinstance(geometry.get("other_params"), dict):
-        return None
-    truths = [f.truth for f in frames if f.truth is not None]
-    if not truths:
-        return None
-    tilted, _ = _tilt_regime(np.array([t.normal for t in truths]))
-    if int(np.sum(tilted)) >= TILT_TERM_MIN_FRAMES:
+def other_reading(cal):
+    """The forward model of the reading ``calibrate`` did not keep, where ``cal``'s level sweep did not tell its two
+    readings of the zones' geometry apart (``reports.forward.geometry``: ``told_apart`` false, ``other_params`` kept):
+    a :class:`~place_safe.recovery.forward.ForwardParams`; else None (a report of another shape, or params that do not
+    load, too)."""
+    geometry = _forward_geometry(cal)
+    if geometry.get("told_apart") is not False or not isinstance(geometry.get("other_params"), dict):
         return None
     from place_safe.recovery.forward import ForwardParams
 
     try:
-        other = ForwardParams.from_dict(geometry["other_params"], "reports.forward.geometry.other_params")
+        return ForwardParams.from_dict(geometry["other_params"], "reports.forward.geometry.other_params")
     except CalibrationError:
         return None
-    return reading_disagreement(frames, cal.forward(), other, cal.peak(), cal.diff(), cal.diff_options())
 
 
 __all__ = ["update_calibration", "reading_disagreement", "DISAGREEMENT_FRAMES", "READINGS_NOTE", "sweep_slopes",
-           "mount_left", "ADOPTED_MOUNT_OFFSET_REL",
+           "mount_left", "other_reading", "ADOPTED_MOUNT_OFFSET_REL",
            "LEVEL_SLOPE", "nees", "fit_floor", "fit_peak_uncertainty", "fit_diff_uncertainty", "select_fallback",
            "chi2_candidates", "near_std_law", "fit_near_law", "near_law_table", "near_law_parameters", "knot_factor",
            "NEAR_KNOT_SHARE", "NEAR_REFERENCE_DEPTH", "CONSISTENCY_LIMIT", "PEAK_TILT_REL",

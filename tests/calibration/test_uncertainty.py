@@ -818,34 +818,46 @@ def test_the_other_reading_rendered_shows_how_diff_misreads_its_slopes():
 
 
 def test_diffs_tilt_term_takes_the_readings_only_where_the_sweep_left_both(monkeypatch):
-    """update_calibration asks for the readings' disagreement only where the forward report says the level sweep did not
-    tell them apart and keeps the other's params; a sweep that told them apart, or with enough tilted frames (they show
-    diff's slopes), gets none."""
+    """The readings' disagreement is asked for only where the forward report says the level sweep did not tell them
+    apart and keeps the other's params (other_reading), and then only where the term is stated from them: a sweep that
+    told them apart, or with enough tilted frames (they show diff's slopes), gets none."""
     import place_safe.calibration.uncertainty as u
     from place_safe.calibration import Calibration
     from place_safe.evaluation.synthetic import SyntheticSpec, make_frames
     from place_safe.recovery.forward import ForwardParams
+    from place_safe.recovery.points import PeakParams
 
     level = make_frames(12, spec=SyntheticSpec(theta_range=(0.0, 0.0)), seed=2)
     tilted = make_frames(12, spec=SyntheticSpec(theta_range=(0.2, 0.4)), seed=3)
     other = ForwardParams(edge_fov_scale=1.1).to_dict()
+    for geometry, wanted in (({"told_apart": False, "other_params": other}, True),
+                             ({"told_apart": True, "other_params": other}, False),
+                             ({"told_apart": False}, False),
+                             ({"told_apart": False, "other_params": {"edge_fov_scale": "wide"}}, False),
+                             ({"told_apart": None, "other_params": other}, False),
+                             ({"told_apart": 0, "other_params": other}, False),
+                             ("free", False), ([1, 2], False), (None, False)):
+        cal = Calibration(sections={"forward": ForwardParams().to_dict()}, reports={"forward": {"geometry": geometry}})
+        got = u.other_reading(cal)
+        assert (got is not None) is wanted
+        if wanted:
+            assert got.edge_fov_scale == 1.1
+    for report in ("broken", None, []):  # a report of another shape: no readings, no error
+        assert u.other_reading(Calibration(sections={"forward": ForwardParams().to_dict()},
+                                           reports={"forward": report})) is None
+
     asked = []
     monkeypatch.setattr(u, "reading_disagreement", lambda *a, **k: asked.append(a) or {"slope_scale": 0.1})
-    for geometry, frames, wanted in (({"told_apart": False, "other_params": other}, level, True),
-                                     ({"told_apart": True, "other_params": other}, level, False),
-                                     ({"told_apart": False}, level, False),
-                                     ({"told_apart": False, "other_params": other}, level + tilted, False),
-                                     ({"told_apart": False, "other_params": {"edge_fov_scale": "wide"}}, level, False),
-                                     ({"told_apart": None, "other_params": other}, level, False),
-                                     ({"told_apart": 0, "other_params": other}, level, False),
-                                     ("free", level, False), ([1, 2], level, False), (None, level, False)):
-        cal = Calibration(sections={"forward": ForwardParams().to_dict()}, reports={"forward": {"geometry": geometry}})
+    sweep = level + make_frames(18, spec=SyntheticSpec(theta_range=(0.0, 0.0)), seed=4)
+    for frames, wanted in ((level, True), (sweep + tilted[:10], False)):  # 10 tilted among 40: level, term sized
         asked.clear()
-        got = u._readings_left(cal, frames)
-        assert (got == {"slope_scale": 0.1}) is wanted and bool(asked) is wanted
-    for report in ("broken", None, []):  # a report of another shape: no readings, no error
-        assert u._readings_left(Calibration(sections={"forward": ForwardParams().to_dict()},
-                                            reports={"forward": report}), level) is None
+        unc, rep = u.fit_diff_uncertainty(frames, ForwardParams(), PeakParams.default_peak(), model_error=0.02,
+                                          other_reading=ForwardParams(edge_fov_scale=1.1))
+        assert bool(asked) is wanted and (rep["tilt_readings"] == {"slope_scale": 0.1}) is wanted
+        if wanted:
+            assert unc.tilt_rel == pytest.approx(u.diff_tilt_term(0.02, None, {"slope_scale": 0.1}).tilt_rel)
+        else:
+            assert "tilt_term_sized" in rep and "tilt_factor" in rep["tilt_term_sized"]  # the tilted frames sized it
 
 
 def test_a_mounted_units_frames_render_in_its_optical_frame_and_keep_their_truth_in_the_reported_one():
