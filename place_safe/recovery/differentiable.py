@@ -53,8 +53,8 @@ from pydantic import Field, model_validator
 from place_safe.recovery.points import PeakParams
 from place_safe.config import ParamModel, field_interval, vector
 from place_safe.exceptions import CalibrationError, FrameError, NoPlaneError
-from place_safe.recovery.forward import (ForwardModel, ForwardParams, ZoneRays, mount_rotation,
-                                         residual_weights, single_thread)
+from place_safe.recovery.forward import (ForwardModel, ForwardParams, PulseMatrices, ZoneRays, mount_rotation,
+                                         residual_weights)
 from place_safe.geometry import Plane
 from place_safe.recovery.plane_renderer import PlaneRenderer, convolution_matrices
 from place_safe.sensor.frame import N_BINS, N_ZONES, Frame
@@ -344,6 +344,7 @@ class DifferentiableEstimator(Estimator):
                                        free_crosstalk=self.opt.crosstalk_std > 0.0)
         # optical frame -> reported sensor frame (the calibrated mount tilt; identity by default)
         self._mount = mount_rotation(self.params.mount_tilt).numpy()
+        self._pulse: PulseMatrices | None = None  # the fast solver's pulse (:meth:`_kernels`)
 
     # ------------------------------------------------------------------------------------------
     def _estimate(self, frame: Frame) -> PlaneEstimate:
@@ -661,13 +662,15 @@ class DifferentiableEstimator(Estimator):
         albedo_std = np.sqrt(np.abs(inv[:, 3:3 + n_alb, 3:3 + n_alb].sum(axis=(1, 2))) / n_alb ** 2 * chi2_red)
         # report one albedo: the mean log albedo over zones when each zone has its own
         xr = np.concatenate([x[:, :3], x[:, 3:3 + n_alb].mean(axis=1, keepdims=True)], axis=1)
-        return [self._finish(torch.as_tensor(xr[i]), float(core_cost[i]), int(n_core[i]), cov[i], float(albedo_std[i]))
+        return [self._finish(xr[i], float(core_cost[i]), int(n_core[i]), cov[i], float(albedo_std[i]))
                 for i in range(nb)]
 
     def _kernels(self, frames: list[Frame]) -> np.ndarray:
-        ref = torch.as_tensor(np.array([f.reference for f in frames]), dtype=self.dtype)
-        with torch.inference_mode(), single_thread():  # inference mode: less per-operation bookkeeping than no_grad
-            return self.model.pulse(ref).numpy()
+        """The frames' pulse kernels (B, K): the model's pulse (:func:`~place_safe.recovery.forward.pulse_kernel`) as
+        matrices (:class:`~place_safe.recovery.forward.PulseMatrices`, built on first use)."""
+        if self._pulse is None:
+            self._pulse = PulseMatrices(self.model.t)
+        return self._pulse(np.array([f.reference for f in frames], dtype=float))
 
     def _reported(self, a: float, b: float, z0: float) -> Plane:
         """The plane of optical-frame unknowns, range-corrected, in the reported sensor frame."""
@@ -702,11 +705,11 @@ class DifferentiableEstimator(Estimator):
             jac[:, k] = (tilt_offset(planes[1 + k]) - f0) / h
         return planes[0], jac @ cov_abz @ jac.T
 
-    def _finish(self, x: torch.Tensor, cost: float, n_res: int, cov_abz: np.ndarray | None = None,
+    def _finish(self, x: np.ndarray, cost: float, n_res: int, cov_abz: np.ndarray | None = None,
                 albedo_std: float | None = None) -> PlaneEstimate:
-        """The estimate of the solved unknowns; ``albedo_std``: the log albedo's posterior spread (None: not known),
-        above :data:`ALBEDO_STD_LIMIT` (or not finite) the albedo is not reported."""
-        a, b, z0, lr = (float(v) for v in x[:4])
+        """The estimate of the solved unknowns ``x`` (a, b, z0, log albedo); ``albedo_std``: the log albedo's posterior
+        spread (None: not known), above :data:`ALBEDO_STD_LIMIT` (or not finite) the albedo is not reported."""
+        a, b, z0, lr = (float(v) for v in x[:4].tolist())
         if not all(math.isfinite(v) for v in (a, b, z0, lr)):
             return PlaneEstimate(None, reason="solver diverged (non-finite plane)")
         if z0 <= 0:

@@ -448,13 +448,32 @@ def pulse_kernel(reference: torch.Tensor, time_scale: torch.Tensor, ref_floor: t
     ``tail_weight`` the pulse is then convolved with ``delta + w exp(-k / tail_decay)``, k >= 1.
     With ``soft_bin`` > 0 that fraction of the pulse is instead the paper's rescaling: every reference
     bin ``i`` soft-binned at zone lag ``i * time_scale`` with a Gaussian of ``sigma`` (zone bins),
-    normalised to peak 1.
+    normalised to peak 1. Every step but the two normalisations and the tail's start is linear in the reference:
+    :class:`PulseMatrices` is the same map as matrices (numpy, for the solver's per-frame pulse).
     """
     ref = torch.clamp(reference - ref_floor, min=0.0)
     ref = _smooth_tail(ref)
     peak = ref.amax(dim=-1, keepdim=True)
     ref = ref / torch.clamp(peak, min=1e-12)
-    k_len = int(math.floor((N_BINS - 1) * float(torch.as_tensor(time_scale).detach()))) + 1
+    k_len = pulse_length(time_scale)
+    kernel = _resample(ref, time_scale, k_len)
+    if soft_bin is not None and (torch.is_grad_enabled() or float(soft_bin) > 0.0):
+        soft = _soft_resample(ref, time_scale, sigma, k_len)
+        soft = soft / torch.clamp(soft.amax(dim=-1, keepdim=True), min=1e-12)
+        kernel = (1.0 - soft_bin) * kernel + soft_bin * soft
+    if tail_weight is None or (not torch.is_grad_enabled() and float(tail_weight) == 0.0):
+        return kernel
+    return _tail_convolve(kernel, tail_weight, tail_decay)
+
+
+def pulse_length(time_scale) -> int:
+    """The pulse kernel's length K (zone bins) for the reference's ``time_scale``: lags up to the last reference bin."""
+    return int(math.floor((N_BINS - 1) * float(torch.as_tensor(time_scale).detach()))) + 1
+
+
+def _resample(ref: torch.Tensor, time_scale: torch.Tensor, k_len: int) -> torch.Tensor:
+    """The reference (..., 128) at zone-bin lags ``0..k_len-1``, reference bins ``k / time_scale`` (linear
+    interpolation): (..., k_len). Linear in ``ref``."""
     lags = torch.arange(k_len, dtype=ref.dtype)
     pos = lags / time_scale  # reference-bin coordinate of each lag
     lo = torch.clamp(torch.floor(pos), 0, N_BINS - 2)
@@ -462,21 +481,79 @@ def pulse_kernel(reference: torch.Tensor, time_scale: torch.Tensor, ref_floor: t
     lo_i = lo.long()
     a = ref[..., lo_i]
     b = ref[..., lo_i + 1]
-    kernel = a * (1 - frac) + b * frac
-    if soft_bin is not None and (torch.is_grad_enabled() or float(soft_bin) > 0.0):
-        centres = torch.arange(N_BINS, dtype=ref.dtype) * time_scale
-        zz = (lags.view(-1, 1) - centres.view(1, -1)) / sigma
-        soft = ref @ torch.exp(-0.5 * zz * zz).T  # (..., K)
-        soft = soft / torch.clamp(soft.amax(dim=-1, keepdim=True), min=1e-12)
-        kernel = (1.0 - soft_bin) * kernel + soft_bin * soft
-    if tail_weight is None or (not torch.is_grad_enabled() and float(tail_weight) == 0.0):
-        return kernel
-    k = torch.arange(1, k_len, dtype=ref.dtype)
+    return a * (1 - frac) + b * frac
+
+
+def _soft_resample(ref: torch.Tensor, time_scale: torch.Tensor, sigma: torch.Tensor, k_len: int) -> torch.Tensor:
+    """The paper's rescaling of the reference (..., 128): each reference bin ``i`` soft-binned at zone lag
+    ``i * time_scale`` with a Gaussian of ``sigma`` (zone bins), not normalised: (..., k_len). Linear in ``ref``."""
+    lags = torch.arange(k_len, dtype=ref.dtype)
+    centres = torch.arange(N_BINS, dtype=ref.dtype) * time_scale
+    zz = (lags.view(-1, 1) - centres.view(1, -1)) / sigma
+    return ref @ torch.exp(-0.5 * zz * zz).T  # (..., K)
+
+
+def _tail_convolve(kernel: torch.Tensor, tail_weight: torch.Tensor, tail_decay: torch.Tensor) -> torch.Tensor:
+    """``kernel`` (..., K) convolved with ``delta + w exp(-k / tail_decay)``, k >= 1, truncated to K (causal).
+    Linear in ``kernel``."""
+    k_len = kernel.shape[-1]
+    k = torch.arange(1, k_len, dtype=kernel.dtype)
     tail = tail_weight * torch.exp(-k / tail_decay)
     # causal convolution truncated to the kernel's length: kernel[j] += sum_k tail[k-1] kernel[j-k]
     idx = torch.arange(k_len).view(-1, 1) - k.long().view(1, -1)  # (K, K-1)
     gathered = kernel[..., torch.clamp(idx, min=0)] * (idx >= 0)
     return kernel + (gathered * tail).sum(-1)
+
+
+class PulseMatrices:
+    """:func:`pulse_kernel` of fixed parameters as matrices (numpy, float64): the solver prepares each frame's pulse
+    with a few array operations instead of some forty torch ones (a tenth of the time at one frame), the same kernels
+    to rounding. Each linear step is :func:`pulse_kernel`'s own code applied to the identity: the tail smoothing
+    for each start bin (built when a reference first peaks there), the resampling, the paper's rescaling, the tail.
+
+    ``params``: the model's tensors (:attr:`ForwardModel.t`): ``ref_time_scale``, ``ref_floor``, ``tail_weight``,
+    ``tail_decay``, ``pulse_soft_bin``, ``soft_bin_sigma``."""
+
+    def __init__(self, params: dict) -> None:
+        with torch.no_grad():
+            self.floor = float(params["ref_floor"])
+            time_scale = params["ref_time_scale"].detach().to(torch.float64)
+            self.k_len = pulse_length(time_scale)
+            eye = torch.eye(N_BINS, dtype=torch.float64)
+            self.resample = _resample(eye, time_scale, self.k_len).numpy()  # (128, K): row i is bin i's weights
+            self.soft_bin = float(params["pulse_soft_bin"])
+            self.soft = (_soft_resample(eye, time_scale, params["soft_bin_sigma"].detach().to(torch.float64),
+                                        self.k_len).numpy() if self.soft_bin > 0.0 else None)
+            w = params["tail_weight"].detach().to(torch.float64)
+            self.tail = (_tail_convolve(torch.eye(self.k_len, dtype=torch.float64), w,
+                                        params["tail_decay"].detach().to(torch.float64)).numpy()
+                         if float(w) != 0.0 else None)
+        self._smooth: dict[int, np.ndarray] = {}
+
+    def smoothing(self, start: int) -> np.ndarray:
+        """(128, 128): a reference times it is the reference with its tail smoothed from bin ``start`` on
+        (:func:`_smooth_tail`)."""
+        m = self._smooth.get(start)
+        if m is None:
+            with torch.no_grad():
+                eye = torch.eye(N_BINS, dtype=torch.float64)
+                m = self._smooth[start] = _smooth_tail(eye, torch.full((N_BINS, 1), start)).numpy()
+        return m
+
+    def __call__(self, reference: np.ndarray) -> np.ndarray:
+        """The pulse kernels (B, K) of reference histograms (B, 128)."""
+        ref = np.maximum(np.asarray(reference, dtype=float) - self.floor, 0.0)
+        start = np.minimum(ref.argmax(axis=-1) + 3, N_BINS - 1)
+        out = np.empty((len(ref), self.k_len))
+        for i, s in enumerate(start):
+            r = ref[i] @ self.smoothing(int(s))
+            r = r / max(r.max(), 1e-12)
+            k = r @ self.resample
+            if self.soft is not None:
+                soft = r @ self.soft
+                k = (1.0 - self.soft_bin) * k + self.soft_bin * (soft / max(soft.max(), 1e-12))
+            out[i] = k if self.tail is None else k @ self.tail
+        return out
 
 
 #: Width (reference bins) of the Gaussian that smooths the reference pulse after its peak. The
@@ -485,13 +562,15 @@ def pulse_kernel(reference: torch.Tensor, time_scale: torch.Tensor, ref_floor: t
 TAIL_SMOOTHING = 2.0
 
 
-def _smooth_tail(ref: torch.Tensor) -> torch.Tensor:
-    """The reference (..., 128) with its tail (from 3 bins after the peak on) Gaussian-smoothed."""
+def _smooth_tail(ref: torch.Tensor, start: torch.Tensor | None = None) -> torch.Tensor:
+    """The reference (..., 128) with its tail (from 3 bins after the peak on) Gaussian-smoothed. ``start`` (..., 1):
+    the tail's first bin instead (for :class:`PulseMatrices`: for a fixed start the map is linear)."""
     half = int(math.ceil(3 * TAIL_SMOOTHING))
     taps = torch.exp(-0.5 * (torch.arange(-half, half + 1, dtype=ref.dtype) / TAIL_SMOOTHING) ** 2)
     taps = taps / taps.sum()
     bins = torch.arange(ref.shape[-1])
-    start = torch.clamp(ref.argmax(dim=-1, keepdim=True) + 3, max=ref.shape[-1] - 1)
+    if start is None:
+        start = torch.clamp(ref.argmax(dim=-1, keepdim=True) + 3, max=ref.shape[-1] - 1)
     in_tail = bins >= start
     # the tail alone: bins before it hold the tail's first value, so the peak does not leak in
     tail = torch.where(in_tail, ref, torch.gather(ref, -1, start).expand_as(ref))

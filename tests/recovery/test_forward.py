@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from place_safe.exceptions import CalibrationError
-from place_safe.recovery.forward import (ForwardModel, ForwardParams, ZoneRays, apply_pileup, bin_kernel, bin_widths,
-                                params_to_tensors, pulse_kernel, soft_bin)
+from place_safe.recovery.forward import (ForwardModel, ForwardParams, PulseMatrices, ZoneRays, apply_pileup, bin_kernel,
+                                         bin_widths, params_to_tensors, pulse_kernel, soft_bin)
 from place_safe.geometry import Plane
 from place_safe.sensor.frame import N_BINS, ZONE_DIRECTIONS
 from place_safe.evaluation.synthetic import default_reference
@@ -159,6 +159,36 @@ def test_pulse_kernel_is_normalised():
     # normalised to peak 1 in reference bins; resampled at zone-bin lags the maximum lands near it
     assert 0.5 < k.max().item() <= 1.0
     assert (k >= 0).all()
+
+
+def test_pulse_matrices_are_pulse_kernel():
+    """Property (hypothesis): the solver's matrix form of the pulse (:class:`PulseMatrices`) gives
+    :func:`pulse_kernel`'s kernels to rounding, for any time scale, floor, tail, soft-binning and reference (real ones,
+    scaled, shifted, with noise, flat, all below the floor, and with a peak in the last bins)."""
+    from hypothesis import given, settings
+    from hypothesis import strategies as st
+
+    base = np.asarray(default_reference(), dtype=float)
+
+    @settings(max_examples=40, deadline=None)
+    @given(scale=st.floats(0.12, 0.6), floor=st.floats(0.0, 400.0), tail=st.sampled_from([0.0, 0.3, 2.0]),
+           decay=st.floats(0.5, 8.0), soft=st.sampled_from([0.0, 0.02, 1.0]), sigma=st.floats(0.2, 2.0),
+           shift=st.integers(-20, 100), gain=st.floats(0.0, 50.0), seed=st.integers(0, 2 ** 16))
+    def check(scale, floor, tail, decay, soft, sigma, shift, gain, seed):
+        rng = np.random.default_rng(seed)
+        refs = np.stack([np.roll(base, shift) * gain + rng.poisson(50.0, N_BINS), np.full(N_BINS, floor),
+                         rng.poisson(200.0, N_BINS).astype(float)])
+        params = ForwardParams(ref_time_scale=scale, ref_floor=floor, tail_weight=tail, tail_decay=decay,
+                               pulse_soft_bin=soft, soft_bin_sigma=sigma)
+        t = params_to_tensors(params, torch.float64)
+        with torch.no_grad():
+            want = pulse_kernel(torch.as_tensor(refs), t["ref_time_scale"], t["ref_floor"], t["tail_weight"],
+                                t["tail_decay"], t["pulse_soft_bin"], t["soft_bin_sigma"]).numpy()
+        got = PulseMatrices(t)(refs)
+        assert got.shape == want.shape
+        np.testing.assert_allclose(got, want, rtol=0.0, atol=1e-12)
+
+    check()
 
 
 def test_structural_choices_default_to_the_model_as_it_was():
