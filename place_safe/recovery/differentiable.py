@@ -505,7 +505,15 @@ class DifferentiableEstimator(Estimator):
 
     # -- fast solver ---------------------------------------------------------------------------
     def _solve_fast(self, frames: list[Frame], inits: list[Plane]) -> list[PlaneEstimate]:
-        """Batched Levenberg-Marquardt with the analytic Jacobian of :class:`PlaneRenderer`."""
+        """Batched Levenberg-Marquardt with the analytic Jacobian of :class:`PlaneRenderer` (which reuses a render at
+        the same values: the Jacobian at an accepted step; its kept arrays are dropped when the solve ends)."""
+        try:
+            return self._levenberg_marquardt(frames, inits)
+        finally:
+            self._renderer.forget()
+
+    def _levenberg_marquardt(self, frames: list[Frame], inits: list[Plane]) -> list[PlaneEstimate]:
+        """:meth:`_solve_fast`'s solve."""
         hists = np.array([f.hists for f in frames], dtype=float)
         obs_full, amb = self._observed(hists)
         # each frame's own window (bins up to its latest zone peak plus window_after_peak): the batch renders

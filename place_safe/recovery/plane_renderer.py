@@ -44,6 +44,7 @@ zone's time scale (``zone_bin_scales``) multiplies ``r / bin_size`` (and the ech
 from __future__ import annotations
 
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import torch
@@ -142,6 +143,10 @@ class PlaneRenderer:
         # the TDC's bin widths (ForwardModel.after_pulse: after the crosstalk, before the pile-up); None: nominal
         self.bin_gains = (bin_widths(torch.as_tensor(params.bin_gains, dtype=torch.float64)).numpy()
                           if np.any(np.asarray(params.bin_gains) != 1.0) else None)
+        # the last render's rays (keyed by its planes and width) and histograms (keyed by its unknowns, width, pulse
+        # matrices and ambient): :meth:`render` reuses them at the same values; each entry is one tuple, replaced whole
+        self._rays_cache: tuple | None = None
+        self._forward_cache: tuple | None = None
 
     def render(self, x: np.ndarray, conv: np.ndarray, jacobian: bool = False, ambient: np.ndarray | None = None):
         """Histograms (B, 9, W) for unknowns x (B, n_unknowns) and the frames' pulse convolution matrices (B, W, W) or, made
@@ -151,21 +156,43 @@ class PlaneRenderer:
         not added (the solver subtracts the measured floor from the data instead). ``ambient`` (B, 9), counts per
         bin: each zone's ambient as it arrives, which goes through the pile-up with the return; the histograms are
         then the counts above it (:func:`~place_safe.recovery.forward.ambient_pileup`; None: the return alone).
+
+        A render at the same unknowns, with the same ``conv`` and ``ambient`` objects (not changed since), as the last
+        one reuses its histograms: the solver's Jacobian at an accepted trial step adds only the derivatives. One at the
+        same plane ``(a, b, z0)`` (and width) reuses the rays' geometry and soft-bin kernels (the albedo's first
+        guesses). The numbers are the same as rendered afresh; the returned arrays are shared, so callers must not
+        change them.
         """
+        x = np.array(x, dtype=float)  # a copy: the caches keep what they were computed from
+        width = conv.shape[-1]
+        f = self._forward(x, conv, ambient, width)
+        if not jacobian:
+            return f.H
+        return f.H, self._jacobian(x, f)
+
+    def forget(self) -> None:
+        """Drop the last render's kept arrays (:meth:`render`): the solver calls it when a solve ends, so a batch's
+        pulse matrices are not held until the next one."""
+        self._rays_cache = None
+        self._forward_cache = None
+
+    def _rays(self, x: np.ndarray, width: int) -> SimpleNamespace:
+        """Everything of a render that depends on the planes ``(a, b, z0)`` of ``x`` alone (and the width): the rays'
+        ranges, cosines and beam, their bin positions and soft-bin kernels (:meth:`soft_bin`; the derivative kernels
+        on first need). The last one is kept."""
+        key = (x[:, :3].tobytes(), x.shape[0], width)
+        cached = self._rays_cache
+        if cached is not None and cached[0] == key:
+            return cached[1]
         p = self.p
         a, b, z0 = x[:, 0, None, None], x[:, 1, None, None], x[:, 2, None, None]
-        if self.zone_albedo:
-            rho = np.exp(x[:, 3:3 + N_ZONES])[:, :, None]
-        else:
-            rho = np.exp(x[:, 3])[:, None, None]
-        ks = x[:, -2, None, None]
-        alpha = np.exp(x[:, -1])[:, None, None]
         vx, vy, vz = self.dirs[None, ..., 0], self.dirs[None, ..., 1], self.dirs[None, ..., 2]
         s = np.sqrt(1.0 + a * a + b * b)
         q = a * vx + b * vy + vz                       # (B, 9, R)
         hit = q > 1e-6
         qs = np.where(hit, q, 1.0)
         r = np.maximum(z0 / qs, 1e-4)
+        c_raw = w_e = None
         if self.light is None:
             c = np.clip(qs / s, 0.0, 1.0)
             r_e, beam = r, 1.0
@@ -179,39 +206,63 @@ class PlaneRenderer:
         S = np.maximum(2.0 * c * c - 1.0, 0.0)
         pos = S > 0
         Ssafe = np.where(pos, S, 1.0)
-        Sa = np.where(pos, Ssafe ** alpha, 0.0)
-        sh = np.maximum(c + ks * Sa, 1e-12)            # shading
-        wsat = p.saturate_shading
-        sat = p.saturation
-        r2 = r_e * r_e
-        shw = sh if wsat == 1.0 else sh ** wsat
-        rest = 1.0 if wsat == 1.0 else sh ** (1.0 - wsat)
-        E = self.gain * rho * shw * beam / (sat * r2)
-        e = np.exp(-E)
-        pp = sat * (1.0 - e)                            # saturated part
-        amp = self.amp_weight * pp * rest * hit          # (B, 9, R)
         path = r if self.light is None else 0.5 * (r + r_e)   # one-way range (m)
         u = path / p.bin_size * self.scales + p.bin_offset + self.offsets
         n_direct = u.shape[-1]
+        echo = None
         if self.echo_gain != 0.0:  # ForwardModel.add_echo_and_glass: each ray again at twice its range
             echo = self.echo_gain * (ECHO_REFERENCE_RANGE / np.maximum(path, 1e-4)) ** self.echo_power
-            amp = np.concatenate([amp, amp * echo], axis=-1)
             u = np.concatenate([u, 2.0 * path / p.bin_size * self.scales + p.bin_offset + self.offsets], axis=-1)
         slope = None
         if self.warp is not None:  # apparent positions, and d u' / d u for the derivatives
             u, slope = (v.numpy() for v in warp_positions(torch.from_numpy(u), self.warp))
-        width = conv.shape[-1]
-        if conv.ndim == 3:
-            conv = self.responses(conv)
-        G, G_u, place = self.soft_bin(u, width, derivatives=jacobian)  # (B, 9, R, band); G_u = d G / d u
-        T = place(np.matmul(amp[:, :, None, :], G)[:, :, 0])  # sum over rays (a matmul: einsum is slower here)
+        t, dense, place = self._soft_bin_window(u, width)
+        G = dense(bin_kernel(t, p.soft_bin_sigma, self.integrated, spline=self.spline))  # (B, 9, R, band)
+        g = SimpleNamespace(a=a, b=b, z0=z0, s=s, hit=hit, qs=qs, r=r, r_e=r_e, c_raw=c_raw, w_e=w_e, c=c, beam=beam,
+                            pos=pos, Ssafe=Ssafe, path=path, n_direct=n_direct, echo=echo, slope=slope, t=t,
+                            dense=dense, place=place, G=G, G_u=None)
+        self._rays_cache = (key, g)
+        return g
+
+    def _forward(self, x: np.ndarray, conv: np.ndarray, ambient, width: int) -> SimpleNamespace:
+        """The histograms of ``x`` (:meth:`render`) with what their derivatives reuse. The last one is kept, with the
+        ``conv`` and ``ambient`` objects it was rendered with."""
+        key = (x.tobytes(), x.shape, width)
+        cached = self._forward_cache
+        if cached is not None and cached[0] == key and cached[2] is conv and cached[3] is ambient:
+            return cached[1]
+        p = self.p
+        g = self._rays(x, width)
+        if self.zone_albedo:
+            rho = np.exp(x[:, 3:3 + N_ZONES])[:, :, None]
+        else:
+            rho = np.exp(x[:, 3])[:, None, None]
+        ks = x[:, -2, None, None]
+        alpha = np.exp(x[:, -1])[:, None, None]
+        pos, Ssafe = g.pos, g.Ssafe
+        Sa = np.where(pos, Ssafe ** alpha, 0.0)
+        sh = np.maximum(g.c + ks * Sa, 1e-12)            # shading
+        wsat = p.saturate_shading
+        sat = p.saturation
+        r2 = g.r_e * g.r_e
+        shw = sh if wsat == 1.0 else sh ** wsat
+        rest = 1.0 if wsat == 1.0 else sh ** (1.0 - wsat)
+        E = self.gain * rho * shw * g.beam / (sat * r2)
+        e = np.exp(-E)
+        pp = sat * (1.0 - e)                            # saturated part
+        amp = self.amp_weight * pp * rest * g.hit          # (B, 9, R)
+        if g.echo is not None:  # the echo's rays: amplitude amp * echo(path)
+            amp = np.concatenate([amp, amp * g.echo], axis=-1)
+        resp = self.responses(conv) if conv.ndim == 3 else conv
+        T = g.place(np.matmul(amp[:, :, None, :], g.G)[:, :, 0])  # sum over rays (a matmul: einsum is slower here)
         if self.glass is not None:  # the cover glass: the same return in every frame (no derivative in x)
             tg = np.arange(width)[None, :] - self.glass_u[:, None]
             kg = bin_kernel(tg, p.soft_bin_sigma, self.integrated, spline=self.spline)
             T = T + (self.glass[:, None] * kg)[None]
         xt = self.p.crosstalk if self.crosstalk_column is None else x[:, self.crosstalk_column, None, None]
-        P = np.matmul(conv, T[..., None])[..., 0]  # expected photon counts before the zones mix
+        P = np.matmul(resp, T[..., None])[..., 0]  # expected photon counts before the zones mix
         F = self._mix(P, crosstalk=xt)
+        F_ok = None
         if self.shaped:  # ForwardModel.after_pulse: no negative counts beside a sharpened pulse
             F_ok = F >= 0.0
             F = np.maximum(F, 0.0)
@@ -220,6 +271,7 @@ class PlaneRenderer:
         kp = p.pileup
         ks_shadow = kp * p.pileup_shadow
         amb = 0.0 if ambient is None else np.asarray(ambient, dtype=float)[:, :, None]
+        e_b = e_c = Ha = None
         if kp > 0:
             Fa = F + amb  # the ambient arrives with the return and piles up with it
             before = np.cumsum(Fa, axis=-1) - Fa
@@ -228,10 +280,25 @@ class PlaneRenderer:
             H = Ha - amb
         else:
             H = F
-        if not jacobian:
-            return H
+        f = SimpleNamespace(g=g, ks=ks, alpha=alpha, Sa=Sa, sh=sh, rest=rest, E=E, e=e, pp=pp, amp=amp, resp=resp,
+                            xt=xt, P=P, F_ok=F_ok, e_b=e_b, e_c=e_c, Ha=Ha, ks_shadow=ks_shadow, H=H)
+        self._forward_cache = (key, f, conv, ambient)
+        return f
+
+    def _jacobian(self, x: np.ndarray, f: SimpleNamespace) -> np.ndarray:
+        """d hist / d x (B, 9, W, n_unknowns) at the render ``f`` of ``x`` (:meth:`_forward`)."""
+        p = self.p
+        g = f.g
+        a, b, z0, s, qs, r, c = g.a, g.b, g.z0, g.s, g.qs, g.r, g.c
+        pos, Ssafe, slope, n_direct, path = g.pos, g.Ssafe, g.slope, g.n_direct, g.path
+        ks, alpha, Sa, sh, rest, E, e, pp, amp = f.ks, f.alpha, f.Sa, f.sh, f.rest, f.E, f.e, f.pp, f.amp
+        wsat = p.saturate_shading
+        sat = p.saturation
+        if g.G_u is None:  # the soft-bin kernels' derivative in u, on first need
+            g.G_u = g.dense(bin_kernel(g.t, p.soft_bin_sigma, self.integrated, derivatives="u", spline=self.spline)[1])
+        G, G_u, place = g.G, g.G_u, g.place
         # per-ray partial derivatives of amp
-        aw = self.amp_weight * hit
+        aw = self.amp_weight * g.hit
         dp_dlogrho = aw * sat * e * E * rest
         dp_dsh = aw * (sat * e * E * wsat / sh * rest + (0.0 if wsat == 1.0 else pp * (1.0 - wsat) * sh ** -wsat))
         dsh_dc = 1.0 + np.where(pos, ks * alpha * Sa / Ssafe * 4.0 * c, 0.0)
@@ -246,6 +313,8 @@ class PlaneRenderer:
             dc[:2] = self.dirs_xy / s - qs * np.stack([a, b]) / s ** 3
             du = dr / p.bin_size * self.scales
         else:
+            bp = self.light[3]
+            r_e, c_raw, w_e = g.r_e, g.c_raw, g.w_e
             inside = c_raw > 0.0  # the clamp's derivative
             dre = (r - w_e) / r_e * dr
             # d log(flux) / d x: inverse square in r_e and the beam (P_z / r_e)^bp
@@ -269,12 +338,12 @@ class PlaneRenderer:
             A[..., 3] = dp_dlogrho
         A[..., nu - 2] = dp_dsh * dsh[4]
         A[..., nu - 1] = dp_dsh * dsh[5]
-        if self.echo_gain != 0.0:  # the echo's rays: amplitude amp * echo(path), position 2 path / bin_size
+        if g.echo is not None:  # the echo's rays: amplitude amp * echo(path), position 2 path / bin_size
             d_path = [du[k] * p.bin_size / self.scales for k in range(3)]
             amp_e = amp[..., n_direct:]  # amp_direct * echo (concatenated above)
             falloff = amp_e * (-self.echo_power / np.maximum(path, 1e-4))
             near = path > 1e-4
-            A_e = A * echo[..., None]
+            A_e = A * g.echo[..., None]
             B_e = np.zeros_like(B)
             for k in range(3):
                 A_e[..., k] += falloff * d_path[k] * near
@@ -282,19 +351,20 @@ class PlaneRenderer:
             A = np.concatenate([A, A_e], axis=2)
             B = np.concatenate([B, B_e], axis=2)
         dT = place(np.matmul(G.swapaxes(2, 3), A) + np.matmul(G_u.swapaxes(2, 3), B))  # (B, 9, W, k), sums over rays
-        dF = self._mix(np.matmul(conv, dT), axis_zone=1, crosstalk=xt if np.ndim(xt) == 0 else xt[..., None])
+        xt = f.xt
+        dF = self._mix(np.matmul(f.resp, dT), axis_zone=1, crosstalk=xt if np.ndim(xt) == 0 else xt[..., None])
         if self.crosstalk_column is not None:  # d F / d crosstalk: every zone's share of the others
-            dF[..., self.crosstalk_column] = (P.sum(axis=1, keepdims=True) - (1.0 - self.p.crosstalk_self) * P)
+            dF[..., self.crosstalk_column] = (f.P.sum(axis=1, keepdims=True) - (1.0 - self.p.crosstalk_self) * f.P)
         if self.shaped:
-            dF = dF * F_ok[..., None]
+            dF = dF * f.F_ok[..., None]
         if self.bin_gains is not None:
-            dF = dF * self.bin_gains[:width, None]
-        if kp > 0:
+            dF = dF * self.bin_gains[:dF.shape[2], None]
+        if p.pileup > 0:
             d_before = np.cumsum(dF, axis=2) - dF
-            dH = (e_b * e_c)[..., None] * dF - ks_shadow * Ha[..., None] * d_before
+            dH = (f.e_b * f.e_c)[..., None] * dF - f.ks_shadow * f.Ha[..., None] * d_before
         else:
             dH = dF
-        return H, dH
+        return dH
 
     def soft_bin(self, u: np.ndarray, width: int, derivatives: bool = False):
         """The soft-bin kernel ``G(n - u)`` (:func:`~place_safe.recovery.forward.bin_kernel`) of rays at positions
@@ -309,7 +379,17 @@ class PlaneRenderer:
         histograms are those of the kernel evaluated at every bin to rounding. A zone's rays lie within a few bins,
         so its band is some 20 bins where the histogram has 60-130.
         """
-        sigma, reach = self.p.soft_bin_sigma, self.reach
+        t, dense, place = self._soft_bin_window(u, width)
+        sigma = self.p.soft_bin_sigma
+        if not derivatives:
+            return dense(bin_kernel(t, sigma, self.integrated, spline=self.spline)), None, place
+        k, k_u = bin_kernel(t, sigma, self.integrated, derivatives="u", spline=self.spline)
+        return dense(k), dense(k_u), place
+
+    def _soft_bin_window(self, u: np.ndarray, width: int):
+        """:meth:`soft_bin`'s windows: ``t = n - u`` at each ray's window bins (B, 9, R, 2 reach), the function that
+        puts values there into each zone's band (B, 9, R, L) and the one that puts the band's values at their bins."""
+        reach = self.reach
         span = 2 * reach
         # first bin of each window, kept within [-reach, width - reach] (maximum / minimum in place: np.clip's
         # checks cost more than the arithmetic on these small arrays)
@@ -340,10 +420,7 @@ class PlaneRenderer:
             out.reshape((-1,) + x.shape[3:])[at] = x.reshape((-1,) + x.shape[3:])
             return out[:, :, reach:reach + width]
 
-        if not derivatives:
-            return dense(bin_kernel(t, sigma, self.integrated, spline=self.spline)), None, place
-        k, k_u = bin_kernel(t, sigma, self.integrated, derivatives="u", spline=self.spline)
-        return dense(k), dense(k_u), place
+        return t, dense, place
 
     def responses(self, conv: np.ndarray) -> np.ndarray:
         """Each zone's whole causal response to a transient, (B, 9, W, W) (or (B, 1, W, W) when the zones share it),

@@ -265,3 +265,50 @@ def test_the_frames_own_crosstalk_as_an_unknown_renders_as_the_model_and_its_der
     h6, j6 = held.render(x6[None], conv, jacobian=True)
     np.testing.assert_allclose(h[0], h6[0], rtol=1e-12, atol=0)
     np.testing.assert_allclose(np.delete(j[0], 4, axis=-1), j6[0], rtol=1e-12, atol=1e-12 * np.abs(j6).max())
+
+
+def test_reused_renders_are_the_renders_made_afresh():
+    """A render at the unknowns of the last one (the solver's Jacobian at an accepted step), or at its plane with another
+    albedo and shading (the albedo's first guesses), gives bit for bit what a renderer without a past gives; the kept
+    arrays follow the values, not the caller's arrays (changed in place after a render, or another pulse matrix of the
+    same shape), and :meth:`PlaneRenderer.forget` drops them."""
+    p = ForwardParams(pileup=2e-7, crosstalk=0.004, baseline=[0.002, 0.001], beam_power=0.5, echo_gain=0.05,
+                      zone_tail_weights=[0.03] * 9, zone_tail_decays=[3.0] * 9, time_warp=list(np.linspace(0, 0.3, 17)))
+    rays = ZoneRays.stratified(4)
+    pulse = ForwardModel(p, rays).pulse(torch.as_tensor(default_reference())[None]).numpy()
+    used = PlaneRenderer(p, rays, zone_albedo=True)
+    conv = used.responses(convolution_matrices(pulse, 60))
+    other = used.responses(convolution_matrices(pulse * 1.5, 60))
+    amb = np.full((1, 9), 40.0)
+    x = np.array([[0.2, -0.1, 0.1] + [math.log(3.0)] * 9 + [0.1, math.log(2.0)]])
+    brighter = x.copy()
+    brighter[0, 3:12] += 0.4
+    brighter[0, -1] += 0.2
+
+    def fresh(xs, c, jac):
+        return PlaneRenderer(p, rays, zone_albedo=True).render(xs, c, jacobian=jac, ambient=amb)
+
+    used.render(x, conv, ambient=amb)
+    h, j = used.render(x, conv, jacobian=True, ambient=amb)   # the whole render reused
+    h0, j0 = fresh(x, conv, True)
+    np.testing.assert_array_equal(h, h0)
+    np.testing.assert_array_equal(j, j0)
+    np.testing.assert_array_equal(used.render(brighter, conv, ambient=amb), fresh(brighter, conv, False))  # rays reused
+    h, j = used.render(brighter, conv, jacobian=True, ambient=amb)
+    h0, j0 = fresh(brighter, conv, True)
+    np.testing.assert_array_equal(h, h0)
+    np.testing.assert_array_equal(j, j0)
+    np.testing.assert_array_equal(used.render(brighter, other, ambient=amb), fresh(brighter, other, False))
+    moved = brighter.copy()
+    used.render(moved, conv, ambient=amb)
+    moved[0, :3], moved[0, -2] = [-0.1, 0.3, 0.2], 0.3  # the caller's array changed in place after the render
+    np.testing.assert_array_equal(used.render(moved, conv, ambient=amb), fresh(moved, conv, False))
+    used.render(brighter, conv, ambient=amb)
+    kept = brighter.copy()
+    brighter[0, :3], brighter[0, -2] = [-0.1, 0.3, 0.2], 0.3
+    h, j = used.render(kept, conv, jacobian=True, ambient=amb)  # the values rendered before the change
+    h0, j0 = fresh(kept, conv, True)
+    np.testing.assert_array_equal(h, h0)
+    np.testing.assert_array_equal(j, j0)
+    used.forget()
+    assert used._rays_cache is None and used._forward_cache is None
