@@ -505,6 +505,10 @@ def _tail_convolve(kernel: torch.Tensor, tail_weight: torch.Tensor, tail_decay: 
     return kernel + (gathered * tail).sum(-1)
 
 
+#: Rows of the identity :class:`PulseMatrices` passes through the tail's convolution at once (bounds its memory).
+PULSE_ROWS_AT_ONCE = 32
+
+
 class PulseMatrices:
     """:func:`pulse_kernel` of fixed parameters as matrices (numpy, float64): the solver prepares each frame's pulse
     with a few array operations instead of some forty torch ones (a tenth of the time at one frame), the same kernels
@@ -525,8 +529,11 @@ class PulseMatrices:
             self.soft = (_soft_resample(eye, time_scale, params["soft_bin_sigma"].detach().to(torch.float64),
                                         self.k_len).numpy() if self.soft_bin > 0.0 else None)
             w = params["tail_weight"].detach().to(torch.float64)
-            self.tail = (_tail_convolve(torch.eye(self.k_len, dtype=torch.float64), w,
-                                        params["tail_decay"].detach().to(torch.float64)).numpy()
+            decay = params["tail_decay"].detach().to(torch.float64)
+            eye = torch.eye(self.k_len, dtype=torch.float64)
+            # the identity's rows a few at a time: the tail's gather is (rows, K, K - 1), 2 GB for all 509 rows at once
+            self.tail = (torch.cat([_tail_convolve(eye[i:i + PULSE_ROWS_AT_ONCE], w, decay)
+                                    for i in range(0, self.k_len, PULSE_ROWS_AT_ONCE)]).numpy()
                          if float(w) != 0.0 else None)
         self._smooth: dict[int, np.ndarray] = {}
 
