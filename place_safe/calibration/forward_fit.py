@@ -27,6 +27,7 @@ import torch
 from tqdm import tqdm
 
 from place_safe.calibration import gauss_newton
+from place_safe.calibration.zero_tangents import quick_zero_tangents
 from place_safe.config import field_interval
 from place_safe.exceptions import CalibrationError, FrameError
 from place_safe.recovery.forward import (ForwardModel, ForwardParams, MODEL_ERROR, ZoneRays,
@@ -622,7 +623,8 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
             return jvp(f, primals, t)[1]
 
         n = len(tangents[0])
-        return torch.cat([vmap(one)(*(t[i:i + JVP_CHUNK] for t in tangents)) for i in range(0, n, JVP_CHUNK)])
+        with quick_zero_tangents():  # the constants' zero tangents without torch's Python shape checks
+            return torch.cat([vmap(one)(*(t[i:i + JVP_CHUNK] for t in tangents)) for i in range(0, n, JVP_CHUNK)])
 
     def jac(z: np.ndarray) -> np.ndarray:
         cam, la = split(z)
