@@ -28,6 +28,7 @@ from __future__ import annotations
 from contextlib import contextmanager
 from typing import Iterator
 
+import numpy as np
 import torch
 
 #: The ``aten`` operations whose meta kernels :func:`quick_zero_tangents` registers.
@@ -35,14 +36,15 @@ OPERATIONS = ("mul.Tensor", "add.Tensor", "sub.Tensor", "div.Tensor")
 
 
 def _shape(x) -> tuple:
-    """A tensor's shape; a Python number's, ``()``."""
+    """A tensor's shape; a Python number's, ``()`` (for ``np.broadcast_shapes``: a tenth of ``torch.broadcast_shapes``'
+    time)."""
     return tuple(x.shape) if isinstance(x, torch.Tensor) else ()
 
 
 def _broadcast_meta(a, b, *, alpha=1) -> torch.Tensor:
     """The result of an elementwise ``a op b`` (tensors or numbers: broadcast shape, promoted dtype) as an empty meta
     tensor."""
-    return torch.empty(torch.broadcast_shapes(_shape(a), _shape(b)), dtype=torch.result_type(a, b), device="meta")
+    return torch.empty(np.broadcast_shapes(_shape(a), _shape(b)), dtype=torch.result_type(a, b), device="meta")
 
 
 def _division_meta(a, b) -> torch.Tensor:
@@ -50,7 +52,7 @@ def _division_meta(a, b) -> torch.Tensor:
     dtype = torch.result_type(a, b)
     if not (dtype.is_floating_point or dtype.is_complex):
         dtype = torch.get_default_dtype()
-    return torch.empty(torch.broadcast_shapes(_shape(a), _shape(b)), dtype=dtype, device="meta")
+    return torch.empty(np.broadcast_shapes(_shape(a), _shape(b)), dtype=dtype, device="meta")
 
 
 @contextmanager
