@@ -160,8 +160,8 @@ class PlaneRenderer:
         A render at the same unknowns, with the same ``conv`` and ``ambient`` objects (not changed since), as the last
         one reuses its histograms: the solver's Jacobian at an accepted trial step adds only the derivatives. One at the
         same plane ``(a, b, z0)`` (and width) reuses the rays' geometry and soft-bin kernels (the albedo's first
-        guesses). The numbers are the same as rendered afresh; the returned arrays are shared, so callers must not
-        change them.
+        guesses). The numbers are the same as rendered afresh. The histograms returned are kept for that reuse and are
+        read-only; ``conv`` and ``ambient`` must not be changed in place between renders (the objects are the key).
         """
         x = np.array(x, dtype=float)  # a copy: the caches keep what they were computed from
         width = conv.shape[-1]
@@ -280,6 +280,7 @@ class PlaneRenderer:
             H = Ha - amb
         else:
             H = F
+        H.flags.writeable = False  # kept for the next render at these values: a caller cannot change it by mistake
         f = SimpleNamespace(g=g, ks=ks, alpha=alpha, Sa=Sa, sh=sh, rest=rest, E=E, e=e, pp=pp, amp=amp, resp=resp,
                             xt=xt, P=P, F_ok=F_ok, e_b=e_b, e_c=e_c, Ha=Ha, ks_shadow=ks_shadow, H=H)
         self._forward_cache = (key, f, conv, ambient)

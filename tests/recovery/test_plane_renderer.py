@@ -3,6 +3,7 @@
 import math
 
 import numpy as np
+import pytest
 import torch
 from torch.func import jacfwd
 
@@ -310,5 +311,7 @@ def test_reused_renders_are_the_renders_made_afresh():
     h0, j0 = fresh(kept, conv, True)
     np.testing.assert_array_equal(h, h0)
     np.testing.assert_array_equal(j, j0)
+    with pytest.raises(ValueError, match="read-only"):  # the kept histograms cannot be changed by mistake
+        h[...] = 0.0
     used.forget()
     assert used._rays_cache is None and used._forward_cache is None
