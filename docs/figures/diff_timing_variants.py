@@ -232,7 +232,7 @@ def nuisance_solver(orders, sd):
         chi2 = (r[:, :n_hist] ** 2).sum(1) / np.maximum(N_ZONES * own - nu - ne, 1)
         cov = np.linalg.pinv(J.transpose(0, 2, 1) @ J)[:, :3, :3] * chi2[:, None, None]
         xr = np.concatenate([x[:, :3], x[:, 3:3 + n_alb].mean(axis=1, keepdims=True)], axis=1)
-        return [self._finish(torch.as_tensor(xr[i]), float(cost[i]), int(N_ZONES * own[i]), cov[i]) for i in range(nb)]
+        return [self._finish(xr[i], float(cost[i]), int(N_ZONES * own[i]), cov[i]) for i in range(nb)]
     return solve
 
 
@@ -277,7 +277,7 @@ def shift_solver(window):
         chi2 = chi.sum((1, 2)) / np.maximum(N_ZONES * own - nu, 1)
         cov = np.linalg.inv(a) * np.maximum(chi2, 1)[:, None, None]
         xr = np.concatenate([x[:, :3], x[:, 3:3 + n_alb].mean(axis=1, keepdims=True)], axis=1)
-        return [self._finish(torch.as_tensor(xr[i]), float(chi[i].sum()), int(N_ZONES * own[i]), cov[i])
+        return [self._finish(xr[i], float(chi[i].sum()), int(N_ZONES * own[i]), cov[i])
                 for i in range(len(frames))]
     return solve
 
