@@ -550,7 +550,7 @@ class PulseMatrices:
     def __call__(self, reference: np.ndarray) -> np.ndarray:
         """The pulse kernels (B, K) of reference histograms (B, 128)."""
         ref = np.maximum(np.asarray(reference, dtype=float) - self.floor, 0.0)
-        start = np.minimum(ref.argmax(axis=-1) + 3, N_BINS - 1)
+        start = np.minimum(ref.argmax(axis=-1) + TAIL_AFTER_PEAK, N_BINS - 1)  # as _smooth_tail finds it
         out = np.empty((len(ref), self.k_len))
         for i, s in enumerate(start):
             r = ref[i] @ self.smoothing(int(s))
@@ -567,17 +567,20 @@ class PulseMatrices:
 #: tail holds a few hundred counts per bin, so its Poisson noise (a few per cent) would reach every
 #: model histogram multiplied by the whole transient (~1e6 counts); the physical tail is smooth.
 TAIL_SMOOTHING = 2.0
+#: Bins after the reference's peak from which its tail is smoothed (:func:`_smooth_tail`, :class:`PulseMatrices`).
+TAIL_AFTER_PEAK = 3
 
 
 def _smooth_tail(ref: torch.Tensor, start: torch.Tensor | None = None) -> torch.Tensor:
-    """The reference (..., 128) with its tail (from 3 bins after the peak on) Gaussian-smoothed. ``start`` (..., 1):
-    the tail's first bin instead (for :class:`PulseMatrices`: for a fixed start the map is linear)."""
+    """The reference (..., 128) with its tail (from :data:`TAIL_AFTER_PEAK` bins after the peak on) Gaussian-smoothed.
+    ``start`` (..., 1): the tail's first bin instead (for :class:`PulseMatrices`: for a fixed start the map is
+    linear)."""
     half = int(math.ceil(3 * TAIL_SMOOTHING))
     taps = torch.exp(-0.5 * (torch.arange(-half, half + 1, dtype=ref.dtype) / TAIL_SMOOTHING) ** 2)
     taps = taps / taps.sum()
     bins = torch.arange(ref.shape[-1])
     if start is None:
-        start = torch.clamp(ref.argmax(dim=-1, keepdim=True) + 3, max=ref.shape[-1] - 1)
+        start = torch.clamp(ref.argmax(dim=-1, keepdim=True) + TAIL_AFTER_PEAK, max=ref.shape[-1] - 1)
     in_tail = bins >= start
     # the tail alone: bins before it hold the tail's first value, so the peak does not leak in
     tail = torch.where(in_tail, ref, torch.gather(ref, -1, start).expand_as(ref))
