@@ -41,10 +41,11 @@ def _errors(frames, estimates):
 
 def summary(frames, estimates) -> dict:
     """Slope scale, offset bias (m per m of z0 tan(tilt)), peak's mean angle error and what is left of it (deg)."""
+    from place_safe.calibration.uncertainty import slope_scale_offset_bias
+
     a = _errors(frames, estimates)
     t, e = a[:, :2], a[:, 2:4]
-    k = float(np.sum(e * t) / np.sum(t * t))
-    c = float(np.sum(a[:, 4] * a[:, 5]) / np.sum(a[:, 5] ** 2))
+    k, c = slope_scale_offset_bias(t, e, a[:, 4], a[:, 5])
     return {"n": len(a), "slope_scale": k, "offset_bias": c,
             "angle_deg": float(np.degrees(np.mean(np.hypot(e[:, 0], e[:, 1])))),
             "angle_left_deg": float(np.degrees(np.mean(np.hypot(*(e - k * t).T))))}

@@ -56,22 +56,20 @@ def rescore(unit: str, out: Path) -> None:
     from place_safe.calibration import Calibration
     from place_safe.calibration.uncertainty import update_calibration
     from place_safe.io.frame_file import load_frames
+    from place_safe.evaluation.metrics import angular_error, nees
     from place_safe.recovery import make_estimator
-    from place_safe.recovery.estimator import tilt_offset
 
     level = load_frames(str(out / f"{unit}_level.json"))
     tilt = load_frames(str(out / f"{unit}_tilt.json"))
+    truths = [f.truth for f in tilt]
 
     def score(cal) -> str:
         parts = []
         for method in ("diff", "peak"):
-            nees, angle = [], []
-            for e, f in zip(make_estimator(method, cal).estimate_many(tilt), tilt):
-                if e.ok and e.covariance is not None:
-                    err = tilt_offset(e.plane) - tilt_offset(f.truth)
-                    nees.append(float(err @ np.linalg.solve(e.covariance, err)) / 3.0)
-                    angle.append(math.degrees(math.acos(min(1.0, abs(float(e.plane.normal @ f.truth.normal))))))
-            parts.append(f"{method} {np.mean(angle):.3f} deg, NEES {np.mean(nees):.2f}")
+            ests = make_estimator(method, cal).estimate_many(tilt)
+            per_dof = nees(ests, truths)  # NaN where a frame has no plane or covariance: those are left out of both
+            angle = [math.degrees(angular_error(e.plane, t)) for e, t, v in zip(ests, truths, per_dof) if np.isfinite(v)]
+            parts.append(f"{method} {np.mean(angle):.3f} deg, NEES {np.nanmean(per_dof):.2f}")
         return " | ".join(parts)
 
     cal = Calibration.load(out / f"{unit}_cal.json")

@@ -404,9 +404,17 @@ def reading_disagreement(frames: Sequence[Frame], forward, other, peak_params, c
         return {"frames": len(rows), "why": "diff read too few of the rendered planes to compare the readings"}
     a = np.array(rows)
     t, dt = a[:, 3:5], a[:, 0:2]
-    return {"frames": len(rows), "slope_scale": float(np.sum(dt * t) / np.sum(t * t)),
-            "offset_bias": float(np.sum(a[:, 2] * a[:, 5]) / np.sum(a[:, 5] ** 2)),
+    k, c = slope_scale_offset_bias(t, dt, a[:, 2], a[:, 5])
+    return {"frames": len(rows), "slope_scale": k, "offset_bias": c,
             "angle_deg": float(np.degrees(np.mean(np.hypot(dt[:, 0], dt[:, 1]))))}
+
+
+def slope_scale_offset_bias(t: np.ndarray, dt: np.ndarray, dd: np.ndarray,
+                            lever: np.ndarray) -> tuple[float, float]:
+    """The least-squares ``k`` in ``dt = k t`` (``t`` (n, 2) true ``(n_x, n_y)``, ``dt`` (n, 2) a difference in them:
+    slopes read ``1 + k`` times as steep) and ``c`` in ``dd = c lever`` (``dd`` (n,) a difference in ``d``, m;
+    ``lever`` (n,) ``z0 tan(tilt)``, m)."""
+    return float(np.sum(dt * t) / np.sum(t * t)), float(np.sum(dd * lever) / np.sum(lever ** 2))
 
 
 def _usable_tilted(e: PlaneEstimate, t) -> bool:
@@ -977,11 +985,12 @@ def fit_peak_uncertainty(frames: Sequence[Frame], peak_params, min_range: float 
     use = [f for f in frames if f.truth is not None and f.truth.z0 >= far]
     # the stated tilt term where the frames cannot show peak's tilt error (as diff's: fit_diff_uncertainty); the
     # tilted frames counted here lie beyond the near table's end (about 9 cm), diff's from NEAR_FALLBACK_RANGE (5 cm)
-    tilted, level = _tilt_regime(np.array([f.truth.normal for f in use]))
+    normals = np.array([f.truth.normal for f in use])
+    tilted, level = _tilt_regime(normals)
     stated = peak_tilt_term(mount_tilt) if level else Uncertainty(tilt_rel=0.0)
     base = Uncertainty(near_depths=depths, near_range_std=stds, tilt_rel=stated.tilt_rel,
                        tilt_offset_rel=stated.tilt_offset_rel,
-                       tilt_about=sweep_slopes(np.array([f.truth.normal for f in use]), tilted) if level else [0.0, 0.0])
+                       tilt_about=sweep_slopes(normals, tilted) if level else [0.0, 0.0])
     ests = [PeakEstimator(peak_params).estimate(f) for f in use]
     unc, report, n_few = _floor_with_tilt_term(ests, [f.truth for f in use], tilted, level, base)
     sizing = n_few >= TILT_TERM_MIN_FRAMES
@@ -1122,7 +1131,8 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
     # frames: the floor, fitted on all, would follow the level ones); frames whose tilts spread MIN_TILT_SPREAD or
     # more, at least DIFF_TILTED_SHARE of them tilted that far from the least, show it, and the floor and scale
     # fitted on them hold it
-    tilted, level = _tilt_regime(np.array([t.normal for t in truths]))
+    normals = np.array([t.normal for t in truths])
+    tilted, level = _tilt_regime(normals)
 
     def floor_from(rows: np.ndarray) -> Uncertainty:
         # the folds' floors without the stated term: the limits follow what the calibration frames show, not the size of
@@ -1166,7 +1176,7 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
             sum(tilted[i] and _usable_tilted(diff[i], truths[i]) for i in under) < TILT_TERM_MIN_FRAMES:
         disagreement = reading_disagreement(frames, forward, other_reading, peak_params, correction, options)
     tilt_term = (diff_tilt_term(model_error, crosstalk, disagreement, mount_left).replace(
-        tilt_about=sweep_slopes(np.array([t.normal for t in truths]), tilted)) if level else Uncertainty())
+        tilt_about=sweep_slopes(normals, tilted)) if level else Uncertainty())
     # a few tilted frames among level ones: the level ones size the floor, the tilted ones the stated term
     base = tilt_term.replace(chi2_limit=limit, consistency_limit=CONSISTENCY_LIMIT, prefer_ratio=prefer, blend=blend)
     unc, rep, n_few = _floor_with_tilt_term([diff[i] for i in under], [truths[i] for i in under], tilted[under],
@@ -1267,7 +1277,8 @@ def other_reading(cal):
         return None
 
 
-__all__ = ["update_calibration", "reading_disagreement", "DISAGREEMENT_FRAMES", "READINGS_NOTE", "sweep_slopes",
+__all__ = ["update_calibration", "reading_disagreement", "slope_scale_offset_bias", "DISAGREEMENT_FRAMES",
+           "READINGS_NOTE", "sweep_slopes",
            "mount_left", "other_reading", "ADOPTED_MOUNT_OFFSET_REL",
            "LEVEL_SLOPE", "nees", "fit_floor", "fit_peak_uncertainty", "fit_diff_uncertainty", "select_fallback",
            "chi2_candidates", "near_std_law", "fit_near_law", "near_law_table", "near_law_parameters", "knot_factor",

@@ -49,10 +49,8 @@ def _broadcast_meta(a, b, *, alpha=1) -> torch.Tensor:
 
 def _division_meta(a, b) -> torch.Tensor:
     """:func:`_broadcast_meta` of a true division: integer operands give the default floating dtype."""
-    dtype = torch.result_type(a, b)
-    if not (dtype.is_floating_point or dtype.is_complex):
-        dtype = torch.get_default_dtype()
-    return torch.empty(np.broadcast_shapes(_shape(a), _shape(b)), dtype=dtype, device="meta")
+    out = _broadcast_meta(a, b)
+    return out if out.dtype.is_floating_point or out.dtype.is_complex else out.to(torch.get_default_dtype())
 
 
 @contextmanager

@@ -609,15 +609,13 @@ def known_error_covariance(geometry: PlaneFitGeometry, range_std: np.ndarray, re
     with np.errstate(invalid="ignore"):
         known = (std * g.off_plane) ** 2  # (a fresh array: NaN set to 0 in place, as np.nan_to_num would, faster)
         any_known = ((std > 0.0) & g.used).any(axis=-1)
-        has_shared = ((shared_std > 0.0).any(axis=-1) if shared_std.ndim else bool(shared_std > 0.0)) if replace_fit \
-            else False
     known[np.isnan(known)] = 0.0
     sigma2 = np.asarray(g.sigma2)[..., None]
     var = np.where(known > 0.0, known, sigma2) if replace_fit else np.maximum(sigma2, known)
     gain_t = np.swapaxes(g.gain, -1, -2)
     cov = (g.gain * var[..., None, :]) @ gain_t
-    if np.any(has_shared):
-        common = shared_std * g.off_plane * np.asarray(has_shared)[..., None]
+    if replace_fit and np.any(shared_std > 0.0):  # (a fit without a shared error gets 0 from it)
+        common = shared_std * g.off_plane
         common[np.isnan(common)] = 0.0
         shared = (common[..., None, :] @ gain_t)[..., 0, :]  # the state's response to the shared error
         cov = cov + shared[..., :, None] * shared[..., None, :]
