@@ -56,8 +56,8 @@ from place_safe.recovery.forward import (ECHO_REFERENCE_RANGE, ForwardModel, For
 from place_safe.sensor.frame import N_BINS, N_ZONES
 
 N_UNKNOWNS = 6
-#: soft-bin kernel widths (``soft_bin_sigma``) from a ray's position beyond which :meth:`PlaneRenderer.soft_bin` takes the
-#: kernel as 0 (the Gaussian there is below ``exp(-40)`` of its peak)
+#: soft-bin kernel widths (``soft_bin_sigma``) from a ray's position beyond which
+#: :meth:`PlaneRenderer.soft_bin_window` takes the kernel as 0 (the Gaussian there is below ``exp(-40)`` of its peak)
 SOFT_BIN_REACH = 9.0
 
 
@@ -89,7 +89,8 @@ class PlaneRenderer:
         self.offsets = np.asarray(params.zone_offsets, dtype=float)[:, None]  # (9, 1)
         self.scales = np.asarray(params.zone_bin_scales, dtype=float)[:, None]  # (9, 1): each zone's time scale
         #: bins on either side of a ray's position within which its soft-bin kernel is evaluated (beyond them the
-        #: kernel is below 1e-17 of its peak and taken as 0; :meth:`soft_bin`; the spline's reaches 3/2 bin further)
+        #: kernel is below 1e-17 of its peak and taken as 0; :meth:`soft_bin_window`; the spline's reaches 3/2 bin
+        #: further)
         self.reach = int(math.ceil(SOFT_BIN_REACH * params.soft_bin_sigma + 1.5 * params.soft_bin_spline)) + 1
         self._span = np.arange(2 * self.reach)
         #: with ``zone_albedo`` the unknowns are (a, b, z0, log albedo of zones 1..9, ks, log alpha):
@@ -178,8 +179,8 @@ class PlaneRenderer:
 
     def _rays(self, x: np.ndarray, width: int) -> SimpleNamespace:
         """Everything of a render that depends on the planes ``(a, b, z0)`` of ``x`` alone (and the width): the rays'
-        ranges, cosines and beam, their bin positions and soft-bin kernels (:meth:`soft_bin`; the derivative kernels
-        on first need). The last one is kept."""
+        ranges, cosines and beam, their bin positions and soft-bin kernels (:meth:`soft_bin_window`; the derivative
+        kernels on first need). The last one is kept."""
         key = (x[:, :3].tobytes(), x.shape[0], width)
         cached = self._rays_cache
         if cached is not None and cached[0] == key:
@@ -216,8 +217,8 @@ class PlaneRenderer:
         slope = None
         if self.warp is not None:  # apparent positions, and d u' / d u for the derivatives
             u, slope = (v.numpy() for v in warp_positions(torch.from_numpy(u), self.warp))
-        t, dense, place = self._soft_bin_window(u, width)
-        G = dense(bin_kernel(t, p.soft_bin_sigma, self.integrated, spline=self.spline))  # (B, 9, R, band)
+        t, dense, place = self.soft_bin_window(u, width)
+        G = dense(self.kernel(t))  # (B, 9, R, band)
         g = SimpleNamespace(a=a, b=b, z0=z0, s=s, hit=hit, qs=qs, r=r, r_e=r_e, c_raw=c_raw, w_e=w_e, c=c, beam=beam,
                             pos=pos, Ssafe=Ssafe, path=path, n_direct=n_direct, echo=echo, slope=slope, t=t,
                             dense=dense, place=place, G=G, G_u=None)
@@ -257,7 +258,7 @@ class PlaneRenderer:
         T = g.place(np.matmul(amp[:, :, None, :], g.G)[:, :, 0])  # sum over rays (a matmul: einsum is slower here)
         if self.glass is not None:  # the cover glass: the same return in every frame (no derivative in x)
             tg = np.arange(width)[None, :] - self.glass_u[:, None]
-            kg = bin_kernel(tg, p.soft_bin_sigma, self.integrated, spline=self.spline)
+            kg = self.kernel(tg)
             T = T + (self.glass[:, None] * kg)[None]
         xt = self.p.crosstalk if self.crosstalk_column is None else x[:, self.crosstalk_column, None, None]
         P = np.matmul(resp, T[..., None])[..., 0]  # expected photon counts before the zones mix
@@ -296,7 +297,7 @@ class PlaneRenderer:
         wsat = p.saturate_shading
         sat = p.saturation
         if g.G_u is None:  # the soft-bin kernels' derivative in u, on first need
-            g.G_u = g.dense(bin_kernel(g.t, p.soft_bin_sigma, self.integrated, derivatives="u", spline=self.spline)[1])
+            g.G_u = g.dense(self.kernel(g.t, derivative=True))
         G, G_u, place = g.G, g.G_u, g.place
         # per-ray partial derivatives of amp
         aw = self.amp_weight * g.hit
@@ -367,12 +368,19 @@ class PlaneRenderer:
             dH = dF
         return dH
 
-    def soft_bin(self, u: np.ndarray, width: int, derivatives: bool = False):
-        """The soft-bin kernel ``G(n - u)`` (:func:`~place_safe.recovery.forward.bin_kernel`) of rays at positions
-        ``u`` (B, 9, R; bins) over the bins ``n = 0..width-1``, in a band of each zone's bins: returns ``(G, G_u,
-        place)`` with ``G`` (B, 9, R, L) the kernel at bins ``start + l`` (``start`` per frame and zone), ``G_u`` its
-        derivative in ``u`` (with ``derivatives``, else None) and ``place`` the function that puts (B, 9, L, ...)
-        arrays of the band at their bins of (B, 9, width, ...) (0 elsewhere, and bins outside the histogram dropped).
+    def kernel(self, t: np.ndarray, derivative: bool = False) -> np.ndarray:
+        """The soft-bin kernel ``G`` at ``t = n - u`` (bins; :func:`~place_safe.recovery.forward.bin_kernel` with the
+        model's width, integration and spline), or with ``derivative`` its derivative in ``u``."""
+        if derivative:
+            return bin_kernel(t, self.p.soft_bin_sigma, self.integrated, derivatives="u", spline=self.spline)[1]
+        return bin_kernel(t, self.p.soft_bin_sigma, self.integrated, spline=self.spline)
+
+    def soft_bin_window(self, u: np.ndarray, width: int):
+        """The soft binning of rays at positions ``u`` (B, 9, R; bins) over the bins ``n = 0..width-1``, in a band of
+        each zone's bins: returns ``(t, dense, place)`` with ``t = n - u`` at each ray's window bins (B, 9, R, 2 reach),
+        ``dense`` the function that puts values there (:meth:`kernel` of ``t``) into each zone's band, (B, 9, R, L) at
+        bins ``start + l`` (``start`` per frame and zone), and ``place`` the one that puts (B, 9, L, ...) arrays of the
+        band at their bins of (B, 9, width, ...) (0 elsewhere, and bins outside the histogram dropped).
 
         Each ray's kernel is evaluated only at the ``2 reach`` bins nearest its position (a window that covers every
         bin within ``reach`` of ``u``, moved inside ``[-reach, width + reach)`` for rays beyond the histogram) and is
@@ -380,16 +388,6 @@ class PlaneRenderer:
         histograms are those of the kernel evaluated at every bin to rounding. A zone's rays lie within a few bins,
         so its band is some 20 bins where the histogram has 60-130.
         """
-        t, dense, place = self._soft_bin_window(u, width)
-        sigma = self.p.soft_bin_sigma
-        if not derivatives:
-            return dense(bin_kernel(t, sigma, self.integrated, spline=self.spline)), None, place
-        k, k_u = bin_kernel(t, sigma, self.integrated, derivatives="u", spline=self.spline)
-        return dense(k), dense(k_u), place
-
-    def _soft_bin_window(self, u: np.ndarray, width: int):
-        """:meth:`soft_bin`'s windows: ``t = n - u`` at each ray's window bins (B, 9, R, 2 reach), the function that
-        puts values there into each zone's band (B, 9, R, L) and the one that puts the band's values at their bins."""
         reach = self.reach
         span = 2 * reach
         # first bin of each window, kept within [-reach, width - reach] (maximum / minimum in place: np.clip's
