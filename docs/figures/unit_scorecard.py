@@ -5,6 +5,7 @@ sweep (150 frames, table 2-40 cm below the sensor, level) and read on tilted pla
     python docs/figures/unit_scorecard.py --units A 31 --out ../scorecard                      # some of them
     python docs/figures/unit_scorecard.py --out ../scorecard --table                           # the table from disk
     python docs/figures/unit_scorecard.py --out ../scorecard --few-tilts 12    # level sweep + 12 tilted frames
+    python docs/figures/unit_scorecard.py --units 40 --out ../scorecard --unlabelled 20   # + 20 without their truth
     python docs/figures/unit_scorecard.py --units synth1 A --out ../scorecard_far --level-max 1.0   # sweep to 1 m
 
 The units: ``A`` (the default :class:`~place_safe.sim.tof_mismatch.MismatchConfig`), ``B`` (seed 11, longer tails:
@@ -82,6 +83,12 @@ UNITS: dict[str, dict | None] = {
     "42": {"seed": 11, "tail_weight": (0.05, 0.12), "tail_decay": (2.0, 6.0), "skew_bins": 0.2,
            "zone_time_scale": 0.01, "mount_tilt": (math.radians(-1.0), math.radians(0.6))},
     "43": {"seed": 43, "zone_time_scale": 0.02, "mount_tilt": (math.radians(0.3), math.radians(-1.2))},
+    # two more no rule was chosen on (session 58): a new seed with moderate tails, a falling floor, more crosstalk,
+    # small time scales and a small mount; and another seed near the default unit, mounted a little off, a wide glass
+    "44": {"seed": 44, "tail_weight": (0.04, 0.10), "tail_decay": (2.0, 5.0), "skew_bins": 0.2, "baseline": 0.005,
+           "ambient_slope": -0.1, "crosstalk_grid_max": 6e-5, "zone_time_scale": 0.008,
+           "mount_tilt": (math.radians(0.5), math.radians(0.7))},
+    "45": {"seed": 45, "glass_spread": 1.5, "mount_tilt": (math.radians(-0.4), math.radians(0.3))},
 }
 #: The independent generator's units: ``place-safe synth --sensor-seed``.
 SYNTH = {"synth": 0, **{f"synth{k}": k for k in range(1, 10)}}
@@ -138,6 +145,19 @@ def add_few_tilts(unit: str, out: Path, level: Path, n: int, fresh: bool = False
     return path
 
 
+def unlabelled_tilts(unit: str, out: Path, level: Path, n: int, fresh: bool = False) -> Path:
+    """``{unit}_unlabelled{n}.json``: the ``n`` tilted frames of :func:`add_few_tilts` (another seed than the test
+    frames) with their ground truth taken out, for ``calibrate --readings-from``."""
+    path = out / f"{unit}_unlabelled{n}.json"
+    if path.exists() and not fresh and path.stat().st_mtime >= level.stat().st_mtime:
+        return path
+    add_few_tilts(unit, out, level, n, fresh)
+    frames = json.loads((out / f"{unit}_few{n}.json").read_text())
+    path.write_text(json.dumps([{k: v for k, v in f.items() if k not in ("plane", "pose", "dist_to_plane", "meta")}
+                                for f in frames]))
+    return path
+
+
 def make_frames(unit: str, out: Path, few_tilts: int = 0, fresh: bool = False) -> tuple[Path, Path]:
     level, tilt = out / f"{unit}_level.json", out / f"{unit}_tilt.json"
     if level.exists() and tilt.exists():
@@ -190,15 +210,19 @@ def albedo_ratio_cv(tilt: Path, cal: Path) -> float | None:
     return float(100 * r.std(ddof=1) / r.mean())
 
 
-def score(unit: str, out: Path, fresh: bool, reevaluate: bool = False, few_tilts: int = 0) -> dict:
+def score(unit: str, out: Path, fresh: bool, reevaluate: bool = False, few_tilts: int = 0,
+          unlabelled: int = 0) -> dict:
     """The unit's row: from its score file if there is one (unless ``fresh`` or ``reevaluate``); ``reevaluate`` keeps
     the calibration (and its time) and evaluates again. ``few_tilts``: calibrate on the level sweep with that many
-    tilted frames added (:func:`add_few_tilts`); its files are the unit's with ``_few{n}`` after the unit."""
-    name = f"{unit}_few{few_tilts}" if few_tilts else unit
+    tilted frames added (:func:`add_few_tilts`); its files are the unit's with ``_few{n}`` after the unit.
+    ``unlabelled``: calibrate on the level sweep with that many tilted frames without ground truth to choose the
+    reading (``--readings-from``, :func:`unlabelled_tilts`); its files are the unit's with ``_unlabelled{n}``."""
+    name = f"{unit}_few{few_tilts}" if few_tilts else f"{unit}_unlabelled{unlabelled}" if unlabelled else unit
     path = out / f"{name}_score.json"
     if path.exists() and not (fresh or reevaluate):
         return json.loads(path.read_text())
     level, tilt = make_frames(unit, out, few_tilts, fresh)
+    readings = ["--readings-from", str(unlabelled_tilts(unit, out, level, unlabelled, fresh))] if unlabelled else []
     unit = name
     cal = out / f"{unit}_cal.json"
     timing = out / f"{unit}_cal.time"
@@ -206,7 +230,8 @@ def score(unit: str, out: Path, fresh: bool, reevaluate: bool = False, few_tilts
         wall, cpu = (float(x) for x in timing.read_text().split()[-3:-1])
     else:
         cal.unlink(missing_ok=True)  # calibrate keeps the other sections of an existing file: start from none
-        wall, cpu = run(["calibrate", str(level), "--method", "diff", "-o", str(cal)], out / f"{unit}_cal.log")
+        wall, cpu = run(["calibrate", str(level), "--method", "diff", "-o", str(cal), *readings],
+                        out / f"{unit}_cal.log")
     own = own_copy(cal)
     run(["evaluate", str(tilt), "--calibration", str(cal), "--methods", "diff", "peak", "--no-plots", "-q",
          "--json", str(out / f"{unit}_eval.json")], out / f"{unit}_eval.log")
@@ -290,12 +315,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--few-tilts", type=int, default=0, metavar="N",
                     help="calibrate on the level sweep with N tilted frames added (8-30 deg, the generator's 0-30 deg, "
                          "5-30 cm, seed 7): the rows are UNIT_fewN (default 0: the level sweep alone)")
+    ap.add_argument("--unlabelled", type=int, default=0, metavar="N",
+                    help="calibrate on the level sweep with N tilted frames (those of --few-tilts N) without their ground "
+                         "truth to choose the reading (calibrate --readings-from): the rows are UNIT_unlabelledN")
     ap.add_argument("--level-max", type=float, default=LEVEL_HEIGHTS[1], metavar="M",
                     help=f"the level sweep's far end, m (default {LEVEL_HEIGHTS[1]:g}; 0.1..1.0). The frames are kept "
                          "by unit name: give another --out (docs/results.md, \"A level sweep out to 1 m\")")
     a = ap.parse_args(argv)
     if not 0 <= a.few_tilts <= 1000:
         ap.error(f"--few-tilts must be 0..1000, got {a.few_tilts}")
+    if not 0 <= a.unlabelled <= 1000 or (a.unlabelled and a.few_tilts):
+        ap.error(f"--unlabelled must be 0..1000 and goes without --few-tilts, got {a.unlabelled}")
     if not 0.1 <= a.level_max <= 1.0:  # (the forward fit reads frames to 1 m)
         ap.error(f"--level-max must be 0.1..1.0 m, got {a.level_max:g}")
     LEVEL_HEIGHTS = (LEVEL_HEIGHTS[0], a.level_max)
@@ -303,13 +333,14 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for i, u in enumerate(a.units, 1):
         if a.table:
-            p = a.out / (f"{u}_few{a.few_tilts}_score.json" if a.few_tilts else f"{u}_score.json")
+            p = a.out / (f"{u}_few{a.few_tilts}_score.json" if a.few_tilts else
+                         f"{u}_unlabelled{a.unlabelled}_score.json" if a.unlabelled else f"{u}_score.json")
             if p.exists():
                 rows.append(json.loads(p.read_text()))
             continue
         t0 = time.time()
         print(f"[{i}/{len(a.units)}] unit {u} ...", flush=True)
-        r = score(u, a.out, a.fresh, a.reevaluate, a.few_tilts)
+        r = score(u, a.out, a.fresh, a.reevaluate, a.few_tilts, a.unlabelled)
         rows.append(r)
         print(f"[{i}/{len(a.units)}] unit {u}: RMS {r['rms']:.3f} ({'converged' if r['converged'] else 'NOT converged'}), "
               f"calibrate {r['cal_cpu_s']:.0f} s CPU; diff {r['diff_deg']:.3f} deg / {r['diff_mm']:.3f} mm, fallback "

@@ -53,16 +53,21 @@ def _store(cal: Calibration, fitted: list[str], name: str, section: dict, report
 
 
 def fit_method(calibration: Calibration, frames: Sequence[Frame], method: str, progress: bool = False,
-               log: Callable[[str], None] | None = None, unit_model: str = "default") -> list[str]:
+               log: Callable[[str], None] | None = None, unit_model: str = "default",
+               unlabelled: Sequence[Frame] = ()) -> list[str]:
     """Fit ``method``'s sections of ``calibration`` (in place) to ``frames`` with ground truth; the sections
     written, in order. ``log`` gets one line per step worth telling a user (None: silent). ``unit_model``: the
-    forward model's fit for ``diff`` (see the module)."""
+    forward model's fit for ``diff`` (see the module). ``unlabelled``: for ``diff``, tilted frames (ground truth not
+    needed) that choose between the two readings a level sweep may leave (:mod:`place_safe.calibration.readings`)."""
     if method not in REQUIRED_SECTIONS:  # the method families that have a calibration
         raise ValueError(f"calibrate: method must be one of {', '.join(REQUIRED_SECTIONS)}, got {method!r}")
     if unit_model not in UNIT_MODELS:
         raise ValueError(f"calibrate: unit model must be one of {', '.join(UNIT_MODELS)}, got {unit_model!r}")
     if unit_model != "default" and method != "diff":
         raise ValueError(f"calibrate: a unit model is a fit of the diff method's forward model, not of {method}")
+    if len(unlabelled) and method != "diff":
+        raise ValueError(f"calibrate: frames that choose a reading of the diff method's forward model go with diff, "
+                         f"not {method}")
     say = log if log is not None else (lambda _line: None)
     cal = calibration
     fitted: list[str] = []
@@ -83,7 +88,15 @@ def fit_method(calibration: Calibration, frames: Sequence[Frame], method: str, p
             parallel = level_sweep(frames) and spare_cores() > 0
             with Alongside(nominal_geometry_fit, frames, progress and not parallel, parallel=parallel) as second:
                 params, report = reconsider_geometry(frames, *fit_forward(frames, init=None, progress=progress),
-                                                     progress=progress, log=log, second=second.result)
+                                                     progress=progress, log=log, second=second.result,
+                                                     unlabelled=unlabelled, peak=cal.peak())
+        if len(unlabelled) and "unlabelled" not in report.get("geometry", {}):
+            geometry = report.get("geometry", {})
+            why = ("the level sweep told its two readings apart" if geometry.get("told_apart") else
+                   "the second reading's fit did not converge" if geometry else
+                   "the sweep left one reading of the zones' geometry (near nominal, or not a level sweep)")
+            report["unlabelled"] = {"frames": len(unlabelled), "used": False, "why": why}
+            say(f"forward model: the {len(unlabelled)} frames without ground truth were not needed: {why}")
         # the solver compares the model with the data as it was fitted (the staged model: above the arriving ambient);
         # where a level sweep left the crosstalk undetermined, each frame solves its own under a prior about the fit's
         options = SolverOptions(ambient=unit_model == "staged", crosstalk_std=free_crosstalk_std(params, report))

@@ -38,6 +38,7 @@ from place_safe.sensor.histogram import (COUNT_MAX, ambient_slopes, arriving_amb
 from place_safe.calibration.points import MIN_TILT_SPREAD, level_frames, tilt_angles
 from place_safe.evaluation.metrics import point_error
 from place_safe.geometry import Plane
+from place_safe.recovery.points import PeakParams
 from place_safe.recovery.differentiable import DifferentiableEstimator, RangeCorrection, SolverOptions, range_argument
 
 #: Camera parameters fitted by default, with how they are parametrised ("log": positive). The
@@ -1448,7 +1449,8 @@ def nominal_geometry_fit(frames: Sequence[Frame], progress: bool = False) -> tup
 
 
 def reconsider_geometry(frames: Sequence[Frame], params: ForwardParams, report: dict, progress: bool = True,
-                        log=None, second_fit: bool = True, second=None) -> tuple[ForwardParams, dict]:
+                        log=None, second_fit: bool = True, second=None, unlabelled: Sequence[Frame] = (),
+                        peak=None) -> tuple[ForwardParams, dict]:
     """The forward fit to keep after ``params`` (with its ``report``) from :func:`fit_forward` on ``frames``.
 
     On a level sweep whose fit set a field of view or the mount tilt away from nominal (beyond
@@ -1468,7 +1470,10 @@ def reconsider_geometry(frames: Sequence[Frame], params: ForwardParams, report: 
     it is kept. ``second_fit`` False: the note alone (a fit whose geometry is not free to swap, e.g. the staged unit
     model). Not a level sweep, or a geometry near nominal: ``(params, report)`` unchanged. ``log`` gets a line for the
     user (None: silent). ``second``: a callable returning the second fit's ``(params, report)`` (e.g. the result of
-    :func:`nominal_geometry_fit` run alongside the first fit); None: :func:`nominal_geometry_fit` here, when needed."""
+    :func:`nominal_geometry_fit` run alongside the first fit); None: :func:`nominal_geometry_fit` here, when needed.
+    ``unlabelled``: tilted frames, ground truth not needed, that choose between readings the sweep left both possible
+    (:mod:`place_safe.calibration.readings`, with the calibrated ``peak`` params to find their tilts); the report's
+    ``geometry.unlabelled`` says what they showed."""
     note = geometry_note(params, frames)
     free = {"edge_fov_scale": params.edge_fov_scale, "corner_fov_scale": params.corner_fov_scale,
             "mount_tilt_deg": [math.degrees(float(t)) for t in params.mount_tilt],
@@ -1531,7 +1536,34 @@ def reconsider_geometry(frames: Sequence[Frame], params: ForwardParams, report: 
     # the sweep tells the readings apart only where the second fit is clearly worse; a better fit set aside for its
     # albedos, or one about as good, leaves both readings possible (TOLD_APART_GAIN)
     told_apart = converged and math.isfinite(rms_alt) and rms_alt >= (1.0 + TOLD_APART_GAIN) * rms
-    return keep(nominal, f"{compared}; {why}", alt if converged else None, told_apart)
+    if told_apart or not converged or not unlabelled:
+        return keep(nominal, f"{compared}; {why}", alt if converged else None, told_apart)
+    from place_safe.calibration.readings import compare_readings, decide
+
+    say(f"forward model: the level sweep left two readings of the zones' geometry; fitting {len(unlabelled)} frames "
+        "without ground truth with each")
+    bar = tqdm(total=len(unlabelled), desc="two readings", unit="frame", disable=not progress, file=sys.stderr)
+    try:
+        comparison = compare_readings(unlabelled, params, alt, peak if peak is not None else PeakParams.default_peak(),
+                                      progress=bar.update)
+    finally:
+        bar.close()
+    choice, shown = decide(comparison)
+    seen = {**comparison, "chose": choice or "neither", "why": shown}
+    if choice == "other":
+        alt_report["geometry"] = {"adopted": "nominal_time_scales", "free": free, "nominal_time_scales": nominal,
+                                  "why": f"{compared}; {why}; the tilted frames without ground truth chose each zone's "
+                                         f"own time scale with the geometry nominal: {shown}",
+                                  "told_apart": True, "other_params": params.to_dict(), "unlabelled": seen}
+        say(f"forward model: adopted the nominal geometry with each zone's own time scale ({shown})")
+        return alt, alt_report
+    params, report = keep(nominal, f"{compared}; {why}" + (
+        f"; the tilted frames without ground truth chose it: {shown}" if choice == "kept" else ""), alt,
+        choice == "kept")
+    report["geometry"]["unlabelled"] = seen
+    if choice is None:
+        say(f"forward model: the frames without ground truth did not choose a reading ({shown})")
+    return params, report
 
 
 def fit_range_correction(frames: Sequence[Frame], forward: ForwardParams, peak=None,

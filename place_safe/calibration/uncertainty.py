@@ -281,7 +281,9 @@ TILT_TERM_NOTE = ("diff's covariance on tilted planes is stated from the unit's 
 #: (:func:`reading_disagreement`).
 READINGS_NOTE = ("; this sweep also left two readings of the zones' geometry (fields of view and mount, or each zone's "
                  "own time scale) that read tilted planes {slope:.1%} apart in slope ({angle:.2f} deg on average at "
-                 "5-30 deg), and diff's covariance there holds that difference: tilted poses tell the readings apart")
+                 "5-30 deg), and diff's covariance there holds that difference: tilted poses tell the readings apart "
+                 "(or, for the slopes alone, 20 or more frames of tilted surfaces without ground truth: calibrate "
+                 "--readings-from FILE)")
 
 
 def _share(value) -> float | None:

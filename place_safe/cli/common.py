@@ -63,6 +63,17 @@ def load_calibration(path: str | None):
     return Calibration.load(path)
 
 
+def load_any_frames(path: str) -> list:
+    """The readable frames of ``path``, with or without ground truth; a one-line error where the file is not one, or
+    holds no readable frame (a frame that does not read is skipped)."""
+    if (why := not_a_file(path)) is not None:
+        raise FrameFileError(f"frame file {path} {why}")
+    frames = [f for f in iter_frames(path) if not isinstance(f, FrameError)]
+    if not frames:
+        raise FrameFileError(f"no readable frames in {path}")
+    return frames
+
+
 def load_truth_frames(paths: Sequence[str], min_distance: float | None = None,
                        max_distance: float | None = None) -> tuple[list, str]:
     """All frames with ground truth from ``paths`` (within the distance limits), and a note on the skipped ones.

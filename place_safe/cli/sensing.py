@@ -20,7 +20,8 @@ from place_safe.cli import options
 from place_safe.cli.options import opt
 from place_safe.exceptions import CalibrationError, FrameError, FrameFileError, PlaceSafeError
 from place_safe.cli.common import (CALIBRATE_METHODS, METHODS, PROG, UsageError, estimator_for,
-                                   jsonable, load_calibration, load_truth_frames, log, progress_options, report_notes,
+                                   jsonable, load_any_frames, load_calibration, load_truth_frames, log, progress_options,
+                                   report_notes,
                                    summarise, not_a_file, uncalibrated_note)
 from place_safe.evaluation.bench import DEFAULT_RUNS, measure_file_rss, report_json, run_bench
 from place_safe.evaluation.evaluate import evaluate
@@ -42,6 +43,9 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         return _calibrate_sim(args)
     extra = [name for name, given in (("--frames", args.frames is not None), ("--seed", args.seed is not None),
                                       ("--save-frames", args.save_frames)) if given]
+    if args.readings_from is not None and (args.method not in (None, "diff") or args.unit_model == "staged"):
+        raise UsageError("calibrate: --readings-from chooses between two readings of the diff method's default forward "
+                         "model; it goes with --method diff (not --unit-model staged)")
     if args.unit_model is not None and args.method not in (None, "diff"):
         raise UsageError(f"calibrate: --unit-model is the diff method's forward model; it goes with --method diff, "
                          f"not {args.method}")
@@ -67,14 +71,18 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
                 raise CalibrationError(f"{exc}; refusing to overwrite it (use --force to replace the file)") from None
             note = f"replacing {out}: {exc}"
     frames, skipped = load_truth_frames(args.files)
+    unlabelled = [] if args.readings_from is None else load_any_frames(args.readings_from)
     if not args.quiet:
         log(f"calibrate {args.method}: {len(frames)} frames with ground truth" + (f" ({skipped})" if skipped else ""))
+        if args.readings_from is not None:
+            log(f"calibrate {args.method}: {len(unlabelled)} frames from {args.readings_from} to choose a reading "
+                "(ground truth not used)")
         if note:
             log(note)
     from place_safe.calibration.fit import fit_method
 
     fitted = fit_method(cal, frames, args.method, progress=not args.quiet, log=None if args.quiet else log,
-                        unit_model=args.unit_model or "default")
+                        unit_model=args.unit_model or "default", unlabelled=unlabelled)
     out.parent.mkdir(parents=True, exist_ok=True)
     cal.save(out)
     for name in fitted:
@@ -334,9 +342,17 @@ def register(sub) -> None:
         "  place-safe calibrate sweep.json --method peak -o calib.json\n"
         "  place-safe calibrate sweep.json --method diff -o calib.json   # adds 'forward'\n"
         "  place-safe calibrate sweep.json --method diff --unit-model staged -o calib.json\n"
+        "  place-safe calibrate sweep.json --method diff --readings-from ramp.json -o calib.json\n"
         "  place-safe calibrate --sim mismatch      # the packaged simulated calibration, anew",
         opt("files", nargs="*", metavar="FILE", help="frame files with ground truth ('plane' or 'pose' + 'dist_to_plane')"),
         "method",
+        opt("--readings-from", metavar="TILTED", default=None,
+            help="with --method diff: a frame file of tilted surfaces (5 deg or more; ground truth not needed, e.g. "
+                 "`place-safe sensor record` above a ramp or a book on the table; 20 frames or more) that chooses "
+                 "between the two readings of the zones' geometry a level sweep may leave (fields of view and mount, "
+                 "or each zone's own time scale, which read tilted planes differently): each frame is fitted with "
+                 "both and the reading that fits most of them is kept. Used only where the sweep left both; the "
+                 "report's forward.geometry.unlabelled says what they showed"),
         opt("--unit-model", choices=UNIT_MODELS, default=None,
             help="with --method diff: how the forward model is fitted. default: the published model's camera "
                  "parameters (about 20 terms, one fit; 150 frames: 30-90 s). staged (experimental): a model learned "

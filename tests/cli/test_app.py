@@ -269,15 +269,49 @@ def test_calibrate_passes_the_unit_model_to_the_diff_fit(tmp_path, sweep_path, m
 
     seen = []
 
-    def fake(cal, frames, method, progress=False, log=None, unit_model="default"):
-        seen.append((method, unit_model))
+    def fake(cal, frames, method, progress=False, log=None, unit_model="default", unlabelled=()):
+        seen.append((method, unit_model, len(unlabelled)))
         return []
 
     monkeypatch.setattr(fit, "fit_method", fake)
     for extra in ([], ["--unit-model", "staged"], ["--unit-model", "default"]):
         assert main(["calibrate", str(sweep_path), "--method", "diff", "-o", str(tmp_path / "c.json"), "-q",
                      *extra]) == 0
-    assert seen == [("diff", "default"), ("diff", "staged"), ("diff", "default")]
+    assert seen == [("diff", "default", 0), ("diff", "staged", 0), ("diff", "default", 0)]
+
+
+def test_calibrate_readings_from_reaches_the_diff_fit_with_every_readable_frame(tmp_path, sweep_path, monkeypatch,
+                                                                                capsys):
+    """--readings-from FILE hands the diff fit every readable frame of FILE, with or without ground truth (the fit
+    does not use it; the choice itself: tests/calibration/test_readings.py); it goes with --method diff and the
+    default unit model only, and a file that is missing or holds no frame is a one-line error."""
+    import json
+
+    import place_safe.calibration.fit as fit
+
+    seen = []
+    monkeypatch.setattr(fit, "fit_method", lambda cal, frames, method, unlabelled=(), **kw: seen.append(
+        (method, len(frames), len(unlabelled), sum(f.truth is None for f in unlabelled))) or [])
+    frames = json.loads(sweep_path.read_text())
+    no_truth = tmp_path / "ramp.json"
+    no_truth.write_text(json.dumps([{k: v for k, v in f.items() if k not in ("pose", "dist_to_plane")}
+                                    for f in frames[:7]] + [{"hists": "not counts"}]))
+    for readings in (no_truth, sweep_path):
+        assert main(["calibrate", str(sweep_path), "--method", "diff", "-o", str(tmp_path / "c.json"), "-q",
+                     "--readings-from", str(readings)]) == 0
+    assert seen == [("diff", len(frames), 7, 7), ("diff", len(frames), len(frames), 0)]
+    capsys.readouterr()
+    for args in (["--method", "peak"], ["--method", "diff", "--unit-model", "staged"]):
+        assert main(["calibrate", str(sweep_path), "-o", str(tmp_path / "d.json"), "--readings-from", str(no_truth),
+                     *args]) == 2
+        assert "--readings-from" in one_line_error(capsys.readouterr().err)
+    empty = tmp_path / "empty.json"
+    empty.write_text("[]")
+    for bad in (tmp_path / "missing.json", empty):
+        assert main(["calibrate", str(sweep_path), "--method", "diff", "-o", str(tmp_path / "d.json"),
+                     "--readings-from", str(bad)]) != 0
+        assert str(bad) in one_line_error(capsys.readouterr().err)
+    assert len(seen) == 2 and not (tmp_path / "d.json").exists()
 
 
 @pytest.mark.parametrize("args", [["--method", "peak", "--unit-model", "staged"],

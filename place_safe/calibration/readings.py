@@ -1,0 +1,124 @@
+"""Choosing between the two readings of a level sweep with tilted frames that need no ground truth.
+
+A level table cannot tell the zones' directions (fields of view, the mount) from each zone's own time scale: both
+move a zone's range by a factor that does not change with distance (:func:`~place_safe.calibration.forward_fit.
+reconsider_geometry`). Where the sweep did not tell them apart (``reports.forward.geometry.told_apart`` false), the
+two readings read tilted planes differently, by up to a quarter of the slope (the real sweep's 27 %), and diff's
+covariance holds that difference (:func:`~place_safe.calibration.uncertainty.reading_disagreement`).
+
+A tilted surface tells them apart without knowing its plane: each reading's diff fit of the same frame leaves a
+residual, and the reading that describes the unit leaves the smaller one. Frames the arm records above anything
+tilted (a ramp, a book on the table, ``place-safe sensor record``) will do; their ground truth, if any, is not used.
+
+How it decides (:func:`choose_reading`):
+
+1. each frame's tilt by the calibrated peak method; frames tilted less than :data:`READING_MIN_TILT` are not used
+   (on a level plane both readings read the same plane and fit alike);
+2. each tilted frame fitted by diff with either reading, both under the same noise model (the kept reading's model
+   error), so their residuals compare bin for bin over the same window;
+3. where the two readings' planes of those frames lie :data:`READING_MIN_APART` or more apart (median), the share of
+   frames where the other reading leaves the smaller residual: at least :data:`READING_MAJORITY` adopts it, at most
+   ``1 - READING_MAJORITY`` keeps the first; both tell the readings apart. Between the two, with readings that read
+   the frames alike, or with fewer than :data:`READING_MIN_FRAMES` tilted frames, nothing changes and the report says
+   why.
+
+The second reading holds the mount level: a unit mounted off keeps the mount in the first reading, and where the
+second is adopted its offsets on tilted planes err by the mount (0.4-0.8 mm at 5-30 cm and 0-30 deg on the units
+measured, as peak's do). Tilted frames without ground truth cannot show the mount (turning the sensor and the plane
+together changes no histogram); tilted poses with ground truth can (``calibrate`` on both files).
+
+Measured (docs/results.md, "Tilted frames without ground truth choose the reading"): on the simulated units whose
+level sweeps did not tell the readings apart (40, 41, 43, 44), the other reading left the smaller residual on 80-100 %
+of 150 tilted frames (0-30 deg), and diff's own plane with it read 0.11-0.55 deg against 0.89-1.90 with the kept one.
+"""
+from __future__ import annotations
+
+import math
+from typing import Callable, Sequence
+
+import numpy as np
+
+from place_safe.evaluation.metrics import angular_error
+from place_safe.recovery.forward import ForwardParams
+from place_safe.recovery.points import PeakParams
+from place_safe.sensor.frame import Frame
+
+#: rad: frames whose plane peak reads tilted less than this do not count (a level plane reads alike in both readings).
+READING_MIN_TILT = math.radians(5.0)
+#: Tilted frames needed before the readings are compared at all.
+READING_MIN_FRAMES = 10
+#: rad: readings whose planes of the tilted frames lie closer than this (median) read them alike, and the sweep's own
+#: choice stands: choosing would move slopes less than diff's own error on tilted planes (0.06-0.2 deg on simulated
+#: units), and the first reading keeps the mount, which the second holds level (unit 45, mounted 0.5 deg off, read
+#: 0.41 mm off in offset with the second reading against 0.07 with the first; its readings 0.06 deg apart).
+READING_MIN_APART = math.radians(0.3)
+#: Share of the tilted frames on which one reading must leave the smaller residual to be chosen. On unit 40, the
+#: noisiest of the units measured, 86 % of the frames tilted 10 deg or more chose the unit's reading: 20 such frames
+#: reach this share with a probability of 0.96 (binomial), and choose the wrong reading with one of about 1e-6.
+READING_MAJORITY = 0.75
+
+
+def _tilt(est) -> float:
+    """The tilt (rad) of an estimate's plane, NaN without one."""
+    if est.plane is None:
+        return math.nan
+    return float(np.arccos(np.clip(abs(float(est.plane.normal[2])), 0.0, 1.0)))
+
+
+def compare_readings(frames: Sequence[Frame], kept: ForwardParams, other: ForwardParams, peak: PeakParams,
+                     options=None, progress: Callable[[int], None] | None = None) -> dict:
+    """Each tilted frame of ``frames`` fitted by diff with the ``kept`` and the ``other`` reading (both with
+    ``kept``'s model error, ``options`` the solver's): a dict with ``frames`` (all), ``tilted`` (tilted at least
+    :data:`READING_MIN_TILT` by ``peak``), ``compared`` (those both readings fitted), ``other_lower`` (the share of
+    those where ``other`` left the smaller residual; NaN with none), ``median_ratio`` (other's residual over kept's),
+    ``tilt_deg`` (the compared frames' median tilt) and ``apart_deg`` (the median angle between the two readings'
+    planes of a frame). ``progress`` gets the number of frames done."""
+    from place_safe.recovery.differentiable import DifferentiableEstimator
+    from place_safe.recovery.peak import PeakEstimator
+
+    tilts = np.array([_tilt(e) for e in PeakEstimator(peak).estimate_many(list(frames))])
+    with np.errstate(invalid="ignore"):
+        tilted = [f for f, t in zip(frames, tilts) if t >= READING_MIN_TILT]
+    same_noise = other.model_copy(update={"model_error": kept.model_error})
+    ka = DifferentiableEstimator(kept, peak, options=options)
+    kb = DifferentiableEstimator(same_noise, peak, options=options)
+    ratios, used_tilts, apart = [], [], []
+    for i in range(0, len(tilted), 16):
+        chunk = tilted[i:i + 16]
+        for a, b in zip(ka.estimate_many(chunk), kb.estimate_many(chunk)):
+            ra, rb = a.residual, b.residual
+            if a.ok and b.ok and ra is not None and rb is not None and ra > 0 and math.isfinite(ra) and math.isfinite(rb):
+                ratios.append(rb / ra)
+                used_tilts.append(_tilt(a))
+                apart.append(angular_error(a.plane, b.plane))
+        if progress is not None:
+            progress(len(chunk))
+    r = np.array(ratios)
+    return {"frames": len(frames), "tilted": len(tilted), "compared": len(r),
+            "other_lower": float(np.mean(r < 1.0)) if len(r) else math.nan,
+            "median_ratio": float(np.median(r)) if len(r) else math.nan,
+            "tilt_deg": float(np.degrees(np.median(used_tilts))) if used_tilts else math.nan,
+            "apart_deg": float(np.degrees(np.median(apart))) if apart else math.nan}
+
+
+def decide(comparison: dict) -> tuple[str | None, str]:
+    """``("other" | "kept" | None, why)`` from :func:`compare_readings`' ``comparison``: None leaves both readings
+    possible."""
+    n, share = comparison["compared"], comparison["other_lower"]
+    if n < READING_MIN_FRAMES:
+        return None, (f"{n} frame(s) tilted {math.degrees(READING_MIN_TILT):.0f} deg or more fitted by both readings "
+                      f"(of {comparison['frames']}); {READING_MIN_FRAMES} are needed")
+    if not comparison["apart_deg"] >= math.degrees(READING_MIN_APART):
+        return None, (f"the two readings read the {n} tilted frames alike (their planes a median "
+                      f"{comparison['apart_deg']:.2f} deg apart, under {math.degrees(READING_MIN_APART):.1f})")
+    told = (f"the other reading left the smaller residual on {100 * share:.0f} % of {n} tilted frames (median "
+            f"residual ratio {comparison['median_ratio']:.3f})")
+    if share >= READING_MAJORITY:
+        return "other", told
+    if share <= 1.0 - READING_MAJORITY:
+        return "kept", told
+    return None, f"{told}: neither reading on {100 * READING_MAJORITY:.0f} % of them"
+
+
+__all__ = ["compare_readings", "decide", "READING_MIN_TILT", "READING_MIN_FRAMES", "READING_MIN_APART",
+           "READING_MAJORITY"]
