@@ -8,10 +8,15 @@ in ``--out``):
   (5-30 cm, 0-30 deg, the sweep's mean reference histogram) with each reading, and print the slope scale and offset bias
   (``peak_tilt_bias.summary``) of the calibrated diff's planes on both and on the unit's own tilted frames;
 - ``rescore``: refit the calibration's uncertainty sections with this code (``update_calibration`` on the level sweep)
-  and print diff's and peak's mean angle and NEES per dof on the tilted frames, as calibrated and refitted.
+  and print diff's and peak's mean angle and NEES per dof on the tilted frames, as calibrated and refitted;
+- ``residuals``: the comparison ``calibrate --readings-from`` makes (:func:`place_safe.calibration.readings.
+  compare_readings`, both readings under the first fit's model error), on the unit's own tilted frames (their ground
+  truth unused), and the choice it would make (docs/results.md, "Tilted frames without ground truth choose the
+  reading").
 
     python docs/figures/two_readings.py compare 41 40 --out sc
     python docs/figures/two_readings.py rescore 39 42 34 36 --out sc
+    python docs/figures/two_readings.py residuals 41 44 40 43 synth5 45 37 --out sc
 """
 from __future__ import annotations
 
@@ -78,15 +83,35 @@ def rescore(unit: str, out: Path) -> None:
     print(f"{unit} refitted:      {score(Calibration.from_dict(cal.to_dict()))}")
 
 
+def residuals(unit: str, out: Path) -> None:
+    from place_safe.calibration import Calibration
+    from place_safe.calibration.readings import compare_readings, decide
+    from place_safe.calibration.uncertainty import other_reading
+    from place_safe.io.frame_file import load_frames
+
+    cal = Calibration.load(out / f"{unit}_cal.json")
+    other = other_reading(cal)
+    if other is None:
+        print(f"{unit}: its level sweep told the readings apart (or left one): nothing to compare")
+        return
+    # the first fit's model error, as calibrate compares them (select_model_error runs after the choice)
+    kept = cal.forward().model_copy(update={"model_error": other.model_error})
+    c = compare_readings(load_frames(str(out / f"{unit}_tilt.json")), kept, other, cal.peak())
+    choice, why = decide(c)
+    print(f"{unit}: {c['compared']} of {c['frames']} frames compared, the other reading lower on "
+          f"{100 * c['other_lower']:.0f} % (median ratio {c['median_ratio']:.3f}), planes {c['apart_deg']:.2f} deg apart: "
+          f"{choice or 'neither'} ({why})")
+
+
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("what", choices=("compare", "rescore"))
+    p.add_argument("what", choices=("compare", "rescore", "residuals"))
     p.add_argument("units", nargs="+", help="scorecard units (unit_scorecard.py --units ... --out DIR made their files)")
     p.add_argument("--out", type=Path, required=True, help="the scorecard's output folder")
     args = p.parse_args(argv)
     for unit in args.units:
-        (compare if args.what == "compare" else rescore)(unit, args.out)
+        {"compare": compare, "rescore": rescore, "residuals": residuals}[args.what](unit, args.out)
 
 
 if __name__ == "__main__":

@@ -14,8 +14,9 @@ the config's bounds: see :data:`UNITS`), ``34`` (unit A whose zones each have th
 (units 32 and B with +-1 % and +-2 % time scales), ``37`` and ``38`` (units A and B mounted 0.94 and 1.5 deg off
 their nominal orientation), ``39`` (unit 34 mounted 1 deg off), ``40`` and ``41`` (unit 31's seed, tails, skew and
 emitter baseline, and unit 33's seed, tails and skew, with their zones' own time scales, +-1.2 % and +-2 %, mounted 1.1
-and 1.3 deg off), ``42`` (unit B's tails, +-1 %, mounted 1.2 deg off) and ``43`` (seed 43, +-2 %, mounted 1.2 deg
-off; 34-43 are not in the default set), and ``synth``
+and 1.3 deg off), ``42`` (unit B's tails, +-1 %, mounted 1.2 deg off), ``43`` (seed 43, +-2 %, mounted 1.2 deg
+off), ``44`` (seed 44, moderate tails, more crosstalk, +-0.8 %, mounted 0.9 deg off) and ``45`` (seed 45, a wide
+glass spread, mounted 0.5 deg off; 34-45 are not in the default set), and ``synth``
 (the independent generator, ``place-safe synth``, sensor seed 0; ``synth1`` .. ``synth9``: sensor seeds 1-9).
 Everything runs through the command line a user has (``place-safe calibrate``, ``place-safe evaluate --json``); each
 step's output is kept in ``--out`` and reused when rerun (``--fresh``: redo).
