@@ -16,7 +16,8 @@ their nominal orientation), ``39`` (unit 34 mounted 1 deg off), ``40`` and ``41`
 emitter baseline, and unit 33's seed, tails and skew, with their zones' own time scales, +-1.2 % and +-2 %, mounted 1.1
 and 1.3 deg off), ``42`` (unit B's tails, +-1 %, mounted 1.2 deg off), ``43`` (seed 43, +-2 %, mounted 1.2 deg
 off), ``44`` (seed 44, moderate tails, more crosstalk, +-0.8 %, mounted 0.9 deg off) and ``45`` (seed 45, a wide
-glass spread, mounted 0.5 deg off; 34-45 are not in the default set), and ``synth``
+glass spread, mounted 0.5 deg off), ``46`` (seed 46, +-1.5 %, mounted 0.9 deg off) and ``47`` (seed 47, unit B's
+tails, +-1 %, not mounted off; 34-47 are not in the default set), and ``synth``
 (the independent generator, ``place-safe synth``, sensor seed 0; ``synth1`` .. ``synth9``: sensor seeds 1-9).
 Everything runs through the command line a user has (``place-safe calibrate``, ``place-safe evaluate --json``); each
 step's output is kept in ``--out`` and reused when rerun (``--fresh``: redo).
@@ -90,6 +91,10 @@ UNITS: dict[str, dict | None] = {
            "ambient_slope": -0.1, "crosstalk_grid_max": 6e-5, "zone_time_scale": 0.008,
            "mount_tilt": (math.radians(0.5), math.radians(0.7))},
     "45": {"seed": 45, "glass_spread": 1.5, "mount_tilt": (math.radians(-0.4), math.radians(0.3))},
+    # two more for the choice of calibrate --readings-from, set before it was run on them: zones' own time and a mount
+    # on a new seed, and zones' own time alone (the second reading exact) on unit B's tails
+    "46": {"seed": 46, "zone_time_scale": 0.015, "mount_tilt": (math.radians(-0.7), math.radians(0.5))},
+    "47": {"seed": 47, "tail_weight": (0.05, 0.12), "tail_decay": (2.0, 6.0), "skew_bins": 0.2, "zone_time_scale": 0.01},
 }
 #: The independent generator's units: ``place-safe synth --sensor-seed``.
 SYNTH = {"synth": 0, **{f"synth{k}": k for k in range(1, 10)}}

@@ -28,9 +28,9 @@ units measured, about peak's). Tilted frames without ground truth cannot show th
 together changes no histogram); tilted poses with ground truth can (``calibrate`` on both files).
 
 Measured (docs/results.md, "Tilted frames without ground truth choose the reading"): on simulated units whose level
-sweeps did not tell the readings apart, 20 such frames chose the unit's reading on 40, 41 and 44 (the other reading
-lower on 90-100 % of them), and diff's own plane on their 150 tilted test frames went from 1.4-1.9 deg to 0.10-0.18
-(NEES per dof 0.02-0.08 -> 0.30-0.65); on the independent generator's seed 5 they kept the first reading, the better
+sweeps did not tell the readings apart, 20 such frames chose the unit's reading on 40, 41, 44 and 47 (the other
+reading lower on 90-100 % of them), and diff's own plane on their 150 tilted test frames went from 1.4-1.9 deg to
+0.07-0.18 (NEES per dof 0.01-0.08 -> 0.15-0.65); on the independent generator's seed 5 they kept the first reading, the better
 one (the other lower on 6 %); on unit 43 they chose neither (65 %); on units 37 and 45, mounted off alone, the readings
 read them alike.
 """
