@@ -96,7 +96,10 @@ def residuals(unit: str, out: Path) -> None:
         return
     # the first fit's model error, as calibrate compares them (select_model_error runs after the choice)
     kept = cal.forward().model_copy(update={"model_error": other.model_error})
-    c = compare_readings(load_frames(str(out / f"{unit}_tilt.json")), kept, other, cal.peak())
+    from place_safe.recovery.differentiable import SolverOptions
+
+    options = SolverOptions(crosstalk_std=cal.diff_options().crosstalk_std)  # each frame's own crosstalk, as calibrate
+    c = compare_readings(load_frames(str(out / f"{unit}_tilt.json")), kept, other, cal.peak(), options)
     choice, why = decide(c)
     print(f"{unit}: {c['compared']} of {c['frames']} frames compared, the other reading lower on "
           f"{100 * c['other_lower']:.0f} % (median ratio {c['median_ratio']:.3f}), planes {c['apart_deg']:.2f} deg apart: "

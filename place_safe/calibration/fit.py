@@ -52,6 +52,22 @@ def _store(cal: Calibration, fitted: list[str], name: str, section: dict, report
     fitted.append(name)
 
 
+def unlabelled_summary(report: dict, n: int) -> dict:
+    """What ``n`` frames without ground truth did in the forward fit whose ``report`` this is (``reports.forward.
+    unlabelled``): ``used`` where they were compared (``geometry.unlabelled`` has the comparison, whose choice and reason
+    are repeated), else why not."""
+    geometry = report.get("geometry") if isinstance(report.get("geometry"), dict) else {}
+    seen = geometry.get("unlabelled")
+    if isinstance(seen, dict):
+        return {"frames": n, "used": True, "chose": seen.get("chose"), "why": seen.get("why")}
+    nominal = geometry.get("nominal_time_scales") if isinstance(geometry.get("nominal_time_scales"), dict) else {}
+    why = ("the level sweep told its two readings apart" if geometry.get("told_apart") else
+           f"the second reading's fit failed ({nominal['failed']})" if "failed" in nominal else
+           "the second reading's fit did not converge" if nominal else
+           "the sweep left one reading of the zones' geometry (near nominal, or not a level sweep)")
+    return {"frames": n, "used": False, "why": why}
+
+
 def fit_method(calibration: Calibration, frames: Sequence[Frame], method: str, progress: bool = False,
                log: Callable[[str], None] | None = None, unit_model: str = "default",
                unlabelled: Sequence[Frame] = ()) -> list[str]:
@@ -65,9 +81,9 @@ def fit_method(calibration: Calibration, frames: Sequence[Frame], method: str, p
         raise ValueError(f"calibrate: unit model must be one of {', '.join(UNIT_MODELS)}, got {unit_model!r}")
     if unit_model != "default" and method != "diff":
         raise ValueError(f"calibrate: a unit model is a fit of the diff method's forward model, not of {method}")
-    if len(unlabelled) and method != "diff":
-        raise ValueError(f"calibrate: frames that choose a reading of the diff method's forward model go with diff, "
-                         f"not {method}")
+    if len(unlabelled) and (method != "diff" or unit_model != "default"):
+        raise ValueError("calibrate: frames that choose a reading of the diff method's forward model go with diff and "
+                         f"the default unit model, not {method} / {unit_model}")
     say = log if log is not None else (lambda _line: None)
     cal = calibration
     fitted: list[str] = []
@@ -90,13 +106,11 @@ def fit_method(calibration: Calibration, frames: Sequence[Frame], method: str, p
                 params, report = reconsider_geometry(frames, *fit_forward(frames, init=None, progress=progress),
                                                      progress=progress, log=log, second=second.result,
                                                      unlabelled=unlabelled, peak=cal.peak())
-        if len(unlabelled) and "unlabelled" not in report.get("geometry", {}):
-            geometry = report.get("geometry", {})
-            why = ("the level sweep told its two readings apart" if geometry.get("told_apart") else
-                   "the second reading's fit did not converge" if geometry else
-                   "the sweep left one reading of the zones' geometry (near nominal, or not a level sweep)")
-            report["unlabelled"] = {"frames": len(unlabelled), "used": False, "why": why}
-            say(f"forward model: the {len(unlabelled)} frames without ground truth were not needed: {why}")
+        if len(unlabelled):
+            report["unlabelled"] = unlabelled_summary(report, len(unlabelled))
+            if not report["unlabelled"]["used"]:
+                say(f"forward model: the {len(unlabelled)} frames without ground truth were not needed: "
+                    f"{report['unlabelled']['why']}")
         # the solver compares the model with the data as it was fitted (the staged model: above the arriving ambient);
         # where a level sweep left the crosstalk undetermined, each frame solves its own under a prior about the fit's
         options = SolverOptions(ambient=unit_model == "staged", crosstalk_std=free_crosstalk_std(params, report))

@@ -1543,8 +1543,9 @@ def reconsider_geometry(frames: Sequence[Frame], params: ForwardParams, report: 
     say(f"forward model: the level sweep left two readings of the zones' geometry; fitting {len(unlabelled)} frames "
         "without ground truth with each")
     bar = tqdm(total=len(unlabelled), desc="two readings", unit="frame", disable=not progress, file=sys.stderr)
-    try:
+    try:  # (the solver as calibrate will run it on the kept reading: each frame's own crosstalk where the sweep left it)
         comparison = compare_readings(unlabelled, params, alt, peak if peak is not None else PeakParams.default_peak(),
+                                      SolverOptions(crosstalk_std=free_crosstalk_std(params, report)),
                                       progress=bar.update)
     finally:
         bar.close()
@@ -1561,6 +1562,8 @@ def reconsider_geometry(frames: Sequence[Frame], params: ForwardParams, report: 
         f"; the tilted frames without ground truth chose it: {shown}" if choice == "kept" else ""), alt,
         choice == "kept")
     report["geometry"]["unlabelled"] = seen
+    if choice == "kept":  # the frames told the readings apart: the note's warning about them no longer holds
+        report["geometry"].pop("note", None)
     if choice is None:
         say(f"forward model: the frames without ground truth did not choose a reading ({shown})")
     return params, report

@@ -15,7 +15,8 @@ How it decides (:func:`compare_readings`, then :func:`decide`):
 1. each frame's tilt by the calibrated peak method; frames tilted less than :data:`READING_MIN_TILT` are not used
    (on a level plane both readings read the same plane and fit alike);
 2. each tilted frame fitted by diff with either reading, both under the same noise model (the kept reading's model
-   error), so their residuals compare bin for bin over the same window;
+   error: in ``calibrate`` the first fit's, as the choice comes before the model error is selected) and solver
+   options, so their residuals compare bin for bin over the same window;
 3. where the two readings' planes of those frames lie :data:`READING_MIN_APART` or more apart (median), the share of
    frames where the other reading leaves the smaller residual: at least :data:`READING_MAJORITY` adopts it, at most
    ``1 - READING_MAJORITY`` keeps the first; both tell the readings apart. Between the two, with readings that read
@@ -82,6 +83,8 @@ def compare_readings(frames: Sequence[Frame], kept: ForwardParams, other: Forwar
     tilts = np.array([_tilt(e) for e in PeakEstimator(peak).estimate_many(list(frames))])
     with np.errstate(invalid="ignore"):
         tilted = [f for f, t in zip(frames, tilts) if t >= READING_MIN_TILT]
+    if progress is not None:
+        progress(len(frames) - len(tilted))  # the frames not compared
     same_noise = other.model_copy(update={"model_error": kept.model_error})
     ka = DifferentiableEstimator(kept, peak, options=options)
     kb = DifferentiableEstimator(same_noise, peak, options=options)
@@ -109,8 +112,9 @@ def decide(comparison: dict) -> tuple[str | None, str]:
     possible."""
     n, share = comparison["compared"], comparison["other_lower"]
     if n < READING_MIN_FRAMES:
-        return None, (f"{n} frame(s) tilted {math.degrees(READING_MIN_TILT):.0f} deg or more fitted by both readings "
-                      f"(of {comparison['frames']}); {READING_MIN_FRAMES} are needed")
+        return None, (f"{comparison['tilted']} of {comparison['frames']} frame(s) read tilted "
+                      f"{math.degrees(READING_MIN_TILT):.0f} deg or more by peak, {n} of them fitted by both readings; "
+                      f"{READING_MIN_FRAMES} are needed")
     if not comparison["apart_deg"] >= math.degrees(READING_MIN_APART):
         return None, (f"the two readings read the {n} tilted frames alike (their planes a median "
                       f"{comparison['apart_deg']:.2f} deg apart, under {math.degrees(READING_MIN_APART):.1f})")

@@ -281,9 +281,12 @@ TILT_TERM_NOTE = ("diff's covariance on tilted planes is stated from the unit's 
 #: (:func:`reading_disagreement`).
 READINGS_NOTE = ("; this sweep also left two readings of the zones' geometry (fields of view and mount, or each zone's "
                  "own time scale) that read tilted planes {slope:.1%} apart in slope ({angle:.2f} deg on average at "
-                 "5-30 deg), and diff's covariance there holds that difference: tilted poses tell the readings apart "
-                 "(or, for the slopes alone, 20 or more frames of tilted surfaces without ground truth: calibrate "
-                 "--readings-from FILE)")
+                 "5-30 deg), and diff's covariance there holds that difference: tilted poses tell the readings apart")
+#: What :data:`READINGS_NOTE` adds where no tilted frames without ground truth were compared (``calibrate
+#: --readings-from``, :mod:`place_safe.calibration.readings`), and where they were but chose neither reading.
+READINGS_FROM_NOTE = (" (or, for the slopes alone, 20 or more frames of tilted surfaces without ground truth: calibrate "
+                      "--readings-from FILE)")
+READINGS_NEITHER_NOTE = " (the tilted frames without ground truth chose neither: {why})"
 
 
 def _share(value) -> float | None:
@@ -1259,8 +1262,18 @@ def update_calibration(cal, frames: Sequence[Frame], method: str) -> dict:
                                                    crosstalk=forward.crosstalk if traded else None,
                                                    other_reading=other_reading(cal), mount_left=left)
         section["diff"] = unc.to_dict()
+        if "also left two readings" in report["diff"].get("note", ""):
+            report["diff"]["note"] += readings_note_tail(cal)
     cal.sections["uncertainty"] = section
     return report
+
+
+def readings_note_tail(cal) -> str:
+    """What the readings note (:data:`READINGS_NOTE`) ends with for ``cal``: what its tilted frames without ground truth
+    showed where it compared some and they chose neither reading (:data:`READINGS_NEITHER_NOTE`), else how to give some
+    (:data:`READINGS_FROM_NOTE`)."""
+    seen = _forward_geometry(cal).get("unlabelled")
+    return READINGS_NEITHER_NOTE.format(why=seen.get("why", "?")) if isinstance(seen, dict) else READINGS_FROM_NOTE
 
 
 def other_reading(cal):
@@ -1280,7 +1293,8 @@ def other_reading(cal):
 
 
 __all__ = ["update_calibration", "reading_disagreement", "slope_scale_offset_bias", "DISAGREEMENT_FRAMES",
-           "READINGS_NOTE", "sweep_slopes",
+           "READINGS_NOTE", "READINGS_FROM_NOTE", "READINGS_NEITHER_NOTE", "readings_note_tail",
+           "sweep_slopes",
            "mount_left", "other_reading", "ADOPTED_MOUNT_OFFSET_REL",
            "LEVEL_SLOPE", "nees", "fit_floor", "fit_peak_uncertainty", "fit_diff_uncertainty", "select_fallback",
            "chi2_candidates", "near_std_law", "fit_near_law", "near_law_table", "near_law_parameters", "knot_factor",

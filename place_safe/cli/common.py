@@ -63,15 +63,20 @@ def load_calibration(path: str | None):
     return Calibration.load(path)
 
 
-def load_any_frames(path: str) -> list:
-    """The readable frames of ``path``, with or without ground truth; a one-line error where the file is not one, or
-    holds no readable frame (a frame that does not read is skipped)."""
+def load_any_frames(path: str) -> tuple[list, str]:
+    """The readable frames of ``path``, with or without ground truth, and a note on those skipped (a frame that does not
+    read, e.g. ``"2 unreadable (the first: ...)"``; '' for none); a one-line error where the file is not a frame file,
+    or holds no readable frame."""
     if (why := not_a_file(path)) is not None:
         raise FrameFileError(f"frame file {path} {why}")
-    frames = [f for f in iter_frames(path) if not isinstance(f, FrameError)]
+    frames: list = []
+    bad: list = []
+    for f in iter_frames(path):
+        (bad if isinstance(f, FrameError) else frames).append(f)
+    note = f"{len(bad)} unreadable (the first: {bad[0]})" if bad else ""
     if not frames:
-        raise FrameFileError(f"no readable frames in {path}")
-    return frames
+        raise FrameFileError(f"no readable frames in {path}" + (f": {note}" if note else ""))
+    return frames, note
 
 
 def load_truth_frames(paths: Sequence[str], min_distance: float | None = None,

@@ -71,12 +71,12 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
                 raise CalibrationError(f"{exc}; refusing to overwrite it (use --force to replace the file)") from None
             note = f"replacing {out}: {exc}"
     frames, skipped = load_truth_frames(args.files)
-    unlabelled = [] if args.readings_from is None else load_any_frames(args.readings_from)
+    unlabelled, unreadable = ([], "") if args.readings_from is None else load_any_frames(args.readings_from)
     if not args.quiet:
         log(f"calibrate {args.method}: {len(frames)} frames with ground truth" + (f" ({skipped})" if skipped else ""))
         if args.readings_from is not None:
             log(f"calibrate {args.method}: {len(unlabelled)} frames from {args.readings_from} to choose a reading "
-                "(ground truth not used)")
+                f"(ground truth not used){f' ({unreadable})' if unreadable else ''}")
         if note:
             log(note)
     from place_safe.calibration.fit import fit_method
@@ -101,9 +101,9 @@ def _calibrate_sim(args: argparse.Namespace) -> int:
     file placements use) by the chain a user runs on the arm, in MuJoCo."""
     import importlib.util
 
-    if args.files or args.method or args.unit_model is not None:
+    if args.files or args.method or args.unit_model is not None or args.readings_from is not None:
         raise UsageError("calibrate: --sim captures its own frames and fits diff, then proprietary: give no FILE, "
-                         "--method or --unit-model with it")
+                         "--method, --unit-model or --readings-from with it")
     sensors = ("nominal", "mismatch") if args.sim == "all" else (args.sim,)
     if len(sensors) > 1 and (args.output or args.save_frames):
         raise UsageError("calibrate: -o and --save-frames need one simulated sensor (--sim nominal or mismatch)")
@@ -352,7 +352,7 @@ def register(sub) -> None:
                  "between the two readings of the zones' geometry a level sweep may leave (fields of view and mount, "
                  "or each zone's own time scale, which read tilted planes differently): each frame is fitted with "
                  "both and the reading that fits most of them is kept. Used only where the sweep left both; the "
-                 "report's forward.geometry.unlabelled says what they showed"),
+                 "report's forward.unlabelled says whether they were used and what they chose"),
         opt("--unit-model", choices=UNIT_MODELS, default=None,
             help="with --method diff: how the forward model is fitted. default: the published model's camera "
                  "parameters (about 20 terms, one fit; 150 frames: 30-90 s). staged (experimental): a model learned "

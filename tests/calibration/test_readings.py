@@ -108,12 +108,44 @@ def test_tilted_frames_without_truth_keep_the_first_reading_or_leave_both(sweep_
     g = r["geometry"]
     assert p is FREE and g["adopted"] == "free" and g["told_apart"] is True and g["unlabelled"]["chose"] == "kept"
     assert g["other_params"]["zone_bin_scales"][2] == TIME_SCALES.zone_bin_scales[2]
+    assert "note" not in g  # the geometry note warns of the two readings, which the frames told apart
 
     p, r = ff.reconsider_geometry(level, FREE, dict(first), progress=False, unlabelled=tilted(FREE, n=4),
                                   peak=PeakParams.default_peak())
     g = r["geometry"]
     assert p is FREE and g["told_apart"] is False and g["unlabelled"]["chose"] == "neither"
-    assert "are needed" in g["unlabelled"]["why"]
+    assert "are needed" in g["unlabelled"]["why"] and "capture tilted poses" in g["note"]
 
     p, r = ff.reconsider_geometry(level, FREE, dict(first), progress=False)
     assert p is FREE and r["geometry"]["told_apart"] is False and "unlabelled" not in r["geometry"]
+
+
+def test_the_report_says_whether_the_frames_were_used_and_the_note_what_they_showed(sweep_left_both):
+    """``reports.forward.unlabelled`` (:func:`~place_safe.calibration.fit.unlabelled_summary`): used, with the choice,
+    where the frames were compared; else why not, for each shape the forward report takes (told apart, the second fit
+    failed or did not converge, one reading). The uncertainty note's tail (:func:`~place_safe.calibration.uncertainty.
+    readings_note_tail`) names --readings-from where no frames were compared, and what they showed where they chose
+    neither."""
+    from place_safe.calibration import Calibration
+    from place_safe.calibration.fit import unlabelled_summary
+    from place_safe.calibration.uncertainty import READINGS_FROM_NOTE, readings_note_tail
+
+    level, first = sweep_left_both
+    _, used = ff.reconsider_geometry(level, FREE, dict(first), progress=False, unlabelled=tilted(FREE, n=4),
+                                     peak=PeakParams.default_peak())
+    summary = unlabelled_summary(used, 4)
+    assert summary["used"] and summary["chose"] == "neither" and "are needed" in summary["why"]
+    cases = (({"geometry": {"told_apart": True}}, "told its two readings apart"),
+             ({"geometry": {"told_apart": False, "nominal_time_scales": {"failed": "ArithmeticError: x"}}},
+              "failed (ArithmeticError: x)"),
+             ({"geometry": {"told_apart": False, "nominal_time_scales": {"converged": False}}}, "did not converge"),
+             ({"geometry": {"note": "n", "free": {}, "adopted": "free"}}, "one reading"),
+             ({}, "one reading"))
+    for report, says in cases:
+        summary = unlabelled_summary(report, 20)
+        assert summary == {"frames": 20, "used": False, "why": summary["why"]} and says in summary["why"]
+
+    assert readings_note_tail(Calibration()) == READINGS_FROM_NOTE
+    cal = Calibration()
+    cal.reports["forward"] = used
+    assert "chose neither" in readings_note_tail(cal) and "are needed" in readings_note_tail(cal)

@@ -329,6 +329,12 @@ def test_calibrate_sim_takes_no_unit_model(capsys):
     assert "--unit-model" in one_line_error(capsys.readouterr().err)
 
 
+def test_calibrate_sim_takes_no_readings_from(tmp_path, capsys):
+    """--sim captures and fits its own sweep: frames to choose a reading are refused, not ignored."""
+    assert main(["calibrate", "--sim", "mismatch", "--readings-from", str(tmp_path / "ramp.json")]) == 2
+    assert "--readings-from" in one_line_error(capsys.readouterr().err)
+
+
 # -- evaluate -------------------------------------------------------------------------------------
 def test_evaluate_prints_a_table_and_writes_json(tmp_path, sweep_path, capsys):
     rep = tmp_path / "report.json"
