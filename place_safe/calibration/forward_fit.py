@@ -1550,6 +1550,10 @@ def reconsider_geometry(frames: Sequence[Frame], params: ForwardParams, report: 
     finally:
         bar.close()
     choice, shown = decide(comparison)
+    if choice == "other" and cv <= SAME_SURFACE_CV and not one_surface:  # the sweep's evidence against it stands
+        choice, shown = None, (f"{shown}, but the second reading reads the level table as many albedos (CV "
+                               f"{100 * cv_alt:.0f} %, above {SAME_SURFACE_CV:.0%}) where the first reads one surface: "
+                               "not adopted")
     seen = {**comparison, "chose": choice or "neither", "why": shown}
     if choice == "other":
         alt_report["geometry"] = {"adopted": "nominal_time_scales", "free": free, "nominal_time_scales": nominal,

@@ -149,3 +149,26 @@ def test_the_report_says_whether_the_frames_were_used_and_the_note_what_they_sho
     cal = Calibration()
     cal.reports["forward"] = used
     assert "chose neither" in readings_note_tail(cal) and "are needed" in readings_note_tail(cal)
+
+
+def test_the_frames_adopt_the_second_reading_only_where_the_sweep_reads_one_surface_with_it(monkeypatch):
+    """A second fit that reads the level table as many albedos (CV above SAME_SURFACE_CV) where the first reads one
+    surface is not adopted, whatever the frames' residuals say (adopted there, simulated unit 43 was overconfident); the
+    frames may still keep the first; where both read many albedos, the albedos do not witness and the frames choose."""
+    level = [SimpleNamespace(truth=SimpleNamespace(normal=np.array([0.0, 0.0, 1.0]))) for _ in range(3)]
+    first = {"rms_scaled_residual_after": 1.99, "converged": True, "one_surface": {"albedo_cv_after": 0.09}}
+    second = {"rms_scaled_residual_after": 1.49, "converged": True, "solver": {"seconds": 1.0},
+              "one_surface": {"albedo_cv_after": 1.10}}
+    monkeypatch.setattr(ff, "fit_forward", lambda *a, **k: (TIME_SCALES, dict(second)))
+    p, r = ff.reconsider_geometry(level, FREE, dict(first), progress=False, unlabelled=tilted(TIME_SCALES),
+                                  peak=PeakParams.default_peak())
+    g = r["geometry"]
+    assert p is FREE and g["told_apart"] is False and g["unlabelled"]["chose"] == "neither"
+    assert "many albedos" in g["unlabelled"]["why"] and "110 %" in g["unlabelled"]["why"]
+    p, r = ff.reconsider_geometry(level, FREE, dict(first), progress=False, unlabelled=tilted(FREE, seed=4),
+                                  peak=PeakParams.default_peak())
+    assert p is FREE and r["geometry"]["told_apart"] is True and r["geometry"]["unlabelled"]["chose"] == "kept"
+    many = dict(first, one_surface={"albedo_cv_after": 1.04})  # both read many albedos (simulated unit 40)
+    p, r = ff.reconsider_geometry(level, FREE, many, progress=False, unlabelled=tilted(TIME_SCALES),
+                                  peak=PeakParams.default_peak())
+    assert p is TIME_SCALES and r["geometry"]["told_apart"] is True and r["geometry"]["unlabelled"]["chose"] == "other"
