@@ -351,7 +351,8 @@ def register(sub) -> None:
                  "`place-safe sensor record` above a ramp or a book on the table; 20 frames or more) that chooses "
                  "between the two readings of the zones' geometry a level sweep may leave (fields of view and mount, "
                  "or each zone's own time scale, which read tilted planes differently): each frame is fitted with "
-                 "both and the reading that fits most of them is kept. Used only where the sweep left both; the "
+                 "both, and the reading that fits three in four of them better is kept, unless the two read them "
+                 "alike or the sweep's albedos speak against the second. Used only where the sweep left both; the "
                  "report's forward.unlabelled says whether they were used and what they chose"),
         opt("--unit-model", choices=UNIT_MODELS, default=None,
             help="with --method diff: how the forward model is fitted. default: the published model's camera "
