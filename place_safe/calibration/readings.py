@@ -68,13 +68,6 @@ READING_MIN_APART = math.radians(0.3)
 READING_MAJORITY = 0.75
 
 
-def _tilt(est) -> float:
-    """The tilt (rad) of an estimate's plane, NaN without one."""
-    if est.plane is None:
-        return math.nan
-    return float(np.arccos(np.clip(abs(float(est.plane.normal[2])), 0.0, 1.0)))
-
-
 def compare_readings(frames: Sequence[Frame], kept: ForwardParams, other: ForwardParams, peak: PeakParams,
                      options=None, progress: Callable[[int], None] | None = None) -> dict:
     """Each tilted frame of ``frames`` fitted by diff with the ``kept`` and the ``other`` reading (both with
@@ -86,7 +79,8 @@ def compare_readings(frames: Sequence[Frame], kept: ForwardParams, other: Forwar
     from place_safe.recovery.differentiable import DifferentiableEstimator
     from place_safe.recovery.peak import PeakEstimator
 
-    tilts = np.array([_tilt(e) for e in PeakEstimator(peak).estimate_many(list(frames))])
+    tilts = np.array([e.plane.theta if e.ok else math.nan for e in PeakEstimator(peak).estimate_many(list(frames))],
+                     dtype=float)
     with np.errstate(invalid="ignore"):
         tilted = [f for f, t in zip(frames, tilts) if t >= READING_MIN_TILT]
     if progress is not None:
@@ -101,7 +95,7 @@ def compare_readings(frames: Sequence[Frame], kept: ForwardParams, other: Forwar
             ra, rb = a.residual, b.residual
             if a.ok and b.ok and ra is not None and rb is not None and ra > 0 and math.isfinite(ra) and math.isfinite(rb):
                 ratios.append(rb / ra)
-                used_tilts.append(_tilt(a))
+                used_tilts.append(a.plane.theta)
                 apart.append(angular_error(a.plane, b.plane))
         if progress is not None:
             progress(len(chunk))
