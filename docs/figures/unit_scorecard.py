@@ -17,7 +17,8 @@ emitter baseline, and unit 33's seed, tails and skew, with their zones' own time
 and 1.3 deg off), ``42`` (unit B's tails, +-1 %, mounted 1.2 deg off), ``43`` (seed 43, +-2 %, mounted 1.2 deg
 off), ``44`` (seed 44, moderate tails, more crosstalk, +-0.8 %, mounted 0.9 deg off) and ``45`` (seed 45, a wide
 glass spread, mounted 0.5 deg off), ``46`` (seed 46, +-1.5 %, mounted 0.9 deg off) and ``47`` (seed 47, unit B's
-tails, +-1 %, not mounted off; 34-47 are not in the default set), and ``synth``
+tails, +-1 %, not mounted off), ``48``-``51`` (new seeds: +-1.2 % alone, mounted 1.1 deg off alone, both,
+neither; 34-51 are not in the default set), and ``synth``
 (the independent generator, ``place-safe synth``, sensor seed 0; ``synth1`` .. ``synth9``: sensor seeds 1-9).
 Everything runs through the command line a user has (``place-safe calibrate``, ``place-safe evaluate --json``); each
 step's output is kept in ``--out`` and reused when rerun (``--fresh``: redo).
@@ -95,6 +96,13 @@ UNITS: dict[str, dict | None] = {
     # on a new seed, and zones' own time alone (the second reading exact) on unit B's tails
     "46": {"seed": 46, "zone_time_scale": 0.015, "mount_tilt": (math.radians(-0.7), math.radians(0.5))},
     "47": {"seed": 47, "tail_weight": (0.05, 0.12), "tail_decay": (2.0, 6.0), "skew_bins": 0.2, "zone_time_scale": 0.01},
+    # four more for the level sweep's own choice (session 59), set before any rule was run on them: zones' own time
+    # alone (the second reading exact), a mount alone (the first exact), both, and neither
+    "48": {"seed": 48, "tail_weight": (0.04, 0.10), "tail_decay": (2.0, 5.0), "skew_bins": 0.15, "zone_time_scale": 0.012},
+    "49": {"seed": 49, "tail_weight": (0.05, 0.12), "tail_decay": (2.0, 6.0), "skew_bins": 0.2,
+           "mount_tilt": (math.radians(0.9), math.radians(-0.6))},
+    "50": {"seed": 50, "baseline": 0.006, "zone_time_scale": 0.015, "mount_tilt": (math.radians(-0.5), math.radians(0.6))},
+    "51": {"seed": 51, "glass_spread": 1.5, "tail_weight": (0.06, 0.15), "tail_decay": (3.0, 8.0)},
 }
 #: The independent generator's units: ``place-safe synth --sensor-seed``.
 SYNTH = {"synth": 0, **{f"synth{k}": k for k in range(1, 10)}}
