@@ -785,8 +785,7 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
         z0 = coarse.x
     coarse_seconds = time.perf_counter() - t_start
     # one surface? (a level sweep of one table): the frames' albedos, free so far, spread little
-    la_start = z0[n_cam:]
-    albedo_cv = float(np.std(np.exp(la_start)) / np.mean(np.exp(la_start)))
+    albedo_cv, _ = albedo_spread(z0[n_cam:], lower[n_cam:], upper[n_cam:])
     one_surface = same_surface if same_surface is not None else albedo_cv <= SAME_SURFACE_CV
     if one_surface:
         tie["sd"] = SAME_SURFACE_SD
@@ -833,6 +832,7 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
         model_h = check.render_plane(n_optical, offsets, torch.exp(la), refs, ambient=amb_t)[..., :width] - check.t["floor"]
     chi2_error = measure_model_error((model_h - obs).numpy(), hists[..., :width])
     albedos = np.exp(la.numpy())
+    albedo_cv_after, albedo_at_bound = albedo_spread(la.numpy(), lower[n_cam:], upper[n_cam:], good)
     fitted_params.albedo = float(np.median(albedos))
     fitted_params.floor = 0.0
     n_res = nf * nf_res  # the data rows (the prior rows follow them)
@@ -856,7 +856,7 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
         "objective_rms_after": math.sqrt(2 * data_cost(sol.fun) / max(n_good, 1)),
         "prior_chi2": 2.0 * prior_cost,
         "one_surface": {"tied": bool(one_surface), "albedo_cv_before": albedo_cv,
-                        "albedo_cv_after": float(np.std(albedos) / np.mean(albedos))},
+                        "albedo_cv_after": albedo_cv_after, "frames_at_albedo_bound": albedo_at_bound},
         "rms_scaled_residual_per_frame": {"median": float(np.median(per_frame)), "max": float(per_frame.max())},
         "converged": bool(sol.converged),
         "why": sol.reason if first is sol else f"first fit: {first.reason}; after excluding bad frames: {sol.reason}",
@@ -1415,6 +1415,19 @@ NOMINAL_GEOMETRY_ALBEDO_CV = 0.005
 #: the time scales, which were adopted, and diff then read its tilted frames at 1.2 deg against peak's 0.34 (NEES 46;
 #: docs/results.md, "The independent generator's other sensors"). Units whose second fit is adopted read 0.8-8 %.
 
+#: The albedo's evidence alone: the nominal-geometry fit is also adopted on a smaller fall of the RMS (at least
+#: :data:`ALBEDO_CLUE_GAIN`) where the level table reads one albedo much more closely with it: the frames' albedo CV at
+#: most 1 / :data:`ALBEDO_CLUE_FACTOR` of the first fit's, which must be at least :data:`ALBEDO_CLUE_MIN_CV` (a fall
+#: within noise is no evidence) and both at most :data:`SAME_SURFACE_CV` (one surface). A zone whose time runs its own
+#: scale, read as a field of view, makes the table's brightness drift with range; the time scales read it flat.
+#: Measured (docs/results.md, "The level sweep's albedo chooses the reading"): units 44 and 47, whose zones keep their
+#: own time, RMS 4.0 / 4.7 % lower with the time scales and the albedo CV 3.7 -> 0.7 % / 7.3 -> 1.1 %; units mounted
+#: off alone (37, 45, 49: the first reading exact) 0.4 % higher, equal, 1.3 % higher, their CV falling at most 1.7
+#: times. Set before the units it was measured on from 48 on (units 48-55).
+ALBEDO_CLUE_GAIN = 0.02
+ALBEDO_CLUE_FACTOR = 3.0
+ALBEDO_CLUE_MIN_CV = 0.01
+
 
 #: A level sweep tells its two readings apart (``report["geometry"]["told_apart"]``, :func:`reconsider_geometry`) where
 #: the second fit is adopted (a clearly better fit, one table still one albedo), or where the first is kept and the
@@ -1441,6 +1454,27 @@ def _albedo_cv(report: dict) -> float:
     return _number((report.get("one_surface") or {}).get("albedo_cv_after"))
 
 
+#: A frame's log albedo within this of its bound (:data:`ALBEDO_RISE` above its start, or the fit's floor) is at the
+#: bound: no count in the frame moved it there (a return deep in saturation, where the histogram no longer depends on
+#: the albedo), so it says nothing about the surface.
+ALBEDO_AT_BOUND = 1e-3
+
+
+def albedo_spread(log_albedo: np.ndarray, lower: np.ndarray, upper: np.ndarray,
+                  used: np.ndarray | None = None) -> tuple[float, int]:
+    """The CV of the albedos (``exp(log_albedo)``, one per frame) the counts determined, and how many frames were left
+    out for sitting at a bound (``lower`` / ``upper``, the fit's bounds on the log albedos, within
+    :data:`ALBEDO_AT_BOUND`). ``used``: the frames the fit kept (default all; the others are left out, uncounted).
+    Without this one saturated frame of a level sweep (unit 50's 4 cm frame at its bound, nine times the others) read as
+    a CV of 104 % where the other 39 frames spread 3 %. NaN with fewer than two frames left."""
+    la = np.asarray(log_albedo, dtype=float)
+    used = np.ones(la.shape, dtype=bool) if used is None else np.asarray(used, dtype=bool)
+    at_bound = used & ((la >= np.asarray(upper) - ALBEDO_AT_BOUND) | (la <= np.asarray(lower) + ALBEDO_AT_BOUND))
+    a = np.exp(la[used & ~at_bound])
+    cv = float(np.std(a) / np.mean(a)) if a.size >= 2 else math.nan
+    return cv, int(at_bound.sum())
+
+
 def nominal_geometry_fit(frames: Sequence[Frame], progress: bool = False) -> tuple[ForwardParams, dict]:
     """The second fit of :func:`reconsider_geometry`: :func:`fit_forward` from the default start with
     :data:`NOMINAL_GEOMETRY_FITTED` (a module-level function: ``calibrate`` may run it in a process alongside the
@@ -1453,27 +1487,29 @@ def reconsider_geometry(frames: Sequence[Frame], params: ForwardParams, report: 
                         peak=None) -> tuple[ForwardParams, dict]:
     """The forward fit to keep after ``params`` (with its ``report``) from :func:`fit_forward` on ``frames``.
 
-    On a level sweep whose fit set a field of view or the mount tilt away from nominal (beyond
-    :data:`SECOND_FIT_FOV` / :data:`SECOND_FIT_MOUNT_TILT`), a second fit runs from the default start with
-    :data:`NOMINAL_GEOMETRY` held nominal and each zone's own time scale fitted (:data:`NOMINAL_GEOMETRY_FITTED`), from
-    every start of the first (its basin may lie elsewhere: unit 32's first fit ended on the measured reference floor,
-    its second on the published one): a level table reads both alike, so the zones' directions cannot choose between
-    them. Two things the sweep does show can: how well each explains the counts, and whether one table
-    reads one albedo. The second fit is adopted (its params and report are returned) when it converged, its RMS scaled
-    residual is at least :data:`NOMINAL_GEOMETRY_GAIN` below the first fit's, and its frames' albedos spread at most
-    :data:`NOMINAL_GEOMETRY_ALBEDO_SPREAD` times as much (or :data:`NOMINAL_GEOMETRY_ALBEDO_CV` more; both must be
-    known) and at most :data:`SAME_SURFACE_CV` (a sweep of one table reads as one surface). Either way the returned
-    report's ``geometry`` section says what was compared (``free``, ``nominal_time_scales``) and which was kept
-    (``adopted``; ``why``), the reading not kept (``other_params``, where that fit converged) and whether the sweep
-    told the two apart (``told_apart``: :data:`TOLD_APART_GAIN`). A first fit beyond the note's limits (:func:`geometry_note`) that is kept also gets the ``note``, printed by ``calibrate``, which names
-    the comparison or the second fit's failure. The first fit's ``report`` gets its ``geometry`` section in place when
-    it is kept. ``second_fit`` False: the note alone (a fit whose geometry is not free to swap, e.g. the staged unit
-    model). Not a level sweep, or a geometry near nominal: ``(params, report)`` unchanged. ``log`` gets a line for the
-    user (None: silent). ``second``: a callable returning the second fit's ``(params, report)`` (e.g. the result of
-    :func:`nominal_geometry_fit` run alongside the first fit); None: :func:`nominal_geometry_fit` here, when needed.
-    ``unlabelled``: tilted frames, ground truth not needed, that choose between readings the sweep left both possible
-    (:mod:`place_safe.calibration.readings`, with the calibrated ``peak`` params to find their tilts); the report's
-    ``geometry.unlabelled`` says what they showed."""
+    On a level sweep whose fit set a field of view or the mount tilt away from nominal (beyond :data:`SECOND_FIT_FOV` /
+    :data:`SECOND_FIT_MOUNT_TILT`), a second fit runs from the default start with :data:`NOMINAL_GEOMETRY` held nominal
+    and each zone's own time scale fitted (:data:`NOMINAL_GEOMETRY_FITTED`), from every start of the first (its basin
+    may lie elsewhere: unit 32's first fit ended on the measured reference floor, its second on the published one): a
+    level table reads both alike, so the zones' directions cannot choose between them. Two things the sweep does show
+    can: how well each explains the counts, and whether one table reads one albedo. The second fit is adopted (its
+    params and report are returned) when it converged, its RMS scaled residual is at least :data:`NOMINAL_GEOMETRY_GAIN`
+    below the first fit's, and its frames' albedos spread at most :data:`NOMINAL_GEOMETRY_ALBEDO_SPREAD` times as much
+    (or :data:`NOMINAL_GEOMETRY_ALBEDO_CV` more; both must be known) and at most :data:`SAME_SURFACE_CV` (a sweep of one
+    table reads as one surface); or, on the albedo's evidence alone, when its RMS is at least :data:`ALBEDO_CLUE_GAIN`
+    lower and the table reads one albedo :data:`ALBEDO_CLUE_FACTOR` times more closely (the albedos the counts
+    determined: :func:`albedo_spread`). Either way the returned report's ``geometry`` section says what was compared
+    (``free``, ``nominal_time_scales``) and which was kept (``adopted``; ``why``), the reading not kept
+    (``other_params``, where that fit converged) and whether the sweep told the two apart (``told_apart``:
+    :data:`TOLD_APART_GAIN`). A first fit beyond the note's limits (:func:`geometry_note`) that is kept also gets the
+    ``note``, printed by ``calibrate``, which names the comparison or the second fit's failure. The first fit's
+    ``report`` gets its ``geometry`` section in place when it is kept. ``second_fit`` False: the note alone (a fit whose
+    geometry is not free to swap, e.g. the staged unit model). Not a level sweep, or a geometry near nominal: ``(params,
+    report)`` unchanged. ``log`` gets a line for the user (None: silent). ``second``: a callable returning the second
+    fit's ``(params, report)`` (e.g. the result of :func:`nominal_geometry_fit` run alongside the first fit); None:
+    :func:`nominal_geometry_fit` here, when needed. ``unlabelled``: tilted frames, ground truth not needed, that choose
+    between readings the sweep left both possible (:mod:`place_safe.calibration.readings`, with the calibrated ``peak``
+    params to find their tilts); the report's ``geometry.unlabelled`` says what they showed."""
     note = geometry_note(params, frames)
     free = {"edge_fov_scale": params.edge_fov_scale, "corner_fov_scale": params.corner_fov_scale,
             "mount_tilt_deg": [math.degrees(float(t)) for t in params.mount_tilt],
@@ -1520,11 +1556,15 @@ def reconsider_geometry(frames: Sequence[Frame], params: ForwardParams, report: 
     compared_albedo = math.isfinite(cv) and math.isfinite(cv_alt)
     one_surface = compared_albedo and cv_alt <= SAME_SURFACE_CV
     one_albedo = one_surface and cv_alt <= max(NOMINAL_GEOMETRY_ALBEDO_SPREAD * cv, cv + NOMINAL_GEOMETRY_ALBEDO_CV)
-    if better_fit and one_albedo:
+    albedo_clue = (converged and math.isfinite(rms_alt) and rms_alt <= (1.0 - ALBEDO_CLUE_GAIN) * rms and one_surface
+                   and ALBEDO_CLUE_MIN_CV <= cv <= SAME_SURFACE_CV and cv_alt * ALBEDO_CLUE_FACTOR <= cv)
+    if (better_fit and one_albedo) or albedo_clue:
+        why = (f"{compared}: a clearly better fit with the geometry nominal and each zone's own time scale, one table "
+               "still reading one albedo" if better_fit and one_albedo else
+               f"{compared}: a better fit with the geometry nominal and each zone's own time scale, one table reading "
+               f"one albedo {cv / max(cv_alt, 1e-12):.1f} times more closely")
         alt_report["geometry"] = {"adopted": "nominal_time_scales", "free": free, "nominal_time_scales": nominal,
-                                  "why": f"{compared}: a clearly better fit with the geometry nominal and each zone's "
-                                         "own time scale, one table still reading one albedo",
-                                  "told_apart": True, "other_params": params.to_dict()}
+                                  "why": why, "told_apart": True, "other_params": params.to_dict()}
         say(f"forward model: adopted the nominal geometry with each zone's own time scale ({compared})")
         return alt, alt_report
     why = (f"not a converged fit {NOMINAL_GEOMETRY_GAIN:.0%} lower" if not better_fit else

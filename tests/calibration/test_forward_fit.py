@@ -644,3 +644,63 @@ def test_each_frame_solves_its_crosstalk_only_where_a_level_sweep_left_it_undete
     assert free_crosstalk_std(ForwardParams(crosstalk=0.0), level) == 0.0
     # a crosstalk the fit found next to none (the real unit, the mismatched simulated units) stays held
     assert free_crosstalk_std(ForwardParams(crosstalk=0.5 * CROSSTALK_FREE_MIN), level) == 0.0
+
+
+def test_the_albedo_spread_counts_only_albedos_the_counts_determined():
+    """``albedo_spread``: a frame whose log albedo sits at a bound (a saturated return: no count moved it) or that the fit
+    left out is not in the CV, and the frames at a bound are counted; under two frames left, NaN."""
+    import place_safe.calibration.forward_fit as ff
+
+    la = np.log([12.0, 12.3, 11.8, 110.0])
+    lower, upper = np.full(4, np.log(12.0) - 8.0), np.log([80.0, 80.0, 80.0, 110.0])
+    cv, n = ff.albedo_spread(la, lower, upper)
+    assert n == 1 and abs(cv - np.std([12.0, 12.3, 11.8]) / np.mean([12.0, 12.3, 11.8])) < 1e-12
+    cv_all, n_all = ff.albedo_spread(la, lower, np.full(4, np.log(200.0)))  # no bound reached: every frame counts
+    assert n_all == 0 and cv_all > 1.0
+    cv, n = ff.albedo_spread(la, lower, upper, used=np.array([True, False, True, True]))
+    assert n == 1 and abs(cv - np.std([12.0, 11.8]) / np.mean([12.0, 11.8])) < 1e-12
+    low = la.copy()
+    low[0] = lower[0]
+    assert ff.albedo_spread(low, lower, upper)[1] == 2
+    assert math.isnan(ff.albedo_spread(la[2:], lower[2:], upper[2:])[0])
+
+
+def test_the_level_sweeps_albedo_alone_chooses_the_time_scales_where_it_reads_one_albedo_much_more_closely(
+        monkeypatch):
+    """:func:`reconsider_geometry` on the albedo's evidence: a second fit at least ALBEDO_CLUE_GAIN lower in RMS whose
+    frames read one albedo at least ALBEDO_CLUE_FACTOR times more closely is adopted (the readings told apart); a fall
+    of the CV less than that, a first CV under ALBEDO_CLUE_MIN_CV (noise), a smaller RMS gain, a first fit of many
+    surfaces, or a fit that did not converge leaves the first reading."""
+    from types import SimpleNamespace
+
+    import place_safe.calibration.forward_fit as ff
+
+    level = [SimpleNamespace(truth=SimpleNamespace(normal=np.array([math.sin(0.002 * k), 0.0, math.cos(0.002 * k)])))
+             for k in range(3)]
+    off = ForwardParams(edge_fov_scale=1.136, corner_fov_scale=1.081, mount_tilt=[0.013, 0.015])
+
+    def second(rms, cv, converged=True):
+        def fit(frames, init=None, progress=True, fitted=None, **kw):
+            return (ForwardParams(zone_bin_scales=[1.01] * 4 + [1.0] + [1.01] * 4),
+                    {"rms_scaled_residual_after": rms, "converged": converged, "solver": {"seconds": 1.0},
+                     "one_surface": {"albedo_cv_after": cv}})
+        return fit
+
+    def choose(rms, cv, first_cv, converged=True):
+        monkeypatch.setattr(ff, "fit_forward", second(rms, cv, converged))
+        first = {"rms_scaled_residual_after": 1.424, "converged": True, "one_surface": {"albedo_cv_after": first_cv}}
+        p, r = ff.reconsider_geometry(level, off, first, progress=False)
+        return r["geometry"]
+
+    g = choose(1.367, 0.007, 0.037)  # unit 44's figures
+    assert g["adopted"] == "nominal_time_scales" and g["told_apart"] and "5.3 times more closely" in g["why"]
+    g = choose(1.424 * (1 - ff.ALBEDO_CLUE_GAIN), 0.037 / ff.ALBEDO_CLUE_FACTOR, 0.037)  # at both bounds
+    assert g["adopted"] == "nominal_time_scales"
+    for rms, cv, first_cv, converged in ((1.367, 0.013, 0.037, True),    # the CV falls less than 3 times
+                                         (1.424 * 0.985, 0.007, 0.037, True),  # the RMS 1.5 % lower
+                                         (1.430, 0.007, 0.037, True),    # higher RMS (a mount alone)
+                                         (1.367, 0.002, 0.009, True),    # the first CV within noise
+                                         (1.367, 0.05, 0.25, True),      # the first reads many surfaces
+                                         (1.367, 0.007, 0.037, False)):  # not converged
+        g = choose(rms, cv, first_cv, converged)
+        assert g["adopted"] == "free" and not g["told_apart"], (rms, cv, first_cv, converged)
