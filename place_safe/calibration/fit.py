@@ -9,9 +9,9 @@ sections it wrote, in order:
 * ``diff``: ``peak`` first when the calibration has none (the diff method starts from calibrated peak), then
   ``forward`` (the forward model's parameters and residual weighting), ``diff`` (a z0 correction) and
   ``uncertainty``. ``unit_model`` chooses the forward model's fit (:data:`~place_safe.calibration.UNIT_MODELS`):
-  ``default`` (:func:`~place_safe.calibration.forward_fit.fit_forward` with its default terms; when a level sweep
-  sets the zones' geometry away from nominal, also with the geometry nominal and each zone's own time scale, kept when
-  it fits clearly better and the table still reads one albedo:
+  ``default`` (:func:`~place_safe.calibration.forward_fit.fit_forward` with its default terms; on a level sweep, also
+  with the geometry nominal and each zone's own time scale, kept when it fits clearly better and the table still reads
+  one albedo, or fits better and reads it much more closely:
   :func:`~place_safe.calibration.forward_fit.reconsider_geometry`; on a level sweep that second fit starts at once
   beside the first when a core is spare, :class:`~place_safe.calibration.alongside.Alongside`) or ``staged`` (the
   learned unit model in three fits, :func:`~place_safe.calibration.forward_fit.fit_forward_staged`); the rest of
@@ -99,8 +99,8 @@ def fit_method(calibration: Calibration, frames: Sequence[Frame], method: str, p
         if unit_model == "staged":  # (its geometry is set by its first stage: a far one gets the note alone)
             params, report = reconsider_geometry(frames, *fit_forward_staged(frames, progress=progress, log=log),
                                                  second_fit=False)
-        else:  # a level sweep's fit may want a second one (the nominal geometry, each zone's own time scale): it
-            # starts beside the first on a spare core, and is stopped if the first fit does not want it
+        else:  # a level sweep's fit gets a second one (the nominal geometry, each zone's own time scale): it starts
+            # beside the first on a spare core
             parallel = level_sweep(frames) and spare_cores() > 0
             with Alongside(nominal_geometry_fit, frames, progress and not parallel, parallel=parallel) as second:
                 params, report = reconsider_geometry(frames, *fit_forward(frames, init=None, progress=progress),

@@ -24,10 +24,11 @@ How it decides (:func:`compare_readings`, then :func:`decide`):
    why.
 
 The frames do not adopt the second reading where the level sweep speaks against it: the first fit reads the table as
-one surface and the second as many albedos (the frames' albedo CV above ``SAME_SURFACE_CV``; where both do, as on unit
-40, the albedos cannot witness). Unit 43's second fit read its table at 110 % against the first's 9 %; adopted there by
-its frames, diff read its tilted planes at 0.53 deg with NEES per dof 3.0 (overconfident), against 0.99 deg and 0.61
-kept.
+one surface and the second as many albedos (the frames' albedo CV above ``SAME_SURFACE_CV``; where both do, the
+albedos cannot witness). The rule was set on unit 43, whose second fit seemed to read its table at 110 % against the
+first's 9 %; that 110 % was one saturated frame at its albedo bound (``forward_fit.albedo_spread`` now leaves such
+frames out), and its sweep now adopts the second reading itself: diff reads its tilted planes at 0.53 deg with NEES per
+dof 3.0 (overconfident), against 0.99 deg and 0.61 with the first (docs/results.md, "The level sweep's albedo").
 
 The second reading holds the mount level: a unit mounted off keeps the mount in the first reading, and where the
 second is adopted its offsets on tilted planes err by the mount (0.67-0.99 mm mean at 5-30 cm and 0-30 deg on the
@@ -38,8 +39,9 @@ Measured (docs/results.md, "Tilted frames without ground truth choose the readin
 sweeps did not tell the readings apart, 20 such frames chose the unit's reading on 40, 41, 44 and 47 (the other
 reading lower on 90-100 % of them), and diff's own plane on their 150 tilted test frames went from 1.4-1.9 deg to
 0.07-0.18 (NEES per dof 0.01-0.08 -> 0.15-0.65); on the independent generator's seed 5, whose first reading is the
-better one, they chose neither (44 %); on unit 43 the second, which its sweep's albedos keep out (above); on units 37 and
-45, mounted off alone, the readings read them alike.
+better one, they chose neither (44 %); on unit 43 the second (above); on units 37 and 45, mounted off alone, the
+readings read them alike. Since the level sweep's own rule also weighs the albedo (``forward_fit.ALBEDO_CLUE_FACTOR``),
+the sweeps of 44 and 47 adopt their reading without the frames.
 """
 from __future__ import annotations
 

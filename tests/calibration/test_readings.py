@@ -154,8 +154,9 @@ def test_the_report_says_whether_the_frames_were_used_and_the_note_what_they_sho
 
 def test_the_frames_adopt_the_second_reading_only_where_the_sweep_reads_one_surface_with_it(monkeypatch):
     """A second fit that reads the level table as many albedos (CV above SAME_SURFACE_CV) where the first reads one
-    surface is not adopted, whatever the frames' residuals say (adopted there, simulated unit 43 was overconfident); the
-    frames may still keep the first; where both read many albedos, the albedos do not witness and the frames choose."""
+    surface is not adopted, whatever the frames' residuals say; the frames may still keep the first; where both read
+    many albedos, the albedos do not witness and the frames choose. (The figures are unit 43's before the albedo spread
+    left out frames at their bound: its second fit's 110 % was one saturated frame.)"""
     level = [SimpleNamespace(truth=SimpleNamespace(normal=np.array([0.0, 0.0, 1.0]))) for _ in range(3)]
     first = {"rms_scaled_residual_after": 1.99, "converged": True, "one_surface": {"albedo_cv_after": 0.09}}
     second = {"rms_scaled_residual_after": 1.49, "converged": True, "solver": {"seconds": 1.0},
@@ -169,7 +170,7 @@ def test_the_frames_adopt_the_second_reading_only_where_the_sweep_reads_one_surf
     p, r = ff.reconsider_geometry(level, FREE, dict(first), progress=False, unlabelled=tilted(FREE, seed=4),
                                   peak=PeakParams.default_peak())
     assert p is FREE and r["geometry"]["told_apart"] is True and r["geometry"]["unlabelled"]["chose"] == "kept"
-    many = dict(first, one_surface={"albedo_cv_after": 1.04})  # both read many albedos (simulated unit 40)
+    many = dict(first, one_surface={"albedo_cv_after": 1.04})  # both read many albedos
     p, r = ff.reconsider_geometry(level, FREE, many, progress=False, unlabelled=tilted(TIME_SCALES),
                                   peak=PeakParams.default_peak())
     assert p is TIME_SCALES and r["geometry"]["told_apart"] is True and r["geometry"]["unlabelled"]["chose"] == "other"
