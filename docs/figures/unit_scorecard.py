@@ -17,8 +17,8 @@ emitter baseline, and unit 33's seed, tails and skew, with their zones' own time
 and 1.3 deg off), ``42`` (unit B's tails, +-1 %, mounted 1.2 deg off), ``43`` (seed 43, +-2 %, mounted 1.2 deg
 off), ``44`` (seed 44, moderate tails, more crosstalk, +-0.8 %, mounted 0.9 deg off) and ``45`` (seed 45, a wide
 glass spread, mounted 0.5 deg off), ``46`` (seed 46, +-1.5 %, mounted 0.9 deg off) and ``47`` (seed 47, unit B's
-tails, +-1 %, not mounted off), ``48``-``51`` and ``52``-``55`` (new seeds: time scales alone, mounted
-off alone, both, neither; 34-55 are not in the default set), and ``synth``
+tails, +-1 %, not mounted off), ``48``-``51``, ``52``-``55`` and ``56``-``59`` (new seeds: time scales alone, mounted
+off alone, both, neither; 34-59 are not in the default set), and ``synth``
 (the independent generator, ``place-safe synth``, sensor seed 0; ``synth1`` .. ``synth9``: sensor seeds 1-9).
 Everything runs through the command line a user has (``place-safe calibrate``, ``place-safe evaluate --json``); each
 step's output is kept in ``--out`` and reused when rerun (``--fresh``: redo).
@@ -109,6 +109,12 @@ UNITS: dict[str, dict | None] = {
     "54": {"seed": 54, "tail_weight": (0.03, 0.08), "tail_decay": (1.5, 4.0), "zone_time_scale": 0.012,
            "mount_tilt": (math.radians(0.6), math.radians(0.4))},
     "55": {"seed": 55, "crosstalk_grid_max": 6e-5, "ambient_slope": -0.1},
+    # and four more, set before the albedo guard was re-set on the honest spreads (session 59)
+    "56": {"seed": 56, "zone_time_scale": 0.018},
+    "57": {"seed": 57, "tail_weight": (0.05, 0.12), "tail_decay": (2.0, 6.0), "skew_bins": 0.2, "zone_time_scale": 0.015,
+           "mount_tilt": (math.radians(0.4), math.radians(-0.8))},
+    "58": {"seed": 58, "baseline": 0.004, "zone_time_scale": 0.02},
+    "59": {"seed": 59, "tail_weight": (0.03, 0.08), "tail_decay": (1.5, 4.0), "mount_tilt": (math.radians(1.0), math.radians(0.3))},
 }
 #: The independent generator's units: ``place-safe synth --sensor-seed``.
 SYNTH = {"synth": 0, **{f"synth{k}": k for k in range(1, 10)}}
