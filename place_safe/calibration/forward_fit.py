@@ -1418,8 +1418,8 @@ NOMINAL_GEOMETRY_ALBEDO_CV = 0.005
 #: scale, read as a field of view, makes the table's brightness drift with range; the time scales read it flat.
 #: Measured (docs/results.md, "The level sweep's albedo chooses the reading"): units 44 and 47, whose zones keep their
 #: own time, RMS 4.0 / 4.7 % lower with the time scales and the albedo CV 3.7 -> 0.7 % / 7.3 -> 1.1 %; units mounted
-#: off alone (37, 45, 49: the first reading exact) 0.4 % higher, equal, 1.3 % higher, their CV falling at most 1.7
-#: times. Set before the units it was measured on from 48 on (units 48-55).
+#: off alone (37, 45, 49, 53, 59: the first reading exact) 0-1.3 % higher, their CV falling at most 1.7 times. Set
+#: before units 48-59 were measured.
 ALBEDO_CLUE_GAIN = 0.02
 ALBEDO_CLUE_FACTOR = 3.0
 ALBEDO_CLUE_MIN_CV = 0.01
