@@ -64,7 +64,7 @@ def unlabelled_summary(report: dict, n: int) -> dict:
     why = ("the level sweep told its two readings apart" if geometry.get("told_apart") else
            f"the second reading's fit failed ({nominal['failed']})" if "failed" in nominal else
            "the second reading's fit did not converge" if nominal else
-           "the sweep left one reading of the zones' geometry (near nominal, or not a level sweep)")
+           "the frames are not a level sweep: they left one reading of the zones' geometry")
     return {"frames": n, "used": False, "why": why}
 
 

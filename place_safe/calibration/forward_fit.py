@@ -238,7 +238,8 @@ COARSE_RELATIVE_DECREMENT = 1e-3
 #: step under one standard deviation.
 COARSE_DECREMENT = 1.0
 #: With ``fit_forward(same_surface=None)`` the frames are taken to be of one surface when their albedos, fitted freely
-#: (after the coarse stage, or at the start), spread by at most this coefficient of variation: a level sweep of
+#: (after the coarse stage, or at the start; frames at an albedo bound left out: :func:`albedo_spread`), spread by at
+#: most this coefficient of variation: a level sweep of
 #: one table (the real sweep: 15 % with the coarse stage's free albedos, 4-40 cm), not frames of surfaces drawn at
 #: random (the synthetic and independent sets: uniform 0.5-1.5x, 29 %).
 SAME_SURFACE_CV = 0.2
@@ -1445,6 +1446,12 @@ def _number(x) -> float:
         return math.nan
 
 
+def _frames_left_out(report: dict) -> int:
+    """Frames a forward fit's ``report`` left out of its albedo spread: excluded as bad, or at an albedo bound."""
+    return int(report.get("frames_excluded_as_bad") or 0) + int((report.get("one_surface") or {})
+                                                                  .get("frames_at_albedo_bound") or 0)
+
+
 def _albedo_cv(report: dict) -> float:
     """The per-frame albedo CV a forward fit's ``report`` gives (NaN: none)."""
     return _number((report.get("one_surface") or {}).get("albedo_cv_after"))
@@ -1454,6 +1461,9 @@ def _albedo_cv(report: dict) -> float:
 #: bound: no count in the frame moved it there (a return deep in saturation, where the histogram no longer depends on
 #: the albedo), so it says nothing about the surface.
 ALBEDO_AT_BOUND = 1e-3
+#: More than this share of the frames at a bound and the spread is not known (NaN): a bound reached that often says
+#: the fit, not a saturated frame, is pushing the albedos there (the units measured had at most one frame of 40 there).
+ALBEDO_AT_BOUND_SHARE = 0.25
 
 
 def albedo_spread(log_albedo: np.ndarray, lower: np.ndarray, upper: np.ndarray,
@@ -1462,13 +1472,17 @@ def albedo_spread(log_albedo: np.ndarray, lower: np.ndarray, upper: np.ndarray,
     out for sitting at a bound (``lower`` / ``upper``, the fit's bounds on the log albedos, within
     :data:`ALBEDO_AT_BOUND`). ``used``: the frames the fit kept (default all; the others are left out, uncounted).
     Without this one saturated frame of a level sweep (unit 50's 4 cm frame at its bound, nine times the others) read as
-    a CV of 104 % where the other 39 frames spread 3 %. NaN with fewer than two frames left."""
+    a CV of 104 % where the other 39 frames spread 3 %. NaN with fewer than two frames left, or more than
+    :data:`ALBEDO_AT_BOUND_SHARE` of the frames used at a bound."""
     la = np.asarray(log_albedo, dtype=float)
     used = np.ones(la.shape, dtype=bool) if used is None else np.asarray(used, dtype=bool)
+    if used.shape != la.shape:
+        raise ValueError(f"albedo_spread: {used.shape} frames used for {la.shape} albedos")
     at_bound = used & ((la >= np.asarray(upper) - ALBEDO_AT_BOUND) | (la <= np.asarray(lower) + ALBEDO_AT_BOUND))
     a = np.exp(la[used & ~at_bound])
-    cv = float(np.std(a) / np.mean(a)) if a.size >= 2 else math.nan
-    return cv, int(at_bound.sum())
+    n_bound = int(at_bound.sum())
+    known = a.size >= 2 and n_bound <= ALBEDO_AT_BOUND_SHARE * int(used.sum())
+    return (float(np.std(a) / np.mean(a)) if known else math.nan), n_bound
 
 
 def nominal_geometry_fit(frames: Sequence[Frame], progress: bool = False) -> tuple[ForwardParams, dict]:
@@ -1510,7 +1524,8 @@ def reconsider_geometry(frames: Sequence[Frame], params: ForwardParams, report: 
     free = {"edge_fov_scale": params.edge_fov_scale, "corner_fov_scale": params.corner_fov_scale,
             "mount_tilt_deg": [math.degrees(float(t)) for t in params.mount_tilt],
             "rms_scaled_residual": report.get("rms_scaled_residual_after"), "converged": report.get("converged"),
-            "albedo_cv": (report.get("one_surface") or {}).get("albedo_cv_after")}
+            "albedo_cv": (report.get("one_surface") or {}).get("albedo_cv_after"),
+            "frames_left_out": _frames_left_out(report)}
     if not second_fit:
         if note is not None:
             report["geometry"] = {"note": note, "free": free, "adopted": "free"}
@@ -1544,8 +1559,8 @@ def reconsider_geometry(frames: Sequence[Frame], params: ForwardParams, report: 
     cv, cv_alt = _albedo_cv(report), _albedo_cv(alt_report)
     converged = bool(alt_report.get("converged"))
     nominal = {"rms_scaled_residual": rms_alt, "converged": converged, "albedo_cv": cv_alt,
-               "zone_bin_scales": [float(s) for s in alt.zone_bin_scales],
-               "seconds": (alt_report.get("solver") or {}).get("seconds")}
+               "frames_left_out": _frames_left_out(alt_report),
+               "zone_bin_scales": [float(s) for s in alt.zone_bin_scales], "seconds": (alt_report.get("solver") or {}).get("seconds")}
     compared = (f"RMS {rms:.3f} -> {rms_alt:.3f}{'' if converged else ' (not converged)'}, the frames' albedo CV "
                 f"{100 * cv:.1f} -> {100 * cv_alt:.1f} %")
     better_fit = converged and math.isfinite(rms_alt) and rms_alt <= (1.0 - NOMINAL_GEOMETRY_GAIN) * rms
@@ -1553,12 +1568,14 @@ def reconsider_geometry(frames: Sequence[Frame], params: ForwardParams, report: 
     one_surface = compared_albedo and cv_alt <= SAME_SURFACE_CV
     one_albedo = one_surface and cv_alt <= max(NOMINAL_GEOMETRY_ALBEDO_SPREAD * cv, cv + NOMINAL_GEOMETRY_ALBEDO_CV)
     albedo_clue = (converged and math.isfinite(rms_alt) and rms_alt <= (1.0 - ALBEDO_CLUE_GAIN) * rms and one_surface
-                   and ALBEDO_CLUE_MIN_CV <= cv <= SAME_SURFACE_CV and cv_alt * ALBEDO_CLUE_FACTOR <= cv)
+                   and ALBEDO_CLUE_MIN_CV <= cv <= SAME_SURFACE_CV and cv_alt * ALBEDO_CLUE_FACTOR <= cv
+                   # (on as many frames: a spread made small by leaving frames out is no evidence)
+                   and nominal["frames_left_out"] <= free["frames_left_out"])
     if (better_fit and one_albedo) or albedo_clue:
         why = (f"{compared}: a clearly better fit with the geometry nominal and each zone's own time scale, one table "
                "still reading one albedo" if better_fit and one_albedo else
                f"{compared}: a better fit with the geometry nominal and each zone's own time scale, one table reading "
-               f"one albedo {cv / max(cv_alt, 1e-12):.1f} times more closely")
+               f"one albedo {min(cv / max(cv_alt, 1e-12), 100.0):.1f} times more closely")
         alt_report["geometry"] = {"adopted": "nominal_time_scales", "free": free, "nominal_time_scales": nominal,
                                   "why": why, "told_apart": True, "other_params": params.to_dict()}
         say(f"forward model: adopted the nominal geometry with each zone's own time scale ({compared})")

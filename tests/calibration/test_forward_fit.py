@@ -665,11 +665,20 @@ def test_the_albedo_spread_counts_only_albedos_the_counts_determined():
     cv_all, n_all = ff.albedo_spread(la, lower, np.full(4, np.log(200.0)))  # no bound reached: every frame counts
     assert n_all == 0 and cv_all > 1.0
     cv, n = ff.albedo_spread(la, lower, upper, used=np.array([True, False, True, True]))
-    assert n == 1 and abs(cv - np.std([12.0, 11.8]) / np.mean([12.0, 11.8])) < 1e-12
+    assert n == 1 and math.isnan(cv)  # one of the three used at its bound: more than a quarter
     low = la.copy()
     low[0] = lower[0]
     assert ff.albedo_spread(low, lower, upper)[1] == 2
     assert math.isnan(ff.albedo_spread(la[2:], lower[2:], upper[2:])[0])
+    # a frame the fit left out is not counted at its bound either
+    assert ff.albedo_spread(la, lower, upper, used=np.array([True, True, True, False])) == (
+        pytest.approx(np.std([12.0, 12.3, 11.8]) / np.mean([12.0, 12.3, 11.8])), 0)
+    # more than a quarter of the frames at a bound: the fit, not a saturated frame, put them there; the spread is unknown
+    many = np.log([12.0, 12.3, 11.8, 12.1, 12.2, 110.0, 110.0])
+    cv, n = ff.albedo_spread(many, np.full(7, -10.0), np.log([80.0] * 5 + [110.0] * 2))
+    assert n == 2 and math.isnan(cv)
+    with pytest.raises(ValueError, match="frames used"):
+        ff.albedo_spread(la, lower, upper, used=np.array([True]))
 
 
 def test_the_level_sweeps_albedo_alone_chooses_the_time_scales_where_it_reads_one_albedo_much_more_closely(
@@ -686,16 +695,17 @@ def test_the_level_sweeps_albedo_alone_chooses_the_time_scales_where_it_reads_on
              for k in range(3)]
     off = ForwardParams(edge_fov_scale=1.136, corner_fov_scale=1.081, mount_tilt=[0.013, 0.015])
 
-    def second(rms, cv, converged=True):
+    def second(rms, cv, converged=True, excluded=0):
         def fit(frames, init=None, progress=True, fitted=None, **kw):
             return (ForwardParams(zone_bin_scales=[1.01] * 4 + [1.0] + [1.01] * 4),
                     {"rms_scaled_residual_after": rms, "converged": converged, "solver": {"seconds": 1.0},
-                     "one_surface": {"albedo_cv_after": cv}})
+                     "one_surface": {"albedo_cv_after": cv}, "frames_excluded_as_bad": excluded})
         return fit
 
-    def choose(rms, cv, first_cv, converged=True):
-        monkeypatch.setattr(ff, "fit_forward", second(rms, cv, converged))
-        first = {"rms_scaled_residual_after": 1.424, "converged": True, "one_surface": {"albedo_cv_after": first_cv}}
+    def choose(rms, cv, first_cv, converged=True, left_out=(0, 0), first_rms=1.424):
+        monkeypatch.setattr(ff, "fit_forward", second(rms, cv, converged, left_out[1]))
+        first = {"rms_scaled_residual_after": first_rms, "converged": True,
+                 "one_surface": {"albedo_cv_after": first_cv, "frames_at_albedo_bound": left_out[0]}}
         p, r = ff.reconsider_geometry(level, off, first, progress=False)
         return r["geometry"]
 
@@ -711,3 +721,12 @@ def test_the_level_sweeps_albedo_alone_chooses_the_time_scales_where_it_reads_on
                                          (1.367, 0.007, 0.037, False)):  # not converged
         g = choose(rms, cv, first_cv, converged)
         assert g["adopted"] == "free" and not g["told_apart"], (rms, cv, first_cv, converged)
+    # a spread made small by leaving frames out is no evidence; on as many frames left out as the first's, it is
+    g = choose(1.367, 0.007, 0.037, left_out=(0, 1))
+    assert g["adopted"] == "free" and g["nominal_time_scales"]["frames_left_out"] == 1
+    assert choose(1.367, 0.007, 0.037, left_out=(1, 1))["adopted"] == "nominal_time_scales"
+    # the clearly better fit whose albedos spread more, within the guard: unit 34's figures (its zones keep their own
+    # time; kept at 1.52 deg with the guard at 1.5 times, 0.13 adopted)
+    g = choose(1.372, 0.082, 0.030, first_rms=1.693)
+    assert g["adopted"] == "nominal_time_scales" and "clearly better" in g["why"]
+    assert choose(1.372, 0.14, 0.030, first_rms=1.693)["adopted"] == "free"  # (the real halves: 4.7 times, kept)
