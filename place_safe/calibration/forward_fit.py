@@ -1417,10 +1417,10 @@ NOMINAL_GEOMETRY_ALBEDO_CV = 0.005
 #: most 1 / :data:`ALBEDO_CLUE_FACTOR` of the first fit's, which must be at least :data:`ALBEDO_CLUE_MIN_CV` (a fall
 #: within noise is no evidence) and both at most :data:`SAME_SURFACE_CV` (one surface). A zone whose time runs its own
 #: scale, read as a field of view, makes the table's brightness drift with range; the time scales read it flat.
-#: Measured (docs/results.md, "The level sweep's albedo chooses the reading"): units 44 and 47, whose zones keep their
-#: own time, RMS 4.0 / 4.7 % lower with the time scales and the albedo CV 3.7 -> 0.7 % / 7.3 -> 1.1 %; units mounted
-#: off alone (37, 45, 49, 53, 59: the first reading exact) 0-1.3 % higher, their CV falling at most 1.7 times. Set
-#: before units 48-59 were measured.
+#: Measured (docs/results.md, "The level sweep's albedo, counted on the frames that determine it"): units 44 and 47,
+#: whose zones keep their own time, RMS 4.0 / 4.7 % lower with the time scales and the albedo CV 3.7 -> 0.7 % / 7.3 ->
+#: 1.1 %; units mounted off alone (37, 45, 49, 53, 59: the first reading exact) 0-1.3 % higher, their CV falling at
+#: most 1.7 times. Set before units 48-59 were measured.
 ALBEDO_CLUE_GAIN = 0.02
 ALBEDO_CLUE_FACTOR = 3.0
 ALBEDO_CLUE_MIN_CV = 0.01
@@ -1560,7 +1560,8 @@ def reconsider_geometry(frames: Sequence[Frame], params: ForwardParams, report: 
     converged = bool(alt_report.get("converged"))
     nominal = {"rms_scaled_residual": rms_alt, "converged": converged, "albedo_cv": cv_alt,
                "frames_left_out": _frames_left_out(alt_report),
-               "zone_bin_scales": [float(s) for s in alt.zone_bin_scales], "seconds": (alt_report.get("solver") or {}).get("seconds")}
+               "zone_bin_scales": [float(s) for s in alt.zone_bin_scales],
+               "seconds": (alt_report.get("solver") or {}).get("seconds")}
     compared = (f"RMS {rms:.3f} -> {rms_alt:.3f}{'' if converged else ' (not converged)'}, the frames' albedo CV "
                 f"{100 * cv:.1f} -> {100 * cv_alt:.1f} %")
     better_fit = converged and math.isfinite(rms_alt) and rms_alt <= (1.0 - NOMINAL_GEOMETRY_GAIN) * rms

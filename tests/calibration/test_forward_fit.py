@@ -673,7 +673,7 @@ def test_the_albedo_spread_counts_only_albedos_the_counts_determined():
     # a frame the fit left out is not counted at its bound either
     assert ff.albedo_spread(la, lower, upper, used=np.array([True, True, True, False])) == (
         pytest.approx(np.std([12.0, 12.3, 11.8]) / np.mean([12.0, 12.3, 11.8])), 0)
-    # more than a quarter of the frames at a bound: the fit, not a saturated frame, put them there; the spread is unknown
+    # more than a quarter of the frames at a bound: the fit, not a saturated frame, put them there; spread unknown
     many = np.log([12.0, 12.3, 11.8, 12.1, 12.2, 110.0, 110.0])
     cv, n = ff.albedo_spread(many, np.full(7, -10.0), np.log([80.0] * 5 + [110.0] * 2))
     assert n == 2 and math.isnan(cv)
