@@ -98,23 +98,27 @@ UNITS: dict[str, dict | None] = {
     "47": {"seed": 47, "tail_weight": (0.05, 0.12), "tail_decay": (2.0, 6.0), "skew_bins": 0.2, "zone_time_scale": 0.01},
     # four more for the level sweep's own choice (session 59), set before any rule was run on them: zones' own time
     # alone (the second reading exact), a mount alone (the first exact), both, and neither
-    "48": {"seed": 48, "tail_weight": (0.04, 0.10), "tail_decay": (2.0, 5.0), "skew_bins": 0.15, "zone_time_scale": 0.012},
+    "48": {"seed": 48, "tail_weight": (0.04, 0.10), "tail_decay": (2.0, 5.0), "skew_bins": 0.15,
+           "zone_time_scale": 0.012},
     "49": {"seed": 49, "tail_weight": (0.05, 0.12), "tail_decay": (2.0, 6.0), "skew_bins": 0.2,
            "mount_tilt": (math.radians(0.9), math.radians(-0.6))},
-    "50": {"seed": 50, "baseline": 0.006, "zone_time_scale": 0.015, "mount_tilt": (math.radians(-0.5), math.radians(0.6))},
+    "50": {"seed": 50, "baseline": 0.006, "zone_time_scale": 0.015,
+           "mount_tilt": (math.radians(-0.5), math.radians(0.6))},
     "51": {"seed": 51, "glass_spread": 1.5, "tail_weight": (0.06, 0.15), "tail_decay": (3.0, 8.0)},
     # and four more, set before the albedo spread left out frames whose albedo no count determines (session 59)
-    "52": {"seed": 52, "tail_weight": (0.05, 0.12), "tail_decay": (2.0, 6.0), "skew_bins": 0.2, "zone_time_scale": 0.01},
+    "52": {"seed": 52, "tail_weight": (0.05, 0.12), "tail_decay": (2.0, 6.0), "skew_bins": 0.2,
+           "zone_time_scale": 0.01},
     "53": {"seed": 53, "baseline": 0.004, "mount_tilt": (math.radians(-0.7), math.radians(-0.7))},
     "54": {"seed": 54, "tail_weight": (0.03, 0.08), "tail_decay": (1.5, 4.0), "zone_time_scale": 0.012,
            "mount_tilt": (math.radians(0.6), math.radians(0.4))},
     "55": {"seed": 55, "crosstalk_grid_max": 6e-5, "ambient_slope": -0.1},
     # and four more, set before the albedo guard was re-set on the honest spreads (session 59)
     "56": {"seed": 56, "zone_time_scale": 0.018},
-    "57": {"seed": 57, "tail_weight": (0.05, 0.12), "tail_decay": (2.0, 6.0), "skew_bins": 0.2, "zone_time_scale": 0.015,
-           "mount_tilt": (math.radians(0.4), math.radians(-0.8))},
+    "57": {"seed": 57, "tail_weight": (0.05, 0.12), "tail_decay": (2.0, 6.0), "skew_bins": 0.2,
+           "zone_time_scale": 0.015, "mount_tilt": (math.radians(0.4), math.radians(-0.8))},
     "58": {"seed": 58, "baseline": 0.004, "zone_time_scale": 0.02},
-    "59": {"seed": 59, "tail_weight": (0.03, 0.08), "tail_decay": (1.5, 4.0), "mount_tilt": (math.radians(1.0), math.radians(0.3))},
+    "59": {"seed": 59, "tail_weight": (0.03, 0.08), "tail_decay": (1.5, 4.0),
+           "mount_tilt": (math.radians(1.0), math.radians(0.3))},
 }
 #: The independent generator's units: ``place-safe synth --sensor-seed``.
 SYNTH = {"synth": 0, **{f"synth{k}": k for k in range(1, 10)}}

@@ -1564,11 +1564,24 @@ def reconsider_geometry(frames: Sequence[Frame], params: ForwardParams, report: 
                "seconds": (alt_report.get("solver") or {}).get("seconds")}
     compared = (f"RMS {rms:.3f} -> {rms_alt:.3f}{'' if converged else ' (not converged)'}, the frames' albedo CV "
                 f"{100 * cv:.1f} -> {100 * cv_alt:.1f} %")
-    better_fit = converged and math.isfinite(rms_alt) and rms_alt <= (1.0 - NOMINAL_GEOMETRY_GAIN) * rms
+
+    def adopt(why: str, shown: str, **extra) -> tuple[ForwardParams, dict]:
+        """The second fit, its report saying ``why`` (and ``extra``), the first fit's params kept as the other reading;
+        ``shown`` is what the user's line says."""
+        alt_report["geometry"] = {"adopted": "nominal_time_scales", "free": free, "nominal_time_scales": nominal,
+                                  "why": why, "told_apart": True, "other_params": params.to_dict(), **extra}
+        say(f"forward model: adopted the nominal geometry with each zone's own time scale ({shown})")
+        return alt, alt_report
+
+    def fell_by(gain: float) -> bool:
+        """Whether the second fit converged with an RMS scaled residual at least ``gain`` (a share) below the first's."""
+        return converged and math.isfinite(rms_alt) and rms_alt <= (1.0 - gain) * rms
+
+    better_fit = fell_by(NOMINAL_GEOMETRY_GAIN)
     compared_albedo = math.isfinite(cv) and math.isfinite(cv_alt)
     one_surface = compared_albedo and cv_alt <= SAME_SURFACE_CV
     one_albedo = one_surface and cv_alt <= max(NOMINAL_GEOMETRY_ALBEDO_SPREAD * cv, cv + NOMINAL_GEOMETRY_ALBEDO_CV)
-    albedo_clue = (converged and math.isfinite(rms_alt) and rms_alt <= (1.0 - ALBEDO_CLUE_GAIN) * rms and one_surface
+    albedo_clue = (fell_by(ALBEDO_CLUE_GAIN) and one_surface
                    and ALBEDO_CLUE_MIN_CV <= cv <= SAME_SURFACE_CV and cv_alt * ALBEDO_CLUE_FACTOR <= cv
                    # (on as many frames: a spread made small by leaving frames out is no evidence)
                    and nominal["frames_left_out"] <= free["frames_left_out"])
@@ -1577,10 +1590,7 @@ def reconsider_geometry(frames: Sequence[Frame], params: ForwardParams, report: 
                "still reading one albedo" if better_fit and one_albedo else
                f"{compared}: a better fit with the geometry nominal and each zone's own time scale, one table reading "
                f"one albedo {min(cv / max(cv_alt, 1e-12), 100.0):.1f} times more closely")
-        alt_report["geometry"] = {"adopted": "nominal_time_scales", "free": free, "nominal_time_scales": nominal,
-                                  "why": why, "told_apart": True, "other_params": params.to_dict()}
-        say(f"forward model: adopted the nominal geometry with each zone's own time scale ({compared})")
-        return alt, alt_report
+        return adopt(why, compared)
     why = (f"not a converged fit {NOMINAL_GEOMETRY_GAIN:.0%} lower" if not better_fit else
            "the frames' albedos could not be compared" if not compared_albedo else
            f"the frames do not read as one surface (albedo CV above {SAME_SURFACE_CV:.0%}): their albedos cannot tell "
@@ -1610,12 +1620,8 @@ def reconsider_geometry(frames: Sequence[Frame], params: ForwardParams, report: 
                                "not adopted")
     seen = {**comparison, "chose": choice or "neither", "why": shown}
     if choice == "other":
-        alt_report["geometry"] = {"adopted": "nominal_time_scales", "free": free, "nominal_time_scales": nominal,
-                                  "why": f"{compared}; {why}; the tilted frames without ground truth chose each zone's "
-                                         f"own time scale with the geometry nominal: {shown}",
-                                  "told_apart": True, "other_params": params.to_dict(), "unlabelled": seen}
-        say(f"forward model: adopted the nominal geometry with each zone's own time scale ({shown})")
-        return alt, alt_report
+        return adopt(f"{compared}; {why}; the tilted frames without ground truth chose each zone's own time scale with "
+                     f"the geometry nominal: {shown}", shown, unlabelled=seen)
     params, report = keep(nominal, f"{compared}; {why}" + (
         f"; the tilted frames without ground truth chose it: {shown}" if choice == "kept" else ""), alt,
         choice == "kept")

@@ -1074,7 +1074,8 @@ FALLBACK_MIN_FRAMES = 10
 def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correction=None,
                          peak_uncertainty: Uncertainty | None = None, options=None,
                          model_error: float | None = None, crosstalk: float | None = None,
-                         other_reading=None, mount_left: float | None = None) -> tuple[Uncertainty, dict]:
+                         other_reading=None, mount_left: float | None = None,
+                         readings_tail: str = "") -> tuple[Uncertainty, dict]:
     """The diff method's floor and fallback limits (chi-square, consistency, preference) from frames with ground
     truth, for the solver ``options`` (:class:`~place_safe.recovery.differentiable.SolverOptions`; default: the
     solver's defaults): they depend on the bins the solver fits. The limits are chosen on held-out frames
@@ -1084,7 +1085,8 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
     stated tilt term of level frames (:func:`diff_tilt_term`), with ``crosstalk`` (the forward fit's, where a level
     sweep left it undetermined; None: nothing added), ``other_reading`` (:func:`other_reading`: where the sweep did not
     tell its two readings apart, their :func:`reading_disagreement` on ``frames``, unless enough tilted frames size the
-    term; None: nothing added) and ``mount_left`` (:func:`mount_left`; None: nothing added). Frames closer than
+    term; None: nothing added; ``readings_tail`` ends the note that says so: :func:`readings_note_tail`) and
+    ``mount_left`` (:func:`mount_left`; None: nothing added). Frames closer than
     ``NEAR_FALLBACK_RANGE`` take no
     part, nor do those beyond :data:`FALLBACK_MAX_RANGE` (reported as ``frames_beyond_range``) while at least
     :data:`FALLBACK_MIN_FRAMES` are left. With :data:`BLEND` the section blends (``blend`` true, ``prefer_ratio``
@@ -1194,7 +1196,7 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
         rep["note"] = TILT_TERM_NOTE.format(n=n_few, need=TILT_TERM_MIN_FRAMES)
         if _share(_magnitude((disagreement or {}).get("slope_scale"))) is not None:
             rep["note"] += READINGS_NOTE.format(slope=abs(disagreement["slope_scale"]),
-                                                angle=disagreement.get("angle_deg", math.nan))
+                                                angle=disagreement.get("angle_deg", math.nan)) + readings_tail
     use_diff = _keeps_diff(chi2, consistent, ratio, limit, prefer)
     sel = np.where(use_diff[:, None], e_blend if blend else e_diff, e_peak)
 
@@ -1260,10 +1262,9 @@ def update_calibration(cal, frames: Sequence[Frame], method: str) -> dict:
                                                    Uncertainty.from_dict(section["peak"]), cal.diff_options(),
                                                    model_error=measured,
                                                    crosstalk=forward.crosstalk if traded else None,
-                                                   other_reading=other_reading(cal), mount_left=left)
+                                                   other_reading=other_reading(cal), mount_left=left,
+                                                   readings_tail=readings_note_tail(cal))
         section["diff"] = unc.to_dict()
-        if "also left two readings" in report["diff"].get("note", ""):
-            report["diff"]["note"] += readings_note_tail(cal)
     cal.sections["uncertainty"] = section
     return report
 

@@ -54,6 +54,12 @@ def not_a_file(path: str | Path) -> str | None:
     return input_file_problem(path, None)
 
 
+def require_frame_file(path: str | Path) -> None:
+    """A one-line :class:`FrameFileError` where ``path`` cannot be read as a frame file (:func:`not_a_file`)."""
+    if (why := not_a_file(path)) is not None:
+        raise FrameFileError(f"frame file {path} {why}")
+
+
 def load_calibration(path: str | None):
 
     if path is None:
@@ -67,8 +73,7 @@ def load_any_frames(path: str) -> tuple[list, str]:
     """The readable frames of ``path``, with or without ground truth, and a note on those skipped (a frame that does not
     read, e.g. ``"2 unreadable (the first: ...)"``; '' for none); a one-line error where the file is not a frame file,
     or holds no readable frame."""
-    if (why := not_a_file(path)) is not None:
-        raise FrameFileError(f"frame file {path} {why}")
+    require_frame_file(path)
     frames: list = []
     bad: list = []
     for f in iter_frames(path):
@@ -91,8 +96,7 @@ def load_truth_frames(paths: Sequence[str], min_distance: float | None = None,
     frames: list = []
     skipped: Counter = Counter()
     for p in paths:
-        if (why := not_a_file(p)) is not None:
-            raise FrameFileError(f"frame file {p} {why}")
+        require_frame_file(p)
         for f in iter_frames(p):
             if isinstance(f, FrameError):
                 skipped["unreadable"] += 1

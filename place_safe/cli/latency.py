@@ -8,10 +8,10 @@ from __future__ import annotations
 
 import argparse
 
-from place_safe.exceptions import FrameFileError, PlaceSafeError
+from place_safe.exceptions import PlaceSafeError
 from place_safe.cli import options
 from place_safe.calibration import mark
-from place_safe.cli.common import load_calibration, not_a_file, uncalibrated_note
+from place_safe.cli.common import load_calibration, require_frame_file, uncalibrated_note
 
 EPILOG = """examples:
   place-safe synth --frames 100 --seed 7 -o out/speed.json
@@ -40,8 +40,7 @@ def cmd_latency(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from place_safe.evaluation.bench import measure_recover_latency
-    if (why := not_a_file(args.file)) is not None:
-        raise FrameFileError(f"frame file {args.file} {why}")
+    require_frame_file(args.file)
     note = uncalibrated_note(args.method, load_calibration(args.calibration), args.calibration)  # a bad file: one line
     if note is not None:
         print(note, flush=True)

@@ -21,8 +21,7 @@ from place_safe.cli.options import opt
 from place_safe.exceptions import CalibrationError, FrameError, FrameFileError, PlaceSafeError
 from place_safe.cli.common import (CALIBRATE_METHODS, METHODS, PROG, UsageError, estimator_for,
                                    jsonable, load_any_frames, load_calibration, load_truth_frames, log, progress_options,
-                                   report_notes,
-                                   summarise, not_a_file, uncalibrated_note)
+                                   report_notes, require_frame_file, summarise, not_a_file, uncalibrated_note)
 from place_safe.evaluation.bench import DEFAULT_RUNS, measure_file_rss, report_json, run_bench
 from place_safe.evaluation.evaluate import evaluate
 from place_safe.io.frame_file import iter_frames
@@ -175,8 +174,7 @@ def _write_line(out: TextIO, obj: dict) -> None:
 def cmd_recover(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    if (why := not_a_file(args.file)) is not None:
-        raise FrameFileError(f"frame file {args.file} {why}")
+    require_frame_file(args.file)
     cal = load_calibration(args.calibration)
     est = estimator_for(args.method, cal, args.mode)
     note = uncalibrated_note(args.method, cal, args.calibration)
