@@ -25,7 +25,8 @@ model did not generate. The differences (all configurable in :class:`MismatchCon
   unit leaks ``crosstalk_grid`` (uniform in ``[0, crosstalk_grid_max]`` per neighbour displacement) into its
   neighbours, where the true sensor has none: a calibration made on another unit does not know them.
 * **Each zone's own time scale** (``zone_time_scale``, off by default): a zone's returns land ``1 + u`` times as
-  far from range 0 as the model puts them (``u`` per zone, uniform in +-``zone_time_scale``). The real sweep's
+  far from range 0 as the model puts them (``u`` per zone, uniform in +-``zone_time_scale``), before they are binned
+  (:meth:`MismatchedToF.timed`; the pulse keeps its width: stretching it too read the same, docs/results.md). The real sweep's
   zones drift against the model by -0.11 .. +0.08 bins per 10 cm (docs/results.md, the unit model, step 5), about
   +-1.5 %; on a level sweep this moves a zone's return with distance as its field of view does.
 * **A sensor mounted off its nominal orientation** (``mount_tilt``, off by default): the rotation from the optical
@@ -43,6 +44,7 @@ Units: metres, seconds, degrees Celsius, histogram bins. Everything else is the 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Annotated, Any
 
@@ -147,6 +149,21 @@ class MismatchedToF(SimToF):
             r.ranges = np.where(r.hit, 0.5 * (back + out), r.ranges)
         return r
 
+    def timed(self, returns: RayReturns) -> RayReturns:
+        """``returns`` as each zone's own time scale sees them: every ray's range times the zone's scale (its return
+        lands that much farther from range 0 before it is binned), the albedo times the scale squared (the counts stay
+        what the true range gives). The same ``returns`` where no zone has a scale of its own.
+
+        Before 2026-11-30 the scale resampled the binned histogram by linear interpolation about range 0, which also
+        smoothed each return by where it fell between bins (two bins averaged half a bin off the grid; with a 2 %
+        scale that phase turns once every 25 bins): a blur that follows the range, which no sensor's bins have and no
+        model follows. Unit 43 of ``docs/figures/unit_scorecard.py`` read its tilted planes 0.53 deg off with it and
+        0.15 without it (docs/results.md, "Each zone's own time scale rendered before the bins")."""
+        if np.all(self._time_scale == 1.0):
+            return returns
+        s = self._time_scale[:, None]
+        return dataclasses.replace(returns, ranges=returns.ranges * s, albedo=returns.albedo * s * s)
+
     def tail_taps(self, zone: int, warm: float = 0.0) -> np.ndarray:
         """Zone ``zone``'s extra tail at lags 1..``tail_lags`` bins when the die is ``warm`` degC above its start:
         an exponential whose taps sum to the zone's tail weight."""
@@ -156,7 +173,7 @@ class MismatchedToF(SimToF):
         return kern * (self._tail_w[zone] / kern.sum())
 
     def _render(self, returns: RayReturns, reference: np.ndarray) -> np.ndarray:
-        h = super()._render(returns, reference)
+        h = super()._render(self.timed(returns), reference)
         mc = self.mismatch
         warm = self.temperature(self._time) - mc.temp_start
         out = np.empty_like(h)
@@ -164,7 +181,7 @@ class MismatchedToF(SimToF):
             tail = np.convolve(h[z], np.concatenate([[0.0], self.tail_taps(z, warm)]))[:N_BINS]
             hz = (h[z] + tail) / (1.0 + self._tail_w[z])
             shift = mc.drift_bins_per_degc * warm + self._skew[z] * (warm / 10.0)
-            out[z] = _shift(hz, shift, self._time_scale[z], self.params.bin_offset)
+            out[z] = _shift(hz, shift)
         # an ambient floor that slopes across the bins (the model's floor is flat); measure() adds the mean
         prof = mc.ambient_slope * (np.linspace(0.0, 1.0, N_BINS) - 0.5)
         return out + self.ambient[:, None] * prof[None, :]
@@ -184,14 +201,11 @@ class MismatchedToF(SimToF):
         return f
 
 
-def _shift(h: np.ndarray, s: float, scale: float = 1.0, origin: float = 0.0) -> np.ndarray:
-    """``h`` delayed by ``s`` bins and stretched ``scale`` times about bin ``origin`` (range 0): what lay at bin
-    ``b`` moves to ``origin + scale (b - origin) + s`` (linear interpolation; edge values held)."""
-    if s == 0 and scale == 1.0:
+def _shift(h: np.ndarray, s: float) -> np.ndarray:
+    """``h`` delayed by ``s`` bins (linear interpolation; edge values held)."""
+    if s == 0:
         return h
     x = np.arange(h.size, dtype=float) - s
-    if scale != 1.0:  # (no stretch: the delay alone, bit for bit as before the stretch existed)
-        x = origin + (x - origin) / scale
     return np.interp(x, np.arange(h.size, dtype=float), h)
 
 

@@ -12,7 +12,7 @@ pytest.importorskip("mujoco")
 from place_safe.config import parse_config  # noqa: E402
 from place_safe.exceptions import ConfigError  # noqa: E402
 from place_safe.sim.scene import SceneConfig, build_scene  # noqa: E402
-from place_safe.sim.tof import ToFConfig  # noqa: E402
+from place_safe.sim.tof import SimToF, ToFConfig  # noqa: E402
 from place_safe.sim.tof_mismatch import MismatchConfig, MismatchedToF, make_sensor  # noqa: E402
 
 
@@ -93,13 +93,6 @@ def test_extra_tails_end_as_exponentials_do():
 
 
 def test_a_zones_own_time_scale_moves_its_return_in_proportion_to_range():
-    from place_safe.sim.tof_mismatch import _shift
-
-    # the warp: what lay at bin b lands at origin + scale (b - origin) + s (a full centroid maps exactly)
-    x = np.arange(128, dtype=float)
-    g = np.exp(-0.5 * ((x - 40.0) / 1.5) ** 2)
-    w = _shift(g, 0.5, 1.05, 10.0)
-    assert abs((w * x).sum() / w.sum() - (10.0 + 1.05 * 30.0 + 0.5)) < 0.02
 
     # off by default (a seed's frames are what they were); on, each zone's return moves with its own sign, by more
     # the farther the table
@@ -108,8 +101,9 @@ def test_a_zones_own_time_scale_moves_its_return_in_proportion_to_range():
         mis = MismatchedToF(scene, data, ToFConfig(noise=False), mc)
         h = mis.measure().hists
         h = np.clip(h - np.median(h, axis=1, keepdims=True), 0.0, None)
-        h = np.where(h > 0.2 * h.max(axis=1, keepdims=True), h, 0.0)  # the return, not the floor
-        return (h * np.arange(h.shape[1])).sum(1) / h.sum(1), mis
+        b = np.arange(h.shape[1])
+        h = np.where(np.abs(b - h.argmax(axis=1, keepdims=True)) <= 4, h, 0.0)  # the return: not the internal one
+        return (h * b).sum(1) / h.sum(1), mis
 
     still = MismatchConfig(ambient_drift=0.0, ambient_slope=0.0)
     scaled = still.model_copy(update={"zone_time_scale": 0.05})
@@ -122,6 +116,28 @@ def test_a_zones_own_time_scale_moves_its_return_in_proportion_to_range():
     assert np.all(np.abs(far1 - far0)[moved] > np.abs(near1 - near0)[moved])
     _, _, _, default = _pair(0.1)
     assert np.all(default._time_scale == 1.0)
+
+
+def test_a_zones_own_time_scale_moves_its_return_before_the_bins():
+    """The scale moves each ray's return before it is binned (``MismatchedToF.timed``: the ranges times the zone's
+    scale, the albedo times its square so the counts stay), so a zone's return is rendered as the sensor renders any
+    return, at ``1 + u`` times its range. (It used to resample the binned histogram about range 0, which also averaged
+    neighbouring bins by where the return fell: a blur no sensor's bins have.)"""
+    still = MismatchConfig(ambient_drift=0.0, ambient_slope=0.0, skew_bins=0.0, drift_bins_per_degc=0.0,
+                           tail_weight=(0.0, 0.0), zone_time_scale=0.05, seed=3)
+    scene, data, _, _ = _pair(0.2)
+    mis = MismatchedToF(scene, data, ToFConfig(noise=False), still)
+    returns = mis.cast()
+    s = mis._time_scale
+    assert np.ptp(s) > 0.02
+    t = mis.timed(returns)
+    np.testing.assert_allclose(t.ranges[returns.hit], (returns.ranges * s[:, None])[returns.hit])
+    np.testing.assert_allclose(t.albedo, returns.albedo * s[:, None] ** 2)
+    # what the unit reports is the sensor's render of the timed returns (the tails here are none and the delays 0)
+    ref = mis._kernel_ref
+    np.testing.assert_allclose(mis.render(returns, ref), SimToF._render(mis, t, ref), rtol=1e-12, atol=1e-9)
+    flat = MismatchedToF(scene, data, ToFConfig(noise=False), still.model_copy(update={"zone_time_scale": 0.0}))
+    assert flat.timed(returns) is returns
 
 
 def test_a_unit_mounted_off_its_nominal_orientation_turns_its_rays_and_keeps_its_other_differences():
