@@ -119,6 +119,15 @@ UNITS: dict[str, dict | None] = {
     "58": {"seed": 58, "baseline": 0.004, "zone_time_scale": 0.02},
     "59": {"seed": 59, "tail_weight": (0.03, 0.08), "tail_decay": (1.5, 4.0),
            "mount_tilt": (math.radians(1.0), math.radians(0.3))},
+    # and five more, set after the simulator's time scales moved before the bins and before the albedo guard's absolute
+    # allowance was re-set on unit 52 (session 60): time scales small and large, with and without a mount, and controls
+    "60": {"seed": 60, "tail_weight": (0.04, 0.10), "tail_decay": (2.0, 5.0), "skew_bins": 0.2,
+           "zone_time_scale": 0.008},
+    "61": {"seed": 61, "baseline": 0.005, "zone_time_scale": 0.012},
+    "62": {"seed": 62, "tail_weight": (0.03, 0.08), "tail_decay": (1.5, 4.0), "zone_time_scale": 0.015,
+           "mount_tilt": (math.radians(0.5), math.radians(0.5))},
+    "63": {"seed": 63, "mount_tilt": (math.radians(1.2), math.radians(-0.4))},
+    "64": {"seed": 64, "tail_weight": (0.05, 0.12), "tail_decay": (2.0, 6.0), "glass_spread": 1.0},
 }
 #: The independent generator's units: ``place-safe synth --sensor-seed``.
 SYNTH = {"synth": 0, **{f"synth{k}": k for k in range(1, 10)}}
