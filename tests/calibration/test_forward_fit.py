@@ -616,6 +616,15 @@ def test_a_far_geometry_gives_way_to_the_zones_time_scales_only_for_a_better_fit
     monkeypatch.setattr(ff, "fit_forward", second(1.5, cv=0.004))
     p, r = ff.reconsider_geometry(level, off, dict(first, one_surface={"albedo_cv_after": 0.0}), progress=False)
     assert r["geometry"]["adopted"] == "nominal_time_scales"
+    # unit 52 (0.58 -> 2.64 %, RMS 18.6 % lower) is adopted: within the absolute allowance, which is CV noise between
+    # alike readings; just past the allowance it is not, nor are the real halves' time scales (4.5 -> 21 %)
+    for cv_first, cv_second, adopted in ((0.0058, 0.0264, True),
+                                         (0.0058, 0.0058 + ff.NOMINAL_GEOMETRY_ALBEDO_CV + 0.001, False),
+                                         (0.0446, 0.2109, False)):
+        monkeypatch.setattr(ff, "fit_forward", second(0.814 * 2.0, cv=cv_second))
+        p, r = ff.reconsider_geometry(level, off, dict(first, one_surface={"albedo_cv_after": cv_first}),
+                                      progress=False)
+        assert (r["geometry"]["adopted"] == "nominal_time_scales") is adopted
     for a, b in ((math.nan, 0.01), (0.01, math.nan)):
         monkeypatch.setattr(ff, "fit_forward", second(1.5, cv=b))
         p, r = ff.reconsider_geometry(level, off, dict(first, one_surface={"albedo_cv_after": a}), progress=False)
