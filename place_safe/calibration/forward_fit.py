@@ -1390,7 +1390,9 @@ NOMINAL_GEOMETRY_FITTED: dict[str, str] = {k: v for k, v in {**FITTED, **ZONE_SC
                                            if k not in NOMINAL_GEOMETRY}
 #: The relative fall of the level fit's RMS scaled residual the nominal-geometry fit must show to be adopted. Measured
 #: (docs/results.md, "A far geometry"): units whose zones keep their own time, or whose tails are heavy, -7 .. -24 %
-#: (35, 32, 34, 36); units that land near nominal within 0.2 %; the real sweep -4.5 .. -5.4 %.
+#: (35, 32, 34, 36); units that land near nominal within 0.2 %; the real sweep -4.5 .. -5.4 %. On the simulator since
+#: 2026-11-30 (zone time scales that move the returns before the bins, no blur): the time-scale units 34-58 -9.5 ..
+#: -56 %, unit 60 (scales of 0.8 %) -3.7 %, units without them within 0.1 % (but 32, -17.9 %).
 NOMINAL_GEOMETRY_GAIN = 0.05
 #: The nominal-geometry fit is adopted only while the per-frame albedos of the level sweep (one table: one albedo,
 #: ``report["one_surface"]["albedo_cv_after"]``, each frame's albedo free in both fits) spread at most this many times
@@ -1400,7 +1402,10 @@ NOMINAL_GEOMETRY_GAIN = 0.05
 #: survive the time scales, 1.9 / 1.4 -> 5.8 / 7.0 % on the other half); units whose zones keep their own time rise at
 #: most 2.7 times (34 3.0 -> 8.2 %, 36 4.0 -> 7.6 %, 48 5.1 -> 6.7 %) or fall (35, 47, 52); units with both the time
 #: scales and a mount 2.85 times (41), 4.1 (54) and 4.9 (50). Set at 1.5 when a saturated frame at its albedo bound
-#: read as a CV of 93-114 % (34, 36), it then kept 34 and 36 at 1.52 / 0.44 deg against 0.13 / 0.11 adopted.
+#: read as a CV of 93-114 % (34, 36), it then kept 34 and 36 at 1.52 / 0.44 deg against 0.13 / 0.11 adopted. (The
+#: simulated units' figures here were measured before 2026-11-30, on a simulator whose zone time scales also blurred
+#: each return; with the returns moved before the bins, every time-scale unit's second reading reads its table at a CV
+#: of 0.6-4.6 %, mostly below its first's, and unit 52's rose 0.58 -> 2.64 %: :data:`NOMINAL_GEOMETRY_ALBEDO_CV`.)
 NOMINAL_GEOMETRY_ALBEDO_SPREAD = 3.0
 #: ...or by at most this much more (an absolute CV), whichever is larger: a first fit whose frames read nearly one albedo
 #: (its CV near 0) does not refuse every second fit for noise. Where the two readings are alike (units without their
@@ -1425,7 +1430,9 @@ NOMINAL_GEOMETRY_ALBEDO_CV = 0.03
 #: Measured (docs/results.md, "The level sweep's albedo, counted on the frames that determine it"): units 44 and 47,
 #: whose zones keep their own time, RMS 4.0 / 4.7 % lower with the time scales and the albedo CV 3.7 -> 0.7 % / 7.3 ->
 #: 1.1 %; units mounted off alone (37, 45, 49, 53, 59: the first reading exact) 0-1.3 % higher, their CV falling at
-#: most 1.7 times. Set before units 48-59 were measured.
+#: most 1.7 times. Set before units 48-59 were measured. (44's and 47's figures are the simulator's before 2026-11-30,
+#: whose zone time scales also blurred each return; without that blur their second fits are 9.5 / 10.0 % lower and
+#: adopted by :data:`NOMINAL_GEOMETRY_GAIN`.)
 ALBEDO_CLUE_GAIN = 0.02
 ALBEDO_CLUE_FACTOR = 3.0
 ALBEDO_CLUE_MIN_CV = 0.01
@@ -1439,7 +1446,9 @@ ALBEDO_CLUE_MIN_CV = 0.01
 #: level sweep"): units whose zones keep their own time and whose sensor is mounted off (simulated units 40, 41) kept
 #: the fitted geometry with the second fit 0.9 % worse and 12.6 % better (its albedos spread 2.9 times as much), and
 #: diff read their tilted planes 6-9 % too shallow (1.3-1.8 deg) with NEES 68-75; the other reading, rendered, shows
-#: that slope to within 0.3 points.
+#: that slope to within 0.3 points. (On the simulator before 2026-11-30, whose zone time scales also blurred each
+#: return; without that blur 40's and 41's sweeps adopt the time scales themselves. New unit 60, whose scales are 0.8 %,
+#: is not told apart: RMS 3.7 % lower.)
 TOLD_APART_GAIN = 0.05
 
 
@@ -1503,7 +1512,8 @@ def reconsider_geometry(frames: Sequence[Frame], params: ForwardParams, report: 
     """The forward fit to keep after ``params`` (with its ``report``) from :func:`fit_forward` on ``frames``.
 
     On a level sweep (whatever geometry its fit set: simulated unit 52, whose zones keep their own time, landed within
-    0.5 % and 0.2 deg of the nominal geometry and read tilted planes 0.74 deg off with NEES per dof 9.3), a second fit
+    0.5 % and 0.2 deg of the nominal geometry and read tilted planes 0.74 deg off with NEES per dof 9.3, on the
+    simulator before 2026-11-30), a second fit
     runs from the default start with :data:`NOMINAL_GEOMETRY` held nominal and each zone's own time scale fitted
     (:data:`NOMINAL_GEOMETRY_FITTED`), from every start of the first (its basin may lie elsewhere: unit 32's first fit
     ended on the measured reference floor, its second on the published one): a level table reads both alike, so the

@@ -27,8 +27,10 @@ The frames do not adopt the second reading where the level sweep speaks against 
 one surface and the second as many albedos (the frames' albedo CV above ``SAME_SURFACE_CV``; where both do, the
 albedos cannot witness). The rule was set on unit 43, whose second fit seemed to read its table at 110 % against the
 first's 9 %; that 110 % was one saturated frame at its albedo bound (``forward_fit.albedo_spread`` now leaves such
-frames out), and its sweep now adopts the second reading itself: diff reads its tilted planes at 0.53 deg with NEES per
-dof 3.0 (overconfident), against 0.99 deg and 0.61 with the first (docs/results.md, "The level sweep's albedo").
+frames out), and its sweep now adopts the second reading itself. (Unit 43's figures here and below were measured on the
+simulator before 2026-11-30, whose zone time scales also blurred each return; with the returns moved before the bins
+its sweep adopts the time scales and diff reads it at 0.15 deg, NEES per dof 0.91: docs/results.md, "Each zone's own
+time scale rendered before the bins".)
 
 The second reading holds the mount level: a unit mounted off keeps the mount in the first reading, and where the
 second is adopted its offsets on tilted planes err by the mount (0.67-0.99 mm mean at 5-30 cm and 0-30 deg on the

@@ -343,7 +343,9 @@ def diff_tilt_term(model_error: float | None = None, crosstalk: float | None = N
 #: "Two readings of a level sweep"): units 39 and 42 (zones' own time and a mount of 1.0 and 1.2 deg; the free reading
 #: 2.4 and 1.3 deg; 39's rays left 0.57 deg off) read their tilted frames at NEES per dof 4.8 and 8.6 without the term
 #: and 0.35 and 0.57 with it (and peak's mount term from the same reading); units 34 and 36 (no mount; the free reading
-#: 1.4 and 0.5 deg) 0.55 and 0.26 -> 0.22 and 0.18.
+#: 1.4 and 0.5 deg) 0.55 and 0.26 -> 0.22 and 0.18. Those units were simulated before 2026-11-30, with zone time scales
+#: that also blurred each return; without the blur (docs/results.md, "Each zone's own time scale rendered before the
+#: bins") 39 and 42 read 0.31 and 0.48, 34 and 36 0.08 and 0.12 (offset components far below 1): not re-sized.
 ADOPTED_MOUNT_OFFSET_REL = 1.0 / math.sqrt(3.0)
 
 

@@ -313,7 +313,10 @@ class SimToF(FrameSource):
         finally:
             torch.set_num_threads(threads)
 
-    def _render(self, returns: RayReturns, reference: np.ndarray) -> np.ndarray:
+    def _render(self, returns: RayReturns, reference: np.ndarray, seen: RayReturns | None = None) -> np.ndarray:
+        """:meth:`render` on the calling thread. ``seen``: the returns the blinding is computed from (default
+        ``returns``; a unit whose zones keep their own time renders returns moved in range, which the glint does not
+        see)."""
         with torch.no_grad():
             kernel = None
             if reference is self._kernel_ref:  # the usual case: the pulse of the shipped reference, cached
@@ -327,8 +330,9 @@ class SimToF(FrameSource):
                 specular_exponent=torch.as_tensor(returns.specular_exponent[None]),
                 hit=torch.as_tensor(returns.hit[None]), kernel=kernel)
         out = h[0].numpy() - self.params.floor
-        if self.blinding is not None and returns.sensor_points is not None:
-            out = out * self.blinding_factors(returns)[:, None]
+        seen = returns if seen is None else seen
+        if self.blinding is not None and seen.sensor_points is not None:
+            out = out * self.blinding_factors(seen)[:, None]
         return out
 
     def blinding_factors(self, returns: RayReturns) -> np.ndarray:

@@ -152,7 +152,9 @@ class MismatchedToF(SimToF):
     def timed(self, returns: RayReturns) -> RayReturns:
         """``returns`` as each zone's own time scale sees them: every ray's range times the zone's scale (its return
         lands that much farther from range 0 before it is binned), the albedo times the scale squared (the counts stay
-        what the true range gives). The same ``returns`` where no zone has a scale of its own.
+        what the true range gives). The same ``returns`` where no zone has a scale of its own. The multipath echo, which
+        the renderer draws from the range, would be scaled in time too and its amplitude by ``scale ** -echo_power``
+        (the simulated sensors' echo gain is 0); the blinding is computed from the returns as they are.
 
         Before 2026-11-30 the scale resampled the binned histogram by linear interpolation about range 0, which also
         smoothed each return by where it fell between bins (two bins averaged half a bin off the grid; with a 2 %
@@ -173,7 +175,7 @@ class MismatchedToF(SimToF):
         return kern * (self._tail_w[zone] / kern.sum())
 
     def _render(self, returns: RayReturns, reference: np.ndarray) -> np.ndarray:
-        h = super()._render(self.timed(returns), reference)
+        h = super()._render(self.timed(returns), reference, seen=returns)
         mc = self.mismatch
         warm = self.temperature(self._time) - mc.temp_start
         out = np.empty_like(h)
