@@ -93,7 +93,6 @@ def test_extra_tails_end_as_exponentials_do():
 
 
 def test_a_zones_own_time_scale_moves_its_return_in_proportion_to_range():
-
     # off by default (a seed's frames are what they were); on, each zone's return moves with its own sign, by more
     # the farther the table
     def centroids(height, mc):
