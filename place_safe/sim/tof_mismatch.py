@@ -27,8 +27,8 @@ model did not generate. The differences (all configurable in :class:`MismatchCon
 * **Each zone's own time scale** (``zone_time_scale``, off by default): a zone's returns land ``1 + u`` times as
   far from range 0 as the model puts them (``u`` per zone, uniform in +-``zone_time_scale``), before they are binned
   (:meth:`MismatchedToF.timed`; the pulse keeps its width: stretching it too read the same, docs/results.md). The
-  real sweep's zones drift against the model by -0.11 .. +0.08 bins per 10 cm (docs/results.md, the unit model, step 5), about
-  +-1.5 %; on a level sweep this moves a zone's return with distance as its field of view does.
+  real sweep's zones drift against the model by -0.11 .. +0.08 bins per 10 cm (docs/results.md, the unit model,
+  step 5), about +-1.5 %; on a level sweep this moves a zone's return with distance as its field of view does.
 * **A sensor mounted off its nominal orientation** (``mount_tilt``, off by default): the rotation from the optical
   frame to the mount frame, a rotation vector ``(rx, ry)`` (rad) as ``ForwardParams.mount_tilt``, added to the sensor
   file's (a sum of small rotation vectors, not a composition). On a level sweep this moves the
