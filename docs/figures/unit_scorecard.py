@@ -128,6 +128,14 @@ UNITS: dict[str, dict | None] = {
            "mount_tilt": (math.radians(0.5), math.radians(0.5))},
     "63": {"seed": 63, "mount_tilt": (math.radians(1.2), math.radians(-0.4))},
     "64": {"seed": 64, "tail_weight": (0.05, 0.12), "tail_decay": (2.0, 6.0), "glass_spread": 1.0},
+    # and five more, set before the second fit's RMS bar is lowered on what unit 60 showed (session 60): small time
+    # scales with and without a mount, a mount alone, heavy tails (as 32's), neither
+    "65": {"seed": 65, "zone_time_scale": 0.006},
+    "66": {"seed": 66, "tail_weight": (0.04, 0.10), "tail_decay": (2.0, 5.0), "zone_time_scale": 0.008,
+           "mount_tilt": (math.radians(-0.6), math.radians(0.3))},
+    "67": {"seed": 67, "baseline": 0.004, "mount_tilt": (math.radians(0.7), math.radians(0.6))},
+    "68": {"seed": 68, "tail_weight": (0.06, 0.15), "tail_decay": (3.0, 8.0), "skew_bins": 0.25},
+    "69": {"seed": 69},
 }
 #: The independent generator's units: ``place-safe synth --sensor-seed``.
 SYNTH = {"synth": 0, **{f"synth{k}": k for k in range(1, 10)}}
