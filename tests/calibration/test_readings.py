@@ -75,12 +75,14 @@ def test_the_reading_that_rendered_tilted_frames_fits_them_better():
 
 @pytest.fixture
 def sweep_left_both(monkeypatch):
-    """A level sweep (three level truths) whose first fit ``FREE`` is kept with the second fit ``TIME_SCALES`` 3 %
-    better in RMS and its albedos spread 1.5 times less: neither a clear gain nor the albedo's evidence
-    (``ALBEDO_CLUE_FACTOR``), so both readings stay possible (the second fit stood in by what it returns)."""
+    """A level sweep (three level truths) whose first fit ``FREE`` is kept with the second fit ``TIME_SCALES`` a little
+    better in RMS (half the lower of ``NOMINAL_GEOMETRY_GAIN`` and ``ALBEDO_CLUE_GAIN``) and its albedos spread 1.5
+    times less: neither a clear gain nor the albedo's evidence, so both readings stay possible (the second fit stood in
+    by what it returns)."""
     level = [SimpleNamespace(truth=SimpleNamespace(normal=np.array([0.0, 0.0, 1.0]))) for _ in range(3)]
     first = {"rms_scaled_residual_after": 1.40, "converged": True, "one_surface": {"albedo_cv_after": 0.03}}
-    second = {"rms_scaled_residual_after": 1.36, "converged": True, "solver": {"seconds": 1.0},
+    gain = 0.5 * min(ff.NOMINAL_GEOMETRY_GAIN, ff.ALBEDO_CLUE_GAIN)
+    second = {"rms_scaled_residual_after": 1.40 * (1.0 - gain), "converged": True, "solver": {"seconds": 1.0},
               "one_surface": {"albedo_cv_after": 0.02}}
     monkeypatch.setattr(ff, "fit_forward", lambda *a, **k: (TIME_SCALES, dict(second)))
     return level, first
