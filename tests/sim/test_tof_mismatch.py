@@ -134,11 +134,12 @@ def test_a_zones_own_time_scale_moves_its_return_before_the_bins():
     np.testing.assert_allclose(t.albedo, returns.albedo * s[:, None] ** 2)
     # what the unit reports is the sensor's render of the timed returns (the tails here are none and the delays 0)
     ref = mis._kernel_ref
-    np.testing.assert_allclose(mis.render(returns, ref), SimToF._render(mis, t, ref), rtol=1e-12, atol=1e-9)
+    h = mis.render(returns, ref)
+    np.testing.assert_allclose(h, SimToF._render(mis, t, ref), rtol=1e-12, atol=1e-9)
     flat = MismatchedToF(scene, data, ToFConfig(noise=False), still.model_copy(update={"zone_time_scale": 0.0}))
     assert flat.timed(returns) is returns
     # the counts stay: each zone's histogram sums to what the unit without scales renders
-    np.testing.assert_allclose(mis.render(returns, ref).sum(axis=1), flat.render(returns, ref).sum(axis=1), rtol=1e-3)
+    np.testing.assert_allclose(h.sum(axis=1), flat.render(returns, ref).sum(axis=1), rtol=1e-3)
     # and it is what a forward model whose own zone time scales are the unit's renders of the rays as they are
     # (ForwardParams.zone_bin_scales: a return at range r at r / bin_size * scale past the zone's range-0 bin)
     from place_safe.recovery.forward import ForwardModel, ZoneRays
@@ -146,7 +147,6 @@ def test_a_zones_own_time_scale_moves_its_return_before_the_bins():
     oracle.forward = ForwardModel(oracle.params.model_copy(update={"zone_bin_scales": [float(v) for v in s]}),
                                   ZoneRays.stratified(oracle.config.rays))
     oracle._kernel = None
-    h = mis.render(returns, ref)
     np.testing.assert_allclose(SimToF._render(oracle, returns, ref), h, rtol=1e-9, atol=1e-9 * h.max())
     # the near-range blinding (the glint off the table) sees the rays as they are, not their albedo times the scale
     blind = MismatchedToF(scene, data, ToFConfig(noise=False, blinding=True), still)
