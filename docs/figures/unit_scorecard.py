@@ -18,8 +18,8 @@ and 1.3 deg off), ``42`` (unit B's tails, +-1 %, mounted 1.2 deg off), ``43`` (s
 off), ``44`` (seed 44, moderate tails, more crosstalk, +-0.8 %, mounted 0.9 deg off) and ``45`` (seed 45, a wide
 glass spread, mounted 0.5 deg off), ``46`` (seed 46, +-1.5 %, mounted 0.9 deg off) and ``47`` (seed 47, unit B's
 tails, +-1 %, not mounted off), ``48``-``51``, ``52``-``55`` and ``56``-``59`` (new seeds: time scales alone, mounted
-off alone, both, neither), ``60``-``64`` and ``65``-``69`` (new seeds: time scales small and large, with and without a
-mount, a mount alone, heavy tails, neither; 34-69 are not in the default set), and ``synth``
+off alone, both, neither), ``60``-``64``, ``65``-``69`` and ``70``-``74`` (new seeds: time scales small and large, with and without a
+mount, a mount alone, heavy tails, neither; 34-74 are not in the default set), and ``synth``
 (the independent generator, ``place-safe synth``, sensor seed 0; ``synth1`` .. ``synth9``: sensor seeds 1-9).
 Everything runs through the command line a user has (``place-safe calibrate``, ``place-safe evaluate --json``); each
 step's output is kept in ``--out`` and reused when rerun (``--fresh``: redo).
@@ -137,6 +137,15 @@ UNITS: dict[str, dict | None] = {
     "67": {"seed": 67, "baseline": 0.004, "mount_tilt": (math.radians(0.7), math.radians(0.6))},
     "68": {"seed": 68, "tail_weight": (0.06, 0.15), "tail_decay": (3.0, 8.0), "skew_bins": 0.25},
     "69": {"seed": 69},
+    # and five more, set before diff's stated tilt term is re-sized on the units without the old simulator's blur
+    # (session 61): time scales and a mount, time scales alone, a mount alone, tails alone, large time scales with a
+    # wide glass and a falling floor
+    "70": {"seed": 70, "tail_weight": (0.04, 0.10), "tail_decay": (2.0, 5.0), "zone_time_scale": 0.01,
+           "mount_tilt": (math.radians(0.8), math.radians(-0.5))},
+    "71": {"seed": 71, "zone_time_scale": 0.015},
+    "72": {"seed": 72, "baseline": 0.005, "mount_tilt": (math.radians(-0.9), math.radians(0.4))},
+    "73": {"seed": 73, "tail_weight": (0.05, 0.12), "tail_decay": (2.0, 6.0), "skew_bins": 0.2},
+    "74": {"seed": 74, "zone_time_scale": 0.02, "glass_spread": 1.2, "ambient_slope": -0.1},
 }
 #: The independent generator's units: ``place-safe synth --sensor-seed``.
 SYNTH = {"synth": 0, **{f"synth{k}": k for k in range(1, 10)}}
