@@ -18,8 +18,8 @@ and 1.3 deg off), ``42`` (unit B's tails, +-1 %, mounted 1.2 deg off), ``43`` (s
 off), ``44`` (seed 44, moderate tails, more crosstalk, +-0.8 %, mounted 0.9 deg off) and ``45`` (seed 45, a wide
 glass spread, mounted 0.5 deg off), ``46`` (seed 46, +-1.5 %, mounted 0.9 deg off) and ``47`` (seed 47, unit B's
 tails, +-1 %, not mounted off), ``48``-``51``, ``52``-``55`` and ``56``-``59`` (new seeds: time scales alone, mounted
-off alone, both, neither), ``60``-``64``, ``65``-``69`` and ``70``-``74`` (new seeds: time scales small and large, with and without a
-mount, a mount alone, heavy tails, neither; 34-74 are not in the default set), and ``synth``
+off alone, both, neither), ``60``-``64``, ``65``-``69`` and ``70``-``74`` (new seeds: time scales small and
+large, with and without a mount, a mount alone, heavy tails, neither; 34-74 are not in the default set), and ``synth``
 (the independent generator, ``place-safe synth``, sensor seed 0; ``synth1`` .. ``synth9``: sensor seeds 1-9).
 Everything runs through the command line a user has (``place-safe calibrate``, ``place-safe evaluate --json``); each
 step's output is kept in ``--out`` and reused when rerun (``--fresh``: redo).
