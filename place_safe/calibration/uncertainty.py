@@ -230,7 +230,13 @@ DIFF_TILT_PIVOT = 0.0
 #: 0.36, 4.31, 4.52, 0.67 with the old law and the new fit -> 0.29, 0.77, 0.33, 4.01, 1.33, 0.75 (docs/results.md,
 #: "The forward fit's two basins, landed"): fewer overconfident, more cautious ones. A level sweep does not show which
 #: a unit needs; 12 tilted frames size it (``unit_scorecard.py --few-tilts 12``).
-DIFF_TILT_FLOOR = 0.005
+#: Re-sized 0.005 -> 0.003 (2026-12-01, session 61) once the simulator rendered each zone's time scale before the bins
+#: (docs/results.md, "Diff's stated tilt floor re-sized"): with every stated term off, the tilt part each unit's tilted
+#: frames need is 0.0005-0.0013 on units whose zones keep their own time with no mount, 0.0012-0.0032 on units without
+#: time scales, 0.0020-0.0042 on units with both (a level sweep does not tell these apart); the floor is the least of
+#: 0.0025-0.004 at which no one of 51 training units read NEES per dof above 1.5 (unit 43: 1.47) or its returned angle
+#: 0.01 deg worse; five units set before (70-74) read 0.15-1.60 (were 0.09-1.27).
+DIFF_TILT_FLOOR = 0.003
 DIFF_TILT_PER_ERROR = 0.1
 #: Each tilt component's std per unit tan(tilt) per unit of the forward fit's crosstalk (:func:`diff_tilt_term`), added
 #: in quadrature: a level sweep trades the crosstalk between zones against the zones' fields of view
