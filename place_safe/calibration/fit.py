@@ -11,9 +11,10 @@ sections it wrote, in order:
   ``uncertainty``. ``unit_model`` chooses the forward model's fit (:data:`~place_safe.calibration.UNIT_MODELS`):
   ``default`` (:func:`~place_safe.calibration.forward_fit.fit_forward` with its default terms; on a level sweep, also
   with the geometry nominal and each zone's own time scale, kept when it fits clearly better and the table still reads
-  one albedo, or fits better and reads it much more closely:
-  :func:`~place_safe.calibration.forward_fit.reconsider_geometry`; on a level sweep that second fit starts at once
-  beside the first when a core is spare, :class:`~place_safe.calibration.alongside.Alongside`) or ``staged`` (the
+  one albedo, or fits better and reads it much more closely; on a capture with tilted frames, also with each zone's own
+  time scale and the geometry free, kept when it fits clearly better:
+  :func:`~place_safe.calibration.forward_fit.reconsider_geometry`; that second fit starts at once beside the first when
+  a core is spare, :class:`~place_safe.calibration.alongside.Alongside`) or ``staged`` (the
   learned unit model in three fits, :func:`~place_safe.calibration.forward_fit.fit_forward_staged`); the rest of
   the chain is the same, with the diff solver comparing the staged model with the counts above the arriving ambient
   (the ``diff`` section's ``ambient``). Where the forward fit's frames (a level sweep) left its crosstalk undetermined,
@@ -34,8 +35,8 @@ from collections.abc import Callable, Sequence
 from place_safe.calibration import REQUIRED_SECTIONS, UNIT_MODELS, Calibration
 from place_safe.calibration.alongside import Alongside, spare_cores
 from place_safe.calibration.forward_fit import (fit_forward, fit_forward_staged, fit_range_correction,
-                                               free_crosstalk_std, level_sweep, nominal_geometry_fit,
-                                               reconsider_geometry, select_model_error)
+                                               free_crosstalk_std, reconsider_geometry, second_fit_for,
+                                               select_model_error)
 from place_safe.calibration.points import adopt_pileup, fit_peak, fit_proprietary
 from place_safe.calibration.uncertainty import update_calibration
 from place_safe.io.json_values import jsonable
@@ -61,7 +62,9 @@ def unlabelled_summary(report: dict, n: int) -> dict:
     if isinstance(seen, dict):
         return {"frames": n, "used": True, "chose": seen.get("chose"), "why": seen.get("why")}
     nominal = geometry.get("nominal_time_scales") if isinstance(geometry.get("nominal_time_scales"), dict) else {}
-    why = ("the level sweep told its two readings apart" if geometry.get("told_apart") else
+    why = ("the capture's tilted frames told the zones' directions from their time" if "time_scales" in geometry
+           else
+           "the level sweep told its two readings apart" if geometry.get("told_apart") else
            f"the second reading's fit failed ({nominal['failed']})" if "failed" in nominal else
            "the second reading's fit did not converge" if nominal else
            "the frames are not a level sweep: they left one reading of the zones' geometry")
@@ -99,10 +102,10 @@ def fit_method(calibration: Calibration, frames: Sequence[Frame], method: str, p
         if unit_model == "staged":  # (its geometry is set by its first stage: a far one gets the note alone)
             params, report = reconsider_geometry(frames, *fit_forward_staged(frames, progress=progress, log=log),
                                                  second_fit=False)
-        else:  # a level sweep's fit gets a second one (the nominal geometry, each zone's own time scale): it starts
-            # beside the first on a spare core
-            parallel = level_sweep(frames) and spare_cores() > 0
-            with Alongside(nominal_geometry_fit, frames, progress and not parallel, parallel=parallel) as second:
+        else:  # a second fit with each zone's own time scale (on a level sweep with the geometry nominal, with tilted
+            # frames with the geometry free): it starts beside the first on a spare core
+            parallel = spare_cores() > 0
+            with Alongside(second_fit_for(frames), frames, progress and not parallel, parallel=parallel) as second:
                 params, report = reconsider_geometry(frames, *fit_forward(frames, init=None, progress=progress),
                                                      progress=progress, log=log, second=second.result,
                                                      unlabelled=unlabelled, peak=cal.peak())

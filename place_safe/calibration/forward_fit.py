@@ -1509,6 +1509,26 @@ def nominal_geometry_fit(frames: Sequence[Frame], progress: bool = False) -> tup
     return fit_forward(frames, init=None, progress=progress, fitted=NOMINAL_GEOMETRY_FITTED)
 
 
+#: What a capture with tilted frames fits beside its first fit (:func:`scales_and_geometry_fit`): :data:`FITTED` and
+#: each zone's own time scale (:data:`ZONE_SCALE_TERMS`), the geometry free too. A level table reads the two alike
+#: (:data:`NOMINAL_GEOMETRY`); a tilted plane turns the zones' directions and not their time, so tilted frames tell
+#: them apart and both can be fitted at once.
+SCALES_AND_GEOMETRY_FITTED: dict[str, str] = {**FITTED, **ZONE_SCALE_TERMS}
+
+
+def scales_and_geometry_fit(frames: Sequence[Frame], progress: bool = False) -> tuple[ForwardParams, dict]:
+    """The second fit of :func:`reconsider_geometry` on a capture with tilted frames: :func:`fit_forward` from the
+    default start with :data:`SCALES_AND_GEOMETRY_FITTED` (module level: ``calibrate`` may run it alongside the first
+    fit)."""
+    return fit_forward(frames, init=None, progress=progress, fitted=SCALES_AND_GEOMETRY_FITTED)
+
+
+def second_fit_for(frames: Sequence[Frame]):
+    """The second fit :func:`reconsider_geometry` compares on ``frames``: :func:`nominal_geometry_fit` on a level
+    sweep, :func:`scales_and_geometry_fit` on a capture with tilted frames."""
+    return nominal_geometry_fit if level_sweep(frames) else scales_and_geometry_fit
+
+
 def reconsider_geometry(frames: Sequence[Frame], params: ForwardParams, report: dict, progress: bool = True,
                         log=None, second_fit: bool = True, second=None, unlabelled: Sequence[Frame] = (),
                         peak=None) -> tuple[ForwardParams, dict]:
@@ -1533,9 +1553,10 @@ def reconsider_geometry(frames: Sequence[Frame], params: ForwardParams, report: 
     (:func:`geometry_note`) that is kept also gets the ``note``, printed by ``calibrate``, which names the comparison or
     the second fit's failure. The first fit's ``report`` gets its ``geometry`` section in place when it is kept.
     ``second_fit`` False: the note alone (a fit whose geometry is not free to swap, e.g. the staged unit model). Not a
-    level sweep: ``(params, report)`` unchanged. ``log`` gets a line for the user (None: silent). ``second``: a callable
-    returning the second fit's ``(params, report)`` (e.g. the result of :func:`nominal_geometry_fit` run alongside the
-    first fit); None: :func:`nominal_geometry_fit` here, when needed. ``unlabelled``: tilted frames, ground truth not
+    level sweep (tilted frames among them): :func:`_tilted_capture`, the second fit with each zone's own time scale
+    and the geometry free together, which tilted frames tell apart. ``log`` gets a line for the user (None: silent).
+    ``second``: a callable returning the second fit's ``(params, report)`` (the result of :func:`second_fit_for`'s fit
+    run alongside the first fit); None: that fit here, when needed. ``unlabelled``: tilted frames, ground truth not
     needed, that choose between readings the sweep left both possible (:mod:`place_safe.calibration.readings`, with the
     calibrated ``peak`` params to find their tilts); the report's ``geometry.unlabelled`` says what they showed."""
     note = geometry_note(params, frames)
@@ -1548,9 +1569,9 @@ def reconsider_geometry(frames: Sequence[Frame], params: ForwardParams, report: 
         if note is not None:
             report["geometry"] = {"note": note, "free": free, "adopted": "free"}
         return params, report
-    if not level_sweep(frames):  # (every level sweep: a first fit near nominal geometry may hide the time scales)
-        return params, report
     say = log if log is not None else (lambda _line: None)
+    if not level_sweep(frames):  # (every level sweep: a first fit near nominal geometry may hide the time scales)
+        return _tilted_capture(frames, params, report, free, progress, say, second)
 
     def keep(nominal: dict, reason: str, other: ForwardParams | None = None,
              told_apart: bool = False) -> tuple[ForwardParams, dict]:
@@ -1648,6 +1669,49 @@ def reconsider_geometry(frames: Sequence[Frame], params: ForwardParams, report: 
         report["geometry"].pop("note", None)
     if choice is None:
         say(f"forward model: the frames without ground truth did not choose a reading ({shown})")
+    return params, report
+
+
+def _tilted_capture(frames: Sequence[Frame], params: ForwardParams, report: dict, free: dict, progress: bool, say,
+                    second=None) -> tuple[ForwardParams, dict]:
+    """:func:`reconsider_geometry` on a capture with tilted frames: the first fit (the geometry free, no zone time
+    scales) against :func:`scales_and_geometry_fit` (both), adopted where it converged with an RMS scaled residual at
+    least :data:`NOMINAL_GEOMETRY_GAIN` lower and, where the frames are of one surface, its albedos spread no more than
+    the level sweep's rule allows (:data:`NOMINAL_GEOMETRY_ALBEDO_SPREAD`, :data:`NOMINAL_GEOMETRY_ALBEDO_CV`). The
+    report's ``geometry`` says what was compared and kept (``adopted``: ``free`` or ``time_scales``)."""
+    try:
+        alt, alt_report = second() if second is not None else scales_and_geometry_fit(frames, progress)
+    except (ArithmeticError, ValueError) as exc:
+        report["geometry"] = {"adopted": "free", "free": free, "why": f"the second fit failed: {exc}"}
+        return params, report
+    rms = _number(report.get("rms_scaled_residual_after"))
+    rms_alt = _number(alt_report.get("rms_scaled_residual_after"))
+    cv, cv_alt = _albedo_cv(report), _albedo_cv(alt_report)
+    converged = bool(alt_report.get("converged"))
+    scales = {"rms_scaled_residual": rms_alt, "converged": converged, "albedo_cv": cv_alt,
+              "frames_left_out": _frames_left_out(alt_report),
+              "zone_bin_scales": [float(s) for s in alt.zone_bin_scales],
+              "edge_fov_scale": alt.edge_fov_scale, "corner_fov_scale": alt.corner_fov_scale,
+              "mount_tilt_deg": [math.degrees(float(t)) for t in alt.mount_tilt],
+              "seconds": (alt_report.get("solver") or {}).get("seconds")}
+    compared = (f"RMS {rms:.3f} -> {rms_alt:.3f}{'' if converged else ' (not converged)'}, the frames' albedo CV "
+                f"{100 * cv:.1f} -> {100 * cv_alt:.1f} %")
+    better = converged and math.isfinite(rms_alt) and rms_alt <= (1.0 - NOMINAL_GEOMETRY_GAIN) * rms
+    one_surface = math.isfinite(cv) and cv <= SAME_SURFACE_CV
+    albedo_ok = not one_surface or (math.isfinite(cv_alt) and cv_alt <= max(NOMINAL_GEOMETRY_ALBEDO_SPREAD * cv,
+                                                                               cv + NOMINAL_GEOMETRY_ALBEDO_CV))
+    if better and albedo_ok:
+        why = (f"{compared}: tilted frames tell the zones' directions from their time, and each zone's own time scale "
+               "fits")
+        alt_report["geometry"] = {"adopted": "time_scales", "free": free, "time_scales": scales, "why": why,
+                                  "told_apart": True, "other_params": params.to_dict()}
+        say(f"forward model: adopted each zone's own time scale with the geometry ({compared})")
+        return alt, alt_report
+    why = (f"not a converged fit {NOMINAL_GEOMETRY_GAIN:.1%} lower" if not better else
+           f"the frames' albedos spread more than {NOMINAL_GEOMETRY_ALBEDO_SPREAD:g} times as much")
+    report["geometry"] = {"adopted": "free", "free": free, "time_scales": scales,
+                          "why": f"kept the fitted geometry: {compared}; {why}", "told_apart": True}
+    say(f"forward model: kept the fitted geometry ({compared}; {why})")
     return params, report
 
 
