@@ -12,7 +12,8 @@ sections it wrote, in order:
   ``default`` (:func:`~place_safe.calibration.forward_fit.fit_forward` with its default terms; on a level sweep, also
   with the geometry nominal and each zone's own time scale, kept when it fits clearly better and the table still reads
   one albedo, or fits better and reads it much more closely; on a capture with tilted frames, also with each zone's own
-  time scale and the geometry free, kept when it fits clearly better:
+  time scale and the geometry free, kept when it fits clearly better, determines both and (frames of one surface)
+  still reads one albedo:
   :func:`~place_safe.calibration.forward_fit.reconsider_geometry`; that second fit starts at once beside the first when
   a core is spare, :class:`~place_safe.calibration.alongside.Alongside`) or ``staged`` (the
   learned unit model in three fits, :func:`~place_safe.calibration.forward_fit.fit_forward_staged`); the rest of
@@ -62,8 +63,8 @@ def unlabelled_summary(report: dict, n: int) -> dict:
     if isinstance(seen, dict):
         return {"frames": n, "used": True, "chose": seen.get("chose"), "why": seen.get("why")}
     nominal = geometry.get("nominal_time_scales") if isinstance(geometry.get("nominal_time_scales"), dict) else {}
-    why = ("the capture's tilted frames told the zones' directions from their time" if "time_scales" in geometry
-           else
+    why = ("the capture has tilted frames with ground truth: they, not frames without it, choose each zone's time "
+           "scale and the geometry" if geometry.get("capture") == "tilted" else
            "the level sweep told its two readings apart" if geometry.get("told_apart") else
            f"the second reading's fit failed ({nominal['failed']})" if "failed" in nominal else
            "the second reading's fit did not converge" if nominal else

@@ -1570,8 +1570,9 @@ def reconsider_geometry(frames: Sequence[Frame], params: ForwardParams, report: 
             report["geometry"] = {"note": note, "free": free, "adopted": "free"}
         return params, report
     say = log if log is not None else (lambda _line: None)
-    if not level_sweep(frames):  # (every level sweep: a first fit near nominal geometry may hide the time scales)
+    if not level_sweep(frames):  # tilted frames tell the readings apart: both fitted at once
         return _tilted_capture(frames, params, report, free, progress, say, second)
+    # every level sweep (a first fit near nominal geometry may hide the time scales)
 
     def keep(nominal: dict, reason: str, other: ForwardParams | None = None,
              told_apart: bool = False) -> tuple[ForwardParams, dict]:
@@ -1672,45 +1673,69 @@ def reconsider_geometry(frames: Sequence[Frame], params: ForwardParams, report: 
     return params, report
 
 
+#: What a capture with tilted frames must determine for its second fit (:func:`_tilted_capture`) to be adopted: none of
+#: these may be in the fit's ``posterior_std.not_determined`` (too few tilted frames leave the scales traded against the
+#: geometry as a level table does). Measured (docs/results.md, "A few tilted frames"): 4, 8 and 12 tilted frames on a
+#: 150-frame level sweep determined all of them on simulated units 43 and 50.
+TILTED_DETERMINES = ("zone_bin_scales", "edge_fov_scale", "corner_fov_scale", "mount_tilt")
+
+
 def _tilted_capture(frames: Sequence[Frame], params: ForwardParams, report: dict, free: dict, progress: bool, say,
                     second=None) -> tuple[ForwardParams, dict]:
     """:func:`reconsider_geometry` on a capture with tilted frames: the first fit (the geometry free, no zone time
-    scales) against :func:`scales_and_geometry_fit` (both), adopted where it converged with an RMS scaled residual at
-    least :data:`NOMINAL_GEOMETRY_GAIN` lower and, where the frames are of one surface, its albedos spread no more than
-    the level sweep's rule allows (:data:`NOMINAL_GEOMETRY_ALBEDO_SPREAD`, :data:`NOMINAL_GEOMETRY_ALBEDO_CV`). The
-    report's ``geometry`` says what was compared and kept (``adopted``: ``free`` or ``time_scales``)."""
+    scales) against :func:`scales_and_geometry_fit` (both free), adopted where it converged with an RMS scaled residual
+    at least :data:`NOMINAL_GEOMETRY_GAIN` lower, determined :data:`TILTED_DETERMINES`, and where the frames are of one
+    surface (the first fit's albedo CV at most :data:`SAME_SURFACE_CV`) its albedos spread no more than the level
+    sweep's rule allows (:data:`NOMINAL_GEOMETRY_ALBEDO_SPREAD`, :data:`NOMINAL_GEOMETRY_ALBEDO_CV`); frames of many
+    surfaces (the independent generator's) cannot witness, and the tilted frames' RMS decides; albedos that cannot be
+    compared (a CV not known) refuse it. The report's ``geometry`` has ``capture: "tilted"``, what was compared and
+    what kept (``adopted``: ``free`` or ``time_scales``, ``why``), the reading set aside (``other_params``) and
+    ``told_apart`` where the second fit converged (the tilted frames tell the readings apart; nothing is left for
+    diff's covariance to hold)."""
     try:
         alt, alt_report = second() if second is not None else scales_and_geometry_fit(frames, progress)
-    except (ArithmeticError, ValueError) as exc:
-        report["geometry"] = {"adopted": "free", "free": free, "why": f"the second fit failed: {exc}"}
+    except (ArithmeticError, ValueError) as exc:  # the first fit stands
+        failed = f"{type(exc).__name__}: {exc}"
+        report["geometry"] = {"capture": "tilted", "adopted": "free", "free": free, "time_scales": {"failed": failed},
+                              "why": f"kept the fitted geometry: the second fit failed: {failed}", "told_apart": False}
+        say(f"forward model: kept the fitted geometry (the fit with each zone's own time scale failed: {failed})")
         return params, report
     rms = _number(report.get("rms_scaled_residual_after"))
     rms_alt = _number(alt_report.get("rms_scaled_residual_after"))
     cv, cv_alt = _albedo_cv(report), _albedo_cv(alt_report)
     converged = bool(alt_report.get("converged"))
+    undetermined = sorted(set(TILTED_DETERMINES) & set((alt_report.get("posterior_std") or {}).get("not_determined")
+                                                       or ()))
     scales = {"rms_scaled_residual": rms_alt, "converged": converged, "albedo_cv": cv_alt,
-              "frames_left_out": _frames_left_out(alt_report),
+              "frames_left_out": _frames_left_out(alt_report), "not_determined": undetermined,
               "zone_bin_scales": [float(s) for s in alt.zone_bin_scales],
               "edge_fov_scale": alt.edge_fov_scale, "corner_fov_scale": alt.corner_fov_scale,
               "mount_tilt_deg": [math.degrees(float(t)) for t in alt.mount_tilt],
               "seconds": (alt_report.get("solver") or {}).get("seconds")}
     compared = (f"RMS {rms:.3f} -> {rms_alt:.3f}{'' if converged else ' (not converged)'}, the frames' albedo CV "
                 f"{100 * cv:.1f} -> {100 * cv_alt:.1f} %")
-    better = converged and math.isfinite(rms_alt) and rms_alt <= (1.0 - NOMINAL_GEOMETRY_GAIN) * rms
-    one_surface = math.isfinite(cv) and cv <= SAME_SURFACE_CV
-    albedo_ok = not one_surface or (math.isfinite(cv_alt) and cv_alt <= max(NOMINAL_GEOMETRY_ALBEDO_SPREAD * cv,
-                                                                               cv + NOMINAL_GEOMETRY_ALBEDO_CV))
-    if better and albedo_ok:
+    known = math.isfinite(cv) and math.isfinite(cv_alt)
+    many_surfaces = known and cv > SAME_SURFACE_CV
+    why = ("not converged" if not converged else
+           "the RMS scaled residuals could not be compared" if not (math.isfinite(rms) and math.isfinite(rms_alt)) else
+           f"not {NOMINAL_GEOMETRY_GAIN:.1%} lower" if rms_alt > (1.0 - NOMINAL_GEOMETRY_GAIN) * rms else
+           f"the tilted frames do not determine {', '.join(undetermined)}" if undetermined else
+           "the frames' albedos could not be compared" if not known else
+           None if many_surfaces else
+           f"the frames' albedos spread more than {NOMINAL_GEOMETRY_ALBEDO_SPREAD:g} times as much: one surface would "
+           "read many albedos"
+           if cv_alt > max(NOMINAL_GEOMETRY_ALBEDO_SPREAD * cv, cv + NOMINAL_GEOMETRY_ALBEDO_CV) else None)
+    if why is None:
         why = (f"{compared}: tilted frames tell the zones' directions from their time, and each zone's own time scale "
-               "fits")
-        alt_report["geometry"] = {"adopted": "time_scales", "free": free, "time_scales": scales, "why": why,
-                                  "told_apart": True, "other_params": params.to_dict()}
+               "fits" + (" (frames of many surfaces: their albedos cannot witness)" if many_surfaces else ""))
+        alt_report["geometry"] = {"capture": "tilted", "adopted": "time_scales", "free": free, "time_scales": scales,
+                                  "why": why, "told_apart": True, "other_params": params.to_dict()}
         say(f"forward model: adopted each zone's own time scale with the geometry ({compared})")
         return alt, alt_report
-    why = (f"not a converged fit {NOMINAL_GEOMETRY_GAIN:.1%} lower" if not better else
-           f"the frames' albedos spread more than {NOMINAL_GEOMETRY_ALBEDO_SPREAD:g} times as much")
-    report["geometry"] = {"adopted": "free", "free": free, "time_scales": scales,
-                          "why": f"kept the fitted geometry: {compared}; {why}", "told_apart": True}
+    report["geometry"] = {"capture": "tilted", "adopted": "free", "free": free, "time_scales": scales,
+                          "why": f"kept the fitted geometry: {compared}; {why}", "told_apart": converged}
+    if converged:
+        report["geometry"]["other_params"] = alt.to_dict()
     say(f"forward model: kept the fitted geometry ({compared}; {why})")
     return params, report
 

@@ -89,3 +89,35 @@ def test_a_malformed_reference_section_is_one_line_for_the_methods_that_read_it(
     assert "\n" not in str(err.value)
     with pytest.raises(CalibrationError, match="reference"):
         Calibration({"reference": section})
+
+
+def test_the_second_forward_fit_starts_alongside_for_level_sweeps_and_tilted_captures(monkeypatch, sweep_frames):
+    """``fit_method(..., "diff")`` starts the second forward fit beside the first (:class:`Alongside`) for every
+    capture: on a level sweep the one with the geometry nominal, on a capture with tilted frames the one with each
+    zone's time scale and the geometry free (:func:`~place_safe.calibration.forward_fit.second_fit_for`)."""
+    import numpy as np
+
+    import place_safe.calibration.fit as fit
+    from place_safe.calibration import forward_fit as ff
+    from place_safe.geometry import Plane
+
+    started = []
+
+    class Stop(Exception):
+        pass
+
+    class Recorder:
+        def __init__(self, fn, *args, **kw):
+            started.append(fn)
+            raise Stop
+
+    monkeypatch.setattr(fit, "Alongside", Recorder)
+    level = sweep_frames[10:20]
+    tilted = copy.deepcopy(level)
+    for k, f in enumerate(tilted):
+        t = math.radians(12.0) * (k % 2)
+        f.truth = Plane(np.array([math.sin(t), 0.0, math.cos(t)]), f.truth.offset)
+    for frames, expected in ((level, ff.nominal_geometry_fit), (tilted, ff.scales_and_geometry_fit)):
+        with pytest.raises(Stop):
+            fit_method(Calibration(), frames, "diff")
+        assert started[-1] is expected

@@ -574,6 +574,7 @@ def test_a_far_geometry_gives_way_to_the_zones_time_scales_only_for_a_better_fit
     from types import SimpleNamespace
 
     import place_safe.calibration.forward_fit as ff
+    from place_safe.calibration.uncertainty import mount_left, other_reading
 
     def sweep(tilt_deg):
         t = math.radians(tilt_deg)
@@ -587,14 +588,15 @@ def test_a_far_geometry_gives_way_to_the_zones_time_scales_only_for_a_better_fit
              "one_surface": {"albedo_cv_after": 0.04}}
     calls = []
 
-    def second(rms, converged=True, cv=0.05):
+    def second(rms, converged=True, cv=0.05, undetermined=()):
         def fit(frames, init=None, progress=True, fitted=None, **kw):
             calls.append((fitted, kw, init))
             if rms is None:
                 raise ArithmeticError("the residuals at the start are not finite")
             return (ForwardParams(zone_bin_scales=[0.98] * 4 + [1.0] + [0.98] * 4),
                     {"rms_scaled_residual_after": rms, "converged": converged, "solver": {"seconds": 1.0},
-                     "one_surface": {"albedo_cv_after": cv}})
+                     "one_surface": {"albedo_cv_after": cv},
+                     "posterior_std": {"not_determined": ["crosstalk", *undetermined]}})
         return fit
 
     monkeypatch.setattr(ff, "fit_forward", second(1.7))
@@ -608,17 +610,32 @@ def test_a_far_geometry_gives_way_to_the_zones_time_scales_only_for_a_better_fit
     g = r["geometry"]
     assert p.zone_bin_scales[0] == 0.98 and g["adopted"] == "time_scales" and "2.000 -> 1.700" in g["why"]
     assert g["told_apart"] and g["other_params"]["edge_fov_scale"] == far.edge_fov_scale and "note" not in g
-    for fit, says in ((second(2.0 * (1.0 - 0.9 * ff.NOMINAL_GEOMETRY_GAIN)), "lower"),
-                      (second(1.5, converged=False), "lower"),
-                      (second(1.5, cv=0.04 * ff.NOMINAL_GEOMETRY_ALBEDO_SPREAD + 0.001), "albedos spread"),
-                      (second(None), "failed")):  # kept, and said why
+    assert g["capture"] == "tilted" and g["time_scales"]["not_determined"] == []
+    # kept, and said why; the other reading goes with the report where its fit converged (the tilted frames told the
+    # two apart: nothing is left for diff's covariance to hold, uncertainty.other_reading)
+    for fit, first_cv, says, apart in ((second(2.0 * (1.0 - 0.9 * ff.NOMINAL_GEOMETRY_GAIN)), 0.04, "lower", True),
+                                       (second(1.5, converged=False), 0.04, "not converged", False),
+                                       (second(1.5, cv=0.04 * ff.NOMINAL_GEOMETRY_ALBEDO_SPREAD + 0.001), 0.04,
+                                        "albedos spread", True),
+                                       (second(1.5), math.nan, "could not be compared", True),
+                                       (second(1.5, cv=math.nan), 0.04, "could not be compared", True),
+                                       (second(1.5, undetermined=["mount_tilt"]), 0.04, "do not determine mount_tilt",
+                                        True),
+                                       (second(None), 0.04, "failed: ArithmeticError", False)):
         monkeypatch.setattr(ff, "fit_forward", fit)
-        p, r = ff.reconsider_geometry(tilted, far, dict(first), progress=False)
-        assert p is far and r["geometry"]["adopted"] == "free" and says in r["geometry"]["why"]
-    # frames of many surfaces (the independent generator's): the albedos cannot witness; the tilted frames' RMS does
+        lines = []
+        p, r = ff.reconsider_geometry(tilted, far, dict(first, one_surface={"albedo_cv_after": first_cv}),
+                                      progress=False, log=lines.append)
+        g = r["geometry"]
+        assert p is far and g["adopted"] == "free" and says in g["why"] and says in lines[-1]
+        assert g["capture"] == "tilted" and g["told_apart"] is apart and ("other_params" in g) is apart
+        assert other_reading(SimpleNamespace(reports={"forward": r})) is None and mount_left(
+            SimpleNamespace(reports={"forward": r})) is None  # nothing left open for diff's covariance
+    # frames of many surfaces (the independent generator's): the albedos cannot witness, even spread wider; the
+    # tilted frames' RMS decides
     monkeypatch.setattr(ff, "fit_forward", second(1.5, cv=2.5))
-    p, r = ff.reconsider_geometry(tilted, far, dict(first, one_surface={"albedo_cv_after": 2.4}), progress=False)
-    assert r["geometry"]["adopted"] == "time_scales"
+    p, r = ff.reconsider_geometry(tilted, far, dict(first, one_surface={"albedo_cv_after": 0.5}), progress=False)
+    assert r["geometry"]["adopted"] == "time_scales" and "many surfaces" in r["geometry"]["why"]
     calls.clear()
     monkeypatch.setattr(ff, "fit_forward", second(1.7))
     near = ForwardParams(edge_fov_scale=1.004, corner_fov_scale=1.003, mount_tilt=[-0.003, -0.001])  # unit 52's

@@ -143,6 +143,10 @@ def test_the_report_says_whether_the_frames_were_used_and_the_note_what_they_sho
               "failed (ArithmeticError: x)"),
              ({"geometry": {"told_apart": False, "nominal_time_scales": {"converged": False}}}, "did not converge"),
              ({"geometry": {"note": "n", "free": {}, "adopted": "free"}}, "one reading"),
+             ({"geometry": {"capture": "tilted", "told_apart": True, "adopted": "time_scales"}}, "tilted frames with "
+              "ground truth"),
+             ({"geometry": {"capture": "tilted", "told_apart": False, "time_scales": {"failed": "x"}}},
+              "tilted frames"),
              ({}, "one reading"))
     for report, says in cases:
         summary = unlabelled_summary(report, 20)

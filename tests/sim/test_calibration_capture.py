@@ -107,12 +107,23 @@ def test_the_level_calibrated_time_scale_units_cover_diffs_errors_on_tilted_plan
     never overconfident (NEES per dof at most 2), and on the unit with the mount, where a level sweep leaves both
     things undetermined, within 0.5-2 (0.62; 0.31 with the stated tilt floor at 0.005, sized before the simulator
     rendered the time scales before the bins: docs/results.md, "Diff's stated tilt floor re-sized"). The unit without
-    a mount stays cautious (0.15): its stated offset holds a mount the sweep cannot rule out."""
+    a mount stays cautious (0.15): its stated offset holds a mount the sweep cannot rule out. Each packaged unit
+    calibration's stated term is the one :func:`diff_tilt_term` states now from its report's inputs (made again when
+    the term's constants change)."""
+    from place_safe.calibration.uncertainty import diff_tilt_term
     from place_safe.evaluation.metrics import nees
     from place_safe.recovery import make_estimator
     from place_safe.sim.calibration_capture import OPERATING_TEMPERATURE, capture_level_sweep
     from place_safe.sim.tof_mismatch import MismatchConfig
 
+    for name in ("calibration_mismatch_zone_time_mount.json", "calibration_mismatch_zone_time.json",
+                 "calibration_mismatch_mount_tilt.json"):  # made with the stated term as the module states it now
+        raw = json.loads(calibration_file("mismatch").with_name(name).read_text())
+        rep, left = raw["reports"]["uncertainty"]["diff"], raw["reports"]["uncertainty"]["diff"]["tilt_mount_left_deg"]
+        term = diff_tilt_term(rep["tilt_model_error"], rep["tilt_crosstalk"], rep["tilt_readings"],
+                              None if left is None else math.radians(left))
+        assert raw["uncertainty"]["diff"]["tilt_rel"] == pytest.approx(term.tilt_rel, rel=1e-9), name
+        assert raw["uncertainty"]["diff"]["tilt_offset_rel"] == pytest.approx(term.tilt_offset_rel, rel=1e-9), name
     for name, band in (("calibration_mismatch_zone_time_mount.json", (0.5, 2.0)),
                        ("calibration_mismatch_zone_time.json", (0.0, 2.0))):
         path = calibration_file("mismatch").with_name(name)
