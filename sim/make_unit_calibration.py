@@ -27,6 +27,13 @@ fit keeps the mount, and peak's covariance widens by it on tilted planes so that
 ``calibration_mismatch_zone_time_mount.json`` (the zone-time unit mounted 1.0 deg off: both things a level table
 cannot tell apart in one unit, scorecard unit 39) is the calibration of the ``zone_time_mount_*`` scenarios: the
 time-scale reading is kept, and the scales take up the mount as far as a level table shows it.
+
+    python sim/make_unit_calibration.py --zone-time-scale 0.015 --mount-tilt 0.8 -0.6 --tilted 12 -o OUT.json
+
+(``OUT.json``: ``sim/sensors/calibration_mismatch_zone_time_mount_tilts.json``) the same unit's level sweep with 12
+tilted frames added, as calibrate's note asks: the tilted frames tell the zones' directions from their time, and
+``calibrate`` fits both (the time scales and the mount found, docs/results.md "A few tilted frames"); the calibration
+of the ``zone_time_mount_tilts_*`` scenarios.
 """
 from __future__ import annotations
 
@@ -42,6 +49,10 @@ FRAMES = 150
 HEIGHTS = (0.02, 0.40)
 #: The sweep's seed (the pose draw and the sensor's noise).
 SEED = 5
+#: ``--tilted N``: the tilted frames' seed, heights (m) and tilts (deg), as ``unit_scorecard.py --few-tilts``.
+TILTED_SEED = 7
+TILTED_HEIGHTS = (0.05, 0.30)
+TILTED_DEG = (5.0, 30.0)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -53,7 +64,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--mount-tilt", type=float, nargs=2, default=None, metavar=("RX_DEG", "RY_DEG"),
                     help="MismatchConfig.mount_tilt in degrees: the sensor mounted off its nominal orientation "
                          "(rotation vector about x and y; default: mounted nominally)")
-    ap.add_argument("--frames-out", help="also keep the level sweep's frames here")
+    ap.add_argument("--tilted", type=int, default=0, metavar="N",
+                    help="add N frames of a table tilted 5-30 deg below the sensor (5-30 cm) to the level sweep, as a "
+                         "user who follows calibrate's note captures them (default 0: the level sweep alone)")
+    ap.add_argument("--frames-out", help="also keep the sweep's frames here")
     a = ap.parse_args(argv)
 
     import torch
@@ -75,6 +89,14 @@ def main(argv: list[str] | None = None) -> int:
     print(f"level sweep: {FRAMES} frames, {HEIGHTS[0] * 100:g}-{HEIGHTS[1] * 100:g} cm, unit {unit}", file=sys.stderr)
     frames = capture_level_sweep("mismatch", FRAMES, seed=SEED, temperature=OPERATING_TEMPERATURE, heights=HEIGHTS,
                                  max_tilt=0.0, mismatch=mc)
+    if a.tilted < 0:
+        ap.error(f"--tilted must be 0 or more frames, got {a.tilted}")
+    if a.tilted:
+        print(f"tilted frames: {a.tilted}, {TILTED_DEG[0]:g}-{TILTED_DEG[1]:g} deg, {TILTED_HEIGHTS[0] * 100:g}-"
+              f"{TILTED_HEIGHTS[1] * 100:g} cm", file=sys.stderr)
+        frames += capture_level_sweep("mismatch", a.tilted, seed=TILTED_SEED, temperature=OPERATING_TEMPERATURE,
+                                      heights=TILTED_HEIGHTS, min_tilt=math.radians(TILTED_DEG[0]),
+                                      max_tilt=math.radians(TILTED_DEG[1]), mismatch=mc)
     if a.frames_out:
         write_frames(a.frames_out, frames)
     cal = Calibration()
@@ -84,7 +106,10 @@ def main(argv: list[str] | None = None) -> int:
                               "chain": "capture_level_sweep (level: the table straight below, at operating "
                                        "temperature) -> place-safe calibrate --method diff, proprietary",
                               "distances_m": list(HEIGHTS), "max_tilt_deg": 0.0,
-                              "temperature_degc": OPERATING_TEMPERATURE}
+                              "temperature_degc": OPERATING_TEMPERATURE,
+                              **({"tilted": {"frames": a.tilted, "seed": TILTED_SEED,
+                                             "distances_m": list(TILTED_HEIGHTS), "tilt_deg": list(TILTED_DEG)}}
+                                 if a.tilted else {})}
     out = Path(a.output)
     out.parent.mkdir(parents=True, exist_ok=True)
     cal.save(out)
