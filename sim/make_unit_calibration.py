@@ -3,7 +3,8 @@
 The packaged simulated calibrations (``calibration_mismatch.json``, ``calibration_nominal.json``) are made by
 ``place-safe calibrate --sim`` on the default units. This script makes one for a mismatched unit whose
 :class:`~place_safe.sim.tof_mismatch.MismatchConfig` differs, from a level sweep alone (the table straight below the
-sensor, no tilt), which is what a user with a bench and a level table captures:
+sensor, no tilt), which is what a user with a bench and a level table captures, or with ``--tilted N`` a few tilted
+frames added, as ``calibrate``'s note asks:
 
     python sim/make_unit_calibration.py --zone-time-scale 0.015 -o sim/sensors/calibration_mismatch_zone_time.json
 
@@ -12,7 +13,8 @@ sweep's zones do; docs/results.md, "Each zone's own time scale") is the calibrat
 in ``scenarios/set``: a level sweep sets such a unit's geometry far from nominal, and ``calibrate`` replaces it by
 each zone's own time scale (``forward_fit.reconsider_geometry``). The sweep: :data:`FRAMES` frames, the sensor
 :data:`HEIGHTS` above the table, at operating temperature, seed :data:`SEED` (the unit scorecard's level sweep,
-``docs/figures/unit_scorecard.py --units 34``). ``reports.capture`` records the unit and the sweep. About a minute.
+``docs/figures/unit_scorecard.py --units 34``). ``reports.capture`` records the unit and the sweep. About a minute
+(half a minute more with the second forward fit on a machine without a spare core).
 
     python sim/make_unit_calibration.py --mount-tilt 1.2 -0.9 -o sim/sensors/calibration_mismatch_mount_tilt.json
 
@@ -49,10 +51,11 @@ FRAMES = 150
 HEIGHTS = (0.02, 0.40)
 #: The sweep's seed (the pose draw and the sensor's noise).
 SEED = 5
-#: ``--tilted N``: the tilted frames' seed, heights (m) and tilts (deg), as ``unit_scorecard.py --few-tilts``.
+#: ``--tilted N``: the tilted frames' seed, heights (m) and tilts (deg), as ``unit_scorecard.py --few-tilts``
+#: (``FEW_SEED``, ``TILT_HEIGHTS``, ``FEW_TILTS_DEG``).
 TILTED_SEED = 7
 TILTED_HEIGHTS = (0.05, 0.30)
-TILTED_DEG = (5.0, 30.0)
+TILTED_DEG = (8.0, 30.0)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -65,10 +68,12 @@ def main(argv: list[str] | None = None) -> int:
                     help="MismatchConfig.mount_tilt in degrees: the sensor mounted off its nominal orientation "
                          "(rotation vector about x and y; default: mounted nominally)")
     ap.add_argument("--tilted", type=int, default=0, metavar="N",
-                    help="add N frames of a table tilted 5-30 deg below the sensor (5-30 cm) to the level sweep, as a "
+                    help="add N frames of a table tilted 8-30 deg below the sensor (5-30 cm) to the level sweep, as a "
                          "user who follows calibrate's note captures them (default 0: the level sweep alone)")
     ap.add_argument("--frames-out", help="also keep the sweep's frames here")
     a = ap.parse_args(argv)
+    if a.tilted < 0:
+        ap.error(f"--tilted must be 0 or more frames, got {a.tilted}")
 
     import torch
 
@@ -89,8 +94,6 @@ def main(argv: list[str] | None = None) -> int:
     print(f"level sweep: {FRAMES} frames, {HEIGHTS[0] * 100:g}-{HEIGHTS[1] * 100:g} cm, unit {unit}", file=sys.stderr)
     frames = capture_level_sweep("mismatch", FRAMES, seed=SEED, temperature=OPERATING_TEMPERATURE, heights=HEIGHTS,
                                  max_tilt=0.0, mismatch=mc)
-    if a.tilted < 0:
-        ap.error(f"--tilted must be 0 or more frames, got {a.tilted}")
     if a.tilted:
         print(f"tilted frames: {a.tilted}, {TILTED_DEG[0]:g}-{TILTED_DEG[1]:g} deg, {TILTED_HEIGHTS[0] * 100:g}-"
               f"{TILTED_HEIGHTS[1] * 100:g} cm", file=sys.stderr)
@@ -104,7 +107,9 @@ def main(argv: list[str] | None = None) -> int:
         fit_method(cal, frames, method, progress=True, log=lambda line: print(line, file=sys.stderr, flush=True))
     cal.reports["capture"] = {"sensor": "mismatch", "unit": unit, "seed": SEED, "frames": len(frames),
                               "chain": "capture_level_sweep (level: the table straight below, at operating "
-                                       "temperature) -> place-safe calibrate --method diff, proprietary",
+                                       "temperature" + (f"; then {a.tilted} frames of the table tilted, 'tilted'"
+                                                        if a.tilted else "")
+                                       + ") -> place-safe calibrate --method diff, proprietary",
                               "distances_m": list(HEIGHTS), "max_tilt_deg": 0.0,
                               "temperature_degc": OPERATING_TEMPERATURE,
                               **({"tilted": {"frames": a.tilted, "seed": TILTED_SEED,

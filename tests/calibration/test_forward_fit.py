@@ -631,11 +631,19 @@ def test_a_far_geometry_gives_way_to_the_zones_time_scales_only_for_a_better_fit
         assert g["capture"] == "tilted" and g["told_apart"] is apart and ("other_params" in g) is apart
         assert other_reading(SimpleNamespace(reports={"forward": r})) is None and mount_left(
             SimpleNamespace(reports={"forward": r})) is None  # nothing left open for diff's covariance
-    # frames of many surfaces (the independent generator's): the albedos cannot witness, even spread wider; the
-    # tilted frames' RMS decides
+    # frames both readings call many surfaces (the independent generator's): the albedos cannot witness, even spread
+    # wider; the tilted frames' RMS decides
     monkeypatch.setattr(ff, "fit_forward", second(1.5, cv=2.5))
     p, r = ff.reconsider_geometry(tilted, far, dict(first, one_surface={"albedo_cv_after": 0.5}), progress=False)
     assert r["geometry"]["adopted"] == "time_scales" and "many surfaces" in r["geometry"]["why"]
+    # one table that the first fit misread as many albedos (unit 39's capture, 95 % -> 1.1 %): one surface, the guard
+    # passes; a second fit that reads many albedos where the first reads one surface is refused
+    monkeypatch.setattr(ff, "fit_forward", second(1.5, cv=0.011))
+    p, r = ff.reconsider_geometry(tilted, far, dict(first, one_surface={"albedo_cv_after": 0.95}), progress=False)
+    assert r["geometry"]["adopted"] == "time_scales" and "many surfaces" not in r["geometry"]["why"]
+    monkeypatch.setattr(ff, "fit_forward", second(1.5, cv=0.25))
+    p, r = ff.reconsider_geometry(tilted, far, dict(first, one_surface={"albedo_cv_after": 0.1}), progress=False)
+    assert r["geometry"]["adopted"] == "free" and "one surface" in r["geometry"]["why"]
     calls.clear()
     monkeypatch.setattr(ff, "fit_forward", second(1.7))
     near = ForwardParams(edge_fov_scale=1.004, corner_fov_scale=1.003, mount_tilt=[-0.003, -0.001])  # unit 52's
