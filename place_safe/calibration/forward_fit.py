@@ -1474,6 +1474,22 @@ def _albedo_cv(report: dict) -> float:
     return _number((report.get("one_surface") or {}).get("albedo_cv_after"))
 
 
+def _compared(report: dict, alt: ForwardParams, alt_report: dict) -> tuple[float, float, float, float, bool, dict, str]:
+    """The first fit's ``report`` against the second fit (``alt``, ``alt_report``) of :func:`reconsider_geometry`:
+    the two RMS scaled residuals and albedo CVs (NaN: not known), whether the second converged, its summary for the
+    report's ``geometry`` section, and the comparison as the user's line says it."""
+    rms, rms_alt = _number(report.get("rms_scaled_residual_after")), _number(alt_report.get("rms_scaled_residual_after"))
+    cv, cv_alt = _albedo_cv(report), _albedo_cv(alt_report)
+    converged = bool(alt_report.get("converged"))
+    summary = {"rms_scaled_residual": rms_alt, "converged": converged, "albedo_cv": cv_alt,
+               "frames_left_out": _frames_left_out(alt_report),
+               "zone_bin_scales": [float(s) for s in alt.zone_bin_scales],
+               "seconds": (alt_report.get("solver") or {}).get("seconds")}
+    compared = (f"RMS {rms:.3f} -> {rms_alt:.3f}{'' if converged else ' (not converged)'}, the frames' albedo CV "
+                f"{100 * cv:.1f} -> {100 * cv_alt:.1f} %")
+    return rms, rms_alt, cv, cv_alt, converged, summary, compared
+
+
 #: A frame's log albedo within this of its bound (:data:`ALBEDO_RISE` above its start, or the fit's floor) is at the
 #: bound: no count in the frame moved it there (a return deep in saturation, where the histogram no longer depends on
 #: the albedo), so it says nothing about the surface.
@@ -1595,15 +1611,7 @@ def reconsider_geometry(frames: Sequence[Frame], params: ForwardParams, report: 
     except (ArithmeticError, ValueError) as exc:  # the first fit stands, with its note
         failed = f"{type(exc).__name__}: {exc}"
         return keep({"failed": failed}, f"the second fit failed: {failed}")
-    rms, rms_alt = _number(report.get("rms_scaled_residual_after")), _number(alt_report.get("rms_scaled_residual_after"))
-    cv, cv_alt = _albedo_cv(report), _albedo_cv(alt_report)
-    converged = bool(alt_report.get("converged"))
-    nominal = {"rms_scaled_residual": rms_alt, "converged": converged, "albedo_cv": cv_alt,
-               "frames_left_out": _frames_left_out(alt_report),
-               "zone_bin_scales": [float(s) for s in alt.zone_bin_scales],
-               "seconds": (alt_report.get("solver") or {}).get("seconds")}
-    compared = (f"RMS {rms:.3f} -> {rms_alt:.3f}{'' if converged else ' (not converged)'}, the frames' albedo CV "
-                f"{100 * cv:.1f} -> {100 * cv_alt:.1f} %")
+    rms, rms_alt, cv, cv_alt, converged, nominal, compared = _compared(report, alt, alt_report)
 
     def adopt(why: str, shown: str, **extra) -> tuple[ForwardParams, dict]:
         """The second fit, its report saying ``why`` (and ``extra``), the first fit's params kept as the other reading;
@@ -1702,20 +1710,12 @@ def _tilted_capture(frames: Sequence[Frame], params: ForwardParams, report: dict
                               "why": f"kept the fitted geometry: the second fit failed: {failed}", "told_apart": False}
         say(f"forward model: kept the fitted geometry (the fit with each zone's own time scale failed: {failed})")
         return params, report
-    rms = _number(report.get("rms_scaled_residual_after"))
-    rms_alt = _number(alt_report.get("rms_scaled_residual_after"))
-    cv, cv_alt = _albedo_cv(report), _albedo_cv(alt_report)
-    converged = bool(alt_report.get("converged"))
+    rms, rms_alt, cv, cv_alt, converged, scales, compared = _compared(report, alt, alt_report)
     undetermined = sorted(set(TILTED_DETERMINES) & set((alt_report.get("posterior_std") or {}).get("not_determined")
                                                        or ()))
-    scales = {"rms_scaled_residual": rms_alt, "converged": converged, "albedo_cv": cv_alt,
-              "frames_left_out": _frames_left_out(alt_report), "not_determined": undetermined,
-              "zone_bin_scales": [float(s) for s in alt.zone_bin_scales],
-              "edge_fov_scale": alt.edge_fov_scale, "corner_fov_scale": alt.corner_fov_scale,
-              "mount_tilt_deg": [math.degrees(float(t)) for t in alt.mount_tilt],
-              "seconds": (alt_report.get("solver") or {}).get("seconds")}
-    compared = (f"RMS {rms:.3f} -> {rms_alt:.3f}{'' if converged else ' (not converged)'}, the frames' albedo CV "
-                f"{100 * cv:.1f} -> {100 * cv_alt:.1f} %")
+    scales.update({"not_determined": undetermined, "edge_fov_scale": alt.edge_fov_scale,
+                   "corner_fov_scale": alt.corner_fov_scale,
+                   "mount_tilt_deg": [math.degrees(float(t)) for t in alt.mount_tilt]})
     known = math.isfinite(cv) and math.isfinite(cv_alt)
     # many surfaces where both readings say so (a first fit that misreads one table can spread its albedos too)
     many_surfaces = known and min(cv, cv_alt) > SAME_SURFACE_CV
