@@ -51,11 +51,6 @@ FRAMES = 150
 HEIGHTS = (0.02, 0.40)
 #: The sweep's seed (the pose draw and the sensor's noise).
 SEED = 5
-#: ``--tilted N``: the tilted frames' seed, heights (m) and tilts (deg), as ``unit_scorecard.py --few-tilts``
-#: (``FEW_SEED``, ``TILT_HEIGHTS``, ``FEW_TILTS_DEG``).
-TILTED_SEED = 7
-TILTED_HEIGHTS = (0.05, 0.30)
-TILTED_DEG = (8.0, 30.0)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -80,7 +75,8 @@ def main(argv: list[str] | None = None) -> int:
     from place_safe.calibration import Calibration
     from place_safe.calibration.fit import fit_method
     from place_safe.io.frame_file import write_frames
-    from place_safe.sim.calibration_capture import OPERATING_TEMPERATURE, capture_level_sweep
+    from place_safe.sim.calibration_capture import (FEW_TILTS_DEG, FEW_TILTS_HEIGHTS, FEW_TILTS_SEED,
+                                                    OPERATING_TEMPERATURE, capture_few_tilts, capture_level_sweep)
     from place_safe.sim.tof_mismatch import MismatchConfig
 
     torch.set_num_threads(1)
@@ -94,12 +90,10 @@ def main(argv: list[str] | None = None) -> int:
     print(f"level sweep: {FRAMES} frames, {HEIGHTS[0] * 100:g}-{HEIGHTS[1] * 100:g} cm, unit {unit}", file=sys.stderr)
     frames = capture_level_sweep("mismatch", FRAMES, seed=SEED, temperature=OPERATING_TEMPERATURE, heights=HEIGHTS,
                                  max_tilt=0.0, mismatch=mc)
-    if a.tilted:
-        print(f"tilted frames: {a.tilted}, {TILTED_DEG[0]:g}-{TILTED_DEG[1]:g} deg, {TILTED_HEIGHTS[0] * 100:g}-"
-              f"{TILTED_HEIGHTS[1] * 100:g} cm", file=sys.stderr)
-        frames += capture_level_sweep("mismatch", a.tilted, seed=TILTED_SEED, temperature=OPERATING_TEMPERATURE,
-                                      heights=TILTED_HEIGHTS, min_tilt=math.radians(TILTED_DEG[0]),
-                                      max_tilt=math.radians(TILTED_DEG[1]), mismatch=mc)
+    if a.tilted:  # the tilted poses of unit_scorecard.py --few-tilts
+        print(f"tilted frames: {a.tilted}, {FEW_TILTS_DEG[0]:g}-{FEW_TILTS_DEG[1]:g} deg, "
+              f"{FEW_TILTS_HEIGHTS[0] * 100:g}-{FEW_TILTS_HEIGHTS[1] * 100:g} cm", file=sys.stderr)
+        frames += capture_few_tilts(a.tilted, mc)
     if a.frames_out:
         write_frames(a.frames_out, frames)
     cal = Calibration()
@@ -112,8 +106,8 @@ def main(argv: list[str] | None = None) -> int:
                                        + ") -> place-safe calibrate --method diff, proprietary",
                               "distances_m": list(HEIGHTS), "max_tilt_deg": 0.0,
                               "temperature_degc": OPERATING_TEMPERATURE,
-                              **({"tilted": {"frames": a.tilted, "seed": TILTED_SEED,
-                                             "distances_m": list(TILTED_HEIGHTS), "tilt_deg": list(TILTED_DEG)}}
+                              **({"tilted": {"frames": a.tilted, "seed": FEW_TILTS_SEED,
+                                             "distances_m": list(FEW_TILTS_HEIGHTS), "tilt_deg": list(FEW_TILTS_DEG)}}
                                  if a.tilted else {})}
     out = Path(a.output)
     out.parent.mkdir(parents=True, exist_ok=True)

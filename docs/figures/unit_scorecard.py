@@ -173,31 +173,26 @@ def run(cmd: list[str], log: Path) -> tuple[float, float]:
     return wall, user
 
 
-#: The few tilted calibration frames of ``--few-tilts``: tilts (deg) and heights (m) they are drawn from, and their seed.
-FEW_TILTS_DEG = (8.0, 30.0)
-FEW_SEED = 7
-
-
 def add_few_tilts(unit: str, out: Path, level: Path, n: int, fresh: bool = False) -> Path:
     """``{unit}_level_few{n}.json``: the unit's level sweep with ``n`` tilted frames added (another seed, tilts
-    :data:`FEW_TILTS_DEG`, heights :data:`TILT_HEIGHTS`; the generator's tilts 0 to the largest): "a few tilts" on
-    top of the level sweep. Made again with ``fresh`` or when the level sweep is newer."""
+    ``FEW_TILTS_DEG``, heights ``FEW_TILTS_HEIGHTS``, seed ``FEW_TILTS_SEED``: the simulated user's, as
+    ``place_safe.sim.calibration_capture.capture_few_tilts`` draws them; the generator's tilts 0 to the largest): "a
+    few tilts" on top of the level sweep. Made again with ``fresh`` or when the level sweep is newer."""
+    from place_safe.sim.calibration_capture import FEW_TILTS_DEG, FEW_TILTS_HEIGHTS, FEW_TILTS_SEED, capture_few_tilts
+
     path = out / f"{unit}_level_few{n}.json"
     if path.exists() and not fresh and path.stat().st_mtime >= level.stat().st_mtime:
         return path
     few = out / f"{unit}_few{n}.json"
     if unit in SYNTH:  # the generator draws incidences 0..max: the frames under 5 deg count as level
-        run(["synth", "--frames", str(n), "--seed", str(FEW_SEED), "--sensor-seed", str(SYNTH[unit]), "--max-angle",
-             str(FEW_TILTS_DEG[1]), "--min-distance", str(TILT_HEIGHTS[0]), "--max-distance", str(TILT_HEIGHTS[1]),
-             "-o", str(few)], out / f"{unit}_synth_few{n}.log")
+        run(["synth", "--frames", str(n), "--seed", str(FEW_TILTS_SEED), "--sensor-seed", str(SYNTH[unit]),
+             "--max-angle", str(FEW_TILTS_DEG[1]), "--min-distance", str(FEW_TILTS_HEIGHTS[0]), "--max-distance",
+             str(FEW_TILTS_HEIGHTS[1]), "-o", str(few)], out / f"{unit}_synth_few{n}.log")
     else:
         from place_safe.io.frame_file import write_frames
-        from place_safe.sim.calibration_capture import OPERATING_TEMPERATURE, capture_level_sweep
         from place_safe.sim.tof_mismatch import MismatchConfig
         mc = None if UNITS[unit] is None else MismatchConfig(**UNITS[unit])
-        write_frames(str(few), capture_level_sweep("mismatch", n, seed=FEW_SEED, temperature=OPERATING_TEMPERATURE,
-                                                   heights=TILT_HEIGHTS, min_tilt=math.radians(FEW_TILTS_DEG[0]),
-                                                   max_tilt=math.radians(FEW_TILTS_DEG[1]), mismatch=mc))
+        write_frames(str(few), capture_few_tilts(n, mc))
     path.write_text(json.dumps(json.loads(level.read_text()) + json.loads(few.read_text())))
     return path
 

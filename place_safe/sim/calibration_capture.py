@@ -167,6 +167,22 @@ RIG_SENSORS = ("mismatch",)
 #: degC: the mismatched sensor's die temperature when calibrated (its steady state: it has been on for minutes).
 OPERATING_TEMPERATURE = 45.0
 
+#: "A few tilted poses" added to a level sweep, as ``calibrate``'s note asks (:func:`capture_few_tilts`): the tilts
+#: (deg) and sensor-to-plane heights (m) they are drawn from, and their seed.
+FEW_TILTS_DEG = (8.0, 30.0)
+FEW_TILTS_HEIGHTS = (0.05, 0.30)
+FEW_TILTS_SEED = 7
+
+
+def capture_few_tilts(n: int, mismatch=None, sensor: str = "mismatch") -> list:
+    """``n`` noisy frames with ground truth of the table tilted :data:`FEW_TILTS_DEG` below the sensor, at
+    :data:`FEW_TILTS_HEIGHTS`, seed :data:`FEW_TILTS_SEED`, at operating temperature (:func:`capture_level_sweep`):
+    the tilted poses a user adds to a level sweep. ``mismatch``: the unit's
+    :class:`~place_safe.sim.tof_mismatch.MismatchConfig` (None: the default unit)."""
+    return capture_level_sweep(sensor, n, seed=FEW_TILTS_SEED, temperature=OPERATING_TEMPERATURE,
+                               heights=FEW_TILTS_HEIGHTS, min_tilt=math.radians(FEW_TILTS_DEG[0]),
+                               max_tilt=math.radians(FEW_TILTS_DEG[1]), mismatch=mismatch)
+
 
 def record_provenance(calibration: Path, sensor: str, capture: Path, seed: int) -> None:
     """Write how the calibration was made into its ``reports.capture`` (chain, sensor, seed, frames, plane)."""
@@ -185,4 +201,5 @@ def record_provenance(calibration: Path, sensor: str, capture: Path, seed: int) 
     Path(calibration).write_text(json.dumps(d, indent=2), encoding="utf-8")
 
 
-__all__ = ["capture_level_sweep", "capture_arm_sweep", "calibrate_sim", "calibration_file", "SWEEP_FRAMES", "CHAIN"]
+__all__ = ["capture_level_sweep", "capture_few_tilts", "capture_arm_sweep", "calibrate_sim", "calibration_file",
+           "SWEEP_FRAMES", "CHAIN"]
