@@ -27,6 +27,9 @@ from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from tilted_nees import components  # noqa: E402  (diff's errors and variances per component, as tilted_nees reads them)
+
 
 def read_with_term(cal_path: Path, tilt_path: Path, term_for):
     """Diff's estimates of the tilted frames with the calibration's stated term made by ``term_for(report)`` (an
@@ -50,17 +53,6 @@ def read_with_term(cal_path: Path, tilt_path: Path, term_for):
     Path(tmp.name).unlink()
     frames = [f for f in load_frames(str(tilt_path)) if f.truth is not None]
     return frames, make_estimator("diff", cal).estimate_many(frames), term
-
-
-def components(frames, ests):
-    """(errors (n, 3), variances (n, 3), tan(tilt) (n,), z0 (n,)) of the frames diff read with a covariance."""
-    from place_safe.recovery.estimator import tilt_offset
-
-    ok = [i for i, e in enumerate(ests) if e.ok and e.covariance is not None]
-    err = np.array([tilt_offset(ests[i].plane) - tilt_offset(frames[i].truth) for i in ok]).reshape(-1, 3)
-    var = np.array([np.diag(ests[i].covariance) for i in ok]).reshape(-1, 3)
-    tan = np.array([math.tan(math.acos(min(abs(float(frames[i].truth.normal[2])), 1.0))) for i in ok])
-    return err, var, tan, np.array([frames[i].truth.z0 for i in ok])
 
 
 def need(e2: np.ndarray, level_var: np.ndarray, lever: np.ndarray) -> float:

@@ -40,9 +40,20 @@ def read(out: Path, unit: str):
     return frames, make_estimator("diff", cal).estimate_many(frames), cal
 
 
+def components(frames, ests):
+    """(errors (n, 3), variances (n, 3), tan(tilt) (n,), z0 (n,)) of ``(n_x, n_y, d)`` over the frames diff read
+    with a covariance (``ests`` one per frame)."""
+    from place_safe.recovery.estimator import tilt_offset
+
+    ok = [i for i, e in enumerate(ests) if e.ok and e.covariance is not None]
+    err = np.array([tilt_offset(ests[i].plane) - tilt_offset(frames[i].truth) for i in ok]).reshape(-1, 3)
+    var = np.array([np.diag(ests[i].covariance) for i in ok]).reshape(-1, 3)
+    tan = np.array([math.tan(math.acos(min(abs(float(frames[i].truth.normal[2])), 1.0))) for i in ok])
+    return err, var, tan, np.array([frames[i].truth.z0 for i in ok])
+
+
 def main(argv: list[str] | None = None) -> int:
     from place_safe.evaluation.metrics import nees
-    from place_safe.recovery.estimator import tilt_offset
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", type=Path, required=True)
@@ -56,9 +67,7 @@ def main(argv: list[str] | None = None) -> int:
         frames, ests, cal = read(a.out, u)
         v = nees(ests, [f.truth for f in frames])
         deg = np.degrees([math.acos(min(abs(float(f.truth.normal[2])), 1.0)) for f in frames])
-        ok = [i for i, e in enumerate(ests) if e.ok and e.covariance is not None]
-        err = np.array([tilt_offset(ests[i].plane) - tilt_offset(frames[i].truth) for i in ok])
-        var = np.array([np.diag(ests[i].covariance) for i in ok])
+        err, var, _, _ = components(frames, ests)
         comp_t, comp_d = float(np.mean(err[:, :2] ** 2 / var[:, :2])), float(np.mean(err[:, 2] ** 2 / var[:, 2]))
         bands = [interval([x for x, g in zip(v, deg) if lo <= g < hi and math.isfinite(x)]) for lo, hi in TILT_BANDS]
         d = cal.uncertainty("diff")
