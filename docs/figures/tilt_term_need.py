@@ -6,8 +6,8 @@ would give, without calibrating again.
     python docs/figures/tilt_term_need.py --out ../scorecard --units 43 57 --floor 0.0025 0.003 0.0035
 
 ``--out``: a directory of ``docs/figures/unit_scorecard.py`` (``{unit}_cal.json`` from a level sweep,
-``{unit}_tilt.json`` tilted frames). For each unit whose calibration stated its tilt term (a level sweep; not one sized on tilted frames)
-the term is made again by :func:`~place_safe.calibration.uncertainty.diff_tilt_term` from the inputs the calibration
+``{unit}_tilt.json`` tilted frames). For each unit whose calibration stated its tilt term (a level sweep; not one
+sized on tilted frames) the term is made again by :func:`~place_safe.calibration.uncertainty.diff_tilt_term` from the inputs the calibration
 report keeps (model error, crosstalk, the readings' difference, the mount left), with the module's constants or those
 given, and diff reads the tilted frames as ``recover`` returns it (fallbacks and the blend included: the term weighs
 diff against peak, so the angle may move too). Printed per unit: the term (tilt / offset part), NEES per dof, its tilt
