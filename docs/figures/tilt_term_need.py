@@ -6,15 +6,15 @@ would give, without calibrating again.
     python docs/figures/tilt_term_need.py --out ../scorecard --units 43 57 --floor 0.0025 0.003 0.0035
 
 ``--out``: a directory of ``docs/figures/unit_scorecard.py`` (``{unit}_cal.json`` from a level sweep,
-``{unit}_tilt.json`` tilted frames). For each unit whose calibration stated its tilt term (a level sweep; not one
-sized on tilted frames) the term is made again by :func:`~place_safe.calibration.uncertainty.diff_tilt_term` from the inputs the calibration
-report keeps (model error, crosstalk, the readings' difference, the mount left), with the module's constants or those
-given, and diff reads the tilted frames as ``recover`` returns it (fallbacks and the blend included: the term weighs
-diff against peak, so the angle may move too). Printed per unit: the term (tilt / offset part), NEES per dof, its tilt
-components and offset (each 1 for honest variances), the mean angle (deg), and for ``--need`` the tilt and offset
-parts that give each component NEES 1 with every stated term off (what the frames need beyond the fit's covariance and
-the level floor). The level floor, the fit's covariance and the fallback limits are the calibration's: a lower tilt
-floor changes nothing else a level sweep fits (the level frames' tilts are the sweep's own).
+``{unit}_tilt.json`` tilted frames). For each unit whose calibration stated its tilt term (a level sweep; not one sized
+on tilted frames) the term is made again by :func:`~place_safe.calibration.uncertainty.diff_tilt_term` from the inputs
+the calibration report keeps (model error, crosstalk, the readings' difference, the mount left), with the module's
+constants or those given, and diff reads the tilted frames as ``recover`` returns it (fallbacks and the blend included:
+the term weighs diff against peak, so the angle may move too). Printed per unit: the term (tilt / offset part), NEES per
+dof, its tilt components and offset (each 1 for honest variances), the mean angle (deg), and for ``--need`` the tilt and
+offset parts that give each component NEES 1 with every stated term off (what the frames need beyond the fit's
+covariance and the level floor). The level floor, the fit's covariance and the fallback limits are the calibration's: a
+lower tilt floor changes nothing else a level sweep fits (the level frames' tilts are the sweep's own).
 """
 from __future__ import annotations
 
