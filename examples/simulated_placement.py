@@ -1,14 +1,26 @@
 """Put the cup down in MuJoCo with the same PlacementLoop a real-arm script uses.
 
-Run: ``MUJOCO_GL=egl python examples/simulated_placement.py [SCENARIO]`` (default place_level).
-The robot, the sensor and the calibration are the simulation's; everything else is the real code path.
+Run: ``MUJOCO_GL=egl python examples/simulated_placement.py [SCENARIO]`` (default place_level; ``place-safe scenarios``
+lists the scenario files, e.g. place_tilted). The robot, the sensor and the calibration are the simulation's;
+everything else is the real code path.
 """
 
+import argparse
 import sys
 
-from place_safe import PlacementConfig, PlacementLoop, make_estimator, sim_world, simulated_calibration
+from place_safe import PlaceSafeError, PlacementConfig, PlacementLoop, make_estimator, sim_world, simulated_calibration
 
-world = sim_world(sys.argv[1] if len(sys.argv) > 1 else "place_level")  # scene, SimRobot, simulated TMF8820
+parser = argparse.ArgumentParser(prog="simulated_placement.py", description="One placement in MuJoCo: released or "
+                                 "refused, and the state machine's transitions. Exit 0 released or refused, 1 any other "
+                                 "end, 2 a scenario that cannot be loaded.")
+parser.add_argument("scenario", nargs="?", default="place_level",
+                    help="a packaged scenario name or a scenario file (default place_level; e.g. place_tilted)")
+args = parser.parse_args()
+try:
+    world = sim_world(args.scenario)  # scene, SimRobot, simulated TMF8820
+except PlaceSafeError as exc:
+    print(f"simulated_placement.py: {str(exc).splitlines()[0]}", file=sys.stderr)
+    sys.exit(2)
 robot, sensor = world.robot, world.tof
 calibration = simulated_calibration("nominal")  # a user's: capture -> place-safe calibrate, made in simulation
 estimator = make_estimator("diff", calibration)

@@ -72,3 +72,21 @@ def test_real_arm_example_releases_and_retreats_on_the_pessimistic_fake(gripper)
         assert fake.arm.gripper_is_open()
     else:
         assert "SET POS 0" in srv.lines and srv.lines.index("SET POS 0") > srv.lines.index("SET ACT 1")
+
+
+def test_real_arm_example_says_in_one_line_what_it_could_not_open(capsys, tmp_path):
+    """The real-arm script's command line: --help teaches it, and a calibration or sensor that cannot be opened ends
+    it with one line (exit 2) before any robot is contacted."""
+    example = runpy.run_path(str(EXAMPLES / "real_placement.py"), run_name="example")
+    with pytest.raises(SystemExit) as done:
+        example["main"](["--help"])
+    assert done.value.code == 0 and "--dry-run" in capsys.readouterr().out
+    real = str(Path(__file__).resolve().parents[2] / "robots" / "ur5" / "real.toml")
+    assert example["main"]([real, "emu:synthetic", str(tmp_path / "missing.json"), "--dry-run"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "missing.json" in err and "Traceback" not in err
+    from place_safe.sim.calibration_capture import calibration_file
+
+    assert example["main"]([real, "i2c:/nonexistent/i2c-9@0x41", str(calibration_file("nominal")), "--dry-run"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "i2c" in err.lower()
