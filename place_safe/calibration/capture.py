@@ -16,8 +16,9 @@ the simulator's truth; ``calibrate-mount`` then fits the mount from the same fil
 
 On a robot in dry-run mode (``robot.dry_run``) every pose is checked and its planned move printed by the
 robot, and nothing is read or written. A capture is resumable: poses whose index is already in the output file are skipped. Poses the robot
-refuses (outside its limits, unreachable) are skipped and counted; a latched fault ends the capture
-(rerun to resume after clearing it).
+refuses (outside its limits, unreachable), and poses that would bring the TCP within :attr:`SweepPlan.min_clearance`
+of the plane (checked before the arm moves), are skipped and counted; a latched fault ends the capture (rerun to
+resume after clearing it).
 
 Conventions: base frame, SI units; a plane is ``(n, d)`` with ``n . x = d``, n pointing up, away from the
 surface (towards the sensor). Incidence is the angle between the optical axis and the surface normal,
@@ -39,7 +40,7 @@ from pydantic import Field
 
 from place_safe.config import ParamModel, vector
 
-from place_safe.exceptions import CalibrationError, NoPlaneError, RobotFault, SensorTimeout
+from place_safe.exceptions import CalibrationError, FrameFileError, NoPlaneError, RobotFault, SensorTimeout
 from place_safe.geometry import Plane, fit_plane
 from place_safe.recovery.estimator import Reference
 from place_safe.robot.interface import Robot
@@ -56,6 +57,8 @@ MAX_GRID_VALUES = 100
 #: (+-0.1 mm) read as one standard deviation. The simulated arm's three touches of a level table lie 0.06-0.18 mm
 #: low, 0.12 mm apart (docs/results.md, "The calibration's reference").
 TOUCH_HEIGHT_STD = 1e-4
+#: m, the least height of the TCP above the plane that a capture pose may have (:attr:`SweepPlan.min_clearance`).
+MIN_CLEARANCE = 0.005
 
 
 class SweepPlan(ParamModel):
@@ -79,6 +82,10 @@ class SweepPlan(ParamModel):
     max_poses: Optional[int] = Field(None, ge=1, le=10_000, description="poses")
     # s of robot time to wait for the frames of one pose
     frame_timeout_s: float = Field(2.0, gt=0.0, le=60.0, description="s")
+    # m the TCP (the gripper's fingertips: capture holds no object) must stay above the plane; a pose that would bring
+    # it closer is refused before the arm moves (a gripper whose tips reach 30 mm past the sensor cannot take the
+    # sensor within 35 mm of a table; in simulation the first poses of a sweep from 1 cm met the table at 70 N)
+    min_clearance: float = Field(MIN_CLEARANCE, ge=0.0, le=0.1, description="m")
 
     def grid(self) -> list[tuple[float, float, float]]:
         """(distance, incidence, azimuth) of every pose; incidence 0 once per distance."""
@@ -248,18 +255,30 @@ def _release_point(robot: Robot, speed: float, accel: float, max_back: float = 0
 
 
 def _done_indices(path: Path) -> set[int]:
+    """The pose indices already in a capture's output (resume), from its frames' ``meta.pose_index``. A half-written
+    last line after captured frames (an interrupted run) is cut off, so the frames appended after it start on a line of
+    their own. A file that is not a capture (any other line that is not a frame with a pose index: a calibration, a JSON
+    list of frames, text) raises :class:`FrameFileError` before anything is appended to it."""
     done: set[int] = set()
     if not path.is_file():
         return done
-    with open(path, encoding="utf-8") as fh:
-        for line in fh:
-            line = line.strip()
-            if not line:
+    raw = path.read_bytes()
+    lines = raw.split(b"\n")
+    keep = len(raw)
+    for k, line in enumerate(lines):
+        if not line.strip():
+            continue
+        try:
+            done.add(int(json.loads(line)["meta"]["pose_index"]))
+        except (ValueError, KeyError, TypeError, IndexError, UnicodeDecodeError):
+            if k == len(lines) - 1 and done:  # the last line after frames, unfinished: an interrupted run's; redone
+                keep = len(raw) - len(line)
                 continue
-            try:
-                done.add(int(json.loads(line)["meta"]["pose_index"]))
-            except (ValueError, KeyError, TypeError):
-                continue  # a half-written last line from an interrupted run: redone
+            raise FrameFileError(f"{path} exists and is not a capture to resume (line {k + 1} is not a frame with "
+                                 f"meta.pose_index): give another output file, or move this one") from None
+    if keep < len(raw):
+        with open(path, "r+b") as fh:
+            fh.truncate(keep)
     return done
 
 
@@ -336,6 +355,14 @@ def capture_sweep(robot: Robot, source: Any, plan: SweepPlan, out_path: str | Pa
         for k, (i, (dist, inc, az)) in enumerate(bar):
             base_T_sensor = sensor_target(pl, c, dist, inc, az, start_sensor[:3, 0])
             base_T_tcp = base_T_sensor @ np.linalg.inv(tcp_T_sensor)
+            clearance = float(pl[0] @ base_T_tcp[:3, 3]) - pl[1]
+            if clearance < plan.min_clearance:  # the gripper would meet the plane: not a pose to move to
+                why = (f"the TCP would come {clearance * 1000:.1f} mm from the plane, less than the "
+                       f"{plan.min_clearance * 1000:g} mm clearance (the gripper's tips reach "
+                       f"{(dist - clearance) * 1000:.0f} mm past the sensor towards it)")
+                refused.append({"pose_index": i, "distance": dist, "incidence": inc, "azimuth": az, "reason": why})
+                log(f"pose {i} refused: {why}")
+                continue
             try:
                 robot.move_linear(base_T_tcp, speed=plan.speed, accel=plan.accel)
             except RobotFault as exc:
@@ -369,7 +396,7 @@ def capture_sweep(robot: Robot, source: Any, plan: SweepPlan, out_path: str | Pa
                 frames_written += 1
             fh.flush()
             captured += 1
-            if not progress or bar.disable:
+            if progress and bar.disable:  # no bar (output not a terminal): a line every 10 poses; quiet: none
                 el = _time.perf_counter() - wall0
                 eta = el / (k + 1) * (len(todo) - k - 1)
                 if (k + 1) % 10 == 0 or k + 1 == len(todo):

@@ -22,6 +22,7 @@ from place_safe.cli.common import CALIBRATE_METHODS, log, uncalibrated_note
 from place_safe.cli.options import REACH, float_range, int_range
 from place_safe.exceptions import ConfigError, UsageError
 from place_safe.calibration import Calibration, mark
+from place_safe.calibration.capture import MIN_CLEARANCE
 from place_safe.recovery import make_estimator
 from place_safe.config import read_json
 from place_safe.geometry import transform_problem
@@ -248,7 +249,8 @@ def cmd_capture(args: argparse.Namespace) -> int:
     plan = SweepPlan(distances=[d / 1000.0 for d in args.distances],
                      incidences=[math.radians(a) for a in args.incidences],
                      azimuths=[math.radians(a) for a in args.azimuths], frames_per_pose=args.frames_per_pose,
-                     max_poses=args.poses, speed=args.speed, settle_s=args.settle)
+                     max_poses=args.poses, speed=args.speed, settle_s=args.settle,
+                     min_clearance=args.min_clearance / 1000.0)
     robot_cfg = _robot_config(args.robot)
     if args.sim:
         from place_safe.sim.world import sim_world
@@ -410,7 +412,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "ground-truth plane, flange pose and joint angles (JSON Lines, the shared frame format). The plane: --touch "
         "(the TCP touches it at 3+ points, slow guarded descent: speedL + force threshold, CB3-compatible), "
         "--table-height, or in simulation the scenario's table. Resumable: rerun with the same output to continue. "
-        "Poses the robot's limits refuse are skipped and listed.",
+        "Poses the robot's limits refuse, and poses that would bring the TCP within --min-clearance of the plane "
+        "(checked before moving: the gripper's tips reach past the sensor), are skipped and listed.",
         ["place-safe capture --sim level_table --poses 60 -o sim_capture.jsonl",
          "place-safe capture --sim level_table --sim-mount-error 5,0,0,0,2,0 -o perturbed.jsonl",
          "place-safe capture --robot robots/ur5/real.toml --sensor i2c:/dev/i2c-1 \\\n"
@@ -423,7 +426,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         opt("--distances", type=_distances, default=[80, 120, 170, 220, 270],
             help="sensor-to-plane distances in mm, numbers or START:STOP:STEP ranges (default 80,120,170,220,270; "
                  "a level sweep for calibration: 10:90:2,100:400:10 with --incidences 0 --azimuths 0, the 2 mm "
-                 "steps below 9 cm so that calibrate sizes the near-range covariance at a new frame's gap)"),
+                 "steps below 9 cm so that calibrate sizes the near-range covariance at a new frame's gap; the "
+                 "distances the gripper cannot reach are refused and listed)"),
         opt("--incidences", type=lambda s: _floats(s, None, "degrees", 0.0, 80.0), default=[0, 12, 24],
             help="optical-axis tilts from the normal in degrees (default 0,12,24)"),
         opt("--azimuths", type=lambda s: _floats(s, None, "degrees", -360.0, 360.0), default=[0, 60, 120, 180, 240, 300],
@@ -434,6 +438,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                                                                    "most 1)"),
         opt("--settle", type=float_range(0.0, 60.0, lo_open=True), default=0.25,
             help="s at rest before frames count (default 0.25, at most 60)"),
+        opt("--min-clearance", type=float_range(0.0, 100.0), default=MIN_CLEARANCE * 1000, metavar="MM",
+            help="mm the TCP (the gripper's tips) must stay above the plane: closer poses are refused and listed "
+                 f"before the arm moves (default {MIN_CLEARANCE * 1000:g}; the near end of a level sweep is set by how "
+                 "far the tips reach past the sensor)"),
         "table_height",
         opt("--table-tilt-std", type=float_range(0.0, 5.0), metavar="DEG",
             help="with --table-height: how far the table may be from level in the robot's base frame, one standard "

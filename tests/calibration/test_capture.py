@@ -108,9 +108,9 @@ def test_sensor_target_geometry():
 
 @pytest.mark.slow
 def test_capture_writes_truth_poses_joints_resumes_and_refuses(kin, tmp_path):
-    robot, fake = _robot(kin, min_descent_z=0.06, workspace_min=(-0.9, -0.9, 0.06))  # the TCP may not go below 6 cm
-    plan = SweepPlan(distances=[0.10, 0.03], incidences=[0.0, math.radians(15)], azimuths=[0.0, math.pi],
-                     settle_s=0.05, speed=0.2)
+    robot, fake = _robot(kin, min_descent_z=0.11, workspace_min=(-0.9, -0.9, 0.11))  # the TCP may not go below 11 cm
+    plan = SweepPlan(distances=[0.10, 0.07], incidences=[0.0, math.radians(15)], azimuths=[0.0, math.pi],
+                     settle_s=0.05, speed=0.2)  # the 7 cm poses keep the gripper clear of the table: the box refuses
     out = tmp_path / "cap.jsonl"
     first = SweepPlan(**{**plan.to_dict(), "max_poses": 2})
     res = capture_sweep(robot, ClockSource(robot), first, out, plane=level_plane(TABLE_Z), tool=robot.tool,
@@ -121,7 +121,7 @@ def test_capture_writes_truth_poses_joints_resumes_and_refuses(kin, tmp_path):
                             [(-0.46, -0.08, TABLE_Z), (-0.54, -0.08, TABLE_Z), (-0.46, -0.16, TABLE_Z)]))
     assert res.skipped_done == 1 and res.poses == 6  # pose 0 was in the file (pose 5 of the subsample was not)
     assert len(res.refused) == 3 and all("workspace box" in r["reason"] for r in res.refused)
-    assert {r["distance"] for r in res.refused} == {0.03}
+    assert {r["distance"] for r in res.refused} == {0.07}
     frames = load_frames(out)
     assert len(frames) == 3
     for f in frames:
@@ -136,6 +136,23 @@ def test_capture_writes_truth_poses_joints_resumes_and_refuses(kin, tmp_path):
     # the frames of the second run carry how far the touched plane may be off; the first run's stated nothing
     refs = [d["meta"]["base_plane"].get("reference") for d in sorted(lines, key=lambda d: d["meta"]["pose_index"])]
     assert refs[0] is None and all(r["points"] == 3 and r["tilt_std"] > 0 for r in refs[1:])
+
+
+def test_capture_refuses_before_moving_a_pose_that_would_take_the_gripper_into_the_plane(kin, tmp_path):
+    """The packaged gripper's tips reach 30 mm past the sensor: a level sweep's 2 and 3 cm poses would press them into
+    the table (in simulation a protective stop at 70 N ended the capture at its first pose). They are refused and
+    listed with the clearance they would have had, the arm is not sent there, and the sweep goes on."""
+    robot, fake = _robot(kin)
+    plan = SweepPlan(distances=[0.02, 0.03, 0.036, 0.10], incidences=[0.0], settle_s=0.05, speed=0.2)
+    moves = []
+    move = robot.move_linear
+    robot.move_linear = lambda T, **kw: (moves.append(T[2, 3]), move(T, **kw))[1]
+    res = capture_sweep(robot, ClockSource(robot), plan, tmp_path / "c.jsonl", plane=level_plane(TABLE_Z),
+                        tool=robot.tool, progress=False, log=lambda s: None)
+    assert res.captured == 2 and [r["distance"] for r in res.refused] == [0.02, 0.03]
+    assert "-10.0 mm from the plane" in res.refused[0]["reason"] and "5 mm clearance" in res.refused[0]["reason"]
+    assert len(moves) == 2 and min(moves) > TABLE_Z + plan.min_clearance  # the TCP was never sent closer
+    assert not robot.is_faulted() and fake.arm.contact_force() == 0.0
 
 
 def test_capture_stops_on_a_latched_fault_and_a_dead_sensor(kin, tmp_path):
@@ -153,3 +170,27 @@ def test_capture_stops_on_a_latched_fault_and_a_dead_sensor(kin, tmp_path):
     with pytest.raises(RobotFault, match="rerun to resume"):
         capture_sweep(robot, ClockSource(robot), SweepPlan(distances=[0.2], incidences=[0.0]), tmp_path / "b.jsonl",
                       plane=level_plane(TABLE_Z), tool=robot.tool, progress=False)
+
+
+def test_capture_never_appends_to_a_file_that_is_not_a_capture(kin, tmp_path):
+    """``-o`` naming a calibration, a JSON list of frames or text: one-line error, the file untouched (frames were
+    appended to it and it no longer parsed). A capture interrupted mid-line resumes on a line of its own."""
+    from place_safe.exceptions import FrameFileError
+
+    robot, _ = _robot(kin)
+    plan = SweepPlan(distances=[0.10, 0.12], incidences=[0.0], settle_s=0.05, speed=0.2)
+    for name, text in (("cal.json", '{\n "format": "place_safe.calibration/1"\n}\n'), ("list.json", '[{"hists": []}]'),
+                       ("notes.txt", "my notes\nmore\n")):
+        f = tmp_path / name
+        f.write_text(text)
+        with pytest.raises(FrameFileError, match="not a capture"):
+            capture_sweep(robot, ClockSource(robot), plan, f, plane=level_plane(TABLE_Z), tool=robot.tool,
+                          progress=False, log=lambda s: None)
+        assert f.read_text() == text
+    out = tmp_path / "cap.jsonl"
+    capture_sweep(robot, ClockSource(robot), SweepPlan(**{**plan.to_dict(), "max_poses": 1}), out,
+                  plane=level_plane(TABLE_Z), tool=robot.tool, progress=False, log=lambda s: None)
+    out.write_text(out.read_text() + '{"hists": [[1, 2')  # the run after it was cut off mid-frame
+    res = capture_sweep(robot, ClockSource(robot), plan, out, plane=level_plane(TABLE_Z), tool=robot.tool,
+                        progress=False, log=lambda s: None)
+    assert res.skipped_done == 1 and res.captured == 1 and len(load_frames(out)) == 2
