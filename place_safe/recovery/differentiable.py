@@ -62,7 +62,7 @@ from place_safe.recovery.estimator import (Estimator, PlaneEstimate, Uncertainty
                                           is_covariance, tilt_offset)
 from place_safe.recovery.blend import blended
 from place_safe.recovery.peak import PeakEstimator
-from place_safe.sensor.histogram import COUNT_MAX, arriving_ambient, floor_profile, reference_problem
+from place_safe.sensor.histogram import arriving_ambient, clipped_zones, floor_profile, reference_problem
 
 
 
@@ -392,8 +392,9 @@ class DifferentiableEstimator(Estimator):
         inits, rows, peaks = [], [], []
         for i, f in enumerate(frames):
             h = np.asarray(f.hists, dtype=float)
-            if np.any(h >= COUNT_MAX):
-                results[i] = PlaneEstimate(None, reason="histograms saturated (24-bit counters at their maximum)")
+            if clipped_zones(h).any():
+                results[i] = PlaneEstimate(None, reason="histograms clipped (saturated counts: a flat top or counters "
+                                                        "at their maximum)")
                 continue
             bad_ref = reference_problem(f.reference)
             if bad_ref:

@@ -37,7 +37,8 @@ The calibrated errors are fitted by maximum likelihood on held-out planes
 tilt term (:class:`~place_safe.recovery.estimator.Uncertainty`: on a tilted plane each zone's return spreads
 over its footprint and the peak reads the slope short, an error a level sweep cannot show; a calibration on mostly
 tilted frames has none, its floor holds that error).
-Histograms clipped at the 24-bit maximum, or frames flagged ``saturated`` in ``extra`` /
+Histograms clipped (:func:`~place_safe.sensor.histogram.clipped_zones`: the 24-bit maximum, a flat top, a narrower
+store's limit), or frames flagged ``saturated`` in ``extra`` /
 ``extra["meta"]``, give no plane: a clipped peak has no usable position.
 """
 
@@ -56,9 +57,10 @@ from place_safe.sensor.histogram import COUNT_MAX, find_peaks, find_returns
 from place_safe.sensor.zones import zone_numbers
 
 def _flagged_saturated(frame: Frame) -> bool:
-    extra = frame.extra or {}
+    """Whether the frame's ``extra`` (or its ``meta``) says ``"saturated": true`` (a boolean true only: "no" is not)."""
+    extra = frame.extra if isinstance(frame.extra, dict) else {}
     meta = extra.get("meta") if isinstance(extra.get("meta"), dict) else {}
-    return bool(extra.get("saturated", False)) or bool(meta.get("saturated", False))
+    return extra.get("saturated") is True or meta.get("saturated") is True
 
 
 class PeakEstimator(Estimator):
@@ -106,7 +108,8 @@ class PeakEstimator(Estimator):
         pos, _, valid, saturated, heights = find_returns(h, p.pileup, p.subbin, p.subbin_half_width, heights=True)
         if saturated.any():
             zones = zone_numbers(saturated)
-            raise NoPlaneError(f"histogram saturated (counts at the 24-bit maximum) in zone(s) {zones}")
+            raise NoPlaneError(f"histogram clipped (saturated counts: a flat top or counters at their maximum) in "
+                               f"zone(s) {zones}")
         if may_be_close(pos, valid, p):
             too_close = overlap_reason(self._far_ranges(pos), valid, heights)
             if too_close:

@@ -1,6 +1,7 @@
 """Histogram helpers shared by every estimator, calibration and the simulated sensor: one definition each.
 
-* :data:`COUNT_MAX`: the TMF8820's histogram bins are 24-bit counters; a bin at this value is clipped.
+* :data:`COUNT_MAX`: the TMF8820's histogram bins are 24-bit counters; a bin at this value is clipped
+  (:func:`clipped_zones` also reads a flat top, or a narrower store's limit, as clipped).
 * :data:`FLOOR_BINS` / :func:`measure_floor`: the late bins where no return of a surface within the
   sensor's range lands (beyond ~1.3 m); their median is the per-zone floor (ambient and dark counts).
 * :func:`floor_profile` / :func:`ambient_slopes`: the floor across the bins when the ambient slopes (a unit whose
@@ -31,6 +32,15 @@ from place_safe.sensor.zones import N_BINS
 
 #: Largest count of the sensor's 24-bit histogram bins; a bin at this value is clipped.
 COUNT_MAX = 2 ** 24 - 1
+#: Counts a histogram clipped by a narrower store on its way here (an 8- to 24-bit unsigned integer) tops out at.
+STORE_LIMITS = tuple(float(2 ** k - 1) for k in range(8, 25))
+#: Consecutive bins that hold a zone's highest count, at :data:`CLIP_MIN_COUNTS` or more, in a clipped return: a
+#: return's peak is about 2 bins wide at half its height, so three equal tops are a flat top (a clip), not counts.
+#: None of the real sweep's 477 zone histograms (or its references) holds its highest count in two bins; capped at
+#: 65535, 291 of them hold it in three or more (and were read up to 30 sigma off, confidently, before this test).
+CLIP_PLATEAU_BINS = 3
+#: counts: the least highest count :func:`clipped_zones` reads a flat top at (a low return's equal bins are noise).
+CLIP_MIN_COUNTS = 100.0
 #: Bins at the end of every histogram used to measure the per-zone floor.
 FLOOR_BINS = slice(100, N_BINS)
 
@@ -154,6 +164,22 @@ def _spline() -> np.ndarray:
 PILEUP_MAX_FRACTION = 0.95
 
 
+def clipped_zones(hists: np.ndarray) -> np.ndarray:
+    """Which histograms (..., 128) -> (...) were clipped: a bin at :data:`COUNT_MAX` (the sensor's own counters), the
+    highest count held in :data:`CLIP_PLATEAU_BINS` or more consecutive bins (at :data:`CLIP_MIN_COUNTS` or more: a
+    flat top), or at a narrower store's limit (:data:`STORE_LIMITS`) in two or more bins. A clipped return's peak and
+    centroid are wrong by up to its width and its height says nothing: estimators give such a zone no reading (a
+    frame capped at 65535 counts read a plane at 42 mm as 61 mm, 10 deg, within 0.6 mm / 0.6 deg by its covariance).
+    Non-finite counts are not clipped (they are refused as such)."""
+    h = np.asarray(hists, dtype=float)
+    with np.errstate(invalid="ignore"):
+        top = h.max(axis=-1)
+        at = h == top[..., None]
+        flat = (at[..., :-2] & at[..., 1:-1] & at[..., 2:]).any(axis=-1) & (top >= CLIP_MIN_COUNTS)
+        store = np.isin(top, STORE_LIMITS) & (at.sum(axis=-1) >= 2)
+        return (h >= COUNT_MAX).any(axis=-1) | flat | store
+
+
 def undo_pileup(net: np.ndarray, pileup: float) -> np.ndarray:
     """Floor-subtracted counts (..., 128) with SPAD pile-up undone (Coates' correction).
 
@@ -246,7 +272,7 @@ def _returns(hists: np.ndarray, pileup: float, subbin: str,
     finite = finite_bins.all(axis=-1)
     if not finite.all():
         h = np.where(finite_bins, h, 0.0)
-    saturated = (h >= COUNT_MAX).any(axis=-1)
+    saturated = clipped_zones(h)
     floor = np.minimum(_median(h[..., :EARLY_BINS]), _median(h[..., -LATE_BINS:]))
     x = undo_pileup(h - floor[..., None], pileup)
     k, top, has_return = _highest_return(x, floor)
@@ -425,8 +451,8 @@ def reference_problem(reference) -> str | None:
         return "reference histogram is not 128 finite counts"
     if not np.any(r > 0):
         return "reference histogram is empty (all zeros): no laser pulse to model returns with"
-    if np.any(r >= COUNT_MAX):
-        return "reference histogram is saturated (24-bit counters at their maximum)"
+    if clipped_zones(r):
+        return "reference histogram is clipped (saturated counts: a flat top, or counters at their maximum)"
     floor = float(measure_floor(r))
     k = int(np.argmax(r))
     if r[k] - floor <= max(NOISE_SIGMAS * np.sqrt(max(floor, 0.0) + 1.0), MIN_NET_COUNTS):
@@ -436,6 +462,6 @@ def reference_problem(reference) -> str | None:
     return None
 
 
-__all__ = ["COUNT_MAX", "FLOOR_BINS", "AMBIENT_BINS", "HEAD_BINS", "arriving_ambient", "measure_floor", "floor_profile", "ambient_slopes", "find_peaks", "find_returns", "windowed_centroid", "SUBBIN_METHODS",
+__all__ = ["COUNT_MAX", "STORE_LIMITS", "CLIP_PLATEAU_BINS", "CLIP_MIN_COUNTS", "clipped_zones", "FLOOR_BINS", "AMBIENT_BINS", "HEAD_BINS", "arriving_ambient", "measure_floor", "floor_profile", "ambient_slopes", "find_peaks", "find_returns", "windowed_centroid", "SUBBIN_METHODS",
            "CENTROID_HALF_WIDTH", "CENTROID_HALF_WIDTHS", "MIXED_SHIFT", "INTERNAL_BINS", "INTERNAL_MAX_COUNTS", "first_return", "reference_floor",
            "reference_problem"]

@@ -340,3 +340,45 @@ def test_ambient_slopes_of_a_zone_without_a_floor_is_not_a_number():
     assert np.all(np.isnan(ambient_slopes(h)))
     h[1, :4] = 50.0  # four zones with a floor: their median
     assert np.isnan(ambient_slopes(h)[0]) and ambient_slopes(h)[1] == pytest.approx(0.0)
+
+
+def test_a_clipped_return_reads_as_clipped_and_a_real_one_does_not():
+    """Counts capped by a narrower store (uint8, 12-bit, uint16) or held flat over three bins are clipped; the real
+    sweep's histograms (peaks up to 1e6 counts, none held in two bins) and low returns with equal bins are not."""
+    import json
+    from pathlib import Path
+
+    from place_safe.sensor.histogram import COUNT_MAX, clipped_zones
+
+    frames = json.loads((Path(__file__).resolve().parents[1] / "data" / "tmf8820_ur5_sweep.json").read_text())
+    h = np.array([f["hists"] for f in frames], dtype=float)
+    assert not clipped_zones(h).any() and not clipped_zones(np.array([f["reference_hist"] for f in frames])).any()
+    for cap in (255.0, 4095.0, 65535.0):
+        capped = np.minimum(h, cap)
+        over = (h > cap).sum(axis=-1) >= 2  # two or more bins above the cap: a top at the store's limit
+        assert np.array_equal(clipped_zones(capped) & over, over), cap
+    flat = np.zeros(128)
+    flat[40:43] = 5000.0  # any flat top of three bins
+    assert clipped_zones(flat) and clipped_zones(np.where(np.arange(128) == 60, COUNT_MAX, 10.0))
+    low = np.zeros(128)
+    low[40:43] = 12.0  # a faint return's equal counts are noise, not a clip
+    assert not clipped_zones(low) and not clipped_zones(np.full(128, np.nan))
+
+
+def test_estimators_give_no_plane_for_clipped_histograms():
+    """Real frames whose counts were capped at 65535 (a uint16 store) read, before the flat-top test, a plane at 42 mm
+    as 61 mm and 10 deg with a covariance of 0.6 mm / 0.6 deg: now no plane, and the reason says why."""
+    import json
+    from pathlib import Path
+
+    from place_safe.recovery import make_estimator
+    from place_safe.sensor.frame import Frame
+
+    frames = json.loads((Path(__file__).resolve().parents[1] / "data" / "tmf8820_ur5_sweep.json").read_text())
+    capped = []
+    for d in frames[4:7]:
+        d = dict(d, hists=np.minimum(np.asarray(d["hists"], dtype=float), 65535.0).tolist())
+        capped.append(Frame.from_dict(d))
+    for method in ("peak", "diff"):
+        for e in make_estimator(method).estimate_many(capped):
+            assert e.plane is None and "clipped" in e.reason, (method, e.reason)
