@@ -192,6 +192,17 @@ PEAK_MOUNT_NOTE = ("peak's covariance on tilted planes widens by the mount tilt 
                    "holds only if the file was calibrated on this unit (calibrate --method diff on this sweep fits the "
                    "mount again)")
 
+#: The peak report's note (``calibrate --method peak`` prints it) when its frames are level (too few tilted ones to size
+#: its tilt term): peak reads each zone's range on its nominal direction, and a level table cannot show how far the
+#: unit's zones look from those directions, which scales every slope it reads. A simulated unit calibrated on a level
+#: sweep in MuJoCo read 12 and 24 deg planes at 12.9-13.0 and 25.6-25.7 deg (7 % steep; its NEES per dof 0.74: the
+#: stated term, :data:`PEAK_TILT_REL`, holds it). Diff's calibration prints its own note on the same capture.
+PEAK_TILT_NOTE = ("peak's slopes on tilted planes are not calibrated: a level table cannot show how far the unit's "
+                  "zones look from their nominal directions, which scales every slope peak reads (a few per cent: on "
+                  "a simulated unit 7 % steep, 24 deg read as 25.7); its covariance states "
+                  f"{PEAK_TILT_REL:.0%} of the slope; capture about 20 tilted poses too (capture --distances "
+                  "80,150,220 --incidences 12,24 --azimuths 0,90,180,270) and calibrate on both files")
+
 #: Tilt term of diff's covariance (:meth:`~place_safe.recovery.estimator.Uncertainty.tilt_floor`) for level
 #: calibration frames whose unit's model error is not known (:func:`diff_tilt_term`; the values before the model-error
 #: law): each tilt component's std per unit tan(tilt), the plane turning about the sensor (pivot 0: the offset's error
@@ -1257,9 +1268,15 @@ def update_calibration(cal, frames: Sequence[Frame], method: str) -> dict:
                                                    cal.forward().mount_tilt if forward else None)
         section["peak"] = unc.to_dict()
         mount_deg = report["peak"].get("tilt_offset_mount_deg", 0.0)
-        if method == "peak" and mount_deg > 0:
-            # a forward model this calibration did not fit: say whose mount peak's covariance now carries
-            report["peak"]["note"] = PEAK_MOUNT_NOTE.format(deg=mount_deg)
+        if method == "peak":  # (a diff calibration prints diff's notes, which say the same of this capture)
+            notes = []
+            rep = report["peak"]
+            if str(rep.get("tilt_term", "")).startswith("stated") and "tilt_term_sized" not in rep:
+                notes.append(PEAK_TILT_NOTE)  # level frames: the slopes' scale was not measured
+            if mount_deg > 0:  # a forward model this calibration did not fit: say whose mount the covariance carries
+                notes.append(PEAK_MOUNT_NOTE.format(deg=mount_deg))
+            if notes:
+                report["peak"]["note"] = "; ".join(notes)
     if method == "diff":
         # the unit's model error as the forward fit measured it at the frames' true planes (sizes diff's tilt term)
         measured = (cal.reports.get("forward") or {}).get("model_error_chi2")

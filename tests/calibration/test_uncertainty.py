@@ -236,6 +236,10 @@ def test_the_forward_models_mount_widens_peaks_offset_on_level_sweeps_only():
     rep = update_calibration(cal, level, "peak")
     assert math.isclose(cal.sections["uncertainty"]["peak"]["tilt_offset_rel"], term.tilt_offset_rel)
     assert "0.86 deg" in rep["peak"]["note"]  # a peak-only calibration says whose mount it took
+    assert "not calibrated" in rep["peak"]["note"] and "--incidences" in rep["peak"]["note"]  # nor slopes' scale
+    rep = update_calibration(Calibration(), level, "peak")  # no forward model: the slopes' note alone
+    assert rep["peak"]["note"].startswith("peak's slopes on tilted planes are not calibrated")
+    assert "note" not in update_calibration(Calibration(), level[:3] + tilted, "peak")["peak"]  # tilted: measured
     assert "note" not in update_calibration(cal, level, "diff")["peak"]  # diff's calibration fitted it just before
     broken = Calibration.from_dict({"format": cal.to_dict()["format"], "forward": {"mount_tilt": [math.nan, 0.0]}})
     assert "forward" in broken.errors
