@@ -324,6 +324,9 @@ def load_scenario(name: str | Path) -> Scenario:
 
     data = read_config_file(p, "scenario")
     if isinstance(data, dict):
+        if not set(data) - {"name", "description"}:  # an empty (or truncated) file would run the default scene
+            raise ConfigError(f"scenario {p}: the file sets nothing (empty, or a name and description only); a scenario "
+                              "gives at least its scene, robot, sensor or expectation (scenarios/README.md)")
         data = {**data, "name": data.get("name") or p.stem, "base_dir": str(p.parent)}
     return parse_config(Scenario, data, f"scenario {p}")
 

@@ -255,8 +255,22 @@ def summarize(rows: list[dict]) -> dict:
     }
 
 
+#: Characters of a run's reason in the console table (the JSON has it whole).
+REASON_WIDTH = 90
+
+
+def _clipped(text: str, width: int) -> str:
+    """``text`` cut to at most ``width`` characters at a word boundary, marked ``...`` where cut (a cut inside a word
+    could leave "813 m" of "813 mm")."""
+    if len(text) <= width:
+        return text
+    cut = text[:width - 4]
+    return (cut[:cut.rfind(" ")] if " " in cut else cut).rstrip(",;:( ") + " ..."
+
+
 def format_table(rows: list[dict], summary: dict) -> str:
-    """A console table (degrees, millimetres) and the summary lines."""
+    """A console table (degrees, millimetres) and the summary lines. ``t40 s``: seconds from the cup's bottom passing
+    40 cm above the surface (from the start in runs that start lower) to the decision."""
     head = f"{'name':<28} {'sensor':<8} {'tilt':>5} {'decision':<9} {'rel mm':>6} {'up':>3} {'spill':>5} " \
            f"{'t40 s':>6} {'ok':>3}  reason"
     lines = [head, "-" * len(head)]
@@ -267,13 +281,15 @@ def format_table(rows: list[dict], summary: dict) -> str:
                      f"{r.get('decision', ''):<9} {'' if rh is None else f'{rh * 1e3:6.1f}':>6} "
                      f"{'y' if r.get('cup_upright', True) else 'N':>3} {r.get('liquid_spilled', 0):>5} "
                      f"{'' if dt is None else f'{dt:6.2f}':>6} {'ok' if r.get('met') else 'MISS':>4}  "
-                     f"{(r.get('reason') or '')[:90]}"
+                     f"{_clipped(r.get('reason') or '', REASON_WIDTH)}"
                      + (f"  [{'; '.join(r['misses'])}]" if r.get("misses") else ""))
     s = summary
     mh = s["median_release_height"]
     mt = s["median_time_from_40cm"]
     fr = s["false_refusal_rate"]
-    lines += ["", f"{s['runs']} runs: {s['released']} released, {s['refused']} refused, {s['timeout']} timed out, "
+    lines += ["(t40 s: from the cup 40 cm above the surface, or from the start where lower, to the decision; reasons "
+              f"cut at {REASON_WIDTH} characters: --json has them whole)",
+              "", f"{s['runs']} runs: {s['released']} released, {s['refused']} refused, {s['timeout']} timed out, "
                   f"{s['errors']} errors; {s['missed_expectation']} missed their expectation",
               f"unsafe releases: {s['unsafe_releases']}; false refusals: {s['false_refusals']} of {s['clearly_safe']} "
               f"clearly safe scenes ({'-' if fr is None else f'{fr * 100:.1f} %'}); protective stops/faults: "

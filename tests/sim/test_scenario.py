@@ -77,6 +77,10 @@ def test_bad_files_give_one_line_errors(tmp_path):
         load_scenario(j)
     with pytest.raises(ConfigError, match="not found"):
         load_scenario(tmp_path / "missing.toml")
+    for text in ("", "# a comment only\n", 'name = "x"\ndescription = "y"\n'):  # an empty file ran the default scene
+        f.write_text(text)
+        with pytest.raises(ConfigError, match="sets nothing"):
+            load_scenario(f)
 
 
 def test_calibration_is_required_and_says_how():

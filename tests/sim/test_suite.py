@@ -155,3 +155,14 @@ def test_ray_runs_the_same_rows_on_a_local_instance():
 def test_hand_written_set(path):
     row = suite.run_one({"scenario": str(path), "seed": 0})
     assert row["met"], f"{row['name']}: {row['decision']} ({row['reason']}); misses: {row['misses']}"
+
+
+def test_the_table_cuts_a_long_reason_between_words_and_says_so():
+    """A reason longer than the column is cut at a word and marked: cut inside a word, "813 mm" read "813 m"."""
+    from place_safe.sim.suite import REASON_WIDTH, _clipped
+
+    reason = "no safe support under the cup: zone 8 over the cup's footprint sees a second surface 813 mm below"
+    cut = _clipped(reason, REASON_WIDTH)
+    assert len(cut) <= REASON_WIDTH and cut.endswith("surface ...") and "813" not in cut
+    assert _clipped("level (0.1 deg)", REASON_WIDTH) == "level (0.1 deg)"
+    assert _clipped("x" * 200, 20) == "x" * 16 + " ..."
