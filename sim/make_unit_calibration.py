@@ -11,7 +11,7 @@ frames added, as ``calibrate``'s note asks:
 ``calibration_mismatch_zone_time.json`` (unit A whose zones each keep their own time scale, +-1.5 %, as the real
 sweep's zones do; docs/results.md, "Each zone's own time scale") is the calibration of the ``zone_time_*`` scenarios
 in ``scenarios/set``: a level sweep sets such a unit's geometry far from nominal, and ``calibrate`` replaces it by
-each zone's own time scale (``forward_fit.reconsider_geometry``). The sweep: :data:`FRAMES` frames, the sensor
+each zone's own time scale (``second_fit.reconsider_geometry``). The sweep: :data:`FRAMES` frames, the sensor
 :data:`HEIGHTS` above the table, at operating temperature, seed :data:`SEED` (the unit scorecard's level sweep,
 ``docs/figures/unit_scorecard.py --units 34``). ``reports.capture`` records the unit and the sweep. About a minute
 (half a minute more with the second forward fit on a machine without a spare core).

@@ -30,7 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from near_nees import interval  # noqa: E402  (the NEES figure with its 90 % interval)
 
 from place_safe.calibration import Calibration, fit
-from place_safe.calibration import forward_fit as ff
+from place_safe.calibration import forward_fit as ff, model_error, plane_correction
 from place_safe.evaluation.metrics import angular_error, nees
 from place_safe.io.frame_file import load_frames, write_frames
 from place_safe.recovery import make_estimator
@@ -65,8 +65,8 @@ def calibrate(frames, variant: str) -> Calibration:
         # the variant's own fit, kept: calibrate's second fit (the zones' time scales) would not see the variant
         fit.reconsider_geometry = lambda frames, params, report, **kw: (params, report)
         if "+rc" in variant:
-            fit.fit_range_correction = lambda *a, **kw: ff.fit_range_correction(*a, **{**kw, "min_distance": d})
-            fit.select_model_error = lambda *a, **kw: ff.select_model_error(*a, **{**kw, "min_distance": d})
+            fit.fit_range_correction = lambda *a, **kw: plane_correction.fit_range_correction(*a, **{**kw, "min_distance": d})
+            fit.select_model_error = lambda *a, **kw: model_error.select_model_error(*a, **{**kw, "min_distance": d})
     cal = Calibration()
     try:
         fit.fit_method(cal, frames, "diff", progress=False, log=None)

@@ -33,7 +33,8 @@ from peak_tilt_bias import summary  # noqa: E402
 
 def compare(unit: str, out: Path) -> None:
     from place_safe.calibration import Calibration
-    from place_safe.calibration.forward_fit import fit_forward, nominal_geometry_fit
+    from place_safe.calibration.forward_fit import fit_forward
+    from place_safe.calibration.second_fit import nominal_geometry_fit
     from place_safe.evaluation.synthetic import SyntheticSpec, make_frames
     from place_safe.io.frame_file import load_frames
     from place_safe.recovery import make_estimator

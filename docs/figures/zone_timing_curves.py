@@ -20,7 +20,7 @@ import argparse
 
 import numpy as np
 
-from place_safe.calibration import Calibration, forward_fit
+from place_safe.calibration import Calibration, forward_fit, plane_correction
 from place_safe.cli.common import load_truth_frames
 from place_safe.evaluation.metrics import angular_errors, linear_errors
 from place_safe.recovery.differentiable import DifferentiableEstimator, RangeCorrection
@@ -78,13 +78,13 @@ def main() -> None:
             return out
 
     options = cal.diff_options()
-    plain = forward_fit.DifferentiableEstimator
-    forward_fit.DifferentiableEstimator = Curved  # the plane correction fitted with the curves
+    plain = plane_correction.DifferentiableEstimator
+    plane_correction.DifferentiableEstimator = Curved  # the plane correction fitted with the curves
     try:
-        section, report = forward_fit.fit_range_correction(load_truth_frames([args.a], None, None)[0], base,
+        section, report = plane_correction.fit_range_correction(load_truth_frames([args.a], None, None)[0], base,
                                                            peak_params, progress=False, options=options)
     finally:
-        forward_fit.DifferentiableEstimator = plain
+        plane_correction.DifferentiableEstimator = plain
     print(f"plane correction on {args.a}: {report['kept']} (in 1/z0: {report['inverse']})")
     frames_b = load_truth_frames([args.b], 0.05, None)[0]
     est = Curved(base, peak_params, options=options, correction=RangeCorrection(**section["range_correction"]))

@@ -14,8 +14,10 @@ Layout::
 
 ``place-safe calibrate --method M -o FILE`` fits one family and writes its section; if FILE already
 is a calibration file, its other sections are kept, so one file can carry all methods.
-Fitting lives in :mod:`place_safe.calibration.points` (peak and on-sensor distances) and
-:mod:`place_safe.calibration.forward_fit` (forward model).
+Fitting lives in :mod:`place_safe.calibration.points` (peak and on-sensor distances),
+:mod:`place_safe.calibration.forward_fit` (forward model), :mod:`place_safe.calibration.second_fit` (its second reading
+of the geometry), :mod:`place_safe.calibration.model_error` and :mod:`place_safe.calibration.plane_correction` (diff's
+residual weighting and plane correction).
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """A computation run in a separate process alongside the caller, whose result may never be wanted.
 
 ``calibrate --method diff`` needs a second forward fit (each zone's own time scale, with the geometry nominal on a
-level sweep and free with tilted frames: :func:`~place_safe.calibration.forward_fit.reconsider_geometry`). On a
+level sweep and free with tilted frames: :func:`~place_safe.calibration.second_fit.reconsider_geometry`). On a
 machine with a spare core it starts at once beside the first, in a child Python process, and is stopped if its result
 is not asked for (the first fit failed). With no spare core it runs inline, when asked for.
 

@@ -14,7 +14,7 @@ sections it wrote, in order:
   one albedo, or fits better and reads it much more closely; on a capture with tilted frames, also with each zone's own
   time scale and the geometry free, kept when it fits clearly better, determines both and (frames of one surface)
   still reads one albedo:
-  :func:`~place_safe.calibration.forward_fit.reconsider_geometry`; that second fit starts at once beside the first when
+  :func:`~place_safe.calibration.second_fit.reconsider_geometry`; that second fit starts at once beside the first when
   a core is spare, :class:`~place_safe.calibration.alongside.Alongside`) or ``staged`` (the
   learned unit model in three fits, :func:`~place_safe.calibration.forward_fit.fit_forward_staged`); the rest of
   the chain is the same, with the diff solver comparing the staged model with the counts above the arriving ambient
@@ -35,9 +35,10 @@ from collections.abc import Callable, Sequence
 
 from place_safe.calibration import REQUIRED_SECTIONS, UNIT_MODELS, Calibration
 from place_safe.calibration.alongside import Alongside, spare_cores
-from place_safe.calibration.forward_fit import (fit_forward, fit_forward_staged, fit_range_correction,
-                                               free_crosstalk_std, reconsider_geometry, second_fit_for,
-                                               select_model_error)
+from place_safe.calibration.forward_fit import fit_forward, fit_forward_staged, free_crosstalk_std
+from place_safe.calibration.model_error import select_model_error
+from place_safe.calibration.plane_correction import fit_range_correction
+from place_safe.calibration.second_fit import reconsider_geometry, second_fit_for
 from place_safe.calibration.points import adopt_pileup, fit_peak, fit_proprietary
 from place_safe.calibration.uncertainty import update_calibration
 from place_safe.io.json_values import jsonable

@@ -1,7 +1,7 @@
 """Choosing between the two readings of a level sweep with tilted frames that need no ground truth.
 
 A level table cannot tell the zones' directions (fields of view, the mount) from each zone's own time scale: both
-move a zone's range by a factor that does not change with distance (:func:`~place_safe.calibration.forward_fit.
+move a zone's range by a factor that does not change with distance (:func:`~place_safe.calibration.second_fit.
 reconsider_geometry`). Where the sweep did not tell them apart (``reports.forward.geometry.told_apart`` false), the
 two readings read tilted planes differently, by up to a quarter of the slope (the real sweep's 27 %), and diff's
 covariance holds that difference (:func:`~place_safe.calibration.uncertainty.reading_disagreement`).
@@ -42,7 +42,7 @@ sweeps did not tell the readings apart, 20 such frames chose the unit's reading 
 reading lower on 90-100 % of them), and diff's own plane on their 150 tilted test frames went from 1.4-1.9 deg to
 0.07-0.18 (NEES per dof 0.01-0.08 -> 0.15-0.65); on the independent generator's seed 5, whose first reading is the
 better one, they chose neither (44 %); on unit 43 the second (above); on units 37 and 45, mounted off alone, the
-readings read them alike. Since the level sweep's own rule also weighs the albedo (``forward_fit.ALBEDO_CLUE_FACTOR``),
+readings read them alike. Since the level sweep's own rule also weighs the albedo (``second_fit.ALBEDO_CLUE_FACTOR``),
 the sweeps of 44 and 47 adopt their reading without the frames.
 """
 from __future__ import annotations

@@ -176,7 +176,7 @@ PEAK_TILT_REL = 0.05
 #: A level sweep cannot tell a sensor mounted off its nominal orientation from zones that each keep their own time:
 #: both make the zones' ranges on a level table differ in proportion to the distance. The peak method reads it the
 #: second way (its zone gains absorb it, its zone directions are held), and a forward fit that keeps its geometry
-#: (:func:`~place_safe.calibration.forward_fit.reconsider_geometry`) reads it the first. On a tilted plane the two
+#: (:func:`~place_safe.calibration.second_fit.reconsider_geometry`) reads it the first. On a tilted plane the two
 #: readings part: peak's offset moves by a share of ``mount tilt * z0 tan(tilt)`` that does not follow its tilt error,
 #: where its stated term has none (it turns the plane about the point it crosses the axis). Measured (mismatched unit A
 #: with a true mount tilt of 0.94 deg, and with 0.59 deg and fields of view 0.93 / 0.88; 150 frames tilted 5-30 deg,
@@ -367,7 +367,7 @@ ADOPTED_MOUNT_OFFSET_REL = 1.0 / math.sqrt(3.0)
 
 
 def _forward_geometry(cal) -> dict:
-    """``cal``'s ``reports.forward.geometry`` (:func:`~place_safe.calibration.forward_fit.reconsider_geometry`), or an
+    """``cal``'s ``reports.forward.geometry`` (:func:`~place_safe.calibration.second_fit.reconsider_geometry`), or an
     empty dict where the report has none or one of another shape."""
     forward = cal.reports.get("forward")
     geometry = forward.get("geometry") if isinstance(forward, dict) else None
@@ -401,7 +401,7 @@ DISAGREEMENT_SEED = 5
 def reading_disagreement(frames: Sequence[Frame], forward, other, peak_params, correction=None,
                          options=None) -> dict:
     """How differently diff reads tilted planes under the two readings of a level sweep that the sweep did not tell
-    apart (:data:`~place_safe.calibration.forward_fit.TOLD_APART_GAIN`): the kept forward model ``forward`` and the
+    apart (:data:`~place_safe.calibration.second_fit.TOLD_APART_GAIN`): the kept forward model ``forward`` and the
     ``other`` (:class:`~place_safe.recovery.forward.ForwardParams`) each render the same :data:`DISAGREEMENT_FRAMES`
     tilted planes, and diff with the kept model (``peak_params``, ``correction``, ``options``: the calibration's) reads
     both. Returns ``slope_scale`` (least squares ``k`` in ``delta_t = k t``: ``delta_t`` the difference of the two

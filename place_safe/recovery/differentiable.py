@@ -76,7 +76,7 @@ class RangeCorrection(ParamModel):
     ``z0`` or, for the series named in ``inverse``, in the inverse range ``1 / z0`` (:func:`range_argument`:
     an error that grows as the plane comes closer, e.g. a zone's depth disagreement of fixed size seen as a
     slope, is a low-degree series there); outside the domain the value at its nearer end is used. Fitted by
-    :func:`place_safe.calibration.forward_fit.fit_range_correction` to what the forward model leaves
+    :func:`place_safe.calibration.plane_correction.fit_range_correction` to what the forward model leaves
     over on data with ground truth; empty coefficients mean no correction.
 
     ``albedo`` is a series of the log albedo in ``ln z0`` (a range law: a power of the range is a line there): the

@@ -16,7 +16,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from place_safe.calibration import FORMAT, Calibration
-from place_safe.calibration.forward_fit import _usable, select_model_error
+from place_safe.calibration.forward_fit import usable_frames
+from place_safe.calibration.model_error import select_model_error
 from place_safe.config import field_range
 from place_safe.exceptions import CalibrationError
 from place_safe.recovery import make_estimator
@@ -247,7 +248,7 @@ def test_saturated_frames_and_invalid_references_are_left_out_with_a_count(synth
     frames = [f, _with(f, hists=saturated), _with(f, reference=np.zeros(N_BINS)),
               _with(f, reference=np.r_[np.full(N_BINS - 1, 30.0), 9000.0]), Frame(f.hists, f.reference)]
     skipped: dict = {}
-    assert _usable(frames, 0.0, 10.0, skipped) == [f]
+    assert usable_frames(frames, 0.0, 10.0, skipped) == [f]
     assert skipped == {"saturated": 1, "invalid reference histogram": 2, "no ground truth": 1}
 
 

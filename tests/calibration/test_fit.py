@@ -94,11 +94,11 @@ def test_a_malformed_reference_section_is_one_line_for_the_methods_that_read_it(
 def test_the_second_forward_fit_starts_alongside_for_level_sweeps_and_tilted_captures(monkeypatch, sweep_frames):
     """``fit_method(..., "diff")`` starts the second forward fit beside the first (:class:`Alongside`) for every
     capture: on a level sweep the one with the geometry nominal, on a capture with tilted frames the one with each
-    zone's time scale and the geometry free (:func:`~place_safe.calibration.forward_fit.second_fit_for`)."""
+    zone's time scale and the geometry free (:func:`~place_safe.calibration.second_fit.second_fit_for`)."""
     import numpy as np
 
     import place_safe.calibration.fit as fit
-    from place_safe.calibration import forward_fit as ff
+    from place_safe.calibration import second_fit as sf
     from place_safe.geometry import Plane
 
     started = []
@@ -117,7 +117,7 @@ def test_the_second_forward_fit_starts_alongside_for_level_sweeps_and_tilted_cap
     for k, f in enumerate(tilted):
         t = math.radians(12.0) * (k % 2)
         f.truth = Plane(np.array([math.sin(t), 0.0, math.cos(t)]), f.truth.offset)
-    for frames, expected in ((level, ff.nominal_geometry_fit), (tilted, ff.scales_and_geometry_fit)):
+    for frames, expected in ((level, sf.nominal_geometry_fit), (tilted, sf.scales_and_geometry_fit)):
         with pytest.raises(Stop):
             fit_method(Calibration(), frames, "diff")
         assert started[-1] is expected

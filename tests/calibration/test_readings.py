@@ -1,6 +1,6 @@
 """Choosing between a level sweep's two readings with tilted frames without ground truth
 (:mod:`place_safe.calibration.readings`, and its use in
-:func:`~place_safe.calibration.forward_fit.reconsider_geometry`).
+:func:`~place_safe.calibration.second_fit.reconsider_geometry`).
 
 The frames here are rendered by the forward model with one of the two readings and read with both: convention checks
 (the comparison picks the reading that made the frames). That tilted frames of simulated units choose the unit's own
@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 import place_safe.calibration.forward_fit as ff
+import place_safe.calibration.second_fit as sf
 from place_safe.calibration.readings import (READING_MAJORITY, READING_MIN_APART, READING_MIN_FRAMES, READING_MIN_TILT,
                                              compare_readings, decide)
 from place_safe.evaluation.synthetic import SyntheticSpec, make_frames
@@ -81,7 +82,7 @@ def sweep_left_both(monkeypatch):
     by what it returns)."""
     level = [SimpleNamespace(truth=SimpleNamespace(normal=np.array([0.0, 0.0, 1.0]))) for _ in range(3)]
     first = {"rms_scaled_residual_after": 1.40, "converged": True, "one_surface": {"albedo_cv_after": 0.03}}
-    gain = 0.5 * min(ff.NOMINAL_GEOMETRY_GAIN, ff.ALBEDO_CLUE_GAIN)
+    gain = 0.5 * min(sf.NOMINAL_GEOMETRY_GAIN, sf.ALBEDO_CLUE_GAIN)
     second = {"rms_scaled_residual_after": 1.40 * (1.0 - gain), "converged": True, "solver": {"seconds": 1.0},
               "one_surface": {"albedo_cv_after": 0.02}}
     monkeypatch.setattr(ff, "fit_forward", lambda *a, **k: (TIME_SCALES, dict(second)))
@@ -93,7 +94,7 @@ def test_tilted_frames_without_truth_adopt_the_other_reading_of_a_level_sweep(sw
     as told apart, the report keeps the first as the other reading and says what the frames showed."""
     level, first = sweep_left_both
     lines: list[str] = []
-    p, r = ff.reconsider_geometry(level, FREE, dict(first), progress=False, log=lines.append,
+    p, r = sf.reconsider_geometry(level, FREE, dict(first), progress=False, log=lines.append,
                                   unlabelled=tilted(TIME_SCALES), peak=PeakParams.default_peak())
     g = r["geometry"]
     assert p is TIME_SCALES and g["adopted"] == "nominal_time_scales" and g["told_apart"] is True
@@ -106,20 +107,20 @@ def test_tilted_frames_without_truth_keep_the_first_reading_or_leave_both(sweep_
     """Frames made by the first reading keep it and tell the readings apart; too few tilted frames leave both readings
     (as without frames), and the report says why; no frames: the sweep's own choice, unchanged."""
     level, first = sweep_left_both
-    p, r = ff.reconsider_geometry(level, FREE, dict(first), progress=False, unlabelled=tilted(FREE, seed=4),
+    p, r = sf.reconsider_geometry(level, FREE, dict(first), progress=False, unlabelled=tilted(FREE, seed=4),
                                   peak=PeakParams.default_peak())
     g = r["geometry"]
     assert p is FREE and g["adopted"] == "free" and g["told_apart"] is True and g["unlabelled"]["chose"] == "kept"
     assert g["other_params"]["zone_bin_scales"][2] == TIME_SCALES.zone_bin_scales[2]
     assert "note" not in g  # the geometry note warns of the two readings, which the frames told apart
 
-    p, r = ff.reconsider_geometry(level, FREE, dict(first), progress=False, unlabelled=tilted(FREE, n=4),
+    p, r = sf.reconsider_geometry(level, FREE, dict(first), progress=False, unlabelled=tilted(FREE, n=4),
                                   peak=PeakParams.default_peak())
     g = r["geometry"]
     assert p is FREE and g["told_apart"] is False and g["unlabelled"]["chose"] == "neither"
     assert "are needed" in g["unlabelled"]["why"] and "capture tilted poses" in g["note"]
 
-    p, r = ff.reconsider_geometry(level, FREE, dict(first), progress=False)
+    p, r = sf.reconsider_geometry(level, FREE, dict(first), progress=False)
     assert p is FREE and r["geometry"]["told_apart"] is False and "unlabelled" not in r["geometry"]
 
 
@@ -134,7 +135,7 @@ def test_the_report_says_whether_the_frames_were_used_and_the_note_what_they_sho
     from place_safe.calibration.uncertainty import READINGS_FROM_NOTE, readings_note_tail
 
     level, first = sweep_left_both
-    _, used = ff.reconsider_geometry(level, FREE, dict(first), progress=False, unlabelled=tilted(FREE, n=4),
+    _, used = sf.reconsider_geometry(level, FREE, dict(first), progress=False, unlabelled=tilted(FREE, n=4),
                                      peak=PeakParams.default_peak())
     summary = unlabelled_summary(used, 4)
     assert summary["used"] and summary["chose"] == "neither" and "are needed" in summary["why"]
@@ -168,15 +169,15 @@ def test_the_frames_adopt_the_second_reading_only_where_the_sweep_reads_one_surf
     second = {"rms_scaled_residual_after": 1.49, "converged": True, "solver": {"seconds": 1.0},
               "one_surface": {"albedo_cv_after": 1.10}}
     monkeypatch.setattr(ff, "fit_forward", lambda *a, **k: (TIME_SCALES, dict(second)))
-    p, r = ff.reconsider_geometry(level, FREE, dict(first), progress=False, unlabelled=tilted(TIME_SCALES),
+    p, r = sf.reconsider_geometry(level, FREE, dict(first), progress=False, unlabelled=tilted(TIME_SCALES),
                                   peak=PeakParams.default_peak())
     g = r["geometry"]
     assert p is FREE and g["told_apart"] is False and g["unlabelled"]["chose"] == "neither"
     assert "many albedos" in g["unlabelled"]["why"] and "110 %" in g["unlabelled"]["why"]
-    p, r = ff.reconsider_geometry(level, FREE, dict(first), progress=False, unlabelled=tilted(FREE, seed=4),
+    p, r = sf.reconsider_geometry(level, FREE, dict(first), progress=False, unlabelled=tilted(FREE, seed=4),
                                   peak=PeakParams.default_peak())
     assert p is FREE and r["geometry"]["told_apart"] is True and r["geometry"]["unlabelled"]["chose"] == "kept"
     many = dict(first, one_surface={"albedo_cv_after": 1.04})  # both read many albedos
-    p, r = ff.reconsider_geometry(level, FREE, many, progress=False, unlabelled=tilted(TIME_SCALES),
+    p, r = sf.reconsider_geometry(level, FREE, many, progress=False, unlabelled=tilted(TIME_SCALES),
                                   peak=PeakParams.default_peak())
     assert p is TIME_SCALES and r["geometry"]["told_apart"] is True and r["geometry"]["unlabelled"]["chose"] == "other"
