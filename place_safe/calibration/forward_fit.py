@@ -33,8 +33,8 @@ from place_safe.exceptions import CalibrationError, FrameError
 from place_safe.recovery.forward import (ForwardModel, ForwardParams, MODEL_ERROR, ZoneRays,
                                          mount_rotation, residual_weights, single_thread, tensors_to_params)
 from place_safe.sensor.frame import N_BINS, N_ZONES, Frame
-from place_safe.sensor.histogram import (COUNT_MAX, ambient_slopes, arriving_ambient, floor_profile, reference_floor,
-                                         reference_problem)
+from place_safe.sensor.histogram import (ambient_slopes, arriving_ambient, clipped_zones, floor_profile,
+                                         reference_floor, reference_problem)
 from place_safe.calibration.points import level_frames, tilt_angles
 from place_safe.recovery.differentiable import SolverOptions
 
@@ -282,7 +282,7 @@ def usable_frames(frames: Sequence[Frame], min_distance: float, max_distance: fl
         except FrameError:
             skip("invalid histograms")
             continue
-        if np.any(np.asarray(f.hists) >= COUNT_MAX):
+        if clipped_zones(f.hists).any():
             skip("saturated")
             continue
         if reference_problem(f.reference):

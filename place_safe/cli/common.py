@@ -84,12 +84,23 @@ def load_any_frames(path: str) -> tuple[list, str]:
     return frames, note
 
 
+def _invalid(frame) -> bool:
+    """Whether ``frame.validate()`` refuses it."""
+    try:
+        frame.validate()
+    except FrameError:
+        return True
+    return False
+
+
 def load_truth_frames(paths: Sequence[str], min_distance: float | None = None,
-                       max_distance: float | None = None) -> tuple[list, str]:
+                       max_distance: float | None = None, valid_only: bool = False) -> tuple[list, str]:
     """All frames with ground truth from ``paths`` (within the distance limits), and a note on the skipped ones.
 
     Unreadable frames, frames without ground truth or whose ground truth is not a plane, and frames
-    outside the limits are skipped and counted; the note is empty when none was.
+    outside the limits are skipped and counted; the note is empty when none was. ``valid_only`` (calibrate) skips
+    frames whose histograms no estimator reads (:meth:`~place_safe.sensor.frame.Frame.validate`: NaN, negative counts)
+    too: they counted towards the frames a fit needs and entered it (evaluate keeps them: they score as failures).
     """
     from collections import Counter
 
@@ -102,6 +113,8 @@ def load_truth_frames(paths: Sequence[str], min_distance: float | None = None,
                 skipped["unreadable"] += 1
             elif f.truth is None:
                 skipped["ground truth not a plane" if f.truth_error else "no ground truth"] += 1
+            elif valid_only and _invalid(f):
+                skipped["invalid histograms"] += 1
             elif ((min_distance is not None and f.truth.offset < min_distance)
                   or (max_distance is not None and f.truth.offset > max_distance)):
                 skipped["outside the distance limits"] += 1

@@ -69,7 +69,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
             if not args.force:
                 raise CalibrationError(f"{exc}; refusing to overwrite it (use --force to replace the file)") from None
             note = f"replacing {out}: {exc}"
-    frames, skipped = load_truth_frames(args.files)
+    frames, skipped = load_truth_frames(args.files, valid_only=True)
     unlabelled, unreadable = ([], "") if args.readings_from is None else load_any_frames(args.readings_from)
     if not args.quiet:
         log(f"calibrate {args.method}: {len(frames)} frames with ground truth" + (f" ({skipped})" if skipped else ""))

@@ -34,7 +34,7 @@ def mixed_file(tmp_path, synthetic_frames) -> Path:
     entries[2] = {"hists": [[1, 2, 3]], "reference_hist": [0] * 128}
     entries[4]["hists"][3][7] = float("nan")
     path = tmp_path / "mixed.json"
-    path.write_text(json.dumps(entries).replace("NaN", "NaN"))
+    path.write_text(json.dumps(entries))
     return path
 
 
@@ -513,3 +513,19 @@ def test_latency_times_recover_from_outside_under_both_names(command, synthetic_
 def test_latency_of_a_missing_file_is_one_line(capsys):
     assert main(["latency", "no_such_frames.json", "--method", "peak"]) == 2
     assert "does not exist" in one_line_error(capsys.readouterr().err)
+
+
+def test_calibrate_fits_only_frames_an_estimator_reads(tmp_path, sweep_path, monkeypatch, capsys):
+    """Frames with negative or NaN counts (which recover refuses) are skipped and counted, not fitted: they entered the
+    peak fit and counted towards the frames it needs (3 of which 1 with a NaN passed the check)."""
+    import place_safe.calibration.fit as fit
+
+    seen = []
+    monkeypatch.setattr(fit, "fit_method", lambda cal, frames, method, **kw: seen.append(len(frames)) or [])
+    entries = json.loads(Path(sweep_path).read_text())[10:14]
+    entries[1]["hists"][4][60] = -500000
+    entries[2]["hists"][0][3] = float("nan")
+    path = tmp_path / "poisoned.json"
+    path.write_text(json.dumps(entries))
+    assert main(["calibrate", str(path), "--method", "peak", "-o", str(tmp_path / "c.json")]) == 0
+    assert seen == [2] and "2 skipped: 2 invalid histograms" in capsys.readouterr().err
