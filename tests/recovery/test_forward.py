@@ -734,3 +734,16 @@ def test_a_file_without_the_ambient_slope_loads_with_a_flat_floor():
     assert ForwardParams.from_dict(d).ambient_slope == 0.0
     with pytest.raises(CalibrationError, match="ambient_slope"):
         ForwardParams.from_dict({**d, "ambient_slope": 2.0})
+
+
+def test_a_saturation_beyond_any_count_is_refused_when_the_file_is_read():
+    """forward.saturation = 1e308 loaded, and then every frame's diff solve failed numerically ("SVD did not
+    converge"); a calibration file with it now gives a one-line error naming the field."""
+    from place_safe.calibration import Calibration
+    from place_safe.exceptions import CalibrationError
+
+    assert ForwardParams(saturation=1e9).saturation == 1e9
+    cal = Calibration.from_dict({"format": "place_safe.calibration/1", "forward": {"saturation": 1e308}})
+    with pytest.raises(CalibrationError, match="saturation") as e:
+        cal.forward()
+    assert "\n" not in str(e.value)
