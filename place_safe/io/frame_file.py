@@ -338,6 +338,9 @@ def _iter_stream(fh: IO[bytes], p: Path) -> Iterator[dict | FrameError]:
     def entries(values) -> Iterator[dict | FrameError]:
         nonlocal index
         for raw, error in values:
+            if error == _LINE_BROKEN and index == 0:  # the first frame already spans lines: not JSON Lines at all
+                raise FrameFileError(f"{p}: not JSON Lines: its first frame spans more than one line (a pretty-printed "
+                                     "frame? write one frame per line, or a JSON list of frames)")
             where = f"{p.name}: frame {index}"
             index += 1
             if error is None:

@@ -245,3 +245,26 @@ def test_json_lines_a_broken_line_is_one_bad_frame_and_the_lines_after_it_are_re
     items = list(iter_frames(path))
     assert [type(x).__name__ for x in items] == ["Frame", "FrameError", "Frame", "FrameError", "Frame"]
     assert "frame 1" in str(items[1]) and "line ends inside the frame" in str(items[1])
+
+
+def test_a_pretty_printed_frame_is_not_read_as_json_lines(tmp_path):
+    """One frame written with indentation (valid JSON, starting with '{'): read as JSON Lines it became thousands of
+    broken frames and exit 0; now one line saying what the file is not. A later frame broken over lines stays a
+    per-frame error among good ones."""
+    import json
+
+    import numpy as np
+
+    from place_safe.exceptions import FrameFileError
+    from place_safe.io.frame_file import iter_frames
+    from place_safe.sensor.frame import Frame
+
+    d = Frame(np.full((9, 128), 100.0), np.full(128, 100.0)).to_dict()
+    f = tmp_path / "pretty.jsonl"
+    f.write_text(json.dumps(d, indent=1))
+    with pytest.raises(FrameFileError, match="not JSON Lines: its first frame spans more than one line"):
+        list(iter_frames(f))
+    g = tmp_path / "later.jsonl"
+    g.write_text(json.dumps(d) + "\n" + json.dumps(d, indent=1) + "\n" + json.dumps(d) + "\n")
+    out = list(iter_frames(g))
+    assert isinstance(out[0], Frame) and isinstance(out[-1], Frame) and len(out) > 3
