@@ -18,7 +18,7 @@ from typing import Any
 
 from place_safe.cli import options
 from place_safe.cli.options import opt
-from place_safe.cli.common import CALIBRATE_METHODS, log, uncalibrated_note
+from place_safe.cli.common import CALIBRATE_METHODS, count_note, log, uncalibrated_note
 from place_safe.cli.options import REACH, float_range, int_range
 from place_safe.exceptions import ConfigError, UsageError
 from place_safe.calibration import Calibration, mark
@@ -26,7 +26,6 @@ from place_safe.calibration.capture import MIN_CLEARANCE
 from place_safe.recovery import make_estimator
 from place_safe.config import read_json
 from place_safe.geometry import transform_problem
-from place_safe.io.frame_file import load_frames
 
 
 def _floats(text: str, n: int | None = None, what: str = "numbers", lo: float = -math.inf,
@@ -306,23 +305,54 @@ def cmd_capture(args: argparse.Namespace) -> int:
 # ------------------------------------------------------------------------------------------------
 # calibrate-mount
 # ------------------------------------------------------------------------------------------------
+def _posed_frames(path: str, use_kinematics: bool) -> tuple[list, Any, Any]:
+    """The frames of a capture that can be read and have a usable flange pose, their base_T_flange (n, 4, 4), and the
+    others counted by why (a bad frame is skipped and counted, as calibrate and evaluate do, not the end of the fit)."""
+    from collections import Counter
+
+    import numpy as np
+
+    from place_safe.calibration.mount import flange_poses
+    from place_safe.exceptions import CalibrationError, FrameError
+    from place_safe.io.frame_file import iter_frames
+    from place_safe.robot.kinematics import Kinematics
+
+    kin = Kinematics() if use_kinematics else None
+    frames, poses, skipped = [], [], Counter()
+    for f in iter_frames(path):
+        if isinstance(f, FrameError):
+            skipped["unreadable"] += 1
+            continue
+        try:
+            poses.append(flange_poses([f], use_kinematics=use_kinematics, kinematics=kin)[0])
+        except CalibrationError as exc:
+            text = str(exc)
+            skipped["bad joint_angles" if "joint_angles must" in text else "bad pose" if "pose" in text.split(";")[0]
+                    and "neither" not in text else "no joint_angles or pose"] += 1
+            continue
+        frames.append(f)
+    return frames, np.array(poses), skipped
+
+
 def cmd_calibrate_mount(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from place_safe.calibration.mount import fit_mount, flange_poses
+    from place_safe.calibration.mount import fit_mount
     from place_safe.drivers.ur5.config import FrameConfig
 
 
     robot_cfg = _robot_config(args.robot)
     truth = _mount_truth(args.truth) if args.truth else None  # every input checked before the fit runs
-    frames = load_frames(args.capture)
+    frames, F, skipped = _posed_frames(args.capture, args.poses == "joints")
     if not frames:
-        raise UsageError(f"calibrate-mount: {args.capture} has no frames")
+        raise UsageError(f"calibrate-mount: {args.capture} has no frames with a usable flange pose"
+                         + (f" ({count_note(skipped)})" if skipped else ""))
+    if skipped and not args.quiet:
+        log(f"calibrate-mount: {len(frames)} frames ({count_note(skipped)})")
     estimator, cal_note = _estimator(args.method, args.calibration)
     calibrated = cal_note != BUILT_IN
     planes = [estimator.estimate(f).plane for f in tqdm(frames, desc="planes", unit="frame", file=sys.stderr,
                                                         disable=None if not args.quiet else True)]
-    F = flange_poses(frames, use_kinematics=args.poses == "joints")
     start = robot_cfg.tool.sensor.matrix()
     fit = fit_mount(F, planes, start, sigma_angle=math.radians(args.sigma_angle), sigma_distance=args.sigma_mm / 1000,
                     level=args.level, plane_offset=args.table_height)

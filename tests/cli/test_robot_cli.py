@@ -71,6 +71,30 @@ def test_calibrate_mount_on_the_real_sweep_writes_a_robot_file(sweep_path, tmp_p
     assert cfg.tool.sensor.xyz != URConfig.load(packaged_config("sim")).tool.sensor.xyz
 
 
+def test_calibrate_mount_skips_and_counts_frames_without_a_usable_pose(sweep_path, tmp_path, capsys):
+    """A NaN, a string and a short list of joint angles, and an unreadable frame, in a capture of 53: skipped and
+    counted (one bad frame ended the fit); a capture with no usable pose at all is one line, exit 2."""
+    import json
+
+    frames = json.loads(sweep_path.read_text())
+    frames[20]["joint_angles"] = [float("nan")] * 6
+    frames[21]["joint_angles"] = "abc"
+    frames[22]["joint_angles"] = [0.0, 1.0]
+    frames[23]["hists"] = "broken"
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps(frames))
+    assert main(["calibrate-mount", str(bad), "--method", "proprietary"]) == 0
+    captured = capsys.readouterr()
+    assert "4 skipped: 3 bad joint_angles, 1 unreadable" in captured.err and "mount fit on" in captured.out
+    for f in frames:
+        f["joint_angles"] = None
+        f.pop("pose", None)
+    bad.write_text(json.dumps(frames))
+    assert main(["calibrate-mount", str(bad), "--method", "proprietary", "-q"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "no frames with a usable flange pose" in err and "\n" not in err
+
+
 from hypothesis import given, settings, strategies as st  # noqa: E402
 
 
