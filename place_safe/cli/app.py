@@ -21,6 +21,7 @@ import argparse
 import errno
 import importlib.util
 import sys
+from pathlib import Path
 from collections.abc import Sequence
 
 from place_safe.cli.common import FMT, PROG, Parser, UsageError, log
@@ -125,11 +126,19 @@ OUTPUT_OPTIONS = ("output", "json", "log", "write", "plot", "render", "gif", "sa
 
 def _check_outputs(args: argparse.Namespace) -> None:
     """One line (exit 2) before anything runs when an output option names a directory or a FIFO nobody reads
-    (opening it would block for ever)."""
+    (opening it would block for ever), or a file in a folder that cannot be made; a missing folder is made here, as
+    synth and calibrate always did for theirs (evaluate --json into one failed after the whole evaluation)."""
     for name in OUTPUT_OPTIONS:
         value = getattr(args, name, None)
-        if isinstance(value, str) and value and (why := output_file_problem(value)) is not None:
+        if not (isinstance(value, str) and value):
+            continue
+        if (why := output_file_problem(value)) is not None:
             raise UsageError(f"{args.command}: --{name.replace('_', '-')} {value} {why}")
+        try:
+            Path(value).parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise UsageError(f"{args.command}: --{name.replace('_', '-')} {value}: cannot make its folder "
+                             f"({exc.strerror or exc})") from None
 
 
 def _one_line(exc: BaseException) -> str:

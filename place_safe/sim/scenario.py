@@ -180,6 +180,8 @@ class Scenario(ConfigModel):
                     v = table.pop(deg)
                     if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v):
                         raise ValueError(f"scene.table.{deg} must be a finite number of degrees")
+                    if deg == "tilt_deg" and not -90.0 < v < 90.0:  # (the field's own bound would be said in rad)
+                        raise ValueError(f"scene.table.tilt_deg must be between -90 and 90 deg (exclusive), got {v:g}")
                     table[rad] = math.radians(v)
             scene["table"] = table
         d["scene"] = scene

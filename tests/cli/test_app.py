@@ -529,3 +529,18 @@ def test_calibrate_fits_only_frames_an_estimator_reads(tmp_path, sweep_path, mon
     path.write_text(json.dumps(entries))
     assert main(["calibrate", str(path), "--method", "peak", "-o", str(tmp_path / "c.json")]) == 0
     assert seen == [2] and "2 skipped: 2 invalid histograms" in capsys.readouterr().err
+
+
+def test_an_output_in_a_missing_folder_is_written_and_one_under_a_file_fails_before_the_work(tmp_path, sweep_path,
+                                                                                              capsys):
+    """evaluate --json into a folder that does not exist failed only after the whole evaluation: its folder is made
+    first (as synth and calibrate make theirs), and a path under a regular file is one line before anything runs."""
+    out = tmp_path / "new" / "deeper" / "eval.json"
+    assert main(["evaluate", str(sweep_path), "--methods", "peak", "--json", str(out), "--no-plots", "-q"]) == 0
+    assert json.loads(out.read_text())
+    capsys.readouterr()
+    (tmp_path / "file").write_text("x")
+    assert main(["evaluate", str(sweep_path), "--methods", "peak", "--json", str(tmp_path / "file" / "e.json"),
+                 "--no-plots", "-q"]) == 2
+    captured = capsys.readouterr()
+    assert "cannot be written" in one_line_error(captured.err) and "frames" not in captured.out

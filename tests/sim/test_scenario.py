@@ -77,6 +77,9 @@ def test_bad_files_give_one_line_errors(tmp_path):
         load_scenario(j)
     with pytest.raises(ConfigError, match="not found"):
         load_scenario(tmp_path / "missing.toml")
+    f.write_text("[scene.table]\ntilt_deg = 90\n")  # said in degrees, as given (it was said in rad)
+    with pytest.raises(ConfigError, match="tilt_deg must be between -90 and 90 deg"):
+        load_scenario(f)
     for text in ("", "# a comment only\n", 'name = "x"\ndescription = "y"\n'):  # an empty file ran the default scene
         f.write_text(text)
         with pytest.raises(ConfigError, match="sets nothing"):
