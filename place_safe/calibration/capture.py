@@ -254,11 +254,12 @@ def _release_point(robot: Robot, speed: float, accel: float, max_back: float = 0
     return p
 
 
-def _done_indices(path: Path) -> set[int]:
-    """The pose indices already in a capture's output (resume), from its frames' ``meta.pose_index``. A half-written
-    last line after captured frames (an interrupted run) is cut off, so the frames appended after it start on a line of
-    their own. A file that is not a capture (any other line that is not a frame with a pose index: a calibration, a JSON
-    list of frames, text) raises :class:`FrameFileError` before anything is appended to it."""
+def _done_indices(path: Path, cut: bool = True) -> set[int]:
+    """The pose indices already in a capture's output (resume), from its frames' ``meta.pose_index`` (a whole number
+    >= 0). A last line after captured frames that is unfinished JSON (an interrupted run) is cut off (``cut``; a dry
+    run writes nothing and leaves it), so the frames appended after it start on a line of their own. A file that is
+    not a capture (any other line that is not a frame with a pose index: a calibration, a JSON list of frames, a note,
+    text) raises :class:`FrameFileError` before anything is appended to it."""
     done: set[int] = set()
     if not path.is_file():
         return done
@@ -269,14 +270,19 @@ def _done_indices(path: Path) -> set[int]:
         if not line.strip():
             continue
         try:
-            done.add(int(json.loads(line)["meta"]["pose_index"]))
-        except (ValueError, KeyError, TypeError, IndexError, UnicodeDecodeError):
-            if k == len(lines) - 1 and done:  # the last line after frames, unfinished: an interrupted run's; redone
-                keep = len(raw) - len(line)
+            value = json.loads(line)
+        except ValueError as exc:  # (JSONDecodeError, bad UTF-8)
+            if k == len(lines) - 1 and done and isinstance(exc, json.JSONDecodeError):
+                keep = len(raw) - len(line)  # the last line after frames, unfinished: an interrupted run's; redone
                 continue
+            value = None
+        index = value.get("meta", {}).get("pose_index") if isinstance(value, dict) and isinstance(
+            value.get("meta"), dict) else None
+        if not (isinstance(index, int) and not isinstance(index, bool) and index >= 0):
             raise FrameFileError(f"{path} exists and is not a capture to resume (line {k + 1} is not a frame with "
-                                 f"meta.pose_index): give another output file, or move this one") from None
-    if keep < len(raw):
+                                 f"meta.pose_index): give another output file, or move this one")
+        done.add(index)
+    if keep < len(raw) and cut:
         with open(path, "r+b") as fh:
             fh.truncate(keep)
     return done
@@ -329,7 +335,7 @@ def capture_sweep(robot: Robot, source: Any, plan: SweepPlan, out_path: str | Pa
 
     log = log or (lambda s: print(s, file=sys.stderr, flush=True))
     out = Path(out_path)
-    done = _done_indices(out)
+    done = _done_indices(out, cut=not getattr(robot, "dry_run", False))
     n = np.asarray(plane[0], dtype=float)
     n = n / np.linalg.norm(n)
     pl = (n, float(plane[1]) / float(np.linalg.norm(plane[0])))
@@ -358,8 +364,8 @@ def capture_sweep(robot: Robot, source: Any, plan: SweepPlan, out_path: str | Pa
             clearance = float(pl[0] @ base_T_tcp[:3, 3]) - pl[1]
             if clearance < plan.min_clearance:  # the gripper would meet the plane: not a pose to move to
                 why = (f"the TCP would come {clearance * 1000:.1f} mm from the plane, less than the "
-                       f"{plan.min_clearance * 1000:g} mm clearance (the gripper's tips reach "
-                       f"{(dist - clearance) * 1000:.0f} mm past the sensor towards it)")
+                       f"{plan.min_clearance * 1000:g} mm clearance (at this pose the gripper's tips sit "
+                       f"{(dist - clearance) * 1000:.0f} mm nearer the plane than the sensor)")
                 refused.append({"pose_index": i, "distance": dist, "incidence": inc, "azimuth": az, "reason": why})
                 log(f"pose {i} refused: {why}")
                 continue

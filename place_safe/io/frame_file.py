@@ -310,6 +310,22 @@ def _read(fh: IO[bytes], p: Path) -> bytes:
         raise FrameFileError(f"cannot read frame file {p}: {exc.strerror or exc}") from None
 
 
+def _second_line_is_a_frame(p: Path) -> bool:
+    """Whether the second non-blank line of file ``p`` starts a JSON object: a JSON Lines file whose first line is
+    broken goes on with frames, where a pretty-printed frame goes on with its members."""
+    try:
+        with open(p, "rb") as fh:
+            seen = 0
+            while line := fh.readline(MAX_FRAME_BYTES + 2):
+                if line.strip():
+                    seen += 1
+                    if seen == 2:
+                        return line.lstrip().startswith(b"{")
+    except OSError:
+        pass
+    return False
+
+
 def _iter_stream(fh: IO[bytes], p: Path) -> Iterator[dict | FrameError]:
     buf = b""
     while True:  # the first non-blank byte decides the layout
@@ -338,7 +354,8 @@ def _iter_stream(fh: IO[bytes], p: Path) -> Iterator[dict | FrameError]:
     def entries(values) -> Iterator[dict | FrameError]:
         nonlocal index
         for raw, error in values:
-            if error == _LINE_BROKEN and index == 0:  # the first frame already spans lines: not JSON Lines at all
+            if error == _LINE_BROKEN and index == 0 and not _second_line_is_a_frame(p):
+                # the first frame spans lines and the next line does not start one: not JSON Lines at all
                 raise FrameFileError(f"{p}: not JSON Lines: its first frame spans more than one line (a pretty-printed "
                                      "frame? write one frame per line, or a JSON list of frames)")
             where = f"{p.name}: frame {index}"

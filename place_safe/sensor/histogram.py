@@ -39,7 +39,8 @@ STORE_LIMITS = tuple(float(2 ** k - 1) for k in range(8, 25))
 #: None of the real sweep's 477 zone histograms (or its references) holds its highest count in two bins; capped at
 #: 65535, 291 of them hold it in three or more (and were read up to 30 sigma off, confidently, before this test).
 CLIP_PLATEAU_BINS = 3
-#: counts: the least highest count :func:`clipped_zones` reads a flat top at (a low return's equal bins are noise).
+#: counts: how far above the histogram's least count a flat top must stand for :func:`clipped_zones` (a low return's
+#: equal bins are noise; a flat floor is no return).
 CLIP_MIN_COUNTS = 100.0
 #: Bins at the end of every histogram used to measure the per-zone floor.
 FLOOR_BINS = slice(100, N_BINS)
@@ -166,8 +167,8 @@ PILEUP_MAX_FRACTION = 0.95
 
 def clipped_zones(hists: np.ndarray) -> np.ndarray:
     """Which histograms (..., 128) -> (...) were clipped: a bin at :data:`COUNT_MAX` (the sensor's own counters), the
-    highest count held in :data:`CLIP_PLATEAU_BINS` or more consecutive bins (at :data:`CLIP_MIN_COUNTS` or more: a
-    flat top), or at a narrower store's limit (:data:`STORE_LIMITS`) in two or more bins. A clipped return's peak and
+    highest count held in :data:`CLIP_PLATEAU_BINS` or more consecutive bins (:data:`CLIP_MIN_COUNTS` or more above
+    the least count: a flat top), or at a narrower store's limit (:data:`STORE_LIMITS`) in two or more bins. A clipped return's peak and
     centroid are wrong by up to its width and its height says nothing: estimators give such a zone no reading (a
     frame capped at 65535 counts read a plane at 42 mm as 61 mm, 10 deg, within 0.6 mm / 0.6 deg by its covariance).
     Non-finite counts are not clipped (they are refused as such)."""
@@ -175,7 +176,9 @@ def clipped_zones(hists: np.ndarray) -> np.ndarray:
     with np.errstate(invalid="ignore"):
         top = h.max(axis=-1)
         at = h == top[..., None]
-        flat = (at[..., :-2] & at[..., 1:-1] & at[..., 2:]).any(axis=-1) & (top >= CLIP_MIN_COUNTS)
+        # the top stands CLIP_MIN_COUNTS above the histogram's least count: a return, not a flat floor (a zone that
+        # sees nothing over a floor of 100 counts, noise-free in a synthetic frame, holds its "top" in every bin)
+        flat = (at[..., :-2] & at[..., 1:-1] & at[..., 2:]).any(axis=-1) & (top - h.min(axis=-1) >= CLIP_MIN_COUNTS)
         store = np.isin(top, STORE_LIMITS) & (at.sum(axis=-1) >= 2)
         return (h >= COUNT_MAX).any(axis=-1) | flat | store
 

@@ -143,13 +143,13 @@ def test_capture_refuses_before_moving_a_pose_that_would_take_the_gripper_into_t
     the table (in simulation a protective stop at 70 N ended the capture at its first pose). They are refused and
     listed with the clearance they would have had, the arm is not sent there, and the sweep goes on."""
     robot, fake = _robot(kin)
-    plan = SweepPlan(distances=[0.02, 0.03, 0.036, 0.10], incidences=[0.0], settle_s=0.05, speed=0.2)
+    plan = SweepPlan(distances=[0.02, 0.033, 0.036, 0.10], incidences=[0.0], settle_s=0.05, speed=0.2)
     moves = []
     move = robot.move_linear
     robot.move_linear = lambda T, **kw: (moves.append(T[2, 3]), move(T, **kw))[1]
     res = capture_sweep(robot, ClockSource(robot), plan, tmp_path / "c.jsonl", plane=level_plane(TABLE_Z),
                         tool=robot.tool, progress=False, log=lambda s: None)
-    assert res.captured == 2 and [r["distance"] for r in res.refused] == [0.02, 0.03]
+    assert res.captured == 2 and [r["distance"] for r in res.refused] == [0.02, 0.033]  # 3 mm: within the 5 mm
     assert "-10.0 mm from the plane" in res.refused[0]["reason"] and "5 mm clearance" in res.refused[0]["reason"]
     assert len(moves) == 2 and min(moves) > TABLE_Z + plan.min_clearance  # the TCP was never sent closer
     assert not robot.is_faulted() and fake.arm.contact_force() == 0.0
@@ -179,8 +179,10 @@ def test_capture_never_appends_to_a_file_that_is_not_a_capture(kin, tmp_path):
 
     robot, _ = _robot(kin)
     plan = SweepPlan(distances=[0.10, 0.12], incidences=[0.0], settle_s=0.05, speed=0.2)
+    frame = json.dumps({"hists": [], "meta": {"pose_index": 0}})
     for name, text in (("cal.json", '{\n "format": "place_safe.calibration/1"\n}\n'), ("list.json", '[{"hists": []}]'),
-                       ("notes.txt", "my notes\nmore\n")):
+                       ("notes.txt", "my notes\nmore\n"), ("noted.jsonl", frame + '\n{"note": "a complete line"}'),
+                       ("float.jsonl", json.dumps({"meta": {"pose_index": 2.9}}) + "\n")):
         f = tmp_path / name
         f.write_text(text)
         with pytest.raises(FrameFileError, match="not a capture"):

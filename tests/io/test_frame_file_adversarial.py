@@ -268,3 +268,7 @@ def test_a_pretty_printed_frame_is_not_read_as_json_lines(tmp_path):
     g.write_text(json.dumps(d) + "\n" + json.dumps(d, indent=1) + "\n" + json.dumps(d) + "\n")
     out = list(iter_frames(g))
     assert isinstance(out[0], Frame) and isinstance(out[-1], Frame) and len(out) > 3
+    h = tmp_path / "first_broken.jsonl"  # a first line cut short, frames after it: one broken frame, the rest read
+    h.write_text(json.dumps(d)[:500] + "\n" + json.dumps(d) + "\n" + json.dumps(d) + "\n")
+    out = list(iter_frames(h))
+    assert len(out) == 3 and not isinstance(out[0], Frame) and all(isinstance(f, Frame) for f in out[1:])

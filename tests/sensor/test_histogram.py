@@ -363,6 +363,15 @@ def test_a_clipped_return_reads_as_clipped_and_a_real_one_does_not():
     low = np.zeros(128)
     low[40:43] = 12.0  # a faint return's equal counts are noise, not a clip
     assert not clipped_zones(low) and not clipped_zones(np.full(128, np.nan))
+    assert not clipped_zones(np.full(128, 150.0))  # a zone that sees nothing over a flat floor: no return, no clip
+    two = np.full(128, 100.0)
+    two[40:42] = 5000.0  # two equal tops can be counts (a pulse centred between two bins); three cannot
+    assert not clipped_zones(two)
+    one = np.full(128, 100.0)
+    one[40], one[41] = 65535.0, 30000.0  # one bin that happens to count 65535: not a store's limit
+    assert not clipped_zones(one)
+    one[41] = 65535.0
+    assert clipped_zones(one)  # two: a uint16 store's limit
 
 
 def test_estimators_give_no_plane_for_clipped_histograms():
@@ -382,3 +391,13 @@ def test_estimators_give_no_plane_for_clipped_histograms():
     for method in ("peak", "diff"):
         for e in make_estimator(method).estimate_many(capped):
             assert e.plane is None and "clipped" in e.reason, (method, e.reason)
+    # diff's own test (not only the peak plane it starts from), the reference's and the forward fit's
+    from place_safe.calibration.forward_fit import usable_frames
+    from place_safe.recovery.differentiable import DifferentiableEstimator
+    from place_safe.sensor.histogram import reference_problem
+
+    assert all(e.reason.startswith("histograms clipped") for e in DifferentiableEstimator().estimate_batch(capped))
+    skipped = {}
+    assert usable_frames(capped, 0.0, 10.0, skipped) == [] and skipped == {"saturated": 3}
+    ref = np.asarray(frames[10]["reference_hist"], dtype=float)
+    assert reference_problem(ref) is None and "clipped" in reference_problem(np.minimum(ref, 0.2 * ref.max()))
