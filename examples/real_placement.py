@@ -6,7 +6,8 @@ Run (on the arm's network, sensor on the host's I2C bus, after ``place-safe capt
 
 ``--dry-run`` connects receive-only, prints the planned motion and commands nothing. The speeds near the
 surface and the stop decelerations come from the robot file (``[motion]``, ``[limits]``). A robot, sensor or
-calibration that cannot be opened ends the script with one line saying why (exit 2) before anything moves.
+calibration that cannot be opened ends the script with one line saying why (exit 2) before anything moves; so does an
+error the placement loop raises instead of ending on (its faults it ends on: exit 1).
 """
 
 import argparse
@@ -27,8 +28,9 @@ def place(robot, sensor, estimator, config=None, timeout=30.0):
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(
         prog="real_placement.py", description="Put the held cup down on the surface below, or refuse and keep "
-        "holding it, with a UR5 over ur-rtde and a TMF8820. Exit 0 released or refused, 1 any other end, 2 a robot, "
-        "sensor or calibration that could not be opened.",
+        "holding it, with a UR5 over ur-rtde and a TMF8820. Exit 0 released or refused, 1 any other end of the "
+        "placement (a fault it stopped on, a timeout), 2 a robot, sensor or calibration that could not be opened, or "
+        "an error the placement could not end on its own (one line).",
         epilog="example: python examples/real_placement.py robots/ur5/real.toml i2c:/dev/i2c-1@0x41 cal.json "
                "--dry-run")
     parser.add_argument("robot", help="robot file (robots/ur5/real.toml: the arm's address, limits, gripper)")

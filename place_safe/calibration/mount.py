@@ -252,8 +252,18 @@ def _robust_scale(v: np.ndarray) -> float:
     return 1.4826 * float(np.median(np.abs(v))) if len(v) else 0.0
 
 
+class FlangePoseError(CalibrationError):
+    """A frame without a usable flange pose; ``kind`` says why in a few words (``"bad joint_angles"``, ``"bad pose"``,
+    ``"no joint_angles or pose"``), for a caller that skips and counts such frames."""
+
+    def __init__(self, message: str, kind: str) -> None:
+        super().__init__(message)
+        self.kind = kind
+
+
 def flange_poses(frames: Sequence[Any], use_kinematics: bool = True, kinematics: Any = None) -> np.ndarray:
-    """base_T_flange per frame: forward kinematics of ``joint_angles`` (default) or the recorded ``pose``."""
+    """base_T_flange per frame: forward kinematics of ``joint_angles`` (default) or the recorded ``pose``;
+    :class:`FlangePoseError` for the first frame without a usable one."""
     out = []
     kin = kinematics
     for i, f in enumerate(frames):
@@ -265,11 +275,12 @@ def flange_poses(frames: Sequence[Any], use_kinematics: bool = True, kinematics:
         elif extra.get("pose") is not None:
             T = extra["pose"]
             if (why := transform_problem(T)) is not None or np.abs(np.asarray(T, dtype=float)[:3, 3]).max() > MAX_REACH:
-                raise CalibrationError(f"frame {i}: pose {why or f'is farther than {MAX_REACH:g} m from the base'}; "
-                                       "expected the flange's rigid base-frame transform (m)")
+                raise FlangePoseError(f"frame {i}: pose {why or f'is farther than {MAX_REACH:g} m from the base'}; "
+                                      "expected the flange's rigid base-frame transform (m)", "bad pose")
             out.append(np.asarray(T, dtype=float))
         else:
-            raise CalibrationError(f"frame {i} has neither joint_angles nor pose; the capture cannot fit a mount")
+            raise FlangePoseError(f"frame {i} has neither joint_angles nor pose; the capture cannot fit a mount",
+                                  "no joint_angles or pose")
     return np.array(out)
 
 
@@ -283,9 +294,9 @@ def _joint_angles(q: Any, i: int) -> np.ndarray:
         isinstance(v, (int, float, np.number)) and not isinstance(v, bool) for v in q)
     a = np.asarray(q, dtype=float) if ok else None
     if a is None or not np.all(np.isfinite(a)) or np.abs(a).max() > 2 * math.pi + 1e-9:
-        raise CalibrationError(f"frame {i}: joint_angles must be 6 finite numbers within +-2 pi rad (the UR5's joint "
-                               "range)")
+        raise FlangePoseError(f"frame {i}: joint_angles must be 6 finite numbers within +-2 pi rad (the UR5's joint "
+                              "range)", "bad joint_angles")
     return a
 
 
-__all__ = ["MountFit", "fit_mount", "flange_poses", "MAX_REACH"]
+__all__ = ["MountFit", "FlangePoseError", "fit_mount", "flange_poses", "MAX_REACH"]

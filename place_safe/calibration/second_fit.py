@@ -19,7 +19,8 @@ import numpy as np
 from tqdm import tqdm
 
 from place_safe.calibration import forward_fit  # its fit_forward through the module: a test stands in for it there
-from place_safe.calibration.forward_fit import FITTED, SAME_SURFACE_CV, ZONE_SCALE_TERMS, free_crosstalk_std, level_sweep
+from place_safe.calibration.forward_fit import (FITTED, SAME_SURFACE_CV, ZONE_SCALE_TERMS, free_crosstalk_std,
+                                               level_sweep)
 from place_safe.recovery.differentiable import SolverOptions
 from place_safe.recovery.forward import ForwardParams
 from place_safe.recovery.points import PeakParams
@@ -174,7 +175,7 @@ def _compared(report: dict, alt: ForwardParams, alt_report: dict) -> tuple[float
 
 
 def nominal_geometry_fit(frames: Sequence[Frame], progress: bool = False) -> tuple[ForwardParams, dict]:
-    """The second fit of :func:`reconsider_geometry`: :func:`fit_forward` from the default start with
+    """The second fit of :func:`reconsider_geometry`: :func:`forward_fit.fit_forward` from the default start with
     :data:`NOMINAL_GEOMETRY_FITTED` (a module-level function: ``calibrate`` may run it in a process alongside the
     first fit, :class:`~place_safe.calibration.alongside.Alongside`)."""
     return forward_fit.fit_forward(frames, init=None, progress=progress, fitted=NOMINAL_GEOMETRY_FITTED)
@@ -189,9 +190,9 @@ SCALES_AND_GEOMETRY_FITTED: dict[str, str] = {**FITTED, **ZONE_SCALE_TERMS}
 
 
 def scales_and_geometry_fit(frames: Sequence[Frame], progress: bool = False) -> tuple[ForwardParams, dict]:
-    """The second fit of :func:`reconsider_geometry` on a capture with tilted frames: :func:`fit_forward` from the
-    default start with :data:`SCALES_AND_GEOMETRY_FITTED` (module level: ``calibrate`` may run it alongside the first
-    fit)."""
+    """The second fit of :func:`reconsider_geometry` on a capture with tilted frames: :func:`forward_fit.fit_forward`
+    from the default start with :data:`SCALES_AND_GEOMETRY_FITTED` (module level: ``calibrate`` may run it alongside
+    the first fit)."""
     return forward_fit.fit_forward(frames, init=None, progress=progress, fitted=SCALES_AND_GEOMETRY_FITTED)
 
 
@@ -204,7 +205,8 @@ def second_fit_for(frames: Sequence[Frame]):
 def reconsider_geometry(frames: Sequence[Frame], params: ForwardParams, report: dict, progress: bool = True,
                         log=None, second_fit: bool = True, second=None, unlabelled: Sequence[Frame] = (),
                         peak=None) -> tuple[ForwardParams, dict]:
-    """The forward fit to keep after ``params`` (with its ``report``) from :func:`fit_forward` on ``frames``.
+    """The forward fit to keep after ``params`` (with its ``report``) from :func:`forward_fit.fit_forward` on
+    ``frames``.
 
     On a level sweep (whatever geometry its fit set: simulated unit 52, whose zones keep their own time, landed within
     0.5 % and 0.2 deg of the nominal geometry and read tilted planes 0.74 deg off with NEES per dof 9.3, on the

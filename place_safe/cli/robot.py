@@ -312,8 +312,8 @@ def _posed_frames(path: str, use_kinematics: bool) -> tuple[list, Any, Any]:
 
     import numpy as np
 
-    from place_safe.calibration.mount import flange_poses
-    from place_safe.exceptions import CalibrationError, FrameError
+    from place_safe.calibration.mount import FlangePoseError, flange_poses
+    from place_safe.exceptions import FrameError
     from place_safe.io.frame_file import iter_frames
     from place_safe.robot.kinematics import Kinematics
 
@@ -325,10 +325,8 @@ def _posed_frames(path: str, use_kinematics: bool) -> tuple[list, Any, Any]:
             continue
         try:
             poses.append(flange_poses([f], use_kinematics=use_kinematics, kinematics=kin)[0])
-        except CalibrationError as exc:
-            text = str(exc)
-            skipped["bad joint_angles" if "joint_angles must" in text else "bad pose" if "pose" in text.split(";")[0]
-                    and "neither" not in text else "no joint_angles or pose"] += 1
+        except FlangePoseError as exc:
+            skipped[exc.kind] += 1
             continue
         frames.append(f)
     return frames, np.array(poses), skipped
