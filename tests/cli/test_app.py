@@ -208,10 +208,11 @@ def test_calibrate_writes_and_merges_sections(tmp_path, sweep_path, capsys):
     assert main(["calibrate", str(sweep_path), "--method", "peak", "-o", str(out), "-q"]) == 0
     err = capsys.readouterr().err
     assert "fit quality" in err
-    # the real sweep is one pass 7.5 mm apart: its near law is measured in wider gaps than a new frame's, and the
-    # last lines before "wrote" say so
+    # the real sweep is one pass 7.5 mm apart: its near law is measured in wider gaps than a new frame's, and a
+    # level table does not show peak's slopes: the last lines before "wrote" say so
     lines = err.strip().splitlines()
-    assert lines[-2].startswith("note (uncertainty.peak.near_range.law): near range from wider gaps") and \
+    assert lines[-3].startswith("note (uncertainty.peak.near_range.law): near range from wider gaps")
+    assert lines[-2].startswith("note (uncertainty.peak): peak's slopes on tilted planes are not calibrated") and \
         "wrote" in lines[-1]
     assert set(Calibration.load(out).sections) == {"peak", "uncertainty"}  # peak's covariance floor
     peak_before = json.loads(out.read_text())["peak"]
