@@ -59,6 +59,19 @@ EARLY_RELATIVE = 0.06
 EARLY_SIGMAS = 6.0
 #: Zones that must agree on one plane for a frame's consensus plane (a majority of the 9).
 MIN_INLIERS = 5
+#: A plane through one zone fewer (a majority still) that fits its zones this many times as closely (least squares, the
+#: residual per degree of freedom) is a frame's consensus instead of the plane through the most zones: a box 25 mm tall
+#: beside the footprint at 17 cm blends into the zones' returns (1.6 bins apart: no second return, no shoulder), and a
+#: plane tilted 18.5 deg through its top and the far row of the table took 6 zones at 1.2 mm RMS, within the 3.8 mm
+#: tolerance, where the table's own 5 zones lay within 0.03 mm; the placement refused the level table as tilted (random
+#: scene 69 of seed 65).
+CLOSER_FIT = 10.0
+#: ... when the plane through the most zones fits them no better than this share of the frame's tolerance (per degree
+#: of freedom): a plane through one surface fits its zones to their noise (a tenth of a millimetre or so at 17 cm), and
+#: five zones can fit far more closely by chance (two degrees of freedom); scene 69's six fit at 1.7 mm against a
+#: 3.8 mm tolerance, 36 times the table's five. With zones as noisy as 1 mm (a tilted table beside a box, 1000 draws)
+#: the rule gave up the six for five of them in 5 frames (for a plane through the box in none; 5 and 1/3: 16 and 5)
+POOR_FIT = 1.0 / 3.0
 #: Zones of a frame lie on one plane within this fraction of their median range (see
 #: :meth:`SurfaceMap.consensus_tolerance`), at least :data:`CONSENSUS_MIN` m.
 CONSENSUS_RELATIVE = 0.02
@@ -147,9 +160,11 @@ def early_returns(hists: np.ndarray, first: np.ndarray, valid: np.ndarray) -> np
 def consensus(points: np.ndarray, valid: np.ndarray, tolerance: float) -> tuple[np.ndarray, np.ndarray, float]:
     """The largest set of zone points (9, 3) lying on one plane within ``tolerance`` (m).
 
-    Every plane through three valid points is tried (at most 84); the one with the most inliers (ties:
-    smallest RMS) is refitted by least squares on its inliers. Returns the inlier mask (9,), the plane
-    ``(nx, ny, nz, d)`` (sensor frame, ``n_z > 0``) and its RMS residual; all-False / NaN when fewer
+    Every plane through three valid points is tried (at most 84); the one with the most inliers (ties: smallest RMS; the
+    closest-fitting one with an inlier fewer, at least :data:`MIN_INLIERS`, wins when the plane through the most fits
+    them poorly, its least-squares residual per degree of freedom :data:`POOR_FIT` of ``tolerance`` or more, and the
+    other's is :data:`CLOSER_FIT` times smaller) is refitted by least squares on its inliers. Returns the inlier mask
+    (9,), the plane ``(nx, ny, nz, d)`` (sensor frame, ``n_z > 0``) and its RMS residual; all-False / NaN when fewer
     than 3 points are valid or they are collinear.
     """
     from place_safe.recovery.points import fit_planes
@@ -174,6 +189,17 @@ def consensus(points: np.ndarray, valid: np.ndarray, tolerance: float) -> tuple[
     count = inl.sum(0)
     rms = np.sqrt(np.where(inl, res ** 2, 0.0).sum(0) / np.maximum(count, 1))
     best = np.lexsort((rms, -count))[0]
+    fewer = np.flatnonzero((count == count[best] - 1) & (count >= MIN_INLIERS))
+    if fewer.size:  # one zone fewer, fitted CLOSER_FIT times as closely by least squares, is the surface
+        other = fewer[np.argmin(rms[fewer])]
+        sets = np.zeros((2, N_ZONES), dtype=bool)
+        sets[0, idx[inl[:, best]]] = True
+        sets[1, idx[inl[:, other]]] = True
+        _, _, r2, ok2 = fit_planes(np.broadcast_to(P, (2,) + P.shape), sets)
+        n2 = sets.sum(axis=1)
+        sigma = r2 * np.sqrt(n2 / np.maximum(n2 - 3, 1))  # per residual degree of freedom: a plane takes three
+        if ok2.all() and sigma[0] >= POOR_FIT * tolerance and CLOSER_FIT * sigma[1] <= sigma[0]:
+            best = other
     mask = np.zeros(N_ZONES, dtype=bool)
     mask[idx[inl[:, best]]] = True
     nf, df, rf, okf = fit_planes(P[None], mask[None])
