@@ -415,9 +415,23 @@ class DifferentiableEstimator(Estimator):
         if rows:
             sub = [frames[i] for i in rows]
             solve = self._solve_fast if self.mode == "fast" else self._solve_paper
-            for i, est, peak in zip(rows, solve(sub, inits), peaks):
+            try:
+                solved = solve(sub, inits)
+            except (ArithmeticError, np.linalg.LinAlgError, RuntimeError, ValueError):
+                solved = [self._solved_alone(solve, f, p0) for f, p0 in zip(sub, inits)]
+            for i, est, peak in zip(rows, solved, peaks):
                 results[i] = checked(self._checked(est, peak) if self.mode == "fast" else est)
         return results  # type: ignore[return-value]
+
+    @staticmethod
+    def _solved_alone(solve, frame: Frame, init: Plane) -> PlaneEstimate:
+        """``frame`` solved on its own after its batch failed numerically; a frame that fails alone too gets no plane
+        and the reason (the fast solver's gates then return peak's plane where a fallback is calibrated, as for any
+        frame diff cannot read)."""
+        try:
+            return solve([frame], [init])[0]
+        except (ArithmeticError, np.linalg.LinAlgError, RuntimeError, ValueError) as exc:
+            return PlaneEstimate(None, reason=f"diff's solve failed numerically: {str(exc).splitlines()[0][:200]}")
 
     def _checked(self, est: PlaneEstimate, peak: PlaneEstimate) -> PlaneEstimate:
         """The diff estimate, or the peak estimate when diff's residual fails the chi-square test.

@@ -474,3 +474,32 @@ def test_a_frames_own_crosstalk_mends_the_slopes_a_wrong_calibrated_crosstalk_re
     assert np.median([e.residual for e in got]) < np.median([e.residual for e in held])
     same = DifferentiableEstimator(wrong, options=replace(SolverOptions(), crosstalk_std=0.0)).estimate_many(frames)
     assert all(np.allclose(a.plane.normal, b.plane.normal, rtol=0, atol=1e-12) for a, b in zip(same, held))
+
+
+def test_a_solve_that_fails_numerically_costs_its_own_frame_only_and_falls_back_where_calibrated(monkeypatch):
+    """A numerical failure in diff's batch solve (a calibration's saturation of 1e308 did it to every frame) is
+    retried frame by frame: the other frames of the batch keep diff's planes, and the failing one gets peak's plane
+    where a fallback is calibrated, or no plane and the reason where not -- never the batch lost."""
+    import json
+    from pathlib import Path
+
+    from place_safe.recovery.differentiable import DifferentiableEstimator
+    from place_safe.recovery.estimator import Uncertainty
+    from place_safe.sensor.frame import Frame
+
+    raw = json.loads((Path(__file__).resolve().parents[1] / "data" / "tmf8820_ur5_sweep.json").read_text())
+    frames = [Frame.from_dict(d) for d in raw[20:23]]
+    bad = frames[1]
+    real = DifferentiableEstimator._solve_fast
+
+    def solve(self, sub, inits):
+        if any(f is bad for f in sub):
+            raise np.linalg.LinAlgError("SVD did not converge")
+        return real(self, sub, inits)
+
+    monkeypatch.setattr(DifferentiableEstimator, "_solve_fast", solve)
+    plain = DifferentiableEstimator().estimate_many(frames)
+    assert plain[0].ok and plain[2].ok and plain[1].plane is None and "numerically" in plain[1].reason
+    calibrated = DifferentiableEstimator(uncertainty=Uncertainty(chi2_limit=1e6)).estimate_many(frames)
+    assert calibrated[1].ok and calibrated[1].method_used == "peak"
+    assert calibrated[0].method_used != "peak" or calibrated[2].method_used != "peak"
