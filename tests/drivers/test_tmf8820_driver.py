@@ -117,6 +117,17 @@ def test_bad_hex_files_give_one_line_config_errors(tmp_path):
     ih.write_hex_file(str(two))
     with pytest.raises(ConfigError, match="2 segments"):
         load_patch(two)
+    good = write_patch(tmp_path / "good.hex", RamPatch(0x0200, bytes(range(64))))
+    lines = good.read_text().splitlines()
+    cut = tmp_path / "cut.hex"  # cut off between records: IntelHex read a shorter patch, and it was downloaded
+    cut.write_text("\n".join(lines[:2]) + "\n")
+    with pytest.raises(ConfigError, match="no end-of-file record"):
+        load_patch(cut)
+    after = tmp_path / "after.hex"  # data after the end-of-file record was dropped without a word
+    after.write_text("\n".join(lines + lines[:1]) + "\n")
+    with pytest.raises(ConfigError, match="1 record"):
+        load_patch(after)
+    assert load_patch(good).data == bytes(range(64))
 
 
 @pytest.mark.parametrize("kind", FAULT_KINDS)

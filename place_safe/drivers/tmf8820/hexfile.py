@@ -25,6 +25,10 @@ class RamPatch:
         return [(self.address + i, self.data[i:i + size]) for i in range(0, len(self.data), size)]
 
 
+#: The Intel HEX end-of-file record: a patch file ends with it (and holds nothing after it).
+EOF_RECORD = ":00000001FF"
+
+
 def load_patch(path: str | Path) -> RamPatch:
     """Parse an Intel HEX RAM patch; :class:`ConfigError` (one line) if it is missing or unusable."""
     from intelhex import IntelHex, IntelHexError
@@ -38,6 +42,12 @@ def load_patch(path: str | Path) -> RamPatch:
         ih = IntelHex(str(p))
     except (IntelHexError, ValueError, UnicodeDecodeError) as exc:
         raise ConfigError(f"RAM patch {p} is not a valid Intel HEX file: {str(exc).splitlines()[0]}") from None
+    records = [line.strip() for line in p.read_text(encoding="ascii", errors="replace").splitlines() if line.strip()]
+    ends = [i for i, line in enumerate(records) if line.upper() == EOF_RECORD]
+    if not ends and records:  # (IntelHex reads a file cut off between records as a shorter, valid patch)
+        raise ConfigError(f"RAM patch {p} has no end-of-file record ({EOF_RECORD}): the file is cut off")
+    if ends and ends[0] != len(records) - 1:
+        raise ConfigError(f"RAM patch {p} has {len(records) - 1 - ends[0]} record(s) after its end-of-file record")
     segments = ih.segments()
     if not segments:
         raise ConfigError(f"RAM patch {p} holds no data")
