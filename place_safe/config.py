@@ -71,6 +71,53 @@ class ConfigModel(BaseModel):
     model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False,
                               str_strip_whitespace=True)
 
+    @model_validator(mode="before")
+    @classmethod
+    def _numbers_are_numbers(cls, data: Any) -> Any:
+        """A boolean or a text is not a number: ``max_linear_speed = true`` in a robot file read as 1.0 m/s (ten times
+        real.toml's), ``"0.1"`` as 0.1. Checked for fields that hold a number, or a list of numbers, only (a strict
+        model, :class:`ParamModel`, refuses them itself)."""
+        if isinstance(data, dict) and not cls.model_config.get("strict"):
+            for name, value in data.items():
+                field = cls.model_fields.get(name)
+                if field is not None and _numeric(field.annotation):
+                    items = value if isinstance(value, (list, tuple)) and _sequence(field.annotation) else [value]
+                    bad = next((v for v in items if isinstance(v, (bool, str))), None)
+                    if bad is not None:
+                        kind = "a boolean" if isinstance(bad, bool) else "text"
+                        raise ValueError(f"{name} must be a number, not {kind} ({bad!r})")
+        return data
+
+
+def _numeric(annotation: Any) -> bool:
+    """Whether a field's type holds numbers only: ``float``, ``int``, optional or not, or a tuple / list of them."""
+    import types
+    import typing
+
+    origin = typing.get_origin(annotation)
+    if origin is Annotated:
+        return _numeric(typing.get_args(annotation)[0])
+    if origin in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(annotation) if a is not type(None)]
+        return bool(args) and all(_numeric(a) for a in args)
+    if origin in (tuple, list):
+        args = [a for a in typing.get_args(annotation) if a is not Ellipsis]
+        return bool(args) and all(_numeric(a) for a in args)
+    return annotation in (float, int)
+
+
+def _sequence(annotation: Any) -> bool:
+    """Whether a field's type is a tuple or list (optional or not)."""
+    import types
+    import typing
+
+    origin = typing.get_origin(annotation)
+    if origin is Annotated:
+        return _sequence(typing.get_args(annotation)[0])
+    if origin in (typing.Union, types.UnionType):
+        return any(_sequence(a) for a in typing.get_args(annotation))
+    return origin in (tuple, list)
+
 
 def describe_validation_error(exc: ValidationError, what: str) -> str:
     """One line for a pydantic error: ``what: field.path: message`` (first error, count of the rest)."""

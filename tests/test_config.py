@@ -223,3 +223,23 @@ def test_every_model_rejects_out_of_range_in_one_line(model, data):
         model.from_dict(d)
     message = str(info.value)
     assert "\n" not in message and message.startswith(f"{model.what}: {name}") and "expected" in message
+
+
+def test_a_robot_file_may_not_give_a_limit_as_a_boolean_or_text(tmp_path):
+    """max_linear_speed = true read as 1.0 m/s (ten times real.toml's 0.1, the most allowed), "0.1" as 0.1: a
+    configuration's numbers are numbers (a list of them too); booleans stay booleans."""
+    import re
+    from pathlib import Path
+
+    from place_safe.drivers.ur5 import URConfig
+
+    real = (Path(__file__).resolve().parents[1] / "robots" / "ur5" / "real.toml").read_text()
+    assert URConfig.load(Path(__file__).resolve().parents[1] / "robots" / "ur5" / "real.toml")
+    for value, kind in (("true", "a boolean"), ('"0.1"', "text")):
+        f = tmp_path / "r.toml"
+        f.write_text(re.sub(r"(?m)^max_linear_speed = .*$", f"max_linear_speed = {value}", real, count=1))
+        with pytest.raises(ConfigError, match=f"max_linear_speed must be a number, not {kind}"):
+            URConfig.load(f)
+    f.write_text(re.sub(r"(?m)^workspace_min = \[(.*?),", r"workspace_min = [true,", real, count=1))
+    with pytest.raises(ConfigError, match="workspace_min must be a number, not a boolean"):
+        URConfig.load(f)
