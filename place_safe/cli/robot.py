@@ -520,8 +520,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _resolve(args: argparse.Namespace) -> argparse.Namespace:
-    """--robot is the arm's file; in simulation --robot-file names the file whose tool frames are used."""
+    """--robot is the arm's file; in simulation --robot-file names the file whose tool frames are used. An option of
+    the arm given with --sim (--sensor, --dry-run) is a usage error: the simulated placement ran and released
+    without a word about it."""
     if args.sim:
+        for flag, given in (("--sensor", getattr(args, "sensor", None)), ("--dry-run", getattr(args, "dry_run", False))):
+            if given:
+                raise UsageError(f"{args.command}: {flag} is for the arm (--robot ROBOT.toml), not --sim: the simulation "
+                                 "has its own sensor and moves nothing real")
         args.robot = getattr(args, "robot_file", None)
     return args
 

@@ -133,3 +133,12 @@ def test_a_capture_against_a_table_height_states_the_tables_levelness_only_when_
         assert "taken as exactly level" in capsys.readouterr().err
     else:
         assert refs and all(r["tilt_std"] == pytest.approx(math.radians(0.1)) and r["points"] == 0 for r in refs)
+
+
+def test_options_of_the_arm_are_refused_with_sim(capsys):
+    """place --sim with --sensor or --dry-run ran the simulation and released without a word about them."""
+    for argv in (["place", "--sim", "place_level", "--sensor", "bogus"], ["place", "--sim", "place_level", "--dry-run"],
+                 ["capture", "--sim", "level_table", "--dry-run", "-o", "x.jsonl"]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip()
+        assert "is for the arm (--robot ROBOT.toml), not --sim" in err and "\n" not in err
