@@ -29,7 +29,7 @@ from tqdm import tqdm
 from place_safe.calibration import gauss_newton
 from place_safe.calibration.zero_tangents import quick_zero_tangents
 from place_safe.config import field_interval
-from place_safe.exceptions import CalibrationError, FrameError
+from place_safe.exceptions import CalibrationError
 from place_safe.recovery.forward import (ForwardModel, ForwardParams, MODEL_ERROR, ZoneRays,
                                          mount_rotation, residual_weights, single_thread, tensors_to_params)
 from place_safe.sensor.frame import N_BINS, N_ZONES, Frame
@@ -277,9 +277,7 @@ def usable_frames(frames: Sequence[Frame], min_distance: float, max_distance: fl
         if f.truth is None:
             skip("no ground truth")
             continue
-        try:
-            f.validate()
-        except FrameError:
+        if not f.is_valid():
             skip("invalid histograms")
             continue
         if clipped_zones(f.hists).any():

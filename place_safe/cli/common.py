@@ -84,15 +84,6 @@ def load_any_frames(path: str) -> tuple[list, str]:
     return frames, note
 
 
-def _invalid(frame) -> bool:
-    """Whether ``frame.validate()`` refuses it."""
-    try:
-        frame.validate()
-    except FrameError:
-        return True
-    return False
-
-
 def load_truth_frames(paths: Sequence[str], min_distance: float | None = None,
                        max_distance: float | None = None, valid_only: bool = False) -> tuple[list, str]:
     """All frames with ground truth from ``paths`` (within the distance limits), and a note on the skipped ones.
@@ -113,7 +104,7 @@ def load_truth_frames(paths: Sequence[str], min_distance: float | None = None,
                 skipped["unreadable"] += 1
             elif f.truth is None:
                 skipped["ground truth not a plane" if f.truth_error else "no ground truth"] += 1
-            elif valid_only and _invalid(f):
+            elif valid_only and not f.is_valid():
                 skipped["invalid histograms"] += 1
             elif ((min_distance is not None and f.truth.offset < min_distance)
                   or (max_distance is not None and f.truth.offset > max_distance)):

@@ -155,6 +155,14 @@ class Frame:
         if not np.isfinite(r).all() or (r < 0).any():
             raise FrameError("reference_hist contains NaN, infinite or negative counts")
 
+    def is_valid(self) -> bool:
+        """Whether :meth:`validate` passes (False where it raises :class:`FrameError`)."""
+        try:
+            self.validate()
+        except FrameError:
+            return False
+        return True
+
     # -- file form (docs/interfaces.md) ----------------------------------------------------------
     @classmethod
     def from_dict(cls, d: dict) -> "Frame":
