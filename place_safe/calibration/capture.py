@@ -263,28 +263,29 @@ def _done_indices(path: Path, cut: bool = True) -> set[int]:
     done: set[int] = set()
     if not path.is_file():
         return done
-    raw = path.read_bytes()
-    lines = raw.split(b"\n")
-    keep = len(raw)
-    for k, line in enumerate(lines):
-        if not line.strip():
-            continue
-        try:
-            value = json.loads(line)
-        except ValueError as exc:  # (JSONDecodeError, bad UTF-8)
-            if k == len(lines) - 1 and done and isinstance(exc, json.JSONDecodeError):
-                keep = len(raw) - len(line)  # the last line after frames, unfinished: an interrupted run's; redone
+    cut_at = None
+    with open(path, "rb") as fh:  # line by line: a capture of many frames need not be held whole
+        end = 0
+        for k, line in enumerate(fh, 1):
+            start, end = end, end + len(line)
+            if not line.strip():
                 continue
-            value = None
-        index = value.get("meta", {}).get("pose_index") if isinstance(value, dict) and isinstance(
-            value.get("meta"), dict) else None
-        if not (isinstance(index, int) and not isinstance(index, bool) and index >= 0):
-            raise FrameFileError(f"{path} exists and is not a capture to resume (line {k + 1} is not a frame with "
-                                 f"meta.pose_index): give another output file, or move this one")
-        done.add(index)
-    if keep < len(raw) and cut:
+            try:
+                value = json.loads(line)
+            except ValueError as exc:  # (JSONDecodeError, bad UTF-8)
+                if not line.endswith(b"\n") and done and isinstance(exc, json.JSONDecodeError):
+                    cut_at = start  # the last line after frames, unfinished: an interrupted run's; redone
+                    continue
+                value = None
+            index = value.get("meta", {}).get("pose_index") if isinstance(value, dict) and isinstance(
+                value.get("meta"), dict) else None
+            if not (isinstance(index, int) and not isinstance(index, bool) and index >= 0):
+                raise FrameFileError(f"{path} exists and is not a capture to resume (line {k} is not a frame with "
+                                     f"meta.pose_index): give another output file, or move this one")
+            done.add(index)
+    if cut_at is not None and cut:
         with open(path, "r+b") as fh:
-            fh.truncate(keep)
+            fh.truncate(cut_at)
     return done
 
 
