@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import json
 import math
+import types
+import typing
 from pathlib import Path
 from typing import Annotated, Any, ClassVar, NamedTuple
 
@@ -80,8 +82,9 @@ class ConfigModel(BaseModel):
         if isinstance(data, dict) and not cls.model_config.get("strict"):
             for name, value in data.items():
                 field = cls.model_fields.get(name)
-                if field is not None and _numeric(field.annotation):
-                    items = value if isinstance(value, (list, tuple)) and _sequence(field.annotation) else [value]
+                shape = None if field is None else _number_shape(field.annotation)
+                if shape is not None:
+                    items = value if isinstance(value, (list, tuple)) and shape == "many" else [value]
                     bad = next((v for v in items if isinstance(v, (bool, str))), None)
                     if bad is not None:
                         kind = "a boolean" if isinstance(bad, bool) else "text"
@@ -89,34 +92,19 @@ class ConfigModel(BaseModel):
         return data
 
 
-def _numeric(annotation: Any) -> bool:
-    """Whether a field's type holds numbers only: ``float``, ``int``, optional or not, or a tuple / list of them."""
-    import types
-    import typing
-
+def _number_shape(annotation: Any) -> str | None:
+    """What a field's type holds: ``"one"`` number (``float``, ``int``, optional or not), ``"many"`` (a tuple or list of
+    numbers, or a choice that includes one), or None (anything else)."""
     origin = typing.get_origin(annotation)
     if origin is Annotated:
-        return _numeric(typing.get_args(annotation)[0])
+        return _number_shape(typing.get_args(annotation)[0])
     if origin in (typing.Union, types.UnionType):
-        args = [a for a in typing.get_args(annotation) if a is not type(None)]
-        return bool(args) and all(_numeric(a) for a in args)
+        shapes = {_number_shape(a) for a in typing.get_args(annotation) if a is not type(None)}
+        return None if not shapes or None in shapes else "many" if "many" in shapes else "one"
     if origin in (tuple, list):
         args = [a for a in typing.get_args(annotation) if a is not Ellipsis]
-        return bool(args) and all(_numeric(a) for a in args)
-    return annotation in (float, int)
-
-
-def _sequence(annotation: Any) -> bool:
-    """Whether a field's type is a tuple or list (optional or not)."""
-    import types
-    import typing
-
-    origin = typing.get_origin(annotation)
-    if origin is Annotated:
-        return _sequence(typing.get_args(annotation)[0])
-    if origin in (typing.Union, types.UnionType):
-        return any(_sequence(a) for a in typing.get_args(annotation))
-    return origin in (tuple, list)
+        return "many" if args and all(_number_shape(a) is not None for a in args) else None
+    return "one" if annotation in (float, int) else None
 
 
 def describe_validation_error(exc: ValidationError, what: str) -> str:
@@ -277,7 +265,6 @@ def vector(length: int | None = None, *, min_length: int | None = None, max_leng
 
 def _field_parts(model: type[BaseModel], name: str) -> tuple[dict, dict, str]:
     """(constraints on the value, constraints on each element of a vector, unit) of field ``name``."""
-    import typing
 
     import annotated_types as at
 
@@ -339,7 +326,6 @@ class FieldRange(NamedTuple):
 
 def field_range(model: type[BaseModel], name: str) -> FieldRange:
     """The :class:`FieldRange` of field ``name`` of ``model``."""
-    import typing
 
     value, each, unit = _field_parts(model, name)
     c = each or value
@@ -407,7 +393,6 @@ def _field_at(model: type[BaseModel], loc: tuple) -> tuple[type[BaseModel], str 
 
 def _flat_args(ann) -> list:
     """``ann`` and every type inside it (``list[X]``, ``X | None``, ``Annotated[X, ...]``)."""
-    import typing
 
     out = [ann]
     for arg in typing.get_args(ann):
