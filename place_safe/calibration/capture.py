@@ -16,9 +16,9 @@ the simulator's truth; ``calibrate-mount`` then fits the mount from the same fil
 
 On a robot in dry-run mode (``robot.dry_run``) every pose is checked and its planned move printed by the
 robot, and nothing is read or written. A capture is resumable: poses whose index is already in the output file are skipped. Poses the robot
-refuses (outside its limits, unreachable), and poses that would bring the TCP within :attr:`SweepPlan.min_clearance`
-of the plane (checked before the arm moves), are skipped and counted; a latched fault ends the capture (rerun to
-resume after clearing it).
+refuses (outside its limits, unreachable), and poses that would bring the TCP, the flange or the sensor within
+:attr:`SweepPlan.min_clearance` of the plane (:func:`lowest_tool_point`, checked before the arm moves), are skipped
+and counted; a latched fault ends the capture (rerun to resume after clearing it).
 
 Conventions: base frame, SI units; a plane is ``(n, d)`` with ``n . x = d``, n pointing up, away from the
 surface (towards the sensor). Incidence is the angle between the optical axis and the surface normal,
@@ -57,7 +57,8 @@ MAX_GRID_VALUES = 100
 #: (+-0.1 mm) read as one standard deviation. The simulated arm's three touches of a level table lie 0.06-0.18 mm
 #: low, 0.12 mm apart (docs/results.md, "The calibration's reference").
 TOUCH_HEIGHT_STD = 1e-4
-#: m, the least height of the TCP above the plane that a capture pose may have (:attr:`SweepPlan.min_clearance`).
+#: m, the least height of the tool (TCP, flange, sensor) above the plane that a capture pose may have
+#: (:attr:`SweepPlan.min_clearance`).
 MIN_CLEARANCE = 0.005
 
 
@@ -320,6 +321,21 @@ def _read_frames(robot: Robot, source: Any, n: int, t_ready: float, timeout: flo
     return got
 
 
+def lowest_tool_point(plane: tuple[np.ndarray, float], base_T_tcp: np.ndarray, tool: Any) -> tuple[str, float]:
+    """The tool point nearest the plane ``(n, d)`` (unit ``n``, base frame) with the TCP at ``base_T_tcp``, and its
+    height above the plane (m): the lowest of the TCP, the flange and the sensor (``tool``'s
+    :class:`~place_safe.robot.tool.ToolFrames`). The gripper's body spans them, so a pose whose lowest one keeps its
+    clearance keeps the straight segments between them clear too (a height is linear along a segment). A sensor
+    mounted facing up, or a tool frame pointing away from the table, puts the flange lowest: checking the TCP alone
+    drove the flange into the table (a protective stop)."""
+    n, d = np.asarray(plane[0], dtype=float), float(plane[1])
+    base_T_flange = base_T_tcp @ np.linalg.inv(tool.flange_T_tcp)
+    points = {"TCP": base_T_tcp[:3, 3], "flange": base_T_flange[:3, 3],
+              "sensor": (base_T_flange @ tool.flange_T_sensor)[:3, 3]}
+    part = min(points, key=lambda k: float(n @ points[k]))
+    return part, float(n @ points[part]) - d
+
+
 def capture_sweep(robot: Robot, source: Any, plan: SweepPlan, out_path: str | Path, *,
                   plane: tuple[np.ndarray, float], tool: Any, progress: bool = True,
                   log: Callable[[str], None] | None = None,
@@ -362,10 +378,10 @@ def capture_sweep(robot: Robot, source: Any, plan: SweepPlan, out_path: str | Pa
         for k, (i, (dist, inc, az)) in enumerate(bar):
             base_T_sensor = sensor_target(pl, c, dist, inc, az, start_sensor[:3, 0])
             base_T_tcp = base_T_sensor @ np.linalg.inv(tcp_T_sensor)
-            clearance = float(pl[0] @ base_T_tcp[:3, 3]) - pl[1]
-            if clearance < plan.min_clearance:  # the gripper would meet the plane: not a pose to move to
-                why = (f"the TCP would come {clearance * 1000:.1f} mm from the plane, less than the "
-                       f"{plan.min_clearance * 1000:g} mm clearance (at this pose the gripper's tips sit "
+            part, clearance = lowest_tool_point(pl, base_T_tcp, tool)
+            if clearance < plan.min_clearance:  # the tool would meet the plane: not a pose to move to
+                why = (f"the {part} would come {clearance * 1000:.1f} mm from the plane, less than the "
+                       f"{plan.min_clearance * 1000:g} mm clearance (at this pose it sits "
                        f"{(dist - clearance) * 1000:.0f} mm nearer the plane than the sensor)")
                 refused.append({"pose_index": i, "distance": dist, "incidence": inc, "azimuth": az, "reason": why})
                 log(f"pose {i} refused: {why}")
@@ -412,4 +428,4 @@ def capture_sweep(robot: Robot, source: Any, plan: SweepPlan, out_path: str | Pa
 
 
 __all__ = ["SweepPlan", "CaptureResult", "capture_sweep", "touch_plane", "touched_reference", "level_plane",
-           "sensor_target", "plane_in_sensor", "TOUCH_HEIGHT_STD"]
+           "sensor_target", "plane_in_sensor", "lowest_tool_point", "TOUCH_HEIGHT_STD"]

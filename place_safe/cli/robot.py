@@ -440,8 +440,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "ground-truth plane, flange pose and joint angles (JSON Lines, the shared frame format). The plane: --touch "
         "(the TCP touches it at 3+ points, slow guarded descent: speedL + force threshold, CB3-compatible), "
         "--table-height, or in simulation the scenario's table. Resumable: rerun with the same output to continue. "
-        "Poses the robot's limits refuse, and poses that would bring the TCP within --min-clearance of the plane "
-        "(checked before moving: the gripper's tips reach past the sensor), are skipped and listed.",
+        "Poses the robot's limits refuse, and poses that would bring the TCP, the flange or the sensor within "
+        "--min-clearance of the plane (checked before moving: the gripper's tips reach past the sensor), are skipped "
+        "and listed.",
         ["place-safe capture --sim level_table --poses 60 -o sim_capture.jsonl",
          "place-safe capture --sim level_table --sim-mount-error 5,0,0,0,2,0 -o perturbed.jsonl",
          "place-safe capture --robot robots/ur5/real.toml --sensor i2c:/dev/i2c-1 \\\n"
@@ -467,9 +468,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         opt("--settle", type=float_range(0.0, 60.0, lo_open=True), default=0.25,
             help="s at rest before frames count (default 0.25, at most 60)"),
         opt("--min-clearance", type=float_range(0.0, 100.0), default=MIN_CLEARANCE * 1000, metavar="MM",
-            help="mm the TCP (the gripper's tips) must stay above the plane: closer poses are refused and listed "
-                 f"before the arm moves (default {MIN_CLEARANCE * 1000:g}; the near end of a level sweep is set by how "
-                 "far the tips reach past the sensor)"),
+            help="mm the TCP (the gripper's tips), the flange and the sensor must stay above the plane: closer "
+                 f"poses are refused and listed before the arm moves (default {MIN_CLEARANCE * 1000:g}; the near end "
+                 "of a level sweep is set by how far the tips reach past the sensor)"),
         "table_height",
         opt("--table-tilt-std", type=float_range(0.0, 5.0), metavar="DEG",
             help="with --table-height: how far the table may be from level in the robot's base frame, one standard "

@@ -10,8 +10,8 @@ import math
 import numpy as np
 import pytest
 
-from place_safe.calibration.capture import (TOUCH_HEIGHT_STD, SweepPlan, capture_sweep, level_plane, plane_in_sensor,
-                                            sensor_target, touch_plane, touched_reference)
+from place_safe.calibration.capture import (TOUCH_HEIGHT_STD, SweepPlan, capture_sweep, level_plane, lowest_tool_point,
+                                            plane_in_sensor, sensor_target, touch_plane, touched_reference)
 from place_safe.drivers.ur5 import URConfig, URRobot, packaged_config
 from place_safe.drivers.ur5 import fake_rtde
 from place_safe.drivers.ur5.kinematic_arm import KinematicArm
@@ -152,6 +152,44 @@ def test_capture_refuses_before_moving_a_pose_that_would_take_the_gripper_into_t
     assert res.captured == 2 and [r["distance"] for r in res.refused] == [0.02, 0.033]  # 3 mm: within the 5 mm
     assert "-10.0 mm from the plane" in res.refused[0]["reason"] and "5 mm clearance" in res.refused[0]["reason"]
     assert len(moves) == 2 and min(moves) > TABLE_Z + plan.min_clearance  # the TCP was never sent closer
+    assert not robot.is_faulted() and fake.arm.contact_force() == 0.0
+
+
+def test_lowest_tool_point_is_the_lowest_of_the_tcp_the_flange_and_the_sensor():
+    """With the TCP 0.2 m out along the flange's z: pointing the TCP up puts the flange below it; pointing it down
+    puts the TCP lowest (the sensor, 0.1 m along the flange's z, lies between them either way)."""
+    from place_safe.robot.tool import ToolFrames
+
+    tcp, sensor = np.eye(4), np.eye(4)
+    tcp[2, 3] = 0.2
+    sensor[:3, 3] = [0.05, 0.0, 0.1]
+    tool = ToolFrames(tcp, sensor, tcp)
+    table = (np.array([0.0, 0.0, 1.0]), 0.0)
+    up = np.eye(4)  # the TCP's z, and the flange's, point up, away from the table
+    up[:3, 3] = [0.3, 0.0, 0.4]
+    part, h = lowest_tool_point(table, up, tool)
+    assert part == "flange" and h == pytest.approx(0.2)
+    down = np.diag([1.0, -1.0, -1.0, 1.0])  # rotated 180 deg about x: the TCP's z points down at the table
+    down[:3, 3] = [0.3, 0.0, 0.4]
+    part, h = lowest_tool_point(table, down, tool)
+    assert part == "TCP" and h == pytest.approx(0.4)
+
+
+def test_capture_refuses_a_pose_that_would_take_the_flange_into_the_plane(kin, tmp_path):
+    """A sensor mounted looking back up the tool (the optical axis along the flange's -z): to look down at the table
+    the arm points the TCP up, and the flange, not the TCP, comes nearest the table. The TCP-only check sent the
+    flange into the table (a protective stop); every such pose is now refused before the arm moves, naming the flange."""
+    robot, fake = _robot(kin)
+    flip = np.diag([1.0, -1.0, -1.0, 1.0])  # rotated 180 deg about x: the sensor looks along the flange's -z
+    tool = robot.tool.with_sensor(robot.tool.flange_T_sensor @ flip)
+    plan = SweepPlan(distances=[0.10], incidences=[0.0], settle_s=0.05, speed=0.2)
+    moves = []
+    move = robot.move_linear
+    robot.move_linear = lambda T, **kw: (moves.append(T), move(T, **kw))[1]
+    res = capture_sweep(robot, ClockSource(robot), plan, tmp_path / "f.jsonl", plane=level_plane(TABLE_Z), tool=tool,
+                        progress=False, log=lambda s: None)
+    assert res.captured == 0 and len(res.refused) == 1 and not moves
+    assert res.refused[0]["reason"].startswith("the flange would come -")
     assert not robot.is_faulted() and fake.arm.contact_force() == 0.0
 
 
