@@ -270,25 +270,40 @@ def packaged_config(name: str = "sim") -> Path:
 
 
 def _toml_value(v) -> str:
-    import json
-
     if isinstance(v, bool):
         return "true" if v else "false"
     if isinstance(v, (int, float)):
         return repr(float(v)) if isinstance(v, float) else str(v)
     if isinstance(v, str):
-        return json.dumps(v)
+        return _toml_string(v)
     if isinstance(v, (list, tuple)):
         return "[" + ", ".join(_toml_value(x) for x in v) + "]"
     raise TypeError(f"cannot write {type(v).__name__} as a TOML value")
 
 
+def _toml_string(s: str) -> str:
+    """A TOML basic string: JSON's escapes, but characters beyond the BMP written as they are (JSON's surrogate
+    pairs are not TOML) and DEL escaped (TOML, unlike JSON, forbids it raw)."""
+    import json
+
+    return json.dumps(s, ensure_ascii=False).replace("\x7f", "\\u007f")
+
+
+def _toml_key(k) -> str:
+    """A TOML key: bare when it is letters, digits, ``_`` and ``-`` only, else quoted (a key with a space or a dot,
+    written bare, reads back as another key or not at all)."""
+    import re
+
+    k = str(k)
+    return k if re.fullmatch(r"[A-Za-z0-9_-]+", k) else _toml_string(k)
+
+
 def _toml(d: dict, prefix: str = "") -> str:
     """A minimal TOML writer for nested dicts of scalars and lists (tomllib reads, nothing writes)."""
-    lines = [f"{k} = {_toml_value(v)}" for k, v in d.items() if not isinstance(v, dict)]
+    lines = [f"{_toml_key(k)} = {_toml_value(v)}" for k, v in d.items() if not isinstance(v, dict)]
     for k, v in d.items():
         if isinstance(v, dict):
-            name = f"{prefix}{k}"
+            name = f"{prefix}{_toml_key(k)}"
             body = _toml(v, name + ".")
             lines.append(f"\n[{name}]\n{body}" if body.strip() else f"\n[{name}]")
     return "\n".join(lines).strip("\n") + "\n" if not prefix else "\n".join(lines)
