@@ -19,6 +19,8 @@ otherwise a viewer is spawned. rerun (the ``[view]`` extra, ``rerun-sdk``) is im
 from __future__ import annotations
 
 import math
+import os
+import re
 from pathlib import Path
 from typing import Any
 
@@ -31,6 +33,16 @@ from place_safe.sensor.zones import N_ZONES, ZONE_DIRECTIONS
 
 #: Half side (m) of the plane patch drawn in 3D.
 PATCH_HALF = 0.08
+
+
+def _write_error(exc: RuntimeError, path: str | Path) -> OSError:
+    """rerun's failure to write the recording (a RuntimeError such as "Failed to encode LogMsg: Failed to write: No
+    space left on device (os error 28)") as the OSError of ``path`` that the command line reports for every file it
+    cannot write (one line naming the file and the OS error)."""
+    if (m := re.search(r"os error (\d+)", str(exc))) is not None:
+        return OSError(int(m.group(1)), os.strerror(int(m.group(1))), str(path))
+    text = str(exc).strip().splitlines()
+    return OSError(None, f"cannot write the rerun recording ({text[0] if text else type(exc).__name__})", str(path))
 
 
 class RerunView:
@@ -49,7 +61,10 @@ class RerunView:
         rr.init(name, spawn=save is None)
         if save is not None:
             Path(save).parent.mkdir(parents=True, exist_ok=True)
-            rr.save(str(save))
+            try:
+                rr.save(str(save))  # writes the recording's header at once
+            except RuntimeError as exc:
+                raise _write_error(exc, save) from None
         self._model = None
         if params is not None:
             from place_safe.recovery.forward import ForwardModel, ZoneRays  # torch: only for the fit overlay

@@ -9,6 +9,7 @@ this edge; standard output carries the command's result, progress and summaries 
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import math
 import sys
@@ -18,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from place_safe.cli import options
-from place_safe.cli.common import FMT, log
+from place_safe.cli.common import FMT, PROG, log
 from place_safe.cli.options import float_range, fraction, int_range, opt
 from place_safe.drivers.tmf8820 import bench
 from place_safe.exceptions import ConfigError, SensorTimeout, UsageError
@@ -79,6 +80,20 @@ def _open(args: argparse.Namespace, **extra: Any):
     return open_source(args.uri, **opts)
 
 
+def _no_frame(args: argparse.Namespace, ended: str, seconds: float) -> str:
+    """The one error line of ``sensor record|stream`` when the source gave no frame at all (exit status 1, as a
+    placement that timed out): ``ended`` "timeout" (no answer within --timeout: one read, one timeout's silence),
+    "seconds" (--seconds ran out) or anything else (the source ended before its first frame); ``seconds`` waited."""
+    seconds = round(seconds, 1)
+    if ended == "timeout":
+        seconds, why = args.timeout, f"did not answer within --timeout {args.timeout:g} s"
+    elif ended == "seconds":
+        why = f"sent none before --seconds {args.seconds:g} ran out"
+    else:
+        why = "ended before its first frame"
+    return f"sensor {args.sensor_command}: no frame from the sensor in {seconds:g} s: source {args.uri!r} {why}"
+
+
 # ------------------------------------------------------------------------------------------------
 def cmd_info(args: argparse.Namespace) -> int:
     src = _open(args, start=False)
@@ -123,16 +138,24 @@ def cmd_record(args: argparse.Namespace) -> int:
                 ended = "source ended"
                 return
             except SensorTimeout:
-                ended = f"no frame within {args.timeout:g} s"
+                ended = "timeout"
                 return
             n += 1
             bar.update(1)
             yield f
 
+    t0 = time.monotonic()
     with src:
-        n = write_frames(out, frames(), jsonl=out.suffix == ".jsonl")
+        it = frames()
+        first = next(it, None)  # no frame at all: the output is not opened (an existing one stays as it was)
+        n = 0 if first is None else write_frames(out, itertools.chain([first], it), jsonl=out.suffix == ".jsonl")
         stats = dict(getattr(src, "stats", {}))
     bar.close()
+    if not n:
+        log(f"{PROG}: error: {_no_frame(args, ended, time.monotonic() - t0)}; {out} not written")
+        return 1
+    if ended == "timeout":
+        ended = f"no frame within {args.timeout:g} s"
     log(f"wrote {n} frames to {out} (stopped: {ended})")
     faults = {k: v for k, v in stats.items() if isinstance(v, (int, float)) and v and k not in ("frames",)}
     if faults and not args.quiet:
@@ -187,11 +210,16 @@ def cmd_stream(args: argparse.Namespace) -> int:
 
     try:
         with src:
-            stats = run_live(src, est, on_estimate, max_frames=args.max_frames, read_timeout=args.timeout)
+            # --timeout is the silence that ends the stream: one read without a frame, not the streams' five
+            stats = run_live(src, est, on_estimate, max_frames=args.max_frames, read_timeout=args.timeout,
+                             max_timeouts=1)
             source_stats = dict(getattr(src, "stats", {}))
     finally:
         if view is not None:
             view.close()
+    if not stats.received:  # standard output stays empty (the note goes first only once there is output)
+        log(f"{PROG}: error: " + _no_frame(args, "timeout" if stats.timeouts else stats.ended_by, stats.elapsed))
+        return 1
     while pending_note:  # no frame was printed: the note is still the output's first line
         print(pending_note.pop(), flush=True)
     log(stats.summary())
@@ -267,6 +295,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         output={"required": True, "help": "frame file to write"},
         frames={"type": int_range(1, 1_000_000), "default": 100, "help": "frames to record (default 100, at most 1000000)"},
         seconds={"type": float_range(0.0, 86400.0, lo_open=True), "help": "stop after S seconds"},
+        timeout={"help": "stop when no frame arrives for S seconds (default 2, at most 60); no frame at all is an "
+                         "error (exit status 1, the output not written)"},
         quiet={"help": "no progress bar"})
     _sensor_command(
         sub, "stream", cmd_stream, "live plane readout (and rerun view)",
@@ -281,7 +311,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         opt("--view", action="store_true", help="open a rerun viewer (needs a display)"),
         method={"default": "peak", "help": "plane recovery (default peak)"},
         max_frames={"help": "stop after N frames"},
-        timeout={"help": "read timeout (default 2 s, at most 60)"})
+        timeout={"help": "stop when no frame arrives for S seconds (default 2, at most 60); no frame at all is an "
+                         "error (exit status 1)"})
 
 
 

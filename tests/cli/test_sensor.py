@@ -8,7 +8,9 @@ import pytest
 
 from place_safe.cli.app import main
 from place_safe.drivers.tmf8820.bench import random_frames
+from place_safe.exceptions import SensorTimeout
 from place_safe.io.frame_file import load_frames, write_frames
+from place_safe.io.source import FrameSource
 
 
 def test_info_json(capsys):
@@ -38,6 +40,16 @@ def test_stream_saves_a_rerun_recording(tmp_path, capsys):
     assert rrd.is_file() and rrd.stat().st_size > 1000
 
 
+def test_a_rerun_recording_that_cannot_be_written_is_one_line_naming_the_file(capsys):
+    """--save /dev/full: rerun's RuntimeError was an "internal error"; now the one line of every write that found no
+    room, naming the file and the OS error (exit 2, as for -o /dev/full), before the sensor is opened."""
+    assert main(["sensor", "stream", "file:tests/data/tmf8820_ur5_sweep.json", "--max-frames", "1",
+                 "--save", "/dev/full"]) == 2
+    captured = capsys.readouterr()
+    assert captured.err.splitlines() == ["place-safe: error: No space left on device: /dev/full"]
+    assert captured.out == ""
+
+
 def test_bench_prints_and_writes_figures(tmp_path, capsys):
     js = tmp_path / "bench.json"
     assert main(["bench", "sensor", "--frames", "10", "--bus-hz", "400000", "--json", str(js), "-q"]) == 0
@@ -60,6 +72,50 @@ def test_bench_help_explains_the_figures(capsys):
     text = " ".join(capsys.readouterr().out.split())
     assert "publish latency" in text and "bus limit" in text and "ceiling" in text
     assert "31 x L" in text and "START/STOP" in text  # the ceiling's arithmetic
+
+
+class _Silent(FrameSource):
+    """A sensor that never publishes: every read times out (at once, so the test does not wait); counts its reads."""
+
+    def __init__(self) -> None:
+        self.reads = 0
+
+    def read(self, timeout: float = 1.0):
+        self.reads += 1
+        raise SensorTimeout(f"no frame within {timeout:g} s")
+
+
+@pytest.mark.parametrize("command", ["stream", "record"])
+def test_a_sensor_that_never_answers_is_one_line_exit_1_after_one_timeout(command, tmp_path, capsys, monkeypatch):
+    """A bus device that never publishes: exit 0 with "0 received" (stream waited five --timeouts: 5 min with
+    --timeout 60); now one line, exit 1, after one read (one timeout's silence), and record leaves its output alone."""
+    silent = _Silent()
+    monkeypatch.setattr("place_safe.cli.sensor.open_source", lambda uri, **options: silent)
+    out = tmp_path / "frames.json"
+    out.write_text("old")
+    extra = ["-o", str(out), "--force", "-q"] if command == "record" else []
+    assert main(["sensor", command, "i2c:/dev/i2c-1", "--timeout", "60", *extra]) == 1
+    captured = capsys.readouterr()
+    assert captured.err.splitlines() == [
+        f"place-safe: error: sensor {command}: no frame from the sensor in 60 s: source 'i2c:/dev/i2c-1' did not "
+        "answer within --timeout 60 s" + (f"; {out} not written" if command == "record" else "")]
+    assert silent.reads == 1 and captured.out == ""
+    assert out.read_text() == "old"
+
+
+@pytest.mark.parametrize("command", ["stream", "record"])
+def test_a_source_that_ends_before_its_first_frame_is_one_line_exit_1(command, tmp_path, capsys):
+    empty = tmp_path / "empty.json"
+    empty.write_text("[]")
+    out = tmp_path / "frames.json"
+    extra = ["-o", str(out), "-q"] if command == "record" else []
+    assert main(["sensor", command, f"file:{empty}", *extra]) == 1
+    captured = capsys.readouterr()
+    err = captured.err.splitlines()
+    assert len(err) == 1 and err[0].startswith(f"place-safe: error: sensor {command}: no frame from the sensor in ")
+    assert err[0].endswith(f"source 'file:{empty}' ended before its first frame"
+                           + (f"; {out} not written" if command == "record" else "")), err
+    assert captured.out == "" and not out.exists()
 
 
 @pytest.mark.parametrize("argv, match", [
