@@ -60,7 +60,7 @@ def _add_sim(sub, load: bool) -> None:
             else:
                 reason = f"the simulation needs {exc.name or 'a package'} ({exc}): install the [sim] extra"
         except Exception as exc:  # a broken optional module must not take the whole CLI down
-            reason = f"the simulation commands failed to load: {type(exc).__name__}: {exc}"
+            reason = _mujoco_gl_problem(exc) or f"the simulation commands failed to load: {type(exc).__name__}: {exc}"
         else:
             add_sim_commands(sub)
             return
@@ -141,6 +141,43 @@ def _check_outputs(args: argparse.Namespace) -> None:
                              f"({exc.strerror or exc})") from None
 
 
+def mujoco_gl_backends() -> list[str]:
+    """The ``MUJOCO_GL`` values MuJoCo can render with on this machine: ``egl`` where libEGL is installed (offscreen,
+    no display needed: what ``place_safe.sim`` picks when MUJOCO_GL is unset and there is no display), ``glfw`` and
+    ``glx`` only with a display (``DISPLAY``), ``osmesa`` only where libOSMesa is installed."""
+    import ctypes.util
+    import os
+
+    found = ctypes.util.find_library
+    return ((["egl"] if found("EGL") else []) + (["glfw", "glx"] if os.environ.get("DISPLAY") else [])
+            + (["osmesa"] if found("OSMesa") else []))
+
+
+def _mujoco_gl_problem(exc: BaseException) -> str | None:
+    """The one line (a usage error, exit 2) for a failure of MuJoCo's OpenGL set-up under a ``MUJOCO_GL`` that cannot
+    work here -- a value MuJoCo rejects when imported, osmesa without libOSMesa, glfw without a display at the first
+    render -- naming the values that do (:func:`mujoco_gl_backends`); None when MUJOCO_GL is unset or one of them,
+    or ``exc`` was not raised in MuJoCo or PyOpenGL."""
+    import os
+
+    value = os.environ.get("MUJOCO_GL")
+    if value is None:
+        return None
+    works = mujoco_gl_backends()
+    if value.strip().lower() in works:
+        return None
+    tb, ours = exc.__traceback__, type(exc).__module__.startswith("mujoco")
+    while tb is not None and not ours:
+        ours = str(tb.tb_frame.f_globals.get("__name__", "")).startswith(("mujoco", "OpenGL"))
+        tb = tb.tb_next
+    if not ours:
+        return None
+    lacking = [why for name, why in (("egl", "egl: no libEGL"), ("osmesa", "osmesa: no libOSMesa"),
+                                     ("glfw", "glfw, glx: no display")) if name not in works]
+    use = f"use MUJOCO_GL={' or '.join(works)}" if works else "MuJoCo cannot render here"
+    return f"MUJOCO_GL={value!r} does not work on this machine: {use}" + (f" ({'; '.join(lacking)})" if lacking else "")
+
+
 def _one_line(exc: BaseException) -> str:
     """The first line of an exception's message (its type name when empty), at most 400 characters."""
     text = str(exc).strip()
@@ -210,6 +247,9 @@ def _main(argv: Sequence[str] | None) -> int:
     except Exception as exc:  # noqa: BLE001 - an internal failure: one line, exit 1 (traceback on request)
         import os
 
+        if (why := _mujoco_gl_problem(exc)) is not None:  # the environment's error, not ours
+            log(f"{PROG}: error: {why}")
+            return 2
         if os.environ.get("PLACE_SAFE_DEBUG"):
             raise
         log(f"{PROG}: internal error: {type(exc).__name__}: {_one_line(exc)} (set PLACE_SAFE_DEBUG=1 "

@@ -201,6 +201,56 @@ def test_sim_without_mujoco_says_how_to_install(monkeypatch, capsys):
 
 
 # -- calibrate ----------------------------------------------------------------------------------------
+def test_an_unusable_mujoco_gl_is_a_usage_error_naming_the_values_that_work(tmp_path):
+    """MUJOCO_GL=nonsense: MuJoCo's import raised "invalid value for environment variable MUJOCO_GL", reported as an
+    internal error (exit 1); now one usage line naming MUJOCO_GL and the values that work on this machine."""
+    import os
+
+    from place_safe.cli.app import mujoco_gl_backends
+
+    env = {**os.environ, "MUJOCO_GL": "nonsense"}
+    res = subprocess.run([sys.executable, "-m", "place_safe", "place", "--sim", "place_level", "--json",
+                          str(tmp_path / "r.json"), "--log", str(tmp_path / "r.jsonl")], capture_output=True, text=True,
+                         timeout=300, env=env)
+    assert res.returncode == 2
+    line = one_line_error(res.stderr)
+    assert line.startswith("place-safe: error: MUJOCO_GL='nonsense' does not work on this machine: "
+                           + (f"use MUJOCO_GL={' or '.join(mujoco_gl_backends())}" if mujoco_gl_backends()
+                              else "MuJoCo cannot render here")), line
+    assert not (tmp_path / "r.json").exists()
+
+
+def _raise_in(module: str, exc: Exception):
+    """A command that fails with ``exc`` raised from code of ``module`` (as MuJoCo's renderer or PyOpenGL raise)."""
+    def command(_args):
+        exec("raise exc", {"__name__": module, "exc": exc})
+    return command
+
+
+@pytest.mark.parametrize("value, module, status", [
+    ("glfw", "mujoco.rendering.classic.renderer", 2),  # no display: the first render fails
+    ("osmesa", "OpenGL.raw.GL._errors", 2),  # no libOSMesa: PyOpenGL fails when MuJoCo is imported
+    ("glfw", "place_safe.recovery.forward", 1),  # a failure of ours under that MUJOCO_GL: still an internal error
+    ("egl", "mujoco.rendering.classic.renderer", 1),  # a MuJoCo failure under a usable MUJOCO_GL: internal
+])
+def test_only_mujocos_failures_under_an_unusable_mujoco_gl_are_its_usage_error(value, module, status, monkeypatch,
+                                                                                capsys):
+    from place_safe.cli import app
+
+    monkeypatch.setenv("MUJOCO_GL", value)
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("PLACE_SAFE_DEBUG", raising=False)
+    monkeypatch.setattr(app, "mujoco_gl_backends", lambda: ["egl"])  # as on these machines, wherever the test runs
+    monkeypatch.setattr("place_safe.cli.demo.cmd_demo", _raise_in(module, RuntimeError("no OpenGL context")))
+    assert main(["demo"]) == status
+    line = one_line_error(capsys.readouterr().err)
+    if status == 2:
+        assert line == (f"place-safe: error: MUJOCO_GL={value!r} does not work on this machine: use MUJOCO_GL=egl "
+                        "(osmesa: no libOSMesa; glfw, glx: no display)")
+    else:
+        assert line.startswith("place-safe: internal error: RuntimeError: no OpenGL context")
+
+
 def test_calibrate_writes_and_merges_sections(tmp_path, sweep_path, capsys):
     from place_safe.calibration import Calibration
 
