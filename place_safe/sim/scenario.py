@@ -21,6 +21,7 @@ passed 40 cm above the surface, and whether the cup ended upright, on the table,
 from __future__ import annotations
 
 import math
+import unicodedata
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -49,6 +50,9 @@ TIPPED_TILT = math.radians(10.0)
 ON_TABLE_TOL = 0.005
 #: Calibration names that are not files.
 CALIBRATION_KINDS = ("sim", "oracle", "none")
+#: Unicode categories a scenario name may not contain: control and format characters (escape sequences, newlines,
+#: bidirectional overrides, zero-width characters) and line and paragraph separators.
+CONTROL_CATEGORIES = ("Cc", "Cf", "Zl", "Zp")
 SUFFIXES = (".toml", ".json")
 
 
@@ -157,6 +161,16 @@ class Scenario(ConfigModel):
     expect: Expectation | None = None
     labels: dict | None = Field(None, description="generator's truth labels (random scenes): support, clearly_safe")
     base_dir: str = Field("", description="directory of the file (set when loaded)")
+
+    @field_validator("name")
+    @classmethod
+    def _printable_name(cls, v: str) -> str:
+        """No control characters (an escape sequence, a newline, a bidirectional override): the name is printed in
+        the scenarios' table and messages and goes into file names."""
+        bad = next((c for c in v if unicodedata.category(c) in CONTROL_CATEGORIES), None)
+        if bad is not None:
+            raise ValueError(f"must not contain control characters, got {bad!r} in {v[:80]!r}")
+        return v
 
     @model_validator(mode="before")
     @classmethod

@@ -86,6 +86,34 @@ def test_bad_files_give_one_line_errors(tmp_path):
             load_scenario(f)
 
 
+@pytest.mark.parametrize("name, bad", [("evil\x1b[31mRED", "\x1b"), ("two\nlines", "\n"), ("bidi\u202eevil", "\u202e"),
+                                       ("tab\tname", "\t"), ("nul\x00", "\x00")])
+def test_a_name_with_control_characters_is_refused_in_one_line(name, bad, tmp_path, capsys):
+    """An escape sequence or a newline in a scenario's name was echoed raw into the scenarios table; it is refused
+    when the file is read (the name also goes into file names), and the message shows it escaped."""
+    from place_safe.cli.app import main
+
+    f = tmp_path / "s.json"
+    f.write_text(json.dumps({"name": name, "scene": {"start_height": 0.25}}))
+    with pytest.raises(ConfigError) as e:
+        load_scenario(f)
+    assert str(e.value) == f"scenario {f}: name: must not contain control characters, got {bad!r} in {name!r}"
+    assert main(["scenarios", str(f), "--quiet"]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == "" and captured.err.splitlines() == [f"place-safe: error: {e.value}"]
+
+
+def test_a_file_name_with_control_characters_is_refused_as_the_scenarios_name(tmp_path):
+    """Without a name in the file the file's name is the scenario's: checked the same way; printable names pass."""
+    f = tmp_path / "bell\x07.toml"
+    f.write_text("[scene]\nstart_height = 0.25\n")
+    with pytest.raises(ConfigError, match=r"name: must not contain control characters, got '\\x07' in 'bell\\x07'"):
+        load_scenario(f)
+    ok = tmp_path / "ok.toml"
+    ok.write_text('name = "Café, 30 cm (level)"\n[scene]\nstart_height = 0.25\n')
+    assert load_scenario(ok).name == "Café, 30 cm (level)"
+
+
 def test_calibration_is_required_and_says_how():
     assert "place-safe calibrate" in uncalibrated_reason("diff", None)
     assert "built-in constants" in uncalibrated_reason("peak-naive", Calibration())
