@@ -50,6 +50,13 @@ _MIN_SIGMA_ANGLE, _MIN_SIGMA_DISTANCE = 1e-5, 1e-6
 _KNOWN = 1e-7
 #: Frames whose residual exceeds this many robust standard deviations are left out of the final fit.
 OUTLIER_K = 4.0
+#: rad, m: the largest residual RMS (normal angle; plane distance) of a fit good enough to use, e.g. to write
+#: into a robot file (``calibrate-mount --write`` refuses beyond them): the per-frame noise the command assumes by
+#: default (``--sigma-angle`` 1 deg, ``--sigma-mm`` 2 mm). A good fit stays well inside: 0.04 deg / 0.02 mm (diff
+#: on a simulated capture), 0.32 deg / 0.18-0.34 mm (calibrated peak, simulated capture and the real sweep:
+#: docs/results.md); planes of an uncalibrated estimator read 5.6-5.8 deg / 2.6-3.1 mm on the real sweep, and
+#: flange poses that do not belong to the frames tens of degrees.
+MAX_RMS_ANGLE, MAX_RMS_DISTANCE = math.radians(1.0), 0.002
 
 
 @dataclass
@@ -102,6 +109,16 @@ class MountFit:
                 "unobserved": list(self.unobserved), "outliers": self.outliers, "change_translation": dt, "change_rotation": dr,
                 "residuals_angle": self.residuals_angle.tolist(),
                 "residuals_distance": self.residuals_distance.tolist()}
+
+    def quality_problem(self) -> str | None:
+        """Why the fit is too poor to use -- ``"residual RMS 28.32 deg (normal) > 1 deg"`` (its residuals beyond
+        :data:`MAX_RMS_ANGLE` or :data:`MAX_RMS_DISTANCE`) -- or None."""
+        over = []
+        if not self.rms_angle <= MAX_RMS_ANGLE:  # NaN too
+            over.append(f"{math.degrees(self.rms_angle):.2f} deg (normal) > {math.degrees(MAX_RMS_ANGLE):g} deg")
+        if not self.rms_distance <= MAX_RMS_DISTANCE:
+            over.append(f"{self.rms_distance * 1000:.2f} mm (distance) > {MAX_RMS_DISTANCE * 1000:g} mm")
+        return "residual RMS " + " and ".join(over) if over else None
 
     def summary(self) -> str:
         mm, deg = 1000.0, math.degrees(1.0)
@@ -299,4 +316,5 @@ def _joint_angles(q: Any, i: int) -> np.ndarray:
     return a
 
 
-__all__ = ["MountFit", "FlangePoseError", "fit_mount", "flange_poses", "MAX_REACH"]
+__all__ = ["MountFit", "FlangePoseError", "fit_mount", "flange_poses", "MAX_REACH", "MAX_RMS_ANGLE",
+           "MAX_RMS_DISTANCE"]

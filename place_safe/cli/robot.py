@@ -18,7 +18,7 @@ from typing import Any
 
 from place_safe.cli import options
 from place_safe.cli.options import opt
-from place_safe.cli.common import CALIBRATE_METHODS, count_note, log, uncalibrated_note
+from place_safe.cli.common import CALIBRATE_METHODS, PROG, count_note, log, uncalibrated_note
 from place_safe.cli.options import REACH, float_range, int_range
 from place_safe.exceptions import ConfigError, UsageError
 from place_safe.calibration import Calibration, mark
@@ -231,6 +231,27 @@ def _place_arm(args: argparse.Namespace, cfg) -> tuple[dict, Any, list[str]]:
 # ------------------------------------------------------------------------------------------------
 # capture
 # ------------------------------------------------------------------------------------------------
+#: m, rad: how far ``capture --sim --table-height Z`` may be from the scenario's table top (its height, and its tilt
+#: from the level that --table-height states) before capture refuses: the simulated table is exact, and a height
+#: off by more went into every frame as wrong ground truth (and placed the sensor off its planned distances). With
+#: ``--table-tilt-std S`` the table may be tilted up to 3 S (the levelness the frames then state).
+SIM_TABLE_HEIGHT_TOL, SIM_TABLE_TILT_TOL = 0.001, math.radians(0.1)
+
+
+def _check_sim_table(args: argparse.Namespace, plane: tuple[Any, float]) -> None:
+    """A usage error when ``--table-height`` disagrees with the simulated table ``plane`` (base frame: unit normal,
+    offset) beyond :data:`SIM_TABLE_HEIGHT_TOL` or :data:`SIM_TABLE_TILT_TOL`."""
+    n, d = plane
+    nz = abs(float(n[2]))
+    tilt, z = math.acos(min(1.0, nz)), d / nz  # z: the table top's height above (or below) the base's origin
+    tilt_ok = max(SIM_TABLE_TILT_TOL, 3 * math.radians(args.table_tilt_std or 0.0))
+    if not (abs(z - args.table_height) <= SIM_TABLE_HEIGHT_TOL and tilt <= tilt_ok):
+        raise UsageError(f"capture: --table-height {args.table_height:g} disagrees with the scenario's table (z = "
+                         f"{z:.4f} m in the base frame, tilted {math.degrees(tilt):.2f} deg; allowed "
+                         f"{SIM_TABLE_HEIGHT_TOL * 1000:g} mm, {math.degrees(tilt_ok):g} deg): leave it out to use "
+                         "the scenario's table")
+
+
 def cmd_capture(args: argparse.Namespace) -> int:
     from place_safe.calibration.capture import SweepPlan, capture_sweep, level_plane, touch_plane, touched_reference
     from place_safe.recovery.estimator import Reference
@@ -255,6 +276,8 @@ def cmd_capture(args: argparse.Namespace) -> int:
         from place_safe.sim.world import sim_world
 
         world = sim_world(args.sim, seed=args.seed, mount_error=args.sim_mount_error, hold_cup=False)
+        if args.table_height is not None:
+            _check_sim_table(args, world.table_plane_base())
         robot, source = world.robot, world.tof
         robot.tool = robot_cfg.tool.frames()
     else:
@@ -338,7 +361,8 @@ def cmd_calibrate_mount(args: argparse.Namespace) -> int:
     from place_safe.calibration.mount import fit_mount
     from place_safe.drivers.ur5.config import FrameConfig
 
-
+    if args.force and not args.write:
+        raise UsageError("calibrate-mount: --force goes with --write")
     robot_cfg = _robot_config(args.robot)
     truth = _mount_truth(args.truth) if args.truth else None  # every input checked before the fit runs
     frames, F, skipped = _posed_frames(args.capture, args.poses == "joints")
@@ -369,6 +393,13 @@ def cmd_calibrate_mount(args: argparse.Namespace) -> int:
     if args.json:
         _write_json(args.json, result)
     if args.write:
+        if (poor := fit.quality_problem()) is not None:  # the report above is printed either way
+            if not args.force:
+                kept = "left untouched" if Path(args.write).exists() else "not written"
+                log(f"{PROG}: error: calibrate-mount: not writing a fit with {poor}: {args.write} {kept} (check the "
+                    "capture and the sensor's calibration; --force writes it anyway)")
+                return 1
+            log(f"calibrate-mount: writing a fit with {poor} (--force)")
         robot_cfg.tool.sensor = FrameConfig.from_matrix(fit.flange_T_sensor)
         robot_cfg.tool.mount_fit = {"capture": str(args.capture), "method": args.method,
                                     "frames": fit.frames, "rms_angle_deg": math.degrees(fit.rms_angle),
@@ -485,7 +516,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "quiet",
         output={"required": True, "metavar": None, "help": "capture file (JSON Lines; appended to when resuming)"},
         robot_file={"help": "with --sim: the robot file whose tool frames define the ground truth (default sim.toml)"},
-        table_height={"metavar": None, "help": "known table top z in the base frame (m)"},
+        table_height={"metavar": None, "help": "known table top z in the base frame (m); with --sim it must be the "
+                                               f"scenario's (within {SIM_TABLE_HEIGHT_TOL * 1000:g} mm), which is "
+                                               "the default"},
         quiet={"help": "no progress bar"})
 
     options.command(
@@ -510,13 +543,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "table_height",
         opt("--truth", help="JSON with the true flange_T_sensor (simulation): report the error to it"),
         "json",
-        opt("--write", metavar="ROBOT.toml", help="write the robot file with the fitted mount here"),
-        "quiet",
+        opt("--write", metavar="ROBOT.toml", help="write the robot file with the fitted mount here; a fit whose "
+                                                  "residual RMS exceeds the limits of a good fit (the refusal names "
+                                                  "them) is not written: exit 1, the file left untouched"),
+        "force", "quiet",
         method={"choices": CALIBRATE_METHODS, "help": "per-frame planes"},
         calibration={"metavar": "CAL.json", "help": "sensor calibration for the method"},
         table_height={"help": "the plane's known base-frame z (m): needed to see the mount's height from a "
                               "straight-down sweep"},
         json={"metavar": None, "help": "write the fit (with per-frame residuals) here"},
+        force={"help": "with --write: write the fitted mount even when its residuals exceed the limits"},
         quiet={"help": "no progress bar"})
 
 

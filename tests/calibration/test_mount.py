@@ -10,7 +10,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from place_safe.calibration.capture import plane_in_sensor
-from place_safe.calibration.mount import fit_mount, flange_poses
+from place_safe.calibration.mount import MAX_RMS_ANGLE, fit_mount, flange_poses
 from place_safe.exceptions import CalibrationError
 
 NOMINAL = np.eye(4)
@@ -65,6 +65,19 @@ def test_noisy_planes_give_an_uncertainty_that_covers_the_error():
     assert np.all(err < 4 * fit.sigma_xyz + 1e-4), (err, fit.sigma_xyz)
     assert fit.rms_distance == pytest.approx(0.001, rel=0.4)
     assert "mount fit on 60 frames" in fit.summary() and fit.outliers == 0
+
+
+def test_a_fit_says_when_its_residuals_are_beyond_a_good_fits():
+    """The quality gate of calibrate-mount --write: a fit that explains its frames passes; planes seen from poses that
+    are not the frames' (another sweep's) do not, and the reason names the residuals and the limits."""
+    truth = _true_mount()
+    F = _sweep()
+    good = fit_mount(F, [plane_in_sensor(TABLE, T @ truth) for T in F], NOMINAL)
+    assert good.quality_problem() is None
+    poor = fit_mount(F, [plane_in_sensor(TABLE, T @ truth) for T in _sweep(seed=7)], NOMINAL)
+    assert poor.rms_angle > MAX_RMS_ANGLE
+    why = poor.quality_problem()
+    assert why.startswith(f"residual RMS {math.degrees(poor.rms_angle):.2f} deg (normal) > 1 deg") and "\n" not in why
 
 
 def test_a_vertical_sweep_does_not_observe_the_sideways_offset():
