@@ -164,6 +164,20 @@ def test_usage_errors_exit_2_with_one_line(argv, capsys):
     assert one_line_error(cap.err).startswith("place-safe: error:")
 
 
+@pytest.mark.parametrize("name, shown", [("bad\x1b[31mred.toml", "bad\\x1b[31mred.toml"),
+                                         ("tab\tin.json", "tab\\tin.json"), ("rtl\u202eknab.json", "rtl\\u202eknab.json")])
+def test_control_characters_in_a_path_are_escaped_in_the_error_line(tmp_path, name, shown, capsys):
+    """A file name with an escape sequence, a tab or a bidirectional override is shown escaped: the error stays one
+    line that cannot recolour or rearrange the terminal."""
+    path = tmp_path / name
+    path.write_text("x")
+    for argv in (["scenarios", str(path)], ["recover", str(tmp_path / ("missing-" + name)), "--method", "peak"]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and not any(c in err for c in "\x1b\t\u202e")
+        assert shown in err
+
+
 def test_help_teaches_with_examples(capsys):
     for argv in (["--help"], ["recover", "--help"], ["calibrate", "--help"], ["bench", "--help"]):
         with pytest.raises(SystemExit) as exc:
