@@ -7,7 +7,8 @@ Run (on the arm's network, sensor on the host's I2C bus, after ``place-safe capt
 ``--dry-run`` connects receive-only, prints the planned motion and commands nothing. The speeds near the
 surface and the stop decelerations come from the robot file (``[motion]``, ``[limits]``). A robot, sensor or
 calibration that cannot be opened ends the script with one line saying why (exit 2) before anything moves; so does an
-error the placement loop raises instead of ending on (its faults it ends on: exit 1).
+error the placement loop raises instead of ending on. Exit 0 released, 1 refused or ended on a fault or a timeout
+(as ``place-safe place``), 2 what could not be opened.
 """
 
 import argparse
@@ -28,8 +29,8 @@ def place(robot, sensor, estimator, config=None, timeout=30.0):
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(
         prog="real_placement.py", description="Put the held cup down on the surface below, or refuse and keep "
-        "holding it, with a UR5 over ur-rtde and a TMF8820. Exit 0 released or refused, 1 any other end of the "
-        "placement (a fault it stopped on, a timeout), 2 a robot, sensor or calibration that could not be opened, or "
+        "holding it, with a UR5 over ur-rtde and a TMF8820. Exit 0 released, 1 refused or any other end of the "
+        "placement (a fault it stopped on, a timeout), as 'place-safe place' does, 2 a robot, sensor or calibration that could not be opened, or "
         "an error the placement could not end on its own (one line).",
         epilog="example: python examples/real_placement.py robots/ur5/real.toml i2c:/dev/i2c-1@0x41 cal.json "
                "--dry-run")
@@ -47,7 +48,7 @@ def main(argv=None) -> int:
         print(f"real_placement.py: {str(exc).splitlines()[0]}", file=sys.stderr)
         return 2
     print(f"{result.outcome}: {result.reason}")
-    return 0 if result.outcome in ("released", "refused") else 1
+    return 0 if result.outcome == "released" else 1
 
 
 if __name__ == "__main__":

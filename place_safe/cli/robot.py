@@ -156,11 +156,12 @@ def cmd_place(args: argparse.Namespace) -> int:
     timed out."""
     from place_safe.placement.machine import PlacementConfig
 
-
     if not args.sim:
         for flag, given in (("--oracle", args.oracle), ("--render", args.render)):
             if given:
                 raise UsageError(f"place: {flag} is for the simulation (--sim SCENARIO)")
+    elif args.uncalibrated:
+        raise UsageError("place: --uncalibrated is for the arm (--robot); in simulation give --calibration none")
     cfg = PlacementConfig.load(args.config) if args.config else None
     if args.sim:
         out, res, lines = _place_sim(args, cfg)
@@ -208,7 +209,14 @@ def _place_arm(args: argparse.Namespace, cfg) -> tuple[dict, Any, list[str]]:
         raise UsageError("place: --sensor URI is required with --robot (e.g. --sensor i2c:/dev/i2c-1)")
     method = args.method or "diff"
     estimator, cal_note = _estimator(method, args.calibration)
+    calibrated = cal_note != BUILT_IN
+    if not calibrated and not (args.dry_run or args.uncalibrated):
+        raise UsageError("place: on the arm the sensor needs its calibration (--calibration CAL.json, made by "
+                         "'place-safe calibrate' from this unit's level sweep): built-in constants read a level table "
+                         "degrees off (--uncalibrated runs on them anyway; a dry run moves nothing and may)")
     robot_cfg = _robot_config(args.robot)
+    if not calibrated:  # said before anything moves, not after the cup is down
+        print(uncalibrated_note(method, None), flush=True)
     robot = URRobot(robot_cfg, dry_run=args.dry_run)
     cfg = placement_config(robot_cfg, cfg)  # near-surface speed and stop decelerations of the robot file
     source = open_sensor(args.sensor)
@@ -219,11 +227,9 @@ def _place_arm(args: argparse.Namespace, cfg) -> tuple[dict, Any, list[str]]:
             res = loop.run(timeout=args.timeout)
         finally:
             source.close()
-    calibrated = cal_note != BUILT_IN
     out = {"where": where, "method": method, "calibration": cal_note, "calibrated": calibrated,
            "robot_config": args.robot, **res.to_dict()}
-    lines = [] if calibrated else [uncalibrated_note(method, None)]
-    lines.append(mark(f"{where}: {res.outcome.upper()} ({res.reason})", calibrated))
+    lines = [mark(f"{where}: {res.outcome.upper()} ({res.reason})", calibrated)]
     lines += [f"  t={tr['time']:7.3f} s  {tr['from']:>8} -> {tr['to']:<8} {tr['reason']}" for tr in _transition_rows(res)]
     return out, res, lines
 
@@ -458,10 +464,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         opt("--json", default="place-result.json", help="result file (default place-result.json)"),
         opt("--log", default="place-transitions.jsonl", help="transition log (default place-transitions.jsonl)"),
         opt("--frame-log", action="store_true", help="include the per-frame log in the result file"),
+        opt("--uncalibrated", action="store_true",
+            help="on the arm: run without --calibration, on built-in constants (another unit's: they read a level "
+                 "table degrees off, so expect refusals); without it the arm needs a calibration"),
         calibration={"metavar": "CAL.json",
                      "help": "sensor calibration; with --sim also 'sim' or 'none' (default: the scenario's, normally "
                              "the packaged simulated user calibration). Without one the placement refuses in "
-                             "simulation and, on the arm, runs on built-in constants (the output says UNCALIBRATED)"},
+                             "simulation; on the arm it is required (a dry run, or --uncalibrated, runs on built-in "
+                             "constants, and the output says UNCALIBRATED before anything moves)"},
         method={"default": None, "choices": CALIBRATE_METHODS,
                 "help": "plane recovery (default diff; with --sim the scenario's)"})
 

@@ -59,6 +59,27 @@ def test_place_on_an_unreachable_arm_is_a_one_line_error(capsys, sweep_path, tmp
     assert len(err) == 1 and "RTDE receive at 127.0.0.1" in err[0], err
 
 
+def test_place_on_the_arm_needs_a_calibration_before_anything_connects(capsys, sweep_path, tmp_path):
+    """Built-in constants read a level table degrees off: on the arm a placement without --calibration is a usage
+    error before the robot is reached (the UNCALIBRATED note came only after the run); a dry run, which moves
+    nothing, and --uncalibrated still run, with the note first on standard output."""
+    cfg = URConfig.load(packaged_config("sim"))
+    cfg.connection.connect_timeout_s = 1.0
+    robot = tmp_path / "r.toml"
+    robot.write_text(cfg.to_toml())
+    common = ["place", "--robot", str(robot), "--sensor", f"file:{sweep_path}", "--json", str(tmp_path / "r.json"),
+              "--log", str(tmp_path / "t.jsonl")]
+    assert main(common) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "needs its calibration" in err[0] and "--uncalibrated" in err[0], err
+    for extra in (["--dry-run"], ["--uncalibrated"]):
+        assert main(common + extra) == 2  # nothing listens at 127.0.0.1: it got as far as the arm
+        captured = capsys.readouterr()
+        assert captured.out.startswith("UNCALIBRATED") and "RTDE receive at 127.0.0.1" in captured.err
+    assert main(["place", "--sim", "place_level", "--uncalibrated"]) == 2
+    assert "is for the arm" in capsys.readouterr().err
+
+
 @pytest.mark.slow
 def test_calibrate_mount_on_the_real_sweep_writes_a_robot_file(sweep_path, tmp_path, capsys):
     """Uncalibrated planes (5.8 deg residual RMS on the real sweep: the estimator's own bias) pass the quality gate
