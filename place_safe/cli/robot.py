@@ -210,11 +210,11 @@ def _place_arm(args: argparse.Namespace, cfg) -> tuple[dict, Any, list[str]]:
     method = args.method or "diff"
     estimator, cal_note = _estimator(method, args.calibration)
     calibrated = cal_note != BUILT_IN
+    robot_cfg = _robot_config(args.robot)
     if not calibrated and not (args.dry_run or args.uncalibrated):
         raise UsageError("place: on the arm the sensor needs its calibration (--calibration CAL.json, made by "
                          "'place-safe calibrate' from this unit's level sweep): built-in constants read a level table "
                          "degrees off (--uncalibrated runs on them anyway; a dry run moves nothing and may)")
-    robot_cfg = _robot_config(args.robot)
     if not calibrated:  # said before anything moves, not after the cup is down
         print(uncalibrated_note(method, None), flush=True)
     robot = URRobot(robot_cfg, dry_run=args.dry_run)
@@ -262,14 +262,15 @@ def cmd_capture(args: argparse.Namespace) -> int:
     from place_safe.calibration.capture import SweepPlan, capture_sweep, level_plane, touch_plane, touched_reference
     from place_safe.recovery.estimator import Reference
 
-
     grid = len(args.distances) * len(args.incidences) * len(args.azimuths)
     if min(grid, args.poses or grid) * args.frames_per_pose > 100_000:
         raise UsageError(f"capture: {grid} poses x {args.frames_per_pose} frames is too long a sweep; "
                          "give --poses N (at most 100000 frames in all)")
-    if args.table_tilt_std is not None and (args.table_height is None or args.touch):
+    if args.table_tilt_std is not None and args.touch:
         raise UsageError("capture: --table-tilt-std goes with --table-height, not --touch (a touched plane states its "
                          "own error)")
+    if args.table_tilt_std is not None and args.table_height is None:
+        raise UsageError("capture: --table-tilt-std goes with --table-height (how far that table may be from level)")
     if args.touch and not 3 <= len(args.touch) <= 20:
         raise UsageError(f"capture: --touch needs 3 to 20 points, got {len(args.touch)}")
     plan = SweepPlan(distances=[d / 1000.0 for d in args.distances],

@@ -30,6 +30,9 @@ def cmd_bench(args: argparse.Namespace) -> int:
     from place_safe.drivers.ur5 import URConfig, URRobot
     from place_safe.evaluation.contact import format_settings_report, make_stand_in, rest_noise, settings_report
 
+    target = Path(args.write) if args.write else None
+    if target is not None and not args.robot and not target.is_file():  # checked before the measurement
+        raise UsageError("bench robot --write: give --robot ROBOT.toml to start the written file from")
     if args.fake:
         robot, _ = make_stand_in(args.controller, host="127.0.0.1")
         cfg = robot.config
@@ -52,11 +55,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
                                                                  "lateral_sigmas")}, "noise_std": round(sigma, 2)})
     rep = settings_report(settings, sigma, cycles=args.cycles)
     print(format_settings_report(rep))
-    if args.write:
-        target = Path(args.write)
-        if path is None and not target.exists():
-            raise UsageError("bench robot --write: give --robot ROBOT.toml to start the written file from")
-        base = URConfig.load(path) if path is not None else cfg
+    if target is not None:
+        base = URConfig.load(path if path is not None else target)  # the robot file given, else the one written to
         base.contact.noise_std = round(sigma, 2)
         base.contact.measured = {"seconds": float(args.seconds), "offset_n": [round(float(v), 3) for v in offset],
                                  "std_n": [round(float(v), 3) for v in spread], "controller": controller,

@@ -44,3 +44,21 @@ def test_contact_bench_small_run_reports_every_figure(capsys):
     text = capsys.readouterr().out
     assert "false alarms" in text and "guarded touches" in text and "1 descents of 10 cm" in text
     assert "watchdog stops 0, script errors 0" in text
+
+
+def test_bench_write_without_a_robot_file_is_refused_before_measuring(tmp_path, capsys):
+    """--write to a new file with --fake and no --robot has nothing to start the file from: a usage error before the
+    measurement (it came after it), and no output printed."""
+    assert main(["bench", "robot", "--fake", "--seconds", "1", "--write", str(tmp_path / "new.toml")]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == "" and "give --robot ROBOT.toml" in captured.err
+
+
+def test_bench_write_to_an_existing_robot_file_keeps_it_and_sets_the_noise(tmp_path, capsys):
+    """With --fake and no --robot, the file written to is the one started from (the stand-in's own settings, host
+    127.0.0.1, overwrote it)."""
+    out = tmp_path / "mine.toml"
+    out.write_text(URConfig.load(packaged_config("real")).to_toml())
+    assert main(["bench", "robot", "--fake", "--seconds", "1", "--cycles", "2000", "--write", str(out)]) == 0
+    cfg = URConfig.load(out)
+    assert cfg.connection.host == URConfig.load(packaged_config("real")).connection.host and cfg.contact.noise_std > 0

@@ -17,6 +17,8 @@ from place_safe.drivers.ur5 import URConfig, packaged_config
     (["capture", "--robot", "robots/ur5/real.toml", "--sensor", "file:x", "-o", "x"], "give the plane"),
     (["calibrate-mount", "missing.jsonl"], "missing.jsonl"),
     (["place", "--robot", "nope.toml", "--sensor", "file:x"], "nope.toml"),
+    (["capture", "--sim", "level_table", "-o", "x", "--table-tilt-std", "0.1"],
+     "--table-tilt-std goes with --table-height (how far"),
     (["capture", "--sim", "level_table", "-o", "x", "--distances", "10:90:0"], "a range START:STOP:STEP"),
     (["capture", "--sim", "level_table", "-o", "x", "--distances", "90:10:2"], "STOP >= START"),
     (["capture", "--sim", "level_table", "-o", "x", "--distances", "5:90:2"], "from 10 to 5000, got '5:90:2'"),
