@@ -38,9 +38,12 @@ Conventions
 * Uncertainty: an estimate's ``covariance`` ((n_x, n_y, d) in the sensor frame, see
   :mod:`place_safe.recovery.estimator`) gives the variance of its normal's direction, the largest
   eigenvalue of the (n_x, n_y) block (rad^2; rotating the plane into the base frame does not change it).
-  When every plane in the window has one, the Huber weights are multiplied by the inverse variances.
+  When a plane in the window has one, the Huber weights are multiplied by the inverse variances; a plane without
+  a usable one (None, not finite) is weighed as the least certain plane with one and adds nothing to the
+  standard error (:func:`_inverse_variances`).
   ``FusedPlane.tilt_std`` (rad) is the standard error of the fused normal's direction: the larger of
-  ``sqrt(1 / sum(1 / var_i))`` (NaN without covariances) and the window's own spread over ``sqrt(n)``,
+  ``sqrt(1 / sum(1 / var_i))`` over the planes with one (NaN without any) and the window's own spread over
+  ``sqrt(n)``,
   so model disagreement the covariances do not know about still counts. The tilt error every plane shares
   through the calibration's reference (``reference_tilt_std``, rad; a table touched by the arm to calibrate
   against, :class:`~place_safe.recovery.estimator.Reference`) is added to it once, in quadrature: no number of
@@ -50,10 +53,11 @@ Conventions
   A surface does not change its slope while the window follows it, and the frames from farther up
   measure the slope better than those at a few centimetres (zones farther apart, less pile-up and
   parallax), so once ``memory_frames`` planes are remembered and their inverse-variance weighted
-  normal lies within ``memory_gate`` of the window's own, that normal is the fused one (through the
-  window's anchor: the offset stays local and recent), and ``tilt_std`` is its standard error with the
-  memory counted as at most :data:`MEMORY_INDEPENDENT` independent planes (their errors are
-  correlated). ``FusedPlane.source`` says which: ``"memory"`` or ``"window"``. ``std_angle`` is
+  normal lies within ``memory_gate`` of the window's own and within :data:`MEMORY_SIGMAS` of their combined
+  standard errors, that normal is the fused one (through the window's anchor: the offset stays local and recent),
+  and ``tilt_std`` is its standard error with the memory counted as at most :data:`MEMORY_INDEPENDENT`
+  independent planes (their errors are correlated). Within the gate but beyond their errors the window's normal
+  is fused, its ``tilt_std`` at least their angle over :data:`MEMORY_SIGMAS`. ``FusedPlane.source`` says which: ``"memory"`` or ``"window"``. ``std_angle`` is
   always the window's own spread about its own normal (the planarity check), ``std_offset`` the RMS
   distance of its anchors from the fused plane.
 """
@@ -70,7 +74,7 @@ import numpy as np
 from place_safe.exceptions import NoPlaneError
 from place_safe.recovery.estimator import reference_tilt_problem
 from place_safe.recovery.too_close import TOO_CLOSE_REASON
-from place_safe.geometry import Plane
+from place_safe.geometry import Plane, transform_problem
 
 #: Huber constant in robust sigmas (95 % efficiency for Gaussian noise).
 HUBER_K = 1.345
@@ -82,6 +86,13 @@ MIN_SCALE_M = 1e-5
 _Z = np.array([0.0, 0.0, 1.0])
 #: The memory of the normal counts as at most this many independent planes in its standard error.
 MEMORY_INDEPENDENT = 10
+#: The memory's normal stands in for the window's only while the two agree within this many of their combined
+#: standard errors (besides ``memory_gate``). Beyond them (a table that moved since the memory began, or close planes
+#: biased beyond what they state) which one is right is not known: the fused normal is the window's, its tilt's
+#: standard error at least their angle over this many, so the level rule holds for either. With the gate alone,
+#: planes of a table 1.45 deg steeper than the remembered one, each stated to 0.1 deg, were fused as the remembered
+#: 4.05 deg and released where all seven read 5.5 (an adversarial search through the loop).
+MEMORY_SIGMAS = 3.0
 
 
 @dataclass(frozen=True)
@@ -161,12 +172,10 @@ def plane_to_base(plane: Plane, base_T_sensor: Any) -> tuple[np.ndarray, float, 
     The anchor is where the optical axis meets the plane. Raises ValueError for a non-finite or
     non-rigid pose.
     """
+    if (why := transform_problem(base_T_sensor, 1e-6)) is not None:  # a reflection flips the normal: not a pose
+        raise ValueError(f"base_T_sensor {why}")
     T = np.asarray(base_T_sensor, dtype=float)
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        raise ValueError(f"base_T_sensor must be a finite 4x4 transform; got shape {T.shape}")
     R, t = T[:3, :3], T[:3, 3]
-    if np.abs(R.T @ R - np.eye(3)).max() > 1e-6:
-        raise ValueError("base_T_sensor rotation is not orthonormal")
     n = -(R @ plane.normal)  # the sensor-frame normal points away from the sensor; flip towards it
     anchor = t + R @ np.array([0.0, 0.0, plane.z0])
     return n, float(n @ anchor), anchor
@@ -270,7 +279,7 @@ class PlaneFilter:
             f = self._fuse()
             ang = _angle(n, f.normal_base)
             off = abs(f.height_at(anchor))
-            if ang > self.angle_gate or off > self.offset_gate:
+            if not (ang <= self.angle_gate and off <= self.offset_gate):  # (NaN: not within them)
                 self._reject(f"outlier: {math.degrees(ang):.2f} deg / {off * 1e3:.1f} mm from the fused plane "
                              f"(gates {math.degrees(self.angle_gate):.1f} deg / {self.offset_gate * 1e3:.1f} mm)")
                 if self.consecutive_rejects < self.max_consecutive_rejects:
@@ -320,7 +329,9 @@ class PlaneFilter:
         stamps = np.array([it[0] for it in self._items])
         N = np.array([it[1] for it in self._items])
         A = np.array([it[2] for it in self._items])
-        n0 = _unit(np.median(N, axis=0))
+        n0 = np.median(N, axis=0)
+        # normals far apart can have a median of nearly zero length (e_x, e_y, e_z): centre on the newest one then
+        n0 = _unit(n0) if np.linalg.norm(n0) > 0.5 else N[-1]
         a0 = np.median(A, axis=0)
         # one Huber reweighting on the angular and along-normal residuals, each in robust sigmas
         ang = np.arccos(np.clip(N @ n0, -1.0, 1.0))
@@ -330,9 +341,9 @@ class PlaneFilter:
         r = np.maximum(ang / s_ang, np.abs(off - np.median(off)) / s_off)
         w = np.minimum(1.0, HUBER_K / np.maximum(r, 1e-12))
         var = np.array([it[3] for it in self._items])
-        weighted = bool(np.all(np.isfinite(var)))
+        inv, inv_known = _inverse_variances(var)
+        weighted = inv is not None
         if weighted:  # inverse-variance weights, scaled to mean 1 so the Huber weights keep their meaning
-            inv = 1.0 / var
             w = w * inv / inv.mean()
         w = w / w.sum()
         n = _unit(w @ N)
@@ -342,13 +353,17 @@ class PlaneFilter:
         # but a consistent minority of planes that disagree must show in the planarity check
         spread = float(np.sqrt(np.mean(ang_f**2)))
         tilt_std = spread / math.sqrt(len(self._items))
-        if weighted:
-            tilt_std = max(tilt_std, float(math.sqrt(1.0 / np.sum(1.0 / var))))
+        if weighted:  # the planes that stated their error; one that did not adds no confidence
+            tilt_std = max(tilt_std, float(math.sqrt(1.0 / np.sum(inv_known))))
         source = "window"
         remembered = self._remembered()
-        if remembered is not None and _angle(remembered[0], n) <= self.memory_gate:
-            n, tilt_std = remembered
-            source = "memory"
+        if remembered is not None:
+            apart = _angle(remembered[0], n)
+            if apart <= self.memory_gate and apart <= MEMORY_SIGMAS * math.hypot(tilt_std, remembered[1]):
+                n, tilt_std = remembered
+                source = "memory"
+            elif apart <= self.memory_gate:  # they disagree beyond their errors: which is right is not known, so
+                tilt_std = max(tilt_std, apart / MEMORY_SIGMAS)  # the window's normal, as uncertain as they differ
         tilt_std = math.hypot(tilt_std, self.reference_tilt_std)  # shared by every plane: not averaged away
         d = float(n @ anchor)
         res = A @ n - d
@@ -371,19 +386,35 @@ class PlaneFilter:
             return None
         N = np.array([m[1] for m in self._memory])
         var = np.array([m[2] for m in self._memory])
-        if not np.all(np.isfinite(var)):
+        inv, inv_known = _inverse_variances(var)
+        if inv is None:
             return None
-        inv = 1.0 / var
         n = _unit(inv @ N)
         ang = np.arccos(np.clip(N @ n, -1.0, 1.0))
         scale = max(MAD_TO_SIGMA * float(np.median(ang)), MIN_SCALE_RAD)
         w = inv * np.minimum(1.0, HUBER_K * scale / np.maximum(ang, 1e-12))
         n = _unit(w @ N)
         ang = np.arccos(np.clip(N @ n, -1.0, 1.0))
+        known = int(np.count_nonzero(inv_known))
         k = min(len(N), MEMORY_INDEPENDENT)
         spread = float(np.sqrt(np.sum(w * ang**2) / np.sum(w)))
-        formal = float(math.sqrt(len(N) / (k * np.sum(inv))))  # sqrt(1 / sum(1/var)) with n counted as k
+        # sqrt(1 / sum(1/var)) with the planes that stated their error counted as at most MEMORY_INDEPENDENT
+        formal = float(math.sqrt(known / (min(known, MEMORY_INDEPENDENT) * np.sum(inv_known))))
         return n, max(formal, spread / math.sqrt(k))
+
+
+def _inverse_variances(var: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
+    """Weights ``1 / var`` of planes with direction variances ``var`` (rad^2, NaN or inf where a plane stated none or
+    one that is not finite), and the same with 0 for those planes. A plane without a usable error is weighed as the
+    least certain plane that has one and counts nothing in the standard error: one plane without a covariance made
+    the whole window unweighted, its standard error the planes' spread alone (which a shared model error does not
+    show), and a window 4.7 deg tilted was released at +-0.02 deg where its planes stated 0.5 deg each. (None, zeros)
+    when no plane has one."""
+    known = np.isfinite(var) & (var > 0)
+    if not known.any():
+        return None, np.zeros(len(var))
+    inv_known = np.where(known, 1.0 / np.where(known, var, 1.0), 0.0)
+    return np.where(known, inv_known, inv_known[known].min()), inv_known
 
 
 def _direction_variance(estimate: Any) -> float:

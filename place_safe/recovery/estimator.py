@@ -342,8 +342,9 @@ class PlaneEstimate:
             return None
         if C.shape != (3, 3) or not np.all(np.isfinite(C)):
             return None
-        v = float(np.linalg.eigvalsh(0.5 * (C[:2, :2] + C[:2, :2].T)).max())
-        return math.sqrt(v) if v >= 0 else None
+        B = C[:2, :2]
+        v = float(np.linalg.eigvalsh(0.5 * B + 0.5 * B.T).max())  # (halved first: a 1e308 block does not overflow)
+        return math.sqrt(v) if v >= 0 and math.isfinite(v) else None
 
     @property
     def ok(self) -> bool:
