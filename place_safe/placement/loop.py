@@ -222,6 +222,7 @@ class PlacementLoop:
         self.force_peak = 0.0
         self.gate = FrameGate(max_age=self.max_frame_age, future_tolerance=self.period)
         self._last_arrival: float | None = None  # robot time of the newest measurement's arrival
+        self._last_age: float | None = None  # s, from its measurement to its arrival (a frame the gate passed)
         self._note: str | None = None
         self._cmd_error: str | None = None
         self._t_start: float | None = None
@@ -257,9 +258,11 @@ class PlacementLoop:
         self._last_arrival = now
         stamp = self.clock.to_robot(getattr(frame, "timestamp", None))
         accepted = False
+        self._last_age = None
         if (why := self.gate.check(stamp, now)) is not None:
             self._drop(why)
         else:
+            self._last_age = max(now - stamp, 0.0)  # the machine brakes for the latency it measures (_latency)
             pose = self.history.at(stamp)
             if pose is None:
                 self._drop("no pose: no robot pose recorded at the frame's measurement time")
@@ -543,7 +546,7 @@ class PlacementLoop:
             cup = np.asarray(tcp, dtype=float) @ self._tcp_T_cup
         except Exception:
             cup = np.full((4, 4), np.nan)
-        state = RobotState(now, tcp, cup, force, fault, self._last_arrival)
+        state = RobotState(now, tcp, cup, force, fault, self._last_arrival, self._last_age)
         fused = self.filter.fused(now) if math.isfinite(now) else None
         cmd = self.machine.step(state, fused, note, self._footprint_verdict(fused, tcp))
         self._dispatch(cmd)

@@ -108,6 +108,7 @@ class RobotState:
     contact_force: float = 0.0  # N
     fault: str | None = None
     last_frame_time: float | None = None  # s, when the newest sensor frame (accepted or not) arrived
+    last_frame_age: float | None = None  # s, from that frame's measurement to its arrival (None: not known)
 
     def problem(self) -> str | None:
         """Why this state cannot be trusted (fault, malformed or non-finite values), or None."""
@@ -123,6 +124,8 @@ class RobotState:
             return "robot contact force is not a finite non-negative number"
         if self.last_frame_time is not None and number(self.last_frame_time) is None:
             return "time of the last sensor frame is not a finite number"
+        if self.last_frame_age is not None and number(self.last_frame_age) is None:
+            return "age of the last sensor frame is not a finite number"
         return None
 
 
@@ -177,6 +180,12 @@ PASS_PACE = 1.5
 DOUBT_PATIENCE = 2.0
 #: Arrival gaps of sensor frames over which the machine measures the frame period (median).
 FRAME_GAPS = 8
+#: The quantile of the last ``FRAME_GAPS`` frames' ages at arrival (measurement to arrival, robot clock) that counts
+#: as the sensor's latency where it exceeds ``sensor_latency`` (:meth:`PlacementMachine._latency`): a bus slower
+#: than the configuration assumes (a Linux I2C adapter's default 100 kHz delivers frames 0.5 s old, 400 kHz
+#: 0.12-0.17 s) slows the descent to what it can stop from, where the configured 0.15 s would brake too late; a
+#: single late frame (a latency spike) does not.
+LATENCY_QUANTILE = 0.8
 #: Fraction of ``footprint_margin``: a cup bottom this close sideways to the landing spot lies inside the
 #: footprint the survey certified (its disc reaches ``footprint_margin`` past the cup's rim), so the descent
 #: below ``traverse_clearance`` may go on while the last of the way back is made.
@@ -286,6 +295,7 @@ class PlacementMachine:
         self._early_back_t = math.nan
         self._last_frame: float | None = None  # arrival time of the newest frame, and the gaps between arrivals
         self._frame_gaps: list[float] = []
+        self._frame_ages: list[float] = []  # s, the last FRAME_GAPS frames' ages at arrival (see _latency)
         self._budget_share = 0.0
         self._tcp_speed = 0.0
 
@@ -355,7 +365,7 @@ class PlacementMachine:
     def _descent_speed(self, c: float) -> float:
         """Speed (m/s) down towards the surface at cup clearance ``c`` (:func:`~place_safe.placement.speed.descent_speed`)."""
         cfg = self.config
-        return descent_speed(c, cfg.slow_clearance, cfg.brake_margin, cfg.sensor_latency, cfg.accel,
+        return descent_speed(c, cfg.slow_clearance, cfg.brake_margin, self._latency(), cfg.accel,
                              cfg.approach_speed, cfg.descend_speed)
 
     def _motion_bucket(self, v: float) -> str:
@@ -404,8 +414,20 @@ class PlacementMachine:
         frame = number(getattr(state, "last_frame_time", None))
         if frame is not None and self._last_frame is not None and frame > self._last_frame:
             self._frame_gaps = (self._frame_gaps + [frame - self._last_frame])[-FRAME_GAPS:]
+        age = number(getattr(state, "last_frame_age", None))
+        if frame is not None and age is not None and (self._last_frame is None or frame > self._last_frame):
+            self._frame_ages = (self._frame_ages + [max(age, 0.0)])[-FRAME_GAPS:]
         if frame is not None:
             self._last_frame = frame
+
+    def _latency(self) -> float:
+        """s from a measurement to the machine acting on it, as the descent's braking assumes it: ``sensor_latency``,
+        or the measured one where it is longer (:data:`LATENCY_QUANTILE` of the last frames' ages at arrival, once
+        ``FRAME_GAPS // 2`` are known)."""
+        latency = self.config.sensor_latency
+        if len(self._frame_ages) >= FRAME_GAPS // 2:
+            latency = max(latency, float(np.quantile(self._frame_ages, LATENCY_QUANTILE)))
+        return latency
 
     def _frame_period(self) -> float | None:
         """s between frames, measured (the median of the last ``FRAME_GAPS`` arrival gaps; None before)."""
@@ -493,10 +515,10 @@ class PlacementMachine:
             self._hint = "survey"
             return self._speed(np.zeros(3))
         if self._early_back and not self._early_back_failed \
-                and self._elapsed(now, self._early_back_t, 0) > cfg.sensor_latency + (self._frame_period() or 0.0):
+                and self._elapsed(now, self._early_back_t, 0) > self._latency() + (self._frame_period() or 0.0):
             self._early_back_failed = True  # the frames taken before the way back began are in: not certified
         if (self._passed is not None and not bool(getattr(fp, "in_view", False))
-                and self._elapsed(now, self._passed, 0) <= cfg.sensor_latency):
+                and self._elapsed(now, self._passed, 0) <= self._latency()):
             # the view left the footprint, but frames taken over it from the certifying height are still in
             # flight (they arrive sensor_latency after they were taken): keep descending -- no lower than
             # the descent's cap for uncertified ground lets the cup stop above traverse_clearance -- rather
@@ -586,7 +608,7 @@ class PlacementMachine:
         if margin is None:
             return math.inf
         window = margin - need - SURVEY_VIEW_SLACK
-        inside = stoppable_speed(window, cfg.sensor_latency, cfg.accel)
+        inside = stoppable_speed(window, self._latency(), cfg.accel)
         period = self._frame_period()
         if period is not None and period > 0:
             # frames measured at this period: footprint_frames of them (and one more, for the phase of the
@@ -952,7 +974,7 @@ class PlacementMachine:
                     # keep room to stop above traverse_clearance even learning of it sensor_latency late (or
                     # go no faster than the slow band's speed, at which a touch stays gentle)
                     v = min(v, max(cfg.descend_speed,
-                                   stoppable_speed(c - cfg.traverse_clearance, cfg.sensor_latency, cfg.accel)))
+                                   stoppable_speed(c - cfg.traverse_clearance, self._latency(), cfg.accel)))
                 free = v
                 v = min(v, self._view_cap)  # passing the footprint: frames inside the window (_pass_speed)
                 if np.any(side):

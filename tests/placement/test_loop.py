@@ -487,3 +487,19 @@ def test_the_reference_error_reaches_the_filter_through_a_pipeline_and_a_filter_
     assert PlacementLoop(robot, source, est, plane_filter=own).filter is own and own.reference_tilt_std == 0.002
     larger = PlaneFilter(window=9, reference_tilt_std=0.003)
     assert PlacementLoop(robot, source, est, plane_filter=larger).filter.reference_tilt_std == 0.003
+
+
+def test_frames_older_than_the_configured_latency_slow_the_descent_to_what_it_can_stop_from():
+    """A bus slower than the configuration assumes (Linux's default 100 kHz I2C delivers frames 0.4-0.5 s old, the
+    braking profile assumes sensor_latency 0.15 s): the machine brakes for the latency it measures, so the descent
+    is slower and the cup still stops and is released near the surface, with no contact."""
+    outcomes = {}
+    for latency in (0.05, 0.40):
+        robot = KinematicRobot(height=0.25)
+        loop, res = run(robot, TruthSource(robot, latency=latency), timeout=40.0)
+        assert res.outcome == "released", res.reason
+        assert 0.0 <= robot.opened_at <= PlacementConfig().release_clearance + 1e-6
+        outcomes[latency] = (loop.machine._latency(), res.transitions[-2].time)
+    assert outcomes[0.05][0] == PlacementConfig().sensor_latency  # measured 0.05 s: the configured one holds
+    assert outcomes[0.40][0] >= 0.39
+    assert outcomes[0.40][1] > outcomes[0.05][1]  # a slower descent
