@@ -283,7 +283,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         opt("--json", action="store_true", help="print JSON"),
         opt("--factory-calibrate", action="store_true",
             help="run the sensor's factory calibration (nothing within 40 cm, dark) and save it in --calibration-dir, "
-               "keyed by serial number; it is loaded at every start"))
+               "keyed by serial number; sensor commands given that --calibration-dir load it at start (place and "
+                 "capture open the bare URI, without it)"))
     _sensor_command(
         sub, "record", cmd_record, "record frames to a frame file",
         "Read frames from a source and write them to a frame file (JSON list, or JSON Lines for a .jsonl name), "
