@@ -415,7 +415,9 @@ def cmd_calibrate_mount(args: argparse.Namespace) -> int:
                                     "sigma_rot_deg": [math.degrees(v) if v == v else -1.0 for v in fit.sigma_rot],
                                     "unobserved": list(fit.unobserved)}  # sigma -1: held (unobserved)
         Path(args.write).write_text(robot_cfg.to_toml(), encoding="utf-8")
-        log(f"wrote the fitted mount into {args.write}")
+        log(f"wrote the fitted mount into {args.write}" + ("" if args.robot else
+            " (started from the simulated arm's robots/ur5/sim.toml, host 127.0.0.1: for the real arm give --robot "
+            "with its robot file)"))
     return 0
 
 
