@@ -158,7 +158,9 @@ def _with_timeout(fn: Callable[[], Any], timeout: float, what: str) -> Any:
     if th.is_alive():
         raise RobotFault(f"{what}: no answer within {timeout:g} s (is the robot on and reachable?)")
     if "error" in box:
-        raise RobotFault(f"{what}: {str(box['error']).splitlines()[0] if str(box['error']) else box['error']!r}")
+        raise RobotFault(f"{what}: {str(box['error']).splitlines()[0] if str(box['error']) else box['error']!r} "
+                         "(cannot connect: check the robot file's [connection] host, the network, and that the "
+                         "pendant is in Remote Control)")
     return box["value"]
 
 
