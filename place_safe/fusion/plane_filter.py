@@ -57,7 +57,10 @@ Conventions
   standard errors, that normal is the fused one (through the window's anchor: the offset stays local and recent),
   and ``tilt_std`` is its standard error with the memory counted as at most :data:`MEMORY_INDEPENDENT`
   independent planes (their errors are correlated). Within the gate but beyond their errors the window's normal
-  is fused, its ``tilt_std`` at least their angle over :data:`MEMORY_SIGMAS`. ``FusedPlane.source`` says which: ``"memory"`` or ``"window"``. ``std_angle`` is
+  is fused, its ``tilt_std`` at least their angle over :data:`MEMORY_SIGMAS`. Either way the fused plane carries the
+  window's own tilt and standard error (``window_tilt_rad``, ``window_tilt_std``): the level rules hold both readings
+  to the bound (a memory that mixes a table's two slopes, or a window whose planes state wide errors, passed the
+  gate and hid the footprint's steeper slope). ``FusedPlane.source`` says which: ``"memory"`` or ``"window"``. ``std_angle`` is
   always the window's own spread about its own normal (the planarity check), ``std_offset`` the RMS
   distance of its anchors from the fused plane.
 """
@@ -115,6 +118,10 @@ class FusedPlane:
     heights: tuple[float, ...] = ()  # m, each window plane's anchor above the fused plane (in stamps' order)
     height_stds: tuple[float, ...] = ()  # m, each one's offset std from its covariance (NaN: none)
     reference_tilt_std: float = 0.0  # rad, the calibration's reference error, in tilt_std (see module doc)
+    # the window's own normal's tilt and its standard error (with the reference error), whatever the source: where
+    # the memory's normal is fused, the level rules hold the window's reading to the same bound (rules.level_problem)
+    window_tilt_rad: float = math.nan
+    window_tilt_std: float = math.nan
 
     def height_at(self, point: Any) -> float:
         """Signed distance (m) of ``point`` (base frame) above the plane (negative: below / behind it)."""
@@ -356,6 +363,7 @@ class PlaneFilter:
         if weighted:  # the planes that stated their error; one that did not adds no confidence
             tilt_std = max(tilt_std, float(math.sqrt(1.0 / np.sum(inv_known))))
         source = "window"
+        window_tilt, window_std = _angle(n, _Z), math.hypot(tilt_std, self.reference_tilt_std)
         remembered = self._remembered()
         if remembered is not None:
             apart = _angle(remembered[0], n)
@@ -371,7 +379,7 @@ class PlaneFilter:
                                  len(self._items), float(stamps.max()), self.count, anchor,
                                  tuple(float(s) for s in stamps), tilt_std, source, len(self._memory),
                                  tuple(float(h) for h in res), tuple(float(it[4]) for it in self._items),
-                                 self.reference_tilt_std)
+                                 self.reference_tilt_std, window_tilt, window_std)
         self._dirty = False
         return self._cache
 

@@ -118,8 +118,19 @@ def confidence_margin(sigma: float, cfg: Any) -> float:
     return NormalDist().inv_cdf(cfg.level_confidence) * sigma
 
 
+def window_reading(plane: FusedPlane) -> tuple[float, float] | None:
+    """The window's own tilt and its standard error (rad) where the fused normal is the memory's
+    (``plane.source == "memory"``) and the plane carries them; None otherwise (the fused reading is the window's)."""
+    if getattr(plane, "source", "window") != "memory":
+        return None
+    t, s = number(getattr(plane, "window_tilt_rad", None)), number(getattr(plane, "window_tilt_std", None))
+    return (t, s) if t is not None and s is not None and s >= 0 else None
+
+
 def level_problem(plane: FusedPlane, cfg: Any) -> str | None:
-    """Tilt not below ``max_tilt`` with ``level_confidence`` (one-sided normal bound on the tilt)."""
+    """Tilt not below ``max_tilt`` with ``level_confidence`` (one-sided normal bound on the tilt). Where the fused
+    normal is the memory's, the window's own reading (:func:`window_reading`) must pass the same bound: the memory
+    may mix slopes the recent planes no longer see as one, and which is right is not known."""
     if (why := tilt_problem(plane, cfg.max_tilt, cfg)) is not None:
         return why
     sigma = tilt_sigma(plane)
@@ -127,18 +138,27 @@ def level_problem(plane: FusedPlane, cfg: Any) -> str | None:
     if not (bound <= cfg.max_tilt):
         return (f"surface tilt {math.degrees(plane.tilt_rad):.2f} +- {math.degrees(sigma):.2f} deg is not below "
                 f"{math.degrees(cfg.max_tilt):.1f} deg with {cfg.level_confidence:.0%} confidence")
+    if (recent := window_reading(plane)) is not None and not (recent[0] + confidence_margin(recent[1], cfg)
+                                                              <= cfg.max_tilt):
+        return (f"surface tilt {math.degrees(recent[0]):.2f} +- {math.degrees(recent[1]):.2f} deg in the latest "
+                f"planes (the remembered slope reads {math.degrees(plane.tilt_rad):.2f}) is not below "
+                f"{math.degrees(cfg.max_tilt):.1f} deg with {cfg.level_confidence:.0%} confidence")
     return None
 
 
 def confidently_tilted(plane: FusedPlane, cfg: Any) -> str | None:
     """Refuse early (before descending onto it) a surface steeper than ``max_tilt`` with ``level_confidence``,
-    once the window holds ``check_frames`` planes."""
+    once the window holds ``check_frames`` planes: the fused reading, or the window's own where the fused normal is
+    the memory's (:func:`window_reading`)."""
     if int(getattr(plane, "n", 0) or 0) < cfg.check_frames:
         return None
-    low = plane.tilt_rad - confidence_margin(tilt_sigma(plane), cfg)
-    if low > cfg.max_tilt:
-        return (f"surface tilted {math.degrees(plane.tilt_rad):.1f} deg (> {math.degrees(cfg.max_tilt):.1f} deg "
-                f"allowed, with {cfg.level_confidence:.0%} confidence)")
+    readings = [(plane.tilt_rad, tilt_sigma(plane))]
+    if (recent := window_reading(plane)) is not None:
+        readings.append(recent)
+    for tilt, sigma in readings:
+        if tilt - confidence_margin(sigma, cfg) > cfg.max_tilt:
+            return (f"surface tilted {math.degrees(tilt):.1f} deg (> {math.degrees(cfg.max_tilt):.1f} deg "
+                    f"allowed, with {cfg.level_confidence:.0%} confidence)")
     return None
 
 

@@ -279,3 +279,21 @@ def test_a_rising_table_fed_without_covariance_is_refused(k, speed, gap, up):
     plane, post = _at_rest([v * gap * i for i in range(k)], [math.nan] * k, gap)
     why = rules.still_problem(plane, post, CFG)
     assert why is not None and "states no uncertainty" in why
+
+
+def test_where_the_memorys_normal_is_fused_the_windows_own_reading_must_pass_the_same_bounds():
+    """The memory may mix slopes (a table that tilted since, a fold between the footprint and where the sensor looks
+    now): a remembered 4.6 deg read to 0.03 deg passes, the latest planes' 6.0 +- 0.57 deg must pass too, and do not
+    (an adversarial search released there). The early refusal reads the window as well."""
+    from dataclasses import replace
+
+    p = replace(_plane(tilt=math.radians(4.6)), tilt_std=math.radians(0.03), source="memory",
+                window_tilt_rad=math.radians(6.0), window_tilt_std=math.radians(0.57))
+    why = rules.level_problem(p, CFG)
+    assert why is not None and "in the latest planes" in why and "remembered slope reads 4.60" in why
+    assert "surface tilted 6.0 deg" in (rules.confidently_tilted(replace(p, window_tilt_std=math.radians(0.1)), CFG)
+                                        or "")
+    agree = replace(p, window_tilt_rad=math.radians(4.7), window_tilt_std=math.radians(0.1))
+    assert rules.level_problem(agree, CFG) is None and rules.confidently_tilted(agree, CFG) is None
+    own = replace(p, source="window")  # the window's reading is the fused one: nothing more to hold
+    assert rules.level_problem(replace(own, tilt_rad=math.radians(4.6)), CFG) is None
