@@ -422,17 +422,25 @@ class PlacementLoop:
         cov = np.diag([KNOWN_SLOPE_STD ** 2, KNOWN_SLOPE_STD ** 2, var_d])
         return PlaneEstimate(Plane(n_s, d_s), residual=spread, covariance=cov, method_used="peak-known-slope")
 
-    @staticmethod
-    def _zone_plane(fs: Any, zones: np.ndarray, base_T_sensor: np.ndarray) -> Any:
+    def _zone_plane(self, fs: Any, zones: np.ndarray, base_T_sensor: np.ndarray) -> Any:
         """The plane (sensor frame) fitted to the calibrated peak points of ``zones`` of a recorded frame,
-        as an estimate with its covariance ("peak-consensus"); None-plane estimate when the fit fails."""
+        as an estimate with its covariance ("peak-consensus"); None-plane estimate when the fit fails. The
+        covariance is the calibrated peak method's for those zones (:meth:`PeakEstimator.covariance
+        <place_safe.recovery.peak.PeakEstimator.covariance>`: the fit's, the near-range errors, the calibrated floor
+        and the tilt term) where the estimator carries one (:func:`peak_estimator_of`), else the fit's alone (which
+        stated 0.08-0.11 deg where the estimator, with its floor, stated 0.3)."""
         T = np.asarray(base_T_sensor, dtype=float)
         pts = np.nan_to_num((fs.points_base - T[:3, 3]) @ T[:3, :3])
-        n, d, rms, ok = fit_planes(pts[None], np.asarray(zones, dtype=bool)[None])
+        zones = np.asarray(zones, dtype=bool)
+        n, d, rms, ok = fit_planes(pts[None], zones[None])
         if not ok[0]:
             return PlaneEstimate(None, reason="no plane through the zones that agree")
         plane = Plane(n[0], float(d[0]))
-        cov = plane_covariance(pts, zones, plane)
+        peak = peak_estimator_of(self.estimator)
+        try:
+            cov = peak.covariance(pts, zones, plane) if peak is not None else plane_covariance(pts, zones, plane)
+        except (ValueError, np.linalg.LinAlgError):
+            cov = plane_covariance(pts, zones, plane)
         return PlaneEstimate(plane, residual=float(rms[0]), covariance=cov, method_used="peak-consensus")
 
     def _footprint_verdict(self, fused: Any, tcp: Any) -> Any:
@@ -641,6 +649,17 @@ def reference_tilt_std_of(estimator: Any) -> float:
     return float(v)
 
 
+def peak_estimator_of(estimator: Any) -> Any:
+    """The calibrated peak estimator an estimator is or carries (``peak``: itself; ``diff``: its initialiser), whose
+    covariance the loop's own planes through some of a frame's zones take; None for others (proprietary, fakes)."""
+    from place_safe.recovery.peak import PeakEstimator
+
+    for e in (estimator, getattr(estimator, "init", None)):
+        if isinstance(e, PeakEstimator):
+            return e
+    return None
+
+
 def peak_params_of(estimator: Any) -> Any:
     """The calibrated peak mapping an estimator carries (``peak``: its params; ``diff``: its initialiser's),
     else the built-in one; the surface map reads zone returns with it."""
@@ -653,5 +672,5 @@ def peak_params_of(estimator: Any) -> Any:
     return PeakParams.default_peak()
 
 
-__all__ = ["PlacementLoop", "LoopResult", "peak_params_of", "reference_tilt_std_of", "CONTROL_PERIOD",
-           "MAX_RUN_SECONDS"]
+__all__ = ["PlacementLoop", "LoopResult", "peak_params_of", "peak_estimator_of", "reference_tilt_std_of",
+           "CONTROL_PERIOD", "MAX_RUN_SECONDS"]

@@ -67,6 +67,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections import deque
 from dataclasses import dataclass
 from enum import Enum
 from typing import Any
@@ -186,6 +187,10 @@ FRAME_GAPS = 8
 #: 0.12-0.17 s) slows the descent to what it can stop from, where the configured 0.15 s would brake too late; a
 #: single late frame (a latency spike) does not.
 LATENCY_QUANTILE = 0.8
+#: s over which the largest age the fused plane reached counts as the sensor's latency (see
+#: :meth:`PlacementMachine._latency`): a bus that stalls now and then is as slow as its stalls, since a surprise at
+#: the start of the next one reaches the machine that late.
+LATENCY_MEMORY = 2.0
 #: Fraction of ``footprint_margin``: a cup bottom this close sideways to the landing spot lies inside the
 #: footprint the survey certified (its disc reaches ``footprint_margin`` past the cup's rim), so the descent
 #: below ``traverse_clearance`` may go on while the last of the way back is made.
@@ -296,6 +301,8 @@ class PlacementMachine:
         self._last_frame: float | None = None  # arrival time of the newest frame, and the gaps between arrivals
         self._frame_gaps: list[float] = []
         self._frame_ages: list[float] = []  # s, the last FRAME_GAPS frames' ages at arrival (see _latency)
+        self._plane_age = 0.0  # s, the largest age of the fused plane in the last LATENCY_MEMORY s (see _latency)
+        self._plane_ages: deque[tuple[float, float]] = deque()  # (robot time, the fused plane's age then)
         self._budget_share = 0.0
         self._tcp_speed = 0.0
 
@@ -422,9 +429,13 @@ class PlacementMachine:
 
     def _latency(self) -> float:
         """s from a measurement to the machine acting on it, as the descent's braking assumes it: ``sensor_latency``,
-        or the measured one where it is longer (:data:`LATENCY_QUANTILE` of the last frames' ages at arrival, once
-        ``FRAME_GAPS // 2`` are known)."""
-        latency = self.config.sensor_latency
+        or the measured one where it is longer: :data:`LATENCY_QUANTILE` of the last frames' ages at arrival (once
+        ``FRAME_GAPS // 2`` are known), and the largest age the fused plane reached in the last :data:`LATENCY_MEMORY`
+        s (now included). News comes no sooner than the evidence has been old: a bus that slows near the surface keeps
+        the descent stoppable from the first tick the evidence ages, and one that stalls now and then (delivering its
+        backlog, whose newest frame is young) as slow as its stalls, where the arrival ages alone followed half a
+        second late or not at all (an adversarial search: a box met at 0.055-0.057 m/s)."""
+        latency = max(self.config.sensor_latency, self._plane_age)
         if len(self._frame_ages) >= FRAME_GAPS // 2:
             latency = max(latency, float(np.quantile(self._frame_ages, LATENCY_QUANTILE)))
         return latency
@@ -821,6 +832,12 @@ class PlacementMachine:
         if bad is not None:
             return self._abort(now, bad, faulted=bool(getattr(state, "fault", None)))
         self._account(state, now)
+        stamp = number(getattr(plane, "stamp", None)) if plane is not None else None
+        if stamp is not None:  # the fused plane's age this tick, and the largest in the last LATENCY_MEMORY s
+            self._plane_ages.append((now, max(now - stamp, 0.0)))
+        while self._plane_ages and self._plane_ages[0][0] < now - LATENCY_MEMORY:
+            self._plane_ages.popleft()
+        self._plane_age = max((a for _, a in self._plane_ages), default=0.0)  # (see _latency)
         self._hint = None
         self._survey_share = 0.0
         self._view_cap = math.inf
