@@ -118,13 +118,18 @@ def confidence_margin(sigma: float, cfg: Any) -> float:
     return NormalDist().inv_cdf(cfg.level_confidence) * sigma
 
 
-def window_reading(plane: FusedPlane) -> tuple[float, float] | None:
+def window_reading(plane: FusedPlane, cfg: Any) -> tuple[float, float] | None:
     """The window's own tilt and its standard error (rad) where the fused normal is the memory's
-    (``plane.source == "memory"``) and the plane carries them; None otherwise (the fused reading is the window's)."""
+    (``plane.source == "memory"``), the plane carries them and the window could certify a level surface by itself
+    (its ``level_confidence`` margin within ``max_tilt``); None otherwise: the fused reading is the window's, or the
+    window's planes are too uncertain to say anything of the level (a jaw-mounted sensor's last centimetres, whose
+    planes state degrees: there the memory's slope is what there is)."""
     if getattr(plane, "source", "window") != "memory":
         return None
     t, s = number(getattr(plane, "window_tilt_rad", None)), number(getattr(plane, "window_tilt_std", None))
-    return (t, s) if t is not None and s is not None and s >= 0 else None
+    if t is None or s is None or s < 0 or not confidence_margin(s, cfg) <= cfg.max_tilt:
+        return None
+    return t, s
 
 
 def level_problem(plane: FusedPlane, cfg: Any) -> str | None:
@@ -138,7 +143,7 @@ def level_problem(plane: FusedPlane, cfg: Any) -> str | None:
     if not (bound <= cfg.max_tilt):
         return (f"surface tilt {math.degrees(plane.tilt_rad):.2f} +- {math.degrees(sigma):.2f} deg is not below "
                 f"{math.degrees(cfg.max_tilt):.1f} deg with {cfg.level_confidence:.0%} confidence")
-    if (recent := window_reading(plane)) is not None and not (recent[0] + confidence_margin(recent[1], cfg)
+    if (recent := window_reading(plane, cfg)) is not None and not (recent[0] + confidence_margin(recent[1], cfg)
                                                               <= cfg.max_tilt):
         return (f"surface tilt {math.degrees(recent[0]):.2f} +- {math.degrees(recent[1]):.2f} deg in the latest "
                 f"planes (the remembered slope reads {math.degrees(plane.tilt_rad):.2f}) is not below "
@@ -153,7 +158,7 @@ def confidently_tilted(plane: FusedPlane, cfg: Any) -> str | None:
     if int(getattr(plane, "n", 0) or 0) < cfg.check_frames:
         return None
     readings = [(plane.tilt_rad, tilt_sigma(plane))]
-    if (recent := window_reading(plane)) is not None:
+    if (recent := window_reading(plane, cfg)) is not None:
         readings.append(recent)
     for tilt, sigma in readings:
         if tilt - confidence_margin(sigma, cfg) > cfg.max_tilt:

@@ -297,3 +297,8 @@ def test_where_the_memorys_normal_is_fused_the_windows_own_reading_must_pass_the
     assert rules.level_problem(agree, CFG) is None and rules.confidently_tilted(agree, CFG) is None
     own = replace(p, source="window")  # the window's reading is the fused one: nothing more to hold
     assert rules.level_problem(replace(own, tilt_rad=math.radians(4.6)), CFG) is None
+    # a window too uncertain to certify even a level table (a jaw-mounted sensor's last centimetres: 0.8 +- 2.5 deg)
+    # says nothing of the level: the memory's reading decides (the set's jaw scenes were refused on it)
+    vague = replace(p, tilt_rad=math.radians(0.02), window_tilt_rad=math.radians(0.83),
+                    window_tilt_std=math.radians(2.51))
+    assert rules.level_problem(vague, CFG) is None
