@@ -60,7 +60,9 @@ Conventions
   is fused, its ``tilt_std`` at least their angle over :data:`MEMORY_SIGMAS`. Either way the fused plane carries the
   window's own tilt and standard error (``window_tilt_rad``, ``window_tilt_std``): the level rules hold both readings
   to the bound (a memory that mixes a table's two slopes, or a window whose planes state wide errors, passed the
-  gate and hid the footprint's steeper slope). ``FusedPlane.source`` says which: ``"memory"`` or ``"window"``. ``std_angle`` is
+  gate and hid the footprint's steeper slope). ``FusedPlane.source`` says which: ``"memory"`` or ``"window"``.
+  Planes that scatter far beyond what they state (:data:`BIRGE_QUANTILE`) are fused without their inverse-variance
+  weights, in the window and in the memory, and every standard error is scaled by their scatter. ``std_angle`` is
   always the window's own spread about its own normal (the planarity check), ``std_offset`` the RMS
   distance of its anchors from the fused plane.
 """
@@ -96,6 +98,11 @@ MEMORY_INDEPENDENT = 10
 #: planes of a table 1.45 deg steeper than the remembered one, each stated to 0.1 deg, were fused as the remembered
 #: 4.05 deg and released where all seven read 5.5 (an adversarial search through the loop).
 MEMORY_SIGMAS = 3.0
+#: Planes whose angles about their weighted normal have a chi-square beyond this quantile of its distribution
+#: (:func:`_birge`) are fused without their inverse-variance weights (the Huber weights alone): one plane stating 0.04
+#: deg, 2 deg off six others stating 0.5-0.7 deg, drew the weighted normal to itself, and a 5.3 deg table passed as
+#: 3.4 deg (an adversarial search). The standard error is scaled by the root of the chi-square per degree of freedom.
+BIRGE_QUANTILE = 0.999
 
 
 @dataclass(frozen=True)
@@ -350,18 +357,24 @@ class PlaneFilter:
         var = np.array([it[3] for it in self._items])
         inv, inv_known = _inverse_variances(var)
         weighted = inv is not None
-        if weighted:  # inverse-variance weights, scaled to mean 1 so the Huber weights keep their meaning
-            w = w * inv / inv.mean()
-        w = w / w.sum()
-        n = _unit(w @ N)
-        anchor = w @ A
-        ang_f = np.arccos(np.clip(N @ n, -1.0, 1.0))
+
+        def centre(weights: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            weights = weights / weights.sum()
+            normal = _unit(weights @ N)
+            return normal, weights @ A, np.arccos(np.clip(N @ normal, -1.0, 1.0))
+
+        # inverse-variance weights, scaled to mean 1 so the Huber weights keep their meaning
+        n, anchor, ang_f = centre(w * inv / inv.mean() if weighted else w)
+        birge, beyond = _birge(inv_known, ang_f) if weighted else (1.0, False)
+        if beyond:  # the planes scatter far beyond what they state: their weights are not to be trusted
+            n, anchor, ang_f = centre(w)
+            birge, _ = _birge(inv_known, ang_f)
         # the spread is the plain RMS over every plane in the window: the robust weights pick the centre,
         # but a consistent minority of planes that disagree must show in the planarity check
         spread = float(np.sqrt(np.mean(ang_f**2)))
         tilt_std = spread / math.sqrt(len(self._items))
-        if weighted:  # the planes that stated their error; one that did not adds no confidence
-            tilt_std = max(tilt_std, float(math.sqrt(1.0 / np.sum(inv_known))))
+        if weighted:  # the planes that stated their error (one that did not adds no confidence), scaled by scatter
+            tilt_std = max(tilt_std, float(math.sqrt(birge / np.sum(inv_known))))
         source = "window"
         window_tilt, window_std = _angle(n, _Z), math.hypot(tilt_std, self.reference_tilt_std)
         remembered = self._remembered()
@@ -397,18 +410,39 @@ class PlaneFilter:
         inv, inv_known = _inverse_variances(var)
         if inv is None:
             return None
-        n = _unit(inv @ N)
-        ang = np.arccos(np.clip(N @ n, -1.0, 1.0))
-        scale = max(MAD_TO_SIGMA * float(np.median(ang)), MIN_SCALE_RAD)
-        w = inv * np.minimum(1.0, HUBER_K * scale / np.maximum(ang, 1e-12))
-        n = _unit(w @ N)
-        ang = np.arccos(np.clip(N @ n, -1.0, 1.0))
+        def centre(weights: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            normal = _unit(weights @ N)
+            ang = np.arccos(np.clip(N @ normal, -1.0, 1.0))
+            scale = max(MAD_TO_SIGMA * float(np.median(ang)), MIN_SCALE_RAD)
+            w = weights * np.minimum(1.0, HUBER_K * scale / np.maximum(ang, 1e-12))
+            normal = _unit(w @ N)
+            return normal, w, np.arccos(np.clip(N @ normal, -1.0, 1.0))
+
+        n, w, ang = centre(inv)
+        birge, beyond = _birge(inv_known, ang)
+        if beyond:  # planes scattering far beyond what they state: their weights are not to be trusted
+            n, w, ang = centre(np.ones(len(N)))
+            birge, _ = _birge(inv_known, ang)
         known = int(np.count_nonzero(inv_known))
         k = min(len(N), MEMORY_INDEPENDENT)
         spread = float(np.sqrt(np.sum(w * ang**2) / np.sum(w)))
-        # sqrt(1 / sum(1/var)) with the planes that stated their error counted as at most MEMORY_INDEPENDENT
-        formal = float(math.sqrt(known / (min(known, MEMORY_INDEPENDENT) * np.sum(inv_known))))
+        # sqrt(1 / sum(1/var)) with the planes that stated their error counted as at most MEMORY_INDEPENDENT, scaled
+        # by their scatter (_birge)
+        formal = float(math.sqrt(birge * known / (min(known, MEMORY_INDEPENDENT) * np.sum(inv_known))))
         return n, max(formal, spread / math.sqrt(k))
+
+
+def _birge(inv_known: np.ndarray, ang: np.ndarray) -> tuple[float, bool]:
+    """How far planes scatter beyond what they state: the chi-square of their angles ``ang`` (rad) about the fused
+    normal under their inverse variances ``inv_known`` (0: none stated) per degree of freedom (2 per plane, less the
+    normal's 2), at least 1 (the standard error is scaled by its root), and whether it lies beyond the
+    :data:`BIRGE_QUANTILE` of its distribution (the weights are then dropped)."""
+    from scipy.stats import chi2
+
+    known = inv_known > 0
+    dof = max(2 * int(known.sum()) - 2, 1)
+    total = float(np.sum(inv_known * ang**2))
+    return max(1.0, total / dof), total > float(chi2.ppf(BIRGE_QUANTILE, dof))
 
 
 def _inverse_variances(var: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:

@@ -189,8 +189,9 @@ FRAME_GAPS = 8
 LATENCY_QUANTILE = 0.8
 #: s over which the largest age the fused plane reached counts as the sensor's latency (see
 #: :meth:`PlacementMachine._latency`): a bus that stalls now and then is as slow as its stalls, since a surprise at
-#: the start of the next one reaches the machine that late.
-LATENCY_MEMORY = 2.0
+#: the start of the next one reaches the machine that late (2 s forgot a stall 2.5 s before the next, and a box was
+#: met at 0.055 m/s; a placement takes 2.5-6 s).
+LATENCY_MEMORY = 5.0
 #: Fraction of ``footprint_margin``: a cup bottom this close sideways to the landing spot lies inside the
 #: footprint the survey certified (its disc reaches ``footprint_margin`` past the cup's rim), so the descent
 #: below ``traverse_clearance`` may go on while the last of the way back is made.

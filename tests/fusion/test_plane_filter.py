@@ -431,3 +431,32 @@ def test_the_fused_plane_lists_each_planes_offset_and_its_std_for_the_stillness_
     assert np.allclose(np.diff(fused.heights), 0.001, atol=1e-9)
     assert math.isnan(fused.height_stds[0])
     assert np.allclose(fused.height_stds[1:], [2e-4, 3e-4, 4e-4, 5e-4])
+
+
+def test_one_overconfident_plane_does_not_draw_the_fused_normal_to_itself():
+    """Six planes of a 5.4 deg table stating 0.5 deg and one reading 3.6 deg that states 0.02 deg: their scatter about
+    the weighted normal is far beyond what they state (chi-square beyond its 99.9 % quantile), so the window is fused
+    without the inverse-variance weights (an adversarial search released a 5.4 deg table read as 3.6)."""
+    filt = PlaneFilter(memory=0)
+    rng = np.random.default_rng(3)
+    t = 0.0
+    for k in range(7):
+        T = looking_down([0.0, 0.0, 0.10 - 0.005 * k])  # anchors by the origin: within the gates
+        std = 0.02 if k == 3 else 0.5
+        n = _tilted(3.6) if k == 3 else _unit_vec(_tilted(5.4) + rng.normal(0.0, math.radians(0.2), 3) * [1, 1, 0])
+        t += 1.0 / 30.0
+        cov = np.diag([math.radians(std) ** 2] * 2 + [1e-8])
+        assert filt.update(PlaneEstimate(sensor_plane(n, -0.05, T), covariance=cov), T, t)
+    f = filt.fused()
+    assert math.degrees(f.tilt_rad) > 5.0
+    honest = PlaneFilter(memory=0)  # the same planes, all stating what they err by: weighted as before
+    t = 0.0
+    for k in range(7):
+        T = looking_down([0.0, 0.0, 0.10 - 0.005 * k])  # anchors by the origin: within the gates
+        n = _unit_vec(_tilted(5.4) + rng.normal(0.0, math.radians(0.2), 3) * [1, 1, 0])
+        t += 1.0 / 30.0
+        honest.update(PlaneEstimate(sensor_plane(n, -0.05, T), covariance=np.diag([math.radians(0.5) ** 2] * 2
+                                                                                   + [1e-8])), T, t)
+    g = honest.fused()
+    assert abs(math.degrees(g.tilt_rad) - 5.4) < 0.3 and g.tilt_std == pytest.approx(math.radians(0.5) / math.sqrt(7),
+                                                                                       rel=0.05)
