@@ -53,14 +53,14 @@ Conventions
   A surface does not change its slope while the window follows it, and the frames from farther up
   measure the slope better than those at a few centimetres (zones farther apart, less pile-up and
   parallax), so once ``memory_frames`` planes are remembered and their inverse-variance weighted
-  normal lies within ``memory_gate`` of the window's own and within :data:`MEMORY_SIGMAS` of their combined
-  standard errors, that normal is the fused one (through the window's anchor: the offset stays local and recent),
-  and ``tilt_std`` is its standard error with the memory counted as at most :data:`MEMORY_INDEPENDENT`
-  independent planes (their errors are correlated). Within the gate but beyond their errors the window's normal
-  is fused, its ``tilt_std`` at least their angle over :data:`MEMORY_SIGMAS`. Either way the fused plane carries the
-  window's own tilt and standard error (``window_tilt_rad``, ``window_tilt_std``): the level rules hold both readings
-  to the bound (a memory that mixes a table's two slopes, or a window whose planes state wide errors, passed the
-  gate and hid the footprint's steeper slope). ``FusedPlane.source`` says which: ``"memory"`` or ``"window"``.
+  normal lies within ``memory_gate`` of the window's own, that normal is the fused one (through the window's anchor:
+  the offset stays local and recent), and ``tilt_std`` is its standard error with the memory counted as at most
+  :data:`MEMORY_INDEPENDENT` independent planes (their errors are correlated). The fused plane carries the window's
+  own tilt and standard error too (``window_tilt_rad``, ``window_tilt_std``): where the window reads the surface
+  steeper, the level rules hold its reading to the bound as well (:func:`place_safe.placement.rules.window_reading`;
+  a table that tilted since the memory began, or a memory mixing a table's two slopes, released the cup on the
+  remembered one: an adversarial search). A gate on their combined standard errors instead (3 of them) refused a
+  3.9 deg checker table whose close planes read 0.5 deg steep (random seed 57, scene 26). ``FusedPlane.source`` says which: ``"memory"`` or ``"window"``.
   Planes that scatter far beyond what they state (:data:`BIRGE_QUANTILE`) are fused without their inverse-variance
   weights, in the window and in the memory, and every standard error is scaled by their scatter. ``std_angle`` is
   always the window's own spread about its own normal (the planarity check), ``std_offset`` the RMS
@@ -91,13 +91,6 @@ MIN_SCALE_M = 1e-5
 _Z = np.array([0.0, 0.0, 1.0])
 #: The memory of the normal counts as at most this many independent planes in its standard error.
 MEMORY_INDEPENDENT = 10
-#: The memory's normal stands in for the window's only while the two agree within this many of their combined
-#: standard errors (besides ``memory_gate``). Beyond them (a table that moved since the memory began, or close planes
-#: biased beyond what they state) which one is right is not known: the fused normal is the window's, its tilt's
-#: standard error at least their angle over this many, so the level rule holds for either. With the gate alone,
-#: planes of a table 1.45 deg steeper than the remembered one, each stated to 0.1 deg, were fused as the remembered
-#: 4.05 deg and released where all seven read 5.5 (an adversarial search through the loop).
-MEMORY_SIGMAS = 3.0
 #: Planes whose angles about their weighted normal have a chi-square beyond this quantile of its distribution
 #: (:func:`_birge`) are fused without their inverse-variance weights (the Huber weights alone): one plane stating 0.04
 #: deg, 2 deg off six others stating 0.5-0.7 deg, drew the weighted normal to itself, and a 5.3 deg table passed as
@@ -378,13 +371,9 @@ class PlaneFilter:
         source = "window"
         window_tilt, window_std = _angle(n, _Z), math.hypot(tilt_std, self.reference_tilt_std)
         remembered = self._remembered()
-        if remembered is not None:
-            apart = _angle(remembered[0], n)
-            if apart <= self.memory_gate and apart <= MEMORY_SIGMAS * math.hypot(tilt_std, remembered[1]):
-                n, tilt_std = remembered
-                source = "memory"
-            elif apart <= self.memory_gate:  # they disagree beyond their errors: which is right is not known, so
-                tilt_std = max(tilt_std, apart / MEMORY_SIGMAS)  # the window's normal, as uncertain as they differ
+        if remembered is not None and _angle(remembered[0], n) <= self.memory_gate:
+            n, tilt_std = remembered
+            source = "memory"
         tilt_std = math.hypot(tilt_std, self.reference_tilt_std)  # shared by every plane: not averaged away
         d = float(n @ anchor)
         res = A @ n - d

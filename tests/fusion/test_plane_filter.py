@@ -231,25 +231,27 @@ def test_memory_keeps_the_slope_seen_from_farther_up():
     assert g.source == "window" and abs(math.degrees(g.tilt_rad) - 4.5) < 0.4
 
 
-def test_a_window_that_disagrees_with_the_memory_beyond_their_errors_is_fused_with_the_disagreement():
+def test_a_window_steeper_than_the_memory_is_held_to_the_level_bound_too():
     """A table 1.45 deg steeper than the remembered one (it moved, or the far views read it otherwise), each plane
-    stated to 0.1 deg: inside memory_gate (1.5 deg), so the memory's 4.05 deg was fused and the level rule released
-    a table all of whose recent planes read 5.5 deg (an adversarial search through the loop). Now the window's normal
-    is fused, its standard error at least the disagreement over MEMORY_SIGMAS; and a window reading flatter than a
-    steeper memory is as uncertain as they differ, so the level bound covers the memory's reading too."""
-    from place_safe.fusion.plane_filter import MEMORY_SIGMAS
+    stated to 0.1 deg: inside memory_gate (1.5 deg), so the memory's 4.05 deg is fused, and the level rule released
+    a table all of whose recent planes read 5.5 deg (an adversarial search through the loop). The fused plane carries
+    the window's own reading, which the level rules hold to the bound: refused. A window flatter than a steeper
+    memory leaves the memory's (steeper) reading to decide."""
+    from place_safe.placement import rules
+    from place_safe.placement.config import PlacementConfig
 
+    cfg = PlacementConfig()
     filt = PlaneFilter()
     t = _feed(filt, _tilted(4.05), np.linspace(0.30, 0.12, 40), std_deg=0.1)
     _feed(filt, _tilted(5.5), [0.08] * 7, t0=t, std_deg=0.1)
     f = filt.fused()
-    assert f.source == "window" and abs(math.degrees(f.tilt_rad) - 5.5) < 0.1
+    assert f.source == "memory" and abs(math.degrees(f.window_tilt_rad) - 5.5) < 0.1
+    assert "in the latest planes" in (rules.level_problem(f, cfg) or "")
     flat = PlaneFilter()
     t = _feed(flat, _tilted(5.5), np.linspace(0.30, 0.12, 40), std_deg=0.1)
     _feed(flat, _tilted(4.2), [0.08] * 7, t0=t, std_deg=0.1)
     g = flat.fused()
-    assert g.source == "window" and abs(math.degrees(g.tilt_rad) - 4.2) < 0.1
-    assert g.tilt_std >= math.radians(1.1) / MEMORY_SIGMAS  # they lie 1.2-1.3 deg apart, with the planes' noise
+    assert g.source == "memory" and math.degrees(g.tilt_rad) > 5.0 and rules.level_problem(g, cfg) is not None
 
 
 def test_a_plane_without_a_covariance_adds_no_confidence():
