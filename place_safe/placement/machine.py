@@ -302,8 +302,9 @@ class PlacementMachine:
         self._last_frame: float | None = None  # arrival time of the newest frame, and the gaps between arrivals
         self._frame_gaps: list[float] = []
         self._frame_ages: list[float] = []  # s, the last FRAME_GAPS frames' ages at arrival (see _latency)
-        self._plane_age = 0.0  # s, the largest age of the fused plane in the last LATENCY_MEMORY s (see _latency)
-        self._plane_ages: deque[tuple[float, float]] = deque()  # (robot time, the fused plane's age then)
+        # (robot time, the fused plane's age then) of the last LATENCY_MEMORY s, ages falling from the front (the
+        # largest first: a later, older reading drops those it outranks), see _latency
+        self._plane_ages: deque[tuple[float, float]] = deque()
         self._budget_share = 0.0
         self._tcp_speed = 0.0
 
@@ -436,7 +437,7 @@ class PlacementMachine:
         the descent stoppable from the first tick the evidence ages, and one that stalls now and then (delivering its
         backlog, whose newest frame is young) as slow as its stalls, where the arrival ages alone followed half a
         second late or not at all (an adversarial search: a box met at 0.055-0.057 m/s)."""
-        latency = max(self.config.sensor_latency, self._plane_age)
+        latency = max(self.config.sensor_latency, self._plane_ages[0][1] if self._plane_ages else 0.0)
         if len(self._frame_ages) >= FRAME_GAPS // 2:
             latency = max(latency, float(np.quantile(self._frame_ages, LATENCY_QUANTILE)))
         return latency
@@ -834,11 +835,13 @@ class PlacementMachine:
             return self._abort(now, bad, faulted=bool(getattr(state, "fault", None)))
         self._account(state, now)
         stamp = number(getattr(plane, "stamp", None)) if plane is not None else None
-        if stamp is not None:  # the fused plane's age this tick, and the largest in the last LATENCY_MEMORY s
-            self._plane_ages.append((now, max(now - stamp, 0.0)))
+        if stamp is not None:  # the fused plane's age this tick (the window's largest stays in front)
+            age = max(now - stamp, 0.0)
+            while self._plane_ages and self._plane_ages[-1][1] <= age:
+                self._plane_ages.pop()
+            self._plane_ages.append((now, age))
         while self._plane_ages and self._plane_ages[0][0] < now - LATENCY_MEMORY:
             self._plane_ages.popleft()
-        self._plane_age = max((a for _, a in self._plane_ages), default=0.0)  # (see _latency)
         self._hint = None
         self._survey_share = 0.0
         self._view_cap = math.inf
