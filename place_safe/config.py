@@ -113,15 +113,26 @@ def describe_validation_error(exc: ValidationError, what: str) -> str:
     if not errors:
         return f"{what}: invalid"
     first = errors[0]
-    loc = ".".join(_printable(str(p)) for p in first.get("loc", ())) or "(top level)"
-    msg = _printable(first.get("msg", "invalid")).removeprefix("Value error, ")
+    loc = ".".join(printable(str(p)) for p in first.get("loc", ())) or "(top level)"
+    msg = printable(first.get("msg", "invalid")).removeprefix("Value error, ")
     more = f" (and {len(errors) - 1} more problem{'s' if len(errors) > 2 else ''})" if len(errors) > 1 else ""
     return f"{what}: {loc}: {msg}{more}"
 
 
-def _printable(text: str) -> str:
-    """``text`` on one line: control characters (newlines in a key, say) shown as escapes."""
-    return text if text.isprintable() else text.encode("unicode_escape").decode("ascii")
+#: Unicode categories of the characters a message shows as escapes and a name may not hold: control and format
+#: characters (escape sequences, newlines, tabs, bidirectional overrides, zero-width characters) and line and paragraph
+#: separators.
+CONTROL_CATEGORIES = ("Cc", "Cf", "Zl", "Zp")
+
+
+def printable(text: str) -> str:
+    """``text`` on one line with its characters of :data:`CONTROL_CATEGORIES` written as Python escapes (``\\n``,
+    ``\\x1b``, ``\\u202e``; the rest as it is): a file name, a key or a value shown in an error line cannot break the
+    line, recolour or rearrange the terminal."""
+    import unicodedata
+
+    return "".join(c.encode("unicode_escape").decode("ascii") if unicodedata.category(c) in CONTROL_CATEGORIES else c
+                   for c in text)
 
 
 def parse_config(cls: type, data: Any, what: str):
@@ -219,7 +230,7 @@ class ParamModel(ConfigModel):
         if not isinstance(d, dict):
             raise cls.error(f"{what} must be a JSON object, got {_json_name(d)}")
         if (odd := next((k for k in d if not isinstance(k, str)), None)) is not None:
-            raise cls.error(f"{what}: {_printable(str(odd))}: unknown key")
+            raise cls.error(f"{what}: {printable(str(odd))}: unknown key")
         try:
             return cls(**d)
         except cls.error as exc:  # the constructor's message, under this file's name
@@ -416,4 +427,4 @@ def _json_name(value: Any) -> str:
 
 __all__ = ["ConfigModel", "ParamModel", "vector", "field_constraints", "field_range", "FieldRange", "field_interval", "field_range_text",
            "range_message", "field_like", "read_json", "write_json", "parse_config", "read_config_file", "load_config",
-           "describe_validation_error"]
+           "describe_validation_error", "printable", "CONTROL_CATEGORIES"]

@@ -178,19 +178,11 @@ def _mujoco_gl_problem(exc: BaseException) -> str | None:
     return f"MUJOCO_GL={value!r} does not work on this machine: {use}" + (f" ({'; '.join(lacking)})" if lacking else "")
 
 
-def printable(text: str) -> str:
-    """``text`` with its control and format characters (an escape sequence, a tab, a bidirectional override: from a
-    file name or a value on the command line) written as Python escapes (``\\x1b``, ``\\u202e``), so an error line
-    shows what was given and cannot recolour or rearrange the terminal."""
-    import unicodedata
-
-    return "".join(c.encode("unicode_escape").decode("ascii") if unicodedata.category(c) in ("Cc", "Cf") else c
-                   for c in text)
-
-
 def _one_line(exc: BaseException) -> str:
     """The first line of an exception's message (its type name when empty), at most 400 characters, its control
-    characters escaped (:func:`printable`)."""
+    characters escaped (:func:`place_safe.config.printable`)."""
+    from place_safe.config import printable
+
     text = str(exc).strip()
     line = printable(text.splitlines()[0] if text else type(exc).__name__)
     return line if len(line) <= 400 else line[:397] + "..."
@@ -249,6 +241,8 @@ def _main(argv: Sequence[str] | None) -> int:
         log(f"{PROG}: interrupted")
         return 130
     except OSError as exc:  # e.g. an output directory that cannot be written
+        from place_safe.config import printable
+
         where = printable(str(exc.filename)) if exc.filename else (_no_room_where(args) if exc.errno in NO_ROOM
                                                                      else "")
         log(f"{PROG}: error: {exc.strerror or _one_line(exc)}: {where}".rstrip(": "))

@@ -28,7 +28,7 @@ from typing import Annotated, Any, Literal
 import numpy as np
 from pydantic import Field, field_validator, model_validator
 
-from place_safe.config import ConfigModel, field_constraints, parse_config, read_config_file
+from place_safe.config import CONTROL_CATEGORIES, ConfigModel, field_constraints, parse_config, read_config_file
 from place_safe.assets import scenarios_dir
 from place_safe.exceptions import ConfigError
 
@@ -50,9 +50,6 @@ TIPPED_TILT = math.radians(10.0)
 ON_TABLE_TOL = 0.005
 #: Calibration names that are not files.
 CALIBRATION_KINDS = ("sim", "oracle", "none")
-#: Unicode categories a scenario name may not contain: control and format characters (escape sequences, newlines,
-#: bidirectional overrides, zero-width characters) and line and paragraph separators.
-CONTROL_CATEGORIES = ("Cc", "Cf", "Zl", "Zp")
 SUFFIXES = (".toml", ".json")
 
 
