@@ -25,6 +25,9 @@ Conventions
   an outlier. ``max_consecutive_rejects`` gate rejections in a row (frames without a plane between
   them do not count, nor break the run: a frame too close to measure says nothing about the surface) mean
   the surface itself changed (or the old window was wrong): the window is cleared and the new plane starts it.
+  Until then the rejected planes are listed in ``FusedPlane.pending`` (base-frame normal and offset), cleared by the
+  next accepted plane: a surface that rose under the cup may be what they show, and the descent brakes for it at
+  once.
 * Too close: while the newest frames are too close to read (no plane, reason
   :data:`~place_safe.recovery.too_close.TOO_CLOSE_REASON`: the return overlaps the internal return) the
   window is not aged (``max_age``): the farther frames' planes, in the base frame, are what there is, and
@@ -64,14 +67,17 @@ Conventions
   Planes that scatter far beyond what they state (:data:`BIRGE_QUANTILE`) are fused without their inverse-variance
   weights, in the window and in the memory, and every standard error is scaled by their scatter. ``std_angle`` is
   always the window's own spread about its own normal (the planarity check), ``std_offset`` the RMS
-  distance of its anchors from the fused plane.
+  distance of its anchors from the fused plane. Each window plane's normal and its direction's standard error
+  (``FusedPlane.normals``, ``normal_stds``) and its anchor's height and offset error (``heights``, ``height_stds``)
+  let the machine test that the surface stays still while the cup stands above it
+  (:func:`place_safe.placement.rules.still_problem`, :func:`~place_safe.placement.rules.slope_still_problem`).
 """
 
 from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -122,6 +128,13 @@ class FusedPlane:
     # the memory's normal is fused, the level rules hold the window's reading to the same bound (rules.level_problem)
     window_tilt_rad: float = math.nan
     window_tilt_std: float = math.nan
+    # each window plane's unit normal (base frame) and its direction's standard error (rad; NaN: none stated), in
+    # stamps' order: whether the surface keeps its slope while the cup stands still (rules.still_problem)
+    normals: tuple[tuple[float, float, float], ...] = ()
+    normal_stds: tuple[float, ...] = ()
+    # gate-rejected planes since the newest accepted one (base frame, (normal, offset) each): a surface closer than
+    # the fused one may be what they show, and the descent brakes for it at once (PlacementMachine._on_descent)
+    pending: tuple[tuple[tuple[float, float, float], float], ...] = ()
 
     def height_at(self, point: Any) -> float:
         """Signed distance (m) of ``point`` (base frame) above the plane (negative: below / behind it)."""
@@ -244,6 +257,8 @@ class PlaneFilter:
         self._items: deque[tuple[float, np.ndarray, np.ndarray, float, float]] = deque(maxlen=self.window)
         self._memory: deque[tuple[float, np.ndarray, float]] = deque(maxlen=max(self.memory, 1))
         self._cache: FusedPlane | None = None
+        # gate-rejected planes (base-frame normal, offset) since the newest accepted one (FusedPlane.pending)
+        self._pending: list[tuple[tuple[float, float, float], float]] = []
         self._dirty = True
         self.count = 0  # accepted since reset
         self.rejected = 0  # rejected since reset
@@ -290,6 +305,7 @@ class PlaneFilter:
                 self._reject(f"outlier: {math.degrees(ang):.2f} deg / {off * 1e3:.1f} mm from the fused plane "
                              f"(gates {math.degrees(self.angle_gate):.1f} deg / {self.offset_gate * 1e3:.1f} mm)")
                 if self.consecutive_rejects < self.max_consecutive_rejects:
+                    self._pending.append(((float(n[0]), float(n[1]), float(n[2])), float(n @ anchor)))
                     return False
                 self._items.clear()  # the surface changed: start again from this plane
                 self._memory.clear()
@@ -298,6 +314,7 @@ class PlaneFilter:
         if self.memory > 0:
             self._memory.append((stamp, n, var))
         self.newest_accepted = stamp
+        self._pending.clear()
         self._dirty = True
         self.count += 1
         self.consecutive_rejects = 0
@@ -328,7 +345,8 @@ class PlaneFilter:
             self._expire(now)
         if len(self._items) < self.min_frames:
             return None
-        return self._fuse()
+        fused = self._fuse()
+        return replace(fused, pending=tuple(self._pending)) if self._pending else fused
 
     def _fuse(self) -> FusedPlane:
         if not self._dirty and self._cache is not None:
@@ -381,7 +399,9 @@ class PlaneFilter:
                                  len(self._items), float(stamps.max()), self.count, anchor,
                                  tuple(float(s) for s in stamps), tilt_std, source, len(self._memory),
                                  tuple(float(h) for h in res), tuple(float(it[4]) for it in self._items),
-                                 self.reference_tilt_std, window_tilt, window_std)
+                                 self.reference_tilt_std, window_tilt, window_std,
+                                 tuple((float(v[0]), float(v[1]), float(v[2])) for v in N),
+                                 tuple(math.sqrt(float(v)) for v in var))
         self._dirty = False
         return self._cache
 

@@ -40,7 +40,8 @@ The release rule (the only path to :attr:`CommandKind.OPEN_GRIPPER`), checked on
   extrapolated from the patch beside the cup the sensor sees at the end;
 * the surface is still (:func:`~place_safe.placement.rules.still_problem`): the planes measured at rest
   (or, too close to read, the newest of the window) agree in offset within what their covariances allow,
-  with ``still_confidence``, and show no trend;
+  with ``still_confidence``, and show no trend; and they agree in normal, with no turn
+  (:func:`~place_safe.placement.rules.slope_still_problem`: a table that tips under the cup);
 * the cup bottom's clearance above the plane lies in ``[floor, release_clearance]``, ``floor`` the noise's
   allowance below zero (:func:`~place_safe.placement.rules.clearance_floor`, at most ``release_clearance``),
   or the cup is in contact (``contact_force``) with a clearance in ``[-max_penetration, contact_clearance]``:
@@ -51,7 +52,10 @@ A contact reported far above the sensed surface during the descent is first a qu
 reading: the arm stops hard (``obstacle_decel``) and it is an obstacle only if the contact lasts
 ``obstacle_confirm`` s with the arm at rest; one that vanishes is noted (:attr:`PlacementMachine.notes`)
 and the descent goes on, at most ``max_unconfirmed`` times. Within ``near_surface_distance`` of the surface
-the approach is no faster than ``near_surface_speed`` (the arm's robot file sets 50 mm/s).
+the approach is no faster than ``near_surface_speed`` (the arm's robot file sets 50 mm/s). A plane the fusion's
+gates rejected as an outlier is no evidence for the fused surface, but one closer to the cup slows the descent at
+once to what it could stop from (``FusedPlane.pending``): a box put under the cup is rejected
+``max_consecutive_rejects`` times before the fused plane follows it.
 
 Every phase has a deadline counted both on the robot clock and in control ticks (``period`` seconds
 each), so a frozen or jumping robot clock still ends the machine. :meth:`PlacementMachine.step` never
@@ -75,7 +79,7 @@ from typing import Any
 import numpy as np
 
 from place_safe.geometry import transform_problem
-from place_safe.fusion.plane_filter import FusedPlane
+from place_safe.fusion.plane_filter import FusedPlane, clearance_along
 from place_safe.placement.config import PlacementConfig
 from place_safe.placement import rules
 from place_safe.placement.rules import number
@@ -302,6 +306,7 @@ class PlacementMachine:
         self._last_frame: float | None = None  # arrival time of the newest frame, and the gaps between arrivals
         self._frame_gaps: list[float] = []
         self._frame_ages: list[float] = []  # s, the last FRAME_GAPS frames' ages at arrival (see _latency)
+        self._pending_c = math.inf  # m, cup clearance to the closest gate-rejected plane pending (_descent_speed)
         # (robot time, the fused plane's age then) of the last LATENCY_MEMORY s, ages falling from the front (the
         # largest first: a later, older reading drops those it outranks), see _latency
         self._plane_ages: deque[tuple[float, float]] = deque()
@@ -372,10 +377,36 @@ class PlacementMachine:
         return Command(CommandKind.SPEED, tw, accel)
 
     def _descent_speed(self, c: float) -> float:
-        """Speed (m/s) down towards the surface at cup clearance ``c`` (:func:`~place_safe.placement.speed.descent_speed`)."""
+        """Speed (m/s) down towards the surface at cup clearance ``c`` (:func:`~place_safe.placement.speed.descent_speed`),
+        and no faster than at the clearance to a closer plane the fusion's gates have rejected since its newest
+        accepted one (:meth:`_pending_clearance`): a surface that rose (a box put under the cup) is rejected as an
+        outlier ``max_consecutive_rejects`` times before the fused plane follows it, and the braking assumed news
+        ``latency`` s late, not that much later (an adversarial search: a box appearing 15-21 mm under the cup was met at
+        0.032-0.037 m/s)."""
         cfg = self.config
-        return descent_speed(c, cfg.slow_clearance, cfg.brake_margin, self._latency(), cfg.accel,
-                             cfg.approach_speed, cfg.descend_speed)
+        v = descent_speed(c, cfg.slow_clearance, cfg.brake_margin, self._latency(), cfg.accel,
+                          cfg.approach_speed, cfg.descend_speed)
+        if self._pending_c < c:
+            v = min(v, descent_speed(self._pending_c, cfg.slow_clearance, cfg.brake_margin, self._latency(), cfg.accel,
+                                     cfg.approach_speed, cfg.descend_speed))
+        return v
+
+    def _pending_clearance(self, plane: FusedPlane, state: RobotState) -> float:
+        """Cup clearance (m) to the closest of the gate-rejected planes pending in ``plane`` (``FusedPlane.pending``:
+        rejected since the newest accepted plane), inf without any (malformed ones are skipped: the fused plane's
+        own checks decide)."""
+        cup = np.asarray(state.base_T_cup, dtype=float)
+        axis = cup[:3, 2]
+        best = math.inf
+        for item in getattr(plane, "pending", ()) or ():
+            try:
+                n, d = item
+                c = clearance_along(n, float(d), cup[:3, 3], -axis, self.config.cup_radius, axis)
+            except (TypeError, ValueError):
+                continue
+            if math.isfinite(c):
+                best = min(best, c)
+        return best
 
     def _motion_bucket(self, v: float) -> str:
         """Budget bucket of a descent commanded at ``v`` m/s: accelerating (the arm is still slower than
@@ -949,6 +980,7 @@ class PlacementMachine:
         if not (travelled <= cfg.max_travel):
             return self._refuse(now, f"no surface reached within {cfg.max_travel:.2f} m of descent")
         c = self.last_clearance = self._clearance(plane, state)
+        self._pending_c = self._pending_clearance(plane, state)
         if not math.isfinite(c):
             return self._refuse(now, "cup clearance above the surface cannot be computed (surface parallel to the "
                                      "tool axis or cup pose invalid)")
@@ -995,7 +1027,8 @@ class PlacementMachine:
                     # keep room to stop above traverse_clearance even learning of it sensor_latency late (or
                     # go no faster than the slow band's speed, at which a touch stays gentle)
                     v = min(v, max(cfg.descend_speed,
-                                   stoppable_speed(c - cfg.traverse_clearance, self._latency(), cfg.accel)))
+                                   stoppable_speed(min(c, self._pending_c) - cfg.traverse_clearance,
+                                                   self._latency(), cfg.accel)))
                 free = v
                 v = min(v, self._view_cap)  # passing the footprint: frames inside the window (_pass_speed)
                 if np.any(side):
@@ -1073,7 +1106,7 @@ class PlacementMachine:
             return self._refuse(now, f"the arm did not stop: the TCP moved {moved * 1e3:.1f} mm after the stop "
                                      f"(> {cfg.rest_tolerance * 1e3:.1f} mm)")
         post = self.post_stop_stamps(plane, now)
-        if (why := rules.still_problem(plane, post, cfg)) is not None:
+        if (why := rules.still_problem(plane, post, cfg) or rules.slope_still_problem(plane, post, cfg)) is not None:
             return self._refuse(now, why)
         force = float(state.contact_force)
         contact = force >= cfg.contact_force

@@ -462,3 +462,26 @@ def test_one_overconfident_plane_does_not_draw_the_fused_normal_to_itself():
     g = honest.fused()
     assert abs(math.degrees(g.tilt_rad) - 5.4) < 0.3 and g.tilt_std == pytest.approx(math.radians(0.5) / math.sqrt(7),
                                                                                        rel=0.05)
+
+
+def test_the_fused_plane_lists_each_planes_normal_and_the_rejected_planes_pending():
+    """normals / normal_stds: each window plane's base-frame normal and its direction's std (the slope stillness
+    test); pending: the planes the gates rejected since the newest accepted one (the descent brakes for them at once,
+    not after max_consecutive_rejects of them), cleared by the next accepted plane."""
+    T = looking_down([0.4, 0.0, 0.5])
+    f = PlaneFilter(window=5, min_frames=3, max_consecutive_rejects=3)
+    for i in range(4):
+        f.update(PlaneEstimate(sensor_plane([0.0, 0.0, 1.0], 0.0, T), covariance=np.diag([1e-6, 4e-6, 1e-8])),
+                 T, 0.05 * i)
+    fused = f.fused()
+    assert len(fused.normals) == len(fused.normal_stds) == len(fused.stamps) == 4 and fused.pending == ()
+    assert np.allclose(fused.normals, [(0.0, 0.0, 1.0)] * 4) and np.allclose(fused.normal_stds, 2e-3)
+    box = PlaneEstimate(sensor_plane([0.0, 0.0, 1.0], 0.02, T), covariance=np.diag([1e-6, 1e-6, 1e-8]))
+    assert not f.update(box, T, 0.2) and not f.update(box, T, 0.25)  # 20 mm up: outliers
+    pending = f.fused().pending
+    assert len(pending) == 2 and all(np.allclose(n, (0, 0, 1)) and d == pytest.approx(0.02) for n, d in pending)
+    assert f.fused().offset_base == pytest.approx(0.0)  # the fused plane has not followed it yet
+    assert f.update(PlaneEstimate(sensor_plane([0.0, 0.0, 1.0], 0.0, T)), T, 0.3)  # the table again
+    assert f.fused().pending == ()
+    assert not f.update(box, T, 0.35) and not f.update(box, T, 0.4) and f.update(box, T, 0.45)  # the window restarts
+    assert f.fused() is None or f.fused().pending == ()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import re
 
@@ -55,8 +56,10 @@ class FakeWorld:
         if not self.stamps or s > self.stamps[-1]:
             self.stamps = (self.stamps + (s,))[-7:]
         # a still surface: every plane's anchor on the fused plane, offsets known to 10 um
+        # ... and of one slope: every plane's normal the fused one, known to 0.1 deg
         return FusedPlane(n, self.bias, math.acos(n[2]), *self.std, 7, s, self.count, stamps=self.stamps,
-                          heights=(0.0,) * len(self.stamps), height_stds=(1e-5,) * len(self.stamps))
+                          heights=(0.0,) * len(self.stamps), height_stds=(1e-5,) * len(self.stamps),
+                          normals=(tuple(n),) * len(self.stamps), normal_stds=(math.radians(0.1),) * len(self.stamps))
 
     def apply(self, cmd):
         self.commands.append(cmd)
@@ -220,8 +223,7 @@ def test_surface_estimate_jumping_above_the_cup_without_contact_is_refused():
     def plane_fn(world, m):
         p = world.plane()
         if world.pos[2] < 0.01:
-            return FusedPlane(p.normal_base, 0.03, p.tilt_rad, p.std_angle, p.std_offset, 7, p.stamp, p.count, stamps=p.stamps,
-                              heights=p.heights, height_stds=p.height_stds)
+            return dataclasses.replace(p, offset_base=0.03)
         return p
 
     w = FakeWorld()
@@ -234,8 +236,7 @@ def test_estimate_too_high_makes_check_descend_again_then_refuses():
     def plane_fn(world, m):
         p = world.plane()
         if m.phase == Phase.CHECK:
-            return FusedPlane(p.normal_base, -0.02, p.tilt_rad, p.std_angle, p.std_offset, 7, p.stamp, p.count, stamps=p.stamps,
-                              heights=p.heights, height_stds=p.height_stds)
+            return dataclasses.replace(p, offset_base=-0.02)
         return p
 
     w = FakeWorld()

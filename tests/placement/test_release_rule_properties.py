@@ -29,7 +29,13 @@ MAX_TICKS = int((CFG.acquire_timeout + CFG.max_checks * (CFG.descent_timeout + C
 EVENTS = ("dup", "old", "future", "nan_tilt", "neg_tilt", "nan_std", "big_std", "tilted", "no_plane", "fault",
           "freeze", "back", "jump", "nan_time", "str_time", "nan_force", "neg_force", "contact", "bad_rot",
           "nan_pose", "bias_up", "bias_down", "bad_normal", "stale", "fp_problem", "fp_unseen", "fp_none",
-          "fp_nan", "moving")
+          "fp_nan", "moving", "tipping", "no_normal_std")
+
+
+def _turned(n: np.ndarray, angle: float) -> np.ndarray:
+    """``n`` turned by ``angle`` rad about the base y axis."""
+    c, s = math.cos(angle), math.sin(angle)
+    return np.array([c * n[0] + s * n[2], n[1], -s * n[0] + c * n[2]])
 
 
 class World:
@@ -109,9 +115,14 @@ def run_with_events(height: float, events: dict[int, tuple[str, int, float]]):
         # each plane's anchor above the fused plane: still (offsets known to 10 um), or rising 3 cm/s
         rate = 0.03 if "moving" in x else 0.0
         heights = tuple(rate * (s - stamp) for s in stamps)
+        # each plane's normal: the fused one, or tipping about the y axis at 2 deg/s; stated to 0.01 deg
+        turn = math.radians(2.0) if "tipping" in x else 0.0
+        unit = n / np.linalg.norm(n) if np.all(np.isfinite(n)) and np.linalg.norm(n) > 0 else np.array([0, 0, 1.0])
+        normals = tuple(tuple(_turned(unit, turn * (s - stamp))) for s in stamps)
+        nstd = math.nan if "no_normal_std" in x else math.radians(0.01)
         plane = None if ("no_plane" in x or not stamps) else FusedPlane(
             n, offset, tilt, std_a, std_o, len(stamps), stamp, w.count, stamps=stamps,
-            heights=heights, height_stds=(1e-5,) * len(stamps))
+            heights=heights, height_stds=(1e-5,) * len(stamps), normals=normals, normal_stds=(nstd,) * len(stamps))
         # --- robot state ----------------------------------------------------------------------------
         t_report: object = w.t
         if "freeze" in x:
@@ -211,6 +222,14 @@ def rule_holds(state: RobotState, plane: FusedPlane | None, prev_time, t_stop: f
     rest = [h for s, h in zip(plane.stamps, plane.heights) if s in fresh]
     if not (len(rest) >= 2 and max(rest) - min(rest) <= 0.5e-3):
         return "released on a surface that moved while the cup stood still (offsets known to 10 um)"
+    turned = [np.asarray(v) for s, v in zip(plane.stamps, plane.normals) if s in fresh]
+    # two normals 0.06 deg apart, each known to 0.01 deg, have a chi-square of 18 about their mean (> 13.8, the
+    # 99.9 % quantile of 2 degrees of freedom): a turn the planes at rest can tell
+    if not (len(turned) >= 2 and all(math.acos(min(1.0, float(a @ b))) <= math.radians(0.06)
+                                     for a in turned for b in turned)):
+        return "released on a surface that tipped while the cup stood still (normals known to 0.01 deg)"
+    if not all(math.isfinite(v) for s, v in zip(plane.stamps, plane.normal_stds) if s in fresh):
+        return "released on planes at rest that stated no error in their normals"
     contact = f >= cfg.contact_force
     # without contact, the noise (offsets known to 10 um, floored at still_offset_floor) allows < 0.5 mm below
     if not ((-min(cfg.release_clearance, 0.5e-3) <= c <= cfg.release_clearance)

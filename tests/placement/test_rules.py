@@ -306,3 +306,61 @@ def test_where_the_memorys_normal_is_fused_the_windows_own_reading_must_pass_the
     # against a remembered 1.01 deg was refused when every window was held to the bound)
     same = replace(p, tilt_rad=math.radians(1.01), window_tilt_rad=math.radians(1.07), window_tilt_std=math.radians(1.89))
     assert rules.level_problem(same, CFG) is None
+
+
+# --- a surface that keeps its slope (rules.slope_still_problem) ----------------------------------------------
+def _turning(tilts_deg, stds_deg, gap, t0=2.0, azimuth=0.4):
+    """A fused plane whose window is the planes measured at rest, ``gap`` s apart, each tilted ``tilts_deg`` towards
+    ``azimuth`` (rad) and stating ``stds_deg`` on its normal; and their stamps (all post-stop)."""
+    stamps = tuple(t0 + gap * i for i in range(len(tilts_deg)))
+    normals = tuple((math.sin(math.radians(a)) * math.cos(azimuth), math.sin(math.radians(a)) * math.sin(azimuth),
+                     math.cos(math.radians(a))) for a in tilts_deg)
+    plane = FusedPlane(np.array(normals[0]), 0.0, math.radians(tilts_deg[0]), 0.001, 0.0005, len(stamps),
+                       stamps[-1], len(stamps), stamps=stamps, heights=(0.0,) * len(stamps),
+                       height_stds=(1e-5,) * len(stamps), normals=normals,
+                       normal_stds=tuple(math.radians(s) for s in stds_deg))
+    return plane, list(stamps)
+
+
+@given(_rest, st.floats(0.0, 4.0))
+def test_a_surface_that_keeps_its_slope_passes_with_the_stated_noise(rest, tilt):
+    """Normals that err by at most one std each (the stds stated, 0.01-1 deg) pass: with k <= 7 planes the
+    chi-square is at most k, below its 99.9 % quantile of 2 (k - 1) degrees of freedom; the turn rate likewise."""
+    stds, errs, gap = rest
+    sd = [0.01 + 1e4 * s for s in stds]  # deg, 0.01-1.01
+    plane, post = _turning([tilt + e * s / math.sqrt(2) for e, s in zip(errs, sd)], sd, gap)
+    assert rules.slope_still_problem(plane, post, CFG) is None
+
+
+def test_a_table_that_tips_while_the_cup_stands_still_is_refused():
+    """An adversarial search: a table tipped from 4.1 to 6.7 deg after the first plane at rest (about the line through
+    the cup and the sensor's anchor, so no offset changed) and the cup was released on the second plane, which the
+    window's Huber weights and the memory's normal both set aside; and one tipping steadily while 5 planes at rest
+    watch it."""
+    plane, post = _turning([4.1, 6.7], [0.1, 0.1], 0.033)
+    why = rules.slope_still_problem(plane, post, CFG)
+    assert why is not None and "not still" in why and "slope" in why and "\n" not in why
+    plane, post = _turning([4.70, 4.72, 4.74, 4.76, 4.78, 4.80, 4.82], [0.025] * 7, 0.01)  # 2 deg/s
+    why = rules.slope_still_problem(plane, post, CFG)
+    assert why is not None and "turn" in why
+
+
+def test_the_slope_stillness_test_fails_closed():
+    plane, post = _turning([1.0, 1.0], [0.1, 0.1], 0.033)
+    assert rules.slope_still_problem(plane, post, CFG) is None
+    for bad in (dict(normals=()), dict(normal_stds=(math.nan, 0.001)), dict(normal_stds=(0.0, 0.001)),
+                dict(normal_stds=(math.inf, 0.001)), dict(normals=((0.0, 0.0, 2.0), (0.0, 0.0, 1.0))),
+                dict(normals=((math.nan, 0.0, 1.0), (0.0, 0.0, 1.0))), dict(normals=(("a", 0, 1), (0, 0, 1)))):
+        why = rules.slope_still_problem(dataclasses.replace(plane, **bad), post, CFG)
+        assert why is not None and "\n" not in why, bad
+
+
+def test_planes_that_state_nothing_of_the_slope_are_left_out_of_the_slope_stillness_test():
+    """A jaw-mounted sensor's last planes, too close to read well, state 370-390 deg on their normals: they tell
+    nothing of whether the slope holds, and the level rule's own standard error decides (the set's jaw_sensor_level
+    was refused as 'no usable error'); beside two informative planes that tip, one such plane changes nothing."""
+    plane, post = _turning([1.0, 1.2], [370.0, 390.0], 0.033)
+    assert rules.slope_still_problem(plane, post, CFG) is None
+    plane, post = _turning([4.1, 6.7, 30.0], [0.1, 0.1, 1e200], 0.033)
+    why = rules.slope_still_problem(plane, post, CFG)
+    assert why is not None and "differ in slope" in why
