@@ -14,6 +14,12 @@ Concept
 
 ``save=PATH`` writes an ``.rrd`` recording (headless machines; open it later with ``rerun PATH``);
 otherwise a viewer is spawned. rerun (the ``[view]`` extra, ``rerun-sdk``) is imported only here.
+
+Saving: rerun's file sink writes into a pipe and a thread of ours copies it to PATH (:class:`_PipedFile`), so a write
+that fails -- a disk that fills mid-stream -- is an OSError we see: :meth:`RerunView.log` then raises
+:class:`RecordingError` (the stream stops; what was written stays in the file, and rerun reads a recording cut short),
+while the thread drains the pipe so that rerun never blocks on it (rerun's own sink logged the failure, kept going,
+and could hang the process when it was disconnected).
 """
 
 from __future__ import annotations
@@ -21,6 +27,8 @@ from __future__ import annotations
 import math
 import os
 import re
+import select
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -45,6 +53,103 @@ def _write_error(exc: RuntimeError, path: str | Path) -> OSError:
     return OSError(None, f"cannot write the rerun recording ({text[0] if text else type(exc).__name__})", str(path))
 
 
+#: s: how long the recording's header may take to come through the pipe before the thread writes it instead
+HEADER_WAIT_S = 2.0
+#: s: how long closing waits for rerun's last bytes to reach the file
+CLOSE_WAIT_S = 10.0
+#: bytes read from the pipe at a time
+CHUNK = 1 << 16
+
+
+class RecordingError(OSError):
+    """Writing a recording failed after it had started (a full disk, a quota): ``errno``, ``strerror`` and
+    ``filename`` as the OSError's; ``written`` bytes are in the file; ``frame`` is the index of the frame being
+    logged when it was noticed (None: at the end)."""
+
+    def __init__(self, error: OSError, path: str, written: int, frame: int | None) -> None:
+        super().__init__(error.errno, error.strerror or str(error), path)
+        self.written, self.frame = written, frame
+
+    def line(self) -> str:
+        """The one line that says what happened, for the command's error message."""
+        at = "at the end" if self.frame is None else f"at frame {self.frame}"
+        return (f"--save {self.filename}: {self.strerror} after {self.written / 1e3:.1f} kB ({at}): stopped; the "
+                f"frames written before stay readable (rerun {self.filename})")
+
+
+def _open_output(path: str | Path):
+    """The recording's file, unbuffered (every write reaches the OS, so a failing one fails here)."""
+    return open(path, "wb", buffering=0)  # noqa: SIM115 - closed by _PipedFile.close
+
+
+def _write_all(out: Any, data: bytes) -> None:
+    """Write all of ``data`` (a raw file may take part of it: a disk filling up takes what fits, then refuses)."""
+    view = memoryview(data)
+    while view:
+        n = out.write(view)
+        view = view[n if n is not None else len(view):]
+
+
+class _PipedFile:
+    """rerun's file sink through a pipe into ``path`` (see the module docstring). ``error``: the first write that
+    failed (an OSError naming ``path``), after which the pipe is still drained and the rest dropped."""
+
+    def __init__(self, rr: Any, path: str | Path) -> None:
+        self.path, self.written, self.error = str(path), 0, None
+        self.out = _open_output(path)
+        r, w = os.pipe()
+        try:
+            rr.save(f"/dev/fd/{w}")  # rerun opens its own descriptor of the pipe's write end
+        except RuntimeError as exc:
+            os.close(r)
+            self.out.close()
+            raise _write_error(exc, path) from None
+        finally:
+            os.close(w)
+        self._r = r
+        if select.select([r], [], [], HEADER_WAIT_S)[0]:  # the header: a file that cannot take it fails at once
+            self._copy(os.read(r, CHUNK))
+            if self.error is not None:
+                rr.disconnect()  # rerun ends its stream into the pipe (room enough) before the pipe closes
+                os.close(r)
+                self.out.close()
+                raise self.error
+        self._thread = threading.Thread(target=self._pump, name="rerun-save", daemon=True)
+        self._thread.start()
+
+    def _copy(self, data: bytes) -> None:
+        if self.error is not None:
+            return
+        try:
+            _write_all(self.out, data)
+            self.written += len(data)
+        except OSError as exc:
+            self.error = OSError(exc.errno, exc.strerror or str(exc), self.path)
+            try:
+                self.written = self.out.tell()  # with the part of ``data`` that fitted
+            except (OSError, ValueError):
+                pass
+
+    def _pump(self) -> None:
+        try:
+            while data := os.read(self._r, CHUNK):
+                self._copy(data)
+        except OSError as exc:  # the pipe itself (not expected)
+            if self.error is None:
+                self.error = OSError(exc.errno, exc.strerror or str(exc), self.path)
+
+    def close(self) -> None:
+        """After rerun let go of the pipe (``disconnect``): wait for its last bytes, close the file."""
+        self._thread.join(CLOSE_WAIT_S)
+        if not self._thread.is_alive():
+            os.close(self._r)
+        try:
+            self.out.close()
+        except OSError as exc:
+            if self.error is None:
+                self.error = OSError(exc.errno, exc.strerror or str(exc), self.path)
+
+
 class RerunView:
     """Log frames and estimates to rerun (see module docstring).
 
@@ -59,12 +164,17 @@ class RerunView:
             raise ConfigError("the live view needs rerun (pip install 'place-safe[view]')") from None
         self.rr = rr
         rr.init(name, spawn=save is None)
+        self._file: _PipedFile | None = None
+        self._reported: RecordingError | None = None
         if save is not None:
             Path(save).parent.mkdir(parents=True, exist_ok=True)
-            try:
-                rr.save(str(save))  # writes the recording's header at once
-            except RuntimeError as exc:
-                raise _write_error(exc, save) from None
+            if os.path.isdir("/dev/fd"):
+                self._file = _PipedFile(rr, save)
+            else:  # no /dev/fd to hand rerun a pipe: its own file sink (a failure mid-stream goes unnoticed)
+                try:
+                    rr.save(str(save))  # writes the recording's header at once
+                except RuntimeError as exc:
+                    raise _write_error(exc, save) from None
         self._model = None
         if params is not None:
             from place_safe.recovery.forward import ForwardModel, ZoneRays  # torch: only for the fit overlay
@@ -73,7 +183,22 @@ class RerunView:
         self._last_t: float | None = None
         rr.log("world/sensor", rr.Points3D([[0.0, 0.0, 0.0]], radii=0.004, labels=["TMF8820"]), static=True)
 
+    @property
+    def failure(self) -> RecordingError | None:
+        """The write of the recording that failed (also the one :meth:`log` raised), or None."""
+        if self._reported is None and self._file is not None and self._file.error is not None:
+            self._reported = RecordingError(self._file.error, self._file.path, self._file.written, None)
+        return self._reported
+
     def log(self, index: int, frame: Frame, estimate: Any, latency: float) -> None:
+        """Log one estimated frame; :class:`RecordingError` once the recording's file refused a write."""
+        if self._file is not None and self._file.error is not None:
+            if self._reported is None:
+                self._reported = RecordingError(self._file.error, self._file.path, self._file.written, index)
+            raise self._reported
+        self._log(index, frame, estimate, latency)
+
+    def _log(self, index: int, frame: Frame, estimate: Any, latency: float) -> None:
         rr = self.rr
         rr.set_time("frame", sequence=int(index))
         if frame.timestamp is not None:
@@ -121,7 +246,10 @@ class RerunView:
             self.rr.log(f"fit/zone_{k + 1}", self.rr.BarChart(fit[k]))
 
     def close(self) -> None:
+        """End the recording (a failed write shows in :attr:`failure`; nothing is raised here)."""
         self.rr.disconnect()
+        if self._file is not None:
+            self._file.close()
 
 
-__all__ = ["RerunView", "PATCH_HALF"]
+__all__ = ["RerunView", "RecordingError", "PATCH_HALF"]

@@ -216,9 +216,19 @@ def _shared() -> dict[str, Option]:
                             help="the table top's known z in the base frame (m)"),
         "bus_hz": opt("--bus-hz", type=float_range(1e4, 3.4e6), metavar="HZ",
                       help="emulated bus clock (10 kHz..3.4 MHz, the I2C range)"),
-        "period_ms": opt("--period-ms", type=int_range(0, 0xFFFF), metavar="MS", help="measurement period (default 33)"),
+        "period_ms": opt("--period-ms", type=int_range(0, 0xFFFF), metavar="MS",
+                         help="shortest measurement period wanted, ms: the sensor measures (one frame) once per "
+                              "period; the driver lengthens it to what the bus can read out (default 33, 0-65535)"),
         "kilo_iterations": opt("--kilo-iterations", type=int_range(1, 0xFFFF), metavar="K",
                                help="laser pulses in thousands (default 4000)"),
+        "patch": opt("--patch", metavar="FILE.hex", help="Intel HEX RAM patch to download (default: ROM application)"),
+        "calibration_dir": opt("--calibration-dir", metavar="DIR",
+                               help="folder of the sensor's factory calibration (tmf8820-<serial>.json, written by "
+                                    "'place-safe sensor info URI --calibration-dir DIR --factory-calibrate'): loaded "
+                                    "at start when this unit's file is there"),
+        "int_line": opt("--int-line", metavar="CHIP:OFFSET",
+                        help="i2c: the INT pin as a GPIO line, e.g. /dev/gpiochip0:17 (needs gpiod: pip install "
+                             "\"place-safe[hw]\"; default: poll INT_STATUS over the bus)"),
         "rays": opt("--rays", field="place_safe.sim.tof:ToFConfig.rays", default=8,
                     what="stratified rays per axis and zone, default 8"),
         "rate_hz": opt("--rate", field="place_safe.sim.tof:ToFConfig.rate_hz", default=30.0,
@@ -230,6 +240,42 @@ def _shared() -> dict[str, Option]:
 
 #: m, a length no UR5-class arm's base frame exceeds (heights and offsets on the command line)
 REACH = 2.0
+
+#: The options of a live TMF8820 (:data:`SHARED` names) and the source schemes that take each: every command that
+#: opens a sensor by URI adds them with :func:`add_sensor_options` and passes :func:`sensor_options` to
+#: :func:`place_safe.sources.open_source`.
+SENSOR_OPTIONS: dict[str, tuple[str, ...]] = {
+    "patch": ("i2c", "emu"), "period_ms": ("i2c", "emu"), "kilo_iterations": ("i2c", "emu"),
+    "calibration_dir": ("i2c", "emu"), "int_line": ("i2c",), "bus_hz": ("emu",)}
+#: The title of their group in a command's ``--help``.
+SENSOR_GROUP = "sensor options (i2c: and emu: sources)"
+
+
+def add_sensor_options(parser: Any, **changes: Mapping[str, Any]) -> Any:
+    """Add :data:`SENSOR_OPTIONS` to ``parser`` in a group of their own (``changes`` as for :func:`add`); returns
+    the group."""
+    group = parser.add_argument_group(SENSOR_GROUP)
+    add(group, *SENSOR_OPTIONS, **{"bus_hz": {"help": "emu: emulated bus clock, Hz (default 400000; 10 kHz..3.4 MHz, "
+                                                     "the I2C range)"}, **changes})
+    return group
+
+
+def sensor_options(args: argparse.Namespace, uri: str, command: str) -> dict[str, Any]:
+    """The :func:`~place_safe.sources.open_source` options of :data:`SENSOR_OPTIONS` given on the command line for
+    the source ``uri``; an option its scheme does not take is a one-line usage error naming ``command``."""
+    from place_safe.exceptions import UsageError
+
+    scheme = uri.split(":", 1)[0] if isinstance(uri, str) else ""
+    opts: dict[str, Any] = {}
+    for name, schemes in SENSOR_OPTIONS.items():
+        value = getattr(args, name, None)
+        if value is None:
+            continue
+        if scheme not in schemes:
+            raise UsageError(f"{command}: --{name.replace('_', '-')} does not apply to {scheme}: sources (only to "
+                             f"{' and '.join(s + ':' for s in schemes)})")
+        opts[name] = value
+    return opts
 
 
 def add(parser: Any, *items: str | Option, **changes: Mapping[str, Any]) -> None:
@@ -258,5 +304,6 @@ def command(sub: Any, name: str, func: Callable[[argparse.Namespace], int], help
     return p
 
 
-__all__ = ["add", "command", "opt", "Option", "SHARED", "REACH", "field_option", "int_range", "float_range",
+__all__ = ["add", "command", "opt", "Option", "SHARED", "REACH", "SENSOR_OPTIONS", "SENSOR_GROUP",
+           "add_sensor_options", "sensor_options", "field_option", "int_range", "float_range",
            "finite_float", "positive_float", "nonnegative_float", "positive_int", "nonnegative_int", "fraction"]

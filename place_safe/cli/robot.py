@@ -22,7 +22,7 @@ from place_safe.cli.common import CALIBRATE_METHODS, PROG, count_note, log, unca
 from place_safe.cli.options import REACH, float_range, int_range
 from place_safe.exceptions import ConfigError, UsageError
 from place_safe.calibration import Calibration, mark
-from place_safe.calibration.capture import MIN_CLEARANCE
+from place_safe.calibration.capture import MIN_CLEARANCE, TOUCH_HEIGHT_STD, touch_plane
 from place_safe.recovery import make_estimator
 from place_safe.config import read_json
 from place_safe.geometry import transform_problem
@@ -49,6 +49,10 @@ def _checked(vals: list[float], text: str, n: int | None, what: str, lo: float, 
         raise argparse.ArgumentTypeError(f"expected {what} from {lo:g} to {hi:g}, got {text[:80]!r}")
     return vals
 
+
+#: The guarded descent of ``capture --touch`` (:func:`~place_safe.calibration.capture.touch_plane`'s defaults: m/s, N,
+#: m), for its help.
+_TOUCH = touch_plane.__kwdefaults__
 
 #: The most values one comma-separated option takes (a sweep grid is their product).
 MAX_LIST = 100
@@ -95,18 +99,24 @@ def _xy_points(text: str) -> list[float]:
     return _floats(text, 2, "x,y metres", -REACH, REACH)
 
 
-def open_sensor(uri: str) -> Any:
+def open_sensor(uri: str, **source_options: Any) -> Any:
     """The frame source a sensor URI names (:func:`place_safe.sources.open_source`: ``i2c:``, ``serial:``,
-    ``file:``, ``emu:``)."""
+    ``file:``, ``emu:``), with the sensor options given (:func:`place_safe.cli.options.sensor_options`)."""
     from place_safe.sources import open_source
 
-    return open_source(uri)
+    return open_source(uri, **source_options)
 
 
 def _robot_config(path: str | None):
-    from place_safe.drivers.ur5 import URConfig, packaged_config
+    from place_safe.drivers.ur5 import URConfig
 
-    return URConfig.load(path if path else packaged_config("sim"))
+    return URConfig.load(path if path else _packaged_path("sim"))
+
+
+def _packaged_path(name: str) -> Path:
+    from place_safe.drivers.ur5 import packaged_config
+
+    return packaged_config(name)
 
 
 #: What the result file's "calibration" says of a run without a calibration file.
@@ -207,6 +217,7 @@ def _place_arm(args: argparse.Namespace, cfg) -> tuple[dict, Any, list[str]]:
 
     if not args.sensor:
         raise UsageError("place: --sensor URI is required with --robot (e.g. --sensor i2c:/dev/i2c-1)")
+    source_options = options.sensor_options(args, args.sensor, "place")
     method = args.method or "diff"
     estimator, cal_note = _estimator(method, args.calibration)
     calibrated = cal_note != BUILT_IN
@@ -219,14 +230,13 @@ def _place_arm(args: argparse.Namespace, cfg) -> tuple[dict, Any, list[str]]:
         print(uncalibrated_note(method, None), flush=True)
     robot = URRobot(robot_cfg, dry_run=args.dry_run)
     cfg = placement_config(robot_cfg, cfg)  # near-surface speed and stop decelerations of the robot file
-    source = open_sensor(args.sensor)
+    source = open_sensor(args.sensor, **source_options)
     where = f"UR5 at {robot_cfg.connection.host}" + (" (dry run)" if args.dry_run else "")
-    with robot:
-        loop = PlacementLoop(robot, source, estimator, tool=robot.tool, config=cfg)
-        try:
-            res = loop.run(timeout=args.timeout)
-        finally:
-            source.close()
+    try:  # the sensor is closed however the robot ends (an arm that does not connect left it measuring)
+        with robot:
+            res = PlacementLoop(robot, source, estimator, tool=robot.tool, config=cfg).run(timeout=args.timeout)
+    finally:
+        source.close()
     out = {"where": where, "method": method, "calibration": cal_note, "calibrated": calibrated,
            "robot_config": args.robot, **res.to_dict()}
     lines = [mark(f"{where}: {res.outcome.upper()} ({res.reason})", calibrated)]
@@ -290,6 +300,7 @@ def cmd_capture(args: argparse.Namespace) -> int:
     else:
         if not args.sensor:
             raise UsageError("capture: --sensor URI is required with --robot")
+        source_options = options.sensor_options(args, args.sensor, "capture")
         if args.table_height is None and not args.touch:
             raise UsageError("capture: give the plane: --table-height Z or --touch X,Y --touch X,Y --touch X,Y")
         if args.dry_run and args.touch:
@@ -297,39 +308,64 @@ def cmd_capture(args: argparse.Namespace) -> int:
         from place_safe.drivers.ur5 import URRobot
 
         robot = URRobot(robot_cfg, dry_run=args.dry_run)
-        source = open_sensor(args.sensor)
+        source = open_sensor(args.sensor, **source_options)
     tool = robot_cfg.tool.frames()
     reference = None  # how far the plane may be off: stated for touches, and for a table height with its tilt std
-    with robot:
-        if args.touch:
-            if len(args.touch) < 3:
-                raise UsageError("capture: --touch needs at least 3 points")
-            z0 = args.touch_height if args.touch_height is not None else robot.tcp_pose()[2, 3]
-            n, d, pts = touch_plane(robot, args.touch, z0, force_threshold=args.touch_force)
-            reference = touched_reference(pts)
-            log(f"touched the plane at {len(pts)} points: normal {n.round(4).tolist()}, offset {d * 1000:.1f} mm, "
-                f"within {math.degrees(reference.tilt_std):.2f} deg / {reference.offset_std * 1000:.2f} mm (1 sigma, "
-                f"{reference.height_std * 1000:.2f} mm per contact)")
-            plane = (n, d)
-        elif args.table_height is not None:
-            plane = level_plane(args.table_height)
-            if args.table_tilt_std is not None:
-                reference = Reference(tilt_std=math.radians(args.table_tilt_std))
+    refusals = _Refusals()
+    try:  # the sensor is closed however the capture ends
+        with robot:
+            if args.touch:
+                if len(args.touch) < 3:
+                    raise UsageError("capture: --touch needs at least 3 points")
+                z0 = args.touch_height if args.touch_height is not None else robot.tcp_pose()[2, 3]
+                n, d, pts = touch_plane(robot, args.touch, z0, force_threshold=args.touch_force)
+                reference = touched_reference(pts)
+                log(f"touched the plane at {len(pts)} points: normal {n.round(4).tolist()}, offset {d * 1000:.1f} "
+                    f"mm, within {math.degrees(reference.tilt_std):.2f} deg / {reference.offset_std * 1000:.2f} mm "
+                    f"(1 sigma, {reference.height_std * 1000:.2f} mm per contact)")
+                plane = (n, d)
+            elif args.table_height is not None:
+                plane = level_plane(args.table_height)
+                if args.table_tilt_std is not None:
+                    reference = Reference(tilt_std=math.radians(args.table_tilt_std))
+                else:
+                    log("note: the table is taken as exactly level in the base frame; --table-tilt-std DEG states how "
+                        "far it may be off (or --touch the table), so that placements count it")
             else:
-                log("note: the table is taken as exactly level in the base frame; --table-tilt-std DEG states how far "
-                    "it may be off (or --touch the table), so that placements count it")
-        else:
-            plane = world.table_plane_base()
-            log(f"table from the scenario: z = {plane[1] * 1000:.1f} mm in the base frame")
-        try:
+                plane = world.table_plane_base()
+                log(f"table from the scenario: z = {plane[1] * 1000:.1f} mm in the base frame")
             res = capture_sweep(robot, source, plan, args.output, plane=plane, tool=tool, progress=not args.quiet,
-                                reference=reference)
-        finally:
-            source.close()
-    print(res.summary())
+                                reference=reference, log=refusals.log)
+    except BaseException:  # no result to list them with (a fault, Ctrl-C): the poses refused so far, on stderr
+        refusals.flush()
+        raise
+    finally:
+        source.close()
+    print(res.summary())  # each refused pose listed once, here with the result (capture_sweep's log held them)
     for r in res.refused:
         print(f"  refused pose {r['pose_index']}: {r['reason']}")
     return 0
+
+
+class _Refusals:
+    """The log of :func:`~place_safe.calibration.capture.capture_sweep` for ``capture``: its lines go to standard
+    error as they come, except the refused poses (``pose N refused: ...``), held back because the result lists them
+    on standard output (each was listed twice); :meth:`flush` writes the held ones to standard error (a capture that
+    ended without a result)."""
+
+    def __init__(self) -> None:
+        self.held: list[str] = []
+
+    def log(self, line: str) -> None:
+        if line.startswith("pose ") and " refused: " in line:
+            self.held.append(line)
+        else:
+            log(line)
+
+    def flush(self) -> None:
+        for line in self.held:
+            log(line)
+        self.held = []
 
 
 # ------------------------------------------------------------------------------------------------
@@ -414,7 +450,8 @@ def cmd_calibrate_mount(args: argparse.Namespace) -> int:
                                     "sigma_xyz_mm": [float(v) * 1000 if v == v else -1.0 for v in fit.sigma_xyz],
                                     "sigma_rot_deg": [math.degrees(v) if v == v else -1.0 for v in fit.sigma_rot],
                                     "unobserved": list(fit.unobserved)}  # sigma -1: held (unobserved)
-        Path(args.write).write_text(robot_cfg.to_toml(), encoding="utf-8")
+        start = args.robot or _packaged_path("sim")  # the file the mount was read from: its comments and layout stay
+        Path(args.write).write_text(robot_cfg.to_toml(like=start), encoding="utf-8")
         log(f"wrote the fitted mount into {args.write}" + ("" if args.robot else
             " (started from the simulated arm's robots/ur5/sim.toml, host 127.0.0.1: for the real arm give --robot "
             "with its robot file)"))
@@ -432,13 +469,15 @@ def _robot_or_sim(sub, name: str, func, help: str, description: str, examples: l
     options.add(p.add_mutually_exclusive_group(required=True),
                 opt("--sim", metavar="SCENARIO", help="run in MuJoCo on a scenario (file or packaged name)"),
                 opt("--robot", metavar="ROBOT.toml", help=robot_help))
-    options.add(p, opt("--sensor", metavar="URI", help="sensor URI on the arm (i2c:/dev/i2c-1, serial:/dev/ttyACM0, "
-                                                     "file:frames.json)"),
+    options.add(p, opt("--sensor", metavar="URI", help="sensor URI on the arm (i2c:/dev/i2c-1@0x41, "
+                                                     "serial:/dev/ttyACM0, file:frames.json, emu:synthetic); the "
+                                                     "sensor options below apply to i2c: and emu:"),
                 opt("--dry-run", action="store_true", help="on the arm: receive-only, print the planned motion, "
                                                          "command nothing"),
                 opt("--sim-mount-error", type=_mount_error, metavar="DX,DY,DZ,RX,RY,RZ",
                     help="simulation: the true sensor mount differs from the robot file's by this (mm and deg)"),
                 "seed", *more, seed={"help": "simulated sensor noise seed"}, **changes)
+    options.add_sensor_options(p)
     return p
 
 
@@ -453,7 +492,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         ["place-safe place --sim place_level --calibration cal.json",
          "place-safe place --sim place_level --robot-file robots/ur5/sim.toml --method peak",
          "place-safe place --robot robots/ur5/real.toml --sensor i2c:/dev/i2c-1 --calibration cal.json --dry-run",
-         "place-safe place --robot robots/ur5/real.toml --sensor i2c:/dev/i2c-1 --calibration cal.json"],
+         "place-safe place --robot robots/ur5/real.toml --sensor i2c:/dev/i2c-1 --calibration cal.json",
+         "place-safe place --robot mine.toml --sensor i2c:/dev/i2c-1@0x41 --calibration-dir sensorcal \\\n"
+         "      --int-line /dev/gpiochip0:17 --calibration cal.json   # factory calibration, the INT line"],
         "robot file of the real UR5 (e.g. robots/ur5/real.toml)",
         "robot_file", "calibration",
         opt("--oracle", action="store_true", help="with --sim, DEBUGGING: give the estimator the simulator's true "
@@ -478,7 +519,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         method={"default": None, "choices": CALIBRATE_METHODS,
                 "help": "plane recovery (default diff; with --sim the scenario's)"})
 
-    _robot_or_sim(
+    capture = _robot_or_sim(
         subparsers, "capture", cmd_capture, "robot-driven sweep of sensor poses above a plane (for calibration)",
         "Drive the arm through distances x incidence x azimuth above a plane and write every frame with its "
         "ground-truth plane, flange pose and joint angles (JSON Lines, the shared frame format). The plane: --touch "
@@ -486,7 +527,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--table-height, or in simulation the scenario's table. Resumable: rerun with the same output to continue. "
         "Poses the robot's limits refuse, and poses that would bring the TCP, the flange or the sensor within "
         "--min-clearance of the plane (checked before moving: the gripper's tips reach past the sensor), are skipped "
-        "and listed.",
+        "and listed once, with the result on standard output (--dry-run lists them without moving the arm).",
         ["place-safe capture --sim level_table --poses 60 -o sim_capture.jsonl",
          "place-safe capture --sim level_table --sim-mount-error 5,0,0,0,2,0 -o perturbed.jsonl",
          "place-safe capture --robot robots/ur5/real.toml --sensor i2c:/dev/i2c-1 \\\n"
@@ -513,7 +554,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
             help="s at rest before frames count (default 0.25, at most 60)"),
         opt("--min-clearance", type=float_range(0.0, 100.0), default=MIN_CLEARANCE * 1000, metavar="MM",
             help="mm the TCP (the gripper's tips), the flange and the sensor must stay above the plane: closer "
-                 f"poses are refused and listed before the arm moves (default {MIN_CLEARANCE * 1000:g}; the near end "
+                 f"poses are refused (never moved to) and listed with the result (default {MIN_CLEARANCE * 1000:g}; the near end "
                  "of a level sweep is set by how far the tips reach past the sensor)"),
         "table_height",
         opt("--table-tilt-std", type=float_range(0.0, 5.0), metavar="DEG",
@@ -522,10 +563,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                  "with the capture into the calibration (its 'reference') and a placement adds it to the fused tilt's "
                  "uncertainty once: no number of frames averages it away. Default: the table is taken as exactly level. "
                  "--touch states its own (0.1 mm per contact)"),
-        opt("--touch", type=_xy_points, action="append", metavar="X,Y", help="touch the plane here (m, base)"),
-        opt("--touch-height", type=float_range(-REACH, REACH), help="z (m) to start each guarded descent from"),
-        opt("--touch-force", type=float_range(0.0, 200.0, lo_open=True), default=12.0,
-            help="contact threshold N (default 12, at most 200)"),
         "quiet",
         output={"required": True, "metavar": None, "help": "capture file (JSON Lines; appended to when resuming)"},
         robot_file={"help": "with --sim: the robot file whose tool frames define the ground truth (default sim.toml)"},
@@ -533,6 +570,24 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                                f"scenario's (within {SIM_TABLE_HEIGHT_TOL * 1000:g} mm), which is "
                                                "the default"},
         quiet={"help": "no progress bar"})
+    options.add(capture.add_argument_group(
+        "the plane by touching it (the touched table as reference; instead of --table-height)"),
+        opt("--touch", type=_xy_points, action="append", metavar="X,Y",
+            help="a point (x,y in m, the robot's base frame) where the TCP touches the table; give it 3 to 20 times, "
+                 f"spread wide. At each point the arm moves to --touch-height, descends at "
+                 f"{_TOUCH['speed'] * 1000:g} mm/s until the contact force exceeds --touch-force (no contact within "
+                 f"{_TOUCH['max_depth'] * 1000:g} mm stops the capture) and retracts {_TOUCH['retract'] * 1000:g} mm. "
+                 "The plane through the contacts is every frame's ground truth; how far it may be off (each contact "
+                 f"{TOUCH_HEIGHT_STD * 1000:g} mm, 1 sigma: three touches 8 cm apart fix its tilt to 0.12 deg, "
+                 "wider apart less) goes with the capture into the calibration's 'reference', which a placement adds "
+                 "once to the fused tilt's uncertainty. Not with --dry-run (it moves the arm)"),
+        opt("--touch-height", type=float_range(-REACH, REACH), metavar="Z",
+            help="m: base-frame z of the TCP where each touch's descent starts, a few cm above the table (default: "
+                 "the TCP's height when the capture starts)"),
+        opt("--touch-force", type=float_range(0.0, 200.0, lo_open=True), default=_TOUCH["force_threshold"],
+            metavar="N", help=f"N: the contact force that ends a touch's descent (default {_TOUCH['force_threshold']:g}, "
+                              "at most 200): well above the controller's force noise at rest (CB3 about 3.6 N per "
+                              "cycle; place-safe bench robot measures it), well below its protective stop"))
 
     options.command(
         subparsers, "calibrate-mount", cmd_calibrate_mount, "fit the sensor mount (flange_T_sensor) from a capture",
@@ -571,11 +626,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def _resolve(args: argparse.Namespace) -> argparse.Namespace:
     """--robot is the arm's file; in simulation --robot-file names the file whose tool frames are used. An option of
-    the arm given with --sim (--sensor, --dry-run) is a usage error: the simulated placement ran and released
-    without a word about it."""
+    the arm given with --sim (--sensor, --dry-run, a sensor option) is a usage error: the simulated placement ran and
+    released without a word about it."""
     if args.sim:
-        for flag, given in (("--sensor", getattr(args, "sensor", None)), ("--dry-run", getattr(args, "dry_run", False))):
-            if given:
+        given_options = [(f"--{name.replace('_', '-')}", getattr(args, name, None)) for name in options.SENSOR_OPTIONS]
+        for flag, given in (("--sensor", getattr(args, "sensor", None)), ("--dry-run", getattr(args, "dry_run", False)),
+                            *given_options):
+            if given is not None and given is not False:
                 raise UsageError(f"{args.command}: {flag} is for the arm (--robot ROBOT.toml), not --sim: the simulation "
                                  "has its own sensor and moves nothing real")
         args.robot = getattr(args, "robot_file", None)

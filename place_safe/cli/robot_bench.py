@@ -56,12 +56,13 @@ def cmd_bench(args: argparse.Namespace) -> int:
     rep = settings_report(settings, sigma, cycles=args.cycles)
     print(format_settings_report(rep))
     if target is not None:
-        base = URConfig.load(path if path is not None else target)  # the robot file given, else the one written to
+        source = path if path is not None else target  # the robot file given, else the one written to
+        base = URConfig.load(source)
         base.contact.noise_std = round(sigma, 2)
         base.contact.measured = {"seconds": float(args.seconds), "offset_n": [round(float(v), 3) for v in offset],
                                  "std_n": [round(float(v), 3) for v in spread], "controller": controller,
                                  "threshold_n": round(rep["threshold"], 2)}
-        target.write_text(base.to_toml(), encoding="utf-8")
+        target.write_text(base.to_toml(like=source), encoding="utf-8")  # its comments and layout kept
         log(f"wrote [contact] noise_std = {sigma:.2f} N to {target}")
     if args.json:
         Path(args.json).write_text(json.dumps({"offset": offset.tolist(), "spread": spread.tolist(), **rep},

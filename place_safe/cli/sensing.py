@@ -84,14 +84,15 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
                         unit_model=args.unit_model or "default", unlabelled=unlabelled)
     out.parent.mkdir(parents=True, exist_ok=True)
     cal.save(out)
-    for name in fitted:
+    for name in fitted if not args.quiet else ():  # -q: the fit reports are in the file (its "reports")
         log(f"fit quality, section '{name}':")
         for line in summarise(cal.reports.get(name, {})):
             log(line)
-    for name in fitted:  # what a report asks the user to act on, where the long listing cannot hide it
+    for name in fitted:  # what a report asks the user to act on, where the long listing cannot hide it (even -q)
         for where, text in report_notes(cal.reports.get(name, {}), name):
             log(f"note ({where}): {text}")
-    log(f"wrote {out} (sections: {', '.join(cal.sections)})")
+    if not args.quiet:
+        log(f"wrote {out} (sections: {', '.join(cal.sections)})")
     return 0
 
 
@@ -114,7 +115,8 @@ def _calibrate_sim(args: argparse.Namespace) -> int:
     frames = SIM_SWEEP_FRAMES if args.frames is None else args.frames
     for sensor in sensors:
         out = calibrate_sim(sensor, args.output, n=frames, seed=args.seed or 0, frames_out=args.save_frames)
-        log(f"wrote {out} ({sensor} simulated sensor, {frames} sweep frames)")
+        if not args.quiet:
+            log(f"wrote {out} ({sensor} simulated sensor, {frames} sweep frames)")
     return 0
 
 
@@ -368,7 +370,9 @@ def register(sub) -> None:
         method={"choices": CALIBRATE_METHODS, "default": None, "help": "method family to fit (required with FILE)"},
         output={"metavar": "CALIB.json", "help": "calibration file to write or update (required with FILE; with "
                                                  "--sim: default the packaged simulated calibration)"},
-        force={"help": "replace an output file that is not a valid calibration"})
+        force={"help": "replace an output file that is not a valid calibration"},
+        quiet={"help": "print only errors and the notes that ask you to act (e.g. for tilted poses): no progress "
+                       "bars, no fit report (it stays in the file's 'reports'), no closing line"})
     options.add(c.add_argument_group("simulation (the [sim] extra)"),
                 opt("--sim", choices=("nominal", "mismatch", "all"),
                     help="instead of FILE: regenerate the simulated user calibration of this simulated sensor the way a "

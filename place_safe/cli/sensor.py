@@ -22,7 +22,7 @@ from place_safe.cli import options
 from place_safe.cli.common import FMT, PROG, log
 from place_safe.cli.options import float_range, fraction, int_range, opt
 from place_safe.drivers.tmf8820 import bench
-from place_safe.exceptions import ConfigError, SensorTimeout, UsageError
+from place_safe.exceptions import ConfigError, SensorTimeout
 from place_safe.sources import open_source
 from place_safe.calibration import mark
 from place_safe.cli.common import estimator_for, load_calibration, uncalibrated_note
@@ -41,39 +41,23 @@ def _paragraphs(*paras: str) -> str:
     return "\n\n".join(textwrap.fill(p, 100) for p in paras)
 
 
-#: The options of every command that opens a source (``sensor info|record|stream``).
+#: The source positional of every command that opens a source (``sensor info|record|stream``).
 _SOURCE = options.opt("uri", metavar="URI", help=_URI_HELP)
-_SOURCE_GROUP = "sensor options (i2c: and emu: sources)"
 
 
 def _sensor_command(sub, name: str, func, help: str, description: str, examples: list[str], *more, **changes):
-    """A ``sensor`` sub-command: the source URI and the source options (a group of their own), then ``more``."""
+    """A ``sensor`` sub-command: the source URI and the sensor options (a group of their own:
+    :func:`~place_safe.cli.options.add_sensor_options`), then ``more``."""
     p = options.command(sub, name, func, help, description, examples, _SOURCE)
-    options.add(p.add_argument_group(_SOURCE_GROUP),
-                options.opt("--patch", metavar="FILE.hex",
-                            help="Intel HEX RAM patch to download (default: ROM application)"),
-                "period_ms", "kilo_iterations",
-                options.opt("--calibration-dir", metavar="DIR", help="factory calibration files (loaded by sensor serial)"),
-                options.opt("--int-line", metavar="CHIP:OFFSET",
-                            help="INT pin as a GPIO line, e.g. /dev/gpiochip0:17 (default: poll INT_STATUS)"),
-                "bus_hz", bus_hz={"help": "emu: emulated bus clock (default 400000; 10 kHz..3.4 MHz, the I2C range)"})
+    options.add_sensor_options(p)
     options.add(p, *more, **changes)
     return p
 
 
 def _open(args: argparse.Namespace, **extra: Any):
-
+    """The source of ``args.uri`` with the sensor options given (one usage line for one its scheme does not take)."""
     scheme = args.uri.split(":", 1)[0]
-    opts: dict[str, Any] = {}
-    names = {"patch": "patch", "period_ms": "period_ms", "kilo_iterations": "kilo_iterations",
-             "calibration_dir": "calibration_dir", "int_line": "int_line", "bus_hz": "bus_hz"}
-    for attr, key in names.items():
-        value = getattr(args, attr, None)
-        if value is None:
-            continue
-        if scheme not in ("i2c", "emu") or (key == "bus_hz" and scheme != "emu") or (key == "int_line" and scheme != "i2c"):
-            raise UsageError(f"sensor: --{attr.replace('_', '-')} does not apply to {scheme}: sources")
-        opts[key] = value
+    opts = options.sensor_options(args, args.uri, "sensor")
     if scheme == "emu":
         opts.setdefault("realtime", True)
     opts.update({k: v for k, v in extra.items() if v is not None and (scheme in ("i2c", "emu") or k != "start")})
@@ -108,9 +92,29 @@ def cmd_info(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(info, indent=1, default=str))
     else:
+        width = max(map(len, info), default=0)
         for k, v in info.items():
-            print(f"{k:>16}: {v}")
+            print(f"{k:>{width}}: {v}{_info_note(k, v, info)}")
     return 0
+
+
+def _info_note(key: str, value: Any, info: dict) -> str:
+    """What a line of ``sensor info`` means, after its value (units; '' for the self-explaining ones)."""
+    if not isinstance(value, (int, float)) or isinstance(value, bool):
+        return ""
+    if key == "period_ms" and value > 0:
+        asked = info.get("requested_period_ms")
+        longer = (f", lengthened from the {asked} ms asked to what the bus can read out"
+                  if isinstance(asked, int) and 0 <= asked < value else "")
+        return (f" ms (measurement period in use: one frame every {value} ms, at most {1000 / value:.1f} "
+                f"frames/s{longer}; guessed from the bus timing until frames flow, then fitted to the read-out)")
+    if key == "requested_period_ms":
+        return " ms (the shortest measurement period asked for: --period-ms)"
+    if key == "kilo_iterations":
+        return " (thousands of laser pulses per measurement: --kilo-iterations)"
+    if key == "bus_hz":
+        return " Hz (the emulated I2C clock: --bus-hz)"
+    return ""
 
 
 def cmd_record(args: argparse.Namespace) -> int:
@@ -165,6 +169,8 @@ def cmd_record(args: argparse.Namespace) -> int:
 
 
 def cmd_stream(args: argparse.Namespace) -> int:
+    from place_safe.cli.live_view import RecordingError
+
     cal = load_calibration(args.calibration)
     est = estimator_for(args.method, cal)
     note = uncalibrated_note(args.method, cal, args.calibration)
@@ -214,9 +220,14 @@ def cmd_stream(args: argparse.Namespace) -> int:
             stats = run_live(src, est, on_estimate, max_frames=args.max_frames, read_timeout=args.timeout,
                              max_timeouts=1)
             source_stats = dict(getattr(src, "stats", {}))
+    except RecordingError:  # the recording's file refused a write (a full disk): reported below, once closed
+        pass
     finally:
         if view is not None:
             view.close()
+    if view is not None and view.failure is not None:  # mid-stream or at the end: one line, exit 1
+        log(f"{PROG}: error: sensor stream: {view.failure.line()}")
+        return 1
     if not stats.received:  # standard output stays empty (the note goes first only once there is output)
         log(f"{PROG}: error: " + _no_frame(args, "timeout" if stats.timeouts else stats.ended_by, stats.elapsed))
         return 1
@@ -277,14 +288,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     _sensor_command(
         sub, "info", cmd_info, "identity, versions, mode and configuration",
         "Bring the sensor up and print its identity (serial number), application version, mode, range and "
-        "configuration without measuring.",
+        "configuration without measuring. period_ms is the measurement period in use, in milliseconds (one frame "
+        "per period): --period-ms (requested_period_ms, default 33) or longer, as the driver lengthens it to what "
+        "the bus can read out (about 100 ms at 400 kHz, 40 ms at 1 MHz); until frames flow it is a guess from the "
+        "bus timing.",
         ["place-safe sensor info i2c:/dev/i2c-1@0x41", "place-safe sensor info emu:synthetic --json",
          "place-safe sensor info i2c:1 --calibration-dir cal --factory-calibrate"],
         opt("--json", action="store_true", help="print JSON"),
         opt("--factory-calibrate", action="store_true",
             help="run the sensor's factory calibration (nothing within 40 cm, dark) and save it in --calibration-dir, "
-               "keyed by serial number; sensor commands given that --calibration-dir load it at start (place and "
-                 "capture open the bare URI, without it)"))
+                 "keyed by serial number; every command given that --calibration-dir (sensor record|stream, place, "
+                 "capture) loads it at start"))
     _sensor_command(
         sub, "record", cmd_record, "record frames to a frame file",
         "Read frames from a source and write them to a frame file (JSON list, or JSON Lines for a .jsonl name), "

@@ -269,7 +269,7 @@ def test_calibrate_writes_and_merges_sections(tmp_path, sweep_path, capsys):
     from place_safe.calibration import Calibration
 
     out = tmp_path / "cal.json"
-    assert main(["calibrate", str(sweep_path), "--method", "peak", "-o", str(out), "-q"]) == 0
+    assert main(["calibrate", str(sweep_path), "--method", "peak", "-o", str(out)]) == 0
     err = capsys.readouterr().err
     assert "fit quality" in err
     # the real sweep is one pass 7.5 mm apart: its near law is measured in wider gaps than a new frame's, and a
@@ -285,6 +285,22 @@ def test_calibrate_writes_and_merges_sections(tmp_path, sweep_path, capsys):
     assert set(cal.sections) == {"peak", "proprietary", "uncertainty"}
     assert json.loads(out.read_text())["peak"] == peak_before  # kept as it was
     assert {"peak", "proprietary"} <= set(cal.reports)
+
+
+def test_calibrate_quiet_prints_only_the_notes_that_ask_for_action(tmp_path, sweep_path, capsys):
+    """calibrate -q printed the whole fit report (433 lines on a diff fit) and a closing line: now nothing but the
+    notes that ask the user to act (and errors); the report is in the file."""
+    from place_safe.calibration import Calibration
+
+    out = tmp_path / "cal.json"
+    assert main(["calibrate", str(sweep_path), "--method", "peak", "-o", str(out), "-q"]) == 0
+    captured = capsys.readouterr()
+    assert captured.out == ""
+    lines = captured.err.splitlines()
+    assert len(lines) == 2 and all(line.startswith("note (uncertainty.peak") for line in lines), lines
+    assert "peak" in Calibration.load(out).reports
+    assert main(["calibrate", str(sweep_path), "--method", "proprietary", "-o", str(out), "-q"]) == 0
+    assert capsys.readouterr().err == ""  # no note for proprietary: silent
 
 
 def test_report_notes_are_found_at_any_depth_with_their_place():
@@ -464,7 +480,7 @@ def test_calibrate_diff_adds_forward_and_the_missing_peak_section(tmp_path, caps
     assert main(["calibrate", str(data), "--method", "proprietary", "-o", str(out), "-q"]) == 0
     proprietary = json.loads(out.read_text())["proprietary"]
     capsys.readouterr()
-    assert main(["calibrate", str(data), "--method", "diff", "-o", str(out), "-q"]) == 0
+    assert main(["calibrate", str(data), "--method", "diff", "-o", str(out)]) == 0
     err = capsys.readouterr().err
     assert "section 'peak'" in err and "section 'forward'" in err
     assert {"peak", "proprietary", "forward"} <= set(Calibration.load(out).sections)

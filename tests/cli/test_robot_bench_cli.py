@@ -18,6 +18,18 @@ def test_bench_on_the_fake_measures_cb3_noise_and_writes_the_setting(tmp_path, c
     assert cfg.connection.host == URConfig.load(packaged_config("real")).connection.host  # the rest is kept
 
 
+def test_bench_write_keeps_the_robot_files_comments_and_changes_only_the_contact_section(tmp_path, capsys):
+    """The robot file was rewritten from the model: the user's comments were lost."""
+    mine = tmp_path / "mine.toml"
+    mine.write_text(packaged_config("real").read_text())
+    before = mine.read_text().splitlines()
+    assert main(["bench", "robot", "--fake", "--robot", str(mine), "--seconds", "1", "--cycles", "2000",
+                 "--write", str(mine)]) == 0
+    after = mine.read_text().splitlines()
+    assert after[:len(before)] == before  # every line kept, the [contact] section last
+    assert after[len(before)].startswith("noise_std = ") and "[contact.measured]" in after
+
+
 def test_bench_needs_a_robot_file(capsys):
     assert main(["bench", "robot"]) == 2
     err = capsys.readouterr().err.strip().splitlines()

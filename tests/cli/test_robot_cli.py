@@ -132,6 +132,8 @@ def test_calibrate_mount_does_not_write_a_poor_fit(sweep_path, tmp_path, capsys)
     assert robot.read_text() == before
     assert main([*argv, "--force"]) == 0
     assert robot.read_text() != before and "(--force)" in capsys.readouterr().err
+    commented = [line for line in before.splitlines() if "#" in line]
+    assert commented and all(line in robot.read_text().splitlines() for line in commented)  # the file's comments stay
 
 
 def test_calibrate_mount_force_goes_with_write(sweep_path, capsys):
@@ -225,3 +227,102 @@ def test_options_of_the_arm_are_refused_with_sim(capsys):
         assert main(argv) == 2
         err = capsys.readouterr().err.strip()
         assert "is for the arm (--robot ROBOT.toml), not --sim" in err and "\n" not in err
+
+
+class _Source:
+    """A stand-in for the sensor: it records how it was opened and that it was closed."""
+
+    opened: list = []
+
+    def __init__(self, uri: str, options: dict) -> None:
+        self.uri, self.options, self.closed = uri, options, False
+        _Source.opened.append(self)
+
+    def close(self) -> None:
+        self.closed = True
+
+
+@pytest.mark.parametrize("command", ["place", "capture"])
+def test_place_and_capture_take_the_sensor_options_of_sensor(command, capsys, monkeypatch, tmp_path):
+    """The factory calibration (--calibration-dir) and the INT line (--int-line) could reach only `sensor`: place and
+    capture opened the bare URI. Now they take the same sensor options and pass them to open_source (the arm, which
+    does not answer here, comes after: exit 2 with its one line), and the sensor is closed when the arm fails."""
+    import place_safe.sources
+
+    _Source.opened = []
+    monkeypatch.setattr(place_safe.sources, "open_source", lambda uri, **options: _Source(uri, options))
+    cfg = URConfig.load(packaged_config("sim"))
+    cfg.connection.connect_timeout_s = 1.0
+    robot = tmp_path / "r.toml"
+    robot.write_text(cfg.to_toml())
+    extra = (["--json", str(tmp_path / "r.json"), "--log", str(tmp_path / "t.jsonl")] if command == "place" else
+             ["--table-height", "0", "-o", str(tmp_path / "c.jsonl")])
+    assert main([command, "--robot", str(robot), "--sensor", "i2c:/dev/i2c-1@0x41", "--dry-run",
+                 "--calibration-dir", str(tmp_path / "cal"), "--int-line", "/dev/gpiochip0:17", "--period-ms", "100",
+                 *extra]) == 2
+    assert "RTDE receive at 127.0.0.1" in capsys.readouterr().err
+    [src] = _Source.opened
+    assert src.uri == "i2c:/dev/i2c-1@0x41" and src.closed
+    assert src.options == {"calibration_dir": str(tmp_path / "cal"), "int_line": "/dev/gpiochip0:17",
+                           "period_ms": 100}
+
+
+@pytest.mark.parametrize("argv, line", [
+    (["place", "--robot", "robots/ur5/real.toml", "--sensor", "file:x.json", "--int-line", "/dev/gpiochip0:17"],
+     "place: --int-line does not apply to file: sources (only to i2c:)"),
+    (["capture", "--robot", "robots/ur5/real.toml", "--sensor", "serial:/dev/ttyACM0", "--table-height", "0",
+      "-o", "x.jsonl", "--calibration-dir", "cal"],
+     "capture: --calibration-dir does not apply to serial: sources (only to i2c: and emu:)"),
+    (["sensor", "info", "emu:synthetic:1", "--int-line", "/dev/gpiochip0:17"],
+     "sensor: --int-line does not apply to emu: sources (only to i2c:)"),
+    (["place", "--sim", "place_level", "--calibration-dir", "cal"],
+     "place: --calibration-dir is for the arm (--robot ROBOT.toml), not --sim"),
+])
+def test_a_sensor_option_the_source_does_not_take_is_the_same_one_line_error_everywhere(argv, line, capsys,
+                                                                                         monkeypatch, tmp_path):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "robots" / "ur5").mkdir(parents=True)
+    (tmp_path / "robots" / "ur5" / "real.toml").write_text(packaged_config("real").read_text())
+    assert main(argv) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and err[0].startswith(f"place-safe: error: {line}"), err
+
+
+def test_capture_lists_each_refused_pose_once(tmp_path, capsys):
+    """Poses the gripper's tips cannot reach were listed on standard error as the sweep met them and again with the
+    result on standard output; now once, with the result."""
+    out = tmp_path / "cap.jsonl"
+    assert main(["capture", "--sim", "level_table", "--table-height", "-0.05", "--incidences", "0", "--azimuths", "0",
+                 "--distances", "10,20,100", "--settle", "0.01", "-q", "-o", str(out)]) == 0
+    captured = capsys.readouterr()
+    both = captured.out + captured.err
+    assert both.count("refused pose 0:") == 1 and both.count("refused pose 1:") == 1 and "pose 2" not in both
+    assert "pose 0 refused" not in captured.err and "2 refused" in captured.out
+
+
+def test_a_capture_that_ends_early_still_lists_the_poses_it_refused(capsys):
+    """Without a result (a fault, Ctrl-C) the refused poses held back from standard error are written there."""
+    from place_safe.cli.robot import _Refusals
+
+    r = _Refusals()
+    r.log("pose 3 refused: too close")
+    r.log("capture: 10/20 poses, ETA 4 s")
+    assert capsys.readouterr().err == "capture: 10/20 poses, ETA 4 s\n"
+    r.flush()
+    assert capsys.readouterr().err == "pose 3 refused: too close\n"
+
+
+def test_capture_help_documents_the_touched_reference_with_units(capsys):
+    """--touch, --touch-height and --touch-force: what a touch does (speeds, depth, retract), the reference it
+    gives the calibration, and each value's unit."""
+    from place_safe.calibration.capture import TOUCH_HEIGHT_STD, touch_plane
+
+    with pytest.raises(SystemExit):
+        main(["capture", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "the plane by touching it (the touched table as reference" in text
+    d = touch_plane.__kwdefaults__
+    assert f"descends at {d['speed'] * 1000:g} mm/s" in text and f"within {d['max_depth'] * 1000:g} mm" in text
+    assert f"retracts {d['retract'] * 1000:g} mm" in text and f"each contact {TOUCH_HEIGHT_STD * 1000:g} mm" in text
+    assert "'reference'" in text and "--touch-height Z m: base-frame z" in text
+    assert f"--touch-force N N: the contact force that ends a touch's descent (default {d['force_threshold']:g}" in text

@@ -128,3 +128,83 @@ def test_bad_usage_is_one_line_exit_2(argv, match, capsys):
     assert main(argv) == 2
     err = capsys.readouterr().err.strip()
     assert match in err and len(err.splitlines()) == 1
+
+
+def test_info_says_what_the_period_is_and_its_unit(capsys):
+    """``period_ms: 117`` beside ``requested_period_ms: 33`` said neither what the period is nor why it differs."""
+    assert main(["sensor", "info", "emu:synthetic:1"]) == 0
+    lines = {line.split(":", 1)[0].strip(): line for line in capsys.readouterr().out.splitlines()}
+    period = lines["period_ms"]
+    assert "ms (measurement period in use: one frame every" in period and "frames/s" in period
+    assert "lengthened from the 33 ms asked to what the bus can read out" in period
+    assert "(the shortest measurement period asked for: --period-ms)" in lines["requested_period_ms"]
+    with pytest.raises(SystemExit):
+        main(["sensor", "info", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "period_ms is the measurement period in use, in milliseconds" in text
+    assert "--period-ms MS shortest measurement period wanted, ms" in text
+
+
+def test_an_int_line_without_gpiod_names_the_extra_to_install(capsys, monkeypatch):
+    """--int-line needs gpiod, which the [hw] extra did not install; a missing one is one line naming the extra."""
+    import sys
+    import tomllib
+    from pathlib import Path
+
+    monkeypatch.setitem(sys.modules, "gpiod", None)  # not installed
+    assert main(["sensor", "info", "i2c:1", "--int-line", "/dev/gpiochip0:17"]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and "needs the gpiod package" in err[0] and err[0].endswith('pip install "place-safe[hw]"')
+    project = tomllib.loads((Path(__file__).parents[2] / "pyproject.toml").read_text())["project"]
+    assert any(r.split(";")[0].strip().startswith("gpiod>=2") for r in project["optional-dependencies"]["hw"])
+
+
+class _FillsUp:
+    """A recording file on a disk with ``room`` bytes left: a write takes what fits, then fails with ENOSPC."""
+
+    def __init__(self, path, room: int) -> None:
+        self.fh, self.room = open(path, "wb", buffering=0), room
+
+    def write(self, data) -> int:
+        import errno
+        import os
+
+        if self.room <= 0:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        n = self.fh.write(bytes(data[:self.room]))
+        self.room -= n
+        return n
+
+    def tell(self) -> int:
+        return self.fh.tell()
+
+    def close(self) -> None:
+        self.fh.close()
+
+
+def test_a_disk_that_fills_mid_stream_stops_it_with_one_line_and_keeps_the_recording(tmp_path, capsys, monkeypatch,
+                                                                                     sweep_path):
+    """--save on a disk that filled up mid-stream: rerun logged its own errors, the stream went on and said "wrote
+    run.rrd", exit 0 (and disconnecting could hang). Now one line naming the file, exit 1, no traceback; the bytes
+    written before stay a readable recording."""
+    import shutil
+    import subprocess
+
+    import place_safe.cli.live_view as live_view
+
+    room = 40_000  # the header and a few frames
+    monkeypatch.setattr(live_view, "_open_output", lambda path: _FillsUp(path, room))
+    rrd = tmp_path / "run.rrd"
+    assert main(["sensor", "stream", f"file:{sweep_path}", "--max-frames", "30", "--save", str(rrd)]) == 1
+    captured = capsys.readouterr()
+    err = captured.err.splitlines()
+    assert len(err) == 1, err
+    assert err[0].startswith(f"place-safe: error: sensor stream: --save {rrd}: No space left on device after "
+                             f"{room / 1e3:.1f} kB (at ")
+    assert err[0].endswith(f"stopped; the frames written before stay readable (rerun {rrd})")
+    assert rrd.stat().st_size == room and "tilt" in captured.out
+    rerun = shutil.which("rerun")
+    if rerun is not None:  # rerun's own reader takes the recording cut short (the footer could not be written)
+        done = subprocess.run([rerun, "rrd", "verify", "--check-footers", "false", str(rrd)], capture_output=True,
+                              text=True, timeout=120)
+        assert done.returncode == 0 and "verified without error" in done.stdout + done.stderr

@@ -139,7 +139,8 @@ class GpiodIntLine:
             import gpiod
             from gpiod.line import Bias, Edge
         except ImportError:
-            raise ConfigError("the interrupt line needs the 'gpiod' package (libgpiod v2 bindings)") from None
+            raise ConfigError(f"the INT line {chip}:{offset} needs the gpiod package, version 2 (libgpiod v2 "
+                              "bindings), which is not installed: pip install \"place-safe[hw]\"") from None
         self._gpiod = gpiod
         self.offset = offset
         try:

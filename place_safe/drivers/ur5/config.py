@@ -22,7 +22,7 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import AfterValidator, Field, model_validator
 
-from place_safe.config import ConfigModel, field_like, load_config
+from place_safe.config import ConfigModel, field_like, load_config, parse_config
 from place_safe.placement.config import PlacementConfig
 from place_safe.robot.contact_detector import DetectorSettings
 from place_safe.robot.description import ur5_dir
@@ -200,9 +200,20 @@ class URConfig(ConfigModel):
         """Read and validate a robot TOML/JSON file; one-line ConfigError otherwise."""
         return load_config(cls, path, "robot config")
 
-    def to_toml(self) -> str:
-        """The configuration as TOML text (for writing back a fitted mount)."""
-        return _toml(self.model_dump(mode="json", exclude_none=True))
+    def to_toml(self, like: str | Path | None = None) -> str:
+        """The configuration as TOML text (for writing back a fitted mount or a measured noise).
+
+        ``like``: the robot file this configuration was read from (or a copy of it). Its text is kept -- comments,
+        order, spacing, quoting -- and only the values that differ from what it says are changed, added or removed
+        (:func:`update_toml`). Without it, or when it is not TOML, every field is written in the model's order."""
+        data = self.model_dump(mode="json", exclude_none=True)
+        if like is not None and Path(like).suffix.lower() == ".toml":
+            base = URConfig.load(like)
+            text = update_toml(Path(like).read_text(encoding="utf-8"), base.model_dump(mode="json", exclude_none=True),
+                               data)
+            if text is not None and parse_config(URConfig, _tomllib().loads(text), f"robot config {like}") == self:
+                return text
+        return _toml(data)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -309,6 +320,58 @@ def _toml(d: dict, prefix: str = "") -> str:
     return "\n".join(lines).strip("\n") + "\n" if not prefix else "\n".join(lines)
 
 
-__all__ = ["check_host", "URConfig", "MotionConfig", "ContactConfig", "placement_config", "ConnectionConfig",
+_MISSING = object()
+
+
+def _tomllib():
+    """The standard TOML reader (``tomli`` on Python 3.10)."""
+    try:
+        import tomllib
+    except ModuleNotFoundError:  # Python 3.10
+        import tomli as tomllib  # type: ignore[no-redef]
+    return tomllib
+
+
+def update_toml(text: str, before: dict, after: dict) -> str | None:
+    """``text``, a TOML file whose values (with defaults for what it leaves out) are ``before``, changed to say
+    ``after``: only the keys whose values differ are set, added (in the table they belong to, made where the file
+    has none) or removed, so the file's comments, order and layout stay (tomlkit). None when tomlkit is not installed
+    or did not do it faithfully (the result is read back and compared with the same change made to the file's
+    data); the caller then writes the whole table (:func:`_toml`)."""
+    tomllib = _tomllib()
+    try:
+        import tomlkit
+
+        expected = tomllib.loads(text)
+        _update(expected, before, after, None)
+        doc = tomlkit.parse(text)
+        _update(doc, before, after, tomlkit)
+        out = tomlkit.dumps(doc)
+        return out if tomllib.loads(out) == expected else None
+    except Exception:  # noqa: BLE001 - tomlkit missing or tripped on the file: the plain writer is always right
+        return None
+
+
+def _update(table, before: dict, after: dict, tomlkit) -> None:
+    """Change ``table`` (a tomlkit container, or a plain dict when ``tomlkit`` is None) where ``after`` differs from
+    ``before``, recursing into sub-tables; a sub-table the file does not have is made, with what differs only."""
+    for key, new in after.items():
+        old = before.get(key, _MISSING)
+        if old == new:
+            continue
+        if isinstance(new, dict) and (isinstance(old, dict) or old is _MISSING):
+            made = key not in table
+            if made:
+                table[key] = {} if tomlkit is None else tomlkit.table()
+            _update(table[key], old if isinstance(old, dict) else {}, new, tomlkit)
+            if made and tomlkit is not None:
+                table[key].add(tomlkit.nl())  # a blank line before the next table
+        else:
+            table[key] = new
+    for key in [k for k in before if k not in after and k in table]:
+        del table[key]
+
+
+__all__ = ["check_host", "update_toml", "URConfig", "MotionConfig", "ContactConfig", "placement_config", "ConnectionConfig",
            "LimitsConfig", "ToolConfig", "FrameConfig", "DigitalGripperConfig", "RobotiqGripperConfig",
            "NoGripperConfig", "CONTROLLER_HZ", "packaged_config"]
