@@ -24,6 +24,9 @@ from place_safe.calibration import REQUIRED_SECTIONS, Calibration, uncalibrated_
 
 PROG = "place-safe"
 CALIBRATE_METHODS = ("diff", "peak", "proprietary")
+#: What --robot says of a robot file (URConfig's module docstring has the whole list).
+ROBOT_FILE_HELP = ("start from a copy of robots/ur5/real.toml: its [connection], [limits], [gripper] and [tool] "
+                   "values are required (one missing is an error naming it); [motion] and [contact] may be left out")
 
 
 class Parser(argparse.ArgumentParser):

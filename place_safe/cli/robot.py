@@ -18,7 +18,7 @@ from typing import Any
 
 from place_safe.cli import options
 from place_safe.cli.options import opt
-from place_safe.cli.common import CALIBRATE_METHODS, PROG, count_note, log, uncalibrated_note
+from place_safe.cli.common import CALIBRATE_METHODS, PROG, ROBOT_FILE_HELP, count_note, log, uncalibrated_note
 from place_safe.cli.options import REACH, float_range, int_range
 from place_safe.exceptions import ConfigError, UsageError
 from place_safe.calibration import Calibration, mark
@@ -495,7 +495,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
          "place-safe place --robot robots/ur5/real.toml --sensor i2c:/dev/i2c-1 --calibration cal.json",
          "place-safe place --robot mine.toml --sensor i2c:/dev/i2c-1@0x41 --calibration-dir sensorcal \\\n"
          "      --int-line /dev/gpiochip0:17 --calibration cal.json   # factory calibration, the INT line"],
-        "robot file of the real UR5 (e.g. robots/ur5/real.toml)",
+        f"robot file of the real UR5: {ROBOT_FILE_HELP}",
         "robot_file", "calibration",
         opt("--oracle", action="store_true", help="with --sim, DEBUGGING: give the estimator the simulator's true "
                                                 "parameters (named ORACLE in the result)"),
@@ -535,7 +535,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
          "place-safe capture --robot robots/ur5/real.toml --sensor i2c:/dev/i2c-1 --table-height 0.02 \\\n"
          "      --table-tilt-std 0.1 --incidences 0 --azimuths 0 --distances 10:90:2,100:400:10 \\\n"
          "      -o level_sweep.jsonl   # for calibrate: the table levelled to about 0.1 deg"],
-        "robot file of the real UR5",
+        f"robot file of the real UR5: {ROBOT_FILE_HELP}",
         "output", "robot_file",
         opt("--distances", type=_distances, default=[80, 120, 170, 220, 270],
             help="sensor-to-plane distances in mm, numbers or START:STOP:STEP ranges (default 80,120,170,220,270; "
@@ -598,7 +598,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         ["place-safe calibrate-mount sim_capture.jsonl --robot robots/ur5/sim.toml --write robot_fitted.toml",
          "place-safe calibrate-mount tests/data/tmf8820_ur5_sweep.json --method peak --calibration cal.json --level"],
         opt("capture", help="capture or sweep file (frames with joint_angles or pose)"),
-        opt("--robot", metavar="ROBOT.toml", help="robot file with the starting mount (default sim.toml)"),
+        opt("--robot", metavar="ROBOT.toml", help="robot file with the starting mount (default sim.toml); "
+                                                 f"{ROBOT_FILE_HELP}"),
         "method", "calibration",
         opt("--poses", choices=("joints", "recorded"), default="joints",
             help="flange poses from forward kinematics of the joint angles (default) or the recorded pose"),

@@ -18,7 +18,7 @@ import argparse
 import json
 from pathlib import Path
 
-from place_safe.cli.common import log
+from place_safe.cli.common import ROBOT_FILE_HELP, log
 from place_safe.cli import options
 from place_safe.cli.options import nonnegative_int, opt, positive_float
 from place_safe.exceptions import UsageError
@@ -116,7 +116,7 @@ def add_robot_benches(sub: argparse._SubParsersAction) -> None:
         ["place-safe bench robot --robot robots/ur5/real.toml",
          "place-safe bench robot --robot robots/ur5/real.toml --write my_ur5.toml",
          "place-safe bench robot --fake                # the fake ur_rtde CB3 stand-in"],
-        opt("--robot", metavar="ROBOT.toml", help="robot file of the arm"),
+        opt("--robot", metavar="ROBOT.toml", help=f"robot file of the arm: {ROBOT_FILE_HELP}"),
         opt("--fake", action="store_true", help="measure the fake ur_rtde controller instead of an arm"),
         "controller", "seconds", "cycles",
         opt("--write", metavar="ROBOT.toml", help="write the robot file with the measured noise here"),

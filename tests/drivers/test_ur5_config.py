@@ -92,3 +92,129 @@ def test_an_update_of_ordinary_keys_is_made_in_place():
     text = update_toml("# top\n" + _toml(before).replace("a = 1", "a = 1  # one"), before, after)
     assert text is not None and "# top" in text and "a = 1  # one" in text
     assert tomllib.loads(text) == after
+
+
+# ------------------------------------------------------------------------------------------------
+# an incomplete robot file (adversarial finding 5): nothing the arm's safety rests on is taken from a default
+# ------------------------------------------------------------------------------------------------
+import pytest  # noqa: E402
+
+from place_safe.exceptions import ConfigError  # noqa: E402
+
+
+def _real() -> dict:
+    return tomllib.loads(packaged_config("real").read_text())
+
+
+def _without(data: dict, path: str) -> dict:
+    *tables, key = path.split(".")
+    t = data
+    for name in tables:
+        t = t[name]
+    del t[key]
+    return data
+
+
+@pytest.mark.parametrize("path, named", [
+    ("tool.sensor", "[tool.sensor]"), ("tool.sensor.rpy", "tool.sensor.rpy"), ("tool.sensor.xyz", "tool.sensor.xyz"),
+    ("tool.payload_kg", "tool.payload_kg"), ("tool.payload_cog", "tool.payload_cog"),
+    ("tool.tcp", "[tool.tcp]"), ("tool.cup.xyz", "tool.cup.xyz"),
+    ("tool", "[tool], [tool.tcp], [tool.sensor], [tool.cup]"),
+    ("gripper", "[gripper]"), ("gripper.kind", "gripper.kind"), ("gripper.output", "gripper.output"),
+    ("gripper.open_level", "gripper.open_level"), ("gripper.tool_output", "gripper.tool_output"),
+    ("limits", "[limits]"), ("limits.max_linear_speed", "limits.max_linear_speed"),
+    ("limits.workspace_min", "limits.workspace_min"), ("limits.min_descent_z", "limits.min_descent_z"),
+    ("limits.max_contact_force", "limits.max_contact_force"), ("limits.surface_keepout", "limits.surface_keepout"),
+    ("connection.controller", "connection.controller"), ("connection", "[connection]"),
+])
+def test_a_robot_file_without_a_table_or_key_the_arm_needs_is_one_line_naming_it(tmp_path, path, named):
+    """A file missing [tool], [tool.sensor], the payload, ... was read with the built-in mount, payload and limits
+    in their place: every plane put at a wrong tilt and height, a wrong payload sent to the controller. Now it is
+    refused with one line naming the file and everything missing."""
+    p = tmp_path / "mine.toml"
+    p.write_text(_toml(_without(_real(), path)))
+    with pytest.raises(ConfigError) as exc:
+        URConfig.load(p)
+    msg = str(exc.value)
+    assert "\n" not in msg and str(p) in msg and f"missing {named} (" in msg, msg
+
+
+def test_a_robot_file_cut_short_is_refused_naming_what_it_lacks(tmp_path, capsys):
+    """real.toml cut in half (inside [limits]) read as a whole file with the default gripper, payload, tool frames
+    and motion; on the command line it got as far as connecting to the arm. Now: exit 2, one line."""
+    from place_safe.cli.app import main
+
+    text = packaged_config("real").read_text()
+    cut = tmp_path / "cut.toml"
+    cut.write_text(text[:text.index("[gripper]")])
+    with pytest.raises(ConfigError, match=r"missing \[gripper\], \[tool\], \[tool\.tcp\], \[tool\.sensor\], "
+                                          r"\[tool\.cup\] \("):
+        URConfig.load(cut)
+    for argv in (["place", "--robot", str(cut), "--sensor", "file:x.json", "--dry-run", "--uncalibrated"],
+                 ["capture", "--robot", str(cut), "--sensor", "file:x.json", "--table-height", "0", "--dry-run",
+                  "-o", str(tmp_path / "c.jsonl")],
+                 ["bench", "robot", "--robot", str(cut), "--seconds", "1"],
+                 ["calibrate-mount", str(tmp_path / "none.json"), "--robot", str(cut)]):
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and str(cut) in err[0] and "missing [gripper]" in err[0], (argv, err)
+
+
+def test_what_a_robot_file_may_leave_out_takes_the_documented_defaults(tmp_path):
+    """Only the connection's timeouts and retries, the watchdog, the name, the gripper's settle time (and the
+    Robotiq URCap's settings), [motion], [contact] and the mount fit's record may be left out."""
+    data = _real()
+    for path in ("name", "watchdog_hz", "connection.connect_timeout_s", "connection.reconnect_attempts",
+                 "connection.reconnect_backoff_s", "connection.stale_cycles", "gripper.settle_s", "motion"):
+        _without(data, path)
+    data.pop("contact", None)
+    p = tmp_path / "lean.toml"
+    p.write_text(_toml(data))
+    cfg = URConfig.load(p)
+    assert (cfg.name, cfg.watchdog_hz, cfg.connection.connect_timeout_s, cfg.gripper.settle_s) == ("ur5", 10.0, 5.0, 0.3)
+    assert (cfg.motion.near_surface_speed, cfg.motion.near_surface_distance, cfg.motion.emergency_decel) == \
+        (0.05, 0.05, 2.0)
+    assert cfg.contact.noise_std is None and cfg.tool.mount_fit is None
+
+
+def test_the_hardest_stop_may_not_be_softer_than_an_ordinary_one(tmp_path):
+    """emergency_decel 0.1 below max_linear_accel 0.5 was accepted: the driver caps every stop at emergency_decel,
+    so a stop the placement planned at 0.5 m/s^2 would brake at 0.1 and run five times as far."""
+    data = _real()
+    data["motion"]["emergency_decel"] = 0.1
+    p = tmp_path / "soft.toml"
+    p.write_text(_toml(data))
+    with pytest.raises(ConfigError, match=r"soft\.toml: motion\.emergency_decel \(0\.1 m/s\^2\) must be at least "
+                                          r"limits\.max_linear_accel \(0\.5 m/s\^2\)"):
+        URConfig.load(p)
+    data["motion"]["emergency_decel"] = 0.5  # equal is allowed: every stop at one deceleration
+    p.write_text(_toml(data))
+    assert URConfig.load(p).motion.emergency_decel == 0.5
+
+
+@pytest.mark.parametrize("path, value, floor", [
+    ("limits.max_linear_accel", 1e-9, "0.1 <= value"), ("limits.max_linear_speed", 1e-9, "0.02 <= value"),
+    ("limits.max_angular_speed", 1e-9, "0.05 <= value"), ("limits.max_angular_accel", 1e-9, "0.1 <= value"),
+    ("limits.max_joint_speed", 1e-9, "0.05 <= value"), ("limits.max_joint_accel", 1e-9, "0.1 <= value"),
+    ("motion.near_surface_speed", 1e-9, "0.01 <= value"),
+])
+def test_speeds_and_accelerations_have_physical_floors(tmp_path, path, value, floor):
+    """max_linear_accel = 1e-9 m/s^2 was accepted: a placement planned with it never ends."""
+    data = _real()
+    table, key = path.split(".")
+    data[table][key] = value
+    p = tmp_path / "slow.toml"
+    p.write_text(_toml(data))
+    with pytest.raises(ConfigError, match=rf"{path}: .*\(expected {floor}"):
+        URConfig.load(p)
+
+
+def test_every_packaged_and_written_robot_file_is_complete(tmp_path):
+    """The packaged files, and what to_toml writes from them (calibrate-mount --write, bench robot --write), read."""
+    for name in ("real", "sim"):
+        cfg = URConfig.load(packaged_config(name))
+        p = tmp_path / f"{name}.toml"
+        p.write_text(cfg.to_toml())
+        assert URConfig.load(p) == cfg
+        p.write_text(cfg.to_toml(like=packaged_config(name)))
+        assert URConfig.load(p) == cfg

@@ -10,6 +10,26 @@ surface, the watchdog rate, the gripper (digital output or Robotiq URCap socket)
 
 Conventions: SI units (m, m/s, m/s^2, rad, s, N); rotations as fixed-axis roll-pitch-yaw (x, y, z) in rad;
 positions in the robot base frame (the UR controller's base frame).
+
+What a file must give and what may default: a robot file drives a real arm, so whatever decides where the arm
+believes things are, what it sends the controller or how hard it may move has no built-in default -- a file cut
+short, or a table forgotten, is refused with one line naming the file and every missing table and key
+(:data:`REQUIRED`), never silently run on a nominal mount or payload:
+
+* ``[connection]`` ``host`` and ``controller``;
+* ``[limits]``: every key (speeds, accelerations, contact force, workspace box, ``min_descent_z``,
+  ``surface_keepout``: our own safety envelope, set for the arm and its table);
+* ``[gripper]`` ``kind`` and, for a digital one, its wiring: ``output``, ``tool_output``, ``open_level``;
+* ``[tool]`` ``payload_kg`` and ``payload_cog`` (sent to the controller: a wrong payload is read as contact);
+* ``[tool.tcp]``, ``[tool.sensor]`` (the TMF8820 mount: every plane is placed through it) and ``[tool.cup]``,
+  each with ``xyz`` and ``rpy``.
+
+Defaults apply only to: ``name`` ("ur5"), ``watchdog_hz`` (10 Hz), the connection's ``connect_timeout_s`` (5 s),
+``reconnect_attempts`` (3), ``reconnect_backoff_s`` (0.5 s) and ``stale_cycles`` (25), the gripper's
+``settle_s`` (0.3 s) and the Robotiq URCap's port, positions, speed, force and timeout, ``[motion]`` (50 mm/s
+within 50 mm of the surface, emergency stops at most 2 m/s^2: :class:`MotionConfig`), ``[contact]`` (the
+controller's detector defaults: :class:`ContactConfig`) and ``tool.mount_fit`` (a record, none). The packaged
+files give every key; ``calibrate-mount --write`` and ``bench robot --write`` start from a complete file and keep it so.
 """
 
 from __future__ import annotations
@@ -69,12 +89,13 @@ def check_host(value: str) -> str:
 
 
 class DigitalGripperConfig(ConfigModel):
-    """A gripper switched by one digital output (pneumatic or simple electric)."""
+    """A gripper switched by one digital output (pneumatic or simple electric). Its wiring (``output``,
+    ``tool_output``, ``open_level``) must be given; ``settle_s`` defaults to 0.3 s."""
 
     kind: Literal["digital"] = "digital"
-    output: int = Field(0, ge=0, le=7, description="output number (standard 0..7, tool 0..1)")
-    tool_output: bool = Field(False, description="use a tool digital output instead of a standard one")
-    open_level: bool = Field(True, description="output level that opens the gripper")
+    output: int = Field(..., ge=0, le=7, description="output number (standard 0..7, tool 0..1)")
+    tool_output: bool = Field(..., description="use a tool digital output instead of a standard one")
+    open_level: bool = Field(..., description="output level that opens the gripper")
     settle_s: float = Field(0.3, ge=0, le=5, description="s to wait after switching")
 
 
@@ -101,7 +122,7 @@ class NoGripperConfig(ConfigModel):
 class ConnectionConfig(ConfigModel):
     host: Annotated[str, AfterValidator(check_host)] = Field(
         ..., min_length=1, description="controller IP address or host name (no port, nothing else)")
-    controller: Literal["cb3", "e-series"] = Field("cb3", description="CB3 (125 Hz) or e-Series (500 Hz)")
+    controller: Literal["cb3", "e-series"] = Field(..., description="CB3 (125 Hz) or e-Series (500 Hz)")
     connect_timeout_s: float = Field(5.0, gt=0, le=120, description="s to wait for each interface to connect")
     reconnect_attempts: int = Field(3, ge=0, le=20, description="tries after a dropped connection")
     reconnect_backoff_s: float = Field(0.5, ge=0, le=10, description="s between reconnect tries")
@@ -114,22 +135,37 @@ class ConnectionConfig(ConfigModel):
 
 
 class LimitsConfig(ConfigModel):
-    """Our own limits, checked on the host before every command (tighter than the controller's)."""
+    """Our own limits, checked on the host before every command (tighter than the controller's). Every key must be
+    given (no defaults: this is the arm's safety envelope). The lower bounds keep a placement finite: its deadlines
+    (:class:`~place_safe.placement.config.PlacementConfig`: the 0.6 m ``max_travel`` within the 30 s
+    ``descent_timeout``, the 0.1 m retreat within 6 s) and braking within the 50 mm near-surface band need at least
+    20 mm/s and 0.1 m/s^2; a limit of 1e-9 m/s^2 was accepted and made a placement that never ends."""
 
-    max_linear_speed: float = Field(0.25, gt=0, le=1.0, description="m/s, TCP")
-    max_linear_accel: float = Field(1.2, gt=0, le=5.0, description="m/s^2, TCP")
-    max_angular_speed: float = Field(1.0, gt=0, le=3.2, description="rad/s, TCP orientation")
-    max_angular_accel: float = Field(3.0, gt=0, le=20.0, description="rad/s^2")
-    max_joint_speed: float = Field(1.05, gt=0, le=3.15, description="rad/s, leading joint of moveJ")
-    max_joint_accel: float = Field(1.4, gt=0, le=40.0, description="rad/s^2, leading joint of moveJ")
-    max_contact_force: float = Field(60.0, gt=0, le=500, description="N: our protective stop on the TCP force")
+    max_linear_speed: float = Field(..., ge=0.02, le=1.0,
+                                    description="m/s, TCP (at least 0.02: slower, the 0.6 m max_travel of a "
+                                                "descent outlasts its 30 s descent_timeout)")
+    max_linear_accel: float = Field(..., ge=0.1, le=5.0,
+                                    description="m/s^2, TCP (at least 0.1: a stop from the 50 mm/s near-surface "
+                                                "speed then takes 12.5 mm, a quarter of the 50 mm near band)")
+    max_angular_speed: float = Field(..., ge=0.05, le=3.2,
+                                     description="rad/s, TCP orientation (at least 0.05: a 90 deg turn of the "
+                                                 "tool in about 30 s)")
+    max_angular_accel: float = Field(..., ge=0.1, le=20.0,
+                                     description="rad/s^2 (at least 0.1: up to 0.5 rad/s within 5 s)")
+    max_joint_speed: float = Field(..., ge=0.05, le=3.15,
+                                   description="rad/s, leading joint of moveJ (at least 0.05: a quarter turn "
+                                               "in about 30 s)")
+    max_joint_accel: float = Field(..., ge=0.1, le=40.0,
+                                   description="rad/s^2, leading joint of moveJ (at least 0.1: up to 1 rad/s "
+                                               "within 10 s)")
+    max_contact_force: float = Field(..., gt=0, le=500, description="N: our protective stop on the TCP force")
     workspace_min: tuple[Metres2, Metres2, Metres2] = Field(
-        (-0.9, -0.9, -0.2), description="m: lower corner of the TCP box (base frame, each -2..2)")
+        ..., description="m: lower corner of the TCP box (base frame, each -2..2)")
     workspace_max: tuple[Metres2, Metres2, Metres2] = Field(
-        (0.9, 0.9, 0.9), description="m: upper corner of the TCP box (base frame, each -2..2)")
-    min_descent_z: float = Field(-0.2, ge=-2.0, le=2.0,
+        ..., description="m: upper corner of the TCP box (base frame, each -2..2)")
+    min_descent_z: float = Field(..., ge=-2.0, le=2.0,
                                  description="m: deepest base-frame z a descent may bring the TCP to")
-    surface_keepout: float = Field(0.01, ge=0.0, le=0.05,
+    surface_keepout: float = Field(..., ge=0.0, le=0.05,
                                    description="m: how far below the sensed surface the held object's bottom "
                                                "may be commanded (contact needs a few mm; the rest is keep-out)")
 
@@ -143,10 +179,11 @@ class LimitsConfig(ConfigModel):
 
 
 class FrameConfig(ConfigModel):
+    """A frame on the flange; both keys must be given (a mount's tilt left out was read as none)."""
+
     xyz: tuple[ToolMetres, ToolMetres, ToolMetres] = Field(
-        (0.0, 0.0, 0.0), description="m, translation in the flange frame (each -1..1)")
-    rpy: tuple[Angle, Angle, Angle] = Field((0.0, 0.0, 0.0),
-                                            description="rad, fixed-axis roll-pitch-yaw (each -2 pi..2 pi)")
+        ..., description="m, translation in the flange frame (each -1..1)")
+    rpy: tuple[Angle, Angle, Angle] = Field(..., description="rad, fixed-axis roll-pitch-yaw (each -2 pi..2 pi)")
 
     def matrix(self) -> np.ndarray:
         from scipy.spatial.transform import Rotation
@@ -166,14 +203,15 @@ class FrameConfig(ConfigModel):
 
 
 class ToolConfig(ConfigModel):
-    """Frames on the flange: TCP, TMF8820 (+z optical axis), held cup (origin at its bottom, +z up out of it)."""
+    """Frames on the flange: TCP, TMF8820 (+z optical axis), held cup (origin at its bottom, +z up out of it), and
+    the payload sent to the controller. All must be given: none has a default."""
 
-    tcp: FrameConfig = FrameConfig(xyz=(0.0, 0.0, 0.14))
-    sensor: FrameConfig = FrameConfig(xyz=(0.07, 0.0, 0.11))
-    cup: FrameConfig = FrameConfig(xyz=(0.0, 0.0, 0.18), rpy=(math.pi, 0.0, 0.0))
-    payload_kg: float = Field(1.1, ge=0, le=5.0, description="kg: gripper + sensor + cup (UR5 payload 5 kg)")
+    tcp: FrameConfig = Field(..., description="the TCP, between the fingertips")
+    sensor: FrameConfig = Field(..., description="the TMF8820 mount (calibrate-mount fits it)")
+    cup: FrameConfig = Field(..., description="the held cup, origin at its bottom")
+    payload_kg: float = Field(..., ge=0, le=5.0, description="kg: gripper + sensor + cup (UR5 payload 5 kg)")
     payload_cog: tuple[ToolMetres, ToolMetres, ToolMetres] = Field(
-        (0.0, 0.0, 0.08), description="m, centre of gravity in the flange frame (each -1..1)")
+        ..., description="m, centre of gravity in the flange frame (each -1..1)")
     mount_fit: dict | None = Field(None, description="written by calibrate-mount: residuals and uncertainty")
 
     def frames(self):
@@ -182,18 +220,40 @@ class ToolConfig(ConfigModel):
 
 
 class URConfig(ConfigModel):
-    """One UR5: connection, limits, watchdog, gripper, tool (see the module docstring)."""
+    """One UR5: connection, limits, watchdog, gripper, tool. What a file must give and what defaults (``name``,
+    ``watchdog_hz``, connection timeouts and retries, gripper settle time, ``[motion]``, ``[contact]``): the module
+    docstring; a missing table or key is one line naming all of them (:func:`missing_keys`)."""
 
     name: str = "ur5"
     connection: ConnectionConfig
-    limits: LimitsConfig = LimitsConfig()
+    limits: LimitsConfig
     watchdog_hz: float = Field(10.0, ge=1, le=500,
                                description="Hz: minimum rate of host updates before the controller stops the arm")
-    gripper: DigitalGripperConfig | RobotiqGripperConfig | NoGripperConfig = Field(
-        DigitalGripperConfig(), discriminator="kind")
-    tool: ToolConfig = ToolConfig()
+    gripper: DigitalGripperConfig | RobotiqGripperConfig | NoGripperConfig = Field(..., discriminator="kind")
+    tool: ToolConfig
     motion: "MotionConfig" = Field(default_factory=lambda: MotionConfig())
     contact: "ContactConfig" = Field(default_factory=lambda: ContactConfig())
+
+    @model_validator(mode="before")
+    @classmethod
+    def _complete(cls, data):
+        """Every table and key without a default present, or one line naming all that are missing."""
+        missing = missing_keys(cls, data)
+        if missing:
+            raise ValueError(f"missing {', '.join(missing)} (a robot file gives its controller, limits, gripper "
+                             "wiring, payload and tool frames itself, none from a default: see robots/ur5/real.toml)")
+        return data
+
+    @model_validator(mode="after")
+    def _stops(self) -> "URConfig":
+        """The hardest stop is no softer than an ordinary one: the driver brakes every stop at most at
+        ``emergency_decel`` (``rtde_robot._stop_motion``), so below ``max_linear_accel`` a stop the placement plans at
+        ``max_linear_accel`` would brake softer and run past where it was planned to end."""
+        e, a = self.motion.emergency_decel, self.limits.max_linear_accel
+        if e < a:
+            raise ValueError(f"motion.emergency_decel ({e:g} m/s^2) must be at least limits.max_linear_accel "
+                             f"({a:g} m/s^2): the obstacle and fault stop may not be softer than an ordinary stop")
+        return self
 
     @classmethod
     def load(cls, path: str | Path) -> "URConfig":
@@ -230,13 +290,15 @@ class MotionConfig(ConfigModel):
     well under UR's own stopL default of 10 m/s^2 that would slosh a full cup.
     """
 
-    near_surface_speed: float = Field(0.05, gt=0, le=0.25,
-                                      description="m/s: the fastest approach within near_surface_distance")
+    near_surface_speed: float = Field(0.05, ge=0.01, le=0.25,
+                                      description="m/s: the fastest approach within near_surface_distance (at "
+                                                  "least 0.01: the 50 mm near band in 5 s; slower, a descent "
+                                                  "outlasts its deadline)")
     near_surface_distance: float = Field(0.05, ge=0, le=0.5,
                                          description="m of cup clearance above the sensed surface that counts as near")
     emergency_decel: float = Field(2.0, gt=0, le=10.0,
-                                   description="m/s^2: the hardest stop (obstacle, fault); ordinary stops use at "
-                                               "most limits.max_linear_accel")
+                                   description="m/s^2: the hardest stop (obstacle, fault), at least "
+                                               "limits.max_linear_accel; ordinary stops use at most that")
 
 
 class ContactConfig(ConfigModel):
@@ -260,6 +322,49 @@ class ContactConfig(ConfigModel):
 
 
 URConfig.model_rebuild()
+
+
+def _tables(annotation) -> list[type]:
+    """The :class:`ConfigModel` classes a field holds (one, or the choices of a union), [] for a plain value."""
+    import typing
+
+    args = typing.get_args(annotation) if typing.get_origin(annotation) is not None else (annotation,)
+    return [a for a in args if isinstance(a, type) and issubclass(a, ConfigModel)]
+
+
+def _kinds(choices: list[type]) -> dict:
+    """``kind`` value -> class for a union told apart by ``kind`` (the gripper)."""
+    return {c.model_fields["kind"].default: c for c in choices if "kind" in c.model_fields}
+
+
+def missing_keys(cls: type | None = None, data=None, prefix: str = "") -> list[str]:
+    """The tables (``[tool.sensor]``) and keys (``tool.payload_kg``) without a default that ``data`` (a robot file's
+    contents) lacks, in the model's order; a missing table is named with its missing sub-tables, not each of its
+    keys. Values that are not tables, and a gripper of an unknown kind, are left to the model's own checks."""
+    cls = URConfig if cls is None else cls
+    if not isinstance(data, dict):
+        return []
+    out: list[str] = []
+    for name, field in cls.model_fields.items():
+        path = f"{prefix}{name}"
+        choices = _tables(field.annotation)
+        value = data.get(name, _MISSING)
+        if value is _MISSING:
+            if field.is_required():
+                if choices:
+                    out.append(f"[{path}]")
+                    if len(choices) == 1:  # its sub-tables, whose keys the user copies with them
+                        out += [m for m in missing_keys(choices[0], {}, path + ".") if m.startswith("[")]
+                else:
+                    out.append(path)
+        elif isinstance(value, dict) and choices:
+            if len(choices) == 1:
+                out += missing_keys(choices[0], value, path + ".")
+            elif "kind" not in value:
+                out.append(f"{path}.kind")
+            elif isinstance(value["kind"], str) and value["kind"] in _kinds(choices):
+                out += missing_keys(_kinds(choices)[value["kind"]], value, path + ".")
+    return out
 
 
 def placement_config(robot: URConfig, base=None):
@@ -372,6 +477,6 @@ def _update(table, before: dict, after: dict, tomlkit) -> None:
         del table[key]
 
 
-__all__ = ["check_host", "update_toml", "URConfig", "MotionConfig", "ContactConfig", "placement_config", "ConnectionConfig",
+__all__ = ["check_host", "update_toml", "missing_keys", "URConfig", "MotionConfig", "ContactConfig", "placement_config", "ConnectionConfig",
            "LimitsConfig", "ToolConfig", "FrameConfig", "DigitalGripperConfig", "RobotiqGripperConfig",
            "NoGripperConfig", "CONTROLLER_HZ", "packaged_config"]
