@@ -157,12 +157,15 @@ class Calibration:
 
     def uncertainty(self, method: str | None = None):
         """The :class:`~place_safe.recovery.estimator.Uncertainty` of ``method`` (defaults when absent);
-        without a method, all entries of the section as a dict."""
+        without a method, all entries of the section as a dict. An entry that states no model-error floor at all
+        (:meth:`~place_safe.recovery.estimator.Uncertainty.states_no_floor`: a calibration always fits some) is refused,
+        as is a ``scale`` below :data:`~place_safe.recovery.estimator.MIN_SCALE`: either makes every plane of the method
+        more certain than its calibration frames showed, and placement's rules trust these covariances."""
         sec = self._section("uncertainty") or {}
         try:
             if method is None:
-                return {k: Uncertainty.from_dict(v, f"uncertainty.{k}") for k, v in sec.items()}
-            return Uncertainty.from_dict(sec[method], f"uncertainty.{method}") if method in sec else Uncertainty()
+                return {k: _entry(v, k) for k, v in sec.items()}
+            return _entry(sec[method], method) if method in sec else Uncertainty()
         except (TypeError, ValueError, AttributeError, OverflowError) as exc:
             raise CalibrationError(str(exc)) from None
 
@@ -189,7 +192,8 @@ class Calibration:
         solves, the way docs/results.md measures it; every other section and the reports as they are."""
         d = copy.deepcopy(self.to_dict())
         unc = d.setdefault("uncertainty", {})
-        unc["diff"] = self.uncertainty("diff").without_fallback().to_dict()
+        if "diff" in unc:  # (without an entry diff has its defaults, which never fall back)
+            unc["diff"] = self.uncertainty("diff").without_fallback().to_dict()
         return Calibration.from_dict(d, f"{self.source} without diff's fallback")
 
     def forward(self) -> ForwardParams:
@@ -223,6 +227,18 @@ class Calibration:
 
     def save(self, path: str | Path) -> None:
         write_json(path, self.to_dict())
+
+
+def _entry(d: Any, method: Any) -> Uncertainty:
+    """The ``uncertainty`` section's entry ``d`` for ``method``, refused when it states no floor (see
+    :meth:`Calibration.uncertainty`)."""
+    unc = Uncertainty.from_dict(d, f"uncertainty.{method}")
+    if unc.states_no_floor():
+        how = (f"calibrate {method} again (place-safe calibrate FRAMES --method {method} -o CAL) or remove the entry"
+               if method in REQUIRED_SECTIONS else "remove the entry")
+        raise CalibrationError(f"uncertainty.{method}: states no model error ({', '.join(Uncertainty.FLOOR_TERMS)} "
+                               f"all 0), which no calibration fits; {how}")
+    return unc
 
 
 #: Sections a method needs before it may drive a placement (naive methods are uncalibrated by definition).

@@ -26,6 +26,20 @@ Every method also writes its entries of ``reference`` (those of the methods it f
 peak) when the frames' ground truth states how far it may be off (a capture's touched plane, or a table stated level
 within some angle: :func:`frames_reference`), and drops them when the frames state none.
 
+How many frames: at least :data:`~place_safe.calibration.points.MIN_CALIBRATION_FRAMES` (5) with ground truth at
+:data:`~place_safe.calibration.points.MIN_CALIBRATION_RANGE` or farther, at
+:data:`~place_safe.calibration.points.MIN_CALIBRATION_DISTANCES` (3) or more distances; fewer raise a one-line
+:class:`~place_safe.exceptions.CalibrationError` before any fit. Why an error there and not wider covariances: the peak
+and on-sensor mappings fit about 24 parameters to 9 readings a frame, so 3-4 frames leave almost nothing over and the
+fit reads its own frames to micrometres; their covariances, fitted on those frames, were 20-130 times too small on the
+rest of the real sweep, and no factor on an error fitted away recovers it. From 5 to
+:data:`~place_safe.calibration.points.FEW_CALIBRATION_FRAMES` (10) frames the calibration goes on (the project's own
+smallest ones: 6 synthetic frames in its command-line tests, 8 simulated ones for ``calibrate --sim``) but says so (a
+report ``note``, which ``calibrate`` prints even with -q) and widens what the mapping's in-sample errors state by the
+small-sample factor ``(n + p) / (n - p)`` (:func:`~place_safe.calibration.points.small_sample_factor`): peak's covariance
+scale, the on-sensor distances' zone residuals. Diff's own entry is cross-validated in part (its fallback limits) and
+fitted on the frames diff's global forward model reads; it is not widened, but the note is given.
+
 Reports go into ``calibration.reports`` as plain JSON values. SI units throughout (see the fits' modules).
 """
 from __future__ import annotations
@@ -39,7 +53,11 @@ from place_safe.calibration.forward_fit import fit_forward, fit_forward_staged, 
 from place_safe.calibration.model_error import select_model_error
 from place_safe.calibration.plane_correction import fit_range_correction
 from place_safe.calibration.second_fit import reconsider_geometry, second_fit_for
-from place_safe.calibration.points import adopt_pileup, fit_peak, fit_proprietary
+from place_safe.calibration.points import (FEW_CALIBRATION_FRAMES, MIN_CALIBRATION_DISTANCES, MIN_CALIBRATION_FRAMES,
+                                           MIN_CALIBRATION_RANGE, adopt_pileup, fit_peak, fit_proprietary,
+                                           small_sample_factor)
+from place_safe.exceptions import CalibrationError
+from place_safe.recovery.points import MIN_DOMAIN_WIDTH
 from place_safe.calibration.uncertainty import update_calibration
 from place_safe.io.json_values import jsonable
 from place_safe.recovery.differentiable import SolverOptions
@@ -89,6 +107,14 @@ def fit_method(calibration: Calibration, frames: Sequence[Frame], method: str, p
     if len(unlabelled) and (method != "diff" or unit_model != "default"):
         raise ValueError("calibrate: frames that choose a reading of the diff method's forward model go with diff and "
                          f"the default unit model, not {method} / {unit_model}")
+    count, distances = calibration_frames(frames)
+    if count < MIN_CALIBRATION_FRAMES or distances < MIN_CALIBRATION_DISTANCES:
+        raise CalibrationError(
+            f"calibrate {method}: {count} frame{'' if count == 1 else 's'} with ground truth at "
+            f"{MIN_CALIBRATION_RANGE * 1e3:.0f} mm or farther, at {distances} distinct distance"
+            f"{'' if distances == 1 else 's'}; a calibration needs {MIN_CALIBRATION_FRAMES} or more frames at "
+            f"{MIN_CALIBRATION_DISTANCES} or more distances {MIN_DOMAIN_WIDTH * 1e3:g} mm apart "
+            f"({FEW_CALIBRATION_FRAMES} or more frames recommended, e.g. a level sweep from 3 to 40 cm)")
     say = log if log is not None else (lambda _line: None)
     cal = calibration
     fitted: list[str] = []
@@ -141,12 +167,75 @@ def fit_method(calibration: Calibration, frames: Sequence[Frame], method: str, p
         if options.ambient:  # (absent: false, as files without the key were made)
             section["ambient"] = True
         _store(cal, fitted, "diff", section, report)
+    widen = small_sample_factor(cal.reports["peak"]) if "peak" in fitted else 1.0
     if method in ("peak", "diff"):
-        cal.reports["uncertainty"] = jsonable(update_calibration(cal, frames, method))
+        cal.reports["uncertainty"] = jsonable(update_calibration(cal, frames, method, widen_peak=widen))
+        cal.errors.pop("uncertainty", None)  # (entries rewritten; _check_fitted reads the section again)
         fitted.append("uncertainty")
+    if count < FEW_CALIBRATION_FRAMES:
+        _small_sample_note(cal, fitted, method)
+    _check_fitted(cal, fitted, method)
     _keep_reference(cal, fitted, frames, [m for m in ("peak", "proprietary") if m in fitted] +
                     (["diff"] if method == "diff" else []), say)
     return fitted
+
+
+def _check_fitted(cal: Calibration, fitted: list[str], method: str) -> None:
+    """Raise a one-line :class:`CalibrationError` where a section just fitted would not load (a file ``calibrate``
+    writes is one every command reads): e.g. an ``uncertainty`` entry without a floor, which the floor's fit leaves
+    when fewer than 3 frames lie beyond the near-range table (:func:`~place_safe.calibration.uncertainty.fit_floor`)."""
+    again = Calibration.from_dict(cal.to_dict(), "the fitted calibration")
+    for name in fitted:
+        if name not in again.errors:
+            continue
+        for entry, rep in ((cal.reports.get("uncertainty") or {}).items() if name == "uncertainty" else ()):
+            if isinstance(rep, dict) and rep.get("why"):
+                beyond = rep.get("min_range_m")
+                raise CalibrationError(
+                    f"calibrate {method}: {entry}'s model error could not be fitted: {rep['why']} (of frames at "
+                    f"{beyond * 1e3:.0f} mm or farther, beyond the near-range table); add frames farther out"
+                    if isinstance(beyond, (int, float)) else
+                    f"calibrate {method}: {entry}'s model error could not be fitted: {rep['why']}; add frames")
+        kept = " (an entry this fit does not replace: fix or remove it)" if name == "uncertainty" else ""
+        raise CalibrationError(f"calibrate {method}: the fitted section '{name}' would not load: {again.errors[name]}"
+                               f"{kept}")
+
+
+def calibration_frames(frames: Sequence[Frame]) -> tuple[int, int]:
+    """(frames, distinct distances) of ``frames`` a calibration can use: those with ground truth at
+    :data:`~place_safe.calibration.points.MIN_CALIBRATION_RANGE` or farther along the optical axis, and how many of
+    their axis distances lie :data:`~place_safe.recovery.points.MIN_DOMAIN_WIDTH` or more beyond the last counted."""
+    z = sorted(float(f.truth.z0) for f in frames if f.truth is not None and f.truth.z0 >= MIN_CALIBRATION_RANGE)
+    distances, last = 0, -math.inf
+    for v in z:
+        if v - last >= MIN_DOMAIN_WIDTH:
+            distances, last = distances + 1, v
+    return len(z), distances
+
+
+def _small_sample_note(cal: Calibration, fitted: list[str], method: str) -> None:
+    """Put the small-calibration warning (fewer than :data:`~place_safe.calibration.points.FEW_CALIBRATION_FRAMES`)
+    into the report of each section fitted now that states how far to trust it (``calibrate`` prints report notes even
+    with -q): the mappings (``peak``, ``proprietary``) with what was widened, else diff's ``forward``."""
+    for name in ("peak", "proprietary", "forward"):
+        rep = cal.reports.get(name) if name in fitted else None
+        if not isinstance(rep, dict) or (name == "forward" and {"peak", "proprietary"} & set(fitted)):
+            continue
+        frames = rep.get("frames")
+        if name == "forward":
+            text = (f"calibrated on only {frames} frames ({FEW_CALIBRATION_FRAMES} or more recommended): diff's "
+                    "forward model and floor are fitted on these frames and read them better than new ones (not "
+                    "widened)")
+        else:
+            small = ((cal.reports.get("uncertainty") or {}).get("peak") if name == "peak" else rep) or {}
+            factor = (small.get("small_sample") or {}).get("factor", 1.0)
+            n, p = rep.get("readings", 0), rep.get("parameters", 0)
+            widened = "peak's covariance scale" if name == "peak" else "its stated zone residuals' variances"
+            text = (f"calibrated on only {frames} frames ({FEW_CALIBRATION_FRAMES} or more recommended): the mapping's "
+                    f"{p} parameters leave {n - p} of its {n} zone readings over, so it reads these frames better than "
+                    f"it will read new ones; {widened} widened by {factor:.2f} (the small-sample factor)"
+                    + ("; diff's own floor is fitted on these frames too (not widened)" if method == "diff" else ""))
+        rep.setdefault("small_sample", {})["note"] = text + ": capture more frames at more distances and calibrate again"
 
 
 def _keep_reference(cal: Calibration, fitted: list[str], frames: Sequence[Frame], methods: list[str],
@@ -187,4 +276,4 @@ def frames_reference(frames: Sequence[Frame]) -> Reference | None:
     return max(found, key=lambda r: r.tilt_std) if found else None
 
 
-__all__ = ["fit_method", "frames_reference"]
+__all__ = ["calibration_frames", "fit_method", "frames_reference"]

@@ -19,7 +19,7 @@ from place_safe.calibration.near_range import fit_near_range
 from place_safe.calibration.point_errors import frame_point_errors, true_ranges
 from place_safe.evaluation.metrics import angular_errors, linear_errors, point_errors
 from place_safe.exceptions import CalibrationError
-from place_safe.recovery.points import MAX_ZONE_RESIDUAL, MM_PER_M, PeakParams, fit_planes
+from place_safe.recovery.points import MAX_ZONE_RESIDUAL, MIN_DOMAIN_WIDTH, MM_PER_M, PeakParams, fit_planes
 from place_safe.sensor.frame import N_ZONES, Frame
 from place_safe.sensor.histogram import CENTROID_HALF_WIDTH, find_peaks
 
@@ -90,8 +90,8 @@ def fit_linear(edge_scale: float, corner_scale: float, readings: np.ndarray, val
     y = readings[use]
     rr = r[use]
     lo, hi = float(rr.min()), float(rr.max())
-    if hi - lo < 1e-3:
-        degree, hi = 0, lo + 1e-3
+    if hi - lo < MIN_DOMAIN_WIDTH:
+        degree, hi = 0, lo + MIN_DOMAIN_WIDTH
     onehot = np.zeros((len(y), N_ZONES))
     onehot[np.arange(len(y)), zones] = 1.0
     seen = onehot.sum(0) > 0
@@ -322,11 +322,66 @@ def fit_points(readings: np.ndarray, valid: np.ndarray, frames: Sequence[Frame],
     after = _summary(_errors(params, readings, valid, tn, td))
     report = {"frames": len(frames), "before": before, "paper_style_fit": paper_style, "after": after,
               "params": params.to_dict(), "residual_degree": residual_degree, "harmonics": harmonics,
-              "fit_offsets": fit_offsets, "fit_gains": fit_gains, "scales_fitted": tilted or paper, "paper": paper}
+              "fit_offsets": fit_offsets, "fit_gains": fit_gains, "scales_fitted": tilted or paper, "paper": paper,
+              "readings": int((valid & np.isfinite(readings)).sum()),
+              "parameters": mapping_parameters(params, fit_offsets, fit_gains, tilted or paper, paper)}
     if inverse_report is not None:
         report["zone_inverse"] = {"power": inverse, "held_out_range_rms_mm": inverse_report["rms_mm"],
                                   "folds": inverse_report["folds"]}
     return params, report
+
+
+def mapping_parameters(params: PeakParams, fit_offsets: bool = True, fit_gains: bool = True,
+                       scales_fitted: bool = False, paper: bool = False) -> int:
+    """How many parameters :func:`fit_points` fitted for ``params``: the zones' gains (``m`` their mean) and offsets
+    (``b`` theirs), or one of each; the residual series' terms beyond the linear part, the phase correction's, each
+    zone's terms in the inverse range, and the two direction scales when they were fitted (the paper's procedure:
+    ``m``, ``b`` and the two scales). What the calibration frames' readings must outnumber for the mapping's errors on
+    them to say anything of its errors on new frames (:func:`small_sample_factor`)."""
+    if paper:
+        return 4
+    return ((N_ZONES if fit_gains else 1) + (N_ZONES if fit_offsets else 1) + max(len(params.residual_coeffs) - 2, 0)
+            + len(params.phase_coeffs) + len(params.zone_inverse) + (2 if scales_fitted else 0))
+
+
+#: A calibration's fewest frames with ground truth at :data:`MIN_CALIBRATION_RANGE` or farther, and their fewest
+#: distinct axis distances (:data:`~place_safe.recovery.points.MIN_DOMAIN_WIDTH` apart; ``fit_method`` refuses fewer).
+#: The peak mapping fits about 24 parameters (9 zone gains, 9 offsets, 2 residual terms, 4 phase terms) to 9 readings
+#: per frame: 3 frames leave 3 readings over and the fit reads its own frames to 0.005 mm, 4 leave 12. Held out on the
+#: rest of the real sweep (41 frames from 9.5 to 39.5 cm; calibrated on 3-20 of them spread over that range), the
+#: planes' mean NEES per dof was 20-130 from 3-4 frames, whatever the covariance scale: their in-sample errors are
+#: fitted away, and no factor on them is honest. From 5 frames it was 1.1-6 (8-20 frames: 0.9-3). Each zone needs 3
+#: distances for its gain and offset to leave one reading over. The project's own smallest calibrations: 6 synthetic
+#: frames (tests/cli/test_app.py), 8 simulated ones (``calibrate --sim --frames`` at its least).
+MIN_CALIBRATION_FRAMES = 5
+MIN_CALIBRATION_DISTANCES = 3
+#: Below this many frames a calibration is small: ``fit_method`` warns (a report note, printed even with -q) and widens
+#: what its in-sample errors state by :func:`small_sample_factor`. From 10 frames on the held-out NEES per dof above was
+#: 0.9-1.9 without a factor (one 14-frame split 3.0), as near 1 as the real sweep's halves (26 frames each) give; below
+#: it, with the factor, 0.4-2.2.
+FEW_CALIBRATION_FRAMES = 10
+
+
+def small_sample_factor(report: dict) -> float:
+    """What the variances a mapping's fit ``report`` (:func:`fit_points`: ``frames``, ``readings``, ``parameters``)
+    measured on its own frames are multiplied by to hold for new frames: ``(n + p) / (n - p)`` for ``n`` readings and
+    ``p`` parameters below :data:`FEW_CALIBRATION_FRAMES` frames, else 1. A least-squares fit of ``p`` parameters
+    leaves its ``n`` data a mean squared error ``(1 - p / n)`` times the noise's, and errs on a new datum by
+    ``(1 + p / n)`` times it: the ratio is the in-sample error's shortfall (5 frames of the peak mapping: 3.5, 9 frames:
+    1.9). Held out on the rest of the real sweep (calibrated on 5-9 of its frames from 9.5 to 39.5 cm, two spreads each)
+    it took peak's mean NEES per dof from 1.1-6.1 to 0.4-2.2; the on-sensor distances' with it, 0.7-1.5 (10-30 frames,
+    no factor: peak 0.9-3.0, on-sensor 0.9-2.2). Raises :class:`CalibrationError` when the readings do not outnumber
+    the parameters or fewer than :data:`MIN_CALIBRATION_FRAMES` frames were fitted."""
+    frames, n, p = (int(report.get(k, 0)) for k in ("frames", "readings", "parameters"))
+    if frames >= FEW_CALIBRATION_FRAMES:
+        return 1.0
+    if frames < MIN_CALIBRATION_FRAMES:  # (frames with truth, but too few with returns in 3 or more zones)
+        raise CalibrationError(f"calibration: {frames} frames with returns in 3 or more zones; the mapping needs "
+                               f"{MIN_CALIBRATION_FRAMES} or more ({FEW_CALIBRATION_FRAMES} or more recommended)")
+    if n <= p:
+        raise CalibrationError(f"calibration: {n} zone readings on {frames} frames for {p} parameters: nothing is left "
+                               f"to measure the mapping's error (calibrate on {FEW_CALIBRATION_FRAMES} or more frames)")
+    return (n + p) / (n - p)
 
 
 def _calibration_frames(frames: Sequence[Frame], min_range: float) -> list[Frame]:
@@ -443,6 +498,7 @@ def fit_peak(frames: Sequence[Frame], init: PeakParams | None = None, progress: 
     report["params"] = params.to_dict()
     report["pileup"] = {"value": k, "fitted": pileup is None and not paper,
                         "linear_fit_point_error_mm": search}
+    report["parameters"] += int(report["pileup"]["fitted"])
     report["inverse_degrees"] = [int(d) for d in inverse_degrees]
     return params, report
 
@@ -563,6 +619,10 @@ def fit_proprietary(frames: Sequence[Frame], init: PeakParams | None = None, pro
                                    paper, min_range, inverse_degrees)
     keep = valid.sum(1) >= 3  # the frames the mapping was fitted on (_fit_readings)
     own, shared = zone_residuals(params, readings[keep], valid[keep], [f for f, k in zip(use, keep) if k])
+    if (widen := small_sample_factor(report)) > 1.0:  # the residuals on its own few frames, as new frames see them
+        report["small_sample"] = {"factor": widen, "zone_residual_mm_in_sample": {"own": own * 1e3,
+                                                                                 "shared": shared * 1e3}}
+        own, shared = own * math.sqrt(widen), shared * math.sqrt(widen)
     params = params.replace(zone_residual=min(own, MAX_ZONE_RESIDUAL), common_residual=min(shared, MAX_ZONE_RESIDUAL))
     report["params"] = params.to_dict()
     report["zone_residual_mm"] = {"own": own * 1e3, "shared": shared * 1e3}
@@ -570,4 +630,6 @@ def fit_proprietary(frames: Sequence[Frame], init: PeakParams | None = None, pro
 
 
 __all__ = ["fit_points", "fit_peak", "fit_proprietary", "proprietary_readings", "zone_residuals", "MIN_CALIBRATION_RANGE",
+           "MIN_CALIBRATION_FRAMES", "MIN_CALIBRATION_DISTANCES", "FEW_CALIBRATION_FRAMES", "mapping_parameters",
+           "small_sample_factor",
            "tilt_angles", "level_frames"]

@@ -75,7 +75,7 @@ from dataclasses import replace
 import numpy as np
 
 from place_safe.evaluation.metrics import angular_errors, nees, point_errors  # noqa: F401 (nees: re-exported)
-from place_safe.recovery.estimator import MAX_SCALE, NEAR_MAX_STD, PlaneEstimate, Uncertainty, tilt_offset
+from place_safe.recovery.estimator import MAX_SCALE, MIN_SCALE, NEAR_MAX_STD, PlaneEstimate, Uncertainty, tilt_offset
 from place_safe.recovery.too_close import OVERLAP_RANGE, TOO_CLOSE_REASON
 from place_safe.sensor.frame import Frame
 from place_safe.calibration.near_range import held_out_fits, near_range_std
@@ -145,7 +145,7 @@ def fit_floor(estimates: Sequence[PlaneEstimate], truths: Sequence, base: Uncert
                        offset_rel=math.sqrt(o1))
     before = float(np.mean([e @ np.linalg.solve(c, e) for e, c in zip(err, cov)]) / 3.0)
     ml = float(np.mean([e @ np.linalg.solve(c + unc.floor(dd), e) for e, c, dd in zip(err, cov, d)]) / 3.0)
-    unc = unc.replace(scale=float(np.clip(ml, 0.1, MAX_SCALE)))  # mean NEES per dof 1 on these frames
+    unc = unc.replace(scale=float(np.clip(ml, MIN_SCALE, MAX_SCALE)))  # mean NEES per dof 1 on these frames
     after = float(np.mean([e @ np.linalg.solve(unc.apply(c, dd), e) for e, c, dd in zip(err, cov, d)]) / 3.0)
     return unc, {"frames": len(rows), "tilt_std_deg": math.degrees(unc.tilt_std), "scale": unc.scale,
                  "nees_per_dof_maximum_likelihood": ml,
@@ -1252,9 +1252,13 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
     return unc, rep
 
 
-def update_calibration(cal, frames: Sequence[Frame], method: str) -> dict:
-    """Fit the ``uncertainty`` entries a method needs (``peak``; ``diff``: peak's too) into ``cal``; returns the report."""
-    section = dict(cal.sections.get("uncertainty", {}))
+def update_calibration(cal, frames: Sequence[Frame], method: str, widen_peak: float = 1.0) -> dict:
+    """Fit the ``uncertainty`` entries a method needs (``peak``; ``diff``: peak's too) into ``cal``; returns the report.
+    ``widen_peak`` (>= 1): a factor on peak's covariance ``scale`` (at most :data:`MAX_SCALE`), for a peak mapping fitted
+    on these same few frames, whose errors on them understate its errors on new ones
+    (:func:`~place_safe.calibration.points.small_sample_factor`); diff's entry is fitted with peak's so widened."""
+    old = cal.sections.get("uncertainty")
+    section = dict(old) if isinstance(old, dict) else {}  # (a file's section that is not an object: replaced)
     report = {}
     if method in ("peak", "diff"):
         # the forward model's mount tilt where the file has a valid one (diff's calibration fits it before this; a
@@ -1266,6 +1270,9 @@ def update_calibration(cal, frames: Sequence[Frame], method: str) -> dict:
         unc, report["peak"] = fit_peak_uncertainty(frames, cal.peak(),
                                                    mount_tilt=(left, 0.0) if left is not None else
                                                    cal.forward().mount_tilt if forward else None)
+        if widen_peak > 1.0:
+            report["peak"]["small_sample"] = {"factor": widen_peak, "scale_in_sample": unc.scale}
+            unc = unc.replace(scale=min(unc.scale * widen_peak, MAX_SCALE))
         section["peak"] = unc.to_dict()
         mount_deg = report["peak"].get("tilt_offset_mount_deg", 0.0)
         if method == "peak":  # (a diff calibration prints diff's notes, which say the same of this capture)

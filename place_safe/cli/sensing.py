@@ -91,6 +91,9 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     for name in fitted:  # what a report asks the user to act on, where the long listing cannot hide it (even -q)
         for where, text in report_notes(cal.reports.get(name, {}), name):
             log(f"note ({where}): {text}")
+    for name in sorted(cal.errors):  # kept from the file as it was (even -q): place refuses the whole file for it
+        log(f"warning: {out}: section '{name}' kept invalid ({cal.errors[name]}); place and scenarios refuse this "
+            f"file until it is refit or removed")
     if not args.quiet:
         log(f"wrote {out} (sections: {', '.join(cal.sections)})")
     return 0
@@ -202,6 +205,8 @@ def cmd_recover(args: argparse.Namespace) -> int:
         bar.update(1)
     bar.close()
     out.flush()
+    if args.jsonl and note is not None and not args.quiet:  # (after the run: an error stays stderr's one line)
+        log(note)  # standard output stays JSON lines, each with "calibrated": false
     if not args.quiet:
         log(f"recovered {n - bad} of {n} frames with {args.method}" + (f" ({bad} without a plane)" if bad else ""))
     return 0
@@ -230,8 +235,10 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         cal = (cal if cal is not None else Calibration()).without_fallback()
         print("diff without its fallback: its own plane on every frame it solves (never peak's)", flush=True)
     options = {"diff": {"mode": args.diff_mode}} if args.diff_mode else None
+    by_reason = {why: int(n) for n, _, why in  # the skipped frames, in the report too (count_note: "N skipped: k why")
+                 (item.partition(" ") for item in skipped.partition(": ")[2].split(", ") if item)}
     report = evaluate(frames, cal, list(args.methods), None if args.no_plots else args.out, not args.quiet,
-                      estimator_options=options)
+                      estimator_options=options, skipped=by_reason)
     print(report.table(), flush=True)
     if args.json:
         data = report.to_dict() if hasattr(report, "to_dict") else report

@@ -95,7 +95,11 @@ class EvaluationReport:
     unavailable: dict[str, str] = field(default_factory=dict)
     z0: np.ndarray = field(default_factory=lambda: np.zeros(0))  # true axis distance per frame (m)
     theta: np.ndarray = field(default_factory=lambda: np.zeros(0))  # true angle of incidence (rad)
-    skipped: int = 0  # frames without ground truth
+    skipped: int = 0  # frames without ground truth, or whose ground truth is not a plane (given or skipped before)
+    #: every frame left out, by reason (those :func:`evaluate` was given without ground truth, and what its caller
+    #: skipped before: ``evaluate``'s file reader counts unreadable frames, frames without or with a broken ground truth
+    #: and frames outside the distance limits)
+    skipped_reasons: dict[str, int] = field(default_factory=dict)
     plots: list[str] = field(default_factory=list)
     #: methods that ran on built-in constants, not on the calibration (their rows say so)
     uncalibrated: set[str] = field(default_factory=set)
@@ -132,28 +136,43 @@ class EvaluationReport:
         for name, why in self.unavailable.items():
             lines.append(f"{name:<18} unavailable: {why}")
         lines.append(f"({len(self.z0)} frames with ground truth"
-                     + (f", {self.skipped} without skipped)" if self.skipped else ")"))
+                     + (f"; {sum(self.skipped_reasons.values())} skipped: "
+                        + ", ".join(f"{n} {why}" for why, n in self.skipped_reasons.items()) + ")"
+                        if self.skipped_reasons else ")"))
         return "\n".join(lines)
 
     def to_dict(self) -> dict:
         return {"frames": int(len(self.z0)), "skipped_without_truth": self.skipped,
+                "skipped": dict(self.skipped_reasons),
                 "methods": {k: {**v.summary(), "calibrated": k not in self.uncalibrated}
                             for k, v in self.results.items()},
                 "unavailable": dict(self.unavailable), "plots": list(self.plots)}
 
 
+#: Reasons of skipped frames (:attr:`EvaluationReport.skipped_reasons`) that count as without ground truth.
+WITHOUT_TRUTH = ("no ground truth", "ground truth not a plane")
+
+
 def evaluate(frames: Sequence[Frame], calibration: Any = None, methods: Sequence[str] = ("peak",),
              out_dir: str | Path | None = None, progress: bool = True,
-             estimator_options: dict[str, dict] | None = None) -> EvaluationReport:
+             estimator_options: dict[str, dict] | None = None,
+             skipped: dict[str, int] | None = None) -> EvaluationReport:
     """Run ``methods`` on the frames with ground truth; see the module docstring.
 
     ``estimator_options`` maps a method name to keyword options for its estimator
-    (e.g. ``{"diff": {"mode": "paper"}}``).
+    (e.g. ``{"diff": {"mode": "paper"}}``). ``skipped``: frames the caller left out before, by reason (the report
+    counts them with the frames given without ground truth: ``skipped_without_truth`` those of :data:`WITHOUT_TRUTH`).
     """
     from tqdm import tqdm
 
     use = [f for f in frames if f.truth is not None]
-    report = EvaluationReport(skipped=len(frames) - len(use))
+    reasons = {str(k): int(v) for k, v in (skipped or {}).items() if int(v) > 0}
+    own = {"ground truth not a plane": sum(1 for f in frames if f.truth is None and getattr(f, "truth_error", None))}
+    own["no ground truth"] = len(frames) - len(use) - own["ground truth not a plane"]
+    for why, n in own.items():
+        if n:
+            reasons[why] = reasons.get(why, 0) + n
+    report = EvaluationReport(skipped=sum(reasons.get(k, 0) for k in WITHOUT_TRUTH), skipped_reasons=reasons)
     report.z0 = np.array([f.truth.z0 for f in use])
     report.theta = np.array([f.truth.theta for f in use])
     tn = np.array([f.truth.normal for f in use]).reshape(-1, 3)

@@ -11,6 +11,13 @@ inside one frame (bytes that are not UTF-8, invalid JSON, nesting too deep, a fr
 integer too long, a value that is not an object) are yielded as a :class:`FrameError` for that
 frame, naming the file and the frame index; only problems with the file's structure (not a list,
 truncated, unreadable) raise :class:`FrameFileError`, after every complete frame before them.
+
+Leniencies, on purpose: a comma after the last frame (``[{...}, ]``, as hand-edited lists often end) is read as the
+end of the list, not as a frame. An empty list (``[]``, or a JSON Lines file without a frame) is a frame file with no
+frames: the reader yields none, so ``recover --jsonl`` writes its one line per input frame, none, and exits 0 (as
+docs/interfaces.md has it), ``stream`` replays nothing and exits 0, and ``evaluate`` and ``calibrate``, which need
+frames with ground truth, refuse it (exit 2). ``sensor stream file:`` differs on purpose: it reads the file as a live
+sensor, where no frame within its wait is the sensor failing (exit 1, as for a silent device).
 """
 
 from __future__ import annotations

@@ -43,8 +43,12 @@ COVARIANCE_ORDER = ("n_x", "n_y", "d")
 #: m: largest zone range error the near-range term may hold.
 NEAR_MAX_STD = 0.05
 
-#: The largest ``Uncertainty.scale`` (calibration keeps its fit within 0.1 .. this).
+#: The largest ``Uncertainty.scale`` (calibration keeps its fit within :data:`MIN_SCALE` .. this).
 MAX_SCALE = 10.0
+#: The smallest ``Uncertainty.scale`` a calibration states (:func:`~place_safe.calibration.uncertainty.fit_floor` clips
+#: its fit here) and a file may hold (below it, e.g. a hand-edited 1e-12, the file is refused): a covariance shrunk
+#: tenfold makes every plane three times as certain as its own fit says (the real sweep's calibrations: 0.2-1.1).
+MIN_SCALE = 0.1
 
 
 class Uncertainty(ParamModel):
@@ -105,7 +109,7 @@ class Uncertainty(ParamModel):
                               description="(reduced chi-square)")
     tilt_range_std: float = Field(0.0, ge=0.0, le=1.0, description="m")
     offset_rel: float = Field(0.0, ge=0.0, le=1.0, description="(dimensionless)")
-    scale: float = Field(1.0, gt=0.0, le=MAX_SCALE, description="(dimensionless)")
+    scale: float = Field(1.0, ge=MIN_SCALE, le=MAX_SCALE, description="(dimensionless)")
     consistency_limit: float = Field(math.inf, gt=0.0, allow_inf_nan=True,
                                      description="(squared Mahalanobis distance)")
     near_depths: vector(gt=0.0, le=10.0) = Field(default_factory=list, description="m")
@@ -225,6 +229,16 @@ class Uncertainty(ParamModel):
     _OMITTED_AT: ClassVar[tuple[tuple[str, Any], ...]] = (("tilt_rel", 0.0), ("prefer_ratio", None),
                                                            ("tilt_pivot", 1.0), ("tilt_offset_rel", 0.0),
                                                            ("blend", False), ("tilt_about", [0.0, 0.0]))
+
+    #: the model-error floor's terms (:meth:`floor`); a calibrated entry states some (:meth:`states_no_floor`)
+    FLOOR_TERMS: ClassVar[tuple[str, ...]] = ("tilt_std", "tilt_range_std", "offset_std", "offset_rel")
+
+    def states_no_floor(self) -> bool:
+        """Whether every term of the model-error floor (:data:`FLOOR_TERMS`) is 0: the defaults (no section), but never
+        what a calibration fits (the real sweep's peak floor: 0.3 mrad and 0.04 mm; some terms may be 0, not all), so a
+        file's entry that says so claims a model without error and is refused when read
+        (:meth:`place_safe.calibration.Calibration.uncertainty`); on the real sweep it made peak's NEES per dof 5.7."""
+        return not any(getattr(self, k) for k in self.FLOOR_TERMS)
 
     def without_fallback(self) -> "Uncertainty":
         """This uncertainty with every :data:`FALLBACK_LIMITS` at ``inf``: ``diff`` returns its own plane wherever it

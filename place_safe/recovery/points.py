@@ -79,6 +79,10 @@ INVERSE_MAX_SHIFT = 0.05
 #: keep rising with range for a reading to have one range (the real peak fits: 0.84 and more; the odd half's
 #: on-sensor distances 0.58), and its inverse is then tabulated to well under a micrometre.
 INVERSE_MIN_SLOPE = 0.5
+#: m: the narrowest ``residual_domain`` (``hi - lo``). The series in ``u = (2 r - lo - hi) / (hi - lo)`` and the
+#: inverse-range table divide by the width; a narrower domain loses the series' argument to rounding (and at 0 divides
+#: by zero). Calibration widens a sweep narrower than this to it (:func:`~place_safe.calibration.points.fit_linear`).
+MIN_DOMAIN_WIDTH = 1e-3
 #: m: largest zone residual a mapping may state (PeakParams.zone_residual, .common_residual); the real sweep's on-sensor
 #: distances leave 0.5-0.9 mm.
 MAX_ZONE_RESIDUAL = 0.1
@@ -142,12 +146,14 @@ class PeakParams(ParamModel):
         if len(self.zone_inverse) % N_ZONES:
             raise ValueError(f"zone_inverse needs {N_ZONES} values per power of the inverse range, "
                              f"got {len(self.zone_inverse)}")
+        lo, hi = self.residual_domain  # first: the checks below map the domain onto [-1, 1] (divide by hi - lo)
+        if not hi - lo >= MIN_DOMAIN_WIDTH * (1.0 - 1e-9):  # (lo + 1 mm - lo rounds either way)
+            raise ValueError(f"residual_domain must be [lo, hi] (m) with hi at least {MIN_DOMAIN_WIDTH * 1e3:g} mm "
+                             f"above lo, got {self.residual_domain}")
         if self.zone_inverse and (why := self.inverse_problem()) is not None:
             raise ValueError(why)
         if len(self.phase_coeffs) % 2:
             raise ValueError("phase_coeffs needs (sin, cos) pairs, got an odd count")
-        if not self.residual_domain[0] < self.residual_domain[1]:
-            raise ValueError(f"residual_domain must be [lo, hi] with lo < hi, got {self.residual_domain}")
         k = len(self.near_depths)
         if k == 1 or (k and not all(b - a >= NEAR_MIN_SPACING for a, b in zip(self.near_depths, self.near_depths[1:]))):
             raise ValueError("near_depths must be empty or 2 or more increasing depths (m), "

@@ -194,6 +194,7 @@ class Scenario(ConfigModel):
                     if deg == "tilt_deg" and not -90.0 < v < 90.0:  # (the field's own bound would be said in rad)
                         raise ValueError(f"scene.table.tilt_deg must be between -90 and 90 deg (exclusive), got {v:g}")
                     table[rad] = math.radians(v)
+            _lean_the_other_way(table)
             scene["table"] = table
         d["scene"] = scene
         bad = _non_finite(scene, "scene")
@@ -204,6 +205,9 @@ class Scenario(ConfigModel):
     @model_validator(mode="after")
     def _check_parts(self) -> "Scenario":
         self.scene_config()  # raises with the scene's own message
+        if not self.calibration.strip():  # (else read as the scenario's own directory)
+            raise ValueError(f"calibration is empty; expected one of {', '.join(CALIBRATION_KINDS)} or a calibration "
+                             "file")
         if self.calibration not in CALIBRATION_KINDS:  # a calibration file: there and readable before any run
 
             if (why := input_file_problem(self._calibration_path())) is not None:
@@ -410,6 +414,20 @@ class TruthRecorder:
                 or (rb.protective_stop_below is not None and h <= rb.protective_stop_below)):
             self.stop_injected = f"injected protective stop at t={t:.3f} s, cup {h * 1e3:.0f} mm above the surface"
             self.robot._raise_fault(f"protective stop ({self.stop_injected})")  # what the controller latches
+
+
+def _lean_the_other_way(table: dict) -> None:
+    """A negative ``tilt`` (rad) of a scenario's ``scene.table`` (a dict, in place) as the same top leaning by ``-tilt``
+    towards the opposite azimuth (``tilt_direction`` + 180 deg, within the field's +-360 deg): the top normal is
+    ``(sin t cos a, sin t sin a, cos t)``, which ``-t`` and ``a`` give alike with ``t`` and ``a + pi``. The scene
+    builds only tilts of 0 or more; a value that is not a number is left to the scene's own validation."""
+    tilt, direction = table.get("tilt"), table.get("tilt_direction", 0.0)
+    if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in (tilt, direction)):
+        return
+    if -math.pi / 2 < tilt < 0.0 and -2.0 * math.pi <= direction <= 2.0 * math.pi:  # (else the fields' bounds say so)
+        direction += math.pi
+        table["tilt"] = -tilt
+        table["tilt_direction"] = direction - 2.0 * math.pi if direction > 2.0 * math.pi else direction
 
 
 def surface_truth(scene: Any, data: Any) -> tuple[float, float]:

@@ -294,3 +294,41 @@ def test_a_calibration_without_fallback_returns_diffs_own_plane_and_keeps_every_
     used = {e.method_used for e in make_estimator("diff", cal).estimate_many(frames) if e.ok}
     own_used = {e.method_used for e in make_estimator("diff", own).estimate_many(frames) if e.ok}
     assert "peak" in used and own_used == {"diff"}
+
+
+def _ten_frames(sweep_path, tmp_path):
+    """10 of the real sweep's frames from 9.5 cm on (a calibration of the recommended size), as a frame file."""
+    entries = sorted((e for e in json.loads(sweep_path.read_text()) if e["dist_to_plane"] >= 0.09),
+                     key=lambda e: e["dist_to_plane"])
+    path = tmp_path / "ten.json"
+    path.write_text(json.dumps([entries[round(k * (len(entries) - 1) / 9)] for k in range(10)]))
+    return path
+
+
+def test_calibrate_onto_a_file_whose_peak_domain_has_no_width_refits_it(tmp_path, sweep_path, capsys):
+    """``calibrate -o`` onto a file whose peak section has ``residual_domain`` [0.1, 0.1] and zone_inverse read it
+    with an internal ZeroDivisionError (exit 1): now the section is one invalid section, which the fit replaces."""
+    from place_safe.cli.app import main
+
+    out = tmp_path / "cal.json"
+    out.write_text(json.dumps({"format": FORMAT, "peak": {"m": 72.0, "b": 13.0, "residual_domain": [0.1, 0.1],
+                                                          "zone_inverse": [0.1] * 9}}))
+    assert "residual_domain must be" in Calibration.load(out).errors["peak"]
+    assert main(["calibrate", str(_ten_frames(sweep_path, tmp_path)), "--method", "peak", "-o", str(out), "-q"]) == 0
+    assert "warning" not in capsys.readouterr().err
+    Calibration.load(out).check()
+
+
+def test_calibrate_into_a_file_with_another_broken_section_says_so_even_quietly(tmp_path, sweep_path, capsys):
+    """A file whose peak section is broken (m out of range) took a proprietary fit silently with -q and kept the broken
+    section, and place then refused the whole file: one warning line names the section."""
+    from place_safe.cli.app import main
+
+    out = tmp_path / "cal.json"
+    out.write_text(json.dumps({"format": FORMAT, "peak": {"m": -1.0, "b": 13.0}}))
+    assert main(["calibrate", str(_ten_frames(sweep_path, tmp_path)), "--method", "proprietary", "-o", str(out),
+                 "-q"]) == 0
+    warnings = [x for x in capsys.readouterr().err.splitlines() if x.startswith("warning")]
+    assert len(warnings) == 1 and f"{out}: section 'peak' kept invalid (peak parameters: m" in warnings[0]
+    cal = Calibration.load(out)
+    assert set(cal.errors) == {"peak"} and "proprietary" in cal.sections

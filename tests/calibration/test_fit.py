@@ -121,3 +121,61 @@ def test_the_second_forward_fit_starts_alongside_for_level_sweeps_and_tilted_cap
         with pytest.raises(Stop):
             fit_method(Calibration(), frames, "diff")
         assert started[-1] is expected
+
+
+def _spread(frames, n, start=0):
+    """``n`` of the sweep's frames from 9.5 cm on, spread evenly over its range."""
+    far = sorted((f for f in frames if f.truth.z0 >= 0.09), key=lambda f: f.truth.z0)
+    return [far[round(start + k * (len(far) - 1 - start) / (n - 1))] for k in range(n)]
+
+
+@pytest.mark.parametrize("method", ["peak", "proprietary", "diff"])
+def test_too_few_frames_or_distances_are_one_error_before_any_fit(sweep_frames, method):
+    """3 frames (the adversarial round's c_three: peak wrote tilt_std 0, offset_std 0 and planes 300 times too certain)
+    or frames at fewer than 3 distances: one line saying how many are needed, nothing written."""
+    cal = Calibration()
+    for frames, words in ((_spread(sweep_frames, 3), "3 frames with ground truth"),
+                          ([sweep_frames[30]] * 8, "at 1 distinct distance"),
+                          ([f for f in sweep_frames if f.truth.z0 < 0.03], "0 frames")):
+        with pytest.raises(CalibrationError, match=words) as info:
+            fit_method(cal, frames, method)
+        assert "needs 5 or more frames at 3 or more distances" in str(info.value) and "\n" not in str(info.value)
+    assert not cal.sections
+
+
+def test_a_small_calibration_says_so_and_widens_what_its_own_frames_state(sweep_frames):
+    """6 frames (5-9: the project's own smallest calibrations are 6 and 8 frames): the fit goes on, its report carries
+    a note (printed even with -q) and peak's scale and the on-sensor distances' residuals are widened by the
+    small-sample factor (n + p) / (n - p); from 10 frames on neither."""
+    from place_safe.calibration.points import small_sample_factor
+
+    cal = Calibration()
+    fit_method(cal, _spread(sweep_frames, 6), "peak")
+    rep = cal.reports["peak"]
+    n, p = rep["readings"], rep["parameters"]
+    assert rep["frames"] == 6 and n == 54 and 20 <= p <= 40
+    factor = (n + p) / (n - p)
+    assert small_sample_factor(rep) == pytest.approx(factor)
+    widened = cal.reports["uncertainty"]["peak"]["small_sample"]
+    assert widened["factor"] == pytest.approx(factor)
+    assert cal.uncertainty("peak").scale == pytest.approx(min(widened["scale_in_sample"] * factor, 10.0))
+    note = rep["small_sample"]["note"]
+    assert "calibrated on only 6 frames" in note and f"{factor:.2f}" in note
+    fit_method(cal, _spread(sweep_frames, 6), "proprietary")
+    prop = cal.reports["proprietary"]
+    assert "calibrated on only 6 frames" in prop["small_sample"]["note"]
+    own = prop["small_sample"]["zone_residual_mm_in_sample"]["own"] * 1e-3
+    f2 = prop["small_sample"]["factor"]
+    assert cal.proprietary().zone_residual == pytest.approx(min(own * math.sqrt(f2), 0.1))
+    big = Calibration()
+    fit_method(big, _spread(sweep_frames, 10), "peak")
+    assert "small_sample" not in big.reports["peak"] and "small_sample" not in big.reports["uncertainty"]["peak"]
+
+
+def test_a_fit_that_leaves_a_floorless_uncertainty_is_refused_not_written(sweep_frames):
+    """Mostly near frames (7, of which 2 beyond the near-range table's end): the floor's fit had fewer than 3 frames
+    and wrote no floor at all, a file every command then refuses (Calibration.uncertainty): calibrate says so."""
+    near = sorted(sweep_frames, key=lambda f: f.truth.z0)
+    pick = [min(near, key=lambda f: abs(f.truth.z0 - z)) for z in (0.035, 0.045, 0.06, 0.07, 0.08, 0.2, 0.3)]
+    with pytest.raises(CalibrationError, match="peak's model error could not be fitted.*add frames farther out"):
+        fit_method(Calibration(), pick, "peak")

@@ -364,3 +364,19 @@ def test_the_too_close_screen_allows_for_what_the_terms_take_off_a_range():
     valid = np.ones(9, bool)
     assert may_be_close(readings, valid, p)
     assert not may_be_close(readings, valid, PeakParams(71.0, 13.0, residual_domain=[0.03, 0.4]))
+
+
+@pytest.mark.parametrize("domain", [[0.1, 0.1], [0.4, 0.03], [0.1, 0.10000000000000002], [0.1, 0.100000001]])
+@pytest.mark.parametrize("inverse", [[], [0.1] * 9])
+def test_a_residual_domain_not_a_millimetre_wide_is_one_calibration_error(domain, inverse):
+    """lo == hi divided by zero in the zone_inverse check (an internal error, exit 1), a reversed or nearly equal pair
+    gave that check's misleading messages: the domain is checked first, one line; the fit's narrowest one (1 mm)
+    holds."""
+    from place_safe.recovery.points import MIN_DOMAIN_WIDTH
+
+    words = r"residual_domain must be \[lo, hi\] \(m\) with hi at least 1 mm"
+    with pytest.raises(CalibrationError, match=words) as info:
+        PeakParams(71.0, 13.0, residual_domain=domain, zone_inverse=inverse)
+    assert "\n" not in str(info.value)
+    for lo in (0.03, 0.1, 0.155005, 0.3):  # lo + 1 mm - lo rounds below 1 mm for some lo: still accepted
+        PeakParams(71.0, 13.0, residual_domain=[lo, lo + MIN_DOMAIN_WIDTH], zone_inverse=inverse)

@@ -148,6 +148,15 @@ def calibration_kinds() -> dict[str, bytes]:
         "cal-range-correction-400-coeffs": cal(diff={"range_correction": {"coeffs": [0.05] * 400}}),
         "cal-albedo-series-overflow": cal(diff={"range_correction": {"albedo": [3.0] * 300}}),
         "cal-uncertainty-tilt-1e308": cal(peak=peak, uncertainty={"peak": {"tilt_std": 1e308}}),
+        # session 66's round: a residual domain of no width (with zone_inverse: an internal ZeroDivisionError, exit
+        # 1), reversed or of rounding width; uncertainty entries that shrink every covariance (no floor, scale 1e-12)
+        "cal-domain-equal": cal(peak={**peak, "residual_domain": [0.1, 0.1], "zone_inverse": [0.1] * 9}),
+        "cal-domain-reversed": cal(peak={**peak, "residual_domain": [0.4, 0.03], "zone_inverse": [0.1] * 9}),
+        "cal-domain-rounding": cal(peak={**peak, "residual_domain": [0.1, 0.10000000000000002],
+                                         "zone_inverse": [0.1] * 9}),
+        "cal-uncertainty-no-floor": cal(peak=peak, uncertainty={"peak": {"tilt_std": 0.0, "offset_std": 0.0,
+                                                                         "scale": 0.95}}),
+        "cal-uncertainty-scale-1e-12": cal(peak=peak, uncertainty={"peak": {"tilt_std": 3e-4, "scale": 1e-12}}),
     }
 
 
@@ -568,6 +577,42 @@ def test_corpus_expectations_that_must_hold(tmp_path, capsys):
     capsys.readouterr()
     assert main(["evaluate", runs["evaluate/truth-zero-normal"][1], "--methods", "peak", "--no-plots"]) == 0
     assert "1 ground truth not a plane" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("kind, words", [("cal-domain-equal", "residual_domain must be"),
+                                         ("cal-domain-reversed", "residual_domain must be"),
+                                         ("cal-domain-rounding", "residual_domain must be"),
+                                         ("cal-uncertainty-no-floor", "states no model error"),
+                                         ("cal-uncertainty-scale-1e-12", "scale")])
+def test_calibrations_that_shrink_or_break_the_peak_mapping_are_one_line_errors(tmp_path, capsys, kind, words):
+    """Session 66's calibrations: recover refuses each with the file's one-line calibration error (exit 2), evaluate
+    lists peak as unavailable with it (no internal error, exit 1, as the zero-width domain gave both)."""
+    path = tmp_path / f"{kind}.json"
+    path.write_bytes(calibration_kinds()[kind])
+    good = tmp_path / "good.json"
+    good.write_text(_dump(_frames()))
+    assert main(["recover", str(good), "--method", "peak", "--calibration", str(path), "--jsonl", "-q"]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and words in err and str(path) in err, err
+    assert main(["evaluate", str(good), "--calibration", str(path), "--methods", "peak", "--no-plots", "-q"]) == 0
+    out = capsys.readouterr().out
+    assert "peak               unavailable: CalibrationError" in out and words in out, out
+
+
+def test_recover_jsonl_with_a_calibration_lacking_the_method_says_so_on_stderr(tmp_path, capsys):
+    """``recover --jsonl --method diff --calibration PEAK_ONLY`` said only "recovered N of N frames": standard output
+    stays JSON lines ("calibrated": false), and standard error carries the UNCALIBRATED line the table mode prints first
+    (not with -q, whose standard error stays empty)."""
+    cal = tmp_path / "peak-only.json"
+    cal.write_bytes(calibration_kinds()["cal-good-bom"])
+    good = tmp_path / "good.json"
+    good.write_text(_dump(_frames()))
+    assert main(["recover", str(good), "--method", "proprietary", "--calibration", str(cal), "--jsonl"]) == 0
+    cap = capsys.readouterr()
+    assert all(json.loads(x)["calibrated"] is False for x in cap.out.splitlines())
+    assert cap.err.startswith("UNCALIBRATED:") and "no proprietary section" in cap.err.splitlines()[0]
+    assert main(["recover", str(good), "--method", "proprietary", "--calibration", str(cal), "--jsonl", "-q"]) == 0
+    assert capsys.readouterr().err == ""
 
 
 def replay(runs: list[tuple[str, list[str], bool]], timeout: float = 120.0, jobs: int = 1) -> dict[str, list[str]]:

@@ -86,3 +86,38 @@ def test_table_says_a_zero_fallback_rate():
                        used=["diff"] * n)
     table = EvaluationReport(results={"diff": res}, z0=np.full(n, 0.1), theta=np.zeros(n)).table()
     assert "used diff 3 (fallback rate 0 %)" in table
+
+
+def test_frames_skipped_before_and_frames_with_a_broken_truth_are_counted_and_reported():
+    """The command's reader drops frames whose ground truth is not a plane (a zero normal, a NaN distance) before
+    evaluate sees them; its JSON said ``skipped_without_truth: 0`` and its table "(5 frames with ground truth)". The
+    counts by reason now reach the report: the table's last line and ``skipped`` / ``skipped_without_truth``."""
+    import copy
+
+    sweep = load_frames(SWEEP)[20:24]
+    broken = copy.copy(sweep[0])
+    broken.truth, broken.truth_error = None, "ground truth: the plane normal has zero length"
+    rep = evaluate([broken] + sweep[1:], None, ["peak-naive"], progress=False,
+                   skipped={"ground truth not a plane": 2, "outside the distance limits": 1})
+    d = rep.to_dict()
+    assert d["frames"] == 3 and d["skipped_without_truth"] == 3
+    assert d["skipped"] == {"ground truth not a plane": 3, "outside the distance limits": 1}
+    assert rep.table().splitlines()[-1] == ("(3 frames with ground truth; 4 skipped: 3 ground truth not a plane, "
+                                            "1 outside the distance limits)")
+
+
+def test_the_command_reports_the_frames_its_reader_skipped(tmp_path, capsys):
+    import json
+
+    from place_safe.cli.app import main
+
+    entries = json.loads(SWEEP.read_text())[20:23]
+    entries[1].pop("pose", None)
+    entries[1]["plane"] = {"normal": [0, 0, 0], "offset": 0.1}
+    path = tmp_path / "f.json"
+    path.write_text(json.dumps(entries))
+    out = tmp_path / "ev.json"
+    assert main(["evaluate", str(path), "--methods", "peak-naive", "--no-plots", "-q", "--json", str(out)]) == 0
+    assert "(2 frames with ground truth; 1 skipped: 1 ground truth not a plane)" in capsys.readouterr().out
+    d = json.loads(out.read_text())
+    assert d["frames"] == 2 and d["skipped_without_truth"] == 1 and d["skipped"] == {"ground truth not a plane": 1}

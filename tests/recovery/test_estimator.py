@@ -61,7 +61,7 @@ def test_calibration_files_keep_their_uncertainty_sections_byte_for_byte():
 
 @pytest.mark.parametrize("bad, words", [
     ({"tilt": 1.0}, "uncertainty: tilt: unknown key"),
-    ({"scale": 0}, "uncertainty: scale: Input should be greater than 0"),
+    ({"scale": 0}, "uncertainty: scale: Input should be greater than or equal to 0.1"),  # MIN_SCALE
     ({"chi2_limit": -1.0}, "uncertainty: chi2_limit: Input should be greater than or equal to 0"),
     ({"tilt_std": "0.1"}, "uncertainty: tilt_std: Input should be a valid number"),
     ({"near_depths": [0.1, 0.2], "near_range_std": [0.01]}, "uncertainty: near_depths and near_range_std need"),
@@ -398,3 +398,31 @@ def test_without_fallback_lifts_only_the_fallback_limits():
     own = unc.without_fallback()
     assert all(math.isinf(getattr(own, k)) for k in Uncertainty.FALLBACK_LIMITS)
     assert own.replace(**{k: getattr(unc, k) for k in Uncertainty.FALLBACK_LIMITS}) == unc  # nothing else moved
+
+
+def test_an_uncertainty_entry_that_shrinks_every_covariance_is_refused_when_read():
+    """A hand-edited file with ``scale`` 1e-12 (NEES 3e11 on the sweep) or every floor term 0 (a model without error:
+    NEES 5.7) was accepted; each is now one CalibrationError line naming the entry. Some zero terms are fitted (the
+    packaged mismatched calibration's peak has no tilt floor) and stay accepted, as do the defaults of a missing
+    entry."""
+    from place_safe.recovery.estimator import MIN_SCALE
+
+    fmt = {"format": "place_safe.calibration/1"}
+    for entry, words in (({"tilt_std": 3e-4, "scale": 1e-12}, "scale"), ({"tilt_std": 3e-4, "scale": 0.0}, "scale"),
+                         ({"tilt_std": 0.0, "offset_std": 0.0, "scale": 0.95}, "states no model error"),
+                         ({}, "states no model error")):
+        cal = Calibration.from_dict({**fmt, "uncertainty": {"peak": entry}})
+        with pytest.raises(CalibrationError, match=f"section .uncertainty.: uncertainty.peak: .*{words}") as info:
+            cal.uncertainty("peak")
+        assert "\n" not in str(info.value)
+        with pytest.raises(CalibrationError):
+            cal.check()
+    with pytest.raises(CalibrationError):
+        Uncertainty(scale=MIN_SCALE / 2)
+    assert Uncertainty(scale=MIN_SCALE).scale == MIN_SCALE
+    kept = Calibration.from_dict({**fmt, "uncertainty": {"peak": {"offset_std": 8e-6, "scale": 0.21}}})
+    assert kept.uncertainty("peak").offset_std == 8e-6
+    assert Calibration.from_dict(fmt).uncertainty("peak") == Uncertainty()  # no entry: the defaults
+    # a calibration without diff's entry keeps none without its fallback (the defaults never fall back)
+    assert Calibration().without_fallback().uncertainty("diff") == Uncertainty()
+    assert kept.without_fallback().uncertainty("peak") == kept.uncertainty("peak")

@@ -145,3 +145,42 @@ def test_default_calibration_is_the_user_calibration_not_the_oracle():
         assert fw.to_dict() != tp.to_dict()  # fitted, not copied from the simulator
     cal, note = Scenario(calibration="oracle").resolve_calibration()
     assert note.startswith("ORACLE")
+
+
+@pytest.mark.parametrize("table, tilt_deg, direction_deg", [
+    ({"tilt_deg": -10.0}, 10.0, 180.0),
+    ({"tilt_deg": -10.0, "tilt_direction_deg": 90.0}, 10.0, 270.0),
+    ({"tilt_deg": -10.0, "tilt_direction_deg": 300.0}, 10.0, 120.0),
+    ({"tilt": -0.1, "tilt_direction": -math.pi}, math.degrees(0.1), 0.0),
+    ({"tilt_deg": 10.0, "tilt_direction_deg": 90.0}, 10.0, 90.0),
+])
+def test_a_negative_table_tilt_leans_towards_the_opposite_azimuth(table, tilt_deg, direction_deg):
+    """``table.tilt_deg = -10`` passed validation and failed when the scene was built (the scene builds 0 <= tilt):
+    the run was an error row with tilt 'nan' (exit 1) and ``place --sim`` named neither file nor field. The tilt is
+    signed along its azimuth, so -10 deg is the same top as 10 deg towards the azimuth + 180 deg."""
+    sc = parse_config(Scenario, {"scene": {"table": table}, "expect": {"outcome": "any"}}, "scenario x")
+    t = sc.scene_config().table
+    assert t.tilt == pytest.approx(math.radians(tilt_deg))
+    assert math.cos(t.tilt_direction) == pytest.approx(math.cos(math.radians(direction_deg)), abs=1e-12)
+    assert math.sin(t.tilt_direction) == pytest.approx(math.sin(math.radians(direction_deg)), abs=1e-12)
+
+
+def test_a_negatively_tilted_table_builds_as_the_opposite_lean():
+    from place_safe.sim.scene import build_scene
+
+    normals = []
+    for table in ({"tilt_deg": -10.0, "tilt_direction_deg": 30.0}, {"tilt_deg": 10.0, "tilt_direction_deg": 210.0}):
+        sc = parse_config(Scenario, {"scene": {"table": table}, "expect": {"outcome": "any"}}, "scenario x")
+        scene = build_scene(sc.scene_config())
+        normals.append(scene.table_plane_world(scene.make_data())[0])
+    assert normals[0] == pytest.approx(normals[1], abs=1e-9)
+    assert normals[0][2] == pytest.approx(math.cos(math.radians(10)))
+
+
+def test_an_empty_calibration_name_is_said_to_be_empty(tmp_path):
+    """``calibration = ""`` was read as the scenario's own directory ("calibration file  is a directory")."""
+    f = tmp_path / "s.toml"
+    f.write_text('calibration = ""\n[expect]\noutcome = "any"\n')
+    with pytest.raises(ConfigError, match=f"scenario {f}: calibration is empty; expected one of sim, oracle, none") as e:
+        load_scenario(f)
+    assert "\n" not in str(e.value)
