@@ -145,6 +145,11 @@ INTERNAL_MAX_COUNTS = 132.0
 #: Fraction of the in-window maximum a return found beyond :data:`INTERNAL_BINS` must clear on top of the
 #: noise margin: the internal return's tail past the window (under 6 % of its peak on every simulated unit).
 INTERNAL_TAIL_FRACTION = 0.1
+#: A return whose larger neighbouring bin holds less than this fraction of its height (above the floor) is one bin
+#: wide: no laser pulse is (the TMF8820's pulse spans about 4 bins; the real sweep's returns keep at least 23 % of
+#: their height in the larger neighbour), so it is a glitch or a corrupted count, not a surface (a file of
+#: one-bin spikes read a plane at 0.51 m, or 73 deg tilted: an adversarial corpus).
+SPIKE_FRACTION = 0.02
 
 _KNOTS = np.arange(-HALF_WINDOW, HALF_WINDOW + 1, dtype=float)
 _KNOT_OFFSETS = _KNOTS.astype(int)
@@ -313,14 +318,22 @@ def _highest_return(x: np.ndarray, floor: np.ndarray) -> tuple[np.ndarray, np.nd
     near = INTERNAL_MAX_COUNTS + NOISE_SIGMAS * np.sqrt(np.maximum(floor, 0.0) + INTERNAL_MAX_COUNTS + 1.0)
     internal = inside & (top <= near)  # not told apart from the internal return
     if not internal.any():
-        return k, top, top > noise
+        return k, top, (top > noise) & _wide(x, k, top)
     k2 = x[..., hi:].argmax(axis=-1) + hi
     top2 = np.take_along_axis(x, k2[..., None], axis=-1)[..., 0]
     far = top2 > noise + INTERNAL_TAIL_FRACTION * np.maximum(top, 0.0)
     k = np.where(internal, k2, k)
     has_return = np.where(internal, far, top > noise)
     top = np.where(internal, top2, top)
-    return k, top, has_return
+    return k, top, has_return & _wide(x, k, top)
+
+
+def _wide(x: np.ndarray, k: np.ndarray, top: np.ndarray) -> np.ndarray:
+    """Whether each return at bin ``k`` of height ``top`` (above the floor) is wider than one bin: its larger
+    neighbour holds at least :data:`SPIKE_FRACTION` of it (:data:`SPIKE_FRACTION`)."""
+    left = np.take_along_axis(x, np.maximum(k - 1, 0)[..., None], axis=-1)[..., 0]
+    right = np.take_along_axis(x, np.minimum(k + 1, N_BINS - 1)[..., None], axis=-1)[..., 0]
+    return np.maximum(left, right) >= SPIKE_FRACTION * top
 
 
 def _unmixed(centre: np.ndarray, top: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -466,5 +479,5 @@ def reference_problem(reference) -> str | None:
 
 
 __all__ = ["COUNT_MAX", "STORE_LIMITS", "CLIP_PLATEAU_BINS", "CLIP_MIN_COUNTS", "clipped_zones", "FLOOR_BINS", "AMBIENT_BINS", "HEAD_BINS", "arriving_ambient", "measure_floor", "floor_profile", "ambient_slopes", "find_peaks", "find_returns", "windowed_centroid", "SUBBIN_METHODS",
-           "CENTROID_HALF_WIDTH", "CENTROID_HALF_WIDTHS", "MIXED_SHIFT", "INTERNAL_BINS", "INTERNAL_MAX_COUNTS", "first_return", "reference_floor",
+           "CENTROID_HALF_WIDTH", "CENTROID_HALF_WIDTHS", "MIXED_SHIFT", "INTERNAL_BINS", "INTERNAL_MAX_COUNTS", "SPIKE_FRACTION", "first_return", "reference_floor",
            "reference_problem"]

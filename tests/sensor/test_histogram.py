@@ -401,3 +401,24 @@ def test_estimators_give_no_plane_for_clipped_histograms():
     assert usable_frames(capped, 0.0, 10.0, skipped) == [] and skipped == {"saturated": 3}
     ref = np.asarray(frames[10]["reference_hist"], dtype=float)
     assert reference_problem(ref) is None and "clipped" in reference_problem(np.minimum(ref, 0.2 * ref.max()))
+
+
+def test_a_one_bin_spike_is_not_a_laser_return(monkeypatch):
+    """A return one bin wide (its larger neighbour under SPIKE_FRACTION of its height) is no pulse the TMF8820 makes:
+    no return, where a file of such spikes read a plane at 0.51 m (an adversarial corpus). A pulse about 4 bins wide
+    stays a return, and the rule changes no return of the real sweep."""
+    from pathlib import Path
+
+    import place_safe.sensor.histogram as histogram
+    from place_safe.io.frame_file import load_frames
+
+    h = np.full((9, 128), 20.0)
+    h[:, 60] += 1e6
+    assert not histogram.find_peaks(h)[1].any()
+    pulse = np.exp(-0.5 * ((np.arange(128) - 60.3) / 1.5) ** 2)
+    assert histogram.find_peaks(20.0 + 5000.0 * np.tile(pulse, (9, 1)))[1].all()
+    frames = load_frames(Path(__file__).resolve().parents[1] / "data" / "tmf8820_ur5_sweep.json")
+    hists = np.stack([np.asarray(f.hists, float) for f in frames])
+    with_rule = histogram.find_peaks(hists)[1]
+    monkeypatch.setattr(histogram, "SPIKE_FRACTION", 0.0)
+    assert np.array_equal(histogram.find_peaks(hists)[1], with_rule) and with_rule.mean() > 0.9
