@@ -25,9 +25,9 @@ Conventions
   an outlier. ``max_consecutive_rejects`` gate rejections in a row (frames without a plane between
   them do not count, nor break the run: a frame too close to measure says nothing about the surface) mean
   the surface itself changed (or the old window was wrong): the window is cleared and the new plane starts it.
-  Until then the rejected planes are listed in ``FusedPlane.pending`` (base-frame normal and offset), cleared by the
-  next accepted plane: a surface that rose under the cup may be what they show, and the descent brakes for it at
-  once.
+  Until then the rejected planes are listed in ``FusedPlane.pending`` (base-frame normal and offset), each until
+  :data:`PENDING_CLEARS` planes have been accepted after it: a surface that rose under the cup may be what they show,
+  and the descent brakes for it at once.
 * Too close: while the newest frames are too close to read (no plane, reason
   :data:`~place_safe.recovery.too_close.TOO_CLOSE_REASON`: the return overlaps the internal return) the
   window is not aged (``max_age``): the farther frames' planes, in the base frame, are what there is, and
@@ -102,6 +102,10 @@ MEMORY_INDEPENDENT = 10
 #: deg, 2 deg off six others stating 0.5-0.7 deg, drew the weighted normal to itself, and a 5.3 deg table passed as
 #: 3.4 deg (an adversarial search). The standard error is scaled by the root of the chi-square per degree of freedom.
 BIRGE_QUANTILE = 0.999
+#: A gate-rejected plane stays pending (``FusedPlane.pending``) until this many planes have been accepted after it: a
+#: box seen on only half the frames was pending only until the next table frame, and the descent, braked by three of
+#: its frames, sped up again 2.8 mm above it (an adversarial search).
+PENDING_CLEARS = 3
 
 
 @dataclass(frozen=True)
@@ -132,8 +136,9 @@ class FusedPlane:
     # stamps' order: whether the surface keeps its slope while the cup stands still (rules.still_problem)
     normals: tuple[tuple[float, float, float], ...] = ()
     normal_stds: tuple[float, ...] = ()
-    # gate-rejected planes since the newest accepted one (base frame, (normal, offset) each): a surface closer than
-    # the fused one may be what they show, and the descent brakes for it at once (PlacementMachine._on_descent)
+    # gate-rejected planes not yet outweighed by PENDING_CLEARS accepted ones (base frame, (normal, offset) each): a
+    # surface closer than the fused one may be what they show, and the descent brakes for it at once
+    # (PlacementMachine._descent_speed)
     pending: tuple[tuple[tuple[float, float, float], float], ...] = ()
 
     def height_at(self, point: Any) -> float:
@@ -257,8 +262,8 @@ class PlaneFilter:
         self._items: deque[tuple[float, np.ndarray, np.ndarray, float, float]] = deque(maxlen=self.window)
         self._memory: deque[tuple[float, np.ndarray, float]] = deque(maxlen=max(self.memory, 1))
         self._cache: FusedPlane | None = None
-        # gate-rejected planes (base-frame normal, offset) since the newest accepted one (FusedPlane.pending)
-        self._pending: list[tuple[tuple[float, float, float], float]] = []
+        # gate-rejected planes [(base-frame normal, offset), accepted planes since] still pending (FusedPlane.pending)
+        self._pending: list[list] = []
         self._dirty = True
         self.count = 0  # accepted since reset
         self.rejected = 0  # rejected since reset
@@ -305,16 +310,19 @@ class PlaneFilter:
                 self._reject(f"outlier: {math.degrees(ang):.2f} deg / {off * 1e3:.1f} mm from the fused plane "
                              f"(gates {math.degrees(self.angle_gate):.1f} deg / {self.offset_gate * 1e3:.1f} mm)")
                 if self.consecutive_rejects < self.max_consecutive_rejects:
-                    self._pending.append(((float(n[0]), float(n[1]), float(n[2])), float(n @ anchor)))
+                    self._pending.append([((float(n[0]), float(n[1]), float(n[2])), float(n @ anchor)), 0])
                     return False
                 self._items.clear()  # the surface changed: start again from this plane
                 self._memory.clear()
+                self._pending.clear()
         var = _direction_variance(estimate)
         self._items.append((stamp, n, anchor, var, _offset_std(estimate)))
         if self.memory > 0:
             self._memory.append((stamp, n, var))
         self.newest_accepted = stamp
-        self._pending.clear()
+        for entry in self._pending:  # each accepted plane counts against the rejected ones still pending
+            entry[1] += 1
+        self._pending = [e for e in self._pending if e[1] < PENDING_CLEARS]
         self._dirty = True
         self.count += 1
         self.consecutive_rejects = 0
@@ -346,7 +354,7 @@ class PlaneFilter:
         if len(self._items) < self.min_frames:
             return None
         fused = self._fuse()
-        return replace(fused, pending=tuple(self._pending)) if self._pending else fused
+        return replace(fused, pending=tuple(e[0] for e in self._pending)) if self._pending else fused
 
     def _fuse(self) -> FusedPlane:
         if not self._dirty and self._cache is not None:
@@ -497,4 +505,4 @@ def _angle(a: np.ndarray, b: np.ndarray) -> float:
     return float(2.0 * math.atan2(np.linalg.norm(a - b), np.linalg.norm(a + b)))
 
 
-__all__ = ["FusedPlane", "PlaneFilter", "plane_to_base", "clearance_along"]
+__all__ = ["FusedPlane", "PlaneFilter", "plane_to_base", "clearance_along", "PENDING_CLEARS"]

@@ -41,7 +41,8 @@ The release rule (the only path to :attr:`CommandKind.OPEN_GRIPPER`), checked on
 * the surface is still (:func:`~place_safe.placement.rules.still_problem`): the planes measured at rest
   (or, too close to read, the newest of the window) agree in offset within what their covariances allow,
   with ``still_confidence``, and show no trend; and they agree in normal, with no turn
-  (:func:`~place_safe.placement.rules.slope_still_problem`: a table that tips under the cup);
+  (:func:`~place_safe.placement.rules.slope_still_problem`: a table that tips under the cup), nor read the surface
+  confidently steeper than ``max_tilt`` (:func:`~place_safe.placement.rules.rest_tilt_problem`);
 * the cup bottom's clearance above the plane lies in ``[floor, release_clearance]``, ``floor`` the noise's
   allowance below zero (:func:`~place_safe.placement.rules.clearance_floor`, at most ``release_clearance``),
   or the cup is in contact (``contact_force``) with a clearance in ``[-max_penetration, contact_clearance]``:
@@ -378,8 +379,8 @@ class PlacementMachine:
 
     def _descent_speed(self, c: float) -> float:
         """Speed (m/s) down towards the surface at cup clearance ``c`` (:func:`~place_safe.placement.speed.descent_speed`),
-        and no faster than at the clearance to a closer plane the fusion's gates have rejected since its newest
-        accepted one (:meth:`_pending_clearance`): a surface that rose (a box put under the cup) is rejected as an
+        and no faster than at the clearance to a closer plane the fusion's gates have rejected and not yet outweighed
+        (:meth:`_pending_clearance`): a surface that rose (a box put under the cup) is rejected as an
         outlier ``max_consecutive_rejects`` times before the fused plane follows it, and the braking assumed news
         ``latency`` s late, not that much later (an adversarial search: a box appearing 15-21 mm under the cup was met at
         0.032-0.037 m/s)."""
@@ -393,7 +394,8 @@ class PlacementMachine:
 
     def _pending_clearance(self, plane: FusedPlane, state: RobotState) -> float:
         """Cup clearance (m) to the closest of the gate-rejected planes pending in ``plane`` (``FusedPlane.pending``:
-        rejected since the newest accepted plane), inf without any (malformed ones are skipped: the fused plane's
+        rejected, and fewer than :data:`~place_safe.fusion.plane_filter.PENDING_CLEARS` planes accepted since), inf
+        without any (malformed ones are skipped: the fused plane's
         own checks decide)."""
         cup = np.asarray(state.base_T_cup, dtype=float)
         axis = cup[:3, 2]
@@ -1106,7 +1108,13 @@ class PlacementMachine:
             return self._refuse(now, f"the arm did not stop: the TCP moved {moved * 1e3:.1f} mm after the stop "
                                      f"(> {cfg.rest_tolerance * 1e3:.1f} mm)")
         post = self.post_stop_stamps(plane, now)
-        if (why := rules.still_problem(plane, post, cfg) or rules.slope_still_problem(plane, post, cfg)) is not None:
+        if (why := rules.still_problem(plane, post, cfg)) is not None:
+            return self._refuse(now, why)
+        if (why := rules.slope_still_problem(plane, post, cfg) or rules.rest_tilt_problem(plane, post, cfg)) is not None:
+            # more planes at rest first (one stray plane is then set aside), within the check's deadline
+            if (fresh < max(cfg.check_frames, cfg.max_check_frames) and not self._blind(note)
+                    and not self._elapsed(now, self._t_phase, self._phase_ticks) > cfg.check_timeout):
+                return Command.hold()
             return self._refuse(now, why)
         force = float(state.contact_force)
         contact = force >= cfg.contact_force

@@ -466,8 +466,9 @@ def test_one_overconfident_plane_does_not_draw_the_fused_normal_to_itself():
 
 def test_the_fused_plane_lists_each_planes_normal_and_the_rejected_planes_pending():
     """normals / normal_stds: each window plane's base-frame normal and its direction's std (the slope stillness
-    test); pending: the planes the gates rejected since the newest accepted one (the descent brakes for them at once,
-    not after max_consecutive_rejects of them), cleared by the next accepted plane."""
+    test); pending: the planes the gates rejected (the descent brakes for them at once, not after
+    max_consecutive_rejects of them), each until PENDING_CLEARS planes are accepted after it (a box seen on every
+    other frame stays pending), and none once the window restarts on the new surface."""
     T = looking_down([0.4, 0.0, 0.5])
     f = PlaneFilter(window=5, min_frames=3, max_consecutive_rejects=3)
     for i in range(4):
@@ -481,7 +482,14 @@ def test_the_fused_plane_lists_each_planes_normal_and_the_rejected_planes_pendin
     pending = f.fused().pending
     assert len(pending) == 2 and all(np.allclose(n, (0, 0, 1)) and d == pytest.approx(0.02) for n, d in pending)
     assert f.fused().offset_base == pytest.approx(0.0)  # the fused plane has not followed it yet
-    assert f.update(PlaneEstimate(sensor_plane([0.0, 0.0, 1.0], 0.0, T)), T, 0.3)  # the table again
-    assert f.fused().pending == ()
-    assert not f.update(box, T, 0.35) and not f.update(box, T, 0.4) and f.update(box, T, 0.45)  # the window restarts
+    table = PlaneEstimate(sensor_plane([0.0, 0.0, 1.0], 0.0, T))
+    assert f.update(table, T, 0.3) and len(f.fused().pending) == 2  # the table again: one plane does not outweigh
+    assert f.update(table, T, 0.35) and f.update(table, T, 0.4) and f.fused().pending == ()  # three do
+    for k in range(2):  # the box on every other frame: never outweighed
+        assert not f.update(box, T, 0.45 + 0.1 * k) and f.update(table, T, 0.5 + 0.1 * k)
+        assert len(f.fused().pending) >= 1
+    f = PlaneFilter(window=5, min_frames=3, max_consecutive_rejects=3)
+    for i in range(4):
+        f.update(table, T, 0.05 * i)
+    assert not f.update(box, T, 0.2) and not f.update(box, T, 0.25) and f.update(box, T, 0.3)  # the window restarts
     assert f.fused() is None or f.fused().pending == ()
