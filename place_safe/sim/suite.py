@@ -178,6 +178,19 @@ def judge(sc: Scenario, res: Any, max_tilt: float | None = None) -> dict:
     }
 
 
+def _scene_tilt_deg(sc: Scenario) -> float | None:
+    """The table's tilt (deg, unsigned) a scenario file states, for a row whose run failed (None if it states none
+    readable: the table then shows "-")."""
+    table = sc.scene.get("table") if isinstance(sc.scene, dict) else None
+    if not isinstance(table, dict):
+        return 0.0
+    for key, scale in (("tilt_deg", 1.0), ("tilt", math.degrees(1.0))):
+        v = table.get(key)
+        if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v):
+            return abs(float(v) * scale)
+    return None if ("tilt_deg" in table or "tilt" in table) else 0.0
+
+
 def run_one(item: dict) -> dict:
     """Run one scenario (``{"scenario": dict or path, "seed", "seconds", "calibration", "oracle"}``) -> row.
 
@@ -194,6 +207,7 @@ def run_one(item: dict) -> dict:
                             log_frames=False)
     except (PlaceSafeError, ValueError, OSError) as exc:
         return {"name": sc.name, "description": sc.description, "decision": "error", "reason": str(exc),
+                "sensor": sc.sensor.model, "true_tilt_deg": _scene_tilt_deg(sc),
                 "met": False, "misses": [f"error: {exc}"], "unsafe": False, "clearly_safe": False,
                 "false_refusal": False, "expected": sc.expect.outcome if sc.expect else "any"}
     return judge(sc, res)
@@ -277,7 +291,9 @@ def format_table(rows: list[dict], summary: dict) -> str:
     for r in rows:
         rh = r.get("release_height")
         dt = r.get("decision_time")
-        lines.append(f"{r['name'][:28]:<28} {str(r.get('sensor', ''))[:8]:<8} {r.get('true_tilt_deg', math.nan):5.1f} "
+        tilt = r.get("true_tilt_deg")
+        tilt = f"{tilt:5.1f}" if isinstance(tilt, (int, float)) and math.isfinite(tilt) else f"{'-':>5}"
+        lines.append(f"{r['name'][:28]:<28} {str(r.get('sensor', ''))[:8]:<8} {tilt} "
                      f"{r.get('decision', ''):<9} {'' if rh is None else f'{rh * 1e3:6.1f}':>6} "
                      f"{'y' if r.get('cup_upright', True) else 'N':>3} {r.get('liquid_spilled', 0):>5} "
                      f"{'' if dt is None else f'{dt:6.2f}':>6} {'ok' if r.get('met') else 'MISS':>4}  "

@@ -166,3 +166,19 @@ def test_the_table_cuts_a_long_reason_between_words_and_says_so():
     assert len(cut) <= REASON_WIDTH and cut.endswith("surface ...") and "813" not in cut
     assert _clipped("level (0.1 deg)", REASON_WIDTH) == "level (0.1 deg)"
     assert _clipped("x" * 200, 20) == "x" * 16 + " ..."
+
+
+def test_a_scenario_whose_run_fails_shows_its_stated_tilt_not_nan(monkeypatch):
+    """A run that fails (a scenario that validates but cannot run) is an error row with the tilt its file states,
+    unsigned, and its sensor; the table prints it (it printed 'nan'), or '-' where the file states none readable."""
+    from place_safe.exceptions import ConfigError
+
+    def fail(*a, **k):
+        raise ConfigError("boom")
+
+    monkeypatch.setattr(suite, "run_placement", fail)
+    sc = Scenario.model_validate({"name": "x", "scene": {"table": {"tilt_deg": -10.0}}, "sensor": {"model": "mismatch"}})
+    row = suite.run_one({"scenario": sc.model_dump()})
+    assert row["decision"] == "error" and row["true_tilt_deg"] == pytest.approx(10.0) and row["sensor"] == "mismatch"
+    text = suite.format_table([row, dict(row, true_tilt_deg=None)], suite.summarize([row]))
+    assert "nan" not in text and " 10.0 " in text
