@@ -9,9 +9,11 @@ this edge; standard output carries the command's result, progress and summaries 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import itertools
 import json
 import math
+import os
 import sys
 import textwrap
 import time
@@ -183,8 +185,17 @@ def cmd_stream(args: argparse.Namespace) -> int:
             from place_safe.recovery.forward import ForwardParams
 
             params = ForwardParams()
-        view = RerunView(save=args.save, params=params)
-    src = _open(args)
+        existed = bool(args.save) and os.path.lexists(args.save)
+        view = RerunView(save=args.save, params=params)  # first: an output that cannot be written opens no sensor
+    try:
+        src = _open(args)
+    except BaseException:
+        if view is not None:  # a source that cannot be opened leaves no recording of nothing behind
+            view.close()
+            if args.save and not existed:
+                with contextlib.suppress(OSError):
+                    os.remove(args.save)
+        raise
     wall = src.clock_domain == "monotonic"
     pending_note = [note] if note is not None and not args.jsonl else []  # with --jsonl every record says it
 

@@ -208,3 +208,12 @@ def test_a_disk_that_fills_mid_stream_stops_it_with_one_line_and_keeps_the_recor
         done = subprocess.run([rerun, "rrd", "verify", "--check-footers", "false", str(rrd)], capture_output=True,
                               text=True, timeout=120)
         assert done.returncode == 0 and "verified without error" in done.stdout + done.stderr
+
+
+def test_a_source_that_cannot_be_opened_leaves_no_recording_behind(tmp_path, capsys):
+    """`sensor stream --save` makes its recording before it opens the sensor (an output it cannot write opens no
+    sensor); a source that then cannot be opened left a header-only .rrd behind. Now it is removed (a file that was
+    there before is left)."""
+    rrd = tmp_path / "run.rrd"
+    assert main(["sensor", "stream", f"file:{tmp_path / 'missing.json'}", "--save", str(rrd)]) != 0
+    assert len(capsys.readouterr().err.splitlines()) == 1 and not rrd.exists()
