@@ -90,7 +90,7 @@ def cmd_info(args: argparse.Namespace) -> int:
             driver = getattr(src, "driver", src)
             if not hasattr(driver, "factory_calibrate"):
                 raise ConfigError(f"{args.uri}: factory calibration needs an i2c: or emu: source")
-            info["calibration_file"] = str(driver.factory_calibrate())
+            info["calibration_file"] = info["calibration"] = str(driver.factory_calibrate())
     if args.json:
         print(json.dumps(info, indent=1, default=str))
     else:

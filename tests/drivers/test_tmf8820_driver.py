@@ -190,7 +190,8 @@ def test_factory_calibration_is_saved_by_serial_and_loaded_at_start(tmp_path):
     assert bytes(fresh.emulator.calibration) == page and any(page)
     assert fresh.driver.identity["calibration"] == str(path)
     other = EmulatedTMF8820(FRAMES, driver={"calibration_dir": tmp_path}, emulator={"serial": 0x1111})
-    assert not any(other.emulator.calibration)  # another sensor's file is not used
+    assert not any(other.emulator.calibration)  # another sensor's file is not used, and that is said
+    assert other.driver.identity["calibration"].startswith("none: no tmf8820-1111.json in ")
 
 
 def test_bad_driver_options():

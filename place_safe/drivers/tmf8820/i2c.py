@@ -473,6 +473,9 @@ class TMF8820Source(FrameSource):
             self._write(R.PAGE + R.HEADER_SIZE, data)
             self._command(R.CMD_WRITE_CONFIG, deadline)
             self.identity["calibration"] = str(cal)
+        elif cal is not None:  # a directory without this unit's file (another unit's, or none yet): said, not hidden
+            self.identity["calibration"] = (f"none: no {cal.name} in {cal.parent} (make it with 'place-safe sensor "
+                                            "info URI --calibration-dir DIR --factory-calibrate')")
 
     def _was_reset(self) -> bool:
         try:
@@ -625,6 +628,7 @@ class TMF8820Source(FrameSource):
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(json.dumps({"serial": self.identity["serial"], "app_version": self.identity["app_version"],
                                     "page": bytes(page[R.HEADER_SIZE:]).hex()}, indent=1) + "\n")
+        self.identity["calibration"] = str(path)  # (the chip holds the page it just made)
         if was_running:
             self.start()
         return path
