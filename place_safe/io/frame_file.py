@@ -355,7 +355,9 @@ def _iter_stream(fh: IO[bytes], p: Path) -> Iterator[dict | FrameError]:
     elif first == b"{":
         splitter = _Splitter(is_list=False)
     else:
-        raise FrameFileError(f"{p}: not a frame file; expected a JSON list of frame objects or JSON Lines")
+        wide = buf[:2] in (b"\xff\xfe", b"\xfe\xff") or (len(buf) >= 2 and b"\x00" in buf[:2])
+        raise FrameFileError(f"{p}: not a frame file; expected a JSON list of frame objects or JSON Lines"
+                             + (" (it looks like UTF-16 text: save it as UTF-8)" if wide else ""))
     index = 0
 
     def entries(values) -> Iterator[dict | FrameError]:

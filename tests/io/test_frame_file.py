@@ -164,3 +164,13 @@ def test_a_long_integer_is_read_exactly():
     assert frames_mod._long_integer(raw)
     assert frames_mod._decode(raw)["n"] == 123456789012345678901234567890
     assert not frames_mod._long_integer(b'{"x": -0.00047130262929605347, "y": 1.2345678901234567890e3}')
+
+
+@pytest.mark.parametrize("encoding", ["utf-16", "utf-16-be"])
+def test_a_utf16_frame_file_is_said_to_be_utf16(tmp_path, encoding):
+    """A frame file saved as UTF-16 (some Windows editors' default) got only "not a frame file"; the error now says
+    what it looks like and what to do."""
+    p = tmp_path / "f.json"
+    p.write_bytes(json.dumps([{"hists": [[0] * 128] * 9}]).encode(encoding))
+    with pytest.raises(FrameFileError, match="UTF-16 text: save it as UTF-8"):
+        load_frames(p)
