@@ -123,6 +123,8 @@ class _PipedFile:
         try:
             _write_all(self.out, data)
             self.written += len(data)
+        except ValueError:  # the file was closed under us (close() gave up waiting): already reported there
+            return
         except OSError as exc:
             self.error = OSError(exc.errno, exc.strerror or str(exc), self.path)
             try:
@@ -141,7 +143,11 @@ class _PipedFile:
     def close(self) -> None:
         """After rerun let go of the pipe (``disconnect``): wait for its last bytes, close the file."""
         self._thread.join(CLOSE_WAIT_S)
-        if not self._thread.is_alive():
+        if self._thread.is_alive():  # rerun still writing: what it writes from now on is lost, and that is said
+            if self.error is None:
+                self.error = OSError(None, f"the recording was still being written {CLOSE_WAIT_S:g} s after the stream "
+                                           "ended: it may be cut short", self.path)
+        else:
             os.close(self._r)
         try:
             self.out.close()

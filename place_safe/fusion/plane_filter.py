@@ -133,7 +133,8 @@ class FusedPlane:
     window_tilt_rad: float = math.nan
     window_tilt_std: float = math.nan
     # each window plane's unit normal (base frame) and its direction's standard error (rad; NaN: none stated), in
-    # stamps' order: whether the surface keeps its slope while the cup stands still (rules.still_problem)
+    # stamps' order: whether the surface keeps its slope while the cup stands still (rules.slope_still_problem,
+    # rules.rest_tilt_problem, rules.newest_plane_problem)
     normals: tuple[tuple[float, float, float], ...] = ()
     normal_stds: tuple[float, ...] = ()
     # gate-rejected planes not yet outweighed by PENDING_CLEARS accepted ones (base frame, (normal, offset) each): a

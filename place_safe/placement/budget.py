@@ -27,6 +27,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
+from place_safe.placement.rules import most_check_frames
 from place_safe.placement.speed import slosh_rise
 
 #: Budget buckets in the order a placement passes through them (see the module docstring).
@@ -44,7 +45,7 @@ def budget_limits(cfg: Any, frame_period: float, frame_latency: float) -> dict[s
     stop_dist = cfg.descend_speed ** 2 / (2 * a)
     brake = (v - cfg.descend_speed) / a
     lo = cfg.check_frames
-    hi = max(cfg.check_frames, cfg.max_check_frames)
+    hi = most_check_frames(cfg)
     first = frame_latency + 2 * frame_period
     return {
         "wait for surface": f"first fused plane: frames every {frame_period * 1e3:.0f} ms arrive "

@@ -50,6 +50,7 @@ from place_safe.geometry import Plane
 from place_safe.io.pipeline import (INTERRUPTS, PLACEMENT_POLICY, READ_BOUND, FrameGate, Measurement, SensorPipeline,
                                     clock_domain_of, describe_exception, is_interrupt_here)
 from place_safe.io.source import FrameSource
+from place_safe.placement import rules
 from place_safe.placement.config import PlacementConfig
 from place_safe.placement.machine import CommandKind, PlacementMachine, RobotState, Transition
 from place_safe.placement.time_alignment import ClockMap, PoseHistory
@@ -184,7 +185,7 @@ class PlacementLoop:
         self.host_clock = host_clock
         reference = reference_tilt_std_of(estimator if estimator is not None else getattr(pipeline, "estimator", None))
         self.filter = plane_filter if plane_filter is not None else PlaneFilter(
-            window=max(7, int(max(self.config.check_frames, self.config.max_check_frames)) + 2))
+            window=max(7, int(rules.most_check_frames(self.config)) + 2))
         # the filter (its own, or the caller's) counts at least the reference error of the estimator's calibration
         self.filter.reference_tilt_std = max(self.filter.reference_tilt_std, reference)
         if self.filter.window < self.config.check_frames:

@@ -42,7 +42,10 @@ The release rule (the only path to :attr:`CommandKind.OPEN_GRIPPER`), checked on
   (or, too close to read, the newest of the window) agree in offset within what their covariances allow,
   with ``still_confidence``, and show no trend; and they agree in normal, with no turn
   (:func:`~place_safe.placement.rules.slope_still_problem`: a table that tips under the cup), nor read the surface
-  confidently steeper than ``max_tilt`` (:func:`~place_safe.placement.rules.rest_tilt_problem`);
+  confidently steeper than ``max_tilt`` (:func:`~place_safe.placement.rules.rest_tilt_problem`); the newest of them
+  is not far off the others (:func:`~place_safe.placement.rules.newest_plane_problem`), and no plane the fusion's
+  gates rejected is pending (:func:`~place_safe.placement.rules.pending_problem`): CHECK waits on these until
+  ``check_timeout``;
 * the cup bottom's clearance above the plane lies in ``[floor, release_clearance]``, ``floor`` the noise's
   allowance below zero (:func:`~place_safe.placement.rules.clearance_floor`, at most ``release_clearance``),
   or the cup is in contact (``contact_force``) with a clearance in ``[-max_penetration, contact_clearance]``:
@@ -1110,12 +1113,16 @@ class PlacementMachine:
         post = self.post_stop_stamps(plane, now)
         if (why := rules.still_problem(plane, post, cfg)) is not None:
             return self._refuse(now, why)
+        late = self._elapsed(now, self._t_phase, self._phase_ticks) > cfg.check_timeout
         if (why := rules.slope_still_problem(plane, post, cfg) or rules.rest_tilt_problem(plane, post, cfg)) is not None:
             # more planes at rest first (one stray plane is then set aside), within the check's deadline
-            if (fresh < max(cfg.check_frames, cfg.max_check_frames) and not self._blind(note)
-                    and not self._elapsed(now, self._t_phase, self._phase_ticks) > cfg.check_timeout):
+            if fresh < rules.most_check_frames(cfg) and not self._blind(note) and not late:
                 return Command.hold()
             return self._refuse(now, why)
+        # the newest plane at rest far off the others, or a plane the gates rejected at rest (a box, a tip beyond the
+        # gates: FusedPlane.pending): the next planes tell a stray plane from a surface that changed; until the deadline
+        if (why := rules.newest_plane_problem(plane, post, cfg) or rules.pending_problem(plane)) is not None:
+            return self._refuse(now, why) if late else Command.hold()
         force = float(state.contact_force)
         contact = force >= cfg.contact_force
         if contact and c > cfg.contact_clearance:

@@ -184,6 +184,22 @@ def footprint_seen(footprint: Any) -> int:
     return int(s) if s is not None else 0
 
 
+def most_check_frames(cfg: Any) -> int:
+    """The most post-stop planes CHECK waits for: ``max_check_frames``, never fewer than ``check_frames``."""
+    return max(cfg.check_frames, cfg.max_check_frames)
+
+
+def pending_problem(plane: FusedPlane) -> str | None:
+    """Planes the fusion's gates rejected are pending (``FusedPlane.pending``: not yet outweighed by accepted ones): at
+    rest, a surface that rose or tipped beyond the gates (a box put under the cup, a tip of more than 5 deg) shows only
+    there, and the window's planes all pass every stillness test (a review)."""
+    pending = getattr(plane, "pending", ()) or ()
+    if len(pending):
+        return (f"{len(pending)} plane{'' if len(pending) == 1 else 's'} at rest rejected as outliers of the fused "
+                "surface: the surface may have changed")
+    return None
+
+
 def check_frames_needed(plane: FusedPlane, cfg: Any) -> int:
     """Post-stop measurements CHECK waits for, sized from the fused uncertainty: ``check_frames`` when the
     fused plane (frames taken while slowing down included) lies well inside every limit -- its tilt below
@@ -192,7 +208,7 @@ def check_frames_needed(plane: FusedPlane, cfg: Any) -> int:
     within half of ``max_std_angle`` / ``max_std_offset`` -- else ``max_check_frames`` (if larger). Never
     fewer than ``check_frames``. (It was half of ``max_tilt`` for the bound, which made every plane tilted
     more than 2.5 deg wait for 5 frames however well it was measured.)"""
-    most = max(cfg.check_frames, cfg.max_check_frames)
+    most = most_check_frames(cfg)
     try:
         bound = plane.tilt_rad + 2.0 * confidence_margin(tilt_sigma(plane), cfg)
         clear = (bound <= cfg.max_tilt and plane.std_angle <= 0.5 * cfg.max_std_angle
@@ -277,8 +293,10 @@ def _rest_normals(plane: FusedPlane, post: list[float], cfg: Any,
                   floor: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray] | str | None:
     """The informative judged planes (:func:`_still_normals`, stating at most :data:`SLOPE_STD_LIMIT`), less the one
     farthest from the others' weighted normal (in its own standard errors, floored at :data:`SLOPE_STD_FLOOR`) when
-    there are three or more: one plane that strays (a frame another estimator read, a glint) is not a table that tips,
-    which moves every plane after it. Their stds floored likewise with ``floor``, else as stated. A reason where the
+    there are three or more, the newest never: one plane that strays (a frame another estimator read, a glint) is not
+    a table that tips, which moves every plane after it -- the newest plane is the first to show a tip, and setting
+    it aside passed a table that tipped to 6 deg on the fifth plane at rest (a review). A stray newest plane holds the
+    check for one more plane instead (the machine waits before refusing). Their stds floored likewise with ``floor``, else as stated. A reason where the
     planes cannot be judged; None where fewer than two say anything of the slope (the level rule's own standard error
     then holds it)."""
     got = _still_normals(plane, post, cfg)
@@ -293,14 +311,23 @@ def _rest_normals(plane: FusedPlane, post: list[float], cfg: Any,
     if len(t) >= 3:
         w = 1.0 / floored**2
         off = []
-        for i in range(len(t)):
+        for i in range(len(t) - 1):  # never the newest: it is the one that shows a table tipping now
             others = np.arange(len(t)) != i
-            m = w[others] @ n[others]
-            m /= np.linalg.norm(m)
-            off.append(math.acos(min(1.0, float(n[i] @ m))) / floored[i])
+            off.append(_angle_between(n[i], _weighted_normal(n[others], w[others])) / floored[i])
         drop = np.arange(len(t)) != int(np.argmax(off))
         t, n, sd, floored = t[drop], n[drop], sd[drop], floored[drop]
     return t, n, (floored if floor else sd)
+
+
+def _weighted_normal(n: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """The unit normal of unit normals ``n`` (k, 3) weighted by ``w`` (k,)."""
+    m = w @ n
+    return m / np.linalg.norm(m)
+
+
+def _angle_between(a: np.ndarray, b: np.ndarray) -> float:
+    """Angle (rad) between unit vectors ``a`` and ``b``."""
+    return math.acos(max(-1.0, min(1.0, float(a @ b))))
 
 
 def slope_still_problem(plane: FusedPlane, post: list[float], cfg: Any) -> str | None:
@@ -317,8 +344,7 @@ def slope_still_problem(plane: FusedPlane, post: list[float], cfg: Any) -> str |
         return got
     t, n, sd = got
     w = 1.0 / sd**2
-    m = w @ n
-    m = m / np.linalg.norm(m)
+    m = _weighted_normal(n, w)
     # tangent axes at the mean normal: the normals' small deviations as 2-vectors (rad)
     e1 = np.cross(m, [1.0, 0.0, 0.0] if abs(m[0]) < 0.9 else [0.0, 1.0, 0.0])
     e1 /= np.linalg.norm(e1)
@@ -341,6 +367,32 @@ def slope_still_problem(plane: FusedPlane, post: list[float], cfg: Any) -> str |
     return None
 
 
+#: The newest plane at rest this many of its own (floored) standard errors off the others' weighted normal holds the
+#: check for the next plane (:func:`newest_plane_problem`): a tip shows first on one plane.
+NEWEST_SIGMAS = 3.0
+
+
+def newest_plane_problem(plane: FusedPlane, post: list[float], cfg: Any) -> str | None:
+    """The newest plane at rest lies more than :data:`NEWEST_SIGMAS` of its own standard error (floored at
+    :data:`SLOPE_STD_FLOOR`) off the weighted normal of the other planes at rest: the first plane of a table that
+    tips, or a stray one; the machine waits for the next plane (until ``check_timeout``), which tells them apart. Four
+    planes at 4 deg and a fifth at 6 deg, each stating 0.5 deg, passed the slope tests on the fifth (a review). None
+    with fewer than three informative planes (the slope tests judge two)."""
+    got = _still_normals(plane, post, cfg)
+    if isinstance(got, str):
+        return None  # (the stillness tests say why)
+    _, n, sd = got
+    keep = sd <= SLOPE_STD_LIMIT
+    n, sd = n[keep], np.maximum(sd[keep], SLOPE_STD_FLOOR)
+    if len(n) < 3:
+        return None
+    off = _angle_between(n[-1], _weighted_normal(n[:-1], 1.0 / sd[:-1] ** 2))
+    if off > NEWEST_SIGMAS * sd[-1]:
+        return (f"surface not still: the newest plane at rest is {math.degrees(off):.2f} deg off the others "
+                f"(> {NEWEST_SIGMAS:g} x {math.degrees(float(sd[-1])):.2f} deg)")
+    return None
+
+
 def rest_tilt_problem(plane: FusedPlane, post: list[float], cfg: Any) -> str | None:
     """The planes measured at rest (:func:`_rest_normals`) read the surface steeper than ``max_tilt`` with
     ``level_confidence`` (their weighted normal's tilt less its one-sided margin, from their stated errors, the
@@ -352,9 +404,7 @@ def rest_tilt_problem(plane: FusedPlane, post: list[float], cfg: Any) -> str | N
         return None  # (the slope and stillness tests say why the planes cannot be judged)
     _, n, sd = got
     w = 1.0 / sd**2
-    m = w @ n
-    m = m / np.linalg.norm(m)
-    tilt = math.acos(max(-1.0, min(1.0, float(m[2]))))
+    tilt = _angle_between(_weighted_normal(n, w), np.array([0.0, 0.0, 1.0]))
     ref = number(getattr(plane, "reference_tilt_std", 0.0)) or 0.0
     sigma = math.hypot(math.sqrt(1.0 / float(w.sum())), ref)
     if tilt - confidence_margin(sigma, cfg) > cfg.max_tilt:
@@ -449,4 +499,5 @@ def clearance_floor(plane: FusedPlane, post: list[float], cfg: Any) -> float:
 __all__ = ["number", "too_close", "plane_problem", "sensor_problem", "planar_problem", "tilt_problem",
            "tilt_sigma", "confidence_margin", "level_problem", "confidently_tilted", "footprint_problem",
            "footprint_seen", "check_frames_needed", "post_stop_stamps", "still_problem", "slope_still_problem",
-           "rest_tilt_problem", "clearance_floor"]
+           "rest_tilt_problem", "newest_plane_problem", "pending_problem", "most_check_frames",
+           "clearance_floor"]

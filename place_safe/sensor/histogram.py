@@ -145,10 +145,11 @@ INTERNAL_MAX_COUNTS = 132.0
 #: Fraction of the in-window maximum a return found beyond :data:`INTERNAL_BINS` must clear on top of the
 #: noise margin: the internal return's tail past the window (under 6 % of its peak on every simulated unit).
 INTERNAL_TAIL_FRACTION = 0.1
-#: A return whose larger neighbouring bin holds less than this fraction of its height (above the floor) is one bin
-#: wide: no laser pulse is (the TMF8820's pulse spans about 4 bins; the real sweep's returns keep at least 23 % of
-#: their height in the larger neighbour), so it is a glitch or a corrupted count, not a surface (a file of
-#: one-bin spikes read a plane at 0.51 m, or 73 deg tilted: an adversarial corpus).
+#: A bin above the noise margin whose larger neighbour holds less than this fraction of its height (above the floor)
+#: is a one-bin spike: no laser pulse is (the TMF8820's pulse spans about 4 bins; the real sweep's returns keep at
+#: least 23 % of their height in the larger neighbour), so it is a glitch or a corrupted count, not a surface, and it
+#: is lowered to its neighbour before the returns are looked for (a file of one-bin spikes read a plane at 0.51 m,
+#: or 73 deg tilted: an adversarial corpus).
 SPIKE_FRACTION = 0.02
 
 _KNOTS = np.arange(-HALF_WINDOW, HALF_WINDOW + 1, dtype=float)
@@ -282,7 +283,7 @@ def _returns(hists: np.ndarray, pileup: float, subbin: str,
         h = np.where(finite_bins, h, 0.0)
     saturated = clipped_zones(h)
     floor = np.minimum(_median(h[..., :EARLY_BINS]), _median(h[..., -LATE_BINS:]))
-    x = undo_pileup(h - floor[..., None], pileup)
+    x = _despiked(undo_pileup(h - floor[..., None], pileup), floor)
     k, top, has_return = _highest_return(x, floor)
     rows = x.reshape(-1, x.shape[-1])  # one row per zone (of every frame)
     at = np.arange(rows.shape[0])
@@ -310,7 +311,7 @@ def _highest_return(x: np.ndarray, floor: np.ndarray) -> tuple[np.ndarray, np.nd
     :data:`INTERNAL_TAIL_FRACTION` of the in-window maximum (the internal return's tail).
     """
     lo, hi = INTERNAL_BINS
-    noise = np.maximum(NOISE_SIGMAS * np.sqrt(np.maximum(floor, 0.0) + 1.0), MIN_NET_COUNTS)
+    noise = _noise_margin(floor)
     k = x[..., SEARCH_START:].argmax(axis=-1) + SEARCH_START
     top = np.take_along_axis(x, k[..., None], axis=-1)[..., 0]
     inside = (k >= lo) & (k < hi)
@@ -318,22 +319,31 @@ def _highest_return(x: np.ndarray, floor: np.ndarray) -> tuple[np.ndarray, np.nd
     near = INTERNAL_MAX_COUNTS + NOISE_SIGMAS * np.sqrt(np.maximum(floor, 0.0) + INTERNAL_MAX_COUNTS + 1.0)
     internal = inside & (top <= near)  # not told apart from the internal return
     if not internal.any():
-        return k, top, (top > noise) & _wide(x, k, top)
+        return k, top, top > noise
     k2 = x[..., hi:].argmax(axis=-1) + hi
     top2 = np.take_along_axis(x, k2[..., None], axis=-1)[..., 0]
     far = top2 > noise + INTERNAL_TAIL_FRACTION * np.maximum(top, 0.0)
     k = np.where(internal, k2, k)
     has_return = np.where(internal, far, top > noise)
     top = np.where(internal, top2, top)
-    return k, top, has_return & _wide(x, k, top)
+    return k, top, has_return
 
 
-def _wide(x: np.ndarray, k: np.ndarray, top: np.ndarray) -> np.ndarray:
-    """Whether each return at bin ``k`` of height ``top`` (above the floor) is wider than one bin: its larger
-    neighbour holds at least :data:`SPIKE_FRACTION` of it (:data:`SPIKE_FRACTION`)."""
-    left = np.take_along_axis(x, np.maximum(k - 1, 0)[..., None], axis=-1)[..., 0]
-    right = np.take_along_axis(x, np.minimum(k + 1, N_BINS - 1)[..., None], axis=-1)[..., 0]
-    return np.maximum(left, right) >= SPIKE_FRACTION * top
+def _noise_margin(floor: np.ndarray) -> np.ndarray:
+    """Counts above the floor a return must clear: :data:`NOISE_SIGMAS` Poisson sigmas of the floor and
+    :data:`MIN_NET_COUNTS`."""
+    return np.maximum(NOISE_SIGMAS * np.sqrt(np.maximum(floor, 0.0) + 1.0), MIN_NET_COUNTS)
+
+
+def _despiked(x: np.ndarray, floor: np.ndarray) -> np.ndarray:
+    """The floor-subtracted counts ``x`` (..., 128) with each one-bin spike (a bin above the noise margin whose larger
+    neighbour holds less than :data:`SPIKE_FRACTION` of it; at the histogram's ends, its one neighbour) lowered to that
+    neighbour: no laser pulse is one bin wide, and a spike taller than a zone's real return hid the return."""
+    left = np.concatenate([x[..., :1] * 0.0 - np.inf, x[..., :-1]], axis=-1)
+    right = np.concatenate([x[..., 1:], x[..., :1] * 0.0 - np.inf], axis=-1)
+    side = np.maximum(left, right)
+    spike = (x > _noise_margin(floor)[..., None]) & (side < SPIKE_FRACTION * x)
+    return np.where(spike, np.maximum(side, 0.0), x) if spike.any() else x
 
 
 def _unmixed(centre: np.ndarray, top: np.ndarray, valid: np.ndarray) -> np.ndarray:

@@ -710,3 +710,29 @@ def test_a_release_on_the_too_close_hold_says_so_when_fewer_than_the_needed_chec
     release = next(t for t in m.log if t.target == Phase.RELEASE)
     assert m.check_frames_needed(frozen["p"]) == 5
     assert "farther frames" in release.reason and "measured at rest: release" not in release.reason, release.reason
+
+
+def test_a_plane_rejected_at_rest_holds_the_check_and_refuses_at_its_deadline():
+    """A tip or a box beyond the fusion's gates at rest shows only in FusedPlane.pending: the window's planes pass
+    every stillness test, and the gripper opened (a review). CHECK holds while it is pending and refuses at its
+    deadline; once outweighed (accepted planes after it), the check goes on."""
+    def stuck(world, m):
+        p = world.plane()
+        return dataclasses.replace(p, pending=(((0.0, 0.0, 1.0), 0.02),)) if m.phase == Phase.CHECK else p
+
+    w = FakeWorld()
+    m = run(w, plane_fn=stuck)
+    assert m.outcome == "refused" and "rejected as outliers" in m.decision and not opened(w)
+
+    seen = []
+
+    def brief(world, m):
+        p = world.plane()
+        if m.phase == Phase.CHECK and len(seen) < 5:
+            seen.append(1)
+            return dataclasses.replace(p, pending=(((0.0, 0.0, 1.0), 0.02),))
+        return p
+
+    w = FakeWorld()
+    m = run(w, plane_fn=brief)
+    assert m.outcome == "released" and len(seen) == 5

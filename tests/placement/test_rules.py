@@ -390,3 +390,23 @@ def test_planes_that_state_nothing_of_the_slope_are_left_out_of_the_slope_stilln
     plane, post = _turning([4.1, 6.7, 30.0], [0.1, 0.1, 1e200], 0.033)  # (two informative: none set aside)
     why = rules.slope_still_problem(plane, post, CFG)
     assert why is not None and "differ in slope" in why
+
+
+def test_the_newest_plane_at_rest_is_never_the_one_set_aside():
+    """Four planes at rest at 4 deg and a fifth at 9 deg (the table tipped on the last one): leaving out the plane
+    farthest from the others left out the newest, and both tests passed (a review). The newest is kept: refused."""
+    plane, post = _turning([4.0, 4.0, 4.0, 4.0, 9.0], [0.1] * 5, 0.033)
+    assert rules.slope_still_problem(plane, post, CFG) is not None
+    # stating 0.5 deg, one plane at 6 deg is no proof of a tip, but the check waits for the next plane
+    plane, post = _turning([4.0, 4.0, 4.0, 4.0, 6.0], [0.5] * 5, 0.033)
+    why = rules.newest_plane_problem(plane, post, CFG)
+    assert why is not None and "newest plane" in why
+    plane, post = _turning([4.0, 4.0, 4.0, 6.0, 4.05], [0.5] * 5, 0.033)  # a stray plane, then the table again
+    assert rules.newest_plane_problem(plane, post, CFG) is None and rules.slope_still_problem(plane, post, CFG) is None
+
+
+def test_a_plane_rejected_at_rest_is_a_problem_until_outweighed():
+    plane, _ = _turning([1.0, 1.0], [0.1, 0.1], 0.033)
+    assert rules.pending_problem(plane) is None
+    why = rules.pending_problem(dataclasses.replace(plane, pending=(((0.0, 0.0, 1.0), 0.02),)))
+    assert why is not None and "rejected" in why and "\n" not in why

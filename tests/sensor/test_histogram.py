@@ -415,8 +415,16 @@ def test_a_one_bin_spike_is_not_a_laser_return(monkeypatch):
     h = np.full((9, 128), 20.0)
     h[:, 60] += 1e6
     assert not histogram.find_peaks(h)[1].any()
+    h = np.full((9, 128), 20.0)
+    h[:, 127] += 2000.0  # at the histogram's end: its one neighbour decides
+    assert not histogram.find_peaks(h)[1].any()
     pulse = np.exp(-0.5 * ((np.arange(128) - 60.3) / 1.5) ** 2)
-    assert histogram.find_peaks(20.0 + 5000.0 * np.tile(pulse, (9, 1)))[1].all()
+    clean = 20.0 + 5000.0 * np.tile(pulse, (9, 1))
+    assert histogram.find_peaks(clean)[1].all()
+    glitch = clean.copy()
+    glitch[:, 90] += 9000.0  # a spike taller than the zone's return hid the return (a review)
+    reading, valid, _ = histogram.find_peaks(glitch)
+    assert valid.all() and np.allclose(reading, histogram.find_peaks(clean)[0])
     frames = load_frames(Path(__file__).resolve().parents[1] / "data" / "tmf8820_ur5_sweep.json")
     hists = np.stack([np.asarray(f.hists, float) for f in frames])
     with_rule = histogram.find_peaks(hists)[1]
