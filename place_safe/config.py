@@ -152,14 +152,19 @@ def read_config_file(path: str | Path, what: str) -> Any:
         return read_json(path, what, ConfigError)
     text = _read_text(path, what, ConfigError)
     try:
-        try:
-            import tomllib
-        except ModuleNotFoundError:  # Python 3.10
-            import tomli as tomllib  # type: ignore[no-redef]
-        return tomllib.loads(text)
+        return toml_reader().loads(text)
     except (ValueError, RecursionError) as exc:
         raise ConfigError(f"{what} {path}: not valid TOML "
                           f"({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from None
+
+
+def toml_reader():
+    """The standard TOML reader module (``tomllib``; ``tomli`` on Python 3.10)."""
+    try:
+        import tomllib
+    except ModuleNotFoundError:  # Python 3.10
+        import tomli as tomllib  # type: ignore[no-redef]
+    return tomllib
 
 
 def load_config(cls: type, path: str | Path, what: str | None = None):
@@ -426,5 +431,5 @@ def _json_name(value: Any) -> str:
 
 
 __all__ = ["ConfigModel", "ParamModel", "vector", "field_constraints", "field_range", "FieldRange", "field_interval", "field_range_text",
-           "range_message", "field_like", "read_json", "write_json", "parse_config", "read_config_file", "load_config",
+           "range_message", "field_like", "read_json", "write_json", "parse_config", "read_config_file", "load_config", "toml_reader",
            "describe_validation_error", "printable", "CONTROL_CATEGORIES"]

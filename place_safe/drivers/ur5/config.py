@@ -42,7 +42,7 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import AfterValidator, Field, model_validator
 
-from place_safe.config import ConfigModel, field_like, load_config, parse_config
+from place_safe.config import ConfigModel, field_like, load_config, parse_config, toml_reader
 from place_safe.placement.config import PlacementConfig
 from place_safe.robot.contact_detector import DetectorSettings
 from place_safe.robot.description import ur5_dir
@@ -271,7 +271,7 @@ class URConfig(ConfigModel):
             base = URConfig.load(like)
             text = update_toml(Path(like).read_text(encoding="utf-8"), base.model_dump(mode="json", exclude_none=True),
                                data)
-            if text is not None and parse_config(URConfig, _tomllib().loads(text), f"robot config {like}") == self:
+            if text is not None and parse_config(URConfig, toml_reader().loads(text), f"robot config {like}") == self:
                 return text
         return _toml(data)
 
@@ -428,22 +428,13 @@ def _toml(d: dict, prefix: str = "") -> str:
 _MISSING = object()
 
 
-def _tomllib():
-    """The standard TOML reader (``tomli`` on Python 3.10)."""
-    try:
-        import tomllib
-    except ModuleNotFoundError:  # Python 3.10
-        import tomli as tomllib  # type: ignore[no-redef]
-    return tomllib
-
-
 def update_toml(text: str, before: dict, after: dict) -> str | None:
     """``text``, a TOML file whose values (with defaults for what it leaves out) are ``before``, changed to say
     ``after``: only the keys whose values differ are set, added (in the table they belong to, made where the file
     has none) or removed, so the file's comments, order and layout stay (tomlkit). None when tomlkit is not installed
     or did not do it faithfully (the result is read back and compared with the same change made to the file's
     data); the caller then writes the whole table (:func:`_toml`)."""
-    tomllib = _tomllib()
+    tomllib = toml_reader()
     try:
         import tomlkit
 
