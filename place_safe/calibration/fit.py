@@ -172,7 +172,9 @@ def fit_method(calibration: Calibration, frames: Sequence[Frame], method: str, p
         cal.reports["uncertainty"] = jsonable(update_calibration(cal, frames, method, widen_peak=widen))
         cal.errors.pop("uncertainty", None)  # (entries rewritten; _check_fitted reads the section again)
         fitted.append("uncertainty")
-    if count < FEW_CALIBRATION_FRAMES:
+    fitted_frames = [int((cal.reports.get(name) or {}).get("frames", count)) for name in ("peak", "proprietary")
+                     if name in fitted and isinstance(cal.reports.get(name), dict)]
+    if min([count] + fitted_frames) < FEW_CALIBRATION_FRAMES:  # (as the widening counts: the frames a mapping kept)
         _small_sample_note(cal, fitted, method)
     _check_fitted(cal, fitted, method)
     _keep_reference(cal, fitted, frames, [m for m in ("peak", "proprietary") if m in fitted] +

@@ -179,3 +179,24 @@ def test_a_fit_that_leaves_a_floorless_uncertainty_is_refused_not_written(sweep_
     pick = [min(near, key=lambda f: abs(f.truth.z0 - z)) for z in (0.035, 0.045, 0.06, 0.07, 0.08, 0.2, 0.3)]
     with pytest.raises(CalibrationError, match="peak's model error could not be fitted.*add frames farther out"):
         fit_method(Calibration(), pick, "peak")
+
+
+def test_frames_the_mapping_could_not_use_count_against_the_small_sample_note(sweep_frames):
+    """12 frames with ground truth, 4 of them with a return in 2 zones only: the mapping fits 8 and widens its
+    covariance for 8; the note said nothing, counting 12 (a review). Both now count the frames the mapping kept."""
+    import dataclasses as dc
+
+    import numpy as np
+
+    frames = _spread(sweep_frames, 12)
+    blind = []
+    for i, f in enumerate(frames):
+        if i % 3 == 0:
+            h = np.array(f.hists, dtype=float)
+            h[2:] = np.median(h[2:], axis=1, keepdims=True)  # zones 3-9: the floor alone
+            f = dc.replace(f, hists=h)
+        blind.append(f)
+    cal = Calibration()
+    fit_method(cal, blind, "peak")
+    rep = cal.reports["peak"]
+    assert rep["frames"] < 10 and "calibrated on only" in rep["small_sample"]["note"]
