@@ -1115,8 +1115,9 @@ class PlacementMachine:
             return self._refuse(now, why)
         late = self._elapsed(now, self._t_phase, self._phase_ticks) > cfg.check_timeout
         if (why := rules.slope_still_problem(plane, post, cfg) or rules.rest_tilt_problem(plane, post, cfg)) is not None:
-            # more planes at rest first (one stray plane is then set aside), within the check's deadline
-            if fresh < rules.most_check_frames(cfg) and not self._blind(note) and not late:
+            # more planes at rest first (stray planes are then set aside), until the check's deadline (refusing at
+            # max_check_frames refused a still table with two junk planes among five: an adversarial search)
+            if not self._blind(note) and not late:
                 return Command.hold()
             return self._refuse(now, why)
         # the newest plane at rest far off the others, or a plane the gates rejected at rest (a box, a tip beyond the

@@ -292,8 +292,10 @@ SLOPE_STD_FLOOR = math.radians(0.25)
 def _rest_normals(plane: FusedPlane, post: list[float], cfg: Any,
                   floor: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray] | str | None:
     """The informative judged planes (:func:`_still_normals`, stating at most :data:`SLOPE_STD_LIMIT`), less the one
-    farthest from the others' weighted normal (in its own standard errors, floored at :data:`SLOPE_STD_FLOOR`) when
-    there are three or more, the newest never: one plane that strays (a frame another estimator read, a glint) is not
+    farthest from the others' weighted normal when it lies more than :data:`NEWEST_SIGMAS` of its own standard errors
+    (floored at :data:`SLOPE_STD_FLOOR`) off them, and so on for up to a third of them (at least one) when there are
+    three or more, the newest never (two junk planes among five refused a still table when one was left out:
+    an adversarial search): one plane that strays (a frame another estimator read, a glint) is not
     a table that tips, which moves every plane after it -- the newest plane is the first to show a tip, and setting
     it aside passed a table that tipped to 6 deg on the fifth plane at rest (a review). A stray newest plane holds the
     check for one more plane instead (the machine waits before refusing). Their stds floored likewise with ``floor``, else as stated. A reason where the
@@ -308,13 +310,18 @@ def _rest_normals(plane: FusedPlane, post: list[float], cfg: Any,
         return None
     t, n, sd = t[keep], n[keep], sd[keep]
     floored = np.maximum(sd, SLOPE_STD_FLOOR)
-    if len(t) >= 3:
+    for _ in range(max(1, (len(t) - 1) // 3) if len(t) >= 3 else 0):
+        if len(t) < 3:
+            break
         w = 1.0 / floored**2
         off = []
         for i in range(len(t) - 1):  # never the newest: it is the one that shows a table tipping now
             others = np.arange(len(t)) != i
             off.append(_angle_between(n[i], _weighted_normal(n[others], w[others])) / floored[i])
-        drop = np.arange(len(t)) != int(np.argmax(off))
+        j = int(np.argmax(off))
+        if not off[j] > NEWEST_SIGMAS:  # (only a plane that strays: honest scatter stays in the tests)
+            break
+        drop = np.arange(len(t)) != j
         t, n, sd, floored = t[drop], n[drop], sd[drop], floored[drop]
     return t, n, (floored if floor else sd)
 
@@ -337,8 +344,8 @@ def slope_still_problem(plane: FusedPlane, post: list[float], cfg: Any) -> str |
     least-squares rate of the normal over time, both axes, beyond the ``still_confidence`` quantile of a chi-square of
     2 degrees of freedom). The window's fused normal weighs down a plane far off the others, and the memory's normal
     does not follow a table that tips while the cup stands still above it: a table tipping from 4.1 to 6.7 deg after
-    the first plane at rest was released (an adversarial search). The machine waits for more planes at rest (up to
-    ``max_check_frames``) before it refuses on this, so that one stray plane can be set aside."""
+    the first plane at rest was released (an adversarial search). The machine waits for more planes at rest (until
+    ``check_timeout``) before it refuses on this, so that stray planes can be set aside."""
     got = _rest_normals(plane, post, cfg)
     if got is None or isinstance(got, str):
         return got
@@ -373,23 +380,35 @@ NEWEST_SIGMAS = 3.0
 
 
 def newest_plane_problem(plane: FusedPlane, post: list[float], cfg: Any) -> str | None:
-    """The newest plane at rest lies more than :data:`NEWEST_SIGMAS` of its own standard error (floored at
-    :data:`SLOPE_STD_FLOOR`) off the weighted normal of the other planes at rest: the first plane of a table that
-    tips, or a stray one; the machine waits for the next plane (until ``check_timeout``), which tells them apart. Four
-    planes at 4 deg and a fifth at 6 deg, each stating 0.5 deg, passed the slope tests on the fifth (a review). None
-    with fewer than three informative planes (the slope tests judge two)."""
+    """The newest plane at rest reads the surface steeper than ``max_tilt`` with ``level_confidence`` on its own, or
+    lies more than :data:`NEWEST_SIGMAS` standard errors (its own and the others' mean's, each plane's floored at
+    :data:`SLOPE_STD_FLOOR`) off the weighted normal of the other planes at rest: the first plane of a table that tips,
+    or a stray one; the machine waits for the next plane (until ``check_timeout``), which tells them apart. Four
+    planes at 4 deg and a fifth at 6 deg, each stating 0.5 deg, passed the slope tests on the fifth (a review); a
+    table stepping from 4.5 to 5.6 deg between the first and second plane at rest was released on the two (an
+    adversarial search). None with fewer than two informative planes."""
     got = _still_normals(plane, post, cfg)
     if isinstance(got, str):
         return None  # (the stillness tests say why)
-    _, n, sd = got
-    keep = sd <= SLOPE_STD_LIMIT
-    n, sd = n[keep], np.maximum(sd[keep], SLOPE_STD_FLOOR)
-    if len(n) < 3:
+    _, n, stated = got
+    keep = stated <= SLOPE_STD_LIMIT
+    n, stated = n[keep], stated[keep]
+    if len(n) < 2:
         return None
-    off = _angle_between(n[-1], _weighted_normal(n[:-1], 1.0 / sd[:-1] ** 2))
-    if off > NEWEST_SIGMAS * sd[-1]:
+    sd = np.maximum(stated, SLOPE_STD_FLOOR)
+    tilt = _angle_between(n[-1], np.array([0.0, 0.0, 1.0]))
+    ref = number(getattr(plane, "reference_tilt_std", 0.0)) or 0.0
+    if tilt - confidence_margin(math.hypot(float(stated[-1]), ref), cfg) > cfg.max_tilt:
+        return (f"surface tilted {math.degrees(tilt):.2f} +- {math.degrees(float(stated[-1])):.2f} deg in the newest "
+                f"plane at rest (> {math.degrees(cfg.max_tilt):.1f} deg allowed with {cfg.level_confidence:.0%} "
+                "confidence): waiting for the next")
+    others = _weighted_normal(n[:-1], 1.0 / sd[:-1] ** 2)
+    # its error and the others' mean's, in quadrature (with one other plane, both count)
+    scale = math.hypot(float(sd[-1]), math.sqrt(1.0 / float(np.sum(1.0 / sd[:-1] ** 2))))
+    off = _angle_between(n[-1], others)
+    if off > NEWEST_SIGMAS * scale:
         return (f"surface not still: the newest plane at rest is {math.degrees(off):.2f} deg off the others "
-                f"(> {NEWEST_SIGMAS:g} x {math.degrees(float(sd[-1])):.2f} deg)")
+                f"(> {NEWEST_SIGMAS:g} x {math.degrees(scale):.2f} deg)")
     return None
 
 

@@ -410,3 +410,18 @@ def test_a_plane_rejected_at_rest_is_a_problem_until_outweighed():
     assert rules.pending_problem(plane) is None
     why = rules.pending_problem(dataclasses.replace(plane, pending=(((0.0, 0.0, 1.0), 0.02),)))
     assert why is not None and "rejected" in why and "\n" not in why
+
+
+def test_a_tip_on_the_second_plane_at_rest_holds_the_check_and_two_stray_planes_of_seven_are_set_aside():
+    """A table stepping from 4.5 to 5.6 deg between the first and second plane at rest was released on the two (their
+    mean 5.05 +- 0.07 is not confidently steep, 1.1 deg apart at the 0.25 deg floor is no slope change): the newest
+    plane alone is confidently steeper than max_tilt, and the check waits for the next. Two junk planes 2 deg off
+    among seven at rest (stating 0.3 deg) are both set aside; refusing with one set aside refused still tables
+    (adversarial searches)."""
+    plane, post = _turning([4.5, 5.6], [0.1, 0.1], 0.033)
+    why = rules.newest_plane_problem(plane, post, CFG)
+    assert why is not None and "newest plane" in why
+    plane, post = _turning([1.0, 3.0, 1.0, 1.02, 3.0, 0.98, 1.0], [0.1, 0.3, 0.1, 0.1, 0.3, 0.1, 0.1], 0.033)
+    assert rules.slope_still_problem(plane, post, CFG) is None and rules.newest_plane_problem(plane, post, CFG) is None
+    plane, post = _turning([1.0, 1.02, 0.98, 1.0], [0.1] * 4, 0.033)  # honest planes: none set aside, all pass
+    assert rules.slope_still_problem(plane, post, CFG) is None and rules.newest_plane_problem(plane, post, CFG) is None
