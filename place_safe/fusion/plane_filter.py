@@ -263,8 +263,8 @@ class PlaneFilter:
         self._items: deque[tuple[float, np.ndarray, np.ndarray, float, float]] = deque(maxlen=self.window)
         self._memory: deque[tuple[float, np.ndarray, float]] = deque(maxlen=max(self.memory, 1))
         self._cache: FusedPlane | None = None
-        # gate-rejected planes [(base-frame normal, offset), accepted planes since] still pending (FusedPlane.pending)
-        self._pending: list[list] = []
+        # gate-rejected planes ((base-frame normal, offset), ``count`` when rejected) still pending (FusedPlane.pending)
+        self._pending: list[tuple[tuple[tuple[float, float, float], float], int]] = []
         self._dirty = True
         self.count = 0  # accepted since reset
         self.rejected = 0  # rejected since reset
@@ -311,7 +311,7 @@ class PlaneFilter:
                 self._reject(f"outlier: {math.degrees(ang):.2f} deg / {off * 1e3:.1f} mm from the fused plane "
                              f"(gates {math.degrees(self.angle_gate):.1f} deg / {self.offset_gate * 1e3:.1f} mm)")
                 if self.consecutive_rejects < self.max_consecutive_rejects:
-                    self._pending.append([((float(n[0]), float(n[1]), float(n[2])), float(n @ anchor)), 0])
+                    self._pending.append((((float(n[0]), float(n[1]), float(n[2])), float(n @ anchor)), self.count))
                     return False
                 self._items.clear()  # the surface changed: start again from this plane
                 self._memory.clear()
@@ -321,11 +321,10 @@ class PlaneFilter:
         if self.memory > 0:
             self._memory.append((stamp, n, var))
         self.newest_accepted = stamp
-        for entry in self._pending:  # each accepted plane counts against the rejected ones still pending
-            entry[1] += 1
-        self._pending = [e for e in self._pending if e[1] < PENDING_CLEARS]
         self._dirty = True
         self.count += 1
+        # a rejected plane is outweighed once PENDING_CLEARS planes have been accepted after it
+        self._pending = [p for p in self._pending if self.count - p[1] < PENDING_CLEARS]
         self.consecutive_rejects = 0
         self.too_close = False
         return True

@@ -388,25 +388,20 @@ class PlacementMachine:
         ``latency`` s late, not that much later (an adversarial search: a box appearing 15-21 mm under the cup was met at
         0.032-0.037 m/s)."""
         cfg = self.config
-        v = descent_speed(c, cfg.slow_clearance, cfg.brake_margin, self._latency(), cfg.accel,
-                          cfg.approach_speed, cfg.descend_speed)
-        if self._pending_c < c:
-            v = min(v, descent_speed(self._pending_c, cfg.slow_clearance, cfg.brake_margin, self._latency(), cfg.accel,
-                                     cfg.approach_speed, cfg.descend_speed))
-        return v
+        # (descent_speed grows with the clearance: the closer of the two is the slower)
+        return descent_speed(min(c, self._pending_c), cfg.slow_clearance, cfg.brake_margin, self._latency(), cfg.accel,
+                             cfg.approach_speed, cfg.descend_speed)
 
     def _pending_clearance(self, plane: FusedPlane, state: RobotState) -> float:
         """Cup clearance (m) to the closest of the gate-rejected planes pending in ``plane`` (``FusedPlane.pending``:
         rejected, and fewer than :data:`~place_safe.fusion.plane_filter.PENDING_CLEARS` planes accepted since), inf
         without any (malformed ones are skipped: the fused plane's
         own checks decide)."""
-        cup = np.asarray(state.base_T_cup, dtype=float)
-        axis = cup[:3, 2]
         best = math.inf
         for item in getattr(plane, "pending", ()) or ():
             try:
                 n, d = item
-                c = clearance_along(n, float(d), cup[:3, 3], -axis, self.config.cup_radius, axis)
+                c = self._cup_clearance(n, float(d), state)
             except (TypeError, ValueError):
                 continue
             if math.isfinite(c):
@@ -502,12 +497,17 @@ class PlacementMachine:
         return self._blind_from <= self.config.too_close_clearance
 
     def _clearance(self, plane: FusedPlane, state: RobotState) -> float:
-        cup = np.asarray(state.base_T_cup, dtype=float)
-        axis = cup[:3, 2]
         try:
-            return float(plane.distance_along(cup[:3, 3], -axis, self.config.cup_radius, axis))
+            return self._cup_clearance(plane.normal_base, plane.offset_base, state)
         except ValueError:
             return math.nan
+
+    def _cup_clearance(self, normal: Any, offset: float, state: RobotState) -> float:
+        """Travel (m) of the cup's bottom rim down its axis to the base-frame plane ``normal . x = offset``
+        (:func:`~place_safe.fusion.plane_filter.clearance_along`; ValueError for a malformed plane or pose)."""
+        cup = np.asarray(state.base_T_cup, dtype=float)
+        axis = cup[:3, 2]
+        return float(clearance_along(normal, offset, cup[:3, 3], -axis, self.config.cup_radius, axis))
 
     def _lateral(self, move: np.ndarray, limit: float) -> np.ndarray:
         """Velocity (3,) along ``move`` (m) at most ``limit`` m/s, slowing so it stops at its end."""

@@ -21,6 +21,7 @@ import numpy as np
 from scipy.stats import chi2 as _chi2
 
 from place_safe.fusion.plane_filter import FusedPlane
+from place_safe.geometry import rotation_angle_between
 from place_safe.recovery.too_close import TOO_CLOSE_REASON
 
 
@@ -233,6 +234,8 @@ def post_stop_stamps(plane: FusedPlane, now: float, t_stop: float | None, cfg: A
     return sorted(out)
 
 
+_UP = np.array([0.0, 0.0, 1.0])
+
 #: A judged plane's offset std above this (m) carries no information on whether the surface is still (its inverse
 #: variance would vanish, or overflow to 0 beyond ~1e154 m): a reason, as a plane with no std is.
 STILL_STD_LIMIT = 1.0
@@ -250,24 +253,35 @@ def _judged(stamps: tuple, post: list[float], cfg: Any) -> list[int] | str:
     return idx
 
 
-def _still_normals(plane: FusedPlane, post: list[float], cfg: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray] | str:
-    """(stamps, unit normals (k, 3), direction stds (rad)) of the planes the stillness test judges (:func:`_judged`),
-    or a reason: as for the offsets, a judged plane that states no finite direction error fails closed."""
+def _judged_rows(plane: FusedPlane, post: list[float], cfg: Any, values: str, stds: str, what: str,
+                 unknown: str, convert: Callable[[Any], Any]) -> tuple[np.ndarray, np.ndarray, np.ndarray] | str:
+    """(stamps, values, stds) of the planes the stillness tests judge (:func:`_judged`), read from the fused plane's
+    per-plane tuples ``values`` and ``stds`` (each entry through ``convert``), or a reason naming ``what`` they are
+    (the plane carries none: ``unknown`` says what is then not known; or they are malformed)."""
     stamps = tuple(getattr(plane, "stamps", ()) or ())
-    N = tuple(getattr(plane, "normals", ()) or ())
-    s = tuple(getattr(plane, "normal_stds", ()) or ())
-    if not stamps or len(N) != len(stamps) or len(s) != len(stamps):
-        return "the fused plane carries no per-plane normals: whether the surface keeps its slope is unknown"
+    v = tuple(getattr(plane, values, ()) or ())
+    s = tuple(getattr(plane, stds, ()) or ())
+    if not stamps or len(v) != len(stamps) or len(s) != len(stamps):
+        return f"the fused plane carries no per-plane {what}: {unknown}"
     idx = _judged(stamps, post, cfg)
     if isinstance(idx, str):
         return idx
     try:
-        t = np.array([float(stamps[i]) for i in idx])
-        n = np.array([[float(v) for v in N[i]] for i in idx])
-        sd = np.array([float(s[i]) for i in idx])
+        return (np.array([float(stamps[i]) for i in idx]), np.array([convert(v[i]) for i in idx]),
+                np.array([float(s[i]) for i in idx]))
     except (TypeError, ValueError):
-        return "the fused plane's per-plane normals are malformed"
-    if n.shape != (len(idx), 3) or not (np.all(np.isfinite(t)) and np.all(np.isfinite(n))):
+        return f"the fused plane's per-plane {what} are malformed"
+
+
+def _still_normals(plane: FusedPlane, post: list[float], cfg: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray] | str:
+    """(stamps, unit normals (k, 3), direction stds (rad)) of the planes the stillness test judges (:func:`_judged`),
+    or a reason: as for the offsets, a judged plane that states no finite direction error fails closed."""
+    got = _judged_rows(plane, post, cfg, "normals", "normal_stds", "normals",
+                       "whether the surface keeps its slope is unknown", lambda v: [float(x) for x in v])
+    if isinstance(got, str):
+        return got
+    t, n, sd = got
+    if n.shape != (len(t), 3) or not (np.all(np.isfinite(t)) and np.all(np.isfinite(n))):
         return "the fused plane's per-plane normals are malformed or not finite"
     norm = np.linalg.norm(n, axis=1)
     if not np.all(np.abs(norm - 1.0) <= 1e-6):
@@ -291,39 +305,47 @@ SLOPE_STD_FLOOR = math.radians(0.25)
 
 def _rest_normals(plane: FusedPlane, post: list[float], cfg: Any,
                   floor: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray] | str | None:
-    """The informative judged planes (:func:`_still_normals`, stating at most :data:`SLOPE_STD_LIMIT`), less the one
-    farthest from the others' weighted normal when it lies more than :data:`NEWEST_SIGMAS` of its own standard errors
-    (floored at :data:`SLOPE_STD_FLOOR`) off them, and so on for up to a third of them (at least one) when there are
-    three or more, the newest never (two junk planes among five refused a still table when one was left out:
-    an adversarial search): one plane that strays (a frame another estimator read, a glint) is not
-    a table that tips, which moves every plane after it -- the newest plane is the first to show a tip, and setting
-    it aside passed a table that tipped to 6 deg on the fifth plane at rest (a review). A stray newest plane holds the
-    check for one more plane instead (the machine waits before refusing). Their stds floored likewise with ``floor``, else as stated. A reason where the
-    planes cannot be judged; None where fewer than two say anything of the slope (the level rule's own standard error
-    then holds it)."""
+    """The informative judged planes (:func:`_informative`), less strays: the plane farthest from the others'
+    weighted normal when it lies more than :data:`NEWEST_SIGMAS` of its own standard errors (floored at
+    :data:`SLOPE_STD_FLOOR`) off them, and so on for up to a third of them (at least one) when there are three or
+    more, the newest never. One plane that strays (a frame another estimator read, a glint) is not a table that tips,
+    which moves every plane after it; two junk planes among five refused a still table when only one was left out
+    (an adversarial search). The newest plane is the first to show a tip, and setting it aside passed a table that
+    tipped to 6 deg on the fifth plane at rest (a review): a stray newest plane holds the check for one more plane
+    instead (the machine waits before refusing). Their stds floored likewise with ``floor``, else as stated. A reason
+    where the planes cannot be judged; None where fewer than two say anything of the slope (the level rule's own
+    standard error then holds it)."""
+    got = _informative(plane, post, cfg)
+    if got is None or isinstance(got, str):
+        return got
+    t, n, sd = got
+    floored = np.maximum(sd, SLOPE_STD_FLOOR)
+    drops = max(1, (len(t) - 1) // 3)
+    while drops and len(t) >= 3:
+        w = 1.0 / floored**2
+        off = []
+        for i in range(len(t) - 1):  # never the newest: it is the one that shows a table tipping now
+            others = np.arange(len(t)) != i
+            off.append(rotation_angle_between(n[i], _weighted_normal(n[others], w[others])) / floored[i])
+        j = int(np.argmax(off))
+        if not off[j] > NEWEST_SIGMAS:  # (only a plane that strays: honest scatter stays in the tests)
+            break
+        keep = np.arange(len(t)) != j
+        t, n, sd, floored = t[keep], n[keep], sd[keep], floored[keep]
+        drops -= 1
+    return t, n, (floored if floor else sd)
+
+
+def _informative(plane: FusedPlane, post: list[float],
+                 cfg: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray] | str | None:
+    """(stamps, normals, stated stds) of the judged planes (:func:`_still_normals`) that state at most
+    :data:`SLOPE_STD_LIMIT`; a reason where the planes cannot be judged; None with fewer than two of them."""
     got = _still_normals(plane, post, cfg)
     if isinstance(got, str):
         return got
     t, n, sd = got
     keep = sd <= SLOPE_STD_LIMIT
-    if np.count_nonzero(keep) < 2:
-        return None
-    t, n, sd = t[keep], n[keep], sd[keep]
-    floored = np.maximum(sd, SLOPE_STD_FLOOR)
-    for _ in range(max(1, (len(t) - 1) // 3) if len(t) >= 3 else 0):
-        if len(t) < 3:
-            break
-        w = 1.0 / floored**2
-        off = []
-        for i in range(len(t) - 1):  # never the newest: it is the one that shows a table tipping now
-            others = np.arange(len(t)) != i
-            off.append(_angle_between(n[i], _weighted_normal(n[others], w[others])) / floored[i])
-        j = int(np.argmax(off))
-        if not off[j] > NEWEST_SIGMAS:  # (only a plane that strays: honest scatter stays in the tests)
-            break
-        drop = np.arange(len(t)) != j
-        t, n, sd, floored = t[drop], n[drop], sd[drop], floored[drop]
-    return t, n, (floored if floor else sd)
+    return (t[keep], n[keep], sd[keep]) if np.count_nonzero(keep) >= 2 else None
 
 
 def _weighted_normal(n: np.ndarray, w: np.ndarray) -> np.ndarray:
@@ -332,9 +354,12 @@ def _weighted_normal(n: np.ndarray, w: np.ndarray) -> np.ndarray:
     return m / np.linalg.norm(m)
 
 
-def _angle_between(a: np.ndarray, b: np.ndarray) -> float:
-    """Angle (rad) between unit vectors ``a`` and ``b``."""
-    return math.acos(max(-1.0, min(1.0, float(a @ b))))
+def _steeper(tilt: float, sigma: float, plane: FusedPlane, cfg: Any) -> float | None:
+    """The standard error (rad) of a tilt ``tilt`` read with error ``sigma``, the calibration's reference error
+    (``plane.reference_tilt_std``) added, when the tilt is steeper than ``max_tilt`` with ``level_confidence``;
+    None otherwise."""
+    total = math.hypot(sigma, number(getattr(plane, "reference_tilt_std", 0.0)) or 0.0)
+    return total if tilt - confidence_margin(total, cfg) > cfg.max_tilt else None
 
 
 def slope_still_problem(plane: FusedPlane, post: list[float], cfg: Any) -> str | None:
@@ -387,25 +412,20 @@ def newest_plane_problem(plane: FusedPlane, post: list[float], cfg: Any) -> str 
     planes at 4 deg and a fifth at 6 deg, each stating 0.5 deg, passed the slope tests on the fifth (a review); a
     table stepping from 4.5 to 5.6 deg between the first and second plane at rest was released on the two (an
     adversarial search). None with fewer than two informative planes."""
-    got = _still_normals(plane, post, cfg)
-    if isinstance(got, str):
+    got = _informative(plane, post, cfg)
+    if got is None or isinstance(got, str):
         return None  # (the stillness tests say why)
     _, n, stated = got
-    keep = stated <= SLOPE_STD_LIMIT
-    n, stated = n[keep], stated[keep]
-    if len(n) < 2:
-        return None
     sd = np.maximum(stated, SLOPE_STD_FLOOR)
-    tilt = _angle_between(n[-1], np.array([0.0, 0.0, 1.0]))
-    ref = number(getattr(plane, "reference_tilt_std", 0.0)) or 0.0
-    if tilt - confidence_margin(math.hypot(float(stated[-1]), ref), cfg) > cfg.max_tilt:
+    tilt = rotation_angle_between(n[-1], _UP)
+    if _steeper(tilt, float(stated[-1]), plane, cfg) is not None:
         return (f"surface tilted {math.degrees(tilt):.2f} +- {math.degrees(float(stated[-1])):.2f} deg in the newest "
                 f"plane at rest (> {math.degrees(cfg.max_tilt):.1f} deg allowed with {cfg.level_confidence:.0%} "
                 "confidence): waiting for the next")
     others = _weighted_normal(n[:-1], 1.0 / sd[:-1] ** 2)
     # its error and the others' mean's, in quadrature (with one other plane, both count)
     scale = math.hypot(float(sd[-1]), math.sqrt(1.0 / float(np.sum(1.0 / sd[:-1] ** 2))))
-    off = _angle_between(n[-1], others)
+    off = rotation_angle_between(n[-1], others)
     if off > NEWEST_SIGMAS * scale:
         return (f"surface not still: the newest plane at rest is {math.degrees(off):.2f} deg off the others "
                 f"(> {NEWEST_SIGMAS:g} x {math.degrees(scale):.2f} deg)")
@@ -415,18 +435,17 @@ def newest_plane_problem(plane: FusedPlane, post: list[float], cfg: Any) -> str 
 def rest_tilt_problem(plane: FusedPlane, post: list[float], cfg: Any) -> str | None:
     """The planes measured at rest (:func:`_rest_normals`) read the surface steeper than ``max_tilt`` with
     ``level_confidence`` (their weighted normal's tilt less its one-sided margin, from their stated errors, the
-    calibration's reference error in its standard error): the surface under the cup now, which the fused normal (the memory's, or the window's robust
-    centre of planes taken on the way down) may not yet show -- a table tipping at 10 deg/s from the stop was released
-    at 5.9 deg on a remembered 4.5 while its two planes at rest read 5.06 and 5.39 (an adversarial search)."""
+    calibration's reference error in its standard error): the surface under the cup now, which the fused normal (the
+    memory's, or the window's robust centre of planes taken on the way down) may not yet show -- a table tipping at
+    10 deg/s from the stop was released at 5.9 deg on a remembered 4.5 while its two planes at rest read 5.06 and 5.39
+    (an adversarial search)."""
     got = _rest_normals(plane, post, cfg, floor=False)
     if got is None or isinstance(got, str):
         return None  # (the slope and stillness tests say why the planes cannot be judged)
     _, n, sd = got
     w = 1.0 / sd**2
-    tilt = _angle_between(_weighted_normal(n, w), np.array([0.0, 0.0, 1.0]))
-    ref = number(getattr(plane, "reference_tilt_std", 0.0)) or 0.0
-    sigma = math.hypot(math.sqrt(1.0 / float(w.sum())), ref)
-    if tilt - confidence_margin(sigma, cfg) > cfg.max_tilt:
+    tilt = rotation_angle_between(_weighted_normal(n, w), _UP)
+    if (sigma := _steeper(tilt, math.sqrt(1.0 / float(w.sum())), plane, cfg)) is not None:
         return (f"surface tilted {math.degrees(tilt):.2f} +- {math.degrees(sigma):.2f} deg in the planes at rest "
                 f"(> {math.degrees(cfg.max_tilt):.1f} deg allowed, with {cfg.level_confidence:.0%} confidence; the "
                 f"fused plane reads {math.degrees(plane.tilt_rad):.2f})")
@@ -440,20 +459,11 @@ def _still_planes(plane: FusedPlane, post: list[float], cfg: Any) -> tuple[np.nd
     finite offset std (its estimate has no covariance) is a reason, not a guess: nothing else says how far its
     offset may err, so nothing can tell a still surface from a moving one (fail closed); so is one above
     :data:`STILL_STD_LIMIT`."""
-    stamps = tuple(getattr(plane, "stamps", ()) or ())
-    h = tuple(getattr(plane, "heights", ()) or ())
-    s = tuple(getattr(plane, "height_stds", ()) or ())
-    if not stamps or len(h) != len(stamps) or len(s) != len(stamps):
-        return "the fused plane carries no per-plane offsets: whether the surface is still is unknown"
-    idx = _judged(stamps, post, cfg)
-    if isinstance(idx, str):
-        return idx
-    try:
-        t = np.array([float(stamps[i]) for i in idx])
-        y = np.array([float(h[i]) for i in idx])
-        sd = np.array([float(s[i]) for i in idx])
-    except (TypeError, ValueError):
-        return "the fused plane's per-plane offsets are malformed"
+    got = _judged_rows(plane, post, cfg, "heights", "height_stds", "offsets", "whether the surface is still is unknown",
+                       float)
+    if isinstance(got, str):
+        return got
+    t, y, sd = got
     if not (np.all(np.isfinite(t)) and np.all(np.isfinite(y))):
         return "the fused plane's per-plane offsets are not finite"
     if not np.all(np.isfinite(sd)):

@@ -339,8 +339,9 @@ def _despiked(x: np.ndarray, floor: np.ndarray) -> np.ndarray:
     """The floor-subtracted counts ``x`` (..., 128) with each one-bin spike (a bin above the noise margin whose larger
     neighbour holds less than :data:`SPIKE_FRACTION` of it; at the histogram's ends, its one neighbour) lowered to that
     neighbour: no laser pulse is one bin wide, and a spike taller than a zone's real return hid the return."""
-    left = np.concatenate([x[..., :1] * 0.0 - np.inf, x[..., :-1]], axis=-1)
-    right = np.concatenate([x[..., 1:], x[..., :1] * 0.0 - np.inf], axis=-1)
+    edge = np.full(x.shape[:-1] + (1,), -np.inf)  # (no neighbour beyond either end)
+    left = np.concatenate([edge, x[..., :-1]], axis=-1)
+    right = np.concatenate([x[..., 1:], edge], axis=-1)
     side = np.maximum(left, right)
     spike = (x > _noise_margin(floor)[..., None]) & (side < SPIKE_FRACTION * x)
     return np.where(spike, np.maximum(side, 0.0), x) if spike.any() else x
@@ -481,7 +482,7 @@ def reference_problem(reference) -> str | None:
         return "reference histogram is clipped (saturated counts: a flat top, or counters at their maximum)"
     floor = float(measure_floor(r))
     k = int(np.argmax(r))
-    if r[k] - floor <= max(NOISE_SIGMAS * np.sqrt(max(floor, 0.0) + 1.0), MIN_NET_COUNTS):
+    if r[k] - floor <= float(_noise_margin(np.asarray(floor))):
         return "reference histogram has no pulse above its floor"
     if k < REFERENCE_EDGE_BINS or k >= N_BINS - REFERENCE_EDGE_BINS:
         return f"reference histogram peaks at bin {k}, at the edge of the histogram (not a laser pulse)"

@@ -178,19 +178,6 @@ def judge(sc: Scenario, res: Any, max_tilt: float | None = None) -> dict:
     }
 
 
-def _scene_tilt_deg(sc: Scenario) -> float | None:
-    """The table's tilt (deg, unsigned) a scenario file states, for a row whose run failed (None if it states none
-    readable: the table then shows "-")."""
-    table = sc.scene.get("table") if isinstance(sc.scene, dict) else None
-    if not isinstance(table, dict):
-        return 0.0
-    for key, scale in (("tilt_deg", 1.0), ("tilt", math.degrees(1.0))):
-        v = table.get(key)
-        if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v):
-            return abs(float(v) * scale)
-    return None if ("tilt_deg" in table or "tilt" in table) else 0.0
-
-
 def run_one(item: dict) -> dict:
     """Run one scenario (``{"scenario": dict or path, "seed", "seconds", "calibration", "oracle"}``) -> row.
 
@@ -207,7 +194,7 @@ def run_one(item: dict) -> dict:
                             log_frames=False)
     except (PlaceSafeError, ValueError, OSError) as exc:
         return {"name": sc.name, "description": sc.description, "decision": "error", "reason": str(exc),
-                "sensor": sc.sensor.model, "true_tilt_deg": _scene_tilt_deg(sc),
+                "sensor": sc.sensor.model, "true_tilt_deg": math.degrees(sc.scene_config().table.tilt),
                 "met": False, "misses": [f"error: {exc}"], "unsafe": False, "clearly_safe": False,
                 "false_refusal": False, "expected": sc.expect.outcome if sc.expect else "any"}
     return judge(sc, res)

@@ -170,7 +170,7 @@ def test_the_table_cuts_a_long_reason_between_words_and_says_so():
 
 def test_a_scenario_whose_run_fails_shows_its_stated_tilt_not_nan(monkeypatch):
     """A run that fails (a scenario that validates but cannot run) is an error row with the tilt its file states,
-    unsigned, and its sensor; the table prints it (it printed 'nan'), or '-' where the file states none readable."""
+    unsigned, and its sensor; the table prints it (it printed 'nan'), or '-' for a row without one."""
     from place_safe.exceptions import ConfigError
 
     def fail(*a, **k):
