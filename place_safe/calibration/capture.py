@@ -336,21 +336,37 @@ def lowest_tool_point(plane: tuple[np.ndarray, float], base_T_tcp: np.ndarray, t
     return part, float(n @ points[part]) - d
 
 
+def refusal_line(entry: dict) -> str:
+    """How a refused pose (an entry of ``CaptureResult.refused``) is listed: ``pose N refused: reason``."""
+    return f"pose {entry['pose_index']} refused: {entry['reason']}"
+
+
 def capture_sweep(robot: Robot, source: Any, plan: SweepPlan, out_path: str | Path, *,
                   plane: tuple[np.ndarray, float], tool: Any, progress: bool = True,
                   log: Callable[[str], None] | None = None,
-                  reference: Reference | None = None) -> CaptureResult:
+                  reference: Reference | None = None,
+                  on_refused: Callable[[dict], None] | None = None) -> CaptureResult:
     """Run the sweep (see module docstring) and append frames to ``out_path`` (JSON Lines).
 
     ``plane``: the surface in the base frame (from :func:`touch_plane` or :func:`level_plane`). ``tool``:
     the :class:`~place_safe.robot.tool.ToolFrames` believed for the robot (flange_T_tcp, flange_T_sensor).
     ``reference``: how far that plane may be off (:func:`touched_reference`), written with it into each frame's
     ``meta.base_plane.reference``; ``calibrate`` keeps it as the calibration's ``reference`` section. None: not
-    stated (a table height given by hand).
+    stated (a table height given by hand). ``on_refused``: called with each refused pose's entry (as in
+    ``CaptureResult.refused``) instead of logging ``pose N refused: reason`` (a caller that lists them with the
+    result).
     """
     from tqdm import tqdm
 
     log = log or (lambda s: print(s, file=sys.stderr, flush=True))
+
+    def refuse(entry: dict) -> None:
+        refused.append(entry)
+        if on_refused is not None:
+            on_refused(entry)
+        else:
+            log(refusal_line(entry))
+
     out = Path(out_path)
     done = _done_indices(out, cut=not getattr(robot, "dry_run", False))
     n = np.asarray(plane[0], dtype=float)
@@ -383,17 +399,14 @@ def capture_sweep(robot: Robot, source: Any, plan: SweepPlan, out_path: str | Pa
                 why = (f"the {part} would come {clearance * 1000:.1f} mm from the plane, less than the "
                        f"{plan.min_clearance * 1000:g} mm clearance (at this pose it sits "
                        f"{(dist - clearance) * 1000:.0f} mm nearer the plane than the sensor)")
-                refused.append({"pose_index": i, "distance": dist, "incidence": inc, "azimuth": az, "reason": why})
-                log(f"pose {i} refused: {why}")
+                refuse({"pose_index": i, "distance": dist, "incidence": inc, "azimuth": az, "reason": why})
                 continue
             try:
                 robot.move_linear(base_T_tcp, speed=plan.speed, accel=plan.accel)
             except RobotFault as exc:
                 if robot.is_faulted():
                     raise RobotFault(f"capture stopped at pose {i} (rerun to resume after clearing): {exc}") from exc
-                refused.append({"pose_index": i, "distance": dist, "incidence": inc, "azimuth": az,
-                                "reason": str(exc)})
-                log(f"pose {i} refused: {exc}")
+                refuse({"pose_index": i, "distance": dist, "incidence": inc, "azimuth": az, "reason": str(exc)})
                 continue
             if getattr(robot, "dry_run", False):  # the plan is printed by the robot; nothing moved, nothing to record
                 captured += 1
@@ -428,4 +441,4 @@ def capture_sweep(robot: Robot, source: Any, plan: SweepPlan, out_path: str | Pa
 
 
 __all__ = ["SweepPlan", "CaptureResult", "capture_sweep", "touch_plane", "touched_reference", "level_plane",
-           "sensor_target", "plane_in_sensor", "lowest_tool_point", "TOUCH_HEIGHT_STD"]
+           "sensor_target", "plane_in_sensor", "lowest_tool_point", "refusal_line", "TOUCH_HEIGHT_STD"]

@@ -22,7 +22,7 @@ from place_safe.cli.common import CALIBRATE_METHODS, PROG, ROBOT_FILE_HELP, coun
 from place_safe.cli.options import REACH, float_range, int_range
 from place_safe.exceptions import ConfigError, UsageError
 from place_safe.calibration import Calibration, mark
-from place_safe.calibration.capture import MIN_CLEARANCE, TOUCH_HEIGHT_STD, touch_plane
+from place_safe.calibration.capture import MIN_CLEARANCE, TOUCH_HEIGHT_STD, refusal_line, touch_plane
 from place_safe.recovery import make_estimator
 from place_safe.config import read_json
 from place_safe.geometry import transform_problem
@@ -311,7 +311,7 @@ def cmd_capture(args: argparse.Namespace) -> int:
         source = open_sensor(args.sensor, **source_options)
     tool = robot_cfg.tool.frames()
     reference = None  # how far the plane may be off: stated for touches, and for a table height with its tilt std
-    refusals = _Refusals()
+    held: list[dict] = []  # the refused poses, listed once: with the result, or on stderr if there is none
     try:  # the sensor is closed however the capture ends
         with robot:
             if args.touch:
@@ -335,37 +335,17 @@ def cmd_capture(args: argparse.Namespace) -> int:
                 plane = world.table_plane_base()
                 log(f"table from the scenario: z = {plane[1] * 1000:.1f} mm in the base frame")
             res = capture_sweep(robot, source, plan, args.output, plane=plane, tool=tool, progress=not args.quiet,
-                                reference=reference, log=refusals.log)
+                                reference=reference, on_refused=held.append)
     except BaseException:  # no result to list them with (a fault, Ctrl-C): the poses refused so far, on stderr
-        refusals.flush()
+        for entry in held:
+            log(refusal_line(entry))
         raise
     finally:
         source.close()
-    print(res.summary())  # each refused pose listed once, here with the result (capture_sweep's log held them)
+    print(res.summary())  # each refused pose listed once, here with the result (each was listed twice)
     for r in res.refused:
         print(f"  refused pose {r['pose_index']}: {r['reason']}")
     return 0
-
-
-class _Refusals:
-    """The log of :func:`~place_safe.calibration.capture.capture_sweep` for ``capture``: its lines go to standard
-    error as they come, except the refused poses (``pose N refused: ...``), held back because the result lists them
-    on standard output (each was listed twice); :meth:`flush` writes the held ones to standard error (a capture that
-    ended without a result)."""
-
-    def __init__(self) -> None:
-        self.held: list[str] = []
-
-    def log(self, line: str) -> None:
-        if line.startswith("pose ") and " refused: " in line:
-            self.held.append(line)
-        else:
-            log(line)
-
-    def flush(self) -> None:
-        for line in self.held:
-            log(line)
-        self.held = []
 
 
 # ------------------------------------------------------------------------------------------------

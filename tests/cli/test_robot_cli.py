@@ -300,16 +300,20 @@ def test_capture_lists_each_refused_pose_once(tmp_path, capsys):
     assert "pose 0 refused" not in captured.err and "2 refused" in captured.out
 
 
-def test_a_capture_that_ends_early_still_lists_the_poses_it_refused(capsys):
-    """Without a result (a fault, Ctrl-C) the refused poses held back from standard error are written there."""
-    from place_safe.cli.robot import _Refusals
+def test_a_capture_that_ends_early_still_lists_the_poses_it_refused(tmp_path, capsys, monkeypatch):
+    """Without a result (a fault, Ctrl-C) the refused poses held back for it are written to standard error."""
+    import place_safe.calibration.capture as capture
+    from place_safe.exceptions import RobotFault
 
-    r = _Refusals()
-    r.log("pose 3 refused: too close")
-    r.log("capture: 10/20 poses, ETA 4 s")
-    assert capsys.readouterr().err == "capture: 10/20 poses, ETA 4 s\n"
-    r.flush()
-    assert capsys.readouterr().err == "pose 3 refused: too close\n"
+    def ends_early(*args, on_refused=None, **kw):
+        on_refused({"pose_index": 3, "distance": 0.01, "incidence": 0.0, "azimuth": 0.0, "reason": "too close"})
+        raise RobotFault("protective stop")
+
+    monkeypatch.setattr(capture, "capture_sweep", ends_early)
+    assert main(["capture", "--sim", "level_table", "--table-height", "-0.05", "--incidences", "0", "--azimuths", "0",
+                 "--distances", "10,20", "--settle", "0.01", "-q", "-o", str(tmp_path / "cap.jsonl")]) != 0
+    captured = capsys.readouterr()
+    assert captured.err.count("pose 3 refused: too close\n") == 1 and "pose 3" not in captured.out
 
 
 def test_capture_help_documents_the_touched_reference_with_units(capsys):
