@@ -91,6 +91,13 @@ _RIM_POINTS = 24
 CLOSE_SLACK = 0.04
 #: The zone on the optical axis (0-based): the second look centres it on footprint points the latest views doubt.
 CENTRE_ZONE = 4
+#: m beyond the footprint's rim where a frame's optical axis may still meet the plane and the frame count as looking
+#: at the footprint: the second look centres the view on the points in doubt, often on the rim, and arrives within a
+#: few millimetres (the arm's arrival tolerance, the fused plane moving a little). Random scene 0 of seed 74 (a box
+#: 36 mm beyond the footprint) aimed 0.6 mm past the rim; none of its look's views counted, so the centred clean views
+#: never lifted the veto the first survey views had raised, and the cup was refused. The descent's views aim about
+#: 70 mm from the centre (the sensor beside the cup) and stay out.
+AIM_SLACK = 0.005
 
 
 def second_returns(hists: np.ndarray, first: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -445,9 +452,10 @@ class SurfaceMap:
 
         * when a point with fewer than ``min_frames`` clean views was flagged in ``min_frames`` views, or
         * **latest close views decide**: when the last ``min_frames`` views of a point from frames
-          *looking at the footprint* -- the optical axis meets the plane inside the footprint, as from
-          the survey pose or the second look -- all see something *raised* (a doubtful zone above the
-          plane, a nearer surface mixed in, a surface above), whatever earlier views certified. Edge
+          *looking at the footprint* -- the optical axis meets the plane inside the footprint (or within
+          :data:`AIM_SLACK` of its rim), as from the survey pose or the second look -- all see something
+          *raised* (a doubtful zone above the plane, a nearer surface mixed in, a surface above), whatever
+          earlier views certified. Edge
           evidence (no return, a farther or lower surface) keeps to the first rule: a zone reaching past
           the footprint sees the floor beyond a table edge 2 cm away, while a point over the floor is
           never certified by a zone on the plane. Frames that only hold part of the footprint at the edge of their view (the descent,
@@ -569,9 +577,10 @@ class SurfaceMap:
         return ok & (np.abs(pb @ n - d) > fs.tolerance)
 
     def _looks_at(self, base_T_sensor: np.ndarray, disc: np.ndarray, n: np.ndarray) -> bool:
-        """Whether the sensor's optical axis meets the plane inside the footprint (``disc[0]`` its centre)."""
+        """Whether the sensor's optical axis meets the plane inside the footprint (``disc[0]`` its centre), or
+        within :data:`AIM_SLACK` of its rim."""
         aim = _axis_offset(np.asarray(base_T_sensor, dtype=float), disc[0], n)
-        return aim is not None and float(np.linalg.norm(aim[0])) <= self.radius
+        return aim is not None and float(np.linalg.norm(aim[0])) <= self.radius + AIM_SLACK
 
     def sight(self, verdict: FootprintVerdict, normal: Any, offset: float, landing_T_cup: Any,
               base_T_sensor: Any) -> FootprintVerdict:

@@ -214,6 +214,10 @@ class _Check:
 
     t_stop: float
     at_rest: np.ndarray | None = None
+    # the latest footprint verdict during this check that did not clear the footprint (a problem, or points in
+    # doubt), and why: a verdict that comes and goes with the plane refined at rest must not release on a clean tick
+    doubt: Any = None
+    doubt_why: str | None = None
 
 
 @dataclass
@@ -718,6 +722,13 @@ class PlacementMachine:
         if r is None:
             r = self._recheck = _Recheck(now)
         r.ticks += 1
+        if r.arrived is None and c < cfg.traverse_clearance:
+            # low (a problem seen from frames still in flight): straight up before the sideways move, which would
+            # sweep the cup into what the zones saw beside the footprint; the look's time starts above it
+            r.t0, r.ticks = now, 0
+            self._hint = "survey"
+            down = -np.asarray(state.base_T_cup, dtype=float)[:3, 2]
+            return self._speed(np.round(self._axial(min(c - cfg.traverse_clearance, -2.0 * SURVEY_DONE)) * down, 3))
         return self._look_there(r, move, frames, state, c, now)
 
     def _look_at_doubt(self, state: RobotState, c: float, now: float) -> Command | None:
@@ -791,10 +802,11 @@ class PlacementMachine:
         move = (self._look_target - np.asarray(state.base_T_tcp, dtype=float)[:3, 3]) if r.arrived is None else None
         return self._look_there(r, move, number(getattr(self._footprint, "close_frames", None)), state, c, now)
 
-    def _go_look_again(self, state: RobotState, now: float, why: str) -> Command:
-        """CHECK -> APPROACH for the second look over the verdict's doubtful points (:meth:`_look_from_check`), its
-        TCP target fixed now; the arm holds this tick."""
-        move = np.asarray(getattr(self._footprint, "recheck_shift"), dtype=float).reshape(3)
+    def _go_look_again(self, state: RobotState, now: float, why: str, verdict: Any = None) -> Command:
+        """CHECK -> APPROACH for the second look over the doubtful points of ``verdict`` (default the latest;
+        :meth:`_look_from_check`), its TCP target fixed now; the arm holds this tick."""
+        verdict = self._footprint if verdict is None else verdict
+        move = np.asarray(getattr(verdict, "recheck_shift"), dtype=float).reshape(3)
         self._look_target = np.asarray(state.base_T_tcp, dtype=float)[:3, 3] + move
         self._recheck = _Recheck(now)
         self._check = None
@@ -802,24 +814,43 @@ class PlacementMachine:
         self._descent_t0, self._descent_ticks = now, 0
         return Command.hold()
 
+    def _doubted(self) -> bool:
+        """Whether footprint points the survey had certified are in doubt again (the verdict's ``supported`` below
+        ``footprint_frames`` after the survey latched): a later view from over the footprint saw them raised. The
+        descent then keeps the cap for uncertified ground, as before the survey; CHECK looks at them again (random
+        scene 10 of seed 75: a box 5 mm inside the cup's rim, raised in two views after three clean ones, was met at
+        full speed, 38.5 N)."""
+        return self._surveyed and rules.footprint_seen(self._footprint) < self.config.footprint_frames
+
     def _looked(self) -> bool:
         """Whether a second look has been made: arrived over the doubtful points, ended (done, or timed out) or decided
         at CHECK. A look at points in doubt left on its way there, because the survey's frames cleared them, is not."""
         r = self._recheck
         return r is not None and (r.arrived is not None or r.done or self._look_target is not None)
 
-    def _can_look_again(self) -> bool:
+    def _can_look_again(self, verdict: Any = None) -> bool:
         """Whether a footprint problem, or points in doubt, found at CHECK may send the cup back up for the second
-        look (once: no second look made yet (:meth:`_looked`), the rule and its time on, and a verdict that says
-        where to look from)."""
+        look (once: no second look made yet (:meth:`_looked`), the rule and its time on, and a verdict -- default
+        the latest -- that says where to look from)."""
         cfg = self.config
+        verdict = self._footprint if verdict is None else verdict
         if self._looked() or not cfg.recheck_timeout > 0 or cfg.footprint_frames == 0:
             return False
         try:
-            move = np.asarray(getattr(self._footprint, "recheck_shift"), dtype=float).reshape(3)
+            move = np.asarray(getattr(verdict, "recheck_shift"), dtype=float).reshape(3)
         except (TypeError, ValueError, AttributeError):
             return False
         return bool(np.all(np.isfinite(move))) and number(getattr(self._footprint, "close_frames", None)) is not None
+
+    def _footprint_doubt(self) -> str | None:
+        """Why the latest footprint verdict does not clear the footprint (a problem, or points in doubt: supported
+        in fewer than ``footprint_frames`` frames), or None."""
+        cfg = self.config
+        if (why := rules.footprint_problem(self._footprint, cfg)) is not None:
+            return why
+        if cfg.footprint_frames and rules.footprint_seen(self._footprint) < cfg.footprint_frames:
+            return "no support evidence: footprint points in doubt (raised in their latest view)"
+        return None
 
     def tilt_sigma(self, plane: FusedPlane) -> float:
         """Standard error (rad) of the fused plane's tilt (:func:`place_safe.placement.rules.tilt_sigma`)."""
@@ -1027,10 +1058,11 @@ class PlacementMachine:
                 v = self._descent_speed(c)
                 if c <= cfg.near_surface_distance:
                     v = max(cfg.descend_speed, min(v, cfg.near_surface_speed))
-                if cfg.footprint_frames and not self._surveyed:
+                if cfg.footprint_frames and (not self._surveyed or self._doubted()):
                     # the footprint is not certified yet: something may stand on it (clutter, a step), so
                     # keep room to stop above traverse_clearance even learning of it sensor_latency late (or
-                    # go no faster than the slow band's speed, at which a touch stays gentle)
+                    # go no faster than the slow band's speed, at which a touch stays gentle); so do points seen
+                    # raised after the survey certified the footprint (CHECK then looks at them again)
                     v = min(v, max(cfg.descend_speed,
                                    stoppable_speed(min(c, self._pending_c) - cfg.traverse_clearance,
                                                    self._latency(), cfg.accel)))
@@ -1070,6 +1102,8 @@ class PlacementMachine:
                or rules.sensor_problem(state.last_frame_time, now, self._t_start, note, cfg))
         if why is not None:
             return self._refuse(now, why)
+        if (fp_why := self._footprint_doubt()) is not None:  # remembered for the deciding tick
+            self._check.doubt, self._check.doubt_why = self._footprint, fp_why
         fresh = len(self.post_stop_stamps(plane, now))
         if self._check.at_rest is None and now - self._check.t_stop >= cfg.check_settle:
             self._check.at_rest = np.asarray(state.base_T_tcp, dtype=float)[:3, 3].copy()
@@ -1098,6 +1132,13 @@ class PlacementMachine:
             return self._refuse(now, f"no support evidence: the surface under the cup's footprint was seen on one "
                                      f"plane in {rules.footprint_seen(self._footprint)} frames "
                                      f"(< {cfg.footprint_frames})")
+        if self._check.doubt is not None:
+            # clean now, but not on every tick of this check: the verdict comes and goes with the plane refined at
+            # rest; the look from over the points it named settles it, and after a look it refuses
+            why = f"{self._check.doubt_why} earlier in this check (the footprint's verdict comes and goes)"
+            if self._can_look_again(self._check.doubt):
+                return self._go_look_again(state, now, why, self._check.doubt)
+            return self._refuse(now, why if why.startswith("no ") else f"no support evidence: {why}")
         cup = np.asarray(state.base_T_cup, dtype=float)
         cup_to_surface = math.acos(max(-1.0, min(1.0, float(cup[:3, 2] @ np.asarray(plane.normal_base, float)))))
         if not (cup_to_surface <= cfg.max_tilt):

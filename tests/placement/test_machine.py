@@ -8,6 +8,8 @@ import re
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from place_safe.fusion.plane_filter import FusedPlane
 from place_safe.fusion.surface_map import FootprintVerdict
@@ -439,6 +441,99 @@ def test_points_in_doubt_the_survey_does_not_clear_get_the_second_look(clears):
         assert "not seen clean within" in m.decision and "looking from over them" in m.decision
         refused_at = next(t.time for t in m.log if t.target == Phase.REFUSE)
         assert refused_at <= state["done_at"] + DOUBT_PATIENCE + 0.1
+
+
+@pytest.mark.parametrize("clears", [True, False])
+def test_points_in_doubt_after_the_survey_slow_the_descent_below_traverse_clearance(clears):
+    """Random scene 10 of seed 75: the survey certified the footprint (three clean views), then two later views from
+    over it saw a box 5 mm inside the cup's rim raise a zone; the cup went on at full speed and met the box at
+    38.5 N. Points in doubt after the survey are uncertified ground again: below traverse_clearance the cup descends
+    no faster than the slow band (a touch stays gentle), and CHECK looks at them (centred on them, x = -0.03, 12 cm
+    up): cleared there, the cup lands over the landing spot; never cleared, it is refused."""
+    w = FakeWorld(height=0.25)
+    m = PlacementMachine()
+    state = {"there": 0, "fast_low": 0}
+
+    def fn(world, machine):
+        there = world.pos[0] <= -0.026 and world.pos[2] >= 0.11
+        state["there"] += int(there)
+        doubt = (world.pos[2] < 0.15 or world.footprint.recheck_point is not None) \
+            and not (clears and state["there"] >= 6)
+        if doubt and world.pos[2] < m.config.traverse_clearance and world.vel[2] < -m.config.descend_speed - 1e-6:
+            state["fast_low"] += 1
+        fp = world.footprint
+        world.footprint = FootprintVerdict(
+            observed=5, supported=0 if doubt else 5, in_view=False, view_margin=-0.01,
+            close_frames=(fp.close_frames or 0) + int(there),
+            recheck_point=np.array([-0.03, 0.0, 0.0]) if doubt else None,
+            recheck_shift=np.array([-0.03 - world.pos[0], 0.0, 0.12 - world.pos[2]]) if doubt else None)
+        return world.plane()
+
+    run(w, m, plane_fn=fn, seconds=40.0)
+    assert state["fast_low"] == 0 and state["there"] > 0
+    if clears:
+        assert m.outcome == "released", m.decision
+        assert abs(w.opened_at[0]) <= 0.002
+    else:
+        assert m.outcome == "refused" and not opened(w) and "no support evidence" in m.decision
+
+
+def test_a_problem_first_seen_low_climbs_before_the_second_look_moves_sideways():
+    """A problem under the footprint that first comes up with the cup below traverse_clearance (frames still in
+    flight) sends the cup straight up before the sideways move to the look from over the points: sideways from
+    there it would sweep into what the zones saw beside the footprint."""
+    w = FakeWorld(height=0.25)
+    m = PlacementMachine()
+    low = m.config.traverse_clearance - 0.02
+    state = {"seen": False, "sideways_low": 0, "there": 0}
+
+    def fn(world, machine):
+        state["seen"] = state["seen"] or (world.pos[2] < low and machine.phase == Phase.APPROACH)
+        there = world.pos[0] <= -0.026 and world.pos[2] >= 0.11
+        state["there"] += int(there)
+        problem = state["seen"] and state["there"] < 6
+        if problem and world.pos[2] < m.config.traverse_clearance - 0.005 and abs(world.vel[0]) > 1e-3:
+            state["sideways_low"] += 1
+        fp = world.footprint
+        world.footprint = FootprintVerdict(
+            observed=5, supported=0 if problem else 5, in_view=False, view_margin=-0.01,
+            close_frames=(fp.close_frames or 0) + int(there),
+            problem=("zone 7 over the cup's footprint +6 mm off the surface (part of it covered: clutter or step)"
+                     if problem else None),
+            recheck_point=np.array([-0.03, 0.0, 0.0]) if problem else None,
+            recheck_shift=np.array([-0.03 - world.pos[0], 0.0, 0.12 - world.pos[2]]) if problem else None)
+        return world.plane()
+
+    run(w, m, plane_fn=fn, seconds=40.0)
+    assert state["seen"] and state["there"] > 0 and state["sideways_low"] == 0
+    assert m.outcome == "released", m.decision
+
+
+@settings(max_examples=20, deadline=None)
+@given(on=st.integers(1, 6), off=st.integers(1, 16), phase=st.integers(0, 21),
+       start=st.sampled_from(["descend", "approach"]))
+def test_a_footprint_verdict_that_comes_and_goes_never_releases(on, off, phase, start):
+    """A doubt that is never cleared but comes and goes (with the plane refined at rest: ``on`` ticks in doubt, ``off``
+    clean), starting in DESCEND or in the approach: the gripper never opens, whichever tick CHECK decides on (it
+    opened on a clean tick in 6 of 8 phases of 4-on-4-off: an adversarial search)."""
+    w = FakeWorld(height=0.25)
+    m = PlacementMachine()
+    state = {"on": False, "n": phase}
+
+    def fn(world, machine):
+        state["n"] += 1
+        state["on"] = state["on"] or (machine.phase == Phase.DESCEND if start == "descend" else world.pos[2] < 0.15)
+        doubt = state["on"] and state["n"] % (on + off) < on
+        fp = world.footprint
+        world.footprint = FootprintVerdict(
+            observed=5, supported=0 if doubt else 5, in_view=False, view_margin=-0.01,
+            close_frames=(fp.close_frames or 0) + 1,
+            recheck_point=np.array([-0.03, 0.0, 0.0]) if doubt else None,
+            recheck_shift=np.array([-0.03 - world.pos[0], 0.0, 0.12 - world.pos[2]]) if doubt else None)
+        return world.plane()
+
+    run(w, m, plane_fn=fn, seconds=40.0)
+    assert not opened(w) and m.outcome == "refused", m.decision
 
 
 def _doubt_at_check_fn(clears: bool, target_x: float = -0.03):
