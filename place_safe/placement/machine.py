@@ -706,7 +706,8 @@ class PlacementMachine:
         once more from over those points (the view centred on them, at the survey height): a corner zone
         reaches 4 cm past the footprint, so an edge or a box beside it puts a second surface into a zone
         that also covers part of the footprint. Returns the move or the wait, or None once the look is
-        done (``footprint_frames`` close frames from there), timed out or not possible: then refuse."""
+        done (``footprint_frames`` close frames from there), timed out or not possible (among others: the cup
+        below ``traverse_clearance``): then refuse."""
         cfg = self.config
         r = self._recheck
         if (r is not None and r.done) or not cfg.recheck_timeout > 0 or cfg.footprint_frames == 0:
@@ -719,16 +720,14 @@ class PlacementMachine:
             move = None
         if frames is None or move is None or not np.all(np.isfinite(move)):
             return None
+        if c < cfg.traverse_clearance:
+            # no look from this low (a problem from frames still in flight, or back after a look): its sideways move
+            # would sweep the cup into what the zones saw beside the footprint, and a climb that resumes the descent
+            # whenever the verdict clears bounced between the two heights until the descent's deadline
+            return None
         if r is None:
             r = self._recheck = _Recheck(now)
         r.ticks += 1
-        if r.arrived is None and c < cfg.traverse_clearance:
-            # low (a problem seen from frames still in flight): straight up before the sideways move, which would
-            # sweep the cup into what the zones saw beside the footprint; the look's time starts above it
-            r.t0, r.ticks = now, 0
-            self._hint = "survey"
-            down = -np.asarray(state.base_T_cup, dtype=float)[:3, 2]
-            return self._speed(np.round(self._axial(min(c - cfg.traverse_clearance, -2.0 * SURVEY_DONE)) * down, 3))
         return self._look_there(r, move, frames, state, c, now)
 
     def _look_at_doubt(self, state: RobotState, c: float, now: float) -> Command | None:
@@ -1102,9 +1101,14 @@ class PlacementMachine:
                or rules.sensor_problem(state.last_frame_time, now, self._t_start, note, cfg))
         if why is not None:
             return self._refuse(now, why)
-        if (fp_why := self._footprint_doubt()) is not None:  # remembered for the deciding tick
-            self._check.doubt, self._check.doubt_why = self._footprint, fp_why
         fresh = len(self.post_stop_stamps(plane, now))
+        if fresh and (fp_why := self._footprint_doubt()) is not None:
+            # remembered for the deciding tick, once the fused plane holds a plane measured at rest (a doubt against
+            # the plane fused on the way down that the first plane at rest settles is no doubt); a verdict that says
+            # where to look from is kept over one that does not
+            self._check.doubt_why = fp_why
+            if self._check.doubt is None or self._can_look_again(self._footprint):
+                self._check.doubt = self._footprint
         if self._check.at_rest is None and now - self._check.t_stop >= cfg.check_settle:
             self._check.at_rest = np.asarray(state.base_T_tcp, dtype=float)[:3, 3].copy()
         need = self.check_frames_needed(plane)

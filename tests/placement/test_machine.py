@@ -478,26 +478,28 @@ def test_points_in_doubt_after_the_survey_slow_the_descent_below_traverse_cleara
         assert m.outcome == "refused" and not opened(w) and "no support evidence" in m.decision
 
 
-def test_a_problem_first_seen_low_climbs_before_the_second_look_moves_sideways():
-    """A problem under the footprint that first comes up with the cup below traverse_clearance (frames still in
-    flight) sends the cup straight up before the sideways move to the look from over the points: sideways from
-    there it would sweep into what the zones saw beside the footprint."""
+@pytest.mark.parametrize("on,off", [(1, 10**9), (1, 1), (2, 3), (5, 10)])
+def test_a_problem_first_seen_low_refuses_without_moving_sideways(on, off):
+    """A problem under the footprint first seen with the cup below traverse_clearance (frames still in flight), for
+    good or coming and going by frame: no look from there (its sideways move would sweep the cup into what the zones
+    saw beside the footprint; a climb that gave way to the descent on every clean tick bounced between the two
+    heights until the descent's deadline, an adversarial search): the cup stops and is refused at once."""
     w = FakeWorld(height=0.25)
     m = PlacementMachine()
     low = m.config.traverse_clearance - 0.02
-    state = {"seen": False, "sideways_low": 0, "there": 0}
+    state = {"t0": None, "n": 0, "sideways_low": 0}
 
     def fn(world, machine):
-        state["seen"] = state["seen"] or (world.pos[2] < low and machine.phase == Phase.APPROACH)
-        there = world.pos[0] <= -0.026 and world.pos[2] >= 0.11
-        state["there"] += int(there)
-        problem = state["seen"] and state["there"] < 6
-        if problem and world.pos[2] < m.config.traverse_clearance - 0.005 and abs(world.vel[0]) > 1e-3:
+        if state["t0"] is None and world.pos[2] < low and machine.phase == Phase.APPROACH:
+            state["t0"] = world.t
+        state["n"] += state["t0"] is not None
+        problem = state["t0"] is not None and (state["n"] - 1) % (on + off) < on
+        if state["t0"] is not None and world.pos[2] < m.config.traverse_clearance and abs(world.vel[0]) > 1e-3:
             state["sideways_low"] += 1
         fp = world.footprint
         world.footprint = FootprintVerdict(
             observed=5, supported=0 if problem else 5, in_view=False, view_margin=-0.01,
-            close_frames=(fp.close_frames or 0) + int(there),
+            close_frames=(fp.close_frames or 0) + 1,
             problem=("zone 7 over the cup's footprint +6 mm off the surface (part of it covered: clutter or step)"
                      if problem else None),
             recheck_point=np.array([-0.03, 0.0, 0.0]) if problem else None,
@@ -505,35 +507,72 @@ def test_a_problem_first_seen_low_climbs_before_the_second_look_moves_sideways()
         return world.plane()
 
     run(w, m, plane_fn=fn, seconds=40.0)
-    assert state["seen"] and state["there"] > 0 and state["sideways_low"] == 0
-    assert m.outcome == "released", m.decision
+    assert state["t0"] is not None and state["sideways_low"] == 0
+    assert m.outcome == "refused" and not opened(w) and "no safe support under the cup" in m.decision
+    refused_at = next(t.time for t in m.log if t.target == Phase.REFUSE)
+    assert refused_at <= state["t0"] + 0.1
 
 
-@settings(max_examples=20, deadline=None)
-@given(on=st.integers(1, 6), off=st.integers(1, 16), phase=st.integers(0, 21),
-       start=st.sampled_from(["descend", "approach"]))
-def test_a_footprint_verdict_that_comes_and_goes_never_releases(on, off, phase, start):
-    """A doubt that is never cleared but comes and goes (with the plane refined at rest: ``on`` ticks in doubt, ``off``
-    clean), starting in DESCEND or in the approach: the gripper never opens, whichever tick CHECK decides on (it
-    opened on a clean tick in 6 of 8 phases of 4-on-4-off: an adversarial search)."""
-    w = FakeWorld(height=0.25)
+def test_a_doubt_against_the_plane_fused_on_the_way_down_that_the_plane_at_rest_settles_releases():
+    """A zone just over the line against the plane fused while descending and just under it against the plane
+    measured at rest: the verdict shows a doubt on the first ticks of the check, before a plane measured at rest is
+    in, and none after. That is no doubt: released, with no look (an adversarial search: remembering it refused)."""
+    w = FakeWorld(height=0.2)
     m = PlacementMachine()
-    state = {"on": False, "n": phase}
 
     def fn(world, machine):
-        state["n"] += 1
-        state["on"] = state["on"] or (machine.phase == Phase.DESCEND if start == "descend" else world.pos[2] < 0.15)
-        doubt = state["on"] and state["n"] % (on + off) < on
+        plane = world.plane()
+        fresh = machine.phase == Phase.CHECK and len(machine.post_stop_stamps(plane, world.t)) > 0
+        doubt = machine.phase == Phase.CHECK and not fresh
         fp = world.footprint
         world.footprint = FootprintVerdict(
             observed=5, supported=0 if doubt else 5, in_view=False, view_margin=-0.01,
             close_frames=(fp.close_frames or 0) + 1,
             recheck_point=np.array([-0.03, 0.0, 0.0]) if doubt else None,
             recheck_shift=np.array([-0.03 - world.pos[0], 0.0, 0.12 - world.pos[2]]) if doubt else None)
-        return world.plane()
+        return plane
+
+    run(w, m, plane_fn=fn)
+    assert m.outcome == "released", m.decision
+    assert (Phase.CHECK, Phase.APPROACH) not in [(t.source, t.target) for t in m.log]
+
+
+@settings(max_examples=25, deadline=None)
+@given(on=st.integers(1, 6), off=st.integers(1, 16), phase=st.integers(0, 21),
+       start=st.sampled_from(["descend", "approach"]))
+def test_no_release_in_a_check_whose_verdict_against_the_planes_at_rest_came_and_went(on, off, phase, start):
+    """A doubt that is never cleared but comes and goes (``on`` ticks in doubt, ``off`` clean), from DESCEND or the
+    approach on: the gripper never opens in a check where a verdict shown once a plane measured at rest was in the
+    fused plane was not clean, whichever tick CHECK decides on (before, it opened on a clean deciding tick in 6 of 8
+    phases of 4-on-4-off: an adversarial search). A doubt against the plane fused on the way down only, before the
+    first plane at rest, is forgiven (see the test above)."""
+    w = FakeWorld(height=0.25)
+    m = PlacementMachine()
+    state = {"on": False, "n": phase, "bad": False, "bad_at_open": None}
+
+    def fn(world, machine):
+        if opened(world) and state["bad_at_open"] is None:
+            state["bad_at_open"] = state["bad"]  # the verdicts of the check the gripper opened in
+        state["n"] += 1
+        state["on"] = state["on"] or (machine.phase == Phase.DESCEND if start == "descend" else world.pos[2] < 0.15)
+        doubt = state["on"] and state["n"] % (on + off) < on
+        plane = world.plane()
+        if machine.phase != Phase.CHECK:
+            state["bad"] = False
+        elif doubt and machine.post_stop_stamps(plane, world.t):
+            state["bad"] = True
+        fp = world.footprint
+        world.footprint = FootprintVerdict(
+            observed=5, supported=0 if doubt else 5, in_view=False, view_margin=-0.01,
+            close_frames=(fp.close_frames or 0) + 1,
+            recheck_point=np.array([-0.03, 0.0, 0.0]) if doubt else None,
+            recheck_shift=np.array([-0.03 - world.pos[0], 0.0, 0.12 - world.pos[2]]) if doubt else None)
+        return plane
 
     run(w, m, plane_fn=fn, seconds=40.0)
-    assert not opened(w) and m.outcome == "refused", m.decision
+    assert m.outcome in ("released", "refused"), m.decision
+    if opened(w):
+        assert state["bad_at_open"] is False
 
 
 def _doubt_at_check_fn(clears: bool, target_x: float = -0.03):
