@@ -1142,7 +1142,7 @@ class PlacementMachine:
             why = f"{self._check.doubt_why} earlier in this check (the footprint's verdict comes and goes)"
             if self._can_look_again(self._check.doubt):
                 return self._go_look_again(state, now, why, self._check.doubt)
-            return self._refuse(now, why if why.startswith("no ") else f"no support evidence: {why}")
+            return self._refuse(now, why)
         cup = np.asarray(state.base_T_cup, dtype=float)
         cup_to_surface = math.acos(max(-1.0, min(1.0, float(cup[:3, 2] @ np.asarray(plane.normal_base, float)))))
         if not (cup_to_surface <= cfg.max_tilt):
