@@ -222,13 +222,20 @@ class _Check:
 
 @dataclass
 class _Recheck:
-    """The second look at doubtful footprint points: when it began, its ticks, the close frames the surface
-    map had counted when it arrived over them (None: still moving), and whether it is over."""
+    """The second look at doubtful footprint points: when it began (``t0``: reset while the cup still climbs to
+    ``traverse_clearance``; ``begun``: when it was decided), its ticks, the close frames the surface map had counted
+    when it arrived over them (None: still moving), and whether it is over."""
 
     t0: float
     ticks: int = 0
     arrived: float | None = None
     done: bool = False
+    begun: float = math.nan
+    climb_ticks: int = 0
+
+    def __post_init__(self) -> None:
+        if not math.isfinite(self.begun):
+            self.begun = self.t0
 
 
 @dataclass
@@ -721,10 +728,16 @@ class PlacementMachine:
         if frames is None or move is None or not np.all(np.isfinite(move)):
             return None
         if c < cfg.traverse_clearance:
-            # no look from this low (a problem from frames still in flight, or back after a look): its sideways move
-            # would sweep the cup into what the zones saw beside the footprint, and a climb that resumes the descent
-            # whenever the verdict clears bounced between the two heights until the descent's deadline
-            return None
+            # low (a problem from frames still in flight): sideways from here the cup would sweep into what the
+            # zones saw beside the footprint. A first look goes the way CHECK's does (:meth:`_look_from_check`):
+            # straight up to traverse_clearance, then over the points, made whatever the verdict says meanwhile (a
+            # climb that gave way to the descent whenever the verdict cleared bounced between the two heights until
+            # the descent's deadline). A look already under way (back down after it) is over: refuse.
+            if r is not None:
+                return None
+            self._look_target = np.asarray(state.base_T_tcp, dtype=float)[:3, 3] + move
+            self._recheck = _Recheck(now)
+            return self._look_from_check(state, c, now)
         if r is None:
             r = self._recheck = _Recheck(now)
         r.ticks += 1
@@ -779,7 +792,8 @@ class PlacementMachine:
         return self._speed(np.zeros(3))
 
     def _look_from_check(self, state: RobotState, c: float, now: float) -> Command | None:
-        """The second look decided at CHECK (:meth:`_can_look_again`), made whatever the verdict says meanwhile
+        """The second look decided at CHECK (:meth:`_can_look_again`), or for a problem first seen with the cup below
+        ``traverse_clearance`` in the approach (:meth:`_second_look`), made whatever the verdict says meanwhile
         (a doubt that came up with the plane refined at rest may come and go with it): straight up to
         ``traverse_clearance`` first (sideways from a few millimetres up, the cup would sweep into what the
         zones saw beside the footprint), then to the pose over the doubtful points, then ``footprint_frames``
@@ -791,7 +805,8 @@ class PlacementMachine:
             return None
         r.ticks += 1
         if r.arrived is None and c < cfg.traverse_clearance:
-            if self._elapsed(now, self._t_phase, self._phase_ticks) > cfg.recheck_timeout:  # the arm did not rise
+            r.climb_ticks += 1
+            if self._elapsed(now, r.begun, r.climb_ticks) > cfg.recheck_timeout:  # the arm did not rise
                 r.done = True
                 return None
             r.t0, r.ticks = now, 0  # the look's own time starts above traverse_clearance
