@@ -214,10 +214,10 @@ class _Check:
 
     t_stop: float
     at_rest: np.ndarray | None = None
-    # the latest footprint verdict during this check that did not clear the footprint (a problem, or points in
-    # doubt), and why: a verdict that comes and goes with the plane refined at rest must not release on a clean tick
-    doubt: Any = None
-    doubt_why: str | None = None
+    # (verdict, why) of a footprint verdict during this check, once a plane at rest was fused, that did not clear the
+    # footprint (a problem, or points in doubt): the first such, or a later one that says where to look from when it
+    # did not; a verdict that comes and goes with the plane refined at rest must not release on a clean tick
+    doubt: tuple[Any, str] | None = None
 
 
 @dataclass
@@ -296,7 +296,7 @@ class PlacementMachine:
         self._footprint: Any = None
         self._surveyed = False
         self._recheck: _Recheck | None = None
-        self._look_target: np.ndarray | None = None  # TCP position of the second look decided at CHECK (base)
+        self._look_target: np.ndarray | None = None  # TCP position (base) of a second look made the way CHECK's is
         self._doubt_since: float | None = None  # robot time the survey's verdict began to have points in doubt
         self._doubt_ticks = 0
         self._doubt_after_look = False  # the doubt counted since the second look ended (not since before it)
@@ -713,8 +713,8 @@ class PlacementMachine:
         once more from over those points (the view centred on them, at the survey height): a corner zone
         reaches 4 cm past the footprint, so an edge or a box beside it puts a second surface into a zone
         that also covers part of the footprint. Returns the move or the wait, or None once the look is
-        done (``footprint_frames`` close frames from there), timed out or not possible (among others: the cup
-        below ``traverse_clearance``): then refuse."""
+        done (``footprint_frames`` close frames from there), timed out or not possible: then refuse. From below
+        ``traverse_clearance`` the look is made the way CHECK's is (:meth:`_look_from_check`)."""
         cfg = self.config
         r = self._recheck
         if (r is not None and r.done) or not cfg.recheck_timeout > 0 or cfg.footprint_frames == 0:
@@ -733,7 +733,7 @@ class PlacementMachine:
             # straight up to traverse_clearance, then over the points, made whatever the verdict says meanwhile (a
             # climb that gave way to the descent whenever the verdict cleared bounced between the two heights until
             # the descent's deadline). A look already under way (back down after it) is over: refuse.
-            if r is not None:
+            if self._looked():
                 return None
             self._look_target = np.asarray(state.base_T_tcp, dtype=float)[:3, 3] + move
             self._recheck = _Recheck(now)
@@ -838,9 +838,18 @@ class PlacementMachine:
 
     def _looked(self) -> bool:
         """Whether a second look has been made: arrived over the doubtful points, ended (done, or timed out) or decided
-        at CHECK. A look at points in doubt left on its way there, because the survey's frames cleared them, is not."""
+        the way CHECK's is (:meth:`_look_from_check`). A look at points in doubt left on its way there, because the
+        survey's frames cleared them, is not."""
         r = self._recheck
         return r is not None and (r.arrived is not None or r.done or self._look_target is not None)
+
+    def _look_said(self) -> str:
+        """What a refusal for the footprint adds about the second look: seen from over the points, or a look that
+        ended before it got there (timed out, the arm did not rise); nothing when none was made."""
+        r = self._recheck
+        if r is not None and r.arrived is not None:
+            return " (also from over those points)"
+        return " (the second look at them timed out before it got there)" if self._looked() else ""
 
     def _can_look_again(self, verdict: Any = None) -> bool:
         """Whether a footprint problem, or points in doubt, found at CHECK may send the cup back up for the second
@@ -1054,10 +1063,11 @@ class PlacementMachine:
                 return look
             # something seen under the footprint while descending: stop hard (obstacle_decel) unless moving
             # sideways (the liquid's lateral acceleration), so an obstacle seen late is not run into
-            return self._refuse(now, why + (" (also from over those points)" if self._looked() else ""),
+            return self._refuse(now, why + self._look_said(),
                                 decel=None if self._sideways else max(cfg.accel, cfg.obstacle_decel))
         side = np.zeros(3)
-        if self.phase == Phase.APPROACH and not self._surveyed and self._look_target is None \
+        # (a look made the way CHECK's is returned above while under way; once over, a doubt left refuses here too)
+        if self.phase == Phase.APPROACH and not self._surveyed \
                 and (look := self._look_at_doubt(state, c, now)) is not None:
             return look
         if self.phase == Phase.APPROACH:
@@ -1121,9 +1131,9 @@ class PlacementMachine:
             # remembered for the deciding tick, once the fused plane holds a plane measured at rest (a doubt against
             # the plane fused on the way down that the first plane at rest settles is no doubt); a verdict that says
             # where to look from is kept over one that does not
-            self._check.doubt_why = fp_why
-            if self._check.doubt is None or self._can_look_again(self._footprint):
-                self._check.doubt = self._footprint
+            if self._check.doubt is None or (not self._can_look_again(self._check.doubt[0])
+                                             and self._can_look_again(self._footprint)):
+                self._check.doubt = (self._footprint, fp_why)
         if self._check.at_rest is None and now - self._check.t_stop >= cfg.check_settle:
             self._check.at_rest = np.asarray(state.base_T_tcp, dtype=float)[:3, 3].copy()
         need = self.check_frames_needed(plane)
@@ -1141,7 +1151,7 @@ class PlacementMachine:
             return self._refuse(now, why)
         if (why := rules.footprint_problem(self._footprint, cfg)) is not None:
             if not self._can_look_again():
-                return self._refuse(now, why + (" (also from over those points)" if self._looked() else ""))
+                return self._refuse(now, why + self._look_said())
             # the doubt came up only here (the fused plane refined at rest moved a zone's reading over the line):
             # look again from over those points, as the approach would have, then come back down
             return self._go_look_again(state, now, why)
@@ -1154,10 +1164,11 @@ class PlacementMachine:
         if self._check.doubt is not None:
             # clean now, but not on every tick of this check: the verdict comes and goes with the plane refined at
             # rest; the look from over the points it named settles it, and after a look it refuses
-            why = f"{self._check.doubt_why} earlier in this check (the footprint's verdict comes and goes)"
-            if self._can_look_again(self._check.doubt):
-                return self._go_look_again(state, now, why, self._check.doubt)
-            return self._refuse(now, why)
+            verdict, why = self._check.doubt
+            why = f"{why} earlier in this check (the footprint's verdict comes and goes)"
+            if self._can_look_again(verdict):
+                return self._go_look_again(state, now, why, verdict)
+            return self._refuse(now, why + self._look_said())
         cup = np.asarray(state.base_T_cup, dtype=float)
         cup_to_surface = math.acos(max(-1.0, min(1.0, float(cup[:3, 2] @ np.asarray(plane.normal_base, float)))))
         if not (cup_to_surface <= cfg.max_tilt):

@@ -524,6 +524,103 @@ def test_a_problem_first_seen_low_climbs_to_look_without_moving_sideways(on, off
         assert m.outcome == "refused" and not opened(w), m.decision
 
 
+def _problem_verdict(world, cf: int, problem: bool = True) -> FootprintVerdict:
+    """A problem (or, with ``problem`` False, points in doubt) over footprint points at x = -0.03, looked at from 12 cm."""
+    return FootprintVerdict(
+        observed=5, supported=0, in_view=False, view_margin=-0.01, close_frames=cf,
+        problem="zone 7 over the cup's footprint +6 mm off the surface (clutter or step)" if problem else None,
+        recheck_point=np.array([-0.03, 0.0, 0.0]),
+        recheck_shift=np.array([-0.03 - world.pos[0], 0.0, 0.12 - world.pos[2]]))
+
+
+def test_a_low_look_after_a_long_approach_still_climbs_and_looks():
+    """The low look's time to rise counts from when it was decided, not from the approach's start: after 3 s of
+    survey (the footprint not yet certified), a problem first seen 40 mm up is looked at and, cleared there, lands
+    (counted from the phase's start the look ended at once and the cup was refused: a review)."""
+    w = FakeWorld(height=0.25)
+    m = PlacementMachine()
+    st = {"trig": None, "there": 0}
+
+    def fn(world, machine):
+        there = world.pos[0] <= -0.026 and world.pos[2] >= 0.11
+        st["there"] += int(there)
+        cf = (world.footprint.close_frames or 0) + int(there)
+        if st["trig"] is None and world.t > 3.0 and world.pos[2] < 0.04 and machine.phase == Phase.APPROACH:
+            st["trig"] = world.t
+        if world.t < 3.0:  # the survey waits where it is: not certified yet
+            world.footprint = FootprintVerdict(observed=5, supported=0, in_view=False, view_margin=-0.01,
+                                               close_frames=cf, look_shift=np.zeros(3))
+        elif st["trig"] is not None and st["there"] < 6:
+            world.footprint = _problem_verdict(world, cf)
+        else:
+            world.footprint = FootprintVerdict(observed=5, supported=5, in_view=False, view_margin=-0.01,
+                                               close_frames=cf)
+        return world.plane()
+
+    run(w, m, plane_fn=fn, seconds=40.0)
+    assert st["trig"] is not None and st["there"] >= 6
+    assert m.outcome == "released", m.decision
+
+
+@pytest.mark.parametrize("first_seen", [0.10, 0.04])
+def test_points_still_in_doubt_after_a_look_refuse_within_patience_however_low_the_problem_was_seen(first_seen):
+    """A problem before the survey certified the footprint, first seen above or below traverse_clearance, gets its look;
+    the points stay in doubt after it: refused DOUBT_PATIENCE after the look for want of support evidence, not at the
+    descent's deadline (the low look once switched the doubt's patience off: a review)."""
+    w = FakeWorld(height=0.25)
+    m = PlacementMachine()
+    st = {"trig": None, "there": 0}
+
+    def fn(world, machine):
+        if st["trig"] is None and world.pos[2] < first_seen and machine.phase == Phase.APPROACH:
+            st["trig"] = world.t
+        there = world.pos[0] <= -0.026 and world.pos[2] >= 0.11
+        st["there"] += int(there)
+        cf = (world.footprint.close_frames or 0) + int(there)
+        if st["trig"] is None:
+            world.footprint = FootprintVerdict(observed=5, supported=0, in_view=True, view_margin=1.0, close_frames=cf)
+        else:
+            world.footprint = _problem_verdict(world, cf, problem=st["there"] < 6)
+        return world.plane()
+
+    run(w, m, plane_fn=fn, seconds=40.0)
+    assert m.outcome == "refused" and not opened(w) and st["there"] >= 6
+    assert "not seen clean within" in m.decision
+    refused_at = next(t.time for t in m.log if t.target == Phase.REFUSE)
+    assert refused_at <= st["trig"] + 2 * m.config.recheck_timeout + DOUBT_PATIENCE + 1.0
+
+
+def test_check_looks_from_the_remembered_verdict_that_says_where_to_look():
+    """Of the unclear verdicts a check remembers, one that says where to look from is kept over an earlier one that
+    does not: a verdict with no usable look (a NaN shift) and then one at x = -0.03, both once a plane at rest is in,
+    then clean: CHECK goes up to look from over the points, not refuse. (Planes stating 1.5 deg: the check waits for
+    five at rest, so both verdicts come before the deciding tick.)"""
+    w = FakeWorld(height=0.2, std_angle=math.radians(1.5))
+    m = PlacementMachine()
+    st = {"ticks": 0}
+
+    def fn(world, machine):
+        plane = world.plane()
+        fresh = machine.phase == Phase.CHECK and bool(machine.post_stop_stamps(plane, world.t))
+        st["ticks"] += int(fresh)
+        cf = (world.footprint.close_frames or 0) + 1
+        if fresh and st["ticks"] == 1 and not any(t.target == Phase.APPROACH and t.source == Phase.CHECK
+                                                   for t in machine.log):
+            v = _problem_verdict(world, cf, problem=False)
+            world.footprint = dataclasses.replace(v, recheck_shift=np.full(3, np.nan))
+        elif fresh and st["ticks"] == 2 and not any(t.source == Phase.CHECK for t in machine.log):
+            world.footprint = _problem_verdict(world, cf, problem=False)
+        else:
+            world.footprint = FootprintVerdict(observed=5, supported=5, in_view=False, view_margin=-0.01,
+                                               close_frames=cf)
+        return plane
+
+    run(w, m, plane_fn=fn)
+    looks = [t for t in m.log if (t.source, t.target) == (Phase.CHECK, Phase.APPROACH)]
+    assert len(looks) == 1 and "comes and goes" in looks[0].reason
+    assert m.outcome == "released", m.decision
+
+
 def test_a_doubt_against_the_plane_fused_on_the_way_down_that_the_plane_at_rest_settles_releases():
     """A zone just over the line against the plane fused while descending and just under it against the plane
     measured at rest: the verdict shows a doubt on the first ticks of the check, before a plane measured at rest is
@@ -682,7 +779,7 @@ def test_a_doubt_at_the_check_after_a_second_look_refuses_there():
     """Once only: a second look already made in the approach leaves a doubt at the check to refuse there."""
     w = FakeWorld(height=0.2)
     m = PlacementMachine()
-    m._recheck = _Recheck(0.0, done=True)  # the approach's second look, over
+    m._recheck = _Recheck(0.0, arrived=3.0, done=True)  # the approach's second look, made from over the points
     run(w, m, plane_fn=_doubt_at_check_fn(clears=True))
     assert (Phase.CHECK, Phase.APPROACH) not in [(t.source, t.target) for t in m.log]
     assert m.outcome == "refused" and not opened(w) and "also from over those points" in m.decision
