@@ -524,8 +524,11 @@ def test_a_problem_first_seen_low_climbs_to_look_without_moving_sideways(on, off
         assert m.outcome == "refused" and not opened(w), m.decision
 
 
-def _problem_verdict(world, cf: int, problem: bool = True) -> FootprintVerdict:
-    """A problem (or, with ``problem`` False, points in doubt) over footprint points at x = -0.03, looked at from 12 cm."""
+def _flagged(world, cf: int, doubt: bool = True, problem: bool = False) -> FootprintVerdict:
+    """The verdict of a certified footprint, out of view (``cf`` close frames), or with ``doubt`` points in doubt over
+    x = -0.03 that a look from there (12 cm up) would see -- a problem there with ``problem``."""
+    if not doubt:
+        return FootprintVerdict(observed=5, supported=5, in_view=False, view_margin=-0.01, close_frames=cf)
     return FootprintVerdict(
         observed=5, supported=0, in_view=False, view_margin=-0.01, close_frames=cf,
         problem="zone 7 over the cup's footprint +6 mm off the surface (clutter or step)" if problem else None,
@@ -551,7 +554,7 @@ def test_a_low_look_after_a_long_approach_still_climbs_and_looks():
             world.footprint = FootprintVerdict(observed=5, supported=0, in_view=False, view_margin=-0.01,
                                                close_frames=cf, look_shift=np.zeros(3))
         elif st["trig"] is not None and st["there"] < 6:
-            world.footprint = _problem_verdict(world, cf)
+            world.footprint = _flagged(world, cf, problem=True)
         else:
             world.footprint = FootprintVerdict(observed=5, supported=5, in_view=False, view_margin=-0.01,
                                                close_frames=cf)
@@ -580,7 +583,7 @@ def test_points_still_in_doubt_after_a_look_refuse_within_patience_however_low_t
         if st["trig"] is None:
             world.footprint = FootprintVerdict(observed=5, supported=0, in_view=True, view_margin=1.0, close_frames=cf)
         else:
-            world.footprint = _problem_verdict(world, cf, problem=st["there"] < 6)
+            world.footprint = _flagged(world, cf, problem=st["there"] < 6)
         return world.plane()
 
     run(w, m, plane_fn=fn, seconds=40.0)
@@ -606,10 +609,10 @@ def test_check_looks_from_the_remembered_verdict_that_says_where_to_look():
         cf = (world.footprint.close_frames or 0) + 1
         if fresh and st["ticks"] == 1 and not any(t.target == Phase.APPROACH and t.source == Phase.CHECK
                                                    for t in machine.log):
-            v = _problem_verdict(world, cf, problem=False)
+            v = _flagged(world, cf)
             world.footprint = dataclasses.replace(v, recheck_shift=np.full(3, np.nan))
         elif fresh and st["ticks"] == 2 and not any(t.source == Phase.CHECK for t in machine.log):
-            world.footprint = _problem_verdict(world, cf, problem=False)
+            world.footprint = _flagged(world, cf)
         else:
             world.footprint = FootprintVerdict(observed=5, supported=5, in_view=False, view_margin=-0.01,
                                                close_frames=cf)
@@ -632,12 +635,7 @@ def test_a_doubt_against_the_plane_fused_on_the_way_down_that_the_plane_at_rest_
         plane = world.plane()
         fresh = machine.phase == Phase.CHECK and len(machine.post_stop_stamps(plane, world.t)) > 0
         doubt = machine.phase == Phase.CHECK and not fresh
-        fp = world.footprint
-        world.footprint = FootprintVerdict(
-            observed=5, supported=0 if doubt else 5, in_view=False, view_margin=-0.01,
-            close_frames=(fp.close_frames or 0) + 1,
-            recheck_point=np.array([-0.03, 0.0, 0.0]) if doubt else None,
-            recheck_shift=np.array([-0.03 - world.pos[0], 0.0, 0.12 - world.pos[2]]) if doubt else None)
+        world.footprint = _flagged(world, (world.footprint.close_frames or 0) + 1, doubt)
         return plane
 
     run(w, m, plane_fn=fn)
@@ -669,12 +667,7 @@ def test_no_release_in_a_check_whose_verdict_against_the_planes_at_rest_came_and
             state["bad"] = False
         elif doubt and machine.post_stop_stamps(plane, world.t):
             state["bad"] = True
-        fp = world.footprint
-        world.footprint = FootprintVerdict(
-            observed=5, supported=0 if doubt else 5, in_view=False, view_margin=-0.01,
-            close_frames=(fp.close_frames or 0) + 1,
-            recheck_point=np.array([-0.03, 0.0, 0.0]) if doubt else None,
-            recheck_shift=np.array([-0.03 - world.pos[0], 0.0, 0.12 - world.pos[2]]) if doubt else None)
+        world.footprint = _flagged(world, (world.footprint.close_frames or 0) + 1, doubt)
         return plane
 
     run(w, m, plane_fn=fn, seconds=40.0)
