@@ -732,8 +732,10 @@ class PlacementMachine:
             # zones saw beside the footprint. A first look goes the way CHECK's does (:meth:`_look_from_check`):
             # straight up to traverse_clearance, then over the points, made whatever the verdict says meanwhile (a
             # climb that gave way to the descent whenever the verdict cleared bounced between the two heights until
-            # the descent's deadline). A look already under way (back down after it) is over: refuse.
-            if self._looked():
+            # the descent's deadline). After any look begun before (under way, over, or left on its way when the
+            # survey's frames cleared its points, which now show a problem again): refuse -- a second low look there
+            # ended in the slow band touching the box (random scene 69 of seed 76, 16.7 N, refused at 7.8 s, not 3.7)
+            if r is not None:
                 return None
             self._look_target = np.asarray(state.base_T_tcp, dtype=float)[:3, 3] + move
             self._recheck = _Recheck(now)
