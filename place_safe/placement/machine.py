@@ -76,7 +76,7 @@ from __future__ import annotations
 import logging
 import math
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from enum import Enum
 from typing import Any
 
@@ -230,12 +230,11 @@ class _Recheck:
     ticks: int = 0
     arrived: float | None = None
     done: bool = False
-    begun: float = math.nan
+    begun: float = field(init=False)
     climb_ticks: int = 0
 
     def __post_init__(self) -> None:
-        if not math.isfinite(self.begun):
-            self.begun = self.t0
+        self.begun = self.t0
 
 
 @dataclass
@@ -737,8 +736,7 @@ class PlacementMachine:
             # ended in the slow band touching the box (random scene 69 of seed 76, 16.7 N, refused at 7.8 s, not 3.7)
             if r is not None:
                 return None
-            self._look_target = np.asarray(state.base_T_tcp, dtype=float)[:3, 3] + move
-            self._recheck = _Recheck(now)
+            self._aim_look(state, move, now)
             return self._look_from_check(state, c, now)
         if r is None:
             r = self._recheck = _Recheck(now)
@@ -822,13 +820,17 @@ class PlacementMachine:
         """CHECK -> APPROACH for the second look over the doubtful points of ``verdict`` (default the latest;
         :meth:`_look_from_check`), its TCP target fixed now; the arm holds this tick."""
         verdict = self._footprint if verdict is None else verdict
-        move = np.asarray(getattr(verdict, "recheck_shift"), dtype=float).reshape(3)
-        self._look_target = np.asarray(state.base_T_tcp, dtype=float)[:3, 3] + move
-        self._recheck = _Recheck(now)
+        self._aim_look(state, np.asarray(getattr(verdict, "recheck_shift"), dtype=float).reshape(3), now)
         self._check = None
         self._go(Phase.APPROACH, now, f"{why}: look again from over those points")
         self._descent_t0, self._descent_ticks = now, 0
         return Command.hold()
+
+    def _aim_look(self, state: RobotState, move: np.ndarray, now: float) -> None:
+        """Begin a second look made the way CHECK's is (:meth:`_look_from_check`): its TCP target ``move`` (m, base
+        frame) from the TCP now, and its clock."""
+        self._look_target = np.asarray(state.base_T_tcp, dtype=float)[:3, 3] + move
+        self._recheck = _Recheck(now)
 
     def _doubted(self) -> bool:
         """Whether footprint points the survey had certified are in doubt again (the verdict's ``supported`` below
