@@ -26,16 +26,17 @@ MAX_SENSOR_DISTANCE = 0xFFFF / 1000.0
 MIN_SENSOR_DISTANCE = 1e-3
 
 
-def _has_bool(value: Any) -> bool:
+def has_bool(value: Any) -> bool:
     """Whether ``value`` is a boolean or a (nested) list holding one."""
-    return isinstance(value, bool) or (isinstance(value, list) and any(_has_bool(v) for v in value))
+    return isinstance(value, bool) or (isinstance(value, list) and any(has_bool(v) for v in value))
 
 
 def _array(value: Any, name: str, shape: tuple[int, ...]) -> np.ndarray:
     """``value`` (a file's nested lists) as a float array of ``shape``; FrameError for strings, booleans, nulls
     and ragged data. Booleans are caught where a list of them reads as booleans (all of an array, or any entry
     of a short one such as the distances or a pose); a single ``true`` among a histogram's 1152 counts reads as a count
-    of 1 (checking every entry would cost a twentieth of the peak method's time a frame)."""
+    of 1 here (checking every entry would cost a twentieth of the peak method's time a frame); the frame file reader
+    catches it from the entry's text (``io.frame_file``)."""
     try:
         arr = np.asarray(value)
     except (TypeError, ValueError, OverflowError):
@@ -47,7 +48,7 @@ def _array(value: Any, name: str, shape: tuple[int, ...]) -> np.ndarray:
             arr = arr.astype(float)
         except OverflowError:
             raise FrameError(f"{name} is not numeric: a number too large for a float") from None
-    elif arr.dtype.kind not in "iuf" or (arr.size <= 16 and _has_bool(value)):
+    elif arr.dtype.kind not in "iuf" or (arr.size <= 16 and has_bool(value)):
         what = "booleans" if arr.dtype.kind in "biu" else "text" if arr.dtype.kind in "US" else f"{arr.dtype.name} values"
         raise FrameError(f"{name} must hold numbers, not {what}")
     if arr.shape != shape:

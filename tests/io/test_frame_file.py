@@ -127,6 +127,28 @@ def test_bad_entries_are_yielded_in_place(tmp_path, entries):
         load_frames(path)
 
 
+@pytest.mark.parametrize("layout", LAYOUTS)
+@pytest.mark.parametrize("field,where", [("hists", (4, 77)), ("reference_hist", (50,))])
+@pytest.mark.parametrize("value", [True, False])
+def test_a_lone_boolean_among_the_counts_is_an_error_in_place(tmp_path, entries, layout, field, where, value):
+    """One ``true`` or ``false`` among 1152 counts is not read as a count of 1 or 0: that frame is an error naming
+    the field, and the frames beside it load (the text "true" in a note of another frame is not one)."""
+    bad = json.loads(json.dumps(entries[1]))
+    target = bad[field]
+    for i in where[:-1]:
+        target = target[i]
+    target[where[-1]] = value
+    good = dict(entries[2], note="true or false")
+    path = tmp_path / "b.json"
+    _write(path, [entries[0], bad, good], layout)
+    got = list(iter_frames(path))
+    assert isinstance(got[1], FrameError)
+    assert str(got[1]) == f"b.json: frame 1: {field} must hold numbers, not booleans"
+    assert not isinstance(got[0], FrameError) and not isinstance(got[2], FrameError)
+    with pytest.raises(FrameFileError, match="frame 1: " + field):
+        load_frames(path)
+
+
 @pytest.mark.parametrize("jsonl", [False, True])
 def test_write_then_read_round_trip(tmp_path, synthetic_frames, jsonl):
     path = tmp_path / ("w.jsonl" if jsonl else "w.json")
