@@ -19,7 +19,9 @@ Phases::
                        the footprint (edge, step, clutter) / obstacle (contact
                        above the surface) / travel limit, or a surface farther than it (a floor
                        past an edge) / deadline--> REFUSE (retreat up keeping the cup)
-                       --> ABORTED
+                       --> ABORTED (at CHECK, with the arm at rest and the sensor still answering, a plane
+                       that is only stale is waited on until ``check_timeout``: a stalled transfer or a
+                       corrupted frame delays the check, it does not refuse it)
     any phase before the release --robot fault, invalid robot state, robot clock frozen or running
                        backwards, internal error--> ABORTED (the robot holds the cup where it stopped)
 
@@ -1126,9 +1128,16 @@ class PlacementMachine:
     def _on_check(self, state: RobotState, plane: FusedPlane | None, note: str | None, now: float) -> Command:
         """Stopped: gather fresh planes, then release, descend again or refuse."""
         cfg = self.config
-        why = (rules.plane_problem(plane, now, note, cfg, self.period, lambda: self._blind(note))
+        blind = lambda: self._blind(note)  # noqa: E731
+        why = (rules.plane_problem(plane, now, note, cfg, self.period, blind)
                or rules.sensor_problem(state.last_frame_time, now, self._t_start, note, cfg))
         if why is not None:
+            # at rest a plane that is only old says no fresh plane came yet (a stalled transfer, a corrupted frame),
+            # not that the cup moves blind: wait for one while the sensor answers, until check_timeout
+            if (rules.plane_problem(plane, now, note, cfg, self.period, blind, check_age=False) is None
+                    and rules.sensor_problem(state.last_frame_time, now, self._t_start, note, cfg) is None
+                    and self._elapsed(now, self._t_phase, self._phase_ticks) <= cfg.check_timeout):
+                return Command.hold()
             return self._refuse(now, why)
         fresh = len(self.post_stop_stamps(plane, now))
         if fresh and (fp_why := self._footprint_doubt()) is not None:

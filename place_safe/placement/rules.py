@@ -39,12 +39,13 @@ def too_close(note: str | None) -> bool:
 
 
 def plane_problem(plane: FusedPlane | None, now: float, note: str | None, cfg: Any, period: float,
-                  blind: Callable[[], bool]) -> str | None:
+                  blind: Callable[[], bool], check_age: bool = True) -> str | None:
     """Why the fused plane cannot be used at robot time ``now``: missing, malformed, not finite, inconsistent,
     stamped in the future (more than one control ``period``) or older than ``plane_timeout``. A plane up to
     ``too_close_hold`` old still counts while ``blind()`` says the sensor is too close to read (called only
     once the plane is otherwise valid; see :meth:`PlacementMachine._blind`). ``note`` says why the last frame
-    gave no plane and is quoted in the reason."""
+    gave no plane and is quoted in the reason. ``check_age=False`` leaves out the age test (whether the plane is
+    usable once a fresh one comes)."""
     if plane is None:
         return "no surface plane" + (f" ({note})" if note else "")
     try:
@@ -66,7 +67,7 @@ def plane_problem(plane: FusedPlane | None, now: float, note: str | None, cfg: A
     age = now - plane.stamp
     if age < -period:
         return f"surface plane is stamped {-age:.3f} s in the future"
-    if blind() and age <= cfg.too_close_hold:
+    if not check_age or (blind() and age <= cfg.too_close_hold):
         return None  # the sensor is too close to read: the farther frames' plane and the kinematics decide
     if not (age <= cfg.plane_timeout):
         return (f"surface plane is stale ({age:.2f} s old > {cfg.plane_timeout:.2f} s)"

@@ -151,6 +151,65 @@ def test_stale_plane_is_refused_without_release():
     assert m.outcome == "refused" and "stale" in m.decision and not opened(w)
 
 
+def _frozen_at_check(freeze_for: float):
+    """A plane_fn whose planes stop updating for ``freeze_for`` s from the tick CHECK begins (a transfer stalled
+    behind a latency spike, then a corrupted frame), fresh again after; ``seen["pos"]`` has where the cup was on
+    each tick of the stall."""
+    seen = {"pos": []}
+
+    def plane_fn(world, m):
+        if m.phase == Phase.CHECK and "t" not in seen:
+            seen["t"], seen["p"] = world.t, world.plane()
+        if "t" in seen and world.t < seen["t"] + freeze_for:
+            seen["pos"].append(world.pos.copy())
+            return seen["p"]
+        return world.plane()
+    return plane_fn, seen
+
+
+def test_a_plane_gone_stale_at_rest_is_waited_on_while_the_sensor_answers():
+    """Stopped at CHECK, planes stop coming for 0.6 s (past plane_timeout) and then come again: CHECK holds, the
+    cup does not move, and it decides on the fresh planes (released), not on the stale one."""
+    w = FakeWorld()
+    plane_fn, seen = _frozen_at_check(0.6)
+    m = run(w, plane_fn=plane_fn)
+    assert m.config.plane_timeout < 0.6 < m.config.check_timeout
+    assert m.outcome == "released" and opened(w)
+    release = next(t for t in m.log if t.target == Phase.RELEASE)
+    assert release.time > seen["t"] + 0.6
+    stall = np.array(seen["pos"][len(seen["pos"]) // 4:])  # after the stop's few ms of braking
+    assert np.ptp(stall, axis=0).max() < 1e-9
+
+
+@pytest.mark.parametrize("freeze_for", [5.0, 100.0])
+def test_a_plane_stale_at_rest_past_the_check_timeout_is_refused(freeze_for):
+    """Planes that do not come again within check_timeout of the stop: refused, saying the plane is stale, no
+    sooner than check_timeout and without opening the gripper."""
+    w = FakeWorld()
+    plane_fn, seen = _frozen_at_check(freeze_for)
+    m = run(w, plane_fn=plane_fn)
+    assert m.outcome == "refused" and "stale" in m.decision and not opened(w)
+    refuse = next(t for t in m.log if t.target == Phase.REFUSE)
+    assert refuse.time >= seen["t"] + m.config.check_timeout - 0.05
+
+
+def test_a_sensor_that_stops_answering_at_rest_is_refused_at_its_timeout():
+    """No frame at all at CHECK (the sensor stopped answering): refused at sensor_timeout, not held."""
+    w = FakeWorld()
+    plane_fn, seen = _frozen_at_check(100.0)
+    m = PlacementMachine()
+    while not m.finished and w.t < 20.0:
+        plane = plane_fn(w, m)
+        st = w.state()
+        if "t" in seen:
+            st = RobotState(st.time, st.base_T_tcp, st.base_T_cup, st.contact_force, st.fault, seen["t"])
+        w.apply(m.step(st, plane, None, w.footprint))
+    assert m.outcome == "refused" and not opened(w)
+    refuse = next(t for t in m.log if t.target == Phase.REFUSE)
+    assert "sensor timeout" in refuse.reason or "stale" in refuse.reason
+    assert refuse.time <= seen["t"] + m.config.sensor_timeout + 0.05
+
+
 def test_no_plane_at_all_is_refused_after_the_acquire_timeout():
     w = FakeWorld()
     m = run(w, plane_fn=lambda world, m: None)
