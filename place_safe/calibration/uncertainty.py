@@ -127,6 +127,13 @@ def _fit_two(errors: np.ndarray, covs: np.ndarray, basis: tuple[np.ndarray, np.n
     return float(v[0]), float(v[1])
 
 
+#: m: the offset floor an uncertainty entry states when its frames want no floor term at all (their covariances
+#: already cover their errors; diff's on the whole real sweep, NEES per dof 0.59 without one): a micrometre, far
+#: below any plane's error, so that the entry still states a model error (one stating none is refused on load,
+#: :meth:`~place_safe.recovery.estimator.Uncertainty.states_no_floor`).
+MIN_OFFSET_FLOOR = 1e-6
+
+
 def fit_floor(estimates: Sequence[PlaneEstimate], truths: Sequence, base: Uncertainty | None = None) -> tuple[Uncertainty, dict]:
     """The floors of :class:`Uncertainty` for estimates whose covariances hold no floor yet (maximum likelihood;
     ``base``'s tilt term counts as known)."""
@@ -143,6 +150,9 @@ def fit_floor(estimates: Sequence[PlaneEstimate], truths: Sequence, base: Uncert
     o0, o1 = _fit_two(err[:, 2:], cov[:, 2:, 2:], (one, d ** 2))
     unc = base.replace(tilt_std=math.sqrt(t0), tilt_range_std=math.sqrt(t1), offset_std=math.sqrt(o0),
                        offset_rel=math.sqrt(o1))
+    held = unc.states_no_floor()  # the covariances already cover the errors: no term wanted
+    if held:  # ... an entry states a floor all the same (a file stating none is refused on load)
+        unc = unc.replace(offset_std=MIN_OFFSET_FLOOR)
     before = float(np.mean([e @ np.linalg.solve(c, e) for e, c in zip(err, cov)]) / 3.0)
     ml = float(np.mean([e @ np.linalg.solve(c + unc.floor(dd), e) for e, c, dd in zip(err, cov, d)]) / 3.0)
     unc = unc.replace(scale=float(np.clip(ml, MIN_SCALE, MAX_SCALE)))  # mean NEES per dof 1 on these frames
@@ -150,7 +160,9 @@ def fit_floor(estimates: Sequence[PlaneEstimate], truths: Sequence, base: Uncert
     return unc, {"frames": len(rows), "tilt_std_deg": math.degrees(unc.tilt_std), "scale": unc.scale,
                  "nees_per_dof_maximum_likelihood": ml,
                  "tilt_range_std_mm": unc.tilt_range_std * 1e3, "offset_std_mm": unc.offset_std * 1e3,
-                 "offset_rel": unc.offset_rel, "nees_per_dof_before": before, "nees_per_dof_after": after}
+                 "offset_rel": unc.offset_rel, "nees_per_dof_before": before, "nees_per_dof_after": after,
+                 **({"floor_held": f"no floor term wanted by these frames; offset_std held at "
+                                   f"{MIN_OFFSET_FLOOR * 1e6:.0f} um"} if held else {})}
 
 
 #: Squared Mahalanobis distance between the diff and peak estimates of (n_x, n_y, d) above which diff falls

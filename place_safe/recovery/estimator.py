@@ -235,7 +235,8 @@ class Uncertainty(ParamModel):
 
     def states_no_floor(self) -> bool:
         """Whether every term of the model-error floor (:data:`FLOOR_TERMS`) is 0: the defaults (no section), but never
-        what a calibration fits (the real sweep's peak floor: 0.3 mrad and 0.04 mm; some terms may be 0, not all), so a
+        what a calibration writes (the real sweep's peak floor: 0.3 mrad and 0.04 mm; some terms may be 0, not all;
+        where its frames want none, :func:`~place_safe.calibration.uncertainty.fit_floor` states a 1 um offset), so a
         file's entry that says so claims a model without error and is refused when read
         (:meth:`place_safe.calibration.Calibration.uncertainty`); on the real sweep it made peak's NEES per dof 5.7."""
         return not any(getattr(self, k) for k in self.FLOOR_TERMS)

@@ -48,6 +48,28 @@ def test_no_floor_when_the_own_covariance_explains_the_errors():
     assert unc.scale == pytest.approx(1.0, abs=0.15)
 
 
+def test_frames_that_want_no_floor_still_get_an_entry_that_loads():
+    """Covariances twice the errors' (diff's on the whole real sweep: NEES per dof 0.59 before a floor) want no floor
+    term; the entry then states the 1 um offset floor, shrinks by its scale, and a calibration file holding it loads
+    (an entry stating no floor at all is refused on load, and was, for `calibrate` of the whole real sweep)."""
+    from place_safe.calibration import Calibration
+    from place_safe.calibration.uncertainty import MIN_OFFSET_FLOOR
+
+    ests, truths = _estimates(300, 0.0, 0.0, 0.0, own=1e-6)
+    wide = [PlaneEstimate(e.plane, covariance=4.0 * e.covariance) for e in ests]
+    unc, rep = fit_floor(wide, truths)
+    assert not unc.states_no_floor() and unc.offset_std == MIN_OFFSET_FLOOR
+    assert unc.tilt_std == unc.tilt_range_std == unc.offset_rel == 0.0
+    assert unc.scale == pytest.approx(0.25, rel=0.2) and "floor_held" in rep
+    assert rep["nees_per_dof_after"] == pytest.approx(1.0, abs=1e-6)
+    from place_safe.calibration import FORMAT
+    cal = Calibration.from_dict({"format": FORMAT, "uncertainty": {"peak": unc.to_dict()}})
+    assert cal.uncertainty("peak").offset_std == MIN_OFFSET_FLOOR
+    # the frames wanting a floor are unchanged by it
+    unc2, rep2 = fit_floor(*_estimates(400, 0.002, 1e-4, 2e-4))
+    assert "floor_held" not in rep2 and unc2.offset_std > 1e-4
+
+
 def test_chi2_limit_admits_the_frames_diff_explains_and_helps():
     """Diff is better on the well-explained frames (low chi-square) and worse beyond: the limit lands between."""
     chi2 = np.array([0.9, 1.0, 1.1, 1.2, 1.3, 5.0, 6.0, 7.0, np.inf])
