@@ -33,7 +33,7 @@ import numpy as np
 
 from place_safe.recovery.points import MM_PER_M, PeakParams, plane_covariance, plane_through
 from place_safe.exceptions import FrameError, NoPlaneError
-from place_safe.sensor.frame import MAX_SENSOR_DISTANCE, MIN_SENSOR_DISTANCE, N_ZONES, Frame, real_array
+from place_safe.sensor.frame import MAX_CONFIDENCE, MAX_SENSOR_DISTANCE, MIN_SENSOR_DISTANCE, N_ZONES, Frame, real_array
 from place_safe.recovery.estimator import Estimator, PlaneEstimate, check_arguments
 from place_safe.recovery.too_close import may_be_close, overlap_reason
 
@@ -77,8 +77,11 @@ class ProprietaryEstimator(Estimator):
                              f"{MIN_SENSOR_DISTANCE * 1e3:g}-{MAX_SENSOR_DISTANCE * 1e3:g} mm)")
         if frame.confidences is not None:
             conf = real_array(frame.confidences, "confs_1").astype(float)
-            if conf.shape == (N_ZONES,):
-                valid &= np.nan_to_num(conf, nan=0.0) > 0
+            if conf.shape != (N_ZONES,):
+                raise FrameError(f"confs_1 has shape {conf.shape}, expected ({N_ZONES},)")
+            if not np.all((conf >= 0) & (conf <= MAX_CONFIDENCE)):  # NaN fails too
+                raise FrameError(f"confs_1 outside what the sensor reports (0-{MAX_CONFIDENCE}, 0 = no object)")
+            valid &= conf > 0
         if valid.sum() < 3:
             raise NoPlaneError(f"only {int(valid.sum())} zone(s) report an object; a plane needs 3 or more")
         # a zone without an object counts as dark (the on-sensor result holds no return heights)

@@ -22,6 +22,8 @@ from place_safe.sensor.zones import CENTRE, CORNER, EDGE, N_BINS, N_ZONES, ZONE_
 
 #: m: the largest on-sensor distance a frame may carry: the TMF8820 reports whole millimetres in 16 bits.
 MAX_SENSOR_DISTANCE = 0xFFFF / 1000.0
+#: The largest on-sensor confidence a frame may carry (one byte per zone; 0 = no object).
+MAX_CONFIDENCE = 255
 #: m: the smallest non-zero one (0 means no object).
 MIN_SENSOR_DISTANCE = 1e-3
 
@@ -119,7 +121,7 @@ class Frame:
     hists: (9, 128) zone histograms in counts, zones 1..9 in the sensor's order.
     reference: (128,) reference histogram (counts) or None when the source had none.
     distances: (9,) on-sensor first-object distances (m) or None; 0 means no object.
-    confidences: (9,) on-sensor confidences (0..255) or None.
+    confidences: (9,) on-sensor confidences (0..MAX_CONFIDENCE) or None.
     timestamp: seconds (source-defined epoch) or None.
     truth: ground-truth plane in the sensor frame, if known.
     extra: everything else from the file (joint angles, pose, meta), carried through.

@@ -50,6 +50,11 @@ def test_real_sweep_calibrated_cross_validated():
     ([0.1] * 9, [0] * 7 + [200] * 2, "3 or more"),
     ([1e4] + [0.1] * 8, None, "outside what the sensor reports"),  # 10 km: beyond 16-bit millimetres
     ([1e-12] * 9, None, "outside what the sensor reports"),  # nonzero, under the field's 1 mm
+    ([0.1] * 9, [1e308] * 9, "confs_1 outside what the sensor reports"),  # one byte a zone
+    ([0.1] * 9, [200] * 8 + [256], "confs_1 outside"),
+    ([0.1] * 9, [200] * 8 + [-1], "confs_1 outside"),
+    ([0.1] * 9, [200] * 8 + [np.nan], "confs_1 outside"),
+    ([0.1] * 9, [200] * 8, "confs_1 has shape"),
 ])
 def test_bad_input_gives_reason(dist, conf, words):
     e = ProprietaryEstimator().estimate(_frame(dist, conf))
