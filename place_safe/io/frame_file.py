@@ -90,6 +90,9 @@ _NUMBER_SHAPE = bytes(ord("0") if chr(c).isdigit() and c < 128 else ord("f") if 
                       for c in range(256))
 
 
+#: whitespace between frames, skipped as one run (byte by byte it read 12 MB/s)
+_BLANKS = re.compile(rb"[ \t\r\n]+")
+
 class _Splitter:
     """Incremental splitter of a byte stream into top-level JSON values (objects, lists, strings, scalars).
 
@@ -151,10 +154,10 @@ class _Splitter:
                     self.trailing = rest[:20]
                 return out
             if self.kind is None:  # between values
-                c = chunk[pos:pos + 1]
-                if c in (b" ", b"\t", b"\r", b"\n"):
-                    pos += 1
+                if (blank := _BLANKS.match(chunk, pos)) is not None:  # a run of whitespace at once
+                    pos = blank.end()
                     continue
+                c = chunk[pos:pos + 1]
                 if self.is_list and c == b"]":
                     self.closed = True
                     pos += 1
