@@ -18,7 +18,6 @@ Exit status: 0 on success, 2 for a usage or input error (one line on standard er
 from __future__ import annotations
 
 import argparse
-import errno
 import importlib.util
 import sys
 from pathlib import Path
@@ -130,7 +129,9 @@ def _check_outputs(args: argparse.Namespace) -> None:
     synth and calibrate always did for theirs (evaluate --json into one failed after the whole evaluation)."""
     for name in OUTPUT_OPTIONS:
         value = getattr(args, name, None)
-        if not (isinstance(value, str) and value):
+        if value == "":
+            raise UsageError(f"{args.command}: --{name.replace('_', '-')} needs a file name (it was given an empty one)")
+        if not isinstance(value, str):
             continue
         if (why := output_file_problem(value)) is not None:
             raise UsageError(f"{args.command}: --{name.replace('_', '-')} {value} {why}")
@@ -203,12 +204,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return _main(argv)
 
 
-#: errno values of a write that found no room (a full disk or quota, a file too large): the error names no file
-NO_ROOM = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
-
-
 def _no_room_where(args: argparse.Namespace | None) -> str:
-    """Where a write that found no room (:data:`NO_ROOM`, no file name in the error) may have gone: the output
+    """Where a write whose error names no file (a full disk or quota, a file too large, an I/O error) may have gone: the output
     options the command was given and standard output, e.g. ``writing --json out.json or standard output``."""
     named = [] if args is None else [f"--{name.replace('_', '-')} {value}" for name in OUTPUT_OPTIONS
                                      if isinstance(value := getattr(args, name, None), str) and value]
@@ -243,8 +240,7 @@ def _main(argv: Sequence[str] | None) -> int:
     except OSError as exc:  # e.g. an output directory that cannot be written
         from place_safe.config import printable
 
-        where = printable(str(exc.filename)) if exc.filename else (_no_room_where(args) if exc.errno in NO_ROOM
-                                                                     else "")
+        where = printable(str(exc.filename)) if exc.filename else _no_room_where(args)  # a write names no file
         log(f"{PROG}: error: {exc.strerror or _one_line(exc)}: {where}".rstrip(": "))
         return 2
     except (ValueError, RecursionError, OverflowError, MemoryError) as exc:  # bad input Python noticed first

@@ -551,6 +551,31 @@ def test_a_full_disk_names_the_output_it_was_writing(sweep_path, capsys):
     assert err == ["place-safe: error: No space left on device: writing --json /dev/full or standard output"], err
 
 
+def test_an_io_error_without_a_file_name_names_the_outputs(sweep_path, tmp_path, capsys, monkeypatch):
+    """Any write error that names no file (EIO: `--json /proc/version` as root) says which outputs it may have been,
+    as a full disk does (it said "Input/output error" alone)."""
+    import errno
+    from pathlib import Path
+
+    def broken(*_a, **_k):
+        raise OSError(errno.EIO, "Input/output error")
+    monkeypatch.setattr(Path, "write_text", broken)
+    out = tmp_path / "out.json"
+    code = main(["evaluate", str(sweep_path), "--methods", "peak", "--no-plots", "-q", "--json", str(out),
+                 "--min-distance", "0.3"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and err == [f"place-safe: error: Input/output error: writing --json {out} or standard output"], err
+
+
+@pytest.mark.parametrize("argv", [["synth", "--frames", "2", "-o", ""],
+                                  ["evaluate", "FRAMES", "--methods", "peak", "--json", ""]])
+def test_an_empty_output_name_is_one_line_before_anything_runs(argv, sweep_path, capsys):
+    argv = [str(sweep_path) if a == "FRAMES" else a for a in argv]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "needs a file name (it was given an empty one)" in err[0], err
+
+
 def test_evaluate_no_fallback_reports_diffs_own_plane(sweep_path, tmp_path, capsys):
     """--no-fallback lifts the calibration's fallback limits: every plane diff returns is its own (a simulated unit's
     calibration on the real sweep falls back on every frame without it)."""
