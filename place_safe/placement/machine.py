@@ -21,7 +21,8 @@ Phases::
                        past an edge) / deadline--> REFUSE (retreat up keeping the cup)
                        --> ABORTED (at CHECK, with the arm at rest and the sensor still answering, a plane
                        that is only stale is waited on until ``check_timeout``: a stalled transfer or a
-                       corrupted frame delays the check, it does not refuse it)
+                       corrupted frame delays the check, it does not refuse it; the check then decides on
+                       a window of planes all measured after the gap, and not from the too-close hold)
     any phase before the release --robot fault, invalid robot state, robot clock frozen or running
                        backwards, internal error--> ABORTED (the robot holds the cup where it stopped)
 
@@ -220,6 +221,9 @@ class _Check:
     # footprint (a problem, or points in doubt): the first such, or a later one that says where to look from when it
     # did not; a verdict that comes and goes with the plane refined at rest must not release on a clean tick
     doubt: tuple[Any, str] | None = None
+    # s: the newest measurement in the fused plane when it first went stale at rest (None: it never did); until the
+    # window holds only planes measured after it, the check does not decide (the surface may have moved unseen)
+    gap: float | None = None
 
 
 @dataclass
@@ -1129,16 +1133,18 @@ class PlacementMachine:
         """Stopped: gather fresh planes, then release, descend again or refuse."""
         cfg = self.config
         blind = lambda: self._blind(note)  # noqa: E731
+        late = self._elapsed(now, self._t_phase, self._phase_ticks) > cfg.check_timeout
         why = (rules.plane_problem(plane, now, note, cfg, self.period, blind)
                or rules.sensor_problem(state.last_frame_time, now, self._t_start, note, cfg))
         if why is not None:
             # at rest a plane that is only old says no fresh plane came yet (a stalled transfer, a corrupted frame),
-            # not that the cup moves blind: wait for one while the sensor answers, until check_timeout
-            if (rules.plane_problem(plane, now, note, cfg, self.period, blind, check_age=False) is None
-                    and rules.sensor_problem(state.last_frame_time, now, self._t_start, note, cfg) is None
-                    and self._elapsed(now, self._t_phase, self._phase_ticks) <= cfg.check_timeout):
-                return Command.hold()
-            return self._refuse(now, why)
+            # not that the cup moves blind: wait for one while the sensor answers and the arm stands still, until
+            # check_timeout; the check then decides only on a window of planes measured after the gap
+            if (late or rules.plane_problem(plane, now, note, cfg, self.period, blind, check_age=False) is not None
+                    or rules.sensor_problem(state.last_frame_time, now, self._t_start, note, cfg) is not None):
+                return self._refuse(now, why)
+            if self._check.gap is None:
+                self._check.gap = float(plane.stamp)
         fresh = len(self.post_stop_stamps(plane, now))
         if fresh and (fp_why := self._footprint_doubt()) is not None:
             # remembered for the deciding tick, once the fused plane holds a plane measured at rest (a doubt against
@@ -1149,12 +1155,21 @@ class PlacementMachine:
                 self._check.doubt = (self._footprint, fp_why)
         if self._check.at_rest is None and now - self._check.t_stop >= cfg.check_settle:
             self._check.at_rest = np.asarray(state.base_T_tcp, dtype=float)[:3, 3].copy()
+        if why is not None:  # only stale (above): hold, unless the arm is seen moving
+            return self._not_at_rest(state, now) or Command.hold()
         need = self.check_frames_needed(plane)
-        if fresh < need and not (self._blind(note) and cfg.too_close_hold > 0):
-            if self._elapsed(now, self._t_phase, self._phase_ticks) > cfg.check_timeout:
+        gap = self._check.gap
+        if gap is not None and (not plane.stamps or min(plane.stamps) <= gap):
+            # planes fused before the gap are still in the window: a surface that moved in it would hide behind them
+            if late:
+                return self._refuse(now, f"the fused plane still holds planes measured before the sensor's gap at "
+                                         f"rest {cfg.check_timeout:.1f} s after stopping")
+            return self._not_at_rest(state, now) or Command.hold()
+        if fresh < need and not (self._blind(note) and cfg.too_close_hold > 0 and gap is None):
+            if late:
                 return self._refuse(now, f"only {fresh} of {need} surface planes measured within "
                                          f"{cfg.check_timeout:.1f} s of stopping" + (f" ({note})" if note else ""))
-            return Command.hold()
+            return self._not_at_rest(state, now) or Command.hold()
         c = self.last_clearance = self._clearance(plane, state)
         if not math.isfinite(c):
             return self._refuse(now, "cup clearance above the surface cannot be computed")
@@ -1187,17 +1202,13 @@ class PlacementMachine:
         if not (cup_to_surface <= cfg.max_tilt):
             return self._refuse(now, f"cup axis {math.degrees(cup_to_surface):.1f} deg from the surface normal "
                                      f"(> {math.degrees(cfg.max_tilt):.1f} deg): it would land on its rim")
-        tcp = np.asarray(state.base_T_tcp, dtype=float)[:3, 3]
         if self._check.at_rest is None:
-            self._check.at_rest = tcp.copy()
-        moved = float(np.linalg.norm(tcp - self._check.at_rest))
-        if not (moved <= cfg.rest_tolerance):
-            return self._refuse(now, f"the arm did not stop: the TCP moved {moved * 1e3:.1f} mm after the stop "
-                                     f"(> {cfg.rest_tolerance * 1e3:.1f} mm)")
+            self._check.at_rest = np.asarray(state.base_T_tcp, dtype=float)[:3, 3].copy()
+        if (cmd := self._not_at_rest(state, now)) is not None:
+            return cmd
         post = self.post_stop_stamps(plane, now)
         if (why := rules.still_problem(plane, post, cfg)) is not None:
             return self._refuse(now, why)
-        late = self._elapsed(now, self._t_phase, self._phase_ticks) > cfg.check_timeout
         if (why := rules.slope_still_problem(plane, post, cfg) or rules.rest_tilt_problem(plane, post, cfg)) is not None:
             # more planes at rest first (stray planes are then set aside), until the check's deadline (refusing at
             # max_check_frames refused a still table with two junk planes among five: an adversarial search)
@@ -1235,6 +1246,18 @@ class PlacementMachine:
         self._go(Phase.DESCEND, now, f"clearance {c * 1e3:.1f} mm > {cfg.release_clearance * 1e3:.1f} mm: descend again")
         self._descent_t0, self._descent_ticks = now, 0
         return self._speed(cfg.descend_speed * -np.asarray(state.base_T_cup, dtype=float)[:3, 2])
+
+    def _not_at_rest(self, state: RobotState, now: float) -> Command | None:
+        """CHECK: the refusal when the TCP moved more than ``rest_tolerance`` from where it was once the stop settled
+        (None while it stands, or before that pose is taken)."""
+        cfg, at_rest = self.config, self._check.at_rest
+        if at_rest is None:
+            return None
+        moved = float(np.linalg.norm(np.asarray(state.base_T_tcp, dtype=float)[:3, 3] - at_rest))
+        if moved <= cfg.rest_tolerance:
+            return None
+        return self._refuse(now, f"the arm did not stop: the TCP moved {moved * 1e3:.1f} mm after the stop "
+                                        f"(> {cfg.rest_tolerance * 1e3:.1f} mm)")
 
     def _on_retreat(self, state: RobotState, plane: FusedPlane | None, note: str | None, now: float) -> Command:
         """RELEASE (after the gripper opened) and REFUSE: wait, then move straight up, then finish."""

@@ -35,8 +35,8 @@ TRANSITIONS: tuple[tuple[Phase, Phase, str], ...] = (
     (Phase.CHECK, Phase.DESCEND, "still above release_clearance (at most max_checks times)"),
     (Phase.CHECK, Phase.APPROACH, "footprint points vetoed or in doubt that no second look has seen "
                                   "(once, up first)"),
-    (Phase.CHECK, Phase.REFUSE, "tilted / not planar / stale / no support under the footprint / obstacle / "
-                                "arm not at rest / too few fresh planes by check_timeout / max_checks"),
+    (Phase.CHECK, Phase.REFUSE, "tilted / not planar / stale by check_timeout / no support under the footprint / "
+                                "obstacle / arm not at rest / too few fresh planes by check_timeout / max_checks"),
     (Phase.RELEASE, Phase.DONE, "settled and retreated (or retreat deadline, or a robot fault once released)"),
     (Phase.RELEASE, Phase.ABORTED, "the gripper did not open"),
     (Phase.REFUSE, Phase.ABORTED, "retreated holding the cup (or retreat deadline, or a robot fault)"),

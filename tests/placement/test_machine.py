@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 
 from place_safe.fusion.plane_filter import FusedPlane
 from place_safe.fusion.surface_map import FootprintVerdict
-from place_safe.placement.machine import (DOUBT_PATIENCE, CommandKind, Phase, PlacementConfig, PlacementMachine,
+from place_safe.placement.machine import (DOUBT_PATIENCE, Command, CommandKind, Phase, PlacementConfig, PlacementMachine,
                                          RobotState, _Recheck)
 
 DT = 0.008  # s, control tick
@@ -191,6 +191,100 @@ def test_a_plane_stale_at_rest_past_the_check_timeout_is_refused(freeze_for):
     assert m.outcome == "refused" and "stale" in m.decision and not opened(w)
     refuse = next(t for t in m.log if t.target == Phase.REFUSE)
     assert refuse.time >= seen["t"] + m.config.check_timeout - 0.05
+
+
+class _Unstoppable(FakeWorld):
+    """An arm whose controller ignores the stop at CHECK and keeps descending until the table stops it."""
+
+    in_check = False
+
+    def apply(self, cmd):
+        if cmd.kind == CommandKind.STOP and self.in_check:
+            cmd = Command.hold()
+        super().apply(cmd)
+
+
+def test_an_arm_that_does_not_stop_is_refused_while_the_plane_is_stale():
+    """Planes stall at the stop and the arm keeps going: the hold for a fresh plane looks at the arm, and refuses as
+    soon as it moved more than rest_tolerance from where it was once the stop settled (it held 1.5 s, 37 mm of travel,
+    and once released on a rest pose taken after the motion: an adversarial round)."""
+    w = _Unstoppable()
+    plane_fn, seen = _frozen_at_check(1.0)
+    m = PlacementMachine()
+    while not m.finished and w.t < 20.0:
+        plane = plane_fn(w, m)
+        cmd = m.step(w.state(), plane, None, w.footprint)
+        w.in_check = m.phase == Phase.CHECK
+        w.apply(cmd)
+    assert m.outcome == "refused" and not opened(w) and "did not stop" in m.decision
+    refuse = next(t for t in m.log if t.target == Phase.REFUSE)
+    assert refuse.time - seen["t"] < 0.3
+
+
+def test_a_surface_seen_again_after_a_gap_at_rest_is_decided_on_planes_measured_after_it():
+    """After the plane went stale at rest, CHECK decides only once the fused window holds no plane measured before the
+    gap: a table that dropped in the gap hid behind the window's older planes (released 0.9 mm above
+    release_clearance with the real filter: an adversarial round)."""
+    w = FakeWorld()
+    plane_fn, seen = _frozen_at_check(0.6)
+    m = PlacementMachine()
+    deciding = None
+    while not m.finished and w.t < 20.0:
+        plane = plane_fn(w, m)
+        cmd = m.step(w.state(), plane, None, w.footprint)
+        if cmd.kind == CommandKind.OPEN_GRIPPER:
+            deciding = plane
+        w.apply(cmd)
+    assert m.outcome == "released" and deciding is not None
+    assert min(deciding.stamps) > seen["p"].stamp
+
+
+def test_a_footprint_problem_seen_while_the_plane_is_stale_is_remembered():
+    """An edge under the footprint reported on ticks when the fused plane (already holding planes at rest) is stale,
+    then a clean verdict on fresh planes: not released (the verdict was dropped with the stale ticks)."""
+    clean = FootprintVerdict(observed=5, supported=5, in_view=True, view_margin=1.0)
+    edge = FootprintVerdict(observed=5, supported=1, problem="edge: no return over the footprint")
+    pend = ((np.array([0.0, 0.0, 1.0]), 0.02),)  # a plane the gates rejected, 2 cm up: CHECK holds on it
+    w = FakeWorld()
+    m = PlacementMachine()
+    tc = frozen = None
+    while not m.finished and w.t < 20.0:
+        if tc is None and m.phase == Phase.CHECK:
+            tc = w.t
+        r = None if tc is None else w.t - tc
+        if r is not None and 0.45 <= r < 1.2:
+            frozen = frozen or dataclasses.replace(w.plane(), pending=pend)
+            plane = frozen
+        else:
+            plane = w.plane()
+            if r is not None and r < 0.45:
+                plane = dataclasses.replace(plane, pending=pend)
+        fp = edge if r is not None and 1.0 <= r < 1.15 else clean
+        w.apply(m.step(w.state(), plane, None, fp))
+    assert not opened(w) and m.outcome != "released"
+
+
+def test_a_gap_at_rest_then_frames_too_close_to_read_is_not_decided_from_the_farther_frames():
+    """1 s of frames with no plane at rest, then frames too close to read: the too-close hold (deciding from the plane
+    of the farther frames) is not open after a gap; refused, not released. With 0.3 s of no plane (never stale) the
+    too-close hold releases as before."""
+    from place_safe.recovery.too_close import TOO_CLOSE_REASON
+
+    for no_plane, released in ((1.0, False), (0.3, True)):
+        w = FakeWorld()
+        m = PlacementMachine()
+        tc = frozen = None
+        while not m.finished and w.t < 20.0:
+            if tc is None and m.phase == Phase.CHECK:
+                tc, frozen = w.t, w.plane()
+            note = None
+            if tc is None:
+                plane = w.plane()
+            else:
+                plane = frozen
+                note = "no plane: corrupted frame" if w.t - tc < no_plane else f"{TOO_CLOSE_REASON}: no plane"
+            w.apply(m.step(w.state(), plane, note, w.footprint))
+        assert (m.outcome == "released") == released and opened(w) == released, (no_plane, m.decision)
 
 
 def test_a_sensor_that_stops_answering_at_rest_is_refused_at_its_timeout():
