@@ -575,7 +575,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "at once by nonlinear least squares on forward kinematics. Prints the fit, its residuals and 1-sigma "
         "uncertainty, flags directions the sweep does not observe, and with --write saves a robot file with the "
         "fitted mount.",
-        ["place-safe calibrate-mount sim_capture.jsonl --robot robots/ur5/sim.toml --write robot_fitted.toml",
+        ["place-safe calibrate-mount sim_capture.jsonl --robot robots/ur5/sim.toml --calibration "
+         "sim/sensors/calibration_nominal.json --write robot_fitted.toml",
          "place-safe calibrate-mount tests/data/tmf8820_ur5_sweep.json --method peak --calibration cal.json --level"],
         opt("capture", help="capture or sweep file (frames with joint_angles or pose)"),
         opt("--robot", metavar="ROBOT.toml", help="robot file with the starting mount (default sim.toml); "
