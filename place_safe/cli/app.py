@@ -130,7 +130,8 @@ def _check_outputs(args: argparse.Namespace) -> None:
     for name in OUTPUT_OPTIONS:
         value = getattr(args, name, None)
         if value == "":
-            raise UsageError(f"{args.command}: --{name.replace('_', '-')} needs a file name (it was given an empty one)")
+            raise UsageError(f"{args.command}: --{name.replace('_', '-')} needs a file name "
+                             "(it was given an empty one)")
         if not isinstance(value, str):
             continue
         if (why := output_file_problem(value)) is not None:
@@ -204,9 +205,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return _main(argv)
 
 
-def _no_room_where(args: argparse.Namespace | None) -> str:
-    """Where a write whose error names no file (a full disk or quota, a file too large, an I/O error) may have gone: the output
-    options the command was given and standard output, e.g. ``writing --json out.json or standard output``."""
+def _unnamed_write_where(args: argparse.Namespace | None) -> str:
+    """Where a write whose error names no file (a full disk or quota, a file too large, an I/O error) may have gone:
+    the output options the command was given and standard output, e.g. ``writing --json out.json or standard
+    output``."""
     named = [] if args is None else [f"--{name.replace('_', '-')} {value}" for name in OUTPUT_OPTIONS
                                      if isinstance(value := getattr(args, name, None), str) and value]
     return "writing " + " or ".join(named + ["standard output"])
@@ -240,7 +242,7 @@ def _main(argv: Sequence[str] | None) -> int:
     except OSError as exc:  # e.g. an output directory that cannot be written
         from place_safe.config import printable
 
-        where = printable(str(exc.filename)) if exc.filename else _no_room_where(args)  # a write names no file
+        where = printable(str(exc.filename)) if exc.filename else _unnamed_write_where(args)  # a write names no file
         log(f"{PROG}: error: {exc.strerror or _one_line(exc)}: {where}".rstrip(": "))
         return 2
     except (ValueError, RecursionError, OverflowError, MemoryError) as exc:  # bad input Python noticed first

@@ -1257,7 +1257,7 @@ class PlacementMachine:
         if moved <= cfg.rest_tolerance:
             return None
         return self._refuse(now, f"the arm did not stop: the TCP moved {moved * 1e3:.1f} mm after the stop "
-                                        f"(> {cfg.rest_tolerance * 1e3:.1f} mm)")
+                                 f"(> {cfg.rest_tolerance * 1e3:.1f} mm)")
 
     def _on_retreat(self, state: RobotState, plane: FusedPlane | None, note: str | None, now: float) -> Command:
         """RELEASE (after the gripper opened) and REFUSE: wait, then move straight up, then finish."""

@@ -13,8 +13,8 @@ from hypothesis import strategies as st
 
 from place_safe.fusion.plane_filter import FusedPlane
 from place_safe.fusion.surface_map import FootprintVerdict
-from place_safe.placement.machine import (DOUBT_PATIENCE, Command, CommandKind, Phase, PlacementConfig, PlacementMachine,
-                                         RobotState, _Recheck)
+from place_safe.placement.machine import (DOUBT_PATIENCE, Command, CommandKind, Phase, PlacementConfig,
+                                         PlacementMachine, RobotState, _Recheck)
 
 DT = 0.008  # s, control tick
 LATENCY = 0.1  # s, age of the newest plane in a healthy stream
