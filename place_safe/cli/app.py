@@ -18,6 +18,7 @@ Exit status: 0 on success, 2 for a usage or input error (one line on standard er
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib.util
 import sys
 from pathlib import Path
@@ -205,6 +206,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         return _main(argv)
 
 
+#: errno values of a write whose error names no file: no room (a full disk or quota, a file too large) or an I/O error
+#: (``--json /proc/version``); other errors without a file (a refused connection) are no write
+UNNAMED_WRITE_ERRORS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EIO)
+
+
 def _unnamed_write_where(args: argparse.Namespace | None) -> str:
     """Where a write whose error names no file (a full disk or quota, a file too large, an I/O error) may have gone:
     the output options the command was given and standard output, e.g. ``writing --json out.json or standard
@@ -242,7 +248,8 @@ def _main(argv: Sequence[str] | None) -> int:
     except OSError as exc:  # e.g. an output directory that cannot be written
         from place_safe.config import printable
 
-        where = printable(str(exc.filename)) if exc.filename else _unnamed_write_where(args)  # a write names no file
+        where = printable(str(exc.filename)) if exc.filename else (_unnamed_write_where(args)
+                                                                     if exc.errno in UNNAMED_WRITE_ERRORS else "")
         log(f"{PROG}: error: {exc.strerror or _one_line(exc)}: {where}".rstrip(": "))
         return 2
     except (ValueError, RecursionError, OverflowError, MemoryError) as exc:  # bad input Python noticed first

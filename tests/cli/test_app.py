@@ -567,6 +567,19 @@ def test_an_io_error_without_a_file_name_names_the_outputs(sweep_path, tmp_path,
     assert code == 2 and err == [f"place-safe: error: Input/output error: writing --json {out} or standard output"], err
 
 
+def test_an_error_without_a_file_that_is_no_write_names_no_output(sweep_path, capsys, monkeypatch):
+    """A refused connection (an OSError naming no file, e.g. Ray's with `--ray auto` and no cluster) is not said to
+    have been a write to the outputs."""
+    from pathlib import Path
+
+    def refused(*_a, **_k):
+        raise ConnectionRefusedError(111, "Connection refused")
+    monkeypatch.setattr(Path, "write_text", refused)
+    assert main(["evaluate", str(sweep_path), "--methods", "peak", "--no-plots", "-q", "--json", "x.json",
+                 "--min-distance", "0.3"]) == 2
+    assert capsys.readouterr().err.strip().splitlines() == ["place-safe: error: Connection refused"]
+
+
 @pytest.mark.parametrize("argv", [["synth", "--frames", "2", "-o", ""],
                                   ["evaluate", "FRAMES", "--methods", "peak", "--json", ""]])
 def test_an_empty_output_name_is_one_line_before_anything_runs(argv, sweep_path, capsys):
