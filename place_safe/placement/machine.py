@@ -1134,17 +1134,17 @@ class PlacementMachine:
         cfg = self.config
         blind = lambda: self._blind(note)  # noqa: E731
         late = self._elapsed(now, self._t_phase, self._phase_ticks) > cfg.check_timeout
-        why = (rules.plane_problem(plane, now, note, cfg, self.period, blind)
-               or rules.sensor_problem(state.last_frame_time, now, self._t_start, note, cfg))
-        if why is not None:
-            # at rest a plane that is only old says no fresh plane came yet (a stalled transfer, a corrupted frame),
-            # not that the cup moves blind: wait for one while the sensor answers and the arm stands still, until
-            # check_timeout; the check then decides only on a window of planes measured after the gap
-            if (late or rules.plane_problem(plane, now, note, cfg, self.period, blind, check_age=False) is not None
-                    or rules.sensor_problem(state.last_frame_time, now, self._t_start, note, cfg) is not None):
-                return self._refuse(now, why)
-            if self._check.gap is None:
-                self._check.gap = float(plane.stamp)
+        plane_why = rules.plane_problem(plane, now, note, cfg, self.period, blind)
+        sensor_why = rules.sensor_problem(state.last_frame_time, now, self._t_start, note, cfg)
+        # at rest a plane that is only old says no fresh plane came yet (a stalled transfer, a corrupted frame), not
+        # that the cup moves blind: wait for one while the sensor answers and the arm stands still, until
+        # check_timeout; the check then decides only on a window of planes measured after the gap
+        stale = (plane_why is not None and sensor_why is None and not late
+                 and rules.plane_problem(plane, now, note, cfg, self.period, blind, check_age=False) is None)
+        if (plane_why or sensor_why) is not None and not stale:
+            return self._refuse(now, plane_why or sensor_why)
+        if stale and self._check.gap is None:
+            self._check.gap = float(plane.stamp)
         fresh = len(self.post_stop_stamps(plane, now))
         if fresh and (fp_why := self._footprint_doubt()) is not None:
             # remembered for the deciding tick, once the fused plane holds a plane measured at rest (a doubt against
@@ -1155,7 +1155,7 @@ class PlacementMachine:
                 self._check.doubt = (self._footprint, fp_why)
         if self._check.at_rest is None and now - self._check.t_stop >= cfg.check_settle:
             self._check.at_rest = np.asarray(state.base_T_tcp, dtype=float)[:3, 3].copy()
-        if why is not None:  # only stale (above): hold, unless the arm is seen moving
+        if stale:  # hold, unless the arm is seen moving
             return self._not_at_rest(state, now) or Command.hold()
         need = self.check_frames_needed(plane)
         gap = self._check.gap
