@@ -168,13 +168,13 @@ def consensus(points: np.ndarray, valid: np.ndarray, tolerance: float, deep: boo
               ) -> tuple[np.ndarray, np.ndarray, float]:
     """The largest set of zone points (9, 3) lying on one plane within ``tolerance`` (m).
 
-    Every plane through three valid points is tried (at most 84); the one with the most inliers (ties: smallest RMS; when
-    its least-squares residual per degree of freedom is :data:`POOR_FIT` of ``tolerance`` or more, the largest set of
-    at least :data:`MIN_INLIERS` zones -- one zone fewer only, unless ``deep`` -- that fits :data:`CLOSER_FIT` times as
-    closely wins: :func:`_closer_subset`) is refitted by least squares on its inliers. ``deep`` False suits zone points
-    a centimetre off (an uncalibrated peak mapping): their own plane fits them poorly, and subsets fit by chance. Returns the inlier mask
-    (9,), the plane ``(nx, ny, nz, d)`` (sensor frame, ``n_z > 0``) and its RMS residual; all-False / NaN when fewer
-    than 3 points are valid or they are collinear.
+    Every plane through three valid points is tried (at most 84); the one with the most inliers (ties: smallest RMS;
+    when its least-squares residual per degree of freedom is :data:`POOR_FIT` of ``tolerance`` or more, the largest
+    set of at least :data:`MIN_INLIERS` zones -- one zone fewer only, unless ``deep`` -- that fits :data:`CLOSER_FIT`
+    times as closely wins: :func:`_closer_subset`) is refitted by least squares on its inliers. ``deep`` False suits
+    zone points a centimetre off (an uncalibrated peak mapping): their own plane fits them poorly, and subsets fit by
+    chance. Returns the inlier mask (9,), the plane ``(nx, ny, nz, d)`` (sensor frame, ``n_z > 0``) and its RMS
+    residual; all-False / NaN when fewer than 3 points are valid or they are collinear.
     """
     from place_safe.recovery.points import fit_planes
 
@@ -249,8 +249,8 @@ def _closer_subset(P: np.ndarray, idx: np.ndarray, mask: np.ndarray, tolerance: 
             # what it leaves out of the poorly fitting set stands clear of it, nearer the sensor: a box's top or a
             # zone part-covered by it, not the scatter of one surface (a checker table's zones scatter a millimetre,
             # and one of 126 five-zone sets fits it ten times as closely by chance) nor a plane through a box's
-            # zones that leaves the table's farther (both found by the review of this rule, /work/s69/review)
-            # (one zone fewer keeps the rule it had: a zone partly past an edge or over a step down reads farther)
+            # zones that leaves the table's farther (both found by a review of this rule). One zone fewer keeps the
+            # rule it had: a zone partly past an edge or over a step down reads farther
             dropped = mask[None, :] & ~sets
             clear = np.all(np.where(dropped, ahead >= POOR_FIT * tolerance, True), axis=1) | (k == n_best - 1)
             sigma = _per_dof(r, np.full(len(sets), k))

@@ -11,7 +11,7 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import assume, example, given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from place_safe.fusion.surface_map import AIM_SLACK, DISC_SPACING, SurfaceMap, consensus, early_returns, second_returns
