@@ -200,10 +200,13 @@ def consensus(points: np.ndarray, valid: np.ndarray, tolerance: float, deep: boo
     best = np.lexsort((rms, -count))[0]
     mask = np.zeros(N_ZONES, dtype=bool)
     mask[idx[inl[:, best]]] = True
-    mask = _closer_subset(P, idx, mask, tolerance, MIN_INLIERS if deep else int(mask.sum()) - 1)
     nf, df, rf, okf = fit_planes(P[None], mask[None])
     if not okf[0]:
         return none
+    closer = _closer_subset(P, idx, mask, float(rf[0]), tolerance, MIN_INLIERS if deep else int(mask.sum()) - 1)
+    if closer is not mask:
+        mask = closer
+        nf, df, rf, okf = fit_planes(P[None], mask[None])
     # keep the refit honest: zones it moved beyond the tolerance leave the set
     r = np.abs(P @ nf[0] - df[0])
     mask &= r <= tolerance
@@ -215,8 +218,10 @@ def _per_dof(rms: np.ndarray, count: np.ndarray) -> np.ndarray:
     return rms * np.sqrt(count / np.maximum(count - 3, 1))
 
 
-def _closer_subset(P: np.ndarray, idx: np.ndarray, mask: np.ndarray, tolerance: float, fewest: int) -> np.ndarray:
-    """``mask`` (the zones on the plane through the most), or, when their least-squares plane fits them poorly
+def _closer_subset(P: np.ndarray, idx: np.ndarray, mask: np.ndarray, rms: float, tolerance: float, fewest: int
+                   ) -> np.ndarray:
+    """``mask`` (the zones on the plane through the most; ``rms`` its least-squares plane's RMS residual), or, when
+    that plane fits them poorly
     (per degree of freedom :data:`POOR_FIT` of ``tolerance`` or more), the largest set of at least ``fewest`` (and
     :data:`MIN_INLIERS`) of the valid zones ``idx`` that fits :data:`CLOSER_FIT` times as closely, each of its zones
     within ``tolerance`` of its own plane and, two or more zones fewer, every zone of ``mask`` it leaves out nearer the
@@ -230,16 +235,11 @@ def _closer_subset(P: np.ndarray, idx: np.ndarray, mask: np.ndarray, tolerance: 
     from place_safe.recovery.points import fit_planes
 
     n_best = int(mask.sum())
-    if n_best <= MIN_INLIERS:
-        return mask
-    _, _, r0, ok0 = fit_planes(P[None], mask[None])
-    sigma0 = float(_per_dof(r0, np.array([n_best]))[0])
-    if not (ok0[0] and sigma0 >= POOR_FIT * tolerance):
+    sigma0 = float(_per_dof(np.array(rms), np.array(n_best)))
+    if n_best <= MIN_INLIERS or not sigma0 >= POOR_FIT * tolerance:
         return mask
     for k in range(n_best - 1, max(fewest, MIN_INLIERS) - 1, -1):
-        combos = np.array(list(itertools.combinations(idx, k)))
-        if combos.size == 0:
-            continue
+        combos = np.array(list(itertools.combinations(idx, k)))  # k < n_best <= len(idx): never empty
         sets = np.zeros((len(combos), N_ZONES), dtype=bool)
         np.put_along_axis(sets, combos, True, axis=1)
         n, d, r, ok = fit_planes(np.broadcast_to(P, (len(sets),) + P.shape), sets)
