@@ -69,8 +69,9 @@ class PlacementConfig(ParamModel):
     release_settle: float = Field(0.3, ge=0.0, le=10.0, description="s")  # s between opening the gripper and retreating
     # m, radius of the cup bottom (rim touches first on a tilted surface)
     cup_radius: float = Field(0.035, ge=0.0, le=0.5, description="m")
-    # m: contact counts as arrival only this close to the sensed surface
-    contact_clearance: float = Field(0.008, gt=0.0, le=0.1, description="m")
+    # m: contact counts as arrival only this close to the sensed surface, and never higher than what tilts a cup whose
+    # rim stands on it beyond max_tilt (rules.contact_limit: 2 cup_radius sin(max_tilt), 6.1 mm for 35 mm and 5 deg)
+    contact_clearance: float = Field(0.005, gt=0.0, le=0.1, description="m")
     # s after the stop command before planes count for CHECK (arm at rest)
     check_settle: float = Field(0.04, ge=0.0, le=10.0, description="s")
     # s: deadline of APPROACH + DESCEND together

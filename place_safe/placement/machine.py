@@ -51,7 +51,9 @@ The release rule (the only path to :attr:`CommandKind.OPEN_GRIPPER`), checked on
   ``check_timeout``;
 * the cup bottom's clearance above the plane lies in ``[floor, release_clearance]``, ``floor`` the noise's
   allowance below zero (:func:`~place_safe.placement.rules.clearance_floor`, at most ``release_clearance``),
-  or the cup is in contact (``contact_force``) with a clearance in ``[-max_penetration, contact_clearance]``:
+  or the cup is in contact (``contact_force``) with a clearance in ``[-max_penetration, contact_limit]``
+  (:func:`~place_safe.placement.rules.contact_limit`: ``contact_clearance``, at most ``2 cup_radius sin(max_tilt)``,
+  above which something under the rim would leave the cup tilted beyond ``max_tilt``):
   contact higher above the sensed surface is an obstacle, and a cup below the sensed surface without
   contact means the estimate is wrong or the surface moved; both refuse.
 
@@ -969,12 +971,13 @@ class PlacementMachine:
         return Command.hold()
 
     def _contact_rule(self, state: RobotState, c: float, now: float) -> Command | None:
-        """Contact: arrival when the sensed surface is within ``contact_clearance``, else an obstacle."""
+        """Contact: arrival when the sensed surface is within :func:`~place_safe.placement.rules.contact_limit`, else an
+        obstacle."""
         cfg = self.config
         force = float(state.contact_force)
         if force < cfg.contact_force:
             return None
-        if c <= cfg.contact_clearance:
+        if c <= rules.contact_limit(cfg):
             self._check = _Check(now)
             self._go(Phase.CHECK, now, f"contact {force:.1f} N at estimated clearance {c * 1e3:.1f} mm")
             return Command(CommandKind.STOP, accel=cfg.accel)
@@ -1006,7 +1009,7 @@ class PlacementMachine:
             if s.rest_since is not None and now - s.rest_since >= cfg.obstacle_confirm:
                 self._suspect = None
                 return self._refuse(now, f"obstacle: contact {force:.1f} N with the cup bottom {s.clearance * 1e3:.1f} mm "
-                                         f"above the sensed surface (> {cfg.contact_clearance * 1e3:.0f} mm), confirmed "
+                                         f"above the sensed surface (> {rules.contact_limit(cfg) * 1e3:.1f} mm), confirmed "
                                          f"for {now - s.rest_since:.2f} s with the arm at rest",
                                     decel=cfg.obstacle_decel)
             if self._elapsed(now, s.t0, s.ticks) > cfg.obstacle_confirm + 2.0:  # never at rest: refuse all the same
@@ -1221,9 +1224,9 @@ class PlacementMachine:
             return self._refuse(now, why) if late else Command.hold()
         force = float(state.contact_force)
         contact = force >= cfg.contact_force
-        if contact and c > cfg.contact_clearance:
+        if contact and c > rules.contact_limit(cfg):
             return self._refuse(now, f"obstacle: contact {force:.1f} N with the cup bottom {c * 1e3:.1f} mm above "
-                                     f"the sensed surface (> {cfg.contact_clearance * 1e3:.0f} mm)")
+                                     f"the sensed surface (> {rules.contact_limit(cfg) * 1e3:.1f} mm)")
         if c < -cfg.max_penetration or (not contact and c < rules.clearance_floor(plane, post, cfg)):
             return self._refuse(now, f"cup {-c * 1e3:.1f} mm below the estimated surface"
                                      + ("" if contact else " without contact")

@@ -510,6 +510,18 @@ def still_problem(plane: FusedPlane, post: list[float], cfg: Any) -> str | None:
     return None
 
 
+def contact_limit(cfg: Any) -> float:
+    """The highest cup clearance (m) at which a contact counts as arrival on the sensed surface: ``contact_clearance``,
+    and at most ``2 cup_radius sin(max_tilt)``. A contact higher up is the cup on something above the surface; one
+    under its rim ``h`` high, with the opposite rim on the table, leaves the cup tilted ``asin(h / (2 cup_radius))``
+    once released: beyond ``max_tilt`` above that height (6.1 mm for a 35 mm radius and 5 deg), and no footprint view
+    need have seen it (a low box under part of a zone moves its point by a fraction of its height). The clearance is
+    an estimate: its error adds to the box height it admits. A cup of no radius cannot tilt: ``contact_clearance``."""
+    if cfg.cup_radius > 0.0:
+        return min(cfg.contact_clearance, 2.0 * cfg.cup_radius * math.sin(cfg.max_tilt))
+    return cfg.contact_clearance
+
+
 def clearance_floor(plane: FusedPlane, post: list[float], cfg: Any) -> float:
     """The most negative cup clearance (m, <= 0) the noise allows without contact: minus the two-sided
     ``still_confidence`` quantile of the standard error of the planes' mean offset (:func:`_still_planes`), and
@@ -530,4 +542,4 @@ __all__ = ["number", "too_close", "plane_problem", "sensor_problem", "planar_pro
            "tilt_sigma", "confidence_margin", "level_problem", "confidently_tilted", "footprint_problem",
            "footprint_seen", "check_frames_needed", "post_stop_stamps", "still_problem", "slope_still_problem",
            "rest_tilt_problem", "newest_plane_problem", "pending_problem", "most_check_frames",
-           "clearance_floor"]
+           "contact_limit", "clearance_floor"]

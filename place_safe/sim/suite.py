@@ -122,6 +122,61 @@ def random_scenario(rng: np.random.Generator, index: int = 0, calibration: str =
                             "hazard_clearance": None if math.isinf(clearance_to_hazard) else clearance_to_hazard})
 
 
+def random_low_box_scenario(rng: np.random.Generator, index: int = 0, calibration: str = "sim") -> Scenario:
+    """One random scene of a low box (4-12 mm tall, 30-80 mm across) at or under the rim of the cup's footprint on
+    a level table, the cup 10-40 cm up: what no footprint view tells from the table (a box this low under part of a
+    zone moves its point by a fraction of its height), so only the touch can. Its box's nearest point lies 15 mm
+    inside the cup's centre to 10 mm beyond its rim. ``labels``: ``support`` is ``clutter`` when the box reaches
+    under the footprint (any release there is judged unsafe), ``box_height`` its height (m), and
+    ``tilt_if_released`` the tilt (rad) a cup whose rim stands on it is left at, ``asin(h / 2 r)``; 2 r sin(max_tilt)
+    is the tallest box the placement may land on (:func:`~place_safe.placement.rules.contact_limit`)."""
+    pc = PlacementConfig()
+    base = SceneConfig()
+    cup = home_cup_position(base)
+    radius = pc.cup_radius
+    start = float(rng.uniform(0.10, 0.40))
+    mat: dict[str, Any] = {"albedo": float(rng.choice([0.15, 0.4, 1.0, 1.0, 1.6]))}
+    kind = rng.choice(["uniform", "uniform", "glossy", "checker"])
+    if kind == "glossy":
+        mat.update(specular_weight=float(rng.uniform(0.5, 1.5)), specular_exponent=float(rng.uniform(10, 40)))
+    elif kind == "checker":
+        mat.update(pattern="checker", square=float(rng.uniform(0.02, 0.06)), albedo2=float(rng.uniform(0.1, 0.5)))
+    table: dict[str, Any] = {"tilt": 0.0, "tilt_direction": 0.0, "material": mat,
+                             "center": [float(base.table.center[0]), float(base.table.center[1])]}
+    hz = float(rng.uniform(0.002, 0.006))  # half height
+    hx, hy = float(rng.uniform(0.015, 0.04)), float(rng.uniform(0.015, 0.04))
+    a = float(rng.uniform(-math.pi, math.pi))
+    reach = float(rng.uniform(0.015, radius + 0.01))  # m from the cup's centre to the box's near side, along a
+    ux, uy = math.cos(a), math.sin(a)
+    # an axis-aligned box: its near face (or corner, along a diagonal) about `reach` from the centre
+    px = cup[0] + ux * reach + (math.copysign(hx, ux) if abs(ux) > 0.38 else 0.0)
+    py = cup[1] + uy * reach + (math.copysign(hy, uy) if abs(uy) > 0.38 else 0.0)
+    top = float(cup[2] - start)
+    scene: dict[str, Any] = {"table": table, "start_height": start,
+                             "clutter": [{"shape": "box", "pos": [float(px), float(py), top + hz], "size": [hx, hy, hz],
+                                          "material": {"albedo": float(rng.uniform(0.3, 1.2))}}]}
+    dx, dy = max(abs(px - cup[0]) - hx, 0.0), max(abs(py - cup[1]) - hy, 0.0)
+    clearance_to_hazard = math.hypot(dx, dy) - radius
+    support = "clutter" if clearance_to_hazard < 0 else "full"
+    sensor: dict[str, Any] = {"model": str(rng.choice(["nominal", "mismatch"])), "seed": int(rng.integers(1 << 30))}
+    if sensor["model"] == "mismatch":
+        sensor["mismatch"] = {"temp_start": float(rng.uniform(40.0, 45.0))}
+    height = 2.0 * hz
+    desc = (f"random low box #{index}: {height * 1e3:.1f} mm tall, {2 * hx * 1e3:.0f} x {2 * hy * 1e3:.0f} mm, "
+            f"{clearance_to_hazard * 1e3:.0f} mm from the footprint towards {math.degrees(a):.0f} deg, start "
+            f"{start * 100:.0f} cm, {kind} albedo {mat['albedo']}, sensor {sensor['model']}")
+    outcome = "refused" if support != "full" and height > 2.0 * radius * math.sin(pc.max_tilt) else "any"
+    return Scenario(name=f"low_box_{index:04d}", description=desc, scene=scene, sensor=sensor,
+                    calibration=calibration, expect=Expectation(outcome=outcome),
+                    labels={"support": support, "clearly_safe": False, "hazard": "low box",
+                            "hazard_clearance": clearance_to_hazard, "box_height": height,
+                            "tilt_if_released": math.asin(min(1.0, height / (2.0 * radius)))})
+
+
+#: The kinds of random scenes ``place-safe scenarios --random N --kind K`` draws.
+RANDOM_KINDS = {"tables": random_scenario, "low-boxes": random_low_box_scenario}
+
+
 # ---------------------------------------------------------------------------------------------
 # judging
 # ---------------------------------------------------------------------------------------------
@@ -355,5 +410,5 @@ def plot(rows: list[dict], path: str) -> str:
     return path
 
 
-__all__ = ["random_scenario", "judge", "run_one", "run_many", "summarize", "format_table", "plot", "budget_table",
+__all__ = ["random_scenario", "random_low_box_scenario", "RANDOM_KINDS", "judge", "run_one", "run_many", "summarize", "format_table", "plot", "budget_table",
            "CLEAR_MARGIN", "TILT_MARGIN"]

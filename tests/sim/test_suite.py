@@ -86,6 +86,41 @@ def test_random_scenes_are_valid_and_labelled_from_their_geometry():
     assert {"edge", "clutter", "none", "nominal", "mismatch"} <= seen
 
 
+def test_low_box_scenes_reach_the_rim_and_are_labelled_from_their_geometry():
+    """--kind low-boxes: a box 4-12 mm tall whose near side lies 15 mm inside the cup's centre to 10 mm past its
+    rim; one reaching under the footprint is unsupported, and taller than 2 r sin(max_tilt) must be refused."""
+    from place_safe.placement.config import PlacementConfig
+    from place_safe.sim.scenario import home_cup_position
+    from place_safe.sim.scene import SceneConfig
+
+    pc = PlacementConfig()
+    cup = home_cup_position(SceneConfig())
+    rng = np.random.default_rng(5)
+    under = tall = 0
+    for i in range(80):
+        sc = suite.random_low_box_scenario(rng, i)
+        Scenario.model_validate(sc.model_dump())
+        box = sc.scene["clutter"][0]
+        (px, py, _), (hx, hy, hz) = box["pos"], box["size"]
+        lab = sc.labels
+        assert lab["box_height"] == pytest.approx(2 * hz) and 0.004 <= 2 * hz <= 0.012
+        gap = math.hypot(max(abs(px - cup[0]) - hx, 0.0), max(abs(py - cup[1]) - hy, 0.0)) - pc.cup_radius
+        assert lab["hazard_clearance"] == pytest.approx(gap) and gap <= 0.0105
+        assert (lab["support"] == "clutter") == (gap < 0)
+        assert math.sin(lab["tilt_if_released"]) == pytest.approx(2 * hz / (2 * pc.cup_radius))
+        must_refuse = gap < 0 and lab["tilt_if_released"] > pc.max_tilt
+        assert (sc.expect.outcome == "refused") == must_refuse and not lab["clearly_safe"]
+        under += gap < 0
+        tall += must_refuse
+    assert under >= 40 and tall >= 20  # the scan mostly puts boxes under the rim, many too tall to land on
+
+
+def test_the_cli_names_every_kind_of_random_scene():
+    from place_safe.cli.scenarios import RANDOM_KIND_NAMES
+
+    assert set(RANDOM_KIND_NAMES) == set(suite.RANDOM_KINDS)
+
+
 def test_summary_and_table():
     rows = [suite.judge(Scenario(name="a", labels={"clearly_safe": True}), _res(release_height=0.002)),
             suite.judge(Scenario(name="b", labels={"clearly_safe": True}), _res(outcome="refused"))]
