@@ -88,6 +88,8 @@ def cmd_scenarios(args: argparse.Namespace) -> int:
     from place_safe.sim import suite
     from place_safe.sim.scenario import expand_paths, load_scenario, packaged_scenarios
 
+    if args.kind != "tables" and not args.random:
+        raise UsageError(f"scenarios: --kind {args.kind} draws random scenes: give --random N")
     if args.jobs > 1 and args.ray:
         raise UsageError("scenarios: give --jobs or --ray, not both")
     if args.ray:

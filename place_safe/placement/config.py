@@ -69,9 +69,13 @@ class PlacementConfig(ParamModel):
     release_settle: float = Field(0.3, ge=0.0, le=10.0, description="s")  # s between opening the gripper and retreating
     # m, radius of the cup bottom (rim touches first on a tilted surface)
     cup_radius: float = Field(0.035, ge=0.0, le=0.5, description="m")
-    # m: contact counts as arrival only this close to the sensed surface, and never higher than what tilts a cup whose
-    # rim stands on it beyond max_tilt (rules.contact_limit: 2 cup_radius sin(max_tilt), 6.1 mm for 35 mm and 5 deg)
+    # m: contact counts as arrival only this close to the sensed surface, and never higher than what can tilt the
+    # cup beyond max_tilt when it stands on it (rules.contact_limit: cup_radius tan(max_tilt) less the travel while the
+    # touch is detected, 1.9 mm for 35 mm, 5 deg, 25 mm/s and 48 ms)
     contact_clearance: float = Field(0.005, gt=0.0, le=0.1, description="m")
+    # s from a touch to the force reading over contact_force (the CB3 detector's 95th percentile: 48 ms; the arm moves on
+    # meanwhile, so the clearance read at contact is that much travel below the touch)
+    contact_latency: float = Field(0.048, ge=0.0, le=1.0, description="s")
     # s after the stop command before planes count for CHECK (arm at rest)
     check_settle: float = Field(0.04, ge=0.0, le=10.0, description="s")
     # s: deadline of APPROACH + DESCEND together

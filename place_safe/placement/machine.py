@@ -52,8 +52,9 @@ The release rule (the only path to :attr:`CommandKind.OPEN_GRIPPER`), checked on
 * the cup bottom's clearance above the plane lies in ``[floor, release_clearance]``, ``floor`` the noise's
   allowance below zero (:func:`~place_safe.placement.rules.clearance_floor`, at most ``release_clearance``),
   or the cup is in contact (``contact_force``) with a clearance in ``[-max_penetration, contact_limit]``
-  (:func:`~place_safe.placement.rules.contact_limit`: ``contact_clearance``, at most ``2 cup_radius sin(max_tilt)``,
-  above which something under the rim would leave the cup tilted beyond ``max_tilt``):
+  (:func:`~place_safe.placement.rules.contact_limit`: ``contact_clearance``, at most ``cup_radius tan(max_tilt)``
+  less the travel while the touch is detected, above which something under the cup could leave it tilted beyond
+  ``max_tilt``):
   contact higher above the sensed surface is an obstacle, and a cup below the sensed surface without
   contact means the estimate is wrong or the surface moved; both refuse.
 
@@ -1010,7 +1011,8 @@ class PlacementMachine:
                 self._suspect = None
                 return self._refuse(now, f"obstacle: contact {force:.1f} N with the cup bottom {s.clearance * 1e3:.1f} mm "
                                          f"above the sensed surface (> {rules.contact_limit(cfg) * 1e3:.1f} mm), confirmed "
-                                         f"for {now - s.rest_since:.2f} s with the arm at rest",
+                                         f"for {now - s.rest_since:.2f} s with the arm at rest (something under the cup, "
+                                         "or the tool's cup offset is off)",
                                     decel=cfg.obstacle_decel)
             if self._elapsed(now, s.t0, s.ticks) > cfg.obstacle_confirm + 2.0:  # never at rest: refuse all the same
                 self._suspect = None
@@ -1146,6 +1148,8 @@ class PlacementMachine:
                  and rules.plane_problem(plane, now, note, cfg, self.period, blind, check_age=False) is None)
         if (plane_why or sensor_why) is not None and not stale:
             return self._refuse(now, plane_why or sensor_why)
+        if (why := self._touch_too_high(state, plane)) is not None:
+            return self._refuse(now, why)
         if stale and self._check.gap is None:
             self._check.gap = float(plane.stamp)
         fresh = len(self.post_stop_stamps(plane, now))
@@ -1226,7 +1230,8 @@ class PlacementMachine:
         contact = force >= cfg.contact_force
         if contact and c > rules.contact_limit(cfg):
             return self._refuse(now, f"obstacle: contact {force:.1f} N with the cup bottom {c * 1e3:.1f} mm above "
-                                     f"the sensed surface (> {rules.contact_limit(cfg) * 1e3:.1f} mm)")
+                                     f"the sensed surface (> {rules.contact_limit(cfg) * 1e3:.1f} mm): something under "
+                                     "the cup, or the tool's cup offset is off")
         if c < -cfg.max_penetration or (not contact and c < rules.clearance_floor(plane, post, cfg)):
             return self._refuse(now, f"cup {-c * 1e3:.1f} mm below the estimated surface"
                                      + ("" if contact else " without contact")
@@ -1249,6 +1254,21 @@ class PlacementMachine:
         self._go(Phase.DESCEND, now, f"clearance {c * 1e3:.1f} mm > {cfg.release_clearance * 1e3:.1f} mm: descend again")
         self._descent_t0, self._descent_ticks = now, 0
         return self._speed(cfg.descend_speed * -np.asarray(state.base_T_cup, dtype=float)[:3, 2])
+
+    def _touch_too_high(self, state: RobotState, plane: FusedPlane) -> str | None:
+        """CHECK, every tick: a contact read while the cup stands higher above the sensed surface than
+        :func:`~place_safe.placement.rules.contact_limit` (the cup settling onto something after the stop, or pressed
+        onto it and let go as the grip gives) is an obstacle, though it may have faded by the tick that decides."""
+        cfg = self.config
+        force = float(state.contact_force)
+        if force < cfg.contact_force:
+            return None
+        c = self._clearance(plane, state)
+        if not c > rules.contact_limit(cfg):
+            return None
+        return (f"obstacle: contact {force:.1f} N with the cup bottom {c * 1e3:.1f} mm above the sensed surface "
+                f"(> {rules.contact_limit(cfg) * 1e3:.1f} mm) while checking: something under the cup, or the tool's "
+                "cup offset is off")
 
     def _not_at_rest(self, state: RobotState, now: float) -> Command | None:
         """CHECK: the refusal when the TCP moved more than ``rest_tolerance`` from where it was once the stop settled

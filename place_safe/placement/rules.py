@@ -512,13 +512,19 @@ def still_problem(plane: FusedPlane, post: list[float], cfg: Any) -> str | None:
 
 def contact_limit(cfg: Any) -> float:
     """The highest cup clearance (m) at which a contact counts as arrival on the sensed surface: ``contact_clearance``,
-    and at most ``2 cup_radius sin(max_tilt)``. A contact higher up is the cup on something above the surface; one
-    under its rim ``h`` high, with the opposite rim on the table, leaves the cup tilted ``asin(h / (2 cup_radius))``
-    once released: beyond ``max_tilt`` above that height (6.1 mm for a 35 mm radius and 5 deg), and no footprint view
-    need have seen it (a low box under part of a zone moves its point by a fraction of its height). The clearance is
-    an estimate: its error adds to the box height it admits. A cup of no radius cannot tilt: ``contact_clearance``."""
+    and at most ``cup_radius tan(max_tilt) - descend_speed contact_latency``. A contact higher up is the cup on
+    something above the surface that no footprint view need have seen (a box a few millimetres high under part of a
+    zone moves its point by a fraction of its height). Released on a thing ``h`` high whose edge lies ``e`` from the
+    cup's centre (``0 <= e <= cup_radius``), the cup pivots on that edge until its far rim meets the table: tilted
+    ``atan(h / (cup_radius + e))``, at worst (``e`` = 0) ``h / cup_radius``: 3.1 mm at 35 mm and 5 deg. The touch is
+    read ``descend_speed contact_latency`` late (1.2 mm at 25 mm/s and the CB3's 48 ms). So at the defaults a contact
+    counts as arrival up to 1.9 mm, and, the descent stopping 3 mm above the sensed surface (``stop_clearance``), a
+    table sensed 2.5-3 mm or more too low (the tool's cup offset or sensor mount that far off) is touched and refused
+    as an obstacle. The estimate's own error adds. A negative limit admits no contact. A cup of no radius cannot tilt:
+    ``contact_clearance``."""
     if cfg.cup_radius > 0.0:
-        return min(cfg.contact_clearance, 2.0 * cfg.cup_radius * math.sin(cfg.max_tilt))
+        tilt_bound = cfg.cup_radius * math.tan(cfg.max_tilt) - cfg.descend_speed * cfg.contact_latency
+        return min(cfg.contact_clearance, tilt_bound)
     return cfg.contact_clearance
 
 

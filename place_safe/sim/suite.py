@@ -123,13 +123,14 @@ def random_scenario(rng: np.random.Generator, index: int = 0, calibration: str =
 
 
 def random_low_box_scenario(rng: np.random.Generator, index: int = 0, calibration: str = "sim") -> Scenario:
-    """One random scene of a low box (4-12 mm tall, 30-80 mm across) at or under the rim of the cup's footprint on
-    a level table, the cup 10-40 cm up: what no footprint view tells from the table (a box this low under part of a
-    zone moves its point by a fraction of its height), so only the touch can. Its box's nearest point lies 15 mm
-    inside the cup's centre to 10 mm beyond its rim. ``labels``: ``support`` is ``clutter`` when the box reaches
-    under the footprint (any release there is judged unsafe), ``box_height`` its height (m), and
-    ``tilt_if_released`` the tilt (rad) a cup whose rim stands on it is left at, ``asin(h / 2 r)``; 2 r sin(max_tilt)
-    is the tallest box the placement may land on (:func:`~place_safe.placement.rules.contact_limit`)."""
+    """One random scene of a low box (4-12 mm tall, 30-80 mm across) at or under the cup's footprint on a level
+    table, the cup 10-40 cm up: what no footprint view tells from the table (a box this low under part of a zone moves
+    its point by a fraction of its height), so only the touch can. The box's nearest point lies from 15 mm off the
+    cup's centre (or over it, at a diagonal) to 10 mm past its rim. ``labels``: ``support`` is ``clutter`` when the box
+    reaches under the footprint (any release there is judged unsafe), ``box_height`` its height (m), and
+    ``tilt_if_released`` the tilt (rad) the cup is left at, pivoting on the box's edge ``e`` from its centre until its
+    far rim meets the table: ``atan(h / (r + e))`` (0 outside the footprint; over the centre, the worst case
+    ``atan(h / r)``). Scenes whose cup would be left beyond ``max_tilt`` must be refused."""
     pc = PlacementConfig()
     base = SceneConfig()
     cup = home_cup_position(base)
@@ -165,12 +166,14 @@ def random_low_box_scenario(rng: np.random.Generator, index: int = 0, calibratio
     desc = (f"random low box #{index}: {height * 1e3:.1f} mm tall, {2 * hx * 1e3:.0f} x {2 * hy * 1e3:.0f} mm, "
             f"{clearance_to_hazard * 1e3:.0f} mm from the footprint towards {math.degrees(a):.0f} deg, start "
             f"{start * 100:.0f} cm, {kind} albedo {mat['albedo']}, sensor {sensor['model']}")
-    outcome = "refused" if support != "full" and height > 2.0 * radius * math.sin(pc.max_tilt) else "any"
+    reach_in = math.hypot(dx, dy)  # m from the cup's centre to the box's nearest point
+    tilt = math.atan(height / (radius + reach_in)) if support != "full" else 0.0
+    outcome = "refused" if tilt > pc.max_tilt else "any"
     return Scenario(name=f"low_box_{index:04d}", description=desc, scene=scene, sensor=sensor,
                     calibration=calibration, expect=Expectation(outcome=outcome),
                     labels={"support": support, "clearly_safe": False, "hazard": "low box",
                             "hazard_clearance": clearance_to_hazard, "box_height": height,
-                            "tilt_if_released": math.asin(min(1.0, height / (2.0 * radius)))})
+                            "tilt_if_released": tilt})
 
 
 #: The kinds of random scenes ``place-safe scenarios --random N --kind K`` draws.

@@ -235,9 +235,11 @@ def rule_holds(state: RobotState, plane: FusedPlane | None, prev_time, t_stop: f
         return "released on planes at rest that stated no error in their normals"
     contact = f >= cfg.contact_force
     # without contact, the noise (offsets known to 10 um, floored at still_offset_floor) allows < 0.5 mm below
-    # in contact, never higher than a rim resting on something leaves the cup within max_tilt: asin(h / 2r)
-    highest_contact = min(cfg.contact_clearance, 2.0 * cfg.cup_radius * math.sin(cfg.max_tilt))
-    if not ((-min(cfg.release_clearance, 0.5e-3) <= c <= cfg.release_clearance)
+    # in contact, never higher than what a cup pivoting on something under it stands within max_tilt on, h <= r tan,
+    # less the travel while the touch was detected
+    highest_contact = min(cfg.contact_clearance,
+                          cfg.cup_radius * math.tan(cfg.max_tilt) - cfg.descend_speed * cfg.contact_latency)
+    if not ((not contact and -min(cfg.release_clearance, 0.5e-3) <= c <= cfg.release_clearance)
             or (contact and -cfg.max_penetration <= c <= highest_contact)):
         return f"released at clearance {c}"
     return None

@@ -87,8 +87,9 @@ def test_random_scenes_are_valid_and_labelled_from_their_geometry():
 
 
 def test_low_box_scenes_reach_the_rim_and_are_labelled_from_their_geometry():
-    """--kind low-boxes: a box 4-12 mm tall whose near side lies 15 mm inside the cup's centre to 10 mm past its
-    rim; one reaching under the footprint is unsupported, and taller than 2 r sin(max_tilt) must be refused."""
+    """--kind low-boxes: a box 4-12 mm tall whose nearest point lies from over the cup's centre to 10 mm past its rim;
+    one reaching under the footprint is unsupported, and one the cup, pivoting on its edge, would be left tilted beyond
+    max_tilt on (atan(h / (r + e))) must be refused."""
     from place_safe.placement.config import PlacementConfig
     from place_safe.sim.scenario import home_cup_position
     from place_safe.sim.scene import SceneConfig
@@ -104,21 +105,29 @@ def test_low_box_scenes_reach_the_rim_and_are_labelled_from_their_geometry():
         (px, py, _), (hx, hy, hz) = box["pos"], box["size"]
         lab = sc.labels
         assert lab["box_height"] == pytest.approx(2 * hz) and 0.004 <= 2 * hz <= 0.012
-        gap = math.hypot(max(abs(px - cup[0]) - hx, 0.0), max(abs(py - cup[1]) - hy, 0.0)) - pc.cup_radius
+        reach = math.hypot(max(abs(px - cup[0]) - hx, 0.0), max(abs(py - cup[1]) - hy, 0.0))
+        gap = reach - pc.cup_radius
         assert lab["hazard_clearance"] == pytest.approx(gap) and gap <= 0.0105
         assert (lab["support"] == "clutter") == (gap < 0)
-        assert math.sin(lab["tilt_if_released"]) == pytest.approx(2 * hz / (2 * pc.cup_radius))
-        must_refuse = gap < 0 and lab["tilt_if_released"] > pc.max_tilt
-        assert (sc.expect.outcome == "refused") == must_refuse and not lab["clearly_safe"]
+        tilt = math.atan(2 * hz / (pc.cup_radius + reach)) if gap < 0 else 0.0
+        assert lab["tilt_if_released"] == pytest.approx(tilt)
+        assert (sc.expect.outcome == "refused") == (tilt > pc.max_tilt) and not lab["clearly_safe"]
         under += gap < 0
-        tall += must_refuse
-    assert under >= 40 and tall >= 20  # the scan mostly puts boxes under the rim, many too tall to land on
+        tall += tilt > pc.max_tilt
+    assert under >= 40 and tall >= 30  # the scan mostly puts boxes under the cup, most too tall to land on
 
 
 def test_the_cli_names_every_kind_of_random_scene():
     from place_safe.cli.scenarios import RANDOM_KIND_NAMES
 
     assert set(RANDOM_KIND_NAMES) == set(suite.RANDOM_KINDS)
+
+
+def test_a_kind_of_random_scene_without_random_scenes_is_bad_usage(capsys):
+    from place_safe.cli.app import main
+
+    assert main(["scenarios", "--kind", "low-boxes", "--quiet"]) == 2
+    assert "give --random N" in capsys.readouterr().err
 
 
 def test_summary_and_table():
