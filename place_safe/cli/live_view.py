@@ -126,11 +126,14 @@ class _PipedFile:
         except ValueError:  # the file was closed under us (close() gave up waiting): already reported there
             return
         except OSError as exc:
-            self.error = OSError(exc.errno, exc.strerror or str(exc), self.path)
             try:
                 self.written = self.out.tell()  # with the part of ``data`` that fitted
             except (OSError, ValueError):
                 pass
+            # published last: the stream's thread reads ``written`` as soon as it sees ``error``; in the other order a
+            # loaded machine could report the bytes before this write (most likely why one CI run's message did not
+            # say the 40.0 kB its test's disk took)
+            self.error = OSError(exc.errno, exc.strerror or str(exc), self.path)
 
     def _pump(self) -> None:
         try:
