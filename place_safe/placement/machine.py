@@ -1227,11 +1227,7 @@ class PlacementMachine:
         if (why := rules.newest_plane_problem(plane, post, cfg) or rules.pending_problem(plane)) is not None:
             return self._refuse(now, why) if late else Command.hold()
         force = float(state.contact_force)
-        contact = force >= cfg.contact_force
-        if contact and c > rules.contact_limit(cfg):
-            return self._refuse(now, f"obstacle: contact {force:.1f} N with the cup bottom {c * 1e3:.1f} mm above "
-                                     f"the sensed surface (> {rules.contact_limit(cfg) * 1e3:.1f} mm): something under "
-                                     "the cup, or the tool's cup offset is off")
+        contact = force >= cfg.contact_force  # within contact_limit: _touch_too_high refused this tick otherwise
         if c < -cfg.max_penetration or (not contact and c < rules.clearance_floor(plane, post, cfg)):
             return self._refuse(now, f"cup {-c * 1e3:.1f} mm below the estimated surface"
                                      + ("" if contact else " without contact")
@@ -1263,12 +1259,11 @@ class PlacementMachine:
         force = float(state.contact_force)
         if force < cfg.contact_force:
             return None
-        c = self._clearance(plane, state)
-        if not c > rules.contact_limit(cfg):
+        c, limit = self._clearance(plane, state), rules.contact_limit(cfg)
+        if not c > limit:
             return None
         return (f"obstacle: contact {force:.1f} N with the cup bottom {c * 1e3:.1f} mm above the sensed surface "
-                f"(> {rules.contact_limit(cfg) * 1e3:.1f} mm) while checking: something under the cup, or the tool's "
-                "cup offset is off")
+                f"(> {limit * 1e3:.1f} mm) while checking: something under the cup, or the tool's cup offset is off")
 
     def _not_at_rest(self, state: RobotState, now: float) -> Command | None:
         """CHECK: the refusal when the TCP moved more than ``rest_tolerance`` from where it was once the stop settled

@@ -48,6 +48,26 @@ TILT_MARGIN = math.radians(1.0)
 # ---------------------------------------------------------------------------------------------
 # random scenes
 # ---------------------------------------------------------------------------------------------
+def _random_material(rng: np.random.Generator) -> tuple[dict[str, Any], str]:
+    """A table material as a tester draws it (albedo, and uniform, glossy or checker) and its kind."""
+    mat: dict[str, Any] = {"albedo": float(rng.choice([0.15, 0.4, 1.0, 1.0, 1.6]))}
+    kind = str(rng.choice(["uniform", "uniform", "glossy", "checker"]))
+    if kind == "glossy":
+        mat.update(specular_weight=float(rng.uniform(0.5, 1.5)), specular_exponent=float(rng.uniform(10, 40)))
+    elif kind == "checker":
+        mat.update(pattern="checker", square=float(rng.uniform(0.02, 0.06)), albedo2=float(rng.uniform(0.1, 0.5)))
+    return mat, kind
+
+
+def _random_sensor(rng: np.random.Generator) -> dict[str, Any]:
+    """Either simulated sensor with its own noise seed; a mismatched one on for a while (calibrated warm, at 45 degC),
+    still warming a little."""
+    sensor: dict[str, Any] = {"model": str(rng.choice(["nominal", "mismatch"])), "seed": int(rng.integers(1 << 30))}
+    if sensor["model"] == "mismatch":
+        sensor["mismatch"] = {"temp_start": float(rng.uniform(40.0, 45.0))}
+    return sensor
+
+
 def random_scenario(rng: np.random.Generator, index: int = 0, calibration: str = "sim") -> Scenario:
     """One random scene (see module docstring); ``expect`` and ``labels`` come from its geometry."""
     pc = PlacementConfig()
@@ -57,12 +77,7 @@ def random_scenario(rng: np.random.Generator, index: int = 0, calibration: str =
     tilt = math.radians(rng.uniform(0.0, 15.0))
     direction = rng.uniform(-math.pi, math.pi)
     start = 0.40 if rng.random() < 0.3 else rng.uniform(0.10, 0.40)  # enough starts at 40 cm for the time figure
-    mat: dict[str, Any] = {"albedo": float(rng.choice([0.15, 0.4, 1.0, 1.0, 1.6]))}
-    kind = rng.choice(["uniform", "uniform", "glossy", "checker"])
-    if kind == "glossy":
-        mat.update(specular_weight=float(rng.uniform(0.5, 1.5)), specular_exponent=float(rng.uniform(10, 40)))
-    elif kind == "checker":
-        mat.update(pattern="checker", square=float(rng.uniform(0.02, 0.06)), albedo2=float(rng.uniform(0.1, 0.5)))
+    mat, kind = _random_material(rng)
     table: dict[str, Any] = {"tilt": tilt, "tilt_direction": direction, "material": mat,
                              "center": [float(base.table.center[0]), float(base.table.center[1])]}
     scene: dict[str, Any] = {"table": table, "start_height": start}
@@ -100,9 +115,7 @@ def random_scenario(rng: np.random.Generator, index: int = 0, calibration: str =
         dx, dy = max(abs(px - cup[0]) - hx, 0.0), max(abs(py - cup[1]) - hy, 0.0)
         clearance_to_hazard = math.hypot(dx, dy) - radius
         support = "clutter" if clearance_to_hazard < 0 else "full"
-    sensor: dict[str, Any] = {"model": str(rng.choice(["nominal", "mismatch"])), "seed": int(rng.integers(1 << 30))}
-    if sensor["model"] == "mismatch":  # on for a while (calibrated warm, at 45 degC), still warming a little
-        sensor["mismatch"] = {"temp_start": float(rng.uniform(40.0, 45.0))}
+    sensor = _random_sensor(rng)
     if rng.random() < 0.3:
         sensor.update(drop_prob=float(rng.uniform(0, 0.15)), corrupt_prob=float(rng.uniform(0, 0.05)))
     if rng.random() < 0.2:
@@ -136,12 +149,7 @@ def random_low_box_scenario(rng: np.random.Generator, index: int = 0, calibratio
     cup = home_cup_position(base)
     radius = pc.cup_radius
     start = float(rng.uniform(0.10, 0.40))
-    mat: dict[str, Any] = {"albedo": float(rng.choice([0.15, 0.4, 1.0, 1.0, 1.6]))}
-    kind = rng.choice(["uniform", "uniform", "glossy", "checker"])
-    if kind == "glossy":
-        mat.update(specular_weight=float(rng.uniform(0.5, 1.5)), specular_exponent=float(rng.uniform(10, 40)))
-    elif kind == "checker":
-        mat.update(pattern="checker", square=float(rng.uniform(0.02, 0.06)), albedo2=float(rng.uniform(0.1, 0.5)))
+    mat, kind = _random_material(rng)
     table: dict[str, Any] = {"tilt": 0.0, "tilt_direction": 0.0, "material": mat,
                              "center": [float(base.table.center[0]), float(base.table.center[1])]}
     hz = float(rng.uniform(0.002, 0.006))  # half height
@@ -159,9 +167,7 @@ def random_low_box_scenario(rng: np.random.Generator, index: int = 0, calibratio
     dx, dy = max(abs(px - cup[0]) - hx, 0.0), max(abs(py - cup[1]) - hy, 0.0)
     clearance_to_hazard = math.hypot(dx, dy) - radius
     support = "clutter" if clearance_to_hazard < 0 else "full"
-    sensor: dict[str, Any] = {"model": str(rng.choice(["nominal", "mismatch"])), "seed": int(rng.integers(1 << 30))}
-    if sensor["model"] == "mismatch":
-        sensor["mismatch"] = {"temp_start": float(rng.uniform(40.0, 45.0))}
+    sensor = _random_sensor(rng)
     height = 2.0 * hz
     desc = (f"random low box #{index}: {height * 1e3:.1f} mm tall, {2 * hx * 1e3:.0f} x {2 * hy * 1e3:.0f} mm, "
             f"{clearance_to_hazard * 1e3:.0f} mm from the footprint towards {math.degrees(a):.0f} deg, start "
