@@ -227,6 +227,8 @@ class Scenario(ConfigModel):
         except SceneError as exc:
             raise ValueError(str(exc)) from None
         cfg.with_robot = True
+        if self.surface_motion is not None:
+            cfg.table.movable = True  # moved by TruthRecorder (a world geom would keep its old place for contacts)
         if start_height is not None:
             if not isinstance(start_height, (int, float)) or not (0.02 <= start_height <= 0.8):
                 raise ValueError("scene.start_height must be 0.02..0.8 m (cup bottom above the table at the start)")
@@ -376,7 +378,6 @@ class TruthRecorder:
     def __init__(self, scenario: Scenario, scene: Any, robot: Any) -> None:
         self.sc, self.scene, self.robot = scenario, scene, robot
         self.model = scene.model
-        self._table_pos0 = self.model.geom_pos[scene.table_geom].copy()
         self.start_height = math.nan
         self.t_reference: float | None = None  # cup bottom first within REFERENCE_HEIGHT of the surface
         self.release_height = math.nan
@@ -398,7 +399,7 @@ class TruthRecorder:
         m = self.sc.surface_motion
         if m is not None and t >= m.start:
             dz = m.velocity * min(t - m.start, m.duration)
-            self.model.geom_pos[self.scene.table_geom] = self._table_pos0 + np.array([0.0, 0.0, dz])
+            self.scene.move_table(d, [0.0, 0.0, dz])
             self.surface_moved = dz
         h = self.cup_height()
         if self._first:

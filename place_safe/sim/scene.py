@@ -49,6 +49,7 @@ MARKER_GROUP = 2
 SENSOR_SITE = "tof_sensor"
 RIG_BODY = "sensor_rig"
 TABLE_GEOM = "table"
+TABLE_BODY = "table_body"  # the mocap body of a movable table (TableConfig.movable)
 FLOOR_GEOM = "floor"
 
 
@@ -103,6 +104,10 @@ class TableConfig(_SceneModel):
     # world azimuth the top normal leans towards
     tilt_direction: float = Field(0.0, ge=-2 * math.pi, le=2 * math.pi, description="rad")
     material: Material = Field(default_factory=Material)
+    # the top on a mocap body, so that a run can move it (:meth:`Scene.move_table`: a lift table, a tray handed over);
+    # a world geom moved by editing the model keeps its old place in the collision broad phase (a cup released on a
+    # risen table fell through it to where it had been)
+    movable: bool = False
 
 
 class ClutterItem(_SceneModel):
@@ -265,6 +270,7 @@ class Scene:
     floor_geom: int
     rig_mocap: int  # mocap index of the sensor rig, -1 with the robot
     robot_geoms: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
+    table_mocap: int = -1  # mocap index of the table's body (TableConfig.movable), -1 for a fixed table
 
     @property
     def sensed_groups(self) -> np.ndarray:
@@ -288,6 +294,14 @@ class Scene:
         data.mocap_pos[self.rig_mocap] = np.asarray(pos, dtype=float)
         data.mocap_quat[self.rig_mocap] = matrix_to_quat(R)
         mujoco.mj_kinematics(self.model, data)
+
+    def move_table(self, data, shift: Any) -> None:
+        """Put a movable table (:attr:`TableConfig.movable`) ``shift`` (3,) m from where it was built, world frame;
+        it is there from the next physics step on."""
+        if self.table_mocap < 0:
+            raise SceneError("move_table needs a movable table (scene.table.movable = true)")
+        body = int(np.flatnonzero(self.model.body_mocapid == self.table_mocap)[0])
+        data.mocap_pos[self.table_mocap] = self.model.body_pos[body] + np.asarray(shift, dtype=float)
 
     def table_plane_world(self, data) -> tuple[np.ndarray, np.ndarray]:
         """Unit normal (up) and a point of the table's top surface, in the world frame."""
@@ -342,8 +356,11 @@ def build_scene(config: SceneConfig | None = None) -> Scene:
     R = _quat_matrix(q)
     top = np.array([t.center[0], t.center[1], t.height])
     centre = top - R[:, 2] * t.size[2] / 2
-    table_geom = wb.add_geom(name=TABLE_GEOM, type=mujoco.mjtGeom.mjGEOM_BOX, size=[s / 2 for s in t.size],
-                             pos=list(centre), quat=list(q), rgba=t.material.rgba(), group=SENSED_GROUP)
+    holder, pose = wb, dict(pos=list(centre), quat=list(q))
+    if t.movable:
+        holder, pose = wb.add_body(name=TABLE_BODY, mocap=True, **pose), {}
+    table_geom = holder.add_geom(name=TABLE_GEOM, type=mujoco.mjtGeom.mjGEOM_BOX, size=[s / 2 for s in t.size],
+                                 rgba=t.material.rgba(), group=SENSED_GROUP, **pose)
     _visual_material(spec, table_geom, TABLE_GEOM, t.material)
     materials[TABLE_GEOM] = t.material
     # clutter
@@ -368,10 +385,13 @@ def build_scene(config: SceneConfig | None = None) -> Scene:
     rig_mocap = -1
     if not cfg.with_robot:
         rig_mocap = int(model.body_mocapid[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, RIG_BODY)])
-    robot_geoms = (np.flatnonzero(model.geom_bodyid != 0) if cfg.with_robot else np.zeros(0, dtype=int))
-    return Scene(cfg, spec, model, table, int(site),
-                 mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, TABLE_GEOM),
-                 mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, FLOOR_GEOM), rig_mocap, robot_geoms)
+    table_mocap = (int(model.body_mocapid[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, TABLE_BODY)])
+                   if t.movable else -1)
+    table_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, TABLE_GEOM)
+    robot_geoms = (np.flatnonzero((model.geom_bodyid != 0) & (np.arange(model.ngeom) != table_id))
+                   if cfg.with_robot else np.zeros(0, dtype=int))
+    return Scene(cfg, spec, model, table, int(site), table_id,
+                 mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, FLOOR_GEOM), rig_mocap, robot_geoms, table_mocap)
 
 
 def _visual_material(spec, geom, name: str, m: Material) -> None:
