@@ -74,7 +74,8 @@ class PlacementConfig(ParamModel):
     # touch is detected, 1.9 mm for 35 mm, 5 deg, 25 mm/s and 48 ms)
     contact_clearance: float = Field(0.005, gt=0.0, le=0.1, description="m")
     # s from a touch to the force reading over contact_force (the CB3 detector's 95th percentile: 48 ms; the arm moves on
-    # meanwhile, so the clearance read at contact is that much travel below the touch)
+    # meanwhile, so the clearance read at contact is that much travel below the touch); on the arm the robot file's own
+    # detector sets it unless the placement file does (drivers.ur5.config.placement_config: e-Series 14 ms)
     contact_latency: float = Field(0.048, ge=0.0, le=1.0, description="s")
     # s after the stop command before planes count for CHECK (arm at rest)
     check_settle: float = Field(0.04, ge=0.0, le=10.0, description="s")

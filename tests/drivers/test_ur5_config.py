@@ -218,3 +218,46 @@ def test_every_packaged_and_written_robot_file_is_complete(tmp_path):
         assert URConfig.load(p) == cfg
         p.write_text(cfg.to_toml(like=packaged_config(name)))
         assert URConfig.load(p) == cfg
+
+
+def _with(cfg: URConfig, controller: str | None = None, noise: float | None = None) -> URConfig:
+    if controller is not None:
+        cfg = cfg.model_copy(update={"connection": cfg.connection.model_copy(update={"controller": controller})})
+    if noise is not None:
+        cfg = cfg.model_copy(update={"contact": cfg.contact.model_copy(update={"noise_std": noise})})
+    return cfg
+
+
+def test_the_placement_reads_a_touch_as_late_as_the_robots_own_detector_does():
+    """``contact_latency`` (how far below a touch the cup is when the touch is read) comes from the robot file's
+    contact detector unless the placement settings give it: the CB3's 48 ms, the e-Series' 14 ms, so an e-Series arm
+    counts a touch up to 2.7 mm above the sensed surface as arrival (1.9 mm on a CB3); a placement file's own value
+    stands."""
+    import math
+
+    from place_safe.drivers.ur5.config import placement_config
+    from place_safe.placement.config import PlacementConfig
+    from place_safe.placement.rules import contact_limit
+
+    cb3 = URConfig.load(packaged_config("sim"))
+    assert cb3.connection.controller == "cb3"
+    assert placement_config(cb3).contact_latency == 0.048
+    e = placement_config(_with(cb3, controller="e-series"))
+    assert e.contact_latency == 0.014
+    assert math.isclose(contact_limit(e), e.cup_radius * math.tan(e.max_tilt) - e.descend_speed * 0.014)
+    assert contact_limit(e) > contact_limit(placement_config(cb3)) + 0.0008
+    assert placement_config(_with(cb3, controller="e-series"), PlacementConfig(contact_latency=0.05)).contact_latency \
+        == 0.05
+
+
+def test_a_detector_too_slow_for_the_descent_is_one_line_naming_it():
+    """A CB3 whose force noise was measured at 6 N per axis cannot see a 10 N touch for a third of a second, 8.6 mm
+    of descent: no touch could count as arrival. Building the placement says so in one line and how to mend it."""
+    import pytest
+
+    from place_safe.drivers.ur5.config import placement_config
+    from place_safe.exceptions import ConfigError
+
+    with pytest.raises(ConfigError, match=r"contact detector \(cb3.*ms to see a 10 N touch.*near_surface_speed") as e:
+        placement_config(_with(URConfig.load(packaged_config("sim")), noise=6.0))
+    assert "\n" not in str(e.value)

@@ -43,8 +43,9 @@ import numpy as np
 from pydantic import AfterValidator, Field, model_validator
 
 from place_safe.config import ConfigModel, field_like, load_config, parse_config, toml_reader
+from place_safe.exceptions import ConfigError
 from place_safe.placement.config import PlacementConfig
-from place_safe.robot.contact_detector import DetectorSettings
+from place_safe.robot.contact_detector import TOUCH_STEP, DetectorSettings, touch_latency
 from place_safe.robot.description import ur5_dir
 from place_safe.robot.tool import ToolFrames
 
@@ -370,13 +371,28 @@ def missing_keys(cls: type | None = None, data=None, prefix: str = "") -> list[s
 def placement_config(robot: URConfig, base=None):
     """``base`` (a :class:`~place_safe.placement.config.PlacementConfig`, default its defaults) with the robot
     file's motion policy: the near-surface speed and distance, stops no harder than ``max_linear_accel`` and
-    the obstacle stop no harder than ``emergency_decel``."""
+    the obstacle stop no harder than ``emergency_decel``; and, unless ``base`` sets it, ``contact_latency`` from the
+    robot's contact detector (:func:`~place_safe.robot.contact_detector.touch_latency` of the file's ``[contact]``
+    settings for its controller: CB3 48 ms, e-Series 14 ms, longer for an arm measured noisier). A detector too slow
+    for the descent (no touch could then count as arrival: ``rules.contact_limit`` below zero) is a ConfigError
+    naming it."""
     base = base if base is not None else PlacementConfig()
     m, lim = robot.motion, robot.limits
+    latency = base.contact_latency
+    if "contact_latency" not in base.model_fields_set:
+        latency = touch_latency(robot.contact.settings(robot.connection.controller))
+    descend = min(base.descend_speed, m.near_surface_speed)
+    if not (base.cup_radius * math.tan(base.max_tilt) > descend * latency):  # NaN: the detector misses touches
+        raise ConfigError(
+            f"robot config: the contact detector ({robot.connection.controller}, [contact]) needs "
+            f"{latency * 1e3:.0f} ms to see a {TOUCH_STEP:.0f} N touch, {descend * latency * 1e3:.1f} mm of travel at "
+            f"{descend * 1e3:.0f} mm/s, more than the {base.cup_radius * math.tan(base.max_tilt) * 1e3:.1f} mm a cup "
+            f"may stand on (cup_radius tan(max_tilt)): no touch could count as arrival; lower [motion] "
+            "near_surface_speed, or measure the arm's force noise again (place-safe bench robot --write)")
     return base.replace(near_surface_speed=m.near_surface_speed, near_surface_distance=m.near_surface_distance,
                         accel=min(base.accel, lim.max_linear_accel),
                         obstacle_decel=min(base.obstacle_decel, m.emergency_decel),
-                        descend_speed=min(base.descend_speed, m.near_surface_speed),
+                        descend_speed=descend, contact_latency=latency,
                         approach_speed=min(base.approach_speed, lim.max_linear_speed))
 
 
