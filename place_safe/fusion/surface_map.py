@@ -321,6 +321,7 @@ class FootprintVerdict:
     close_frames: int = 0  # frames from the close height that saw part of the footprint
     recheck_point: np.ndarray | None = None  # base frame: centre of the points behind ``problem``, or of those in doubt
     recheck_shift: np.ndarray | None = None  # m, base frame: TCP move that centres the view on it
+    doubt: str | None = None  # what the latest view of points now in doubt saw (raised, or a step lower)
 
 
 class SurfaceMap:
@@ -338,6 +339,7 @@ class SurfaceMap:
                  relative: float = CONSENSUS_RELATIVE) -> None:
         self.params = peak_params
         self.radius = float(cup_radius) + float(margin)
+        self.cup_radius = float(cup_radius)
         self.tolerance = float(tolerance)
         self.relative = float(relative)
         self.min_frames = int(min_frames)
@@ -498,7 +500,8 @@ class SurfaceMap:
           :data:`AIM_SLACK` of its rim), as from the survey pose or the second look -- all see something
           *raised* (a doubtful zone above the plane, a nearer surface mixed in, a surface above), whatever
           earlier views certified. Edge
-          evidence (no return, a farther or lower surface) keeps to the first rule: a zone reaching past
+          evidence (no return, a farther surface, a lower one but for the *lowered* doubt below) keeps to the first
+          rule: a zone reaching past
           the footprint sees the floor beyond a table edge 2 cm away, while a point over the floor is
           never certified by a zone on the plane. Frames that only hold part of the footprint at the edge of their view (the descent,
           the sensor 7 cm beside the cup) add clean views but cannot veto: their zones over the footprint
@@ -506,7 +509,11 @@ class SurfaceMap:
           until ``min_frames`` views with it in the centre zone (:data:`CENTRE_ZONE`, the second look's
           view centred on it, whose zone reaches least far past it) see it clean; views sliding off a box
           as the sensor moves away do not lift a veto. A point whose latest such view saw it raised (fewer
-          than ``min_frames`` of them: no veto yet) is *in doubt* and counts 0 in ``supported`` until a clean
+          than ``min_frames`` of them: no veto yet), or *lowered* (a doubtful zone below the plane whose centre ray
+          meets it within the cup's own radius: part of the footprint a step lower than the surface the cup is lowered
+          to, as when the plane is the top of a box that reaches under part of the footprint, whose edge the cup would
+          pivot on; a zone centred past the rim that reads lower sees a step beside the footprint; lowered views never
+          veto), is *in doubt* and counts 0 in ``supported`` until a clean
           view from no lower than the highest one that raised it since (less :data:`CLIMB_MARGIN`), or centred on
           it, sees it clean: the descent's lower views reach past the far rim. This rule needs zone points good to a few millimetres:
           it applies only to a calibrated peak mapping (``relative > 0``); with built-in constants, whose zone
@@ -527,7 +534,9 @@ class SurfaceMap:
         cleared = np.zeros(len(disc), dtype=int)  # clean views centred on a vetoed point since its veto
         details: dict[str, str] = {}
         kinds: Counter = Counter()
-        doubt_detail = None
+        doubt_detail = None  # what the latest view that saw a point raised saw (a veto's reason)
+        said: list[str] = []  # what views saw of points in doubt; point_said indexes it (-1: nothing)
+        point_said = np.full(len(disc), -1)
         observed = close_frames = 0
         for fs in self.frames:
             inside, zone = self._view(disc, fs.base_T_sensor)
@@ -561,6 +570,13 @@ class SurfaceMap:
                                                                            and issue[z][0] == "clutter")
                                         for z in range(N_ZONES)])
                 seen = clean | (inside & raised_zone[zone])  # edge evidence neither vetoes nor lifts
+                # lowered: one surface below the plane by more than the frame's tolerance, within ``tolerance``, in a
+                # zone centred under the cup: part of the footprint lies a step lower than the surface the cup is
+                # lowered to (the cup lowered onto a box beside it pivots on the box's edge); it puts the point in doubt
+                # but does not veto. A zone centred past the rim that reads lower sees a step beside the footprint
+                lowered_zone = (doubt & ~lifted & np.array([issue.get(z) is None for z in range(N_ZONES)])
+                                & self._centred_under_cup(fs.base_T_sensor, disc[0], n))
+                lowered = inside & ~clean & lowered_zone[zone]
                 latest[seen] = np.column_stack([latest[seen][:, 1:], np.where(clean[seen], 1, 2)])
                 vetoed |= np.all(latest == 2, axis=1)
                 centred = seen & (zone == CENTRE_ZONE)
@@ -569,7 +585,7 @@ class SurfaceMap:
                 # zones over the far rim lie at the edge of the view and reach past it
                 # the highest raising view since the doubt was last lifted sets the bar: seeing it raised again from
                 # lower down is more evidence, not a lower bar (fmax: NaN, no doubt yet, gives this height)
-                raised = seen & ~clean
+                raised = (seen & ~clean) | lowered
                 doubt_at[raised] = np.fmax(doubt_at[raised], height)
                 with np.errstate(invalid="ignore"):
                     lifts = clean & ((height >= doubt_at - CLIMB_MARGIN) | centred)
@@ -579,6 +595,13 @@ class SurfaceMap:
                 vetoed &= ~lift
                 cleared[lift] = 0
                 latest[lift] = 0
+                for z in sorted(set(zone[raised].tolist())):  # what the view saw of the points it put in doubt
+                    s = float(fs.points_base[z] @ n - d)
+                    said.append(issue[z][1] if issue.get(z) is not None else
+                                f"zone {z + 1} over the cup's footprint {s * 1e3:+.0f} mm off the surface "
+                                + ("(part of it covered: clutter or step)" if s > 0 else
+                                   "(part of the footprint lower: a step the cup would pivot on)"))
+                    point_said[raised & (zone == z)] = len(said) - 1
                 doubted = inside & ~clean & ~bad & raised_zone[zone]
                 if doubted.any():
                     z = int(zone[doubted][0])
@@ -607,7 +630,10 @@ class SurfaceMap:
             recheck = disc[vetoed].mean(axis=0)
         elif np.isfinite(doubt_at).any():  # no problem, but points in doubt: where a second look would lift it
             recheck = disc[np.isfinite(doubt_at)].mean(axis=0)
-        return FootprintVerdict(observed, supported, problem, close_frames=close_frames, recheck_point=recheck)
+        still = np.flatnonzero(np.isfinite(doubt_at) & (point_said >= 0))
+        doubt = said[int(point_said[still].max())] if still.size else None  # the latest view of points still in doubt
+        return FootprintVerdict(observed, supported, problem, close_frames=close_frames, recheck_point=recheck,
+                                doubt=doubt)
 
     def _doubtful(self, fs: FrameSurfaces, n: np.ndarray, d: float) -> np.ndarray:
         """Zones (9,) of a frame that returned one surface off the plane ``n . x = d`` by more than the frame's
@@ -617,6 +643,19 @@ class SurfaceMap:
             return np.zeros(N_ZONES, dtype=bool)
         pb = np.where(ok[:, None], fs.points_base, 0.0)
         return ok & (np.abs(pb @ n - d) > fs.tolerance)
+
+    def _centred_under_cup(self, base_T_sensor: np.ndarray, centre: np.ndarray, n: np.ndarray) -> np.ndarray:
+        """Zones (9,) whose centre ray meets the plane through the footprint's ``centre`` (normal ``n``) within the
+        cup's own radius: most of such a zone's field lies under the cup bottom, so a lower surface in it is under the
+        cup, not a step past the rim that the zone's edge reaches (a board the cup stands on 12 mm inside its edge)."""
+        T = np.asarray(base_T_sensor, dtype=float)
+        rays = self._dirs @ T[:3, :3].T
+        den = rays @ n
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = ((centre - T[:3, 3]) @ n) / den
+            off = T[:3, 3] + t[:, None] * rays - centre
+            off -= np.outer(off @ n, n)
+            return (t > 0) & (np.linalg.norm(off, axis=1) <= self.cup_radius)
 
     def _looks_at(self, base_T_sensor: np.ndarray, disc: np.ndarray, n: np.ndarray) -> bool:
         """Whether the sensor's optical axis meets the plane inside the footprint (``disc[0]`` its centre), or

@@ -189,8 +189,8 @@ SURVEY_VIEW_SLACK = 0.005
 #: move goes (it finishes early, not late).
 PASS_AHEAD = 0.03
 PASS_PACE = 1.5
-#: s the survey may go on with footprint points in doubt (seen raised, not seen clean since from as high or centred
-#: on them) before it takes the second look, centred on them: the survey's own passes see them from its
+#: s the survey may go on with footprint points in doubt (seen raised or lowered, not seen clean since from as high or
+#: centred on them) before it takes the second look, centred on them: the survey's own passes see them from its
 #: pose again and again, and from there a zone reaching past the footprint may keep raising them.
 DOUBT_PATIENCE = 2.0
 #: Arrival gaps of sensor frames over which the machine measures the frame period (median).
@@ -264,6 +264,12 @@ class _Retreat:
     """RELEASE / REFUSE phase state: TCP height when the retreat started (None until it starts)."""
 
     z0: float | None = None
+
+
+def _doubt_said(verdict: Any) -> str:
+    """' (what the latest view of the points in doubt saw)' from a footprint verdict, or '' when it says nothing."""
+    doubt = getattr(verdict, "doubt", None)
+    return f" ({doubt})" if isinstance(doubt, str) and doubt else ""
 
 
 class PlacementMachine:
@@ -754,9 +760,9 @@ class PlacementMachine:
 
     def _look_at_doubt(self, state: RobotState, c: float, now: float) -> Command | None:
         """The second look (:meth:`_second_look`) at footprint points in doubt that the survey has not cleared
-        within :data:`DOUBT_PATIENCE`: no problem, but points seen raised and not seen clean since (the verdict's
-        ``recheck_point``). Once begun it goes on as any second look (a doubt that comes and goes with the verdict
-        ends it early); the cup then surveys, descends or refuses as the verdict says. Points still in doubt
+        within :data:`DOUBT_PATIENCE`: no problem, but points seen raised (or lowered) and not seen clean since (the
+        verdict's ``recheck_point``). Once begun it goes on as any second look (a doubt that comes and goes with the
+        verdict ends it early); the cup then surveys, descends or refuses as the verdict says. Points still in doubt
         :data:`DOUBT_PATIENCE` after the look is over refuse the cup: the survey's passes would only see them again
         from where they were raised (until the surface map forgets its oldest frames). None: no look now."""
         fp = self._footprint
@@ -774,8 +780,8 @@ class PlacementMachine:
                 return None
             if r is not None:  # looked from over them already: the survey's passes would only see them again
                 look = "looking from over them" if r.arrived is not None else "the second look at them (timed out)"
-                return self._refuse(now, f"no support evidence: footprint points seen raised were not seen clean "
-                                         f"within {DOUBT_PATIENCE:.1f} s of {look}")
+                return self._refuse(now, f"no support evidence: footprint points seen off the surface were not seen "
+                                         f"clean within {DOUBT_PATIENCE:.1f} s of {look}" + _doubt_said(fp))
         return self._second_look(state, c, now)  # (None once the look is over)
 
     def _look_there(self, r: _Recheck, move: np.ndarray | None, frames: float | None, state: RobotState, c: float,
@@ -885,7 +891,7 @@ class PlacementMachine:
         if (why := rules.footprint_problem(self._footprint, cfg)) is not None:
             return why
         if cfg.footprint_frames and rules.footprint_seen(self._footprint) < cfg.footprint_frames:
-            return "no support evidence: footprint points in doubt (raised in their latest view)"
+            return "no support evidence: footprint points in doubt" + _doubt_said(self._footprint)
         return None
 
     def tilt_sigma(self, plane: FusedPlane) -> float:
@@ -1191,11 +1197,11 @@ class PlacementMachine:
             # look again from over those points, as the approach would have, then come back down
             return self._go_look_again(state, now, why)
         if cfg.footprint_frames and rules.footprint_seen(self._footprint) < cfg.footprint_frames:
-            if self._can_look_again():  # points in doubt (raised in their latest view): the look may lift it
-                return self._go_look_again(state, now, "footprint points in doubt (raised in their latest view)")
+            if self._can_look_again():  # points in doubt (raised or lowered in their latest view): the look may lift it
+                return self._go_look_again(state, now, "footprint points in doubt" + _doubt_said(self._footprint))
             return self._refuse(now, f"no support evidence: the surface under the cup's footprint was seen on one "
                                      f"plane in {rules.footprint_seen(self._footprint)} frames "
-                                     f"(< {cfg.footprint_frames})")
+                                     f"(< {cfg.footprint_frames})" + _doubt_said(self._footprint))
         if self._check.doubt is not None:
             # clean now, but not on every tick of this check: the verdict comes and goes with the plane refined at
             # rest; the look from over the points it named settles it, and after a look it refuses

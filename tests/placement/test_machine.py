@@ -968,18 +968,25 @@ def test_points_in_doubt_at_the_check_go_back_up_to_look_before_refusing(clears)
             observed=5, supported=0 if doubt else 5, in_view=True, view_margin=1.0,
             close_frames=(world.footprint.close_frames or 0) + int(there),
             recheck_point=np.array([-0.03, 0.0, 0.0]) if doubt else None,
-            recheck_shift=np.array([-0.03 - world.pos[0], 0.0, 0.12 - world.pos[2]]) if doubt else None)
+            recheck_shift=np.array([-0.03 - world.pos[0], 0.0, 0.12 - world.pos[2]]) if doubt else None,
+            doubt=STEP if doubt else None)
         return world.plane()
 
     w = FakeWorld(height=0.2)
     m = run(w, plane_fn=fn)
     looks = [t for t in m.log if (t.source, t.target) == (Phase.CHECK, Phase.APPROACH)]
-    assert len(looks) == 1 and "in doubt" in looks[0].reason
+    assert len(looks) == 1 and "in doubt" in looks[0].reason and STEP in looks[0].reason
     if clears:
         assert m.outcome == "released", m.decision
         assert abs(w.opened_at[0]) <= 0.002
     else:
         assert m.outcome == "refused" and not opened(w) and "no support evidence" in m.decision
+        assert STEP in m.decision  # what the views saw, said once more at the refusal
+
+
+#: A footprint verdict's account of its points in doubt (SurfaceMap.footprint writes it).
+STEP = ("zone 8 over the cup's footprint -6 mm off the surface "
+        "(part of the footprint lower: a step the cup would pivot on)")
 
 
 def test_a_doubt_at_the_check_after_a_second_look_refuses_there():
