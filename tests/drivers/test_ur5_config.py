@@ -261,3 +261,6 @@ def test_a_detector_too_slow_for_the_descent_is_one_line_naming_it():
     with pytest.raises(ConfigError, match=r"contact detector \(cb3.*ms to see a 10 N touch.*near_surface_speed") as e:
         placement_config(_with(URConfig.load(packaged_config("sim")), noise=6.0))
     assert "\n" not in str(e.value)
+    with pytest.raises(ConfigError, match=r"contact detector \(cb3.*misses more than 1 in 20 10 N touches") as e:
+        placement_config(_with(URConfig.load(packaged_config("sim")), noise=20.0))  # a 41 N threshold
+    assert "\n" not in str(e.value) and "nan" not in str(e.value)

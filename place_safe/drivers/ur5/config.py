@@ -383,12 +383,15 @@ def placement_config(robot: URConfig, base=None):
         latency = touch_latency(robot.contact.settings(robot.connection.controller))
     descend = min(base.descend_speed, m.near_surface_speed)
     if not (base.cup_radius * math.tan(base.max_tilt) > descend * latency):  # NaN: the detector misses touches
+        late = (f"needs {latency * 1e3:.0f} ms to see a {TOUCH_STEP:.0f} N touch, {descend * latency * 1e3:.1f} mm of "
+                f"travel at {descend * 1e3:.0f} mm/s" if math.isfinite(latency) else
+                f"misses more than 1 in 20 {TOUCH_STEP:.0f} N touches for half a second, {descend * 0.5 * 1e3:.1f} mm "
+                f"of travel at {descend * 1e3:.0f} mm/s")
         raise ConfigError(
-            f"robot config: the contact detector ({robot.connection.controller}, [contact]) needs "
-            f"{latency * 1e3:.0f} ms to see a {TOUCH_STEP:.0f} N touch, {descend * latency * 1e3:.1f} mm of travel at "
-            f"{descend * 1e3:.0f} mm/s, more than the {base.cup_radius * math.tan(base.max_tilt) * 1e3:.1f} mm a cup "
-            f"may stand on (cup_radius tan(max_tilt)): no touch could count as arrival; lower [motion] "
-            "near_surface_speed, or measure the arm's force noise again (place-safe bench robot --write)")
+            f"robot config: the contact detector ({robot.connection.controller}, [contact]) {late}, more than the "
+            f"{base.cup_radius * math.tan(base.max_tilt) * 1e3:.1f} mm a cup may stand on (cup_radius tan(max_tilt)): "
+            "no touch could count as arrival; lower [motion] near_surface_speed, or measure the arm's force noise "
+            "again (place-safe bench robot --write)")
     return base.replace(near_surface_speed=m.near_surface_speed, near_surface_distance=m.near_surface_distance,
                         accel=min(base.accel, lim.max_linear_accel),
                         obstacle_decel=min(base.obstacle_decel, m.emergency_decel),
