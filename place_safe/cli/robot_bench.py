@@ -22,6 +22,7 @@ from place_safe.cli.common import ROBOT_FILE_HELP, log
 from place_safe.cli import options
 from place_safe.cli.options import nonnegative_int, opt, positive_float
 from place_safe.exceptions import UsageError
+from place_safe.io.json_values import jsonable
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
@@ -102,7 +103,7 @@ def cmd_contact_bench(args: argparse.Namespace) -> int:
             print(f"  not released: {why}")
         out["descents"] = d.__dict__
     if args.json:
-        Path(args.json).write_text(json.dumps(out, indent=1, default=float) + "\n", encoding="utf-8")
+        Path(args.json).write_text(json.dumps(jsonable(out), indent=1) + "\n", encoding="utf-8")  # NaN, inf: null
     return 0
 
 

@@ -646,8 +646,10 @@ class SurfaceMap:
 
     def _centred_under_cup(self, base_T_sensor: np.ndarray, centre: np.ndarray, n: np.ndarray) -> np.ndarray:
         """Zones (9,) whose centre ray meets the plane through the footprint's ``centre`` (normal ``n``) within the
-        cup's own radius: most of such a zone's field lies under the cup bottom, so a lower surface in it is under the
-        cup, not a step past the rim that the zone's edge reaches (a board the cup stands on 12 mm inside its edge)."""
+        cup's own radius. A lower surface such a zone reads lies mostly under the cup (a zone centred at the rim still
+        has about 40 % of its field past it); a zone centred past the rim that reads lower sees a step beside the
+        footprint (a board the cup stands on 12-22 mm inside its edge: a review's scan). From the survey pose, centred
+        over the footprint, only the centre zone qualifies: the others' centres meet the table about 44 mm out."""
         T = np.asarray(base_T_sensor, dtype=float)
         rays = self._dirs @ T[:3, :3].T
         den = rays @ n

@@ -232,7 +232,7 @@ def test_the_placement_reads_a_touch_as_late_as_the_robots_own_detector_does():
     """``contact_latency`` (how far below a touch the cup is when the touch is read) comes from the robot file's
     contact detector unless the placement settings give it: the CB3's 48 ms, the e-Series' 14 ms, so an e-Series arm
     counts a touch up to 2.7 mm above the sensed surface as arrival (1.9 mm on a CB3); a placement file's own value
-    stands."""
+    stands where it is longer (a file saved from the defaults holds 48 ms), never below the detector's."""
     import math
 
     from place_safe.drivers.ur5.config import placement_config
@@ -246,8 +246,11 @@ def test_the_placement_reads_a_touch_as_late_as_the_robots_own_detector_does():
     assert e.contact_latency == 0.014
     assert math.isclose(contact_limit(e), e.cup_radius * math.tan(e.max_tilt) - e.descend_speed * 0.014)
     assert contact_limit(e) > contact_limit(placement_config(cb3)) + 0.0008
-    assert placement_config(_with(cb3, controller="e-series"), PlacementConfig(contact_latency=0.05)).contact_latency \
-        == 0.05
+    e_series = _with(cb3, controller="e-series")
+    assert placement_config(e_series, PlacementConfig(contact_latency=0.05)).contact_latency == 0.05
+    assert placement_config(e_series, PlacementConfig(contact_latency=0.005)).contact_latency == 0.014
+    assert placement_config(e_series, PlacementConfig().replace(descend_speed=0.02)).contact_latency == 0.048
+    assert placement_config(cb3, PlacementConfig(cup_radius=0.0)).contact_latency == 0.048  # no tilt bound, no error
 
 
 def test_a_detector_too_slow_for_the_descent_is_one_line_naming_it():
@@ -257,6 +260,7 @@ def test_a_detector_too_slow_for_the_descent_is_one_line_naming_it():
 
     from place_safe.drivers.ur5.config import placement_config
     from place_safe.exceptions import ConfigError
+    from place_safe.placement.config import PlacementConfig
 
     with pytest.raises(ConfigError, match=r"contact detector \(cb3.*ms to see a 10 N touch.*near_surface_speed") as e:
         placement_config(_with(URConfig.load(packaged_config("sim")), noise=6.0))
@@ -264,3 +268,5 @@ def test_a_detector_too_slow_for_the_descent_is_one_line_naming_it():
     with pytest.raises(ConfigError, match=r"contact detector \(cb3.*misses more than 1 in 20 10 N touches") as e:
         placement_config(_with(URConfig.load(packaged_config("sim")), noise=20.0))  # a 41 N threshold
     assert "\n" not in str(e.value) and "nan" not in str(e.value)
+    with pytest.raises(ConfigError, match=r"placement settings' contact_latency \(500 ms\).*or the placement") as e:
+        placement_config(URConfig.load(packaged_config("sim")), PlacementConfig(contact_latency=0.5))

@@ -371,27 +371,38 @@ def missing_keys(cls: type | None = None, data=None, prefix: str = "") -> list[s
 def placement_config(robot: URConfig, base=None):
     """``base`` (a :class:`~place_safe.placement.config.PlacementConfig`, default its defaults) with the robot
     file's motion policy: the near-surface speed and distance, stops no harder than ``max_linear_accel`` and
-    the obstacle stop no harder than ``emergency_decel``; and, unless ``base`` sets it, ``contact_latency`` from the
-    robot's contact detector (:func:`~place_safe.robot.contact_detector.touch_latency` of the file's ``[contact]``
-    settings for its controller: CB3 48 ms, e-Series 14 ms, longer for an arm measured noisier). A detector too slow
-    for the descent (no touch could then count as arrival: ``rules.contact_limit`` below zero) is a ConfigError
-    naming it."""
+    the obstacle stop no harder than ``emergency_decel``; and ``contact_latency`` from the robot's contact detector
+    (:func:`~place_safe.robot.contact_detector.touch_latency` of the file's ``[contact]`` settings for its controller:
+    CB3 48 ms, e-Series 14 ms, longer for an arm whose noise is set higher), or ``base``'s own value where it sets a
+    longer one. A latency too long for the descent (no touch could then count as arrival: ``rules.contact_limit``
+    below zero) is a ConfigError naming where it comes from. The detector raises its threshold at run time to the
+    noise it measures at rest beyond the file's setting; ``place-safe bench robot --write`` records an arm's noise."""
     base = base if base is not None else PlacementConfig()
     m, lim = robot.motion, robot.limits
-    latency = base.contact_latency
-    if "contact_latency" not in base.model_fields_set:
-        latency = touch_latency(robot.contact.settings(robot.connection.controller))
+    detector = touch_latency(robot.contact.settings(robot.connection.controller))
+    # a placement file's own value stands where it is the more cautious (a file saved from the defaults holds the
+    # CB3's 48 ms); never below what this arm's detector needs
+    given = "contact_latency" in base.model_fields_set
+    latency = max(base.contact_latency, detector) if given else detector
     descend = min(base.descend_speed, m.near_surface_speed)
-    if not (base.cup_radius * math.tan(base.max_tilt) > descend * latency):  # NaN: the detector misses touches
-        late = (f"needs {latency * 1e3:.0f} ms to see a {TOUCH_STEP:.0f} N touch, {descend * latency * 1e3:.1f} mm of "
-                f"travel at {descend * 1e3:.0f} mm/s" if math.isfinite(latency) else
-                f"misses more than 1 in 20 {TOUCH_STEP:.0f} N touches for half a second, {descend * 0.5 * 1e3:.1f} mm "
-                f"of travel at {descend * 1e3:.0f} mm/s")
+    if base.cup_radius > 0 and not (base.cup_radius * math.tan(base.max_tilt) > descend * latency):
+        if given and base.contact_latency >= detector:
+            late = (f"the placement settings' contact_latency ({latency * 1e3:.0f} ms) is {descend * latency * 1e3:.1f} "
+                    f"mm of travel at {descend * 1e3:.0f} mm/s")
+        elif math.isfinite(latency):
+            late = (f"the contact detector ({robot.connection.controller}, [contact]) needs {latency * 1e3:.0f} ms to "
+                    f"see a {TOUCH_STEP:.0f} N touch, {descend * latency * 1e3:.1f} mm of travel at {descend * 1e3:.0f} "
+                    "mm/s")
+        else:
+            late = (f"the contact detector ({robot.connection.controller}, [contact]) misses more than 1 in 20 "
+                    f"{TOUCH_STEP:.0f} N touches for half a second, {descend * 0.5 * 1e3:.1f} mm of travel at "
+                    f"{descend * 1e3:.0f} mm/s")
+        mend = ("the placement settings' contact_latency" if given and base.contact_latency >= detector else
+                "find why the arm's force estimate is this noisy ([contact] noise_std)")
         raise ConfigError(
-            f"robot config: the contact detector ({robot.connection.controller}, [contact]) {late}, more than the "
-            f"{base.cup_radius * math.tan(base.max_tilt) * 1e3:.1f} mm a cup may stand on (cup_radius tan(max_tilt)): "
-            "no touch could count as arrival; lower [motion] near_surface_speed, or measure the arm's force noise "
-            "again (place-safe bench robot --write)")
+            f"robot config: {late}, more than the {base.cup_radius * math.tan(base.max_tilt) * 1e3:.1f} mm a cup may "
+            "stand on (cup_radius tan(max_tilt)): no touch could count as arrival; lower [motion] near_surface_speed "
+            f"(the descent's speed), or {mend}")
     return base.replace(near_surface_speed=m.near_surface_speed, near_surface_distance=m.near_surface_distance,
                         accel=min(base.accel, lim.max_linear_accel),
                         obstacle_decel=min(base.obstacle_decel, m.emergency_decel),
