@@ -467,7 +467,7 @@ def _raised_at_rim(sm: SurfaceMap, cup: np.ndarray, height: float, zone: int, bo
         sm.add(frame_over(T, lambda x, y: box if np.allclose((x, y), hit) else 0.0), T, 10.0 + i)
 
 
-def _lower_under_cup(sm: SurfaceMap, height: float, zone: int, views: int) -> None:
+def _lower_under_cup(sm: SurfaceMap, height: float, zone: int, views: int) -> np.ndarray:
     """``views`` frames from ``height``, the sensor 15 mm off the cup's axis, in which one of the zones 1, 3, 5, 7
     (``zone`` picks one; its centre ray now meets the table 26-34 mm from the axis, under the cup) sees the table
     6 mm below the plane: part of the footprint a step lower (a box under the rest of it is the plane). With the
@@ -480,6 +480,7 @@ def _lower_under_cup(sm: SurfaceMap, height: float, zone: int, views: int) -> No
     assert np.hypot(*hit) < sm.cup_radius
     for i in range(views):
         sm.add(frame_over(T, lambda x, y: -0.006 if np.allclose((x, y), hit) else 0.0), T, 10.0 + i)
+    return hit
 
 
 def test_part_of_the_footprint_a_step_lower_is_in_doubt_not_vetoed():
@@ -518,21 +519,24 @@ def test_a_step_down_past_the_rim_seen_by_a_rim_zone_is_no_doubt():
 
 
 def test_the_verdict_says_what_the_views_saw_of_the_points_still_in_doubt():
-    """A step seen lower under the cup and then seen clean is no longer the reason: a box raised at the rim after it
-    is what the doubt, and then its veto, name (a review found the lifted step named for both)."""
+    """A box raised at the rim; then, from 2 cm lower (which does not lift the box's doubt), a step seen lower under
+    the cup on the other side; then a clean view from that height 40 mm over to the step's side, the box out of its
+    view: that lifts the step's doubt, not the box's, so the verdict names the box (a review found the latest doubtful
+    view named, whatever points were left in doubt), and so does its veto."""
     sm = SurfaceMap(PARAMS)
     cup = cup_at((0.0, 0.0))
     _certified_map(sm, cup)
     h = sm.survey_height()
-    _lower_under_cup(sm, h, 0, 1)
-    assert "lower" in sm.verdict(UP, 0.0, cup, sensor_pose((0.0, 0.0), h)).doubt
     T = sensor_pose((0.0, 0.0), h)
-    sm.add(frame_over(T, lambda x, y: 0.0), T, 20.0)
-    assert sm.verdict(UP, 0.0, cup, T).doubt is None
-    _raised_at_rim(sm, cup, h, 1, 0.007, 1)
+    _raised_at_rim(sm, cup, h, 3, 0.007, 1)
+    assert "covered" in sm.verdict(UP, 0.0, cup, T).doubt
+    hit = _lower_under_cup(sm, h - 0.02, 0, 1)
+    assert "lower" in sm.verdict(UP, 0.0, cup, T).doubt
+    Tc = sensor_pose(tuple(0.04 * hit / np.hypot(*hit)), h - 0.02)
+    sm.add(frame_over(Tc, lambda x, y: 0.0), Tc, 20.0)
     v = sm.verdict(UP, 0.0, cup, T)
-    assert v.problem is None and "covered" in v.doubt and "lower" not in v.doubt
-    _raised_at_rim(sm, cup, h, 1, 0.007, 2)
+    assert v.problem is None and v.supported == 0 and "covered" in v.doubt and "lower" not in v.doubt
+    _raised_at_rim(sm, cup, h, 3, 0.007, 3)  # (the step's view saw the box's points clean: three more to veto)
     v = sm.verdict(UP, 0.0, cup, T)
     assert v.problem is not None and "covered" in v.problem and "lower" not in v.problem
 
