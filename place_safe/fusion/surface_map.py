@@ -596,18 +596,11 @@ class SurfaceMap:
                 cleared[lift] = 0
                 latest[lift] = 0
                 for z in sorted(set(zone[raised].tolist())):  # what the view saw of the points it put in doubt
-                    s = float(fs.points_base[z] @ n - d)
-                    said.append(issue[z][1] if issue.get(z) is not None else
-                                f"zone {z + 1} over the cup's footprint {s * 1e3:+.0f} mm off the surface "
-                                + ("(part of it covered: clutter or step)" if s > 0 else
-                                   "(part of the footprint lower: a step the cup would pivot on)"))
+                    said.append(issue[z][1] if issue.get(z) is not None else _off_surface(fs, z, n, d))
                     point_said[raised & (zone == z)] = len(said) - 1
                 doubted = inside & ~clean & ~bad & raised_zone[zone]
                 if doubted.any():
-                    z = int(zone[doubted][0])
-                    s = float(fs.points_base[z] @ n - d)
-                    doubt_detail = (f"zone {z + 1} over the cup's footprint {s * 1e3:+.0f} mm off the surface "
-                                    "(part of it covered: clutter or step)")
+                    doubt_detail = _off_surface(fs, int(zone[doubted][0]), n, d)
         # a point in doubt is not supported by its clean views from before: a placement that moves on as soon as
         # every point has min_frames clean views (the faster descent) would leave before the views that veto it
         # (box_at_rim_mismatch: a box at the rim seen clean 3 times as it came into view at the survey pose,
@@ -700,6 +693,15 @@ class SurfaceMap:
         dist = float(np.linalg.norm(off))
         margin = height - (dist + self.radius) / self.tan_fov
         return off + n * (self.survey_height() - height), margin
+
+
+def _off_surface(fs: FrameSurfaces, z: int, n: np.ndarray, d: float) -> str:
+    """What zone ``z`` of a recorded frame saw of the plane ``n . x = d``: a doubtful zone above it (part of it
+    covered) or below it (part of the footprint a step lower)."""
+    s = float(fs.points_base[z] @ n - d)
+    return (f"zone {z + 1} over the cup's footprint {s * 1e3:+.0f} mm off the surface "
+            + ("(part of it covered: clutter or step)" if s > 0 else
+               "(part of the footprint lower: a step the cup would pivot on)"))
 
 
 def _axis_offset(base_T_sensor: np.ndarray, centre: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, float] | None:

@@ -270,7 +270,7 @@ class Scene:
     floor_geom: int
     rig_mocap: int  # mocap index of the sensor rig, -1 with the robot
     robot_geoms: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
-    table_mocap: int = -1  # mocap index of the table's body (TableConfig.movable), -1 for a fixed table
+    table_body: int = -1  # body id of a movable table's mocap body (TableConfig.movable), -1 for a fixed table
 
     @property
     def sensed_groups(self) -> np.ndarray:
@@ -298,10 +298,10 @@ class Scene:
     def move_table(self, data, shift: Any) -> None:
         """Put a movable table (:attr:`TableConfig.movable`) ``shift`` (3,) m from where it was built, world frame;
         it is there from the next physics step on."""
-        if self.table_mocap < 0:
+        if self.table_body < 0:
             raise SceneError("move_table needs a movable table (scene.table.movable = true)")
-        body = int(np.flatnonzero(self.model.body_mocapid == self.table_mocap)[0])
-        data.mocap_pos[self.table_mocap] = self.model.body_pos[body] + np.asarray(shift, dtype=float)
+        data.mocap_pos[self.model.body_mocapid[self.table_body]] = (self.model.body_pos[self.table_body]
+                                                                     + np.asarray(shift, dtype=float))
 
     def table_plane_world(self, data) -> tuple[np.ndarray, np.ndarray]:
         """Unit normal (up) and a point of the table's top surface, in the world frame."""
@@ -385,13 +385,12 @@ def build_scene(config: SceneConfig | None = None) -> Scene:
     rig_mocap = -1
     if not cfg.with_robot:
         rig_mocap = int(model.body_mocapid[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, RIG_BODY)])
-    table_mocap = (int(model.body_mocapid[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, TABLE_BODY)])
-                   if t.movable else -1)
+    table_body = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, TABLE_BODY) if t.movable else -1
     table_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, TABLE_GEOM)
     robot_geoms = (np.flatnonzero((model.geom_bodyid != 0) & (np.arange(model.ngeom) != table_id))
                    if cfg.with_robot else np.zeros(0, dtype=int))
     return Scene(cfg, spec, model, table, int(site), table_id,
-                 mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, FLOOR_GEOM), rig_mocap, robot_geoms, table_mocap)
+                 mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, FLOOR_GEOM), rig_mocap, robot_geoms, table_body)
 
 
 def _visual_material(spec, geom, name: str, m: Material) -> None:
