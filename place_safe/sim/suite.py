@@ -135,6 +135,46 @@ def random_scenario(rng: np.random.Generator, index: int = 0, calibration: str =
                             "hazard_clearance": None if math.isinf(clearance_to_hazard) else clearance_to_hazard})
 
 
+def _random_box(rng: np.random.Generator, half_height: tuple[float, float], reach: tuple[float, float]
+                ) -> tuple[dict[str, Any], dict[str, Any]]:
+    """A level table with one axis-aligned box (``half_height`` m drawn from the range, 30-80 mm across) whose near
+    face (or corner, along a diagonal) lies about ``reach`` m (drawn from the range) from the cup's centre, the cup
+    10-40 cm up, either simulated sensor: (the scene, its geometry: ``start``, ``kind`` (the table's material),
+    ``height``, ``size`` (x, y), ``direction`` (rad), ``reach_in`` (m from the cup's centre to the box's nearest
+    point), ``clearance`` (``reach_in`` less the cup's radius: negative under the footprint), ``sensor``)."""
+    pc = PlacementConfig()
+    base = SceneConfig()
+    cup = home_cup_position(base)
+    start = float(rng.uniform(0.10, 0.40))
+    mat, kind = _random_material(rng)
+    table: dict[str, Any] = {"tilt": 0.0, "tilt_direction": 0.0, "material": mat,
+                             "center": [float(base.table.center[0]), float(base.table.center[1])]}
+    hz = float(rng.uniform(*half_height))
+    hx, hy = float(rng.uniform(0.015, 0.04)), float(rng.uniform(0.015, 0.04))
+    a = float(rng.uniform(-math.pi, math.pi))
+    near = float(rng.uniform(*reach))  # m from the cup's centre to the box's near side, along a
+    ux, uy = math.cos(a), math.sin(a)
+    px = cup[0] + ux * near + (math.copysign(hx, ux) if abs(ux) > 0.38 else 0.0)
+    py = cup[1] + uy * near + (math.copysign(hy, uy) if abs(uy) > 0.38 else 0.0)
+    top = float(cup[2] - start)
+    scene: dict[str, Any] = {"table": table, "start_height": start,
+                             "clutter": [{"shape": "box", "pos": [float(px), float(py), top + hz], "size": [hx, hy, hz],
+                                          "material": {"albedo": float(rng.uniform(0.3, 1.2))}}]}
+    dx, dy = max(abs(px - cup[0]) - hx, 0.0), max(abs(py - cup[1]) - hy, 0.0)
+    reach_in = math.hypot(dx, dy)
+    geometry = {"start": start, "kind": kind, "albedo": mat["albedo"], "height": 2.0 * hz, "size": (2 * hx, 2 * hy),
+                "direction": a, "reach_in": reach_in, "clearance": reach_in - pc.cup_radius,
+                "sensor": _random_sensor(rng)}
+    return scene, geometry
+
+
+def _box_description(label: str, index: int, g: dict[str, Any]) -> str:
+    return (f"random {label} #{index}: {g['height'] * 1e3:.1f} mm tall, {g['size'][0] * 1e3:.0f} x "
+            f"{g['size'][1] * 1e3:.0f} mm, {g['clearance'] * 1e3:.0f} mm from the footprint towards "
+            f"{math.degrees(g['direction']):.0f} deg, start {g['start'] * 100:.0f} cm, {g['kind']} albedo "
+            f"{g['albedo']}, sensor {g['sensor']['model']}")
+
+
 def random_low_box_scenario(rng: np.random.Generator, index: int = 0, calibration: str = "sim") -> Scenario:
     """One random scene of a low box (4-12 mm tall, 30-80 mm across) at or under the cup's footprint on a level
     table, the cup 10-40 cm up: what no footprint view tells from the table (a box this low under part of a zone moves
@@ -145,45 +185,39 @@ def random_low_box_scenario(rng: np.random.Generator, index: int = 0, calibratio
     far rim meets the table: ``atan(h / (r + e))`` (0 outside the footprint; over the centre, the worst case
     ``atan(h / r)``). Scenes whose cup would be left beyond ``max_tilt`` must be refused."""
     pc = PlacementConfig()
-    base = SceneConfig()
-    cup = home_cup_position(base)
-    radius = pc.cup_radius
-    start = float(rng.uniform(0.10, 0.40))
-    mat, kind = _random_material(rng)
-    table: dict[str, Any] = {"tilt": 0.0, "tilt_direction": 0.0, "material": mat,
-                             "center": [float(base.table.center[0]), float(base.table.center[1])]}
-    hz = float(rng.uniform(0.002, 0.006))  # half height
-    hx, hy = float(rng.uniform(0.015, 0.04)), float(rng.uniform(0.015, 0.04))
-    a = float(rng.uniform(-math.pi, math.pi))
-    reach = float(rng.uniform(0.015, radius + 0.01))  # m from the cup's centre to the box's near side, along a
-    ux, uy = math.cos(a), math.sin(a)
-    # an axis-aligned box: its near face (or corner, along a diagonal) about `reach` from the centre
-    px = cup[0] + ux * reach + (math.copysign(hx, ux) if abs(ux) > 0.38 else 0.0)
-    py = cup[1] + uy * reach + (math.copysign(hy, uy) if abs(uy) > 0.38 else 0.0)
-    top = float(cup[2] - start)
-    scene: dict[str, Any] = {"table": table, "start_height": start,
-                             "clutter": [{"shape": "box", "pos": [float(px), float(py), top + hz], "size": [hx, hy, hz],
-                                          "material": {"albedo": float(rng.uniform(0.3, 1.2))}}]}
-    dx, dy = max(abs(px - cup[0]) - hx, 0.0), max(abs(py - cup[1]) - hy, 0.0)
-    clearance_to_hazard = math.hypot(dx, dy) - radius
-    support = "clutter" if clearance_to_hazard < 0 else "full"
-    sensor = _random_sensor(rng)
-    height = 2.0 * hz
-    desc = (f"random low box #{index}: {height * 1e3:.1f} mm tall, {2 * hx * 1e3:.0f} x {2 * hy * 1e3:.0f} mm, "
-            f"{clearance_to_hazard * 1e3:.0f} mm from the footprint towards {math.degrees(a):.0f} deg, start "
-            f"{start * 100:.0f} cm, {kind} albedo {mat['albedo']}, sensor {sensor['model']}")
-    reach_in = math.hypot(dx, dy)  # m from the cup's centre to the box's nearest point
-    tilt = math.atan(height / (radius + reach_in)) if support != "full" else 0.0
+    scene, g = _random_box(rng, (0.002, 0.006), (0.015, pc.cup_radius + 0.01))
+    support = "clutter" if g["clearance"] < 0 else "full"
+    tilt = math.atan(g["height"] / (pc.cup_radius + g["reach_in"])) if support != "full" else 0.0
     outcome = "refused" if tilt > pc.max_tilt else "any"
-    return Scenario(name=f"low_box_{index:04d}", description=desc, scene=scene, sensor=sensor,
-                    calibration=calibration, expect=Expectation(outcome=outcome),
+    return Scenario(name=f"low_box_{index:04d}", description=_box_description("low box", index, g), scene=scene,
+                    sensor=g["sensor"], calibration=calibration, expect=Expectation(outcome=outcome),
                     labels={"support": support, "clearly_safe": False, "hazard": "low box",
-                            "hazard_clearance": clearance_to_hazard, "box_height": height,
+                            "hazard_clearance": g["clearance"], "box_height": g["height"],
+                            "tilt_if_released": tilt})
+
+
+def random_rim_box_scenario(rng: np.random.Generator, index: int = 0, calibration: str = "sim") -> Scenario:
+    """One random scene of a box 7-30 mm tall (30-80 mm across) near the cup's rim on a level table, the cup 10-40 cm
+    up: its nearest point from 10 mm inside the rim to 40 mm past it. What the footprint rule decides: a box under
+    the rim leaves the cup tilted beyond ``max_tilt`` (``atan(h / (r + e))`` >= 5.7 deg) and must be refused; one at
+    least ``CLEAR_MARGIN`` (30 mm) past the rim is clearly safe and must be released; between the two, either answer.
+    The zones over the footprint's rim reach 3-5 cm past it from the survey heights, so a box there raises them as a
+    box at the rim does. ``labels`` as :func:`random_low_box_scenario`'s."""
+    pc = PlacementConfig()
+    scene, g = _random_box(rng, (0.0035, 0.015), (pc.cup_radius - 0.01, pc.cup_radius + 0.04))
+    support = "clutter" if g["clearance"] < 0 else "full"
+    tilt = math.atan(g["height"] / (pc.cup_radius + g["reach_in"])) if support != "full" else 0.0
+    clearly_safe = support == "full" and g["clearance"] >= CLEAR_MARGIN and g["start"] >= 0.08
+    outcome = "refused" if tilt > pc.max_tilt else ("released" if clearly_safe else "any")
+    return Scenario(name=f"rim_box_{index:04d}", description=_box_description("rim box", index, g), scene=scene,
+                    sensor=g["sensor"], calibration=calibration, expect=Expectation(outcome=outcome),
+                    labels={"support": support, "clearly_safe": bool(clearly_safe), "hazard": "clutter",
+                            "hazard_clearance": g["clearance"], "box_height": g["height"],
                             "tilt_if_released": tilt})
 
 
 #: The kinds of random scenes ``place-safe scenarios --random N --kind K`` draws.
-RANDOM_KINDS = {"tables": random_scenario, "low-boxes": random_low_box_scenario}
+RANDOM_KINDS = {"tables": random_scenario, "low-boxes": random_low_box_scenario, "rim-boxes": random_rim_box_scenario}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -419,5 +453,5 @@ def plot(rows: list[dict], path: str) -> str:
     return path
 
 
-__all__ = ["random_scenario", "random_low_box_scenario", "RANDOM_KINDS", "judge", "run_one", "run_many", "summarize", "format_table", "plot", "budget_table",
+__all__ = ["random_scenario", "random_low_box_scenario", "random_rim_box_scenario", "RANDOM_KINDS", "judge", "run_one", "run_many", "summarize", "format_table", "plot", "budget_table",
            "CLEAR_MARGIN", "TILT_MARGIN"]

@@ -117,6 +117,41 @@ def test_low_box_scenes_reach_the_rim_and_are_labelled_from_their_geometry():
     assert under >= 40 and tall >= 30  # the scan mostly puts boxes under the cup, most too tall to land on
 
 
+def test_rim_box_scenes_straddle_the_rim_and_are_labelled_from_their_geometry():
+    """--kind rim-boxes: a box 7-30 mm tall whose nearest point lies from 10 mm under the cup's rim to 40 mm past it;
+    one under the footprint would leave the cup beyond max_tilt and must be refused, one CLEAR_MARGIN past the rim is
+    clearly safe and must be released, the rest either; the low-box draws are unchanged by the shared helper (scene
+    0 of seed 5 to the digit)."""
+    from place_safe.placement.config import PlacementConfig
+    from place_safe.sim.scenario import home_cup_position
+    from place_safe.sim.scene import SceneConfig
+
+    pc = PlacementConfig()
+    cup = home_cup_position(SceneConfig())
+    rng = np.random.default_rng(5)
+    outcomes = []
+    for i in range(80):
+        sc = suite.random_rim_box_scenario(rng, i)
+        Scenario.model_validate(sc.model_dump())
+        box = sc.scene["clutter"][0]
+        (px, py, _), (hx, hy, hz) = box["pos"], box["size"]
+        lab = sc.labels
+        assert lab["box_height"] == pytest.approx(2 * hz) and 0.007 <= 2 * hz <= 0.030
+        reach = math.hypot(max(abs(px - cup[0]) - hx, 0.0), max(abs(py - cup[1]) - hy, 0.0))
+        gap = reach - pc.cup_radius
+        assert lab["hazard_clearance"] == pytest.approx(gap) and -0.0105 <= gap <= 0.0405
+        assert (lab["support"] == "clutter") == (gap < 0)
+        if gap < 0:
+            assert lab["tilt_if_released"] > pc.max_tilt and sc.expect.outcome == "refused"
+        assert lab["clearly_safe"] == (gap >= suite.CLEAR_MARGIN)
+        assert (sc.expect.outcome == "released") == lab["clearly_safe"]
+        outcomes.append(sc.expect.outcome)
+    assert min(outcomes.count(o) for o in ("refused", "released", "any")) >= 10
+    first = suite.random_low_box_scenario(np.random.default_rng(5), 0)
+    assert first.scene["clutter"][0]["size"] == pytest.approx([0.024584222019637954, 0.025211830135499966,
+                                                               0.0022157228095266257], rel=1e-12)
+
+
 def test_the_cli_names_every_kind_of_random_scene():
     from place_safe.cli.scenarios import RANDOM_KIND_NAMES
 
