@@ -142,6 +142,28 @@ def within_robot_limits(config: PlacementConfig, robot: Any) -> PlacementConfig:
     return config.replace(**changes) if changes else config
 
 
+def with_robot_contact_latency(config: PlacementConfig, robot: Any) -> PlacementConfig:
+    """``config`` with ``contact_latency`` raised to the robot's own (:meth:`~place_safe.robot.interface.Robot.
+    contact_latency`: its detector's 10 N touch latency at the force noise it measured at rest) where that is
+    longer, at most the field's 1 s. A detector that measured a noisier arm than its settings say sees a touch later,
+    so a touch counts as arrival only lower down (:func:`~place_safe.placement.rules.contact_limit`); where no touch
+    can count any more (the limit below zero) every touch is an obstacle, and a warning says why. A robot that cannot
+    say (None, or no such method) leaves ``config`` as it is."""
+    try:
+        got = getattr(robot, "contact_latency", None)
+        latency = got() if callable(got) else None
+    except Exception:  # a robot that cannot say keeps the configured latency
+        latency = None
+    if isinstance(latency, bool) or not isinstance(latency, (int, float)) or not latency > config.contact_latency:
+        return config
+    out = config.replace(contact_latency=float(min(latency, 1.0)))
+    if rules.contact_limit(out) < 0.0:
+        log.warning("the robot's contact detector reports a touch %.0f ms late at the force noise it measured at rest "
+                    "(%.1f mm of descent): no touch can count as arrival, every touch is refused as an obstacle",
+                    1e3 * latency, 1e3 * out.descend_speed * out.contact_latency)
+    return out
+
+
 class PlacementLoop:
     """One placement: ``PlacementLoop(robot, source, estimator, tool, config).run()`` (see module doc).
 
@@ -178,7 +200,8 @@ class PlacementLoop:
                          surface_map=surface_map, host_clock=host_clock)
         self.robot, self.source, self.estimator = robot, source, estimator
         self.tool = tool if tool is not None else robot.tool
-        self.config = within_robot_limits(config if config is not None else PlacementConfig(), robot)
+        self.config = with_robot_contact_latency(within_robot_limits(config if config is not None
+                                                                     else PlacementConfig(), robot), robot)
         self.period = float(period)
         self.max_frame_age = float(max_frame_age)
         self.log_frames = log_frames

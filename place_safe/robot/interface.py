@@ -225,6 +225,12 @@ class Robot(ABC):
     def contact_force(self) -> float:
         """Magnitude (N) of the net force the environment exerts on the held object and the gripper."""
 
+    def contact_latency(self) -> float | None:
+        """s: how late the contact detector behind :meth:`contact_force` reports a 10 N touch (95th percentile) at
+        the force noise it measured at rest; None when the robot cannot say (the placement then keeps its
+        ``contact_latency``). A placement loop made for this robot uses the longer of the two."""
+        return None
+
     @abstractmethod
     def time(self) -> float:
         """Robot clock (s)."""

@@ -248,6 +248,10 @@ class SimRobot(Robot):
         """N: the contact detector's output on the noisy force reading (0.0 without a confirmed contact)."""
         return self.forces.detector.contact_force()
 
+    def contact_latency(self) -> float:
+        """s: the contact detector's 10 N touch latency at the noise measured when it was last zeroed."""
+        return self.forces.detector.touch_latency()
+
     # ------------------------------------------------------------------------------------------
     # faults
     # ------------------------------------------------------------------------------------------

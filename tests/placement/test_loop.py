@@ -96,6 +96,46 @@ def test_contact_above_the_sensed_surface_is_an_obstacle():
     assert "obstacle" in res.reason
 
 
+class _SlowDetectorRobot(KinematicRobot):
+    """A robot whose contact detector reports touches ``latency`` s late (or cannot say: None, or it raises)."""
+
+    def __init__(self, latency, **kw) -> None:
+        super().__init__(**kw)
+        self.latency = latency
+
+    def contact_latency(self):
+        if isinstance(self.latency, Exception):
+            raise self.latency
+        return self.latency
+
+
+@pytest.mark.parametrize("latency, want", [(None, 0.048), (0.01, 0.048), (math.nan, 0.048), (True, 0.048),
+                                           (RuntimeError("no rest reading"), 0.048), (0.08, 0.08), (math.inf, 1.0)])
+def test_the_loop_takes_the_robots_touch_latency_where_it_is_longer(latency, want):
+    """A detector that measured a noisier arm at rest than its settings say sees a touch later: the loop counts a
+    touch as arrival only as low as that latency allows (the placement's own 48 ms where the robot's is shorter or
+    cannot be read; a touch never seen within the field's 1 s)."""
+    robot = _SlowDetectorRobot(latency, height=0.12)
+    loop = PlacementLoop(robot, TruthSource(robot), TruthEstimator())
+    assert loop.config.contact_latency == want
+    assert loop.machine.config.contact_latency == want
+
+
+def test_a_detector_too_slow_for_any_touch_to_count_refuses_every_touch_and_says_so(caplog):
+    """0.2 s late (5 mm of descent at 25 mm/s, more than the 3.1 mm a cup may stand on): a warning says no touch can
+    count as arrival; a level table the cup is stopped above is still released, a box the cup meets is an obstacle."""
+    from place_safe.placement import rules
+
+    robot = _SlowDetectorRobot(0.2, height=0.12)
+    with caplog.at_level("WARNING", logger="place_safe.placement.loop"):
+        loop, res = run(robot, TruthSource(robot))
+    assert rules.contact_limit(loop.config) < 0 and "no touch can count as arrival" in caplog.text
+    assert res.outcome == "released" and robot.opened
+    robot = _SlowDetectorRobot(0.2, height=0.12, obstacle_z=0.03)
+    loop, res = run(robot, TruthSource(robot))
+    assert res.outcome == "refused" and not robot.opened and "obstacle" in res.reason
+
+
 def test_dead_sensor_refuses_and_says_why():
     robot = KinematicRobot(height=0.12)
     loop, res = run(robot, TruthSource(robot, error_after=0.5))

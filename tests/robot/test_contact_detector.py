@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from place_safe.robot.contact_detector import (ContactDetector, DetectorSettings, detection_delay,
-                                               false_alarm_rate)
+                                               false_alarm_rate, touch_latency)
 
 DOWN = np.array([0.0, 0.0, -1.0])  # the tool moves down: a table pushes up (+z)
 
@@ -174,3 +174,16 @@ def test_rest_spread_within_sampling_error_keeps_the_setting() -> None:
     noisy.zero(rng.normal(0.0, 6.0, size=(50, 3)))
     assert noisy.noise_std > 5.0
     assert noisy.threshold > settings.threshold()
+
+
+def test_the_touch_latency_follows_the_noise_measured_at_rest():
+    """As zeroed on the CB3's own noise the detector reports a 10 N touch as late as its settings say (48 ms); zeroed on
+    a noisier arm (6 N per axis) it raised its threshold and reports it later, as touch_latency at that noise does."""
+    settings = DetectorSettings.for_controller("cb3")
+    rng = np.random.default_rng(3)
+    det = ContactDetector(settings)
+    det.zero(rng.normal(0.0, 3.6, size=(50, 3)))
+    assert det.noise_std == settings.noise_std and det.touch_latency() == touch_latency(settings) == 0.048
+    det.zero(rng.normal(0.0, 6.0, size=(50, 3)))
+    assert det.noise_std > 5.0
+    assert det.touch_latency() == touch_latency(settings, round(det.noise_std, 3)) > 0.2

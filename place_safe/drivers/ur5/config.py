@@ -376,7 +376,9 @@ def placement_config(robot: URConfig, base=None):
     CB3 48 ms, e-Series 14 ms, longer for an arm whose noise is set higher), or ``base``'s own value where it sets a
     longer one. A latency too long for the descent (no touch could then count as arrival: ``rules.contact_limit``
     below zero) is a ConfigError naming where it comes from. The detector raises its threshold at run time to the
-    noise it measures at rest beyond the file's setting; ``place-safe bench robot --write`` records an arm's noise."""
+    noise it measures at rest beyond the file's setting, and a placement loop then takes the robot's latency at that
+    noise (:meth:`URRobot.contact_latency`) where it is longer; ``place-safe bench robot --write`` records an arm's
+    noise."""
     base = base if base is not None else PlacementConfig()
     m, lim = robot.motion, robot.limits
     detector = touch_latency(robot.contact.settings(robot.connection.controller))
