@@ -145,22 +145,34 @@ def within_robot_limits(config: PlacementConfig, robot: Any) -> PlacementConfig:
 def with_robot_contact_latency(config: PlacementConfig, robot: Any) -> PlacementConfig:
     """``config`` with ``contact_latency`` raised to the robot's own (:meth:`~place_safe.robot.interface.Robot.
     contact_latency`: its detector's 10 N touch latency at the force noise it measured at rest) where that is
-    longer, at most the field's 1 s. A detector that measured a noisier arm than its settings say sees a touch later,
-    so a touch counts as arrival only lower down (:func:`~place_safe.placement.rules.contact_limit`); where no touch
-    can count any more (the limit below zero) every touch is an obstacle, and a warning says why. A robot that cannot
-    say (None, or no such method) leaves ``config`` as it is."""
+    longer, at most the field's 1 s (a touch never seen: 1 s). A detector that measured a noisier arm than its settings
+    say sees a touch later, so a touch counts as arrival only lower down (:func:`~place_safe.placement.rules.
+    contact_limit`); where no touch can count any more (the limit below zero) every touch is an obstacle, and a warning
+    says why. A robot that cannot say (None, or no such method) leaves ``config`` as it is; one whose answer is no
+    latency (it raised, NaN, not a number) too, with a warning."""
+    got = getattr(robot, "contact_latency", None)
+    if not callable(got):
+        return config
     try:
-        got = getattr(robot, "contact_latency", None)
-        latency = got() if callable(got) else None
-    except Exception:  # a robot that cannot say keeps the configured latency
-        latency = None
-    if isinstance(latency, bool) or not isinstance(latency, (int, float)) or not latency > config.contact_latency:
+        raw = got()
+    except Exception as exc:  # a robot that cannot say keeps the configured latency
+        log.warning("the robot's contact latency could not be read (%s): the placement's %.0f ms stands",
+                    describe_exception(exc), 1e3 * config.contact_latency)
+        return config
+    if raw is None:
+        return config
+    latency = 1.0 if isinstance(raw, (float, np.floating)) and raw == math.inf else rules.number(raw)
+    if latency is None:
+        log.warning("the robot's contact latency is not a number of seconds (%r): the placement's %.0f ms stands",
+                    raw, 1e3 * config.contact_latency)
+        return config
+    if not latency > config.contact_latency:
         return config
     out = config.replace(contact_latency=float(min(latency, 1.0)))
     if rules.contact_limit(out) < 0.0:
         log.warning("the robot's contact detector reports a touch %.0f ms late at the force noise it measured at rest "
                     "(%.1f mm of descent): no touch can count as arrival, every touch is refused as an obstacle",
-                    1e3 * latency, 1e3 * out.descend_speed * out.contact_latency)
+                    1e3 * out.contact_latency, 1e3 * out.descend_speed * out.contact_latency)
     return out
 
 
@@ -169,7 +181,8 @@ class PlacementLoop:
 
     Parameters
     ----------
-    robot: a :class:`~place_safe.robot.interface.Robot` (connected by the caller or by ``run``).
+    robot: a :class:`~place_safe.robot.interface.Robot`, connected by the caller (its force zeroed: the loop takes
+        its contact latency when made and again when it starts).
     source: a :class:`~place_safe.io.source.FrameSource`; its ``clock_domain`` says how stamps are read.
     estimator: a plane estimator (``estimate(frame) -> PlaneEstimate``).
     tool: tool frames (default: ``robot.tool``, i.e. the robot's configuration).
@@ -510,6 +523,11 @@ class PlacementLoop:
         if self._started:
             return
         self._started = True
+        # the robot may have been connected (and its force zeroed) since the loop was made: its latency now
+        latest = with_robot_contact_latency(self.config, self.robot)
+        if latest is not self.config:
+            self.config = latest
+            self.machine.config = latest
         self.pipeline.start()
         now = self._robot_now()
         self._t_start = now

@@ -1016,7 +1016,7 @@ class PlacementMachine:
             if s.rest_since is not None and now - s.rest_since >= cfg.obstacle_confirm:
                 self._suspect = None
                 return self._refuse(now, f"obstacle: contact {force:.1f} N with the cup bottom {s.clearance * 1e3:.1f} mm "
-                                         f"above the sensed surface (> {rules.contact_limit(cfg) * 1e3:.1f} mm), confirmed "
+                                         f"above the sensed surface ({rules.contact_limit_text(cfg)}), confirmed "
                                          f"for {now - s.rest_since:.2f} s with the arm at rest (something under the cup, "
                                          "or the tool's cup offset is off)",
                                     decel=cfg.obstacle_decel)
@@ -1269,7 +1269,8 @@ class PlacementMachine:
         if not c > limit:
             return None
         return (f"obstacle: contact {force:.1f} N with the cup bottom {c * 1e3:.1f} mm above the sensed surface "
-                f"(> {limit * 1e3:.1f} mm) while checking: something under the cup, or the tool's cup offset is off")
+                f"({rules.contact_limit_text(cfg)}) while checking: something under the cup, or the tool's cup offset is "
+                "off")
 
     def _not_at_rest(self, state: RobotState, now: float) -> Command | None:
         """CHECK: the refusal when the TCP moved more than ``rest_tolerance`` from where it was once the stop settled

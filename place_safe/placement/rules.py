@@ -528,6 +528,17 @@ def contact_limit(cfg: Any) -> float:
     return cfg.contact_clearance
 
 
+def contact_limit_text(cfg: Any) -> str:
+    """The contact limit as a refusal states it: "> 1.9 mm", and where no touch can count as arrival (the limit below
+    zero: a detector that reads a touch later than the descent allows) why."""
+    limit = contact_limit(cfg)
+    text = f"> {limit * 1e3:.1f} mm"
+    if limit < 0.0:
+        text += (f": no touch can count as arrival, the contact detector reading a touch {cfg.contact_latency * 1e3:.0f}"
+                 f" ms late, {cfg.descend_speed * cfg.contact_latency * 1e3:.1f} mm of descent")
+    return text
+
+
 def clearance_floor(plane: FusedPlane, post: list[float], cfg: Any) -> float:
     """The most negative cup clearance (m, <= 0) the noise allows without contact: minus the two-sided
     ``still_confidence`` quantile of the standard error of the planes' mean offset (:func:`_still_planes`), and
@@ -548,4 +559,4 @@ __all__ = ["number", "too_close", "plane_problem", "sensor_problem", "planar_pro
            "tilt_sigma", "confidence_margin", "level_problem", "confidently_tilted", "footprint_problem",
            "footprint_seen", "check_frames_needed", "post_stop_stamps", "still_problem", "slope_still_problem",
            "rest_tilt_problem", "newest_plane_problem", "pending_problem", "most_check_frames",
-           "contact_limit", "clearance_floor"]
+           "contact_limit", "contact_limit_text", "clearance_floor"]

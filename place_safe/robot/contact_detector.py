@@ -160,7 +160,7 @@ class ContactDetector:
     def touch_latency(self) -> float:
         """s: :func:`touch_latency` of these settings at :attr:`noise_std` (the noise measured at rest where it
         raised the threshold): how late this detector, as zeroed, reports a 10 N touch (95th percentile)."""
-        return _touch_latency(self.settings, round(self.noise_std, 3))
+        return _touch_latency(self.settings, math.ceil(self.noise_std * 1e3) / 1e3)  # (1 mN up: never kinder)
 
     @property
     def lateral_threshold(self) -> float:

@@ -109,31 +109,51 @@ class _SlowDetectorRobot(KinematicRobot):
         return self.latency
 
 
-@pytest.mark.parametrize("latency, want", [(None, 0.048), (0.01, 0.048), (math.nan, 0.048), (True, 0.048),
-                                           (RuntimeError("no rest reading"), 0.048), (0.08, 0.08), (math.inf, 1.0)])
-def test_the_loop_takes_the_robots_touch_latency_where_it_is_longer(latency, want):
+@pytest.mark.parametrize("latency, want, warned", [
+    (None, 0.048, False), (0.01, 0.048, False), (0.08, 0.08, False), (np.float32(0.08), 0.08, False),
+    (np.int64(1), 1.0, True), (math.inf, 1.0, True), (math.nan, 0.048, True), (True, 0.048, True),
+    ("0.2", 0.048, True), (RuntimeError("no rest reading"), 0.048, True)])
+def test_the_loop_takes_the_robots_touch_latency_where_it_is_longer(latency, want, warned, caplog):
     """A detector that measured a noisier arm at rest than its settings say sees a touch later: the loop counts a
     touch as arrival only as low as that latency allows (the placement's own 48 ms where the robot's is shorter or
-    cannot be read; a touch never seen within the field's 1 s)."""
+    cannot be read, with a warning where the robot gave no latency; a touch never seen: the field's 1 s)."""
     robot = _SlowDetectorRobot(latency, height=0.12)
+    with caplog.at_level("WARNING", logger="place_safe.placement.loop"):
+        loop = PlacementLoop(robot, TruthSource(robot), TruthEstimator())
+    assert loop.config.contact_latency == pytest.approx(want) and loop.machine.config is loop.config
+    assert bool(caplog.records) == warned
+
+
+def test_the_latency_is_read_again_when_the_loop_starts():
+    """A robot connected (its force zeroed) after the loop was made: the loop takes its latency when it starts."""
+    robot = _SlowDetectorRobot(None, height=0.12)
     loop = PlacementLoop(robot, TruthSource(robot), TruthEstimator())
-    assert loop.config.contact_latency == want
-    assert loop.machine.config.contact_latency == want
+    assert loop.config.contact_latency == 0.048
+    robot.latency = 0.08
+    loop.tick()
+    assert loop.config.contact_latency == 0.08 and loop.machine.config.contact_latency == 0.08
 
 
-def test_a_detector_too_slow_for_any_touch_to_count_refuses_every_touch_and_says_so(caplog):
-    """0.2 s late (5 mm of descent at 25 mm/s, more than the 3.1 mm a cup may stand on): a warning says no touch can
-    count as arrival; a level table the cup is stopped above is still released, a box the cup meets is an obstacle."""
+def test_a_detector_too_slow_for_any_touch_to_count_refuses_a_touch_it_would_have_taken_and_says_so(caplog):
+    """Something 1.5 mm high met below a 0.5 mm stop: with the placement's 48 ms the touch is arrival, the cup
+    released on it (within 2.5 deg of level); with a detector 0.2 s late (5 mm of descent at 25 mm/s, more than the
+    3.1 mm a cup may stand on) no touch can count as arrival: a warning, the touch refused as an obstacle, saying why,
+    while a level table the cup is stopped above is still released."""
     from place_safe.placement import rules
 
-    robot = _SlowDetectorRobot(0.2, height=0.12)
+    cfg = PlacementConfig(stop_clearance=0.0005)
+    robot = KinematicRobot(height=0.12, obstacle_z=0.0015)
+    loop, res = run(robot, TruthSource(robot), config=cfg)
+    assert res.outcome == "released" and "contact" in res.reason, res.reason
+    robot = _SlowDetectorRobot(0.2, height=0.12, obstacle_z=0.0015)
     with caplog.at_level("WARNING", logger="place_safe.placement.loop"):
-        loop, res = run(robot, TruthSource(robot))
+        loop, res = run(robot, TruthSource(robot), config=cfg)
     assert rules.contact_limit(loop.config) < 0 and "no touch can count as arrival" in caplog.text
-    assert res.outcome == "released" and robot.opened
-    robot = _SlowDetectorRobot(0.2, height=0.12, obstacle_z=0.03)
-    loop, res = run(robot, TruthSource(robot))
     assert res.outcome == "refused" and not robot.opened and "obstacle" in res.reason
+    assert "no touch can count as arrival, the contact detector reading a touch 200 ms late" in res.reason
+    robot = _SlowDetectorRobot(0.2, height=0.12)
+    loop, res = run(robot, TruthSource(robot), config=cfg)
+    assert res.outcome == "released" and robot.opened
 
 
 def test_dead_sensor_refuses_and_says_why():

@@ -444,10 +444,11 @@ class URRobot(Robot):
         confirmed, else 0.0 (see :mod:`place_safe.robot.contact_detector`)."""
         return self.detector.contact_force()
 
-    def contact_latency(self) -> float:
+    def contact_latency(self) -> float | None:
         """s: the contact detector's 10 N touch latency (95th percentile) at the noise :meth:`zero_force` measured
-        (where it raised the threshold beyond the robot file's ``[contact] noise_std``)."""
-        return self.detector.touch_latency()
+        (where it raised the threshold beyond the robot file's ``[contact] noise_std``); None before the first
+        zeroing (``connect`` zeroes)."""
+        return self.detector.touch_latency() if self.detector.rest_samples else None
 
     def zero_force(self, samples: int = _FORCE_BASELINE_SAMPLES) -> np.ndarray:
         """Sample the TCP force over ``samples`` cycles at rest: the mean is subtracted from now on (payload and
