@@ -155,13 +155,16 @@ def with_robot_contact_latency(config: PlacementConfig, robot: Any) -> Placement
         return config
     try:
         raw = got()
+        try:
+            latency = 1.0 if isinstance(raw, (float, np.floating)) and raw == math.inf else rules.number(raw)
+        except OverflowError:  # an integer beyond any float: a touch never seen
+            latency = 1.0
     except Exception as exc:  # a robot that cannot say keeps the configured latency
         log.warning("the robot's contact latency could not be read (%s): the placement's %.0f ms stands",
                     describe_exception(exc), 1e3 * config.contact_latency)
         return config
     if raw is None:
         return config
-    latency = 1.0 if isinstance(raw, (float, np.floating)) and raw == math.inf else rules.number(raw)
     if latency is None:
         log.warning("the robot's contact latency is not a number of seconds (%r): the placement's %.0f ms stands",
                     raw, 1e3 * config.contact_latency)

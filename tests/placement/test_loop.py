@@ -112,7 +112,7 @@ class _SlowDetectorRobot(KinematicRobot):
 @pytest.mark.parametrize("latency, want, warned", [
     (None, 0.048, False), (0.01, 0.048, False), (0.08, 0.08, False), (np.float32(0.08), 0.08, False),
     (np.int64(1), 1.0, True), (math.inf, 1.0, True), (math.nan, 0.048, True), (True, 0.048, True),
-    ("0.2", 0.048, True), (RuntimeError("no rest reading"), 0.048, True)])
+    ("0.2", 0.048, True), (10 ** 400, 1.0, True), (RuntimeError("no rest reading"), 0.048, True)])
 def test_the_loop_takes_the_robots_touch_latency_where_it_is_longer(latency, want, warned, caplog):
     """A detector that measured a noisier arm at rest than its settings say sees a touch later: the loop counts a
     touch as arrival only as low as that latency allows (the placement's own 48 ms where the robot's is shorter or
