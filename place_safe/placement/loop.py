@@ -106,6 +106,7 @@ class LoopResult:
     transitions: list[Transition] = field(default_factory=list)  # the machine's log, in order
     frame_log: list[dict] = field(default_factory=list)
     budget: dict[str, float] = field(default_factory=dict)  # s spent on each part (PlacementMachine.budget)
+    contact_latency: float = math.nan  # s: the touch latency the contact rule used (the robot's, where longer)
 
     def to_dict(self) -> dict:
         """JSON form (what ``place --json`` writes; docs/interfaces.md): transitions as
@@ -642,7 +643,7 @@ class PlacementLoop:
                           ticks=self.ticks, frames=self.frames, frames_used=self.frames_used,
                           planes=self.filter.count, dropped=dict(self.dropped), contact_force_peak=self.force_peak,
                           transitions=list(mach.log), frame_log=list(self.frame_log),
-                          budget=dict(mach.budget))
+                          budget=dict(mach.budget), contact_latency=float(mach.config.contact_latency))
 
 
 #: s: the longest robot time one :meth:`PlacementLoop.run` may be given (a placement takes seconds).

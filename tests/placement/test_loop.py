@@ -145,12 +145,14 @@ def test_a_detector_too_slow_for_any_touch_to_count_refuses_a_touch_it_would_hav
     robot = KinematicRobot(height=0.12, obstacle_z=0.0015)
     loop, res = run(robot, TruthSource(robot), config=cfg)
     assert res.outcome == "released" and "contact" in res.reason, res.reason
+    assert res.contact_latency == 0.048
     robot = _SlowDetectorRobot(0.2, height=0.12, obstacle_z=0.0015)
     with caplog.at_level("WARNING", logger="place_safe.placement.loop"):
         loop, res = run(robot, TruthSource(robot), config=cfg)
     assert rules.contact_limit(loop.config) < 0 and "no touch can count as arrival" in caplog.text
     assert res.outcome == "refused" and not robot.opened and "obstacle" in res.reason
     assert "no touch can count as arrival, the contact detector reading a touch 200 ms late" in res.reason
+    assert res.contact_latency == 0.2 and res.to_dict()["contact_latency"] == 0.2  # in place --json too
     robot = _SlowDetectorRobot(0.2, height=0.12)
     loop, res = run(robot, TruthSource(robot), config=cfg)
     assert res.outcome == "released" and robot.opened
