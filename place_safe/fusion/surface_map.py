@@ -574,8 +574,7 @@ class SurfaceMap:
                 # zone centred under the cup: part of the footprint lies a step lower than the surface the cup is
                 # lowered to (the cup lowered onto a box beside it pivots on the box's edge); it puts the point in doubt
                 # but does not veto. A zone centred past the rim that reads lower sees a step beside the footprint
-                lowered_zone = (doubt & ~lifted & np.array([issue.get(z) is None for z in range(N_ZONES)])
-                                & self._centred_under_cup(fs.base_T_sensor, disc[0], n))
+                lowered_zone = doubt & ~lifted & ~bad_zone & self._centred_under_cup(fs.base_T_sensor, disc[0], n)
                 lowered = inside & ~clean & lowered_zone[zone]
                 latest[seen] = np.column_stack([latest[seen][:, 1:], np.where(clean[seen], 1, 2)])
                 vetoed |= np.all(latest == 2, axis=1)

@@ -141,7 +141,9 @@ def _random_box(rng: np.random.Generator, half_height: tuple[float, float], reac
     face (or corner, along a diagonal) lies about ``reach`` m (drawn from the range) from the cup's centre, the cup
     10-40 cm up, either simulated sensor: (the scene, its geometry: ``start``, ``kind`` (the table's material),
     ``height``, ``size`` (x, y), ``direction`` (rad), ``reach_in`` (m from the cup's centre to the box's nearest
-    point), ``clearance`` (``reach_in`` less the cup's radius: negative under the footprint), ``sensor``)."""
+    point), ``clearance`` (``reach_in`` less the cup's radius: negative under the footprint), ``support``
+    (``clutter`` under the footprint, else ``full``), ``tilt`` (rad: the cup released on the box pivots on its edge
+    until its far rim meets the table, ``atan(h / (r + reach_in))``; 0 outside the footprint), ``sensor``)."""
     pc = PlacementConfig()
     base = SceneConfig()
     cup = home_cup_position(base)
@@ -162,8 +164,11 @@ def _random_box(rng: np.random.Generator, half_height: tuple[float, float], reac
                                           "material": {"albedo": float(rng.uniform(0.3, 1.2))}}]}
     dx, dy = max(abs(px - cup[0]) - hx, 0.0), max(abs(py - cup[1]) - hy, 0.0)
     reach_in = math.hypot(dx, dy)
+    under = reach_in < pc.cup_radius
     geometry = {"start": start, "kind": kind, "albedo": mat["albedo"], "height": 2.0 * hz, "size": (2 * hx, 2 * hy),
                 "direction": a, "reach_in": reach_in, "clearance": reach_in - pc.cup_radius,
+                "support": "clutter" if under else "full",
+                "tilt": math.atan(2.0 * hz / (pc.cup_radius + reach_in)) if under else 0.0,
                 "sensor": _random_sensor(rng)}
     return scene, geometry
 
@@ -186,14 +191,12 @@ def random_low_box_scenario(rng: np.random.Generator, index: int = 0, calibratio
     ``atan(h / r)``). Scenes whose cup would be left beyond ``max_tilt`` must be refused."""
     pc = PlacementConfig()
     scene, g = _random_box(rng, (0.002, 0.006), (0.015, pc.cup_radius + 0.01))
-    support = "clutter" if g["clearance"] < 0 else "full"
-    tilt = math.atan(g["height"] / (pc.cup_radius + g["reach_in"])) if support != "full" else 0.0
-    outcome = "refused" if tilt > pc.max_tilt else "any"
+    outcome = "refused" if g["tilt"] > pc.max_tilt else "any"
     return Scenario(name=f"low_box_{index:04d}", description=_box_description("low box", index, g), scene=scene,
                     sensor=g["sensor"], calibration=calibration, expect=Expectation(outcome=outcome),
-                    labels={"support": support, "clearly_safe": False, "hazard": "low box",
+                    labels={"support": g["support"], "clearly_safe": False, "hazard": "low box",
                             "hazard_clearance": g["clearance"], "box_height": g["height"],
-                            "tilt_if_released": tilt})
+                            "tilt_if_released": g["tilt"]})
 
 
 def random_rim_box_scenario(rng: np.random.Generator, index: int = 0, calibration: str = "sim") -> Scenario:
@@ -205,15 +208,13 @@ def random_rim_box_scenario(rng: np.random.Generator, index: int = 0, calibratio
     box at the rim does. ``labels`` as :func:`random_low_box_scenario`'s."""
     pc = PlacementConfig()
     scene, g = _random_box(rng, (0.0035, 0.015), (pc.cup_radius - 0.01, pc.cup_radius + 0.04))
-    support = "clutter" if g["clearance"] < 0 else "full"
-    tilt = math.atan(g["height"] / (pc.cup_radius + g["reach_in"])) if support != "full" else 0.0
-    clearly_safe = support == "full" and g["clearance"] >= CLEAR_MARGIN and g["start"] >= 0.08
-    outcome = "refused" if tilt > pc.max_tilt else ("released" if clearly_safe else "any")
+    clearly_safe = g["support"] == "full" and g["clearance"] >= CLEAR_MARGIN and g["start"] >= 0.08
+    outcome = "refused" if g["tilt"] > pc.max_tilt else ("released" if clearly_safe else "any")
     return Scenario(name=f"rim_box_{index:04d}", description=_box_description("rim box", index, g), scene=scene,
                     sensor=g["sensor"], calibration=calibration, expect=Expectation(outcome=outcome),
-                    labels={"support": support, "clearly_safe": bool(clearly_safe), "hazard": "clutter",
+                    labels={"support": g["support"], "clearly_safe": bool(clearly_safe), "hazard": "clutter",
                             "hazard_clearance": g["clearance"], "box_height": g["height"],
-                            "tilt_if_released": tilt})
+                            "tilt_if_released": g["tilt"]})
 
 
 #: The kinds of random scenes ``place-safe scenarios --random N --kind K`` draws.

@@ -86,10 +86,10 @@ def test_random_scenes_are_valid_and_labelled_from_their_geometry():
     assert {"edge", "clutter", "none", "nominal", "mismatch"} <= seen
 
 
-def test_low_box_scenes_reach_the_rim_and_are_labelled_from_their_geometry():
-    """--kind low-boxes: a box 4-12 mm tall whose nearest point lies from over the cup's centre to 10 mm past its rim;
-    one reaching under the footprint is unsupported, and one the cup, pivoting on its edge, would be left tilted beyond
-    max_tilt on (atan(h / (r + e))) must be refused."""
+def _box_scenes(make, n: int = 80):
+    """(scene, its labels, the box's height, the placement settings, the m from the cup's centre to the box's nearest
+    point and from the rim) for ``n`` scenes of the box generator ``make`` (seed 5), each valid, its height, clearance and support labels
+    those of its box."""
     from place_safe.placement.config import PlacementConfig
     from place_safe.sim.scenario import home_cup_position
     from place_safe.sim.scene import SceneConfig
@@ -97,19 +97,28 @@ def test_low_box_scenes_reach_the_rim_and_are_labelled_from_their_geometry():
     pc = PlacementConfig()
     cup = home_cup_position(SceneConfig())
     rng = np.random.default_rng(5)
-    under = tall = 0
-    for i in range(80):
-        sc = suite.random_low_box_scenario(rng, i)
+    for i in range(n):
+        sc = make(rng, i)
         Scenario.model_validate(sc.model_dump())
         box = sc.scene["clutter"][0]
         (px, py, _), (hx, hy, hz) = box["pos"], box["size"]
         lab = sc.labels
-        assert lab["box_height"] == pytest.approx(2 * hz) and 0.004 <= 2 * hz <= 0.012
+        assert lab["box_height"] == pytest.approx(2 * hz)
         reach = math.hypot(max(abs(px - cup[0]) - hx, 0.0), max(abs(py - cup[1]) - hy, 0.0))
         gap = reach - pc.cup_radius
-        assert lab["hazard_clearance"] == pytest.approx(gap) and gap <= 0.0105
+        assert lab["hazard_clearance"] == pytest.approx(gap)
         assert (lab["support"] == "clutter") == (gap < 0)
-        tilt = math.atan(2 * hz / (pc.cup_radius + reach)) if gap < 0 else 0.0
+        yield sc, lab, 2 * hz, pc, reach, gap
+
+
+def test_low_box_scenes_reach_the_rim_and_are_labelled_from_their_geometry():
+    """--kind low-boxes: a box 4-12 mm tall whose nearest point lies from over the cup's centre to 10 mm past its rim;
+    one reaching under the footprint is unsupported, and one the cup, pivoting on its edge, would be left tilted beyond
+    max_tilt on (atan(h / (r + e))) must be refused."""
+    under = tall = 0
+    for sc, lab, height, pc, reach, gap in _box_scenes(suite.random_low_box_scenario):
+        assert 0.004 <= height <= 0.012 and gap <= 0.0105
+        tilt = math.atan(height / (pc.cup_radius + reach)) if gap < 0 else 0.0
         assert lab["tilt_if_released"] == pytest.approx(tilt)
         assert (sc.expect.outcome == "refused") == (tilt > pc.max_tilt) and not lab["clearly_safe"]
         under += gap < 0
@@ -122,25 +131,9 @@ def test_rim_box_scenes_straddle_the_rim_and_are_labelled_from_their_geometry():
     one under the footprint would leave the cup beyond max_tilt and must be refused, one CLEAR_MARGIN past the rim is
     clearly safe and must be released, the rest either; the low-box draws are unchanged by the shared helper (scene
     0 of seed 5 to the digit)."""
-    from place_safe.placement.config import PlacementConfig
-    from place_safe.sim.scenario import home_cup_position
-    from place_safe.sim.scene import SceneConfig
-
-    pc = PlacementConfig()
-    cup = home_cup_position(SceneConfig())
-    rng = np.random.default_rng(5)
     outcomes = []
-    for i in range(80):
-        sc = suite.random_rim_box_scenario(rng, i)
-        Scenario.model_validate(sc.model_dump())
-        box = sc.scene["clutter"][0]
-        (px, py, _), (hx, hy, hz) = box["pos"], box["size"]
-        lab = sc.labels
-        assert lab["box_height"] == pytest.approx(2 * hz) and 0.007 <= 2 * hz <= 0.030
-        reach = math.hypot(max(abs(px - cup[0]) - hx, 0.0), max(abs(py - cup[1]) - hy, 0.0))
-        gap = reach - pc.cup_radius
-        assert lab["hazard_clearance"] == pytest.approx(gap) and -0.0105 <= gap <= 0.0405
-        assert (lab["support"] == "clutter") == (gap < 0)
+    for sc, lab, height, pc, _, gap in _box_scenes(suite.random_rim_box_scenario):
+        assert 0.007 <= height <= 0.030 and -0.0105 <= gap <= 0.0405
         if gap < 0:
             assert lab["tilt_if_released"] > pc.max_tilt and sc.expect.outcome == "refused"
         assert lab["clearly_safe"] == (gap >= suite.CLEAR_MARGIN)
