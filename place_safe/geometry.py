@@ -147,7 +147,7 @@ def transform_problem(t: Any, tol: float = ROTATION_TOL) -> str | None:
     robot states; callers raise their own error type with the name of what they checked."""
     try:
         m = np.asarray(t, dtype=np.float64)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         return "is not a 4x4 matrix of numbers"
     if m.shape != (4, 4):
         return f"must be a 4x4 homogeneous matrix; got shape {m.shape}"

@@ -143,7 +143,7 @@ def _number(x) -> float:
     """``x`` as a float (NaN when it is not a real number)."""
     try:
         return float(x)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         return math.nan
 
 

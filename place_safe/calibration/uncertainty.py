@@ -981,7 +981,7 @@ def peak_tilt_term(mount_tilt=None) -> Uncertainty:
     if mount_tilt is not None:
         try:
             size = float(np.hypot(*np.asarray(mount_tilt, dtype=float).reshape(2)))
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             size = 0.0
         size = size if math.isfinite(size) else 0.0
     return Uncertainty(tilt_rel=PEAK_TILT_REL, tilt_offset_rel=PEAK_MOUNT_OFFSET_REL * size)

@@ -156,7 +156,7 @@ def stamp_of(frame: Any) -> float:
     """A frame's ``timestamp`` as a float (NaN when it has none or it is not a number)."""
     try:
         return float(getattr(frame, "timestamp", None))
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         return math.nan
 
 

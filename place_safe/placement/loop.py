@@ -156,10 +156,10 @@ def with_robot_contact_latency(config: PlacementConfig, robot: Any) -> Placement
         return config
     try:
         raw = got()
-        try:
-            latency = 1.0 if isinstance(raw, (float, np.floating)) and raw == math.inf else rules.number(raw)
-        except OverflowError:  # an integer beyond any float: a touch never seen
-            latency = 1.0
+        # inf, or an integer beyond any float: a touch never seen
+        never = (isinstance(raw, (float, np.floating)) and raw == math.inf) or (
+            type(raw) is int and raw > 0 and rules.number(raw) is None)
+        latency = 1.0 if never else rules.number(raw)
     except Exception as exc:  # a robot that cannot say keeps the configured latency
         log.warning("the robot's contact latency could not be read (%s): the placement's %.0f ms stands",
                     describe_exception(exc), 1e3 * config.contact_latency)
@@ -585,8 +585,8 @@ class PlacementLoop:
         self.history.add(now, tcp)
         self.clock.observe(now, self.host_clock())
         force = self._safe(self.robot.contact_force, math.nan)
-        if isinstance(force, (int, float)) and math.isfinite(force):
-            self.force_peak = max(self.force_peak, float(force))
+        if (f := rules.number(force)) is not None:
+            self.force_peak = max(self.force_peak, f)
         m = self.pipeline.take()
         if m is not None:
             self._use(m, now)

@@ -427,7 +427,7 @@ class PlacementMachine:
             try:
                 n, d = item
                 c = self._cup_clearance(n, float(d), state)
-            except (TypeError, ValueError):
+            except (TypeError, ValueError, OverflowError):
                 continue
             if math.isfinite(c):
                 best = min(best, c)

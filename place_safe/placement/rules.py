@@ -26,10 +26,14 @@ from place_safe.recovery.too_close import TOO_CLOSE_REASON
 
 
 def number(v: Any) -> float | None:
-    """``v`` as a finite float, or None (bools, strings, NaN, inf and arrays are not numbers here)."""
+    """``v`` as a finite float, or None (bools, strings, NaN, inf, integers beyond any float and arrays are not
+    numbers here)."""
     if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
         return None
-    v = float(v)
+    try:
+        v = float(v)
+    except OverflowError:  # an int too large for a float
+        return None
     return v if math.isfinite(v) else None
 
 
@@ -270,7 +274,7 @@ def _judged_rows(plane: FusedPlane, post: list[float], cfg: Any, values: str, st
     try:
         return (np.array([float(stamps[i]) for i in idx]), np.array([convert(v[i]) for i in idx]),
                 np.array([float(s[i]) for i in idx]))
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         return f"the fused plane's per-plane {what} are malformed"
 
 

@@ -40,7 +40,10 @@ class ClockMap:
         self._offsets: deque[float] = deque(maxlen=samples)
 
     def observe(self, robot_time: float, host_time: float) -> None:
-        off = float(robot_time) - float(host_time)
+        try:
+            off = float(robot_time) - float(host_time)
+        except (TypeError, ValueError, OverflowError):  # a clock that gave no number says nothing
+            return
         if math.isfinite(off):
             self._offsets.append(off)
 
@@ -54,7 +57,7 @@ class ClockMap:
         """The robot-clock time of a source stamp (NaN if it cannot be converted)."""
         try:
             s = float(stamp)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             return math.nan
         return s + self.offset
 
@@ -74,7 +77,7 @@ class PoseHistory:
         try:
             T = np.asarray(T, dtype=float)
             t = float(t)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             return
         if not (math.isfinite(t) and T.shape == (4, 4) and np.all(np.isfinite(T))):
             return

@@ -353,7 +353,7 @@ class PlaneEstimate:
             return None
         try:
             C = np.asarray(self.covariance, dtype=float)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             return None
         if C.shape != (3, 3) or not np.all(np.isfinite(C)):
             return None

@@ -44,7 +44,7 @@ def check_joints(q: Any, n: int = N_JOINTS) -> tuple[np.ndarray, bool]:
     """
     try:
         arr = np.asarray(q, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
+    except (TypeError, ValueError, OverflowError) as exc:
         raise ValueError(f"joint angles must be numbers of shape ({n},) or (B, {n}); got {q!r}") from exc
     single = arr.ndim == 1
     if single:

@@ -350,7 +350,7 @@ class SimRobot(Robot):
     def move_joint(self, q: Any, speed: float = 1.05, accel: float = 1.4, asynchronous: bool = False) -> None:
         try:
             goal = np.asarray(q, dtype=np.float64)
-        except (TypeError, ValueError) as exc:
+        except (TypeError, ValueError, OverflowError) as exc:
             raise ValueError(f"move_joint target must be 6 joint angles (rad); got {q!r}") from exc
         if goal.shape != (6,) or not np.all(np.isfinite(goal)):
             raise ValueError(f"move_joint target must be 6 finite joint angles (rad); got {goal.tolist()}")

@@ -245,7 +245,7 @@ class Scenario(ConfigModel):
     def placement_config(self):
         try:
             return PlacementConfig.from_dict({**PlacementConfig().to_dict(), **self.placement})
-        except (TypeError, ValueError) as exc:
+        except (TypeError, ValueError, OverflowError) as exc:
             raise ValueError(f"placement: {exc}") from None
 
     def resolve_calibration(self, method: str | None = None) -> tuple[Any, str]:

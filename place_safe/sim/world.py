@@ -45,7 +45,7 @@ class SimWorld:
 def error_transform(mount_error: Any) -> np.ndarray:
     try:
         e = np.asarray(mount_error if mount_error is not None else np.zeros(6), dtype=float)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         e = np.full(1, np.nan)
     if e.shape != (6,) or not np.all(np.isfinite(e)) or np.abs(e[:3]).max() > 1.0 or np.abs(e[3:]).max() > np.pi:
         raise ValueError(f"mount_error must be 6 finite numbers (m, m, m, rad, rad, rad), translations within 1 m "

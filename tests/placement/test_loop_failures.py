@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import asyncio
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -238,3 +239,51 @@ def test_out_of_range_numbers_are_value_errors():
     for t in (float("inf"), 0, -1, 1e9, "10", True):
         with pytest.raises(ValueError):
             loop.run(timeout=t)
+
+
+class HugeStampSource(TruthSource):
+    """A TruthSource whose frames, from the ``after``-th on, carry a time stamp no float can hold."""
+
+    def __init__(self, robot: KinematicRobot, after: int) -> None:
+        super().__init__(robot)
+        self.after, self.calls = after, 0
+
+    def read(self, timeout: float = 1.0):
+        frame = super().read(timeout)
+        self.calls += 1
+        if frame is not None and self.calls >= self.after:
+            frame.timestamp = 10 ** 400
+        return frame
+
+
+@settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(what=st.sampled_from(["time", "tcp_pose", "contact_force", "host_clock", "stamp"]), after=st.integers(1, 200))
+def test_an_integer_beyond_any_float_is_a_bad_value_not_an_internal_error(what, after):
+    """A robot, clock or frame that answers an int too large for a float (10**400) is refused, stopped and held with
+    the value named, like NaN: it raised OverflowError inside the loop ("internal error: OverflowError")."""
+    robot = KinematicRobot(height=0.05)
+    calls = {"n": 0}
+
+    def huge_after(real):
+        def read(*a, **kw):
+            calls["n"] += 1
+            value = real(*a, **kw)
+            if calls["n"] < after:
+                return value
+            if what == "tcp_pose":
+                value = np.asarray(value, dtype=float).tolist()
+                value[0][3] = 10 ** 400
+                return value
+            return 10 ** 400
+        return read
+
+    kw = {}
+    source = HugeStampSource(robot, after) if what == "stamp" else TruthSource(robot)
+    if what in ("time", "tcp_pose", "contact_force"):
+        setattr(robot, what, huge_after(getattr(robot, what)))
+    if what == "host_clock":
+        kw["host_clock"] = huge_after(time.monotonic)
+    loop = PlacementLoop(robot, source, TruthEstimator(), config=CFG, read_bound=BOUND, **kw)
+    res = loop.run(timeout=15.0)
+    _check_safe(robot, res)
+    assert "internal error" not in res.reason, res.reason
