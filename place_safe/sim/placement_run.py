@@ -81,7 +81,9 @@ class PlacementResult:
     true_tilt: float = math.nan  # rad, the table top's true tilt at the start
     surface_height: float = math.nan  # m, world z of the table top's centre at the start
     start_height: float = math.nan  # m, cup bottom above the surface at the start
-    release_height: float = math.nan  # m, cup bottom above the surface when the gripper opened (NaN: never)
+    release_height: float = math.nan  # m, cup bottom above the surface it would land on (the table, or clutter under
+    #                                   its footprint where higher) when the gripper opened (NaN: never)
+    support_height: float = math.nan  # m, the same at the end: ~0 for a cup standing on the table or on clutter
     decision_time: float | None = None  # s from the cup bottom passing 40 cm above the surface to the decision
     surface_moved: float = 0.0  # m the table moved during the run
     fault_injected: str | None = None
@@ -96,7 +98,9 @@ class PlacementResult:
         """A few lines for the console."""
         lines = [f"placement {self.scenario} with {self.method}: {self.outcome.upper()} ({self.reason})",
                  f"  cup: {'held' if self.cup_held else 'released'}, tilt {math.degrees(self.cup_tilt):.1f} deg, "
-                 f"bottom {self.cup_height * 1e3:.1f} mm above the table; liquid spilled "
+                 f"bottom {self.cup_height * 1e3:.1f} mm above the table"
+                 + (f" ({self.support_height * 1e3:.1f} mm above the clutter under it)"
+                    if self.support_height < self.cup_height - 1e-3 else "") + "; liquid spilled "
                  f"{self.liquid_spilled}/{self.liquid_total}; peak contact force {self.contact_force_peak:.1f} N",
                  f"  {self.sim_seconds:.2f} s sim in {self.wall_seconds:.2f} s wall; {self.frames} frames, "
                  f"{self.planes} planes accepted; sensor {self.sensor}; calibration: {self.calibration}"]
@@ -189,6 +193,7 @@ def run_placement(scenario: Any = "place_level", method: str | None = None, cali
     cup_w = wb @ cup
     tilt = float(np.arccos(np.clip(cup_w[2, 2], -1.0, 1.0)))
     height = truth.cup_height()
+    support = truth.support_height()
     if render is not None:
         _render.save_png(_render.render_image(scene, robot.data, tof), render)
     decided = next((t for t in res.transitions if t.target.value in ("release", "refuse", "aborted")), None)
@@ -199,7 +204,7 @@ def run_placement(scenario: Any = "place_level", method: str | None = None, cali
         cup_held=robot.holding(), liquid_spilled=robot.liquid_spilled(), liquid_total=liquid_total,
         contact_force_peak=max(res.contact_force_peak, getattr(robot, "true_force_peak", 0.0)), sim_seconds=robot.time(), wall_seconds=_time.perf_counter() - wall0,
         frames=res.frames, planes=res.planes, transitions=[t.to_dict() for t in res.transitions], frame_log=res.frame_log,
-        release_height=truth.release_height, decision_time=(t_dec - t_ref) if (t_dec is not None and t_ref is not None)
+        release_height=truth.release_height, support_height=support, decision_time=(t_dec - t_ref) if (t_dec is not None and t_ref is not None)
         else None, surface_moved=truth.surface_moved, fault_injected=truth.stop_injected,
         robot_fault=robot.fault(), budget=dict(getattr(res, "budget", {}) or {}), **common)
 

@@ -372,8 +372,13 @@ def expand_paths(paths: list[str]) -> list[Path]:
 # ---------------------------------------------------------------------------------------------
 # what happens in the world: moving table, injected faults, truth recording
 # ---------------------------------------------------------------------------------------------
+#: m above the cup's bottom the truth's rays down to clutter start (a cup standing on a board starts above its top).
+GAP_LIFT = 0.01
+
+
 class TruthRecorder:
-    """Robot step callback: moves the table, injects faults and records simulation truth (SI units)."""
+    """Robot step callback: moves the table, injects faults and records simulation truth (SI units). The release height
+    is the cup bottom's above the surface it would land on: the table, or clutter under its footprint where higher."""
 
     def __init__(self, scenario: Scenario, scene: Any, robot: Any) -> None:
         self.sc, self.scene, self.robot = scenario, scene, robot
@@ -386,12 +391,46 @@ class TruthRecorder:
         self.min_height = math.inf
         self.surface_moved = 0.0
         self._first = True
+        import mujoco
+
+        names = (f"clutter{i}" for i in range(len(scene.config.clutter)))
+        self._clutter_geoms = {g for g in (mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_GEOM, n) for n in names)
+                               if g >= 0}
+        r = float(ur5_config()["cup"]["radius"])
+        ring = [(rr * math.cos(a), rr * math.sin(a), 0.0) for rr, k in ((r / 2, 8), (r, 16))
+                for a in np.linspace(0.0, 2.0 * math.pi, k, endpoint=False)]
+        self._disc = np.array([(0.0, 0.0, 0.0), *ring])  # the cup's bottom disc, cup frame
 
     def cup_height(self) -> float:
         """Cup bottom centre above the table top along its normal (m), simulation truth."""
         n_w, p_w = self.scene.table_plane_world(self.robot.data)
         c = self.robot.world_T_base() @ self.robot.cup_pose()
         return float(n_w @ (c[:3, 3] - p_w))
+
+    def clutter_gap(self) -> float:
+        """Cup bottom above the highest clutter under its footprint (m, straight down, simulation truth; inf where no
+        clutter lies under it): a cup released onto a board, a tray or a box falls that far, not to the table. Rays
+        from :data:`GAP_LIFT` above the cup's bottom disc (its centre and rings at half and full radius) down to the
+        first surface the sensor could see (the robot, the cup and its liquid are not in that group)."""
+        import mujoco
+
+        if not self._clutter_geoms:
+            return math.inf
+        c = self.robot.world_T_base() @ self.robot.cup_pose()
+        down = np.array([0.0, 0.0, -1.0])
+        geom = np.zeros(1, dtype=np.int32)
+        groups = self.scene.sensed_groups
+        gap = math.inf
+        for p in c[:3, 3] + self._disc @ c[:3, :3].T:
+            dist = mujoco.mj_ray(self.model, self.robot.data, p + GAP_LIFT * -down, down, groups, 1, -1, geom)
+            if dist >= 0 and int(geom[0]) in self._clutter_geoms:
+                gap = min(gap, float(dist) - GAP_LIFT)
+        return gap
+
+    def support_height(self) -> float:
+        """Cup bottom above the surface it would land on (m): the table top (:meth:`cup_height`), or the clutter under
+        its footprint where that lies higher (:meth:`clutter_gap`)."""
+        return min(self.cup_height(), self.clutter_gap())
 
     def __call__(self, *_: Any) -> None:
         d = self.robot.data
@@ -408,7 +447,7 @@ class TruthRecorder:
         if self.t_reference is None and h <= REFERENCE_HEIGHT:
             self.t_reference = t
         if self.release_time is None and self.robot.gripper_is_open():
-            self.release_time, self.release_height = t, h
+            self.release_time, self.release_height = t, min(h, self.clutter_gap())
         rb = self.sc.robot
         if self.stop_injected is None and self.robot.fault() is None and (
                 (rb.protective_stop_at is not None and t >= rb.protective_stop_at)

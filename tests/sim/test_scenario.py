@@ -208,3 +208,33 @@ def test_a_table_moved_during_a_run_holds_the_cup_where_it_moved_to():
     robot.gripper(open=True)
     robot.step(0.8)
     assert abs(truth.cup_height()) < 3e-3  # standing on the risen top, not 3 cm into it
+
+
+@pytest.mark.parametrize("edge, under", [(0.08, True), (-0.10, False), (0.02, True)])
+def test_the_truth_measures_the_fall_to_a_board_under_the_cup(edge, under):
+    """A cup held 30 mm above a level table with an 18 mm board whose edge lies ``edge`` from the cup's axis (beyond it
+    the table): where the board reaches under the footprint the cup falls 12 mm onto it, and it ends standing on it;
+    elsewhere the truth is the table's as before. (The truth measured the table only: a cup put down on a board read
+    as released 20 mm up and "not on the table", so no board or tray scene could be judged safe.)"""
+    from place_safe.sim.scenario import TruthRecorder, home_cup_position
+    from place_safe.sim.scene import SceneConfig
+    from place_safe.sim.world import sim_world
+
+    cup = home_cup_position(SceneConfig())
+    start, h, half = 0.03, 0.018, 0.12
+    top = float(cup[2] - start)
+    board = {"shape": "box", "pos": [float(cup[0] + edge - half), float(cup[1]), top + h / 2], "size": [half, half, h / 2]}
+    sc = Scenario.model_validate({"scene": {"start_height": start, "clutter": [board]}})
+    world = sim_world(sc, seed=0, attach=False)
+    robot = world.robot
+    truth = TruthRecorder(sc, world.scene, robot)
+    robot.add_step_callback(lambda *_: truth())
+    truth()
+    assert truth.cup_height() == pytest.approx(start, abs=2e-3)
+    expected = start - h if under else start
+    assert truth.support_height() == pytest.approx(expected, abs=2e-3)
+    robot.gripper(open=True)
+    robot.step(0.8)
+    assert truth.release_height == pytest.approx(expected, abs=2e-3)
+    if under and edge > 0.05:  # wholly on the board: it stands on it
+        assert abs(truth.support_height()) < 3e-3 and truth.cup_height() == pytest.approx(h, abs=3e-3)

@@ -39,6 +39,18 @@ def test_judge_flags_every_kind_of_unsafe_release():
     assert not row["unsafe"] and row["false_refusal"] and not row["met"]
 
 
+def test_judge_takes_a_cup_standing_on_a_board_as_standing():
+    """A cup put down on a board 18 mm thick stands 18 mm above the table and 0 above what it stands on: safe (it was
+    "cup not on the table"); one that ended 18 mm above the table with nothing under it is not."""
+    sc = Scenario(expect=Expectation(outcome="any"))
+    row = suite.judge(sc, _res(cup_height=0.018, support_height=0.0005, release_height=0.0025))
+    assert row["on_table"] and not row["unsafe"] and row["met"]
+    row = suite.judge(sc, _res(cup_height=0.018, support_height=0.018))
+    assert not row["on_table"] and row["unsafe"] and "cup not on the table (18 mm off)" in row["misses"]
+    row = suite.judge(sc, _res(cup_height=0.030, support_height=0.012))
+    assert row["unsafe"] and "cup not on the table nor on the clutter under it (12 mm off)" in row["misses"]
+
+
 def test_judge_checks_refusal_reasons_and_decision_time():
     sc = Scenario(expect=Expectation(outcome="refused", reason=["edge", "step"]))
     assert suite.judge(sc, _res(outcome="refused", reason="table edge under the cup"))["met"]
