@@ -140,10 +140,17 @@ def is_rotation(r: np.ndarray, tol: float = ROTATION_TOL) -> bool:
     return a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g) > 0
 
 
-def transform_problem(t: Any, tol: float = ROTATION_TOL) -> str | None:
+#: m: no pose of the arm's flange, tool or sensor lies farther than this from its base along any axis (a UR5 reaches
+#: 0.85 m, the largest UR 1.75 m). A pose beyond it is not a robot's: at 1e15 m a float's step is 0.125 m, and the
+#: footprint's geometry collapsed there into a release over a table's edge (an adversarial round, session 73).
+MAX_REACH = 2.0
+
+
+def transform_problem(t: Any, tol: float = ROTATION_TOL, reach: float | None = None) -> str | None:
     """Why ``t`` is not a rigid 4x4 homogeneous transform (a phrase to follow its name), or None when it is:
     numbers, shape (4, 4), finite, a proper rotation block (:func:`is_rotation` to ``tol``) and the last row
-    ``[0, 0, 0, 1]`` to 1e-9. The one check of the robot's poses, its tool frames and the placement's
+    ``[0, 0, 0, 1]`` to 1e-9; with ``reach`` (m), a translation within it along every axis (a robot's pose in its
+    base frame: :data:`MAX_REACH`). The one check of the robot's poses, its tool frames and the placement's
     robot states; callers raise their own error type with the name of what they checked."""
     try:
         m = np.asarray(t, dtype=np.float64)
@@ -157,6 +164,8 @@ def transform_problem(t: Any, tol: float = ROTATION_TOL) -> str | None:
         return "rotation part is not a proper rotation (R^T R != I or det < 0)"
     if float(np.abs(m[3] - _LAST_ROW).max()) > 1e-9:
         return f"last row must be [0, 0, 0, 1]; got {m[3].tolist()}"
+    if reach is not None and float(np.abs(m[:3, 3]).max()) > reach:
+        return f"translation {float(np.abs(m[:3, 3]).max()):.3g} m from the base is beyond any arm's reach (> {reach:g} m)"
     return None
 
 

@@ -32,7 +32,7 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from place_safe.exceptions import CalibrationError
-from place_safe.geometry import Plane, transform_problem
+from place_safe.geometry import MAX_REACH, Plane, transform_problem
 from place_safe.robot.kinematics import Kinematics
 
 #: Fraction of the prior sigma above which a direction counts as not observed by the sweep.
@@ -299,10 +299,6 @@ def flange_poses(frames: Sequence[Any], use_kinematics: bool = True, kinematics:
             raise FlangePoseError(f"frame {i} has neither joint_angles nor pose; the capture cannot fit a mount",
                                   "no joint_angles or pose")
     return np.array(out)
-
-
-#: m: no flange pose of a UR5 is farther than this from its base (reach 0.85 m).
-MAX_REACH = 2.0
 
 
 def _joint_angles(q: Any, i: int) -> np.ndarray:

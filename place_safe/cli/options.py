@@ -53,6 +53,12 @@ def nonnegative_float(text: str) -> float:
     return v
 
 
+#: Worker processes one command may start (each loads MuJoCo and torch: ~0.5 GB).
+MAX_JOBS = 64
+#: Noise cycles ``--cycles`` may ask for (2 million take about 2 s; this many, a couple of minutes).
+MAX_CYCLES = 100_000_000
+
+
 def positive_int(text: str) -> int:
     """A whole number >= 1 (counts of frames, jobs, iterations)."""
     v = _number(text, int)
@@ -203,13 +209,15 @@ def _shared() -> dict[str, Option]:
                        help="stop when no frame arrives for S seconds (default 2, at most 60)"),
         "seconds": opt("--seconds", type=float_range(0.0, 3600.0, lo_open=True), metavar="S",
                        help="seconds to run (at most 3600)"),
-        "jobs": opt("--jobs", type=positive_int, default=1, metavar="N", help="worker processes (default 1)"),
+        "jobs": opt("--jobs", type=int_range(1, MAX_JOBS), default=1, metavar="N",
+                    help=f"worker processes (default 1, at most {MAX_JOBS})"),
         "force": opt("--force", action="store_true", help="overwrite the output file"),
         "output": opt("-o", "--output", metavar="FILE", help="file to write"),
         "controller": opt("--controller", choices=CONTROLLERS, default="cb3",
                           help="controller generation: its force-sensing defaults (default cb3)"),
-        "cycles": opt("--cycles", type=positive_int, default=2_000_000,
-                      help="noise cycles for the false-alarm rate (default 2000000)"),
+        "cycles": opt("--cycles", type=int_range(1, MAX_CYCLES), default=2_000_000,
+                      help=f"noise cycles for the false-alarm rate (default 2000000, at most {MAX_CYCLES}: 2 million "
+                           "take about 2 s)"),
         "robot_file": opt("--robot-file", dest="robot_file", metavar="ROBOT.toml",
                           help="with --sim: the robot file whose tool frames are used (default the packaged sim.toml)"),
         "table_height": opt("--table-height", type=float_range(-REACH, REACH), metavar="Z",

@@ -20,9 +20,18 @@ from pathlib import Path
 
 from place_safe.cli.common import ROBOT_FILE_HELP, log
 from place_safe.cli import options
-from place_safe.cli.options import nonnegative_int, opt, positive_float
+from place_safe.cli.options import float_range, int_range, opt
+from place_safe.geometry import MAX_REACH
 from place_safe.exceptions import UsageError
 from place_safe.io.json_values import jsonable
+
+
+#: Descents or touches per speed ``bench contact`` may ask for (200 descents take minutes).
+MAX_TRIALS = 100_000
+#: s at rest ``bench robot`` may sample (the UR's RTDE gives 125-500 samples a second).
+MAX_SAMPLE_SECONDS = 3600.0
+#: N/m the simulated table contact may be (steel on steel is about 1e8).
+MAX_STIFFNESS = 1e8
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
@@ -123,7 +132,8 @@ def add_robot_benches(sub: argparse._SubParsersAction) -> None:
         opt("--write", metavar="ROBOT.toml", help="write the robot file with the measured noise here"),
         "json",
         controller={"help": "with --fake (default cb3)"},
-        seconds={"type": positive_float, "default": 2.0, "metavar": None, "help": "s at rest to sample (default 2)"},
+        seconds={"type": float_range(0.0, MAX_SAMPLE_SECONDS, lo_open=True), "default": 2.0, "metavar": None,
+                 "help": f"s at rest to sample (default 2, at most {MAX_SAMPLE_SECONDS:g})"},
         json={"metavar": "OUT.json", "help": "write the measurement and the report as JSON"})
     options.command(
         sub, "contact", cmd_contact_bench,
@@ -134,10 +144,14 @@ def add_robot_benches(sub: argparse._SubParsersAction) -> None:
         ["place-safe bench contact --descents 200 --jobs 2", "place-safe bench contact --descents 0 --touch-trials 50",
          "place-safe bench contact --controller e-series --descents 20"],
         "controller", "noise",
-        opt("--descents", type=nonnegative_int, default=200, help="placements from --height (default 200)"),
-        opt("--height", type=positive_float, default=0.4, help="m of cup above the table (default 0.4)"),
-        opt("--touch-trials", type=nonnegative_int, default=20, help="touches per speed (default 20)"),
-        opt("--stiffness", type=positive_float, default=20000.0, help="N/m of the table contact (default 20000)"),
+        opt("--descents", type=int_range(0, MAX_TRIALS), default=200,
+            help=f"placements from --height (default 200, at most {MAX_TRIALS})"),
+        opt("--height", type=float_range(0.0, MAX_REACH, lo_open=True), default=0.4,
+            help=f"m of cup above the table (default 0.4, at most the arm's {MAX_REACH:g} m)"),
+        opt("--touch-trials", type=int_range(0, MAX_TRIALS), default=20,
+            help=f"touches per speed (default 20, at most {MAX_TRIALS})"),
+        opt("--stiffness", type=float_range(0.0, MAX_STIFFNESS, lo_open=True), default=20000.0,
+            help=f"N/m of the table contact (default 20000, at most {MAX_STIFFNESS:g})"),
         "cycles", "seed", "jobs", "json", "quiet",
         controller={"help": "fake controller (default cb3)"},
         noise={"what": "force noise at rest, default the controller's (3.6 / 1.0)"},

@@ -85,7 +85,7 @@ import numpy as np
 from place_safe.exceptions import NoPlaneError
 from place_safe.recovery.estimator import reference_tilt_problem
 from place_safe.recovery.too_close import TOO_CLOSE_REASON
-from place_safe.geometry import Plane, transform_problem
+from place_safe.geometry import MAX_REACH, Plane, transform_problem
 
 #: Huber constant in robust sigmas (95 % efficiency for Gaussian noise).
 HUBER_K = 1.345
@@ -198,7 +198,8 @@ def plane_to_base(plane: Plane, base_T_sensor: Any) -> tuple[np.ndarray, float, 
     The anchor is where the optical axis meets the plane. Raises ValueError for a non-finite or
     non-rigid pose.
     """
-    if (why := transform_problem(base_T_sensor, 1e-6)) is not None:  # a reflection flips the normal: not a pose
+    # a reflection flips the normal, a pose beyond any arm's reach is not the sensor's: neither is a pose
+    if (why := transform_problem(base_T_sensor, 1e-6, reach=MAX_REACH)) is not None:
         raise ValueError(f"base_T_sensor {why}")
     T = np.asarray(base_T_sensor, dtype=float)
     R, t = T[:3, :3], T[:3, 3]
@@ -290,10 +291,14 @@ class PlaneFilter:
         if not isinstance(plane, Plane):
             return self._reject(f"not a Plane: {type(plane).__name__}")
         try:
+            if isinstance(stamp, (bool, str, bytes)) or not isinstance(stamp, (int, float, np.integer, np.floating)):
+                raise TypeError(f"timestamp is not a number of seconds ({type(stamp).__name__})")
             stamp = float(stamp)
             if not math.isfinite(stamp):
                 raise ValueError("timestamp is not finite")
             n, _, anchor = plane_to_base(plane, base_T_sensor)
+        except OverflowError:
+            return self._reject("bad input: timestamp is beyond any float")
         except (TypeError, ValueError, NoPlaneError) as exc:
             return self._reject(f"bad input: {exc}")
         if not (np.all(np.isfinite(n)) and np.all(np.isfinite(anchor))):
@@ -481,8 +486,12 @@ def _direction_variance(estimate: Any) -> float:
     :meth:`~place_safe.recovery.estimator.PlaneEstimate.tilt_std`), floored at :data:`MIN_SCALE_RAD`;
     NaN when it has none."""
     tilt_std = getattr(estimate, "tilt_std", None)
-    s = tilt_std() if callable(tilt_std) else None
-    return max(s, MIN_SCALE_RAD) ** 2 if s is not None else math.nan
+    try:
+        s = tilt_std() if callable(tilt_std) else None
+        s = None if s is None else float(s)
+    except Exception:  # an estimate that cannot say states no uncertainty
+        return math.nan
+    return max(s, MIN_SCALE_RAD) ** 2 if s is not None and math.isfinite(s) else math.nan
 
 
 def _offset_std(estimate: Any) -> float:
@@ -490,8 +499,10 @@ def _offset_std(estimate: Any) -> float:
     normal), NaN when it has none or it is not a finite non-negative number."""
     cov = getattr(estimate, "covariance", None)
     try:
+        if np.iscomplexobj(cov):
+            return math.nan
         v = float(np.asarray(cov, dtype=float)[2, 2])
-    except (TypeError, ValueError, IndexError):
+    except (TypeError, ValueError, IndexError, OverflowError):
         return math.nan
     return math.sqrt(v) if math.isfinite(v) and v >= 0.0 else math.nan
 

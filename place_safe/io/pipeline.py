@@ -141,9 +141,9 @@ class FrameGate:
         if not math.isfinite(stamp):
             return "unstamped: frame has no usable timestamp"
         if now is not None and self.future_tolerance is not None and stamp > now + self.future_tolerance:
-            return f"future: frame stamped {stamp - now:.3f} s after the robot's clock"
+            return f"future: frame stamped {_seconds(stamp - now)} s after the robot's clock"
         if now is not None and self.max_age is not None and now - stamp > self.max_age:
-            return f"stale: frame measured {now - stamp:.3f} s ago (> {self.max_age:.2f} s)"
+            return f"stale: frame measured {_seconds(now - stamp)} s ago (> {self.max_age:.2f} s)"
         if stamp <= self.last_stamp:
             return "repeated: frame not newer than the last one used (duplicate or out of order)"
         return None
@@ -152,11 +152,21 @@ class FrameGate:
         self.last_stamp = stamp
 
 
+def _seconds(x: float) -> str:
+    """Seconds for a reason: to the millisecond, or in three figures where that would fill the line (a clock off by
+    1e308 s)."""
+    return f"{x:.3f}" if abs(x) < 1e6 else f"{x:.3g}"
+
+
 def stamp_of(frame: Any) -> float:
-    """A frame's ``timestamp`` as a float (NaN when it has none or it is not a number)."""
+    """A frame's ``timestamp`` as a float (NaN when it has none, it is not a number -- text, a bool, an int beyond any
+    float -- or reading it fails)."""
     try:
-        return float(getattr(frame, "timestamp", None))
-    except (TypeError, ValueError, OverflowError):
+        t = getattr(frame, "timestamp", None)
+        if isinstance(t, (bool, str, bytes)):
+            return math.nan
+        return float(t)
+    except Exception:
         return math.nan
 
 

@@ -48,6 +48,7 @@ from place_safe.fusion.plane_filter import PlaneFilter
 from place_safe.fusion.surface_map import CONSENSUS_RELATIVE, MIN_INLIERS, FootprintVerdict, SurfaceMap
 from place_safe.geometry import Plane
 from place_safe.io.pipeline import (INTERRUPTS, PLACEMENT_POLICY, READ_BOUND, FrameGate, Measurement, SensorPipeline,
+                                    stamp_of,
                                     clock_domain_of, describe_exception, is_interrupt_here)
 from place_safe.io.source import FrameSource
 from place_safe.placement import rules
@@ -297,7 +298,7 @@ class PlacementLoop:
         frame, est = m.frame, m.estimate
         self.frames += 1
         self._last_arrival = now
-        stamp = self.clock.to_robot(getattr(frame, "timestamp", None))
+        stamp = self.clock.to_robot(stamp_of(frame))
         accepted = False
         self._last_age = None
         if (why := self.gate.check(stamp, now)) is not None:
@@ -318,11 +319,11 @@ class PlacementLoop:
                     accepted = self.filter.update(est, base_T_sensor, stamp)
                     self._note = (why if accepted else self.filter.last_reject_reason)
         if self.log_frames:
-            plane = getattr(est, "plane", None)
+            seconds = rules.number(self._safe(lambda: getattr(est, "seconds", None), None))
             entry = {"t": now, "stamp": stamp, "accepted": accepted,
-                     "ms": float(getattr(est, "seconds", math.nan)) * 1e3,
-                     "plane": plane.to_dict() if plane is not None else None,
-                     "truth": frame.truth.to_dict() if getattr(frame, "truth", None) is not None else None}
+                     "ms": seconds * 1e3 if seconds is not None else math.nan,
+                     "plane": _logged(self._safe(lambda: getattr(est, "plane", None), None)),
+                     "truth": _logged(self._safe(lambda: getattr(frame, "truth", None), None))}
             if not accepted:
                 entry["reason"] = self._note
             self.frame_log.append(entry)
@@ -593,9 +594,11 @@ class PlacementLoop:
         note = self._note
         if self.pipeline.error is not None:
             note = f"sensor error: {self.pipeline.error}"
-        fault = self._safe(self.robot.fault, _NO_ANSWER) or self._cmd_error
+        fault = self._safe(self.robot.fault, _NO_ANSWER)
         if fault is _NO_ANSWER:
             self._stop_robot()  # a robot that cannot report its state may still move: stop it ourselves
+        elif rules.fault_text(fault) is None:
+            fault = self._cmd_error or None
         try:
             cup = np.asarray(tcp, dtype=float) @ self._tcp_T_cup
         except Exception:
@@ -704,6 +707,12 @@ def peak_estimator_of(estimator: Any) -> Any:
         if isinstance(e, PeakEstimator):
             return e
     return None
+
+
+def _logged(plane: Any) -> dict | None:
+    """A plane for the frame log (its ``to_dict``), or None for anything that is not a :class:`Plane` (an estimator's
+    or a source's garbage is dropped by the filter; the log must not fail on it)."""
+    return plane.to_dict() if isinstance(plane, Plane) else None
 
 
 def peak_params_of(estimator: Any) -> Any:

@@ -88,7 +88,7 @@ from typing import Any
 
 import numpy as np
 
-from place_safe.geometry import transform_problem
+from place_safe.geometry import MAX_REACH, transform_problem
 from place_safe.fusion.plane_filter import FusedPlane, clearance_along
 from place_safe.placement.config import PlacementConfig
 from place_safe.placement import rules
@@ -127,21 +127,28 @@ class RobotState:
 
     def problem(self) -> str | None:
         """Why this state cannot be trusted (fault, malformed or non-finite values), or None."""
-        if self.fault:
-            return f"robot fault: {str(self.fault).splitlines()[0]}"
+        if (fault := rules.fault_text(self.fault)) is not None:
+            return f"robot fault: {fault}"
         for name in ("base_T_tcp", "base_T_cup"):
-            if (why := transform_problem(getattr(self, name))) is not None:
+            if (why := transform_problem(getattr(self, name), reach=MAX_REACH)) is not None:
                 return f"robot state {name} {why}"
         if number(self.time) is None:
             return "robot time is not a finite number"
         f = number(self.contact_force)
         if f is None or f < 0:
             return "robot contact force is not a finite non-negative number"
+        if f > MAX_FORCE_READING:
+            return f"robot contact force {f:.3g} N is no reading of a touch (> {MAX_FORCE_READING:g} N)"
         if self.last_frame_time is not None and number(self.last_frame_time) is None:
             return "time of the last sensor frame is not a finite number"
         if self.last_frame_age is not None and number(self.last_frame_age) is None:
             return "age of the last sensor frame is not a finite number"
         return None
+
+
+#: N: no contact force an arm this size can read (a UR5 carries 5 kg; its joints stall at a few hundred newtons); a
+#: larger reading is a broken estimate, refused as robot state, not taken as a touch 1e308 N strong.
+MAX_FORCE_READING = 1e4
 
 
 class CommandKind(str, Enum):
@@ -941,7 +948,7 @@ class PlacementMachine:
             self._t_start, self._t_phase = now, now
         bad = state.problem() if isinstance(state, RobotState) else "robot state is not a RobotState"
         if bad is not None:
-            return self._abort(now, bad, faulted=bool(getattr(state, "fault", None)))
+            return self._abort(now, bad, faulted=rules.fault_text(getattr(state, "fault", None)) is not None)
         self._account(state, now)
         stamp = number(getattr(plane, "stamp", None)) if plane is not None else None
         if stamp is not None:  # the fused plane's age this tick (the window's largest stays in front)

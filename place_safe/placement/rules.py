@@ -37,6 +37,29 @@ def number(v: Any) -> float | None:
     return v if math.isfinite(v) else None
 
 
+def fault_text(fault: Any) -> str | None:
+    """The first non-blank line of what a robot's ``fault()`` said (None: no fault). A false value (None, "", False, 0) is no
+    fault; any other is one, and one that cannot be read (its ``bool`` or ``str`` raises: an array, a broken object)
+    is said to be unreadable, never dropped. At most 200 characters."""
+    try:
+        if not fault:
+            return None
+        text = str(fault)
+    except Exception:
+        return f"an unreadable fault report ({type(fault).__name__})"
+    text = next((line for line in text.splitlines() if line.strip()), "")  # its first line that says something
+    if not text:
+        return f"an empty fault report ({type(fault).__name__})"
+    return text[:200] + (" ..." if len(text) > 200 else "")
+
+
+def degrees_text(rad: float) -> str:
+    """An uncertainty (rad) in degrees for a reason: two decimals, or three figures where that would fill the line
+    (an estimate stating 1e154 rad)."""
+    v = math.degrees(rad)
+    return f"{v:.2f}" if abs(v) < 1e4 else f"{v:.3g}"
+
+
 def too_close(note: str | None) -> bool:
     """Whether the last frame's note says it was too close to read (:mod:`place_safe.recovery.too_close`)."""
     return isinstance(note, str) and TOO_CLOSE_REASON in note
@@ -149,11 +172,11 @@ def level_problem(plane: FusedPlane, cfg: Any) -> str | None:
     sigma = tilt_sigma(plane)
     bound = plane.tilt_rad + confidence_margin(sigma, cfg)
     if not (bound <= cfg.max_tilt):
-        return (f"surface tilt {math.degrees(plane.tilt_rad):.2f} +- {math.degrees(sigma):.2f} deg is not below "
+        return (f"surface tilt {math.degrees(plane.tilt_rad):.2f} +- {degrees_text(sigma)} deg is not below "
                 f"{math.degrees(cfg.max_tilt):.1f} deg with {cfg.level_confidence:.0%} confidence")
     if (recent := window_reading(plane, cfg)) is not None and not (recent[0] + confidence_margin(recent[1], cfg)
                                                               <= cfg.max_tilt):
-        return (f"surface tilt {math.degrees(recent[0]):.2f} +- {math.degrees(recent[1]):.2f} deg in the latest "
+        return (f"surface tilt {math.degrees(recent[0]):.2f} +- {degrees_text(recent[1])} deg in the latest "
                 f"planes (the remembered slope reads {math.degrees(plane.tilt_rad):.2f}) is not below "
                 f"{math.degrees(cfg.max_tilt):.1f} deg with {cfg.level_confidence:.0%} confidence")
     return None
@@ -396,7 +419,7 @@ def slope_still_problem(plane: FusedPlane, post: list[float], cfg: Any) -> str |
     if not (chi2 <= limit):
         worst = float(np.max(np.arccos(np.clip(n @ m, -1.0, 1.0))))
         return (f"surface not still: {len(t)} planes at rest differ in slope by up to {math.degrees(worst):.2f} deg "
-                f"(chi-square {chi2:.3g} > {limit:.1f} for normals +- {math.degrees(float(sd.min())):.2f} deg)")
+                f"(chi-square {chi2:.3g} > {limit:.1f} for normals +- {degrees_text(float(sd.min()))} deg)")
     turn_limit = float(_chi2.ppf(cfg.still_confidence, 2))
     if not (turn <= turn_limit):
         return (f"surface not still: {len(t)} planes at rest turn {math.degrees(float(np.linalg.norm(rate))):.2f} "
@@ -424,7 +447,7 @@ def newest_plane_problem(plane: FusedPlane, post: list[float], cfg: Any) -> str 
     sd = np.maximum(stated, SLOPE_STD_FLOOR)
     tilt = rotation_angle_between(n[-1], _UP)
     if _steeper(tilt, float(stated[-1]), plane, cfg) is not None:
-        return (f"surface tilted {math.degrees(tilt):.2f} +- {math.degrees(float(stated[-1])):.2f} deg in the newest "
+        return (f"surface tilted {math.degrees(tilt):.2f} +- {degrees_text(float(stated[-1]))} deg in the newest "
                 f"plane at rest (> {math.degrees(cfg.max_tilt):.1f} deg allowed with {cfg.level_confidence:.0%} "
                 "confidence): waiting for the next")
     others = _weighted_normal(n[:-1], 1.0 / sd[:-1] ** 2)
@@ -451,7 +474,7 @@ def rest_tilt_problem(plane: FusedPlane, post: list[float], cfg: Any) -> str | N
     w = 1.0 / sd**2
     tilt = rotation_angle_between(_weighted_normal(n, w), _UP)
     if (sigma := _steeper(tilt, math.sqrt(1.0 / float(w.sum())), plane, cfg)) is not None:
-        return (f"surface tilted {math.degrees(tilt):.2f} +- {math.degrees(sigma):.2f} deg in the planes at rest "
+        return (f"surface tilted {math.degrees(tilt):.2f} +- {degrees_text(sigma)} deg in the planes at rest "
                 f"(> {math.degrees(cfg.max_tilt):.1f} deg allowed, with {cfg.level_confidence:.0%} confidence; the "
                 f"fused plane reads {math.degrees(plane.tilt_rad):.2f})")
     return None
@@ -559,7 +582,7 @@ def clearance_floor(plane: FusedPlane, post: list[float], cfg: Any) -> float:
     return -min(cfg.release_clearance, z * math.sqrt(1.0 / info))
 
 
-__all__ = ["number", "too_close", "plane_problem", "sensor_problem", "planar_problem", "tilt_problem",
+__all__ = ["fault_text", "degrees_text", "number", "too_close", "plane_problem", "sensor_problem", "planar_problem", "tilt_problem",
            "tilt_sigma", "confidence_margin", "level_problem", "confidently_tilted", "footprint_problem",
            "footprint_seen", "check_frames_needed", "post_stop_stamps", "still_problem", "slope_still_problem",
            "rest_tilt_problem", "newest_plane_problem", "pending_problem", "most_check_frames",

@@ -317,7 +317,7 @@ def is_covariance(c, definite: bool = False) -> bool:
     m = np.asarray(c, dtype=float)
     if m.shape != (3, 3) or not np.all(np.isfinite(m)):
         return False
-    w = np.linalg.eigvalsh(0.5 * (m + m.T))
+    w = np.linalg.eigvalsh(0.5 * m + 0.5 * m.T)  # (halved first: a 1e308 entry does not overflow)
     if not w[-1] > 0.0:
         return False
     return bool(w[0] > 1e-12 * w[-1]) if definite else bool(w[0] >= -1e-12 * w[-1])
@@ -346,16 +346,21 @@ class PlaneEstimate:
 
     def tilt_std(self) -> float | None:
         """Standard deviation (rad) of the tilt along its worst direction (largest eigenvalue of the
-        symmetric part of the (n_x, n_y) block); None without a covariance, with one that is not a finite
-        3 x 3 matrix, or when that largest eigenvalue is negative. It does not check that the matrix is a
-        covariance (a negative eigenvalue elsewhere passes): :func:`is_covariance` does."""
+        symmetric part of the (n_x, n_y) block); None without a covariance, or with one that is not a real,
+        symmetric (to 1e-9 of its largest entry) covariance (:func:`is_covariance`: a negative or an all-zero
+        variance, a complex or a lopsided matrix state no uncertainty, as NaN does)."""
         if self.covariance is None:
             return None
         try:
-            C = np.asarray(self.covariance, dtype=float)
+            raw = np.asarray(self.covariance)
+            if np.iscomplexobj(raw):
+                return None
+            C = np.asarray(raw, dtype=float)
         except (TypeError, ValueError, OverflowError):
             return None
-        if C.shape != (3, 3) or not np.all(np.isfinite(C)):
+        if C.shape != (3, 3) or not np.all(np.isfinite(C)) or not is_covariance(C):
+            return None
+        if float(np.abs(C - C.T).max()) > 1e-9 * float(np.abs(C).max()):
             return None
         B = C[:2, :2]
         v = float(np.linalg.eigvalsh(0.5 * B + 0.5 * B.T).max())  # (halved first: a 1e308 block does not overflow)

@@ -218,8 +218,48 @@ def random_rim_box_scenario(rng: np.random.Generator, index: int = 0, calibratio
                             "tilt_if_released": g["tilt"]})
 
 
+def random_board_scenario(rng: np.random.Generator, index: int = 0, calibration: str = "sim") -> Scenario:
+    """One random scene of the cup put down on a board (a cutting board, a tray, a book: 5-25 mm thick, 200-300 mm
+    square, turned to face any direction) on a level table of any material, the cup 10-40 cm up, either simulated
+    sensor. The cup's centre lies 20-150 mm inside the board's edge, the rest of its surroundings on the board. Wholly
+    on the board with ``CLEAR_MARGIN`` (30 mm) to spare past its rim it is clearly safe and must be released (onto the
+    board: the judge measures the fall to it); over the edge (the footprint past it) it must be refused, as a table's
+    edge under the cup; between, either. The sensor, 70 mm beside the cup, often looks at the edge: a step that a
+    3 x 3 grid's plane through two rows of zones reads as a slope. ``labels``: ``support`` (``full`` or ``edge``),
+    ``hazard_clearance`` (m from the footprint's rim to the edge), ``board_height`` (m)."""
+    pc = PlacementConfig()
+    base = SceneConfig()
+    cup = home_cup_position(base)
+    start = float(rng.uniform(0.10, 0.40))
+    mat, kind = _random_material(rng)
+    table: dict[str, Any] = {"tilt": 0.0, "tilt_direction": 0.0, "material": mat,
+                             "center": [float(base.table.center[0]), float(base.table.center[1])]}
+    h = float(rng.uniform(0.005, 0.025))
+    half = float(rng.uniform(0.10, 0.15))
+    a = float(rng.uniform(-math.pi, math.pi))  # the board's edge faces this way from the cup
+    e = float(rng.uniform(0.02, 0.15))  # m from the cup's centre to that edge
+    top = float(cup[2] - start)
+    centre = [float(cup[0] + math.cos(a) * (e - half)), float(cup[1] + math.sin(a) * (e - half)), top + h / 2]
+    board = {"shape": "box", "pos": centre, "size": [half, half, h / 2], "euler": [0.0, 0.0, a],
+             "material": {"albedo": float(rng.uniform(0.3, 1.2))}}
+    sensor = _random_sensor(rng)
+    clearance = e - pc.cup_radius
+    support = "edge" if clearance < 0 else "full"
+    clearly_safe = clearance >= CLEAR_MARGIN and start >= 0.08
+    outcome = "refused" if support != "full" else ("released" if clearly_safe else "any")
+    desc = (f"random board #{index}: {h * 1e3:.1f} mm thick, {2 * half * 1e3:.0f} mm square, its edge {e * 1e3:.0f} mm "
+            f"from the cup's centre ({clearance * 1e3:.0f} mm past the rim) towards {math.degrees(a):.0f} deg, start "
+            f"{start * 100:.0f} cm, {kind} table albedo {mat['albedo']}, sensor {sensor['model']}")
+    return Scenario(name=f"board_{index:04d}", description=desc,
+                    scene={"table": table, "start_height": start, "clutter": [board]}, sensor=sensor,
+                    calibration=calibration, expect=Expectation(outcome=outcome),
+                    labels={"support": support, "clearly_safe": bool(clearly_safe), "hazard": "board edge",
+                            "hazard_clearance": clearance, "board_height": h})
+
+
 #: The kinds of random scenes ``place-safe scenarios --random N --kind K`` draws.
-RANDOM_KINDS = {"tables": random_scenario, "low-boxes": random_low_box_scenario, "rim-boxes": random_rim_box_scenario}
+RANDOM_KINDS = {"tables": random_scenario, "low-boxes": random_low_box_scenario, "rim-boxes": random_rim_box_scenario,
+                "boards": random_board_scenario}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -459,5 +499,5 @@ def plot(rows: list[dict], path: str) -> str:
     return path
 
 
-__all__ = ["random_scenario", "random_low_box_scenario", "random_rim_box_scenario", "RANDOM_KINDS", "judge", "run_one", "run_many", "summarize", "format_table", "plot", "budget_table",
+__all__ = ["random_scenario", "random_low_box_scenario", "random_rim_box_scenario", "random_board_scenario", "RANDOM_KINDS", "judge", "run_one", "run_many", "summarize", "format_table", "plot", "budget_table",
            "CLEAR_MARGIN", "TILT_MARGIN"]

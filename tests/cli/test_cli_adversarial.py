@@ -36,6 +36,15 @@ OPTIONS = [
     (["calibrate", "--sim", "nominal"], "--frames", int, 8, 1000, False),
     (["demo"], "--frames", int, 1, 100000, False),
     (["demo"], "--seed", int, 0, math.inf, False),
+    # counts and sizes that ran for ever at a 20-digit value (an adversarial round, session 73)
+    (["bench", "contact"], "--cycles", int, 1, 100_000_000, False),
+    (["bench", "contact"], "--descents", int, 0, 100_000, False),
+    (["bench", "contact"], "--touch-trials", int, 0, 100_000, False),
+    (["bench", "contact"], "--height", float, 0.0, 2.0, True),
+    (["bench", "contact"], "--stiffness", float, 0.0, 1e8, True),
+    (["bench", "contact"], "--jobs", int, 1, 64, False),
+    (["bench", "robot", "--fake"], "--seconds", float, 0.0, 3600.0, True),
+    (["bench", "robot", "--fake"], "--cycles", int, 1, 100_000_000, False),
 ]
 SIM_OPTIONS = [
     (["sim", "render"], "--width", int, 16, 4096, False),

@@ -104,8 +104,11 @@ def test_persistent_change_restarts_the_window():
     assert filt.fused().offset_base == pytest.approx(0.32 - 0.30)
 
 
-@pytest.mark.parametrize("bad", ["none", "nan_pose", "nan_stamp", "shape", "not_rigid"])
+@pytest.mark.parametrize("bad", ["none", "nan_pose", "nan_stamp", "shape", "not_rigid", "huge_stamp", "text_stamp",
+                                 "far_pose"])
 def test_no_plane_and_nan_inputs_are_rejected(bad):
+    """Also a stamp no float holds (10**400: it raised OverflowError), a stamp of text ("5" was taken as 5 s) and a
+    pose beyond any arm's reach (1e15 m: its floats lose the footprint, an adversarial round's release over an edge)."""
     T = looking_down([-0.5, -0.1, 0.32])
     p = PlaneEstimate(Plane(np.array([0, 0, 1.0]), 0.37))
     filt = PlaneFilter(min_frames=1)
@@ -120,6 +123,15 @@ def test_no_plane_and_nan_inputs_are_rejected(bad):
         ok = filt.update(p, T, float("nan"))
     elif bad == "shape":
         ok = filt.update(p, np.eye(3), 0.0)
+    elif bad == "huge_stamp":
+        ok = filt.update(p, T, 10 ** 400)
+    elif bad == "text_stamp":
+        ok = filt.update(p, T, "5")
+    elif bad == "far_pose":
+        T2 = T.copy()
+        T2[0, 3] = 1e15
+        ok = filt.update(p, T2, 0.0)
+        assert "reach" in filt.last_reject_reason
     else:
         ok = filt.update(p, 2 * T, 0.0)
     assert not ok
@@ -493,3 +505,20 @@ def test_the_fused_plane_lists_each_planes_normal_and_the_rejected_planes_pendin
         f.update(table, T, 0.05 * i)
     assert not f.update(box, T, 0.2) and not f.update(box, T, 0.25) and f.update(box, T, 0.3)  # the window restarts
     assert f.fused() is None or f.fused().pending == ()
+
+
+@pytest.mark.parametrize("cov", [
+    np.diag([1e-6, -1e-3, 1e-6]),                                   # a negative variance
+    np.array([[1e-6, 1.0, 0.0], [-1.0, 1e-6, 0.0], [0.0, 0.0, 1e-6]]),  # lopsided: its symmetric part hides the +-1
+    np.diag([1e-6, 1e-6, 1e-6]) + 1j * np.eye(3),                   # complex
+    np.zeros((3, 3)),                                               # no variance at all
+    np.diag([1e-6, 1e-6, 10 ** 400]).astype(object),                # an offset variance no float holds
+])
+def test_a_covariance_that_is_none_states_no_uncertainty(cov):
+    """Each was used as a valid covariance (a release "+- 0.02 deg" on a negative variance; OverflowError on 10**400):
+    now the estimate counts as one without a covariance, as NaN does."""
+    est = PlaneEstimate(Plane(np.array([0, 0, 1.0]), 0.37), covariance=cov)
+    assert est.tilt_std() is None
+    filt = PlaneFilter(min_frames=1)
+    assert filt.update(est, looking_down([-0.5, -0.1, 0.32]), 0.0)
+    assert math.isnan(filt._items[-1][3])  # no direction variance: weighed as the least certain plane

@@ -287,3 +287,99 @@ def test_an_integer_beyond_any_float_is_a_bad_value_not_an_internal_error(what, 
     res = loop.run(timeout=15.0)
     _check_safe(robot, res)
     assert "internal error" not in res.reason, res.reason
+
+
+class Unreadable:
+    """A fault report whose ``str`` fails."""
+
+    def __str__(self) -> str:
+        raise RuntimeError("str")
+
+
+class GarbledEstimator(TruthEstimator):
+    """A TruthEstimator whose estimates, from the first on, carry ``field = value`` (set on the estimate as returned)."""
+
+    def __init__(self, field: str, value) -> None:
+        super().__init__()
+        self.field, self.value = field, value
+
+    def estimate(self, frame):
+        est = super().estimate(frame)
+        if self.field == "covariance":
+            cov = np.array(est.covariance, dtype=object)
+            cov[2, 2] = self.value
+            est.covariance = cov
+        else:
+            setattr(est, self.field, self.value)
+        return est
+
+
+@pytest.mark.parametrize("case", ["seconds-none", "seconds-huge", "seconds-text", "plane-text", "covariance-huge",
+                                  "fault-array", "fault-unreadable"])
+def test_values_an_estimator_or_robot_hands_back_are_never_an_internal_error(case):
+    """Returned (not raised) garbage: an estimate whose ``seconds`` is None, 10**400 or text, whose plane is text, whose
+    covariance holds 10**400; a robot whose ``fault()`` is an array or an object whose ``str`` fails. Each ended
+    "internal error: ..." (the frame log's float(), plane.to_dict(), the offset's float(), ``bool(array)``): now the
+    frame's plane is used or dropped, or the fault is said, and the run ends safe with a reason (an adversarial round)."""
+    robot = KinematicRobot(height=0.05)
+    estimator = TruthEstimator()
+    field, _, what = case.partition("-")
+    if field in ("seconds", "plane", "covariance"):
+        value = {"none": None, "huge": 10 ** 400, "text": "1 ms"}[what]
+        estimator = GarbledEstimator(field, "level" if field == "plane" else value)
+    else:
+        robot.fault = lambda: np.array([1, 2]) if what == "array" else Unreadable()
+    loop = PlacementLoop(robot, TruthSource(robot), estimator, config=CFG, read_bound=BOUND, log_frames=True)
+    res = loop.run(timeout=15.0)
+    _check_safe(robot, res)
+    assert "internal error" not in res.reason, res.reason
+    if field == "fault":
+        assert res.outcome != "released" and "robot fault: an unreadable fault report" in res.reason
+    if field == "seconds":  # the plane itself is good: the placement goes on
+        assert res.outcome == "released"
+
+
+def test_a_pose_beyond_any_arms_reach_is_bad_robot_state_not_a_release():
+    """A robot that reports its TCP 1e15 m away (a finite, rigid pose) while the cup hangs half over a table's edge: the
+    surface map's floats lost the footprint there and the cup was released over the edge (an adversarial round). A pose
+    farther than MAX_REACH from the base is now robot state that cannot be trusted: held, refused, said."""
+    from place_safe.geometry import MAX_REACH
+
+    robot = KinematicRobot(height=0.08)
+    x_cup = float((robot.T @ robot.tool.tcp_T_cup)[0, 3])
+
+    class TruePoseSource(TruthSource):  # the sensor measures from where the arm really is
+        def _measure(self, t):
+            reported, robot.tcp_pose = robot.tcp_pose, lambda: robot.T.copy()
+            try:
+                return super()._measure(t)
+            finally:
+                robot.tcp_pose = reported
+
+    source = TruePoseSource(robot, hole=lambda x, y: x > x_cup - 0.02)
+
+    def far():
+        T = robot.T.copy()
+        T[0, 3] += 1e15
+        return T
+
+    robot.tcp_pose = far
+    res = PlacementLoop(robot, source, TruthEstimator(), config=CFG, read_bound=BOUND).run(timeout=15.0)
+    _check_safe(robot, res)
+    assert res.outcome != "released" and f"beyond any arm's reach (> {MAX_REACH:g} m)" in res.reason
+
+
+def test_readings_beyond_any_touch_or_clock_are_said_in_a_short_line():
+    """A force of 1e308 N was taken as a touch and printed with 300 digits; a frame 1e308 s old was "stale: frame
+    measured 1000...0 s ago". Now the force is robot state that cannot be trusted, and both reasons are short."""
+    from place_safe.io.pipeline import FrameGate
+    from place_safe.placement.machine import MAX_FORCE_READING, RobotState
+
+    T = np.eye(4)
+    assert RobotState(0.0, T, T, contact_force=0.5 * MAX_FORCE_READING).problem() is None
+    why = RobotState(0.0, T, T, contact_force=1e308).problem()
+    assert why == f"robot contact force 1e+308 N is no reading of a touch (> {MAX_FORCE_READING:g} N)"
+    stale = FrameGate(max_age=0.5).check(-1e308, 0.0)
+    assert stale == "stale: frame measured 1e+308 s ago (> 0.50 s)"
+    assert FrameGate(max_age=0.5).check(-0.75, 0.0) == "stale: frame measured 0.750 s ago (> 0.50 s)"
+

@@ -157,6 +157,34 @@ def test_rim_box_scenes_straddle_the_rim_and_are_labelled_from_their_geometry():
                                                                0.0022157228095266257], rel=1e-12)
 
 
+def test_board_scenes_put_the_cup_on_a_board_and_are_labelled_from_their_geometry():
+    """--kind boards: the cup's centre over a level board 5-25 mm thick, its edge 20-150 mm away; the cup's footprint
+    past the edge must be refused, CLEAR_MARGIN inside it released (onto the board), the rest either."""
+    from place_safe.placement.config import PlacementConfig
+    from place_safe.sim.scenario import home_cup_position
+    from place_safe.sim.scene import SceneConfig
+
+    pc, cup = PlacementConfig(), home_cup_position(SceneConfig())
+    rng = np.random.default_rng(3)
+    outcomes = []
+    for i in range(120):
+        sc = suite.random_board_scenario(rng, i)
+        board = sc.scene["clutter"][0]
+        half, a = board["size"][0], board["euler"][2]
+        u = np.array([math.cos(a), math.sin(a)])
+        local = np.array(board["pos"][:2]) - np.asarray(cup[:2])
+        along, across = float(-local @ u), float(local @ np.array([-u[1], u[0]]))
+        edge = half - along  # from the cup's centre to the edge it faces
+        assert 0.02 <= edge <= 0.15 and abs(across) <= 1e-9 and 0.005 <= sc.labels["board_height"] <= 0.025
+        assert board["pos"][2] == pytest.approx(cup[2] - sc.scene["start_height"] + sc.labels["board_height"] / 2)
+        lab = sc.labels
+        assert lab["hazard_clearance"] == pytest.approx(edge - pc.cup_radius)
+        assert (lab["support"] == "edge") == (edge < pc.cup_radius) == (sc.expect.outcome == "refused")
+        assert lab["clearly_safe"] == (edge - pc.cup_radius >= suite.CLEAR_MARGIN) == (sc.expect.outcome == "released")
+        outcomes.append(sc.expect.outcome)
+    assert min(outcomes.count(o) for o in ("refused", "released", "any")) >= 15
+
+
 def test_the_cli_names_every_kind_of_random_scene():
     from place_safe.cli.scenarios import RANDOM_KIND_NAMES
 
