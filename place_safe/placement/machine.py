@@ -200,6 +200,12 @@ PASS_PACE = 1.5
 #: centred on them) before it takes the second look, centred on them: the survey's own passes see them from its
 #: pose again and again, and from there a zone reaching past the footprint may keep raising them.
 DOUBT_PATIENCE = 2.0
+#: s the footprint may be in view from close enough to certify it (over one pass or several) without being certified,
+#: beyond the sensor's latency, before the survey refuses the cup: three frames certify it within half a second even on
+#: a slow bus, and over a step that keeps part of the footprint off the surface the survey went on climbing back to its
+#: pose and descending again for the whole 30 s of the descent (a board's edge 12 mm under the rim: random board 141
+#: of seed 4).
+SURVEY_PATIENCE = 3.0
 #: Arrival gaps of sensor frames over which the machine measures the frame period (median).
 FRAME_GAPS = 8
 #: The quantile of the last ``FRAME_GAPS`` frames' ages at arrival (measurement to arrival, robot clock) that counts
@@ -334,6 +340,7 @@ class PlacementMachine:
         self._hint: str | None = None
         self._survey_share = 0.0  # fraction of this tick's time the survey takes from the descent (the rest: _hint)
         self._view_cap = math.inf  # m/s: the pass-through's limit on the descent this tick (see _pass_speed)
+        self._certify_ticks = 0  # ticks the footprint was in view from the certifying height, not yet certified
         self._passed: float | None = None  # robot time the footprint was last in view from the certifying height
         self._window_t0: float | None = None  # ... and first, in this pass
         self._early_back = False  # the way back began before the certifying frames were in (once only)
@@ -618,6 +625,12 @@ class PlacementMachine:
                 self._view_cap = self._pass_speed(margin, need)
                 if need <= 0:
                     self._passed = now  # frames taken now can certify the footprint
+                    self._certify_ticks += 1
+                    if self._certify_ticks * self.period > SURVEY_PATIENCE + self._latency():
+                        return self._refuse(now, "no support evidence: the cup's footprint was in view from close "
+                                                 f"enough for {self._certify_ticks * self.period:.1f} s and not seen "
+                                                 f"on one surface (certified in {rules.footprint_seen(fp)} of the "
+                                                 f"{cfg.footprint_frames} frames needed)")
                     self._window_t0 = now if self._window_t0 is None else self._window_t0
                     if self._frames_taken(now) and not self._early_back_failed:
                         # enough frames taken over the footprint: start back over the landing spot while

@@ -569,6 +569,42 @@ def test_high_start_moves_over_the_footprint_while_descending():
     assert abs(w.opened_at[0]) <= 0.002
 
 
+@pytest.mark.parametrize("certifies_on", [2, None])
+def test_a_footprint_in_view_from_close_enough_that_never_certifies_ends_in_a_refusal(certifies_on):
+    """The footprint is in view from over it down to 15 cm, and frames from below 22 cm would certify it, but part of it
+    stays off the surface (a board's edge under the rim): the survey hovered, or climbed back to its pose and descended
+    again, for the whole 30 s of the descent (random board 141 of seed 4). SURVEY_PATIENCE in view from close enough
+    refuses it, saying so; a footprint a second pass certifies is released."""
+    from place_safe.placement.machine import SURVEY_PATIENCE
+
+    w = FakeWorld(height=0.4)
+    w.footprint = FootprintVerdict()
+    state = {"passes": 1, "was_in": False}
+
+    def fn(world, m):
+        over, close = world.pos[0] <= -0.05, world.pos[2] <= 0.22
+        inside = over and world.pos[2] >= 0.15
+        if state["was_in"] and not inside:
+            state["passes"] += 1
+        state["was_in"] = inside
+        cap = 5 if certifies_on is not None and (state["passes"] >= certifies_on or world.t > 2.0) else 2
+        seen = min(world.footprint.supported + (1 if inside and close else 0), cap)
+        world.footprint = FootprintVerdict(
+            observed=seen, supported=seen, in_view=inside,
+            look_shift=np.array([min(-0.052 - world.pos[0], 0.0), 0.0, 0.2 - world.pos[2]]),
+            view_margin=world.pos[2] - 0.15 if over else -0.1, certify_margin=world.pos[2] - 0.22)
+        return world.plane()
+
+    m = run(w, plane_fn=fn)
+    if certifies_on is None:
+        assert m.outcome == "refused" and not opened(w), m.decision
+        assert "footprint was in view from close enough for" in m.decision and "2 of the 3" in m.decision
+        refused_at = next(t.time for t in m.log if t.target == Phase.REFUSE)
+        assert SURVEY_PATIENCE < refused_at < SURVEY_PATIENCE + 2.0  # in view from 1.2 s on: not the 30 s timeout
+    else:
+        assert m.outcome == "released", m.decision
+
+
 def test_footprint_problem_refuses_with_its_reason():
     w = FakeWorld(height=0.2)
     w.footprint = FootprintVerdict(observed=4, supported=1, problem="zone 4 over the cup's footprint sees a second "
