@@ -38,9 +38,9 @@ def number(v: Any) -> float | None:
 
 
 def fault_text(fault: Any) -> str | None:
-    """The first non-blank line of what a robot's ``fault()`` said (None: no fault). A false value (None, "", False, 0) is no
-    fault; any other is one, and one that cannot be read (its ``bool`` or ``str`` raises: an array, a broken object)
-    is said to be unreadable, never dropped. At most 200 characters."""
+    """The first non-blank line of what a robot's ``fault()`` said (None: no fault). A false value (None, "", False,
+    0) is no fault; any other is one, and one that cannot be read (its ``bool`` or ``str`` raises: an array, a broken
+    object) is said to be unreadable, never dropped. At most 200 characters."""
     try:
         if not fault:
             return None
@@ -582,7 +582,8 @@ def clearance_floor(plane: FusedPlane, post: list[float], cfg: Any) -> float:
     return -min(cfg.release_clearance, z * math.sqrt(1.0 / info))
 
 
-__all__ = ["fault_text", "degrees_text", "number", "too_close", "plane_problem", "sensor_problem", "planar_problem", "tilt_problem",
+__all__ = ["fault_text", "degrees_text", "number", "too_close", "plane_problem", "sensor_problem", "planar_problem",
+           "tilt_problem",
            "tilt_sigma", "confidence_margin", "level_problem", "confidently_tilted", "footprint_problem",
            "footprint_seen", "check_frames_needed", "post_stop_stamps", "still_problem", "slope_still_problem",
            "rest_tilt_problem", "newest_plane_problem", "pending_problem", "most_check_frames",
