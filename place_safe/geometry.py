@@ -140,6 +140,18 @@ def is_rotation(r: np.ndarray, tol: float = ROTATION_TOL) -> bool:
     return a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g) > 0
 
 
+def finite_number(v: Any) -> float | None:
+    """``v`` as a finite float, or None (bools, strings, NaN, inf, integers beyond any float and arrays are not
+    numbers here): the one test of a time stamp, a force or a reading a robot, a clock or a frame hands over."""
+    if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
+        return None
+    try:
+        v = float(v)
+    except OverflowError:  # an int too large for a float
+        return None
+    return v if math.isfinite(v) else None
+
+
 #: m: no pose of the arm's flange, tool or sensor lies farther than this from its base along any axis (a UR5 reaches
 #: 0.85 m, the largest UR 1.75 m). A pose beyond it is not a robot's: at 1e15 m a float's step is 0.125 m, and the
 #: footprint's geometry collapsed there into a release over a table's edge (an adversarial round, session 73).

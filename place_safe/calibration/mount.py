@@ -291,9 +291,9 @@ def flange_poses(frames: Sequence[Any], use_kinematics: bool = True, kinematics:
             out.append(kin.base_T_flange(_joint_angles(extra["joint_angles"], i)))
         elif extra.get("pose") is not None:
             T = extra["pose"]
-            if (why := transform_problem(T)) is not None or np.abs(np.asarray(T, dtype=float)[:3, 3]).max() > MAX_REACH:
-                raise FlangePoseError(f"frame {i}: pose {why or f'is farther than {MAX_REACH:g} m from the base'}; "
-                                      "expected the flange's rigid base-frame transform (m)", "bad pose")
+            if (why := transform_problem(T, reach=MAX_REACH)) is not None:
+                raise FlangePoseError(f"frame {i}: pose {why}; expected the flange's rigid base-frame transform (m)",
+                                      "bad pose")
             out.append(np.asarray(T, dtype=float))
         else:
             raise FlangePoseError(f"frame {i} has neither joint_angles nor pose; the capture cannot fit a mount",

@@ -85,7 +85,7 @@ import numpy as np
 from place_safe.exceptions import NoPlaneError
 from place_safe.recovery.estimator import reference_tilt_problem
 from place_safe.recovery.too_close import TOO_CLOSE_REASON
-from place_safe.geometry import MAX_REACH, Plane, transform_problem
+from place_safe.geometry import MAX_REACH, Plane, finite_number, transform_problem
 
 #: Huber constant in robust sigmas (95 % efficiency for Gaussian noise).
 HUBER_K = 1.345
@@ -290,15 +290,11 @@ class PlaneFilter:
             return False
         if not isinstance(plane, Plane):
             return self._reject(f"not a Plane: {type(plane).__name__}")
+        if (seconds := finite_number(stamp)) is None:
+            return self._reject(f"bad input: timestamp is not a finite number of seconds ({type(stamp).__name__})")
+        stamp = seconds
         try:
-            if isinstance(stamp, (bool, str, bytes)) or not isinstance(stamp, (int, float, np.integer, np.floating)):
-                raise TypeError(f"timestamp is not a number of seconds ({type(stamp).__name__})")
-            stamp = float(stamp)
-            if not math.isfinite(stamp):
-                raise ValueError("timestamp is not finite")
             n, _, anchor = plane_to_base(plane, base_T_sensor)
-        except OverflowError:
-            return self._reject("bad input: timestamp is beyond any float")
         except (TypeError, ValueError, NoPlaneError) as exc:
             return self._reject(f"bad input: {exc}")
         if not (np.all(np.isfinite(n)) and np.all(np.isfinite(anchor))):

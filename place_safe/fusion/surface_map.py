@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from place_safe.geometry import MAX_REACH
+from place_safe.geometry import MAX_REACH, finite_number
 from place_safe.sensor.histogram import measure_floor
 from place_safe.sensor.zones import N_BINS, N_ZONES, zone_numbers
 
@@ -361,11 +361,7 @@ class SurfaceMap:
             return None
         if float(np.abs(T[:3, 3]).max()) > MAX_REACH:  # not a pose of the arm's sensor
             return None
-        if isinstance(stamp, (bool, str, bytes)) or not isinstance(stamp, (int, float, np.integer, np.floating)):
-            return None
-        try:
-            stamp = float(stamp)
-        except OverflowError:
+        if (stamp := finite_number(stamp)) is None:
             return None
         # the shape tests look from each return's maximum, not the calibrated reading: a centroid moves towards
         # a nearer surface mixed into the return, the very shoulder the early test looks for

@@ -48,8 +48,7 @@ from place_safe.fusion.plane_filter import PlaneFilter
 from place_safe.fusion.surface_map import CONSENSUS_RELATIVE, MIN_INLIERS, FootprintVerdict, SurfaceMap
 from place_safe.geometry import Plane
 from place_safe.io.pipeline import (INTERRUPTS, PLACEMENT_POLICY, READ_BOUND, FrameGate, Measurement, SensorPipeline,
-                                    stamp_of,
-                                    clock_domain_of, describe_exception, is_interrupt_here)
+                                    clock_domain_of, describe_exception, is_interrupt_here, stamp_of)
 from place_safe.io.source import FrameSource
 from place_safe.placement import rules
 from place_safe.placement.config import PlacementConfig

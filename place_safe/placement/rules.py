@@ -21,20 +21,9 @@ import numpy as np
 from scipy.stats import chi2 as _chi2
 
 from place_safe.fusion.plane_filter import FusedPlane
+from place_safe.geometry import finite_number as number  # (rules.number: the placement's name for it)
 from place_safe.geometry import rotation_angle_between
 from place_safe.recovery.too_close import TOO_CLOSE_REASON
-
-
-def number(v: Any) -> float | None:
-    """``v`` as a finite float, or None (bools, strings, NaN, inf, integers beyond any float and arrays are not
-    numbers here)."""
-    if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
-        return None
-    try:
-        v = float(v)
-    except OverflowError:  # an int too large for a float
-        return None
-    return v if math.isfinite(v) else None
 
 
 def fault_text(fault: Any) -> str | None:

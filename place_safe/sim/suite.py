@@ -136,6 +136,17 @@ def random_scenario(rng: np.random.Generator, index: int = 0, calibration: str =
                             "hazard_clearance": None if math.isinf(clearance_to_hazard) else clearance_to_hazard})
 
 
+def _level_table(rng: np.random.Generator) -> tuple[np.ndarray, float, dict[str, Any], str, dict[str, Any]]:
+    """The start of a scene on a level table of any material: (the cup's home position, its start height 10-40 cm
+    above the table, the material, its kind, the scene's ``table`` section). Draws the start, then the material."""
+    base = SceneConfig()
+    start = float(rng.uniform(0.10, 0.40))
+    mat, kind = _random_material(rng)
+    table: dict[str, Any] = {"tilt": 0.0, "tilt_direction": 0.0, "material": mat,
+                             "center": [float(base.table.center[0]), float(base.table.center[1])]}
+    return home_cup_position(base), start, mat, kind, table
+
+
 def _random_box(rng: np.random.Generator, half_height: tuple[float, float], reach: tuple[float, float]
                 ) -> tuple[dict[str, Any], dict[str, Any]]:
     """A level table with one axis-aligned box (``half_height`` m drawn from the range, 30-80 mm across) whose near
@@ -146,12 +157,7 @@ def _random_box(rng: np.random.Generator, half_height: tuple[float, float], reac
     (``clutter`` under the footprint, else ``full``), ``tilt`` (rad: the cup released on the box pivots on its edge
     until its far rim meets the table, ``atan(h / (r + reach_in))``; 0 outside the footprint), ``sensor``)."""
     pc = PlacementConfig()
-    base = SceneConfig()
-    cup = home_cup_position(base)
-    start = float(rng.uniform(0.10, 0.40))
-    mat, kind = _random_material(rng)
-    table: dict[str, Any] = {"tilt": 0.0, "tilt_direction": 0.0, "material": mat,
-                             "center": [float(base.table.center[0]), float(base.table.center[1])]}
+    cup, start, mat, kind, table = _level_table(rng)
     hz = float(rng.uniform(*half_height))
     hx, hy = float(rng.uniform(0.015, 0.04)), float(rng.uniform(0.015, 0.04))
     a = float(rng.uniform(-math.pi, math.pi))
@@ -228,12 +234,7 @@ def random_board_scenario(rng: np.random.Generator, index: int = 0, calibration:
     3 x 3 grid's plane through two rows of zones reads as a slope. ``labels``: ``support`` (``full`` or ``edge``),
     ``hazard_clearance`` (m from the footprint's rim to the edge), ``board_height`` (m)."""
     pc = PlacementConfig()
-    base = SceneConfig()
-    cup = home_cup_position(base)
-    start = float(rng.uniform(0.10, 0.40))
-    mat, kind = _random_material(rng)
-    table: dict[str, Any] = {"tilt": 0.0, "tilt_direction": 0.0, "material": mat,
-                             "center": [float(base.table.center[0]), float(base.table.center[1])]}
+    cup, start, mat, kind, table = _level_table(rng)
     h = float(rng.uniform(0.005, 0.025))
     half = float(rng.uniform(0.10, 0.15))
     a = float(rng.uniform(-math.pi, math.pi))  # the board's edge faces this way from the cup
