@@ -36,15 +36,33 @@ def _read_text(path: str | Path, what: str, error: type[Exception]) -> str:
         raise error(f"cannot read {what} from {path}: not UTF-8 text (byte {exc.start})") from None
 
 
+class _DuplicateKey(ValueError):
+    """A key given twice in one JSON object (``args[0]``: the key)."""
+
+
+def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    """A JSON object's dict, refusing a key given twice: Python's reader keeps the last value silently, so a file
+    edited by hand with ``"chi2_limit"`` twice would use whichever came last, unseen."""
+    out: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in out:
+            raise _DuplicateKey(key)
+        out[key] = value
+    return out
+
+
 def read_json(path: str | Path, what: str, error: type[Exception] = ValueError) -> Any:
     """The JSON value in ``path`` (UTF-8, a byte-order mark allowed); raises ``error`` saying why it cannot be read.
 
     Every way a file can be unreadable (missing, not UTF-8, not JSON, nested too deeply, an integer too
-    long) is one line naming the file.
+    long, a key given twice in one object) is one line naming the file.
     """
     text = _read_text(path, what, error)
     try:
-        return json.loads(text)
+        return json.loads(text, object_pairs_hook=_unique_keys)
+    except _DuplicateKey as exc:
+        raise error(f"cannot read {what} from {path}: key {printable(str(exc.args[0]))[:40]!r} appears twice in one "
+                    "object (which value was meant?)") from None
     except json.JSONDecodeError as exc:
         raise error(f"cannot read {what} from {path}: not JSON ({exc.msg} at line {exc.lineno})") from None
     except RecursionError:

@@ -162,6 +162,9 @@ class Calibration:
         as is a ``scale`` below :data:`~place_safe.recovery.estimator.MIN_SCALE`: either makes every plane of the method
         more certain than its calibration frames showed, and placement's rules trust these covariances."""
         sec = self._section("uncertainty") or {}
+        if (bad := next((k for k in sec if k not in REQUIRED_SECTIONS), None)) is not None:
+            raise CalibrationError(f"uncertainty section: {str(bad)[:40]!r} is not a method family; expected some of "
+                                   f"{', '.join(REQUIRED_SECTIONS)}")
         try:
             if method is None:
                 return {k: _entry(v, k) for k, v in sec.items()}

@@ -266,6 +266,8 @@ class PlacementLoop:
         self._last_age: float | None = None  # s, from its measurement to its arrival (a frame the gate passed)
         self._note: str | None = None
         self._cmd_error: str | None = None
+        self._clock_error: str | None = None  # the host clock's first failure (_host_now); the placement ends on it
+        self._host_last: float | None = None  # its newest good reading (s)
         self._t_start: float | None = None
         self._started = False
 
@@ -283,6 +285,30 @@ class PlacementLoop:
                 raise
             return math.nan
         return t
+
+    def _host_now(self) -> float | None:
+        """The host clock's reading (s), or None when it failed: raised, gave no finite number, or stepped back. The
+        sensor's frames are timed by it (the pipeline's arrivals and read bound, host-stamped frames on the robot's
+        clock), so the first failure is kept in ``_clock_error`` and :meth:`_tick` ends the placement on it, naming the
+        clock (it was read as frames "unstamped", "stale" or "future", or an internal error when it raised)."""
+        try:
+            value = self.host_clock()
+        except BaseException as exc:
+            if is_interrupt_here(exc):
+                raise
+            why = f"raised {describe_exception(exc)}"
+        else:
+            t = rules.number(value)
+            if t is None:
+                why = f"gave {describe(value)}, not a finite number of seconds"
+            elif self._host_last is not None and t < self._host_last:
+                why = f"stepped back {self._host_last - t:.3g} s"
+            else:
+                self._host_last = t
+                return t
+        if self._clock_error is None:
+            self._clock_error = f"host clock failed: it {why}; the sensor's frames cannot be timed"
+        return None
 
     def _safe(self, fn: Callable[[], Any], default: Any) -> Any:
         try:
@@ -542,7 +568,8 @@ class PlacementLoop:
             self._landing_T_cup = landing if np.all(np.isfinite(landing)) else None
         except Exception:
             self._landing_T_cup = None
-        self.clock.observe(now, self.host_clock())
+        if (host := self._host_now()) is not None:
+            self.clock.observe(now, host)
 
     def tick(self) -> Any:
         """One control period: advance, sense, fuse, decide, command. Returns the machine's command.
@@ -583,7 +610,11 @@ class PlacementLoop:
         now = self._robot_now()
         tcp = self._safe(self.robot.tcp_pose, np.full((4, 4), np.nan))
         self.history.add(now, tcp)
-        self.clock.observe(now, self.host_clock())
+        if (host := self._host_now()) is not None:
+            self.clock.observe(now, host)
+        if self._clock_error is not None and not self.machine.finished:
+            self._stop_robot()
+            return self.machine.abort(now, self._clock_error)
         force = self._safe(self.robot.contact_force, math.nan)
         if (f := rules.number(force)) is not None:
             self.force_peak = max(self.force_peak, f)

@@ -128,13 +128,17 @@ BAD_SECTIONS = [
     ("forward", {"zone_offsets": [float("nan")] * 9}),
     ("forward", {"edge_gain": -0.5}),
     ("forward", {"bogus": 1.0}),
+    # an entry that is no method family's (a misspelt "diff"): no estimator would read it, and it was accepted silently
+    ("uncertainty", {"dif": {"tilt_std": 0.001, "offset_std": 0.0001}}),
+    ("uncertainty", {"peak": {"tilt_std": 0.001, "offset_std": 0.0001}, "bogus": {}}),
     # a section that is not an object would otherwise read as absent: the built-in constants, silently
     ("peak", None),
     ("proprietary", [72.0, 13.0]),
     ("forward", None),
     ("diff", None),
 ]
-USES = {"peak": {"peak", "diff"}, "proprietary": {"proprietary"}, "forward": {"diff"}, "diff": {"diff"}}
+USES = {"peak": {"peak", "diff"}, "proprietary": {"proprietary"}, "forward": {"diff"}, "diff": {"diff"},
+        "uncertainty": {"peak", "diff"}}
 
 
 @pytest.mark.parametrize("section, content", BAD_SECTIONS)
@@ -158,6 +162,21 @@ def test_unreadable_calibration_files_are_one_line(tmp_path, raw):
     path = tmp_path / "cal.json"
     path.write_bytes(raw)
     with pytest.raises(CalibrationError) as info:
+        Calibration.load(path)
+    assert "\n" not in str(info.value) and str(path) in str(info.value)
+
+
+@pytest.mark.parametrize("raw, key", [
+    ('{"format": "place_safe.calibration/1", "peak": {"m": 72.0, "b": 13.0}, "peak": {"m": 70.0, "b": 12.0}}', "peak"),
+    ('{"format": "place_safe.calibration/1", "uncertainty": {"diff": {"chi2_limit": 3.0, "chi2_limit": 300.0}}}',
+     "chi2_limit"),
+])
+def test_a_key_given_twice_is_refused_naming_it(tmp_path, raw, key):
+    """JSON's reader keeps the last of two equal keys silently: a hand edit that added a second ``chi2_limit`` would
+    be used or not by its place in the file. The file is refused in one line that names the key."""
+    path = tmp_path / "cal.json"
+    path.write_text(raw)
+    with pytest.raises(CalibrationError, match=f"key '{key}' appears twice") as info:
         Calibration.load(path)
     assert "\n" not in str(info.value) and str(path) in str(info.value)
 

@@ -289,6 +289,60 @@ def test_an_integer_beyond_any_float_is_a_bad_value_not_an_internal_error(what, 
     assert "internal error" not in res.reason, res.reason
 
 
+HOST_CLOCK_FAILURES = {
+    "nan": lambda n, t0: float("nan"), "none": lambda n, t0: None, "text": lambda n, t0: "12.5",
+    "inf": lambda n, t0: float("inf"), "complex": lambda n, t0: 1j, "beyond a float": lambda n, t0: 10 ** 400,
+    "back": lambda n, t0: t0 - n, "raises": None}
+
+
+@settings(max_examples=16, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(kind=st.sampled_from(sorted(HOST_CLOCK_FAILURES)), after=st.integers(1, 300), host_stamps=st.booleans())
+def test_a_failing_host_clock_ends_held_and_refused_naming_the_clock(kind, after, host_stamps):
+    """The host clock times the sensor's frames (arrivals, the read bound, host-stamped frames). One that answers no
+    finite number, steps back or raises ends the placement held and refused with the clock named: it was read as
+    frames "unstamped", "stale" or "future" ("no surface plane within 1.5 s"), and as an internal error when it
+    raised. Either kind of source: stamped on the robot's clock or on the host's."""
+    robot = KinematicRobot(height=0.05)
+    calls = {"n": 0}
+    t0 = time.monotonic()
+
+    def clock():
+        calls["n"] += 1
+        if calls["n"] < after:
+            return robot.t + 1000.0
+        if kind == "raises":
+            raise RuntimeError("the clock is gone")
+        return HOST_CLOCK_FAILURES[kind](calls["n"], t0)
+
+    source = TruthSource(robot, clock=lambda: robot.t + 1000.0) if host_stamps else TruthSource(robot)
+    loop = PlacementLoop(robot, source, TruthEstimator(), config=CFG, read_bound=BOUND, host_clock=clock)
+    loop.start()
+    t_end = time.monotonic() + 30.0
+    while not loop.finished and time.monotonic() < t_end:
+        loop.tick()
+        time.sleep(0.0002 if host_stamps else 0.0)
+    loop.pipeline.stop()
+    res = loop.result()
+    _check_safe(robot, res)
+    if res.outcome != "released":  # (a clock that fails only after the release leaves the cup released)
+        assert res.outcome == "refused" and not robot.opened
+        assert "host clock failed" in res.reason and "internal error" not in res.reason, res.reason
+
+
+def test_a_host_clock_that_keeps_time_changes_nothing():
+    """The same check on a clock that only moves forward (or stands still for a tick) lets the placement release."""
+    robot = KinematicRobot(height=0.05)
+    ticks = {"n": 0}
+
+    def clock():
+        ticks["n"] += 1
+        return robot.t + 1000.0 + (ticks["n"] // 2) * 1e-9  # equal readings in pairs: standing still is not back
+
+    res = PlacementLoop(robot, TruthSource(robot), TruthEstimator(), config=CFG, read_bound=BOUND,
+                        host_clock=clock).run(timeout=15.0)
+    assert res.outcome == "released", res.reason
+
+
 class Unreadable:
     """A fault report whose ``str`` fails."""
 
