@@ -76,7 +76,7 @@ import numpy as np
 
 from place_safe.evaluation.metrics import angular_errors, nees, point_errors  # noqa: F401 (nees: re-exported)
 from place_safe.recovery.estimator import MAX_SCALE, MIN_SCALE, NEAR_MAX_STD, PlaneEstimate, Uncertainty, tilt_offset
-from place_safe.recovery.too_close import OVERLAP_RANGE, TOO_CLOSE_REASON
+from place_safe.recovery.too_close import OVERLAP_RANGE, TOO_CLOSE_REASON, plane_overlap_reason
 from place_safe.sensor.frame import Frame
 from place_safe.calibration.near_range import held_out_fits, near_range_std
 from place_safe.calibration.forward_fit import CROSSTALK_LEFT_SHARE, crosstalk_traded
@@ -1076,6 +1076,8 @@ def _near_row(frame: Frame, params, end: float) -> tuple | None:
     if not points[valid, 2].min() < end:
         return None
     plane, _ = plane_through(points, valid)
+    if plane_overlap_reason(points, valid, plane.offset) is not None:  # as PeakEstimator: no plane in the overlap
+        return None
     m = (float(interpolation_measure(np.median(points[valid, 2]), params.near_depths)) if params.near_depths
          else None)
     return points, valid, plane, tilt_offset(plane) - tilt_offset(frame.truth), m

@@ -24,7 +24,8 @@ Per zone, vectorised over zones (and over frames in :func:`place_safe.sensor.his
    the SVD least-squares fit of the zones with a return (3 or more needed).
 
 A frame whose return overlaps the internal return (:func:`~place_safe.recovery.too_close.overlap_reason`: the
-zones' median range within the pulse's half width, or a dark centre zone closer than 3 cm) gives no plane
+zones' median range within the pulse's half width, or a dark centre zone closer than 3 cm; or the calibrated plane
+itself within that half width: :func:`~place_safe.recovery.too_close.plane_overlap_reason`) gives no plane
 and the reason ``"too close: the return overlaps the internal return (...)"``.
 
 ``residual`` of the estimate: RMS perpendicular distance (m) of the zone points from the plane;
@@ -52,7 +53,7 @@ from place_safe.sensor.frame import N_BINS, N_ZONES, Frame
 from place_safe.recovery.estimator import Estimator, PlaneEstimate, Uncertainty, check_arguments
 from place_safe.recovery.points import (PeakParams, PlaneFitGeometry, known_error_covariance, plane_covariance,
                                        plane_fit_geometry, plane_through)
-from place_safe.recovery.too_close import may_be_close, overlap_reason
+from place_safe.recovery.too_close import may_be_close, overlap_reason, plane_overlap_reason
 from place_safe.sensor.histogram import COUNT_MAX, find_peaks, find_returns
 from place_safe.sensor.zones import zone_numbers
 
@@ -125,6 +126,8 @@ class PeakEstimator(Estimator):
     def _estimate(self, frame: Frame) -> PlaneEstimate:
         points, valid = self.zone_points(frame)
         plane, rms = plane_through(points, valid)
+        if (too_close := plane_overlap_reason(points, valid, plane.offset)) is not None:
+            raise NoPlaneError(too_close)
         return PlaneEstimate(plane, residual=rms, covariance=self.covariance(points, valid, plane),
                              method_used=self.name)
 

@@ -35,7 +35,7 @@ from place_safe.recovery.points import MM_PER_M, PeakParams, plane_covariance, p
 from place_safe.exceptions import FrameError, NoPlaneError
 from place_safe.sensor.frame import MAX_CONFIDENCE, MAX_SENSOR_DISTANCE, MIN_SENSOR_DISTANCE, N_ZONES, Frame, real_array
 from place_safe.recovery.estimator import Estimator, PlaneEstimate, check_arguments
-from place_safe.recovery.too_close import may_be_close, overlap_reason
+from place_safe.recovery.too_close import may_be_close, overlap_reason, plane_overlap_reason
 
 #: Reading units (mm): standard deviation of rounding to the sensor's whole millimetres (a uniform step of 1 mm).
 READING_STEP_STD = 1.0 / math.sqrt(12.0)
@@ -92,7 +92,10 @@ class ProprietaryEstimator(Estimator):
                 raise NoPlaneError(too_close)
         points = self.params.points(dist * MM_PER_M)
         plane, rms = plane_through(points, valid)
-        return PlaneEstimate(plane, residual=rms, covariance=self.covariance(points, valid, plane))
+        cov = self.covariance(points, valid, plane)  # (first: a plane along the optical axis says so)
+        if (too_close := plane_overlap_reason(points, valid, plane.offset)) is not None:
+            raise NoPlaneError(too_close)
+        return PlaneEstimate(plane, residual=rms, covariance=cov)
 
     def covariance(self, points: np.ndarray, valid: np.ndarray, plane) -> np.ndarray:
         """The stated covariance (3, 3, symmetric) of ``(n_x, n_y, d)`` of ``plane`` fitted through the zone

@@ -93,5 +93,24 @@ def overlap_reason(ranges: np.ndarray, valid: np.ndarray, heights: np.ndarray | 
     return None
 
 
+def plane_overlap_reason(points: np.ndarray, valid: np.ndarray, offset: float) -> str | None:
+    """:data:`TOO_CLOSE_REASON` when the plane read through a frame's zone ``points`` (9, 3; m) in ``valid`` (9,)
+    lies closer to the sensor than :data:`OVERLAP_RANGE` (``offset``, m) while a zone used reads within
+    :data:`SCREEN_RANGE`; else None. The first-pass test (:func:`overlap_reason`) sees the far-range mapping's
+    ranges; the calibrated mapping (each zone's offset and gain, the near-range table) can still put the plane
+    inside the overlap, where no reading is one: zones that all show the internal return at one bin map to ranges
+    of 8-30 mm and a plane 6-7 mm away tilted 68-70 deg (an adversarial round, session 74, with the real sweep's
+    and both simulated sensors' calibrations; one of them stated it to 1.6 deg). Either the plane is right and the
+    surface lies in the overlap, or it is wrong: no plane either way."""
+    v = np.asarray(valid, dtype=bool)
+    if not (offset < OVERLAP_RANGE) or not v.any():
+        return None
+    nearest = float(np.min(np.linalg.norm(np.asarray(points, dtype=float)[v], axis=1)))
+    if not nearest <= SCREEN_RANGE:
+        return None
+    return (f"{TOO_CLOSE_REASON} (the plane read lies {offset * 1e3:.1f} mm from the sensor, within the pulse's "
+            f"{OVERLAP_RANGE * 1e3:.1f} mm of it)")
+
+
 __all__ = ["TOO_CLOSE_REASON", "OVERLAP_RANGE", "DARK_CENTRE_FRACTION", "DARK_CENTRE_RANGE", "SCREEN_RANGE",
-           "may_be_close", "overlap_reason"]
+           "may_be_close", "overlap_reason", "plane_overlap_reason"]

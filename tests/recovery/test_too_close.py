@@ -18,7 +18,7 @@ from place_safe.recovery.estimator import PlaneEstimate
 from place_safe.recovery.peak import PeakEstimator
 from place_safe.recovery.proprietary import ProprietaryEstimator
 from place_safe.recovery.too_close import (CENTRE, DARK_CENTRE_FRACTION, DARK_CENTRE_RANGE, OVERLAP_RANGE,
-                                           TOO_CLOSE_REASON, overlap_reason)
+                                           TOO_CLOSE_REASON, overlap_reason, plane_overlap_reason)
 
 SWEEP = Path(__file__).resolve().parents[1] / "data" / "tmf8820_ur5_sweep.json"
 
@@ -80,6 +80,39 @@ def test_real_frames_below_2cm_are_too_close_and_solved_ones_are_not(halves):
                     if f.truth.z0 >= 0.05:
                         assert math.degrees(angular_error(e.plane, f.truth)) < 1.0
     assert seen == {0.005, 0.0125, 0.02}
+
+
+PACKAGED = Path(__file__).resolve().parents[2] / "sim" / "sensors"
+
+
+def test_a_calibrated_plane_inside_the_overlap_is_too_close(halves):
+    """Zones that all show one return at the same early bin (the internal return alone: nothing beyond the cover
+    glass) pass the first-pass test with a calibration (its zones' offsets and gains spread them to 8-30 mm), and
+    the calibrated plane came out 6-7 mm away, tilted 68-70 deg, stated to 1.6 deg by the mismatched sensor's
+    packaged calibration (an adversarial round, session 74). A plane read inside the overlap is no plane."""
+    from place_safe.calibration import Calibration
+    from place_safe.sensor.frame import Frame
+
+    ref = np.array(json.loads(SWEEP.read_text())[12]["reference_hist"], dtype=float)
+    frames = [Frame(hists=np.tile(ref, (9, 1)), reference=ref),
+              Frame(hists=np.random.default_rng(0).poisson(np.tile(ref * 0.03, (9, 1)) + 100).astype(float),
+                    reference=ref)]
+    estimators = [PeakEstimator(params) for params, _ in halves]
+    for name in ("nominal", "mismatch"):
+        cal = Calibration.load(PACKAGED / f"calibration_{name}.json")
+        estimators += [make_estimator("peak", cal), make_estimator("diff", cal)]
+    for est in estimators:
+        for f in frames:
+            e = est.estimate(f)
+            assert e.plane is None and e.reason.startswith(TOO_CLOSE_REASON), (est.name, e.plane, e.reason)
+
+
+def test_the_plane_test_leaves_planes_beyond_the_overlap_or_far_zones_alone():
+    pts = np.tile([0.0, 0.0, 0.02], (9, 1))
+    assert plane_overlap_reason(pts, np.ones(9, bool), 0.0149) is None
+    assert plane_overlap_reason(pts, np.ones(9, bool), 0.010).startswith(TOO_CLOSE_REASON)
+    assert plane_overlap_reason(pts, np.zeros(9, bool), 0.010) is None
+    assert plane_overlap_reason(pts * 10.0, np.ones(9, bool), 0.010) is None  # every zone 20 cm away: not this test's
 
 
 def test_diff_reports_too_close_and_never_its_own_plane(halves):
