@@ -137,11 +137,41 @@ def _check_outputs(args: argparse.Namespace) -> None:
             continue
         if (why := output_file_problem(value)) is not None:
             raise UsageError(f"{args.command}: --{name.replace('_', '-')} {value} {why}")
+        if (given := _input_named(args, name, value)) is not None:
+            raise UsageError(f"{args.command}: --{name.replace('_', '-')} {value} is also its input ({given}): writing "
+                             "it would destroy what the command reads; choose another file")
         try:
             Path(value).parent.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise UsageError(f"{args.command}: --{name.replace('_', '-')} {value}: cannot make its folder "
                              f"({exc.strerror or exc})") from None
+
+
+#: (output option, input option) pairs where writing the input is the point: ``--write`` rewrites the robot file
+#: with the fitted mount or measured noise and keeps the rest of it (``calibrate-mount``, ``bench robot``)
+IN_PLACE = {("write", "robot")}
+
+
+def _input_named(args: argparse.Namespace, output: str, value: str) -> str | None:
+    """The input (an option's or a positional's file) that is the same file as the output ``value``, as
+    ``"NAME PATH"``, or None. ``evaluate F.json --json F.json`` replaced the frames with the report, ``latency X --json X`` and ``evaluate
+    --calibration C --json C`` alike (an adversarial round, session 74); only an existing file can be one."""
+    import os
+
+    if not os.path.isfile(value):
+        return None
+    for name, given in vars(args).items():
+        if name in OUTPUT_OPTIONS or name in ("func", "command") or (output, name) in IN_PLACE:
+            continue
+        for item in given if isinstance(given, (list, tuple)) else [given]:
+            if isinstance(item, (str, Path)) and str(item) and os.path.isfile(item):
+                try:
+                    same = os.path.samefile(item, value)
+                except OSError:
+                    continue
+                if same:
+                    return f"{name.replace('_', '-').upper()} {item}"
+    return None
 
 
 def mujoco_gl_backends() -> list[str]:

@@ -126,3 +126,50 @@ def test_usage_errors_are_one_line(capsys, argv):
     assert main(argv) == 2
     cap = capsys.readouterr()
     assert len([x for x in cap.err.splitlines() if x.strip()]) == 1 and cap.out == ""
+
+
+@pytest.mark.parametrize("argv", [
+    ["evaluate", "{frames}", "--methods", "peak", "--no-plots", "-q", "--json", "{frames}"],
+    ["evaluate", "{frames}", "--methods", "peak", "--no-plots", "-q", "--calibration", "{cal}", "--json", "{cal}"],
+    ["latency", "{frames}", "--method", "peak", "--json", "{frames}"],
+])
+def test_an_output_that_names_an_input_is_refused_and_the_input_kept(tmp_path, capsys, argv):
+    """``evaluate F.json --json F.json`` replaced the frames with its report (and ``--calibration C --json C`` the
+    calibration, ``latency X --json X`` its input): an adversarial round, session 74. One line, exit 2, the file as
+    it was, even through another path to it."""
+    import json
+    import os
+    from pathlib import Path
+
+    sweep = Path(__file__).resolve().parents[1] / "data" / "tmf8820_ur5_sweep.json"
+    frames, cal = tmp_path / "f.json", tmp_path / "cal.json"
+    frames.write_text(json.dumps(json.loads(sweep.read_text())[10:13]))
+    cal.write_text(json.dumps({"format": "place_safe.calibration/1"}))
+    os.symlink(frames, tmp_path / "link.json")
+    for out in ("same", "link"):
+        words = [w.format(frames=frames, cal=cal) for w in argv]
+        if out == "link":  # the output given by another name of the same file
+            words[-1] = str(tmp_path / "link.json") if words[-1] == str(frames) else words[-1]
+        before = {p: p.read_bytes() for p in (frames, cal)}
+        try:
+            code = main(words)
+        except SystemExit as exc:  # an option the command does not have: argparse's own usage error
+            code = exc.code
+        cap = capsys.readouterr()
+        assert code == 2, words
+        assert len([x for x in cap.err.splitlines() if x.strip()]) == 1, cap.err
+        assert {p: p.read_bytes() for p in (frames, cal)} == before
+
+
+def test_write_may_rewrite_the_robot_file_it_reads(tmp_path):
+    """``--write`` rewrites the robot file with the fitted mount or measured noise and keeps the rest of it: naming
+    the ``--robot`` file there is an update in place, not an input destroyed."""
+    import argparse
+
+    from place_safe.cli.app import _input_named
+
+    robot = tmp_path / "mine.toml"
+    robot.write_text("")
+    args = argparse.Namespace(command="calibrate-mount", robot=str(robot), write=str(robot), json=str(robot))
+    assert _input_named(args, "write", str(robot)) is None
+    assert _input_named(args, "json", str(robot)) == f"ROBOT {robot}"
