@@ -10,7 +10,9 @@ One frame may be at most :data:`MAX_FRAME_BYTES` long and :data:`MAX_DEPTH` leve
 inside one frame (bytes that are not UTF-8, invalid JSON, nesting too deep, a frame too large, an
 integer too long, a value that is not an object) are yielded as a :class:`FrameError` for that
 frame, naming the file and the frame index; only problems with the file's structure (not a list,
-truncated, unreadable) raise :class:`FrameFileError`, after every complete frame before them.
+truncated, unreadable) raise :class:`FrameFileError`, after every complete frame before them. In JSON Lines each
+non-blank line is one item at its line's index: a frame, or an error for the line (a line that ends inside its frame,
+text after the frame on its line); a line end is LF, CR LF or CR.
 
 Leniencies, on purpose: a comma after the last frame (``[{...}, ]``, as hand-edited lists often end) is read as the
 end of the list, not as a frame. An empty list (``[]``, or a JSON Lines file without a frame) is a frame file with no
@@ -52,6 +54,9 @@ _INSIDE = re.compile(rb'["\\]')       # what matters inside a string
 _OUTSIDE_LINES = re.compile(rb'[\[\]{}"\n]')
 _INSIDE_LINES = re.compile(rb'["\\\n]')
 _LINE_BROKEN = "the line ends inside the frame (JSON Lines: one frame per line)"
+_LINE_EXTRA = "text after the frame on its line (JSON Lines: one frame per line)"
+#: JSON Lines: what ends a line (CR alone as well: such files read one frame per line)
+_LINE_END = re.compile(rb"[\r\n]")
 _SCALAR_END = re.compile(rb'[\s,\]\[{}"]')
 #: Fast paths of the walk (one regular-expression match instead of a step per bracket or quote): a list
 #: of numbers or of lists of numbers (a histogram, a pose), a string without escapes, and a run of object
@@ -112,6 +117,11 @@ class _Splitter:
         self.need_sep = False      # a value was completed; a ',' (list) must come before the next
         self.trailing: bytes = b""  # non-whitespace after the end of the list
         self.broken: str | None = None  # what broke the file's structure (no more values after it)
+        # JSON Lines: a completed value waits for its line's end, so text after it on the line makes the line one
+        # error instead of more values (a stray '}' after a frame read as a frame of its own and moved every index)
+        self.pending: tuple[bytes | None, str | None] | None = None
+        self.skipping = False      # JSON Lines: the rest of a line with text after its frame is being passed over
+        self._line_ended = False   # JSON Lines: the value just ended by its line's end (the newline already read)
         self._reset()
 
     def _reset(self) -> None:
@@ -139,11 +149,22 @@ class _Splitter:
         if self.error is None:
             self.error = _LINE_BROKEN
             self.parts = []
+        self._line_ended = True
 
     def _finish(self, out: list) -> None:
-        out.append((None if self.error else b"".join(self.parts), self.error))
+        item = (None if self.error else b"".join(self.parts), self.error)
         self._reset()
         self.need_sep = self.is_list
+        if self.is_list or self._line_ended:
+            out.append(item)
+        else:
+            self.pending = item
+        self._line_ended = False
+
+    def _flush(self, out: list) -> None:
+        if self.pending is not None:
+            out.append(self.pending)
+            self.pending = None
 
     def feed(self, chunk: bytes) -> list[tuple[bytes | None, str | None]]:
         out: list[tuple[bytes | None, str | None]] = []
@@ -154,9 +175,20 @@ class _Splitter:
                 if rest and not self.trailing:
                     self.trailing = rest[:20]
                 return out
+            if self.skipping:  # JSON Lines: up to the end of a line that has text after its frame
+                m = _LINE_END.search(chunk, pos)
+                if m is None:
+                    return out
+                pos, self.skipping = m.start(), False
             if self.kind is None:  # between values
                 if (blank := _BLANKS.match(chunk, pos)) is not None:  # a run of whitespace at once
+                    if self.pending is not None and _LINE_END.search(chunk, pos, blank.end()):
+                        self._flush(out)
                     pos = blank.end()
+                    continue
+                if self.pending is not None:  # JSON Lines: more than the frame on its line: the line is one error
+                    self.pending = (None, _LINE_EXTRA)
+                    self.skipping = True
                     continue
                 c = chunk[pos:pos + 1]
                 if self.is_list and c == b"]":
@@ -261,6 +293,7 @@ class _Splitter:
         out: list[tuple[bytes | None, str | None]] = []
         if self.kind == "scalar":
             self._finish(out)
+        self._flush(out)
         return out
 
     @property

@@ -86,6 +86,29 @@ def test_any_json_entries_give_one_item_each_at_any_chunk_size(tmp_path, monkeyp
             assert isinstance(item, FrameError) and "expected an object" in str(item)
 
 
+@SETTINGS
+@given(lines=st.lists(st.sampled_from(["frame", "frame}", "frame frame", "frame]", "frame x", "frame  ", "}", "x",
+                                       "frame{", "{}{}", "frame 1"]), min_size=1, max_size=6),
+       ending=st.sampled_from(["\n", "\r\n", "\r"]), last=st.booleans(), chunk=st.integers(1, 64))
+def test_json_lines_give_one_item_per_line_and_keep_their_index(tmp_path, monkeypatch, lines, ending, last, chunk):
+    """One item per line, at its line's index: text after a frame on its line makes that line one error. A stray '}'
+    after a frame came out as an item of its own, and every later frame's index moved by one (an adversarial round,
+    session 74); two frames on a line were read as two."""
+    good = json.dumps(_good())
+    text = ending.join(line.replace("frame", good) for line in ["frame"] + lines) + (ending if last else "")
+    path = tmp_path / "e.jsonl"
+    path.write_bytes(text.encode())
+    monkeypatch.setattr(ff, "_CHUNK", chunk)
+    items, err = _read(path)
+    if err is not None:  # only a last line that ends inside its frame is a truncated file
+        assert lines[-1] == "frame{" and not last and "truncated" in str(err), err
+        items.append(None)
+    assert len(items) == len(lines) + 1
+    for item, line in zip(items, ["frame"] + lines):
+        if item is not None:
+            assert _kinds([item]) == (["frame"] if line in ("frame", "frame  ") else ["error"]), (line, item)
+
+
 #: Values whose strings hold brackets, quotes, escapes and line ends, and lists of lists of numbers:
 #: what the walk's fast paths (a whole string, a whole list of numbers) must skip exactly or decline.
 tricky_values = st.recursive(
