@@ -67,8 +67,6 @@ def cmd_synth(args: argparse.Namespace) -> int:
 
     if not args.min_distance < args.max_distance:
         raise UsageError("synth: --min-distance must be below --max-distance")
-    if not 0.0 <= args.max_angle < 80.0:
-        raise UsageError(f"synth: --max-angle must be in [0, 80) degrees, got {args.max_angle:g}")
     z_range = (args.min_distance, args.max_distance)
     theta_range = (0.0, math.radians(args.max_angle))
     if args.generator == "independent":

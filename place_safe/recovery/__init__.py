@@ -18,7 +18,7 @@ import os
 from typing import Any
 
 from place_safe.recovery.estimator import Estimator, PlaneEstimate, Uncertainty
-from place_safe.exceptions import ArgumentTypeError
+from place_safe.exceptions import ArgumentTypeError, ConfigError, PlaceSafeError
 
 METHODS = ("diff", "peak", "peak-naive", "proprietary", "proprietary-naive")
 #: What a calibration answers (:class:`place_safe.calibration.Calibration`, :class:`BuiltInParameters`); ``reference``
@@ -88,7 +88,14 @@ def make_estimator(method: str, calibration: Any = None, **options) -> Estimator
         raise ArgumentTypeError(f"make_estimator: calibration must be a place_safe.calibration.Calibration or None, "
                                 f"got {type(calibration).__name__}{hint}")
     cal = calibration if calibration is not None else BuiltInParameters()
-    est = _made(method, cal, options)
+    try:
+        est = _made(method, cal, options)
+    except PlaceSafeError:
+        raise
+    except TypeError as exc:  # an option the estimator does not take: one line of the package's own kind
+        raise ArgumentTypeError(f"make_estimator({method!r}): {exc}") from None
+    except ValueError as exc:  # an option's value it refuses (diff's mode="x")
+        raise ConfigError(f"make_estimator({method!r}): {exc}") from None
     if not method.endswith("-naive"):  # a naive method uses no calibration, nor its reference
         reference = getattr(cal, "reference", None)  # optional: a task script's own calibration object may lack it
         est.reference_tilt_std = float(reference(method).tilt_std) if callable(reference) else 0.0
@@ -115,7 +122,7 @@ def _made(method: str, cal: Any, options: dict) -> Estimator:
         return DifferentiableEstimator(cal.forward(), cal.peak(), correction=cal.diff(),
                                        uncertainty=cal.uncertainty("diff"), peak_uncertainty=cal.uncertainty("peak"),
                                        **options)
-    raise ValueError(f"unknown method {method!r}; expected one of {', '.join(METHODS)}")
+    raise ConfigError(f"unknown method {method!r}; expected one of {', '.join(METHODS)}")
 
 
 __all__ = ["Estimator", "PlaneEstimate", "METHODS", "make_estimator", "BuiltInParameters"]

@@ -320,6 +320,18 @@ def test_calibrate_refuses_to_clobber_a_foreign_file(tmp_path, sweep_path, capsy
     assert json.loads(out.read_text()) == {"mine": True}
 
 
+def test_calibrate_refuses_a_frame_file_given_twice(tmp_path, sweep_path, capsys):
+    """Each frame would be fitted twice and held out beside its own copy (an adversarial round, session 74); the same
+    file by another path as well."""
+    import os
+
+    os.symlink(sweep_path, tmp_path / "again.json")
+    for second in (str(sweep_path), str(tmp_path / "again.json")):
+        out = tmp_path / "cal.json"
+        assert main(["calibrate", str(sweep_path), second, "--method", "peak", "-o", str(out), "-q"]) == 2
+        assert "given twice" in one_line_error(capsys.readouterr().err) and not out.exists()
+
+
 def test_calibrate_needs_ground_truth(tmp_path, synthetic_frames, capsys):
     entries = [f.to_dict() for f in synthetic_frames[:2]]
     for e in entries:
@@ -426,6 +438,21 @@ def test_evaluate_prints_a_table_and_writes_json(tmp_path, sweep_path, capsys):
     assert "peak" in cap.out and "proprietary" in cap.out and "angular" in cap.out
     assert json.loads(rep.read_text())
     assert any((tmp_path / "plots").glob("*.png"))
+
+
+def test_evaluate_runs_a_method_named_twice_once(tmp_path, sweep_path, capsys):
+    rep = tmp_path / "report.json"
+    assert main(["evaluate", str(sweep_path), "--methods", "peak", "peak", "--no-plots", "--json", str(rep),
+                 "--min-distance", "0.3", "-q"]) == 0
+    out = capsys.readouterr().out
+    assert "peak, peak" not in out and out.count("NEES per dof") == 1  # one row, one line of its NEES
+
+
+def test_synth_takes_its_documented_largest_angle(tmp_path):
+    """``--max-angle`` is documented and parsed as 0..80; 80 itself was then refused ("must be in [0, 80)")."""
+    out = tmp_path / "s.json"
+    assert main(["synth", "--frames", "2", "--max-angle", "80", "-o", str(out)]) == 0
+    assert len(json.loads(out.read_text())) == 2
 
 
 def test_evaluate_says_when_the_calibrations_own_reference_may_be_off(sweep_path, capsys):

@@ -209,3 +209,21 @@ def test_point_methods_are_safe_for_any_accepted_parameters(synthetic_frames, d)
     for est in (PeakEstimator(params), ProprietaryEstimator(params)):
         for f in synthetic_frames[:3]:
             assert_safe(est.estimate(f))
+
+
+@pytest.mark.parametrize("args, kwargs, kind", [
+    (("foo",), {}, "ConfigError"),
+    (("PEAK",), {}, "ConfigError"),
+    (("peak",), {"foo": 1}, "ArgumentTypeError"),
+    (("diff",), {"mode": "x"}, "ConfigError"),
+    ((None,), {}, "ArgumentTypeError"),
+])
+def test_make_estimator_refuses_a_method_or_option_in_one_line_of_the_packages_kind(args, kwargs, kind):
+    """A task script's mistake in the method or an option is one line of place_safe's own errors (a plain ValueError
+    or TypeError before: an adversarial round, session 74), still a ValueError or a TypeError for older callers."""
+    from place_safe.exceptions import PlaceSafeError
+
+    with pytest.raises(PlaceSafeError) as info:
+        make_estimator(*args, **kwargs)
+    assert type(info.value).__name__ == kind and "\n" not in str(info.value)
+    assert isinstance(info.value, ValueError if kind == "ConfigError" else TypeError)
