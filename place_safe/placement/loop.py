@@ -612,9 +612,6 @@ class PlacementLoop:
         self.history.add(now, tcp)
         if (host := self._host_now()) is not None:
             self.clock.observe(now, host)
-        if self._clock_error is not None and not self.machine.finished:
-            self._stop_robot()
-            return self.machine.abort(now, self._clock_error)
         force = self._safe(self.robot.contact_force, math.nan)
         if (f := rules.number(force)) is not None:
             self.force_peak = max(self.force_peak, f)
@@ -629,11 +626,19 @@ class PlacementLoop:
             self._stop_robot()  # a robot that cannot report its state may still move: stop it ourselves
         elif rules.fault_text(fault) is None:
             fault = self._cmd_error or None
+        if self._clock_error is not None and not self.machine.finished:
+            self._stop_robot()  # (after the robot's own report, which the reason keeps)
+            told = "no report" if fault is _NO_ANSWER else rules.fault_text(fault)
+            return self.machine.abort(now, self._clock_error + (f"; robot fault: {told}" if told else ""))
         try:
             cup = np.asarray(tcp, dtype=float) @ self._tcp_T_cup
         except Exception:
             cup = np.full((4, 4), np.nan)
-        state = RobotState(now, tcp, cup, force, fault, self._last_arrival, self._last_age)
+        try:
+            sensor = np.asarray(tcp, dtype=float) @ self._tcp_T_sensor
+        except Exception:
+            sensor = np.full((4, 4), np.nan)
+        state = RobotState(now, tcp, cup, force, fault, self._last_arrival, self._last_age, sensor)
         fused = self.filter.fused(now) if math.isfinite(now) else None
         cmd = self.machine.step(state, fused, note, self._footprint_verdict(fused, tcp))
         self._dispatch(cmd)

@@ -124,6 +124,9 @@ class RobotState:
     fault: str | None = None
     last_frame_time: float | None = None  # s, when the newest sensor frame (accepted or not) arrived
     last_frame_age: float | None = None  # s, from that frame's measurement to its arrival (None: not known)
+    # 4x4, the sensor's pose (None: not known; the loop always gives it): a frame too close to read is believed only
+    # with the sensor itself that close to the fused plane (TOO_CLOSE_SENSOR_RANGE)
+    base_T_sensor: np.ndarray | None = None
 
     def problem(self) -> str | None:
         """Why this state cannot be trusted (fault, malformed or non-finite values), or None."""
@@ -149,6 +152,11 @@ class RobotState:
 #: N: no contact force an arm this size can read (a UR5 carries 5 kg; its joints stall at a few hundred newtons); a
 #: larger reading is a broken estimate, refused as robot state, not taken as a touch 1e308 N strong.
 MAX_FORCE_READING = 1e4
+#: m: the farthest the sensor can be from a surface it reads "too close" (:mod:`place_safe.recovery.too_close` fires
+#: on a median zone range under 14.8 mm, on a dark centre zone under 3 cm, on a calibrated plane under 14.8 mm; the
+#: real sweep's 2.0 cm frame is its farthest), with 15 mm for the near mapping's errors; farther, such a frame sees
+#: something else (nothing beyond the cover glass), not the fused plane's surface
+TOO_CLOSE_SENSOR_RANGE = 0.045
 
 
 class CommandKind(str, Enum):
@@ -306,7 +314,9 @@ class PlacementMachine:
         self.log: list[Transition] = []
         self.gripper_opened = False
         self.last_clearance = math.nan
-        self._blind_from: float | None = None  # cup clearance when the current run of too-close frames began
+        # (cup clearance, sensor height above the plane or None) when the current run of too-close frames began
+        self._blind_from: tuple[float, float | None] | None = None
+        self._sensor_height: float | None = None  # this tick's (_sensor_above)
         self.ticks = 0
         self._t_phase = math.nan
         self._phase_ticks = 0
@@ -526,14 +536,35 @@ class PlacementMachine:
     def _blind(self, note: str | None) -> bool:
         """Whether the last frame was too close to read and that run of such frames began with the cup close
         enough to the fused plane for the sensor to be that close to it (``too_close_clearance``, on the
-        clearance computed last before the run). Keeps where the run began (a run that began far above the plane
-        sees something in front of the sensor, however close the cup gets on the old plane)."""
+        clearance computed last before the run) and, where the sensor's pose is known, the sensor itself within
+        :data:`TOO_CLOSE_SENSOR_RANGE` of that plane. Keeps where the run began (a run that began far above the plane
+        sees something in front of the sensor, however close the cup gets on the old plane). The sensor's own
+        distance matters where it sits well above the cup's bottom (the packaged tool: 7 cm): there a frame "too
+        close" with the cup 2 cm up cannot be the table (nothing beyond the cover glass: the table pulled away, a
+        black patch), and holding the old plane released a cup 0.3 m above the surface (a review, session 74)."""
         if not rules.too_close(note):
             self._blind_from = None
             return False
         if self._blind_from is None:
-            self._blind_from = self.last_clearance
-        return self._blind_from <= self.config.too_close_clearance
+            self._blind_from = (self.last_clearance, self._sensor_height)
+        clearance, sensor = self._blind_from
+        return clearance <= self.config.too_close_clearance and (sensor is None or sensor <= TOO_CLOSE_SENSOR_RANGE)
+
+    def _sensor_above(self, plane: FusedPlane | None, state: RobotState) -> float | None:
+        """m of the sensor above the fused plane along its normal, None where the state gives no sensor pose, NaN
+        where it cannot be computed (no plane, a malformed pose or plane: :meth:`_blind` then believes no
+        too-close frame)."""
+        pose = getattr(state, "base_T_sensor", None)
+        if pose is None:
+            return None
+        try:
+            t = np.asarray(pose, dtype=float)
+            if plane is None or transform_problem(t, reach=MAX_REACH) is not None:
+                return math.nan
+            height = float(np.dot(np.asarray(plane.normal_base, dtype=float), t[:3, 3]) - float(plane.offset_base))
+        except (TypeError, ValueError, AttributeError, OverflowError):
+            return math.nan
+        return abs(height) if math.isfinite(height) else math.nan
 
     def _clearance(self, plane: FusedPlane, state: RobotState) -> float:
         try:
@@ -963,6 +994,7 @@ class PlacementMachine:
         if bad is not None:
             return self._abort(now, bad, faulted=rules.fault_text(getattr(state, "fault", None)) is not None)
         self._account(state, now)
+        self._sensor_height = self._sensor_above(plane, state)
         stamp = number(getattr(plane, "stamp", None)) if plane is not None else None
         if stamp is not None:  # the fused plane's age this tick (the window's largest stays in front)
             age = max(now - stamp, 0.0)

@@ -437,3 +437,34 @@ def test_readings_beyond_any_touch_or_clock_are_said_in_a_short_line():
     assert stale == "stale: frame measured 1e+308 s ago (> 0.50 s)"
     assert FrameGate(max_age=0.5).check(-0.75, 0.0) == "stale: frame measured 0.750 s ago (> 0.50 s)"
 
+
+
+class PulledAway(TruthEstimator):
+    """From 2 cm of cup clearance on, the table is gone (the robot's surface 0.3 m lower) and every frame says
+    ``reason``: what a sensor sees with nothing beyond its cover glass."""
+
+    def __init__(self, robot: KinematicRobot, reason: str) -> None:
+        super().__init__()
+        self.robot, self.reason, self.gone = robot, reason, False
+
+    def estimate(self, frame):
+        from place_safe.recovery.estimator import PlaneEstimate
+
+        if self.gone or self.robot.cup_z() < 0.02:
+            self.gone = True
+            self.robot.surface_z = -0.30
+            return PlaneEstimate(None, reason=self.reason)
+        return super().estimate(frame)
+
+
+@pytest.mark.parametrize("reason", ["too close: the return overlaps the internal return (the plane read lies 6.0 mm "
+                                    "from the sensor, within the pulse's 14.8 mm of it)",
+                                    "only 2 zone(s) show a return above the noise floor; a plane needs 3 or more"])
+def test_frames_too_close_with_the_sensor_far_from_the_plane_do_not_hold_it(reason):
+    """The fakes' sensor sits 7 cm above the cup's bottom: frames "too close" with the cup 2 cm up cannot be the
+    table. The old plane was held on them and the cup released 0.3 m above the surface (a review, session 74); now
+    the plane goes stale and the placement is refused, as for any frame without a plane."""
+    robot = KinematicRobot(height=0.06)
+    res = PlacementLoop(robot, TruthSource(robot), PulledAway(robot, reason), config=CFG, read_bound=BOUND).run(20.0)
+    _check_safe(robot, res)
+    assert res.outcome == "refused" and not robot.opened, res.reason

@@ -1182,6 +1182,37 @@ def test_too_close_far_above_the_plane_is_something_in_front_of_the_sensor():
     assert m.outcome == "refused" and "stale" in m.decision and not opened(w)
 
 
+class SensorWorld(FakeWorld):
+    """A FakeWorld whose states carry the sensor's pose, ``sensor_up`` m above the cup's bottom."""
+
+    def __init__(self, sensor_up: float, **kw) -> None:
+        super().__init__(**kw)
+        self.sensor_up = sensor_up
+
+    def state(self) -> RobotState:
+        st = super().state()
+        sensor = np.array(st.base_T_cup, dtype=float)
+        sensor[2, 3] += self.sensor_up
+        return RobotState(st.time, st.base_T_tcp, st.base_T_cup, st.contact_force, st.fault, st.last_frame_time,
+                          st.last_frame_age, sensor)
+
+
+def test_too_close_is_believed_only_with_the_sensor_itself_that_close_to_the_plane():
+    """A frame "too close" with the cup 1.2 cm up is the surface under a sensor by the jaws (5 mm above the cup's
+    bottom), but not under one 7 cm above it (the packaged tool): that one sees nothing beyond its cover glass (the
+    table pulled away, a black patch), and holding the old plane released a cup 0.3 m above the surface in a review's
+    reproducer (session 74). The sensor's pose, where the state gives it, decides."""
+    w = SensorWorld(0.005)
+    m = _too_close_run(w, PlacementMachine(), below=0.012)
+    assert m.outcome == "released" and "farther frames" in m.decision
+    w = SensorWorld(0.07)
+    m = _too_close_run(w, PlacementMachine(), below=0.012)
+    assert m.outcome == "refused" and "stale" in m.decision and not opened(w)
+    w = SensorWorld(float("nan"))  # a sensor pose that cannot be read: believe no too-close frame
+    m = _too_close_run(w, PlacementMachine(), below=0.012)
+    assert m.outcome == "refused" and not opened(w)
+
+
 def test_a_release_on_the_too_close_hold_says_so_when_fewer_than_the_needed_check_frames_were_measured():
     """CHECK waits for check_frames_needed planes (max_check_frames on a wide plane). If the sensor goes too close
     to read after only some of them, the release rests on the farther frames' plane, and its reason says so (not
