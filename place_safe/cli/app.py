@@ -154,8 +154,9 @@ IN_PLACE = {("write", "robot")}
 
 def _input_named(args: argparse.Namespace, output: str, value: str) -> str | None:
     """The input (an option's or a positional's file) that is the same file as the output ``value``, as
-    ``"NAME PATH"``, or None. ``evaluate F.json --json F.json`` replaced the frames with the report, ``latency X --json X`` and ``evaluate
-    --calibration C --json C`` alike (an adversarial round, session 74); only an existing file can be one."""
+    ``"NAME PATH"``, or None. ``evaluate F.json --json F.json`` replaced the frames with the report, ``latency X
+    --json X`` and ``evaluate --calibration C --json C`` alike (an adversarial round, session 74); only an existing
+    file can be one."""
     import os
 
     if not os.path.isfile(value):

@@ -12,7 +12,8 @@ integer too long, a value that is not an object) are yielded as a :class:`FrameE
 frame, naming the file and the frame index; only problems with the file's structure (not a list,
 truncated, unreadable) raise :class:`FrameFileError`, after every complete frame before them. In JSON Lines each
 non-blank line is one item at its line's index: a frame, or an error for the line (a line that ends inside its frame,
-text after the frame on its line); a line end is LF, CR LF or CR.
+text after the frame on its line); a line ends at LF or CR LF, and between frames at a lone CR as well (a frame
+broken by a lone CR inside it reads as the rest of its line).
 
 Leniencies, on purpose: a comma after the last frame (``[{...}, ]``, as hand-edited lists often end) is read as the
 end of the list, not as a frame. An empty list (``[]``, or a JSON Lines file without a frame) is a frame file with no
