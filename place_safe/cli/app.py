@@ -164,15 +164,26 @@ def _input_named(args: argparse.Namespace, output: str, value: str) -> str | Non
     for name, given in vars(args).items():
         if name in OUTPUT_OPTIONS or name in ("func", "command") or (output, name) in IN_PLACE:
             continue
-        for item in given if isinstance(given, (list, tuple)) else [given]:
-            if isinstance(item, (str, Path)) and str(item) and os.path.isfile(item):
+        for original in given if isinstance(given, (list, tuple)) else [given]:
+            for item in _files_named(original):
                 try:
-                    same = os.path.samefile(item, value)
+                    same = os.path.isfile(item) and os.path.samefile(item, value)
                 except OSError:
                     continue
                 if same:
-                    return f"{name.replace('_', '-').upper()} {item}"
+                    return f"{name.replace('_', '-').upper()} {original}"
     return None
+
+
+def _files_named(value: object) -> list[str]:
+    """The file paths an argument may name: itself, and the path of a source URI that reads a file (``file:PATH``,
+    ``emu:file:PATH``, ``serial:PATH`` for a recorded bridge log; :mod:`place_safe.sources`): ``sensor record
+    file:rec.json -o rec.json --force`` replaced the recording it read (a review, session 74)."""
+    if not isinstance(value, (str, Path)) or not str(value):
+        return []
+    text = str(value)
+    inner = next((text[len(p):] for p in ("emu:file:", "file:", "serial:") if text.startswith(p)), None)
+    return [text] + ([inner] if inner else [])
 
 
 def mujoco_gl_backends() -> list[str]:

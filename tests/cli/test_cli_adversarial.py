@@ -132,6 +132,9 @@ def test_usage_errors_are_one_line(capsys, argv):
     ["evaluate", "{frames}", "--methods", "peak", "--no-plots", "-q", "--json", "{frames}"],
     ["evaluate", "{frames}", "--methods", "peak", "--no-plots", "-q", "--calibration", "{cal}", "--json", "{cal}"],
     ["latency", "{frames}", "--method", "peak", "--json", "{frames}"],
+    # a source URI that reads the file (a review, session 74: --force then replaced the recording it read)
+    ["sensor", "record", "file:{frames}", "-o", "{frames}", "--frames", "2", "--force"],
+    ["sensor", "record", "emu:file:{frames}", "-o", "{frames}", "--frames", "2", "--force"],
 ])
 def test_an_output_that_names_an_input_is_refused_and_the_input_kept(tmp_path, capsys, argv):
     """``evaluate F.json --json F.json`` replaced the frames with its report (and ``--calibration C --json C`` the
