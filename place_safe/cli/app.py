@@ -145,6 +145,28 @@ def _check_outputs(args: argparse.Namespace) -> None:
         except OSError as exc:
             raise UsageError(f"{args.command}: --{name.replace('_', '-')} {value}: cannot make its folder "
                              f"({exc.strerror or exc})") from None
+        if (why := _unwritable(value)) is not None:
+            raise UsageError(f"{args.command}: --{name.replace('_', '-')} {value}: cannot be written ({why})")
+
+
+def _unwritable(path: str) -> str | None:
+    """Why ``path`` cannot be opened for writing, or None; found before the run by opening it to append (which changes
+    nothing in a file that is there) and removing it again where it was not: ``evaluate --json /proc/x.json`` said so
+    only after the whole evaluation, minutes with diff (an adversarial round, session 74)."""
+    import os
+
+    existed = os.path.lexists(path)
+    try:
+        with open(path, "a", encoding="utf-8"):
+            pass
+    except OSError as exc:
+        return exc.strerror or str(exc)
+    if not existed:
+        try:
+            os.remove(path)
+        except OSError:
+            pass
+    return None
 
 
 #: (output option, input option) pairs where writing the input is the point: ``--write`` rewrites the robot file

@@ -176,3 +176,20 @@ def test_write_may_rewrite_the_robot_file_it_reads(tmp_path):
     args = argparse.Namespace(command="calibrate-mount", robot=str(robot), write=str(robot), json=str(robot))
     assert _input_named(args, "write", str(robot)) is None
     assert _input_named(args, "json", str(robot)) == f"ROBOT {robot}"
+
+
+def test_an_output_that_cannot_be_written_is_refused_before_the_run(tmp_path, capsys, monkeypatch):
+    """``evaluate --json /proc/x.json`` said so only after the whole evaluation (minutes with diff): an adversarial
+    round, session 74. The output is opened before anything runs, and a file that was not there is not left behind."""
+    from pathlib import Path
+
+    import place_safe.cli.sensing as sensing
+
+    ran = []
+    monkeypatch.setattr(sensing, "evaluate", lambda *a, **k: ran.append(1))
+    sweep = Path(__file__).resolve().parents[1] / "data" / "tmf8820_ur5_sweep.json"
+    assert main(["evaluate", str(sweep), "--methods", "peak", "--no-plots", "-q", "--json", "/proc/x.json"]) == 2
+    err = capsys.readouterr().err
+    assert "cannot be written" in err and len(err.strip().splitlines()) == 1 and not ran
+    out = tmp_path / "new.json"
+    assert main(["synth", "--frames", "1", "-o", str(out)]) == 0 and out.exists()  # a writable one is written
