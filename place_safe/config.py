@@ -96,10 +96,16 @@ class ConfigModel(BaseModel):
     def _numbers_are_numbers(cls, data: Any) -> Any:
         """A boolean or a text is not a number: ``max_linear_speed = true`` in a robot file read as 1.0 m/s (ten times
         real.toml's), ``"0.1"`` as 0.1. Checked for fields that hold a number, or a list of numbers, only (a strict
-        model, :class:`ParamModel`, refuses them itself)."""
+        model, :class:`ParamModel`, refuses them itself). Likewise a switch (a boolean field) is true or false, not
+        ``"off"`` or 0."""
         if isinstance(data, dict) and not cls.model_config.get("strict"):
             for name, value in data.items():
                 field = cls.model_fields.get(name)
+                if field is not None and _is_switch(field.annotation) and value is not None \
+                        and not isinstance(value, bool):
+                    # pydantic reads "off", "no", "0" and 0 as false: a gripper's open_level = "off" loaded as the
+                    # level that opens it (an adversarial round, session 74)
+                    raise ValueError(f"{name} must be true or false, got {type(value).__name__} {value!r}"[:120])
                 shape = None if field is None else _number_shape(field.annotation)
                 if shape is not None:
                     items = value if isinstance(value, (list, tuple)) and shape == "many" else [value]
@@ -108,6 +114,16 @@ class ConfigModel(BaseModel):
                         kind = "a boolean" if isinstance(bad, bool) else "text"
                         raise ValueError(f"{name} must be a number, not {kind} ({bad!r})")
         return data
+
+
+def _is_switch(annotation: Any) -> bool:
+    """Whether a field's type is a boolean (``bool`` or an optional one)."""
+    if typing.get_origin(annotation) is Annotated:
+        return _is_switch(typing.get_args(annotation)[0])
+    if typing.get_origin(annotation) in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(annotation) if a is not type(None)]
+        return len(args) == 1 and _is_switch(args[0])
+    return annotation is bool
 
 
 def _number_shape(annotation: Any) -> str | None:

@@ -243,3 +243,21 @@ def test_a_robot_file_may_not_give_a_limit_as_a_boolean_or_text(tmp_path):
     f.write_text(re.sub(r"(?m)^workspace_min = \[(.*?),", r"workspace_min = [true,", real, count=1))
     with pytest.raises(ConfigError, match="workspace_min must be a number, not a boolean"):
         URConfig.load(f)
+
+
+@pytest.mark.parametrize("value", ['"off"', '"no"', '"0"', "0", "1", '"yes"', '"low"'])
+def test_a_switch_is_true_or_false_not_a_word_or_a_number(tmp_path, value):
+    """pydantic read ``open_level = "off"`` (and "no", "0", 0) as false and "yes" as true: the gripper's output level
+    that opens it, from a word (an adversarial round, session 74). A boolean field takes true or false only."""
+    import re
+    from pathlib import Path
+
+    from place_safe.drivers.ur5 import URConfig
+
+    sim = (Path(__file__).resolve().parents[1] / "robots" / "ur5" / "sim.toml").read_text()
+    f = tmp_path / "r.toml"
+    f.write_text(re.sub(r"(?m)^open_level = .*$", f"open_level = {value}", sim, count=1))
+    assert f.read_text() != sim
+    with pytest.raises(ConfigError, match="open_level must be true or false") as info:
+        URConfig.load(f)
+    assert "\n" not in str(info.value)

@@ -44,9 +44,11 @@ def cmd_bench(args: argparse.Namespace) -> int:
     if target is not None and not args.robot and not target.is_file():  # checked before the measurement
         raise UsageError("bench robot --write: give --robot ROBOT.toml to start the written file from")
     if args.fake:
+        path = Path(args.robot) if args.robot else None
+        if path is not None:  # read and checked before the measurement, as without --fake (it went unread: any
+            URConfig.load(path)  # file, even a missing one, passed; an adversarial round, session 74)
         robot, _ = make_stand_in(args.controller, host="127.0.0.1")
         cfg = robot.config
-        path = Path(args.robot) if args.robot else None
     else:
         if not args.robot:
             raise UsageError("bench robot: --robot ROBOT.toml is required (or --fake for the stand-in)")

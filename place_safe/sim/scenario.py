@@ -139,6 +139,16 @@ class Expectation(ConfigModel):
     max_contact_force: float | None = Field(None, gt=0, le=10_000,
                                             description="N: the hardest contact of the cup allowed (up to 10000)")
 
+    @field_validator("reason")
+    @classmethod
+    def _words(cls, words: list[str]) -> list[str]:
+        """An empty word is in every reason: ``reason = [""]`` made the check one that can never fail (an adversarial
+        round, session 74)."""
+        if any(not w.strip() for w in words):
+            raise ValueError("every reason word must be non-empty (an empty one matches any reason; leave the list "
+                             "empty for any reason)")
+        return words
+
 
 class Scenario(ConfigModel):
     """One scenario file (see module docstring and scenarios/README.md)."""

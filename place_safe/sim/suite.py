@@ -474,12 +474,15 @@ def plot(rows: list[dict], path: str) -> str:
     fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4.2))
     style = {"released": ("tab:green", "o"), "refused": ("tab:blue", "s"), "timeout": ("tab:orange", "^"),
              "error": ("tab:gray", "x")}
+    # a run that ended in an error may have neither (a protective stop at once, a robot model MuJoCo cannot load):
+    # such rows are in the table and the JSON, not in this scatter (its plot raised KeyError: an adversarial round)
+    placed = [r for r in rows if r.get("true_tilt_deg") is not None and r.get("start_height") is not None]
     for dec, (col, mk) in style.items():
-        rs = [r for r in rows if r.get("decision") == dec and r.get("true_tilt_deg") is not None]
+        rs = [r for r in placed if r.get("decision") == dec]
         if rs:
             a.scatter([r["true_tilt_deg"] for r in rs], [r["start_height"] * 100 for r in rs], c=col, marker=mk,
                       label=dec, s=22)
-    bad = [r for r in rows if r.get("unsafe") or r.get("false_refusal")]
+    bad = [r for r in placed if r.get("unsafe") or r.get("false_refusal")]
     if bad:
         a.scatter([r["true_tilt_deg"] for r in bad], [r["start_height"] * 100 for r in bad], facecolors="none",
                   edgecolors="red", s=80, label="unsafe / false refusal")

@@ -36,6 +36,18 @@ def test_bench_needs_a_robot_file(capsys):
     assert len(err) == 1 and "--robot" in err[0]
 
 
+def test_the_fakes_robot_file_is_read_and_checked_before_measuring(tmp_path, capsys):
+    """With --fake the --robot file went unread: a missing, empty or NaN one measured and exited 0 (an adversarial
+    round, session 74)."""
+    bad = tmp_path / "nan.toml"
+    bad.write_text(packaged_config("sim").read_text().replace("max_linear_speed = 0.5", "max_linear_speed = nan"))
+    assert bad.read_text() != packaged_config("sim").read_text()
+    for path in (tmp_path / "missing.toml", bad):
+        assert main(["bench", "robot", "--fake", "--robot", str(path), "--seconds", "0.2", "--cycles", "1000"]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and str(path) in err[0]
+
+
 def test_a_refused_connection_is_one_line(tmp_path, capfd):
     cfg = URConfig.load(packaged_config("real"))
     cfg.connection.host = "127.0.0.1"

@@ -238,3 +238,14 @@ def test_the_truth_measures_the_fall_to_a_board_under_the_cup(edge, under):
     assert truth.release_height == pytest.approx(expected, abs=2e-3)
     if under and edge > 0.05:  # wholly on the board: it stands on it
         assert abs(truth.support_height()) < 3e-3 and truth.cup_height() == pytest.approx(h, abs=3e-3)
+
+
+@pytest.mark.parametrize("words", [[""], ["   "], ["tilt", ""]])
+def test_an_empty_reason_word_is_refused(words):
+    """An empty word is in every reason, so ``expect.reason = [""]`` was a check that could never fail (an adversarial
+    round, session 74)."""
+    from place_safe.exceptions import ConfigError
+
+    with pytest.raises((ConfigError, ValueError), match="reason word must be non-empty"):
+        Scenario.model_validate({"expect": {"outcome": "refused", "reason": words}})
+    assert Scenario.model_validate({"expect": {"outcome": "refused", "reason": ["tilt"]}}).expect.reason == ["tilt"]

@@ -212,6 +212,16 @@ def test_summary_and_table():
     assert "contacts >= 30 N: 1 (largest 45.0 N)" in suite.format_table(rows + [hard], s)
 
 
+def test_the_plot_takes_a_row_of_a_run_that_ended_in_an_error(tmp_path):
+    """An error row has a tilt but no start height (a protective stop at once): the plot raised KeyError and
+    `scenarios --json` ended in an internal error (an adversarial round, session 74)."""
+    rows = [suite.judge(Scenario(name="a", labels={"clearly_safe": True}), _res(release_height=0.002)),
+            {"name": "b", "decision": "error", "reason": "protective stop", "true_tilt_deg": 0.0, "met": False,
+             "unsafe": False, "clearly_safe": False, "false_refusal": False}]
+    out = suite.plot(rows, str(tmp_path / "p.png"))
+    assert (tmp_path / "p.png").stat().st_size > 0 and out.endswith("p.png")
+
+
 def test_summary_has_the_time_budget_of_releases_from_40cm():
     rows = [suite.judge(Scenario(name="a"), _res(budget={"cruise": 1.0, "survey": 0.5}, decision_time=2.0)),
             suite.judge(Scenario(name="b"), _res(budget={"cruise": 2.0}, decision_time=3.0)),
