@@ -27,7 +27,7 @@ from collections.abc import Sequence
 from place_safe.cli.common import FMT, PROG, Parser, UsageError, log
 from place_safe.exceptions import PlaceSafeError
 from place_safe import __version__
-from place_safe.io.input_file import output_file_problem
+from place_safe.io.input_file import output_file_problem, output_open_problem
 
 #: Command groups, each a module exposing ``register(subparsers) -> None``, which adds its sub-parser(s)
 #: (``parser_class=Parser`` is inherited) with ``set_defaults(func=...)``. Modules import heavy packages
@@ -145,28 +145,8 @@ def _check_outputs(args: argparse.Namespace) -> None:
         except OSError as exc:
             raise UsageError(f"{args.command}: --{name.replace('_', '-')} {value}: cannot make its folder "
                              f"({exc.strerror or exc})") from None
-        if (why := _unwritable(value)) is not None:
+        if (why := output_open_problem(value)) is not None:
             raise UsageError(f"{args.command}: --{name.replace('_', '-')} {value}: cannot be written ({why})")
-
-
-def _unwritable(path: str) -> str | None:
-    """Why ``path`` cannot be opened for writing, or None; found before the run by opening it to append (which changes
-    nothing in a file that is there) and removing it again where it was not: ``evaluate --json /proc/x.json`` said so
-    only after the whole evaluation, minutes with diff (an adversarial round, session 74)."""
-    import os
-
-    existed = os.path.lexists(path)
-    try:
-        with open(path, "a", encoding="utf-8"):
-            pass
-    except OSError as exc:
-        return exc.strerror or str(exc)
-    if not existed:
-        try:
-            os.remove(path)
-        except OSError:
-            pass
-    return None
 
 
 #: (output option, input option) pairs where writing the input is the point: ``--write`` rewrites the robot file

@@ -15,7 +15,8 @@ off there and refused, not read until memory runs out). Frame files are streamed
 :mod:`place_safe.io.frame_file` after the same check, with their own, larger limit.
 
 Outputs get the mirror check, :func:`output_file_problem` (``place-safe`` runs it on every output option
-before a command starts): never a directory, never a FIFO without a reader; an output folder,
+before a command starts): never a directory, never a FIFO without a reader; then
+:func:`output_open_problem` opens it to append, once its folder exists; an output folder,
 :func:`output_dir_problem`: a directory, or a path under one.
 
 Limits (bytes): :data:`MAX_CONFIG_BYTES` for configuration-like files (calibration, placement, robot,
@@ -121,6 +122,25 @@ def output_file_problem(path: str | os.PathLike) -> str | None:
     return None
 
 
+def output_open_problem(path: str | os.PathLike) -> str | None:
+    """Why ``path`` cannot be opened for writing (the system's words), or None: opened to append, which changes nothing
+    in a file that is there, and removed again where it was not. Run on an output before the work that writes it, in
+    its folder once that exists: ``evaluate --json /proc/x.json`` said so only after the whole evaluation, minutes with
+    diff (an adversarial round, session 74)."""
+    existed = os.path.lexists(path)
+    try:
+        with open(path, "a", encoding="utf-8"):
+            pass
+    except OSError as exc:
+        return exc.strerror or str(exc)
+    if not existed:
+        try:
+            os.remove(path)
+        except OSError:
+            pass
+    return None
+
+
 def output_dir_problem(path: str | os.PathLike) -> str | None:
     """Why ``path`` cannot be a folder for a command's files (it, or a part of the path, is not a directory), or None
     (a directory, or a missing path). Permissions are not checked: a folder that cannot be written fails when written,
@@ -136,4 +156,4 @@ def output_dir_problem(path: str | os.PathLike) -> str | None:
     return None if stat.S_ISDIR(st.st_mode) else "is not a directory"
 
 
-__all__ = ["output_file_problem", "output_dir_problem", "check_input_file", "read_input_bytes", "input_file_problem", "MAX_CONFIG_BYTES", "MAX_FRAME_FILE_BYTES"]
+__all__ = ["output_file_problem", "output_open_problem", "output_dir_problem", "check_input_file", "read_input_bytes", "input_file_problem", "MAX_CONFIG_BYTES", "MAX_FRAME_FILE_BYTES"]

@@ -180,6 +180,15 @@ def with_robot_contact_latency(config: PlacementConfig, robot: Any) -> Placement
     return out
 
 
+def _in_base(tcp: Any, tcp_T_frame: np.ndarray) -> np.ndarray:
+    """A tool frame's base-frame pose (4x4) from the TCP's ``tcp``; NaN where ``tcp`` is no matrix (the machine then
+    refuses the robot state)."""
+    try:
+        return np.asarray(tcp, dtype=float) @ tcp_T_frame
+    except Exception:
+        return np.full((4, 4), np.nan)
+
+
 class PlacementLoop:
     """One placement: ``PlacementLoop(robot, source, estimator, tool, config).run()`` (see module doc).
 
@@ -510,8 +519,9 @@ class PlacementLoop:
             cov = plane_covariance(pts, zones, plane)
         return PlaneEstimate(plane, residual=float(rms[0]), covariance=cov, method_used="peak-consensus")
 
-    def _footprint_verdict(self, fused: Any, tcp: Any) -> Any:
-        """The surface map's verdict on the landing footprint (None without a fused plane)."""
+    def _footprint_verdict(self, fused: Any, base_T_sensor: np.ndarray) -> Any:
+        """The surface map's verdict on the landing footprint seen from the sensor's pose (None without a fused
+        plane)."""
         if fused is None or self._landing_T_cup is None:
             return None
         try:
@@ -520,7 +530,7 @@ class PlacementLoop:
                 self._footprint = self.surface.footprint(fused.normal_base, fused.offset_base, self._landing_T_cup)
                 self._footprint_key = key
             return self.surface.sight(self._footprint, fused.normal_base, fused.offset_base, self._landing_T_cup,
-                                      np.asarray(tcp, dtype=float) @ self._tcp_T_sensor)
+                                      base_T_sensor)
         except Exception as exc:
             return FootprintVerdict(problem=f"surface map failed: {describe_exception(exc)}")
 
@@ -563,11 +573,8 @@ class PlacementLoop:
         self._t_start = now
         tcp = self._safe(self.robot.tcp_pose, np.full((4, 4), np.nan))
         self.history.add(now, tcp)
-        try:
-            landing = np.asarray(tcp, dtype=float) @ self._tcp_T_cup
-            self._landing_T_cup = landing if np.all(np.isfinite(landing)) else None
-        except Exception:
-            self._landing_T_cup = None
+        landing = _in_base(tcp, self._tcp_T_cup)
+        self._landing_T_cup = landing if np.all(np.isfinite(landing)) else None
         if (host := self._host_now()) is not None:
             self.clock.observe(now, host)
 
@@ -630,17 +637,10 @@ class PlacementLoop:
             self._stop_robot()  # (after the robot's own report, which the reason keeps)
             told = "no report" if fault is _NO_ANSWER else rules.fault_text(fault)
             return self.machine.abort(now, self._clock_error + (f"; robot fault: {told}" if told else ""))
-        try:
-            cup = np.asarray(tcp, dtype=float) @ self._tcp_T_cup
-        except Exception:
-            cup = np.full((4, 4), np.nan)
-        try:
-            sensor = np.asarray(tcp, dtype=float) @ self._tcp_T_sensor
-        except Exception:
-            sensor = np.full((4, 4), np.nan)
+        cup, sensor = _in_base(tcp, self._tcp_T_cup), _in_base(tcp, self._tcp_T_sensor)
         state = RobotState(now, tcp, cup, force, fault, self._last_arrival, self._last_age, sensor)
         fused = self.filter.fused(now) if math.isfinite(now) else None
-        cmd = self.machine.step(state, fused, note, self._footprint_verdict(fused, tcp))
+        cmd = self.machine.step(state, fused, note, self._footprint_verdict(fused, sensor))
         self._dispatch(cmd)
         return cmd
 

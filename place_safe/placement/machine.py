@@ -316,7 +316,7 @@ class PlacementMachine:
         self.last_clearance = math.nan
         # (cup clearance, sensor height above the plane or None) when the current run of too-close frames began
         self._blind_from: tuple[float, float | None] | None = None
-        self._sensor_height: float | None = None  # this tick's (_sensor_above)
+        self._tick_view: tuple[Any, Any] = (None, None)  # this tick's (fused plane, robot state), for _blind
         self.ticks = 0
         self._t_phase = math.nan
         self._phase_ticks = 0
@@ -546,7 +546,7 @@ class PlacementMachine:
             self._blind_from = None
             return False
         if self._blind_from is None:
-            self._blind_from = (self.last_clearance, self._sensor_height)
+            self._blind_from = (self.last_clearance, self._sensor_above(*self._tick_view))
         clearance, sensor = self._blind_from
         return clearance <= self.config.too_close_clearance and (sensor is None or sensor <= TOO_CLOSE_SENSOR_RANGE)
 
@@ -994,7 +994,7 @@ class PlacementMachine:
         if bad is not None:
             return self._abort(now, bad, faulted=rules.fault_text(getattr(state, "fault", None)) is not None)
         self._account(state, now)
-        self._sensor_height = self._sensor_above(plane, state)
+        self._tick_view = (plane, state)
         stamp = number(getattr(plane, "stamp", None)) if plane is not None else None
         if stamp is not None:  # the fused plane's age this tick (the window's largest stays in front)
             age = max(now - stamp, 0.0)
