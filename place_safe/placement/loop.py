@@ -258,8 +258,10 @@ class PlacementLoop:
         # median range (1), zones (N_ZONES); a ring of SPLIT_HOLD_FRAMES rows, _split_rows of them filled
         self._split_seen = np.zeros((SPLIT_HOLD_FRAMES, 7 + N_ZONES))
         self._split_rows = 0
+        self._clock_error: str | None = None  # the host clock's first failure (_clock_failed); the placement ends on it
+        self._host_last: float | None = None  # its newest good reading (s)
         self.pipeline = pipeline if pipeline is not None else SensorPipeline(
-            source, estimator, replace(PLACEMENT_POLICY, read_bound=read_bound), clock=host_clock)
+            source, estimator, replace(PLACEMENT_POLICY, read_bound=read_bound), clock=self._pipeline_clock)
         self.clock = ClockMap(clock_domain_of(source))
         self.history = PoseHistory(tolerance=self.period / 2)
         self._tcp_T_sensor = self.tool.tcp_T_sensor
@@ -275,8 +277,6 @@ class PlacementLoop:
         self._last_age: float | None = None  # s, from its measurement to its arrival (a frame the gate passed)
         self._note: str | None = None
         self._cmd_error: str | None = None
-        self._clock_error: str | None = None  # the host clock's first failure (_host_now); the placement ends on it
-        self._host_last: float | None = None  # its newest good reading (s)
         self._t_start: float | None = None
         self._started = False
 
@@ -315,9 +315,25 @@ class PlacementLoop:
             else:
                 self._host_last = t
                 return t
-        if self._clock_error is None:
-            self._clock_error = f"host clock failed: it {why}; the sensor's frames cannot be timed"
+        self._clock_failed(why)
         return None
+
+    def _pipeline_clock(self) -> float:
+        """The host clock as the pipeline reads it (arrivals, on its own thread or in a polled read on this one): the
+        reading, or NaN where the clock raises, kept in ``_clock_error`` for :meth:`_tick` (a raising clock escaped
+        from the pipeline's polled read as "internal error"). The loop's own reading (:meth:`_host_now`) judges the
+        values; the pipeline's NaN reads as a frame without a usable time."""
+        try:
+            return self.host_clock()
+        except BaseException as exc:
+            if is_interrupt_here(exc):
+                raise
+            self._clock_failed(f"raised {describe_exception(exc)}")
+            return math.nan
+
+    def _clock_failed(self, why: str) -> None:
+        if self._clock_error is None:  # the first failure is the one said
+            self._clock_error = f"host clock failed: it {why}; the sensor's frames cannot be timed"
 
     def _safe(self, fn: Callable[[], Any], default: Any) -> Any:
         try:

@@ -19,7 +19,7 @@ import time
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from place_safe.exceptions import ArgumentTypeError
@@ -297,6 +297,7 @@ HOST_CLOCK_FAILURES = {
 
 @settings(max_examples=16, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(kind=st.sampled_from(sorted(HOST_CLOCK_FAILURES)), after=st.integers(1, 300), host_stamps=st.booleans())
+@example(kind="raises", after=8, host_stamps=False)  # the clock raising in the pipeline's polled read (found by it)
 def test_a_failing_host_clock_ends_held_and_refused_naming_the_clock(kind, after, host_stamps):
     """The host clock times the sensor's frames (arrivals, the read bound, host-stamped frames). One that answers no
     finite number, steps back or raises ends the placement held and refused with the clock named: it was read as
