@@ -7,7 +7,8 @@ mapping, :class:`~place_safe.recovery.points.PeakParams`) and whether the zone s
 surface. From it come
 
 * per-frame multi-surface evidence (:meth:`SurfaceMap.add` -> :class:`FrameSurfaces`): the largest set
-  of zones that lie on one plane (:func:`consensus`); the other zones, second (farther) returns and
+  of zones that lie on one plane, a step's zones beside it counted (:func:`consensus`: a level parallel to it,
+  parted from it by a straight line); the other zones, second (farther) returns and
   nearer surfaces mixed into a zone's return (:func:`early_returns`) mean the frame saw more than one
   surface (an edge, a step, clutter). The loop replaces such a frame's plane by
   the consensus plane of its inlier zones, or drops the frame when no majority agrees;
@@ -37,7 +38,7 @@ import numpy as np
 
 from place_safe.geometry import MAX_REACH, finite_number
 from place_safe.sensor.histogram import measure_floor
-from place_safe.sensor.zones import N_BINS, N_ZONES, zone_numbers
+from place_safe.sensor.zones import N_BINS, N_ZONES, ZONE_RECTS, zone_numbers
 
 #: rad, half the TMF8820's 33 x 33 deg field of view, less a margin for the mount's calibration error.
 FOV_HALF_ANGLE = math.radians(15.5)
@@ -73,6 +74,28 @@ CLOSER_FIT = 10.0
 #: 3.8 mm tolerance, 36 times the table's five. With zones as noisy as 1 mm (a tilted table beside a box, 1000 draws)
 #: the rule gave up the six for five of them in 5 frames (for a plane through the box in none; 5 and 1/3: 16 and 5)
 POOR_FIT = 1.0 / 3.0
+#: Directions (rad) tried for a straight line between two sets of zones in the zones' layout (:func:`_separable`):
+#: the nine zone centres lie on a near-square grid, and every line that parts two sets of them leaves a wedge of
+#: directions tens of degrees wide.
+_LINE_DIRECTIONS = np.deg2rad(np.arange(0.0, 360.0, 1.0))
+#: The zones' centres on the sensor's tangent plane (ZONE_RECTS), projected on each of those directions (D, 9).
+_LAYOUT_PROJECTIONS = (np.stack([np.cos(_LINE_DIRECTIONS), np.sin(_LINE_DIRECTIONS)], axis=1)
+                       @ np.stack([ZONE_RECTS[:, :2].mean(axis=1), ZONE_RECTS[:, 2:].mean(axis=1)]))
+#: The zones of a step's other level (:func:`_step_zones`) lie within this fraction of the frame's tolerance of one
+#: level parallel to the plane: a table's row past a board's edge lies within 0.1-0.5 mm of one at 30 cm, and up to
+#: 3.8 mm where the edge crosses the row at a slant (random board 139 of seed 4: 5.9 mm tolerance)
+STEP_LEVEL = 1.0
+#: Zones a step's other level needs (:func:`_step_zones`): two lie on a level in any plane that tilts along them only,
+#: and a plane tilted 6 deg through a box's corner of zones and four of a level table's, seen from 10 cm, left the
+#: table's other two within the 3.5 mm tolerance of a level parallel to it (scenarios/set/
+#: clutter_beside_footprint_late_doubt.toml)
+STEP_ZONES = 3
+#: rad: steps that explain as many zones and read slopes this far apart leave the frame without a step
+#: (:func:`_unambiguous`)
+STEP_AMBIGUOUS = math.radians(3.0)
+#: rad: the most a step's level may turn from facing the sensor (a plane through a table's zones and the floor's past
+#: its edge can hold five zones and stand 76 deg from the optical axis)
+STEP_INCIDENCE = math.radians(60.0)
 #: Zones of a frame lie on one plane within this fraction of their median range (see
 #: :meth:`SurfaceMap.consensus_tolerance`), at least :data:`CONSENSUS_MIN` m.
 CONSENSUS_RELATIVE = 0.02
@@ -165,11 +188,17 @@ def early_returns(hists: np.ndarray, first: np.ndarray, valid: np.ndarray) -> np
         return ok & (rise > (max(edge, 0.0) + EARLY_RELATIVE) * top) & (rise > EARLY_SIGMAS * sigma)
 
 
-def consensus(points: np.ndarray, valid: np.ndarray, tolerance: float, deep: bool = True
+def consensus(points: np.ndarray, valid: np.ndarray, tolerance: float, deep: bool = True, early: Any = None
               ) -> tuple[np.ndarray, np.ndarray, float]:
     """The largest set of zone points (9, 3) lying on one plane within ``tolerance`` (m).
 
-    Every plane through three valid points is tried (at most 84); the one with the most inliers (ties: smallest RMS;
+    Every plane through three valid points is tried (at most 84); the one that explains the most zones -- its
+    inliers, and with ``deep`` the zones off it when :data:`STEP_ZONES` or more lie on one level parallel to it,
+    beyond it on one side and parted from its inliers by a straight line across the zones' layout
+    (:func:`_step_zones`: a step, the table past a board's edge; not where a zone of its upper level shows a nearer
+    surface mixed into its return, ``early``, nor where such steps read different slopes, :func:`_unambiguous`),
+    their level counting one zone fewer for its offset -- then the one that fits its inliers most closely per degree
+    of freedom (without a step, the most inliers; ties: smallest RMS;
     when its least-squares residual per degree of freedom is :data:`POOR_FIT` of ``tolerance`` or more, the largest
     set of at least :data:`MIN_INLIERS` zones -- one zone fewer only, unless ``deep`` -- that fits :data:`CLOSER_FIT`
     times as closely wins: :func:`_closer_subset`) is refitted by least squares on its inliers. ``deep`` False suits
@@ -198,7 +227,18 @@ def consensus(points: np.ndarray, valid: np.ndarray, tolerance: float, deep: boo
     inl = res <= tolerance
     count = inl.sum(0)
     rms = np.sqrt(np.where(inl, res ** 2, 0.0).sum(0) / np.maximum(count, 1))
-    best = np.lexsort((rms, -count))[0]
+    # the same zones may read as a board's level with the table past its edge, or as a steep ramp through that table
+    # and the board's near row with the far row a level below it (random board 60 of seed 4): the heights alone may
+    # not tell them apart, and preferring the more level reading read a tilted table with a box on it level as often
+    # (session 75's check: tilted planes with a patch of zones moved by a parallel level, 48 of 3000 read 2 deg or
+    # more less tilted that the plane through the most zones had read right). The returns' shapes may: a zone above
+    # a step cannot see a nearer surface (_step_zones). Where nothing tells them apart, no step is read
+    step = _unambiguous(count, *_step_zones(P, inl, idx, tolerance, early)) if deep else np.zeros(len(n), dtype=int)
+    # of the planes that explain as many zones, the one that fits its own more closely (per degree of freedom), a step
+    # or not: a plane tilted through the board's six and the table's row fits them at 2.9 mm, the board's own at
+    # 0.4 (random board 61 of seed 4). A step's level costs a zone, its offset
+    score = count + np.maximum(step - 1, 0)
+    best = np.lexsort((rms, -count, _per_dof(rms, count), -score))[0]
     mask = np.zeros(N_ZONES, dtype=bool)
     mask[idx[inl[:, best]]] = True
     nf, df, rf, okf = fit_planes(P[None], mask[None])
@@ -212,6 +252,77 @@ def consensus(points: np.ndarray, valid: np.ndarray, tolerance: float, deep: boo
     r = np.abs(P @ nf[0] - df[0])
     mask &= r <= tolerance
     return mask, np.append(nf[0], df[0]), float(rf[0])
+
+
+def _step_zones(points: np.ndarray, inl: np.ndarray, idx: np.ndarray, tolerance: float,
+                early: Any = None) -> tuple[np.ndarray, np.ndarray]:
+    """For each candidate plane (columns of ``inl``, its inliers among the valid zones ``idx`` (0-8), whose points are
+    ``points`` (9, 3), sensor frame), how many zones off it it explains as a step, and the normal of its step's level
+    (NaN: none): all of them when there are :data:`STEP_ZONES` or more and, about the least-squares plane of its inliers (:data:`MIN_INLIERS` or more, facing the sensor within
+    :data:`STEP_INCIDENCE`), they lie on its one side beyond ``tolerance``, within :data:`STEP_LEVEL` of it of one
+    another (a level parallel to it), on the far side of a straight line from its inliers in the zones' layout
+    (:func:`_separable`), and no zone of the upper level (the one nearer the sensor) shows a nearer surface mixed
+    into its return (``early``, (9,) or None: a zone below a step may, one above it cannot); else 0.
+
+    A board's edge seen from 20-40 cm leaves the table past it in a row or a corner of zones, 5-25 mm farther; the
+    consensus tolerance there is 4-8 mm, and a plane tilted 6-10 deg through the table's row and the board's far
+    row took more zones (7) than the board's own (6), the placement refusing the level board as tilted from the
+    first frames (random boards 13-142 of seed 4). The step takes all nine. A single surface with clutter keeps its
+    consensus: the plane through most zones is the surface itself, and the clutter's zones only add to it."""
+    from place_safe.recovery.points import fit_planes
+
+    P = np.asarray(points, dtype=float)
+    extra = np.zeros(inl.shape[1], dtype=int)
+    normals = np.full((inl.shape[1], 3), np.nan)
+    sets = np.zeros((inl.shape[1], N_ZONES), dtype=bool)
+    sets[:, idx] = inl.T
+    others = np.zeros_like(sets)
+    others[:, idx] = ~inl.T
+    maybe = np.flatnonzero((others.sum(1) >= STEP_ZONES) & (sets.sum(1) >= MIN_INLIERS))
+    if maybe.size == 0:
+        return extra, normals
+    n, d, _, ok = fit_planes(np.broadcast_to(P, (maybe.size,) + P.shape), sets[maybe])
+    nearer = None if early is None else np.asarray(early, dtype=bool).reshape(-1)
+    if nearer is not None and nearer.shape != (N_ZONES,):
+        nearer = None
+    for j, c in enumerate(maybe):
+        if not ok[j] or not n[j, 2] >= math.cos(STEP_INCIDENCE):
+            continue
+        s = P[others[c]] @ n[j] - d[j]  # n_z > 0, d > 0: negative towards the sensor
+        if not ((s > tolerance).all() or (s < -tolerance).all()) \
+                or not float(s.max() - s.min()) <= STEP_LEVEL * tolerance:
+            continue
+        upper = others[c] if s[0] < 0 else sets[c]
+        if _separable(sets[c], others[c]) and (nearer is None or not (nearer & upper).any()):
+            extra[c] = int(others[c].sum())
+            normals[c] = n[j]
+    return extra, normals
+
+
+def _unambiguous(count: np.ndarray, step: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """``step`` (:func:`_step_zones`' zones per candidate plane, with ``count`` inliers and the least-squares normals
+    of its inliers ``normals``), or none at all where the steps that explain the most zones read different slopes
+    (:data:`STEP_AMBIGUOUS` apart): in a 3 x 3 grid a box's top over one row of zones beside a level table's two reads
+    as well as a ramp 17 deg steep through the box's row and the table's next with the far row a level below it (a
+    plane through two rows of zones fits them exactly), and a tilted table with a box on it as a level ramp; where
+    the steps disagree the consensus is the plane through the most zones, as without them."""
+    has = step > 0
+    if not has.any():
+        return step
+    score = count + np.maximum(step - 1, 0)
+    top = has & (score == score[has].max())
+    n = normals[top]
+    if float(np.clip(np.abs(n @ n[0]), 0.0, 1.0).min()) < math.cos(STEP_AMBIGUOUS):
+        return np.zeros_like(step)
+    return step
+
+
+def _separable(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether a straight line parts the zones ``a`` from the zones ``b`` (masks (9,)) in the zones' layout on the
+    sensor's tangent plane (:data:`_LAYOUT_PROJECTIONS`)."""
+    pa = np.where(a, _LAYOUT_PROJECTIONS, -np.inf).max(1)
+    pb = np.where(b, _LAYOUT_PROJECTIONS, np.inf).min(1)
+    return bool(np.any(pa < pb - 1e-9))
 
 
 def _per_dof(rms: np.ndarray, count: np.ndarray) -> np.ndarray:
@@ -374,7 +485,7 @@ class SurfaceMap:
         early = early_returns(h, top, valid)
         depth = (where - top) / self._bins_per_m
         tol = self.consensus_tolerance(pts, valid)
-        inliers, plane, rms = consensus(pts, valid, tol, deep=self.relative > 0)
+        inliers, plane, rms = consensus(pts, valid, tol, deep=self.relative > 0, early=early)
         pb = pts @ T[:3, :3].T + T[:3, 3]
         pb[~valid] = np.nan
         fs = FrameSurfaces(float(stamp), T.copy(), pb, valid, second, np.where(second, depth, np.nan), early,
