@@ -90,8 +90,8 @@ STEP_LEVEL = 1.0
 #: table's other two within the 3.5 mm tolerance of a level parallel to it (scenarios/set/
 #: clutter_beside_footprint_late_doubt.toml)
 STEP_ZONES = 3
-#: rad: steps that explain as many zones and read slopes this far apart leave the frame without a step
-#: (:func:`_unambiguous`)
+#: rad: a reading with as many inliers as the winning step's plane that reads a slope this far from it leaves the
+#: frame without a step (:func:`_unambiguous`)
 STEP_AMBIGUOUS = math.radians(3.0)
 #: rad: the most a step's level may turn from facing the sensor (a plane through a table's zones and the floor's past
 #: its edge can hold five zones and stand 76 deg from the optical axis)
@@ -195,8 +195,9 @@ def consensus(points: np.ndarray, valid: np.ndarray, tolerance: float, deep: boo
     Every plane through three valid points is tried (at most 84); the one that explains the most zones -- its
     inliers, and with ``deep`` the zones off it when :data:`STEP_ZONES` or more lie on one level parallel to it,
     beyond it on one side and parted from its inliers by a straight line across the zones' layout
-    (:func:`_step_zones`: a step, the table past a board's edge; not where a zone of its upper level shows a nearer
-    surface mixed into its return, ``early``, nor where such steps read different slopes, :func:`_unambiguous`),
+    (:func:`_step_zones`: a step, the table past a board's edge, not where a zone of its upper level shows a nearer
+    surface mixed into its return, ``early``; not where a reading with as many inliers reads another slope,
+    :func:`_unambiguous`),
     their level counting one zone fewer for its offset -- then the one that fits its inliers most closely per degree
     of freedom (without a step, the most inliers; ties: smallest RMS;
     when its least-squares residual per degree of freedom is :data:`POOR_FIT` of ``tolerance`` or more, the largest
@@ -231,8 +232,7 @@ def consensus(points: np.ndarray, valid: np.ndarray, tolerance: float, deep: boo
     # and the board's near row with the far row a level below it (random board 60 of seed 4): the heights alone may
     # not tell them apart, and preferring the more level reading read a tilted table with a box on it level as often
     # (session 75's check: tilted planes with a patch of zones moved by a parallel level, 48 of 3000 read 2 deg or
-    # more less tilted that the plane through the most zones had read right). The returns' shapes may: a zone above
-    # a step cannot see a nearer surface (_step_zones). Where nothing tells them apart, no step is read
+    # more less tilted that the plane through the most zones had read right). Where readings disagree no step is read
     step = _unambiguous(count, *_step_zones(P, inl, idx, tolerance, early)) if deep else np.zeros(len(n), dtype=int)
     # of the planes that explain as many zones, the one that fits its own more closely (per degree of freedom), a step
     # or not: a plane tilted through the board's six and the table's row fits them at 2.9 mm, the board's own at
@@ -254,15 +254,19 @@ def consensus(points: np.ndarray, valid: np.ndarray, tolerance: float, deep: boo
     return mask, np.append(nf[0], df[0]), float(rf[0])
 
 
-def _step_zones(points: np.ndarray, inl: np.ndarray, idx: np.ndarray, tolerance: float,
-                early: Any = None) -> tuple[np.ndarray, np.ndarray]:
+def _step_zones(points: np.ndarray, inl: np.ndarray, idx: np.ndarray, tolerance: float, early: Any = None
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """For each candidate plane (columns of ``inl``, its inliers among the valid zones ``idx`` (0-8), whose points are
-    ``points`` (9, 3), sensor frame), how many zones off it it explains as a step, and the normal of its step's level
-    (NaN: none): all of them when there are :data:`STEP_ZONES` or more and, about the least-squares plane of its inliers (:data:`MIN_INLIERS` or more, facing the sensor within
-    :data:`STEP_INCIDENCE`), they lie on its one side beyond ``tolerance``, within :data:`STEP_LEVEL` of it of one
-    another (a level parallel to it), on the far side of a straight line from its inliers in the zones' layout
-    (:func:`_separable`), and no zone of the upper level (the one nearer the sensor) shows a nearer surface mixed
-    into its return (``early``, (9,) or None: a zone below a step may, one above it cannot); else 0.
+    ``points`` (9, 3), sensor frame): how many zones off it it explains as a step, the least-squares normal of its
+    inliers (NaN: fewer than :data:`MIN_INLIERS`), and whether it is a reading of its own (its zones one surface,
+    the rest none or one level beside it).
+
+    About the least-squares plane of its inliers (:data:`MIN_INLIERS` or more, facing the sensor within
+    :data:`STEP_INCIDENCE`), the zones off it are a level beside it when they lie on its one side beyond
+    ``tolerance``, within :data:`STEP_LEVEL` of it of one another (a level parallel to it) and on the far side of a
+    straight line from its inliers in the zones' layout (:func:`_separable`), and no zone of the upper level (the one
+    nearer the sensor) shows a nearer surface mixed into its return (``early``, (9,) or None: a zone below a step may,
+    one above it cannot). They count as a step when there are :data:`STEP_ZONES` or more of them.
 
     A board's edge seen from 20-40 cm leaves the table past it in a row or a corner of zones, 5-25 mm farther; the
     consensus tolerance there is 4-8 mm, and a plane tilted 6-10 deg through the table's row and the board's far
@@ -274,45 +278,57 @@ def _step_zones(points: np.ndarray, inl: np.ndarray, idx: np.ndarray, tolerance:
     P = np.asarray(points, dtype=float)
     extra = np.zeros(inl.shape[1], dtype=int)
     normals = np.full((inl.shape[1], 3), np.nan)
+    reading = np.zeros(inl.shape[1], dtype=bool)
     sets = np.zeros((inl.shape[1], N_ZONES), dtype=bool)
     sets[:, idx] = inl.T
     others = np.zeros_like(sets)
     others[:, idx] = ~inl.T
-    maybe = np.flatnonzero((others.sum(1) >= STEP_ZONES) & (sets.sum(1) >= MIN_INLIERS))
+    maybe = np.flatnonzero(sets.sum(1) >= MIN_INLIERS)
     if maybe.size == 0:
-        return extra, normals
-    n, d, _, ok = fit_planes(np.broadcast_to(P, (maybe.size,) + P.shape), sets[maybe])
+        return extra, normals, reading
     nearer = None if early is None else np.asarray(early, dtype=bool).reshape(-1)
     if nearer is not None and nearer.shape != (N_ZONES,):
         nearer = None
+    n, d, _, ok = fit_planes(np.broadcast_to(P, (maybe.size,) + P.shape), sets[maybe])
     for j, c in enumerate(maybe):
         if not ok[j] or not n[j, 2] >= math.cos(STEP_INCIDENCE):
             continue
-        s = P[others[c]] @ n[j] - d[j]  # n_z > 0, d > 0: negative towards the sensor
-        if not ((s > tolerance).all() or (s < -tolerance).all()) \
-                or not float(s.max() - s.min()) <= STEP_LEVEL * tolerance:
+        normals[c] = n[j]
+        if not others[c].any():
+            reading[c] = True
             continue
-        upper = others[c] if s[0] < 0 else sets[c]
-        if _separable(sets[c], others[c]) and (nearer is None or not (nearer & upper).any()):
+        s = P[others[c]] @ n[j] - d[j]
+        if others[c].sum() < 2 or not ((s > tolerance).all() or (s < -tolerance).all()) \
+                or not float(s.max() - s.min()) <= STEP_LEVEL * tolerance or not _separable(sets[c], others[c]):
+            continue
+        upper = others[c] if s[0] * d[j] < 0 else sets[c]  # the sensor at the origin lies on the side of -d
+        if nearer is not None and (nearer & upper).any():
+            continue
+        reading[c] = True
+        if others[c].sum() >= STEP_ZONES:
             extra[c] = int(others[c].sum())
-            normals[c] = n[j]
-    return extra, normals
+    return extra, normals, reading
 
 
-def _unambiguous(count: np.ndarray, step: np.ndarray, normals: np.ndarray) -> np.ndarray:
-    """``step`` (:func:`_step_zones`' zones per candidate plane, with ``count`` inliers and the least-squares normals
-    of its inliers ``normals``), or none at all where the steps that explain the most zones read different slopes
-    (:data:`STEP_AMBIGUOUS` apart): in a 3 x 3 grid a box's top over one row of zones beside a level table's two reads
-    as well as a ramp 17 deg steep through the box's row and the table's next with the far row a level below it (a
-    plane through two rows of zones fits them exactly), and a tilted table with a box on it as a level ramp; where
-    the steps disagree the consensus is the plane through the most zones, as without them."""
+def _unambiguous(count: np.ndarray, step: np.ndarray, normals: np.ndarray, reading: np.ndarray) -> np.ndarray:
+    """``step`` (:func:`_step_zones`' zones per candidate plane, with ``count`` inliers, the least-squares normals of
+    its inliers ``normals`` and whether each is a ``reading`` of its own), or none at all where a reading with as many
+    inliers as the steps that explain the most zones reads a slope :data:`STEP_AMBIGUOUS` or more from theirs.
+
+    In a 3 x 3 grid a plane through two rows of zones fits them exactly whatever their heights: a box's top over one
+    row beside a level table's two reads as well as a ramp 17 deg steep through the box's row and the table's next
+    with the far row a level below it, and a tilted table with a box on it as a level ramp. A board on a tilted table
+    with one zone of the table's row lost (two left, not a step) read as a ramp through the board's near row and
+    the table's two zones, with the board's far row a step above it: 2 deg for 12 (a review's search). Where the
+    readings disagree the consensus is the plane through the most zones, as without steps."""
     has = step > 0
     if not has.any():
         return step
     score = count + np.maximum(step - 1, 0)
     top = has & (score == score[has].max())
-    n = normals[top]
-    if float(np.clip(np.abs(n @ n[0]), 0.0, 1.0).min()) < math.cos(STEP_AMBIGUOUS):
+    rivals = reading & (count >= count[top].min())
+    n = normals[rivals | top]
+    if float(np.clip(np.abs(n @ normals[np.flatnonzero(top)[0]]), 0.0, 1.0).min()) < math.cos(STEP_AMBIGUOUS):
         return np.zeros_like(step)
     return step
 
