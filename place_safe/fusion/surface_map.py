@@ -233,7 +233,9 @@ def consensus(points: np.ndarray, valid: np.ndarray, tolerance: float, deep: boo
     # not tell them apart, and preferring the more level reading read a tilted table with a box on it level as often
     # (session 75's check: tilted planes with a patch of zones moved by a parallel level, 48 of 3000 read 2 deg or
     # more less tilted that the plane through the most zones had read right). Where readings disagree no step is read
-    step = _unambiguous(count, *_step_zones(P, inl, idx, tolerance, early)) if deep else np.zeros(len(n), dtype=int)
+    step = np.zeros(len(n), dtype=int)
+    if deep and count.max() < idx.size:  # a plane through every zone explains more than any step can
+        step = _unambiguous(count, *_step_zones(P, inl, idx, tolerance, early))
     # of the planes that explain as many zones, the one that fits its own more closely (per degree of freedom), a step
     # or not: a plane tilted through the board's six and the table's row fits them at 2.9 mm, the board's own at
     # 0.4 (random board 61 of seed 4). A step's level costs a zone, its offset
@@ -286,11 +288,14 @@ def _step_zones(points: np.ndarray, inl: np.ndarray, idx: np.ndarray, tolerance:
     maybe = np.flatnonzero(sets.sum(1) >= MIN_INLIERS)
     if maybe.size == 0:
         return extra, normals, reading
+    # many of the 84 planes hold the same zones: each set is fitted and judged once
+    _, first, which = np.unique(sets[maybe], axis=0, return_index=True, return_inverse=True)
+    which = np.asarray(which).reshape(-1)
     nearer = None if early is None else np.asarray(early, dtype=bool).reshape(-1)
     if nearer is not None and nearer.shape != (N_ZONES,):
         nearer = None
-    n, d, _, ok = fit_planes(np.broadcast_to(P, (maybe.size,) + P.shape), sets[maybe])
-    for j, c in enumerate(maybe):
+    n, d, _, ok = fit_planes(np.broadcast_to(P, (first.size,) + P.shape), sets[maybe[first]])
+    for j, c in enumerate(maybe[first]):
         if not ok[j] or not n[j, 2] >= math.cos(STEP_INCIDENCE):
             continue
         normals[c] = n[j]
@@ -307,6 +312,8 @@ def _step_zones(points: np.ndarray, inl: np.ndarray, idx: np.ndarray, tolerance:
         reading[c] = True
         if others[c].sum() >= STEP_ZONES:
             extra[c] = int(others[c].sum())
+    same = maybe[first][which]  # each candidate of maybe's representative
+    extra[maybe], normals[maybe], reading[maybe] = extra[same], normals[same], reading[same]
     return extra, normals, reading
 
 
