@@ -773,14 +773,17 @@ def test_a_board_seen_past_its_edge_is_a_level_and_a_step_not_a_ramp():
     assert _tilt_deg(plane) < 1.0
 
 
+def _zones(*z) -> np.ndarray:
+    """A zone mask (9,) of the zones ``z`` (0-8)."""
+    out = np.zeros(9, dtype=bool)
+    out[list(z)] = True
+    return out
+
+
 def test_zones_parted_by_a_straight_line():
     from place_safe.fusion.surface_map import _separable
 
-    def m(*zones):
-        out = np.zeros(9, dtype=bool)
-        out[list(zones)] = True
-        return out
-
+    m = _zones
     for a in (m(0, 1, 2), m(0), m(0, 1, 3), m(2, 5, 8), m(0, 1, 2, 5)):
         assert _separable(a, ~a) and _separable(~a, a)
     for a in (m(3, 4), m(4), m(0, 8), m(0, 1, 2, 3, 6)):  # between others, apart, an L round a corner
@@ -806,10 +809,7 @@ def test_a_step_is_three_zones_or_more_on_one_level_beside_the_plane():
         extra, normal, reading = SM._step_zones(pts, ~column[idx, None], idx, 0.006, early)
         return int(extra[0]), bool(reading[0]), normal[0]
 
-    def zones(*z):
-        out = np.zeros(9, dtype=bool)
-        out[list(z)] = True
-        return out
+    zones = _zones
 
     extra, reading, normal = step()
     assert extra == 3 and reading and abs(normal[2] - 1.0) < 1e-9
