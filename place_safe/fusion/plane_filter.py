@@ -141,6 +141,9 @@ class FusedPlane:
     # surface closer than the fused one may be what they show, and the descent brakes for it at once
     # (PlacementMachine._descent_speed)
     pending: tuple[tuple[tuple[float, float, float], float], ...] = ()
+    # rad, the largest slope ambiguity of a window plane (PlaneFilter.update): the window's tilt_std holds it, and the
+    # early refusal asks whether the surface is steep whichever way those frames read (PlacementMachine._on_descent)
+    ambiguity: float = 0.0
 
     def height_at(self, point: Any) -> float:
         """Signed distance (m) of ``point`` (base frame) above the plane (negative: below / behind it)."""
@@ -261,7 +264,7 @@ class PlaneFilter:
 
     def reset(self) -> None:
         """Forget every plane and counter."""
-        self._items: deque[tuple[float, np.ndarray, np.ndarray, float, float]] = deque(maxlen=self.window)
+        self._items: deque[tuple[float, np.ndarray, np.ndarray, float, float, float]] = deque(maxlen=self.window)
         self._memory: deque[tuple[float, np.ndarray, float]] = deque(maxlen=max(self.memory, 1))
         self._cache: FusedPlane | None = None
         # gate-rejected planes ((base-frame normal, offset), ``count`` when rejected) still pending (FusedPlane.pending)
@@ -276,10 +279,19 @@ class PlaneFilter:
         self.newest_accepted = -math.inf
 
     # -- input ---------------------------------------------------------------------------------
-    def update(self, estimate: Any, base_T_sensor: Any, stamp: float) -> bool:
+    def update(self, estimate: Any, base_T_sensor: Any, stamp: float, ambiguity: float = 0.0) -> bool:
         """Offer one frame's estimate (a PlaneEstimate, a Plane or None) measured at ``stamp`` with the
         sensor at ``base_T_sensor``. Returns whether it was accepted; the reason for a rejection is
-        in :attr:`last_reject_reason`."""
+        in :attr:`last_reject_reason`.
+
+        ``ambiguity`` (rad; 0, negative or not finite: none): the frame's zones read as well as another plane that far
+        from the estimate's (:func:`~place_safe.fusion.surface_map.slope_ambiguity`). Such a plane is weighed as
+        uncertain by that angle too, stays out of the memory of the normal, and the fused ``tilt_std`` holds the
+        largest ambiguity in the window without averaging it away (the frames from one view share it:
+        ``FusedPlane.ambiguity``); while it is in the window the angle gate widens by it. A board seen past its far
+        edge reads as a ramp through the table's row as well as a level board; a memory made of such frames alone
+        outlived them (random board 60 of seed 4: the ramp was remembered after every frame read the board level,
+        and the board was refused), and the gate rejected the level frames until the window restarted empty."""
         plane = getattr(estimate, "plane", estimate)
         if plane is None:  # no evidence either way ("too close", no return): not a gate rejection in a row
             why = getattr(estimate, "reason", None) or "no plane"
@@ -308,9 +320,12 @@ class PlaneFilter:
             f = self._fuse()
             ang = _angle(n, f.normal_base)
             off = abs(f.height_at(anchor))
-            if not (ang <= self.angle_gate and off <= self.offset_gate):  # (NaN: not within them)
+            # a window whose frames read either way (f.ambiguity) may be that far off: a frame that reads the surface
+            # as the other reading is no outlier (restarting the window left the descent without a plane)
+            gate = self.angle_gate + f.ambiguity
+            if not (ang <= gate and off <= self.offset_gate):  # (NaN: not within them)
                 self._reject(f"outlier: {math.degrees(ang):.2f} deg / {off * 1e3:.1f} mm from the fused plane "
-                             f"(gates {math.degrees(self.angle_gate):.1f} deg / {self.offset_gate * 1e3:.1f} mm)")
+                             f"(gates {math.degrees(gate):.1f} deg / {self.offset_gate * 1e3:.1f} mm)")
                 if self.consecutive_rejects < self.max_consecutive_rejects:
                     self._pending.append((((float(n[0]), float(n[1]), float(n[2])), float(n @ anchor)), self.count))
                     return False
@@ -318,8 +333,12 @@ class PlaneFilter:
                 self._memory.clear()
                 self._pending.clear()
         var = _direction_variance(estimate)
-        self._items.append((stamp, n, anchor, var, _offset_std(estimate)))
-        if self.memory > 0:
+        amb = finite_number(ambiguity)
+        amb = amb if amb is not None and amb > 0 else 0.0
+        if amb > 0:
+            var = (var if math.isfinite(var) else 0.0) + amb ** 2
+        self._items.append((stamp, n, anchor, var, _offset_std(estimate), amb))
+        if self.memory > 0 and amb == 0:
             self._memory.append((stamp, n, var))
         self.newest_accepted = stamp
         self._dirty = True
@@ -396,6 +415,8 @@ class PlaneFilter:
         if weighted:  # the planes that stated their error (one that did not adds no confidence), scaled by scatter
             tilt_std = max(tilt_std, float(math.sqrt(birge / np.sum(inv_known))))
         source = "window"
+        ambiguity = max(it[5] for it in self._items)
+        tilt_std = math.hypot(tilt_std, ambiguity)  # one view's frames share it: not averaged away
         window_tilt, window_std = _angle(n, _Z), math.hypot(tilt_std, self.reference_tilt_std)
         remembered = self._remembered()
         if remembered is not None and _angle(remembered[0], n) <= self.memory_gate:
@@ -410,7 +431,7 @@ class PlaneFilter:
                                  tuple(float(h) for h in res), tuple(float(it[4]) for it in self._items),
                                  self.reference_tilt_std, window_tilt, window_std,
                                  tuple((float(v[0]), float(v[1]), float(v[2])) for v in N),
-                                 tuple(math.sqrt(float(v)) for v in var))
+                                 tuple(math.sqrt(float(v)) for v in var), ambiguity=ambiguity)
         self._dirty = False
         return self._cache
 

@@ -215,17 +215,9 @@ def consensus(points: np.ndarray, valid: np.ndarray, tolerance: float, deep: boo
     none = (np.zeros(N_ZONES, dtype=bool), np.full(4, np.nan), math.nan)
     if idx.size < 3:
         return none
-    combos = np.array(list(itertools.combinations(idx, 3)))
-    a, b, c = P[combos[:, 0]], P[combos[:, 1]], P[combos[:, 2]]
-    n = np.cross(b - a, c - a)
-    norm = np.linalg.norm(n, axis=1)
-    good = norm > 1e-12
-    if not good.any():
+    if (cand := _candidates(P, idx, tolerance)) is None:
         return none
-    n, a = n[good] / norm[good, None], a[good]
-    d = np.sum(n * a, axis=1)
-    res = np.abs(P[idx] @ n.T - d)  # (k, combos)
-    inl = res <= tolerance
+    n, res, inl = cand
     count = inl.sum(0)
     rms = np.sqrt(np.where(inl, res ** 2, 0.0).sum(0) / np.maximum(count, 1))
     # the same zones may read as a board's level with the table past its edge, or as a steep ramp through that table
@@ -253,6 +245,75 @@ def consensus(points: np.ndarray, valid: np.ndarray, tolerance: float, deep: boo
     r = np.abs(P @ nf[0] - df[0])
     mask &= r <= tolerance
     return mask, np.append(nf[0], df[0]), float(rf[0])
+
+
+def _candidates(P: np.ndarray, idx: np.ndarray, tolerance: float
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Every plane through three of the valid zones ``idx`` of the points ``P`` (9, 3): their unit normals (c, 3), the
+    valid zones' distances from each (k, c) and which lie within ``tolerance`` (k, c); None when all are collinear."""
+    combos = np.array(list(itertools.combinations(idx, 3)))
+    a, b, c = P[combos[:, 0]], P[combos[:, 1]], P[combos[:, 2]]
+    n = np.cross(b - a, c - a)
+    norm = np.linalg.norm(n, axis=1)
+    good = norm > 1e-12
+    if not good.any():
+        return None
+    n, a = n[good] / norm[good, None], a[good]
+    res = np.abs(P[idx] @ n.T - np.sum(n * a, axis=1))
+    return n, res, res <= tolerance
+
+
+def slope_ambiguity(points: np.ndarray, valid: np.ndarray, tolerance: float, inliers: np.ndarray, plane: np.ndarray,
+                    rms: float, early: Any = None) -> float:
+    """rad: how far from the consensus plane (``inliers`` (9,), ``plane`` ``(n, d)`` and its RMS ``rms`` from
+    :func:`consensus` of the same ``points``, ``valid``, ``tolerance`` and ``early``) another reading of the frame's
+    zones puts the slope; 0 where there is none.
+
+    Another reading: a plane through :data:`MIN_INLIERS` or more zones that fits them as one surface (its
+    least-squares residual per degree of freedom within :data:`POOR_FIT` of ``tolerance``), with a step's other level
+    beside it (:func:`_step_zones`: :data:`STEP_ZONES` or more zones on one level parallel to it, not vetoed by
+    ``early``), whose zones and step hold as many zones as the consensus does, and whose slope lies
+    :data:`STEP_AMBIGUOUS` or more from the consensus plane's. A frame whose zones hold every valid one on a plane
+    that fits them closely has none.
+
+    A board seen past its far edge from 30-45 cm leaves the table in one row of zones, 13-23 mm farther; the zones in
+    between see both. A plane tilted 6-10 deg through all nine within the 7-8 mm tolerance, or through the table's
+    row and the board's far row (a two-row plane fits exactly), is the consensus, and the board's own six with the
+    table's row a level below them reads as well (random boards 51, 60, 61, 73, 109 of seed 4). The heights of one
+    frame do not tell which is right: a real slope reads the same from every height, a board's edge leaves the view
+    as the sensor descends. The fusion holds the slope uncertain by this angle while such frames are in its window
+    (:meth:`PlaneFilter.update <place_safe.fusion.plane_filter.PlaneFilter.update>`), so that no frames that can be
+    read either way make the surface confidently tilted, or level."""
+    from place_safe.recovery.points import fit_planes
+
+    P = np.asarray(points, dtype=float)
+    mask = np.asarray(inliers, dtype=bool)
+    ok = np.asarray(valid, dtype=bool) & np.all(np.isfinite(P), axis=1)
+    idx = np.flatnonzero(ok)
+    held = int(mask.sum())
+    n0 = np.asarray(plane, dtype=float)[:3]
+    if idx.size < MIN_INLIERS + STEP_ZONES - 1 or held < MIN_INLIERS or not np.all(np.isfinite(n0)):
+        return 0.0
+    if held >= idx.size and float(_per_dof(np.array(rms), np.array(held))) < POOR_FIT * tolerance:
+        return 0.0  # one surface under every zone
+    if (cand := _candidates(P, idx, tolerance)) is None:
+        return 0.0
+    _, _, inl = cand
+    count = inl.sum(0)
+    extra, normals, _ = _step_zones(P, inl, idx, tolerance, early)
+    rival = count + extra >= held
+    if not rival.any():
+        return 0.0
+    sets = np.zeros((int(rival.sum()), N_ZONES), dtype=bool)
+    sets[:, idx] = inl[:, rival].T
+    sets, first = np.unique(sets, axis=0, return_index=True)
+    _, _, r, fit = fit_planes(np.broadcast_to(P, (len(sets),) + P.shape), sets)
+    close = fit & (_per_dof(r, sets.sum(1)) <= POOR_FIT * tolerance)
+    if not close.any():
+        return 0.0
+    cos = np.clip(np.abs(normals[np.flatnonzero(rival)[first[close]]] @ n0), 0.0, 1.0)
+    angle = float(np.arccos(cos.min()))
+    return angle if angle >= STEP_AMBIGUOUS else 0.0
 
 
 def _step_zones(points: np.ndarray, inl: np.ndarray, idx: np.ndarray, tolerance: float, early: Any = None
@@ -416,6 +477,7 @@ class FrameSurfaces:
     plane_sensor: np.ndarray  # (4,) consensus plane (n, d) in the sensor frame, NaN if none
     rms: float = math.nan
     tolerance: float = math.nan  # m, the frame's consensus tolerance (SurfaceMap.consensus_tolerance of its valid zones)
+    ambiguity: float = 0.0  # rad, how far another reading of the zones puts the slope (slope_ambiguity; 0: none)
 
     @property
     def multi_surface(self) -> bool:
@@ -515,10 +577,11 @@ class SurfaceMap:
         depth = (where - top) / self._bins_per_m
         tol = self.consensus_tolerance(pts, valid)
         inliers, plane, rms = consensus(pts, valid, tol, deep=self.relative > 0, early=early)
+        ambiguity = slope_ambiguity(pts, valid, tol, inliers, plane, rms, early) if self.relative > 0 else 0.0
         pb = pts @ T[:3, :3].T + T[:3, 3]
         pb[~valid] = np.nan
         fs = FrameSurfaces(float(stamp), T.copy(), pb, valid, second, np.where(second, depth, np.nan), early,
-                           inliers, plane, rms, tol)
+                           inliers, plane, rms, tol, ambiguity)
         self.frames.append(fs)
         return fs
 
@@ -863,5 +926,5 @@ def _axis_offset(base_T_sensor: np.ndarray, centre: np.ndarray, n: np.ndarray) -
     return off, height
 
 
-__all__ = ["SurfaceMap", "FrameSurfaces", "FootprintVerdict", "consensus", "second_returns", "early_returns",
+__all__ = ["SurfaceMap", "FrameSurfaces", "FootprintVerdict", "consensus", "slope_ambiguity", "second_returns", "early_returns",
            "FOV_HALF_ANGLE"]

@@ -258,6 +258,7 @@ class PlacementLoop:
         # median range (1), zones (N_ZONES); a ring of SPLIT_HOLD_FRAMES rows, _split_rows of them filled
         self._split_seen = np.zeros((SPLIT_HOLD_FRAMES, 7 + N_ZONES))
         self._split_rows = 0
+        self._ambiguity = 0.0  # rad, the newest recorded frame's slope ambiguity (_surfaces; 0: none)
         self._clock_error: str | None = None  # the host clock's first failure (_clock_failed); the placement ends on it
         self._host_last: float | None = None  # its newest good reading (s)
         self.pipeline = pipeline if pipeline is not None else SensorPipeline(
@@ -366,7 +367,7 @@ class PlacementLoop:
                 if est is None:
                     self._drop(why)
                 else:
-                    accepted = self.filter.update(est, base_T_sensor, stamp)
+                    accepted = self.filter.update(est, base_T_sensor, stamp, ambiguity=self._ambiguity)
                     self._note = (why if accepted else self.filter.last_reject_reason)
         if self.log_frames:
             seconds = rules.number(self._safe(lambda: getattr(est, "seconds", None), None))
@@ -380,13 +381,28 @@ class PlacementLoop:
 
     def _surfaces(self, frame: Any, est: Any, base_T_sensor: np.ndarray, stamp: float) -> tuple[Any, str | None]:
         """Record the frame in the surface map; a frame that saw more than one surface gets the plane of the
-        zones that agree (a majority), or is dropped. Returns (estimate or None, note)."""
+        zones that agree (a majority), or is dropped. Returns (estimate or None, note); the frame's slope ambiguity
+        (:func:`~place_safe.fusion.surface_map.slope_ambiguity`, rad, 0: none) is left in ``_ambiguity`` for the
+        fusion."""
         try:
             fs = self.surface.add(frame, base_T_sensor, stamp)
         except Exception as exc:  # the map is evidence, not control: a bug there must not stop the loop
             return est, f"surface map failed: {describe_exception(exc)}"
+        self._ambiguity = 0.0
         if fs is None:
             return est, None
+        est, note = self._frame_plane(fs, est, base_T_sensor)
+        angle = rules.number(getattr(fs, "ambiguity", None))
+        if angle is not None and angle > 0 and getattr(est, "plane", None) is not None:
+            # the fusion weighs it so, keeps it out of the memory and holds the window's tilt to it (PlaneFilter.update)
+            self._ambiguity = angle
+            why = f"its zones read as well as a plane {math.degrees(angle):.1f} deg from it (slope ambiguous by that)"
+            note = f"{note}; {why}" if note else why
+        return est, note
+
+    def _frame_plane(self, fs: Any, est: Any, base_T_sensor: np.ndarray) -> tuple[Any, str | None]:
+        """The plane of a recorded frame ``fs`` (see :meth:`_surfaces`): the estimate ``est`` as it is, or the
+        plane of the zones that agree, or None, with a note."""
         held = self._held_split(fs)
         # zones off the known surface while most still lie on it: clutter or a step coming into view
         # beside the footprint. A frame's own consensus can miss it -- a tilted plane through every zone

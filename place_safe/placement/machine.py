@@ -1101,7 +1101,7 @@ class PlacementMachine:
                or rules.sensor_problem(state.last_frame_time, now, self._t_start, note, cfg))
         if why is not None:
             return self._refuse(now, why)
-        if (why := rules.tilt_problem(plane, cfg.early_refuse_tilt, cfg)) is not None:
+        if (why := rules.steep_problem(plane, cfg)) is not None:
             return self._refuse(now, why)
         if (why := rules.confidently_tilted(plane, cfg)) is not None:
             return self._refuse(now, why)

@@ -119,6 +119,20 @@ def tilt_problem(plane: FusedPlane, limit: float, cfg: Any) -> str | None:
     return None
 
 
+def steep_problem(plane: FusedPlane, cfg: Any) -> str | None:
+    """The early refusal: the fused tilt exceeds ``early_refuse_tilt`` whichever way the window's frames read, i.e.
+    by more than the window's slope ambiguity (``plane.ambiguity``, rad: the frames' zones read as well as a plane
+    that far away; :func:`~place_safe.fusion.surface_map.slope_ambiguity`). A board seen past its far edge from 27 cm
+    read 10.1 deg through the table's row, or 3.6 deg as a board, and was refused before a lower frame could tell
+    (random board 51 of seed 4). Without an ambiguity, :func:`tilt_problem` at ``early_refuse_tilt``."""
+    amb = number(getattr(plane, "ambiguity", 0.0))
+    amb = amb if amb is not None and amb > 0 else 0.0
+    if not (plane.tilt_rad - amb <= cfg.early_refuse_tilt):
+        return (f"surface tilted {math.degrees(plane.tilt_rad):.1f} deg (> {math.degrees(cfg.max_tilt):.1f} deg "
+                "allowed)" + (f" whichever way its frames read (ambiguous by {math.degrees(amb):.1f} deg)" if amb else ""))
+    return None
+
+
 def tilt_sigma(plane: FusedPlane) -> float:
     """Standard error (rad) of the fused plane's tilt: ``plane.tilt_std`` from the estimates' covariances (the
     calibration's reference error in it), or, without them, the window's spread over sqrt(n) with the reference
