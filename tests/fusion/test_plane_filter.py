@@ -204,16 +204,20 @@ def _tilted(deg: float, azimuth: float = 0.3) -> np.ndarray:
     return np.array([math.sin(t) * math.cos(azimuth), math.sin(t) * math.sin(azimuth), math.cos(t)])
 
 
-def _feed(filt, n_base, heights, t0=0.0, std_deg=0.1, with_cov=True, rng=None):
-    """Planes of the surface n . x = -0.05 seen from a descending sensor, each with tilt std ``std_deg``."""
+def _feed(filt, n_base, heights, t0=0.0, std_deg=0.1, with_cov=True, rng=None, ambiguity_deg=0.0, level=-0.05):
+    """Planes of the surface n . x = ``level`` seen from a descending sensor, each with tilt std ``std_deg`` (and the
+    slope ambiguity ``ambiguity_deg``). Returns the last stamp (and whether every plane was accepted: ``_feed.all``)."""
     rng = rng if rng is not None else np.random.default_rng(0)
     t = t0
+    _feed.all = True
     for h in heights:
         T = looking_down([0.4, -0.1, -0.05 + h])
         noisy = _unit_vec(n_base + rng.normal(0.0, math.radians(std_deg) / math.sqrt(2), 3) * [1, 1, 0])
         cov = np.diag([math.radians(std_deg) ** 2] * 2 + [1e-8]) if with_cov else None
         t += 1.0 / 30.0
-        filt.update(PlaneEstimate(sensor_plane(noisy, -0.05, T), covariance=cov), T, t)
+        ok = filt.update(PlaneEstimate(sensor_plane(noisy, level, T), covariance=cov), T, t,
+                         ambiguity=math.radians(ambiguity_deg))
+        _feed.all &= ok
     return t
 
 
@@ -264,6 +268,56 @@ def test_a_window_steeper_than_the_memory_is_held_to_the_level_bound_too():
     _feed(flat, _tilted(4.2), [0.08] * 7, t0=t, std_deg=0.1)
     g = flat.fused()
     assert g.source == "memory" and math.degrees(g.tilt_rad) > 5.0 and rules.level_problem(g, cfg) is not None
+
+
+def test_planes_that_read_either_way_leave_the_slope_uncertain_until_planes_that_do_not_come():
+    """A board seen past its edge from 30-45 cm reads as a ramp 6 deg steep as well as a level board with a step (the
+    frames' slope ambiguity, 5 deg here; random board 60 of seed 4). Forty such planes, each stated to 0.1 deg, make
+    the surface neither confidently tilted nor level, nor steep for the early refusal, and leave no memory. Closer,
+    the planes read the board level and unambiguous: the first is no outlier (the gate widens by the window's
+    ambiguity; before, five were rejected and the window restarted empty), and once they fill the window the surface
+    is level. Without the ambiguity the same ramp planes are refused as tilted and the level ones rejected."""
+    from place_safe.placement import rules
+    from place_safe.placement.config import PlacementConfig
+
+    cfg = PlacementConfig()
+    filt = PlaneFilter()
+    below = np.array([0.4, -0.1, -0.05])  # under the sensor both readings agree
+    ramp = float(_tilted(6.0) @ below)
+    t = _feed(filt, _tilted(6.0), np.linspace(0.45, 0.35, 40), ambiguity_deg=5.0, level=ramp)
+    f = filt.fused()
+    assert f.memory_n == 0 and f.source == "window" and math.isclose(math.degrees(f.ambiguity), 5.0)
+    assert f.tilt_std >= math.radians(5.0)
+    assert rules.confidently_tilted(f, cfg) is None and rules.steep_problem(f, cfg) is None
+    assert rules.level_problem(f, cfg) is not None
+    for k in range(filt.window):
+        t = _feed(filt, _tilted(0.1), [0.34 - 0.01 * k], t0=t, level=float(_tilted(0.1) @ below))
+        assert _feed.all and filt.fused() is not None
+    g = filt.fused()
+    assert g.ambiguity == 0.0 and math.degrees(g.tilt_rad) < 0.5 and rules.level_problem(g, cfg) is None
+    plain = PlaneFilter()
+    t = _feed(plain, _tilted(6.0), np.linspace(0.45, 0.35, 40), level=ramp)
+    assert rules.confidently_tilted(plain.fused(), cfg) is not None
+    _feed(plain, _tilted(0.1), [0.34], t0=t, level=float(_tilted(0.1) @ below))
+    assert not _feed.all
+
+
+@settings(max_examples=40, deadline=None)
+@given(tilt=st.floats(0.0, 25.0), ambiguity=st.floats(3.0, 20.0), n=st.integers(1, 80), std=st.floats(0.01, 1.0))
+def test_no_number_of_planes_that_read_either_way_certifies_a_level_surface(tilt, ambiguity, n, std):
+    """However many planes of one view whose zones read as well as another slope (3 deg or more away): their
+    ambiguity is shared, not averaged away, so the fused surface is never level with the confidence asked, and the
+    early refusal only refuses a surface steep whichever way they read."""
+    from place_safe.placement import rules
+    from place_safe.placement.config import PlacementConfig
+
+    cfg = PlacementConfig()
+    filt = PlaneFilter(min_frames=1)
+    _feed(filt, _tilted(tilt), np.linspace(0.40, 0.30, n), std_deg=std, ambiguity_deg=ambiguity)
+    f = filt.fused()
+    assert f.tilt_std >= math.radians(ambiguity) and rules.level_problem(f, cfg) is not None
+    if tilt - ambiguity < math.degrees(cfg.early_refuse_tilt) - 1.0:
+        assert rules.steep_problem(f, cfg) is None
 
 
 def test_a_plane_without_a_covariance_adds_no_confidence():

@@ -784,6 +784,65 @@ def test_a_board_seen_past_its_edge_is_a_level_and_a_step_not_a_ramp():
     assert _tilt_deg(plane) < 1.0
 
 
+# Random boards 60 and 51 of seed 4 (a nominal sensor 45 / 32 cm over an 18 / 21 mm board, the table past its far
+# edge in the row of zones 1-3; no zone shows a nearer surface): the first frame's zone points (sensor frame, mm)
+BOARD_60 = np.array([[85.81, 88.08, 467.37], [86.63, 0.0, 467.32], [85.81, -88.08, 467.4], [0.0, 85.54, 449.54],
+                     [0.0, 0.0, 450.79], [0.0, -86.2, 452.99], [-82.54, 84.72, 449.59], [-83.4, 0.0, 449.9],
+                     [-82.41, -84.59, 448.88]]) / 1e3
+BOARD_51 = np.array([[62.07, 63.71, 338.07], [62.68, 0.0, 338.11], [62.07, -63.71, 338.06], [0.0, 60.58, 318.38],
+                     [0.0, 0.0, 319.77], [0.0, -61.59, 323.67], [-58.21, 59.75, 317.07], [-58.77, 0.0, 317.03],
+                     [-58.2, -59.74, 317.02]]) / 1e3
+
+
+@pytest.mark.parametrize("points, tol", [(BOARD_60, 0.008), (BOARD_51, 0.00656)], ids=["board60", "board51"])
+def test_a_board_that_reads_as_a_ramp_as_well_states_how_far_the_readings_lie_apart(points, tol):
+    """Board 60: a plane tilted 6.1 deg holds eight zones within the tolerance (the table's row 18 mm below the
+    board's), and the board's six with the table's row a level below them fit as one surface at 1.2 deg. Board 51: the
+    plane through the table's row and the board's far row (10 deg; a two-row plane fits exactly), and the board's six
+    (3.7 deg: its near row sees the table past the edge too) with the table's row below. The consensus stays the
+    tilted plane; its slope ambiguity says the frame reads as well 4.5 deg or more away, which the fusion holds."""
+    from place_safe.fusion.surface_map import STEP_AMBIGUOUS, slope_ambiguity
+
+    valid = np.ones(9, dtype=bool)
+    mask, plane, rms = consensus(points, valid, tol)
+    assert _tilt_deg(plane) > 5.0
+    amb = slope_ambiguity(points, valid, tol, mask, plane, rms)
+    assert amb >= max(STEP_AMBIGUOUS, math.radians(4.5))
+    assert _tilt_deg(plane) - math.degrees(amb) < 4.0  # the other reading: the board, within 4 deg of level
+
+
+@settings(max_examples=30, derandomize=True)
+@given(tilt=st.floats(0.0, 30.0), towards=st.floats(-math.pi, math.pi), rng_m=st.floats(0.05, 0.4),
+       noise=st.floats(0.0, 1.0), seed=st.integers(0, 2**16), lost=st.integers(-1, 8))
+def test_one_surface_reads_no_other_slope(tilt, towards, rng_m, noise, seed, lost):
+    """One plane (0-30 deg, 5-40 cm) seen by nine zones (or eight: one lost) with noise up to a third of what
+    counts as a poor fit: no other reading of its zones, so no slope ambiguity."""
+    from place_safe.fusion.surface_map import CONSENSUS_RELATIVE, POOR_FIT, slope_ambiguity
+
+    tol = CONSENSUS_RELATIVE * rng_m
+    dirs = PARAMS.directions()
+    n = np.array([math.sin(math.radians(tilt)) * math.cos(towards), math.sin(math.radians(tilt)) * math.sin(towards),
+                  math.cos(math.radians(tilt))])
+    pts = dirs * (rng_m / (dirs @ n))[:, None]
+    pts = pts + n * np.random.default_rng(seed).normal(0.0, noise * POOR_FIT * tol / 3.0, (9, 1))
+    valid = np.ones(9, dtype=bool)
+    if lost >= 0:
+        valid[lost] = False
+    mask, plane, rms = consensus(pts, valid, tol)
+    assert slope_ambiguity(pts, valid, tol, mask, plane, rms) == 0.0
+
+
+def test_slope_ambiguity_of_too_few_zones_or_no_plane_is_none():
+    from place_safe.fusion.surface_map import slope_ambiguity
+
+    valid = np.zeros(9, dtype=bool)
+    valid[:4] = True
+    mask, plane, rms = consensus(BOARD_60, valid, 0.008)
+    assert slope_ambiguity(BOARD_60, valid, 0.008, mask, plane, rms) == 0.0
+    nan = np.full(4, np.nan)
+    assert slope_ambiguity(BOARD_60, np.ones(9, dtype=bool), 0.008, np.ones(9, dtype=bool), nan, math.nan) == 0.0
+
+
 def _zones(*z) -> np.ndarray:
     """A zone mask (9,) of the zones ``z`` (0-8)."""
     out = np.zeros(9, dtype=bool)
