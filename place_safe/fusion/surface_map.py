@@ -207,12 +207,24 @@ def consensus(points: np.ndarray, valid: np.ndarray, tolerance: float, deep: boo
     chance. Returns the inlier mask (9,), the plane ``(nx, ny, nz, d)`` (sensor frame, ``n_z > 0``) and its RMS
     residual; all-False / NaN when fewer than 3 points are valid or they are collinear.
     """
+    return _read(points, valid, tolerance, deep, early, False)[:3]
+
+
+def consensus_and_ambiguity(points: np.ndarray, valid: np.ndarray, tolerance: float, early: Any = None
+                            ) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """:func:`consensus` (``deep``) and its :func:`slope_ambiguity` (rad), the candidate planes fitted once."""
+    return _read(points, valid, tolerance, True, early, True)
+
+
+def _read(points: np.ndarray, valid: np.ndarray, tolerance: float, deep: bool, early: Any, ambiguity: bool
+          ) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """:func:`consensus` and, with ``ambiguity``, its :func:`slope_ambiguity` (else 0), the candidates fitted once."""
     from place_safe.recovery.points import fit_planes
 
     P = np.asarray(points, dtype=float)
     ok = np.asarray(valid, dtype=bool) & np.all(np.isfinite(P), axis=1)
     idx = np.flatnonzero(ok)
-    none = (np.zeros(N_ZONES, dtype=bool), np.full(4, np.nan), math.nan)
+    none = (np.zeros(N_ZONES, dtype=bool), np.full(4, np.nan), math.nan, 0.0)
     if idx.size < 3:
         return none
     if (cand := _candidates(P, idx, tolerance)) is None:
@@ -225,9 +237,10 @@ def consensus(points: np.ndarray, valid: np.ndarray, tolerance: float, deep: boo
     # not tell them apart, and preferring the more level reading read a tilted table with a box on it level as often
     # (session 75's check: tilted planes with a patch of zones moved by a parallel level, 48 of 3000 read 2 deg or
     # more less tilted that the plane through the most zones had read right). Where readings disagree no step is read
-    step = np.zeros(len(n), dtype=int)
+    step, steps = np.zeros(len(n), dtype=int), None
     if deep and count.max() < idx.size:  # a plane through every zone explains more than any step can
-        step = _unambiguous(count, *_step_zones(P, inl, idx, tolerance, early))
+        steps = _step_zones(P, inl, idx, tolerance, early)
+        step = _unambiguous(count, *steps)
     # of the planes that explain as many zones, the one that fits its own more closely (per degree of freedom), a step
     # or not: a plane tilted through the board's six and the table's row fits them at 2.9 mm, the board's own at
     # 0.4 (random board 61 of seed 4)
@@ -244,7 +257,9 @@ def consensus(points: np.ndarray, valid: np.ndarray, tolerance: float, deep: boo
     # keep the refit honest: zones it moved beyond the tolerance leave the set
     r = np.abs(P @ nf[0] - df[0])
     mask &= r <= tolerance
-    return mask, np.append(nf[0], df[0]), float(rf[0])
+    plane, rms0 = np.append(nf[0], df[0]), float(rf[0])
+    amb = _ambiguity(P, idx, tolerance, inl, steps, mask, plane, rms0, early) if ambiguity else 0.0
+    return mask, plane, rms0, amb
 
 
 def _candidates(P: np.ndarray, idx: np.ndarray, tolerance: float
@@ -284,23 +299,28 @@ def slope_ambiguity(points: np.ndarray, valid: np.ndarray, tolerance: float, inl
     as the sensor descends. The fusion holds the slope uncertain by this angle while such frames are in its window
     (:meth:`PlaneFilter.update <place_safe.fusion.plane_filter.PlaneFilter.update>`), so that no frames that can be
     read either way make the surface confidently tilted, or level."""
+    P = np.asarray(points, dtype=float)
+    idx = np.flatnonzero(np.asarray(valid, dtype=bool) & np.all(np.isfinite(P), axis=1))
+    if idx.size < 3 or (cand := _candidates(P, idx, tolerance)) is None:
+        return 0.0
+    return _ambiguity(P, idx, tolerance, cand[2], None, inliers, plane, rms, early)
+
+
+def _ambiguity(P: np.ndarray, idx: np.ndarray, tolerance: float, inl: np.ndarray, steps: Any, inliers: np.ndarray,
+               plane: np.ndarray, rms: float, early: Any) -> float:
+    """:func:`slope_ambiguity` from the candidate planes' inliers ``inl`` (:func:`_candidates`) and their
+    :func:`_step_zones` (``steps``; None: not yet found)."""
     from place_safe.recovery.points import fit_planes
 
-    P = np.asarray(points, dtype=float)
     mask = np.asarray(inliers, dtype=bool)
-    ok = np.asarray(valid, dtype=bool) & np.all(np.isfinite(P), axis=1)
-    idx = np.flatnonzero(ok)
     held = int(mask.sum())
     n0 = np.asarray(plane, dtype=float)[:3]
     if idx.size < MIN_INLIERS + STEP_ZONES - 1 or held < MIN_INLIERS or not np.all(np.isfinite(n0)):
         return 0.0
     if held >= idx.size and float(_per_dof(np.array(rms), np.array(held))) < POOR_FIT * tolerance:
         return 0.0  # one surface under every zone
-    if (cand := _candidates(P, idx, tolerance)) is None:
-        return 0.0
-    _, _, inl = cand
     count = inl.sum(0)
-    extra, normals, _ = _step_zones(P, inl, idx, tolerance, early)
+    extra, normals, _ = steps if steps is not None else _step_zones(P, inl, idx, tolerance, early)
     rival = count + extra >= held
     if not rival.any():
         return 0.0
@@ -576,8 +596,10 @@ class SurfaceMap:
         early = early_returns(h, top, valid)
         depth = (where - top) / self._bins_per_m
         tol = self.consensus_tolerance(pts, valid)
-        inliers, plane, rms = consensus(pts, valid, tol, deep=self.relative > 0, early=early)
-        ambiguity = slope_ambiguity(pts, valid, tol, inliers, plane, rms, early) if self.relative > 0 else 0.0
+        if self.relative > 0:
+            inliers, plane, rms, ambiguity = consensus_and_ambiguity(pts, valid, tol, early)
+        else:
+            (inliers, plane, rms), ambiguity = consensus(pts, valid, tol, deep=False, early=early), 0.0
         pb = pts @ T[:3, :3].T + T[:3, 3]
         pb[~valid] = np.nan
         fs = FrameSurfaces(float(stamp), T.copy(), pb, valid, second, np.where(second, depth, np.nan), early,
@@ -926,5 +948,6 @@ def _axis_offset(base_T_sensor: np.ndarray, centre: np.ndarray, n: np.ndarray) -
     return off, height
 
 
-__all__ = ["SurfaceMap", "FrameSurfaces", "FootprintVerdict", "consensus", "slope_ambiguity", "second_returns", "early_returns",
+__all__ = ["SurfaceMap", "FrameSurfaces", "FootprintVerdict", "consensus", "consensus_and_ambiguity",
+           "slope_ambiguity", "second_returns", "early_returns",
            "FOV_HALF_ANGLE"]
