@@ -199,10 +199,14 @@ def _place_sim(args: argparse.Namespace, cfg) -> tuple[dict, Any, list[str]]:
     """The placement in MuJoCo: the scenario's calibration unless --calibration/--oracle, refused without one."""
     from place_safe.sim.placement_run import run_placement
 
-    tool = _robot_config(args.robot).tool.frames() if args.robot else None  # the mount the robot file believes
+    robot_cfg = _robot_config(args.robot) if args.robot else None  # its mount, limits and motion, as on the arm
+    if robot_cfg is not None:
+        print(f"place --sim: {args.robot}: the tool frames, speed, acceleration and force limits and [motion] "
+              "apply; the workspace box, min_descent_z and surface_keepout are checked on the arm only",
+              file=sys.stderr)
     res = run_placement(args.sim, method=args.method, calibration=args.calibration, seconds=args.timeout,
                         render=args.render, seed=args.seed, config=cfg, oracle=args.oracle,
-                        log_frames=args.frame_log, mount_error=args.sim_mount_error, tool=tool)
+                        log_frames=args.frame_log, mount_error=args.sim_mount_error, robot_config=robot_cfg)
     out = {"where": f"simulation {res.scenario}", "robot_config": args.robot or "packaged sim.toml",
            "mount_error": [float(v) for v in (args.sim_mount_error or [0.0] * 6)], **res.to_dict()}
     return out, res, [res.summary()]
@@ -545,7 +549,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                  "--touch states its own (0.1 mm per contact)"),
         "quiet",
         output={"required": True, "metavar": None, "help": "capture file (JSON Lines; appended to when resuming)"},
-        robot_file={"help": "with --sim: the robot file whose tool frames define the ground truth (default sim.toml)"},
+        robot_file={"help": "with --sim: the robot file whose tool frames the loop believes and whose speed, "
+                            "acceleration and force limits and [motion] the simulated arm takes (default sim.toml)"},
         table_height={"metavar": None, "help": "known table top z in the base frame (m); with --sim it must be the "
                                                f"scenario's (within {SIM_TABLE_HEIGHT_TOL * 1000:g} mm), which is "
                                                "the default"},

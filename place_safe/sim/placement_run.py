@@ -133,7 +133,7 @@ def run_placement(scenario: Any = "place_level", method: str | None = None, cali
                   seconds: float = 20.0, render: str | Path | None = None, seed: int = 0,
                   config: PlacementConfig | None = None, estimator_options: dict | None = None,
                   log_frames: bool = True, oracle: bool = False, mount_error: Any = None,
-                  tool: Any = None) -> PlacementResult:
+                  tool: Any = None, robot_config: Any = None) -> PlacementResult:
     """Simulate one placement (see module docstring).
 
     ``scenario``: a scenario file path or packaged name, a :class:`~place_safe.sim.scenario.Scenario`
@@ -146,7 +146,11 @@ def run_placement(scenario: Any = "place_level", method: str | None = None, cali
     (default: the scenario's). ``mount_error``: how far the true sensor mount is off the nominal one
     (dx, dy, dz mm, rx, ry, rz deg; :func:`place_safe.sim.world.sim_world`). ``tool``: the tool frames the loop
     believes (:class:`~place_safe.robot.tool.ToolFrames`, e.g. from a robot file with a fitted mount; default the
-    robot's nominal ones).
+    robot's nominal ones). ``robot_config``: a robot file's :class:`~place_safe.drivers.ur5.config.URConfig` whose
+    tool frames (unless ``tool``), Cartesian speed, acceleration and contact-force limits, emergency stop and
+    placement motion (:func:`~place_safe.drivers.ur5.config.placement_config`: near-surface speed, stop
+    decelerations, contact latency) the simulated arm and the loop take, as they do on the arm; its workspace box,
+    ``min_descent_z`` and ``surface_keepout`` are the arm driver's host checks and are not simulated.
     """
     wall0 = _time.perf_counter()
     sc = _as_scenario(scenario)
@@ -161,6 +165,14 @@ def run_placement(scenario: Any = "place_level", method: str | None = None, cali
     cfg = config if config is not None else sc.placement_config()
     world = sim_world(sc, seed=seed, attach=False, mount_error=mount_error)  # the truth recorder goes in first
     scene, robot, tof = world.scene, world.robot, world.tof
+    if robot_config is not None:  # the arm's own limits and motion policy, as on the arm (cli place --robot-file)
+        from place_safe.drivers.ur5.config import placement_config
+        from place_safe.sim.robot import sim_limits
+
+        robot.limits = sim_limits(robot_config)
+        robot.emergency_decel = float(robot_config.motion.emergency_decel)
+        cfg = placement_config(robot_config, cfg)
+        tool = tool if tool is not None else robot_config.tool.frames()
     if tool is not None:
         robot.tool = tool
     tilt_true, surface_z = surface_truth(scene, robot.data)

@@ -55,11 +55,11 @@ from place_safe.sim.robot_model import ARM_JOINTS, FINGERS, load_robot_model, ro
 from place_safe.drivers.ur5.config import MotionConfig, URConfig, packaged_config
 
 
-def sim_limits() -> RobotLimits:
-    """The simulated arm's limits: the Cartesian speed, acceleration and contact limits of the packaged
-    ``robots/ur5/sim.toml`` (one definition: the descent is planned from what the simulated arm does), the
-    joint ranges of :class:`RobotLimits`. The real arm's ``real.toml`` allows 0.1 m/s and 0.5 m/s^2."""
-    lim = URConfig.load(packaged_config("sim")).limits
+def sim_limits(robot: URConfig | None = None) -> RobotLimits:
+    """The simulated arm's limits: the Cartesian speed, acceleration and contact limits of the robot file ``robot``
+    (default the packaged ``robots/ur5/sim.toml``: one definition, the descent is planned from what the simulated arm
+    does), the joint ranges of :class:`RobotLimits`. The real arm's ``real.toml`` allows 0.1 m/s and 0.5 m/s^2."""
+    lim = (robot if robot is not None else URConfig.load(packaged_config("sim"))).limits
     return RobotLimits(max_linear_speed=lim.max_linear_speed, max_linear_accel=lim.max_linear_accel,
                        max_angular_speed=lim.max_angular_speed, max_angular_accel=lim.max_angular_accel,
                        max_contact_force=lim.max_contact_force)

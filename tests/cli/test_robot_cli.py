@@ -330,3 +330,24 @@ def test_capture_help_documents_the_touched_reference_with_units(capsys):
     assert f"retracts {d['retract'] * 1000:g} mm" in text and f"each contact {TOUCH_HEIGHT_STD * 1000:g} mm" in text
     assert "'reference'" in text and "--touch-height Z m: base-frame z" in text
     assert f"--touch-force N N: the contact force that ends a touch's descent (default {d['force_threshold']:g}" in text
+
+
+def test_place_in_simulation_takes_the_robot_files_limits_and_motion(tmp_path, capsys):
+    """A robot file given to ``place --sim`` was read and checked, and only its tool frames used: a file that allows
+    0.05 m/s released the cup as the packaged 0.5 m/s one did, at 2.5 s (a review's bad-input search). Its speed
+    limit and near-surface speed now hold: 5 s is not enough to get down (it takes 10.7), and stderr says what is not
+    simulated."""
+    import json
+
+    text = packaged_config("sim").read_text()
+    assert "max_linear_speed = 0.5 " in text and "near_surface_speed = 0.05\n" in text
+    slow = tmp_path / "slow.toml"
+    slow.write_text(text.replace("max_linear_speed = 0.5 ", "max_linear_speed = 0.05 ")
+                    .replace("near_surface_speed = 0.05\n", "near_surface_speed = 0.01\n"))
+    out = tmp_path / "r.json"
+    code = main(["place", "--sim", "place_level", "--method", "peak", "--robot-file", str(slow), "--timeout", "5",
+                 "--json", str(out), "--log", str(tmp_path / "t.jsonl")])
+    err = capsys.readouterr().err
+    res = json.loads(out.read_text())
+    assert res["outcome"] != "released" and res["robot_config"] == str(slow), (code, res["outcome"], res["reason"])
+    assert "workspace box, min_descent_z and surface_keepout are checked on the arm only" in err
