@@ -20,6 +20,7 @@ from typing import Annotated, Any, ClassVar, NamedTuple
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from place_safe.exceptions import ConfigError
+from place_safe.io.json_values import DuplicateKey, unique_keys
 
 
 def _read_text(path: str | Path, what: str, error: type[Exception]) -> str:
@@ -36,21 +37,6 @@ def _read_text(path: str | Path, what: str, error: type[Exception]) -> str:
         raise error(f"cannot read {what} from {path}: not UTF-8 text (byte {exc.start})") from None
 
 
-class _DuplicateKey(ValueError):
-    """A key given twice in one JSON object (``args[0]``: the key)."""
-
-
-def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
-    """A JSON object's dict, refusing a key given twice: Python's reader keeps the last value silently, so a file
-    edited by hand with ``"chi2_limit"`` twice would use whichever came last, unseen."""
-    out: dict[str, Any] = {}
-    for key, value in pairs:
-        if key in out:
-            raise _DuplicateKey(key)
-        out[key] = value
-    return out
-
-
 def read_json(path: str | Path, what: str, error: type[Exception] = ValueError) -> Any:
     """The JSON value in ``path`` (UTF-8, a byte-order mark allowed); raises ``error`` saying why it cannot be read.
 
@@ -59,8 +45,8 @@ def read_json(path: str | Path, what: str, error: type[Exception] = ValueError) 
     """
     text = _read_text(path, what, error)
     try:
-        return json.loads(text, object_pairs_hook=_unique_keys)
-    except _DuplicateKey as exc:
+        return json.loads(text, object_pairs_hook=unique_keys)
+    except DuplicateKey as exc:
         raise error(f"cannot read {what} from {path}: key {printable(str(exc.args[0]))[:40]!r} appears twice in one "
                     "object (which value was meant?)") from None
     except json.JSONDecodeError as exc:

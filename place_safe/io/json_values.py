@@ -33,4 +33,21 @@ def jsonable(obj: Any) -> Any:
     return str(obj)
 
 
-__all__ = ["jsonable"]
+
+class DuplicateKey(ValueError):
+    """A key given twice in one JSON object (``args[0]``: the key)."""
+
+
+def unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    """A JSON object's dict, refusing a key given twice (``object_pairs_hook`` of :func:`json.loads`): Python's reader
+    keeps the last value silently, so a file edited by hand with ``"chi2_limit"`` twice would use whichever came last,
+    unseen, and a frame with ``"hists"`` twice another frame's histograms."""
+    out: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in out:
+            raise DuplicateKey(key)
+        out[key] = value
+    return out
+
+
+__all__ = ["jsonable", "DuplicateKey", "unique_keys"]

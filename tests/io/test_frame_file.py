@@ -127,6 +127,23 @@ def test_bad_entries_are_yielded_in_place(tmp_path, entries):
         load_frames(path)
 
 
+@pytest.mark.parametrize("jsonl", [False, True])
+@pytest.mark.parametrize("key", ["hists", "reference_hist"])
+def test_a_key_given_twice_in_a_frame_is_an_error_in_place(tmp_path, entries, jsonl, key):
+    """A frame with a second ``"hists"`` pasted from the next frame was read as that frame, without a word (both JSON
+    readers keep the last value; a review's bad-input search): that frame is an error naming the key, the frames
+    beside it load, and a note that merely mentions "hists" twice is no duplicate."""
+    first = json.dumps(entries[0])
+    dup = first[:-1] + f', "{key}": ' + json.dumps(entries[1][key]) + "}"
+    note = dict(entries[2], meta={"note": '"hists" and "hists" again'})
+    path = tmp_path / ("d.jsonl" if jsonl else "d.json")
+    lines = [dup, json.dumps(entries[1]), json.dumps(note)]
+    path.write_text("\n".join(lines) + "\n" if jsonl else "[" + ",".join(lines) + "]")
+    got = list(iter_frames(path))
+    assert isinstance(got[0], FrameError) and f"key '{key}' appears twice" in str(got[0])
+    assert not isinstance(got[1], FrameError) and not isinstance(got[2], FrameError)
+
+
 @pytest.mark.parametrize("layout", LAYOUTS)
 @pytest.mark.parametrize("field,where", [("hists", (4, 77)), ("reference_hist", (50,))])
 @pytest.mark.parametrize("value", [True, False])

@@ -225,7 +225,8 @@ def test_stop_from_another_thread_ends_a_stream_waiting_for_frames():
 def test_the_gate_lets_through_only_fresh_newer_frames(stamps, max_age, tolerance):
     """Whatever a source stamps, the frames the gate accepts are finite, strictly newer than every frame accepted
     before, not from the future and not older than max_age: a frozen, replaying or wrong-clocked sensor cannot
-    pass as fresh evidence."""
+    pass as fresh evidence. A frame's age is ``now - stamp`` (the test once wrote it ``now - max_age <= stamp``, which
+    rounds otherwise: stamp -2.2e-94 s at now 0.2 s is 0.2 s old to the last bit, within a max_age of 0.2 s)."""
     gate = FrameGate(max_age=max_age, future_tolerance=tolerance)
     now = 0.0
     accepted = []
@@ -233,12 +234,12 @@ def test_the_gate_lets_through_only_fresh_newer_frames(stamps, max_age, toleranc
         now += 0.05
         if gate.check(s, now) is None:
             gate.accept(s)
-            assert math.isfinite(s) and now - max_age <= s <= now + tolerance
+            assert math.isfinite(s) and now - s <= max_age and s <= now + tolerance
             assert not accepted or s > accepted[-1]
             accepted.append(s)
         else:
             assert not accepted or s <= accepted[-1] or not math.isfinite(s) or not (
-                now - max_age <= s <= now + tolerance)
+                now - s <= max_age and s <= now + tolerance)
 
 
 def test_stamp_of_reads_any_frame_like_object():
