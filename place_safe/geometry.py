@@ -31,8 +31,12 @@ class Plane:
     offset: float
 
     def __post_init__(self) -> None:
-        n = np.asarray(self.normal, dtype=float).reshape(3)
-        d = float(self.offset)
+        try:
+            n = np.asarray(self.normal, dtype=float).reshape(3)
+            d = float(self.offset)
+        except (TypeError, ValueError, OverflowError):
+            raise ValueError(f"plane needs a normal of 3 numbers and a number offset; got normal of shape "
+                               f"{np.shape(self.normal)} and offset {str(self.offset)[:40]!r}") from None
         if not (np.isfinite(n).all() and math.isfinite(d)):
             raise NoPlaneError(f"plane is not finite: normal={n}, offset={d}")
         norm = math.sqrt(float(n @ n))

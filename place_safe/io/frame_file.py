@@ -492,8 +492,9 @@ def iter_frames(path: str | Path) -> Iterator[Frame | FrameError]:
     and go on. Ground truth that is not a plane only clears that frame's ``truth`` (its reason is in
     ``truth_error``): recovery does not need it.
     """
-    name = Path(path).name
-    for i, d in enumerate(_iter_entries(path)):
+    p = check_input_file(path, "frame file", FrameFileError, MAX_FRAME_FILE_BYTES, "open")  # a path, first of all
+    name = p.name
+    for i, d in enumerate(_iter_entries(p)):
         if isinstance(d, FrameError):
             yield d
             continue

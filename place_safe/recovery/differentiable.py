@@ -59,7 +59,7 @@ from place_safe.geometry import Plane
 from place_safe.recovery.plane_renderer import PlaneRenderer, convolution_matrices
 from place_safe.sensor.frame import N_BINS, N_ZONES, Frame
 from place_safe.recovery.estimator import (Estimator, PlaneEstimate, Uncertainty, check_arguments, checked,
-                                          is_covariance, tilt_offset)
+                                          frames_of, is_covariance, tilt_offset)
 from place_safe.recovery.blend import blended
 from place_safe.recovery.peak import PeakEstimator
 from place_safe.sensor.histogram import arriving_ambient, clipped_zones, floor_profile, reference_problem
@@ -351,6 +351,7 @@ class DifferentiableEstimator(Estimator):
         return self.estimate_batch([frame])[0]
 
     def estimate_many(self, frames: list[Frame]) -> list[PlaneEstimate]:
+        frames = frames_of(frames)
         out = []
         for i in range(0, len(frames), 16):
             chunk = frames[i:i + 16]
@@ -387,10 +388,18 @@ class DifferentiableEstimator(Estimator):
 
     # ------------------------------------------------------------------------------------------
     def estimate_batch(self, frames: list[Frame]) -> list[PlaneEstimate]:
-        """Recover validated frames together. Frames without a usable return get a reason."""
+        """Recover frames together. Frames that are not valid frames or have no usable return get a reason."""
+        frames = frames_of(frames)
         results: list[PlaneEstimate | None] = [None] * len(frames)
         inits, rows, peaks = [], [], []
         for i, f in enumerate(frames):
+            try:
+                if not isinstance(f, Frame):
+                    raise FrameError(f"expected a Frame, got {type(f).__name__}")
+                f.validate()
+            except FrameError as exc:
+                results[i] = PlaneEstimate(None, reason=str(exc))
+                continue
             h = np.asarray(f.hists, dtype=float)
             if clipped_zones(h).any():
                 results[i] = PlaneEstimate(None, reason="histograms clipped (saturated counts: a flat top or counters "

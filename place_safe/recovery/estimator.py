@@ -328,6 +328,15 @@ def tilt_offset(plane: Plane) -> np.ndarray:
     return np.array([plane.normal[0], plane.normal[1], plane.offset])
 
 
+def frames_of(frames: Any) -> list:
+    """``frames`` (a list, tuple, generator or any iterable of frames) as a list; an ArgumentTypeError (a TypeError) saying
+    what to call instead for one frame, a histogram array or anything not iterable."""
+    if isinstance(frames, (Frame, np.ndarray, dict, str, bytes)) or not hasattr(frames, "__iter__"):
+        raise ArgumentTypeError(f"expected an iterable of Frame objects, got {type(frames).__name__} (for one frame "
+                                "call estimate(frame); a file: place_safe.load_frames(path))")
+    return list(frames)
+
+
 @dataclass
 class PlaneEstimate:
     """Result of one recovery. ``plane`` is None exactly when ``reason`` says why.
@@ -448,8 +457,8 @@ class Estimator(ABC):
         return est
 
     def estimate_many(self, frames: list[Frame]) -> list[PlaneEstimate]:
-        """Recover many frames (subclasses may batch)."""
-        return [self.estimate(f) for f in frames]
+        """Recover many frames (any iterable of them; subclasses may batch)."""
+        return [self.estimate(f) for f in frames_of(frames)]
 
     @abstractmethod
     def _estimate(self, frame: Frame) -> PlaneEstimate:

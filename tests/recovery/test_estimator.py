@@ -426,3 +426,30 @@ def test_an_uncertainty_entry_that_shrinks_every_covariance_is_refused_when_read
     # a calibration without diff's entry keeps none without its fallback (the defaults never fall back)
     assert Calibration().without_fallback().uncertainty("diff") == Uncertainty()
     assert kept.without_fallback().uncertainty("peak") == kept.uncertainty("peak")
+
+
+def test_the_batch_entry_points_take_any_iterable_and_say_what_they_need_in_one_line(synthetic_frames):
+    """A review's bad-input search: diff's ``estimate_batch([None])`` raised AttributeError from deep inside, its
+    ``estimate_many`` took no generator, and every ``estimate_many(frame)`` raised "'Frame' object is not iterable".
+    Now a non-frame gets its reason in place, any iterable is taken, and a single frame or an array is one
+    ArgumentTypeError saying what to call instead; ``load_frames(None)`` and a two-component normal say what they
+    need in one line too."""
+    from place_safe import load_frames, make_estimator
+    from place_safe.exceptions import ArgumentTypeError, FrameFileError
+    from place_safe.geometry import Plane
+
+    frame = synthetic_frames[0]
+    for method in ("peak", "diff"):
+        est = make_estimator(method)
+        out = est.estimate_many(f for f in (frame, None))
+        assert out[0].ok and out[1].plane is None and "expected a Frame" in out[1].reason
+        for bad in (frame, np.zeros((2, 9, 128)), 3):
+            with pytest.raises(ArgumentTypeError, match="expected an iterable of Frame objects"):
+                est.estimate_many(bad)
+    diff = make_estimator("diff")
+    got = diff.estimate_batch([None, frame])
+    assert got[0].plane is None and "expected a Frame" in got[0].reason and got[1].plane is not None
+    with pytest.raises(FrameFileError, match="expected a file path"):
+        load_frames(None)
+    with pytest.raises(ValueError, match="a normal of 3 numbers"):
+        Plane(np.array([0.0, 1.0]), 0.1)
