@@ -86,6 +86,30 @@ def register(subparsers) -> None:
         json={"metavar": "OUT", "help": "write rows and summary as JSON"}, quiet={"help": "no progress bar"})
 
 
+#: s a Ray head given as HOST:PORT must answer a TCP connection within, before Ray is asked to join it (ray.init
+#: waits without end for an address nothing listens on: a review's bad-input search).
+RAY_CONNECT_TIMEOUT = 5.0
+
+
+def ray_address_problem(address: str) -> str | None:
+    """Why the Ray head ``address`` (``HOST:PORT``, optionally ``ray://`` in front) cannot be joined: a malformed
+    port or no TCP answer within :data:`RAY_CONNECT_TIMEOUT`; None for one that answers, and for ``auto`` and
+    ``local`` (Ray finds or starts those itself)."""
+    import socket
+
+    if address in ("auto", "local"):
+        return None
+    host, sep, port = address.removeprefix("ray://").rpartition(":")
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        return "expected 'auto', 'local' or HOST:PORT of a Ray head (e.g. 10.0.0.5:6379)"
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=RAY_CONNECT_TIMEOUT):
+            return None
+    except OSError as exc:
+        return (f"no Ray head answers there within {RAY_CONNECT_TIMEOUT:.0f} s ({exc.strerror or exc}); start one "
+                "with 'ray start --head' or give --jobs J")
+
+
 def cmd_scenarios(args: argparse.Namespace) -> int:
     import numpy as np
 
@@ -96,6 +120,8 @@ def cmd_scenarios(args: argparse.Namespace) -> int:
         raise UsageError(f"scenarios: --kind {args.kind} draws random scenes: give --random N")
     if args.jobs > 1 and args.ray:
         raise UsageError("scenarios: give --jobs or --ray, not both")
+    if args.ray and (why := ray_address_problem(args.ray)) is not None:
+        raise UsageError(f"scenarios: --ray {args.ray}: {why}")
     if args.ray:
         try:
             import ray  # noqa: F401
