@@ -52,7 +52,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 from place_safe.geometry import Plane
-from place_safe.sensor.frame import Frame
+from place_safe.sensor.frame import Frame, reported_distances
 from place_safe.sensor.histogram import COUNT_MAX
 from place_safe.sensor.zones import N_BINS, N_ZONES, ZONE_DIRECTIONS, ZONE_RECTS
 
@@ -361,8 +361,8 @@ class IndependentGenerator:
             dist = np.linalg.norm(pts, axis=1) + (rng.normal(0.0, 0.002, N_ZONES) if sc.noise else 0.0)
             meta = {"generator": "independent", "albedo": float(albedo), "specular_weight": float(ks),
                     "specular_exponent": float(alpha)}
-            out.append(Frame(h, ref, distances=np.round(dist, 4), confidences=np.full(N_ZONES, 255.0),
-                             truth=plane, extra={"meta": meta}))
+            depths, confs = reported_distances(dist, 4)
+            out.append(Frame(h, ref, distances=depths, confidences=confs, truth=plane, extra={"meta": meta}))
         return out
 
 

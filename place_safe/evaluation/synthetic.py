@@ -17,7 +17,7 @@ import torch
 
 from place_safe.recovery.forward import ForwardModel, ForwardParams, ZoneRays, mount_rotation
 from place_safe.geometry import Plane
-from place_safe.sensor.frame import N_ZONES, ZONE_DIRECTIONS, Frame
+from place_safe.sensor.frame import N_ZONES, ZONE_DIRECTIONS, Frame, reported_distances
 
 
 def default_reference() -> np.ndarray:
@@ -75,6 +75,6 @@ def make_frames(n: int, params: ForwardParams | None = None, spec: SyntheticSpec
         pts = p.intersect(zone_dirs)
         dist = np.linalg.norm(pts, axis=1) + (rng.normal(0, 0.002, N_ZONES) if spec.noise else 0)
         meta = {"albedo": float(albedo[i]), "specular_weight": float(ks[i]), "specular_exponent": float(alpha[i])}
-        frames.append(Frame(h[i], ref_noisy[i], distances=np.round(dist, 3), confidences=np.full(N_ZONES, 255.0),
-                            truth=p, extra={"meta": meta}))
+        depths, confs = reported_distances(dist, 3)
+        frames.append(Frame(h[i], ref_noisy[i], distances=depths, confidences=confs, truth=p, extra={"meta": meta}))
     return frames

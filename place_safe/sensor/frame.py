@@ -28,6 +28,17 @@ MAX_CONFIDENCE = 255
 MIN_SENSOR_DISTANCE = 1e-3
 
 
+def reported_distances(ranges: Any, rounding: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """On-sensor distances (m) and confidences as a TMF8820 reports them for the ranges ``ranges`` (m, per zone) a
+    simulation computed: rounded to ``rounding`` decimals (mm), a range below :data:`MIN_SENSOR_DISTANCE` or above
+    :data:`MAX_SENSOR_DISTANCE`, or not finite, as 0 with confidence 0 (no object), the rest at
+    :data:`MAX_CONFIDENCE`. (The generators wrote a noisy range of 0.1 mm as -1 mm at full confidence, which the
+    frame format does not allow: a review's bad-input search.)"""
+    r = np.round(np.asarray(ranges, dtype=float), rounding)
+    seen = np.isfinite(r) & (r >= MIN_SENSOR_DISTANCE) & (r <= MAX_SENSOR_DISTANCE)
+    return np.where(seen, r, 0.0), np.where(seen, float(MAX_CONFIDENCE), 0.0)
+
+
 def has_bool(value: Any) -> bool:
     """Whether ``value`` is a boolean or a (nested) list holding one."""
     return isinstance(value, bool) or (isinstance(value, list) and any(has_bool(v) for v in value))

@@ -135,3 +135,13 @@ def test_pose_ground_truth_from_the_sweep_format(sweep_path):
     assert f.truth is not None
     assert f.truth.offset == pytest.approx(first["dist_to_plane"])
     assert f.distances is not None and np.all(f.distances < 1.0)  # mm in the file -> m
+
+
+def test_reported_distances_are_what_the_sensor_can_report():
+    """A simulated range of -1 mm (2 mm noise on 0.1 mm) was written at full confidence: on-sensor distances are 0
+    (no object, confidence 0) below 1 mm, past 65.535 m or not finite, the rest rounded with full confidence (the
+    generators' one definition)."""
+    from place_safe.sensor.frame import reported_distances
+
+    d, c = reported_distances([-0.001, 0.0004, 0.0012, 0.25, 70.0, float("nan")], 3)
+    assert d.tolist() == [0.0, 0.0, 0.001, 0.25, 0.0, 0.0] and c.tolist() == [0, 0, 255, 255, 0, 0]
