@@ -384,11 +384,11 @@ class PlacementLoop:
         zones that agree (a majority), or is dropped. Returns (estimate or None, note); the frame's slope ambiguity
         (:func:`~place_safe.fusion.surface_map.slope_ambiguity`, rad, 0: none) is left in ``_ambiguity`` for the
         fusion."""
+        self._ambiguity = 0.0
         try:
             fs = self.surface.add(frame, base_T_sensor, stamp)
         except Exception as exc:  # the map is evidence, not control: a bug there must not stop the loop
             return est, f"surface map failed: {describe_exception(exc)}"
-        self._ambiguity = 0.0
         if fs is None:
             return est, None
         est, note = self._frame_plane(fs, est, base_T_sensor)
