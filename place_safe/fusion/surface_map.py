@@ -331,8 +331,11 @@ def _ambiguity(P: np.ndarray, idx: np.ndarray, tolerance: float, inl: np.ndarray
     close = fit & (_per_dof(r, sets.sum(1)) <= POOR_FIT * tolerance)
     if not close.any():
         return 0.0
-    cos = np.clip(np.abs(normals[np.flatnonzero(rival)[first[close]]] @ n0), 0.0, 1.0)
-    angle = float(np.arccos(cos.min()))
+    n = normals[np.flatnonzero(rival)[first[close]]]
+    n = n[np.all(np.isfinite(n), axis=1)]  # no normal: facing the sensor beyond STEP_INCIDENCE (not a reading)
+    if n.size == 0:
+        return 0.0
+    angle = float(np.arccos(np.clip(np.abs(n @ n0), 0.0, 1.0).min()))
     return angle if angle >= STEP_AMBIGUOUS else 0.0
 
 
