@@ -811,6 +811,24 @@ def test_a_board_that_reads_as_a_ramp_as_well_states_how_far_the_readings_lie_ap
     assert _tilt_deg(plane) - math.degrees(amb) < 4.0  # the other reading: the board, within 4 deg of level
 
 
+def test_a_rival_without_a_normal_does_not_hide_the_others():
+    """A candidate that faces the sensor beyond STEP_INCIDENCE has no normal (NaN): its NaN made the smallest cosine
+    NaN and the ambiguity 0 whatever the other readings said (28 of 2000 synthetic patch draws). Board 51's readings
+    near its consensus plane (0.6 deg) made normal-less: the board's reading, 6.5 deg away, still counts."""
+    from place_safe.fusion import surface_map as SM
+
+    tol, idx = 0.00656, np.arange(9)
+    mask, plane, rms, amb = SM.consensus_and_ambiguity(BOARD_51, np.ones(9, dtype=bool), tol)
+    _, _, inl = SM._candidates(BOARD_51, idx, tol)
+    extra, normals, reading = SM._step_zones(BOARD_51, inl, idx, tol)
+    near = np.all(np.isfinite(normals), axis=1) & (np.abs(np.nan_to_num(normals) @ plane[:3]) > math.cos(
+        math.radians(1.0)))
+    assert near.any()
+    normals[near] = np.nan
+    got = SM._ambiguity(BOARD_51, idx, tol, inl, (extra, normals, reading), mask, plane, rms, None)
+    assert got == amb > math.radians(5.0)
+
+
 @settings(max_examples=30, derandomize=True)
 @given(tilt=st.floats(0.0, 30.0), towards=st.floats(-math.pi, math.pi), rng_m=st.floats(0.05, 0.4),
        noise=st.floats(0.0, 1.0), seed=st.integers(0, 2**16), lost=st.integers(-1, 8))
