@@ -207,17 +207,17 @@ def consensus(points: np.ndarray, valid: np.ndarray, tolerance: float, deep: boo
     chance. Returns the inlier mask (9,), the plane ``(nx, ny, nz, d)`` (sensor frame, ``n_z > 0``) and its RMS
     residual; all-False / NaN when fewer than 3 points are valid or they are collinear.
     """
-    return _read(points, valid, tolerance, deep, early, False)[:3]
+    return _consensus_reading(points, valid, tolerance, deep, early, False)[:3]
 
 
 def consensus_and_ambiguity(points: np.ndarray, valid: np.ndarray, tolerance: float, early: Any = None
                             ) -> tuple[np.ndarray, np.ndarray, float, float]:
     """:func:`consensus` (``deep``) and its :func:`slope_ambiguity` (rad), the candidate planes fitted once."""
-    return _read(points, valid, tolerance, True, early, True)
+    return _consensus_reading(points, valid, tolerance, True, early, True)
 
 
-def _read(points: np.ndarray, valid: np.ndarray, tolerance: float, deep: bool, early: Any, ambiguity: bool
-          ) -> tuple[np.ndarray, np.ndarray, float, float]:
+def _consensus_reading(points: np.ndarray, valid: np.ndarray, tolerance: float, deep: bool, early: Any,
+                       ambiguity: bool) -> tuple[np.ndarray, np.ndarray, float, float]:
     """:func:`consensus` and, with ``ambiguity``, its :func:`slope_ambiguity` (else 0), the candidates fitted once."""
     from place_safe.recovery.points import fit_planes
 
@@ -500,7 +500,7 @@ class FrameSurfaces:
     plane_sensor: np.ndarray  # (4,) consensus plane (n, d) in the sensor frame, NaN if none
     rms: float = math.nan
     tolerance: float = math.nan  # m, the frame's consensus tolerance (SurfaceMap.consensus_tolerance of its valid zones)
-    ambiguity: float = 0.0  # rad, how far another reading of the zones puts the slope (slope_ambiguity; 0: none)
+    ambiguity: float = 0.0  # rad, how far another reading of its zones puts the slope (slope_ambiguity; 0: none)
 
     @property
     def multi_surface(self) -> bool:

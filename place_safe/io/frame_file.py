@@ -26,6 +26,7 @@ sensor, where no frame within its wait is the sensor failing (exit 1, as for a s
 from __future__ import annotations
 
 import json
+import os
 import re
 from collections.abc import Iterable, Iterator
 from pathlib import Path
@@ -492,9 +493,8 @@ def iter_frames(path: str | Path) -> Iterator[Frame | FrameError]:
     and go on. Ground truth that is not a plane only clears that frame's ``truth`` (its reason is in
     ``truth_error``): recovery does not need it.
     """
-    p = check_input_file(path, "frame file", FrameFileError, MAX_FRAME_FILE_BYTES, "open")  # a path, first of all
-    name = p.name
-    for i, d in enumerate(_iter_entries(p)):
+    name = Path(path).name if isinstance(path, (str, os.PathLike)) else ""  # _iter_entries says what else it is
+    for i, d in enumerate(_iter_entries(path)):
         if isinstance(d, FrameError):
             yield d
             continue

@@ -127,10 +127,10 @@ def steep_problem(plane: FusedPlane, cfg: Any) -> str | None:
     (random board 51 of seed 4). Without an ambiguity, :func:`tilt_problem` at ``early_refuse_tilt``."""
     amb = number(getattr(plane, "ambiguity", 0.0))
     amb = amb if amb is not None and amb > 0 else 0.0
-    if not (plane.tilt_rad - amb <= cfg.early_refuse_tilt):
-        return (f"surface tilted {math.degrees(plane.tilt_rad):.1f} deg (> {math.degrees(cfg.max_tilt):.1f} deg "
-                "allowed)" + (f" whichever way its frames read (ambiguous by {math.degrees(amb):.1f} deg)" if amb else ""))
-    return None
+    why = tilt_problem(plane, cfg.early_refuse_tilt + amb, cfg)
+    if why is not None and amb:
+        why += f" whichever way its frames read (ambiguous by {math.degrees(amb):.1f} deg)"
+    return why
 
 
 def tilt_sigma(plane: FusedPlane) -> float:

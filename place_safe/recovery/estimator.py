@@ -329,8 +329,8 @@ def tilt_offset(plane: Plane) -> np.ndarray:
 
 
 def frames_of(frames: Any) -> list:
-    """``frames`` (a list, tuple, generator or any iterable of frames) as a list; an ArgumentTypeError (a TypeError) saying
-    what to call instead for one frame, a histogram array or anything not iterable."""
+    """``frames`` (a list, tuple, generator or any iterable of frames) as a list; an ArgumentTypeError (a TypeError)
+    saying what to call instead for one frame, a histogram array or anything not iterable."""
     if isinstance(frames, (Frame, np.ndarray, dict, str, bytes)) or not hasattr(frames, "__iter__"):
         raise ArgumentTypeError(f"expected an iterable of Frame objects, got {type(frames).__name__} (for one frame "
                                 "call estimate(frame); a file: place_safe.load_frames(path))")
