@@ -1,7 +1,8 @@
 """Reading and writing frame files (docs/interfaces.md), streamed so large files never sit whole in memory.
 
 Two layouts are read: a JSON list of frames (the shared format) and JSON Lines (one frame object
-per line, the project's capture format). Files are UTF-8; a byte-order mark is accepted.
+per line, the project's capture format). Files are UTF-8; a byte-order mark is accepted at the file's start (one
+before a later frame makes that frame an error saying so).
 
 The reader is linear in the file size: a small scanner (:class:`_Splitter`) finds where each frame
 ends by following brackets and string quotes over the raw bytes (regular-expression jumps, so the
@@ -58,6 +59,9 @@ _OUTSIDE_LINES = re.compile(rb'[\[\]{}"\n]')
 _INSIDE_LINES = re.compile(rb'["\\\n]')
 _LINE_BROKEN = "the line ends inside the frame (JSON Lines: one frame per line)"
 _LINE_EXTRA = "text after the frame on its line (JSON Lines: one frame per line)"
+#: A byte-order mark is read at the file's start only; one before a later frame (files with one joined) makes that frame
+#: an error of its own (it read as a frame of three bytes, then as "text after the frame" or a broken list)
+_BOM_INSIDE = "a UTF-8 byte-order mark before the frame (only the file's start may have one: were files joined?)"
 #: JSON Lines: what ends a line (CR alone as well: such files read one frame per line)
 _LINE_END = re.compile(rb"[\r\n]")
 _SCALAR_END = re.compile(rb'[\s,\]\[{}"]')
@@ -226,6 +230,10 @@ class _Splitter:
                 self._keep(chunk[pos:end])
                 pos = end
                 if m:
+                    if self.size == len(_BOM) and chunk[end:end + 1] in (b"{", b"[") and b"".join(self.parts) == _BOM:
+                        self._reset()  # the frame after the mark is the error, at its own index
+                        self.error = _BOM_INSIDE
+                        continue
                     self._finish(out)
                 continue
             # container or string: walk the interesting bytes

@@ -222,6 +222,23 @@ def test_byte_order_mark_is_accepted(tmp_path):
     assert len(load_frames(path)) == 1
 
 
+@pytest.mark.parametrize("chunk", [1, 2, 7, 1 << 16])
+@pytest.mark.parametrize("jsonl", [False, True])
+def test_a_byte_order_mark_before_a_later_frame_says_so_in_its_place(tmp_path, monkeypatch, chunk, jsonl):
+    """Files joined, the second with a BOM: in JSON Lines that frame read as "text after the frame on its line", in a
+    list as a three-byte frame that then broke the file ("expected ',' or ']'"). It is now that frame's error, saying
+    what it is; the frames either side are read, and a BOM at the file's start is still accepted."""
+    good = json.dumps(_good())
+    sep = "\n" if jsonl else ", "
+    text = "\ufeff" + ("" if jsonl else "[") + good + sep + "\ufeff" + good + sep + good + ("\n" if jsonl else "]")
+    path = tmp_path / ("joined.jsonl" if jsonl else "joined.json")
+    path.write_bytes(text.encode())
+    monkeypatch.setattr(ff, "_CHUNK", chunk)
+    items, err = _read(path)
+    assert err is None and _kinds(items) == ["frame", "error", "frame"]
+    assert str(items[1]).startswith(f"{path.name}: frame 1: a UTF-8 byte-order mark before the frame")
+
+
 def test_non_utf8_bytes_name_the_frame(tmp_path):
     path = tmp_path / "latin.json"
     path.write_bytes(b'[' + json.dumps(_good()).encode() + b', {"meta": "caf\xe9"}]')
