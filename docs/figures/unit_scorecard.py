@@ -187,7 +187,7 @@ def add_few_tilts(unit: str, out: Path, level: Path, n: int, fresh: bool = False
     if unit in SYNTH:  # the generator draws incidences 0..max: the frames under 5 deg count as level
         run(["synth", "--frames", str(n), "--seed", str(FEW_TILTS_SEED), "--sensor-seed", str(SYNTH[unit]),
              "--max-angle", str(FEW_TILTS_DEG[1]), "--min-distance", str(FEW_TILTS_HEIGHTS[0]), "--max-distance",
-             str(FEW_TILTS_HEIGHTS[1]), "-o", str(few)], out / f"{unit}_synth_few{n}.log")
+             str(FEW_TILTS_HEIGHTS[1]), "-o", str(few), "--force"], out / f"{unit}_synth_few{n}.log")
     else:
         from place_safe.io.frame_file import write_frames
         from place_safe.sim.tof_mismatch import MismatchConfig
@@ -220,10 +220,12 @@ def make_frames(unit: str, out: Path, few_tilts: int = 0, fresh: bool = False) -
     if unit in SYNTH:
         s = str(SYNTH[unit])
         run(["synth", "--frames", str(FRAMES), "--seed", "1", "--sensor-seed", s, "--max-angle", "0",
-             "--min-distance", str(LEVEL_HEIGHTS[0]), "--max-distance", str(LEVEL_HEIGHTS[1]), "-o", str(level)],
+             "--min-distance", str(LEVEL_HEIGHTS[0]), "--max-distance", str(LEVEL_HEIGHTS[1]), "-o", str(level),
+             "--force"],
             out / f"{unit}_synth_level.log")
         run(["synth", "--frames", str(FRAMES), "--seed", "2", "--sensor-seed", s, "--max-angle", str(MAX_TILT_DEG),
-             "--min-distance", str(TILT_HEIGHTS[0]), "--max-distance", str(TILT_HEIGHTS[1]), "-o", str(tilt)],
+             "--min-distance", str(TILT_HEIGHTS[0]), "--max-distance", str(TILT_HEIGHTS[1]), "-o", str(tilt),
+             "--force"],
             out / f"{unit}_synth_tilt.log")
         return level, tilt
     from place_safe.io.frame_file import write_frames

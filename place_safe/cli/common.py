@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -61,6 +62,14 @@ def require_frame_file(path: str | Path) -> None:
     """A one-line :class:`FrameFileError` where ``path`` cannot be read as a frame file (:func:`not_a_file`)."""
     if (why := not_a_file(path)) is not None:
         raise FrameFileError(f"frame file {path} {why}")
+
+
+def refuse_overwrite(path: str | Path, force: bool) -> None:
+    """A one-line :class:`UsageError` where ``path`` is a file already there and ``force`` (``--force``) was not given:
+    a command that writes a file replaces one only when told to (``sensor record``, ``synth``; ``calibrate`` updates a
+    calibration file and refuses to replace anything else). A device or a pipe (``/dev/null``) is written as ever."""
+    if not force and os.path.isfile(path):
+        raise UsageError(f"{path} exists; use --force to overwrite it")
 
 
 def load_calibration(path: str | None):

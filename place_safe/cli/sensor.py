@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from place_safe.cli import options
-from place_safe.cli.common import FMT, PROG, log
+from place_safe.cli.common import FMT, PROG, log, refuse_overwrite
 from place_safe.cli.options import float_range, fraction, int_range, opt
 from place_safe.drivers.tmf8820 import bench
 from place_safe.exceptions import ConfigError, SensorTimeout
@@ -123,8 +123,7 @@ def cmd_record(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     out = Path(args.output)
-    if out.exists() and not args.force:
-        raise ConfigError(f"{out} exists; use --force to overwrite it")
+    refuse_overwrite(out, args.force)
     src = _open(args)
     bar = tqdm(total=args.frames, desc="record", unit="frame", file=sys.stderr, disable=args.quiet or None,
                leave=False)

@@ -15,7 +15,7 @@ from pathlib import Path
 from place_safe.cli import options
 from place_safe.cli.options import opt
 from place_safe.cli.options import float_range, int_range
-from place_safe.cli.common import UsageError, log
+from place_safe.cli.common import UsageError, log, refuse_overwrite
 from place_safe.io.frame_file import write_frames
 
 EPILOG = """examples:
@@ -56,7 +56,7 @@ def register(subparsers) -> None:
         opt("--crosstalk", choices=CROSSTALK_MODES, default=None,
             help="independent: crosstalk from the other zones or all zones (default all)"),
         opt("--no-noise", action="store_true", help="expected counts, no Poisson noise"),
-        "output",
+        "output", "force",
         frames={"default": 100, "help": "frames to write, 1-100000 (default 100; they are built in memory, about "
                                         "10 kB each)"},
         seed={"help": "seed of the scenes (default 0)"},
@@ -67,6 +67,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
 
     if not args.min_distance < args.max_distance:
         raise UsageError("synth: --min-distance must be below --max-distance")
+    refuse_overwrite(args.output, args.force)  # before the frames are drawn (minutes for 100,000)
     z_range = (args.min_distance, args.max_distance)
     theta_range = (0.0, math.radians(args.max_angle))
     if args.generator == "independent":

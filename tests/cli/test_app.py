@@ -571,6 +571,18 @@ def test_synth_writes_frames_with_truth_and_rejects_bad_ranges(tmp_path, capsys)
     assert one_line_error(capsys.readouterr().err)
 
 
+def test_synth_replaces_a_file_only_with_force(tmp_path, capsys):
+    """``synth -o calib.json`` replaced a calibration with frames, without a word; like ``sensor record`` it now
+    refuses a file that is there (one line, exit 2, the file untouched) unless given --force."""
+    calib = tmp_path / "calib.json"
+    calib.write_text('{"peak": {}}')
+    assert main(["synth", "--frames", "1", "-o", str(calib)]) == 2
+    assert one_line_error(capsys.readouterr().err) == f"place-safe: error: {calib} exists; use --force to overwrite it"
+    assert calib.read_text() == '{"peak": {}}'
+    assert main(["synth", "--frames", "1", "-o", str(calib), "--force"]) == 0
+    assert len(json.loads(calib.read_text())) == 1
+
+
 def test_a_full_disk_names_the_output_it_was_writing(sweep_path, capsys):
     """A write that finds no room names no file (ENOSPC on /dev/full): the line names the outputs it may have been."""
     assert main(["evaluate", str(sweep_path), "--methods", "peak", "--no-plots", "-q", "--json", "/dev/full"]) == 2
