@@ -361,7 +361,7 @@ class IndependentGenerator:
             dist = np.linalg.norm(pts, axis=1) + (rng.normal(0.0, 0.002, N_ZONES) if sc.noise else 0.0)
             meta = {"generator": "independent", "albedo": float(albedo), "specular_weight": float(ks),
                     "specular_exponent": float(alpha)}
-            depths, confs = reported_distances(dist, 4)
+            depths, confs = reported_distances(dist, 4, hists=h)
             out.append(Frame(h, ref, distances=depths, confidences=confs, truth=plane, extra={"meta": meta}))
         return out
 

@@ -75,6 +75,6 @@ def make_frames(n: int, params: ForwardParams | None = None, spec: SyntheticSpec
         pts = p.intersect(zone_dirs)
         dist = np.linalg.norm(pts, axis=1) + (rng.normal(0, 0.002, N_ZONES) if spec.noise else 0)
         meta = {"albedo": float(albedo[i]), "specular_weight": float(ks[i]), "specular_exponent": float(alpha[i])}
-        depths, confs = reported_distances(dist, 3)
+        depths, confs = reported_distances(dist, 3, hists=h[i])
         frames.append(Frame(h[i], ref_noisy[i], distances=depths, confidences=confs, truth=p, extra={"meta": meta}))
     return frames

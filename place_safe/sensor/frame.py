@@ -17,6 +17,7 @@ import numpy as np
 
 from place_safe.exceptions import FrameError, NoPlaneError
 from place_safe.geometry import Plane, is_rotation, plane_from_pose
+from place_safe.sensor.histogram import first_return
 from place_safe.sensor.zones import CENTRE, CORNER, EDGE, N_BINS, N_ZONES, ZONE_DIRECTIONS, ZONE_KIND, ZONE_RECTS  # noqa: F401
 
 
@@ -28,14 +29,21 @@ MAX_CONFIDENCE = 255
 MIN_SENSOR_DISTANCE = 1e-3
 
 
-def reported_distances(ranges: Any, rounding: int = 3) -> tuple[np.ndarray, np.ndarray]:
+def reported_distances(ranges: Any, rounding: int = 3, *, hists: Any = None) -> tuple[np.ndarray, np.ndarray]:
     """On-sensor distances (m) and confidences as a TMF8820 reports them for the ranges ``ranges`` (m, per zone) a
     simulation computed: rounded to ``rounding`` decimals (mm), a range below :data:`MIN_SENSOR_DISTANCE` or above
     :data:`MAX_SENSOR_DISTANCE`, or not finite, as 0 with confidence 0 (no object), the rest at
     :data:`MAX_CONFIDENCE`. (The generators wrote a noisy range of 0.1 mm as -1 mm at full confidence, which the
-    frame format does not allow: a review's bad-input search.)"""
+    frame format does not allow: a review's bad-input search.)
+
+    ``hists`` (9, 128), the frame's zone histograms: a zone whose histogram shows no return (the firmware's reading
+    that the simulated sensor emulates, :func:`place_safe.sensor.histogram.first_return`) reports no object either.
+    (``synth`` at 4.9-5 m wrote full-confidence distances over histograms with nothing in them: a return lands in
+    the bins only to about 1.3 m.)"""
     r = np.round(np.asarray(ranges, dtype=float), rounding)
     seen = np.isfinite(r) & (r >= MIN_SENSOR_DISTANCE) & (r <= MAX_SENSOR_DISTANCE)
+    if hists is not None:
+        seen &= first_return(np.asarray(hists, dtype=float))[1]
     return np.where(seen, r, 0.0), np.where(seen, float(MAX_CONFIDENCE), 0.0)
 
 

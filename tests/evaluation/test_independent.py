@@ -36,6 +36,22 @@ def test_frames_are_valid_and_reproducible():
     assert not np.array_equal(a[0].hists, _gen().frames(1, seed=4)[0].hists)
 
 
+@pytest.mark.parametrize("noise", [True, False])
+def test_generators_report_no_distance_where_their_histograms_show_no_return(noise):
+    """``synth --min-distance 4.9 --max-distance 5`` wrote on-sensor distances of about 5 m at confidence 255 over
+    histograms with nothing in them (both generators); there is no object to report now. Near planes keep theirs."""
+    from place_safe.evaluation.synthetic import SyntheticSpec
+    from place_safe.evaluation.synthetic import make_frames as model_frames
+
+    far = ((4.9, 5.0), (0.0, math.radians(30)))
+    for f in _gen().frames(3, seed=1, scene=SceneSpec(*far, noise=noise)) + \
+            model_frames(3, seed=1, spec=SyntheticSpec(z_range=far[0], theta_range=far[1], noise=noise)):
+        assert not find_peaks(f.hists)[1].any()  # the histograms show no return
+        assert np.all(f.distances == 0.0) and np.all(f.confidences == 0.0)
+    for f in _gen().frames(3, seed=1, scene=SceneSpec((0.05, 0.3), far[1], noise=noise)):
+        assert np.all(f.distances > 0.0) and np.all(f.confidences == 255.0)
+
+
 def test_peak_moves_one_bin_per_bin_size_of_range():
     g = _gen(pileup=0.0)
     s = g.sensor

@@ -145,3 +145,14 @@ def test_reported_distances_are_what_the_sensor_can_report():
 
     d, c = reported_distances([-0.001, 0.0004, 0.0012, 0.25, 70.0, float("nan")], 3)
     assert d.tolist() == [0.0, 0.0, 0.001, 0.25, 0.0, 0.0] and c.tolist() == [0, 0, 255, 255, 0, 0]
+
+
+def test_reported_distances_follow_the_histograms():
+    """``synth`` at 4.9-5 m wrote full-confidence distances where the histograms hold no return (it lands in the bins
+    only to about 1.3 m): given the histograms, a zone without a return reports no object, a zone with one its range."""
+    from place_safe.sensor.frame import reported_distances
+
+    hists = np.full((N_ZONES, N_BINS), 100.0)
+    hists[:4, 40:44] += [300.0, 1000.0, 1000.0, 300.0]  # a return in zones 1-4 only
+    d, c = reported_distances(np.full(N_ZONES, 0.5), 3, hists=hists)
+    assert d.tolist() == [0.5] * 4 + [0.0] * 5 and c.tolist() == [255] * 4 + [0] * 5
