@@ -150,8 +150,9 @@ SIM_SWEEP_FRAMES = 48
 # ------------------------------------------------------------------------------------------------
 # recover
 # ------------------------------------------------------------------------------------------------
-def _recover_stream(path: str, estimator, batch: int) -> Iterator[tuple[int, Any]]:
-    """(index, PlaneEstimate) for every entry of the file, in order, recovering ``batch`` frames at a time."""
+def _recover_stream(path: str, estimator, batch: int, unstamped: list[str] | None = None) -> Iterator[tuple[int, Any]]:
+    """(index, PlaneEstimate) for every entry of the file, in order, recovering ``batch`` frames at a time.
+    ``unstamped`` gets ``"frame N: why"`` for each frame whose timestamp was not used (its plane is recovered)."""
     pending: list[tuple[int, Any]] = []
 
     def flush() -> Iterator[tuple[int, Any]]:
@@ -163,6 +164,8 @@ def _recover_stream(path: str, estimator, batch: int) -> Iterator[tuple[int, Any
 
     try:
         for i, f in enumerate(iter_frames(path)):
+            if unstamped is not None and getattr(f, "timestamp_error", None):
+                unstamped.append(f"frame {i}: {f.timestamp_error}")
             pending.append((i, f))
             if len(pending) >= batch:
                 yield from flush()
@@ -210,8 +213,9 @@ def cmd_recover(args: argparse.Namespace) -> int:
             out.write(note + "\n")
         out.write(f"{'frame':>5}  {'theta deg':>9} {'phi deg':>9} {'d mm':>9}  {'albedo':>7} {'ms':>8}  reason\n")
     n = bad = 0
+    unstamped: list[str] = []
     bar = tqdm(desc=f"recover {args.method}", unit="frame", **progress_options(not args.quiet))
-    for i, e in _recover_stream(args.file, est, max(1, batch)):
+    for i, e in _recover_stream(args.file, est, max(1, batch), unstamped):
         if args.jsonl:
             line = e.to_json(i)
             if e.plane is None and not line.get("reason"):
@@ -227,6 +231,9 @@ def cmd_recover(args: argparse.Namespace) -> int:
     out.flush()
     if args.jsonl and note is not None and not args.quiet:  # (after the run: an error stays stderr's one line)
         log(note)  # standard output stays JSON lines, each with "calibrated": false
+    if unstamped and not args.quiet:
+        log(f"note: the timestamp of {len(unstamped)} frame{'s' if len(unstamped) > 1 else ''} was not used (first "
+            f"{unstamped[0]}); recovery does not read it")
     if not args.quiet:
         log(f"recovered {n - bad} of {n} frames with {args.method}" + (f" ({bad} without a plane)" if bad else ""))
     return 0

@@ -146,6 +146,9 @@ class Frame:
     extra: everything else from the file (joint angles, pose, meta), carried through.
     truth_error: why the file's ground truth could not be used (then ``truth`` is None); it affects
         only evaluation and calibration, which skip such frames, never recovery.
+    timestamp_error: why the file's ``timestamp`` could not be used (not a finite number of seconds): ``from_dict``
+        leaves ``timestamp`` None, an unstamped frame, which the frame gate drops (a replay stamps it anew);
+        recovery does not read it.
     """
 
     hists: np.ndarray
@@ -156,6 +159,7 @@ class Frame:
     truth: Plane | None = None
     extra: dict = field(default_factory=dict)
     truth_error: str | None = None
+    timestamp_error: str | None = None
 
     def validate(self) -> None:
         """Raise :class:`FrameError` unless the histograms can be used for recovery.
@@ -212,17 +216,19 @@ class Frame:
             truth_error = f"ground truth is not a plane in front of the sensor: {_first_line(exc)}"
         known = {"hists", "reference_hist", "distances", "plane"}
         extra = {k: v for k, v in d.items() if k not in known}
-        ts = d.get("timestamp")
-        if ts is not None:
+        ts, timestamp_error = d.get("timestamp"), None
+        if ts is not None:  # not in the shared format: a bad one costs the frame its stamp, not its histograms
             if isinstance(ts, bool) or not isinstance(ts, (int, float)):
-                raise FrameError(f"timestamp must be a number of seconds, got {type(ts).__name__}")
-            try:
-                ts = float(ts)
-            except OverflowError:
-                ts = math.inf
-            if not math.isfinite(ts):
-                raise FrameError("timestamp must be a finite number of seconds")
-        return cls(hists, reference, distances, confidences, ts, truth, extra, truth_error)
+                timestamp_error = f"timestamp must be a number of seconds, got {type(ts).__name__}"
+            else:
+                try:
+                    ts = float(ts)
+                except OverflowError:
+                    ts = math.inf
+                if not math.isfinite(ts):
+                    timestamp_error = "timestamp must be a finite number of seconds"
+            ts = None if timestamp_error else ts
+        return cls(hists, reference, distances, confidences, ts, truth, extra, truth_error, timestamp_error)
 
     def to_dict(self) -> dict:
         """The JSON form of docs/interfaces.md (ground truth as ``plane``; extras carried)."""

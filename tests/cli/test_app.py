@@ -70,6 +70,25 @@ def test_recover_diff_batched_matches_input_order(synthetic_file, capsys):
     assert all(o["albedo"] is not None and o["albedo"] > 0 for o in ok)  # diff recovers albedo
 
 
+def test_recover_keeps_the_plane_of_a_frame_whose_timestamp_is_text(tmp_path, synthetic_frames, capsys):
+    """A ``"timestamp": "12:00"`` cost that frame its plane ("timestamp must be a number of seconds"); recovery does
+    not read the stamp, which is not in the shared format: the plane is recovered, and standard error says once that
+    the timestamp was not used (standard output stays the JSON lines)."""
+    entries = [f.to_dict() for f in synthetic_frames[:3]]
+    path = tmp_path / "stamps.json"
+    path.write_text(json.dumps(entries))
+    assert main(["recover", str(path), "--method", "peak", "--jsonl"]) == 0
+    before = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    entries[1]["timestamp"], entries[2]["timestamp"] = "12:00", [1]
+    path.write_text(json.dumps(entries))
+    assert main(["recover", str(path), "--method", "peak", "--jsonl"]) == 0
+    cap = capsys.readouterr()
+    after = [json.loads(line) for line in cap.out.splitlines()]
+    assert [o["normal"] for o in after] == [o["normal"] for o in before] and all(o["normal"] for o in after)
+    assert ("note: the timestamp of 2 frames was not used (first frame 1: timestamp must be a number of seconds, got "
+            "str); recovery does not read it") in cap.err.splitlines()
+
+
 def test_recover_human_table(synthetic_file, capsys):
     rc = main(["recover", str(synthetic_file), "--method", "peak"])
     out = capsys.readouterr().out

@@ -173,9 +173,10 @@ def test_a_bad_entry_affects_only_itself(tmp_path, monkeypatch, pieces, chunk):
     items, err = _read(path)
     assert err is None and len(items) == len(pieces)
     for i, (kind, item) in enumerate(zip(pieces, items)):
-        if kind in ("good", "bad-truth"):
+        if kind in ("good", "bad-truth", "ts-string", "ts-list"):  # recovery needs neither the truth nor the stamp
             assert isinstance(item, Frame)
             assert (item.truth is None) == (kind == "bad-truth")
+            assert (item.timestamp_error is not None) == kind.startswith("ts-")
         else:
             assert isinstance(item, FrameError)
             assert f"frame {i}" in str(item) and "mixed.json" in str(item)  # names the file and the index
