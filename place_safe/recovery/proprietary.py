@@ -63,7 +63,8 @@ class ProprietaryEstimator(Estimator):
 
     def _estimate(self, frame: Frame) -> PlaneEstimate:
         if frame.distances is None:
-            raise FrameError("frame has no on-sensor distances; the proprietary method needs 'distances'")
+            raise FrameError(frame.distances_error
+                             or "frame has no on-sensor distances; the proprietary method needs 'distances'")
         dist = real_array(frame.distances, "distances").astype(float)
         if dist.shape != (N_ZONES,):
             raise FrameError(f"distances has shape {dist.shape}, expected ({N_ZONES},)")

@@ -131,6 +131,16 @@ def _truth(d: dict) -> Plane | None:
     return truth
 
 
+def _on_sensor(dist: Any) -> tuple[np.ndarray, np.ndarray | None]:
+    """(distances in m, confidences or None) of a frame file's ``distances`` entry; FrameError if malformed."""
+    entry = dist[0] if isinstance(dist, list) else dist
+    if not isinstance(entry, dict) or "depths_1" not in entry:
+        raise FrameError("'distances' must hold a dict with 'depths_1'")
+    distances = _array(entry["depths_1"], "depths_1", (N_ZONES,)) / 1000.0
+    confidences = _array(entry["confs_1"], "confs_1", (N_ZONES,)) if "confs_1" in entry else None
+    return distances, confidences
+
+
 @dataclass
 class Frame:
     """One 3x3 TMF8820 measurement.
@@ -149,6 +159,9 @@ class Frame:
     timestamp_error: why the file's ``timestamp`` could not be used (not a finite number of seconds): ``from_dict``
         leaves ``timestamp`` None, an unstamped frame, which the frame gate drops (a replay stamps it anew);
         recovery does not read it.
+    distances_error: why the file's ``distances`` could not be read (not a dict with 9 numbers in ``depths_1`` and
+        ``confs_1``): ``from_dict`` leaves ``distances`` and ``confidences`` None; only the methods that read the
+        on-sensor distances (``proprietary``) refuse the frame, with this reason, and the histogram methods read it.
     """
 
     hists: np.ndarray
@@ -160,6 +173,7 @@ class Frame:
     extra: dict = field(default_factory=dict)
     truth_error: str | None = None
     timestamp_error: str | None = None
+    distances_error: str | None = None
 
     def validate(self) -> None:
         """Raise :class:`FrameError` unless the histograms can be used for recovery.
@@ -200,15 +214,13 @@ class Frame:
         hists = _array(d["hists"], "hists", (N_ZONES, N_BINS))
         ref = d.get("reference_hist")
         reference = None if ref is None else _array(ref, "reference_hist", (N_BINS,))
-        distances = confidences = None
+        distances = confidences = distances_error = None
         dist = d.get("distances")
-        if dist:
-            entry = dist[0] if isinstance(dist, list) else dist
-            if not isinstance(entry, dict) or "depths_1" not in entry:
-                raise FrameError("'distances' must hold a dict with 'depths_1'")
-            distances = _array(entry["depths_1"], "depths_1", (N_ZONES,)) / 1000.0
-            if "confs_1" in entry:
-                confidences = _array(entry["confs_1"], "confs_1", (N_ZONES,))
+        if dist:  # read only by the methods of the on-sensor distances: a bad one costs them the frame, not the others
+            try:
+                distances, confidences = _on_sensor(dist)
+            except FrameError as exc:
+                distances_error = f"on-sensor distances unusable: {exc}"
         truth, truth_error = None, None
         try:
             truth = _truth(d)
@@ -228,7 +240,8 @@ class Frame:
                 if not math.isfinite(ts):
                     timestamp_error = "timestamp must be a finite number of seconds"
             ts = None if timestamp_error else ts
-        return cls(hists, reference, distances, confidences, ts, truth, extra, truth_error, timestamp_error)
+        return cls(hists, reference, distances, confidences, ts, truth, extra, truth_error, timestamp_error,
+                   distances_error)
 
     def to_dict(self) -> dict:
         """The JSON form of docs/interfaces.md (ground truth as ``plane``; extras carried)."""

@@ -101,6 +101,8 @@ def frame_kinds() -> dict[str, bytes]:
         "saturated": with_first(hists=sat.tolist()),
         "distances-string": with_first(distances="far"),
         "distances-nan": with_first(distances=[{"depths_1": [float("nan")] * 9, "confs_1": [200] * 9}]),
+        "distances-text": with_first(distances=[{"depths_1": ["far"] * 9, "confs_1": [200] * 9}]),
+        "confidences-text": with_first(distances=[{"depths_1": [100] * 9, "confs_1": "high"}]),
         "truth-zero-normal": with_truth({"plane": {"normal": [0, 0, 0], "offset": 0.1}}),
         "truth-nan-normal": with_truth({"plane": {"normal": [float("nan"), 0, 1], "offset": 0.1}}),
         "truth-nz-zero": with_truth({"plane": {"normal": [1, 0, 0], "offset": 0.1}}),

@@ -66,108 +66,54 @@ def test_validate_says_what_is_wrong(change, message):
     ({}, "hists"),
     ({"hists": [[1, 2]]}, "shape"),
     ({"hists": "abc"}, "hists"),
-    ({"hists": np.zeros((9, 128)).tolist(), "distances": [{"confs_1": [0] * 9}]}, "depths_1"),
     ({"hists": [[10 ** 400] * 128] * 9}, "hists"),
     ({"hists": [["12"] * 128] * 9}, "hists must hold numbers, not text"),
     ({"hists": [[True] * 128] * 9}, "not booleans"),
     ({"hists": [[None] * 128] * 9}, "numbers"),
-    ({"hists": np.zeros((9, 128)).tolist(), "distances": [{"depths_1": [True] * 9}]}, "depths_1 must hold numbers"),
-    ({"hists": np.zeros((9, 128)).tolist(), "distances": [{"depths_1": [100] * 8 + [True]}]}, "not booleans"),
-    ({"hists": np.zeros((9, 128)).tolist(), "distances": [{"depths_1": [100] * 9, "confs_1": ["x"] * 9}]}, "confs_1"),
 ])
 def test_from_dict_rejects_malformed_entries(entry, message):
     with pytest.raises(FrameError, match=message):
         Frame.from_dict(entry)
 
 
-_POSE = np.eye(4).tolist()
-
-
-@pytest.mark.parametrize("truth", [
-    {"plane": {"offset": 0.1}},
-    {"plane": {"normal": [0, 0, 0], "offset": 0.1}},
-    {"plane": {"normal": [float("nan"), 0, 1], "offset": 0.1}},
-    {"plane": {"normal": [1, 0, 0], "offset": 0.1}},
-    {"plane": {"normal": [0, 0, 1], "offset": -0.1}},
-    {"plane": {"normal": [0, 0, 1], "offset": "far"}},
-    {"plane": [0, 0, 1]},
-    {"pose": _POSE, "dist_to_plane": float("nan")},
-    {"pose": _POSE, "dist_to_plane": -0.1},
-    {"pose": np.zeros((4, 4)).tolist(), "dist_to_plane": 0.1},
-    {"pose": (2 * np.eye(4)).tolist(), "dist_to_plane": 0.1},
-    {"pose": [[1, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1]], "dist_to_plane": 0.1},  # horizontal
-    {"pose": "up", "dist_to_plane": 0.1},
-    {"pose": _POSE, "dist_to_plane": 1e30},  # farther than the sensor's 16-bit millimetres reach
-    {"plane": {"normal": [False, False, True], "offset": 0.1}},
-    {"pose": [[True, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]], "dist_to_plane": 0.1},
+@pytest.mark.parametrize("distances,message", [
+    ([{"confs_1": [0] * 9}], "'distances' must hold a dict with 'depths_1'"),
+    ("far", "'distances' must hold a dict with 'depths_1'"),
+    ([{"depths_1": [True] * 9}], "depths_1 must hold numbers"),
+    ([{"depths_1": [100] * 8 + [True]}], "not booleans"),
+    ([{"depths_1": ["x"] * 9, "confs_1": [255] * 9}], "depths_1 must hold numbers, not text"),
+    ([{"depths_1": [100] * 8}], "depths_1 has shape (8,)"),
+    ([{"depths_1": [100] * 9, "confs_1": ["x"] * 9}], "confs_1 must hold numbers, not text"),
+    ([{"depths_1": [100] * 9, "confs_1": [[255]] * 9}], "confs_1 has shape"),
 ])
-def test_bad_ground_truth_only_clears_the_truth(truth):
-    """Recovery never needs ground truth: a frame whose truth is not a plane keeps its histograms."""
-    f = Frame.from_dict({"hists": np.zeros((9, 128)).tolist(), "reference_hist": [1.0] * 128, **truth})
-    assert f.truth is None
-    assert f.truth_error and "ground truth" in f.truth_error
-    f.validate()
+def test_malformed_distances_cost_only_the_methods_that_read_them(sweep_path, distances, message):
+    """Text (or a wrong shape) in ``depths_1`` / ``confs_1`` made the whole frame an error, so ``peak`` and ``diff``,
+    which read only the counts, lost its plane. Per the format (docs/interfaces.md) a bad field fails only the methods
+    that read it: the frame loads with its histograms, no on-sensor distances and the reason in ``distances_error``;
+    ``proprietary`` refuses it with that reason, ``peak`` gives the plane it gives without the field."""
+    from place_safe.recovery import make_estimator
 
-
-@pytest.mark.parametrize("stamp,message", [("12:00", "must be a number of seconds, got str"),
-                                           ([1.0], "must be a number of seconds, got list"),
-                                           (True, "must be a number of seconds, got bool"),
-                                           (float("nan"), "must be a finite number"), (10 ** 400, "must be a finite")],
-                         ids=["text", "list", "bool", "nan", "huge"])
-def test_a_bad_timestamp_costs_the_frame_its_stamp_only(stamp, message):
-    """A timestamp that is not a finite number of seconds made the whole frame an error, so ``recover`` lost its plane;
-    the field is not in the shared format and recovery does not read it: the frame is kept, unstamped (None, which the
-    frame gate drops), with the reason in ``timestamp_error``, as bad ground truth clears only the truth."""
-    d = _good().to_dict()
-    d["timestamp"] = stamp
+    good = _sweep_frame(sweep_path)
+    d = good.to_dict()
+    d["distances"] = distances
     f = Frame.from_dict(d)
     f.validate()
-    assert f.timestamp is None and f.timestamp_error.startswith("timestamp ") and message in f.timestamp_error
-    np.testing.assert_array_equal(f.hists, _good().hists)
-    assert Frame.from_dict(dict(d, timestamp=12.5)).timestamp_error is None
+    assert f.distances is None and f.confidences is None
+    assert f.distances_error.startswith("on-sensor distances unusable: ") and message in f.distances_error
+    np.testing.assert_array_equal(f.hists, good.hists)
+    assert Frame.from_dict(good.to_dict()).distances_error is None
+    peak = make_estimator("peak")
+    want = peak.estimate(good)
+    assert want.plane is not None
+    got = peak.estimate(f)
+    assert got.plane is not None and got.plane.offset == want.plane.offset
+    refused = make_estimator("proprietary").estimate(f)
+    assert refused.plane is None and refused.reason == f.distances_error
+    assert make_estimator("proprietary").estimate(good).plane is not None
 
 
-def test_dict_round_trip_keeps_units_truth_and_extras():
-    f = Frame(np.arange(N_ZONES * N_BINS, dtype=float).reshape(N_ZONES, N_BINS), np.ones(N_BINS),
-              distances=np.linspace(0.05, 0.09, 9), confidences=np.full(9, 200.0), timestamp=12.5,
-              truth=Plane.from_angles(0.2, 0.5, 0.1), extra={"joint_angles": [0.0] * 6})
-    d = f.to_dict()
-    assert d["distances"][0]["depths_1"][0] == pytest.approx(50.0)  # millimetres in the file
-    g = Frame.from_dict(d)
-    np.testing.assert_allclose(g.hists, f.hists)
-    np.testing.assert_allclose(g.distances, f.distances)
-    np.testing.assert_allclose(g.truth.normal, f.truth.normal)
-    assert g.timestamp == 12.5
-    assert g.extra["joint_angles"] == [0.0] * 6
+def _sweep_frame(path) -> Frame:
+    """A real sweep frame both peak and proprietary read (the one nearest 21 cm)."""
+    from place_safe.io.frame_file import load_frames
 
-
-def test_pose_ground_truth_from_the_sweep_format(sweep_path):
-    import json
-
-    first = json.loads(sweep_path.read_text())[0]
-    f = Frame.from_dict(first)
-    f.validate()
-    assert f.truth is not None
-    assert f.truth.offset == pytest.approx(first["dist_to_plane"])
-    assert f.distances is not None and np.all(f.distances < 1.0)  # mm in the file -> m
-
-
-def test_reported_distances_are_what_the_sensor_can_report():
-    """A simulated range of -1 mm (2 mm noise on 0.1 mm) was written at full confidence: on-sensor distances are 0
-    (no object, confidence 0) below 1 mm, past 65.535 m or not finite, the rest rounded with full confidence (the
-    generators' one definition)."""
-    from place_safe.sensor.frame import reported_distances
-
-    d, c = reported_distances([-0.001, 0.0004, 0.0012, 0.25, 70.0, float("nan")], 3)
-    assert d.tolist() == [0.0, 0.0, 0.001, 0.25, 0.0, 0.0] and c.tolist() == [0, 0, 255, 255, 0, 0]
-
-
-def test_reported_distances_follow_the_histograms():
-    """``synth`` at 4.9-5 m wrote full-confidence distances where the histograms hold no return (it lands in the bins
-    only to about 1.3 m): given the histograms, a zone without a return reports no object, a zone with one its range."""
-    from place_safe.sensor.frame import reported_distances
-
-    hists = np.full((N_ZONES, N_BINS), 100.0)
-    hists[:4, 40:44] += [300.0, 1000.0, 1000.0, 300.0]  # a return in zones 1-4 only
-    d, c = reported_distances(np.full(N_ZONES, 0.5), 3, hists=hists)
-    assert d.tolist() == [0.5] * 4 + [0.0] * 5 and c.tolist() == [255] * 4 + [0] * 5
+    return min(load_frames(path), key=lambda f: abs(f.truth.offset - 0.21))
