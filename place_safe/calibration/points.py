@@ -18,7 +18,8 @@ from scipy.optimize import minimize
 from place_safe.calibration.near_range import fit_near_range
 from place_safe.calibration.point_errors import frame_point_errors, true_ranges
 from place_safe.evaluation.metrics import angular_errors, linear_errors, point_errors
-from place_safe.exceptions import CalibrationError
+from place_safe.exceptions import CalibrationError, FrameError
+from place_safe.recovery.proprietary import on_sensor_readings
 from place_safe.recovery.points import MAX_ZONE_RESIDUAL, MIN_DOMAIN_WIDTH, MM_PER_M, PeakParams, fit_planes
 from place_safe.sensor.frame import N_ZONES, Frame
 from place_safe.sensor.histogram import CENTROID_HALF_WIDTH, find_peaks
@@ -569,12 +570,17 @@ def _fit_readings(method: str, what: str, use: list[Frame], readings: np.ndarray
 
 
 def proprietary_readings(frames: Sequence[Frame]) -> tuple[np.ndarray, np.ndarray]:
-    """On-sensor distances in mm (F, 9) and validity (distance > 0, finite) of frames."""
+    """On-sensor distances in mm (F, 9) and validity (F, 9) of frames: the zones the proprietary method reads
+    (:func:`~place_safe.recovery.proprietary.on_sensor_readings`; none of a frame it refuses). (A frame with
+    distances beyond what the sensor reports, or at confidence 0, entered the fit and broke it.)"""
     out = np.full((len(frames), N_ZONES), np.nan)
+    valid = np.zeros((len(frames), N_ZONES), dtype=bool)
     for i, f in enumerate(frames):
-        if f.distances is not None and np.shape(f.distances) == (N_ZONES,):
-            out[i] = np.asarray(f.distances, dtype=float) * MM_PER_M
-    valid = np.isfinite(out) & (out > 0)
+        try:
+            dist, valid[i] = on_sensor_readings(f)
+        except FrameError:
+            continue
+        out[i] = dist * MM_PER_M
     return out, valid
 
 

@@ -45,6 +45,35 @@ READING_STEP_STD = 1.0 / math.sqrt(12.0)
 MIN_EIGEN_RATIO = 1e-12
 
 
+def on_sensor_readings(frame: Frame) -> tuple[np.ndarray, np.ndarray]:
+    """(distances (9,) in m, zones that report an object (9,)) of ``frame``'s on-sensor result: a zone reports one
+    where its distance is not 0 and its confidence (if given) not 0. FrameError for a frame without them, or with
+    values the sensor cannot report (NaN, negative, beyond 16-bit millimetres, a confidence beyond a byte): the
+    method refuses such a frame, and its calibration leaves it out."""
+    if frame.distances is None:
+        raise FrameError(frame.distances_error
+                         or "frame has no on-sensor distances; the proprietary method needs 'distances'")
+    dist = real_array(frame.distances, "distances").astype(float)
+    if dist.shape != (N_ZONES,):
+        raise FrameError(f"distances has shape {dist.shape}, expected ({N_ZONES},)")
+    if np.any(np.isnan(dist)) or np.any(np.isinf(dist)):
+        raise FrameError("distances contains NaN or infinite values")
+    if np.any(dist < 0):
+        raise FrameError("distances contains negative values; expected metres >= 0 (0 = no object)")
+    valid = dist > 0
+    if np.any(valid & ((dist < MIN_SENSOR_DISTANCE) | (dist > MAX_SENSOR_DISTANCE))):
+        raise FrameError(f"distances outside what the sensor reports (0 for no object, else "
+                         f"{MIN_SENSOR_DISTANCE * 1e3:g}-{MAX_SENSOR_DISTANCE * 1e3:g} mm)")
+    if frame.confidences is not None:
+        conf = real_array(frame.confidences, "confs_1").astype(float)
+        if conf.shape != (N_ZONES,):
+            raise FrameError(f"confs_1 has shape {conf.shape}, expected ({N_ZONES},)")
+        if not np.all((conf >= 0) & (conf <= MAX_CONFIDENCE)):  # NaN fails too
+            raise FrameError(f"confs_1 outside what the sensor reports (0-{MAX_CONFIDENCE}, 0 = no object)")
+        valid &= conf > 0
+    return dist, valid
+
+
 class ProprietaryEstimator(Estimator):
     """On-sensor distances, calibrated (``proprietary``) or as reported (:meth:`naive`)."""
 
@@ -62,27 +91,7 @@ class ProprietaryEstimator(Estimator):
         return est
 
     def _estimate(self, frame: Frame) -> PlaneEstimate:
-        if frame.distances is None:
-            raise FrameError(frame.distances_error
-                             or "frame has no on-sensor distances; the proprietary method needs 'distances'")
-        dist = real_array(frame.distances, "distances").astype(float)
-        if dist.shape != (N_ZONES,):
-            raise FrameError(f"distances has shape {dist.shape}, expected ({N_ZONES},)")
-        if np.any(np.isnan(dist)) or np.any(np.isinf(dist)):
-            raise FrameError("distances contains NaN or infinite values")
-        if np.any(dist < 0):
-            raise FrameError("distances contains negative values; expected metres >= 0 (0 = no object)")
-        valid = dist > 0
-        if np.any(valid & ((dist < MIN_SENSOR_DISTANCE) | (dist > MAX_SENSOR_DISTANCE))):
-            raise FrameError(f"distances outside what the sensor reports (0 for no object, else "
-                             f"{MIN_SENSOR_DISTANCE * 1e3:g}-{MAX_SENSOR_DISTANCE * 1e3:g} mm)")
-        if frame.confidences is not None:
-            conf = real_array(frame.confidences, "confs_1").astype(float)
-            if conf.shape != (N_ZONES,):
-                raise FrameError(f"confs_1 has shape {conf.shape}, expected ({N_ZONES},)")
-            if not np.all((conf >= 0) & (conf <= MAX_CONFIDENCE)):  # NaN fails too
-                raise FrameError(f"confs_1 outside what the sensor reports (0-{MAX_CONFIDENCE}, 0 = no object)")
-            valid &= conf > 0
+        dist, valid = on_sensor_readings(frame)
         if valid.sum() < 3:
             raise NoPlaneError(f"only {int(valid.sum())} zone(s) report an object; a plane needs 3 or more")
         # a zone without an object counts as dark (the on-sensor result holds no return heights)
@@ -116,4 +125,4 @@ class ProprietaryEstimator(Estimator):
         return cov
 
 
-__all__ = ["ProprietaryEstimator"]
+__all__ = ["ProprietaryEstimator", "on_sensor_readings"]

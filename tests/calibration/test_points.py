@@ -233,6 +233,26 @@ def test_fit_proprietary_states_the_zone_residuals_of_its_frames(sweep_path):
     assert 0.3e-3 < terms.zone_residual < plain.zone_residual and 0.1e-3 < terms.common_residual < plain.common_residual
 
 
+@pytest.mark.parametrize("depths,confs", [([1e9] * 9, [255] * 9), ([60000] * 9, [0] * 9), ([-5] * 9, [255] * 9),
+                                          ([100] * 9, [300] * 9)],
+                         ids=["beyond-16-bits", "far-at-confidence-0", "negative", "confidence-beyond-a-byte"])
+def test_fit_proprietary_leaves_out_the_frames_and_zones_the_method_does_not_read(sweep_path, depths, confs):
+    """One frame of the real sweep whose on-sensor distances lie beyond what the sensor reports (1e9 mm), or are
+    reported at confidence 0 (no object), entered the proprietary fit and broke it ("calibration data do not
+    determine the per-zone parameters", exit 2), although ``recover --method proprietary`` refuses such a frame or
+    zone. The readings are now the method's own (``on_sensor_readings``): the fit is the one without the frame."""
+    from place_safe.calibration.points import fit_proprietary, proprietary_readings
+    from place_safe.io.frame_file import load_frames
+
+    frames = load_frames(sweep_path)[1::2]
+    want, _ = fit_proprietary(frames[:10] + frames[11:], progress=False, inverse_degrees=(0,))
+    frames[10].distances, frames[10].confidences = np.asarray(depths, float) / 1e3, np.asarray(confs, float)
+    readings, valid = proprietary_readings(frames)
+    assert not valid[10].any() and valid.sum(1).max() == 9
+    got, _ = fit_proprietary(frames, progress=False, inverse_degrees=(0,))
+    assert got == want
+
+
 def test_zone_inverse_round_trips_old_files_read_as_none_and_bad_lengths_are_errors():
     """Each zone's own terms in the inverse range: written only when fitted (files before them read as none), nine
     values a power."""
