@@ -172,7 +172,13 @@ class RerunView:
         except ImportError:
             raise ConfigError("the live view needs rerun (pip install 'place-safe[view]')") from None
         self.rr = rr
-        rr.init(name, spawn=save is None)
+        try:
+            rr.init(name, spawn=save is None)
+        except RuntimeError as exc:  # no viewer to spawn (rerun's "Failed to find Rerun Viewer executable in PATH")
+            if save is not None:
+                raise
+            raise ConfigError(f"--view cannot start the rerun viewer: {str(exc).strip().splitlines()[0]} (install "
+                              "it, or record with --save RUN.rrd and open it with 'rerun RUN.rrd')") from None
         self._file: _PipedFile | None = None
         self._reported: RecordingError | None = None
         if save is not None:

@@ -210,6 +210,24 @@ def test_a_disk_that_fills_mid_stream_stops_it_with_one_line_and_keeps_the_recor
         assert done.returncode == 0 and "verified without error" in done.stdout + done.stderr
 
 
+def test_a_viewer_that_cannot_be_started_is_one_usage_line(capsys, monkeypatch, sweep_path):
+    """`sensor stream --view` where rerun finds no viewer to spawn ended "internal error: RuntimeError: Failed to find
+    Rerun Viewer executable in PATH", exit 1. It is the machine's setup, not a fault of ours: one line saying what to
+    do, exit 2, and no sensor opened."""
+    import rerun
+
+    def no_viewer(*args, **kwargs):
+        raise RuntimeError("Failed to find Rerun Viewer executable in PATH.")
+
+    monkeypatch.setattr(rerun, "init", no_viewer)
+    assert main(["sensor", "stream", f"file:{sweep_path}", "--max-frames", "3", "--view"]) == 2
+    captured = capsys.readouterr()
+    err = captured.err.splitlines()
+    assert len(err) == 1 and captured.out == ""
+    assert err[0].startswith("place-safe: error: --view cannot start the rerun viewer: Failed to find Rerun Viewer")
+    assert "--save RUN.rrd" in err[0]
+
+
 def test_a_source_that_cannot_be_opened_leaves_no_recording_behind(tmp_path, capsys):
     """`sensor stream --save` makes its recording before it opens the sensor (an output it cannot write opens no
     sensor); a source that then cannot be opened left a header-only .rrd behind. Now it is removed (a file that was
