@@ -30,6 +30,7 @@ from place_safe.calibration import mark
 from place_safe.cli.common import estimator_for, load_calibration, uncalibrated_note
 from place_safe.io.frame_file import write_frames
 from place_safe.io.live import run_live
+from place_safe.io.replay import parse_error
 
 #: Hz: an emulated I2C clock (standard 100 kHz .. high-speed 3.4 MHz, and slower buses down to 10 kHz).
 #: s: how long a read may wait for a frame.
@@ -129,6 +130,7 @@ def cmd_record(args: argparse.Namespace) -> int:
                leave=False)
     deadline = time.monotonic() + args.seconds if args.seconds else math.inf
     ended = "frames"
+    unreadable: list[str] = []  # a file source's entries it could not parse: no frame to record
 
     def frames():
         nonlocal ended
@@ -145,6 +147,9 @@ def cmd_record(args: argparse.Namespace) -> int:
             except SensorTimeout:
                 ended = "timeout"
                 return
+            if (why := parse_error(f)) is not None:  # (it was written as a frame of NaN counts: not JSON)
+                unreadable.append(why)
+                continue
             n += 1
             bar.update(1)
             yield f
@@ -156,12 +161,16 @@ def cmd_record(args: argparse.Namespace) -> int:
         n = 0 if first is None else write_frames(out, itertools.chain([first], it), jsonl=out.suffix == ".jsonl")
         stats = dict(getattr(src, "stats", {}))
     bar.close()
+    left_out = (f"{len(unreadable)} unreadable frame{'' if len(unreadable) == 1 else 's'} of the source left out "
+                f"(the first: {unreadable[0]})" if unreadable else "")
+    if not n and unreadable:
+        raise ConfigError(f"sensor record: no readable frame from {args.uri!r}: {left_out}; {out} not written")
     if not n:
         log(f"{PROG}: error: {_no_frame(args, ended, time.monotonic() - t0)}; {out} not written")
         return 1
     if ended == "timeout":
         ended = f"no frame within {args.timeout:g} s"
-    log(f"wrote {n} frames to {out} (stopped: {ended})")
+    log(f"wrote {n} frames to {out} (stopped: {ended})" + (f"; {left_out}" if left_out else ""))
     faults = {k: v for k, v in stats.items() if isinstance(v, (int, float)) and v and k not in ("frames",)}
     if faults and not args.quiet:
         log("source statistics: " + ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}"

@@ -29,6 +29,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from place_safe.io.pipeline import STREAM_POLICY, FrameGate, SensorPipeline, clock_domain_of, stamp_of
+from place_safe.io.replay import parse_error
 from place_safe.io.source import FrameSource
 from place_safe.recovery.estimator import Estimator, PlaneEstimate
 from place_safe.sensor.frame import Frame
@@ -157,8 +158,7 @@ def run_live(source: FrameSource, estimator: Estimator, on_estimate: OnEstimate 
             stats.latencies.append(latency)
             if not est.ok:
                 stats.no_plane += 1
-                extra = getattr(m.frame, "extra", None)
-                if (isinstance(extra, dict) and extra.get("parse_error")) or _fails_validation(m.frame):
+                if parse_error(m.frame) is not None or _fails_validation(m.frame):
                     stats.bad_frames += 1
             if on_estimate is not None:
                 on_estimate(m.index, m.frame, est, latency)

@@ -57,6 +57,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from place_safe.exceptions import ArgumentTypeError, SensorTimeout
+from place_safe.io.replay import parse_error
 from place_safe.io.source import FrameSource
 from place_safe.recovery.estimator import Estimator, PlaneEstimate
 
@@ -358,7 +359,7 @@ class SensorPipeline:
 
     def estimate(self, frame: Any) -> PlaneEstimate:
         """The frame's plane estimate; never raises (see the fault policy), except an interrupt on the main thread."""
-        reason = frame.extra.get("parse_error") if isinstance(getattr(frame, "extra", None), dict) else None
+        reason = parse_error(frame)
         if reason:
             est = PlaneEstimate(None, reason=str(reason))
         else:

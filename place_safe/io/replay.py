@@ -41,6 +41,14 @@ def _bad_frame(reason: str) -> Frame:
     return Frame(np.full((N_ZONES, N_BINS), np.nan), None, extra={"parse_error": reason})
 
 
+def parse_error(frame: object) -> str | None:
+    """Why ``frame`` is a stand-in for a file entry that could not be parsed (:func:`_bad_frame`), or None for a frame
+    that came from the file (or a sensor)."""
+    extra = getattr(frame, "extra", None)
+    reason = extra.get("parse_error") if isinstance(extra, dict) else None
+    return str(reason) if reason else None
+
+
 #: Hz: the slowest and fastest replay (a frame a minute and a half .. a million a second).
 MIN_RATE_HZ, MAX_RATE_HZ = 0.01, 1e6
 
@@ -153,4 +161,4 @@ class FileReplaySource(FrameSource):
         self._pending = None
 
 
-__all__ = ["FileReplaySource"]
+__all__ = ["parse_error", "FileReplaySource"]

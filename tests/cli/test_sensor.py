@@ -30,6 +30,30 @@ def test_record_writes_a_frame_file(tmp_path, capsys):
     assert "use --force" in capsys.readouterr().err
 
 
+def test_record_leaves_out_a_file_sources_unreadable_entries(tmp_path, capsys):
+    """`sensor record file:X` copied an entry of X it could not parse as the replay's stand-in, a frame of NaN counts,
+    and wrote the literal NaN into the recording: not JSON (a strict reader refuses the whole file) and the entry's
+    reason lost. Such entries are now left out and counted on the summary line; a source with none readable is one
+    error line, exit 2, and no file."""
+    src = tmp_path / "in.json"
+    write_frames(src, random_frames(3, seed=4))
+    entries = json.loads(src.read_text())
+    src.write_text(json.dumps(entries[:1] + [{"hists": "abc"}] + entries[1:]))
+    out = tmp_path / "out.json"
+    assert main(["sensor", "record", f"file:{src}", "-o", str(out), "-q", "--timeout", "1"]) == 0
+    err = capsys.readouterr().err
+    assert (f"wrote 3 frames to {out} (stopped: source ended); 1 unreadable frame of the source left out (the first: "
+            f"{src.name}: frame 1: hists must hold numbers, not text)") in err
+    json.loads(out.read_text(), parse_constant=lambda c: pytest.fail(f"{c} in the recording"))
+    assert len(load_frames(out)) == 3
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps([{"hists": "abc"}, {"hists": [1]}]))
+    assert main(["sensor", "record", f"file:{bad}", "-o", str(tmp_path / "none.json"), "-q", "--timeout", "1"]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and err[0].startswith("place-safe: error: sensor record: no readable frame from ")
+    assert "2 unreadable frames of the source left out" in err[0] and not (tmp_path / "none.json").exists()
+
+
 def test_stream_saves_a_rerun_recording(tmp_path, capsys):
     src = tmp_path / "in.json"
     write_frames(src, load_frames("tests/data/tmf8820_ur5_sweep.json")[20:23])

@@ -77,6 +77,7 @@ from place_safe.drivers.tmf8820 import packets as P
 from place_safe.drivers.tmf8820 import registers as R
 from place_safe.drivers.tmf8820.hexfile import RamPatch
 from place_safe.sensor.frame import Frame
+from place_safe.io.replay import parse_error
 from place_safe.io.source import FrameSource
 
 #: Fault kinds the emulator injects and the driver counts under the same names.
@@ -167,7 +168,7 @@ def _feed_iter(feed: Any) -> Callable[[float], Frame | None]:
                     frame = feed.read(10.0)
                 except StopIteration:
                     return None
-                if not (isinstance(frame.extra, dict) and frame.extra.get("parse_error")):
+                if parse_error(frame) is None:
                     return frame
         return from_source
     if callable(feed) and not isinstance(feed, (list, tuple)):
