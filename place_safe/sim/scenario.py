@@ -203,6 +203,8 @@ class Scenario(ConfigModel):
                         raise ValueError(f"scene.table.{deg} must be a finite number of degrees")
                     if deg == "tilt_deg" and not -90.0 < v < 90.0:  # (the field's own bound would be said in rad)
                         raise ValueError(f"scene.table.tilt_deg must be between -90 and 90 deg (exclusive), got {v:g}")
+                    if deg == "tilt_direction_deg" and not -360.0 <= v <= 360.0:  # (the same)
+                        raise ValueError(f"scene.table.tilt_direction_deg must be between -360 and 360 deg, got {v:g}")
                     table[rad] = math.radians(v)
             _lean_the_other_way(table)
             scene["table"] = table

@@ -80,6 +80,9 @@ def test_bad_files_give_one_line_errors(tmp_path):
     f.write_text("[scene.table]\ntilt_deg = 90\n")  # said in degrees, as given (it was said in rad)
     with pytest.raises(ConfigError, match="tilt_deg must be between -90 and 90 deg"):
         load_scenario(f)
+    f.write_text("[scene.table]\ntilt_deg = 2\ntilt_direction_deg = 400\n")  # (it was said in rad: "<= 6.28 rad")
+    with pytest.raises(ConfigError, match="tilt_direction_deg must be between -360 and 360 deg, got 400"):
+        load_scenario(f)
     for text in ("", "# a comment only\n", 'name = "x"\ndescription = "y"\n'):  # an empty file ran the default scene
         f.write_text(text)
         with pytest.raises(ConfigError, match="sets nothing"):
