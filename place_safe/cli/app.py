@@ -127,9 +127,19 @@ OUTPUT_OPTIONS = ("output", "json", "log", "write", "plot", "render", "gif", "sa
 def _check_outputs(args: argparse.Namespace) -> None:
     """One line (exit 2) before anything runs when an output option names a directory or a FIFO nobody reads
     (opening it would block for ever), or a file in a folder that cannot be made; a missing folder is made here, as
-    synth and calibrate always did for theirs (evaluate --json into one failed after the whole evaluation)."""
+    synth and calibrate always did for theirs (evaluate --json into one failed after the whole evaluation). Two
+    outputs may not name one file (``place --json R --log R`` wrote the log over the result); a device such as
+    ``/dev/null`` may take several."""
+    import os
+
+    named: dict[str, str] = {}
     for name in OUTPUT_OPTIONS:
         value = getattr(args, name, None)
+        if isinstance(value, str) and value and (os.path.isfile(value) or not os.path.exists(value)):
+            if (other := named.setdefault(os.path.realpath(value), name)) != name:
+                raise UsageError(f"{args.command}: --{name.replace('_', '-')} {value} is also its "
+                                 f"--{other.replace('_', '-')}: one output would overwrite the other; choose another "
+                                 "file")
         if value == "":
             raise UsageError(f"{args.command}: --{name.replace('_', '-')} needs a file name "
                              "(it was given an empty one)")

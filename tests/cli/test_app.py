@@ -733,3 +733,22 @@ def test_scenarios_on_a_ray_head_that_does_not_answer_is_one_line_not_a_hang(add
     assert main(["scenarios", "scenarios/set/level_20cm.toml", "--ray", address, "-q"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and says in err[0]
+
+
+def test_two_outputs_naming_one_file_are_refused_before_the_work(tmp_path, synthetic_file, capsys):
+    """``place --sim ... --json R --log R`` wrote the transition log over the result ("wrote R and R", exit 0); any
+    two outputs of one command naming one file (also through another path to it) are now one line, exit 2, before
+    anything runs. A device such as /dev/null may take both."""
+    out = tmp_path / "out.json"
+    assert main(["place", "--sim", "place_level", "--json", str(out), "--log", str(tmp_path / "." / "out.json")]) == 2
+    err = one_line_error(capsys.readouterr().err)
+    assert err.startswith("place-safe: error: place: --log ") and "is also its --json" in err and not out.exists()
+    out.write_text("kept")
+    assert main(["calibrate-mount", str(synthetic_file), "--robot", "robots/ur5/sim.toml", "--write", str(out),
+                 "--json", str(out)]) == 2
+    assert "is also its --json" in one_line_error(capsys.readouterr().err) and out.read_text() == "kept"
+    import argparse
+
+    from place_safe.cli.app import _check_outputs
+
+    _check_outputs(argparse.Namespace(command="place", json="/dev/null", log="/dev/null"))
