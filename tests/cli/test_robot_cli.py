@@ -220,6 +220,24 @@ def test_capture_sim_refuses_a_table_height_the_scene_does_not_have(scenario, he
     assert err[0].endswith("leave it out to use the scenario's table") and not out.exists()
 
 
+def test_capture_into_a_file_that_is_not_a_capture_is_refused_before_the_arm(tmp_path, capsys, monkeypatch):
+    """capture -o FILE where FILE is not a capture to resume (a frame file, a calibration) was refused only when the
+    sweep began: after the scene was built (or the arm connected, and with --touch after three touches), with the
+    scenario's table note as a second line on standard error. Now one line before anything else, the file untouched."""
+    import place_safe.sim.world as world
+
+    def no_world(*args, **kwargs):
+        raise AssertionError("the scene was built")
+
+    monkeypatch.setattr(world, "sim_world", no_world)
+    out = tmp_path / "frames.json"
+    out.write_text('[{"hists": []}]\n')
+    assert main(["capture", "--sim", "level_table", "--poses", "1", "-q", "-o", str(out)]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and err[0].startswith(f"place-safe: error: {out} exists and is not a capture to resume"), err
+    assert out.read_text() == '[{"hists": []}]\n'
+
+
 def test_options_of_the_arm_are_refused_with_sim(capsys):
     """place --sim with --sensor or --dry-run ran the simulation and released without a word about them."""
     for argv in (["place", "--sim", "place_level", "--sensor", "bogus"], ["place", "--sim", "place_level", "--dry-run"],
