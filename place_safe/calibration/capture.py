@@ -255,7 +255,7 @@ def _release_point(robot: Robot, speed: float, accel: float, max_back: float = 0
     return p
 
 
-def _done_indices(path: Path, cut: bool = True) -> set[int]:
+def done_indices(path: Path, cut: bool = True) -> set[int]:
     """The pose indices already in a capture's output (resume), from its frames' ``meta.pose_index`` (a whole number
     >= 0). A last line after captured frames that is unfinished JSON (an interrupted run) is cut off (``cut``; a dry
     run writes nothing and leaves it), so the frames appended after it start on a line of their own. A file that is
@@ -368,7 +368,7 @@ def capture_sweep(robot: Robot, source: Any, plan: SweepPlan, out_path: str | Pa
             log(refusal_line(entry))
 
     out = Path(out_path)
-    done = _done_indices(out, cut=not getattr(robot, "dry_run", False))
+    done = done_indices(out, cut=not getattr(robot, "dry_run", False))
     n = np.asarray(plane[0], dtype=float)
     n = n / np.linalg.norm(n)
     pl = (n, float(plane[1]) / float(np.linalg.norm(plane[0])))

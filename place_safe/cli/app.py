@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import errno
 import importlib.util
+import os
 import sys
 from pathlib import Path
 from collections.abc import Sequence
@@ -130,8 +131,6 @@ def _check_outputs(args: argparse.Namespace) -> None:
     synth and calibrate always did for theirs (evaluate --json into one failed after the whole evaluation). Two
     outputs may not name one file (``place --json R --log R`` wrote the log over the result); a device such as
     ``/dev/null`` may take several."""
-    import os
-
     named: dict[str, str] = {}
     for name in OUTPUT_OPTIONS:
         value = getattr(args, name, None)
@@ -169,7 +168,6 @@ def _input_named(args: argparse.Namespace, output: str, value: str) -> str | Non
     ``"NAME PATH"``, or None. ``evaluate F.json --json F.json`` replaced the frames with the report, ``latency X
     --json X`` and ``evaluate --calibration C --json C`` alike (an adversarial round, session 74); only an existing
     file can be one."""
-    import os
 
     if not os.path.isfile(value):
         return None
@@ -203,7 +201,6 @@ def mujoco_gl_backends() -> list[str]:
     no display needed: what ``place_safe.sim`` picks when MUJOCO_GL is unset and there is no display), ``glfw`` and
     ``glx`` only with a display (``DISPLAY``), ``osmesa`` only where libOSMesa is installed."""
     import ctypes.util
-    import os
 
     found = ctypes.util.find_library
     return ((["egl"] if found("EGL") else []) + (["glfw", "glx"] if os.environ.get("DISPLAY") else [])
@@ -215,7 +212,6 @@ def _mujoco_gl_problem(exc: BaseException) -> str | None:
     work here -- a value MuJoCo rejects when imported, osmesa without libOSMesa, glfw without a display at the first
     render -- naming the values that do (:func:`mujoco_gl_backends`); None when MUJOCO_GL is unset or one of them,
     or ``exc`` was not raised in MuJoCo or PyOpenGL."""
-    import os
 
     value = os.environ.get("MUJOCO_GL")
     if value is None:
@@ -310,7 +306,6 @@ def _main(argv: Sequence[str] | None) -> int:
         log(f"{PROG}: error: invalid input: {_one_line(exc)}")
         return 2
     except Exception as exc:  # noqa: BLE001 - an internal failure: one line, exit 1 (traceback on request)
-        import os
 
         if (why := _mujoco_gl_problem(exc)) is not None:  # the environment's error, not ours
             log(f"{PROG}: error: {why}")

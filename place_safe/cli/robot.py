@@ -273,12 +273,12 @@ def _check_sim_table(args: argparse.Namespace, plane: tuple[Any, float]) -> None
 
 
 def cmd_capture(args: argparse.Namespace) -> int:
-    from place_safe.calibration.capture import (SweepPlan, _done_indices, capture_sweep, level_plane, touch_plane,
+    from place_safe.calibration.capture import (SweepPlan, done_indices, capture_sweep, level_plane, touch_plane,
                                                 touched_reference)
     from place_safe.recovery.estimator import Reference
 
     # an output that is not a capture to resume: refused before the arm is connected, touched or moved
-    _done_indices(Path(args.output), cut=False)
+    done_indices(Path(args.output), cut=False)
 
     grid = len(args.distances) * len(args.incidences) * len(args.azimuths)
     if min(grid, args.poses or grid) * args.frames_per_pose > 100_000:
