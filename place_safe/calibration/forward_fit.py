@@ -33,8 +33,8 @@ from place_safe.exceptions import CalibrationError
 from place_safe.recovery.forward import (ForwardModel, ForwardParams, MODEL_ERROR, ZoneRays,
                                          mount_rotation, residual_weights, single_thread, tensors_to_params)
 from place_safe.sensor.frame import N_BINS, N_ZONES, Frame
-from place_safe.sensor.histogram import (ambient_slopes, arriving_ambient, clipped_zones, floor_profile,
-                                         reference_floor, reference_problem)
+from place_safe.sensor.histogram import (ambient_slopes, arriving_ambient, beyond_count_max, clipped_zones,
+                                         floor_profile, reference_floor, reference_problem)
 from place_safe.calibration.points import level_frames, tilt_angles
 from place_safe.recovery.differentiable import SolverOptions
 
@@ -279,6 +279,9 @@ def usable_frames(frames: Sequence[Frame], min_distance: float, max_distance: fl
             continue
         if not f.is_valid():
             skip("invalid histograms")
+            continue
+        if beyond_count_max(f.hists) is not None:  # not a clip: counts the sensor cannot report
+            skip("counts above the 24-bit maximum")
             continue
         if clipped_zones(f.hists).any():
             skip("saturated")

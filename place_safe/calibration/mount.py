@@ -57,6 +57,10 @@ OUTLIER_K = 4.0
 #: docs/results.md); planes of an uncalibrated estimator read 5.6-5.8 deg / 2.6-3.1 mm on the real sweep, and
 #: flange poses that do not belong to the frames tens of degrees.
 MAX_RMS_ANGLE, MAX_RMS_DISTANCE = math.radians(1.0), 0.002
+#: The mount's six parameters, in the order of the fit's rotation-vector and translation components: the names
+#: :attr:`MountFit.unobserved` lists.
+MOUNT_PARAMETERS = ("rotation about x", "rotation about y", "rotation about z", "translation x", "translation y",
+                    "translation z")
 
 
 @dataclass
@@ -109,6 +113,12 @@ class MountFit:
                 "unobserved": list(self.unobserved), "outliers": self.outliers, "change_translation": dt, "change_rotation": dr,
                 "residuals_angle": self.residuals_angle.tolist(),
                 "residuals_distance": self.residuals_distance.tolist()}
+
+    @property
+    def determines_nothing(self) -> bool:
+        """Whether the sweep determined none of the mount's six parameters (all of :data:`MOUNT_PARAMETERS` held at
+        the start): the fitted mount is the starting one, whatever its residuals."""
+        return set(MOUNT_PARAMETERS) <= set(self.unobserved)
 
     def quality_problem(self) -> str | None:
         """Why the fit is too poor to use -- ``"residual RMS 28.32 deg (normal) > 1 deg"`` (its residuals beyond
@@ -254,9 +264,7 @@ def fit_mount(base_T_flange: Sequence[np.ndarray], planes: Sequence[Plane | None
     chi2 = float(np.sum(r[:4 * m] ** 2)) / max(4 * m - 9, 1)
     sig = info_sigma(sol.x, use, prior2) * math.sqrt(max(chi2, 1e-12))
     sig[:6][null] = math.nan  # held at the start: no uncertainty from this sweep
-    names_rot, names_xyz = ("rotation about x", "rotation about y", "rotation about z"), ("x", "y", "z")
-    unobserved = [names_rot[k] for k in range(3) if null[k]] + \
-        [f"translation {names_xyz[k]}" for k in range(3) if null[3 + k]]
+    unobserved = [name for name, held in zip(MOUNT_PARAMETERS, null) if held]
     M = np.eye(4)
     M[:3, :3], M[:3, 3] = Rm, tm
     return MountFit(M, n, float(d), sig[3:6], sig[:3], float(np.sqrt(np.mean(ang_all[use] ** 2))),
@@ -313,4 +321,4 @@ def _joint_angles(q: Any, i: int) -> np.ndarray:
 
 
 __all__ = ["MountFit", "FlangePoseError", "fit_mount", "flange_poses", "MAX_REACH", "MAX_RMS_ANGLE",
-           "MAX_RMS_DISTANCE"]
+           "MAX_RMS_DISTANCE", "MOUNT_PARAMETERS"]

@@ -20,7 +20,7 @@ from place_safe.cli import options
 from place_safe.cli.options import opt
 from place_safe.cli.common import CALIBRATE_METHODS, PROG, ROBOT_FILE_HELP, count_note, log, uncalibrated_note
 from place_safe.cli.options import REACH, float_range, int_range
-from place_safe.exceptions import ConfigError, UsageError
+from place_safe.exceptions import CalibrationError, ConfigError, UsageError
 from place_safe.calibration import Calibration, mark
 from place_safe.calibration.capture import MIN_CLEARANCE, TOUCH_HEIGHT_STD, refusal_line, touch_plane
 from place_safe.recovery import make_estimator
@@ -386,6 +386,15 @@ def _posed_frames(path: str, use_kinematics: bool) -> tuple[list, Any, Any]:
     return frames, np.array(poses), skipped
 
 
+def _mount_hints(args: argparse.Namespace) -> str:
+    """What a straight-down sweep needs of ``calibrate-mount``'s options not given (``--level`` for the mount's tilt,
+    and with it ``--table-height`` for its height: the plane's tilt and height trade against them), as "; a ...";
+    '' when both were given."""
+    if not args.level:
+        return "; a straight-down sweep needs --level for the tilt and, with it, --table-height for the height"
+    return "" if args.table_height is not None else "; a straight-down sweep needs --table-height for the height"
+
+
 def cmd_calibrate_mount(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
@@ -409,6 +418,10 @@ def cmd_calibrate_mount(args: argparse.Namespace) -> int:
     start = robot_cfg.tool.sensor.matrix()
     fit = fit_mount(F, planes, start, sigma_angle=math.radians(args.sigma_angle), sigma_distance=args.sigma_mm / 1000,
                     level=args.level, plane_offset=args.table_height)
+    if fit.determines_nothing:  # the "fit" is the starting mount: an error before any output, no file written
+        raise CalibrationError(f"calibrate-mount: {args.capture} determines none of the mount's six parameters: poses "
+                               "tilted at several azimuths would (capture's default --incidences 0,12,24 --azimuths "
+                               "every 60)" + _mount_hints(args) + ("; the robot file is not written" if args.write else ""))
     if not calibrated:  # the first line of the output (printed once the fit succeeded: an error prints nothing)
         print(uncalibrated_note(args.method, None))
     print(mark(f"{args.capture}: {sum(p is not None for p in planes)}/{len(frames)} frames with a plane "
@@ -583,7 +596,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "Estimate every frame's plane, then fit flange_T_sensor (6 DoF) and the plane in the base frame to all frames "
         "at once by nonlinear least squares on forward kinematics. Prints the fit, its residuals and 1-sigma "
         "uncertainty, flags directions the sweep does not observe, and with --write saves a robot file with the "
-        "fitted mount.",
+        "fitted mount. A capture that determines none of the six (a straight-down sweep without --level) is an error "
+        "that says which poses and options would.",
         ["place-safe calibrate-mount sim_capture.jsonl --robot robots/ur5/sim.toml --calibration "
          "sim/sensors/calibration_nominal.json --write robot_fitted.toml",
          "place-safe calibrate-mount tests/data/tmf8820_ur5_sweep.json --method peak --calibration cal.json --level"],

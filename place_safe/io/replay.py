@@ -19,7 +19,10 @@ A file entry that cannot be parsed is delivered too, as a frame with NaN histogr
 ``extra["parse_error"]`` says what was wrong, so the consumer can report it in place. File-level
 problems (missing file, not a frame file) raise :class:`~place_safe.exceptions.FrameFileError` from the
 constructor or, when they appear mid-file (truncation), from ``read``. The end of the file raises
-``StopIteration`` from ``read`` (the :class:`FrameSource` convention), unless ``loop`` restarts it.
+``StopIteration`` from ``read`` (the :class:`FrameSource` convention), unless ``loop`` restarts it. A looping
+replay whose pass over the whole file held not one usable entry (each unparseable or failing
+:meth:`Frame.validate`) raises :class:`~place_safe.exceptions.FrameFileError` from ``read`` where it would start
+again: every later pass would be the same, so a loop without a frame limit would report them for ever.
 """
 
 from __future__ import annotations
@@ -30,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from place_safe.exceptions import ArgumentTypeError, FrameError, SensorTimeout
+from place_safe.exceptions import ArgumentTypeError, FrameError, FrameFileError, SensorTimeout
 from place_safe.io.frame_file import iter_frames
 from place_safe.sensor.frame import N_BINS, N_ZONES, Frame
 from place_safe.io.source import FrameSource
@@ -83,7 +86,10 @@ class FileReplaySource(FrameSource):
         self.corrupt = frozenset(int(i) for i in corrupt)
         self._clock = clock
         self._it: Iterator[Frame | FrameError] | None = self._open()
-        self._pending = next(self._it, None)  # raises FrameFileError now for an unreadable file
+        self._pass_entries = 0    # entries of the file read in this pass
+        self._pass_usable = False  # whether one of them parsed and passed Frame.validate
+        self._pass_first_bad: str | None = None  # why the first of them did not
+        self._pending = self._judged(next(self._it, None))  # raises FrameFileError now for an unreadable file
         if self._pending is None:
             self._it = None
         self._slot = 0            # index of the next slot (frame position in the replay)
@@ -94,6 +100,37 @@ class FileReplaySource(FrameSource):
     def _open(self) -> Iterator[Frame | FrameError]:
         return iter_frames(self.path)
 
+    def _judged(self, item: Frame | FrameError | None) -> Frame | FrameError | None:
+        """``item``, an entry of the file, counted in this pass: whether it is usable, and why not."""
+        if item is None:
+            return None
+        self._pass_entries += 1
+        if self._pass_usable:
+            return item
+        if isinstance(item, FrameError):
+            why = str(item)  # names the file and the entry
+        else:
+            try:
+                item.validate()
+            except FrameError as exc:
+                why = f"{self.path.name}: frame {self._pass_entries - 1}: {exc}"
+            else:
+                self._pass_usable = True
+                return item
+        if self._pass_first_bad is None:
+            self._pass_first_bad = why
+        return item
+
+    def _end_pass(self) -> None:
+        """Start a new pass of a looping replay; FrameFileError if the one that ended had no usable entry."""
+        n, first = self._pass_entries, self._pass_first_bad
+        if n and not self._pass_usable:
+            self.close()
+            raise FrameFileError(f"no usable frame in a whole pass over {self.path.name} ({n} "
+                                 f"entr{'y' if n == 1 else 'ies'}, each unreadable or invalid; the first: {first}): "
+                                 "looping would repeat them for ever")
+        self._pass_entries, self._pass_usable, self._pass_first_bad = 0, False, None
+
     def _next_item(self) -> Frame | FrameError | None:
         """Next entry of the file (None at the end of a non-looping replay)."""
         if self._pending is not None:
@@ -101,10 +138,11 @@ class FileReplaySource(FrameSource):
             return item
         if self._it is None:
             return None
-        item = next(self._it, None)
+        item = self._judged(next(self._it, None))
         if item is None and self.loop:
+            self._end_pass()
             self._it = self._open()
-            item = next(self._it, None)
+            item = self._judged(next(self._it, None))
         if item is None:
             self._it = None
         return item

@@ -62,7 +62,8 @@ from place_safe.recovery.estimator import (Estimator, PlaneEstimate, Uncertainty
                                           frames_of, is_covariance, tilt_offset)
 from place_safe.recovery.blend import blended
 from place_safe.recovery.peak import PeakEstimator
-from place_safe.sensor.histogram import arriving_ambient, clipped_zones, floor_profile, reference_problem
+from place_safe.sensor.histogram import (arriving_ambient, beyond_count_max, clipped_zones, floor_profile,
+                                        reference_problem)
 
 
 
@@ -401,6 +402,9 @@ class DifferentiableEstimator(Estimator):
                 results[i] = PlaneEstimate(None, reason=str(exc))
                 continue
             h = np.asarray(f.hists, dtype=float)
+            if (beyond := beyond_count_max(h)) is not None:  # not clipped: counts the sensor cannot have reported
+                results[i] = PlaneEstimate(None, reason=beyond)
+                continue
             if clipped_zones(h).any():
                 results[i] = PlaneEstimate(None, reason="histograms clipped (saturated counts: a flat top or counters "
                                                         "at their maximum)")

@@ -40,7 +40,9 @@ over its footprint and the peak reads the slope short, an error a level sweep ca
 tilted frames has none, its floor holds that error).
 Histograms clipped (:func:`~place_safe.sensor.histogram.clipped_zones`: the 24-bit maximum, a flat top, a narrower
 store's limit), or frames flagged ``saturated`` in ``extra`` /
-``extra["meta"]``, give no plane: a clipped peak has no usable position.
+``extra["meta"]``, give no plane: a clipped peak has no usable position. Counts above the 24-bit maximum give no
+plane either, with a reason that says so (:func:`~place_safe.sensor.histogram.beyond_count_max`): the sensor cannot
+report them.
 """
 
 from __future__ import annotations
@@ -54,7 +56,7 @@ from place_safe.recovery.estimator import Estimator, PlaneEstimate, Uncertainty,
 from place_safe.recovery.points import (PeakParams, PlaneFitGeometry, known_error_covariance, plane_covariance,
                                        plane_fit_geometry, plane_through)
 from place_safe.recovery.too_close import may_be_close, overlap_reason, plane_overlap_reason
-from place_safe.sensor.histogram import COUNT_MAX, find_peaks, find_returns
+from place_safe.sensor.histogram import COUNT_MAX, beyond_count_max, find_peaks, find_returns
 from place_safe.sensor.zones import zone_numbers
 
 def _flagged_saturated(frame: Frame) -> bool:
@@ -105,6 +107,8 @@ class PeakEstimator(Estimator):
         h = np.asarray(frame.hists, dtype=float)
         if h.shape != (N_ZONES, N_BINS):
             raise FrameError(f"hists has shape {h.shape}, expected ({N_ZONES}, {N_BINS})")
+        if (beyond := beyond_count_max(h)) is not None:  # not clipped: counts the sensor cannot have reported
+            raise NoPlaneError(beyond)
         p = self.params
         pos, _, valid, saturated, heights = find_returns(h, p.pileup, p.subbin, p.subbin_half_width, heights=True)
         if saturated.any():

@@ -1,7 +1,8 @@
 """Histogram helpers shared by every estimator, calibration and the simulated sensor: one definition each.
 
 * :data:`COUNT_MAX`: the TMF8820's histogram bins are 24-bit counters; a bin at this value is clipped
-  (:func:`clipped_zones` also reads a flat top, or a narrower store's limit, as clipped).
+  (:func:`clipped_zones` also reads a flat top, or a narrower store's limit, as clipped), and a count above it is
+  none the sensor can report (:func:`beyond_count_max` says so).
 * :data:`FLOOR_BINS` / :func:`measure_floor`: the late bins where no return of a surface within the
   sensor's range lands (beyond ~1.3 m); their median is the per-zone floor (ambient and dark counts).
 * :func:`floor_profile` / :func:`ambient_slopes`: the floor across the bins when the ambient slopes (a unit whose
@@ -28,7 +29,7 @@ import warnings
 
 import numpy as np
 
-from place_safe.sensor.zones import N_BINS
+from place_safe.sensor.zones import N_BINS, zone_numbers
 
 #: Largest count of the sensor's 24-bit histogram bins; a bin at this value is clipped.
 COUNT_MAX = 2 ** 24 - 1
@@ -187,6 +188,21 @@ def clipped_zones(hists: np.ndarray) -> np.ndarray:
         flat = (at[..., :-2] & at[..., 1:-1] & at[..., 2:]).any(axis=-1) & (top - h.min(axis=-1) >= CLIP_MIN_COUNTS)
         store = np.isin(top, STORE_LIMITS) & (at.sum(axis=-1) >= 2)
         return (h >= COUNT_MAX).any(axis=-1) | flat | store
+
+
+def beyond_count_max(hists: np.ndarray, what: str = "histogram") -> str | None:
+    """Why counts -- 128 of one histogram, or (9, 128) of the zones -- cannot be the TMF8820's: a count above
+    :data:`COUNT_MAX`, more than its 24-bit counters hold (not a clip: a clipped counter stops at the maximum, and
+    :func:`clipped_zones` reads a bin above it as clipped too; this names it), e.g. ``"histogram counts above the
+    sensor's 24-bit maximum (16777215) in zone(s) 5: not counts it can report"``; None when there is none.
+    ``what`` names the histogram."""
+    h = np.asarray(hists, dtype=float)
+    with np.errstate(invalid="ignore"):
+        over = h > COUNT_MAX
+    if not over.any():
+        return None
+    where = f" in zone(s) {zone_numbers(over.any(axis=-1))}" if h.ndim == 2 else ""
+    return f"{what} counts above the sensor's 24-bit maximum ({COUNT_MAX}){where}: not counts it can report"
 
 
 def undo_pileup(net: np.ndarray, pileup: float) -> np.ndarray:
@@ -478,6 +494,8 @@ def reference_problem(reference) -> str | None:
         return "reference histogram is not 128 finite counts"
     if not np.any(r > 0):
         return "reference histogram is empty (all zeros): no laser pulse to model returns with"
+    if (beyond := beyond_count_max(r, "reference histogram")) is not None:
+        return beyond
     if clipped_zones(r):
         return "reference histogram is clipped (saturated counts: a flat top, or counters at their maximum)"
     floor = float(measure_floor(r))
@@ -489,6 +507,6 @@ def reference_problem(reference) -> str | None:
     return None
 
 
-__all__ = ["COUNT_MAX", "STORE_LIMITS", "CLIP_PLATEAU_BINS", "CLIP_MIN_COUNTS", "clipped_zones", "FLOOR_BINS", "AMBIENT_BINS", "HEAD_BINS", "arriving_ambient", "measure_floor", "floor_profile", "ambient_slopes", "find_peaks", "find_returns", "windowed_centroid", "SUBBIN_METHODS",
+__all__ = ["COUNT_MAX", "STORE_LIMITS", "CLIP_PLATEAU_BINS", "CLIP_MIN_COUNTS", "clipped_zones", "beyond_count_max", "FLOOR_BINS", "AMBIENT_BINS", "HEAD_BINS", "arriving_ambient", "measure_floor", "floor_profile", "ambient_slopes", "find_peaks", "find_returns", "windowed_centroid", "SUBBIN_METHODS",
            "CENTROID_HALF_WIDTH", "CENTROID_HALF_WIDTHS", "MIXED_SHIFT", "INTERNAL_BINS", "INTERNAL_MAX_COUNTS", "SPIKE_FRACTION", "first_return", "reference_floor",
            "reference_problem"]

@@ -10,7 +10,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from place_safe.calibration.capture import plane_in_sensor
-from place_safe.calibration.mount import MAX_RMS_ANGLE, fit_mount, flange_poses
+from place_safe.calibration.mount import MAX_RMS_ANGLE, MOUNT_PARAMETERS, fit_mount, flange_poses
 from place_safe.exceptions import CalibrationError
 
 NOMINAL = np.eye(4)
@@ -91,6 +91,24 @@ def test_a_vertical_sweep_does_not_observe_the_sideways_offset():
     fit = fit_mount(F, [plane_in_sensor(TABLE, T @ truth) for T in F], NOMINAL)
     assert "translation x" in fit.unobserved and "translation y" in fit.unobserved
     assert "rotation about z" in fit.unobserved
+
+
+def test_a_fit_says_when_its_sweep_determines_none_of_the_six_parameters():
+    """A straight-down sweep over a plane not known to be level determines nothing (calibrate-mount refuses it, exit
+    2); --level determines the tilt, and a tilted sweep all six."""
+    F = []
+    for z in np.linspace(0.0, 0.3, 30):
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_euler("x", math.pi).as_matrix()
+        T[:3, 3] = [-0.5, -0.1, z]
+        F.append(T)
+    truth = _true_mount()
+    planes = [plane_in_sensor(TABLE, T @ truth) for T in F]
+    nothing = fit_mount(F, planes, NOMINAL)
+    assert nothing.determines_nothing and sorted(nothing.unobserved) == sorted(MOUNT_PARAMETERS)
+    assert not fit_mount(F, planes, NOMINAL, level=True).determines_nothing
+    G = _sweep()
+    assert not fit_mount(G, [plane_in_sensor(TABLE, T @ truth) for T in G], NOMINAL).determines_nothing
 
 
 def test_bad_input_is_a_calibration_error():

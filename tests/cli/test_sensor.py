@@ -142,6 +142,21 @@ def test_a_source_that_ends_before_its_first_frame_is_one_line_exit_1(command, t
     assert captured.out == "" and not out.exists()
 
 
+@pytest.mark.parametrize("command", ["stream", "record"])
+def test_an_emulated_file_without_a_readable_frame_is_one_line_exit_2(command, tmp_path, capsys):
+    """The emulator skipped the entries it could not parse and ended: "ended before its first frame", exit 1, as a
+    sensor that stops; now the file's fault, as `sensor record file:X` says it."""
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps([{"hists": "abc"}, {"hists": [1]}]))
+    out = tmp_path / "frames.json"
+    extra = ["-o", str(out), "-q"] if command == "record" else []
+    assert main(["sensor", command, f"emu:file:{bad}", "--bus-hz", "1e6", *extra]) == 2
+    captured = capsys.readouterr()
+    assert captured.err.splitlines() == ["place-safe: error: no readable frame in bad.json: 2 unreadable entries (the "
+                                         "first: bad.json: frame 0: hists must hold numbers, not text)"]
+    assert captured.out == "" and not out.exists()
+
+
 @pytest.mark.parametrize("argv, match", [
     (["bench", "sensor", "--frames", "0"], "expected a whole number from 1 to 100000"),
     (["sensor", "info", "file:x.json", "--patch", "p.hex"], "does not apply"),

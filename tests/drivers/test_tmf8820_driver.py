@@ -170,6 +170,28 @@ def test_timeout_when_nothing_is_measured():
         src.read(0.2)
 
 
+def test_a_file_feed_without_a_readable_entry_is_a_frame_file_error(tmp_path):
+    """Entries a file cannot parse are skipped; a file with none readable ended the feed as a sensor that stops does
+    (the commands said "ended before its first frame", exit 1): it is a bad file, and the error says so."""
+    import json
+
+    from place_safe.exceptions import FrameFileError
+    from place_safe.io.replay import FileReplaySource
+
+    path = tmp_path / "bad.json"
+    path.write_text(json.dumps([{"hists": "abc"}, {"hists": [1]}]))
+    src = EmulatedTMF8820(FileReplaySource(path, realtime=False))
+    with pytest.raises(FrameFileError, match=r"no readable frame in bad.json: 2 unreadable entries \(the first: "
+                                             r"bad.json: frame 0: hists must hold numbers"):
+        src.read(1.0)
+    good = tmp_path / "mixed.json"  # one readable entry among them: it comes out, then the feed ends as before
+    good.write_text(json.dumps([{"hists": "abc"}, FRAMES[0].to_dict()]))
+    src = EmulatedTMF8820(FileReplaySource(good, realtime=False))
+    np.testing.assert_array_equal(src.read(1.0).hists, FRAMES[0].hists)
+    with pytest.raises(StopIteration):
+        src.read(1.0)
+
+
 def test_interrupt_line_instead_of_polling():
     emu = TMF8820Emulator(FRAMES, record=True)
     src = TMF8820Source(emu, int_line=emu.int_line, clock=emu.clock, sleep=emu.clock.sleep)

@@ -98,6 +98,25 @@ def test_replay_reports_unparseable_entries_in_place(tmp_path, synthetic_frames)
     assert frames[0].extra.get("parse_error") is None
 
 
+def test_replay_loop_over_a_file_without_a_usable_frame_ends_with_one_error(tmp_path, synthetic_frames):
+    # every entry unparseable or failing validation: a pass gives nothing, and so would every pass after it
+    negative = synthetic_frames[0].to_dict()
+    negative["hists"] = [[-1.0] * len(row) for row in negative["hists"]]
+    path = tmp_path / "bad.jsonl"
+    path.write_text("\n".join(json.dumps(e) for e in ({"hists": "garbage"}, negative)) + "\n")
+    src = FileReplaySource(path, realtime=False, loop=True)
+    got = [src.read(), src.read()]                       # the pass itself is delivered, errors in place
+    assert "hists" in got[0].extra["parse_error"] and not got[1].is_valid()
+    with pytest.raises(FrameFileError, match=r"no usable frame in a whole pass over bad.jsonl \(2 entries.*frame 0"):
+        src.read()                                       # where the loop would start again
+    with pytest.raises(StopIteration):
+        src.read()
+    # one usable frame among them: it loops as before
+    path.write_text("\n".join(json.dumps(e) for e in ({"hists": "garbage"}, negative, synthetic_frames[1].to_dict())))
+    src = FileReplaySource(path, realtime=False, loop=True)
+    assert [src.read().extra["replay_index"] for _ in range(10)] == list(range(10))
+
+
 def test_replay_missing_or_broken_file_fails_at_open(tmp_path):
     with pytest.raises(FrameFileError):
         FileReplaySource(tmp_path / "missing.json")
@@ -200,3 +219,18 @@ def test_stream_command(synthetic_file, capsys):
     assert [line["index"] for line in lines] == list(range(8))
     assert all("latency_ms" in line and "normal" in line for line in lines)
     assert "dropped" in cap.err and "latency" in cap.err and "median" in cap.err
+
+
+def test_stream_loop_over_a_file_without_a_usable_frame_ends_with_one_line(tmp_path, capsys):
+    from place_safe.cli.app import main
+
+    path = tmp_path / "bad.jsonl"
+    path.write_text('{"hists": "garbage"}\n{"hists": [[1, 2]]}\n')
+    done: list[int] = []
+    run = threading.Thread(target=lambda: done.append(main(["stream", str(path), "--method", "peak", "--loop",
+                                                               "--rate", "10000"])), daemon=True)
+    run.start()
+    run.join(60.0)
+    assert done == [2]                                   # it ended (it looped for ever), as an input error
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("place-safe: error: no usable frame in a whole pass over bad.jsonl")

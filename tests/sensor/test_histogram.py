@@ -403,6 +403,42 @@ def test_estimators_give_no_plane_for_clipped_histograms():
     assert reference_problem(ref) is None and "clipped" in reference_problem(np.minimum(ref, 0.2 * ref.max()))
 
 
+def test_counts_beyond_the_24_bit_maximum_are_said_to_be_so_not_clipped():
+    """A real return scaled past the sensor's 24-bit counters (its peak 3e7 counts, a peak shape, no flat top) was
+    refused as "histogram clipped", which it is not: no counter of the sensor holds such a count. The reason now says
+    that (peak, diff, the reference histogram, the forward fit's skip count); a real clip keeps its reason."""
+    import json
+    from pathlib import Path
+
+    from place_safe.calibration.forward_fit import usable_frames
+    from place_safe.recovery import make_estimator
+    from place_safe.recovery.differentiable import DifferentiableEstimator
+    from place_safe.sensor.frame import Frame
+    from place_safe.sensor.histogram import COUNT_MAX, beyond_count_max, reference_problem
+
+    frames = json.loads((Path(__file__).resolve().parents[1] / "data" / "tmf8820_ur5_sweep.json").read_text())
+    d = frames[10]
+    h = np.asarray(d["hists"], dtype=float)
+    h[4] *= 3e7 / h[4].max()
+    over = Frame.from_dict(dict(d, hists=h.tolist()))
+    assert np.sort(h[4])[-2] < h[4].max()  # one bin at the top: a peak, not a flat top
+    says = f"histogram counts above the sensor's 24-bit maximum ({COUNT_MAX}) in zone(s) 5: not counts it can report"
+    assert beyond_count_max(h) == says and beyond_count_max(np.asarray(d["hists"], dtype=float)) is None
+    assert beyond_count_max(np.minimum(h, COUNT_MAX)) is None  # at the maximum: a clip, said as one below
+    for method in ("peak", "diff"):
+        (e,) = make_estimator(method).estimate_many([over])
+        assert e.plane is None and e.reason == says, (method, e.reason)
+    assert DifferentiableEstimator().estimate_batch([over])[0].reason == says
+    ref = np.asarray(d["reference_hist"], dtype=float)
+    assert reference_problem(ref * 3e7 / ref.max()) == ("reference histogram counts above the sensor's 24-bit maximum "
+                                                        f"({COUNT_MAX}): not counts it can report")
+    skipped = {}
+    assert usable_frames([over], 0.0, 10.0, skipped) == [] and skipped == {"counts above the 24-bit maximum": 1}
+    capped = Frame.from_dict(dict(d, hists=np.minimum(h, COUNT_MAX).tolist()))  # the real clip: its reason stays
+    (e,) = make_estimator("peak").estimate_many([capped])
+    assert e.reason.startswith("histogram clipped (saturated counts") and "zone(s) 5" in e.reason
+
+
 def test_a_one_bin_spike_is_not_a_laser_return(monkeypatch):
     """A return one bin wide (its larger neighbour under SPIKE_FRACTION of its height) is no pulse the TMF8820 makes:
     no return, where a file of such spikes read a plane at 0.51 m (an adversarial corpus). A pulse about 4 bins wide

@@ -77,6 +77,7 @@ from place_safe.drivers.tmf8820 import packets as P
 from place_safe.drivers.tmf8820 import registers as R
 from place_safe.drivers.tmf8820.hexfile import RamPatch
 from place_safe.sensor.frame import Frame
+from place_safe.exceptions import FrameFileError
 from place_safe.io.replay import parse_error
 from place_safe.io.source import FrameSource
 
@@ -159,17 +160,36 @@ class FaultPlan:
         return False
 
 
+def _feed_name(feed: FrameSource) -> str:
+    """The file a source feeding the emulator reads (its ``path``), or its class's name."""
+    path = getattr(feed, "path", None)
+    return getattr(path, "name", None) or str(path or type(feed).__name__)
+
+
 def _feed_iter(feed: Any) -> Callable[[float], Frame | None]:
-    """Normalise a feed to ``next(t) -> Frame | None`` (None: the feed has ended)."""
+    """Normalise a feed to ``next(t) -> Frame | None`` (None: the feed has ended). A source's entries a file could
+    not parse are skipped; a source that ends without a frame after skipping some raises
+    :class:`~place_safe.exceptions.FrameFileError` (a file without one readable entry, not a sensor that stopped)."""
     if isinstance(feed, FrameSource):
+        given = False               # whether the feed gave a frame yet
+        unreadable: list[str] = []  # why the entries skipped before it were (an end without one says so)
+
         def from_source(_t: float) -> Frame | None:
+            nonlocal given
             while True:  # entries a file could not parse cannot come from a sensor: skip them
                 try:
                     frame = feed.read(10.0)
                 except StopIteration:
+                    if not given and unreadable:  # not a sensor that ended before its first frame: a bad file
+                        n = len(unreadable)
+                        raise FrameFileError(f"no readable frame in {_feed_name(feed)}: {n} unreadable "
+                                             f"entr{'y' if n == 1 else 'ies'} (the first: {unreadable[0]})") from None
                     return None
-                if parse_error(frame) is None:
+                if (why := parse_error(frame)) is None:
+                    given = True
                     return frame
+                if not given:
+                    unreadable.append(why)
         return from_source
     if callable(feed) and not isinstance(feed, (list, tuple)):
         return feed
