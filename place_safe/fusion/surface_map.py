@@ -134,6 +134,13 @@ CENTRE_ZONE = 4
 #: never lifted the veto the first survey views had raised, and the cup was refused. The descent's views aim about
 #: 70 mm from the centre (the sensor beside the cup) and stay out.
 AIM_SLACK = 0.005
+#: m below the fused plane from which a zone centred under the cup, in a frame looking at the footprint, reads a step
+#: down under part of the cup (the *lowered* doubt of :meth:`SurfaceMap.footprint`) even within the frame's consensus
+#: tolerance (2 % of the range: 4.6 mm from the survey height). A thin board's edge under the rim: board 39 of `--kind
+#: boards --seed 4` (6.2 mm thick, 9 mm of the rim past its edge, a user-calibrated mismatched unit): from the survey
+#: pose the centre zone, two thirds of its footprint points past the edge, read 3.8 mm below the fused plane and
+#: certified them, while the zones on the board read within 0.7 mm of it.
+LOWERED_STEP = 0.0025
 
 
 def second_returns(hists: np.ndarray, first: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -774,11 +781,13 @@ class SurfaceMap:
           until ``min_frames`` views with it in the centre zone (:data:`CENTRE_ZONE`, the second look's
           view centred on it, whose zone reaches least far past it) see it clean; views sliding off a box
           as the sensor moves away do not lift a veto. A point whose latest such view saw it raised (fewer
-          than ``min_frames`` of them: no veto yet), or *lowered* (a doubtful zone below the plane whose centre ray
-          meets it within the cup's own radius: part of the footprint a step lower than the surface the cup is lowered
-          to, as when the plane is the top of a box that reaches under part of the footprint, whose edge the cup would
-          pivot on; a zone centred past the rim that reads lower sees a step beside the footprint; lowered views never
-          veto), is *in doubt* and counts 0 in ``supported`` until a clean
+          than ``min_frames`` of them: no veto yet), or *lowered* (a doubtful zone below the plane, or one
+          :data:`LOWERED_STEP` or more below it within the frame's tolerance, whose centre ray meets it within the
+          cup's own radius: part of the footprint a step lower than the surface the cup is lowered to, as when the
+          plane is the top of a box that reaches under part of the footprint, whose edge the cup would pivot on, or a
+          thin board's edge under the rim; such a view is not clean; a zone centred past the rim that reads lower sees
+          a step beside the footprint; lowered views never veto), is *in doubt* and counts 0 in ``supported`` until
+          a clean
           view from no lower than the highest one that raised it since (less :data:`CLIMB_MARGIN`), or centred on
           it, sees it clean: the descent's lower views reach past the far rim. This rule needs zone points good to a few millimetres:
           it applies only to a calibrated peak mapping (``relative > 0``); with built-in constants, whose zone
@@ -814,8 +823,25 @@ class SurfaceMap:
             close_frames += 1
             issue = {z: self._zone_issue(fs, z, n, d) for z in set(zone[inside].tolist())}
             doubt = self._doubtful(fs, n, d)
-            clean_zone = np.array([issue.get(int(z)) is None and not doubt[int(z)] for z in range(N_ZONES)])
             bad_zone = np.array([issue.get(int(z)) is not None for z in range(N_ZONES)])
+            # raised evidence is a few millimetres: only zone points of a calibrated peak mapping (relative > 0,
+            # see consensus_tolerance) are good enough for it; built-in constants put zones a centimetre off
+            looking = self.relative > 0 and self._looks_at(fs.base_T_sensor, disc, n)
+            with np.errstate(invalid="ignore"):
+                lifted = (fs.points_base @ n - d) > 0
+                # lowered: one surface below the plane by more than the frame's tolerance, within ``tolerance``, or
+                # LOWERED_STEP below it, in a zone centred under the cup: part of the footprint lies a step lower than
+                # the surface the cup is lowered to (the cup lowered onto a box beside it pivots on the box's edge, a
+                # thin board's edge under the rim); it puts the point in doubt but does not veto, and such a view is
+                # not clean. A zone centred past the rim that reads lower sees a step beside the footprint
+                off = fs.points_base @ n - d
+                low = fs.valid & (off < -LOWERED_STEP)
+            if looking and not self._on_the_plane(off, fs.valid & ~low):
+                low = np.zeros(N_ZONES, dtype=bool)  # the frame does not read the fused plane to a millimetre or so
+            lowered_zone = ((doubt | low) & ~lifted & ~bad_zone & self._centred_under_cup(fs.base_T_sensor, disc[0], n)
+                            if looking else np.zeros(N_ZONES, dtype=bool))
+            clean_zone = np.array([issue.get(int(z)) is None and not doubt[int(z)] and not lowered_zone[int(z)]
+                                   for z in range(N_ZONES)])
             clean = inside & clean_zone[zone]
             bad = inside & bad_zone[zone]
             certified += clean
@@ -825,21 +851,13 @@ class SurfaceMap:
                     kind, detail = issue[z]
                     kinds[kind] += 1
                     details[kind] = detail
-            # raised evidence is a few millimetres: only zone points of a calibrated peak mapping (relative > 0,
-            # see consensus_tolerance) are good enough for it; built-in constants put zones a centimetre off
-            if self.relative > 0 and self._looks_at(fs.base_T_sensor, disc, n):
+            if looking:
                 # raised: something above the surface in the zone (a box's top lifts or leads its return); an edge's
                 # floor or a step down beside the footprint shows as a missing, farther or lower return instead
-                lifted = (fs.points_base @ n - d) > 0
                 raised_zone = np.array([(doubt[z] and bool(lifted[z])) or (issue.get(z) is not None
                                                                            and issue[z][0] == "clutter")
                                         for z in range(N_ZONES)])
                 seen = clean | (inside & raised_zone[zone])  # edge evidence neither vetoes nor lifts
-                # lowered: one surface below the plane by more than the frame's tolerance, within ``tolerance``, in a
-                # zone centred under the cup: part of the footprint lies a step lower than the surface the cup is
-                # lowered to (the cup lowered onto a box beside it pivots on the box's edge); it puts the point in doubt
-                # but does not veto. A zone centred past the rim that reads lower sees a step beside the footprint
-                lowered_zone = doubt & ~lifted & ~bad_zone & self._centred_under_cup(fs.base_T_sensor, disc[0], n)
                 lowered = inside & ~clean & lowered_zone[zone]
                 latest[seen] = np.column_stack([latest[seen][:, 1:], np.where(clean[seen], 1, 2)])
                 vetoed |= np.all(latest == 2, axis=1)
@@ -900,6 +918,16 @@ class SurfaceMap:
             return np.zeros(N_ZONES, dtype=bool)
         pb = np.where(ok[:, None], fs.points_base, 0.0)
         return ok & (np.abs(pb @ n - d) > fs.tolerance)
+
+    @staticmethod
+    def _on_the_plane(offsets: np.ndarray, rest: np.ndarray) -> bool:
+        """Whether a frame's zones ``rest`` (9,), those not read :data:`LOWERED_STEP` below the fused plane, lie on it:
+        three or more, their offsets (m) within ``LOWERED_STEP / 2`` RMS. Only then is a zone that step below the plane
+        a step down: where the fused plane is itself off the frame's surface, its zones' offsets run across the grid
+        (board 15 of ``--kind boards --seed 4``: a 12.7 mm board, its edge 34 mm past the rim, the fused plane 2 deg
+        off; the zones read -10 to +3 mm, the centre zone -3.7 mm over the level board)."""
+        o = np.asarray(offsets, dtype=float)[np.asarray(rest, dtype=bool)]
+        return o.size >= 3 and bool(np.sqrt(np.mean(o ** 2)) <= 0.5 * LOWERED_STEP)
 
     def _centred_under_cup(self, base_T_sensor: np.ndarray, centre: np.ndarray, n: np.ndarray) -> np.ndarray:
         """Zones (9,) whose centre ray meets the plane through the footprint's ``centre`` (normal ``n``) within the
