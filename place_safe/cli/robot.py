@@ -421,7 +421,8 @@ def cmd_calibrate_mount(args: argparse.Namespace) -> int:
     if fit.determines_nothing:  # the "fit" is the starting mount: an error before any output, no file written
         raise CalibrationError(f"calibrate-mount: {args.capture} determines none of the mount's six parameters: poses "
                                "tilted at several azimuths would (capture's default --incidences 0,12,24 --azimuths "
-                               "every 60)" + _mount_hints(args) + ("; the robot file is not written" if args.write else ""))
+                               "every 60)" + _mount_hints(args)
+                               + ("; the robot file is not written" if args.write else ""))
     if not calibrated:  # the first line of the output (printed once the fit succeeded: an error prints nothing)
         print(uncalibrated_note(args.method, None))
     print(mark(f"{args.capture}: {sum(p is not None for p in planes)}/{len(frames)} frames with a plane "

@@ -470,8 +470,8 @@ def register(sub) -> None:
         "method", "calibration", "mode",
         opt("--rate", type=options.float_range(1.0, 10000.0), default=30.0, metavar="HZ",
             help="replay rate, frames per second (default 30; 1..10000)"),
-        opt("--loop", action="store_true", help="start again at the end of the file (stop with --max-frames); a file without one usable "
-                 "frame ends the loop with an error"),
+        opt("--loop", action="store_true", help="start again at the end of the file (stop with --max-frames); a file "
+                 "without one usable frame ends the loop with an error"),
         "max_frames",
         opt("--queue", type=options.int_range(1, 10000), default=1, metavar="N",
             help="frames that may wait for the estimator (default 1: always the newest)"),
