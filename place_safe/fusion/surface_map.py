@@ -827,19 +827,22 @@ class SurfaceMap:
             # raised evidence is a few millimetres: only zone points of a calibrated peak mapping (relative > 0,
             # see consensus_tolerance) are good enough for it; built-in constants put zones a centimetre off
             looking = self.relative > 0 and self._looks_at(fs.base_T_sensor, disc, n)
+            off = fs.points_base @ n - d  # m above the fused plane per zone (NaN without a return)
             with np.errstate(invalid="ignore"):
-                lifted = (fs.points_base @ n - d) > 0
-                # lowered: one surface below the plane by more than the frame's tolerance, within ``tolerance``, or
-                # LOWERED_STEP below it, in a zone centred under the cup: part of the footprint lies a step lower than
-                # the surface the cup is lowered to (the cup lowered onto a box beside it pivots on the box's edge, a
-                # thin board's edge under the rim); it puts the point in doubt but does not veto, and such a view is
-                # not clean. A zone centred past the rim that reads lower sees a step beside the footprint
-                off = fs.points_base @ n - d
+                lifted = off > 0
                 low = fs.valid & (off < -LOWERED_STEP)
-            if looking and not self._on_the_plane(off, fs.valid & ~low):
-                low = np.zeros(N_ZONES, dtype=bool)  # the frame does not read the fused plane to a millimetre or so
-            lowered_zone = ((doubt | low) & ~lifted & ~bad_zone & self._centred_under_cup(fs.base_T_sensor, disc[0], n)
-                            if looking else np.zeros(N_ZONES, dtype=bool))
+            # lowered: one surface below the plane by more than the frame's tolerance, within ``tolerance``, or
+            # LOWERED_STEP below it where the frame's other zones lie on the plane, in a zone centred under the cup:
+            # part of the footprint lies a step lower than the surface the cup is lowered to (the cup lowered onto a
+            # box beside it pivots on the box's edge, a thin board's edge under the rim); it puts the point in doubt
+            # but does not veto, and such a view is not clean. A zone centred past the rim that reads lower sees a
+            # step beside the footprint
+            lowered_zone = np.zeros(N_ZONES, dtype=bool)
+            if looking:
+                if not self._on_the_plane(off, fs.valid & ~low):  # the frame does not read the fused plane that well
+                    low[:] = False
+                lowered_zone = (doubt | low) & ~lifted & ~bad_zone & self._centred_under_cup(fs.base_T_sensor,
+                                                                                             disc[0], n)
             clean_zone = np.array([issue.get(int(z)) is None and not doubt[int(z)] and not lowered_zone[int(z)]
                                    for z in range(N_ZONES)])
             clean = inside & clean_zone[zone]

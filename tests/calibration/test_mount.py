@@ -80,13 +80,19 @@ def test_a_fit_says_when_its_residuals_are_beyond_a_good_fits():
     assert why.startswith(f"residual RMS {math.degrees(poor.rms_angle):.2f} deg (normal) > 1 deg") and "\n" not in why
 
 
-def test_a_vertical_sweep_does_not_observe_the_sideways_offset():
+def _straight_down_sweep() -> list[np.ndarray]:
+    """30 flange poses looking straight down, 0-30 cm above the table, at one place: the plain level sweep."""
     F = []
     for z in np.linspace(0.0, 0.3, 30):
         T = np.eye(4)
         T[:3, :3] = Rotation.from_euler("x", math.pi).as_matrix()
         T[:3, 3] = [-0.5, -0.1, z]
         F.append(T)
+    return F
+
+
+def test_a_vertical_sweep_does_not_observe_the_sideways_offset():
+    F = _straight_down_sweep()
     truth = _true_mount()
     fit = fit_mount(F, [plane_in_sensor(TABLE, T @ truth) for T in F], NOMINAL)
     assert "translation x" in fit.unobserved and "translation y" in fit.unobserved
@@ -96,12 +102,7 @@ def test_a_vertical_sweep_does_not_observe_the_sideways_offset():
 def test_a_fit_says_when_its_sweep_determines_none_of_the_six_parameters():
     """A straight-down sweep over a plane not known to be level determines nothing (calibrate-mount refuses it, exit
     2); --level determines the tilt, and a tilted sweep all six."""
-    F = []
-    for z in np.linspace(0.0, 0.3, 30):
-        T = np.eye(4)
-        T[:3, :3] = Rotation.from_euler("x", math.pi).as_matrix()
-        T[:3, 3] = [-0.5, -0.1, z]
-        F.append(T)
+    F = _straight_down_sweep()
     truth = _true_mount()
     planes = [plane_in_sensor(TABLE, T @ truth) for T in F]
     nothing = fit_mount(F, planes, NOMINAL)
