@@ -33,8 +33,10 @@ from place_safe.sensor.zones import N_BINS, zone_numbers
 
 #: Largest count of the sensor's 24-bit histogram bins; a bin at this value is clipped.
 COUNT_MAX = 2 ** 24 - 1
+#: Widths (bits) of the unsigned integer stores a histogram may have been clipped by on its way here.
+STORE_BITS = range(8, 25)
 #: Counts a histogram clipped by a narrower store on its way here (an 8- to 24-bit unsigned integer) tops out at.
-STORE_LIMITS = tuple(float(2 ** k - 1) for k in range(8, 25))
+STORE_LIMITS = tuple(float(2 ** k - 1) for k in STORE_BITS)
 #: Consecutive bins that hold a zone's highest count, at :data:`CLIP_MIN_COUNTS` or more, in a clipped return: a
 #: return's peak is about 2 bins wide at half its height, so three equal tops are a flat top (a clip), not counts.
 #: None of the real sweep's 477 zone histograms (or its references) holds its highest count in two bins; capped at
@@ -186,8 +188,16 @@ def clipped_zones(hists: np.ndarray) -> np.ndarray:
         # the top stands CLIP_MIN_COUNTS above the histogram's least count: a return, not a flat floor (a zone that
         # sees nothing over a floor of 100 counts, noise-free in a synthetic frame, holds its "top" in every bin)
         flat = (at[..., :-2] & at[..., 1:-1] & at[..., 2:]).any(axis=-1) & (top - h.min(axis=-1) >= CLIP_MIN_COUNTS)
-        store = np.isin(top, STORE_LIMITS) & (at.sum(axis=-1) >= 2)
+        twice = at.sum(axis=-1) >= 2  # rare in a return: test the store limits only then
+        store = twice & _at_store_limit(top) if twice.any() else twice
         return (h >= COUNT_MAX).any(axis=-1) | flat | store
+
+
+def _at_store_limit(counts: np.ndarray) -> np.ndarray:
+    """Whether each count is one of :data:`STORE_LIMITS` (``2**k - 1`` for ``k`` in :data:`STORE_BITS`): ``count + 1``
+    a power of two (its mantissa exactly 0.5) of such an exponent; NaN and infinity are not."""
+    mantissa, exponent = np.frexp(np.asarray(counts, dtype=float) + 1.0)
+    return (mantissa == 0.5) & (exponent - 1 >= STORE_BITS.start) & (exponent - 1 < STORE_BITS.stop)
 
 
 def beyond_count_max(hists: np.ndarray, what: str = "histogram") -> str | None:
@@ -507,6 +517,6 @@ def reference_problem(reference) -> str | None:
     return None
 
 
-__all__ = ["COUNT_MAX", "STORE_LIMITS", "CLIP_PLATEAU_BINS", "CLIP_MIN_COUNTS", "clipped_zones", "beyond_count_max", "FLOOR_BINS", "AMBIENT_BINS", "HEAD_BINS", "arriving_ambient", "measure_floor", "floor_profile", "ambient_slopes", "find_peaks", "find_returns", "windowed_centroid", "SUBBIN_METHODS",
+__all__ = ["COUNT_MAX", "STORE_BITS", "STORE_LIMITS", "CLIP_PLATEAU_BINS", "CLIP_MIN_COUNTS", "clipped_zones", "beyond_count_max", "FLOOR_BINS", "AMBIENT_BINS", "HEAD_BINS", "arriving_ambient", "measure_floor", "floor_profile", "ambient_slopes", "find_peaks", "find_returns", "windowed_centroid", "SUBBIN_METHODS",
            "CENTROID_HALF_WIDTH", "CENTROID_HALF_WIDTHS", "MIXED_SHIFT", "INTERNAL_BINS", "INTERNAL_MAX_COUNTS", "SPIKE_FRACTION", "first_return", "reference_floor",
            "reference_problem"]

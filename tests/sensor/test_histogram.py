@@ -374,6 +374,22 @@ def test_a_clipped_return_reads_as_clipped_and_a_real_one_does_not():
     assert clipped_zones(one)  # two: a uint16 store's limit
 
 
+@given(st.sampled_from(range(6, 27)), st.integers(-2, 2), st.floats(0.0, 0.9))
+@example(8, 0, 0.0)
+@example(24, 0, 0.0)
+@example(25, 0, 0.0)
+def test_two_tops_at_a_stores_limit_are_clipped_and_no_other_count_is(bits, step, fraction):
+    """Two highest bins at ``2**k - 1`` for a store of 8 to 24 bits are clipped (the limits :data:`STORE_LIMITS`
+    lists), and two equal tops one count off, a fraction off, or at a 6-, 7- or 25-bit store's limit are not (a
+    power-of-two test stands in for the list lookup)."""
+    from place_safe.sensor.histogram import STORE_LIMITS, clipped_zones
+
+    top = 2.0 ** bits - 1.0 + step + fraction
+    two = np.full(128, 10.0)
+    two[40:42] = top
+    assert bool(clipped_zones(two)) == (top in STORE_LIMITS or top >= 2.0 ** 24 - 1.0)
+
+
 def test_estimators_give_no_plane_for_clipped_histograms():
     """Real frames whose counts were capped at 65535 (a uint16 store) read, before the flat-top test, a plane at 42 mm
     as 61 mm and 10 deg with a covariance of 0.6 mm / 0.6 deg: now no plane, and the reason says why."""
