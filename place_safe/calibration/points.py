@@ -569,6 +569,33 @@ def _fit_readings(method: str, what: str, use: list[Frame], readings: np.ndarray
     return params, report
 
 
+def refit_mapping(frames: Sequence[Frame], params: PeakParams, min_range: float = MIN_CALIBRATION_RANGE) -> PeakParams:
+    """``params``' far-range mapping fitted again on ``frames`` (those with ground truth at ``min_range`` or farther and
+    returns in 3 or more zones, as :func:`fit_peak` keeps them): its linear terms (:func:`fit_linear`: gains, offsets,
+    residual series, phase and inverse-range terms, as many as ``params`` has) by least squares, with its direction
+    scales, pile-up and sub-bin estimator held. Without its near-range table; ``params``' own mapping where the frames
+    do not determine one. For reading a calibration frame as a new frame is read: by a mapping fitted without it
+    (:func:`~place_safe.calibration.near_range.held_out_fits`)."""
+    base = params.without_near_table()
+    use = [f for f in frames if f.truth is not None and f.truth.z0 >= min_range]
+    if len(use) < 3:
+        return base
+    hists = np.array([np.asarray(f.hists, dtype=float) for f in use])
+    readings, valid, _ = find_peaks(hists, base.pileup, base.subbin, base.subbin_half_width)
+    keep = valid.sum(1) >= 3
+    if keep.sum() < 3:
+        return base
+    tn, td = _truth_arrays([f for f, k in zip(use, keep) if k])
+    zones = any(g != 1.0 for g in base.zone_gains) or any(o != 0.0 for o in base.zone_offsets)
+    degree = len(base.residual_coeffs) - 1 if base.residual_coeffs else 0
+    fitted = fit_linear(base.edge_scale, base.corner_scale, readings[keep], valid[keep], tn, td, degree,
+                        len(base.phase_coeffs) // 2, zones, zones, len(base.zone_inverse) // N_ZONES)
+    if fitted is None:
+        return base
+    return fitted.replace(pileup=base.pileup, subbin=base.subbin, subbin_half_width=base.subbin_half_width,
+                          zone_residual=base.zone_residual, common_residual=base.common_residual)
+
+
 def proprietary_readings(frames: Sequence[Frame]) -> tuple[np.ndarray, np.ndarray]:
     """On-sensor distances in mm (F, 9) and validity (F, 9) of frames: the zones the proprietary method reads
     (:func:`~place_safe.recovery.proprietary.on_sensor_readings`; none of a frame it refuses). (A frame with
@@ -635,7 +662,7 @@ def fit_proprietary(frames: Sequence[Frame], init: PeakParams | None = None, pro
     return params, report
 
 
-__all__ = ["fit_points", "fit_peak", "fit_proprietary", "proprietary_readings", "zone_residuals", "MIN_CALIBRATION_RANGE",
+__all__ = ["fit_points", "fit_peak", "refit_mapping", "fit_proprietary", "proprietary_readings", "zone_residuals", "MIN_CALIBRATION_RANGE",
            "MIN_CALIBRATION_FRAMES", "MIN_CALIBRATION_DISTANCES", "FEW_CALIBRATION_FRAMES", "mapping_parameters",
            "small_sample_factor",
            "tilt_angles", "level_frames"]

@@ -82,7 +82,8 @@ from place_safe.calibration.near_range import held_out_fits, near_range_std
 from place_safe.calibration.forward_fit import CROSSTALK_LEFT_SHARE, crosstalk_traded
 from place_safe.exceptions import CalibrationError, FrameError, NoPlaneError
 from place_safe.recovery.points import PlaneFitGeometry, plane_fit_geometry, plane_through
-from place_safe.calibration.points import MIN_CALIBRATION_RANGE, MIN_TILT_SPREAD, level_frames, tilt_angles
+from place_safe.calibration.points import (MIN_CALIBRATION_RANGE, MIN_TILT_SPREAD, level_frames, refit_mapping,
+                                          tilt_angles)
 from place_safe.recovery.blend import blended
 from place_safe.recovery.differentiable import BLENDED, NEAR_FALLBACK_RANGE, DifferentiableEstimator
 from place_safe.recovery.peak import PeakEstimator, near_applies, near_covariances
@@ -1002,7 +1003,8 @@ def fit_peak_uncertainty(frames: Sequence[Frame], peak_params, min_range: float 
 
     The near-range errors: each near frame (closer than the table's end) is read by the near-range table
     fitted without it (:func:`~place_safe.calibration.near_range.held_out_fits`: knots, penalty and whether to
-    keep a table chosen again, so the frame lies between other frames' knots as a new frame does); the zone
+    keep a table chosen again, so the frame lies between other frames' knots as a new frame does), on the far-range
+    mapping fitted again without it (:func:`~place_safe.calibration.points.refit_mapping`); the zone
     error law :func:`near_std_law` (a scale at 5 cm growing as a power of the gap to the internal return) is
     fitted by maximum likelihood of those planes' errors under the covariance the estimator reports with it
     (:func:`fit_near_law`). With fewer than :data:`NEAR_LAW_MIN_FRAMES` such planes, the zones' cross-validated
@@ -1049,7 +1051,7 @@ def fit_peak_uncertainty(frames: Sequence[Frame], peak_params, min_range: float 
     if closer and depths:
         rows = []
         for width in (1, 2):  # left out alone, and with a neighbour (wider gaps: more rows for the law)
-            held = held_out_fits(frames, peak_params, width)
+            held = held_out_fits(frames, peak_params, width, mapping=lambda rest, base: refit_mapping(rest, base, lo))
             rows += [r for r in (_near_row(f, held.get(id(f)), depths[-1]) for f in closer) if r is not None]
         # read as new frames are: by a table where the calibration keeps one, by the mapping alone where not
         rows = [r for r in rows if (r[4] is not None) == bool(peak_params.near_depths)]

@@ -243,3 +243,29 @@ def test_independent_frames_table_does_no_harm_held_out():
         assert _angles(params, near).mean() <= 1.02 * _angles(params.without_near_table(), near).mean()
     else:
         assert params.near_depths == []
+
+
+def test_each_near_frame_left_out_is_read_by_a_far_mapping_fitted_without_it_where_one_is_given(sweep_path):
+    """:func:`held_out_fits`: each near frame of the real even half, left out alone, gets the near-range table fitted
+    without it on ``mapping``'s far-range mapping of the frames left in (the uncertainty passes
+    :func:`~place_safe.calibration.points.refit_mapping`: a new frame is in neither); with no ``mapping``, on the
+    calibration's own, in whose sample the frame was from 3 cm on (as before)."""
+    from place_safe.calibration.near_range import held_out_fits
+    from place_safe.calibration.points import MIN_CALIBRATION_RANGE, refit_mapping
+    from place_safe.sensor.histogram import find_peaks
+
+    even = load_frames(sweep_path)[0::2]
+    params, _ = fit_peak(even, progress=False)
+    hists = np.array([f.hists for f in even], dtype=float)
+    pos, _, _ = find_peaks(hists, params.pileup, params.subbin, params.subbin_half_width)
+    own = held_out_fits(even, params)
+    refitted = held_out_fits(even, params, mapping=refit_mapping)
+    assert len(own) == len(refitted) >= 4
+    for i, f in enumerate(even):
+        if id(f) not in own:
+            continue
+        far = refitted[id(f)].without_near_table()
+        np.testing.assert_array_equal(own[id(f)].without_near_table().ranges(pos), params.without_near_table().ranges(pos))
+        np.testing.assert_array_equal(far.ranges(pos), refit_mapping(even[:i] + even[i + 1:], params).ranges(pos))
+        moved = not np.allclose(far.ranges(pos[i]), params.without_near_table().ranges(pos[i]), atol=1e-5, rtol=0)
+        assert moved == (f.truth.z0 >= MIN_CALIBRATION_RANGE)  # a frame the mapping was not fitted on moves nothing

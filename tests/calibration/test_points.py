@@ -400,3 +400,36 @@ def test_a_residual_domain_not_a_millimetre_wide_is_one_calibration_error(domain
     assert "\n" not in str(info.value)
     for lo in (0.03, 0.1, 0.155005, 0.3):  # lo + 1 mm - lo rounds below 1 mm for some lo: still accepted
         PeakParams(71.0, 13.0, residual_domain=[lo, lo + MIN_DOMAIN_WIDTH], zone_inverse=inverse)
+
+
+def test_refit_mapping_on_the_calibration_frames_is_the_mapping_and_reads_a_frame_left_out_as_new(sweep_path):
+    """:func:`refit_mapping` fits the far-range mapping's linear terms again with its scales, pile-up and sub-bin
+    estimator held: on the frames :func:`fit_peak` fitted (a level sweep: no scales fitted) it is the same mapping to
+    the digit (a convention check). Without a near frame it reads that frame as a new one, worse than in sample: the
+    real even half's 3.5 cm frame 0.04 mm RMS in sample, 0.95 mm left out (its errors were fitted away: the nearest
+    frame sets the inverse-range terms), and every frame at 3.5-9.5 cm worse left out."""
+    from place_safe.calibration.points import refit_mapping
+    from place_safe.sensor.histogram import find_peaks
+
+    even, _ = _real_halves(sweep_path)
+    params, report = fit_peak(even, progress=False)
+    assert not report["scales_fitted"] and params.zone_inverse and params.near_depths
+    base = params.without_near_table()
+    hists = np.array([f.hists for f in even], dtype=float)
+    pos, valid, _ = find_peaks(hists, base.pileup, base.subbin, base.subbin_half_width)
+    again = refit_mapping(even, params)
+    assert not again.near_depths
+    np.testing.assert_array_equal(again.ranges(pos), base.ranges(pos))
+
+    def rms_mm(p, i):
+        f = even[i]
+        truth = f.truth.offset / (p.directions() @ f.truth.normal)
+        return float(np.sqrt(np.mean((p.ranges(pos[i]) - truth)[valid[i]] ** 2)) * 1e3)
+
+    near = [i for i, f in enumerate(even) if 0.03 <= f.truth.z0 < 0.1]
+    assert len(near) >= 4
+    for i in near:
+        left_out = refit_mapping(even[:i] + even[i + 1:], params)
+        assert rms_mm(left_out, i) > rms_mm(base, i)
+    nearest = min(near, key=lambda i: even[i].truth.z0)
+    assert rms_mm(base, nearest) < 0.1 and rms_mm(refit_mapping(even[:nearest] + even[nearest + 1:], params), nearest) > 0.5
