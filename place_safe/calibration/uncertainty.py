@@ -718,6 +718,17 @@ NEAR_MAX_POWER = 4.0
 NEAR_MAX_SHARED = 0.75
 #: Near frames with a plane that the near-range law needs; with fewer, the cross-validated zone errors stand.
 NEAR_LAW_MIN_FRAMES = 3
+#: Calibration frames closer than the near-range table's end (9 cm) read with a plane, below which the near-range
+#: covariance rests on too few of them and ``calibrate`` says so (:data:`NEAR_FEW_NOTE`). Held out on the independent
+#: generator's sensor 13 (tilted frames at 5-9 cm): a 20-frame level sweep with 4 such frames stated peak's planes with
+#: a NEES per dof of 4.9 (diff's blend 1.8), 40 frames with 9 of them 1.2 (0.8); 150 frames 1.7 (0.5) on sensor 5.
+NEAR_LAW_FEW_FRAMES = 6
+#: The near-range report's note where fewer than :data:`NEAR_LAW_FEW_FRAMES` near frames were read.
+NEAR_FEW_NOTE = ("near range from few frames: peak's covariance closer than 9 cm (and the blend's that leans on it) "
+                 "rests on {n} calibration frames read there (fewer than {few}); on so few it states planes more precisely "
+                 "than new frames read (a 20-frame level sweep with 4: NEES per dof about 5 at 5-9 cm); capture 8 or "
+                 "more level poses closer than 9 cm (e.g. capture --incidences 0 --azimuths 0 --distances "
+                 "20:90:8,100:400:20) and calibrate again")
 #: Depths at which the law is tabulated (``Uncertainty.near_depths``; linear between them): spaced evenly in
 #: the logarithm of the gap to the overlap, so a steep law is followed where it is steep.
 NEAR_LAW_DEPTHS = 24
@@ -1049,12 +1060,16 @@ def fit_peak_uncertainty(frames: Sequence[Frame], peak_params, min_range: float 
     report["frames_closer"] = len(closer)
     report["near_range"] = near
     if closer and depths:
-        rows = []
+        read = []  # (frame, row)
         for width in (1, 2):  # left out alone, and with a neighbour (wider gaps: more rows for the law)
             held = held_out_fits(frames, peak_params, width, mapping=lambda rest, base: refit_mapping(rest, base, lo))
-            rows += [r for r in (_near_row(f, held.get(id(f)), depths[-1]) for f in closer) if r is not None]
+            read += [(id(f), r) for f in closer if (r := _near_row(f, held.get(id(f)), depths[-1])) is not None]
         # read as new frames are: by a table where the calibration keeps one, by the mapping alone where not
-        rows = [r for r in rows if (r[4] is not None) == bool(peak_params.near_depths)]
+        read = [(k, r) for k, r in read if (r[4] is not None) == bool(peak_params.near_depths)]
+        rows = [r for _, r in read]
+        report["near_range"]["frames_read"] = n_read = len({k for k, _ in read})
+        if n_read < NEAR_LAW_FEW_FRAMES:
+            report["near_range"]["note"] = NEAR_FEW_NOTE.format(n=n_read, few=NEAR_LAW_FEW_FRAMES)
         if len(rows) >= NEAR_LAW_MIN_FRAMES:
             unc, report["near_range"]["law"] = fit_near_law(rows, unc, peak_params, depths[-1])
             report["near_range"]["std_mm"] = [v * 1e3 for v in unc.near_range_std]
@@ -1342,7 +1357,8 @@ def other_reading(cal):
 
 
 __all__ = ["update_calibration", "reading_disagreement", "slope_scale_offset_bias", "DISAGREEMENT_FRAMES",
-           "READINGS_NOTE", "READINGS_FROM_NOTE", "READINGS_NEITHER_NOTE", "readings_note_tail",
+           "READINGS_NOTE", "READINGS_FROM_NOTE", "NEAR_LAW_FEW_FRAMES", "NEAR_FEW_NOTE",
+           "READINGS_NEITHER_NOTE", "readings_note_tail",
            "sweep_slopes",
            "mount_left", "other_reading", "ADOPTED_MOUNT_OFFSET_REL",
            "LEVEL_SLOPE", "nees", "fit_floor", "fit_peak_uncertainty", "fit_diff_uncertainty", "select_fallback",

@@ -265,7 +265,8 @@ def test_each_near_frame_left_out_is_read_by_a_far_mapping_fitted_without_it_whe
         if id(f) not in own:
             continue
         far = refitted[id(f)].without_near_table()
-        np.testing.assert_array_equal(own[id(f)].without_near_table().ranges(pos), params.without_near_table().ranges(pos))
+        mine = own[id(f)].without_near_table()
+        np.testing.assert_array_equal(mine.ranges(pos), params.without_near_table().ranges(pos))
         np.testing.assert_array_equal(far.ranges(pos), refit_mapping(even[:i] + even[i + 1:], params).ranges(pos))
         moved = not np.allclose(far.ranges(pos[i]), params.without_near_table().ranges(pos[i]), atol=1e-5, rtol=0)
         assert moved == (f.truth.z0 >= MIN_CALIBRATION_RANGE)  # a frame the mapping was not fitted on moves nothing

@@ -965,3 +965,23 @@ def test_a_mount_the_adopted_time_scales_may_have_taken_up_widens_both_methods_o
         c.sections["peak"] = PeakParams.default_peak().to_dict()
         u.update_calibration(c, frames, "peak")
         assert float(np.hypot(*seen[-1])) == pytest.approx(want)
+
+
+def test_a_sweep_with_few_near_frames_says_so_and_one_with_enough_does_not(sweep_path):
+    """The near-range report counts the calibration frames read closer than the table's end (each by a table and far
+    mapping fitted without it) and, with fewer than NEAR_LAW_FEW_FRAMES, carries the note that the covariance there
+    rests on few frames (what calibrate prints): the real even half (27 frames, 4 of them read at 3.5-8 cm) gets it,
+    the whole sweep (53 frames) does not."""
+    from place_safe.calibration.points import fit_peak
+    from place_safe.calibration.uncertainty import NEAR_LAW_FEW_FRAMES, fit_peak_uncertainty
+    from place_safe.io.frame_file import load_frames
+
+    frames = load_frames(sweep_path)
+    for part, few in ((frames[0::2], True), (frames, False)):
+        params, _ = fit_peak(part, progress=False)
+        _, report = fit_peak_uncertainty(part, params)
+        near = report["near_range"]
+        assert (near["frames_read"] < NEAR_LAW_FEW_FRAMES) == few
+        assert ("note" in near) == few
+        if few:
+            assert near["note"].startswith("near range from few frames") and f"on {near['frames_read']} " in near["note"]
