@@ -78,6 +78,7 @@ from place_safe.evaluation.metrics import angular_errors, nees, point_errors  # 
 from place_safe.recovery.estimator import MAX_SCALE, MIN_SCALE, NEAR_MAX_STD, PlaneEstimate, Uncertainty, tilt_offset
 from place_safe.recovery.too_close import OVERLAP_RANGE, TOO_CLOSE_REASON, plane_overlap_reason
 from place_safe.sensor.frame import Frame
+from place_safe.sensor.histogram import find_peaks
 from place_safe.calibration.near_range import held_out_fits, near_range_std
 from place_safe.calibration.forward_fit import CROSSTALK_LEFT_SHARE, crosstalk_traded
 from place_safe.exceptions import CalibrationError, FrameError, NoPlaneError
@@ -741,6 +742,24 @@ NEAR_LAW_DEPTHS = 24
 #: simulated unit, whose law then put 2 cm at twice its 5 cm error where other units read 2.4-6 deg planes there
 #: (2.4 deg 3-sigma). Beyond its frames the law is not measured, so it grows at least as the real sensor's did.
 NEAR_PRIOR_POWER = 1.0
+#: The power of the near law a calibration states where none of its frames lies closer than the near-range table's end
+#: (9 cm) to fit one (:func:`near_prior`): closer than its nearest frame the zones' range error grows from what that
+#: frame's zones err by (read by a mapping fitted without it) as the gap to the overlap to this power. Read by the far
+#: mapping alone, the real sweep's zones err 20 times more at 2.75 cm than at 5-9 cm (8.3 against 0.35-0.67 deg:
+#: docs/results.md, "Near range"), over a gap 6 times narrower: a power of 1.7. Without such a law, a simulated unit
+#: calibrated at 10-40 cm stated its planes at 2-5 cm with a NEES per dof of 32.
+NEAR_UNCALIBRATED_POWER = 2.0
+#: The part of :func:`near_prior`'s variance common to the zones (an offset; the most a fitted law may take,
+#: :data:`NEAR_MAX_SHARED`): the far mapping read closer than its nearest frame errs most in the offset it extrapolates
+#: (the real sweep calibrated from 9.5 cm on, read at 5-9 cm: 1.5 mm, 0.4 deg). With half, NEES per dof 5.2 there; 3.9.
+NEAR_UNCALIBRATED_SHARED = NEAR_MAX_SHARED
+#: The calibration's nearest frames whose zone errors, each read by a mapping fitted without it, set :func:`near_prior`.
+NEAR_PRIOR_FRAMES = 3
+#: The note of a calibration that states :func:`near_prior` (``{cm}``: its nearest frame's depth).
+NEAR_PRIOR_NOTE = ("near range not calibrated: no calibration frame lies closer than {cm:.1f} cm, so peak's covariance "
+                   "closer than that is a prior that grows fast towards the internal return (planes there are "
+                   "extrapolated, and state so); capture level poses down to 2 cm (e.g. capture --incidences 0 "
+                   "--azimuths 0 --distances 20:90:8,100:400:20) and calibrate again")
 
 
 def near_std_law(depth, scale: float, power: float, nearest: float | None = None) -> np.ndarray:
@@ -999,6 +1018,40 @@ def peak_tilt_term(mount_tilt=None) -> Uncertainty:
     return Uncertainty(tilt_rel=PEAK_TILT_REL, tilt_offset_rel=PEAK_MOUNT_OFFSET_REL * size)
 
 
+def near_prior(frames: Sequence[Frame], peak_params, unc: Uncertainty,
+               min_range: float = MIN_CALIBRATION_RANGE) -> tuple[Uncertainty, dict]:
+    """``unc`` with a near law stated, not fitted, for a calibration with no frame closer than the near-range table's
+    end to fit one: closer than its nearest frame (``min_range`` or farther, with ground truth), each zone's range
+    error grows from ``s0`` there as the gap to the overlap to :data:`NEAR_UNCALIBRATED_POWER`
+    (:func:`near_std_law`), :data:`NEAR_UNCALIBRATED_SHARED` of its variance common to the zones; ``s0`` is the RMS
+    zone range error of the :data:`NEAR_PRIOR_FRAMES` nearest frames, each read by the far mapping fitted without it
+    (:func:`~place_safe.calibration.points.refit_mapping`). ``unc`` unchanged where there are too few frames; the
+    report gives the depth, ``s0`` and the note (:data:`NEAR_PRIOR_NOTE`)."""
+    use = sorted((f for f in frames if f.truth is not None and f.truth.z0 >= min_range), key=lambda f: f.truth.z0)
+    if len(use) <= NEAR_PRIOR_FRAMES:
+        return unc, {"why": f"{len(use)} calibration frames: too few to read {NEAR_PRIOR_FRAMES} of them held out"}
+    errs = []
+    for f in use[:NEAR_PRIOR_FRAMES]:
+        mapping = refit_mapping([g for g in use if g is not f], peak_params, min_range)
+        h = np.asarray(f.hists, dtype=float)[None]
+        pos, valid, _ = find_peaks(h, mapping.pileup, mapping.subbin, mapping.subbin_half_width)
+        dirs = mapping.directions()
+        with np.errstate(invalid="ignore", divide="ignore"):
+            err = mapping.ranges(pos[0]) - f.truth.offset / (dirs @ f.truth.normal)
+        errs.extend(err[valid[0] & np.isfinite(err)])
+    if not errs:
+        return unc, {"why": "the nearest calibration frames have no zone reading"}
+    s0 = max(float(np.sqrt(np.mean(np.square(errs)))), 1e-6)
+    nearest = float(use[0].truth.z0)
+    ref = NEAR_REFERENCE_DEPTH - OVERLAP_RANGE
+    g0 = max(nearest - OVERLAP_RANGE, NEAR_LAW_MIN_GAP)
+    scale = s0 * (g0 / ref) ** NEAR_UNCALIBRATED_POWER  # near_std_law(nearest) = s0
+    unc = near_law_uncertainty(unc, near_law_depths(nearest), scale, NEAR_UNCALIBRATED_POWER,
+                               NEAR_UNCALIBRATED_SHARED)
+    return unc, {"nearest_mm": nearest * 1e3, "zone_error_there_mm": s0 * 1e3, "power": NEAR_UNCALIBRATED_POWER,
+                 "shared_by_zones": NEAR_UNCALIBRATED_SHARED, "note": NEAR_PRIOR_NOTE.format(cm=nearest * 100)}
+
+
 def fit_peak_uncertainty(frames: Sequence[Frame], peak_params, min_range: float | None = None,
                          mount_tilt=None) -> tuple[Uncertainty, dict]:
     """The peak method's floor from frames with ground truth at ``min_range`` (m, axis distance) or farther:
@@ -1076,6 +1129,8 @@ def fit_peak_uncertainty(frames: Sequence[Frame], peak_params, min_range: float 
         ests = [PeakEstimator(peak_params, unc).estimate(f) for f in closer]
         report["near_range"]["nees_per_dof_closer"] = _mean_nees(ests, [f.truth for f in closer])
         report["near_range"]["too_close"] = sum(1 for e in ests if (e.reason or "").startswith(TOO_CLOSE_REASON))
+    if not unc.near_depths:  # no near frame to fit a law on: closer than the nearest frame, a stated one
+        unc, report["near_range"]["prior"] = near_prior(frames, peak_params, unc, lo)
     return unc, report
 
 
@@ -1357,7 +1412,7 @@ def other_reading(cal):
 
 
 __all__ = ["update_calibration", "reading_disagreement", "slope_scale_offset_bias", "DISAGREEMENT_FRAMES",
-           "READINGS_NOTE", "READINGS_FROM_NOTE", "NEAR_LAW_FEW_FRAMES", "NEAR_FEW_NOTE",
+           "READINGS_NOTE", "READINGS_FROM_NOTE", "NEAR_LAW_FEW_FRAMES", "NEAR_FEW_NOTE", "near_prior", "NEAR_PRIOR_NOTE",
            "READINGS_NEITHER_NOTE", "readings_note_tail",
            "sweep_slopes",
            "mount_left", "other_reading", "ADOPTED_MOUNT_OFFSET_REL",

@@ -985,3 +985,34 @@ def test_a_sweep_with_few_near_frames_says_so_and_one_with_enough_does_not(sweep
         assert ("note" in near) == few
         if few:
             assert near["note"].startswith("near range from few frames") and f"on {near['frames_read']} " in near["note"]
+
+
+def test_a_calibration_with_no_near_frame_states_a_near_law_that_covers_the_real_near_frames(sweep_path):
+    """The real even half's frames from 9.5 cm on calibrate peak with no frame closer than the near-range table's end:
+    its uncertainty states a near law up to its nearest frame (near_prior, with the note), and the odd half's planes at
+    2-9 cm read through it are covered (mean NEES per dof below 2; without the law 26 at 2-5 cm and 38 at 5-9 cm: 3-5
+    deg and 1-3 mm off, stated to a few hundredths). A calibration with near frames fits its own law and states none."""
+    from place_safe.calibration.points import fit_peak
+    from place_safe.calibration.uncertainty import NEAR_PRIOR_NOTE, fit_peak_uncertainty
+    from place_safe.evaluation.metrics import nees
+    from place_safe.io.frame_file import load_frames
+    from place_safe.recovery.peak import PeakEstimator
+
+    frames = load_frames(sweep_path)
+    far = [f for f in frames[0::2] if f.truth.z0 >= 0.095]
+    params, _ = fit_peak(far, progress=False)
+    unc, report = fit_peak_uncertainty(far, params)
+    prior = report["near_range"]["prior"]
+    nearest = min(f.truth.z0 for f in far)
+    assert prior["nearest_mm"] == pytest.approx(nearest * 1e3)
+    assert prior["note"] == NEAR_PRIOR_NOTE.format(cm=nearest * 100)
+    assert unc.near_depths[-1] == pytest.approx(nearest) and unc.near_std(np.array([0.03]))[0] > 0.0
+    near = [f for f in frames[1::2] if 0.02 <= f.truth.z0 < 0.09]
+    est = PeakEstimator(params, unc)
+    ests = [est.estimate(f) for f in near]
+    used = [(e, f.truth) for e, f in zip(ests, near) if e.ok]
+    assert len(used) >= 4
+    assert float(np.mean(nees([e for e, _ in used], [t for _, t in used]))) < 2.0
+    params_all, _ = fit_peak(frames[0::2], progress=False)
+    _, report_all = fit_peak_uncertainty(frames[0::2], params_all)
+    assert "prior" not in report_all["near_range"]
