@@ -80,6 +80,7 @@ from place_safe.recovery.too_close import OVERLAP_RANGE, TOO_CLOSE_REASON, plane
 from place_safe.sensor.frame import Frame
 from place_safe.sensor.histogram import find_peaks
 from place_safe.calibration.near_range import held_out_fits, near_range_std
+from place_safe.calibration.point_errors import true_ranges
 from place_safe.calibration.forward_fit import CROSSTALK_LEFT_SHARE, crosstalk_traded
 from place_safe.exceptions import CalibrationError, FrameError, NoPlaneError
 from place_safe.recovery.points import PlaneFitGeometry, plane_fit_geometry, plane_through
@@ -1035,9 +1036,9 @@ def near_prior(frames: Sequence[Frame], peak_params, unc: Uncertainty,
         mapping = refit_mapping([g for g in use if g is not f], peak_params, min_range)
         h = np.asarray(f.hists, dtype=float)[None]
         pos, valid, _ = find_peaks(h, mapping.pileup, mapping.subbin, mapping.subbin_half_width)
-        dirs = mapping.directions()
         with np.errstate(invalid="ignore", divide="ignore"):
-            err = mapping.ranges(pos[0]) - f.truth.offset / (dirs @ f.truth.normal)
+            err = mapping.ranges(pos[0]) - true_ranges(f.truth.normal[None], np.array([f.truth.offset]),
+                                                       mapping.directions())[0]
         errs.extend(err[valid[0] & np.isfinite(err)])
     if not errs:
         return unc, {"why": "the nearest calibration frames have no zone reading"}
@@ -1113,7 +1114,7 @@ def fit_peak_uncertainty(frames: Sequence[Frame], peak_params, min_range: float 
     report["frames_closer"] = len(closer)
     report["near_range"] = near
     if closer and depths:
-        read = []  # (frame, row)
+        read = []  # (id of the frame, its row)
         for width in (1, 2):  # left out alone, and with a neighbour (wider gaps: more rows for the law)
             held = held_out_fits(frames, peak_params, width, mapping=lambda rest, base: refit_mapping(rest, base, lo))
             read += [(id(f), r) for f in closer if (r := _near_row(f, held.get(id(f)), depths[-1])) is not None]
