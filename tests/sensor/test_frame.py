@@ -53,12 +53,35 @@ def test_valid_frame_passes():
     (lambda f: setattr(f, "reference", None), "reference"),
     (lambda f: setattr(f, "reference", np.zeros(64)), "shape"),
     (lambda f: f.reference.__setitem__(0, np.inf), "reference_hist"),
+    (lambda f: setattr(f, "hists", np.ma.masked_array(f.hists, np.eye(N_ZONES, N_BINS, dtype=bool))),
+     "hists is a masked array with 9 masked entries"),
+    (lambda f: setattr(f, "reference", np.ma.masked_array(f.reference, np.arange(N_BINS) == 3)), "1 masked entry"),
 ])
 def test_validate_says_what_is_wrong(change, message):
     f = _good()
     change(f)
     with pytest.raises(FrameError, match=message):
         f.validate()
+
+
+def test_a_masked_array_with_nothing_masked_is_read_as_its_numbers():
+    f = _good()
+    f.hists = np.ma.masked_array(f.hists)
+    f.validate()
+
+
+def test_estimators_refuse_a_frame_whose_masked_counts_they_cannot_honour():
+    """A masked zone's counts are not read into the plane as they stand (they were, before: the mask was dropped)."""
+    from place_safe.evaluation.synthetic import make_frames
+    from place_safe.recovery import make_estimator
+    f = make_frames(1, seed=3)[0]
+    assert make_estimator("peak").estimate(f).plane is not None
+    mask = np.zeros((N_ZONES, N_BINS), bool)
+    mask[4] = True
+    f.hists = np.ma.masked_array(f.hists, mask)
+    for method in ("peak", "diff"):
+        est = make_estimator(method).estimate(f)
+        assert est.plane is None and est.reason.startswith("hists is a masked array with 128 masked entries")
 
 
 @pytest.mark.parametrize("entry,message", [
