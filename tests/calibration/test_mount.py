@@ -10,7 +10,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from place_safe.calibration.capture import plane_in_sensor
-from place_safe.calibration.mount import MAX_RMS_ANGLE, MOUNT_PARAMETERS, fit_mount, flange_poses
+from place_safe.calibration.mount import (MAX_RMS_ANGLE, MAX_SIGMA_ROTATION, MAX_SIGMA_TRANSLATION, MOUNT_PARAMETERS,
+                                         fit_mount, flange_poses)
 from place_safe.exceptions import CalibrationError
 
 NOMINAL = np.eye(4)
@@ -110,6 +111,43 @@ def test_a_fit_says_when_its_sweep_determines_none_of_the_six_parameters():
     assert not fit_mount(F, planes, NOMINAL, level=True).determines_nothing
     G = _sweep()
     assert not fit_mount(G, [plane_in_sensor(TABLE, T @ truth) for T in G], NOMINAL).determines_nothing
+
+
+def test_a_direction_the_capture_determines_only_loosely_is_held_not_fitted():
+    """A nearly straight-down sweep (the flange's tilt wandering by 0.3 deg, as a real one's does) observes the mount's
+    tilt and height only to degrees and centimetres when the table's height is known but not its level, and with
+    --level its sideways offset only to centimetres: such directions are held at the start and listed, not fitted
+    (they moved the real sweep's mount by 234 mm); every direction left to the data is stated within the limits."""
+    rng = np.random.default_rng(4)
+    truth = _true_mount()
+    F = []
+    for z in np.linspace(0.0, 0.3, 40):
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_euler("xyz", [math.pi + rng.normal(0, 0.005), rng.normal(0, 0.005), 0]).as_matrix()
+        T[:3, 3] = [-0.5, -0.1, z]
+        F.append(T)
+    planes = []
+    for T in F:
+        p = plane_in_sensor(TABLE, T @ truth)
+        w = rng.normal(0, math.radians(0.2), 3)
+        w -= (w @ p.normal) * p.normal
+        planes.append(type(p)(p.normal + w, (p.offset + rng.normal(0, 0.0003)) * np.linalg.norm(p.normal + w)))
+    height_only = fit_mount(F, planes, NOMINAL, plane_offset=TABLE[1])
+    assert {"rotation about x", "translation z"} <= set(height_only.unobserved)
+    level = fit_mount(F, planes, NOMINAL, level=True, plane_offset=TABLE[1])
+    assert sorted(level.unobserved) == ["rotation about z", "translation x", "translation y"]
+    truth_rpy = Rotation.from_matrix(truth[:3, :3]).as_euler("xyz")
+    for fit in (height_only, level):  # what each states as fitted lies within 3 sigma of the truth
+        fitted = ~np.isnan(fit.sigma_rot)
+        assert np.all(np.abs(fit.rpy - truth_rpy)[fitted] < 3 * fit.sigma_rot[fitted] + 1e-4)
+    for fit in (height_only, level):
+        fitted = ~np.isnan(np.concatenate([fit.sigma_rot, fit.sigma_xyz]))
+        limits = np.array([MAX_SIGMA_ROTATION] * 3 + [MAX_SIGMA_TRANSLATION] * 3)
+        assert np.all(np.concatenate([fit.sigma_rot, fit.sigma_xyz])[fitted] <= limits[fitted])
+        held = [name for name, f in zip(MOUNT_PARAMETERS, fitted) if not f]
+        assert sorted(held) == sorted(fit.unobserved)
+    G = _sweep()
+    assert fit_mount(G, [plane_in_sensor(TABLE, T @ truth) for T in G], NOMINAL).unobserved == []
 
 
 def test_bad_input_is_a_calibration_error():
