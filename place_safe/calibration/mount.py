@@ -59,8 +59,9 @@ OUTLIER_K = 4.0
 #: flange poses that do not belong to the frames tens of degrees.
 MAX_RMS_ANGLE, MAX_RMS_DISTANCE = math.radians(1.0), 0.002
 #: rad, m: the largest 1-sigma of a mount direction the final fit leaves to the data, where its residuals are within
-#: :data:`MAX_RMS_ANGLE` and :data:`MAX_RMS_DISTANCE`; one the capture determines only more loosely is held at the start as well (listed in :attr:`MountFit.unobserved`). The stage-1 test (a sigma above
-#: half the prior's) keeps directions observed to 0.1 rad or 25 mm: a straight-down sweep whose flange tilt wanders by
+#: :data:`MAX_RMS_ANGLE` and :data:`MAX_RMS_DISTANCE`; one the capture determines only more loosely is held at the
+#: start as well (listed in :attr:`MountFit.unobserved`). The stage-1 test (a sigma above half the prior's) keeps
+#: directions observed to 0.1 rad or 25 mm: a straight-down sweep whose flange tilt wanders by
 #: a few tenths of a degree, as the real sweep's does, then fitted the mount's tilt from it to 10.9 / 2.9 deg and its
 #: height to 42 mm 1-sigma with ``--table-height`` alone, and moved the mount by 234 mm. Good fits state far less
 #: (0.02 deg for the real sweep's tilt with ``--level``).
@@ -286,8 +287,8 @@ def fit_mount(base_T_flange: Sequence[np.ndarray], planes: Sequence[Plane | None
     unobserved = [name for name, held in zip(MOUNT_PARAMETERS, null) if held]
     M = np.eye(4)
     M[:3, :3], M[:3, 3] = Rm, tm
-    return MountFit(M, n, float(d), sig[3:6], sig[:3], rms_angle, rms_distance, ang_all, rd_all, m, unobserved, start.copy(),
-                    outliers=int(nf - m))
+    return MountFit(M, n, float(d), sig[3:6], sig[:3], rms_angle, rms_distance, ang_all, rd_all, m, unobserved,
+                    start.copy(), outliers=int(nf - m))
 
 
 def _robust_scale(v: np.ndarray) -> float:

@@ -81,8 +81,7 @@ def real_array(value: Any, name: str) -> np.ndarray:
     """``value`` as an array of real numbers; FrameError for strings, objects, complex or ragged data, and for a
     masked array with any entry masked (its mask says those values are not to be used, and an array of numbers has
     no place to carry that: counted as they stand they would go into the plane unseen)."""
-    if isinstance(value, np.ma.MaskedArray) and np.ma.getmaskarray(value).any():
-        n = int(np.ma.getmaskarray(value).sum())
+    if isinstance(value, np.ma.MaskedArray) and (n := int(np.ma.getmaskarray(value).sum())):
         raise FrameError(f"{name} is a masked array with {n} masked entr{'y' if n == 1 else 'ies'}: the mask cannot be "
                          "honoured here; fill them (np.ma.filled) or leave the frame out")
     try:
