@@ -163,7 +163,7 @@ def _recover_stream(path: str, estimator, batch: int, unstamped: list[str] | Non
         pending.clear()
 
     try:
-        for i, f in enumerate(iter_frames(path)):
+        for i, f in enumerate(iter_frames(path, truth=False)):  # recovery never reads the ground truth
             if unstamped is not None and getattr(f, "timestamp_error", None):
                 unstamped.append(f"frame {i}: {f.timestamp_error}")
             pending.append((i, f))

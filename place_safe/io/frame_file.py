@@ -493,13 +493,14 @@ def iter_frame_dicts(path: str | Path) -> Iterator[dict]:
         yield entry
 
 
-def iter_frames(path: str | Path) -> Iterator[Frame | FrameError]:
+def iter_frames(path: str | Path, *, truth: bool = True) -> Iterator[Frame | FrameError]:
     """Yield a :class:`Frame` per entry, or the :class:`FrameError` that made an entry unusable.
 
     File-level problems raise :class:`FrameFileError`; per-frame problems are yielded, with a
     message naming the file, the frame index and the field, so a caller can report them in place
     and go on. Ground truth that is not a plane only clears that frame's ``truth`` (its reason is in
-    ``truth_error``): recovery does not need it.
+    ``truth_error``): recovery does not need it. ``truth=False`` does not read the ground truth at all
+    (:meth:`Frame.from_dict`: every frame's ``truth`` None), for a caller that never uses it.
     """
     name = Path(path).name if isinstance(path, (str, os.PathLike)) else ""  # _iter_entries says what else it is
     for i, d in enumerate(_iter_entries(path)):
@@ -507,7 +508,7 @@ def iter_frames(path: str | Path) -> Iterator[Frame | FrameError]:
             yield d
             continue
         try:
-            yield Frame.from_dict(d)
+            yield Frame.from_dict(d, truth=truth)
         except FrameError as exc:
             yield FrameError(f"{name}: frame {i}: {exc}")
 

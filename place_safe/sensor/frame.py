@@ -210,8 +210,12 @@ class Frame:
 
     # -- file form (docs/interfaces.md) ----------------------------------------------------------
     @classmethod
-    def from_dict(cls, d: dict) -> "Frame":
-        """Build a frame from the JSON form; raises :class:`FrameError` on malformed entries."""
+    def from_dict(cls, d: dict, *, truth: bool = True) -> "Frame":
+        """Build a frame from the JSON form; raises :class:`FrameError` on malformed entries.
+
+        ``truth=False`` leaves the ground truth unread (``truth`` and ``truth_error`` None): for a reader that never
+        uses it (``recover``), which it spares parsing a pose (a third of reading a frame). Ground truth never makes
+        a frame unreadable, so every other field comes out the same either way."""
         if not isinstance(d, dict):
             raise FrameError(f"a frame must be a JSON object, got {type(d).__name__}")
         if "hists" not in d:
@@ -226,9 +230,9 @@ class Frame:
                 distances, confidences = _on_sensor(dist)
             except FrameError as exc:
                 distances_error = f"on-sensor distances unusable: {exc}"
-        truth, truth_error = None, None
+        plane, truth_error = None, None
         try:
-            truth = _truth(d)
+            plane = _truth(d) if truth else None
         except (KeyError, TypeError, ValueError, OverflowError, NoPlaneError) as exc:
             truth_error = f"ground truth is not a plane in front of the sensor: {_first_line(exc)}"
         known = {"hists", "reference_hist", "distances", "plane"}
@@ -245,7 +249,7 @@ class Frame:
                 if not math.isfinite(ts):
                     timestamp_error = "timestamp must be a finite number of seconds"
             ts = None if timestamp_error else ts
-        return cls(hists, reference, distances, confidences, ts, truth, extra, truth_error, timestamp_error,
+        return cls(hists, reference, distances, confidences, ts, plane, extra, truth_error, timestamp_error,
                    distances_error)
 
     def to_dict(self) -> dict:

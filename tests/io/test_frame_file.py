@@ -213,3 +213,27 @@ def test_a_utf16_frame_file_is_said_to_be_utf16(tmp_path, encoding):
     p.write_bytes(json.dumps([{"hists": [[0] * 128] * 9}]).encode(encoding))
     with pytest.raises(FrameFileError, match="UTF-16 text: save it as UTF-8"):
         load_frames(p)
+
+
+@pytest.mark.parametrize("layout", LAYOUTS)
+def test_frames_read_without_truth_are_the_same_frames_without_it(tmp_path, entries, layout):
+    """``iter_frames(..., truth=False)`` (what ``recover`` reads) gives every frame and every error that the full read
+    gives, field for field, except the ground truth, which stays unread (None, no ``truth_error``): a bad plane or
+    pose costs neither reader the frame."""
+    bad_plane = dict(entries[1], plane={"normal": [0, 0, -1], "offset": 0.1})  # behind the sensor
+    bad_pose = dict(entries[2], pose=[[1, 0, 0, 0]], dist_to_plane=0.1)
+    bad_pose.pop("plane")
+    pose = dict(entries[3], pose=np.eye(4).tolist(), dist_to_plane=0.2)
+    pose.pop("plane")
+    broken = dict(entries[4], hists=[[1, 2]])
+    path = tmp_path / "t.json"
+    _write(path, [entries[0], bad_plane, bad_pose, pose, broken], layout)
+    full, bare = list(iter_frames(path)), list(iter_frames(path, truth=False))
+    assert len(full) == len(bare) == 5
+    assert isinstance(full[4], FrameError) and str(full[4]) == str(bare[4])
+    assert full[0].truth is not None and full[3].truth is not None and full[1].truth_error and full[2].truth_error
+    for a, b in zip(full[:4], bare[:4]):
+        assert b.truth is None and b.truth_error is None
+        np.testing.assert_array_equal(a.hists, b.hists)
+        np.testing.assert_array_equal(a.reference, b.reference)
+        assert (a.extra, a.timestamp, a.timestamp_error) == (b.extra, b.timestamp, b.timestamp_error)
