@@ -1071,6 +1071,35 @@ def test_a_surface_within_the_descent_limit_is_approached():
     assert run(w).outcome == "released"
 
 
+def test_a_survey_up_and_sideways_does_not_count_against_the_descent_limit():
+    """The descent limit is the surface's depth below the start pose along the cup's axis: a survey that first takes
+    the sensor up and sideways (towards a footprint seen on a steep reading) leaves the surface no farther below the
+    start. Seed 98's random scene 20 surveyed 80 mm up; its 100 mm of travel plus the table then 518 mm below the
+    cup were refused as "no support within reach"."""
+    w = FakeWorld(height=0.50)
+    target = w.pos + np.array([0.08, 0.0, 0.08])  # the survey pose: 80 mm sideways and 80 mm up
+    unseen = dataclasses.replace(w.footprint, observed=0, supported=0, in_view=False, view_margin=math.nan)
+    w.footprint = unseen
+
+    def plane_fn(world, machine):
+        if world.footprint.supported == 0:
+            if np.linalg.norm(target - world.pos) < 0.003:  # there: the footprint seen on one surface
+                world.footprint = FootprintVerdict(observed=5, supported=5, in_view=True, view_margin=1.0)
+            else:
+                world.footprint = dataclasses.replace(unseen, look_shift=target - world.pos)
+        return world.plane()
+
+    m = run(w, plane_fn=plane_fn, seconds=30.0)
+    assert m.outcome == "released" and opened(w), m.decision
+    assert not any("within reach" in t.reason for t in m.log)
+    # and a surface beyond reach from the start is still refused after the same survey
+    w = FakeWorld(height=0.65)
+    w.footprint = unseen
+    target = w.pos + np.array([0.08, 0.0, 0.08])
+    m = run(w, plane_fn=plane_fn)
+    assert m.outcome == "refused" and not opened(w) and "no support within reach" in m.decision
+
+
 def test_contact_high_above_the_sensed_surface_stops_hard_and_refuses():
     # something 3 cm tall under the cup that the sensor did not see: an obstacle, not arrival
     w = FakeWorld(height=0.2, contact_height=0.03)
