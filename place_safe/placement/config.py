@@ -63,7 +63,9 @@ class PlacementConfig(ParamModel):
     contact_force: float = Field(5.0, gt=0.0, le=200.0, description="N")
     # m: clearance this far below zero without contact = estimate is wrong
     max_penetration: float = Field(0.01, ge=0.0, le=0.1, description="m")
-    max_travel: float = Field(0.6, gt=0.0, le=2.0, description="m")  # m: descent limit
+    # m: descent limit: a surface seen deeper than this below the start pose (along the cup's axis) is refused at
+    # once, and the TCP never moves farther than this from the start pose
+    max_travel: float = Field(0.6, gt=0.0, le=2.0, description="m")
     retreat_distance: float = Field(0.10, gt=0.0, le=1.0, description="m")  # m up after release or refusal
     retreat_speed: float = Field(0.05, gt=0.0, le=1.0, description="m/s")  # m/s
     release_settle: float = Field(0.3, ge=0.0, le=10.0, description="s")  # s between opening the gripper and retreating

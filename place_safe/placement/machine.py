@@ -1118,7 +1118,7 @@ class PlacementMachine:
                                      "tool axis or cup pose invalid)")
         # do not start a long fall towards a floor past an edge: the surface's depth below the start pose (along the
         # cup's axis) is what the descent must cover. Sideways and upward moves (a survey over a footprint seen on a
-        # steep reading) do not count: seed 98's random scene 20 surveyed 80 mm up towards a 72.5 deg plane through
+        # steep reading) do not count: seed 98's random scene 20 climbed about 100 mm towards a 72.5 deg plane through
         # the table and the floor past its edge, and its 100 mm of travel plus the table then 518 mm below refused
         descended = float((tcp - self._start_pos) @ -np.asarray(state.base_T_cup, dtype=float)[:3, 2])
         if descended + c > cfg.max_travel:

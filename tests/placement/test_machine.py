@@ -1074,8 +1074,8 @@ def test_a_surface_within_the_descent_limit_is_approached():
 def test_a_survey_up_and_sideways_does_not_count_against_the_descent_limit():
     """The descent limit is the surface's depth below the start pose along the cup's axis: a survey that first takes
     the sensor up and sideways (towards a footprint seen on a steep reading) leaves the surface no farther below the
-    start. Seed 98's random scene 20 surveyed 80 mm up; its 100 mm of travel plus the table then 518 mm below the
-    cup were refused as "no support within reach"."""
+    start. Seed 98's random scene 20 climbed about 100 mm in its survey; that travel plus the table then 518 mm below
+    the cup was refused as "no support within reach"."""
     w = FakeWorld(height=0.50)
     target = w.pos + np.array([0.08, 0.0, 0.08])  # the survey pose: 80 mm sideways and 80 mm up
     unseen = dataclasses.replace(w.footprint, observed=0, supported=0, in_view=False, view_margin=math.nan)
