@@ -33,7 +33,7 @@ from place_safe.recovery.estimator import Reference, Uncertainty
 
 if TYPE_CHECKING:  # imported when a section is read: the forward model and diff load torch, the peak
     # mapping scipy, and a command's parser and --help need neither
-    from place_safe.recovery.forward import ForwardParams
+    from place_safe.recovery.forward_params import ForwardParams
     from place_safe.recovery.points import PeakParams
 
 FORMAT = "place_safe.calibration/1"
@@ -118,7 +118,7 @@ class Calibration:
 
     def diff(self):
         """The ``diff`` section's range correction (none when the section is absent)."""
-        from place_safe.recovery.differentiable import RangeCorrection
+        from place_safe.recovery.diff_settings import RangeCorrection
 
         d = self._section("diff")
         if d is None:
@@ -138,7 +138,7 @@ class Calibration:
         and the solver compares it with the data so (:attr:`~place_safe.recovery.differentiable.SolverOptions.ambient`).
         ``crosstalk_std`` (a fraction, 0 or 1e-6..0.5, absent: 0): each frame's crosstalk is solved under a prior of that
         standard deviation about the forward model's (a level sweep left it undetermined); 0 holds it."""
-        from place_safe.recovery.differentiable import LEGACY_WINDOW_AFTER_PEAK, SolverOptions, crosstalk_std_problem
+        from place_safe.recovery.diff_settings import LEGACY_WINDOW_AFTER_PEAK, SolverOptions, crosstalk_std_problem
 
         d = self._section("diff")
         if d is None:
@@ -200,7 +200,7 @@ class Calibration:
         return Calibration.from_dict(d, f"{self.source} without diff's fallback")
 
     def forward(self) -> ForwardParams:
-        from place_safe.recovery.forward import ForwardParams
+        from place_safe.recovery.forward_params import ForwardParams
 
         d = self._section("forward")
         return ForwardParams.from_dict(d) if d is not None else ForwardParams()

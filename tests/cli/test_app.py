@@ -223,6 +223,25 @@ def test_help_loads_no_torch_scipy_or_mujoco():
     assert out.stdout.strip() == ""
 
 
+def test_recover_with_peak_loads_no_torch():
+    """``recover --method peak`` with a calibration that has ``forward`` and ``diff`` sections reads and checks every
+    section and recovers the frames without importing torch (the sections' parameters live in
+    ``recovery.forward_params`` and ``recovery.diff_settings``): it loaded torch at start-up, about a second and a few
+    hundred megabytes that peak never uses."""
+    root = Path(__file__).resolve().parents[2]
+    cal = root / "sim" / "sensors" / "calibration_nominal.json"
+    frames = root / "tests" / "data" / "tmf8820_ur5_sweep.json"
+    assert {"forward", "diff"} <= set(json.loads(cal.read_text()))
+    code = ("import contextlib, io, sys\n"
+            "from place_safe.cli.app import main\n"
+            "out = io.StringIO()\n"
+            "with contextlib.redirect_stdout(out):\n"
+            f"    rc = main(['recover', {str(frames)!r}, '--method', 'peak', '--calibration', {str(cal)!r}, '--jsonl'])\n"
+            "print(rc, out.getvalue().count('\\n'), 'torch' in sys.modules)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=300)
+    assert out.stdout.split() == ["0", "53", "False"], out.stdout + out.stderr
+
+
 def test_sim_without_mujoco_says_how_to_install(monkeypatch, capsys):
     import importlib.util
 

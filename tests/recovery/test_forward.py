@@ -132,27 +132,6 @@ def test_random_rays_are_uniform_in_solid_angle():
     assert torch.allclose(mean_r, mean_s, atol=2e-3)
 
 
-def test_params_round_trip(tmp_path):
-    p = ForwardParams(albedo=2.0, zone_offsets=[0.1] * 9, pileup=1e-7)
-    p.save(tmp_path / "p.json")
-    assert ForwardParams.load(tmp_path / "p.json") == p
-    assert set(params_to_tensors(p)) >= {"albedo", "zone_offsets", "pileup"}
-
-
-def test_params_reject_bad_values(tmp_path):
-    with pytest.raises(CalibrationError):
-        ForwardParams(bin_size=-1.0)
-    with pytest.raises(CalibrationError):
-        ForwardParams(zone_offsets=[0.0] * 3)
-    with pytest.raises(CalibrationError):
-        ForwardParams.from_dict({"albedo": 1.0, "nonsense": 2})
-    with pytest.raises(CalibrationError):
-        ForwardParams(albedo=math.nan)
-    (tmp_path / "bad.json").write_text("{not json")
-    with pytest.raises(CalibrationError):
-        ForwardParams.load(tmp_path / "bad.json")
-
-
 def test_pulse_kernel_is_normalised():
     ref = torch.as_tensor(default_reference())[None]
     k = pulse_kernel(ref, torch.tensor(0.27887, dtype=torch.float64), torch.tensor(135.14, dtype=torch.float64))
