@@ -114,6 +114,9 @@ def frame_kinds() -> dict[str, bytes]:
         "truth-non-rotation": with_truth({"pose": (3 * np.eye(4)).tolist(), "dist_to_plane": 0.1}),
         "all-truth-bad": _dump([dict(x, plane={"normal": [0, 0, 0], "offset": 1}) for x in good]).encode(),
         "big-extra-key": with_first(meta="x" * (1 << 20)),
+        # session 82: every frame given twice (files joined): calibrate counted each twice and held it out beside its
+        # own copy (3 frames 5 times each wrote a peak calibration with no floor)
+        "repeated-frames": _dump(good + good).encode(),
     }
 
 
@@ -317,6 +320,7 @@ def capture_kinds() -> dict[str, bytes]:
         "cap-pose-huge": with_all(pose=[[1e300] * 4] * 4), "cap-pose-last-row": with_all(pose=np.diag([1, 1, 1, 0]).tolist()),
         "cap-pose-string": with_all(pose="identity"), "cap-pose-scaled": with_all(pose=(2 * np.eye(4)).tolist()),
         "cap-no-pose": with_all(),
+        "cap-repeated": json.dumps(frames + frames).encode(),  # session 82: a capture given twice
     }
 
 

@@ -390,3 +390,17 @@ def test_place_in_simulation_takes_the_robot_files_limits_and_motion(tmp_path, c
     res = json.loads(out.read_text())
     assert res["outcome"] != "released" and res["robot_config"] == str(slow), (code, res["outcome"], res["reason"])
     assert "workspace box, min_descent_z and surface_keepout are checked on the arm only" in err
+
+
+def test_calibrate_mount_refuses_a_capture_whose_frames_repeat(sweep_path, tmp_path, capsys):
+    """The real sweep given twice in one capture: every mount direction's stated 1-sigma shrank by sqrt(2) (0.12 ->
+    0.08 mm for the height with --level --table-height 0; session 82), so a direction the capture determines only
+    loosely could pass the MAX_SIGMA hold. One line, exit 2, before any plane is estimated."""
+    import json
+
+    frames = json.loads(sweep_path.read_text())
+    twice = tmp_path / "twice.json"
+    twice.write_text(json.dumps(frames + frames))
+    assert main(["calibrate-mount", str(twice), "--method", "peak", "-q", "--level", "--table-height", "0"]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and f"frame {len(frames)} repeats frame 0 exactly" in err[0] and "give each frame once" in err[0]

@@ -140,3 +140,19 @@ def _sweep_frame(path) -> Frame:
     from place_safe.io.frame_file import load_frames
 
     return min(load_frames(path), key=lambda f: abs(f.truth.offset - 0.21))
+
+
+def test_repeated_frames_finds_a_measurement_given_twice_whatever_its_truth_says():
+    """A frame whose histograms, reference and on-sensor distances repeat an earlier frame's is a repeat (its ground
+    truth, pose or extras may differ: a pasted copy with an edited truth is still one measurement); the first repeat
+    and how many there are (session 82: 3 frames given 5 times each passed calibrate's 5-frame minimum)."""
+    from place_safe.sensor.frame import repeated_frames
+
+    a, b = _good(), _good()
+    b.hists = b.hists + 1.0
+    assert repeated_frames([a, b]) is None and repeated_frames([]) is None
+    copy_a = Frame(a.hists.copy(), a.reference.copy(), truth=Plane([0.0, 0.0, 1.0], 0.3), extra={"pose": "x"})
+    assert repeated_frames([a, b, copy_a, b]) == (2, 0, 2)
+    other_distances = Frame(a.hists.copy(), a.reference.copy(), distances=np.full(N_ZONES, 0.1))
+    assert repeated_frames([a, other_distances]) is None  # another on-sensor result: another measurement
+    assert repeated_frames([a, "not a frame", b]) is None  # (whoever reads it says what it is)
