@@ -399,11 +399,16 @@ def _mount_hints(args: argparse.Namespace) -> str:
 def cmd_calibrate_mount(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from place_safe.calibration.mount import fit_mount
+    from place_safe.calibration.mount import MIN_SIGMA_ANGLE, MIN_SIGMA_DISTANCE, fit_mount
     from place_safe.drivers.ur5.config import FrameConfig
 
     if args.force and not args.write:
         raise UsageError("calibrate-mount: --force goes with --write")
+    for flag, value, floor, unit in (("--sigma-angle", args.sigma_angle, math.degrees(MIN_SIGMA_ANGLE), "deg"),
+                                     ("--sigma-mm", args.sigma_mm, MIN_SIGMA_DISTANCE * 1000, "mm")):
+        if value < floor:  # (the parser bounds them above and at 0: the fit's own floor is known here)
+            raise UsageError(f"calibrate-mount: {flag} {value:g} is below the smallest per-frame noise the fit takes "
+                             f"({floor:.2g} {unit}): it weighs each frame's residuals")
     robot_cfg = _robot_config(args.robot)
     truth = _mount_truth(args.truth) if args.truth else None  # every input checked before the fit runs
     frames, F, skipped = _posed_frames(args.capture, args.poses == "joints")

@@ -368,6 +368,8 @@ NEW_OPTION_RUNS = [
     ["calibrate-mount", _SWEEP, "--table-height", "nan", "--method", "peak"],
     ["calibrate-mount", _SWEEP, "--sigma-angle", "1e300", "--method", "peak"],
     ["calibrate-mount", _SWEEP, "--sigma-mm", "0", "--method", "peak"],
+    ["calibrate-mount", _SWEEP, "--sigma-angle", "1e-160", "--method", "peak", "--level"],  # session 82: the weighted
+    ["calibrate-mount", _SWEEP, "--sigma-mm", "1e-20", "--method", "peak", "--level"],  # residuals overflowed
     ["place", "--sim", "place_level", "--seed=-1", *_TMP_OUT], ["calibrate", "--sim", "nominal", "--frames", "1000000000"],
     ["sim", "render", "--distance", "1e300"], ["sim", "render", "--azimuth", "1e300"],
     ["bench", "sensor", "--bus-hz", "1e-300"], ["bench", "sensor", "--frames", "1000000000"],

@@ -404,3 +404,14 @@ def test_calibrate_mount_refuses_a_capture_whose_frames_repeat(sweep_path, tmp_p
     assert main(["calibrate-mount", str(twice), "--method", "peak", "-q", "--level", "--table-height", "0"]) == 2
     err = capsys.readouterr().err.splitlines()
     assert len(err) == 1 and f"frame {len(frames)} repeats frame 0 exactly" in err[0] and "give each frame once" in err[0]
+
+
+@pytest.mark.parametrize("option, value, line", [
+    ("--sigma-angle", "1e-20", "--sigma-angle 1e-20 is below the smallest per-frame noise the fit takes (0.00057 deg)"),
+    ("--sigma-mm", "1e-300", "--sigma-mm 1e-300 is below the smallest per-frame noise the fit takes (0.001 mm)")])
+def test_calibrate_mount_refuses_a_starting_noise_below_the_fits_floor(sweep_path, option, value, line, capsys):
+    """--sigma-angle 1e-20 ended "mount fit did not converge", 1e-160 "invalid input: array must not contain infs or
+    NaNs" (session 82): one line naming the option, before any plane is estimated."""
+    assert main(["calibrate-mount", str(sweep_path), "--method", "peak", "-q", "--level", option, value]) == 2
+    assert capsys.readouterr().err.splitlines() == [f"place-safe: error: calibrate-mount: {line}: it weighs each "
+                                                    "frame's residuals"]
