@@ -244,7 +244,7 @@ def cmd_recover(args: argparse.Namespace) -> int:
 # ------------------------------------------------------------------------------------------------
 def cmd_evaluate(args: argparse.Namespace) -> int:
     if not args.no_plots and (why := output_dir_problem(args.out)) is not None:  # before minutes of recovery
-        raise UsageError(f"evaluate: --out {args.out} {why} (a folder for the plots)")
+        raise UsageError(f"evaluate: --out {args.out + ' ' if args.out else ''}{why} (a folder for the plots)")
     cal = load_calibration(args.calibration)
     args.methods = list(dict.fromkeys(args.methods))  # each method once, in the order given ("peak peak": one row)
     if args.min_distance is not None and args.max_distance is not None and args.min_distance > args.max_distance:

@@ -186,6 +186,7 @@ OPTION_RUNS = [
     ["recover", "{good}", "--method", "peak", "--batch", "0"], ["recover", "{good}", "--method", "bogus"],
     ["evaluate", "{good}", "--min-distance", "nan"], ["evaluate", "{good}", "--max-distance", "inf"],
     ["evaluate", "{good}", "--min-distance", "0.5", "--max-distance", "0.1"],
+    ["evaluate", "{good}", "--methods", "peak", "--out", ""],  # session 82: the plots went into the working folder
     ["calibrate", "{good}", "--method", "nope", "-o", "{tmp}/c.json"],
     ["calibrate", "{good}", "--method", "peak", "-o", "/dev/full"],  # read as an old calibration: no end, no size
     ["synth", "--frames", "100000000000000000000", "-o", "{tmp}/s.json"],  # built in memory: would never finish

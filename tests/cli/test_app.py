@@ -507,6 +507,19 @@ def test_evaluate_refuses_a_plot_folder_that_cannot_be_one_before_it_recovers(tm
                  "--max-distance", "0.1"]) == 0
 
 
+def test_evaluate_refuses_an_empty_plot_folder_before_it_runs(sweep_path, capsys, monkeypatch, tmp_path):
+    """``--out ''`` wrote error_vs_distance.png and error_vs_angle.png into the working folder (session 82)."""
+    import place_safe.cli.sensing as sensing
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sensing, "evaluate", lambda *a, **k: pytest.fail("evaluate ran"))
+    assert main(["evaluate", str(sweep_path), "--methods", "peak", "--out", "", "-q"]) == 2
+    cap = capsys.readouterr()
+    assert one_line_error(cap.err) == ("place-safe: error: evaluate: --out needs a folder name (it was given an empty "
+                                       "one) (a folder for the plots)") and cap.out == ""
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_evaluate_with_no_frames_in_range_exits_2(sweep_path, capsys):
     assert main(["evaluate", str(sweep_path), "--min-distance", "5", "--no-plots", "-q"]) == 2
     assert "no frames with ground truth" in one_line_error(capsys.readouterr().err)
