@@ -78,9 +78,11 @@ def _array(value: Any, name: str, shape: tuple[int, ...]) -> np.ndarray:
 
 
 def real_array(value: Any, name: str) -> np.ndarray:
-    """``value`` as an array of real numbers; FrameError for strings, objects, complex or ragged data, and for a
-    masked array with any entry masked (its mask says those values are not to be used, and an array of numbers has
-    no place to carry that: counted as they stand they would go into the plane unseen)."""
+    """``value`` as an array of real numbers; FrameError for strings, objects, complex or ragged data, booleans, and
+    for a masked array with any entry masked (its mask says those values are not to be used, and an array of numbers
+    has no place to carry that: counted as they stand they would go into the plane unseen). Booleans are no counts or
+    distances (a frame file's are refused when read): an array of them given as on-sensor distances read as 1 m in
+    every zone, and ``proprietary`` stated a plane at 0.98 m (session 82)."""
     if isinstance(value, np.ma.MaskedArray) and (n := int(np.ma.getmaskarray(value).sum())):
         raise FrameError(f"{name} is a masked array with {n} masked entr{'y' if n == 1 else 'ies'}: the mask cannot be "
                          "honoured here; fill them (np.ma.filled) or leave the frame out")
@@ -88,7 +90,9 @@ def real_array(value: Any, name: str) -> np.ndarray:
         arr = np.asarray(value)
     except (TypeError, ValueError, OverflowError):
         raise FrameError(f"{name} is not an array of numbers (ragged or unreadable)") from None
-    if arr.dtype.kind not in "biuf":
+    if arr.dtype.kind == "b":
+        raise FrameError(f"{name} must hold numbers, not booleans")
+    if arr.dtype.kind not in "iuf":
         raise FrameError(f"{name} must hold real numbers, got {arr.dtype.name} values")
     return arr
 
