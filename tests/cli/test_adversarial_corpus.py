@@ -211,6 +211,7 @@ SIM_OPTION_RUNS = [
 # ---------------------------------------------------------------------------------------------------
 _SWEEP = str(Path(__file__).resolve().parents[1] / "data" / "tmf8820_ur5_sweep.json")
 _ROBOT = str(Path(__file__).resolve().parents[2] / "robots" / "ur5" / "sim.toml")
+_LEVEL_30CM = str(Path(__file__).resolve().parents[2] / "scenarios" / "set" / "level_30cm.toml")
 
 
 def scenario_kinds() -> dict[str, bytes]:
@@ -350,7 +351,8 @@ NEW_OPTION_RUNS = [
     ["capture", "--sim", "level_table", "-o", "{tmp}/c.jsonl", "--distances", "10:nan:1"],
     ["capture", "--sim", "level_table", "-o", "{tmp}/c.jsonl", "--distances", "10:90:1e-300"],
     ["capture", "--sim", "level_table", "-o", "{tmp}/c.jsonl", "--distances", "::"],
-    ["sim"], ["scenarios", "--jobs", "100000"], ["scenarios", "--jobs", "0"], ["scenarios", "--random", "10" * 10],
+    ["sim"], ["scenarios", "level_30cm", _LEVEL_30CM, "--quiet"],  # session 82: given twice, run and counted twice
+    ["scenarios", "--jobs", "100000"], ["scenarios", "--jobs", "0"], ["scenarios", "--random", "10" * 10],
     ["scenarios", "--seconds", "1e300"], ["scenarios", "--seed=-1"], ["scenarios", "--seconds", "nan"],
     ["place", "--sim", "place_level", "--timeout", "1e300"], ["place", "--sim", "place_level", "--seed=-1"],
     ["place", "--sim", "place_level", "--sim-mount-error", "1e300,0,0,0,0,0"],
