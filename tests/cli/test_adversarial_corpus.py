@@ -162,6 +162,8 @@ def calibration_kinds() -> dict[str, bytes]:
         "cal-uncertainty-no-floor": cal(peak=peak, uncertainty={"peak": {"tilt_std": 0.0, "offset_std": 0.0,
                                                                          "scale": 0.95}}),
         "cal-uncertainty-scale-1e-12": cal(peak=peak, uncertainty={"peak": {"tilt_std": 3e-4, "scale": 1e-12}}),
+        # session 82: a b within its field's range that puts every plane 140 m away (now no plane, with the reason)
+        "cal-b-minus-10000": cal(peak={"m": 72.0, "b": -10000.0}),
     }
 
 
