@@ -119,9 +119,10 @@ def cmd_scenarios(args: argparse.Namespace) -> int:
 
     if args.kind != "tables" and not args.random:
         raise UsageError(f"scenarios: --kind {args.kind} draws random scenes: give --random N")
-    if args.jobs > 1 and args.ray:
+    if args.jobs > 1 and args.ray is not None:
         raise UsageError("scenarios: give --jobs or --ray, not both")
-    if args.ray and (why := ray_address_problem(args.ray)) is not None:
+    # (an empty --ray is malformed too: it went past this check to Ray, "invalid input: Invalid address format:")
+    if args.ray is not None and (why := ray_address_problem(args.ray)) is not None:
         raise UsageError(f"scenarios: --ray {args.ray}: {why}")
     if args.ray:
         try:
