@@ -280,6 +280,7 @@ def cmd_capture(args: argparse.Namespace) -> int:
 
     # an output that is not a capture to resume: refused before the arm is connected, touched or moved
     done_indices(Path(args.output), cut=False)
+    existed = Path(args.output).exists()
 
     grid = len(args.distances) * len(args.incidences) * len(args.azimuths)
     if min(grid, args.poses or grid) * args.frames_per_pose > 100_000:
@@ -321,6 +322,7 @@ def cmd_capture(args: argparse.Namespace) -> int:
     tool = robot_cfg.tool.frames()
     reference = None  # how far the plane may be off: stated for touches, and for a table height with its tilt std
     held: list[dict] = []  # the refused poses, listed once: with the result, or on stderr if there is none
+    notes: list[str] = []  # said with the result (a capture that captured nothing is one error line, without them)
     try:  # the sensor is closed however the capture ends
         with robot:
             if args.touch:
@@ -338,11 +340,11 @@ def cmd_capture(args: argparse.Namespace) -> int:
                 if args.table_tilt_std is not None:
                     reference = Reference(tilt_std=math.radians(args.table_tilt_std))
                 else:
-                    log("note: the table is taken as exactly level in the base frame; --table-tilt-std DEG states how "
-                        "far it may be off (or --touch the table), so that placements count it")
+                    notes.append("note: the table is taken as exactly level in the base frame; --table-tilt-std DEG "
+                                 "states how far it may be off (or --touch the table), so that placements count it")
             else:
                 plane = world.table_plane_base()
-                log(f"table from the scenario: z = {plane[1] * 1000:.1f} mm in the base frame")
+                notes.append(f"table from the scenario: z = {plane[1] * 1000:.1f} mm in the base frame")
             res = capture_sweep(robot, source, plan, args.output, plane=plane, tool=tool, progress=not args.quiet,
                                 reference=reference, on_refused=held.append)
     except BaseException:  # no result to list them with (a fault, Ctrl-C): the poses refused so far, on stderr
@@ -351,6 +353,15 @@ def cmd_capture(args: argparse.Namespace) -> int:
         raise
     finally:
         source.close()
+    if res.refused and not res.frames and not res.skipped_done:  # nothing captured at all: an error, not a capture
+        if not existed and Path(args.output).is_file() and Path(args.output).stat().st_size == 0:
+            Path(args.output).unlink()  # (exit 0 with an empty file, which calibrate then called "empty"; session 82)
+        first = res.refused[0]
+        raise UsageError(f"capture: every pose was refused ({len(res.refused)} of {len(res.refused)}; the first, pose "
+                         f"{first['pose_index']}: {first['reason']}): nothing captured, {args.output} "
+                         f"{'left as it was' if existed else 'not written'}")
+    for note in notes:
+        log(note)
     print(res.summary())  # each refused pose listed once, here with the result (each was listed twice)
     for r in res.refused:
         print(f"  refused pose {r['pose_index']}: {r['reason']}")

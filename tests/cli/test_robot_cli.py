@@ -339,6 +339,22 @@ def test_capture_lists_each_refused_pose_once(tmp_path, capsys):
     assert "pose 0 refused" not in captured.err and "2 refused" in captured.out
 
 
+def test_a_capture_whose_every_pose_is_refused_is_one_error_line_and_writes_nothing(tmp_path, capsys):
+    """Every pose refused (too close for the gripper's tips here; 5 m away, unreachable, in the round that found it):
+    exit 0 with an empty output file, which calibrate then called empty (session 82). One line naming the count and
+    the first refusal, exit 2, nothing on standard output, no file (one pose captured of three: exit 0, as before:
+    test_capture_lists_each_refused_pose_once)."""
+    out = tmp_path / "cap.jsonl"
+    argv = ["capture", "--sim", "level_table", "--table-height", "-0.05", "--incidences", "0", "--azimuths", "0",
+            "--distances", "10,20", "--settle", "0.01", "-q", "-o", str(out)]
+    assert main(argv) == 2
+    captured = capsys.readouterr()
+    err = captured.err.splitlines()
+    assert captured.out == "" and len(err) == 1 and not out.exists()
+    assert err[0].startswith("place-safe: error: capture: every pose was refused (2 of 2; the first, pose 0: ")
+    assert err[0].endswith(f"): nothing captured, {out} not written")
+
+
 def test_a_capture_that_ends_early_still_lists_the_poses_it_refused(tmp_path, capsys, monkeypatch):
     """Without a result (a fault, Ctrl-C) the refused poses held back for it are written to standard error."""
     import place_safe.calibration.capture as capture
