@@ -274,8 +274,8 @@ def _check_sim_table(args: argparse.Namespace, plane: tuple[Any, float]) -> None
 
 
 def cmd_capture(args: argparse.Namespace) -> int:
-    from place_safe.calibration.capture import (SweepPlan, done_indices, capture_sweep, level_plane, touch_plane,
-                                                touched_reference)
+    from place_safe.calibration.capture import (SweepPlan, done_indices, capture_sweep, level_plane, resume_problem,
+                                                touch_plane, touched_reference)
     from place_safe.recovery.estimator import Reference
 
     # an output that is not a capture to resume: refused before the arm is connected, touched or moved
@@ -298,6 +298,9 @@ def cmd_capture(args: argparse.Namespace) -> int:
                      azimuths=[math.radians(a) for a in args.azimuths], frames_per_pose=args.frames_per_pose,
                      max_poses=args.poses, speed=args.speed, settle_s=args.settle,
                      min_clearance=args.min_clearance / 1000.0)
+    if (why := resume_problem(Path(args.output), plan)) is not None:  # before the arm is connected, touched or moved
+        raise UsageError(f"capture: {args.output} was captured with other options ({why}): resume it with the "
+                         "--distances, --incidences, --azimuths and --poses it was made with, or give another output")
     robot_cfg = _robot_config(args.robot)
     if args.sim:
         from place_safe.sim.world import sim_world

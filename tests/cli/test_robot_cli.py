@@ -355,6 +355,24 @@ def test_a_capture_whose_every_pose_is_refused_is_one_error_line_and_writes_noth
     assert err[0].endswith(f"): nothing captured, {out} not written")
 
 
+def test_a_capture_resumed_with_other_options_is_refused_before_the_arm(tmp_path, capsys):
+    """``capture -o C --distances 5000`` on a capture made with the defaults said "2 already there" and captured
+    nothing (session 82): one line naming the first pose that differs, exit 2, the file left as it was."""
+    out = tmp_path / "cap.jsonl"
+    argv = ["capture", "--sim", "level_table", "--poses", "2", "--settle", "0.01", "-q", "-o", str(out)]
+    assert main(argv) == 0
+    before = out.read_bytes()
+    capsys.readouterr()
+    assert main([*argv, "--distances", "5000"]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == "" and captured.err.splitlines() == [
+        f"place-safe: error: capture: {out} was captured with other options (pose 0 there is at 80 mm, incidence 0 "
+        "deg, azimuth 0 deg; this plan's pose 0 at 5000 mm, 0 deg, 0 deg): resume it with the --distances, "
+        "--incidences, --azimuths and --poses it was made with, or give another output"]
+    assert out.read_bytes() == before
+    assert main(argv) == 0 and out.read_bytes() == before  # the same options: resumed, nothing left to do
+
+
 def test_a_capture_that_ends_early_still_lists_the_poses_it_refused(tmp_path, capsys, monkeypatch):
     """Without a result (a fault, Ctrl-C) the refused poses held back for it are written to standard error."""
     import place_safe.calibration.capture as capture
