@@ -256,12 +256,38 @@ def _release_point(robot: Robot, speed: float, accel: float, max_back: float = 0
 
 
 def done_indices(path: Path, cut: bool = True) -> set[int]:
+    """The pose indices already in a capture's output (:func:`done_poses`)."""
+    return set(done_poses(path, cut))
+
+
+def resume_problem(path: Path, plan: "SweepPlan") -> str | None:
+    """Why the capture in ``path`` cannot be resumed with ``plan`` -- a pose there that is not the plan's pose of the
+    same index (another distance, incidence or azimuth, or an index beyond the plan: a capture made with other
+    options) -- or None. Resumed with another ``--distances``, a capture counted the poses of the first plan as done
+    and never captured the new plan's poses of those indices ("2 already there", session 82)."""
+    grid = plan.grid()
+    for i, stored in sorted(done_poses(path, cut=False).items()):
+        if stored is None:
+            continue  # (a pose written without its target: nothing to compare)
+        if i >= len(grid):
+            return f"pose {i} there is beyond this plan's {len(grid)} poses"
+        if not all(math.isclose(a, b, rel_tol=1e-9, abs_tol=1e-12) for a, b in zip(stored, grid[i])):
+            d, inc, az = stored
+            d2, inc2, az2 = grid[i]
+            return (f"pose {i} there is at {d * 1000:g} mm, incidence {math.degrees(inc):g} deg, azimuth "
+                    f"{math.degrees(az):g} deg; this plan's pose {i} at {d2 * 1000:g} mm, {math.degrees(inc2):g} deg, "
+                    f"{math.degrees(az2):g} deg")
+    return None
+
+
+def done_poses(path: Path, cut: bool = True) -> dict[int, tuple[float, float, float] | None]:
     """The pose indices already in a capture's output (resume), from its frames' ``meta.pose_index`` (a whole number
     >= 0). A last line after captured frames that is unfinished JSON (an interrupted run) is cut off (``cut``; a dry
     run writes nothing and leaves it), so the frames appended after it start on a line of their own. A file that is
     not a capture (any other line that is not a frame with a pose index: a calibration, a JSON list of frames, a note,
-    text) raises :class:`FrameFileError` before anything is appended to it."""
-    done: set[int] = set()
+    text) raises :class:`FrameFileError` before anything is appended to it. Each index maps to its pose's
+    ``(distance, incidence, azimuth)`` from the same meta (m, rad, rad; None where the frame does not say)."""
+    done: dict[int, tuple[float, float, float] | None] = {}
     if not path.is_file():
         return done
     cut_at = None
@@ -283,7 +309,9 @@ def done_indices(path: Path, cut: bool = True) -> set[int]:
             if not (isinstance(index, int) and not isinstance(index, bool) and index >= 0):
                 raise FrameFileError(f"{path} exists and is not a capture to resume (line {k} is not a frame with "
                                      f"meta.pose_index): give another output file, or move this one")
-            done.add(index)
+            target = tuple(value["meta"].get(k) for k in ("distance", "incidence", "azimuth"))
+            numbers = all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in target)
+            done.setdefault(index, target if numbers else None)
     if cut_at is not None and cut:
         with open(path, "r+b") as fh:
             fh.truncate(cut_at)
@@ -368,6 +396,9 @@ def capture_sweep(robot: Robot, source: Any, plan: SweepPlan, out_path: str | Pa
             log(refusal_line(entry))
 
     out = Path(out_path)
+    if (why := resume_problem(out, plan)) is not None:  # before anything moves or is appended
+        raise FrameFileError(f"{out} is a capture made with another plan ({why}): resume it with the options it was "
+                             "made with, or give another output file")
     done = done_indices(out, cut=not getattr(robot, "dry_run", False))
     n = np.asarray(plane[0], dtype=float)
     n = n / np.linalg.norm(n)
@@ -440,5 +471,5 @@ def capture_sweep(robot: Robot, source: Any, plan: SweepPlan, out_path: str | Pa
     return CaptureResult(str(out), len(grid), captured, len(done), refused, frames_written, robot.time() - t0)
 
 
-__all__ = ["SweepPlan", "CaptureResult", "capture_sweep", "touch_plane", "touched_reference", "level_plane",
+__all__ = ["SweepPlan", "CaptureResult", "capture_sweep", "done_indices", "done_poses", "resume_problem", "touch_plane", "touched_reference", "level_plane",
            "sensor_target", "plane_in_sensor", "lowest_tool_point", "refusal_line", "TOUCH_HEIGHT_STD"]

@@ -26,7 +26,9 @@ Every method also writes its entries of ``reference`` (those of the methods it f
 peak) when the frames' ground truth states how far it may be off (a capture's touched plane, or a table stated level
 within some angle: :func:`frames_reference`), and drops them when the frames state none.
 
-How many frames: at least :data:`~place_safe.calibration.points.MIN_CALIBRATION_FRAMES` (5) with ground truth at
+Each frame once: a frame that repeats another exactly (:func:`~place_safe.sensor.frame.repeated_frames`; frames pasted
+or files joined) is a one-line :class:`~place_safe.exceptions.CalibrationError` before any fit (it counted towards
+the frames needed, and the folds held it out beside its own copy). How many frames: at least :data:`~place_safe.calibration.points.MIN_CALIBRATION_FRAMES` (5) with ground truth at
 :data:`~place_safe.calibration.points.MIN_CALIBRATION_RANGE` or farther, at
 :data:`~place_safe.calibration.points.MIN_CALIBRATION_DISTANCES` (3) or more distances; fewer raise a one-line
 :class:`~place_safe.exceptions.CalibrationError` before any fit. Why an error there and not wider covariances: the peak
@@ -62,7 +64,7 @@ from place_safe.calibration.uncertainty import update_calibration
 from place_safe.io.json_values import jsonable
 from place_safe.recovery.differentiable import SolverOptions
 from place_safe.recovery.estimator import Reference
-from place_safe.sensor.frame import Frame
+from place_safe.sensor.frame import Frame, repeated_frames
 
 def _store(cal: Calibration, fitted: list[str], name: str, section: dict, report: dict) -> None:
     """Put a freshly fitted section and its report into ``cal`` (clearing an earlier load error of that
@@ -115,6 +117,13 @@ def fit_method(calibration: Calibration, frames: Sequence[Frame], method: str, p
             f"{'' if distances == 1 else 's'}; a calibration needs {MIN_CALIBRATION_FRAMES} or more frames at "
             f"{MIN_CALIBRATION_DISTANCES} or more distances {MIN_DOMAIN_WIDTH * 1e3:g} mm apart "
             f"({FEW_CALIBRATION_FRAMES} or more frames recommended, e.g. a level sweep from 3 to 40 cm)")
+    if (repeat := repeated_frames(frames)) is not None:  # a copy passed the count above and halved its error
+        i, j, n = repeat
+        raise CalibrationError(
+            f"calibrate {method}: frame {i} repeats frame {j} exactly (counting the frames with ground truth from 0; the "
+            f"same histograms and on-sensor distances; "
+            f"{n} frame{'' if n == 1 else 's'} repeat an earlier one): a frame given twice counts as two measurements "
+            "and is held out beside its own copy; give each frame once")
     say = log if log is not None else (lambda _line: None)
     cal = calibration
     fitted: list[str] = []

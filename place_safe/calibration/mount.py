@@ -25,6 +25,7 @@ mount are rotation vectors applied on the left of the starting rotation; ``rpy``
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass, field
 from typing import Any, Sequence
 
@@ -45,8 +46,11 @@ _X_SCALE = np.array([0.02, 0.02, 0.02, 0.005, 0.005, 0.005, 0.02, 0.02, 0.005])
 _STAGE1_ROT, _STAGE1_TRANS = 0.2, 0.05
 #: Sigma (rad, m) that holds an unobserved direction at its starting value in the final fit.
 _HOLD_ROT, _HOLD_TRANS = 1e-3, 1e-4
-#: Floors of the noise weights taken from the residuals' robust scatter (rad, m): exact data stays finite.
-_MIN_SIGMA_ANGLE, _MIN_SIGMA_DISTANCE = 1e-5, 1e-6
+#: Floors of the noise weights (rad, m): of those taken from the residuals' robust scatter (exact data stays finite),
+#: and the smallest per-frame noise :func:`fit_mount` (``calibrate-mount --sigma-angle`` / ``--sigma-mm``) takes to start
+#: with: 1e-20 deg ended "mount fit did not converge", 1e-160 deg "array must not contain infs or NaNs" (the weighted
+#: residuals overflowed), neither naming the option (session 82).
+MIN_SIGMA_ANGLE, MIN_SIGMA_DISTANCE = 1e-5, 1e-6
 #: Sigma (rad or m) of the rows that hold a known plane tilt or offset.
 _KNOWN = 1e-7
 #: Frames whose residual exceeds this many robust standard deviations are left out of the final fit.
@@ -183,6 +187,11 @@ def fit_mount(base_T_flange: Sequence[np.ndarray], planes: Sequence[Plane | None
     A straight-down sweep needs both to observe the mount's tilt and height at all: without them a mount
     tilt looks like a plane tilt and a mount height like a plane height.
     """
+    for name, value, floor, unit in (("sigma_angle", sigma_angle, MIN_SIGMA_ANGLE, "rad"),
+                                     ("sigma_distance", sigma_distance, MIN_SIGMA_DISTANCE, "m")):
+        if isinstance(value, bool) or not isinstance(value, numbers.Real) or not floor <= value < math.inf:
+            raise CalibrationError(f"fit_mount: {name} must be a finite number of {unit} >= {floor:g} (the per-frame "
+                                   f"noise the fit starts from), got {value!r}")
     F = np.asarray(base_T_flange, dtype=float)
     if F.ndim != 3 or F.shape[1:] != (4, 4) or len(F) != len(planes):
         raise CalibrationError(f"need one 4x4 flange pose per plane; got poses {F.shape} and {len(planes)} planes")
@@ -258,8 +267,8 @@ def fit_mount(base_T_flange: Sequence[np.ndarray], planes: Sequence[Plane | None
     sol, use = solve(x0, np.ones(nf, dtype=bool), prior1)
     # weigh the residuals by the data's own robust scatter (the given sigmas only start the fit)
     rn1, rd1 = frame_residuals(sol.x)
-    sigma_angle = max(_robust_scale(rn1[use].ravel()), _MIN_SIGMA_ANGLE)
-    sigma_distance = max(_robust_scale(rd1[use]), _MIN_SIGMA_DISTANCE)
+    sigma_angle = max(_robust_scale(rn1[use].ravel()), MIN_SIGMA_ANGLE)
+    sigma_distance = max(_robust_scale(rd1[use]), MIN_SIGMA_DISTANCE)
     sol, use = solve(sol.x, use, prior1)
     null = info_sigma(sol.x, use, prior1)[:6] > UNOBSERVED * prior1
     x1, use1 = sol.x, use
@@ -340,4 +349,5 @@ def _joint_angles(q: Any, i: int) -> np.ndarray:
 
 
 __all__ = ["MountFit", "FlangePoseError", "fit_mount", "flange_poses", "MAX_REACH", "MAX_RMS_ANGLE",
-           "MAX_RMS_DISTANCE", "MAX_SIGMA_ROTATION", "MAX_SIGMA_TRANSLATION", "MOUNT_PARAMETERS"]
+           "MAX_RMS_DISTANCE", "MAX_SIGMA_ROTATION", "MAX_SIGMA_TRANSLATION", "MIN_SIGMA_ANGLE", "MIN_SIGMA_DISTANCE",
+           "MOUNT_PARAMETERS"]

@@ -12,7 +12,8 @@ frame's highest there is dropped.
 
 How it is fitted (:func:`fit_near_range`):
 
-1. readings with the far-range mapping; a frame is near when a zone lies closer than :data:`NEAR_END`;
+1. readings with the far-range mapping; a frame is near when a zone lies closer than :data:`NEAR_END` (its median
+   zone depth, in front of the sensor: one the mapping reads behind it gives no knot);
 2. knots at the near frames' median zone depths (merged within :data:`NEAR_MERGE`, at most
    :data:`NEAR_MAX_KNOTS`), and one more at :data:`NEAR_END` where every zone's error is 0;
 3. per zone, least squares of the range errors on the knots' hat functions with a second-difference
@@ -227,7 +228,10 @@ def _zone_readings(frames: Sequence[Frame], base: PeakParams, hists: np.ndarray 
     with np.errstate(invalid="ignore", divide="ignore"):
         err = r0 - true_ranges(tn, td, dirs)
         frame_depth = np.nanmedian(np.where(valid, depth, np.nan), axis=-1) if valid.any() else np.full(len(frames), np.nan)
-    near = (valid.sum(-1) >= 3) & np.isfinite(frame_depth) & (frame_depth < NEAR_END)
+    # (in front of the sensor: a mapping fitted on far frames alone, 30 cm and more, read 5-28 mm frames at negative
+    # depths, whose knots no table can have; the fit ended "peak parameters: near_depths.0: Input should be greater
+    # than or equal to 0", session 82)
+    near = (valid.sum(-1) >= 3) & np.isfinite(frame_depth) & (frame_depth >= 0.0) & (frame_depth < NEAR_END)
     return pos, valid, heights, depth, err, tn, td, frame_depth, near
 
 

@@ -393,15 +393,39 @@ def _calibration_frames(frames: Sequence[Frame], min_range: float) -> list[Frame
     return use
 
 
-def _initial_linear(readings: np.ndarray, valid: np.ndarray, frames: Sequence[Frame], like: PeakParams) -> PeakParams:
-    """Start values for m, b from a straight-line fit of readings vs. true ranges (nominal directions)."""
+#: How far (a factor either way) a fitted mapping's slope ``m`` may lie from its family's built-in one (peak: the
+#: TMF8820's bins, 72 a metre; on-sensor distances: 1000 mm a metre). Beyond it the readings do not follow the ground
+#: truth as the sensor's do: a ground truth in other units or of other frames. The real sweep and the simulated units
+#: fit 70-72 and 985-1000; a ground truth ten times too far wrote peak's m 7.2 (every plane ten times too far), and one
+#: in centimetres failed with "peak parameters: m: Input should be greater than or equal to 1" (session 82).
+MAX_SLOPE_FACTOR = 2.0
+
+
+def slope_problem(m: float, like: PeakParams, what: str) -> str | None:
+    """Why a mapping's slope ``m`` (reading units per metre of the ground truth's range) cannot be the sensor's --
+    beyond :data:`MAX_SLOPE_FACTOR` of ``like.m``, the family's built-in one, or not a positive number -- or None.
+    ``what``: the readings, e.g. ``"returns"``."""
+    if like.m / MAX_SLOPE_FACTOR <= m <= like.m * MAX_SLOPE_FACTOR:
+        return None
+    unit = "bins" if like.m < 1000.0 / MAX_SLOPE_FACTOR else "mm"
+    return (f"the {what} move {m:.3g} {unit} per metre of the ground truth's range, where the sensor's move about "
+            f"{like.m:.4g} (within a factor {MAX_SLOPE_FACTOR:g}): is the ground truth in metres, and is it these "
+            "frames'?")
+
+
+def _initial_linear(readings: np.ndarray, valid: np.ndarray, frames: Sequence[Frame], like: PeakParams,
+                    what: str = "readings") -> PeakParams:
+    """Start values for m, b from a straight-line fit of readings vs. true ranges (nominal directions);
+    :class:`CalibrationError` where its slope cannot be the sensor's (:func:`slope_problem`)."""
     tn, td = _truth_arrays(frames)
     r = true_ranges(tn, td, like.directions())
     use = valid & np.isfinite(readings)
     if use.sum() < 2 or np.ptp(r[use]) < 1e-3:
         return like
     m, b = np.polyfit(r[use], readings[use], 1)
-    if not (m > 0 and np.isfinite(b)):
+    if (why := slope_problem(float(m), like, what)) is not None:
+        raise CalibrationError(f"calibration: {why}")
+    if not np.isfinite(b):
         return like
     return PeakParams(float(m), float(b), like.edge_scale, like.corner_scale)
 
@@ -561,9 +585,11 @@ def _fit_readings(method: str, what: str, use: list[Frame], readings: np.ndarray
         raise CalibrationError(f"fewer than 3 calibration frames have {what} in 3 or more zones")
     use = [f for f, k in zip(use, keep) if k]
     readings, valid = readings[keep], valid[keep]
-    start = init if init is not None else _initial_linear(readings, valid, use, default)
+    start = init if init is not None else _initial_linear(readings, valid, use, default, what)
     params, report = fit_points(readings, valid, use, start, progress, residual_degree, harmonics, fit_offsets,
                                 fit_offsets, paper, label=f"calibrate {method}", inverse_degrees=inverse_degrees)
+    if (why := slope_problem(params.m, default, what)) is not None:  # (a given start, or a fit that went there)
+        raise CalibrationError(f"calibration: {why}")
     report["method"] = method
     report["min_range_m"] = min_range
     return params, report
@@ -664,5 +690,5 @@ def fit_proprietary(frames: Sequence[Frame], init: PeakParams | None = None, pro
 
 __all__ = ["fit_points", "fit_peak", "refit_mapping", "fit_proprietary", "proprietary_readings", "zone_residuals", "MIN_CALIBRATION_RANGE",
            "MIN_CALIBRATION_FRAMES", "MIN_CALIBRATION_DISTANCES", "FEW_CALIBRATION_FRAMES", "mapping_parameters",
-           "small_sample_factor",
+           "small_sample_factor", "slope_problem", "MAX_SLOPE_FACTOR",
            "tilt_angles", "level_frames"]

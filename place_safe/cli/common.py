@@ -50,6 +50,24 @@ def progress_options(enabled: bool):
 # ------------------------------------------------------------------------------------------------
 # shared helpers
 # ------------------------------------------------------------------------------------------------
+def given_twice(paths: list[str]) -> str | None:
+    """The second name of a file given twice in ``paths`` (the same file by any path), or None. ``calibrate F F`` fitted
+    every frame twice (48 frames for 24, peak's scale 71.94 -> 70.14), and its leave-one-out and fold choices then
+    held each frame out beside its own copy (an adversarial round, session 74); ``scenarios S S`` ran S twice and
+    counted it twice in the suite's summary (session 82)."""
+    seen: set = set()
+    for path in paths:
+        try:
+            st = os.stat(path)
+            key = (st.st_dev, st.st_ino)
+        except OSError:  # unreadable: the reader says so, with the file's name
+            key = os.path.abspath(path)
+        if key in seen:
+            return path
+        seen.add(key)
+    return None
+
+
 def not_a_file(path: str | Path) -> str | None:
     """Why ``path`` cannot be read as an input file ("does not exist", "is a FIFO ...", ...), or None.
 

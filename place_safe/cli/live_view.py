@@ -159,6 +159,23 @@ class _PipedFile:
                 self.error = OSError(exc.errno, exc.strerror or str(exc), self.path)
 
 
+#: The first bytes of a rerun recording (``.rrd``: "RRF" and a format digit).
+RECORDING_MAGIC = b"RRF"
+
+
+def not_a_recording(path: str | os.PathLike) -> bool:
+    """Whether ``path`` is a file with something in it that is not a rerun recording (a frame file, a calibration):
+    ``--save`` replaced such a file without a word (``sensor stream --save sweep.json`` lost the sweep; session 82).
+    A recording, an empty file, a missing path or a device is not such a file."""
+    try:
+        if not os.path.isfile(path) or os.path.getsize(path) == 0:
+            return False
+        with open(path, "rb") as fh:
+            return not fh.read(len(RECORDING_MAGIC)) == RECORDING_MAGIC
+    except OSError:
+        return False  # unreadable: writing it says why
+
+
 class RerunView:
     """Log frames and estimates to rerun (see module docstring).
 

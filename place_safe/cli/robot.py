@@ -26,6 +26,7 @@ from place_safe.calibration.capture import MIN_CLEARANCE, TOUCH_HEIGHT_STD, refu
 from place_safe.recovery import make_estimator
 from place_safe.config import read_json
 from place_safe.geometry import transform_problem
+from place_safe.sensor.frame import repeated_frames
 
 
 def _floats(text: str, n: int | None = None, what: str = "numbers", lo: float = -math.inf,
@@ -273,12 +274,13 @@ def _check_sim_table(args: argparse.Namespace, plane: tuple[Any, float]) -> None
 
 
 def cmd_capture(args: argparse.Namespace) -> int:
-    from place_safe.calibration.capture import (SweepPlan, done_indices, capture_sweep, level_plane, touch_plane,
-                                                touched_reference)
+    from place_safe.calibration.capture import (SweepPlan, done_indices, capture_sweep, level_plane, resume_problem,
+                                                touch_plane, touched_reference)
     from place_safe.recovery.estimator import Reference
 
     # an output that is not a capture to resume: refused before the arm is connected, touched or moved
     done_indices(Path(args.output), cut=False)
+    existed = Path(args.output).exists()
 
     grid = len(args.distances) * len(args.incidences) * len(args.azimuths)
     if min(grid, args.poses or grid) * args.frames_per_pose > 100_000:
@@ -296,6 +298,9 @@ def cmd_capture(args: argparse.Namespace) -> int:
                      azimuths=[math.radians(a) for a in args.azimuths], frames_per_pose=args.frames_per_pose,
                      max_poses=args.poses, speed=args.speed, settle_s=args.settle,
                      min_clearance=args.min_clearance / 1000.0)
+    if (why := resume_problem(Path(args.output), plan)) is not None:  # before the arm is connected, touched or moved
+        raise UsageError(f"capture: {args.output} was captured with other options ({why}): resume it with the "
+                         "--distances, --incidences, --azimuths and --poses it was made with, or give another output")
     robot_cfg = _robot_config(args.robot)
     if args.sim:
         from place_safe.sim.world import sim_world
@@ -320,6 +325,7 @@ def cmd_capture(args: argparse.Namespace) -> int:
     tool = robot_cfg.tool.frames()
     reference = None  # how far the plane may be off: stated for touches, and for a table height with its tilt std
     held: list[dict] = []  # the refused poses, listed once: with the result, or on stderr if there is none
+    notes: list[str] = []  # said with the result (a capture that captured nothing is one error line, without them)
     try:  # the sensor is closed however the capture ends
         with robot:
             if args.touch:
@@ -337,11 +343,11 @@ def cmd_capture(args: argparse.Namespace) -> int:
                 if args.table_tilt_std is not None:
                     reference = Reference(tilt_std=math.radians(args.table_tilt_std))
                 else:
-                    log("note: the table is taken as exactly level in the base frame; --table-tilt-std DEG states how "
-                        "far it may be off (or --touch the table), so that placements count it")
+                    notes.append("note: the table is taken as exactly level in the base frame; --table-tilt-std DEG "
+                                 "states how far it may be off (or --touch the table), so that placements count it")
             else:
                 plane = world.table_plane_base()
-                log(f"table from the scenario: z = {plane[1] * 1000:.1f} mm in the base frame")
+                notes.append(f"table from the scenario: z = {plane[1] * 1000:.1f} mm in the base frame")
             res = capture_sweep(robot, source, plan, args.output, plane=plane, tool=tool, progress=not args.quiet,
                                 reference=reference, on_refused=held.append)
     except BaseException:  # no result to list them with (a fault, Ctrl-C): the poses refused so far, on stderr
@@ -350,6 +356,15 @@ def cmd_capture(args: argparse.Namespace) -> int:
         raise
     finally:
         source.close()
+    if res.refused and not res.frames and not res.skipped_done:  # nothing captured at all: an error, not a capture
+        if not existed and Path(args.output).is_file() and Path(args.output).stat().st_size == 0:
+            Path(args.output).unlink()  # (exit 0 with an empty file, which calibrate then called "empty"; session 82)
+        first = res.refused[0]
+        raise UsageError(f"capture: every pose was refused ({len(res.refused)} of {len(res.refused)}; the first, pose "
+                         f"{first['pose_index']}: {first['reason']}): nothing captured, {args.output} "
+                         f"{'left as it was' if existed else 'not written'}")
+    for note in notes:
+        log(note)
     print(res.summary())  # each refused pose listed once, here with the result (each was listed twice)
     for r in res.refused:
         print(f"  refused pose {r['pose_index']}: {r['reason']}")
@@ -398,17 +413,28 @@ def _mount_hints(args: argparse.Namespace) -> str:
 def cmd_calibrate_mount(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from place_safe.calibration.mount import fit_mount
+    from place_safe.calibration.mount import MIN_SIGMA_ANGLE, MIN_SIGMA_DISTANCE, fit_mount
     from place_safe.drivers.ur5.config import FrameConfig
 
     if args.force and not args.write:
         raise UsageError("calibrate-mount: --force goes with --write")
+    for flag, value, floor, unit in (("--sigma-angle", args.sigma_angle, math.degrees(MIN_SIGMA_ANGLE), "deg"),
+                                     ("--sigma-mm", args.sigma_mm, MIN_SIGMA_DISTANCE * 1000, "mm")):
+        if value < floor:  # (the parser bounds them above and at 0: the fit's own floor is known here)
+            raise UsageError(f"calibrate-mount: {flag} {value:g} is below the smallest per-frame noise the fit takes "
+                             f"({floor:.2g} {unit}): it weighs each frame's residuals")
     robot_cfg = _robot_config(args.robot)
     truth = _mount_truth(args.truth) if args.truth else None  # every input checked before the fit runs
     frames, F, skipped = _posed_frames(args.capture, args.poses == "joints")
     if not frames:
         raise UsageError(f"calibrate-mount: {args.capture} has no frames with a usable flange pose"
                          + (f" ({count_note(skipped)})" if skipped else ""))
+    if (repeat := repeated_frames(frames)) is not None:  # counted twice, it halved every direction's stated variance
+        i, j, n = repeat
+        raise UsageError(f"calibrate-mount: {args.capture}: frame {i} repeats frame {j} exactly (counting the frames with "
+                         f"a usable flange pose from 0; the same histograms and on-sensor distances; {n} frame"
+                         f"{'' if n == 1 else 's'} repeat an earlier one): a frame given twice counts as two "
+                         "measurements and makes the fit look twice as sure; give each frame once")
     if skipped and not args.quiet:
         log(f"calibrate-mount: {len(frames)} frames ({count_note(skipped)})")
     estimator, cal_note = _estimator(args.method, args.calibration)

@@ -113,14 +113,16 @@ def ray_address_problem(address: str) -> str | None:
 def cmd_scenarios(args: argparse.Namespace) -> int:
     import numpy as np
 
+    from place_safe.cli.common import given_twice
     from place_safe.sim import suite
     from place_safe.sim.scenario import expand_paths, load_scenario, packaged_scenarios
 
     if args.kind != "tables" and not args.random:
         raise UsageError(f"scenarios: --kind {args.kind} draws random scenes: give --random N")
-    if args.jobs > 1 and args.ray:
+    if args.jobs > 1 and args.ray is not None:
         raise UsageError("scenarios: give --jobs or --ray, not both")
-    if args.ray and (why := ray_address_problem(args.ray)) is not None:
+    # (an empty --ray is malformed too: it went past this check to Ray, "invalid input: Invalid address format:")
+    if args.ray is not None and (why := ray_address_problem(args.ray)) is not None:
         raise UsageError(f"scenarios: --ray {args.ray}: {why}")
     if args.ray:
         try:
@@ -132,7 +134,11 @@ def cmd_scenarios(args: argparse.Namespace) -> int:
     if args.calibration not in (None, "sim", "none", "oracle"):
 
         Calibration.load(args.calibration).check()  # before any run: every section valid
-    for p in expand_paths(paths):
+    files = expand_paths(paths)
+    if (twice := given_twice([str(p) for p in files])) is not None:  # it would run, and count in the summary, twice
+        raise UsageError(f"scenarios: {twice} is given twice (by name, path or folder); each scenario once: a run "
+                         "counted twice counts twice in the summary")
+    for p in files:
         sc = load_scenario(p)  # validate every file before running any
         if args.calibration is None and not args.oracle:
             cal = sc.resolve_calibration()[0]  # its calibration file too (every section valid)

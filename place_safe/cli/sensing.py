@@ -20,7 +20,7 @@ except ImportError:  # pragma: no cover - a dependency; the standard encoder sti
 from place_safe.cli import options
 from place_safe.cli.options import opt
 from place_safe.exceptions import CalibrationError, FrameError, FrameFileError, PlaceSafeError
-from place_safe.cli.common import (CALIBRATE_METHODS, METHODS, PROG, UsageError, estimator_for,
+from place_safe.cli.common import (CALIBRATE_METHODS, METHODS, PROG, UsageError, estimator_for, given_twice,
                                    jsonable, load_any_frames, load_calibration, load_truth_frames, log, progress_options,
                                    report_notes, require_frame_file, summarise, not_a_file, uncalibrated_note)
 from place_safe.evaluation.bench import DEFAULT_RUNS, measure_file_rss, report_json, run_bench
@@ -35,23 +35,6 @@ from place_safe.calibration import REQUIRED_SECTIONS, UNIT_MODELS, Calibration, 
 # ------------------------------------------------------------------------------------------------
 # calibrate
 # ------------------------------------------------------------------------------------------------
-def _given_twice(paths: list[str]) -> str | None:
-    """The second name of a file given twice in ``paths`` (the same file by any path), or None. ``calibrate F F`` fitted
-    every frame twice (48 frames for 24, peak's scale 71.94 -> 70.14), and its leave-one-out and fold choices then
-    held each frame out beside its own copy (an adversarial round, session 74)."""
-    seen: set = set()
-    for path in paths:
-        try:
-            st = os.stat(path)
-            key = (st.st_dev, st.st_ino)
-        except OSError:  # unreadable: the reader says so, with the file's name
-            key = os.path.abspath(path)
-        if key in seen:
-            return path
-        seen.add(key)
-    return None
-
-
 def cmd_calibrate(args: argparse.Namespace) -> int:
     """Fit a method family to frame files (``calibrate FILE... --method M -o CAL``), or with ``--sim SENSOR`` run
     the whole user chain in MuJoCo (touch the table, capture a sweep, fit diff then proprietary)."""
@@ -73,7 +56,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     if missing:
         raise UsageError(f"calibrate: the following arguments are required: {', '.join(missing)} "
                          f"(see '{PROG} calibrate --help')")
-    if (twice := _given_twice(args.files)) is not None:  # its frames would count twice, and the folds would hold
+    if (twice := given_twice(args.files)) is not None:  # its frames would count twice, and the folds would hold
         raise UsageError(f"calibrate: {twice} is given twice; each frame file once")  # each frame on both sides
     out = Path(args.output)
     cal, note = Calibration(), None
@@ -244,7 +227,7 @@ def cmd_recover(args: argparse.Namespace) -> int:
 # ------------------------------------------------------------------------------------------------
 def cmd_evaluate(args: argparse.Namespace) -> int:
     if not args.no_plots and (why := output_dir_problem(args.out)) is not None:  # before minutes of recovery
-        raise UsageError(f"evaluate: --out {args.out} {why} (a folder for the plots)")
+        raise UsageError(f"evaluate: --out {args.out + ' ' if args.out else ''}{why} (a folder for the plots)")
     cal = load_calibration(args.calibration)
     args.methods = list(dict.fromkeys(args.methods))  # each method once, in the order given ("peak peak": one row)
     if args.min_distance is not None and args.max_distance is not None and args.min_distance > args.max_distance:

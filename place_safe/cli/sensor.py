@@ -24,7 +24,7 @@ from place_safe.cli import options
 from place_safe.cli.common import FMT, PROG, log, refuse_overwrite
 from place_safe.cli.options import float_range, fraction, int_range, opt
 from place_safe.drivers.tmf8820 import bench
-from place_safe.exceptions import ConfigError, SensorTimeout
+from place_safe.exceptions import ConfigError, SensorTimeout, UsageError
 from place_safe.sources import open_source
 from place_safe.calibration import mark
 from place_safe.cli.common import estimator_for, load_calibration, uncalibrated_note
@@ -179,8 +179,13 @@ def cmd_record(args: argparse.Namespace) -> int:
 
 
 def cmd_stream(args: argparse.Namespace) -> int:
-    from place_safe.cli.live_view import RecordingError
+    from place_safe.cli.live_view import RecordingError, not_a_recording
 
+    if args.force and not args.save:
+        raise UsageError("sensor stream: --force goes with --save")
+    if args.save and not args.force and not_a_recording(args.save):  # a frame file or a calibration: kept
+        raise UsageError(f"sensor stream: --save {args.save} is a file that is not a rerun recording; it is kept (use "
+                         "--force to replace it)")
     cal = load_calibration(args.calibration)
     est = estimator_for(args.method, cal)
     note = uncalibrated_note(args.method, cal, args.calibration)
@@ -343,10 +348,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "method", "calibration", "max_frames", "timeout", "jsonl",
         opt("--save", metavar="RUN.rrd", help="write a rerun recording (headless)"),
         opt("--view", action="store_true", help="open a rerun viewer (needs a display)"),
+        "force",
         method={"default": "peak", "help": "plane recovery (default peak)"},
         max_frames={"help": "stop after N frames"},
         timeout={"help": "stop when no frame arrives for S seconds (default 2, at most 60); no frame at all is an "
-                         "error (exit status 1)"})
+                         "error (exit status 1)"},
+        force={"help": "with --save: replace a file that is not a rerun recording (a recording is replaced as ever)"})
 
 
 

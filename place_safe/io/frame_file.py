@@ -397,6 +397,8 @@ def _second_line_is_a_frame(p: Path) -> bool:
 
 
 def _iter_stream(fh: IO[bytes], p: Path) -> Iterator[dict | FrameError]:
+    from place_safe.config import printable  # (config reads JSON with io.json_values: imported here, not at the top)
+
     buf = b""
     while True:  # the first non-blank byte decides the layout
         more = _read(fh, p)
@@ -422,6 +424,7 @@ def _iter_stream(fh: IO[bytes], p: Path) -> Iterator[dict | FrameError]:
         raise FrameFileError(f"{p}: not a frame file; expected a JSON list of frame objects or JSON Lines"
                              + (" (it looks like UTF-16 text: save it as UTF-8)" if wide else ""))
     index = 0
+    shown = printable(p.name)  # (a reason's file name: its control characters escaped)
 
     def entries(values) -> Iterator[dict | FrameError]:
         nonlocal index
@@ -430,7 +433,7 @@ def _iter_stream(fh: IO[bytes], p: Path) -> Iterator[dict | FrameError]:
                 # the first frame spans lines and the next line does not start one: not JSON Lines at all
                 raise FrameFileError(f"{p}: not JSON Lines: its first frame spans more than one line (a pretty-printed "
                                      "frame? write one frame per line, or a JSON list of frames)")
-            where = f"{p.name}: frame {index}"
+            where = f"{shown}: frame {index}"
             index += 1
             if error is None:
                 try:
@@ -502,7 +505,11 @@ def iter_frames(path: str | Path, *, truth: bool = True) -> Iterator[Frame | Fra
     ``truth_error``): recovery does not need it. ``truth=False`` does not read the ground truth at all
     (:meth:`Frame.from_dict`: every frame's ``truth`` None), for a caller that never uses it.
     """
-    name = Path(path).name if isinstance(path, (str, os.PathLike)) else ""  # _iter_entries says what else it is
+    # (the name in a frame's reason, which the human tables print: its control characters escaped, as an error line's
+    # are -- a name with an escape sequence recoloured the terminal from recover's table; session 82)
+    from place_safe.config import printable
+
+    name = printable(Path(path).name) if isinstance(path, (str, os.PathLike)) else ""  # _iter_entries says what else
     for i, d in enumerate(_iter_entries(path)):
         if isinstance(d, FrameError):
             yield d

@@ -144,7 +144,10 @@ def output_open_problem(path: str | os.PathLike) -> str | None:
 def output_dir_problem(path: str | os.PathLike) -> str | None:
     """Why ``path`` cannot be a folder for a command's files (it, or a part of the path, is not a directory), or None
     (a directory, or a missing path). Permissions are not checked: a folder that cannot be written fails when written,
-    with its name."""
+    with its name. An empty name is no folder (``evaluate --out ''`` wrote its plots into the working folder; an empty
+    output file name is refused, session 82)."""
+    if os.fspath(path) == "":
+        return "needs a folder name (it was given an empty one)"
     try:
         st = os.stat(path)
     except FileNotFoundError:

@@ -15,7 +15,7 @@ from place_safe.calibration.capture import (TOUCH_HEIGHT_STD, SweepPlan, capture
 from place_safe.drivers.ur5 import URConfig, URRobot, packaged_config
 from place_safe.drivers.ur5 import fake_rtde
 from place_safe.drivers.ur5.kinematic_arm import KinematicArm
-from place_safe.exceptions import RobotFault, SensorTimeout
+from place_safe.exceptions import FrameFileError, RobotFault, SensorTimeout
 from place_safe.io.frame_file import load_frames
 from place_safe.sensor.frame import Frame
 
@@ -234,3 +234,25 @@ def test_capture_never_appends_to_a_file_that_is_not_a_capture(kin, tmp_path):
     res = capture_sweep(robot, ClockSource(robot), plan, out, plane=level_plane(TABLE_Z), tool=robot.tool,
                         progress=False, log=lambda s: None)
     assert res.skipped_done == 1 and res.captured == 1 and len(load_frames(out)) == 2
+
+
+def test_a_capture_made_with_another_plan_is_not_resumed(tmp_path):
+    """A capture resumed with other --distances (or --poses, which subsamples the grid anew) counted the first plan's
+    poses as done by their index: "0 poses captured now, 2 already there", and the new plan's poses 0 and 1 were never
+    captured (session 82). A pose there that is not the plan's pose of its index is named; the same plan resumes."""
+    from place_safe.calibration.capture import resume_problem
+
+    plan = SweepPlan(distances=[0.08, 0.12], incidences=[0.0, math.radians(12)], azimuths=[0.0, math.pi])
+    out = tmp_path / "cap.jsonl"
+    assert resume_problem(out, plan) is None  # no file: nothing to resume
+    lines = [{"hists": [[0] * 128] * 9, "meta": {"pose_index": i, "distance": d, "incidence": inc, "azimuth": az}}
+             for i, (d, inc, az) in enumerate(plan.grid()[:2])]
+    out.write_text("".join(json.dumps(x) + "\n" for x in lines))
+    assert resume_problem(out, plan) is None
+    far = SweepPlan(**{**plan.to_dict(), "distances": [5.0, 0.12]})
+    assert resume_problem(out, far) == ("pose 0 there is at 80 mm, incidence 0 deg, azimuth 0 deg; this plan's pose 0 "
+                                        "at 5000 mm, 0 deg, 0 deg")
+    fewer = SweepPlan(**{**plan.to_dict(), "max_poses": 1})
+    assert resume_problem(out, fewer) == "pose 1 there is beyond this plan's 1 poses"
+    with pytest.raises(FrameFileError, match="is a capture made with another plan"):
+        capture_sweep(None, None, far, out, plane=level_plane(TABLE_Z), tool=None, progress=False)

@@ -224,3 +224,18 @@ def test_the_whole_real_sweep_calibrates_diff_to_a_file_that_loads(sweep_path, t
     tilts = [math.degrees(math.acos(min(1.0, abs(float(np.dot(est.estimate(f).plane.normal, f.truth.normal))))))
              for f in far]
     assert len(far) >= 4 and max(tilts) < 0.5
+
+
+@pytest.mark.parametrize("method", ["peak", "proprietary", "diff"])
+def test_frames_given_twice_are_one_error_before_any_fit(sweep_frames, method):
+    """3 frames at 3 distances, each given 5 times (15 frames): they passed the 5-frame minimum, and peak wrote a
+    calibration with no floor (tilt_std 0, offset_std 1e-6 m) and the smallest covariance scale, 0.1 (session 82);
+    a sweep given twice in one file fitted every frame twice. One line naming the first copy, nothing written."""
+    cal = Calibration()
+    three = _spread(sweep_frames, 3)
+    for frames, first in ((three * 5, "frame 3 repeats frame 0 exactly"),
+                          (list(sweep_frames) + list(sweep_frames), f"frame {len(sweep_frames)} repeats frame 0")):
+        with pytest.raises(CalibrationError, match=first) as info:
+            fit_method(cal, frames, method)
+        assert "give each frame once" in str(info.value) and "\n" not in str(info.value)
+    assert not cal.sections

@@ -159,6 +159,25 @@ def test_bad_input_is_a_calibration_error():
         flange_poses([{"hists": []}])
 
 
+@pytest.mark.parametrize("noise", [{"sigma_angle": math.radians(1e-20)}, {"sigma_angle": math.radians(1e-160)},
+                                   {"sigma_distance": 1e-300}, {"sigma_angle": math.inf}, {"sigma_distance": math.nan},
+                                   {"sigma_angle": True}, {"sigma_distance": "0.002"}])
+def test_a_starting_noise_below_the_fits_floor_is_one_calibration_error(noise):
+    """The per-frame noise the fit starts from weighs the residuals: 1e-20 deg ended "mount fit did not converge" and
+    1e-160 deg "array must not contain infs or NaNs" (session 82), neither naming it. Below MIN_SIGMA_ANGLE /
+    MIN_SIGMA_DISTANCE (the floors of the weights the fit takes from the residuals), or not a finite number: one line
+    naming it. At the floors the fit runs."""
+    from place_safe.calibration.mount import MIN_SIGMA_ANGLE, MIN_SIGMA_DISTANCE
+
+    F = _sweep(12)
+    planes = [plane_in_sensor(TABLE, T @ NOMINAL) for T in F]
+    with pytest.raises(CalibrationError, match=f"fit_mount: {next(iter(noise))} must be a finite number") as info:
+        fit_mount(F, planes, NOMINAL, **noise)
+    assert "\n" not in str(info.value)
+    fit = fit_mount(F, planes, NOMINAL, sigma_angle=MIN_SIGMA_ANGLE, sigma_distance=MIN_SIGMA_DISTANCE)
+    assert fit.rms_angle < 1e-6
+
+
 @pytest.mark.slow
 def test_real_sweep_mount_fit_is_consistent(sweep_path):
     """The shared real sweep (level table, straight down, on-sensor distances): the distances are explained to a

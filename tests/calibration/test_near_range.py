@@ -229,6 +229,20 @@ def test_too_few_near_frames_leave_the_mapping_alone(sweep_path):
     assert same.near_depths == [] and rep["why"]
 
 
+def test_near_frames_a_far_only_mapping_reads_behind_the_sensor_give_no_knot(sweep_path):
+    """The sweep's frames under 3 cm and five at 30 cm and more: the far-range mapping, fitted on the far ones alone,
+    read the near ones at negative depths, and calibrate ended "peak parameters: near_depths.0: Input should be
+    greater than or equal to 0" (session 82). Such a frame is no near frame: the calibration is written, with no
+    table here (too few near frames left), and every knot of any table lies in front of the sensor."""
+    frames = _sweep(sweep_path)
+    far = [f for f in frames if f.truth.z0 > 0.3][:5]
+    near = [f for f in frames if f.truth.z0 < 0.03]
+    params, report = fit_peak(near + far, progress=False)
+    assert params.near_depths == [] and not report["near_range"]["adopted"]
+    assert "closer than" in report["near_range"]["why"]
+    assert all(d >= 0 for d in params.near_depths)
+
+
 @pytest.mark.slow
 def test_independent_frames_table_does_no_harm_held_out():
     """On the independent generator's frames (tilted, 2-30 cm; calibrated on one seed, tested on another) the

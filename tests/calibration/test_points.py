@@ -434,3 +434,30 @@ def test_refit_mapping_on_the_calibration_frames_is_the_mapping_and_reads_a_fram
     nearest = min(near, key=lambda i: even[i].truth.z0)
     assert rms_mm(base, nearest) < 0.1
     assert rms_mm(refit_mapping(even[:nearest] + even[nearest + 1:], params), nearest) > 0.5
+
+
+@pytest.mark.parametrize("scale, slope", [(10.0, "7.18 bins"), (100.0, r"0\.[0-9]+ bins"), (0.1, "[0-9]{3} bins")])
+def test_a_ground_truth_the_readings_do_not_follow_is_one_error_not_a_mapping(sweep_path, scale, slope):
+    """The real sweep with its ground truth ten times too far (decimetres read as metres) wrote peak's m 7.2 (every
+    plane ten times too far) and proprietary's 99 mm a metre; a hundred times (centimetres) failed "peak parameters: m:
+    Input should be greater than or equal to 1", which named no cause (session 82). A slope beyond MAX_SLOPE_FACTOR of
+    the family's built-in one is one line asking about the ground truth; the sweep as it is fits as before."""
+    import dataclasses
+
+    from place_safe.calibration.points import fit_proprietary
+    from place_safe.geometry import Plane
+    from place_safe.io.frame_file import load_frames
+
+    frames = [f for f in load_frames(sweep_path) if f.truth is not None]
+    moved = [dataclasses.replace(f, truth=Plane(f.truth.normal, f.truth.offset * scale)) for f in frames
+             if f.truth.offset * scale <= 65.0]
+    with pytest.raises(CalibrationError, match=f"the returns move {slope} per metre") as info:
+        fit_peak(moved, progress=False)
+    assert "is the ground truth in metres" in str(info.value) and "\n" not in str(info.value)
+    with pytest.raises(CalibrationError, match="the on-sensor distances move .* mm per metre"):
+        fit_proprietary(moved, progress=False)
+    from place_safe.calibration.points import MAX_SLOPE_FACTOR, slope_problem
+
+    params, _ = fit_peak(frames, progress=False)
+    assert slope_problem(params.m, PeakParams.default_peak(), "returns") is None and 70 < params.m < 72
+    assert MAX_SLOPE_FACTOR == 2.0

@@ -114,6 +114,9 @@ def frame_kinds() -> dict[str, bytes]:
         "truth-non-rotation": with_truth({"pose": (3 * np.eye(4)).tolist(), "dist_to_plane": 0.1}),
         "all-truth-bad": _dump([dict(x, plane={"normal": [0, 0, 0], "offset": 1}) for x in good]).encode(),
         "big-extra-key": with_first(meta="x" * (1 << 20)),
+        # session 82: every frame given twice (files joined): calibrate counted each twice and held it out beside its
+        # own copy (3 frames 5 times each wrote a peak calibration with no floor)
+        "repeated-frames": _dump(good + good).encode(),
     }
 
 
@@ -159,6 +162,8 @@ def calibration_kinds() -> dict[str, bytes]:
         "cal-uncertainty-no-floor": cal(peak=peak, uncertainty={"peak": {"tilt_std": 0.0, "offset_std": 0.0,
                                                                          "scale": 0.95}}),
         "cal-uncertainty-scale-1e-12": cal(peak=peak, uncertainty={"peak": {"tilt_std": 3e-4, "scale": 1e-12}}),
+        # session 82: a b within its field's range that puts every plane 140 m away (now no plane, with the reason)
+        "cal-b-minus-10000": cal(peak={"m": 72.0, "b": -10000.0}),
     }
 
 
@@ -183,6 +188,7 @@ OPTION_RUNS = [
     ["recover", "{good}", "--method", "peak", "--batch", "0"], ["recover", "{good}", "--method", "bogus"],
     ["evaluate", "{good}", "--min-distance", "nan"], ["evaluate", "{good}", "--max-distance", "inf"],
     ["evaluate", "{good}", "--min-distance", "0.5", "--max-distance", "0.1"],
+    ["evaluate", "{good}", "--methods", "peak", "--out", ""],  # session 82: the plots went into the working folder
     ["calibrate", "{good}", "--method", "nope", "-o", "{tmp}/c.json"],
     ["calibrate", "{good}", "--method", "peak", "-o", "/dev/full"],  # read as an old calibration: no end, no size
     ["synth", "--frames", "100000000000000000000", "-o", "{tmp}/s.json"],  # built in memory: would never finish
@@ -207,6 +213,7 @@ SIM_OPTION_RUNS = [
 # ---------------------------------------------------------------------------------------------------
 _SWEEP = str(Path(__file__).resolve().parents[1] / "data" / "tmf8820_ur5_sweep.json")
 _ROBOT = str(Path(__file__).resolve().parents[2] / "robots" / "ur5" / "sim.toml")
+_LEVEL_30CM = str(Path(__file__).resolve().parents[2] / "scenarios" / "set" / "level_30cm.toml")
 
 
 def scenario_kinds() -> dict[str, bytes]:
@@ -317,6 +324,7 @@ def capture_kinds() -> dict[str, bytes]:
         "cap-pose-huge": with_all(pose=[[1e300] * 4] * 4), "cap-pose-last-row": with_all(pose=np.diag([1, 1, 1, 0]).tolist()),
         "cap-pose-string": with_all(pose="identity"), "cap-pose-scaled": with_all(pose=(2 * np.eye(4)).tolist()),
         "cap-no-pose": with_all(),
+        "cap-repeated": json.dumps(frames + frames).encode(),  # session 82: a capture given twice
     }
 
 
@@ -345,7 +353,8 @@ NEW_OPTION_RUNS = [
     ["capture", "--sim", "level_table", "-o", "{tmp}/c.jsonl", "--distances", "10:nan:1"],
     ["capture", "--sim", "level_table", "-o", "{tmp}/c.jsonl", "--distances", "10:90:1e-300"],
     ["capture", "--sim", "level_table", "-o", "{tmp}/c.jsonl", "--distances", "::"],
-    ["sim"], ["scenarios", "--jobs", "100000"], ["scenarios", "--jobs", "0"], ["scenarios", "--random", "10" * 10],
+    ["sim"], ["scenarios", "level_30cm", _LEVEL_30CM, "--quiet"],  # session 82: given twice, run and counted twice
+    ["scenarios", "--jobs", "100000"], ["scenarios", "--jobs", "0"], ["scenarios", "--random", "10" * 10],
     ["scenarios", "--seconds", "1e300"], ["scenarios", "--seed=-1"], ["scenarios", "--seconds", "nan"],
     ["place", "--sim", "place_level", "--timeout", "1e300"], ["place", "--sim", "place_level", "--seed=-1"],
     ["place", "--sim", "place_level", "--sim-mount-error", "1e300,0,0,0,0,0"],
@@ -364,6 +373,8 @@ NEW_OPTION_RUNS = [
     ["calibrate-mount", _SWEEP, "--table-height", "nan", "--method", "peak"],
     ["calibrate-mount", _SWEEP, "--sigma-angle", "1e300", "--method", "peak"],
     ["calibrate-mount", _SWEEP, "--sigma-mm", "0", "--method", "peak"],
+    ["calibrate-mount", _SWEEP, "--sigma-angle", "1e-160", "--method", "peak", "--level"],  # session 82: the weighted
+    ["calibrate-mount", _SWEEP, "--sigma-mm", "1e-20", "--method", "peak", "--level"],  # residuals overflowed
     ["place", "--sim", "place_level", "--seed=-1", *_TMP_OUT], ["calibrate", "--sim", "nominal", "--frames", "1000000000"],
     ["sim", "render", "--distance", "1e300"], ["sim", "render", "--azimuth", "1e300"],
     ["bench", "sensor", "--bus-hz", "1e-300"], ["bench", "sensor", "--frames", "1000000000"],

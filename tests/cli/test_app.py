@@ -526,6 +526,19 @@ def test_evaluate_refuses_a_plot_folder_that_cannot_be_one_before_it_recovers(tm
                  "--max-distance", "0.1"]) == 0
 
 
+def test_evaluate_refuses_an_empty_plot_folder_before_it_runs(sweep_path, capsys, monkeypatch, tmp_path):
+    """``--out ''`` wrote error_vs_distance.png and error_vs_angle.png into the working folder (session 82)."""
+    import place_safe.cli.sensing as sensing
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sensing, "evaluate", lambda *a, **k: pytest.fail("evaluate ran"))
+    assert main(["evaluate", str(sweep_path), "--methods", "peak", "--out", "", "-q"]) == 2
+    cap = capsys.readouterr()
+    assert one_line_error(cap.err) == ("place-safe: error: evaluate: --out needs a folder name (it was given an empty "
+                                       "one) (a folder for the plots)") and cap.out == ""
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_evaluate_with_no_frames_in_range_exits_2(sweep_path, capsys):
     assert main(["evaluate", str(sweep_path), "--min-distance", "5", "--no-plots", "-q"]) == 2
     assert "no frames with ground truth" in one_line_error(capsys.readouterr().err)
@@ -745,10 +758,12 @@ def test_an_output_in_a_missing_folder_is_written_and_one_under_a_file_fails_bef
 @pytest.mark.parametrize("address, says", [("127.0.0.1:1", "no Ray head answers there"),
                                            ("a-host-that-is-not.invalid:6379", "no Ray head answers there"),
                                            ("nowhere", "HOST:PORT of a Ray head"),
-                                           ("host:99999", "HOST:PORT of a Ray head")])
+                                           ("host:99999", "HOST:PORT of a Ray head"),
+                                           ("", "HOST:PORT of a Ray head")])
 def test_scenarios_on_a_ray_head_that_does_not_answer_is_one_line_not_a_hang(address, says, capsys):
     """``ray.init`` waits without end for an address nothing listens on (a review's bad-input search: killed after
-    169 s): the head must answer a TCP connection within 5 s first, and a malformed address is said at once."""
+    169 s): the head must answer a TCP connection within 5 s first, and a malformed address is said at once (an empty
+    one went past the check to Ray: "invalid input: Invalid address format:", session 82)."""
     assert main(["scenarios", "scenarios/set/level_20cm.toml", "--ray", address, "-q"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and says in err[0]

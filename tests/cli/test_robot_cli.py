@@ -339,6 +339,40 @@ def test_capture_lists_each_refused_pose_once(tmp_path, capsys):
     assert "pose 0 refused" not in captured.err and "2 refused" in captured.out
 
 
+def test_a_capture_whose_every_pose_is_refused_is_one_error_line_and_writes_nothing(tmp_path, capsys):
+    """Every pose refused (too close for the gripper's tips here; 5 m away, unreachable, in the round that found it):
+    exit 0 with an empty output file, which calibrate then called empty (session 82). One line naming the count and
+    the first refusal, exit 2, nothing on standard output, no file (one pose captured of three: exit 0, as before:
+    test_capture_lists_each_refused_pose_once)."""
+    out = tmp_path / "cap.jsonl"
+    argv = ["capture", "--sim", "level_table", "--table-height", "-0.05", "--incidences", "0", "--azimuths", "0",
+            "--distances", "10,20", "--settle", "0.01", "-q", "-o", str(out)]
+    assert main(argv) == 2
+    captured = capsys.readouterr()
+    err = captured.err.splitlines()
+    assert captured.out == "" and len(err) == 1 and not out.exists()
+    assert err[0].startswith("place-safe: error: capture: every pose was refused (2 of 2; the first, pose 0: ")
+    assert err[0].endswith(f"): nothing captured, {out} not written")
+
+
+def test_a_capture_resumed_with_other_options_is_refused_before_the_arm(tmp_path, capsys):
+    """``capture -o C --distances 5000`` on a capture made with the defaults said "2 already there" and captured
+    nothing (session 82): one line naming the first pose that differs, exit 2, the file left as it was."""
+    out = tmp_path / "cap.jsonl"
+    argv = ["capture", "--sim", "level_table", "--poses", "2", "--settle", "0.01", "-q", "-o", str(out)]
+    assert main(argv) == 0
+    before = out.read_bytes()
+    capsys.readouterr()
+    assert main([*argv, "--distances", "5000"]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == "" and captured.err.splitlines() == [
+        f"place-safe: error: capture: {out} was captured with other options (pose 0 there is at 80 mm, incidence 0 "
+        "deg, azimuth 0 deg; this plan's pose 0 at 5000 mm, 0 deg, 0 deg): resume it with the --distances, "
+        "--incidences, --azimuths and --poses it was made with, or give another output"]
+    assert out.read_bytes() == before
+    assert main(argv) == 0 and out.read_bytes() == before  # the same options: resumed, nothing left to do
+
+
 def test_a_capture_that_ends_early_still_lists_the_poses_it_refused(tmp_path, capsys, monkeypatch):
     """Without a result (a fault, Ctrl-C) the refused poses held back for it are written to standard error."""
     import place_safe.calibration.capture as capture
@@ -390,3 +424,28 @@ def test_place_in_simulation_takes_the_robot_files_limits_and_motion(tmp_path, c
     res = json.loads(out.read_text())
     assert res["outcome"] != "released" and res["robot_config"] == str(slow), (code, res["outcome"], res["reason"])
     assert "workspace box, min_descent_z and surface_keepout are checked on the arm only" in err
+
+
+def test_calibrate_mount_refuses_a_capture_whose_frames_repeat(sweep_path, tmp_path, capsys):
+    """The real sweep given twice in one capture: every mount direction's stated 1-sigma shrank by sqrt(2) (0.12 ->
+    0.08 mm for the height with --level --table-height 0; session 82), so a direction the capture determines only
+    loosely could pass the MAX_SIGMA hold. One line, exit 2, before any plane is estimated."""
+    import json
+
+    frames = json.loads(sweep_path.read_text())
+    twice = tmp_path / "twice.json"
+    twice.write_text(json.dumps(frames + frames))
+    assert main(["calibrate-mount", str(twice), "--method", "peak", "-q", "--level", "--table-height", "0"]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and f"frame {len(frames)} repeats frame 0 exactly" in err[0] and "give each frame once" in err[0]
+
+
+@pytest.mark.parametrize("option, value, line", [
+    ("--sigma-angle", "1e-20", "--sigma-angle 1e-20 is below the smallest per-frame noise the fit takes (0.00057 deg)"),
+    ("--sigma-mm", "1e-300", "--sigma-mm 1e-300 is below the smallest per-frame noise the fit takes (0.001 mm)")])
+def test_calibrate_mount_refuses_a_starting_noise_below_the_fits_floor(sweep_path, option, value, line, capsys):
+    """--sigma-angle 1e-20 ended "mount fit did not converge", 1e-160 "invalid input: array must not contain infs or
+    NaNs" (session 82): one line naming the option, before any plane is estimated."""
+    assert main(["calibrate-mount", str(sweep_path), "--method", "peak", "-q", "--level", option, value]) == 2
+    assert capsys.readouterr().err.splitlines() == [f"place-safe: error: calibrate-mount: {line}: it weighs each "
+                                                    "frame's residuals"]

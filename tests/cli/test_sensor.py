@@ -64,6 +64,30 @@ def test_stream_saves_a_rerun_recording(tmp_path, capsys):
     assert rrd.is_file() and rrd.stat().st_size > 1000
 
 
+def test_stream_save_keeps_a_file_that_is_not_a_recording_unless_forced(tmp_path, capsys):
+    """``--save sweep.json`` replaced the frame file with a recording, without a word (session 82). A file that is not
+    a rerun recording is kept (one line, exit 2, before the sensor opens); --force replaces it; a recording is replaced
+    as ever (rerunning a command with the same --save works as before)."""
+    src = tmp_path / "in.json"
+    write_frames(src, load_frames("tests/data/tmf8820_ur5_sweep.json")[20:23])
+    kept = tmp_path / "sweep.json"
+    kept.write_bytes(src.read_bytes())
+    argv = ["sensor", "stream", f"file:{src}", "--max-frames", "2", "--jsonl"]
+    assert main([*argv, "--save", str(kept)]) == 2
+    assert capsys.readouterr().err.splitlines() == [
+        f"place-safe: error: sensor stream: --save {kept} is a file that is not a rerun recording; it is kept (use "
+        "--force to replace it)"]
+    assert kept.read_bytes() == src.read_bytes()
+    rrd = tmp_path / "run.rrd"
+    for _ in range(2):  # a recording: replaced without --force
+        assert main([*argv, "--save", str(rrd)]) == 0
+    assert rrd.read_bytes()[:3] == b"RRF"
+    assert main([*argv, "--save", str(kept), "--force"]) == 0 and kept.read_bytes()[:3] == b"RRF"
+    capsys.readouterr()
+    assert main([*argv, "--force"]) == 2
+    assert capsys.readouterr().err.splitlines() == ["place-safe: error: sensor stream: --force goes with --save"]
+
+
 def test_a_rerun_recording_that_cannot_be_written_is_one_line_naming_the_file(capsys):
     """--save /dev/full: rerun's RuntimeError was an "internal error"; now the one line of every write that found no
     room, naming the file and the OS error (exit 2, as for -o /dev/full), before the sensor is opened."""

@@ -237,3 +237,22 @@ def test_frames_read_without_truth_are_the_same_frames_without_it(tmp_path, entr
         np.testing.assert_array_equal(a.hists, b.hists)
         np.testing.assert_array_equal(a.reference, b.reference)
         assert (a.extra, a.timestamp, a.timestamp_error) == (b.extra, b.timestamp, b.timestamp_error)
+
+
+@pytest.mark.parametrize("name, shown", [("esc\x1b[31mred.json", "esc\\x1b[31mred.json"),
+                                         ("line\nbreak.json", "line\\nbreak.json"), ("rtl\u202eknab.json",
+                                                                                      "rtl\\u202eknab.json")])
+def test_a_frames_reason_shows_the_files_name_with_its_control_characters_escaped(tmp_path, name, shown):
+    """A frame's reason names its file, and recover's and evaluate's tables print it: a name with an escape sequence
+    recoloured the terminal from recover's table, a newline broke its row (session 82; error lines were escaped in the
+    sixth round). Both kinds of reason: an entry that is not an object, and one Frame.from_dict refuses."""
+    import json as _json
+
+    from place_safe.io.frame_file import iter_frames
+
+    path = tmp_path / name
+    path.write_text(_json.dumps([[1, 2], {"hists": "abc"}]))
+    reasons = [str(f) for f in iter_frames(path)]
+    assert reasons[0] == f"{shown}: frame 0: is a list, expected an object"
+    assert reasons[1].startswith(f"{shown}: frame 1: hists")
+    assert not any(c in r for r in reasons for c in "\x1b\n\u202e")

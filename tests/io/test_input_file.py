@@ -22,3 +22,9 @@ def test_an_output_is_opened_before_the_run_and_left_as_it_was(tmp_path):
     new = tmp_path / "new.json"
     assert output_open_problem(new) is None and not new.exists()  # made to try, removed again
     assert output_open_problem("/proc/x.json")  # the system's words: cannot be made there
+
+
+def test_an_empty_name_is_no_output_folder():
+    """``evaluate --out ''`` wrote its plots into the working folder (session 82); an empty output file name was
+    already refused."""
+    assert output_dir_problem("") == "needs a folder name (it was given an empty one)"

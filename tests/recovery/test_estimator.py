@@ -453,3 +453,23 @@ def test_the_batch_entry_points_take_any_iterable_and_say_what_they_need_in_one_
         load_frames(None)
     with pytest.raises(ValueError, match="a normal of 3 numbers"):
         Plane(np.array([0.0, 1.0]), 0.1)
+
+
+def test_a_plane_farther_than_the_sensor_reports_is_no_plane(synthetic_frames):
+    """A peak calibration whose ``b`` is -10000 (within its field's range) put every plane 140 m away, stated to
+    millimetres, through peak and diff alike (session 82). Beyond MAX_SENSOR_DISTANCE (as a ground truth may not lie)
+    an estimate is no plane, with the reason; the same calibration with its own ``b`` reads as before."""
+    from place_safe.recovery import make_estimator
+    from place_safe.recovery.estimator import checked
+    from place_safe.recovery.points import PeakParams
+    from place_safe.sensor.frame import MAX_SENSOR_DISTANCE
+
+    far = PeakParams.default_peak().replace(b=-10000.0)
+    cal = Calibration({"peak": far.to_dict()})
+    for method in ("peak", "diff"):
+        for est in make_estimator(method, cal).estimate_many(synthetic_frames[:3]):
+            assert est.plane is None and "m away, farther than the sensor reports (65.535 m)" in est.reason
+    near = make_estimator("peak", Calibration({"peak": PeakParams.default_peak().to_dict()}))
+    assert all(e.plane is not None for e in near.estimate_many(synthetic_frames[:3]))
+    at_limit = PlaneEstimate(Plane([0.0, 0.0, 1.0], MAX_SENSOR_DISTANCE))
+    assert checked(at_limit) is at_limit

@@ -56,6 +56,8 @@ def test_valid_frame_passes():
     (lambda f: setattr(f, "hists", np.ma.masked_array(f.hists, np.eye(N_ZONES, N_BINS, dtype=bool))),
      "hists is a masked array with 9 masked entries"),
     (lambda f: setattr(f, "reference", np.ma.masked_array(f.reference, np.arange(N_BINS) == 3)), "1 masked entry"),
+    (lambda f: setattr(f, "hists", f.hists > 50), "hists must hold numbers, not booleans"),  # session 82
+    (lambda f: setattr(f, "reference", f.reference > 10), "reference_hist must hold numbers, not booleans"),
 ])
 def test_validate_says_what_is_wrong(change, message):
     f = _good()
@@ -82,6 +84,20 @@ def test_estimators_refuse_a_frame_whose_masked_counts_they_cannot_honour():
     for method in ("peak", "diff"):
         est = make_estimator(method).estimate(f)
         assert est.plane is None and est.reason.startswith("hists is a masked array with 128 masked entries")
+
+
+def test_proprietary_refuses_on_sensor_distances_of_booleans():
+    """An array of booleans given as the on-sensor distances read as 1 m in every zone: proprietary stated a plane at
+    0.98 m (session 82; a frame file's booleans are refused when read). Now the frame's reason; numbers as before."""
+    from place_safe.evaluation.synthetic import make_frames
+    from place_safe.recovery import make_estimator
+    f = make_frames(1, seed=3)[0]
+    assert make_estimator("proprietary").estimate(f).plane is not None
+    for name, value in (("distances", np.ones(N_ZONES, bool)), ("confs_1", np.ones(N_ZONES, bool))):
+        g = Frame(f.hists, f.reference, distances=value if name == "distances" else f.distances,
+                  confidences=value if name == "confs_1" else f.confidences)
+        est = make_estimator("proprietary").estimate(g)
+        assert est.plane is None and est.reason == f"{name} must hold numbers, not booleans"
 
 
 @pytest.mark.parametrize("entry,message", [
@@ -140,3 +156,19 @@ def _sweep_frame(path) -> Frame:
     from place_safe.io.frame_file import load_frames
 
     return min(load_frames(path), key=lambda f: abs(f.truth.offset - 0.21))
+
+
+def test_repeated_frames_finds_a_measurement_given_twice_whatever_its_truth_says():
+    """A frame whose histograms, reference and on-sensor distances repeat an earlier frame's is a repeat (its ground
+    truth, pose or extras may differ: a pasted copy with an edited truth is still one measurement); the first repeat
+    and how many there are (session 82: 3 frames given 5 times each passed calibrate's 5-frame minimum)."""
+    from place_safe.sensor.frame import repeated_frames
+
+    a, b = _good(), _good()
+    b.hists = b.hists + 1.0
+    assert repeated_frames([a, b]) is None and repeated_frames([]) is None
+    copy_a = Frame(a.hists.copy(), a.reference.copy(), truth=Plane([0.0, 0.0, 1.0], 0.3), extra={"pose": "x"})
+    assert repeated_frames([a, b, copy_a, b]) == (2, 0, 2)
+    other_distances = Frame(a.hists.copy(), a.reference.copy(), distances=np.full(N_ZONES, 0.1))
+    assert repeated_frames([a, other_distances]) is None  # another on-sensor result: another measurement
+    assert repeated_frames([a, "not a frame", b]) is None  # (whoever reads it says what it is)

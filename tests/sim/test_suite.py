@@ -198,6 +198,19 @@ def test_a_kind_of_random_scene_without_random_scenes_is_bad_usage(capsys):
     assert "give --random N" in capsys.readouterr().err
 
 
+def test_a_scenario_given_twice_is_bad_usage_before_any_run(capsys, monkeypatch):
+    """``scenarios level_30cm scenarios/set/level_30cm.toml`` (or a folder and a file in it) ran it twice and counted
+    it twice in the summary ("false refusals: 2 of 2 clearly safe scenes"; session 82): one line, nothing run."""
+    from place_safe.cli.app import main
+
+    monkeypatch.setattr(suite, "run_many", lambda *a, **k: pytest.fail("a run started"))
+    for argv in (["level_30cm", "scenarios/set/level_30cm.toml"], ["scenarios/set", "level_30cm"]):
+        assert main(["scenarios", *argv, "--quiet"]) == 2
+        err = capsys.readouterr().err.splitlines()
+        assert len(err) == 1 and err[0].endswith("level_30cm.toml is given twice (by name, path or folder); each "
+                                                 "scenario once: a run counted twice counts twice in the summary")
+
+
 def test_summary_and_table():
     rows = [suite.judge(Scenario(name="a", labels={"clearly_safe": True}), _res(release_height=0.002)),
             suite.judge(Scenario(name="b", labels={"clearly_safe": True}), _res(outcome="refused"))]
