@@ -27,8 +27,8 @@ peak) when the frames' ground truth states how far it may be off (a capture's to
 within some angle: :func:`frames_reference`), and drops them when the frames state none.
 
 Each frame once: a frame that repeats another exactly (:func:`~place_safe.sensor.frame.repeated_frames`; frames pasted
-or files joined) is a one-line :class:`~place_safe.exceptions.CalibrationError` before any fit (it counted towards
-the frames needed, and the folds held it out beside its own copy). How many frames: at least :data:`~place_safe.calibration.points.MIN_CALIBRATION_FRAMES` (5) with ground truth at
+or files joined, a noise-free synthetic frame drawn twice) is one measurement: the repeats are left out, with a note,
+before the frames are counted (counted twice, a copy passed the count and was held out beside itself). How many frames: at least :data:`~place_safe.calibration.points.MIN_CALIBRATION_FRAMES` (5) with ground truth at
 :data:`~place_safe.calibration.points.MIN_CALIBRATION_RANGE` or farther, at
 :data:`~place_safe.calibration.points.MIN_CALIBRATION_DISTANCES` (3) or more distances; fewer raise a one-line
 :class:`~place_safe.exceptions.CalibrationError` before any fit. Why an error there and not wider covariances: the peak
@@ -64,7 +64,7 @@ from place_safe.calibration.uncertainty import update_calibration
 from place_safe.io.json_values import jsonable
 from place_safe.recovery.differentiable import SolverOptions
 from place_safe.recovery.estimator import Reference
-from place_safe.sensor.frame import Frame, repeated_frames
+from place_safe.sensor.frame import Frame, without_repeats
 
 def _store(cal: Calibration, fitted: list[str], name: str, section: dict, report: dict) -> None:
     """Put a freshly fitted section and its report into ``cal`` (clearing an earlier load error of that
@@ -109,6 +109,10 @@ def fit_method(calibration: Calibration, frames: Sequence[Frame], method: str, p
     if len(unlabelled) and (method != "diff" or unit_model != "default"):
         raise ValueError("calibrate: frames that choose a reading of the diff method's forward model go with diff and "
                          f"the default unit model, not {method} / {unit_model}")
+    say = log if log is not None else (lambda _line: None)
+    frames, repeats, _ = without_repeats(frames, "counting the frames with ground truth from 0")
+    if repeats is not None:  # a copy passed the count below and was held out beside itself
+        say(f"calibrate {method}: {repeats}")
     count, distances = calibration_frames(frames)
     if count < MIN_CALIBRATION_FRAMES or distances < MIN_CALIBRATION_DISTANCES:
         raise CalibrationError(
@@ -117,14 +121,6 @@ def fit_method(calibration: Calibration, frames: Sequence[Frame], method: str, p
             f"{'' if distances == 1 else 's'}; a calibration needs {MIN_CALIBRATION_FRAMES} or more frames at "
             f"{MIN_CALIBRATION_DISTANCES} or more distances {MIN_DOMAIN_WIDTH * 1e3:g} mm apart "
             f"({FEW_CALIBRATION_FRAMES} or more frames recommended, e.g. a level sweep from 3 to 40 cm)")
-    if (repeat := repeated_frames(frames)) is not None:  # a copy passed the count above and halved its error
-        i, j, n = repeat
-        raise CalibrationError(
-            f"calibrate {method}: frame {i} repeats frame {j} exactly (counting the frames with ground truth from 0; the "
-            f"same histograms and on-sensor distances; "
-            f"{n} frame{'' if n == 1 else 's'} repeat an earlier one): a frame given twice counts as two measurements "
-            "and is held out beside its own copy; give each frame once")
-    say = log if log is not None else (lambda _line: None)
     cal = calibration
     fitted: list[str] = []
     if method in ("peak", "diff") and (method == "peak" or "peak" not in cal.sections):

@@ -26,7 +26,7 @@ from place_safe.calibration.capture import MIN_CLEARANCE, TOUCH_HEIGHT_STD, refu
 from place_safe.recovery import make_estimator
 from place_safe.config import read_json
 from place_safe.geometry import transform_problem
-from place_safe.sensor.frame import repeated_frames
+from place_safe.sensor.frame import without_repeats
 
 
 def _floats(text: str, n: int | None = None, what: str = "numbers", lo: float = -math.inf,
@@ -429,12 +429,11 @@ def cmd_calibrate_mount(args: argparse.Namespace) -> int:
     if not frames:
         raise UsageError(f"calibrate-mount: {args.capture} has no frames with a usable flange pose"
                          + (f" ({count_note(skipped)})" if skipped else ""))
-    if (repeat := repeated_frames(frames)) is not None:  # counted twice, it halved every direction's stated variance
-        i, j, n = repeat
-        raise UsageError(f"calibrate-mount: {args.capture}: frame {i} repeats frame {j} exactly (counting the frames with "
-                         f"a usable flange pose from 0; the same histograms and on-sensor distances; {n} frame"
-                         f"{'' if n == 1 else 's'} repeat an earlier one): a frame given twice counts as two "
-                         "measurements and makes the fit look twice as sure; give each frame once")
+    # counted twice, a repeat halved every direction's stated variance: each measurement once
+    frames, repeats, keep = without_repeats(frames, "counting the frames with a usable flange pose from 0")
+    F = F[keep]
+    if repeats is not None and not args.quiet:
+        log(f"calibrate-mount: {args.capture}: {repeats}")
     if skipped and not args.quiet:
         log(f"calibrate-mount: {len(frames)} frames ({count_note(skipped)})")
     estimator, cal_note = _estimator(args.method, args.calibration)

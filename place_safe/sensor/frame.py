@@ -110,27 +110,46 @@ def _measurement_key(frame: Any) -> bytes:
     return b"|".join(parts)
 
 
-def repeated_frames(frames: Any) -> tuple[int, int, int] | None:
-    """``(i, j, n)``: frame ``i`` of ``frames`` repeats frame ``j < i`` exactly (the same histograms, reference and
-    on-sensor distances, whatever its ground truth or pose says), the first such, and ``n`` frames repeat an earlier
-    one; None when every frame is its own measurement. A fit counts a repeated frame as a second one: no two real
-    measurements hold the same 1152 counts (Poisson noise), so a repeat is a frame given twice (files pasted or joined).
-    Fifteen frames that were three repeated five times passed ``calibrate``'s 5-frame minimum and wrote a peak
-    calibration with no floor and the smallest scale (planes stated to micrometres); a capture given twice halved the
-    variance of every mount direction ``calibrate-mount`` states (an adversarial round, session 82)."""
+def repeated_frames(frames: Any) -> list[tuple[int, int]]:
+    """Every frame ``i`` of ``frames`` that repeats an earlier frame ``j`` exactly (the same histograms, reference and
+    on-sensor distances, whatever its ground truth or pose says), as ``(i, j)`` pairs in order (``j`` the first frame of
+    that measurement); empty when every frame is its own measurement. No two real measurements hold the same 1152 counts
+    (Poisson noise), so a repeat is a frame given twice (files pasted or joined, a stale frame read again) or a
+    noise-free synthetic frame drawn twice: either way one measurement, which a fit must count once. Counted twice,
+    fifteen frames that were three repeated five times passed ``calibrate``'s 5-frame minimum and wrote a peak
+    calibration with no floor and the smallest scale (planes stated to micrometres), and a capture given twice halved
+    the variance of every mount direction ``calibrate-mount`` states (an adversarial round, session 82). Entries that
+    are not readable frames are passed over (whoever reads them says so)."""
     seen: dict[bytes, int] = {}
-    first, count = None, 0
+    pairs = []
     for i, f in enumerate(frames):
         try:
             key = _measurement_key(f)
         except (AttributeError, TypeError, ValueError, OverflowError):
-            continue  # not a readable frame: whoever reads it says so
+            continue
         j = seen.setdefault(key, i)
         if j != i:
-            count += 1
-            if first is None:
-                first = (i, j)
-    return None if first is None else (*first, count)
+            pairs.append((i, j))
+    return pairs
+
+
+def without_repeats(frames: Any, counted: str = "counting from 0") -> tuple[list, str | None, list[int]]:
+    """``frames`` (a list) with each exact repeat (:func:`repeated_frames`) left out, the first of each measurement
+    kept in its place; a one-line note of what was left out (None: nothing), e.g. ``"frame 3 repeats frame 0 exactly
+    (counting from 0; the same histograms and on-sensor distances; 12 frames repeat an earlier one): each measurement
+    counted once, the repeats left out (frames pasted or files joined?)"``; and the indices kept (for arrays that go
+    with the frames). ``counted`` says how the frames are numbered."""
+    frames = list(frames)
+    pairs = repeated_frames(frames)
+    if not pairs:
+        return frames, None, list(range(len(frames)))
+    drop = {i for i, _ in pairs}
+    keep = [k for k in range(len(frames)) if k not in drop]
+    (i, j), n = pairs[0], len(pairs)
+    note = (f"frame {i} repeats frame {j} exactly ({counted}; the same histograms and on-sensor distances; {n} "
+            f"frame{'' if n == 1 else 's'} repeat{'s' if n == 1 else ''} an earlier one): each measurement counted once, "
+            "the repeats left out (frames pasted or files joined?)")
+    return [frames[k] for k in keep], note, keep
 
 
 def _first_line(exc: BaseException) -> str:

@@ -227,15 +227,26 @@ def test_the_whole_real_sweep_calibrates_diff_to_a_file_that_loads(sweep_path, t
 
 
 @pytest.mark.parametrize("method", ["peak", "proprietary", "diff"])
-def test_frames_given_twice_are_one_error_before_any_fit(sweep_frames, method):
+def test_frames_given_twice_count_once(sweep_frames, method):
     """3 frames at 3 distances, each given 5 times (15 frames): they passed the 5-frame minimum, and peak wrote a
-    calibration with no floor (tilt_std 0, offset_std 1e-6 m) and the smallest covariance scale, 0.1 (session 82);
-    a sweep given twice in one file fitted every frame twice. One line naming the first copy, nothing written."""
+    calibration with no floor (tilt_std 0, offset_std 1e-6 m) and the smallest covariance scale, 0.1 (session 82).
+    Each measurement now counts once: the repeats are left out with a note, and 3 frames are too few (one line,
+    nothing written)."""
     cal = Calibration()
-    three = _spread(sweep_frames, 3)
-    for frames, first in ((three * 5, "frame 3 repeats frame 0 exactly"),
-                          (list(sweep_frames) + list(sweep_frames), f"frame {len(sweep_frames)} repeats frame 0")):
-        with pytest.raises(CalibrationError, match=first) as info:
-            fit_method(cal, frames, method)
-        assert "give each frame once" in str(info.value) and "\n" not in str(info.value)
-    assert not cal.sections
+    lines: list[str] = []
+    with pytest.raises(CalibrationError, match="3 frames with ground truth") as info:
+        fit_method(cal, _spread(sweep_frames, 3) * 5, method, log=lines.append)
+    assert "\n" not in str(info.value) and not cal.sections
+    assert len(lines) == 1 and "frame 3 repeats frame 0 exactly" in lines[0] and "12 frames repeat" in lines[0]
+
+
+@pytest.mark.parametrize("method", ["peak", "proprietary"])
+def test_a_sweep_given_twice_calibrates_as_the_sweep(sweep_frames, method):
+    """The sweep given twice in one file (files joined) fitted every frame twice and held each out beside its own copy;
+    now it writes the sections the sweep gives once, and says what it left out."""
+    once, twice = Calibration(), Calibration()
+    fit_method(once, list(sweep_frames), method)
+    lines: list[str] = []
+    fit_method(twice, list(sweep_frames) + list(sweep_frames), method, log=lines.append)
+    assert twice.sections == once.sections
+    assert any(f"frame {len(sweep_frames)} repeats frame 0 exactly" in line for line in lines)

@@ -426,18 +426,23 @@ def test_place_in_simulation_takes_the_robot_files_limits_and_motion(tmp_path, c
     assert "workspace box, min_descent_z and surface_keepout are checked on the arm only" in err
 
 
-def test_calibrate_mount_refuses_a_capture_whose_frames_repeat(sweep_path, tmp_path, capsys):
+def test_calibrate_mount_counts_a_repeated_capture_once(sweep_path, tmp_path, capsys):
     """The real sweep given twice in one capture: every mount direction's stated 1-sigma shrank by sqrt(2) (0.12 ->
     0.08 mm for the height with --level --table-height 0; session 82), so a direction the capture determines only
-    loosely could pass the MAX_SIGMA hold. One line, exit 2, before any plane is estimated."""
+    loosely could pass the MAX_SIGMA hold. Each measurement now counts once: the fit is the sweep's, and standard
+    error says what was left out."""
     import json
 
     frames = json.loads(sweep_path.read_text())
     twice = tmp_path / "twice.json"
     twice.write_text(json.dumps(frames + frames))
-    assert main(["calibrate-mount", str(twice), "--method", "peak", "-q", "--level", "--table-height", "0"]) == 2
-    err = capsys.readouterr().err.splitlines()
-    assert len(err) == 1 and f"frame {len(frames)} repeats frame 0 exactly" in err[0] and "give each frame once" in err[0]
+    argv = ["--method", "peak", "--level", "--table-height", "0"]
+    code_once = main(["calibrate-mount", str(sweep_path), *argv])
+    once = capsys.readouterr().out
+    assert main(["calibrate-mount", str(twice), *argv]) == code_once
+    captured = capsys.readouterr()
+    assert captured.out.replace(str(twice), str(sweep_path)) == once
+    assert f"frame {len(frames)} repeats frame 0 exactly" in captured.err
 
 
 @pytest.mark.parametrize("option, value, line", [

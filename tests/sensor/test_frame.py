@@ -160,15 +160,22 @@ def _sweep_frame(path) -> Frame:
 
 def test_repeated_frames_finds_a_measurement_given_twice_whatever_its_truth_says():
     """A frame whose histograms, reference and on-sensor distances repeat an earlier frame's is a repeat (its ground
-    truth, pose or extras may differ: a pasted copy with an edited truth is still one measurement); the first repeat
-    and how many there are (session 82: 3 frames given 5 times each passed calibrate's 5-frame minimum)."""
-    from place_safe.sensor.frame import repeated_frames
+    truth, pose or extras may differ: a pasted copy with an edited truth is still one measurement); each repeat with
+    the first frame of its measurement (session 82: 3 frames given 5 times each passed calibrate's 5-frame minimum).
+    ``without_repeats`` keeps the first of each, in place, and says what it left out in one line."""
+    from place_safe.sensor.frame import repeated_frames, without_repeats
 
     a, b = _good(), _good()
     b.hists = b.hists + 1.0
-    assert repeated_frames([a, b]) is None and repeated_frames([]) is None
+    assert repeated_frames([a, b]) == [] and repeated_frames([]) == []
     copy_a = Frame(a.hists.copy(), a.reference.copy(), truth=Plane([0.0, 0.0, 1.0], 0.3), extra={"pose": "x"})
-    assert repeated_frames([a, b, copy_a, b]) == (2, 0, 2)
+    assert repeated_frames([a, b, copy_a, b]) == [(2, 0), (3, 1)]
     other_distances = Frame(a.hists.copy(), a.reference.copy(), distances=np.full(N_ZONES, 0.1))
-    assert repeated_frames([a, other_distances]) is None  # another on-sensor result: another measurement
-    assert repeated_frames([a, "not a frame", b]) is None  # (whoever reads it says what it is)
+    assert repeated_frames([a, other_distances]) == []  # another on-sensor result: another measurement
+    assert repeated_frames([a, "not a frame", b]) == []  # (whoever reads it says what it is)
+    kept, note, keep = without_repeats([a, b, copy_a, b], "counting from 0")
+    assert [id(f) for f in kept] == [id(a), id(b)] and keep == [0, 1]
+    assert note.startswith("frame 2 repeats frame 0 exactly (counting from 0") and "2 frames repeat" in note
+    assert "\n" not in note
+    kept, note, keep = without_repeats([a, b])
+    assert [id(f) for f in kept] == [id(a), id(b)] and note is None and keep == [0, 1]
