@@ -274,6 +274,9 @@ class PlaneFilter:
         self.rejected = 0  # rejected since reset
         self.consecutive_rejects = 0
         self.last_reject_reason: str | None = None
+        # why the window last restarted on a run of gate rejections, until it holds min_frames planes again (None: it
+        # did not, or it is full again): a refusal for want of a plane says what happened to the one there was
+        self.restarted: str | None = None
         self.too_close = False  # the newest frame was too close to read (its return overlaps the internal return)
         self.last_time = -math.inf
         self.newest_accepted = -math.inf
@@ -332,6 +335,10 @@ class PlaneFilter:
                 self._items.clear()  # the surface changed: start again from this plane
                 self._memory.clear()
                 self._pending.clear()
+                self.restarted = (f"the surface estimate restarted after {self.consecutive_rejects} planes in a row lay "
+                                  f"off the fused one, the last by {math.degrees(ang):.1f} deg / {off * 1e3:.1f} mm: "
+                                  "the surface moved, or the frames do not follow the arm, as a sensor stuck on one "
+                                  "measurement's do")
         var = _direction_variance(estimate)
         amb = finite_number(ambiguity)
         amb = amb if amb is not None and amb > 0 else 0.0
@@ -343,6 +350,8 @@ class PlaneFilter:
         self.newest_accepted = stamp
         self._dirty = True
         self.count += 1
+        if len(self._items) >= self.min_frames:
+            self.restarted = None
         # a rejected plane is outweighed once PENDING_CLEARS planes have been accepted after it
         self._pending = [p for p in self._pending if self.count - p[1] < PENDING_CLEARS]
         self.consecutive_rejects = 0

@@ -369,6 +369,8 @@ class PlacementLoop:
                 else:
                     accepted = self.filter.update(est, base_T_sensor, stamp, ambiguity=self._ambiguity)
                     self._note = (why if accepted else self.filter.last_reject_reason)
+                    if accepted and (restart := getattr(self.filter, "restarted", None)):
+                        self._note = f"{why}; {restart}" if why else restart
         if self.log_frames:
             seconds = rules.number(self._safe(lambda: getattr(est, "seconds", None), None))
             entry = {"t": now, "stamp": stamp, "accepted": accepted,

@@ -102,6 +102,28 @@ def test_persistent_change_restarts_the_window():
     results = [filt.update(new, T, 0.2 + k / 30) for k in range(5)]
     assert results[:2] == [False, False] and all(results[2:])
     assert filt.fused().offset_base == pytest.approx(0.32 - 0.30)
+    assert filt.restarted is None  # the window holds min_frames planes again
+
+
+def test_a_restart_says_why_until_the_window_is_full_again():
+    """The window restarted on a run of rejections is no plane until ``min_frames`` are in again; meanwhile
+    ``restarted`` says what happened (a refusal for want of a plane quotes it: a sensor stuck on one measurement
+    and stamped anew reads as a surface moving with the arm, session 82)."""
+    T = looking_down([-0.5, -0.1, 0.32])
+    filt = PlaneFilter(max_consecutive_rejects=3, min_frames=3)
+    for k in range(5):
+        filt.update(Plane(np.array([0, 0, 1.0]), 0.37), T, k / 30)
+    assert filt.restarted is None
+    new = Plane(np.array([0, 0, 1.0]), 0.30)
+    for k in range(3):
+        filt.update(new, T, 0.2 + k / 30)
+    assert filt.fused() is None
+    assert "restarted after 3 planes in a row" in filt.restarted and "70.0 mm" in filt.restarted
+    filt.update(new, T, 0.3)
+    filt.update(new, T, 0.34)
+    assert filt.fused() is not None and filt.restarted is None
+    filt.reset()
+    assert filt.restarted is None
 
 
 @pytest.mark.parametrize("bad", ["none", "nan_pose", "nan_stamp", "shape", "not_rigid", "huge_stamp", "text_stamp",

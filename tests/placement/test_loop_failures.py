@@ -469,3 +469,29 @@ def test_frames_too_close_with_the_sensor_far_from_the_plane_do_not_hold_it(reas
     res = PlacementLoop(robot, TruthSource(robot), PulledAway(robot, reason), config=CFG, read_bound=BOUND).run(20.0)
     _check_safe(robot, res)
     assert res.outcome == "refused" and not robot.opened, res.reason
+
+
+def test_a_sensor_stuck_on_one_measurement_is_refused_saying_the_frames_do_not_follow_the_arm():
+    """A driver that re-reads a stale buffer and stamps it anew: the frames' plane moves with the arm, the fusion
+    restarts on the run of outliers and the approach is refused for want of a plane, saying why (it said only "no
+    surface plane": the twelfth bad-input round, session 82)."""
+    import copy
+
+    class Stuck(TruthSource):
+        def __init__(self, robot, **kw):
+            super().__init__(robot, **kw)
+            self.held = None
+
+        def read(self, timeout=1.0):
+            f = super().read(timeout)
+            if self.robot.t >= 0.3:
+                self.held = self.held or f
+                g = copy.copy(self.held)
+                g.timestamp = f.timestamp
+                return g
+            return f
+
+    robot = KinematicRobot(height=0.1)
+    res = PlacementLoop(robot, Stuck(robot), TruthEstimator()).run(timeout=20.0)
+    assert res.outcome == "refused" and robot.opened_at is None
+    assert "restarted after" in res.reason and "stuck on one measurement" in res.reason
