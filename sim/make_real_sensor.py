@@ -177,7 +177,7 @@ def crosstalk_bound(frames: list[Frame], max_distance: float = 0.021, sigmas: fl
     displacement (``GRID_DISPLACEMENTS``) and for the scalar crosstalk (from every other zone), the smallest over
     frames and zone pairs of (the zone's return + ``sigmas`` Poisson sigmas) / (the source's return), returns summed
     over bins 10-19 less 10 times the early floor."""
-    from place_safe.recovery.forward import _GRID_SELECTORS, GRID_DISPLACEMENTS
+    from place_safe.recovery.forward_params import _GRID_SELECTORS, GRID_DISPLACEMENTS
 
     near = [f for f in frames if f.truth is not None and f.truth.z0 <= max_distance]
     grid = np.full(len(GRID_DISPLACEMENTS), np.inf)

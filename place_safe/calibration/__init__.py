@@ -132,7 +132,7 @@ class Calibration:
     def diff_options(self):
         """The diff solver's options this calibration was made with: its window after the peak (bins), the
         one its chi-square limit and covariance scale hold for. A file without it predates the key and
-        was calibrated with :data:`~place_safe.recovery.differentiable.LEGACY_WINDOW_AFTER_PEAK`; without a
+        was calibrated with :data:`~place_safe.recovery.diff_settings.LEGACY_WINDOW_AFTER_PEAK`; without a
         ``diff`` section the solver's default is used. ``ambient`` (true or false, absent: false): the forward
         model was fitted with the ambient as it arrives through the pile-up (``calibrate --unit-model staged``),
         and the solver compares it with the data so (:attr:`~place_safe.recovery.differentiable.SolverOptions.ambient`).

@@ -471,5 +471,6 @@ def capture_sweep(robot: Robot, source: Any, plan: SweepPlan, out_path: str | Pa
     return CaptureResult(str(out), len(grid), captured, len(done), refused, frames_written, robot.time() - t0)
 
 
-__all__ = ["SweepPlan", "CaptureResult", "capture_sweep", "done_indices", "done_poses", "resume_problem", "touch_plane", "touched_reference", "level_plane",
+__all__ = ["SweepPlan", "CaptureResult", "capture_sweep", "done_indices", "done_poses", "resume_problem", "touch_plane",
+           "touched_reference", "level_plane",
            "sensor_target", "plane_in_sensor", "lowest_tool_point", "refusal_line", "TOUCH_HEIGHT_STD"]

@@ -28,7 +28,9 @@ within some angle: :func:`frames_reference`), and drops them when the frames sta
 
 Each frame once: a frame that repeats another exactly (:func:`~place_safe.sensor.frame.repeated_frames`; frames pasted
 or files joined, a noise-free synthetic frame drawn twice) is one measurement: the repeats are left out, with a note,
-before the frames are counted (counted twice, a copy passed the count and was held out beside itself). How many frames: at least :data:`~place_safe.calibration.points.MIN_CALIBRATION_FRAMES` (5) with ground truth at
+before the frames are counted (counted twice, a copy passed the count and was held out beside itself).
+
+How many frames: at least :data:`~place_safe.calibration.points.MIN_CALIBRATION_FRAMES` (5) with ground truth at
 :data:`~place_safe.calibration.points.MIN_CALIBRATION_RANGE` or farther, at
 :data:`~place_safe.calibration.points.MIN_CALIBRATION_DISTANCES` (3) or more distances; fewer raise a one-line
 :class:`~place_safe.exceptions.CalibrationError` before any fit. Why an error there and not wider covariances: the peak

@@ -20,7 +20,8 @@ from place_safe.calibration.forward_fit import usable_frames
 from place_safe.calibration.points import MIN_TILT_SPREAD
 from place_safe.exceptions import CalibrationError
 from place_safe.geometry import Plane
-from place_safe.recovery.differentiable import DifferentiableEstimator, RangeCorrection, SolverOptions, range_argument
+from place_safe.recovery.differentiable import DifferentiableEstimator, RangeCorrection, SolverOptions
+from place_safe.recovery.diff_settings import range_argument
 from place_safe.recovery.forward import ForwardParams, mount_rotation
 from place_safe.sensor.frame import Frame
 
@@ -60,7 +61,7 @@ def _series_degree(n_frames: int, degree: int = MAX_SERIES_DEGREE) -> int:
 
 def _series_design(z: np.ndarray, domain, degree: int, inverse: bool, log: bool = False) -> np.ndarray:
     """Chebyshev design matrix (frames, degree + 1) in z0, its inverse or its logarithm
-    (:func:`~place_safe.recovery.differentiable.range_argument`)."""
+    (:func:`~place_safe.recovery.diff_settings.range_argument`)."""
     from numpy.polynomial import chebyshev
 
     return chebyshev.chebvander(range_argument(z, domain, inverse, log), degree)

@@ -48,10 +48,8 @@ import torch
 
 from place_safe.recovery.points import PeakParams
 from place_safe.exceptions import FrameError, NoPlaneError
-# the calibrated settings live without torch (a calibration is read, and peak runs, without the solver); named here too
-from place_safe.recovery.diff_settings import (LEGACY_WINDOW_AFTER_PEAK, MIN_CROSSTALK_STD,  # noqa: F401
-                                               MIN_INVERSE_DOMAIN, RangeCorrection, SolverOptions,
-                                               crosstalk_std_problem, range_argument)
+# the calibrated settings live without torch (a calibration is read, and peak runs, without the solver)
+from place_safe.recovery.diff_settings import RangeCorrection, SolverOptions
 from place_safe.recovery.forward import (ForwardModel, ForwardParams, PulseMatrices, ZoneRays, mount_rotation,
                                          residual_weights)
 from place_safe.geometry import Plane

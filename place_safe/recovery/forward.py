@@ -35,10 +35,9 @@ import numpy as np
 import torch
 
 from place_safe.sensor.frame import N_BINS, N_ZONES, ZONE_KIND, ZONE_RECTS
-# the parameters live without torch (a calibration is read, and peak runs, without the renderer); named here too
-from place_safe.recovery.forward_params import (ECHO_REFERENCE_RANGE, GRID_DISPLACEMENTS, RESPONSE_LAGS,  # noqa: F401
-                                                WARP_KNOTS, WARP_SPACING, ForwardParams, _GRID_SELECTORS,
-                                                _grid_positions)
+# the parameters live without torch (a calibration is read, and peak runs, without the renderer)
+from place_safe.recovery.forward_params import (ECHO_REFERENCE_RANGE, WARP_KNOTS, WARP_SPACING, ForwardParams,
+                                                _GRID_SELECTORS)
 
 _SQRT_2PI = math.sqrt(2.0 * math.pi)
 

@@ -194,7 +194,7 @@ def test_range_correction_bounds_are_physical():
 def test_the_diff_solver_window_comes_from_the_calibration():
     """A file records the window its chi-square limit and covariance scale were calibrated with; a file from
     before the key keeps the old window; no diff section: the solver's default."""
-    from place_safe.recovery.differentiable import LEGACY_WINDOW_AFTER_PEAK, SolverOptions
+    from place_safe.recovery.diff_settings import LEGACY_WINDOW_AFTER_PEAK, SolverOptions
 
     base = {"format": FORMAT, "forward": ForwardParams().to_dict()}
     new = Calibration.from_dict({**base, "diff": {"range_correction": {}, "window_after_peak": 48}})

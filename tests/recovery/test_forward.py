@@ -241,7 +241,7 @@ def test_soft_binned_pulse_is_smoother_than_interpolated():
 def test_a_file_without_the_learned_response_reads_as_none():
     """Forward parameters written before the learned impulse response (no ``response_kernel`` key) load with
     zero weights, which render exactly what the model rendered before."""
-    from place_safe.recovery.forward import RESPONSE_LAGS
+    from place_safe.recovery.forward_params import RESPONSE_LAGS
 
     d = ForwardParams().to_dict()
     d.pop("response_kernel")
@@ -251,7 +251,8 @@ def test_a_file_without_the_learned_response_reads_as_none():
 
 def test_the_learned_response_adds_delayed_copies_of_the_histogram():
     """A weight ``w`` at lag ``k`` adds ``w`` times the histogram ``k`` bins later (causal, per zone)."""
-    from place_safe.recovery.forward import RESPONSE_LAGS, add_response
+    from place_safe.recovery.forward import add_response
+    from place_safe.recovery.forward_params import RESPONSE_LAGS
 
     hist = torch.zeros(1, 9, 40, dtype=torch.float64)
     hist[0, :, 5] = 100.0
@@ -344,7 +345,8 @@ def test_identity_terms_a_fit_does_not_name_are_skipped_with_the_same_histogram_
 def test_grid_crosstalk_reaches_only_the_named_neighbours():
     """A weight at displacement (dx, dy) takes that share of the zone at (x + dx, y + dy) in the 3x3 grid, and of
     no other zone; zones at the grid's edge have no neighbour beyond it."""
-    from place_safe.recovery.forward import GRID_DISPLACEMENTS, _grid_positions, grid_crosstalk_matrix
+    from place_safe.recovery.forward import grid_crosstalk_matrix
+    from place_safe.recovery.forward_params import GRID_DISPLACEMENTS, _grid_positions
 
     pos = _grid_positions()
     for k, (dx, dy) in enumerate(GRID_DISPLACEMENTS):

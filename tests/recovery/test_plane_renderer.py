@@ -86,7 +86,7 @@ def test_matches_torch_model_with_zone_tails():
 def test_matches_torch_model_with_a_learned_impulse_response():
     """The learned impulse response (non-negative weights at lags 1..24 bins, a second bump included) is rendered
     and differentiated exactly as in the torch model, alone and together with the zones' own tails."""
-    from place_safe.recovery.forward import RESPONSE_LAGS
+    from place_safe.recovery.forward_params import RESPONSE_LAGS
 
     kernel = np.zeros(RESPONSE_LAGS)
     kernel[:4] = [0.3, 0.1, 0.05, 0.02]
@@ -206,7 +206,8 @@ def test_responses_made_once_give_the_same_renders_and_the_band_covers_rays_beyo
     """The per-frame responses (pulse, pulse shape, learned response and zone tails folded into one causal matrix per
     zone) render what the pulse matrices render, Jacobian included; rays whose windows reach past either end of the
     histogram (a plane beyond it, a zone offset before bin 0) are rendered as the kernel evaluated at every bin."""
-    from place_safe.recovery.forward import RESPONSE_LAGS, bin_kernel
+    from place_safe.recovery.forward import bin_kernel
+    from place_safe.recovery.forward_params import RESPONSE_LAGS
 
     kernel = np.zeros(RESPONSE_LAGS)
     kernel[:3] = [0.2, 0.05, 0.01]
