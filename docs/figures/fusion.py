@@ -31,7 +31,7 @@ from place_safe.calibration import Calibration
 from place_safe.evaluation.metrics import angular_errors
 from place_safe.io.frame_file import load_frames
 from place_safe.recovery import make_estimator
-from place_safe.recovery.differentiable import NEAR_FALLBACK_RANGE
+from place_safe.recovery.diff_settings import NEAR_FALLBACK_RANGE
 
 
 def _vec(plane) -> np.ndarray:

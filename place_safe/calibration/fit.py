@@ -53,10 +53,6 @@ from collections.abc import Callable, Sequence
 
 from place_safe.calibration import REQUIRED_SECTIONS, UNIT_MODELS, Calibration
 from place_safe.calibration.alongside import Alongside, spare_cores
-from place_safe.calibration.forward_fit import fit_forward, fit_forward_staged, free_crosstalk_std
-from place_safe.calibration.model_error import select_model_error
-from place_safe.calibration.plane_correction import fit_range_correction
-from place_safe.calibration.second_fit import reconsider_geometry, second_fit_for
 from place_safe.calibration.points import (FEW_CALIBRATION_FRAMES, MIN_CALIBRATION_DISTANCES, MIN_CALIBRATION_FRAMES,
                                            MIN_CALIBRATION_RANGE, adopt_pileup, fit_peak, fit_proprietary,
                                            small_sample_factor)
@@ -64,7 +60,7 @@ from place_safe.exceptions import CalibrationError
 from place_safe.recovery.points import MIN_DOMAIN_WIDTH
 from place_safe.calibration.uncertainty import update_calibration
 from place_safe.io.json_values import jsonable
-from place_safe.recovery.differentiable import SolverOptions
+from place_safe.recovery.diff_settings import SolverOptions
 from place_safe.recovery.estimator import Reference
 from place_safe.sensor.frame import Frame, without_repeats
 
@@ -134,6 +130,13 @@ def fit_method(calibration: Calibration, frames: Sequence[Frame], method: str, p
         params, report = fit_proprietary(frames, progress=progress)
         _store(cal, fitted, "proprietary", params.to_dict(), report)
     if method == "diff":
+        # (the forward model's fits are torch's: imported here, so `calibrate --method peak` and `proprietary` never
+        # load it, a second and a few hundred megabytes they do not use)
+        from place_safe.calibration.forward_fit import fit_forward, fit_forward_staged, free_crosstalk_std
+        from place_safe.calibration.model_error import select_model_error
+        from place_safe.calibration.plane_correction import fit_range_correction
+        from place_safe.calibration.second_fit import reconsider_geometry, second_fit_for
+
         if unit_model == "staged":  # (its geometry is set by its first stage: a far one gets the note alone)
             params, report = reconsider_geometry(frames, *fit_forward_staged(frames, progress=progress, log=log),
                                                  second_fit=False)

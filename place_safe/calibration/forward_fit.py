@@ -36,7 +36,7 @@ from place_safe.sensor.frame import N_BINS, N_ZONES, Frame
 from place_safe.sensor.histogram import (ambient_slopes, arriving_ambient, beyond_count_max, clipped_zones,
                                          floor_profile, reference_floor, reference_problem)
 from place_safe.calibration.points import level_frames, tilt_angles
-from place_safe.recovery.differentiable import SolverOptions
+from place_safe.recovery.diff_settings import CROSSTALK_LEFT_SHARE, SolverOptions
 
 #: Camera parameters fitted by default, with how they are parametrised ("log": positive). The
 #: specular lobe is left at its published value: it is a property of the surface, fitted per frame
@@ -1058,12 +1058,6 @@ LEVEL_SWEEP_TRADED = {
                         "scale): tilted frames determine them",
 }
 
-#: The share of its fitted value that a level sweep leaves undetermined of the crosstalk (taken so: seeds 0 and 3 of
-#: the generator fitted 0.012 and 0.0065 against true values near 0.0098 and 0.0080, seeds 1 and 7 2.5-3 times the
-#: truth). Sizes the prior under which diff solves each frame's crosstalk after a level sweep
-#: (:attr:`~place_safe.recovery.differentiable.SolverOptions.crosstalk_std`) and the crosstalk's part of its stated
-#: tilt term (:data:`~place_safe.calibration.uncertainty.DIFF_TILT_PER_CROSSTALK`).
-CROSSTALK_LEFT_SHARE = 0.5
 #: A fitted crosstalk below this (a fraction; a tenth of the paper's published 0.0098) stays held in diff's solve: what it
 #: can move a slope by is below diff's stated tilt floor, and a free unknown the frame cannot pin only adds scatter
 #: (mismatched unit B, fitted 2e-4: 0.079 -> 0.088 deg with it free). The real unit fits 1e-5-1e-4, the mismatched

@@ -81,13 +81,12 @@ from place_safe.sensor.frame import Frame
 from place_safe.sensor.histogram import find_peaks
 from place_safe.calibration.near_range import held_out_fits, near_range_std
 from place_safe.calibration.point_errors import true_ranges
-from place_safe.calibration.forward_fit import CROSSTALK_LEFT_SHARE, crosstalk_traded
 from place_safe.exceptions import CalibrationError, FrameError, NoPlaneError
 from place_safe.recovery.points import PlaneFitGeometry, plane_fit_geometry, plane_through
 from place_safe.calibration.points import (MIN_CALIBRATION_RANGE, MIN_TILT_SPREAD, level_frames, refit_mapping,
                                           tilt_angles)
 from place_safe.recovery.blend import blended
-from place_safe.recovery.differentiable import BLENDED, NEAR_FALLBACK_RANGE, DifferentiableEstimator
+from place_safe.recovery.diff_settings import BLENDED, CROSSTALK_LEFT_SHARE, NEAR_FALLBACK_RANGE
 from place_safe.recovery.peak import PeakEstimator, near_applies, near_covariances
 
 
@@ -425,6 +424,7 @@ def reading_disagreement(frames: Sequence[Frame], forward, other, peak_params, c
     about these; the stated tilt term takes them (:func:`diff_tilt_term`). ``frames``: the calibration's (their mean
     reference histogram is the pulse)."""
     from place_safe.evaluation.synthetic import SyntheticSpec, make_frames
+    from place_safe.recovery.differentiable import DifferentiableEstimator
 
     refs = [f.reference for f in frames if f.reference is not None][:20]
     reference = np.mean(refs, axis=0) if refs else None
@@ -1198,6 +1198,8 @@ def fit_diff_uncertainty(frames: Sequence[Frame], forward, peak_params, correcti
     :data:`FALLBACK_MIN_FRAMES` are left. With :data:`BLEND` the section blends (``blend`` true, ``prefer_ratio``
     inf) and the report's ``angular_deg`` / ``point_mm`` give the blend's held-out figures too."""
 
+    from place_safe.recovery.differentiable import DifferentiableEstimator  # (torch: a peak calibration never gets here)
+
     # closer frames always get peak's plane (NEAR_FALLBACK_RANGE): they take no part in choosing the limits; nor do
     # frames beyond FALLBACK_MAX_RANGE while enough are left (a far sweep's dim frames: see the constant)
     near_on = [f for f in frames if f.truth is not None and f.truth.z0 >= NEAR_FALLBACK_RANGE]
@@ -1372,6 +1374,8 @@ def update_calibration(cal, frames: Sequence[Frame], method: str, widen_peak: fl
             if notes:
                 report["peak"]["note"] = "; ".join(notes)
     if method == "diff":
+        from place_safe.calibration.forward_fit import crosstalk_traded
+
         # the unit's model error as the forward fit measured it at the frames' true planes (sizes diff's tilt term)
         measured = (cal.reports.get("forward") or {}).get("model_error_chi2")
         forward = cal.forward()
@@ -1404,7 +1408,7 @@ def other_reading(cal):
     geometry = _forward_geometry(cal)
     if geometry.get("told_apart") is not False or not isinstance(geometry.get("other_params"), dict):
         return None
-    from place_safe.recovery.forward import ForwardParams
+    from place_safe.recovery.forward_params import ForwardParams
 
     try:
         return ForwardParams.from_dict(geometry["other_params"], "reports.forward.geometry.other_params")

@@ -19,6 +19,24 @@ from place_safe.exceptions import CalibrationError
 from place_safe.sensor.frame import N_BINS
 
 
+NEAR_FALLBACK_RANGE = 0.05
+"""m: closer than this (peak's plane offset) a calibrated fast solver returns peak's plane; the fallback limits are
+chosen on calibration frames at or beyond it (:func:`place_safe.calibration.uncertainty.fit_diff_uncertainty`).
+Measured again with the forward fit and plane correction reaching down to 1.5-2 cm (docs/results.md, "Diff at 2-5 cm"):
+on six simulated units diff's own 2-5 cm plane stayed 6-14 times peak's error on level frames (a timing error that
+repeats every bin, falling as 1 / z0) with NEES 2-5; moved to 3.5 or 2 cm, the calibrated limits kept real planes
+1.8 and 14 deg off where peak read 0.1 and 3.3 deg."""
+
+#: ``method_used`` of a plane blended from diff's and peak's (``Uncertainty.blend``).
+BLENDED = "diff+peak"
+
+#: The share of its fitted value that a level sweep leaves undetermined of the crosstalk (taken so: seeds 0 and 3 of
+#: the generator fitted 0.012 and 0.0065 against true values near 0.0098 and 0.0080, seeds 1 and 7 2.5-3 times the
+#: truth). Sizes the prior under which diff solves each frame's crosstalk after a level sweep
+#: (:attr:`SolverOptions.crosstalk_std`, :func:`~place_safe.calibration.forward_fit.free_crosstalk_std`) and the
+#: crosstalk's part of its stated tilt term (:data:`~place_safe.calibration.uncertainty.DIFF_TILT_PER_CROSSTALK`).
+CROSSTALK_LEFT_SHARE = 0.5
+
 class RangeCorrection(ParamModel):
     """A calibrated correction of the recovered plane as a function of its axis crossing ``z0``.
 

@@ -49,7 +49,7 @@ import torch
 from place_safe.recovery.points import PeakParams
 from place_safe.exceptions import FrameError, NoPlaneError
 # the calibrated settings live without torch (a calibration is read, and peak runs, without the solver)
-from place_safe.recovery.diff_settings import RangeCorrection, SolverOptions
+from place_safe.recovery.diff_settings import BLENDED, NEAR_FALLBACK_RANGE, RangeCorrection, SolverOptions
 from place_safe.recovery.forward import (ForwardModel, ForwardParams, PulseMatrices, ZoneRays, mount_rotation,
                                          residual_weights)
 from place_safe.geometry import Plane
@@ -69,17 +69,6 @@ def _positive_definite(cov) -> bool:
     return cov is None or is_covariance(cov, definite=True)
 
 
-NEAR_FALLBACK_RANGE = 0.05
-"""m: closer than this (peak's plane offset) a calibrated fast solver returns peak's plane; the fallback limits are
-chosen on calibration frames at or beyond it (:func:`place_safe.calibration.uncertainty.fit_diff_uncertainty`).
-Measured again with the forward fit and plane correction reaching down to 1.5-2 cm (docs/results.md, "Diff at 2-5 cm"):
-on six simulated units diff's own 2-5 cm plane stayed 6-14 times peak's error on level frames (a timing error that
-repeats every bin, falling as 1 / z0) with NEES 2-5; moved to 3.5 or 2 cm, the calibrated limits kept real planes
-1.8 and 14 deg off where peak read 0.1 and 3.3 deg."""
-
-
-#: ``method_used`` of a plane blended from diff's and peak's (``Uncertainty.blend``).
-BLENDED = "diff+peak"
 
 
 def _fallback(peak: PlaneEstimate, diff: PlaneEstimate | None = None) -> PlaneEstimate:

@@ -494,8 +494,8 @@ def test_a_coarse_start_whose_residuals_are_not_finite_is_skipped(monkeypatch):
 def test_each_frame_solves_its_crosstalk_only_where_a_level_sweep_left_it_undetermined():
     """``free_crosstalk_std``: CROSSTALK_LEFT_SHARE of the fitted crosstalk when the fit's report marks the crosstalk as
     traded by a level sweep, 0 (held) when its frames determined it or the report says nothing."""
-    from place_safe.calibration.forward_fit import (CROSSTALK_FREE_MIN, CROSSTALK_LEFT_SHARE, LEVEL_SWEEP_TRADED,
-                                                   crosstalk_traded, free_crosstalk_std)
+    from place_safe.calibration.forward_fit import CROSSTALK_FREE_MIN, LEVEL_SWEEP_TRADED, crosstalk_traded, free_crosstalk_std
+    from place_safe.recovery.diff_settings import CROSSTALK_LEFT_SHARE
     p = ForwardParams(crosstalk=0.018)
     level = {"posterior_std": {"crosstalk": {"std": 0.0007, "level_sweep": LEVEL_SWEEP_TRADED["crosstalk"]}}}
     tilted = {"posterior_std": {"crosstalk": {"std": 0.0007}}}

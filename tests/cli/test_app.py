@@ -242,6 +242,24 @@ def test_recover_with_peak_loads_no_torch():
     assert out.stdout.split() == ["0", "53", "False"], out.stdout + out.stderr
 
 
+
+def test_calibrate_peak_loads_no_torch(tmp_path):
+    """``calibrate --method peak`` (and ``proprietary``) fit and check their sections without importing torch: the
+    forward model's fits are imported only on the diff branch (``calibration.fit``), and the names the uncertainty
+    module shares with diff live in ``recovery.diff_settings``. It loaded torch at start-up (about 2 s and 200 MB)."""
+    root = Path(__file__).resolve().parents[2]
+    frames = root / "tests" / "data" / "tmf8820_ur5_sweep.json"
+    code = ("import contextlib, io, sys\n"
+            "from place_safe.cli.app import main\n"
+            "out = io.StringIO()\n"
+            "with contextlib.redirect_stdout(out), contextlib.redirect_stderr(io.StringIO()):\n"
+            f"    rcs = [main(['calibrate', {str(frames)!r}, '--method', m, '-o', {str(tmp_path)!r} + '/' + m + '.json', '-q'])\n"
+            "           for m in ('peak', 'proprietary')]\n"
+            "print(*rcs, 'torch' in sys.modules)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=300)
+    assert out.stdout.split() == ["0", "0", "False"], out.stdout + out.stderr
+    assert {"peak", "uncertainty"} <= set(json.loads((tmp_path / "peak.json").read_text()))
+
 def test_sim_without_mujoco_says_how_to_install(monkeypatch, capsys):
     import importlib.util
 

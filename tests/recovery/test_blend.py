@@ -133,7 +133,8 @@ def test_a_matrix_that_is_no_covariance_is_not_blended():
 def test_diff_blends_nothing_closer_than_the_near_fallback_range_even_without_a_limit():
     """A calibration that blends but has no chi-square limit (none could be chosen, or a hand-edited file) still
     returns peak's plane closer than NEAR_FALLBACK_RANGE."""
-    from place_safe.recovery.differentiable import NEAR_FALLBACK_RANGE, DifferentiableEstimator
+    from place_safe.recovery.diff_settings import NEAR_FALLBACK_RANGE
+    from place_safe.recovery.differentiable import DifferentiableEstimator
     from place_safe.recovery.estimator import Uncertainty
 
     est = DifferentiableEstimator(uncertainty=Uncertainty(blend=True))

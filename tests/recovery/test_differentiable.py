@@ -209,7 +209,8 @@ def test_diff_keeps_its_plane_only_when_every_fallback_test_passes():
     from hypothesis import strategies as st
 
     from place_safe.geometry import Plane
-    from place_safe.recovery.differentiable import BLENDED, NEAR_FALLBACK_RANGE, _positive_definite
+    from place_safe.recovery.diff_settings import BLENDED, NEAR_FALLBACK_RANGE
+    from place_safe.recovery.differentiable import _positive_definite
     from place_safe.recovery.estimator import PlaneEstimate, Uncertainty
 
     est = DifferentiableEstimator()
@@ -246,7 +247,7 @@ def test_diff_keeps_its_plane_only_when_every_fallback_test_passes():
 def test_a_calibrated_diff_returns_peak_closer_than_the_near_fallback_range():
     """Convention check (frames rendered by the forward model, which diff fits well): with a calibrated fallback,
     a frame closer than NEAR_FALLBACK_RANGE gets peak's plane although every other test passes; farther, diff's."""
-    from place_safe.recovery.differentiable import NEAR_FALLBACK_RANGE
+    from place_safe.recovery.diff_settings import NEAR_FALLBACK_RANGE
     from place_safe.recovery.estimator import Uncertainty
 
     calibrated = DifferentiableEstimator(uncertainty=Uncertainty(chi2_limit=1e12, consistency_limit=1e12,
