@@ -33,7 +33,8 @@ import numpy as np
 
 from place_safe.recovery.points import MM_PER_M, PeakParams, plane_covariance, plane_through
 from place_safe.exceptions import FrameError, NoPlaneError
-from place_safe.sensor.frame import MAX_CONFIDENCE, MAX_SENSOR_DISTANCE, MIN_SENSOR_DISTANCE, N_ZONES, Frame, real_array
+from place_safe.sensor.frame import (MAX_CONFIDENCE, MAX_SENSOR_DISTANCE, MIN_SENSOR_DISTANCE, N_ZONES, SENSOR_RANGE,
+                                     Frame, real_array)
 from place_safe.recovery.estimator import Estimator, PlaneEstimate, check_arguments
 from place_safe.recovery.too_close import may_be_close, overlap_reason, plane_overlap_reason
 
@@ -47,7 +48,9 @@ MIN_EIGEN_RATIO = 1e-12
 
 def on_sensor_readings(frame: Frame) -> tuple[np.ndarray, np.ndarray]:
     """(distances (9,) in m, zones that report an object (9,)) of ``frame``'s on-sensor result: a zone reports one
-    where its distance is not 0 and its confidence (if given) not 0. FrameError for a frame without them, or with
+    where its distance is not 0, not beyond the sensor's range (:data:`~place_safe.sensor.frame.SENSOR_RANGE`, 5 m: a
+    distance the 16-bit field holds beyond it, up to 65535 mm, is no target the sensor measured; at full confidence it
+    read as a plane 64 m away) and its confidence (if given) not 0. FrameError for a frame without them, or with
     values the sensor cannot report (NaN, negative, beyond 16-bit millimetres, a confidence beyond a byte): the
     method refuses such a frame, and its calibration leaves it out."""
     if frame.distances is None:
@@ -71,7 +74,15 @@ def on_sensor_readings(frame: Frame) -> tuple[np.ndarray, np.ndarray]:
         if not np.all((conf >= 0) & (conf <= MAX_CONFIDENCE)):  # NaN fails too
             raise FrameError(f"confs_1 outside what the sensor reports (0-{MAX_CONFIDENCE}, 0 = no object)")
         valid &= conf > 0
-    return dist, valid
+    return dist, valid & (dist <= SENSOR_RANGE)
+
+
+def beyond_range(frame: Frame) -> int:
+    """How many zones of ``frame`` report a distance beyond the sensor's range (:data:`SENSOR_RANGE`) at a confidence
+    above 0 (left out by :func:`on_sensor_readings`), for the reason of a frame left with too few zones."""
+    dist = np.asarray(frame.distances, dtype=float)
+    conf = np.ones(N_ZONES) if frame.confidences is None else np.asarray(frame.confidences, dtype=float)
+    return int(np.sum((dist > SENSOR_RANGE) & (conf > 0)))
 
 
 class ProprietaryEstimator(Estimator):
@@ -93,7 +104,10 @@ class ProprietaryEstimator(Estimator):
     def _estimate(self, frame: Frame) -> PlaneEstimate:
         dist, valid = on_sensor_readings(frame)
         if valid.sum() < 3:
-            raise NoPlaneError(f"only {int(valid.sum())} zone(s) report an object; a plane needs 3 or more")
+            far = beyond_range(frame)
+            raise NoPlaneError(f"only {int(valid.sum())} zone(s) report an object" + (
+                f" ({far} more report one beyond the sensor's {SENSOR_RANGE:g} m range: no target it measures)"
+                if far else "") + "; a plane needs 3 or more")
         # a zone without an object counts as dark (the on-sensor result holds no return heights)
         if may_be_close(dist * MM_PER_M, valid, self.params):
             too_close = overlap_reason(self.params.ranges(np.where(valid, dist * MM_PER_M, np.nan)), valid,

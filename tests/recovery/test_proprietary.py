@@ -61,6 +61,26 @@ def test_bad_input_gives_reason(dist, conf, words):
     assert e.plane is None and words in e.reason
 
 
+def test_on_sensor_distances_beyond_the_sensors_range_are_no_target():
+    """65535 mm at full confidence (the 16-bit field's largest; the emulated sensor clamps a file's 1e308 mm to it)
+    read as a plane 64 m away (session 83). A distance beyond the TMF8820's 5 m is no target: a frame of them gives no
+    plane, the reason naming them; the zones within range still give theirs."""
+    sweep = load_frames(SWEEP)
+    f = next(f for f in sweep if 0.2 < f.truth.offset < 0.25)
+    est = ProprietaryEstimator()
+    assert est.estimate(f).plane is not None
+    far = Frame(f.hists, f.reference, distances=np.full(9, 65.535), confidences=np.full(9, 255.0))
+    e = est.estimate(far)
+    assert e.plane is None and e.reason == ("only 0 zone(s) report an object (9 more report one beyond the sensor's "
+                                            "5 m range: no target it measures); a plane needs 3 or more")
+    some = Frame(f.hists, f.reference, distances=np.where(np.arange(9) < 3, 65.535, f.distances),
+                 confidences=f.confidences)
+    e = est.estimate(some)  # six zones within range: their plane, the far three left out
+    assert e.plane is not None and abs(e.plane.offset - est.estimate(f).plane.offset) < 0.01
+    edge = Frame(f.hists, f.reference, distances=np.full(9, 5.0), confidences=np.full(9, 255.0))
+    assert est.estimate(edge).plane is not None  # at the range itself: a target
+
+
 @pytest.mark.slow
 def test_real_sweep_covariance_is_honest_on_held_out_frames():
     """Calibrated on one half of the real sweep, the stated covariance describes the other half's errors at
