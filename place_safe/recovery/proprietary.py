@@ -6,7 +6,9 @@ a confidence. The reading of a zone is that distance in millimetres, mapped to a
 plus the optional smooth correction); ``proprietary-naive`` uses m = 1000 mm/m, b = 0 and nominal
 directions, i.e. the distances as reported along the zone centres. Points at those ranges along the
 zone directions are fitted by SVD. Zones with distance 0 (or confidence 0) are dropped; 3 or more
-are needed. A frame whose zones' median range (mapped) lies within the laser pulse's half width, or closer than 3 cm
+are needed. A frame whose histograms are corrupt (NaN, infinite or negative counts, counts beyond the 24-bit
+counters: what ``peak`` and ``diff`` refuse) gives no plane either, though the method does not read them
+(:func:`histogram_problem`). A frame whose zones' median range (mapped) lies within the laser pulse's half width, or closer than 3 cm
 with no object in the centre zone, gives no plane,
 reason ``"too close: the return overlaps the internal return (...)"`` (:mod:`place_safe.recovery.too_close`).
 ``residual``: RMS perpendicular distance (m) of the points from the plane.
@@ -36,6 +38,7 @@ from place_safe.exceptions import FrameError, NoPlaneError
 from place_safe.sensor.frame import (MAX_CONFIDENCE, MAX_SENSOR_DISTANCE, MIN_SENSOR_DISTANCE, N_ZONES, SENSOR_RANGE,
                                      Frame, real_array)
 from place_safe.recovery.estimator import Estimator, PlaneEstimate, check_arguments
+from place_safe.sensor.histogram import beyond_count_max
 from place_safe.recovery.too_close import may_be_close, overlap_reason, plane_overlap_reason
 
 #: Reading units (mm): standard deviation of rounding to the sensor's whole millimetres (a uniform step of 1 mm).
@@ -85,6 +88,23 @@ def beyond_range(frame: Frame) -> int:
     return int(np.sum((dist > SENSOR_RANGE) & (conf > 0)))
 
 
+def histogram_problem(frame: Frame) -> str | None:
+    """Why ``frame``'s histograms make it a corrupt frame (None: they do not): what ``peak`` and ``diff`` refuse a frame
+    for before reading it (:meth:`Frame.validate`: not real numbers, the wrong shape, NaN, infinite or negative counts;
+    a count above the 24-bit counters', :func:`~place_safe.sensor.histogram.beyond_count_max`), a missing reference
+    histogram excepted (this method reads none; a clipped return is a measurement, not corruption). The on-sensor
+    distances come in the same measurement: a frame whose histograms hold NaN counts gave its plane from them (session
+    83), one that ``peak`` and ``diff`` refuse."""
+    try:
+        frame.validate(need_reference=False)
+    except FrameError as exc:
+        return f"{exc}: a frame whose histograms are corrupt is not used, its on-sensor distances neither"
+    for what, counts in (("histogram", frame.hists), ("reference histogram", frame.reference)):
+        if counts is not None and (beyond := beyond_count_max(counts, what)) is not None:
+            return f"{beyond}: a frame whose histograms are corrupt is not used, its on-sensor distances neither"
+    return None
+
+
 class ProprietaryEstimator(Estimator):
     """On-sensor distances, calibrated (``proprietary``) or as reported (:meth:`naive`)."""
 
@@ -102,6 +122,8 @@ class ProprietaryEstimator(Estimator):
         return est
 
     def _estimate(self, frame: Frame) -> PlaneEstimate:
+        if (corrupt := histogram_problem(frame)) is not None:
+            raise FrameError(corrupt)
         dist, valid = on_sensor_readings(frame)
         if valid.sum() < 3:
             far = beyond_range(frame)
@@ -139,4 +161,4 @@ class ProprietaryEstimator(Estimator):
         return cov
 
 
-__all__ = ["ProprietaryEstimator", "on_sensor_readings"]
+__all__ = ["ProprietaryEstimator", "on_sensor_readings", "histogram_problem"]

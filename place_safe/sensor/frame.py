@@ -246,10 +246,12 @@ class Frame:
     timestamp_error: str | None = None
     distances_error: str | None = None
 
-    def validate(self) -> None:
+    def validate(self, *, need_reference: bool = True) -> None:
         """Raise :class:`FrameError` unless the histograms can be used for recovery.
 
         Counts must be real numbers (not strings, objects, complex or ragged lists), finite and >= 0.
+        ``need_reference=False``: a frame without a reference histogram passes (one that has it is checked): for a
+        method that reads no histogram but trusts no corrupt frame (``proprietary``).
         """
         h = real_array(self.hists, "hists")
         if h.shape != (N_ZONES, N_BINS):
@@ -259,6 +261,8 @@ class Frame:
         if (h < 0).any():
             raise FrameError("hists contains negative counts")
         if self.reference is None:
+            if not need_reference:
+                return
             raise FrameError("reference histogram is missing")
         r = real_array(self.reference, "reference_hist")
         if r.shape != (N_BINS,):
