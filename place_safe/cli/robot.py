@@ -29,11 +29,24 @@ from place_safe.geometry import transform_problem
 from place_safe.sensor.frame import without_repeats
 
 
+def _items(text: str, what: str) -> list[str]:
+    """The items of a comma-separated option ``text`` (spaces dropped); one ``expected ...`` line for an empty item
+    between commas or at either end (``--incidences 0,,12`` read as ``0,12``, silently: session 83). An empty
+    ``text`` gives ``[]`` (the caller says it is empty)."""
+    items = text.replace(" ", "").split(",")
+    if len(items) > 1 and "" in items:
+        raise argparse.ArgumentTypeError(f"expected comma-separated {what} with no empty item (two commas together, "
+                                         f"or one at an end), got {text[:80]!r}")
+    return [v for v in items if v != ""]
+
+
 def _floats(text: str, n: int | None = None, what: str = "numbers", lo: float = -math.inf,
             hi: float = math.inf) -> list[float]:
-    """Comma-separated finite numbers (``n`` of them when given, at most :data:`MAX_LIST`), each in [lo, hi]."""
+    """Comma-separated finite numbers (``n`` of them when given, at most :data:`MAX_LIST`), each in [lo, hi]; an
+    empty item is refused (:func:`_items`)."""
+    items = _items(text, what)
     try:
-        vals = [float(v) for v in text.replace(" ", "").split(",") if v != ""]
+        vals = [float(v) for v in items]
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected comma-separated {what}, got {text[:80]!r}") from None
     return _checked(vals, text, n, what, lo, hi)
@@ -64,10 +77,10 @@ def _distances(text: str) -> list[float]:
     ``START:STOP:STEP`` (STOP included when the steps reach it), e.g. ``10:90:2,100:400:10``; at most
     :data:`MAX_LIST` values in all."""
     values: list[float] = []
-    for item in text.replace(" ", "").split(","):
+    for item in _items(text, "mm (numbers or START:STOP:STEP)"):
         if ":" not in item:
             try:
-                values += [float(item)] if item else []
+                values += [float(item)]
             except ValueError:
                 raise argparse.ArgumentTypeError(f"expected comma-separated mm (numbers or START:STOP:STEP), got "
                                                  f"{text[:80]!r}") from None

@@ -50,6 +50,28 @@ def test_capture_distances_take_ranges_with_the_stop_included():
     assert _distances("10:15:2") == [10.0, 12.0, 14.0]  # a stop the steps do not reach is not added
 
 
+@pytest.mark.parametrize("argv, option", [
+    (["capture", "--sim", "level_table", "--incidences", "0,,12"], "--incidences"),
+    (["capture", "--sim", "level_table", "--azimuths", ",0"], "--azimuths"),
+    (["capture", "--sim", "level_table", "--distances", "80,120,"], "--distances"),
+    (["capture", "--sim", "level_table", "--distances", "10:90:2,,100"], "--distances"),
+    (["capture", "--sim", "level_table", "--table-height", "0", "--touch", "0.1,,0.2"], "--touch"),
+    (["place", "--sim", "place_level", "--sim-mount-error", "1,2,,3,4,5,6"], "--sim-mount-error"),
+])
+def test_an_empty_item_in_a_comma_list_is_refused_naming_the_option(argv, option, tmp_path, capsys):
+    """``capture --incidences 0,,12`` read as ``0,12``: the empty item was dropped without a word (session 83). An empty
+    item in any comma-separated option (between commas or at an end) is one line naming the option, exit 2."""
+    from place_safe.cli.robot import _distances, _floats
+
+    out = tmp_path / "cap.jsonl"
+    assert main([*argv, "-o", str(out)] if argv[0] == "capture" else argv) == 2
+    captured = capsys.readouterr()
+    err = captured.err.splitlines()
+    assert captured.out == "" and len(err) == 1 and not out.exists(), err
+    assert f"argument {option}: expected comma-separated " in err[0] and "with no empty item" in err[0], err
+    assert _floats("0, 12") == [0.0, 12.0] and _distances("80 ,120") == [80.0, 120.0]  # spaces are no items
+
+
 def test_place_on_an_unreachable_arm_is_a_one_line_error(capsys, sweep_path, tmp_path):
     cfg = URConfig.load(packaged_config("sim"))
     cfg.connection.connect_timeout_s = 1.0
