@@ -287,12 +287,13 @@ def _check_sim_table(args: argparse.Namespace, plane: tuple[Any, float]) -> None
 
 
 def cmd_capture(args: argparse.Namespace) -> int:
-    from place_safe.calibration.capture import (SweepPlan, done_indices, capture_sweep, level_plane, resume_problem,
+    from place_safe.calibration.capture import (SweepPlan, capture_sweep, level_plane, read_capture, resume_problem,
                                                 touch_plane, touched_reference)
     from place_safe.recovery.estimator import Reference
 
-    # an output that is not a capture to resume: refused before the arm is connected, touched or moved
-    done_indices(Path(args.output), cut=False)
+    # an output that is not a capture to resume: refused before the arm is connected, touched or moved; read once, and
+    # what was read passed on (the resume check, the sweep)
+    existing = read_capture(Path(args.output))
     existed = Path(args.output).exists()
 
     grid = len(args.distances) * len(args.incidences) * len(args.azimuths)
@@ -311,7 +312,7 @@ def cmd_capture(args: argparse.Namespace) -> int:
                      azimuths=[math.radians(a) for a in args.azimuths], frames_per_pose=args.frames_per_pose,
                      max_poses=args.poses, speed=args.speed, settle_s=args.settle,
                      min_clearance=args.min_clearance / 1000.0)
-    if (why := resume_problem(Path(args.output), plan)) is not None:  # before the arm is connected, touched or moved
+    if (why := resume_problem(existing, plan)) is not None:  # before the arm is connected, touched or moved
         raise UsageError(f"capture: {args.output} was captured with other options ({why}): resume it with the "
                          "--distances, --incidences, --azimuths and --poses it was made with, or give another output")
     robot_cfg = _robot_config(args.robot)
@@ -362,7 +363,7 @@ def cmd_capture(args: argparse.Namespace) -> int:
                 plane = world.table_plane_base()
                 notes.append(f"table from the scenario: z = {plane[1] * 1000:.1f} mm in the base frame")
             res = capture_sweep(robot, source, plan, args.output, plane=plane, tool=tool, progress=not args.quiet,
-                                reference=reference, on_refused=held.append)
+                                reference=reference, on_refused=held.append, existing=existing)
     except BaseException:  # no result to list them with (a fault, Ctrl-C): the poses refused so far, on stderr
         for entry in held:
             log(refusal_line(entry))

@@ -395,6 +395,35 @@ def test_a_capture_resumed_with_other_options_is_refused_before_the_arm(tmp_path
     assert main(argv) == 0 and out.read_bytes() == before  # the same options: resumed, nothing left to do
 
 
+def test_capture_reads_its_output_once(tmp_path, capsys, monkeypatch):
+    """capture read its output four times before capturing (the "is it a capture" check, the resume check here and in
+    capture_sweep, then the indices with the cut of an unfinished line: session 83); once now, the resume unchanged."""
+    import builtins
+    import json
+
+    import place_safe.calibration.capture as capture
+
+    out = tmp_path / "cap.jsonl"
+    argv = ["capture", "--sim", "level_table", "--poses", "2", "--settle", "0.01", "-q", "-o", str(out)]
+    first = [*argv[:4], "1", *argv[5:]]
+    assert main(first) == 0
+    out.write_text(out.read_text() + '{"hists": [[1, 2')  # an interrupted run's last line
+    capsys.readouterr()
+    reads = []
+
+    def counting_open(file, mode="r", *args, **kwargs):
+        if str(file) == str(out) and "r" in mode and "+" not in mode:
+            reads.append(mode)
+        return builtins.open(file, mode, *args, **kwargs)
+
+    monkeypatch.setattr(capture, "open", counting_open, raising=False)
+    assert main(argv) == 0
+    assert len(reads) == 1, reads
+    assert "1 poses captured now, 1 already there" in capsys.readouterr().out
+    lines = out.read_text().splitlines()
+    assert lines and all(json.loads(x)["meta"]["pose_index"] in (0, 1) for x in lines)
+
+
 def test_a_capture_that_ends_early_still_lists_the_poses_it_refused(tmp_path, capsys, monkeypatch):
     """Without a result (a fault, Ctrl-C) the refused poses held back for it are written to standard error."""
     import place_safe.calibration.capture as capture
