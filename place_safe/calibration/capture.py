@@ -260,13 +260,14 @@ def done_indices(path: Path, cut: bool = True) -> set[int]:
     return set(done_poses(path, cut))
 
 
-def resume_problem(path: Path, plan: "SweepPlan") -> str | None:
-    """Why the capture in ``path`` cannot be resumed with ``plan`` -- a pose there that is not the plan's pose of the
-    same index (another distance, incidence or azimuth, or an index beyond the plan: a capture made with other
-    options) -- or None. Resumed with another ``--distances``, a capture counted the poses of the first plan as done
-    and never captured the new plan's poses of those indices ("2 already there", session 82)."""
+def resume_problem(path: "Path | CaptureFile", plan: "SweepPlan") -> str | None:
+    """Why the capture in ``path`` (or as :func:`read_capture` read it) cannot be resumed with ``plan`` -- a pose there
+    that is not the plan's pose of the same index (another distance, incidence or azimuth, or an index beyond the plan:
+    a capture made with other options) -- or None. Resumed with another ``--distances``, a capture counted the poses of
+    the first plan as done and never captured the new plan's poses of those indices ("2 already there", session 82)."""
     grid = plan.grid()
-    for i, stored in sorted(done_poses(path, cut=False).items()):
+    stored_poses = path.poses if isinstance(path, CaptureFile) else read_capture(Path(path)).poses
+    for i, stored in sorted(stored_poses.items()):
         if stored is None:
             continue  # (a pose written without its target: nothing to compare)
         if i >= len(grid):
@@ -280,18 +281,55 @@ def resume_problem(path: Path, plan: "SweepPlan") -> str | None:
     return None
 
 
-def done_poses(path: Path, cut: bool = True) -> dict[int, tuple[float, float, float] | None]:
-    """The pose indices already in a capture's output (resume), from its frames' ``meta.pose_index`` (a whole number
-    >= 0). A last line after captured frames that is unfinished JSON (an interrupted run) is cut off (``cut``; a dry
-    run writes nothing and leaves it), so the frames appended after it start on a line of their own. A file that is
-    not a capture (any other line that is not a frame with a pose index: a calibration, a JSON list of frames, a note,
-    text) raises :class:`FrameFileError` before anything is appended to it. Each index maps to its pose's
+@dataclass(frozen=True)
+class CaptureFile:
+    """What a capture's output held when :func:`read_capture` read it: the poses already there (index ->
+    ``(distance, incidence, azimuth)`` or None, as :func:`done_poses`), where an interrupted run's unfinished last line
+    starts (bytes; None: there is none) and the file's size then (-1: no file). ``capture`` reads its output once and
+    passes this along (it read the file four times before capturing: the "is it a capture" check, the resume check in
+    the command and again in :func:`capture_sweep`, then the indices with the cut: session 83)."""
+
+    path: Path
+    poses: dict
+    cut_at: int | None = None
+    size: int = -1
+
+    @property
+    def done(self) -> set[int]:
+        return set(self.poses)
+
+    def cut(self) -> "CaptureFile":
+        """Cut the unfinished last line off the file (so frames appended start on a line of their own); the file as it
+        is then. A file that changed since it was read (its size) is read again, and that reading is cut."""
+        if self.cut_at is None:
+            return self
+        if _size(self.path) != self.size:  # written to meanwhile: not this reading's offset to cut at
+            return read_capture(self.path).cut()
+        with open(self.path, "r+b") as fh:
+            fh.truncate(self.cut_at)
+        return CaptureFile(self.path, self.poses, None, self.cut_at)
+
+
+def _size(path: Path) -> int:
+    try:
+        return path.stat().st_size if path.is_file() else -1
+    except OSError:
+        return -1
+
+
+def read_capture(path: Path) -> CaptureFile:
+    """A capture's output read once, line by line (a capture of many frames need not be held whole): the pose indices
+    there from its frames' ``meta.pose_index`` (a whole number >= 0) with their poses, and an unfinished last line after
+    captured frames (JSON cut off: an interrupted run), which :meth:`CaptureFile.cut` cuts off. A file that is not a
+    capture (any other line that is not a frame with a pose index: a calibration, a JSON list of frames, a note, text)
+    raises :class:`FrameFileError` before anything is appended to it. Each index maps to its pose's
     ``(distance, incidence, azimuth)`` from the same meta (m, rad, rad; None where the frame does not say)."""
+    path = Path(path)
     done: dict[int, tuple[float, float, float] | None] = {}
     if not path.is_file():
-        return done
+        return CaptureFile(path, done)
     cut_at = None
-    with open(path, "rb") as fh:  # line by line: a capture of many frames need not be held whole
+    with open(path, "rb") as fh:
         end = 0
         for k, line in enumerate(fh, 1):
             start, end = end, end + len(line)
@@ -312,10 +350,14 @@ def done_poses(path: Path, cut: bool = True) -> dict[int, tuple[float, float, fl
             target = tuple(value["meta"].get(k) for k in ("distance", "incidence", "azimuth"))
             numbers = all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in target)
             done.setdefault(index, target if numbers else None)
-    if cut_at is not None and cut:
-        with open(path, "r+b") as fh:
-            fh.truncate(cut_at)
-    return done
+    return CaptureFile(path, done, cut_at, end)
+
+
+def done_poses(path: Path, cut: bool = True) -> dict[int, tuple[float, float, float] | None]:
+    """The pose indices already in a capture's output (resume) with their poses (:func:`read_capture`); with ``cut``
+    (a dry run writes nothing and leaves it) an unfinished last line is cut off."""
+    capture = read_capture(path)
+    return (capture.cut() if cut else capture).poses
 
 
 @dataclass
@@ -373,7 +415,8 @@ def capture_sweep(robot: Robot, source: Any, plan: SweepPlan, out_path: str | Pa
                   plane: tuple[np.ndarray, float], tool: Any, progress: bool = True,
                   log: Callable[[str], None] | None = None,
                   reference: Reference | None = None,
-                  on_refused: Callable[[dict], None] | None = None) -> CaptureResult:
+                  on_refused: Callable[[dict], None] | None = None,
+                  existing: CaptureFile | None = None) -> CaptureResult:
     """Run the sweep (see module docstring) and append frames to ``out_path`` (JSON Lines).
 
     ``plane``: the surface in the base frame (from :func:`touch_plane` or :func:`level_plane`). ``tool``:
@@ -382,7 +425,8 @@ def capture_sweep(robot: Robot, source: Any, plan: SweepPlan, out_path: str | Pa
     ``meta.base_plane.reference``; ``calibrate`` keeps it as the calibration's ``reference`` section. None: not
     stated (a table height given by hand). ``on_refused``: called with each refused pose's entry (as in
     ``CaptureResult.refused``) instead of logging ``pose N refused: reason`` (a caller that lists them with the
-    result).
+    result). ``existing``: ``out_path`` as :func:`read_capture` read it (a caller that checked it already); None: read
+    here.
     """
     from tqdm import tqdm
 
@@ -396,10 +440,11 @@ def capture_sweep(robot: Robot, source: Any, plan: SweepPlan, out_path: str | Pa
             log(refusal_line(entry))
 
     out = Path(out_path)
-    if (why := resume_problem(out, plan)) is not None:  # before anything moves or is appended
+    capture = existing if existing is not None else read_capture(out)  # read once
+    if (why := resume_problem(capture, plan)) is not None:  # before anything moves or is appended
         raise FrameFileError(f"{out} is a capture made with another plan ({why}): resume it with the options it was "
                              "made with, or give another output file")
-    done = done_indices(out, cut=not getattr(robot, "dry_run", False))
+    done = (capture if getattr(robot, "dry_run", False) else capture.cut()).done
     n = np.asarray(plane[0], dtype=float)
     n = n / np.linalg.norm(n)
     pl = (n, float(plane[1]) / float(np.linalg.norm(plane[0])))
@@ -471,6 +516,7 @@ def capture_sweep(robot: Robot, source: Any, plan: SweepPlan, out_path: str | Pa
     return CaptureResult(str(out), len(grid), captured, len(done), refused, frames_written, robot.time() - t0)
 
 
-__all__ = ["SweepPlan", "CaptureResult", "capture_sweep", "done_indices", "done_poses", "resume_problem", "touch_plane",
+__all__ = ["SweepPlan", "CaptureResult", "CaptureFile", "capture_sweep", "done_indices", "done_poses", "read_capture",
+           "resume_problem", "touch_plane",
            "touched_reference", "level_plane",
            "sensor_target", "plane_in_sensor", "lowest_tool_point", "refusal_line", "TOUCH_HEIGHT_STD"]

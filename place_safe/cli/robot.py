@@ -29,11 +29,24 @@ from place_safe.geometry import transform_problem
 from place_safe.sensor.frame import without_repeats
 
 
+def _items(text: str, what: str) -> list[str]:
+    """The items of a comma-separated option ``text`` (spaces dropped); one ``expected ...`` line for an empty item
+    between commas or at either end (``--incidences 0,,12`` read as ``0,12``, silently: session 83). An empty
+    ``text`` gives ``[]`` (the caller says it is empty)."""
+    items = text.replace(" ", "").split(",")
+    if len(items) > 1 and "" in items:
+        raise argparse.ArgumentTypeError(f"expected comma-separated {what} with no empty item (two commas together, "
+                                         f"or one at an end), got {text[:80]!r}")
+    return [v for v in items if v != ""]
+
+
 def _floats(text: str, n: int | None = None, what: str = "numbers", lo: float = -math.inf,
             hi: float = math.inf) -> list[float]:
-    """Comma-separated finite numbers (``n`` of them when given, at most :data:`MAX_LIST`), each in [lo, hi]."""
+    """Comma-separated finite numbers (``n`` of them when given, at most :data:`MAX_LIST`), each in [lo, hi]; an
+    empty item is refused (:func:`_items`)."""
+    items = _items(text, what)
     try:
-        vals = [float(v) for v in text.replace(" ", "").split(",") if v != ""]
+        vals = [float(v) for v in items]
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected comma-separated {what}, got {text[:80]!r}") from None
     return _checked(vals, text, n, what, lo, hi)
@@ -64,10 +77,10 @@ def _distances(text: str) -> list[float]:
     ``START:STOP:STEP`` (STOP included when the steps reach it), e.g. ``10:90:2,100:400:10``; at most
     :data:`MAX_LIST` values in all."""
     values: list[float] = []
-    for item in text.replace(" ", "").split(","):
+    for item in _items(text, "mm (numbers or START:STOP:STEP)"):
         if ":" not in item:
             try:
-                values += [float(item)] if item else []
+                values += [float(item)]
             except ValueError:
                 raise argparse.ArgumentTypeError(f"expected comma-separated mm (numbers or START:STOP:STEP), got "
                                                  f"{text[:80]!r}") from None
@@ -274,12 +287,13 @@ def _check_sim_table(args: argparse.Namespace, plane: tuple[Any, float]) -> None
 
 
 def cmd_capture(args: argparse.Namespace) -> int:
-    from place_safe.calibration.capture import (SweepPlan, done_indices, capture_sweep, level_plane, resume_problem,
+    from place_safe.calibration.capture import (SweepPlan, capture_sweep, level_plane, read_capture, resume_problem,
                                                 touch_plane, touched_reference)
     from place_safe.recovery.estimator import Reference
 
-    # an output that is not a capture to resume: refused before the arm is connected, touched or moved
-    done_indices(Path(args.output), cut=False)
+    # an output that is not a capture to resume: refused before the arm is connected, touched or moved; read once, and
+    # what was read passed on (the resume check, the sweep)
+    existing = read_capture(Path(args.output))
     existed = Path(args.output).exists()
 
     grid = len(args.distances) * len(args.incidences) * len(args.azimuths)
@@ -298,7 +312,7 @@ def cmd_capture(args: argparse.Namespace) -> int:
                      azimuths=[math.radians(a) for a in args.azimuths], frames_per_pose=args.frames_per_pose,
                      max_poses=args.poses, speed=args.speed, settle_s=args.settle,
                      min_clearance=args.min_clearance / 1000.0)
-    if (why := resume_problem(Path(args.output), plan)) is not None:  # before the arm is connected, touched or moved
+    if (why := resume_problem(existing, plan)) is not None:  # before the arm is connected, touched or moved
         raise UsageError(f"capture: {args.output} was captured with other options ({why}): resume it with the "
                          "--distances, --incidences, --azimuths and --poses it was made with, or give another output")
     robot_cfg = _robot_config(args.robot)
@@ -349,7 +363,7 @@ def cmd_capture(args: argparse.Namespace) -> int:
                 plane = world.table_plane_base()
                 notes.append(f"table from the scenario: z = {plane[1] * 1000:.1f} mm in the base frame")
             res = capture_sweep(robot, source, plan, args.output, plane=plane, tool=tool, progress=not args.quiet,
-                                reference=reference, on_refused=held.append)
+                                reference=reference, on_refused=held.append, existing=existing)
     except BaseException:  # no result to list them with (a fault, Ctrl-C): the poses refused so far, on stderr
         for entry in held:
             log(refusal_line(entry))

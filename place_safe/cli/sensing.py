@@ -250,6 +250,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
                  (item.partition(" ") for item in skipped.partition(": ")[2].split(", ") if item)}
     report = evaluate(frames, cal, list(args.methods), None if args.no_plots else args.out, not args.quiet,
                       estimator_options=options, skipped=by_reason)
+    if report.repeats_note is not None and not args.quiet:  # (the table's last line counts them too)
+        log(f"evaluate: {report.repeats_note}")
     print(report.table(), flush=True)
     if args.json:
         data = report.to_dict() if hasattr(report, "to_dict") else report

@@ -17,6 +17,7 @@ from place_safe.cli.options import opt
 from place_safe.cli.options import float_range, int_range
 from place_safe.cli.common import UsageError, log, refuse_overwrite
 from place_safe.io.frame_file import write_frames
+from place_safe.sensor.frame import SENSOR_RANGE
 
 EPILOG = """examples:
   # calibration frames and separate test frames of the same simulated sensor
@@ -43,10 +44,10 @@ def register(subparsers) -> None:
             help="independent simulation (default) or the project's forward model (convention checks)"),
         "frames", "seed",
         opt("--sensor-seed", type=int_range(0, 2 ** 32 - 1), default=0, help="seed of the simulated sensor (default 0)"),
-        opt("--min-distance", type=float_range(0.0, 5.0, lo_open=True), default=0.02, metavar="M",
-            help="nearest z0, m (default 0.02, at most 5)"),
-        opt("--max-distance", type=float_range(0.0, 5.0, lo_open=True), default=0.30, metavar="M",
-            help="farthest z0, m (default 0.30, at most 5: the sensor's range)"),
+        opt("--min-distance", type=float_range(0.0, SENSOR_RANGE, lo_open=True), default=0.02, metavar="M",
+            help=f"nearest z0, m (default 0.02, at most {SENSOR_RANGE:g})"),
+        opt("--max-distance", type=float_range(0.0, SENSOR_RANGE, lo_open=True), default=0.30, metavar="M",
+            help=f"farthest z0, m (default 0.30, at most {SENSOR_RANGE:g}: the sensor's range)"),
         opt("--max-angle", type=float_range(0.0, 80.0), default=30.0, metavar="DEG",
             help="largest incidence, deg (default 30, 0..80)"),
         opt("--pulse", choices=PULSE_MODES, default=None,

@@ -4,7 +4,11 @@
 frame that has a ground-truth plane and collects the paper's errors (:mod:`place_safe.evaluation.metrics`):
 angular (reported in degrees), linear and point (reported in millimetres), plus failures (frames
 without a plane) and the mean recovery time per frame. Methods that cannot be built (e.g. an
-optional method whose module is missing) are listed as unavailable with the reason.
+optional method whose module is missing) are listed as unavailable with the reason. A frame that repeats an earlier
+one exactly (:func:`place_safe.sensor.frame.without_repeats`: the same histograms and on-sensor distances) is one
+measurement and counts once, as in ``calibrate``: the repeats are left out, counted among the skipped frames, and
+:attr:`EvaluationReport.repeats_note` says so in one line (given twice, a sweep's means, percentiles and NEES weighted
+every frame it repeated double).
 With ``out_dir``, PNG plots (matplotlib, Agg backend) show the errors against the angle of incidence
 and the distance, and the recovered albedo against distance for methods that return one.
 """
@@ -21,7 +25,7 @@ import numpy as np
 
 from place_safe.calibration import mark
 from place_safe.evaluation.metrics import angular_errors, linear_errors, nees, point_errors, summarise
-from place_safe.sensor.frame import Frame
+from place_safe.sensor.frame import Frame, without_repeats
 from place_safe.recovery import make_estimator
 from place_safe.calibration import uncalibrated_reason
 from place_safe.recovery.too_close import TOO_CLOSE_REASON
@@ -103,6 +107,8 @@ class EvaluationReport:
     plots: list[str] = field(default_factory=list)
     #: methods that ran on built-in constants, not on the calibration (their rows say so)
     uncalibrated: set[str] = field(default_factory=set)
+    #: one line saying which frames were left out as exact repeats of an earlier one (None: none was)
+    repeats_note: str | None = None
 
     def table(self) -> str:
         """A text table like the paper's Table I (mean / median / p95 per error)."""
@@ -151,6 +157,8 @@ class EvaluationReport:
 
 #: Reasons of skipped frames (:attr:`EvaluationReport.skipped_reasons`) that count as without ground truth.
 WITHOUT_TRUTH = ("no ground truth", "ground truth not a plane")
+#: The reason (:attr:`EvaluationReport.skipped_reasons`) of frames left out as exact repeats of an earlier one.
+REPEATED = "repeats of an earlier frame"
 
 
 def evaluate(frames: Sequence[Frame], calibration: Any = None, methods: Sequence[str] = ("peak",),
@@ -169,10 +177,14 @@ def evaluate(frames: Sequence[Frame], calibration: Any = None, methods: Sequence
     reasons = {str(k): int(v) for k, v in (skipped or {}).items() if int(v) > 0}
     own = {"ground truth not a plane": sum(1 for f in frames if f.truth is None and getattr(f, "truth_error", None))}
     own["no ground truth"] = len(frames) - len(use) - own["ground truth not a plane"]
+    with_truth = len(use)
+    use, repeats_note, _ = without_repeats(use, "counting the frames with ground truth from 0")
+    own[REPEATED] = with_truth - len(use)  # one measurement, counted once (as calibrate does)
     for why, n in own.items():
         if n:
             reasons[why] = reasons.get(why, 0) + n
-    report = EvaluationReport(skipped=sum(reasons.get(k, 0) for k in WITHOUT_TRUTH), skipped_reasons=reasons)
+    report = EvaluationReport(skipped=sum(reasons.get(k, 0) for k in WITHOUT_TRUTH), skipped_reasons=reasons,
+                              repeats_note=repeats_note)
     report.z0 = np.array([f.truth.z0 for f in use])
     report.theta = np.array([f.truth.theta for f in use])
     tn = np.array([f.truth.normal for f in use]).reshape(-1, 3)

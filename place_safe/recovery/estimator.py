@@ -29,7 +29,7 @@ from pydantic import Field, model_validator
 from place_safe.config import ParamModel, vector
 from place_safe.exceptions import ArgumentTypeError, CalibrationError, FrameError, NoPlaneError
 from place_safe.geometry import Plane
-from place_safe.sensor.frame import MAX_SENSOR_DISTANCE, Frame
+from place_safe.sensor.frame import SENSOR_RANGE, Frame
 
 
 #: cos(80 deg): the tilt term's largest tilt.
@@ -402,17 +402,18 @@ class PlaneEstimate:
 
 
 def checked(est: PlaneEstimate) -> PlaneEstimate:
-    """``est`` unless its plane is not finite, lies behind the sensor or farther than the sensor reports
-    (:data:`~place_safe.sensor.frame.MAX_SENSOR_DISTANCE`, as a ground truth may not) (then no plane, with the reason).
-    A peak calibration's ``b`` of -10000 (within its field's range) put every plane 140 m away, stated with a
-    covariance of millimetres (session 82)."""
+    """``est`` unless its plane is not finite, lies behind the sensor or beyond the sensor's range
+    (:data:`~place_safe.sensor.frame.SENSOR_RANGE`, 5 m) (then no plane, with the reason). A peak calibration's ``b``
+    of -10000 (within its field's range) put every plane 140 m away, stated with a covariance of millimetres (session
+    82: then held to the 65.5 m the on-sensor field can hold); a proprietary ``b`` of -10000 put planes 9-10 m away,
+    which no TMF8820 measures (session 83)."""
     p = est.plane
     if p is not None and not (np.isfinite(p.normal).all() and np.isfinite(p.offset) and p.offset > 0):
         return PlaneEstimate(None, reason=f"recovered plane is not in front of the sensor (offset {p.offset:.4g} m)",
                              seconds=est.seconds)
-    if p is not None and p.offset > MAX_SENSOR_DISTANCE:
-        return PlaneEstimate(None, reason=f"recovered plane is {p.offset:.4g} m away, farther than the sensor reports "
-                                          f"({MAX_SENSOR_DISTANCE:g} m): is the calibration this sensor's?",
+    if p is not None and p.offset > SENSOR_RANGE:
+        return PlaneEstimate(None, reason=f"recovered plane is {p.offset:.4g} m away, beyond the sensor's "
+                                          f"{SENSOR_RANGE:g} m range: is the calibration this sensor's?",
                              seconds=est.seconds)
     if est.albedo is not None and not np.isfinite(est.albedo):
         est.albedo = None

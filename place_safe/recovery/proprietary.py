@@ -6,7 +6,9 @@ a confidence. The reading of a zone is that distance in millimetres, mapped to a
 plus the optional smooth correction); ``proprietary-naive`` uses m = 1000 mm/m, b = 0 and nominal
 directions, i.e. the distances as reported along the zone centres. Points at those ranges along the
 zone directions are fitted by SVD. Zones with distance 0 (or confidence 0) are dropped; 3 or more
-are needed. A frame whose zones' median range (mapped) lies within the laser pulse's half width, or closer than 3 cm
+are needed. A frame whose histograms are corrupt (NaN, infinite or negative counts, counts beyond the 24-bit
+counters: what ``peak`` and ``diff`` refuse) gives no plane either, though the method does not read them
+(:func:`histogram_problem`). A frame whose zones' median range (mapped) lies within the laser pulse's half width, or closer than 3 cm
 with no object in the centre zone, gives no plane,
 reason ``"too close: the return overlaps the internal return (...)"`` (:mod:`place_safe.recovery.too_close`).
 ``residual``: RMS perpendicular distance (m) of the points from the plane.
@@ -33,8 +35,10 @@ import numpy as np
 
 from place_safe.recovery.points import MM_PER_M, PeakParams, plane_covariance, plane_through
 from place_safe.exceptions import FrameError, NoPlaneError
-from place_safe.sensor.frame import MAX_CONFIDENCE, MAX_SENSOR_DISTANCE, MIN_SENSOR_DISTANCE, N_ZONES, Frame, real_array
+from place_safe.sensor.frame import (MAX_CONFIDENCE, MAX_SENSOR_DISTANCE, MIN_SENSOR_DISTANCE, N_ZONES, SENSOR_RANGE,
+                                     Frame, real_array)
 from place_safe.recovery.estimator import Estimator, PlaneEstimate, check_arguments
+from place_safe.sensor.histogram import beyond_count_max
 from place_safe.recovery.too_close import may_be_close, overlap_reason, plane_overlap_reason
 
 #: Reading units (mm): standard deviation of rounding to the sensor's whole millimetres (a uniform step of 1 mm).
@@ -47,7 +51,9 @@ MIN_EIGEN_RATIO = 1e-12
 
 def on_sensor_readings(frame: Frame) -> tuple[np.ndarray, np.ndarray]:
     """(distances (9,) in m, zones that report an object (9,)) of ``frame``'s on-sensor result: a zone reports one
-    where its distance is not 0 and its confidence (if given) not 0. FrameError for a frame without them, or with
+    where its distance is not 0, not beyond the sensor's range (:data:`~place_safe.sensor.frame.SENSOR_RANGE`, 5 m: a
+    distance the 16-bit field holds beyond it, up to 65535 mm, is no target the sensor measured; at full confidence it
+    read as a plane 64 m away) and its confidence (if given) not 0. FrameError for a frame without them, or with
     values the sensor cannot report (NaN, negative, beyond 16-bit millimetres, a confidence beyond a byte): the
     method refuses such a frame, and its calibration leaves it out."""
     if frame.distances is None:
@@ -71,7 +77,32 @@ def on_sensor_readings(frame: Frame) -> tuple[np.ndarray, np.ndarray]:
         if not np.all((conf >= 0) & (conf <= MAX_CONFIDENCE)):  # NaN fails too
             raise FrameError(f"confs_1 outside what the sensor reports (0-{MAX_CONFIDENCE}, 0 = no object)")
         valid &= conf > 0
-    return dist, valid
+    return dist, valid & (dist <= SENSOR_RANGE)
+
+
+def beyond_range(frame: Frame) -> int:
+    """How many zones of ``frame`` report a distance beyond the sensor's range (:data:`SENSOR_RANGE`) at a confidence
+    above 0 (left out by :func:`on_sensor_readings`), for the reason of a frame left with too few zones."""
+    dist = np.asarray(frame.distances, dtype=float)
+    conf = np.ones(N_ZONES) if frame.confidences is None else np.asarray(frame.confidences, dtype=float)
+    return int(np.sum((dist > SENSOR_RANGE) & (conf > 0)))
+
+
+def histogram_problem(frame: Frame) -> str | None:
+    """Why ``frame``'s histograms make it a corrupt frame (None: they do not): what ``peak`` and ``diff`` refuse a frame
+    for before reading it (:meth:`Frame.validate`: not real numbers, the wrong shape, NaN, infinite or negative counts;
+    a count above the 24-bit counters', :func:`~place_safe.sensor.histogram.beyond_count_max`), a missing reference
+    histogram excepted (this method reads none; a clipped return is a measurement, not corruption). The on-sensor
+    distances come in the same measurement: a frame whose histograms hold NaN counts gave its plane from them (session
+    83), one that ``peak`` and ``diff`` refuse."""
+    try:
+        frame.validate(need_reference=False)
+    except FrameError as exc:
+        return f"{exc}: a frame whose histograms are corrupt is not used, its on-sensor distances neither"
+    for what, counts in (("histogram", frame.hists), ("reference histogram", frame.reference)):
+        if counts is not None and (beyond := beyond_count_max(counts, what)) is not None:
+            return f"{beyond}: a frame whose histograms are corrupt is not used, its on-sensor distances neither"
+    return None
 
 
 class ProprietaryEstimator(Estimator):
@@ -91,9 +122,14 @@ class ProprietaryEstimator(Estimator):
         return est
 
     def _estimate(self, frame: Frame) -> PlaneEstimate:
+        if (corrupt := histogram_problem(frame)) is not None:
+            raise FrameError(corrupt)
         dist, valid = on_sensor_readings(frame)
         if valid.sum() < 3:
-            raise NoPlaneError(f"only {int(valid.sum())} zone(s) report an object; a plane needs 3 or more")
+            far = beyond_range(frame)
+            raise NoPlaneError(f"only {int(valid.sum())} zone(s) report an object" + (
+                f" ({far} more report one beyond the sensor's {SENSOR_RANGE:g} m range: no target it measures)"
+                if far else "") + "; a plane needs 3 or more")
         # a zone without an object counts as dark (the on-sensor result holds no return heights)
         if may_be_close(dist * MM_PER_M, valid, self.params):
             too_close = overlap_reason(self.params.ranges(np.where(valid, dist * MM_PER_M, np.nan)), valid,
@@ -125,4 +161,4 @@ class ProprietaryEstimator(Estimator):
         return cov
 
 
-__all__ = ["ProprietaryEstimator", "on_sensor_readings"]
+__all__ = ["ProprietaryEstimator", "on_sensor_readings", "histogram_problem"]

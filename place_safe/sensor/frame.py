@@ -23,6 +23,13 @@ from place_safe.sensor.zones import CENTRE, CORNER, EDGE, N_BINS, N_ZONES, ZONE_
 
 #: m: the largest on-sensor distance a frame may carry: the TMF8820 reports whole millimetres in 16 bits.
 MAX_SENSOR_DISTANCE = 0xFFFF / 1000.0
+#: m: the farthest the TMF8820 is specified to measure (docs/tmf8820.md, "Range"; the datasheet's 5 m, in its
+#: long-range mode). An on-sensor distance beyond it (up to :data:`MAX_SENSOR_DISTANCE` the field can hold: 65535 mm
+#: at full confidence read as a plane 64 m away) is no target the sensor measured, and a plane recovered beyond it is
+#: no plane (:func:`place_safe.recovery.estimator.checked`: a proprietary ``b`` of -10000 put planes 9-10 m away). A
+#: ground truth may lie farther (it states geometry, not a reading); a return lands in the histograms only to about
+#: 1.3 m.
+SENSOR_RANGE = 5.0
 #: The largest on-sensor confidence a frame may carry (one byte per zone; 0 = no object).
 MAX_CONFIDENCE = 255
 #: m: the smallest non-zero one (0 means no object).
@@ -32,7 +39,7 @@ MIN_SENSOR_DISTANCE = 1e-3
 def reported_distances(ranges: Any, rounding: int = 3, *, hists: Any = None) -> tuple[np.ndarray, np.ndarray]:
     """On-sensor distances (m) and confidences as a TMF8820 reports them for the ranges ``ranges`` (m, per zone) a
     simulation computed: rounded to ``rounding`` decimals (mm), a range below :data:`MIN_SENSOR_DISTANCE` or above
-    :data:`MAX_SENSOR_DISTANCE`, or not finite, as 0 with confidence 0 (no object), the rest at
+    :data:`SENSOR_RANGE` (the sensor measures no farther), or not finite, as 0 with confidence 0 (no object), the rest at
     :data:`MAX_CONFIDENCE`. (The generators wrote a noisy range of 0.1 mm as -1 mm at full confidence, which the
     frame format does not allow: a review's bad-input search.)
 
@@ -41,7 +48,7 @@ def reported_distances(ranges: Any, rounding: int = 3, *, hists: Any = None) -> 
     (``synth`` at 4.9-5 m wrote full-confidence distances over histograms with nothing in them: a return lands in
     the bins only to about 1.3 m.)"""
     r = np.round(np.asarray(ranges, dtype=float), rounding)
-    seen = np.isfinite(r) & (r >= MIN_SENSOR_DISTANCE) & (r <= MAX_SENSOR_DISTANCE)
+    seen = np.isfinite(r) & (r >= MIN_SENSOR_DISTANCE) & (r <= SENSOR_RANGE)
     if hists is not None:
         seen &= first_return(np.asarray(hists, dtype=float))[1]
     return np.where(seen, r, 0.0), np.where(seen, float(MAX_CONFIDENCE), 0.0)
@@ -239,10 +246,12 @@ class Frame:
     timestamp_error: str | None = None
     distances_error: str | None = None
 
-    def validate(self) -> None:
+    def validate(self, *, need_reference: bool = True) -> None:
         """Raise :class:`FrameError` unless the histograms can be used for recovery.
 
         Counts must be real numbers (not strings, objects, complex or ragged lists), finite and >= 0.
+        ``need_reference=False``: a frame without a reference histogram passes (one that has it is checked): for a
+        method that reads no histogram but trusts no corrupt frame (``proprietary``).
         """
         h = real_array(self.hists, "hists")
         if h.shape != (N_ZONES, N_BINS):
@@ -252,6 +261,8 @@ class Frame:
         if (h < 0).any():
             raise FrameError("hists contains negative counts")
         if self.reference is None:
+            if not need_reference:
+                return
             raise FrameError("reference histogram is missing")
         r = real_array(self.reference, "reference_hist")
         if r.shape != (N_BINS,):

@@ -256,3 +256,45 @@ def test_a_capture_made_with_another_plan_is_not_resumed(tmp_path):
     assert resume_problem(out, fewer) == "pose 1 there is beyond this plan's 1 poses"
     with pytest.raises(FrameFileError, match="is a capture made with another plan"):
         capture_sweep(None, None, far, out, plane=level_plane(TABLE_Z), tool=None, progress=False)
+
+
+def test_a_capture_reads_its_output_once(kin, tmp_path, monkeypatch):
+    """capture read its output up to four times before capturing (the "is it a capture" check, the resume check in the
+    command and again in capture_sweep, then the indices with the cut of an unfinished line: session 83). Read once by
+    read_capture and passed on, the sweep reads it no more, and resumes as before: the done pose skipped, the
+    interrupted line cut off. A file written to between the reading and the sweep is read again before it is cut."""
+    import builtins
+
+    import place_safe.calibration.capture as capture
+    from place_safe.calibration.capture import read_capture
+
+    robot, _ = _robot(kin)
+    plan = SweepPlan(distances=[0.10, 0.12], incidences=[0.0], settle_s=0.05, speed=0.2)
+    out = tmp_path / "cap.jsonl"
+    capture_sweep(robot, ClockSource(robot), SweepPlan(**{**plan.to_dict(), "max_poses": 1}), out,
+                  plane=level_plane(TABLE_Z), tool=robot.tool, progress=False, log=lambda s: None)
+    whole = out.read_text()
+    out.write_text(whole + '{"hists": [[1, 2')  # the run after it was cut off mid-frame
+    reads = []
+
+    def counting_open(file, mode="r", *args, **kwargs):
+        if "r" in mode and "+" not in mode:
+            reads.append(str(file))
+        return builtins.open(file, mode, *args, **kwargs)
+
+    monkeypatch.setattr(capture, "open", counting_open, raising=False)
+    existing = read_capture(out)
+    assert existing.done == {0} and existing.cut_at == len(whole.encode()) and reads == [str(out)]
+    res = capture_sweep(robot, ClockSource(robot), plan, out, plane=level_plane(TABLE_Z), tool=robot.tool,
+                        progress=False, log=lambda s: None, existing=existing)
+    assert reads == [str(out)]  # once, by read_capture
+    assert res.skipped_done == 1 and res.captured == 1 and len(load_frames(out)) == 2
+    # written to after it was read: the offset read then is not cut; the file is read again
+    out.write_text(whole + '{"hists": [[1, 2')
+    existing = read_capture(out)
+    out.write_text(whole + json.dumps(json.loads(whole.splitlines()[0]) | {"meta": {"pose_index": 1}}) + "\n"
+                   + '{"hists": [[1')
+    after = existing.cut()
+    assert after.done == {0, 1} and after.cut_at is None
+    assert out.read_text().endswith("\n") and [json.loads(x)["meta"]["pose_index"] for x in
+                                               out.read_text().splitlines()] == [0, 1]

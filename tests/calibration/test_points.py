@@ -461,3 +461,25 @@ def test_a_ground_truth_the_readings_do_not_follow_is_one_error_not_a_mapping(sw
     params, _ = fit_peak(frames, progress=False)
     assert slope_problem(params.m, PeakParams.default_peak(), "returns") is None and 70 < params.m < 72
     assert MAX_SLOPE_FACTOR == 2.0
+
+
+def test_a_zone_beyond_the_sensors_range_is_no_reading_of_the_proprietary_fit(sweep_path):
+    """One zone of one frame of the real sweep reporting 60000 mm at full confidence (a distance the 16-bit field holds,
+    beyond the TMF8820's 5 m) moved the proprietary calibration's slope from 1056 to 1023 mm a metre, its offset by 77
+    mm and its stated zone residual from 0.55 mm to 100 mm (session 83). Beyond the range it is no target: the fit
+    leaves the zone out and matches the clean sweep's."""
+    import copy
+
+    from place_safe.calibration.points import fit_proprietary
+    from place_safe.io.frame_file import load_frames
+
+    sweep = load_frames(sweep_path)
+    clean, _ = fit_proprietary(sweep, progress=False)
+    bad = list(sweep)
+    bad[30] = copy.copy(bad[30])
+    bad[30].distances = np.array(bad[30].distances, dtype=float)
+    bad[30].distances[4] = 60.0
+    bad[30].confidences = np.full(9, 255.0)
+    params, _ = fit_proprietary(bad, progress=False)
+    assert abs(params.m - clean.m) < 1.0 and abs(params.b - clean.b) < 1.0
+    assert params.zone_residual < 2 * clean.zone_residual

@@ -50,6 +50,28 @@ def test_capture_distances_take_ranges_with_the_stop_included():
     assert _distances("10:15:2") == [10.0, 12.0, 14.0]  # a stop the steps do not reach is not added
 
 
+@pytest.mark.parametrize("argv, option", [
+    (["capture", "--sim", "level_table", "--incidences", "0,,12"], "--incidences"),
+    (["capture", "--sim", "level_table", "--azimuths", ",0"], "--azimuths"),
+    (["capture", "--sim", "level_table", "--distances", "80,120,"], "--distances"),
+    (["capture", "--sim", "level_table", "--distances", "10:90:2,,100"], "--distances"),
+    (["capture", "--sim", "level_table", "--table-height", "0", "--touch", "0.1,,0.2"], "--touch"),
+    (["place", "--sim", "place_level", "--sim-mount-error", "1,2,,3,4,5,6"], "--sim-mount-error"),
+])
+def test_an_empty_item_in_a_comma_list_is_refused_naming_the_option(argv, option, tmp_path, capsys):
+    """``capture --incidences 0,,12`` read as ``0,12``: the empty item was dropped without a word (session 83). An empty
+    item in any comma-separated option (between commas or at an end) is one line naming the option, exit 2."""
+    from place_safe.cli.robot import _distances, _floats
+
+    out = tmp_path / "cap.jsonl"
+    assert main([*argv, "-o", str(out)] if argv[0] == "capture" else argv) == 2
+    captured = capsys.readouterr()
+    err = captured.err.splitlines()
+    assert captured.out == "" and len(err) == 1 and not out.exists(), err
+    assert f"argument {option}: expected comma-separated " in err[0] and "with no empty item" in err[0], err
+    assert _floats("0, 12") == [0.0, 12.0] and _distances("80 ,120") == [80.0, 120.0]  # spaces are no items
+
+
 def test_place_on_an_unreachable_arm_is_a_one_line_error(capsys, sweep_path, tmp_path):
     cfg = URConfig.load(packaged_config("sim"))
     cfg.connection.connect_timeout_s = 1.0
@@ -371,6 +393,35 @@ def test_a_capture_resumed_with_other_options_is_refused_before_the_arm(tmp_path
         "--incidences, --azimuths and --poses it was made with, or give another output"]
     assert out.read_bytes() == before
     assert main(argv) == 0 and out.read_bytes() == before  # the same options: resumed, nothing left to do
+
+
+def test_capture_reads_its_output_once(tmp_path, capsys, monkeypatch):
+    """capture read its output four times before capturing (the "is it a capture" check, the resume check here and in
+    capture_sweep, then the indices with the cut of an unfinished line: session 83); once now, the resume unchanged."""
+    import builtins
+    import json
+
+    import place_safe.calibration.capture as capture
+
+    out = tmp_path / "cap.jsonl"
+    argv = ["capture", "--sim", "level_table", "--poses", "2", "--settle", "0.01", "-q", "-o", str(out)]
+    first = [*argv[:4], "1", *argv[5:]]
+    assert main(first) == 0
+    out.write_text(out.read_text() + '{"hists": [[1, 2')  # an interrupted run's last line
+    capsys.readouterr()
+    reads = []
+
+    def counting_open(file, mode="r", *args, **kwargs):
+        if str(file) == str(out) and "r" in mode and "+" not in mode:
+            reads.append(mode)
+        return builtins.open(file, mode, *args, **kwargs)
+
+    monkeypatch.setattr(capture, "open", counting_open, raising=False)
+    assert main(argv) == 0
+    assert len(reads) == 1, reads
+    assert "1 poses captured now, 1 already there" in capsys.readouterr().out
+    lines = out.read_text().splitlines()
+    assert lines and all(json.loads(x)["meta"]["pose_index"] in (0, 1) for x in lines)
 
 
 def test_a_capture_that_ends_early_still_lists_the_poses_it_refused(tmp_path, capsys, monkeypatch):

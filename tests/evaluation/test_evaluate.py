@@ -121,3 +121,32 @@ def test_the_command_reports_the_frames_its_reader_skipped(tmp_path, capsys):
     assert "(2 frames with ground truth; 1 skipped: 1 ground truth not a plane)" in capsys.readouterr().out
     d = json.loads(out.read_text())
     assert d["frames"] == 2 and d["skipped_without_truth"] == 1 and d["skipped"] == {"ground truth not a plane": 1}
+
+
+def test_a_frame_given_twice_counts_once_as_in_calibrate(tmp_path, capsys):
+    """evaluate counted a frame given twice twice (session 82's leftover): the sweep pasted after itself weighted every
+    frame double in the means, percentiles and NEES and reported 106 frames. An exact repeat (the same histograms and
+    on-sensor distances) is one measurement: left out, as calibrate leaves it out, counted among the skipped frames in
+    the table and the JSON, with one line on standard error naming the first copy. The numbers are the sweep's own."""
+    import json
+
+    from place_safe.cli.app import main
+
+    sweep = load_frames(SWEEP)[18:26]
+    once = evaluate(sweep, None, ["peak-naive"], progress=False)
+    twice = evaluate(sweep + sweep[2:5], None, ["peak-naive"], progress=False)
+    assert twice.to_dict()["frames"] == 8 and twice.to_dict()["skipped"] == {"repeats of an earlier frame": 3}
+    assert twice.repeats_note.startswith("frame 8 repeats frame 2 exactly") and once.repeats_note is None
+    assert twice.results["peak-naive"].summary() | {"ms_per_frame": 0} == once.results["peak-naive"].summary() | {
+        "ms_per_frame": 0}
+    assert twice.table().splitlines()[-1] == "(8 frames with ground truth; 3 skipped: 3 repeats of an earlier frame)"
+    entries = json.loads(SWEEP.read_text())[20:23]
+    path = tmp_path / "twice.json"
+    path.write_text(json.dumps(entries + entries[:1]))
+    out = tmp_path / "ev.json"
+    assert main(["evaluate", str(path), "--methods", "peak-naive", "--no-plots", "--json", str(out)]) == 0
+    captured = capsys.readouterr()
+    assert "(3 frames with ground truth; 1 skipped: 1 repeats of an earlier frame)" in captured.out
+    notes = [line for line in captured.err.splitlines() if "repeats frame" in line]
+    assert len(notes) == 1 and notes[0].startswith("evaluate: frame 3 repeats frame 0 exactly"), captured.err
+    assert json.loads(out.read_text())["frames"] == 3

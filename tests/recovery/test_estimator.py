@@ -455,21 +455,27 @@ def test_the_batch_entry_points_take_any_iterable_and_say_what_they_need_in_one_
         Plane(np.array([0.0, 1.0]), 0.1)
 
 
-def test_a_plane_farther_than_the_sensor_reports_is_no_plane(synthetic_frames):
+def test_a_plane_beyond_the_sensors_range_is_no_plane(synthetic_frames):
     """A peak calibration whose ``b`` is -10000 (within its field's range) put every plane 140 m away, stated to
-    millimetres, through peak and diff alike (session 82). Beyond MAX_SENSOR_DISTANCE (as a ground truth may not lie)
-    an estimate is no plane, with the reason; the same calibration with its own ``b`` reads as before."""
+    millimetres, through peak and diff alike (session 82); a proprietary ``b`` of -10000 put planes 9-10 m away,
+    within the 65.5 m the on-sensor field holds (the limit then) but beyond the TMF8820's 5 m (session 83). Beyond
+    SENSOR_RANGE an estimate is no plane, with the reason; the same calibrations with their own ``b`` read as before."""
     from place_safe.recovery import make_estimator
     from place_safe.recovery.estimator import checked
     from place_safe.recovery.points import PeakParams
-    from place_safe.sensor.frame import MAX_SENSOR_DISTANCE
+    from place_safe.sensor.frame import SENSOR_RANGE
 
     far = PeakParams.default_peak().replace(b=-10000.0)
-    cal = Calibration({"peak": far.to_dict()})
-    for method in ("peak", "diff"):
+    cal = Calibration({"peak": far.to_dict(), "proprietary": PeakParams.default_proprietary().replace(
+        b=-10000.0).to_dict()})
+    for method in ("peak", "diff", "proprietary"):
         for est in make_estimator(method, cal).estimate_many(synthetic_frames[:3]):
-            assert est.plane is None and "m away, farther than the sensor reports (65.535 m)" in est.reason
-    near = make_estimator("peak", Calibration({"peak": PeakParams.default_peak().to_dict()}))
-    assert all(e.plane is not None for e in near.estimate_many(synthetic_frames[:3]))
-    at_limit = PlaneEstimate(Plane([0.0, 0.0, 1.0], MAX_SENSOR_DISTANCE))
+            assert est.plane is None and "m away, beyond the sensor's 5 m range: is the calibration this sensor's?" \
+                in est.reason, (method, est.reason)
+    near = Calibration({"peak": PeakParams.default_peak().to_dict(),
+                        "proprietary": PeakParams.default_proprietary().to_dict()})
+    for method in ("peak", "proprietary"):
+        assert all(e.plane is not None for e in make_estimator(method, near).estimate_many(synthetic_frames[:3]))
+    at_limit = PlaneEstimate(Plane([0.0, 0.0, 1.0], SENSOR_RANGE))
     assert checked(at_limit) is at_limit
+    assert checked(PlaneEstimate(Plane([0.0, 0.0, 1.0], SENSOR_RANGE + 1e-3))).plane is None

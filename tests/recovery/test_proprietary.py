@@ -61,6 +61,62 @@ def test_bad_input_gives_reason(dist, conf, words):
     assert e.plane is None and words in e.reason
 
 
+def test_on_sensor_distances_beyond_the_sensors_range_are_no_target():
+    """65535 mm at full confidence (the 16-bit field's largest; the emulated sensor clamps a file's 1e308 mm to it)
+    read as a plane 64 m away (session 83). A distance beyond the TMF8820's 5 m is no target: a frame of them gives no
+    plane, the reason naming them; the zones within range still give theirs."""
+    sweep = load_frames(SWEEP)
+    f = next(f for f in sweep if 0.2 < f.truth.offset < 0.25)
+    est = ProprietaryEstimator()
+    assert est.estimate(f).plane is not None
+    far = Frame(f.hists, f.reference, distances=np.full(9, 65.535), confidences=np.full(9, 255.0))
+    e = est.estimate(far)
+    assert e.plane is None and e.reason == ("only 0 zone(s) report an object (9 more report one beyond the sensor's "
+                                            "5 m range: no target it measures); a plane needs 3 or more")
+    some = Frame(f.hists, f.reference, distances=np.where(np.arange(9) < 3, 65.535, f.distances),
+                 confidences=f.confidences)
+    e = est.estimate(some)  # six zones within range: their plane, the far three left out
+    assert e.plane is not None and abs(e.plane.offset - est.estimate(f).plane.offset) < 0.01
+    edge = Frame(f.hists, f.reference, distances=np.full(9, 5.0), confidences=np.full(9, 255.0))
+    assert est.estimate(edge).plane is not None  # at the range itself: a target
+
+
+def test_a_frame_whose_histograms_are_corrupt_gives_no_proprietary_plane():
+    """proprietary did not check the histograms it does not read: a frame with NaN counts gave its plane, one that peak
+    and diff refuse (session 83). Such a frame is corrupt for every method, with one line saying why; a frame without
+    a reference histogram (not read here) and one whose returns are clipped (a measurement) still give theirs."""
+    sweep = load_frames(SWEEP)
+    f = next(f for f in sweep if 0.2 < f.truth.offset < 0.25)
+    est = ProprietaryEstimator()
+    assert est.estimate(f).plane is not None
+
+    def with_counts(hists=None, reference=()):
+        return Frame(f.hists if hists is None else hists, f.reference if isinstance(reference, tuple) else reference,
+                     distances=f.distances, confidences=f.confidences)
+
+    nan = np.array(f.hists, dtype=float)
+    nan[4, 40] = np.nan
+    negative = np.array(f.hists, dtype=float)
+    negative[0, 3] = -5.0
+    huge = np.array(f.hists, dtype=float)
+    huge[2, 30] = 2.0 ** 30
+    bad_ref = np.array(f.reference, dtype=float)
+    bad_ref[10] = np.inf
+    for frame, words in ((with_counts(nan), "hists contains NaN or infinite counts"),
+                         (with_counts(negative), "hists contains negative counts"),
+                         (with_counts(huge), "histogram counts above the sensor's 24-bit maximum"),
+                         (with_counts(reference=bad_ref), "reference_hist contains NaN"),
+                         (with_counts(np.ones((9, 100))), "hists has shape (9, 100)")):
+        e = est.estimate(frame)
+        assert e.plane is None and e.reason.startswith(words), e.reason
+        assert "\n" not in e.reason and e.reason.endswith("its on-sensor distances neither")
+        assert make_estimator("peak").estimate(frame).plane is None  # as the histogram methods treat it
+    assert est.estimate(with_counts(reference=None)).plane is not None  # no reference: not read, not corrupt
+    clipped = np.minimum(np.array(f.hists, dtype=float), 2 ** 24 - 1)
+    clipped[4, 20:24] = 2 ** 24 - 1
+    assert est.estimate(with_counts(clipped)).plane is not None  # a saturated return is a measurement
+
+
 @pytest.mark.slow
 def test_real_sweep_covariance_is_honest_on_held_out_frames():
     """Calibrated on one half of the real sweep, the stated covariance describes the other half's errors at
