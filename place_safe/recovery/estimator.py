@@ -198,7 +198,8 @@ class Uncertainty(ParamModel):
         """The model-error covariance (3, 3) added to an estimate at distance ``offset`` (m)."""
         d = max(float(offset), 1e-3)
         tilt = self.tilt_std ** 2 + (self.tilt_range_std / d) ** 2
-        return np.diag([tilt, tilt, self.offset_std ** 2 + (self.offset_rel * d) ** 2])
+        off = self.offset_std ** 2 + (self.offset_rel * d) ** 2
+        return np.array([[tilt, 0.0, 0.0], [0.0, tilt, 0.0], [0.0, 0.0, off]])  # (np.diag's overhead is a frame's 4 us)
 
     def near_std(self, depth: np.ndarray) -> np.ndarray:
         """The zones' range error (m, a standard deviation) at ``depth`` (m, along the optical axis; any shape):

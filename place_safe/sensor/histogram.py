@@ -185,12 +185,19 @@ def clipped_zones(hists: np.ndarray) -> np.ndarray:
     with np.errstate(invalid="ignore"):
         top = h.max(axis=-1)
         at = h == top[..., None]
+        held = at.sum(axis=-1)  # bins holding the top: 1 in almost every return, so the rarer tests run only past it
         # the top stands CLIP_MIN_COUNTS above the histogram's least count: a return, not a flat floor (a zone that
         # sees nothing over a floor of 100 counts, noise-free in a synthetic frame, holds its "top" in every bin)
-        flat = (at[..., :-2] & at[..., 1:-1] & at[..., 2:]).any(axis=-1) & (top - h.min(axis=-1) >= CLIP_MIN_COUNTS)
-        twice = at.sum(axis=-1) >= 2  # rare in a return: test the store limits only then
+        flat = held >= CLIP_PLATEAU_BINS  # (a plateau needs that many bins at the top)
+        if flat.any():
+            flat = (at[..., :-2] & at[..., 1:-1] & at[..., 2:]).any(axis=-1) & (top - h.min(axis=-1) >= CLIP_MIN_COUNTS)
+        twice = held >= 2  # rare in a return: test the store limits only then
         store = twice & _at_store_limit(top) if twice.any() else twice
-        return (h >= COUNT_MAX).any(axis=-1) | flat | store
+        # a count at the counters' maximum is one at the top (a histogram holding NaN has no top: each bin is asked)
+        over = top >= COUNT_MAX
+        if np.isnan(top).any():
+            over = (h >= COUNT_MAX).any(axis=-1)
+        return over | flat | store
 
 
 def _at_store_limit(counts: np.ndarray) -> np.ndarray:
@@ -309,8 +316,9 @@ def _returns(hists: np.ndarray, pileup: float, subbin: str,
         h = np.where(finite_bins, h, 0.0)
     saturated = clipped_zones(h)
     floor = np.minimum(_median(h[..., :EARLY_BINS]), _median(h[..., -LATE_BINS:]))
-    x = _despiked(undo_pileup(h - floor[..., None], pileup), floor)
-    k, top, has_return = _highest_return(x, floor)
+    noise = _noise_margin(floor)
+    x = _despiked(undo_pileup(h - floor[..., None], pileup), floor, noise)
+    k, top, has_return = _highest_return(x, floor, noise)
     rows = x.reshape(-1, x.shape[-1])  # one row per zone (of every frame)
     at = np.arange(rows.shape[0])
     kc = np.minimum(np.maximum(k, HALF_WINDOW), N_BINS - 1 - HALF_WINDOW)
@@ -325,7 +333,8 @@ def _returns(hists: np.ndarray, pileup: float, subbin: str,
     return reading, pos, valid, saturated & finite, top
 
 
-def _highest_return(x: np.ndarray, floor: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _highest_return(x: np.ndarray, floor: np.ndarray,
+                    noise: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each zone's return bin (..., 9), its height (counts above the floor) and whether it is a return, from the
     floor-subtracted counts ``x`` (..., 9, 128) and the floors (..., 9).
 
@@ -334,20 +343,23 @@ def _highest_return(x: np.ndarray, floor: np.ndarray) -> tuple[np.ndarray, np.nd
     bins (:data:`INTERNAL_BINS`) it must clear :data:`INTERNAL_MAX_COUNTS` by the same number of Poisson sigmas of
     the floor plus that return (189 counts on a floor of 0, 236 on 300): otherwise it may be the internal return alone (a zone that sees nothing would read a surface at zero range). Such a zone reads instead the
     highest bin beyond the internal return, a return if it clears the noise margin plus
-    :data:`INTERNAL_TAIL_FRACTION` of the in-window maximum (the internal return's tail).
+    :data:`INTERNAL_TAIL_FRACTION` of the in-window maximum (the internal return's tail). ``noise``: the floors'
+    :func:`_noise_margin`, if the caller has it.
     """
     lo, hi = INTERNAL_BINS
-    noise = _noise_margin(floor)
+    noise = _noise_margin(floor) if noise is None else noise
     k = x[..., SEARCH_START:].argmax(axis=-1) + SEARCH_START
-    top = np.take_along_axis(x, k[..., None], axis=-1)[..., 0]
+    top = _at_bins(x, k)
     inside = (k >= lo) & (k < hi)
+    if not inside.any():  # (every zone's highest bin beyond the internal return's: the usual frame)
+        return k, top, top > noise
     # the internal return at its largest plus NOISE_SIGMAS of its own and the floor's shot noise
     near = INTERNAL_MAX_COUNTS + NOISE_SIGMAS * np.sqrt(np.maximum(floor, 0.0) + INTERNAL_MAX_COUNTS + 1.0)
     internal = inside & (top <= near)  # not told apart from the internal return
     if not internal.any():
         return k, top, top > noise
     k2 = x[..., hi:].argmax(axis=-1) + hi
-    top2 = np.take_along_axis(x, k2[..., None], axis=-1)[..., 0]
+    top2 = _at_bins(x, k2)
     far = top2 > noise + INTERNAL_TAIL_FRACTION * np.maximum(top, 0.0)
     k = np.where(internal, k2, k)
     has_return = np.where(internal, far, top > noise)
@@ -355,21 +367,29 @@ def _highest_return(x: np.ndarray, floor: np.ndarray) -> tuple[np.ndarray, np.nd
     return k, top, has_return
 
 
+
+def _at_bins(x: np.ndarray, k: np.ndarray) -> np.ndarray:
+    """``x[..., k]`` per histogram: the counts (...) of histograms ``x`` (..., 128) at bins ``k`` (...) (as
+    ``np.take_along_axis``, without its overhead on one frame)."""
+    rows = x.reshape(-1, x.shape[-1])
+    return rows[np.arange(rows.shape[0]), k.reshape(-1)].reshape(k.shape)
+
 def _noise_margin(floor: np.ndarray) -> np.ndarray:
     """Counts above the floor a return must clear: :data:`NOISE_SIGMAS` Poisson sigmas of the floor and
     :data:`MIN_NET_COUNTS`."""
     return np.maximum(NOISE_SIGMAS * np.sqrt(np.maximum(floor, 0.0) + 1.0), MIN_NET_COUNTS)
 
 
-def _despiked(x: np.ndarray, floor: np.ndarray) -> np.ndarray:
+def _despiked(x: np.ndarray, floor: np.ndarray, noise: np.ndarray | None = None) -> np.ndarray:
     """The floor-subtracted counts ``x`` (..., 128) with each one-bin spike (a bin above the noise margin whose larger
     neighbour holds less than :data:`SPIKE_FRACTION` of it; at the histogram's ends, its one neighbour) lowered to that
-    neighbour: no laser pulse is one bin wide, and a spike taller than a zone's real return hid the return."""
-    edge = np.full(x.shape[:-1] + (1,), -np.inf)  # (no neighbour beyond either end)
-    left = np.concatenate([edge, x[..., :-1]], axis=-1)
-    right = np.concatenate([x[..., 1:], edge], axis=-1)
-    side = np.maximum(left, right)
-    spike = (x > _noise_margin(floor)[..., None]) & (side < SPIKE_FRACTION * x)
+    neighbour: no laser pulse is one bin wide, and a spike taller than a zone's real return hid the return.
+    ``noise``: the floors' :func:`_noise_margin`, if the caller has it."""
+    side = np.empty_like(x)  # each bin's larger neighbour (at either end, its one neighbour)
+    np.maximum(x[..., :-2], x[..., 2:], out=side[..., 1:-1])
+    side[..., 0] = x[..., 1]
+    side[..., -1] = x[..., -2]
+    spike = (x > (_noise_margin(floor) if noise is None else noise)[..., None]) & (side < SPIKE_FRACTION * x)
     return np.where(spike, np.maximum(side, 0.0), x) if spike.any() else x
 
 
@@ -426,15 +446,27 @@ def windowed_centroid(rows: np.ndarray, top: np.ndarray, start: np.ndarray,
     lo, hi = top - CENTROID_MAX_SHIFT, top + CENTROID_MAX_SHIFT
     p = np.minimum(np.maximum(np.asarray(start, dtype=float), lo), hi)
     a = math.pi / half_width
+    # (the arrays of one step are reused in place: a frame's nine rows make each operation's call, not its
+    # arithmetic, the cost)
+    d, xin, ad, w, v = (np.empty_like(t) for _ in range(5))
+    inside = np.empty(t.shape, dtype=bool)
     for i in range(CENTROID_MAX_ITERATIONS):
-        d = t - p[:, None]
-        xin = x * (np.abs(d) < half_width)
-        ad = a * d
-        w = np.cos(ad)
+        np.subtract(t, p[:, None], out=d)
+        np.less(np.abs(d, out=xin), half_width, out=inside)
+        np.multiply(x, inside, out=xin)
+        np.multiply(a, d, out=ad)
+        np.cos(ad, out=w)
         w += 1.0
         w *= 0.5  # cos^2(pi u / 2), u = d / half_width
-        g = ((w * d) * xin).sum(axis=-1)
-        dg = ((np.sin(ad) * (0.5 * ad) - w) * xin).sum(axis=-1)  # dg/dp: < 0 where g falls through its root
+        np.multiply(w, d, out=v)
+        v *= xin
+        g = v.sum(axis=-1)
+        np.sin(ad, out=v)
+        ad *= 0.5
+        v *= ad
+        v -= w
+        v *= xin
+        dg = v.sum(axis=-1)  # dg/dp: < 0 where g falls through its root
         step = np.minimum(np.maximum(g / np.maximum(-dg, 1e-12), -0.5), 0.5)  # no counts in the window: no step
         p = np.minimum(np.maximum(p + step, lo), hi)
         if i + 1 >= CENTROID_MIN_ITERATIONS and float(np.abs(step).max()) < CENTROID_STEP_TOL:
