@@ -367,12 +367,12 @@ def _highest_return(x: np.ndarray, floor: np.ndarray,
     return k, top, has_return
 
 
-
 def _at_bins(x: np.ndarray, k: np.ndarray) -> np.ndarray:
     """``x[..., k]`` per histogram: the counts (...) of histograms ``x`` (..., 128) at bins ``k`` (...) (as
     ``np.take_along_axis``, without its overhead on one frame)."""
     rows = x.reshape(-1, x.shape[-1])
     return rows[np.arange(rows.shape[0]), k.reshape(-1)].reshape(k.shape)
+
 
 def _noise_margin(floor: np.ndarray) -> np.ndarray:
     """Counts above the floor a return must clear: :data:`NOISE_SIGMAS` Poisson sigmas of the floor and
