@@ -19,7 +19,7 @@ from place_safe.calibration.near_range import fit_near_range
 from place_safe.calibration.point_errors import frame_point_errors, true_ranges
 from place_safe.evaluation.metrics import angular_errors, linear_errors, point_errors
 from place_safe.exceptions import CalibrationError, FrameError
-from place_safe.recovery.proprietary import on_sensor_readings
+from place_safe.recovery.proprietary import histogram_problem, on_sensor_readings
 from place_safe.recovery.points import MAX_ZONE_RESIDUAL, MIN_DOMAIN_WIDTH, MM_PER_M, PeakParams, fit_planes
 from place_safe.sensor.frame import N_ZONES, Frame
 from place_safe.sensor.histogram import CENTROID_HALF_WIDTH, find_peaks
@@ -293,7 +293,8 @@ def fit_points(readings: np.ndarray, valid: np.ndarray, frames: Sequence[Frame],
     tn, td = _truth_arrays(frames)
     before = _summary(_errors(init, readings, valid, tn, td))
     tilted = not level_frames(tilt_angles(tn))
-    bar = tqdm(total=max_iter * (2 if tilted and not paper else 1), desc=label, unit="it", disable=not progress,
+    bar = tqdm(total=max_iter * (2 if tilted and not paper else 1), desc=label, unit="it",
+               disable=None if progress else True,
                leave=False, file=sys.stderr)
     try:
         base = PeakParams(init.m, init.b, init.edge_scale, init.corner_scale)
@@ -624,11 +625,14 @@ def refit_mapping(frames: Sequence[Frame], params: PeakParams, min_range: float 
 
 def proprietary_readings(frames: Sequence[Frame]) -> tuple[np.ndarray, np.ndarray]:
     """On-sensor distances in mm (F, 9) and validity (F, 9) of frames: the zones the proprietary method reads
-    (:func:`~place_safe.recovery.proprietary.on_sensor_readings`; none of a frame it refuses). (A frame with
-    distances beyond what the sensor reports, or at confidence 0, entered the fit and broke it.)"""
+    (:func:`~place_safe.recovery.proprietary.on_sensor_readings`; none of a frame it refuses: one with corrupt
+    histograms too, :func:`~place_safe.recovery.proprietary.histogram_problem`). (A frame with distances beyond what
+    the sensor reports, or at confidence 0, entered the fit and broke it.)"""
     out = np.full((len(frames), N_ZONES), np.nan)
     valid = np.zeros((len(frames), N_ZONES), dtype=bool)
     for i, f in enumerate(frames):
+        if histogram_problem(f) is not None:  # (a count beyond the 24-bit counters passes Frame.validate)
+            continue
         try:
             dist, valid[i] = on_sensor_readings(f)
         except FrameError:

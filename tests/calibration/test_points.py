@@ -483,3 +483,23 @@ def test_a_zone_beyond_the_sensors_range_is_no_reading_of_the_proprietary_fit(sw
     params, _ = fit_proprietary(bad, progress=False)
     assert abs(params.m - clean.m) < 1.0 and abs(params.b - clean.b) < 1.0
     assert params.zone_residual < 2 * clean.zone_residual
+
+
+def test_the_proprietary_fit_leaves_out_a_frame_the_method_refuses_for_its_histograms(sweep_path):
+    """A frame whose histograms hold a count beyond the 24-bit counters passes ``Frame.validate`` but the proprietary
+    method refuses it (``histogram_problem``, session 83); its zones still entered the proprietary fit (a review's
+    finding). Now the fit reads none of it: the same mapping as without that frame."""
+    from place_safe.calibration.points import fit_proprietary, proprietary_readings
+    from place_safe.io.frame_file import load_frames
+    from place_safe.recovery.proprietary import histogram_problem
+
+    frames = load_frames(sweep_path)
+    bad = frames[20]
+    bad.hists = np.array(bad.hists, dtype=float)
+    bad.hists[4, 60] = 2.0 ** 30
+    assert bad.is_valid() and histogram_problem(bad) is not None
+    _, valid = proprietary_readings(frames)
+    assert not valid[20].any() and valid[21].any()
+    with_bad, _ = fit_proprietary(frames, progress=False)
+    without, _ = fit_proprietary(frames[:20] + frames[21:], progress=False)
+    assert with_bad.to_dict() == without.to_dict()
