@@ -444,7 +444,13 @@ def capture_sweep(robot: Robot, source: Any, plan: SweepPlan, out_path: str | Pa
     if (why := resume_problem(capture, plan)) is not None:  # before anything moves or is appended
         raise FrameFileError(f"{out} is a capture made with another plan ({why}): resume it with the options it was "
                              "made with, or give another output file")
-    done = (capture if getattr(robot, "dry_run", False) else capture.cut()).done
+    if not getattr(robot, "dry_run", False):
+        cut = capture.cut()
+        if cut is not capture and (why := resume_problem(cut, plan)) is not None:  # (read again: written meanwhile)
+            raise FrameFileError(f"{out} is a capture made with another plan ({why}): resume it with the options it "
+                                 "was made with, or give another output file")
+        capture = cut
+    done = capture.done
     n = np.asarray(plane[0], dtype=float)
     n = n / np.linalg.norm(n)
     pl = (n, float(plane[1]) / float(np.linalg.norm(plane[0])))
