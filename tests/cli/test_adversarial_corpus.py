@@ -567,9 +567,11 @@ def _params():
 
 
 @pytest.mark.parametrize("index", _params())
-def test_corpus_run(tmp_path_factory, capsys, index):
+def test_corpus_run(tmp_path_factory, capsys, monkeypatch, index):
     _, runs = _corpus(tmp_path_factory)
     name, argv, _ = runs[index]
+    monkeypatch.chdir(tmp_path_factory.mktemp("cwd"))  # a run's default outputs (place-result.json) land there, not in
+    # the checkout, where parallel workers share the working folder
     if name.startswith("sim-option"):
         pytest.importorskip("mujoco")
     status = main(argv)

@@ -58,11 +58,13 @@ def test_capture_distances_take_ranges_with_the_stop_included():
     (["capture", "--sim", "level_table", "--table-height", "0", "--touch", "0.1,,0.2"], "--touch"),
     (["place", "--sim", "place_level", "--sim-mount-error", "1,2,,3,4,5,6"], "--sim-mount-error"),
 ])
-def test_an_empty_item_in_a_comma_list_is_refused_naming_the_option(argv, option, tmp_path, capsys):
+def test_an_empty_item_in_a_comma_list_is_refused_naming_the_option(argv, option, tmp_path, capsys, monkeypatch):
     """``capture --incidences 0,,12`` read as ``0,12``: the empty item was dropped without a word (session 83). An empty
-    item in any comma-separated option (between commas or at an end) is one line naming the option, exit 2."""
+    item in any comma-separated option (between commas or at an end) is one line naming the option, exit 2, and nothing
+    written (``place``'s default result files included)."""
     from place_safe.cli.robot import _distances, _floats
 
+    monkeypatch.chdir(tmp_path)
     out = tmp_path / "cap.jsonl"
     assert main([*argv, "-o", str(out)] if argv[0] == "capture" else argv) == 2
     captured = capsys.readouterr()
@@ -70,6 +72,7 @@ def test_an_empty_item_in_a_comma_list_is_refused_naming_the_option(argv, option
     assert captured.out == "" and len(err) == 1 and not out.exists(), err
     assert f"argument {option}: expected comma-separated " in err[0] and "with no empty item" in err[0], err
     assert _floats("0, 12") == [0.0, 12.0] and _distances("80 ,120") == [80.0, 120.0]  # spaces are no items
+    assert not (tmp_path / "place-result.json").exists() and not (tmp_path / "place-transitions.jsonl").exists()
 
 
 def test_place_on_an_unreachable_arm_is_a_one_line_error(capsys, sweep_path, tmp_path):
@@ -377,6 +380,7 @@ def test_a_capture_whose_every_pose_is_refused_is_one_error_line_and_writes_noth
     assert err[0].endswith(f"): nothing captured, {out} not written")
 
 
+@pytest.mark.sim
 def test_a_capture_resumed_with_other_options_is_refused_before_the_arm(tmp_path, capsys):
     """``capture -o C --distances 5000`` on a capture made with the defaults said "2 already there" and captured
     nothing (session 82): one line naming the first pose that differs, exit 2, the file left as it was."""
@@ -395,6 +399,7 @@ def test_a_capture_resumed_with_other_options_is_refused_before_the_arm(tmp_path
     assert main(argv) == 0 and out.read_bytes() == before  # the same options: resumed, nothing left to do
 
 
+@pytest.mark.sim
 def test_capture_reads_its_output_once(tmp_path, capsys, monkeypatch):
     """capture read its output four times before capturing (the "is it a capture" check, the resume check here and in
     capture_sweep, then the indices with the cut of an unfinished line: session 83); once now, the resume unchanged."""
