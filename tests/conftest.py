@@ -2,7 +2,8 @@
 
 Tiers (markers, registered in pyproject.toml): every test is ``fast`` unless it is marked ``sim``
 (needs MuJoCo; every test under ``tests/sim`` is) or ``slow`` (more than a few seconds).
-``python -m pytest -q -n auto`` (the README's command: pytest-xdist, a worker per core; without ``-n`` in one process)
+``python -m pytest -q -n auto --maxprocesses 4`` (the README's command: pytest-xdist, a worker per core up to 4,
+each loading torch; without ``-n`` in one process)
 runs all tiers; ``-m fast`` or ``-m "not slow"`` pick a quick subset.
 Torch's intra-op threads are pinned (``PLACE_SAFE_TEST_THREADS``, default 1) so results and run
 time do not depend on how busy the machine is. No test asserts a speed: speeds belong to
