@@ -26,7 +26,7 @@ from place_safe.calibration.capture import MIN_CLEARANCE, TOUCH_HEIGHT_STD, refu
 from place_safe.recovery import make_estimator
 from place_safe.config import read_json
 from place_safe.geometry import transform_problem
-from place_safe.sensor.frame import without_repeats
+from place_safe.sensor.frame import SENSOR_RANGE, without_repeats
 
 
 def _items(text: str, what: str) -> list[str]:
@@ -73,8 +73,8 @@ MAX_LIST = 100
 
 
 def _distances(text: str) -> list[float]:
-    """``capture --distances``: comma-separated millimetres from 10 to 5000, each a number or a range
-    ``START:STOP:STEP`` (STOP included when the steps reach it), e.g. ``10:90:2,100:400:10``; at most
+    """``capture --distances``: comma-separated millimetres from 10 to the sensor's range (5000), each a number or a
+    range ``START:STOP:STEP`` (STOP included when the steps reach it), e.g. ``10:90:2,100:400:10``; at most
     :data:`MAX_LIST` values in all."""
     values: list[float] = []
     for item in _items(text, "mm (numbers or START:STOP:STEP)"):
@@ -95,7 +95,7 @@ def _distances(text: str) -> list[float]:
                                              f"and at most {MAX_LIST} values, got {item[:80]!r}")
         n = int(math.floor((stop - start) / step + 1e-9))
         values += [round(start + i * step, 9) for i in range(n + 1)]  # no drift from adding steps up
-    return _checked(values, text, None, "mm", 10.0, 5000.0)
+    return _checked(values, text, None, "mm", 10.0, SENSOR_RANGE * 1000.0)
 
 
 #: m: base-frame coordinates an option may name (the UR5 reaches 0.85 m from its base).
@@ -530,7 +530,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "scenario's table, sensor and calibration; the result also says what happened to the cup and the liquid). "
         "Writes the transition log and a result JSON either way; exit status 0 released, 1 refused or timed out, 2 "
         "bad input.",
-        ["place-safe place --sim place_level --calibration cal.json",
+        ["place-safe place --sim place_level   # the simulated unit's own calibration (one from another unit misreads it)",
          "place-safe place --sim place_level --robot-file robots/ur5/sim.toml --method peak",
          "place-safe place --robot robots/ur5/real.toml --sensor i2c:/dev/i2c-1 --calibration cal.json --dry-run",
          "place-safe place --robot robots/ur5/real.toml --sensor i2c:/dev/i2c-1 --calibration cal.json",

@@ -1,7 +1,8 @@
 """What a calibration's ``diff`` section states, and the differentiable method's solver options: the range correction
-(:class:`RangeCorrection`) and :class:`SolverOptions` with their checks. No torch here: a calibration file is read and
-checked, and the peak method runs, without loading the solver (:mod:`place_safe.recovery.differentiable`, which uses
-them and re-exports them).
+(:class:`RangeCorrection`) and :class:`SolverOptions` with their checks, and the constants the calibration shares with
+the solver (:data:`NEAR_FALLBACK_RANGE`, :data:`BLENDED`, :data:`CROSSTALK_LEFT_SHARE`). No torch here: a calibration
+file is read and checked, the peak method runs and ``calibrate --method peak`` fits, without loading the solver
+(:mod:`place_safe.recovery.differentiable`, which uses them).
 """
 
 from __future__ import annotations
@@ -36,6 +37,7 @@ BLENDED = "diff+peak"
 #: (:attr:`SolverOptions.crosstalk_std`, :func:`~place_safe.calibration.forward_fit.free_crosstalk_std`) and the
 #: crosstalk's part of its stated tilt term (:data:`~place_safe.calibration.uncertainty.DIFF_TILT_PER_CROSSTALK`).
 CROSSTALK_LEFT_SHARE = 0.5
+
 
 class RangeCorrection(ParamModel):
     """A calibrated correction of the recovered plane as a function of its axis crossing ``z0``.

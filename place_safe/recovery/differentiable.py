@@ -69,8 +69,6 @@ def _positive_definite(cov) -> bool:
     return cov is None or is_covariance(cov, definite=True)
 
 
-
-
 def _fallback(peak: PlaneEstimate, diff: PlaneEstimate | None = None) -> PlaneEstimate:
     """The peak estimate returned in diff's place (``method_used = "peak"``), with diff's albedo and residual
     when it was solved."""

@@ -242,7 +242,6 @@ def test_recover_with_peak_loads_no_torch():
     assert out.stdout.split() == ["0", "53", "False"], out.stdout + out.stderr
 
 
-
 def test_calibrate_peak_loads_no_torch(tmp_path):
     """``calibrate --method peak`` (and ``proprietary``) fit and check their sections without importing torch: the
     forward model's fits are imported only on the diff branch (``calibration.fit``), and the names the uncertainty
@@ -259,6 +258,7 @@ def test_calibrate_peak_loads_no_torch(tmp_path):
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=300)
     assert out.stdout.split() == ["0", "0", "False"], out.stdout + out.stderr
     assert {"peak", "uncertainty"} <= set(json.loads((tmp_path / "peak.json").read_text()))
+
 
 def test_sim_without_mujoco_says_how_to_install(monkeypatch, capsys):
     import importlib.util
