@@ -549,7 +549,7 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
         t = torch.as_tensor(z, dtype=dtype)
         return t[:n_cam], t[n_cam:]
 
-    bar = tqdm(total=iterations, desc="forward model", unit="it", disable=not progress, file=sys.stderr)
+    bar = tqdm(total=iterations, desc="forward model", unit="it", disable=None if progress else True, file=sys.stderr)
 
     def stage(name: str, total: int = iterations) -> None:
         """The progress bar counts the Jacobians of one run (a coarse start, the fit, the refit) at a time."""

@@ -53,7 +53,7 @@ def select_model_error(frames: Sequence[Frame], forward: ForwardParams, peak=Non
     if not data:
         return forward.model_error, {"why": "no usable frames", "frames_skipped": skipped}
     scores, angles, corrected, failures = {}, {}, {}, {}
-    for e in tqdm(grid, desc="model error", unit="value", disable=not progress, file=sys.stderr):
+    for e in tqdm(grid, desc="model error", unit="value", disable=None if progress else True, file=sys.stderr):
         est = DifferentiableEstimator(forward.replace(model_error=float(e)), peak, options=options)
         ests = est.estimate_many(data)
         rows = [(x.plane, f.truth) for x, f in zip(ests, data) if x.ok]

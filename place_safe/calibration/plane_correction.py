@@ -138,7 +138,8 @@ def fit_range_correction(frames: Sequence[Frame], forward: ForwardParams, peak=N
     est = DifferentiableEstimator(forward, peak, options=options)
     to_optical = mount_rotation(forward.mount_tilt).numpy().T
     rows = []  # (z0_est, dz0, da, db, a_est, b_est, log albedo or NaN)
-    bar = tqdm(total=len(data), desc="plane correction", unit="frame", disable=not progress, file=sys.stderr)
+    bar = tqdm(total=len(data), desc="plane correction", unit="frame",
+               disable=None if progress else True, file=sys.stderr)
     for i in range(0, len(data), 16):
         chunk = data[i:i + 16]
         for e, f in zip(est.estimate_many(chunk), chunk):

@@ -313,7 +313,8 @@ def reconsider_geometry(frames: Sequence[Frame], params: ForwardParams, report: 
 
     say(f"forward model: the level sweep left two readings of the zones' geometry; fitting {len(unlabelled)} frames "
         "without ground truth with each")
-    bar = tqdm(total=len(unlabelled), desc="two readings", unit="frame", disable=not progress, file=sys.stderr)
+    bar = tqdm(total=len(unlabelled), desc="two readings", unit="frame",
+               disable=None if progress else True, file=sys.stderr)
     try:  # (the solver as calibrate will run it on the kept reading: each frame's own crosstalk where the sweep left it)
         comparison = compare_readings(unlabelled, params, alt, peak if peak is not None else PeakParams.default_peak(),
                                       SolverOptions(crosstalk_std=free_crosstalk_std(params, report)),

@@ -202,7 +202,7 @@ def evaluate(frames: Sequence[Frame], calibration: Any = None, methods: Sequence
         secs = np.zeros(len(use))
         reasons: list[str | None] = []
         ests = []
-        for i, f in enumerate(tqdm(use, desc=method, unit="frame", disable=not progress, leave=False,
+        for i, f in enumerate(tqdm(use, desc=method, unit="frame", disable=None if progress else True, leave=False,
                                    file=sys.stderr)):
             e = est.estimate(f)
             ests.append(e)

@@ -349,7 +349,7 @@ def run_many(items: list[dict], jobs: int = 1, ray_address: str | None = None, p
     """Rows for ``items`` in order: serially, in ``jobs`` local processes, or on a Ray cluster."""
     from tqdm import tqdm
 
-    bar = dict(total=len(items), disable=not progress, leave=False, desc="scenarios")
+    bar = dict(total=len(items), disable=None if progress else True, leave=False, desc="scenarios")
     if ray_address is not None:
         import ray
 
@@ -444,7 +444,7 @@ def format_table(rows: list[dict], summary: dict) -> str:
               f"{s['collisions']}; contacts >= {HARD_CONTACT:.0f} N: {s['hard_contacts']} "
               f"(largest {s['max_contact_force']:.1f} N)",
               f"median release height: {'-' if mh is None else f'{mh * 1e3:.1f} mm'}; median time from 40 cm to "
-              f"release: {'-' if mt is None else f'{mt:.2f} s'} ({s['releases_from_40cm']} releases from >= 40 cm); "
+              f"release: {'-' if mt is None else f'{mt:.2f} s'} ({s['releases_from_40cm']} release{'' if s['releases_from_40cm'] == 1 else 's'} from >= 40 cm); "
               f"runs with spilled liquid: {s.get('spills', 0)}"]
     if s.get("budget_from_40cm"):
         lines += ["", budget_table(s["budget_from_40cm"], s["releases_from_40cm"])]
