@@ -1,14 +1,15 @@
 """Put the cup down in MuJoCo with the same PlacementLoop a real-arm script uses.
 
-Run: ``MUJOCO_GL=egl python examples/simulated_placement.py [SCENARIO]`` (default place_level; ``place-safe scenarios``
-lists the scenario files, e.g. place_tilted). The robot, the sensor and the calibration are the simulation's;
-everything else is the real code path.
+Run: ``MUJOCO_GL=egl python examples/simulated_placement.py [SCENARIO]`` (default place_level: a file or a name
+from ``scenarios/`` or ``scenarios/set/``, e.g. place_tilted; ``place-safe scenarios`` runs the whole set). The robot,
+the sensor and the calibration are the simulation's; everything else is the real code path.
 """
 
 import argparse
 import sys
 
-from place_safe import PlaceSafeError, PlacementConfig, PlacementLoop, make_estimator, sim_world, simulated_calibration
+from place_safe import PlaceSafeError, PlacementConfig, PlacementLoop, make_estimator, sim_world
+from place_safe.sim.scenario import load_scenario
 
 parser = argparse.ArgumentParser(prog="simulated_placement.py", description="One placement in MuJoCo: released or "
                                  "refused, and the state machine's transitions. Exit 0 released or refused, 1 any other "
@@ -17,12 +18,15 @@ parser.add_argument("scenario", nargs="?", default="place_level",
                     help="a packaged scenario name or a scenario file (default place_level; e.g. place_tilted)")
 args = parser.parse_args()
 try:
-    world = sim_world(args.scenario)  # scene, SimRobot, simulated TMF8820
+    scenario = load_scenario(args.scenario)
+    world = sim_world(scenario)  # scene, SimRobot, simulated TMF8820
+    # the scenario's simulated unit's own calibration: a user's (capture -> place-safe calibrate, made in simulation);
+    # one made on another unit misreads this one
+    calibration, _ = scenario.resolve_calibration()
 except PlaceSafeError as exc:
     print(f"simulated_placement.py: {str(exc).splitlines()[0]}", file=sys.stderr)
     sys.exit(2)
 robot, sensor = world.robot, world.tof
-calibration = simulated_calibration("nominal")  # a user's: capture -> place-safe calibrate, made in simulation
 estimator = make_estimator("diff", calibration)
 with robot:
     result = PlacementLoop(robot, sensor, estimator, robot.tool, PlacementConfig()).run(timeout=20.0)

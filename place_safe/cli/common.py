@@ -200,13 +200,15 @@ def report_notes(report: Any, where: str = "") -> list[tuple[str, str]]:
 
 
 
-def uncalibrated_note(methods: str | Sequence[str], calibration, path: str | None = None) -> str | None:
+def uncalibrated_note(methods: str | Sequence[str], calibration, path: str | None = None,
+                      advice: str | None = None) -> str | None:
     """The first line of a command's output when a method of ``methods`` runs without its calibration, or None.
 
     Without a calibration each method runs on built-in constants (another unit's published parameters):
     the peak method reads a level table 200 mm away as tilted by about 11 degrees. Commands print this
     line first on standard output (never on standard error, which stays one line for errors) and mark
-    every row with :data:`UNCALIBRATED_MARK` or ``"calibrated": false``."""
+    every row with :data:`UNCALIBRATED_MARK` or ``"calibrated": false``. ``advice``: the line's last sentence in place
+    of how to fit and pass a calibration (a command without a ``--calibration`` option says what it does instead)."""
 
     names = [methods] if isinstance(methods, str) else list(methods)
     bare = [m for m in names if uncalibrated_reason(m, calibration) is not None]
@@ -224,8 +226,10 @@ def uncalibrated_note(methods: str | Sequence[str], calibration, path: str | Non
         why.append(f"{', '.join(naive)} {'is a naive baseline' if len(naive) == 1 else 'are naive baselines'} "
                    "on built-in constants")
     fit = (fitted or [m.removesuffix("-naive") for m in naive])[0]
-    return (f"UNCALIBRATED: {'; '.join(why)}; planes can be off by degrees. Fit one with 'place-safe calibrate "
-            f"FRAMES.json --method {fit} -o cal.json' and pass --calibration cal.json")
+    if advice is None:
+        advice = (f"Fit one with 'place-safe calibrate FRAMES.json --method {fit} -o cal.json' and pass --calibration "
+                  "cal.json")
+    return f"UNCALIBRATED: {'; '.join(why)}; planes can be off by degrees. {advice}"
 
 
 def estimator_for(method: str, calibration, mode: str | None = None):

@@ -50,7 +50,7 @@ def cmd_latency(args: argparse.Namespace) -> int:
         raise PlaceSafeError(f"latency: {exc}") from None
     print(mark(f"recover --method {res['method']}: {res['frames']} frames, per frame median {res['median_ms']:.2f} ms, "
                f"p95 {res['p95_ms']:.2f} ms, mean {res['mean_ms']:.2f} ms (first line after {res['first_line_ms']:.0f} ms); "
-               f"method used: {res['method_used']}", note is None))
+               "method used: " + ", ".join(f"{k} {v}" for k, v in res["method_used"].items()), note is None))
     if args.json:
         Path(args.json).write_text(json.dumps({**res, "calibrated": note is None}, indent=2) + "\n")
     return 0

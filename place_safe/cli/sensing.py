@@ -253,6 +253,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if report.repeats_note is not None and not args.quiet:  # (the table's last line counts them too)
         log(f"evaluate: {report.repeats_note}")
     print(report.table(), flush=True)
+    if getattr(report, "plots", None) and not args.quiet:
+        log(f"wrote {len(report.plots)} plot{'s' if len(report.plots) > 1 else ''} to {args.out}: "
+            + ", ".join(Path(p).name for p in report.plots))
     if args.json:
         data = report.to_dict() if hasattr(report, "to_dict") else report
         Path(args.json).write_text(json.dumps(jsonable(data), indent=2) + "\n")
