@@ -437,7 +437,8 @@ def register(sub) -> None:
             help=f"methods to evaluate (default: all of {', '.join(METHODS)})"),
         opt("--out", default="out/evaluate", metavar="DIR", help="directory for plots (default out/evaluate)"),
         opt("--min-distance", type=options.float_range(0.0, 100.0), default=None, metavar="M",
-            help="skip frames whose true plane is closer than M metres (perpendicular distance d)"),
+            help="skip frames whose true plane is closer than M metres (perpendicular distance d; synth's distances are z0, "
+                 "along the optical axis)"),
         opt("--max-distance", type=options.float_range(0.0, 100.0, lo_open=True), default=None, metavar="M",
             help="skip frames whose true plane is farther than M metres (perpendicular distance d)"),
         opt("--no-plots", action="store_true", help="do not write plots"),

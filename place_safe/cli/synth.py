@@ -45,7 +45,8 @@ def register(subparsers) -> None:
         "frames", "seed",
         opt("--sensor-seed", type=int_range(0, 2 ** 32 - 1), default=0, help="seed of the simulated sensor (default 0)"),
         opt("--min-distance", type=float_range(0.0, SENSOR_RANGE, lo_open=True), default=0.02, metavar="M",
-            help=f"nearest z0, m (default 0.02, at most {SENSOR_RANGE:g})"),
+            help=f"nearest z0, m: where the plane crosses the optical axis (default 0.02, at most {SENSOR_RANGE:g}; evaluate's "
+                 "--min-distance is the perpendicular distance d)"),
         opt("--max-distance", type=float_range(0.0, SENSOR_RANGE, lo_open=True), default=0.30, metavar="M",
             help=f"farthest z0, m (default 0.30, at most {SENSOR_RANGE:g}: the sensor's range)"),
         opt("--max-angle", type=float_range(0.0, 80.0), default=30.0, metavar="DEG",

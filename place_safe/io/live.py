@@ -95,7 +95,7 @@ class StreamStats:
         def ms(v: float | None) -> str:
             return "n/a" if v is None else f"{v * 1e3:.1f} ms"
 
-        return (f"frames: {self.received} received, {self.estimated} estimated, {self.dropped} dropped, "
+        return (f"frames: {self.received} received, {self.estimated} estimated, {self.dropped} dropped waiting for the estimator, "
                 f"{self.no_plane} without a plane ({self.bad_frames} bad), {self.timeouts} timeouts"
                 + "".join(f", {n} {what}" for what, n in (("repeated", self.repeated), ("from the future", self.future),
                                                           ("unstamped", self.unstamped)) if n) + "\n"
