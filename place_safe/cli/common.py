@@ -21,7 +21,7 @@ from place_safe.io.json_values import jsonable
 from place_safe.recovery import METHODS, make_estimator  # noqa: F401 - the one list of method names, for the commands
 from place_safe.io.frame_file import iter_frames
 from place_safe.io.input_file import input_file_problem
-from place_safe.calibration import REQUIRED_SECTIONS, Calibration, uncalibrated_reason
+from place_safe.calibration import FORMAT, REQUIRED_SECTIONS, Calibration, uncalibrated_reason
 
 PROG = "place-safe"
 CALIBRATE_METHODS = ("diff", "peak", "proprietary")
@@ -77,9 +77,18 @@ def not_a_file(path: str | Path) -> str | None:
 
 
 def require_frame_file(path: str | Path) -> None:
-    """A one-line :class:`FrameFileError` where ``path`` cannot be read as a frame file (:func:`not_a_file`)."""
+    """A one-line :class:`FrameFileError` where ``path`` cannot be read as a frame file (:func:`not_a_file`), or is a
+    calibration file (its ``format`` in its first bytes: ``recover cal.json`` said "its first frame spans more than one
+    line (a pretty-printed frame?)", session 83)."""
     if (why := not_a_file(path)) is not None:
         raise FrameFileError(f"frame file {path} {why}")
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(256)
+    except OSError:
+        return  # (the reader says why)
+    if f'"format": "{FORMAT}"'.encode() in head or f'"format":"{FORMAT}"'.encode() in head:
+        raise FrameFileError(f"{path} is a calibration file ({FORMAT}), not frames: give it with --calibration")
 
 
 def refuse_overwrite(path: str | Path, force: bool) -> None:

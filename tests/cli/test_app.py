@@ -804,3 +804,19 @@ def test_two_outputs_naming_one_file_are_refused_before_the_work(tmp_path, synth
     from place_safe.cli.app import _check_outputs
 
     _check_outputs(argparse.Namespace(command="place", json="/dev/null", log="/dev/null"))
+
+
+@pytest.mark.parametrize("command", [["recover"], ["latency"]])
+def test_a_calibration_given_as_frames_is_one_line_saying_so(command, tmp_path, capsys):
+    """``recover cal.json`` said "its first frame spans more than one line (a pretty-printed frame?)" after printing the
+    table's header (session 83, a new user's walkthrough): a calibration file where frames are expected is one line
+    saying what it is and where it goes, exit 2, nothing on standard output."""
+    from place_safe.calibration import Calibration
+
+    cal = tmp_path / "cal.json"
+    Calibration().save(cal)
+    assert main([*command, str(cal), "--method", "peak"]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == ""
+    line = one_line_error(captured.err)
+    assert f"{cal} is a calibration file (place_safe.calibration/1), not frames: give it with --calibration" in line
