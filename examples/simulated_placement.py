@@ -9,7 +9,6 @@ import argparse
 import sys
 
 from place_safe import PlaceSafeError, PlacementConfig, PlacementLoop, make_estimator, sim_world
-from place_safe.sim.scenario import load_scenario
 
 parser = argparse.ArgumentParser(prog="simulated_placement.py", description="One placement in MuJoCo: released or "
                                  "refused, and the state machine's transitions. Exit 0 released or refused, 1 any other "
@@ -18,11 +17,10 @@ parser.add_argument("scenario", nargs="?", default="place_level",
                     help="a packaged scenario name or a scenario file (default place_level; e.g. place_tilted)")
 args = parser.parse_args()
 try:
-    scenario = load_scenario(args.scenario)
-    world = sim_world(scenario)  # scene, SimRobot, simulated TMF8820
+    world = sim_world(args.scenario)  # scene, SimRobot, simulated TMF8820
     # the scenario's simulated unit's own calibration: a user's (capture -> place-safe calibrate, made in simulation);
     # one made on another unit misreads this one
-    calibration, _ = scenario.resolve_calibration()
+    calibration = world.user_calibration()
 except PlaceSafeError as exc:
     print(f"simulated_placement.py: {str(exc).splitlines()[0]}", file=sys.stderr)
     sys.exit(2)

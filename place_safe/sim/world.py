@@ -29,6 +29,7 @@ class SimWorld:
     tof: Any  # SimToF
     name: str
     mount_error: np.ndarray  # 4x4, nominal_T_true sensor frame
+    scenario: Any = None  # the Scenario it was built from
 
     def table_plane_base(self) -> tuple[np.ndarray, float]:
         """The table top in the robot base frame (what a measured table height gives)."""
@@ -37,6 +38,13 @@ class SimWorld:
         n = wb[:3, :3].T @ n_w
         p = (np.linalg.inv(wb) @ np.append(p_w, 1.0))[:3]
         return n, float(n @ p)
+
+    def user_calibration(self) -> Any:
+        """The scenario's calibration for its simulated sensor, as a placement there uses it: normally the packaged
+        simulated *user* calibration of that unit (a level sweep fitted with ``place-safe calibrate``; one made on another
+        unit misreads this one), never the simulator's own parameters unless the scenario asks for the oracle; None for
+        a scenario run uncalibrated (:meth:`~place_safe.sim.scenario.Scenario.resolve_calibration`)."""
+        return None if self.scenario is None else self.scenario.resolve_calibration()[0]
 
     def true_flange_T_sensor(self) -> np.ndarray:
         return self.robot.tool.flange_T_sensor @ self.mount_error
@@ -96,7 +104,7 @@ def sim_world(scenario: Any = "level_table", *, seed: int = 0, mount_error: Any 
     tof = make_sensor(sc.sensor.model, scene, robot.data, sc.sensor.tof_config(seed), sc.sensor.mismatch)
     if attach:
         tof.attach(robot)
-    return SimWorld(scene, robot, tof, sc.name or "scenario", E)
+    return SimWorld(scene, robot, tof, sc.name or "scenario", E, sc)
 
 
 __all__ = ["SimWorld", "sim_world", "error_transform"]

@@ -90,3 +90,14 @@ def test_real_arm_example_says_in_one_line_what_it_could_not_open(capsys, tmp_pa
     assert example["main"]([real, "i2c:/nonexistent/i2c-9@0x41", str(calibration_file("nominal")), "--dry-run"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "i2c" in err.lower()
+
+
+@pytest.mark.parametrize("scenario, unit", [("place_level", "nominal"), ("level_mismatch_40cm", "mismatch")])
+def test_a_simulated_world_gives_its_own_units_calibration(scenario, unit):
+    """``SimWorld.user_calibration``: the scenario's simulated unit's packaged user calibration, what the example now
+    runs on; it took the nominal unit's for every scenario, the mismatched ones' too (session 83, a new user's
+    walkthrough: a calibration of another unit misreads a unit)."""
+    from place_safe import sim_world, simulated_calibration
+
+    world = sim_world(scenario, attach=False)
+    assert world.user_calibration().to_dict() == simulated_calibration(unit).to_dict()
