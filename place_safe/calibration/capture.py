@@ -255,11 +255,6 @@ def _release_point(robot: Robot, speed: float, accel: float, max_back: float = 0
     return p
 
 
-def done_indices(path: Path, cut: bool = True) -> set[int]:
-    """The pose indices already in a capture's output (:func:`done_poses`)."""
-    return set(done_poses(path, cut))
-
-
 def resume_problem(path: "Path | CaptureFile", plan: "SweepPlan") -> str | None:
     """Why the capture in ``path`` (or as :func:`read_capture` read it) cannot be resumed with ``plan`` -- a pose there
     that is not the plan's pose of the same index (another distance, incidence or azimuth, or an index beyond the plan:
@@ -284,7 +279,7 @@ def resume_problem(path: "Path | CaptureFile", plan: "SweepPlan") -> str | None:
 @dataclass(frozen=True)
 class CaptureFile:
     """What a capture's output held when :func:`read_capture` read it: the poses already there (index ->
-    ``(distance, incidence, azimuth)`` or None, as :func:`done_poses`), where an interrupted run's unfinished last line
+    ``(distance, incidence, azimuth)`` or None), where an interrupted run's unfinished last line
     starts (bytes; None: there is none) and the file's size then (-1: no file). ``capture`` reads its output once and
     passes this along (it read the file four times before capturing: the "is it a capture" check, the resume check in
     the command and again in :func:`capture_sweep`, then the indices with the cut: session 83)."""
@@ -351,13 +346,6 @@ def read_capture(path: Path) -> CaptureFile:
             numbers = all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in target)
             done.setdefault(index, target if numbers else None)
     return CaptureFile(path, done, cut_at, end)
-
-
-def done_poses(path: Path, cut: bool = True) -> dict[int, tuple[float, float, float] | None]:
-    """The pose indices already in a capture's output (resume) with their poses (:func:`read_capture`); with ``cut``
-    (a dry run writes nothing and leaves it) an unfinished last line is cut off."""
-    capture = read_capture(path)
-    return (capture.cut() if cut else capture).poses
 
 
 @dataclass
@@ -440,15 +428,18 @@ def capture_sweep(robot: Robot, source: Any, plan: SweepPlan, out_path: str | Pa
             log(refusal_line(entry))
 
     out = Path(out_path)
-    capture = existing if existing is not None else read_capture(out)  # read once
-    if (why := resume_problem(capture, plan)) is not None:  # before anything moves or is appended
-        raise FrameFileError(f"{out} is a capture made with another plan ({why}): resume it with the options it was "
-                             "made with, or give another output file")
-    if not getattr(robot, "dry_run", False):
-        cut = capture.cut()
-        if cut is not capture and (why := resume_problem(cut, plan)) is not None:  # (read again: written meanwhile)
+
+    def refuse_another_plan(capture: CaptureFile) -> None:
+        if (why := resume_problem(capture, plan)) is not None:
             raise FrameFileError(f"{out} is a capture made with another plan ({why}): resume it with the options it "
                                  "was made with, or give another output file")
+
+    capture = existing if existing is not None else read_capture(out)  # read once
+    refuse_another_plan(capture)  # before anything moves or is appended
+    if not getattr(robot, "dry_run", False):  # (a dry run writes nothing and leaves an unfinished line)
+        cut = capture.cut()
+        if cut is not capture:  # read again at the cut (written meanwhile)
+            refuse_another_plan(cut)
         capture = cut
     done = capture.done
     n = np.asarray(plane[0], dtype=float)
@@ -522,7 +513,6 @@ def capture_sweep(robot: Robot, source: Any, plan: SweepPlan, out_path: str | Pa
     return CaptureResult(str(out), len(grid), captured, len(done), refused, frames_written, robot.time() - t0)
 
 
-__all__ = ["SweepPlan", "CaptureResult", "CaptureFile", "capture_sweep", "done_indices", "done_poses", "read_capture",
-           "resume_problem", "touch_plane",
-           "touched_reference", "level_plane",
-           "sensor_target", "plane_in_sensor", "lowest_tool_point", "refusal_line", "TOUCH_HEIGHT_STD"]
+__all__ = ["SweepPlan", "CaptureResult", "CaptureFile", "capture_sweep", "read_capture", "resume_problem",
+           "touch_plane", "touched_reference", "level_plane", "sensor_target", "plane_in_sensor", "lowest_tool_point",
+           "refusal_line", "TOUCH_HEIGHT_STD"]
