@@ -58,7 +58,14 @@ Conventions
   parallax), so once ``memory_frames`` planes are remembered and their inverse-variance weighted
   normal lies within ``memory_gate`` of the window's own, that normal is the fused one (through the window's anchor:
   the offset stays local and recent), and ``tilt_std`` is its standard error with the memory counted as at most
-  :data:`MEMORY_INDEPENDENT` independent planes (their errors are correlated). The fused plane carries the window's
+  :data:`MEMORY_INDEPENDENT` independent planes (their errors are correlated). Where the window's own normal is known
+  to :data:`MEMORY_WIDE_STD` or better the gate is ``memory_wide_gate`` (2.5 deg) instead: such a window's reading is
+  held to the level bound by itself where it is the steeper (below), and close planes of a textured surface read its
+  slope 1-2 deg off while stating a few tenths (a checker's light and dark squares share a zone's footprint unevenly,
+  which moves its return along a tilted footprint; random seeds 66, 102 and 57: the window's 4.6 deg against a 2.9
+  deg checker table fused, the survey's views of the footprint then read 4-5 mm high against it, and a table that
+  was safe was refused). A window that states degrees keeps the narrow gate: its reading says nothing of the level,
+  and a remembered slope farther off would decide alone. The fused plane carries the window's
   own tilt and standard error too (``window_tilt_rad``, ``window_tilt_std``): where the window reads the surface
   steeper, the level rules hold its reading to the bound as well (:func:`place_safe.placement.rules.window_reading`;
   a table that tilted since the memory began, or a memory mixing a table's two slopes, released the cup on the
@@ -87,6 +94,11 @@ from place_safe.recovery.estimator import reference_tilt_problem
 from place_safe.recovery.too_close import TOO_CLOSE_REASON
 from place_safe.geometry import MAX_REACH, Plane, finite_number, transform_problem
 
+#: rad: a window whose own normal has at most this standard error has the memory's normal fused within
+#: ``PlaneFilter.memory_wide_gate`` of its own, not ``memory_gate`` (module doc).
+MEMORY_WIDE_STD = math.radians(1.0)
+#: rad, ``PlaneFilter.memory_wide_gate``'s default (module doc).
+MEMORY_WIDE_GATE = math.radians(2.5)
 #: Huber constant in robust sigmas (95 % efficiency for Gaussian noise).
 HUBER_K = 1.345
 #: Median absolute deviation -> Gaussian sigma.
@@ -225,6 +237,8 @@ class PlaneFilter:
     memory: planes remembered for the normal (0: no memory, the window alone).
     memory_frames: remembered planes needed before the memory's normal is used.
     memory_gate: rad; the memory's normal is used only within this angle of the window's.
+    memory_wide_gate: rad; the gate instead where the window's own normal is known to :data:`MEMORY_WIDE_STD` (see
+        the module doc), at least ``memory_gate`` (None: the larger of ``memory_gate`` and :data:`MEMORY_WIDE_GATE`).
     memory_age: s; remembered planes older than this (relative to the newest time seen) are forgotten.
     reference_tilt_std: rad; the tilt error every plane shares through the estimator's calibration (its
         reference: :class:`~place_safe.recovery.estimator.Reference`), added once to the fused ``tilt_std``.
@@ -233,20 +247,26 @@ class PlaneFilter:
     def __init__(self, window: int = 7, angle_gate: float = math.radians(5.0), offset_gate: float = 0.01,
                  min_frames: int = 3, max_consecutive_rejects: int = 5, max_age: float = 1.0,
                  memory: int = 300, memory_frames: int = 15, memory_gate: float = math.radians(1.5),
-                 memory_age: float = 30.0, reference_tilt_std: float = 0.0) -> None:
+                 memory_age: float = 30.0, reference_tilt_std: float = 0.0,
+                 memory_wide_gate: float | None = None) -> None:
         if window < 1 or not (1 <= min_frames <= window) or max_consecutive_rejects < 1:
             raise ValueError("PlaneFilter needs window >= 1, 1 <= min_frames <= window, max_consecutive_rejects >= 1")
         if memory < 0 or memory_frames < 1:
             raise ValueError("PlaneFilter needs memory >= 0 and memory_frames >= 1")
         for name, v in (("angle_gate", angle_gate), ("offset_gate", offset_gate), ("max_age", max_age),
-                        ("memory_gate", memory_gate), ("memory_age", memory_age)):
+                        ("memory_gate", memory_gate), ("memory_age", memory_age),
+                        ("memory_wide_gate", MEMORY_WIDE_GATE if memory_wide_gate is None else memory_wide_gate)):
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"PlaneFilter.{name} must be a positive finite number; got {v!r}")
         self.window, self.angle_gate, self.offset_gate = int(window), float(angle_gate), float(offset_gate)
         self.min_frames, self.max_consecutive_rejects = int(min_frames), int(max_consecutive_rejects)
         self.max_age = float(max_age)
         self.memory, self.memory_frames = int(memory), int(memory_frames)
+        if memory_wide_gate is not None and memory_wide_gate < memory_gate:
+            raise ValueError("PlaneFilter needs memory_wide_gate >= memory_gate")
         self.memory_gate, self.memory_age = float(memory_gate), float(memory_age)
+        self.memory_wide_gate = float(max(memory_gate, MEMORY_WIDE_GATE) if memory_wide_gate is None
+                                      else memory_wide_gate)
         self.reference_tilt_std = reference_tilt_std
         self.reset()
 
@@ -428,7 +448,7 @@ class PlaneFilter:
         tilt_std = math.hypot(tilt_std, ambiguity)  # one view's frames share it: not averaged away
         window_tilt, window_std = _angle(n, _Z), math.hypot(tilt_std, self.reference_tilt_std)
         remembered = self._remembered()
-        if remembered is not None and _angle(remembered[0], n) <= self.memory_gate:
+        if remembered is not None and _angle(remembered[0], n) <= self._memory_gate(tilt_std):
             n, tilt_std = remembered
             source = "memory"
         tilt_std = math.hypot(tilt_std, self.reference_tilt_std)  # shared by every plane: not averaged away
@@ -444,6 +464,12 @@ class PlaneFilter:
         self._dirty = False
         return self._cache
 
+
+    def _memory_gate(self, window_std: float) -> float:
+        """The angle (rad) within which the memory's normal is fused, for a window whose own normal has standard error
+        ``window_std`` (rad): ``memory_wide_gate`` where that is at most :data:`MEMORY_WIDE_STD` (the window's own
+        reading is then precise enough for the level rules to hold it to the bound itself), else ``memory_gate``."""
+        return self.memory_wide_gate if window_std <= MEMORY_WIDE_STD else self.memory_gate
 
     def _remembered(self) -> tuple[np.ndarray, float] | None:
         """The memory's normal and its standard error (rad), or None with too few planes or variances.

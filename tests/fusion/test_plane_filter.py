@@ -226,15 +226,18 @@ def _tilted(deg: float, azimuth: float = 0.3) -> np.ndarray:
     return np.array([math.sin(t) * math.cos(azimuth), math.sin(t) * math.sin(azimuth), math.cos(t)])
 
 
-def _feed(filt, n_base, heights, t0=0.0, std_deg=0.1, with_cov=True, rng=None, ambiguity_deg=0.0, level=-0.05):
+def _feed(filt, n_base, heights, t0=0.0, std_deg=0.1, with_cov=True, rng=None, ambiguity_deg=0.0, level=-0.05,
+          noise_deg=None):
     """Planes of the surface n . x = ``level`` seen from a descending sensor, each with tilt std ``std_deg`` (and the
-    slope ambiguity ``ambiguity_deg``). Returns the last stamp (and whether every plane was accepted: ``_feed.all``)."""
+    slope ambiguity ``ambiguity_deg``), erring by that much (or by ``noise_deg``). Returns the last stamp (and whether
+    every plane was accepted: ``_feed.all``)."""
     rng = rng if rng is not None else np.random.default_rng(0)
+    noise_deg = std_deg if noise_deg is None else noise_deg
     t = t0
     _feed.all = True
     for h in heights:
         T = looking_down([0.4, -0.1, -0.05 + h])
-        noisy = _unit_vec(n_base + rng.normal(0.0, math.radians(std_deg) / math.sqrt(2), 3) * [1, 1, 0])
+        noisy = _unit_vec(n_base + rng.normal(0.0, math.radians(noise_deg) / math.sqrt(2), 3) * [1, 1, 0])
         cov = np.diag([math.radians(std_deg) ** 2] * 2 + [1e-8]) if with_cov else None
         t += 1.0 / 30.0
         ok = filt.update(PlaneEstimate(sensor_plane(noisy, level, T), covariance=cov), T, t,
@@ -393,11 +396,41 @@ def test_a_reflection_is_not_a_pose():
 
 
 def test_memory_is_not_used_when_the_window_disagrees_beyond_its_gate():
-    filt = PlaneFilter(memory_gate=math.radians(1.5))
+    filt = PlaneFilter(memory_gate=math.radians(1.5), memory_wide_gate=math.radians(1.5))
     t = _feed(filt, _tilted(2.0), np.linspace(0.30, 0.10, 40), std_deg=0.05)
     _feed(filt, _tilted(4.5), [0.07] * 7, t0=t, std_deg=0.05)  # 2.5 deg off: within the 5 deg outlier gate
     f = filt.fused()
     assert f.source == "window" and abs(math.degrees(f.tilt_rad) - 4.5) < 0.1
+    wide = PlaneFilter()  # a window this sure of itself: the wide gate (2.5 deg), and 3 deg is beyond it
+    t = _feed(wide, _tilted(1.5), np.linspace(0.30, 0.10, 40), std_deg=0.05)
+    _feed(wide, _tilted(4.5), [0.07] * 7, t0=t, std_deg=0.05)
+    g = wide.fused()
+    assert g.source == "window" and abs(math.degrees(g.tilt_rad) - 4.5) < 0.1
+
+
+def test_a_sure_window_of_close_planes_off_the_remembered_slope_by_two_degrees_fuses_the_memory():
+    """A checker table 2.9 deg steep: the far planes read it well; the close ones (9-13 cm) read 4.6 deg, each stating
+    0.4 deg (its squares share a zone's footprint unevenly; random seed 102, scene 33). Within the wide gate (the
+    window's own standard error well under 1 deg), the memory's normal is fused and the window's reading is carried
+    for the level rules; planes stating 4 deg each keep the narrow gate (1.5 deg), and the window's own normal is
+    fused. Before, the fused plane was the window's 4.6 deg, against which the survey's views of the footprint read
+    4-5 mm high: a safe table refused."""
+    far, close = _tilted(2.9), _tilted(4.6)
+    under = np.array([0.4, -0.1, (-0.05 - far[0] * 0.4 + far[1] * 0.1) / far[2]])  # on the table under the sensor
+    level = float(close @ under)  # the close planes turn about it
+    filt = PlaneFilter()
+    t = _feed(filt, far, np.linspace(0.30, 0.14, 50), std_deg=0.2)
+    _feed(filt, close, np.linspace(0.13, 0.09, 9), t0=t, std_deg=0.4, level=level)
+    assert _feed.all
+    f = filt.fused()
+    assert f.source == "memory" and abs(math.degrees(f.tilt_rad) - 2.9) < 0.2
+    assert abs(math.degrees(f.window_tilt_rad) - 4.6) < 0.4
+    unsure = PlaneFilter()
+    t = _feed(unsure, far, np.linspace(0.30, 0.14, 50), std_deg=0.2)
+    _feed(unsure, close, [0.1] * 9, t0=t, std_deg=4.0, noise_deg=0.4, level=level)
+    g = unsure.fused()
+    assert math.degrees(g.window_tilt_std) > 1.0
+    assert g.source == "window"
 
 
 def test_memory_standard_error_counts_correlated_planes_as_few():
@@ -436,7 +469,8 @@ def test_memory_forgets_old_planes():
 
 
 def test_memory_options_are_validated():
-    for kw in ({"memory": -1}, {"memory_frames": 0}, {"memory_gate": 0.0}, {"memory_age": math.nan}):
+    for kw in ({"memory": -1}, {"memory_frames": 0}, {"memory_gate": 0.0}, {"memory_age": math.nan},
+               {"memory_wide_gate": math.nan}, {"memory_gate": 0.05, "memory_wide_gate": 0.04}):
         with pytest.raises(ValueError):
             PlaneFilter(**kw)
 
