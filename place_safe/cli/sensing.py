@@ -22,7 +22,8 @@ from place_safe.cli.options import opt
 from place_safe.exceptions import CalibrationError, FrameError, FrameFileError, PlaceSafeError
 from place_safe.cli.common import (CALIBRATE_METHODS, METHODS, PROG, UsageError, estimator_for, given_twice,
                                    jsonable, load_any_frames, load_calibration, load_truth_frames, log, progress_options,
-                                   report_notes, require_frame_file, summarise, not_a_file, uncalibrated_note)
+                                   report_notes, require_frame_file, summarise, not_a_file, uncalibrated_note,
+                                   evaluated_methods)
 from place_safe.evaluation.bench import DEFAULT_RUNS, measure_file_rss, report_json, run_bench
 from place_safe.evaluation.evaluate import evaluate
 from place_safe.io.frame_file import iter_frames
@@ -229,7 +230,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if not args.no_plots and (why := output_dir_problem(args.out)) is not None:  # before minutes of recovery
         raise UsageError(f"evaluate: --out {args.out + ' ' if args.out else ''}{why} (a folder for the plots)")
     cal = load_calibration(args.calibration)
-    args.methods = list(dict.fromkeys(args.methods))  # each method once, in the order given ("peak peak": one row)
+    # each method once, in the order given ("peak peak": one row); by default the calibration's methods, the baselines
+    args.methods, left_out = evaluated_methods(args.methods, cal, args.calibration)
     if args.min_distance is not None and args.max_distance is not None and args.min_distance > args.max_distance:
         raise UsageError(f"evaluate: --min-distance {args.min_distance:g} m exceeds --max-distance "
                          f"{args.max_distance:g} m")
@@ -238,6 +240,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         log(f"evaluate on {len(frames)} frames" + (f" ({skipped})" if skipped else ""))
     if (note := uncalibrated_note(args.methods, cal, args.calibration)) is not None:
         print(note, flush=True)  # the first line; the table marks each uncalibrated method's row
+    if left_out is not None:
+        print(left_out, flush=True)  # what the table holds: on standard output with it
     if cal is not None and not args.quiet and (ref := max((cal.reference(m).tilt_std for m in args.methods
                                                             if m in REQUIRED_SECTIONS), default=0.0)) > 0.0:
         log(f"note: the plane this calibration was captured against may be off by {math.degrees(ref):.2f} deg (its "
@@ -433,8 +437,9 @@ def register(sub) -> None:
          "place-safe evaluate sweep.json --calibration calib.json --methods diff --no-fallback   # diff's own plane"],
         opt("file", metavar="FILE", help="frame file with ground truth"),
         "calibration",
-        opt("--methods", nargs="+", choices=METHODS, default=list(METHODS), metavar="METHOD",
-            help=f"methods to evaluate (default: all of {', '.join(METHODS)})"),
+        opt("--methods", nargs="+", choices=METHODS, default=None, metavar="METHOD",
+            help=f"methods to evaluate (default: all of {', '.join(METHODS)}, less those the --calibration file has no "
+                 "section for: a line says which and how to fit them)"),
         opt("--out", default="out/evaluate", metavar="DIR", help="directory for plots (default out/evaluate)"),
         opt("--min-distance", type=options.float_range(0.0, 100.0), default=None, metavar="M",
             help="skip frames whose true plane is closer than M metres (perpendicular distance d; synth's distances are z0, "
