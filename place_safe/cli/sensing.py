@@ -104,8 +104,9 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 
 def _calibrate_sim(args: argparse.Namespace) -> int:
-    """``calibrate --sim {nominal,mismatch,all}``: regenerate the simulated user calibration (default: the packaged
-    file placements use) by the chain a user runs on the arm, in MuJoCo."""
+    """``calibrate --sim {nominal,mismatch,all}``: make the simulated user calibration by the chain a user runs on the
+    arm, in MuJoCo, into ``-o`` or calibration_SENSOR.json in the current folder (the packaged file placements use is
+    rewritten only when named: ``-o sim/sensors/calibration_SENSOR.json``, or run in that folder)."""
     import importlib.util
 
     if args.files or args.method or args.unit_model is not None or args.readings_from is not None:
@@ -117,11 +118,23 @@ def _calibrate_sim(args: argparse.Namespace) -> int:
     if importlib.util.find_spec("mujoco") is None:
         raise UsageError("calibrate --sim: the simulation needs MuJoCo, which is not installed: install the [sim] "
                          "extra, e.g. pip install -e \".[sim]\"")
-    from place_safe.sim.calibration_capture import calibrate_sim
+    from place_safe.sim import calibration_capture
+    from place_safe.sim.tof import calibration_name
 
+    outs = [Path(args.output or calibration_name(sensor)) for sensor in sensors]  # not the packaged file unless named
+    for out in outs:  # checked before minutes of capture and fit; a calibration there is made anew
+        if out.exists():
+            if (why := not_a_file(out)) is not None:
+                raise PlaceSafeError(f"calibration output {out} {why}")
+            try:
+                Calibration.load(out)
+            except CalibrationError as exc:
+                if not args.force:
+                    raise CalibrationError(f"{exc}; refusing to overwrite it (use --force to replace the file)") from None
     frames = SIM_SWEEP_FRAMES if args.frames is None else args.frames
-    for sensor in sensors:
-        out = calibrate_sim(sensor, args.output, n=frames, seed=args.seed or 0, frames_out=args.save_frames)
+    for sensor, out in zip(sensors, outs):
+        out = calibration_capture.calibrate_sim(sensor, out, n=frames, seed=args.seed or 0,
+                                                frames_out=args.save_frames)
         if not args.quiet:
             log(f"wrote {out} ({sensor} simulated sensor, {frames} sweep frames)")
     return 0
@@ -352,7 +365,8 @@ def register(sub) -> None:
         "Fit one method family to frames with ground-truth planes and write its section of a calibration file. If "
         "the output already is a calibration file, its other sections are kept, so one file can carry all methods. "
         "With --sim SENSOR instead of FILE, the user's whole chain runs in MuJoCo (touch the table, capture a sweep, "
-        "fit diff then proprietary) and rewrites the simulated calibration.",
+        "fit diff then proprietary) and writes a simulated calibration (calibration_SENSOR.json in the current folder "
+        "unless -o says where).",
         "methods and the sections they write:\n"
         "  peak         -> 'peak' (histogram-peak distance, zone-angle scales, pile-up and, from\n"
         "                  frames closer than 9 cm, a per-zone near-range table kept only if\n"
@@ -370,7 +384,8 @@ def register(sub) -> None:
         "  place-safe calibrate sweep.json --method diff -o calib.json   # adds 'forward'\n"
         "  place-safe calibrate sweep.json --method diff --unit-model staged -o calib.json\n"
         "  place-safe calibrate sweep.json --method diff --readings-from ramp.json -o calib.json\n"
-        "  place-safe calibrate --sim mismatch      # the packaged simulated calibration, anew",
+        "  place-safe calibrate --sim mismatch      # ./calibration_mismatch.json: the simulated one, anew\n"
+        "  cd sim/sensors && place-safe calibrate --sim all   # the packaged simulated calibrations, anew",
         opt("files", nargs="*", metavar="FILE", help="frame files with ground truth ('plane' or 'pose' + 'dist_to_plane')"),
         "method",
         opt("--readings-from", metavar="TILTED", default=None,
@@ -396,7 +411,8 @@ def register(sub) -> None:
         "output", "force", "quiet",
         method={"choices": CALIBRATE_METHODS, "default": None, "help": "method family to fit (required with FILE)"},
         output={"metavar": "CALIB.json", "help": "calibration file to write or update (required with FILE; with "
-                                                 "--sim: default the packaged simulated calibration)"},
+                                                 "--sim: default calibration_SENSOR.json in the current folder, made "
+                                                 "anew)"},
         force={"help": "replace an output file that is not a valid calibration"},
         quiet={"help": "print only errors and the notes that ask you to act (e.g. for tilted poses): no progress "
                        "bars, no fit report (it stays in the file's 'reports'), no closing line"})
@@ -405,7 +421,8 @@ def register(sub) -> None:
                     help="instead of FILE: regenerate the simulated user calibration of this simulated sensor the way a "
                        "user calibrates the arm: the simulated UR5 touches the level table at three points, captures a "
                        "sweep above it with the simulated sensor and fits it (diff, then proprietary); without -o it "
-                       "rewrites the packaged sim/sensors/calibration_<sensor>.json placements use"),
+                       "writes calibration_SENSOR.json in the current folder (the packaged "
+                       "sim/sensors/calibration_SENSOR.json placements use is written only when named with -o)"),
                 "frames", "seed",
                 opt("--save-frames", help="with --sim: also keep the capture file (JSON Lines) here (one sensor only)"),
                 frames={"type": options.int_range(8, 1000), "metavar": None,

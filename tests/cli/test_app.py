@@ -865,3 +865,39 @@ def test_demo_with_proprietary_says_why_it_refuses_the_level_table(monkeypatch, 
     assert first.startswith("demo: NOTE: proprietary ") and "on-sensor distances" in first and "refused" in first
     assert "-> place_level: refused (EXPECTED released: a false refusal" in cap.out
     assert "-> place_tilted: refused (as expected)" in cap.out
+
+
+def test_calibrate_sim_writes_into_the_current_folder_unless_told_where(tmp_path, monkeypatch, capsys):
+    """``calibrate --sim SENSOR`` without -o rewrote the packaged sim/sensors/calibration_SENSOR.json of the installed
+    checkout, which every simulated placement reads (a new user's walkthrough). Without -o it writes
+    calibration_SENSOR.json in the current folder and says where; -o names any file, the packaged one too; a file there
+    that is not a calibration is replaced only with --force, as calibrate FILE does. (The chain itself runs in
+    tests/sim/test_calibration_capture.py: here it is replaced by a stand-in that writes a calibration.)"""
+    import place_safe.sim.calibration_capture as cc
+    from place_safe.calibration import Calibration
+
+    written = []
+
+    def fake(sensor, output=None, n=0, seed=0, frames_out=None, quiet=True):
+        written.append((sensor, output))
+        Calibration().save(output)
+        return Path(output)
+
+    monkeypatch.setattr(cc, "calibrate_sim", fake)
+    monkeypatch.chdir(tmp_path)
+    packaged = {s: cc.calibration_file(s).read_bytes() for s in ("nominal", "mismatch")}
+    assert main(["calibrate", "--sim", "all"]) == 0
+    err = capsys.readouterr().err
+    assert [(s, Path(o)) for s, o in written] == [("nominal", Path("calibration_nominal.json")),
+                                                  ("mismatch", Path("calibration_mismatch.json"))]
+    assert "wrote calibration_nominal.json" in err and "wrote calibration_mismatch.json" in err
+    assert {p.name for p in tmp_path.iterdir()} == {"calibration_nominal.json", "calibration_mismatch.json"}
+    assert {s: cc.calibration_file(s).read_bytes() for s in packaged} == packaged
+    written.clear()
+    assert main(["calibrate", "--sim", "nominal", "-o", "mine.json", "-q"]) == 0
+    assert [(s, Path(o)) for s, o in written] == [("nominal", Path("mine.json"))] and capsys.readouterr().err == ""
+    written.clear()
+    (tmp_path / "notes.json").write_text('{"mine": true}')
+    assert main(["calibrate", "--sim", "nominal", "-o", "notes.json"]) == 2
+    assert "--force" in one_line_error(capsys.readouterr().err) and written == []
+    assert main(["calibrate", "--sim", "nominal", "-o", "notes.json", "--force", "-q"]) == 0 and len(written) == 1
