@@ -901,3 +901,36 @@ def test_calibrate_sim_writes_into_the_current_folder_unless_told_where(tmp_path
     assert main(["calibrate", "--sim", "nominal", "-o", "notes.json"]) == 2
     assert "--force" in one_line_error(capsys.readouterr().err) and written == []
     assert main(["calibrate", "--sim", "nominal", "-o", "notes.json", "--force", "-q"]) == 0 and len(written) == 1
+
+
+@pytest.mark.parametrize("batch", ["1", "3"])
+def test_recover_times_frame_0_without_the_start_up(synthetic_file, monkeypatch, capsys, batch):
+    """Frame 0's ``ms`` held the process's first-call costs (the peak method's first frame imports scipy's
+    interpolation: 175-180 ms against 0.6 for the next ones, a new user's walkthrough); interfaces.md: ``ms`` is that
+    frame's recovery time. recover now recovers the first frame once before the timed stream (as ``stream`` and the
+    benchmarks do), so frame 0 is timed like the others. A stand-in first-call cost of half a second shows it."""
+    import time
+
+    import place_safe.cli.sensing as sensing
+
+    made = sensing.estimator_for
+    calls = []
+
+    def slow_start(method, calibration, mode=None):
+        est = made(method, calibration, mode)
+        real = est._estimate
+
+        def first_call_is_slow(frame):
+            if not calls:
+                time.sleep(0.5)  # imports, caches: what a process pays once
+            calls.append(1)
+            return real(frame)
+
+        est._estimate = first_call_is_slow
+        return est
+
+    monkeypatch.setattr(sensing, "estimator_for", slow_start)
+    assert main(["recover", str(synthetic_file), "--method", "peak", "--jsonl", "-q", "--batch", batch]) == 0
+    lines = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
+    assert [x["index"] for x in lines] == list(range(8)) and lines[0]["normal"] is not None
+    assert lines[0]["ms"] < 100.0, lines[0]
