@@ -199,6 +199,46 @@ def summarise(report: Any, indent: str = "  ") -> list[str]:
     return lines
 
 
+def _g(value: Any) -> str:
+    """A report's number in three figures (``-`` where it is not one)."""
+    return f"{value:.3g}" if isinstance(value, (int, float)) and not isinstance(value, bool) else "-"
+
+
+#: The before/after errors :func:`fit_summary` gives of a mapping's fit (peak, proprietary): (label, key, unit).
+SUMMARY_ERRORS = (("angular", "angular_mean_deg", "deg"), ("linear", "linear_mean_mm", "mm"),
+                  ("point", "point_mean_mm", "mm"))
+
+
+def fit_summary(report: Any) -> str:
+    """One line of a section's fit report, what ``calibrate`` prints by default (``--report``: :func:`summarise`'s
+    whole listing, which the file's ``reports`` keeps either way): the frames fitted and what says whether the fit
+    helped -- the mean errors on them before and after (peak, proprietary), the forward model's RMS scaled residual and
+    whether it converged, the corrections kept (diff), each method's NEES per degree of freedom (uncertainty)."""
+    rep = jsonable(report)
+    if not isinstance(rep, dict):
+        return "fitted"
+    parts = [f"{rep['frames']} frames"] if isinstance(rep.get("frames"), int) else []
+    before, after = rep.get("before"), rep.get("after")
+    if isinstance(before, dict) and isinstance(after, dict):
+        parts.append("mean errors on them before -> after the fit: " + ", ".join(
+            f"{label} {_g(before.get(key))} -> {_g(after.get(key))} {unit}" for label, key, unit in SUMMARY_ERRORS))
+    if "rms_scaled_residual_after" in rep:
+        parts.append(f"RMS scaled residual {_g(rep.get('rms_scaled_residual_before'))} -> "
+                     f"{_g(rep['rms_scaled_residual_after'])}")
+    if "converged" in rep:
+        why = str(rep.get("why") or "")
+        parts.append(why if rep["converged"] is True and why.startswith("converged") else
+                     "converged" if rep["converged"] is True else f"NOT converged ({why or 'no reason given'})")
+    if isinstance(rep.get("kept"), list):
+        parts.append("kept: " + (", ".join(map(str, rep["kept"])) or "nothing (no correction helped held out)"))
+    for method, entry in rep.items():  # (uncertainty: an entry per method)
+        if isinstance(entry, dict) and "nees_per_dof_after" in entry:
+            parts.append(f"{method}: NEES per dof {_g(entry.get('nees_per_dof_before'))} -> "
+                         f"{_g(entry['nees_per_dof_after'])}"
+                         + (f" on {entry['frames']} frames" if isinstance(entry.get("frames"), int) else ""))
+    return "; ".join(parts) or "fitted"
+
+
 def report_notes(report: Any, where: str = "") -> list[tuple[str, str]]:
     """Every ``note`` in a calibration report (nested dicts), with the dotted place of the report that holds it
     (``where`` first): ``(place, text)``."""

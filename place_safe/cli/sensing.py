@@ -23,7 +23,7 @@ from place_safe.exceptions import CalibrationError, FrameError, FrameFileError, 
 from place_safe.cli.common import (CALIBRATE_METHODS, METHODS, PROG, UsageError, estimator_for, given_twice,
                                    jsonable, load_any_frames, load_calibration, load_truth_frames, log, progress_options,
                                    report_notes, require_frame_file, summarise, not_a_file, uncalibrated_note,
-                                   evaluated_methods)
+                                   evaluated_methods, fit_summary)
 from place_safe.evaluation.bench import DEFAULT_RUNS, measure_file_rss, report_json, run_bench
 from place_safe.evaluation.evaluate import evaluate
 from place_safe.io.frame_file import iter_frames
@@ -40,6 +40,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     """Fit a method family to frame files (``calibrate FILE... --method M -o CAL``), or with ``--sim SENSOR`` run
     the whole user chain in MuJoCo (touch the table, capture a sweep, fit diff then proprietary)."""
 
+    if args.report and args.quiet:
+        raise UsageError("calibrate: --report prints the whole fit report, -q none of it: give one of them")
     if args.sim:
         return _calibrate_sim(args)
     extra = [name for name, given in (("--frames", args.frames is not None), ("--seed", args.seed is not None),
@@ -89,9 +91,12 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     cal.save(out)
     for name in fitted if not args.quiet else ():  # -q: the fit reports are in the file (its "reports")
-        log(f"fit quality, section '{name}':")
-        for line in summarise(cal.reports.get(name, {})):
-            log(line)
+        if args.report:
+            log(f"fit quality, section '{name}':")
+            for line in summarise(cal.reports.get(name, {})):
+                log(line)
+        else:  # one line a section (the whole report ran to hundreds of lines for diff)
+            log(f"fit quality, section '{name}': {fit_summary(cal.reports.get(name, {}))}")
     for name in fitted:  # what a report asks the user to act on, where the long listing cannot hide it (even -q)
         for where, text in report_notes(cal.reports.get(name, {}), name):
             log(f"note ({where}): {text}")
@@ -99,7 +104,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         log(f"warning: {out}: section '{name}' kept invalid ({cal.errors[name]}); place and scenarios refuse this "
             f"file until it is refit or removed")
     if not args.quiet:
-        log(f"wrote {out} (sections: {', '.join(cal.sections)})")
+        log(f"wrote {out} (sections: {', '.join(cal.sections)})"
+            + ("" if args.report else "; the whole fit report: --report, or the file's 'reports'"))
     return 0
 
 
@@ -109,9 +115,10 @@ def _calibrate_sim(args: argparse.Namespace) -> int:
     rewritten only when named: ``-o sim/sensors/calibration_SENSOR.json``, or run in that folder)."""
     import importlib.util
 
-    if args.files or args.method or args.unit_model is not None or args.readings_from is not None:
+    if args.files or args.method or args.unit_model is not None or args.readings_from is not None or args.report:
         raise UsageError("calibrate: --sim captures its own frames and fits diff, then proprietary: give no FILE, "
-                         "--method, --unit-model or --readings-from with it")
+                         "--method, --unit-model, --readings-from or --report with it (its fit report is in the file's "
+                         "'reports')")
     sensors = ("nominal", "mismatch") if args.sim == "all" else (args.sim,)
     if len(sensors) > 1 and (args.output or args.save_frames):
         raise UsageError("calibrate: -o and --save-frames need one simulated sensor (--sim nominal or mismatch)")
@@ -419,7 +426,11 @@ def register(sub) -> None:
                  "against 3.7) but did not make diff's planes better there, and on simulated sensors, whose "
                  "ambient does not pile up like the real one's, it is worse (docs/results.md, the unit model, "
                  "step 6). Default: default"),
-        "output", "force", "quiet",
+        "output", "force",
+        opt("--report", action="store_true",
+            help="print the whole fit report of each section fitted (default: one line a section; the file's "
+                 "'reports' keeps the whole report either way)"),
+        "quiet",
         method={"choices": CALIBRATE_METHODS, "default": None, "help": "method family to fit (required with FILE)"},
         output={"metavar": "CALIB.json", "help": "calibration file to write or update (required with FILE; with "
                                                  "--sim: default calibration_SENSOR.json in the current folder, made "

@@ -325,7 +325,7 @@ def test_calibrate_writes_and_merges_sections(tmp_path, sweep_path, capsys):
     from place_safe.calibration import Calibration
 
     out = tmp_path / "cal.json"
-    assert main(["calibrate", str(sweep_path), "--method", "peak", "-o", str(out)]) == 0
+    assert main(["calibrate", str(sweep_path), "--method", "peak", "-o", str(out), "--report"]) == 0
     err = capsys.readouterr().err
     assert "fit quality" in err
     # the real sweep is one pass 7.5 mm apart: its near law is measured in wider gaps than a new frame's, and a
@@ -934,3 +934,31 @@ def test_recover_times_frame_0_without_the_start_up(synthetic_file, monkeypatch,
     lines = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
     assert [x["index"] for x in lines] == list(range(8)) and lines[0]["normal"] is not None
     assert lines[0]["ms"] < 100.0, lines[0]
+
+
+def test_calibrate_prints_a_short_summary_and_the_whole_report_with_report(tmp_path, sweep_path, capsys):
+    """calibrate printed its whole fit report by default (118 lines for a peak fit, hundreds for diff; a new user's
+    walkthrough). By default it prints one line a section (frames, the errors before and after the fit, the NEES), the
+    notes that ask for action and where it wrote; --report prints the whole report, which the file keeps either way."""
+    import re
+
+    out = tmp_path / "cal.json"
+    assert main(["calibrate", str(sweep_path), "--method", "peak", "-o", str(out)]) == 0
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 6, lines
+    assert lines[0] == "calibrate peak: 53 frames with ground truth"
+    assert re.fullmatch(r"fit quality, section 'peak': \d+ frames; mean errors on them before -> after the fit: "
+                        r"angular [\d.]+ -> [\d.]+ deg, linear [\d.]+ -> [\d.]+ mm, point [\d.]+ -> [\d.]+ mm",
+                        lines[1]), lines[1]
+    assert re.fullmatch(r"fit quality, section 'uncertainty': peak: NEES per dof [\d.]+ -> [\d.]+ on \d+ frames",
+                        lines[2]), lines[2]
+    assert lines[3].startswith("note (uncertainty.peak.near_range.law)")
+    assert lines[4].startswith("note (uncertainty.peak)")
+    assert lines[5] == (f"wrote {out} (sections: peak, uncertainty); the whole fit report: --report, or the file's "
+                        "'reports'")
+    assert main(["calibrate", str(sweep_path), "--method", "peak", "-o", str(out), "--report"]) == 0
+    err = capsys.readouterr().err
+    assert "fit quality, section 'peak':" in err and "  after.angular_mean_deg: " in err and len(err.splitlines()) > 50
+    assert err.strip().splitlines()[-1] == f"wrote {out} (sections: peak, uncertainty)"
+    assert main(["calibrate", str(sweep_path), "--method", "peak", "-o", str(out), "--report", "-q"]) == 2
+    assert "--report" in one_line_error(capsys.readouterr().err)
