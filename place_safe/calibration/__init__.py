@@ -265,14 +265,17 @@ def mark(text: str, calibrated: bool) -> str:
 def uncalibrated_reason(method: str, calibration: "Calibration | None") -> str | None:
     """Why ``method`` with ``calibration`` is not a calibrated sensor (and how to calibrate), or None.
 
-    Placement refuses at once on a reason: built-in constants read a level table as tilted by degrees.
+    Placement refuses at once on a reason: built-in constants read a level table as tilted by degrees. A naive method
+    (``peak-naive``, ``proprietary-naive``) takes no calibration: its reason is always given, and names the method to
+    calibrate instead.
     """
     need = REQUIRED_SECTIONS.get(method)
     fit = method if method in REQUIRED_SECTIONS else method.removesuffix("-naive")
     how = (f"calibrate it first: place-safe calibrate FRAMES.json --method {fit} -o cal.json (frames of a level "
            "table with ground truth), then pass the calibration file")
-    if need is None:
-        return f"sensor not calibrated: method {method} uses built-in constants; {how}"
+    if need is None:  # no calibration is ever its: advising one (then "pass the calibration file") sent users in circles
+        return (f"sensor not calibrated: method {method} is a baseline on built-in constants that takes no calibration, "
+                f"so a placement refuses it by design; use {fit} ({how.replace('then pass', 'and pass')})")
     have = calibration.sections if calibration is not None else {}
     missing = [s for s in need if not isinstance(have.get(s), dict)]
     if missing:

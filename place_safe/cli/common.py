@@ -199,6 +199,46 @@ def summarise(report: Any, indent: str = "  ") -> list[str]:
     return lines
 
 
+def _g(value: Any) -> str:
+    """A report's number in three figures (``-`` where it is not one)."""
+    return f"{value:.3g}" if isinstance(value, (int, float)) and not isinstance(value, bool) else "-"
+
+
+#: The before/after errors :func:`fit_summary` gives of a mapping's fit (peak, proprietary): (label, key, unit).
+SUMMARY_ERRORS = (("angular", "angular_mean_deg", "deg"), ("linear", "linear_mean_mm", "mm"),
+                  ("point", "point_mean_mm", "mm"))
+
+
+def fit_summary(report: Any) -> str:
+    """One line of a section's fit report, what ``calibrate`` prints by default (``--report``: :func:`summarise`'s
+    whole listing, which the file's ``reports`` keeps either way): the frames fitted and what says whether the fit
+    helped -- the mean errors on them before and after (peak, proprietary), the forward model's RMS scaled residual and
+    whether it converged, the corrections kept (diff), each method's NEES per degree of freedom (uncertainty)."""
+    rep = jsonable(report)
+    if not isinstance(rep, dict):
+        return "fitted"
+    parts = [f"{rep['frames']} frames"] if isinstance(rep.get("frames"), int) else []
+    before, after = rep.get("before"), rep.get("after")
+    if isinstance(before, dict) and isinstance(after, dict):
+        parts.append("mean errors on them before -> after the fit: " + ", ".join(
+            f"{label} {_g(before.get(key))} -> {_g(after.get(key))} {unit}" for label, key, unit in SUMMARY_ERRORS))
+    if "rms_scaled_residual_after" in rep:
+        parts.append(f"RMS scaled residual {_g(rep.get('rms_scaled_residual_before'))} -> "
+                     f"{_g(rep['rms_scaled_residual_after'])}")
+    if "converged" in rep:
+        why = str(rep.get("why") or "")
+        parts.append(why if rep["converged"] is True and why.startswith("converged") else
+                     "converged" if rep["converged"] is True else f"NOT converged ({why or 'no reason given'})")
+    if isinstance(rep.get("kept"), list):
+        parts.append("kept: " + (", ".join(map(str, rep["kept"])) or "nothing (no correction helped held out)"))
+    for method, entry in rep.items():  # (uncertainty: an entry per method)
+        if isinstance(entry, dict) and "nees_per_dof_after" in entry:
+            parts.append(f"{method}: NEES per dof {_g(entry.get('nees_per_dof_before'))} -> "
+                         f"{_g(entry['nees_per_dof_after'])}"
+                         + (f" on {entry['frames']} frames" if isinstance(entry.get("frames"), int) else ""))
+    return "; ".join(parts) or "fitted"
+
+
 def report_notes(report: Any, where: str = "") -> list[tuple[str, str]]:
     """Every ``note`` in a calibration report (nested dicts), with the dotted place of the report that holds it
     (``where`` first): ``(place, text)``."""
@@ -235,10 +275,42 @@ def uncalibrated_note(methods: str | Sequence[str], calibration, path: str | Non
         why.append(f"{', '.join(naive)} {'is a naive baseline' if len(naive) == 1 else 'are naive baselines'} "
                    "on built-in constants")
     fit = (fitted or [m.removesuffix("-naive") for m in naive])[0]
-    if advice is None:
+    if advice is None and fitted:
         advice = (f"Fit one with 'place-safe calibrate FRAMES.json --method {fit} -o cal.json' and pass --calibration "
                   "cal.json")
+    elif advice is None:  # baselines only: a calibration would change nothing (evaluate --calibration C advised one)
+        plain = ", ".join(dict.fromkeys(m.removesuffix("-naive") for m in naive))
+        advice = (("They use no calibration (baselines" if len(naive) > 1 else "It uses no calibration (a baseline")
+                  + f" to compare with); for calibrated planes use {plain} with --calibration")
     return f"UNCALIBRATED: {'; '.join(why)}; planes can be off by degrees. {advice}"
+
+
+def evaluated_methods(given: Sequence[str] | None, calibration,
+                      path: str | None = None) -> tuple[list[str], str | None]:
+    """The methods ``evaluate`` runs, each once in the order given, and a one-line note on those it left out (or None).
+
+    ``given``: the methods named with ``--methods`` (None: the default, every method of :data:`METHODS`). By default a
+    calibration's methods are evaluated: a fitted method whose section the file lacks (``calibrate --method diff`` or
+    ``peak`` fit no proprietary section) would run on built-in constants, proprietary's row the same as
+    proprietary-naive's, so it is left out and the note says how to fit it or see it anyway. The naive baselines stay
+    (no calibration is theirs), and so does every method without a calibration, or when the file calibrates none of
+    them (the UNCALIBRATED note says so). Named methods always run."""
+    if given is not None:
+        return list(dict.fromkeys(given)), None
+    fitted = [m for m in METHODS if m in REQUIRED_SECTIONS]
+    bare = [m for m in fitted if uncalibrated_reason(m, calibration) is not None]
+    if calibration is None or not bare or len(bare) == len(fitted):
+        return list(METHODS), None
+    where = path or "the calibration"
+    sections = " or ".join(REQUIRED_SECTIONS[m][0] for m in bare)
+    one = len(bare) == 1
+    it = "it" if one else "them"
+    again = "".join(f" and again with --method {m}" for m in bare[1:])
+    note = (f"note: {', '.join(bare)} left out of the default methods: {where} has no {sections} section, so "
+            f"{'it' if one else 'they'} would run on built-in constants (another unit's published parameters); fit "
+            f"{it} into the file with 'place-safe calibrate FRAMES.json --method {bare[0]} -o {where}'{again}, or name "
+            f"{it} with --methods to see {it} uncalibrated")
+    return [m for m in METHODS if m not in bare], note
 
 
 def estimator_for(method: str, calibration, mode: str | None = None):

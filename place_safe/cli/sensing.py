@@ -22,7 +22,8 @@ from place_safe.cli.options import opt
 from place_safe.exceptions import CalibrationError, FrameError, FrameFileError, PlaceSafeError
 from place_safe.cli.common import (CALIBRATE_METHODS, METHODS, PROG, UsageError, estimator_for, given_twice,
                                    jsonable, load_any_frames, load_calibration, load_truth_frames, log, progress_options,
-                                   report_notes, require_frame_file, summarise, not_a_file, uncalibrated_note)
+                                   report_notes, require_frame_file, summarise, not_a_file, uncalibrated_note,
+                                   evaluated_methods, fit_summary)
 from place_safe.evaluation.bench import DEFAULT_RUNS, measure_file_rss, report_json, run_bench
 from place_safe.evaluation.evaluate import evaluate
 from place_safe.io.frame_file import iter_frames
@@ -39,6 +40,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     """Fit a method family to frame files (``calibrate FILE... --method M -o CAL``), or with ``--sim SENSOR`` run
     the whole user chain in MuJoCo (touch the table, capture a sweep, fit diff then proprietary)."""
 
+    if args.report and args.quiet:
+        raise UsageError("calibrate: --report prints the whole fit report, -q none of it: give one of them")
     if args.sim:
         return _calibrate_sim(args)
     extra = [name for name, given in (("--frames", args.frames is not None), ("--seed", args.seed is not None),
@@ -88,9 +91,12 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     cal.save(out)
     for name in fitted if not args.quiet else ():  # -q: the fit reports are in the file (its "reports")
-        log(f"fit quality, section '{name}':")
-        for line in summarise(cal.reports.get(name, {})):
-            log(line)
+        if args.report:
+            log(f"fit quality, section '{name}':")
+            for line in summarise(cal.reports.get(name, {})):
+                log(line)
+        else:  # one line a section (the whole report ran to hundreds of lines for diff)
+            log(f"fit quality, section '{name}': {fit_summary(cal.reports.get(name, {}))}")
     for name in fitted:  # what a report asks the user to act on, where the long listing cannot hide it (even -q)
         for where, text in report_notes(cal.reports.get(name, {}), name):
             log(f"note ({where}): {text}")
@@ -98,29 +104,44 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         log(f"warning: {out}: section '{name}' kept invalid ({cal.errors[name]}); place and scenarios refuse this "
             f"file until it is refit or removed")
     if not args.quiet:
-        log(f"wrote {out} (sections: {', '.join(cal.sections)})")
+        log(f"wrote {out} (sections: {', '.join(cal.sections)})"
+            + ("" if args.report else "; the whole fit report: --report, or the file's 'reports'"))
     return 0
 
 
 def _calibrate_sim(args: argparse.Namespace) -> int:
-    """``calibrate --sim {nominal,mismatch,all}``: regenerate the simulated user calibration (default: the packaged
-    file placements use) by the chain a user runs on the arm, in MuJoCo."""
+    """``calibrate --sim {nominal,mismatch,all}``: make the simulated user calibration by the chain a user runs on the
+    arm, in MuJoCo, into ``-o`` or calibration_SENSOR.json in the current folder (the packaged file placements use is
+    rewritten only when named: ``-o sim/sensors/calibration_SENSOR.json``, or run in that folder)."""
     import importlib.util
 
-    if args.files or args.method or args.unit_model is not None or args.readings_from is not None:
+    if args.files or args.method or args.unit_model is not None or args.readings_from is not None or args.report:
         raise UsageError("calibrate: --sim captures its own frames and fits diff, then proprietary: give no FILE, "
-                         "--method, --unit-model or --readings-from with it")
+                         "--method, --unit-model, --readings-from or --report with it (its fit report is in the file's "
+                         "'reports')")
     sensors = ("nominal", "mismatch") if args.sim == "all" else (args.sim,)
     if len(sensors) > 1 and (args.output or args.save_frames):
         raise UsageError("calibrate: -o and --save-frames need one simulated sensor (--sim nominal or mismatch)")
     if importlib.util.find_spec("mujoco") is None:
         raise UsageError("calibrate --sim: the simulation needs MuJoCo, which is not installed: install the [sim] "
                          "extra, e.g. pip install -e \".[sim]\"")
-    from place_safe.sim.calibration_capture import calibrate_sim
+    from place_safe.sim import calibration_capture
+    from place_safe.sim.tof import calibration_name
 
+    outs = [Path(args.output or calibration_name(sensor)) for sensor in sensors]  # not the packaged file unless named
+    for out in outs:  # checked before minutes of capture and fit; a calibration there is made anew
+        if out.exists():
+            if (why := not_a_file(out)) is not None:
+                raise PlaceSafeError(f"calibration output {out} {why}")
+            try:
+                Calibration.load(out)
+            except CalibrationError as exc:
+                if not args.force:
+                    raise CalibrationError(f"{exc}; refusing to overwrite it (use --force to replace the file)") from None
     frames = SIM_SWEEP_FRAMES if args.frames is None else args.frames
-    for sensor in sensors:
-        out = calibrate_sim(sensor, args.output, n=frames, seed=args.seed or 0, frames_out=args.save_frames)
+    for sensor, out in zip(sensors, outs):
+        out = calibration_capture.calibrate_sim(sensor, out, n=frames, seed=args.seed or 0,
+                                                frames_out=args.save_frames)
         if not args.quiet:
             log(f"wrote {out} ({sensor} simulated sensor, {frames} sweep frames)")
     return 0
@@ -133,6 +154,20 @@ SIM_SWEEP_FRAMES = 48
 # ------------------------------------------------------------------------------------------------
 # recover
 # ------------------------------------------------------------------------------------------------
+def _warm_up(estimator, path: str) -> None:
+    """Recover the file's first usable frame once and drop the result, so the process's first-call costs (imports,
+    caches: the peak method's first frame imports scipy's interpolation, ~0.2 s) are not timed as a frame's:
+    ``recover``'s ``ms`` of frame 0, ``stream``'s first latency. A file that breaks before a usable frame warms nothing
+    (the command's own read says why)."""
+    try:
+        for f in iter_frames(path, truth=False):
+            if not isinstance(f, FrameError):
+                estimator.estimate(f)
+                return
+    except FrameFileError:
+        return
+
+
 def _recover_stream(path: str, estimator, batch: int, unstamped: list[str] | None = None) -> Iterator[tuple[int, Any]]:
     """(index, PlaneEstimate) for every entry of the file, in order, recovering ``batch`` frames at a time.
     ``unstamped`` gets ``"frame N: why"`` for each frame whose timestamp was not used (its plane is recovered)."""
@@ -191,6 +226,9 @@ def cmd_recover(args: argparse.Namespace) -> int:
     note = uncalibrated_note(args.method, cal, args.calibration)
     batch = args.batch or (16 if args.method == "diff" and args.mode != "paper" else 1)
     out = sys.stdout
+    # frame 0 is timed like the others (docs/interfaces.md: ms is that frame's recovery time): the first-call costs
+    # are paid first, on the first frame; the paper mode's seconds a frame would double, its fast mode loads the same
+    _warm_up(est if args.mode != "paper" else estimator_for(args.method, cal, "fast"), args.file)
     if not args.jsonl:
         if note is not None:
             out.write(note + "\n")
@@ -229,7 +267,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if not args.no_plots and (why := output_dir_problem(args.out)) is not None:  # before minutes of recovery
         raise UsageError(f"evaluate: --out {args.out + ' ' if args.out else ''}{why} (a folder for the plots)")
     cal = load_calibration(args.calibration)
-    args.methods = list(dict.fromkeys(args.methods))  # each method once, in the order given ("peak peak": one row)
+    # each method once, in the order given ("peak peak": one row); by default the calibration's methods, the baselines
+    args.methods, left_out = evaluated_methods(args.methods, cal, args.calibration)
     if args.min_distance is not None and args.max_distance is not None and args.min_distance > args.max_distance:
         raise UsageError(f"evaluate: --min-distance {args.min_distance:g} m exceeds --max-distance "
                          f"{args.max_distance:g} m")
@@ -238,6 +277,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         log(f"evaluate on {len(frames)} frames" + (f" ({skipped})" if skipped else ""))
     if (note := uncalibrated_note(args.methods, cal, args.calibration)) is not None:
         print(note, flush=True)  # the first line; the table marks each uncalibrated method's row
+    if left_out is not None:
+        print(left_out, flush=True)  # what the table holds: on standard output with it
     if cal is not None and not args.quiet and (ref := max((cal.reference(m).tilt_std for m in args.methods
                                                             if m in REQUIRED_SECTIONS), default=0.0)) > 0.0:
         log(f"note: the plane this calibration was captured against may be off by {math.degrees(ref):.2f} deg (its "
@@ -266,12 +307,6 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 # ------------------------------------------------------------------------------------------------
 # stream (live replay)
 # ------------------------------------------------------------------------------------------------
-def _warm_up(estimator, path: str) -> None:
-    """Recover the file's first usable frame once, so first-call costs do not count as live latency."""
-    for f in iter_frames(path):
-        if not isinstance(f, FrameError):
-            estimator.estimate(f)
-            return
 
 
 def cmd_stream(args: argparse.Namespace) -> int:
@@ -348,7 +383,8 @@ def register(sub) -> None:
         "Fit one method family to frames with ground-truth planes and write its section of a calibration file. If "
         "the output already is a calibration file, its other sections are kept, so one file can carry all methods. "
         "With --sim SENSOR instead of FILE, the user's whole chain runs in MuJoCo (touch the table, capture a sweep, "
-        "fit diff then proprietary) and rewrites the simulated calibration.",
+        "fit diff then proprietary) and writes a simulated calibration (calibration_SENSOR.json in the current folder "
+        "unless -o says where).",
         "methods and the sections they write:\n"
         "  peak         -> 'peak' (histogram-peak distance, zone-angle scales, pile-up and, from\n"
         "                  frames closer than 9 cm, a per-zone near-range table kept only if\n"
@@ -366,7 +402,8 @@ def register(sub) -> None:
         "  place-safe calibrate sweep.json --method diff -o calib.json   # adds 'forward'\n"
         "  place-safe calibrate sweep.json --method diff --unit-model staged -o calib.json\n"
         "  place-safe calibrate sweep.json --method diff --readings-from ramp.json -o calib.json\n"
-        "  place-safe calibrate --sim mismatch      # the packaged simulated calibration, anew",
+        "  place-safe calibrate --sim mismatch      # ./calibration_mismatch.json: the simulated one, anew\n"
+        "  cd sim/sensors && place-safe calibrate --sim all   # the packaged simulated calibrations, anew",
         opt("files", nargs="*", metavar="FILE", help="frame files with ground truth ('plane' or 'pose' + 'dist_to_plane')"),
         "method",
         opt("--readings-from", metavar="TILTED", default=None,
@@ -389,10 +426,15 @@ def register(sub) -> None:
                  "against 3.7) but did not make diff's planes better there, and on simulated sensors, whose "
                  "ambient does not pile up like the real one's, it is worse (docs/results.md, the unit model, "
                  "step 6). Default: default"),
-        "output", "force", "quiet",
+        "output", "force",
+        opt("--report", action="store_true",
+            help="print the whole fit report of each section fitted (default: one line a section; the file's "
+                 "'reports' keeps the whole report either way)"),
+        "quiet",
         method={"choices": CALIBRATE_METHODS, "default": None, "help": "method family to fit (required with FILE)"},
         output={"metavar": "CALIB.json", "help": "calibration file to write or update (required with FILE; with "
-                                                 "--sim: default the packaged simulated calibration)"},
+                                                 "--sim: default calibration_SENSOR.json in the current folder, made "
+                                                 "anew)"},
         force={"help": "replace an output file that is not a valid calibration"},
         quiet={"help": "print only errors and the notes that ask you to act (e.g. for tilted poses): no progress "
                        "bars, no fit report (it stays in the file's 'reports'), no closing line"})
@@ -401,7 +443,8 @@ def register(sub) -> None:
                     help="instead of FILE: regenerate the simulated user calibration of this simulated sensor the way a "
                        "user calibrates the arm: the simulated UR5 touches the level table at three points, captures a "
                        "sweep above it with the simulated sensor and fits it (diff, then proprietary); without -o it "
-                       "rewrites the packaged sim/sensors/calibration_<sensor>.json placements use"),
+                       "writes calibration_SENSOR.json in the current folder (the packaged "
+                       "sim/sensors/calibration_SENSOR.json placements use is written only when named with -o)"),
                 "frames", "seed",
                 opt("--save-frames", help="with --sim: also keep the capture file (JSON Lines) here (one sensor only)"),
                 frames={"type": options.int_range(8, 1000), "metavar": None,
@@ -433,8 +476,9 @@ def register(sub) -> None:
          "place-safe evaluate sweep.json --calibration calib.json --methods diff --no-fallback   # diff's own plane"],
         opt("file", metavar="FILE", help="frame file with ground truth"),
         "calibration",
-        opt("--methods", nargs="+", choices=METHODS, default=list(METHODS), metavar="METHOD",
-            help=f"methods to evaluate (default: all of {', '.join(METHODS)})"),
+        opt("--methods", nargs="+", choices=METHODS, default=None, metavar="METHOD",
+            help=f"methods to evaluate (default: all of {', '.join(METHODS)}, less those the --calibration file has no "
+                 "section for: a line says which and how to fit them)"),
         opt("--out", default="out/evaluate", metavar="DIR", help="directory for plots (default out/evaluate)"),
         opt("--min-distance", type=options.float_range(0.0, 100.0), default=None, metavar="M",
             help="skip frames whose true plane is closer than M metres (perpendicular distance d; synth's distances are z0, "

@@ -1038,7 +1038,7 @@ class PlacementMachine:
             return None
         if c <= rules.contact_limit(cfg):
             self._check = _Check(now)
-            self._go(Phase.CHECK, now, f"contact {force:.1f} N at estimated clearance {c * 1e3:.1f} mm")
+            self._go(Phase.CHECK, now, f"contact {force:.1f} N at estimated clearance {rules.number_text(c * 1e3)} mm")
             return Command(CommandKind.STOP, accel=cfg.accel)
         # far above the sensed surface: first a question about the force reading. Stop hard at once (every
         # millimetre pressed on into an obstacle adds force), then confirm while the arm is at rest.
@@ -1067,22 +1067,25 @@ class PlacementMachine:
             s.force = max(s.force, force)
             if s.rest_since is not None and now - s.rest_since >= cfg.obstacle_confirm:
                 self._suspect = None
-                return self._refuse(now, f"obstacle: contact {force:.1f} N with the cup bottom {s.clearance * 1e3:.1f} mm "
+                return self._refuse(now, f"obstacle: contact {force:.1f} N with the cup bottom "
+                                         f"{rules.contact_clearance_text(cfg, s.clearance)} mm "
                                          f"above the sensed surface ({rules.contact_limit_text(cfg)}), confirmed "
                                          f"for {now - s.rest_since:.2f} s with the arm at rest (something under the cup, "
                                          "or the tool's cup offset is off)",
                                     decel=cfg.obstacle_decel)
             if self._elapsed(now, s.t0, s.ticks) > cfg.obstacle_confirm + 2.0:  # never at rest: refuse all the same
                 self._suspect = None
-                return self._refuse(now, f"obstacle: contact {force:.1f} N with the cup bottom {s.clearance * 1e3:.1f} mm "
-                                         "above the sensed surface and the arm did not come to rest",
+                return self._refuse(now, f"obstacle: contact {force:.1f} N with the cup bottom "
+                                         f"{rules.number_text(s.clearance * 1e3)} mm above the sensed surface and the "
+                                         "arm did not come to rest",
                                     decel=cfg.obstacle_decel)
             return Command.hold()
         if s.rest_since is None and self._elapsed(now, s.t0, s.ticks) < cfg.obstacle_confirm:
             return Command.hold()  # let the stop take effect before judging
         self._suspect = None
         self._unconfirmed += 1
-        note = (f"t={now:.3f} s: contact {s.force:.1f} N {s.clearance * 1e3:.1f} mm above the sensed surface vanished "
+        note = (f"t={now:.3f} s: contact {s.force:.1f} N {rules.number_text(s.clearance * 1e3)} mm above the sensed "
+                "surface vanished "
                 f"within {now - s.t0:.2f} s ({self._unconfirmed} of {cfg.max_unconfirmed} allowed): force reading, "
                 "not an obstacle; descending on")
         self.notes.append(note)
@@ -1131,8 +1134,8 @@ class PlacementMachine:
         elif (cmd := self._contact_rule(state, c, now)) is not None:
             return cmd
         if c < -cfg.max_penetration:
-            return self._refuse(now, f"cup {-c * 1e3:.1f} mm below the estimated surface without contact: "
-                                     "the surface estimate is wrong")
+            return self._refuse(now, f"cup {rules.number_text(-c * 1e3)} mm below the estimated surface without "
+                                     "contact: the surface estimate is wrong")
         if self.phase == Phase.APPROACH and (look := self._look_from_check(state, c, now)) is not None:
             return look
         if (why := rules.footprint_problem(self._footprint, cfg)) is not None:
@@ -1190,11 +1193,12 @@ class PlacementMachine:
             if np.any(side):  # back over the landing spot before the slow, final part of the descent
                 self._hint = "survey"
                 return self._speed(side, lateral=True)
-            self._go(Phase.DESCEND, now, f"clearance {c * 1e3:.1f} mm < {cfg.slow_clearance * 1e3:.0f} mm: slow down")
+            shown, slow = rules.compared_text(c * 1e3, cfg.slow_clearance * 1e3, 1, 0)
+            self._go(Phase.DESCEND, now, f"clearance {shown} mm < {slow} mm: slow down")
         if c > cfg.stop_clearance:
             return self._speed(cfg.descend_speed * down)
         self._check = _Check(now)
-        self._go(Phase.CHECK, now, f"clearance {c * 1e3:.1f} mm: stop and check")
+        self._go(Phase.CHECK, now, f"clearance {rules.number_text(c * 1e3)} mm: stop and check")
         return Command(CommandKind.STOP, accel=cfg.accel)
 
     def _on_check(self, state: RobotState, plane: FusedPlane | None, note: str | None, now: float) -> Command:
@@ -1270,8 +1274,9 @@ class PlacementMachine:
         cup = np.asarray(state.base_T_cup, dtype=float)
         cup_to_surface = math.acos(max(-1.0, min(1.0, float(cup[:3, 2] @ np.asarray(plane.normal_base, float)))))
         if not (cup_to_surface <= cfg.max_tilt):
-            return self._refuse(now, f"cup axis {math.degrees(cup_to_surface):.1f} deg from the surface normal "
-                                     f"(> {math.degrees(cfg.max_tilt):.1f} deg): it would land on its rim")
+            axis, allowed = rules.compared_text(math.degrees(cup_to_surface), math.degrees(cfg.max_tilt))
+            return self._refuse(now, f"cup axis {axis} deg from the surface normal (> {allowed} deg): it would land on "
+                                     "its rim")
         if self._check.at_rest is None:
             self._check.at_rest = np.asarray(state.base_T_tcp, dtype=float)[:3, 3].copy()
         if (cmd := self._not_at_rest(state, now)) is not None:
@@ -1292,14 +1297,14 @@ class PlacementMachine:
         force = float(state.contact_force)
         contact = force >= cfg.contact_force  # within contact_limit: _touch_too_high refused this tick otherwise
         if c < -cfg.max_penetration or (not contact and c < rules.clearance_floor(plane, post, cfg)):
-            return self._refuse(now, f"cup {-c * 1e3:.1f} mm below the estimated surface"
+            return self._refuse(now, f"cup {rules.number_text(-c * 1e3)} mm below the estimated surface"
                                      + ("" if contact else " without contact")
                                      + ": the surface estimate is wrong or the surface moved")
         if contact or c <= cfg.release_clearance:
             self._go(Phase.RELEASE, now, f"level ({math.degrees(plane.tilt_rad):.2f} deg +- "
                                          f"{math.degrees(rules.tilt_sigma(plane)):.2f} deg, spread "
                                          f"{math.degrees(plane.std_angle):.2f} deg / {plane.std_offset * 1e3:.1f} mm), "
-                                         f"clearance {c * 1e3:.1f} mm, contact {force:.1f} N "
+                                         f"clearance {rules.number_text(c * 1e3)} mm, contact {force:.1f} N "
                                          + (f"from {fresh} planes measured at rest: release"
                                             if fresh >= need else
                                             f"from the fused plane of the farther frames (sensor too close to "
@@ -1308,9 +1313,11 @@ class PlacementMachine:
             return Command(CommandKind.OPEN_GRIPPER)
         self._checks += 1
         if self._checks >= cfg.max_checks:
-            return self._refuse(now, f"still {c * 1e3:.1f} mm above the surface after {self._checks} checks")
+            return self._refuse(now, f"still {rules.number_text(c * 1e3)} mm above the surface after {self._checks} "
+                                     "checks")
         self._check = None
-        self._go(Phase.DESCEND, now, f"clearance {c * 1e3:.1f} mm > {cfg.release_clearance * 1e3:.1f} mm: descend again")
+        shown, release = rules.compared_text(c * 1e3, cfg.release_clearance * 1e3)
+        self._go(Phase.DESCEND, now, f"clearance {shown} mm > {release} mm: descend again")
         self._descent_t0, self._descent_ticks = now, 0
         return self._speed(cfg.descend_speed * -np.asarray(state.base_T_cup, dtype=float)[:3, 2])
 
@@ -1325,7 +1332,8 @@ class PlacementMachine:
         c, limit = self._clearance(plane, state), rules.contact_limit(cfg)
         if not c > limit:
             return None
-        return (f"obstacle: contact {force:.1f} N with the cup bottom {c * 1e3:.1f} mm above the sensed surface "
+        return (f"obstacle: contact {force:.1f} N with the cup bottom {rules.contact_clearance_text(cfg, c)} mm above "
+                "the sensed surface "
                 f"({rules.contact_limit_text(cfg)}) while checking: something under the cup, or the tool's cup offset is "
                 "off")
 
@@ -1338,8 +1346,8 @@ class PlacementMachine:
         moved = float(np.linalg.norm(np.asarray(state.base_T_tcp, dtype=float)[:3, 3] - at_rest))
         if moved <= cfg.rest_tolerance:
             return None
-        return self._refuse(now, f"the arm did not stop: the TCP moved {moved * 1e3:.1f} mm after the stop "
-                                 f"(> {cfg.rest_tolerance * 1e3:.1f} mm)")
+        shown, tolerance = rules.compared_text(moved * 1e3, cfg.rest_tolerance * 1e3)
+        return self._refuse(now, f"the arm did not stop: the TCP moved {shown} mm after the stop (> {tolerance} mm)")
 
     def _on_retreat(self, state: RobotState, plane: FusedPlane | None, note: str | None, now: float) -> Command:
         """RELEASE (after the gripper opened) and REFUSE: wait, then move straight up, then finish."""

@@ -49,6 +49,54 @@ def degrees_text(rad: float) -> str:
     return f"{v:.2f}" if abs(v) < 1e4 else f"{v:.3g}"
 
 
+#: The most decimals :func:`compared_text` gives a number before it prints it in full (``repr``).
+MAX_DECIMALS = 9
+
+
+def number_text(value: float, decimals: int = 1) -> str:
+    """``value`` with ``decimals`` decimals for a reason, never a negative zero: a clearance of -0.04 mm prints "0.0",
+    not "-0.0" (a transition line of a new user's walkthrough)."""
+    text = f"{value:.{decimals}f}"
+    return text[1:] if text.startswith("-") and not any(c in "123456789" for c in text) else text
+
+
+def exact_text(value: float, decimals: int = 1) -> str:
+    """A threshold for a reason: with ``decimals`` decimals, more where those do not give it exactly (to a billionth of
+    it, up to :data:`MAX_DECIMALS`; past them in full), never a negative zero."""
+    return next((t for k in range(decimals, MAX_DECIMALS + 1)
+                 if abs(float(t := number_text(value, k)) - value) <= 1e-9 * max(1.0, abs(value))), repr(value))
+
+
+def compared_text(value: float, limit: float, decimals: int = 1, limit_decimals: int | None = None,
+                  exact: bool = True) -> tuple[str, str]:
+    """``value`` and ``limit`` as a reason prints them on the two sides of a comparison (``<``, ``>``), in the unit
+    they are given in: ``limit`` with ``limit_decimals`` decimals (default ``decimals``), more where those do not give
+    it exactly (a setting), and ``value`` with ``decimals``, more where fewer would print it equal to the limit or on
+    its other side (9.96 mm against 10 mm printed "clearance 10.0 mm < 10 mm": now "9.96 mm < 10 mm"); neither is a
+    negative zero (:func:`number_text`). ``exact=False`` (a computed limit, a chi-square quantile): the limit is rounded
+    too, both gaining decimals together until they compare as printed. Past :data:`MAX_DECIMALS` in full."""
+    side = (value > limit) - (value < limit)
+    first = decimals if limit_decimals is None else limit_decimals
+    for k in range(MAX_DECIMALS + 1):
+        limit_text = exact_text(limit, first) if exact else number_text(limit, min(first + k, MAX_DECIMALS))
+        shown = float(limit_text)
+        if exact:
+            return next(((t, limit_text) for j in range(decimals, MAX_DECIMALS + 1)
+                         if (float(t := number_text(value, j)) > shown) - (float(t) < shown) == side),
+                        (repr(value), repr(limit)))
+        text = number_text(value, min(decimals + k, MAX_DECIMALS))
+        if (float(text) > shown) - (float(text) < shown) == side:
+            return text, limit_text
+    return repr(value), repr(limit)
+
+
+def _chi_square_text(chi2: float, limit: float) -> tuple[str, str]:
+    """A chi-square beyond its limit (a quantile), as "chi-square X > Y" prints them: three figures and one decimal, or
+    as many as it takes for X to print above Y (:func:`compared_text`)."""
+    text, bound = f"{chi2:.3g}", f"{limit:.1f}"
+    return (text, bound) if float(text) > float(bound) else compared_text(chi2, limit, 1, 1, exact=False)
+
+
 def too_close(note: str | None) -> bool:
     """Whether the last frame's note says it was too close to read (:mod:`place_safe.recovery.too_close`)."""
     return isinstance(note, str) and TOO_CLOSE_REASON in note
@@ -86,7 +134,7 @@ def plane_problem(plane: FusedPlane | None, now: float, note: str | None, cfg: A
     if not check_age or (blind() and age <= cfg.too_close_hold):
         return None  # the sensor is too close to read: the farther frames' plane and the kinematics decide
     if not (age <= cfg.plane_timeout):
-        return (f"surface plane is stale ({age:.2f} s old > {cfg.plane_timeout:.2f} s)"
+        return (f"surface plane is stale ({'{} s old > {} s'.format(*compared_text(age, cfg.plane_timeout, 2))})"
                 + (f"; last frame: {note}" if note else ""))
     return None
 
@@ -97,7 +145,7 @@ def sensor_problem(last_frame_time: float | None, now: float, t_start: float, no
     the machine's first tick, until a frame has arrived)."""
     ref = t_start if last_frame_time is None else float(last_frame_time)
     if not (now - ref <= cfg.sensor_timeout):
-        return (f"sensor timeout: no frame for {now - ref:.2f} s (> {cfg.sensor_timeout:.2f} s)"
+        return (f"sensor timeout: no frame for {'{} s (> {} s)'.format(*compared_text(now - ref, cfg.sensor_timeout, 2))}"
                 + (f"; {note}" if note else ""))
     return None
 
@@ -105,17 +153,18 @@ def sensor_problem(last_frame_time: float | None, now: float, t_start: float, no
 def planar_problem(plane: FusedPlane, cfg: Any) -> str | None:
     """The fused estimates spread more than ``max_std_angle`` / ``max_std_offset`` (not one planar surface)."""
     if not (plane.std_angle <= cfg.max_std_angle and plane.std_offset <= cfg.max_std_offset):
-        return (f"surface not planar or estimates inconsistent: spread {math.degrees(plane.std_angle):.2f} deg / "
-                f"{plane.std_offset * 1e3:.1f} mm (limits {math.degrees(cfg.max_std_angle):.1f} deg / "
-                f"{cfg.max_std_offset * 1e3:.1f} mm)")
+        angle = compared_text(math.degrees(plane.std_angle), math.degrees(cfg.max_std_angle), 2, 1)
+        offset = compared_text(plane.std_offset * 1e3, cfg.max_std_offset * 1e3)
+        return (f"surface not planar or estimates inconsistent: spread {angle[0]} deg / {offset[0]} mm (limits "
+                f"{angle[1]} deg / {offset[1]} mm)")
     return None
 
 
 def tilt_problem(plane: FusedPlane, limit: float, cfg: Any) -> str | None:
     """The fused tilt exceeds ``limit`` rad (the reason quotes ``max_tilt``, the tilt a cup may stand on)."""
     if not (plane.tilt_rad <= limit):
-        return (f"surface tilted {math.degrees(plane.tilt_rad):.1f} deg "
-                f"(> {math.degrees(cfg.max_tilt):.1f} deg allowed)")
+        tilt, allowed = compared_text(math.degrees(plane.tilt_rad), math.degrees(cfg.max_tilt))
+        return f"surface tilted {tilt} deg (> {allowed} deg allowed)"
     return None
 
 
@@ -422,11 +471,12 @@ def slope_still_problem(plane: FusedPlane, post: list[float], cfg: Any) -> str |
     if not (chi2 <= limit):
         worst = float(np.max(np.arccos(np.clip(n @ m, -1.0, 1.0))))
         return (f"surface not still: {len(t)} planes at rest differ in slope by up to {math.degrees(worst):.2f} deg "
-                f"(chi-square {chi2:.3g} > {limit:.1f} for normals +- {degrees_text(float(sd.min()))} deg)")
+                f"(chi-square {'{} > {}'.format(*_chi_square_text(chi2, limit))} for normals +- "
+                f"{degrees_text(float(sd.min()))} deg)")
     turn_limit = float(_chi2.ppf(cfg.still_confidence, 2))
     if not (turn <= turn_limit):
         return (f"surface not still: {len(t)} planes at rest turn {math.degrees(float(np.linalg.norm(rate))):.2f} "
-                f"deg/s (chi-square {turn:.3g} > {turn_limit:.1f})")
+                f"deg/s (chi-square {'{} > {}'.format(*_chi_square_text(turn, turn_limit))})")
     return None
 
 
@@ -533,7 +583,8 @@ def still_problem(plane: FusedPlane, post: list[float], cfg: Any) -> str | None:
     z = NormalDist().inv_cdf(0.5 + 0.5 * cfg.still_confidence)
     if not (chi2 <= limit):
         return (f"surface not still: {len(y)} planes at rest spread {1e3 * (y.max() - y.min()):.3g} mm "
-                f"(chi-square {chi2:.3g} > {limit:.1f} for offsets +- {1e3 * float(sd.min()):.1f} mm)")
+                f"(chi-square {'{} > {}'.format(*_chi_square_text(chi2, limit))} for offsets +- "
+                f"{1e3 * float(sd.min()):.1f} mm)")
     if not (abs(rate) <= z * rate_sd):
         return (f"surface not still: {len(y)} planes at rest move {1e3 * rate:.3g} mm/s "
                 f"(> {1e3 * z * rate_sd:.0f} mm/s their noise allows)")
@@ -558,11 +609,18 @@ def contact_limit(cfg: Any) -> float:
     return cfg.contact_clearance
 
 
+def contact_clearance_text(cfg: Any, clearance: float) -> str:
+    """The cup's ``clearance`` (m) in millimetres as a contact refusal prints it before :func:`contact_limit_text`: on
+    the limit's side it is on (:func:`compared_text`)."""
+    return compared_text(clearance * 1e3, contact_limit(cfg) * 1e3)[0]
+
+
 def contact_limit_text(cfg: Any) -> str:
-    """The contact limit as a refusal states it: "> 1.9 mm", and where no touch can count as arrival (the limit below
-    zero: a detector that reads a touch later than the descent allows) why."""
+    """The contact limit as a refusal states it: "> 1.9 mm" (exactly: :func:`exact_text`; the cup's clearance before it
+    is :func:`contact_clearance_text`), and where no touch can count as arrival (the limit below zero: a detector that
+    reads a touch later than the descent allows) why."""
     limit = contact_limit(cfg)
-    text = f"> {limit * 1e3:.1f} mm"
+    text = f"> {exact_text(limit * 1e3)} mm"
     if limit < 0.0:
         text += (f": no touch can count as arrival, the contact detector reading a touch {cfg.contact_latency * 1e3:.0f}"
                  f" ms late, {cfg.descend_speed * cfg.contact_latency * 1e3:.1f} mm of descent")
@@ -585,7 +643,8 @@ def clearance_floor(plane: FusedPlane, post: list[float], cfg: Any) -> float:
     return -min(cfg.release_clearance, z * math.sqrt(1.0 / info))
 
 
-__all__ = ["fault_text", "degrees_text", "number", "too_close", "plane_problem", "sensor_problem", "planar_problem",
+__all__ = ["fault_text", "degrees_text", "number_text", "exact_text", "compared_text", "contact_clearance_text",
+           "number", "too_close", "plane_problem", "sensor_problem", "planar_problem",
            "tilt_problem",
            "tilt_sigma", "confidence_margin", "level_problem", "confidently_tilted", "footprint_problem",
            "footprint_seen", "check_frames_needed", "post_stop_stamps", "still_problem", "slope_still_problem",

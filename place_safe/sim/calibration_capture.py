@@ -16,7 +16,8 @@ on that capture file (``diff``, which fits the ``peak`` section first, then ``pr
 forward fit whose diff reads a level table as 5.6 deg; the rig's random tilts and offsets do not.
 
 The packaged results, ``sim/sensors/calibration_<sensor>.json``, are what placements use by
-default; ``place-safe scenarios calibrate`` regenerates them (deterministic for a seed).
+default; ``place-safe calibrate --sim all`` run in ``sim/sensors`` regenerates them (deterministic for a seed; elsewhere
+it writes ``calibration_<sensor>.json`` in the current folder, ``-o`` where told).
 
 Conventions: heights in metres from the sensor to the table along the vertical; tilts in radians
 (sensor optical axis away from straight down), directions uniformly spread.
@@ -40,7 +41,7 @@ from place_safe.exceptions import CalibrationError
 from place_safe.io.frame_file import iter_frames, load_frames, write_frames
 from place_safe.sim.scenario import Scenario
 from place_safe.sim.scene import SceneConfig, build_scene
-from place_safe.sim.tof import ToFConfig, calibration_file
+from place_safe.sim.tof import ToFConfig, calibration_file, calibration_name
 from place_safe.sim.tof_mismatch import MismatchConfig, make_sensor
 from place_safe.sim.world import sim_world
 
@@ -132,8 +133,10 @@ def capture_arm_sweep(path: str | Path, sensor: str = "nominal", poses: int = SW
 def calibrate_sim(sensor: str = "nominal", output: str | Path | None = None, n: int = SWEEP_FRAMES,
                   seed: int = 0, frames_out: str | Path | None = None, quiet: bool = True) -> Path:
     """Touch, capture an arm sweep of ``n`` poses and run ``place-safe calibrate`` (diff, then proprietary) on
-    it; returns the calibration file."""
-    out = Path(output) if output is not None else calibration_file(sensor)
+    it; returns the calibration file: ``output``, by default :func:`~place_safe.sim.tof.calibration_name` in the
+    current folder. The packaged file placements read (:func:`~place_safe.sim.tof.calibration_file`) is written only
+    when named: by default it rewrote the installed checkout's."""
+    out = Path(output) if output is not None else Path(calibration_name(sensor))
     with tempfile.TemporaryDirectory() as tmp:
         ff = Path(frames_out) if frames_out is not None else Path(tmp) / f"capture_{sensor}.jsonl"
         if sensor in RIG_SENSORS:

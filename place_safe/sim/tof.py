@@ -73,10 +73,16 @@ def sensor_file(name: str) -> Path:
     return sim_sensors_dir() / name
 
 
+def calibration_name(sensor: str = "nominal") -> str:
+    """The file name of the simulated user calibration of the simulated sensor ``sensor``: the packaged file's
+    (:func:`calibration_file`), and what ``calibrate --sim`` writes in the current folder unless told where."""
+    return f"calibration_{sensor}.json"
+
+
 def calibration_file(sensor: str = "nominal") -> Path:
     """Path of the packaged simulated user calibration of the simulated sensor ``sensor`` (``nominal`` or
-    ``mismatch``; made by :func:`place_safe.sim.calibration_capture.calibrate_sim`)."""
-    return sensor_file(f"calibration_{sensor}.json")
+    ``mismatch``; made by :func:`place_safe.sim.calibration_capture.calibrate_sim`, written there only when named)."""
+    return sensor_file(calibration_name(sensor))
 
 
 def simulated_calibration(sensor: str = "nominal") -> Calibration:

@@ -132,3 +132,28 @@ def test_bench_marks_its_runs(tmp_path, capsys):
     assert out[0].startswith("UNCALIBRATED:")
     assert any(r.startswith("peak") and r.endswith(UNCALIBRATED_MARK) for r in out)
     assert all(m["calibrated"] is False for m in json.loads(report.read_text())["methods"])
+
+
+def test_evaluate_leaves_out_by_default_the_methods_its_calibration_does_not_calibrate(sweep_path, peak_calibration,
+                                                                                      capsys):
+    """``evaluate --calibration C`` with C from ``calibrate --method peak`` (or diff: neither fits proprietary) ran every
+    method, so proprietary (and diff) ran on built-in constants beside the calibrated rows, proprietary's row the same as
+    proprietary-naive's (a new user's walkthrough). By default the methods the file has no section for are left out with
+    one line saying so and how to fit them; the naive baselines stay (uncalibrated by definition) and their note no
+    longer asks for a calibration the user gave; naming a method with --methods still runs it, marked."""
+    assert main(["evaluate", str(sweep_path), "--calibration", str(peak_calibration), "--no-plots", "-q",
+                 "--min-distance", "0.35"]) == 0
+    out = _lines(capsys.readouterr().out)
+    rows = {r.split()[0] for r in out if "NEES" not in r and r.split()[0] in
+            ("diff", "peak", "peak-naive", "proprietary", "proprietary-naive")}
+    assert rows == {"peak", "peak-naive", "proprietary-naive"}
+    note = [r for r in out if "left out" in r]
+    assert len(note) == 1 and "diff, proprietary" in note[0] and "no forward or proprietary section" in note[0], out
+    assert str(peak_calibration) in note[0] and "--method diff" in note[0] and "--methods" in note[0]
+    assert out[0].startswith("UNCALIBRATED: peak-naive, proprietary-naive are naive baselines")
+    assert "Fit one" not in out[0] and "use no calibration" in out[0]
+    assert main(["evaluate", str(sweep_path), "--calibration", str(peak_calibration), "--no-plots", "-q",
+                 "--min-distance", "0.35", "--methods", "peak", "proprietary"]) == 0
+    out = _lines(capsys.readouterr().out)
+    assert not any("left out" in r for r in out)
+    assert any(r.startswith("proprietary") and r.endswith(UNCALIBRATED_MARK) for r in out)

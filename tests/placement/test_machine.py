@@ -1288,3 +1288,29 @@ def test_a_plane_rejected_at_rest_holds_the_check_and_refuses_at_its_deadline():
     w = FakeWorld()
     m = run(w, plane_fn=brief)
     assert m.outcome == "released" and len(seen) == 5
+
+
+def test_transition_lines_print_comparisons_true_as_printed_and_no_negative_zero():
+    """The estimated surface puts the cup 9.96 mm above it as it passes slow_clearance (10 mm), then, descending, 0.04
+    mm below it at the stop: the lines said "clearance 10.0 mm < 10 mm: slow down" and "clearance -0.0 mm: stop and
+    check" (a new user's walkthrough). Every number a transition line compares with its threshold is printed on the
+    threshold's side it is on, and no number is a negative zero."""
+    bias = {}
+
+    def plane_fn(world, m):
+        z = float(world.pos[2])
+        if "slow" not in bias and z - world.bias < 0.0102:
+            bias["slow"] = world.bias = z - 0.00996  # the cup 9.96 mm above the estimated surface, on this tick
+        elif "slow" in bias and "stop" not in bias and m.phase == Phase.DESCEND and z - world.bias < 0.0032:
+            bias["stop"] = world.bias = z + 0.00004  # and 0.04 mm below it, just above the stop
+        return world.plane()
+
+    w = FakeWorld()
+    m = run(w, plane_fn=plane_fn)
+    reasons = [t.reason for t in m.log]
+    assert "clearance 9.96 mm < 10 mm: slow down" in reasons, reasons
+    assert "clearance 0.0 mm: stop and check" in reasons, reasons
+    assert not any(re.search(r"-0\.0+(?![0-9])", r) for r in reasons), reasons
+    for r in reasons:
+        for a, op, b in re.findall(r"(-?\d+(?:\.\d+)?) (?:mm|deg|s)(?: old)? \(?([<>])=? ?(-?\d+(?:\.\d+)?)", r):
+            assert (float(a) < float(b)) if op == "<" else (float(a) > float(b)), r

@@ -425,3 +425,22 @@ def test_a_tip_on_the_second_plane_at_rest_holds_the_check_and_two_stray_planes_
     assert rules.slope_still_problem(plane, post, CFG) is None and rules.newest_plane_problem(plane, post, CFG) is None
     plane, post = _turning([1.0, 1.02, 0.98, 1.0], [0.1] * 4, 0.033)  # honest planes: none set aside, all pass
     assert rules.slope_still_problem(plane, post, CFG) is None and rules.newest_plane_problem(plane, post, CFG) is None
+
+
+@given(st.floats(-1e4, 1e4, allow_nan=False), st.floats(-1e4, 1e4, allow_nan=False), st.integers(0, 3),
+       st.integers(0, 3))
+def test_a_compared_value_prints_on_the_side_of_its_limit_it_is_on(value, limit, decimals, limit_decimals):
+    """A transition line said "clearance 10.0 mm < 10 mm" (9.96 mm: both rounded to the limit) and "-0.0 mm" (a new
+    user's walkthrough). ``compared_text`` prints the limit exactly (to its decimals, more where they would not do)
+    and the value with as many decimals as it takes for the printed numbers to compare as the numbers do; neither
+    is ever a negative zero."""
+    shown, bound = rules.compared_text(value, limit, decimals, limit_decimals)
+    assert (float(shown) > float(bound)) == (value > limit) and (float(shown) < float(bound)) == (value < limit)
+    for text in (shown, bound):
+        assert not (text.startswith("-") and float(text) == 0.0), text
+    assert rules.compared_text(9.96, 10.0, 1, 0) == ("9.96", "10")
+    assert rules.compared_text(10.04, 10.0) == ("10.04", "10.0") and rules.compared_text(12.3, 10.0) == ("12.3", "10.0")
+    assert rules.number_text(-0.04) == "0.0" and rules.number_text(-0.06) == "-0.1" and rules.number_text(-0.0) == "0.0"
+    shown, bound = rules.compared_text(value, limit, decimals, limit_decimals, exact=False)  # a computed limit
+    assert (float(shown) > float(bound)) == (value > limit) and (float(shown) < float(bound)) == (value < limit)
+    assert rules.compared_text(13.87, 13.86, 1, 1, exact=False) == ("13.87", "13.86")
