@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import assume, given, settings, strategies as st
 from scipy.spatial.transform import Rotation
 
 from place_safe.recovery.estimator import PlaneEstimate
@@ -431,6 +431,36 @@ def test_a_sure_window_of_close_planes_off_the_remembered_slope_by_two_degrees_f
     g = unsure.fused()
     assert math.degrees(g.window_tilt_std) > 1.0
     assert g.source == "window"
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.floats(0.0, 6.0), st.floats(0.5, 4.0), st.floats(-math.pi, math.pi), st.floats(-1.0, 1.0),
+       st.floats(0.05, 1.0), st.floats(0.05, 0.5), st.integers(0, 2**31))
+def test_a_window_that_reads_the_surface_steep_is_never_judged_level_whatever_the_memory(
+        memory_deg, excess_deg, azimuth, turn, window_std_deg, memory_std_deg, seed):
+    """Whatever slope the farther planes left in the memory (0-6 deg, stated to 0.05-0.5 deg), the latest planes
+    reading the surface 0.5-4 deg steeper than the level bound (each that slope: a window read by noisy planes may
+    agree with the memory within its error, and then the memory decides), each stating 1 deg or better: the level
+    rule refuses,
+    whether the memory's normal is fused (within the narrow or the wide gate) or the window's. (Planes farther than the
+    outlier gate from the fused one are rejected, not fused: the window's normal stays within 4.5 deg here.)"""
+    from place_safe.placement import rules
+    from place_safe.placement.config import PlacementConfig
+
+    cfg = PlacementConfig()
+    window_deg = math.degrees(cfg.max_tilt) + excess_deg
+    far, close = _tilted(memory_deg, azimuth), _tilted(window_deg, azimuth + turn)
+    assume(_deg_between(far, close) < 4.5)  # (within the outlier gate: planes beyond it are rejected, not fused)
+    under = np.array([0.4, -0.1, (-0.05 - far[0] * 0.4 + far[1] * 0.1) / far[2]])  # the close planes turn about it
+    filt = PlaneFilter()
+    rng = np.random.default_rng(seed)
+    t = _feed(filt, far, np.linspace(0.30, 0.12, 40), std_deg=memory_std_deg, rng=rng)
+    _feed(filt, close, np.linspace(0.11, 0.08, 9), t0=t, std_deg=window_std_deg, noise_deg=0.0,
+          level=float(close @ under))
+    f = filt.fused()
+    assert f is not None
+    assert rules.level_problem(f, cfg) is not None, (f.source, math.degrees(f.tilt_rad),
+                                                     math.degrees(f.window_tilt_rad))
 
 
 def test_memory_standard_error_counts_correlated_planes_as_few():
