@@ -62,8 +62,8 @@ Conventions
   to :data:`MEMORY_WIDE_STD` or better the gate is ``memory_wide_gate`` (2.5 deg) instead: such a window's reading is
   held to the level bound by itself where it is the steeper (below), and close planes of a textured surface read its
   slope 1-2 deg off while stating a few tenths (a checker's light and dark squares share a zone's footprint unevenly,
-  which moves its return along a tilted footprint; random seeds 66, 102 and 57: the window's 4.6 deg against a 2.9
-  deg checker table fused, the survey's views of the footprint then read 4-5 mm high against it, and a table that
+  which moves its return across the footprint's ranges; random seeds 66 and 102: the window's 4.6 deg against a
+  2.9 deg checker table fused, the survey's views of the footprint then read 4-5 mm high against it, and a table that
   was safe was refused). A window that states degrees keeps the narrow gate: its reading says nothing of the level,
   and a remembered slope farther off would decide alone. The fused plane carries the window's
   own tilt and standard error too (``window_tilt_rad``, ``window_tilt_std``): where the window reads the surface
