@@ -58,14 +58,17 @@ Conventions
   parallax), so once ``memory_frames`` planes are remembered and their inverse-variance weighted
   normal lies within ``memory_gate`` of the window's own, that normal is the fused one (through the window's anchor:
   the offset stays local and recent), and ``tilt_std`` is its standard error with the memory counted as at most
-  :data:`MEMORY_INDEPENDENT` independent planes (their errors are correlated). Where the window's own normal is known
-  to :data:`MEMORY_WIDE_STD` or better the gate is ``memory_wide_gate`` (2.5 deg) instead: such a window's reading is
-  held to the level bound by itself where it is the steeper (below), and close planes of a textured surface read its
+  :data:`MEMORY_INDEPENDENT` independent planes (their errors are correlated). Where the window's normal is known
+  to :data:`MEMORY_WIDE_STD` or better (its planes combined, with the reference error: ``window_tilt_std``) the gate
+  is ``memory_wide_gate`` (:data:`MEMORY_WIDE_GATE`) instead, and a memory fused beyond ``memory_gate`` is marked
+  (``FusedPlane.memory_wide``): such a window's reading is held to the level bound by itself wherever it is the
+  steeper (below; within ``memory_gate`` only where it is steeper by half its error), and close planes of a textured surface read its
   slope 1-2 deg off while stating a few tenths (a checker's light and dark squares share a zone's footprint unevenly,
   which moves its return across the footprint's ranges; random seeds 66 and 102: the window's 4.6 deg against a
   2.9 deg checker table fused, the survey's views of the footprint then read 4-5 mm high against it, and a table that
-  was safe was refused). A window that states degrees keeps the narrow gate: its reading says nothing of the level,
-  and a remembered slope farther off would decide alone. The fused plane carries the window's
+  was safe was refused). A window whose combined error is larger (with the loop's window of 7 to 9 planes, planes
+  stating about 3 deg each or more) keeps the narrow gate: its reading says little of the level, and a remembered
+  slope farther off would decide alone. The fused plane carries the window's
   own tilt and standard error too (``window_tilt_rad``, ``window_tilt_std``): where the window reads the surface
   steeper, the level rules hold its reading to the bound as well (:func:`place_safe.placement.rules.window_reading`;
   a table that tilted since the memory began, or a memory mixing a table's two slopes, released the cup on the
@@ -156,6 +159,10 @@ class FusedPlane:
     # rad, the largest slope ambiguity of a window plane (PlaneFilter.update): the window's tilt_std holds it, and the
     # early refusal asks whether the surface is steep whichever way those frames read (PlacementMachine._on_descent)
     ambiguity: float = 0.0
+    # the memory's normal was fused beyond ``memory_gate`` of the window's, through the wide gate (PlaneFilter): the two
+    # readings disagree, and the level rules hold a steeper window to the bound whatever its error
+    # (rules.window_reading)
+    memory_wide: bool = False
 
     def height_at(self, point: Any) -> float:
         """Signed distance (m) of ``point`` (base frame) above the plane (negative: below / behind it)."""
@@ -448,7 +455,8 @@ class PlaneFilter:
         tilt_std = math.hypot(tilt_std, ambiguity)  # one view's frames share it: not averaged away
         window_tilt, window_std = _angle(n, _Z), math.hypot(tilt_std, self.reference_tilt_std)
         remembered = self._remembered()
-        if remembered is not None and _angle(remembered[0], n) <= self._memory_gate(tilt_std):
+        apart = _angle(remembered[0], n) if remembered is not None else math.inf
+        if apart <= self._memory_gate(window_std):
             n, tilt_std = remembered
             source = "memory"
         tilt_std = math.hypot(tilt_std, self.reference_tilt_std)  # shared by every plane: not averaged away
@@ -460,15 +468,17 @@ class PlaneFilter:
                                  tuple(float(h) for h in res), tuple(float(it[4]) for it in self._items),
                                  self.reference_tilt_std, window_tilt, window_std,
                                  tuple((float(v[0]), float(v[1]), float(v[2])) for v in N),
-                                 tuple(math.sqrt(float(v)) for v in var), ambiguity=ambiguity)
+                                 tuple(math.sqrt(float(v)) for v in var), ambiguity=ambiguity,
+                                 memory_wide=source == "memory" and apart > self.memory_gate)
         self._dirty = False
         return self._cache
 
 
     def _memory_gate(self, window_std: float) -> float:
-        """The angle (rad) within which the memory's normal is fused, for a window whose own normal has standard error
-        ``window_std`` (rad): ``memory_wide_gate`` where that is at most :data:`MEMORY_WIDE_STD` (the window's own
-        reading is then precise enough for the level rules to hold it to the bound itself), else ``memory_gate``."""
+        """The angle (rad) within which the memory's normal is fused, for a window whose normal has the standard error
+        ``window_std`` (rad; ``FusedPlane.window_tilt_std``: its planes combined, with the reference error):
+        ``memory_wide_gate`` where that is at most :data:`MEMORY_WIDE_STD` (the window's own reading is then precise
+        enough for the level rules to hold it to the bound itself), else ``memory_gate``."""
         return self.memory_wide_gate if window_std <= MEMORY_WIDE_STD else self.memory_gate
 
     def _remembered(self) -> tuple[np.ndarray, float] | None:

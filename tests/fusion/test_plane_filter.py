@@ -434,14 +434,14 @@ def test_a_sure_window_of_close_planes_off_the_remembered_slope_by_two_degrees_f
 
 
 @settings(max_examples=60, deadline=None)
-@given(st.floats(0.0, 6.0), st.floats(0.5, 4.0), st.floats(-math.pi, math.pi), st.floats(-1.0, 1.0),
-       st.floats(0.05, 1.0), st.floats(0.05, 0.5), st.integers(0, 2**31))
+@given(st.floats(0.0, 6.0), st.floats(0.05, 4.0), st.floats(-math.pi, math.pi), st.floats(-1.0, 1.0),
+       st.floats(0.05, 3.0), st.floats(0.05, 0.5), st.integers(0, 2**31))
 def test_a_window_that_reads_the_surface_steep_is_never_judged_level_whatever_the_memory(
         memory_deg, excess_deg, azimuth, turn, window_std_deg, memory_std_deg, seed):
     """Whatever slope the farther planes left in the memory (0-6 deg, stated to 0.05-0.5 deg), the latest planes
-    reading the surface 0.5-4 deg steeper than the level bound (each that slope: a window read by noisy planes may
-    agree with the memory within its error, and then the memory decides), each stating 1 deg or better: the level
-    rule refuses,
+    reading the surface 0.5-4 deg steeper than the level bound, or 0.05 deg and more where they lie beyond the narrow
+    memory gate from the memory (each plane that slope: a window read by noisy planes may agree with the memory within
+    its error, and then the memory decides), each stating 3 deg or better: the level rule refuses,
     whether the memory's normal is fused (within the narrow or the wide gate) or the window's. (Planes farther than the
     outlier gate from the fused one are rejected, not fused: the window's normal stays within 4.5 deg here.)"""
     from place_safe.placement import rules
@@ -450,7 +450,10 @@ def test_a_window_that_reads_the_surface_steep_is_never_judged_level_whatever_th
     cfg = PlacementConfig()
     window_deg = math.degrees(cfg.max_tilt) + excess_deg
     far, close = _tilted(memory_deg, azimuth), _tilted(window_deg, azimuth + turn)
-    assume(_deg_between(far, close) < 4.5)  # (within the outlier gate: planes beyond it are rejected, not fused)
+    apart = _deg_between(far, close)
+    assume(apart < 4.5)  # (within the outlier gate: planes beyond it are rejected, not fused)
+    # within the narrow gate a window steeper by less than half its error agrees with the memory (rules.window_reading)
+    assume(excess_deg >= 0.5 or apart > 1.5)
     under = np.array([0.4, -0.1, (-0.05 - far[0] * 0.4 + far[1] * 0.1) / far[2]])  # the close planes turn about it
     filt = PlaneFilter()
     rng = np.random.default_rng(seed)
@@ -461,6 +464,32 @@ def test_a_window_that_reads_the_surface_steep_is_never_judged_level_whatever_th
     assert f is not None
     assert rules.level_problem(f, cfg) is not None, (f.source, math.degrees(f.tilt_rad),
                                                      math.degrees(f.window_tilt_rad))
+
+
+def test_a_window_fused_from_memory_beyond_the_narrow_gate_is_held_to_the_bound_however_little_steeper():
+    """The review's counterexample to the wide gate: a memory of a 4.85 deg table (planes stating 0.2 deg), then seven
+    planes reading 5.30 deg with the slope's direction turned 20 deg, each stating 2.6 deg (the window's combined
+    error 0.98 deg: the wide gate). 1.8 deg apart, the memory's 4.83 deg was fused, and the window, steeper by less
+    than half its error, was let agree with it: released on a surface all of whose latest planes read 5.3 deg. A memory
+    fused beyond the narrow gate is marked, and a steeper window is then held to the bound."""
+    from place_safe.placement import rules
+    from place_safe.placement.config import PlacementConfig
+
+    cfg = PlacementConfig()
+    far, close = _tilted(4.85, 0.0), _tilted(5.30, math.radians(20.0))
+    under = np.array([0.4, -0.1, (-0.05 - far[0] * 0.4 + far[1] * 0.1) / far[2]])
+    filt = PlaneFilter()
+    t = _feed(filt, far, np.linspace(0.30, 0.12, 40), std_deg=0.2)
+    _feed(filt, close, np.linspace(0.11, 0.08, 7), t0=t, std_deg=2.6, noise_deg=0.0, level=float(close @ under))
+    assert _feed.all
+    f = filt.fused()
+    assert f.source == "memory" and f.memory_wide and math.degrees(f.window_tilt_std) < 1.0
+    assert math.degrees(f.tilt_rad) < 5.0 < math.degrees(f.window_tilt_rad)
+    assert "in the latest planes" in (rules.level_problem(f, cfg) or "")
+    near = PlaneFilter()  # within the narrow gate the memory is not marked
+    t = _feed(near, _tilted(4.0), np.linspace(0.30, 0.12, 40), std_deg=0.2)
+    _feed(near, _tilted(4.5), [0.08] * 7, t0=t, std_deg=0.5)
+    assert near.fused().source == "memory" and not near.fused().memory_wide
 
 
 def test_memory_standard_error_counts_correlated_planes_as_few():
