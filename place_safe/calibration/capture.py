@@ -36,7 +36,7 @@ from pathlib import Path
 from typing import Any, Callable, ClassVar, Optional
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from place_safe.config import ParamModel, vector
 
@@ -60,6 +60,21 @@ TOUCH_HEIGHT_STD = 1e-4
 #: m, the least height of the tool (TCP, flange, sensor) above the plane that a capture pose may have
 #: (:attr:`SweepPlan.min_clearance`).
 MIN_CLEARANCE = 0.005
+
+
+def repeated_value(values: "list[float]", period: float | None = None, tol: float = 1e-9) -> tuple[int, int] | None:
+    """``(i, j)``: the first value ``values[i]`` equal to an earlier ``values[j]`` within ``tol`` (modulo ``period`` where
+    given: azimuths a turn apart are one direction), or None. A sweep plan's axes are sets of poses: a repeat captured
+    the same poses twice (``capture --distances 80,80``, or ranges that overlap: round 14)."""
+    for i, v in enumerate(values):
+        for j in range(i):
+            gap = abs(v - values[j])
+            if period is not None:
+                gap = gap % period
+                gap = min(gap, period - gap)
+            if gap <= tol:
+                return i, j
+    return None
 
 
 class SweepPlan(ParamModel):
@@ -87,6 +102,17 @@ class SweepPlan(ParamModel):
     # it closer is refused before the arm moves (a gripper whose tips reach 30 mm past the sensor cannot take the
     # sensor within 35 mm of a table; in simulation the first poses of a sweep from 1 cm met the table at 70 N)
     min_clearance: float = Field(MIN_CLEARANCE, ge=0.0, le=0.1, description="m")
+
+    @model_validator(mode="after")
+    def _distinct(self) -> "SweepPlan":
+        for name, unit, scale, period in (("distances", "m", 1.0, None), ("incidences", "deg", 180 / math.pi, None),
+                                          ("azimuths", "deg", 180 / math.pi, 2 * math.pi)):
+            values = getattr(self, name)
+            if (ij := repeated_value(values, period)) is not None:
+                i, j = ij
+                raise ValueError(f"{name}: {values[i] * scale:g} {unit} is given twice (as item {j}: "
+                                 f"{values[j] * scale:g} {unit}): each value is a row of poses, captured once")
+        return self
 
     def grid(self) -> list[tuple[float, float, float]]:
         """(distance, incidence, azimuth) of every pose; incidence 0 once per distance."""

@@ -75,6 +75,44 @@ def test_an_empty_item_in_a_comma_list_is_refused_naming_the_option(argv, option
     assert not (tmp_path / "place-result.json").exists() and not (tmp_path / "place-transitions.jsonl").exists()
 
 
+@pytest.mark.parametrize("argv, option, value", [
+    (["--distances", "80,80"], "--distances", "80 mm"),
+    (["--distances", "80,80.0"], "--distances", "80 mm"),
+    (["--distances", "10:90:2,90:200:10"], "--distances", "90 mm"),  # ranges that overlap
+    (["--incidences", "0,12,12"], "--incidences", "12 deg"),
+    (["--azimuths", "0,360"], "--azimuths", "360 deg"),  # one direction
+    (["--azimuths=-60,300"], "--azimuths", "300 deg"),
+])
+def test_a_repeated_item_of_a_sweep_plan_is_refused_naming_the_option_and_value(argv, option, value, tmp_path, capsys,
+                                                                                 monkeypatch):
+    """``capture --distances 80,80`` captured the 80 mm poses twice (round 13's leftover): a plan's distances, incidences
+    and azimuths are sets of poses, and a repeat is a typo or ranges that overlap. One line naming the option and the
+    repeated value, exit 2, nothing written; as an empty item is (:func:`place_safe.cli.robot._items`)."""
+    monkeypatch.chdir(tmp_path)
+    out = tmp_path / "cap.jsonl"
+    assert main(["capture", "--sim", "level_table", *argv, "-o", str(out)]) == 2
+    captured = capsys.readouterr()
+    err = captured.err.splitlines()
+    assert captured.out == "" and len(err) == 1 and not out.exists(), err
+    assert f"argument {option}: {value} is given twice" in err[0] and "--frames-per-pose" in err[0], err
+
+
+def test_a_sweep_plan_refuses_a_repeated_pose_axis_value():
+    """The library face of the same rule: a :class:`SweepPlan` with a repeated distance, incidence or azimuth (azimuths
+    a turn apart are one) is one ConfigError naming the field; the defaults and distinct values are taken."""
+    import math
+
+    from place_safe.calibration.capture import SweepPlan
+    from place_safe.exceptions import ConfigError
+
+    SweepPlan()
+    SweepPlan(distances=[0.08, 0.0800001], azimuths=[0.0, math.pi, -math.pi / 2])
+    for field, values in (("distances", [0.08, 0.12, 0.08]), ("incidences", [0.0, 0.2, 0.2]),
+                          ("azimuths", [0.0, 2 * math.pi]), ("azimuths", [-math.pi / 2, 3 * math.pi / 2])):
+        with pytest.raises(ConfigError, match=f"sweep plan: {field}: .* given twice"):
+            SweepPlan(**{field: values})
+
+
 def test_place_on_an_unreachable_arm_is_a_one_line_error(capsys, sweep_path, tmp_path):
     cfg = URConfig.load(packaged_config("sim"))
     cfg.connection.connect_timeout_s = 1.0
