@@ -113,6 +113,30 @@ def test_a_sweep_plan_refuses_a_repeated_pose_axis_value():
             SweepPlan(**{field: values})
 
 
+@pytest.mark.parametrize("argv, dest, value", [
+    (["capture", "--sim", "level_table", "-o", "x", "--touch", "-0.45,-0.05"], "touch", [[-0.45, -0.05]]),
+    (["capture", "--sim", "level_table", "-o", "x", "--azimuths", "-60,120"], "azimuths", [-60.0, 120.0]),
+    (["capture", "--sim", "level_table", "-o", "x", "--sim-mount-error", "-5,0,0,0,2,0"], "sim_mount_error",
+     [-0.005, 0.0, 0.0, 0.0, pytest.approx(0.0349066), 0.0]),
+    (["capture", "--sim", "level_table", "-o", "x", "--table-height", "-1e-3"], "table_height", -0.001),
+    (["place", "--sim", "place_level", "--sim-mount-error", "-1.5,0,0,0,0,-2"], "sim_mount_error",
+     [-0.0015, 0.0, 0.0, 0.0, 0.0, pytest.approx(-0.0349066)]),
+])
+def test_a_value_that_begins_with_a_minus_sign_is_a_value(argv, dest, value):
+    """``capture --touch -0.45,-0.05`` (the capture help's own example) ended "argument --touch: expected one argument":
+    argparse takes only ``-5`` and ``-0.5`` for values, and read a negative comma list or ``-1e-3`` as an unknown
+    option (round 14). They are values now (``cli.common.NEGATIVE_VALUE``)."""
+    from place_safe.cli.app import build_parser
+
+    assert getattr(build_parser(load_sim=False).parse_args(argv), dest) == value
+
+
+def test_minus_inf_is_refused_by_the_option_not_read_as_an_option(capsys):
+    assert main(["capture", "--sim", "level_table", "-o", "x", "--table-height", "-inf"]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and "argument --table-height: expected a finite number, got '-inf'" in err[0], err
+
+
 def test_place_on_an_unreachable_arm_is_a_one_line_error(capsys, sweep_path, tmp_path):
     cfg = URConfig.load(packaged_config("sim"))
     cfg.connection.connect_timeout_s = 1.0
