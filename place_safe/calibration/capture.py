@@ -57,6 +57,12 @@ MAX_GRID_VALUES = 100
 #: (+-0.1 mm) read as one standard deviation. The simulated arm's three touches of a level table lie 0.06-0.18 mm
 #: low, 0.12 mm apart (docs/results.md, "The calibration's reference").
 TOUCH_HEIGHT_STD = 1e-4
+#: m/s and m/s^2, the slowest moveL between poses a plan takes (:attr:`SweepPlan.speed`, :attr:`SweepPlan.accel`): the
+#: guarded descent's speed of :func:`touch_plane`, the slowest the capture moves, and an acceleration that reaches
+#: it in 0.1 s. ``capture --speed 1e-9`` was taken and the first move never ended (a 0.3 m move takes 3e8 s; in
+#: simulation the command ran on with no output: round 14).
+MIN_SPEED = 0.005
+MIN_ACCEL = 0.05
 #: m, the least height of the tool (TCP, flange, sensor) above the plane that a capture pose may have
 #: (:attr:`SweepPlan.min_clearance`).
 MIN_CLEARANCE = 0.005
@@ -92,8 +98,8 @@ class SweepPlan(ParamModel):
     centre: Optional[vector(2, ge=-2.0, le=2.0)] = Field(None, description="m")
     frames_per_pose: int = Field(1, ge=1, le=100, description="frames")
     settle_s: float = Field(0.25, ge=0.0, le=60.0, description="s")  # at rest before the frames count
-    speed: float = Field(0.1, gt=0.0, le=1.0, description="m/s")  # moveL
-    accel: float = Field(0.5, gt=0.0, le=10.0, description="m/s^2")
+    speed: float = Field(0.1, ge=MIN_SPEED, le=1.0, description="m/s")  # moveL
+    accel: float = Field(0.5, ge=MIN_ACCEL, le=10.0, description="m/s^2")
     # subsample the grid evenly to this many poses
     max_poses: Optional[int] = Field(None, ge=1, le=10_000, description="poses")
     # s of robot time to wait for the frames of one pose

@@ -607,8 +607,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
             help="tilt directions in degrees (default every 60)"),
         opt("--poses", type=int_range(1, 10_000), help="subsample the grid evenly to this many poses (1..10000)"),
         opt("--frames-per-pose", type=int_range(1, 100), default=1, help="frames per pose (default 1, at most 100)"),
-        opt("--speed", type=float_range(0.0, 1.0, lo_open=True), default=0.1, help="moveL speed m/s (default 0.1, at "
-                                                                                   "most 1)"),
+        opt("--speed", field="place_safe.calibration.capture:SweepPlan.speed", default=0.1,
+            what="moveL speed between poses, default 0.1"),
         opt("--settle", type=float_range(0.0, 60.0, lo_open=True), default=0.25,
             help="s at rest before frames count (default 0.25, at most 60)"),
         opt("--min-clearance", type=float_range(0.0, 100.0), default=MIN_CLEARANCE * 1000, metavar="MM",

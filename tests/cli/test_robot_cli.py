@@ -137,6 +137,25 @@ def test_minus_inf_is_refused_by_the_option_not_read_as_an_option(capsys):
     assert len(err) == 1 and "argument --table-height: expected a finite number, got '-inf'" in err[0], err
 
 
+@pytest.mark.parametrize("speed", ["1e-9", "1e-320", "0.001"])
+def test_a_capture_speed_that_would_never_arrive_is_refused(speed, capsys):
+    """``capture --speed 1e-9`` was taken (any speed above 0) and the first move never ended: a 0.3 m move at 1e-9 m/s
+    takes 3e8 s, and in simulation the command ran on with no output until killed (round 14). The plan's speed is at
+    least the touch's guarded descent speed (``calibration.capture.MIN_SPEED``), on the command line and in a
+    :class:`SweepPlan` (its acceleration too: ``MIN_ACCEL``)."""
+    from place_safe.calibration.capture import MIN_ACCEL, MIN_SPEED, SweepPlan
+    from place_safe.cli.app import build_parser
+    from place_safe.exceptions import ConfigError, UsageError
+
+    with pytest.raises(UsageError, match=f"argument --speed: expected a number >= {MIN_SPEED:g} and <= 1"):
+        build_parser(load_sim=False).parse_args(["capture", "--sim", "level_table", "-o", "x", "--speed", speed])
+    with pytest.raises(ConfigError, match="sweep plan: speed"):
+        SweepPlan(speed=float(speed))
+    with pytest.raises(ConfigError, match="sweep plan: accel"):
+        SweepPlan(accel=MIN_ACCEL / 10)
+    assert SweepPlan(speed=MIN_SPEED, accel=MIN_ACCEL).speed == MIN_SPEED
+
+
 def test_place_on_an_unreachable_arm_is_a_one_line_error(capsys, sweep_path, tmp_path):
     cfg = URConfig.load(packaged_config("sim"))
     cfg.connection.connect_timeout_s = 1.0
