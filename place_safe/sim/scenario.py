@@ -94,6 +94,15 @@ class SensorSection(ConfigModel):
         return v
 
     @model_validator(mode="after")
+    def _mismatch_read(self) -> "SensorSection":
+        """A ``mismatch`` table is read by the mismatched sensor alone: with the nominal model it was taken and never
+        read, and the run tested the nominal sensor (round 14)."""
+        if self.mismatch is not None and self.model != "mismatch":
+            raise ValueError('mismatch is read only by the mismatched sensor (model = "mismatch"); with model = '
+                             f'"{self.model}" it would be ignored: give the model, or leave the mismatch table out')
+        return self
+
+    @model_validator(mode="after")
     def _in_simulator_bounds(self) -> "SensorSection":
         """Every setting within the simulated sensor's own ranges (the fields of sim.tof.ToFConfig), checked on load."""
 

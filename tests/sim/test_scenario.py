@@ -252,3 +252,16 @@ def test_an_empty_reason_word_is_refused(words):
     with pytest.raises((ConfigError, ValueError), match="reason word must be non-empty"):
         Scenario.model_validate({"expect": {"outcome": "refused", "reason": words}})
     assert Scenario.model_validate({"expect": {"outcome": "refused", "reason": ["tilt"]}}).expect.reason == ["tilt"]
+
+
+def test_a_mismatch_table_for_the_nominal_sensor_is_refused_not_ignored(tmp_path):
+    """``[sensor.mismatch]`` without ``model = "mismatch"`` was taken and never read: the run used the nominal sensor
+    and released, a scenario that believed it tested a mismatched one (round 14; as an ``uncertainty`` entry that was
+    no method family's, round 8). One line saying which setting reads it; with the model the file loads as before."""
+    f = tmp_path / "s.toml"
+    f.write_text("[sensor.mismatch]\ntemp_start = 30.0\n")
+    with pytest.raises(ConfigError, match=r'sensor: mismatch is read only by the mismatched sensor \(model = "mismatch"\)'):
+        load_scenario(f)
+    f.write_text('[sensor]\nmodel = "mismatch"\n[sensor.mismatch]\ntemp_start = 30.0\n')
+    assert load_scenario(f).sensor.mismatch is not None
+
