@@ -265,3 +265,12 @@ def test_a_mismatch_table_for_the_nominal_sensor_is_refused_not_ignored(tmp_path
     f.write_text('[sensor]\nmodel = "mismatch"\n[sensor.mismatch]\ntemp_start = 30.0\n')
     assert load_scenario(f).sensor.mismatch is not None
 
+
+def test_a_file_that_is_not_a_table_of_settings_says_what_it_is(tmp_path):
+    """A frame file given as a scenario (a JSON list) said "Input should be a valid dictionary or instance of
+    Scenario" (pydantic's words, naming a class; round 14): it says what a scenario file is and what it got."""
+    f = tmp_path / "frames.json"
+    f.write_text("[]")
+    with pytest.raises(ConfigError, match=r"frames\.json: expected an object of scenario settings \(a TOML table or a "
+                                          r"JSON object\), got a JSON list"):
+        load_scenario(f)
