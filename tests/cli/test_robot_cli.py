@@ -4,6 +4,8 @@ written back into a robot file."""
 from __future__ import annotations
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from place_safe.cli.app import main
 from place_safe.drivers.ur5 import URConfig, packaged_config
@@ -156,6 +158,31 @@ def test_a_capture_speed_that_would_never_arrive_is_refused(speed, capsys):
     assert SweepPlan(speed=MIN_SPEED, accel=MIN_ACCEL).speed == MIN_SPEED
 
 
+@settings(max_examples=300, deadline=None)
+@given(st.lists(st.floats(-360.0, 360.0, allow_nan=False), min_size=1, max_size=8))
+def test_an_azimuth_list_reads_back_exactly_or_is_one_repeat_line(values):
+    """Any list of azimuths written as Python writes floats (negative first items, exponents, -0.0 included) reads back
+    as the same numbers, or, where two are one direction (a turn apart, within 1e-6 deg), is one line naming the
+    repeat; what the command line takes, a :class:`SweepPlan` takes (round 14: a leading minus sign, repeats)."""
+    import math
+
+    from place_safe.calibration.capture import SweepPlan
+    from place_safe.cli.app import build_parser
+    from place_safe.exceptions import UsageError
+
+    text = ",".join(repr(v) for v in values)
+    repeat = any(min(abs(a - b) % 360.0, 360.0 - abs(a - b) % 360.0) <= 1e-6
+                 for i, a in enumerate(values) for b in values[:i])
+    argv = ["capture", "--sim", "level_table", "-o", "x", "--azimuths", text]
+    if repeat:
+        with pytest.raises(UsageError, match="argument --azimuths: .* is given twice in "):
+            build_parser(load_sim=False).parse_args(argv)
+    else:
+        got = build_parser(load_sim=False).parse_args(argv).azimuths
+        assert got == values
+        SweepPlan(azimuths=[math.radians(v) for v in got])
+
+
 def test_place_on_an_unreachable_arm_is_a_one_line_error(capsys, sweep_path, tmp_path):
     cfg = URConfig.load(packaged_config("sim"))
     cfg.connection.connect_timeout_s = 1.0
@@ -292,7 +319,6 @@ def test_calibrate_mount_skips_and_counts_frames_without_a_usable_pose(sweep_pat
     assert "no frames with a usable flange pose" in err and "\n" not in err
 
 
-from hypothesis import given, settings, strategies as st  # noqa: E402
 
 
 @settings(max_examples=300, deadline=None)
