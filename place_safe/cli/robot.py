@@ -480,8 +480,12 @@ def cmd_calibrate_mount(args: argparse.Namespace) -> int:
                                + ("; the robot file is not written" if args.write else ""))
     if not calibrated:  # the first line of the output (printed once the fit succeeded: an error prints nothing)
         print(uncalibrated_note(args.method, None))
+    # frames without joint angles are posed by their recorded pose (mount.flange_poses): said, not "from joints"
+    recorded = sum(f.extra.get("joint_angles") is None for f in frames) if args.poses == "joints" else 0
+    posed = (f"joints ({recorded} of {len(frames)} frames without joint angles: from their recorded pose)" if recorded
+             else args.poses)
     print(mark(f"{args.capture}: {sum(p is not None for p in planes)}/{len(frames)} frames with a plane "
-               f"({args.method}, calibration: {cal_note}); flange poses from {args.poses}", calibrated))
+               f"({args.method}, calibration: {cal_note}); flange poses from {posed}", calibrated))
     print(fit.summary())
     result = {"capture": args.capture, "method": args.method, "calibration": cal_note, "calibrated": calibrated,
               "poses": args.poses,

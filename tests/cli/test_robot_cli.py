@@ -617,3 +617,23 @@ def test_calibrate_mount_refuses_a_starting_noise_below_the_fits_floor(sweep_pat
     assert main(["calibrate-mount", str(sweep_path), "--method", "peak", "-q", "--level", option, value]) == 2
     assert capsys.readouterr().err.splitlines() == [f"place-safe: error: calibrate-mount: {line}: it weighs each "
                                                     "frame's residuals"]
+
+
+def test_calibrate_mount_says_which_frames_are_posed_by_their_recorded_pose(sweep_path, tmp_path, capsys):
+    """A capture whose frames had no joint angles was fitted from their recorded poses while the output said "flange
+    poses from joints" (round 14): it says how many frames were posed by their recorded pose."""
+    import json
+
+    frames = json.loads(sweep_path.read_text())
+    for f in frames[::4]:
+        del f["joint_angles"]
+    bad = tmp_path / "cap.json"
+    bad.write_text(json.dumps(frames))
+    assert main(["calibrate-mount", str(bad), "--method", "proprietary", "--level", "-q"]) == 0
+    out = capsys.readouterr().out
+    n = len(frames[::4])
+    assert f"flange poses from joints ({n} of {len(frames)} frames without joint angles: from their recorded pose)" \
+        in out, out
+    assert main(["calibrate-mount", str(sweep_path), "--method", "proprietary", "--level", "-q"]) == 0
+    out = capsys.readouterr().out
+    assert "flange poses from joints" in out and "without joint angles" not in out
