@@ -637,3 +637,19 @@ def test_calibrate_mount_says_which_frames_are_posed_by_their_recorded_pose(swee
     assert main(["calibrate-mount", str(sweep_path), "--method", "proprietary", "--level", "-q"]) == 0
     out = capsys.readouterr().out
     assert "flange poses from joints" in out and "without joint angles" not in out
+
+
+def test_calibrate_mount_with_recorded_poses_says_the_pose_is_missing_not_the_joints(sweep_path, tmp_path, capsys):
+    """``--poses recorded`` on frames with joint angles and no pose said "12 no joint_angles or pose" (round 14): it
+    says the recorded pose is missing and that poses from joints would read the joint angles."""
+    import json
+
+    frames = json.loads(sweep_path.read_text())
+    for f in frames:
+        del f["pose"]
+    bad = tmp_path / "cap.json"
+    bad.write_text(json.dumps(frames))
+    assert main(["calibrate-mount", str(bad), "--method", "proprietary", "--level", "--poses", "recorded", "-q"]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and f"{len(frames)} no recorded pose (poses from joints would read their joint angles)" \
+        in err[0], err
