@@ -36,7 +36,7 @@ from pathlib import Path
 from typing import Any, Callable, ClassVar, Optional
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from place_safe.config import ParamModel, vector
 
@@ -57,9 +57,30 @@ MAX_GRID_VALUES = 100
 #: (+-0.1 mm) read as one standard deviation. The simulated arm's three touches of a level table lie 0.06-0.18 mm
 #: low, 0.12 mm apart (docs/results.md, "The calibration's reference").
 TOUCH_HEIGHT_STD = 1e-4
+#: m/s and m/s^2, the slowest moveL between poses a plan takes (:attr:`SweepPlan.speed`, :attr:`SweepPlan.accel`): the
+#: guarded descent's speed of :func:`touch_plane`, the slowest the capture moves, and an acceleration that reaches
+#: it in 0.1 s. ``capture --speed 1e-9`` was taken and the first move never ended (a 0.3 m move takes 3e8 s; in
+#: simulation the command ran on with no output: round 14).
+MIN_SPEED = 0.005
+MIN_ACCEL = 0.05
 #: m, the least height of the tool (TCP, flange, sensor) above the plane that a capture pose may have
 #: (:attr:`SweepPlan.min_clearance`).
 MIN_CLEARANCE = 0.005
+
+
+def repeated_value(values: "list[float]", period: float | None = None, tol: float = 1e-9) -> tuple[int, int] | None:
+    """``(i, j)``: the first value ``values[i]`` equal to an earlier ``values[j]`` within ``tol`` (modulo ``period`` where
+    given: azimuths a turn apart are one direction), or None. A sweep plan's axes are sets of poses: a repeat captured
+    the same poses twice (``capture --distances 80,80``, or ranges that overlap: round 14)."""
+    for i, v in enumerate(values):
+        for j in range(i):
+            gap = abs(v - values[j])
+            if period is not None:
+                gap = gap % period
+                gap = min(gap, period - gap)
+            if gap <= tol:
+                return i, j
+    return None
 
 
 class SweepPlan(ParamModel):
@@ -77,8 +98,8 @@ class SweepPlan(ParamModel):
     centre: Optional[vector(2, ge=-2.0, le=2.0)] = Field(None, description="m")
     frames_per_pose: int = Field(1, ge=1, le=100, description="frames")
     settle_s: float = Field(0.25, ge=0.0, le=60.0, description="s")  # at rest before the frames count
-    speed: float = Field(0.1, gt=0.0, le=1.0, description="m/s")  # moveL
-    accel: float = Field(0.5, gt=0.0, le=10.0, description="m/s^2")
+    speed: float = Field(0.1, ge=MIN_SPEED, le=1.0, description="m/s")  # moveL
+    accel: float = Field(0.5, ge=MIN_ACCEL, le=10.0, description="m/s^2")
     # subsample the grid evenly to this many poses
     max_poses: Optional[int] = Field(None, ge=1, le=10_000, description="poses")
     # s of robot time to wait for the frames of one pose
@@ -87,6 +108,17 @@ class SweepPlan(ParamModel):
     # it closer is refused before the arm moves (a gripper whose tips reach 30 mm past the sensor cannot take the
     # sensor within 35 mm of a table; in simulation the first poses of a sweep from 1 cm met the table at 70 N)
     min_clearance: float = Field(MIN_CLEARANCE, ge=0.0, le=0.1, description="m")
+
+    @model_validator(mode="after")
+    def _distinct(self) -> "SweepPlan":
+        for name, unit, scale, period in (("distances", "m", 1.0, None), ("incidences", "deg", 180 / math.pi, None),
+                                          ("azimuths", "deg", 180 / math.pi, 2 * math.pi)):
+            values = getattr(self, name)
+            if (ij := repeated_value(values, period)) is not None:
+                i, j = ij
+                raise ValueError(f"{name}: {values[i] * scale:g} {unit} is given twice (as item {j}: "
+                                 f"{values[j] * scale:g} {unit}): each value is a row of poses, captured once")
+        return self
 
     def grid(self) -> list[tuple[float, float, float]]:
         """(distance, incidence, azimuth) of every pose; incidence 0 once per distance."""

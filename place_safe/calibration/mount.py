@@ -331,9 +331,12 @@ def flange_poses(frames: Sequence[Any], use_kinematics: bool = True, kinematics:
                 raise FlangePoseError(f"frame {i}: pose {why}; expected the flange's rigid base-frame transform (m)",
                                       "bad pose")
             out.append(np.asarray(T, dtype=float))
-        else:
+        elif use_kinematics or extra.get("joint_angles") is None:
             raise FlangePoseError(f"frame {i} has neither joint_angles nor pose; the capture cannot fit a mount",
                                   "no joint_angles or pose")
+        else:  # (it said "neither joint_angles nor pose" of a frame with joint angles: round 14)
+            raise FlangePoseError(f"frame {i} has no recorded pose (its joint angles are read with poses from joints)",
+                                  "no recorded pose (poses from joints would read their joint angles)")
     return np.array(out)
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import re
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -30,8 +31,21 @@ ROBOT_FILE_HELP = ("start from a copy of robots/ur5/real.toml: its [connection],
                    "values are required (one missing is an error naming it); [motion] and [contact] may be left out")
 
 
+#: What argparse takes for a value, not an option, where it begins with "-": a negative number, a comma list of numbers
+#: beginning with one (``--touch -0.45,-0.05``, ``--sim-mount-error -5,0,0,0,2,0``, ``--azimuths -60,300``), a number
+#: with an exponent (``--table-height -1e-3``), ``-inf`` and ``-nan`` (which the option's type then refuses by name).
+#: argparse's own pattern takes only ``-5`` and ``-0.5``: the rest ended "expected one argument", the capture help's
+#: own example among them (round 14). No option of place-safe's begins with "-" and a digit.
+NEGATIVE_VALUE = re.compile(r"^-(\d|\.\d)[\d.eE+\-,:_]*$|^-(inf|infinity|nan)$", re.IGNORECASE)
+
+
 class Parser(argparse.ArgumentParser):
-    """argparse with one-line errors (no usage dump) so scripts see exactly one line on stderr."""
+    """argparse with one-line errors (no usage dump) so scripts see exactly one line on stderr, and values that begin
+    with "-" read as values where they are numbers (:data:`NEGATIVE_VALUE`)."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._negative_number_matcher = NEGATIVE_VALUE
 
     def error(self, message: str):  # type: ignore[override]
         where = self.prog[len(PROG):].strip() if self.prog.startswith(PROG) else self.prog

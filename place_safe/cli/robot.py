@@ -22,7 +22,8 @@ from place_safe.cli.common import CALIBRATE_METHODS, PROG, ROBOT_FILE_HELP, coun
 from place_safe.cli.options import REACH, float_range, int_range
 from place_safe.exceptions import CalibrationError, ConfigError, UsageError
 from place_safe.calibration import Calibration, mark
-from place_safe.calibration.capture import MIN_CLEARANCE, TOUCH_HEIGHT_STD, refusal_line, touch_plane
+from place_safe.calibration.capture import (MIN_CLEARANCE, TOUCH_HEIGHT_STD, refusal_line, repeated_value,
+                                            touch_plane)
 from place_safe.recovery import make_estimator
 from place_safe.config import read_json
 from place_safe.geometry import transform_problem
@@ -64,6 +65,21 @@ def _checked(vals: list[float], text: str, n: int | None, what: str, lo: float, 
     return vals
 
 
+def _distinct(vals: list[float], text: str, unit: str, period: float | None = None) -> list[float]:
+    """``vals`` of a sweep plan's axis (``capture --distances``, ``--incidences``, ``--azimuths``) read from ``text``
+    if no value repeats an earlier one (within 1e-6 of the unit; modulo ``period``); else one line naming the value.
+    The rule is :class:`~place_safe.calibration.capture.SweepPlan`'s (:func:`repeated_value`), said here in the option's
+    units before anything runs: ``--distances 80,80`` captured the 80 mm poses twice (round 14)."""
+    if (ij := repeated_value(vals, period, 1e-6)) is not None:
+        i, j = ij
+        same = "" if vals[i] == vals[j] else f" (as {vals[j]:g} {unit}: a turn apart is one direction)"
+        overlap = " (ranges that overlap?)" if ":" in text else ""
+        raise argparse.ArgumentTypeError(f"{vals[i]:g} {unit} is given twice in {text[:80]!r}{same}{overlap}: each "
+                                         "value is a row of poses, captured once (more frames of a pose: "
+                                         "--frames-per-pose)")
+    return vals
+
+
 #: The guarded descent of ``capture --touch`` (:func:`~place_safe.calibration.capture.touch_plane`'s defaults: m/s, N,
 #: m), for its help.
 _TOUCH = touch_plane.__kwdefaults__
@@ -95,7 +111,7 @@ def _distances(text: str) -> list[float]:
                                              f"and at most {MAX_LIST} values, got {item[:80]!r}")
         n = int(math.floor((stop - start) / step + 1e-9))
         values += [round(start + i * step, 9) for i in range(n + 1)]  # no drift from adding steps up
-    return _checked(values, text, None, "mm", 10.0, SENSOR_RANGE * 1000.0)
+    return _distinct(_checked(values, text, None, "mm", 10.0, SENSOR_RANGE * 1000.0), text, "mm")
 
 
 #: m: base-frame coordinates an option may name (the UR5 reaches 0.85 m from its base).
@@ -464,8 +480,12 @@ def cmd_calibrate_mount(args: argparse.Namespace) -> int:
                                + ("; the robot file is not written" if args.write else ""))
     if not calibrated:  # the first line of the output (printed once the fit succeeded: an error prints nothing)
         print(uncalibrated_note(args.method, None))
+    # frames without joint angles are posed by their recorded pose (mount.flange_poses): said, not "from joints"
+    recorded = sum(f.extra.get("joint_angles") is None for f in frames) if args.poses == "joints" else 0
+    posed = (f"joints ({recorded} of {len(frames)} frames without joint angles: from their recorded pose)" if recorded
+             else args.poses)
     print(mark(f"{args.capture}: {sum(p is not None for p in planes)}/{len(frames)} frames with a plane "
-               f"({args.method}, calibration: {cal_note}); flange poses from {args.poses}", calibrated))
+               f"({args.method}, calibration: {cal_note}); flange poses from {posed}", calibrated))
     print(fit.summary())
     result = {"capture": args.capture, "method": args.method, "calibration": cal_note, "calibrated": calibrated,
               "poses": args.poses,
@@ -583,14 +603,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                  "a level sweep for calibration: 10:90:2,100:400:10 with --incidences 0 --azimuths 0, the 2 mm "
                  "steps below 9 cm so that calibrate sizes the near-range covariance at a new frame's gap; the "
                  "distances the gripper cannot reach are refused and listed)"),
-        opt("--incidences", type=lambda s: _floats(s, None, "degrees", 0.0, 80.0), default=[0, 12, 24],
+        opt("--incidences", type=lambda s: _distinct(_floats(s, None, "degrees", 0.0, 80.0), s, "deg"),
+            default=[0, 12, 24],
             help="optical-axis tilts from the normal in degrees (default 0,12,24)"),
-        opt("--azimuths", type=lambda s: _floats(s, None, "degrees", -360.0, 360.0), default=[0, 60, 120, 180, 240, 300],
+        opt("--azimuths", type=lambda s: _distinct(_floats(s, None, "degrees", -360.0, 360.0), s, "deg", 360.0),
+            default=[0, 60, 120, 180, 240, 300],
             help="tilt directions in degrees (default every 60)"),
         opt("--poses", type=int_range(1, 10_000), help="subsample the grid evenly to this many poses (1..10000)"),
         opt("--frames-per-pose", type=int_range(1, 100), default=1, help="frames per pose (default 1, at most 100)"),
-        opt("--speed", type=float_range(0.0, 1.0, lo_open=True), default=0.1, help="moveL speed m/s (default 0.1, at "
-                                                                                   "most 1)"),
+        opt("--speed", field="place_safe.calibration.capture:SweepPlan.speed", default=0.1,
+            what="moveL speed between poses, default 0.1"),
         opt("--settle", type=float_range(0.0, 60.0, lo_open=True), default=0.25,
             help="s at rest before frames count (default 0.25, at most 60)"),
         opt("--min-clearance", type=float_range(0.0, 100.0), default=MIN_CLEARANCE * 1000, metavar="MM",

@@ -415,12 +415,14 @@ def _iter_stream(fh: IO[bytes], p: Path) -> Iterator[dict | FrameError]:
         if not more:
             raise FrameFileError(f"{p}: file is empty; expected a JSON list of frames")
     first = buf[:1]
-    if first == b"[":
+    # UTF-16: its byte-order mark, or one NUL byte of the first two (b"[\x00" little-endian, b"\x00[" big-endian: a
+    # little-endian file without the mark read as a broken list, and NUL bytes alone as UTF-16; round 14)
+    wide = buf[:2] in (b"\xff\xfe", b"\xfe\xff") or (len(buf) >= 2 and (buf[0] == 0) != (buf[1] == 0))
+    if first == b"[" and not wide:
         splitter, buf = _Splitter(is_list=True), buf[1:]
-    elif first == b"{":
+    elif first == b"{" and not wide:
         splitter = _Splitter(is_list=False)
     else:
-        wide = buf[:2] in (b"\xff\xfe", b"\xfe\xff") or (len(buf) >= 2 and b"\x00" in buf[:2])
         raise FrameFileError(f"{p}: not a frame file; expected a JSON list of frame objects or JSON Lines"
                              + (" (it looks like UTF-16 text: save it as UTF-8)" if wide else ""))
     index = 0

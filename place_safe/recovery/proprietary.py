@@ -99,9 +99,8 @@ def histogram_problem(frame: Frame) -> str | None:
         frame.validate(need_reference=False)
     except FrameError as exc:
         return f"{exc}: a frame whose histograms are corrupt is not used, its on-sensor distances neither"
-    for what, counts in (("histogram", frame.hists), ("reference histogram", frame.reference)):
-        if counts is not None and (beyond := beyond_count_max(counts, what)) is not None:
-            return f"{beyond}: a frame whose histograms are corrupt is not used, its on-sensor distances neither"
+    if (beyond := beyond_count_max(frame.hists)) is not None:  # (a reference's: Frame.validate)
+        return f"{beyond}: a frame whose histograms are corrupt is not used, its on-sensor distances neither"
     return None
 
 

@@ -17,7 +17,7 @@ import numpy as np
 
 from place_safe.exceptions import FrameError, NoPlaneError
 from place_safe.geometry import Plane, is_rotation, plane_from_pose
-from place_safe.sensor.histogram import first_return
+from place_safe.sensor.histogram import beyond_count_max, first_return
 from place_safe.sensor.zones import CENTRE, CORNER, EDGE, N_BINS, N_ZONES, ZONE_DIRECTIONS, ZONE_KIND, ZONE_RECTS  # noqa: F401
 
 
@@ -249,7 +249,9 @@ class Frame:
     def validate(self, *, need_reference: bool = True) -> None:
         """Raise :class:`FrameError` unless the histograms can be used for recovery.
 
-        Counts must be real numbers (not strings, objects, complex or ragged lists), finite and >= 0.
+        Counts must be real numbers (not strings, objects, complex or ragged lists), finite and >= 0; a reference
+        histogram's no more than its 24-bit counters hold (:func:`~place_safe.sensor.histogram.beyond_count_max`: the
+        zones' histograms are each method's to check, which names the zones).
         ``need_reference=False``: a frame without a reference histogram passes (one that has it is checked): for a
         method that reads no histogram but trusts no corrupt frame (``proprietary``).
         """
@@ -269,6 +271,8 @@ class Frame:
             raise FrameError(f"reference_hist has shape {r.shape}, expected ({N_BINS},)")
         if not np.isfinite(r).all() or (r < 0).any():
             raise FrameError("reference_hist contains NaN, infinite or negative counts")
+        if (beyond := beyond_count_max(r, "reference histogram")) is not None:  # corrupt, whether a method reads it
+            raise FrameError(beyond)  # or not (peak gave its plane, where proprietary and diff refused: round 14)
 
     def is_valid(self) -> bool:
         """Whether :meth:`validate` passes (False where it raises :class:`FrameError`)."""

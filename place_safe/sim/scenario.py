@@ -94,6 +94,15 @@ class SensorSection(ConfigModel):
         return v
 
     @model_validator(mode="after")
+    def _mismatch_read(self) -> "SensorSection":
+        """A ``mismatch`` table is read by the mismatched sensor alone: with the nominal model it was taken and never
+        read, and the run tested the nominal sensor (round 14)."""
+        if self.mismatch is not None and self.model != "mismatch":
+            raise ValueError('mismatch is read only by the mismatched sensor (model = "mismatch"); with model = '
+                             f'"{self.model}" it would be ignored: give the model, or leave the mismatch table out')
+        return self
+
+    @model_validator(mode="after")
     def _in_simulator_bounds(self) -> "SensorSection":
         """Every setting within the simulated sensor's own ranges (the fields of sim.tof.ToFConfig), checked on load."""
 
@@ -282,6 +291,11 @@ class Scenario(ConfigModel):
         return p
 
 
+def _json_kind(v: Any) -> str:
+    return {bool: "boolean", int: "number", float: "number", str: "string", list: "list", type(None): "null"}.get(
+        type(v), type(v).__name__)
+
+
 def _kind(v: Any) -> str:
     return {bool: "a boolean", int: "a number", float: "a number", str: "a string", list: "a list"}.get(
         type(v), type(v).__name__)
@@ -354,11 +368,13 @@ def load_scenario(name: str | Path) -> Scenario:
     p = scenario_path(name)
 
     data = read_config_file(p, "scenario")
-    if isinstance(data, dict):
-        if not set(data) - {"name", "description"}:  # an empty (or truncated) file would run the default scene
-            raise ConfigError(f"scenario {p}: the file sets nothing (empty, or a name and description only); a scenario "
-                              "gives at least its scene, robot, sensor or expectation (scenarios/README.md)")
-        data = {**data, "name": data.get("name") or p.stem, "base_dir": str(p.parent)}
+    if not isinstance(data, dict):  # (a frame file given as a scenario: "Input should be a valid dictionary ...")
+        raise ConfigError(f"scenario {p}: expected an object of scenario settings (a TOML table or a JSON object), got "
+                          f"{'a JSON ' + _json_kind(data) if p.suffix.lower() == '.json' else _kind(data)}")
+    if not set(data) - {"name", "description"}:  # an empty (or truncated) file would run the default scene
+        raise ConfigError(f"scenario {p}: the file sets nothing (empty, or a name and description only); a scenario "
+                          "gives at least its scene, robot, sensor or expectation (scenarios/README.md)")
+    data = {**data, "name": data.get("name") or p.stem, "base_dir": str(p.parent)}
     return parse_config(Scenario, data, f"scenario {p}")
 
 

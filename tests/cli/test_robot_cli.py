@@ -4,6 +4,8 @@ written back into a robot file."""
 from __future__ import annotations
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from place_safe.cli.app import main
 from place_safe.drivers.ur5 import URConfig, packaged_config
@@ -73,6 +75,112 @@ def test_an_empty_item_in_a_comma_list_is_refused_naming_the_option(argv, option
     assert f"argument {option}: expected comma-separated " in err[0] and "with no empty item" in err[0], err
     assert _floats("0, 12") == [0.0, 12.0] and _distances("80 ,120") == [80.0, 120.0]  # spaces are no items
     assert not (tmp_path / "place-result.json").exists() and not (tmp_path / "place-transitions.jsonl").exists()
+
+
+@pytest.mark.parametrize("argv, option, value", [
+    (["--distances", "80,80"], "--distances", "80 mm"),
+    (["--distances", "80,80.0"], "--distances", "80 mm"),
+    (["--distances", "10:90:2,90:200:10"], "--distances", "90 mm"),  # ranges that overlap
+    (["--incidences", "0,12,12"], "--incidences", "12 deg"),
+    (["--azimuths", "0,360"], "--azimuths", "360 deg"),  # one direction
+    (["--azimuths=-60,300"], "--azimuths", "300 deg"),
+])
+def test_a_repeated_item_of_a_sweep_plan_is_refused_naming_the_option_and_value(argv, option, value, tmp_path, capsys,
+                                                                                 monkeypatch):
+    """``capture --distances 80,80`` captured the 80 mm poses twice (round 13's leftover): a plan's distances, incidences
+    and azimuths are sets of poses, and a repeat is a typo or ranges that overlap. One line naming the option and the
+    repeated value, exit 2, nothing written; as an empty item is (:func:`place_safe.cli.robot._items`)."""
+    monkeypatch.chdir(tmp_path)
+    out = tmp_path / "cap.jsonl"
+    assert main(["capture", "--sim", "level_table", *argv, "-o", str(out)]) == 2
+    captured = capsys.readouterr()
+    err = captured.err.splitlines()
+    assert captured.out == "" and len(err) == 1 and not out.exists(), err
+    assert f"argument {option}: {value} is given twice" in err[0] and "--frames-per-pose" in err[0], err
+
+
+def test_a_sweep_plan_refuses_a_repeated_pose_axis_value():
+    """The library face of the same rule: a :class:`SweepPlan` with a repeated distance, incidence or azimuth (azimuths
+    a turn apart are one) is one ConfigError naming the field; the defaults and distinct values are taken."""
+    import math
+
+    from place_safe.calibration.capture import SweepPlan
+    from place_safe.exceptions import ConfigError
+
+    SweepPlan()
+    SweepPlan(distances=[0.08, 0.0800001], azimuths=[0.0, math.pi, -math.pi / 2])
+    for field, values in (("distances", [0.08, 0.12, 0.08]), ("incidences", [0.0, 0.2, 0.2]),
+                          ("azimuths", [0.0, 2 * math.pi]), ("azimuths", [-math.pi / 2, 3 * math.pi / 2])):
+        with pytest.raises(ConfigError, match=f"sweep plan: {field}: .* given twice"):
+            SweepPlan(**{field: values})
+
+
+@pytest.mark.parametrize("argv, dest, value", [
+    (["capture", "--sim", "level_table", "-o", "x", "--touch", "-0.45,-0.05"], "touch", [[-0.45, -0.05]]),
+    (["capture", "--sim", "level_table", "-o", "x", "--azimuths", "-60,120"], "azimuths", [-60.0, 120.0]),
+    (["capture", "--sim", "level_table", "-o", "x", "--sim-mount-error", "-5,0,0,0,2,0"], "sim_mount_error",
+     [-0.005, 0.0, 0.0, 0.0, pytest.approx(0.0349066), 0.0]),
+    (["capture", "--sim", "level_table", "-o", "x", "--table-height", "-1e-3"], "table_height", -0.001),
+    (["place", "--sim", "place_level", "--sim-mount-error", "-1.5,0,0,0,0,-2"], "sim_mount_error",
+     [-0.0015, 0.0, 0.0, 0.0, 0.0, pytest.approx(-0.0349066)]),
+])
+def test_a_value_that_begins_with_a_minus_sign_is_a_value(argv, dest, value):
+    """``capture --touch -0.45,-0.05`` (the capture help's own example) ended "argument --touch: expected one argument":
+    argparse takes only ``-5`` and ``-0.5`` for values, and read a negative comma list or ``-1e-3`` as an unknown
+    option (round 14). They are values now (``cli.common.NEGATIVE_VALUE``)."""
+    from place_safe.cli.app import build_parser
+
+    assert getattr(build_parser(load_sim=False).parse_args(argv), dest) == value
+
+
+def test_minus_inf_is_refused_by_the_option_not_read_as_an_option(capsys):
+    assert main(["capture", "--sim", "level_table", "-o", "x", "--table-height", "-inf"]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and "argument --table-height: expected a finite number, got '-inf'" in err[0], err
+
+
+@pytest.mark.parametrize("speed", ["1e-9", "1e-320", "0.001"])
+def test_a_capture_speed_that_would_never_arrive_is_refused(speed, capsys):
+    """``capture --speed 1e-9`` was taken (any speed above 0) and the first move never ended: a 0.3 m move at 1e-9 m/s
+    takes 3e8 s, and in simulation the command ran on with no output until killed (round 14). The plan's speed is at
+    least the touch's guarded descent speed (``calibration.capture.MIN_SPEED``), on the command line and in a
+    :class:`SweepPlan` (its acceleration too: ``MIN_ACCEL``)."""
+    from place_safe.calibration.capture import MIN_ACCEL, MIN_SPEED, SweepPlan
+    from place_safe.cli.app import build_parser
+    from place_safe.exceptions import ConfigError, UsageError
+
+    with pytest.raises(UsageError, match=f"argument --speed: expected a number >= {MIN_SPEED:g} and <= 1"):
+        build_parser(load_sim=False).parse_args(["capture", "--sim", "level_table", "-o", "x", "--speed", speed])
+    with pytest.raises(ConfigError, match="sweep plan: speed"):
+        SweepPlan(speed=float(speed))
+    with pytest.raises(ConfigError, match="sweep plan: accel"):
+        SweepPlan(accel=MIN_ACCEL / 10)
+    assert SweepPlan(speed=MIN_SPEED, accel=MIN_ACCEL).speed == MIN_SPEED
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(st.floats(-360.0, 360.0, allow_nan=False), min_size=1, max_size=8))
+def test_an_azimuth_list_reads_back_exactly_or_is_one_repeat_line(values):
+    """Any list of azimuths written as Python writes floats (negative first items, exponents, -0.0 included) reads back
+    as the same numbers, or, where two are one direction (a turn apart, within 1e-6 deg), is one line naming the
+    repeat; what the command line takes, a :class:`SweepPlan` takes (round 14: a leading minus sign, repeats)."""
+    import math
+
+    from place_safe.calibration.capture import SweepPlan
+    from place_safe.cli.app import build_parser
+    from place_safe.exceptions import UsageError
+
+    text = ",".join(repr(v) for v in values)
+    repeat = any(min(abs(a - b) % 360.0, 360.0 - abs(a - b) % 360.0) <= 1e-6
+                 for i, a in enumerate(values) for b in values[:i])
+    argv = ["capture", "--sim", "level_table", "-o", "x", "--azimuths", text]
+    if repeat:
+        with pytest.raises(UsageError, match="argument --azimuths: .* is given twice in "):
+            build_parser(load_sim=False).parse_args(argv)
+    else:
+        got = build_parser(load_sim=False).parse_args(argv).azimuths
+        assert got == values
+        SweepPlan(azimuths=[math.radians(v) for v in got])
 
 
 def test_place_on_an_unreachable_arm_is_a_one_line_error(capsys, sweep_path, tmp_path):
@@ -211,7 +319,6 @@ def test_calibrate_mount_skips_and_counts_frames_without_a_usable_pose(sweep_pat
     assert "no frames with a usable flange pose" in err and "\n" not in err
 
 
-from hypothesis import given, settings, strategies as st  # noqa: E402
 
 
 @settings(max_examples=300, deadline=None)
@@ -510,3 +617,39 @@ def test_calibrate_mount_refuses_a_starting_noise_below_the_fits_floor(sweep_pat
     assert main(["calibrate-mount", str(sweep_path), "--method", "peak", "-q", "--level", option, value]) == 2
     assert capsys.readouterr().err.splitlines() == [f"place-safe: error: calibrate-mount: {line}: it weighs each "
                                                     "frame's residuals"]
+
+
+def test_calibrate_mount_says_which_frames_are_posed_by_their_recorded_pose(sweep_path, tmp_path, capsys):
+    """A capture whose frames had no joint angles was fitted from their recorded poses while the output said "flange
+    poses from joints" (round 14): it says how many frames were posed by their recorded pose."""
+    import json
+
+    frames = json.loads(sweep_path.read_text())
+    for f in frames[::4]:
+        del f["joint_angles"]
+    bad = tmp_path / "cap.json"
+    bad.write_text(json.dumps(frames))
+    assert main(["calibrate-mount", str(bad), "--method", "proprietary", "--level", "-q"]) == 0
+    out = capsys.readouterr().out
+    n = len(frames[::4])
+    assert f"flange poses from joints ({n} of {len(frames)} frames without joint angles: from their recorded pose)" \
+        in out, out
+    assert main(["calibrate-mount", str(sweep_path), "--method", "proprietary", "--level", "-q"]) == 0
+    out = capsys.readouterr().out
+    assert "flange poses from joints" in out and "without joint angles" not in out
+
+
+def test_calibrate_mount_with_recorded_poses_says_the_pose_is_missing_not_the_joints(sweep_path, tmp_path, capsys):
+    """``--poses recorded`` on frames with joint angles and no pose said "12 no joint_angles or pose" (round 14): it
+    says the recorded pose is missing and that poses from joints would read the joint angles."""
+    import json
+
+    frames = json.loads(sweep_path.read_text())
+    for f in frames:
+        del f["pose"]
+    bad = tmp_path / "cap.json"
+    bad.write_text(json.dumps(frames))
+    assert main(["calibrate-mount", str(bad), "--method", "proprietary", "--level", "--poses", "recorded", "-q"]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and f"{len(frames)} no recorded pose (poses from joints would read their joint angles)" \
+        in err[0], err

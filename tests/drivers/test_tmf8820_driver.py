@@ -216,6 +216,18 @@ def test_factory_calibration_is_saved_by_serial_and_loaded_at_start(tmp_path):
     assert other.driver.identity["calibration"].startswith("none: no tmf8820-1111.json in ")
 
 
+def test_a_calibration_folder_that_is_a_file_is_one_line_naming_it(tmp_path):
+    """``--calibration-dir FILE`` (a file, not a folder) was taken: the sensor said "none: no tmf8820-2a17.json in FILE"
+    and ``--factory-calibrate`` ended "File exists: FILE", after running the sensor's calibration (round 14). The
+    driver refuses it when built, naming the option's value; a folder not yet there is made by the calibration."""
+    afile = tmp_path / "frames.json"
+    afile.write_text("[]")
+    with pytest.raises(ConfigError, match=r"factory calibration folder .*frames\.json is a file, not a folder"):
+        TMF8820Source(TMF8820Emulator(FRAMES), calibration_dir=afile)
+    src = EmulatedTMF8820(FRAMES, driver={"calibration_dir": tmp_path / "new"})
+    assert src.driver.factory_calibrate().parent == tmp_path / "new"
+
+
 def test_bad_driver_options():
     emu = TMF8820Emulator(FRAMES)
     with pytest.raises(ConfigError):

@@ -205,14 +205,27 @@ def test_a_long_integer_is_read_exactly():
     assert not frames_mod._long_integer(b'{"x": -0.00047130262929605347, "y": 1.2345678901234567890e3}')
 
 
-@pytest.mark.parametrize("encoding", ["utf-16", "utf-16-be"])
-def test_a_utf16_frame_file_is_said_to_be_utf16(tmp_path, encoding):
+@pytest.mark.parametrize("encoding", ["utf-16", "utf-16-be", "utf-16-le"])
+@pytest.mark.parametrize("layout", ["list", "lines"])
+def test_a_utf16_frame_file_is_said_to_be_utf16(tmp_path, encoding, layout):
     """A frame file saved as UTF-16 (some Windows editors' default) got only "not a frame file"; the error now says
-    what it looks like and what to do."""
+    what it looks like and what to do. Little-endian without the byte-order mark read as a broken list ("expected ','
+    or ']' between frames", round 14)."""
     p = tmp_path / "f.json"
-    p.write_bytes(json.dumps([{"hists": [[0] * 128] * 9}]).encode(encoding))
+    frames = [{"hists": [[0] * 128] * 9}] * 2
+    text = json.dumps(frames) if layout == "list" else "\n".join(json.dumps(f) for f in frames)
+    p.write_bytes(text.encode(encoding))
     with pytest.raises(FrameFileError, match="UTF-16 text: save it as UTF-8"):
         load_frames(p)
+
+
+def test_nul_bytes_are_not_said_to_be_utf16(tmp_path):
+    """A file of NUL bytes (a preallocated or zeroed file) was said to look like UTF-16 text (round 14)."""
+    p = tmp_path / "f.json"
+    p.write_bytes(b"\x00" * 1000)
+    with pytest.raises(FrameFileError, match="not a frame file") as e:
+        load_frames(p)
+    assert "UTF-16" not in str(e.value)
 
 
 @pytest.mark.parametrize("layout", LAYOUTS)

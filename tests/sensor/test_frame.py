@@ -179,3 +179,28 @@ def test_repeated_frames_finds_a_measurement_given_twice_whatever_its_truth_says
     assert "\n" not in note
     kept, note, keep = without_repeats([a, b])
     assert [id(f) for f in kept] == [id(a), id(b)] and note is None and keep == [0, 1]
+
+
+def test_a_reference_histogram_beyond_the_24_bit_counters_is_a_corrupt_frame_for_every_method(sweep_path):
+    """peak gave its plane from a frame whose reference histogram held counts the sensor cannot report (the real
+    sweep's reference times 1e30, or one bin at 2**30), where proprietary and diff refuse it (round 14). peak reads no
+    reference, but the reference comes in the same measurement: :meth:`Frame.validate` refuses it, one line, for every
+    method (the hists' own check stays each method's, :func:`~place_safe.sensor.histogram.beyond_count_max`)."""
+    from place_safe.io.frame_file import load_frames
+    from place_safe.recovery import make_estimator
+    from place_safe.sensor.histogram import COUNT_MAX
+
+    f = next(f for f in load_frames(sweep_path) if 0.15 < f.truth.offset < 0.2)
+    one = np.array(f.reference, dtype=float)
+    one[60] = 2.0 ** 30
+    for ref in (np.array(f.reference, dtype=float) * 1e30, one):
+        bad = Frame(f.hists, ref, distances=f.distances, confidences=f.confidences)
+        with pytest.raises(FrameError, match=r"^reference histogram counts above the sensor's 24-bit maximum"):
+            bad.validate()
+        for method in ("peak", "proprietary", "diff"):
+            e = make_estimator(method).estimate(bad)
+            assert e.plane is None and "reference histogram counts above the sensor's 24-bit maximum" in e.reason, \
+                (method, e.reason)
+    at_max = np.minimum(np.array(f.reference, dtype=float), COUNT_MAX)  # at the counters' maximum: not beyond it
+    Frame(f.hists, at_max).validate()
+    assert make_estimator("peak").estimate(Frame(f.hists, at_max)).plane is not None

@@ -252,3 +252,25 @@ def test_an_empty_reason_word_is_refused(words):
     with pytest.raises((ConfigError, ValueError), match="reason word must be non-empty"):
         Scenario.model_validate({"expect": {"outcome": "refused", "reason": words}})
     assert Scenario.model_validate({"expect": {"outcome": "refused", "reason": ["tilt"]}}).expect.reason == ["tilt"]
+
+
+def test_a_mismatch_table_for_the_nominal_sensor_is_refused_not_ignored(tmp_path):
+    """``[sensor.mismatch]`` without ``model = "mismatch"`` was taken and never read: the run used the nominal sensor
+    and released, a scenario that believed it tested a mismatched one (round 14; as an ``uncertainty`` entry that was
+    no method family's, round 8). One line saying which setting reads it; with the model the file loads as before."""
+    f = tmp_path / "s.toml"
+    f.write_text("[sensor.mismatch]\ntemp_start = 30.0\n")
+    with pytest.raises(ConfigError, match=r'sensor: mismatch is read only by the mismatched sensor \(model = "mismatch"\)'):
+        load_scenario(f)
+    f.write_text('[sensor]\nmodel = "mismatch"\n[sensor.mismatch]\ntemp_start = 30.0\n')
+    assert load_scenario(f).sensor.mismatch is not None
+
+
+def test_a_file_that_is_not_a_table_of_settings_says_what_it_is(tmp_path):
+    """A frame file given as a scenario (a JSON list) said "Input should be a valid dictionary or instance of
+    Scenario" (pydantic's words, naming a class; round 14): it says what a scenario file is and what it got."""
+    f = tmp_path / "frames.json"
+    f.write_text("[]")
+    with pytest.raises(ConfigError, match=r"frames\.json: expected an object of scenario settings \(a TOML table or a "
+                                          r"JSON object\), got a JSON list"):
+        load_scenario(f)

@@ -210,6 +210,9 @@ class TMF8820Source(FrameSource):
         self._device_period: int | None = None  # the period written to the chip since its last initialisation
         self.rate_hz = 1000.0 / period_ms if period_ms else 30.0
         self.calibration_dir = Path(calibration_dir) if calibration_dir is not None else None
+        if self.calibration_dir is not None and self.calibration_dir.exists() and not self.calibration_dir.is_dir():
+            raise ConfigError(f"factory calibration folder {self.calibration_dir} is a file, not a folder (it holds "
+                              "tmf8820-<serial>.json files; --calibration-dir names the folder)")
         self.int_line = int_line
         self._clock = clock or time.monotonic
         self._sleep = sleep or time.sleep
