@@ -59,8 +59,10 @@ Conventions
   normal lies within ``memory_gate`` of the window's own, that normal is the fused one (through the window's anchor:
   the offset stays local and recent), and ``tilt_std`` is its standard error with the memory counted as at most
   :data:`MEMORY_INDEPENDENT` independent planes (their errors are correlated). Where the window's normal is known
-  to :data:`MEMORY_WIDE_STD` or better (its planes combined, with the reference error: ``window_tilt_std``) the gate
-  is ``memory_wide_gate`` (:data:`MEMORY_WIDE_GATE`) instead, and a memory fused beyond ``memory_gate`` is marked
+  to :data:`MEMORY_WIDE_STD` or better (its planes combined, with the reference error: ``window_tilt_std``) and reads
+  the surface steeper than the memory, the gate is ``memory_wide_gate`` (:data:`MEMORY_WIDE_GATE`) instead (a memory
+  steeper than the window keeps the narrow gate: :meth:`PlaneFilter._memory_gate`), and a memory fused beyond
+  ``memory_gate`` is marked
   (``FusedPlane.memory_wide``): such a window's reading is held to the level bound by itself wherever it is the
   steeper (below; within ``memory_gate`` only where it is steeper by half its error), and close planes of a textured surface read its
   slope 1-2 deg off while stating a few tenths (a checker's light and dark squares share a zone's footprint unevenly,
@@ -456,7 +458,8 @@ class PlaneFilter:
         window_tilt, window_std = _angle(n, _Z), math.hypot(tilt_std, self.reference_tilt_std)
         remembered = self._remembered()
         apart = _angle(remembered[0], n) if remembered is not None else math.inf
-        if apart <= self._memory_gate(window_std):
+        steeper = remembered is not None and window_tilt > _angle(remembered[0], _Z)
+        if apart <= self._memory_gate(window_std, steeper):
             n, tilt_std = remembered
             source = "memory"
         tilt_std = math.hypot(tilt_std, self.reference_tilt_std)  # shared by every plane: not averaged away
@@ -474,12 +477,16 @@ class PlaneFilter:
         return self._cache
 
 
-    def _memory_gate(self, window_std: float) -> float:
+    def _memory_gate(self, window_std: float, steeper: bool) -> float:
         """The angle (rad) within which the memory's normal is fused, for a window whose normal has the standard error
-        ``window_std`` (rad; ``FusedPlane.window_tilt_std``: its planes combined, with the reference error):
-        ``memory_wide_gate`` where that is at most :data:`MEMORY_WIDE_STD` (the window's own reading is then precise
-        enough for the level rules to hold it to the bound itself), else ``memory_gate``."""
-        return self.memory_wide_gate if window_std <= MEMORY_WIDE_STD else self.memory_gate
+        ``window_std`` (rad; ``FusedPlane.window_tilt_std``: its planes combined, with the reference error) and reads
+        the surface ``steeper`` than the memory or not: ``memory_wide_gate`` where it is steeper and its error at most
+        :data:`MEMORY_WIDE_STD` (the window's own reading is then precise enough for the level rules to hold it to the
+        bound itself, so the memory can only make the level verdict stricter), else ``memory_gate``. A memory steeper
+        than a sure window is not let overrule it further: far views of a low box beside the cup had tilted the memory
+        1.5-1.9 deg, the window read the table level, and the memory's plane hid the box from the footprint verdict
+        (random low box 38 of seed 2: released over the box, refused with the narrow gate)."""
+        return self.memory_wide_gate if steeper and window_std <= MEMORY_WIDE_STD else self.memory_gate
 
     def _remembered(self) -> tuple[np.ndarray, float] | None:
         """The memory's normal and its standard error (rad), or None with too few planes or variances.

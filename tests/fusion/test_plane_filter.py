@@ -466,6 +466,22 @@ def test_a_window_that_reads_the_surface_steep_is_never_judged_level_whatever_th
                                                      math.degrees(f.window_tilt_rad))
 
 
+def test_a_memory_steeper_than_a_sure_window_keeps_the_narrow_gate():
+    """Far views of a low box beside the cup tilted the memory 1.5-1.9 deg; the latest planes read the table level,
+    stating 0.1-0.4 deg. With the wide gate both ways the memory's plane was fused and hid the 4.4 mm box under the
+    footprint from the footprint verdict (random low box 38 of seed 2: released over it). The wide gate lets only a
+    memory flatter than the window overrule it (the window then held to the level bound itself); here the window's
+    own normal is fused."""
+    far, close = _tilted(1.8), _tilted(0.0)
+    under = np.array([0.4, -0.1, (-0.05 - far[0] * 0.4 + far[1] * 0.1) / far[2]])
+    filt = PlaneFilter()
+    t = _feed(filt, far, np.linspace(0.30, 0.14, 40), std_deg=0.2)
+    _feed(filt, close, np.linspace(0.13, 0.09, 9), t0=t, std_deg=0.2, level=float(close @ under))
+    assert _feed.all
+    f = filt.fused()
+    assert f.source == "window" and not f.memory_wide and math.degrees(f.tilt_rad) < 0.3
+
+
 def test_a_window_fused_from_memory_beyond_the_narrow_gate_is_held_to_the_bound_however_little_steeper():
     """The review's counterexample to the wide gate: a memory of a 4.85 deg table (planes stating 0.2 deg), then seven
     planes reading 5.30 deg with the slope's direction turned 20 deg, each stating 2.6 deg (the window's combined
