@@ -62,8 +62,7 @@ Conventions
   to :data:`MEMORY_WIDE_STD` or better (its planes combined, with the reference error: ``window_tilt_std``) and reads
   the surface steeper than the memory, the gate is ``memory_wide_gate`` (:data:`MEMORY_WIDE_GATE`) instead (a memory
   steeper than the window keeps the narrow gate: :meth:`PlaneFilter._memory_gate`), and a memory fused beyond
-  ``memory_gate`` is marked
-  (``FusedPlane.memory_wide``): such a window's reading is held to the level bound by itself wherever it is the
+  ``memory_gate`` is marked (``FusedPlane.memory_wide``): such a window's reading is held to the level bound by itself wherever it is the
   steeper (below; within ``memory_gate`` only where it is steeper by half its error), and close planes of a textured surface read its
   slope 1-2 deg off while stating a few tenths (a checker's light and dark squares share a zone's footprint unevenly,
   which moves its return across the footprint's ranges; random seeds 66 and 102: the window's 4.6 deg against a
@@ -99,8 +98,9 @@ from place_safe.recovery.estimator import reference_tilt_problem
 from place_safe.recovery.too_close import TOO_CLOSE_REASON
 from place_safe.geometry import MAX_REACH, Plane, finite_number, transform_problem
 
-#: rad: a window whose own normal has at most this standard error has the memory's normal fused within
-#: ``PlaneFilter.memory_wide_gate`` of its own, not ``memory_gate`` (module doc).
+#: rad: a window whose normal has at most this standard error (``FusedPlane.window_tilt_std``) and reads the surface
+#: steeper than the memory has the memory's normal fused within ``PlaneFilter.memory_wide_gate`` of its own, not
+#: ``memory_gate`` (module doc).
 MEMORY_WIDE_STD = math.radians(1.0)
 #: rad, ``PlaneFilter.memory_wide_gate``'s default (module doc).
 MEMORY_WIDE_GATE = math.radians(2.5)
@@ -246,8 +246,8 @@ class PlaneFilter:
     memory: planes remembered for the normal (0: no memory, the window alone).
     memory_frames: remembered planes needed before the memory's normal is used.
     memory_gate: rad; the memory's normal is used only within this angle of the window's.
-    memory_wide_gate: rad; the gate instead where the window's own normal is known to :data:`MEMORY_WIDE_STD` (see
-        the module doc), at least ``memory_gate`` (None: the larger of ``memory_gate`` and :data:`MEMORY_WIDE_GATE`).
+    memory_wide_gate: rad; the gate instead where the window's normal is known to :data:`MEMORY_WIDE_STD` and reads
+        the surface steeper than the memory (see the module doc), at least ``memory_gate`` (None: the larger of ``memory_gate`` and :data:`MEMORY_WIDE_GATE`).
     memory_age: s; remembered planes older than this (relative to the newest time seen) are forgotten.
     reference_tilt_std: rad; the tilt error every plane shares through the estimator's calibration (its
         reference: :class:`~place_safe.recovery.estimator.Reference`), added once to the fused ``tilt_std``.
@@ -262,20 +262,19 @@ class PlaneFilter:
             raise ValueError("PlaneFilter needs window >= 1, 1 <= min_frames <= window, max_consecutive_rejects >= 1")
         if memory < 0 or memory_frames < 1:
             raise ValueError("PlaneFilter needs memory >= 0 and memory_frames >= 1")
+        wide = max(memory_gate, MEMORY_WIDE_GATE) if memory_wide_gate is None else memory_wide_gate
         for name, v in (("angle_gate", angle_gate), ("offset_gate", offset_gate), ("max_age", max_age),
-                        ("memory_gate", memory_gate), ("memory_age", memory_age),
-                        ("memory_wide_gate", MEMORY_WIDE_GATE if memory_wide_gate is None else memory_wide_gate)):
+                        ("memory_gate", memory_gate), ("memory_age", memory_age), ("memory_wide_gate", wide)):
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"PlaneFilter.{name} must be a positive finite number; got {v!r}")
         self.window, self.angle_gate, self.offset_gate = int(window), float(angle_gate), float(offset_gate)
         self.min_frames, self.max_consecutive_rejects = int(min_frames), int(max_consecutive_rejects)
         self.max_age = float(max_age)
         self.memory, self.memory_frames = int(memory), int(memory_frames)
-        if memory_wide_gate is not None and memory_wide_gate < memory_gate:
+        if wide < memory_gate:
             raise ValueError("PlaneFilter needs memory_wide_gate >= memory_gate")
         self.memory_gate, self.memory_age = float(memory_gate), float(memory_age)
-        self.memory_wide_gate = float(max(memory_gate, MEMORY_WIDE_GATE) if memory_wide_gate is None
-                                      else memory_wide_gate)
+        self.memory_wide_gate = float(wide)
         self.reference_tilt_std = reference_tilt_std
         self.reset()
 
@@ -475,7 +474,6 @@ class PlaneFilter:
                                  memory_wide=source == "memory" and apart > self.memory_gate)
         self._dirty = False
         return self._cache
-
 
     def _memory_gate(self, window_std: float, steeper: bool) -> float:
         """The angle (rad) within which the memory's normal is fused, for a window whose normal has the standard error
