@@ -31,7 +31,7 @@ from place_safe.io.input_file import output_dir_problem
 from place_safe.io.live import run_live
 from place_safe.io.replay import FileReplaySource
 from place_safe.recovery.estimator import PlaneEstimate
-from place_safe.calibration import REQUIRED_SECTIONS, UNIT_MODELS, Calibration, mark
+from place_safe.calibration import REQUIRED_SECTIONS, UNIT_MODELS, Calibration, mark, uncalibrated_reason
 
 # ------------------------------------------------------------------------------------------------
 # calibrate
@@ -268,7 +268,10 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         raise UsageError(f"evaluate: --out {args.out + ' ' if args.out else ''}{why} (a folder for the plots)")
     cal = load_calibration(args.calibration)
     # each method once, in the order given ("peak peak": one row); by default the calibration's methods, the baselines
+    given = args.methods
     args.methods, left_out = evaluated_methods(args.methods, cal, args.calibration)
+    # the methods left out of the default, each with why (in the --json report too: a script reading it sees them)
+    left = {m: uncalibrated_reason(m, cal) for m in METHODS if given is None and m not in args.methods}
     if args.min_distance is not None and args.max_distance is not None and args.min_distance > args.max_distance:
         raise UsageError(f"evaluate: --min-distance {args.min_distance:g} m exceeds --max-distance "
                          f"{args.max_distance:g} m")
@@ -299,6 +302,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
             + ", ".join(Path(p).name for p in report.plots))
     if args.json:
         data = report.to_dict() if hasattr(report, "to_dict") else report
+        data["left_out"] = left
         Path(args.json).write_text(json.dumps(jsonable(data), indent=2) + "\n")
         log(f"wrote {args.json}")
     return 0

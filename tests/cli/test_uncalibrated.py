@@ -134,6 +134,22 @@ def test_bench_marks_its_runs(tmp_path, capsys):
     assert all(m["calibrated"] is False for m in json.loads(report.read_text())["methods"])
 
 
+def test_evaluate_json_lists_the_methods_it_left_out_and_why(sweep_path, peak_calibration, tmp_path, capsys):
+    """The --json report named only the methods that ran: a script reading it could not tell diff and proprietary
+    were left out of the default, nor why (session 84's walkthrough). Now ``left_out`` maps each to its reason; empty
+    when the methods are named."""
+    report = tmp_path / "r.json"
+    assert main(["evaluate", str(sweep_path), "--calibration", str(peak_calibration), "--no-plots", "-q",
+                 "--min-distance", "0.35", "--json", str(report)]) == 0
+    data = json.loads(report.read_text())
+    assert set(data["left_out"]) == {"diff", "proprietary"} and "diff" not in data["methods"]
+    assert all(isinstance(why, str) and "calibrate" in why for why in data["left_out"].values())
+    capsys.readouterr()
+    assert main(["evaluate", str(sweep_path), "--calibration", str(peak_calibration), "--no-plots", "-q",
+                 "--min-distance", "0.35", "--methods", "peak", "--json", str(report)]) == 0
+    assert json.loads(report.read_text())["left_out"] == {}
+
+
 def test_evaluate_leaves_out_by_default_the_methods_its_calibration_does_not_calibrate(sweep_path, peak_calibration,
                                                                                       capsys):
     """``evaluate --calibration C`` with C from ``calibrate --method peak`` (or diff: neither fits proprietary) ran every
