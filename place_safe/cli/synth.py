@@ -88,6 +88,11 @@ def cmd_synth(args: argparse.Namespace) -> int:
                              spec=SyntheticSpec(z_range=z_range, theta_range=theta_range, noise=not args.no_noise))
     out = Path(args.output)
     out.parent.mkdir(parents=True, exist_ok=True)
-    n = write_frames(out, frames)
+    try:
+        n = write_frames(out, frames)
+    except KeyboardInterrupt:  # Ctrl-C while writing: no frame file cut short (a JSON list without its ']') left behind
+        if out.is_file():
+            out.unlink()
+        raise
     log(f"wrote {n} {args.generator} frames to {out}")
     return 0
