@@ -537,7 +537,7 @@ def _robot_or_sim(sub, name: str, func, help: str, description: str, examples: l
                                                          "command nothing"),
                 opt("--sim-mount-error", type=_mount_error, metavar="DX,DY,DZ,RX,RY,RZ",
                     help="simulation: the true sensor mount differs from the robot file's by this (mm and deg)"),
-                "seed", *more, seed={"help": "simulated sensor noise seed"}, **changes)
+                "seed", *more, seed={"default": None, "help": "simulated sensor noise seed (default 0)"}, **changes)
     options.add_sensor_options(p)
     return p
 
@@ -694,7 +694,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def _resolve(args: argparse.Namespace) -> argparse.Namespace:
     """--robot is the arm's file; in simulation --robot-file names the file whose tool frames are used. An option of
     the arm given with --sim (--sensor, --dry-run, a sensor option) is a usage error: the simulated placement ran and
-    released without a word about it."""
+    released without a word about it; so is one of the simulation's given with --robot (--robot-file,
+    --sim-mount-error, --seed)."""
     if args.sim:
         given_options = [(f"--{name.replace('_', '-')}", getattr(args, name, None)) for name in options.SENSOR_OPTIONS]
         for flag, given in (("--sensor", getattr(args, "sensor", None)), ("--dry-run", getattr(args, "dry_run", False)),
@@ -703,6 +704,13 @@ def _resolve(args: argparse.Namespace) -> argparse.Namespace:
                 raise UsageError(f"{args.command}: {flag} is for the arm (--robot ROBOT.toml), not --sim: the simulation "
                                  "has its own sensor and moves nothing real")
         args.robot = getattr(args, "robot_file", None)
+    else:  # the simulation's options on the arm: never read (the run went on to connect as if they were not given)
+        for flag, given in (("--robot-file", args.robot_file), ("--sim-mount-error", args.sim_mount_error),
+                            ("--seed", args.seed)):
+            if given is not None:
+                raise UsageError(f"{args.command}: {flag} is for the simulation (--sim SCENARIO)")
+    if args.seed is None:
+        args.seed = 0
     return args
 
 

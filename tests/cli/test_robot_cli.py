@@ -400,6 +400,29 @@ def test_options_of_the_arm_are_refused_with_sim(capsys):
         assert "is for the arm (--robot ROBOT.toml), not --sim" in err and "\n" not in err
 
 
+
+@pytest.mark.parametrize("command", ["place", "capture"])
+@pytest.mark.parametrize("option", [["--seed", "3"], ["--sim-mount-error", "5,0,0,0,2,0"],
+                                    ["--robot-file", "robots/ur5/real.toml"]])
+def test_options_of_the_simulation_are_refused_with_the_arm(command, option, capsys, monkeypatch, tmp_path):
+    """`place --robot R --seed 3` (or --sim-mount-error, --robot-file) went on to open the sensor and connect to the
+    arm as if the option had not been given: the simulation's options were never read there. Now one line naming
+    the option, exit 2, before the sensor or the arm is touched (as --oracle and --render were)."""
+    import place_safe.sources
+
+    def no_sensor(*args, **kwargs):
+        raise AssertionError("the sensor was opened")
+
+    monkeypatch.setattr(place_safe.sources, "open_source", no_sensor)
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "robots" / "ur5").mkdir(parents=True)
+    (tmp_path / "robots" / "ur5" / "real.toml").write_text(packaged_config("real").read_text())
+    extra = ["--json", "r.json", "--log", "t.jsonl"] if command == "place" else ["--table-height", "0", "-o", "c.jsonl"]
+    assert main([command, "--robot", "robots/ur5/real.toml", "--sensor", "i2c:/dev/i2c-1", "--dry-run", *option,
+                 *extra]) == 2
+    assert capsys.readouterr().err.splitlines() == [f"place-safe: error: {command}: {option[0]} is for the simulation "
+                                                    "(--sim SCENARIO)"]
+
 class _Source:
     """A stand-in for the sensor: it records how it was opened and that it was closed."""
 
