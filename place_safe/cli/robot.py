@@ -321,6 +321,10 @@ def cmd_capture(args: argparse.Namespace) -> int:
                          "own error)")
     if args.table_tilt_std is not None and args.table_height is None:
         raise UsageError("capture: --table-tilt-std goes with --table-height (how far that table may be from level)")
+    if not args.touch and (given := [flag for flag, v in (("--touch-height", args.touch_height),
+                                                          ("--touch-force", args.touch_force)) if v is not None]):
+        raise UsageError(f"capture: {' and '.join(given)} go{'es' if len(given) == 1 else ''} with --touch (the points "
+                         "where the TCP touches the table); without it the plane is not touched")
     if args.touch and not 3 <= len(args.touch) <= 20:
         raise UsageError(f"capture: --touch needs 3 to 20 points, got {len(args.touch)}")
     plan = SweepPlan(distances=[d / 1000.0 for d in args.distances],
@@ -362,7 +366,8 @@ def cmd_capture(args: argparse.Namespace) -> int:
                 if len(args.touch) < 3:
                     raise UsageError("capture: --touch needs at least 3 points")
                 z0 = args.touch_height if args.touch_height is not None else robot.tcp_pose()[2, 3]
-                n, d, pts = touch_plane(robot, args.touch, z0, force_threshold=args.touch_force)
+                n, d, pts = touch_plane(robot, args.touch, z0,
+                                        force_threshold=args.touch_force or _TOUCH["force_threshold"])
                 reference = touched_reference(pts)
                 log(f"touched the plane at {len(pts)} points: normal {n.round(4).tolist()}, offset {d * 1000:.1f} "
                     f"mm, within {math.degrees(reference.tilt_std):.2f} deg / {reference.offset_std * 1000:.2f} mm "
@@ -648,7 +653,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         opt("--touch-height", type=float_range(-REACH, REACH), metavar="Z",
             help="m: base-frame z of the TCP where each touch's descent starts, a few cm above the table (default: "
                  "the TCP's height when the capture starts)"),
-        opt("--touch-force", type=float_range(0.0, 200.0, lo_open=True), default=_TOUCH["force_threshold"],
+        opt("--touch-force", type=float_range(0.0, 200.0, lo_open=True), default=None,
             metavar="N", help=f"N: the contact force that ends a touch's descent (default {_TOUCH['force_threshold']:g}, "
                               "at most 200): well above the controller's force noise at rest (CB3 about 3.6 N per "
                               "cycle; place-safe bench robot measures it), well below its protective stop"))

@@ -391,6 +391,28 @@ def test_capture_into_a_file_that_is_not_a_capture_is_refused_before_the_arm(tmp
     assert out.read_text() == '[{"hists": []}]\n'
 
 
+
+@pytest.mark.parametrize("given,said", [(["--touch-height", "0.05"], "--touch-height goes"),
+                                        (["--touch-force", "20"], "--touch-force goes"),
+                                        (["--touch-height", "0.05", "--touch-force", "20"],
+                                         "--touch-height and --touch-force go")])
+def test_touch_options_without_touch_points_are_refused_not_ignored(given, said, tmp_path, capsys, monkeypatch):
+    """`capture --sim level_table --touch-height 0.05` (or --touch-force) captured against the scenario's table, exit
+    0, as if the option had not been given; on the arm, against --table-height. They set the touches: without
+    --touch they are one usage line, exit 2, before the scene is built or the arm connected."""
+    import place_safe.sim.world as world
+
+    def no_world(*args, **kwargs):
+        raise AssertionError("the scene was built")
+
+    monkeypatch.setattr(world, "sim_world", no_world)
+    out = tmp_path / "cap.jsonl"
+    assert main(["capture", "--sim", "level_table", "--poses", "1", "-q", "-o", str(out), *given]) == 2
+    assert capsys.readouterr().err.splitlines() == [
+        f"place-safe: error: capture: {said} with --touch (the points where the TCP touches the table); without it "
+        "the plane is not touched"]
+    assert not out.exists()
+
 def test_options_of_the_arm_are_refused_with_sim(capsys):
     """place --sim with --sensor or --dry-run ran the simulation and released without a word about them."""
     for argv in (["place", "--sim", "place_level", "--sensor", "bogus"], ["place", "--sim", "place_level", "--dry-run"],
