@@ -202,6 +202,11 @@ def cmd_place(args: argparse.Namespace) -> int:
                 raise UsageError(f"place: {flag} is for the simulation (--sim SCENARIO)")
     elif args.uncalibrated:
         raise UsageError("place: --uncalibrated is for the arm (--robot); in simulation give --calibration none")
+    elif args.render:
+        from place_safe.sim.render import image_problem
+
+        if (why := image_problem(args.render)) is not None:  # (before the run: it failed after, and no result written)
+            raise UsageError(f"place: --render {args.render} {why}")
     cfg = PlacementConfig.load(args.config) if args.config else None
     if args.sim:
         out, res, lines = _place_sim(args, cfg)

@@ -445,6 +445,23 @@ def test_options_of_the_simulation_are_refused_with_the_arm(command, option, cap
     assert capsys.readouterr().err.splitlines() == [f"place-safe: error: {command}: {option[0]} is for the simulation "
                                                     "(--sim SCENARIO)"]
 
+
+def test_a_render_name_pillow_cannot_write_is_refused_before_the_placement(tmp_path, capsys, monkeypatch):
+    """`place --sim place_level --render x.txt` ran the whole placement, then ended "invalid input: unknown file
+    extension: .txt": no result file and no transition log written, the option not named. Now one line before the
+    run, exit 2."""
+    import place_safe.sim.placement_run as placement_run
+
+    def no_run(*args, **kwargs):
+        raise AssertionError("the placement ran")
+
+    monkeypatch.setattr(placement_run, "run_placement", no_run)
+    monkeypatch.chdir(tmp_path)
+    assert main(["place", "--sim", "place_level", "--render", "x.txt"]) == 2
+    assert capsys.readouterr().err.splitlines() == [
+        "place-safe: error: place: --render x.txt names no image format Pillow writes (.txt): give a .png file"]
+    assert not (tmp_path / "place-result.json").exists()
+
 class _Source:
     """A stand-in for the sensor: it records how it was opened and that it was closed."""
 
