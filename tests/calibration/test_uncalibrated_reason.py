@@ -32,10 +32,10 @@ def test_a_calibrated_method_without_its_section_is_told_how_to_calibrate():
 
 def test_diff_without_a_peak_section_is_uncalibrated(sweep_path, tmp_path, capsys):
     """diff starts from the calibrated peak method and falls back to its plane; a calibration with diff's `forward`
-    section but no `peak` one (a hand edit, a section removed) passed as calibrated: `recover --method diff` printed
-    unmarked planes 14-16 deg off on frames of the simulated unit (peak's, from built-in constants), and `place --sim
-    place_level` refused "surface tilted 6.6 deg". Now diff needs both: the reason names the missing section, and
-    `recover` says UNCALIBRATED naming it."""
+    section but no `peak` one (the simulated unit's, less that section) passed as calibrated: `recover --method diff`
+    printed unmarked planes 14-16 deg off on level frames of the real sweep (peak's, from built-in constants; the whole
+    calibration read 0.6-0.7 deg), and `place --sim place_level` refused "surface tilted 6.6 deg". Now diff needs both:
+    the reason names the missing section, and `recover` says UNCALIBRATED naming it."""
     import json
 
     from place_safe.cli.app import main
