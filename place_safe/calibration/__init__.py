@@ -245,7 +245,9 @@ def _entry(d: Any, method: Any) -> Uncertainty:
 
 
 #: Sections a method needs before it may drive a placement (naive methods are uncalibrated by definition).
-REQUIRED_SECTIONS = {"diff": ("forward",), "peak": ("peak",), "proprietary": ("proprietary",)}
+REQUIRED_SECTIONS = {"diff": ("forward", "peak"), "peak": ("peak",), "proprietary": ("proprietary",)}
+# (diff starts from the calibrated peak method and falls back to its plane: with a forward section but no peak one it
+# returned peak's planes from built-in constants, 14-16 deg off on a simulated unit, unmarked)
 
 #: The diff method's forward-model fits (``calibrate --unit-model``): ``default`` is
 #: :func:`~place_safe.calibration.forward_fit.fit_forward` with its default terms, ``staged`` is
@@ -276,8 +278,13 @@ def uncalibrated_reason(method: str, calibration: "Calibration | None") -> str |
     if need is None:  # no calibration is ever its: advising one (then "pass the calibration file") sent users in circles
         return (f"sensor not calibrated: method {method} is a baseline on built-in constants that takes no calibration, "
                 f"so a placement refuses it by design; use {fit} ({how.replace('then pass', 'and pass')})")
-    have = calibration.sections if calibration is not None else {}
-    missing = [s for s in need if not isinstance(have.get(s), dict)]
-    if missing:
-        return f"sensor not calibrated for {method} (no '{missing[0]}' section); {how}"
+    if (missing := missing_section(method, calibration)) is not None:
+        return f"sensor not calibrated for {method} (no '{missing}' section); {how}"
     return None
+
+
+def missing_section(method: str, calibration: "Calibration | None") -> str | None:
+    """The first section of :data:`REQUIRED_SECTIONS` for ``method`` that ``calibration`` lacks, or None (all there,
+    or a method that takes no calibration)."""
+    have = calibration.sections if calibration is not None else {}
+    return next((s for s in REQUIRED_SECTIONS.get(method, ()) if not isinstance(have.get(s), dict)), None)

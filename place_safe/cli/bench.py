@@ -29,6 +29,10 @@ def cmd_sim_bench(args: argparse.Namespace) -> int:
     from place_safe.sim.bench import bench, benchmark
 
     if args.bare:
+        # (never read: a --scene that does not exist measured the bare robot, exit 0)
+        if given := [flag for flag, v in (("--scene", args.scene), ("--rig", args.rig)) if v]:
+            raise UsageError(f"bench sim: --bare measures the bare robot, without a scene or sensor: "
+                             f"{' and '.join(given)} {'does' if len(given) == 1 else 'do'} not go with it")
         for key, value in benchmark(args.seconds).items():
             print(f"{key}: {value:.1f}")
         return 0

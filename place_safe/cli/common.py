@@ -22,7 +22,7 @@ from place_safe.io.json_values import jsonable
 from place_safe.recovery import METHODS, make_estimator  # noqa: F401 - the one list of method names, for the commands
 from place_safe.io.frame_file import iter_frames
 from place_safe.io.input_file import input_file_problem
-from place_safe.calibration import FORMAT, REQUIRED_SECTIONS, Calibration, uncalibrated_reason
+from place_safe.calibration import FORMAT, REQUIRED_SECTIONS, Calibration, missing_section, uncalibrated_reason
 
 PROG = "place-safe"
 CALIBRATE_METHODS = ("diff", "peak", "proprietary")
@@ -282,7 +282,8 @@ def uncalibrated_note(methods: str | Sequence[str], calibration, path: str | Non
     why = []
     if fitted:
         where = ("no --calibration" if calibration is None else
-                 f"{path or 'the calibration'} has no {'/'.join(REQUIRED_SECTIONS[m][0] for m in fitted)} section")
+                 f"{path or 'the calibration'} has no "
+                 f"{'/'.join(dict.fromkeys(missing_section(m, calibration) for m in fitted))} section")
         why.append(f"{where}: {', '.join(fitted)} run{'s' if len(fitted) == 1 else ''} on built-in constants "
                    "(another unit's published parameters)")
     if naive:
@@ -316,7 +317,7 @@ def evaluated_methods(given: Sequence[str] | None, calibration,
     if calibration is None or not bare or len(bare) == len(fitted):
         return list(METHODS), None
     where = path or "the calibration"
-    sections = " or ".join(REQUIRED_SECTIONS[m][0] for m in bare)
+    sections = " or ".join(dict.fromkeys(missing_section(m, calibration) for m in bare))
     one = len(bare) == 1
     it = "it" if one else "them"
     again = "".join(f" and again with --method {m}" for m in bare[1:])
@@ -328,6 +329,8 @@ def evaluated_methods(given: Sequence[str] | None, calibration,
 
 
 def estimator_for(method: str, calibration, mode: str | None = None):
+    if mode is not None and method != "diff":  # (the other methods have one solver: the option was never read)
+        raise UsageError(f"--mode is the diff method's solver; it goes with --method diff, not {method}")
     options = {"mode": mode} if (method == "diff" and mode) else {}
     return make_estimator(method, calibration, **options)
 

@@ -202,6 +202,11 @@ def cmd_place(args: argparse.Namespace) -> int:
                 raise UsageError(f"place: {flag} is for the simulation (--sim SCENARIO)")
     elif args.uncalibrated:
         raise UsageError("place: --uncalibrated is for the arm (--robot); in simulation give --calibration none")
+    elif args.render:
+        from place_safe.sim.render import image_problem
+
+        if (why := image_problem(args.render)) is not None:  # (before the run: it failed after, and no result written)
+            raise UsageError(f"place: --render {args.render} {why}")
     cfg = PlacementConfig.load(args.config) if args.config else None
     if args.sim:
         out, res, lines = _place_sim(args, cfg)
@@ -321,6 +326,10 @@ def cmd_capture(args: argparse.Namespace) -> int:
                          "own error)")
     if args.table_tilt_std is not None and args.table_height is None:
         raise UsageError("capture: --table-tilt-std goes with --table-height (how far that table may be from level)")
+    if not args.touch and (given := [flag for flag, v in (("--touch-height", args.touch_height),
+                                                          ("--touch-force", args.touch_force)) if v is not None]):
+        raise UsageError(f"capture: {' and '.join(given)} go{'es' if len(given) == 1 else ''} with --touch (the points "
+                         "where the TCP touches the table); without it the plane is not touched")
     if args.touch and not 3 <= len(args.touch) <= 20:
         raise UsageError(f"capture: --touch needs 3 to 20 points, got {len(args.touch)}")
     plan = SweepPlan(distances=[d / 1000.0 for d in args.distances],
@@ -362,7 +371,8 @@ def cmd_capture(args: argparse.Namespace) -> int:
                 if len(args.touch) < 3:
                     raise UsageError("capture: --touch needs at least 3 points")
                 z0 = args.touch_height if args.touch_height is not None else robot.tcp_pose()[2, 3]
-                n, d, pts = touch_plane(robot, args.touch, z0, force_threshold=args.touch_force)
+                n, d, pts = touch_plane(robot, args.touch, z0,
+                                        force_threshold=args.touch_force or _TOUCH["force_threshold"])
                 reference = touched_reference(pts)
                 log(f"touched the plane at {len(pts)} points: normal {n.round(4).tolist()}, offset {d * 1000:.1f} "
                     f"mm, within {math.degrees(reference.tilt_std):.2f} deg / {reference.offset_std * 1000:.2f} mm "
@@ -537,7 +547,7 @@ def _robot_or_sim(sub, name: str, func, help: str, description: str, examples: l
                                                          "command nothing"),
                 opt("--sim-mount-error", type=_mount_error, metavar="DX,DY,DZ,RX,RY,RZ",
                     help="simulation: the true sensor mount differs from the robot file's by this (mm and deg)"),
-                "seed", *more, seed={"help": "simulated sensor noise seed"}, **changes)
+                "seed", *more, seed={"default": None, "help": "simulated sensor noise seed (default 0)"}, **changes)
     options.add_sensor_options(p)
     return p
 
@@ -648,7 +658,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         opt("--touch-height", type=float_range(-REACH, REACH), metavar="Z",
             help="m: base-frame z of the TCP where each touch's descent starts, a few cm above the table (default: "
                  "the TCP's height when the capture starts)"),
-        opt("--touch-force", type=float_range(0.0, 200.0, lo_open=True), default=_TOUCH["force_threshold"],
+        opt("--touch-force", type=float_range(0.0, 200.0, lo_open=True), default=None,
             metavar="N", help=f"N: the contact force that ends a touch's descent (default {_TOUCH['force_threshold']:g}, "
                               "at most 200): well above the controller's force noise at rest (CB3 about 3.6 N per "
                               "cycle; place-safe bench robot measures it), well below its protective stop"))
@@ -694,7 +704,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def _resolve(args: argparse.Namespace) -> argparse.Namespace:
     """--robot is the arm's file; in simulation --robot-file names the file whose tool frames are used. An option of
     the arm given with --sim (--sensor, --dry-run, a sensor option) is a usage error: the simulated placement ran and
-    released without a word about it."""
+    released without a word about it; so is one of the simulation's given with --robot (--robot-file,
+    --sim-mount-error, --seed)."""
     if args.sim:
         given_options = [(f"--{name.replace('_', '-')}", getattr(args, name, None)) for name in options.SENSOR_OPTIONS]
         for flag, given in (("--sensor", getattr(args, "sensor", None)), ("--dry-run", getattr(args, "dry_run", False)),
@@ -703,6 +714,13 @@ def _resolve(args: argparse.Namespace) -> argparse.Namespace:
                 raise UsageError(f"{args.command}: {flag} is for the arm (--robot ROBOT.toml), not --sim: the simulation "
                                  "has its own sensor and moves nothing real")
         args.robot = getattr(args, "robot_file", None)
+    else:  # the simulation's options on the arm: never read (the run went on to connect as if they were not given)
+        for flag, given in (("--robot-file", args.robot_file), ("--sim-mount-error", args.sim_mount_error),
+                            ("--seed", args.seed)):
+            if given is not None:
+                raise UsageError(f"{args.command}: {flag} is for the simulation (--sim SCENARIO)")
+    if args.seed is None:
+        args.seed = 0
     return args
 
 

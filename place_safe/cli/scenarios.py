@@ -122,6 +122,8 @@ def cmd_scenarios(args: argparse.Namespace) -> int:
     if args.jobs > 1 and args.ray is not None:
         raise UsageError("scenarios: give --jobs or --ray, not both")
     # (an empty --ray is malformed too: it went past this check to Ray, "invalid input: Invalid address format:")
+    if args.plot and (why := suite.plot_problem(args.plot)) is not None:  # (before the runs: it failed after them)
+        raise UsageError(f"scenarios: --plot {args.plot} {why}")
     if args.ray is not None and (why := ray_address_problem(args.ray)) is not None:
         raise UsageError(f"scenarios: --ray {args.ray}: {why}")
     if args.ray:

@@ -272,6 +272,11 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     args.methods, left_out = evaluated_methods(args.methods, cal, args.calibration)
     # the methods left out of the default, each with why (in the --json report too: a script reading it sees them)
     left = {m: uncalibrated_reason(m, cal) for m in METHODS if given is None and m not in args.methods}
+    if "diff" not in args.methods and (diff_only := [o for o, v in (("--no-fallback", args.no_fallback),
+                                                                    ("--diff-mode", args.diff_mode)) if v]):
+        raise UsageError(f"evaluate: {' and '.join(diff_only)} appl{'ies' if len(diff_only) == 1 else 'y'} to the diff "
+                         f"method, which is not among the methods evaluated ({', '.join(args.methods)}): name it in "
+                         "--methods")
     if args.min_distance is not None and args.max_distance is not None and args.min_distance > args.max_distance:
         raise UsageError(f"evaluate: --min-distance {args.min_distance:g} m exceeds --max-distance "
                          f"{args.max_distance:g} m")

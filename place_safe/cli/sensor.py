@@ -147,6 +147,9 @@ def cmd_record(args: argparse.Namespace) -> int:
             except SensorTimeout:
                 ended = "timeout"
                 return
+            except KeyboardInterrupt:  # Ctrl-C: the recording ends here (a JSON list was left without its ']', unread)
+                ended = "interrupted"
+                return
             if (why := parse_error(f)) is not None:  # (it was written as a frame of NaN counts: not JSON)
                 unreadable.append(why)
                 continue
@@ -166,6 +169,8 @@ def cmd_record(args: argparse.Namespace) -> int:
     if not n and unreadable:
         raise ConfigError(f"sensor record: no readable frame from {args.uri!r}: {left_out}; {out} not written")
     if not n:
+        if ended == "interrupted":
+            raise KeyboardInterrupt  # (before the first frame: nothing written, as any interrupted command)
         log(f"{PROG}: error: {_no_frame(args, ended, time.monotonic() - t0)}; {out} not written")
         return 1
     if ended == "timeout":
@@ -175,7 +180,7 @@ def cmd_record(args: argparse.Namespace) -> int:
     if faults and not args.quiet:
         log("source statistics: " + ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}"
                                                for k, v in faults.items()))
-    return 0
+    return 130 if ended == "interrupted" else 0  # (an interrupted command's status; the frames read are in the file)
 
 
 def cmd_stream(args: argparse.Namespace) -> int:

@@ -43,7 +43,8 @@ def register(subparsers) -> None:
         opt("--generator", choices=("independent", "model"), default="independent",
             help="independent simulation (default) or the project's forward model (convention checks)"),
         "frames", "seed",
-        opt("--sensor-seed", type=int_range(0, 2 ** 32 - 1), default=0, help="seed of the simulated sensor (default 0)"),
+        opt("--sensor-seed", type=int_range(0, 2 ** 32 - 1), default=None,
+            help="independent: seed of the simulated sensor (default 0)"),
         opt("--min-distance", type=float_range(0.0, SENSOR_RANGE, lo_open=True), default=0.02, metavar="M",
             help=f"nearest z0, m: where the plane crosses the optical axis (default 0.02, at most {SENSOR_RANGE:g}; evaluate's "
                  "--min-distance is the perpendicular distance d)"),
@@ -77,17 +78,24 @@ def cmd_synth(args: argparse.Namespace) -> int:
 
         overrides = {k: v for k, v in (("pulse_mode", args.pulse), ("saturation_mode", args.saturation),
                                          ("crosstalk_mode", args.crosstalk)) if v is not None}
-        gen = IndependentGenerator(SensorSpec.draw(args.sensor_seed, **overrides))
+        gen = IndependentGenerator(SensorSpec.draw(args.sensor_seed or 0, **overrides))
         frames = gen.frames(args.frames, args.seed, SceneSpec(z_range, theta_range, noise=not args.no_noise))
     else:
-        if args.pulse or args.saturation or args.crosstalk:
-            raise UsageError("synth: --pulse, --saturation and --crosstalk apply to --generator independent only")
+        # (the model's sensor is the published one: a --sensor-seed was not read, the frames the same for any seed)
+        if args.pulse or args.saturation or args.crosstalk or args.sensor_seed is not None:
+            raise UsageError("synth: --sensor-seed, --pulse, --saturation and --crosstalk apply to --generator "
+                             "independent only")
         from place_safe.evaluation.synthetic import SyntheticSpec, make_frames
 
         frames = make_frames(args.frames, seed=args.seed,
                              spec=SyntheticSpec(z_range=z_range, theta_range=theta_range, noise=not args.no_noise))
     out = Path(args.output)
     out.parent.mkdir(parents=True, exist_ok=True)
-    n = write_frames(out, frames)
+    try:
+        n = write_frames(out, frames)
+    except KeyboardInterrupt:  # Ctrl-C while writing: no frame file cut short (a JSON list without its ']') left behind
+        if out.is_file():
+            out.unlink()
+        raise
     log(f"wrote {n} {args.generator} frames to {out}")
     return 0

@@ -114,6 +114,9 @@ def cmd_render(args: argparse.Namespace) -> int:
     from place_safe.sim.scene import build_scene
     from place_safe.sim.tof import SimToF
 
+    for flag, path in (("--output", args.output), ("--gif", args.gif)):  # (before the scene is built and rendered)
+        if path and (why := render.image_problem(path)) is not None:
+            raise UsageError(f"sim render: {flag} {path} {why}")
     scene = build_scene(_render_config(args.scene, True if args.robot else None))
     data = scene.make_data()
     if scene.config.with_robot:

@@ -106,6 +106,19 @@ def render_image(scene: Scene, data: Any = None, tof: Any = None, width: int = 6
             r.close()
 
 
+def image_problem(path: str | Path) -> str | None:
+    """Why :func:`save_png` / :func:`save_gif` cannot write an image named ``path`` (Pillow reads the format from its
+    extension), or None. For a check before the run: ``place --sim --render x.txt`` ran the placement, then ended
+    "unknown file extension: .txt" with no result file written."""
+    from PIL import Image
+
+    Image.init()
+    suffix = Path(path).suffix.lower()
+    if Image.registered_extensions().get(suffix) not in Image.SAVE:
+        return f"names no image format Pillow writes ({suffix or 'no extension'}): give a .png file"
+    return None
+
+
 def save_png(image: np.ndarray, path: str | Path) -> Path:
     from PIL import Image
 

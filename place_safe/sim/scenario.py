@@ -200,6 +200,10 @@ class Scenario(ConfigModel):
         if not isinstance(scene, dict):  # scene = 5, a list, true: the file's error, not an internal one
             raise ValueError(f"scene must be a table of scene settings, got {_kind(scene)}")
         scene = dict(scene)
+        xml = scene.get("robot_xml")  # from the file's folder, as its calibration (it was the working folder's); made
+        # absolute, so that a scenario validated again from its dump does not join the folder twice
+        if isinstance(xml, str) and xml and d.get("base_dir") and not Path(xml).is_absolute():
+            scene["robot_xml"] = str((Path(d["base_dir"]) / xml).absolute())
         table = scene.get("table")
         if isinstance(table, dict):
             table = dict(table)

@@ -23,6 +23,7 @@ Definitions (SI units in rows; degrees / millimetres only in :func:`format_table
 from __future__ import annotations
 
 import math
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -464,6 +465,18 @@ def budget_table(median: dict, runs: int) -> str:
     return format_budget(median, budget_limits(cfg, 1.0 / tof.rate_hz, tof.latency), runs)
 
 
+def plot_problem(path: str) -> str | None:
+    """Why :func:`plot` cannot write a figure named ``path`` (matplotlib reads the format from its extension; a name
+    without one is a PNG), or None. For a check before the runs: ``scenarios --plot p.txt`` ran every scene, then
+    ended "Format 'txt' is not supported"."""
+    from matplotlib.backend_bases import FigureCanvasBase
+
+    suffix = Path(path).suffix.lower().lstrip(".")
+    if suffix and suffix not in FigureCanvasBase.get_supported_filetypes():
+        return f"names no figure format matplotlib writes (.{suffix}): give a .png file"
+    return None
+
+
 def plot(rows: list[dict], path: str) -> str:
     """PNG: outcome over true tilt and start height, and the release-height histogram."""
     import matplotlib
@@ -503,5 +516,5 @@ def plot(rows: list[dict], path: str) -> str:
     return path
 
 
-__all__ = ["random_scenario", "random_low_box_scenario", "random_rim_box_scenario", "random_board_scenario", "RANDOM_KINDS", "judge", "run_one", "run_many", "summarize", "format_table", "plot", "budget_table",
+__all__ = ["random_scenario", "random_low_box_scenario", "random_rim_box_scenario", "random_board_scenario", "RANDOM_KINDS", "judge", "run_one", "run_many", "summarize", "format_table", "plot", "plot_problem", "budget_table",
            "CLEAR_MARGIN", "TILT_MARGIN"]

@@ -27,3 +27,29 @@ def test_a_calibrated_method_without_its_section_is_told_how_to_calibrate():
     why = uncalibrated_reason("proprietary", Calibration())
     assert why.startswith("sensor not calibrated for proprietary (no 'proprietary' section)")
     assert "place-safe calibrate FRAMES.json --method proprietary" in why and "pass the calibration file" in why
+
+
+
+def test_diff_without_a_peak_section_is_uncalibrated(sweep_path, tmp_path, capsys):
+    """diff starts from the calibrated peak method and falls back to its plane; a calibration with diff's `forward`
+    section but no `peak` one (the simulated unit's, less that section) passed as calibrated: `recover --method diff`
+    printed unmarked planes 14-16 deg off on level frames of the real sweep (peak's, from built-in constants; the whole
+    calibration read 0.6-0.7 deg), and `place --sim place_level` refused "surface tilted 6.6 deg". Now diff needs both:
+    the reason names the missing section, and `recover` says UNCALIBRATED naming it."""
+    import json
+
+    from place_safe.cli.app import main
+    from place_safe.sim.tof import calibration_file
+
+    assert uncalibrated_reason("diff", Calibration.load(calibration_file("nominal"))) is None
+    data = json.loads(calibration_file("nominal").read_text())
+    del data["peak"]
+    path = tmp_path / "no_peak.json"
+    path.write_text(json.dumps(data))
+    cal = Calibration.load(path)
+    assert uncalibrated_reason("diff", cal).startswith("sensor not calibrated for diff (no 'peak' section)")
+    del cal.sections["forward"]
+    assert uncalibrated_reason("diff", cal).startswith("sensor not calibrated for diff (no 'forward' section)")
+    assert main(["recover", str(sweep_path), "--method", "diff", "--calibration", str(path), "-q"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[0].startswith(f"UNCALIBRATED: {path} has no peak section: diff runs on built-in constants")

@@ -391,6 +391,28 @@ def test_capture_into_a_file_that_is_not_a_capture_is_refused_before_the_arm(tmp
     assert out.read_text() == '[{"hists": []}]\n'
 
 
+
+@pytest.mark.parametrize("given,said", [(["--touch-height", "0.05"], "--touch-height goes"),
+                                        (["--touch-force", "20"], "--touch-force goes"),
+                                        (["--touch-height", "0.05", "--touch-force", "20"],
+                                         "--touch-height and --touch-force go")])
+def test_touch_options_without_touch_points_are_refused_not_ignored(given, said, tmp_path, capsys, monkeypatch):
+    """`capture --sim level_table --touch-height 0.05` (or --touch-force) captured against the scenario's table, exit
+    0, as if the option had not been given; on the arm, against --table-height. They set the touches: without
+    --touch they are one usage line, exit 2, before the scene is built or the arm connected."""
+    import place_safe.sim.world as world
+
+    def no_world(*args, **kwargs):
+        raise AssertionError("the scene was built")
+
+    monkeypatch.setattr(world, "sim_world", no_world)
+    out = tmp_path / "cap.jsonl"
+    assert main(["capture", "--sim", "level_table", "--poses", "1", "-q", "-o", str(out), *given]) == 2
+    assert capsys.readouterr().err.splitlines() == [
+        f"place-safe: error: capture: {said} with --touch (the points where the TCP touches the table); without it "
+        "the plane is not touched"]
+    assert not out.exists()
+
 def test_options_of_the_arm_are_refused_with_sim(capsys):
     """place --sim with --sensor or --dry-run ran the simulation and released without a word about them."""
     for argv in (["place", "--sim", "place_level", "--sensor", "bogus"], ["place", "--sim", "place_level", "--dry-run"],
@@ -399,6 +421,46 @@ def test_options_of_the_arm_are_refused_with_sim(capsys):
         err = capsys.readouterr().err.strip()
         assert "is for the arm (--robot ROBOT.toml), not --sim" in err and "\n" not in err
 
+
+
+@pytest.mark.parametrize("command", ["place", "capture"])
+@pytest.mark.parametrize("option", [["--seed", "3"], ["--sim-mount-error", "5,0,0,0,2,0"],
+                                    ["--robot-file", "robots/ur5/real.toml"]])
+def test_options_of_the_simulation_are_refused_with_the_arm(command, option, capsys, monkeypatch, tmp_path):
+    """`place --robot R --seed 3` (or --sim-mount-error, --robot-file) went on to open the sensor and connect to the
+    arm as if the option had not been given: the simulation's options were never read there. Now one line naming
+    the option, exit 2, before the sensor or the arm is touched (as --oracle and --render were)."""
+    import place_safe.sources
+
+    def no_sensor(*args, **kwargs):
+        raise AssertionError("the sensor was opened")
+
+    monkeypatch.setattr(place_safe.sources, "open_source", no_sensor)
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "robots" / "ur5").mkdir(parents=True)
+    (tmp_path / "robots" / "ur5" / "real.toml").write_text(packaged_config("real").read_text())
+    extra = ["--json", "r.json", "--log", "t.jsonl"] if command == "place" else ["--table-height", "0", "-o", "c.jsonl"]
+    assert main([command, "--robot", "robots/ur5/real.toml", "--sensor", "i2c:/dev/i2c-1", "--dry-run", *option,
+                 *extra]) == 2
+    assert capsys.readouterr().err.splitlines() == [f"place-safe: error: {command}: {option[0]} is for the simulation "
+                                                    "(--sim SCENARIO)"]
+
+
+def test_a_render_name_pillow_cannot_write_is_refused_before_the_placement(tmp_path, capsys, monkeypatch):
+    """`place --sim place_level --render x.txt` ran the whole placement, then ended "invalid input: unknown file
+    extension: .txt": no result file and no transition log written, the option not named. Now one line before the
+    run, exit 2."""
+    import place_safe.sim.placement_run as placement_run
+
+    def no_run(*args, **kwargs):
+        raise AssertionError("the placement ran")
+
+    monkeypatch.setattr(placement_run, "run_placement", no_run)
+    monkeypatch.chdir(tmp_path)
+    assert main(["place", "--sim", "place_level", "--render", "x.txt"]) == 2
+    assert capsys.readouterr().err.splitlines() == [
+        "place-safe: error: place: --render x.txt names no image format Pillow writes (.txt): give a .png file"]
+    assert not (tmp_path / "place-result.json").exists()
 
 class _Source:
     """A stand-in for the sensor: it records how it was opened and that it was closed."""

@@ -54,6 +54,36 @@ def test_record_leaves_out_a_file_sources_unreadable_entries(tmp_path, capsys):
     assert "2 unreadable frames of the source left out" in err[0] and not (tmp_path / "none.json").exists()
 
 
+
+@pytest.mark.parametrize("suffix", [".json", ".jsonl"])
+def test_a_recording_stopped_with_ctrl_c_keeps_the_frames_read_as_a_readable_file(tmp_path, capsys, monkeypatch,
+                                                                                  suffix):
+    """`sensor record -o rec.json` stopped with Ctrl-C (the way to end a long recording) left the JSON list without
+    its ']': every frame recorded was lost to the readers ("truncated JSON list"). Ctrl-C now ends the recording
+    there: the file holds the frames read, the summary line says why it stopped, exit status 130. Interrupted
+    before the first frame, nothing is written."""
+    import place_safe.cli.sensor as sensor_cli
+
+    class Interrupted(FrameSource):
+        def __init__(self, frames):
+            self.left = list(frames)
+
+        def read(self, timeout=1.0):
+            if not self.left:
+                raise KeyboardInterrupt
+            return self.left.pop(0)
+
+    frames = list(random_frames(3, seed=4))
+    monkeypatch.setattr(sensor_cli, "open_source", lambda uri, **opts: Interrupted(frames))
+    out = tmp_path / f"rec{suffix}"
+    assert main(["sensor", "record", "emu:synthetic", "-o", str(out), "--frames", "100", "-q"]) == 130
+    assert capsys.readouterr().err.splitlines() == [f"wrote 3 frames to {out} (stopped: interrupted)"]
+    assert len(load_frames(out)) == 3
+    monkeypatch.setattr(sensor_cli, "open_source", lambda uri, **opts: Interrupted([]))
+    none = tmp_path / f"none{suffix}"
+    assert main(["sensor", "record", "emu:synthetic", "-o", str(none), "-q"]) == 130
+    assert capsys.readouterr().err.splitlines() == ["place-safe: interrupted"] and not none.exists()
+
 def test_stream_saves_a_rerun_recording(tmp_path, capsys):
     src = tmp_path / "in.json"
     write_frames(src, load_frames("tests/data/tmf8820_ur5_sweep.json")[20:23])

@@ -266,6 +266,24 @@ def test_a_mismatch_table_for_the_nominal_sensor_is_refused_not_ignored(tmp_path
     assert load_scenario(f).sensor.mismatch is not None
 
 
+
+def test_a_relative_robot_model_is_read_from_the_scenarios_folder_as_its_calibration(tmp_path, monkeypatch):
+    """``scene.robot_xml = "arm.xml"`` was looked for in the working folder, while the scenario's ``calibration`` is
+    read from the scenario's own: the file next to the scenario ran from its folder and anywhere else ended "robot
+    model 'arm.xml' not found or unusable: it does not exist". A relative model is now the scenario folder's."""
+    from place_safe.assets import robots_dir
+
+    folder = tmp_path / "scenes"
+    folder.mkdir()
+    (folder / "arm.xml").write_text((robots_dir() / "ur5" / "ur5.xml").read_text())
+    (folder / "s.toml").write_text('[scene]\nrobot_xml = "arm.xml"\nstart_height = 0.1\n')
+    monkeypatch.chdir(tmp_path)
+    assert load_scenario(folder / "s.toml").scene_config().robot_xml == str(folder / "arm.xml")
+    (folder / "s.toml").write_text('[scene]\nrobot_xml = "other.xml"\n')
+    with pytest.raises(ConfigError, match=rf"robot model '{folder / 'other.xml'}' not found or unusable: it does not "
+                                          "exist"):
+        load_scenario(folder / "s.toml")
+
 def test_a_file_that_is_not_a_table_of_settings_says_what_it_is(tmp_path):
     """A frame file given as a scenario (a JSON list) said "Input should be a valid dictionary or instance of
     Scenario" (pydantic's words, naming a class; round 14): it says what a scenario file is and what it got."""

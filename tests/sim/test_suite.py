@@ -235,6 +235,25 @@ def test_the_plot_takes_a_row_of_a_run_that_ended_in_an_error(tmp_path):
     assert (tmp_path / "p.png").stat().st_size > 0 and out.endswith("p.png")
 
 
+
+def test_a_plot_name_matplotlib_cannot_write_is_refused_before_the_runs(tmp_path, capsys, monkeypatch):
+    """`scenarios --plot p.txt` ran every scene (hours for a large random suite), printed the table, then ended
+    "invalid input: Format 'txt' is not supported". The name is checked first: one line, exit 2, nothing run; the
+    formats matplotlib writes (.svg, .pdf) and a name without an extension (a PNG) are taken."""
+    from place_safe.cli.app import main
+
+    assert suite.plot_problem("p.png") is None and suite.plot_problem("p.SVG") is None
+    assert suite.plot_problem("plot") is None
+
+    def no_runs(*args, **kwargs):
+        raise AssertionError("the scenes ran")
+
+    monkeypatch.setattr(suite, "run_many", no_runs)
+    assert main(["scenarios", "level_table", "--plot", str(tmp_path / "p.txt")]) == 2
+    captured = capsys.readouterr()
+    assert captured.err.splitlines() == [f"place-safe: error: scenarios: --plot {tmp_path / 'p.txt'} names no figure "
+                                         "format matplotlib writes (.txt): give a .png file"] and captured.out == ""
+
 def test_summary_has_the_time_budget_of_releases_from_40cm():
     rows = [suite.judge(Scenario(name="a"), _res(budget={"cruise": 1.0, "survey": 0.5}, decision_time=2.0)),
             suite.judge(Scenario(name="b"), _res(budget={"cruise": 2.0}, decision_time=3.0)),
