@@ -156,6 +156,8 @@ def _open_emulated(uri: str, inner: str, options: dict) -> FrameSource:
     elif kind == "synthetic":
         from place_safe.evaluation.synthetic import make_frames
 
+        if inner.endswith(":") and not arg:  # "emu:synthetic:" read as the default count hid a count left out
+            raise ConfigError(f"source {uri!r}: expected emu:synthetic or emu:synthetic:N (N frames, 1..{MAX_SYNTHETIC})")
         n = _int(arg, uri, "frame count") if arg else 100
         if not 1 <= n <= MAX_SYNTHETIC:
             raise ConfigError(f"source {uri!r}: the frame count must be >= 1 and <= {MAX_SYNTHETIC}")

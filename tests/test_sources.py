@@ -66,6 +66,7 @@ def test_serial_log_source(tmp_path):
     ("serial:/dev/ttyX@fast", "not a number"),
     ("emu:sim", "needs the simulated sensor"),
     ("emu:synthetic:0", ">= 1"),
+    ("emu:synthetic:", "expected emu:synthetic or emu:synthetic:N"),  # (read as the default 100 frames: round 15)
     ("emu:file:", "expected emu:file:PATH"),
 ])
 def test_bad_uris_are_one_line_config_errors(uri, match):
