@@ -326,10 +326,13 @@ ORACLE_NOTE = "ORACLE: the simulated sensor's true forward parameters (debugging
 
 
 def oracle_calibration():
-    """The simulator's own parameters as a calibration: only for ``--oracle`` debugging runs."""
+    """The simulator's own parameters as a calibration: only for ``--oracle`` debugging runs. Diff starts from the
+    peak method's plane and falls back to it, so the file carries the packaged nominal user calibration's ``peak``
+    section with them (without one, diff counts as uncalibrated: ``REQUIRED_SECTIONS``)."""
     import json
 
-    return Calibration({"forward": json.loads(sensor_file("tmf8820_real.json").read_text())})
+    peak = json.loads(calibration_file("nominal").read_text())["peak"]
+    return Calibration({"forward": json.loads(sensor_file("tmf8820_real.json").read_text()), "peak": peak})
 
 
 def home_cup_position(scene_cfg) -> np.ndarray:

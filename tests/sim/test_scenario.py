@@ -148,6 +148,11 @@ def test_default_calibration_is_the_user_calibration_not_the_oracle():
         assert fw.to_dict() != tp.to_dict()  # fitted, not copied from the simulator
     cal, note = Scenario(calibration="oracle").resolve_calibration()
     assert note.startswith("ORACLE")
+    # diff's start and fallback (peak) is calibrated in the oracle too: a diff calibration without a peak section is
+    # refused (round 15), and every --oracle placement was, before it moved (a review, session 85)
+    from place_safe.calibration import uncalibrated_reason
+
+    assert uncalibrated_reason("diff", cal) is None and cal.forward().to_dict() == true_params().to_dict()
 
 
 @pytest.mark.parametrize("table, tilt_deg, direction_deg", [
