@@ -21,7 +21,7 @@ from place_safe.cli.options import opt
 from place_safe.cli.common import CALIBRATE_METHODS, PROG, ROBOT_FILE_HELP, count_note, log, uncalibrated_note
 from place_safe.cli.options import REACH, float_range, int_range
 from place_safe.exceptions import CalibrationError, ConfigError, UsageError
-from place_safe.calibration import Calibration, mark
+from place_safe.calibration import REQUIRED_SECTIONS, Calibration, mark, uncalibrated_reason
 from place_safe.calibration.capture import (MIN_CLEARANCE, TOUCH_HEIGHT_STD, refusal_line, repeated_value,
                                             touch_plane)
 from place_safe.recovery import make_estimator
@@ -154,11 +154,14 @@ BUILT_IN = "built-in defaults"
 
 
 def _estimator(method: str, calibration: str | None):
-    """(estimator, note saying where its calibration came from: the file, or :data:`BUILT_IN`)."""
+    """(estimator, note saying where its calibration came from: the file, or :data:`BUILT_IN`, the calibration or
+    None). Whether it calibrates ``method`` is :func:`~place_safe.calibration.uncalibrated_reason`'s: a file without
+    the method's sections (diff's ``peak``) calibrates it no more than no file."""
 
     if calibration:  # every section valid (a NaN anywhere is refused), not only the method's
-        return make_estimator(method, Calibration.load(calibration).check()), calibration
-    return make_estimator(method, None), BUILT_IN
+        cal = Calibration.load(calibration).check()
+        return make_estimator(method, cal), calibration, cal
+    return make_estimator(method, None), BUILT_IN, None
 
 
 def _mount_truth(path: str) -> Any:
@@ -258,15 +261,19 @@ def _place_arm(args: argparse.Namespace, cfg) -> tuple[dict, Any, list[str]]:
         raise UsageError("place: --sensor URI is required with --robot (e.g. --sensor i2c:/dev/i2c-1)")
     source_options = options.sensor_options(args, args.sensor, "place")
     method = args.method or "diff"
-    estimator, cal_note = _estimator(method, args.calibration)
-    calibrated = cal_note != BUILT_IN
+    estimator, cal_note, cal = _estimator(method, args.calibration)
+    why = uncalibrated_reason(method, cal)
+    calibrated = why is None
     robot_cfg = _robot_config(args.robot)
     if not calibrated and not (args.dry_run or args.uncalibrated):
+        if args.calibration and method in REQUIRED_SECTIONS:  # a file without the method's section (diff's peak)
+            raise UsageError(f"place: {args.calibration}: {why} (--uncalibrated runs on built-in constants anyway; "
+                             "a dry run moves nothing and may)")
         raise UsageError("place: on the arm the sensor needs its calibration (--calibration CAL.json, made by "
                          "'place-safe calibrate' from this unit's level sweep): built-in constants read a level table "
                          "degrees off (--uncalibrated runs on them anyway; a dry run moves nothing and may)")
     if not calibrated:  # said before anything moves, not after the cup is down
-        print(uncalibrated_note(method, None), flush=True)
+        print(uncalibrated_note(method, cal, args.calibration), flush=True)
     robot = URRobot(robot_cfg, dry_run=args.dry_run)
     cfg = placement_config(robot_cfg, cfg)  # near-surface speed and stop decelerations of the robot file
     source = open_sensor(args.sensor, **source_options)
@@ -476,8 +483,8 @@ def cmd_calibrate_mount(args: argparse.Namespace) -> int:
         log(f"calibrate-mount: {args.capture}: {repeats}")
     if skipped and not args.quiet:
         log(f"calibrate-mount: {len(frames)} frames ({count_note(skipped)})")
-    estimator, cal_note = _estimator(args.method, args.calibration)
-    calibrated = cal_note != BUILT_IN
+    estimator, cal_note, cal = _estimator(args.method, args.calibration)
+    calibrated = uncalibrated_reason(args.method, cal) is None
     planes = [estimator.estimate(f).plane for f in tqdm(frames, desc="planes", unit="frame", file=sys.stderr,
                                                         disable=None if not args.quiet else True)]
     start = robot_cfg.tool.sensor.matrix()
@@ -489,7 +496,7 @@ def cmd_calibrate_mount(args: argparse.Namespace) -> int:
                                "every 60)" + _mount_hints(args)
                                + ("; the robot file is not written" if args.write else ""))
     if not calibrated:  # the first line of the output (printed once the fit succeeded: an error prints nothing)
-        print(uncalibrated_note(args.method, None))
+        print(uncalibrated_note(args.method, cal, args.calibration))
     # frames without joint angles are posed by their recorded pose (mount.flange_poses): said, not "from joints"
     recorded = sum(f.extra.get("joint_angles") is None for f in frames) if args.poses == "joints" else 0
     posed = (f"joints ({recorded} of {len(frames)} frames without joint angles: from their recorded pose)" if recorded

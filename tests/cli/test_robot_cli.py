@@ -215,6 +215,46 @@ def test_place_on_the_arm_needs_a_calibration_before_anything_connects(capsys, s
     assert "is for the arm" in capsys.readouterr().err
 
 
+def test_place_on_the_arm_refuses_a_calibration_without_the_methods_section(capsys, sweep_path, tmp_path):
+    """A calibration with diff's forward section but no peak section (diff's start and fallback) counted as calibrated
+    on the arm, where round 15 made the simulated placement, recover and evaluate say otherwise: the arm ran diff on
+    peak's built-in constants (14-16 deg off on level real frames) with "calibrated": true (a review, session 85).
+    Now it is the same usage error as no calibration, naming the file and the section, before the robot is reached;
+    --dry-run runs with the UNCALIBRATED note naming the section. calibrate-mount marks its result the same way."""
+    import json
+
+    from place_safe.sim.tof import calibration_file
+
+    d = json.loads(calibration_file("nominal").read_text())
+    del d["peak"]
+    nopeak = tmp_path / "nopeak.json"
+    nopeak.write_text(json.dumps(d))
+    cfg = URConfig.load(packaged_config("sim"))
+    cfg.connection.connect_timeout_s = 1.0
+    robot = tmp_path / "r.toml"
+    robot.write_text(cfg.to_toml())
+    common = ["place", "--robot", str(robot), "--sensor", f"file:{sweep_path}", "--calibration", str(nopeak),
+              "--json", str(tmp_path / "r.json"), "--log", str(tmp_path / "t.jsonl")]
+    assert main(common) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(nopeak) in err[0] and "no 'peak' section" in err[0] and "RTDE" not in err[0], err
+    assert main(common + ["--dry-run"]) == 2  # nothing listens at 127.0.0.1: it got as far as the arm
+    captured = capsys.readouterr()
+    assert captured.out.startswith("UNCALIBRATED") and "no peak section" in captured.out.splitlines()[0]
+    assert "RTDE receive at 127.0.0.1" in captured.err
+    assert main(common[:1] + ["--robot", str(robot), "--sensor", f"file:{sweep_path}", "--calibration",
+                              str(calibration_file("nominal")), "--dry-run"]) == 2  # the whole file: no note
+    assert not capsys.readouterr().out.startswith("UNCALIBRATED")
+    del d["proprietary"]
+    noprop = tmp_path / "noprop.json"
+    noprop.write_text(json.dumps(d))
+    assert main(["calibrate-mount", str(sweep_path), "--method", "proprietary", "--calibration", str(noprop), "-q",
+                 "--json", str(tmp_path / "fit.json"), "--level"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("UNCALIBRATED") and "no proprietary section" in out.splitlines()[0]
+    assert json.loads((tmp_path / "fit.json").read_text())["calibrated"] is False
+
+
 @pytest.mark.slow
 def test_calibrate_mount_on_the_real_sweep_writes_a_robot_file(sweep_path, tmp_path, capsys):
     """Uncalibrated planes (5.8 deg residual RMS on the real sweep, 6.9 with --level: the estimator's own bias) pass the
