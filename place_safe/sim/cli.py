@@ -115,7 +115,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     from place_safe.sim.tof import SimToF
 
     for flag, path in (("--output", args.output), ("--gif", args.gif)):  # (before the scene is built and rendered)
-        if path and (why := render.image_problem(path)) is not None:
+        if path and (why := render.image_problem(path, animated=flag == "--gif")) is not None:
             raise UsageError(f"sim render: {flag} {path} {why}")
     scene = build_scene(_render_config(args.scene, True if args.robot else None))
     data = scene.make_data()

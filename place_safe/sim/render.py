@@ -106,16 +106,20 @@ def render_image(scene: Scene, data: Any = None, tof: Any = None, width: int = 6
             r.close()
 
 
-def image_problem(path: str | Path) -> str | None:
-    """Why :func:`save_png` / :func:`save_gif` cannot write an image named ``path`` (Pillow reads the format from its
-    extension), or None. For a check before the run: ``place --sim --render x.txt`` ran the placement, then ended
-    "unknown file extension: .txt" with no result file written."""
+def image_problem(path: str | Path, animated: bool = False) -> str | None:
+    """Why :func:`save_png` (or, ``animated``, :func:`save_gif`) cannot write an image named ``path`` (Pillow reads the
+    format from its extension), or None. For a check before the run: ``place --sim --render x.txt`` ran the
+    placement, then ended "unknown file extension: .txt" with no result file written; ``sim render --gif x.jpg``
+    rendered, then ended "KeyError: 'JPEG'" (a format Pillow writes one image of, not a sequence)."""
     from PIL import Image
 
     Image.init()
     suffix = Path(path).suffix.lower()
-    if Image.registered_extensions().get(suffix) not in Image.SAVE:
-        return f"names no image format Pillow writes ({suffix or 'no extension'}): give a .png file"
+    writers = Image.SAVE_ALL if animated else Image.SAVE
+    if Image.registered_extensions().get(suffix) not in writers:
+        what = "animation" if animated else "image"
+        return (f"names no {what} format Pillow writes ({suffix or 'no extension'}): give a "
+                f"{'.gif' if animated else '.png'} file")
     return None
 
 
