@@ -274,9 +274,10 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     left = {m: uncalibrated_reason(m, cal) for m in METHODS if given is None and m not in args.methods}
     if "diff" not in args.methods and (diff_only := [o for o, v in (("--no-fallback", args.no_fallback),
                                                                     ("--diff-mode", args.diff_mode)) if v]):
+        why = (f"which {args.calibration} does not calibrate ({left['diff']})" if "diff" in left else
+               f"which is not among the methods evaluated ({', '.join(args.methods)}): name it in --methods")
         raise UsageError(f"evaluate: {' and '.join(diff_only)} appl{'ies' if len(diff_only) == 1 else 'y'} to the diff "
-                         f"method, which is not among the methods evaluated ({', '.join(args.methods)}): name it in "
-                         "--methods")
+                         f"method, {why}")
     if args.min_distance is not None and args.max_distance is not None and args.min_distance > args.max_distance:
         raise UsageError(f"evaluate: --min-distance {args.min_distance:g} m exceeds --max-distance "
                          f"{args.max_distance:g} m")

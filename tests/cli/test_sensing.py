@@ -21,3 +21,22 @@ def test_evaluate_refuses_diff_options_when_diff_is_not_evaluated(sweep_path, tm
     assert captured.err.splitlines() == [f"place-safe: error: evaluate: {said} to the diff method, which is not among "
                                          "the methods evaluated (peak, proprietary): name it in --methods"]
     assert captured.out == "" and not rep.exists()
+
+
+def test_evaluate_says_when_its_calibration_left_diff_out_of_the_diff_options(sweep_path, tmp_path, capsys):
+    """With a calibration that does not calibrate diff and no --methods, diff is left out of the default, and
+    `--no-fallback` was refused as if the user had not named diff, "name it in --methods", which would run diff
+    uncalibrated (a review, session 85). The line now says the calibration is why."""
+    import json
+
+    from place_safe.sim.tof import calibration_file
+
+    d = json.loads(calibration_file("nominal").read_text())
+    del d["forward"], d["diff"]
+    cal = tmp_path / "peak_only.json"
+    cal.write_text(json.dumps(d))
+    assert main(["evaluate", str(sweep_path), "--calibration", str(cal), "--no-plots", "--no-fallback"]) == 2
+    (line,) = capsys.readouterr().err.splitlines()
+    assert line.startswith(f"place-safe: error: evaluate: --no-fallback applies to the diff method, which {cal} does "
+                           "not calibrate (sensor not calibrated for diff (no 'forward' section)")
+    assert "name it in --methods" not in line
