@@ -16,7 +16,7 @@ import argparse
 import importlib.util
 
 from place_safe.cli import options
-from place_safe.cli.common import FMT, UsageError
+from place_safe.cli.common import FMT, UsageError, flags_said
 
 SUB_COMMANDS = ("recovery", "latency", "sensor", "sim", "robot", "contact")
 
@@ -32,7 +32,7 @@ def cmd_sim_bench(args: argparse.Namespace) -> int:
         # (never read: a --scene that does not exist measured the bare robot, exit 0)
         if given := [flag for flag, v in (("--scene", args.scene), ("--rig", args.rig)) if v]:
             raise UsageError(f"bench sim: --bare measures the bare robot, without a scene or sensor: "
-                             f"{' and '.join(given)} {'does' if len(given) == 1 else 'do'} not go with it")
+                             f"{flags_said(given, 'does', 'do')} not go with it")
         for key, value in benchmark(args.seconds).items():
             print(f"{key}: {value:.1f}")
         return 0

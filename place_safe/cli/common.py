@@ -64,6 +64,12 @@ def progress_options(enabled: bool):
 # ------------------------------------------------------------------------------------------------
 # shared helpers
 # ------------------------------------------------------------------------------------------------
+def flags_said(flags: Sequence[str], verb: str, plural: str) -> str:
+    """The options ``flags`` given, as the subject of a usage error's verb: ``"--a does"`` or ``"--a and --b do"``
+    (``verb`` for one, ``plural`` for more)."""
+    return f"{' and '.join(flags)} {verb if len(flags) == 1 else plural}"
+
+
 def given_twice(paths: list[str]) -> str | None:
     """The second name of a file given twice in ``paths`` (the same file by any path), or None. ``calibrate F F`` fitted
     every frame twice (48 frames for 24, peak's scale 71.94 -> 70.14), and its leave-one-out and fold choices then

@@ -18,7 +18,8 @@ from typing import Any
 
 from place_safe.cli import options
 from place_safe.cli.options import opt
-from place_safe.cli.common import CALIBRATE_METHODS, PROG, ROBOT_FILE_HELP, count_note, log, uncalibrated_note
+from place_safe.cli.common import (CALIBRATE_METHODS, PROG, ROBOT_FILE_HELP, count_note, flags_said, log,
+                                   uncalibrated_note)
 from place_safe.cli.options import REACH, float_range, int_range
 from place_safe.exceptions import CalibrationError, ConfigError, UsageError
 from place_safe.calibration import REQUIRED_SECTIONS, Calibration, mark, uncalibrated_reason
@@ -335,7 +336,7 @@ def cmd_capture(args: argparse.Namespace) -> int:
         raise UsageError("capture: --table-tilt-std goes with --table-height (how far that table may be from level)")
     if not args.touch and (given := [flag for flag, v in (("--touch-height", args.touch_height),
                                                           ("--touch-force", args.touch_force)) if v is not None]):
-        raise UsageError(f"capture: {' and '.join(given)} go{'es' if len(given) == 1 else ''} with --touch (the points "
+        raise UsageError(f"capture: {flags_said(given, 'goes', 'go')} with --touch (the points "
                          "where the TCP touches the table); without it the plane is not touched")
     if args.touch and not 3 <= len(args.touch) <= 20:
         raise UsageError(f"capture: --touch needs 3 to 20 points, got {len(args.touch)}")

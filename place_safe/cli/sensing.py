@@ -23,7 +23,7 @@ from place_safe.exceptions import CalibrationError, FrameError, FrameFileError, 
 from place_safe.cli.common import (CALIBRATE_METHODS, METHODS, PROG, UsageError, estimator_for, given_twice,
                                    jsonable, load_any_frames, load_calibration, load_truth_frames, log, progress_options,
                                    report_notes, require_frame_file, summarise, not_a_file, uncalibrated_note,
-                                   evaluated_methods, fit_summary)
+                                   evaluated_methods, fit_summary, flags_said)
 from place_safe.evaluation.bench import DEFAULT_RUNS, measure_file_rss, report_json, run_bench
 from place_safe.evaluation.evaluate import evaluate
 from place_safe.io.frame_file import iter_frames
@@ -276,8 +276,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
                                                                     ("--diff-mode", args.diff_mode)) if v]):
         why = (f"which {args.calibration} does not calibrate ({left['diff']})" if "diff" in left else
                f"which is not among the methods evaluated ({', '.join(args.methods)}): name it in --methods")
-        raise UsageError(f"evaluate: {' and '.join(diff_only)} appl{'ies' if len(diff_only) == 1 else 'y'} to the diff "
-                         f"method, {why}")
+        raise UsageError(f"evaluate: {flags_said(diff_only, 'applies', 'apply')} to the diff method, {why}")
     if args.min_distance is not None and args.max_distance is not None and args.min_distance > args.max_distance:
         raise UsageError(f"evaluate: --min-distance {args.min_distance:g} m exceeds --max-distance "
                          f"{args.max_distance:g} m")
