@@ -337,7 +337,7 @@ def evaluated_methods(given: Sequence[str] | None, calibration,
 def estimator_for(method: str, calibration, mode: str | None = None):
     if mode is not None and method != "diff":  # (the other methods have one solver: the option was never read)
         raise UsageError(f"--mode is the diff method's solver; it goes with --method diff, not {method}")
-    options = {"mode": mode} if (method == "diff" and mode) else {}
+    options = {"mode": mode} if mode else {}
     return make_estimator(method, calibration, **options)
 
 

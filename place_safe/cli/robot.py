@@ -22,7 +22,7 @@ from place_safe.cli.common import (CALIBRATE_METHODS, PROG, ROBOT_FILE_HELP, cou
                                    uncalibrated_note)
 from place_safe.cli.options import REACH, float_range, int_range
 from place_safe.exceptions import CalibrationError, ConfigError, UsageError
-from place_safe.calibration import REQUIRED_SECTIONS, Calibration, mark, uncalibrated_reason
+from place_safe.calibration import Calibration, mark, uncalibrated_reason
 from place_safe.calibration.capture import (MIN_CLEARANCE, TOUCH_HEIGHT_STD, refusal_line, repeated_value,
                                             touch_plane)
 from place_safe.recovery import make_estimator
@@ -267,12 +267,12 @@ def _place_arm(args: argparse.Namespace, cfg) -> tuple[dict, Any, list[str]]:
     calibrated = why is None
     robot_cfg = _robot_config(args.robot)
     if not calibrated and not (args.dry_run or args.uncalibrated):
-        if args.calibration and method in REQUIRED_SECTIONS:  # a file without the method's section (diff's peak)
-            raise UsageError(f"place: {args.calibration}: {why} (--uncalibrated runs on built-in constants anyway; "
-                             "a dry run moves nothing and may)")
-        raise UsageError("place: on the arm the sensor needs its calibration (--calibration CAL.json, made by "
-                         "'place-safe calibrate' from this unit's level sweep): built-in constants read a level table "
-                         "degrees off (--uncalibrated runs on them anyway; a dry run moves nothing and may)")
+        # a file without the method's section (diff's peak): which; no file: how to make one
+        what = (f"{args.calibration}: {why}" if args.calibration else
+                "on the arm the sensor needs its calibration (--calibration CAL.json, made by 'place-safe calibrate' "
+                "from this unit's level sweep): built-in constants read a level table degrees off")
+        raise UsageError(f"place: {what} (--uncalibrated runs on built-in constants anyway; a dry run moves nothing "
+                         "and may)")
     if not calibrated:  # said before anything moves, not after the cup is down
         print(uncalibrated_note(method, cal, args.calibration), flush=True)
     robot = URRobot(robot_cfg, dry_run=args.dry_run)
@@ -380,7 +380,8 @@ def cmd_capture(args: argparse.Namespace) -> int:
                     raise UsageError("capture: --touch needs at least 3 points")
                 z0 = args.touch_height if args.touch_height is not None else robot.tcp_pose()[2, 3]
                 n, d, pts = touch_plane(robot, args.touch, z0,
-                                        force_threshold=args.touch_force or _TOUCH["force_threshold"])
+                                        force_threshold=_TOUCH["force_threshold"] if args.touch_force is None
+                                        else args.touch_force)
                 reference = touched_reference(pts)
                 log(f"touched the plane at {len(pts)} points: normal {n.round(4).tolist()}, offset {d * 1000:.1f} "
                     f"mm, within {math.degrees(reference.tilt_std):.2f} deg / {reference.offset_std * 1000:.2f} mm "
