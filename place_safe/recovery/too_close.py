@@ -76,7 +76,7 @@ def overlap_reason(ranges: np.ndarray, valid: np.ndarray, heights: np.ndarray | 
     above the floor; None: the centre-zone test is skipped). See the module doc."""
     r = np.asarray(ranges, dtype=float)
     v = np.asarray(valid, dtype=bool) & np.isfinite(r)
-    if not v.any():
+    if not np.count_nonzero(v):
         return None
     used = np.sort(r[v])
     n = used.size
@@ -104,7 +104,7 @@ def plane_overlap_reason(points: np.ndarray, valid: np.ndarray, offset: float) -
     surface lies in the overlap, or it is wrong: no plane either way."""
     pts = np.asarray(points, dtype=float)
     v = np.asarray(valid, dtype=bool) & np.all(np.isfinite(pts), axis=1)  # the zones the plane was fitted through
-    if not (offset < OVERLAP_RANGE) or not v.any():
+    if not (offset < OVERLAP_RANGE) or not np.count_nonzero(v):
         return None
     nearest = float(np.min(np.linalg.norm(pts[v], axis=1)))
     if not nearest <= SCREEN_RANGE:
