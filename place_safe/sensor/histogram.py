@@ -113,9 +113,9 @@ SUBBIN_METHODS = ("spline", "centroid")
 #: one half, measured on the other), 2.5-3.5 bins were best; wider windows took in more of the pulse's
 #: tail, narrower ones more of the sampling phase.
 CENTROID_HALF_WIDTH = 3.0
-#: Half-widths (bins) :func:`windowed_centroid` accepts: narrower windows than 2 bins let Newton's method
-#: oscillate between the samples of a noisy pulse, wider ones than 4 reach into the pulse's tail and
-#: converge slowly.
+#: Half-widths (bins) :func:`windowed_centroid` accepts: under 2 bins the window's equation has several roots
+#: between the samples of a noisy pulse (Newton's method, which found the root before, oscillated between them),
+#: over 4 it reaches into the pulse's tail.
 CENTROID_HALF_WIDTHS = (2.0, 4.0)
 #: Grid points a bin on which :func:`windowed_centroid` finds its root (by linear interpolation between two):
 #: within 1e-5 bins (0.2 um) of the exact root.
@@ -200,9 +200,13 @@ def clipped_zones(hists: np.ndarray) -> np.ndarray:
 
 def _at_store_limit(counts: np.ndarray) -> np.ndarray:
     """Whether each count is one of :data:`STORE_LIMITS` (``2**k - 1`` for ``k`` in :data:`STORE_BITS`): ``count + 1``
-    a power of two (its mantissa exactly 0.5) of such an exponent; NaN and infinity are not."""
-    mantissa, exponent = np.frexp(np.asarray(counts, dtype=float) + 1.0)
-    return (mantissa == 0.5) & (exponent - 1 >= STORE_BITS.start) & (exponent - 1 < STORE_BITS.stop)
+    a power of two (its mantissa exactly 0.5) of such an exponent, and the count that power less one exactly (a count
+    within half a unit of the last place of ``2**23 - 1``, 2**23 - 1 + 1e-9, rounds to 2**23 when 1 is added);
+    NaN and infinity are not."""
+    c = np.asarray(counts, dtype=float)
+    mantissa, exponent = np.frexp(c + 1.0)
+    return ((mantissa == 0.5) & (c == np.ldexp(1.0, exponent - 1) - 1.0) & (exponent - 1 >= STORE_BITS.start)
+            & (exponent - 1 < STORE_BITS.stop))
 
 
 def beyond_count_max(hists: np.ndarray, what: str = "histogram") -> str | None:

@@ -401,6 +401,7 @@ def test_a_clipped_return_reads_as_clipped_and_a_real_one_does_not():
 @example(8, 0, 0.0)
 @example(24, 0, 0.0)
 @example(25, 0, 0.0)
+@example(23, 0, 1e-9)  # 2**23 - 1 + 1e-9: adding 1 rounds it to 2**23 (found by hypothesis, session 86)
 def test_two_tops_at_a_stores_limit_are_clipped_and_no_other_count_is(bits, step, fraction):
     """Two highest bins at ``2**k - 1`` for a store of 8 to 24 bits are clipped (the limits :data:`STORE_LIMITS`
     lists), and two equal tops one count off, a fraction off, or at a 6-, 7- or 25-bit store's limit are not (a
