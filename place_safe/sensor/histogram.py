@@ -181,13 +181,16 @@ def clipped_zones(hists: np.ndarray) -> np.ndarray:
     top = h.max(axis=-1)
     # a count at the counters' maximum is one at the top (a histogram holding NaN has no top: each bin is asked;
     # the tops' sum is NaN when one is, and where two infinite tops cancel, which asks each bin too)
-    over = h >= COUNT_MAX if math.isnan(top.sum()) else top >= COUNT_MAX
+    nan = math.isnan(top.sum())
+    over = h >= COUNT_MAX if nan else top >= COUNT_MAX
     if over.ndim == h.ndim:
         over = over.any(axis=-1)
-    held = (h == top[..., None]).sum(axis=-1)  # bins holding the top: 1 in almost every return
-    if held.size == 0 or held.max() < 2:  # (the usual frame: the rarer tests below need two bins at the top)
-        return over
     at = h == top[..., None]
+    # bins holding the top: 1 in almost every return (each histogram without NaN holds its top once at least, so as
+    # many as histograms is once each), and the rarer tests below need two
+    if not nan and np.count_nonzero(at) == top.size:
+        return over
+    held = at.sum(axis=-1)
     # the top stands CLIP_MIN_COUNTS above the histogram's least count: a return, not a flat floor (a zone that
     # sees nothing over a floor of 100 counts, noise-free in a synthetic frame, holds its "top" in every bin)
     flat = held >= CLIP_PLATEAU_BINS  # (a plateau needs that many bins at the top)
@@ -262,8 +265,7 @@ def undo_pileup(net: np.ndarray, pileup: float) -> np.ndarray:
 
 def _median(x: np.ndarray) -> np.ndarray:
     """Median over the last axis (as :func:`numpy.median`, without its overhead on small arrays)."""
-    s = x.copy()
-    s.sort(axis=-1)
+    s = np.sort(x, axis=-1)
     k = s.shape[-1]
     return s[..., k // 2] if k % 2 else 0.5 * (s[..., k // 2 - 1] + s[..., k // 2])
 
@@ -350,11 +352,12 @@ def _highest_return(x: np.ndarray, floor: np.ndarray,
     """
     lo, hi = INTERNAL_BINS
     noise = _noise_margin(floor) if noise is None else noise
-    k = x[..., SEARCH_START:].argmax(axis=-1) + SEARCH_START
-    top = _at_bins(x, k)
-    inside = (k >= lo) & (k < hi)
-    if not np.count_nonzero(inside):  # (every zone's highest bin beyond the internal return's: the usual frame)
+    searched = x[..., SEARCH_START:]
+    k = searched.argmax(axis=-1) + SEARCH_START
+    top = searched.max(axis=-1)  # (the count at k)
+    if k.size == 0 or k.min() >= hi:  # (every zone's highest bin beyond the internal return's: the usual frame)
         return k, top, top > noise
+    inside = (k >= lo) & (k < hi)
     # the internal return at its largest plus NOISE_SIGMAS of its own and the floor's shot noise
     near = INTERNAL_MAX_COUNTS + NOISE_SIGMAS * np.sqrt(np.maximum(floor, 0.0) + INTERNAL_MAX_COUNTS + 1.0)
     internal = inside & (top <= near)  # not told apart from the internal return
