@@ -164,18 +164,35 @@ class Uncertainty(ParamModel):
 
     def apply(self, covariance: np.ndarray, offset: float, normal=None) -> np.ndarray:
         """The reported covariance of an estimate at ``offset`` (m) with unit ``normal`` (None: level; for the tilt
-        term) whose fit gave ``covariance``."""
-        out = self.scale * (np.asarray(covariance, dtype=float) + self.floor(offset))
-        if normal is None or (self.tilt_rel == 0.0 and self.tilt_offset_rel == 0.0):
-            return out
-        return out + self.tilt_floor(normal, offset)
+        term) whose fit gave ``covariance`` (3, 3): ``scale (covariance + floor(offset)) + tilt_floor(normal,
+        offset)``. Scalar arithmetic, entry by entry in that order (it is on the peak method's per-frame path)."""
+        c = np.asarray(covariance, dtype=float)
+        if c.shape != (3, 3):
+            raise ValueError(f"covariance must be 3 x 3, got shape {c.shape}")
+        (c00, c01, c02), (c10, c11, c12), (c20, c21, c22) = c.tolist()
+        tilt, off = self._floor_terms(offset)
+        s = self.scale
+        out = [[s * (c00 + tilt), s * (c01 + 0.0), s * (c02 + 0.0)],
+               [s * (c10 + 0.0), s * (c11 + tilt), s * (c12 + 0.0)],
+               [s * (c20 + 0.0), s * (c21 + 0.0), s * (c22 + off)]]
+        if not (normal is None or (self.tilt_rel == 0.0 and self.tilt_offset_rel == 0.0)):
+            v, vx, vy, vd = self._tilt_terms(normal, offset)
+            t = ((v, 0.0, vx), (0.0, v, vy), (vx, vy, vd))
+            out = [[a + b for a, b in zip(row, trow)] for row, trow in zip(out, t)]
+        return np.array(out)
 
     def tilt_floor(self, normal, offset: float) -> np.ndarray:
         """The covariance (3, 3) of ``(n_x, n_y, d)`` a plane with unit ``normal`` at ``offset`` (m) adds:
         variance ``(tilt_rel tan(tilt))^2`` on each tilt component (tilt capped at 80 deg), the plane turning
         about the point ``tilt_pivot z0`` on the optical axis (``z0 = d / n_z``), so ``d`` moves by
         ``-tilt_pivot z0 (n_x dn_x + n_y dn_y) / n_z``, and ``(tilt_offset_rel z0 tan(tilt))^2`` on ``d`` alone; the tilt
-        counted from ``tilt_about``. Scalar arithmetic: it is on the peak method's per-frame path."""
+        counted from ``tilt_about``."""
+        v, vx, vy, vd = self._tilt_terms(normal, offset)
+        return np.array([[v, 0.0, vx], [0.0, v, vy], [vx, vy, vd]])
+
+    def _tilt_terms(self, normal, offset: float) -> tuple[float, float, float, float]:
+        """:meth:`tilt_floor`'s entries: the tilt components' variance, their covariances with ``d`` and ``d``'s
+        variance (scalar arithmetic: it is on the peak method's per-frame path)."""
         nx, ny, nz = (float(v) for v in normal)
         if not (math.isfinite(nx) and math.isfinite(ny) and math.isfinite(nz) and math.isfinite(offset)):
             nx, ny, nz, offset = 0.0, 0.0, _COS_MAX_TILT, 0.0
@@ -192,14 +209,17 @@ class Uncertainty(ParamModel):
         k = -self.tilt_pivot * float(offset) / (nz * nz)  # -tilt_pivot z0 / n_z
         jx, jy = k * nx, k * ny
         vd = (self.tilt_offset_rel * float(offset) / nz) ** 2 * tan2  # (tilt_offset_rel z0 tan(tilt))^2
-        return np.array([[v, 0.0, v * jx], [0.0, v, v * jy], [v * jx, v * jy, v * (jx * jx + jy * jy) + vd]])
+        return v, v * jx, v * jy, v * (jx * jx + jy * jy) + vd
 
     def floor(self, offset: float) -> np.ndarray:
         """The model-error covariance (3, 3) added to an estimate at distance ``offset`` (m)."""
-        d = max(float(offset), 1e-3)
-        tilt = self.tilt_std ** 2 + (self.tilt_range_std / d) ** 2
-        off = self.offset_std ** 2 + (self.offset_rel * d) ** 2
+        tilt, off = self._floor_terms(offset)
         return np.array([[tilt, 0.0, 0.0], [0.0, tilt, 0.0], [0.0, 0.0, off]])  # (np.diag's overhead is a frame's 4 us)
+
+    def _floor_terms(self, offset: float) -> tuple[float, float]:
+        """:meth:`floor`'s variances: each tilt component's and the offset's."""
+        d = max(float(offset), 1e-3)
+        return self.tilt_std ** 2 + (self.tilt_range_std / d) ** 2, self.offset_std ** 2 + (self.offset_rel * d) ** 2
 
     def near_std(self, depth: np.ndarray) -> np.ndarray:
         """The zones' range error (m, a standard deviation) at ``depth`` (m, along the optical axis; any shape):

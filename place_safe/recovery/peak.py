@@ -111,7 +111,7 @@ class PeakEstimator(Estimator):
             raise NoPlaneError(beyond)
         p = self.params
         pos, _, valid, saturated, heights = find_returns(h, p.pileup, p.subbin, p.subbin_half_width, heights=True)
-        if saturated.any():
+        if np.count_nonzero(saturated):
             zones = zone_numbers(saturated)
             raise NoPlaneError(f"histogram clipped (saturated counts: a flat top or counters at their maximum) in "
                                f"zone(s) {zones}")
@@ -122,8 +122,8 @@ class PeakEstimator(Estimator):
         if p.drops_weak:  # as PeakParams.peaks: the near-range rule's weak zones out
             valid = p.drop_weak(pos, valid, heights)
             pos = np.where(valid, pos, np.nan)
-        if valid.sum() < 3:
-            raise NoPlaneError(f"only {int(valid.sum())} zone(s) show a return above the noise floor; "
+        if (used := np.count_nonzero(valid)) < 3:
+            raise NoPlaneError(f"only {used} zone(s) show a return above the noise floor; "
                                "a plane needs 3 or more")
         return self.params.points(pos), valid
 

@@ -384,12 +384,9 @@ class PeakParams(ParamModel):
         r0 = np.asarray(r0, dtype=float)
         if not self.near_depths:
             return np.zeros_like(r0)
-        depth = r0 * self.directions()[:, 2]
-        with np.errstate(invalid="ignore"):
-            near = depth < self.near_depths[-1]
-        if not near.any():
+        if not self._any_near(r0):
             return np.zeros_like(r0)
-        return near_table_errors(self._near_table(), self.near_depths, depth)
+        return near_table_errors(self._near_table(), self.near_depths, r0 * self.directions()[:, 2])
 
     def ranges(self, readings: np.ndarray) -> np.ndarray:
         """Ranges (m) for readings (..., 9)."""
@@ -403,9 +400,13 @@ class PeakParams(ParamModel):
         elif self.residual_coeffs:
             for _ in range(RANGE_ITERATIONS):  # solve m g r + c(r) = x by fixed-point iteration
                 r = (x - self._correction(r)) / mz
-        if self.near_depths:
+        if self.near_depths and self._any_near(r):  # (from the table's last depth on its errors are 0: r as it is)
             r = r - self.near_correction(r)
         return r
+
+    def _any_near(self, r: np.ndarray) -> bool:
+        """Whether a zone at range ``r`` (..., 9; m) lies closer than the near-range table's last depth (NaN: no)."""
+        return bool(np.fmin.reduce(r * self.directions()[:, 2], axis=None, initial=np.inf) < self.near_depths[-1])
 
     def without_near_table(self) -> "PeakParams":
         """A copy without the near-range table (no depths, errors or weak-return fraction): the far-range mapping."""
@@ -467,6 +468,11 @@ def _tabulated(y: np.ndarray, y0: np.ndarray, inv_dy: np.ndarray, tab: np.ndarra
     """Ranges (m, (..., 9)) at linear ranges ``y`` (..., 9) from :meth:`PeakParams._inverse_table`'s table: linear
     interpolation inside it, ``y`` less the held end value outside; NaN stays NaN."""
     t = (y - y0) * inv_dy
+    if t.size and t.min() >= 0.0 and t.max() <= last - 1e-9:  # every reading inside the table, none NaN: usual
+        k = t.astype(np.intp)
+        idx = k + base
+        a = tab[idx]
+        return a + (t - k) * (tab[idx + 1] - a)
     tc = np.fmin(np.fmax(t, 0.0), last - 1e-9)  # (fmax / fmin: a NaN becomes a finite index, put back below)
     k = tc.astype(np.intp)
     f = tc - k
@@ -656,10 +662,10 @@ def plane_through(points: np.ndarray, valid: np.ndarray) -> tuple[Plane, float]:
     batch's masking (a frame's estimate comes from here on every frame the sensor sends)."""
     pts = np.asarray(points, dtype=float)
     valid = np.asarray(valid, dtype=bool)
-    if valid.sum() < 3:
-        raise NoPlaneError(f"only {int(valid.sum())} zones have a return; a plane needs 3 or more")
+    if (used := np.count_nonzero(valid)) < 3:
+        raise NoPlaneError(f"only {used} zones have a return; a plane needs 3 or more")
     keep = valid & np.isfinite(pts).all(axis=-1)
-    count = int(keep.sum())
+    count = np.count_nonzero(keep)
     if count < 3:
         raise NoPlaneError("the zone points do not determine a plane in front of the sensor")
     p = pts[keep]
@@ -667,9 +673,10 @@ def plane_through(points: np.ndarray, valid: np.ndarray) -> tuple[Plane, float]:
     s, vt = _svd(p - centroid)
     n = vt[-1] if vt[-1, 2] >= 0 else -vt[-1]
     d = float(n @ centroid)
-    if not _determines_plane(s, n, d):
+    s0, s1, s2 = s.tolist()
+    if not (s1 > 1e-9 * max(s0, 1e-30) and n[2] > 1e-6 and d > 0):  # _determines_plane, in scalars
         raise NoPlaneError("the zone points do not determine a plane in front of the sensor")
-    return Plane(n, d), float(s[-1]) / math.sqrt(count)
+    return Plane(n, d), s2 / math.sqrt(count)
 
 
 __all__ = ["PeakParams", "fit_planes", "plane_through", "plane_covariance", "PlaneFitGeometry",

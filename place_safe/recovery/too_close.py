@@ -30,6 +30,8 @@ return heights) apply it. Units: metres.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from place_safe.sensor.zones import N_ZONES
@@ -61,10 +63,11 @@ def may_be_close(readings: np.ndarray, valid: np.ndarray, params) -> bool:
     ``params``' mapping (:class:`~place_safe.recovery.points.PeakParams`; readings (9,) in its units). A few
     microseconds: only frames for which it is True need :func:`overlap_reason`."""
     x = np.where(np.asarray(valid, dtype=bool), np.asarray(readings, dtype=float), np.inf)
-    k = int(np.argmin(x))
-    if not np.isfinite(x[k]):
+    k = int(x.argmin())
+    nearest = float(x[k])
+    if not math.isfinite(nearest):
         return False
-    r = (x[k] - params.b - params.zone_offsets[k]) / (params.m * params.zone_gains[k])
+    r = (nearest - params.b - params.zone_offsets[k]) / (params.m * params.zone_gains[k])
     if params.zone_inverse:  # each zone's own terms in the inverse range may take centimetres off a range
         r -= params.inverse_screen_shift()[k]
     return not r > SCREEN_RANGE
@@ -76,7 +79,7 @@ def overlap_reason(ranges: np.ndarray, valid: np.ndarray, heights: np.ndarray | 
     above the floor; None: the centre-zone test is skipped). See the module doc."""
     r = np.asarray(ranges, dtype=float)
     v = np.asarray(valid, dtype=bool) & np.isfinite(r)
-    if not v.any():
+    if not np.count_nonzero(v):
         return None
     used = np.sort(r[v])
     n = used.size
@@ -104,7 +107,7 @@ def plane_overlap_reason(points: np.ndarray, valid: np.ndarray, offset: float) -
     surface lies in the overlap, or it is wrong: no plane either way."""
     pts = np.asarray(points, dtype=float)
     v = np.asarray(valid, dtype=bool) & np.all(np.isfinite(pts), axis=1)  # the zones the plane was fitted through
-    if not (offset < OVERLAP_RANGE) or not v.any():
+    if not (offset < OVERLAP_RANGE) or not np.count_nonzero(v):
         return None
     nearest = float(np.min(np.linalg.norm(pts[v], axis=1)))
     if not nearest <= SCREEN_RANGE:
