@@ -349,7 +349,15 @@ def cmd_stream(args: argparse.Namespace) -> int:
 # ------------------------------------------------------------------------------------------------
 # bench
 # ------------------------------------------------------------------------------------------------
+#: ``bench recovery --memory-method`` where not given (None on the command line: not given, which needs no
+#: ``--memory-file``)
+MEMORY_METHOD = "diff"
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
+    if args.memory_method is not None and not args.memory_file:  # (never read: the table printed, exit 0)
+        raise UsageError("bench recovery: --memory-method is the method of --memory-file's measurement, which was not "
+                         "given")
     cal = load_calibration(args.calibration)
     if args.file:
         frames, _ = load_truth_frames([args.file])
@@ -371,7 +379,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
         if not args.quiet:
             log(f"measuring peak RSS of recover over a {args.memory_file}-frame file ...")
         try:
-            report.file_rss = measure_file_rss(args.memory_file, method=args.memory_method,
+            report.file_rss = measure_file_rss(args.memory_file, method=args.memory_method or MEMORY_METHOD,
                                                calibration=args.calibration)
         except RuntimeError as exc:  # the timings above stay valid; say what failed and exit 1
             report.file_rss = {"error": str(exc)}
@@ -544,5 +552,6 @@ def add_recovery_bench(sub) -> None:
             help="also report the peak RSS of `recover` over an N-frame synthetic file in a fresh process"),
         "method", "seed", "json", "quiet",
         frames={"help": "frames to use (default: 20 synthetic, or all of FILE)"},
-        method={"flags": ("--memory-method",), "help": "method for --memory-file (default diff)"},
+        method={"flags": ("--memory-method",), "default": None,
+                "help": f"method for --memory-file (default {MEMORY_METHOD})"},
         seed={"help": "seed of the synthetic frames"}, json={"help": "write the results as JSON"})

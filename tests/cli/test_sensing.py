@@ -1,4 +1,4 @@
-"""``place-safe recover``, ``evaluate``, ``stream`` (``place_safe.cli.sensing``): options that go together."""
+"""``place-safe recover``, ``evaluate``, ``stream``, ``bench recovery`` (``place_safe.cli.sensing``): options that go together."""
 
 from __future__ import annotations
 
@@ -40,3 +40,34 @@ def test_evaluate_says_when_its_calibration_left_diff_out_of_the_diff_options(sw
     assert line.startswith(f"place-safe: error: evaluate: --no-fallback applies to the diff method, which {cal} does "
                            "not calibrate (sensor not calibrated for diff (no 'forward' section)")
     assert "name it in --methods" not in line
+
+
+def test_bench_recovery_refuses_a_memory_method_without_the_memory_measurement(capsys, monkeypatch):
+    """`bench recovery --memory-method peak` without --memory-file printed the table and exited 0: the method of a
+    measurement not asked for was never read (round 15's leftover). One usage line, exit 2, before any frame; with
+    --memory-file it is the measurement's method (default diff)."""
+    import place_safe.cli.sensing as sensing
+
+    def no_run(*args, **kwargs):
+        raise AssertionError("the benchmark ran")
+
+    monkeypatch.setattr(sensing, "run_bench", no_run)
+    assert main(["bench", "recovery", "--frames", "2", "--methods", "peak", "--memory-method", "peak", "-q"]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == ""
+    assert captured.err.splitlines() == ["place-safe: error: bench recovery: --memory-method is the method of "
+                                         "--memory-file's measurement, which was not given"]
+
+    class Report:
+        file_rss = None
+
+        def table(self):
+            return "table"
+
+    measured = []
+    monkeypatch.setattr(sensing, "run_bench", lambda *a, **k: Report())
+    monkeypatch.setattr(sensing, "measure_file_rss", lambda n, method, calibration: measured.append(method) or {})
+    for given in ([], ["--memory-method", "peak"]):
+        assert main(["bench", "recovery", "--frames", "2", "--methods", "peak", "--memory-file", "16", "-q",
+                     *given]) == 0
+    assert measured == ["diff", "peak"]
