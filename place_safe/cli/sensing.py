@@ -349,15 +349,32 @@ def cmd_stream(args: argparse.Namespace) -> int:
 # ------------------------------------------------------------------------------------------------
 # bench
 # ------------------------------------------------------------------------------------------------
-#: ``bench recovery --memory-method`` where not given (None on the command line: not given, which needs no
-#: ``--memory-file``)
+#: ``bench recovery``'s defaults of the options only one of its runs reads (None on the command line: not given):
+#: ``--memory-method`` (with ``--memory-file``), ``--paper-frames`` (with the diff-paper run), ``--seed`` (of the
+#: synthetic frames, without a FILE)
 MEMORY_METHOD = "diff"
+PAPER_FRAMES = 5
+SYNTHETIC_SEED = 0
+
+
+def bench_unread_option(args: argparse.Namespace) -> str | None:
+    """The usage error of a ``bench recovery`` option that its other options leave unread, or None (each printed the
+    table and exited 0)."""
+    if args.memory_method is not None and not args.memory_file:
+        return "bench recovery: --memory-method is the method of --memory-file's measurement, which was not given"
+    if args.paper_frames and "diff-paper" not in args.methods:  # (0, "skip it", says what is so)
+        return (f"bench recovery: --paper-frames counts the frames of the diff-paper run, which is not among --methods "
+                f"({' '.join(args.methods)})")
+    if args.seed is not None and args.file:
+        return f"bench recovery: --seed draws the synthetic frames, and {args.file}'s frames are read instead"
+    return None
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    if args.memory_method is not None and not args.memory_file:  # (never read: the table printed, exit 0)
-        raise UsageError("bench recovery: --memory-method is the method of --memory-file's measurement, which was not "
-                         "given")
+    if (unread := bench_unread_option(args)) is not None:
+        raise UsageError(unread)
+    args.seed = SYNTHETIC_SEED if args.seed is None else args.seed
+    args.paper_frames = PAPER_FRAMES if args.paper_frames is None else args.paper_frames
     cal = load_calibration(args.calibration)
     if args.file:
         frames, _ = load_truth_frames([args.file])
@@ -543,8 +560,8 @@ def add_recovery_bench(sub) -> None:
          "place-safe bench recovery --frames 5 --paper-frames 0 --memory-file 1000"],
         opt("file", nargs="?", metavar="FILE", help="frame file with ground truth (default: synthetic frames)"),
         "calibration", "frames",
-        opt("--paper-frames", type=options.int_range(0, 10000), default=5, metavar="N",
-            help="frames for diff paper mode, about 10 s each (default 5; 0 skips it)"),
+        opt("--paper-frames", type=options.int_range(0, 10000), default=None, metavar="N",
+            help=f"frames for the diff-paper run, about 10 s each (default {PAPER_FRAMES}; 0 skips it)"),
         opt("--methods", nargs="+", choices=("diff-paper", "diff-fast", "peak"),
             default=["diff-paper", "diff-fast", "peak"], metavar="RUN",
             help="runs to include: diff-paper diff-fast peak (default all)"),
@@ -554,4 +571,5 @@ def add_recovery_bench(sub) -> None:
         frames={"help": "frames to use (default: 20 synthetic, or all of FILE)"},
         method={"flags": ("--memory-method",), "default": None,
                 "help": f"method for --memory-file (default {MEMORY_METHOD})"},
-        seed={"help": "seed of the synthetic frames"}, json={"help": "write the results as JSON"})
+        seed={"default": None, "help": f"seed of the synthetic frames, without FILE (default {SYNTHETIC_SEED})"},
+        json={"help": "write the results as JSON"})

@@ -1,4 +1,5 @@
-"""``place-safe recover``, ``evaluate``, ``stream``, ``bench recovery`` (``place_safe.cli.sensing``): options that go together."""
+"""``place-safe recover``, ``evaluate``, ``stream``, ``bench recovery`` (``place_safe.cli.sensing``): options that
+go together."""
 
 from __future__ import annotations
 
@@ -71,3 +72,38 @@ def test_bench_recovery_refuses_a_memory_method_without_the_memory_measurement(c
         assert main(["bench", "recovery", "--frames", "2", "--methods", "peak", "--memory-file", "16", "-q",
                      *given]) == 0
     assert measured == ["diff", "peak"]
+
+
+@pytest.mark.parametrize("given,said", [
+    (["--paper-frames", "3"], "--paper-frames counts the frames of the diff-paper run, which is not among --methods "
+                              "(peak diff-fast)"),
+    (["SWEEP", "--seed", "5"], "--seed draws the synthetic frames, and SWEEP's frames are read instead")])
+def test_bench_recovery_refuses_options_its_runs_never_read(sweep_path, given, said, capsys, monkeypatch):
+    """`bench recovery --methods peak diff-fast --paper-frames 3` and `bench recovery FILE --seed 5` printed the table,
+    exit 0: no diff-paper run counts frames, and a FILE's frames are not drawn from a seed. One usage line, exit 2,
+    before any frame; where they are read they still are (default 5 and 0)."""
+    import place_safe.cli.sensing as sensing
+
+    def no_run(*args, **kwargs):
+        raise AssertionError("the benchmark ran")
+
+    monkeypatch.setattr(sensing, "run_bench", no_run)
+    argv = [str(sweep_path) if g == "SWEEP" else g for g in given]
+    assert main(["bench", "recovery", "--frames", "2", "--methods", "peak", "diff-fast", "-q", *argv]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == ""
+    assert captured.err.splitlines() == ["place-safe: error: bench recovery: " + said.replace("SWEEP", str(sweep_path))]
+
+    class Report:
+        def table(self):
+            return "table"
+
+    seen = []
+    monkeypatch.setattr(sensing, "run_bench", lambda frames, cal, paper_frames, runs, source, progress:
+                        seen.append((paper_frames, source)) or Report())
+    assert main(["bench", "recovery", "--frames", "2", "--methods", "diff-paper", "-q"]) == 0
+    assert main(["bench", "recovery", "--frames", "2", "--methods", "diff-paper", "--paper-frames", "1", "--seed",
+                 "4", "-q"]) == 0
+    assert main(["bench", "recovery", "--frames", "2", "--methods", "peak", "--paper-frames", "0", "-q"]) == 0
+    assert seen == [(5, "synthetic (make_frames, seed 0)"), (1, "synthetic (make_frames, seed 4)"),
+                    (0, "synthetic (make_frames, seed 0)")]  # (0 "skips it": what is so without diff-paper)
