@@ -111,12 +111,13 @@ def require_frame_file(path: str | Path) -> None:
         raise FrameFileError(f"{path} is a calibration file ({FORMAT}), not frames: give it with --calibration")
 
 
-def refuse_overwrite(path: str | Path, force: bool) -> None:
+def refuse_overwrite(path: str | Path, force: bool, option: str = "") -> None:
     """A one-line :class:`UsageError` where ``path`` is a file already there and ``force`` (``--force``) was not given:
-    a command that writes a file replaces one only when told to (``sensor record``, ``synth``; ``calibrate`` updates a
-    calibration file and refuses to replace anything else). A device or a pipe (``/dev/null``) is written as ever."""
+    a command that writes a file replaces one only when told to (``sensor record``, ``synth``, ``calibrate --sim
+    --save-frames``; ``calibrate`` updates a calibration file and refuses to replace anything else). A device or a pipe
+    (``/dev/null``) is written as ever. ``option``: what the message names first (``"calibrate: --save-frames"``)."""
     if not force and os.path.isfile(path):
-        raise UsageError(f"{path} exists; use --force to overwrite it")
+        raise UsageError(f"{option + ' ' if option else ''}{path} exists; use --force to overwrite it")
 
 
 def load_calibration(path: str | None):

@@ -22,8 +22,8 @@ from place_safe.cli.options import opt
 from place_safe.exceptions import CalibrationError, FrameError, FrameFileError, PlaceSafeError
 from place_safe.cli.common import (CALIBRATE_METHODS, METHODS, PROG, UsageError, estimator_for, given_twice,
                                    jsonable, load_any_frames, load_calibration, load_truth_frames, log, progress_options,
-                                   report_notes, require_frame_file, summarise, not_a_file, uncalibrated_note,
-                                   evaluated_methods, fit_summary, flags_said)
+                                   refuse_overwrite, report_notes, require_frame_file, summarise, not_a_file,
+                                   uncalibrated_note, evaluated_methods, fit_summary, flags_said)
 from place_safe.evaluation.bench import DEFAULT_RUNS, measure_file_rss, report_json, run_bench
 from place_safe.evaluation.evaluate import evaluate
 from place_safe.io.frame_file import iter_frames
@@ -138,6 +138,8 @@ def _calibrate_sim(args: argparse.Namespace) -> int:
             except CalibrationError as exc:
                 if not args.force:
                     raise CalibrationError(f"{exc}; refusing to overwrite it (use --force to replace the file)") from None
+    if args.save_frames:  # (a frame file there was replaced by the capture, the real sweep as soon as any)
+        refuse_overwrite(args.save_frames, args.force, "calibrate: --save-frames")
     frames = SIM_SWEEP_FRAMES if args.frames is None else args.frames
     for sensor, out in zip(sensors, outs):
         out = calibration_capture.calibrate_sim(sensor, out, n=frames, seed=args.seed or 0,
@@ -469,7 +471,8 @@ def register(sub) -> None:
         output={"metavar": "CALIB.json", "help": "calibration file to write or update (required with FILE; with "
                                                  "--sim: default calibration_SENSOR.json in the current folder, made "
                                                  "anew)"},
-        force={"help": "replace an output file that is not a valid calibration"},
+        force={"help": "replace an output file that is not a valid calibration (with --sim: and a --save-frames file "
+                       "already there)"},
         quiet={"help": "print only errors and the notes that ask you to act (e.g. for tilted poses): no progress "
                        "bars, no fit report (it stays in the file's 'reports'), no closing line"})
     options.add(c.add_argument_group("simulation (the [sim] extra)"),

@@ -107,3 +107,32 @@ def test_bench_recovery_refuses_options_its_runs_never_read(sweep_path, given, s
     assert main(["bench", "recovery", "--frames", "2", "--methods", "peak", "--paper-frames", "0", "-q"]) == 0
     assert seen == [(5, "synthetic (make_frames, seed 0)"), (1, "synthetic (make_frames, seed 4)"),
                     (0, "synthetic (make_frames, seed 0)")]  # (0 "skips it": what is so without diff-paper)
+
+
+def test_calibrate_sim_save_frames_keeps_a_file_already_there_unless_forced(tmp_path, monkeypatch, capsys):
+    """`calibrate --sim nominal --save-frames sweep.json` replaced sweep.json, a frame file already there (the real
+    sweep in the trial), with the simulated capture: no word, exit 0. A file there is now kept without --force (one
+    usage line naming the option, exit 2, before the capture), as sensor record and synth keep theirs."""
+    from pathlib import Path
+
+    import place_safe.sim.calibration_capture as cc
+    from place_safe.calibration import Calibration
+
+    written = []
+
+    def fake(sensor, output=None, n=0, seed=0, frames_out=None, quiet=True):
+        written.append(frames_out)
+        Path(frames_out).write_text("captured\n")
+        Calibration().save(output)
+        return Path(output)
+
+    monkeypatch.setattr(cc, "calibrate_sim", fake)
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "sweep.json").write_text("[]\n")
+    assert main(["calibrate", "--sim", "nominal", "-o", "c.json", "--save-frames", "sweep.json", "-q"]) == 2
+    assert capsys.readouterr().err.splitlines() == [
+        "place-safe: error: calibrate: --save-frames sweep.json exists; use --force to overwrite it"]
+    assert written == [] and (tmp_path / "sweep.json").read_text() == "[]\n" and not (tmp_path / "c.json").exists()
+    assert main(["calibrate", "--sim", "nominal", "-o", "c.json", "--save-frames", "sweep.json", "-q", "--force"]) == 0
+    assert written == ["sweep.json"] and (tmp_path / "sweep.json").read_text() == "captured\n"
+    assert main(["calibrate", "--sim", "nominal", "-o", "d.json", "--save-frames", "new.jsonl", "-q"]) == 0
