@@ -64,6 +64,12 @@ def progress_options(enabled: bool):
 # ------------------------------------------------------------------------------------------------
 # shared helpers
 # ------------------------------------------------------------------------------------------------
+#: Why ``place --sim`` and ``scenarios`` refuse ``--oracle`` with ``--calibration`` (the calibration was checked, then
+#: never read: the oracle's parameters replaced it, even ``--calibration none``, an uncalibrated run asked for).
+ORACLE_NOT_A_CALIBRATION = ("--oracle gives the estimator the simulator's true sensor parameters in place of a "
+                            "calibration: --calibration does not go with it")
+
+
 def flags_said(flags: Sequence[str], verb: str, plural: str) -> str:
     """The options ``flags`` given, as the subject of a usage error's verb: ``"--a does"`` or ``"--a and --b do"``
     (``verb`` for one, ``plural`` for more)."""
