@@ -33,8 +33,9 @@ MAX_SAMPLE_SECONDS = 3600.0
 #: N/m the simulated table contact may be (steel on steel is about 1e8).
 MAX_STIFFNESS = 1e8
 #: The defaults of the options only one part of a bench reads (None on the command line: not given, which the part's
-#: absence requires): ``bench contact``'s descents' ``--height`` (m), ``--seed`` and ``--jobs`` and its touches'
-#: ``--stiffness`` (N/m).
+#: absence requires): ``bench robot --controller`` (the fake's), ``bench contact``'s descents' ``--height`` (m),
+#: ``--seed`` and ``--jobs`` and its touches' ``--stiffness`` (N/m).
+FAKE_CONTROLLER = "cb3"
 DESCENT_HEIGHT = 0.4
 DESCENT_SEED = 0
 DESCENT_JOBS = 1
@@ -63,11 +64,14 @@ def cmd_bench(args: argparse.Namespace) -> int:
     target = Path(args.write) if args.write else None
     if target is not None and not args.robot and not target.is_file():  # checked before the measurement
         raise UsageError("bench robot --write: give --robot ROBOT.toml to start the written file from")
+    if args.controller is not None and not args.fake:  # (the arm's is its robot file's: it was never read)
+        raise UsageError("bench robot: --controller is the fake controller's (with --fake); the arm's is its robot "
+                         "file's [connection] controller")
     if args.fake:
         path = Path(args.robot) if args.robot else None
         if path is not None:  # read and checked before the measurement, as without --fake (it went unread: any
             URConfig.load(path)  # file, even a missing one, passed; an adversarial round, session 74)
-        robot, _ = make_stand_in(args.controller, host="127.0.0.1")
+        robot, _ = make_stand_in(args.controller or FAKE_CONTROLLER, host="127.0.0.1")
         cfg = robot.config
     else:
         if not args.robot:
@@ -159,7 +163,8 @@ def add_robot_benches(sub: argparse._SubParsersAction) -> None:
         "controller", "seconds", "cycles",
         opt("--write", metavar="ROBOT.toml", help="write the robot file with the measured noise here"),
         "json",
-        controller={"help": "with --fake (default cb3)"},
+        controller={"default": None, "help": f"with --fake (default {FAKE_CONTROLLER}; the arm's is its robot "
+                                             "file's)"},
         seconds={"type": float_range(0.0, MAX_SAMPLE_SECONDS, lo_open=True), "default": 2.0, "metavar": None,
                  "help": f"s at rest to sample (default 2, at most {MAX_SAMPLE_SECONDS:g})"},
         json={"metavar": "OUT.json", "help": "write the measurement and the report as JSON"})

@@ -126,3 +126,22 @@ def test_contact_bench_refuses_options_of_a_part_it_does_not_run(given, said, ca
                  "0.1", "--seed", "3", "--jobs", "2", "--stiffness", "5000"]) == 0
     assert seen == [("touches", 20000.0), (0.4, 0, 1), ("touches", 5000.0), (0.1, 3, 2)]
 
+
+def test_bench_robot_refuses_a_controller_for_the_arm(tmp_path, capsys, monkeypatch):
+    """`bench robot --robot real.toml --controller e-series` went on to connect to the arm as the file's cb3:
+    --controller chooses the fake (--fake) and was never read for the arm. One usage line, exit 2, before connecting;
+    with --fake it is read (default cb3)."""
+    import place_safe.drivers.ur5 as ur5
+
+    def no_arm(*args, **kwargs):
+        raise AssertionError("the arm was connected")
+
+    monkeypatch.setattr(ur5, "URRobot", no_arm)
+    assert main(["bench", "robot", "--robot", str(packaged_config("real")), "--controller", "e-series",
+                 "--seconds", "0.1"]) == 2
+    assert capsys.readouterr().err.splitlines() == [
+        "place-safe: error: bench robot: --controller is the fake controller's (with --fake); the arm's is its robot "
+        "file's [connection] controller"]
+    monkeypatch.undo()  # (the fake's stand-in is a URRobot too)
+    assert main(["bench", "robot", "--fake", "--controller", "e-series", "--seconds", "0.1", "--cycles", "1000"]) == 0
+    assert capsys.readouterr().out.startswith("fake e-series at ")
