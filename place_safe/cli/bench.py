@@ -29,19 +29,26 @@ def cmd_sim_bench(args: argparse.Namespace) -> int:
     from place_safe.sim.bench import bench, benchmark
 
     if args.bare:
-        # (never read: a --scene that does not exist measured the bare robot, exit 0)
-        if given := [flag for flag, v in (("--scene", args.scene), ("--rig", args.rig)) if v]:
+        # (never read: a --scene that does not exist measured the bare robot, exit 0; --rate 1 --rays 1 the same)
+        if given := [flag for flag, v in (("--scene", args.scene), ("--rig", args.rig), ("--rate", args.rate),
+                                          ("--rays", args.rays)) if v is not None and v is not False]:
             raise UsageError(f"bench sim: --bare measures the bare robot, without a scene or sensor: "
                              f"{flags_said(given, 'does', 'do')} not go with it")
         for key, value in benchmark(args.seconds).items():
             print(f"{key}: {value:.1f}")
         return 0
-    res = bench(args.scene, args.rig, args.seconds, args.rate, args.rays)
+    args.rate = SIM_RATE if args.rate is None else args.rate
+    res = bench(args.scene, args.rig, args.seconds, args.rate, SIM_RAYS if args.rays is None else args.rays)
     print(f"{res['sim_seconds']:.2f} s sim in {res['wall_seconds']:.2f} s wall: real-time factor "
           f"{res['real_time_factor']:.1f}x ({res['frames']} sensor frames at {args.rate:g} Hz, "
           f"{res['physics_steps']} physics steps, {'UR5' if res['with_robot'] else 'rig'})")
     return 0
 
+
+#: ``bench sim``'s sensor frame rate (Hz) and rays per axis and zone where not given (the simulated sensor's defaults;
+#: None on the command line: not given, which ``--bare`` requires)
+SIM_RATE = 30.0
+SIM_RAYS = 8
 
 #: ``bench sim --help``: what it measures
 SIM_BENCH_ABOUT = ("Steps the scene for --seconds of sim time with the sensor measuring at --rate Hz in lockstep and "
@@ -60,7 +67,9 @@ def add_sim_bench(sub) -> None:
         options.opt("--bare", action="store_true", help="the bare robot without scene or sensor: physics steps/s, "
                                                         "holding and moving"),
         "seconds", "rate_hz", "rays",
-        seconds={"default": 5.0, "metavar": None, "help": "sim seconds to run (default 5)"})
+        seconds={"default": 5.0, "metavar": None, "help": "sim seconds to run (default 5)"},
+        rate_hz={"default": None, "what": f"sensor frame rate, default {SIM_RATE:g} (not with --bare)"},
+        rays={"default": None, "what": f"stratified rays per axis and zone, default {SIM_RAYS} (not with --bare)"})
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

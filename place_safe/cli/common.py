@@ -64,6 +64,12 @@ def progress_options(enabled: bool):
 # ------------------------------------------------------------------------------------------------
 # shared helpers
 # ------------------------------------------------------------------------------------------------
+#: Why ``place --sim`` and ``scenarios`` refuse ``--oracle`` with ``--calibration`` (the calibration was checked, then
+#: never read: the oracle's parameters replaced it, even ``--calibration none``, an uncalibrated run asked for).
+ORACLE_NOT_A_CALIBRATION = ("--oracle gives the estimator the simulator's true sensor parameters in place of a "
+                            "calibration: --calibration does not go with it")
+
+
 def flags_said(flags: Sequence[str], verb: str, plural: str) -> str:
     """The options ``flags`` given, as the subject of a usage error's verb: ``"--a does"`` or ``"--a and --b do"``
     (``verb`` for one, ``plural`` for more)."""
@@ -111,12 +117,13 @@ def require_frame_file(path: str | Path) -> None:
         raise FrameFileError(f"{path} is a calibration file ({FORMAT}), not frames: give it with --calibration")
 
 
-def refuse_overwrite(path: str | Path, force: bool) -> None:
+def refuse_overwrite(path: str | Path, force: bool, option: str = "") -> None:
     """A one-line :class:`UsageError` where ``path`` is a file already there and ``force`` (``--force``) was not given:
-    a command that writes a file replaces one only when told to (``sensor record``, ``synth``; ``calibrate`` updates a
-    calibration file and refuses to replace anything else). A device or a pipe (``/dev/null``) is written as ever."""
+    a command that writes a file replaces one only when told to (``sensor record``, ``synth``, ``calibrate --sim
+    --save-frames``; ``calibrate`` updates a calibration file and refuses to replace anything else). A device or a pipe
+    (``/dev/null``) is written as ever. ``option``: what the message names first (``"calibrate: --save-frames"``)."""
     if not force and os.path.isfile(path):
-        raise UsageError(f"{path} exists; use --force to overwrite it")
+        raise UsageError(f"{option + ' ' if option else ''}{path} exists; use --force to overwrite it")
 
 
 def load_calibration(path: str | None):

@@ -8,7 +8,7 @@ import importlib.util
 
 from place_safe.cli import options
 from place_safe.calibration import REQUIRED_SECTIONS
-from place_safe.cli.common import log, uncalibrated_note
+from place_safe.cli.common import UsageError, log, uncalibrated_note
 from place_safe.evaluation.bench import run_bench
 
 # ------------------------------------------------------------------------------------------------
@@ -68,14 +68,38 @@ def _placement_available() -> str | None:
     return None
 
 
+#: The demo's defaults of the options only one of its two shows reads (None on the command line: not given).
+DEFAULT_METHOD = "diff"
+DEFAULT_FRAMES = 20
+
+
+def unread_option(args: argparse.Namespace, simulated: bool, why_not: str | None) -> str | None:
+    """The usage error of an option the demo would take and never read, or None: ``--frames`` counts synthetic frames,
+    which the simulated placements (``simulated``) read none of; ``--method`` is the placements' method, and the
+    synthetic show recovers its frames with every method (``--synthetic``, or ``why_not``: why the simulation is not
+    available). Both ran and exited 0 (round 15's leftover)."""
+    if simulated and args.frames is not None:
+        return ("demo: --frames counts the synthetic frames, shown only with --synthetic: the simulated placements "
+                "run here and read no frames")
+    if not simulated and args.method is not None:
+        return ("demo: --method is the simulated placements' method: "
+                + ("with --synthetic" if args.synthetic else f"here {why_not}, so") +
+                " the demo recovers synthetic frames with every method")
+    return None
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     """The main job: simulated placements (level table: release; tilted table: refuse). Without the
     simulation (or with --synthetic): recover synthetic frames with every method and score them."""
     why_not = None if args.synthetic else _placement_available()
-    if not args.synthetic and why_not is None:
+    simulated = not args.synthetic and why_not is None
+    if (unread := unread_option(args, simulated, why_not)) is not None:
+        raise UsageError(unread)
+    if simulated:
         from place_safe.sim.placement_run import run_placement
 
         ok = True
+        args.method = DEFAULT_METHOD if args.method is None else args.method
         plan, note = demo_plan(args.method)
         if note is not None:  # before anything runs (even -q): why the outcomes will be what they are
             log(f"demo: NOTE: {note}")
@@ -94,6 +118,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
     if why_not and not args.quiet:
         log(f"demo: no simulated placement: {why_not}; showing plane recovery on synthetic frames instead")
+    args.frames = DEFAULT_FRAMES if args.frames is None else args.frames
     if not args.quiet:
         log(f"demo: {args.frames} synthetic frames (forward model with shot noise, planes 2-30 cm, "
              "up to 30 deg incidence); recovering them with each method ...")
@@ -123,6 +148,7 @@ def register(sub) -> None:
         "method",
         options.opt("--synthetic", action="store_true", help="show recovery on synthetic frames, no simulation"),
         "frames", "seed", "quiet",
-        method={"help": "plane recovery in the placement (default diff)"},
-        frames={"default": 20, "help": "synthetic frames (default 20)"},
+        method={"default": None, "help": f"plane recovery in the placements (default {DEFAULT_METHOD}; not with "
+                                         "--synthetic, which shows every method)"},
+        frames={"help": f"synthetic frames, with --synthetic or without the simulation (default {DEFAULT_FRAMES})"},
         seed={"help": "seed of the synthetic frames and the placements"})

@@ -18,8 +18,8 @@ from typing import Any
 
 from place_safe.cli import options
 from place_safe.cli.options import opt
-from place_safe.cli.common import (CALIBRATE_METHODS, PROG, ROBOT_FILE_HELP, count_note, flags_said, log,
-                                   uncalibrated_note)
+from place_safe.cli.common import (CALIBRATE_METHODS, ORACLE_NOT_A_CALIBRATION, PROG, ROBOT_FILE_HELP, count_note,
+                                   flags_said, log, uncalibrated_note)
 from place_safe.cli.options import REACH, float_range, int_range
 from place_safe.exceptions import CalibrationError, ConfigError, UsageError
 from place_safe.calibration import Calibration, mark, uncalibrated_reason
@@ -206,6 +206,8 @@ def cmd_place(args: argparse.Namespace) -> int:
                 raise UsageError(f"place: {flag} is for the simulation (--sim SCENARIO)")
     elif args.uncalibrated:
         raise UsageError("place: --uncalibrated is for the arm (--robot); in simulation give --calibration none")
+    elif args.oracle and args.calibration is not None:
+        raise UsageError(f"place: {ORACLE_NOT_A_CALIBRATION}")
     elif args.render:
         from place_safe.sim.render import image_problem
 

@@ -18,7 +18,7 @@ import argparse
 import json
 from pathlib import Path
 
-from place_safe.cli.common import ROBOT_FILE_HELP, log
+from place_safe.cli.common import ROBOT_FILE_HELP, flags_said, log
 from place_safe.cli import options
 from place_safe.cli.options import float_range, int_range, opt
 from place_safe.geometry import MAX_REACH
@@ -32,6 +32,27 @@ MAX_TRIALS = 100_000
 MAX_SAMPLE_SECONDS = 3600.0
 #: N/m the simulated table contact may be (steel on steel is about 1e8).
 MAX_STIFFNESS = 1e8
+#: The defaults of the options only one part of a bench reads (None on the command line: not given, which the part's
+#: absence requires): ``bench robot --controller`` (the fake's), ``bench contact``'s descents' ``--height`` (m),
+#: ``--seed`` and ``--jobs`` and its touches' ``--stiffness`` (N/m).
+FAKE_CONTROLLER = "cb3"
+DESCENT_HEIGHT = 0.4
+DESCENT_SEED = 0
+DESCENT_JOBS = 1
+TOUCH_STIFFNESS = 20000.0
+
+
+def unread_contact_options(args: argparse.Namespace) -> str | None:
+    """The usage error of a ``bench contact`` option of a part not run, or None: ``--descents 0`` runs no descent
+    (``--height``, ``--seed``, ``--jobs`` unread), ``--touch-trials 0`` no touch (``--stiffness`` unread). Both printed
+    the detector's report and exited 0 without a word."""
+    for part, runs, given in (
+            ("--descents", args.descents, [flag for flag, v in (("--height", args.height), ("--seed", args.seed),
+                                                                  ("--jobs", args.jobs)) if v is not None]),
+            ("--touch-trials", args.touch_trials, ["--stiffness"] if args.stiffness is not None else [])):
+        if not runs and given:
+            return f"bench contact: {flags_said(given, 'goes', 'go')} with {part}, and {part} 0 runs none"
+    return None
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
@@ -43,11 +64,14 @@ def cmd_bench(args: argparse.Namespace) -> int:
     target = Path(args.write) if args.write else None
     if target is not None and not args.robot and not target.is_file():  # checked before the measurement
         raise UsageError("bench robot --write: give --robot ROBOT.toml to start the written file from")
+    if args.controller is not None and not args.fake:  # (the arm's is its robot file's: it was never read)
+        raise UsageError("bench robot: --controller is the fake controller's (with --fake); the arm's is its robot "
+                         "file's [connection] controller")
     if args.fake:
         path = Path(args.robot) if args.robot else None
         if path is not None:  # read and checked before the measurement, as without --fake (it went unread: any
             URConfig.load(path)  # file, even a missing one, passed; an adversarial round, session 74)
-        robot, _ = make_stand_in(args.controller, host="127.0.0.1")
+        robot, _ = make_stand_in(args.controller or FAKE_CONTROLLER, host="127.0.0.1")
         cfg = robot.config
     else:
         if not args.robot:
@@ -87,6 +111,12 @@ def cmd_contact_bench(args: argparse.Namespace) -> int:
     from place_safe.robot.contact_detector import DetectorSettings
     from place_safe.drivers.ur5.fake_rtde import FORCE_NOISE
 
+    if (unread := unread_contact_options(args)) is not None:
+        raise UsageError(unread)
+    for name, default in (("height", DESCENT_HEIGHT), ("seed", DESCENT_SEED), ("jobs", DESCENT_JOBS),
+                          ("stiffness", TOUCH_STIFFNESS)):
+        if getattr(args, name) is None:
+            setattr(args, name, default)
     noise = args.noise if args.noise is not None else FORCE_NOISE[args.controller]
     settings = DetectorSettings.for_controller(args.controller)
     out: dict = {"controller": args.controller, "noise_std": noise}
@@ -133,7 +163,8 @@ def add_robot_benches(sub: argparse._SubParsersAction) -> None:
         "controller", "seconds", "cycles",
         opt("--write", metavar="ROBOT.toml", help="write the robot file with the measured noise here"),
         "json",
-        controller={"help": "with --fake (default cb3)"},
+        controller={"default": None, "help": f"with --fake (default {FAKE_CONTROLLER}; the arm's is its robot "
+                                             "file's)"},
         seconds={"type": float_range(0.0, MAX_SAMPLE_SECONDS, lo_open=True), "default": 2.0, "metavar": None,
                  "help": f"s at rest to sample (default 2, at most {MAX_SAMPLE_SECONDS:g})"},
         json={"metavar": "OUT.json", "help": "write the measurement and the report as JSON"})
@@ -148,17 +179,17 @@ def add_robot_benches(sub: argparse._SubParsersAction) -> None:
         "controller", "noise",
         opt("--descents", type=int_range(0, MAX_TRIALS), default=200,
             help=f"placements from --height (default 200, at most {MAX_TRIALS})"),
-        opt("--height", type=float_range(0.0, MAX_REACH, lo_open=True), default=0.4,
-            help=f"m of cup above the table (default 0.4, at most the arm's {MAX_REACH:g} m)"),
+        opt("--height", type=float_range(0.0, MAX_REACH, lo_open=True), default=None,
+            help=f"m of cup above the table (default {DESCENT_HEIGHT:g}, at most the arm's {MAX_REACH:g} m)"),
         opt("--touch-trials", type=int_range(0, MAX_TRIALS), default=20,
             help=f"touches per speed (default 20, at most {MAX_TRIALS})"),
-        opt("--stiffness", type=float_range(0.0, MAX_STIFFNESS, lo_open=True), default=20000.0,
-            help=f"N/m of the table contact (default 20000, at most {MAX_STIFFNESS:g})"),
+        opt("--stiffness", type=float_range(0.0, MAX_STIFFNESS, lo_open=True), default=None,
+            help=f"N/m of the table contact in the touches (default {TOUCH_STIFFNESS:g}, at most {MAX_STIFFNESS:g})"),
         "cycles", "seed", "jobs", "json", "quiet",
         controller={"help": "fake controller (default cb3)"},
         noise={"what": "force noise at rest, default the controller's (3.6 / 1.0)"},
-        seed={"help": "first seed of the descents"},
-        jobs={"metavar": None, "help": "worker processes for the descents"},
+        seed={"default": None, "help": f"first seed of the descents (default {DESCENT_SEED})"},
+        jobs={"default": None, "metavar": None, "help": f"worker processes for the descents (default {DESCENT_JOBS})"},
         json={"metavar": "OUT.json", "help": "write everything as JSON"}, quiet={"help": "no progress lines"})
 
 

@@ -113,12 +113,14 @@ def ray_address_problem(address: str) -> str | None:
 def cmd_scenarios(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from place_safe.cli.common import given_twice
+    from place_safe.cli.common import ORACLE_NOT_A_CALIBRATION, given_twice
     from place_safe.sim import suite
     from place_safe.sim.scenario import expand_paths, load_scenario, packaged_scenarios
 
     if args.kind != "tables" and not args.random:
         raise UsageError(f"scenarios: --kind {args.kind} draws random scenes: give --random N")
+    if args.oracle and args.calibration is not None:
+        raise UsageError(f"scenarios: {ORACLE_NOT_A_CALIBRATION}")
     if args.jobs > 1 and args.ray is not None:
         raise UsageError("scenarios: give --jobs or --ray, not both")
     # (an empty --ray is malformed too: it went past this check to Ray, "invalid input: Invalid address format:")

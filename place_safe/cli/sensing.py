@@ -22,8 +22,8 @@ from place_safe.cli.options import opt
 from place_safe.exceptions import CalibrationError, FrameError, FrameFileError, PlaceSafeError
 from place_safe.cli.common import (CALIBRATE_METHODS, METHODS, PROG, UsageError, estimator_for, given_twice,
                                    jsonable, load_any_frames, load_calibration, load_truth_frames, log, progress_options,
-                                   report_notes, require_frame_file, summarise, not_a_file, uncalibrated_note,
-                                   evaluated_methods, fit_summary, flags_said)
+                                   refuse_overwrite, report_notes, require_frame_file, summarise, not_a_file,
+                                   uncalibrated_note, evaluated_methods, fit_summary, flags_said)
 from place_safe.evaluation.bench import DEFAULT_RUNS, measure_file_rss, report_json, run_bench
 from place_safe.evaluation.evaluate import evaluate
 from place_safe.io.frame_file import iter_frames
@@ -138,6 +138,8 @@ def _calibrate_sim(args: argparse.Namespace) -> int:
             except CalibrationError as exc:
                 if not args.force:
                     raise CalibrationError(f"{exc}; refusing to overwrite it (use --force to replace the file)") from None
+    if args.save_frames:  # (a frame file there was replaced by the capture, the real sweep as soon as any)
+        refuse_overwrite(args.save_frames, args.force, "calibrate: --save-frames")
     frames = SIM_SWEEP_FRAMES if args.frames is None else args.frames
     for sensor, out in zip(sensors, outs):
         out = calibration_capture.calibrate_sim(sensor, out, n=frames, seed=args.seed or 0,
@@ -349,7 +351,32 @@ def cmd_stream(args: argparse.Namespace) -> int:
 # ------------------------------------------------------------------------------------------------
 # bench
 # ------------------------------------------------------------------------------------------------
+#: ``bench recovery``'s defaults of the options only one of its runs reads (None on the command line: not given):
+#: ``--memory-method`` (with ``--memory-file``), ``--paper-frames`` (with the diff-paper run), ``--seed`` (of the
+#: synthetic frames, without a FILE)
+MEMORY_METHOD = "diff"
+PAPER_FRAMES = 5
+SYNTHETIC_SEED = 0
+
+
+def bench_unread_option(args: argparse.Namespace) -> str | None:
+    """The usage error of a ``bench recovery`` option that its other options leave unread, or None (each printed the
+    table and exited 0)."""
+    if args.memory_method is not None and not args.memory_file:
+        return "bench recovery: --memory-method is the method of --memory-file's measurement, which was not given"
+    if args.paper_frames and "diff-paper" not in args.methods:  # (0, "skip it", says what is so)
+        return (f"bench recovery: --paper-frames counts the frames of the diff-paper run, which is not among --methods "
+                f"({' '.join(args.methods)})")
+    if args.seed is not None and args.file:
+        return f"bench recovery: --seed draws the synthetic frames, and {args.file}'s frames are read instead"
+    return None
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
+    if (unread := bench_unread_option(args)) is not None:
+        raise UsageError(unread)
+    args.seed = SYNTHETIC_SEED if args.seed is None else args.seed
+    args.paper_frames = PAPER_FRAMES if args.paper_frames is None else args.paper_frames
     cal = load_calibration(args.calibration)
     if args.file:
         frames, _ = load_truth_frames([args.file])
@@ -371,7 +398,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
         if not args.quiet:
             log(f"measuring peak RSS of recover over a {args.memory_file}-frame file ...")
         try:
-            report.file_rss = measure_file_rss(args.memory_file, method=args.memory_method,
+            report.file_rss = measure_file_rss(args.memory_file, method=args.memory_method or MEMORY_METHOD,
                                                calibration=args.calibration)
         except RuntimeError as exc:  # the timings above stay valid; say what failed and exit 1
             report.file_rss = {"error": str(exc)}
@@ -444,7 +471,8 @@ def register(sub) -> None:
         output={"metavar": "CALIB.json", "help": "calibration file to write or update (required with FILE; with "
                                                  "--sim: default calibration_SENSOR.json in the current folder, made "
                                                  "anew)"},
-        force={"help": "replace an output file that is not a valid calibration"},
+        force={"help": "replace an output file that is not a valid calibration (with --sim: and a --save-frames file "
+                       "already there)"},
         quiet={"help": "print only errors and the notes that ask you to act (e.g. for tilted poses): no progress "
                        "bars, no fit report (it stays in the file's 'reports'), no closing line"})
     options.add(c.add_argument_group("simulation (the [sim] extra)"),
@@ -535,8 +563,8 @@ def add_recovery_bench(sub) -> None:
          "place-safe bench recovery --frames 5 --paper-frames 0 --memory-file 1000"],
         opt("file", nargs="?", metavar="FILE", help="frame file with ground truth (default: synthetic frames)"),
         "calibration", "frames",
-        opt("--paper-frames", type=options.int_range(0, 10000), default=5, metavar="N",
-            help="frames for diff paper mode, about 10 s each (default 5; 0 skips it)"),
+        opt("--paper-frames", type=options.int_range(0, 10000), default=None, metavar="N",
+            help=f"frames for the diff-paper run, about 10 s each (default {PAPER_FRAMES}; 0 skips it)"),
         opt("--methods", nargs="+", choices=("diff-paper", "diff-fast", "peak"),
             default=["diff-paper", "diff-fast", "peak"], metavar="RUN",
             help="runs to include: diff-paper diff-fast peak (default all)"),
@@ -544,5 +572,7 @@ def add_recovery_bench(sub) -> None:
             help="also report the peak RSS of `recover` over an N-frame synthetic file in a fresh process"),
         "method", "seed", "json", "quiet",
         frames={"help": "frames to use (default: 20 synthetic, or all of FILE)"},
-        method={"flags": ("--memory-method",), "help": "method for --memory-file (default diff)"},
-        seed={"help": "seed of the synthetic frames"}, json={"help": "write the results as JSON"})
+        method={"flags": ("--memory-method",), "default": None,
+                "help": f"method for --memory-file (default {MEMORY_METHOD})"},
+        seed={"default": None, "help": f"seed of the synthetic frames, without FILE (default {SYNTHETIC_SEED})"},
+        json={"help": "write the results as JSON"})

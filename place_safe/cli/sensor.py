@@ -28,7 +28,7 @@ from place_safe.exceptions import ConfigError, SensorTimeout, UsageError
 from place_safe.sources import open_source
 from place_safe.calibration import mark
 from place_safe.cli.common import estimator_for, load_calibration, uncalibrated_note
-from place_safe.io.frame_file import write_frames
+from place_safe.io.frame_file import WriteInterrupted, write_frames
 from place_safe.io.live import run_live
 from place_safe.io.replay import parse_error
 
@@ -161,7 +161,12 @@ def cmd_record(args: argparse.Namespace) -> int:
     with src:
         it = frames()
         first = next(it, None)  # no frame at all: the output is not opened (an existing one stays as it was)
-        n = 0 if first is None else write_frames(out, itertools.chain([first], it), jsonl=out.suffix == ".jsonl")
+        try:
+            n = 0 if first is None else write_frames(out, itertools.chain([first], it), jsonl=out.suffix == ".jsonl")
+        except WriteInterrupted as stop:  # Ctrl-C while a frame was written: the file holds those before it, whole
+            n, ended = stop.written, "interrupted"
+            if not n and out.is_file():  # (none whole: no file of no frames left behind, as before the first frame)
+                out.unlink()
         stats = dict(getattr(src, "stats", {}))
     bar.close()
     left_out = (f"{len(unreadable)} unreadable frame{'' if len(unreadable) == 1 else 's'} of the source left out "

@@ -36,6 +36,7 @@ from typing import IO
 from place_safe.exceptions import FrameError, FrameFileError
 from place_safe.sensor.frame import Frame, has_bool
 from place_safe.io.input_file import MAX_FRAME_FILE_BYTES, check_input_file
+from place_safe.io.interrupts import interrupts_held
 from place_safe.io.json_values import DuplicateKey, unique_keys
 
 try:  # a C parser, 5-8x faster on a frame; the standard library's when it is missing or declines
@@ -534,19 +535,54 @@ def load_frames(path: str | Path, strict: bool = True) -> list[Frame]:
     return out
 
 
+class WriteInterrupted(KeyboardInterrupt):
+    """Ctrl-C while :func:`write_frames` wrote: the file is whole with the ``written`` frames before it."""
+
+    def __init__(self, written: int) -> None:
+        super().__init__(written)
+        self.written = written
+
+
 def write_frames(path: str | Path, frames: Iterable[Frame], jsonl: bool = False) -> int:
-    """Write frames as a JSON list (default) or JSON Lines; returns the number written."""
+    """Write frames as a JSON list (default) or JSON Lines; returns the number written.
+
+    A Ctrl-C (:class:`KeyboardInterrupt`) while it writes, or while ``frames`` makes the next one, leaves a file that
+    reads: each frame's text is built first and written with Ctrl-C held off (:func:`interrupts_held`), the file cut
+    back to its last whole frame and a list closed; it is then raised as :class:`WriteInterrupted`, with the frames
+    written. (A Ctrl-C landing in a frame's write cut the file mid-frame, a JSON list without its ']' that every
+    reader refused: round 15's leftover of ``sensor record``.)"""
     n = 0
-    with open(path, "w", encoding="utf-8") as fh:
+    whole = 0  # bytes written up to the last whole frame (0: not even the list's '[')
+    fh = open(path, "wb")
+    try:
         if not jsonl:
-            fh.write("[\n")
+            with interrupts_held():
+                fh.write(b"[")
+                whole = 1
         for f in frames:
-            if n and not jsonl:
-                fh.write(",\n")
-            fh.write(json.dumps(f.to_dict()))
-            if jsonl:
-                fh.write("\n")
-            n += 1
+            data = _frame_text(f, n, jsonl)
+            with interrupts_held():
+                fh.write(data)
+                n += 1
+                whole += len(data)
         if not jsonl:
-            fh.write("\n]\n")
+            fh.write(b"\n]\n")
+    except KeyboardInterrupt as exc:
+        with interrupts_held():
+            if fh.seekable():  # (a pipe is not: nothing to cut back, the frames being written whole)
+                fh.seek(whole)
+                fh.truncate()
+            if not jsonl:
+                fh.write((b"\n]\n" if n else b"]\n") if whole else b"[]\n")
+        raise WriteInterrupted(n) from exc
+    finally:
+        with interrupts_held():  # (the buffer's last bytes reach the file whole too)
+            fh.close()
     return n
+
+
+def _frame_text(frame: Frame, index: int, jsonl: bool) -> bytes:
+    """Frame ``index``'s whole text in the file: its JSON with the line end after it (JSON Lines) or the separator
+    before it (a JSON list: a comma after every frame but the last)."""
+    text = json.dumps(frame.to_dict())
+    return (text + "\n" if jsonl else ("\n" if index == 0 else ",\n") + text).encode("utf-8")

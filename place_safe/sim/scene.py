@@ -168,9 +168,14 @@ class SceneConfig(_SceneModel):
     # -- file form -----------------------------------------------------------------------------
     @classmethod
     def load(cls, path: str | Path) -> "SceneConfig":
+        """The scene of a JSON file (a SceneConfig, or a scenario file with a ``scene`` key). A relative ``robot_xml``
+        is the file's folder's, made absolute, as a scenario file's (:mod:`place_safe.sim.scenario`): it was the
+        working folder's, so the model next to the scene was found only when run from there."""
         d = read_json(path, "scene file", SceneError)
         if isinstance(d, dict) and "scene" in d:  # a scenario file holding a scene
             d = d["scene"]
+        if isinstance(d, dict) and isinstance(xml := d.get("robot_xml"), str) and xml and not Path(xml).is_absolute():
+            d = {**d, "robot_xml": str((Path(path).parent / xml).absolute())}
         return cls.from_dict(d)
 
 

@@ -3,6 +3,8 @@ and a refused connection is one line with ur_rtde's own chatter kept off the ter
 
 from __future__ import annotations
 
+import pytest
+
 from place_safe.cli.app import main
 from place_safe.drivers.ur5 import URConfig, packaged_config
 
@@ -86,3 +88,60 @@ def test_bench_write_to_an_existing_robot_file_keeps_it_and_sets_the_noise(tmp_p
     assert main(["bench", "robot", "--fake", "--seconds", "1", "--cycles", "2000", "--write", str(out)]) == 0
     cfg = URConfig.load(out)
     assert cfg.connection.host == URConfig.load(packaged_config("real")).connection.host and cfg.contact.noise_std > 0
+
+
+@pytest.mark.parametrize("given,said", [
+    (["--descents", "0", "--height", "0.1"], "--height goes with --descents, and --descents 0"),
+    (["--descents", "0", "--seed", "3", "--jobs", "2"], "--seed and --jobs go with --descents, and --descents 0"),
+    (["--touch-trials", "0", "--stiffness", "5000"], "--stiffness goes with --touch-trials, and --touch-trials 0")])
+def test_contact_bench_refuses_options_of_a_part_it_does_not_run(given, said, capsys, monkeypatch):
+    """`bench contact --descents 0 --height 0.1` (or --seed, --jobs) and `--touch-trials 0 --stiffness 5000` printed
+    the detector's report, exit 0: the part the option sets ran not at all. One usage line, exit 2, before anything
+    runs; where the part runs they are read (defaults 0.4 m, seed 0, 1 job, 20000 N/m)."""
+    import place_safe.evaluation.contact as contact
+
+    def ran(*args, **kwargs):
+        raise AssertionError("the bench ran")
+
+    monkeypatch.setattr(contact, "settings_report", ran)
+    assert main(["bench", "contact", *given, "--cycles", "1000"]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == ""
+    assert captured.err.splitlines() == [f"place-safe: error: bench contact: {said} runs none"]
+    seen = []
+    monkeypatch.setattr(contact, "settings_report", lambda *a, **k: {})
+    monkeypatch.setattr(contact, "format_settings_report", lambda rep: "report")
+    monkeypatch.setattr(contact, "touches", lambda **k: seen.append(("touches", k["stiffness"])) or [])
+
+    class Descents:
+        reasons: list = []
+
+        def summary(self):
+            return "descents"
+
+    monkeypatch.setattr(contact, "descents", lambda n, **k: seen.append((k["height"], k["seed"], k["jobs"]))
+                        or Descents())
+    assert main(["bench", "contact", "--descents", "1", "--touch-trials", "1", "--cycles", "1000", "-q"]) == 0
+    assert main(["bench", "contact", "--descents", "1", "--touch-trials", "1", "--cycles", "1000", "-q", "--height",
+                 "0.1", "--seed", "3", "--jobs", "2", "--stiffness", "5000"]) == 0
+    assert seen == [("touches", 20000.0), (0.4, 0, 1), ("touches", 5000.0), (0.1, 3, 2)]
+
+
+def test_bench_robot_refuses_a_controller_for_the_arm(tmp_path, capsys, monkeypatch):
+    """`bench robot --robot real.toml --controller e-series` went on to connect to the arm as the file's cb3:
+    --controller chooses the fake (--fake) and was never read for the arm. One usage line, exit 2, before connecting;
+    with --fake it is read (default cb3)."""
+    import place_safe.drivers.ur5 as ur5
+
+    def no_arm(*args, **kwargs):
+        raise AssertionError("the arm was connected")
+
+    monkeypatch.setattr(ur5, "URRobot", no_arm)
+    assert main(["bench", "robot", "--robot", str(packaged_config("real")), "--controller", "e-series",
+                 "--seconds", "0.1"]) == 2
+    assert capsys.readouterr().err.splitlines() == [
+        "place-safe: error: bench robot: --controller is the fake controller's (with --fake); the arm's is its robot "
+        "file's [connection] controller"]
+    monkeypatch.undo()  # (the fake's stand-in is a URRobot too)
+    assert main(["bench", "robot", "--fake", "--controller", "e-series", "--seconds", "0.1", "--cycles", "1000"]) == 0
+    assert capsys.readouterr().out.startswith("fake e-series at ")

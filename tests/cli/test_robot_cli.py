@@ -486,6 +486,27 @@ def test_options_of_the_simulation_are_refused_with_the_arm(command, option, cap
                                                     "(--sim SCENARIO)"]
 
 
+@pytest.mark.parametrize("calibration", ["none", "sim", "CAL"])
+def test_place_sim_refuses_a_calibration_with_the_oracle_not_ignores_it(calibration, capsys, monkeypatch, tmp_path):
+    """`place --sim place_level --oracle --calibration C` checked C, then placed with the simulator's true parameters
+    and released, exit 0: the calibration was never read, --calibration none (an uncalibrated run) neither. One usage
+    line, exit 2, before the placement."""
+    import place_safe.sim.placement_run as pr
+    from place_safe.sim.tof import calibration_file
+
+    def no_run(*args, **kwargs):
+        raise AssertionError("the placement ran")
+
+    monkeypatch.setattr(pr, "run_placement", no_run)
+    cal = str(calibration_file("nominal")) if calibration == "CAL" else calibration
+    assert main(["place", "--sim", "place_level", "--oracle", "--calibration", cal, "--json", str(tmp_path / "r.json"),
+                 "--log", str(tmp_path / "t.jsonl")]) == 2
+    assert capsys.readouterr().err.splitlines() == [
+        "place-safe: error: place: --oracle gives the estimator the simulator's true sensor parameters in place of a "
+        "calibration: --calibration does not go with it"]
+    assert not (tmp_path / "r.json").exists()
+
+
 def test_a_render_name_pillow_cannot_write_is_refused_before_the_placement(tmp_path, capsys, monkeypatch):
     """`place --sim place_level --render x.txt` ran the whole placement, then ended "invalid input: unknown file
     extension: .txt": no result file and no transition log written, the option not named. Now one line before the

@@ -1,4 +1,5 @@
-"""``place-safe recover``, ``evaluate``, ``stream`` (``place_safe.cli.sensing``): options that go together."""
+"""``place-safe recover``, ``evaluate``, ``stream``, ``bench recovery`` (``place_safe.cli.sensing``): options that
+go together."""
 
 from __future__ import annotations
 
@@ -40,3 +41,98 @@ def test_evaluate_says_when_its_calibration_left_diff_out_of_the_diff_options(sw
     assert line.startswith(f"place-safe: error: evaluate: --no-fallback applies to the diff method, which {cal} does "
                            "not calibrate (sensor not calibrated for diff (no 'forward' section)")
     assert "name it in --methods" not in line
+
+
+def test_bench_recovery_refuses_a_memory_method_without_the_memory_measurement(capsys, monkeypatch):
+    """`bench recovery --memory-method peak` without --memory-file printed the table and exited 0: the method of a
+    measurement not asked for was never read (round 15's leftover). One usage line, exit 2, before any frame; with
+    --memory-file it is the measurement's method (default diff)."""
+    import place_safe.cli.sensing as sensing
+
+    def no_run(*args, **kwargs):
+        raise AssertionError("the benchmark ran")
+
+    monkeypatch.setattr(sensing, "run_bench", no_run)
+    assert main(["bench", "recovery", "--frames", "2", "--methods", "peak", "--memory-method", "peak", "-q"]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == ""
+    assert captured.err.splitlines() == ["place-safe: error: bench recovery: --memory-method is the method of "
+                                         "--memory-file's measurement, which was not given"]
+
+    class Report:
+        file_rss = None
+
+        def table(self):
+            return "table"
+
+    measured = []
+    monkeypatch.setattr(sensing, "run_bench", lambda *a, **k: Report())
+    monkeypatch.setattr(sensing, "measure_file_rss", lambda n, method, calibration: measured.append(method) or {})
+    for given in ([], ["--memory-method", "peak"]):
+        assert main(["bench", "recovery", "--frames", "2", "--methods", "peak", "--memory-file", "16", "-q",
+                     *given]) == 0
+    assert measured == ["diff", "peak"]
+
+
+@pytest.mark.parametrize("given,said", [
+    (["--paper-frames", "3"], "--paper-frames counts the frames of the diff-paper run, which is not among --methods "
+                              "(peak diff-fast)"),
+    (["SWEEP", "--seed", "5"], "--seed draws the synthetic frames, and SWEEP's frames are read instead")])
+def test_bench_recovery_refuses_options_its_runs_never_read(sweep_path, given, said, capsys, monkeypatch):
+    """`bench recovery --methods peak diff-fast --paper-frames 3` and `bench recovery FILE --seed 5` printed the table,
+    exit 0: no diff-paper run counts frames, and a FILE's frames are not drawn from a seed. One usage line, exit 2,
+    before any frame; where they are read they still are (default 5 and 0)."""
+    import place_safe.cli.sensing as sensing
+
+    def no_run(*args, **kwargs):
+        raise AssertionError("the benchmark ran")
+
+    monkeypatch.setattr(sensing, "run_bench", no_run)
+    argv = [str(sweep_path) if g == "SWEEP" else g for g in given]
+    assert main(["bench", "recovery", "--frames", "2", "--methods", "peak", "diff-fast", "-q", *argv]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == ""
+    assert captured.err.splitlines() == ["place-safe: error: bench recovery: " + said.replace("SWEEP", str(sweep_path))]
+
+    class Report:
+        def table(self):
+            return "table"
+
+    seen = []
+    monkeypatch.setattr(sensing, "run_bench", lambda frames, cal, paper_frames, runs, source, progress:
+                        seen.append((paper_frames, source)) or Report())
+    assert main(["bench", "recovery", "--frames", "2", "--methods", "diff-paper", "-q"]) == 0
+    assert main(["bench", "recovery", "--frames", "2", "--methods", "diff-paper", "--paper-frames", "1", "--seed",
+                 "4", "-q"]) == 0
+    assert main(["bench", "recovery", "--frames", "2", "--methods", "peak", "--paper-frames", "0", "-q"]) == 0
+    assert seen == [(5, "synthetic (make_frames, seed 0)"), (1, "synthetic (make_frames, seed 4)"),
+                    (0, "synthetic (make_frames, seed 0)")]  # (0 "skips it": what is so without diff-paper)
+
+
+def test_calibrate_sim_save_frames_keeps_a_file_already_there_unless_forced(tmp_path, monkeypatch, capsys):
+    """`calibrate --sim nominal --save-frames sweep.json` replaced sweep.json, a frame file already there (the real
+    sweep in the trial), with the simulated capture: no word, exit 0. A file there is now kept without --force (one
+    usage line naming the option, exit 2, before the capture), as sensor record and synth keep theirs."""
+    from pathlib import Path
+
+    import place_safe.sim.calibration_capture as cc
+    from place_safe.calibration import Calibration
+
+    written = []
+
+    def fake(sensor, output=None, n=0, seed=0, frames_out=None, quiet=True):
+        written.append(frames_out)
+        Path(frames_out).write_text("captured\n")
+        Calibration().save(output)
+        return Path(output)
+
+    monkeypatch.setattr(cc, "calibrate_sim", fake)
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "sweep.json").write_text("[]\n")
+    assert main(["calibrate", "--sim", "nominal", "-o", "c.json", "--save-frames", "sweep.json", "-q"]) == 2
+    assert capsys.readouterr().err.splitlines() == [
+        "place-safe: error: calibrate: --save-frames sweep.json exists; use --force to overwrite it"]
+    assert written == [] and (tmp_path / "sweep.json").read_text() == "[]\n" and not (tmp_path / "c.json").exists()
+    assert main(["calibrate", "--sim", "nominal", "-o", "c.json", "--save-frames", "sweep.json", "-q", "--force"]) == 0
+    assert written == ["sweep.json"] and (tmp_path / "sweep.json").read_text() == "captured\n"
+    assert main(["calibrate", "--sim", "nominal", "-o", "d.json", "--save-frames", "new.jsonl", "-q"]) == 0

@@ -84,6 +84,74 @@ def test_a_recording_stopped_with_ctrl_c_keeps_the_frames_read_as_a_readable_fil
     assert main(["sensor", "record", "emu:synthetic", "-o", str(none), "-q"]) == 130
     assert capsys.readouterr().err.splitlines() == ["place-safe: interrupted"] and not none.exists()
 
+class _CutWrites:
+    """A file whose ``cut``-th write of a frame's text (one holding "hists") is cut mid-way by a Ctrl-C: ``how`` is
+    "raise" (the KeyboardInterrupt raised there, between the two halves) or "signal" (a real SIGINT sent to the
+    process between them)."""
+
+    def __init__(self, fh, cut: int, how: str):
+        self.fh, self.cut, self.how, self.frames = fh, cut, how, 0
+
+    def write(self, data):
+        if "hists" not in (data if isinstance(data, str) else data.decode("utf-8", "replace")):
+            return self.fh.write(data)
+        self.frames += 1
+        if self.frames != self.cut:
+            return self.fh.write(data)
+        half = len(data) // 2
+        self.fh.write(data[:half])
+        if self.how == "raise":
+            raise KeyboardInterrupt
+        import signal
+
+        signal.raise_signal(signal.SIGINT)
+        return self.fh.write(data[half:])
+
+    def __getattr__(self, name):
+        return getattr(self.fh, name)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.fh.close()
+
+
+@pytest.mark.parametrize("suffix", [".json", ".jsonl"])
+@pytest.mark.parametrize("how,kept", [("raise", 2), ("signal", 3)])
+def test_a_ctrl_c_while_a_frame_is_written_leaves_a_readable_recording(tmp_path, capsys, monkeypatch, suffix, how,
+                                                                       kept):
+    """A Ctrl-C that landed while `sensor record -o rec.json` wrote a frame (round 15's leftover: round 15 kept one
+    between frames) cut the file mid-frame, a JSON list without its ']' that every reader refused; the summary was
+    "place-safe: interrupted". Each frame's text is now written whole with Ctrl-C held off, the file cut back to the
+    last whole frame and closed: a write cut by a KeyboardInterrupt keeps the frames before it, a SIGINT during the
+    write lets that frame finish; the summary says so, exit 130."""
+    import place_safe.cli.sensor as sensor_cli
+    import place_safe.io.frame_file as frame_file
+
+    frames = list(random_frames(5, seed=4))
+    monkeypatch.setattr(sensor_cli, "open_source", lambda uri, **opts: _Frames(frames))
+    real_open = open
+    monkeypatch.setattr(frame_file, "open", lambda *a, **k: _CutWrites(real_open(*a, **k), 3, how), raising=False)
+    out = tmp_path / f"rec{suffix}"
+    assert main(["sensor", "record", "emu:synthetic", "-o", str(out), "--frames", "5", "-q"]) == 130
+    assert capsys.readouterr().err.splitlines() == [f"wrote {kept} frames to {out} (stopped: interrupted)"]
+    got = load_frames(out, strict=True)
+    assert [f.to_dict() for f in got] == [f.to_dict() for f in frames[:kept]]
+    if suffix == ".json":
+        json.loads(out.read_text())
+
+
+class _Frames(FrameSource):
+    def __init__(self, frames):
+        self.left = list(frames)
+
+    def read(self, timeout=1.0):
+        if not self.left:
+            raise StopIteration
+        return self.left.pop(0)
+
+
 def test_stream_saves_a_rerun_recording(tmp_path, capsys):
     src = tmp_path / "in.json"
     write_frames(src, load_frames("tests/data/tmf8820_ur5_sweep.json")[20:23])

@@ -79,6 +79,33 @@ def test_missing_robot_model_is_a_clear_error(tmp_path):
         build_scene(SceneConfig(with_robot=True, robot_xml=str(tmp_path / "nope.xml")))
 
 
+@pytest.mark.parametrize("wrap", [lambda scene: scene, lambda scene: {"name": "s", "scene": scene}],
+                         ids=["scene", "scenario-with-a-scene"])
+def test_a_relative_robot_model_is_read_from_the_scene_files_folder(wrap, tmp_path, monkeypatch):
+    """`sim render --scene d/scene.json` with `"robot_xml": "arm.xml"` and the model at d/arm.xml said "robot model
+    'arm.xml' not found ... it does not exist" unless run from d: the scene file's model was the working folder's,
+    where a scenario file's is its own folder's (round 15; round 15's leftover). It is the scene file's folder's now,
+    made absolute; an absolute one stays as it is."""
+    from place_safe.sim.scene import default_robot_xml, scene_config
+
+    d = tmp_path / "d"
+    d.mkdir()
+    (d / "arm.xml").write_text(default_robot_xml().read_text())
+    (d / "scene.json").write_text(json.dumps(wrap({"with_robot": True, "robot_xml": "arm.xml"})))
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    cfg = scene_config(Path("..") / "d" / "scene.json")
+    assert Path(cfg.robot_xml).is_absolute() and Path(cfg.robot_xml).resolve() == (d / "arm.xml").resolve()
+    assert build_scene(cfg).config.with_robot
+    (d / "abs.json").write_text(json.dumps({"with_robot": True, "robot_xml": str(default_robot_xml())}))
+    assert scene_config(d / "abs.json").robot_xml == str(default_robot_xml())
+    (elsewhere / "arm.xml").write_text(default_robot_xml().read_text())
+    (d / "arm.xml").unlink()  # the working folder's model is not the scene's: the one line names where it looked
+    with pytest.raises(SceneError, match=r"robot model '.*d/arm\.xml' not found or unusable: it does not exist"):
+        scene_config(Path("..") / "d" / "scene.json")
+
+
 def test_scenario_files_build():
     files = sorted(SCENARIOS.glob("*.json"))
     assert len(files) >= 3

@@ -254,6 +254,24 @@ def test_a_plot_name_matplotlib_cannot_write_is_refused_before_the_runs(tmp_path
     assert captured.err.splitlines() == [f"place-safe: error: scenarios: --plot {tmp_path / 'p.txt'} names no figure "
                                          "format matplotlib writes (.txt): give a .png file"] and captured.out == ""
 
+@pytest.mark.parametrize("calibration", ["none", "sim"])
+def test_scenarios_refuse_a_calibration_with_the_oracle_not_ignore_it(calibration, capsys, monkeypatch):
+    """`scenarios place_level --oracle --calibration none` ran with the simulator's true parameters and printed
+    "ORACLE run", exit 0: the calibration asked for (here: none, an uncalibrated run) was never read. One usage line,
+    exit 2, nothing run."""
+    from place_safe.cli.app import main
+
+    def no_runs(*args, **kwargs):
+        raise AssertionError("the scenes ran")
+
+    monkeypatch.setattr(suite, "run_many", no_runs)
+    assert main(["scenarios", "place_level", "--oracle", "--calibration", calibration]) == 2
+    captured = capsys.readouterr()
+    assert captured.err.splitlines() == [
+        "place-safe: error: scenarios: --oracle gives the estimator the simulator's true sensor parameters in place of "
+        "a calibration: --calibration does not go with it"] and captured.out == ""
+
+
 def test_summary_has_the_time_budget_of_releases_from_40cm():
     rows = [suite.judge(Scenario(name="a"), _res(budget={"cruise": 1.0, "survey": 0.5}, decision_time=2.0)),
             suite.judge(Scenario(name="b"), _res(budget={"cruise": 2.0}, decision_time=3.0)),
