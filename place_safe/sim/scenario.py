@@ -328,11 +328,13 @@ ORACLE_NOTE = "ORACLE: the simulated sensor's true forward parameters (debugging
 def oracle_calibration():
     """The simulator's own parameters as a calibration: only for ``--oracle`` debugging runs. Diff starts from the
     peak method's plane and falls back to it, so the file carries the packaged nominal user calibration's ``peak``
-    section with them (without one, diff counts as uncalibrated: ``REQUIRED_SECTIONS``)."""
+    section with them (without one, diff counts as uncalibrated: ``REQUIRED_SECTIONS``), and its ``uncertainty``
+    entries (without them a placement refuses: ``REQUIRED_UNCERTAINTY``)."""
     import json
 
-    peak = json.loads(calibration_file("nominal").read_text())["peak"]
-    return Calibration({"forward": json.loads(sensor_file("tmf8820_real.json").read_text()), "peak": peak})
+    nominal = json.loads(calibration_file("nominal").read_text())
+    return Calibration({"forward": json.loads(sensor_file("tmf8820_real.json").read_text()), "peak": nominal["peak"],
+                        "uncertainty": nominal["uncertainty"]})
 
 
 def home_cup_position(scene_cfg) -> np.ndarray:
