@@ -73,3 +73,14 @@ def synthetic_file(tmp_path, synthetic_frames) -> Path:
     path = tmp_path / "synthetic.json"
     write_frames(path, synthetic_frames)
     return path
+
+
+@pytest.fixture()
+def sigint_raises():
+    """SIGINT raises KeyboardInterrupt for the test, as in a command run from a terminal: a test run in the background
+    (``nohup``, a CI job started with ``&``) inherits SIGINT ignored, and Python then keeps it ignored."""
+    import signal
+
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, before)

@@ -249,6 +249,11 @@ REQUIRED_SECTIONS = {"diff": ("forward", "peak"), "peak": ("peak",), "proprietar
 # (diff starts from the calibrated peak method and falls back to its plane: with a forward section but no peak one it
 # returned peak's planes from built-in constants, 14-16 deg off on a simulated unit, unmarked)
 
+#: The ``uncertainty`` entries a method's estimates read: diff's own, and peak's for the plane it starts from and falls
+#: back to. Without them an estimate carries the built-in :class:`~place_safe.recovery.estimator.Uncertainty`: no
+#: model-error floor (its covariance the fit's alone) and, for diff, no fallback to peak.
+REQUIRED_UNCERTAINTY = {"diff": ("diff", "peak"), "peak": ("peak",)}
+
 #: The diff method's forward-model fits (``calibrate --unit-model``): ``default`` is
 #: :func:`~place_safe.calibration.forward_fit.fit_forward` with its default terms, ``staged`` is
 #: :func:`~place_safe.calibration.forward_fit.fit_forward_staged` (the learned unit model in three fits).
@@ -281,6 +286,24 @@ def uncalibrated_reason(method: str, calibration: "Calibration | None") -> str |
     if (missing := missing_section(method, calibration)) is not None:
         return f"sensor not calibrated for {method} (no '{missing}' section); {how}"
     return None
+
+
+def placement_reason(method: str, calibration: "Calibration | None") -> str | None:
+    """Why a placement refuses ``method`` with ``calibration`` before anything moves, or None: :func:`uncalibrated_reason`,
+    or a calibration whose ``uncertainty`` section lacks an entry the method reads (:data:`REQUIRED_UNCERTAINTY`): its
+    planes are calibrated, but their covariances would be the fits' alone, with no model-error floor, and diff would
+    never fall back to peak, so the release rule would trust each plane beyond what the sensor measures (every file
+    ``calibrate`` writes has the entries: one without them was cut or written by hand)."""
+    if (why := uncalibrated_reason(method, calibration)) is not None:
+        return why
+    have = calibration.sections.get("uncertainty") if calibration is not None else None
+    have = have if isinstance(have, dict) else {}
+    missing = [f"uncertainty.{m}" for m in REQUIRED_UNCERTAINTY.get(method, ()) if not isinstance(have.get(m), dict)]
+    if not missing:
+        return None
+    return (f"sensor's uncertainty not calibrated for {method} (no {' or '.join(repr(m) for m in missing)} entry): its "
+            f"planes would state the fit's covariance alone{' and never fall back to peak' if method == 'diff' else ''}; "
+            f"calibrate it again: place-safe calibrate FRAMES.json --method {method} -o cal.json")
 
 
 def missing_section(method: str, calibration: "Calibration | None") -> str | None:

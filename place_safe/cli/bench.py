@@ -47,8 +47,8 @@ def cmd_sim_bench(args: argparse.Namespace) -> int:
 
 #: ``bench sim``'s sensor frame rate (Hz) and rays per axis and zone where not given (the simulated sensor's defaults;
 #: None on the command line: not given, which ``--bare`` requires)
-SIM_RATE = 30.0
-SIM_RAYS = 8
+SIM_RATE = options.shared_default("rate_hz")
+SIM_RAYS = options.shared_default("rays")
 
 #: ``bench sim --help``: what it measures
 SIM_BENCH_ABOUT = ("Steps the scene for --seconds of sim time with the sensor measuring at --rate Hz in lockstep and "

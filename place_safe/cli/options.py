@@ -286,6 +286,14 @@ def sensor_options(args: argparse.Namespace, uri: str, command: str) -> dict[str
     return opts
 
 
+def shared_default(name: str) -> Any:
+    """The default of the shared option ``name`` (:data:`SHARED`), for a command that takes the option with no default
+    (None: not given) and fills it in where it reads it."""
+    if not SHARED:
+        SHARED.update(_shared())
+    return SHARED[name].kwargs.get("default")
+
+
 def add(parser: Any, *items: str | Option, **changes: Mapping[str, Any]) -> None:
     """Add options to ``parser`` in order: a name of :data:`SHARED` (with ``changes[name]`` applied, e.g.
     ``method={"default": "peak"}``) or a command's own :class:`Option`."""

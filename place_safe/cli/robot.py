@@ -22,7 +22,7 @@ from place_safe.cli.common import (CALIBRATE_METHODS, ORACLE_NOT_A_CALIBRATION, 
                                    flags_said, log, uncalibrated_note)
 from place_safe.cli.options import REACH, float_range, int_range
 from place_safe.exceptions import CalibrationError, ConfigError, UsageError
-from place_safe.calibration import Calibration, mark, uncalibrated_reason
+from place_safe.calibration import Calibration, mark, placement_reason, uncalibrated_reason
 from place_safe.calibration.capture import (MIN_CLEARANCE, TOUCH_HEIGHT_STD, refusal_line, repeated_value,
                                             touch_plane)
 from place_safe.recovery import make_estimator
@@ -265,7 +265,7 @@ def _place_arm(args: argparse.Namespace, cfg) -> tuple[dict, Any, list[str]]:
     source_options = options.sensor_options(args, args.sensor, "place")
     method = args.method or "diff"
     estimator, cal_note, cal = _estimator(method, args.calibration)
-    why = uncalibrated_reason(method, cal)
+    why = placement_reason(method, cal)  # (a calibration without the method's uncertainty entries too)
     calibrated = why is None
     robot_cfg = _robot_config(args.robot)
     if not calibrated and not (args.dry_run or args.uncalibrated):
@@ -276,7 +276,8 @@ def _place_arm(args: argparse.Namespace, cfg) -> tuple[dict, Any, list[str]]:
         raise UsageError(f"place: {what} (--uncalibrated runs on built-in constants anyway; a dry run moves nothing "
                          "and may)")
     if not calibrated:  # said before anything moves, not after the cup is down
-        print(uncalibrated_note(method, cal, args.calibration), flush=True)
+        print(uncalibrated_note(method, cal, args.calibration) or f"UNCALIBRATED: {args.calibration}: {why}",
+              flush=True)
     robot = URRobot(robot_cfg, dry_run=args.dry_run)
     cfg = placement_config(robot_cfg, cfg)  # near-surface speed and stop decelerations of the robot file
     source = open_sensor(args.sensor, **source_options)

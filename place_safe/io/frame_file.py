@@ -29,6 +29,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import stat
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import IO
@@ -569,7 +570,7 @@ def write_frames(path: str | Path, frames: Iterable[Frame], jsonl: bool = False)
             fh.write(b"\n]\n")
     except KeyboardInterrupt as exc:
         with interrupts_held():
-            if fh.seekable():  # (a pipe is not: nothing to cut back, the frames being written whole)
+            if _regular(fh):  # (a pipe, /dev/null: nothing to cut back, the frames being written whole)
                 fh.seek(whole)
                 fh.truncate()
             if not jsonl:
@@ -579,6 +580,15 @@ def write_frames(path: str | Path, frames: Iterable[Frame], jsonl: bool = False)
         with interrupts_held():  # (the buffer's last bytes reach the file whole too)
             fh.close()
     return n
+
+
+def _regular(fh) -> bool:
+    """Whether the open file ``fh`` is a regular file (one that can be cut back: ``/dev/null`` says it can seek, then
+    refuses to be truncated)."""
+    try:
+        return stat.S_ISREG(os.fstat(fh.fileno()).st_mode)
+    except (OSError, ValueError):
+        return False
 
 
 def _frame_text(frame: Frame, index: int, jsonl: bool) -> bytes:

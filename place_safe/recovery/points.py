@@ -540,11 +540,17 @@ def fit_planes(points: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.nd
 
 
 
+#: A plane fit's points are collinear where their second singular value is at most this fraction of the first.
+COLLINEAR_FRACTION = 1e-9
+#: A plane fit's normal lies in the sensor's x-y plane (the plane holds the optical axis) where ``n_z`` is at most this.
+MIN_NORMAL_Z = 1e-6
+
+
 def _determines_plane(s: np.ndarray, n: np.ndarray, d) -> np.ndarray:
     """Whether a least-squares fit with singular values ``s`` (..., 3) of its centred points, normal ``n``
     (..., 3) and offset ``d`` (...) is a plane: the points not collinear, the normal off the sensor's
     x-y plane and the plane in front of the sensor."""
-    return (s[..., 1] > 1e-9 * np.maximum(s[..., 0], 1e-30)) & (n[..., 2] > 1e-6) & (d > 0)
+    return (s[..., 1] > COLLINEAR_FRACTION * np.maximum(s[..., 0], 1e-30)) & (n[..., 2] > MIN_NORMAL_Z) & (d > 0)
 
 
 def plane_covariance(points: np.ndarray, valid: np.ndarray, plane: Plane, range_std: float | np.ndarray = 0.0,
@@ -674,7 +680,7 @@ def plane_through(points: np.ndarray, valid: np.ndarray) -> tuple[Plane, float]:
     n = vt[-1] if vt[-1, 2] >= 0 else -vt[-1]
     d = float(n @ centroid)
     s0, s1, s2 = s.tolist()
-    if not (s1 > 1e-9 * max(s0, 1e-30) and n[2] > 1e-6 and d > 0):  # _determines_plane, in scalars
+    if not (s1 > COLLINEAR_FRACTION * max(s0, 1e-30) and n[2] > MIN_NORMAL_Z and d > 0):  # _determines_plane's test
         raise NoPlaneError("the zone points do not determine a plane in front of the sensor")
     return Plane(n, d), s2 / math.sqrt(count)
 

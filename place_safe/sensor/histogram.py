@@ -118,7 +118,7 @@ CENTROID_HALF_WIDTH = 3.0
 #: over 4 it reaches into the pulse's tail.
 CENTROID_HALF_WIDTHS = (2.0, 4.0)
 #: Grid points a bin on which :func:`windowed_centroid` finds its root (by linear interpolation between two):
-#: within 1e-5 bins (0.2 um) of the exact root.
+#: within 6e-5 bins (1 um) of the exact root (at the narrowest window; 2e-5 at the default).
 CENTROID_GRID_STEPS = 128
 #: bins: a zone's return holds more than one surface when its centroid and its maximum disagree by more
 #: than this beyond the frame's median disagreement (:func:`find_peaks`). On single surfaces (the real
@@ -179,9 +179,8 @@ def clipped_zones(hists: np.ndarray) -> np.ndarray:
     Non-finite counts are not clipped (they are refused as such)."""
     h = np.asarray(hists, dtype=float)
     top = h.max(axis=-1)
-    # a count at the counters' maximum is one at the top (a histogram holding NaN has no top: each bin is asked;
-    # the tops' sum is NaN when one is, and where two infinite tops cancel, which asks each bin too)
-    nan = math.isnan(top.sum())
+    # a count at the counters' maximum is one at the top (a histogram holding NaN has no top: each bin is asked)
+    nan = np.count_nonzero(np.isnan(top)) > 0
     over = h >= COUNT_MAX if nan else top >= COUNT_MAX
     if over.ndim == h.ndim:
         over = over.any(axis=-1)
@@ -313,8 +312,8 @@ def _returns(hists: np.ndarray, pileup: float, subbin: str,
     if subbin not in SUBBIN_METHODS:
         raise ValueError(f"subbin must be one of {', '.join(SUBBIN_METHODS)}, got {subbin!r}")
     h = np.asarray(hists, dtype=float)
-    finite = True  # (every zone's counts finite: their sum is, unless so large that it overflows, which asks each)
-    if not math.isfinite(h.sum()):
+    finite = True  # (every zone's counts finite: the usual frame)
+    if np.count_nonzero(np.isfinite(h)) < h.size:
         finite_bins = np.isfinite(h)
         finite = finite_bins.all(axis=-1)
         h = np.where(finite_bins, h, 0.0)
@@ -428,12 +427,13 @@ def windowed_centroid(rows: np.ndarray, top: np.ndarray, start: np.ndarray,
 
     The root is found on a grid: ``g`` is linear in the counts, so its values at :data:`CENTROID_GRID_STEPS` points
     a bin around ``top`` are one matrix product (:func:`_centroid_kernel`), and the root is interpolated linearly
-    between the two grid points it lies between (within 1e-5 bins of the exact root on the real sweep and on
-    noisy synthetic returns; Newton's method from the spline peak, which this replaced, stopped within about 1e-3
-    bins and cost three times as much a frame). A row whose ``g`` falls through zero once in the allowed range
-    reads that root. Otherwise (two surfaces in the window, or no root within the range) the search goes from
-    ``start`` the way ``g`` points there (up where ``g > 0``) to the first root that way, or to the end of the
-    range; a row with ``g = 0`` at ``start`` (no counts in its window) reads ``start``.
+    between the two grid points it lies between (within 6e-5 bins, 1 um, of the exact root on the real sweep and on
+    noisy synthetic returns; Newton's method from the spline peak, which this replaced, stopped within 3e-3 bins and
+    cost more than twice as much a frame). A row whose ``g`` falls through zero once in the allowed range reads that
+    root, wherever ``start`` is. Otherwise (two surfaces in the window, or no root within the range) the search goes
+    from ``start`` the way ``g`` points there (up where ``g > 0``) to the first root that way, or to the end of the
+    range (:func:`_centroid_search`); a row without counts in its window reads ``start``, and one whose counts or
+    ``start`` are not numbers reads NaN.
 
     Why not the spline's maximum: a spline through samples of a peaked pulse puts its top off the
     pulse's by an amount that depends on where the pulse falls between bin centres and on the pulse's
@@ -462,45 +462,51 @@ def windowed_centroid(rows: np.ndarray, top: np.ndarray, start: np.ndarray,
     turns = above[:, :-1] != above[:, 1:]  # (N, S - 1): g changes sign between grid points k and k + 1
     # every row from above zero to not: an odd number of turns each, so as many turns as rows is one each
     if np.count_nonzero(turns) == len(top) and (above[:, 0] > above[:, -1]).all():
-        k = turns.argmax(axis=1)
-        g0, g1 = g[at, k], g[at, k + 1]
-        return top + (grid[k] + (grid[1] - grid[0]) * g0 / (g0 - g1))  # (g0 > 0 >= g1)
-    k, found, shift = _centroid_search(g, above & ~np.roll(above, -1, axis=1), np.asarray(start, dtype=float) - top,
-                                       grid)
-    g0, g1 = g[at, k], g[at, k + 1]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        root = grid[k] + (grid[1] - grid[0]) * g0 / (g0 - g1)
-    return top + np.where(found, root, shift)
+        return top + _root(g, grid, turns.argmax(axis=1))
+    return top + _centroid_search(g, above, np.asarray(start, dtype=float) - top, grid)
 
 
-def _centroid_search(g: np.ndarray, falls: np.ndarray, start: np.ndarray,
-                     grid: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`windowed_centroid`'s search where a row's ``g`` (N, S) on ``grid`` (S,) does not fall through zero just
-    once: from ``start`` (N,), relative to the top and clipped to the grid, the way ``g`` points there to the first
-    interval ``[k, k + 1]`` where it falls (``falls`` (N, S): ``g[k] > 0 >= g[k + 1]``; its last column is not one).
-    Returns each row's interval ``k`` (N,), whether one was found, and the reading relative to the top where none
-    was (the end of the range that way; ``start`` where ``g`` is 0 there)."""
+def _root(g: np.ndarray, grid: np.ndarray, k: np.ndarray) -> np.ndarray:
+    """The root (N,) of each row of ``g`` (N, S) on ``grid`` (S,) in its interval ``[k, k + 1]`` (N,), where
+    ``g[k] > 0 >= g[k + 1]``: linear interpolation between the two grid points."""
     at = np.arange(g.shape[0])
-    s = np.minimum(np.maximum(start, grid[0]), grid[-1])
+    g0, g1 = g[at, k], g[at, k + 1]
+    return grid[k] + (grid[1] - grid[0]) * g0 / (g0 - g1)
+
+
+def _centroid_search(g: np.ndarray, above: np.ndarray, start: np.ndarray, grid: np.ndarray) -> np.ndarray:
+    """:func:`windowed_centroid`'s readings (N,), relative to the top, where a row's ``g`` (N, S) on ``grid`` (S,)
+    does not fall through zero just once (``above``: ``g > 0``): from ``start`` (N,), relative to the top and clipped
+    to the grid, the way ``g`` points there to the first interval ``[k, k + 1]`` where it falls (``g[k] > 0 >=
+    g[k + 1]``), or the end of the range that way where there is none; the grid point itself where ``g`` is 0 there
+    (a root on it); ``start`` in a row without counts (``g`` 0 everywhere); NaN where ``g`` or ``start`` is not a
+    number."""
+    at = np.arange(g.shape[0])
+    bad = ~(np.isfinite(start) & np.isfinite(g).all(axis=1))
+    s = np.where(bad, 0.0, np.minimum(np.maximum(start, grid[0]), grid[-1]))
     i0 = np.rint((s - grid[0]) / (grid[1] - grid[0])).astype(np.intp)
     g_start = g[at, i0]
-    cols = np.arange(g.shape[1] - 1)
-    falls = falls[:, :-1]
+    falls = above[:, :-1] & ~above[:, 1:]  # (N, S - 1)
+    cols = np.arange(falls.shape[1])
     right = falls & (cols >= i0[:, None])
     left = falls & (cols < i0[:, None])
     k_right = right.argmax(axis=1)
     k_left = len(cols) - 1 - left[:, ::-1].argmax(axis=1)
     up = g_start > 0.0
     k = np.where(up, k_right, k_left)
-    found = np.where(up, right[at, k_right], left[at, k_left]) & (g_start != 0.0)
-    shift = np.where(g_start == 0.0, s, np.where(up, grid[-1], grid[0]))
-    return k, found, shift
+    found = np.where(up, right[at, k_right], left[at, k_left])
+    with np.errstate(divide="ignore", invalid="ignore"):  # (the rows without a root found: replaced below)
+        out = np.where(found, _root(g, grid, k), np.where(up, grid[-1], grid[0]))
+    out = np.where(g_start == 0.0, grid[i0], out)
+    out = np.where(g.any(axis=1), out, s)
+    return np.where(bad, np.nan, out)
 
 
 @functools.lru_cache(maxsize=16)
 def _centroid_kernel(half_width: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(kernel (W, S), grid (S,), the window's bins relative to the top (W,): ``-reach .. reach``) of :func:`windowed_centroid`: ``g`` at ``top + grid`` is the window's counts
-    ``x`` (the ``W`` bins ``top - reach .. top + reach``) times the kernel: ``kernel[j, s] = w(d / half_width) d``,
+    """(kernel (W, S), grid (S,), the window's bins relative to the top (W,): ``-reach .. reach``) of
+    :func:`windowed_centroid`: ``g`` at ``top + grid`` is the window's counts ``x`` (the ``W`` bins ``top - reach ..
+    top + reach``) times the kernel: ``kernel[j, s] = w(d / half_width) d``,
     ``d = j - grid[s]``, 0 where ``|d| >= half_width``. The grid spans :data:`CENTROID_MAX_SHIFT` bins either side
     in steps of ``1 / CENTROID_GRID_STEPS``; ``reach`` covers the window from either end of it."""
     reach = int(math.ceil(half_width + CENTROID_MAX_SHIFT))

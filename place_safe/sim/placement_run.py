@@ -20,8 +20,8 @@ Conventions
   packaged simulated *user* calibration of the scenario's simulated sensor (a level-table sweep fitted
   with ``place-safe calibrate``, :mod:`place_safe.sim.calibration_capture`), never the simulator's own
   parameters; only ``oracle=True`` (``--oracle``) hands those over, and ``PlacementResult.calibration``
-  then starts with ``ORACLE``. A method without its calibration refuses before anything moves and
-  says how to calibrate (:func:`place_safe.calibration.uncalibrated_reason`).
+  then starts with ``ORACLE``. A method without its calibration (or its calibrated uncertainty) refuses before
+  anything moves and says how to calibrate (:func:`place_safe.calibration.placement_reason`).
 * Simulation truth for judging the run (true tilt, release height, time from 40 cm, ...) is recorded
   by :class:`place_safe.sim.scenario.TruthRecorder` from the robot's step callbacks.
 * After the machine finishes, the simulation runs :data:`SETTLE_SECONDS` more so the released cup and
@@ -44,7 +44,7 @@ from place_safe.placement.config import PlacementConfig
 from place_safe.sim.scenario import (ORACLE_NOTE, Scenario, TruthRecorder, load_scenario, oracle_calibration,
                                      scenario_path, surface_truth)  # noqa: F401 - part of this module's API
 from place_safe.recovery import make_estimator
-from place_safe.calibration import Calibration, uncalibrated_reason
+from place_safe.calibration import Calibration, placement_reason
 from place_safe.robot.description import ur5_config
 from place_safe.sim import render as _render
 from place_safe.sim.scene import SceneConfig
@@ -181,7 +181,7 @@ def run_placement(scenario: Any = "place_level", method: str | None = None, cali
     truth()
     common = dict(scenario=name, method=method, calibration=cal_note, sensor=sc.sensor.model,
                   true_tilt=tilt_true, surface_height=surface_z, start_height=truth.start_height)
-    why = uncalibrated_reason(method, calibration)
+    why = placement_reason(method, calibration)
     if why is not None:  # calibration is required: refuse before anything moves
         return PlacementResult(outcome="refused", reason=why, final_phase="idle", cup_tilt=0.0, calibrated=False,
                                cup_height=truth.start_height, cup_held=robot.holding(), liquid_spilled=0,

@@ -38,7 +38,7 @@ from place_safe.placement.config import PlacementConfig
 from place_safe.recovery import METHODS
 from place_safe.robot.description import ur5_config
 from place_safe.robot.kinematics import Kinematics
-from place_safe.sim.scene import SceneConfig, SceneError
+from place_safe.sim.scene import SceneConfig, SceneError, robot_xml_from
 from place_safe.sim.tof import ToFConfig, calibration_file, sensor_file, simulated_calibration
 from place_safe.io.input_file import input_file_problem
 
@@ -200,10 +200,8 @@ class Scenario(ConfigModel):
         if not isinstance(scene, dict):  # scene = 5, a list, true: the file's error, not an internal one
             raise ValueError(f"scene must be a table of scene settings, got {_kind(scene)}")
         scene = dict(scene)
-        xml = scene.get("robot_xml")  # from the file's folder, as its calibration (it was the working folder's); made
-        # absolute, so that a scenario validated again from its dump does not join the folder twice
-        if isinstance(xml, str) and xml and d.get("base_dir") and not Path(xml).is_absolute():
-            scene["robot_xml"] = str((Path(d["base_dir"]) / xml).absolute())
+        if d.get("base_dir"):  # a relative robot model from the file's folder, as its calibration (it was the
+            scene = robot_xml_from(scene, d["base_dir"])  # working folder's)
         table = scene.get("table")
         if isinstance(table, dict):
             table = dict(table)
@@ -328,11 +326,13 @@ ORACLE_NOTE = "ORACLE: the simulated sensor's true forward parameters (debugging
 def oracle_calibration():
     """The simulator's own parameters as a calibration: only for ``--oracle`` debugging runs. Diff starts from the
     peak method's plane and falls back to it, so the file carries the packaged nominal user calibration's ``peak``
-    section with them (without one, diff counts as uncalibrated: ``REQUIRED_SECTIONS``)."""
+    section with them (without one, diff counts as uncalibrated: ``REQUIRED_SECTIONS``), and its ``uncertainty``
+    entries (without them a placement refuses: ``REQUIRED_UNCERTAINTY``)."""
     import json
 
-    peak = json.loads(calibration_file("nominal").read_text())["peak"]
-    return Calibration({"forward": json.loads(sensor_file("tmf8820_real.json").read_text()), "peak": peak})
+    nominal = json.loads(calibration_file("nominal").read_text())
+    return Calibration({"forward": json.loads(sensor_file("tmf8820_real.json").read_text()), "peak": nominal["peak"],
+                        "uncertainty": nominal["uncertainty"]})
 
 
 def home_cup_position(scene_cfg) -> np.ndarray:

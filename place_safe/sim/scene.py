@@ -174,9 +174,17 @@ class SceneConfig(_SceneModel):
         d = read_json(path, "scene file", SceneError)
         if isinstance(d, dict) and "scene" in d:  # a scenario file holding a scene
             d = d["scene"]
-        if isinstance(d, dict) and isinstance(xml := d.get("robot_xml"), str) and xml and not Path(xml).is_absolute():
-            d = {**d, "robot_xml": str((Path(path).parent / xml).absolute())}
-        return cls.from_dict(d)
+        return cls.from_dict(robot_xml_from(d, Path(path).parent) if isinstance(d, dict) else d)
+
+
+def robot_xml_from(scene: dict, folder: str | Path) -> dict:
+    """A scene's settings ``scene`` with a relative ``robot_xml`` read from ``folder`` (the folder of the file that
+    holds it) and made absolute (so that settings validated again from their dump do not join the folder twice);
+    ``scene`` itself where there is nothing to resolve."""
+    xml = scene.get("robot_xml")
+    if not (isinstance(xml, str) and xml and not Path(xml).is_absolute()):
+        return scene
+    return {**scene, "robot_xml": str((Path(folder) / xml).absolute())}
 
 
 def scene_config(path: str | Path | None = None, with_robot: bool | None = None) -> SceneConfig:

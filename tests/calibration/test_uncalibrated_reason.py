@@ -53,3 +53,36 @@ def test_diff_without_a_peak_section_is_uncalibrated(sweep_path, tmp_path, capsy
     assert main(["recover", str(sweep_path), "--method", "diff", "--calibration", str(path), "-q"]) == 0
     out = capsys.readouterr().out.splitlines()
     assert out[0].startswith(f"UNCALIBRATED: {path} has no peak section: diff runs on built-in constants")
+
+
+@pytest.mark.parametrize("method, cut", [("diff", "diff"), ("diff", "peak"), ("peak", "peak")])
+def test_a_placement_refuses_a_calibration_without_the_uncertainty_its_method_reads(tmp_path, method, cut):
+    """A calibration whose ``uncertainty`` section lacks the method's entry (diff reads peak's too: its start and
+    fallback) loaded as calibrated: the estimates carried the built-in Uncertainty, no model-error floor (the fit's
+    covariance alone) and, for diff, no fallback to peak, so the release rule trusted each plane beyond what the sensor
+    measures (the sixteenth round's leftover). The planes are still calibrated (``uncalibrated_reason`` is None);
+    ``placement_reason`` names the missing entry, and ``place --sim`` refuses before anything moves."""
+    import json
+
+    from place_safe.calibration import placement_reason
+    from place_safe.sim.placement_run import run_placement
+    from place_safe.sim.tof import calibration_file
+
+    whole = Calibration.load(calibration_file("nominal"))
+    assert placement_reason(method, whole) is None
+    data = json.loads(calibration_file("nominal").read_text())
+    del data["uncertainty"][cut]
+    path = tmp_path / "cut.json"
+    path.write_text(json.dumps(data))
+    cal = Calibration.load(path)
+    assert uncalibrated_reason(method, cal) is None
+    why = placement_reason(method, cal)
+    assert why.startswith(f"sensor's uncertainty not calibrated for {method} (no 'uncertainty.{cut}' entry)")
+    assert ("never fall back to peak" in why) == (method == "diff")
+    assert f"--method {method}" in why
+    del data["uncertainty"]
+    path.write_text(json.dumps(data))
+    none = placement_reason(method, Calibration.load(path))
+    assert "'uncertainty.peak'" in none and (("'uncertainty.diff'" in none) == (method == "diff"))
+    res = run_placement("place_level", method=method, calibration=Calibration.load(path))
+    assert res.outcome == "refused" and res.frames == 0 and res.reason == none

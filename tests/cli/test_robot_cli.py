@@ -215,6 +215,34 @@ def test_place_on_the_arm_needs_a_calibration_before_anything_connects(capsys, s
     assert "is for the arm" in capsys.readouterr().err
 
 
+def test_place_on_the_arm_refuses_a_calibration_without_the_uncertainty_its_method_reads(capsys, sweep_path, tmp_path):
+    """A calibration without ``uncertainty.diff`` counted as calibrated on the arm: diff's planes carried the fit's
+    covariance alone and never fell back to peak. Now it is a usage error naming the file and the entry before the
+    robot is reached (``placement_reason``); --dry-run runs with an UNCALIBRATED line that names the entry."""
+    import json
+
+    from place_safe.sim.tof import calibration_file
+
+    d = json.loads(calibration_file("nominal").read_text())
+    del d["uncertainty"]["diff"]
+    cut = tmp_path / "nounc.json"
+    cut.write_text(json.dumps(d))
+    cfg = URConfig.load(packaged_config("sim"))
+    cfg.connection.connect_timeout_s = 1.0
+    robot = tmp_path / "r.toml"
+    robot.write_text(cfg.to_toml())
+    common = ["place", "--robot", str(robot), "--sensor", f"file:{sweep_path}", "--calibration", str(cut),
+              "--json", str(tmp_path / "r.json"), "--log", str(tmp_path / "t.jsonl")]
+    assert main(common) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(cut) in err[0] and "'uncertainty.diff'" in err[0] and "RTDE" not in err[0], err
+    assert main(common + ["--dry-run"]) == 2  # nothing listens at 127.0.0.1: it got as far as the arm
+    captured = capsys.readouterr()
+    first = captured.out.splitlines()[0]
+    assert first.startswith(f"UNCALIBRATED: {cut}: sensor's uncertainty not calibrated") and "'uncertainty.diff'" in first
+    assert "RTDE receive at 127.0.0.1" in captured.err
+
+
 def test_place_on_the_arm_refuses_a_calibration_without_the_methods_section(capsys, sweep_path, tmp_path):
     """A calibration with diff's forward section but no peak section (diff's start and fallback) counted as calibrated
     on the arm, where round 15 made the simulated placement, recover and evaluate say otherwise: the arm ran diff on

@@ -119,8 +119,8 @@ class _CutWrites:
 
 @pytest.mark.parametrize("suffix", [".json", ".jsonl"])
 @pytest.mark.parametrize("how,kept", [("raise", 2), ("signal", 3)])
-def test_a_ctrl_c_while_a_frame_is_written_leaves_a_readable_recording(tmp_path, capsys, monkeypatch, suffix, how,
-                                                                       kept):
+def test_a_ctrl_c_while_a_frame_is_written_leaves_a_readable_recording(tmp_path, capsys, monkeypatch, sigint_raises,
+                                                                       suffix, how, kept):
     """A Ctrl-C that landed while `sensor record -o rec.json` wrote a frame (round 15's leftover: round 15 kept one
     between frames) cut the file mid-frame, a JSON list without its ']' that every reader refused; the summary was
     "place-safe: interrupted". Each frame's text is now written whole with Ctrl-C held off, the file cut back to the
