@@ -254,6 +254,7 @@ def test_a_plot_name_matplotlib_cannot_write_is_refused_before_the_runs(tmp_path
     assert captured.err.splitlines() == [f"place-safe: error: scenarios: --plot {tmp_path / 'p.txt'} names no figure "
                                          "format matplotlib writes (.txt): give a .png file"] and captured.out == ""
 
+
 @pytest.mark.parametrize("calibration", ["none", "sim"])
 def test_scenarios_refuse_a_calibration_with_the_oracle_not_ignore_it(calibration, capsys, monkeypatch):
     """`scenarios place_level --oracle --calibration none` ran with the simulator's true parameters and printed
