@@ -382,11 +382,8 @@ class PeakParams(ParamModel):
         """The near-range table's error e_z (m, (..., 9)) at first-pass ranges ``r0`` (..., 9): 0 without a
         table and from its last depth on."""
         r0 = np.asarray(r0, dtype=float)
-        if not self.near_depths:
-            return np.zeros_like(r0)
-        if not self._any_near(r0):
-            return np.zeros_like(r0)
-        return near_table_errors(self._near_table(), self.near_depths, r0 * self.directions()[:, 2])
+        errors = self._near_errors(r0) if self.near_depths else None
+        return np.zeros_like(r0) if errors is None else errors
 
     def ranges(self, readings: np.ndarray) -> np.ndarray:
         """Ranges (m) for readings (..., 9)."""
@@ -400,13 +397,17 @@ class PeakParams(ParamModel):
         elif self.residual_coeffs:
             for _ in range(RANGE_ITERATIONS):  # solve m g r + c(r) = x by fixed-point iteration
                 r = (x - self._correction(r)) / mz
-        if self.near_depths and self._any_near(r):  # (from the table's last depth on its errors are 0: r as it is)
-            r = r - self.near_correction(r)
+        if self.near_depths and (errors := self._near_errors(r)) is not None:
+            r = r - errors
         return r
 
-    def _any_near(self, r: np.ndarray) -> bool:
-        """Whether a zone at range ``r`` (..., 9; m) lies closer than the near-range table's last depth (NaN: no)."""
-        return bool(np.fmin.reduce(r * self.directions()[:, 2], axis=None, initial=np.inf) < self.near_depths[-1])
+    def _near_errors(self, r: np.ndarray) -> np.ndarray | None:
+        """:meth:`near_correction` of a mapping with a near-range table at ranges ``r`` (..., 9; m), or None where no
+        zone lies closer than the table's last depth (NaN: none), whose errors are all 0 there: the usual frame."""
+        depth = r * self.directions()[:, 2]
+        if not np.fmin.reduce(depth, axis=None, initial=np.inf) < self.near_depths[-1]:
+            return None
+        return near_table_errors(self._near_table(), self.near_depths, depth)
 
     def without_near_table(self) -> "PeakParams":
         """A copy without the near-range table (no depths, errors or weak-return fraction): the far-range mapping."""

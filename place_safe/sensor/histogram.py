@@ -312,9 +312,9 @@ def _returns(hists: np.ndarray, pileup: float, subbin: str,
     if subbin not in SUBBIN_METHODS:
         raise ValueError(f"subbin must be one of {', '.join(SUBBIN_METHODS)}, got {subbin!r}")
     h = np.asarray(hists, dtype=float)
+    finite_bins = np.isfinite(h)
     finite = True  # (every zone's counts finite: the usual frame)
-    if np.count_nonzero(np.isfinite(h)) < h.size:
-        finite_bins = np.isfinite(h)
+    if np.count_nonzero(finite_bins) < h.size:
         finite = finite_bins.all(axis=-1)
         h = np.where(finite_bins, h, 0.0)
     saturated = clipped_zones(h)
