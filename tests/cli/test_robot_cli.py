@@ -215,24 +215,33 @@ def test_place_on_the_arm_needs_a_calibration_before_anything_connects(capsys, s
     assert "is for the arm" in capsys.readouterr().err
 
 
-def test_place_on_the_arm_refuses_a_calibration_without_the_uncertainty_its_method_reads(capsys, sweep_path, tmp_path):
-    """A calibration without ``uncertainty.diff`` counted as calibrated on the arm: diff's planes carried the fit's
-    covariance alone and never fell back to peak. Now it is a usage error naming the file and the entry before the
-    robot is reached (``placement_reason``); --dry-run runs with an UNCALIBRATED line that names the entry."""
+def _place_on_the_arm_with_a_cut_calibration(tmp_path, sweep_path, name: str, cut):
+    """``place --robot`` arguments with the packaged nominal calibration less what ``cut`` takes out of its dict, written
+    to ``tmp_path / name``, the real sweep as the sensor and the simulated robot file (giving up on connecting after
+    1 s); with the calibration's path, the robot file's and the cut dict."""
     import json
 
     from place_safe.sim.tof import calibration_file
 
     d = json.loads(calibration_file("nominal").read_text())
-    del d["uncertainty"]["diff"]
-    cut = tmp_path / "nounc.json"
-    cut.write_text(json.dumps(d))
+    cut(d)
+    path = tmp_path / name
+    path.write_text(json.dumps(d))
     cfg = URConfig.load(packaged_config("sim"))
     cfg.connection.connect_timeout_s = 1.0
     robot = tmp_path / "r.toml"
     robot.write_text(cfg.to_toml())
-    common = ["place", "--robot", str(robot), "--sensor", f"file:{sweep_path}", "--calibration", str(cut),
+    common = ["place", "--robot", str(robot), "--sensor", f"file:{sweep_path}", "--calibration", str(path),
               "--json", str(tmp_path / "r.json"), "--log", str(tmp_path / "t.jsonl")]
+    return common, path, robot, d
+
+
+def test_place_on_the_arm_refuses_a_calibration_without_the_uncertainty_its_method_reads(capsys, sweep_path, tmp_path):
+    """A calibration without ``uncertainty.diff`` counted as calibrated on the arm: diff's planes carried the fit's
+    covariance alone and never fell back to peak. Now it is a usage error naming the file and the entry before the
+    robot is reached (``placement_reason``); --dry-run runs with an UNCALIBRATED line that names the entry."""
+    common, cut, _, _ = _place_on_the_arm_with_a_cut_calibration(tmp_path, sweep_path, "nounc.json",
+                                                                 lambda d: d["uncertainty"].pop("diff"))
     assert main(common) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and str(cut) in err[0] and "'uncertainty.diff'" in err[0] and "RTDE" not in err[0], err
@@ -253,16 +262,8 @@ def test_place_on_the_arm_refuses_a_calibration_without_the_methods_section(caps
 
     from place_safe.sim.tof import calibration_file
 
-    d = json.loads(calibration_file("nominal").read_text())
-    del d["peak"]
-    nopeak = tmp_path / "nopeak.json"
-    nopeak.write_text(json.dumps(d))
-    cfg = URConfig.load(packaged_config("sim"))
-    cfg.connection.connect_timeout_s = 1.0
-    robot = tmp_path / "r.toml"
-    robot.write_text(cfg.to_toml())
-    common = ["place", "--robot", str(robot), "--sensor", f"file:{sweep_path}", "--calibration", str(nopeak),
-              "--json", str(tmp_path / "r.json"), "--log", str(tmp_path / "t.jsonl")]
+    common, nopeak, robot, d = _place_on_the_arm_with_a_cut_calibration(tmp_path, sweep_path, "nopeak.json",
+                                                                        lambda d: d.pop("peak"))
     assert main(common) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and str(nopeak) in err[0] and "no 'peak' section" in err[0] and "RTDE" not in err[0], err

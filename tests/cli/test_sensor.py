@@ -64,25 +64,17 @@ def test_a_recording_stopped_with_ctrl_c_keeps_the_frames_read_as_a_readable_fil
     before the first frame, nothing is written."""
     import place_safe.cli.sensor as sensor_cli
 
-    class Interrupted(FrameSource):
-        def __init__(self, frames):
-            self.left = list(frames)
-
-        def read(self, timeout=1.0):
-            if not self.left:
-                raise KeyboardInterrupt
-            return self.left.pop(0)
-
     frames = list(random_frames(3, seed=4))
-    monkeypatch.setattr(sensor_cli, "open_source", lambda uri, **opts: Interrupted(frames))
+    monkeypatch.setattr(sensor_cli, "open_source", lambda uri, **opts: _Frames(frames, KeyboardInterrupt))
     out = tmp_path / f"rec{suffix}"
     assert main(["sensor", "record", "emu:synthetic", "-o", str(out), "--frames", "100", "-q"]) == 130
     assert capsys.readouterr().err.splitlines() == [f"wrote 3 frames to {out} (stopped: interrupted)"]
     assert len(load_frames(out)) == 3
-    monkeypatch.setattr(sensor_cli, "open_source", lambda uri, **opts: Interrupted([]))
+    monkeypatch.setattr(sensor_cli, "open_source", lambda uri, **opts: _Frames([], KeyboardInterrupt))
     none = tmp_path / f"none{suffix}"
     assert main(["sensor", "record", "emu:synthetic", "-o", str(none), "-q"]) == 130
     assert capsys.readouterr().err.splitlines() == ["place-safe: interrupted"] and not none.exists()
+
 
 class _CutWrites:
     """A file whose ``cut``-th write of a frame's text (one holding "hists") is cut mid-way by a Ctrl-C: ``how`` is
@@ -143,12 +135,16 @@ def test_a_ctrl_c_while_a_frame_is_written_leaves_a_readable_recording(tmp_path,
 
 
 class _Frames(FrameSource):
-    def __init__(self, frames):
+    """A source of ``frames`` that raises ``end`` once they are read (StopIteration: it ends; KeyboardInterrupt: a
+    Ctrl-C while it is read)."""
+
+    def __init__(self, frames, end: type[BaseException] = StopIteration):
         self.left = list(frames)
+        self.end = end
 
     def read(self, timeout=1.0):
         if not self.left:
-            raise StopIteration
+            raise self.end
         return self.left.pop(0)
 
 
