@@ -36,6 +36,7 @@ import torch
 
 from place_safe.sensor.frame import N_BINS, N_ZONES, ZONE_KIND, ZONE_RECTS
 # the parameters live without torch (a calibration is read, and peak runs, without the renderer)
+from place_safe.recovery.tangent_einsum import einsum2
 from place_safe.recovery.forward_params import (ECHO_REFERENCE_RANGE, WARP_KNOTS, WARP_SPACING, ForwardParams,
                                                 _GRID_SELECTORS)
 
@@ -307,14 +308,78 @@ def apply_pileup(hist: torch.Tensor, k: torch.Tensor, shadow: torch.Tensor | flo
 
     ``shadow`` (blend in [0, 1], :class:`ForwardParams` ``pileup_shadow``) weights the earlier bins' shadowing:
     ``(1 - exp(-k h_b)) / k exp(-k shadow sum_{j<b} h_j)``; 1 (the default) is Coates' formula.
-    ``k = 0`` returns ``hist`` unchanged (the limit of the formula).
+    ``k = 0`` returns ``hist`` unchanged (the limit of the formula). Its derivatives are written out
+    (:class:`_Pileup`): a calibration's Jacobian pushes dozens of tangents through it at once.
     """
     if not torch.is_grad_enabled() and float(k) == 0.0:
         return hist
-    before = torch.cumsum(hist, dim=-1) - hist  # counts in earlier bins
-    kk = torch.clamp(k, min=1e-30)
-    return -torch.expm1(-kk * hist) / kk * torch.exp(-kk * shadow * before)
+    k = torch.as_tensor(k, dtype=hist.dtype)
+    return _Pileup.apply(hist, k, torch.as_tensor(shadow, dtype=hist.dtype))
 
+
+class _Pileup(torch.autograd.Function):
+    """:func:`apply_pileup` with its derivatives written out: ``y = P E`` with ``P = (1 - exp(-k h)) / k`` and
+    ``E = exp(-k s c)``, ``c`` the counts in the earlier bins (``k`` clamped at 1e-30, whose derivative is then 0):
+
+    ``dy = exp(-k h) E dh - k s y dc + ((h exp(-k h) - P) / k E - s c y) dk - k c y ds``, ``dc`` the earlier bins'
+    ``dh`` summed. Autograd through the formula takes each tangent through a dozen operations; this is four on the
+    tangents, the factors made once (``vmap`` over ``jvp`` in the forward fit's Jacobian)."""
+
+    generate_vmap_rule = True
+
+    @staticmethod
+    def forward(hist, k, shadow):
+        before = torch.cumsum(hist, dim=-1) - hist  # counts in earlier bins
+        kk = torch.clamp(k, min=1e-30)
+        return -torch.expm1(-kk * hist) / kk * torch.exp(-kk * shadow * before)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output):
+        hist, k, shadow = inputs
+        ctx.set_materialize_grads(False)  # an input without a tangent gets None, not a tensor of zeros
+        ctx.save_for_backward(hist, k, shadow, output)
+        ctx.save_for_forward(hist, k, shadow, output)
+
+    @staticmethod
+    def _factors(hist, k, shadow, y):
+        """d y / d h (the bin's own), d y / d c, d y / d k and d y / d s (each broadcast to ``hist``)."""
+        before = torch.cumsum(hist, dim=-1) - hist
+        kk = torch.clamp(k, min=1e-30)
+        e = torch.exp(-kk * hist)
+        big_e = torch.exp(-kk * shadow * before)
+        own = e * big_e
+        d_c = -(kk * shadow) * y
+        live = (k >= 1e-30).to(hist.dtype)  # the clamp's derivative
+        d_k = live * ((hist * e + torch.expm1(-kk * hist) / kk) / kk * big_e - shadow * before * y)
+        d_s = -kk * before * y
+        return own, d_c, d_k, d_s
+
+    @staticmethod
+    def jvp(ctx, d_hist, d_k, d_shadow):
+        hist, k, shadow, y = ctx.saved_tensors
+        own, d_c, d_y_k, d_y_s = _Pileup._factors(hist, k, shadow, y)
+        terms = []
+        if d_hist is not None:
+            terms.append(own * d_hist + d_c * (torch.cumsum(d_hist, dim=-1) - d_hist))
+        if d_k is not None:
+            terms.append(d_y_k * d_k)
+        if d_shadow is not None:
+            terms.append(d_y_s * d_shadow)
+        return sum(terms[1:], terms[0]) if terms else torch.zeros_like(y)
+
+    @staticmethod
+    def backward(ctx, grad):
+        if grad is None:
+            return None, None, None
+        hist, k, shadow, y = ctx.saved_tensors
+        own, d_c, d_y_k, d_y_s = _Pileup._factors(hist, k, shadow, y)
+        g_c = grad * d_c  # each bin's gradient on the earlier bins' counts: a reversed, exclusive cumulative sum
+        g_hist = grad * own + (torch.flip(torch.cumsum(torch.flip(g_c, (-1,)), dim=-1), (-1,)) - g_c)
+
+        def reduce(g: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+            return g.sum_to_size(like.shape) if like.dim() else g.sum()
+
+        return g_hist, reduce(grad * d_y_k, k), reduce(grad * d_y_s, shadow)
 
 
 def ambient_pileup(hist: torch.Tensor, ambient: torch.Tensor, k: torch.Tensor | float,
@@ -414,8 +479,8 @@ def causal_matrix(kernel: torch.Tensor, n: int) -> torch.Tensor:
 def add_zone_tails(hist: torch.Tensor, taps: torch.Tensor) -> torch.Tensor:
     """Histograms (B, 9, N) plus each zone's tail: ``h_z[j] + sum_k taps[z, k-1] h_z[j - k]`` (causal)."""
     kernel = torch.cat([torch.ones_like(taps[:, :1]), taps], dim=-1)  # (9, 1 + L): the histogram, then its tail
-    # zones first, so the product is batched over the 9 zones' own matrices (never expanded per frame)
-    return (hist.transpose(0, 1) @ causal_matrix(kernel, hist.shape[-1]).transpose(-1, -2)).transpose(0, 1)
+    # each zone's own matrix, never expanded per frame (nor per tangent: einsum2)
+    return einsum2("bzk,znk->bzn", hist, causal_matrix(kernel, hist.shape[-1]))
 
 
 def response_matrix(kernel, n: int, dtype: torch.dtype = torch.float64) -> torch.Tensor:
@@ -427,12 +492,12 @@ def response_matrix(kernel, n: int, dtype: torch.dtype = torch.float64) -> torch
 
 def add_response(hist: torch.Tensor, kernel: torch.Tensor) -> torch.Tensor:
     """Histograms (B, 9, N) convolved with the learned impulse response ``delta + sum_k kernel[k-1] delta(k)``."""
-    return hist @ response_matrix(kernel, hist.shape[-1], hist.dtype).T
+    return hist @ response_matrix(kernel, hist.shape[-1], hist.dtype).T  # (one matrix: vmap folds tangents into rows)
 
 
 def convolve_pulse(transient: torch.Tensor, kernel: torch.Tensor) -> torch.Tensor:
     """Causal convolution of transients (B, Z, N) with per-frame kernels (B, K) -> (B, Z, N)."""
-    return transient @ causal_matrix(kernel, transient.shape[-1]).transpose(-1, -2)
+    return einsum2("bzk,bnk->bzn", transient, causal_matrix(kernel, transient.shape[-1]))
 
 
 def bin_kernel(t, sigma, integrated: float, derivatives: bool | str = False, spline: float = 0.0):
@@ -545,6 +610,7 @@ class _SoftBin(torch.autograd.Function):
     def setup_context(ctx, inputs, output):
         amp, u, sigma, bins, integrated, spline = inputs
         ctx.integrated, ctx.spline = integrated, spline
+        ctx.set_materialize_grads(False)  # an input without a tangent gets None, not a tensor of zeros
         ctx.save_for_backward(amp, u, sigma, bins)
         ctx.save_for_forward(amp, u, sigma, bins)
 
@@ -556,18 +622,34 @@ class _SoftBin(torch.autograd.Function):
     @staticmethod
     def jvp(ctx, d_amp, d_u, d_sigma, _d_bins, _d_integrated, _d_spline):
         amp, u, sigma, bins = ctx.saved_tensors
-        g, g_u, g_s = _SoftBin._parts(amp, u, sigma, bins, ctx.integrated, ctx.spline)
-        out = torch.zeros(amp.shape[:2] + bins.shape, dtype=amp.dtype)
+        # only the kernels the tangents need (inputs without one get None: set_materialize_grads)
+        wanted = True if d_sigma is not None else ("u" if d_u is not None else False)
+        parts = bin_kernel(bins.view(1, 1, 1, -1) - u.unsqueeze(-1), sigma, ctx.integrated, derivatives=wanted,
+                           spline=ctx.spline)
+        g = parts if wanted is False else parts[0]
+        # the amplitudes' and the positions' tangents in one contraction over the rays, both kernels side by side
+        rays, kernels = [], []
         if d_amp is not None:
-            out = out + torch.einsum("bzr,bzrn->bzn", d_amp, g)
+            rays.append(d_amp)
+            kernels.append(g)
         if d_u is not None:
-            out = out + torch.einsum("bzr,bzrn->bzn", amp * d_u, g_u)
+            rays.append(amp * d_u)
+            kernels.append(parts[1])
+        terms = []
+        if rays:
+            terms.append(einsum2("bzr,bzrn->bzn", rays[0], kernels[0]) if len(rays) == 1 else
+                         einsum2("bzr,bzrn->bzn", torch.cat(torch.broadcast_tensors(*rays), dim=-1),
+                                 torch.cat(kernels, dim=-2)))
         if d_sigma is not None:
-            out = out + d_sigma * torch.einsum("bzr,bzrn->bzn", amp, g_s)
-        return out
+            terms.append(d_sigma * torch.einsum("bzr,bzrn->bzn", amp, parts[2]))
+        if not terms:
+            return torch.zeros(amp.shape[:2] + bins.shape, dtype=amp.dtype)
+        return terms[0] if len(terms) == 1 else terms[0] + terms[1]
 
     @staticmethod
     def backward(ctx, grad):
+        if grad is None:
+            return None, None, None, None, None, None
         amp, u, sigma, bins = ctx.saved_tensors
         g, g_u, g_s = _SoftBin._parts(amp, u, sigma, bins, ctx.integrated, ctx.spline)
         d_amp = torch.einsum("bzn,bzrn->bzr", grad, g)
@@ -790,16 +872,18 @@ class ForwardModel:
                                bool(torch.any(t["zone_pulse_widths"] != 0)) or bool(torch.any(t["zone_pulse_skews"] != 0)))
         if shaped:
             shape = pulse_shape_matrix(t["zone_pulse_widths"], t["zone_pulse_skews"], hist.shape[-1], self.dtype)
-            hist = (hist.transpose(0, 1) @ shape.transpose(-1, -2)).transpose(0, 1)
+            hist = einsum2("bzk,znk->bzn", hist, shape)
         if self._renders(("response_kernel",), bool(torch.any(t["response_kernel"] != 0))):
             hist = add_response(hist, t["response_kernel"])
         if self._renders(("zone_tail_weights", "zone_tail_decays"), bool(torch.any(t["zone_tail_weights"] != 0))):
             hist = add_zone_tails(hist, zone_tail_taps(t["zone_tail_weights"], t["zone_tail_decays"], self.dtype))
-        total = hist.sum(dim=1, keepdim=True)
-        mixed = hist + t["crosstalk"] * (total - (1.0 - t["crosstalk_self"]) * hist)
+        # the crosstalk as one (9, 9) matrix M[to, from]: each zone keeps its histogram and gets ``crosstalk`` of the
+        # total of the others and ``crosstalk x crosstalk_self`` of its own, plus the neighbour grid
+        c = t["crosstalk"]
+        mix = (1.0 - c * (1.0 - t["crosstalk_self"])) * torch.eye(N_ZONES, dtype=self.dtype) + c
         if self._renders(("crosstalk_grid",), bool(torch.any(t["crosstalk_grid"] != 0))):
-            mixed = mixed + torch.einsum("tf,bfn->btn", grid_crosstalk_matrix(t["crosstalk_grid"], self.dtype), hist)
-        hist = mixed
+            mix = mix + grid_crosstalk_matrix(t["crosstalk_grid"], self.dtype)
+        hist = einsum2("tf,bfn->btn", mix, hist)
         if shaped:
             hist = torch.clamp(hist, min=0.0)  # the shape correction's negative lobes beside a sharp pulse: no counts
         if self._renders(("bin_gains",), bool(torch.any(t["bin_gains"] != 1))):

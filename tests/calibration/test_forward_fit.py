@@ -535,3 +535,31 @@ def test_the_albedo_spread_counts_only_albedos_the_counts_determined():
         ff.albedo_spread(la, lower, upper, used=np.array([True]))
 
 
+
+
+def test_the_anscombe_residuals_written_out_derivatives_are_the_formulas():
+    """The forward fit's Anscombe residual (its derivatives written out) against autograd through its formula, with
+    counts below zero (clamped: no slope) among them: forward mode, many tangents at once, and reverse mode."""
+    import torch
+    from torch.func import jvp, vmap
+    from place_safe.calibration.forward_fit import _AnscombeResidual
+
+    def formula(m, root, w):
+        return (torch.sqrt(torch.clamp(m, min=0.0) + 0.375) - root) * w
+
+    g = torch.Generator().manual_seed(2)
+    m = 50.0 * torch.randn((3, 9, 20), dtype=torch.float64, generator=g) + 20.0
+    assert (m < 0).any()
+    root = torch.sqrt(torch.rand(m.shape, dtype=torch.float64, generator=g) * 100.0 + 0.375)
+    w = torch.rand(m.shape, dtype=torch.float64, generator=g)
+    torch.testing.assert_close(_AnscombeResidual.apply(m, root, w), formula(m, root, w), rtol=0.0, atol=0.0)
+    dm = torch.randn((4,) + m.shape, dtype=torch.float64, generator=g)
+    got = vmap(lambda t: jvp(lambda a: _AnscombeResidual.apply(a, root, w), (m,), (t,))[1])(dm)
+    want = vmap(lambda t: jvp(lambda a: formula(a, root, w), (m,), (t,))[1])(dm)
+    torch.testing.assert_close(got, want, rtol=1e-14, atol=1e-14)
+    inputs = [x.clone().requires_grad_() for x in (m, root, w)]
+    v = torch.randn(m.shape, dtype=torch.float64, generator=g)
+    got = torch.autograd.grad((_AnscombeResidual.apply(*inputs) * v).sum(), inputs)
+    want = torch.autograd.grad((formula(*inputs) * v).sum(), inputs)
+    for a, b in zip(got, want):
+        torch.testing.assert_close(a, b, rtol=1e-14, atol=1e-14)

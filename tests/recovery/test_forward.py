@@ -728,3 +728,41 @@ def test_a_saturation_beyond_any_count_is_refused_when_the_file_is_read():
     with pytest.raises(CalibrationError, match="saturation") as e:
         cal.forward()
     assert "\n" not in str(e.value)
+
+
+def test_the_pileups_written_out_derivatives_are_the_formulas():
+    """``apply_pileup``'s derivatives (written out, :class:`_Pileup`) in the counts, ``k`` and the shadow blend against
+    autograd through Coates' formula: forward mode, many tangents at once (vmap), and reverse mode."""
+    from torch.func import jvp, vmap
+
+    def formula(h, k, s):
+        before = torch.cumsum(h, dim=-1) - h
+        return -torch.expm1(-k * h) / k * torch.exp(-k * s * before)
+
+    g = torch.Generator().manual_seed(4)
+    h = 1000.0 * torch.rand((3, 9, 20), dtype=torch.float64, generator=g)
+    k, s = torch.tensor(3e-5, dtype=torch.float64), torch.tensor(0.6, dtype=torch.float64)
+    torch.testing.assert_close(apply_pileup(h, k, s), formula(h, k, s), rtol=1e-15, atol=0.0)
+    dh = torch.randn((4,) + h.shape, dtype=torch.float64, generator=g)
+    dk, ds = 1e-6 * torch.randn(4, dtype=torch.float64, generator=g), torch.randn(4, dtype=torch.float64, generator=g)
+    for f_ours, f_theirs in ((apply_pileup, formula),):
+        got = vmap(lambda a, b, c: jvp(f_ours, (h, k, s), (a, b, c))[1])(dh, dk, ds)
+        want = vmap(lambda a, b, c: jvp(f_theirs, (h, k, s), (a, b, c))[1])(dh, dk, ds)
+        torch.testing.assert_close(got, want, rtol=1e-10, atol=1e-10)
+    # one input's tangent alone (the others' come as None)
+    torch.testing.assert_close(jvp(lambda a: apply_pileup(a, k, s), (h,), (dh[0],))[1],
+                               jvp(lambda a: formula(a, k, s), (h,), (dh[0],))[1], rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(jvp(lambda b: apply_pileup(h, b, s), (k,), (dk[0],))[1],
+                               jvp(lambda b: formula(h, b, s), (k,), (dk[0],))[1], rtol=1e-10, atol=1e-10)
+    # reverse mode, and the Coates default (a Python float shadow)
+    for shadow in (s, 1.0):
+        hr, kr = h.clone().requires_grad_(), k.clone().requires_grad_()
+        w = torch.randn(h.shape, dtype=torch.float64, generator=g)
+        got = torch.autograd.grad((apply_pileup(hr, kr, shadow) * w).sum(), (hr, kr))
+        want = torch.autograd.grad((formula(hr, kr, shadow) * w).sum(), (hr, kr))
+        for a, b in zip(got, want):
+            torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12)
+    sr = s.clone().requires_grad_()
+    w = torch.randn(h.shape, dtype=torch.float64, generator=g)
+    torch.testing.assert_close(torch.autograd.grad((apply_pileup(h, k, sr) * w).sum(), sr)[0],
+                               torch.autograd.grad((formula(h, k, sr) * w).sum(), sr)[0], rtol=1e-10, atol=1e-12)
