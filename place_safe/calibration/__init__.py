@@ -296,14 +296,19 @@ def placement_reason(method: str, calibration: "Calibration | None") -> str | No
     ``calibrate`` writes has the entries: one without them was cut or written by hand)."""
     if (why := uncalibrated_reason(method, calibration)) is not None:
         return why
-    have = calibration.sections.get("uncertainty") if calibration is not None else None
-    have = have if isinstance(have, dict) else {}
-    missing = [f"uncertainty.{m}" for m in REQUIRED_UNCERTAINTY.get(method, ()) if not isinstance(have.get(m), dict)]
-    if not missing:
+    if not (missing := missing_uncertainty(method, calibration)):
         return None
     return (f"sensor's uncertainty not calibrated for {method} (no {' or '.join(repr(m) for m in missing)} entry): its "
             f"planes would state the fit's covariance alone{' and never fall back to peak' if method == 'diff' else ''}; "
             f"calibrate it again: place-safe calibrate FRAMES.json --method {method} -o cal.json")
+
+
+def missing_uncertainty(method: str, calibration: "Calibration | None") -> list[str]:
+    """The entries of the ``uncertainty`` section that ``method`` reads (:data:`REQUIRED_UNCERTAINTY`) and
+    ``calibration`` lacks, as ``"uncertainty.diff"`` etc. (all of them without a calibration)."""
+    have = calibration.sections.get("uncertainty") if calibration is not None else None
+    have = have if isinstance(have, dict) else {}
+    return [f"uncertainty.{m}" for m in REQUIRED_UNCERTAINTY.get(method, ()) if not isinstance(have.get(m), dict)]
 
 
 def missing_section(method: str, calibration: "Calibration | None") -> str | None:

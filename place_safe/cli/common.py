@@ -22,7 +22,8 @@ from place_safe.io.json_values import jsonable
 from place_safe.recovery import METHODS, make_estimator  # noqa: F401 - the one list of method names, for the commands
 from place_safe.io.frame_file import iter_frames
 from place_safe.io.input_file import input_file_problem
-from place_safe.calibration import FORMAT, REQUIRED_SECTIONS, Calibration, missing_section, uncalibrated_reason
+from place_safe.calibration import (FORMAT, REQUIRED_SECTIONS, Calibration, missing_section, missing_uncertainty,
+                                   uncalibrated_reason)
 
 PROG = "place-safe"
 CALIBRATE_METHODS = ("diff", "peak", "proprietary")
@@ -311,6 +312,30 @@ def uncalibrated_note(methods: str | Sequence[str], calibration, path: str | Non
         advice = (("They use no calibration (baselines" if len(naive) > 1 else "It uses no calibration (a baseline")
                   + f" to compare with); for calibrated planes use {plain} with --calibration")
     return f"UNCALIBRATED: {'; '.join(why)}; planes can be off by degrees. {advice}"
+
+
+def uncertainty_note(methods: str | Sequence[str], calibration, path: str | None = None) -> str | None:
+    """A note (``note: ...``, one line) when a calibrated method of ``methods`` reads ``uncertainty`` entries the
+    calibration lacks (:func:`~place_safe.calibration.missing_uncertainty`), else None.
+
+    Its planes are calibrated (no :func:`uncalibrated_note`, rows unmarked), but their covariances are the fits' alone,
+    with no model-error floor, and diff never falls back to peak: the planes' stated precision is not the sensor's. A
+    placement refuses such a file (:func:`~place_safe.calibration.placement_reason`); ``recover``, ``evaluate``,
+    ``stream`` and ``latency`` run and say so. Every file ``calibrate`` writes has the entries."""
+    names = [methods] if isinstance(methods, str) else list(methods)
+    if calibration is None:
+        return None
+    lacking = {m: missing_uncertainty(m, calibration) for m in dict.fromkeys(names)
+               if uncalibrated_reason(m, calibration) is None}
+    lacking = {m: entries for m, entries in lacking.items() if entries}
+    if not lacking:
+        return None
+    entries = list(dict.fromkeys(e for es in lacking.values() for e in es))
+    which = ", ".join(lacking)
+    return (f"note: {path or 'the calibration'} has no {' or '.join(repr(e) for e in entries)} entr"
+            f"{'y' if len(entries) == 1 else 'ies'}, so {which}'s covariances are the fit's alone (no model-error "
+            f"floor){' and diff never falls back to peak' if 'diff' in lacking else ''}; a placement refuses this file. "
+            f"Calibrate again: place-safe calibrate FRAMES.json --method {next(iter(lacking))} -o cal.json")
 
 
 def evaluated_methods(given: Sequence[str] | None, calibration,

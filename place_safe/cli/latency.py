@@ -41,6 +41,14 @@ def cmd_latency(args: argparse.Namespace) -> int:
 
     from place_safe.evaluation.bench import measure_recover_latency
     require_frame_file(args.file)
+    from itertools import islice
+
+    from place_safe.io.frame_file import iter_frames
+    # the entries (usable or not: recover writes a line for each), counted before anything is printed, so a file too
+    # short to time is one error line
+    if (n := sum(1 for _ in islice(iter_frames(args.file, truth=False), 2))) < 2:
+        raise PlaceSafeError(f"latency: {args.file} holds {n} frame{'' if n == 1 else 's'}; it needs 2 or more (the "
+                             "first line's time is start-up, the per-frame times are the gaps between lines)")
     note = uncalibrated_note(args.method, load_calibration(args.calibration), args.calibration)  # a bad file: one line
     if note is not None:
         print(note, flush=True)

@@ -23,7 +23,7 @@ from place_safe.exceptions import CalibrationError, FrameError, FrameFileError, 
 from place_safe.cli.common import (CALIBRATE_METHODS, METHODS, PROG, UsageError, estimator_for, given_twice,
                                    jsonable, load_any_frames, load_calibration, load_truth_frames, log, progress_options,
                                    refuse_overwrite, report_notes, require_frame_file, summarise, not_a_file,
-                                   uncalibrated_note, evaluated_methods, fit_summary, flags_said)
+                                   uncalibrated_note, uncertainty_note, evaluated_methods, fit_summary, flags_said)
 from place_safe.evaluation.bench import DEFAULT_RUNS, measure_file_rss, report_json, run_bench
 from place_safe.evaluation.evaluate import evaluate
 from place_safe.io.frame_file import iter_frames
@@ -254,6 +254,8 @@ def cmd_recover(args: argparse.Namespace) -> int:
     out.flush()
     if args.jsonl and note is not None and not args.quiet:  # (after the run: an error stays stderr's one line)
         log(note)  # standard output stays JSON lines, each with "calibrated": false
+    if (unsure := uncertainty_note(args.method, cal, args.calibration)) is not None and not args.quiet:
+        log(unsure)  # the planes are calibrated (rows unmarked); their stated covariances are not the sensor's
     if unstamped and not args.quiet:
         log(f"note: the timestamp of {len(unstamped)} frame{'s' if len(unstamped) > 1 else ''} was not used (first "
             f"{unstamped[0]}); recovery does not read it")
@@ -289,6 +291,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         print(note, flush=True)  # the first line; the table marks each uncalibrated method's row
     if left_out is not None:
         print(left_out, flush=True)  # what the table holds: on standard output with it
+    if (unsure := uncertainty_note(args.methods, cal, args.calibration)) is not None and not args.quiet:
+        log(unsure)  # the rows are calibrated planes; the NEES column reads the fits' covariances alone
     if cal is not None and not args.quiet and (ref := max((cal.reference(m).tilt_std for m in args.methods
                                                             if m in REQUIRED_SECTIONS), default=0.0)) > 0.0:
         log(f"note: the plane this calibration was captured against may be off by {math.degrees(ref):.2f} deg (its "
@@ -339,6 +343,8 @@ def cmd_stream(args: argparse.Namespace) -> int:
     if note is not None:  # the summary's first line carries the mark
         first, _, rest = summary.partition("\n")
         summary = mark(first, False) + (f"\n{rest}" if rest else "")
+    if (unsure := uncertainty_note(args.method, cal, args.calibration)) is not None:
+        log(unsure)  # (after the run: an error stays standard error's one line)
     if args.jsonl:  # every record says whether it was calibrated
         log(summary)
     else:  # the summary is the output: the note on a missing calibration is its first line

@@ -742,6 +742,19 @@ def test_latency_of_a_missing_file_is_one_line(capsys):
     assert "does not exist" in one_line_error(capsys.readouterr().err)
 
 
+def test_latency_of_a_file_too_short_to_time_is_one_line_and_nothing_else(tmp_path, sweep_path, capsys):
+    """A file of one frame (or none) cannot be timed: one error line, before the UNCALIBRATED line and before a recover
+    process is started (round 16's leftover: the note came first, then the error after the subprocess)."""
+    frames = json.loads(sweep_path.read_text())
+    for n in (0, 1):
+        path = tmp_path / f"{n}.json"
+        path.write_text(json.dumps(frames[:n]))
+        assert main(["latency", str(path), "--method", "peak"]) == 2
+        cap = capsys.readouterr()
+        assert cap.out == ""
+        assert f"holds {n} frame" in one_line_error(cap.err) and "2 or more" in cap.err
+
+
 def test_calibrate_fits_only_frames_an_estimator_reads(tmp_path, sweep_path, monkeypatch, capsys):
     """Frames with negative or NaN counts (which recover refuses) are skipped and counted, not fitted: they entered the
     peak fit and counted towards the frames it needs (3 of which 1 with a NaN passed the check)."""

@@ -173,3 +173,38 @@ def test_evaluate_leaves_out_by_default_the_methods_its_calibration_does_not_cal
     out = _lines(capsys.readouterr().out)
     assert not any("left out" in r for r in out)
     assert any(r.startswith("proprietary") and r.endswith(UNCALIBRATED_MARK) for r in out)
+
+
+def test_a_calibration_without_its_uncertainty_is_said_but_not_marked(tmp_path, sweep_path, capsys):
+    """A calibration whose ``uncertainty`` section lacks the method's entry (cut, or written by hand): its planes are
+    calibrated, so no UNCALIBRATED line and no marks, but ``recover``, ``evaluate`` and ``stream`` say on standard error
+    that the covariances are the fit's alone (and diff's fallback gone) and that a placement refuses the file; ``-q``
+    silences it, and a method whose entries are there gets no note (round 16's leftover)."""
+    from place_safe.calibration import Calibration
+    from place_safe.cli.common import uncertainty_note
+    from place_safe.sim.tof import calibration_file
+
+    data = json.loads(calibration_file("nominal").read_text())
+    del data["uncertainty"]["diff"]
+    cut = tmp_path / "cut.json"
+    cut.write_text(json.dumps(data))
+    cal = Calibration.load(cut)
+    assert uncertainty_note("peak", cal) is None and uncertainty_note("diff", None) is None
+    assert uncertainty_note("diff", Calibration.load(calibration_file("nominal"))) is None
+    note = uncertainty_note(["peak", "diff"], cal, str(cut))
+    assert note.startswith(f"note: {cut} has no 'uncertainty.diff' entry") and "never falls back to peak" in note
+    assert "a placement refuses" in note and "--method diff" in note
+    small = tmp_path / "small.json"
+    small.write_text(json.dumps(json.loads(sweep_path.read_text())[10:14]))
+    for argv in (["recover", str(small), "--method", "diff"],
+                 ["evaluate", str(small), "--methods", "peak", "diff", "--no-plots"],
+                 ["stream", str(small), "--method", "diff", "--rate", "1000"]):
+        assert main(argv + ["--calibration", str(cut)]) == 0, argv
+        cap = capsys.readouterr()
+        assert "UNCALIBRATED" not in cap.out and UNCALIBRATED_MARK not in cap.out, argv
+        assert [x for x in cap.err.splitlines() if x.startswith("note:") and "uncertainty" in x] == [note], argv
+    for argv in (["recover", str(small), "--method", "diff", "-q"],
+                 ["evaluate", str(small), "--methods", "diff", "--no-plots", "-q"],
+                 ["recover", str(small), "--method", "peak"]):
+        assert main(argv + ["--calibration", str(cut)]) == 0, argv
+        assert "uncertainty" not in capsys.readouterr().err, argv
