@@ -21,6 +21,7 @@ from pathlib import Path
 from place_safe.cli.common import ROBOT_FILE_HELP, flags_said, log
 from place_safe.cli import options
 from place_safe.cli.options import float_range, int_range, opt
+from place_safe.evaluation.contact import DESCENT_HEIGHT, DESCENT_JOBS, DESCENT_SEED, TOUCH_STIFFNESS
 from place_safe.geometry import MAX_REACH
 from place_safe.exceptions import UsageError
 from place_safe.io.json_values import jsonable
@@ -32,14 +33,11 @@ MAX_TRIALS = 100_000
 MAX_SAMPLE_SECONDS = 3600.0
 #: N/m the simulated table contact may be (steel on steel is about 1e8).
 MAX_STIFFNESS = 1e8
-#: The defaults of the options only one part of a bench reads (None on the command line: not given, which the part's
-#: absence requires): ``bench robot --controller`` (the fake's), ``bench contact``'s descents' ``--height`` (m),
-#: ``--seed`` and ``--jobs`` and its touches' ``--stiffness`` (N/m).
+#: The default of ``bench robot --controller`` (the fake's), an option only one part of the bench reads (None on the
+#: command line: not given, which the part's absence requires). ``bench contact``'s descents' ``--height``, ``--seed``
+#: and ``--jobs`` and its touches' ``--stiffness`` are filled in the same way with their functions' own defaults
+#: (:mod:`place_safe.evaluation.contact`).
 FAKE_CONTROLLER = "cb3"
-DESCENT_HEIGHT = 0.4
-DESCENT_SEED = 0
-DESCENT_JOBS = 1
-TOUCH_STIFFNESS = 20000.0
 
 
 def unread_contact_options(args: argparse.Namespace) -> str | None:

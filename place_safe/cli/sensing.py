@@ -24,7 +24,8 @@ from place_safe.cli.common import (CALIBRATE_METHODS, METHODS, PROG, UsageError,
                                    jsonable, load_any_frames, load_calibration, load_truth_frames, log, progress_options,
                                    refuse_overwrite, report_notes, require_frame_file, summarise, not_a_file,
                                    uncalibrated_note, uncertainty_note, evaluated_methods, fit_summary, flags_said)
-from place_safe.evaluation.bench import DEFAULT_RUNS, measure_file_rss, report_json, run_bench
+from place_safe.evaluation.bench import (DEFAULT_RUNS, MEMORY_METHOD, PAPER_FRAMES, measure_file_rss, report_json,
+                                         run_bench)
 from place_safe.evaluation.evaluate import evaluate
 from place_safe.io.frame_file import iter_frames
 from place_safe.io.input_file import output_dir_problem
@@ -357,11 +358,12 @@ def cmd_stream(args: argparse.Namespace) -> int:
 # ------------------------------------------------------------------------------------------------
 # bench
 # ------------------------------------------------------------------------------------------------
-#: ``bench recovery``'s defaults of the options only one of its runs reads (None on the command line: not given):
-#: ``--memory-method`` (with ``--memory-file``), ``--paper-frames`` (with the diff-paper run), ``--seed`` (of the
-#: synthetic frames, without a FILE)
-MEMORY_METHOD = "diff"
-PAPER_FRAMES = 5
+# ``bench recovery``'s options only one of its runs reads (None on the command line: not given) are filled with the
+# defaults of the functions that read them: ``--memory-method`` (with ``--memory-file``: evaluation.bench's
+# MEMORY_METHOD), ``--paper-frames`` (with the diff-paper run: PAPER_FRAMES); and ``--seed`` (of the synthetic frames,
+# without a FILE) with this command's own:
+#: The seed of ``bench recovery``'s synthetic frames when ``--seed`` is not given (passed to ``make_frames``: its module
+#: loads torch, which this module does not).
 SYNTHETIC_SEED = 0
 
 

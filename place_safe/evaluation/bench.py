@@ -195,7 +195,13 @@ def _spread(frames: Sequence[Frame], n: int) -> list[Frame]:
     return [frames[i] for i in np.round(np.linspace(0, len(frames) - 1, n)).astype(int)] if n > 0 else []
 
 
-def run_bench(frames: Sequence[Frame], calibration=None, paper_frames: int = 5,
+#: The defaults of :func:`run_bench`'s frames of the diff-paper run and of :func:`measure_file_rss`'s method
+#: (``bench recovery`` fills its options not given with them).
+PAPER_FRAMES = 5
+MEMORY_METHOD = "diff"
+
+
+def run_bench(frames: Sequence[Frame], calibration=None, paper_frames: int = PAPER_FRAMES,
               runs: Sequence[tuple[str, str, dict]] = DEFAULT_RUNS, source: str = "frames",
               progress: bool = False) -> BenchReport:
     """Benchmark each run (label, method, options) on ``frames`` (``diff-paper``: ``paper_frames`` spread evenly)."""
@@ -246,7 +252,7 @@ def write_synthetic_file(path: Path, n: int, distinct: int = 16, seed: int = 0) 
     return path.stat().st_size
 
 
-def measure_file_rss(n: int, method: str = "diff", calibration: str | Path | None = None,
+def measure_file_rss(n: int, method: str = MEMORY_METHOD, calibration: str | Path | None = None,
                      baseline_frames: int = 16, workdir: str | Path | None = None) -> dict:
     """Peak RSS of ``place-safe recover --jsonl`` over an ``n``-frame synthetic file, run in a fresh process.
 

@@ -152,9 +152,17 @@ class DescentReport:
                 f"watchdog stops {self.watchdog_stops}, script errors {self.script_errors}")
 
 
-def descents(n: int = 200, *, height: float = 0.4, controller: str = "cb3", seed: int = 0,
+#: The defaults of :func:`descents` (m of cup above the table, first seed, worker processes) and of :func:`touches`
+#: (N/m of the table contact); ``bench contact`` fills its options not given with them.
+DESCENT_HEIGHT = 0.4
+DESCENT_SEED = 0
+DESCENT_JOBS = 1
+TOUCH_STIFFNESS = 20000.0
+
+
+def descents(n: int = 200, *, height: float = DESCENT_HEIGHT, controller: str = "cb3", seed: int = DESCENT_SEED,
              force_noise: float | None = None, timeout: float = 20.0, progress: Any = None,
-             jobs: int = 1) -> DescentReport:
+             jobs: int = DESCENT_JOBS) -> DescentReport:
     """Run ``n`` placements from ``height`` m above a level table (see the module docstring); ``jobs`` > 1
     splits them over worker processes (seeds ``seed .. seed + n - 1`` either way)."""
     if jobs > 1 and n > 1:
@@ -217,7 +225,7 @@ def _descent_seeds(seeds: list[int], height: float, controller: str, force_noise
     return rep
 
 
-def touches(speeds: Any = TOUCH_SPEEDS, *, controller: str = "cb3", stiffness: float = 20000.0, trials: int = 20,
+def touches(speeds: Any = TOUCH_SPEEDS, *, controller: str = "cb3", stiffness: float = TOUCH_STIFFNESS, trials: int = 20,
             seed: int = 100, force_noise: float | None = None) -> list[dict[str, float]]:
     """Guarded descents onto the table at each speed (m/s): per speed the median and largest delay (s) from
     the first touch to the driver's contact and the true force (N) then, and the trials missed."""

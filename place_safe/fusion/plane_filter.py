@@ -457,14 +457,15 @@ class PlaneFilter:
         window_tilt, window_std = _angle(n, _Z), math.hypot(tilt_std, self.reference_tilt_std)
         remembered = self._remembered()
         apart = _angle(remembered[0], n) if remembered is not None else math.inf
-        steeper = remembered is not None and window_tilt > _angle(remembered[0], _Z)
-        if apart <= self._memory_gate(window_std, steeper):
+        tilt = window_tilt
+        memory_tilt = _angle(remembered[0], _Z) if remembered is not None else math.nan
+        if apart <= self._memory_gate(window_std, remembered is not None and window_tilt > memory_tilt):
             n, tilt_std = remembered
-            source = "memory"
+            tilt, source = memory_tilt, "memory"
         tilt_std = math.hypot(tilt_std, self.reference_tilt_std)  # shared by every plane: not averaged away
         d = float(n @ anchor)
         res = A @ n - d
-        self._cache = FusedPlane(n, d, _angle(n, _Z), spread, float(np.sqrt(np.mean(res**2))),
+        self._cache = FusedPlane(n, d, tilt, spread, float(np.sqrt(np.mean(res**2))),
                                  len(self._items), float(stamps.max()), self.count, anchor,
                                  tuple(float(s) for s in stamps), tilt_std, source, len(self._memory),
                                  tuple(float(h) for h in res), tuple(float(it[4]) for it in self._items),
