@@ -28,6 +28,7 @@ from tqdm import tqdm
 
 from place_safe.calibration import gauss_newton
 from place_safe.calibration.zero_tangents import quick_zero_tangents
+from place_safe.recovery.tangent_einsum import many_tangents, many_tangents_active
 from place_safe.config import field_interval
 from place_safe.exceptions import CalibrationError
 from place_safe.recovery.forward import (ForwardModel, ForwardParams, MODEL_ERROR, ZoneRays,
@@ -498,8 +499,8 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
 
     def scaled(h: torch.Tensor, kind: str | None = None) -> torch.Tensor:
         if (kind or objective) == "anscombe":
-            return _AnscombeResidual.apply(h - model.t["floor"] + floor_t, anscombe_obs,
-                                           anscombe_w * keep.view(-1, 1, 1)).reshape(nf, -1)
+            residual = _AnscombeResidual.apply if many_tangents_active() else _AnscombeResidual.forward
+            return residual(h - model.t["floor"] + floor_t, anscombe_obs, anscombe_w * keep.view(-1, 1, 1)).reshape(nf, -1)
         else:
             res = (h - model.t["floor"] - obs) * inv_sigma
         return (res * keep.view(-1, 1, 1)).reshape(nf, -1)
@@ -623,7 +624,8 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
             return jvp(f, primals, t)[1]
 
         n = len(tangents[0])
-        with quick_zero_tangents():  # the constants' zero tangents without torch's Python shape checks
+        # the constants' zero tangents without torch's Python shape checks; the model's written-out derivatives
+        with quick_zero_tangents(), many_tangents():
             parts = [vmap(one)(*(t[i:i + JVP_CHUNK] for t in tangents)) for i in range(0, n, JVP_CHUNK)]
         return parts[0] if len(parts) == 1 else torch.cat(parts)
 
@@ -892,7 +894,9 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
 class _AnscombeResidual(torch.autograd.Function):
     """The Anscombe residual ``(sqrt(max(m, 0) + 3/8) - root) w`` of model counts ``m`` against the observed counts'
     ``root`` (their Anscombe transform) with weights ``w``, its derivatives written out: the Jacobian's tangents go
-    through it in one product each (``vmap`` over ``jvp``) instead of the half-dozen operations of the formula."""
+    through it in one product each (``vmap`` over ``jvp``) instead of the half-dozen operations of the formula. Used
+    within :func:`~place_safe.recovery.tangent_einsum.many_tangents` (first order only); elsewhere its ``forward``, the
+    formula in torch."""
 
     generate_vmap_rule = True
 

@@ -36,7 +36,7 @@ import torch
 
 from place_safe.sensor.frame import N_BINS, N_ZONES, ZONE_KIND, ZONE_RECTS
 # the parameters live without torch (a calibration is read, and peak runs, without the renderer)
-from place_safe.recovery.tangent_einsum import einsum2
+from place_safe.recovery.tangent_einsum import einsum2, many_tangents_active
 from place_safe.recovery.forward_params import (ECHO_REFERENCE_RANGE, WARP_KNOTS, WARP_SPACING, ForwardParams,
                                                 _GRID_SELECTORS)
 
@@ -308,13 +308,17 @@ def apply_pileup(hist: torch.Tensor, k: torch.Tensor, shadow: torch.Tensor | flo
 
     ``shadow`` (blend in [0, 1], :class:`ForwardParams` ``pileup_shadow``) weights the earlier bins' shadowing:
     ``(1 - exp(-k h_b)) / k exp(-k shadow sum_{j<b} h_j)``; 1 (the default) is Coates' formula.
-    ``k = 0`` returns ``hist`` unchanged (the limit of the formula). Its derivatives are written out
-    (:class:`_Pileup`): a calibration's Jacobian pushes dozens of tangents through it at once.
+    ``k = 0`` returns ``hist`` unchanged (the limit of the formula). Within
+    :func:`~place_safe.recovery.tangent_einsum.many_tangents` (a calibration's Jacobian, dozens of tangents at once) its
+    derivatives are written out (:class:`_Pileup`, first order only); elsewhere it is the formula in torch.
     """
     if not torch.is_grad_enabled() and float(k) == 0.0:
         return hist
-    k = torch.as_tensor(k, dtype=hist.dtype)
-    return _Pileup.apply(hist, k, torch.as_tensor(shadow, dtype=hist.dtype))
+    if not many_tangents_active():
+        return _Pileup.forward(hist, k, shadow)
+    dtype = torch.result_type(hist, k)
+    dtype = dtype if dtype.is_floating_point else torch.get_default_dtype()
+    return _Pileup.apply(hist.to(dtype), torch.as_tensor(k, dtype=dtype), torch.as_tensor(shadow, dtype=dtype))
 
 
 class _Pileup(torch.autograd.Function):

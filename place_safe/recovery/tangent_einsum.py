@@ -14,21 +14,56 @@ its own in the equation, which the result then carries (a batch in both shares t
 runs once over all tangents, as one matrix product, and no operand is copied. Its derivatives in both operands are
 written out (it is linear in each), so it works under ``jvp``, ``vmap`` of it and ``backward``.
 
-Without gradients (a plain render) it is ``torch.einsum`` itself.
+It acts only within :func:`many_tangents` (the forward fit's Jacobian enters it); elsewhere, and without gradients, it
+is ``torch.einsum`` itself, the same values. The other operations of the forward model that write out their
+derivatives for many tangents (:func:`~place_safe.recovery.forward.apply_pileup`, the fit's Anscombe residual) read the
+same switch. Within it, derivatives of second order are not available: torch takes an ``autograd.Function``'s written-out
+``jvp`` as the end of forward mode (``jacfwd`` of ``jacfwd`` reads 0) and the custom op has no backward of its own
+(a second ``backward`` raises); outside it the model is plain torch, and every order works as before.
 """
 
 from __future__ import annotations
 
+from contextlib import contextmanager
+from functools import lru_cache
+from typing import Iterator
+
 import torch
+
+_DEPTH = [0]  # how many many_tangents() blocks are open (the fit is single-threaded; nesting is allowed)
+
+
+@contextmanager
+def many_tangents() -> Iterator[None]:
+    """Within it, :func:`einsum2` and the model's other written-out derivatives act (module doc): for ``vmap`` over
+    ``jvp`` with many tangents at once, first order only."""
+    _DEPTH[0] += 1
+    try:
+        yield
+    finally:
+        _DEPTH[0] -= 1
+
+
+def many_tangents_active() -> bool:
+    """Whether a :func:`many_tangents` block is open."""
+    return _DEPTH[0] > 0
 
 #: Letters for the batch index :func:`_batched` adds (the first not already in the equation).
 _BATCH_LETTERS = "ABCDEFGHIJKLMNOPQRSTUVWXYZ"
 
 
+@lru_cache(maxsize=None)
 def _sides(equation: str) -> tuple[str, str, str]:
-    """The two operands' indices and the result's of ``"a,b->out"``."""
-    lhs, out = equation.split("->")
-    a, b = lhs.split(",")
+    """The two operands' indices and the result's of ``"a,b->out"``; ValueError for an equation :func:`einsum2` cannot
+    take (its backward and batching rule need each index once per operand and every operand's index in the other
+    operand or the result)."""
+    lhs, arrow, out = equation.partition("->")
+    a, comma, b = lhs.partition(",")
+    if (not arrow or not comma or "," in b or any(len(set(x)) != len(x) for x in (a, b, out))
+            or not set(a) <= set(b) | set(out) or not set(b) <= set(a) | set(out) or not set(out) <= set(a) | set(b)
+            or set(equation) - set(_BATCH_LETTERS.lower()) - set(",->")):
+        raise ValueError(f"einsum2 takes 'a,b->out' in lowercase letters, each index once per operand and found in the "
+                         f"other operand or the result; got {equation!r}")
     return a, b, out
 
 
@@ -97,9 +132,10 @@ class _Einsum2(torch.autograd.Function):
 
 
 def einsum2(equation: str, x: torch.Tensor, m: torch.Tensor) -> torch.Tensor:
-    """``torch.einsum(equation, x, m)`` (two operands, ``"a,b->out"``, every index of each operand in the other or in
-    the result) that batches ``vmap``'s tangents into its contraction instead of copying the other operand (module
-    doc). Without gradients, ``torch.einsum`` itself."""
-    if not torch.is_grad_enabled():
+    """``torch.einsum(equation, x, m)`` (two operands, ``"a,b->out"`` in lowercase letters, every index of each operand
+    in the other or in the result) that, within :func:`many_tangents`, batches ``vmap``'s tangents into its contraction
+    instead of copying the other operand (module doc). Outside it, or without gradients, ``torch.einsum`` itself."""
+    _sides(equation)
+    if not torch.is_grad_enabled() or not many_tangents_active():
         return torch.einsum(equation, x, m)
     return _Einsum2.apply(equation, x, m)

@@ -542,7 +542,7 @@ def test_the_anscombe_residuals_written_out_derivatives_are_the_formulas():
     counts below zero (clamped: no slope) among them: forward mode, many tangents at once, and reverse mode."""
     import torch
     from torch.func import jvp, vmap
-    from place_safe.calibration.forward_fit import _AnscombeResidual
+    from place_safe.calibration.forward_fit import _AnscombeResidual  # (its written-out derivatives, called directly)
 
     def formula(m, root, w):
         return (torch.sqrt(torch.clamp(m, min=0.0) + 0.375) - root) * w

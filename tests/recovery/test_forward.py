@@ -731,9 +731,26 @@ def test_a_saturation_beyond_any_count_is_refused_when_the_file_is_read():
 
 
 def test_the_pileups_written_out_derivatives_are_the_formulas():
-    """``apply_pileup``'s derivatives (written out, :class:`_Pileup`) in the counts, ``k`` and the shadow blend against
-    autograd through Coates' formula: forward mode, many tangents at once (vmap), and reverse mode."""
+    """``apply_pileup``'s derivatives (written out, :class:`_Pileup`, within ``many_tangents`` as in the forward fit's
+    Jacobian) in the counts, ``k`` and the shadow blend against autograd through Coates' formula: forward mode, many
+    tangents at once (vmap), and reverse mode; integer counts piled up as floats."""
     from torch.func import jvp, vmap
+
+    from place_safe.recovery.tangent_einsum import many_tangents
+
+    with many_tangents():
+        _check_pileup_derivatives(jvp, vmap)
+    # outside the block it is the formula itself: second order works (within it, torch ends forward mode at a jvp)
+    k = torch.tensor(2e-3, dtype=torch.float64)
+    h = torch.tensor([[3.0, 5.0, 7.0]], dtype=torch.float64)
+    from torch.func import hessian
+    torch.testing.assert_close(torch.func.jacfwd(torch.func.jacfwd(lambda c: apply_pileup(h, c).sum()))(k),
+                               hessian(lambda c: apply_pileup(h, c).sum())(k))
+    assert float(hessian(lambda c: apply_pileup(h, c).sum())(k)) != 0.0
+
+
+def _check_pileup_derivatives(jvp, vmap):
+    """The body of the test above, run within ``many_tangents``."""
 
     def formula(h, k, s):
         before = torch.cumsum(h, dim=-1) - h
@@ -766,3 +783,6 @@ def test_the_pileups_written_out_derivatives_are_the_formulas():
     w = torch.randn(h.shape, dtype=torch.float64, generator=g)
     torch.testing.assert_close(torch.autograd.grad((apply_pileup(h, k, sr) * w).sum(), sr)[0],
                                torch.autograd.grad((formula(h, k, sr) * w).sum(), sr)[0], rtol=1e-10, atol=1e-12)
+    counts = torch.tensor([[5, 5, 5]])
+    torch.testing.assert_close(apply_pileup(counts, torch.tensor(0.1, dtype=torch.float64)),
+                               formula(counts.double(), torch.tensor(0.1, dtype=torch.float64), 1.0))

@@ -4,9 +4,16 @@ values and every derivative (jvp, vmap over jvp with either or both operands bat
 
 import pytest
 import torch
-from torch.func import jvp, vmap
+from torch.func import jacfwd, jvp, vmap
 
-from place_safe.recovery.tangent_einsum import einsum2
+from place_safe.recovery.tangent_einsum import einsum2, many_tangents, many_tangents_active
+
+
+@pytest.fixture
+def written_out():
+    """einsum2's own rules: within many_tangents, as the forward fit's Jacobian runs it."""
+    with many_tangents():
+        yield
 
 #: The equations the forward model uses (convolution matrices per zone, per frame, shared; the zones' crosstalk; the
 #: soft binning's rays), each with its operands' shapes.
@@ -20,6 +27,7 @@ def _operands(shapes, seed):
     return [torch.randn(s, dtype=torch.float64, generator=g) for s in shapes]
 
 
+@pytest.mark.usefixtures("written_out")
 @pytest.mark.parametrize("equation, x_shape, m_shape", CASES)
 def test_values_and_derivatives_are_einsums(equation, x_shape, m_shape):
     x, m = _operands((x_shape, m_shape), 1)
@@ -48,6 +56,7 @@ def test_values_and_derivatives_are_einsums(equation, x_shape, m_shape):
     assert torch.autograd.gradcheck(lambda a, b: einsum2(equation, a, b), (xr, mr))
 
 
+@pytest.mark.usefixtures("written_out")
 @pytest.mark.parametrize("equation, x_shape, m_shape", CASES)
 @pytest.mark.parametrize("batched", ["x", "m", "both"])
 def test_many_tangents_at_once_under_vmap(equation, x_shape, m_shape, batched):
@@ -68,3 +77,31 @@ def test_many_tangents_at_once_under_vmap(equation, x_shape, m_shape, batched):
     xs = torch.randn(x_shape + (4,), dtype=torch.float64)
     torch.testing.assert_close(vmap(lambda a: einsum2(equation, a, m), in_dims=-1)(xs),
                                torch.stack([torch.einsum(equation, xs[..., i], m) for i in range(4)]))
+
+
+def test_outside_the_fits_block_it_is_plain_torch_and_every_order_works():
+    """Outside many_tangents einsum2 is torch.einsum: second-order forward mode and double backward work (within it,
+    torch reads a written-out jvp as the end of forward mode, and the custom op has no backward of its own)."""
+    assert not many_tangents_active()
+    q = torch.tensor([1.0, 2.0], dtype=torch.float64)
+    torch.testing.assert_close(jacfwd(jacfwd(lambda v: einsum2("i,i->", v, v)))(q),
+                               2.0 * torch.eye(2, dtype=torch.float64))
+    x = q.clone().requires_grad_()
+    (g,) = torch.autograd.grad(einsum2("i,i->", x, x), x, create_graph=True)
+    (h,) = torch.autograd.grad(g.sum(), x)
+    torch.testing.assert_close(h, torch.full((2,), 2.0, dtype=torch.float64))
+    with many_tangents():
+        with many_tangents():
+            assert many_tangents_active()
+        assert many_tangents_active()
+    assert not many_tangents_active()
+
+
+@pytest.mark.parametrize("equation", ["bzk,znk", "bzk->bzn", "bzk,znk,z->bzn", "bzz,znk->bzn", "bzq,znk->bzn",
+                                      "bzk,znk->bzq", "bZk,Znk->bZn"])
+def test_an_equation_it_cannot_take_is_refused_at_once(equation):
+    """Equations whose backward or batching rule would break (no result, three operands, a repeated index, an index in
+    one place only, uppercase letters, which the batching rule uses) are refused when called, not later in backward."""
+    x, m = torch.ones(2, 9, 3, dtype=torch.float64), torch.ones(9, 3, 3, dtype=torch.float64)
+    with pytest.raises(ValueError, match="einsum2 takes"):
+        einsum2(equation, x, m)
