@@ -143,11 +143,26 @@ def _calibrate_sim(args: argparse.Namespace) -> int:
         refuse_overwrite(args.save_frames, args.force, "calibrate: --save-frames")
     frames = SIM_SWEEP_FRAMES if args.frames is None else args.frames
     for sensor, out in zip(sensors, outs):
-        out = calibration_capture.calibrate_sim(sensor, out, n=frames, seed=args.seed or 0,
-                                                frames_out=args.save_frames)
+        try:
+            out = calibration_capture.calibrate_sim(sensor, out, n=frames, seed=args.seed or 0,
+                                                    frames_out=args.save_frames)
+        except KeyboardInterrupt:  # what the capture left is the user's to fit or delete: say what it holds
+            if args.save_frames and Path(args.save_frames).is_file():
+                log(f"calibrate: {_capture_kept(Path(args.save_frames))}; {out} was not written")
+            raise
         if not args.quiet:
             log(f"wrote {out} ({sensor} simulated sensor, {frames} sweep frames)")
     return 0
+
+
+def _capture_kept(path: Path) -> str:
+    """What an interrupted ``calibrate --sim --save-frames`` left in ``path``: its whole frames, and how to fit them."""
+    try:
+        n = sum(1 for f in iter_frames(path) if not isinstance(f, FrameError))
+    except FrameFileError:
+        return f"interrupted: {path} holds a capture cut short, which no command reads (delete it)"
+    return (f"interrupted: {path} keeps the capture's {n} whole frame{'' if n == 1 else 's'} (fit them with "
+            f"'place-safe calibrate {path} --method diff', or delete it)")
 
 
 #: Poses (one frame each) of the simulated sweep of ``calibrate --sim`` unless --frames says otherwise.

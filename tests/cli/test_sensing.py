@@ -3,6 +3,8 @@ go together."""
 
 from __future__ import annotations
 
+import json
+
 import pytest
 
 from place_safe.cli.app import main
@@ -107,6 +109,37 @@ def test_bench_recovery_refuses_options_its_runs_never_read(sweep_path, given, s
     assert main(["bench", "recovery", "--frames", "2", "--methods", "peak", "--paper-frames", "0", "-q"]) == 0
     assert seen == [(5, "synthetic (make_frames, seed 0)"), (1, "synthetic (make_frames, seed 4)"),
                     (0, "synthetic (make_frames, seed 0)")]  # (0 "skips it": what is so without diff-paper)
+
+
+def test_calibrate_sim_save_frames_interrupted_says_what_the_capture_kept(tmp_path, monkeypatch, capsys, sweep_path):
+    """A Ctrl-C during `calibrate --sim nominal --save-frames F` left a short, readable capture and said nothing of it
+    (round 16's leftover): it now says how many whole frames F keeps and how to fit them (or that F is cut and read by
+    nothing), and that the calibration was not written; exit 130 as any interrupt."""
+    from pathlib import Path
+
+    import place_safe.sim.calibration_capture as cc
+
+    frames = json.loads(Path(sweep_path).read_text())[:3]
+
+    def interrupted(sensor, output=None, n=0, seed=0, frames_out=None, quiet=True):
+        Path(frames_out).write_text("".join(json.dumps(f) + "\n" for f in frames))  # JSON Lines, as the arm's capture
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cc, "calibrate_sim", interrupted)
+    monkeypatch.chdir(tmp_path)
+    assert main(["calibrate", "--sim", "nominal", "-o", "c.json", "--save-frames", "sweep.jsonl", "-q"]) == 130
+    err = capsys.readouterr().err.splitlines()
+    assert err == ["calibrate: interrupted: sweep.jsonl keeps the capture's 3 whole frames (fit them with 'place-safe "
+                   "calibrate sweep.jsonl --method diff', or delete it); c.json was not written", "place-safe: interrupted"]
+    assert not (tmp_path / "c.json").exists()
+
+    def cut(sensor, output=None, n=0, seed=0, frames_out=None, quiet=True):
+        Path(frames_out).write_text(json.dumps(frames)[:-40])  # a JSON list without its end
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cc, "calibrate_sim", cut)
+    assert main(["calibrate", "--sim", "nominal", "-o", "c.json", "--save-frames", "cut.json", "-q"]) == 130
+    assert "cut.json holds a capture cut short, which no command reads (delete it)" in capsys.readouterr().err
 
 
 def test_calibrate_sim_save_frames_keeps_a_file_already_there_unless_forced(tmp_path, monkeypatch, capsys):
