@@ -320,8 +320,8 @@ def uncertainty_note(methods: str | Sequence[str], calibration, path: str | None
 
     Its planes are calibrated (no :func:`uncalibrated_note`, rows unmarked), but their covariances are the fits' alone,
     with no model-error floor, and diff never falls back to peak: the planes' stated precision is not the sensor's. A
-    placement refuses such a file (:func:`~place_safe.calibration.placement_reason`); ``recover``, ``evaluate``,
-    ``stream`` and ``latency`` run and say so. Every file ``calibrate`` writes has the entries."""
+    placement refuses such a file (:func:`~place_safe.calibration.placement_reason`); ``recover``, ``evaluate`` and
+    ``stream`` run and say so on standard error. Every file ``calibrate`` writes has the entries."""
     names = [methods] if isinstance(methods, str) else list(methods)
     if calibration is None:
         return None
@@ -334,8 +334,8 @@ def uncertainty_note(methods: str | Sequence[str], calibration, path: str | None
     which = ", ".join(lacking)
     return (f"note: {path or 'the calibration'} has no {' or '.join(repr(e) for e in entries)} entr"
             f"{'y' if len(entries) == 1 else 'ies'}, so {which}'s covariances are the fit's alone (no model-error "
-            f"floor){' and diff never falls back to peak' if 'diff' in lacking else ''}; a placement refuses this file. "
-            f"Calibrate again: place-safe calibrate FRAMES.json --method {next(iter(lacking))} -o cal.json")
+            f"floor){' and diff never falls back to peak' if 'diff' in lacking else ''}; a placement refuses this "
+            f"file. Calibrate again: place-safe calibrate FRAMES.json --method {next(iter(lacking))} -o cal.json")
 
 
 def evaluated_methods(given: Sequence[str] | None, calibration,

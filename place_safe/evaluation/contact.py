@@ -225,8 +225,8 @@ def _descent_seeds(seeds: list[int], height: float, controller: str, force_noise
     return rep
 
 
-def touches(speeds: Any = TOUCH_SPEEDS, *, controller: str = "cb3", stiffness: float = TOUCH_STIFFNESS, trials: int = 20,
-            seed: int = 100, force_noise: float | None = None) -> list[dict[str, float]]:
+def touches(speeds: Any = TOUCH_SPEEDS, *, controller: str = "cb3", stiffness: float = TOUCH_STIFFNESS,
+            trials: int = 20, seed: int = 100, force_noise: float | None = None) -> list[dict[str, float]]:
     """Guarded descents onto the table at each speed (m/s): per speed the median and largest delay (s) from
     the first touch to the driver's contact and the true force (N) then, and the trials missed."""
     out = []

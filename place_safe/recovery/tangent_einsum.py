@@ -17,9 +17,9 @@ written out (it is linear in each), so it works under ``jvp``, ``vmap`` of it an
 It acts only within :func:`many_tangents` (the forward fit's Jacobian enters it); elsewhere, and without gradients, it
 is ``torch.einsum`` itself, the same values. The other operations of the forward model that write out their
 derivatives for many tangents (:func:`~place_safe.recovery.forward.apply_pileup`, the fit's Anscombe residual) read the
-same switch. Within it, derivatives of second order are not available: torch takes an ``autograd.Function``'s written-out
-``jvp`` as the end of forward mode (``jacfwd`` of ``jacfwd`` reads 0) and the custom op has no backward of its own
-(a second ``backward`` raises); outside it the model is plain torch, and every order works as before.
+same switch. Within it, derivatives of second order are not available: torch takes an ``autograd.Function``'s
+written-out ``jvp`` as the end of forward mode (``jacfwd`` of ``jacfwd`` reads 0) and the custom op has no backward of
+its own (a second ``backward`` raises); outside it the model is plain torch, and every order works as before.
 """
 
 from __future__ import annotations
@@ -47,6 +47,7 @@ def many_tangents() -> Iterator[None]:
 def many_tangents_active() -> bool:
     """Whether a :func:`many_tangents` block is open."""
     return _DEPTH[0] > 0
+
 
 #: Letters for the batch index :func:`_batched` adds (the first not already in the equation).
 _BATCH_LETTERS = "ABCDEFGHIJKLMNOPQRSTUVWXYZ"
@@ -78,7 +79,8 @@ def _(equation, x, m):
 
 
 def _batched(info, in_dims, equation, x, m):
-    """:func:`_einsum2` under ``vmap``: each batched operand's batch dimension gets one new index, the result's first."""
+    """:func:`_einsum2` under ``vmap``: each batched operand's batch dimension gets one new index, the result's
+    first."""
     _, x_dim, m_dim = in_dims
     a, b, out = _sides(equation)
     letter = next(c for c in _BATCH_LETTERS if c not in equation)
