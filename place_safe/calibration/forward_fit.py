@@ -499,8 +499,8 @@ def _fit_forward(frames, init, progress, rays, iterations, min_distance, max_dis
 
     def scaled(h: torch.Tensor, kind: str | None = None) -> torch.Tensor:
         if (kind or objective) == "anscombe":
-            residual = _AnscombeResidual.apply if many_tangents_active() else _AnscombeResidual.forward
-            res = residual(h - model.t["floor"] + floor_t, anscombe_obs, anscombe_w * keep.view(-1, 1, 1))
+            anscombe = _AnscombeResidual.apply if many_tangents_active() else _AnscombeResidual.forward
+            res = anscombe(h - model.t["floor"] + floor_t, anscombe_obs, anscombe_w * keep.view(-1, 1, 1))
             return res.reshape(nf, -1)
         else:
             res = (h - model.t["floor"] - obs) * inv_sigma

@@ -39,11 +39,11 @@ def cmd_latency(args: argparse.Namespace) -> int:
     import json
     from pathlib import Path
 
-    from place_safe.evaluation.bench import measure_recover_latency
-    require_frame_file(args.file)
     from itertools import islice
 
+    from place_safe.evaluation.bench import measure_recover_latency
     from place_safe.io.frame_file import iter_frames
+    require_frame_file(args.file)
     # the entries (usable or not: recover writes a line for each), counted before anything is printed, so a file too
     # short to time is one error line
     if (n := sum(1 for _ in islice(iter_frames(args.file, truth=False), 2))) < 2:
