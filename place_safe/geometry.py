@@ -37,7 +37,7 @@ class Plane:
         except (TypeError, ValueError, OverflowError):
             raise ValueError(f"plane needs a normal of 3 numbers and a number offset; got normal of shape "
                                f"{np.shape(self.normal)} and offset {str(self.offset)[:40]!r}") from None
-        if not (np.isfinite(n).all() and math.isfinite(d)):
+        if not (all(map(math.isfinite, n.tolist())) and math.isfinite(d)):
             raise NoPlaneError(f"plane is not finite: normal={n}, offset={d}")
         norm = math.sqrt(float(n @ n))
         if norm < 1e-12:

@@ -56,7 +56,7 @@ from place_safe.recovery.estimator import Estimator, PlaneEstimate, Uncertainty,
 from place_safe.recovery.points import (PeakParams, PlaneFitGeometry, known_error_covariance, plane_covariance,
                                        plane_fit_geometry, plane_through)
 from place_safe.recovery.too_close import may_be_close, overlap_reason, plane_overlap_reason
-from place_safe.sensor.histogram import COUNT_MAX, beyond_count_max, find_peaks, find_returns
+from place_safe.sensor.histogram import COUNT_MAX, beyond_count_max, find_peaks
 from place_safe.sensor.zones import zone_numbers
 
 def _flagged_saturated(frame: Frame) -> bool:
@@ -110,7 +110,7 @@ class PeakEstimator(Estimator):
         if (beyond := beyond_count_max(h)) is not None:  # not clipped: counts the sensor cannot have reported
             raise NoPlaneError(beyond)
         p = self.params
-        pos, _, valid, saturated, heights = find_returns(h, p.pileup, p.subbin, p.subbin_half_width, heights=True)
+        pos, valid, saturated, heights = find_peaks(h, p.pileup, p.subbin, p.subbin_half_width, heights=True)
         if np.count_nonzero(saturated):
             zones = zone_numbers(saturated)
             raise NoPlaneError(f"histogram clipped (saturated counts: a flat top or counters at their maximum) in "

@@ -105,9 +105,11 @@ def plane_overlap_reason(points: np.ndarray, valid: np.ndarray, offset: float) -
     of 8-30 mm and a plane 6-7 mm away tilted 68-70 deg (an adversarial round, session 74, with the real sweep's
     and both simulated sensors' calibrations; one of them stated it to 1.6 deg). Either the plane is right and the
     surface lies in the overlap, or it is wrong: no plane either way."""
+    if not (offset < OVERLAP_RANGE):  # (the usual plane: nothing more to ask)
+        return None
     pts = np.asarray(points, dtype=float)
     v = np.asarray(valid, dtype=bool) & np.all(np.isfinite(pts), axis=1)  # the zones the plane was fitted through
-    if not (offset < OVERLAP_RANGE) or not np.count_nonzero(v):
+    if not np.count_nonzero(v):
         return None
     nearest = float(np.min(np.linalg.norm(pts[v], axis=1)))
     if not nearest <= SCREEN_RANGE:

@@ -546,3 +546,33 @@ def test_counts_that_are_not_finite_or_near_the_float_limit_are_masked_without_a
     others = np.array([z not in (0, 1, 2, 4) for z in range(9)])
     assert not valid[0] and not valid[2] and valid[others].all() and np.isfinite(pos[others]).all()
     assert clipped[1] and clipped[4] and not clipped[others].any() and not valid[1] and not valid[4]
+
+
+def test_the_spline_window_of_the_earliest_bin_searched_lies_in_the_histogram():
+    """The spline's window is clipped at the histogram's far end only: no return is looked for before
+    SEARCH_START, which leaves the window's HALF_WINDOW bins before it."""
+    from place_safe.sensor.histogram import HALF_WINDOW
+
+    assert HALF_WINDOW <= SEARCH_START <= INTERNAL_BINS[1]
+
+
+@pytest.mark.parametrize("subbin", ["spline", "centroid"])
+def test_returns_at_either_end_read_alike_frame_by_frame_and_in_batches(subbin):
+    """Returns at the first bins searched, in the internal return's bins and in the last bins read the same one frame
+    at a time and in batches of frames (whose zones are gathered by flat index either way)."""
+    rng = np.random.default_rng(7)
+    tops = [SEARCH_START, SEARCH_START + 1, INTERNAL_BINS[1] + 2, 60.3, 124.6, 126.0, 127.0]
+    frames = []
+    for i in range(12):
+        h = rng.poisson(40.0, (9, 128)).astype(float)
+        for z in range(9):
+            h[z] += _pulse(tops[(i + z) % len(tops)] + rng.uniform(-0.4, 0.4), 5e3)
+        frames.append(h)
+    frames = np.stack(frames)
+    one = [find_returns(f, K, subbin, heights=True) for f in frames]
+    for n in (1, 3, 12):
+        batch = find_returns(frames[:n], K, subbin, heights=True)
+        for i in range(n):
+            for a, b in zip(batch, one[i]):
+                np.testing.assert_array_equal(a[i], b)
+    assert np.isfinite(np.stack([o[0] for o in one])).mean() > 0.9  # (returns were found: the test reads something)
