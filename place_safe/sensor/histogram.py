@@ -468,7 +468,7 @@ def windowed_centroid(rows: np.ndarray, top: np.ndarray, start: np.ndarray,
     if top.size == 0:
         return np.asarray(start, dtype=float).copy()
     kernel, grid, offsets = _centroid_kernel(float(half_width))
-    reach = offsets[-1]
+    reach = len(offsets) // 2  # (a Python int: offsets run -reach .. reach)
     n_bins = rows.shape[-1]
     idx = top[:, None] + offsets  # (N, W) bins gathered around the top
     at = _row_starts(len(top), n_bins)  # (flat indices into rows)
