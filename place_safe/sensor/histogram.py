@@ -330,7 +330,7 @@ def _returns(hists: np.ndarray, pileup: float, subbin: str,
     rows = x.reshape(-1, x.shape[-1])  # one row per zone (of every frame)
     kc = np.minimum(k, N_BINS - 1 - HALF_WINDOW)  # (k >= SEARCH_START >= HALF_WINDOW: the window's start is in)
     # the window's counts by flat index (rows.take: a third of indexing by row and column on a frame's 9 zones)
-    window = rows.take(_row_starts(rows.shape[0]) + kc.reshape(-1, 1) + _KNOT_OFFSETS).reshape(kc.shape + (len(_KNOTS),))
+    window = rows.take(_row_starts(*rows.shape) + kc.reshape(-1, 1) + _KNOT_OFFSETS).reshape(kc.shape + (len(_KNOTS),))
     fine = window @ _spline().T  # (..., 9, F)
     pos = kc + _FINE[fine.argmax(axis=-1)]  # kc == k except for a top in the last bins
     valid = has_return & ~saturated
