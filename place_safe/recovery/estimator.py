@@ -193,7 +193,7 @@ class Uncertainty(ParamModel):
     def _tilt_terms(self, normal, offset: float) -> tuple[float, float, float, float]:
         """:meth:`tilt_floor`'s entries: the tilt components' variance, their covariances with ``d`` and ``d``'s
         variance (scalar arithmetic: it is on the peak method's per-frame path)."""
-        nx, ny, nz = np.ravel(normal).tolist() if isinstance(normal, np.ndarray) else (float(v) for v in normal)
+        nx, ny, nz = (float(v) for v in normal)
         if not (math.isfinite(nx) and math.isfinite(ny) and math.isfinite(nz) and math.isfinite(offset)):
             nx, ny, nz, offset = 0.0, 0.0, _COS_MAX_TILT, 0.0
         steep = nz <= _COS_MAX_TILT  # (and a normal that is not a number: the fallback above)
@@ -429,8 +429,7 @@ def checked(est: PlaneEstimate) -> PlaneEstimate:
     82: then held to the 65.5 m the on-sensor field can hold); a proprietary ``b`` of -10000 put planes 9-10 m away,
     which no TMF8820 measures (session 83)."""
     p = est.plane
-    if p is not None and not (all(map(math.isfinite, np.ravel(p.normal).tolist())) and math.isfinite(p.offset)
-                              and p.offset > 0):
+    if p is not None and not (np.isfinite(p.normal).all() and np.isfinite(p.offset) and p.offset > 0):
         return PlaneEstimate(None, reason=f"recovered plane is not in front of the sensor (offset {p.offset:.4g} m)",
                              seconds=est.seconds)
     if p is not None and p.offset > SENSOR_RANGE:

@@ -329,8 +329,12 @@ def _returns(hists: np.ndarray, pileup: float, subbin: str,
     k, top, has_return = _highest_return(x, floor, noise)
     rows = x.reshape(-1, x.shape[-1])  # one row per zone (of every frame)
     kc = np.minimum(k, N_BINS - 1 - HALF_WINDOW)  # (k >= SEARCH_START >= HALF_WINDOW: the window's start is in)
-    # the window's counts by flat index (rows.take: a third of indexing by row and column on a frame's 9 zones)
-    window = rows.take(_row_starts(*rows.shape) + kc.reshape(-1, 1) + _KNOT_OFFSETS).reshape(kc.shape + (len(_KNOTS),))
+    cols = kc.reshape(-1, 1) + _KNOT_OFFSETS
+    if rows.shape[-1] == N_BINS:  # the window's counts by flat index (a third of indexing by row and column)
+        window = rows.take(_row_starts(rows.shape[0]) + cols)
+    else:  # (histograms of another length: a window past a row's end is an IndexError, not the next row's counts)
+        window = rows[np.arange(rows.shape[0])[:, None], cols]
+    window = window.reshape(kc.shape + (len(_KNOTS),))  # (..., 9, W)
     fine = window @ _spline().T  # (..., 9, F)
     pos = kc + _FINE[fine.argmax(axis=-1)]  # kc == k except for a top in the last bins
     valid = has_return & ~saturated
@@ -468,11 +472,12 @@ def windowed_centroid(rows: np.ndarray, top: np.ndarray, start: np.ndarray,
     if top.size == 0:
         return np.asarray(start, dtype=float).copy()
     kernel, grid, offsets = _centroid_kernel(float(half_width))
-    reach = len(offsets) // 2  # (a Python int: offsets run -reach .. reach)
+    reach = len(offsets) // 2  # (offsets run -reach .. reach)
     n_bins = rows.shape[-1]
     idx = top[:, None] + offsets  # (N, W) bins gathered around the top
     at = _row_starts(len(top), n_bins)  # (flat indices into rows)
-    if top.min() < reach or top.max() + reach >= n_bins:  # a return at either end: missing bins are 0
+    if int(top.min()) < reach or int(top.max()) + reach >= n_bins:  # a return at either end: missing bins are 0
+        # (as Python integers: a top of a narrow integer type would wrap round)
         x = np.where((idx >= 0) & (idx < n_bins), rows.take(at + np.minimum(np.maximum(idx, 0), n_bins - 1)), 0.0)
     else:
         x = rows.take(at + idx)

@@ -204,3 +204,32 @@ def test_a_reference_histogram_beyond_the_24_bit_counters_is_a_corrupt_frame_for
     at_max = np.minimum(np.array(f.reference, dtype=float), COUNT_MAX)  # at the counters' maximum: not beyond it
     Frame(f.hists, at_max).validate()
     assert make_estimator("peak").estimate(Frame(f.hists, at_max)).plane is not None
+
+
+@pytest.mark.parametrize("dtype", [np.float16, np.float32, np.float64, np.int64, np.uint32])
+def test_a_reference_histogram_of_any_number_type_is_refused_for_what_it_holds_not_for_its_type(sweep_path, dtype):
+    """The reference's usual case passes on its least and largest count; a float16 reference holding infinity, NaN
+    or a negative count is refused as one of any other type is (its largest count, 65504, below the counters'
+    maximum: the test must not compare in float16, where that maximum is infinite), and a plain one passes without a
+    warning."""
+    import warnings
+
+    from place_safe.io.frame_file import load_frames
+    from place_safe.recovery import make_estimator
+
+    f = next(f for f in load_frames(sweep_path) if 0.15 < f.truth.offset < 0.2)
+    plain = np.minimum(np.array(f.reference, dtype=float), 60000.0).astype(dtype)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        Frame(f.hists, plain).validate()
+    bad_values = [-1.0] if np.issubdtype(dtype, np.signedinteger) else []
+    if np.issubdtype(dtype, np.floating):
+        bad_values += [np.inf, np.nan, -3.0]
+    for value in bad_values:
+        ref = plain.copy()
+        ref[100] = value
+        bad = Frame(f.hists, ref)
+        with pytest.raises(FrameError, match=r"^reference_hist contains NaN, infinite or negative counts"):
+            bad.validate()
+        e = make_estimator("peak").estimate(bad)
+        assert e.plane is None and "reference_hist contains" in e.reason

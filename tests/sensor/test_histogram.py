@@ -576,3 +576,20 @@ def test_returns_at_either_end_read_alike_frame_by_frame_and_in_batches(subbin):
             for a, b in zip(batch, one[i]):
                 np.testing.assert_array_equal(a[i], b)
     assert np.isfinite(np.stack([o[0] for o in one])).mean() > 0.9  # (returns were found: the test reads something)
+
+
+@pytest.mark.parametrize("dtype", [np.int8, np.uint8, np.int16, np.int32, np.intp])
+def test_the_centroid_reads_tops_of_any_integer_type_alike(dtype):
+    """windowed_centroid's tops may come in a narrow integer type: a return at a histogram's end reads as with tops in
+    the platform's integers (a top of 125 in int8 plus the window's reach wrapped round to a negative bin, and the
+    window read the next row's first bins)."""
+    rows = np.zeros((3, 128))
+    rows[0, 123:128] = [20.0, 60.0, 100.0, 80.0, 30.0]
+    rows[1, 58:63] = [10.0, 50.0, 90.0, 70.0, 20.0]
+    rows[1, :3] = 500.0  # (the next row's first bins: a window past row 0's end must not read them)
+    rows[2, 120:125] = [5.0, 40.0, 70.0, 30.0, 5.0]
+    tops = np.array([125, 60, 122])
+    start = tops + 0.2
+    want = windowed_centroid(rows, tops.astype(np.intp), start)
+    np.testing.assert_array_equal(windowed_centroid(rows, tops.astype(dtype), start), want)
+    assert np.all(np.abs(want - tops) < 1.0)
