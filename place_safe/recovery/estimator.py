@@ -193,7 +193,10 @@ class Uncertainty(ParamModel):
     def _tilt_terms(self, normal, offset: float) -> tuple[float, float, float, float]:
         """:meth:`tilt_floor`'s entries: the tilt components' variance, their covariances with ``d`` and ``d``'s
         variance (scalar arithmetic: it is on the peak method's per-frame path)."""
-        nx, ny, nz = (float(v) for v in normal)
+        if type(normal) is np.ndarray and normal.dtype == np.float64 and normal.shape == (3,):  # a Plane's own
+            nx, ny, nz = normal.tolist()  # (the same floats, without a generator's overhead)
+        else:
+            nx, ny, nz = (float(v) for v in normal)
         if not (math.isfinite(nx) and math.isfinite(ny) and math.isfinite(nz) and math.isfinite(offset)):
             nx, ny, nz, offset = 0.0, 0.0, _COS_MAX_TILT, 0.0
         steep = nz <= _COS_MAX_TILT  # (and a normal that is not a number: the fallback above)
@@ -422,6 +425,15 @@ class PlaneEstimate:
         return out
 
 
+def _finite(normal) -> bool:
+    """Whether every component of a plane's ``normal`` is finite (a float64 array of 3, a Plane's own, by its Python
+    floats: a microsecond less on every frame; anything else as numpy tests it)."""
+    if type(normal) is np.ndarray and normal.dtype == np.float64 and normal.shape == (3,):
+        x, y, z = normal.tolist()
+        return math.isfinite(x) and math.isfinite(y) and math.isfinite(z)
+    return bool(np.isfinite(normal).all())
+
+
 def checked(est: PlaneEstimate) -> PlaneEstimate:
     """``est`` unless its plane is not finite, lies behind the sensor or beyond the sensor's range
     (:data:`~place_safe.sensor.frame.SENSOR_RANGE`, 5 m) (then no plane, with the reason). A peak calibration's ``b``
@@ -429,7 +441,7 @@ def checked(est: PlaneEstimate) -> PlaneEstimate:
     82: then held to the 65.5 m the on-sensor field can hold); a proprietary ``b`` of -10000 put planes 9-10 m away,
     which no TMF8820 measures (session 83)."""
     p = est.plane
-    if p is not None and not (np.isfinite(p.normal).all() and np.isfinite(p.offset) and p.offset > 0):
+    if p is not None and not (_finite(p.normal) and np.isfinite(p.offset) and p.offset > 0):
         return PlaneEstimate(None, reason=f"recovered plane is not in front of the sensor (offset {p.offset:.4g} m)",
                              seconds=est.seconds)
     if p is not None and p.offset > SENSOR_RANGE:
