@@ -269,8 +269,10 @@ class Frame:
         r = real_array(self.reference, "reference_hist")
         if r.shape != (N_BINS,):
             raise FrameError(f"reference_hist has shape {r.shape}, expected ({N_BINS},)")
-        if float(r.min()) >= 0 and float(r.max()) <= COUNT_MAX:  # the usual reference (NaN fails both tests; as
-            return  # Python floats: the maximum count in float16 is infinite, as its largest count can be)
+        # the usual reference, in two reductions (NaN fails both tests; compared as Python floats, since COUNT_MAX
+        # cast to float16 is infinite and an infinite count would pass)
+        if float(r.min()) >= 0 and float(r.max()) <= COUNT_MAX:
+            return
         if np.count_nonzero(np.isfinite(r)) < r.size or r.min() < 0:
             raise FrameError("reference_hist contains NaN, infinite or negative counts")
         if (beyond := beyond_count_max(r, "reference histogram")) is not None:  # corrupt, whether a method reads it
