@@ -235,15 +235,24 @@ class Uncertainty(ParamModel):
         read as :meth:`near_std` reads ``near_range_std``; 0 without it."""
         return self._near_table(depth, self.near_common_std)
 
-    def _near_table(self, depth: np.ndarray, values: list[float]) -> np.ndarray:
-        """``values`` (one per ``near_depths``) at ``depth``: linear between the depths, the first value before
-        the first, 0 from the last on, everywhere without values, and where the depth is not a number."""
+    def near_stds(self, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(:meth:`near_std`, :meth:`near_common`) at ``depth`` (m, any shape), the depths sorted out once."""
+        return self._near_table(depth, self.near_range_std, self.near_common_std)
+
+    def _near_table(self, depth: np.ndarray, *values: list[float]) -> np.ndarray | tuple[np.ndarray, ...]:
+        """Each of ``values`` (lists of one value per ``near_depths``) at ``depth``: linear between the depths, the
+        first value before the first, 0 from the last on, everywhere without values, and where the depth is not a
+        number. One list: its array; more: a tuple of them."""
         depth = np.asarray(depth, dtype=float)
-        if not self.near_depths or not values:
-            return np.zeros_like(depth)
-        with np.errstate(invalid="ignore"):
-            near = depth < self.near_depths[-1]
-        return np.where(near, np.interp(np.where(near, depth, 0.0), self.near_depths, values), 0.0)
+        out = []
+        if self.near_depths and any(values):
+            with np.errstate(invalid="ignore"):
+                near = depth < self.near_depths[-1]
+            inside = np.where(near, depth, 0.0)
+        for v in values:
+            out.append(np.where(near, np.interp(inside, self.near_depths, v), 0.0) if self.near_depths and v
+                       else np.zeros_like(depth))
+        return out[0] if len(out) == 1 else tuple(out)
 
     #: the limits at which ``diff`` returns peak's plane instead of its own (``inf``: never)
     FALLBACK_LIMITS: ClassVar[tuple[str, ...]] = ("chi2_limit", "consistency_limit", "prefer_ratio")

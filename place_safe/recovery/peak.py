@@ -159,7 +159,8 @@ def near_covariances(unc: Uncertainty, geometry: PlaneFitGeometry, depths: np.nd
     zone's error ``unc.near_std`` at its depth in place of the fit's residual, and ``unc.near_common`` shared by the
     zones. ``geometry``: :func:`~place_safe.recovery.points.plane_fit_geometry` of one fit or of many stacked (leading
     axes), ``depths`` (..., 9) m their zones' depths; returns (..., 3, 3)."""
-    return known_error_covariance(geometry, unc.near_std(depths), replace_fit=True, common_std=unc.near_common(depths))
+    std, common = unc.near_stds(depths)
+    return known_error_covariance(geometry, std, replace_fit=True, common_std=common)
 
 
 __all__ = ["PeakEstimator", "find_peaks", "COUNT_MAX", "near_applies", "near_covariances"]

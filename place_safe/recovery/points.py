@@ -506,6 +506,8 @@ def near_table_errors(table, depths, depth: np.ndarray) -> np.ndarray:
     with np.errstate(invalid="ignore"):
         near = depth < hi
     e = table(np.minimum(np.maximum(depth, lo), hi))  # (..., 9 depths, [tables,] 9 zones)
+    if e.ndim == 2 and depth.ndim == 1:  # one frame's zones, one table (a peak estimate's call): each zone's own
+        return np.where(near, e.diagonal(), 0.0)
     e = np.moveaxis(e, depth.ndim - 1, -2)  # (..., [tables,] 9 depths, 9 zones)
     extra = e.ndim - depth.ndim - 1  # the tables' axes
     near = near.reshape(depth.shape[:-1] + (1,) * extra + depth.shape[-1:])
