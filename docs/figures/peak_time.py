@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import statistics
 import subprocess
 import sys
@@ -72,7 +73,10 @@ def main(argv: list[str] | None = None) -> int:
     (work / "even.json").write_text(json.dumps(sweep[0::2]))
     (work / "odd20.json").write_text(json.dumps(sweep[1::2] * REPEAT))
     other = work / f"tree-{args.against}"
-    if not other.exists():
+    if not (other / "place_safe").is_dir():  # (not there yet, or left by a worktree git has since pruned)
+        subprocess.run(["git", "-C", str(ROOT), "worktree", "prune"], check=True, capture_output=True)
+        if other.exists():
+            shutil.rmtree(other)
         subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", str(other), args.against], check=True,
                        capture_output=True)
     codes = {"this checkout": ROOT, args.against: other}
