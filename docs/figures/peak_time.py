@@ -50,7 +50,8 @@ def one(checkout: Path, cal: Path, frames: Path) -> float:
 
 
 def run(checkout: Path, work: Path, *args: str) -> subprocess.CompletedProcess:
-    """``python ARGS`` with ``checkout``'s place_safe, in ``work`` (``-m`` puts the current folder first on the path)."""
+    """``python ARGS`` with ``checkout``'s place_safe, run in ``work`` (``-m`` puts the current folder first on
+    the path)."""
     env = {**os.environ, "PYTHONPATH": str(checkout), "OMP_NUM_THREADS": "1"}
     return subprocess.run([sys.executable, *args], env=env, cwd=work, capture_output=True, text=True, check=True)
 
