@@ -193,10 +193,7 @@ class Uncertainty(ParamModel):
     def _tilt_terms(self, normal, offset: float) -> tuple[float, float, float, float]:
         """:meth:`tilt_floor`'s entries: the tilt components' variance, their covariances with ``d`` and ``d``'s
         variance (scalar arithmetic: it is on the peak method's per-frame path)."""
-        if type(normal) is np.ndarray and normal.dtype == np.float64 and normal.shape == (3,):  # a Plane's own
-            nx, ny, nz = normal.tolist()  # (the same floats, without a generator's overhead)
-        else:
-            nx, ny, nz = (float(v) for v in normal)
+        nx, ny, nz = _plane_floats(normal) or (float(v) for v in normal)
         if not (math.isfinite(nx) and math.isfinite(ny) and math.isfinite(nz) and math.isfinite(offset)):
             nx, ny, nz, offset = 0.0, 0.0, _COS_MAX_TILT, 0.0
         steep = nz <= _COS_MAX_TILT  # (and a normal that is not a number: the fallback above)
@@ -244,14 +241,12 @@ class Uncertainty(ParamModel):
         first value before the first, 0 from the last on, everywhere without values, and where the depth is not a
         number. One list: its array; more: a tuple of them."""
         depth = np.asarray(depth, dtype=float)
-        out = []
-        if self.near_depths and any(values):
+        if self.near_depths:
             with np.errstate(invalid="ignore"):
                 near = depth < self.near_depths[-1]
             inside = np.where(near, depth, 0.0)
-        for v in values:
-            out.append(np.where(near, np.interp(inside, self.near_depths, v), 0.0) if self.near_depths and v
-                       else np.zeros_like(depth))
+        out = [np.where(near, np.interp(inside, self.near_depths, v), 0.0) if self.near_depths and v
+               else np.zeros_like(depth) for v in values]
         return out[0] if len(out) == 1 else tuple(out)
 
     #: the limits at which ``diff`` returns peak's plane instead of its own (``inf``: never)
@@ -434,13 +429,18 @@ class PlaneEstimate:
         return out
 
 
-def _finite(normal) -> bool:
-    """Whether every component of a plane's ``normal`` is finite (a float64 array of 3, a Plane's own, by its Python
-    floats: a microsecond less on every frame; anything else as numpy tests it)."""
+def _plane_floats(normal) -> list[float] | None:
+    """A :class:`~place_safe.geometry.Plane`'s own ``normal`` (a float64 array of 3) as its three Python floats (read
+    thus, a microsecond less on every frame); None for anything else, which callers read as before."""
     if type(normal) is np.ndarray and normal.dtype == np.float64 and normal.shape == (3,):
-        x, y, z = normal.tolist()
-        return math.isfinite(x) and math.isfinite(y) and math.isfinite(z)
-    return bool(np.isfinite(normal).all())
+        return normal.tolist()
+    return None
+
+
+def _finite(normal) -> bool:
+    """Whether every component of a plane's ``normal`` is finite (a Plane's own by its Python floats)."""
+    xyz = _plane_floats(normal)
+    return all(map(math.isfinite, xyz)) if xyz is not None else bool(np.isfinite(normal).all())
 
 
 def checked(est: PlaneEstimate) -> PlaneEstimate:

@@ -506,12 +506,11 @@ def near_table_errors(table, depths, depth: np.ndarray) -> np.ndarray:
     with np.errstate(invalid="ignore"):
         near = depth < hi
     e = table(np.minimum(np.maximum(depth, lo), hi))  # (..., 9 depths, [tables,] 9 zones)
-    if e.ndim == 2 and depth.ndim == 1:  # one frame's zones, one table (a peak estimate's call): each zone's own
-        return np.where(near, e.diagonal(), 0.0)
-    e = np.moveaxis(e, depth.ndim - 1, -2)  # (..., [tables,] 9 depths, 9 zones)
     extra = e.ndim - depth.ndim - 1  # the tables' axes
-    near = near.reshape(depth.shape[:-1] + (1,) * extra + depth.shape[-1:])
-    return np.where(near, np.diagonal(e, axis1=-2, axis2=-1), 0.0)
+    if extra:
+        near = near.reshape(depth.shape[:-1] + (1,) * extra + depth.shape[-1:])
+    # each zone's own error: the diagonal of depths and zones, which comes last (..., [tables,] 9)
+    return np.where(near, e.diagonal(axis1=depth.ndim - 1, axis2=-1), 0.0)
 
 
 def fit_planes(points: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
