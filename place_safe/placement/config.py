@@ -136,3 +136,20 @@ class PlacementConfig(ParamModel):
             raise ValueError("early_refuse_tilt must be >= max_tilt")
         return self
 
+    @classmethod
+    def load(cls, path):
+        """Read a JSON file written by :meth:`save` (one :attr:`error` line naming the file for any problem), holding
+        only settings a file may hold (:meth:`check_file_settings`)."""
+        cfg = super().load(path)
+        cfg.check_file_settings(f"{cls.what} {path}")
+        return cfg
+
+    def check_file_settings(self, where: str) -> None:
+        """Raise one :attr:`error` line naming ``where`` (if given) for a setting that code may give and a file may not:
+        ``footprint_frames = 0`` turns the landing-footprint rule off, for test doubles whose frames carry no
+        histograms; from a user's file it would release over an edge the rule exists to see (an adversarial
+        review's scenario did: the cup tipped off a table edge, session 89)."""
+        if self.footprint_frames == 0:
+            raise self.error(f"{where + ': ' if where else ''}footprint_frames: 0 turns the landing-footprint check off (for test doubles "
+                             "whose frames carry no histograms); a placement file must keep it on (1 or more frames)")
+

@@ -535,6 +535,8 @@ def fit_planes(points: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.nd
     d = (n * centroid).sum(-1)
     rms = s[..., -1] / np.sqrt(cnt)
     ok = (count >= 3) & _determines_plane(s, n, d)
+    if (part := ok & (count < pts.shape[-2])).any():  # fewer zones than all: their rays may lie in one plane
+        ok[part] = _rays_span(safe_pts[part], w[part] > 0)
     n = np.where(ok[..., None], n, np.nan)
     d = np.where(ok, d, np.nan)
     rms = np.where(ok, rms, np.nan)
@@ -544,8 +546,27 @@ def fit_planes(points: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.nd
 
 #: A plane fit's points are collinear where their second singular value is at most this fraction of the first.
 COLLINEAR_FRACTION = 1e-9
+#: The zones' rays lie in one plane through the sensor (a row, a column or a diagonal of the 3x3 grid: the tilt about the
+#: line where that plane meets the surface is not determined) where the smallest singular value of the used points'
+#: unit directions is at most this fraction of the largest. Such points lie in that plane of rays whatever their
+#: ranges, so a range error moves them off their line within it: an edge column alone read a level table 9 deg off
+#: with a covariance of the floor's 0.5 deg (calibrated), 68 deg off with none (uncalibrated; an adversarial review,
+#: session 89). The grid's lines read 0.000-0.005 (the lens's distortion bends the edge rows and columns), every
+#: other set of 3 or more zones 0.037 or more (calibrated and nominal directions alike). A line has 3 zones, so only
+#: fits of fewer than 9 points are tested.
+COPLANAR_RAYS = 0.015
 #: A plane fit's normal lies in the sensor's x-y plane (the plane holds the optical axis) where ``n_z`` is at most this.
 MIN_NORMAL_Z = 1e-6
+
+
+def _rays_span(points: np.ndarray, used: np.ndarray) -> np.ndarray:
+    """Whether the rays to the ``used`` points (..., N, 3; mask (..., N)) do not lie in one plane through the sensor
+    (:data:`COPLANAR_RAYS`)."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        u = points / np.linalg.norm(points, axis=-1, keepdims=True)
+    u = np.where(used[..., None] & np.isfinite(u), u, 0.0)
+    sv = np.linalg.svd(u, compute_uv=False)
+    return sv[..., 2] > COPLANAR_RAYS * np.maximum(sv[..., 0], 1e-30)
 
 
 def _determines_plane(s: np.ndarray, n: np.ndarray, d) -> np.ndarray:
@@ -682,6 +703,9 @@ def plane_through(points: np.ndarray, valid: np.ndarray) -> tuple[Plane, float]:
     n = vt[-1] if vt[-1, 2] >= 0 else -vt[-1]
     d = float(n @ centroid)
     s0, s1, s2 = s.tolist()
+    if count < keep.size and not _rays_span(p, np.ones(count, dtype=bool)):  # fit_planes' test, said first
+        raise NoPlaneError(f"the zone points do not determine a plane in front of the sensor (the {count} zones with a "
+                           "return lie along one line of the grid: the tilt about it is not determined)")
     if not (s1 > COLLINEAR_FRACTION * max(s0, 1e-30) and n[2] > MIN_NORMAL_Z and d > 0):  # _determines_plane's test
         raise NoPlaneError("the zone points do not determine a plane in front of the sensor")
     return Plane(n, d), s2 / math.sqrt(count)

@@ -267,7 +267,9 @@ class Scenario(ConfigModel):
 
     def placement_config(self):
         try:
-            return PlacementConfig.from_dict({**PlacementConfig().to_dict(), **self.placement})
+            cfg = PlacementConfig.from_dict({**PlacementConfig().to_dict(), **self.placement})
+            cfg.check_file_settings("")
+            return cfg
         except (TypeError, ValueError, OverflowError) as exc:
             raise ValueError(f"placement: {exc}") from None
 
