@@ -83,11 +83,11 @@ def compared_text(value: float, limit: float, decimals: int = 1, limit_decimals:
         if exact:
             return next(((t, limit_text) for j in range(decimals, MAX_DECIMALS + 1)
                          if (float(t := number_text(value, j)) > shown) - (float(t) < shown) == side),
-                        (repr(value), repr(limit)))
+                        (repr(value + 0.0), repr(limit + 0.0)))  # (+ 0.0: no negative zero)
         text = number_text(value, min(decimals + k, MAX_DECIMALS))
         if (float(text) > shown) - (float(text) < shown) == side:
             return text, limit_text
-    return repr(value), repr(limit)
+    return repr(value + 0.0), repr(limit + 0.0)
 
 
 def _chi_square_text(chi2: float, limit: float) -> tuple[str, str]:

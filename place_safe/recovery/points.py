@@ -83,6 +83,10 @@ INVERSE_MIN_SLOPE = 0.5
 #: inverse-range table divide by the width; a narrower domain loses the series' argument to rounding (and at 0 divides
 #: by zero). Calibration widens a sweep narrower than this to it (:func:`~place_safe.calibration.points.fit_linear`).
 MIN_DOMAIN_WIDTH = 1e-3
+#: m: the most a zone's calibrated offset may move its range (``PeakParams.zone_offsets`` over ``m``). Calibrations of
+#: the real sweep and the simulated units hold 8-12 mm; an offset of a histogram's length (accepted before, in
+#: reading units) read a level table 80 deg off as a calibrated plane (an adversarial review, session 89).
+MAX_ZONE_OFFSET = 0.05
 #: m: largest zone residual a mapping may state (PeakParams.zone_residual, .common_residual); the real sweep's on-sensor
 #: distances leave 0.5-0.9 mm.
 MAX_ZONE_RESIDUAL = 0.1
@@ -143,6 +147,10 @@ class PeakParams(ParamModel):
     def _consistent(self) -> "PeakParams":
         if self.subbin not in SUBBIN_METHODS:
             raise ValueError(f"subbin must be one of {', '.join(SUBBIN_METHODS)}, got {self.subbin!r}")
+        if (worst := max(abs(v) for v in self.zone_offsets)) > MAX_ZONE_OFFSET * self.m:
+            raise ValueError(f"zone_offsets must move no zone's range more than {MAX_ZONE_OFFSET * 1e3:g} mm "
+                             f"({MAX_ZONE_OFFSET * self.m:.4g} reading units at m = {self.m:.4g} per metre), got "
+                             f"{worst:.4g}")
         if len(self.zone_inverse) % N_ZONES:
             raise ValueError(f"zone_inverse needs {N_ZONES} values per power of the inverse range, "
                              f"got {len(self.zone_inverse)}")

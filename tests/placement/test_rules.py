@@ -8,7 +8,7 @@ import dataclasses
 import math
 
 import numpy as np
-from hypothesis import given
+from hypothesis import example, given
 from hypothesis import strategies as st
 
 from place_safe.fusion.plane_filter import FusedPlane
@@ -429,6 +429,7 @@ def test_a_tip_on_the_second_plane_at_rest_holds_the_check_and_two_stray_planes_
 
 @given(st.floats(-1e4, 1e4, allow_nan=False), st.floats(-1e4, 1e4, allow_nan=False), st.integers(0, 3),
        st.integers(0, 3))
+@example(7.810139696351816e-236, -0.0, 0, 0)  # too small to print in decimals: in full, and the limit "-0.0" (session 89)
 def test_a_compared_value_prints_on_the_side_of_its_limit_it_is_on(value, limit, decimals, limit_decimals):
     """A transition line said "clearance 10.0 mm < 10 mm" (9.96 mm: both rounded to the limit) and "-0.0 mm" (a new
     user's walkthrough). ``compared_text`` prints the limit exactly (to its decimals, more where they would not do)

@@ -162,3 +162,19 @@ def test_directions_follow_the_scales_they_were_computed_with():
     assert not np.allclose(changed, first)
     assert np.allclose(changed, p.replace().directions())
     assert np.allclose(np.linalg.norm(changed, axis=1), 1.0)
+
+
+def test_a_zone_offset_beyond_any_units_is_refused_in_one_line(tmp_path):
+    """``zone_offsets`` in reading units were bounded at 1000 (bins for peak), so a calibration moving one zone's
+    range 0.7 m loaded and read a level table 80 deg off as a calibrated plane (an adversarial review, session 89).
+    No zone may move more than MAX_ZONE_OFFSET (50 mm); the calibrations made hold 8-12 mm."""
+    from place_safe.exceptions import CalibrationError
+    from place_safe.recovery.points import MAX_ZONE_OFFSET
+
+    base = PeakParams.default_peak()
+    ok = base.replace(zone_offsets=[0.012 * base.m] + [0.0] * 8)  # 12 mm
+    assert ok.zone_offsets[0] > 0
+    for bad in (50.0, -1000.0, 1.01 * MAX_ZONE_OFFSET * base.m):
+        with pytest.raises(CalibrationError) as info:
+            PeakParams.from_dict({**base.to_dict(), "zone_offsets": [bad] + [0.0] * 8})
+        assert "zone_offsets" in str(info.value) and "mm" in str(info.value) and "\n" not in str(info.value)
