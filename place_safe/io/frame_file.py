@@ -420,13 +420,16 @@ def _iter_stream(fh: IO[bytes], p: Path) -> Iterator[dict | FrameError]:
     # UTF-16: its byte-order mark, or one NUL byte of the first two (b"[\x00" little-endian, b"\x00[" big-endian: a
     # little-endian file without the mark read as a broken list, and NUL bytes alone as UTF-16; round 14)
     wide = buf[:2] in (b"\xff\xfe", b"\xfe\xff") or (len(buf) >= 2 and (buf[0] == 0) != (buf[1] == 0))
+    # UTF-32: its mark, or three NUL bytes of the first four (it was said to look like UTF-16; session 89)
+    widest = buf[:4] in (b"\xff\xfe\x00\x00", b"\x00\x00\xfe\xff") or (len(buf) >= 4 and buf[:4].count(0) == 3)
+    wide = wide or widest
     if first == b"[" and not wide:
         splitter, buf = _Splitter(is_list=True), buf[1:]
     elif first == b"{" and not wide:
         splitter = _Splitter(is_list=False)
     else:
         raise FrameFileError(f"{p}: not a frame file; expected a JSON list of frame objects or JSON Lines"
-                             + (" (it looks like UTF-16 text: save it as UTF-8)" if wide else ""))
+                             + (f" (it looks like UTF-{32 if widest else 16} text: save it as UTF-8)" if wide else ""))
     index = 0
     shown = printable(p.name)  # (a reason's file name: its control characters escaped)
 

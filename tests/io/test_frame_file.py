@@ -219,6 +219,19 @@ def test_a_utf16_frame_file_is_said_to_be_utf16(tmp_path, encoding, layout):
         load_frames(p)
 
 
+@pytest.mark.parametrize("encoding", ["utf-32", "utf-32-be", "utf-32-le"])
+@pytest.mark.parametrize("layout", ["list", "lines"])
+def test_a_utf32_frame_file_is_said_to_be_utf32(tmp_path, encoding, layout):
+    """A UTF-32 frame file was said to look like UTF-16 text (or, big-endian without its mark, got no hint at all;
+    an adversarial review, session 89)."""
+    p = tmp_path / "f.json"
+    frames = [{"hists": [[0] * 128] * 9}] * 2
+    text = json.dumps(frames) if layout == "list" else "\n".join(json.dumps(f) for f in frames)
+    p.write_bytes(text.encode(encoding))
+    with pytest.raises(FrameFileError, match="UTF-32 text: save it as UTF-8"):
+        load_frames(p)
+
+
 def test_nul_bytes_are_not_said_to_be_utf16(tmp_path):
     """A file of NUL bytes (a preallocated or zeroed file) was said to look like UTF-16 text (round 14)."""
     p = tmp_path / "f.json"
