@@ -150,6 +150,7 @@ class PlacementConfig(ParamModel):
         histograms; from a user's file it would release over an edge the rule exists to see (an adversarial
         review's scenario did: the cup tipped off a table edge, session 89)."""
         if self.footprint_frames == 0:
-            raise self.error(f"{where + ': ' if where else ''}footprint_frames: 0 turns the landing-footprint check off (for test doubles "
-                             "whose frames carry no histograms); a placement file must keep it on (1 or more frames)")
+            raise self.error(f"{where + ': ' if where else ''}footprint_frames: 0 turns the landing-footprint check "
+                             "off (for test doubles whose frames carry no histograms); a placement file must keep it on "
+                             "(1 or more frames)")
 

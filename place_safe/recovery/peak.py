@@ -47,6 +47,8 @@ report them.
 
 from __future__ import annotations
 
+import math
+
 
 import numpy as np
 
@@ -164,16 +166,25 @@ def partial_grid_floor(tilt_range_std: float, points: np.ndarray, valid: np.ndar
     The floor's tilt term ``(tilt_range_std / d)^2`` is a range error between zones read through the whole grid's
     lever arms. Read as a range error ``s`` of each zone that the whole grid, on this plane, turns into that tilt
     variance, the zones used turn it into ``s^2 G_used``; this adds the part of ``s^2 (G_used - G_grid)`` that is
-    positive (its negative eigenvalues cut to 0). ``directions`` (9, 3): the zones' unit rays. On the real sweep's
+    positive (its negative eigenvalues cut to 0). ``directions`` (9, 3): the zones' rays; zones whose ray does not meet
+    the plane in front of the sensor (a plane steeper than the view) are left out of the grid, and with fewer than 3
+    left, or numbers that are not finite, nothing is added. On the real sweep's
     frames with three zones kept (an L, or three corners) peak's NEES per dof was 12-29, the fit's own part being zero
     with three points; with this 2.7-6.3, and 1.9-3.0 with four (was 4-8); six or more zones barely move (session
     89)."""
     d = float(plane.offset)
-    grid = (d / (directions @ plane.normal))[:, None] * directions  # every zone's point on the plane
-    g_grid = _range_error_gain(grid, np.ones(len(directions), dtype=bool), plane)
+    facing = directions @ plane.normal
+    meets = facing > 1e-6
+    if np.count_nonzero(meets) < 3:
+        return np.zeros((3, 3))
+    grid = (d / np.where(meets, facing, 1.0))[:, None] * directions  # every zone's point on the plane
+    g_grid = _range_error_gain(grid, meets, plane)
     g_used = _range_error_gain(points, valid, plane)
     s2 = (tilt_range_std / max(d, 1e-3)) ** 2 / max(0.5 * (g_grid[0, 0] + g_grid[1, 1]), 1e-30)
-    w, v = np.linalg.eigh(g_used - g_grid)
+    diff = g_used - g_grid
+    if not np.all(np.isfinite(diff)) or not math.isfinite(s2):
+        return np.zeros((3, 3))
+    w, v = np.linalg.eigh(diff)
     return (v * np.clip(w, 0.0, None)) @ v.T * s2
 
 
