@@ -49,7 +49,6 @@ from __future__ import annotations
 
 import math
 
-
 import numpy as np
 
 from place_safe.exceptions import FrameError, NoPlaneError
