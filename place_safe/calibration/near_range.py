@@ -202,13 +202,13 @@ def near_range_std(frames: Sequence[Frame], params: PeakParams) -> tuple[list[fl
         "of_the_mapping_mm": [float(v) * 1e3 for v in own]}
 
 
-def _knot_out_errors(knots, fold, n_folds, frame_depth, depth, err, keep, far_ranges, dirs, tn, td) -> np.ndarray:
+def _knot_out_errors(fold_knots, fold, depth, err, keep, far_ranges, dirs, tn, td) -> np.ndarray:
     """The point errors (P, F) of the near frames, each read by the tables (one per penalty) fitted on the other folds
-    with the knots of those folds' frames only: the frame lies between knots of other frames, as a new frame does."""
-    out = np.full((len(NEAR_PENALTIES), len(frame_depth)), FAILED_FIT_ERROR)
-    for f in range(n_folds):
+    with the knots of those folds' frames only (``fold_knots[f]``: :func:`_knots` of the frames not in fold ``f``): the
+    frame lies between knots of other frames, as a new frame does."""
+    out = np.full((len(NEAR_PENALTIES), len(fold)), FAILED_FIT_ERROR)
+    for f, k_f in enumerate(fold_knots):
         test = fold == f
-        k_f = _knots(frame_depth[~test])
         if len(k_f) < 3:
             continue
         tables = _fit_errors_many(k_f, depth[~test], err[~test], keep[~test], NEAR_PENALTIES)  # (P, K, 9)
@@ -297,6 +297,7 @@ def fit_near_range(frames: Sequence[Frame], params: PeakParams, hists: np.ndarra
     cv_out: dict[str, float] = {}
     kept: dict[float, np.ndarray] = {}  # the return mask after the weak-zone rule, per fraction
     dirs = base.directions()
+    fold_knots = [_knots(frame_depth[fold != f]) for f in range(n_folds)]  # the knot-out form's tables' knots
     for fraction in NEAR_MIN_FRACTIONS:
         keep = kept[fraction] = _with_table(base, knots, np.zeros((len(knots), N_ZONES)), fraction).drop_weak(
             pos, valid, heights)
@@ -308,7 +309,7 @@ def fit_near_range(frames: Sequence[Frame], params: PeakParams, hists: np.ndarra
         e_all = _table_point_errors(far_ranges, dirs, knots, tables, fold, keep, tn, td)  # (P, frames)
         for f, i in zip(*np.nonzero([[not _usable(t) for t in by_penalty] for by_penalty in tables])):
             e_all[i, fold == f] = FAILED_FIT_ERROR
-        e_out = _knot_out_errors(knots, fold, n_folds, frame_depth, depth, err, keep, far_ranges, dirs, tn, td)
+        e_out = _knot_out_errors(fold_knots, fold, depth, err, keep, far_ranges, dirs, tn, td)
         for penalty, e, eo in zip(NEAR_PENALTIES, e_all, e_out):
             score = float(np.mean(e[scored]))
             cv[f"fraction {fraction:g}, penalty {penalty:g}"] = score

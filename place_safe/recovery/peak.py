@@ -145,27 +145,29 @@ class PeakEstimator(Estimator):
         if near_applies(unc, points, valid):
             cov = near_covariances(unc, plane_fit_geometry(points, valid, plane), points[:, 2])
         else:
-            cov = plane_covariance(points, valid, plane)
             if unc.tilt_range_std > 0.0 and not valid.all():  # fewer zones than the grid: the floor's lever arms
-                cov = cov + partial_grid_floor(unc.tilt_range_std, points, valid, plane, self.params.directions())
+                fit = plane_fit_geometry(points, valid, plane)
+                cov = fit.sigma2 * fit.inverse + partial_grid_floor(unc.tilt_range_std, fit, plane,
+                                                                    self.params.directions())
+            else:
+                cov = plane_covariance(points, valid, plane)
         return unc.apply(cov, plane.offset, plane.normal)
 
 
-def _range_error_gain(points: np.ndarray, used: np.ndarray, plane) -> np.ndarray:
-    """(3, 3): the covariance of ``(n_x, n_y, d)`` a unit range error of each used point, independent, gives the
-    least-squares plane through them (:func:`~place_safe.recovery.points.plane_fit_geometry`)."""
-    g = plane_fit_geometry(points, used, plane)
-    return (g.gain * g.off_plane ** 2) @ g.gain.T
+def _range_error_gain(geometry: PlaneFitGeometry) -> np.ndarray:
+    """(3, 3): the covariance of ``(n_x, n_y, d)`` that a unit range error of each point a fit used, independent, gives
+    its plane (:func:`~place_safe.recovery.points.known_error_covariance` of a unit error in place of the fit's)."""
+    return known_error_covariance(geometry, 1.0, replace_fit=True)
 
 
-def partial_grid_floor(tilt_range_std: float, points: np.ndarray, valid: np.ndarray, plane,
-                       directions: np.ndarray) -> np.ndarray:
+def partial_grid_floor(tilt_range_std: float, fit: PlaneFitGeometry, plane, directions: np.ndarray) -> np.ndarray:
     """What a fit through fewer zones than the 3x3 grid adds to its covariance (3, 3) before ``Uncertainty.apply``.
 
     The floor's tilt term ``(tilt_range_std / d)^2`` is a range error between zones read through the whole grid's
     lever arms. Read as a range error ``s`` of each zone that the whole grid, on this plane, turns into that tilt
     variance, the zones used turn it into ``s^2 G_used``; this adds the part of ``s^2 (G_used - G_grid)`` that is
-    positive (its negative eigenvalues cut to 0). ``directions`` (9, 3): the zones' rays; zones whose ray does not meet
+    positive (its negative eigenvalues cut to 0). ``fit``: :func:`~place_safe.recovery.points.plane_fit_geometry` of
+    the fit through the zones used; ``directions`` (9, 3): the zones' rays; zones whose ray does not meet
     the plane in front of the sensor (a plane steeper than the view) are left out of the grid, and with fewer than 3
     left, or numbers that are not finite, nothing is added. On the real sweep's
     frames with three zones kept (an L, or three corners) peak's NEES per dof was 12-29, the fit's own part being zero
@@ -177,8 +179,8 @@ def partial_grid_floor(tilt_range_std: float, points: np.ndarray, valid: np.ndar
     if np.count_nonzero(meets) < 3:
         return np.zeros((3, 3))
     grid = (d / np.where(meets, facing, 1.0))[:, None] * directions  # every zone's point on the plane
-    g_grid = _range_error_gain(grid, meets, plane)
-    g_used = _range_error_gain(points, valid, plane)
+    g_grid = _range_error_gain(plane_fit_geometry(grid, meets, plane))
+    g_used = _range_error_gain(fit)
     s2 = (tilt_range_std / max(d, 1e-3)) ** 2 / max(0.5 * (g_grid[0, 0] + g_grid[1, 1]), 1e-30)
     diff = g_used - g_grid
     if not np.all(np.isfinite(diff)) or not math.isfinite(s2):
