@@ -1053,6 +1053,33 @@ def near_prior(frames: Sequence[Frame], peak_params, unc: Uncertainty,
                  "shared_by_zones": NEAR_UNCALIBRATED_SHARED, "note": NEAR_PRIOR_NOTE.format(cm=nearest * 100)}
 
 
+#: The fewest full-grid fits whose residuals :func:`pooled_zone_std` pools (fewer: no ``zone_std`` stated).
+ZONE_STD_MIN_FRAMES = 3
+
+
+def pooled_zone_std(frames: Sequence[Frame], peak_params) -> tuple[float, dict]:
+    """The zones' own scatter about the plane (m; ``Uncertainty.zone_std``) and its report: the root of the mean
+    residual variance (sum of squares over 9 - 3) of peak's fits through all nine zones of ``frames``, each plane its
+    own least-squares one (no ground truth needed); 0 with fewer than :data:`ZONE_STD_MIN_FRAMES` such fits. On the
+    real halves 0.104 / 0.108 mm, about flat over 5-40 cm; read back on frames of the other half 0.11-0.12 mm."""
+    est = PeakEstimator(peak_params)
+    s2 = []
+    for f in frames:
+        try:
+            points, valid = est.zone_points(f)
+            if not valid.all():
+                continue
+            plane, _ = plane_through(points, valid)
+        except (NoPlaneError, FrameError):
+            continue
+        s2.append(float(plane_fit_geometry(points, valid, plane).sigma2))
+    s2 = [v for v in s2 if math.isfinite(v)]
+    if len(s2) < ZONE_STD_MIN_FRAMES:
+        return 0.0, {"frames": len(s2), "why": f"fewer than {ZONE_STD_MIN_FRAMES} fits through all nine zones"}
+    std = min(math.sqrt(float(np.mean(s2))), NEAR_MAX_STD)
+    return std, {"frames": len(s2), "zone_std_mm": std * 1e3}
+
+
 def fit_peak_uncertainty(frames: Sequence[Frame], peak_params, min_range: float | None = None,
                          mount_tilt=None) -> tuple[Uncertainty, dict]:
     """The peak method's floor from frames with ground truth at ``min_range`` (m, axis distance) or farther:
@@ -1077,7 +1104,9 @@ def fit_peak_uncertainty(frames: Sequence[Frame], peak_params, min_range: float 
     holds the errors per depth, ``law`` (scale, power, frames, the floor at the knots and
     ``nees_per_dof_held_out``, the held-out planes under the law alone), ``too_close`` (how many near frames the
     peak method reads as too close, :mod:`place_safe.recovery.too_close`: no plane, no part in the means) and
-    ``nees_per_dof_closer`` (the calibration's own near frames read by its table: in sample).
+    ``nees_per_dof_closer`` (the calibration's own near frames read by its table: in sample). ``zone_std``, the zones'
+    scatter that a fit through fewer zones states at least, is pooled from the same far frames
+    (:func:`pooled_zone_std`; report ``zone_scatter``).
 
     An earlier factor on the cross-validated errors, chosen so that the held-out mean is 1 with tables that kept
     the frame's own knot, was biased: such a frame sits on a knot that lost its own data and reads worse than a
@@ -1091,11 +1120,14 @@ def fit_peak_uncertainty(frames: Sequence[Frame], peak_params, min_range: float 
     normals = np.array([f.truth.normal for f in use])
     tilted, level = _tilt_regime(normals)
     stated = peak_tilt_term(mount_tilt) if level else Uncertainty(tilt_rel=0.0)
+    zone_std, zone_report = pooled_zone_std(use, peak_params)
     base = Uncertainty(near_depths=depths, near_range_std=stds, tilt_rel=stated.tilt_rel,
                        tilt_offset_rel=stated.tilt_offset_rel,
-                       tilt_about=sweep_slopes(normals, tilted) if level else [0.0, 0.0])
-    ests = [PeakEstimator(peak_params).estimate(f) for f in use]
+                       tilt_about=sweep_slopes(normals, tilted) if level else [0.0, 0.0], zone_std=zone_std)
+    own = Uncertainty(zone_std=zone_std)  # (the fits' own part: a frame with fewer zones states at least the scatter)
+    ests = [PeakEstimator(peak_params, own).estimate(f) for f in use]
     unc, report, n_few = _floor_with_tilt_term(ests, [f.truth for f in use], tilted, level, base)
+    report["zone_scatter"] = zone_report
     sizing = n_few >= TILT_TERM_MIN_FRAMES
     report["tilt_term"] = (("stated (PEAK_TILT_REL): the frames' tilts spread less than MIN_TILT_SPREAD, or too few "
                             "frames are tilted (DIFF_TILTED_SHARE)" + (", sized by the tilted frames (tilt_term_sized; "

@@ -32,8 +32,8 @@ from place_safe.geometry import Plane
 from place_safe.sensor.frame import SENSOR_RANGE, Frame
 
 
-#: cos(80 deg): the tilt term's largest tilt.
-_COS_MAX_TILT = math.cos(math.radians(80.0))
+#: cos(80 deg): the largest tilt the tilt terms grow with (the tilt term here, the zones' tilt scatter in peak).
+COS_MAX_TILT = math.cos(math.radians(80.0))
 _TAN2_MAX_TILT = math.tan(math.radians(80.0)) ** 2
 
 #: Order of the covariance entries: the normal's x and y components (rad) and the offset (m).
@@ -77,7 +77,11 @@ class Uncertainty(ParamModel):
     (:func:`~place_safe.recovery.points.plane_covariance`). ``near_common_std`` (m, empty or one per depth, 0 ..
     :data:`NEAR_MAX_STD`): a range error that all zones of a frame share besides (one error along every zone's ray
     at once: it moves the plane's offset more than its tilt; :meth:`near_common`); empty: the zones err
-    independently.
+    independently. ``zone_std`` (m, 0 .. :data:`NEAR_MAX_STD`; 0, files before it: unused): the zones' own scatter
+    about the plane, the RMS residual of the calibration frames' full-grid fits pooled
+    (:func:`~place_safe.calibration.uncertainty.pooled_zone_std`); a fit through fewer zones than the grid, whose own
+    residual says less (nothing with three zones), states the larger of its residual variance and ``zone_std^2`` with a
+    tilted plane's scatter added (:func:`~place_safe.recovery.peak.partial_zone_variance`).
 
     ``tilt_rel`` (dimensionless, 0 .. 1): what a tilted plane adds that a level sweep cannot show, each tilt
     component's standard deviation per unit ``tan(tilt)`` of the estimated plane, added (outside ``scale``)
@@ -122,6 +126,7 @@ class Uncertainty(ParamModel):
     tilt_about: vector(2, ge=-1.0, le=1.0) = Field(default_factory=lambda: [0.0, 0.0], description="(slopes)")
     near_common_std: vector(ge=0.0, le=NEAR_MAX_STD) = Field(default_factory=list, description="m")
     blend: bool = Field(False, description="(diff: blend its plane with peak's where its gates pass)")
+    zone_std: float = Field(0.0, ge=0.0, le=NEAR_MAX_STD, description="m")
 
     what: ClassVar[str] = "uncertainty"
     error: ClassVar[type[Exception]] = CalibrationError
@@ -195,9 +200,9 @@ class Uncertainty(ParamModel):
         variance (scalar arithmetic: it is on the peak method's per-frame path)."""
         nx, ny, nz = _plane_floats(normal) or (float(v) for v in normal)
         if not (math.isfinite(nx) and math.isfinite(ny) and math.isfinite(nz) and math.isfinite(offset)):
-            nx, ny, nz, offset = 0.0, 0.0, _COS_MAX_TILT, 0.0
-        steep = nz <= _COS_MAX_TILT  # (and a normal that is not a number: the fallback above)
-        nz = min(max(nz, _COS_MAX_TILT), 1.0)
+            nx, ny, nz, offset = 0.0, 0.0, COS_MAX_TILT, 0.0
+        steep = nz <= COS_MAX_TILT  # (and a normal that is not a number: the fallback above)
+        nz = min(max(nz, COS_MAX_TILT), 1.0)
         a0, b0 = self.tilt_about
         if a0 == 0.0 and b0 == 0.0:
             tan2 = max(1.0 - nz * nz, 0.0) / (nz * nz)
@@ -256,7 +261,8 @@ class Uncertainty(ParamModel):
     #: fields left out of the file at these values (the defaults of files older versions read)
     _OMITTED_AT: ClassVar[tuple[tuple[str, Any], ...]] = (("tilt_rel", 0.0), ("prefer_ratio", None),
                                                            ("tilt_pivot", 1.0), ("tilt_offset_rel", 0.0),
-                                                           ("blend", False), ("tilt_about", [0.0, 0.0]))
+                                                           ("blend", False), ("tilt_about", [0.0, 0.0]),
+                                                           ("zone_std", 0.0))
 
     #: the model-error floor's terms (:meth:`floor`); a calibrated entry states some (:meth:`states_no_floor`)
     FLOOR_TERMS: ClassVar[tuple[str, ...]] = ("tilt_std", "tilt_range_std", "offset_std", "offset_rel")

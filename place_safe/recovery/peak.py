@@ -37,7 +37,10 @@ The calibrated errors are fitted by maximum likelihood on held-out planes
 (:func:`~place_safe.calibration.uncertainty.fit_peak_uncertainty`). Then the calibrated floor and the
 tilt term (:class:`~place_safe.recovery.estimator.Uncertainty`: on a tilted plane each zone's return spreads
 over its footprint and the peak reads the slope short, an error a level sweep cannot show; a calibration on mostly
-tilted frames has none, its floor holds that error).
+tilted frames has none, its floor holds that error). A fit through fewer zones than the grid states the larger of
+its residual variance and the zones' scatter (:func:`partial_zone_variance`: the calibrated ``Uncertainty.zone_std``
+and, on a tilted plane, :data:`ZONE_TILT_SCATTER`; three zones have no residual of their own), and carries the floor
+through its own lever arms (:func:`partial_grid_floor`).
 Histograms clipped (:func:`~place_safe.sensor.histogram.clipped_zones`: the 24-bit maximum, a flat top, a narrower
 store's limit), or frames flagged ``saturated`` in ``extra`` /
 ``extra["meta"]``, give no plane: a clipped peak has no usable position. Counts above the 24-bit maximum give no
@@ -53,7 +56,7 @@ import numpy as np
 
 from place_safe.exceptions import FrameError, NoPlaneError
 from place_safe.sensor.frame import N_BINS, N_ZONES, Frame
-from place_safe.recovery.estimator import Estimator, PlaneEstimate, Uncertainty, check_arguments
+from place_safe.recovery.estimator import COS_MAX_TILT, Estimator, PlaneEstimate, Uncertainty, check_arguments
 from place_safe.recovery.points import (PeakParams, PlaneFitGeometry, known_error_covariance, plane_covariance,
                                        plane_fit_geometry, plane_through)
 from place_safe.recovery.too_close import may_be_close, overlap_reason, plane_overlap_reason
@@ -142,15 +145,18 @@ class PeakEstimator(Estimator):
         each zone's error the calibrated near-range one in place of the fit's residual (module doc), plus the
         floor and the tilt term."""
         unc = self.uncertainty
+        partial = not valid.all() and (unc.tilt_range_std > 0.0 or unc.zone_std > 0.0)  # (a calibrated entry)
         if near_applies(unc, points, valid):
-            cov = near_covariances(unc, plane_fit_geometry(points, valid, plane), points[:, 2])
+            fit = plane_fit_geometry(points, valid, plane)
+            if partial:  # zones beyond the law's end at least the zones' scatter, those within the tilt's besides
+                fit = fit._replace(sigma2=np.float64(partial_zone_variance(unc, fit, plane)))
+            cov = near_covariances(unc, fit, points[:, 2], zone_tilt_variance(plane) if partial else 0.0)
+        elif partial:  # fewer zones than the grid: at least the zones' scatter, the floor through their lever arms
+            fit = plane_fit_geometry(points, valid, plane)
+            cov = partial_zone_variance(unc, fit, plane) * fit.inverse + partial_grid_floor(
+                unc.tilt_range_std, fit, plane, self.params.directions())
         else:
-            if unc.tilt_range_std > 0.0 and not valid.all():  # fewer zones than the grid: the floor's lever arms
-                fit = plane_fit_geometry(points, valid, plane)
-                cov = fit.sigma2 * fit.inverse + partial_grid_floor(unc.tilt_range_std, fit, plane,
-                                                                    self.params.directions())
-            else:
-                cov = plane_covariance(points, valid, plane)
+            cov = plane_covariance(points, valid, plane)
         return unc.apply(cov, plane.offset, plane.normal)
 
 
@@ -158,6 +164,34 @@ def _range_error_gain(geometry: PlaneFitGeometry) -> np.ndarray:
     """(3, 3): the covariance of ``(n_x, n_y, d)`` that a unit range error of each point a fit used, independent, gives
     its plane (:func:`~place_safe.recovery.points.known_error_covariance` of a unit error in place of the fit's)."""
     return known_error_covariance(geometry, 1.0, replace_fit=True)
+
+
+#: m of each zone's range scatter about a tilted plane per m of ``z0 tan(tilt)`` (the plane's crossing of the optical
+#: axis, its tilt from it): a zone's footprint on a tilted plane spans a spread of ranges, and the zones read it each
+#: their own way. Measured as the RMS residual of peak's nine-zone fits on tilted frames (0-30 deg, 5-30 cm) against
+#: ``sqrt(zone_std^2 + (k z0 tan)^2)``: mismatched units 11 and 21 k = 0.0044 (both; the value here), the
+#: independent generator 0.0050 (its check). A fit through all nine zones has this in its own residual; one through
+#: fewer states it (:func:`partial_zone_variance`).
+ZONE_TILT_SCATTER = 0.0044
+
+
+def zone_tilt_variance(plane) -> float:
+    """``(ZONE_TILT_SCATTER z0 tan(tilt))^2`` (m^2) of ``plane`` (tilt from the optical axis, capped at 80 deg; 0 where
+    the plane's numbers are not finite)."""
+    nz = float(plane.normal[2])
+    if not (math.isfinite(nz) and math.isfinite(float(plane.offset))):
+        return 0.0
+    nz = min(max(nz, COS_MAX_TILT), 1.0)
+    return (ZONE_TILT_SCATTER * float(plane.offset) / nz * math.sqrt(max(1.0 - nz * nz, 0.0)) / nz) ** 2
+
+
+def partial_zone_variance(unc: Uncertainty, fit: PlaneFitGeometry, plane) -> float:
+    """The zones' residual variance (m^2) a fit through fewer zones than the grid states for ``plane``: the larger of
+    its own (``fit.sigma2``; none with three zones) and the zones' scatter, ``unc.zone_std^2`` and
+    :func:`zone_tilt_variance`. Peak's NEES per dof for three and four zones (session 90, docs/results.md "Bad input"):
+    the real halves' 5-40 cm frames 2.8-6.4 -> 0.73-1.43; the independent generator's planes tilted 15-30 deg 7-660
+    -> 0.25-1.2."""
+    return max(float(fit.sigma2), unc.zone_std ** 2 + zone_tilt_variance(plane))
 
 
 def partial_grid_floor(tilt_range_std: float, fit: PlaneFitGeometry, plane, directions: np.ndarray) -> np.ndarray:
@@ -195,13 +229,18 @@ def near_applies(unc: Uncertainty, points: np.ndarray, valid: np.ndarray) -> boo
     return bool(unc.near_depths) and bool(points[valid, 2].min() < unc.near_depths[-1])
 
 
-def near_covariances(unc: Uncertainty, geometry: PlaneFitGeometry, depths: np.ndarray) -> np.ndarray:
+def near_covariances(unc: Uncertainty, geometry: PlaneFitGeometry, depths: np.ndarray,
+                     extra: float = 0.0) -> np.ndarray:
     """The fit's part of :meth:`PeakEstimator.covariance` (before ``unc.apply``) where :func:`near_applies`: each
     zone's error ``unc.near_std`` at its depth in place of the fit's residual, and ``unc.near_common`` shared by the
     zones. ``geometry``: :func:`~place_safe.recovery.points.plane_fit_geometry` of one fit or of many stacked (leading
-    axes), ``depths`` (..., 9) m their zones' depths; returns (..., 3, 3)."""
+    axes), ``depths`` (..., 9) m their zones' depths; ``extra`` (m^2): a variance added to each such zone's own (a fit
+    through fewer zones than the grid: :func:`zone_tilt_variance`); returns (..., 3, 3)."""
     std, common = unc.near_stds(depths)
+    if extra > 0.0:
+        std = np.where(std > 0.0, np.sqrt(std * std + extra), std)
     return known_error_covariance(geometry, std, replace_fit=True, common_std=common)
 
 
-__all__ = ["PeakEstimator", "find_peaks", "COUNT_MAX", "near_applies", "near_covariances", "partial_grid_floor"]
+__all__ = ["PeakEstimator", "find_peaks", "COUNT_MAX", "near_applies", "near_covariances", "partial_grid_floor",
+           "partial_zone_variance", "zone_tilt_variance", "ZONE_TILT_SCATTER"]

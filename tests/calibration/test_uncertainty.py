@@ -1016,3 +1016,48 @@ def test_a_calibration_with_no_near_frame_states_a_near_law_that_covers_the_real
     params_all, _ = fit_peak(frames[0::2], progress=False)
     _, report_all = fit_peak_uncertainty(frames[0::2], params_all)
     assert "prior" not in report_all["near_range"]
+
+
+def test_the_zones_scatter_is_pooled_from_fits_through_all_nine_zones_and_read_by_fewer(sweep_path):
+    """``pooled_zone_std``: the root of the mean residual variance of peak's own nine-zone fits (no truth needed;
+    frames with fewer zones left out), 0 with too few fits; ``fit_peak_uncertainty`` writes it, and a fit through
+    three zones, whose own residual is zero, states it (without it only the floor, which is smaller)."""
+    from place_safe.calibration import Calibration
+    from place_safe.calibration.fit import fit_method
+    from place_safe.calibration.uncertainty import ZONE_STD_MIN_FRAMES, fit_peak_uncertainty, pooled_zone_std
+    from place_safe.io.frame_file import load_frames
+    from place_safe.recovery import make_estimator
+    from place_safe.recovery.peak import zone_tilt_variance
+    from place_safe.recovery.points import plane_fit_geometry, plane_through
+    from place_safe.sensor.frame import Frame
+
+    sweep = load_frames(sweep_path)
+    cal = Calibration()
+    fit_method(cal, sweep, "peak", progress=False, log=None)
+    est = make_estimator("peak", cal)
+    far = [f for f in sweep if 0.1 <= f.truth.z0 <= 0.4]
+    s2 = []
+    for f in far:
+        points, valid = est.zone_points(f)
+        assert valid.all()
+        s2.append(float(plane_fit_geometry(points, valid, plane_through(points, valid)[0]).sigma2))
+    h = np.zeros_like(far[0].hists)
+    h[:4] = far[0].hists[:4]
+    std, report = pooled_zone_std(far + [Frame(h, far[0].reference)], est.params)  # (the four-zone frame left out)
+    assert std == pytest.approx(math.sqrt(np.mean(s2)), rel=1e-12) and report["frames"] == len(far)
+    assert pooled_zone_std(far[:ZONE_STD_MIN_FRAMES - 1], est.params)[0] == 0.0
+    unc, report = fit_peak_uncertainty(sweep, cal.peak())
+    assert unc.zone_std > 0.0 and report["zone_scatter"]["zone_std_mm"] == pytest.approx(unc.zone_std * 1e3)
+    assert est.uncertainty.zone_std == pytest.approx(unc.zone_std, rel=1e-12)
+    h = np.zeros_like(far[5].hists)
+    h[[0, 1, 3]] = far[5].hists[[0, 1, 3]]
+    points, valid = est.zone_points(Frame(h, far[5].reference))
+    plane = plane_through(points, valid)[0]
+    fit = plane_fit_geometry(points, valid, plane)
+    assert fit.sigma2 == 0.0
+    without = make_estimator("peak", Calibration.from_dict({**cal.to_dict(), "uncertainty": {
+        **cal.to_dict()["uncertainty"], "peak": est.uncertainty.replace(zone_std=0.0).to_dict()}}))
+    extra = est.covariance(points, valid, plane) - without.covariance(points, valid, plane)
+    scatter = unc.zone_std ** 2 + zone_tilt_variance(plane)  # (the sweep's table sits a little off level)
+    assert zone_tilt_variance(plane) < 0.1 * unc.zone_std ** 2
+    assert np.allclose(extra, est.uncertainty.scale * scatter * fit.inverse, rtol=1e-9, atol=0)

@@ -479,3 +479,16 @@ def test_a_plane_beyond_the_sensors_range_is_no_plane(synthetic_frames):
     at_limit = PlaneEstimate(Plane([0.0, 0.0, 1.0], SENSOR_RANGE))
     assert checked(at_limit) is at_limit
     assert checked(PlaneEstimate(Plane([0.0, 0.0, 1.0], SENSOR_RANGE + 1e-3))).plane is None
+
+
+def test_the_zones_scatter_is_a_bounded_length_left_out_of_the_file_where_it_is_not_stated():
+    """``zone_std`` (m): 0 (files before it) is left out of the file, a stated one written and read back; a negative or a
+    value beyond NEAR_MAX_STD is one line naming the field."""
+    assert "zone_std" not in Uncertainty().to_dict()
+    stated = Uncertainty(offset_std=1e-4, zone_std=1.04e-4)
+    assert stated.to_dict()["zone_std"] == 1.04e-4
+    assert Uncertainty.from_dict(stated.to_dict()) == stated
+    for bad in (-1e-4, 0.06, "0.1"):
+        with pytest.raises(CalibrationError) as exc:
+            Uncertainty.from_dict({**stated.to_dict(), "zone_std": bad})
+        assert str(exc.value).startswith("uncertainty: zone_std: ") and "\n" not in str(exc.value)
