@@ -189,7 +189,7 @@ def partial_zone_variance(unc: Uncertainty, fit: PlaneFitGeometry, plane) -> flo
     """The zones' residual variance (m^2) a fit through fewer zones than the grid states for ``plane``: the larger of
     its own (``fit.sigma2``; none with three zones) and the zones' scatter, ``unc.zone_std^2`` and
     :func:`zone_tilt_variance`. Peak's NEES per dof for three and four zones (session 90, docs/results.md "Bad input"):
-    the real halves' 5-40 cm frames 2.8-6.4 -> 0.73-1.43; the independent generator's planes tilted 15-30 deg 7-660
+    the real halves' 5-40 cm frames 2.8-6.4 -> 0.73-1.42; the independent generator's planes tilted 15-30 deg 7-660
     -> 0.25-1.2."""
     return max(float(fit.sigma2), unc.zone_std ** 2 + zone_tilt_variance(plane))
 
