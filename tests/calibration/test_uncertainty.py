@@ -1019,8 +1019,8 @@ def test_a_calibration_with_no_near_frame_states_a_near_law_that_covers_the_real
 
 
 def test_the_zones_scatter_is_pooled_from_fits_through_all_nine_zones_and_read_by_fewer(sweep_path):
-    """``pooled_zone_std``: the root of the mean residual variance of peak's own nine-zone fits (no truth needed;
-    frames with fewer zones left out), 0 with too few fits; ``fit_peak_uncertainty`` writes it, and a fit through
+    """``pooled_zone_std``: the root of the mean residual variance of peak's own nine-zone fits less a tilted plane's
+    part (no truth needed; frames with fewer zones left out), 0 with too few fits; ``fit_peak_uncertainty`` writes it, and a fit through
     three zones, whose own residual is zero, states it (without it only the floor, which is smaller)."""
     from place_safe.calibration import Calibration
     from place_safe.calibration.fit import fit_method
@@ -1040,7 +1040,8 @@ def test_the_zones_scatter_is_pooled_from_fits_through_all_nine_zones_and_read_b
     for f in far:
         points, valid = est.zone_points(f)
         assert valid.all()
-        s2.append(float(plane_fit_geometry(points, valid, plane_through(points, valid)[0]).sigma2))
+        plane = plane_through(points, valid)[0]
+        s2.append(float(plane_fit_geometry(points, valid, plane).sigma2) - zone_tilt_variance(plane))
     h = np.zeros_like(far[0].hists)
     h[:4] = far[0].hists[:4]
     std, report = pooled_zone_std(far + [Frame(h, far[0].reference)], est.params)  # (the four-zone frame left out)
@@ -1061,3 +1062,35 @@ def test_the_zones_scatter_is_pooled_from_fits_through_all_nine_zones_and_read_b
     scatter = unc.zone_std ** 2 + zone_tilt_variance(plane)  # (the sweep's table sits a little off level)
     assert zone_tilt_variance(plane) < 0.1 * unc.zone_std ** 2
     assert np.allclose(extra, est.uncertainty.scale * scatter * fit.inverse, rtol=1e-9, atol=0)
+
+
+def test_the_zones_scatter_of_a_sweep_with_tilted_frames_is_the_level_one():
+    """A tilted plane's nine-zone residual holds the zones' tilt scatter (``ZONE_TILT_SCATTER``), which a partial fit
+    states besides ``zone_std``: pooled from a sweep of level and tilted frames the scatter is the level frames' (the
+    tilted ones' raw residuals read five times it); from tilted frames alone, with the tilt part removed, between the
+    level scatter and the raw (independent generator, one sensor; 0.041 mm level)."""
+    import math as m
+
+    from place_safe.calibration import Calibration
+    from place_safe.calibration.fit import fit_method
+    from place_safe.calibration.uncertainty import pooled_zone_std
+    from place_safe.evaluation.independent import SceneSpec, make_frames
+    from place_safe.recovery.points import plane_fit_geometry, plane_through
+    from place_safe.recovery.peak import PeakEstimator
+
+    level = make_frames(60, seed=1, scene=SceneSpec(z_range=(0.05, 0.40), theta_range=(0.0, 0.0)))
+    tilted = make_frames(60, seed=2, scene=SceneSpec(z_range=(0.05, 0.30), theta_range=(m.radians(15), m.radians(30))))
+    cal = Calibration()
+    fit_method(cal, level, "peak", progress=False, log=None)
+    params = cal.peak()
+    flat, _ = pooled_zone_std(level, params)
+    mixed, report = pooled_zone_std(level + tilted, params)
+    steep, _ = pooled_zone_std(tilted, params)
+    raw = []
+    for f in tilted:
+        points, valid = PeakEstimator(params).zone_points(f)
+        if valid.all():
+            raw.append(float(plane_fit_geometry(points, valid, plane_through(points, valid)[0]).sigma2))
+    assert m.sqrt(np.mean(raw)) > 3.0 * flat
+    assert mixed == pytest.approx(flat, rel=1e-9) and report["frames"] == 60
+    assert flat < steep < m.sqrt(np.mean(raw))
