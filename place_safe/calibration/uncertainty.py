@@ -87,7 +87,8 @@ from place_safe.calibration.points import (MIN_CALIBRATION_RANGE, MIN_TILT_SPREA
                                           tilt_angles)
 from place_safe.recovery.blend import blended
 from place_safe.recovery.diff_settings import BLENDED, CROSSTALK_LEFT_SHARE, NEAR_FALLBACK_RANGE
-from place_safe.recovery.peak import PeakEstimator, near_applies, near_covariances, zone_tilt_variance
+from place_safe.recovery.peak import (ZONE_TILT_SCATTER, PeakEstimator, near_applies, near_covariances,
+                                     zone_tilt_variance)
 
 
 def _nll(errors: np.ndarray, covs: np.ndarray, extra: np.ndarray) -> float:
@@ -1057,21 +1058,25 @@ def near_prior(frames: Sequence[Frame], peak_params, unc: Uncertainty,
 ZONE_STD_MIN_FRAMES = 3
 #: rad: :func:`pooled_zone_std` pools the frames whose planes are tilted less than this from the optical axis where
 #: there are :data:`ZONE_STD_MIN_FRAMES` of them (a tilted plane's residual holds the zones' tilt scatter, which the
-#: stated ``ZONE_TILT_SCATTER`` removes only on average: on the independent generator's planes tilted 15-30 deg the
-#: pooled scatter read 0.22 mm with it removed, its level sweep 0.041 mm).
+#: stated ``ZONE_TILT_SCATTER`` describes only on average: on the independent generator's planes tilted 15-30 deg
+#: the pooled scatter read 0.22 mm with it removed, its level sweep 0.041 mm).
 ZONE_STD_MAX_TILT = math.radians(5.0)
 
 
 def pooled_zone_std(frames: Sequence[Frame], peak_params) -> tuple[float, dict]:
     """The zones' own scatter about the plane (m; ``Uncertainty.zone_std``) and its report: the root of the mean
     residual variance (sum of squares over 9 - 3) of peak's fits through all nine zones of ``frames``, each plane its
-    own least-squares one (no ground truth needed), less the part a tilted plane adds
-    (:func:`~place_safe.recovery.peak.zone_tilt_variance`, which a partial fit states besides), over the frames
-    tilted less than :data:`ZONE_STD_MAX_TILT` where there are enough, else over all; 0 with fewer than
-    :data:`ZONE_STD_MIN_FRAMES` such fits. On the real halves
+    own least-squares one (no ground truth needed), over the frames tilted less than :data:`ZONE_STD_MAX_TILT` where
+    there are enough, less the little a tilted plane adds there (:func:`~place_safe.recovery.peak.zone_tilt_variance`,
+    which a partial fit states besides); in a sweep with too few such frames, the intercept of a line through every
+    frame's residual variance against ``(z0 tan(tilt))^2`` (both terms >= 0: the generator's planes tilted 15-30 deg
+    read 0.055 mm, its level sweep 0.044; a nominal unit's sweep at 0 / 6 / 12 deg 0.027 mm, where removing the stated
+    tilt part on average left nothing). 0 with fewer than :data:`ZONE_STD_MIN_FRAMES` fits. On the real halves
     0.103 / 0.108 mm, about flat over 5-40 cm; read back on frames of the other half 0.11-0.12 mm."""
+    from scipy.optimize import nnls
+
     est = PeakEstimator(peak_params)
-    s2, level = [], []
+    s2, x2, level = [], [], []
     for f in frames:
         try:
             points, valid = est.zone_points(f)
@@ -1080,18 +1085,22 @@ def pooled_zone_std(frames: Sequence[Frame], peak_params) -> tuple[float, dict]:
             plane, _ = plane_through(points, valid)
         except (NoPlaneError, FrameError):
             continue
-        v = float(plane_fit_geometry(points, valid, plane).sigma2) - zone_tilt_variance(plane)
-        if math.isfinite(v):
+        v, t = float(plane_fit_geometry(points, valid, plane).sigma2), zone_tilt_variance(plane)
+        if math.isfinite(v) and math.isfinite(t):
             s2.append(v)
+            x2.append(t / ZONE_TILT_SCATTER ** 2)
             level.append(float(plane.normal[2]) >= math.cos(ZONE_STD_MAX_TILT))
     if len(s2) < ZONE_STD_MIN_FRAMES:
         return 0.0, {"frames": len(s2), "why": f"fewer than {ZONE_STD_MIN_FRAMES} fits through all nine zones"}
-    if sum(level) >= ZONE_STD_MIN_FRAMES:
-        s2 = [v for v, flat in zip(s2, level) if flat]
-    std = min(math.sqrt(max(float(np.mean(s2)), 0.0)), NEAR_MAX_STD)
-    return std, {"frames": len(s2), "zone_std_mm": std * 1e3,
-                 "from": "frames tilted less than ZONE_STD_MAX_TILT" if sum(level) >= ZONE_STD_MIN_FRAMES else
-                 "every frame (too few near level), the tilt scatter removed on average"}
+    s2, x2, level = np.array(s2), np.array(x2), np.array(level)
+    if level.sum() >= ZONE_STD_MIN_FRAMES:
+        var, used, how = float(np.mean(s2[level] - ZONE_TILT_SCATTER ** 2 * x2[level])), int(level.sum()), \
+            "frames tilted less than ZONE_STD_MAX_TILT"
+    else:  # a tilted sweep: the scatter at no tilt and the sweep's own growth with z0 tan(tilt), both >= 0
+        (var, _), _ = nnls(np.column_stack([np.ones_like(x2), x2]), s2)
+        used, how = len(s2), "every frame (too few near level): the residual variance at no tilt of a line in (z0 tan)^2"
+    std = min(math.sqrt(max(var, 0.0)), NEAR_MAX_STD)
+    return std, {"frames": used, "zone_std_mm": std * 1e3, "from": how}
 
 
 def fit_peak_uncertainty(frames: Sequence[Frame], peak_params, min_range: float | None = None,
