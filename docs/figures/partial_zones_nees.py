@@ -1,8 +1,8 @@
 """Errors and NEES per dof on frames whose returns come from only some zones (a table edge, a narrow board): the
 frames of FRAMES at 5-40 cm with every other zone's histogram zeroed, read through CAL.
 
-    python docs/figures/partial_zones_nees.py cal_even.json odd.json              # cal_even: place-safe calibrate even.json
-    python docs/figures/partial_zones_nees.py cal_g.json g_tilt.json --by-tilt    # NEES per dof by the planes' tilt
+    python docs/figures/partial_zones_nees.py cal_even.json odd.json    # cal_even: place-safe calibrate even.json
+    python docs/figures/partial_zones_nees.py cal_g.json g_tilt.json --by-tilt    # NEES by the planes' tilt
     python docs/figures/partial_zones_nees.py cal_even.json odd.json --method diff
 
 Session 89 (docs/results.md, "Bad input"): three zones read NEES per dof 12-29 before ``partial_grid_floor``; session

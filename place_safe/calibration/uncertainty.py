@@ -1098,7 +1098,8 @@ def pooled_zone_std(frames: Sequence[Frame], peak_params) -> tuple[float, dict]:
             "frames tilted less than ZONE_STD_MAX_TILT"
     else:  # a tilted sweep: the scatter at no tilt and the sweep's own growth with z0 tan(tilt), both >= 0
         (var, _), _ = nnls(np.column_stack([np.ones_like(x2), x2]), s2)
-        used, how = len(s2), "every frame (too few near level): the residual variance at no tilt of a line in (z0 tan)^2"
+        used, how = len(s2), ("every frame (too few near level): the residual variance at no tilt of a line in "
+                              "(z0 tan)^2")
     std = min(math.sqrt(max(var, 0.0)), NEAR_MAX_STD)
     return std, {"frames": used, "zone_std_mm": std * 1e3, "from": how}
 

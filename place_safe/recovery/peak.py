@@ -142,17 +142,20 @@ class PeakEstimator(Estimator):
     def covariance(self, points: np.ndarray, valid: np.ndarray, plane) -> np.ndarray:
         """The reported covariance (3, 3) of ``(n_x, n_y, d)`` of ``plane`` fitted through the zone ``points``
         (9, 3) in ``valid`` (9,): the fit's, where any zone used is closer than the near-range errors' end with
-        each zone's error the calibrated near-range one in place of the fit's residual (module doc), plus the
-        floor and the tilt term."""
+        each zone's error the calibrated near-range one in place of the fit's residual (module doc); through fewer
+        zones than the grid, at least the zones' scatter (:func:`partial_zone_variance`) and the floor through their
+        lever arms (:func:`partial_grid_floor`); plus the floor and the tilt term."""
         unc = self.uncertainty
-        partial = not valid.all() and (unc.tilt_range_std > 0.0 or unc.zone_std > 0.0)  # (a calibrated entry)
+        calibrated = unc.tilt_range_std > 0.0 or unc.zone_std > 0.0
         if near_applies(unc, points, valid):
             fit = plane_fit_geometry(points, valid, plane)
-            if partial:  # zones beyond the law's end at least the zones' scatter, those within the tilt's besides
-                fit = fit._replace(sigma2=np.float64(partial_zone_variance(unc, fit, plane)))
-            cov = near_covariances(unc, fit, points[:, 2], zone_tilt_variance(plane) if partial else 0.0)
-        elif partial:  # fewer zones than the grid: at least the zones' scatter, the floor through their lever arms
-            fit = plane_fit_geometry(points, valid, plane)
+            if calibrated and not valid.all():  # zones beyond the law's end at least the zones' scatter, those
+                fit = fit._replace(sigma2=np.float64(partial_zone_variance(unc, fit, plane)))  # within the tilt's too
+                cov = near_covariances(unc, fit, points[:, 2], zone_tilt_variance(plane))
+            else:
+                cov = near_covariances(unc, fit, points[:, 2])
+        elif calibrated and not valid.all():  # fewer zones than the grid: at least the zones' scatter, the floor
+            fit = plane_fit_geometry(points, valid, plane)  # (carried through the zones' own lever arms)
             cov = partial_zone_variance(unc, fit, plane) * fit.inverse + partial_grid_floor(
                 unc.tilt_range_std, fit, plane, self.params.directions())
         else:

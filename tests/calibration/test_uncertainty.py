@@ -1020,8 +1020,9 @@ def test_a_calibration_with_no_near_frame_states_a_near_law_that_covers_the_real
 
 def test_the_zones_scatter_is_pooled_from_fits_through_all_nine_zones_and_read_by_fewer(sweep_path):
     """``pooled_zone_std``: the root of the mean residual variance of peak's own nine-zone fits less a tilted plane's
-    part (no truth needed; frames with fewer zones left out), 0 with too few fits; ``fit_peak_uncertainty`` writes it, and a fit through
-    three zones, whose own residual is zero, states it (without it only the floor, which is smaller)."""
+    part (no truth needed; frames with fewer zones left out), 0 with too few fits; ``fit_peak_uncertainty`` writes it,
+    and a fit through three zones, whose own residual is zero, states it (without it only the floor, which is
+    smaller)."""
     from place_safe.calibration import Calibration
     from place_safe.calibration.fit import fit_method
     from place_safe.calibration.uncertainty import ZONE_STD_MIN_FRAMES, fit_peak_uncertainty, pooled_zone_std
