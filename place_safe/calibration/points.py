@@ -436,7 +436,7 @@ PILEUP_GRID = (0.0, 3e-8, 1e-7, 2e-7, 3e-7, 5e-7, 1e-6, 2e-6)
 
 
 def fit_pileup(hists: np.ndarray, frames: Sequence[Frame], like: PeakParams, grid: Sequence[float] = PILEUP_GRID,
-               residual_degree: int = 3, harmonics: int = 2) -> tuple[float, dict[str, float]]:
+               residual_degree: int = 3, harmonics: int = 2) -> tuple[float, dict]:
     """The SPAD pile-up (1/counts) that calibrates the peak method best on ``frames`` (histograms (F, 9, 128)).
 
     For each candidate the peaks are found (with ``like``'s sub-bin estimator) after :func:`~place_safe.sensor.histogram.undo_pileup`, the
@@ -448,7 +448,8 @@ def fit_pileup(hists: np.ndarray, frames: Sequence[Frame], like: PeakParams, gri
     value lowers the point error by less than :data:`PILEUP_IDENTIFIED` from none, the frames do not identify it and
     0 is returned (``lowest_unidentified_per_count``: where the flat curve's minimum lay): 7 real frames at 30-40 cm
     put it at 1.0e-6 per count (the sweep's 3.0e-7), 3 % below none, and the mapping then read the real frames at
-    5-15 cm 13 deg off (NEES per dof 38) as the brighter returns were over-corrected; with none 1.2 deg (2.1)
+    5-15 cm 13 deg off (NEES per dof 38) as the brighter returns were over-corrected; with none 1.2 deg (NEES per dof
+    2.1 before ``calibrate``'s small-sample widening, 0.92 after)
     (session 90, docs/results.md "Bad input"). A diff calibration then adopts the forward fit's value where it reads
     the frames as well (:func:`adopt_pileup`).
     """
@@ -537,7 +538,7 @@ def fit_peak(frames: Sequence[Frame], init: PeakParams | None = None, progress: 
     found = {key: search.pop(key) for key in ("identified", "lowest_unidentified_per_count") if key in search}
     report["pileup"] = {"value": k, "fitted": pileup is None and not paper,
                         "linear_fit_point_error_mm": search, **found}
-    report["parameters"] += int(report["pileup"]["fitted"])
+    report["parameters"] += int(report["pileup"]["fitted"] and k > 0.0)
     report["inverse_degrees"] = [int(d) for d in inverse_degrees]
     return params, report
 
@@ -570,7 +571,11 @@ def adopt_pileup(frames: Sequence[Frame], params: PeakParams, report: dict, pile
         return params, report, False
     search = report.get("pileup", {}).get("linear_fit_point_error_mm") or {}
     tried, errs = list(search.get("tried_per_count", [])), list(search.get("point_error_mm", []))
-    if 0.0 in tried and len(errs) == len(tried) and min(errs) <= (1.0 - PILEUP_IDENTIFIED) * errs[tried.index(0.0)]:
+    identified = report.get("pileup", {}).get("identified")  # (reports before it: read from the search's lists)
+    if identified is None:
+        identified = 0.0 in tried and len(errs) == len(tried) and min(errs) <= (
+            1.0 - PILEUP_IDENTIFIED) * errs[tried.index(0.0)]
+    if identified:
         kept = dict(report)
         kept["pileup_from_forward"] = {"value": k, "adopted": False,
                                        "why": "the peak calibration identified its own pile-up"}

@@ -942,7 +942,9 @@ def fit_near_law(rows: Sequence[tuple], unc: Uncertainty, peak_params, end: floa
     plain = near_law_depths(end)
 
     # The covariance the peak estimator reports for each held-out row under a law (its own factor: its table's
-    # knots), PeakEstimator.covariance for all rows at once: the fits' own parts are the same for every law, and
+    # knots), PeakEstimator.covariance for all rows at once (a row through fewer zones than the grid is read as through
+    # all nine here: without the zones' scatter and tilt part it gets at run time, which only widen; the real sweep's
+    # near rows have every zone): the fits' own parts are the same for every law, and
     # Uncertainty.apply is affine in the fit's covariance (unc.scale times it, plus what it adds to none); the near
     # law's end (the depths ``plain``) is the same for every law, so is which rows it reads.
     first = unc_for(plain, (1e-4, 0.0, 0.0), 1.0)
@@ -1058,8 +1060,8 @@ def near_prior(frames: Sequence[Frame], peak_params, unc: Uncertainty,
 ZONE_STD_MIN_FRAMES = 3
 #: rad: :func:`pooled_zone_std` pools the frames whose planes are tilted less than this from the optical axis where
 #: there are :data:`ZONE_STD_MIN_FRAMES` of them (a tilted plane's residual holds the zones' tilt scatter, which the
-#: stated ``ZONE_TILT_SCATTER`` describes only on average: on the independent generator's planes tilted 15-30 deg
-#: the pooled scatter read 0.22 mm with it removed, its level sweep 0.041 mm).
+#: stated ``ZONE_TILT_SCATTER`` describes only on average: on 60 of the independent generator's planes tilted 15-30
+#: deg the pooled scatter read 0.22 mm with it removed, 60 level planes of the same sensor 0.041 mm).
 ZONE_STD_MAX_TILT = math.radians(5.0)
 
 
@@ -1070,7 +1072,7 @@ def pooled_zone_std(frames: Sequence[Frame], peak_params) -> tuple[float, dict]:
     there are enough, less the little a tilted plane adds there (:func:`~place_safe.recovery.peak.zone_tilt_variance`,
     which a partial fit states besides); in a sweep with too few such frames, the intercept of a line through every
     frame's residual variance against ``(z0 tan(tilt))^2`` (both terms >= 0: the generator's planes tilted 15-30 deg
-    read 0.055 mm, its level sweep 0.044; a nominal unit's sweep at 0 / 6 / 12 deg 0.027 mm, where removing the stated
+    read 0.055 mm, its level sweep 0.044; a nominal unit's sweep at 0 / 6 / 12 deg 0.028 mm, where removing the stated
     tilt part on average left nothing). 0 with fewer than :data:`ZONE_STD_MIN_FRAMES` fits. On the real halves
     0.103 / 0.108 mm, about flat over 5-40 cm; read back on frames of the other half 0.11-0.12 mm."""
     from scipy.optimize import nnls

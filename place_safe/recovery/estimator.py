@@ -77,8 +77,9 @@ class Uncertainty(ParamModel):
     (:func:`~place_safe.recovery.points.plane_covariance`). ``near_common_std`` (m, empty or one per depth, 0 ..
     :data:`NEAR_MAX_STD`): a range error that all zones of a frame share besides (one error along every zone's ray
     at once: it moves the plane's offset more than its tilt; :meth:`near_common`); empty: the zones err
-    independently. ``zone_std`` (m, 0 .. :data:`NEAR_MAX_STD`; 0, files before it: unused): the zones' own scatter
-    about the plane, the RMS residual of the calibration frames' full-grid fits pooled
+    independently. ``zone_std`` (m, 0 .. :data:`NEAR_MAX_STD`; 0 in files before it: none stated, though a
+    calibrated entry's partial fits on tilted planes still state the tilt part): the zones' own scatter about the
+    plane, the RMS residual of the calibration frames' full-grid fits pooled
     (:func:`~place_safe.calibration.uncertainty.pooled_zone_std`); a fit through fewer zones than the grid, whose own
     residual says less (nothing with three zones), states the larger of its residual variance and ``zone_std^2`` with a
     tilted plane's scatter added (:func:`~place_safe.recovery.peak.partial_zone_variance`).

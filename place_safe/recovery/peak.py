@@ -156,8 +156,9 @@ class PeakEstimator(Estimator):
                 cov = near_covariances(unc, fit, points[:, 2])
         elif calibrated and not valid.all():  # fewer zones than the grid: at least the zones' scatter, the floor
             fit = plane_fit_geometry(points, valid, plane)  # (carried through the zones' own lever arms)
-            cov = partial_zone_variance(unc, fit, plane) * fit.inverse + partial_grid_floor(
-                unc.tilt_range_std, fit, plane, self.params.directions())
+            cov = partial_zone_variance(unc, fit, plane) * fit.inverse
+            if unc.tilt_range_std > 0.0:
+                cov = cov + partial_grid_floor(unc.tilt_range_std, fit, plane, self.params.directions())
         else:
             cov = plane_covariance(points, valid, plane)
         return unc.apply(cov, plane.offset, plane.normal)
@@ -179,21 +180,21 @@ ZONE_TILT_SCATTER = 0.0044
 
 
 def zone_tilt_variance(plane) -> float:
-    """``(ZONE_TILT_SCATTER z0 tan(tilt))^2`` (m^2) of ``plane`` (tilt from the optical axis, capped at 80 deg; 0 where
-    the plane's numbers are not finite)."""
-    nz = float(plane.normal[2])
-    if not (math.isfinite(nz) and math.isfinite(float(plane.offset))):
+    """``(ZONE_TILT_SCATTER z0 tan(tilt))^2`` (m^2) of ``plane`` (tilt from the optical axis, capped at 80 deg as the
+    tilt term's is, and taken as 80 deg where the normal is not finite; 0 where the offset is not)."""
+    nz, d = float(plane.normal[2]), float(plane.offset)
+    if not math.isfinite(d):
         return 0.0
-    nz = min(max(nz, COS_MAX_TILT), 1.0)
-    return (ZONE_TILT_SCATTER * float(plane.offset) / nz * math.sqrt(max(1.0 - nz * nz, 0.0)) / nz) ** 2
+    nz = min(max(nz, COS_MAX_TILT), 1.0) if math.isfinite(nz) else COS_MAX_TILT  # (the tilt term's cap and fallback)
+    return (ZONE_TILT_SCATTER * d / nz * math.sqrt(max(1.0 - nz * nz, 0.0)) / nz) ** 2
 
 
 def partial_zone_variance(unc: Uncertainty, fit: PlaneFitGeometry, plane) -> float:
     """The zones' residual variance (m^2) a fit through fewer zones than the grid states for ``plane``: the larger of
     its own (``fit.sigma2``; none with three zones) and the zones' scatter, ``unc.zone_std^2`` and
-    :func:`zone_tilt_variance`. Peak's NEES per dof for three and four zones (session 90, docs/results.md "Bad input"):
-    the real halves' 5-40 cm frames 2.8-6.4 -> 0.73-1.42; the independent generator's planes tilted 15-30 deg 7-660
-    -> 0.25-1.2."""
+    :func:`zone_tilt_variance`. Peak's NEES per dof (session 90, docs/results.md "Fewer zones than the grid"): the
+    real halves' 5-40 cm frames, three zones 2.8-6.4 -> 0.73-1.42 (four 1.9-3.7 -> 0.90-1.31); 40 planes of the
+    independent generator tilted 15-30 deg (the test's), three and four zones 7-660 -> 0.25-1.2."""
     return max(float(fit.sigma2), unc.zone_std ** 2 + zone_tilt_variance(plane))
 
 
@@ -237,11 +238,14 @@ def near_covariances(unc: Uncertainty, geometry: PlaneFitGeometry, depths: np.nd
     """The fit's part of :meth:`PeakEstimator.covariance` (before ``unc.apply``) where :func:`near_applies`: each
     zone's error ``unc.near_std`` at its depth in place of the fit's residual, and ``unc.near_common`` shared by the
     zones. ``geometry``: :func:`~place_safe.recovery.points.plane_fit_geometry` of one fit or of many stacked (leading
-    axes), ``depths`` (..., 9) m their zones' depths; ``extra`` (m^2): a variance added to each such zone's own (a fit
-    through fewer zones than the grid: :func:`zone_tilt_variance`); returns (..., 3, 3)."""
+    axes), ``depths`` (..., 9) m their zones' depths; ``extra`` (m^2): a variance off the plane added to each such
+    zone's own (a fit through fewer zones than the grid: :func:`zone_tilt_variance`, a residual's variance as the
+    fit's is; carried to the zone's ray, along which ``near_std`` is, by its cosine with the normal); returns
+    (..., 3, 3)."""
     std, common = unc.near_stds(depths)
     if extra > 0.0:
-        std = np.where(std > 0.0, np.sqrt(std * std + extra), std)
+        along = extra / np.maximum(geometry.off_plane, 1e-3) ** 2  # (a zone not used has off_plane 0: unread)
+        std = np.where(std > 0.0, np.sqrt(std * std + along), std)
     return known_error_covariance(geometry, std, replace_fit=True, common_std=common)
 
 

@@ -1068,8 +1068,9 @@ def test_the_zones_scatter_is_pooled_from_fits_through_all_nine_zones_and_read_b
 def test_the_zones_scatter_of_a_sweep_with_tilted_frames_is_the_level_one():
     """A tilted plane's nine-zone residual holds the zones' tilt scatter (``ZONE_TILT_SCATTER``), which a partial fit
     states besides ``zone_std``: pooled from a sweep of level and tilted frames the scatter is the level frames' (the
-    tilted ones' raw residuals read five times it); from tilted frames alone, with the tilt part removed, between the
-    level scatter and the raw (independent generator, one sensor; 0.041 mm level)."""
+    tilted ones' raw residuals read five times it); from tilted frames alone, the intercept of a line in
+    ``(z0 tan)^2`` reads 0.083 mm against the level 0.041 (independent generator, one sensor; the stated tilt part
+    removed on average instead read about 0.22 mm)."""
     import math as m
 
     from place_safe.calibration import Calibration
@@ -1094,4 +1095,4 @@ def test_the_zones_scatter_of_a_sweep_with_tilted_frames_is_the_level_one():
             raw.append(float(plane_fit_geometry(points, valid, plane_through(points, valid)[0]).sigma2))
     assert m.sqrt(np.mean(raw)) > 3.0 * flat
     assert mixed == pytest.approx(flat, rel=1e-9) and report["frames"] == 60
-    assert flat < steep < m.sqrt(np.mean(raw))
+    assert flat < steep < 2.5 * flat
