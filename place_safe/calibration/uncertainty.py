@@ -76,6 +76,7 @@ import numpy as np
 
 from place_safe.evaluation.metrics import angular_errors, nees, point_errors  # noqa: F401 (nees: re-exported)
 from place_safe.recovery.estimator import MAX_SCALE, MIN_SCALE, NEAR_MAX_STD, PlaneEstimate, Uncertainty, tilt_offset
+from place_safe.calibration.far_range import far_growth
 from place_safe.recovery.too_close import OVERLAP_RANGE, TOO_CLOSE_REASON, plane_overlap_reason
 from place_safe.sensor.frame import Frame
 from place_safe.sensor.histogram import find_peaks
@@ -1190,7 +1191,8 @@ def fit_peak_uncertainty(frames: Sequence[Frame], peak_params, min_range: float 
         report["near_range"]["too_close"] = sum(1 for e in ests if (e.reason or "").startswith(TOO_CLOSE_REASON))
     if not unc.near_depths:  # no near frame to fit a law on: closer than the nearest frame, a stated one
         unc, report["near_range"]["prior"] = near_prior(frames, peak_params, unc, lo)
-    return unc, report
+    common, zone, report["far_range"] = far_growth(frames, peak_params, lo, unc)  # past the farthest frame: a growth
+    return unc.replace(far_common_rel=common, far_zone_rel=zone), report
 
 
 def _near_row(frame: Frame, params, end: float) -> tuple | None:

@@ -82,7 +82,12 @@ class Uncertainty(ParamModel):
     plane, the RMS residual of the calibration frames' full-grid fits pooled
     (:func:`~place_safe.calibration.uncertainty.pooled_zone_std`); a fit through fewer zones than the grid, whose own
     residual says less (nothing with three zones), states the larger of its residual variance and ``zone_std^2`` with a
-    tilted plane's scatter added (:func:`~place_safe.recovery.peak.partial_zone_variance`).
+    tilted plane's scatter added (:func:`~place_safe.recovery.peak.partial_zone_variance`). ``far_common_rel`` and
+    ``far_zone_rel`` (dimensionless, 0 .. 1; 0 in files before them: none stated): beyond the far end ``hi`` of the
+    mapping's calibrated domain, a zone reading range ``r`` errs by a standard deviation of ``far_common_rel (r - hi)``
+    shared by the frame's zones and ``far_zone_rel (r - hi)`` of its own, added to the peak method's covariance
+    outside ``scale`` (:func:`~place_safe.recovery.peak.far_covariance`;
+    :mod:`place_safe.calibration.far_range` reads both on the sweep).
 
     ``tilt_rel`` (dimensionless, 0 .. 1): what a tilted plane adds that a level sweep cannot show, each tilt
     component's standard deviation per unit ``tan(tilt)`` of the estimated plane, added (outside ``scale``)
@@ -128,6 +133,8 @@ class Uncertainty(ParamModel):
     near_common_std: vector(ge=0.0, le=NEAR_MAX_STD) = Field(default_factory=list, description="m")
     blend: bool = Field(False, description="(diff: blend its plane with peak's where its gates pass)")
     zone_std: float = Field(0.0, ge=0.0, le=NEAR_MAX_STD, description="m")
+    far_common_rel: float = Field(0.0, ge=0.0, le=1.0, description="(dimensionless)")
+    far_zone_rel: float = Field(0.0, ge=0.0, le=1.0, description="(dimensionless)")
 
     what: ClassVar[str] = "uncertainty"
     error: ClassVar[type[Exception]] = CalibrationError
@@ -263,7 +270,8 @@ class Uncertainty(ParamModel):
     _OMITTED_AT: ClassVar[tuple[tuple[str, Any], ...]] = (("tilt_rel", 0.0), ("prefer_ratio", None),
                                                            ("tilt_pivot", 1.0), ("tilt_offset_rel", 0.0),
                                                            ("blend", False), ("tilt_about", [0.0, 0.0]),
-                                                           ("zone_std", 0.0))
+                                                           ("zone_std", 0.0), ("far_common_rel", 0.0),
+                                                           ("far_zone_rel", 0.0))
 
     #: the model-error floor's terms (:meth:`floor`); a calibrated entry states some (:meth:`states_no_floor`)
     FLOOR_TERMS: ClassVar[tuple[str, ...]] = ("tilt_std", "tilt_range_std", "offset_std", "offset_rel")

@@ -15,6 +15,12 @@ The reading is the sub-bin histogram peak (bins) for ``peak`` and the on-sensor 
   smooth residual correction shared by all zones: a Chebyshev series in ``r`` over
   ``residual_domain`` (m), evaluated at ``r`` clipped to the domain. Empty coefficient lists and unit
   gains are the paper's model.
+* beyond the residual domain's far end ``hi`` (a range farther than the calibration read), each zone's
+  mapping goes on as a straight line from its value at ``hi`` with its mean slope over the domain's last
+  :data:`FAR_SECANT` (:meth:`PeakParams.far_extension`): time of flight is linear in range there, and the
+  corrections' slope at the far end is the sweep's best word on it. (Until 2026-12-05 the corrections were
+  held at their value at ``hi``, which dropped their slope: a calibration on the real sweep to 20 cm read
+  21-40 cm 0.6-7 mm short, 3.7 mm on average; with the slope carried on, 1.0 mm.)
 * near range (histogram readings only): ``r -= e_z(r u_z)``, the calibrated error of zone ``z`` at the depth
   (m, along the optical axis) of its first-pass point, from a per-zone table over depth (``near_depths``,
   ``near_errors``: shape-preserving PCHIP between the knots, the first knot's value before it, none from
@@ -79,6 +85,14 @@ INVERSE_MAX_SHIFT = 0.05
 #: keep rising with range for a reading to have one range (the real peak fits: 0.84 and more; the odd half's
 #: on-sensor distances 0.58), and its inverse is then tabulated to well under a micrometre.
 INVERSE_MIN_SLOPE = 0.5
+#: Share of the residual domain, at its far end, over which each zone's mapping's slope is measured for its straight
+#: continuation beyond the domain (:meth:`PeakParams.far_extension`): a secant, steadier than the series' slope at its
+#: very end. Calibrations of the real sweep cut at 13, 15, 20, 25 and 30 cm read the frames beyond at 2.6 / 2.2 /
+#: 1.0 / 0.2 / 0.6 mm offset error (held: 11.4 / 7.2 / 3.7 / 0.2 / 0.7; the end slope: 2.4 / 2.8 / 1.0 / 0.2 / 0.8).
+FAR_SECANT = 0.25
+#: The most that slope may differ from the linear part's (a fraction of ``m g``): a mapping whose corrections turn
+#: more steeply at the domain's end is continued at this slope (the real sweep's cut calibrations: 0.3-3 %).
+FAR_SLOPE_MAX = 0.1
 #: m: the narrowest ``residual_domain`` (``hi - lo``). The series in ``u = (2 r - lo - hi) / (hi - lo)`` and the
 #: inverse-range table divide by the width; a narrower domain loses the series' argument to rounding (and at 0 divides
 #: by zero). Calibration widens a sweep narrower than this to it (:func:`~place_safe.calibration.points.fit_linear`).
@@ -345,7 +359,7 @@ class PeakParams(ParamModel):
                     "min_slope": float((np.diff(y, axis=0) / np.diff(r)[:, None]).min()),
                     "screen": np.maximum(shift.max(axis=0), 0.0),
                     "table": (y0, (n - 1) / (y1 - y0), tab.ravel(), np.arange(N_ZONES) * n, shift[0], shift[-1],
-                              float(n - 1))}
+                              float(n - 1), hi, 1.0 + self.far_extension()[2])}
 
         key = (self.m, tuple(self.zone_gains), tuple(self.residual_coeffs), tuple(self.residual_domain),
                tuple(self.zone_inverse))
@@ -393,8 +407,28 @@ class PeakParams(ParamModel):
         errors = self._near_errors(r0) if self.near_depths else None
         return np.zeros_like(r0) if errors is None else errors
 
+    def far_extension(self) -> tuple[float, np.ndarray, np.ndarray]:
+        """(``hi``, shift (9,), slope (9,)): how each zone's mapping goes on beyond the residual domain's far end
+        ``hi`` (m). In linear range ``y = x' / (m g_z) = r + s_z(r)``, ``s_z = (c + i_z) / (m g_z)`` (m), a range ``r``
+        beyond ``hi`` reads ``y = hi + s_z(hi) + (1 + slope_z) (r - hi)``: the shift at ``hi`` and the secant slope of
+        ``s_z`` over the domain's last :data:`FAR_SECANT` (within +-:data:`FAR_SLOPE_MAX`). Zeros without corrections
+        (cached)."""
+        def compute() -> tuple[float, np.ndarray, np.ndarray]:
+            lo, hi = (float(v) for v in self.residual_domain)
+            if not (self.residual_coeffs or self.zone_inverse):
+                return hi, np.zeros(N_ZONES), np.zeros(N_ZONES)
+            w = FAR_SECANT * (hi - lo)
+            r = np.repeat(np.array([[hi], [hi - w]]), N_ZONES, axis=1)
+            s = self.correction(r) + self.inverse_correction(r)
+            s = s / (self.m * np.asarray(self.zone_gains, dtype=float))
+            return hi, s[0], np.clip((s[0] - s[1]) / w, -FAR_SLOPE_MAX, FAR_SLOPE_MAX)
+
+        key = (self.m, tuple(self.zone_gains), tuple(self.residual_coeffs), tuple(self.residual_domain),
+               tuple(self.zone_inverse))
+        return self._memo("_far_extension", key, compute)
+
     def ranges(self, readings: np.ndarray) -> np.ndarray:
-        """Ranges (m) for readings (..., 9)."""
+        """Ranges (m) for readings (..., 9): see the module doc."""
         x = np.asarray(readings, dtype=float)
         shift, mz = self._memo("_linear", (self.m, self.b, tuple(self.zone_offsets), tuple(self.zone_gains)), lambda: (
             self.b + np.asarray(self.zone_offsets), self.m * np.asarray(self.zone_gains)))
@@ -403,8 +437,13 @@ class PeakParams(ParamModel):
         if self.zone_inverse:  # m g r + c(r) + i_z(r) = x, by the mapping's inverse tabulated once (_inverse_table)
             r = _tabulated(r, *self._inverse_table())
         elif self.residual_coeffs:
+            y = r
             for _ in range(RANGE_ITERATIONS):  # solve m g r + c(r) = x by fixed-point iteration
                 r = (x - self._correction(r)) / mz
+            if np.fmax.reduce(r, axis=None, initial=-np.inf) > self.residual_domain[1]:  # beyond the domain: a line
+                hi, shift_hi, slope = self.far_extension()
+                with np.errstate(invalid="ignore"):
+                    r = np.where(r > hi, hi + (y - hi - shift_hi) / (1.0 + slope), r)
         if self.near_depths and (errors := self._near_errors(r)) is not None:
             r = r - errors
         return r
@@ -473,9 +512,11 @@ class PeakParams(ParamModel):
 
 
 def _tabulated(y: np.ndarray, y0: np.ndarray, inv_dy: np.ndarray, tab: np.ndarray, base: np.ndarray,
-               shift_lo: np.ndarray, shift_hi: np.ndarray, last: float) -> np.ndarray:
+               shift_lo: np.ndarray, shift_hi: np.ndarray, last: float, hi: float, rise: np.ndarray) -> np.ndarray:
     """Ranges (m, (..., 9)) at linear ranges ``y`` (..., 9) from :meth:`PeakParams._inverse_table`'s table: linear
-    interpolation inside it, ``y`` less the held end value outside; NaN stays NaN."""
+    interpolation inside it; before it ``y`` less the held end value (the near-range table takes over there), beyond
+    it the straight continuation from the domain's far end ``hi`` (m) rising ``rise`` (9,) per m of range
+    (:meth:`PeakParams.far_extension`); NaN stays NaN."""
     t = (y - y0) * inv_dy
     if t.size and t.min() >= 0.0 and t.max() <= last - 1e-9:  # every reading inside the table, none NaN: usual
         k = t.astype(np.intp)
@@ -488,7 +529,8 @@ def _tabulated(y: np.ndarray, y0: np.ndarray, inv_dy: np.ndarray, tab: np.ndarra
     idx = k + base
     a = tab[idx]
     r = a + f * (tab[idx + 1] - a)
-    r = np.where(t < 0.0, y - shift_lo, np.where(t > last, y - shift_hi, r))
+    with np.errstate(invalid="ignore"):
+        r = np.where(t < 0.0, y - shift_lo, np.where(t > last, hi + (y - hi - shift_hi) / rise, r))
     r += y * 0.0  # NaN readings give NaN ranges
     return r
 

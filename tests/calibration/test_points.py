@@ -291,7 +291,8 @@ def test_zone_inverse_round_trips_old_files_read_as_none_and_bad_lengths_are_err
 
 def test_inverse_correction_is_held_outside_the_domain_and_ranges_invert_it():
     """``i_z(r) = sum_k a_kz (lo / r)^k`` with ``r`` held in ``residual_domain``; ``ranges`` inverts ``m g r + b +
-    off_z + c(r) + i_z(r)`` (a convention check of the mapping against its own formula)."""
+    off_z + c(r) + i_z(r)`` within the domain and its straight continuation beyond it (``far_extension``; a
+    convention check of the mapping against its own formula)."""
     a1 = np.linspace(-0.3, 0.3, 9)
     a2 = np.linspace(0.2, -0.1, 9)
     p = PeakParams(71.0, 13.0, zone_offsets=list(np.linspace(-0.2, 0.2, 9)), residual_coeffs=[0.0, 0.0, 0.05],
@@ -302,7 +303,10 @@ def test_inverse_correction_is_held_outside_the_domain_and_ranges_invert_it():
     assert np.allclose(p.inverse_correction(r[0]), p.inverse_correction(r[1]))  # held below the domain
     assert np.allclose(PeakParams(71.0, 13.0).inverse_correction(r), 0.0)
     readings = 71.0 * r + 13.0 + np.asarray(p.zone_offsets) + p.correction(r) + p.inverse_correction(r)
-    assert np.allclose(p.ranges(readings)[1:], r[1:], atol=1e-6)  # within 1 um from 3 cm on
+    assert np.allclose(p.ranges(readings)[1:5], r[1:5], atol=1e-6)  # within 1 um from 3 cm to the domain's end
+    hi, shift, slope = p.far_extension()  # beyond it, the line from the end with the corrections' far slope
+    beyond = 71.0 * (hi + shift + (1.0 + slope) * (0.8 - hi)) + 13.0 + np.asarray(p.zone_offsets)
+    assert np.allclose(p.ranges(beyond), 0.8, atol=1e-9) and np.any(slope != 0.0)
 
 
 def _inverse_frames(a1: np.ndarray, seed: int):
@@ -383,6 +387,8 @@ def test_the_tabulated_inverse_matches_the_mapping_and_terms_it_cannot_have_are_
     assert p.inverse_problem() is None
     r = rng.uniform(0.01, 0.6, (40, 9))
     readings = 71.0 * r + 13.0 + p.correction(r) + p.inverse_correction(r)
+    hi, shift, slope = p.far_extension()  # above the domain: its straight continuation
+    readings = np.where(r > hi, 71.0 * (hi + shift + (1.0 + slope) * (r - hi)) + 13.0, readings)
     readings[0, 3] = np.nan
     got = p.ranges(readings)
     assert np.isnan(got[0, 3]) and np.isfinite(np.delete(got.ravel(), 3)).all()
