@@ -163,22 +163,18 @@ class PeakEstimator(Estimator):
             cov = plane_covariance(points, valid, plane)
         out = unc.apply(cov, plane.offset, plane.normal)
         if (unc.far_common_rel > 0.0 or unc.far_zone_rel > 0.0) and (
-                np.fmax.reduce(points[:, 2], initial=-np.inf) > FAR_SCREEN * self.params.residual_domain[1]):
+                np.fmax.reduce(points[:, 2], initial=-np.inf) > self.params.far_screen()):
             out = out + far_covariance(unc, points, valid, plane, self.params.residual_domain[1])
         return out
-
-
-#: A zone's depth over its range, at the least (the widest zone's direction, with room for the calibrated angle
-#: scales): a frame whose zones all lie closer in depth than this times the mapping's domain end has no range past it,
-#: so :meth:`PeakEstimator.covariance` skips :func:`far_covariance` (a comparison, not nine norms, on the usual frame).
-FAR_SCREEN = 0.8
 
 
 def far_covariance(unc: Uncertainty, points: np.ndarray, valid: np.ndarray, plane, end: float) -> np.ndarray:
     """The covariance (3, 3) of ``(n_x, n_y, d)`` that ranges past the mapping's calibrated domain add to a plane
     through the zone ``points`` (9, 3; m) in ``valid`` (9,): each zone beyond ``end`` (m, the domain's far end) errs by
     ``unc.far_zone_rel`` times its distance past it, and by ``unc.far_common_rel`` times that along every such zone's
-    ray at once (:mod:`place_safe.calibration.far_range`); zeros where no zone used lies past ``end``."""
+    ray at once (:mod:`place_safe.calibration.far_range`); zeros where no zone used lies past ``end``.
+    :meth:`PeakEstimator.covariance` calls it only for frames with a zone deeper than
+    :meth:`~place_safe.recovery.points.PeakParams.far_screen` (a comparison, not nine norms, on the usual frame)."""
     past = np.where(valid, np.sqrt(np.einsum("ij,ij->i", points, points)) - end, 0.0)
     past = np.where(np.isfinite(past) & (past > 0.0), past, 0.0)
     if not past.any():
@@ -273,6 +269,6 @@ def near_covariances(unc: Uncertainty, geometry: PlaneFitGeometry, depths: np.nd
     return known_error_covariance(geometry, std, replace_fit=True, common_std=common)
 
 
-__all__ = ["PeakEstimator", "find_peaks", "COUNT_MAX", "far_covariance", "FAR_SCREEN", "near_applies",
+__all__ = ["PeakEstimator", "find_peaks", "COUNT_MAX", "far_covariance", "near_applies",
            "near_covariances", "partial_grid_floor",
            "partial_zone_variance", "zone_tilt_variance", "ZONE_TILT_SCATTER"]

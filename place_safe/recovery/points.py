@@ -427,6 +427,14 @@ class PeakParams(ParamModel):
                tuple(self.zone_inverse))
         return self._memo("_far_extension", key, compute)
 
+    def far_screen(self) -> float:
+        """m: the depth (along the optical axis) beyond which a zone's range may lie past the residual domain's far end:
+        that end times the least depth per unit range of the zones' directions (cached; a frame whose zones all lie
+        closer has no range past it)."""
+        hi = self.residual_domain[1]
+        return self._memo("_far_screen", (self.edge_scale, self.corner_scale, hi),
+                          lambda: float(hi * self.directions()[:, 2].min()))
+
     def ranges(self, readings: np.ndarray) -> np.ndarray:
         """Ranges (m) for readings (..., 9): see the module doc."""
         x = np.asarray(readings, dtype=float)

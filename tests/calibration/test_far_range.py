@@ -40,6 +40,9 @@ def test_a_mapping_goes_on_past_its_domain_as_a_line_from_its_end():
     r = p.ranges(np.repeat((10.0 + 70.0 * y)[:, None], 9, axis=1))
     np.testing.assert_allclose(r, hi + (y[:, None] - hi - shift) / (1.0 + slope), rtol=0, atol=1e-12)
     assert np.all(np.diff(r, axis=0) > 0)
+    # the screen before the far covariance: the depth a zone's range past hi can have, with the zones' angle scales
+    assert p.far_screen() == pytest.approx(hi * p.directions()[:, 2].min())
+    assert p.replace(corner_scale=2.5).far_screen() < 0.8 * hi
 
 
 def test_a_mapping_with_inverse_range_terms_goes_on_the_same_way(cut_at_20):
