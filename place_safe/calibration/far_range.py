@@ -55,6 +55,9 @@ FAR_MIN_PAST = 0.05
 #: beyond needed 0 / 0.27 / 0.52 / 0 % (the shared rate read 0.85 / 0.66 / 0.50 / 0.53 %, needed 1.7 / 0.67 / 0.16 /
 #: 1.2 %).
 FAR_ZONE_SHARE = 0.75
+#: m: a sweep that ends closer than this gets a note that farther planes are read past its range (the placement's
+#: survey reads from about 40 cm).
+FAR_NOTE_DEPTH = 0.35
 #: The rates' accepted ceiling (a rate above it is a sweep that did not fit, reported and capped).
 FAR_MAX_REL = 0.2
 
@@ -89,11 +92,17 @@ def far_growth(frames: Sequence[Frame], params, min_range: float,
     d = slice(2, 3)  # the shared part from the offset, with the zones' own beside it
     common = _rate(errors[:, d], stated[:, d, d] + zone * zone * zone_unit[:, d, d], common_unit[:, d, d])
     zone = max(zone, FAR_ZONE_SHARE * common)
-    report.update(frames_read=len(errors), common_rel=common, zone_rel=zone,
+    report.update(frames_read=len(errors), common_rel=min(common, FAR_MAX_REL), zone_rel=min(zone, FAR_MAX_REL),
+                  capped=bool(common > FAR_MAX_REL or zone > FAR_MAX_REL),
                   **{"from": "read on the sweep: the inner fit's planes beyond it"})
-    if common > FAR_MAX_REL or zone > FAR_MAX_REL:
-        report["note"] = f"capped at FAR_MAX_REL ({FAR_MAX_REL:g})"
-    return min(common, FAR_MAX_REL), min(zone, FAR_MAX_REL), report
+    common, zone = min(common, FAR_MAX_REL), min(zone, FAR_MAX_REL)
+    farthest = max(f.truth.z0 for f in use)
+    if farthest < FAR_NOTE_DEPTH:
+        report["note"] = (f"the sweep ends at {farthest * 100:.1f} cm: farther planes are read past the calibrated range "
+                          f"(the mapping goes on with its far slope; their stated error grows {common * 100:.2f} % of "
+                          f"the distance past it, read on the sweep); sweep to 40 cm or beyond where the arm reads "
+                          f"(the survey starts there) to calibrate them")
+    return common, zone, report
 
 
 def _rate(errors: np.ndarray, stated: np.ndarray, unit: np.ndarray) -> float:
@@ -140,4 +149,4 @@ def _read_past(frames: Sequence[Frame], fit, end: float, base: Uncertainty) -> t
     return tuple(np.array(a).reshape((-1, 3) if k == 0 else (-1, 3, 3)) for k, a in enumerate(out))
 
 
-__all__ = ["far_growth", "FAR_INNER", "FAR_ZONE_SHARE", "FAR_MIN_INNER", "FAR_MIN_OUTER", "FAR_PRIOR_REL", "FAR_MIN_PAST", "FAR_MAX_REL"]
+__all__ = ["far_growth", "FAR_INNER", "FAR_ZONE_SHARE", "FAR_MIN_INNER", "FAR_MIN_OUTER", "FAR_PRIOR_REL", "FAR_MIN_PAST", "FAR_MAX_REL", "FAR_NOTE_DEPTH"]

@@ -58,7 +58,7 @@ def test_a_mapping_with_inverse_range_terms_goes_on_the_same_way(cut_at_20):
     np.testing.assert_allclose(r, hi + (y - hi - shift) / (1.0 + slope), atol=2e-5)
 
 
-def test_a_sweep_cut_short_reads_planes_beyond_it_within_its_stated_covariance(cut_at_20):
+def test_a_sweep_cut_short_reads_planes_beyond_it_within_its_stated_covariance(cut_at_20, sweep_path):
     """The real sweep calibrated to 20 cm reads 20.75-39.5 cm: offsets 3.7 mm off and NEES per dof 46 (6.6-84) with the
     corrections held and nothing stated past the domain; with the line and the growth about 0.7 mm, NEES per dof
     within 0.3-2."""
@@ -71,6 +71,9 @@ def test_a_sweep_cut_short_reads_planes_beyond_it_within_its_stated_covariance(c
     v = nees(es, [f.truth for f in beyond])
     assert 0.3 < float(np.mean(v)) < 2.0
     assert float(np.max(v)) < 8.0
+    frames = [f for f in load_frames(sweep_path) if f.truth.z0 <= 0.20]  # and calibrate says where the sweep ends
+    _, _, report = far_growth(frames, cal.peak(), MIN_CALIBRATION_RANGE, cal.uncertainty("peak"))
+    assert report["note"].startswith("the sweep ends at 19.3 cm: farther planes are read past the calibrated range")
 
 
 def test_the_growth_is_read_on_the_sweep_and_small_where_the_mapping_is_right():
