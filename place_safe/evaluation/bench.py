@@ -228,17 +228,33 @@ def run_bench(frames: Sequence[Frame], calibration=None, paper_frames: int = PAP
     return BenchReport(results, len(frames), source, peak_rss_bytes())
 
 
+#: A small launcher that runs its arguments as a grandchild and prints the grandchild's peak RSS (``ru_maxrss``, the
+#: platform's unit) as its last line on stderr, with the grandchild's exit status as its own. Why not the child
+#: itself: Linux counts in a process's ``ru_maxrss`` the memory it had between fork and exec, the parent's, so a
+#: measurement taken from a large process (a test worker with torch loaded: 1.3 GB) read the parent's size, and two
+#: such measurements differed by what the parent had grown in between; the grandchild is forked from the launcher's
+#: few megabytes.
+_RSS_LAUNCHER = (
+    "import os, sys\n"
+    "pid = os.fork()\n"
+    "if pid == 0:\n"
+    "    os.execv(sys.argv[1], sys.argv[1:])\n"
+    "_, status, usage = os.wait4(pid, 0)\n"
+    "sys.stderr.write('\\nmaxrss %d\\n' % usage.ru_maxrss)\n"
+    "sys.exit(os.waitstatus_to_exitcode(status) & 255)\n")
+
+
 def _child_rss(cmd: list[str], stdout_path: Path) -> tuple[int, float, int]:
-    """Run ``cmd``; return (exit status, wall seconds, the child's peak RSS in bytes)."""
+    """Run ``cmd`` (its first item an executable's path) in a fresh process; return (exit status, wall seconds, that
+    process's peak RSS in bytes, measured from a small launcher: :data:`_RSS_LAUNCHER`)."""
     t0 = time.perf_counter()
     with open(stdout_path, "wb") as out:
-        proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.PIPE)
-        _, status, usage = os.wait4(proc.pid, 0)
-        err = proc.stderr.read().decode(errors="replace") if proc.stderr else ""
-        proc.returncode = os.waitstatus_to_exitcode(status)
-    rss = usage.ru_maxrss if sys.platform == "darwin" else usage.ru_maxrss * 1024
+        proc = subprocess.run([sys.executable, "-c", _RSS_LAUNCHER, *cmd], stdout=out, stderr=subprocess.PIPE)
+    lines = proc.stderr.decode(errors="replace").strip().splitlines()
+    rss = int(lines.pop().split()[1]) if lines and lines[-1].startswith("maxrss ") else 0
+    rss = rss if sys.platform == "darwin" else rss * 1024
     if proc.returncode != 0:
-        last = (err.strip().splitlines() or ["(no message)"])[-1]
+        last = ([ln for ln in lines if ln.strip()] or ["(no message)"])[-1]
         raise RuntimeError(f"`{' '.join(cmd[2:])}` exited with {proc.returncode}: {last}")
     return proc.returncode, time.perf_counter() - t0, int(rss)
 

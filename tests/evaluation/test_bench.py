@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
 from place_safe.evaluation.bench import BenchReport, MethodResult, measure_file_rss, peak_rss_bytes, run_bench
@@ -51,7 +52,9 @@ def test_unknown_or_missing_method_is_reported_not_raised(synthetic_frames, monk
 
 @pytest.mark.slow
 def test_file_rss_is_measured_in_a_fresh_process(tmp_path):
+    held = np.ones(40_000_000)  # 320 MB in this process: the measured process's memory is its own, not its parent's
     fr = measure_file_rss(64, method="peak", baseline_frames=16, workdir=tmp_path)
+    assert held[-1] == 1.0 and fr["peak_rss_mb"] < 250  # (peak reads 90-100 MB; ru_maxrss from here read 1.3 GB)
     assert fr["frames"] == 64 and fr["peak_rss_mb"] > 10 and fr["baseline_rss_mb"] > 10
     assert fr["file_mb"] > 0.1
     # streaming: four times the frames must not need noticeably more memory
