@@ -20,6 +20,10 @@ from place_safe.exceptions import CalibrationError
 from place_safe.sensor.frame import N_BINS
 
 
+#: Share of the peak mapping's calibrated domain end by which a zone's range must lie past it for a calibrated diff to
+#: return peak's plane there (``DifferentiableEstimator._past_range``): a few millimetres past the farthest frame the
+#: forward model's range law still holds (the real sweep's published frames run 5 mm past its sample's end).
+FAR_FALLBACK_PAST = 0.05
 NEAR_FALLBACK_RANGE = 0.05
 """m: closer than this (peak's plane offset) a calibrated fast solver returns peak's plane; the fallback limits are
 chosen on calibration frames at or beyond it (:func:`place_safe.calibration.uncertainty.fit_diff_uncertainty`).

@@ -33,7 +33,8 @@ diff's plane and peak's blended by their variances (:mod:`place_safe.recovery.bl
 "diff+peak"``) in place of that choice: on the real sweep held out the blend read better than either plane.
 Closer than :data:`NEAR_FALLBACK_RANGE` (peak's offset) a calibrated fast solver always returns peak's plane: the
 forward model has no validated near-range terms (internal return, partial illumination), and on the real sweep
-its own plane there was off by 10-19 deg where peak's near-range table read 1.7-3.3 deg.
+its own plane there was off by 10-19 deg where peak's near-range table read 1.7-3.3 deg. Likewise a plane past the
+range peak's mapping was calibrated on, where peak's calibration states how its error grows (``_past_range``).
 The fast solver's
 ``covariance`` of ``(n_x, n_y, d)`` is the Gauss-Newton inverse at the solution scaled by that
 chi-square (plus the calibrated floor).
@@ -49,7 +50,8 @@ import torch
 from place_safe.recovery.points import PeakParams
 from place_safe.exceptions import FrameError, NoPlaneError
 # the calibrated settings live without torch (a calibration is read, and peak runs, without the solver)
-from place_safe.recovery.diff_settings import BLENDED, NEAR_FALLBACK_RANGE, RangeCorrection, SolverOptions
+from place_safe.recovery.diff_settings import (BLENDED, FAR_FALLBACK_PAST, NEAR_FALLBACK_RANGE, RangeCorrection,
+                                              SolverOptions)
 from place_safe.recovery.forward import (ForwardModel, ForwardParams, PulseMatrices, ZoneRays, mount_rotation,
                                          residual_weights)
 from place_safe.geometry import Plane
@@ -239,8 +241,8 @@ class DifferentiableEstimator(Estimator):
             or not _positive_definite(est.covariance)
         if math.isinf(self.uncertainty.chi2_limit) and not self.uncertainty.blend:
             near = False  # no fallback calibrated: diff's own plane wherever it has one
-        else:  # (a blend is never made closer than NEAR_FALLBACK_RANGE, whatever the limit)
-            near = peak.ok and peak.plane.offset < NEAR_FALLBACK_RANGE
+        else:  # (a blend is never made closer than NEAR_FALLBACK_RANGE, whatever the limit, nor past the range)
+            near = peak.ok and (peak.plane.offset < NEAR_FALLBACK_RANGE or self._past_range(peak.plane))
         if not failed and not near and self.uncertainty.consistent(est, peak):
             if self.uncertainty.blend:  # both planes usable: blended by their variances
                 mixed = blended(est, peak, BLENDED)
@@ -251,6 +253,20 @@ class DifferentiableEstimator(Estimator):
         if not est.ok and math.isinf(self.uncertainty.chi2_limit):
             return est  # no fallback calibrated: report diff's own failure
         return _fallback(peak, est)
+
+    def _past_range(self, plane) -> bool:
+        """Whether a zone's range to ``plane`` (peak's) lies past the peak mapping's calibrated domain (by more than
+        :data:`FAR_FALLBACK_PAST` of its end) where peak's
+        calibration states how its error grows there (``far_common_rel``, :mod:`place_safe.calibration.far_range`):
+        diff's forward model states no such growth (the real sweep calibrated to 20 cm read 20.75-39.5 cm by diff
+        2.3 mm and 0.49 deg off at NEES per dof 32, peak 0.74 mm, 0.26 deg at 0.68), so peak's plane is returned."""
+        unc, params = self.init.uncertainty, self.init.params
+        if not unc.far_common_rel > 0.0 or not plane.offset > params.far_screen():
+            return False
+        with np.errstate(divide="ignore", invalid="ignore"):
+            cosines = params.directions() @ np.asarray(plane.normal, dtype=float)
+            ranges = np.where(cosines > 0.0, plane.offset / cosines, np.inf)
+        return bool(ranges.max() > params.residual_domain[1] * (1.0 + FAR_FALLBACK_PAST))
 
     # -- data preparation ----------------------------------------------------------------------
     def _observed(self, hists: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:

@@ -111,3 +111,23 @@ def test_the_growth_rates_are_left_out_of_the_file_where_not_stated_and_bounded(
             with pytest.raises(CalibrationError) as exc:
                 Uncertainty.from_dict({**stated.to_dict(), field: bad})
             assert str(exc.value).startswith(f"uncertainty: {field}: ") and "\n" not in str(exc.value)
+
+
+def test_diff_returns_peaks_plane_past_the_range_where_peak_states_its_growth(cut_at_20):
+    """Diff's forward model states no growth past the calibrated range (the real sweep calibrated to 20 cm read
+    20.75-39.5 cm by diff 2.3 mm, 0.49 deg off at NEES per dof 32): a calibrated diff returns peak's plane for a plane
+    whose zones lie more than FAR_FALLBACK_PAST past peak's domain, where peak's calibration states the growth."""
+    from place_safe.geometry import Plane
+    from place_safe.recovery.differentiable import DifferentiableEstimator
+    from place_safe.recovery.forward import ForwardParams
+
+    cal = cut_at_20[0]
+    peak, unc = cal.peak(), cal.uncertainty("peak")
+    est = DifferentiableEstimator(ForwardParams(), peak, peak_uncertainty=unc)
+    hi = peak.residual_domain[1]
+    assert not est._past_range(Plane(np.array([0.0, 0.0, 1.0]), 0.8 * hi))
+    assert not est._past_range(Plane(np.array([0.0, 0.0, 1.0]), 0.9 * peak.far_screen()))
+    assert est._past_range(Plane(np.array([0.0, 0.0, 1.0]), 1.3 * hi))
+    old = DifferentiableEstimator(ForwardParams(), peak,
+                                  peak_uncertainty=unc.replace(far_common_rel=0.0, far_zone_rel=0.0))
+    assert not old._past_range(Plane(np.array([0.0, 0.0, 1.0]), 1.3 * hi))  # files before the rates: as before
