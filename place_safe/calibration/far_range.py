@@ -8,10 +8,10 @@ range the sweep read (``hi``). A plane farther than that is read by the mapping'
 (:meth:`~place_safe.recovery.points.PeakParams.far_extension`), whose slope is the sweep's best word but not the
 truth: a calibration of the real sweep cut at 20 cm reads 21-40 cm 0.7 mm off on average (3.7 mm when the corrections
 were held at their end), where nothing stated more than 0.1-0.5 mm (NEES per dof 6-84). So the error of a range
-beyond ``hi`` is stated as growing with the distance
-past it: a standard deviation of ``far_common_rel (r - hi)`` that the zones of a frame share (the mapping's slope, one
-error along every ray: mostly the plane's offset) and ``far_zone_rel (r - hi)`` of each zone's own (their gains: the
-tilt) (:class:`~place_safe.recovery.estimator.Uncertainty`, :func:`~place_safe.recovery.peak.far_covariance`).
+beyond ``hi`` is stated as growing with the distance past it: a standard deviation of ``far_common_rel (r - hi)`` that
+the zones of a frame share (the mapping's slope, one error along every ray: mostly the plane's offset) and
+``far_zone_rel (r - hi)`` of each zone's own (their gains: the tilt)
+(:class:`~place_safe.recovery.estimator.Uncertainty`, :func:`~place_safe.recovery.peak.far_covariance`).
 
 How fast, the sweep says itself: the far mapping is fitted again on the frames up to :data:`FAR_INNER` of the sweep's
 farthest depth (:func:`~place_safe.calibration.points.refit_mapping`) and reads the frames beyond, as a new sweep's
@@ -30,7 +30,6 @@ import math
 from typing import Sequence
 
 import numpy as np
-
 from scipy.optimize import brentq
 
 from place_safe.calibration.point_errors import true_ranges
@@ -92,25 +91,26 @@ def far_growth(frames: Sequence[Frame], params, min_range: float,
     t = slice(0, 2)  # the zones' own part from the tilt (what it moves: a pattern the plane cannot take up, the
     zone = _rate(errors[:, t], stated[:, t, t], zone_unit[:, t, t])  # corners long and the centre short, is no tilt)
     d = slice(2, 3)  # the shared part from the offset, with the zones' own beside it
-    common = _rate(errors[:, d], stated[:, d, d] + zone * zone * zone_unit[:, d, d], common_unit[:, d, d])
+    common = _rate(errors[:, d], stated[:, d, d] + min(zone, FAR_MAX_REL) ** 2 * zone_unit[:, d, d],
+                   common_unit[:, d, d])
     zone = max(zone, FAR_ZONE_SHARE * common)
-    report.update(frames_read=len(errors), common_rel=min(common, FAR_MAX_REL), zone_rel=min(zone, FAR_MAX_REL),
-                  capped=bool(common > FAR_MAX_REL or zone > FAR_MAX_REL),
-                  **{"from": "read on the sweep: the inner fit's planes beyond it"})
+    capped = common > FAR_MAX_REL or zone > FAR_MAX_REL
     common, zone = min(common, FAR_MAX_REL), min(zone, FAR_MAX_REL)
+    report.update(frames_read=len(errors), common_rel=common, zone_rel=zone, capped=capped)
+    report["from"] = "read on the sweep: the inner fit's planes beyond it"
     farthest = max(f.truth.z0 for f in use)
     if farthest < FAR_NOTE_DEPTH:
         report["note"] = (f"the sweep ends at {farthest * 100:.1f} cm: farther planes are read past the calibrated "
                           f"range (the mapping goes on with its far slope; their stated error grows "
                           f"{common * 100:.2f} % of the distance past it, read on the sweep); sweep to 40 cm or beyond "
-                          f"where the arm reads "
-                          f"(the survey starts there) to calibrate them")
+                          f"where the arm reads (the survey starts there) to calibrate them")
     return common, zone, report
 
 
 def _rate(errors: np.ndarray, stated: np.ndarray, unit: np.ndarray) -> float:
     """The rate ``k`` (>= 0) at which the errors (F, n) read a mean squared Mahalanobis distance per component of 1
-    under ``stated + k^2 unit`` (each (F, n, n)); 0 where the stated covariances already cover them."""
+    under ``stated + k^2 unit`` (each (F, n, n)); 0 where the stated covariances already cover them, inf where not
+    even :data:`FAR_MAX_REL` does."""
     def excess(k2: float) -> float:
         c = stated + k2 * unit
         return float(np.mean([e @ np.linalg.solve(m, e) for e, m in zip(errors, c)])) / errors.shape[1] - 1.0
@@ -119,7 +119,7 @@ def _rate(errors: np.ndarray, stated: np.ndarray, unit: np.ndarray) -> float:
         return 0.0
     hi = FAR_MAX_REL ** 2
     if excess(hi) > 0.0:
-        return FAR_MAX_REL * 1.0001  # (reported as capped)
+        return math.inf
     return math.sqrt(brentq(excess, 0.0, hi, xtol=1e-12))
 
 
@@ -153,5 +153,4 @@ def _read_past(frames: Sequence[Frame], fit, end: float, base: Uncertainty) -> t
 
 
 __all__ = ["far_growth", "FAR_INNER", "FAR_ZONE_SHARE", "FAR_MIN_INNER", "FAR_MIN_OUTER", "FAR_PRIOR_REL",
-           "FAR_MIN_PAST",
-           "FAR_MAX_REL", "FAR_NOTE_DEPTH"]
+           "FAR_MIN_PAST", "FAR_MAX_REL", "FAR_NOTE_DEPTH"]

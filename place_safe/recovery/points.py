@@ -20,7 +20,7 @@ The reading is the sub-bin histogram peak (bins) for ``peak`` and the on-sensor 
   :data:`FAR_SECANT` (:meth:`PeakParams.far_extension`): time of flight is linear in range there, and the
   corrections' slope at the far end is the sweep's best word on it. (Until 2026-12-05 the corrections were
   held at their value at ``hi``, which dropped their slope: a calibration on the real sweep to 20 cm read
-  21-40 cm 0.6-7 mm short, 3.7 mm on average; with the slope carried on, 1.0 mm.)
+  21-40 cm 0.6-7 mm short, 3.7 mm on average; with the slope carried on, 0.7 mm.)
 * near range (histogram readings only): ``r -= e_z(r u_z)``, the calibrated error of zone ``z`` at the depth
   (m, along the optical axis) of its first-pass point, from a per-zone table over depth (``near_depths``,
   ``near_errors``: shape-preserving PCHIP between the knots, the first knot's value before it, none from
@@ -88,7 +88,7 @@ INVERSE_MIN_SLOPE = 0.5
 #: Share of the residual domain, at its far end, over which each zone's mapping's slope is measured for its straight
 #: continuation beyond the domain (:meth:`PeakParams.far_extension`): a secant, steadier than the series' slope at its
 #: very end. Calibrations of the real sweep cut at 13, 15, 20, 25 and 30 cm read the frames beyond at 2.6 / 2.2 /
-#: 1.0 / 0.2 / 0.6 mm offset error (held: 11.4 / 7.2 / 3.7 / 0.2 / 0.7; the end slope: 2.4 / 2.8 / 1.0 / 0.2 / 0.8).
+#: 0.7 / 0.2 / 0.6 mm offset error (held: 11.4 / 7.2 / 3.7 / 0.2 / 0.7; the end slope: 2.4 / 2.8 / 1.0 / 0.2 / 0.8).
 FAR_SECANT = 0.25
 #: The most that slope may differ from the linear part's (a fraction of ``m g``): a mapping whose corrections turn
 #: more steeply at the domain's end is continued at this slope (the real sweep's cut calibrations: 0.3-3 %).
@@ -450,8 +450,7 @@ class PeakParams(ParamModel):
                 r = (x - self._correction(r)) / mz
             if np.fmax.reduce(r, axis=None, initial=-np.inf) > self.residual_domain[1]:  # beyond the domain: a line
                 hi, shift_hi, slope = self.far_extension()
-                with np.errstate(invalid="ignore"):
-                    r = np.where(r > hi, hi + (y - hi - shift_hi) / (1.0 + slope), r)
+                r = np.where(r > hi, _past_end(y, hi, shift_hi, 1.0 + slope), r)
         if self.near_depths and (errors := self._near_errors(r)) is not None:
             r = r - errors
         return r
@@ -537,10 +536,17 @@ def _tabulated(y: np.ndarray, y0: np.ndarray, inv_dy: np.ndarray, tab: np.ndarra
     idx = k + base
     a = tab[idx]
     r = a + f * (tab[idx + 1] - a)
-    with np.errstate(invalid="ignore"):
-        r = np.where(t < 0.0, y - shift_lo, np.where(t > last, hi + (y - hi - shift_hi) / rise, r))
+    r = np.where(t < 0.0, y - shift_lo, np.where(t > last, _past_end(y, hi, shift_hi, rise), r))
     r += y * 0.0  # NaN readings give NaN ranges
     return r
+
+
+def _past_end(y: np.ndarray, hi: float, shift_hi: np.ndarray, rise: np.ndarray) -> np.ndarray:
+    """Ranges (m) at linear ranges ``y`` (..., 9) on the mapping's straight continuation past its domain's far end
+    ``hi`` (m), where each zone's linear range is ``hi + shift_hi`` (9,) and rises ``rise`` (9,) per m of range
+    (:meth:`PeakParams.far_extension`); NaN stays NaN."""
+    with np.errstate(invalid="ignore"):
+        return hi + (y - hi - shift_hi) / rise
 
 
 # ---------------------------------------------------------------------------------------------
