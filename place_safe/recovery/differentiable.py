@@ -263,10 +263,8 @@ class DifferentiableEstimator(Estimator):
         unc, params = self.init.uncertainty, self.init.params
         if not unc.far_common_rel > 0.0 or not plane.offset > params.far_screen():
             return False
-        with np.errstate(divide="ignore", invalid="ignore"):
-            cosines = params.directions() @ np.asarray(plane.normal, dtype=float)
-            ranges = np.where(cosines > 0.0, plane.offset / cosines, np.inf)
-        return bool(ranges.max() > params.residual_domain[1] * (1.0 + FAR_FALLBACK_PAST))
+        ranges = np.linalg.norm(plane.intersect(params.directions()), axis=1)  # NaN: a zone's ray misses the plane
+        return bool(np.nan_to_num(ranges, nan=np.inf).max() > params.residual_domain[1] * (1.0 + FAR_FALLBACK_PAST))
 
     # -- data preparation ----------------------------------------------------------------------
     def _observed(self, hists: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
