@@ -33,6 +33,9 @@ and the reason ``"too close: the return overlaps the internal return (...)"``.
 errors' end each zone's error is the calibrated near-range one instead of the fit's residual: there the zones'
 errors are systematic (a pattern over the zones that mostly does not tilt the plane), which the residual of
 independent zones overstates as tilt (real halves held out, 2-5 cm: NEES per dof 0.15 with the residual alone).
+Those errors are sized on level frames; on a tilted plane each zone also reads its footprint's spread of ranges its
+own way (:data:`ZONE_TILT_SCATTER`, which the residual would have held), added to each zone's near-range error
+(simulated units calibrated on a level sweep, frames tilted 0-20 deg at 2-5 cm: NEES per dof 2.1-3.1 without it).
 The calibrated errors are fitted by maximum likelihood on held-out planes
 (:func:`~place_safe.calibration.uncertainty.fit_peak_uncertainty`). Then the calibrated floor and the
 tilt term (:class:`~place_safe.recovery.estimator.Uncertainty`: on a tilted plane each zone's return spreads
@@ -149,11 +152,10 @@ class PeakEstimator(Estimator):
         calibrated = unc.tilt_range_std > 0.0 or unc.zone_std > 0.0
         if near_applies(unc, points, valid):
             fit = plane_fit_geometry(points, valid, plane)
-            if calibrated and not valid.all():  # zones beyond the law's end at least the zones' scatter, those
-                fit = fit._replace(sigma2=np.float64(partial_zone_variance(unc, fit, plane)))  # within the tilt's too
-                cov = near_covariances(unc, fit, points[:, 2], zone_tilt_variance(plane))
-            else:
-                cov = near_covariances(unc, fit, points[:, 2])
+            if calibrated and not valid.all():  # zones beyond the law's end at least the zones' scatter
+                fit = fit._replace(sigma2=np.float64(partial_zone_variance(unc, fit, plane)))
+            # zones within the law's end: its error (sized on level frames) and a tilted plane's zone scatter
+            cov = near_covariances(unc, fit, points[:, 2], zone_tilt_variance(plane))
         elif calibrated and not valid.all():  # fewer zones than the grid: at least the zones' scatter, the floor
             fit = plane_fit_geometry(points, valid, plane)  # (carried through the zones' own lever arms)
             cov = partial_zone_variance(unc, fit, plane) * fit.inverse
@@ -258,13 +260,14 @@ def near_covariances(unc: Uncertainty, geometry: PlaneFitGeometry, depths: np.nd
     """The fit's part of :meth:`PeakEstimator.covariance` (before ``unc.apply``) where :func:`near_applies`: each
     zone's error ``unc.near_std`` at its depth in place of the fit's residual, and ``unc.near_common`` shared by the
     zones. ``geometry``: :func:`~place_safe.recovery.points.plane_fit_geometry` of one fit or of many stacked (leading
-    axes), ``depths`` (..., 9) m their zones' depths; ``extra`` (m^2): a variance off the plane added to each such
-    zone's own (a fit through fewer zones than the grid: :func:`zone_tilt_variance`, a residual's variance as the
-    fit's is; carried to the zone's ray, along which ``near_std`` is, by its cosine with the normal); returns
-    (..., 3, 3)."""
+    axes), ``depths`` (..., 9) m their zones' depths; ``extra`` (m^2, a number or one per fit (...,)): a variance off
+    the plane added to each such zone's own (a tilted plane's zone scatter, :func:`zone_tilt_variance`, a residual's
+    variance as the fit's is; carried to the zone's ray, along which ``near_std`` is, by its cosine with the normal);
+    returns (..., 3, 3)."""
     std, common = unc.near_stds(depths)
-    if extra > 0.0:
-        along = extra / np.maximum(geometry.off_plane, 1e-3) ** 2  # (a zone not used has off_plane 0: unread)
+    extra = np.asarray(extra, dtype=float)
+    if np.any(extra > 0.0):
+        along = extra[..., None] / np.maximum(geometry.off_plane, 1e-3) ** 2  # (a zone not used has off_plane 0)
         std = np.where(std > 0.0, np.sqrt(std * std + along), std)
     return known_error_covariance(geometry, std, replace_fit=True, common_std=common)
 
