@@ -35,7 +35,8 @@ errors are systematic (a pattern over the zones that mostly does not tilt the pl
 independent zones overstates as tilt (real halves held out, 2-5 cm: NEES per dof 0.15 with the residual alone).
 Those errors are sized on level frames; on a tilted plane each zone also reads its footprint's spread of ranges its
 own way (:data:`ZONE_TILT_SCATTER`, which the residual would have held), added to each zone's near-range error
-(simulated units calibrated on a level sweep, frames tilted 0-20 deg at 2-5 cm: NEES per dof 2.1-3.1 without it).
+(14 simulated units calibrated on a level sweep, frames tilted 0-20 deg at 2-5 cm: NEES per dof 1.5-3.0 without
+it, 1.0-1.2 with it).
 The calibrated errors are fitted by maximum likelihood on held-out planes
 (:func:`~place_safe.calibration.uncertainty.fit_peak_uncertainty`). Then the calibrated floor and the
 tilt term (:class:`~place_safe.recovery.estimator.Uncertainty`: on a tilted plane each zone's return spreads
