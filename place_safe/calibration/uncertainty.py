@@ -945,7 +945,10 @@ def fit_near_law(rows: Sequence[tuple], unc: Uncertainty, peak_params, end: floa
     # The covariance the peak estimator reports for each held-out row under a law (its own factor: its table's
     # knots), PeakEstimator.covariance for all rows at once (a row through fewer zones than the grid is read as through
     # all nine here: without the zones' scatter it gets at run time, which only widens; the real sweep's
-    # near rows have every zone): the fits' own parts are the same for every law, and
+    # near rows have every zone; a tilted row is read without the tilt scatter it gets at run time too, so a sweep's
+    # tilted near rows widen the law: with that scatter subtracted here, the packaged nominal sensor's rows, tilted
+    # 6-12 deg and scattering less than ZONE_TILT_SCATTER, left a law of zero for its level frames): the fits' own
+    # parts are the same for every law, and
     # Uncertainty.apply is affine in the fit's covariance (unc.scale times it, plus what it adds to none); the near
     # law's end (the depths ``plain``) is the same for every law, so is which rows it reads.
     first = unc_for(plain, (1e-4, 0.0, 0.0), 1.0)
@@ -953,7 +956,6 @@ def fit_near_law(rows: Sequence[tuple], unc: Uncertainty, peak_params, end: floa
     geometry = PlaneFitGeometry(*(np.stack(parts) for parts in zip(*(plane_fit_geometry(r[0], r[1], r[2])
                                                                         for r in rows))))
     depths = np.array([r[0][:, 2] for r in rows])
-    tilted = np.array([zone_tilt_variance(r[2]) for r in rows])  # a tilted row's zone scatter, as at run time
     added = np.array([unc.apply(np.zeros((3, 3)), r[2].offset, r[2].normal) for r in rows])
     own = geometry.sigma2[:, None, None] * geometry.inverse  # the fit's own covariance: rows the law does not read
     groups: dict = {}  # the rows it reads, by measure (read without a table, or at the same measure: one law)
@@ -966,8 +968,7 @@ def fit_near_law(rows: Sequence[tuple], unc: Uncertainty, peak_params, end: floa
         """Each row's reported covariance (rows, 3, 3) under the law ``theta``."""
         fit = own.copy()
         for m, (i, fits) in groups.items():
-            fit[i] = near_covariances(unc_for(plain, theta, knot_factor(m, m_ref, share)), fits, depths[i],
-                                      tilted[i])
+            fit[i] = near_covariances(unc_for(plain, theta, knot_factor(m, m_ref, share)), fits, depths[i])
         return unc.scale * fit + added
 
     errors = np.array([r[3] for r in rows])
