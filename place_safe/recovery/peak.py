@@ -261,14 +261,12 @@ def near_covariances(unc: Uncertainty, geometry: PlaneFitGeometry, depths: np.nd
     """The fit's part of :meth:`PeakEstimator.covariance` (before ``unc.apply``) where :func:`near_applies`: each
     zone's error ``unc.near_std`` at its depth in place of the fit's residual, and ``unc.near_common`` shared by the
     zones. ``geometry``: :func:`~place_safe.recovery.points.plane_fit_geometry` of one fit or of many stacked (leading
-    axes), ``depths`` (..., 9) m their zones' depths; ``extra`` (m^2, a number or one per fit (...,)): a variance off
-    the plane added to each such zone's own (a tilted plane's zone scatter, :func:`zone_tilt_variance`, a residual's
-    variance as the fit's is; carried to the zone's ray, along which ``near_std`` is, by its cosine with the normal);
-    returns (..., 3, 3)."""
+    axes), ``depths`` (..., 9) m their zones' depths; ``extra`` (m^2): a variance off the plane added to each such
+    zone's own (a tilted plane's zone scatter, :func:`zone_tilt_variance`, a residual's variance as the fit's is;
+    carried to the zone's ray, along which ``near_std`` is, by its cosine with the normal); returns (..., 3, 3)."""
     std, common = unc.near_stds(depths)
-    extra = np.asarray(extra, dtype=float)
-    if np.any(extra > 0.0):
-        along = extra[..., None] / np.maximum(geometry.off_plane, 1e-3) ** 2  # (a zone not used has off_plane 0)
+    if extra > 0.0:
+        along = extra / np.maximum(geometry.off_plane, 1e-3) ** 2  # (a zone not used has off_plane 0: unread)
         std = np.where(std > 0.0, np.sqrt(std * std + along), std)
     return known_error_covariance(geometry, std, replace_fit=True, common_std=common)
 
