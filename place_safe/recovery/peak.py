@@ -33,10 +33,11 @@ and the reason ``"too close: the return overlaps the internal return (...)"``.
 errors' end each zone's error is the calibrated near-range one instead of the fit's residual: there the zones'
 errors are systematic (a pattern over the zones that mostly does not tilt the plane), which the residual of
 independent zones overstates as tilt (real halves held out, 2-5 cm: NEES per dof 0.15 with the residual alone).
-Those errors are sized on level frames; on a tilted plane each zone also reads its footprint's spread of ranges its
-own way (:data:`ZONE_TILT_SCATTER`, which the residual would have held), added to each zone's near-range error
-(14 simulated units calibrated on a level sweep, frames tilted 0-20 deg at 2-5 cm: NEES per dof 1.5-3.0 without
-it, 1.0-1.2 with it).
+Those errors are sized on a level sweep's frames; on a tilted plane each zone also reads its footprint's spread of
+ranges its own way (:data:`ZONE_TILT_SCATTER`, which the residual would have held), added to each zone's near-range
+error (14 simulated units calibrated on a level sweep, frames tilted 0-20 deg at 2-5 cm: NEES per dof 1.2-3.0
+without it, 1.0-1.2 with it). A sweep with tilted near frames widens the law by their scatter, so there it counts
+twice on tilted near planes: cautious.
 The calibrated errors are fitted by maximum likelihood on held-out planes
 (:func:`~place_safe.calibration.uncertainty.fit_peak_uncertainty`). Then the calibrated floor and the
 tilt term (:class:`~place_safe.recovery.estimator.Uncertainty`: on a tilted plane each zone's return spreads
@@ -146,7 +147,8 @@ class PeakEstimator(Estimator):
     def covariance(self, points: np.ndarray, valid: np.ndarray, plane) -> np.ndarray:
         """The reported covariance (3, 3) of ``(n_x, n_y, d)`` of ``plane`` fitted through the zone ``points``
         (9, 3) in ``valid`` (9,): the fit's, where any zone used is closer than the near-range errors' end with
-        each zone's error the calibrated near-range one in place of the fit's residual (module doc); through fewer
+        each zone's error the calibrated near-range one in place of the fit's residual, and on a tilted plane the
+        zones' tilt scatter (:func:`zone_tilt_variance`) added to it (module doc); through fewer
         zones than the grid, at least the zones' scatter (:func:`partial_zone_variance`) and the floor through their
         lever arms (:func:`partial_grid_floor`); plus the floor and the tilt term."""
         unc = self.uncertainty
@@ -155,7 +157,7 @@ class PeakEstimator(Estimator):
             fit = plane_fit_geometry(points, valid, plane)
             if calibrated and not valid.all():  # zones beyond the law's end at least the zones' scatter
                 fit = fit._replace(sigma2=np.float64(partial_zone_variance(unc, fit, plane)))
-            # zones within the law's end: its error (sized on level frames) and a tilted plane's zone scatter
+            # zones within the law's end: its error (sized on the sweep's frames) and a tilted plane's zone scatter
             cov = near_covariances(unc, fit, points[:, 2], zone_tilt_variance(plane))
         elif calibrated and not valid.all():  # fewer zones than the grid: at least the zones' scatter, the floor
             fit = plane_fit_geometry(points, valid, plane)  # (carried through the zones' own lever arms)
@@ -198,7 +200,8 @@ def _range_error_gain(geometry: PlaneFitGeometry) -> np.ndarray:
 #: their own way. Measured as the RMS residual of peak's nine-zone fits on tilted frames (0-30 deg, 5-30 cm) against
 #: ``sqrt(zone_std^2 + (k z0 tan)^2)``: mismatched units 11 and 21 k = 0.0044 (both; the value here), the
 #: independent generator 0.0050 (its check). A fit through all nine zones has this in its own residual; one through
-#: fewer states it (:func:`partial_zone_variance`).
+#: fewer states it (:func:`partial_zone_variance`), and so does one within the near law's end, where the law's errors
+#: replace the residual (:func:`near_covariances`).
 ZONE_TILT_SCATTER = 0.0044
 
 

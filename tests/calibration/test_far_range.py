@@ -2,6 +2,8 @@
 its error stated there (calibration.far_range, recovery.peak.far_covariance). Accuracy and NEES on real frames the
 calibration did not see (the real sweep cut short, read beyond the cut)."""
 
+import math
+
 import numpy as np
 import pytest
 
@@ -128,6 +130,8 @@ def test_diff_returns_peaks_plane_past_the_range_where_peak_states_its_growth(cu
     assert not est._past_range(Plane(np.array([0.0, 0.0, 1.0]), 0.8 * hi))
     assert not est._past_range(Plane(np.array([0.0, 0.0, 1.0]), 0.9 * peak.far_screen()))
     assert est._past_range(Plane(np.array([0.0, 0.0, 1.0]), 1.3 * hi))
+    steep = math.radians(85.0)  # its distance within the domain, but the zones' rays meet it far off or miss it
+    assert est._past_range(Plane(np.array([math.sin(steep), 0.0, math.cos(steep)]), 1.01 * peak.far_screen()))
     old = DifferentiableEstimator(ForwardParams(), peak,
                                   peak_uncertainty=unc.replace(far_common_rel=0.0, far_zone_rel=0.0))
     assert not old._past_range(Plane(np.array([0.0, 0.0, 1.0]), 1.3 * hi))  # files before the rates: as before
