@@ -302,6 +302,7 @@ def test_a_tilted_plane_closer_than_the_near_laws_end_states_the_zones_tilt_scat
         flat = Plane(np.array([0.0, 0.0, 1.0]), est.estimate(f).plane.offset)
         assert zone_tilt_variance(flat) == 0.0
         bare = near_covariances(est.uncertainty, plane_fit_geometry(points, valid, flat), points[:, 2])
-        assert np.array_equal(est.covariance(points, valid, flat), est.uncertainty.apply(bare, flat.offset, flat.normal))
+        stated = est.covariance(points, valid, flat)
+        assert np.array_equal(stated, est.uncertainty.apply(bare, flat.offset, flat.normal))
         checked += 1
     assert checked >= 3
