@@ -73,7 +73,8 @@ def far_growth(frames: Sequence[Frame], params, min_range: float,
     report: dict = {"inner_share": FAR_INNER}
     if not use:
         return FAR_PRIOR_REL, FAR_PRIOR_REL, {**report, "from": "stated (FAR_PRIOR_REL): no frame with ground truth"}
-    cut = FAR_INNER * max(f.truth.z0 for f in use)
+    farthest = max(f.truth.z0 for f in use)
+    cut = FAR_INNER * farthest
     inner = [f for f in use if f.truth.z0 <= cut]
     outer = [f for f in use if f.truth.z0 > cut]
     report.update(cut_m=cut, frames_inner=len(inner), frames_outer=len(outer))
@@ -98,7 +99,6 @@ def far_growth(frames: Sequence[Frame], params, min_range: float,
     common, zone = min(common, FAR_MAX_REL), min(zone, FAR_MAX_REL)
     report.update(frames_read=len(errors), common_rel=common, zone_rel=zone, capped=capped)
     report["from"] = "read on the sweep: the inner fit's planes beyond it"
-    farthest = max(f.truth.z0 for f in use)
     if farthest < FAR_NOTE_DEPTH:
         report["note"] = (f"the sweep ends at {farthest * 100:.1f} cm: farther planes are read past the calibrated "
                           f"range (the mapping goes on with its far slope; their stated error grows "
@@ -131,15 +131,15 @@ def _read_past(frames: Sequence[Frame], fit, end: float, base: Uncertainty) -> t
     est = PeakEstimator(fit, base)
     hists = np.array([np.asarray(f.hists, dtype=float) for f in frames])
     readings, valid, _ = fit.peaks(hists)
-    r = fit.ranges(np.where(valid, readings, np.nan))
+    zone_points = fit.points(np.where(valid, readings, np.nan))  # (F, 9, 3)
     with np.errstate(divide="ignore", invalid="ignore"):
         true = true_ranges(np.array([f.truth.normal for f in frames]), np.array([f.truth.offset for f in frames]),
                            fit.directions())
     far = valid & (true - end >= FAR_MIN_PAST * end)
     own, shared = Uncertainty(far_zone_rel=1.0), Uncertainty(far_common_rel=1.0)
     out = [], [], [], []
-    for i in np.flatnonzero((far.sum(axis=1) >= 3) & (valid.sum(axis=1) >= 3)):
-        points = r[i][:, None] * fit.directions()
+    for i in np.flatnonzero(far.sum(axis=1) >= 3):  # (far zones are valid ones)
+        points = zone_points[i]
         try:
             plane, _ = plane_through(points, valid[i])
         except NoPlaneError:

@@ -361,8 +361,7 @@ class PeakParams(ParamModel):
                     "table": (y0, (n - 1) / (y1 - y0), tab.ravel(), np.arange(N_ZONES) * n, shift[0], shift[-1],
                               float(n - 1), hi, 1.0 + self.far_extension()[2])}
 
-        key = (self.m, tuple(self.zone_gains), tuple(self.residual_coeffs), tuple(self.residual_domain),
-               tuple(self.zone_inverse))
+        key = self._corrections_key()
         return self._memo("_inverse_mapping", key, compute)
 
     def _inverse_table(self) -> tuple:
@@ -423,9 +422,14 @@ class PeakParams(ParamModel):
             s = s / (self.m * np.asarray(self.zone_gains, dtype=float))
             return hi, s[0], np.clip((s[0] - s[1]) / w, -FAR_SLOPE_MAX, FAR_SLOPE_MAX)
 
-        key = (self.m, tuple(self.zone_gains), tuple(self.residual_coeffs), tuple(self.residual_domain),
-               tuple(self.zone_inverse))
+        key = self._corrections_key()
         return self._memo("_far_extension", key, compute)
+
+    def _corrections_key(self) -> tuple:
+        """What the inverse table and the far continuation depend on (their cache key): the linear scale and gains,
+        the residual series, its domain and each zone's inverse-range terms."""
+        return (self.m, tuple(self.zone_gains), tuple(self.residual_coeffs), tuple(self.residual_domain),
+                tuple(self.zone_inverse))
 
     def far_screen(self) -> float:
         """m: the depth (along the optical axis) beyond which a zone's range may lie past the residual domain's far end:
